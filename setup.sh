@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Sets up everything c1mesh needs on a fresh Debian machine, from this repository's own files:
+# the system library open3d needs (libusb-1.0-0), a virtual environment in .venv, and the
+# package with its dev extra (tests, matplotlib peer, sympy) installed editable.
+set -euo pipefail
+cd "$(dirname "$0")"
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+    if [ "$(id -u)" = 0 ]; then
+        apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null
+    else
+        echo "setup.sh: please install the Debian package libusb-1.0-0 (needed by open3d)" >&2
+    fi
+fi
+[ -x .venv/bin/python ] || python3 -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip >/dev/null
+.venv/bin/python -m pip install -q -e '.[dev]'
+echo "setup.sh: ready (.venv/bin/c1mesh)" >&2
