@@ -1,0 +1,139 @@
+"""Read point clouds and write meshes, one small module per format behind one registry.
+
+`read_cloud` picks a reader by file extension (or `fmt`), loads the bytes once and hands
+them to the format module; `write_mesh` picks a writer the same way and, for a path,
+writes through `atomic_output` so that a failed write never leaves a partial file.
+Both also work on binary file objects (stdin / stdout), where `fmt` says the format.
+"""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import IO, Callable, Union
+
+import numpy as np
+
+from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.errors import FormatError, InputError
+from c1mesh.formats._atomic import atomic_output
+from c1mesh.formats.las import read_las
+from c1mesh.formats.meshes import write_glb, write_off, write_stl
+from c1mesh.formats.obj import read_obj, write_obj
+from c1mesh.formats.pcd import read_pcd
+from c1mesh.formats.ply import read_ply, write_ply
+from c1mesh.formats.xyz import read_xyz
+
+__all__ = ["read_cloud", "write_mesh", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
+
+Source = Union[str, "os.PathLike[str]", IO[bytes]]
+
+_READERS: dict[str, Callable[[bytes, str], PointCloud]] = {
+    "ply": read_ply, "obj": read_obj, "xyz": read_xyz, "txt": read_xyz, "csv": read_xyz,
+    "pcd": read_pcd, "las": read_las, "laz": read_las,
+}
+_WRITERS: dict[str, Callable[..., None]] = {
+    "ply": write_ply, "obj": write_obj, "stl": write_stl, "off": write_off, "glb": write_glb,
+}
+#: Input file extensions `read_cloud` understands (lower case, no dot).
+SUPPORTED_INPUT: tuple[str, ...] = tuple(_READERS)
+#: Output file extensions `write_mesh` understands (lower case, no dot).
+SUPPORTED_OUTPUT: tuple[str, ...] = tuple(_WRITERS)
+
+
+def _is_stream(obj: object) -> bool:
+    return not isinstance(obj, (str, bytes, os.PathLike)) and (hasattr(obj, "read") or hasattr(obj, "write"))
+
+
+def _format(fmt: str | None, where: str, supported: tuple[str, ...], direction: str) -> str:
+    """Normalise `fmt` ('.PLY' -> 'ply') and check it is in `supported`."""
+    key = (fmt or "").lower().lstrip(".")
+    if not key:
+        raise InputError(f"Cannot tell the {direction} format of '{where}' from its name; "
+                         f"use one of the extensions {', '.join(SUPPORTED_INPUT if direction == 'input' else supported)}.")
+    if key not in supported:
+        raise InputError(f"Unsupported {direction} format '{key}' for '{where}'; supported: {', '.join(supported)}.")
+    return key
+
+
+def _read_path(path: Path) -> bytes:
+    """All bytes of `path`; InputError for missing files, directories and read errors."""
+    if not path.exists():
+        raise InputError(f"Input file '{path}' does not exist.")
+    if path.is_dir():
+        raise InputError(f"Input path '{path}' is a directory, not a point file.")
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
+
+
+def _read_stream(stream: IO[bytes], name: str) -> bytes:
+    data = stream.read()
+    if isinstance(data, str):
+        raise InputError(f"Input stream '{name}' is in text mode; pass a binary stream such as sys.stdin.buffer.")
+    return bytes(data)
+
+
+def read_cloud(source: Source, fmt: str | None = None) -> PointCloud:
+    """Read a point cloud from a path or a binary file object.
+
+    The format comes from `fmt` if given, else from the path's extension (case-insensitive);
+    for a file object `fmt` is required. Faces in the input are ignored. Raises InputError
+    for missing/unreadable paths and unknown formats, FormatError for empty or malformed
+    files, DependencyError when an optional reader library is missing.
+    """
+    if _is_stream(source):
+        name = str(getattr(source, "name", "<stream>"))
+        if fmt is None:
+            raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
+        key = _format(fmt, name, SUPPORTED_INPUT, "input")
+        data = _read_stream(source, name)
+    else:
+        path = Path(source)
+        name = str(path)
+        key = _format(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
+        data = _read_path(path)
+    if not data:
+        raise FormatError(f"Input '{name}' is empty.")
+    return _READERS[key](data, name)
+
+
+def _check_mesh(mesh: SurfaceMesh) -> None:
+    """InputError unless the arrays have the shapes SurfaceMesh promises and faces index vertices."""
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise InputError(f"Mesh vertices must be an (M, 3) array, not shape {v.shape}.")
+    if f.size and (f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer)):
+        raise InputError(f"Mesh faces must be a (K, 3) integer array, not {f.dtype} of shape {f.shape}.")
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise InputError(f"Mesh faces refer to vertex indices outside 0..{len(v) - 1}.")
+    for label, arr, widths in (("vertex_normals", mesh.vertex_normals, (3,)), ("vertex_colors", mesh.vertex_colors, (3, 4))):
+        if arr is not None and (np.ndim(arr) != 2 or len(arr) != len(v) or np.shape(arr)[1] not in widths):
+            raise InputError(f"Mesh {label} must have one row of {' or '.join(map(str, widths))} values per vertex.")
+
+
+def write_mesh(mesh: SurfaceMesh, target: Union[str, "os.PathLike[str]", IO[bytes]], fmt: str | None = None,
+               ascii: bool = False) -> None:
+    """Write `mesh` to a path or a binary file object.
+
+    The format comes from `fmt` if given, else from the path's extension; a file object
+    defaults to binary PLY. `ascii` selects ascii PLY (other formats have one encoding).
+    A path is written to a temporary file beside it and renamed into place only when
+    complete. Raises InputError for unknown formats, missing or unwritable directories.
+    """
+    _check_mesh(mesh)
+    if _is_stream(target):
+        name = str(getattr(target, "name", "<stream>"))
+        key = _format(fmt or "ply", name, SUPPORTED_OUTPUT, "output")
+        if isinstance(target, io.TextIOBase):
+            target = getattr(target, "buffer", None)
+            if target is None:
+                raise InputError(f"Output stream '{name}' is in text mode; pass a binary stream such as sys.stdout.buffer.")
+        _WRITERS[key](mesh, target, ascii=ascii)
+        target.flush()
+        return
+    path = Path(target)
+    key = _format(fmt or path.suffix, str(path), SUPPORTED_OUTPUT, "output")
+    with atomic_output(path) as f:
+        _WRITERS[key](mesh, f, ascii=ascii)

@@ -1,0 +1,123 @@
+"""Wavefront OBJ: read `v`/`vn` lines as a point cloud, write a triangle mesh.
+
+A point-cloud export usually has one `vn` per `v`, in the same order; then those are the
+normals. Otherwise normals are taken from the `v//vn` pairs of the faces (vertices no
+face mentions get NaN normals); without either, normals are None. `v x y z r g b`
+colours (floats 0..1) become uint8. Everything else (faces, groups, materials) is ignored.
+"""
+from __future__ import annotations
+
+import io
+import re
+from typing import IO
+
+import numpy as np
+
+from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.errors import FormatError
+from c1mesh.formats._common import colors_to_uint8
+
+_KEYWORD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+def _text(data: bytes, name: str, kind: str) -> str:
+    """Decode a text file; NUL bytes mean it is binary garbage, not text."""
+    if b"\0" in data[:65536]:
+        raise FormatError(f"{kind} file '{name}' contains binary data, not text.")
+    return data.decode("utf-8", errors="replace")
+
+
+def _group_lines(text: str, name: str) -> dict[str, list[tuple[int, str, int, int]]]:
+    """Lines by keyword: (line number, rest of line, #v before it, #vn before it)."""
+    groups: dict[str, list[tuple[int, str, int, int]]] = {"v": [], "vn": [], "f": []}
+    for number, line in enumerate(text.splitlines(), start=1):
+        parts = line.split(None, 1)
+        if not parts or parts[0].startswith("#"):
+            continue
+        key = parts[0]
+        if not _KEYWORD.match(key):
+            raise FormatError(f"OBJ file '{name}' line {number} does not start with an OBJ keyword: {line[:40]!r}.")
+        if key in groups:
+            groups[key].append((number, parts[1] if len(parts) > 1 else "", len(groups["v"]), len(groups["vn"])))
+    return groups
+
+
+def _numbers(rows: list[tuple[int, str, int, int]], name: str, widths: tuple[int, ...]) -> np.ndarray:
+    """Parse the numeric rest of each row into an (n, w) float64 table, w in `widths`."""
+    if not rows:
+        return np.zeros((0, widths[0]))
+    try:
+        table = np.loadtxt([r[1] for r in rows], dtype=np.float64, ndmin=2, comments="#")
+    except ValueError:
+        table = None
+    if table is not None and table.shape[1] in widths:
+        return table
+    for number, rest, _, _ in rows:  # slow path only to name the offending line
+        words = rest.split("#")[0].split()
+        if len(words) not in widths or not all(_is_number(w) for w in words):
+            raise FormatError(f"OBJ file '{name}' line {number} needs {' or '.join(map(str, widths))} numbers: {rest!r}.")
+    raise FormatError(f"OBJ file '{name}' mixes vertex lines of different lengths.")
+
+
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+def _normals_from_faces(faces: list[tuple[int, str, int, int]], vn: np.ndarray, n: int, name: str) -> np.ndarray | None:
+    """(n, 3) normals from `v//vn` face corners, NaN where no face names one; None if none do."""
+    normals = np.full((n, 3), np.nan)
+    found = False
+    for number, rest, nv, nvn in faces:
+        for corner in rest.split():
+            parts = corner.split("/")
+            if len(parts) < 3 or not parts[2]:
+                continue
+            try:
+                vi, ni = int(parts[0]), int(parts[2])
+                normals[vi - 1 if vi > 0 else nv + vi] = vn[ni - 1 if ni > 0 else nvn + ni]
+            except (ValueError, IndexError):
+                raise FormatError(f"OBJ file '{name}' line {number} has a bad face corner {corner!r}.") from None
+            found = True
+    return normals if found else None
+
+
+def read_obj(data: bytes, name: str) -> PointCloud:
+    """Read the vertices (with colours and normals where present) of an OBJ file."""
+    groups = _group_lines(_text(data, name, "OBJ"), name)
+    if not groups["v"]:
+        raise FormatError(f"OBJ file '{name}' has no 'v' vertex lines.")
+    v = _numbers(groups["v"], name, (3, 4, 6))
+    vn = _numbers(groups["vn"], name, (3,))
+    colors = colors_to_uint8(v[:, 3:6]) if v.shape[1] == 6 else None
+    if len(vn) == len(v):
+        normals = vn
+    elif len(vn):
+        normals = _normals_from_faces(groups["f"], vn, len(v), name)
+    else:
+        normals = None
+    return PointCloud(points=np.ascontiguousarray(v[:, :3]), normals=normals, colors=colors)
+
+
+def write_obj(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = True) -> None:
+    """Write `mesh` as OBJ text: `v` with round-trip (repr) precision, `vn`, 1-based faces.
+
+    Colours go on the `v` lines as floats 0..1 (a widely read extension; alpha is dropped).
+    """
+    out = io.StringIO()
+    out.write("# written by c1mesh\n")
+    rows = np.asarray(mesh.vertices, dtype=np.float64).tolist()
+    if mesh.vertex_colors is not None:
+        rgb = (np.asarray(mesh.vertex_colors)[:, :3] / 255.0).tolist()
+        rows = [v + c for v, c in zip(rows, rgb)]
+    out.writelines("v " + " ".join(map(repr, row)) + "\n" for row in rows)
+    if mesh.vertex_normals is not None:
+        normals = np.asarray(mesh.vertex_normals, dtype=np.float64).tolist()
+        out.writelines("vn " + " ".join(map(repr, row)) + "\n" for row in normals)
+    faces = (np.asarray(mesh.faces, dtype=np.int64) + 1).tolist()
+    pattern = "f {0}//{0} {1}//{1} {2}//{2}\n" if mesh.vertex_normals is not None else "f {0} {1} {2}\n"
+    out.writelines(pattern.format(*face) for face in faces)
+    f.write(out.getvalue().encode("ascii"))

@@ -1,0 +1,207 @@
+"""PCD (Point Cloud Library format, v0.6/v0.7): ascii, binary and binary_compressed.
+
+Fields: x y z -> points; normal_x normal_y normal_z -> normals; rgb / rgba (a packed
+0xAARRGGBB word stored as float or uint32) -> colors (N, 3) for rgb, (N, 4) for rgba;
+everything else (curvature, intensity, label, ...) -> extra, a field with COUNT k > 1
+as k columns name_0 .. name_{k-1}; padding fields named '_' are dropped. Organised
+clouds (WIDTH x HEIGHT) are flattened row by row; NaN points are kept (the pipeline
+drops and counts them). binary bodies are little-endian rows (array of structs);
+binary_compressed bodies are LZF-compressed columns (struct of arrays), each field's
+values for all points one after another.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from c1mesh.cloud import PointCloud
+from c1mesh.errors import FormatError
+from c1mesh.formats._common import NORMAL_NAMES, find_columns
+from c1mesh.formats.lzf import LZFError, lzf_decompress
+
+_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8",
+          ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8"}
+
+
+@dataclass
+class Header:
+    """The parsed header: per-field names, numpy types and counts; point count; data kind."""
+
+    names: list[str]
+    types: list[str]
+    counts: list[int]
+    points: int
+    data: str
+
+    def dtype(self) -> np.dtype:
+        """Little-endian row dtype; internal field names f0, f1, ... (PCD names may repeat)."""
+        return np.dtype([(f"f{i}", "<" + t, (c,)) for i, (t, c) in enumerate(zip(self.types, self.counts))])
+
+
+# ----------------------------------------------------------------------------- header
+def _header_lines(data: bytes, name: str) -> tuple[dict[str, list[str]], int]:
+    """Header keywords -> values up to and including DATA; return them and the body offset."""
+    values: dict[str, list[str]] = {}
+    offset = 0
+    while "DATA" not in values:
+        nl = data.find(b"\n", offset, offset + 65536)
+        if nl < 0:
+            raise FormatError(f"PCD file '{name}' has no 'DATA' line; the header is incomplete or this is not a PCD file.")
+        words, offset = data[offset:nl].decode("latin-1").split(), nl + 1
+        if not words or words[0].startswith("#"):
+            continue
+        if words[0].upper() not in _KEYS:
+            raise FormatError(f"'{name}' is not a valid PCD file: unknown header line {' '.join(words)[:60]!r}.")
+        values[words[0].upper()] = words[1:]
+    return values, offset
+
+
+def _ints(values: dict[str, list[str]], key: str, name: str, default: list[int] | None = None) -> list[int]:
+    if key not in values:
+        if default is None:
+            raise FormatError(f"PCD file '{name}' has no {key} line in its header.")
+        return default
+    try:
+        return [int(v) for v in values[key]]
+    except ValueError:
+        raise FormatError(f"PCD file '{name}' has a non-integer {key} line: {' '.join(values[key])!r}.") from None
+
+
+def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
+    """Parse and validate the header; return it and the offset of the body."""
+    values, offset = _header_lines(data, name)
+    names = values.get("FIELDS") or []
+    if not names:
+        raise FormatError(f"PCD file '{name}' has no FIELDS line in its header.")
+    sizes = _ints(values, "SIZE", name)
+    kinds = [t.upper() for t in values.get("TYPE", [])]
+    counts = _ints(values, "COUNT", name, [1] * len(names))
+    if not len(names) == len(sizes) == len(kinds) == len(counts):
+        raise FormatError(f"PCD file '{name}' has FIELDS, SIZE, TYPE and COUNT lines of different lengths.")
+    bad = [f"{t}{s}" for t, s in zip(kinds, sizes) if (t, s) not in _TYPES]
+    if bad:
+        raise FormatError(f"PCD file '{name}' has unsupported field types {', '.join(bad)}.")
+    width = _ints(values, "WIDTH", name, [0])[0]
+    height = _ints(values, "HEIGHT", name, [1])[0]
+    points = _ints(values, "POINTS", name, [width * height])[0]
+    kind = (values["DATA"] or [""])[0].lower()
+    if kind not in ("ascii", "binary", "binary_compressed"):
+        raise FormatError(f"PCD file '{name}' has unknown DATA kind {kind!r}; expected ascii, binary or binary_compressed.")
+    types = [_TYPES[t, s] for t, s in zip(kinds, sizes)]
+    return Header(names, types, counts, points, kind), offset
+
+
+# ----------------------------------------------------------------------------- bodies
+def _truncated(name: str, header: Header, detail: str) -> FormatError:
+    return FormatError(f"PCD file '{name}' is truncated: {detail} for the {header.points} points the header promises.")
+
+
+def _binary(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarray]:
+    """Per-field (N, count) arrays of an uncompressed binary body (rows of structs)."""
+    dtype = header.dtype()
+    if len(data) - offset < header.points * dtype.itemsize:
+        raise _truncated(name, header, f"{len(data) - offset} data bytes, {header.points * dtype.itemsize} needed")
+    rows = np.frombuffer(data, dtype, header.points, offset)
+    return [rows[f] for f in dtype.names]
+
+
+def _compressed(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarray]:
+    """Per-field (N, count) arrays of an LZF-compressed body (one column after another)."""
+    if len(data) - offset < 8:
+        raise _truncated(name, header, "no compressed-size words")
+    packed, unpacked = np.frombuffer(data, "<u4", 2, offset).tolist()
+    itemsize = header.dtype().itemsize
+    if unpacked != header.points * itemsize:
+        raise FormatError(f"PCD file '{name}' promises {unpacked} uncompressed bytes, not {header.points * itemsize}.")
+    if len(data) - offset - 8 < packed:
+        raise _truncated(name, header, f"{len(data) - offset - 8} compressed bytes, {packed} needed")
+    try:
+        raw = lzf_decompress(data[offset + 8: offset + 8 + packed], unpacked) if unpacked else b""
+    except LZFError as exc:
+        raise FormatError(f"PCD file '{name}' has corrupt compressed data: {exc}.") from None
+    columns, start = [], 0
+    for t, c in zip(header.types, header.counts):
+        col = np.frombuffer(raw, "<" + t, header.points * c, start).reshape(header.points, c)
+        columns.append(col)
+        start += col.nbytes
+    return columns
+
+
+def _ascii(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarray]:
+    """Per-field (N, count) arrays of an ascii body; float fields stay float64 (the text's precision)."""
+    lines = [ln for ln in data[offset:].decode("latin-1").splitlines() if ln.strip()]
+    if len(lines) < header.points:
+        raise _truncated(name, header, f"{len(lines)} data lines")
+    width = sum(header.counts)
+    try:
+        table = np.loadtxt(lines[: header.points], dtype=np.float64, ndmin=2, comments=None).reshape(-1, width)
+    except ValueError as exc:
+        raise FormatError(f"PCD file '{name}' has a malformed ascii data line: {exc}.") from None
+    columns, start = [], 0
+    for field, t, c in zip(header.names, header.types, header.counts):
+        col = table[:, start:start + c]
+        if field.lower() in ("rgb", "rgba"):
+            col = _ascii_packed_color(col)
+        elif t[0] != "f":
+            col = col.astype(t)
+        columns.append(col)
+        start += c
+    return columns
+
+
+def _ascii_packed_color(col: np.ndarray) -> np.ndarray:
+    """Packed colours in ascii: PCL writes the uint32 word; old writers wrote the float."""
+    finite = col[np.isfinite(col)]
+    if np.all(finite == np.floor(finite)) and np.all(finite >= 0):
+        return np.nan_to_num(col).astype(np.uint32)
+    return col.astype(np.float32).view(np.uint32)
+
+
+# ----------------------------------------------------------------------------- fields
+def _unpack_colors(word: np.ndarray, with_alpha: bool) -> np.ndarray:
+    """(N,) packed 0xAARRGGBB (float32 bits or integers) -> (N, 3|4) uint8 r, g, b[, a]."""
+    word = word.view(np.uint32) if word.dtype == np.float32 else word.astype(np.uint32)
+    shifts = (16, 8, 0, 24) if with_alpha else (16, 8, 0)
+    return np.column_stack([(word >> s) & 0xFF for s in shifts]).astype(np.uint8)
+
+
+def _cloud(header: Header, columns: list[np.ndarray], name: str) -> PointCloud:
+    """Split the per-field columns into PointCloud fields."""
+    scalars = {n: columns[i][:, 0] for i, n in enumerate(header.names) if header.counts[i] == 1}
+    order = list(scalars)
+    xyz = find_columns(order, (("x",), ("y",), ("z",)))
+    if None in xyz:
+        raise FormatError(f"PCD file '{name}' has no x, y and z fields.")
+    take = lambda idx: np.column_stack([scalars[order[i]] for i in idx]).astype(np.float64)  # noqa: E731
+    cloud = PointCloud(points=take(xyz))
+    used = {order[i] for i in xyz}
+    nrm = find_columns(order, NORMAL_NAMES)
+    if None not in nrm:
+        cloud.normals = take(nrm)
+        used |= {order[i] for i in nrm}
+    packed = next((n for n in order if n.lower() in ("rgb", "rgba")), None)
+    if packed is not None and scalars[packed].dtype.itemsize == 4:
+        cloud.colors = _unpack_colors(scalars[packed], packed.lower() == "rgba")
+        used.add(packed)
+    cloud.extra = _extra(header, columns, used)
+    return cloud
+
+
+def _extra(header: Header, columns: list[np.ndarray], used: set[str]) -> dict[str, np.ndarray]:
+    """Every field not used above, by name (name_i for COUNT > 1), '_' padding dropped."""
+    extra = {}
+    for n, c, col in zip(header.names, header.counts, columns):
+        if n in used or n == "_":
+            continue
+        for j in range(c):
+            extra[n if c == 1 else f"{n}_{j}"] = np.ascontiguousarray(col[:, j], dtype=col.dtype.newbyteorder("="))
+    return extra
+
+
+def read_pcd(data: bytes, name: str) -> PointCloud:
+    """Read a PCD file held in `data` (`name` is for messages)."""
+    header, offset = _parse_header(data, name)
+    body = {"ascii": _ascii, "binary": _binary, "binary_compressed": _compressed}[header.data]
+    return _cloud(header, body(data, offset, header, name), name)

@@ -1,0 +1,330 @@
+"""PLY (Stanford polygon format): read a point cloud, write a triangle mesh.
+
+Reading takes the `vertex` element: x y z, optional normals (nx ny nz), optional colours
+(red green blue [alpha]); every other vertex property goes to `extra`. Other elements
+(faces, edges, ...) are skipped, wherever they are in the file, but their size is still
+checked so that a truncated file is reported. Binary bodies are decoded with numpy
+structured dtypes (no per-point Python work); ascii bodies with `np.loadtxt`.
+"""
+from __future__ import annotations
+
+import io
+import struct
+from dataclasses import dataclass, field
+from typing import IO
+
+import numpy as np
+
+from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.errors import FormatError
+from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, native
+
+#: PLY scalar type names (both spellings) -> numpy type code without byte order.
+PLY_TYPES = {
+    "char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2",
+    "int": "i4", "uint": "u4", "float": "f4", "double": "f8",
+    "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+    "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8",
+}
+_STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I", "f4": "f", "f8": "d"}
+_ENDIAN = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": "="}
+
+
+@dataclass
+class Prop:
+    """One property: scalar (`count_type` None) or list (count type, then `type` items)."""
+
+    name: str
+    type: str
+    count_type: str | None = None
+
+
+@dataclass
+class Element:
+    """One header element: name, number of rows, properties in file order."""
+
+    name: str
+    count: int
+    props: list[Prop] = field(default_factory=list)
+
+    @property
+    def has_lists(self) -> bool:
+        return any(p.count_type is not None for p in self.props)
+
+
+# ----------------------------------------------------------------------------- header
+def _parse_header(data: bytes, name: str) -> tuple[str, list[Element], int]:
+    """Return (format, elements, offset of the body) or raise FormatError."""
+    if not data.startswith((b"ply\n", b"ply\r\n")):
+        raise FormatError(f"'{name}' is not a PLY file: it does not start with the 'ply' magic line.")
+    fmt, elements, offset, number = None, [], data.index(b"\n") + 1, 1
+    while True:
+        nl = data.find(b"\n", offset, offset + 4096)
+        if nl < 0:
+            raise FormatError(f"PLY file '{name}' has no 'end_header' line; the header is incomplete.")
+        words, offset, number = data[offset:nl].decode("latin-1").split(), nl + 1, number + 1
+        if words == ["end_header"]:
+            break
+        fmt = _header_line(words, fmt, elements, name, number)
+    if fmt is None:
+        raise FormatError(f"PLY file '{name}' has no 'format' line in its header.")
+    return fmt, elements, offset
+
+
+def _header_line(words: list[str], fmt: str | None, elements: list[Element], name: str, number: int) -> str | None:
+    """Apply one header line to (fmt, elements); return the possibly updated fmt."""
+    bad = f"PLY file '{name}' has a bad header line {number}: {' '.join(words)!r}."
+    if not words or words[0] in ("comment", "obj_info"):
+        return fmt
+    if words[0].lstrip("+-").replace(".", "", 1).isdigit():
+        raise FormatError(f"PLY file '{name}' has data at header line {number}: the 'end_header' line is missing.")
+    if words[0] == "format":
+        if len(words) != 3 or words[1] not in _ENDIAN:
+            raise FormatError(bad)
+        return words[1]
+    if words[0] == "element" and len(words) == 3 and words[2].isdigit():
+        elements.append(Element(words[1], int(words[2])))
+    elif words[0] == "property" and elements:
+        elements[-1].props.append(_parse_property(words, bad))
+    else:
+        raise FormatError(bad)
+    return fmt
+
+
+def _parse_property(words: list[str], bad: str) -> Prop:
+    """Parse 'property <type> <name>' or 'property list <count type> <type> <name>'."""
+    if len(words) == 3 and words[1] in PLY_TYPES:
+        return Prop(words[2], words[1])
+    if len(words) == 5 and words[1] == "list" and words[2] in PLY_TYPES and words[3] in PLY_TYPES:
+        return Prop(words[4], words[3], words[2])
+    raise FormatError(bad)
+
+
+# ----------------------------------------------------------------------------- binary body
+def _row_dtype(el: Element, endian: str, list_lengths: list[int]) -> np.dtype:
+    """Structured dtype of one row, lists given fixed lengths (one per list property)."""
+    fields, lengths = [], iter(list_lengths)
+    for i, p in enumerate(el.props):
+        if p.count_type is None:
+            fields.append((p.name, endian + PLY_TYPES[p.type]))
+        else:
+            fields.append((f"__count{i}", endian + PLY_TYPES[p.count_type]))
+            fields.append((p.name, endian + PLY_TYPES[p.type], (next(lengths),)))
+    return np.dtype(fields)
+
+
+def _first_row_lengths(el: Element, buf: bytes, offset: int, endian: str) -> list[int]:
+    """Lengths of the list properties in the row starting at `offset`."""
+    lengths = []
+    for p in el.props:
+        if p.count_type is None:
+            offset += np.dtype(PLY_TYPES[p.type]).itemsize
+            continue
+        ct = np.dtype(endian + PLY_TYPES[p.count_type])
+        if offset + ct.itemsize > len(buf):
+            return lengths
+        n = int(np.frombuffer(buf, ct, 1, offset)[0])
+        lengths.append(n)
+        offset += ct.itemsize + n * np.dtype(PLY_TYPES[p.type]).itemsize
+    return lengths
+
+
+def _read_binary_element(el: Element, buf: bytes, offset: int, endian: str, name: str) -> tuple[np.ndarray | None, int]:
+    """Decode element `el` at `offset`; return (rows or None if ragged lists, end offset).
+
+    Fixed-size rows (no lists, or every row's lists as long as the first row's) become
+    one structured array; ragged lists are walked row by row only to find the end.
+    """
+    n_lists = sum(p.count_type is not None for p in el.props)
+    lengths = _first_row_lengths(el, buf, offset, endian) if n_lists and el.count else []
+    lengths += [0] * (n_lists - len(lengths))
+    dtype = _row_dtype(el, endian, lengths)
+    end = offset + el.count * dtype.itemsize
+    if end <= len(buf):
+        rows = np.frombuffer(buf, dtype, el.count, offset)
+        counts = [f for f in dtype.names if f.startswith("__count")]
+        if all((rows[f] == n).all() for f, n in zip(counts, lengths)):
+            return rows, end
+    if not el.has_lists:
+        raise _truncated(name, el)
+    return None, _walk_ragged(el, buf, offset, endian, name)
+
+
+def _walk_ragged(el: Element, buf: bytes, offset: int, endian: str, name: str) -> int:
+    """Offset just past element `el` whose list lengths vary from row to row.
+
+    A plain Python loop over rows (struct, not numpy, per count): used only for elements
+    that are skipped anyway, e.g. mixed triangle/quad faces stored before the vertices.
+    """
+    steps = []  # per property: (item size, struct code of the count or None for a scalar)
+    for p in el.props:
+        size = np.dtype(PLY_TYPES[p.type]).itemsize
+        code = None if p.count_type is None else endian + _STRUCT[PLY_TYPES[p.count_type]]
+        steps.append((size, code, struct.calcsize(code) if code else 0))
+    try:
+        for _ in range(el.count):
+            for size, code, csize in steps:
+                if code is None:
+                    offset += size
+                else:
+                    offset += csize + size * int(struct.unpack_from(code, buf, offset)[0])
+    except struct.error:
+        raise _truncated(name, el) from None
+    if offset > len(buf):
+        raise _truncated(name, el)
+    return offset
+
+
+def _truncated(name: str, el: Element) -> FormatError:
+    return FormatError(
+        f"PLY file '{name}' is truncated: the body ends before the {el.count} '{el.name}' rows the header promises."
+    )
+
+
+def _binary_vertices(elements: list[Element], buf: bytes, offset: int, endian: str, name: str) -> np.ndarray:
+    """Structured array of the vertex rows; every element is walked to detect truncation."""
+    vertices = None
+    for el in elements:
+        rows, offset = _read_binary_element(el, buf, offset, endian, name)
+        if el.name == "vertex":
+            if rows is None:
+                raise FormatError(f"PLY file '{name}' has vertex list properties of varying length; not supported.")
+            vertices = rows
+    return vertices
+
+
+# ----------------------------------------------------------------------------- ascii body
+def _ascii_vertices(elements: list[Element], buf: bytes, offset: int, name: str) -> np.ndarray:
+    """Structured array of the vertex rows of an ascii body (one line per row)."""
+    lines = [ln for ln in buf[offset:].decode("latin-1").splitlines() if ln.strip()]
+    start = 0
+    vertices = None
+    for el in elements:
+        if start + el.count > len(lines):
+            raise _truncated(name, el)
+        if el.name == "vertex":
+            vertices = _parse_ascii_rows(el, lines[start:start + el.count], name)
+        start += el.count
+    return vertices
+
+
+def _parse_ascii_rows(el: Element, lines: list[str], name: str) -> np.ndarray:
+    """Parse the ascii lines of a list-free element into a structured array."""
+    if el.has_lists:
+        raise FormatError(f"PLY file '{name}' has list properties in its ascii vertex element; not supported.")
+    dtype = _row_dtype(el, "=", [])
+    if not lines:
+        return np.zeros(0, dtype)
+    try:
+        table = np.loadtxt(lines, dtype=np.float64, ndmin=2, comments=None)
+    except ValueError as exc:
+        raise FormatError(f"PLY file '{name}' has a malformed ascii vertex row: {exc}.") from exc
+    if table.shape[1] != len(el.props):
+        raise FormatError(
+            f"PLY file '{name}' has {table.shape[1]} values per vertex line but {len(el.props)} vertex properties."
+        )
+    rows = np.empty(len(lines), dtype)
+    for i, p in enumerate(el.props):
+        rows[p.name] = table[:, i]
+    return rows
+
+
+# ----------------------------------------------------------------------------- reader
+def read_ply(data: bytes, name: str) -> PointCloud:
+    """Read the vertex element of a PLY file held in `data` (`name` is for messages)."""
+    fmt, elements, offset = _parse_header(data, name)
+    vertex_el = next((el for el in elements if el.name == "vertex"), None)
+    if vertex_el is None:
+        raise FormatError(f"PLY file '{name}' has no 'vertex' element.")
+    if fmt == "ascii":
+        rows = _ascii_vertices(elements, data, offset, name)
+    else:
+        rows = _binary_vertices(elements, data, offset, _ENDIAN[fmt], name)
+    return _cloud_from_rows(rows, vertex_el, name)
+
+
+def _cloud_from_rows(rows: np.ndarray, el: Element, name: str) -> PointCloud:
+    """Split structured vertex rows into PointCloud fields."""
+    names = [p.name for p in el.props if p.count_type is None]
+    xyz = find_columns(names, (("x",), ("y",), ("z",)))
+    if None in xyz:
+        raise FormatError(f"PLY file '{name}' has a vertex element without x, y and z properties.")
+    used = set(xyz)
+    column = lambda idx: rows[names[idx]].astype(np.float64)  # noqa: E731
+    points = np.column_stack([column(i) for i in xyz])
+    normals = None
+    nrm = find_columns(names, NORMAL_NAMES)
+    if None not in nrm:
+        normals = np.column_stack([column(i) for i in nrm])
+        used |= set(nrm)
+    colors = None
+    rgba = find_columns(names, COLOR_NAMES)
+    if None not in rgba[:3]:
+        channels = [i for i in rgba if i is not None]
+        colors = colors_to_uint8(np.column_stack([rows[names[i]] for i in channels]))
+        used |= set(channels)
+    extra = {n: native(rows[n]) for i, n in enumerate(names) if i not in used}
+    return PointCloud(points=points, normals=normals, colors=colors, extra=extra)
+
+
+# ----------------------------------------------------------------------------- writer
+def _vertex_dtype(mesh: SurfaceMesh, endian: str) -> np.dtype:
+    """Vertex row: x y z double, [nx ny nz double], [red green blue [alpha] uchar]."""
+    fields = [(c, endian + "f8") for c in ("x", "y", "z")]
+    if mesh.vertex_normals is not None:
+        fields += [(c, endian + "f8") for c in ("nx", "ny", "nz")]
+    if mesh.vertex_colors is not None:
+        fields += [(c, "u1") for c in ("red", "green", "blue", "alpha")[: mesh.vertex_colors.shape[1]]]
+    return np.dtype(fields)
+
+
+def _header(mesh: SurfaceMesh, dtype: np.dtype, fmt: str) -> bytes:
+    kinds = {"f8": "double", "u1": "uchar"}
+    lines = ["ply", f"format {fmt} 1.0", "comment written by c1mesh", f"element vertex {len(mesh.vertices)}"]
+    lines += [f"property {kinds[dtype[n].str[1:]]} {n}" for n in dtype.names]
+    lines += [f"element face {len(mesh.faces)}", "property list uchar int vertex_indices", "end_header", ""]
+    return "\n".join(lines).encode("ascii")
+
+
+def _vertex_rows(mesh: SurfaceMesh, dtype: np.dtype) -> np.ndarray:
+    rows = np.empty(len(mesh.vertices), dtype)
+    for i, c in enumerate("xyz"):
+        rows[c] = mesh.vertices[:, i]
+    if mesh.vertex_normals is not None:
+        for i, c in enumerate(("nx", "ny", "nz")):
+            rows[c] = mesh.vertex_normals[:, i]
+    if mesh.vertex_colors is not None:
+        for i in range(mesh.vertex_colors.shape[1]):
+            rows[("red", "green", "blue", "alpha")[i]] = mesh.vertex_colors[:, i]
+    return rows
+
+
+def write_ply(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = False) -> None:
+    """Write `mesh` as PLY to binary file object `f`: binary little endian, or ascii.
+
+    Coordinates and normals are doubles so that large world coordinates (state-plane
+    feet, UTM metres) keep their full precision.
+    """
+    dtype = _vertex_dtype(mesh, "=" if ascii else "<")
+    rows = _vertex_rows(mesh, dtype)
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    f.write(_header(mesh, dtype, "ascii" if ascii else "binary_little_endian"))
+    if ascii:
+        _write_ascii_body(f, rows, faces)
+        return
+    face_rows = np.empty(len(faces), np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
+    face_rows["n"] = 3
+    face_rows["v"] = faces
+    f.write(rows.tobytes())
+    f.write(face_rows.tobytes())
+
+
+def _write_ascii_body(f: IO[bytes], rows: np.ndarray, faces: np.ndarray) -> None:
+    """Vertex lines with round-trip precision (repr of each double), then '3 a b c' faces."""
+    text = io.StringIO()
+    cols = [rows[n].tolist() for n in rows.dtype.names]
+    for values in zip(*cols):
+        text.write(" ".join(map(repr, values)) + "\n")
+    for a, b, c in faces.tolist():
+        text.write(f"3 {a} {b} {c}\n")
+    f.write(text.getvalue().encode("ascii"))

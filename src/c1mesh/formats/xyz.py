@@ -1,0 +1,146 @@
+"""Plain-text point tables (.xyz, .txt, .csv): one point per line.
+
+Values are separated by whitespace, or by commas when the first data line has a comma.
+Blank lines and lines starting with '#' are skipped. Leading lines that do not start
+with a number are header lines; the last of them names the columns (x y z, nx ny nz or
+normal_x.., r g b or red green blue [alpha], classification; CloudCompare's '//X,Y,Z'
+works too; other names go to `extra`). A lone integer first line equal to the number of
+rows (the .pts point count) is skipped.
+
+Without a header the column count decides (see `_layout`):
+  3: x y z                 4: x y z scalar
+  6: x y z + triple        9: x y z + triple + triple
+  7: x y z scalar r g b when the last three columns are colours (.pts order), else
+     x y z triple scalar.
+A triple is colours when every value in it is an integer in 0..255 and some exceed 1
+(unit normals cannot), otherwise normals; with two triples, normals come first unless
+only the first looks like colours. `scalar` is stored as extra["scalar"].
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from c1mesh.cloud import PointCloud
+from c1mesh.errors import FormatError
+from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns
+from c1mesh.formats.obj import _is_number, _text
+
+_SPLIT = re.compile(r"[\s,;]+")
+
+
+def _data_lines(text: str) -> list[tuple[int, str]]:
+    """Non-blank, non-comment lines with their 1-based line numbers."""
+    return [(n, ln) for n, ln in enumerate(text.splitlines(), start=1) if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def _split_header(lines: list[tuple[int, str]]) -> tuple[list[str] | None, list[tuple[int, str]]]:
+    """Return (column names from the last leading non-numeric line or None, data lines)."""
+    first = 0
+    while first < len(lines) and not _is_number(_SPLIT.split(lines[first][1].strip())[0]):
+        first += 1
+    if first == 0:
+        return None, lines
+    words = _SPLIT.split(lines[first - 1][1].strip().lstrip("/"))
+    return [w.strip("'\"").lower() for w in words if w], lines[first:]
+
+
+def _drop_count_line(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
+    """Skip a .pts-style first line holding just the number of points."""
+    if lines and lines[0][1].strip().isdigit() and int(lines[0][1]) == len(lines) - 1:
+        return lines[1:]
+    return lines
+
+
+def _parse_table(lines: list[tuple[int, str]], name: str) -> np.ndarray:
+    """(n, k) float64 table of the data lines; FormatError names the first bad line."""
+    delimiter = "," if "," in lines[0][1] else None
+    try:
+        return np.loadtxt([ln for _, ln in lines], dtype=np.float64, delimiter=delimiter, ndmin=2, comments="#")
+    except ValueError:
+        pass
+    width = len(_SPLIT.split(lines[0][1].strip()))
+    for number, line in lines:
+        values = line.split("#")[0]
+        words = values.split(",") if delimiter else values.split()
+        if len(words) != width:
+            raise FormatError(f"Point file '{name}' line {number} has {len(words)} values, expected {width}.")
+        if not all(_is_number(w) for w in words):
+            raise FormatError(f"Point file '{name}' line {number} has a value that is not a number: {line.strip()!r}.")
+    raise FormatError(f"Point file '{name}' could not be parsed as a table of numbers.")
+
+
+def _looks_like_rgb(block: np.ndarray) -> bool:
+    """True when every value is an integer in 0..255 and some exceed 1 (not unit normals)."""
+    return bool(block.size and np.all(block == np.round(block)) and block.min() >= 0 and 1 < block.max() <= 255)
+
+
+def _layout(table: np.ndarray, name: str) -> dict[str, int | list[int]]:
+    """Column positions {'xyz', 'normals', 'colors', 'scalar'} for a table without header."""
+    k = table.shape[1]
+    rgb = lambda start: _looks_like_rgb(table[:, start:start + 3])  # noqa: E731
+    if k == 3:
+        return {}
+    if k == 4:
+        return {"scalar": 3}
+    if k == 6:
+        return {"colors": [3, 4, 5]} if rgb(3) else {"normals": [3, 4, 5]}
+    if k == 7:
+        if rgb(4):
+            return {"scalar": 3, "colors": [4, 5, 6]}
+        return {("colors" if rgb(3) else "normals"): [3, 4, 5], "scalar": 6}
+    if k == 9:
+        if rgb(3) and not rgb(6):
+            return {"colors": [3, 4, 5], "normals": [6, 7, 8]}
+        return {"normals": [3, 4, 5], "colors": [6, 7, 8]}
+    raise FormatError(
+        f"Point file '{name}' has {k} columns and no header; without a header only 3, 4, 6, 7 or 9 columns "
+        "are understood, so add a header line naming the columns (x y z nx ny nz red green blue)."
+    )
+
+
+def _cloud_from_named(table: np.ndarray, names: list[str], name: str) -> PointCloud:
+    """Split a table into PointCloud fields by header names."""
+    if len(names) != table.shape[1]:
+        raise FormatError(f"Point file '{name}' has {len(names)} header names but {table.shape[1]} values per line.")
+    xyz = find_columns(names, (("x",), ("y",), ("z",)))
+    if None in xyz:
+        raise FormatError(f"Point file '{name}' has a header without x, y and z columns: {' '.join(names)!r}.")
+    nrm = find_columns(names, NORMAL_NAMES)
+    rgba = find_columns(names, COLOR_NAMES)
+    cls = find_columns(names, (("classification", "class"),))[0]
+    cloud = PointCloud(points=table[:, xyz])
+    used = set(xyz)
+    if None not in nrm:
+        cloud.normals, used = table[:, nrm], used | set(nrm)
+    if None not in rgba[:3]:
+        channels = [i for i in rgba if i is not None]
+        cloud.colors, used = colors_to_uint8(table[:, channels]), used | set(channels)
+    if cls is not None:
+        cloud.classification, used = table[:, cls].astype(np.int64), used | {cls}
+    cloud.extra = {n: table[:, i].copy() for i, n in enumerate(names) if i not in used}
+    return cloud
+
+
+def _cloud_from_layout(table: np.ndarray, layout: dict[str, int | list[int]]) -> PointCloud:
+    cloud = PointCloud(points=table[:, :3])
+    if "normals" in layout:
+        cloud.normals = table[:, layout["normals"]]
+    if "colors" in layout:
+        cloud.colors = colors_to_uint8(table[:, layout["colors"]])
+    if "scalar" in layout:
+        cloud.extra["scalar"] = table[:, layout["scalar"]].copy()
+    return cloud
+
+
+def read_xyz(data: bytes, name: str) -> PointCloud:
+    """Read a whitespace- or comma-separated point table (see the module doc for columns)."""
+    names, lines = _split_header(_data_lines(_text(data, name, "Point")))
+    lines = _drop_count_line(lines) if names is None else lines
+    if not lines:
+        raise FormatError(f"Point file '{name}' has no numeric data lines.")
+    table = _parse_table(lines, name)
+    if names is not None:
+        return _cloud_from_named(table, names, name)
+    return _cloud_from_layout(table, _layout(table, name))
