@@ -9,3 +9,6 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from c1mesh.errors import C1MeshError, InputError, NotAHeightFieldError  # noqa: F401
+from c1mesh.interpolator import RSDInterpolator  # noqa: E402,F401
+from c1mesh.refine import RefinedMesh  # noqa: E402,F401
+from c1mesh.schemes import NAMED_TUPLES, ShapeTuple, get_scheme  # noqa: E402,F401

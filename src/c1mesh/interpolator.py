@@ -1,0 +1,176 @@
+"""`RSDInterpolator`: Stachó's RSD C1 spline through values and gradients, scipy-style.
+
+    interp = RSDInterpolator(points, values, gradients)      # Delaunay when no triangles
+    z = interp(xi)                                            # values at (M, 2) points
+    g = interp.gradient(xi)                                   # gradients (M, 2)
+    mesh = interp.refine(8)                                   # uniform refinement, see refine.py
+
+Coordinates are used as given: centre large coordinates (LiDAR at 1e5–1e7) before building
+an interpolator, as the fit pipeline does, so that barycentric arithmetic keeps its digits.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from c1mesh import rsd
+from c1mesh.errors import InputError
+from c1mesh.locate import TriangleLocator
+from c1mesh.refine import RefinedMesh, refine_spline
+from c1mesh.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
+from c1mesh.topology import edge_table
+
+# |sin| of the angle below which a triangle is degenerate or a direction parallel to its edge.
+_DEGENERACY = 1e-12
+
+
+class RSDInterpolator:
+    """C1 piecewise interpolant of first-order data (values and gradients) on a triangle mesh.
+
+    Parameters
+    ----------
+    points : (N, 2) float array of vertex coordinates.
+    values : (N,) float array, the function values f at the points.
+    gradients : (N, 2) float array, the gradients ∇f at the points.
+    triangles : (T, 3) int array of vertex indices, or None for scipy's Delaunay
+        triangulation of ``points``. Any valid (non-overlapping, non-degenerate)
+        triangulation is accepted; orientation is free.
+    scheme : name of a shape-function tuple ('sextic' default, 'quintic', 'ex39b') or a
+        ShapeTuple (c1mesh.schemes).
+    directions : None for the unit normal of each edge, or an (E, 2) array with one vector
+        per unique edge, in the order of ``self.edges`` (``c1mesh.topology.mesh_edges``:
+        edges (i, j) with i < j, sorted lexicographically). Each vector is shared by both
+        triangles containing the edge, which makes the spline C1; its sign is irrelevant.
+    fill_value : value returned at points outside the triangulation (default nan), as in
+        scipy.interpolate.
+
+    Attributes: points, values, gradients, triangles, edges (E, 2), directions (E, 2),
+    scheme (ShapeTuple), coefficients (T, 21).
+    """
+
+    def __init__(self, points, values, gradients, triangles=None,
+                 scheme: "str | ShapeTuple" = DEFAULT_SCHEME, directions=None,
+                 fill_value: float = np.nan):
+        self.points = _float_array(points, "points", (None, 2))
+        n = self.points.shape[0]
+        self.values = _float_array(values, "values", (n,))
+        self.gradients = _float_array(gradients, "gradients", (n, 2))
+        self.scheme = get_scheme(scheme)
+        self.fill_value = fill_value
+        self.triangles = self._triangles(triangles)
+        self._table = edge_table(self.triangles, n)
+        self.edges = self._table.edges
+        corners = self.points[self.triangles]
+        self._G, det = rsd.barycentric_gradients(corners)
+        self._check_degenerate(corners, det)
+        self.directions = self._directions(directions)
+        u = self.directions[self._table.tri_edge]                     # (T, 3, 2)
+        self.coefficients = rsd.triangle_coefficients(
+            corners, self.values[self.triangles], self.gradients[self.triangles], u, self._G)
+        self._locator: TriangleLocator | None = None
+
+    # ----------------------------------------------------------------- construction
+    def _triangles(self, triangles) -> np.ndarray:
+        n = self.points.shape[0]
+        if triangles is None:
+            if n < 3:
+                raise InputError(f"need at least 3 points to triangulate, got {n}")
+            centred = self.points - self.points.mean(axis=0)
+            try:
+                tri = Delaunay(centred).simplices.astype(np.int64)
+            except Exception as exc:  # qhull: collinear or too few distinct points
+                raise InputError(f"cannot triangulate the points (collinear or duplicate?): "
+                                 f"{str(exc).splitlines()[0]}") from None
+            return tri
+        tri = np.asarray(triangles)
+        if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0:
+            raise InputError(f"triangles must have shape (T, 3) with T >= 1, got {tri.shape}")
+        if not np.issubdtype(tri.dtype, np.integer):
+            raise InputError(f"triangles must be integer vertex indices, got dtype {tri.dtype}")
+        if tri.min() < 0 or tri.max() >= n:
+            raise InputError(f"triangle vertex indices must lie in [0, {n - 1}]")
+        return tri.astype(np.int64)
+
+    def _check_degenerate(self, corners: np.ndarray, det: np.ndarray) -> None:
+        e1 = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)
+        e2 = np.linalg.norm(corners[:, 2] - corners[:, 0], axis=1)
+        bad = ~(np.abs(det) > _DEGENERACY * e1 * e2)
+        if bad.any():
+            t = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{int(bad.sum())} degenerate (zero-area) triangle(s), first: "
+                             f"triangle {t} with vertices {self.triangles[t].tolist()}")
+
+    def _directions(self, directions) -> np.ndarray:
+        vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]
+        length = np.linalg.norm(vec, axis=1)
+        if directions is None:
+            return np.stack([-vec[:, 1], vec[:, 0]], axis=1) / length[:, None]
+        u = _float_array(directions, "directions", (self.edges.shape[0], 2))
+        cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
+        bad = ~(np.abs(cross) > _DEGENERACY * np.linalg.norm(u, axis=1) * length)
+        if bad.any():
+            e = int(np.flatnonzero(bad)[0])
+            raise InputError(f"direction {e} is zero or parallel to its edge "
+                             f"{self.edges[e].tolist()}; it must cross the edge")
+        return u
+
+    # ----------------------------------------------------------------- evaluation
+    def _locate(self, xi) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+        xy = np.asarray(xi, dtype=float)
+        if xy.shape[-1:] != (2,):
+            raise InputError(f"query points must have shape (..., 2), got {xy.shape}")
+        shape = xy.shape[:-1]
+        xy = xy.reshape(-1, 2)
+        if self._locator is None:
+            self._locator = TriangleLocator(self.points, self.triangles, self._G)
+        tri, lam = self._locator.find(xy)
+        return xy, tri, lam, shape
+
+    def __call__(self, xi) -> np.ndarray:
+        """Spline values at query points xi (..., 2); ``fill_value`` outside the mesh."""
+        _, tri, lam, shape = self._locate(xi)
+        out = np.full(tri.shape, self.fill_value, dtype=float)
+        inside = tri >= 0
+        if inside.any():
+            B = rsd.basis(self.scheme, lam[inside])                   # (21, m)
+            out[inside] = np.einsum("mj,jm->m", self.coefficients[tri[inside]], B)
+        return out.reshape(shape)
+
+    def gradient(self, xi) -> np.ndarray:
+        """Spline gradients (..., 2) at query points xi (..., 2); ``fill_value`` outside."""
+        _, tri, lam, shape = self._locate(xi)
+        out = np.full(tri.shape + (2,), self.fill_value, dtype=float)
+        inside = tri >= 0
+        if inside.any():
+            t = tri[inside]
+            D0, D1 = rsd.gradient_basis(self.scheme, lam[inside])     # (21, m) each
+            C = self.coefficients[t]
+            d0 = np.einsum("mj,jm->m", C, D0)
+            d1 = np.einsum("mj,jm->m", C, D1)
+            out[inside] = d0[:, None] * self._G[t, 0] + d1[:, None] * self._G[t, 1]
+        return out.reshape(shape + (2,))
+
+    def find_simplex(self, xi) -> np.ndarray:
+        """Index of the triangle containing each query point (−1 outside), like scipy's."""
+        _, tri, _, shape = self._locate(xi)
+        return tri.reshape(shape)
+
+    def refine(self, level: int) -> RefinedMesh:
+        """Uniform refinement: each triangle split into level² sub-triangles (refine.py)."""
+        return refine_spline(self.points, self.values, self.gradients, self.triangles,
+                             self.coefficients, self._G, self._table, self.scheme, level)
+
+
+def _float_array(a, name: str, shape: tuple) -> np.ndarray:
+    """A float64 copy of ``a`` checked for shape (None = any size) and finiteness."""
+    try:
+        arr = np.array(a, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a numeric array") from None
+    if arr.ndim != len(shape) or any(want is not None and got != want
+                                     for got, want in zip(arr.shape, shape)):
+        want = "(" + ", ".join("N" if w is None else str(w) for w in shape) + ")"
+        raise InputError(f"{name} must have shape {want}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise InputError(f"{name} contains NaN or Inf")
+    return arr

@@ -1,0 +1,119 @@
+"""The RSD spline on one triangle as 21 basis functions of λ times 21 coefficients.
+
+rsd-math.md, "One triangle": with barycentric weights λ = (λ1, λ2, λ3), G_q = ∇λ_q,
+g_ki = A_k·(p_i − p_k) and r_ln = G_l·u_n / G_n·u_n,
+
+    F(λ) = Σ_k Ψ0(λ_k) f_k + Σ_k Σ_{i≠k} Ψ1(λ_k) λ_i g_ki
+           − Σ_(l,m,n) r_ln [ f_l χ0(λ_l,λ_m,λ_n) + g_lm χ1(λ_l,λ_m,λ_n) ],     (1.3)
+
+and ∇F(x) = Σ_q (∂F/∂λ_q) G_q. The 21 basis functions depend on λ only, so at a fixed
+pattern of barycentric points they are the same matrix for every triangle: the values of a
+whole refined mesh are one product coefficients (T × 21) @ basis (21 × P).
+
+Layout of the 21 columns (indices local to a triangle, vertices 0, 1, 2):
+  0..2    Ψ0(λ_k)                  coefficient f_k
+  3..8    Ψ1(λ_k) λ_i, (k,i) in PAIRS   coefficient g_ki
+  9..14   −χ0(λ_l, λ_m, λ_n), PERMS     coefficient r_ln f_l
+  15..20  −χ1(λ_l, λ_m, λ_n), PERMS     coefficient r_ln g_lm
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from c1mesh.schemes import ShapeTuple
+
+PAIRS = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))                    # (k, i), i ≠ k
+PERMS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))  # (l, m, n)
+N_BASIS = 21
+
+
+def barycentric_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """G_q = ∇λ_q for each triangle, and twice the signed areas.
+
+    corners: (T, 3, 2) vertex coordinates. Returns G (T, 3, 2) and det (T,), where
+    det = cross(p1 − p0, p2 − p0) (> 0 for counter-clockwise triangles) and
+    G_k = perp(p_{k+1} − p_{k+2}) / det, so that G_k·(p_k − p_j) = 1 for j ≠ k.
+    """
+    p0, p1, p2 = corners[:, 0], corners[:, 1], corners[:, 2]
+    e1, e2 = p1 - p0, p2 - p0
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    G = np.empty_like(corners)
+    safe = np.where(det == 0, np.inf, det)   # degenerate triangles get G = 0; callers reject them
+    for k in range(3):
+        a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+        G[:, k, 0] = (a[:, 1] - b[:, 1]) / safe
+        G[:, k, 1] = (b[:, 0] - a[:, 0]) / safe
+    return G, det
+
+
+def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                          directions: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """The (T, 21) coefficient matrix of every triangle (column layout in the module doc).
+
+    corners (T, 3, 2), values f (T, 3), gradients A (T, 3, 2), directions u (T, 3, 2) where
+    u_k belongs to the edge opposite vertex k, G (T, 3, 2) from barycentric_gradients.
+    """
+    T = corners.shape[0]
+    C = np.empty((T, N_BASIS))
+    C[:, 0:3] = values
+    g = {}
+    for j, (k, i) in enumerate(PAIRS):
+        g[k, i] = np.einsum("td,td->t", gradients[:, k], corners[:, i] - corners[:, k])
+        C[:, 3 + j] = g[k, i]
+    Gu = np.einsum("tqd,tnd->tqn", G, directions)   # Gu[t, q, n] = G_q·u_n
+    for j, (l, m, n) in enumerate(PERMS):
+        ratio = Gu[:, l, n] / Gu[:, n, n]
+        C[:, 9 + j] = ratio * values[:, l]
+        C[:, 15 + j] = ratio * g[l, m]
+    return C
+
+
+def basis(scheme: ShapeTuple, lam: np.ndarray) -> np.ndarray:
+    """The 21 basis functions at barycentric points lam (P, 3): returns (21, P)."""
+    B = np.empty((N_BASIS, lam.shape[0]))
+    L = [lam[:, 0], lam[:, 1], lam[:, 2]]
+    for k in range(3):
+        B[k] = scheme.psi0(L[k])
+    for j, (k, i) in enumerate(PAIRS):
+        B[3 + j] = scheme.psi1(L[k]) * L[i]
+    for j, (l, m, n) in enumerate(PERMS):
+        B[9 + j] = -scheme.chi0(L[l], L[m], L[n])
+        B[15 + j] = -scheme.chi1(L[l], L[m], L[n])
+    return B
+
+
+def basis_derivatives(scheme: ShapeTuple, lam: np.ndarray) -> np.ndarray:
+    """∂B/∂λ_q at barycentric points lam (P, 3): returns (3, 21, P), λ's taken as independent."""
+    P = lam.shape[0]
+    D = np.zeros((3, N_BASIS, P))
+    L = [lam[:, 0], lam[:, 1], lam[:, 2]]
+    for k in range(3):
+        D[k, k] = scheme.dpsi0(L[k])
+    for j, (k, i) in enumerate(PAIRS):
+        D[k, 3 + j] = scheme.dpsi1(L[k]) * L[i]
+        D[i, 3 + j] += scheme.psi1(L[k])
+    for j, (l, m, n) in enumerate(PERMS):
+        for offset, dchi in ((9, scheme.dchi0), (15, scheme.dchi1)):
+            partials = dchi(L[l], L[m], L[n])
+            for slot, q in enumerate((l, m, n)):
+                D[q, offset + j] -= partials[slot]
+    return D
+
+
+def gradient_basis(scheme: ShapeTuple, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(∂B/∂λ_0 − ∂B/∂λ_2, ∂B/∂λ_1 − ∂B/∂λ_2), each (21, P).
+
+    Since G_0 + G_1 + G_2 = 0, ∇F = (C @ D0) G_0 + (C @ D1) G_1 with these two matrices:
+    two products per gradient instead of three.
+    """
+    D = basis_derivatives(scheme, lam)
+    return D[0] - D[2], D[1] - D[2]
+
+
+def combine_gradient(d0: np.ndarray, d1: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """∇F from the two λ-derivative products d0, d1 (T, P) and G (T, 3, 2): returns (T, P, 2)."""
+    out = np.empty(d0.shape + (2,))
+    for axis in range(2):
+        np.multiply(d0, G[:, 0, axis, None], out=out[..., axis])
+        out[..., axis] += d1 * G[:, 1, axis, None]
+    return out

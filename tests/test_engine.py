@@ -1,0 +1,317 @@
+"""The RSD engine against the paper: interpolation, C1, RSD formula, reproduction, refinement."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+import reference_rsd as ref
+from c1mesh import RSDInterpolator, rsd
+from c1mesh.errors import InputError
+from c1mesh.properties import scheme_properties
+from c1mesh.schemes import NAMED_TUPLES, get_scheme
+from c1mesh.topology import mesh_edges
+
+
+def franke(x):
+    X, Y = 9 * x[..., 0], 9 * x[..., 1]
+    return (0.75 * np.exp(-((X - 2) ** 2 + (Y - 2) ** 2) / 4) + 0.75 * np.exp(-(X + 1) ** 2 / 49 - (Y + 1) / 10)
+            + 0.5 * np.exp(-((X - 7) ** 2 + (Y - 3) ** 2) / 4) - 0.2 * np.exp(-(X - 4) ** 2 - (Y - 7) ** 2))
+
+
+def smooth(x):
+    return np.exp(x[..., 0]) * np.sin(2 * x[..., 1])
+
+
+def smooth_grad(x):
+    e = np.exp(x[..., 0])
+    return np.stack([e * np.sin(2 * x[..., 1]), 2 * e * np.cos(2 * x[..., 1])], axis=-1)
+
+
+def random_mesh(n=80, seed=0):
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 2))
+    return pts, Delaunay(pts).simplices
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return random_mesh()
+
+
+@pytest.mark.parametrize("name", ["sextic", "quintic", "ex39b"])
+def test_matches_independent_implementation(mesh, name):
+    pts, tris = mesh
+    rng = np.random.default_rng(1)
+    f, A = smooth(pts), smooth_grad(pts)
+    interp = RSDInterpolator(pts, f, A, triangles=tris, scheme=name)
+    q = rng.random((300, 2))
+    simplex = Delaunay(pts).find_simplex(q)
+    q, simplex = q[simplex >= 0], simplex[simplex >= 0]
+    ours_v, ours_g = interp(q), interp.gradient(q)
+    # default directions: the unit normal of each edge
+    for x, s, v, g in zip(q, simplex, ours_v, ours_g):
+        t = tris[s]
+        p = pts[t]
+        u = np.array([[-(p[(k + 2) % 3] - p[(k + 1) % 3])[1], (p[(k + 2) % 3] - p[(k + 1) % 3])[0]]
+                      for k in range(3)])
+        rv, rg = ref.value_and_gradient(name, p, f[t], A[t], u, x)
+        assert abs(v - rv) <= 1e-10 * max(1.0, abs(rv))
+        assert np.abs(g - rg).max() <= 1e-10 * max(1.0, np.abs(rg).max())
+
+
+@pytest.mark.parametrize("name", list(NAMED_TUPLES))
+def test_interpolates_vertex_values_and_gradients(mesh, name):
+    pts, tris = mesh
+    f, A = franke(pts), smooth_grad(pts)
+    interp = RSDInterpolator(pts, f, A, triangles=tris, scheme=name)
+    used = np.unique(tris)
+    np.testing.assert_allclose(interp(pts[used]), f[used], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(interp.gradient(pts[used]), A[used], rtol=0, atol=1e-9)
+
+
+def _edge_samples(interp, tris):
+    """For each interior edge, its two triangles and exact barycentrics of edge points in each."""
+    table = interp._table
+    s = np.linspace(0.05, 0.95, 7)
+    for e in np.flatnonzero(table.count == 2):
+        owners = np.flatnonzero((table.tri_edge == e).any(axis=1))
+        a, b = table.edges[e]
+        lams = []
+        for t in owners:
+            lam = np.zeros((s.size, 3))
+            lam[:, list(tris[t]).index(a)] = 1 - s
+            lam[:, list(tris[t]).index(b)] = s
+            lams.append(lam)
+        yield e, owners, lams, s
+
+
+def _local_eval(interp, t, lam):
+    C = interp.coefficients[t]
+    value = C @ rsd.basis(interp.scheme, lam)
+    D0, D1 = rsd.gradient_basis(interp.scheme, lam)
+    G = interp._G[t]
+    grad = np.outer(C @ D0, G[0]) + np.outer(C @ D1, G[1])
+    return value, grad
+
+
+@pytest.mark.parametrize("name", list(NAMED_TUPLES))
+def test_c1_across_every_interior_edge(mesh, name):
+    pts, tris = mesh
+    f, A = franke(pts), smooth_grad(pts) * 3
+    interp = RSDInterpolator(pts, f, A, triangles=tris, scheme=name)
+    worst_v = worst_g = 0.0
+    checked = 0
+    for _, (t1, t2), (l1, l2), _ in _edge_samples(interp, tris):
+        v1, g1 = _local_eval(interp, t1, l1)
+        v2, g2 = _local_eval(interp, t2, l2)
+        scale_v = 1.0 + np.abs(v1).max()
+        scale_g = 1.0 + np.abs(g1).max()
+        worst_v = max(worst_v, np.abs(v1 - v2).max() / scale_v)
+        worst_g = max(worst_g, np.abs(g1 - g2).max() / scale_g)
+        checked += 1
+    assert checked > 100
+    assert worst_v <= 1e-11 and worst_g <= 1e-11
+
+
+def test_without_shared_directions_the_spline_is_not_c1(mesh):
+    """The C1 test can fail: per-triangle random directions break the gradient continuity."""
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    rng = np.random.default_rng(3)
+    interp.coefficients = rsd.triangle_coefficients(
+        pts[tris], interp.values[tris], interp.gradients[tris], rng.normal(size=(len(tris), 3, 2)), interp._G)
+    jumps = [np.abs(_local_eval(interp, t1, l1)[1] - _local_eval(interp, t2, l2)[1]).max()
+             for _, (t1, t2), (l1, l2), _ in _edge_samples(interp, tris)]
+    assert max(jumps) > 1e-3
+
+
+@pytest.mark.parametrize("name", list(NAMED_TUPLES))
+def test_reduced_side_derivative_formula(mesh, name):
+    """Along edge [p_i, p_j]: ∇F·u = Ψ1(λ_i) A_i·u + Ψ1(λ_j) A_j·u (Definition 3.2)."""
+    pts, tris = mesh
+    f, A = franke(pts), smooth_grad(pts)
+    interp = RSDInterpolator(pts, f, A, triangles=tris, scheme=name)
+    psi1 = get_scheme(name).psi1
+    rng = np.random.default_rng(5)
+    for t in rng.choice(len(tris), 20, replace=False):
+        for k in range(3):
+            i, j = (k + 1) % 3, (k + 2) % 3
+            s = np.linspace(0, 1, 9)
+            lam = np.zeros((9, 3))
+            lam[:, i], lam[:, j] = s, 1 - s
+            _, grad = _local_eval(interp, t, lam)
+            u = interp.directions[interp._table.tri_edge[t, k]]
+            Ai, Aj = A[tris[t, i]], A[tris[t, j]]
+            expected = psi1(s) * (Ai @ u) + psi1(1 - s) * (Aj @ u)
+            np.testing.assert_allclose(grad @ u, expected, atol=1e-10 * (1 + np.abs(expected).max()))
+
+
+def test_gradient_matches_finite_differences(mesh):
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    rng = np.random.default_rng(7)
+    q = rng.random((200, 2)) * 0.6 + 0.2
+    h = 1e-6
+    fd = np.stack([(interp(q + [h, 0]) - interp(q - [h, 0])) / (2 * h),
+                   (interp(q + [0, h]) - interp(q - [0, h])) / (2 * h)], axis=1)
+    ok = np.isfinite(fd).all(axis=1)
+    np.testing.assert_allclose(interp.gradient(q)[ok], fd[ok], atol=1e-5 * (1 + np.abs(fd).max()))
+
+
+@pytest.mark.parametrize("name", list(NAMED_TUPLES))
+def test_constants_reproduced(mesh, name):
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, np.full(len(pts), 2.5), np.zeros((len(pts), 2)), triangles=tris, scheme=name)
+    q = np.random.default_rng(2).random((500, 2))
+    v, g = interp(q), interp.gradient(q)
+    ok = np.isfinite(v)
+    assert ok.sum() > 300
+    assert np.abs(v[ok] - 2.5).max() < 1e-12
+    assert np.abs(g[ok]).max() < 1e-9
+
+
+def test_affine_reproduced_by_sextic_only(mesh):
+    pts, tris = mesh
+    a, b = np.array([1.5, -0.7]), 0.3
+    q = np.random.default_rng(4).random((500, 2))
+    defects = {}
+    for name in NAMED_TUPLES:
+        interp = RSDInterpolator(pts, pts @ a + b, np.tile(a, (len(pts), 1)), triangles=tris, scheme=name)
+        v, g = interp(q), interp.gradient(q)
+        ok = np.isfinite(v)
+        defects[name] = (np.abs(v[ok] - (q[ok] @ a + b)).max(), np.abs(g[ok] - a).max())
+    assert defects["sextic"][0] < 1e-12 and defects["sextic"][1] < 1e-9
+    # The paper: the 2022 quintic and Ex. 3.9b are not affine invariant; the defect is O(1) in gradients.
+    for name in ("quintic", "ex39b"):
+        assert defects[name][0] > 1e-4 and defects[name][1] > 0.1
+
+
+def test_computed_properties_match_the_paper():
+    props = {name: scheme_properties(name) for name in NAMED_TUPLES}
+    assert all(p.reproduces_constants for p in props.values())
+    assert props["sextic"].reproduces_affine
+    assert not props["quintic"].reproduces_affine and not props["ex39b"].reproduces_affine
+
+
+def test_direction_sign_does_not_matter(mesh):
+    pts, tris = mesh
+    base = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    rng = np.random.default_rng(8)
+    u = base.directions * np.where(rng.random(len(base.directions)) < 0.5, -1.0, 1.0)[:, None]
+    flipped = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris, directions=u)
+    q = rng.random((300, 2))
+    np.testing.assert_allclose(flipped(q), base(q), atol=1e-13, equal_nan=True)
+    np.testing.assert_allclose(flipped.gradient(q), base.gradient(q), atol=1e-11, equal_nan=True)
+
+
+def test_other_directions_change_the_spline_but_keep_c1(mesh):
+    pts, tris = mesh
+    rng = np.random.default_rng(9)
+    edges = mesh_edges(tris, len(pts))
+    vec = pts[edges[:, 1]] - pts[edges[:, 0]]
+    u = np.stack([-vec[:, 1], vec[:, 0]], 1) + 0.5 * vec * rng.uniform(-1, 1, (len(vec), 1))
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris, directions=u)
+    base = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    q = rng.random((300, 2))
+    assert np.nanmax(np.abs(interp(q) - base(q))) > 1e-6
+    for _, (t1, t2), (l1, l2), _ in _edge_samples(interp, tris):
+        g1, g2 = _local_eval(interp, t1, l1)[1], _local_eval(interp, t2, l2)[1]
+        assert np.abs(g1 - g2).max() <= 1e-11 * (1 + np.abs(g1).max())
+
+
+def test_fill_value_outside_and_shape_of_queries(mesh):
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris, fill_value=-7.0)
+    q = np.array([[[5.0, 5.0], [0.5, 0.5]], [[-1.0, 0.2], [0.4, 0.6]]])
+    v = interp(q)
+    assert v.shape == (2, 2) and v[0, 0] == -7.0 and v[1, 0] == -7.0 and v[0, 1] != -7.0
+    assert interp.gradient(q).shape == (2, 2, 2)
+    assert np.isnan(RSDInterpolator(pts, franke(pts), smooth_grad(pts))([[9.0, 9.0]])[0])
+
+
+def test_point_location_in_a_non_delaunay_triangulation():
+    """Long skinny fan triangles (far from Delaunay): location must still be exact."""
+    n = 40
+    ang = np.linspace(0, np.pi, n)
+    rim = np.stack([np.cos(ang), 0.05 * np.sin(ang)], 1)
+    pts = np.vstack([[0.0, 0.0], rim])
+    tris = np.array([[0, i, i + 1] for i in range(1, n)])
+    interp = RSDInterpolator(pts, smooth(pts), smooth_grad(pts), triangles=tris)
+    rng = np.random.default_rng(10)
+    q = rng.uniform([-1, 0], [1, 0.05], (2000, 2))
+    found = interp.find_simplex(q)
+    for x, t in zip(q, found):
+        lam, _ = ref.barycentric(pts[tris[t]], x) if t >= 0 else (None, None)
+        if t >= 0:
+            assert lam.min() >= -1e-9
+        else:  # outside: no triangle contains it
+            assert all(ref.barycentric(pts[tri], x)[0].min() < 1e-9 for tri in tris)
+
+
+def test_errors_are_clear():
+    pts, tris = random_mesh(20)
+    f, A = smooth(pts), smooth_grad(pts)
+    with pytest.raises(InputError, match="points must have shape"):
+        RSDInterpolator(pts[:, :1], f, A)
+    with pytest.raises(InputError, match="gradients must have shape"):
+        RSDInterpolator(pts, f, A[:5])
+    with pytest.raises(InputError, match="NaN or Inf"):
+        RSDInterpolator(pts, np.where(np.arange(20) == 3, np.nan, f), A)
+    bad = np.vstack([pts, pts[0] + 0.5 * (pts[1] - pts[0])])
+    with pytest.raises(InputError, match="degenerate"):
+        RSDInterpolator(bad, np.append(f, 0), np.vstack([A, [0, 0]]), triangles=[[0, 1, 20]])
+    edges = mesh_edges(tris, 20)
+    u = np.ones((len(edges), 2))
+    u[3] = pts[edges[3, 1]] - pts[edges[3, 0]]
+    with pytest.raises(InputError, match="parallel"):
+        RSDInterpolator(pts, f, A, triangles=tris, directions=u)
+    with pytest.raises(ValueError):   # InputError is a ValueError, as in scipy
+        RSDInterpolator(pts, f, A, triangles=[[0, 1, 99]])
+
+
+def test_refine_agrees_with_pointwise_evaluation(mesh):
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    for level in (1, 2, 5):
+        r = interp.refine(level)
+        assert r.triangles.shape == (len(tris) * level**2, 3)
+        np.testing.assert_array_equal(r.values[:len(pts)], franke(pts))       # exact input values
+        np.testing.assert_allclose(r.values, interp(r.points), atol=1e-12)
+        np.testing.assert_allclose(r.gradients, interp.gradient(r.points), atol=1e-9)
+        # every sub-triangle lies inside its parent and keeps its orientation
+        centroids = r.points[r.triangles].mean(axis=1)
+        assert np.array_equal(interp.find_simplex(centroids), r.parent)
+        def area(P):
+            a, b = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+            return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+        assert np.all(np.sign(area(r.points[r.triangles])) == np.sign(area(pts[tris]))[r.parent])
+
+
+def _euler(triangles):
+    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    return len(np.unique(triangles)) - len(edges) + len(triangles), counts
+
+
+def test_refined_mesh_is_conforming(mesh):
+    pts, tris = mesh
+    r = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris).refine(4)
+    chi_in, counts_in = _euler(tris)
+    chi_out, counts_out = _euler(r.triangles.astype(np.int64))
+    assert chi_out == chi_in == 1
+    assert counts_out.max() == 2
+    # boundary edges: each input boundary edge becomes exactly `level` boundary edges
+    assert (counts_out == 1).sum() == 4 * (counts_in == 1).sum()
+    # no duplicated points (a crack would show up as two points at one position)
+    assert len(np.unique(np.round(r.points, 12), axis=0)) == len(r.points)
+
+
+def test_refine_level_checks(mesh):
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    with pytest.raises(ValueError, match="level"):
+        interp.refine(0)
+    with pytest.raises(ValueError, match="level"):
+        interp.refine(2.5)
