@@ -4,8 +4,9 @@ Output point numbering (so that input vertex i is output point i, and every poin
 shared edge or vertex exists once — a conforming, crack-free mesh):
 
   [0, N)                      the N input points (values and gradients exactly the data)
-  [N, N + E(L−1))             L−1 points inside each unique edge e, ordered from
-                              edges[e, 0] to edges[e, 1]
+  [N, N + E(L−1))             L−1 points inside each unique edge, ordered from
+                              edges[e, 0] to edges[e, 1]; edges grouped by how their
+                              owner triangle sees them (so each group is one block)
   [N + E(L−1), M)             (L−1)(L−2)/2 interior points of each triangle, triangle-major
 
 Values and gradients are matrix products: coefficients (T × 21) @ basis (21 × P), with
@@ -14,7 +15,8 @@ triangles are written straight into their contiguous slice of the output; edge p
 evaluated from one owner triangle per edge, grouped by the owner's local edge slot.
 
 Memory: the outputs (M values, 2M gradients, 3·L²·T indices, L²·T parents) plus
-temporaries bounded by about 4 × CHUNK_ENTRIES × 8 bytes ≈ 64 MiB, independent of T.
+temporaries of a few CHUNK_ENTRIES-sized buffers (≈ 1 MiB, independent of T) and
+O(E + T) bookkeeping arrays (edge order, coefficients), which are smaller than the output.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from c1mesh import rsd
 from c1mesh.schemes import ShapeTuple
 from c1mesh.topology import EdgeTable
 
-CHUNK_ENTRIES = 1 << 21  # triangles per chunk × points per triangle, for temporaries
+CHUNK_ENTRIES = 1 << 14  # triangles per chunk × points per triangle: temporaries stay in cache
 
 
 @dataclass
@@ -88,21 +90,32 @@ def lattice_pattern(level: int) -> LatticePattern:
 
 
 class _Evaluator:
-    """Values and gradients at a fixed lattice subset for blocks of triangles."""
+    """Values and gradients at a fixed set of barycentric points for blocks of triangles.
 
-    def __init__(self, scheme: ShapeTuple, lam: np.ndarray):
+    Temporaries are preallocated for one chunk and reused, so they stay in cache; outputs
+    are written in place into slices of the refined arrays.
+    """
+
+    def __init__(self, scheme: ShapeTuple, lam: np.ndarray, chunk: int):
         self.B = np.ascontiguousarray(rsd.basis(scheme, lam))
         d0, d1 = rsd.gradient_basis(scheme, lam)
         self.D0, self.D1 = np.ascontiguousarray(d0), np.ascontiguousarray(d1)
+        self.chunk = chunk
+        self._d0 = np.empty((chunk, lam.shape[0]))
+        self._d1 = np.empty((chunk, lam.shape[0]))
+        self._tmp = np.empty((chunk, lam.shape[0]))
 
     def into(self, C: np.ndarray, G: np.ndarray, values_out: np.ndarray, grads_out: np.ndarray):
         """values_out (c, P) and grads_out (c, P, 2) for coefficient rows C (c, 21), G (c, 3, 2)."""
+        n = C.shape[0]
+        d0, d1, tmp = self._d0[:n], self._d1[:n], self._tmp[:n]
         np.matmul(C, self.B, out=values_out)
-        d0 = C @ self.D0
-        d1 = C @ self.D1
-        for axis in range(2):
+        np.matmul(C, self.D0, out=d0)
+        np.matmul(C, self.D1, out=d1)
+        for axis in range(2):    # ∇F = (C @ D0) G_0 + (C @ D1) G_1
             np.multiply(d0, G[:, 0, axis, None], out=grads_out[..., axis])
-            grads_out[..., axis] += d1 * G[:, 1, axis, None]
+            np.multiply(d1, G[:, 1, axis, None], out=tmp)
+            grads_out[..., axis] += tmp
 
 
 def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -117,83 +130,125 @@ def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
     n_edge, n_int = level - 1, pat.interior.size
     M = N + E * n_edge + T * n_int
     index_dtype = np.int32 if M < 2**31 - 1 else np.int64
+    lam = pat.lattice / level
+    # Output order of edges: grouped by (owner slot k, direction), so each group's points
+    # form one contiguous block written by one product per chunk.
+    group = 2 * table.owner_slot + (~table.forward[table.owner, table.owner_slot])
+    edge_order = np.argsort(group, kind="stable")
+    edge_rank = np.empty(E, dtype=np.int64)
+    edge_rank[edge_order] = np.arange(E)
+
     out_values = np.empty(M)
     out_grads = np.empty((M, 2))
     out_values[:N] = values
     out_grads[:N] = gradients
-    lam = pat.lattice / level
-
-    interior_eval = _Evaluator(scheme, lam[pat.interior])
-    int_values = out_values[N + E * n_edge:].reshape(T, n_int)
-    int_grads = out_grads[N + E * n_edge:].reshape(T, n_int, 2)
-    for part in _chunks(T, max(n_int, 1)):
-        interior_eval.into(coefficients[part], G[part], int_values[part], int_grads[part])
-
-    edge_values = out_values[N:N + E * n_edge].reshape(E, n_edge)
-    edge_grads = out_grads[N:N + E * n_edge].reshape(E, n_edge, 2)
-    for k in range(3):
-        evaluator = _Evaluator(scheme, lam[pat.edge_rows[k]])
-        edges_k = np.flatnonzero(table.owner_slot == k)
-        for part in _chunks(edges_k.size, max(n_edge, 1)):
-            e = edges_k[part]
-            tri = table.owner[e]
-            vals = np.empty((e.size, n_edge))
-            grads = np.empty((e.size, n_edge, 2))
-            evaluator.into(coefficients[tri], G[tri], vals, grads)
-            reverse = ~table.forward[tri, k]
-            vals[reverse] = vals[reverse, ::-1]
-            grads[reverse] = grads[reverse, ::-1]
-            edge_values[e] = vals
-            edge_grads[e] = grads
-
-    out_points = _refined_points(points, triangles, table, pat, M)
+    _evaluate_interior(pat, lam, coefficients, G, scheme, out_values[N + E * n_edge:],
+                       out_grads[N + E * n_edge:], T)
+    _evaluate_edges(pat, lam, coefficients, G, scheme, table, edge_order, group,
+                    out_values[N:N + E * n_edge], out_grads[N:N + E * n_edge])
+    out_points = _refined_points(points, triangles, table.edges[edge_order], pat, M)
     out_tris = np.empty((T * level * level, 3), dtype=index_dtype)
+    local = np.empty((_chunk_rows(pat.lattice.shape[0]), pat.lattice.shape[0]), dtype=index_dtype)
     for part in _chunks(T, pat.lattice.shape[0]):
-        local_to_global = _global_indices(triangles, table, pat, part, N, E)
-        out_tris[part.start * level**2:part.stop * level**2] = \
-            local_to_global[:, pat.template].reshape(-1, 3)
+        n = part.stop - part.start
+        _global_indices(triangles, table, edge_rank, pat, part, N, E, local[:n])
+        np.take(local[:n], pat.template.ravel(), axis=1,
+                out=out_tris[part.start * level**2:part.stop * level**2].reshape(n, -1))
     parent = np.repeat(np.arange(T, dtype=index_dtype), level * level)
     return RefinedMesh(out_points, out_tris, out_values, out_grads, parent, level)
 
 
+def _evaluate_interior(pat, lam, coefficients, G, scheme, out_values, out_grads, T):
+    n_int = pat.interior.size
+    if n_int == 0:
+        return
+    evaluator = _Evaluator(scheme, lam[pat.interior], _chunk_rows(n_int))
+    values = out_values.reshape(T, n_int)
+    grads = out_grads.reshape(T, n_int, 2)
+    for part in _chunks(T, n_int):
+        evaluator.into(coefficients[part], G[part], values[part], grads[part])
+
+
+def _evaluate_edges(pat, lam, coefficients, G, scheme, table, edge_order, group,
+                    out_values, out_grads):
+    """Edge points from one owner triangle per edge, one contiguous block per edge group."""
+    n_edge = pat.level - 1
+    if n_edge == 0:
+        return
+    E = edge_order.size
+    values = out_values.reshape(E, n_edge)
+    grads = out_grads.reshape(E, n_edge, 2)
+    bounds = np.searchsorted(group[edge_order], np.arange(7))
+    rows = _chunk_rows(n_edge)
+    C_buf = np.empty((rows, coefficients.shape[1]))
+    G_buf = np.empty((rows, 3, 2))
+    for g in range(6):
+        k, reverse = divmod(g, 2)
+        edge_lam = lam[pat.edge_rows[k]]
+        evaluator = _Evaluator(scheme, edge_lam[::-1] if reverse else edge_lam, rows)
+        for part in _chunks(bounds[g + 1] - bounds[g], n_edge):
+            block = slice(bounds[g] + part.start, bounds[g] + part.stop)
+            tri = table.owner[edge_order[block]]
+            n = tri.size
+            np.take(coefficients, tri, axis=0, out=C_buf[:n])
+            np.take(G, tri, axis=0, out=G_buf[:n])
+            evaluator.into(C_buf[:n], G_buf[:n], values[block], grads[block])
+
+
+def _chunk_rows(width: int) -> int:
+    return max(1, CHUNK_ENTRIES // max(width, 1))
+
+
 def _chunks(n: int, width: int):
-    step = max(1, CHUNK_ENTRIES // max(width, 1))
+    step = _chunk_rows(width)
     for start in range(0, n, step):
         yield slice(start, min(start + step, n))
 
 
-def _refined_points(points, triangles, table: EdgeTable, pat: LatticePattern, M: int) -> np.ndarray:
-    """Coordinates of all output points (M, 2) in the module's numbering."""
+def _refined_points(points, triangles, ordered_edges, pat: LatticePattern, M: int) -> np.ndarray:
+    """Coordinates of all output points (M, 2) in the module's numbering.
+
+    Each block is a product of gathered corner coordinates with a fixed weight matrix,
+    written straight into the output: ends (c, 4) @ W_edge (4, 2(L−1)) for edge points,
+    corners (c, 6) @ W_int (6, 2·n_int) for interior points.
+    """
     L, N = pat.level, points.shape[0]
     out = np.empty((M, 2))
     out[:N] = points
+    E, T = ordered_edges.shape[0], triangles.shape[0]
     s = np.arange(1, L) / L
-    a, b = points[table.edges[:, 0]], points[table.edges[:, 1]]
-    E = table.edges.shape[0]
-    edge_pts = out[N:N + E * (L - 1)].reshape(E, L - 1, 2)
-    for d in range(2):
-        edge_pts[..., d] = a[:, None, d] + s[None, :] * (b[:, None, d] - a[:, None, d])
-    lam = pat.lattice[pat.interior] / L                       # (n_int, 3)
-    T = triangles.shape[0]
-    int_pts = out[N + E * (L - 1):].reshape(T, lam.shape[0], 2)
-    for part in _chunks(T, max(lam.shape[0], 1)):
-        corners = points[triangles[part]]                     # (c, 3, 2)
-        np.einsum("pk,ckd->cpd", lam, corners, out=int_pts[part])
+    edge_weights = np.stack([1 - s, s], axis=1)               # (L−1, 2) on (a, b)
+    _points_by_product(points, ordered_edges, edge_weights, out[N:N + E * (L - 1)])
+    interior_weights = pat.lattice[pat.interior] / L          # (n_int, 3)
+    _points_by_product(points, triangles, interior_weights, out[N + E * (L - 1):])
     return out
 
 
-def _global_indices(triangles, table: EdgeTable, pat: LatticePattern, part: slice,
-                    N: int, E: int) -> np.ndarray:
-    """(c, P) global output index of every lattice point of the triangles in ``part``."""
+def _points_by_product(points, cells, weights, out) -> None:
+    """out[(c, p)] = Σ_k weights[p, k] points[cells[c, k]], chunked matrix products."""
+    n_pts, n_corners = weights.shape
+    if n_pts == 0:
+        return
+    W = np.zeros((2 * n_corners, 2 * n_pts))
+    for k in range(n_corners):
+        for d in range(2):
+            W[2 * k + d, d::2] = weights[:, k]
+    flat = out.reshape(cells.shape[0], 2 * n_pts)
+    for part in _chunks(cells.shape[0], 2 * n_pts):
+        corners = points[cells[part]].reshape(-1, 2 * n_corners)
+        np.matmul(corners, W, out=flat[part])
+
+
+def _global_indices(triangles, table: EdgeTable, edge_rank, pat: LatticePattern, part: slice,
+                    N: int, E: int, out: np.ndarray) -> None:
+    """Fill out (c, P) with the global output index of every lattice point of ``part``."""
     L = pat.level
     tris = triangles[part]
-    c = tris.shape[0]
-    out = np.empty((c, pat.lattice.shape[0]), dtype=np.int64)
     for k, (a1, a2) in enumerate(((0, 0), (L, 0), (0, L))):   # lattice (a1, a2) of vertex k
         out[:, pat.index_of[a1, a2]] = tris[:, k]
     s = np.arange(1, L)
     for k in range(3):
-        e = table.tri_edge[part, k]
+        e = edge_rank[table.tri_edge[part, k]]
         fwd = table.forward[part, k]
         pos = np.where(fwd[:, None], s[None, :], L - s[None, :])   # position along the edge
         out[:, pat.edge_rows[k]] = N + e[:, None] * (L - 1) + pos - 1
@@ -201,4 +256,3 @@ def _global_indices(triangles, table: EdgeTable, pat: LatticePattern, part: slic
     base = N + E * (L - 1)
     out[:, pat.interior] = base + (np.arange(part.start, part.stop)[:, None] * n_int
                                    + np.arange(n_int)[None, :])
-    return out
