@@ -315,3 +315,27 @@ def test_refine_level_checks(mesh):
         interp.refine(0)
     with pytest.raises(ValueError, match="level"):
         interp.refine(2.5)
+
+
+def test_c1_certificate_measures_jumps(mesh):
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    cert = interp.c1_certificate()
+    assert cert["edges_checked"] == int((interp._table.count == 2).sum())
+    assert cert["value_jump"] < 1e-12 and cert["gradient_jump"] < 1e-11
+    # breaking the shared directions must show up in the certificate
+    interp.coefficients = rsd.triangle_coefficients(
+        pts[tris], interp.values[tris], interp.gradients[tris],
+        np.random.default_rng(0).normal(size=(len(tris), 3, 2)), interp._G)
+    assert interp.c1_certificate()["gradient_jump"] > 1e-3
+
+
+def test_refined_linear_field_is_barycentric_blend(mesh):
+    pts, tris = mesh
+    r = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris).refine(3)
+    colours = np.stack([pts[:, 0] * 200, pts[:, 1] * 100 + 5], axis=1)
+    blended = r.linear(colours)
+    # a linear function of position must come out as that function of the refined points
+    np.testing.assert_allclose(blended, np.stack([r.points[:, 0] * 200, r.points[:, 1] * 100 + 5], 1),
+                               atol=1e-9)
+    np.testing.assert_array_equal(blended[:len(pts)], colours)

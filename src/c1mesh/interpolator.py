@@ -155,10 +155,56 @@ class RSDInterpolator:
         _, tri, _, shape = self._locate(xi)
         return tri.reshape(shape)
 
+    def c1_certificate(self, max_edges: int = 2000, samples: int = 5, seed: int = 0) -> dict:
+        """Largest value and gradient jumps across interior edges, measured, not assumed.
+
+        Up to ``max_edges`` interior edges (random, reproducible by ``seed``) are sampled at
+        ``samples`` points each; at each point both adjacent triangles are evaluated with
+        exact edge barycentrics. Jumps are relative to the largest |value| and |gradient| of
+        the data. Returns {"edges_checked", "value_jump", "gradient_jump"}.
+        """
+        table = self._table
+        interior = np.flatnonzero(table.count == 2)
+        rng = np.random.default_rng(seed)
+        if interior.size > max_edges:
+            interior = np.sort(rng.choice(interior, max_edges, replace=False))
+        if interior.size == 0:
+            return {"edges_checked": 0, "value_jump": 0.0, "gradient_jump": 0.0}
+        sides = _triangles_of_edges(table.tri_edge, interior)          # (n, 2)
+        s = (np.arange(samples) + 0.5) / samples
+        results = []
+        for side in range(2):
+            t = np.repeat(sides[:, side], samples)
+            a = np.repeat(table.edges[interior, 0], samples)
+            b = np.repeat(table.edges[interior, 1], samples)
+            lam = np.zeros((t.size, 3))
+            local = self.triangles[t]
+            lam[local == a[:, None]] = np.tile(1 - s, interior.size)
+            lam[local == b[:, None]] = np.tile(s, interior.size)
+            C = self.coefficients[t]
+            value = np.einsum("mj,jm->m", C, rsd.basis(self.scheme, lam))
+            D0, D1 = rsd.gradient_basis(self.scheme, lam)
+            d0, d1 = np.einsum("mj,jm->m", C, D0), np.einsum("mj,jm->m", C, D1)
+            results.append((value, d0[:, None] * self._G[t, 0] + d1[:, None] * self._G[t, 1]))
+        (v1, g1), (v2, g2) = results
+        value_scale = max(float(np.abs(self.values).max()), np.finfo(float).tiny)
+        grad_scale = max(float(np.abs(self.gradients).max()), np.finfo(float).tiny)
+        return {"edges_checked": int(interior.size),
+                "value_jump": float(np.abs(v1 - v2).max() / value_scale),
+                "gradient_jump": float(np.abs(g1 - g2).max() / grad_scale)}
+
     def refine(self, level: int) -> RefinedMesh:
         """Uniform refinement: each triangle split into level² sub-triangles (refine.py)."""
         return refine_spline(self.points, self.values, self.gradients, self.triangles,
                              self.coefficients, self._G, self._table, self.scheme, level)
+
+
+def _triangles_of_edges(tri_edge: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(n, 2) the two triangles containing each of the interior ``edges``."""
+    flat = tri_edge.ravel()
+    order = np.argsort(flat, kind="stable")
+    start = np.searchsorted(flat[order], edges)
+    return np.stack([order[start] // 3, order[start + 1] // 3], axis=1)
 
 
 def _float_array(a, name: str, shape: tuple) -> np.ndarray:

@@ -20,7 +20,7 @@ O(E + T) bookkeeping arrays (edge order, coefficients), which are smaller than t
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,6 +46,21 @@ class RefinedMesh:
     gradients: np.ndarray
     parent: np.ndarray
     level: int
+    source_triangles: np.ndarray = field(repr=False, default=None)
+    source_edges: np.ndarray = field(repr=False, default=None)
+
+    def linear(self, field_values: np.ndarray) -> np.ndarray:
+        """Piecewise-linear interpolation of per-input-vertex data onto the refined points.
+
+        field_values: (N,) or (N, d) array over the input points (e.g. colours). Returns
+        (M,) or (M, d) float64: input points keep their data exactly, edge and interior
+        points get the barycentric blend of their parent's corners.
+        """
+        data = np.asarray(field_values, dtype=float)
+        flat = data.reshape(data.shape[0], -1)
+        out = _linear_field(flat, self.source_triangles, self.source_edges,
+                            lattice_pattern(self.level), self.points.shape[0])
+        return out.reshape((out.shape[0],) + data.shape[1:])
 
 
 @dataclass(frozen=True)
@@ -146,7 +161,8 @@ def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                        out_grads[N + E * n_edge:], T)
     _evaluate_edges(pat, lam, coefficients, G, scheme, table, edge_order, group,
                     out_values[N:N + E * n_edge], out_grads[N:N + E * n_edge])
-    out_points = _refined_points(points, triangles, table.edges[edge_order], pat, M)
+    ordered_edges = table.edges[edge_order]
+    out_points = _linear_field(points, triangles, ordered_edges, pat, M)
     out_tris = np.empty((T * level * level, 3), dtype=index_dtype)
     local = np.empty((_chunk_rows(pat.lattice.shape[0]), pat.lattice.shape[0]), dtype=index_dtype)
     for part in _chunks(T, pat.lattice.shape[0]):
@@ -155,7 +171,8 @@ def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
         np.take(local[:n], pat.template.ravel(), axis=1,
                 out=out_tris[part.start * level**2:part.stop * level**2].reshape(n, -1))
     parent = np.repeat(np.arange(T, dtype=index_dtype), level * level)
-    return RefinedMesh(out_points, out_tris, out_values, out_grads, parent, level)
+    return RefinedMesh(out_points, out_tris, out_values, out_grads, parent, level,
+                       source_triangles=triangles, source_edges=ordered_edges)
 
 
 def _evaluate_interior(pat, lam, coefficients, G, scheme, out_values, out_grads, T):
@@ -205,37 +222,38 @@ def _chunks(n: int, width: int):
         yield slice(start, min(start + step, n))
 
 
-def _refined_points(points, triangles, ordered_edges, pat: LatticePattern, M: int) -> np.ndarray:
-    """Coordinates of all output points (M, 2) in the module's numbering.
+def _linear_field(data, triangles, ordered_edges, pat: LatticePattern, M: int) -> np.ndarray:
+    """Per-vertex data (N, d) blended linearly onto all M output points, in output order.
 
-    Each block is a product of gathered corner coordinates with a fixed weight matrix,
-    written straight into the output: ends (c, 4) @ W_edge (4, 2(L−1)) for edge points,
-    corners (c, 6) @ W_int (6, 2·n_int) for interior points.
+    Used for the point coordinates themselves and for colours. Each block is a product of
+    gathered corner data with a fixed weight matrix, written straight into the output:
+    ends (c, 2d) @ W_edge for edge points, corners (c, 3d) @ W_int for interior points.
     """
-    L, N = pat.level, points.shape[0]
-    out = np.empty((M, 2))
-    out[:N] = points
-    E, T = ordered_edges.shape[0], triangles.shape[0]
+    L, N, d = pat.level, data.shape[0], data.shape[1]
+    out = np.empty((M, d))
+    out[:N] = data
+    E = ordered_edges.shape[0]
     s = np.arange(1, L) / L
     edge_weights = np.stack([1 - s, s], axis=1)               # (L−1, 2) on (a, b)
-    _points_by_product(points, ordered_edges, edge_weights, out[N:N + E * (L - 1)])
+    _blend_by_product(data, ordered_edges, edge_weights, out[N:N + E * (L - 1)])
     interior_weights = pat.lattice[pat.interior] / L          # (n_int, 3)
-    _points_by_product(points, triangles, interior_weights, out[N + E * (L - 1):])
+    _blend_by_product(data, triangles, interior_weights, out[N + E * (L - 1):])
     return out
 
 
-def _points_by_product(points, cells, weights, out) -> None:
-    """out[(c, p)] = Σ_k weights[p, k] points[cells[c, k]], chunked matrix products."""
+def _blend_by_product(data, cells, weights, out) -> None:
+    """out[(c, p)] = Σ_k weights[p, k] data[cells[c, k]] for data (N, d), chunked products."""
     n_pts, n_corners = weights.shape
+    d = data.shape[1]
     if n_pts == 0:
         return
-    W = np.zeros((2 * n_corners, 2 * n_pts))
+    W = np.zeros((d * n_corners, d * n_pts))
     for k in range(n_corners):
-        for d in range(2):
-            W[2 * k + d, d::2] = weights[:, k]
-    flat = out.reshape(cells.shape[0], 2 * n_pts)
-    for part in _chunks(cells.shape[0], 2 * n_pts):
-        corners = points[cells[part]].reshape(-1, 2 * n_corners)
+        for j in range(d):
+            W[d * k + j, j::d] = weights[:, k]
+    flat = out.reshape(cells.shape[0], d * n_pts)
+    for part in _chunks(cells.shape[0], d * n_pts):
+        corners = data[cells[part]].reshape(-1, d * n_corners)
         np.matmul(corners, W, out=flat[part])
 
 
