@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Shell use of c1mesh: a folder batch and a stdin -> stdout chain.
+# Run: bash examples/batch_and_pipe.sh [c1mesh-command]   (default: c1mesh on PATH)
+set -euo pipefail
+C1MESH=${1:-c1mesh}
+here="$(cd "$(dirname "$0")/.." && pwd)"
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
+
+# 1. A folder of scans -> one mesh each, two processes, a JSON report of the batch.
+mkdir -p "$work/scans"
+cp "$here/data_samples/hill.ply" "$here/data_samples/wave_tilted_offset.xyz" "$work/scans/"
+$C1MESH fit "$work"/scans/* -O "$work/meshes" --jobs 2 --level 3 --report "$work/batch.json" -q
+ls "$work/meshes"
+
+# 2. A pipe: text points on stdin, binary PLY on stdout, counted by a downstream tool.
+cat "$here/data_samples/wave_tilted_offset.xyz" \
+  | $C1MESH fit - --input-format xyz -o - --level 2 -q \
+  | head -c 400 | grep -a "element vertex"
