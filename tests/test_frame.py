@@ -1,0 +1,334 @@
+"""Scan frame and height-field projection, checked against analytic surfaces and real scans."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from c1mesh.errors import InputError, NotAHeightFieldError
+from c1mesh.frame import HeightField, ScanFrame, choose_frame, gradients_to_normals, height_field
+
+REAL = Path("/work/shared/data/real")
+LIDAR_OFFSET = np.array([6.4e5, 8.5e5, 420.0])
+
+
+def rotation(axis, angle):
+    """Rodrigues rotation matrix, independent of c1mesh's frame code."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+def wave(xy):
+    """Analytic height field f and its gradient."""
+    x, y = xy[:, 0], xy[:, 1]
+    f = 0.3 * np.sin(x) * np.cos(0.7 * y) + 0.05 * x * y
+    fx = 0.3 * np.cos(x) * np.cos(0.7 * y) + 0.05 * y
+    fy = -0.21 * np.sin(x) * np.sin(0.7 * y) + 0.05 * x
+    return f, np.stack([fx, fy], axis=1)
+
+
+def tilted_scan(n=2000, seed=0, flip_fraction=0.0):
+    """World points/normals of `wave` sampled in a rotated, LiDAR-offset frame.
+
+    Returns (points, normals, R, xy, f, grad): local (x, y, f) maps to world as
+    LIDAR_OFFSET + R @ (x, y, f); normals are the exact ones, a fraction flipped.
+    """
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-3, 3, size=(n, 2))
+    f, grad = wave(xy)
+    R = rotation([1.0, -2.0, 0.5], 0.6)
+    local = np.column_stack([xy, f])
+    nrm = np.column_stack([-grad, np.ones(n)])
+    nrm *= rng.uniform(0.5, 2.0, size=(n, 1))                      # not unit length
+    nrm[rng.random(n) < flip_fraction] *= -1
+    return LIDAR_OFFSET + local @ R.T, nrm @ R.T, R, xy, f, grad
+
+
+# --- ScanFrame ------------------------------------------------------------------------
+
+def test_round_trip_at_lidar_offsets_is_within_an_ulp_or_two():
+    rng = np.random.default_rng(1)
+    pts = LIDAR_OFFSET + rng.uniform(-1000, 1000, size=(10000, 3))
+    frame = choose_frame(pts, axis="0.3,-0.2,1")
+    back = frame.to_world(frame.to_local(pts))
+    err = np.abs(back - pts)
+    # within one ulp of the point's largest coordinate...
+    assert np.all(err <= np.spacing(np.abs(pts).max(axis=1, keepdims=True)))
+    # ...and per coordinate within its own ulp plus rounding of the small local offsets
+    local_size = np.linalg.norm(pts - frame.origin, axis=1, keepdims=True)
+    assert np.all(err <= np.spacing(np.abs(pts)) + 8 * np.finfo(float).eps * local_size)
+    assert np.mean(back == pts) > 0.5                                 # mostly bit-exact
+    vec = rng.normal(size=(100, 3))
+    assert np.allclose(frame.vectors_to_world(frame.vectors_to_local(vec)), vec, rtol=0, atol=1e-15)
+
+
+def test_to_local_preserves_distances_and_puts_a_tilted_plane_at_constant_height():
+    pts, _, R, *_ = tilted_scan()
+    plane = LIDAR_OFFSET + np.column_stack([np.random.default_rng(2).uniform(-50, 50, (500, 2)),
+                                            np.full(500, 7.0)]) @ R.T
+    frame = choose_frame(plane, axis=R[:, 2])
+    local = frame.to_local(plane)
+    assert np.ptp(local[:, 2]) < 1e-9
+    d_world = np.linalg.norm(plane[1:] - plane[:-1], axis=1)
+    d_local = np.linalg.norm(local[1:] - local[:-1], axis=1)
+    assert np.allclose(d_world, d_local, rtol=1e-12, atol=1e-9)
+
+
+def test_z_axis_frame_is_the_identity_and_exact():
+    pts = LIDAR_OFFSET + np.random.default_rng(3).uniform(-500, 500, (1000, 3))
+    frame = choose_frame(pts, axis="z")
+    assert np.array_equal(frame.axes, np.eye(3))
+    assert np.array_equal(frame.to_local(pts), pts - frame.origin)
+    assert np.array_equal(frame.to_world(frame.to_local(pts)), pts)
+
+
+@pytest.mark.parametrize("axis, e1, e2, e3", [
+    ("x", [0, 1, 0], [0, 0, 1], [1, 0, 0]),
+    ("y", [0, 0, 1], [1, 0, 0], [0, 1, 0]),
+    ("+z", [1, 0, 0], [0, 1, 0], [0, 0, 1]),
+    ("-z", [1, 0, 0], [0, -1, 0], [0, 0, -1]),
+    (" X ", [0, 1, 0], [0, 0, 1], [1, 0, 0]),
+])
+def test_world_axes_give_exact_right_handed_permutations(axis, e1, e2, e3):
+    frame = choose_frame(np.zeros((3, 3)), axis=axis)
+    assert np.array_equal(frame.axes, np.array([e1, e2, e3], float))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3).filter(
+    lambda v: np.linalg.norm(v) > 1e-3))
+def test_any_axis_gives_an_orthonormal_right_handed_frame_with_that_e3(v):
+    frame = choose_frame(np.zeros((3, 3)), axis=np.array(v))
+    A = frame.axes
+    assert np.allclose(A @ A.T, np.eye(3), atol=1e-12)
+    assert np.isclose(np.linalg.det(A), 1.0)
+    assert np.allclose(A[2], np.array(v) / np.linalg.norm(v), atol=1e-12)
+    same = choose_frame(np.ones((4, 3)), axis=",".join(repr(c) for c in v))
+    assert np.allclose(same.axes, A, atol=1e-12)                           # string form agrees
+
+
+@pytest.mark.parametrize("axis", ["0,0,0", [0.0, 0.0, 0.0], "nan,0,1", [np.inf, 0, 0], "w", "1,2",
+                                  "up", [1.0, 2.0]])
+def test_unusable_axes_are_input_errors(axis):
+    with pytest.raises(InputError, match="axis"):
+        choose_frame(np.zeros((3, 3)), axis=axis)
+
+
+def test_auto_axis_follows_the_normals_even_with_arbitrary_signs():
+    pts, nrm, R, *_ = tilted_scan(flip_fraction=0.3)
+    frame = choose_frame(pts, nrm)
+    # the mean upward normal of `wave` is close to the rotated +z, and 70% of the raw
+    # normals point that way, so e3 must be on that side
+    assert np.degrees(np.arccos(frame.axes[2] @ R[:, 2])) < 5
+    flipped_majority = choose_frame(pts, -nrm)
+    assert np.allclose(flipped_majority.axes[2], -frame.axes[2])
+
+
+def test_auto_axis_without_normals_is_the_least_variance_direction_signed_up():
+    pts, _, R, *_ = tilted_scan()
+    frame = choose_frame(pts)
+    assert np.degrees(np.arccos(abs(frame.axes[2] @ R[:, 2]))) < 5
+    assert frame.axes[2][np.argmax(np.abs(frame.axes[2]))] > 0
+    assert np.allclose(frame.origin, np.median(pts, axis=0))
+
+
+def test_choose_frame_ignores_non_finite_rows():
+    pts, nrm, *_ = tilted_scan()
+    ref = choose_frame(pts, nrm)
+    pts2, nrm2 = pts.copy(), nrm.copy()
+    pts2[::7] = np.nan
+    nrm2[1::5] = 0.0
+    frame = choose_frame(pts2, nrm2)
+    assert np.isfinite(frame.origin).all()
+    assert np.degrees(np.arccos(frame.axes[2] @ ref.axes[2])) < 2
+    with pytest.raises(InputError, match="finite"):
+        choose_frame(np.full((5, 3), np.nan))
+
+
+# --- height_field -----------------------------------------------------------------------
+
+def test_height_field_recovers_the_analytic_heights_and_gradients():
+    pts, nrm, R, xy, f, grad = tilted_scan(flip_fraction=0.3)
+    frame = choose_frame(pts, axis=R[:, 2])
+    hf = height_field(pts, nrm, frame)
+    assert isinstance(hf, HeightField)
+    assert np.array_equal(hf.source_index, np.arange(len(pts)))
+    # local xy is the analytic xy up to the frame's in-plane rotation and origin: compare
+    # through distances to the first point and through the heights and slopes
+    shift = frame.to_local(LIDAR_OFFSET[None])[0]
+    rot2 = (frame.axes[:2] @ R[:, :2])                          # in-plane rotation, 2x2
+    assert np.allclose(hf.xy, xy @ rot2.T + shift[:2], atol=1e-8)
+    assert np.allclose(hf.z, f + shift[2], atol=1e-8)
+    assert np.allclose(hf.gradients, grad @ rot2.T, atol=1e-9)
+    assert hf.flipped == int(np.sum(np.einsum("ij,j->i", nrm, R[:, 2]) < 0))
+    assert hf.dropped == {"non_finite": 0, "bad_normal": 0, "too_steep": 0, "duplicate": 0}
+    assert hf.stacked == 0
+
+
+def test_drops_are_counted_by_reason_and_source_index_points_at_the_input():
+    pts, nrm, R, *_ = tilted_scan(n=500)
+    pts, nrm = pts.copy(), nrm.copy()
+    pts[3, 1] = np.nan
+    pts[4, 2] = np.inf
+    nrm[10] = 0.0
+    nrm[11, 0] = np.nan
+    # too steep: the normal 86° away from e3 (in the plane spanned by e3 and R's x axis)
+    a = np.radians(86)
+    nrm[20] = np.cos(a) * R[:, 2] + np.sin(a) * R[:, 0]
+    nrm[21] = -nrm[20]
+    frame = choose_frame(pts, axis=R[:, 2])
+    hf = height_field(pts, nrm, frame)
+    assert hf.dropped == {"non_finite": 2, "bad_normal": 2, "too_steep": 2, "duplicate": 0}
+    assert set(hf.source_index).isdisjoint({3, 4, 10, 11, 20, 21})
+    assert np.allclose(frame.to_world(np.column_stack([hf.xy, hf.z])), pts[hf.source_index])
+    hf_steeper = height_field(pts, nrm, frame, max_slope_deg=87.0)
+    assert hf_steeper.dropped["too_steep"] == 0
+
+
+def test_duplicates_are_merged_keeping_the_first_with_its_own_height():
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 10, (400, 2))
+    pts = np.column_stack([xy, 0.01 * xy[:, 0]])
+    nrm = np.tile([-0.01, 0.0, 1.0], (400, 1))
+    # an exact copy placed later, a near copy (1e-9 of the spacing away) placed earlier
+    pts = np.vstack([pts, pts[5] + [0, 0, 0.001]])
+    pts[0] = pts[7] + [1e-9, 0, 0]
+    nrm = np.vstack([nrm, nrm[5]])
+    hf = height_field(pts, nrm, choose_frame(pts, axis="z"))
+    assert hf.dropped["duplicate"] == 2
+    assert 400 not in hf.source_index and 7 not in hf.source_index
+    assert {0, 5} <= set(hf.source_index)
+    assert hf.z[list(hf.source_index).index(5)] == pytest.approx(pts[5, 2] - np.median(pts[:, 2]))
+    assert hf.stacked == 0                               # the copies agree in height
+
+
+def test_two_layers_are_not_a_height_field():
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 10, (2000, 2))
+    pts = np.column_stack([xy, np.where(np.arange(2000) % 2, 0.0, 3.0)])
+    nrm = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    with pytest.raises(NotAHeightFieldError, match="--axis"):
+        height_field(pts, nrm, choose_frame(pts, axis="z"))
+
+
+def test_a_few_stacked_points_are_kept_and_counted():
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 10, (2000, 2))
+    pts = np.column_stack([xy, np.zeros(2000)])
+    pts[:40, 2] = 5.0                                     # 2% "birds" above the ground
+    nrm = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    hf = height_field(pts, nrm, choose_frame(pts, axis="z"))
+    assert 40 <= hf.stacked <= 160                       # the birds and the ground below them
+    assert hf.xy.shape[0] == 2000
+
+
+def test_a_wall_seen_along_z_is_too_steep():
+    rng = np.random.default_rng(7)
+    pts = np.column_stack([rng.uniform(0, 1, 300), np.zeros(300), rng.uniform(0, 1, 300)])
+    nrm = np.tile([0.0, 1.0, 0.0], (300, 1))
+    with pytest.raises(NotAHeightFieldError, match="steep"):
+        height_field(pts, nrm, choose_frame(pts, axis="z"))
+    hf = height_field(pts, nrm, choose_frame(pts, nrm))    # auto finds the wall's normal
+    assert hf.xy.shape[0] == 300
+
+
+def test_trusted_signs_reject_a_surface_seen_from_both_sides():
+    pts, nrm, R, *_ = tilted_scan(flip_fraction=0.2)
+    frame = choose_frame(pts, nrm)
+    assert height_field(pts, nrm, frame).flipped > 0
+    with pytest.raises(NotAHeightFieldError, match="face away"):
+        height_field(pts, nrm, frame, max_facing_away=0.05)
+    oriented = nrm * np.sign(nrm @ R[:, 2])[:, None]
+    assert height_field(pts, oriented, frame, max_facing_away=0.05).flipped == 0
+
+
+@pytest.mark.parametrize("pts, msg", [
+    (np.zeros((0, 3)), "only 0"),
+    (np.array([[0.0, 0, 0], [1, 0, 0]]), "only 2"),
+    (np.column_stack([np.arange(10.0), 2 * np.arange(10.0), np.zeros(10)]), "one line"),
+    (np.tile([1.0, 2.0, 3.0], (10, 1)), "distinct"),
+])
+def test_too_few_or_collinear_points_are_input_errors(pts, msg):
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    with pytest.raises(InputError, match=msg):
+        height_field(pts, nrm, ScanFrame(np.zeros(3), np.eye(3)))
+
+
+def test_bad_shapes_are_input_errors():
+    frame = ScanFrame(np.zeros(3), np.eye(3))
+    with pytest.raises(InputError, match="shape"):
+        height_field(np.zeros((5, 2)), np.zeros((5, 3)), frame)
+    with pytest.raises(InputError, match="shape"):
+        height_field(np.zeros((5, 3)), np.zeros((4, 3)), frame)
+    with pytest.raises(InputError, match="normals"):
+        height_field(np.zeros((5, 3)), None, frame)
+    with pytest.raises(InputError):
+        ScanFrame(np.zeros(3), np.diag([1.0, 1.0, -1.0]))          # left-handed
+
+
+def test_gradients_to_normals_are_unit_upward_and_perpendicular_to_the_surface():
+    g = np.random.default_rng(8).normal(scale=3, size=(100, 2))
+    n = gradients_to_normals(g)
+    assert np.allclose(np.linalg.norm(n, axis=1), 1)
+    assert np.all(n[:, 2] > 0)
+    assert np.allclose(np.einsum("ij,ij->i", n, np.column_stack([np.ones(100), 0 * g[:, 0], g[:, 0]])), 0)
+    assert np.allclose(np.einsum("ij,ij->i", n, np.column_stack([0 * g[:, 0], np.ones(100), g[:, 1]])), 0)
+
+
+# --- real scans -------------------------------------------------------------------------
+
+o3d = pytest.importorskip("open3d")
+
+
+def read_pcd(name):
+    pc = o3d.io.read_point_cloud(str(REAL / name))
+    return np.asarray(pc.points), np.asarray(pc.normals)
+
+
+def lidar(name, ground_only):
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(REAL / name))
+    pts = np.column_stack([las.x, las.y, las.z])
+    pts = pts[np.asarray(las.classification) == 2] if ground_only else pts
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts - pts.mean(axis=0)))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+    nrm = np.asarray(cloud.normals)
+    return pts, nrm * np.sign(nrm[:, 2:3])
+
+
+@pytest.mark.skipif(not (REAL / "pcl_bun0.pcd").exists(), reason="real scans not available")
+def test_bunny_scan_is_a_height_field_although_7_percent_of_its_normals_face_away():
+    pts, nrm = read_pcd("pcl_bun0.pcd")
+    frame = choose_frame(pts, nrm)
+    assert frame.axes[2][2] < -0.8                      # README: mostly facing -z
+    hf = height_field(pts, nrm, frame)
+    assert hf.flipped > 0.05 * len(pts)                 # signs from a viewpoint inside the bunny
+    assert hf.stacked <= 0.1 * len(pts)
+    assert hf.xy.shape[0] + sum(hf.dropped.values()) == len(pts)
+    with pytest.raises(NotAHeightFieldError):           # trusting those signs would reject it
+        height_field(pts, nrm, frame, max_facing_away=0.05)
+
+
+@pytest.mark.skipif(not (REAL / "o3d_cloud_bin_0.pcd").exists(), reason="real scans not available")
+@pytest.mark.parametrize("axis", ["auto", "x", "y", "z"])
+def test_room_scan_is_not_a_height_field_over_any_axis(axis):
+    pts, nrm = read_pcd("o3d_cloud_bin_0.pcd")
+    with pytest.raises(NotAHeightFieldError, match="--axis"):
+        height_field(pts, nrm, choose_frame(pts, nrm, axis))
+
+
+@pytest.mark.skipif(not (REAL / "4_6_crop.las").exists(), reason="real scans not available")
+def test_lidar_ground_is_a_height_field_and_all_returns_are_not():
+    pts, nrm = lidar("4_6_crop.las", ground_only=True)
+    frame = choose_frame(pts, axis="z")
+    hf = height_field(pts, nrm, frame)
+    assert hf.stacked == 0 and hf.xy.shape[0] == len(pts)
+    assert np.allclose(frame.to_world(np.column_stack([hf.xy, hf.z])), pts[hf.source_index],
+                       rtol=0, atol=1e-9)
+    pts, nrm = lidar("4_6_crop.las", ground_only=False)
+    with pytest.raises(NotAHeightFieldError, match="--classes 2"):
+        height_field(pts, nrm, choose_frame(pts, axis="z"))
