@@ -1,0 +1,29 @@
+"""Smoke test of the benchmark suite: `python -m benchmarks --quick` runs and writes a report.
+
+Checks structure only (sections present, at least one ratio); it never asserts speed.
+"""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
+            "## Pipeline: c1mesh fit vs Open3D Poisson",
+            "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
+            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit")
+
+
+def test_quick_benchmark_writes_results(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    results = tmp_path / "RESULTS.md"
+    assert results.exists(), done.stderr[-2000:]
+    text = results.read_text()
+    for heading in HEADINGS:
+        assert heading in text, f"missing {heading!r}; stderr:\n{done.stderr[-2000:]}"
+    assert "python -m benchmarks --quick" in text
+    assert re.search(r"\| \d+(\.\d+)?× \|", text), "no numeric ratio in RESULTS.md"
+    assert (tmp_path / "engine.png").exists() and (tmp_path / "accuracy.png").exists()
