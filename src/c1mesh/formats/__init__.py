@@ -134,6 +134,8 @@ def write_mesh(mesh: SurfaceMesh, target: Union[str, "os.PathLike[str]", IO[byte
         target.flush()
         return
     path = Path(target)
+    if path.is_dir():
+        raise InputError(f"Output path '{path}' is a directory; give a file name.")
     key = _format(fmt or path.suffix, str(path), SUPPORTED_OUTPUT, "output")
     with atomic_output(path) as f:
         _WRITERS[key](mesh, f, ascii=ascii)

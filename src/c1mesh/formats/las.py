@@ -9,6 +9,7 @@ normals. Every other dimension (intensity, return_number, gps_time, ...) goes to
 from __future__ import annotations
 
 import io
+import struct
 
 import numpy as np
 
@@ -36,23 +37,69 @@ def _is_compressed(data: bytes) -> bool:
 
 
 def _read(data: bytes, name: str):
-    """laspy.read on the bytes; its errors become FormatError / DependencyError."""
+    """laspy read of the bytes; its errors become FormatError / DependencyError."""
     laspy = _laspy()
     if _is_compressed(data) and not laspy.LazBackend.detect_available():
         raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.")
-    if not data.startswith(b"LASF"):
-        raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with the 'LASF' signature.")
+    _check_header(data, name)
     try:
-        return laspy.read(io.BytesIO(data))
+        with laspy.open(io.BytesIO(data)) as reader:
+            _check_length(reader.header, len(data), name)
+            return reader.read()
+    except FormatError:
+        raise
     except Exception as exc:  # laspy raises LaspyException, ValueError, struct errors, ...
         if "LazBackend" in str(exc) or "lazrs" in str(exc).lower():
             raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.") from exc
         raise FormatError(f"LAS/LAZ file '{name}' cannot be read: {exc}.") from exc
 
 
+def _check_header(data: bytes, name: str) -> None:
+    """Sanity-check the public header block before laspy sees it.
+
+    laspy trusts the header's sizes and counts; a corrupt one can make it try to allocate
+    tens of gigabytes, so implausible values are rejected here as FormatError.
+    """
+    if not data.startswith(b"LASF"):
+        raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with the 'LASF' signature.")
+    if len(data) < 227:
+        raise FormatError(f"LAS file '{name}' is truncated: {len(data)} bytes, shorter than a LAS header.")
+    major, minor = data[24], data[25]
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", data, 94)
+    problems = [
+        (major != 1 or minor > 4, f"version {major}.{minor} is not LAS 1.0-1.4"),
+        (not 227 <= header_size <= len(data), f"header size {header_size} is impossible"),
+        (not header_size <= offset <= len(data), f"point data offset {offset} lies outside the file"),
+        (n_vlrs * 54 > offset - header_size, f"{n_vlrs} variable-length records cannot fit before the points"),
+        ((data[104] & 0x3F) > 10, f"point format {data[104] & 0x3F} does not exist"),
+    ]
+    for bad, what in problems:
+        if bad:
+            raise FormatError(f"LAS file '{name}' has a corrupt header: {what}.")
+
+
+def _check_length(header, size: int, name: str) -> None:
+    """FormatError when an uncompressed body is shorter than the header's point count needs.
+
+    Checked up front because laspy only logs a truncated LAS body and returns fewer points,
+    and would allocate memory for an absurd point count before noticing a LAZ body is short.
+    """
+    if header.are_points_compressed:
+        if header.point_count * header.point_format.size > 1000 * size + (1 << 20):
+            raise FormatError(f"LAZ file '{name}' claims {header.point_count} points, far more than {size} bytes can hold.")
+        return
+    need = header.offset_to_point_data + header.point_count * header.point_format.size
+    if size < need:
+        raise FormatError(
+            f"LAS file '{name}' is truncated: {size} bytes, but its {header.point_count} points need {need}."
+        )
+
+
 def read_las(data: bytes, name: str) -> PointCloud:
     """Read a LAS or LAZ file held in `data` (`name` is for messages)."""
     las = _read(data, name)
+    if len(las.points) != las.header.point_count:
+        raise FormatError(f"LAS/LAZ file '{name}' has {len(las.points)} points, not the {las.header.point_count} its header says.")
     dims = list(las.point_format.dimension_names)
     cloud = PointCloud(points=np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64))
     used = set(_COORDS)

@@ -1,0 +1,565 @@
+"""Readers and writers of c1mesh.formats against independent truth.
+
+Truth is either values constructed here (files assembled byte by byte with struct /
+numpy, not with the code under test), another library's reading of the same file
+(open3d, laspy, trimesh), or a round trip through a writer with exact comparison.
+"""
+from __future__ import annotations
+
+import io
+import os
+import struct
+from pathlib import Path
+
+import laspy
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+
+from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.errors import DependencyError, FormatError, InputError
+from c1mesh.formats import SUPPORTED_INPUT, SUPPORTED_OUTPUT, atomic_output, read_cloud, write_mesh
+from c1mesh.formats.lzf import LZFError, lzf_decompress
+
+REAL = Path("/work/shared/data/real")
+SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
+BIG = 6.4e5 + 1e-7  # needs a double: float32 would round it to 640000.0
+
+
+def real(name: str) -> Path:
+    """A real scan: the data_samples copy if there is one, else the shared original."""
+    path = SAMPLES / name if (SAMPLES / name).exists() else REAL / name
+    if not path.exists():
+        pytest.skip(f"real sample {name} not available")
+    return path
+
+
+# ============================================================================ PLY, built by hand
+PLY_CODES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+             "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+             "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+VERTEX_PROPS = [("x", "double"), ("y", "float32"), ("z", "float"), ("nx", "float"), ("ny", "float"),
+                ("nz", "float"), ("red", "uchar"), ("green", "uint8"), ("blue", "uchar"), ("alpha", "uchar"),
+                ("c_char", "char"), ("c_short", "short"), ("c_ushort", "ushort"), ("c_int", "int"),
+                ("c_uint", "uint"), ("c_int16", "int16"), ("c_uint32", "uint32"), ("c_f64", "float64")]
+
+
+def vertex_table(endian: str = "<") -> np.ndarray:
+    """Four vertices with one value per property type; floats exact in float32 where declared so."""
+    rows = np.zeros(4, [(n, endian + PLY_CODES[t]) for n, t in VERTEX_PROPS])
+    rows["x"] = [BIG, -1.5, 0.0, 1e-300]
+    rows["y"] = [0.25, 2.0, -3.5, 1e6]
+    rows["z"] = [1.0, 2.5, -0.125, 7.0]
+    rows["nx"], rows["ny"], rows["nz"] = [0, 1, 0, 0.6], [0, 0, 1, 0.8], [1, 0, 0, 0]
+    rows["red"], rows["green"], rows["blue"], rows["alpha"] = [255, 0, 1, 2], [0, 255, 3, 4], [9, 8, 7, 6], [255] * 4
+    rows["c_char"], rows["c_short"], rows["c_ushort"] = [-128, 127, 0, -1], [-32768, 5, 6, 32767], [65535, 0, 1, 2]
+    rows["c_int"], rows["c_uint"] = [-(2**31), 2**31 - 1, 0, 1], [2**32 - 1, 0, 1, 2]
+    rows["c_int16"], rows["c_uint32"], rows["c_f64"] = [-5, 5, 0, 1], [7, 8, 9, 10], [0.1, 1 / 3, -2.0, 1e-10]
+    return rows
+
+
+FACES_RAGGED = [([0, 1, 2], 7), ([0, 1, 2, 3], 9)]
+FACES_UNIFORM = [([0, 1, 2], 7), ([1, 2, 3], 9)]
+
+
+def ply_bytes(fmt: str, faces=FACES_RAGGED, faces_first: bool = True) -> bytes:
+    """A PLY with a face element (list + scalar) before or after the vertices, and an edge element."""
+    endian = {"ascii": "<", "binary_little_endian": "<", "binary_big_endian": ">"}[fmt]
+    verts = vertex_table(endian)
+    vhead = [f"element vertex {len(verts)}"] + [f"property {t} {n}" for n, t in VERTEX_PROPS]
+    fhead = [f"element face {len(faces)}", "property list uchar int vertex_indices", "property uchar flags"]
+    ehead = ["element edge 1", "property int vertex1", "property int vertex2"]
+    head = ["ply", f"format {fmt} 1.0", "comment built by hand", "obj_info test"]
+    head += (fhead + vhead if faces_first else vhead + fhead) + ehead + ["end_header"]
+    if fmt == "ascii":
+        vbody = "".join(" ".join(repr(v.item()) for v in row) + "\n" for row in verts)
+        fbody = "".join(f"{len(idx)} {' '.join(map(str, idx))} {flag}\n" for idx, flag in faces)
+        body = ((fbody + vbody) if faces_first else (vbody + fbody)) + "0 1\n"
+        return ("\n".join(head) + "\n" + body).encode()
+    fbody = b"".join(struct.pack(f"{endian}B{len(i)}iB", len(i), *i, fl) for i, fl in faces)
+    vbody = verts.tobytes()
+    body = (fbody + vbody if faces_first else vbody + fbody) + struct.pack(endian + "ii", 0, 1)
+    return ("\n".join(head) + "\n").encode() + body
+
+
+def check_hand_ply(cloud: PointCloud) -> None:
+    truth = vertex_table("=")
+    expect_pts = np.column_stack([truth["x"], truth["y"], truth["z"]]).astype(np.float64)
+    np.testing.assert_array_equal(cloud.points, expect_pts)
+    assert cloud.points.dtype == np.float64 and cloud.points[0, 0] == BIG
+    np.testing.assert_array_equal(cloud.normals, np.column_stack([truth["nx"], truth["ny"], truth["nz"]]))
+    np.testing.assert_array_equal(cloud.colors, np.column_stack([truth[c] for c in ("red", "green", "blue", "alpha")]))
+    assert cloud.colors.dtype == np.uint8
+    assert set(cloud.extra) == {n for n, _ in VERTEX_PROPS[10:]}
+    for name, t in VERTEX_PROPS[10:]:
+        assert cloud.extra[name].dtype == np.dtype(PLY_CODES[t]), name
+        np.testing.assert_array_equal(cloud.extra[name], truth[name])
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
+@pytest.mark.parametrize("faces", [FACES_RAGGED, FACES_UNIFORM], ids=["ragged", "uniform"])
+@pytest.mark.parametrize("faces_first", [True, False], ids=["faces-first", "faces-last"])
+def test_ply_hand_built(tmp_path, fmt, faces, faces_first):
+    path = tmp_path / "hand.PLY"  # upper-case extension on purpose
+    path.write_bytes(ply_bytes(fmt, faces, faces_first))
+    check_hand_ply(read_cloud(path))
+
+
+@pytest.mark.parametrize("ascii", [False, True])
+def test_ply_written_by_open3d(tmp_path, ascii):
+    src = o3d.io.read_point_cloud(str(real("o3d_cloud_bin_0.pcd")))
+    path = tmp_path / "room.ply"
+    o3d.io.write_point_cloud(str(path), src, write_ascii=ascii)
+    truth = o3d.io.read_point_cloud(str(path))
+    cloud = read_cloud(path)
+    np.testing.assert_allclose(cloud.points, np.asarray(truth.points), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cloud.normals, np.asarray(truth.normals), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(cloud.colors, np.round(np.asarray(truth.colors) * 255).astype(np.uint8))
+
+
+# ============================================================================ OBJ
+def test_obj_per_vertex_normals_and_colors(tmp_path):
+    path = tmp_path / "cloud.obj"
+    path.write_text("# export\nmtllib x.mtl\no cloud\nv 1 2 3 1 0 0.5\nv 640000.0000001 -5 6.5 0 1 0\n"
+                    "vn 0 0 1\nvn 0 1 0\nvt 0.5 0.5\nf 1//1 2//2 1//1\n")
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, [[1, 2, 3], [BIG, -5, 6.5]])
+    np.testing.assert_array_equal(cloud.normals, [[0, 0, 1], [0, 1, 0]])
+    np.testing.assert_array_equal(cloud.colors, [[255, 0, 128], [0, 255, 0]])
+
+
+def test_obj_normals_from_faces(tmp_path):
+    path = tmp_path / "mesh.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 5 5 5\nvn 0 0 1\nvn 1 0 0\nf 1//1 2//2 -2//-1\n")
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.normals[:3], [[0, 0, 1], [1, 0, 0], [1, 0, 0]])
+    assert np.isnan(cloud.normals[3]).all()  # no face names a normal for vertex 4
+
+
+def test_obj_without_normals(tmp_path):
+    path = tmp_path / "plain.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    cloud = read_cloud(path)
+    assert cloud.normals is None and cloud.colors is None and len(cloud) == 3
+
+
+# ============================================================================ XYZ / TXT / CSV
+PTS = np.array([[BIG, 1.5, -2.0], [0.1, 0.2, 0.3], [-7.0, 8.0, 9.0]])
+NRM = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0], [-1.0, 0.0, 0.0]])
+RGB = np.array([[255, 0, 10], [1, 2, 3], [200, 100, 50]])
+
+
+def table_text(*blocks: np.ndarray, sep: str = " ") -> str:
+    return "".join(sep.join(repr(float(v)) for v in row) + "\n" for row in np.hstack(blocks))
+
+
+@pytest.mark.parametrize("ext", ["xyz", "txt", "csv"])
+def test_xyz_with_header(tmp_path, ext):
+    sep = "," if ext == "csv" else " "
+    path = tmp_path / f"points.{ext}"
+    scalar = np.array([[1.0], [2.0], [3.0]])
+    path.write_text("# comment\n" + sep.join(["X", "Y", "Z", "red", "green", "blue", "nx", "ny", "nz", "intensity"])
+                    + "\n" + table_text(PTS, RGB, NRM, scalar, sep=sep))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, PTS)
+    np.testing.assert_array_equal(cloud.normals, NRM)
+    np.testing.assert_array_equal(cloud.colors, RGB)
+    np.testing.assert_array_equal(cloud.extra["intensity"], scalar[:, 0])
+
+
+def test_xyz_cloudcompare_header(tmp_path):
+    path = tmp_path / "cc.txt"
+    path.write_text("//X,Y,Z,R,G,B,Nx,Ny,Nz\n" + table_text(PTS, RGB, NRM, sep=","))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.colors, RGB)
+    np.testing.assert_array_equal(cloud.normals, NRM)
+
+
+@pytest.mark.parametrize(
+    "blocks, expect",
+    [
+        ((PTS,), {}),
+        ((PTS, NRM[:, :1]), {"scalar": NRM[:, 0]}),
+        ((PTS, NRM), {"normals": NRM}),
+        ((PTS, RGB), {"colors": RGB}),
+        ((PTS, NRM[:, :1], RGB), {"scalar": NRM[:, 0], "colors": RGB}),  # .pts order
+        ((PTS, NRM, NRM[:, 1:2]), {"normals": NRM, "scalar": NRM[:, 1]}),
+        ((PTS, NRM, RGB), {"normals": NRM, "colors": RGB}),
+        ((PTS, RGB, NRM), {"normals": NRM, "colors": RGB}),
+    ],
+    ids=["3", "4", "6-normals", "6-rgb", "7-pts", "7-normals", "9-n-rgb", "9-rgb-n"],
+)
+def test_xyz_without_header(tmp_path, blocks, expect):
+    path = tmp_path / "bare.xyz"
+    path.write_text("# written by hand\n\n" + table_text(*blocks))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, PTS)
+    for key in ("normals", "colors"):
+        if key in expect:
+            np.testing.assert_array_equal(getattr(cloud, key), expect[key])
+        else:
+            assert getattr(cloud, key) is None
+    if "scalar" in expect:
+        np.testing.assert_array_equal(cloud.extra["scalar"], expect["scalar"])
+    else:
+        assert cloud.extra == {}
+
+
+def test_xyzn_written_by_open3d(tmp_path):
+    src = o3d.io.read_point_cloud(str(real("pcl_bun0.pcd")))
+    o3d.io.write_point_cloud(str(tmp_path / "bunny.xyzn"), src)
+    (tmp_path / "bunny.xyzn").rename(tmp_path / "bunny.xyz")
+    cloud = read_cloud(tmp_path / "bunny.xyz")
+    np.testing.assert_allclose(cloud.points, np.asarray(src.points), atol=1e-9)
+    np.testing.assert_allclose(cloud.normals, np.asarray(src.normals), atol=1e-9)
+
+
+# ============================================================================ PCD
+def o3d_cloud(n: int, seed: int = 0, repetitive: bool = False) -> o3d.geometry.PointCloud:
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 3)) * 100
+    if repetitive:  # long runs and short periods exercise LZF back references
+        pts = np.repeat(np.round(pts[: n // 50], 1), 50, axis=0)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    cloud.normals = o3d.utility.Vector3dVector(rng.normal(size=(len(pts), 3)))
+    cloud.colors = o3d.utility.Vector3dVector(rng.integers(0, 256, (len(pts), 3)) / 255)
+    return cloud
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary", "binary_compressed", "compressed-repetitive"])
+def test_pcd_written_by_open3d(tmp_path, kind):
+    src = o3d_cloud(5000, repetitive=kind == "compressed-repetitive")
+    path = tmp_path / "cloud.pcd"
+    o3d.io.write_point_cloud(str(path), src, write_ascii=kind == "ascii", compressed="compressed" in kind)
+    assert f"DATA {kind.replace('compressed-repetitive', 'binary_compressed')}".encode() in path.read_bytes()[:400]
+    truth = o3d.io.read_point_cloud(str(path))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, np.asarray(truth.points))
+    np.testing.assert_array_equal(cloud.normals, np.asarray(truth.normals))
+    np.testing.assert_array_equal(cloud.colors, np.round(np.asarray(truth.colors) * 255).astype(np.uint8))
+    np.testing.assert_allclose(cloud.points, np.asarray(src.points), rtol=1e-6)  # float32 of the truth
+
+
+def test_pcd_hand_built_organised_binary(tmp_path):
+    """2 x 3 organised cloud: NaN point kept, COUNT 2 field split, '_' padding dropped, rgba unpacked."""
+    rows = np.zeros(6, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "<f4"), ("rgba", "<u4"), ("h", "<i2", (2,))])
+    rows["x"], rows["y"], rows["z"] = np.arange(6), np.arange(6) * 2, np.arange(6) * 3
+    rows["x"][4] = rows["y"][4] = rows["z"][4] = np.nan
+    rows["rgba"] = [0x80FF0001, 0xFF000000, 0, 0x01020304, 0xFFFFFFFF, 0x00ABCDEF]
+    rows["h"] = np.arange(12).reshape(6, 2)
+    head = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z _ rgba h\nSIZE 4 4 4 4 4 2\nTYPE F F F F U I\n"
+            "COUNT 1 1 1 1 1 2\nWIDTH 3\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 6\nDATA binary\n")
+    path = tmp_path / "organised.pcd"
+    path.write_bytes(head.encode() + rows.tobytes())
+    cloud = read_cloud(path)
+    assert len(cloud) == 6 and np.isnan(cloud.points[4]).all()
+    np.testing.assert_array_equal(cloud.points[5], [5, 10, 15])
+    np.testing.assert_array_equal(cloud.colors[:4], [[255, 0, 1, 128], [0, 0, 0, 255], [0, 0, 0, 0], [2, 3, 4, 1]])
+    np.testing.assert_array_equal(cloud.extra["h_1"], np.arange(1, 12, 2))
+    assert set(cloud.extra) == {"h_0", "h_1"} and cloud.normals is None
+
+
+def test_pcd_v06_ascii_without_count_and_viewpoint(tmp_path):
+    path = tmp_path / "old.pcd"
+    path.write_text("VERSION .6\nFIELDS x y z rgb\nSIZE 4 4 4 4\nTYPE F F F F\nWIDTH 2\nHEIGHT 1\nPOINTS 2\n"
+                    "DATA ascii\n1 2 3 4278190335\n640000.0000001 5 6 0\n")
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, [[1, 2, 3], [BIG, 5, 6]])  # ascii keeps the text's precision
+    np.testing.assert_array_equal(cloud.colors, [[0, 0, 255], [0, 0, 0]])  # 0xFF0000FF: alpha ignored for rgb
+
+
+def test_real_pcd_files_match_open3d():
+    for name in ("pcl_bun0.pcd", "o3d_cloud_bin_0.pcd", "table_scene_mug_stereo_textured.pcd"):
+        path = real(name)
+        truth = o3d.io.read_point_cloud(str(path))
+        cloud = read_cloud(path)
+        np.testing.assert_array_equal(cloud.points, np.asarray(truth.points))  # NaN == NaN here
+        if truth.has_normals():
+            np.testing.assert_array_equal(cloud.normals, np.asarray(truth.normals))
+        if truth.has_colors():
+            np.testing.assert_array_equal(cloud.colors[:, :3], np.round(np.asarray(truth.colors) * 255))
+    bunny = read_cloud(real("pcl_bun0.pcd"))
+    assert len(bunny) == 397 and "curvature" in bunny.extra
+    scene = read_cloud(real("table_scene_mug_stereo_textured.pcd"))
+    assert len(scene) == 307200 and int((~np.isnan(scene.points).any(axis=1)).sum()) == 209280
+
+
+def test_lzf_overlapping_and_long_back_references():
+    # literal 'ab', then copy 5 from distance 2 (overlapping), then copy 9+2 from distance 1 (length byte)
+    stream = bytes([1]) + b"ab" + bytes([(5 - 2) << 5, 1]) + bytes([7 << 5, 9 + 2 - 2 - 7, 0])
+    assert lzf_decompress(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
+    with pytest.raises(LZFError):
+        lzf_decompress(bytes([5]) + b"abc", 6)  # literal run longer than the input
+    with pytest.raises(LZFError):
+        lzf_decompress(bytes([0]) + b"a" + bytes([1 << 5, 9]), 4)  # reference before the start
+
+
+# ============================================================================ LAS / LAZ
+def laspy_file(path: Path) -> laspy.LasData:
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales = [0.001, 0.001, 0.01]
+    header.offsets = [640000.0, 850000.0, 0.0]
+    las = laspy.LasData(header)
+    las.x = np.array([640000.123, 640001.5, 640002.999])
+    las.y = np.array([850000.0, 850000.001, 850010.5])
+    las.z = np.array([1.25, 2.5, -3.75])
+    las.classification = np.array([2, 5, 2], np.uint8)
+    las.red = np.array([65535, 256, 0], np.uint16)
+    las.green = np.array([0, 512, 4096], np.uint16)
+    las.blue = np.array([255 * 256, 0, 1], np.uint16)
+    las.intensity = np.array([10, 20, 30], np.uint16)
+    las.write(str(path))
+    return las
+
+
+@pytest.mark.parametrize("ext", ["las", "laz"])
+def test_las_written_by_laspy(tmp_path, ext):
+    las = laspy_file(tmp_path / f"tile.{ext}")
+    cloud = read_cloud(tmp_path / f"tile.{ext}")
+    np.testing.assert_array_equal(cloud.points, np.column_stack([las.x, las.y, las.z]))
+    np.testing.assert_allclose(cloud.points[0], [640000.123, 850000.0, 1.25], atol=1e-9)
+    np.testing.assert_array_equal(cloud.classification, [2, 5, 2])
+    np.testing.assert_array_equal(cloud.colors, [[255, 0, 255], [1, 2, 0], [0, 16, 0]])  # 16-bit >> 8
+    np.testing.assert_array_equal(cloud.extra["intensity"], [10, 20, 30])
+
+
+@pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
+def test_real_las_files_match_laspy(name):
+    path = real(name)
+    truth = laspy.read(str(path))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, np.column_stack([truth.x, truth.y, truth.z]))
+    np.testing.assert_array_equal(cloud.classification, truth.classification)
+    np.testing.assert_array_equal(cloud.extra["gps_time"], truth.gps_time)
+    assert int((cloud.classification == 2).sum()) == {"4_6_crop.las": 9003, "autzen_trim.laz": 26107}[name]
+    if name == "autzen_trim.laz":
+        np.testing.assert_array_equal(cloud.colors, np.column_stack([truth.red, truth.green, truth.blue]))
+    else:
+        assert cloud.colors is None  # its RGB fields are all zero
+
+
+def test_laz_without_backend_raises_dependency_error(monkeypatch):
+    monkeypatch.setattr(laspy.LazBackend, "detect_available", staticmethod(lambda: ()))
+    with pytest.raises(DependencyError, match=r'pip install "laspy\[lazrs\]"'):
+        read_cloud(real("autzen_trim.laz"))
+
+
+# ============================================================================ streams
+def test_read_from_binary_streams():
+    check_hand_ply(read_cloud(io.BytesIO(ply_bytes("binary_little_endian")), fmt="ply"))
+    cloud = read_cloud(io.BytesIO(table_text(PTS).encode()), fmt=".XYZ")
+    np.testing.assert_array_equal(cloud.points, PTS)
+    cloud = read_cloud(io.BytesIO(real("4_6_crop.las").read_bytes()), fmt="las")
+    assert len(cloud) == 23875
+    with pytest.raises(InputError, match="explicit format"):
+        read_cloud(io.BytesIO(b"1 2 3\n"))
+
+
+def test_write_to_binary_streams():
+    mesh = sample_mesh()
+    out = io.BytesIO()
+    write_mesh(mesh, out)
+    assert out.getvalue().startswith(b"ply\nformat binary_little_endian 1.0\n")
+    np.testing.assert_array_equal(read_cloud(io.BytesIO(out.getvalue()), fmt="ply").points, mesh.vertices)
+    text = io.TextIOWrapper(io.BytesIO())  # like sys.stdout: its .buffer takes the bytes
+    write_mesh(mesh, text, fmt="obj")
+    assert text.buffer.getvalue().startswith(b"# written by c1mesh\nv ")
+
+
+# ============================================================================ writers
+def sample_mesh(colors: bool = True) -> SurfaceMesh:
+    """A closed tetrahedron, counter-clockwise from outside, far from the origin."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.5 + [BIG, 8.5e5 + 1e-7, 1e-7]
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    n = (v - v.mean(axis=0)) / np.linalg.norm(v - v.mean(axis=0), axis=1, keepdims=True)
+    c = np.array([[255, 0, 0, 255], [0, 255, 0, 128], [0, 0, 255, 0], [1, 2, 3, 4]], np.uint8) if colors else None
+    return SurfaceMesh(vertices=v, faces=f, vertex_normals=n, vertex_colors=c)
+
+
+@pytest.mark.parametrize("ascii", [False, True])
+def test_ply_writer_round_trip_double_precision(tmp_path, ascii):
+    mesh = sample_mesh()
+    path = tmp_path / "mesh.ply"
+    write_mesh(mesh, path, ascii=ascii)
+    head = path.read_bytes()[:400]
+    assert (b"format ascii 1.0" if ascii else b"format binary_little_endian 1.0") in head
+    assert b"property double x" in head and b"property list uchar int vertex_indices" in head
+    tm = trimesh.load(path, process=False)
+    np.testing.assert_array_equal(tm.vertices, mesh.vertices)
+    np.testing.assert_array_equal(tm.faces, mesh.faces)
+    np.testing.assert_array_equal(tm.visual.vertex_colors, mesh.vertex_colors)
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, mesh.vertices)
+    np.testing.assert_array_equal(cloud.normals, mesh.vertex_normals)
+    np.testing.assert_array_equal(cloud.colors, mesh.vertex_colors)
+    assert cloud.points[0, 0] == BIG
+
+
+def test_obj_writer_round_trip(tmp_path):
+    mesh = sample_mesh()
+    write_mesh(mesh, tmp_path / "mesh.obj")
+    cloud = read_cloud(tmp_path / "mesh.obj")
+    np.testing.assert_array_equal(cloud.points, mesh.vertices)
+    np.testing.assert_array_equal(cloud.normals, mesh.vertex_normals)
+    np.testing.assert_array_equal(cloud.colors, mesh.vertex_colors[:, :3])
+    tm = trimesh.load(tmp_path / "mesh.obj", process=False)
+    np.testing.assert_array_equal(tm.vertices[tm.faces], mesh.vertices[mesh.faces])
+
+
+def test_stl_off_glb_writers_read_by_trimesh(tmp_path):
+    mesh = sample_mesh()
+    for ext, atol in (("stl", 0.07), ("off", 0.0), ("glb", 0.07)):  # float32 at 6.4e5: steps of 1/16
+        write_mesh(mesh, tmp_path / f"mesh.{ext}")
+        tm = trimesh.load(tmp_path / f"mesh.{ext}", process=False, force="mesh")
+        np.testing.assert_allclose(tm.vertices[tm.faces], mesh.vertices[mesh.faces], rtol=0, atol=atol, err_msg=ext)
+    stl = trimesh.load(tmp_path / "mesh.stl", process=False)
+    outward = stl.triangles_center - stl.triangles_center.mean(axis=0)
+    assert (np.einsum("ij,ij->i", stl.face_normals, outward) > 0).all()
+    stl.merge_vertices()
+    assert stl.is_volume  # watertight and consistently wound
+
+
+# ============================================================================ atomic writes
+def failing_writer(mesh, f, ascii=False):
+    f.write(b"half a file")
+    raise RuntimeError("disk on fire")
+
+
+def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
+    import c1mesh.formats as formats
+
+    monkeypatch.setitem(formats._WRITERS, "ply", failing_writer)
+    with pytest.raises(RuntimeError):
+        write_mesh(sample_mesh(), tmp_path / "new.ply")
+    assert list(tmp_path.iterdir()) == []
+    old = tmp_path / "old.ply"
+    old.write_bytes(b"previous result")
+    with pytest.raises(RuntimeError):
+        write_mesh(sample_mesh(), old)
+    assert old.read_bytes() == b"previous result" and list(tmp_path.iterdir()) == [old]
+
+
+def test_atomic_output_modes(tmp_path):
+    with atomic_output(tmp_path / "report.json", mode="w") as f:
+        f.write('{"ok": true}')
+        assert not (tmp_path / "report.json").exists()  # only visible once complete
+    assert (tmp_path / "report.json").read_text() == '{"ok": true}'
+    with pytest.raises(KeyError):
+        with atomic_output(tmp_path / "other.bin", mode="path") as tmp:
+            tmp.write_bytes(b"x")
+            raise KeyError("boom")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]
+
+
+def test_unwritable_directory(tmp_path, monkeypatch):
+    import c1mesh.formats._atomic as atomic
+
+    def denied(**kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", denied)  # tests run as root: chmod would not stop us
+    with pytest.raises(InputError, match="Cannot write .*out.ply.*Permission denied"):
+        write_mesh(sample_mesh(), tmp_path / "out.ply")
+
+
+def test_write_errors(tmp_path):
+    (tmp_path / "file").write_text("x")
+    cases = [(tmp_path / "missing" / "m.ply", "does not exist"), (tmp_path / "file" / "m.ply", "not a directory"),
+             (tmp_path, "is a directory"), (tmp_path / "m.xyz", "supported: ply, obj, stl, off, glb"),
+             (tmp_path / "noext", "Cannot tell")]
+    for target, message in cases:
+        with pytest.raises(InputError, match=message):
+            write_mesh(sample_mesh(), target)
+    bad = SurfaceMesh(vertices=np.zeros((3, 3)), faces=np.array([[0, 1, 3]]))
+    with pytest.raises(InputError, match="outside"):
+        write_mesh(bad, tmp_path / "bad.ply")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    assert set(SUPPORTED_OUTPUT) == {"ply", "obj", "stl", "off", "glb"}
+
+
+# ============================================================================ malformed corpus
+GARBAGE = bytes(np.random.default_rng(7).integers(0, 256, 4096, dtype=np.uint8))
+
+
+def corpus() -> list[tuple[str, bytes, str]]:
+    """(file name, content, regex the message must contain)."""
+    good_ply = ply_bytes("binary_little_endian", FACES_UNIFORM, faces_first=False)
+    good_pcd_head = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 10\nHEIGHT 1\n"
+                     b"POINTS 10\nDATA binary\n")
+    las = real("4_6_crop.las").read_bytes()
+    return [
+        ("empty.ply", b"", "empty"),
+        ("empty.xyz", b"", "empty"),
+        ("magic.ply", b"plyx\nformat ascii 1.0\nend_header\n", "magic"),
+        ("noend.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n1\n", "end_header"),
+        ("noend2.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x", "end_header"),
+        ("badline.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\nend_header\n1\n", "line 4"),
+        ("badfmt.ply", b"ply\nformat binary_middle_endian 1.0\nend_header\n", "line 2"),
+        ("noxyz.ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float u\nend_header\n1\n", "x, y and z"),
+        ("novertex.ply", b"ply\nformat ascii 1.0\nelement face 0\nend_header\n", "no 'vertex'"),
+        ("trunc.ply", good_ply[:-40], "truncated"),
+        ("trunc_ragged.ply", ply_bytes("binary_big_endian")[:-40], "truncated"),
+        ("trunc_ascii.ply", ply_bytes("ascii", faces_first=False).rsplit(b"\n", 4)[0], "truncated"),
+        ("garbage.ply", GARBAGE, "magic"),
+        ("garbage.pcd", GARBAGE, "PCD"),
+        ("garbage.las", GARBAGE, "LASF"),
+        ("garbage.obj", GARBAGE, "binary"),
+        ("garbage.xyz", GARBAGE, "binary"),
+        ("trunc.las", las[: len(las) // 2], "truncated"),
+        ("header_only.las", las[:227], "header_only.las"),
+        ("vlr_cut.las", las[:400], "vlr_cut.las"),
+        ("lasf_garbage.las", b"LASF" + GARBAGE, "lasf_garbage.las"),
+        ("nodata.pcd", good_pcd_head.replace(b"DATA binary\n", b""), "DATA"),
+        ("trunc.pcd", good_pcd_head + b"\0" * 100, "truncated"),
+        ("trunc_c.pcd", good_pcd_head.replace(b"binary", b"binary_compressed") + struct.pack("<II", 50, 120) + b"\0" * 9,
+         "truncated"),
+        ("corrupt_c.pcd", good_pcd_head.replace(b"binary", b"binary_compressed") + struct.pack("<II", 2, 120) + b"\x05a",
+         "corrupt"),
+        ("trunc_ascii.pcd", good_pcd_head.replace(b"binary", b"ascii") + b"1 2 3\n", "truncated"),
+        ("types.pcd", good_pcd_head.replace(b"TYPE F F F", b"TYPE F F Q"), "unsupported field types"),
+        ("text.xyz", b"1 2 3\n4 5 6\n7 eight 9\n", "line 3"),
+        ("columns.csv", b"x,y,z\n1,2,3\n4,5\n", "line 3"),
+        ("five.xyz", b"1 2 3 4 5\n", "5 columns"),
+        ("noxyzhead.txt", b"a b c\n1 2 3\n", "without x, y and z"),
+        ("words.obj", b"v 1 2 3\nv 1 two 3\n", "line 2"),
+        ("novertex.obj", b"# nothing\nvn 0 0 1\n", "no 'v'"),
+        ("unknown.e57", b"anything", "supported: ply, obj, xyz, txt, csv, pcd, las, laz"),
+    ]
+
+
+@pytest.mark.parametrize("name, content, message", corpus(), ids=[c[0] for c in corpus()])
+def test_malformed_inputs(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(InputError, match=message) as info:
+        read_cloud(path)
+    if name != "unknown.e57":
+        assert type(info.value) is FormatError
+    assert name in str(info.value)
+
+
+def test_truncated_las_is_reported_not_logged(tmp_path, caplog):
+    data = real("4_6_crop.las").read_bytes()
+    (tmp_path / "cut.las").write_bytes(data[:-34])
+    with pytest.raises(FormatError, match="truncated"):
+        read_cloud(tmp_path / "cut.las")
+    assert not caplog.records  # laspy would log an ERROR and return fewer points
+    laz = real("autzen_trim.laz").read_bytes()
+    (tmp_path / "cut.laz").write_bytes(laz[: len(laz) // 2])
+    with pytest.raises(FormatError, match="cut.laz"):
+        read_cloud(tmp_path / "cut.laz")
+    huge = bytearray(laz)
+    huge[107:111] = struct.pack("<I", 2**32 - 1)  # legacy point count: 146 GB of points
+    (tmp_path / "huge.laz").write_bytes(bytes(huge))
+    with pytest.raises(FormatError, match="huge.laz"):
+        read_cloud(tmp_path / "huge.laz")
+
+
+def test_missing_and_directory_inputs(tmp_path):
+    with pytest.raises(InputError, match="nowhere.ply.*does not exist"):
+        read_cloud(tmp_path / "nowhere.ply")
+    (tmp_path / "dir.ply").mkdir()
+    with pytest.raises(InputError, match="is a directory"):
+        read_cloud(tmp_path / "dir.ply")
+    assert "laz" in SUPPORTED_INPUT and "csv" in SUPPORTED_INPUT
