@@ -89,7 +89,9 @@ $C1MESH info "$here/data_samples/hill.ply" > "$work/info.json"
 check "info" 0 $?
 grep -q '"height_field": true' "$work/info.json"
 check "info says the sample is a height field" 0 $?
-$C1MESH schemes | grep -q "^sextic"
+$C1MESH schemes > "$work/schemes.txt"
+check "schemes" 0 $?
+grep -q "^sextic" "$work/schemes.txt"
 check "schemes lists sextic" 0 $?
 
 if [ "$failures" -ne 0 ]; then

@@ -13,7 +13,8 @@ cp "$here/data_samples/hill.ply" "$here/data_samples/wave_tilted_offset.xyz" "$w
 $C1MESH fit "$work"/scans/* -O "$work/meshes" --jobs 2 --level 3 --report "$work/batch.json" -q
 ls "$work/meshes"
 
-# 2. A pipe: text points on stdin, binary PLY on stdout, counted by a downstream tool.
+# 2. A pipe: text points on stdin, binary PLY on stdout, into the next tool.
 cat "$here/data_samples/wave_tilted_offset.xyz" \
   | $C1MESH fit - --input-format xyz -o - --level 2 -q \
-  | head -c 400 | grep -a "element vertex"
+  > "$work/piped.ply"
+head -c 300 "$work/piped.ply" | grep -a "element vertex"

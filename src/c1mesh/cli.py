@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import traceback
 from concurrent.futures import ProcessPoolExecutor
@@ -70,10 +71,26 @@ def _stderr_is_terminal() -> bool:
         return False
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Group(click.Group):
+    """A click group whose unexpected failures are still one line on stderr and exit 1."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+            raise
+        except Exception as exc:  # noqa: BLE001 — the safety net under every command
+            _fail(_message(exc), debug="--debug" in sys.argv)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="c1mesh")
 def main() -> None:
     """Smooth C1 surface meshes from scanned points with normals."""
+    # Behave like other shell tools when a reader closes the pipe early (`| head`):
+    # end quietly with SIGPIPE instead of a BrokenPipeError.
+    if hasattr(signal, "SIGPIPE"):
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)
 
 
 # ---------------------------------------------------------------------------------- fit
@@ -204,8 +221,8 @@ def _write_report(report_target, payload, debug) -> None:
         return
     from c1mesh.formats import atomic_output
     try:
-        with atomic_output(report_target) as tmp:
-            Path(tmp).write_text(text + "\n")
+        with atomic_output(report_target, "w") as handle:
+            handle.write(text + "\n")
     except (C1MeshError, OSError) as exc:
         _fail(f"cannot write report '{report_target}': {_message(exc)}", debug)
 

@@ -1,0 +1,199 @@
+"""The `c1mesh` command: exit codes, one-line errors, no partial outputs, stdin/stdout, batch."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from c1mesh.cli import main
+from c1mesh.formats import read_cloud
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = ROOT / "data_samples"
+C1MESH = [sys.executable, "-m", "c1mesh.cli"]
+
+
+def run(*args, stdin: bytes | None = None):
+    return subprocess.run(C1MESH + [str(a) for a in args], input=stdin, capture_output=True, timeout=300)
+
+
+def assert_one_line_error(stderr: bytes):
+    text = stderr.decode()
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1, text
+    assert lines[0].startswith("c1mesh: error: ") and "Traceback" not in text
+
+
+def test_fit_through_a_real_subprocess(tmp_path):
+    out = tmp_path / "hill.ply"
+    proc = run("fit", SAMPLES / "hill.ply", "-o", out, "--level", "2", "--report", tmp_path / "r.json")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == b""                       # quiet in a pipe
+    report = json.loads((tmp_path / "r.json").read_text())
+    mesh = read_cloud(out)
+    assert len(mesh) == report["output_mesh"]["vertices"]
+    assert not list(tmp_path.glob("*.tmp*")) and len(list(tmp_path.iterdir())) == 2
+
+
+def test_stdin_to_stdout(tmp_path):
+    data = (SAMPLES / "wave_tilted_offset.xyz").read_bytes()
+    proc = run("fit", "-", "--input-format", "xyz", "-o", "-", "--level", "2", stdin=data)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(b"ply\nformat binary_little_endian")
+    (tmp_path / "piped.ply").write_bytes(proc.stdout)
+    assert len(read_cloud(tmp_path / "piped.ply")) > 2000
+
+
+def test_report_to_stderr_and_verbose(tmp_path):
+    result = CliRunner().invoke(main, ["fit", str(SAMPLES / "hill.ply"), "-o", str(tmp_path / "o.ply"),
+                                       "--level", "1", "--report", "-"])
+    assert result.exit_code == 0
+    assert '"c1_certificate"' in result.stderr
+
+
+def test_quintic_warns():
+    result = CliRunner().invoke(main, ["fit", str(SAMPLES / "hill.ply"), "-o", "/dev/null", "--level", "1",
+                                       "--scheme", "quintic", "--report", "/dev/null"])
+    assert "quintic" in result.stderr and "planes" in result.stderr
+
+
+@pytest.mark.parametrize("args", [
+    ["fit", "IN"],                                         # no -o
+    ["fit", "-", "-o", "OUT"],                             # stdin without format
+    ["fit", "IN", "-o", "OUT", "--level", "0"],
+    ["fit", "IN", "-o", "OUT", "--max-edge", "-3"],
+    ["fit", "IN", "IN", "-o", "OUT"],                      # several inputs need -O
+    ["fit", "IN", "-o", "OUT", "--classes", "two"],
+    ["frobnicate"],
+])
+def test_usage_errors_exit_2(tmp_path, args):
+    args = [str(SAMPLES / "hill.ply") if a == "IN" else str(tmp_path / "out.ply") if a == "OUT" else a
+            for a in args]
+    result = CliRunner().invoke(main, args)
+    assert result.exit_code == 2
+    assert not (tmp_path / "out.ply").exists()
+
+
+def _malformed(tmp_path: Path) -> dict[str, Path]:
+    files = {
+        "missing": tmp_path / "missing.ply",
+        "empty": tmp_path / "empty.ply",
+        "bad-magic": tmp_path / "magic.ply",
+        "no-end-header": tmp_path / "noend.ply",
+        "truncated": tmp_path / "trunc.ply",
+        "garbage-pcd": tmp_path / "garbage.pcd",
+        "garbage-las": tmp_path / "garbage.las",
+        "two-points": tmp_path / "two.xyz",
+        "collinear": tmp_path / "line.xyz",
+        "all-nan": tmp_path / "nan.xyz",
+        "text-in-xyz": tmp_path / "words.xyz",
+        "directory": tmp_path / "adir.ply",
+    }
+    files["empty"].write_bytes(b"")
+    files["bad-magic"].write_bytes(b"plx\nformat ascii 1.0\nend_header\n")
+    files["no-end-header"].write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n")
+    files["truncated"].write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 500\n"
+                                   b"property float x\nproperty float y\nproperty float z\nend_header\n"
+                                   + bytes(range(256)) * 3)
+    files["garbage-pcd"].write_bytes(np.random.default_rng(0).bytes(3000))
+    files["garbage-las"].write_bytes(np.random.default_rng(1).bytes(3000))
+    files["two-points"].write_text("0 0 0 0 0 1\n1 0 0 0 0 1\n")
+    files["collinear"].write_text("".join(f"{i} {2 * i} 0 0 0 1\n" for i in range(10)))
+    files["all-nan"].write_text("nan nan nan 0 0 1\n" * 10)
+    files["text-in-xyz"].write_text("1 2 3\nfour five six\n")
+    files["directory"].mkdir()
+    return files
+
+
+def test_malformed_inputs_fail_cleanly(tmp_path):
+    for name, path in _malformed(tmp_path).items():
+        out = tmp_path / f"out-{name}.ply"
+        proc = run("fit", path, "-o", out)
+        assert proc.returncode == 1, (name, proc.stderr)
+        assert_one_line_error(proc.stderr)
+        assert not out.exists(), name
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith("out-") or ".tmp" in p.name]
+    assert leftovers == []
+
+
+def test_not_a_height_field_fails_with_advice(tmp_path):
+    proc = run("fit", SAMPLES / "o3d_cloud_bin_0.pcd", "-o", tmp_path / "room.ply")
+    assert proc.returncode == 1
+    assert_one_line_error(proc.stderr)
+    assert b"height field" in proc.stderr and b"--axis" in proc.stderr
+    assert not (tmp_path / "room.ply").exists()
+
+
+def test_output_equal_to_input_is_refused_and_input_untouched(tmp_path):
+    src = tmp_path / "scan.ply"
+    shutil.copy(SAMPLES / "hill.ply", src)
+    before = src.read_bytes()
+    proc = run("fit", src, "-o", src)
+    assert proc.returncode == 1 and b"input" in proc.stderr
+    assert src.read_bytes() == before
+
+
+def test_unwritable_output_directory(tmp_path):
+    proc = run("fit", SAMPLES / "hill.ply", "-o", tmp_path / "nope" / "deeper" / "out.ply")
+    assert proc.returncode == 1
+    assert_one_line_error(proc.stderr)
+
+
+def test_existing_output_survives_a_failed_run(tmp_path):
+    out = tmp_path / "out.ply"
+    out.write_bytes(b"precious")
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nnonsense\n")
+    assert run("fit", bad, "-o", out).returncode == 1
+    assert out.read_bytes() == b"precious"
+
+
+def test_batch_with_a_bad_file_exits_3(tmp_path):
+    good = tmp_path / "good.ply"
+    shutil.copy(SAMPLES / "hill.ply", good)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"garbage")
+    proc = run("fit", good, bad, "-O", tmp_path / "out", "--jobs", "2", "--level", "1")
+    assert proc.returncode == 3
+    assert (tmp_path / "out" / "good.c1.ply").exists()
+    assert not (tmp_path / "out" / "bad.c1.ply").exists()
+    assert b"bad.ply" in proc.stderr and b"1 of 2 inputs failed" in proc.stderr
+
+
+def test_info_and_schemes():
+    info = run("info", SAMPLES / "hill.ply")
+    assert info.returncode == 0
+    facts = json.loads(info.stdout)
+    assert facts["points"] == 3000 and facts["normals"] and facts["height_field"] is True
+    room = json.loads(run("info", SAMPLES / "o3d_cloud_bin_0.pcd").stdout)
+    assert room["height_field"] is False
+    schemes = run("schemes").stdout.decode().splitlines()
+    rows = {line.split()[0]: line.split() for line in schemes[1:]}
+    assert rows["sextic"][2:4] == ["yes", "yes"] and rows["quintic"][2:4] == ["yes", "no"]
+
+
+def test_shell_end_to_end_script(tmp_path):
+    """cli/e2e.sh against the installed command (the venv's console script)."""
+    exe = Path(sys.executable).parent / "c1mesh"
+    if not exe.exists():
+        pytest.fail(f"console script {exe} is not installed; run ./setup.sh")
+    proc = subprocess.run(["bash", str(ROOT / "cli" / "e2e.sh"), str(exe)], capture_output=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout.decode() + proc.stderr.decode()
+    assert b"all end-to-end checks passed" in proc.stdout
+
+
+def test_examples_run(tmp_path):
+    for script in ("interpolate_surface.py", "fit_scan.py"):
+        proc = subprocess.run([sys.executable, str(ROOT / "examples" / script)], capture_output=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr.decode()
+    exe = Path(sys.executable).parent / "c1mesh"
+    proc = subprocess.run(["bash", str(ROOT / "examples" / "batch_and_pipe.sh"), str(exe)],
+                          capture_output=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert b"hill.c1.ply" in proc.stdout and b"element vertex" in proc.stdout

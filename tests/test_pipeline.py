@@ -1,0 +1,177 @@
+"""The fit pipeline end to end on inputs with known truth, and on the real bundled scans."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from c1mesh.cloud import PointCloud
+from c1mesh.errors import C1MeshError, InputError, NotAHeightFieldError
+from c1mesh.formats import read_cloud
+from c1mesh.pipeline import FitOptions, fit
+from c1mesh.samples import SURFACES, exact_normals, rotation_about, sample_surface, write_points_ply
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+
+
+def _edges(faces):
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    return directed
+
+
+def assert_manifold_and_oriented(faces):
+    directed = _edges(faces)
+    n = int(faces.max()) + 1
+    undirected = np.sort(directed, axis=1)
+    _, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_counts=True)
+    assert counts.max() <= 2, "an edge is shared by more than two faces"
+    # consistent orientation: no directed edge appears twice
+    _, dcounts = np.unique(directed[:, 0] * n + directed[:, 1], return_counts=True)
+    assert dcounts.max() == 1, "two faces traverse an edge in the same direction"
+
+
+@pytest.fixture(scope="module")
+def hill_fit(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit") / "hill.ply"
+    return fit(SAMPLES / "hill.ply", out, FitOptions(level=3)), out
+
+
+def test_hill_surface_within_theory(hill_fit):
+    result, out = hill_fit
+    mesh = result.mesh
+    surface = SURFACES["hill"]
+    err = np.abs(mesh.vertices[:, 2] - surface.f(mesh.vertices[:, :2]))
+    # 3000 points on the unit square: h ~ 0.02; sextic is O(h^2) in values
+    assert err.max() < 5e-3 and np.sqrt(np.mean(err**2)) < 5e-4
+    true_n = exact_normals(surface.grad(mesh.vertices[:, :2]))
+    np.testing.assert_allclose(np.linalg.norm(mesh.vertex_normals, axis=1), 1.0, atol=1e-12)
+    angle = np.degrees(np.arccos(np.clip(np.sum(true_n * mesh.vertex_normals, axis=1), -1, 1)))
+    assert np.median(angle) < 0.5 and angle.max() < 15
+    assert out.exists() and read_cloud(out).points.shape == mesh.vertices.shape
+
+
+def test_every_kept_point_is_a_vertex_with_its_height(hill_fit):
+    result, _ = hill_fit
+    cloud = read_cloud(SAMPLES / "hill.ply")
+    kept = result.report["points"]["kept"]
+    assert kept >= 0.95 * len(cloud)
+    # the first `kept` output vertices are the kept input points, heights included
+    distance, nearest = cKDTree(cloud.points).query(result.mesh.vertices[:kept])
+    assert distance.max() < 1e-12
+    assert len(np.unique(nearest)) == kept
+
+
+def test_output_mesh_is_manifold_and_oriented_up(hill_fit):
+    result, _ = hill_fit
+    mesh = result.mesh
+    assert_manifold_and_oriented(mesh.faces)
+    v = mesh.vertices[mesh.faces]
+    face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    assert np.all(face_normal[:, 2] > 0)        # consistently facing the +z axis side
+    assert np.all(mesh.vertex_normals[:, 2] > 0)
+
+
+def test_report_contents(hill_fit):
+    report = hill_fit[0].report
+    assert report["scheme"]["name"] == "sextic" and report["scheme"]["reproduces_affine"] is True
+    assert report["c1_certificate"]["edges_checked"] > 100
+    assert report["c1_certificate"]["gradient_jump"] < 1e-9
+    assert report["output_mesh"]["faces"] == report["triangles"]["after_trim"] * 9
+    assert set(report["seconds"]) >= {"read", "triangulate", "refine", "write"}
+
+
+def test_tilted_scan_at_lidar_offsets(tmp_path):
+    """A surface tilted 30° and shifted to (6.4e5, 8.5e5): the fit finds the plane and keeps digits."""
+    R = rotation_about([1, 1, 0], 30)
+    offset = np.array([640_000.0, 850_000.0, 120.0])
+    cloud = sample_surface("wave", 3000, seed=5, rotation=R, offset=offset, scale=50.0)
+    path = tmp_path / "tilted.ply"
+    write_points_ply(cloud, path)
+    result = fit(path, tmp_path / "out.ply", FitOptions(level=2))
+    local = (result.mesh.vertices - offset) @ R / 50.0        # back to the surface's own frame
+    err = np.abs(local[:, 2] - SURFACES["wave"].f(local[:, :2]))
+    assert err.max() < 2e-3
+    kept = result.report["points"]["kept"]
+    assert kept > 2900
+    # input points come back to ~1e-9 of their world coordinates (doubles kept)
+    d, _ = cKDTree(result.mesh.vertices).query(cloud.points)
+    assert np.sort(d)[kept - 1] < 1e-8
+
+
+def test_plane_stays_flat_with_sextic_not_quintic(tmp_path):
+    cloud = sample_surface("plane", 1500, seed=3, rotation=rotation_about([0, 1, 0], 20))
+    path = tmp_path / "plane.ply"
+    write_points_ply(cloud, path)
+    normal = exact_normals(SURFACES["plane"].grad(np.zeros((1, 2))))[0] @ rotation_about([0, 1, 0], 20).T
+    deviation = {}
+    # axis z: the plane is tilted in the frame (with --axis auto it would be level, a constant)
+    for scheme in ("sextic", "quintic"):
+        mesh = fit(path, None, FitOptions(level=3, scheme=scheme, axis="z")).mesh
+        heights = (mesh.vertices - cloud.points[0]) @ normal
+        deviation[scheme] = np.abs(heights).max()
+    assert deviation["sextic"] < 1e-10
+    assert deviation["quintic"] > 1e-4
+
+
+def test_colours_are_carried(tmp_path):
+    cloud = sample_surface("hill", 800, seed=2)
+    red = np.round(cloud.points[:, 0] * 250).astype(np.uint8)
+    colored = PointCloud(cloud.points, cloud.normals, np.stack([red, 255 - red, 0 * red + 7], 1))
+    n = len(colored)
+    header = ("ply\nformat binary_little_endian 1.0\n" f"element vertex {n}\n"
+              + "".join(f"property double {c}\n" for c in ("x", "y", "z", "nx", "ny", "nz"))
+              + "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    dtype = np.dtype([(c, "<f8") for c in ("x", "y", "z", "nx", "ny", "nz")] + [(c, "u1") for c in "rgb"])
+    rows = np.zeros(n, dtype)
+    for i, c in enumerate(("x", "y", "z")):
+        rows[c] = colored.points[:, i]
+        rows["n" + c] = colored.normals[:, i]
+    for i, c in enumerate("rgb"):
+        rows[c] = colored.colors[:, i]
+    path = tmp_path / "colored.ply"
+    path.write_bytes(header.encode() + rows.tobytes())
+    # axis z: colours are blended in the plane, which is then the world xy plane
+    mesh = fit(path, tmp_path / "out.ply", FitOptions(level=3, axis="z")).mesh
+    assert mesh.vertex_colors is not None
+    np.testing.assert_allclose(mesh.vertex_colors[:, 0], mesh.vertices[:, 0] * 250, atol=1.01)
+    assert np.all(mesh.vertex_colors[:, 2] == 7)
+
+
+def test_real_bunny_scan_with_file_normals(tmp_path):
+    result = fit(SAMPLES / "pcl_bun0.pcd", tmp_path / "bunny.ply", FitOptions(level=2))
+    assert result.report["normals"] == "file"
+    assert result.report["points"]["kept"] > 200
+    assert_manifold_and_oriented(result.mesh.faces)
+
+
+def test_lidar_ground_class_with_estimated_normals(tmp_path):
+    result = fit(SAMPLES / "4_6_crop.las", tmp_path / "ground.ply", FitOptions(level=2, classes=(2,)))
+    report = result.report
+    assert report["normals"] == "estimated"
+    assert report["points"]["read"] == 9003          # the ground class of this tile
+    assert report["points"]["kept"] > 8000
+    # the height axis of ground LiDAR is close to world z
+    assert abs(report["frame"]["axes"][2][2]) > 0.99
+    with pytest.raises(InputError, match="class"):
+        fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(99,)))
+
+
+def test_room_is_not_a_height_field():
+    with pytest.raises(NotAHeightFieldError, match="height field"):
+        fit(SAMPLES / "o3d_cloud_bin_0.pcd", None, FitOptions())
+
+
+@pytest.mark.parametrize("points, message", [
+    (np.array([[0.0, 0, 0], [1, 0, 0]]), "3"),
+    (np.array([[0.0, 0, 0], [1, 1, 0], [2, 2, 0], [3, 3, 0]]), "one line"),
+    (np.full((10, 3), np.nan), "finite"),
+])
+def test_too_few_or_degenerate_points(tmp_path, points, message):
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    path = tmp_path / "few.ply"
+    write_points_ply(PointCloud(points, normals), path)
+    with pytest.raises(C1MeshError, match=message):
+        fit(path, tmp_path / "out.ply", FitOptions())
+    assert not (tmp_path / "out.ply").exists()
