@@ -197,3 +197,17 @@ def test_examples_run(tmp_path):
                           capture_output=True, timeout=300)
     assert proc.returncode == 0, proc.stderr.decode()
     assert b"hill.c1.ply" in proc.stdout and b"element vertex" in proc.stdout
+
+
+@pytest.mark.parametrize("shell", ["bash", "zsh", "fish"])
+def test_completion_files_are_current(shell):
+    """cli/completions/ must match what click generates for the installed command."""
+    exe = Path(sys.executable).parent / "c1mesh"
+    env = {**__import__("os").environ, "_C1MESH_COMPLETE": f"{shell}_source"}
+    generated = subprocess.run([str(exe)], env=env, capture_output=True, timeout=60).stdout
+    assert generated == (ROOT / "cli" / "completions" / f"c1mesh.{shell}").read_bytes()
+    # and completion works: options of `fit` are offered
+    env = {**__import__("os").environ, "_C1MESH_COMPLETE": "bash_complete", "COMP_WORDS": "c1mesh fit --le",
+           "COMP_CWORD": "2"}
+    offered = subprocess.run([str(exe)], env=env, capture_output=True, timeout=60).stdout
+    assert b"--level" in offered
