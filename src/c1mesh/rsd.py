@@ -33,17 +33,23 @@ def barycentric_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     corners: (T, 3, 2) vertex coordinates. Returns G (T, 3, 2) and det (T,), where
     det = cross(p1 − p0, p2 − p0) (> 0 for counter-clockwise triangles) and
     G_k = perp(p_{k+1} − p_{k+2}) / det, so that G_k·(p_k − p_j) = 1 for j ≠ k.
+    Degenerate triangles (det = 0) get G = 0; callers reject them.
     """
-    p0, p1, p2 = corners[:, 0], corners[:, 1], corners[:, 2]
-    e1, e2 = p1 - p0, p2 - p0
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    G = np.empty_like(corners)
-    safe = np.where(det == 0, np.inf, det)   # degenerate triangles get G = 0; callers reject them
+    x, y = _components(corners)                         # (3, T) each, contiguous
+    det = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0])
+    inv = 1.0 / np.where(det == 0, np.inf, det)
+    G = np.empty((2, 3, corners.shape[0]))
     for k in range(3):
-        a, b = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
-        G[:, k, 0] = (a[:, 1] - b[:, 1]) / safe
-        G[:, k, 1] = (b[:, 0] - a[:, 0]) / safe
-    return G, det
+        a, b = (k + 1) % 3, (k + 2) % 3
+        np.multiply(y[a] - y[b], inv, out=G[0, k])
+        np.multiply(x[b] - x[a], inv, out=G[1, k])
+    return G.transpose(2, 1, 0), det
+
+
+def _components(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3, 2) -> x (3, T), y (3, T): one transposing copy, then contiguous arithmetic."""
+    soa = np.ascontiguousarray(vectors.transpose(2, 1, 0))
+    return soa[0], soa[1]
 
 
 def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -53,19 +59,22 @@ def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np
     corners (T, 3, 2), values f (T, 3), gradients A (T, 3, 2), directions u (T, 3, 2) where
     u_k belongs to the edge opposite vertex k, G (T, 3, 2) from barycentric_gradients.
     """
-    T = corners.shape[0]
-    C = np.empty((T, N_BASIS))
-    C[:, 0:3] = values
+    px, py = _components(corners)
+    ax, ay = _components(gradients)
+    ux, uy = _components(directions)
+    gx, gy = _components(G)
+    f = np.ascontiguousarray(values.T)                  # (3, T)
+    C = np.empty((N_BASIS, corners.shape[0]))           # filled row-wise, returned as (T, 21)
+    C[0:3] = f
     g = {}
     for j, (k, i) in enumerate(PAIRS):
-        g[k, i] = np.einsum("td,td->t", gradients[:, k], corners[:, i] - corners[:, k])
-        C[:, 3 + j] = g[k, i]
-    Gu = np.einsum("tqd,tnd->tqn", G, directions)   # Gu[t, q, n] = G_q·u_n
+        g[k, i] = ax[k] * (px[i] - px[k]) + ay[k] * (py[i] - py[k])
+        C[3 + j] = g[k, i]
     for j, (l, m, n) in enumerate(PERMS):
-        ratio = Gu[:, l, n] / Gu[:, n, n]
-        C[:, 9 + j] = ratio * values[:, l]
-        C[:, 15 + j] = ratio * g[l, m]
-    return C
+        ratio = (gx[l] * ux[n] + gy[l] * uy[n]) / (gx[n] * ux[n] + gy[n] * uy[n])
+        np.multiply(ratio, f[l], out=C[9 + j])
+        np.multiply(ratio, g[l, m], out=C[15 + j])
+    return np.ascontiguousarray(C.T)
 
 
 def basis(scheme: ShapeTuple, lam: np.ndarray) -> np.ndarray:
