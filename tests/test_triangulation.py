@@ -1,0 +1,328 @@
+"""Delaunay triangulation (tiled, checked against plain qhull and exact arithmetic) and trimming."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from c1mesh import triangulation as tr
+from c1mesh.errors import InputError
+from c1mesh.triangulation import TrimReport, circle_ratio, delaunay, trim
+
+REAL = Path("/work/shared/data/real")
+mtri = pytest.importorskip("matplotlib.tri")
+
+
+def as_set(tri):
+    return set(map(tuple, np.sort(np.asarray(tri), axis=1).tolist()))
+
+
+def doubled_areas(xy, tri):
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    return (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+
+
+def exact_violations(q, tri):
+    """Interior edges whose opposite vertex lies strictly inside the other triangle's
+    circumcircle, and exact ties, with Python integers (q: (n, 2) integer coordinates)."""
+    tri = np.asarray(tri)
+    u, v, w = tri.ravel(), tri[:, [1, 2, 0]].ravel(), tri[:, [2, 0, 1]].ravel()
+    n = len(q)
+    key, twin = u * n + v, v * n + u
+    order = np.argsort(key)
+    pos = np.minimum(np.searchsorted(key[order], twin), len(order) - 1)
+    has = key[order][pos] == twin
+    qo = q.astype(object)
+    a, b, c, d = qo[u[has]], qo[v[has]], qo[w[has]], qo[w[order[pos[has]]]]
+    ad, bd, cd = a - d, b - d, c - d
+    det = ((ad[:, 0] ** 2 + ad[:, 1] ** 2) * (bd[:, 0] * cd[:, 1] - bd[:, 1] * cd[:, 0])
+           - (bd[:, 0] ** 2 + bd[:, 1] ** 2) * (ad[:, 0] * cd[:, 1] - ad[:, 1] * cd[:, 0])
+           + (cd[:, 0] ** 2 + cd[:, 1] ** 2) * (ad[:, 0] * bd[:, 1] - ad[:, 1] * bd[:, 0]))
+    return int(sum(x > 0 for x in det)), int(sum(x == 0 for x in det))
+
+
+def assert_valid_triangulation(xy, tri):
+    """ccw, edge-manifold, Euler count and area equal to the convex hull's."""
+    from scipy.spatial import ConvexHull
+    area = doubled_areas(xy, tri)
+    assert np.all(area > 0)
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    _, count = np.unique(edges, axis=0, return_counts=True)
+    assert count.max() <= 2
+    boundary = int((count == 1).sum())
+    used = np.unique(tri).size
+    assert len(tri) == 2 * used - boundary - 2
+    assert area.sum() / 2 == pytest.approx(ConvexHull(xy).volume, rel=1e-9)
+
+
+def centred(xy):
+    return xy - (xy.min(axis=0) + xy.max(axis=0)) / 2
+
+
+# --- delaunay -----------------------------------------------------------------------------
+
+def test_small_random_input_equals_plain_qhull_and_is_ccw():
+    xy = np.random.default_rng(0).random((3000, 2))
+    tri = delaunay(xy)
+    assert tri.dtype == np.int64 and tri.shape[1] == 3
+    assert as_set(tri) == as_set(Delaunay(xy).simplices)
+    assert np.all(doubled_areas(xy, tri) > 0)
+
+
+def test_large_random_input_takes_the_tiled_path_and_equals_plain_qhull():
+    xy = np.random.default_rng(1).random((tr.TILED_FROM + 10_000, 2))
+    tri = delaunay(xy)
+    assert as_set(tri) == as_set(Delaunay(xy).simplices)
+    assert np.all(doubled_areas(xy, tri) > 0)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "clusters", "annulus", "anisotropic", "strip"])
+def test_tiled_triangulation_equals_plain_qhull_on_the_same_coordinates(kind):
+    rng = np.random.default_rng(2)
+    n = 30_000
+    xy = {
+        "uniform": lambda: rng.random((n, 2)),
+        "clusters": lambda: rng.random((20, 2))[rng.integers(0, 20, n)] * 100 + rng.normal(size=(n, 2)),
+        "annulus": lambda: (lambda p: p[np.hypot(*(p - 0.5).T) > 0.3])(rng.random((n, 2))),
+        "anisotropic": lambda: rng.normal(size=(n, 2)) * [1.0, 0.01],
+        "strip": lambda: rng.random((n, 2)) * [1000.0, 1.0],
+    }[kind]()
+    c = centred(xy)
+    tiled = tr._delaunay_tiled(c, per_tile=1000)        # raises if its own check fails
+    assert as_set(tiled) == as_set(Delaunay(c).simplices)
+    assert np.all(doubled_areas(c, tiled) > 0)
+
+
+def test_grid_ties_give_a_valid_delaunay_triangulation():
+    g = np.stack(np.meshgrid(np.arange(150), np.arange(120)), axis=-1).reshape(-1, 2)
+    tri = tr._delaunay_tiled(centred(g.astype(float)), per_tile=800)
+    assert_valid_triangulation(g.astype(float), tri)
+    inside, ties = exact_violations(g, tri)
+    assert inside == 0 and ties > 0                     # every grid square is a tie
+
+
+@pytest.mark.skipif(not (REAL / "autzen_trim.laz").exists(), reason="real scans not available")
+def test_lidar_coordinates_are_triangulated_exactly_delaunay():
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(REAL / "autzen_trim.laz"))
+    xy = np.unique(np.column_stack([las.x, las.y]), axis=0)       # state-plane feet, 0.01 steps
+    q = np.round((xy - xy.min(axis=0)) * 100).astype(np.int64)    # the exact integer lattice
+    assert np.allclose(q / 100 + xy.min(axis=0), xy, rtol=0, atol=1e-6)
+    tri = delaunay(xy)
+    assert exact_violations(q, tri)[0] == 0
+    assert_valid_triangulation(xy - xy.mean(axis=0), tri)
+    small_tiles = tr._delaunay_tiled(centred(xy), per_tile=3000)
+    assert exact_violations(q, small_tiles)[0] == 0
+
+
+def test_a_failed_tiling_falls_back_to_plain_qhull(monkeypatch):
+    def broken(xy, per_tile=0):
+        raise tr._TilingFailed("test")
+    monkeypatch.setattr(tr, "_delaunay_tiled", broken)
+    xy = np.random.default_rng(3).random((tr.TILED_FROM, 2))
+    assert as_set(delaunay(xy)) == as_set(Delaunay(xy).simplices)
+
+
+@pytest.mark.parametrize("xy, msg", [
+    (np.zeros((2, 2)), "at least 3"),
+    (np.column_stack([np.arange(10.0), 3 * np.arange(10.0) + 1]), "one line"),
+    (np.ones((5, 2)), "one line"),
+    (np.array([[0, 0], [1, 0], [0, np.nan]]), "finite"),
+    (np.zeros((5, 3)), "shape"),
+])
+def test_unusable_points_are_input_errors(xy, msg):
+    with pytest.raises(InputError, match=msg):
+        delaunay(xy)
+
+
+# --- trim ---------------------------------------------------------------------------------
+
+def test_circle_ratio_is_one_for_equilateral_and_twice_matplotlibs():
+    xy = np.random.default_rng(4).random((200, 2))
+    tri = Delaunay(xy).simplices
+    ours = circle_ratio(tr._edge_lengths(xy, tri))
+    theirs = mtri.TriAnalyzer(mtri.Triangulation(xy[:, 0], xy[:, 1], tri)).circle_ratios(rescale=False)
+    assert np.allclose(ours, 2 * theirs)
+    assert circle_ratio(np.array([[1.0, 1.0, 1.0], [1.0, 1.0, 2.0], [0.0, 1.0, 1.0]])) == \
+        pytest.approx([1.0, 0.0, 0.0])
+
+
+def grid_with_hole():
+    """A 31 x 25 unit grid without the points strictly inside [10, 19] x [7, 15]."""
+    g = np.stack(np.meshgrid(np.arange(31.0), np.arange(25.0)), axis=-1).reshape(-1, 2)
+    in_hole = (g[:, 0] > 10) & (g[:, 0] < 19) & (g[:, 1] > 7) & (g[:, 1] < 15)
+    return g[~in_hole]
+
+
+def cross2(u, v):
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def points_in(xy, tri, samples):
+    """(S,) True where a sample lies inside some triangle (barycentric test)."""
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    hit = np.zeros(len(samples), dtype=bool)
+    for i, s in enumerate(samples):
+        d = [cross2(b - a, s - a), cross2(c - b, s - b), cross2(a - c, s - c)]
+        hit[i] = np.any((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0))
+    return hit
+
+
+def test_trim_removes_the_triangles_over_a_hole_and_nothing_else():
+    xy = grid_with_hole()
+    tri = delaunay(xy)
+    out, rep = trim(xy, tri)
+    assert rep.max_edge == pytest.approx(4.0, rel=1e-2)        # 4 x the grid spacing
+    centroid_in_hole = lambda t: np.all(  # noqa: E731
+        (np.abs(xy[t].mean(axis=1) - [14.5, 11.0]) < [4.5, 4.0]), axis=1)
+    # everything outside the hole is kept; what is removed lies over the hole
+    assert as_set(tri[~centroid_in_hole(tri)]) <= as_set(out)
+    removed = as_set(tri) - as_set(out)
+    assert removed and all(centroid_in_hole(np.array([t]))[0] for t in removed)
+    # and the hole stays a hole: its core (one spacing in from the edge) is not covered
+    core = np.stack(np.meshgrid(np.linspace(11.5, 17.5, 13), np.linspace(8.5, 13.5, 11)),
+                    axis=-1).reshape(-1, 2)
+    assert not points_in(xy, out, core).any()
+    assert points_in(xy, tri, core).all()                      # it was, before trimming
+    assert rep.triangles_before == len(tri) and rep.triangles_after == len(out)
+    assert rep.triangles_before - rep.triangles_after == sum(rep.removed.values())
+    assert rep.unreferenced_points == 0
+
+
+def bulged_arc(seed=6):
+    """Random points under a top edge that sags slightly inwards: the convex hull's top is
+    the chord, and between chord and arc qhull must fill nested layers of slivers."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-1, 1, 60)
+    arc = np.column_stack([x, 1 - 0.002 * (1 - x**2)])
+    inner = rng.uniform([-1, 0], [1, 0.95], size=(600, 2))
+    return np.vstack([arc, inner])
+
+
+def test_hull_slivers_are_peeled_like_matplotlibs_flat_triangle_mask():
+    xy = bulged_arc()
+    tri = delaunay(xy)
+    out, rep = trim(xy, tri, max_edge=None)
+    flat = mtri.TriAnalyzer(mtri.Triangulation(xy[:, 0], xy[:, 1], tri)).get_flat_tri_mask(
+        min_circle_ratio=0.01 / 2, rescale=False)
+    assert rep.removed["sliver"] == int(flat.sum()) > 20
+    assert as_set(out) == as_set(tri[~flat])
+    assert min(circle_ratio(tr._edge_lengths(xy, out))[_boundary(out)]) >= 0.01
+
+
+def test_sliver_peeling_after_long_edge_removal_matches_matplotlib_with_a_mask():
+    xy = np.vstack([bulged_arc(7), grid_with_hole() / 30 - [0.5, 1.0]])
+    tri = delaunay(xy)
+    out, rep = trim(xy, tri, max_edge=0.08)
+    long = tr._edge_lengths(xy, tri).max(axis=1) > 0.08
+    peer = mtri.Triangulation(xy[:, 0], xy[:, 1], tri, mask=long)
+    flat = mtri.TriAnalyzer(peer).get_flat_tri_mask(min_circle_ratio=0.005, rescale=False)
+    assert rep.removed["long_edge"] == int(long.sum())
+    assert as_set(out) == as_set(tri[~flat]) or rep.removed["bowtie"] > 0
+
+
+def _boundary(tri):
+    """(T,) True for triangles with an edge used once."""
+    edges = np.sort(np.concatenate([tri[:, [1, 2]], tri[:, [2, 0]], tri[:, [0, 1]]]), axis=1)
+    _, inv, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    return (count[inv.ravel()] == 1).reshape(3, -1).any(axis=0)
+
+
+def test_interior_slivers_are_never_removed():
+    rng = np.random.default_rng(8)
+    xy = np.vstack([rng.random((400, 2)), [[0.5, 0.5], [0.5, 0.50001]]])   # needles around a pair
+    tri = delaunay(xy)
+    thin = circle_ratio(tr._edge_lengths(xy, tri)) < 0.01
+    interior_thin = thin & np.all(np.abs(xy[tri].mean(axis=1) - 0.5) < 0.3, axis=1)
+    assert interior_thin.sum() >= 2
+    out, _ = trim(xy, tri, max_edge=None)
+    assert as_set(tri[interior_thin]) <= as_set(out)
+
+
+def test_bowtie_fans_are_reduced_to_the_largest():
+    xy = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [-1, 0], [-1, -1], [0, -1], [2, 1]], float)
+    tri = np.array([[0, 1, 2], [0, 2, 3], [2, 1, 7], [0, 4, 5]])   # vertex 0: fans of 2 and 1
+    out, rep = trim(xy, tri, max_edge=None, min_circle_ratio=0.0)
+    assert as_set(out) == as_set(tri[:3])
+    assert rep.removed == {"long_edge": 0, "sliver": 0, "bowtie": 1}
+    assert rep.unreferenced_points == 3                            # 4, 5 and 6
+
+
+def test_non_manifold_and_bad_options_are_input_errors():
+    xy = np.random.default_rng(9).random((10, 2))
+    with pytest.raises(InputError, match="edge-manifold"):
+        trim(xy, np.array([[0, 1, 2], [0, 1, 3], [1, 0, 4]]))
+    with pytest.raises(InputError, match="max_edge"):
+        trim(xy, np.array([[0, 1, 2]]), max_edge=-1.0)
+    with pytest.raises(InputError, match="max_edge"):
+        trim(xy, np.array([[0, 1, 2]]), max_edge="long")
+    with pytest.raises(InputError, match="indices"):
+        trim(xy, np.array([[0, 1, 10]]))
+    with pytest.raises(InputError, match="min_circle_ratio"):
+        trim(xy, np.array([[0, 1, 2]]), min_circle_ratio=2.0)
+    out, rep = trim(xy, np.zeros((0, 3), dtype=np.int64))
+    assert out.shape == (0, 3) and rep == TrimReport(0, 0, {"long_edge": 0, "sliver": 0,
+                                                            "bowtie": 0}, None, 10)
+
+
+def test_gap_free_random_points_lose_no_interior_triangle_to_auto_max_edge():
+    xy = np.random.default_rng(10).random((40_000, 2))
+    tri = delaunay(xy)
+    out, rep = trim(xy, tri)
+    lost = as_set(tri) - as_set(out)
+    centroids = np.array([xy[list(t)].mean(axis=0) for t in lost]).reshape(-1, 2)
+    assert np.all(np.abs(centroids - 0.5).max(axis=1) > 0.45)     # only near the border
+
+
+def bowtie_vertices(tri):
+    """Vertices whose triangles form more than one edge-connected fan (plain Python)."""
+    around: dict[int, list[int]] = {}
+    for t, row in enumerate(tri.tolist()):
+        for v in row:
+            around.setdefault(v, []).append(t)
+    bad = []
+    for v, ts in around.items():
+        seen, stack = {ts[0]}, [ts[0]]
+        while stack:
+            t = stack.pop()
+            for u in ts:
+                if u not in seen and len(set(tri[t]) & set(tri[u])) == 2:
+                    seen.add(u)
+                    stack.append(u)
+        if len(seen) != len(ts):
+            bad.append(v)
+    return bad
+
+
+@pytest.mark.skipif(not (REAL / "4_6_crop.las").exists(), reason="real scans not available")
+def test_lidar_ground_gives_a_sane_trimmed_mesh():
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(REAL / "4_6_crop.las"))
+    ground = np.asarray(las.classification) == 2
+    xy_all = np.column_stack([np.asarray(las.x), np.asarray(las.y)])
+    xy_all -= xy_all.mean(axis=0)
+    xy, other = xy_all[ground], xy_all[~ground]
+    tri = delaunay(xy)
+    out, rep = trim(xy, tri)
+    plain = Delaunay(xy).simplices
+    plain_edges = np.unique(np.sort(np.concatenate([plain[:, [0, 1]], plain[:, [1, 2]],
+                                                    plain[:, [2, 0]]]), axis=1), axis=0)
+    median = np.median(np.linalg.norm(xy[plain_edges[:, 0]] - xy[plain_edges[:, 1]], axis=1))
+    assert rep.max_edge == pytest.approx(4 * median)
+    assert tr._edge_lengths(xy, out).max() <= rep.max_edge
+    assert rep.triangles_before == len(tri) == len(plain)
+    assert rep.triangles_before - rep.triangles_after == sum(rep.removed.values())
+    assert rep.unreferenced_points == len(xy) - np.unique(out).size
+    assert 0 < rep.removed["long_edge"] < 0.05 * len(tri)
+    assert bowtie_vertices(out) == []
+    # what was cut bridges gaps in the ground: most of its area covers non-ground returns
+    removed = np.array(sorted(as_set(tri) - as_set(out)))
+    finder = Delaunay(xy)
+    hits = np.zeros(len(plain), dtype=int)
+    np.add.at(hits, finder.find_simplex(other)[finder.find_simplex(other) >= 0], 1)
+    index = {t: i for i, t in enumerate(map(tuple, np.sort(plain, axis=1).tolist()))}
+    covered = np.array([hits[index[tuple(t)]] > 0 for t in removed])
+    area = np.abs(doubled_areas(xy, removed))
+    assert area[covered].sum() > 0.7 * area.sum()
