@@ -103,17 +103,24 @@ def test_grid_ties_give_a_valid_delaunay_triangulation():
     assert inside == 0 and ties > 0                     # every grid square is a tie
 
 
-@pytest.mark.skipif(not (REAL / "autzen_trim.laz").exists(), reason="real scans not available")
-def test_lidar_coordinates_are_triangulated_exactly_delaunay():
+@pytest.mark.parametrize("name", [
+    "4_6_crop.las",
+    pytest.param("autzen_trim.laz", marks=pytest.mark.slow),
+])
+def test_lidar_coordinates_are_triangulated_exactly_delaunay(name):
+    # plain qhull on the raw state-plane coordinates (~6.4e5, 8.5e5) is not: 3858 interior
+    # edges of 4_6_crop.las fail the exact empty-circle test; centring fixes that
     laspy = pytest.importorskip("laspy")
-    las = laspy.read(str(REAL / "autzen_trim.laz"))
+    if not (REAL / name).exists():
+        pytest.skip("real scans not available")
+    las = laspy.read(str(REAL / name))
     xy = np.unique(np.column_stack([las.x, las.y]), axis=0)       # state-plane feet, 0.01 steps
     q = np.round((xy - xy.min(axis=0)) * 100).astype(np.int64)    # the exact integer lattice
     assert np.allclose(q / 100 + xy.min(axis=0), xy, rtol=0, atol=1e-6)
     tri = delaunay(xy)
     assert exact_violations(q, tri)[0] == 0
     assert_valid_triangulation(xy - xy.mean(axis=0), tri)
-    small_tiles = tr._delaunay_tiled(centred(xy), per_tile=3000)
+    small_tiles = tr._delaunay_tiled(centred(xy), per_tile=2000)
     assert exact_violations(q, small_tiles)[0] == 0
 
 
