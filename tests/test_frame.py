@@ -240,7 +240,7 @@ def test_trusted_signs_reject_a_surface_seen_from_both_sides():
     pts, nrm, R, *_ = tilted_scan(flip_fraction=0.2)
     frame = choose_frame(pts, nrm)
     assert height_field(pts, nrm, frame).flipped > 0
-    with pytest.raises(NotAHeightFieldError, match="face away"):
+    with pytest.raises(NotAHeightFieldError, match="away from the height axis"):
         height_field(pts, nrm, frame, max_facing_away=0.05)
     oriented = nrm * np.sign(nrm @ R[:, 2])[:, None]
     assert height_field(pts, oriented, frame, max_facing_away=0.05).flipped == 0
