@@ -333,3 +333,16 @@ def test_lidar_ground_gives_a_sane_trimmed_mesh():
     covered = np.array([hits[index[tuple(t)]] > 0 for t in removed])
     area = np.abs(doubled_areas(xy, removed))
     assert area[covered].sum() > 0.7 * area.sum()
+
+
+@pytest.mark.skipif(not (REAL / "autzen_trim.laz").exists(), reason="real scans not available")
+def test_bowties_left_by_trimming_real_lidar_gaps_are_resolved():
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(REAL / "autzen_trim.laz"))
+    ground = np.asarray(las.classification) == 2
+    xy = np.unique(np.column_stack([np.asarray(las.x), np.asarray(las.y)])[ground], axis=0)
+    xy -= xy.mean(axis=0)
+    out, rep = trim(xy, delaunay(xy))
+    assert rep.removed["bowtie"] > 0                 # the gaps do pinch the mesh at vertices
+    assert bowtie_vertices(out) == []
+    assert rep.unreferenced_points == len(xy) - np.unique(out).size
