@@ -11,7 +11,6 @@ an interpolator, as the fit pipeline does, so that barycentric arithmetic keeps 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import Delaunay
 
 from c1mesh import rsd
 from c1mesh.errors import InputError
@@ -19,6 +18,7 @@ from c1mesh.locate import TriangleLocator
 from c1mesh.refine import RefinedMesh, refine_spline
 from c1mesh.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.topology import edge_table
+from c1mesh.triangulation import delaunay
 
 # |sin| of the angle below which a triangle is degenerate or a direction parallel to its edge.
 _DEGENERACY = 1e-12
@@ -32,8 +32,9 @@ class RSDInterpolator:
     points : (N, 2) float array of vertex coordinates.
     values : (N,) float array, the function values f at the points.
     gradients : (N, 2) float array, the gradients ∇f at the points.
-    triangles : (T, 3) int array of vertex indices, or None for scipy's Delaunay
-        triangulation of ``points``. Any valid (non-overlapping, non-degenerate)
+    triangles : (T, 3) int array of vertex indices, or None for the Delaunay
+        triangulation of ``points`` (c1mesh.triangulation.delaunay: scipy's triangles,
+        computed tile by tile for large inputs). Any valid (non-overlapping, non-degenerate)
         triangulation is accepted; orientation is free.
     scheme : name of a shape-function tuple ('sextic' default, 'quintic', 'ex39b') or a
         ShapeTuple (c1mesh.schemes).
@@ -73,15 +74,7 @@ class RSDInterpolator:
     def _triangles(self, triangles) -> np.ndarray:
         n = self.points.shape[0]
         if triangles is None:
-            if n < 3:
-                raise InputError(f"need at least 3 points to triangulate, got {n}")
-            centred = self.points - self.points.mean(axis=0)
-            try:
-                tri = Delaunay(centred).simplices.astype(np.int64)
-            except Exception as exc:  # qhull: collinear or too few distinct points
-                raise InputError(f"cannot triangulate the points (collinear or duplicate?): "
-                                 f"{str(exc).splitlines()[0]}") from None
-            return tri
+            return delaunay(self.points)   # scipy's Delaunay triangles, tiled when large
         tri = np.asarray(triangles)
         if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0:
             raise InputError(f"triangles must have shape (T, 3) with T >= 1, got {tri.shape}")
