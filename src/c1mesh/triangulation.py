@@ -1,9 +1,12 @@
 """Delaunay triangulation of the projected scan, and trimming of what should not be meshed.
 
 `delaunay` returns the same triangles as `scipy.spatial.Delaunay(xy).simplices` (as a set
-of vertex triples, for points in general position), about 2.5x faster at 1M points: qhull
-is super-linear in practice (cache misses: ~3.5 µs/point on 10k points, ~10 µs/point on
-1M), so large inputs are triangulated tile by tile and the tiles are joined exactly:
+of vertex triples, for points in general position), 2-2.5x faster at 1M uniform random
+points and 1.6x at 100k (medians of 5, same run, on a loaded 2-core machine): qhull is
+super-linear in practice (~3.5 µs/point on 10k points, ~10 µs/point on 1M, presumably
+cache misses), so large inputs are triangulated tile by tile and joined exactly. (Tried
+and dropped: Morton presorting, 1.3x; qhull options, no gain; two threads over tiles,
+slower than one.)
 
 * Split the points into ~`TILE_POINTS`-point tiles: x-quantile strips cut at y-quantiles,
   outer sides extended to infinity.
@@ -63,10 +66,13 @@ by one or two missing points."""
 def delaunay(xy: ArrayLike) -> np.ndarray:
     """Delaunay triangles (T, 3) int64 of plane points xy (n, 2), counter-clockwise.
 
-    Same triangles as scipy.spatial.Delaunay(xy).simplices for points in general position
-    (see the module docstring for ties and duplicates). The points are centred on their
-    bounding box first. Raises InputError for non-finite or fewer than 3 points, or when
-    all points lie on one line.
+    The points are centred on their bounding box first; the result is then the same set
+    of triangles as scipy.spatial.Delaunay on the centred points, which for points in
+    general position is scipy.spatial.Delaunay(xy) (module docstring: ties, duplicates).
+    Centring matters at LiDAR offsets: qhull on raw state-plane coordinates (~6.4e5,
+    8.5e5 ft) is not Delaunay (3,858 edges of 4_6_crop.las fail the exact empty-circle
+    test; none after centring). Raises InputError for non-finite or fewer than 3 points,
+    or when all points lie on one line.
     """
     pts = _as_xy(xy)
     if pts.shape[0] < 3:
@@ -96,15 +102,10 @@ def _qhull(xy: np.ndarray) -> np.ndarray:
     except QhullError as exc:
         raise InputError("the points cannot be triangulated: they all lie on one line (or "
                          "coincide); a surface needs points spread over an area") from exc
-    return _make_ccw(xy, simplices.astype(np.int64))[0]
-
-
-def _make_ccw(xy: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(triangles with clockwise ones reversed in place, twice their signed areas before)."""
-    cross = _geometry(xy, tri)[0]
-    cw = cross < 0
+    tri = simplices.astype(np.int64)
+    cw = _geometry(xy, tri)[0] < 0
     tri[cw] = tri[cw][:, ::-1]
-    return tri, cross
+    return tri
 
 
 def _geometry(xy: np.ndarray, tri: np.ndarray):
