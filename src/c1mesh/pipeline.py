@@ -174,7 +174,9 @@ def _report(source, output, options, cloud, normal_source, frame, hf, trim_repor
     return {
         "input": _name(source),
         "output": _name(output),
-        "points": {"read": len(cloud), "dropped": dropped, "kept": int(used.size)},
+        "points": {"read": len(cloud), "dropped": dropped, "kept": int(used.size),
+                   "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked),
+                   "spacing": float(hf.spacing)},
         "normals": normal_source,
         "frame": {"origin": frame.origin.tolist(), "axes": frame.axes.tolist()},
         "triangles": {"before_trim": trim_report.triangles_before,
