@@ -108,14 +108,29 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
 
 
 def surface_mesh(refined, frame, colors: np.ndarray | None) -> SurfaceMesh:
-    """World-coordinate mesh from a refinement in the scan frame (heights = spline values)."""
-    local = np.column_stack([refined.points, refined.values])
-    normals = gradients_to_normals(refined.gradients)
+    """World-coordinate mesh from a refinement in the scan frame (heights = spline values).
+
+    Consumes ``refined``: its per-point arrays are released as soon as they have been
+    turned into world vertices and normals, and the work is done in blocks, so the peak
+    memory stays close to the refinement plus the mesh (no full-size temporaries).
+    """
+    count = refined.values.shape[0]
+    vertices = np.empty((count, 3))
+    normals = np.empty((count, 3))
+    for start in range(0, count, _BLOCK):
+        block = slice(start, start + _BLOCK)
+        local = np.column_stack([refined.points[block], refined.values[block]])
+        vertices[block] = frame.to_world(local)
+        normals[block] = frame.vectors_to_world(gradients_to_normals(refined.gradients[block]))
+    refined.points = refined.values = refined.gradients = None
     vertex_colors = None
     if colors is not None:
         vertex_colors = np.clip(np.rint(refined.linear(colors.astype(float))), 0, 255).astype(np.uint8)
-    return SurfaceMesh(vertices=frame.to_world(local), faces=refined.triangles,
-                       vertex_normals=frame.vectors_to_world(normals), vertex_colors=vertex_colors)
+    return SurfaceMesh(vertices=vertices, faces=refined.triangles, vertex_normals=normals,
+                       vertex_colors=vertex_colors)
+
+
+_BLOCK = 1 << 18   # vertices per block when converting to world coordinates
 
 
 def _compact(xy, triangles):

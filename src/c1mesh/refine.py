@@ -58,8 +58,10 @@ class RefinedMesh:
         """
         data = np.asarray(field_values, dtype=float)
         flat = data.reshape(data.shape[0], -1)
-        out = _linear_field(flat, self.source_triangles, self.source_edges,
-                            lattice_pattern(self.level), self.points.shape[0])
+        pattern = lattice_pattern(self.level)
+        count = (flat.shape[0] + self.source_edges.shape[0] * (self.level - 1)
+                 + self.source_triangles.shape[0] * pattern.interior.size)
+        out = _linear_field(flat, self.source_triangles, self.source_edges, pattern, count)
         return out.reshape((out.shape[0],) + data.shape[1:])
 
 
