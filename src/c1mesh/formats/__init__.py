@@ -96,7 +96,8 @@ def read_cloud(source: Source, fmt: str | None = None) -> PointCloud:
         data = _read_path(path)
     if not data:
         raise FormatError(f"Input '{name}' is empty.")
-    return _READERS[key](data, name)
+    with np.errstate(invalid="ignore", over="ignore"):  # signalling-NaN floats in a body are data, not news
+        return _READERS[key](data, name)
 
 
 def _check_mesh(mesh: SurfaceMesh) -> None:

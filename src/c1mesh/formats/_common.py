@@ -1,7 +1,11 @@
 """Small helpers shared by the readers: colour conversion and field-name conventions."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+
+from c1mesh.errors import FormatError
 
 #: Names under which files store normal components, lower-case, per axis.
 NORMAL_NAMES = (
@@ -49,3 +53,29 @@ def colors_to_uint8(channels: np.ndarray) -> np.ndarray:
 def native(a: np.ndarray) -> np.ndarray:
     """Return a contiguous copy of `a` in native byte order (structured-array fields are views)."""
     return np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("="))
+
+
+def loadtxt(lines: list[str], **kwargs) -> np.ndarray:
+    """np.loadtxt of text lines into an (n, k) float64 table, without its empty-input warning.
+
+    Raises ValueError (callers turn it into FormatError) for non-numbers or ragged rows.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return np.loadtxt(lines, dtype=np.float64, ndmin=2, **kwargs)
+
+
+def decode_text(data: bytes, name: str, kind: str) -> str:
+    """Decode a text file; NUL bytes mean it is binary garbage, not text."""
+    if b"\0" in data[:65536]:
+        raise FormatError(f"{kind} file '{name}' contains binary data, not text.")
+    return data.decode("utf-8", errors="replace")
+
+
+def is_number(word: str) -> bool:
+    """True when float() accepts `word`."""
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True

@@ -45,6 +45,7 @@ def _read(data: bytes, name: str):
     try:
         with laspy.open(io.BytesIO(data)) as reader:
             _check_length(reader.header, len(data), name)
+            _check_laz_chunks(data, reader.header, name)
             return reader.read()
     except FormatError:
         raise
@@ -93,6 +94,35 @@ def _check_length(header, size: int, name: str) -> None:
         raise FormatError(
             f"LAS file '{name}' is truncated: {size} bytes, but its {header.point_count} points need {need}."
         )
+
+
+def _check_laz_chunks(data: bytes, header, name: str) -> None:
+    """FormatError when a LAZ chunk table is implausible.
+
+    The LAZ decompressor (lazrs) sizes its buffers from the chunk table at the end of the
+    file; a corrupt table makes it abort the whole process on a failed multi-gigabyte
+    allocation, so the table is read and checked here first.
+    """
+    vlr = next((v for v in header.vlrs if type(v).__name__ == "LasZipVlr"), None)
+    if vlr is None or len(data) < header.offset_to_point_data + 8:
+        return  # lazrs itself reports these
+    table_at = struct.unpack_from("<q", data, header.offset_to_point_data)[0]
+    if not header.offset_to_point_data < table_at <= len(data) - 8:
+        return  # no table (streamed writer) or one lazrs cannot reach: it reports that itself
+    n_chunks = struct.unpack_from("<I", data, table_at + 4)[0]
+    corrupt = FormatError(f"LAZ file '{name}' has a corrupt chunk table.")
+    if n_chunks > max(header.point_count, 1) or n_chunks > table_at - header.offset_to_point_data:
+        raise corrupt  # every chunk holds at least one point and one byte before the table
+    import lazrs
+
+    source = io.BytesIO(data)
+    source.seek(header.offset_to_point_data)
+    try:
+        chunks = lazrs.read_chunk_table(source, lazrs.LazVlr(vlr.record_data))
+    except Exception as exc:  # lazrs.LazrsError and I/O errors on a cut table
+        raise corrupt from exc
+    if sum(nbytes for _, nbytes in chunks) > len(data) - header.offset_to_point_data:
+        raise corrupt
 
 
 def read_las(data: bytes, name: str) -> PointCloud:

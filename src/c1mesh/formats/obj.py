@@ -15,16 +15,9 @@ import numpy as np
 
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError
-from c1mesh.formats._common import colors_to_uint8
+from c1mesh.formats._common import colors_to_uint8, decode_text, is_number, loadtxt
 
 _KEYWORD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
-
-
-def _text(data: bytes, name: str, kind: str) -> str:
-    """Decode a text file; NUL bytes mean it is binary garbage, not text."""
-    if b"\0" in data[:65536]:
-        raise FormatError(f"{kind} file '{name}' contains binary data, not text.")
-    return data.decode("utf-8", errors="replace")
 
 
 def _group_lines(text: str, name: str) -> dict[str, list[tuple[int, str, int, int]]]:
@@ -47,24 +40,16 @@ def _numbers(rows: list[tuple[int, str, int, int]], name: str, widths: tuple[int
     if not rows:
         return np.zeros((0, widths[0]))
     try:
-        table = np.loadtxt([r[1] for r in rows], dtype=np.float64, ndmin=2, comments="#")
+        table = loadtxt([r[1] for r in rows], comments="#")
     except ValueError:
         table = None
     if table is not None and table.shape[1] in widths:
         return table
     for number, rest, _, _ in rows:  # slow path only to name the offending line
         words = rest.split("#")[0].split()
-        if len(words) not in widths or not all(_is_number(w) for w in words):
+        if len(words) not in widths or not all(is_number(w) for w in words):
             raise FormatError(f"OBJ file '{name}' line {number} needs {' or '.join(map(str, widths))} numbers: {rest!r}.")
     raise FormatError(f"OBJ file '{name}' mixes vertex lines of different lengths.")
-
-
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True
 
 
 def _normals_from_faces(faces: list[tuple[int, str, int, int]], vn: np.ndarray, n: int, name: str) -> np.ndarray | None:
@@ -87,7 +72,7 @@ def _normals_from_faces(faces: list[tuple[int, str, int, int]], vn: np.ndarray, 
 
 def read_obj(data: bytes, name: str) -> PointCloud:
     """Read the vertices (with colours and normals where present) of an OBJ file."""
-    groups = _group_lines(_text(data, name, "OBJ"), name)
+    groups = _group_lines(decode_text(data, name, "OBJ"), name)
     if not groups["v"]:
         raise FormatError(f"OBJ file '{name}' has no 'v' vertex lines.")
     v = _numbers(groups["v"], name, (3, 4, 6))

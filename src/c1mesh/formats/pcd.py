@@ -17,7 +17,7 @@ import numpy as np
 
 from c1mesh.cloud import PointCloud
 from c1mesh.errors import FormatError
-from c1mesh.formats._common import NORMAL_NAMES, find_columns
+from c1mesh.formats._common import NORMAL_NAMES, find_columns, loadtxt
 from c1mesh.formats.lzf import LZFError, lzf_decompress
 
 _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
@@ -69,6 +69,14 @@ def _ints(values: dict[str, list[str]], key: str, name: str, default: list[int] 
         raise FormatError(f"PCD file '{name}' has a non-integer {key} line: {' '.join(values[key])!r}.") from None
 
 
+def _one(values: dict[str, list[str]], key: str, name: str, default: int) -> int:
+    """The single integer of header line `key`, or `default` when the line is absent."""
+    found = _ints(values, key, name, [default])
+    if len(found) != 1:
+        raise FormatError(f"PCD file '{name}' needs exactly one number on its {key} line.")
+    return found[0]
+
+
 def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
     """Parse and validate the header; return it and the offset of the body."""
     values, offset = _header_lines(data, name)
@@ -83,9 +91,11 @@ def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
     bad = [f"{t}{s}" for t, s in zip(kinds, sizes) if (t, s) not in _TYPES]
     if bad:
         raise FormatError(f"PCD file '{name}' has unsupported field types {', '.join(bad)}.")
-    width = _ints(values, "WIDTH", name, [0])[0]
-    height = _ints(values, "HEIGHT", name, [1])[0]
-    points = _ints(values, "POINTS", name, [width * height])[0]
+    width = _one(values, "WIDTH", name, 0)
+    height = _one(values, "HEIGHT", name, 1)
+    points = _one(values, "POINTS", name, width * height)
+    if min(sizes + counts) < 1 or min(width, height, points) < 0:
+        raise FormatError(f"PCD file '{name}' has a negative or zero size, count or point number in its header.")
     kind = (values["DATA"] or [""])[0].lower()
     if kind not in ("ascii", "binary", "binary_compressed"):
         raise FormatError(f"PCD file '{name}' has unknown DATA kind {kind!r}; expected ascii, binary or binary_compressed.")
@@ -115,6 +125,8 @@ def _compressed(data: bytes, offset: int, header: Header, name: str) -> list[np.
     itemsize = header.dtype().itemsize
     if unpacked != header.points * itemsize:
         raise FormatError(f"PCD file '{name}' promises {unpacked} uncompressed bytes, not {header.points * itemsize}.")
+    if unpacked > 100 * packed + 64:  # LZF expands at most 88-fold (3 bytes -> 264)
+        raise FormatError(f"PCD file '{name}' claims {unpacked} bytes from {packed} compressed ones; it is corrupt.")
     if len(data) - offset - 8 < packed:
         raise _truncated(name, header, f"{len(data) - offset - 8} compressed bytes, {packed} needed")
     try:
@@ -136,7 +148,7 @@ def _ascii(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarr
         raise _truncated(name, header, f"{len(lines)} data lines")
     width = sum(header.counts)
     try:
-        table = np.loadtxt(lines[: header.points], dtype=np.float64, ndmin=2, comments=None).reshape(-1, width)
+        table = loadtxt(lines[: header.points], comments=None).reshape(-1, width)
     except ValueError as exc:
         raise FormatError(f"PCD file '{name}' has a malformed ascii data line: {exc}.") from None
     columns, start = [], 0

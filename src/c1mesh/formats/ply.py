@@ -9,6 +9,7 @@ structured dtypes (no per-point Python work); ascii bodies with `np.loadtxt`.
 from __future__ import annotations
 
 import io
+import re
 import struct
 from dataclasses import dataclass, field
 from typing import IO
@@ -17,7 +18,7 @@ import numpy as np
 
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError
-from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, native
+from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
 
 #: PLY scalar type names (both spellings) -> numpy type code without byte order.
 PLY_TYPES = {
@@ -82,10 +83,13 @@ def _header_line(words: list[str], fmt: str | None, elements: list[Element], nam
         if len(words) != 3 or words[1] not in _ENDIAN:
             raise FormatError(bad)
         return words[1]
-    if words[0] == "element" and len(words) == 3 and words[2].isdigit():
+    if words[0] == "element" and len(words) == 3 and re.fullmatch(r"[0-9]+", words[2]) is not None:
         elements.append(Element(words[1], int(words[2])))
     elif words[0] == "property" and elements:
-        elements[-1].props.append(_parse_property(words, bad))
+        prop = _parse_property(words, bad)
+        if any(p.name == prop.name for p in elements[-1].props):
+            raise FormatError(f"PLY file '{name}' header line {number} repeats the property '{prop.name}'.")
+        elements[-1].props.append(prop)
     else:
         raise FormatError(bad)
     return fmt
@@ -124,6 +128,8 @@ def _first_row_lengths(el: Element, buf: bytes, offset: int, endian: str) -> lis
         if offset + ct.itemsize > len(buf):
             return lengths
         n = int(np.frombuffer(buf, ct, 1, offset)[0])
+        if n < 0:
+            return lengths  # impossible; the ragged walk reports it
         lengths.append(n)
         offset += ct.itemsize + n * np.dtype(PLY_TYPES[p.type]).itemsize
     return lengths
@@ -139,6 +145,8 @@ def _read_binary_element(el: Element, buf: bytes, offset: int, endian: str, name
     lengths = _first_row_lengths(el, buf, offset, endian) if n_lists and el.count else []
     lengths += [0] * (n_lists - len(lengths))
     dtype = _row_dtype(el, endian, lengths)
+    if dtype.itemsize == 0:
+        return np.zeros(el.count, dtype), offset
     end = offset + el.count * dtype.itemsize
     if end <= len(buf):
         rows = np.frombuffer(buf, dtype, el.count, offset)
@@ -167,8 +175,13 @@ def _walk_ragged(el: Element, buf: bytes, offset: int, endian: str, name: str) -
                 if code is None:
                     offset += size
                 else:
-                    offset += csize + size * int(struct.unpack_from(code, buf, offset)[0])
-    except struct.error:
+                    n = int(struct.unpack_from(code, buf, offset)[0])
+                    if n < 0:
+                        raise FormatError(f"PLY file '{name}' has a negative list length in element '{el.name}'.")
+                    offset += csize + size * n
+    except FormatError:
+        raise
+    except (struct.error, ValueError, OverflowError):  # past the end, or a NaN/inf float count
         raise _truncated(name, el) from None
     if offset > len(buf):
         raise _truncated(name, el)
@@ -216,7 +229,7 @@ def _parse_ascii_rows(el: Element, lines: list[str], name: str) -> np.ndarray:
     if not lines:
         return np.zeros(0, dtype)
     try:
-        table = np.loadtxt(lines, dtype=np.float64, ndmin=2, comments=None)
+        table = loadtxt(lines, comments=None)
     except ValueError as exc:
         raise FormatError(f"PLY file '{name}' has a malformed ascii vertex row: {exc}.") from exc
     if table.shape[1] != len(el.props):

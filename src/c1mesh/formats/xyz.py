@@ -1,6 +1,7 @@
 """Plain-text point tables (.xyz, .txt, .csv): one point per line.
 
-Values are separated by whitespace, or by commas when the first data line has a comma.
+Values are separated by whitespace, or by semicolons / commas when the first data line
+has one (semicolon first, so '1,5;2,5' is reported rather than misread).
 Blank lines and lines starting with '#' are skipped. Leading lines that do not start
 with a number are header lines; the last of them names the columns (x y z, nx ny nz or
 normal_x.., r g b or red green blue [alpha], classification; CloudCompare's '//X,Y,Z'
@@ -24,8 +25,7 @@ import numpy as np
 
 from c1mesh.cloud import PointCloud
 from c1mesh.errors import FormatError
-from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns
-from c1mesh.formats.obj import _is_number, _text
+from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, decode_text, find_columns, is_number, loadtxt
 
 _SPLIT = re.compile(r"[\s,;]+")
 
@@ -38,7 +38,7 @@ def _data_lines(text: str) -> list[tuple[int, str]]:
 def _split_header(lines: list[tuple[int, str]]) -> tuple[list[str] | None, list[tuple[int, str]]]:
     """Return (column names from the last leading non-numeric line or None, data lines)."""
     first = 0
-    while first < len(lines) and not _is_number(_SPLIT.split(lines[first][1].strip())[0]):
+    while first < len(lines) and not is_number(_SPLIT.split(lines[first][1].strip())[0]):
         first += 1
     if first == 0:
         return None, lines
@@ -48,25 +48,26 @@ def _split_header(lines: list[tuple[int, str]]) -> tuple[list[str] | None, list[
 
 def _drop_count_line(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
     """Skip a .pts-style first line holding just the number of points."""
-    if lines and lines[0][1].strip().isdigit() and int(lines[0][1]) == len(lines) - 1:
+    if lines and re.fullmatch(r"[0-9]+", lines[0][1].strip()) and int(lines[0][1]) == len(lines) - 1:
         return lines[1:]
     return lines
 
 
 def _parse_table(lines: list[tuple[int, str]], name: str) -> np.ndarray:
     """(n, k) float64 table of the data lines; FormatError names the first bad line."""
-    delimiter = "," if "," in lines[0][1] else None
+    first = lines[0][1]
+    delimiter = ";" if ";" in first else "," if "," in first else None
     try:
-        return np.loadtxt([ln for _, ln in lines], dtype=np.float64, delimiter=delimiter, ndmin=2, comments="#")
+        return loadtxt([ln for _, ln in lines], delimiter=delimiter, comments="#")
     except ValueError:
         pass
     width = len(_SPLIT.split(lines[0][1].strip()))
     for number, line in lines:
         values = line.split("#")[0]
-        words = values.split(",") if delimiter else values.split()
+        words = values.split(delimiter)
         if len(words) != width:
             raise FormatError(f"Point file '{name}' line {number} has {len(words)} values, expected {width}.")
-        if not all(_is_number(w) for w in words):
+        if not all(is_number(w) for w in words):
             raise FormatError(f"Point file '{name}' line {number} has a value that is not a number: {line.strip()!r}.")
     raise FormatError(f"Point file '{name}' could not be parsed as a table of numbers.")
 
@@ -136,7 +137,7 @@ def _cloud_from_layout(table: np.ndarray, layout: dict[str, int | list[int]]) ->
 
 def read_xyz(data: bytes, name: str) -> PointCloud:
     """Read a whitespace- or comma-separated point table (see the module doc for columns)."""
-    names, lines = _split_header(_data_lines(_text(data, name, "Point")))
+    names, lines = _split_header(_data_lines(decode_text(data, name, "Point")))
     lines = _drop_count_line(lines) if names is None else lines
     if not lines:
         raise FormatError(f"Point file '{name}' has no numeric data lines.")
