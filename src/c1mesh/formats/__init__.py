@@ -42,6 +42,7 @@ SUPPORTED_OUTPUT: tuple[str, ...] = tuple(_WRITERS)
 
 
 def _is_stream(obj: object) -> bool:
+    """True for file-like objects (stdin/stdout buffers, BytesIO), False for paths."""
     return not isinstance(obj, (str, bytes, os.PathLike)) and (hasattr(obj, "read") or hasattr(obj, "write"))
 
 
@@ -50,7 +51,7 @@ def _format(fmt: str | None, where: str, supported: tuple[str, ...], direction: 
     key = (fmt or "").lower().lstrip(".")
     if not key:
         raise InputError(f"Cannot tell the {direction} format of '{where}' from its name; "
-                         f"use one of the extensions {', '.join(SUPPORTED_INPUT if direction == 'input' else supported)}.")
+                         f"use one of the extensions {', '.join(supported)}.")
     if key not in supported:
         raise InputError(f"Unsupported {direction} format '{key}' for '{where}'; supported: {', '.join(supported)}.")
     return key
@@ -114,7 +115,7 @@ def _check_mesh(mesh: SurfaceMesh) -> None:
             raise InputError(f"Mesh {label} must have one row of {' or '.join(map(str, widths))} values per vertex.")
 
 
-def write_mesh(mesh: SurfaceMesh, target: Union[str, "os.PathLike[str]", IO[bytes]], fmt: str | None = None,
+def write_mesh(mesh: SurfaceMesh, target: Source, fmt: str | None = None,
                ascii: bool = False) -> None:
     """Write `mesh` to a path or a binary file object.
 

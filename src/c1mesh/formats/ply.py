@@ -96,10 +96,10 @@ def _header_line(words: list[str], fmt: str | None, elements: list[Element], nam
 
 
 def _parse_property(words: list[str], bad: str) -> Prop:
-    """Parse 'property <type> <name>' or 'property list <count type> <type> <name>'."""
+    """Parse 'property <type> <name>' or 'property list <integer count type> <type> <name>'."""
     if len(words) == 3 and words[1] in PLY_TYPES:
         return Prop(words[2], words[1])
-    if len(words) == 5 and words[1] == "list" and words[2] in PLY_TYPES and words[3] in PLY_TYPES:
+    if len(words) == 5 and words[1] == "list" and PLY_TYPES.get(words[2], "f")[0] != "f" and words[3] in PLY_TYPES:
         return Prop(words[4], words[3], words[2])
     raise FormatError(bad)
 
@@ -179,9 +179,7 @@ def _walk_ragged(el: Element, buf: bytes, offset: int, endian: str, name: str) -
                     if n < 0:
                         raise FormatError(f"PLY file '{name}' has a negative list length in element '{el.name}'.")
                     offset += csize + size * n
-    except FormatError:
-        raise
-    except (struct.error, ValueError, OverflowError):  # past the end, or a NaN/inf float count
+    except struct.error:  # a count lies past the end of the data
         raise _truncated(name, el) from None
     if offset > len(buf):
         raise _truncated(name, el)
