@@ -43,7 +43,7 @@ def barycentric_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         a, b = (k + 1) % 3, (k + 2) % 3
         np.multiply(y[a] - y[b], inv, out=G[0, k])
         np.multiply(x[b] - x[a], inv, out=G[1, k])
-    return G.transpose(2, 1, 0), det
+    return np.ascontiguousarray(G.transpose(2, 1, 0)), det
 
 
 def _components(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
