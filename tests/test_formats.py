@@ -620,3 +620,18 @@ def test_missing_and_directory_inputs(tmp_path):
         read_cloud(tmp_path / "dir.ply")
     assert "laz" in SUPPORTED_INPUT and "csv" in SUPPORTED_INPUT
 
+
+
+@pytest.mark.parametrize("ascii_ply", [False, True])
+def test_ply_writer_streams_in_blocks(tmp_path, monkeypatch, ascii_ply):
+    """Blocks smaller than the mesh must give the same file as one block (no rows lost or doubled)."""
+    import c1mesh.formats.ply as ply_module
+    rng = np.random.default_rng(3)
+    mesh = SurfaceMesh(vertices=rng.random((50, 3)) + 6.4e5, faces=rng.integers(0, 50, (37, 3)),
+                       vertex_normals=rng.random((50, 3)), vertex_colors=rng.integers(0, 255, (50, 3)).astype(np.uint8))
+    write_mesh(mesh, tmp_path / "whole.ply", ascii=ascii_ply)
+    monkeypatch.setattr(ply_module, "_WRITE_BLOCK", 7)
+    write_mesh(mesh, tmp_path / "blocks.ply", ascii=ascii_ply)
+    assert (tmp_path / "blocks.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    back = read_cloud(tmp_path / "blocks.ply")
+    np.testing.assert_array_equal(back.points, mesh.vertices)

@@ -8,7 +8,6 @@ structured dtypes (no per-point Python work); ascii bodies with `np.loadtxt`.
 """
 from __future__ import annotations
 
-import io
 import re
 import struct
 from dataclasses import dataclass, field
@@ -297,16 +296,17 @@ def _header(mesh: SurfaceMesh, dtype: np.dtype, fmt: str) -> bytes:
     return "\n".join(lines).encode("ascii")
 
 
-def _vertex_rows(mesh: SurfaceMesh, dtype: np.dtype) -> np.ndarray:
-    rows = np.empty(len(mesh.vertices), dtype)
+def _vertex_rows(mesh: SurfaceMesh, dtype: np.dtype, block: slice) -> np.ndarray:
+    """Packed vertex rows of the vertices in `block`."""
+    rows = np.empty(block.stop - block.start, dtype)
     for i, c in enumerate("xyz"):
-        rows[c] = mesh.vertices[:, i]
+        rows[c] = mesh.vertices[block, i]
     if mesh.vertex_normals is not None:
         for i, c in enumerate(("nx", "ny", "nz")):
-            rows[c] = mesh.vertex_normals[:, i]
+            rows[c] = mesh.vertex_normals[block, i]
     if mesh.vertex_colors is not None:
         for i in range(mesh.vertex_colors.shape[1]):
-            rows[("red", "green", "blue", "alpha")[i]] = mesh.vertex_colors[:, i]
+            rows[("red", "green", "blue", "alpha")[i]] = mesh.vertex_colors[block, i]
     return rows
 
 
@@ -314,28 +314,29 @@ def write_ply(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = False) -> None:
     """Write `mesh` as PLY to binary file object `f`: binary little endian, or ascii.
 
     Coordinates and normals are doubles so that large world coordinates (state-plane
-    feet, UTM metres) keep their full precision.
+    feet, UTM metres) keep their full precision. Rows are packed and written in blocks,
+    so writing adds only a block-sized buffer to the memory the mesh already holds.
     """
     dtype = _vertex_dtype(mesh, "=" if ascii else "<")
-    rows = _vertex_rows(mesh, dtype)
-    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     f.write(_header(mesh, dtype, "ascii" if ascii else "binary_little_endian"))
-    if ascii:
-        _write_ascii_body(f, rows, faces)
-        return
-    face_rows = np.empty(len(faces), np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
-    face_rows["n"] = 3
-    face_rows["v"] = faces
-    f.write(rows.tobytes())
-    f.write(face_rows.tobytes())
+    count = len(mesh.vertices)
+    for start in range(0, count, _WRITE_BLOCK):
+        rows = _vertex_rows(mesh, dtype, slice(start, min(start + _WRITE_BLOCK, count)))
+        if ascii:   # round-trip precision: repr of each double
+            cols = [rows[n].tolist() for n in rows.dtype.names]
+            f.write("".join(" ".join(map(repr, v)) + "\n" for v in zip(*cols)).encode("ascii"))
+        else:
+            f.write(memoryview(rows).cast("B"))
+    face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
+    for start in range(0, len(mesh.faces), _WRITE_BLOCK):
+        faces = np.asarray(mesh.faces[start:start + _WRITE_BLOCK]).reshape(-1, 3)
+        if ascii:
+            f.write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
+            continue
+        face_rows = np.empty(len(faces), face_dtype)
+        face_rows["n"] = 3
+        face_rows["v"] = faces
+        f.write(memoryview(face_rows).cast("B"))
 
 
-def _write_ascii_body(f: IO[bytes], rows: np.ndarray, faces: np.ndarray) -> None:
-    """Vertex lines with round-trip precision (repr of each double), then '3 a b c' faces."""
-    text = io.StringIO()
-    cols = [rows[n].tolist() for n in rows.dtype.names]
-    for values in zip(*cols):
-        text.write(" ".join(map(repr, values)) + "\n")
-    for a, b, c in faces.tolist():
-        text.write(f"3 {a} {b} {c}\n")
-    f.write(text.getvalue().encode("ascii"))
+_WRITE_BLOCK = 1 << 18   # rows packed per write
