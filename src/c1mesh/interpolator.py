@@ -61,13 +61,11 @@ class RSDInterpolator:
         self.triangles = self._triangles(triangles)
         self._table = edge_table(self.triangles, n)
         self.edges = self._table.edges
-        corners = self.points[self.triangles]
-        self._G, det = rsd.barycentric_gradients(corners)
-        self._check_degenerate(corners, det)
         self.directions = self._directions(directions)
-        u = self.directions[self._table.tri_edge]                     # (T, 3, 2)
-        self.coefficients = rsd.triangle_coefficients(
-            corners, self.values[self.triangles], self.gradients[self.triangles], u, self._G)
+        self.coefficients, self._G, det = rsd.mesh_coefficients(
+            self.points, self.values, self.gradients, self.triangles, self.directions,
+            self._table.tri_edge)
+        self._check_degenerate(det)
         self._locator: TriangleLocator | None = None
 
     # ----------------------------------------------------------------- construction
@@ -84,14 +82,17 @@ class RSDInterpolator:
             raise InputError(f"triangle vertex indices must lie in [0, {n - 1}]")
         return tri.astype(np.int64)
 
-    def _check_degenerate(self, corners: np.ndarray, det: np.ndarray) -> None:
-        e1 = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)
-        e2 = np.linalg.norm(corners[:, 2] - corners[:, 0], axis=1)
+    def _check_degenerate(self, det: np.ndarray) -> None:
+        """Reject triangles whose smallest |sin(angle)| at vertex 0 is below _DEGENERACY."""
+        p = self.points
+        t = self.triangles
+        e1 = np.hypot(p[t[:, 1], 0] - p[t[:, 0], 0], p[t[:, 1], 1] - p[t[:, 0], 1])
+        e2 = np.hypot(p[t[:, 2], 0] - p[t[:, 0], 0], p[t[:, 2], 1] - p[t[:, 0], 1])
         bad = ~(np.abs(det) > _DEGENERACY * e1 * e2)
         if bad.any():
-            t = int(np.flatnonzero(bad)[0])
+            first = int(np.flatnonzero(bad)[0])
             raise InputError(f"{int(bad.sum())} degenerate (zero-area) triangle(s), first: "
-                             f"triangle {t} with vertices {self.triangles[t].tolist()}")
+                             f"triangle {first} with vertices {self.triangles[first].tolist()}")
 
     def _directions(self, directions) -> np.ndarray:
         vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]

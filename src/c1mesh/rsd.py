@@ -35,21 +35,8 @@ def barycentric_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     G_k = perp(p_{k+1} − p_{k+2}) / det, so that G_k·(p_k − p_j) = 1 for j ≠ k.
     Degenerate triangles (det = 0) get G = 0; callers reject them.
     """
-    x, y = _components(corners)                         # (3, T) each, contiguous
-    det = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0])
-    inv = 1.0 / np.where(det == 0, np.inf, det)
-    G = np.empty((2, 3, corners.shape[0]))
-    for k in range(3):
-        a, b = (k + 1) % 3, (k + 2) % 3
-        np.multiply(y[a] - y[b], inv, out=G[0, k])
-        np.multiply(x[b] - x[a], inv, out=G[1, k])
-    return np.ascontiguousarray(G.transpose(2, 1, 0)), det
-
-
-def _components(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3, 2) -> x (3, T), y (3, T): one transposing copy, then contiguous arithmetic."""
-    soa = np.ascontiguousarray(vectors.transpose(2, 1, 0))
-    return soa[0], soa[1]
+    gx, gy, det = _gradients_soa(*_components(corners))
+    return _interleave(gx, gy), det
 
 
 def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -59,22 +46,73 @@ def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np
     corners (T, 3, 2), values f (T, 3), gradients A (T, 3, 2), directions u (T, 3, 2) where
     u_k belongs to the edge opposite vertex k, G (T, 3, 2) from barycentric_gradients.
     """
-    px, py = _components(corners)
-    ax, ay = _components(gradients)
-    ux, uy = _components(directions)
-    gx, gy = _components(G)
-    f = np.ascontiguousarray(values.T)                  # (3, T)
-    C = np.empty((N_BASIS, corners.shape[0]))           # filled row-wise, returned as (T, 21)
+    C = _coefficients_soa(*_components(corners), np.ascontiguousarray(values.T),
+                          *_components(gradients), *_components(directions), *_components(G))
+    return np.ascontiguousarray(C.T)
+
+
+def mesh_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                      triangles: np.ndarray, edge_directions: np.ndarray, tri_edge: np.ndarray,
+                      chunk: int = 1 << 14) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coefficients (T, 21), G (T, 3, 2) and det (T,) of a whole mesh, from per-vertex data.
+
+    points (N, 2), values (N,), gradients (N, 2), triangles (T, 3), edge_directions (E, 2)
+    and tri_edge (T, 3) (the edge opposite each local vertex). Works on blocks of
+    triangles gathered straight into component arrays, so every temporary stays in cache
+    and no (T, 3, 2) gathers are made.
+    """
+    T = triangles.shape[0]
+    C, G, det = np.empty((T, N_BASIS)), np.empty((T, 3, 2)), np.empty(T)
+    x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
+    ax, ay = np.ascontiguousarray(gradients[:, 0]), np.ascontiguousarray(gradients[:, 1])
+    ux, uy = np.ascontiguousarray(edge_directions[:, 0]), np.ascontiguousarray(edge_directions[:, 1])
+    for start in range(0, T, chunk):
+        part = slice(start, min(start + chunk, T))
+        tri, edge = triangles[part].T, tri_edge[part].T           # (3, c) index views
+        px, py = x[tri], y[tri]
+        gx, gy, det[part] = _gradients_soa(px, py)
+        G[part, :, 0], G[part, :, 1] = gx.T, gy.T
+        C[part] = _coefficients_soa(px, py, values[tri], ax[tri], ay[tri], ux[edge], uy[edge], gx, gy).T
+    return C, G, det
+
+
+def _components(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3, 2) -> x (3, T), y (3, T): one transposing copy, then contiguous arithmetic."""
+    soa = np.ascontiguousarray(vectors.transpose(2, 1, 0))
+    return soa[0], soa[1]
+
+
+def _interleave(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x, y (3, T) -> (T, 3, 2) contiguous."""
+    return np.ascontiguousarray(np.stack([x, y]).transpose(2, 1, 0))
+
+
+def _gradients_soa(x: np.ndarray, y: np.ndarray):
+    """gx, gy (3, c) and det (c,) from corner components x, y (3, c)."""
+    det = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0])
+    inv = 1.0 / np.where(det == 0, np.inf, det)
+    gx, gy = np.empty_like(x), np.empty_like(y)
+    for k in range(3):
+        a, b = (k + 1) % 3, (k + 2) % 3
+        np.multiply(y[a] - y[b], inv, out=gx[k])
+        np.multiply(x[b] - x[a], inv, out=gy[k])
+    return gx, gy, det
+
+
+def _coefficients_soa(px, py, f, ax, ay, ux, uy, gx, gy) -> np.ndarray:
+    """(21, c) coefficients from component arrays, each (3, c) (f: values at the corners)."""
+    C = np.empty((N_BASIS, px.shape[1]))
     C[0:3] = f
     g = {}
     for j, (k, i) in enumerate(PAIRS):
         g[k, i] = ax[k] * (px[i] - px[k]) + ay[k] * (py[i] - py[k])
         C[3 + j] = g[k, i]
     for j, (l, m, n) in enumerate(PERMS):
-        ratio = (gx[l] * ux[n] + gy[l] * uy[n]) / (gx[n] * ux[n] + gy[n] * uy[n])
+        with np.errstate(divide="ignore", invalid="ignore"):   # degenerate: rejected by callers
+            ratio = (gx[l] * ux[n] + gy[l] * uy[n]) / (gx[n] * ux[n] + gy[n] * uy[n])
         np.multiply(ratio, f[l], out=C[9 + j])
         np.multiply(ratio, g[l, m], out=C[15 + j])
-    return np.ascontiguousarray(C.T)
+    return C
 
 
 def basis(scheme: ShapeTuple, lam: np.ndarray) -> np.ndarray:

@@ -38,12 +38,19 @@ class EdgeTable:
 
 def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
     """Number the unique edges of ``triangles`` (T, 3); raise InputError for a non-manifold edge."""
-    a = np.concatenate([triangles[:, 1], triangles[:, 2], triangles[:, 0]]).astype(np.int64)
-    b = np.concatenate([triangles[:, 2], triangles[:, 0], triangles[:, 1]]).astype(np.int64)
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    keys = lo * np.int64(n_points) + hi
-    unique_keys, first, inverse, count = np.unique(keys, return_index=True, return_inverse=True,
-                                                   return_counts=True)
+    tri = triangles.astype(np.int64, copy=False)
+    a = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
+    b = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]])
+    keys = np.minimum(a, b) * np.int64(n_points) + np.maximum(a, b)
+    # One sort gives everything np.unique would (unique keys, first occurrence, inverse, counts).
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    starts = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+    unique_keys = sorted_keys[starts]
+    first = order[starts]
+    count = np.diff(np.append(starts, keys.size))
+    inverse = np.empty(keys.size, dtype=np.int64)
+    inverse[order] = np.repeat(np.arange(starts.size), count)
     if count.size and count.max() > 2:
         bad = int(np.argmax(count))
         raise InputError(f"edge ({unique_keys[bad] // n_points}, {unique_keys[bad] % n_points}) "
