@@ -100,7 +100,8 @@ def run(cfg: Config) -> Section:
     sizes = ", ".join(f"{n:,}" for n in cfg.accuracy_sizes)
     sec.add(f"### Observed orders (N = {sizes}; one entry per halving of h)", "",
             "| function | method | value RMS orders | gradient RMS orders | value max orders | "
-            f"value RMS at N={cfg.accuracy_sizes[-1]:,} | gradient RMS at N={cfg.accuracy_sizes[-1]:,} |",
+            f"value RMS at N={cfg.accuracy_sizes[-1]:,} | "
+            f"gradient RMS at N={cfg.accuracy_sizes[-1]:,} |",
             "|---|---|---|---|---|---:|---:|")
     for (fname, m), errs in results.items():
         e = np.array(errs)
@@ -152,7 +153,8 @@ def _terrain(sec: Section) -> list[str]:
     rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
     xy = np.stack([cc.ravel() * dx, rr.ravel() * dy], axis=1)
     z, g = elev.ravel(), np.stack([gx.ravel(), gy.ravel()], axis=1)
-    border = ((rr % 4 == 0) & ((cc == 0) | (cc == cols - 1))) | ((cc % 4 == 0) & ((rr == 0) | (rr == rows - 1)))
+    on_side = (cc == 0) | (cc == cols - 1), (rr == 0) | (rr == rows - 1)
+    border = ((rr % 4 == 0) & on_side[0]) | ((cc % 4 == 0) & on_side[1])
     corners = ((rr == 0) | (rr == rows - 1)) & ((cc == 0) | (cc == cols - 1))
     regular = (rr % 4 == 0) & (cc % 4 == 0)
     rng = np.random.default_rng(4)
@@ -181,5 +183,6 @@ def _terrain(sec: Section) -> list[str]:
             out.append(f"| {label} | {fit.sum():,} | {ok.sum():,} | {m} | {e[0]:.2f} | "
                        f"{e[1]:.3f} | {e[3]:.4f} |")
         sec.headlines.append((f"terrain ({label}): held-out value RMS, rHCT / sextic",
-                              f"{rms['rHCT'] / rms['sextic']:.2f}×", "(none set; > 1 = sextic better)", "—"))
+                              f"{rms['rHCT'] / rms['sextic']:.2f}×",
+                              "(none set; > 1 = sextic better)", "—"))
     return out + [""]

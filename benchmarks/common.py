@@ -96,18 +96,18 @@ def timed(fn: Callable[[], object], limit: float | None = None) -> float:
 
 
 def paired(contenders: dict[str, Callable[[], object]], reps: int,
-           limits: dict[str, float] | None = None) -> dict[str, list[float]]:
+           limits: dict[str, float] | None = None, once: tuple[str, ...] = ()) -> dict[str, list[float]]:
     """Run all contenders once per repetition, interleaved; returns their times.
 
     A contender that times out (``limits``) gets ``inf`` for that repetition and is not
-    run again.
+    run again. Contenders named in ``once`` run in the first repetition only.
     """
     limits = limits or {}
     times: dict[str, list[float]] = {name: [] for name in contenders}
     dropped: set[str] = set()
-    for _ in range(reps):
+    for rep in range(reps):
         for name, fn in contenders.items():
-            if name in dropped:
+            if name in dropped or (rep and name in once):
                 continue
             try:
                 times[name].append(timed(fn, limits.get(name)))
@@ -268,6 +268,10 @@ def report_from_stderr(stderr: str) -> dict:
         raise ValueError(f"no JSON report on stderr: {stderr[-300:]}")
     return json.JSONDecoder().raw_decode(stderr[start:])[0]
 
+
+#: Child runs shared between sections: (contender, N) -> {"rss": [...], "vertices", "faces"}.
+#: The memory section reuses the pipeline section's peak RSS of `c1mesh fit` at 1M points.
+MEASURED: dict[tuple[str, int], dict] = {}
 
 #: The `c1mesh` command run through this interpreter (no dependence on an installed script).
 C1MESH = ["-c", "import sys; from c1mesh.cli import main; sys.argv[0] = 'c1mesh'; main()"]

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import (C1MESH, Config, Section, fmt_bytes, fmt_s, fmt_x, median,
-                               pipeline_status, ratio, report_from_stderr, run_child, terrain_cloud, verdict,
-                               write_cloud_ply)
+from benchmarks.common import (C1MESH, MEASURED, Config, Section, fmt_bytes, fmt_s, fmt_x,
+                               median, pipeline_status, ratio, report_from_stderr, run_child,
+                               terrain_cloud, verdict, write_cloud_ply)
 
 LEVEL = 4
 
@@ -47,6 +47,7 @@ def run(cfg: Config) -> Section:
             src = Path(tmp) / f"terrain_{n}.ply"
             write_cloud_ply(src, *terrain_cloud(n))
             runs = _measure(cfg, tmp, src, why)
+            MEASURED.update({(name, n): r for name, r in runs.items()})
             t_ours = runs[ours]["seconds"]
             for name, r in runs.items():
                 rel = "1×" if name == ours else fmt_x(ratio(r["seconds"], t_ours))
@@ -62,7 +63,8 @@ def run(cfg: Config) -> Section:
                 sec.headlines.append((f"pipeline: Poisson depth {d} / {ours}, N={n:,}, level {LEVEL}",
                                       fmt_x(r), "≥ 3×" if target else "(none set)",
                                       verdict(r >= 3) if target else "—"))
-    sec.add("", f"contender / {ours} > 1 means c1mesh is faster.", "", "### Stage breakdown (median seconds)", "")
+    sec.add("", f"contender / {ours} > 1 means c1mesh is faster.", "",
+            "### Stage breakdown (median seconds)", "")
     for (n, name), stages in stage_rows.items():
         total = sum(stages.values())
         parts = ", ".join(f"{k} {v:.2f} s ({100 * v / total:.0f}%)" for k, v in stages.items())

@@ -51,8 +51,9 @@ def machine() -> list[str]:
     import scipy
 
     return [f"- CPU: {_cpu_model()}; cores: {os.cpu_count()}; RAM: {_ram()}",
-            f"- Python {platform.python_version()}, numpy {numpy.__version__}, scipy {scipy.__version__}, "
-            f"matplotlib {matplotlib.__version__}, open3d {open3d.__version__}",
+            f"- Python {platform.python_version()}, numpy {numpy.__version__}, "
+            f"scipy {scipy.__version__}, matplotlib {matplotlib.__version__}, "
+            f"open3d {open3d.__version__}",
             f"- c1mesh commit: {_git()}",
             f"- date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}"]
 

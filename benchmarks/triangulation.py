@@ -24,33 +24,40 @@ def _ours():
     return (fn, "") if callable(fn) else (None, "c1mesh.triangulation has no delaunay()")
 
 
-def _n_triangles(result) -> int:
+def _triangles(result) -> np.ndarray:
     tri = getattr(result, "simplices", result)
-    if isinstance(tri, tuple):
-        tri = tri[0]
-    return int(np.asarray(tri).shape[0])
+    return np.asarray(tri[0] if isinstance(tri, tuple) else tri)
+
+
+def same_triangles(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two triangulations hold the same vertex triples (orientation and order ignored)."""
+    if a.shape != b.shape:
+        return False
+    key = lambda t: np.unique(np.sort(t.astype(np.int64), axis=1), axis=0)  # noqa: E731
+    return bool(np.array_equal(key(a), key(b)))
 
 
 def run(cfg: Config) -> Section:
     sec = Section("Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay")
     fn, why = _ours()
     sec.add(f"Uniform random points in the unit square, {cfg.reps} repetitions interleaved. "
-            "Ratio = scipy time / c1mesh time (> 1 means c1mesh is faster).", "",
-            "| N | scipy Delaunay | triangles | c1mesh delaunay | triangles | scipy / c1mesh |",
-            "|---:|---:|---:|---:|---:|---:|")
+            "Ratio = scipy time / c1mesh time (> 1 means c1mesh is faster). 'same triangles': "
+            "the two return the same set of vertex triples.", "",
+            "| N | scipy Delaunay | triangles | c1mesh delaunay | triangles | same triangles | "
+            "scipy / c1mesh |", "|---:|---:|---:|---:|---:|---|---:|")
     for n in cfg.delaunay_sizes:
         pts = random_points(n, seed=2)
-        counts = {}
+        last = {}
 
         def scipy_job():
             d = Delaunay(pts)
-            counts["scipy"] = d.simplices.shape[0]
+            last["scipy"] = d.simplices
             return d
         jobs = {"scipy": scipy_job}
         if fn is not None:
             def ours_job():
                 r = fn(pts)
-                counts["ours"] = _n_triangles(r)
+                last["ours"] = _triangles(r)
                 return r
             jobs["ours"] = ours_job
         try:
@@ -60,13 +67,14 @@ def run(cfg: Config) -> Section:
             why = f"c1mesh delaunay failed: {type(exc).__name__}: {str(exc)[:120]}"
         if "ours" in times and len(times["ours"]) == len(times["scipy"]):
             r = ratio(times["scipy"], times["ours"])
-            sec.add(f"| {n:,} | {fmt_s(median(times['scipy']))} | {counts['scipy']:,} | "
-                    f"{fmt_s(median(times['ours']))} | {counts['ours']:,} | {fmt_x(r)} |")
+            same = "yes" if same_triangles(last["scipy"], last["ours"]) else "**no**"
+            sec.add(f"| {n:,} | {fmt_s(median(times['scipy']))} | {len(last['scipy']):,} | "
+                    f"{fmt_s(median(times['ours']))} | {len(last['ours']):,} | {same} | {fmt_x(r)} |")
             sec.headlines.append((f"triangulation: scipy / c1mesh delaunay, N={n:,}", fmt_x(r),
                                   "(none set)", "—"))
         else:
-            sec.add(f"| {n:,} | {fmt_s(median(times['scipy']))} | {counts['scipy']:,} | "
-                    "pending | — | pending |")
+            sec.add(f"| {n:,} | {fmt_s(median(times['scipy']))} | {len(last['scipy']):,} | "
+                    "pending | — | — | pending |")
     if why:
         sec.add("", f"c1mesh column pending: {why}.")
     sec.add("")
