@@ -88,15 +88,17 @@ def run(cfg: Config) -> Section:
     sec.add(__doc__.split("\n\n", 1)[1].strip(), "")
     c = (np.arange(GRID) + 0.5) / GRID
     xe = np.stack(np.meshgrid(c, c), axis=-1).reshape(-1, 2)
-    results = {}                                         # (function, method) -> [errors per N]
+    results, worst = {}, {}                # (function, method) -> [errors per N]; worst angles
     for fname, f in FUNCTIONS.items():
         z_true, g_true = f(xe)
         for n in cfg.accuracy_sizes:
             d = Delaunay(square_points(n, seed=n))
             z, g = f(d.points)
             for m in METHODS:
-                results.setdefault((fname, m), []).append(errors(*evaluate(m, d, z, g, xe),
-                                                                 z_true, g_true))
+                v, gr = evaluate(m, d, z, g, xe)
+                results.setdefault((fname, m), []).append(errors(v, gr, z_true, g_true))
+                if n == cfg.accuracy_sizes[-1]:
+                    worst[fname, m] = _angle_at_worst(d, xe, gr, g_true)
     sizes = ", ".join(f"{n:,}" for n in cfg.accuracy_sizes)
     sec.add(f"### Observed orders (N = {sizes}; one entry per halving of h)", "",
             "| function | method | value RMS orders | gradient RMS orders | value max orders | "
@@ -108,6 +110,7 @@ def run(cfg: Config) -> Section:
         sec.add(f"| {fname} | {m} | {orders(e[:, 1])} | {orders(e[:, 3])} | {orders(e[:, 0])} | "
                 f"{e[-1, 1]:.2e} | {e[-1, 3]:.2e} |")
     sec.add("", "'exact' = both errors below 1e-11 (the method reproduces the function).", "",
+            *_reading(results, worst, cfg.accuracy_sizes[-1]), "",
             "<details><summary>All errors</summary>", "",
             "| function | method | N | value max | value RMS | gradient max | gradient RMS |",
             "|---|---|---:|---:|---:|---:|---:|")
@@ -119,6 +122,43 @@ def run(cfg: Config) -> Section:
     sec.add("![accuracy](accuracy.png)", "")
     sec.add(*_terrain(sec))
     return sec
+
+
+def _angle_at_worst(d: Delaunay, xe, gr, g_true) -> float:
+    """Smallest angle (degrees) of the triangle holding the largest gradient error."""
+    i = int(np.argmax(np.linalg.norm(gr - g_true, axis=1)))
+    p = d.points[d.simplices[d.find_simplex(xe[i:i + 1])[0]]]
+    angles = []
+    for k in range(3):
+        a, b = p[(k + 1) % 3] - p[k], p[(k + 2) % 3] - p[k]
+        cos = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
+        angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    return float(min(angles))
+
+
+def _reading(results, worst, n_last) -> list[str]:
+    """What the numbers say, computed from this run: mean orders of the last two steps."""
+    out = ["**What these numbers say**: order = mean of the last two observed orders over the "
+           "three functions ('exact' steps left out); 'worst at' = smallest angle of the triangle "
+           f"holding the largest gradient error at N={n_last:,} (distinct values over the "
+           "functions, which share one mesh per N).", ""]
+    for m in METHODS:
+        v, g = [], []
+        for fname in FUNCTIONS:
+            e = np.array(results[fname, m])
+            for col, acc in ((1, v), (3, g)):
+                a, b = e[-3:-1, col], e[-2:, col]
+                keep = np.maximum(a, b) >= ROUNDOFF
+                acc.extend(np.log2(a[keep] / b[keep]))
+        fmt = lambda xs: f"{np.mean(xs):.2f}" if xs else "exact"  # noqa: E731
+        angles = ", ".join(dict.fromkeys(f"{worst[f, m]:.1f}°" for f in FUNCTIONS))
+        out.append(f"- {m}: value order ≈ {fmt(v)}, gradient order ≈ {fmt(g)}; worst at {angles}")
+    ratios = []
+    for f in FUNCTIONS:
+        ours, theirs = results[f, "sextic"][-1][1], results[f, "rHCT"][-1][1]
+        ratios.append(f"{f} " + (f"{ours / theirs:.3g}×" if theirs >= ROUNDOFF else "(rHCT exact)"))
+    out.append(f"- sextic value RMS / rHCT value RMS at N={n_last:,}: {', '.join(ratios)}.")
+    return out
 
 
 def _plot(results, sizes, path) -> None:
