@@ -104,6 +104,7 @@ def _level(cfg, sec, rows, plot, n, I, mpl_interp, level, mpl_ok) -> bool:
 
     def ours():
         m = I.refine(level)
+        m.parent                                   # computed on first use; the floor copies one
         counts["ours"] = m.points.shape[0]
         return m
     M = n + len(I.edges) * (level - 1) + len(I.triangles) * (level - 1) * (level - 2) // 2

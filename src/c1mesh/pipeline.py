@@ -18,7 +18,7 @@ import numpy as np
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
 from c1mesh.formats import read_cloud, write_mesh
-from c1mesh.frame import choose_frame, gradients_to_normals, height_field
+from c1mesh.frame import choose_frame, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.properties import scheme_properties
 from c1mesh.schemes import get_scheme
@@ -117,11 +117,16 @@ def surface_mesh(refined, frame, colors: np.ndarray | None) -> SurfaceMesh:
     count = refined.values.shape[0]
     vertices = np.empty((count, 3))
     normals = np.empty((count, 3))
+    e1, e2, e3 = frame.axes
     for start in range(0, count, _BLOCK):
         block = slice(start, start + _BLOCK)
-        local = np.column_stack([refined.points[block], refined.values[block]])
-        vertices[block] = frame.to_world(local)
-        normals[block] = frame.vectors_to_world(gradients_to_normals(refined.gradients[block]))
+        x, y = refined.points[block, 0], refined.points[block, 1]
+        z = refined.values[block]
+        gx, gy = refined.gradients[block, 0], refined.gradients[block, 1]
+        inv = 1.0 / np.sqrt(gx * gx + gy * gy + 1.0)    # local unit normal (−gx, −gy, 1)·inv
+        for c in range(3):   # world = origin + x e1 + y e2 + z e3, elementwise (no K=3 products)
+            vertices[block, c] = frame.origin[c] + x * e1[c] + y * e2[c] + z * e3[c]
+            normals[block, c] = (e3[c] - gx * e1[c] - gy * e2[c]) * inv
     refined.points = refined.values = refined.gradients = None
     vertex_colors = None
     if colors is not None:

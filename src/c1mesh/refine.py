@@ -14,7 +14,7 @@ basis matrices built once per level and tuple (rsd.basis). Interior points of a 
 triangles are written straight into their contiguous slice of the output; edge points are
 evaluated from one owner triangle per edge, grouped by the owner's local edge slot.
 
-Memory: the outputs (M values, 2M gradients, 3·L²·T indices, L²·T parents) plus
+Memory: the outputs (M values, 2M gradients, 2M coordinates, 3·L²·T indices) plus
 temporaries of a few CHUNK_ENTRIES-sized buffers (≈ 1 MiB, independent of T) and
 O(E + T) bookkeeping arrays (edge order, coefficients), which are smaller than the output.
 """
@@ -36,7 +36,8 @@ class RefinedMesh:
     """A refined triangle mesh with spline values and gradients at its points.
 
     points (M, 2), triangles (K, 3) counter-clockwise when the input triangles are,
-    values (M,), gradients (M, 2), parent (K,) the input triangle of each sub-triangle.
+    values (M,), gradients (M, 2), parent (K,) the input triangle of each sub-triangle
+    (sub-triangles are stored parent by parent, level² each; computed on first use).
     Index arrays are int32 when M < 2**31 (halves memory), else int64.
     """
 
@@ -44,10 +45,16 @@ class RefinedMesh:
     triangles: np.ndarray
     values: np.ndarray
     gradients: np.ndarray
-    parent: np.ndarray
     level: int
     source_triangles: np.ndarray = field(repr=False, default=None)
     source_edges: np.ndarray = field(repr=False, default=None)
+
+    @property
+    def parent(self) -> np.ndarray:
+        if getattr(self, "_parent", None) is None:
+            self._parent = np.repeat(np.arange(self.source_triangles.shape[0], dtype=self.triangles.dtype),
+                                     self.level * self.level)
+        return self._parent
 
     def linear(self, field_values: np.ndarray) -> np.ndarray:
         """Piecewise-linear interpolation of per-input-vertex data onto the refined points.
@@ -172,8 +179,7 @@ def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
         _global_indices(triangles, table, edge_rank, pat, part, N, E, local[:n])
         np.take(local[:n], pat.template.ravel(), axis=1,
                 out=out_tris[part.start * level**2:part.stop * level**2].reshape(n, -1))
-    parent = np.repeat(np.arange(T, dtype=index_dtype), level * level)
-    return RefinedMesh(out_points, out_tris, out_values, out_grads, parent, level,
+    return RefinedMesh(out_points, out_tris, out_values, out_grads, level,
                        source_triangles=triangles, source_edges=ordered_edges)
 
 
