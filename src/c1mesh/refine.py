@@ -157,8 +157,8 @@ def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
     lam = pat.lattice / level
     # Output order of edges: grouped by (owner slot k, direction), so each group's points
     # form one contiguous block written by one product per chunk.
-    group = 2 * table.owner_slot + (~table.forward[table.owner, table.owner_slot])
-    edge_order = np.argsort(group, kind="stable")
+    group = (2 * table.owner_slot + (~table.forward[table.owner, table.owner_slot])).astype(np.int8)
+    edge_order = np.argsort(group, kind="stable")     # radix sort on int8: linear time
     edge_rank = np.empty(E, dtype=np.int64)
     edge_rank[edge_order] = np.arange(E)
 
