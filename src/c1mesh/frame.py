@@ -61,17 +61,22 @@ class ScanFrame:
         """World points (N, 3) -> local coordinates (N, 3) = (P - origin)·[e1, e2, e3]."""
         return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
 
-    def to_world(self, local: ArrayLike) -> np.ndarray:
-        """Local coordinates (N, 3) -> world points (N, 3); inverse of `to_local`."""
-        return np.asarray(local, dtype=np.float64) @ self.axes + self.origin
+    def to_world(self, local: ArrayLike, out: np.ndarray | None = None) -> np.ndarray:
+        """Local coordinates (N, 3) -> world points (N, 3); inverse of `to_local`.
+
+        ``out`` (N, 3) float64, if given, receives the result (no temporaries).
+        """
+        out = np.matmul(np.asarray(local, dtype=np.float64), self.axes, out=out)
+        out += self.origin
+        return out
 
     def vectors_to_local(self, vectors: ArrayLike) -> np.ndarray:
         """World directions (N, 3) (normals, no origin) -> local components (N, 3)."""
         return np.asarray(vectors, dtype=np.float64) @ self.axes.T
 
-    def vectors_to_world(self, vectors: ArrayLike) -> np.ndarray:
-        """Local directions (N, 3) -> world components (N, 3)."""
-        return np.asarray(vectors, dtype=np.float64) @ self.axes
+    def vectors_to_world(self, vectors: ArrayLike, out: np.ndarray | None = None) -> np.ndarray:
+        """Local directions (N, 3) -> world components (N, 3), into ``out`` if given."""
+        return np.matmul(np.asarray(vectors, dtype=np.float64), self.axes, out=out)
 
 
 @dataclass
@@ -198,11 +203,18 @@ def _axes_from_e3(e3: np.ndarray) -> np.ndarray:
     return np.array([e1, np.cross(e3, e1), e3])
 
 
-def gradients_to_normals(gradients: ArrayLike) -> np.ndarray:
-    """Unit upward normals (n, 3) = (-fx, -fy, 1)/norm in the local frame from gradients (n, 2)."""
+def gradients_to_normals(gradients: ArrayLike, out: np.ndarray | None = None) -> np.ndarray:
+    """Unit upward normals (n, 3) = (-fx, -fy, 1)/norm in the local frame from gradients (n, 2).
+
+    ``out`` (n, 3) float64, if given, receives the result.
+    """
     g = np.asarray(gradients, dtype=np.float64)
-    n = np.concatenate([-g, np.ones((g.shape[0], 1))], axis=1)
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+    out = np.empty((g.shape[0], 3)) if out is None else out
+    inv = 1.0 / np.sqrt(g[:, 0] * g[:, 0] + g[:, 1] * g[:, 1] + 1.0)
+    np.multiply(g[:, 0], -inv, out=out[:, 0])
+    np.multiply(g[:, 1], -inv, out=out[:, 1])
+    out[:, 2] = inv
+    return out
 
 
 def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,

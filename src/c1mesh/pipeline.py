@@ -18,7 +18,7 @@ import numpy as np
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
 from c1mesh.formats import read_cloud, write_mesh
-from c1mesh.frame import choose_frame, height_field
+from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.properties import scheme_properties
 from c1mesh.schemes import get_scheme
@@ -117,16 +117,15 @@ def surface_mesh(refined, frame, colors: np.ndarray | None) -> SurfaceMesh:
     count = refined.values.shape[0]
     vertices = np.empty((count, 3))
     normals = np.empty((count, 3))
-    e1, e2, e3 = frame.axes
+    local = np.empty((min(_BLOCK, count), 3))          # reused block buffer
     for start in range(0, count, _BLOCK):
         block = slice(start, start + _BLOCK)
-        x, y = refined.points[block, 0], refined.points[block, 1]
-        z = refined.values[block]
-        gx, gy = refined.gradients[block, 0], refined.gradients[block, 1]
-        inv = 1.0 / np.sqrt(gx * gx + gy * gy + 1.0)    # local unit normal (−gx, −gy, 1)·inv
-        for c in range(3):   # world = origin + x e1 + y e2 + z e3, elementwise (no K=3 products)
-            vertices[block, c] = frame.origin[c] + x * e1[c] + y * e2[c] + z * e3[c]
-            normals[block, c] = (e3[c] - gx * e1[c] - gy * e2[c]) * inv
+        buf = local[:min(_BLOCK, count - start)]
+        buf[:, :2] = refined.points[block]
+        buf[:, 2] = refined.values[block]
+        frame.to_world(buf, out=vertices[block])
+        gradients_to_normals(refined.gradients[block], out=buf)
+        frame.vectors_to_world(buf, out=normals[block])
     refined.points = refined.values = refined.gradients = None
     vertex_colors = None
     if colors is not None:
