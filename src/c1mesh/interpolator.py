@@ -126,8 +126,7 @@ class RSDInterpolator:
         out = np.full(tri.shape, self.fill_value, dtype=float)
         inside = tri >= 0
         if inside.any():
-            B = rsd.basis(self.scheme, lam[inside])                   # (21, m)
-            out[inside] = np.einsum("mj,jm->m", self.coefficients[tri[inside]], B)
+            out[inside] = rsd.values_at(self.scheme, self.coefficients[tri[inside]], lam[inside])
         return out.reshape(shape)
 
     def gradient(self, xi) -> np.ndarray:
@@ -137,11 +136,7 @@ class RSDInterpolator:
         inside = tri >= 0
         if inside.any():
             t = tri[inside]
-            D0, D1 = rsd.gradient_basis(self.scheme, lam[inside])     # (21, m) each
-            C = self.coefficients[t]
-            d0 = np.einsum("mj,jm->m", C, D0)
-            d1 = np.einsum("mj,jm->m", C, D1)
-            out[inside] = d0[:, None] * self._G[t, 0] + d1[:, None] * self._G[t, 1]
+            out[inside] = rsd.gradients_at(self.scheme, self.coefficients[t], self._G[t], lam[inside])
         return out.reshape(shape + (2,))
 
     def find_simplex(self, xi) -> np.ndarray:
@@ -176,10 +171,8 @@ class RSDInterpolator:
             lam[local == a[:, None]] = np.tile(1 - s, interior.size)
             lam[local == b[:, None]] = np.tile(s, interior.size)
             C = self.coefficients[t]
-            value = np.einsum("mj,jm->m", C, rsd.basis(self.scheme, lam))
-            D0, D1 = rsd.gradient_basis(self.scheme, lam)
-            d0, d1 = np.einsum("mj,jm->m", C, D0), np.einsum("mj,jm->m", C, D1)
-            results.append((value, d0[:, None] * self._G[t, 0] + d1[:, None] * self._G[t, 1]))
+            results.append((rsd.values_at(self.scheme, C, lam),
+                            rsd.gradients_at(self.scheme, C, self._G[t], lam)))
         (v1, g1), (v2, g2) = results
         value_scale = max(float(np.abs(self.values).max()), np.finfo(float).tiny)
         grad_scale = max(float(np.abs(self.gradients).max()), np.finfo(float).tiny)

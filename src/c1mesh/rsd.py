@@ -157,10 +157,13 @@ def gradient_basis(scheme: ShapeTuple, lam: np.ndarray) -> tuple[np.ndarray, np.
     return D[0] - D[2], D[1] - D[2]
 
 
-def combine_gradient(d0: np.ndarray, d1: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """∇F from the two λ-derivative products d0, d1 (T, P) and G (T, 3, 2): returns (T, P, 2)."""
-    out = np.empty(d0.shape + (2,))
-    for axis in range(2):
-        np.multiply(d0, G[:, 0, axis, None], out=out[..., axis])
-        out[..., axis] += d1 * G[:, 1, axis, None]
-    return out
+def values_at(scheme: ShapeTuple, C: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """F at m points, each in its own triangle: coefficient rows C (m, 21), lam (m, 3)."""
+    return np.einsum("mj,jm->m", C, basis(scheme, lam))
+
+
+def gradients_at(scheme: ShapeTuple, C: np.ndarray, G: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """∇F (m, 2) at m points: coefficient rows C (m, 21), G (m, 3, 2), lam (m, 3)."""
+    D0, D1 = gradient_basis(scheme, lam)
+    d0, d1 = np.einsum("mj,jm->m", C, D0), np.einsum("mj,jm->m", C, D1)
+    return d0[:, None] * G[:, 0] + d1[:, None] * G[:, 1]
