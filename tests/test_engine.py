@@ -339,3 +339,37 @@ def test_refined_linear_field_is_barycentric_blend(mesh):
     np.testing.assert_allclose(blended, np.stack([r.points[:, 0] * 200, r.points[:, 1] * 100 + 5], 1),
                                atol=1e-9)
     np.testing.assert_array_equal(blended[:len(pts)], colours)
+
+
+@pytest.mark.parametrize("level", [1, 2, 3, 5])
+def test_refinement_in_many_small_blocks(monkeypatch, level):
+    """Blocks of a few triangles (so edges are owned across block boundaries) must give
+    the same conforming, correct mesh as one block: pointwise values, shared edge points."""
+    import c1mesh.refine as refine_module
+    pts, tris = random_mesh(200, seed=4)
+    interp = RSDInterpolator(pts, smooth(pts), smooth_grad(pts), triangles=tris)
+    whole = interp.refine(level)
+    monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 40)
+    small = interp.refinement(level)
+    assert small.rows < len(tris) // 10
+    r = small.mesh()
+    np.testing.assert_allclose(r.values, interp(r.points), atol=1e-12)
+    np.testing.assert_allclose(r.gradients, interp.gradient(r.points), atol=1e-9)
+    np.testing.assert_array_equal(r.points[:len(pts)], pts)
+    chi, counts = _euler(r.triangles.astype(np.int64))
+    assert chi == 1 and counts.max() == 2
+    assert len(np.unique(np.round(r.points, 12), axis=0)) == len(r.points)
+    # the same sub-triangles (as point triples) as with one block, parent by parent
+    key = lambda m: np.sort(np.round(m.points[m.triangles], 12).reshape(len(m.triangles), -1), axis=1)  # noqa: E731
+    np.testing.assert_array_equal(np.sort(key(r), axis=0), np.sort(key(whole), axis=0))
+    np.testing.assert_array_equal(r.parent, whole.parent)
+
+
+def test_vertex_blocks_cover_the_output_once(mesh):
+    pts, tris = mesh
+    refinement = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris).refinement(4)
+    starts, stops = zip(*[(b.start, b.stop) for b in refinement.vertex_blocks()])
+    assert starts[0] == 0 and stops[-1] == refinement.vertex_count
+    assert list(starts[1:]) == list(stops[:-1])
+    faces = [f.copy() for _, f in refinement.face_blocks()]
+    assert sum(len(f) for f in faces) == refinement.face_count

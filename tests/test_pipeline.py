@@ -115,8 +115,9 @@ def test_plane_stays_flat_with_sextic_not_quintic(tmp_path):
     assert deviation["quintic"] > 1e-4
 
 
-def test_colours_are_carried(tmp_path):
-    cloud = sample_surface("hill", 800, seed=2)
+def _colored_hill(tmp_path, n=800):
+    """A binary PLY of the hill sample with a colour ramp in x; returns its path."""
+    cloud = sample_surface("hill", n, seed=2)
     red = np.round(cloud.points[:, 0] * 250).astype(np.uint8)
     colored = PointCloud(cloud.points, cloud.normals, np.stack([red, 255 - red, 0 * red + 7], 1))
     n = len(colored)
@@ -132,6 +133,11 @@ def test_colours_are_carried(tmp_path):
         rows[c] = colored.colors[:, i]
     path = tmp_path / "colored.ply"
     path.write_bytes(header.encode() + rows.tobytes())
+    return path
+
+
+def test_colours_are_carried(tmp_path):
+    path = _colored_hill(tmp_path)
     # axis z: colours are blended in the plane, which is then the world xy plane
     mesh = fit(path, tmp_path / "out.ply", FitOptions(level=3, axis="z")).mesh
     assert mesh.vertex_colors is not None
@@ -175,3 +181,21 @@ def test_too_few_or_degenerate_points(tmp_path, points, message):
     with pytest.raises(C1MeshError, match=message):
         fit(path, tmp_path / "out.ply", FitOptions())
     assert not (tmp_path / "out.ply").exists()
+
+
+@pytest.mark.parametrize("ascii_ply", [False, True])
+def test_streamed_output_is_the_assembled_mesh(tmp_path, monkeypatch, ascii_ply):
+    """keep_mesh=False (what the CLI does) writes block by block; the file must be
+    byte-identical to writing the assembled mesh, with colours, across many blocks."""
+    import c1mesh.refine as refine_module
+    monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 300)
+    path = _colored_hill(tmp_path)
+    whole = fit(path, tmp_path / "whole.ply", FitOptions(level=3, ascii=ascii_ply, axis="z"))
+    streamed = fit(path, tmp_path / "streamed.ply", FitOptions(level=3, ascii=ascii_ply, axis="z"),
+                   keep_mesh=False)
+    assert streamed.mesh is None and whole.mesh.vertex_colors is not None
+    assert (tmp_path / "streamed.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    assert streamed.report["output_mesh"] == whole.report["output_mesh"]
+    back = read_cloud(tmp_path / "streamed.ply")
+    np.testing.assert_array_equal(back.points, whole.mesh.vertices)
+    np.testing.assert_array_equal(back.colors, whole.mesh.vertex_colors)

@@ -179,7 +179,7 @@ def _run(src: str, dst: str, options, on_stage=None) -> dict:
     _check_paths(src, dst)
     source = sys.stdin.buffer if src == "-" else src
     target = sys.stdout.buffer if dst == "-" else dst
-    result = fit_pipeline(source, target, options, on_stage=on_stage)
+    result = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False)
     if dst == "-":
         sys.stdout.buffer.flush()
     return result.report

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -51,3 +52,61 @@ class SurfaceMesh:
     faces: np.ndarray
     vertex_normals: np.ndarray | None = None
     vertex_colors: np.ndarray | None = None
+
+    def stream(self, block: int = 1 << 18) -> "MeshStream":
+        """This mesh as a MeshStream of `block`-row slices (views, nothing copied)."""
+        def vertex_blocks():
+            for start in range(0, len(self.vertices), block):
+                part = slice(start, start + block)
+                yield (self.vertices[part],
+                       None if self.vertex_normals is None else self.vertex_normals[part],
+                       None if self.vertex_colors is None else self.vertex_colors[part])
+
+        def face_blocks():
+            for start in range(0, len(self.faces), block):
+                yield np.asarray(self.faces[start:start + block]).reshape(-1, 3)
+        return MeshStream(len(self.vertices), len(self.faces), self.vertex_normals is not None,
+                          0 if self.vertex_colors is None else int(self.vertex_colors.shape[1]),
+                          vertex_blocks, face_blocks)
+
+
+@dataclass
+class MeshStream:
+    """A mesh delivered in blocks, in file order, so it can be written without being held.
+
+    vertex_blocks() yields (vertices (n, 3) float64, normals (n, 3) or None, colors (n, c)
+    uint8 or None) with c = color_channels; face_blocks() yields faces (k, 3) integer
+    arrays. Each call starts a fresh pass; yielded arrays may be buffers that the next
+    block overwrites.
+    """
+
+    vertex_count: int
+    face_count: int
+    has_normals: bool
+    color_channels: int
+    vertex_blocks: Callable[[], Iterator[tuple]]
+    face_blocks: Callable[[], Iterator[np.ndarray]]
+
+    def materialize(self) -> SurfaceMesh:
+        """Run both passes into full arrays (int64 faces unless int32 blocks were given)."""
+        vertices = np.empty((self.vertex_count, 3))
+        normals = np.empty((self.vertex_count, 3)) if self.has_normals else None
+        colors = np.empty((self.vertex_count, self.color_channels), np.uint8) if self.color_channels else None
+        start = 0
+        for v, n, c in self.vertex_blocks():
+            part = slice(start, start + len(v))
+            vertices[part] = v
+            if normals is not None:
+                normals[part] = n
+            if colors is not None:
+                colors[part] = c
+            start = part.stop
+        faces, start = None, 0
+        for block in self.face_blocks():
+            if faces is None:
+                faces = np.empty((self.face_count, 3), dtype=block.dtype)
+            faces[start:start + len(block)] = block
+            start += len(block)
+        if faces is None:
+            faces = np.empty((0, 3), dtype=np.int64)
+        return SurfaceMesh(vertices, faces, normals, colors)

@@ -15,7 +15,7 @@ import numpy as np
 from c1mesh import rsd
 from c1mesh.errors import InputError
 from c1mesh.locate import TriangleLocator
-from c1mesh.refine import RefinedMesh, refine_spline
+from c1mesh.refine import RefinedMesh, Refinement
 from c1mesh.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay
@@ -182,8 +182,12 @@ class RSDInterpolator:
 
     def refine(self, level: int) -> RefinedMesh:
         """Uniform refinement: each triangle split into level² sub-triangles (refine.py)."""
-        return refine_spline(self.points, self.values, self.gradients, self.triangles,
-                             self.coefficients, self._G, self._table, self.scheme, level)
+        return self.refinement(level).mesh()
+
+    def refinement(self, level: int) -> Refinement:
+        """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
+        return Refinement(self.points, self.values, self.gradients, self.triangles,
+                          self.coefficients, self._G, self._table, self.scheme, level)
 
 
 def _triangles_of_edges(tri_edge: np.ndarray, edges: np.ndarray) -> np.ndarray:

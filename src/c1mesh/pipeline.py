@@ -9,18 +9,19 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
 from c1mesh.formats import read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.properties import scheme_properties
+from c1mesh.refine import Refinement
 from c1mesh.schemes import get_scheme
 from c1mesh.triangulation import delaunay, trim
 
@@ -63,6 +64,11 @@ class _Timer:
     def __init__(self, on_stage: Callable[[str], None] | None):
         self.seconds: dict[str, float] = {}
         self.on_stage = on_stage
+
+    def move(self, source: str, target: str, seconds: float) -> None:
+        """Book `seconds` measured inside stage `source` to stage `target` instead."""
+        self.seconds[source] = round(self.seconds[source] - seconds, 6)
+        self.seconds[target] = round(self.seconds[target] + seconds, 6)
 
     @contextmanager
     def stage(self, name: str):
@@ -107,34 +113,41 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     return normals, "estimated"
 
 
-def surface_mesh(refined, frame, colors: np.ndarray | None) -> SurfaceMesh:
-    """World-coordinate mesh from a refinement in the scan frame (heights = spline values).
+def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> MeshStream:
+    """The refined surface in world coordinates as a MeshStream (heights = spline values).
 
-    Consumes ``refined``: its per-point arrays are released as soon as they have been
-    turned into world vertices and normals, and the work is done in blocks, so the peak
-    memory stays close to the refinement plus the mesh (no full-size temporaries).
+    Each pass evaluates the spline block by block (refine.Refinement) and turns every
+    block into world vertices, unit normals on the axis side and, when the input has
+    colours (N, c) uint8, colours blended linearly; nothing of the size of the output is
+    held, so a writer that streams (PLY) needs only block-sized memory.
     """
-    count = refined.values.shape[0]
-    vertices = np.empty((count, 3))
-    normals = np.empty((count, 3))
-    local = np.empty((min(_BLOCK, count), 3))          # reused block buffer
-    for start in range(0, count, _BLOCK):
-        block = slice(start, start + _BLOCK)
-        buf = local[:min(_BLOCK, count - start)]
-        buf[:, :2] = refined.points[block]
-        buf[:, 2] = refined.values[block]
-        frame.to_world(buf, out=vertices[block])
-        gradients_to_normals(refined.gradients[block], out=buf)
-        frame.vectors_to_world(buf, out=normals[block])
-    refined.points = refined.values = refined.gradients = None
-    vertex_colors = None
-    if colors is not None:
-        vertex_colors = np.clip(np.rint(refined.linear(colors.astype(float))), 0, 255).astype(np.uint8)
-    return SurfaceMesh(vertices=vertices, faces=refined.triangles, vertex_normals=normals,
-                       vertex_colors=vertex_colors)
+    fields = [] if colors is None else [colors.astype(float)]
+
+    def vertex_blocks():
+        size = refinement.largest_block
+        local, vertices, normals = np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3))
+        for block in refinement.vertex_blocks(fields=fields):
+            n = block.stop - block.start
+            local[:n, :2] = block.points
+            local[:n, 2] = block.values
+            frame.to_world(local[:n], out=vertices[:n])
+            gradients_to_normals(block.gradients, out=local[:n])
+            frame.vectors_to_world(local[:n], out=normals[:n])
+            blended = None
+            if fields:
+                blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
+            yield vertices[:n], normals[:n], blended
+
+    def face_blocks():
+        for _, faces in refinement.face_blocks():
+            yield faces
+    return MeshStream(refinement.vertex_count, refinement.face_count, True,
+                      0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
 
-_BLOCK = 1 << 18   # vertices per block when converting to world coordinates
+def surface_mesh(refinement: Refinement, frame, colors: np.ndarray | None) -> SurfaceMesh:
+    """The refined surface in world coordinates, held in memory (see surface_stream)."""
+    return surface_stream(refinement, frame, colors).materialize()
 
 
 def _compact(xy, triangles):
@@ -146,13 +159,17 @@ def _compact(xy, triangles):
 
 
 def fit(source, output=None, options: FitOptions | None = None,
-        on_stage: Callable[[str], None] | None = None) -> FitResult:
+        on_stage: Callable[[str], None] | None = None, keep_mesh: bool = True) -> FitResult:
     """Fit a refined C1 surface mesh to a scan.
 
     source: path or binary stream (then options.input_format is required); output: path,
     binary stream, or None to only return the mesh. Returns the mesh (world coordinates,
     unit vertex normals on the axis side, colours when the input has them) and a report
     dict (counts, frame, trimming, scheme properties, C1 certificate, timings).
+    keep_mesh=False (with an output) streams the mesh to the output block by block
+    instead of assembling it: the result's mesh is then None, and memory and time drop
+    (the CLI does this). The streamed spline evaluation is then reported under "refine"
+    and only the rest of the writing under "write".
     """
     options = options or FitOptions()
     scheme = get_scheme(options.scheme)
@@ -173,16 +190,44 @@ def fit(source, output=None, options: FitOptions | None = None,
     with timer.stage("interpolate"):
         interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles=triangles,
                                  scheme=scheme)
+    streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
-        refined = interp.refine(options.level)
+        refinement = interp.refinement(options.level)
         colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
-        mesh = surface_mesh(refined, frame, colors)
+        stream = surface_stream(refinement, frame, colors)
+        mesh = None if streaming else stream.materialize()
     with timer.stage("write"):
         if output is not None:
-            write_mesh(mesh, output, ascii=options.ascii)
+            evaluating = _StopWatch()
+            write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
+    if streaming:
+        timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
-                     used, interp, mesh, timer)
+                     used, interp, stream, timer)
     return FitResult(mesh, report)
+
+
+class _StopWatch:
+    """Accumulates the time a MeshStream spends producing blocks (not the writer's time)."""
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def wrap(self, stream: MeshStream) -> MeshStream:
+        return replace(stream, vertex_blocks=self._timed(stream.vertex_blocks),
+                       face_blocks=self._timed(stream.face_blocks))
+
+    def _timed(self, blocks: Callable[[], Iterator]) -> Callable[[], Iterator]:
+        def timed():
+            iterator = blocks()
+            while True:
+                start = time.perf_counter()
+                item = next(iterator, None)
+                self.seconds += time.perf_counter() - start
+                if item is None:
+                    return
+                yield item
+        return timed
 
 
 def _report(source, output, options, cloud, normal_source, frame, hf, trim_report, used,
@@ -203,7 +248,7 @@ def _report(source, output, options, cloud, normal_source, frame, hf, trim_repor
                       "removed": dict(trim_report.removed),
                       "max_edge": trim_report.max_edge},
         "level": options.level,
-        "output_mesh": {"vertices": int(mesh.vertices.shape[0]), "faces": int(mesh.faces.shape[0])},
+        "output_mesh": {"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
         "scheme": props.as_dict(),
         "c1_certificate": interp.c1_certificate(),
         "seconds": timer.seconds,

@@ -1,26 +1,35 @@
 """Uniform refinement of an RSD spline: every triangle split into level² sub-triangles.
 
-Output point numbering (so that input vertex i is output point i, and every point on a
-shared edge or vertex exists once — a conforming, crack-free mesh):
+Output point numbering (input vertex i is output point i, and every point on a shared
+edge or vertex exists once, so the mesh is conforming and crack-free):
 
-  [0, N)                      the N input points (values and gradients exactly the data)
-  [N, N + E(L−1))             L−1 points inside each unique edge, ordered from
-                              edges[e, 0] to edges[e, 1]; edges grouped by how their
-                              owner triangle sees them (so each group is one block)
-  [N + E(L−1), M)             (L−1)(L−2)/2 interior points of each triangle, triangle-major
+  [0, N)     the N input points (values and gradients exactly the data)
+  then, for each block of consecutive triangles (CHUNK_ENTRIES lattice points per block),
+             for k = 0, 1, 2: the L−1 points inside each edge that a triangle of the
+             block owns in its local slot k (the edge opposite vertex k), triangle by
+             triangle, ordered from the owner's vertex k+1 towards its vertex k+2;
+             then the (L−1)(L−2)/2 interior points of each triangle of the block.
 
-Values and gradients are matrix products: coefficients (T × 21) @ basis (21 × P), with
-basis matrices built once per level and tuple (rsd.basis). Interior points of a block of
-triangles are written straight into their contiguous slice of the output; edge points are
-evaluated from one owner triangle per edge, grouped by the owner's local edge slot.
+Each edge has one owner triangle (EdgeTable.owner), which evaluates the points on it; the
+other triangle only refers to them. Blocks are the unit of work: a block of triangles
+reads its own contiguous rows of the coefficients, so nothing is gathered at random
+except vertex coordinates, and its output points form one contiguous range. That range
+is handed to the caller as a `VertexBlock`, which is what lets `c1mesh fit` stream a
+refined mesh straight to a file without holding it (`Refinement.vertex_blocks`,
+`Refinement.face_blocks`), while `Refinement.mesh` copies the blocks into full arrays.
 
-Memory: the outputs (M values, 2M gradients, 2M coordinates, 3·L²·T indices) plus
-temporaries of a few CHUNK_ENTRIES-sized buffers (≈ 1 MiB, independent of T) and
-O(E + T) bookkeeping arrays (edge order, coefficients), which are smaller than the output.
+Values and gradients are matrix products: coefficients (c × 21) @ basis (21 × P), with
+basis matrices built once per level and tuple (rsd.basis); point coordinates are corner
+coordinates (c × 6) @ a fixed blending matrix (6 × 2P).
+
+Memory: `Refinement` itself holds O(E + T) numbering arrays; a pass over the blocks adds
+buffers of a few CHUNK_ENTRIES lattice points (≈ 1 MiB, independent of T); `mesh()` adds
+the outputs (M values, 2M gradients, 2M coordinates, 3·L²·T indices).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -28,7 +37,8 @@ from c1mesh import rsd
 from c1mesh.schemes import ShapeTuple
 from c1mesh.topology import EdgeTable
 
-CHUNK_ENTRIES = 1 << 14  # triangles per chunk × points per triangle: temporaries stay in cache
+CHUNK_ENTRIES = 1 << 15
+"""Lattice points (all (L+1)(L+2)/2 of each triangle) per block: temporaries stay in cache."""
 
 
 @dataclass
@@ -46,14 +56,13 @@ class RefinedMesh:
     values: np.ndarray
     gradients: np.ndarray
     level: int
-    source_triangles: np.ndarray = field(repr=False, default=None)
-    source_edges: np.ndarray = field(repr=False, default=None)
+    refinement: "Refinement" = field(repr=False, default=None)
 
     @property
     def parent(self) -> np.ndarray:
         if getattr(self, "_parent", None) is None:
-            self._parent = np.repeat(np.arange(self.source_triangles.shape[0], dtype=self.triangles.dtype),
-                                     self.level * self.level)
+            count = self.triangles.shape[0] // (self.level * self.level)
+            self._parent = np.repeat(np.arange(count, dtype=self.triangles.dtype), self.level * self.level)
         return self._parent
 
     def linear(self, field_values: np.ndarray) -> np.ndarray:
@@ -65,10 +74,9 @@ class RefinedMesh:
         """
         data = np.asarray(field_values, dtype=float)
         flat = data.reshape(data.shape[0], -1)
-        pattern = lattice_pattern(self.level)
-        count = (flat.shape[0] + self.source_edges.shape[0] * (self.level - 1)
-                 + self.source_triangles.shape[0] * pattern.interior.size)
-        out = _linear_field(flat, self.source_triangles, self.source_edges, pattern, count)
+        out = np.empty((self.points.shape[0], flat.shape[1]))
+        for block in self.refinement.vertex_blocks(fields=[flat], spline=False):
+            out[block.start:block.stop] = block.fields[0]
         return out.reshape((out.shape[0],) + data.shape[1:])
 
 
@@ -113,172 +121,281 @@ def lattice_pattern(level: int) -> LatticePattern:
     return LatticePattern(L, lattice, index_of, interior, tuple(edge_rows), np.array(template))
 
 
-class _Evaluator:
-    """Values and gradients at a fixed set of barycentric points for blocks of triangles.
+@dataclass
+class VertexBlock:
+    """Refined points [start, stop) in output order; arrays are reused by the next block.
 
-    Temporaries are preallocated for one chunk and reused, so they stay in cache; outputs
-    are written in place into slices of the refined arrays.
+    points (n, 2) in the triangulation's plane, values (n,), gradients (n, 2) (both None
+    when the pass was asked for fields only), fields: one (n, d) blend per requested field.
     """
 
-    def __init__(self, scheme: ShapeTuple, lam: np.ndarray, chunk: int):
+    start: int
+    stop: int
+    points: np.ndarray
+    values: np.ndarray | None
+    gradients: np.ndarray | None
+    fields: list
+
+
+class _PointSet:
+    """Fixed barycentric points lam (P, 3): evaluates blocks of triangles into buffers."""
+
+    def __init__(self, scheme: ShapeTuple, lam: np.ndarray):
+        P = self.P = lam.shape[0]
         self.B = np.ascontiguousarray(rsd.basis(scheme, lam))
         d0, d1 = rsd.gradient_basis(scheme, lam)
-        self.D0, self.D1 = np.ascontiguousarray(d0), np.ascontiguousarray(d1)
-        self.chunk = chunk
-        self._d0 = np.empty((chunk, lam.shape[0]))
-        self._d1 = np.empty((chunk, lam.shape[0]))
-        self._tmp = np.empty((chunk, lam.shape[0]))
+        self.D = np.ascontiguousarray(np.concatenate([d0, d1], axis=1))        # (21, 2P)
+        self.lam = lam
+        self._blend = {}
 
-    def into(self, C: np.ndarray, G: np.ndarray, values_out: np.ndarray, grads_out: np.ndarray):
-        """values_out (c, P) and grads_out (c, P, 2) for coefficient rows C (c, 21), G (c, 3, 2)."""
-        n = C.shape[0]
-        d0, d1, tmp = self._d0[:n], self._d1[:n], self._tmp[:n]
-        np.matmul(C, self.B, out=values_out)
-        np.matmul(C, self.D0, out=d0)
-        np.matmul(C, self.D1, out=d1)
+    def blend_matrix(self, d: int) -> np.ndarray:
+        """W (3d, dP): corners (c, 3, d) flattened @ W = blended points (c, P, d) flattened."""
+        if d not in self._blend:
+            W = np.zeros((3 * d, d * self.P))
+            for k in range(3):
+                for j in range(d):
+                    W[d * k + j, j::d] = self.lam[:, k]
+            self._blend[d] = W
+        return self._blend[d]
+
+    def spline(self, C, G, values, gradients, scratch) -> None:
+        """values (c, P) and gradients (c, P, 2) from coefficients C (c, 21), G (c, 3, 2)."""
+        P = self.P
+        np.matmul(C, self.B, out=values)
+        d = scratch[:C.shape[0], :2 * P]
+        np.matmul(C, self.D, out=d)
+        d0, d1 = d[:, :P], d[:, P:]
         for axis in range(2):    # ∇F = (C @ D0) G_0 + (C @ D1) G_1
-            np.multiply(d0, G[:, 0, axis, None], out=grads_out[..., axis])
-            np.multiply(d1, G[:, 1, axis, None], out=tmp)
-            grads_out[..., axis] += tmp
+            out = gradients[..., axis]
+            np.multiply(d0, G[:, 0, axis, None], out=out)
+            out += d1 * G[:, 1, axis, None]
+
+    def blend(self, corners, out) -> None:
+        """out (c, P·d) = barycentric blend of corners (c, 3, d)."""
+        c, _, d = corners.shape
+        np.matmul(corners.reshape(c, 3 * d), self.blend_matrix(d), out=out)
 
 
-def refine_spline(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-                  triangles: np.ndarray, coefficients: np.ndarray, G: np.ndarray,
-                  table: EdgeTable, scheme: ShapeTuple, level: int) -> RefinedMesh:
-    """Evaluate the spline on a uniform level-``level`` subdivision of every triangle."""
-    if int(level) != level or level < 1:
-        raise ValueError(f"level must be a positive integer, got {level!r}")
-    level = int(level)
-    pat = lattice_pattern(level)
-    N, T, E = points.shape[0], triangles.shape[0], table.edges.shape[0]
-    n_edge, n_int = level - 1, pat.interior.size
-    M = N + E * n_edge + T * n_int
-    index_dtype = np.int32 if M < 2**31 - 1 else np.int64
-    lam = pat.lattice / level
-    # Output order of edges: grouped by (owner slot k, direction), so each group's points
-    # form one contiguous block written by one product per chunk.
-    group = (2 * table.owner_slot + (~table.forward[table.owner, table.owner_slot])).astype(np.int8)
-    edge_order = np.argsort(group, kind="stable")     # radix sort on int8: linear time
-    edge_rank = np.empty(E, dtype=np.int64)
-    edge_rank[edge_order] = np.arange(E)
+class Refinement:
+    """A level-L refinement of an RSD spline, produced block by block in output order.
 
-    out_values = np.empty(M)
-    out_grads = np.empty((M, 2))
-    out_values[:N] = values
-    out_grads[:N] = gradients
-    _evaluate_interior(pat, lam, coefficients, G, scheme, out_values[N + E * n_edge:],
-                       out_grads[N + E * n_edge:], T)
-    _evaluate_edges(pat, lam, coefficients, G, scheme, table, edge_order, group,
-                    out_values[N:N + E * n_edge], out_grads[N:N + E * n_edge])
-    ordered_edges = table.edges[edge_order]
-    out_points = _linear_field(points, triangles, ordered_edges, pat, M)
-    out_tris = np.empty((T * level * level, 3), dtype=index_dtype)
-    local = np.empty((_chunk_rows(pat.lattice.shape[0]), pat.lattice.shape[0]), dtype=index_dtype)
-    for part in _chunks(T, pat.lattice.shape[0]):
-        n = part.stop - part.start
-        _global_indices(triangles, table, edge_rank, pat, part, N, E, local[:n])
-        np.take(local[:n], pat.template.ravel(), axis=1,
-                out=out_tris[part.start * level**2:part.stop * level**2].reshape(n, -1))
-    return RefinedMesh(out_points, out_tris, out_values, out_grads, level,
-                       source_triangles=triangles, source_edges=ordered_edges)
-
-
-def _evaluate_interior(pat, lam, coefficients, G, scheme, out_values, out_grads, T):
-    n_int = pat.interior.size
-    if n_int == 0:
-        return
-    evaluator = _Evaluator(scheme, lam[pat.interior], _chunk_rows(n_int))
-    values = out_values.reshape(T, n_int)
-    grads = out_grads.reshape(T, n_int, 2)
-    for part in _chunks(T, n_int):
-        evaluator.into(coefficients[part], G[part], values[part], grads[part])
-
-
-def _evaluate_edges(pat, lam, coefficients, G, scheme, table, edge_order, group,
-                    out_values, out_grads):
-    """Edge points from one owner triangle per edge, one contiguous block per edge group."""
-    n_edge = pat.level - 1
-    if n_edge == 0:
-        return
-    E = edge_order.size
-    values = out_values.reshape(E, n_edge)
-    grads = out_grads.reshape(E, n_edge, 2)
-    bounds = np.searchsorted(group[edge_order], np.arange(7))
-    rows = _chunk_rows(n_edge)
-    C_buf = np.empty((rows, coefficients.shape[1]))
-    G_buf = np.empty((rows, 3, 2))
-    for g in range(6):
-        k, reverse = divmod(g, 2)
-        edge_lam = lam[pat.edge_rows[k]]
-        evaluator = _Evaluator(scheme, edge_lam[::-1] if reverse else edge_lam, rows)
-        for part in _chunks(bounds[g + 1] - bounds[g], n_edge):
-            block = slice(bounds[g] + part.start, bounds[g] + part.stop)
-            tri = table.owner[edge_order[block]]
-            n = tri.size
-            np.take(coefficients, tri, axis=0, out=C_buf[:n])
-            np.take(G, tri, axis=0, out=G_buf[:n])
-            evaluator.into(C_buf[:n], G_buf[:n], values[block], grads[block])
-
-
-def _chunk_rows(width: int) -> int:
-    return max(1, CHUNK_ENTRIES // max(width, 1))
-
-
-def _chunks(n: int, width: int):
-    step = _chunk_rows(width)
-    for start in range(0, n, step):
-        yield slice(start, min(start + step, n))
-
-
-def _linear_field(data, triangles, ordered_edges, pat: LatticePattern, M: int) -> np.ndarray:
-    """Per-vertex data (N, d) blended linearly onto all M output points, in output order.
-
-    Used for the point coordinates themselves and for colours. Each block is a product of
-    gathered corner data with a fixed weight matrix, written straight into the output:
-    ends (c, 2d) @ W_edge for edge points, corners (c, 3d) @ W_int for interior points.
+    Holds the output numbering (which triangle owns which edge, where each edge's points
+    go) and the per-level basis matrices; `vertex_blocks` and `face_blocks` evaluate and
+    number one block of triangles at a time, `mesh` assembles everything in memory.
     """
-    L, N, d = pat.level, data.shape[0], data.shape[1]
-    out = np.empty((M, d))
-    out[:N] = data
-    E = ordered_edges.shape[0]
-    s = np.arange(1, L) / L
-    edge_weights = np.stack([1 - s, s], axis=1)               # (L−1, 2) on (a, b)
-    _blend_by_product(data, ordered_edges, edge_weights, out[N:N + E * (L - 1)])
-    interior_weights = pat.lattice[pat.interior] / L          # (n_int, 3)
-    _blend_by_product(data, triangles, interior_weights, out[N + E * (L - 1):])
-    return out
+
+    def __init__(self, points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                 triangles: np.ndarray, coefficients: np.ndarray, G: np.ndarray,
+                 table: EdgeTable, scheme: ShapeTuple, level: int):
+        if int(level) != level or level < 1:
+            raise ValueError(f"level must be a positive integer, got {level!r}")
+        self.level = L = int(level)
+        self.pattern = pat = lattice_pattern(L)
+        self.points, self.values, self.gradients = points, values, gradients
+        self.triangles, self.coefficients, self.G, self.table = triangles, coefficients, G, table
+        self.scheme = scheme
+        N, T = points.shape[0], triangles.shape[0]
+        self.n_edge, self.n_int = L - 1, pat.interior.size
+        self.rows = max(1, CHUNK_ENTRIES // pat.lattice.shape[0])
+        self.vertex_count = N + table.edges.shape[0] * self.n_edge + T * self.n_int
+        self.face_count = T * L * L
+        self.index_dtype = np.int32 if self.vertex_count < 2**31 - 1 else np.int64
+        self._number_edges()
+        lam = pat.lattice / L
+        self._edges = [_PointSet(scheme, lam[pat.edge_rows[k]]) for k in range(3)]
+        self._interior = _PointSet(scheme, lam[pat.interior])
+
+    @property
+    def largest_block(self) -> int:
+        """The most points a VertexBlock can hold."""
+        return max(self.rows * (3 * self.n_edge + self.n_int), CHUNK_ENTRIES)
+
+    def _number_edges(self) -> None:
+        """Where each block's points start and the first output index of each edge's points.
+
+        owned (T, 3): triangle t owns the edge in its slot k. Within a block, slot-k edges
+        come in triangle order, so an edge's position is its block's slot offset plus the
+        number of slot-k edges owned by earlier triangles of the block.
+        """
+        table, T, n_edge = self.table, self.triangles.shape[0], self.n_edge
+        e = table.tri_edge
+        owned = (table.owner[e] == np.arange(T)[:, None]) & (table.owner_slot[e] == np.arange(3))
+        starts = np.arange(0, T, self.rows)
+        lengths = np.diff(np.append(starts, T))
+        counts = np.add.reduceat(owned, starts, axis=0, dtype=np.int64) if T else np.zeros((0, 3), np.int64)
+        block_points = counts.sum(axis=1) * n_edge + lengths * self.n_int
+        self.block_start = self.points.shape[0] + np.concatenate([[0], np.cumsum(block_points)])
+        slot_start = self.block_start[:-1, None] + np.cumsum(counts * n_edge, axis=1) - counts * n_edge
+        self.interior_start = self.block_start[:-1] + counts.sum(axis=1) * n_edge
+        before = np.cumsum(owned, axis=0, dtype=np.int64) - owned        # owned slot-k edges before t
+        before -= np.repeat(before[starts], lengths, axis=0)              # ... within t's block
+        position = np.repeat(slot_start, lengths, axis=0) + before * n_edge
+        self.edge_start = np.empty(table.edges.shape[0], dtype=np.int64)
+        self.edge_start[e[owned]] = position[owned]
+        self.owned = owned
+        # the direction in which the owner runs along each edge (True: edges[e,0] → edges[e,1])
+        self.owner_forward = table.forward[table.owner, table.owner_slot]
+
+    # --- vertices -------------------------------------------------------------------------
+    def vertex_blocks(self, fields: Sequence[np.ndarray] = (), spline: bool = True,
+                      out: Sequence[np.ndarray] | None = None) -> Iterator[VertexBlock]:
+        """Yield the refined points in output order, one block at a time.
+
+        fields: per-input-vertex arrays (N, d) to blend linearly onto the refined points
+        (colours). spline=False skips the spline values and gradients. out: full-size
+        arrays [points (M, 2), values (M,), gradients (M, 2), one (M, d) per field] to
+        write into (then blocks are views of them); without it the arrays of a block are
+        buffers reused by the next block: copy what you keep.
+        """
+        N = self.points.shape[0]
+        fields = [np.asarray(f, dtype=float).reshape(N, -1) for f in fields]
+        size = self.rows * (3 * self.n_edge + self.n_int)
+        for start in range(0, N, self.largest_block):           # the input points themselves
+            part = slice(start, min(start + self.largest_block, N))
+            block = VertexBlock(part.start, part.stop, self.points[part],
+                                self.values[part] if spline else None,
+                                self.gradients[part] if spline else None, [f[part] for f in fields])
+            if out is not None:
+                block = _copy_block(block, out)
+            yield block
+        buffers = _BlockBuffers(size, self.rows, max(self.n_edge, self.n_int), fields, spline)
+        for b, first in enumerate(range(0, self.triangles.shape[0], self.rows)):
+            rows = slice(first, min(first + self.rows, self.triangles.shape[0]))
+            dest = buffers if out is None else _OutputSlices(out, self.block_start[b], self.block_start[b + 1])
+            yield self._evaluate_block(b, rows, fields, spline, buffers, dest)
+
+    def _evaluate_block(self, b, rows, fields, spline, buf, dest) -> VertexBlock:
+        """Evaluate the points of triangle block b into dest (buffers or output slices)."""
+        tri = self.triangles[rows]
+        inputs = [self.points[tri]] + [f[tri] for f in fields]                # corners (c, 3, d)
+        if spline:
+            inputs += [self.coefficients[rows], self.G[rows]]
+        cursor = 0
+        for k, point_set in enumerate(self._edges + [self._interior]):
+            if k < 3:
+                mask = self.owned[rows, k]
+                n = int(np.count_nonzero(mask))
+                chosen = [np.compress(mask, a, axis=0, out=sel[:n]) for a, sel in zip(inputs, buf.selected)]
+            else:
+                n, chosen = tri.shape[0], inputs
+            span = slice(cursor, cursor + n * point_set.P)
+            cursor = span.stop
+            if not (n and point_set.P):
+                continue
+            point_set.blend(chosen[0], dest.points[span].reshape(n, -1))
+            for corners, target in zip(chosen[1:1 + len(fields)], dest.fields):
+                point_set.blend(corners, target[span].reshape(n, -1))
+            if spline:
+                point_set.spline(chosen[-2], chosen[-1], dest.values[span].reshape(n, -1),
+                                 dest.gradients[span].reshape(n, -1, 2), buf.scratch)
+        start = int(self.block_start[b])
+        return VertexBlock(start, start + cursor, dest.points[:cursor],
+                           dest.values[:cursor] if spline else None,
+                           dest.gradients[:cursor] if spline else None,
+                           [target[:cursor] for target in dest.fields])
+
+    # --- faces ----------------------------------------------------------------------------
+    def face_blocks(self, out: np.ndarray | None = None) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield (first face index, faces (k, 3)) blocks in output order.
+
+        out: a full-size (K, 3) array to write into (blocks are views of it); without it
+        the faces of a block are a buffer reused by the next block.
+        """
+        L = self.level
+        W = _index_matrix(self.pattern)
+        features = np.empty((self.rows, W.shape[0]))
+        product = np.empty((self.rows, W.shape[1]))
+        buffer = np.empty((self.rows, W.shape[1]), dtype=self.index_dtype) if out is None else None
+        for b, first in enumerate(range(0, self.triangles.shape[0], self.rows)):
+            rows = slice(first, min(first + self.rows, self.triangles.shape[0]))
+            n = rows.stop - rows.start
+            faces = buffer[:n] if out is None else out[first * L * L:rows.stop * L * L].reshape(n, -1)
+            self._index_features(b, rows, features[:n])
+            np.matmul(features[:n], W, out=product[:n])   # exact: integers below 2**53
+            np.copyto(faces, product[:n], casting="unsafe")
+            yield first * L * L, faces.reshape(-1, 3)
+
+    def _index_features(self, b: int, rows: slice, out: np.ndarray) -> None:
+        """out (c, 11) per triangle: vertex ids, first output index and step (±1) of the
+        points on each edge (as this triangle runs along it), first interior index, 1.
+        Times _index_matrix this gives the output index of every sub-triangle corner."""
+        L, table = self.level, self.table
+        out[:, 0:3] = self.triangles[rows]
+        for k in range(3):
+            e = table.tri_edge[rows, k]
+            same = table.forward[rows, k] == self.owner_forward[e]   # runs the way the owner does
+            out[:, 3 + k] = self.edge_start[e]
+            out[~same, 3 + k] += L - 2
+            out[:, 6 + k] = np.where(same, 1.0, -1.0)
+        base = float(self.interior_start[b])
+        out[:, 9] = np.arange(out.shape[0]) * float(self.n_int) + base
+        out[:, 10] = 1.0
+
+    # --- everything in memory -------------------------------------------------------------
+    def mesh(self) -> RefinedMesh:
+        """All refined points, values, gradients and triangles as arrays (RefinedMesh)."""
+        M = self.vertex_count
+        points, values, gradients = np.empty((M, 2)), np.empty(M), np.empty((M, 2))
+        for _ in self.vertex_blocks(out=[points, values, gradients]):
+            pass
+        triangles = np.empty((self.face_count, 3), dtype=self.index_dtype)
+        for _ in self.face_blocks(out=triangles):
+            pass
+        return RefinedMesh(points, triangles, values, gradients, self.level, refinement=self)
 
 
-def _blend_by_product(data, cells, weights, out) -> None:
-    """out[(c, p)] = Σ_k weights[p, k] data[cells[c, k]] for data (N, d), chunked products."""
-    n_pts, n_corners = weights.shape
-    d = data.shape[1]
-    if n_pts == 0:
-        return
-    W = np.zeros((d * n_corners, d * n_pts))
-    for k in range(n_corners):
-        for j in range(d):
-            W[d * k + j, j::d] = weights[:, k]
-    flat = out.reshape(cells.shape[0], d * n_pts)
-    for part in _chunks(cells.shape[0], d * n_pts):
-        corners = data[cells[part]].reshape(-1, d * n_corners)
-        np.matmul(corners, W, out=flat[part])
+def _index_matrix(pat: LatticePattern) -> np.ndarray:
+    """W (11, 3L²) such that _index_features (c, 11) @ W = the sub-triangles' corner indices.
 
-
-def _global_indices(triangles, table: EdgeTable, edge_rank, pat: LatticePattern, part: slice,
-                    N: int, E: int, out: np.ndarray) -> None:
-    """Fill out (c, P) with the global output index of every lattice point of ``part``."""
+    A corner at vertex k is feature k; the i-th point inside edge k is first_k + i·step_k;
+    the j-th interior point is interior_first + j.
+    """
+    W = np.zeros((11, pat.template.size))
     L = pat.level
-    tris = triangles[part]
-    for k, (a1, a2) in enumerate(((0, 0), (L, 0), (0, L))):   # lattice (a1, a2) of vertex k
-        out[:, pat.index_of[a1, a2]] = tris[:, k]
-    s = np.arange(1, L)
-    for k in range(3):
-        e = edge_rank[table.tri_edge[part, k]]
-        fwd = table.forward[part, k]
-        pos = np.where(fwd[:, None], s[None, :], L - s[None, :])   # position along the edge
-        out[:, pat.edge_rows[k]] = N + e[:, None] * (L - 1) + pos - 1
-    n_int = pat.interior.size
-    base = N + E * (L - 1)
-    out[:, pat.interior] = base + (np.arange(part.start, part.stop)[:, None] * n_int
-                                   + np.arange(n_int)[None, :])
+    vertex_rows = [pat.index_of[0, 0], pat.index_of[L, 0], pat.index_of[0, L]]
+    for col, row in enumerate(pat.template.ravel()):
+        if row in vertex_rows:
+            W[vertex_rows.index(row), col] = 1
+        elif row in pat.interior:
+            W[9, col], W[10, col] = 1, np.flatnonzero(pat.interior == row)[0]
+        else:
+            k = next(k for k in range(3) if row in pat.edge_rows[k])
+            W[3 + k, col], W[6 + k, col] = 1, np.flatnonzero(pat.edge_rows[k] == row)[0]
+    return W
+
+
+class _BlockBuffers:
+    """Reusable per-block outputs (size points), inputs selected for one edge slot (rows
+    triangles: corners, field corners, coefficients, G) and matmul scratch (rows × 2·width)."""
+
+    def __init__(self, size: int, rows: int, width: int, fields: list, spline: bool):
+        self.points = np.empty((size, 2))
+        self.fields = [np.empty((size, f.shape[1])) for f in fields]
+        self.values = np.empty(size) if spline else None
+        self.gradients = np.empty((size, 2)) if spline else None
+        self.scratch = np.empty((rows, 2 * width)) if spline else None
+        self.selected = [np.empty((rows, 3, 2))] + [np.empty((rows, 3, f.shape[1])) for f in fields]
+        if spline:
+            self.selected += [np.empty((rows, rsd.N_BASIS)), np.empty((rows, 3, 2))]
+
+
+class _OutputSlices:
+    """The [start, stop) rows of full-size outputs [points, values, gradients, *fields]."""
+
+    def __init__(self, out: Sequence[np.ndarray], start: int, stop: int):
+        part = slice(int(start), int(stop))
+        self.points, self.values, self.gradients = out[0][part], out[1][part], out[2][part]
+        self.fields = [f[part] for f in out[3:]]
+
+
+def _copy_block(block: VertexBlock, out: Sequence[np.ndarray]) -> VertexBlock:
+    """Copy a block into the full-size outputs; return the block as views of them."""
+    dest = _OutputSlices(out, block.start, block.stop)
+    dest.points[...] = block.points
+    if block.values is not None:
+        dest.values[...], dest.gradients[...] = block.values, block.gradients
+    for source, target in zip(block.fields, dest.fields):
+        target[...] = source
+    return VertexBlock(block.start, block.stop, dest.points,
+                       None if block.values is None else dest.values,
+                       None if block.values is None else dest.gradients, dest.fields)

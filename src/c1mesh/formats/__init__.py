@@ -14,7 +14,7 @@ from typing import IO, Callable, Union
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
 from c1mesh.formats._atomic import atomic_output
 from c1mesh.formats.las import read_las
@@ -115,16 +115,19 @@ def _check_mesh(mesh: SurfaceMesh) -> None:
             raise InputError(f"Mesh {label} must have one row of {' or '.join(map(str, widths))} values per vertex.")
 
 
-def write_mesh(mesh: SurfaceMesh, target: Source, fmt: str | None = None,
+def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None = None,
                ascii: bool = False) -> None:
     """Write `mesh` to a path or a binary file object.
 
     The format comes from `fmt` if given, else from the path's extension; a file object
     defaults to binary PLY. `ascii` selects ascii PLY (other formats have one encoding).
     A path is written to a temporary file beside it and renamed into place only when
-    complete. Raises InputError for unknown formats, missing or unwritable directories.
+    complete. A MeshStream is written block by block where the format allows (PLY) and
+    assembled in memory first otherwise. Raises InputError for unknown formats, missing
+    or unwritable directories.
     """
-    _check_mesh(mesh)
+    if isinstance(mesh, SurfaceMesh):
+        _check_mesh(mesh)
     if _is_stream(target):
         name = str(getattr(target, "name", "<stream>"))
         key = _format(fmt or "ply", name, SUPPORTED_OUTPUT, "output")
@@ -132,7 +135,7 @@ def write_mesh(mesh: SurfaceMesh, target: Source, fmt: str | None = None,
             target = getattr(target, "buffer", None)
             if target is None:
                 raise InputError(f"Output stream '{name}' is in text mode; pass a binary stream such as sys.stdout.buffer.")
-        _WRITERS[key](mesh, target, ascii=ascii)
+        _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii)
         target.flush()
         return
     path = Path(target)
@@ -140,4 +143,14 @@ def write_mesh(mesh: SurfaceMesh, target: Source, fmt: str | None = None,
         raise InputError(f"Output path '{path}' is a directory; give a file name.")
     key = _format(fmt or path.suffix, str(path), SUPPORTED_OUTPUT, "output")
     with atomic_output(path) as f:
-        _WRITERS[key](mesh, f, ascii=ascii)
+        _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii)
+
+
+def _for_writer(mesh: SurfaceMesh | MeshStream, key: str) -> SurfaceMesh | MeshStream:
+    """What the writer of format `key` takes: PLY streams, the others need whole arrays."""
+    if isinstance(mesh, MeshStream) and key not in _STREAMING:
+        return mesh.materialize()
+    return mesh
+
+
+_STREAMING = {"ply"}

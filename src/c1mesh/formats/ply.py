@@ -15,8 +15,8 @@ from typing import IO
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud, SurfaceMesh
-from c1mesh.errors import FormatError
+from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.errors import FormatError, InputError
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
 
 #: PLY scalar type names (both spellings) -> numpy type code without byte order.
@@ -278,58 +278,60 @@ def _cloud_from_rows(rows: np.ndarray, el: Element, name: str) -> PointCloud:
 
 
 # ----------------------------------------------------------------------------- writer
-def _vertex_dtype(mesh: SurfaceMesh, endian: str) -> np.dtype:
+def _vertex_dtype(stream: MeshStream, endian: str) -> np.dtype:
     """Vertex row: x y z double, [nx ny nz double], [red green blue [alpha] uchar]."""
     fields = [(c, endian + "f8") for c in ("x", "y", "z")]
-    if mesh.vertex_normals is not None:
+    if stream.has_normals:
         fields += [(c, endian + "f8") for c in ("nx", "ny", "nz")]
-    if mesh.vertex_colors is not None:
-        fields += [(c, "u1") for c in ("red", "green", "blue", "alpha")[: mesh.vertex_colors.shape[1]]]
+    fields += [(c, "u1") for c in ("red", "green", "blue", "alpha")[:stream.color_channels]]
     return np.dtype(fields)
 
 
-def _header(mesh: SurfaceMesh, dtype: np.dtype, fmt: str) -> bytes:
+def _header(stream: MeshStream, dtype: np.dtype, fmt: str) -> bytes:
     kinds = {"f8": "double", "u1": "uchar"}
-    lines = ["ply", f"format {fmt} 1.0", "comment written by c1mesh", f"element vertex {len(mesh.vertices)}"]
+    lines = ["ply", f"format {fmt} 1.0", "comment written by c1mesh", f"element vertex {stream.vertex_count}"]
     lines += [f"property {kinds[dtype[n].str[1:]]} {n}" for n in dtype.names]
-    lines += [f"element face {len(mesh.faces)}", "property list uchar int vertex_indices", "end_header", ""]
+    lines += [f"element face {stream.face_count}", "property list uchar int vertex_indices", "end_header", ""]
     return "\n".join(lines).encode("ascii")
 
 
-def _vertex_rows(mesh: SurfaceMesh, dtype: np.dtype, block: slice) -> np.ndarray:
-    """Packed vertex rows of the vertices in `block`."""
-    rows = np.empty(block.stop - block.start, dtype)
+def _vertex_rows(dtype: np.dtype, vertices, normals, colors) -> np.ndarray:
+    """Packed vertex rows of one block."""
+    rows = np.empty(len(vertices), dtype)
     for i, c in enumerate("xyz"):
-        rows[c] = mesh.vertices[block, i]
-    if mesh.vertex_normals is not None:
+        rows[c] = vertices[:, i]
+    if normals is not None:
         for i, c in enumerate(("nx", "ny", "nz")):
-            rows[c] = mesh.vertex_normals[block, i]
-    if mesh.vertex_colors is not None:
-        for i in range(mesh.vertex_colors.shape[1]):
-            rows[("red", "green", "blue", "alpha")[i]] = mesh.vertex_colors[block, i]
+            rows[c] = normals[:, i]
+    if colors is not None:
+        for i in range(colors.shape[1]):
+            rows[("red", "green", "blue", "alpha")[i]] = colors[:, i]
     return rows
 
 
-def write_ply(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = False) -> None:
-    """Write `mesh` as PLY to binary file object `f`: binary little endian, or ascii.
+def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False) -> None:
+    """Write a mesh (or a MeshStream, block by block) as PLY to binary file object `f`.
 
-    Coordinates and normals are doubles so that large world coordinates (state-plane
-    feet, UTM metres) keep their full precision. Rows are packed and written in blocks,
-    so writing adds only a block-sized buffer to the memory the mesh already holds.
+    Binary little endian, or ascii. Coordinates and normals are doubles so that large
+    world coordinates (state-plane feet, UTM metres) keep their full precision. Rows are
+    packed and written in blocks, so writing adds only a block-sized buffer to memory.
     """
-    dtype = _vertex_dtype(mesh, "=" if ascii else "<")
-    f.write(_header(mesh, dtype, "ascii" if ascii else "binary_little_endian"))
-    count = len(mesh.vertices)
-    for start in range(0, count, _WRITE_BLOCK):
-        rows = _vertex_rows(mesh, dtype, slice(start, min(start + _WRITE_BLOCK, count)))
+    stream = mesh.stream(_WRITE_BLOCK) if isinstance(mesh, SurfaceMesh) else mesh
+    if stream.vertex_count > np.iinfo(np.int32).max:
+        raise InputError(f"PLY stores vertex indices as int; {stream.vertex_count:,} vertices are too many "
+                         "(use a lower --level or split the scan)")
+    dtype = _vertex_dtype(stream, "=" if ascii else "<")
+    f.write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian"))
+    for vertices, normals, colors in stream.vertex_blocks():
+        rows = _vertex_rows(dtype, vertices, normals if stream.has_normals else None,
+                            colors if stream.color_channels else None)
         if ascii:   # round-trip precision: repr of each double
             cols = [rows[n].tolist() for n in rows.dtype.names]
             f.write("".join(" ".join(map(repr, v)) + "\n" for v in zip(*cols)).encode("ascii"))
         else:
             f.write(memoryview(rows).cast("B"))
     face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
-    for start in range(0, len(mesh.faces), _WRITE_BLOCK):
-        faces = np.asarray(mesh.faces[start:start + _WRITE_BLOCK]).reshape(-1, 3)
+    for faces in stream.face_blocks():
         if ascii:
             f.write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
             continue
