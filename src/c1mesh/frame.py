@@ -59,24 +59,49 @@ class ScanFrame:
 
     def to_local(self, points: ArrayLike) -> np.ndarray:
         """World points (N, 3) -> local coordinates (N, 3) = (P - origin)·[e1, e2, e3]."""
-        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
+        return _transform(points, self.axes.T, before=self.origin)
 
     def to_world(self, local: ArrayLike, out: np.ndarray | None = None) -> np.ndarray:
         """Local coordinates (N, 3) -> world points (N, 3); inverse of `to_local`.
 
         ``out`` (N, 3) float64, if given, receives the result (no temporaries).
         """
-        out = np.matmul(np.asarray(local, dtype=np.float64), self.axes, out=out)
-        out += self.origin
-        return out
+        return _transform(local, self.axes, after=self.origin, out=out)
 
     def vectors_to_local(self, vectors: ArrayLike) -> np.ndarray:
         """World directions (N, 3) (normals, no origin) -> local components (N, 3)."""
-        return np.asarray(vectors, dtype=np.float64) @ self.axes.T
+        return _transform(vectors, self.axes.T)
 
     def vectors_to_world(self, vectors: ArrayLike, out: np.ndarray | None = None) -> np.ndarray:
         """Local directions (N, 3) -> world components (N, 3), into ``out`` if given."""
-        return np.matmul(np.asarray(vectors, dtype=np.float64), self.axes, out=out)
+        return _transform(vectors, self.axes, out=out)
+
+
+_ROWS = 1 << 14
+"""Rows per block in `_transform`: small enough that OpenBLAS runs each product on one thread."""
+
+
+def _transform(rows: ArrayLike, matrix: np.ndarray, before: np.ndarray | None = None,
+               after: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """(rows - before) @ matrix + after for rows (N, 3), block by block, into ``out`` if given.
+
+    Each output row is the same BLAS product as in one big call (bit-identical), but small
+    blocks keep OpenBLAS on one thread: its second thread waits for a free core, which on
+    a busy 2-core machine made a 1M-row product take 0.4 s instead of 0.02 s. Blocks also
+    avoid a full-size temporary for ``rows - before``.
+    """
+    data = np.asarray(rows, dtype=np.float64)
+    if data.ndim != 2 or data.shape[0] <= _ROWS:
+        blocks = [slice(None)]                     # also keeps other shapes' behaviour
+    else:
+        out = np.empty((data.shape[0], matrix.shape[1])) if out is None else out
+        blocks = [slice(start, start + _ROWS) for start in range(0, data.shape[0], _ROWS)]
+    for block in blocks:
+        part = data[block] if before is None else data[block] - before
+        product = np.matmul(part, matrix, out=None if out is None else out[block])
+        if after is not None:
+            product += after
+    return product if out is None else out
 
 
 @dataclass
@@ -316,9 +341,10 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: floa
     tree whose pairs within h serve both the stacking test and the near-duplicate merge.
     """
     xy, z = local[:, :2], local[:, 2]
-    order = np.lexsort((xy[:, 1], xy[:, 0]))
+    order, xs, ys = _sort_xy(xy)
     new = np.ones(order.size, dtype=bool)
-    new[1:] = np.any(xy[order[1:]] != xy[order[:-1]], axis=1)
+    new[1:] = (xs[1:] != xs[:-1]) | (ys[1:] != ys[:-1])
+    del xs, ys
     group = np.empty(order.size, dtype=np.int64)
     group[order] = np.cumsum(new) - 1                    # exact-duplicate group of each point
     first = order[new]                                   # lowest index of each group (stable sort)
@@ -331,8 +357,9 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: floa
     np.minimum.at(z_min, group, z)
     np.maximum.at(z_max, group, z)
 
-    spacing = _spacing(local[first])
-    pairs = _tree(xy[first]).query_pairs(spacing, output_type="ndarray")
+    plane_tree = _tree(xy[first])
+    spacing = _spacing(local[first], plane_tree=plane_tree)
+    pairs = plane_tree.query_pairs(spacing, output_type="ndarray")
     i, j = pairs[:, 0], pairs[:, 1]
     dist = np.linalg.norm(xy[first[i]] - xy[first[j]], axis=1)
     slope = np.maximum(np.linalg.norm(gradients[first[i]], axis=1),
@@ -362,14 +389,65 @@ def _tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
-def _spacing(points: np.ndarray, samples: int = 20000) -> float:
+def _sort_xy(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """np.lexsort((y, x)) of points xy (n, 2) (by x, then y, then index), and the sorted x, y.
+
+    An unstable SIMD argsort on x, with only the runs of equal x re-sorted by (y, index):
+    the same permutation as lexsort, ~8x faster when x rarely ties (scans).
+    """
+    x, y = xy[:, 0], xy[:, 1]
+    order = np.argsort(x)
+    xs = x[order]
+    tie = xs[1:] == xs[:-1]
+    if tie.any():
+        run = np.zeros(order.size, dtype=bool)
+        run[1:] |= tie
+        run[:-1] |= tie
+        sub = order[run]
+        order[run] = sub[np.lexsort((sub, y[sub], x[sub]))]
+    return order, xs, y[order]
+
+
+def _spacing(points: np.ndarray, samples: int = 20000, plane_tree: cKDTree | None = None) -> float:
     """Median 3D nearest-neighbour distance of distinct points (n, 3), from <= `samples` queries.
 
     3D, not in the plane: where layers overlap, (x, y) neighbours come from the other
     layer and the plane spacing shrinks, which would blunt the stacking test.
+    ``plane_tree``, a KD tree of points[:, :2] in the same order, saves building a 3D tree
+    where the plane neighbours decide (see `_nearest_via_plane`); the result is the same.
     """
     query = points[:: max(1, points.shape[0] // samples)]
-    return float(np.median(_tree(points).query(query, k=2)[0][:, 1]))
+    if plane_tree is not None and points.shape[0] > 64:
+        nearest = _nearest_via_plane(points, query, plane_tree)
+    else:
+        nearest = _tree(points).query(query, k=2)[0][:, 1]
+    return float(np.median(nearest))
+
+
+def _nearest_via_plane(points: np.ndarray, query: np.ndarray, plane_tree: cKDTree) -> np.ndarray:
+    """3D distance from each query point (a row of points) to its nearest other point.
+
+    Candidates are the k nearest in the plane; the 3D minimum over them is exact when it
+    does not exceed the k-th plane distance (every other point is farther in the plane,
+    hence in 3D). Rows that fail get a larger k, then a 3D tree (layered clouds). Distances
+    are computed as cKDTree does (sqrt of dx² + dy² + dz², in that order), so the values
+    are bit-identical to a 3D tree query.
+    """
+    nearest = np.empty(query.shape[0])
+    todo = np.arange(query.shape[0])
+    for k in (6, 64):
+        plane, idx = plane_tree.query(query[todo, :2], k=min(k, points.shape[0]))
+        diff = points[idx] - query[todo, None, :]
+        d3 = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
+                     + diff[..., 2] * diff[..., 2])
+        best = np.partition(d3, 1, axis=1)[:, 1]          # [:, 0] is the point itself
+        done = best <= plane[:, -1]
+        nearest[todo[done]] = best[done]
+        todo = todo[~done]
+        if todo.size == 0:
+            return nearest
+    nearest[todo] = _tree(points).query(query[todo], k=2)[0][:, 1]
+    return nearest
 
 
 def _check_spread(xy: np.ndarray) -> None:
