@@ -144,7 +144,7 @@ class _PointSet:
         P = self.P = lam.shape[0]
         self.B = np.ascontiguousarray(rsd.basis(scheme, lam))
         d0, d1 = rsd.gradient_basis(scheme, lam)
-        self.D = np.ascontiguousarray(np.concatenate([d0, d1], axis=1))        # (21, 2P)
+        self.D = np.ascontiguousarray(np.stack([d0, d1], axis=2).reshape(d0.shape[0], 2 * P))  # (21, P·2)
         self.lam = lam
         self._blend = {}
 
@@ -160,15 +160,12 @@ class _PointSet:
 
     def spline(self, C, G, values, gradients, scratch) -> None:
         """values (c, P) and gradients (c, P, 2) from coefficients C (c, 21), G (c, 3, 2)."""
-        P = self.P
+        c, P = C.shape[0], self.P
         np.matmul(C, self.B, out=values)
-        d = scratch[:C.shape[0], :2 * P]
-        np.matmul(C, self.D, out=d)
-        d0, d1 = d[:, :P], d[:, P:]
-        for axis in range(2):    # ∇F = (C @ D0) G_0 + (C @ D1) G_1
-            out = gradients[..., axis]
-            np.multiply(d0, G[:, 0, axis, None], out=out)
-            out += d1 * G[:, 1, axis, None]
+        d = scratch[:c, :2 * P]
+        np.matmul(C, self.D, out=d)                    # (c, P, 2): C @ D0 and C @ D1 per point
+        # ∇F = (C @ D0) G_0 + (C @ D1) G_1: per triangle, (P × 2) @ (2 × 2)
+        np.matmul(d.reshape(c, P, 2), G[:, :2, :], out=gradients)
 
     def blend(self, corners, out) -> None:
         """out (c, P·d) = barycentric blend of corners (c, 3, d)."""
@@ -215,24 +212,28 @@ class Refinement:
 
         owned (T, 3): triangle t owns the edge in its slot k. Within a block, slot-k edges
         come in triangle order, so an edge's position is its block's slot offset plus the
-        number of slot-k edges owned by earlier triangles of the block.
+        number of slot-k edges owned by earlier triangles of the block. Work is done on
+        slot-major (3, T) arrays, where running counts along triangles are contiguous.
         """
         table, T, n_edge = self.table, self.triangles.shape[0], self.n_edge
-        e = table.tri_edge
-        owned = (table.owner[e] == np.arange(T)[:, None]) & (table.owner_slot[e] == np.arange(3))
+        slot_major = table.owner_slot * T + table.owner            # flat (k, t) of each edge's owner
+        owned = np.zeros(3 * T, dtype=bool)
+        owned[slot_major] = True
+        owned = owned.reshape(3, T)
         starts = np.arange(0, T, self.rows)
         lengths = np.diff(np.append(starts, T))
-        counts = np.add.reduceat(owned, starts, axis=0, dtype=np.int64) if T else np.zeros((0, 3), np.int64)
-        block_points = counts.sum(axis=1) * n_edge + lengths * self.n_int
+        counts = np.add.reduceat(owned, starts, axis=1, dtype=np.int64) if T else np.zeros((3, 0), np.int64)
+        block_points = counts.sum(axis=0) * n_edge + lengths * self.n_int
         self.block_start = self.points.shape[0] + np.concatenate([[0], np.cumsum(block_points)])
-        slot_start = self.block_start[:-1, None] + np.cumsum(counts * n_edge, axis=1) - counts * n_edge
-        self.interior_start = self.block_start[:-1] + counts.sum(axis=1) * n_edge
-        before = np.cumsum(owned, axis=0, dtype=np.int64) - owned        # owned slot-k edges before t
-        before -= np.repeat(before[starts], lengths, axis=0)              # ... within t's block
-        position = np.repeat(slot_start, lengths, axis=0) + before * n_edge
-        self.edge_start = np.empty(table.edges.shape[0], dtype=np.int64)
-        self.edge_start[e[owned]] = position[owned]
-        self.owned = owned
+        slot_start = self.block_start[:-1] + np.cumsum(counts * n_edge, axis=0) - counts * n_edge
+        self.interior_start = self.block_start[:-1] + counts.sum(axis=0) * n_edge
+        before = np.cumsum(owned, axis=1, dtype=np.int64)
+        before -= owned                                             # owned slot-k edges before t
+        before -= np.repeat(before[:, starts], lengths, axis=1)     # ... within t's block
+        before *= n_edge
+        before += np.repeat(slot_start, lengths, axis=1)            # (3, T) output positions
+        self.edge_start = before.ravel()[slot_major]
+        self.owned = owned.T
         # the direction in which the owner runs along each edge (True: edges[e,0] → edges[e,1])
         self.owner_forward = table.forward[table.owner, table.owner_slot]
 
@@ -267,7 +268,9 @@ class Refinement:
     def _evaluate_block(self, b, rows, fields, spline, buf, dest) -> VertexBlock:
         """Evaluate the points of triangle block b into dest (buffers or output slices)."""
         tri = self.triangles[rows]
-        inputs = [self.points[tri]] + [f[tri] for f in fields]                # corners (c, 3, d)
+        c = tri.shape[0]
+        inputs = [np.take(a, tri, axis=0, out=corners[:c])                    # corners (c, 3, d)
+                  for a, corners in zip([self.points] + fields, buf.corners)]
         if spline:
             inputs += [self.coefficients[rows], self.G[rows]]
         cursor = 0
@@ -323,8 +326,8 @@ class Refinement:
         out[:, 0:3] = self.triangles[rows]
         for k in range(3):
             e = table.tri_edge[rows, k]
-            same = table.forward[rows, k] == self.owner_forward[e]   # runs the way the owner does
-            out[:, 3 + k] = self.edge_start[e]
+            same = table.forward[rows, k] == self.owner_forward.take(e)   # runs the way the owner does
+            out[:, 3 + k] = self.edge_start.take(e)
             out[~same, 3 + k] += L - 2
             out[:, 6 + k] = np.where(same, 1.0, -1.0)
         base = float(self.interior_start[b])
@@ -365,8 +368,9 @@ def _index_matrix(pat: LatticePattern) -> np.ndarray:
 
 
 class _BlockBuffers:
-    """Reusable per-block outputs (size points), inputs selected for one edge slot (rows
-    triangles: corners, field corners, coefficients, G) and matmul scratch (rows × 2·width)."""
+    """Reusable per-block outputs (size points), gathered corners, inputs selected for one
+    edge slot (rows triangles: corners, field corners, coefficients, G) and matmul
+    scratch (rows × 2·width)."""
 
     def __init__(self, size: int, rows: int, width: int, fields: list, spline: bool):
         self.points = np.empty((size, 2))
@@ -374,6 +378,7 @@ class _BlockBuffers:
         self.values = np.empty(size) if spline else None
         self.gradients = np.empty((size, 2)) if spline else None
         self.scratch = np.empty((rows, 2 * width)) if spline else None
+        self.corners = [np.empty((rows, 3, 2))] + [np.empty((rows, 3, f.shape[1])) for f in fields]
         self.selected = [np.empty((rows, 3, 2))] + [np.empty((rows, 3, f.shape[1])) for f in fields]
         if spline:
             self.selected += [np.empty((rows, rsd.N_BASIS)), np.empty((rows, 3, 2))]

@@ -17,6 +17,7 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
+from c1mesh.formats._background import background_writes
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
 
 #: PLY scalar type names (both spellings) -> numpy type code without byte order.
@@ -314,31 +315,33 @@ def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False)
 
     Binary little endian, or ascii. Coordinates and normals are doubles so that large
     world coordinates (state-plane feet, UTM metres) keep their full precision. Rows are
-    packed and written in blocks, so writing adds only a block-sized buffer to memory.
+    packed in blocks and written by a second thread while the next block is computed
+    (formats/_background.py), so writing adds only a few block-sized buffers to memory.
     """
     stream = mesh.stream(_WRITE_BLOCK) if isinstance(mesh, SurfaceMesh) else mesh
     if stream.vertex_count > np.iinfo(np.int32).max:
         raise InputError(f"PLY stores vertex indices as int; {stream.vertex_count:,} vertices are too many "
                          "(use a lower --level or split the scan)")
     dtype = _vertex_dtype(stream, "=" if ascii else "<")
-    f.write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian"))
-    for vertices, normals, colors in stream.vertex_blocks():
-        rows = _vertex_rows(dtype, vertices, normals if stream.has_normals else None,
-                            colors if stream.color_channels else None)
-        if ascii:   # round-trip precision: repr of each double
-            cols = [rows[n].tolist() for n in rows.dtype.names]
-            f.write("".join(" ".join(map(repr, v)) + "\n" for v in zip(*cols)).encode("ascii"))
-        else:
-            f.write(memoryview(rows).cast("B"))
-    face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
-    for faces in stream.face_blocks():
-        if ascii:
-            f.write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
-            continue
-        face_rows = np.empty(len(faces), face_dtype)
-        face_rows["n"] = 3
-        face_rows["v"] = faces
-        f.write(memoryview(face_rows).cast("B"))
+    with background_writes(f) as write:
+        write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian"))
+        for vertices, normals, colors in stream.vertex_blocks():
+            rows = _vertex_rows(dtype, vertices, normals if stream.has_normals else None,
+                                colors if stream.color_channels else None)
+            if ascii:   # round-trip precision: repr of each double
+                cols = [rows[n].tolist() for n in rows.dtype.names]
+                write("".join(" ".join(map(repr, v)) + "\n" for v in zip(*cols)).encode("ascii"))
+            else:
+                write(memoryview(rows).cast("B"))
+        face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
+        for faces in stream.face_blocks():
+            if ascii:
+                write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
+                continue
+            face_rows = np.empty(len(faces), face_dtype)
+            face_rows["n"] = 3
+            face_rows["v"] = faces
+            write(memoryview(face_rows).cast("B"))
 
 
 _WRITE_BLOCK = 1 << 18   # rows packed per write
