@@ -62,10 +62,10 @@ class RSDInterpolator:
         self._table = edge_table(self.triangles, n)
         self.edges = self._table.edges
         self.directions = self._directions(directions)
-        self.coefficients, self._G, det = rsd.mesh_coefficients(
+        self.coefficients, self._G, _, degenerate = rsd.mesh_coefficients(
             self.points, self.values, self.gradients, self.triangles, self.directions,
-            self._table.tri_edge)
-        self._check_degenerate(det)
+            self._table.tri_edge, min_sine=_DEGENERACY)
+        self._check_degenerate(degenerate)
         self._locator: TriangleLocator | None = None
 
     # ----------------------------------------------------------------- construction
@@ -82,13 +82,11 @@ class RSDInterpolator:
             raise InputError(f"triangle vertex indices must lie in [0, {n - 1}]")
         return tri.astype(np.int64)
 
-    def _check_degenerate(self, det: np.ndarray) -> None:
-        """Reject triangles whose smallest |sin(angle)| at vertex 0 is below _DEGENERACY."""
-        p = self.points
-        t = self.triangles
-        e1 = np.hypot(p[t[:, 1], 0] - p[t[:, 0], 0], p[t[:, 1], 1] - p[t[:, 0], 1])
-        e2 = np.hypot(p[t[:, 2], 0] - p[t[:, 0], 0], p[t[:, 2], 1] - p[t[:, 0], 1])
-        bad = ~(np.abs(det) > _DEGENERACY * e1 * e2)
+    def _check_degenerate(self, bad: np.ndarray) -> None:
+        """Reject triangles whose |sin(angle)| at vertex 0 is not above _DEGENERACY.
+
+        bad (T,) bool comes from rsd.mesh_coefficients(..., min_sine=_DEGENERACY).
+        """
         if bad.any():
             first = int(np.flatnonzero(bad)[0])
             raise InputError(f"{int(bad.sum())} degenerate (zero-area) triangle(s), first: "
@@ -96,9 +94,9 @@ class RSDInterpolator:
 
     def _directions(self, directions) -> np.ndarray:
         vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]
-        length = np.linalg.norm(vec, axis=1)
         if directions is None:
-            return np.stack([-vec[:, 1], vec[:, 0]], axis=1) / length[:, None]
+            return _unit_normals(vec)
+        length = np.linalg.norm(vec, axis=1)
         u = _float_array(directions, "directions", (self.edges.shape[0], 2))
         cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
         bad = ~(np.abs(cross) > _DEGENERACY * np.linalg.norm(u, axis=1) * length)
@@ -188,6 +186,17 @@ class RSDInterpolator:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
         return Refinement(self.points, self.values, self.gradients, self.triangles,
                           self.coefficients, self._G, self._table, self.scheme, level)
+
+
+def _unit_normals(vec: np.ndarray) -> np.ndarray:
+    """(-vy, vx) / |v| for edge vectors vec (E, 2), written column by column (no (E, 2)
+    temporaries); |v| is computed as np.linalg.norm does, so the bits are the same."""
+    vx, vy = vec[:, 0], vec[:, 1]
+    length = np.sqrt(vx * vx + vy * vy)
+    out = np.empty_like(vec)
+    np.divide(-vy, length, out=out[:, 0])
+    np.divide(vx, length, out=out[:, 1])
+    return out
 
 
 def _triangles_of_edges(tri_edge: np.ndarray, edges: np.ndarray) -> np.ndarray:

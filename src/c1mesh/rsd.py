@@ -53,27 +53,40 @@ def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np
 
 def mesh_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                       triangles: np.ndarray, edge_directions: np.ndarray, tri_edge: np.ndarray,
-                      chunk: int = 1 << 14) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      chunk: int = 1 << 13, min_sine: float | None = None) -> tuple:
     """Coefficients (T, 21), G (T, 3, 2) and det (T,) of a whole mesh, from per-vertex data.
 
     points (N, 2), values (N,), gradients (N, 2), triangles (T, 3), edge_directions (E, 2)
-    and tri_edge (T, 3) (the edge opposite each local vertex). Works on blocks of
-    triangles gathered straight into component arrays, so every temporary stays in cache
-    and no (T, 3, 2) gathers are made.
+    and tri_edge (T, 3) (the edge opposite each local vertex). With ``min_sine`` also
+    returns degenerate (T,) bool: ~(|det| > min_sine·|p1 − p0|·|p2 − p0|), i.e. the
+    |sin| of the angle at vertex 0 is not above min_sine (NaN counts as degenerate).
+    Works on blocks of triangles: per-vertex data packed in rows, so a block is one row
+    gather per corner (not five scattered ones), then turned into contiguous component
+    arrays; every temporary stays in cache and no full-size (T, 3, 2) gathers are made.
     """
     T = triangles.shape[0]
     C, G, det = np.empty((T, N_BASIS)), np.empty((T, 3, 2)), np.empty(T)
-    x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
-    ax, ay = np.ascontiguousarray(gradients[:, 0]), np.ascontiguousarray(gradients[:, 1])
-    ux, uy = np.ascontiguousarray(edge_directions[:, 0]), np.ascontiguousarray(edge_directions[:, 1])
+    degenerate = None if min_sine is None else np.empty(T, dtype=bool)
+    vertex = np.empty((points.shape[0], 5))                       # x, y, f, fx, fy
+    vertex[:, :2], vertex[:, 2], vertex[:, 3:] = points, values, gradients
+    directions = np.ascontiguousarray(edge_directions, dtype=np.float64)
     for start in range(0, T, chunk):
         part = slice(start, min(start + chunk, T))
-        tri, edge = triangles[part].T, tri_edge[part].T           # (3, c) index views
-        px, py = x[tri], y[tri]
+        px, py, f, ax, ay = _gather(vertex, triangles[part])
+        ux, uy = _gather(directions, tri_edge[part])
         gx, gy, det[part] = _gradients_soa(px, py)
         G[part, :, 0], G[part, :, 1] = gx.T, gy.T
-        C[part] = _coefficients_soa(px, py, values[tri], ax[tri], ay[tri], ux[edge], uy[edge], gx, gy).T
-    return C, G, det
+        C[part] = _coefficients_soa(px, py, f, ax, ay, ux, uy, gx, gy).T
+        if degenerate is not None:
+            e1 = np.hypot(px[1] - px[0], py[1] - py[0])
+            e2 = np.hypot(px[2] - px[0], py[2] - py[0])
+            np.logical_not(np.abs(det[part]) > min_sine * e1 * e2, out=degenerate[part])
+    return (C, G, det) if degenerate is None else (C, G, det, degenerate)
+
+
+def _gather(rows: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """rows (N, m) gathered at index (c, 3) -> (m, 3, c) contiguous: component, corner, triangle."""
+    return np.ascontiguousarray(np.take(rows, index.T, axis=0).transpose(2, 0, 1))
 
 
 def _components(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -39,29 +39,51 @@ class EdgeTable:
 def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
     """Number the unique edges of ``triangles`` (T, 3); raise InputError for a non-manifold edge."""
     tri = triangles.astype(np.int64, copy=False)
-    a = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]])
-    b = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]])
-    keys = np.minimum(a, b) * np.int64(n_points) + np.maximum(a, b)
+    T = triangles.shape[0]
+    keys, forward = _edge_keys(tri, n_points)
     # One sort gives everything np.unique would (unique keys, first occurrence, inverse, counts).
     order = np.argsort(keys)
     sorted_keys = keys[order]
-    starts = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+    del keys
+    new = np.empty(sorted_keys.size, dtype=bool)
+    new[:1] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
     unique_keys = sorted_keys[starts]
-    first = order[starts]
-    count = np.diff(np.append(starts, keys.size))
-    inverse = np.empty(keys.size, dtype=np.int64)
-    inverse[order] = np.repeat(np.arange(starts.size), count)
+    del sorted_keys
+    count = np.diff(starts, append=order.size)
     if count.size and count.max() > 2:
         bad = int(np.argmax(count))
         raise InputError(f"edge ({unique_keys[bad] // n_points}, {unique_keys[bad] % n_points}) "
                          f"belongs to {count[bad]} triangles: the triangles overlap or are not a valid mesh")
-    T = triangles.shape[0]
-    edges = np.stack([unique_keys // n_points, unique_keys % n_points], axis=1)
     # Concatenation order is slot-major: position = slot * T + triangle.
-    tri_edge = inverse.reshape(3, T).T.copy()
-    forward = (a < b).reshape(3, T).T.copy()
-    return EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=first % T,
-                     owner_slot=first // T, count=count)
+    owner_slot, owner = np.divmod(order[starts], T) if T else (starts, starts)
+    inverse = np.empty((3, T), dtype=np.int64)
+    rank = np.cumsum(new, dtype=np.int64)
+    rank -= 1
+    inverse.ravel()[order] = rank
+    del rank, order
+    edges = np.empty((unique_keys.size, 2), dtype=np.int64)
+    np.floor_divide(unique_keys, n_points, out=edges[:, 0])
+    np.remainder(unique_keys, n_points, out=edges[:, 1])
+    return EdgeTable(edges=edges, tri_edge=inverse.T.copy(), forward=forward, owner=owner,
+                     owner_slot=owner_slot, count=count)
+
+
+def _edge_keys(tri: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keys min·n + max of the edges opposite each local vertex, slot-major (3T,), and
+    forward (T, 3): whether local edge k runs from the smaller vertex to the larger."""
+    T = tri.shape[0]
+    keys = np.empty(3 * T, dtype=np.int64)
+    forward = np.empty((T, 3), dtype=bool)
+    for k in range(3):
+        a, b = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
+        part = keys[k * T:(k + 1) * T]
+        np.minimum(a, b, out=part)
+        part *= np.int64(n_points)
+        part += np.maximum(a, b)
+        np.less(a, b, out=forward[:, k])
+    return keys, forward
 
 
 def mesh_edges(triangles: np.ndarray, n_points: int | None = None) -> np.ndarray:
