@@ -232,10 +232,10 @@ class Refinement:
         before -= np.repeat(before[:, starts], lengths, axis=1)     # ... within t's block
         before *= n_edge
         before += np.repeat(slot_start, lengths, axis=1)            # (3, T) output positions
-        self.edge_start = before.ravel()[slot_major]
         self.owned = owned.T
-        # the direction in which the owner runs along each edge (True: edges[e,0] → edges[e,1])
-        self.owner_forward = table.forward[table.owner, table.owner_slot]
+        # per edge: 2 × (output index of its first point) + 1 if the owner runs along it
+        # from edges[e, 0] to edges[e, 1] — one array, so the faces need one gather per edge
+        self.edge_code = before.ravel()[slot_major] * 2 + table.forward[table.owner, table.owner_slot]
 
     # --- vertices -------------------------------------------------------------------------
     def vertex_blocks(self, fields: Sequence[np.ndarray] = (), spline: bool = True,
@@ -325,10 +325,9 @@ class Refinement:
         L, table = self.level, self.table
         out[:, 0:3] = self.triangles[rows]
         for k in range(3):
-            e = table.tri_edge[rows, k]
-            same = table.forward[rows, k] == self.owner_forward.take(e)   # runs the way the owner does
-            out[:, 3 + k] = self.edge_start.take(e)
-            out[~same, 3 + k] += L - 2
+            code = self.edge_code.take(table.tri_edge[rows, k])
+            same = table.forward[rows, k] == (code & 1).astype(bool)   # runs the way the owner does
+            out[:, 3 + k] = (code >> 1) + np.where(same, 0, L - 2)
             out[:, 6 + k] = np.where(same, 1.0, -1.0)
         base = float(self.interior_start[b])
         out[:, 9] = np.arange(out.shape[0]) * float(self.n_int) + base
