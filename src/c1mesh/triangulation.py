@@ -285,11 +285,13 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
 
     alive = np.ones(tri.shape[0], dtype=bool)
     if limit is not None:
-        alive &= ~(lengths.max(axis=1, initial=0.0) > limit)
+        for k in range(3):
+            alive &= ~(lengths[:, k] > limit)
     long_edge = int((~alive).sum())
-    thin = circle_ratio(lengths) < min_circle_ratio
+    thin = _Thin(lengths, min_circle_ratio)
     sliver = bowtie = 0
-    front = np.flatnonzero(alive & thin & _on_boundary(alive, neighbours))
+    front = np.flatnonzero(alive & _on_boundary(alive, neighbours))
+    front = front[thin[front]]
     while True:
         sliver += _peel(alive, neighbours, thin, front)
         cut = _remove_bowties(tri, alive, neighbours)
@@ -318,6 +320,22 @@ def circle_ratio(lengths: np.ndarray) -> np.ndarray:
     return np.nan_to_num(np.clip(ratio, 0.0, 1.0), nan=0.0)
 
 
+class _Thin:
+    """thin[idx]: circle_ratio < min_ratio for triangles idx, computed only where asked
+    (peeling looks at boundary triangles only) and remembered."""
+
+    def __init__(self, lengths: np.ndarray, min_ratio: float):
+        self.lengths, self.min_ratio = lengths, min_ratio
+        self.known = np.zeros(lengths.shape[0], dtype=bool)
+        self.value = np.zeros(lengths.shape[0], dtype=bool)
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        new = idx[~self.known[idx]]
+        self.value[new] = circle_ratio(self.lengths[new]) < self.min_ratio
+        self.known[new] = True
+        return self.value[idx]
+
+
 def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
     tri = np.asarray(triangles)
     if tri.size == 0:
@@ -342,11 +360,13 @@ def _edge_lengths(xy: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 def _neighbours(tri: np.ndarray, n: int) -> np.ndarray:
     """(T, 3) triangle across the edge opposite vertex k, or -1; InputError if an edge has 3+."""
-    a, b = tri[:, [1, 2, 0]].ravel(), tri[:, [2, 0, 1]].ravel()
-    key = np.minimum(a, b)
-    key *= n
-    key += np.maximum(a, b)
-    order, key = _sort_keys(key, n * n)
+    key = np.empty(tri.shape, dtype=np.int64)              # position 3t + k: edge opposite k
+    for k in range(3):
+        a, b = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
+        np.minimum(a, b, out=key[:, k])
+        key[:, k] *= n
+        key[:, k] += np.maximum(a, b)
+    order, key = _sort_keys(key.ravel(), n * n)
     same = key[1:] == key[:-1]
     if np.any(same[1:] & same[:-1]):
         raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
