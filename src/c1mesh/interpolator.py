@@ -93,9 +93,9 @@ class RSDInterpolator:
                              f"triangle {first} with vertices {self.triangles[first].tolist()}")
 
     def _directions(self, directions) -> np.ndarray:
-        vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]
         if directions is None:
-            return _unit_normals(vec)
+            return _unit_normals(self.points, self.edges)
+        vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]
         length = np.linalg.norm(vec, axis=1)
         u = _float_array(directions, "directions", (self.edges.shape[0], 2))
         cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
@@ -188,14 +188,20 @@ class RSDInterpolator:
                           self.coefficients, self._G, self._table, self.scheme, level)
 
 
-def _unit_normals(vec: np.ndarray) -> np.ndarray:
-    """(-vy, vx) / |v| for edge vectors vec (E, 2), written column by column (no (E, 2)
-    temporaries); |v| is computed as np.linalg.norm does, so the bits are the same."""
-    vx, vy = vec[:, 0], vec[:, 1]
-    length = np.sqrt(vx * vx + vy * vy)
-    out = np.empty_like(vec)
-    np.divide(-vy, length, out=out[:, 0])
-    np.divide(vx, length, out=out[:, 1])
+def _unit_normals(points: np.ndarray, edges: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+    """(-vy, vx) / |v| for the edge vectors v = points[j] - points[i] of edges (E, 2).
+
+    In blocks, so no full-size temporaries; |v| is computed as np.linalg.norm does
+    (sqrt(vx² + vy²)), so the bits are those of the plain expression.
+    """
+    out = np.empty((edges.shape[0], 2))
+    for start in range(0, edges.shape[0], block):
+        part = slice(start, start + block)
+        vec = points[edges[part, 1]] - points[edges[part, 0]]
+        vx, vy = vec[:, 0], vec[:, 1]
+        length = np.sqrt(vx * vx + vy * vy)
+        np.divide(-vy, length, out=out[part, 0])
+        np.divide(vx, length, out=out[part, 1])
     return out
 
 

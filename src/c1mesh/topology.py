@@ -44,13 +44,11 @@ def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
     # One sort gives everything np.unique would (unique keys, first occurrence, inverse, counts).
     order = np.argsort(keys)
     sorted_keys = keys[order]
-    del keys
     new = np.empty(sorted_keys.size, dtype=bool)
     new[:1] = True
     np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=new[1:])
     starts = np.flatnonzero(new)
     unique_keys = sorted_keys[starts]
-    del sorted_keys
     count = np.diff(starts, append=order.size)
     if count.size and count.max() > 2:
         bad = int(np.argmax(count))
@@ -58,11 +56,12 @@ def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
                          f"belongs to {count[bad]} triangles: the triangles overlap or are not a valid mesh")
     # Concatenation order is slot-major: position = slot * T + triangle.
     owner_slot, owner = np.divmod(order[starts], T) if T else (starts, starts)
-    inverse = np.empty((3, T), dtype=np.int64)
-    rank = np.cumsum(new, dtype=np.int64)
+    # Fresh memory is slow to touch, so the dead key buffers are reused for the inverse.
+    rank = np.cumsum(new, dtype=np.int64, out=sorted_keys)
     rank -= 1
+    inverse = keys.reshape(3, T)
     inverse.ravel()[order] = rank
-    del rank, order
+    del rank, order, sorted_keys, keys
     edges = np.empty((unique_keys.size, 2), dtype=np.int64)
     np.floor_divide(unique_keys, n_points, out=edges[:, 0])
     np.remainder(unique_keys, n_points, out=edges[:, 1])
