@@ -155,11 +155,17 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     good = np.all(np.isfinite(pts), axis=1)
     if not good.any():
         raise InputError("there are no points with finite coordinates to choose a frame from")
-    origin = np.median(pts[good], axis=0)
+    # Without non-finite rows, skip the (N, 3) copies; but keep the C layout that boolean
+    # indexing gives, which the BLAS products in _auto_axis see (their bits depend on it).
+    everything = good.all()
+    finite = np.ascontiguousarray(pts) if everything else pts[good]
+    origin = np.median(finite, axis=0)
     e3 = _parse_axis(axis)
     if e3 is None:
-        e3 = _auto_axis(pts[good] - origin, None if normals is None else
-                        _as_n3(normals, "normals", len(pts))[good])
+        if normals is not None:
+            normals = _as_n3(normals, "normals", len(pts))
+            normals = np.ascontiguousarray(normals) if everything else normals[good]
+        e3 = _auto_axis(finite, origin, normals)
     return ScanFrame(origin=origin, axes=_axes_from_e3(e3))
 
 
@@ -198,22 +204,24 @@ def _parse_axis(axis: str | ArrayLike) -> np.ndarray | None:
     return vec / norm
 
 
-def _auto_axis(centred: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
-    """e3 for axis="auto" (see `choose_frame`): from the normals if usable, else PCA."""
+def _auto_axis(points: np.ndarray, origin: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+    """e3 for axis="auto" (see `choose_frame`): from the normals if usable, else PCA of the
+    finite points (n, 3) about origin."""
     if normals is not None:
         length = np.linalg.norm(normals, axis=1)
         ok = np.isfinite(length) & (length > 0)
         if ok.any():
-            unit = normals[ok] / length[ok, None]
+            unit = normals / length[:, None] if ok.all() else normals[ok] / length[ok, None]
             dominant = np.linalg.eigh(unit.T @ unit)[1][:, -1]
             side = np.where(unit @ dominant < 0, -1.0, 1.0)
             mean = (unit * side[:, None]).sum(axis=0)
             e3 = mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 0 else dominant
             votes = np.sign(unit @ e3).sum()
             return -e3 if votes < 0 else e3
-    if centred.shape[0] < 3:
-        raise InputError(f"choosing the height axis needs at least 3 points, got {centred.shape[0]}; "
+    if points.shape[0] < 3:
+        raise InputError(f"choosing the height axis needs at least 3 points, got {points.shape[0]}; "
                          "give --axis x|y|z or X,Y,Z")
+    centred = points - origin
     e3 = np.linalg.eigh(centred.T @ centred)[1][:, 0]
     return -e3 if e3[np.argmax(np.abs(e3))] < 0 else e3
 
@@ -301,9 +309,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
         raise InputError(f"only {index.size} of {len(pts)} points have finite coordinates and a "
                          "usable (nonzero, finite) normal; a height field needs at least 3")
     local = frame.to_local(pts[index])
-    n_kept = n_local[index] * np.sign(n_local[index, 2])[:, None]
-    flipped = int((n_local[index, 2] < 0).sum())
-    gradients = -n_kept[:, :2] / n_kept[:, 2:3]
+    gradients, flipped = _gradients(n_local[index])
 
     keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame)
     dropped["duplicate"] = int(index.size - keep.size)
@@ -312,6 +318,17 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     return HeightField(xy=xy, z=local[keep, 2], gradients=gradients[keep],
                        source_index=index[keep].astype(np.int64), frame=frame, dropped=dropped,
                        flipped=flipped, stacked=n_stacked, spacing=spacing)
+
+
+def _gradients(n: np.ndarray) -> tuple[np.ndarray, int]:
+    """∇f = (-n_x / n_z, -n_y / n_z) (n, 2) of local normals n (n, 3) with n_z != 0, and how
+    many had n_z < 0. Flipping a normal first changes no bit of its gradient (signs of
+    numerator and denominator flip together), so no flipped copy is made."""
+    nz = n[:, 2]
+    gradients = np.empty((n.shape[0], 2))
+    np.divide(-n[:, 0], nz, out=gradients[:, 0])
+    np.divide(-n[:, 1], nz, out=gradients[:, 1])
+    return gradients, int(np.count_nonzero(nz < 0))
 
 
 def _fmt(v: np.ndarray) -> str:
