@@ -144,11 +144,10 @@ def _delaunay_tiled(xy: np.ndarray, per_tile: int = TILE_POINTS) -> np.ndarray:
             frontier.append(keys)
             area += tile_area
             band[not_final] = True
-    certified = np.concatenate(certified)
-    filled, filled_area, hull_area, hull_edges = _fill_band(xy, np.flatnonzero(band),
-                                                            np.concatenate(frontier),
-                                                            whole=certified.shape[0] == 0)
-    out = np.concatenate([certified, filled])
+    filled, filled_area, hull_area, hull_edges = _fill_band(
+        xy, np.flatnonzero(band), np.concatenate(frontier),
+        whole=not any(len(tri) for tri in certified))
+    out = np.concatenate(certified + [filled])             # one copy of the triangles
     used = np.count_nonzero(np.bincount(out.ravel(), minlength=n))
     if out.shape[0] != 2 * used - hull_edges - 2 or not np.isclose(
             area + filled_area, hull_area, rtol=1e-9, atol=0):
@@ -348,13 +347,20 @@ def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
     return tri.astype(np.int64, copy=False)
 
 
-def _edge_lengths(xy: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(T, 3) length of the edge opposite vertex k (from coordinate components: no (T, 3, 2))."""
-    x, y = (xy[:, 0][tri], xy[:, 1][tri])
+def _edge_lengths(xy: np.ndarray, tri: np.ndarray, block: int = 1 << 15) -> np.ndarray:
+    """(T, 3) length of the edge opposite vertex k.
+
+    From coordinate components, a block of triangles at a time: the corner gathers stay
+    in cache instead of being two fresh (T, 3) arrays (fresh memory is slow to touch).
+    """
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
     lengths = np.empty(tri.shape)
-    for k in range(3):
-        i, j = (k + 2) % 3, (k + 1) % 3
-        np.hypot(x[:, i] - x[:, j], y[:, i] - y[:, j], out=lengths[:, k])
+    for start in range(0, tri.shape[0], block):
+        corners = tri[start:start + block].T
+        px, py, out = x[corners], y[corners], lengths[start:start + block]
+        for k in range(3):
+            i, j = (k + 2) % 3, (k + 1) % 3
+            np.hypot(px[i] - px[j], py[i] - py[j], out=out[:, k])
     return lengths
 
 
@@ -372,9 +378,12 @@ def _neighbours(tri: np.ndarray, n: int) -> np.ndarray:
         raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
                          "more triangles); pass a triangulation such as delaunay(xy)")
     pair = np.flatnonzero(same)
-    first, second = order[pair], order[pair + 1]
+    first = order[pair]
+    pair += 1
+    second = order[pair]
     nb = np.full(order.size, -1, dtype=np.int64)
-    nb[first], nb[second] = second // 3, first // 3
+    nb[first] = np.floor_divide(second, 3, out=pair)       # reuse buffers no longer needed
+    nb[second] = np.floor_divide(first, 3, out=first)
     return nb.reshape(-1, 3)
 
 
