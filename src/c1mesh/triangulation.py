@@ -276,8 +276,10 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     """
     pts = _as_xy(xy)
     tri = _as_triangles(triangles, pts.shape[0])
-    lengths = _edge_lengths(pts, tri)
-    neighbours = _neighbours(tri, pts.shape[0])
+    with ThreadPoolExecutor(1) as pool:               # independent; numpy releases the GIL
+        lengths = pool.submit(_edge_lengths, pts, tri)
+        neighbours = _neighbours(tri, pts.shape[0])
+        lengths = lengths.result()
     limit = _edge_limit(lengths, neighbours, max_edge)
     if not 0.0 <= min_circle_ratio <= 1.0:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
