@@ -10,6 +10,8 @@ an interpolator, as the fit pipeline does, so that barycentric arithmetic keeps 
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from c1mesh import rsd
@@ -59,12 +61,18 @@ class RSDInterpolator:
         self.scheme = get_scheme(scheme)
         self.fill_value = fill_value
         self.triangles = self._triangles(triangles)
-        self._table = edge_table(self.triangles, n)
+        # rsd.mesh_coefficients in two passes: what needs no edge directions runs while
+        # another thread numbers the edges (numpy releases the GIL in both).
+        with ThreadPoolExecutor(1) as pool:
+            table = pool.submit(edge_table, self.triangles, n)
+            C, self._G, _, degenerate = rsd.vertex_coefficients(
+                self.points, self.values, self.gradients, self.triangles,
+                min_sine=_DEGENERACY, threads=1)
+            self._table = table.result()
         self.edges = self._table.edges
         self.directions = self._directions(directions)
-        self.coefficients, self._G, _, degenerate = rsd.mesh_coefficients(
-            self.points, self.values, self.gradients, self.triangles, self.directions,
-            self._table.tri_edge, min_sine=_DEGENERACY)
+        rsd.ratio_coefficients(C, self._G, self.directions, self._table.tri_edge)
+        self.coefficients = C
         self._check_degenerate(degenerate)
         self._locator: TriangleLocator | None = None
 

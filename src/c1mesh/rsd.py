@@ -65,42 +65,76 @@ def mesh_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     and tri_edge (T, 3) (the edge opposite each local vertex). With ``min_sine`` also
     returns degenerate (T,) bool: ~(|det| > min_sine·|p1 − p0|·|p2 − p0|), i.e. the
     |sin| of the angle at vertex 0 is not above min_sine (NaN counts as degenerate).
+    Two passes, `vertex_coefficients` (all that needs no edge directions) then
+    `ratio_coefficients`; RSDInterpolator runs the first while it builds the edge table.
+    """
+    out = vertex_coefficients(points, values, gradients, triangles, chunk, min_sine, threads)
+    ratio_coefficients(out[0], out[1], edge_directions, tri_edge, chunk, threads)
+    return out
+
+
+def vertex_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                        triangles: np.ndarray, chunk: int = 1 << 13,
+                        min_sine: float | None = None, threads: int | None = None) -> tuple:
+    """First pass of `mesh_coefficients`: C (T, 21) with columns 0..8 filled (9..20 are
+    left for `ratio_coefficients`), G, det and, with min_sine, degenerate.
+
     Works on blocks of triangles: per-vertex data packed in rows, so a block is one row
     gather per corner (not five scattered ones), then turned into contiguous component
     arrays; every temporary stays in cache and no full-size (T, 3, 2) gathers are made.
-    Blocks are independent and numpy releases the GIL in their gathers and ufuncs, so
-    they run in ``threads`` threads (default THREADS; 1.4x on 2 idle cores at 1M points; the result does
-    not depend on the thread count).
     """
     T = triangles.shape[0]
     C, G, det = np.empty((T, N_BASIS)), np.empty((T, 3, 2)), np.empty(T)
     degenerate = None if min_sine is None else np.empty(T, dtype=bool)
     vertex = np.empty((points.shape[0], 5))                       # x, y, f, fx, fy
     vertex[:, :2], vertex[:, 2], vertex[:, 3:] = points, values, gradients
-    directions = np.ascontiguousarray(edge_directions, dtype=np.float64)
 
-    def block(start: int) -> None:
-        part = slice(start, min(start + chunk, T))
+    def block(part: slice) -> None:
         px, py, f, ax, ay = _gather(vertex, triangles[part])
-        ux, uy = _gather(directions, tri_edge[part])
         gx, gy, det[part] = _gradients_soa(px, py)
         G[part, :, 0], G[part, :, 1] = gx.T, gy.T
-        C[part] = _coefficients_soa(px, py, f, ax, ay, ux, uy, gx, gy).T
+        rows = np.empty((9, px.shape[1]))
+        _vertex_soa(px, py, f, ax, ay, rows)
+        C[part, :9] = rows.T
         if degenerate is not None:
             e1 = np.hypot(px[1] - px[0], py[1] - py[0])
             e2 = np.hypot(px[2] - px[0], py[2] - py[0])
             np.logical_not(np.abs(det[part]) > min_sine * e1 * e2, out=degenerate[part])
 
-    starts = range(0, T, chunk)
+    _blocks(block, T, chunk, threads)
+    return (C, G, det) if degenerate is None else (C, G, det, degenerate)
+
+
+def ratio_coefficients(C: np.ndarray, G: np.ndarray, edge_directions: np.ndarray,
+                       tri_edge: np.ndarray, chunk: int = 1 << 13,
+                       threads: int | None = None) -> None:
+    """Second pass of `mesh_coefficients`: columns 9..20 of C (T, 21), in place, from its
+    columns 0..8, G (T, 3, 2), edge_directions (E, 2) and tri_edge (T, 3)."""
+    directions = np.ascontiguousarray(edge_directions, dtype=np.float64)
+
+    def block(part: slice) -> None:
+        ux, uy = _gather(directions, tri_edge[part])
+        gx, gy = np.ascontiguousarray(G[part].transpose(2, 1, 0))
+        rows = np.empty((12, ux.shape[1]))
+        _ratio_soa(np.ascontiguousarray(C[part, :9].T), ux, uy, gx, gy, rows)
+        C[part, 9:] = rows.T
+
+    _blocks(block, C.shape[0], chunk, threads)
+
+
+def _blocks(work, T: int, chunk: int, threads: int | None) -> None:
+    """work(slice) for consecutive blocks of `chunk` triangles, in ``threads`` threads
+    (default THREADS): blocks are independent and numpy releases the GIL in their gathers
+    and ufuncs (1.4x on 2 idle cores at 1M points; results do not depend on the count)."""
+    parts = [slice(start, min(start + chunk, T)) for start in range(0, T, chunk)]
     threads = THREADS if threads is None else threads
-    if threads > 1 and len(starts) > 1:
+    if threads > 1 and len(parts) > 1:
         with ThreadPoolExecutor(threads) as pool:
-            for _ in pool.map(block, starts):      # re-raises a block's exception
+            for _ in pool.map(work, parts):        # re-raises a block's exception
                 pass
     else:
-        for start in starts:
-            block(start)
-    return (C, G, det) if degenerate is None else (C, G, det, degenerate)
+        for part in parts:
+            work(part)
 
 
 def _gather(rows: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -134,17 +168,27 @@ def _gradients_soa(x: np.ndarray, y: np.ndarray):
 def _coefficients_soa(px, py, f, ax, ay, ux, uy, gx, gy) -> np.ndarray:
     """(21, c) coefficients from component arrays, each (3, c) (f: values at the corners)."""
     C = np.empty((N_BASIS, px.shape[1]))
-    C[0:3] = f
-    g = {}
+    _vertex_soa(px, py, f, ax, ay, C[:9])
+    _ratio_soa(C[:9], ux, uy, gx, gy, C[9:])
+    return C
+
+
+def _vertex_soa(px, py, f, ax, ay, out) -> None:
+    """Rows 0..8 of the coefficients into out (9, c): f_k, then g_ki for (k, i) in PAIRS."""
+    out[0:3] = f
     for j, (k, i) in enumerate(PAIRS):
-        g[k, i] = ax[k] * (px[i] - px[k]) + ay[k] * (py[i] - py[k])
-        C[3 + j] = g[k, i]
+        out[3 + j] = ax[k] * (px[i] - px[k]) + ay[k] * (py[i] - py[k])
+
+
+def _ratio_soa(vertex, ux, uy, gx, gy, out) -> None:
+    """Rows 9..20 into out (12, c) from rows 0..8 (vertex), directions and G components:
+    r_ln f_l and r_ln g_lm for (l, m, n) in PERMS."""
+    g = {pair: vertex[3 + j] for j, pair in enumerate(PAIRS)}
     for j, (l, m, n) in enumerate(PERMS):
         with np.errstate(divide="ignore", invalid="ignore"):   # degenerate: rejected by callers
             ratio = (gx[l] * ux[n] + gy[l] * uy[n]) / (gx[n] * ux[n] + gy[n] * uy[n])
-        np.multiply(ratio, f[l], out=C[9 + j])
-        np.multiply(ratio, g[l, m], out=C[15 + j])
-    return C
+        np.multiply(ratio, vertex[l], out=out[j])
+        np.multiply(ratio, g[l, m], out=out[6 + j])
 
 
 def basis(scheme: ShapeTuple, lam: np.ndarray) -> np.ndarray:
