@@ -373,3 +373,23 @@ def test_vertex_blocks_cover_the_output_once(mesh):
     assert list(starts[1:]) == list(stops[:-1])
     faces = [f.copy() for _, f in refinement.face_blocks()]
     assert sum(len(f) for f in faces) == refinement.face_count
+
+
+def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
+    from c1mesh.topology import edge_table
+    points, triangles = mesh
+    interp = RSDInterpolator(points, smooth(points), smooth_grad(points), triangles=triangles)
+    table = edge_table(interp.triangles, len(points))
+    args = (interp.points, interp.values, interp.gradients, interp.triangles,
+            interp.directions, table.tri_edge)
+    one = rsd.mesh_coefficients(*args, chunk=7, threads=1)
+    two = rsd.mesh_coefficients(*args, chunk=7, threads=2)
+    for a, b in zip(one, two):
+        assert np.array_equal(a, b)
+    assert np.array_equal(one[0], interp.coefficients) and np.array_equal(one[1], interp._G)
+    t = interp.triangles
+    corners = interp.points[t]
+    G, det = rsd.barycentric_gradients(corners)
+    C = rsd.triangle_coefficients(corners, interp.values[t], interp.gradients[t],
+                                  interp.directions[table.tri_edge], G)
+    assert np.array_equal(C, one[0]) and np.array_equal(G, one[1]) and np.array_equal(det, one[2])

@@ -329,3 +329,45 @@ def test_lidar_ground_is_a_height_field_and_all_returns_are_not():
     pts, nrm = lidar("4_6_crop.las", ground_only=False)
     with pytest.raises(NotAHeightFieldError, match="--classes 2"):
         height_field(pts, nrm, choose_frame(pts, axis="z"))
+
+
+# --- fast paths must give the slow paths' exact bits ----------------------------------------
+
+def test_sort_xy_is_lexsort_with_ties_in_x_and_y():
+    from c1mesh.frame import _sort_xy
+    rng = np.random.default_rng(5)
+    xy = rng.integers(0, 30, size=(5000, 2)).astype(float)   # many ties, exact duplicates
+    xy[::7, 0] = -0.0
+    xy[1::7, 0] = 0.0
+    order, xs, ys = _sort_xy(xy)
+    want = np.lexsort((xy[:, 1], xy[:, 0]))
+    assert np.array_equal(order, want)
+    assert np.array_equal(xs, xy[want, 0]) and np.array_equal(ys, xy[want, 1])
+
+
+@pytest.mark.parametrize("sparse", [0, 2000])
+def test_spacing_from_the_plane_tree_is_the_3d_tree_median_bit_for_bit(sparse):
+    """A sparse layer over a dense one: its plane neighbours are all in the other layer,
+    so the exact fallback (a 3D tree for those rows) is needed."""
+    from c1mesh.frame import _spacing, _tree
+    rng = np.random.default_rng(6)
+    xy = rng.random((20000 + sparse, 2))
+    z = np.sin(4 * xy[:, 0]) * 0.1
+    z[:sparse] += 0.3
+    pts = np.column_stack([xy, z])
+    plain = float(np.median(_tree(pts).query(pts, k=2)[0][:, 1]))
+    assert _spacing(pts, samples=len(pts), plane_tree=_tree(pts[:, :2])) == plain
+    assert _spacing(pts, samples=len(pts)) == plain
+
+
+def test_blocked_transforms_equal_one_matrix_product():
+    rng = np.random.default_rng(7)
+    axes = choose_frame(rng.normal(size=(50, 3)), axis="1,2,3").axes
+    frame = ScanFrame(origin=[6.4e5, 8.5e5, 120.0], axes=axes)
+    pts = rng.normal(size=(40000, 3)) * 100 + frame.origin        # > one block of rows
+    assert np.array_equal(frame.to_local(pts), (pts - frame.origin) @ axes.T)
+    assert np.array_equal(frame.vectors_to_local(pts), pts @ axes.T)
+    out = np.empty_like(pts)
+    assert frame.to_world(pts, out=out) is out
+    assert np.array_equal(out, pts @ axes + frame.origin)
+    assert np.array_equal(frame.vectors_to_world(np.asfortranarray(pts)), pts @ axes)

@@ -342,3 +342,27 @@ def test_bowties_left_by_trimming_real_lidar_gaps_are_resolved():
     assert rep.removed["bowtie"] > 0                 # the gaps do pinch the mesh at vertices
     assert bowtie_vertices(out) == []
     assert rep.unreferenced_points == len(xy) - np.unique(out).size
+
+
+def test_packed_key_sort_matches_argsort_and_falls_back_when_too_wide():
+    rng = np.random.default_rng(8)
+    key = rng.integers(0, 1000 * 1000, size=30000)
+    key[::3] = key[1::3]                                   # pairs of equal keys
+    order, sorted_key = tr._sort_keys(key.copy(), 1000 * 1000)
+    assert np.array_equal(sorted_key, np.sort(key)) and np.array_equal(key[order], sorted_key)
+    assert np.array_equal(np.sort(order), np.arange(key.size))
+    wide_order, wide_key = tr._sort_keys(key.copy(), 2 ** 62)  # no room for positions: argsort
+    assert np.array_equal(wide_key, np.sort(key)) and np.array_equal(key[wide_order], wide_key)
+
+
+def test_neighbours_are_symmetric_and_share_the_edge():
+    rng = np.random.default_rng(9)
+    xy = rng.random((3000, 2))
+    tri = delaunay(xy)
+    nb = tr._neighbours(tri, len(xy))
+    t, k = np.nonzero(nb >= 0)
+    edge = np.sort(np.stack([tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]], axis=1), axis=1)
+    other = tri[nb[t, k]]
+    assert np.all((other == edge[:, :1]).any(axis=1) & (other == edge[:, 1:]).any(axis=1))
+    assert np.all((nb[nb[t, k]] == t[:, None]).sum(axis=1) == 1)
+    assert (nb < 0).sum() == len(tr._qhull(xy)) * 3 - 2 * ((nb >= 0).sum() // 2)
