@@ -235,7 +235,8 @@ class Refinement:
         self.owned = owned.T
         # per edge: 2 × (output index of its first point) + 1 if the owner runs along it
         # from edges[e, 0] to edges[e, 1] — one array, so the faces need one gather per edge
-        self.edge_code = before.ravel()[slot_major] * 2 + table.forward[table.owner, table.owner_slot]
+        owner_forward = table.forward.ravel().take(table.owner * 3 + table.owner_slot)
+        self.edge_code = before.ravel().take(slot_major) * 2 + owner_forward
 
     # --- vertices -------------------------------------------------------------------------
     def vertex_blocks(self, fields: Sequence[np.ndarray] = (), spline: bool = True,
