@@ -137,13 +137,16 @@ def _delaunay_tiled(xy: np.ndarray, per_tile: int = TILE_POINTS) -> np.ndarray:
     scale = float(np.ptp(xy, axis=0).max())
     certified, frontier, band = [], [], np.zeros(n, dtype=bool)
     area = 0.0
-    with ThreadPoolExecutor(TILE_THREADS) as pool:
+    pool = ThreadPoolExecutor(TILE_THREADS)
+    try:
         passes = pool.map(lambda tile: _tile_pass(xy, *tile, scale), _tiles(xy, per_tile))
         for tri, keys, tile_area, not_final in passes:     # in tile order: same result
             certified.append(tri)
             frontier.append(keys)
             area += tile_area
             band[not_final] = True
+    finally:
+        pool.shutdown(cancel_futures=True)                 # a failed tile: skip the rest
     filled, filled_area, hull_area, hull_edges = _fill_band(
         xy, np.flatnonzero(band), np.concatenate(frontier),
         whole=not any(len(tri) for tri in certified))
