@@ -152,7 +152,7 @@ def surface_mesh(refinement: Refinement, frame, colors: np.ndarray | None) -> Su
 
 def _compact(xy, triangles):
     """Drop points no triangle uses; returns (used point indices, re-indexed triangles)."""
-    used = np.unique(triangles)
+    used = np.flatnonzero(np.bincount(triangles.ravel(), minlength=xy.shape[0]))   # sorted, as np.unique
     remap = np.full(xy.shape[0], -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
     return used, remap[triangles]
