@@ -393,3 +393,17 @@ def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
     C = rsd.triangle_coefficients(corners, interp.values[t], interp.gradients[t],
                                   interp.directions[table.tri_edge], G)
     assert np.array_equal(C, one[0]) and np.array_equal(G, one[1]) and np.array_equal(det, one[2])
+
+
+def test_prefaulting_changes_no_byte(mesh, monkeypatch):
+    """The background page-populating thread must never alter outputs: refine with it
+    disabled and enabled gives identical arrays (parent filled by that thread too)."""
+    import c1mesh.refine as refine_module
+    pts, tris = mesh
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    with_helper = interp.refine(6)
+    monkeypatch.setattr(refine_module, "_madvise", None)
+    without = interp.refine(6)
+    for name in ("points", "values", "gradients", "triangles", "parent"):
+        np.testing.assert_array_equal(getattr(with_helper, name), getattr(without, name))
+    np.testing.assert_array_equal(with_helper.parent, np.repeat(np.arange(len(tris)), 36))

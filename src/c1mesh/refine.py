@@ -28,6 +28,8 @@ the outputs (M values, 2M gradients, 2M coordinates, 3·L²·T indices).
 """
 from __future__ import annotations
 
+import ctypes
+import sys
 import threading
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
@@ -48,7 +50,8 @@ class RefinedMesh:
 
     points (M, 2), triangles (K, 3) counter-clockwise when the input triangles are,
     values (M,), gradients (M, 2), parent (K,) the input triangle of each sub-triangle
-    (sub-triangles are stored parent by parent, level² each; computed on first use).
+    (sub-triangles are stored parent by parent, level² each; filled by a second thread
+    while refine computes, or on first use).
     Index arrays are int32 when M < 2**31 (halves memory), else int64.
     """
 
@@ -341,38 +344,80 @@ class Refinement:
         M = self.vertex_count
         points, values, gradients = np.empty((M, 2)), np.empty(M), np.empty((M, 2))
         triangles = np.empty((self.face_count, 3), dtype=self.index_dtype)
-        toucher = _touch_in_background([[points, values, gradients], [triangles]])
+        parent = np.empty(self.face_count, dtype=self.index_dtype)
+        helper = _touch_in_background([[points, values, gradients], [triangles]],
+                                      then=lambda: _fill_parent(parent, self.level))
         for _ in self.vertex_blocks(out=[points, values, gradients]):
             pass
         for _ in self.face_blocks(out=triangles):
             pass
-        toucher.join()
-        return RefinedMesh(points, triangles, values, gradients, self.level, refinement=self)
+        helper.join()
+        mesh = RefinedMesh(points, triangles, values, gradients, self.level, refinement=self)
+        mesh._parent = parent
+        return mesh
 
 
-def _touch_in_background(groups: list[list[np.ndarray]], segments: int = 64) -> threading.Thread:
-    """Write one byte per memory page of fresh arrays, from a second thread, in the order
-    the evaluation will fill them (each group's arrays side by side, segment by segment).
+def _fill_parent(parent: np.ndarray, level: int) -> None:
+    """parent (T·L²,) = the input triangle of each sub-triangle (stored parent by parent)."""
+    rows = parent.reshape(-1, level * level)
+    rows[...] = np.arange(rows.shape[0], dtype=parent.dtype)[:, None]
 
-    A fresh output array costs a page fault per page on first write; on virtual machines
-    that is expensive and erratic (measured here: 1 to 3 s per GiB). Taking those faults
-    on the other core while this one computes hides them: at 1M points, level 4, the
-    filling of the outputs took 0.9-1.1 s with the toucher and 0.95-3.2 s without.
-    The bytes written are overwritten by the evaluation; nothing reads them.
+
+def _touch_in_background(groups: list[list[np.ndarray]], then=None, segments: int = 64) -> threading.Thread:
+    """Fault in the pages of fresh output arrays from a second thread, in the order the
+    evaluation fills them (each group's arrays side by side, segment by segment); then
+    run ``then()`` in that thread.
+
+    A fresh array costs a page fault per page on first write; on virtual machines that is
+    expensive and erratic (measured here: 1 to 3 s per GiB). madvise(MADV_POPULATE_WRITE)
+    (Linux ≥ 5.14) takes those faults on the other core without changing any byte, so it
+    cannot race with the evaluation writing the same pages. At 1M points, level 4,
+    filling the outputs took 0.9-1.1 s with it and 0.95-3.2 s without. Where the call is
+    unavailable nothing is touched.
     """
-    def touch():
+    def populate_all() -> None:
         for group in groups:
-            pages = [a.reshape(-1).view(np.uint8) for a in group]
             for i in range(segments):
-                for flat in pages:
-                    step = -(-flat.size // segments)
-                    flat[i * step:(i + 1) * step:_PAGE] = 0
+                for array in group:
+                    step = -(-array.nbytes // segments)
+                    if not _populate(array.ctypes.data + i * step, min(step, array.nbytes - i * step)):
+                        return
+
+    def touch() -> None:
+        populate_all()
+        if then is not None:
+            then()
     thread = threading.Thread(target=touch, name="c1mesh-prefault", daemon=True)
     thread.start()
     return thread
 
 
 _PAGE = 4096
+_MADV_POPULATE_WRITE = 23
+
+
+def _populate(address: int, length: int) -> bool:
+    """Pre-fault the whole pages inside [address, address + length) for writing; False
+    when the system cannot (then callers stop asking)."""
+    if _madvise is None:
+        return False
+    first = -(-address // _PAGE) * _PAGE
+    last = (address + length) // _PAGE * _PAGE
+    return last <= first or _madvise(first, last - first, _MADV_POPULATE_WRITE) == 0
+
+
+def _load_madvise():
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        madvise = libc.madvise
+    except (OSError, AttributeError):
+        return None
+    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    madvise.restype = ctypes.c_int
+    return madvise
+
+
+_madvise = _load_madvise() if sys.platform.startswith("linux") else None
 
 
 def _index_matrix(pat: LatticePattern) -> np.ndarray:
