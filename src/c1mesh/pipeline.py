@@ -145,11 +145,6 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
                       0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
 
-def surface_mesh(refinement: Refinement, frame, colors: np.ndarray | None) -> SurfaceMesh:
-    """The refined surface in world coordinates, held in memory (see surface_stream)."""
-    return surface_stream(refinement, frame, colors).materialize()
-
-
 def _compact(xy, triangles):
     """Drop points no triangle uses; returns (used point indices, re-indexed triangles)."""
     used = np.flatnonzero(np.bincount(triangles.ravel(), minlength=xy.shape[0]))   # sorted, as np.unique
