@@ -395,15 +395,39 @@ def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
     assert np.array_equal(C, one[0]) and np.array_equal(G, one[1]) and np.array_equal(det, one[2])
 
 
-def test_prefaulting_changes_no_byte(mesh, monkeypatch):
-    """The background page-populating thread must never alter outputs: refine with it
-    disabled and enabled gives identical arrays (parent filled by that thread too)."""
+@pytest.mark.parametrize("workers", [2, 3])
+def test_workers_and_prefaulting_change_no_byte(mesh, monkeypatch, workers):
+    """Worker threads (each a range of blocks) and page pre-faulting must never alter
+    outputs: one worker without pre-faulting and several with it give identical arrays."""
     import c1mesh.refine as refine_module
     pts, tris = mesh
     interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
-    with_helper = interp.refine(6)
+    monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 200)            # many blocks per worker
+    refinement = interp.refinement(6)
+    assert -(-len(tris) // refinement.rows) >= 3 * workers
+    parallel = refinement.mesh(workers=workers)
     monkeypatch.setattr(refine_module, "_madvise", None)
-    without = interp.refine(6)
+    serial = refinement.mesh(workers=1)
     for name in ("points", "values", "gradients", "triangles", "parent"):
-        np.testing.assert_array_equal(getattr(with_helper, name), getattr(without, name))
-    np.testing.assert_array_equal(with_helper.parent, np.repeat(np.arange(len(tris)), 36))
+        np.testing.assert_array_equal(getattr(parallel, name), getattr(serial, name))
+    np.testing.assert_array_equal(parallel.parent, np.repeat(np.arange(len(tris)), 36))
+    streamed = np.concatenate([b.values.copy() for b in refinement.vertex_blocks()])
+    np.testing.assert_array_equal(streamed, serial.values)
+
+
+def test_worker_errors_reach_the_caller(mesh, monkeypatch):
+    import c1mesh.refine as refine_module
+    pts, tris = mesh
+    calls = []
+
+    def failing(self, first, last, out):
+        calls.append(first)
+        if first > 0:
+            raise MemoryError("worker failed")
+        yield from ()
+    monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 30)
+    refinement = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris).refinement(2)
+    monkeypatch.setattr(refine_module.Refinement, "_face_range", failing)
+    with pytest.raises(MemoryError, match="worker failed"):
+        refinement.mesh(workers=2)
+    assert sorted(calls)[0] == 0 and len(calls) == 2
