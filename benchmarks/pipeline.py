@@ -4,9 +4,9 @@ Both sides get the same binary PLY (an analytic terrain with exact unit normals,
 common.terrain_cloud) and run as child processes doing read → reconstruct → write, so the
 wall times include the same kind of work (interpreter start, imports, file I/O). Per-stage
 seconds come from ``c1mesh fit --report -`` and from the Poisson child's own timers
-(``c1mesh fit`` streams its output: the spline is evaluated block by block while the file
-is written by a second thread; "refine" is the evaluation, "write" the rest of the writing,
-fsync included).
+(``c1mesh fit`` streams its output: one thread evaluates the spline block by block, the
+main thread packs rows, a third writes the file; "refine" is the time spent waiting for
+evaluated blocks, "write" the rest of the writing, fsync included).
 The outputs differ in size: c1mesh's level 4 has ~16 vertices per input point, Poisson's
 vertex count is set by its octree depth; both counts are shown.
 

@@ -20,6 +20,7 @@ from c1mesh.errors import InputError
 from c1mesh.formats import read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
+from c1mesh.threads import blas_threads, prefetch, ring
 from c1mesh.properties import scheme_properties
 from c1mesh.refine import Refinement
 from c1mesh.schemes import get_scheme
@@ -113,20 +114,27 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     return normals, "estimated"
 
 
+_PREFETCH = 2
+"""Blocks a streamed surface is computed ahead of its writer."""
+
+
 def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> MeshStream:
     """The refined surface in world coordinates as a MeshStream (heights = spline values).
 
     Each pass evaluates the spline block by block (refine.Refinement) and turns every
     block into world vertices, unit normals on the axis side and, when the input has
     colours (N, c) uint8, colours blended linearly; nothing of the size of the output is
-    held, so a writer that streams (PLY) needs only block-sized memory.
+    held, so a writer that streams (PLY) needs only block-sized memory. Blocks are
+    computed by a second thread a few blocks ahead of the writer (c1mesh.prefetch).
     """
     fields = [] if colors is None else [colors.astype(float)]
 
-    def vertex_blocks():
+    def world_blocks():
         size = refinement.largest_block
-        local, vertices, normals = np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3))
-        for block in refinement.vertex_blocks(fields=fields):
+        local = np.empty((size, 3))
+        slots = [(np.empty((size, 3)), np.empty((size, 3))) for _ in range(ring(_PREFETCH))]
+        for i, block in enumerate(refinement.vertex_blocks(fields=fields)):
+            vertices, normals = slots[i % len(slots)]
             n = block.stop - block.start
             local[:n, :2] = block.points
             local[:n, 2] = block.values
@@ -138,9 +146,11 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
                 blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
             yield vertices[:n], normals[:n], blended
 
+    def vertex_blocks():
+        return prefetch(world_blocks(), _PREFETCH)
+
     def face_blocks():
-        for _, faces in refinement.face_blocks():
-            yield faces
+        return prefetch((faces for _, faces in refinement.face_blocks(ring=ring(_PREFETCH))), _PREFETCH)
     return MeshStream(refinement.vertex_count, refinement.face_count, True,
                       0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
@@ -163,8 +173,9 @@ def fit(source, output=None, options: FitOptions | None = None,
     dict (counts, frame, trimming, scheme properties, C1 certificate, timings).
     keep_mesh=False (with an output) streams the mesh to the output block by block
     instead of assembling it: the result's mesh is then None, and memory and time drop
-    (the CLI does this). The streamed spline evaluation is then reported under "refine"
-    and only the rest of the writing under "write".
+    (the CLI does this). The spline is then evaluated by a second thread ahead of the
+    writer: "refine" reports the time the writer waited for evaluated blocks and
+    "write" the rest of the writing.
     """
     options = options or FitOptions()
     scheme = get_scheme(options.scheme)
@@ -194,7 +205,8 @@ def fit(source, output=None, options: FitOptions | None = None,
     with timer.stage("write"):
         if output is not None:
             evaluating = _StopWatch()
-            write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
+            with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,

@@ -35,11 +35,8 @@ the outputs (M values, 2M gradients, 2M coordinates, 3·L²·T indices).
 """
 from __future__ import annotations
 
-import contextlib
 import ctypes
-import os
 import sys
-import threading
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
@@ -47,6 +44,7 @@ import numpy as np
 
 from c1mesh import rsd
 from c1mesh.schemes import ShapeTuple
+from c1mesh.threads import available_cpus, blas_threads, run_parallel
 from c1mesh.topology import EdgeTable
 
 CHUNK_ENTRIES = 1 << 15
@@ -314,31 +312,37 @@ class Refinement:
             np.compress(keep, buf.gradients[:c].reshape(c * P, 2), axis=0, out=dest.gradients[:n])
 
     # --- faces ----------------------------------------------------------------------------
-    def face_blocks(self, out: np.ndarray | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    def face_blocks(self, out: np.ndarray | None = None, ring: int = 1) -> Iterator[tuple[int, np.ndarray]]:
         """Yield (first face index, faces (k, 3)) blocks in output order.
 
         out: a full-size (K, 3) array to write into (blocks are views of it); without it
-        the faces of a block are a buffer reused by the next block.
+        the faces of a block are one of `ring` buffers used in turn, so a block stays
+        valid until `ring` more blocks have been yielded (c1mesh.prefetch.ring).
 
         Per block: the output index of every lattice point of every triangle (_corner_ids,
         (Q, c) integer arithmetic along rows of length c), then one gather through the
         sub-triangle template gives the c·L² faces.
         """
-        yield from self._face_range(0, self.triangles.shape[0], out)
+        yield from self._face_range(0, self.triangles.shape[0], out, ring)
 
-    def _face_range(self, first: int, last: int, out: np.ndarray | None) -> Iterator[tuple[int, np.ndarray]]:
+    def _face_range(self, first: int, last: int, out: np.ndarray | None,
+                    ring: int = 1) -> Iterator[tuple[int, np.ndarray]]:
         """The faces of triangles [first, last) (first a multiple of rows), in blocks."""
         L, Q = self.level, self.pattern.lattice.shape[0]
         template = _template_columns(self.pattern).ravel()
         ids = np.empty(Q * self.rows, dtype=self.index_dtype)
-        buffer = np.empty(self.rows * template.size, dtype=self.index_dtype) if out is None else None
+        buffers = [np.empty(self.rows * template.size, dtype=self.index_dtype)
+                   for _ in range(ring if out is None else 0)]
         gather = None
-        for start_row in range(first, last, self.rows):
+        for i, start_row in enumerate(range(first, last, self.rows)):
             rows = slice(start_row, min(start_row + self.rows, last))
             n = rows.stop - rows.start
             if gather is None or gather.size != n * template.size:       # (n, 3L²) into ids (Q, n)
                 gather = (template * n + np.arange(n)[:, None]).ravel()
-            faces = buffer[:gather.size] if out is None else out[rows.start * L * L:rows.stop * L * L].reshape(-1)
+            if out is None:
+                faces = buffers[i % ring][:gather.size]
+            else:
+                faces = out[rows.start * L * L:rows.stop * L * L].reshape(-1)
             self._corner_ids(rows, ids[:Q * n].reshape(Q, n))
             np.take(ids[:Q * n], gather, out=faces, mode="clip")       # clip: no buffered copy of out
             yield rows.start * L * L, faces.reshape(-1, 3)
@@ -389,10 +393,10 @@ class Refinement:
                 pass
             _fill_parent(parent[first * L * L:last * L * L], L, first)
         blocks = -(-T // self.rows)
-        count = max(1, min(workers or _available_cpus(), 4, blocks))
+        count = max(1, min(workers or available_cpus(), 4, blocks))
         bounds = [min(T, blocks * i // count * self.rows) for i in range(count + 1)]
-        with _blas_threads(1 if count > 1 else None):      # BLAS's own threads would fight ours
-            _run_parallel(work, list(zip(bounds[:-1], bounds[1:])))
+        with blas_threads(1 if count > 1 else None):      # BLAS's own threads would fight ours
+            run_parallel(work, list(zip(bounds[:-1], bounds[1:])))
         mesh = RefinedMesh(points, triangles, values, gradients, self.level, refinement=self)
         mesh._parent = parent
         return mesh
@@ -411,52 +415,6 @@ def _populate_range(arrays: Sequence[np.ndarray], start: int, stop: int) -> None
         row = array.strides[0]
         if not _populate(array.ctypes.data + int(start) * row, (int(stop) - int(start)) * row):
             return
-
-
-_blas_controller = None
-
-
-def _blas_threads(limit: int | None):
-    """A context limiting the BLAS thread pools to `limit` threads (None: no change).
-
-    Two of our threads each calling a multi-threaded BLAS oversubscribe the cores and
-    serialise on its pool: measured at 1M points, level 4, two workers took 0.95 s with
-    BLAS's two threads each and 0.58 s with one (a single worker: 0.85 s).
-    """
-    global _blas_controller
-    if limit is None:
-        return contextlib.nullcontext()
-    if _blas_controller is None:
-        from threadpoolctl import ThreadpoolController
-        _blas_controller = ThreadpoolController()
-    return _blas_controller.limit(limits=limit, user_api="blas")
-
-
-def _available_cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:                                  # not Linux
-        return os.cpu_count() or 1
-
-
-def _run_parallel(work, ranges: list) -> None:
-    """work(*r) for every r in ranges: the first in this thread, the rest in threads;
-    the first error raised by any of them is re-raised here."""
-    errors = []
-
-    def guarded(*r):
-        try:
-            work(*r)
-        except BaseException as error:                     # re-raised in the caller
-            errors.append(error)
-    threads = [threading.Thread(target=guarded, args=r, name="c1mesh-refine", daemon=True) for r in ranges[1:]]
-    for thread in threads:
-        thread.start()
-    guarded(*ranges[0])
-    for thread in threads:
-        thread.join()
-    if errors:
-        raise errors[0]
 
 
 def _fill_parent(parent: np.ndarray, level: int, first: int = 0) -> None:

@@ -1,0 +1,131 @@
+"""The few places c1mesh uses more than one core, in one module.
+
+* `run_parallel`: contiguous ranges of independent work in threads (Refinement.mesh
+  evaluates ranges of triangle blocks into disjoint slices of its outputs).
+* `prefetch`: a block generator run in a second thread a few blocks ahead of its
+  consumer (a streamed fit: spline evaluation in one thread, packing rows for the file
+  format in another, the file write in a third).
+* `blas_threads`: the BLAS thread pool limited while our own threads run, since a
+  multi-threaded BLAS called from several threads oversubscribes the cores.
+
+numpy releases the GIL inside its kernels (matrix products, gathers, ufuncs), which is
+what makes plain threads pay off here.
+
+Blocks handed over by `prefetch` must not be overwritten while the consumer still holds
+them: a generator that reuses buffers has to rotate through at least `depth + 2` of them
+(one being filled, `depth` queued, one held by the consumer), which is what `ring(depth)`
+says.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import threading
+from typing import Callable, Iterator, TypeVar
+
+Item = TypeVar("Item")
+
+_DONE = object()
+
+
+def ring(depth: int) -> int:
+    """Buffers a generator must rotate through to be prefetched `depth` blocks ahead."""
+    return depth + 2
+
+
+def prefetch(blocks: Iterator[Item], depth: int = 2) -> Iterator[Item]:
+    """Yield the items of `blocks`, produced by a background thread up to `depth` ahead.
+
+    An exception raised by `blocks` is re-raised here, at the item where it happened.
+    Closing this generator early (the consumer failed) stops the producer at its next
+    item and waits for it, so no thread outlives the stream.
+    """
+    handover: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                handover.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in blocks:
+                if not put((item, None)):
+                    return
+        except BaseException as error:            # handed to the consumer, raised there
+            put((_DONE, error))
+            return
+        put((_DONE, None))
+
+    producer = threading.Thread(target=produce, name="c1mesh-prefetch", daemon=True)
+    producer.start()
+    try:
+        while True:
+            item, error = handover.get()
+            if error is not None:
+                raise error
+            if item is _DONE:
+                return
+            yield item
+    finally:
+        stop.set()
+        producer.join()
+        close = getattr(blocks, "close", None)
+        if close is not None:
+            close()
+
+
+_BLAS = None
+
+
+def blas_threads(limit: int | None) -> contextlib.AbstractContextManager:
+    """A context limiting the BLAS thread pools to `limit` threads (None: no change).
+
+    Two of our threads each calling a multi-threaded BLAS oversubscribe the cores and
+    serialise on its pool (measured at 1M points, level 4: Refinement.mesh with two
+    workers took 0.95 s with BLAS's two threads each, 0.58 s with one; a single worker
+    0.85 s); an idle BLAS pool also spins on the core a writer thread needs. The limit
+    is process-wide while the context is open (threadpoolctl does it for OpenBLAS, MKL
+    and BLIS alike).
+    """
+    global _BLAS
+    if limit is None:
+        return contextlib.nullcontext()
+    if _BLAS is None:
+        from threadpoolctl import ThreadpoolController
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=limit, user_api="blas")
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                                  # not Linux
+        return os.cpu_count() or 1
+
+
+def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:
+    """work(*r) for every r in ranges: the first in this thread, the rest in threads;
+    the first error raised by any of them is re-raised here."""
+    errors = []
+
+    def guarded(*r):
+        try:
+            work(*r)
+        except BaseException as error:                     # re-raised in the caller
+            errors.append(error)
+    threads = [threading.Thread(target=guarded, args=r, name="c1mesh-worker", daemon=True) for r in ranges[1:]]
+    for thread in threads:
+        thread.start()
+    guarded(*ranges[0])
+    for thread in threads:
+        thread.join()
+    if errors:
+        raise errors[0]
