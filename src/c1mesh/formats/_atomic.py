@@ -8,6 +8,7 @@ existing target is left untouched.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -16,6 +17,33 @@ from typing import IO, Iterator, Union
 from c1mesh.errors import InputError
 
 PathLike = Union[str, "os.PathLike[str]"]
+
+
+WRITE_BEHIND = 64 << 20
+"""Bytes written between two requests to start the kernel's writeback."""
+
+
+class _WriteBehind(io.FileIO):
+    """A file that asks the kernel to start writing its pages out every WRITE_BEHIND bytes.
+
+    The file is fsynced before the rename, so its data must reach the disk anyway; left
+    to the end, that fsync of a GB-sized mesh waits ~0.5 s here with nothing else to
+    do, while started early the writeback overlaps the computing of later blocks.
+    posix_fadvise(DONTNEED) starts the writeback of dirty pages without waiting and
+    drops the pages already on disk, so a big output does not crowd the page cache
+    either. Where the call is missing or refused, writing goes on as usual.
+    """
+
+    _since = 0
+
+    def write(self, data) -> int:
+        written = super().write(data)
+        self._since += written or 0
+        if self._since >= WRITE_BEHIND:
+            self._since = 0
+            with contextlib.suppress(OSError, AttributeError):
+                os.posix_fadvise(self.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+        return written
 
 
 def _check_target(path: Path) -> None:
@@ -59,7 +87,9 @@ def atomic_output(path: PathLike, mode: str = "wb") -> Iterator[IO | Path]:
             os.close(fd)
             yield tmp
         else:
-            with os.fdopen(fd, mode, **({"encoding": "utf-8"} if mode == "w" else {})) as f:
+            opened = (io.BufferedWriter(_WriteBehind(fd, "wb")) if mode == "wb"
+                      else os.fdopen(fd, mode, encoding="utf-8"))
+            with opened as f:
                 yield f
                 f.flush()
                 os.fsync(f.fileno())
