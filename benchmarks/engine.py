@@ -91,7 +91,9 @@ def run(cfg: Config) -> Section:
             "(c1mesh also computes gradients, matplotlib does not). "
             "'values+grads' is matplotlib doing what refine does, timed once at the smallest N, "
             "level 4 (it costs several times refine_field). "
-            "c1mesh / floor = refine time / floor time.", "")
+            "c1mesh / floor = refine time / floor time. Cores: refine splits its blocks over "
+            "worker threads (both cores here); the floor's product uses both cores through "
+            "BLAS, its copies one.", "")
     sec.add("`refine` builds `parent` on first use; the timed refine reads it, so both sides "
             "produce a parent array, as the floor specifies.", "")
     _plot(plot, cfg.out / "engine.png")
@@ -176,7 +178,9 @@ def _profile(I: RSDInterpolator, level: int) -> list[str]:
     start = next(i for i, ln in enumerate(lines) if "ncalls" in ln)
     total = next((ln for ln in lines if "function calls" in ln), "").strip()
     return [f"### Where refine spends its time (cProfile, N={len(I.points):,}, level {level})", "",
-            f"{total}; top functions by own time (tottime):", "", "```",
+            f"{total}; top functions by own time (tottime). cProfile sees the calling thread "
+            "only: that is the first of refine's workers, the others run the same code on "
+            "their own blocks.", "", "```",
             *lines[start:start + 13], "```", ""]
 
 
