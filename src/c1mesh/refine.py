@@ -322,7 +322,7 @@ class Refinement:
 
         out: a full-size (K, 3) array to write into (blocks are views of it); without it
         the faces of a block are one of `ring` buffers used in turn, so a block stays
-        valid until `ring` more blocks have been yielded (c1mesh.prefetch.ring).
+        valid until `ring` more blocks have been yielded (c1mesh.threads.ring).
 
         Per block: the output index of every lattice point of every triangle (_corner_ids,
         (Q, c) integer arithmetic along rows of length c), then one gather through the
