@@ -187,7 +187,8 @@ class RSDInterpolator:
                 "gradient_jump": float(np.abs(g1 - g2).max() / grad_scale)}
 
     def refine(self, level: int) -> RefinedMesh:
-        """Uniform refinement: each triangle split into level² sub-triangles (refine.py)."""
+        """Uniform refinement: each triangle split into level² sub-triangles (refine.py),
+        computed by worker threads on the available CPUs (Refinement.mesh)."""
         return self.refinement(level).mesh()
 
     def refinement(self, level: int) -> Refinement:
