@@ -1,7 +1,7 @@
 """``python -m benchmarks [--quick] [--out DIR]``: run every section, write DIR/RESULTS.md + PNGs.
 
 A section that fails is reported as failed (with the error) rather than stopping the run,
-since parts of c1mesh are being written concurrently.
+so one broken peer (say, an open3d that will not import) does not lose the other sections.
 """
 from __future__ import annotations
 
