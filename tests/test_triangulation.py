@@ -344,17 +344,6 @@ def test_bowties_left_by_trimming_real_lidar_gaps_are_resolved():
     assert rep.unreferenced_points == len(xy) - np.unique(out).size
 
 
-def test_packed_key_sort_matches_argsort_and_falls_back_when_too_wide():
-    rng = np.random.default_rng(8)
-    key = rng.integers(0, 1000 * 1000, size=30000)
-    key[::3] = key[1::3]                                   # pairs of equal keys
-    order, sorted_key = tr._sort_keys(key.copy(), 1000 * 1000)
-    assert np.array_equal(sorted_key, np.sort(key)) and np.array_equal(key[order], sorted_key)
-    assert np.array_equal(np.sort(order), np.arange(key.size))
-    wide_order, wide_key = tr._sort_keys(key.copy(), 2 ** 62)  # no room for positions: argsort
-    assert np.array_equal(wide_key, np.sort(key)) and np.array_equal(key[wide_order], wide_key)
-
-
 def test_neighbours_are_symmetric_and_share_the_edge():
     rng = np.random.default_rng(9)
     xy = rng.random((3000, 2))

@@ -42,8 +42,7 @@ def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
     T = triangles.shape[0]
     keys, forward = _edge_keys(tri, n_points)
     # One sort gives everything np.unique would (unique keys, first occurrence, inverse, counts).
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
+    order, sorted_keys = sort_keys(keys, n_points * n_points)     # keys is overwritten
     new = np.empty(sorted_keys.size, dtype=bool)
     new[:1] = True
     np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=new[1:])
@@ -54,19 +53,47 @@ def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
         bad = int(np.argmax(count))
         raise InputError(f"edge ({unique_keys[bad] // n_points}, {unique_keys[bad] % n_points}) "
                          f"belongs to {count[bad]} triangles: the triangles overlap or are not a valid mesh")
-    # Concatenation order is slot-major: position = slot * T + triangle.
+    # Concatenation order is slot-major: position = slot * T + triangle. Ties are sorted by
+    # position, so each edge's owner is its occurrence of lowest slot, then lowest triangle.
     owner_slot, owner = np.divmod(order[starts], T) if T else (starts, starts)
-    # Fresh memory is slow to touch, so the dead key buffers are reused for the inverse.
+    # Fresh memory is slow to touch, so the dead sorted-key buffer is reused for the rank.
     rank = np.cumsum(new, dtype=np.int64, out=sorted_keys)
     rank -= 1
-    inverse = keys.reshape(3, T)
-    inverse.ravel()[order] = rank
-    del rank, order, sorted_keys, keys
+    del new, starts
+    tri_edge = np.empty((T, 3), dtype=np.int64)
+    # slot-major position p = k·T + t goes to tri_edge[t, k]
+    slot, triangle = np.divmod(order, T) if T else (order, order)
+    triangle *= 3
+    triangle += slot
+    tri_edge.ravel()[triangle] = rank
+    del rank, order, slot, triangle, sorted_keys, keys
     edges = np.empty((unique_keys.size, 2), dtype=np.int64)
     np.floor_divide(unique_keys, n_points, out=edges[:, 0])
     np.remainder(unique_keys, n_points, out=edges[:, 1])
-    return EdgeTable(edges=edges, tri_edge=inverse.T.copy(), forward=forward, owner=owner,
+    return EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
                      owner_slot=owner_slot, count=count)
+
+
+def sort_keys(key: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
+    """(order, key[order]) for non-negative int64 keys < bound; ``key`` may be overwritten.
+
+    Equal keys come out in order of position (as a stable sort would). When key and
+    position fit in 64 bits together (bound · len(key) ≤ 2**64: up to ~1.3M points for
+    edge keys of ~6M triangle slots), sorts the packed values key << bits | position, which
+    numpy sorts in place without an argsort's indirection (1.8x faster at 6M keys here);
+    otherwise a stable argsort.
+    """
+    shift = max(1, (key.size - 1).bit_length())
+    if (int(bound) - 1).bit_length() + shift > 64:
+        order = np.argsort(key, kind="stable")
+        return order, key[order]
+    packed = key.view(np.uint64)
+    packed <<= np.uint64(shift)
+    packed |= np.arange(key.size, dtype=np.uint64)
+    packed.sort()
+    order = (packed & np.uint64((1 << shift) - 1)).view(np.int64)
+    packed >>= np.uint64(shift)
+    return order, key
 
 
 def _edge_keys(tri: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
