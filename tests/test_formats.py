@@ -455,6 +455,24 @@ def test_atomic_output_modes(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]
 
 
+@pytest.mark.parametrize("umask", [0o022, 0o027, 0o077])
+def test_atomic_output_permissions_follow_the_umask_without_changing_it(tmp_path, monkeypatch, umask):
+    """Files get 0666 minus the umask (as open() would give), and the umask is read, never
+    set: setting it, even briefly, would race with files other threads create."""
+    import os
+    old = os.umask(umask)
+    try:
+        def no_umask_changes(mask):
+            raise AssertionError("atomic_output changed the process umask")
+        monkeypatch.setattr(os, "umask", no_umask_changes)
+        with atomic_output(tmp_path / "out.bin") as f:
+            f.write(b"x")
+        monkeypatch.undo()
+    finally:
+        os.umask(old)
+    assert (tmp_path / "out.bin").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
 def test_unwritable_directory(tmp_path, monkeypatch):
     import c1mesh.formats._atomic as atomic
 

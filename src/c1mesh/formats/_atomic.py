@@ -63,10 +63,21 @@ def _make_temp(path: Path) -> tuple[int, Path]:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as exc:
         raise InputError(f"Cannot write '{path}': {exc.strerror or exc}.") from exc
+    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+    return fd, Path(tmp)
+
+
+def _umask() -> int:
+    """The process's umask, read from /proc where Linux has it: the portable way (set it,
+    then restore it) briefly leaves umask 0 for files other threads create meanwhile."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual permissions
-    return fd, Path(tmp)
+    return umask
 
 
 @contextlib.contextmanager
