@@ -387,7 +387,8 @@ def _neighbours(tri: np.ndarray, n: int) -> np.ndarray:
     first = order[pair]
     pair += 1
     second = order[pair]
-    nb = np.full(order.size, -1, dtype=np.int64)
+    nb = key                                               # dead sorted keys: fresh memory is slow to touch
+    nb.fill(-1)
     nb[first] = np.floor_divide(second, 3, out=pair)       # reuse buffers no longer needed
     nb[second] = np.floor_divide(first, 3, out=first)
     return nb.reshape(-1, 3)
