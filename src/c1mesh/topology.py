@@ -61,12 +61,14 @@ def edge_table(triangles: np.ndarray, n_points: int) -> EdgeTable:
     rank -= 1
     del new, starts
     tri_edge = np.empty((T, 3), dtype=np.int64)
-    # slot-major position p = k·T + t goes to tri_edge[t, k]
-    slot, triangle = np.divmod(order, T) if T else (order, order)
-    triangle *= 3
-    triangle += slot
-    tri_edge.ravel()[triangle] = rank
-    del rank, order, slot, triangle, sorted_keys, keys
+    # slot-major position p = k·T + t goes to tri_edge[t, k], i.e. flat 3t + k (in place)
+    if T:
+        slot = np.floor_divide(order, T)
+        np.remainder(order, T, out=order)
+        order *= 3
+        order += slot
+    tri_edge.ravel()[order] = rank
+    del rank, order, sorted_keys, keys
     edges = np.empty((unique_keys.size, 2), dtype=np.int64)
     np.floor_divide(unique_keys, n_points, out=edges[:, 0])
     np.remainder(unique_keys, n_points, out=edges[:, 1])
