@@ -36,6 +36,7 @@ class Config:
     accuracy_sizes: tuple[int, ...]
     memory_size: int
     profile_size: int
+    fast_reps: int             # repetitions of refine vs floor (matplotlib runs only `reps`)
     peer_limit: float = 60.0   # seconds: a matplotlib run longer than this is abandoned
 
     @classmethod
@@ -44,12 +45,12 @@ class Config:
             return cls(True, out, reps=2, engine_sizes=(10_000,), levels=(4, 8),
                        pipeline_sizes=(20_000,), poisson_depths=(6, 8),
                        delaunay_sizes=(20_000, 100_000), accuracy_sizes=(100, 400, 1600),
-                       memory_size=100_000, profile_size=20_000)
+                       memory_size=100_000, profile_size=20_000, fast_reps=3)
         return cls(False, out, reps=3, engine_sizes=(100_000, 1_000_000), levels=(4, 8),
                    pipeline_sizes=(100_000, 1_000_000), poisson_depths=(8, 10),
                    delaunay_sizes=(100_000, 1_000_000),
                    accuracy_sizes=(100, 400, 1600, 6400, 25_600),
-                   memory_size=1_000_000, profile_size=1_000_000)
+                   memory_size=1_000_000, profile_size=1_000_000, fast_reps=9)
 
 
 @dataclass
@@ -71,13 +72,24 @@ class PeerTimeout(Exception):
     """A peer's run exceeded the configured limit and was abandoned."""
 
 
+SETTLE = 0.1
+"""Seconds of idle time before each timed call (see `timed`)."""
+
+
 def timed(fn: Callable[[], object], limit: float | None = None) -> float:
     """Wall time of one call; the result is dropped only after the clock stops.
+
+    Every call starts from idle cores: after a garbage collection, SETTLE seconds pass
+    before the clock starts. A multi-threaded BLAS keeps its threads spinning for a while
+    after a matrix product (OpenBLAS: measured here, a refine right after the floor's
+    2-thread product took 68 ms instead of 47 ms; 0.05 s later, 47 ms again), and that
+    would charge one contender's leftovers to the next.
 
     With ``limit`` (seconds) a SIGALRM interrupts the call (between numpy operations) and
     PeerTimeout is raised: used for matplotlib, which can take minutes at 1M points.
     """
     gc.collect()
+    time.sleep(SETTLE)
     if limit:
         def _alarm(signum, frame):
             raise PeerTimeout
