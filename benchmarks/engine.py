@@ -50,10 +50,12 @@ def run(cfg: Config) -> Section:
     sec = Section("Engine: refine vs matplotlib rHCT vs floor")
     sec.add("Franke's function on N uniform random points in the unit square, exact gradients, "
             "scipy Delaunay triangles given to both sides (triangulation is timed separately). "
-            f"{cfg.reps} repetitions, contenders interleaved, then {cfg.fast_reps - cfg.reps} more of "
-            f"refine and floor alone ({cfg.fast_reps} in all: a single cold or disturbed run of "
-            "these short jobs would otherwise move the median); ratios are medians of per-repetition "
-            "ratios, refine vs matplotlib over the interleaved repetitions only. matplotlib runs are abandoned after "
+            f"{cfg.reps} repetitions, contenders interleaved, then "
+            f"{cfg.fast_reps - cfg.reps} more of refine and floor alone ({cfg.fast_reps} in all: "
+            "a single cold or disturbed run of these short jobs would otherwise move the "
+            "median); every timed call starts after a short idle pause (common.SETTLE). "
+            "Ratios are medians of per-repetition ratios, refine vs matplotlib over the "
+            f"interleaved repetitions only. matplotlib runs are abandoned after "
             f"{cfg.peer_limit:.0f} s (then nothing is extrapolated).", "")
     build_rows, rows, plot = [], [], []
     for n in cfg.engine_sizes:
