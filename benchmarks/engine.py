@@ -55,7 +55,7 @@ def run(cfg: Config) -> Section:
             "a single cold or disturbed run of these short jobs would otherwise move the "
             "median); every timed call starts after a short idle pause (common.SETTLE). "
             "Ratios are medians of per-repetition ratios, refine vs matplotlib over the "
-            f"interleaved repetitions only. matplotlib runs are abandoned after "
+            "interleaved repetitions only. matplotlib runs are abandoned after "
             f"{cfg.peer_limit:.0f} s (then nothing is extrapolated).", "")
     build_rows, rows, plot = [], [], []
     for n in cfg.engine_sizes:
