@@ -324,7 +324,7 @@ def test_las_written_by_laspy(tmp_path, ext):
     np.testing.assert_allclose(cloud.points[0], [640000.123, 850000.0, 1.25], atol=1e-9)
     np.testing.assert_array_equal(cloud.classification, [2, 5, 2])
     np.testing.assert_array_equal(cloud.colors, [[255, 0, 255], [1, 2, 0], [0, 16, 0]])  # 16-bit >> 8
-    np.testing.assert_array_equal(cloud.extra["intensity"], [10, 20, 30])
+    assert cloud.extra == {}  # intensity etc. are not kept: the fit never uses them
 
 
 @pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
@@ -334,12 +334,22 @@ def test_real_las_files_match_laspy(name):
     cloud = read_cloud(path)
     np.testing.assert_array_equal(cloud.points, np.column_stack([truth.x, truth.y, truth.z]))
     np.testing.assert_array_equal(cloud.classification, truth.classification)
-    np.testing.assert_array_equal(cloud.extra["gps_time"], truth.gps_time)
     assert int((cloud.classification == 2).sum()) == {"4_6_crop.las": 9003, "autzen_trim.laz": 26107}[name]
     if name == "autzen_trim.laz":
         np.testing.assert_array_equal(cloud.colors, np.column_stack([truth.red, truth.green, truth.blue]))
     else:
         assert cloud.colors is None  # its RGB fields are all zero
+
+
+@pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
+def test_las_classes_filter_matches_laspy(name):
+    truth = laspy.read(str(real(name)))
+    mask = np.isin(truth.classification, [2, 9])
+    cloud = read_cloud(real(name), classes=(2, 9))
+    np.testing.assert_array_equal(cloud.points, np.column_stack([truth.x, truth.y, truth.z])[mask])
+    np.testing.assert_array_equal(cloud.classification, truth.classification[mask])
+    with pytest.raises(InputError, match=r"no points of class \[77\]; the file has classes \[.*2"):
+        read_cloud(real(name), classes=(77,))
 
 
 def test_laz_without_backend_raises_dependency_error(monkeypatch):

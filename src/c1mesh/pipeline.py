@@ -38,7 +38,8 @@ class FitOptions:
     k: neighbours for normal estimation; classes: LAS classification codes to keep;
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
-    scheme: shape-function tuple; level: each triangle becomes level² triangles.
+    scheme: shape-function tuple; level: each triangle becomes level² triangles;
+    memory: bytes (or a size such as "4G") the reader may read and decode, None = default.
     """
 
     input_format: str | None = None
@@ -51,6 +52,7 @@ class FitOptions:
     scheme: str = "sextic"
     level: int = 4
     ascii: bool = False
+    memory: Any = None
 
 
 @dataclass
@@ -82,7 +84,7 @@ class _Timer:
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
     """Read the input and keep only the requested LAS classes."""
-    cloud = read_cloud(source, options.input_format)
+    cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory)
     if options.classes:
         if cloud.classification is None:
             raise InputError("--classes needs a file with a classification field (LAS/LAZ)")
