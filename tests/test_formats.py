@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import C1MeshError, DependencyError, FormatError, InputError
 from c1mesh.formats import SUPPORTED_INPUT, SUPPORTED_OUTPUT, atomic_output, read_cloud, write_mesh
-from c1mesh.formats.lzf import LZFError, lzf_decompress
+from c1mesh.formats.lzf import LZFError, lzf_decompress, lzf_decompress_python
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
@@ -287,14 +287,24 @@ def test_real_pcd_files_match_open3d():
     assert len(scene) == 307200 and int((~np.isnan(scene.points).any(axis=1)).sum()) == 209280
 
 
-def test_lzf_overlapping_and_long_back_references():
+@pytest.mark.parametrize("decode", [lzf_decompress, lzf_decompress_python], ids=["default", "python"])
+def test_lzf_overlapping_and_long_back_references(decode):
     # literal 'ab', then copy 5 from distance 2 (overlapping), then copy 9+2 from distance 1 (length byte)
     stream = bytes([1]) + b"ab" + bytes([(5 - 2) << 5, 1]) + bytes([7 << 5, 9 + 2 - 2 - 7, 0])
-    assert lzf_decompress(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
-    with pytest.raises(LZFError):
-        lzf_decompress(bytes([5]) + b"abc", 6)  # literal run longer than the input
-    with pytest.raises(LZFError):
-        lzf_decompress(bytes([0]) + b"a" + bytes([1 << 5, 9]), 4)  # reference before the start
+    assert decode(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
+    for bad, size in ((bytes([5]) + b"abc", 6),                    # literal run longer than the input
+                      (bytes([0]) + b"a" + bytes([1 << 5, 9]), 4),  # reference before the start
+                      (stream, 2 + 5 + 10), (stream, 2 + 5 + 12)):  # decodes to another size
+        with pytest.raises(LZFError):
+            decode(bad, size)
+
+
+def test_lzf_decoders_agree_on_a_real_compressed_body():
+    data = real("table_scene_mug_stereo_textured.pcd").read_bytes()
+    body = data.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
+    packed, unpacked = struct.unpack_from("<II", data, body)
+    stream = data[body + 8: body + 8 + packed]
+    assert bytes(lzf_decompress(stream, unpacked)) == bytes(lzf_decompress_python(stream, unpacked))
 
 
 # ============================================================================ LAS / LAZ
