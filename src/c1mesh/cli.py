@@ -50,6 +50,21 @@ def _parse_classes(value: str | None) -> tuple[int, ...] | None:
         raise click.BadParameter(f"expected comma-separated integers such as 2,9, got {value!r}")
 
 
+def _parse_memory(ctx, param, value):
+    """--memory: a size such as 512M or 8G (None = the reader's default)."""
+    if value is None:
+        return None
+    from c1mesh.formats._limits import parse_memory
+    try:
+        return parse_memory(value)
+    except C1MeshError as exc:
+        raise click.BadParameter(str(exc))
+
+
+_MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
+                "are refused [default: half the RAM, at most 8G].")
+
+
 def _parse_max_edge(value: str):
     if value.lower() == "auto":
         return "auto"
@@ -118,19 +133,21 @@ def main() -> None:
               help="Each triangle is split into level² triangles.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
+@click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug):
+        max_edge, scheme, level, ascii_ply, report, memory, jobs, quiet, verbose, debug):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     from c1mesh.pipeline import FitOptions
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k,
                          classes=_parse_classes(classes), max_slope=max_slope,
-                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply)
+                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply,
+                         memory=memory)
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
@@ -273,15 +290,16 @@ def _collect(iterator, total, show, verbose):
 @main.command()
 @click.argument("path")
 @click.option("--input-format", help="Input format; required for stdin (-).")
+@click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def info(path, input_format, debug):
+def info(path, input_format, memory, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
     from c1mesh.inspect import describe
 
     if path == "-" and not input_format:
         raise click.UsageError("reading stdin (-) needs --input-format")
     try:
-        facts = describe(sys.stdin.buffer if path == "-" else path, input_format)
+        facts = describe(sys.stdin.buffer if path == "-" else path, input_format, memory=memory)
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)
     click.echo(json.dumps(facts, indent=2))
