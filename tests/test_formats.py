@@ -208,6 +208,43 @@ def test_xyz_without_header(tmp_path, blocks, expect):
         assert cloud.extra == {}
 
 
+@pytest.mark.parametrize("text", [
+    '"","x","y","z"\n"1",{0}\n"2",{1}\n"3",{2}\n',              # R write.csv: quoted, index column
+    ',x,y,z\n0,{0}\n1,{1}\n2,{2}\n',                           # pandas to_csv: unnamed index column
+    '\ufeffX;Y;Z\n{0;}\n{1;}\n{2;}\n',                          # byte-order mark, semicolons
+], ids=["R", "pandas", "bom"])
+def test_csv_from_r_and_pandas(tmp_path, text):
+    rows = [",".join(repr(float(v)) for v in row) for row in PTS]
+    text = text.replace("{0;}", rows[0].replace(",", ";")).replace("{1;}", rows[1].replace(",", ";"))
+    text = text.replace("{2;}", rows[2].replace(",", ";")).format(*rows)
+    (tmp_path / "r.csv").write_bytes(text.encode("utf-8"))
+    cloud = read_cloud(tmp_path / "r.csv")
+    np.testing.assert_array_equal(cloud.points, PTS)
+    assert cloud.normals is None and cloud.colors is None
+
+
+def test_csv_named_columns_in_any_order(tmp_path):
+    (tmp_path / "geo.csv").write_text("elev,Lat,LON,red,green,blue\n" + table_text(PTS[:, ::-1], RGB, sep=","))
+    cloud = read_cloud(tmp_path / "geo.csv")
+    np.testing.assert_array_equal(cloud.points, PTS)
+    np.testing.assert_array_equal(cloud.colors, RGB)
+
+
+@pytest.mark.parametrize("scale", [1.0, 255.0], ids=["0..1", "0..255"])
+def test_headerless_xyzrgb_is_not_read_as_normals(tmp_path, scale):
+    rgb = np.array([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.5, 0.25]])
+    (tmp_path / "c.xyz").write_text(table_text(PTS, np.round(rgb * scale) if scale > 1 else rgb))
+    cloud = read_cloud(tmp_path / "c.xyz")
+    assert cloud.normals is None
+    np.testing.assert_array_equal(cloud.colors, np.round(rgb * 255))
+
+
+def test_headerless_triple_that_is_neither_normals_nor_colours_is_refused(tmp_path):
+    (tmp_path / "odd.xyz").write_text(table_text(PTS, PTS * 3.5))
+    with pytest.raises(FormatError, match=r"odd.xyz.*columns 4-6 are neither unit normals nor colours.*header"):
+        read_cloud(tmp_path / "odd.xyz")
+
+
 def test_xyzn_written_by_open3d(tmp_path):
     src = o3d.io.read_point_cloud(str(real("pcl_bun0.pcd")))
     o3d.io.write_point_cloud(str(tmp_path / "bunny.xyzn"), src)
