@@ -38,7 +38,7 @@ def estimate_normals(points: ArrayLike, k: int = 16,
     towards = np.asarray(towards, dtype=np.float64)
     if towards.shape not in ((3,), pts.shape):
         raise InputError(f"towards must have shape (3,) or {pts.shape}, got {towards.shape}")
-    distinct, inverse = unique_positions(pts[finite])
+    distinct, inverse = unique_positions(pts if finite.all() else pts[finite])
     if len(distinct) < 3:
         raise InputError(f"the {int(finite.sum())} finite points occupy only {len(distinct)} distinct "
                          "positions; normal estimation needs at least 3")
@@ -60,23 +60,27 @@ def unique_positions(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     new group starts wherever the hash or any coordinate changes. A hash collision between different positions can at
     worst leave one position twice in the result, never merge two positions.
     """
-    pts = np.ascontiguousarray(points, dtype=np.float64) + 0.0   # + 0.0 turns -0.0 into 0.0
-    bits = pts.view(np.uint64)
+    pts = np.asarray(points, dtype=np.float64)
+    key = np.zeros(len(pts), np.uint64)
     with np.errstate(over="ignore"):
-        key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
-        key ^= bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) + (key >> np.uint64(29))
-        key ^= bits[:, 2] * np.uint64(0x165667B19E3779F9) + (key >> np.uint64(31))
+        for column, (mix, shift) in enumerate(((0x9E3779B97F4A7C15, 29), (0xC2B2AE3D27D4EB4F, 31),
+                                               (0x165667B19E3779F9, 27))):
+            bits = (pts[:, column] + 0.0).view(np.uint64)   # + 0.0 turns -0.0 into 0.0
+            key ^= bits * np.uint64(mix) + (key >> np.uint64(shift))
     order = np.argsort(key)
     sorted_key = key[order]
-    if len(order) < 2 or np.all(sorted_key[1:] != sorted_key[:-1]):   # all hashes differ: no repeats
-        return pts, np.arange(len(pts))
-    ordered = pts[order]
+    del key
     starts = np.ones(len(order), bool)
-    starts[1:] = (sorted_key[1:] != sorted_key[:-1]) | np.any(ordered[1:] != ordered[:-1], axis=1)
-    group = np.cumsum(starts) - 1
+    starts[1:] = sorted_key[1:] != sorted_key[:-1]
+    if starts.all():   # all hashes differ: no repeats, no copy
+        return pts, np.arange(len(pts))
+    del sorted_key
+    for column in range(3):   # a new group also where any coordinate changes (hash collisions)
+        values = pts[order, column] + 0.0
+        starts[1:] |= values[1:] != values[:-1]
     inverse = np.empty(len(order), np.int64)
-    inverse[order] = group
-    return ordered[starts], inverse
+    inverse[order] = np.cumsum(starts) - 1
+    return pts[order[starts]] + 0.0, inverse
 
 
 def orient_normals(normals: ArrayLike, towards: ArrayLike) -> np.ndarray:

@@ -110,9 +110,10 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     finite = np.isfinite(cloud.points).all(axis=1)
     if finite.sum() < 3:
         raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
-    towards = choose_frame(cloud.points[finite], None, options.axis).axes[2]
+    points = cloud.points if finite.all() else cloud.points[finite]   # one copy at most
+    towards = choose_frame(points, None, options.axis).axes[2]
     normals = np.full(cloud.points.shape, np.nan)
-    normals[finite] = estimate_normals(cloud.points[finite], k=options.k, towards=towards)
+    normals[finite] = estimate_normals(points, k=options.k, towards=towards)
     return normals, "estimated"
 
 

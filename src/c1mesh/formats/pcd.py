@@ -209,7 +209,13 @@ def _cloud(header: Header, columns: list[np.ndarray], name: str) -> PointCloud:
     xyz = find_columns(order, (("x",), ("y",), ("z",)))
     if None in xyz:
         raise FormatError(f"PCD file '{name}' has no x, y and z fields.")
-    take = lambda idx: np.column_stack([scalars[order[i]] for i in idx]).astype(np.float64)  # noqa: E731
+    def take(idx: list[int]) -> np.ndarray:
+        """(N, 3) float64 of three scalar fields, filled column by column (no float32 stack)."""
+        out = np.empty((header.points, 3))
+        for j, i in enumerate(idx):
+            out[:, j] = scalars[order[i]]
+        return out
+
     cloud = PointCloud(points=take(xyz))
     used = {order[i] for i in xyz}
     nrm = find_columns(order, NORMAL_NAMES)
