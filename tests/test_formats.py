@@ -607,7 +607,68 @@ def corpus() -> list[tuple[str, bytes, str]]:
         ("words.obj", b"v 1 2 3\nv 1 two 3\n", "line 2"),
         ("novertex.obj", b"# nothing\nvn 0 0 1\n", "no 'v'"),
         ("unknown.e57", b"anything", "supported: ply, obj, xyz, txt, csv, pcd, las, laz"),
+        *hostile_headers(),
     ]
+
+
+def hostile_headers() -> list[tuple[str, bytes, str]]:
+    """Headers that lie: each message names the file, the field and what is wrong."""
+    xyz = "property float x\nproperty float y\nproperty float z\n"
+    head = lambda lines, fmt="binary_little_endian": f"ply\nformat {fmt} 1.0\n{lines}end_header\n".encode()  # noqa: E731
+    pcd = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nPOINTS {p}\nDATA {k}\n"
+    las14 = io.BytesIO()
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.zeros((3, 5))
+    las.write(las14)
+    evlr = bytearray(las14.getvalue())
+    evlr[235:247] = struct.pack("<QI", len(evlr), 0xFFFFFFFF)
+    return [
+        ("rows.ply", head(f"element vertex {2**63 + 1}\n" + xyz) + bytes(12), r"element 'vertex' claims 9223372036854775809 rows"),
+        ("twice.ply", head("element vertex 1\n" + xyz + "element vertex 1\n" + xyz) + bytes(24), "repeats the element 'vertex'"),
+        ("props.ply", head("element vertex 1\n" + "".join(f"property uchar p{i}\n" for i in range(10_001))),
+         "more than 10000 properties"),
+        ("noprops.ply", head("element vertex 1\n" + xyz + "element junk 5\n") + bytes(12), "'junk' has 5 rows but no properties"),
+        ("list.ply", head("element vertex 1\n" + xyz + "element face 1\nproperty list uint int v\n")
+         + bytes(12) + struct.pack("<I", 2**32 - 1), "truncated"),
+        ("header.ply", b"ply\nformat ascii 1.0\n" + b"comment x\n" * 120_000, "no 'end_header' line within its first 1048576 bytes"),
+        ("rows.pcd", (pcd.format(n=150, p=150, k="ascii") + "1 2 3 4 5 6\n" * 150).encode(), "6 values per ascii data line"),
+        ("width.pcd", pcd.format(n=10, p=5000, k="binary").encode() + bytes(120), r"POINTS 5000, but WIDTH x HEIGHT is 10"),
+        ("bomb.pcd", pcd.format(n=10**6, p=10**6, k="binary_compressed").encode() + struct.pack("<II", 100, 12 * 10**6)
+         + bytes(100), "claims 12000000 bytes from 100 compressed ones"),
+        ("evlr.las", bytes(evlr), "4294967295 extended VLRs cannot fit"),
+    ]
+
+
+def test_long_ply_comment_is_accepted(tmp_path):
+    data = ply_bytes("binary_little_endian")
+    cut = data.index(b"end_header")
+    (tmp_path / "c.ply").write_bytes(data[:cut] + b"comment " + b"z" * 10_000 + b"\n" + data[cut:])
+    check_hand_ply(read_cloud(tmp_path / "c.ply"))
+
+
+def test_30k_properties_are_refused_fast(tmp_path):
+    import time
+
+    lines = "".join(f"property float p{i}\n" for i in range(30_000))
+    (tmp_path / "p.ply").write_bytes(f"ply\nformat ascii 1.0\nelement vertex 1\n{lines}end_header\n".encode())
+    start = time.perf_counter()
+    with pytest.raises(FormatError, match="p.ply.*more than 10000 properties"):
+        read_cloud(tmp_path / "p.ply")
+    assert time.perf_counter() - start < 2.0
+
+
+def test_reading_budget_bounds_files_and_endless_streams(tmp_path):
+    with pytest.raises(FormatError, match="'/dev/zero' goes on past the reading budget of 2.0 MiB"):
+        read_cloud("/dev/zero", fmt="xyz", memory="2M")
+    (tmp_path / "big.xyz").write_bytes(b"1 2 3\n" * 400_000)
+    with pytest.raises(FormatError, match="big.xyz.*2.3 MiB, more than the reading budget of 1.0 MiB"):
+        read_cloud(tmp_path / "big.xyz", memory=1 << 20)
+    assert len(read_cloud(tmp_path / "big.xyz", memory="3M")) == 400_000
+    with pytest.raises(FormatError, match="reading budget"):
+        read_cloud(io.BytesIO(b"1 2 3\n" * 400_000), fmt="xyz", memory="1M")
+    with pytest.raises(InputError, match="--memory must be a size"):
+        read_cloud(tmp_path / "big.xyz", memory="lots")
 
 
 @pytest.mark.parametrize("name, content, message", corpus(), ids=[c[0] for c in corpus()])

@@ -419,3 +419,12 @@ def test_hostile_input(server, case, tmp_path):
 @pytest.mark.parametrize("case", _marked(slow_cases()))
 def test_hostile_input_large_samples(server, case, tmp_path):
     run_case(server, case, tmp_path)
+
+
+def test_memory_option_is_checked_before_reading(tmp_path):
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+
+    result = CliRunner().invoke(main, ["info", "/dev/zero", "--input-format", "xyz", "--memory", "lots"])
+    assert result.exit_code == 2 and "--memory must be a size" in result.output

@@ -73,7 +73,9 @@ def _laspy_errors(name: str):
     except MemoryError:
         raise FormatError(f"LAS/LAZ file '{name}' cannot be read: out of memory while decoding its points "
                           "(the header's point count is probably corrupt).") from None
-    except Exception as exc:  # laspy raises LaspyException, ValueError, struct errors, ...
+    except (KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as exc:  # laspy: LaspyException, ValueError, struct errors; lazrs: a Rust panic
         text = str(exc).strip() or type(exc).__name__
         if "LazBackend" in text or "lazrs" in text.lower() and "backend" in text.lower():
             raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.") from exc
