@@ -793,3 +793,13 @@ def test_atomic_output_starts_writeback_as_it_goes(tmp_path, monkeypatch):
         f.write(memoryview(payload)[:5000])
     assert (tmp_path / "big.bin").read_bytes() == payload + payload[:5000]
     assert len(calls) >= 8 and all(advice == os.POSIX_FADV_DONTNEED for _, _, advice in calls)
+
+
+@pytest.mark.parametrize("raised, message", [(MemoryError(), "out of memory while decoding"),
+                                             (RuntimeError(""), "cannot be read: RuntimeError")])
+def test_laspy_failures_always_say_why(raised, message):
+    from c1mesh.formats.las import _laspy_errors
+
+    with pytest.raises(FormatError, match=f"'tile.laz'.*{message}"):
+        with _laspy_errors("tile.laz"):
+            raise raised
