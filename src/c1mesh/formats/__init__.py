@@ -8,6 +8,7 @@ Both also work on binary file objects (stdin / stdout), where `fmt` says the for
 from __future__ import annotations
 
 import io
+import mmap
 import os
 import stat
 from pathlib import Path
@@ -83,6 +84,20 @@ def _read_path(path: Path) -> bytes:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
 
+def _read_las_file(path: Path, classes: Sequence[int] | None) -> PointCloud:
+    """A LAS/LAZ file through a memory map: laspy streams the body from the file in chunks,
+    so memory holds the kept points, not the file."""
+    name = str(path)
+    try:
+        with open(path, "rb") as f:
+            if os.fstat(f.fileno()).st_size == 0:
+                raise FormatError(f"Input '{name}' is empty.")
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data, np.errstate(all="ignore"):
+                return read_las(data, name, classes=classes, open_stream=lambda: open(path, "rb"))
+    except OSError as exc:
+        raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
+
+
 def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | None = None,
                memory: int | str | None = None) -> PointCloud:
     """Read a point cloud from a path or a binary file object.
@@ -110,6 +125,8 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
             path = Path(source)
             name = str(path)
             key = _format(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
+            if key in ("las", "laz") and path.is_file():
+                return _read_las_file(path, classes)
             data = _read_path(path)
         if not data:
             raise FormatError(f"Input '{name}' is empty.")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import io
 import struct
+from typing import IO, Callable, Union
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from c1mesh.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
 
+Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
 _RGB = ("red", "green", "blue")
 
@@ -43,8 +45,8 @@ def _is_compressed(data: bytes) -> bool:
     return len(data) > 104 and data[:4] == b"LASF" and bool(data[104] & 0xC0)
 
 
-def _open(data: bytes, name: str):
-    """A laspy reader over the bytes, after the header checks; its errors become FormatError."""
+def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
+    """A laspy reader over a fresh stream of the file, after the header checks on `data`."""
     laspy = _laspy()
     if _is_compressed(data) and not laspy.LazBackend.detect_available():
         raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.")
@@ -53,10 +55,10 @@ def _open(data: bytes, name: str):
         selection = laspy.DecompressionSelection
         wanted = (selection.XY_RETURNS_CHANNEL | selection.Z | selection.CLASSIFICATION
                   | selection.RGB | selection.ALL_EXTRA_BYTES)
-        reader = laspy.open(io.BytesIO(data), decompression_selection=wanted)
+        reader = laspy.open(open_stream(), decompression_selection=wanted)
         try:
             _check_length(reader.header, len(data), name)
-            _check_laz_chunks(data, reader.header, name)
+            _check_laz_chunks(data, reader.header, name, open_stream)
         except BaseException:
             reader.close()
             raise
@@ -82,13 +84,13 @@ def _laspy_errors(name: str):
         raise FormatError(f"LAS/LAZ file '{name}' cannot be read: {' '.join(text.split())}.") from exc
 
 
-def _check_header(data: bytes, name: str) -> None:
+def _check_header(data: Buffer, name: str) -> None:
     """Sanity-check the public header block before laspy sees it.
 
     laspy trusts the header's sizes and counts; a corrupt one can make it try to allocate
     tens of gigabytes, so implausible values are rejected here as FormatError.
     """
-    if not data.startswith(b"LASF"):
+    if data[:4] != b"LASF":
         raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with the 'LASF' signature.")
     if len(data) < 227:
         raise FormatError(f"LAS file '{name}' is truncated: {len(data)} bytes, shorter than a LAS header.")
@@ -129,7 +131,6 @@ def _check_length(header, size: int, name: str) -> None:
     Checked up front because laspy only logs a truncated LAS body and returns fewer points,
     and would allocate memory for an absurd point count before noticing a LAZ body is short.
     """
-    check_alloc(header.point_count * _KEPT_BYTES_PER_POINT, name, f"the header's {header.point_count} points")
     if header.are_points_compressed:
         if header.point_count * header.point_format.size > _MAX_LAZ_RATIO * size + (1 << 20):
             raise FormatError(f"LAZ file '{name}' claims {header.point_count} points, far more than {size} bytes can hold.")
@@ -141,7 +142,7 @@ def _check_length(header, size: int, name: str) -> None:
         )
 
 
-def _check_laz_chunks(data: bytes, header, name: str) -> None:
+def _check_laz_chunks(data: Buffer, header, name: str, open_stream: Callable[[], IO[bytes]]) -> None:
     """FormatError when a LAZ chunk table is implausible.
 
     The LAZ decompressor (lazrs) sizes its buffers from the chunk table at the end of the
@@ -160,12 +161,12 @@ def _check_laz_chunks(data: bytes, header, name: str) -> None:
         raise corrupt  # every chunk holds at least one point and one byte before the table
     import lazrs
 
-    source = io.BytesIO(data)
-    source.seek(header.offset_to_point_data)
-    try:
-        chunks = lazrs.read_chunk_table(source, lazrs.LazVlr(vlr.record_data))
-    except Exception as exc:  # lazrs.LazrsError and I/O errors on a cut table
-        raise corrupt from exc
+    with open_stream() as source:
+        source.seek(header.offset_to_point_data)
+        try:
+            chunks = lazrs.read_chunk_table(source, lazrs.LazVlr(vlr.record_data))
+        except Exception as exc:  # lazrs.LazrsError and I/O errors on a cut table
+            raise corrupt from exc
     if sum(nbytes for _, nbytes in chunks) > len(data) - header.offset_to_point_data:
         raise corrupt
     if header.point_count > sum(npoints for npoints, _ in chunks):
@@ -181,13 +182,23 @@ _MAX_LAZ_RATIO = 200
 _CHUNK = 1 << 20   # points decoded at a time
 
 
-def read_las(data: bytes, name: str, classes=None) -> PointCloud:
-    """Read a LAS or LAZ file held in `data` (`name` is for messages).
+def read_las(data: Buffer, name: str, classes=None,
+             open_stream: Callable[[], IO[bytes]] | None = None) -> PointCloud:
+    """Read a LAS or LAZ file whose bytes are `data` (`name` is for messages).
 
-    `classes`: classification codes to keep (None keeps all); applied per decoded chunk.
+    `data` may be a memory map of the file (read_cloud maps regular files, so the body is
+    never copied into memory) and `open_stream` then opens the file again for laspy;
+    by default the stream is a BytesIO over `data`. `classes`: classification codes to
+    keep (None keeps all), applied per decoded chunk; the kept points are checked against
+    the reading budget as they accumulate.
     """
+    open_stream = open_stream or (lambda: io.BytesIO(data))
     keep = None if classes is None else np.asarray(list(classes), dtype=np.int64)
-    with _open(data, name) as reader, _laspy_errors(name):
+    with _open(data, name, open_stream) as reader, _laspy_errors(name):
+        if keep is None:
+            check_alloc(reader.header.point_count * _KEPT_BYTES_PER_POINT, name,
+                        f"the header's {reader.header.point_count} points")
+        kept = 0
         dims = list(reader.header.point_format.dimension_names)
         nrm = find_columns(dims, NORMAL_NAMES)
         has_rgb = all(c in dims for c in _RGB)
@@ -200,6 +211,8 @@ def read_las(data: bytes, name: str, classes=None) -> PointCloud:
             take = (lambda a: np.asarray(a)) if rows is None else (lambda a: np.asarray(a)[rows])  # noqa: E731
             parts["points"].append(np.column_stack([take(chunk.x), take(chunk.y), take(chunk.z)]).astype(np.float64))
             parts["classification"].append(take(chunk.classification).copy())
+            kept += len(parts["classification"][-1])
+            check_alloc(kept * _KEPT_BYTES_PER_POINT, name, f"the {kept} points kept so far")
             if has_rgb:
                 parts["rgb"].append(np.column_stack([take(chunk[c]) for c in _RGB]))
             if None not in nrm:
