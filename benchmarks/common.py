@@ -37,15 +37,21 @@ class Config:
     memory_size: int
     profile_size: int
     fast_reps: int             # repetitions of refine vs floor (matplotlib runs only `reps`)
+    accuracy_grid: int = 200   # evaluation grid of the convergence study: accuracy_grid² points
+    terrain_crop: int | None = None   # DEM rows and columns used (None: the whole grid)
+    memory_levels: tuple[int, ...] = (2, 4, 8)
     peer_limit: float = 60.0   # seconds: a matplotlib run longer than this is abandoned
 
     @classmethod
     def make(cls, quick: bool, out: Path) -> "Config":
         if quick:
-            return cls(True, out, reps=2, engine_sizes=(10_000,), levels=(4, 8),
-                       pipeline_sizes=(20_000,), poisson_depths=(6, 8),
-                       delaunay_sizes=(20_000, 100_000), accuracy_sizes=(100, 400, 1600),
-                       memory_size=100_000, profile_size=20_000, fast_reps=3)
+            # every section and code path once, at sizes that run in seconds (the smoke
+            # test); the numbers mean nothing
+            return cls(True, out, reps=1, engine_sizes=(5_000,), levels=(4,),
+                       pipeline_sizes=(5_000,), poisson_depths=(6,),
+                       delaunay_sizes=(55_000,), accuracy_sizes=(100, 400, 1600),
+                       memory_size=5_000, profile_size=5_000, fast_reps=1,
+                       accuracy_grid=40, terrain_crop=80, memory_levels=(2, 4, 8))
         return cls(False, out, reps=3, engine_sizes=(100_000, 1_000_000), levels=(4, 8),
                    pipeline_sizes=(100_000, 1_000_000), poisson_depths=(8, 10),
                    delaunay_sizes=(100_000, 1_000_000),
