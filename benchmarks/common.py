@@ -217,8 +217,11 @@ _LAUNCHER = ("import json, os, subprocess, sys, time\n"
              " os.waitstatus_to_exitcode(status)], f)\n")
 
 
-def run_child(cmd: list[str]) -> ChildRun:
-    """Run ``cmd`` (through the launcher) and return its wall time and peak RSS."""
+def run_child(cmd: list[str], discard_stdout: bool = False) -> ChildRun:
+    """Run ``cmd`` (through the launcher) and return its wall time and peak RSS.
+
+    discard_stdout: send the child's stdout to /dev/null instead of collecting it (for a
+    mesh written to stdout)."""
     import os
     import subprocess
     import tempfile
@@ -228,10 +231,11 @@ def run_child(cmd: list[str]) -> ChildRun:
     with tempfile.TemporaryDirectory() as tmp:
         stats = Path(tmp) / "stats.json"
         gc.collect()
-        done = subprocess.run([sys.executable, "-c", _LAUNCHER, str(stats), *cmd],
-                              capture_output=True, env=env)
+        done = subprocess.run([sys.executable, "-c", _LAUNCHER, str(stats), *cmd], env=env,
+                              stdout=subprocess.DEVNULL if discard_stdout else subprocess.PIPE,
+                              stderr=subprocess.PIPE)
         seconds, rss, code = json.loads(stats.read_text()) if stats.exists() else (0, 0, done.returncode)
-        return ChildRun(seconds, rss, code, done.stdout.decode(errors="replace"),
+        return ChildRun(seconds, rss, code, (done.stdout or b"").decode(errors="replace"),
                         done.stderr.decode(errors="replace"))
 
 
