@@ -1,6 +1,7 @@
 """c1mesh.threads: prefetching block generators, parallel ranges, the BLAS limit, and the
 one thread-count knob every pool follows (bit-identical results for every count)."""
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -266,3 +267,22 @@ def test_cli_threads_are_shared_by_the_jobs(tmp_path):
                             capture_output=True, timeout=300)
     assert single.returncode == 0, single.stderr
     assert json.loads((tmp_path / "s.json").read_text())["threads"] == 1
+
+
+@pytest.mark.parametrize("args, each", [(["--threads", "1"], "1"),
+                                        (["--threads", "4", "--jobs", "2"], "2")])
+def test_cli_asks_openmp_for_the_same_share(tmp_path, monkeypatch, args, each):
+    """Open3D's normal estimation (OpenMP) is outside threadpoolctl's reach: the CLI sets
+    OMP_NUM_THREADS to each process's share before Open3D starts."""
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    inputs = []
+    for name in ("a.ply", "b.ply"):
+        inputs.append(tmp_path / name)
+        inputs[-1].write_bytes((SAMPLES / "hill.ply").read_bytes())
+    result = CliRunner().invoke(main, ["fit", *map(str, inputs), "-O", str(tmp_path / "out"),
+                                       "--level", "1", *args])
+    assert result.exit_code == 0, result.output
+    assert os.environ["OMP_NUM_THREADS"] == each

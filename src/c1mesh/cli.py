@@ -146,9 +146,12 @@ def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, a
 
 
 def _threads_per_process(threads: int | None, jobs: int) -> int:
-    """--threads shared by the --jobs processes, so together they do not oversubscribe."""
-    from c1mesh.threads import per_process
-    return per_process(threads, jobs)
+    """--threads shared by the --jobs processes, so together they do not oversubscribe
+    (Open3D's OpenMP threads included)."""
+    from c1mesh.threads import openmp_at_start, per_process
+    count = per_process(threads, jobs)
+    openmp_at_start(count)
+    return count
 
 
 def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, str]]:

@@ -98,6 +98,16 @@ def per_process(total: int | None, processes: int) -> int:
     return max(1, workers(total) // max(1, int(processes)))
 
 
+def openmp_at_start(count: int) -> None:
+    """Ask OpenMP runtimes that have not started yet for `count` threads.
+
+    Open3D's normal estimation runs OpenMP threads that threadpoolctl cannot see (its
+    runtime is linked in); OpenMP reads OMP_NUM_THREADS when it starts, so the CLI calls
+    this before anything imports Open3D. It holds for the rest of the process, and for
+    processes started from it (the --jobs workers)."""
+    os.environ["OMP_NUM_THREADS"] = str(_checked(count))
+
+
 def ring(depth: int) -> int:
     """Buffers a generator must rotate through to be prefetched `depth` blocks ahead."""
     return depth + 2
