@@ -77,7 +77,8 @@ def set_workers(count: int | None) -> None:
 @contextlib.contextmanager
 def limit(count: int | None) -> Iterator[int]:
     """Within the block every c1mesh pool, and BLAS, use at most `count` threads
-    (None: leave the current setting); yields the count in force."""
+    (None: leave the current setting); yields the count in force. The setting is
+    process-wide while the block runs (not per thread), like threadpoolctl's."""
     global _WORKERS
     if count is None:
         yield workers()
