@@ -17,7 +17,7 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
-from c1mesh.formats import read_cloud, write_mesh
+from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -38,7 +38,8 @@ class FitOptions:
     k: neighbours for normal estimation; classes: LAS classification codes to keep;
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
-    scheme: shape-function tuple; level: each triangle becomes level² triangles.
+    scheme: shape-function tuple; level: each triangle becomes level² triangles;
+    output_format: mesh format of the output (default: its extension, PLY for a stream).
     """
 
     input_format: str | None = None
@@ -51,6 +52,7 @@ class FitOptions:
     scheme: str = "sextic"
     level: int = 4
     ascii: bool = False
+    output_format: str | None = None
 
 
 @dataclass
@@ -178,6 +180,8 @@ def fit(source, output=None, options: FitOptions | None = None,
     "write" the rest of the writing.
     """
     options = options or FitOptions()
+    if output is not None:    # an output that cannot be written fails now, not after the work
+        check_output(output, options.output_format, inputs=(source,))
     scheme = get_scheme(options.scheme)
     timer = _Timer(on_stage)
     with timer.stage("read"):
@@ -206,7 +210,8 @@ def fit(source, output=None, options: FitOptions | None = None,
         if output is not None:
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
+                           ascii=options.ascii)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
