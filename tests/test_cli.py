@@ -231,6 +231,33 @@ def test_examples_run(tmp_path):
     assert b"hill.c1.ply" in proc.stdout and b"element vertex" in proc.stdout
 
 
+def test_fit_scan_example_fits_the_bundled_las_ground(tmp_path):
+    out = tmp_path / "ground.ply"
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "fit_scan.py"), str(SAMPLES / "4_6_crop.las"),
+                           str(out)], capture_output=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert "of 9003 points" in proc.stdout.decode()       # the tile's class-2 (ground) points
+    assert len(read_cloud(out)) > 9003
+
+
+def test_batch_example_finds_the_setup_venv_without_path(tmp_path):
+    """After ./setup.sh, with nothing on PATH, the example uses <repo>/.venv/bin/c1mesh."""
+    repo = tmp_path / "repo"
+    (repo / "examples").mkdir(parents=True)
+    (repo / "data_samples").mkdir()
+    shutil.copy(ROOT / "examples" / "batch_and_pipe.sh", repo / "examples")
+    for name in ("hill.ply", "wave_tilted_offset.xyz"):
+        shutil.copy(SAMPLES / name, repo / "data_samples")
+    (repo / ".venv" / "bin").mkdir(parents=True)
+    (repo / ".venv" / "bin" / "c1mesh").symlink_to(Path(sys.executable).parent / "c1mesh")
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path),
+           **{k: v for k, v in __import__("os").environ.items() if k == "PYTHONPATH"}}
+    proc = subprocess.run(["bash", str(repo / "examples" / "batch_and_pipe.sh")], env=env,
+                          capture_output=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert b"hill.c1.ply" in proc.stdout and b"element vertex" in proc.stdout
+
+
 @pytest.mark.parametrize("shell", ["bash", "zsh", "fish"])
 def test_completion_files_are_current(shell):
     """cli/completions/ must match what click generates for the installed command."""
