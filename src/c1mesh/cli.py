@@ -122,6 +122,8 @@ def _interrupted(signum, frame) -> None:
     """SIGINT/SIGTERM/SIGHUP: stop the batch's worker processes, remove this process's
     temporary output files, print one line and exit 128+signum at once (no traceback, no
     waiting for threads that may be deep in a write)."""
+    if hasattr(signal, "SIGPIPE"):   # the pool's feeder thread writes to the workers' closing pipes
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
     multiprocessing = sys.modules.get("multiprocessing")
     if multiprocessing is not None:
         children = multiprocessing.active_children()
@@ -187,11 +189,14 @@ def main() -> None:
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
+@click.option("--threads", type=click.IntRange(1, 1024), default=None,
+              help="Threads in all (BLAS included); with --jobs N each process gets "
+                   "max(1, THREADS // N).  [default: the CPUs this process may use]")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug):
+        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug, threads):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     _check_axis(axis)
@@ -208,10 +213,20 @@ def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, a
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply)
+    options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
         _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug)
         return
     _fit_batch(pairs, targets[-1], options, report, jobs, quiet, verbose, debug)
+
+
+def _threads_per_process(threads: int | None, jobs: int) -> int:
+    """--threads shared by the --jobs processes, so together they do not oversubscribe
+    (Open3D's OpenMP threads included)."""
+    from c1mesh.threads import openmp_at_start, per_process
+    count = per_process(threads, jobs)
+    openmp_at_start(count)
+    return count
 
 
 def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, str]]:
