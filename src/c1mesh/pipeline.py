@@ -17,7 +17,7 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
-from c1mesh.formats import read_cloud, write_mesh
+from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -43,6 +43,7 @@ class FitOptions:
     scheme: shape-function tuple; level: each triangle becomes level² triangles;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
     process-wide setting, by default the CPUs this process may use);
+    output_format: mesh format of the output (default: its extension, PLY for a stream);
     memory: bytes (or a size such as "4G") the reader may read and decode, None = default.
     """
 
@@ -57,6 +58,7 @@ class FitOptions:
     level: int = 4
     ascii: bool = False
     workers: int | None = None
+    output_format: str | None = None
     memory: Any = None
 
 
@@ -186,6 +188,8 @@ def fit(source, output=None, options: FitOptions | None = None,
     "write" the rest of the writing. Every stage uses at most options.workers threads.
     """
     options = options or FitOptions()
+    if output is not None:    # an output that cannot be written fails now, not after the work
+        check_output(output, options.output_format, inputs=(source,))
     with thread_limit(options.workers):
         return _fit(source, output, options, on_stage, keep_mesh)
 
@@ -220,7 +224,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         if output is not None:
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
+                           ascii=options.ascii)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
