@@ -120,11 +120,15 @@ def main() -> None:
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
+@click.option("--seamless", is_flag=True,
+              help="Treat the inputs as one survey: -o writes one mesh, -O one mesh per input that "
+                   "joins its neighbours exactly (docs/tiles.md).")
+@click.option("--scheduler", help="With --seamless -O: run the tiles on this Dask scheduler (tcp://HOST:PORT).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug):
+        max_edge, scheme, level, ascii_ply, report, jobs, seamless, scheduler, quiet, verbose, debug):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     from c1mesh.pipeline import FitOptions
 
@@ -134,6 +138,10 @@ def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, a
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
+    if seamless or scheduler:
+        _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, scheduler,
+                      quiet, debug)
+        return
     jobs_list = _plan(inputs, output, output_dir, suffix, input_format)
     if len(jobs_list) == 1:
         _fit_one(*jobs_list[0], options, report, quiet, verbose, debug)
@@ -164,6 +172,37 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
     if not output:
         raise click.UsageError("give -o OUTPUT (or -O DIR for several inputs)")
     return [(inputs[0], output)]
+
+
+def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, scheduler,
+                  quiet, debug) -> None:
+    """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
+    from c1mesh.tiles import fit_seamless
+
+    if scheduler and not output_dir:
+        raise click.UsageError("--scheduler needs --seamless -O DIR (one output per input)")
+    if "-" in inputs:
+        raise click.UsageError("--seamless reads files, not stdin (-)")
+    if output and output_dir:
+        raise click.UsageError("use either -o/--output or -O/--output-dir")
+    pairs = _plan(inputs, None, output_dir, suffix, input_format) if output_dir else []
+    if not output and not output_dir:
+        raise click.UsageError("give -o OUTPUT (one mesh) or -O DIR (one mesh per input)")
+    for src, dst in pairs or [(src, output) for src in inputs]:
+        _check_paths(src, dst)
+    show = _stderr_is_terminal() and not quiet and bool(pairs)
+    output = sys.stdout.buffer if output == "-" else output
+    try:
+        if show:
+            with click.progressbar(length=len(pairs), label="tiles", file=sys.stderr,
+                                   item_show_func=lambda s: s) as bar:
+                result = fit_seamless(inputs, options, output, [d for _, d in pairs], scheduler, jobs,
+                                      on_tile=lambda row: bar.update(1, row["tile"]))
+        else:
+            result = fit_seamless(inputs, options, output, [d for _, d in pairs] or None, scheduler, jobs)
+    except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
+        _fail(_message(exc), debug)
+    _write_report(report, result, debug)
 
 
 def _check_paths(src: str, dst: str) -> None:

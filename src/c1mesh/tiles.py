@@ -1,0 +1,297 @@
+"""One survey from many files: the seamless fit, its tiles and the ownership rule.
+
+`c1mesh fit A.laz B.laz ... --seamless` treats the inputs as one point cloud: they are
+concatenated in the order given and fitted by the same stages as a single file
+(pipeline.build_surface), so the frame, the auto --max-edge, the normals near borders
+and the Delaunay triangulation are those of the whole survey and cannot depend on how
+the survey was cut into files.
+
+Ownership rule: every base triangle belongs to exactly one input, the input that holds
+the triangle's lowest-numbered corner point (points numbered in concatenation order).
+Each input's output holds the refined triangles of the base triangles it owns.
+
+Tiles: the refinement of one input's triangles is an independent task (`TileTask`,
+`run_tile`): the RSD spline on a triangle depends only on its corner data (values,
+gradients) and the direction shared by each of its edges, all of which the task carries.
+Points on an edge shared by two tiles are evaluated, as in the whole-survey refinement,
+by the edge's owner triangle (topology.EdgeTable: lowest slot, then lowest triangle), so
+each task also carries the "halo" — the other tiles' triangles across its border edges —
+and keeps the triangles in survey order: both tiles then evaluate a border point from the
+same triangle with the same arithmetic, and the border vertices of the two outputs are
+bit-identical. Merging exactly equal vertices of all outputs gives the whole-survey mesh.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.errors import InputError
+
+
+@dataclass
+class Survey:
+    """Inputs concatenated into one cloud.
+
+    cloud: all points, in input order; names: (n_inputs,) input names; offsets:
+    (n_inputs + 1,) int64, input i holds cloud points [offsets[i], offsets[i + 1]).
+    """
+
+    cloud: PointCloud
+    names: list[str]
+    offsets: np.ndarray
+
+    def input_of(self, point_index: np.ndarray) -> np.ndarray:
+        """The input (0-based) holding each cloud point index."""
+        return np.searchsorted(self.offsets[1:], point_index, side="right")
+
+
+def load_survey(sources: Sequence[str], options) -> Survey:
+    """Read every input (keeping options.classes) and concatenate them in order.
+
+    An input without points of the wanted classes contributes none (a survey may have
+    tiles of water); the survey as a whole must have points. Normals are kept only when
+    every input has them (else they are estimated survey-wide); colours only when every
+    input has them with the same channel count.
+    """
+    from c1mesh.formats import read_cloud
+
+    clouds = []
+    for source in sources:
+        cloud = read_cloud(source, options.input_format)
+        if options.classes:
+            if cloud.classification is None:
+                raise InputError(f"{source}: --classes needs a classification field (LAS/LAZ)")
+            cloud = cloud.subset(np.isin(cloud.classification, np.asarray(options.classes)))
+        clouds.append(cloud)
+    counts = np.array([len(c) for c in clouds], dtype=np.int64)
+    if counts.sum() == 0:
+        raise InputError("the inputs have no points" + (f" of class {list(options.classes)}"
+                                                        if options.classes else ""))
+    if options.normals == "file" and any(c.normals is None for c in clouds):
+        missing = next(s for s, c in zip(sources, clouds) if c.normals is None)
+        raise InputError(f"{missing}: the input has no normals; use --normals estimate (or auto)")
+    normals = _concatenate([c.normals for c in clouds])
+    colors = _concatenate([c.colors for c in clouds])
+    classification = _concatenate([c.classification for c in clouds])
+    cloud = PointCloud(np.concatenate([c.points for c in clouds]), normals, colors, classification)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    return Survey(cloud, [str(s) for s in sources], offsets)
+
+
+def _concatenate(arrays: list) -> np.ndarray | None:
+    """The arrays stacked, or None unless every input has one of the same width."""
+    if any(a is None for a in arrays) or len({a.shape[1:] for a in arrays}) != 1:
+        return None
+    return np.concatenate(arrays)
+
+
+def triangle_owners(model, survey: Survey) -> np.ndarray:
+    """(T,) the input owning each base triangle: the one holding its lowest-numbered corner.
+
+    model.used and model.hf.source_index are ascending, so the lowest triangle index is
+    also the lowest cloud index.
+    """
+    triangles = model.interp.triangles
+    cloud_index = model.hf.source_index[model.used]
+    return survey.input_of(cloud_index[triangles.min(axis=1)])
+
+
+def neighbours(table) -> np.ndarray:
+    """(T, 3) the triangle across each triangle's slot-k edge, -1 on the boundary."""
+    flat = table.tri_edge.ravel()
+    order = np.argsort(flat, kind="stable")              # the two slots of an edge side by side
+    pairs = flat[order]
+    same = np.flatnonzero(pairs[1:] == pairs[:-1])
+    across = np.full(flat.size, -1, dtype=np.int64)
+    across[order[same]] = order[same + 1] // 3
+    across[order[same + 1]] = order[same] // 3
+    return across.reshape(-1, 3)
+
+
+@dataclass
+class TileTask:
+    """Everything one tile's refinement needs (picklable: it travels to Dask workers).
+
+    points (n, 2), values (n,), gradients (n, 2): local-frame data of the tile's corner
+    points (owned and halo triangles), in survey order; colors (n, c) uint8 or None;
+    triangles (t, 3) into those points, in survey order; coefficients (t, 21) and
+    G (t, 3, 2): the survey interpolator's rows for them; owned (t,) bool: the triangles
+    whose refinement this tile outputs (the rest is the halo); frame: the survey's
+    ScanFrame; input_points: the input's point count (for the report).
+    """
+
+    index: int
+    name: str
+    output: str
+    points: np.ndarray
+    values: np.ndarray
+    gradients: np.ndarray
+    colors: np.ndarray | None
+    triangles: np.ndarray
+    coefficients: np.ndarray
+    G: np.ndarray
+    owned: np.ndarray
+    frame: Any
+    scheme: Any
+    level: int
+    input_points: int
+
+
+def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int) -> list[TileTask]:
+    """One TileTask per input: its owned triangles plus the halo across its border edges."""
+    interp = model.interp
+    owners = triangle_owners(model, survey)
+    across = neighbours(interp._table)
+    colors = survey.cloud.colors
+    if colors is not None:
+        colors = colors[model.hf.source_index[model.used]]
+    tasks = []
+    for i, (name, output) in enumerate(zip(survey.names, outputs)):
+        owned = owners == i
+        halo = np.zeros_like(owned)
+        halo[across[owned][across[owned] >= 0]] = True
+        keep = np.flatnonzero(owned | halo)                    # survey order
+        corners = interp.triangles[keep]
+        points = np.unique(corners)
+        tasks.append(TileTask(
+            i, name, output, interp.points[points], interp.values[points], interp.gradients[points],
+            None if colors is None else colors[points],
+            np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
+            owned[keep], model.frame, interp.scheme, level,
+            int(survey.offsets[i + 1] - survey.offsets[i])))
+    return tasks
+
+
+@dataclass
+class TileResult:
+    """A refined tile: its mesh (world coordinates) and a report row."""
+
+    index: int
+    mesh: SurfaceMesh
+    report: dict
+
+
+def run_tile(task: TileTask) -> TileResult:
+    """Refine one tile and keep the refined triangles of its owned base triangles.
+
+    Output vertices are those the kept faces use, in the tile refinement's order.
+    """
+    from c1mesh.pipeline import surface_stream
+    from c1mesh.refine import Refinement
+    from c1mesh.topology import edge_table
+
+    start = time.perf_counter()
+    L = task.level
+    table = edge_table(task.triangles, task.points.shape[0])
+    refinement = Refinement(task.points, task.values, task.gradients, task.triangles,
+                            task.coefficients, task.G, table, task.scheme, L)
+    whole = surface_stream(refinement, task.frame, task.colors).materialize()
+    owned = np.flatnonzero(task.owned)
+    faces = whole.faces.reshape(-1, L * L, 3)[owned].reshape(-1, 3)
+    used = np.flatnonzero(np.bincount(faces.ravel(), minlength=whole.vertices.shape[0]))
+    remap = np.full(whole.vertices.shape[0], -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    mesh = SurfaceMesh(whole.vertices[used], remap[faces], whole.vertex_normals[used],
+                       None if whole.vertex_colors is None else whole.vertex_colors[used])
+    report = {"tile": task.name, "output": task.output, "worker": worker_address(),
+              "input_points": task.input_points, "base_triangles": int(owned.size),
+              "halo_triangles": int(task.owned.size - owned.size),
+              "vertices": int(used.size), "triangles": int(mesh.faces.shape[0]),
+              "seconds": round(time.perf_counter() - start, 6)}
+    return TileResult(task.index, mesh, report)
+
+
+def worker_address() -> str:
+    """The Dask worker running this code, or host:pid outside Dask."""
+    try:
+        from distributed import get_worker
+        return get_worker().address
+    except (ImportError, ValueError):
+        return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def write_tiles(results: Iterable[TileResult], tasks: Sequence[TileTask], ascii: bool = False,
+                on_tile: Callable[[dict], None] | None = None) -> list[dict]:
+    """Write each tile's mesh to its output, all or nothing.
+
+    Meshes go to hidden temporary files beside their outputs and are renamed into place
+    only after every tile has succeeded; a failure (re-raised as InputError naming the
+    tile) removes them, so no output of the run appears. Returns the report rows in
+    input order.
+    """
+    from pathlib import Path
+
+    from c1mesh.formats import write_mesh
+
+    temps: dict[int, Path] = {}
+    rows: dict[int, dict] = {}
+    try:
+        for result in results:
+            task = tasks[result.index]
+            target = Path(task.output)
+            temp = target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
+            temps[result.index] = temp
+            write_mesh(result.mesh, temp, ascii=ascii)
+            rows[result.index] = result.report
+            if on_tile:
+                on_tile(result.report)
+        for index, temp in temps.items():
+            os.replace(temp, tasks[index].output)
+    except BaseException:
+        for temp in temps.values():
+            temp.unlink(missing_ok=True)
+        raise
+    return [rows[i] for i in sorted(rows)]
+
+
+class TileError(InputError):
+    """A tile failed; the message names it."""
+
+
+def tile_failure(task: TileTask, exc: BaseException) -> TileError:
+    """The error to report for a tile whose task raised exc."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return TileError(f"tile {task.name}: {text}")
+
+
+def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence[str] | None = None,
+                 scheduler: str | None = None, jobs: int = 1,
+                 on_tile: Callable[[dict], None] | None = None) -> dict:
+    """Fit the inputs as one survey; returns the report.
+
+    output: one path for the whole survey's mesh (the fit of the concatenated cloud,
+    written as `c1mesh fit` writes one input); or outputs: one path per input, each
+    holding the triangles its input owns (module docstring), tiles run by
+    distributed.run_tiles (scheduler, jobs). on_tile is called with each tile's report
+    row as it is written.
+    """
+    from c1mesh.pipeline import _Timer, build_surface, fit
+
+    survey = load_survey(sources, options)
+    if output is not None:
+        report = fit(survey.cloud, output, options, keep_mesh=False).report
+        report["input"] = list(survey.names)
+        return report
+    from c1mesh.distributed import run_tiles
+
+    timer = _Timer(None)
+    model = build_surface(survey.cloud, options, timer)
+    tasks = plan_tiles(model, survey, outputs, options.level)
+    start = time.perf_counter()
+    rows = write_tiles(run_tiles(tasks, scheduler, jobs), tasks, ascii=options.ascii, on_tile=on_tile)
+    timer.seconds["tiles"] = round(time.perf_counter() - start, 6)
+    return {"inputs": list(survey.names), "outputs": list(outputs),
+            "points": {"read": len(survey.cloud), "kept": int(model.used.size)},
+            "normals": model.normal_source,
+            "frame": {"origin": model.frame.origin.tolist(), "axes": model.frame.axes.tolist()},
+            "triangles": {"after_trim": model.trim_report.triangles_after,
+                          "max_edge": model.trim_report.max_edge},
+            "level": options.level, "ownership": "lowest-numbered corner point",
+            "scheduler": scheduler or (f"local cluster of {jobs}" if jobs > 1 else "in process"),
+            "tiles": rows, "seconds": timer.seconds}
