@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parent.parent
 HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
             "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
-            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit")
+            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit",
+            "## Tiles: seamless survey vs one whole fit")
 
 
 def test_quick_benchmark_writes_results(tmp_path):
@@ -27,3 +28,4 @@ def test_quick_benchmark_writes_results(tmp_path):
     assert "python -m benchmarks --quick" in text
     assert re.search(r"\| \d+(\.\d+)?× \|", text), "no numeric ratio in RESULTS.md"
     assert (tmp_path / "engine.png").exists() and (tmp_path / "accuracy.png").exists()
+    assert (tmp_path / "tiles.png").exists()

@@ -123,7 +123,7 @@ class TileTask:
     triangles (t, 3) into those points, in survey order; coefficients (t, 21) and
     G (t, 3, 2): the survey interpolator's rows for them; owned (t,) bool: the triangles
     whose refinement this tile outputs (the rest is the halo); frame: the survey's
-    ScanFrame; input_points: the input's point count (for the report).
+    ScanFrame; scheme: a scheme name or ShapeTuple; input_points: the input's point count.
     """
 
     index: int
@@ -163,9 +163,17 @@ def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int) -> lis
             i, name, output, interp.points[points], interp.values[points], interp.gradients[points],
             None if colors is None else colors[points],
             np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
-            owned[keep], model.frame, interp.scheme, level,
+            owned[keep], model.frame, _scheme_for_task(interp.scheme), level,
             int(survey.offsets[i + 1] - survey.offsets[i])))
     return tasks
+
+
+def _scheme_for_task(scheme):
+    """A named scheme travels by name (its shape functions hold lambdas, which plain
+    pickle refuses); a custom ShapeTuple travels as itself (Dask's cloudpickle takes it)."""
+    from c1mesh.schemes import NAMED_TUPLES
+
+    return scheme.name if NAMED_TUPLES.get(scheme.name) is scheme else scheme
 
 
 @dataclass
@@ -184,13 +192,14 @@ def run_tile(task: TileTask) -> TileResult:
     """
     from c1mesh.pipeline import surface_stream
     from c1mesh.refine import Refinement
+    from c1mesh.schemes import get_scheme
     from c1mesh.topology import edge_table
 
     start = time.perf_counter()
     L = task.level
     table = edge_table(task.triangles, task.points.shape[0])
     refinement = Refinement(task.points, task.values, task.gradients, task.triangles,
-                            task.coefficients, task.G, table, task.scheme, L)
+                            task.coefficients, task.G, table, get_scheme(task.scheme), L)
     whole = surface_stream(refinement, task.frame, task.colors).materialize()
     owned = np.flatnonzero(task.owned)
     faces = whole.faces.reshape(-1, L * L, 3)[owned].reshape(-1, 3)
@@ -209,11 +218,14 @@ def run_tile(task: TileTask) -> TileResult:
 
 def worker_address() -> str:
     """The Dask worker running this code, or host:pid outside Dask."""
-    try:
-        from distributed import get_worker
-        return get_worker().address
-    except (ImportError, ValueError):
-        return f"{socket.gethostname()}:{os.getpid()}"
+    import sys
+
+    if "distributed" in sys.modules:            # a Dask worker has imported it; importing costs ~1 s
+        try:
+            return sys.modules["distributed"].get_worker().address
+        except ValueError:                       # imported, but not running in a worker
+            pass
+    return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def write_tiles(results: Iterable[TileResult], tasks: Sequence[TileTask], ascii: bool = False,
