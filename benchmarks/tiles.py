@@ -6,8 +6,8 @@ normals, cut into a grid of PLY files of about TILE_POINTS points each; the peer
 both as child processes, alternately, `reps` times; the ratio is the median over
 repetitions of seamless / whole. One tile task (c1mesh.tiles.run_tile) of the largest
 survey is also run alone in a child to give the peak memory of one task, the figure that
-matters when tiles run on Dask workers. `-j 2` (a local Dask cluster of two worker
-processes) is timed once at the smallest size against `-j 1` (tiles in the process);
+matters when tiles run on Dask workers. `-j 2` (a pool of two worker processes) is
+timed once at the smallest size against `-j 1` (tiles in the process);
 --quick runs one repetition of two small sizes and leaves `-j 2` out.
 """
 from __future__ import annotations
@@ -72,7 +72,7 @@ def run(cfg: Config) -> Section:
                    "seamless": [c.seconds for c in seamless], "whole": [c.seconds for c in single],
                    "seamless_rss": max(c.peak_rss for c in seamless),
                    "whole_rss": max(c.peak_rss for c in single)}
-            if n == sizes(cfg)[0] and not cfg.quick:       # a cluster's start-up alone is ~10 s
+            if n == sizes(cfg)[0] and not cfg.quick:       # parallel runs say little at toy sizes
                 child = run_child([exe, *C1MESH, "fit", *paths, "--seamless", "-O", f"{tmp}/dask",
                                    "-j", "2", *common])
                 _check(child, "-j 2")
@@ -120,7 +120,7 @@ def _table(sec: Section, rows: list[dict], tile_peak: dict | None) -> None:
     sec.add("", f"Time per million points grows {fmt_x(growth)} from {first['n']:,} to {last['n']:,} points "
             "(1.0× is linear).")
     if "dask2" in first:
-        sec.add("", f"`-j 2` (local Dask cluster, two worker processes, cluster start-up included) at "
+        sec.add("", f"`-j 2` (two worker processes) at "
                 f"{first['n']:,} points: {fmt_s(first['dask2'])} against {fmt_s(median(first['seamless']))} "
                 "with the tiles run in the process.")
     ratio = median([s / w for s, w in zip(last["seamless"], last["whole"])])
