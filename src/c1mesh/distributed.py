@@ -26,6 +26,8 @@ def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
               jobs: int = 1) -> Iterator[TileResult]:
     """Yield the TileResult of every task, in completion order.
 
+    tasks: a sequence (tiles.TilePlan builds each task when indexed); at most _IN_FLIGHT
+    tasks per worker are built and pending at a time, so memory holds those, not all.
     scheduler: address of a running dask.distributed scheduler ("tcp://host:port") to
     send the tasks to; else jobs > 1 runs them on `jobs` local processes (LOCAL_POOL);
     else the tasks run here, one after the other.
@@ -49,22 +51,6 @@ def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
         yield from _run_on(client, tasks)
 
 
-def _run_in_pool(tasks: Sequence[TileTask], jobs: int) -> Iterator[TileResult]:
-    """The tasks on a ProcessPoolExecutor of `jobs` processes, yielded as they complete."""
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(run_tile, task): task for task in tasks}
-        try:
-            for future in as_completed(futures):
-                if future.exception() is not None:
-                    raise tile_failure(futures[future], future.exception())
-                yield future.result()
-        finally:
-            for future in futures:
-                future.cancel()
-
-
 def _run_here(task: TileTask) -> TileResult:
     try:
         return run_tile(task)
@@ -72,21 +58,63 @@ def _run_here(task: TileTask) -> TileResult:
         raise tile_failure(task, exc) from exc
 
 
+_IN_FLIGHT = 2
+"""Tasks built and submitted per worker ahead of their results."""
+
+
+def _windowed(count: int, window: int, pending: dict, submit, wait_some) -> Iterator[tuple[object, int]]:
+    """Submit tasks 0..count-1 keeping at most `window` pending; yield (future, index) as they finish.
+
+    pending: the caller's dict future -> task index (so it can cancel what is left);
+    submit(i) returns a future; wait_some() returns finished futures among the pending.
+    """
+    next_index = 0
+    while next_index < count or pending:
+        while next_index < count and len(pending) < window:
+            pending[submit(next_index)] = next_index
+            next_index += 1
+        for future in list(wait_some()):
+            yield future, pending.pop(future)
+
+
+def _run_in_pool(tasks: Sequence[TileTask], jobs: int) -> Iterator[TileResult]:
+    """The tasks on a ProcessPoolExecutor of `jobs` processes, yielded as they complete."""
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    pending: dict = {}
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        try:
+            for future, i in _windowed(len(tasks), _IN_FLIGHT * jobs, pending,
+                                       lambda i: pool.submit(run_tile, tasks[i]),
+                                       lambda: wait(pending, return_when=FIRST_COMPLETED).done):
+                if future.exception() is not None:
+                    raise tile_failure(tasks[i], future.exception())
+                yield future.result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+
 def _run_on(client, tasks: Sequence[TileTask]) -> Iterator[TileResult]:
-    """Submit every task to client, yield results as they complete."""
+    """Submit the tasks to client (a few per worker at a time), yield results as they complete."""
     from distributed import as_completed
 
-    futures = {}
-    for task in tasks:              # scattered first: the arrays travel as data, not in the graph
-        data = client.scatter(task, hash=False)
-        future = client.submit(run_tile, data, key=f"c1mesh-tile-{task.index}-{id(task):x}", pure=False)
-        futures[future.key] = (future, task)
+    workers = max(1, sum(client.nthreads().values()))
+    pending: dict = {}
+    completed = as_completed()
+
+    def submit(i: int):
+        data = client.scatter(tasks[i], hash=False)   # the arrays travel as data, not in the graph
+        future = client.submit(run_tile, data, key=f"c1mesh-tile-{i}-{id(tasks):x}", pure=False)
+        completed.add(future)
+        return future
     try:
-        for future in as_completed([f for f, _ in futures.values()]):
-            task = futures[future.key][1]
+        for future, i in _windowed(len(tasks), _IN_FLIGHT * workers, pending, submit,
+                                   lambda: [next(completed)]):
             if future.status == "error":
-                raise tile_failure(task, future.exception())
-            yield future.result()
+                raise tile_failure(tasks[i], future.exception())
+            result = future.result()
             future.release()
+            yield result
     finally:
-        client.cancel([f for f, _ in futures.values()])
+        client.cancel(list(pending))

@@ -143,29 +143,50 @@ class TileTask:
     input_points: int
 
 
-def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int) -> list[TileTask]:
-    """One TileTask per input: its owned triangles plus the halo across its border edges."""
-    interp = model.interp
-    owners = triangle_owners(model, survey)
-    across = neighbours(interp._table)
-    colors = survey.cloud.colors
-    if colors is not None:
-        colors = colors[model.hf.source_index[model.used]]
-    tasks = []
-    for i, (name, output) in enumerate(zip(survey.names, outputs)):
-        owned = owners == i
+class TilePlan:
+    """The tiles of a survey, one per input, each TileTask built only when asked for.
+
+    plan[i] is input i's task: its owned triangles plus the halo across its border edges.
+    Tasks are built on demand so that a run holds the survey's base surface and only the
+    tasks in flight, not a second copy of the data in tasks. len(plan) is the input count;
+    names and outputs are per input.
+    """
+
+    def __init__(self, model, survey: Survey, outputs: Sequence[str], level: int):
+        interp = model.interp
+        self.model, self.level = model, level
+        self.names, self.outputs = list(survey.names), [str(o) for o in outputs]
+        self.counts = np.diff(survey.offsets)
+        self.owners = triangle_owners(model, survey)
+        self.across = neighbours(interp._table)
+        colors = survey.cloud.colors
+        self.colors = None if colors is None else colors[model.hf.source_index[model.used]]
+        self.scheme = _scheme_for_task(interp.scheme)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, i: int) -> TileTask:
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        interp = self.model.interp
+        owned = self.owners == i
         halo = np.zeros_like(owned)
-        halo[across[owned][across[owned] >= 0]] = True
+        across = self.across[owned]
+        halo[across[across >= 0]] = True
         keep = np.flatnonzero(owned | halo)                    # survey order
         corners = interp.triangles[keep]
         points = np.unique(corners)
-        tasks.append(TileTask(
-            i, name, output, interp.points[points], interp.values[points], interp.gradients[points],
-            None if colors is None else colors[points],
+        return TileTask(
+            i, self.names[i], self.outputs[i], interp.points[points], interp.values[points],
+            interp.gradients[points], None if self.colors is None else self.colors[points],
             np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
-            owned[keep], model.frame, _scheme_for_task(interp.scheme), level,
-            int(survey.offsets[i + 1] - survey.offsets[i])))
-    return tasks
+            owned[keep], self.model.frame, self.scheme, self.level, int(self.counts[i]))
+
+
+def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int) -> TilePlan:
+    """The TilePlan of a survey's base surface (model: pipeline.SurfaceModel)."""
+    return TilePlan(model, survey, outputs, level)
 
 
 def _scheme_for_task(scheme):
@@ -228,7 +249,7 @@ def worker_address() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def write_tiles(results: Iterable[TileResult], tasks: Sequence[TileTask], ascii: bool = False,
+def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bool = False,
                 on_tile: Callable[[dict], None] | None = None) -> list[dict]:
     """Write each tile's mesh to its output, all or nothing.
 
@@ -245,8 +266,7 @@ def write_tiles(results: Iterable[TileResult], tasks: Sequence[TileTask], ascii:
     rows: dict[int, dict] = {}
     try:
         for result in results:
-            task = tasks[result.index]
-            target = Path(task.output)
+            target = Path(outputs[result.index])
             temp = target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
             temps[result.index] = temp
             write_mesh(result.mesh, temp, ascii=ascii)
@@ -254,7 +274,7 @@ def write_tiles(results: Iterable[TileResult], tasks: Sequence[TileTask], ascii:
             if on_tile:
                 on_tile(result.report)
         for index, temp in temps.items():
-            os.replace(temp, tasks[index].output)
+            os.replace(temp, outputs[index])
     except BaseException:
         for temp in temps.values():
             temp.unlink(missing_ok=True)
@@ -296,7 +316,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     model = build_surface(survey.cloud, options, timer)
     tasks = plan_tiles(model, survey, outputs, options.level)
     start = time.perf_counter()
-    rows = write_tiles(run_tiles(tasks, scheduler, jobs), tasks, ascii=options.ascii, on_tile=on_tile)
+    rows = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii, on_tile=on_tile)
     timer.seconds["tiles"] = round(time.perf_counter() - start, 6)
     return {"inputs": list(survey.names), "outputs": list(outputs),
             "points": {"read": len(survey.cloud), "kept": int(model.used.size)},
