@@ -269,3 +269,18 @@ def test_real_dask_scheduler_and_two_workers(hill_tiles, tmp_path):
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+
+
+def test_unreachable_scheduler_is_one_line_and_no_output(hill_tiles, tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    import c1mesh.distributed as distributed
+
+    monkeypatch.setattr(distributed, "CONNECT_SECONDS", 1)
+    folder, paths, _ = hill_tiles
+    address = f"tcp://127.0.0.1:{_free_port()}"                 # nothing listens there
+    result = CliRunner().invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "out"),
+                                       "--scheduler", address])
+    assert result.exit_code == 1
+    assert result.output.startswith(f"c1mesh: error: cannot reach the Dask scheduler {address}")
+    assert result.output.count("\n") == 1
+    assert not any((tmp_path / "out").iterdir())

@@ -9,7 +9,11 @@ from __future__ import annotations
 
 from typing import Iterator, Sequence
 
+from c1mesh.errors import InputError
 from c1mesh.tiles import TileResult, TileTask, run_tile, tile_failure
+
+CONNECT_SECONDS = 30
+"""How long to try reaching a --scheduler before giving up."""
 
 
 LOCAL_POOL = "processes"
@@ -43,7 +47,11 @@ def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
-        with Client(scheduler) as client:
+        try:
+            client = Client(scheduler, timeout=CONNECT_SECONDS)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from exc
+        with client:
             yield from _run_on(client, tasks)
         return
     with LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
