@@ -154,7 +154,7 @@ class TilePlan:
 
     def __init__(self, model, survey: Survey, outputs: Sequence[str], level: int):
         interp = model.interp
-        self.model, self.level = model, level
+        self.interp, self.frame, self.level = interp, model.frame, level     # not the cloud: see fit_seamless
         self.names, self.outputs = list(survey.names), [str(o) for o in outputs]
         self.counts = np.diff(survey.offsets)
         self.owners = triangle_owners(model, survey)
@@ -169,7 +169,7 @@ class TilePlan:
     def __getitem__(self, i: int) -> TileTask:
         if not 0 <= i < len(self):
             raise IndexError(i)
-        interp = self.model.interp
+        interp = self.interp
         owned = self.owners == i
         halo = np.zeros_like(owned)
         across = self.across[owned]
@@ -181,7 +181,7 @@ class TilePlan:
             i, self.names[i], self.outputs[i], interp.points[points], interp.values[points],
             interp.gradients[points], None if self.colors is None else self.colors[points],
             np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
-            owned[keep], self.model.frame, self.scheme, self.level, int(self.counts[i]))
+            owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]))
 
 
 def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int) -> TilePlan:
@@ -305,25 +305,30 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     """
     from c1mesh.pipeline import _Timer, build_surface, fit
 
-    survey = load_survey(sources, options)
+    timer = _Timer(None)
+    with timer.stage("read"):
+        survey = load_survey(sources, options)
     if output is not None:
         report = fit(survey.cloud, output, options, keep_mesh=False).report
         report["input"] = list(survey.names)
+        report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
         return report
     from c1mesh.distributed import run_tiles
 
-    timer = _Timer(None)
     model = build_surface(survey.cloud, options, timer)
+    report = {"inputs": list(survey.names), "outputs": list(outputs),
+              "points": {"read": len(survey.cloud), "kept": int(model.used.size)},
+              "normals": model.normal_source,
+              "frame": {"origin": model.frame.origin.tolist(), "axes": model.frame.axes.tolist()},
+              "triangles": {"after_trim": model.trim_report.triangles_after,
+                            "max_edge": model.trim_report.max_edge},
+              "level": options.level, "ownership": "lowest-numbered corner point",
+              "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")}
     tasks = plan_tiles(model, survey, outputs, options.level)
+    del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()
-    rows = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii, on_tile=on_tile)
+    report["tiles"] = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii,
+                                  on_tile=on_tile)
     timer.seconds["tiles"] = round(time.perf_counter() - start, 6)
-    return {"inputs": list(survey.names), "outputs": list(outputs),
-            "points": {"read": len(survey.cloud), "kept": int(model.used.size)},
-            "normals": model.normal_source,
-            "frame": {"origin": model.frame.origin.tolist(), "axes": model.frame.axes.tolist()},
-            "triangles": {"after_trim": model.trim_report.triangles_after,
-                          "max_edge": model.trim_report.max_edge},
-            "level": options.level, "ownership": "lowest-numbered corner point",
-            "scheduler": scheduler or (f"local cluster of {jobs}" if jobs > 1 else "in process"),
-            "tiles": rows, "seconds": timer.seconds}
+    report["seconds"] = timer.seconds
+    return report
