@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Iterator, Sequence
 
 from c1mesh.errors import InputError
-from c1mesh.tiles import TileResult, TileTask, run_tile, tile_failure
+from c1mesh.tiles import TileResult, TileTask, run_tile, temp_path, tile_failure
 
 CONNECT_SECONDS = 30
 """How long to try reaching a --scheduler before giving up."""
@@ -60,8 +60,9 @@ def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
 
 
 def _run_here(task: TileTask) -> TileResult:
+    """Run a task in this process, streaming its mesh to its temporary file."""
     try:
-        return run_tile(task)
+        return run_tile(task, target=temp_path(task.output))
     except Exception as exc:  # noqa: BLE001 — any failure of a tile is named by its tile
         raise tile_failure(task, exc) from exc
 

@@ -141,6 +141,7 @@ class TileTask:
     scheme: Any
     level: int
     input_points: int
+    ascii: bool = False
 
 
 class TilePlan:
@@ -152,9 +153,9 @@ class TilePlan:
     names and outputs are per input.
     """
 
-    def __init__(self, model, survey: Survey, outputs: Sequence[str], level: int):
+    def __init__(self, model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False):
         interp = model.interp
-        self.interp, self.frame, self.level = interp, model.frame, level     # not the cloud: see fit_seamless
+        self.interp, self.frame, self.level, self.ascii = interp, model.frame, level, ascii   # not the cloud
         self.names, self.outputs = list(survey.names), [str(o) for o in outputs]
         self.counts = np.diff(survey.offsets)
         self.owners = triangle_owners(model, survey)
@@ -181,12 +182,12 @@ class TilePlan:
             i, self.names[i], self.outputs[i], interp.points[points], interp.values[points],
             interp.gradients[points], None if self.colors is None else self.colors[points],
             np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
-            owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]))
+            owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]), self.ascii)
 
 
-def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int) -> TilePlan:
+def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False) -> TilePlan:
     """The TilePlan of a survey's base surface (model: pipeline.SurfaceModel)."""
-    return TilePlan(model, survey, outputs, level)
+    return TilePlan(model, survey, outputs, level, ascii)
 
 
 def _scheme_for_task(scheme):
@@ -199,42 +200,89 @@ def _scheme_for_task(scheme):
 
 @dataclass
 class TileResult:
-    """A refined tile: its mesh (world coordinates) and a report row."""
+    """A refined tile: its mesh (world coordinates; None once written) and a report row."""
 
     index: int
     mesh: SurfaceMesh
     report: dict
 
 
-def run_tile(task: TileTask) -> TileResult:
+def run_tile(task: TileTask, target=None) -> TileResult:
     """Refine one tile and keep the refined triangles of its owned base triangles.
 
-    Output vertices are those the kept faces use, in the tile refinement's order.
+    target: a path to stream the tile's mesh to (then the result's mesh is None: memory
+    stays block-sized, as in `c1mesh fit`); None returns the mesh in memory (to send it
+    back from a worker). Output vertices are those the kept faces use, in the tile
+    refinement's order.
     """
+    from c1mesh.formats import write_mesh
+
+    start = time.perf_counter()
+    stream = tile_stream(task)
+    mesh = None
+    if target is None:
+        mesh = stream.materialize()
+    else:
+        write_mesh(stream, target, ascii=task.ascii)
+    owned = int(task.owned.sum())
+    report = {"tile": task.name, "output": task.output, "worker": worker_address(),
+              "input_points": task.input_points, "base_triangles": owned,
+              "halo_triangles": int(task.owned.size - owned),
+              "vertices": int(stream.vertex_count), "triangles": int(stream.face_count),
+              "seconds": round(time.perf_counter() - start, 6)}
+    return TileResult(task.index, mesh, report)
+
+
+def tile_stream(task: TileTask):
+    """The owned part of a tile's refinement as a MeshStream (pipeline.surface_stream).
+
+    One integer pass over the faces marks the output points the owned faces use; the
+    vertex pass then evaluates the tile block by block and keeps the marked points, the
+    face pass keeps the owned faces, renumbered. Halo triangles are evaluated but few.
+    """
+    from dataclasses import replace
+
     from c1mesh.pipeline import surface_stream
     from c1mesh.refine import Refinement
     from c1mesh.schemes import get_scheme
     from c1mesh.topology import edge_table
 
-    start = time.perf_counter()
-    L = task.level
+    L2 = task.level * task.level
     table = edge_table(task.triangles, task.points.shape[0])
     refinement = Refinement(task.points, task.values, task.gradients, task.triangles,
-                            task.coefficients, task.G, table, get_scheme(task.scheme), L)
-    whole = surface_stream(refinement, task.frame, task.colors).materialize()
-    owned = np.flatnonzero(task.owned)
-    faces = whole.faces.reshape(-1, L * L, 3)[owned].reshape(-1, 3)
-    used = np.flatnonzero(np.bincount(faces.ravel(), minlength=whole.vertices.shape[0]))
-    remap = np.full(whole.vertices.shape[0], -1, dtype=np.int64)
-    remap[used] = np.arange(used.size)
-    mesh = SurfaceMesh(whole.vertices[used], remap[faces], whole.vertex_normals[used],
-                       None if whole.vertex_colors is None else whole.vertex_colors[used])
-    report = {"tile": task.name, "output": task.output, "worker": worker_address(),
-              "input_points": task.input_points, "base_triangles": int(owned.size),
-              "halo_triangles": int(task.owned.size - owned.size),
-              "vertices": int(used.size), "triangles": int(mesh.faces.shape[0]),
-              "seconds": round(time.perf_counter() - start, 6)}
-    return TileResult(task.index, mesh, report)
+                            task.coefficients, task.G, table, get_scheme(task.scheme), task.level)
+    whole = surface_stream(refinement, task.frame, task.colors)
+    owned_faces = np.repeat(task.owned, L2)
+    used = np.zeros(refinement.vertex_count, dtype=bool)
+    for first, faces in refinement.face_blocks():
+        used[faces[owned_faces[first:first + len(faces)]].ravel()] = True
+    renumber = np.cumsum(used, dtype=np.int64)
+    renumber -= 1
+
+    def vertex_blocks():
+        position = 0
+        for vertices, normals, colors in whole.vertex_blocks():
+            keep = used[position:position + len(vertices)]
+            position += len(vertices)
+            yield (vertices[keep], None if normals is None else normals[keep],
+                   None if colors is None else colors[keep])
+
+    def face_blocks():
+        first = 0
+        for faces in whole.face_blocks():
+            keep = owned_faces[first:first + len(faces)]
+            first += len(faces)
+            yield renumber[faces[keep]]
+    return replace(whole, vertex_count=int(used.sum()), face_count=int(owned_faces.sum()),
+                   vertex_blocks=vertex_blocks, face_blocks=face_blocks)
+
+
+def temp_path(output: str):
+    """The hidden file beside `output` a tile is written to before the run succeeds."""
+    from pathlib import Path
+
+    target = Path(output)
+    return target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
 
 
 def worker_address() -> str:
@@ -266,10 +314,9 @@ def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bo
     rows: dict[int, dict] = {}
     try:
         for result in results:
-            target = Path(outputs[result.index])
-            temp = target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
-            temps[result.index] = temp
-            write_mesh(result.mesh, temp, ascii=ascii)
+            temp = temps[result.index] = temp_path(outputs[result.index])
+            if result.mesh is not None:                  # else run_tile wrote it there
+                write_mesh(result.mesh, temp, ascii=ascii)
             rows[result.index] = result.report
             if on_tile:
                 on_tile(result.report)
@@ -324,7 +371,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
                             "max_edge": model.trim_report.max_edge},
               "level": options.level, "ownership": "lowest-numbered corner point",
               "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")}
-    tasks = plan_tiles(model, survey, outputs, options.level)
+    tasks = plan_tiles(model, survey, outputs, options.level, options.ascii)
     del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()
     report["tiles"] = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii,
