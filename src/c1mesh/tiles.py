@@ -123,7 +123,8 @@ class TileTask:
     triangles (t, 3) into those points, in survey order; coefficients (t, 21) and
     G (t, 3, 2): the survey interpolator's rows for them; owned (t,) bool: the triangles
     whose refinement this tile outputs (the rest is the halo); frame: the survey's
-    ScanFrame; scheme: a scheme name or ShapeTuple; input_points: the input's point count.
+    ScanFrame; scheme: a scheme name or ShapeTuple; input_points: the input's point count;
+    ascii: write ASCII PLY.
     """
 
     index: int
@@ -216,6 +217,7 @@ def run_tile(task: TileTask, target=None) -> TileResult:
     refinement's order.
     """
     from c1mesh.formats import write_mesh
+    from c1mesh.threads import blas_threads
 
     start = time.perf_counter()
     stream = tile_stream(task)
@@ -223,7 +225,8 @@ def run_tile(task: TileTask, target=None) -> TileResult:
     if target is None:
         mesh = stream.materialize()
     else:
-        write_mesh(stream, target, ascii=task.ascii)
+        with blas_threads(1):        # as pipeline.fit: an idle BLAS pool spins on the writer's core
+            write_mesh(stream, target, ascii=task.ascii)
     owned = int(task.owned.sum())
     report = {"tile": task.name, "output": task.output, "worker": worker_address(),
               "input_points": task.input_points, "base_triangles": owned,
@@ -255,8 +258,9 @@ def tile_stream(task: TileTask):
     owned_faces = np.repeat(task.owned, L2)
     used = np.zeros(refinement.vertex_count, dtype=bool)
     for first, faces in refinement.face_blocks():
-        used[faces[owned_faces[first:first + len(faces)]].ravel()] = True
-    renumber = np.cumsum(used, dtype=np.int64)
+        keep = owned_faces[first:first + len(faces)]
+        used[(faces if keep.all() else faces[keep]).ravel()] = True      # most blocks are all owned
+    renumber = np.cumsum(used, dtype=refinement.index_dtype)
     renumber -= 1
 
     def vertex_blocks():
@@ -264,15 +268,18 @@ def tile_stream(task: TileTask):
         for vertices, normals, colors in whole.vertex_blocks():
             keep = used[position:position + len(vertices)]
             position += len(vertices)
-            yield (vertices[keep], None if normals is None else normals[keep],
-                   None if colors is None else colors[keep])
+            if keep.all():
+                yield vertices, normals, colors
+            else:
+                yield (vertices[keep], None if normals is None else normals[keep],
+                       None if colors is None else colors[keep])
 
     def face_blocks():
         first = 0
         for faces in whole.face_blocks():
             keep = owned_faces[first:first + len(faces)]
             first += len(faces)
-            yield renumber[faces[keep]]
+            yield renumber.take(faces if keep.all() else faces[keep])
     return replace(whole, vertex_count=int(used.sum()), face_count=int(owned_faces.sum()),
                    vertex_blocks=vertex_blocks, face_blocks=face_blocks)
 
