@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parent.parent
 HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
             "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
-            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit")
+            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit",
+            "## Tiles: seamless survey vs one whole fit")
 
 
 @pytest.mark.slow
@@ -38,3 +39,4 @@ def test_quick_benchmark_writes_results(tmp_path):
         assert re.search(rf"^\| {level} \| [\d,]+ \| [\d.]+ [MG]iB \|", text, re.M), level
     assert "Fitting sees the training points only" in text
     assert (tmp_path / "engine.png").exists() and (tmp_path / "accuracy.png").exists()
+    assert (tmp_path / "tiles.png").exists()

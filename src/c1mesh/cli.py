@@ -208,14 +208,28 @@ def main() -> None:
 @click.option("--threads", type=click.IntRange(1, 1024), default=None,
               help="Threads in all (BLAS included); with --jobs N each process gets "
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")
+@click.option("--seamless", is_flag=True,
+              help="Treat the inputs as one survey: -o writes one mesh, -O one mesh per input that "
+                   "joins its neighbours exactly (docs/tiles.md).")
+@click.option("--scheduler", help="With --seamless -O: run the tiles on this Dask scheduler (tcp://HOST:PORT).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, memory, jobs, quiet, verbose, debug, threads):
+        max_edge, scheme, level, ascii_ply, report, memory, jobs, quiet, verbose, debug, threads,
+        seamless, scheduler):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     _check_axis(axis)
+    if seamless or scheduler:
+        from c1mesh.pipeline import FitOptions
+
+        options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
+                             max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
+                             ascii=ascii_ply)
+        _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
+                      scheduler, quiet, debug)
+        return
     pairs = _plan(inputs, output, output_dir, suffix, input_format)
     _check_conflicts(pairs, input_format, classes, ascii_ply)
     if scheme == "quintic" and not quiet:
@@ -268,6 +282,47 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
     if not output:
         raise click.UsageError("give -o OUTPUT (or -O DIR for several inputs)")
     return [(inputs[0], output)]
+
+
+def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
+                  scheduler, quiet, debug) -> None:
+    """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
+    if scheduler and not output_dir:
+        raise click.UsageError("--scheduler needs --seamless -O DIR (one output per input)")
+    if STDIO in inputs:
+        raise click.UsageError("--seamless reads files, not stdin (-)")
+    if output and output_dir:
+        raise click.UsageError("use either -o/--output or -O/--output-dir")
+    if not output and not output_dir:
+        raise click.UsageError("give -o OUTPUT (one mesh) or -O DIR (one mesh per input)")
+    pairs = _plan(inputs, None, output_dir, suffix, input_format) if output_dir else [(inputs[0], output)]
+    _check_conflicts(pairs, input_format, options.classes, options.ascii)
+    try:
+        if output_dir and not Path(output_dir).exists():
+            Path(output_dir).mkdir(parents=True)
+        named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
+        targets = plan_outputs(named, list(inputs))
+        for (_, dst), target in zip(pairs, targets):
+            mesh_format(dst, target=target)
+    except (C1MeshError, OSError) as exc:
+        _fail(_message(exc), debug)
+    from c1mesh.tiles import fit_seamless
+
+    options.workers = _threads_per_process(threads, 1)
+    show = _stderr_is_terminal() and not quiet and bool(output_dir)
+    mesh = sys.stdout.buffer if output == STDIO else output
+    try:
+        if show:
+            with click.progressbar(length=len(pairs), label="tiles", file=sys.stderr,
+                                   item_show_func=lambda s: s) as bar:
+                result = fit_seamless(inputs, options, mesh, [d for _, d in pairs], scheduler, jobs,
+                                      on_tile=lambda row: bar.update(1, row["tile"]))
+        else:
+            result = fit_seamless(inputs, options, mesh, [d for _, d in pairs] if output_dir else None,
+                                  scheduler, jobs)
+    except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
+        _fail(_message(exc), debug)
+    _write_report(report, targets[-1], result, debug)
 
 
 def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:

@@ -173,11 +173,55 @@ def _compact(xy, triangles):
     return used, remap[triangles]
 
 
+@dataclass
+class SurfaceModel:
+    """The C1 spline of a cloud before refinement (what `build_surface` returns).
+
+    normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
+    cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
+    the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
+    triangles index those n points).
+    """
+
+    normal_source: str
+    frame: Any
+    hf: Any
+    trim_report: Any
+    used: np.ndarray
+    interp: RSDInterpolator
+
+
+def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
+    """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
+
+    The stages every fit shares, whole-file or tiled (c1mesh.tiles), so a stage added
+    here reaches both. timer: a _Timer that books each stage (None: untimed).
+    """
+    timer = timer or _Timer(None)
+    scheme = get_scheme(options.scheme)
+    with timer.stage("normals"):
+        normals, normal_source = cloud_normals(cloud, options)
+    with timer.stage("frame"):
+        frame = choose_frame(cloud.points, normals, options.axis)
+        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
+    with timer.stage("triangulate"):
+        triangles = delaunay(hf.xy)
+        triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
+        if triangles.shape[0] == 0:
+            raise InputError("no triangles are left after trimming; try --max-edge none")
+        used, triangles = _compact(hf.xy, triangles)
+    with timer.stage("interpolate"):
+        interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles=triangles,
+                                 scheme=scheme)
+    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp)
+
+
 def fit(source, output=None, options: FitOptions | None = None,
         on_stage: Callable[[str], None] | None = None, keep_mesh: bool = True) -> FitResult:
     """Fit a refined C1 surface mesh to a scan.
 
-    source: path or binary stream (then options.input_format is required); output: path,
+    source: path, binary stream (then options.input_format is required) or a PointCloud
+    already loaded (classes already selected: c1mesh.tiles does this); output: path,
     binary stream, or None to only return the mesh. Returns the mesh (world coordinates,
     unit vertex normals on the axis side, colours when the input has them) and a report
     dict (counts, frame, trimming, scheme properties, C1 certificate, timings).
@@ -196,24 +240,12 @@ def fit(source, output=None, options: FitOptions | None = None,
 
 def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
     """fit() inside its thread limit."""
-    scheme = get_scheme(options.scheme)
     timer = _Timer(on_stage)
     with timer.stage("read"):
-        cloud = load_cloud(source, options)
-    with timer.stage("normals"):
-        normals, normal_source = cloud_normals(cloud, options)
-    with timer.stage("frame"):
-        frame = choose_frame(cloud.points, normals, options.axis)
-        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
-    with timer.stage("triangulate"):
-        triangles = delaunay(hf.xy)
-        triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
-        if triangles.shape[0] == 0:
-            raise InputError("no triangles are left after trimming; try --max-edge none")
-        used, triangles = _compact(hf.xy, triangles)
-    with timer.stage("interpolate"):
-        interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles=triangles,
-                                 scheme=scheme)
+        cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
+    model = build_surface(cloud, options, timer)
+    normal_source, frame, hf, trim_report, used, interp = (
+        model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)
