@@ -118,3 +118,29 @@ def test_circumcircles_match_the_equidistance_definition():
     centre, radius = bd.circumcircles(xy, triangles)
     for k in range(3):
         assert np.allclose(np.hypot(*(xy[triangles[:, k]] - centre).T), radius, rtol=1e-9)
+
+
+@pytest.mark.parametrize("kind,n", [("uniform", 4000), ("uniform", 4001), ("hole", 4000), ("clusters", 4000)])
+def test_auto_max_edge_is_trims_to_the_bit(kind, n):
+    """The tiles' median edge, from certified short edges and the edge count 3n - 3 - h,
+    is the value trim takes from the whole triangulation."""
+    from c1mesh.triangulation import trim
+
+    xy = _survey(kind, n=n)
+    _, report = trim(xy, Delaunay(xy).simplices, max_edge="auto", min_circle_ratio=0.0)
+    tiled = bd.auto_max_edge(bd.ArrayReader(xy), _grid(xy), len(xy), bd.streamed_hull(_chunks(xy)))
+    assert tiled == report.max_edge
+
+
+def test_certified_short_edges_are_the_global_short_edges():
+    xy = _survey("hole")
+    grid, hull = _grid(xy), bd.streamed_hull(_chunks(xy))
+    bound = 2.0 * bd.mean_spacing(grid.box, len(xy))
+    tiled = np.sort(np.concatenate([bd._certified_edges(bd.ArrayReader(xy), grid, t, bound, hull)
+                                    for t in range(len(grid))]))
+    whole = Delaunay(xy)
+    pairs = {tuple(sorted(e)) for s in whole.simplices.tolist() for e in ((s[0], s[1]), (s[1], s[2]), (s[0], s[2]))}
+    a, b = np.array(sorted(pairs)).T
+    lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])
+    assert len(pairs) == 3 * len(xy) - 3 - len(ConvexHull(xy).vertices)      # the count the median uses
+    assert np.array_equal(tiled, np.sort(lengths[lengths <= bound]))

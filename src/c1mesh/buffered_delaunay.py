@@ -347,3 +347,125 @@ def buffered_delaunay(read: Reader, grid: TileGrid, count: int, buffer: float | 
     first = buffer if buffer is not None else INITIAL_SPACINGS * mean_spacing(grid.box, count)
     for tile in range(len(grid)):
         yield tile_triangles(read, grid, tile, first, hull, max_edge)
+
+
+# ------------------------------------------------------------- the survey's edge statistic
+def edge_length_median(read: Reader, grid: TileGrid, count: int, hull: Hull,
+                       bound: float | None = None) -> float:
+    """The median edge length of the survey's Delaunay triangulation (each edge once), as
+    triangulation.trim computes it for max_edge="auto" from the whole triangulation: the
+    same value to the bit, found tile by tile.
+
+    The triangulation of n points in general position with h hull corners has
+    E = 3n - 3 - h edges, so the median's ranks are known from the first pass (count,
+    hull). Each tile certifies the edges of length at most `bound` at its own points (an
+    edge belongs to the tile of its lower-numbered end): an edge of the tile's
+    triangulation is an edge of the survey's when one circle through its two ends is
+    empty of what was read and clear of what was not — the smallest circle of the pencil
+    between the circumcircles of its two triangles (for a short edge usually its
+    diametral circle, which a buffer above `bound` always holds). Uncertified edges grow
+    the tile's buffer; when fewer than half the survey's edges are that short, `bound`
+    doubles (default: 4 mean spacings).
+    """
+    edges = 3 * count - 3 - len(hull.index)
+    if edges < 1:
+        raise ValueError("the survey has no edges")
+    bound = bound or 4.0 * mean_spacing(grid.box, count)
+    while True:
+        short = np.concatenate([_certified_edges(read, grid, tile, bound, hull) for tile in range(len(grid))])
+        if short.size > edges // 2:
+            break
+        bound *= 2.0
+    upper = edges // 2
+    ranked = np.partition(short, [upper - 1, upper] if edges % 2 == 0 else [upper])
+    return float(ranked[upper] if edges % 2 else np.mean(ranked[upper - 1:upper + 1]))
+
+
+def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> np.ndarray:
+    """Lengths of the survey's Delaunay edges of length <= bound whose lower-numbered end
+    is one of the tile's points (edge_length_median)."""
+    from scipy.spatial import Delaunay
+
+    box, cell = grid.box, grid.cell(tile)
+    buffer = bound * (1 + 1e-9)
+    while True:
+        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
+        index, xy = read(read_box)
+        own = grid.tile_of(xy) == tile
+        if not own.any() or index.size < 3:
+            if not own.any() or _covers(read_box, box):
+                return np.empty(0)
+            buffer *= 2.0
+            continue
+        centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
+        local = xy - centre
+        tri = Delaunay(local)
+        simplices = tri.simplices.astype(np.int64)
+        t, k = np.nonzero((tri.neighbors < 0) | (tri.neighbors > np.arange(len(simplices))[:, None]))
+        a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
+        lower = np.where(index[a] < index[b], a, b)
+        lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
+        mine = own[lower] & (lengths <= bound)
+        if _covers(read_box, box):
+            return lengths[mine]
+        t, k, a, b = t[mine], k[mine], a[mine], b[mine]
+        centres, _ = circumcircles(local, simplices)
+        circle_centre = _smallest_empty_circle(local, simplices, tri.neighbors, t, k, a, b, centres)
+        radius = np.hypot(*(local[a] - circle_centre).T)
+        strips = _unread_strips(read_box, box, centre)
+        regions = _clip_to_hull(strips, hull.xy - centre)
+        if _centres_clear(circle_centre, radius, strips, regions, np.abs(local).max()).all():
+            return lengths[mine]
+        buffer *= 2.0
+
+
+def _smallest_empty_circle(xy, simplices, neighbors, t, k, a, b, centres) -> np.ndarray:
+    """(e, 2) centres of the smallest circle through each edge's ends (a, b) that is empty
+    of the triangulated points: on the edge's bisector, between the circumcentres of its
+    two triangles (or from triangle t's circumcentre outwards, for a hull edge), the point
+    nearest the edge's midpoint."""
+    mid = (xy[a] + xy[b]) / 2
+    c1 = centres[t]
+    other = neighbors[t, k]
+    hull_edge = other < 0
+    c2 = np.where(hull_edge[:, None], c1, centres[np.maximum(other, 0)])
+    span = c2 - c1
+    length2 = (span * span).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.clip(((mid - c1) * span).sum(axis=1) / length2, 0.0, 1.0)
+    s[length2 == 0] = 0.0
+    best = c1 + s[:, None] * span
+    if hull_edge.any():                          # the pencil runs from c1 away from the third corner
+        h = np.flatnonzero(hull_edge)
+        apex = xy[simplices[t[h], k[h]]]
+        edge = xy[b[h]] - xy[a[h]]
+        outward = np.column_stack([edge[:, 1], -edge[:, 0]])
+        flip = ((apex - xy[a[h]]) * outward).sum(axis=1) > 0
+        outward[flip] *= -1.0
+        beyond = ((mid[h] - c1[h]) * outward).sum(axis=1) > 0
+        best[h] = np.where(beyond[:, None], mid[h], c1[h])
+    return best
+
+
+def _centres_clear(centre, radius, strips, regions, scale) -> np.ndarray:
+    """(e,) True where the disk (centre, radius) stays clear of every unread strip clipped
+    to the survey's hull (conservative, as _disks_clear)."""
+    reach = radius * (1 + 1e-9) + 1e-12 * scale
+    clear = np.ones(len(centre), dtype=bool)
+    for s, (x0, y0, x1, y1) in enumerate(strips):
+        dx = np.maximum(np.maximum(x0 - centre[:, 0], centre[:, 0] - x1), 0.0)
+        dy = np.maximum(np.maximum(y0 - centre[:, 1], centre[:, 1] - y1), 0.0)
+        hits = np.hypot(dx, dy) <= reach
+        if hits.any():
+            candidates = np.flatnonzero(hits)
+            hits[candidates] = _disks_meet_polygon(centre[candidates], reach[candidates], regions[s])
+        clear &= ~hits
+    return clear
+
+
+def auto_max_edge(read: Reader, grid: TileGrid, count: int, hull: Hull) -> float:
+    """max_edge="auto" for the survey, as triangulation.trim resolves it from the whole
+    triangulation (AUTO_EDGE_FACTOR x the median edge), without holding the survey."""
+    from c1mesh.triangulation import AUTO_EDGE_FACTOR
+
+    return float(AUTO_EDGE_FACTOR * edge_length_median(read, grid, count, hull))
