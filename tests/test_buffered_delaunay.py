@@ -144,3 +144,26 @@ def test_certified_short_edges_are_the_global_short_edges():
     lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])
     assert len(pairs) == 3 * len(xy) - 3 - len(ConvexHull(xy).vertices)      # the count the median uses
     assert np.array_equal(tiled, np.sort(lengths[lengths <= bound]))
+
+
+def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
+    """The bundled LiDAR ground (class 2) in the fit's own plane (height field xy): 3 x 3
+    tiles give trim's auto max_edge and the long-edge-trimmed triangulation of the
+    pipeline's Delaunay (c1mesh.triangulation.delaunay)."""
+    pytest.importorskip("laspy")
+    from pathlib import Path
+
+    from c1mesh.pipeline import FitOptions, build_surface, load_cloud
+    from c1mesh.triangulation import delaunay, trim
+
+    options = FitOptions(classes=(2,))
+    cloud = load_cloud(Path(__file__).resolve().parent.parent / "data_samples" / "4_6_crop.las", options)
+    xy = build_surface(cloud, options).hf.xy
+    whole = delaunay(xy)
+    _, report = trim(xy, whole, max_edge="auto", min_circle_ratio=0.0)
+    grid, hull = bd.TileGrid((*xy.min(axis=0), *xy.max(axis=0)), 3, 3), bd.streamed_hull(_chunks(xy))
+    assert bd.auto_max_edge(bd.ArrayReader(xy), grid, len(xy), hull) == report.max_edge
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), grid, len(xy), hull=hull, max_edge=report.max_edge))
+    union = _union(tiles)
+    assert len(_faces(union)) == len(union)
+    assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= report.max_edge])
