@@ -167,3 +167,19 @@ def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
     union = _union(tiles)
     assert len(_faces(union)) == len(union)
     assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= report.max_edge])
+
+
+@pytest.mark.parametrize("kind", ["uniform", "hole", "clusters"])
+def test_one_pass_trimmed_delaunay_is_trims_long_edge_result(kind):
+    """One triangulation per tile gives trim's auto max_edge and the survey's Delaunay
+    triangles up to it (filtered by each pass's longest edges)."""
+    from c1mesh.triangulation import trim
+
+    xy = _survey(kind)
+    whole = Delaunay(xy).simplices
+    _, report = trim(xy, whole, max_edge="auto", min_circle_ratio=0.0)
+    max_edge, passes = bd.trimmed_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy), bd.streamed_hull(_chunks(xy)))
+    assert max_edge == report.max_edge
+    union = np.concatenate([p.triangles[p.longest <= max_edge] for p in passes])
+    assert len(_faces(union)) == len(union)
+    assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= max_edge])

@@ -469,3 +469,106 @@ def auto_max_edge(read: Reader, grid: TileGrid, count: int, hull: Hull) -> float
     from c1mesh.triangulation import AUTO_EDGE_FACTOR
 
     return float(AUTO_EDGE_FACTOR * edge_length_median(read, grid, count, hull))
+
+
+# ------------------------------------------------- one pass: the trimmed triangulation
+@dataclass
+class TilePass:
+    """What one triangulation of a tile certifies for a bound B: short (e,) lengths of the
+    survey's Delaunay edges of length <= B at its own points (edge_length_median);
+    triangles (k, 3) survey numbers of the survey's Delaunay triangles it owns whose edges
+    are all <= B, longest (k,) their longest edge; buffer, read, rounds as TileTriangles."""
+
+    tile: int
+    short: np.ndarray
+    triangles: np.ndarray
+    longest: np.ndarray
+    buffer: float
+    read: int
+    rounds: int
+
+
+def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> TilePass:
+    """Triangulate one tile once for both the edge statistic and the trimmed triangles up
+    to `bound` (frame units), growing its buffer (from bound) until both are certified."""
+    from c1mesh.triangulation import _edge_lengths, _neighbours, delaunay
+
+    box, cell = grid.box, grid.cell(tile)
+    buffer, rounds = bound * (1 + 1e-9), 0
+    while True:
+        rounds += 1
+        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
+        index, xy = read(read_box)
+        own = grid.tile_of(xy) == tile
+        covers = _covers(read_box, box)
+        if not own.any() or index.size < 3:
+            if not own.any() or covers:
+                empty = np.empty(0)
+                return TilePass(tile, empty, np.empty((0, 3), np.int64), empty, buffer, len(index), rounds)
+            buffer *= 2.0
+            continue
+        centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
+        local = xy - centre
+        simplices = delaunay(local)
+        neighbors = _neighbours(simplices, len(local))
+        # edges, each once: on the hull or towards a higher-numbered triangle
+        t, k = np.nonzero((neighbors < 0) | (neighbors > np.arange(len(simplices))[:, None]))
+        a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
+        lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
+        edge_mine = own[np.where(index[a] < index[b], a, b)] & (lengths <= bound)
+        longest = _edge_lengths(xy, simplices).max(axis=1)
+        triangle_mine = (own[simplices] & _lowest_corner(index[simplices])).any(axis=1) & (longest <= bound)
+        if not covers:
+            strips = _unread_strips(read_box, box, centre)
+            regions = _clip_to_hull(strips, hull.xy - centre)
+            at_own = own[simplices].any(axis=1) & (longest <= bound)
+            centres, _ = circumcircles(local, simplices)
+            te, ke, ae, be = t[edge_mine], k[edge_mine], a[edge_mine], b[edge_mine]
+            circle = _smallest_empty_circle(local, simplices, neighbors, te, ke, ae, be, centres)
+            certified = (_disks_clear(local, simplices[at_own], strips, regions).all()
+                         and _centres_clear(circle, np.hypot(*(local[ae] - circle).T), strips, regions,
+                                            np.abs(local).max()).all())
+            if not certified:
+                buffer *= 2.0
+                continue
+        return TilePass(tile, lengths[edge_mine], index[simplices[triangle_mine]], longest[triangle_mine],
+                        buffer, len(index), rounds)
+
+
+def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_edge="auto",
+                     keep: Callable[[TilePass], object] = lambda p: p) -> tuple[float, list]:
+    """The survey's Delaunay triangulation after the long-edge trim, tile by tile, with one
+    triangulation per tile: (max_edge, [keep(pass) per tile]).
+
+    max_edge: a length, or "auto" (trim's rule: AUTO_EDGE_FACTOR x the median edge,
+    edge_length_median's method). Each tile certifies up to a bound B (max_edge, or for
+    "auto" 2 x AUTO_EDGE_FACTOR mean spacings, raised and the pass repeated in the rare
+    case the median comes out above it); its TilePass holds triangles up to B, of which
+    those with longest <= max_edge are the result. keep(pass) is what is kept per tile
+    (the default keeps the pass; a caller short of memory writes it to disk and keeps a path).
+    """
+    from c1mesh.triangulation import AUTO_EDGE_FACTOR
+
+    edges = 3 * count - 3 - len(hull.index)
+    auto = isinstance(max_edge, str)
+    bound = 2.0 * AUTO_EDGE_FACTOR * mean_spacing(grid.box, count) if auto else float(max_edge)
+    while True:
+        shorts, kept = [], []
+        for tile in range(len(grid)):
+            result = tile_pass(read, grid, tile, bound, hull)
+            shorts.append(result.short)
+            result.short = None
+            kept.append(keep(result))
+        if not auto:
+            return bound, kept
+        short = np.concatenate(shorts)
+        if short.size > edges // 2:
+            upper = edges // 2
+            ranked = np.partition(short, [upper - 1, upper] if edges % 2 == 0 else [upper])
+            median = float(ranked[upper] if edges % 2 else np.mean(ranked[upper - 1:upper + 1]))
+            limit = float(AUTO_EDGE_FACTOR * median)
+            if limit <= bound:
+                return limit, kept
+            bound = limit
+        else:
+            bound *= 2.0
