@@ -123,18 +123,32 @@ def main() -> None:
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug):
+@click.option("--crs", help="CRS of an input that has none: EPSG:XXXX, WKT, or a .prj/.wkt file.")
+@click.option("--resolution", type=float,
+              help="GeoTIFF cell size (-o *.tif); for meshes the target mean edge length (instead of --level).")
+@click.option("--slope", help="Also write a slope GeoTIFF (degrees) on the DEM's grid.")
+@click.option("--aspect", help="Also write an aspect GeoTIFF (degrees clockwise from north).")
+@click.option("--hillshade", help="Also write a hillshade GeoTIFF (uint8).")
+@click.option("--slope-method", type=click.Choice(["auto", "spline", "horn"]), default="auto",
+              show_default=True, help="Gradient for slope/aspect/hillshade: the spline's, or Horn's of the DEM.")
+@click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
+@click.pass_context
+def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
+        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug,
+        crs, resolution, slope, aspect, hillshade, slope_method, preview):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     from c1mesh.pipeline import FitOptions
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k,
                          classes=_parse_classes(classes), max_slope=max_slope,
-                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply)
+                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply,
+                         crs=crs, resolution=resolution, slope=slope, aspect=aspect,
+                         hillshade=hillshade, slope_method=slope_method, preview=preview)
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
     jobs_list = _plan(inputs, output, output_dir, suffix, input_format)
+    options = _check_geo(ctx, jobs_list, options, debug)
     if len(jobs_list) == 1:
         _fit_one(*jobs_list[0], options, report, quiet, verbose, debug)
         return
@@ -164,6 +178,26 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
     if not output:
         raise click.UsageError("give -o OUTPUT (or -O DIR for several inputs)")
     return [(inputs[0], output)]
+
+
+def _check_geo(ctx, jobs_list, options, debug):
+    """Georeferencing options checked before any input is read (c1mesh.geo.check_before):
+    conflicts are usage errors (exit 2), a bad CRS or unwritable path exit 1. Returns the
+    options with the CRS parsed to WKT."""
+    from click.core import ParameterSource
+
+    from c1mesh.geo import check_before
+
+    if options.resolution is not None and ctx.get_parameter_source("level") != ParameterSource.DEFAULT:
+        raise click.UsageError("give either --level or --resolution, not both")
+    extras = (options.slope, options.aspect, options.hillshade, options.preview)
+    if len(jobs_list) > 1 and any(extras):
+        raise click.UsageError("--slope, --aspect, --hillshade and --preview name one file: "
+                               "use them with a single input")
+    try:
+        return check_before([dst for _, dst in jobs_list], options)
+    except C1MeshError as exc:
+        _fail(_message(exc), debug)
 
 
 def _check_paths(src: str, dst: str) -> None:
@@ -285,6 +319,23 @@ def info(path, input_format, debug):
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)
     click.echo(json.dumps(facts, indent=2))
+
+
+# ------------------------------------------------------------------------------- preview
+@main.command()
+@click.argument("path")
+@click.option("-o", "--output", required=True, help="The PNG to write.")
+@click.option("--debug", is_flag=True, help="Show tracebacks.")
+def preview(path, output, debug):
+    """Render PATH (a GeoTIFF DEM or a mesh with normals) as a shaded PNG."""
+    from c1mesh.geo import check_preview_path
+    from c1mesh.preview import render_file
+
+    try:
+        check_preview_path(output)
+        render_file(path, output)
+    except Exception as exc:  # noqa: BLE001
+        _fail(_message(exc), debug)
 
 
 # ------------------------------------------------------------------------------- schemes

@@ -116,15 +116,17 @@ def _check_mesh(mesh: SurfaceMesh) -> None:
 
 
 def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None = None,
-               ascii: bool = False) -> None:
+               ascii: bool = False, crs: str | None = None) -> None:
     """Write `mesh` to a path or a binary file object.
 
     The format comes from `fmt` if given, else from the path's extension; a file object
     defaults to binary PLY. `ascii` selects ascii PLY (other formats have one encoding).
     A path is written to a temporary file beside it and renamed into place only when
     complete. A MeshStream is written block by block where the format allows (PLY) and
-    assembled in memory first otherwise. Raises InputError for unknown formats, missing
-    or unwritable directories.
+    assembled in memory first otherwise. `crs` (WKT) is written where the format has a
+    place for it (PLY header comment, GLB asset extras) and, for a path of a format
+    without one (and PLY, for GIS tools), as an ESRI-WKT `.prj` sidecar. Raises
+    InputError for unknown formats, missing or unwritable directories.
     """
     if isinstance(mesh, SurfaceMesh):
         _check_mesh(mesh)
@@ -135,7 +137,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
             target = getattr(target, "buffer", None)
             if target is None:
                 raise InputError(f"Output stream '{name}' is in text mode; pass a binary stream such as sys.stdout.buffer.")
-        _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii)
+        _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii, **_crs_argument(key, crs))
         target.flush()
         return
     path = Path(target)
@@ -143,7 +145,19 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
         raise InputError(f"Output path '{path}' is a directory; give a file name.")
     key = _format(fmt or path.suffix, str(path), SUPPORTED_OUTPUT, "output")
     with atomic_output(path) as f:
-        _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii)
+        _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii, **_crs_argument(key, crs))
+    if crs and key in _PRJ_SIDECAR:
+        from c1mesh.crs import write_prj
+        write_prj(path, crs)
+
+
+_PRJ_SIDECAR = {"ply", "obj", "stl", "off"}
+"""Formats whose CRS also goes to a `.prj` sidecar (ESRI WKT) beside the file."""
+
+
+def _crs_argument(key: str, crs: str | None) -> dict:
+    """The writer's crs keyword where its format stores a CRS itself."""
+    return {"crs": crs} if crs and key in ("ply", "glb") else {}
 
 
 def _for_writer(mesh: SurfaceMesh | MeshStream, key: str) -> SurfaceMesh | MeshStream:

@@ -145,4 +145,6 @@ def read_las(data: bytes, name: str) -> PointCloud:
         cloud.normals = np.column_stack([np.asarray(las[dims[i]]) for i in nrm]).astype(np.float64)
         used |= {dims[i] for i in nrm}
     cloud.extra = {d: np.asarray(las[d]).copy() for d in dims if d not in used}
+    from c1mesh.crs import las_crs
+    cloud.crs = las_crs(las.header)
     return cloud
