@@ -82,7 +82,7 @@ def resolve(file_crs: str | None, user_crs: str | None, name: str) -> tuple[str 
     if file_crs is None:
         return user_crs, "option"
     pyproj = _pyproj()
-    a, b = pyproj.CRS.from_wkt(file_crs), pyproj.CRS.from_wkt(user_crs)
+    a, b = pyproj.CRS.from_user_input(file_crs), pyproj.CRS.from_user_input(user_crs)
     if not a.equals(b, ignore_axis_order=True):
         raise InputError(f"'{name}' is in {a.name}, but --crs says {b.name}; c1mesh does not "
                          "reproject: drop --crs, or reproject the input first (e.g. pdal translate)")
@@ -94,7 +94,7 @@ def describe(wkt: str | None) -> dict | None:
     horizontal units, geographic or projected, and the WKT itself."""
     if wkt is None:
         return None
-    crs = _pyproj().CRS.from_wkt(wkt)
+    crs = _pyproj().CRS.from_user_input(wkt)
     units = [axis.unit_name for axis in crs.axis_info]
     return {"name": crs.name, "epsg": crs.to_epsg(), "geographic": bool(crs.is_geographic),
             "units": units[0] if units else None, "wkt": wkt}
@@ -102,7 +102,7 @@ def describe(wkt: str | None) -> dict | None:
 
 def esri_wkt(wkt: str) -> str:
     """ESRI WKT (what .prj sidecars hold) of a CRS; WKT1 (GDAL) where ESRI has no form."""
-    crs = _pyproj().CRS.from_wkt(wkt)
+    crs = _pyproj().CRS.from_user_input(wkt)
     for version in ("WKT1_ESRI", "WKT1_GDAL"):
         try:
             text = crs.to_wkt(version=version, pretty=False)
@@ -129,17 +129,28 @@ def write_prj(mesh_path, wkt: str) -> Path:
 
 
 def ply_comment(wkt: str) -> str:
-    """The PLY header line (without newline) that carries a CRS."""
-    return f"comment {PLY_COMMENT} {' '.join(wkt.split())}"
+    """The PLY header line (without newline) that carries a CRS: `comment crs EPSG:XXXX`
+    when an EPSG code defines exactly this CRS, else the one-line WKT2 with non-ASCII
+    characters (° in scope remarks) escaped as \\uXXXX, since PLY headers are ASCII."""
+    crs = _pyproj().CRS.from_user_input(wkt)
+    code = crs.to_epsg(min_confidence=100)
+    if code is not None and _pyproj().CRS.from_epsg(code) == crs:
+        return f"comment {PLY_COMMENT} EPSG:{code}"
+    text = " ".join(wkt.split()).encode("ascii", "backslashreplace").decode("ascii")
+    return f"comment {PLY_COMMENT} {text}"
 
 
 def crs_from_ply_header(data: bytes) -> str | None:
-    """The CRS WKT from a PLY file's `comment crs ...` header line, None when absent."""
+    """The CRS (WKT2) of a PLY file's `comment crs ...` header line, None when absent;
+    InputError when the comment is there but cannot be parsed."""
     end = data.find(b"end_header")
     if end < 0:
         return None
     prefix = f"comment {PLY_COMMENT} "
     for line in data[:end].decode("ascii", errors="replace").splitlines():
         if line.startswith(prefix):
-            return line[len(prefix):].strip() or None
+            text = line[len(prefix):].strip()
+            if "\\u" in text or "\\x" in text:
+                text = text.encode("ascii").decode("unicode_escape")
+            return parse_crs(text) if text else None
     return None

@@ -215,7 +215,7 @@ def fit(source, output=None, options: FitOptions | None = None,
                                  scheme=scheme)
     if geo.rasters.items():
         with timer.stage("raster"):
-            raster_report = write_fit_rasters(geo.rasters, interp, frame, hf.spacing, options, crs)
+            raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs)
         return _finish_geo(FitResult(None, {"input": _name(source), "output": _name(output),
                                             "points": {"read": len(cloud), "kept": int(used.size),
                                                        "spacing": float(hf.spacing)},

@@ -6,7 +6,7 @@ fit uses --axis z). Each cell holds the spline at the cell centre; cells whose c
 outside the trimmed triangulation are nodata. Slope, aspect and hillshade come from a
 gradient at each cell centre: the spline's own analytic gradient ("spline"), or Horn's
 3x3 differences of the DEM ("horn", what `gdaldem slope` computes), chosen per resolution
-by "auto" (see AUTO_HORN_FROM). The rasters are computed and written in blocks of rows, so
+by "auto" (see AUTO_SPLINE_FROM). The rasters are computed and written in blocks of rows, so
 memory holds a few blocks, not the grid.
 
 Units: slope in degrees from horizontal (0-90); aspect in degrees clockwise from north of
@@ -33,9 +33,14 @@ HILLSHADE_NODATA = 0
 BLOCK_ROWS = 256
 """Rows computed and written at a time (also the GeoTIFF tile size)."""
 SLOPE_METHODS = ("auto", "spline", "horn")
-AUTO_HORN_FROM = math.inf
-"""`auto` uses Horn's differences at resolutions of at least this many point spacings and
-the spline gradient below (from the slope table in benchmarks/RESULTS.md, section geo)."""
+AUTO_SPLINE_FROM = 8.0
+"""`auto` uses the spline's gradient at resolutions of at least this many point spacings
+(√(area / points)) and Horn's differences of the DEM below. From the slope table in
+benchmarks/RESULTS.md (section geo): the sextic's gradient follows every error of the
+input normals (it interpolates them) and is only O(h) between points, so Horn's 3x3
+average of the spline's heights is closer to the true slope up to about 4 spacings with
+exact normals and 8 spacings with 3° normal noise; beyond that Horn's own truncation
+error (O(R²)) dominates and the spline gradient wins."""
 LIGHT_AZIMUTH, LIGHT_ALTITUDE = 315.0, 45.0
 
 
@@ -172,7 +177,7 @@ def choose_slope_method(method: str, resolution: float, spacing: float) -> str:
         raise InputError(f"slope method must be one of {', '.join(SLOPE_METHODS)}, got {method!r}")
     if method != "auto":
         return method
-    return "horn" if resolution >= AUTO_HORN_FROM * spacing else "spline"
+    return "spline" if resolution >= AUTO_SPLINE_FROM * spacing else "horn"
 
 
 # ------------------------------------------------------------------------------- writing
@@ -213,13 +218,11 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str,
 
 
 def _profile(grid: RasterGrid, dtype: str, nodata, crs: str | None) -> dict:
-    tiled = grid.width >= BLOCK_ROWS and grid.height >= BLOCK_ROWS
     profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 1,
                "dtype": dtype, "nodata": nodata, "transform": grid.transform,
-               "compress": "deflate", "tiled": tiled, "BIGTIFF": "IF_SAFER"}
-    if tiled:
-        profile.update(blockxsize=BLOCK_ROWS, blockysize=BLOCK_ROWS)
-    if dtype == "float32":
+               "compress": "deflate", "tiled": True, "blockxsize": BLOCK_ROWS,
+               "blockysize": BLOCK_ROWS, "BIGTIFF": "IF_SAFER"}
+    if dtype.startswith("float"):
         profile["predictor"] = 3   # floating-point predictor: deflate packs DEMs much better
     if crs:
         profile["crs"] = crs
@@ -234,7 +237,7 @@ def _layer(kind: str, z: np.ndarray, g: np.ndarray) -> np.ndarray:
     """The values of raster `kind` for one block, nodata filled in."""
     outside = ~np.isfinite(z)
     if kind == "dem":
-        out = z
+        return np.where(outside, DEM_NODATA, z)
     elif kind == "slope":
         out = slope_degrees(g)
     elif kind == "aspect":
@@ -247,8 +250,11 @@ def _layer(kind: str, z: np.ndarray, g: np.ndarray) -> np.ndarray:
 
 def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
                   method: str = "spline", crs: str | None = None,
-                  block_rows: int = BLOCK_ROWS) -> dict:
+                  block_rows: int = BLOCK_ROWS, dem_dtype: str = "float32") -> dict:
     """Write the requested rasters in one pass over the grid; returns a report dict.
+
+    dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
+    float32, the default, which rounds heights of 1e4 to ~1e-3).
 
     Every file is written to a temporary file and renamed into place only when all of them
     are complete (formats.atomic_output), with overviews (2x, 4x, ... averaged) added.
@@ -262,13 +268,14 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     cells_inside = 0
     with contextlib.ExitStack() as stack:
         temps = {kind: stack.enter_context(atomic_output(path, "path")) for kind, path in items}
+        kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
         datasets = {kind: stack.enter_context(rasterio.open(temps[kind], "w", **_profile(
-            grid, *_KINDS[kind], crs))) for kind, _ in items}
+            grid, *kinds[kind], crs))) for kind, _ in items}
         for rows, z, g in grid_blocks(grid, sampler, method, block_rows):
             cells_inside += int(np.isfinite(z).sum())
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
-                ds.write(_layer(kind, z, g), 1, window=window)
+                ds.write(_layer(kind, z, g).astype(kinds[kind][0], copy=False), 1, window=window)
         for kind, ds in datasets.items():
             _build_overviews(ds, grid, kind)
             ds.close()
@@ -314,8 +321,15 @@ def raster_axis(axis):
                      "with GeoTIFF outputs (use --axis z or auto)")
 
 
-def write_fit_rasters(targets: RasterTargets, interp, frame, spacing: float, options,
-                      crs: str | None) -> dict:
+def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
+    """√(area of the triangulation / number of points): the mean point spacing."""
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    u, v = b - a, c - a
+    area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
+    return float(math.sqrt(area / points.shape[0]))
+
+
+def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None) -> dict:
     """Sample a fitted spline onto the aligned grid covering its triangulation and write
     the requested rasters; returns the report's "raster" section."""
     if not np.allclose(frame.axes, np.eye(3)):
@@ -328,6 +342,7 @@ def write_fit_rasters(targets: RasterTargets, interp, frame, spacing: float, opt
     lo = interp.points.min(axis=0) + frame.origin[:2]
     hi = interp.points.max(axis=0) + frame.origin[:2]
     grid = RasterGrid.covering(lo, hi, options.resolution)
+    spacing = mean_spacing(interp.points, interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
     report = write_rasters(targets, grid, SplineSampler(interp, frame.origin), method, crs)
     report["point_spacing"] = float(spacing)

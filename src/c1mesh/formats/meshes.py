@@ -117,3 +117,18 @@ def _write_glb_chunks(f: IO[bytes], text: bytes, binary: bytes) -> None:
     f.write(struct.pack("<4sII", b"glTF", 2, total))
     f.write(struct.pack("<I4s", len(text), b"JSON") + text)
     f.write(struct.pack("<I4s", len(binary), b"BIN\0") + binary)
+
+
+def read_glb_positions(data: bytes) -> np.ndarray:
+    """World positions (M, 3) float64 of the first mesh of a GLB written by write_glb:
+    float32 POSITION plus the node's translation (used to check precision)."""
+    length, kind = struct.unpack_from("<I4s", data, 12)
+    document = json.loads(data[20:20 + length])
+    binary = data[20 + length + 8:]
+    primitive = document["meshes"][0]["primitives"][0]
+    accessor = document["accessors"][primitive["attributes"]["POSITION"]]
+    view = document["bufferViews"][accessor["bufferView"]]
+    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    local = np.frombuffer(binary, "<f4", accessor["count"] * 3, start).reshape(-1, 3)
+    node = next(n for n in document["nodes"] if n.get("mesh") == 0)
+    return local.astype(np.float64) + np.asarray(node.get("translation", [0.0, 0.0, 0.0]))
