@@ -27,8 +27,7 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
     grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
     world = np.allclose(frame.axes, np.eye(3))
     sampler = SplineSampler(interp, (0.0, 0.0, frame.origin[2] if world else 0.0))
-    x, y = grid.centres(range(grid.height))
-    z, g = sampler.sample(x, y)
+    z, g = sampler.window(grid, range(grid.height), range(grid.width))
     offset = frame.origin[:2] if world else np.zeros(2)
     extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
               grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])

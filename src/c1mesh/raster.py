@@ -31,7 +31,9 @@ RASTER_SUFFIXES = (".tif", ".tiff")
 DEM_NODATA = -9999.0
 HILLSHADE_NODATA = 0
 BLOCK_ROWS = 256
-"""Rows computed and written at a time (also the GeoTIFF tile size)."""
+"""GeoTIFF tile size, and the most rows computed and written at a time."""
+BLOCK_CELLS = 1 << 17
+"""Cells computed at a time (fewer rows per block on wide grids): bounds the memory."""
 SLOPE_METHODS = ("auto", "spline", "horn")
 AUTO_SPLINE_FROM = 8.0
 """`auto` uses the spline's gradient at resolutions of at least this many point spacings
@@ -92,47 +94,174 @@ class RasterGrid:
         from affine import Affine
         return Affine(self.resolution, 0.0, self.west, 0.0, -self.resolution, self.north)
 
-    def centres(self, rows: range, origin=(0.0, 0.0), halo: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Cell-centre coordinates minus `origin` for `rows` (and `halo` extra cells on every
-        side): x (ncols,), y (nrows,), computed from the grid's corner so large world
-        coordinates cancel exactly against the origin before the offsets are added."""
-        r = self.resolution
-        cols = np.arange(-halo, self.width + halo) + 0.5
-        lines = np.arange(rows.start - halo, rows.stop + halo) + 0.5
-        return (self.west - origin[0]) + cols * r, (self.north - origin[1]) - lines * r
-
 
 # ------------------------------------------------------------------------------- sampling
+def polynomial_form(scheme) -> tuple[np.ndarray, np.ndarray, float]:
+    """(K (21, P), exponents (P, 2), max error) of the spline on one triangle as a
+    polynomial in (λ0, λ1): coefficients C (T, 21) @ K are the monomial coefficients of
+    λ0^i λ1^j, (i, j) = exponents, i + j ≤ d, the scheme's degree.
+
+    Built by interpolating the basis on the degree-d lattice (unisolvent for degree d);
+    the returned error is the largest difference from rsd.basis at random barycentrics,
+    so a scheme that is not a polynomial of its stated degree is caught, not trusted.
+    """
+    from c1mesh.properties import scheme_properties
+
+    degree = scheme_properties(scheme).degree
+    exponents = np.array([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)])
+    lattice = exponents / degree
+    lam = np.column_stack([lattice, 1.0 - lattice.sum(axis=1)])
+    vandermonde = lattice[:, :1] ** exponents[:, 0] * lattice[:, 1:] ** exponents[:, 1]
+    K = np.linalg.solve(vandermonde, rsd.basis(scheme, lam).T).T          # (21, P)
+    probe = np.random.default_rng(0).dirichlet((1, 1, 1), 200)
+    mono = probe[:, :1] ** exponents[:, 0] * probe[:, 1:2] ** exponents[:, 1]
+    error = float(np.abs(mono @ K.T - rsd.basis(scheme, probe).T).max())
+    return K, exponents, error
+
+
 class SplineSampler:
-    """Values and analytic gradients of a fitted spline at world points of a height field.
+    """Values and analytic gradients of a fitted spline at the cell centres of a grid.
 
     interp: the RSDInterpolator in the scan frame; origin: (3,) the frame's origin. The
     frame's axes must be the world axes (--axis z), so that local = world − origin and
     the local gradient is the world gradient dz/dx, dz/dy.
+
+    Cells are found triangle by triangle (scan conversion: the cell centres inside each
+    triangle's bounding box, kept when their barycentric coordinates are ≥ −1e-10, the
+    tolerance of c1mesh.locate), and the spline is evaluated as its per-triangle
+    polynomial in (λ0, λ1) (polynomial_form): values and gradients are then sums of
+    monomials instead of 21 shape functions per point, the same numbers to ~1e-12.
     """
+
+    TOLERANCE = 1e-10
 
     def __init__(self, interp, origin):
         self.interp = interp
         self.origin = np.asarray(origin, dtype=np.float64)
+        K, self.exponents, error = polynomial_form(interp.scheme)
+        self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
+        corners = interp.points[interp.triangles]                       # (T, 3, 2)
+        self._lo, self._hi = corners.min(axis=1), corners.max(axis=1)
+        self.degree = int(self.exponents.max())
+        self._index = {(int(i), int(j)): k for k, (i, j) in enumerate(self.exponents)}
+        self._index = np.array([[self._index.get((i, j), -1) for j in range(self.degree + 1)]
+                                for i in range(self.degree + 1)])
+        # per triangle: G_0x, G_0y, x of vertex 1, G_1x, G_1y, x of vertex 2 (+ y's apart)
+        G, tri = interp._G, interp.triangles
+        ref1, ref2 = interp.points[tri[:, 1]], interp.points[tri[:, 2]]
+        self._affine = np.column_stack([G[:, 0, 0], G[:, 0, 1], ref1[:, 0],
+                                        G[:, 1, 0], G[:, 1, 1], ref2[:, 0]])
+        self._ref_y = (ref1[:, 1].copy(), ref2[:, 1].copy())
+        self._order = np.argsort(self._hi[:, 1], kind="stable")          # by north edge
+        self._north = self._hi[self._order, 1]
+        self._span = float((self._hi[:, 1] - self._lo[:, 1]).max()) if len(corners) else 0.0
 
-    def sample(self, x: np.ndarray, y: np.ndarray, gradients: bool = True):
-        """Spline at the grid x (ncols,) × y (nrows,) given in local (origin-subtracted)
-        coordinates: heights (nrows, ncols) in world z and gradients (nrows, ncols, 2),
-        NaN outside the mesh. Each point is located once for both."""
-        xx, yy = np.meshgrid(x, y)
-        xy = np.column_stack([xx.ravel(), yy.ravel()])
-        _, tri, lam, _ = self.interp._locate(xy)
-        inside = np.flatnonzero(tri >= 0)
-        z = np.full(xy.shape[0], np.nan)
-        g = np.full((xy.shape[0], 2), np.nan) if gradients else None
-        if inside.size:
-            t = tri[inside]
-            C = self.interp.coefficients[t]
-            z[inside] = rsd.values_at(self.interp.scheme, C, lam[inside]) + self.origin[2]
-            if gradients:
-                g[inside] = rsd.gradients_at(self.interp.scheme, C, self.interp._G[t], lam[inside])
-        shape = (y.size, x.size)
-        return z.reshape(shape), (None if g is None else g.reshape(shape + (2,)))
+    def window(self, grid: RasterGrid, rows: range, cols: range, gradients: bool = True):
+        """Heights (nrows, ncols) in world z and gradients (nrows, ncols, 2) at the centres
+        of grid cells rows × cols (indices may lie outside the grid: a halo); NaN outside
+        the triangulation. gradients=False skips them (returns None): a DEM alone, or
+        Horn's differences, need heights only."""
+        nr, nc = len(rows), len(cols)
+        cell, tri, lam = self.cells(grid, rows, cols)
+        values, grads = self._evaluate(tri, lam, gradients)
+        z = np.full(nr * nc, np.nan)
+        z[cell] = values + self.origin[2]
+        if not gradients:
+            return z.reshape(nr, nc), None
+        g = np.full((nr * nc, 2), np.nan)
+        g[cell] = grads
+        return z.reshape(nr, nc), g.reshape(nr, nc, 2)
+
+    def cells(self, grid: RasterGrid, rows: range, cols: range):
+        """(flat cell index, triangle, barycentrics (m, 3)) of every cell centre of rows ×
+        cols inside a triangle (a cell on a shared edge may appear twice: either triangle
+        gives the same C1 surface; the later one is kept by the callers' assignment)."""
+        r = grid.resolution
+        x0 = grid.west - self.origin[0]          # local x of the grid's west edge
+        y0 = grid.north - self.origin[1]
+        nc = len(cols)
+        top, bottom = y0 - (rows.start + 0.5) * r, y0 - (rows.stop - 0.5) * r
+        # triangles whose y-range meets the rows: north edge in [bottom, top + tallest]
+        slack = r * 1e-9
+        first = np.searchsorted(self._north, bottom - slack, side="left")
+        last = np.searchsorted(self._north, top + self._span + slack, side="right")
+        cand = self._order[first:last]
+        cand = cand[self._lo[cand, 1] <= top + slack]
+        cand = cand[(self._hi[cand, 0] >= x0 + (cols.start + 0.5) * r - slack)
+                    & (self._lo[cand, 0] <= x0 + (cols.stop - 0.5) * r + slack)]
+        eps = 1e-9
+        j0 = np.maximum(np.ceil((self._lo[cand, 0] - x0) / r - 0.5 - eps).astype(np.int64), cols.start)
+        j1 = np.minimum(np.floor((self._hi[cand, 0] - x0) / r - 0.5 + eps).astype(np.int64), cols.stop - 1)
+        i0 = np.maximum(np.ceil((y0 - self._hi[cand, 1]) / r - 0.5 - eps).astype(np.int64), rows.start)
+        i1 = np.minimum(np.floor((y0 - self._lo[cand, 1]) / r - 0.5 + eps).astype(np.int64), rows.stop - 1)
+        nj = np.maximum(j1 - j0 + 1, 0)
+        count = np.maximum(i1 - i0 + 1, 0) * nj
+        tri = np.repeat(cand, count)
+        local = np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count)
+        width = np.repeat(nj, count)
+        ii = np.repeat(i0, count) + local // width
+        jj = np.repeat(j0, count) + local % width
+        lam = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
+        keep = lam.min(axis=1) >= -self.TOLERANCE
+        return (ii[keep] - rows.start) * nc + (jj[keep] - cols.start), tri[keep], lam[keep]
+
+    def _barycentric(self, tri, px, py) -> np.ndarray:
+        """(m, 3) barycentrics of points in triangles: λ_k = G_k·(p − vertex k+1), as
+        c1mesh.locate computes them (exact near the edge opposite vertex k)."""
+        w = self._affine[tri]                                             # (m, 6)
+        lam = np.empty((tri.size, 3))
+        for k in range(2):
+            np.multiply(w[:, 3 * k], px - w[:, 3 * k + 2], out=lam[:, k])
+            lam[:, k] += w[:, 3 * k + 1] * (py - self._ref_y[k][tri])
+        lam[:, 2] = 1.0 - lam[:, 0] - lam[:, 1]
+        return lam
+
+    def _evaluate(self, tri, lam, gradients: bool = True):
+        """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
+        barycentrics lam (m, 3) in triangles tri (m,)."""
+        it = self.interp
+        if self.K is None:
+            C, G = it.coefficients[tri], it._G[tri]
+            return (rsd.values_at(it.scheme, C, lam),
+                    rsd.gradients_at(it.scheme, C, G, lam) if gradients else None)
+        A = self.K.T @ it.coefficients[tri].T                            # (P, m), rows contiguous
+        m, d = tri.size, self.degree
+        power0 = [np.ones(m), lam[:, 0].copy()]
+        power1 = [np.ones(m), lam[:, 1].copy()]
+        for _ in range(2, d + 1):
+            power0.append(power0[-1] * lam[:, 0])
+            power1.append(power1[-1] * lam[:, 1])
+        values, d0, d1 = np.zeros(m), np.zeros(m), np.zeros(m)
+        q, r, tmp = np.empty(m), np.empty(m), np.empty(m)
+        for i in range(d + 1):
+            # q = Σ_j a_ij λ1^j, r = ∂q/∂λ1; then F += λ0^i q, ∂F/∂λ0 += i λ0^(i−1) q, ∂F/∂λ1 += λ0^i r
+            q.fill(0.0)
+            r.fill(0.0)
+            for j in range(d + 1 - i):
+                row = A[self._index[i, j]]
+                np.multiply(row, power1[j], out=tmp)
+                q += tmp
+                if j and gradients:
+                    np.multiply(row, power1[j - 1], out=tmp)
+                    tmp *= j
+                    r += tmp
+            np.multiply(q, power0[i], out=tmp)
+            values += tmp
+            if not gradients:
+                continue
+            np.multiply(r, power0[i], out=tmp)
+            d1 += tmp
+            if i:
+                np.multiply(q, power0[i - 1], out=tmp)
+                tmp *= i
+                d0 += tmp
+        if not gradients:
+            return values, None
+        w = self._affine[tri]
+        out = np.empty((m, 2))
+        out[:, 0] = d0 * w[:, 0] + d1 * w[:, 3]
+        out[:, 1] = d0 * w[:, 1] + d1 * w[:, 4]
+        return values, out
 
 
 def horn_gradient(dem: np.ndarray, resolution: float) -> np.ndarray:
@@ -194,26 +323,35 @@ class RasterTargets:
         return [(k, v) for k, v in vars(self).items() if v is not None]
 
 
-def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str,
-                block_rows: int = BLOCK_ROWS) -> Iterator[tuple[range, np.ndarray, np.ndarray]]:
+def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
+                block_rows: int | None = None) -> Iterator[tuple[range, np.ndarray, np.ndarray | None]]:
     """(rows, heights (n, w), gradients (n, w, 2)) for consecutive blocks of grid rows.
 
     method "spline": the spline's gradient at each centre; "horn": Horn's differences of
     the sampled heights (one extra cell around the block), the spline's gradient where a
-    neighbour is nodata (at the edges of the mesh).
+    neighbour is nodata (at the edges of the mesh); None: heights only.
     """
+    block_rows = block_rows or max(1, min(BLOCK_ROWS, BLOCK_CELLS // grid.width))
     for start in range(0, grid.height, block_rows):
         rows = range(start, min(start + block_rows, grid.height))
-        if method == "spline":
-            x, y = grid.centres(rows, sampler.origin)
-            z, g = sampler.sample(x, y)
-        else:
-            x, y = grid.centres(rows, sampler.origin, halo=1)
-            zh, gh = sampler.sample(x, y)
-            z, g = zh[1:-1, 1:-1], gh[1:-1, 1:-1]
-            horn = horn_gradient(zh, grid.resolution)
-            ok = np.isfinite(horn).all(axis=2)
-            g = np.where(ok[..., None], horn, g)
+        if method != "horn":
+            z, g = sampler.window(grid, rows, range(grid.width), gradients=method == "spline")
+            yield rows, z, g
+            continue
+        halo = (range(rows.start - 1, rows.stop + 1), range(-1, grid.width + 1))
+        cell, tri, lam = sampler.cells(grid, *halo)
+        zh = np.full((len(halo[0]), len(halo[1])), np.nan)
+        zh.ravel()[cell] = sampler._evaluate(tri, lam, False)[0] + sampler.origin[2]
+        z = zh[1:-1, 1:-1]
+        g = horn_gradient(zh, grid.resolution)
+        edge = np.isfinite(z) & ~np.isfinite(g).all(axis=2)
+        if edge.any():      # cells next to nodata: the spline's own gradient there
+            wanted = np.zeros(zh.shape, bool)
+            wanted[1:-1, 1:-1] = edge
+            some = wanted.ravel()[cell]
+            spline = np.full(zh.shape + (2,), np.nan)
+            spline.reshape(-1, 2)[cell[some]] = sampler._evaluate(tri[some], lam[some], True)[1]
+            g[edge] = spline[1:-1, 1:-1][edge]
         yield rows, z, g
 
 
@@ -250,7 +388,7 @@ def _layer(kind: str, z: np.ndarray, g: np.ndarray) -> np.ndarray:
 
 def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
                   method: str = "spline", crs: str | None = None,
-                  block_rows: int = BLOCK_ROWS, dem_dtype: str = "float32") -> dict:
+                  block_rows: int | None = None, dem_dtype: str = "float32") -> dict:
     """Write the requested rasters in one pass over the grid; returns a report dict.
 
     dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
@@ -271,7 +409,8 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
         kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
         datasets = {kind: stack.enter_context(rasterio.open(temps[kind], "w", **_profile(
             grid, *kinds[kind], crs))) for kind, _ in items}
-        for rows, z, g in grid_blocks(grid, sampler, method, block_rows):
+        shaded = any(kind != "dem" for kind, _ in items)
+        for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
             cells_inside += int(np.isfinite(z).sum())
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
