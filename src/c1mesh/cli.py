@@ -240,10 +240,11 @@ def _fit_one(src, dst, options, report, quiet, verbose, debug) -> None:
 
 
 def _summary(report: dict) -> str:
-    pts, mesh = report["points"], report["output_mesh"]
+    pts, mesh = report["points"], report.get("output_mesh")
     total = sum(report["seconds"].values())
-    return (f"{report['input']}: {pts['kept']} of {pts['read']} points -> {mesh['vertices']} vertices, "
-            f"{mesh['faces']} faces in {total:.2f} s")
+    made = (f"{mesh['vertices']} vertices, {mesh['faces']} faces" if mesh else
+            f"{report['raster']['cells_with_data']} of {report['raster']['cells']} raster cells")
+    return f"{report['input']}: {pts['kept']} of {pts['read']} points -> {made} in {total:.2f} s"
 
 
 def _write_report(report_target, payload, debug) -> None:

@@ -144,7 +144,7 @@ def _scale_bar(ax, extent, units: str) -> None:
     y0 = extent[2] + 0.05 * (extent[3] - extent[2])
     ax.plot([x0, x0 + length], [y0, y0], color="black", linewidth=4, solid_capstyle="butt")
     ax.plot([x0, x0 + length], [y0, y0], color="white", linewidth=1.5, solid_capstyle="butt")
-    ax.text(x0 + length / 2, y0 + 0.02 * (extent[3] - extent[2]), f"{length:g} {units}".strip(),
+    ax.text(x0 + length / 2, y0 + 0.035 * (extent[3] - extent[2]), f"{length:g} {units}".strip(),
             ha="center", va="bottom", fontsize=9,
             bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1})
 
