@@ -105,9 +105,10 @@ def polynomial_form(scheme) -> tuple[np.ndarray, np.ndarray, float]:
     the returned error is the largest difference from rsd.basis at random barycentrics,
     so a scheme that is not a polynomial of its stated degree is caught, not trusted.
     """
-    from c1mesh.properties import scheme_properties
-
-    degree = scheme_properties(scheme).degree
+    degree = scheme.degree
+    if degree is None:
+        from c1mesh.properties import scheme_properties
+        degree = scheme_properties(scheme).degree
     exponents = np.array([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)])
     lattice = exponents / degree
     lam = np.column_stack([lattice, 1.0 - lattice.sum(axis=1)])
@@ -140,21 +141,24 @@ class SplineSampler:
         self.origin = np.asarray(origin, dtype=np.float64)
         K, self.exponents, error = polynomial_form(interp.scheme)
         self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
-        corners = interp.points[interp.triangles]                       # (T, 3, 2)
-        self._lo, self._hi = corners.min(axis=1), corners.max(axis=1)
+        tri, pts = interp.triangles, interp.points
+        xs = [pts[tri[:, k], 0] for k in range(3)]
+        ys = [pts[tri[:, k], 1] for k in range(3)]
+        self._lo = np.column_stack([np.minimum(np.minimum(xs[0], xs[1]), xs[2]),
+                                    np.minimum(np.minimum(ys[0], ys[1]), ys[2])])
+        self._hi = np.column_stack([np.maximum(np.maximum(xs[0], xs[1]), xs[2]),
+                                    np.maximum(np.maximum(ys[0], ys[1]), ys[2])])
         self.degree = int(self.exponents.max())
         self._index = {(int(i), int(j)): k for k, (i, j) in enumerate(self.exponents)}
         self._index = np.array([[self._index.get((i, j), -1) for j in range(self.degree + 1)]
                                 for i in range(self.degree + 1)])
-        # per triangle: G_0x, G_0y, x of vertex 1, G_1x, G_1y, x of vertex 2 (+ y's apart)
-        G, tri = interp._G, interp.triangles
-        ref1, ref2 = interp.points[tri[:, 1]], interp.points[tri[:, 2]]
-        self._affine = np.column_stack([G[:, 0, 0], G[:, 0, 1], ref1[:, 0],
-                                        G[:, 1, 0], G[:, 1, 1], ref2[:, 0]])
-        self._ref_y = (ref1[:, 1].copy(), ref2[:, 1].copy())
-        self._order = np.argsort(self._hi[:, 1], kind="stable")          # by north edge
+        # per triangle, one contiguous array each (gathered per cell): for k = 0, 1 the
+        # gradient of λ_k and the vertex k+1 it is measured from
+        G = interp._G
+        self._bary = [(G[:, k, 0].copy(), G[:, k, 1].copy(), xs[k + 1], ys[k + 1]) for k in range(2)]
+        self._order = np.argsort(self._hi[:, 1])                         # by north edge
         self._north = self._hi[self._order, 1]
-        self._span = float((self._hi[:, 1] - self._lo[:, 1]).max()) if len(corners) else 0.0
+        self._span = float((self._hi[:, 1] - self._lo[:, 1]).max()) if len(tri) else 0.0
 
     def window(self, grid: RasterGrid, rows: range, cols: range, gradients: bool = True):
         """Heights (nrows, ncols) in world z and gradients (nrows, ncols, 2) at the centres
@@ -162,8 +166,8 @@ class SplineSampler:
         the triangulation. gradients=False skips them (returns None): a DEM alone, or
         Horn's differences, need heights only."""
         nr, nc = len(rows), len(cols)
-        cell, tri, lam = self.cells(grid, rows, cols)
-        values, grads = self._evaluate(tri, lam, gradients)
+        cell, tri, l0, l1 = self.cells(grid, rows, cols)
+        values, grads = self._evaluate(tri, l0, l1, gradients)
         z = np.full(nr * nc, np.nan)
         z[cell] = values + self.origin[2]
         if not gradients:
@@ -173,7 +177,7 @@ class SplineSampler:
         return z.reshape(nr, nc), g.reshape(nr, nc, 2)
 
     def cells(self, grid: RasterGrid, rows: range, cols: range):
-        """(flat cell index, triangle, barycentrics (m, 3)) of every cell centre of rows ×
+        """(flat cell index, triangle, λ0, λ1), each (m,), of every cell centre of rows ×
         cols inside a triangle (a cell on a shared edge may appear twice: either triangle
         gives the same C1 surface; the later one is kept by the callers' assignment)."""
         r = grid.resolution
@@ -198,39 +202,40 @@ class SplineSampler:
         count = np.maximum(i1 - i0 + 1, 0) * nj
         tri = np.repeat(cand, count)
         local = np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count)
-        width = np.repeat(nj, count)
-        ii = np.repeat(i0, count) + local // width
-        jj = np.repeat(j0, count) + local % width
-        lam = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
-        keep = lam.min(axis=1) >= -self.TOLERANCE
-        return (ii[keep] - rows.start) * nc + (jj[keep] - cols.start), tri[keep], lam[keep]
+        di, dj = np.divmod(local, np.repeat(nj, count))
+        ii = np.repeat(i0, count) + di
+        jj = np.repeat(j0, count) + dj
+        l0, l1 = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
+        tol = -self.TOLERANCE
+        keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
+        return (ii[keep] - rows.start) * nc + (jj[keep] - cols.start), tri[keep], l0[keep], l1[keep]
 
-    def _barycentric(self, tri, px, py) -> np.ndarray:
-        """(m, 3) barycentrics of points in triangles: λ_k = G_k·(p − vertex k+1), as
+    def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
+        """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
         c1mesh.locate computes them (exact near the edge opposite vertex k)."""
-        w = self._affine[tri]                                             # (m, 6)
-        lam = np.empty((tri.size, 3))
-        for k in range(2):
-            np.multiply(w[:, 3 * k], px - w[:, 3 * k + 2], out=lam[:, k])
-            lam[:, k] += w[:, 3 * k + 1] * (py - self._ref_y[k][tri])
-        lam[:, 2] = 1.0 - lam[:, 0] - lam[:, 1]
-        return lam
+        out = []
+        for gx, gy, rx, ry in self._bary:
+            lam = gx[tri] * (px - rx[tri])
+            lam += gy[tri] * (py - ry[tri])
+            out.append(lam)
+        return out[0], out[1]
 
-    def _evaluate(self, tri, lam, gradients: bool = True):
+    def _evaluate(self, tri, l0, l1, gradients: bool = True):
         """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
-        barycentrics lam (m, 3) in triangles tri (m,)."""
+        barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,)."""
         it = self.interp
         if self.K is None:
             C, G = it.coefficients[tri], it._G[tri]
+            lam = np.column_stack([l0, l1, 1.0 - l0 - l1])
             return (rsd.values_at(it.scheme, C, lam),
                     rsd.gradients_at(it.scheme, C, G, lam) if gradients else None)
         A = self.K.T @ it.coefficients[tri].T                            # (P, m), rows contiguous
         m, d = tri.size, self.degree
-        power0 = [np.ones(m), lam[:, 0].copy()]
-        power1 = [np.ones(m), lam[:, 1].copy()]
+        power0 = [np.ones(m), l0]
+        power1 = [np.ones(m), l1]
         for _ in range(2, d + 1):
-            power0.append(power0[-1] * lam[:, 0])
-            power1.append(power1[-1] * lam[:, 1])
+            power0.append(power0[-1] * l0)
+            power1.append(power1[-1] * l1)
         values, d0, d1 = np.zeros(m), np.zeros(m), np.zeros(m)
         q, r, tmp = np.empty(m), np.empty(m), np.empty(m)
         for i in range(d + 1):
@@ -257,10 +262,10 @@ class SplineSampler:
                 d0 += tmp
         if not gradients:
             return values, None
-        w = self._affine[tri]
+        (g0x, g0y, _, _), (g1x, g1y, _, _) = self._bary
         out = np.empty((m, 2))
-        out[:, 0] = d0 * w[:, 0] + d1 * w[:, 3]
-        out[:, 1] = d0 * w[:, 1] + d1 * w[:, 4]
+        out[:, 0] = d0 * g0x[tri] + d1 * g1x[tri]
+        out[:, 1] = d0 * g0y[tri] + d1 * g1y[tri]
         return values, out
 
 
@@ -339,9 +344,9 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
             yield rows, z, g
             continue
         halo = (range(rows.start - 1, rows.stop + 1), range(-1, grid.width + 1))
-        cell, tri, lam = sampler.cells(grid, *halo)
+        cell, tri, l0, l1 = sampler.cells(grid, *halo)
         zh = np.full((len(halo[0]), len(halo[1])), np.nan)
-        zh.ravel()[cell] = sampler._evaluate(tri, lam, False)[0] + sampler.origin[2]
+        zh.ravel()[cell] = sampler._evaluate(tri, l0, l1, False)[0] + sampler.origin[2]
         z = zh[1:-1, 1:-1]
         g = horn_gradient(zh, grid.resolution)
         edge = np.isfinite(z) & ~np.isfinite(g).all(axis=2)
@@ -350,7 +355,7 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
             wanted[1:-1, 1:-1] = edge
             some = wanted.ravel()[cell]
             spline = np.full(zh.shape + (2,), np.nan)
-            spline.reshape(-1, 2)[cell[some]] = sampler._evaluate(tri[some], lam[some], True)[1]
+            spline.reshape(-1, 2)[cell[some]] = sampler._evaluate(tri[some], l0[some], l1[some], True)[1]
             g[edge] = spline[1:-1, 1:-1][edge]
         yield rows, z, g
 
