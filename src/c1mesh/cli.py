@@ -120,6 +120,9 @@ def main() -> None:
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
+@click.option("--threads", type=click.IntRange(1, 1024), default=None,
+              help="Threads in all (BLAS included); with --jobs N each process gets "
+                   "max(1, THREADS // N).  [default: the CPUs this process may use]")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
@@ -135,7 +138,7 @@ def main() -> None:
 @click.pass_context
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug,
-        crs, resolution, slope, aspect, hillshade, slope_method, preview):
+        threads, crs, resolution, slope, aspect, hillshade, slope_method, preview):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     from c1mesh.pipeline import FitOptions
 
@@ -148,11 +151,21 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
     jobs_list = _plan(inputs, output, output_dir, suffix, input_format)
+    options.workers = _threads_per_process(threads, min(jobs, len(jobs_list)))
     options = _check_geo(ctx, jobs_list, options, debug)
     if len(jobs_list) == 1:
         _fit_one(*jobs_list[0], options, report, quiet, verbose, debug)
         return
     _fit_batch(jobs_list, options, report, jobs, quiet, verbose, debug)
+
+
+def _threads_per_process(threads: int | None, jobs: int) -> int:
+    """--threads shared by the --jobs processes, so together they do not oversubscribe
+    (Open3D's OpenMP threads included)."""
+    from c1mesh.threads import openmp_at_start, per_process
+    count = per_process(threads, jobs)
+    openmp_at_start(count)
+    return count
 
 
 def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, str]]:

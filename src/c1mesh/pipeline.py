@@ -23,6 +23,8 @@ from c1mesh.formats import read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.threads import blas_threads, prefetch, ring
+from c1mesh.threads import limit as thread_limit
+from c1mesh.threads import workers as thread_count
 from c1mesh.properties import scheme_properties
 from c1mesh.refine import Refinement
 from c1mesh.schemes import get_scheme
@@ -40,7 +42,9 @@ class FitOptions:
     k: neighbours for normal estimation; classes: LAS classification codes to keep;
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
-    scheme: shape-function tuple; level: each triangle becomes level² triangles.
+    scheme: shape-function tuple; level: each triangle becomes level² triangles;
+    workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
+    process-wide setting, by default the CPUs this process may use).
     """
 
     input_format: str | None = None
@@ -53,6 +57,7 @@ class FitOptions:
     scheme: str = "sextic"
     level: int = 4
     ascii: bool = False
+    workers: int | None = None
     # Georeferencing and rasters (c1mesh.crs, c1mesh.raster, c1mesh.preview): crs assigns a
     # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
     # cell size, or for meshes the target mean edge length (chooses the level); slope,
@@ -188,9 +193,15 @@ def fit(source, output=None, options: FitOptions | None = None,
     instead of assembling it: the result's mesh is then None, and memory and time drop
     (the CLI does this). The spline is then evaluated by a second thread ahead of the
     writer: "refine" reports the time the writer waited for evaluated blocks and
-    "write" the rest of the writing.
+    "write" the rest of the writing. Every stage uses at most options.workers threads.
     """
     options = options or FitOptions()
+    with thread_limit(options.workers):
+        return _fit(source, output, options, on_stage, keep_mesh)
+
+
+def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
+    """fit() inside its thread limit."""
     scheme = get_scheme(options.scheme)
     geo = geo_plan(output, options)
     if geo.rasters.items():
@@ -290,6 +301,7 @@ def _report(source, output, options, cloud, normal_source, frame, hf, trim_repor
         "scheme": props.as_dict(),
         "c1_certificate": interp.c1_certificate(),
         "seconds": timer.seconds,
+        "threads": thread_count(),
     }
 
 
