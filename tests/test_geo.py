@@ -226,6 +226,7 @@ def test_aspect_of_planes_points_downhill():
     g = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])    # rising east, north, west, south
     assert np.allclose(aspect_degrees(g), [270, 180, 90, 0])
     assert np.allclose(slope_degrees(g), 45)
+    assert aspect_degrees(np.array([[0.0, 0.0], [-0.0, -0.0]])).tolist() == [0.0, 0.0]
 
 
 def test_lidar_ground_dem_slope_hillshade(tmp_path):

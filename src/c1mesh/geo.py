@@ -7,6 +7,7 @@ not conflict), so the CLI can call it before any input is read.
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,7 +89,6 @@ def check_writable(path) -> None:
         raise InputError(f"Output path '{target}' is a directory; give a file name.")
     if not parent.is_dir():
         raise InputError(f"Output directory '{parent}' does not exist; create it first.")
-    import os
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"Output directory '{parent}' is not writable.")
 

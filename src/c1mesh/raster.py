@@ -290,8 +290,11 @@ def slope_degrees(gradient: np.ndarray) -> np.ndarray:
 
 
 def aspect_degrees(gradient: np.ndarray) -> np.ndarray:
-    """Azimuth of the downhill direction, degrees clockwise from north in [0, 360)."""
-    return np.mod(np.degrees(np.arctan2(-gradient[..., 0], -gradient[..., 1])), 360.0)
+    """Azimuth of the downhill direction, degrees clockwise from north in [0, 360); 0 where
+    the gradient is exactly zero."""
+    gx, gy = gradient[..., 0], gradient[..., 1]
+    azimuth = np.mod(np.degrees(np.arctan2(-gx, -gy)), 360.0)
+    return np.where((gx == 0) & (gy == 0), 0.0, azimuth)
 
 
 def hillshade(gradient: np.ndarray, azimuth: float = LIGHT_AZIMUTH,
