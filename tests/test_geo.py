@@ -308,8 +308,10 @@ def test_preview_of_a_fit_and_of_its_outputs(tmp_path):
                                 "--preview", str(tmp_path / "fit.png")])
     assert done.exit_code == 0, done.output
     _png_ok(tmp_path / "fit.png")
-    assert runner.invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(ply), "--level", "2"]).exit_code == 0
-    for source, png in ((dem, "dem.png"), (ply, "ply.png")):
+    glb = tmp_path / "g.glb"
+    for out in (ply, glb):
+        assert runner.invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out), "--level", "2"]).exit_code == 0
+    for source, png in ((dem, "dem.png"), (ply, "ply.png"), (glb, "glb.png")):
         done = runner.invoke(main, ["preview", str(source), "-o", str(tmp_path / png)])
         assert done.exit_code == 0, done.output
         _png_ok(tmp_path / png)

@@ -59,10 +59,19 @@ def render_mesh(source, path, pixels: int = PIXELS) -> None:
     from c1mesh.formats import read_cloud
     from c1mesh.frame import choose_frame
 
-    cloud = read_cloud(source)
+    if Path(str(source)).suffix.lower() == ".glb":
+        from c1mesh.cloud import PointCloud
+        from c1mesh.formats.meshes import read_glb_vertices
+        points, normals = read_glb_vertices(Path(source).read_bytes())
+        document_crs = _glb_crs(Path(source).read_bytes())
+        cloud = PointCloud(points=points, normals=normals, crs=document_crs)
+    else:
+        cloud = read_cloud(source)
     if cloud.normals is None:
         raise InputError(f"'{source}' has no vertex normals to shade; fit it first (c1mesh fit)")
     frame = choose_frame(cloud.points, cloud.normals)
+    if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
+        frame = choose_frame(cloud.points, cloud.normals, "z")
     world = np.allclose(frame.axes, np.eye(3))
     local = frame.to_local(cloud.points)
     normals = frame.vectors_to_local(cloud.normals)
@@ -80,11 +89,40 @@ def render_mesh(source, path, pixels: int = PIXELS) -> None:
     nz = mean(normals[:, 2])
     g = np.stack([-mean(normals[:, 0]) / nz, -mean(normals[:, 1]) / nz], axis=-1)
     shape = (grid.height, grid.width)
+    z, g = _fill_gaps(z.reshape(shape), g.reshape(shape + (2,)))
     offset = frame.origin[:2] if world else np.zeros(2)
     extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * size,
               grid.north + offset[1] - grid.height * size, grid.north + offset[1])
-    render_arrays(z.reshape(shape), g.reshape(shape + (2,)), extent, path, _units(cloud.crs),
-                  f"{Path(str(source)).name} (vertex normals)")
+    render_arrays(z, g, extent, path, _units(cloud.crs), f"{Path(str(source)).name} (vertex normals)")
+
+
+def _fill_gaps(z: np.ndarray, g: np.ndarray, passes: int = 2):
+    """Fill empty pixels that have at least 4 of 8 filled neighbours with their mean
+    (vertices of a refined mesh are not uniform, so some pixels inside it get none)."""
+    for _ in range(passes):
+        empty = ~np.isfinite(z)
+        if not empty.any():
+            break
+        stack = np.concatenate([z[..., None], g], axis=-1)
+        padded = np.pad(stack, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+        h, w = z.shape
+        shifts = [padded[1 + di:1 + di + h, 1 + dj:1 + dj + w] for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                  if di or dj]
+        neighbours = np.stack(shifts)                                   # (8, h, w, 3)
+        have = np.isfinite(neighbours[..., 0])
+        count = have.sum(axis=0)
+        total = np.where(have[..., None], neighbours, 0.0).sum(axis=0)
+        fill = empty & (count >= 4)
+        z[fill] = total[fill, 0] / count[fill]
+        g[fill] = total[fill, 1:] / count[fill, None]
+    return z, g
+
+
+def _glb_crs(data: bytes) -> str | None:
+    import json
+    import struct
+    length = struct.unpack_from("<I", data, 12)[0]
+    return json.loads(data[20:20 + length]).get("asset", {}).get("extras", {}).get("crs")
 
 
 def render_file(source, path) -> None:

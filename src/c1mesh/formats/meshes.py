@@ -122,13 +122,28 @@ def _write_glb_chunks(f: IO[bytes], text: bytes, binary: bytes) -> None:
 def read_glb_positions(data: bytes) -> np.ndarray:
     """World positions (M, 3) float64 of the first mesh of a GLB written by write_glb:
     float32 POSITION plus the node's translation (used to check precision)."""
-    length, kind = struct.unpack_from("<I4s", data, 12)
-    document = json.loads(data[20:20 + length])
-    binary = data[20 + length + 8:]
-    primitive = document["meshes"][0]["primitives"][0]
-    accessor = document["accessors"][primitive["attributes"]["POSITION"]]
-    view = document["bufferViews"][accessor["bufferView"]]
-    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
-    local = np.frombuffer(binary, "<f4", accessor["count"] * 3, start).reshape(-1, 3)
-    node = next(n for n in document["nodes"] if n.get("mesh") == 0)
-    return local.astype(np.float64) + np.asarray(node.get("translation", [0.0, 0.0, 0.0]))
+    return read_glb_vertices(data)[0]
+
+
+def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
+    """(world positions (M, 3) float64, normals (M, 3) or None) of the first mesh of a
+    GLB as write_glb writes it: float32 accessors in one buffer, the origin in the node's
+    translation. FormatError for anything else."""
+    from c1mesh.errors import FormatError
+    try:
+        length, _ = struct.unpack_from("<I4s", data, 12)
+        document = json.loads(data[20:20 + length])
+        binary = data[20 + length + 8:]
+        attributes = document["meshes"][0]["primitives"][0]["attributes"]
+
+        def column(name):
+            accessor = document["accessors"][attributes[name]]
+            view = document["bufferViews"][accessor["bufferView"]]
+            start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+            return np.frombuffer(binary, "<f4", accessor["count"] * 3, start).reshape(-1, 3)
+        node = next(n for n in document["nodes"] if n.get("mesh") == 0)
+        positions = column("POSITION").astype(np.float64) + np.asarray(node.get("translation", [0.0] * 3))
+        normals = column("NORMAL").astype(np.float64) if "NORMAL" in attributes else None
+    except (struct.error, ValueError, KeyError, IndexError, StopIteration) as exc:
+        raise FormatError(f"cannot read the GLB: {exc}") from exc
+    return positions, normals
