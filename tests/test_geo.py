@@ -76,15 +76,26 @@ def test_las_wkt_vlr_crs_is_read():
     assert crs.axis_info[0].unit_name == "foot"
 
 
+def _info(path) -> dict:
+    """`c1mesh info PATH` in a child process (info needs a real stdout)."""
+    import os
+    import subprocess
+    import sys
+    src = str(Path(__file__).resolve().parent.parent / "src")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, os.environ.get("PYTHONPATH")])))
+    done = subprocess.run([sys.executable, "-m", "c1mesh.cli", "info", str(path)], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
 def test_info_shows_the_crs_of_las_and_of_our_ply(tmp_path):
     runner = CliRunner()
-    facts = json.loads(runner.invoke(main, ["info", str(TILE)]).output)
-    assert facts["crs"]["epsg"] == 2903
+    assert _info(TILE)["crs"]["epsg"] == 2903
     out = tmp_path / "ground.ply"
     done = runner.invoke(main, ["fit", str(TILE), "--classes", "2", "--level", "1", "-o", str(out)])
     assert done.exit_code == 0, done.output
-    facts = json.loads(runner.invoke(main, ["info", str(out)]).output)
-    assert facts["crs"]["epsg"] == 2903
+    assert _info(out)["crs"]["epsg"] == 2903
     assert _crs((tmp_path / "ground.prj").read_text()).equals(_crs("EPSG:2903"))
 
 

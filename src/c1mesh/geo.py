@@ -118,7 +118,6 @@ def finish(result, interp, frame, crs, crs_source, options):
     """Add the CRS to the report and render the preview when one was asked for."""
     facts = crs_module.describe(crs)
     if facts is not None:
-        facts = {k: v for k, v in facts.items() if k != "wkt"}
         facts["source"] = crs_source
     result.report["crs"] = facts
     if options.resolution is not None and "level" in result.report:

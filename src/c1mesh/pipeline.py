@@ -17,9 +17,9 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.geo import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
-from c1mesh.raster import raster_axis, write_fit_rasters
+from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
-from c1mesh.formats import read_cloud, write_mesh
+from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -44,7 +44,8 @@ class FitOptions:
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
     scheme: shape-function tuple; level: each triangle becomes level² triangles;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
-    process-wide setting, by default the CPUs this process may use).
+    process-wide setting, by default the CPUs this process may use);
+    output_format: mesh format of the output (default: its extension, PLY for a stream).
     """
 
     input_format: str | None = None
@@ -58,6 +59,7 @@ class FitOptions:
     level: int = 4
     ascii: bool = False
     workers: int | None = None
+    output_format: str | None = None
     # Georeferencing and rasters (c1mesh.crs, c1mesh.raster, c1mesh.preview): crs assigns a
     # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
     # cell size, or for meshes the target mean edge length (chooses the level); slope,
@@ -196,6 +198,8 @@ def fit(source, output=None, options: FitOptions | None = None,
     "write" the rest of the writing. Every stage uses at most options.workers threads.
     """
     options = options or FitOptions()
+    if output is not None and not is_raster_path(output):   # fails now, not after the work
+        check_output(output, options.output_format, inputs=(source,))
     with thread_limit(options.workers):
         return _fit(source, output, options, on_stage, keep_mesh)
 
@@ -247,8 +251,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         if output is not None:
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii,
-                           crs=crs)
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
+                           ascii=options.ascii, crs=crs)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
