@@ -39,6 +39,8 @@ def geo_plan(output, options) -> GeoPlan:
         raise InputError(f"--resolution must be a positive length, got {options.resolution}")
     if options.preview is not None:
         check_preview_path(options.preview)
+    if rasters.dem is not None:
+        check_writable(rasters.dem)
     extra = [path for _, path in rasters.items() if path != rasters.dem]
     extra += [options.preview] if options.preview else []
     for path in extra:
@@ -58,12 +60,10 @@ def check_preview_path(path) -> None:
 
 
 def check_before(outputs, options):
-    """Everything about the outputs of a fit that can fail, checked before the input is
-    read: formats, directories, option conflicts, the CRS. Returns the options with the
-    CRS parsed to WKT (so it is parsed once)."""
+    """The georeferenced side of a fit's outputs, checked before the input is read: the
+    CRS, raster and preview paths, option conflicts (mesh outputs: c1mesh.outputs).
+    Returns the options with the CRS parsed to WKT (so it is parsed once)."""
     from dataclasses import replace
-
-    from c1mesh.formats import SUPPORTED_OUTPUT
 
     if options.crs:
         options = replace(options, crs=crs_module.parse_crs(options.crs))
@@ -72,12 +72,7 @@ def check_before(outputs, options):
             if targets_for(None, options).items():
                 raise InputError("GeoTIFF outputs cannot go to stdout; give -o FILE.tif")
             continue
-        key = Path(output).suffix.lower().lstrip(".")
-        if not is_raster_path(output) and key not in SUPPORTED_OUTPUT:
-            raise InputError(f"Unsupported output format '{key}' for '{output}'; supported: "
-                             f"{', '.join(SUPPORTED_OUTPUT + ('tif',))}.")
-        check_writable(output)
-        geo_plan(output, options)
+        geo_plan(output, options)      # mesh outputs: c1mesh.outputs checks them
     return options
 
 
