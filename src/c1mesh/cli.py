@@ -59,6 +59,21 @@ def _parse_classes(value: str | None) -> tuple[int, ...] | None:
         raise click.BadParameter(f"expected comma-separated integers such as 2,9, got {value!r}")
 
 
+def _parse_memory(ctx, param, value):
+    """--memory: a size such as 512M or 8G (None = the reader's default)."""
+    if value is None:
+        return None
+    from c1mesh.formats._limits import parse_memory
+    try:
+        return parse_memory(value)
+    except C1MeshError as exc:
+        raise click.BadParameter(str(exc))
+
+
+_MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
+                "are refused [default: half the RAM, at most 8G].")
+
+
 def _parse_max_edge(value: str):
     if value.lower() == "auto":
         return "auto"
@@ -187,6 +202,7 @@ def main() -> None:
               help="Each triangle is split into level² triangles.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
+@click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
 @click.option("--threads", type=click.IntRange(1, 1024), default=None,
@@ -206,7 +222,7 @@ def main() -> None:
 @click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
 @click.pass_context
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug,
+        max_edge, scheme, level, ascii_ply, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, slope_method, preview):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
@@ -224,7 +240,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
-                         crs=crs, resolution=resolution, slope=slope, aspect=aspect,
+                         memory=memory, crs=crs, resolution=resolution, slope=slope, aspect=aspect,
                          hillshade=hillshade, slope_method=slope_method, preview=preview)
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
@@ -474,8 +490,9 @@ def _collect(iterator, total, show, verbose):
 @main.command()
 @click.argument("path")
 @click.option("--input-format", help="Input format; required for stdin (-).")
+@click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def info(path, input_format, debug):
+def info(path, input_format, memory, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
     from c1mesh.inspect import describe
 
@@ -485,7 +502,7 @@ def info(path, input_format, debug):
         if path == STDIO:
             _check_stdin()
         _check_stdout()
-        facts = describe(sys.stdin.buffer if path == "-" else path, input_format)
+        facts = describe(sys.stdin.buffer if path == "-" else path, input_format, memory=memory)
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)
     click.echo(json.dumps(facts, indent=2))

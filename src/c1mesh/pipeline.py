@@ -45,7 +45,8 @@ class FitOptions:
     scheme: shape-function tuple; level: each triangle becomes level² triangles;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
     process-wide setting, by default the CPUs this process may use);
-    output_format: mesh format of the output (default: its extension, PLY for a stream).
+    output_format: mesh format of the output (default: its extension, PLY for a stream);
+    memory: bytes (or a size such as "4G") the reader may read and decode, None = default.
     """
 
     input_format: str | None = None
@@ -60,6 +61,7 @@ class FitOptions:
     ascii: bool = False
     workers: int | None = None
     output_format: str | None = None
+    memory: Any = None
     # Georeferencing and rasters (c1mesh.crs, c1mesh.raster, c1mesh.preview): crs assigns a
     # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
     # cell size, or for meshes the target mean edge length (chooses the level); slope,
@@ -102,7 +104,7 @@ class _Timer:
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
     """Read the input and keep only the requested LAS classes."""
-    cloud = read_cloud(source, options.input_format)
+    cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory)
     if options.classes:
         if cloud.classification is None:
             raise InputError("--classes needs a file with a classification field (LAS/LAZ)")
@@ -128,9 +130,10 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     finite = np.isfinite(cloud.points).all(axis=1)
     if finite.sum() < 3:
         raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
-    towards = choose_frame(cloud.points[finite], None, options.axis).axes[2]
+    points = cloud.points if finite.all() else cloud.points[finite]   # one copy at most
+    towards = choose_frame(points, None, options.axis).axes[2]
     normals = np.full(cloud.points.shape, np.nan)
-    normals[finite] = estimate_normals(cloud.points[finite], k=options.k, towards=towards)
+    normals[finite] = estimate_normals(points, k=options.k, towards=towards)
     return normals, "estimated"
 
 
