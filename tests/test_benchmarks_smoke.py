@@ -19,7 +19,8 @@ HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
             "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
             "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit",
-            "## Tiles: seamless survey vs one whole fit")
+            "## Tiles: seamless survey vs one whole fit",
+            "## Geo: slope honesty, DEM speed, GLB precision")
 
 
 @pytest.mark.slow

@@ -16,6 +16,7 @@ class PointCloud:
     colors:         (N, 3) or (N, 4) uint8 RGB(A) or None.
     classification: (N,) integer LAS classification codes or None.
     extra:          other per-point fields by name, each (N,) array (kept, not interpreted).
+    crs:            WKT2 of the coordinate reference system the file declares, or None.
     """
 
     points: np.ndarray
@@ -23,6 +24,7 @@ class PointCloud:
     colors: np.ndarray | None = None
     classification: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    crs: str | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -36,6 +38,7 @@ class PointCloud:
             colors=pick(self.colors),
             classification=pick(self.classification),
             extra={k: v[mask] for k, v in self.extra.items()},
+            crs=self.crs,
         )
 
 

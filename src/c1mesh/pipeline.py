@@ -16,6 +16,8 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.geo import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
+from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
@@ -60,6 +62,17 @@ class FitOptions:
     workers: int | None = None
     output_format: str | None = None
     memory: Any = None
+    # Georeferencing and rasters (c1mesh.crs, c1mesh.raster, c1mesh.preview): crs assigns a
+    # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
+    # cell size, or for meshes the target mean edge length (chooses the level); slope,
+    # aspect, hillshade are extra GeoTIFF paths; preview a PNG path.
+    crs: str | None = None
+    resolution: float | None = None
+    slope: str | None = None
+    aspect: str | None = None
+    hillshade: str | None = None
+    slope_method: str = "auto"
+    preview: str | None = None
 
 
 @dataclass
@@ -232,7 +245,7 @@ def fit(source, output=None, options: FitOptions | None = None,
     "write" the rest of the writing. Every stage uses at most options.workers threads.
     """
     options = options or FitOptions()
-    if output is not None:    # an output that cannot be written fails now, not after the work
+    if output is not None and not is_raster_path(output):   # fails now, not after the work
         check_output(output, options.output_format, inputs=(source,))
     with thread_limit(options.workers):
         return _fit(source, output, options, on_stage, keep_mesh)
@@ -240,12 +253,29 @@ def fit(source, output=None, options: FitOptions | None = None,
 
 def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
     """fit() inside its thread limit."""
+    geo = geo_plan(output, options)
+    if geo.rasters.items():
+        options = replace(options, axis=raster_axis(options.axis))
     timer = _Timer(on_stage)
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
+        crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, _name(source))
     model = build_surface(cloud, options, timer)
     normal_source, frame, hf, trim_report, used, interp = (
         model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
+    if geo.rasters.items():
+        with timer.stage("raster"):
+            raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs)
+        return _finish_geo(FitResult(None, {"input": _name(source), "output": _name(output),
+                                            "points": {"read": len(cloud), "kept": int(used.size),
+                                                       "spacing": float(hf.spacing)},
+                                            "frame": {"origin": frame.origin.tolist(),
+                                                      "axes": frame.axes.tolist()},
+                                            "raster": raster_report, "seconds": timer.seconds}),
+                           interp, frame, crs, crs_source, options)
+    if options.resolution is not None:
+        options = replace(options, level=level_for_edge(interp.points, interp.triangles,
+                                                        options.resolution))
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)
@@ -257,12 +287,12 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
                 write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
-                           ascii=options.ascii)
+                           ascii=options.ascii, crs=crs)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
                      used, interp, stream, timer)
-    return FitResult(mesh, report)
+    return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
 class _StopWatch:
