@@ -117,6 +117,9 @@ def main() -> None:
 @click.option("--level", type=click.IntRange(1, 64), default=4, show_default=True,
               help="Each triangle is split into level² triangles.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
+@click.option("--overshoot", type=click.Choice(["limit", "off"]), default="limit", show_default=True,
+              help="limit: tame gradients that disagree with the heights and thin triangles "
+                   "(keeps C1); off: use the data as is.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
@@ -124,13 +127,14 @@ def main() -> None:
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug):
+        max_edge, scheme, level, ascii_ply, overshoot, report, jobs, quiet, verbose, debug):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     from c1mesh.pipeline import FitOptions
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k,
                          classes=_parse_classes(classes), max_slope=max_slope,
-                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply)
+                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply,
+                         overshoot=overshoot)
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
@@ -201,6 +205,7 @@ def _fit_one(src, dst, options, report, quiet, verbose, debug) -> None:
     except Exception as exc:  # noqa: BLE001 — any other failure is still one line
         _fail(_message(exc), debug)
     _write_report(report, result, debug)
+    _warn(result, quiet)
     if verbose and not quiet:
         click.echo(_summary(result), err=True)
 
@@ -208,8 +213,23 @@ def _fit_one(src, dst, options, report, quiet, verbose, debug) -> None:
 def _summary(report: dict) -> str:
     pts, mesh = report["points"], report["output_mesh"]
     total = sum(report["seconds"].values())
-    return (f"{report['input']}: {pts['kept']} of {pts['read']} points -> {mesh['vertices']} vertices, "
+    line = (f"{report['input']}: {pts['kept']} of {pts['read']} points -> {mesh['vertices']} vertices, "
             f"{mesh['faces']} faces in {total:.2f} s")
+    frame = report.get("frame", {})
+    if "axis_choice" in frame:
+        e3 = ", ".join(f"{c:.3g}" for c in frame["axes"][2])
+        line += f"; height axis ({e3}), {frame['axis_choice']}"
+    if "overshoot" in report:
+        line += f"; gradients limited at {report['overshoot']['gradients_limited']} vertices"
+    return line
+
+
+def _warn(report: dict, quiet: bool) -> None:
+    """The report's warnings on stderr, one line each (not with -q)."""
+    if quiet:
+        return
+    for text in report.get("warnings", []):
+        click.echo(f"c1mesh: warning: {report.get('input')}: {text}", err=True)
 
 
 def _write_report(report_target, payload, debug) -> None:
@@ -245,6 +265,9 @@ def _fit_batch(pairs, options, report, jobs, quiet, verbose, debug) -> None:
             results = _collect(iterator, len(work), show, verbose and not quiet)
     else:
         results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
+    for _, rep, _ in results:
+        if rep:
+            _warn(rep, quiet)
     failures = [(src, err) for src, _, err in results if err]
     _write_report(report, {"inputs": [{"input": src, "report": rep, "error": err} for src, rep, err in results]},
                   debug)
