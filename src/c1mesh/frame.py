@@ -160,6 +160,7 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     everything = good.all()
     finite = np.ascontiguousarray(pts) if everything else pts[good]
     origin = np.median(finite, axis=0)
+    _check_extent(finite)
     e3 = _parse_axis(axis)
     if e3 is None:
         if normals is not None:
@@ -309,6 +310,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
         raise InputError(f"only {index.size} of {len(pts)} points have finite coordinates and a "
                          "usable (nonzero, finite) normal; a height field needs at least 3")
     local = frame.to_local(pts[index])
+    _check_extent(local)
     gradients, flipped = _gradients(n_local[index])
 
     keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame)
@@ -318,6 +320,23 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     return HeightField(xy=xy, z=local[keep, 2], gradients=gradients[keep],
                        source_index=index[keep].astype(np.int64), frame=frame, dropped=dropped,
                        flipped=flipped, stacked=n_stacked, spacing=spacing)
+
+
+MAX_EXTENT = 1e150
+"""Largest spread of local coordinates: squared distances of larger ones overflow float64."""
+
+
+def _check_extent(local: np.ndarray) -> None:
+    """InputError when local coordinates (n, 3) spread so far that distances overflow.
+
+    Coordinates near 1e155 (a little-endian body read as big-endian, a wrong scale
+    factor) make every squared distance inf, and KD-tree queries then find no neighbours.
+    """
+    span = float(np.max(np.ptp(local, axis=0))) if local.size else 0.0
+    if not span <= MAX_EXTENT:
+        raise InputError(f"the points spread over {span:.3g} units, too far for distances to be "
+                         "computed in float64; the coordinates are probably garbage (check the "
+                         "file's byte order, scale and offset)")
 
 
 def _gradients(n: np.ndarray) -> tuple[np.ndarray, int]:
@@ -454,13 +473,16 @@ def _nearest_via_plane(points: np.ndarray, query: np.ndarray, plane_tree: cKDTre
     """
     nearest = np.empty(query.shape[0])
     todo = np.arange(query.shape[0])
+    n = points.shape[0]
     for k in (6, 64):
-        plane, idx = plane_tree.query(query[todo, :2], k=min(k, points.shape[0]))
-        diff = points[idx] - query[todo, None, :]
+        plane, idx = plane_tree.query(query[todo, :2], k=min(k, n))
+        missing = idx >= n                                # cKDTree's "no neighbour" (inf distances)
+        diff = points[np.minimum(idx, n - 1)] - query[todo, None, :]
         d3 = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
                      + diff[..., 2] * diff[..., 2])
+        d3[missing] = np.inf
         best = np.partition(d3, 1, axis=1)[:, 1]          # [:, 0] is the point itself
-        done = best <= plane[:, -1]
+        done = (best <= plane[:, -1]) & ~missing.any(axis=1)
         nearest[todo[done]] = best[done]
         todo = todo[~done]
         if todo.size == 0:
