@@ -83,7 +83,8 @@ def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarra
     For an edge k→j with d = p_j − p_k, the height change Δ = f_j − f_k and the changes
     the end gradients predict, δ_k = A_k·d and δ_j = A_j·d, the trapezoid residual
     e = Δ − (δ_k + δ_j)/2 vanishes for every quadratic and is O(|d|³) for smooth data.
-    An edge is inconsistent when |e| > consistency · max(|Δ|, |δ_k|/2, |δ_j|/2): the
+    An edge is inconsistent when |e| > consistency · max(|Δ|, |δ_k|/2, |δ_j|/2) +
+    noise_factor · median |e| (the noise floor of the whole data set) + rounding: the
     gradients then say something the heights do not. On inconsistent edges each end's
     prediction must lie between 0 and secant_factor · Δ (so it has the secant's sign and
     at most that multiple of its size, as in Fritsch–Carlson); a vertex gradient is
@@ -102,7 +103,8 @@ def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarra
     residual = delta - 0.5 * (pred_a + pred_b)
     scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
     noise = noise_factor * float(np.median(np.abs(residual))) if residual.size else 0.0
-    bad = np.abs(residual) > consistency * scale + noise
+    rounding = 64 * np.finfo(float).eps * (np.abs(f[a]) + np.abs(f[b]) + np.abs(pred_a) + np.abs(pred_b))
+    bad = np.abs(residual) > consistency * scale + noise + rounding
     factor = np.ones(p.shape[0])
     for vertex, pred in ((a, pred_a), (b, pred_b)):
         t = _allowed_fraction(pred[bad], delta[bad], secant_factor, noise)
