@@ -401,3 +401,27 @@ def test_nearest_via_plane_treats_missing_neighbours_as_unknown():
     pts = np.random.default_rng(2).random((100, 3))
     expected = _tree(pts).query(pts, k=2)[0][:, 1]
     np.testing.assert_array_equal(_nearest_via_plane(pts, pts, _tree(pts[:, :2])), expected)
+
+
+# ---- auto axis with coordinates in different units (issue 10) ------------------------------
+def _lonlat_terrain(n=5000, seed=0):
+    """Terrain with x, y in degrees (spread 0.02) and z in metres (spread ~60)."""
+    rng = np.random.default_rng(seed)
+    lon, lat = -122 + 0.02 * rng.random(n), 44 + 0.02 * rng.random(n)
+    z = 120 + 30 * np.sin((lon + 122) * 300) * np.cos((lat - 44) * 200) + rng.normal(0, 0.1, n)
+    return np.c_[lon, lat, z]
+
+
+@pytest.mark.parametrize("with_normals", [False, True])
+def test_auto_axis_survives_coordinates_in_different_units(with_normals, monkeypatch):
+    """Degrees for x, y and metres for z: PCA and estimated normals point sideways; the
+    auto axis must still be z. Without the unit check (monkeypatched off) it is not."""
+    import c1mesh.frame as frame_module
+    pts = _lonlat_terrain()
+    nrm = None
+    if with_normals:
+        from c1mesh.normals import estimate_normals
+        nrm = estimate_normals(pts, towards=(0.0, 0.0, 1.0))
+    np.testing.assert_array_equal(choose_frame(pts, nrm).axes[2], [0.0, 0.0, 1.0])
+    monkeypatch.setattr(frame_module, "UNIT_ANISOTROPY", np.inf)
+    assert abs(choose_frame(pts, nrm).axes[2][2]) < 0.5

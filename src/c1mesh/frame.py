@@ -162,6 +162,8 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     origin = np.median(finite, axis=0)
     _check_extent(finite)
     e3 = _parse_axis(axis)
+    if e3 is None and _units_differ(finite):
+        e3 = _world_axis_by_layering(finite)
     if e3 is None:
         if normals is not None:
             normals = _as_n3(normals, "normals", len(pts))
@@ -225,6 +227,54 @@ def _auto_axis(points: np.ndarray, origin: np.ndarray, normals: np.ndarray | Non
     centred = points - origin
     e3 = np.linalg.eigh(centred.T @ centred)[1][:, 0]
     return -e3 if e3[np.argmax(np.abs(e3))] < 0 else e3
+
+
+UNIT_ANISOTROPY = 100.0
+"""Coordinates whose robust spreads differ by more than this factor are taken to be in
+different units (degrees and metres, metres and millimetres): then angles, normals and
+PCA directions mean nothing, and axis "auto" chooses among the world axes instead."""
+
+
+def _spreads(points: np.ndarray) -> np.ndarray:
+    """Robust per-coordinate spread (3,): the 5-95% inter-percentile range of points (n, 3)."""
+    low, high = np.percentile(points, [5, 95], axis=0)
+    return high - low
+
+
+def _units_differ(points: np.ndarray) -> bool:
+    """True when the coordinates' spreads differ by more than UNIT_ANISOTROPY (see there)."""
+    spread = _spreads(points)
+    return bool(spread.min() > 0 and spread.max() > UNIT_ANISOTROPY * spread.min())
+
+
+def auto_axis_reason(points: ArrayLike, has_normals: bool) -> str:
+    """How axis "auto" chooses e3 for these points (N, 3), in words for reports."""
+    pts = _as_n3(points, "points")
+    finite = pts[np.all(np.isfinite(pts), axis=1)]
+    if finite.shape[0] >= 3 and _units_differ(finite):
+        return ("auto: the coordinates are in different units (spreads differ by more than "
+                f"{UNIT_ANISOTROPY:g}x), so the world axis over which the points form a height field")
+    return "auto: the mean of the normals" if has_normals else "auto: least-variance direction (PCA)"
+
+
+def _world_axis_by_layering(points: np.ndarray, samples: int = 20000) -> np.ndarray:
+    """The world axis (+x, +y or +z) over which points (n, 3) are most nearly a height field.
+
+    Each coordinate is divided by its spread (unit-free). For each axis, every sampled
+    point's nearest neighbour over the other two coordinates is found; the score is the
+    median height difference to it over the median distance to it. Over the right axis
+    neighbours in the plane have similar heights (a slope); over a wrong one the surface
+    is folded onto itself and plane neighbours lie far apart in height.
+    """
+    scaled = points / _spreads(points)
+    scaled = scaled[:: max(1, scaled.shape[0] // samples)]
+    scores = []
+    for a in range(3):
+        plane = np.delete(scaled, a, axis=1)
+        distance, index = _tree(plane).query(plane, k=2)
+        step = np.abs(scaled[index[:, 1], a] - scaled[:, a])
+        scores.append(np.median(step) / max(np.median(distance[:, 1]), np.finfo(float).tiny))
+    return np.eye(3)[int(np.argmin(scores))]
 
 
 def _axes_from_e3(e3: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
 from c1mesh.formats import read_cloud, write_mesh
-from c1mesh.frame import choose_frame, gradients_to_normals, height_field
+from c1mesh.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -220,7 +220,8 @@ def fit(source, output=None, options: FitOptions | None = None,
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
                      used, interp, stream, timer)
-    report["frame"]["axis_choice"] = axis_reason
+    report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
+        auto_axis_reason(cloud.points, True)
     report["overshoot"] = overshoot.as_dict()
     report["pieces"] = mesh_pieces(hf.xy[used], triangles)
     report["warnings"] = fit_warnings(report)
@@ -238,7 +239,7 @@ def _resolve_axis(source, options: FitOptions) -> tuple[FitOptions, str]:
     fmt = options.input_format or (Path(source).suffix if isinstance(source, (str, Path)) else "")
     if str(fmt).lower().lstrip(".") in LAS_FORMATS:
         return replace(options, axis="z"), "z: LAS/LAZ elevation"
-    return options, "auto: mean of the normals (PCA of the points without normals)"
+    return options, "auto"
 
 
 PIECES_WARN = 20
