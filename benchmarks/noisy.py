@@ -31,6 +31,8 @@ CASES = (("4_6_crop ground", "4_6_crop.las", {"classes": (2,)}, "lidar"),
          ("mug depth frame, --axis z", "table_scene_mug_stereo_textured.pcd", {"axis": "z"}, "range"))
 SEEDS = (0, 1, 2)
 LATTICE = 8
+BIG = 100_000
+"""Inputs with more points than this (the mug frame) get one held-out seed, not three."""
 METHODS = ("c1mesh off", "c1mesh limit", "rHCT", "rHCT limited", "linear", "CT")
 
 
@@ -165,7 +167,7 @@ def run(cfg: Config) -> Section:
         rows_fold.append(f"| {label} | " + " | ".join(
             f"{folded[m][0]:,} ({100 * folded[m][0] / folded[m][1]:.3f}%)" for m in ("c1mesh off", "c1mesh limit", "rHCT"))
             + " |")
-        rms = holdout(cloud, opts, seeds)
+        rms = holdout(cloud, opts, seeds if len(cloud) <= BIG else seeds[:1])
         rows_rms.append(f"| {label} | " + " | ".join(f"{np.mean(rms[m]):.4g}" for m in METHODS) + " |")
         ours, peer = over["c1mesh limit"], over["rHCT"]
         if kind == "lidar":
@@ -185,6 +187,7 @@ def run(cfg: Config) -> Section:
             f"| sample | triangles | {header} |", "|---|---:|" + "---:|" * len(METHODS), *rows_over, "",
             "### Folded faces of the level-4 output", "",
             "| sample | c1mesh off | c1mesh limit | rHCT |", "|---|---:|---:|---:|", *rows_fold, "",
-            f"### Held-out RMS (mean over seeds {', '.join(map(str, seeds))}; scan units)", "",
+            f"### Held-out RMS (mean over seeds {', '.join(map(str, seeds))}, inputs over {BIG:,} "
+            "points seed 0 only; scan units)", "",
             f"| sample | {header} |", "|---|" + "---:|" * len(METHODS), *rows_rms, "")
     return sec
