@@ -201,6 +201,9 @@ def main() -> None:
 @click.option("--level", type=click.IntRange(1, 64), default=4, show_default=True,
               help="Each triangle is split into level² triangles.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
+@click.option("--overshoot", type=click.Choice(["limit", "off"]), default="limit", show_default=True,
+              help="limit: tame gradients that disagree with the heights and thin triangles "
+                   "(keeps C1); off: use the data as is.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
@@ -226,7 +229,7 @@ def main() -> None:
 @click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
 @click.pass_context
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, memory, jobs, quiet, verbose, debug,
+        max_edge, scheme, level, ascii_ply, overshoot, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
@@ -239,7 +242,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                                    "work with --seamless yet; fit the survey to a mesh")
         options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
-                             ascii=ascii_ply, memory=memory, crs=crs)
+                             ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                       scheduler, quiet, debug)
         return
@@ -257,7 +260,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
                          memory=memory, crs=crs, resolution=resolution, slope=slope, aspect=aspect,
-                         hillshade=hillshade, slope_method=slope_method, preview=preview)
+                         hillshade=hillshade, slope_method=slope_method, preview=preview,
+                         overshoot=overshoot)
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
@@ -456,6 +460,7 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug) -> None:
         _fail(_message(exc), debug)
     if report == STDIO:
         click.echo(json.dumps(result, indent=2), err=True)
+    _warn(result, quiet)
     if verbose and not quiet:
         click.echo(_summary(result), err=True)
 
@@ -479,7 +484,22 @@ def _summary(report: dict) -> str:
     total = sum(report["seconds"].values())
     made = (f"{mesh['vertices']} vertices, {mesh['faces']} faces" if mesh else
             f"{report['raster']['cells_with_data']} of {report['raster']['cells']} raster cells")
-    return f"{report['input']}: {pts['kept']} of {pts['read']} points -> {made} in {total:.2f} s"
+    line = f"{report['input']}: {pts['kept']} of {pts['read']} points -> {made} in {total:.2f} s"
+    frame = report.get("frame", {})
+    if "axis_choice" in frame:
+        e3 = ", ".join(f"{c:.3g}" for c in frame["axes"][2])
+        line += f"; height axis ({e3}), {frame['axis_choice']}"
+    if "overshoot" in report:
+        line += f"; gradients limited at {report['overshoot']['gradients_limited']} vertices"
+    return line
+
+
+def _warn(report: dict, quiet: bool) -> None:
+    """The report's warnings on stderr, one line each (not with -q)."""
+    if quiet:
+        return
+    for text in report.get("warnings", []):
+        click.echo(f"c1mesh: warning: {report.get('input')}: {text}", err=True)
 
 
 def _write_report(report, target, payload, debug) -> None:
@@ -519,6 +539,9 @@ def _fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debu
             results = _collect(iterator, len(work), show, verbose and not quiet)
     else:
         results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
+    for _, rep, _ in results:
+        if rep:
+            _warn(rep, quiet)
     failures = [(src, err) for src, _, err in results if err]
     _write_report(report, report_target,
                   {"inputs": [{"input": src, "report": rep, "error": err} for src, rep, err in results]}, debug)
