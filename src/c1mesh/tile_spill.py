@@ -32,8 +32,9 @@ class TileSpill:
     grid: the tiles; directory: where the files go; stem: names them (`.STEM.spill-...`).
     """
 
-    def __init__(self, grid: TileGrid, directory: str | os.PathLike | None = None, stem: str = "c1mesh"):
-        self.grid = grid
+    def __init__(self, grid: TileGrid, directory: str | os.PathLike | None = None, stem: str = "c1mesh",
+                 record: np.dtype = RECORD):
+        self.grid, self.record = grid, record
         self.directory = Path(directory if directory is not None else tempfile.gettempdir())
         self.paths = [self.directory / f".{stem}.spill-{os.getpid()}-{t}.bin" for t in range(len(grid))]
         self.counts = np.zeros(len(grid), dtype=np.int64)
@@ -76,9 +77,15 @@ class TileSpill:
                 record.tofile(file)
             self.counts[tile] += len(rows)
 
+    def append(self, t: int, records: np.ndarray) -> None:
+        """Append records (of this spill's record dtype, with fields index, x, y) to tile t."""
+        with open(self.paths[t], "ab") as file:
+            records.astype(self.record, copy=False).tofile(file)
+        self.counts[t] += len(records)
+
     def tile(self, t: int) -> np.ndarray:
         """The records of tile t, in survey order."""
-        return np.fromfile(self.paths[t], dtype=RECORD)
+        return np.fromfile(self.paths[t], dtype=self.record)
 
     def read(self, rect) -> tuple[np.ndarray, np.ndarray]:
         """buffered_delaunay.Reader: (index ascending, xy (m, 2)) of the points in the closed
@@ -93,7 +100,7 @@ class TileSpill:
         for t in self.touching(rect):
             r = self.tile(t)
             parts.append(r[(r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1)])
-        records = np.concatenate(parts) if parts else np.empty(0, RECORD)
+        records = np.concatenate(parts) if parts else np.empty(0, self.record)
         return records[np.argsort(records["index"], kind="stable")]
 
     def touching(self, rect) -> Iterator[int]:

@@ -1,0 +1,402 @@
+"""The fit of a LAS/LAZ survey larger than memory: tile by tile, streamed to one PLY.
+
+    survey stats (frame, box) → spill to tiles → per tile: normals → height field
+    → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
+    survey-wide) → per tile: RSD interpolator on its owned triangles → refine → append
+    to one vertex file and one face file → one mesh file
+
+Every stage is the tile-local form of a whole-survey stage (c1mesh.survey_stats,
+tile_spill, tile_normals, buffered_delaunay), so the surface equals the in-memory fit of
+the same points with the same reduced options (below), to rounding; nothing depends on
+the grid.
+
+What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
+
+- normals are always estimated (the spill keeps no file normals), colours are dropped;
+- the height field drops points with unusable or too steep normals and exact duplicate
+  positions (keeping the lowest-numbered point); the near-duplicate merge and the
+  stacking test of frame.height_field are not applied;
+- the trim is the long-edge rule only (no sliver peel, no bow-tie removal: both walk
+  across the whole boundary, they are not tile-local);
+- the overshoot limiter is off (its noise floor is a survey-wide median and a vertex's
+  limit needs its whole star): edge directions are the unit normals.
+
+The rule for the one output: a base triangle belongs to the tile holding its
+lowest-numbered corner point (buffered_delaunay); each tile refines only its own
+triangles. A refined vertex that can lie in two tiles' outputs lies on the boundary of
+both tiles' owned regions: a corner point, or a point on a base edge that only one owned
+triangle of the tile has. Such vertices are numbered globally by a key that does not
+depend on the tile — the survey number of a corner, (lower end, higher end, position from
+the lower end) of an edge point — and written once, by the first tile that reaches them;
+later tiles refer to that number. All other vertices are written by their only tile.
+Edge points on a tile border are thus evaluated from the first tile's triangle, where
+the whole-survey refinement uses the edge's owner triangle: the two agree to rounding
+(the spline is continuous), which is the only difference.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from c1mesh.errors import InputError
+
+BYTES_PER_POINT = 1_500
+"""Peak memory of the in-memory fit per input point (bytes). Measured: about 1.1 GB per
+million points at level 4 with file normals, 1.36–1.4 GB at level 1 with estimated
+normals (benchmarks); the rule takes the upper end with a margin."""
+TILE_SHARE = 4
+"""A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
+reads its buffer too (about twice its points for the normals and the triangulation) and
+the survey-wide state (edge lengths for the median, the border vertex keys) shares the rest."""
+CHUNK = 1_000_000
+"""Points per chunk read from a LAS/LAZ file."""
+
+HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
+                   ("gx", "<f8"), ("gy", "<f8")])
+"""One height-field point in a spill: survey number, frame position, height, gradient."""
+VERTEX = np.dtype([("v", "<f8", 3), ("n", "<f8", 3)])
+
+
+def fits_in_memory(point_count: int, memory: int | None) -> bool:
+    """True when the in-memory fit of point_count points stays within memory bytes
+    (None: no budget given, always in memory)."""
+    return memory is None or point_count * BYTES_PER_POINT <= memory
+
+
+def points_per_tile(memory: int) -> int:
+    """The points a tile may hold under a budget of memory bytes (at least 10,000)."""
+    return max(10_000, int(memory // (BYTES_PER_POINT * TILE_SHARE)))
+
+
+def las_point_count(path) -> int:
+    """The point count of a LAS/LAZ file's header (before any class filter)."""
+    import laspy
+
+    with laspy.open(str(path)) as reader:
+        return int(reader.header.point_count)
+
+
+def las_chunks(path, classes=None, chunk: int = CHUNK) -> Callable:
+    """survey_stats.Chunks over a LAS/LAZ file: a callable giving a fresh iterator of
+    (world points (m, 3), None) in file order, keeping only `classes` (None: all)."""
+    import laspy
+
+    def chunks():
+        with laspy.open(str(path)) as reader:
+            for part in reader.chunk_iterator(chunk):
+                xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
+                if classes:
+                    xyz = xyz[np.isin(np.asarray(part.classification), np.asarray(classes))]
+                yield xyz, None
+    return chunks
+
+
+class _Temps:
+    """Hidden temporary files registered for removal (c1mesh.outputs), removed on close."""
+
+    def __init__(self, directory, stem: str):
+        self.directory, self.stem, self.paths = Path(directory), stem, []
+
+    def new(self, name: str) -> Path:
+        from c1mesh.outputs import register_temp
+
+        path = self.directory / f".{self.stem}.{name}-{os.getpid()}"
+        register_temp(path)
+        self.paths.append(path)
+        return path
+
+    def close(self) -> None:
+        from c1mesh.outputs import unregister_temp
+
+        for path in self.paths:
+            if path.exists():
+                path.unlink()
+            unregister_temp(path)
+
+
+def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
+              on_stage: Callable[[str], None] | None = None) -> dict:
+    """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output.
+
+    options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
+    output_format, ascii; overshoot must be "off" and normals not "file"); memory: the
+    budget in bytes, which sizes the tiles; per_tile: points per tile (overrides the
+    budget, for tests). Returns a report dict.
+    """
+    from c1mesh.buffered_delaunay import TileGrid
+    from c1mesh.survey_stats import streamed_frame
+    from c1mesh.tile_spill import spill
+
+    _check_options(options)
+    seconds, start = {}, time.perf_counter()
+
+    def done(stage):
+        nonlocal start
+        seconds[stage] = round(time.perf_counter() - start, 3)
+        start = time.perf_counter()
+        if on_stage:
+            on_stage(stage)
+
+    chunks = las_chunks(source, options.classes)
+    axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
+    frame = streamed_frame(chunks, axis)
+    count, box = _plane_box(chunks, frame)
+    if count < 3:
+        raise InputError(f"{source}: only {count} points" + (f" of class {list(options.classes)}"
+                                                             if options.classes else ""))
+    side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
+    grid = TileGrid(box, side, side)
+    done("frame")
+    directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
+    temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
+    try:
+        with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
+            done("spill")
+            heights = _height_spill(raw, grid, count, options, directory, temps.stem)
+        try:
+            done("normals")
+            max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps)
+            done("triangulate")
+            report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
+                                  output, temps)
+            done("refine+write")
+        finally:
+            heights.close()
+    finally:
+        temps.close()
+    report.update({"input": str(source), "output": str(output), "tiles": len(grid),
+                   "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
+                   "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
+                                                 "axes": frame.axes.tolist()}})
+    return report
+
+
+def _check_options(options) -> None:
+    if options.overshoot != "off":
+        raise InputError("the tiled fit needs --overshoot off (the limiter is not tile-local)")
+    if options.normals == "file":
+        raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
+
+
+def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float]]:
+    """(point count, (x0, y0, x1, y1) box of the points in the frame's plane)."""
+    count, low, high = 0, np.full(2, np.inf), np.full(2, -np.inf)
+    for points, _ in chunks():
+        if len(points):
+            xy = frame.to_local(points)[:, :2]
+            low, high = np.minimum(low, xy.min(axis=0)), np.maximum(high, xy.max(axis=0))
+            count += len(points)
+    return count, (float(low[0]), float(low[1]), float(high[0]), float(high[1]))
+
+
+def _height_spill(raw, grid, count: int, options, directory, stem: str):
+    """Per tile: normals of its own points (tile_normals), then its height-field points
+    (usable, not too steep, exact duplicate positions dropped), spilled to a new TileSpill
+    of HEIGHT records (entered; the caller closes it)."""
+    from c1mesh.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
+    from c1mesh.frame import _gradients
+    from c1mesh.tile_normals import tile_normals
+    from c1mesh.tile_spill import TileSpill
+
+    def read3(rect):
+        records = raw.records(rect)
+        return records["index"], np.column_stack([records["x"], records["y"], records["z"]])
+
+    heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
+    try:
+        cos_max = math.cos(math.radians(options.max_slope))
+        buffer = INITIAL_SPACINGS * mean_spacing(grid.box, count)
+        for t in range(len(grid)):
+            if not raw.counts[t]:
+                continue
+            result = tile_normals(read3, grid, t, options.k, buffer, towards=(0.0, 0.0, 1.0))
+            own = raw.tile(t)                                     # survey order, as result.index
+            normals = result.normals
+            length = np.linalg.norm(normals, axis=1)
+            usable = np.isfinite(length) & (length > 0)
+            usable[usable] &= np.abs(normals[usable, 2] / length[usable]) >= cos_max
+            own, normals = own[usable], normals[usable]
+            first = _first_of_positions(own["x"], own["y"])
+            own, normals = own[first], normals[first]
+            gradients, _ = _gradients(normals)
+            records = np.empty(len(own), HEIGHT)
+            for name in ("index", "x", "y", "z"):
+                records[name] = own[name]
+            records["gx"], records["gy"] = gradients[:, 0], gradients[:, 1]
+            heights.append(t, records)
+    except BaseException:
+        heights.close()
+        raise
+    return heights
+
+
+def _first_of_positions(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Ascending indices of the first point (lowest index) at each distinct (x, y)."""
+    order = np.lexsort((np.arange(len(x)), y, x))
+    new = np.ones(len(x), dtype=bool)
+    new[1:] = (x[order][1:] != x[order][:-1]) | (y[order][1:] != y[order][:-1])
+    return np.sort(order[new])
+
+
+def _triangulate(heights, grid, max_edge, temps):
+    """The survey's Delaunay triangulation with the long-edge trim, tile by tile:
+    (max_edge or None, per tile a .npy file of its owned triangles (survey numbers) or
+    None, per tile the buffer its corners lie within)."""
+    from c1mesh.buffered_delaunay import (INITIAL_SPACINGS, buffered_delaunay, mean_spacing,
+                                          streamed_hull, trimmed_delaunay)
+
+    count = int(heights.counts.sum())
+    if count < 3:
+        raise InputError(f"only {count} points are left for the height field; need at least 3")
+    hull = streamed_hull((r["index"], np.column_stack([r["x"], r["y"]]))
+                         for r in (heights.tile(t) for t in range(len(grid))))
+    files: list = [None] * len(grid)
+    buffers = np.zeros(len(grid))
+
+    def save(tile, triangles, buffer):
+        path = temps.new(f"triangles-{tile}.npy")
+        with open(path, "wb") as file:
+            np.save(file, triangles)
+        files[tile], buffers[tile] = path, buffer
+
+    if max_edge is None:
+        first = INITIAL_SPACINGS * mean_spacing(grid.box, count)
+        for result in buffered_delaunay(heights.read, grid, count, first, hull):
+            save(result.tile, result.triangles, result.buffer)
+        return None, files, buffers
+    longest: dict[int, Path] = {}
+
+    def keep(result):
+        save(result.tile, result.triangles, result.buffer)
+        path = temps.new(f"longest-{result.tile}.npy")
+        np.save(open(path, "wb"), result.longest)
+        longest[result.tile] = path
+        return None
+    limit, _ = trimmed_delaunay(heights.read, grid, count, hull, max_edge, keep=keep)
+    for tile, path in longest.items():
+        triangles = np.load(files[tile])
+        short = np.load(path) <= limit
+        if not short.all():
+            np.save(open(files[tile], "wb"), triangles[short])
+    return limit, files, buffers
+
+
+def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps) -> dict:
+    """Refine each tile's owned triangles, numbering shared vertices globally (module
+    docstring), into one vertex and one face file; then write the mesh from them."""
+    from c1mesh.cloud import MeshStream
+    from c1mesh.formats import write_mesh
+    from c1mesh.threads import blas_threads
+
+    vertex_path, face_path = temps.new("vertices.bin"), temps.new("faces.bin")
+    shared: dict = {}
+    written = faces = kept = 0
+    with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file:
+        for t in range(len(grid)):
+            if triangle_files[t] is None:
+                continue
+            triangles = np.load(triangle_files[t])
+            if not len(triangles):
+                continue
+            reach = (max_edge if max_edge is not None else buffers[t]) * (1 + 1e-9)
+            cell = grid.cell(t)
+            records = heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
+            corners = np.unique(triangles)
+            rows = np.searchsorted(records["index"], corners)
+            if np.any(rows >= len(records)) or np.any(records["index"][np.minimum(rows, len(records) - 1)] != corners):
+                raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
+            records = records[rows]
+            kept += int((grid.tile_of(np.column_stack([records["x"], records["y"]])) == t).sum())
+            local = np.searchsorted(corners, triangles)
+            added, face_count = _write_tile(records, local, frame, options, shared, written,
+                                            vertex_file, face_file)
+            written += added
+            faces += face_count
+    if faces == 0:
+        raise InputError("no triangles are left after trimming; try --max-edge none")
+    block = CHUNK
+
+    def vertex_blocks():
+        with open(vertex_path, "rb") as file:
+            while True:
+                part = np.fromfile(file, VERTEX, count=block)
+                if not len(part):
+                    return
+                yield part["v"], part["n"], None
+
+    def face_blocks():
+        with open(face_path, "rb") as file:
+            while True:
+                part = np.fromfile(file, "<i8", count=3 * block)
+                if not len(part):
+                    return
+                yield part.reshape(-1, 3)
+    with blas_threads(1):
+        write_mesh(MeshStream(written, faces, True, 0, vertex_blocks, face_blocks), output,
+                   options.output_format, ascii=options.ascii)
+    return {"kept": kept, "output_mesh": {"vertices": written, "faces": faces},
+            "shared_vertex_keys": len(shared)}
+
+
+def _write_tile(records, triangles, frame, options, shared: dict, written: int,
+                vertex_file, face_file) -> tuple[int, int]:
+    """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
+    append its new vertices and its faces (global numbers); returns (vertices written,
+    faces written)."""
+    from c1mesh.interpolator import RSDInterpolator
+    from c1mesh.pipeline import surface_stream
+
+    xy = np.column_stack([records["x"], records["y"]])
+    interp = RSDInterpolator(xy, records["z"], np.column_stack([records["gx"], records["gy"]]),
+                             triangles=triangles, scheme=options.scheme)
+    refinement = interp.refinement(options.level)
+    number = _global_numbers(refinement, records["index"], shared, written)
+    new = number >= written
+    stream = surface_stream(refinement, frame, None)
+    position = 0
+    for vertices, normals, _ in stream.vertex_blocks():
+        keep = new[position:position + len(vertices)]
+        position += len(vertices)
+        out = np.empty(int(keep.sum()), VERTEX)
+        out["v"], out["n"] = vertices[keep], normals[keep]
+        out.tofile(vertex_file)
+    for faces in stream.face_blocks():
+        number.take(faces).astype("<i8").tofile(face_file)
+    return int(new.sum()), int(stream.face_count)
+
+
+def _global_numbers(refinement, survey: np.ndarray, shared: dict, written: int) -> np.ndarray:
+    """(M,) the global number of each of the tile refinement's output points: a shared
+    key already in `shared` keeps its number; every other point gets the next new number
+    (written, written + 1, ... in output order), and new shared keys are added."""
+    table, L = refinement.table, refinement.level
+    border = np.flatnonzero(table.count == 1)                  # edges of one owned triangle
+    keys: list = []
+    points: list = []
+    ends = table.edges[border]
+    for corner in np.unique(ends):
+        keys.append(int(survey[corner]))
+        points.append(int(corner))
+    if L > 1:
+        code = refinement.edge_code[border]
+        first, forward = code >> 1, (code & 1).astype(bool)
+        for e, start, fwd in zip(range(len(border)), first.tolist(), forward.tolist()):
+            a, b = int(survey[ends[e, 0]]), int(survey[ends[e, 1]])
+            for j in range(L - 1):
+                keys.append((a, b, j if fwd else L - 2 - j))
+                points.append(start + j)
+    number = np.full(refinement.vertex_count, -1, dtype=np.int64)
+    known = [(p, shared[k]) for k, p in zip(keys, points) if k in shared]
+    for p, n in known:
+        number[p] = n
+    new = number < 0
+    number[new] = written + np.arange(int(new.sum()))
+    for k, p in zip(keys, points):
+        shared.setdefault(k, int(number[p]))
+    return number
