@@ -7,18 +7,26 @@ vertices to rounding, the same faces (compared through the matched vertices).
 """
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
 
 laspy = pytest.importorskip("laspy")
 
+from click.testing import CliRunner
+
+from c1mesh.cli import main
 from c1mesh.frame import choose_frame, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.normals import estimate_normals
 from c1mesh.pipeline import FitOptions, surface_stream
 from c1mesh.tiled_fit import fit_tiled, fits_in_memory, points_per_tile
 from c1mesh.triangulation import delaunay, trim
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 
 
 def _terrain_las(path, n, seed=0, classes=(2,)):
@@ -60,6 +68,23 @@ def _match(a, b):
     return order
 
 
+def _assert_same_mesh(path, whole):
+    """The mesh file at path has whole's vertices (to rounding) and faces, each face once."""
+    tiled = trimesh.load(path, process=False, force="mesh")
+    vertices, faces = np.asarray(tiled.vertices, float), np.asarray(tiled.faces, np.int64)
+    assert vertices.shape == whole.vertices.shape
+    assert faces.shape == whole.faces.shape
+    order = _match(whole.vertices, vertices)
+    scale = np.abs(whole.vertices).max()
+    np.testing.assert_allclose(vertices[order], whole.vertices, rtol=0, atol=1e-13 * scale)
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
+    faces_tiled = np.sort(inverse[faces], axis=1)
+    faces_whole = np.sort(whole.faces, axis=1)
+    assert set(map(tuple, faces_tiled.tolist())) == set(map(tuple, faces_whole.tolist()))
+    assert len(np.unique(faces_tiled, axis=0)) == len(faces_tiled)     # every face once
+
+
 @pytest.mark.parametrize("level", [1, 3])
 def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level):
     source = tmp_path / "terrain.las"
@@ -69,18 +94,34 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level):
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=700)
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
-    tiled = trimesh.load(tmp_path / "tiled.ply", process=False, force="mesh")
-    vertices, faces = np.asarray(tiled.vertices, float), np.asarray(tiled.faces, np.int64)
-    assert vertices.shape == whole.vertices.shape
-    assert faces.shape == whole.faces.shape
-    order = _match(whole.vertices, vertices)
-    np.testing.assert_allclose(vertices[order], whole.vertices, rtol=0, atol=1e-9)
-    inverse = np.empty_like(order)
-    inverse[order] = np.arange(len(order))
-    faces_tiled = np.sort(inverse[faces], axis=1)
-    faces_whole = np.sort(whole.faces, axis=1)
-    assert set(map(tuple, faces_tiled.tolist())) == set(map(tuple, faces_whole.tolist()))
-    assert len(np.unique(faces_tiled, axis=0)) == len(faces_tiled)     # every face once
+    _assert_same_mesh(tmp_path / "tiled.ply", whole)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las", "tiled.ply"]   # no spill left
+
+
+def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
+    source = SAMPLES / "4_6_crop.las"
+    whole, max_edge = _in_memory(source, [2], 2)
+    options = FitOptions(classes=(2,), overshoot="off", level=2)
+    report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
+    assert report["tiles"] == 16
+    assert report["max_edge"] == max_edge
+    _assert_same_mesh(tmp_path / "tiled.ply", whole)
+
+
+def test_cli_fits_in_tiles_beyond_memory(tmp_path):
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000)
+    whole, _ = _in_memory(source, [2], 2)
+    args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
+            "--memory", "1M"]
+    refused = CliRunner().invoke(main, args)
+    assert refused.exit_code == 1
+    assert "--overshoot off" in refused.output and "terrain.las" in refused.output
+    assert not (tmp_path / "out.ply").exists()
+    result = CliRunner().invoke(main, args + ["--overshoot", "off", "--report", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "r.json").read_text())["tiles"] == 4      # 24000 points, >= 10000 a tile
+    _assert_same_mesh(tmp_path / "out.ply", whole)
 
 
 def test_memory_rule():

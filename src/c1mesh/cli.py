@@ -71,7 +71,8 @@ def _parse_memory(ctx, param, value):
 
 
 _MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
-                "are refused [default: half the RAM, at most 8G].")
+                "are refused [default: half the RAM, at most 8G]. With fit, a LAS/LAZ file whose "
+                "points need more (1.5 kB per point) is fitted in tiles, with --overshoot off.")
 
 
 def _parse_max_edge(value: str):
@@ -419,8 +420,11 @@ def _check_stdout() -> None:
 def _run(src: str, target, options, on_stage=None) -> dict:
     """Fit one input to one output (a path, or a file object then with options.output_format)."""
     from c1mesh.pipeline import fit as fit_pipeline
+    from c1mesh.tiled_fit import fit_tiled, needs_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
+    if needs_tiles(source, options):          # larger than --memory allows: c1mesh.tiled_fit
+        return fit_tiled(source, target, options, options.memory, on_stage=on_stage)
     return fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
 
 

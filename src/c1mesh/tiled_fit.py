@@ -74,6 +74,30 @@ def points_per_tile(memory: int) -> int:
     return max(10_000, int(memory // (BYTES_PER_POINT * TILE_SHARE)))
 
 
+def needs_tiles(source, options) -> bool:
+    """True when `source` (a LAS/LAZ path) holds more points, by its header, than the
+    in-memory fit can take within options.memory bytes (BYTES_PER_POINT per point); then
+    it is fitted by `fit_tiled`. Streams, other formats and fits without a budget are
+    never tiled. Raises InputError when the input needs tiles but the options ask for
+    something the tiled fit does not do."""
+    if options.memory is None or not isinstance(source, (str, Path)):
+        return False
+    if Path(source).suffix.lower() not in (".las", ".laz"):
+        return False
+    count = las_point_count(source)
+    if fits_in_memory(count, options.memory):
+        return False
+    need = f"{source}: {count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB in one piece, " \
+           f"more than --memory {options.memory / 1e6:.0f} MB, so they are fitted in tiles"
+    if options.resolution is not None or options.slope or options.aspect or options.hillshade or options.preview:
+        raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "
+                         "(raise --memory)")
+    if options.overshoot != "off" or options.normals == "file":
+        raise InputError(f"{need}; the tiled fit estimates normals and does not limit overshoot "
+                         "(not tile-local): add --overshoot off, or raise --memory")
+    return True
+
+
 def las_point_count(path) -> int:
     """The point count of a LAS/LAZ file's header (before any class filter)."""
     import laspy
@@ -121,13 +145,14 @@ class _Temps:
 
 
 def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
-              on_stage: Callable[[str], None] | None = None) -> dict:
+              on_stage: Callable[[str], None] | None = None, directory=None) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output.
 
     options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
     output_format, ascii; overshoot must be "off" and normals not "file"); memory: the
     budget in bytes, which sizes the tiles; per_tile: points per tile (overrides the
-    budget, for tests). Returns a report dict.
+    budget, for tests); directory: where the temporary spill files go (default: beside a
+    path output, else $TMPDIR). Returns a report dict (as pipeline.fit's, shorter).
     """
     from c1mesh.buffered_delaunay import TileGrid
     from c1mesh.survey_stats import streamed_frame
@@ -153,7 +178,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
     grid = TileGrid(box, side, side)
     done("frame")
-    directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
+    if directory is None:
+        directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
     temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
     try:
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
@@ -171,6 +197,9 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         temps.close()
     report.update({"input": str(source), "output": str(output), "tiles": len(grid),
+                   "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
+                                "estimated normals, long-edge trim only, no overshoot limiter "
+                                "(docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
