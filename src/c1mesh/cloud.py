@@ -16,6 +16,10 @@ class PointCloud:
     colors:         (N, 3) or (N, 4) uint8 RGB(A) or None.
     classification: (N,) integer LAS classification codes or None.
     extra:          other per-point fields by name, each (N,) array (kept, not interpreted).
+    grid_shape:     (height, width) when the points are an organised scan (pixels row by
+                    row, N = height * width, invalid pixels non-finite), else None.
+    viewpoint:      (7,) sensor position x, y, z and orientation quaternion qw, qx, qy, qz
+                    in world coordinates when the file gives one (PCD VIEWPOINT), else None.
     """
 
     points: np.ndarray
@@ -23,6 +27,8 @@ class PointCloud:
     colors: np.ndarray | None = None
     classification: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    grid_shape: tuple[int, int] | None = None
+    viewpoint: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -36,6 +42,7 @@ class PointCloud:
             colors=pick(self.colors),
             classification=pick(self.classification),
             extra={k: v[mask] for k, v in self.extra.items()},
+            viewpoint=self.viewpoint,        # a subset is no longer a grid
         )
 
 

@@ -1,0 +1,185 @@
+"""Organised scans: triangles on the pixel grid, normals from grid neighbours, no curtains.
+
+An organised scan (a depth image, a PCD with HEIGHT > 1) already says which points are
+neighbours, so it needs no Delaunay triangulation: every quad of valid pixels becomes two
+triangles. Depth jumps (an object's silhouette against the background) would become
+"curtains" of triangles seen edge-on; `depth_jumps` removes them for any triangulation
+in the perspective frame, organised or not.
+
+All coordinates here are camera coordinates (viewpoint at the origin, looking along +z).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SHADOW_ANGLE = 10.0
+"""Degrees: an edge closer than this to its view ray spans a depth jump (PCL's shadow angle)."""
+GRAZING_ANGLE = 80.0
+"""Degrees: a triangle whose normal is farther than this from its view ray is seen edge-on."""
+NORMAL_RADIUS = 3
+"""Grid normals fit a plane to the (2r+1)² window of pixels around each pixel."""
+
+
+def grid_triangles(points: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Triangles (T, 3) int64 of the pixel grid, as indices into the row-major pixels.
+
+    points: (H, W, 3) camera coordinates; valid: (H, W) bool, pixels that may be used.
+    Each quad a=(i, j), b=(i, j+1), c=(i+1, j), d=(i+1, j+1) with four valid corners
+    gives two triangles split along the shorter 3D diagonal (ties: a-d), a quad with
+    three gives the one triangle they make. The rule is deterministic and local, so the
+    same frame always gives the same mesh. Orientation is left to the caller.
+    """
+    height, width = valid.shape
+    index = np.arange(height * width, dtype=np.int64).reshape(height, width)
+    a, b = index[:-1, :-1].ravel(), index[:-1, 1:].ravel()
+    c, d = index[1:, :-1].ravel(), index[1:, 1:].ravel()
+    flat_valid = valid.ravel()
+    va, vb, vc, vd = flat_valid[a], flat_valid[b], flat_valid[c], flat_valid[d]
+    flat = points.reshape(-1, 3)
+    full = va & vb & vc & vd
+    qa, qb, qc, qd = a[full], b[full], c[full], d[full]
+    ad = _squared_length(flat[qa] - flat[qd])
+    bc = _squared_length(flat[qb] - flat[qc])
+    split_ad = ad <= bc
+    first = np.where(split_ad[:, None], np.column_stack([qa, qb, qd]), np.column_stack([qa, qb, qc]))
+    second = np.where(split_ad[:, None], np.column_stack([qa, qd, qc]), np.column_stack([qb, qd, qc]))
+    count = va.astype(np.int8) + vb + vc + vd
+    three = count == 3
+    corners = np.column_stack([a, b, d, c])[three]      # around the quad, so any 3 keep its turn
+    missing = np.column_stack([~va, ~vb, ~vd, ~vc])[three]
+    single = corners[~missing].reshape(-1, 3)
+    return np.concatenate([first, second, single])
+
+
+def _squared_length(vectors: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", vectors, vectors)
+
+
+def counter_clockwise(uv: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, int]:
+    """Triangles (T', 3) turned counter-clockwise in (u, v), without zero-area ones; and how many those were."""
+    p0, p1, p2 = uv[triangles[:, 0]], uv[triangles[:, 1]], uv[triangles[:, 2]]
+    area = (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (p2[:, 0] - p0[:, 0])
+    tri = triangles.copy()
+    clockwise = area < 0
+    tri[clockwise, 1], tri[clockwise, 2] = triangles[clockwise, 2], triangles[clockwise, 1]
+    flat = ~(np.abs(area) > 0)
+    return tri[~flat], int(flat.sum())
+
+
+@dataclass
+class JumpReport:
+    """Triangles removed as spanning a depth jump, by reason (a triangle counts once, first reason)."""
+
+    shadow_angle: float
+    grazing_angle: float
+    removed: dict[str, int] = field(default_factory=dict)
+
+
+def depth_jumps(points: np.ndarray, triangles: np.ndarray, shadow_angle: float = SHADOW_ANGLE,
+                grazing_angle: float = GRAZING_ANGLE) -> tuple[np.ndarray, JumpReport]:
+    """Drop triangles that span a depth discontinuity; returns (kept triangles, report).
+
+    points: (N, 3) camera coordinates; triangles: (T, 3) indices. Two rules:
+    "shadow_edge": an edge within `shadow_angle` degrees of the view ray through its
+    midpoint: it runs (almost) along the line of sight, which a surface seen from here
+    cannot do, so it bridges a depth step far larger than the pixel footprint (PCL's
+    OrganizedFastMesh shadow test). "grazing": the triangle's plane is seen within
+    90° - `grazing_angle` of edge-on at its centroid, i.e. its depth changes by more
+    than tan(grazing_angle) times its width across the view: a curtain.
+    """
+    p = [points[triangles[:, k]] for k in range(3)]
+    cos_shadow = np.cos(np.radians(shadow_angle))
+    shadow = np.zeros(triangles.shape[0], dtype=bool)
+    for k in range(3):
+        edge = p[(k + 1) % 3] - p[k]
+        mid = p[(k + 1) % 3] + p[k]
+        dot = np.abs(np.einsum("ij,ij->i", edge, mid))
+        with np.errstate(invalid="ignore"):
+            shadow |= dot > cos_shadow * np.sqrt(_squared_length(edge) * _squared_length(mid))
+    normal = np.cross(p[1] - p[0], p[2] - p[0])
+    centroid = p[0] + p[1] + p[2]
+    cos_view = np.abs(np.einsum("ij,ij->i", normal, centroid))
+    with np.errstate(invalid="ignore"):
+        grazing = ~(cos_view >= np.cos(np.radians(grazing_angle))
+                    * np.sqrt(_squared_length(normal) * _squared_length(centroid)))
+    grazing &= ~shadow
+    keep = ~(shadow | grazing)
+    report = JumpReport(shadow_angle, grazing_angle,
+                        {"shadow_edge": int(shadow.sum()), "grazing": int(grazing.sum())})
+    return triangles[keep], report
+
+
+def grid_normals(points: np.ndarray, valid: np.ndarray, radius: int = NORMAL_RADIUS,
+                 shadow_angle: float = SHADOW_ANGLE) -> np.ndarray:
+    """Unit normals (H, W, 3) facing the viewpoint, from plane fits to grid neighbours.
+
+    points: (H, W, 3) camera coordinates; valid: (H, W) bool. Each pixel's normal is the
+    direction of least variance of the valid pixels in its (2r+1)² window that are not
+    across a depth jump from it, signed so that n·p < 0 (towards the viewpoint at the
+    origin). A neighbour k pixels away is across a jump when the depths differ by more
+    than k footprints / tan(shadow_angle), a footprint being the pixel's width at that
+    depth (the median angle between neighbouring rays times z): the offset would then run
+    within about `shadow_angle` of the view ray, as in `depth_jumps`. Pixels with fewer
+    than 3 such neighbours, or collinear ones, get NaN.
+    """
+    height, width = valid.shape
+    pad = radius
+    z = np.where(valid, points[..., 2], np.nan)
+    padded = np.zeros((3, height + 2 * pad, width + 2 * pad))
+    for axis in range(3):
+        padded[axis, pad:-pad, pad:-pad] = np.where(valid, points[..., axis], 0.0)
+    inside = np.zeros((height + 2 * pad, width + 2 * pad), dtype=bool)
+    inside[pad:-pad, pad:-pad] = valid
+    centre = padded[:, pad:-pad, pad:-pad]
+    step = _pixel_angle(points, valid) / np.tan(np.radians(shadow_angle)) * z
+    count = np.zeros((height, width))
+    total = np.zeros((3, height, width))
+    outer = np.zeros((6, height, width))
+    pairs = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    rel = np.empty((3, height, width))
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            window = (slice(pad + dy, pad + dy + height), slice(pad + dx, pad + dx + width))
+            np.subtract(padded[(slice(None),) + window], centre, out=rel)
+            with np.errstate(invalid="ignore"):
+                ok = np.abs(rel[2]) <= step * max(abs(dx), abs(dy))    # False where step is NaN
+            ok &= inside[window]
+            rel *= ok
+            count += ok
+            total += rel
+            for slot, (i, j) in enumerate(pairs):
+                outer[slot] += rel[i] * rel[j]
+    return _plane_normals(count, np.moveaxis(total, 0, -1), np.moveaxis(outer, 0, -1),
+                          np.where(valid[..., None], points, np.nan))
+
+
+def _pixel_angle(points: np.ndarray, valid: np.ndarray) -> float:
+    """Median angle (radians) between the rays of horizontally neighbouring valid pixels."""
+    pair = valid[:, 1:] & valid[:, :-1]
+    a, b = points[:, 1:][pair], points[:, :-1][pair]
+    if a.shape[0] == 0:
+        return 1.0
+    cos = np.einsum("ij,ij->i", a, b) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+    return float(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))) or 1.0
+
+
+def _plane_normals(count, total, outer, centre) -> np.ndarray:
+    """Least-variance directions (H, W, 3) of the accumulated neighbourhoods, facing the origin."""
+    enough = count >= 3
+    n = count[enough][:, None]
+    mean = total[enough] / n
+    second = outer[enough] / n
+    cov = np.empty((mean.shape[0], 3, 3))
+    for slot, (i, j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+        cov[:, i, j] = cov[:, j, i] = second[:, slot] - mean[:, i] * mean[:, j]
+    values, vectors = np.linalg.eigh(cov)
+    normal = vectors[:, :, 0]
+    flat = ~(values[:, 1] > 1e-12 * np.maximum(values[:, 2], np.finfo(float).tiny))
+    normal[flat] = np.nan
+    facing = np.einsum("ij,ij->i", normal, centre[enough])
+    normal[facing > 0] *= -1.0
+    out = np.full(centre.shape, np.nan)
+    out[enough] = normal
+    return out
