@@ -64,6 +64,15 @@ def _parse_max_edge(value: str):
     return length
 
 
+def _parse_intrinsics(value: str | None):
+    from c1mesh.errors import InputError
+    from c1mesh.formats.depth import parse_intrinsics
+    try:
+        return parse_intrinsics(value)
+    except InputError as exc:
+        raise click.BadParameter(str(exc))
+
+
 def _stderr_is_terminal() -> bool:
     try:
         return os.isatty(sys.stderr.fileno())
@@ -117,6 +126,15 @@ def main() -> None:
 @click.option("--level", type=click.IntRange(1, 64), default=4, show_default=True,
               help="Each triangle is split into level² triangles.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
+@click.option("--frame", "frame_kind", type=click.Choice(["auto", "axis", "perspective"]), default="auto",
+              show_default=True, help="axis: height over a plane (--axis); perspective: inverse depth over "
+              "the view rays from --viewpoint; auto: perspective for organised scans and depth images.")
+@click.option("--viewpoint", help="Sensor position x,y,z[,qw,qx,qy,qz] for --frame perspective "
+              "(default: the file's VIEWPOINT, else the origin).")
+@click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
+@click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
+              help="Depth images: metres per depth unit.")
+@click.option("--color", "color_image", help="Depth images: an RGB image of the same size for vertex colours.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
@@ -124,13 +142,16 @@ def main() -> None:
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, report, jobs, quiet, verbose, debug):
+        max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
+        report, jobs, quiet, verbose, debug):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     from c1mesh.pipeline import FitOptions
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k,
                          classes=_parse_classes(classes), max_slope=max_slope,
-                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply)
+                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply,
+                         frame=frame_kind, viewpoint=viewpoint, depth_scale=depth_scale, color=color_image,
+                         intrinsics=_parse_intrinsics(intrinsics))
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
@@ -273,15 +294,19 @@ def _collect(iterator, total, show, verbose):
 @main.command()
 @click.argument("path")
 @click.option("--input-format", help="Input format; required for stdin (-).")
+@click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
+@click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
+              help="Depth images: metres per depth unit.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def info(path, input_format, debug):
+def info(path, input_format, intrinsics, depth_scale, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
     from c1mesh.inspect import describe
 
     if path == "-" and not input_format:
         raise click.UsageError("reading stdin (-) needs --input-format")
     try:
-        facts = describe(sys.stdin.buffer if path == "-" else path, input_format)
+        facts = describe(sys.stdin.buffer if path == "-" else path, input_format,
+                         intrinsics=_parse_intrinsics(intrinsics), depth_scale=depth_scale)
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)
     click.echo(json.dumps(facts, indent=2))

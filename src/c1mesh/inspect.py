@@ -8,13 +8,19 @@ from c1mesh.formats import read_cloud
 from c1mesh.frame import choose_frame, height_field
 
 
-def describe(source, fmt: str | None = None, estimate_limit: int = 2_000_000) -> dict:
+def describe(source, fmt: str | None = None, estimate_limit: int = 2_000_000,
+             intrinsics=None, depth_scale: float = 0.001) -> dict:
     """Facts about a point file as a JSON-ready dict.
 
     Normals are estimated (Open3D) for the height-field check when the file has none and
     it has at most ``estimate_limit`` points; otherwise that check is reported as skipped.
     """
-    cloud = read_cloud(source, fmt)
+    from c1mesh.formats.depth import is_depth_image, read_depth_source
+    if is_depth_image(source, fmt):
+        from c1mesh.pipeline import FitOptions
+        cloud = read_depth_source(source, FitOptions(intrinsics=intrinsics, depth_scale=depth_scale))
+    else:
+        cloud = read_cloud(source, fmt)
     finite = np.isfinite(cloud.points).all(axis=1)
     pts = cloud.points[finite]
     facts: dict = {
@@ -29,7 +35,22 @@ def describe(source, fmt: str | None = None, estimate_limit: int = 2_000_000) ->
         facts["classes"] = {int(c): int(n) for c, n in zip(classes, counts)}
     if pts.shape[0]:
         facts["bounds"] = {"min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}
-    facts.update(_height_field_check(cloud, finite, estimate_limit))
+    facts.update(_view_facts(cloud))
+    if facts["fit_frame"] == "axis":
+        facts.update(_height_field_check(cloud, finite, estimate_limit))
+    return facts
+
+
+def _view_facts(cloud) -> dict:
+    """Organised or not, the viewpoint, and the frame `c1mesh fit` would use by default."""
+    from c1mesh.perspective import frame_kind
+    kind = frame_kind("auto", cloud.grid_shape is not None)
+    facts = {"organised": cloud.grid_shape is not None,
+             "viewpoint": None if cloud.viewpoint is None else [float(v) for v in cloud.viewpoint],
+             "fit_frame": kind}
+    if cloud.grid_shape is not None:
+        facts["grid"] = {"height": cloud.grid_shape[0], "width": cloud.grid_shape[1]}
+        facts["fit_triangulation"] = "pixel grid (perspective frame, depth jumps become holes)"
     return facts
 
 
