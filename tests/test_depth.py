@@ -71,6 +71,20 @@ def test_depth_jumps_remove_curtains_but_keep_slopes():
     assert report.removed["shadow_edge"] + report.removed["grazing"] == 1
 
 
+def test_smallest_eigenvectors_match_eigh():
+    from c1mesh.grid import smallest_eigenvectors
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(500, 3, 3))
+    a = m @ m.transpose(0, 2, 1)
+    vectors, flat = smallest_eigenvectors(a[:, 0, 0], a[:, 1, 1], a[:, 2, 2], a[:, 0, 1], a[:, 0, 2], a[:, 1, 2])
+    expected = np.linalg.eigh(a)[1][:, :, 0]
+    assert not flat.any()
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", vectors, expected)), 1.0, atol=1e-8)
+    line = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])          # rank 1: collinear points, no plane
+    assert smallest_eigenvectors(*(np.array([line[i, j]]) for i, j in
+                                   ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))))[1][0]
+
+
 def test_grid_normals_of_a_plane_are_exact_and_face_the_viewpoint():
     points, normals = tilted_plane(30)
     estimate = grid_normals(points.reshape(30, 30, 3), np.ones((30, 30), bool)).reshape(-1, 3)
@@ -172,5 +186,5 @@ def test_mug_frame_with_default_options():
     edge_on, flipped = mug_face_checks(mesh.vertices, mesh.faces, mesh.vertex_normals)
     assert edge_on <= 1e-3
     assert flipped <= 1e-4
-    exact, _ = cKDTree(mesh.vertices).query(points, distance_upper_bound=1e-9)
-    assert np.mean(exact == 0) >= 0.9
+    to_vertex, _ = cKDTree(mesh.vertices).query(points, distance_upper_bound=1e-6)
+    assert np.mean(to_vertex <= 1e-9) >= 0.9        # the maps to the camera and back round
