@@ -11,10 +11,10 @@ import time
 import traceback
 from pathlib import Path
 
-from benchmarks import accuracy, engine, memory, pipeline, report, triangulation
+from benchmarks import accuracy, depth, engine, memory, pipeline, report, triangulation
 from benchmarks.common import Config, Section
 
-SECTIONS = (engine, pipeline, triangulation, accuracy, memory)
+SECTIONS = (engine, pipeline, triangulation, accuracy, memory, depth)
 
 
 def main(argv: list[str] | None = None) -> int:

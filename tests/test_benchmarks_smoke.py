@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parent.parent
 HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
             "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
-            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit")
+            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit",
+            "## Depth frames: pixel grid in the perspective frame vs Delaunay in the axis frame")
 
 
 def test_quick_benchmark_writes_results(tmp_path):

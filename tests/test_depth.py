@@ -6,7 +6,7 @@ import pytest
 
 from c1mesh.errors import InputError
 from c1mesh.formats import read_cloud
-from c1mesh.grid import depth_jumps, grid_normals, grid_triangles
+from c1mesh.grid import depth_jumps, grid_mesh, grid_normals
 from c1mesh.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
 from c1mesh.pipeline import FitOptions, fit
 from depth_scenes import (cylinder_from_inside, tilted_plane, write_organised_pcd,
@@ -51,15 +51,35 @@ def test_frame_round_trip_and_normals_face_the_viewpoint():
 
 
 # ------------------------------------------------------------------------ grid pieces
-def test_grid_triangles_split_quads_along_the_shorter_diagonal():
+def test_grid_mesh_splits_quads_along_the_shorter_diagonal_counter_clockwise():
     points = np.zeros((2, 2, 3))
     points[..., 0] = [[0, 1], [0, 1]]
     points[..., 1] = [[0, 0], [1, 1]]
-    points[..., 2] = [[1.0, 1.0], [1.0, 1.5]]          # d is far: a-d is the longer diagonal
-    tri = grid_triangles(points, np.ones((2, 2), bool))
+    points[..., 2] = [[10.0, 10.0], [10.0, 10.5]]      # d is farther: a-d is the longer diagonal
+    uv = points[..., :2] / points[..., 2:]
+    tri, _ = grid_mesh(points, uv, np.ones((2, 2), bool))
     assert sorted(map(sorted, tri.tolist())) == [[0, 1, 2], [1, 2, 3]]
-    valid = np.array([[True, True], [True, False]])
-    assert sorted(map(sorted, grid_triangles(points, valid).tolist())) == [[0, 1, 2]]
+    flat_uv = uv.reshape(-1, 2)
+    p0, p1, p2 = (flat_uv[tri[:, k]] for k in range(3))
+    assert ((p1 - p0)[:, 0] * (p2 - p0)[:, 1] - (p1 - p0)[:, 1] * (p2 - p0)[:, 0] > 0).all()
+    tri, _ = grid_mesh(points, uv, np.array([[True, True], [True, False]]))
+    assert sorted(map(sorted, tri.tolist())) == [[0, 1, 2]]
+
+
+def test_grid_mesh_and_depth_jumps_agree_on_a_scene_with_jumps():
+    """The grid's slice-wise rules are depth_jumps' rules: same triangles on a step scene."""
+    points, normals = tilted_plane(20)
+    grid = points.reshape(20, 20, 3).copy()
+    grid[:, 10:] *= 1.5                                  # a depth jump down the middle column
+    uv = grid[..., :2] / grid[..., 2:]
+    valid = np.ones((20, 20), bool)
+    valid[3, 4] = False
+    tri, report = grid_mesh(grid, uv, valid)
+    assert report.removed["shadow_edge"] > 0
+    again, _ = depth_jumps(grid.reshape(-1, 3), tri)
+    assert again.shape == tri.shape                       # nothing left to remove
+    columns = tri % 20
+    assert not ((columns.min(axis=1) < 10) & (columns.max(axis=1) >= 10)).any()
 
 
 def test_depth_jumps_remove_curtains_but_keep_slopes():

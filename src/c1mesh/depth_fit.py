@@ -15,7 +15,7 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud
 from c1mesh.errors import InputError
-from c1mesh.grid import counter_clockwise, depth_jumps, grid_normals, grid_triangles
+from c1mesh.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
 from c1mesh.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, \
     parse_viewpoint
 
@@ -135,17 +135,20 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
     """
     if grid_shape is not None:
         height, width = grid_shape
-        tri = grid_triangles(field.camera.reshape(height, width, 3), field.usable.reshape(height, width))
+        tri, jumps = grid_mesh(field.camera.reshape(height, width, 3), field.uv.reshape(height, width, 2),
+                               field.usable.reshape(height, width))
+        before = int(tri.shape[0]) + sum(jumps.removed.values())
+        removed = dict(jumps.removed)
         method = "grid"
     else:
         from c1mesh.triangulation import delaunay
         index = np.flatnonzero(field.usable)
         tri = index[delaunay(field.uv[index])]
         method = "delaunay"
-    before = int(tri.shape[0])
-    tri, flat = counter_clockwise(field.uv, tri)
-    tri, jumps = depth_jumps(field.camera, tri)
-    removed = {"zero_area": flat, **jumps.removed}
+        before = int(tri.shape[0])
+        tri, flat = counter_clockwise(field.uv, tri)
+        tri, jumps = depth_jumps(field.camera, tri)
+        removed = {"zero_area": flat, **jumps.removed}
     limit = None
     if method == "delaunay" and tri.shape[0]:
         from c1mesh.triangulation import trim
