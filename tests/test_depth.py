@@ -208,3 +208,64 @@ def test_mug_frame_with_default_options():
     assert flipped <= 1e-4
     to_vertex, _ = cKDTree(mesh.vertices).query(points, distance_upper_bound=1e-6)
     assert np.mean(to_vertex <= 1e-9) >= 0.9        # the maps to the camera and back round
+
+
+# ------------------------------------------------------------------------ the command
+def _depth_png(tmp_path, depth_mm: np.ndarray):
+    from PIL import Image
+    Image.fromarray(depth_mm.astype(np.uint16)).save(tmp_path / "depth.png")
+    Image.fromarray(np.full(depth_mm.shape + (3,), (200, 30, 40), dtype=np.uint8)).save(tmp_path / "rgb.png")
+    return tmp_path / "depth.png"
+
+
+def test_cli_fits_a_depth_png_with_intrinsics_and_colour(tmp_path):
+    """A 16-bit depth PNG of a tilted plane (mm): vertices on the plane within the mm rounding."""
+    import json
+
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    fx, fy, cx, cy = 60.0, 60.0, 19.5, 14.5
+    cols, rows = np.meshgrid(np.arange(40.0), np.arange(30.0))
+    u, v = (cols - cx) / fx, (rows - cy) / fy
+    normal, offset = np.array([0.2, 0.1, 1.0]), 1.5
+    depth_mm = np.rint(1000 * offset / (normal[0] * u + normal[1] * v + normal[2]))
+    depth_mm[:4, :4] = 0                                  # no measurement there
+    png = _depth_png(tmp_path, depth_mm)
+    out = tmp_path / "frame.ply"
+    result = CliRunner().invoke(main, ["fit", str(png), "--intrinsics", f"{fx},{fy},{cx},{cy}",
+                                       "--color", str(tmp_path / "rgb.png"), "--level", "2",
+                                       "--normals", "estimate", "-o", str(out), "--report", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["frame"]["kind"] == "perspective" and report["triangles"]["method"] == "grid"
+    assert report["points"]["dropped"]["non_finite"] == 16
+    mesh = read_cloud(out)
+    residual = np.abs(mesh.points @ normal - offset) / np.linalg.norm(normal)
+    assert residual.max() < 2e-3                          # 0.5 mm rounding, tilted, plus the spline
+    assert (mesh.colors[:, :3] == (200, 30, 40)).all()
+
+
+def test_cli_depth_png_without_intrinsics_is_one_line(tmp_path):
+    png = _depth_png(tmp_path, np.full((4, 5), 1000))
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    result = CliRunner().invoke(main, ["fit", str(png), "-o", str(tmp_path / "o.ply")])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "intrinsics" in lines[0] and "depth.png" in lines[0]
+    assert not (tmp_path / "o.ply").exists()
+
+
+def test_cli_info_says_organised_viewpoint_and_frame():
+    import json
+
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    facts = json.loads(CliRunner().invoke(main, ["info", MUG]).output)
+    assert facts["organised"] is True and facts["grid"] == {"height": 480, "width": 640}
+    assert facts["viewpoint"] == [0, 0, 0, 0, 1, 0, 0] and facts["fit_frame"] == "perspective"
+    hill = json.loads(CliRunner().invoke(main, ["info", "data_samples/hill.ply"]).output)
+    assert hill["organised"] is False and hill["fit_frame"] == "axis" and hill["height_field"] is True

@@ -100,10 +100,18 @@ class PerspectiveFrame:
         u, v, w = local[:, 0], local[:, 1], local[:, 2]
         gu, gv = gradients[:, 0], gradients[:, 1]
         cam = np.empty((local.shape[0], 3))
-        np.negative(gu, out=cam[:, 0])
-        np.negative(gv, out=cam[:, 1])
-        cam[:, 2] = u * gu + v * gv - w
-        cam /= np.linalg.norm(cam, axis=1)[:, None]
+        x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
+        np.multiply(u, gu, out=z)
+        z += v * gv
+        z -= w
+        np.negative(gu, out=x)
+        np.negative(gv, out=y)
+        length = x * x
+        length += y * y
+        length += z * z
+        np.sqrt(length, out=length)
+        np.divide(1.0, length, out=length)
+        cam *= length[:, None]
         return self.vectors_to_world(cam, out=out)
 
 
