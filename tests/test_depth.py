@@ -269,3 +269,15 @@ def test_cli_info_says_organised_viewpoint_and_frame():
     assert facts["viewpoint"] == [0, 0, 0, 0, 1, 0, 0] and facts["fit_frame"] == "perspective"
     hill = json.loads(CliRunner().invoke(main, ["info", "data_samples/hill.ply"]).output)
     assert hill["organised"] is False and hill["fit_frame"] == "axis" and hill["height_field"] is True
+
+
+def test_unorganised_points_hidden_on_the_same_ray_are_dropped(tmp_path):
+    """Farther copies of points on (numerically) the same rays must not pull the surface back."""
+    normal, offset = np.array([0.3, -0.2, 1.0]), 2.0
+    points, normals = tilted_plane(30, normal, offset)
+    hidden = np.vstack([points[:50] * 1.3, points[50:60]])
+    path = write_unorganised_ply(tmp_path / "dup.ply", np.vstack([points, hidden]),
+                                 np.vstack([normals, normals[:60]]))
+    result = fit(path, None, FitOptions(level=2, frame="perspective"))
+    assert result.report["points"]["dropped"]["hidden_on_same_ray"] == 60
+    assert np.abs(result.mesh.vertices @ normal - offset).max() < 1e-12

@@ -142,7 +142,7 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
         method = "grid"
     else:
         from c1mesh.triangulation import delaunay
-        index = np.flatnonzero(field.usable)
+        index = _nearest_per_ray(field)
         tri = index[delaunay(field.uv[index])]
         method = "delaunay"
         before = int(tri.shape[0])
@@ -163,6 +163,24 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
               "removed": removed, "shadow_angle": jumps.shadow_angle,
               "grazing_angle": jumps.grazing_angle, "max_edge": limit}
     return tri, report, method
+
+
+def _nearest_per_ray(field: ViewField) -> np.ndarray:
+    """Indices of the usable points, one per distinct (u, v) (to 1e-9 of their extent): the nearest.
+
+    A viewpoint sees one point per ray; farther points on the same ray (merged scans,
+    duplicates) are hidden behind it, and Delaunay would keep an arbitrary one of them.
+    They are counted in field.dropped["hidden_on_same_ray"].
+    """
+    index = np.flatnonzero(field.usable)
+    index = index[np.argsort(-field.w[index], kind="stable")]
+    uv = field.uv[index]
+    tolerance = 1e-9 * max(float(np.ptp(uv, axis=0).max()), np.finfo(float).tiny)
+    _, first = np.unique(np.round(uv / tolerance), axis=0, return_index=True)
+    field.dropped["hidden_on_same_ray"] = int(index.size - first.size)
+    field.usable[index] = False
+    field.usable[index[first]] = True
+    return np.sort(index[first])
 
 
 def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh: bool):
