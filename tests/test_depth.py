@@ -109,7 +109,7 @@ def test_grid_normals_of_a_plane_are_exact_and_face_the_viewpoint():
     points, normals = tilted_plane(30)
     estimate = grid_normals(points.reshape(30, 30, 3), np.ones((30, 30), bool)).reshape(-1, 3)
     expected = -normals / np.linalg.norm(normals, axis=1)[:, None]   # the plane faces away from +z
-    np.testing.assert_allclose(estimate, expected, atol=1e-9)
+    np.testing.assert_allclose(estimate, expected, atol=1e-6)        # float32 moments
 
 
 # ------------------------------------------------------------------------ files
