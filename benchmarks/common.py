@@ -37,15 +37,21 @@ class Config:
     memory_size: int
     profile_size: int
     fast_reps: int             # repetitions of refine vs floor (matplotlib runs only `reps`)
+    accuracy_grid: int = 200   # evaluation grid of the convergence study: accuracy_grid² points
+    terrain_crop: int | None = None   # DEM rows and columns used (None: the whole grid)
+    memory_levels: tuple[int, ...] = (2, 4, 8)
     peer_limit: float = 60.0   # seconds: a matplotlib run longer than this is abandoned
 
     @classmethod
     def make(cls, quick: bool, out: Path) -> "Config":
         if quick:
-            return cls(True, out, reps=2, engine_sizes=(10_000,), levels=(4, 8),
-                       pipeline_sizes=(20_000,), poisson_depths=(6, 8),
-                       delaunay_sizes=(20_000, 100_000), accuracy_sizes=(100, 400, 1600),
-                       memory_size=100_000, profile_size=20_000, fast_reps=3)
+            # every section and code path once, at sizes that run in seconds (the smoke
+            # test); the numbers mean nothing
+            return cls(True, out, reps=1, engine_sizes=(5_000,), levels=(4,),
+                       pipeline_sizes=(5_000,), poisson_depths=(6,),
+                       delaunay_sizes=(55_000,), accuracy_sizes=(100, 400, 1600),
+                       memory_size=5_000, profile_size=5_000, fast_reps=1,
+                       accuracy_grid=40, terrain_crop=80, memory_levels=(2, 4, 8))
         return cls(False, out, reps=3, engine_sizes=(100_000, 1_000_000), levels=(4, 8),
                    pipeline_sizes=(100_000, 1_000_000), poisson_depths=(8, 10),
                    delaunay_sizes=(100_000, 1_000_000),
@@ -211,8 +217,11 @@ _LAUNCHER = ("import json, os, subprocess, sys, time\n"
              " os.waitstatus_to_exitcode(status)], f)\n")
 
 
-def run_child(cmd: list[str]) -> ChildRun:
-    """Run ``cmd`` (through the launcher) and return its wall time and peak RSS."""
+def run_child(cmd: list[str], discard_stdout: bool = False) -> ChildRun:
+    """Run ``cmd`` (through the launcher) and return its wall time and peak RSS.
+
+    discard_stdout: send the child's stdout to /dev/null instead of collecting it (for a
+    mesh written to stdout)."""
     import os
     import subprocess
     import tempfile
@@ -222,10 +231,11 @@ def run_child(cmd: list[str]) -> ChildRun:
     with tempfile.TemporaryDirectory() as tmp:
         stats = Path(tmp) / "stats.json"
         gc.collect()
-        done = subprocess.run([sys.executable, "-c", _LAUNCHER, str(stats), *cmd],
-                              capture_output=True, env=env)
+        done = subprocess.run([sys.executable, "-c", _LAUNCHER, str(stats), *cmd], env=env,
+                              stdout=subprocess.DEVNULL if discard_stdout else subprocess.PIPE,
+                              stderr=subprocess.PIPE)
         seconds, rss, code = json.loads(stats.read_text()) if stats.exists() else (0, 0, done.returncode)
-        return ChildRun(seconds, rss, code, done.stdout.decode(errors="replace"),
+        return ChildRun(seconds, rss, code, (done.stdout or b"").decode(errors="replace"),
                         done.stderr.decode(errors="replace"))
 
 

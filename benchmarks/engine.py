@@ -27,8 +27,12 @@ from scipy.spatial import Delaunay  # noqa: E402
 
 from benchmarks.common import (Config, Section, fmt_s, fmt_x, franke, median, paired,  # noqa: E402
                                random_points, ratio, verdict)
-from c1mesh import RSDInterpolator, rsd  # noqa: E402
-from c1mesh.refine import lattice_pattern  # noqa: E402
+from c1mesh import RSDInterpolator, rsd, threads  # noqa: E402
+from c1mesh.refine import MAX_WORKERS, lattice_pattern  # noqa: E402
+from c1mesh.threads import available_cpus  # noqa: E402
+
+ALL = min(available_cpus(), MAX_WORKERS)
+"""Threads refine uses by default (all cores, at most MAX_WORKERS)."""
 
 
 def floor_job(I: RSDInterpolator, level: int, M: int, K: int):
@@ -87,17 +91,25 @@ def run(cfg: Config) -> Section:
             "| N | triangles | c1mesh build | matplotlib build | matplotlib / c1mesh |",
             "|---:|---:|---:|---:|---:|", *build_rows, "")
     sec.add("### Refine", "",
-            "| N | level (subdiv) | output points | c1mesh refine (values+grads) | floor | "
-            "matplotlib refine_field (values) | matplotlib values+grads | "
-            "**c1mesh vs matplotlib** | **c1mesh / floor** |",
-            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *rows, "",
+            f"Threads: matplotlib runs in one thread (its numpy code starts none). c1mesh "
+            f"refine is timed twice: with one thread (c1mesh.threads.limit(1), BLAS limited "
+            f"to 1 too) and with all cores ({ALL} threads here: the {available_cpus()} CPUs "
+            f"this process may use, at most refine.MAX_WORKERS = {MAX_WORKERS}; fewer when "
+            "the mesh has fewer blocks, the count used is in brackets). Both ratios are "
+            "shown.", "",
+            "| N | level (subdiv) | output points | c1mesh refine (values+grads), 1 thread | "
+            f"c1mesh refine, all cores (threads) | floor | "
+            "matplotlib refine_field (values, 1 thread) | matplotlib values+grads | "
+            "**c1mesh vs matplotlib, 1 thread each** | "
+            "**c1mesh (all cores) vs matplotlib (1 thread)** | **c1mesh / floor** |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *rows, "",
             "c1mesh vs matplotlib = matplotlib `refine_field` time / c1mesh `refine` time "
             "(c1mesh also computes gradients, matplotlib does not). "
             "'values+grads' is matplotlib doing what refine does, timed once at the smallest N, "
             "level 4 (it costs several times refine_field). "
-            "c1mesh / floor = refine time / floor time. Cores: refine splits its blocks over "
-            "worker threads (both cores here); the floor's product uses both cores through "
-            "BLAS, its copies one.", "")
+            "c1mesh / floor = refine time (all cores) / floor time. Cores: refine splits "
+            "its blocks over its worker threads; the floor's product uses the cores through "
+            "BLAS, its copies one. The build (above) also uses all cores.", "")
     sec.add("`refine` builds `parent` on first use; the timed refine reads it, so both sides "
             "produce a parent array, as the floor specifies.", "")
     _plot(plot, cfg.out / "engine.png")
@@ -115,9 +127,15 @@ def _level(cfg, sec, rows, plot, n, I, mpl_interp, level, mpl_ok) -> bool:
         m.parent                                   # computed on first use; the floor copies one
         counts["ours"] = m.points.shape[0]
         return m
+
+    def ours_1():
+        with threads.limit(1):                     # one thread for refine and for BLAS
+            m = I.refine(level)
+            m.parent
+        return m
     M = n + len(I.edges) * (level - 1) + len(I.triangles) * (level - 1) * (level - 2) // 2
     K = len(I.triangles) * level * level
-    jobs = {"ours": ours, "floor": floor_job(I, level, M, K)}
+    jobs = {"ours": ours, "ours_1": ours_1, "floor": floor_job(I, level, M, K)}
     if mpl_ok:
         refiner = mtri.UniformTriRefiner(mpl_interp._triangulation)
 
@@ -147,6 +165,7 @@ def _level(cfg, sec, rows, plot, n, I, mpl_interp, level, mpl_ok) -> bool:
     t_mpl = times.get("mpl", [float("nan")])
     mpl_done = np.isfinite(median(t_mpl))
     r_mpl = ratio(t_mpl, t_ours) if mpl_done else float("nan")
+    r_mpl_1 = ratio(t_mpl, times["ours_1"]) if mpl_done else float("nan")
     if "mpl" not in times:
         mpl_cell = "not run (build abandoned or a smaller level timed out)"
     elif mpl_done:
@@ -156,14 +175,19 @@ def _level(cfg, sec, rows, plot, n, I, mpl_interp, level, mpl_ok) -> bool:
     vg = times.get("mpl_vg")
     vg_cell = "—" if not vg else (f"{fmt_s(median(vg))} (1 run)" if np.isfinite(median(vg))
                                   else f"> {cfg.peer_limit:.0f} s")
-    rows.append(f"| {n:,} | {level} ({k}) | {M:,} | {fmt_s(median(t_ours))} | "
-                f"{fmt_s(median(t_floor))} | {mpl_cell} | {vg_cell} | {fmt_x(r_mpl)} | "
-                f"{fmt_x(r_floor)} |")
+    blocks = -(-len(I.triangles) // I.refinement(level).rows)
+    used = min(ALL, blocks)                        # Refinement.mesh's own count
+    rows.append(f"| {n:,} | {level} ({k}) | {M:,} | {fmt_s(median(times['ours_1']))} | "
+                f"{fmt_s(median(t_ours))} ({used}) | {fmt_s(median(t_floor))} | {mpl_cell} | {vg_cell} | "
+                f"{fmt_x(r_mpl_1)} | {fmt_x(r_mpl)} | {fmt_x(r_floor)} |")
     plot.append((f"{n // 1000}k L{level}", median(t_ours), median(t_floor),
                  median(t_mpl) if mpl_done else np.nan))
     if mpl_done:
         sec.headlines.append((f"engine: c1mesh refine vs matplotlib refine_field, N={n:,}, "
-                              f"level {level}", fmt_x(r_mpl), "≥ 30×", verdict(r_mpl >= 30)))
+                              f"level {level}, both 1 thread", fmt_x(r_mpl_1), "(none set)", "—"))
+        sec.headlines.append((f"engine: c1mesh refine vs matplotlib refine_field, N={n:,}, "
+                              f"level {level}, c1mesh {used} threads, matplotlib 1",
+                              fmt_x(r_mpl), "≥ 30×", verdict(r_mpl >= 30)))
     elif "mpl" in times:
         sec.headlines.append((f"engine: c1mesh vs matplotlib, N={n:,}, level {level}",
                               f"matplotlib > {cfg.peer_limit:.0f} s, not measured", "≥ 30×",

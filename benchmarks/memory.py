@@ -1,18 +1,16 @@
-"""Memory: peak RSS of ``c1mesh fit`` (level 4) against the size of the mesh it produces.
+"""Memory: peak RSS of ``c1mesh fit`` per input point and per output vertex, levels 2, 4, 8.
 
-Runs are child processes measured alone (ru_maxrss via wait4). The yardstick is the output
-arrays a caller ends up holding: vertices float64 ×3 + normals float64 ×3 per vertex and
-faces int32 ×3 per face (int32 suffices below 2**31 vertices; int64 faces would make the
-yardstick larger and the ratio look better). The headline peak is the median of the
-pipeline section's `c1mesh fit` runs at this N when it made them, else one run here. A
-child that only imports the same modules gives the interpreter + imports baseline, and one
-child running ``c1mesh.pipeline.fit`` records the peak reached by the end of each stage.
-``c1mesh fit`` streams the refined mesh to its output file block by block
-(``fit(..., keep_mesh=False)``), so it never holds those arrays; the yardstick stays what
-the issue asked for, the size of the mesh produced.
+Runs are child processes measured alone (ru_maxrss via wait4), each ``c1mesh fit`` of the
+same N-point terrain (common.terrain_cloud, a binary PLY with normals) at one level,
+writing a binary PLY to stdout, which goes to /dev/null (so no file of gigabytes is
+written; the mesh is streamed block by block either way, ``fit(..., keep_mesh=False)``,
+so the process never holds the output arrays). A child that only imports the same
+modules gives the interpreter + imports baseline; "above baseline" subtracts it. One more
+child running ``c1mesh.pipeline.fit`` at level 4 records the peak reached by the end of
+each stage.
 
 While ``c1mesh.pipeline`` cannot be imported, the child instead builds
-``RSDInterpolator(...).refine(4)`` from the same terrain and the section says so.
+``RSDInterpolator(...).refine(L)`` from the same terrain and the section says so.
 """
 from __future__ import annotations
 
@@ -22,15 +20,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from benchmarks.common import (C1MESH, MEASURED, Config, Section, fmt_bytes, median,
-                               pipeline_status, report_from_stderr, run_child, terrain_cloud,
-                               verdict, write_cloud_ply)
+from benchmarks.common import (C1MESH, Config, Section, fmt_bytes, pipeline_status,
+                               report_from_stderr, run_child, terrain_cloud, write_cloud_ply)
 
-LEVEL = 4
-
-
-def output_bytes(vertices: int, faces: int) -> int:
-    return vertices * (3 + 3) * 8 + faces * 3 * 4
+STAGE_LEVEL = 4
 
 
 def run(cfg: Config) -> Section:
@@ -38,51 +31,57 @@ def run(cfg: Config) -> Section:
     why = pipeline_status()
     n, exe = cfg.memory_size, sys.executable
     sec.add(__doc__.split("\n\n")[1].replace("\n", " "), "")
-    stages = None
+    rows, stages = [], None
     with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "in.ply"
+        write_cloud_ply(src, *terrain_cloud(n))
         if not why:
-            src = Path(tmp) / "in.ply"
-            write_cloud_ply(src, *terrain_cloud(n))
-            shared = MEASURED.get(("c1mesh fit", n))
-            if shared:
-                peak, runs = median(shared["rss"]), len(shared["rss"])
-                mesh = {"vertices": shared["vertices"], "faces": shared["faces"]}
-            else:
-                child = run_child([exe, *C1MESH, "fit", str(src), "-o", f"{tmp}/out.ply",
-                                   "--level", str(LEVEL), "--report", "-", "-q"])
-                if child.returncode != 0:
-                    raise RuntimeError(f"c1mesh fit failed: {child.stderr.strip()[-400:]}")
-                peak, runs, mesh = child.peak_rss, 1, report_from_stderr(child.stderr)["output_mesh"]
-            what = f"`c1mesh fit` of {n:,} points, level {LEVEL} (median of {runs} run(s))"
-            staged = run_child([exe, "-m", "benchmarks.memory", "stages", str(src),
-                                f"{tmp}/out2.ply", str(LEVEL)])
-            stages = json.loads(staged.stdout)["stages"] if staged.returncode == 0 else None
             imports = "import c1mesh.cli, c1mesh.pipeline"
+            what = f"`c1mesh fit` of {n:,} points ({fmt_bytes(src.stat().st_size)} binary PLY)"
         else:
-            what = (f"`RSDInterpolator(...).refine({LEVEL})` of {n:,} points "
-                    f"(`c1mesh fit` not available: {why})")
-            child = run_child([exe, "-m", "benchmarks.memory", "refine", str(n), str(LEVEL)])
-            if child.returncode != 0:
-                raise RuntimeError(f"refine child failed: {child.stderr.strip()[-400:]}")
-            peak, mesh = child.peak_rss, json.loads(child.stdout)
             imports = "import scipy.spatial, c1mesh"
+            what = (f"`RSDInterpolator(...).refine(L)` of {n:,} points "
+                    f"(`c1mesh fit` not available: {why})")
         base = run_child([exe, "-c", imports]).peak_rss
-    size = output_bytes(mesh["vertices"], mesh["faces"])
-    r = peak / size
-    sec.add(f"Measured: {what}.", "",
-            "| output vertices | output faces | output arrays | peak RSS | interpreter + imports | "
-            "**peak RSS / output** | (peak − imports) / output |",
-            "|---:|---:|---:|---:|---:|---:|---:|",
-            f"| {mesh['vertices']:,} | {mesh['faces']:,} | {fmt_bytes(size)} | {fmt_bytes(peak)} | "
-            f"{fmt_bytes(base)} | {r:.2f}× | {(peak - base) / size:.2f}× |", "")
+        for level in cfg.memory_levels:
+            peak, vertices = _one_level(exe, src, n, level, why)
+            rows.append((level, vertices, peak))
+        if not why:
+            staged = run_child([exe, "-m", "benchmarks.memory", "stages", str(src),
+                                f"{tmp}/out2.ply", str(STAGE_LEVEL)])
+            stages = json.loads(staged.stdout)["stages"] if staged.returncode == 0 else None
+    sec.add(f"Measured: {what}; interpreter + imports: {fmt_bytes(base)}.", "",
+            "| level | output vertices | peak RSS | above baseline | **bytes per input point** "
+            "| bytes per output vertex | above baseline: per input point | per output vertex |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for level, vertices, peak in rows:
+        sec.add(f"| {level} | {vertices:,} | {fmt_bytes(peak)} | {fmt_bytes(peak - base)} | "
+                f"{peak / n:,.0f} | {peak / vertices:,.0f} | {(peak - base) / n:,.0f} | "
+                f"{(peak - base) / vertices:,.1f} |")
+        sec.headlines.append((f"memory: peak RSS per input point, N={n:,}, level {level}",
+                              f"{peak / n:,.0f} B ({(peak - base) / n:,.0f} B above imports)",
+                              "(none set)", "—"))
+    sec.add("")
     if stages:
-        sec.add("Peak RSS reached by the end of each stage (one `c1mesh.pipeline.fit` run in a child):",
-                "", "| stage | peak so far | × output |", "|---|---:|---:|",
-                *[f"| {name} | {fmt_bytes(rss)} | {rss / size:.2f}× |" for name, rss in stages], "")
-    label = "c1mesh fit" if not why else "refine (pipeline n/a)"
-    sec.headlines.append((f"memory: peak RSS / output arrays, {label}, N={n:,}, level {LEVEL}",
-                          f"{r:.2f}×", "≤ 3×", verdict(r <= 3)))
+        sec.add(f"Peak RSS reached by the end of each stage (one `c1mesh.pipeline.fit` run at "
+                f"level {STAGE_LEVEL} in a child, writing a file):", "",
+                "| stage | peak so far | per input point |", "|---|---:|---:|",
+                *[f"| {name} | {fmt_bytes(rss)} | {rss / n:,.0f} B |" for name, rss in stages], "")
     return sec
+
+
+def _one_level(exe: str, src: Path, n: int, level: int, why: str) -> tuple[int, int]:
+    """(peak RSS, output vertices) of one child fitting `src` at `level`."""
+    if not why:
+        child = run_child([exe, *C1MESH, "fit", str(src), "-o", "-", "--level", str(level),
+                           "--report", "-", "-q"], discard_stdout=True)
+        if child.returncode != 0:
+            raise RuntimeError(f"c1mesh fit --level {level} failed: {child.stderr.strip()[-400:]}")
+        return child.peak_rss, report_from_stderr(child.stderr)["output_mesh"]["vertices"]
+    child = run_child([exe, "-m", "benchmarks.memory", "refine", str(n), str(level)])
+    if child.returncode != 0:
+        raise RuntimeError(f"refine child failed: {child.stderr.strip()[-400:]}")
+    return child.peak_rss, json.loads(child.stdout)["vertices"]
 
 
 def _peak() -> int:

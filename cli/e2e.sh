@@ -1,10 +1,15 @@
 #!/usr/bin/env bash
 # End-to-end check of the installed `c1mesh` command as a shell user meets it.
-# Usage: bash cli/e2e.sh [c1mesh-command]   (default: c1mesh on PATH). Exits non-zero on
+# Usage: bash cli/e2e.sh [c1mesh-command]   (default: c1mesh on PATH, else .venv/bin/c1mesh). Exits non-zero on
 # the first broken promise of cli/README.md, printing which.
 set -uo pipefail
-C1MESH=${1:-c1mesh}
 here="$(cd "$(dirname "$0")/.." && pwd)"
+# The command: the argument, else c1mesh on PATH, else the one ./setup.sh put in .venv.
+if [ -n "${1:-}" ]; then C1MESH=$1
+elif command -v c1mesh > /dev/null; then C1MESH=c1mesh
+elif [ -x "$here/.venv/bin/c1mesh" ]; then C1MESH="$here/.venv/bin/c1mesh"
+else echo "$(basename "$0"): no c1mesh on PATH and no $here/.venv/bin/c1mesh; run ./setup.sh" >&2; exit 127
+fi
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 failures=0
@@ -74,6 +79,40 @@ cmp -s "$work/same.ply" "$here/data_samples/hill.ply"
 check "the input is untouched" 0 $?
 $C1MESH fit "$here/data_samples/hill.ply" -o "$work/no/such/dir/out.ply" 2> "$work/err"
 check "unwritable output location fails" 1 $?
+
+# outputs never destroy inputs or each other (cli/README.md, "Output paths")
+$C1MESH fit "$work/same.ply" -o "$work/r_out.ply" --report "$work/same.ply" 2> "$work/err"
+check "report = input is refused" 1 $?
+cmp -s "$work/same.ply" "$here/data_samples/hill.ply" && one_line_error "$work/err" && [ ! -e "$work/r_out.ply" ]
+check "report = input: input untouched, one line, no mesh" 0 $?
+$C1MESH fit "$work/same.ply" -o "$work/twice.ply" --report "$work/twice.ply" 2> "$work/err"
+check "report = mesh is refused" 1 $?
+cp "$here/data_samples/hill.ply" "$work/same.c1.ply"
+$C1MESH fit "$work/same.ply" "$work/same.c1.ply" -O "$work" --jobs 2 2> "$work/err"
+check "batch output = a later input is refused" 1 $?
+cmp -s "$work/same.c1.ply" "$here/data_samples/hill.ply"
+check "the later input is untouched" 0 $?
+$C1MESH fit - --input-format ply -o "$work/same.ply" < "$work/same.ply" 2> "$work/err"
+check "-o = the file on stdin is refused" 1 $?
+$C1MESH fit "$work/same.ply" -o "$work/nomesh.ply" --report /dev/full --level 1 2> "$work/err"
+check "a report that cannot be written fails" 1 $?
+[ ! -e "$work/nomesh.ply" ] && one_line_error "$work/err"
+check "... and leaves no mesh behind" 0 $?
+printf 'old' > "$work/private.ply" && chmod 600 "$work/private.ply"
+$C1MESH fit "$work/same.ply" -o "$work/private.ply" --level 1
+check "overwrite an existing output" 0 $?
+[ "$(stat -c %a "$work/private.ply")" = 600 ]
+check "an existing output keeps its mode 0600" 0 $?
+$C1MESH fit "$work/same.ply" -o /dev/null --report /dev/null --level 1
+check "/dev/null as mesh and report" 0 $?
+[ -c /dev/null ]
+check "/dev/null is still a character device" 0 $?
+$C1MESH fit "$work/same.ply" -o /dev/stdout --level 1 > "$work/stdout.ply" && head -c 3 "$work/stdout.ply" | grep -q ply
+check "-o /dev/stdout writes the mesh to stdout" 0 $?
+$C1MESH fit "$work/same.ply" -o "$work/x.xyz" 2> "$work/err"
+check "unsupported output extension fails" 1 $?
+if ls -A "$work" | grep -q '\.tmp$'; then false; else true; fi
+check "no temporary files are left" 0 $?
 
 # batch with one bad file: exit 3, the good ones written
 mkdir -p "$work/batch"

@@ -1,9 +1,14 @@
 #!/usr/bin/env bash
 # Shell use of c1mesh: a folder batch and a stdin -> stdout chain.
-# Run: bash examples/batch_and_pipe.sh [c1mesh-command]   (default: c1mesh on PATH)
+# Run: bash examples/batch_and_pipe.sh [c1mesh-command]   (default: c1mesh on PATH, else .venv/bin/c1mesh)
 set -euo pipefail
-C1MESH=${1:-c1mesh}
 here="$(cd "$(dirname "$0")/.." && pwd)"
+# The command: the argument, else c1mesh on PATH, else the one ./setup.sh put in .venv.
+if [ -n "${1:-}" ]; then C1MESH=$1
+elif command -v c1mesh > /dev/null; then C1MESH=c1mesh
+elif [ -x "$here/.venv/bin/c1mesh" ]; then C1MESH="$here/.venv/bin/c1mesh"
+else echo "$(basename "$0"): no c1mesh on PATH and no $here/.venv/bin/c1mesh; run ./setup.sh" >&2; exit 127
+fi
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 

@@ -1,6 +1,9 @@
 """Smoke test of the benchmark suite: `python -m benchmarks --quick` runs and writes a report.
 
-Checks structure only (sections present, at least one ratio); it never asserts speed.
+Checks structure only (every section present and not failed, the single-thread and
+all-cores engine ratios, memory per input point at levels 2, 4 and 8, the terrain fitted
+from training points only); it never asserts speed. --quick runs every section at tiny
+sizes: ~25 s of CPU (about that on two idle cores), so it is marked slow.
 """
 from __future__ import annotations
 
@@ -8,6 +11,8 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
@@ -17,6 +22,7 @@ HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Depth frames: pixel grid in the perspective frame vs Delaunay in the axis frame")
 
 
+@pytest.mark.slow
 def test_quick_benchmark_writes_results(tmp_path):
     done = subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--out", str(tmp_path)],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -25,6 +31,11 @@ def test_quick_benchmark_writes_results(tmp_path):
     text = results.read_text()
     for heading in HEADINGS:
         assert heading in text, f"missing {heading!r}; stderr:\n{done.stderr[-2000:]}"
+    assert "FAILED" not in text and done.returncode == 0, done.stderr[-2000:]
     assert "python -m benchmarks --quick" in text
     assert re.search(r"\| \d+(\.\d+)?× \|", text), "no numeric ratio in RESULTS.md"
+    assert "both 1 thread |" in text and re.search(r"c1mesh \d+ threads, matplotlib 1 \|", text)
+    for level in (2, 4, 8):
+        assert re.search(rf"^\| {level} \| [\d,]+ \| [\d.]+ [MG]iB \|", text, re.M), level
+    assert "Fitting sees the training points only" in text
     assert (tmp_path / "engine.png").exists() and (tmp_path / "accuracy.png").exists()

@@ -57,10 +57,15 @@ def test_report_to_stderr_and_verbose(tmp_path):
     assert '"c1_certificate"' in result.stderr
 
 
-def test_quintic_warns():
-    result = CliRunner().invoke(main, ["fit", str(SAMPLES / "hill.ply"), "-o", "/dev/null", "--level", "1",
-                                       "--scheme", "quintic", "--report", "/dev/null"])
-    assert "quintic" in result.stderr and "planes" in result.stderr
+def test_quintic_warns(tmp_path):
+    result = CliRunner().invoke(main, ["fit", str(SAMPLES / "hill.ply"), "-o", str(tmp_path / "q.ply"),
+                                       "--level", "1", "--scheme", "quintic", "--report", str(tmp_path / "q.json")])
+    assert result.exit_code == 0, result.stderr
+    assert result.stderr.splitlines() == [
+        "c1mesh: warning: the quintic scheme does not reproduce planes and its normals do not converge; "
+        "use sextic unless you need the 2022 procedure"]
+    assert json.loads((tmp_path / "q.json").read_text())["scheme"]["name"] == "quintic"
+    assert read_cloud(tmp_path / "q.ply").points.shape[1] == 3
 
 
 @pytest.mark.parametrize("args", [
@@ -176,6 +181,33 @@ def test_info_and_schemes():
     schemes = run("schemes").stdout.decode().splitlines()
     rows = {line.split()[0]: line.split() for line in schemes[1:]}
     assert rows["sextic"][2:4] == ["yes", "yes"] and rows["quintic"][2:4] == ["yes", "no"]
+    assert [line.count("(default)") for line in schemes[1:]] == [1, 0, 0]   # sextic, marked once
+
+
+_STARTUP_PROBE = """
+import sys, time
+start = time.perf_counter()
+from c1mesh.cli import main
+try:
+    main({args!r}, prog_name="c1mesh")
+except SystemExit as stop:
+    code = stop.code
+heavy = sorted(m for m in ("numpy", "scipy", "open3d", "trimesh", "laspy", "matplotlib") if m in sys.modules)
+print(code, heavy, time.perf_counter() - start, file=sys.stderr)
+"""
+
+
+@pytest.mark.parametrize("args, code", [(["--help"], 0), (["fit", "--help"], 0), (["fit", "x.ply"], 2),
+                                        (["fit", "x.ply", "-o", "y.ply", "--level", "0"], 2),
+                                        (["fit", "x.ply", "-o", "y.ply", "--max-edge", "inf"], 2)])
+def test_help_and_usage_errors_load_nothing_heavy(args, code):
+    """--help and usage errors answer without importing the numerical stack (which takes
+    seconds): checked by the modules loaded, not by a timing."""
+    proc = subprocess.run([sys.executable, "-c", _STARTUP_PROBE.format(args=args)], capture_output=True,
+                          timeout=60)
+    last = proc.stderr.decode().splitlines()[-1].split(" ", 1)
+    assert last[0] == str(code), proc.stderr
+    assert last[1].startswith("[]"), last
 
 
 def test_shell_end_to_end_script(tmp_path):
@@ -194,6 +226,33 @@ def test_examples_run(tmp_path):
         assert proc.returncode == 0, proc.stderr.decode()
     exe = Path(sys.executable).parent / "c1mesh"
     proc = subprocess.run(["bash", str(ROOT / "examples" / "batch_and_pipe.sh"), str(exe)],
+                          capture_output=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert b"hill.c1.ply" in proc.stdout and b"element vertex" in proc.stdout
+
+
+def test_fit_scan_example_fits_the_bundled_las_ground(tmp_path):
+    out = tmp_path / "ground.ply"
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "fit_scan.py"), str(SAMPLES / "4_6_crop.las"),
+                           str(out)], capture_output=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert "of 9003 points" in proc.stdout.decode()       # the tile's class-2 (ground) points
+    assert len(read_cloud(out)) > 9003
+
+
+def test_batch_example_finds_the_setup_venv_without_path(tmp_path):
+    """After ./setup.sh, with nothing on PATH, the example uses <repo>/.venv/bin/c1mesh."""
+    repo = tmp_path / "repo"
+    (repo / "examples").mkdir(parents=True)
+    (repo / "data_samples").mkdir()
+    shutil.copy(ROOT / "examples" / "batch_and_pipe.sh", repo / "examples")
+    for name in ("hill.ply", "wave_tilted_offset.xyz"):
+        shutil.copy(SAMPLES / name, repo / "data_samples")
+    (repo / ".venv" / "bin").mkdir(parents=True)
+    (repo / ".venv" / "bin" / "c1mesh").symlink_to(Path(sys.executable).parent / "c1mesh")
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path),
+           **{k: v for k, v in __import__("os").environ.items() if k == "PYTHONPATH"}}
+    proc = subprocess.run(["bash", str(repo / "examples" / "batch_and_pipe.sh")], env=env,
                           capture_output=True, timeout=300)
     assert proc.returncode == 0, proc.stderr.decode()
     assert b"hill.c1.ply" in proc.stdout and b"element vertex" in proc.stdout

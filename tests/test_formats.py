@@ -474,7 +474,7 @@ def test_atomic_output_permissions_follow_the_umask_without_changing_it(tmp_path
 
 
 def test_unwritable_directory(tmp_path, monkeypatch):
-    import c1mesh.formats._atomic as atomic
+    import c1mesh.outputs as atomic
 
     def denied(**kwargs):
         raise PermissionError(13, "Permission denied")
@@ -659,7 +659,7 @@ def test_atomic_output_starts_writeback_as_it_goes(tmp_path, monkeypatch):
     bytes on disk are exactly what was written, buffered or not)."""
     import os
 
-    import c1mesh.formats._atomic as atomic_module
+    import c1mesh.outputs as atomic_module
     calls = []
     real = os.posix_fadvise
 

@@ -281,11 +281,13 @@ def test_gradients_to_normals_are_unit_upward_and_perpendicular_to_the_surface()
 
 # --- real scans -------------------------------------------------------------------------
 
-o3d = pytest.importorskip("open3d")
+def open3d():
+    """Open3D, needed only by the real-scan tests below (they skip without it)."""
+    return pytest.importorskip("open3d")
 
 
 def read_pcd(name):
-    pc = o3d.io.read_point_cloud(str(REAL / name))
+    pc = open3d().io.read_point_cloud(str(REAL / name))
     return np.asarray(pc.points), np.asarray(pc.normals)
 
 
@@ -294,6 +296,7 @@ def lidar(name, ground_only):
     las = laspy.read(str(REAL / name))
     pts = np.column_stack([las.x, las.y, las.z])
     pts = pts[np.asarray(las.classification) == 2] if ground_only else pts
+    o3d = open3d()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts - pts.mean(axis=0)))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
     nrm = np.asarray(cloud.normals)

@@ -9,7 +9,19 @@ import pytest
 from c1mesh.errors import DependencyError, InputError
 from c1mesh.normals import estimate_normals, orient_normals
 
-pytest.importorskip("open3d")
+
+
+def _open3d_imports() -> bool:
+    try:
+        import open3d  # noqa: F401
+    except (ImportError, OSError):              # OSError: a missing libusb
+        return False
+    return True
+
+
+# only the tests that run a plane fit need Open3D; input checks, orientation and the
+# missing-Open3D error are tested without it
+needs_open3d = pytest.mark.skipif(not _open3d_imports(), reason="open3d does not import")
 
 
 def paraboloid(n=4000, seed=0, offset=(0.0, 0.0, 0.0)):
@@ -27,6 +39,7 @@ def angle_deg(a, b):
     return np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", a, b)), 0, 1)))
 
 
+@needs_open3d
 @pytest.mark.parametrize("offset", [(0, 0, 0), (6.4e5, 8.5e5, 420.0), (3e6, -2e6, 1e6)])
 def test_normals_of_a_paraboloid_match_the_exact_ones_even_at_lidar_offsets(offset):
     pts, exact = paraboloid(offset=offset)
@@ -39,6 +52,7 @@ def test_normals_of_a_paraboloid_match_the_exact_ones_even_at_lidar_offsets(offs
     assert err.max() < 10.0                      # one-sided neighbourhoods at the border
 
 
+@needs_open3d
 @pytest.mark.parametrize("towards", [(0, 0, 1), (0.3, -0.2, -1.0), (1, 0, 0)])
 def test_normals_face_the_requested_side(towards):
     pts, exact = paraboloid(n=1000)
@@ -47,6 +61,7 @@ def test_normals_face_the_requested_side(towards):
     assert np.median(angle_deg(n, exact)) < 1.0
 
 
+@needs_open3d
 def test_per_point_directions_orient_towards_a_sensor():
     pts, exact = paraboloid(n=1000)
     sensor = np.array([0.0, 0.0, -3.0])                  # below the bowl: all see its underside
@@ -55,6 +70,7 @@ def test_per_point_directions_orient_towards_a_sensor():
     assert np.all(n[:, 2] < 0)
 
 
+@needs_open3d
 def test_non_finite_points_get_nan_normals_and_do_not_disturb_the_rest():
     pts, exact = paraboloid(n=1000)
     pts[[5, 50, 500]] = [np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]

@@ -1,11 +1,29 @@
-"""c1mesh.threads: prefetching block generators, parallel ranges, the BLAS limit."""
+"""c1mesh.threads: prefetching block generators, parallel ranges, the BLAS limit, and the
+one thread-count knob every pool follows (bit-identical results for every count)."""
+import json
+import os
+import subprocess
+import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from c1mesh import threads
+from c1mesh.errors import InputError
 from c1mesh.threads import blas_threads, prefetch, ring, run_parallel
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+
+
+@pytest.fixture
+def two_workers():
+    """prefetch runs a producer thread only when more than one worker is allowed."""
+    with threads.limit(2):
+        yield
 
 
 def _reusing_blocks(count: int, buffers: int, size: int = 1000):
@@ -17,7 +35,7 @@ def _reusing_blocks(count: int, buffers: int, size: int = 1000):
         yield block
 
 
-def test_prefetch_yields_every_block_in_order_with_a_slow_consumer():
+def test_prefetch_yields_every_block_in_order_with_a_slow_consumer(two_workers):
     depth = 3
     seen = []
     for block in prefetch(_reusing_blocks(40, ring(depth)), depth):
@@ -26,7 +44,7 @@ def test_prefetch_yields_every_block_in_order_with_a_slow_consumer():
     assert seen == [(i, i) for i in range(40)]
 
 
-def test_too_few_buffers_would_be_overwritten():
+def test_too_few_buffers_would_be_overwritten(two_workers):
     """The check above can fail: with fewer buffers than ring(depth) a held block changes."""
     depth = 3
     changed = False
@@ -36,7 +54,7 @@ def test_too_few_buffers_would_be_overwritten():
     assert changed
 
 
-def test_prefetch_reraises_the_producers_error():
+def test_prefetch_reraises_the_producers_error(two_workers):
     def failing():
         yield 1
         yield 2
@@ -48,7 +66,7 @@ def test_prefetch_reraises_the_producers_error():
     assert got == [1, 2]
 
 
-def test_closing_early_stops_the_producer():
+def test_closing_early_stops_the_producer(two_workers):
     produced = []
 
     def endless():
@@ -80,6 +98,18 @@ def test_run_parallel_covers_every_range_in_threads():
     assert len(set(seen.values())) == 3
 
 
+def test_one_worker_prefetches_in_the_callers_thread():
+    seen = []
+
+    def blocks():
+        for i in range(5):
+            seen.append(threading.get_ident())
+            yield i
+    with threads.limit(1):
+        assert list(prefetch(blocks(), 2)) == list(range(5))
+    assert set(seen) == {threading.get_ident()}
+
+
 def test_blas_threads_limits_inside_and_restores_after():
     from threadpoolctl import threadpool_info
     blas = lambda: [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]  # noqa: E731
@@ -90,3 +120,169 @@ def test_blas_threads_limits_inside_and_restores_after():
     assert blas() == before
     with blas_threads(None):
         assert blas() == before
+
+
+# --- the one knob ---------------------------------------------------------------------------
+
+
+def _blas():
+    from threadpoolctl import threadpool_info
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def test_the_default_is_the_cpus_this_process_may_use_and_limit_nests():
+    assert threads.workers() == threads.available_cpus()
+    with threads.limit(3) as inner:
+        assert inner == threads.workers() == 3 and set(_blas()) == {3}
+        with threads.limit(1):
+            assert threads.workers() == 1 and set(_blas()) == {1}
+        assert threads.workers() == 3 and threads.workers(5) == 5   # a per-call count wins
+        with threads.limit(None):
+            assert threads.workers() == 3
+    assert threads.workers() == threads.available_cpus()
+
+
+def test_set_workers_holds_for_the_process_until_reset():
+    before = _blas()
+    try:
+        threads.set_workers(1)
+        assert threads.workers() == 1 and set(_blas()) == {1}
+    finally:
+        threads.set_workers(None)
+    assert threads.workers() == threads.available_cpus() and _blas() == before
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, "2", True])
+def test_a_bad_thread_count_is_an_input_error(bad):
+    with pytest.raises(InputError, match="threads"):
+        with threads.limit(bad):
+            pass
+
+
+@pytest.mark.parametrize("total, processes, each", [(8, 2, 4), (8, 3, 2), (2, 4, 1), (1, 1, 1)])
+def test_processes_share_the_threads_without_oversubscribing(total, processes, each):
+    assert threads.per_process(total, processes) == each
+    assert threads.per_process(None, 1) == threads.available_cpus()
+
+
+class _ThreadCensus:
+    """Records every Python thread started and every ThreadPoolExecutor's size."""
+
+    def __init__(self, monkeypatch):
+        self.started, self.pools = 0, []
+        start, init = threading.Thread.start, ThreadPoolExecutor.__init__
+
+        def counting_start(thread, *a, **k):
+            self.started += 1
+            return start(thread, *a, **k)
+
+        def recording_init(pool, max_workers=None, *a, **k):
+            self.pools.append(max_workers)
+            return init(pool, max_workers, *a, **k)
+        monkeypatch.setattr(threading.Thread, "start", counting_start)
+        monkeypatch.setattr(ThreadPoolExecutor, "__init__", recording_init)
+
+
+def _big_mesh_inputs(n=60_000, seed=0):
+    """Enough points for the tiled triangulation and several coefficient blocks."""
+    from c1mesh.triangulation import TILED_FROM
+    rng = np.random.default_rng(seed)
+    xy = rng.random((max(n, TILED_FROM + 5_000), 2))
+    return xy, np.sin(3 * xy[:, 0]) * xy[:, 1], np.column_stack([np.cos(xy[:, 1]), xy[:, 0]])
+
+
+def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
+    from c1mesh.interpolator import RSDInterpolator
+    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.triangulation import delaunay, trim
+    xy, z, g = _big_mesh_inputs()
+    census = _ThreadCensus(monkeypatch)
+    with threads.limit(1):
+        tri, _ = trim(xy, delaunay(xy))
+        RSDInterpolator(xy, z, g, triangles=tri).refine(2)
+    fit(SAMPLES / "hill.ply", tmp_path / "o.ply", FitOptions(level=2, workers=1), keep_mesh=False)
+    assert census.started == 0 and census.pools == []
+
+
+def test_every_pool_stays_within_the_limit(monkeypatch, tmp_path):
+    from c1mesh import refine
+    from c1mesh.interpolator import RSDInterpolator
+    from c1mesh.triangulation import delaunay, trim
+    xy, z, g = _big_mesh_inputs()
+    census = _ThreadCensus(monkeypatch)
+    parallel = []
+    real = refine.run_parallel
+    monkeypatch.setattr(refine, "run_parallel", lambda work, ranges: (parallel.append(len(ranges)),
+                                                                      real(work, ranges)))
+    with threads.limit(3):
+        tri, _ = trim(xy, delaunay(xy))
+        RSDInterpolator(xy, z, g, triangles=tri).refine(2)
+    assert census.pools and max(census.pools) == 3          # the tiles and the coefficients
+    assert parallel == [3]
+    before = len(census.pools)
+    RSDInterpolator(xy, z, g, triangles=tri, workers=2).refine(2)
+    assert parallel[-1] == 2 and max(census.pools[before:]) == 2
+
+
+def test_results_are_bit_identical_for_every_thread_count():
+    from c1mesh.interpolator import RSDInterpolator
+    from c1mesh.triangulation import delaunay, trim
+    xy, z, g = _big_mesh_inputs()
+    results = []
+    for count in (1, 2, 3):
+        with threads.limit(count):
+            tri, _ = trim(xy, delaunay(xy))
+            interp = RSDInterpolator(xy, z, g, triangles=tri)
+            mesh = interp.refine(3)
+        results.append((tri, interp.coefficients, mesh.points, mesh.values, mesh.gradients,
+                        mesh.triangles))
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert a.tobytes() == b.tobytes()
+
+
+def test_the_fit_writes_the_same_bytes_with_one_thread_or_several(tmp_path):
+    from c1mesh.pipeline import FitOptions, fit
+    written = []
+    for count in (1, 2, 4):
+        out = tmp_path / f"t{count}.ply"
+        report = fit(SAMPLES / "hill.ply", out, FitOptions(level=3, workers=count), keep_mesh=False).report
+        assert report["threads"] == count
+        written.append(out.read_bytes())
+    assert written[0] == written[1] == written[2]
+
+
+def test_cli_threads_are_shared_by_the_jobs(tmp_path):
+    a, b = tmp_path / "a.ply", tmp_path / "b.ply"
+    for name in (a, b):
+        name.write_bytes((SAMPLES / "hill.ply").read_bytes())
+    command = [sys.executable, "-m", "c1mesh.cli", "fit", str(a), str(b), "-O", str(tmp_path / "out"),
+               "--level", "1", "--jobs", "2", "--threads", "4", "--report", str(tmp_path / "r.json")]
+    proc = subprocess.run(command, capture_output=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    inputs = json.loads((tmp_path / "r.json").read_text())["inputs"]
+    assert [entry["report"]["threads"] for entry in inputs] == [2, 2]
+    single = subprocess.run(command[:5] + ["-o", str(tmp_path / "one.ply"), "--level", "1",
+                                           "--threads", "1", "--report", str(tmp_path / "s.json")],
+                            capture_output=True, timeout=300)
+    assert single.returncode == 0, single.stderr
+    assert json.loads((tmp_path / "s.json").read_text())["threads"] == 1
+
+
+@pytest.mark.parametrize("args, each", [(["--threads", "1"], "1"),
+                                        (["--threads", "4", "--jobs", "2"], "2")])
+def test_cli_asks_openmp_for_the_same_share(tmp_path, monkeypatch, args, each):
+    """Open3D's normal estimation (OpenMP) is outside threadpoolctl's reach: the CLI sets
+    OMP_NUM_THREADS to each process's share before Open3D starts."""
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    inputs = []
+    for name in ("a.ply", "b.ply"):
+        inputs.append(tmp_path / name)
+        inputs[-1].write_bytes((SAMPLES / "hill.ply").read_bytes())
+    result = CliRunner().invoke(main, ["fit", *map(str, inputs), "-O", str(tmp_path / "out"),
+                                       "--level", "1", *args])
+    assert result.exit_code == 0, result.output
+    assert os.environ["OMP_NUM_THREADS"] == each

@@ -1,25 +1,31 @@
 """The `c1mesh` command: a thin click layer over the library.
 
 Exit codes (cli/README.md): 0 success, 1 failure, 2 usage error, 3 batch where some
-inputs failed. Errors are one line on stderr; --debug shows the traceback. Progress goes
-to stderr only when stderr is a terminal.
+inputs failed, 128+N killed by signal N (SIGINT 130, SIGTERM 143, SIGHUP 129). Errors
+are one line on stderr; --debug shows the traceback. Progress goes to stderr only when
+stderr is a terminal. Every output path is checked (c1mesh.outputs) before any input is
+read. Nothing heavy (numpy, scipy, open3d) is imported until a command runs, so --help
+and usage errors are quick.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import sys
 import traceback
-from concurrent.futures import ProcessPoolExecutor
+import warnings
 from pathlib import Path
 
 import click
 
 from c1mesh import __version__
-from c1mesh.errors import C1MeshError
+from c1mesh.errors import C1MeshError, InputError
+from c1mesh.outputs import STDIO, Outputs, mesh_format, plan_outputs, remove_live_temps
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
+_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 def _fail(message: str, debug: bool = False) -> None:
@@ -36,6 +42,9 @@ def _message(exc: BaseException) -> str:
         text = str(exc)
     elif isinstance(exc, MemoryError):
         text = "out of memory; try a lower --level or split the input"
+    elif isinstance(exc, OSError):
+        where = f"'{exc.filename}': " if exc.filename else ""
+        text = f"{where}{exc.strerror or exc or type(exc).__name__}"
     else:
         text = f"unexpected {type(exc).__name__}: {exc}"
     return " ".join(text.split())
@@ -59,18 +68,41 @@ def _parse_max_edge(value: str):
         length = float(value)
     except ValueError:
         raise click.BadParameter(f"expected auto, none or a positive length, got {value!r}")
-    if not length > 0:
-        raise click.BadParameter(f"expected a positive length, got {value!r}")
+    if not (length > 0 and math.isfinite(length)):
+        raise click.BadParameter(f"expected a positive finite length (or none), got {value!r}")
     return length
 
 
-def _parse_intrinsics(value: str | None):
-    from c1mesh.errors import InputError
-    from c1mesh.formats.depth import parse_intrinsics
+def _parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
+    """--intrinsics fx,fy,cx,cy (pixels, fx and fy > 0); plain Python, so usage errors stay fast."""
+    if value is None:
+        return None
     try:
-        return parse_intrinsics(value)
-    except InputError as exc:
-        raise click.BadParameter(str(exc))
+        parts = tuple(float(p) for p in value.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 4 or not all(math.isfinite(p) for p in parts) or parts[0] <= 0 or parts[1] <= 0:
+        raise click.BadParameter(f"expected fx,fy,cx,cy in pixels with fx, fy > 0, got {value!r}",
+                                 param_hint="'--intrinsics'")
+    return parts
+
+
+def _check_axis(value: str) -> None:
+    """Usage error for an --axis that can never be a direction (checked again, and
+    normalised, by c1mesh.frame)."""
+    text = value.strip().lower().lstrip("+-")
+    if text in ("auto", "x", "y", "z"):
+        return
+    try:
+        parts = [float(part) for part in text.split(",")]
+    except ValueError:
+        parts = []
+    if len(parts) != 3:
+        raise click.BadParameter(f"expected auto, x, y, z (optionally signed) or X,Y,Z, got {value!r}",
+                                 param_hint="'--axis'")
+    if not all(math.isfinite(p) for p in parts) or not any(parts):
+        raise click.BadParameter(f"the axis {value!r} has no direction (zero, NaN or Inf)",
+                                 param_hint="'--axis'")
 
 
 def _stderr_is_terminal() -> bool:
@@ -84,12 +116,54 @@ class _Group(click.Group):
     """A click group whose unexpected failures are still one line on stderr and exit 1."""
 
     def invoke(self, ctx):
+        previous = {sig: signal.signal(sig, _interrupted) for sig in _SIGNALS}
         try:
-            return super().invoke(ctx)
+            with warnings.catch_warnings():
+                # numpy's overflow / invalid-value RuntimeWarnings are not news to a user:
+                # a failing run prints its one error line and nothing else.
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return super().invoke(ctx)
         except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
             raise
         except Exception as exc:  # noqa: BLE001 — the safety net under every command
             _fail(_message(exc), debug="--debug" in sys.argv)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+
+def _interrupted(signum, frame) -> None:
+    """SIGINT/SIGTERM/SIGHUP: stop the batch's worker processes, remove this process's
+    temporary output files, print one line and exit 128+signum at once (no traceback, no
+    waiting for threads that may be deep in a write)."""
+    if hasattr(signal, "SIGPIPE"):   # the pool's feeder thread writes to the workers' closing pipes
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    multiprocessing = sys.modules.get("multiprocessing")
+    if multiprocessing is not None:
+        children = multiprocessing.active_children()
+        for child in children:
+            child.terminate()
+        for child in children:
+            child.join(10)
+    remove_live_temps()
+    try:
+        os.write(2, f"c1mesh: error: interrupted ({signal.Signals(signum).name})\n".encode())
+    except OSError:
+        pass
+    os._exit(128 + signum)
+
+
+def _worker_interrupted(signum, frame) -> None:
+    """A batch worker's signal handler: remove its temporary files and end quietly (the
+    parent prints the one line)."""
+    remove_live_temps()
+    os._exit(128 + signum)
+
+
+def _worker_start() -> None:
+    for sig in _SIGNALS:
+        signal.signal(sig, _worker_interrupted)
+    warnings.simplefilter("ignore", RuntimeWarning)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -138,28 +212,48 @@ def main() -> None:
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
+@click.option("--threads", type=click.IntRange(1, 1024), default=None,
+              help="Threads in all (BLAS included); with --jobs N each process gets "
+                   "max(1, THREADS // N).  [default: the CPUs this process may use]")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
-        report, jobs, quiet, verbose, debug):
+        report, jobs, quiet, verbose, debug, threads):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
-    from c1mesh.pipeline import FitOptions
-
-    options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k,
-                         classes=_parse_classes(classes), max_slope=max_slope,
-                         max_edge=_parse_max_edge(max_edge), scheme=scheme, level=level, ascii=ascii_ply,
-                         frame=frame_kind, viewpoint=viewpoint, depth_scale=depth_scale, color=color_image,
-                         intrinsics=_parse_intrinsics(intrinsics))
+    classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
+    intrinsics = _parse_intrinsics(intrinsics)
+    _check_axis(axis)
+    pairs = _plan(inputs, output, output_dir, suffix, input_format)
+    _check_conflicts(pairs, input_format, classes, ascii_ply)
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
-    jobs_list = _plan(inputs, output, output_dir, suffix, input_format)
-    if len(jobs_list) == 1:
-        _fit_one(*jobs_list[0], options, report, quiet, verbose, debug)
+    try:
+        targets = _check_outputs(pairs, report, output_dir)
+    except (C1MeshError, OSError) as exc:
+        _fail(_message(exc), debug)
+    from c1mesh.pipeline import FitOptions
+
+    options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
+                         max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
+                         frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics, depth_scale=depth_scale,
+                         color=color_image)
+    options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
+    if len(pairs) == 1:
+        _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug)
         return
-    _fit_batch(jobs_list, options, report, jobs, quiet, verbose, debug)
+    _fit_batch(pairs, targets[-1], options, report, jobs, quiet, verbose, debug)
+
+
+def _threads_per_process(threads: int | None, jobs: int) -> int:
+    """--threads shared by the --jobs processes, so together they do not oversubscribe
+    (Open3D's OpenMP threads included)."""
+    from c1mesh.threads import openmp_at_start, per_process
+    count = per_process(threads, jobs)
+    openmp_at_start(count)
+    return count
 
 
 def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, str]]:
@@ -180,48 +274,91 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
         if clash:
             raise click.UsageError(f"several inputs would write the same output {clash[0]}; rename them "
                                    "or run them separately")
-        Path(output_dir).mkdir(parents=True, exist_ok=True) if not Path(output_dir).exists() else None
         return pairs
     if not output:
         raise click.UsageError("give -o OUTPUT (or -O DIR for several inputs)")
     return [(inputs[0], output)]
 
 
-def _check_paths(src: str, dst: str) -> None:
-    if src != "-" and dst != "-" and os.path.exists(dst) and os.path.exists(src) \
-            and os.path.samefile(src, dst):
-        raise C1MeshError(f"output '{dst}' is the input file; refusing to overwrite an input")
+def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:
+    """Usage errors for options that cannot apply to these inputs and outputs."""
+    mesh_formats = {"ply" if dst == STDIO else Path(dst).suffix.lower().lstrip(".") for _, dst in pairs}
+    if ascii_ply and mesh_formats - {"ply"}:
+        raise click.UsageError(f"--ascii applies to PLY output only, not .{sorted(mesh_formats - {'ply'})[0]}")
+    if classes:
+        kinds = {(input_format or Path(src).suffix).lower().lstrip(".") for src, _ in pairs}
+        if kinds - {"las", "laz"}:
+            raise click.UsageError("--classes needs LAS/LAZ input (a classification field), not "
+                                   f".{sorted(kinds - {'las', 'laz'})[0] or '(no extension)'}")
 
 
-def _run(src: str, dst: str, options, on_stage=None) -> dict:
-    """Fit one input to one output; returns the report."""
+def _check_outputs(pairs, report, output_dir):
+    """All output targets (the meshes, then the report or None), checked against the inputs
+    and each other before any input is read (c1mesh.outputs); raises C1MeshError/OSError."""
+    if any(src == STDIO for src, _ in pairs):
+        _check_stdin()
+    if output_dir and not Path(output_dir).exists():
+        try:
+            Path(output_dir).mkdir(parents=True)
+        except OSError as exc:
+            raise InputError(f"Cannot create the output directory '{output_dir}': "
+                             f"{exc.strerror or exc}.") from exc
+    named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
+    targets = plan_outputs(named, [src for src, _ in pairs])
+    for (_, dst), target in zip(pairs, targets):
+        mesh_format(dst, target=target)
+    return targets + [None] if report in (None, STDIO) else targets
+
+
+def _check_stdin() -> None:
+    try:
+        os.fstat(sys.stdin.fileno())
+    except (AttributeError, OSError, ValueError):
+        raise InputError("Standard input is closed; give an input file or pipe points into '-'.") from None
+
+
+def _check_stdout() -> None:
+    try:
+        os.fstat(sys.stdout.fileno())
+    except (AttributeError, OSError, ValueError):
+        raise InputError("Standard output is closed; c1mesh info prints its answer there.") from None
+
+
+def _run(src: str, target, options, on_stage=None) -> dict:
+    """Fit one input to one output (a path, or a file object then with options.output_format)."""
     from c1mesh.pipeline import fit as fit_pipeline
 
-    _check_paths(src, dst)
-    source = sys.stdin.buffer if src == "-" else src
-    target = sys.stdout.buffer if dst == "-" else dst
-    result = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False)
-    if dst == "-":
-        sys.stdout.buffer.flush()
-    return result.report
+    source = sys.stdin.buffer if src == STDIO else src
+    return fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
 
 
-def _fit_one(src, dst, options, report, quiet, verbose, debug) -> None:
+def _fit_one(src, dst, targets, options, report, quiet, verbose, debug) -> None:
+    """Fit one input; the mesh and the report are committed together, or neither is."""
+    from dataclasses import replace
+
     from c1mesh.pipeline import STAGES
 
+    mesh_target, report_target = targets
+    options = replace(options, output_format=mesh_format(dst, target=mesh_target))
     show = _stderr_is_terminal() and not quiet
     try:
-        if show:
-            with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
-                                   item_show_func=lambda s: s) as bar:
-                result = _run(src, dst, options, on_stage=lambda name: bar.update(1, name))
-        else:
-            result = _run(src, dst, options)
-    except (C1MeshError, OSError, MemoryError, ValueError) as exc:
+        with Outputs() as outputs:
+            with outputs.open(mesh_target) as mesh_file:
+                if show:
+                    with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
+                                           item_show_func=lambda s: s) as bar:
+                        result = _run(src, mesh_file, options, on_stage=lambda name: bar.update(1, name))
+                else:
+                    result = _run(src, mesh_file, options)
+            result["output"] = dst
+            if report_target is not None:
+                with outputs.open(report_target, "w") as handle:
+                    handle.write(json.dumps(result, indent=2) + "\n")
+            outputs.commit()
+    except Exception as exc:  # noqa: BLE001 — any failure is one line
         _fail(_message(exc), debug)
-    except Exception as exc:  # noqa: BLE001 — any other failure is still one line
-        _fail(_message(exc), debug)
-    _write_report(report, result, debug)
+    if report == STDIO:
+        click.echo(json.dumps(result, indent=2), err=True)
     if verbose and not quiet:
         click.echo(_summary(result), err=True)
 
@@ -233,19 +370,21 @@ def _summary(report: dict) -> str:
             f"{mesh['faces']} faces in {total:.2f} s")
 
 
-def _write_report(report_target, payload, debug) -> None:
-    if not report_target:
+def _write_report(report, target, payload, debug) -> None:
+    """The batch's JSON report to its checked target (or stderr for -)."""
+    if not report:
         return
     text = json.dumps(payload, indent=2)
-    if report_target == "-":
+    if report == STDIO:
         click.echo(text, err=True)
         return
-    from c1mesh.formats import atomic_output
     try:
-        with atomic_output(report_target, "w") as handle:
-            handle.write(text + "\n")
+        with Outputs() as outputs:
+            with outputs.open(target, "w") as handle:
+                handle.write(text + "\n")
+            outputs.commit()
     except (C1MeshError, OSError) as exc:
-        _fail(f"cannot write report '{report_target}': {_message(exc)}", debug)
+        _fail(f"cannot write report '{report}': {_message(exc)}", debug)
 
 
 def _batch_worker(args):
@@ -256,19 +395,21 @@ def _batch_worker(args):
         return src, None, _message(exc)
 
 
-def _fit_batch(pairs, options, report, jobs, quiet, verbose, debug) -> None:
+def _fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debug) -> None:
     work = [(src, dst, options) for src, dst in pairs]
     results = []
     show = _stderr_is_terminal() and not quiet
     if jobs > 1:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_start) as pool:
             iterator = pool.map(_batch_worker, work)
             results = _collect(iterator, len(work), show, verbose and not quiet)
     else:
         results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
     failures = [(src, err) for src, _, err in results if err]
-    _write_report(report, {"inputs": [{"input": src, "report": rep, "error": err} for src, rep, err in results]},
-                  debug)
+    _write_report(report, report_target,
+                  {"inputs": [{"input": src, "report": rep, "error": err} for src, rep, err in results]}, debug)
     if failures:
         for src, err in failures:
             click.echo(f"c1mesh: failed: {src}: {err}", err=True)
@@ -305,6 +446,9 @@ def info(path, input_format, intrinsics, depth_scale, debug):
     if path == "-" and not input_format:
         raise click.UsageError("reading stdin (-) needs --input-format")
     try:
+        if path == STDIO:
+            _check_stdin()
+        _check_stdout()
         facts = describe(sys.stdin.buffer if path == "-" else path, input_format,
                          intrinsics=_parse_intrinsics(intrinsics), depth_scale=depth_scale)
     except Exception as exc:  # noqa: BLE001
@@ -322,9 +466,10 @@ def schemes():
     click.echo(f"{'name':<9} {'degree':>6}  {'constants':<9}  {'affine':<6}  description")
     for name, tup in NAMED_TUPLES.items():
         p = scheme_properties(tup)
+        description = tup.description.replace(" (default)", "")   # the mark is added here, once
         mark = " (default)" if name == DEFAULT_SCHEME else ""
         click.echo(f"{name:<9} {p.degree:>6}  {'yes' if p.reproduces_constants else 'no':<9}  "
-                   f"{'yes' if p.reproduces_affine else 'no':<6}  {tup.description}{mark}")
+                   f"{'yes' if p.reproduces_affine else 'no':<6}  {description}{mark}")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -217,7 +217,8 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
         if output is not None:
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
+                           ascii=options.ascii)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     dropped = dict(field_.dropped)

@@ -198,10 +198,11 @@ def _parse_axis(axis: str | ArrayLike) -> np.ndarray | None:
         vec = np.asarray(axis, dtype=np.float64)
         if vec.shape != (3,):
             raise InputError(f"an axis vector must have 3 components, got shape {vec.shape}")
-    norm = np.linalg.norm(vec)
-    if not np.isfinite(norm) or norm == 0.0:
+    scale = np.max(np.abs(vec))     # first, so that 1e200,1e200,1e200 does not overflow the norm
+    if not np.isfinite(scale) or scale == 0.0:
         raise InputError(f"the axis {axis!r} has no direction (zero, NaN or Inf); give a nonzero X,Y,Z")
-    return vec / norm
+    vec = vec / scale
+    return vec / np.linalg.norm(vec)
 
 
 def _auto_axis(points: np.ndarray, origin: np.ndarray, normals: np.ndarray | None) -> np.ndarray:

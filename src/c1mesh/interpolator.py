@@ -10,8 +10,6 @@ an interpolator, as the fit pipeline does, so that barycentric arithmetic keeps 
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from c1mesh import rsd
@@ -19,6 +17,8 @@ from c1mesh.errors import InputError
 from c1mesh.locate import TriangleLocator
 from c1mesh.refine import RefinedMesh, Refinement
 from c1mesh.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
+from c1mesh.threads import limit, overlap
+from c1mesh.threads import workers as thread_count
 from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay
 
@@ -46,14 +46,17 @@ class RSDInterpolator:
         triangles containing the edge, which makes the spline C1; its sign is irrelevant.
     fill_value : value returned at points outside the triangulation (default nan), as in
         scipy.interpolate.
+    workers : threads for building the coefficients and for ``refine`` (None: the
+        process-wide setting of c1mesh.threads, by default the CPUs this process may use).
+        Results are the same for every count.
 
     Attributes: points, values, gradients, triangles, edges (E, 2), directions (E, 2),
-    scheme (ShapeTuple), coefficients (T, 21).
+    scheme (ShapeTuple), coefficients (T, 21), workers.
     """
 
     def __init__(self, points, values, gradients, triangles=None,
                  scheme: "str | ShapeTuple" = DEFAULT_SCHEME, directions=None,
-                 fill_value: float = np.nan):
+                 fill_value: float = np.nan, workers: int | None = None):
         self.points = _float_array(points, "points", (None, 2))
         n = self.points.shape[0]
         self.values = _float_array(values, "values", (n,))
@@ -61,17 +64,18 @@ class RSDInterpolator:
         self.scheme = get_scheme(scheme)
         self.fill_value = fill_value
         self.triangles = self._triangles(triangles)
-        # rsd.mesh_coefficients in two passes: what needs no edge directions runs while
-        # another thread numbers the edges (numpy releases the GIL in both).
-        with ThreadPoolExecutor(1) as pool:
-            table = pool.submit(edge_table, self.triangles, n)
-            C, self._G, _, degenerate = rsd.vertex_coefficients(
-                self.points, self.values, self.gradients, self.triangles,
-                min_sine=_DEGENERACY, threads=1)
-            self._table = table.result()
-        self.edges = self._table.edges
-        self.directions = self._directions(directions)
-        rsd.ratio_coefficients(C, self._G, self.directions, self._table.tri_edge)
+        self.workers = workers
+        with limit(workers):
+            # rsd.mesh_coefficients in two passes: what needs no edge directions runs
+            # while another thread numbers the edges (numpy releases the GIL in both).
+            self._table, (C, self._G, _, degenerate) = overlap(
+                lambda: edge_table(self.triangles, n),
+                lambda: rsd.vertex_coefficients(
+                    self.points, self.values, self.gradients, self.triangles,
+                    min_sine=_DEGENERACY, threads=max(1, thread_count() - 1)))
+            self.edges = self._table.edges
+            self.directions = self._directions(directions)
+            rsd.ratio_coefficients(C, self._G, self.directions, self._table.tri_edge)
         self.coefficients = C
         self._check_degenerate(degenerate)
         self._locator: TriangleLocator | None = None
@@ -186,10 +190,11 @@ class RSDInterpolator:
                 "value_jump": float(np.abs(v1 - v2).max() / value_scale),
                 "gradient_jump": float(np.abs(g1 - g2).max() / grad_scale)}
 
-    def refine(self, level: int) -> RefinedMesh:
+    def refine(self, level: int, workers: int | None = None) -> RefinedMesh:
         """Uniform refinement: each triangle split into level² sub-triangles (refine.py),
-        computed by worker threads on the available CPUs (Refinement.mesh)."""
-        return self.refinement(level).mesh()
+        computed by `workers` threads (default: the interpolator's `workers`, else the
+        process-wide setting; Refinement.mesh)."""
+        return self.refinement(level).mesh(workers if workers is not None else self.workers)
 
     def refinement(self, level: int) -> Refinement:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""

@@ -17,10 +17,12 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import InputError
-from c1mesh.formats import read_cloud, write_mesh
+from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.threads import blas_threads, prefetch, ring
+from c1mesh.threads import limit as thread_limit
+from c1mesh.threads import workers as thread_count
 from c1mesh.properties import scheme_properties
 from c1mesh.refine import Refinement
 from c1mesh.schemes import get_scheme
@@ -38,7 +40,10 @@ class FitOptions:
     k: neighbours for normal estimation; classes: LAS classification codes to keep;
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
-    scheme: shape-function tuple; level: each triangle becomes level² triangles.
+    scheme: shape-function tuple; level: each triangle becomes level² triangles;
+    workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
+    process-wide setting, by default the CPUs this process may use);
+    output_format: mesh format of the output (default: its extension, PLY for a stream).
     """
 
     input_format: str | None = None
@@ -51,6 +56,8 @@ class FitOptions:
     scheme: str = "sextic"
     level: int = 4
     ascii: bool = False
+    workers: int | None = None
+    output_format: str | None = None
     # perspective frame and organised scans (depth_fit.py): frame "auto" | "axis" |
     # "perspective"; viewpoint "x,y,z[,qw,qx,qy,qz]" or None (the file's, else the origin);
     # depth images: intrinsics (fx, fy, cx, cy) pixels, depth_scale metres per unit,
@@ -190,9 +197,17 @@ def fit(source, output=None, options: FitOptions | None = None,
     instead of assembling it: the result's mesh is then None, and memory and time drop
     (the CLI does this). The spline is then evaluated by a second thread ahead of the
     writer: "refine" reports the time the writer waited for evaluated blocks and
-    "write" the rest of the writing.
+    "write" the rest of the writing. Every stage uses at most options.workers threads.
     """
     options = options or FitOptions()
+    if output is not None:    # an output that cannot be written fails now, not after the work
+        check_output(output, options.output_format, inputs=(source,))
+    with thread_limit(options.workers):
+        return _fit(source, output, options, on_stage, keep_mesh)
+
+
+def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
+    """fit() inside its thread limit."""
     scheme = get_scheme(options.scheme)
     timer = _Timer(on_stage)
     with timer.stage("read"):
@@ -225,7 +240,8 @@ def fit(source, output=None, options: FitOptions | None = None,
         if output is not None:
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, ascii=options.ascii)
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
+                           ascii=options.ascii)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
@@ -278,6 +294,7 @@ def _report(source, output, options, cloud, normal_source, frame, hf, trim_repor
         "scheme": props.as_dict(),
         "c1_certificate": interp.c1_certificate(),
         "seconds": timer.seconds,
+        "threads": thread_count(),
     }
 
 

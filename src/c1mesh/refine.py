@@ -45,8 +45,14 @@ import numpy as np
 
 from c1mesh import rsd
 from c1mesh.schemes import ShapeTuple
-from c1mesh.threads import available_cpus, blas_threads, run_parallel
+from c1mesh.threads import blas_threads, run_parallel
+from c1mesh.threads import workers as thread_count
 from c1mesh.topology import EdgeTable
+
+MAX_WORKERS = 4
+"""Most threads Refinement.mesh uses, whatever c1mesh.threads.workers() allows: each
+holds its own block temporaries (a basis block alone is 21 x CHUNK_ENTRIES doubles, 22 MB),
+and it was only measured up to 2 cores."""
 
 CHUNK_ENTRIES = 1 << 17
 """Lattice points (all (L+1)(L+2)/2 of each triangle) per block.
@@ -377,8 +383,9 @@ class Refinement:
     def mesh(self, workers: int | None = None) -> RefinedMesh:
         """All refined points, values, gradients and triangles as arrays (RefinedMesh).
 
-        workers: threads sharing the work (default: the CPUs this process may use, at most
-        4); each evaluates a contiguous range of triangle blocks into its own disjoint
+        workers: threads sharing the work (default: c1mesh.threads.workers(), the
+        process-wide setting, by default the CPUs this process may use), at most
+        MAX_WORKERS; each evaluates a contiguous range of triangle blocks into its own disjoint
         slices of the outputs, so the result does not depend on the count.
         """
         M, L, T = self.vertex_count, self.level, self.triangles.shape[0]
@@ -399,7 +406,7 @@ class Refinement:
                 pass
             _fill_parent(parent[first * L * L:last * L * L], L, first)
         blocks = -(-T // self.rows)
-        count = max(1, min(workers or available_cpus(), 4, blocks))
+        count = max(1, min(thread_count(workers), MAX_WORKERS, blocks))
         bounds = [min(T, blocks * i // count * self.rows) for i in range(count + 1)]
         with blas_threads(1 if count > 1 else None):      # BLAS's own threads would fight ours
             run_parallel(work, list(zip(bounds[:-1], bounds[1:])))

@@ -23,12 +23,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from c1mesh.schemes import ShapeTuple
+from c1mesh.threads import workers
 
 PAIRS = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))                    # (k, i), i ≠ k
 PERMS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))  # (l, m, n)
 N_BASIS = 21
-THREADS = 2
-"""Threads for mesh_coefficients' blocks (this code targets 2-core machines)."""
 
 
 def barycentric_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -124,10 +123,11 @@ def ratio_coefficients(C: np.ndarray, G: np.ndarray, edge_directions: np.ndarray
 
 def _blocks(work, T: int, chunk: int, threads: int | None) -> None:
     """work(slice) for consecutive blocks of `chunk` triangles, in ``threads`` threads
-    (default THREADS): blocks are independent and numpy releases the GIL in their gathers
-    and ufuncs (1.4x on 2 idle cores at 1M points; results do not depend on the count)."""
+    (default: c1mesh.threads.workers()): blocks are independent and numpy releases the GIL
+    in their gathers and ufuncs (1.4x on 2 idle cores at 1M points; results do not depend
+    on the count)."""
     parts = [slice(start, min(start + chunk, T)) for start in range(0, T, chunk)]
-    threads = THREADS if threads is None else threads
+    threads = workers(threads)
     if threads > 1 and len(parts) > 1:
         with ThreadPoolExecutor(threads) as pool:
             for _ in pool.map(work, parts):        # re-raises a block's exception

@@ -1,5 +1,12 @@
-"""The few places c1mesh uses more than one core, in one module.
+"""The few places c1mesh uses more than one core, in one module, and the one knob for them.
 
+* `workers()`: how many threads c1mesh may use at once. Every pool in the package
+  (spline coefficients, tiled triangulation, trimming, refinement, prefetching, the
+  background writer) asks it, and so does BLAS inside `limit`. Default: the CPUs this
+  process may use (`available_cpus`); `set_workers(n)` changes it for the process,
+  `limit(n)` for a block (FitOptions.workers, the CLI's --threads). With 1 worker nothing
+  runs in a second thread. Results do not depend on the count: every pool splits work
+  into the same blocks and collects them in the same order.
 * `run_parallel`: contiguous ranges of independent work in threads (Refinement.mesh
   evaluates ranges of triangle blocks into disjoint slices of its outputs).
 * `prefetch`: a block generator run in a second thread a few blocks ahead of its
@@ -24,9 +31,82 @@ import queue
 import threading
 from typing import Callable, Iterator, TypeVar
 
+import numpy as np
+
+from c1mesh.errors import InputError
+
 Item = TypeVar("Item")
 
 _DONE = object()
+
+
+_WORKERS: int | None = None
+"""The process-wide thread count set by set_workers / limit; None: available_cpus()."""
+
+
+def workers(requested: int | None = None) -> int:
+    """Threads a c1mesh stage may use: `requested` when given (a per-call `workers=`
+    argument), else the process-wide setting, else the CPUs this process may use."""
+    if requested is not None:
+        return _checked(requested)
+    return _WORKERS if _WORKERS is not None else available_cpus()
+
+
+def _checked(count) -> int:
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+        raise InputError(f"the number of threads must be a whole number >= 1, got {count!r}")
+    return int(count)
+
+
+_PROCESS_BLAS = None
+
+
+def set_workers(count: int | None) -> None:
+    """Set the process-wide thread count (None: back to the CPUs this process may use).
+
+    BLAS's pools are limited to the same count until the next call."""
+    global _WORKERS, _PROCESS_BLAS
+    _WORKERS = None if count is None else _checked(count)
+    if _PROCESS_BLAS is not None:
+        _PROCESS_BLAS.restore_original_limits()
+        _PROCESS_BLAS = None
+    if count is not None:
+        _PROCESS_BLAS = _controller().limit(limits=_WORKERS, user_api="blas")
+
+
+@contextlib.contextmanager
+def limit(count: int | None) -> Iterator[int]:
+    """Within the block every c1mesh pool, and BLAS, use at most `count` threads
+    (None: leave the current setting); yields the count in force. The setting is
+    process-wide while the block runs (not per thread), like threadpoolctl's."""
+    global _WORKERS
+    if count is None:
+        yield workers()
+        return
+    count = _checked(count)
+    previous = _WORKERS
+    _WORKERS = count
+    try:
+        with blas_threads(count):
+            yield count
+    finally:
+        _WORKERS = previous
+
+
+def per_process(total: int | None, processes: int) -> int:
+    """Threads for each of `processes` processes sharing `total` threads (None: the CPUs
+    this process may use), at least 1, so N processes do not oversubscribe the cores."""
+    return max(1, workers(total) // max(1, int(processes)))
+
+
+def openmp_at_start(count: int) -> None:
+    """Ask OpenMP runtimes that have not started yet for `count` threads.
+
+    Open3D's normal estimation runs OpenMP threads that threadpoolctl cannot see (its
+    runtime is linked in); OpenMP reads OMP_NUM_THREADS when it starts, so the CLI calls
+    this before anything imports Open3D. It holds for the rest of the process, and for
+    processes started from it (the --jobs workers)."""
+    os.environ["OMP_NUM_THREADS"] = str(_checked(count))
 
 
 def ring(depth: int) -> int:
@@ -39,8 +119,12 @@ def prefetch(blocks: Iterator[Item], depth: int = 2) -> Iterator[Item]:
 
     An exception raised by `blocks` is re-raised here, at the item where it happened.
     Closing this generator early (the consumer failed) stops the producer at its next
-    item and waits for it, so no thread outlives the stream.
+    item and waits for it, so no thread outlives the stream. With one worker (`workers`)
+    the blocks are produced in the caller's thread, in the same order.
     """
+    if workers() == 1:
+        yield from blocks
+        return
     handover: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
 
@@ -94,13 +178,18 @@ def blas_threads(limit: int | None) -> contextlib.AbstractContextManager:
     is process-wide while the context is open (threadpoolctl does it for OpenBLAS, MKL
     and BLIS alike).
     """
-    global _BLAS
     if limit is None:
         return contextlib.nullcontext()
+    return _controller().limit(limits=limit, user_api="blas")
+
+
+def _controller():
+    """threadpoolctl's controller of the BLAS libraries loaded (made once, lazily)."""
+    global _BLAS
     if _BLAS is None:
         from threadpoolctl import ThreadpoolController
         _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=limit, user_api="blas")
+    return _BLAS
 
 
 def available_cpus() -> int:
@@ -109,6 +198,19 @@ def available_cpus() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:                                  # not Linux
         return os.cpu_count() or 1
+
+
+def overlap(background: Callable[[], Item], foreground: Callable[[], object]) -> tuple:
+    """(background(), foreground()): the first run in a second thread while the second
+    runs in this one (numpy releases the GIL in both), or one after the other when only
+    one worker is allowed. An error in either is raised here."""
+    if workers() == 1:
+        return background(), foreground()
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(1, thread_name_prefix="c1mesh-overlap") as pool:
+        pending = pool.submit(background)
+        here = foreground()
+        return pending.result(), here
 
 
 def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:

@@ -5,8 +5,9 @@ of vertex triples, for points in general position), 2-2.5x faster at 1M uniform 
 points and 1.6x at 100k (medians of 5, same run, on a loaded 2-core machine): qhull is
 super-linear in practice (~3.5 µs/point on 10k points, ~10 µs/point on 1M, presumably
 cache misses), so large inputs are triangulated tile by tile and joined exactly. Tiles
-run in two threads (qhull releases the GIL; results are collected in tile order, so the
-output does not depend on timing): 1.6x faster at 1M points on 2 cores. (Tried and
+run in c1mesh.threads.workers() threads (qhull releases the GIL; results are collected in
+tile order, so the output does not depend on timing or the count): 1.6x faster at 1M
+points on 2 cores. (Tried and
 dropped: Morton presorting, 1.3x; qhull options, no gain.)
 
 * Split the points into ~`TILE_POINTS`-point tiles: x-quantile strips cut at y-quantiles,
@@ -49,12 +50,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
 from c1mesh.errors import InputError
+from c1mesh.threads import overlap, workers
 from c1mesh.topology import sort_keys
 
 TILE_POINTS = 10_000
 """Points per tile: qhull time per point is flat up to ~25k points and grows beyond."""
-TILE_THREADS = 2
-"""Tiles triangulated at once: qhull releases the GIL, so 2 threads nearly halve the time."""
 TILED_FROM = 50_000
 """Inputs with fewer points go to one plain qhull call (tiling gains nothing there)."""
 AUTO_EDGE_FACTOR = 4.0
@@ -138,16 +138,19 @@ def _delaunay_tiled(xy: np.ndarray, per_tile: int = TILE_POINTS) -> np.ndarray:
     scale = float(np.ptp(xy, axis=0).max())
     certified, frontier, band = [], [], np.zeros(n, dtype=bool)
     area = 0.0
-    pool = ThreadPoolExecutor(TILE_THREADS)
+    count = workers()                        # qhull releases the GIL: 2 threads ~halve the time
+    pool = ThreadPoolExecutor(count) if count > 1 else None
     try:
-        passes = pool.map(lambda tile: _tile_pass(xy, *tile, scale), _tiles(xy, per_tile))
+        one_tile = lambda tile: _tile_pass(xy, *tile, scale)             # noqa: E731
+        passes = (pool.map if pool else map)(one_tile, _tiles(xy, per_tile))
         for tri, keys, tile_area, not_final in passes:     # in tile order: same result
             certified.append(tri)
             frontier.append(keys)
             area += tile_area
             band[not_final] = True
     finally:
-        pool.shutdown(cancel_futures=True)                 # a failed tile: skip the rest
+        if pool:
+            pool.shutdown(cancel_futures=True)             # a failed tile: skip the rest
     filled, filled_area, hull_area, hull_edges = _fill_band(
         xy, np.flatnonzero(band), np.concatenate(frontier),
         whole=not any(len(tri) for tri in certified))
@@ -280,10 +283,8 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     """
     pts = _as_xy(xy)
     tri = _as_triangles(triangles, pts.shape[0])
-    with ThreadPoolExecutor(1) as pool:               # independent; numpy releases the GIL
-        lengths = pool.submit(_edge_lengths, pts, tri)
-        neighbours = _neighbours(tri, pts.shape[0])
-        lengths = lengths.result()
+    lengths, neighbours = overlap(lambda: _edge_lengths(pts, tri),     # independent
+                                  lambda: _neighbours(tri, pts.shape[0]))
     limit = _edge_limit(lengths, neighbours, max_edge)
     if not 0.0 <= min_circle_ratio <= 1.0:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")

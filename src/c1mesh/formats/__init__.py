@@ -2,7 +2,7 @@
 
 `read_cloud` picks a reader by file extension (or `fmt`), loads the bytes once and hands
 them to the format module; `write_mesh` picks a writer the same way and, for a path,
-writes through `atomic_output` so that a failed write never leaves a partial file.
+writes by the rules of c1mesh.outputs, so that a failed write never leaves a partial file.
 Both also work on binary file objects (stdin / stdout), where `fmt` says the format.
 """
 from __future__ import annotations
@@ -24,8 +24,9 @@ from c1mesh.formats.obj import read_obj, write_obj
 from c1mesh.formats.pcd import read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
+from c1mesh.outputs import MESH_FORMATS, Outputs, mesh_format, plan_outputs
 
-__all__ = ["read_cloud", "write_mesh", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
+__all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
 Source = Union[str, "os.PathLike[str]", IO[bytes]]
 
@@ -41,6 +42,7 @@ _WRITERS: dict[str, Callable[..., None]] = {
 SUPPORTED_INPUT: tuple[str, ...] = tuple(_READERS)
 #: Output file extensions `write_mesh` understands (lower case, no dot).
 SUPPORTED_OUTPUT: tuple[str, ...] = tuple(_WRITERS)
+assert SUPPORTED_OUTPUT == MESH_FORMATS, "c1mesh.outputs.MESH_FORMATS must list the writers"
 
 
 def _is_stream(obj: object) -> bool:
@@ -123,8 +125,9 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
 
     The format comes from `fmt` if given, else from the path's extension; a file object
     defaults to binary PLY. `ascii` selects ascii PLY (other formats have one encoding).
-    A path is written to a temporary file beside it and renamed into place only when
-    complete. A MeshStream is written block by block where the format allows (PLY) and
+    A path is written by the rules of c1mesh.outputs: a regular file or new path to a
+    temporary file beside it, renamed into place only when complete (an existing file's
+    mode is kept); a character device or FIFO straight. A MeshStream is written block by block where the format allows (PLY) and
     assembled in memory first otherwise. Raises InputError for unknown formats, missing
     or unwritable directories.
     """
@@ -140,12 +143,21 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
         _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii)
         target.flush()
         return
-    path = Path(target)
-    if path.is_dir():
-        raise InputError(f"Output path '{path}' is a directory; give a file name.")
-    key = _format(fmt or path.suffix, str(path), SUPPORTED_OUTPUT, "output")
-    with atomic_output(path) as f:
+    (planned,) = plan_outputs([("output", target)])
+    key = _format(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
+    with Outputs(deferred=False).open(planned) as f:
         _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii)
+
+
+def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> None:
+    """Raise InputError now, before any work, if `write_mesh(..., target, fmt)` could not
+    write there: unknown format, missing or unwritable directory, a directory or special
+    file, or a path that is one of `inputs` (paths or streams; see c1mesh.outputs)."""
+    if _is_stream(target):
+        _format(fmt or "ply", str(getattr(target, "name", "<stream>")), SUPPORTED_OUTPUT, "output")
+        return
+    (planned,) = plan_outputs([("output", target)], inputs)
+    _format(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
 
 
 def _for_writer(mesh: SurfaceMesh | MeshStream, key: str) -> SurfaceMesh | MeshStream:

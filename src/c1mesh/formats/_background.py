@@ -12,12 +12,20 @@ import queue
 import threading
 from typing import IO, Callable, Iterator
 
+from c1mesh.threads import workers
+
 _DEPTH = 4   # blocks in flight
 
 
 @contextlib.contextmanager
 def background_writes(f: IO[bytes]) -> Iterator[Callable[[object], None]]:
-    """Yield write(buffer): queue `buffer` (bytes-like, not modified afterwards) for `f`."""
+    """Yield write(buffer): queue `buffer` (bytes-like, not modified afterwards) for `f`.
+
+    With one worker allowed (c1mesh.threads.workers()) buffers are written at once, in
+    the caller's thread."""
+    if workers() == 1:
+        yield f.write
+        return
     pending: queue.Queue = queue.Queue(maxsize=_DEPTH)
     failure: list[BaseException] = []
 
