@@ -11,10 +11,10 @@ import time
 import traceback
 from pathlib import Path
 
-from benchmarks import accuracy, depth, engine, memory, pipeline, report, triangulation
+from benchmarks import accuracy, depth, engine, memory, pipeline, report, tiles, triangulation
 from benchmarks.common import Config, Section
 
-SECTIONS = (engine, pipeline, triangulation, accuracy, memory, depth)
+SECTIONS = (engine, pipeline, triangulation, accuracy, memory, tiles, depth)
 
 
 def main(argv: list[str] | None = None) -> int:

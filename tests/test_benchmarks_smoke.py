@@ -19,6 +19,7 @@ HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
             "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
             "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit",
+            "## Tiles: seamless survey vs one whole fit",
             "## Depth frames: pixel grid in the perspective frame vs Delaunay in the axis frame")
 
 
@@ -39,3 +40,4 @@ def test_quick_benchmark_writes_results(tmp_path):
         assert re.search(rf"^\| {level} \| [\d,]+ \| [\d.]+ [MG]iB \|", text, re.M), level
     assert "Fitting sees the training points only" in text
     assert (tmp_path / "engine.png").exists() and (tmp_path / "accuracy.png").exists()
+    assert (tmp_path / "tiles.png").exists()

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import C1MeshError, DependencyError, FormatError, InputError
 from c1mesh.formats import SUPPORTED_INPUT, SUPPORTED_OUTPUT, atomic_output, read_cloud, write_mesh
-from c1mesh.formats.lzf import LZFError, lzf_decompress
+from c1mesh.formats.lzf import LZFError, lzf_decompress, lzf_decompress_python
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
@@ -208,6 +208,43 @@ def test_xyz_without_header(tmp_path, blocks, expect):
         assert cloud.extra == {}
 
 
+@pytest.mark.parametrize("text", [
+    '"","x","y","z"\n"1",{0}\n"2",{1}\n"3",{2}\n',              # R write.csv: quoted, index column
+    ',x,y,z\n0,{0}\n1,{1}\n2,{2}\n',                           # pandas to_csv: unnamed index column
+    '\ufeffX;Y;Z\n{0;}\n{1;}\n{2;}\n',                          # byte-order mark, semicolons
+], ids=["R", "pandas", "bom"])
+def test_csv_from_r_and_pandas(tmp_path, text):
+    rows = [",".join(repr(float(v)) for v in row) for row in PTS]
+    text = text.replace("{0;}", rows[0].replace(",", ";")).replace("{1;}", rows[1].replace(",", ";"))
+    text = text.replace("{2;}", rows[2].replace(",", ";")).format(*rows)
+    (tmp_path / "r.csv").write_bytes(text.encode("utf-8"))
+    cloud = read_cloud(tmp_path / "r.csv")
+    np.testing.assert_array_equal(cloud.points, PTS)
+    assert cloud.normals is None and cloud.colors is None
+
+
+def test_csv_named_columns_in_any_order(tmp_path):
+    (tmp_path / "geo.csv").write_text("elev,Lat,LON,red,green,blue\n" + table_text(PTS[:, ::-1], RGB, sep=","))
+    cloud = read_cloud(tmp_path / "geo.csv")
+    np.testing.assert_array_equal(cloud.points, PTS)
+    np.testing.assert_array_equal(cloud.colors, RGB)
+
+
+@pytest.mark.parametrize("scale", [1.0, 255.0], ids=["0..1", "0..255"])
+def test_headerless_xyzrgb_is_not_read_as_normals(tmp_path, scale):
+    rgb = np.array([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.5, 0.25]])
+    (tmp_path / "c.xyz").write_text(table_text(PTS, np.round(rgb * scale) if scale > 1 else rgb))
+    cloud = read_cloud(tmp_path / "c.xyz")
+    assert cloud.normals is None
+    np.testing.assert_array_equal(cloud.colors, np.round(rgb * 255))
+
+
+def test_headerless_triple_that_is_neither_normals_nor_colours_is_refused(tmp_path):
+    (tmp_path / "odd.xyz").write_text(table_text(PTS, PTS * 3.5))
+    with pytest.raises(FormatError, match=r"odd.xyz.*columns 4-6 are neither unit normals nor colours.*header"):
+        read_cloud(tmp_path / "odd.xyz")
+
+
 def test_xyzn_written_by_open3d(tmp_path):
     src = o3d.io.read_point_cloud(str(real("pcl_bun0.pcd")))
     o3d.io.write_point_cloud(str(tmp_path / "bunny.xyzn"), src)
@@ -287,14 +324,24 @@ def test_real_pcd_files_match_open3d():
     assert len(scene) == 307200 and int((~np.isnan(scene.points).any(axis=1)).sum()) == 209280
 
 
-def test_lzf_overlapping_and_long_back_references():
+@pytest.mark.parametrize("decode", [lzf_decompress, lzf_decompress_python], ids=["default", "python"])
+def test_lzf_overlapping_and_long_back_references(decode):
     # literal 'ab', then copy 5 from distance 2 (overlapping), then copy 9+2 from distance 1 (length byte)
     stream = bytes([1]) + b"ab" + bytes([(5 - 2) << 5, 1]) + bytes([7 << 5, 9 + 2 - 2 - 7, 0])
-    assert lzf_decompress(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
-    with pytest.raises(LZFError):
-        lzf_decompress(bytes([5]) + b"abc", 6)  # literal run longer than the input
-    with pytest.raises(LZFError):
-        lzf_decompress(bytes([0]) + b"a" + bytes([1 << 5, 9]), 4)  # reference before the start
+    assert decode(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
+    for bad, size in ((bytes([5]) + b"abc", 6),                    # literal run longer than the input
+                      (bytes([0]) + b"a" + bytes([1 << 5, 9]), 4),  # reference before the start
+                      (stream, 2 + 5 + 10), (stream, 2 + 5 + 12)):  # decodes to another size
+        with pytest.raises(LZFError):
+            decode(bad, size)
+
+
+def test_lzf_decoders_agree_on_a_real_compressed_body():
+    data = real("table_scene_mug_stereo_textured.pcd").read_bytes()
+    body = data.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
+    packed, unpacked = struct.unpack_from("<II", data, body)
+    stream = data[body + 8: body + 8 + packed]
+    assert bytes(lzf_decompress(stream, unpacked)) == bytes(lzf_decompress_python(stream, unpacked))
 
 
 # ============================================================================ LAS / LAZ
@@ -324,7 +371,7 @@ def test_las_written_by_laspy(tmp_path, ext):
     np.testing.assert_allclose(cloud.points[0], [640000.123, 850000.0, 1.25], atol=1e-9)
     np.testing.assert_array_equal(cloud.classification, [2, 5, 2])
     np.testing.assert_array_equal(cloud.colors, [[255, 0, 255], [1, 2, 0], [0, 16, 0]])  # 16-bit >> 8
-    np.testing.assert_array_equal(cloud.extra["intensity"], [10, 20, 30])
+    assert cloud.extra == {}  # intensity etc. are not kept: the fit never uses them
 
 
 @pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
@@ -334,12 +381,22 @@ def test_real_las_files_match_laspy(name):
     cloud = read_cloud(path)
     np.testing.assert_array_equal(cloud.points, np.column_stack([truth.x, truth.y, truth.z]))
     np.testing.assert_array_equal(cloud.classification, truth.classification)
-    np.testing.assert_array_equal(cloud.extra["gps_time"], truth.gps_time)
     assert int((cloud.classification == 2).sum()) == {"4_6_crop.las": 9003, "autzen_trim.laz": 26107}[name]
     if name == "autzen_trim.laz":
         np.testing.assert_array_equal(cloud.colors, np.column_stack([truth.red, truth.green, truth.blue]))
     else:
         assert cloud.colors is None  # its RGB fields are all zero
+
+
+@pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
+def test_las_classes_filter_matches_laspy(name):
+    truth = laspy.read(str(real(name)))
+    mask = np.isin(truth.classification, [2, 9])
+    cloud = read_cloud(real(name), classes=(2, 9))
+    np.testing.assert_array_equal(cloud.points, np.column_stack([truth.x, truth.y, truth.z])[mask])
+    np.testing.assert_array_equal(cloud.classification, truth.classification[mask])
+    with pytest.raises(InputError, match=r"no points of class \[77\]; the file has classes \[.*2"):
+        read_cloud(real(name), classes=(77,))
 
 
 def test_laz_without_backend_raises_dependency_error(monkeypatch):
@@ -550,7 +607,68 @@ def corpus() -> list[tuple[str, bytes, str]]:
         ("words.obj", b"v 1 2 3\nv 1 two 3\n", "line 2"),
         ("novertex.obj", b"# nothing\nvn 0 0 1\n", "no 'v'"),
         ("unknown.e57", b"anything", "supported: ply, obj, xyz, txt, csv, pcd, las, laz"),
+        *hostile_headers(),
     ]
+
+
+def hostile_headers() -> list[tuple[str, bytes, str]]:
+    """Headers that lie: each message names the file, the field and what is wrong."""
+    xyz = "property float x\nproperty float y\nproperty float z\n"
+    head = lambda lines, fmt="binary_little_endian": f"ply\nformat {fmt} 1.0\n{lines}end_header\n".encode()  # noqa: E731
+    pcd = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nPOINTS {p}\nDATA {k}\n"
+    las14 = io.BytesIO()
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.zeros((3, 5))
+    las.write(las14)
+    evlr = bytearray(las14.getvalue())
+    evlr[235:247] = struct.pack("<QI", len(evlr), 0xFFFFFFFF)
+    return [
+        ("rows.ply", head(f"element vertex {2**63 + 1}\n" + xyz) + bytes(12), r"element 'vertex' claims 9223372036854775809 rows"),
+        ("twice.ply", head("element vertex 1\n" + xyz + "element vertex 1\n" + xyz) + bytes(24), "repeats the element 'vertex'"),
+        ("props.ply", head("element vertex 1\n" + "".join(f"property uchar p{i}\n" for i in range(10_001))),
+         "more than 10000 properties"),
+        ("noprops.ply", head("element vertex 1\n" + xyz + "element junk 5\n") + bytes(12), "'junk' has 5 rows but no properties"),
+        ("list.ply", head("element vertex 1\n" + xyz + "element face 1\nproperty list uint int v\n")
+         + bytes(12) + struct.pack("<I", 2**32 - 1), "truncated"),
+        ("header.ply", b"ply\nformat ascii 1.0\n" + b"comment x\n" * 120_000, "no 'end_header' line within its first 1048576 bytes"),
+        ("rows.pcd", (pcd.format(n=150, p=150, k="ascii") + "1 2 3 4 5 6\n" * 150).encode(), "6 values per ascii data line"),
+        ("width.pcd", pcd.format(n=10, p=5000, k="binary").encode() + bytes(120), r"POINTS 5000, but WIDTH x HEIGHT is 10"),
+        ("bomb.pcd", pcd.format(n=10**6, p=10**6, k="binary_compressed").encode() + struct.pack("<II", 100, 12 * 10**6)
+         + bytes(100), "claims 12000000 bytes from 100 compressed ones"),
+        ("evlr.las", bytes(evlr), "4294967295 extended VLRs cannot fit"),
+    ]
+
+
+def test_long_ply_comment_is_accepted(tmp_path):
+    data = ply_bytes("binary_little_endian")
+    cut = data.index(b"end_header")
+    (tmp_path / "c.ply").write_bytes(data[:cut] + b"comment " + b"z" * 10_000 + b"\n" + data[cut:])
+    check_hand_ply(read_cloud(tmp_path / "c.ply"))
+
+
+def test_30k_properties_are_refused_fast(tmp_path):
+    import time
+
+    lines = "".join(f"property float p{i}\n" for i in range(30_000))
+    (tmp_path / "p.ply").write_bytes(f"ply\nformat ascii 1.0\nelement vertex 1\n{lines}end_header\n".encode())
+    start = time.perf_counter()
+    with pytest.raises(FormatError, match="p.ply.*more than 10000 properties"):
+        read_cloud(tmp_path / "p.ply")
+    assert time.perf_counter() - start < 2.0
+
+
+def test_reading_budget_bounds_files_and_endless_streams(tmp_path):
+    with pytest.raises(FormatError, match="'/dev/zero' goes on past the reading budget of 2.0 MiB"):
+        read_cloud("/dev/zero", fmt="xyz", memory="2M")
+    (tmp_path / "big.xyz").write_bytes(b"1 2 3\n" * 400_000)
+    with pytest.raises(FormatError, match="big.xyz.*2.3 MiB, more than the reading budget of 1.0 MiB"):
+        read_cloud(tmp_path / "big.xyz", memory=1 << 20)
+    assert len(read_cloud(tmp_path / "big.xyz", memory="3M")) == 400_000
+    with pytest.raises(FormatError, match="reading budget"):
+        read_cloud(io.BytesIO(b"1 2 3\n" * 400_000), fmt="xyz", memory="1M")
+    with pytest.raises(InputError, match="--memory must be a size"):
+        read_cloud(tmp_path / "big.xyz", memory="lots")
 
 
 @pytest.mark.parametrize("name, content, message", corpus(), ids=[c[0] for c in corpus()])
@@ -675,3 +793,13 @@ def test_atomic_output_starts_writeback_as_it_goes(tmp_path, monkeypatch):
         f.write(memoryview(payload)[:5000])
     assert (tmp_path / "big.bin").read_bytes() == payload + payload[:5000]
     assert len(calls) >= 8 and all(advice == os.POSIX_FADV_DONTNEED for _, _, advice in calls)
+
+
+@pytest.mark.parametrize("raised, message", [(MemoryError(), "out of memory while decoding"),
+                                             (RuntimeError(""), "cannot be read: RuntimeError")])
+def test_laspy_failures_always_say_why(raised, message):
+    from c1mesh.formats.las import _laspy_errors
+
+    with pytest.raises(FormatError, match=f"'tile.laz'.*{message}"):
+        with _laspy_errors("tile.laz"):
+            raise raised

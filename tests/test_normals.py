@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import builtins
+import time
 
 import numpy as np
 import pytest
@@ -123,3 +124,34 @@ def test_missing_open3d_is_a_dependency_error_that_says_what_to_install(monkeypa
     assert str(exc).split(":")[0] in message                 # the original reason, briefly
     assert "\n" not in message
     assert isinstance(info.value, ImportError)               # DependencyError is an ImportError
+
+
+def test_coincident_points_are_refused_before_open3d_sees_them():
+    """100k copies of one point made Open3D's neighbour search quadratic (> 30 s)."""
+    start = time.perf_counter()
+    with pytest.raises(InputError, match="only 1 distinct positions"):
+        estimate_normals(np.tile([[1.0, 2.0, 3.0]], (100_000, 1)))
+    assert time.perf_counter() - start < 5.0
+
+
+def test_repeated_positions_share_the_normal_of_their_plane():
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1, 1, (2000, 2))
+    plane = np.column_stack([xy, 0.5 * xy[:, 0] - 0.25 * xy[:, 1]])  # z = x/2 - y/4
+    pts = np.concatenate([plane, plane[:500], plane[:500]])           # 1000 exact repeats
+    normals = estimate_normals(pts)
+    exact = np.array([-0.5, 0.25, 1.0]) / np.linalg.norm([-0.5, 0.25, 1.0])
+    np.testing.assert_allclose(normals, np.tile(exact, (len(pts), 1)), atol=1e-9)
+
+
+def test_unique_positions_is_exact_and_merges_signed_zeros():
+    from c1mesh.normals import unique_positions
+
+    rng = np.random.default_rng(4)
+    base = rng.normal(size=(300, 3))
+    pts = np.concatenate([base, base[::-1], [[0.0, 0.0, 0.0], [-0.0, 0.0, -0.0]]])
+    distinct, inverse = unique_positions(pts)
+    assert len(distinct) == 301
+    np.testing.assert_array_equal(distinct[inverse], pts + 0.0)
+    reference = np.unique(pts + 0.0, axis=0)
+    np.testing.assert_array_equal(np.unique(distinct, axis=0), reference)

@@ -59,6 +59,21 @@ def _parse_classes(value: str | None) -> tuple[int, ...] | None:
         raise click.BadParameter(f"expected comma-separated integers such as 2,9, got {value!r}")
 
 
+def _parse_memory(ctx, param, value):
+    """--memory: a size such as 512M or 8G (None = the reader's default)."""
+    if value is None:
+        return None
+    from c1mesh.formats._limits import parse_memory
+    try:
+        return parse_memory(value)
+    except C1MeshError as exc:
+        raise click.BadParameter(str(exc))
+
+
+_MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
+                "are refused [default: half the RAM, at most 8G].")
+
+
 def _parse_max_edge(value: str):
     if value.lower() == "auto":
         return "auto"
@@ -210,21 +225,35 @@ def main() -> None:
               help="Depth images: metres per depth unit.")
 @click.option("--color", "color_image", help="Depth images: an RGB image of the same size for vertex colours.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
+@click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs.")
 @click.option("--threads", type=click.IntRange(1, 1024), default=None,
               help="Threads in all (BLAS included); with --jobs N each process gets "
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")
+@click.option("--seamless", is_flag=True,
+              help="Treat the inputs as one survey: -o writes one mesh, -O one mesh per input that "
+                   "joins its neighbours exactly (docs/tiles.md).")
+@click.option("--scheduler", help="With --seamless -O: run the tiles on this Dask scheduler (tcp://HOST:PORT).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
-        report, jobs, quiet, verbose, debug, threads):
+        report, memory, jobs, quiet, verbose, debug, threads, seamless, scheduler):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
     _check_axis(axis)
+    if seamless or scheduler:
+        from c1mesh.pipeline import FitOptions
+
+        options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
+                             max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
+                             ascii=ascii_ply)
+        _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
+                      scheduler, quiet, debug)
+        return
     pairs = _plan(inputs, output, output_dir, suffix, input_format)
     _check_conflicts(pairs, input_format, classes, ascii_ply)
     if scheme == "quintic" and not quiet:
@@ -238,8 +267,8 @@ def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, a
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
-                         frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics, depth_scale=depth_scale,
-                         color=color_image)
+                         memory=memory, frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics,
+                         depth_scale=depth_scale, color=color_image)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
         _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug)
@@ -278,6 +307,47 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
     if not output:
         raise click.UsageError("give -o OUTPUT (or -O DIR for several inputs)")
     return [(inputs[0], output)]
+
+
+def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
+                  scheduler, quiet, debug) -> None:
+    """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
+    if scheduler and not output_dir:
+        raise click.UsageError("--scheduler needs --seamless -O DIR (one output per input)")
+    if STDIO in inputs:
+        raise click.UsageError("--seamless reads files, not stdin (-)")
+    if output and output_dir:
+        raise click.UsageError("use either -o/--output or -O/--output-dir")
+    if not output and not output_dir:
+        raise click.UsageError("give -o OUTPUT (one mesh) or -O DIR (one mesh per input)")
+    pairs = _plan(inputs, None, output_dir, suffix, input_format) if output_dir else [(inputs[0], output)]
+    _check_conflicts(pairs, input_format, options.classes, options.ascii)
+    try:
+        if output_dir and not Path(output_dir).exists():
+            Path(output_dir).mkdir(parents=True)
+        named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
+        targets = plan_outputs(named, list(inputs))
+        for (_, dst), target in zip(pairs, targets):
+            mesh_format(dst, target=target)
+    except (C1MeshError, OSError) as exc:
+        _fail(_message(exc), debug)
+    from c1mesh.tiles import fit_seamless
+
+    options.workers = _threads_per_process(threads, 1)
+    show = _stderr_is_terminal() and not quiet and bool(output_dir)
+    mesh = sys.stdout.buffer if output == STDIO else output
+    try:
+        if show:
+            with click.progressbar(length=len(pairs), label="tiles", file=sys.stderr,
+                                   item_show_func=lambda s: s) as bar:
+                result = fit_seamless(inputs, options, mesh, [d for _, d in pairs], scheduler, jobs,
+                                      on_tile=lambda row: bar.update(1, row["tile"]))
+        else:
+            result = fit_seamless(inputs, options, mesh, [d for _, d in pairs] if output_dir else None,
+                                  scheduler, jobs)
+    except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
+        _fail(_message(exc), debug)
+    _write_report(report, targets[-1], result, debug)
 
 
 def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:
@@ -435,11 +505,12 @@ def _collect(iterator, total, show, verbose):
 @main.command()
 @click.argument("path")
 @click.option("--input-format", help="Input format; required for stdin (-).")
+@click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
 @click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
               help="Depth images: metres per depth unit.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def info(path, input_format, intrinsics, depth_scale, debug):
+def info(path, input_format, memory, intrinsics, depth_scale, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
     from c1mesh.inspect import describe
 
@@ -449,7 +520,7 @@ def info(path, input_format, intrinsics, depth_scale, debug):
         if path == STDIO:
             _check_stdin()
         _check_stdout()
-        facts = describe(sys.stdin.buffer if path == "-" else path, input_format,
+        facts = describe(sys.stdin.buffer if path == "-" else path, input_format, memory=memory,
                          intrinsics=_parse_intrinsics(intrinsics), depth_scale=depth_scale)
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)

@@ -3,24 +3,30 @@ from __future__ import annotations
 
 import numpy as np
 
-from c1mesh.errors import C1MeshError
+from c1mesh.errors import C1MeshError, InputError
 from c1mesh.formats import read_cloud
 from c1mesh.frame import choose_frame, height_field
 
 
-def describe(source, fmt: str | None = None, estimate_limit: int = 2_000_000,
+#: Points the height-field check looks at: a random subsample keeps `info` under a second.
+SAMPLE = 20_000
+
+
+def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
              intrinsics=None, depth_scale: float = 0.001) -> dict:
     """Facts about a point file as a JSON-ready dict.
 
-    Normals are estimated (Open3D) for the height-field check when the file has none and
-    it has at most ``estimate_limit`` points; otherwise that check is reported as skipped.
+    The height-field check runs on a random subsample of at most `sample` finite points
+    (fixed seed, so the answer is repeatable), with the file's normals or normals
+    estimated (Open3D) on the subsample; the output says how many points it used, since
+    on the full cloud the answer can differ. `memory` bounds the bytes read (read_cloud).
     """
     from c1mesh.formats.depth import is_depth_image, read_depth_source
     if is_depth_image(source, fmt):
         from c1mesh.pipeline import FitOptions
         cloud = read_depth_source(source, FitOptions(intrinsics=intrinsics, depth_scale=depth_scale))
     else:
-        cloud = read_cloud(source, fmt)
+        cloud = read_cloud(source, fmt, memory=memory)
     finite = np.isfinite(cloud.points).all(axis=1)
     pts = cloud.points[finite]
     facts: dict = {
@@ -37,7 +43,7 @@ def describe(source, fmt: str | None = None, estimate_limit: int = 2_000_000,
         facts["bounds"] = {"min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}
     facts.update(_view_facts(cloud))
     if facts["fit_frame"] == "axis":
-        facts.update(_height_field_check(cloud, finite, estimate_limit))
+        facts.update(_height_field_check(cloud, finite, sample))
     return facts
 
 
@@ -65,23 +71,27 @@ def _fields(cloud) -> list[str]:
     return names + list(cloud.extra)
 
 
-def _height_field_check(cloud, finite, estimate_limit) -> dict:
-    normals = cloud.normals
-    source = "file"
-    if normals is None:
-        if finite.sum() > estimate_limit or finite.sum() < 3:
-            return {"suggested_axis": None, "height_field": None,
-                    "height_field_note": "skipped: no normals in the file"}
-        from c1mesh.normals import estimate_normals
-        towards = choose_frame(cloud.points[finite], None, "auto").axes[2]
-        normals = np.full(cloud.points.shape, np.nan)
-        normals[finite] = estimate_normals(cloud.points[finite], towards=towards)
-        source = "estimated"
+def _height_field_check(cloud, finite, sample: int) -> dict:
+    """Suggested axis and height-field verdict from a subsample of the finite points."""
+    rows = np.flatnonzero(finite)
+    if len(rows) > sample:
+        rows = np.sort(np.random.default_rng(0).choice(rows, sample, replace=False))
+    points = cloud.points[rows]
+    scope = {"height_field_sample": len(rows),
+             "height_field_scope": ("all finite points" if len(rows) == finite.sum() else
+                                    f"an estimate from a random sample of {len(rows)} of "
+                                    f"{int(finite.sum())} finite points")}
+    normals, source = (None, "estimated") if cloud.normals is None else (cloud.normals[rows], "file")
     try:
-        frame = choose_frame(cloud.points, normals, "auto")
-        height_field(cloud.points, normals, frame)
+        if normals is None:
+            if len(rows) < 3:
+                raise InputError(f"only {len(rows)} finite points; need at least 3")
+            from c1mesh.normals import estimate_normals
+            normals = estimate_normals(points, towards=choose_frame(points, None, "auto").axes[2])
+        frame = choose_frame(points, normals, "auto")
+        height_field(points, normals, frame)
     except C1MeshError as exc:
         return {"suggested_axis": None, "height_field": False, "height_field_note": str(exc),
-                "normals_used": source}
+                "normals_used": source, **scope}
     return {"suggested_axis": [round(float(v), 6) for v in frame.axes[2]], "height_field": True,
-            "normals_used": source}
+            "normals_used": source, **scope}

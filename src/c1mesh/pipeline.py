@@ -43,7 +43,8 @@ class FitOptions:
     scheme: shape-function tuple; level: each triangle becomes level² triangles;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
     process-wide setting, by default the CPUs this process may use);
-    output_format: mesh format of the output (default: its extension, PLY for a stream).
+    output_format: mesh format of the output (default: its extension, PLY for a stream);
+    memory: bytes (or a size such as "4G") the reader may read and decode, None = default.
     """
 
     input_format: str | None = None
@@ -58,6 +59,7 @@ class FitOptions:
     ascii: bool = False
     workers: int | None = None
     output_format: str | None = None
+    memory: Any = None
     # perspective frame and organised scans (depth_fit.py): frame "auto" | "axis" |
     # "perspective"; viewpoint "x,y,z[,qw,qx,qy,qz]" or None (the file's, else the origin);
     # depth images: intrinsics (fx, fy, cx, cy) pixels, depth_scale metres per unit,
@@ -101,7 +103,7 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
     from c1mesh.formats.depth import is_depth_image, read_depth_source
     if is_depth_image(source, options.input_format):
         return read_depth_source(source, options)
-    cloud = read_cloud(source, options.input_format)
+    cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory)
     if options.classes:
         if cloud.classification is None:
             raise InputError("--classes needs a file with a classification field (LAS/LAZ)")
@@ -127,9 +129,10 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     finite = np.isfinite(cloud.points).all(axis=1)
     if finite.sum() < 3:
         raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
-    towards = choose_frame(cloud.points[finite], None, options.axis).axes[2]
+    points = cloud.points if finite.all() else cloud.points[finite]   # one copy at most
+    towards = choose_frame(points, None, options.axis).axes[2]
     normals = np.full(cloud.points.shape, np.nan)
-    normals[finite] = estimate_normals(cloud.points[finite], k=options.k, towards=towards)
+    normals[finite] = estimate_normals(points, k=options.k, towards=towards)
     return normals, "estimated"
 
 
@@ -185,11 +188,55 @@ def _compact(xy, triangles):
     return used, remap[triangles]
 
 
+@dataclass
+class SurfaceModel:
+    """The C1 spline of a cloud before refinement (what `build_surface` returns).
+
+    normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
+    cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
+    the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
+    triangles index those n points).
+    """
+
+    normal_source: str
+    frame: Any
+    hf: Any
+    trim_report: Any
+    used: np.ndarray
+    interp: RSDInterpolator
+
+
+def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
+    """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
+
+    The stages every fit shares, whole-file or tiled (c1mesh.tiles), so a stage added
+    here reaches both. timer: a _Timer that books each stage (None: untimed).
+    """
+    timer = timer or _Timer(None)
+    scheme = get_scheme(options.scheme)
+    with timer.stage("normals"):
+        normals, normal_source = cloud_normals(cloud, options)
+    with timer.stage("frame"):
+        frame = choose_frame(cloud.points, normals, options.axis)
+        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
+    with timer.stage("triangulate"):
+        triangles = delaunay(hf.xy)
+        triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
+        if triangles.shape[0] == 0:
+            raise InputError("no triangles are left after trimming; try --max-edge none")
+        used, triangles = _compact(hf.xy, triangles)
+    with timer.stage("interpolate"):
+        interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles=triangles,
+                                 scheme=scheme)
+    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp)
+
+
 def fit(source, output=None, options: FitOptions | None = None,
         on_stage: Callable[[str], None] | None = None, keep_mesh: bool = True) -> FitResult:
     """Fit a refined C1 surface mesh to a scan.
 
-    source: path or binary stream (then options.input_format is required); output: path,
+    source: path, binary stream (then options.input_format is required) or a PointCloud
+    already loaded (classes already selected: c1mesh.tiles does this); output: path,
     binary stream, or None to only return the mesh. Returns the mesh (world coordinates,
     unit vertex normals on the axis side, colours when the input has them) and a report
     dict (counts, frame, trimming, scheme properties, C1 certificate, timings).
@@ -208,28 +255,16 @@ def fit(source, output=None, options: FitOptions | None = None,
 
 def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
     """fit() inside its thread limit."""
-    scheme = get_scheme(options.scheme)
     timer = _Timer(on_stage)
     with timer.stage("read"):
-        cloud = load_cloud(source, options)
+        cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
     from c1mesh.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None) == "perspective":
         from c1mesh.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh)
-    with timer.stage("normals"):
-        normals, normal_source = cloud_normals(cloud, options)
-    with timer.stage("frame"):
-        frame = choose_frame(cloud.points, normals, options.axis)
-        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
-    with timer.stage("triangulate"):
-        triangles = delaunay(hf.xy)
-        triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
-        if triangles.shape[0] == 0:
-            raise InputError("no triangles are left after trimming; try --max-edge none")
-        used, triangles = _compact(hf.xy, triangles)
-    with timer.stage("interpolate"):
-        interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles=triangles,
-                                 scheme=scheme)
+    model = build_surface(cloud, options, timer)
+    normal_source, frame, hf, trim_report, used, interp = (
+        model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)

@@ -8,15 +8,18 @@ Both also work on binary file objects (stdin / stdout), where `fmt` says the for
 from __future__ import annotations
 
 import io
+import mmap
 import os
+import stat
 from pathlib import Path
-from typing import IO, Callable, Union
+from typing import IO, Callable, Sequence, Union
 
 import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
 from c1mesh.formats._atomic import atomic_output
+from c1mesh.formats._limits import check_alloc, read_bounded, reading_budget
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
 from c1mesh.formats.meshes import write_glb, write_off, write_stl
@@ -62,47 +65,79 @@ def _format(fmt: str | None, where: str, supported: tuple[str, ...], direction: 
 
 
 def _read_path(path: Path) -> bytes:
-    """All bytes of `path`; InputError for missing files, directories and read errors."""
-    if not path.exists():
-        raise InputError(f"Input file '{path}' does not exist.")
-    if path.is_dir():
+    """All bytes of `path` within the reading budget; InputError for missing files and directories.
+
+    A regular file larger than the budget is refused from its size; anything else (a FIFO,
+    /dev/zero, /dev/stdin) is read piece by piece and refused once it passes the budget.
+    """
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise InputError(f"Input file '{path}' does not exist.") from None
+    except OSError as exc:
+        raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
+    if stat.S_ISDIR(info.st_mode):
         raise InputError(f"Input path '{path}' is a directory, not a point file.")
     try:
-        return path.read_bytes()
+        if stat.S_ISREG(info.st_mode):
+            check_alloc(info.st_size, str(path), "reading the file")
+            return path.read_bytes()
+        with open(path, "rb") as stream:
+            return read_bounded(stream, str(path))
     except OSError as exc:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
 
-def _read_stream(stream: IO[bytes], name: str) -> bytes:
-    data = stream.read()
-    if isinstance(data, str):
-        raise InputError(f"Input stream '{name}' is in text mode; pass a binary stream such as sys.stdin.buffer.")
-    return bytes(data)
+def _read_las_file(path: Path, classes: Sequence[int] | None) -> PointCloud:
+    """A LAS/LAZ file through a memory map: laspy streams the body from the file in chunks,
+    so memory holds the kept points, not the file."""
+    name = str(path)
+    try:
+        with open(path, "rb") as f:
+            if os.fstat(f.fileno()).st_size == 0:
+                raise FormatError(f"Input '{name}' is empty.")
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data, np.errstate(all="ignore"):
+                return read_las(data, name, classes=classes, open_stream=lambda: open(path, "rb"))
+    except OSError as exc:
+        raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
 
-def read_cloud(source: Source, fmt: str | None = None) -> PointCloud:
+def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | None = None,
+               memory: int | str | None = None) -> PointCloud:
     """Read a point cloud from a path or a binary file object.
 
     The format comes from `fmt` if given, else from the path's extension (case-insensitive);
-    for a file object `fmt` is required. Faces in the input are ignored. Raises InputError
-    for missing/unreadable paths and unknown formats, FormatError for empty or malformed
-    files, DependencyError when an optional reader library is missing.
+    for a file object `fmt` is required. Faces in the input are ignored. `classes` keeps
+    only those classification codes while a LAS/LAZ file is decoded (other formats return
+    every point; the caller filters). `memory` (bytes or a size such as '4G'; default half
+    the RAM, at most 8 GiB) bounds the bytes read and decoded: a header or stream that
+    needs more is refused before allocating. Raises InputError for missing/unreadable
+    paths and unknown formats, FormatError for empty, malformed or over-budget files,
+    DependencyError when an optional reader library is missing.
     """
-    if _is_stream(source):
-        name = str(getattr(source, "name", "<stream>"))
-        if fmt is None:
-            raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
-        key = _format(fmt, name, SUPPORTED_INPUT, "input")
-        data = _read_stream(source, name)
-    else:
-        path = Path(source)
-        name = str(path)
-        key = _format(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
-        data = _read_path(path)
-    if not data:
-        raise FormatError(f"Input '{name}' is empty.")
-    with np.errstate(invalid="ignore", over="ignore"):  # signalling-NaN floats in a body are data, not news
-        return _READERS[key](data, name)
+    with reading_budget(memory):
+        if _is_stream(source):
+            name = str(getattr(source, "name", "<stream>"))
+            if fmt is None:
+                raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
+            key = _format(fmt, name, SUPPORTED_INPUT, "input")
+            try:
+                data = read_bounded(source, name)
+            except OSError as exc:
+                raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
+        else:
+            path = Path(source)
+            name = str(path)
+            key = _format(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
+            if key in ("las", "laz") and path.is_file():
+                return _read_las_file(path, classes)
+            data = _read_path(path)
+        if not data:
+            raise FormatError(f"Input '{name}' is empty.")
+        with np.errstate(all="ignore"):  # overflow / NaN in a body are data, not news
+            if key in ("las", "laz"):
+                return read_las(data, name, classes=classes)
+            return _READERS[key](data, name)
 
 
 def _check_mesh(mesh: SurfaceMesh) -> None:

@@ -66,10 +66,10 @@ def loadtxt(lines: list[str], **kwargs) -> np.ndarray:
 
 
 def decode_text(data: bytes, name: str, kind: str) -> str:
-    """Decode a text file; NUL bytes mean it is binary garbage, not text."""
+    """Decode a text file (a UTF-8 byte-order mark is dropped); NUL bytes mean binary garbage."""
     if b"\0" in data[:65536]:
         raise FormatError(f"{kind} file '{name}' contains binary data, not text.")
-    return data.decode("utf-8", errors="replace")
+    return data.decode("utf-8-sig", errors="replace")
 
 
 def is_number(word: str) -> bool:

@@ -98,16 +98,23 @@ def is_depth_image(source, fmt: str | None) -> bool:
 
 
 def read_depth_source(source, options) -> PointCloud:
-    """read_depth on a path or binary stream with the fit options' intrinsics, scale and colour."""
+    """read_depth on a path or binary stream with the fit options' intrinsics, scale and
+    colour, within the reading budget of options.memory (formats.read_cloud's rules)."""
     from pathlib import Path
 
-    from c1mesh.formats import _read_path, _read_stream
+    from c1mesh.formats import _read_path, read_bounded, reading_budget
 
-    if isinstance(source, (str, Path)):
-        name, data = str(source), _read_path(Path(source))
-    else:
-        name = str(getattr(source, "name", "<stream>"))
-        data = _read_stream(source, name)
-    color = None if options.color is None else _read_path(Path(options.color))
+    with reading_budget(getattr(options, "memory", None)):
+        if isinstance(source, (str, Path)):
+            name, data = str(source), _read_path(Path(source))
+        else:
+            name = str(getattr(source, "name", "<stream>"))
+            try:
+                data = read_bounded(source, name)
+            except OSError as exc:
+                raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
+        if not data:
+            raise FormatError(f"Input '{name}' is empty.")
+        color = None if options.color is None else _read_path(Path(options.color))
     return read_depth(data, name, options.intrinsics, options.depth_scale, color,
                       str(options.color or ""))

@@ -4,21 +4,30 @@ Points are the scaled coordinates (las.x/y/z, file units, float64). Classificati
 codes go to `classification`. RGB (16-bit in LAS) becomes uint8 (>> 8 when any value
 exceeds 255); point formats that carry RGB fields which are all zero are treated as
 having no colours. Extra-bytes dimensions named like normals (nx / normal_x ...) become
-normals. Every other dimension (intensity, return_number, gps_time, ...) goes to extra.
+normals. Other dimensions (intensity, gps_time, ...) are not kept: the fit never uses
+them, and copying them would multiply the memory a tile needs.
+
+The body is decoded in chunks (laspy's chunk iterator) and a `classes` filter is
+applied per chunk, so memory holds the compressed file plus the kept points only.
+Every header count is checked against the file size (and, for LAZ, the chunk table)
+before laspy allocates anything.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import struct
+from typing import IO, Callable, Union
 
 import numpy as np
 
 from c1mesh.cloud import PointCloud
-from c1mesh.errors import DependencyError, FormatError
+from c1mesh.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
+from c1mesh.formats._limits import check_alloc
 
+Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
-_COORDS = {"X", "Y", "Z", "x", "y", "z"}
 _RGB = ("red", "green", "blue")
 
 
@@ -36,32 +45,52 @@ def _is_compressed(data: bytes) -> bool:
     return len(data) > 104 and data[:4] == b"LASF" and bool(data[104] & 0xC0)
 
 
-def _read(data: bytes, name: str):
-    """laspy read of the bytes; its errors become FormatError / DependencyError."""
+def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
+    """A laspy reader over a fresh stream of the file, after the header checks on `data`."""
     laspy = _laspy()
     if _is_compressed(data) and not laspy.LazBackend.detect_available():
         raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.")
     _check_header(data, name)
-    try:
-        with laspy.open(io.BytesIO(data)) as reader:
+    with _laspy_errors(name):
+        selection = laspy.DecompressionSelection
+        wanted = (selection.XY_RETURNS_CHANNEL | selection.Z | selection.CLASSIFICATION
+                  | selection.RGB | selection.ALL_EXTRA_BYTES)
+        reader = laspy.open(open_stream(), decompression_selection=wanted)
+        try:
             _check_length(reader.header, len(data), name)
-            _check_laz_chunks(data, reader.header, name)
-            return reader.read()
-    except FormatError:
+            _check_laz_chunks(data, reader.header, name, open_stream)
+        except BaseException:
+            reader.close()
+            raise
+        return reader
+
+
+@contextlib.contextmanager
+def _laspy_errors(name: str):
+    """Turn laspy's and lazrs's exceptions into FormatError / DependencyError naming the file."""
+    try:
+        yield
+    except (InputError, DependencyError):
         raise
-    except Exception as exc:  # laspy raises LaspyException, ValueError, struct errors, ...
-        if "LazBackend" in str(exc) or "lazrs" in str(exc).lower():
+    except MemoryError:
+        raise FormatError(f"LAS/LAZ file '{name}' cannot be read: out of memory while decoding its points "
+                          "(the header's point count is probably corrupt).") from None
+    except (KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as exc:  # laspy: LaspyException, ValueError, struct errors; lazrs: a Rust panic
+        text = str(exc).strip() or type(exc).__name__
+        if "LazBackend" in text or "lazrs" in text.lower() and "backend" in text.lower():
             raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.") from exc
-        raise FormatError(f"LAS/LAZ file '{name}' cannot be read: {exc}.") from exc
+        raise FormatError(f"LAS/LAZ file '{name}' cannot be read: {' '.join(text.split())}.") from exc
 
 
-def _check_header(data: bytes, name: str) -> None:
+def _check_header(data: Buffer, name: str) -> None:
     """Sanity-check the public header block before laspy sees it.
 
     laspy trusts the header's sizes and counts; a corrupt one can make it try to allocate
     tens of gigabytes, so implausible values are rejected here as FormatError.
     """
-    if not data.startswith(b"LASF"):
+    if data[:4] != b"LASF":
         raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with the 'LASF' signature.")
     if len(data) < 227:
         raise FormatError(f"LAS file '{name}' is truncated: {len(data)} bytes, shorter than a LAS header.")
@@ -73,10 +102,27 @@ def _check_header(data: bytes, name: str) -> None:
         (not header_size <= offset <= len(data), f"point data offset {offset} lies outside the file"),
         (n_vlrs * 54 > offset - header_size, f"{n_vlrs} variable-length records cannot fit before the points"),
         ((data[104] & 0x3F) > 10, f"point format {data[104] & 0x3F} does not exist"),
+        *_evlr_problems(data, major, minor, header_size, offset),
     ]
     for bad, what in problems:
         if bad:
             raise FormatError(f"LAS file '{name}' has a corrupt header: {what}.")
+
+
+def _evlr_problems(data: bytes, major: int, minor: int, header_size: int, offset: int) -> list[tuple[bool, str]]:
+    """LAS 1.4 extended VLRs (start u64 at byte 235, count u32 at 243) must lie in the file.
+
+    Each EVLR has a 60-byte header, so the count is bounded by the bytes after its start;
+    a count of 0xFFFFFFFF would otherwise make laspy loop over billions of records.
+    """
+    if (major, minor) < (1, 4) or header_size < 247:
+        return []
+    start, count = struct.unpack_from("<QI", data, 235)
+    if count == 0:
+        return []
+    return [(not offset <= start <= len(data), f"extended VLRs start at byte {start}, outside the file"),
+            (count * 60 > len(data) - min(start, len(data)),
+             f"{count} extended VLRs cannot fit in the {len(data) - min(start, len(data))} bytes after their start")]
 
 
 def _check_length(header, size: int, name: str) -> None:
@@ -86,7 +132,7 @@ def _check_length(header, size: int, name: str) -> None:
     and would allocate memory for an absurd point count before noticing a LAZ body is short.
     """
     if header.are_points_compressed:
-        if header.point_count * header.point_format.size > 1000 * size + (1 << 20):
+        if header.point_count * header.point_format.size > _MAX_LAZ_RATIO * size + (1 << 20):
             raise FormatError(f"LAZ file '{name}' claims {header.point_count} points, far more than {size} bytes can hold.")
         return
     need = header.offset_to_point_data + header.point_count * header.point_format.size
@@ -96,7 +142,7 @@ def _check_length(header, size: int, name: str) -> None:
         )
 
 
-def _check_laz_chunks(data: bytes, header, name: str) -> None:
+def _check_laz_chunks(data: Buffer, header, name: str, open_stream: Callable[[], IO[bytes]]) -> None:
     """FormatError when a LAZ chunk table is implausible.
 
     The LAZ decompressor (lazrs) sizes its buffers from the chunk table at the end of the
@@ -115,34 +161,79 @@ def _check_laz_chunks(data: bytes, header, name: str) -> None:
         raise corrupt  # every chunk holds at least one point and one byte before the table
     import lazrs
 
-    source = io.BytesIO(data)
-    source.seek(header.offset_to_point_data)
-    try:
-        chunks = lazrs.read_chunk_table(source, lazrs.LazVlr(vlr.record_data))
-    except Exception as exc:  # lazrs.LazrsError and I/O errors on a cut table
-        raise corrupt from exc
+    with open_stream() as source:
+        source.seek(header.offset_to_point_data)
+        try:
+            chunks = lazrs.read_chunk_table(source, lazrs.LazVlr(vlr.record_data))
+        except Exception as exc:  # lazrs.LazrsError and I/O errors on a cut table
+            raise corrupt from exc
     if sum(nbytes for _, nbytes in chunks) > len(data) - header.offset_to_point_data:
         raise corrupt
+    if header.point_count > sum(npoints for npoints, _ in chunks):
+        raise FormatError(f"LAZ file '{name}' claims {header.point_count} points, but its chunk table holds "
+                          f"{sum(npoints for npoints, _ in chunks)}.")
 
 
-def read_las(data: bytes, name: str) -> PointCloud:
-    """Read a LAS or LAZ file held in `data` (`name` is for messages)."""
-    las = _read(data, name)
-    if len(las.points) != las.header.point_count:
-        raise FormatError(f"LAS/LAZ file '{name}' has {len(las.points)} points, not the {las.header.point_count} its header says.")
-    dims = list(las.point_format.dimension_names)
-    cloud = PointCloud(points=np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64))
-    used = set(_COORDS)
-    if "classification" in dims:
-        cloud.classification = np.asarray(las.classification).copy()
-        used.add("classification")
-    if all(c in dims for c in _RGB):
-        rgb = np.column_stack([np.asarray(las[c]) for c in _RGB])
+#: Bytes per point of what the reader keeps: xyz float64, classification, rgb, normals.
+_KEPT_BYTES_PER_POINT = 24 + 1 + 3 + 24
+#: Record bytes per compressed byte a LAZ file may claim. Real tiles compress 5-10x; 200x
+#: leaves room for very repetitive data while refusing headers that promise gigabytes.
+_MAX_LAZ_RATIO = 200
+_CHUNK = 1 << 20   # points decoded at a time
+
+
+def read_las(data: Buffer, name: str, classes=None,
+             open_stream: Callable[[], IO[bytes]] | None = None) -> PointCloud:
+    """Read a LAS or LAZ file whose bytes are `data` (`name` is for messages).
+
+    `data` may be a memory map of the file (read_cloud maps regular files, so the body is
+    never copied into memory) and `open_stream` then opens the file again for laspy;
+    by default the stream is a BytesIO over `data`. `classes`: classification codes to
+    keep (None keeps all), applied per decoded chunk; the kept points are checked against
+    the reading budget as they accumulate.
+    """
+    open_stream = open_stream or (lambda: io.BytesIO(data))
+    keep = None if classes is None else np.asarray(list(classes), dtype=np.int64)
+    with _open(data, name, open_stream) as reader, _laspy_errors(name):
+        if keep is None:
+            check_alloc(reader.header.point_count * _KEPT_BYTES_PER_POINT, name,
+                        f"the header's {reader.header.point_count} points")
+        kept = 0
+        dims = list(reader.header.point_format.dimension_names)
+        nrm = find_columns(dims, NORMAL_NAMES)
+        has_rgb = all(c in dims for c in _RGB)
+        parts: dict[str, list[np.ndarray]] = {"points": [], "classification": [], "rgb": [], "normals": []}
+        decoded, found = 0, set()
+        for chunk in reader.chunk_iterator(_CHUNK):
+            decoded += len(chunk)
+            found.update(np.unique(np.asarray(chunk.classification)).tolist())
+            rows = None if keep is None else np.isin(np.asarray(chunk.classification), keep)
+            take = (lambda a: np.asarray(a)) if rows is None else (lambda a: np.asarray(a)[rows])  # noqa: E731
+            parts["points"].append(np.column_stack([take(chunk.x), take(chunk.y), take(chunk.z)]).astype(np.float64))
+            parts["classification"].append(take(chunk.classification).copy())
+            kept += len(parts["classification"][-1])
+            check_alloc(kept * _KEPT_BYTES_PER_POINT, name, f"the {kept} points kept so far")
+            if has_rgb:
+                parts["rgb"].append(np.column_stack([take(chunk[c]) for c in _RGB]))
+            if None not in nrm:
+                parts["normals"].append(np.column_stack([take(chunk[dims[i]]) for i in nrm]).astype(np.float64))
+        if decoded != reader.header.point_count:
+            raise FormatError(f"LAS/LAZ file '{name}' has {decoded} points, not the "
+                              f"{reader.header.point_count} its header says.")
+    cloud = _assemble(parts)
+    if keep is not None and decoded and not len(cloud):
+        raise InputError(f"no points of class {keep.tolist()}; the file has classes {sorted(found)[:20]}")
+    return cloud
+
+
+def _assemble(parts: dict[str, list[np.ndarray]]) -> PointCloud:
+    """One PointCloud from the per-chunk arrays (empty parts give empty arrays)."""
+    join = lambda key, shape, dtype: np.concatenate(parts[key]) if parts[key] else np.zeros(shape, dtype)  # noqa: E731
+    cloud = PointCloud(points=join("points", (0, 3), np.float64))
+    cloud.classification = join("classification", (0,), np.uint8)
+    if parts["rgb"]:
+        rgb = join("rgb", (0, 3), np.uint16)
         cloud.colors = colors_to_uint8(rgb) if rgb.any() else None
-        used |= set(_RGB)
-    nrm = find_columns(dims, NORMAL_NAMES)
-    if None not in nrm:
-        cloud.normals = np.column_stack([np.asarray(las[dims[i]]) for i in nrm]).astype(np.float64)
-        used |= {dims[i] for i in nrm}
-    cloud.extra = {d: np.asarray(las[d]).copy() for d in dims if d not in used}
+    if parts["normals"]:
+        cloud.normals = join("normals", (0, 3), np.float64)
     return cloud

@@ -18,9 +18,12 @@ import numpy as np
 from c1mesh.cloud import PointCloud
 from c1mesh.errors import FormatError
 from c1mesh.formats._common import NORMAL_NAMES, find_columns, loadtxt
-from c1mesh.formats.lzf import LZFError, lzf_decompress
+from c1mesh.formats._limits import check_alloc
+from c1mesh.formats.lzf import MAX_EXPANSION, LZFError, lzf_decompress
 
 _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+MAX_HEADER_BYTES = 1 << 20
+MAX_FIELDS = 10_000
 _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8",
           ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8"}
 
@@ -46,9 +49,11 @@ def _header_lines(data: bytes, name: str) -> tuple[dict[str, list[str]], int]:
     values: dict[str, list[str]] = {}
     offset = 0
     while "DATA" not in values:
-        nl = data.find(b"\n", offset, offset + 65536)
+        nl = data.find(b"\n", offset, MAX_HEADER_BYTES)
         if nl < 0:
-            raise FormatError(f"PCD file '{name}' has no 'DATA' line; the header is incomplete or this is not a PCD file.")
+            where = f" within its first {MAX_HEADER_BYTES} bytes" if len(data) > MAX_HEADER_BYTES else ""
+            raise FormatError(f"PCD file '{name}' has no 'DATA' line{where}; the header is incomplete "
+                              "or this is not a PCD file.")
         words, offset = data[offset:nl].decode("latin-1").split(), nl + 1
         if not words or words[0].startswith("#"):
             continue
@@ -64,6 +69,8 @@ def _ints(values: dict[str, list[str]], key: str, name: str, default: list[int] 
             raise FormatError(f"PCD file '{name}' has no {key} line in its header.")
         return default
     try:
+        if any(len(v) > 20 for v in values[key]):
+            raise ValueError
         return [int(v) for v in values[key]]
     except ValueError:
         raise FormatError(f"PCD file '{name}' has a non-integer {key} line: {' '.join(values[key])!r}.") from None
@@ -83,6 +90,8 @@ def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
     names = values.get("FIELDS") or []
     if not names:
         raise FormatError(f"PCD file '{name}' has no FIELDS line in its header.")
+    if len(names) > MAX_FIELDS:
+        raise FormatError(f"PCD file '{name}' declares {len(names)} FIELDS, more than {MAX_FIELDS}.")
     sizes = _ints(values, "SIZE", name)
     kinds = [t.upper() for t in values.get("TYPE", [])]
     counts = _ints(values, "COUNT", name, [1] * len(names))
@@ -96,6 +105,10 @@ def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
     points = _one(values, "POINTS", name, width * height)
     if min(sizes + counts) < 1 or min(width, height, points) < 0:
         raise FormatError(f"PCD file '{name}' has a negative or zero size, count or point number in its header.")
+    if max(counts) > 1 << 20:
+        raise FormatError(f"PCD file '{name}' has a COUNT of {max(counts)} values per field; it is corrupt.")
+    if "WIDTH" in values and points != width * height:
+        raise FormatError(f"PCD file '{name}' has POINTS {points}, but WIDTH x HEIGHT is {width * height}.")
     kind = (values["DATA"] or [""])[0].lower()
     if kind not in ("ascii", "binary", "binary_compressed"):
         raise FormatError(f"PCD file '{name}' has unknown DATA kind {kind!r}; expected ascii, binary or binary_compressed.")
@@ -106,6 +119,10 @@ def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
 # ----------------------------------------------------------------------------- bodies
 def _truncated(name: str, header: Header, detail: str) -> FormatError:
     return FormatError(f"PCD file '{name}' is truncated: {detail} for the {header.points} points the header promises.")
+
+
+#: Bytes per point of what the reader builds besides the body: xyz and normals as float64.
+_KEPT_BYTES_PER_POINT = 48
 
 
 def _binary(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarray]:
@@ -125,10 +142,12 @@ def _compressed(data: bytes, offset: int, header: Header, name: str) -> list[np.
     itemsize = header.dtype().itemsize
     if unpacked != header.points * itemsize:
         raise FormatError(f"PCD file '{name}' promises {unpacked} uncompressed bytes, not {header.points * itemsize}.")
-    if unpacked > 100 * packed + 64:  # LZF expands at most 88-fold (3 bytes -> 264)
+    if unpacked > MAX_EXPANSION * packed:  # LZF expands at most 88-fold (3 bytes -> 264)
         raise FormatError(f"PCD file '{name}' claims {unpacked} bytes from {packed} compressed ones; it is corrupt.")
     if len(data) - offset - 8 < packed:
         raise _truncated(name, header, f"{len(data) - offset - 8} compressed bytes, {packed} needed")
+    check_alloc(unpacked + header.points * _KEPT_BYTES_PER_POINT, name,
+                f"decoding the {header.points} compressed points")
     try:
         raw = lzf_decompress(data[offset + 8: offset + 8 + packed], unpacked) if unpacked else b""
     except LZFError as exc:
@@ -148,9 +167,13 @@ def _ascii(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarr
         raise _truncated(name, header, f"{len(lines)} data lines")
     width = sum(header.counts)
     try:
-        table = loadtxt(lines[: header.points], comments=None).reshape(-1, width)
+        table = loadtxt(lines[: header.points], comments=None)
     except ValueError as exc:
         raise FormatError(f"PCD file '{name}' has a malformed ascii data line: {exc}.") from None
+    if header.points and table.shape[1] != width:
+        raise FormatError(f"PCD file '{name}' has {table.shape[1]} values per ascii data line, but its "
+                          f"FIELDS and COUNT lines describe {width}.")
+    table = table.reshape(-1, width)
     columns, start = [], 0
     for field, t, c in zip(header.names, header.types, header.counts):
         col = table[:, start:start + c]
@@ -186,7 +209,13 @@ def _cloud(header: Header, columns: list[np.ndarray], name: str) -> PointCloud:
     xyz = find_columns(order, (("x",), ("y",), ("z",)))
     if None in xyz:
         raise FormatError(f"PCD file '{name}' has no x, y and z fields.")
-    take = lambda idx: np.column_stack([scalars[order[i]] for i in idx]).astype(np.float64)  # noqa: E731
+    def take(idx: list[int]) -> np.ndarray:
+        """(N, 3) float64 of three scalar fields, filled column by column (no float32 stack)."""
+        out = np.empty((header.points, 3))
+        for j, i in enumerate(idx):
+            out[:, j] = scalars[order[i]]
+        return out
+
     cloud = PointCloud(points=take(xyz))
     used = {order[i] for i in xyz}
     nrm = find_columns(order, NORMAL_NAMES)

@@ -54,45 +54,94 @@ class Element:
 
 
 # ----------------------------------------------------------------------------- header
+#: Largest header accepted (long comments are fine up to this), and most properties / elements.
+MAX_HEADER_BYTES = 1 << 20
+MAX_PROPERTIES = 10_000
+MAX_ELEMENTS = 10_000
+
+
 def _parse_header(data: bytes, name: str) -> tuple[str, list[Element], int]:
-    """Return (format, elements, offset of the body) or raise FormatError."""
+    """Return (format, elements, offset of the body) or raise FormatError.
+
+    Linear in the header size: property names are checked for repeats with a set per
+    element. Element row counts are checked against the body size in `_check_counts`.
+    """
     if not data.startswith((b"ply\n", b"ply\r\n")):
         raise FormatError(f"'{name}' is not a PLY file: it does not start with the 'ply' magic line.")
     fmt, elements, offset, number = None, [], data.index(b"\n") + 1, 1
+    seen: set[str] = set()
+    limit = min(len(data), MAX_HEADER_BYTES)
     while True:
-        nl = data.find(b"\n", offset, offset + 4096)
+        nl = data.find(b"\n", offset, limit)
         if nl < 0:
-            raise FormatError(f"PLY file '{name}' has no 'end_header' line; the header is incomplete.")
+            where = "" if limit == len(data) else f" within its first {MAX_HEADER_BYTES} bytes"
+            raise FormatError(f"PLY file '{name}' has no 'end_header' line{where}; the header is incomplete.")
         words, offset, number = data[offset:nl].decode("latin-1").split(), nl + 1, number + 1
         if words == ["end_header"]:
             break
-        fmt = _header_line(words, fmt, elements, name, number)
+        fmt = _header_line(words, fmt, elements, seen, name, number)
     if fmt is None:
         raise FormatError(f"PLY file '{name}' has no 'format' line in its header.")
+    _check_counts(fmt, elements, len(data) - offset, name)
     return fmt, elements, offset
 
 
-def _header_line(words: list[str], fmt: str | None, elements: list[Element], name: str, number: int) -> str | None:
-    """Apply one header line to (fmt, elements); return the possibly updated fmt."""
-    bad = f"PLY file '{name}' has a bad header line {number}: {' '.join(words)!r}."
+def _header_line(words: list[str], fmt: str | None, elements: list[Element], seen: set[str],
+                 name: str, number: int) -> str | None:
+    """Apply one header line to (fmt, elements); return the possibly updated fmt.
+
+    `seen` holds the property names of the current element (reset by each 'element').
+    """
+    bad = f"PLY file '{name}' has a bad header line {number}: {' '.join(words)[:80]!r}."
     if not words or words[0] in ("comment", "obj_info"):
         return fmt
     if words[0].lstrip("+-").replace(".", "", 1).isdigit():
         raise FormatError(f"PLY file '{name}' has data at header line {number}: the 'end_header' line is missing.")
     if words[0] == "format":
-        if len(words) != 3 or words[1] not in _ENDIAN:
+        if len(words) != 3 or words[1] not in _ENDIAN or fmt is not None:
             raise FormatError(bad)
         return words[1]
-    if words[0] == "element" and len(words) == 3 and re.fullmatch(r"[0-9]+", words[2]) is not None:
+    if words[0] == "element" and len(words) == 3 and re.fullmatch(r"[0-9]{1,20}", words[2]) is not None:
+        if words[1] == "vertex" and any(el.name == "vertex" for el in elements):
+            raise FormatError(f"PLY file '{name}' header line {number} repeats the element 'vertex'.")
+        if len(elements) >= MAX_ELEMENTS:
+            raise FormatError(f"PLY file '{name}' declares more than {MAX_ELEMENTS} elements; it is not a point file.")
         elements.append(Element(words[1], int(words[2])))
+        seen.clear()
     elif words[0] == "property" and elements:
         prop = _parse_property(words, bad)
-        if any(p.name == prop.name for p in elements[-1].props):
+        if prop.name in seen:
             raise FormatError(f"PLY file '{name}' header line {number} repeats the property '{prop.name}'.")
+        if len(seen) >= MAX_PROPERTIES:
+            raise FormatError(f"PLY file '{name}' element '{elements[-1].name}' has more than {MAX_PROPERTIES} properties.")
+        seen.add(prop.name)
         elements[-1].props.append(prop)
     else:
         raise FormatError(bad)
     return fmt
+
+
+def _min_row_bytes(el: Element, fmt: str) -> int:
+    """Fewest body bytes one row of `el` can take: scalars and list counts in binary,
+    one character plus a separator per property in ascii."""
+    if fmt == "ascii":
+        return 2 * len(el.props)
+    return sum(np.dtype(PLY_TYPES[p.count_type or p.type]).itemsize for p in el.props)
+
+
+def _check_counts(fmt: str, elements: list[Element], body: int, name: str) -> None:
+    """FormatError when the elements' row counts cannot fit in the `body` bytes.
+
+    Checked before any allocation, so a header claiming 2**63 rows fails at once.
+    """
+    need = 0
+    for el in elements:
+        if el.count and not el.props:
+            raise FormatError(f"PLY file '{name}' element '{el.name}' has {el.count} rows but no properties.")
+        need += el.count * _min_row_bytes(el, fmt)
+        if need > body + 1:  # +1: the last ascii row may lack its newline
+            raise FormatError(f"PLY file '{name}' is truncated or corrupt: element '{el.name}' claims "
+                              f"{el.count} rows, more than the {body} body bytes can hold.")
 
 
 def _parse_property(words: list[str], bad: str) -> Prop:
@@ -128,10 +177,10 @@ def _first_row_lengths(el: Element, buf: bytes, offset: int, endian: str) -> lis
         if offset + ct.itemsize > len(buf):
             return lengths
         n = int(np.frombuffer(buf, ct, 1, offset)[0])
-        if n < 0:
-            return lengths  # impossible; the ragged walk reports it
-        lengths.append(n)
         offset += ct.itemsize + n * np.dtype(PLY_TYPES[p.type]).itemsize
+        if n < 0 or offset > len(buf):
+            return lengths  # impossible or past the end; the ragged walk reports it
+        lengths.append(n)
     return lengths
 
 
@@ -164,6 +213,9 @@ def _walk_ragged(el: Element, buf: bytes, offset: int, endian: str, name: str) -
     A plain Python loop over rows (struct, not numpy, per count): used only for elements
     that are skipped anyway, e.g. mixed triangle/quad faces stored before the vertices.
     """
+    lists = [i for i, p in enumerate(el.props) if p.count_type is not None]
+    if len(lists) == 1 and PLY_TYPES[el.props[lists[0]].count_type] == "u1":
+        return _walk_uchar_lists(el, lists[0], buf, offset, name)
     steps = []  # per property: (item size, struct code of the count or None for a scalar)
     for p in el.props:
         size = np.dtype(PLY_TYPES[p.type]).itemsize
@@ -182,6 +234,26 @@ def _walk_ragged(el: Element, buf: bytes, offset: int, endian: str, name: str) -
     except struct.error:  # a count lies past the end of the data
         raise _truncated(name, el) from None
     if offset > len(buf):
+        raise _truncated(name, el)
+    return offset
+
+
+def _walk_uchar_lists(el: Element, index: int, buf: bytes, offset: int, name: str) -> int:
+    """`_walk_ragged` for the usual face element: one list with a uchar count.
+
+    Each row is `before` bytes, the count byte, count items, `after` bytes; indexing the
+    bytes object directly costs a fraction of a struct call per row.
+    """
+    size = lambda props: sum(np.dtype(PLY_TYPES[p.type]).itemsize for p in props)  # noqa: E731
+    before, after = size(el.props[:index]), size(el.props[index + 1:])
+    item = np.dtype(PLY_TYPES[el.props[index].type]).itemsize
+    step, end = before + 1 + after, len(buf)
+    try:
+        for _ in range(el.count):
+            offset += step + item * buf[offset + before]
+    except IndexError:  # a count lies past the end of the data
+        raise _truncated(name, el) from None
+    if offset > end:
         raise _truncated(name, el)
     return offset
 

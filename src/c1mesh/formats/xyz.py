@@ -1,21 +1,25 @@
 """Plain-text point tables (.xyz, .txt, .csv): one point per line.
 
 Values are separated by whitespace, or by semicolons / commas when the first data line
-has one (semicolon first, so '1,5;2,5' is reported rather than misread).
+has one (semicolon first, so '1,5;2,5' is reported rather than misread). Double quotes
+around values and names (R's write.csv) are ignored, and so is a UTF-8 byte-order mark.
 Blank lines and lines starting with '#' are skipped. Leading lines that do not start
-with a number are header lines; the last of them names the columns (x y z, nx ny nz or
-normal_x.., r g b or red green blue [alpha], classification; CloudCompare's '//X,Y,Z'
-works too; other names go to `extra`). A lone integer first line equal to the number of
-rows (the .pts point count) is skipped.
+with a number are header lines; the last of them names the columns, in any order and
+any case (x y z, also lon/lat/elev, easting/northing/height; nx ny nz or normal_x..,
+r g b or red green blue [alpha], classification; CloudCompare's '//X,Y,Z' works too;
+other names, such as the unnamed index column of R and pandas, go to `extra`). A lone
+integer first line equal to the number of rows (the .pts point count) is skipped.
 
 Without a header the column count decides (see `_layout`):
   3: x y z                 4: x y z scalar
   6: x y z + triple        9: x y z + triple + triple
   7: x y z scalar r g b when the last three columns are colours (.pts order), else
      x y z triple scalar.
-A triple is colours when every value in it is an integer in 0..255 and some exceed 1
-(unit normals cannot), otherwise normals; with two triples, normals come first unless
-only the first looks like colours. `scalar` is stored as extra["scalar"].
+A triple is normals when its rows have unit length (90% of them within 1%), colours
+when every value is in 0..1 or an integer in 0..255; a triple that is neither, or a
+7-column table that fits neither order, is an error that names the columns and asks
+for a header. With two triples one must be normals and the other colours.
+`scalar` is stored as extra["scalar"].
 """
 from __future__ import annotations
 
@@ -28,6 +32,12 @@ from c1mesh.errors import FormatError
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, decode_text, find_columns, is_number, loadtxt
 
 _SPLIT = re.compile(r"[\s,;]+")
+#: Header names of the coordinate columns, lower-case, per axis.
+XYZ_NAMES = (
+    ("x", "lon", "long", "longitude", "easting", "east"),
+    ("y", "lat", "latitude", "northing", "north"),
+    ("z", "elev", "elevation", "height", "alt", "altitude"),
+)
 
 
 def _data_lines(text: str) -> list[tuple[int, str]]:
@@ -35,15 +45,27 @@ def _data_lines(text: str) -> list[tuple[int, str]]:
     return [(n, ln) for n, ln in enumerate(text.splitlines(), start=1) if ln.strip() and not ln.lstrip().startswith("#")]
 
 
+def _unquote(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
+    """The lines without double quotes (R and pandas quote names and sometimes values)."""
+    return [(n, ln.replace('"', "")) for n, ln in lines] if any('"' in ln for _, ln in lines[:50]) else lines
+
+
 def _split_header(lines: list[tuple[int, str]]) -> tuple[list[str] | None, list[tuple[int, str]]]:
-    """Return (column names from the last leading non-numeric line or None, data lines)."""
+    """Return (column names from the last leading non-numeric line or None, data lines).
+
+    Names are split with the data's delimiter, so an empty first name (pandas' index
+    column, ',x,y,z') keeps its place.
+    """
     first = 0
     while first < len(lines) and not is_number(_SPLIT.split(lines[first][1].strip())[0]):
         first += 1
     if first == 0:
         return None, lines
-    words = _SPLIT.split(lines[first - 1][1].strip().lstrip("/"))
-    return [w.strip("'\"").lower() for w in words if w], lines[first:]
+    header = lines[first - 1][1].strip().lstrip("/")
+    sample = lines[first][1] if first < len(lines) else header
+    delimiter = ";" if ";" in sample else "," if "," in sample else None
+    words = header.split(delimiter) if delimiter else header.split()
+    return [w.strip().strip("'").lower() for w in words], lines[first:]
 
 
 def _drop_count_line(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
@@ -72,29 +94,62 @@ def _parse_table(lines: list[tuple[int, str]], name: str) -> np.ndarray:
     raise FormatError(f"Point file '{name}' could not be parsed as a table of numbers.")
 
 
-def _looks_like_rgb(block: np.ndarray) -> bool:
-    """True when every value is an integer in 0..255 and some exceed 1 (not unit normals)."""
-    return bool(block.size and np.all(block == np.round(block)) and block.min() >= 0 and 1 < block.max() <= 255)
+def _is_unit(block: np.ndarray) -> bool:
+    """True when the rows have unit length (90% of the finite rows within 1%): normals."""
+    rows = block[np.isfinite(block).all(axis=1)]
+    return bool(len(rows)) and float(np.mean(np.abs(np.linalg.norm(rows, axis=1) - 1.0) < 0.01)) >= 0.9
+
+
+def _is_color(block: np.ndarray) -> bool:
+    """True when every finite value is in 0..1, or is an integer in 0..255: colours."""
+    values = block[np.isfinite(block)]
+    if not values.size or values.min() < 0:
+        return False
+    return bool(values.max() <= 1.0 or (values.max() <= 255 and np.all(values == np.round(values))))
+
+
+def _ambiguous(name: str, k: int, what: str) -> FormatError:
+    return FormatError(
+        f"Point file '{name}' has {k} columns and no header, and {what}; add a header line naming "
+        "the columns, e.g. 'x y z nx ny nz red green blue'."
+    )
+
+
+def _triple(table: np.ndarray, start: int, name: str) -> str:
+    """'normals' or 'colors' for the columns start..start+2 (1-based in messages)."""
+    block = table[:, start:start + 3]
+    if _is_unit(block):
+        return "normals"
+    if _is_color(block):
+        return "colors"
+    raise _ambiguous(name, table.shape[1], f"columns {start + 1}-{start + 3} are neither unit normals "
+                     "nor colours (0..1 or integers 0..255)")
 
 
 def _layout(table: np.ndarray, name: str) -> dict[str, int | list[int]]:
-    """Column positions {'xyz', 'normals', 'colors', 'scalar'} for a table without header."""
+    """Column positions {'normals', 'colors', 'scalar'} for a table without header."""
     k = table.shape[1]
-    rgb = lambda start: _looks_like_rgb(table[:, start:start + 3])  # noqa: E731
     if k == 3:
         return {}
     if k == 4:
         return {"scalar": 3}
     if k == 6:
-        return {"colors": [3, 4, 5]} if rgb(3) else {"normals": [3, 4, 5]}
+        return {_triple(table, 3, name): [3, 4, 5]}
     if k == 7:
-        if rgb(4):
+        if _is_unit(table[:, 3:6]):
+            return {"normals": [3, 4, 5], "scalar": 6}
+        if _is_color(table[:, 4:7]):
             return {"scalar": 3, "colors": [4, 5, 6]}
-        return {("colors" if rgb(3) else "normals"): [3, 4, 5], "scalar": 6}
+        if _is_color(table[:, 3:6]):
+            return {"colors": [3, 4, 5], "scalar": 6}
+        raise _ambiguous(name, k, "neither columns 4-6 nor 5-7 are unit normals or colours")
     if k == 9:
-        if rgb(3) and not rgb(6):
+        first, second = table[:, 3:6], table[:, 6:9]
+        if _is_unit(first) and _is_color(second):
+            return {"normals": [3, 4, 5], "colors": [6, 7, 8]}
+        if _is_color(first) and _is_unit(second):
             return {"colors": [3, 4, 5], "normals": [6, 7, 8]}
-        return {"normals": [3, 4, 5], "colors": [6, 7, 8]}
+        raise _ambiguous(name, k, "columns 4-6 and 7-9 are not one triple of unit normals and one of colours")
     raise FormatError(
         f"Point file '{name}' has {k} columns and no header; without a header only 3, 4, 6, 7 or 9 columns "
         "are understood, so add a header line naming the columns (x y z nx ny nz red green blue)."
@@ -105,9 +160,10 @@ def _cloud_from_named(table: np.ndarray, names: list[str], name: str) -> PointCl
     """Split a table into PointCloud fields by header names."""
     if len(names) != table.shape[1]:
         raise FormatError(f"Point file '{name}' has {len(names)} header names but {table.shape[1]} values per line.")
-    xyz = find_columns(names, (("x",), ("y",), ("z",)))
+    xyz = find_columns(names, XYZ_NAMES)
     if None in xyz:
-        raise FormatError(f"Point file '{name}' has a header without x, y and z columns: {' '.join(names)!r}.")
+        raise FormatError(f"Point file '{name}' has a header without x, y and z columns "
+                          f"(or lon, lat, elev): {' '.join(names)[:200]!r}.")
     nrm = find_columns(names, NORMAL_NAMES)
     rgba = find_columns(names, COLOR_NAMES)
     cls = find_columns(names, (("classification", "class"),))[0]
@@ -120,7 +176,7 @@ def _cloud_from_named(table: np.ndarray, names: list[str], name: str) -> PointCl
         cloud.colors, used = colors_to_uint8(table[:, channels]), used | set(channels)
     if cls is not None:
         cloud.classification, used = table[:, cls].astype(np.int64), used | {cls}
-    cloud.extra = {n: table[:, i].copy() for i, n in enumerate(names) if i not in used}
+    cloud.extra = {(n or f"column_{i + 1}"): table[:, i].copy() for i, n in enumerate(names) if i not in used}
     return cloud
 
 
@@ -137,7 +193,7 @@ def _cloud_from_layout(table: np.ndarray, layout: dict[str, int | list[int]]) ->
 
 def read_xyz(data: bytes, name: str) -> PointCloud:
     """Read a whitespace- or comma-separated point table (see the module doc for columns)."""
-    names, lines = _split_header(_data_lines(decode_text(data, name, "Point")))
+    names, lines = _split_header(_unquote(_data_lines(decode_text(data, name, "Point"))))
     lines = _drop_count_line(lines) if names is None else lines
     if not lines:
         raise FormatError(f"Point file '{name}' has no numeric data lines.")

@@ -1,0 +1,286 @@
+"""Seamless surveys (c1mesh.tiles): union of the per-input outputs equals the whole fit.
+
+Ground truth is the fit of the concatenated cloud (one file), computed independently of
+the tile code; the per-input outputs are read back from disk and merged by exactly equal
+vertex coordinates, as a user would merge them.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from click.testing import CliRunner
+from scipy.spatial import cKDTree
+
+from c1mesh.cli import main
+from c1mesh.cloud import PointCloud
+from c1mesh.samples import sample_surface, write_points_ply
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+
+
+def _load(path):
+    mesh = trimesh.load(path, process=False, force="mesh")
+    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def _merge_exact(meshes):
+    """Concatenate meshes and merge vertices with bit-identical coordinates."""
+    vertices = np.concatenate([v for v, _ in meshes])
+    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])[:-1]
+    faces = np.concatenate([f + o for (_, f), o in zip(meshes, offsets)])
+    unique, inverse = np.unique(vertices, axis=0, return_inverse=True)
+    return unique, inverse.ravel()[faces]
+
+
+def _boundary_edges(faces):
+    """Undirected edges used by exactly one face, as sorted (a, b) rows."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    return unique[counts == 1]
+
+
+def _face_set(faces):
+    return {tuple(sorted(f)) for f in faces.tolist()}
+
+
+def _grid_cells(points, nx=2, ny=2):
+    """Cell (0..nx·ny−1) of each point in an nx × ny grid over the points' xy bounds."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    ij = np.minimum(((points[:, :2] - lo) / (hi - lo) * [nx, ny]).astype(int), [nx - 1, ny - 1])
+    return ij[:, 0] + nx * ij[:, 1]
+
+
+def _assert_union_is_whole(whole_path, tile_paths):
+    """The exact-vertex merge of the tiles is the whole mesh: same vertices (to rounding,
+    matched one to one), same faces, the same boundary; and every vertex the tiles share
+    is bit-identical (else the merge would keep two copies and have more vertices)."""
+    wv, wf = _load(whole_path)
+    tiles = [_load(p) for p in tile_paths]
+    mv, mf = _merge_exact(tiles)
+    assert mv.shape == wv.shape
+    distance, match = cKDTree(wv).query(mv)
+    scale = np.abs(wv).max()
+    assert distance.max() <= 1e-12 * scale
+    assert np.unique(match).size == match.size                     # one to one
+    assert _face_set(match[mf]) == _face_set(wf)
+    assert _face_set(match[_boundary_edges(mf)]) == _face_set(_boundary_edges(wf))
+    for v, f in tiles:                       # each tile's faces are a sub-mesh: none twice
+        assert len(_face_set(f)) == len(f)
+    assert sum(len(f) for _, f in tiles) == len(wf)               # every triangle exactly once
+
+
+@pytest.fixture(scope="module")
+def hill_tiles(tmp_path_factory):
+    """A hill with exact normals cut into a 2×2 grid of PLY files, and their concatenation."""
+    folder = tmp_path_factory.mktemp("hill_tiles")
+    cloud = sample_surface("hill", n=3000, seed=5)
+    cells = _grid_cells(cloud.points)
+    paths, parts = [], []
+    for i in range(4):
+        part = cloud.subset(cells == i)
+        paths.append(folder / f"tile{i}.ply")
+        write_points_ply(part, paths[-1])
+        parts.append(part)
+    whole = folder / "whole.ply"
+    write_points_ply(PointCloud(np.concatenate([p.points for p in parts]),
+                                np.concatenate([p.normals for p in parts])), whole)
+    return folder, [str(p) for p in paths], str(whole)
+
+
+def test_seamless_single_output_is_the_concatenated_fit(hill_tiles):
+    folder, paths, whole = hill_tiles
+    runner = CliRunner()
+    result = runner.invoke(main, ["fit", *paths, "--seamless", "-o", str(folder / "seam.ply"), "--level", "3"])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(main, ["fit", whole, "-o", str(folder / "whole_fit.ply"), "--level", "3"])
+    assert result.exit_code == 0, result.output
+    assert (folder / "seam.ply").read_bytes() == (folder / "whole_fit.ply").read_bytes()
+
+
+def test_seamless_tiles_merge_into_the_whole_fit(hill_tiles, tmp_path):
+    folder, paths, whole = hill_tiles
+    runner = CliRunner()
+    assert runner.invoke(main, ["fit", whole, "-o", str(tmp_path / "whole.ply"), "--level", "3"]).exit_code == 0
+    result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "out"), "--level", "3",
+                                  "--report", str(tmp_path / "report.json")])
+    assert result.exit_code == 0, result.output
+    outputs = [tmp_path / "out" / (Path(p).stem + ".c1.ply") for p in paths]
+    _assert_union_is_whole(tmp_path / "whole.ply", outputs)
+    # no boundary edge of any tile output lies inside the survey: the tiles' boundary
+    # edges that are not the whole mesh's boundary all pair up with a neighbour's edge
+    wv, wf = _load(tmp_path / "whole.ply")
+    whole_boundary = {tuple(sorted(map(tuple, wv[e]))) for e in _boundary_edges(wf)}
+    inner = []
+    for path in outputs:
+        v, f = _load(path)
+        inner += [tuple(sorted(map(tuple, v[e]))) for e in _boundary_edges(f)]
+    inner = [e for e in inner if e not in whole_boundary]
+    assert inner, "the tiles share no border: the test would prove nothing"
+    _, counts = np.unique(np.asarray(inner).reshape(len(inner), -1), axis=0, return_counts=True)
+    assert (counts == 2).all()
+
+
+def test_real_lidar_ground_cut_into_four_las_files(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    source = laspy.read(SAMPLES / "4_6_crop.las")
+    ground = source.points[source.classification == 2]
+    xyz = np.column_stack([ground.x, ground.y, ground.z])
+    cells = _grid_cells(xyz)
+    paths = []
+    for i in range(4):
+        part = laspy.LasData(source.header)
+        part.points = ground[cells == i]
+        paths.append(str(tmp_path / f"ground{i}.las"))
+        part.write(paths[-1])
+    whole = laspy.LasData(source.header)
+    whole.points = ground[np.argsort(cells, kind="stable")]
+    whole.write(tmp_path / "ground.las")
+    runner = CliRunner()
+    args = ["--level", "2", "--normals", "estimate"]
+    assert runner.invoke(main, ["fit", str(tmp_path / "ground.las"), "-o", str(tmp_path / "whole.ply"),
+                                *args]).exit_code == 0
+    result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "out"), *args])
+    assert result.exit_code == 0, result.output
+    _assert_union_is_whole(tmp_path / "whole.ply",
+                           [tmp_path / "out" / f"ground{i}.c1.ply" for i in range(4)])
+
+
+def test_failed_tile_is_named_and_leaves_no_output(hill_tiles, tmp_path, monkeypatch):
+    import c1mesh.distributed as distributed
+
+    folder, paths, _ = hill_tiles
+    real = distributed.run_tile
+
+    def failing(task, target=None):
+        if task.index == 2:
+            raise MemoryError("simulated")
+        return real(task, target)
+    monkeypatch.setattr(distributed, "run_tile", failing)
+    result = CliRunner().invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "out"), "--level", "2"])
+    assert result.exit_code == 1
+    assert "tile " + paths[2] in result.output and result.output.count("\n") == 1
+    assert list((tmp_path / "out").iterdir()) == []          # tiles 0 and 1 were written, then removed
+
+
+def test_dask_local_cluster_writes_the_same_bytes(hill_tiles, tmp_path):
+    """Tiles sent to a dask.distributed LocalCluster of two workers (threads, to start fast)."""
+    distributed = pytest.importorskip("distributed")
+    from c1mesh.pipeline import FitOptions
+    from c1mesh.tiles import fit_seamless
+
+    folder, paths, _ = hill_tiles
+    options = FitOptions(level=2)
+    outputs = {name: [str(tmp_path / name / (Path(p).stem + ".ply")) for p in paths] for name in ("here", "dask")}
+    for dst in outputs.values():
+        Path(dst[0]).parent.mkdir()
+    here = fit_seamless(paths, options, outputs=outputs["here"])
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        report = fit_seamless(paths, options, outputs=outputs["dask"], scheduler=cluster.scheduler_address)
+        workers = set(cluster.scheduler.workers)
+    for a, b in zip(outputs["here"], outputs["dask"]):
+        assert Path(a).read_bytes() == Path(b).read_bytes()
+    rows = report["tiles"]
+    assert [r["tile"] for r in rows] == paths
+    assert {r["worker"] for r in rows} <= workers and len(workers) == 2
+    assert all(r["worker"] not in workers for r in here["tiles"])
+    assert [r["triangles"] for r in rows] == [4 * r["base_triangles"] for r in rows]
+    assert [r["triangles"] for r in rows] == [r["triangles"] for r in here["tiles"]]
+
+
+def test_jobs_run_tiles_in_other_processes(hill_tiles, tmp_path):
+    import json
+    import os
+    import socket
+
+    folder, paths, _ = hill_tiles
+    runner = CliRunner()
+    for name, jobs in (("here", "1"), ("dask", "2")):
+        result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / name), "--level", "2",
+                                      "-j", jobs, "--report", str(tmp_path / f"{name}.json")])
+        assert result.exit_code == 0, result.output
+    for path in paths:
+        out = Path(path).stem + ".c1.ply"
+        assert (tmp_path / "here" / out).read_bytes() == (tmp_path / "dask" / out).read_bytes()
+    rows = json.loads((tmp_path / "dask.json").read_text())["tiles"]
+    assert [r["tile"] for r in rows] == paths
+    assert all(r["worker"] != f"{socket.gethostname()}:{os.getpid()}" for r in rows)
+
+
+def _free_port():
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_real_dask_scheduler_and_two_workers(hill_tiles, tmp_path):
+    """`dask scheduler` + two `dask worker` processes on 127.0.0.1, then --scheduler."""
+    pytest.importorskip("distributed")
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    folder, paths, _ = hill_tiles
+    command = Path(sys.executable).with_name("dask")     # the `dask` command of this environment
+    if not command.exists():
+        pytest.skip("no `dask` command next to this Python")
+    dask, worker = [str(command), "scheduler"], [str(command), "worker"]
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    processes = []
+    try:
+        processes.append(subprocess.Popen([*dask, "--host", "127.0.0.1", "--port", str(port),
+                                           "--dashboard-address", ":0"], env=env,
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        for _ in range(2):
+            processes.append(subprocess.Popen([*worker, address, "--nthreads", "1", "--nworkers", "1",
+                                               "--host", "127.0.0.1", "--no-dashboard"], env=env,
+                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        from distributed import Client
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+        runner = CliRunner()
+        result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "here"), "--level", "2"])
+        assert result.exit_code == 0, result.output
+        result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "cluster"), "--level", "2",
+                                      "--scheduler", address, "--report", str(tmp_path / "report.json")])
+        assert result.exit_code == 0, result.output
+        for path in paths:
+            out = Path(path).stem + ".c1.ply"
+            assert (tmp_path / "here" / out).read_bytes() == (tmp_path / "cluster" / out).read_bytes()
+        workers = {row["worker"] for row in json.loads((tmp_path / "report.json").read_text())["tiles"]}
+        assert len(workers) == 2
+    finally:
+        for process in reversed(processes):
+            process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 30
+        for process in reversed(processes):
+            try:
+                process.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def test_unreachable_scheduler_is_one_line_and_no_output(hill_tiles, tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    import c1mesh.distributed as distributed
+
+    monkeypatch.setattr(distributed, "CONNECT_SECONDS", 1)
+    folder, paths, _ = hill_tiles
+    address = f"tcp://127.0.0.1:{_free_port()}"                 # nothing listens there
+    result = CliRunner().invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "out"),
+                                       "--scheduler", address])
+    assert result.exit_code == 1
+    assert result.output.startswith(f"c1mesh: error: cannot reach the Dask scheduler {address}")
+    assert result.output.count("\n") == 1
+    assert not any((tmp_path / "out").iterdir())
