@@ -7,5 +7,6 @@ writes RESULTS.md and PNG plots. Sections, one module each:
   triangulation  scipy Delaunay vs c1mesh.triangulation.delaunay
   accuracy       convergence orders (sextic, quintic, rHCT, Clough-Tocher) and a real DEM
   memory         peak RSS of a fit vs the size of its output
+  geo            slope from the spline vs Horn / gdaldem, DEM time vs a level-2 fit, GLB vs PLY
 Every speed figure is a ratio to a peer measured in the same run (median of repetitions).
 """

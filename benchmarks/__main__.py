@@ -11,10 +11,10 @@ import time
 import traceback
 from pathlib import Path
 
-from benchmarks import accuracy, depth, engine, memory, pipeline, report, tiles, triangulation
+from benchmarks import accuracy, depth, engine, geo, memory, noisy, pipeline, report, tiles, triangulation
 from benchmarks.common import Config, Section
 
-SECTIONS = (engine, pipeline, triangulation, accuracy, memory, tiles, depth)
+SECTIONS = (engine, pipeline, triangulation, accuracy, noisy, memory, tiles, geo, depth)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,8 +18,11 @@ ROOT = Path(__file__).resolve().parent.parent
 HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
             "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
-            "## Accuracy: convergence orders and a real terrain", "## Memory: peak RSS of a fit",
+            "## Accuracy: convergence orders and a real terrain",
+            "## Noisy data: real scans, overshoot, folded faces, held-out RMS",
+            "## Memory: peak RSS of a fit",
             "## Tiles: seamless survey vs one whole fit",
+            "## Geo: slope honesty, DEM speed, GLB precision",
             "## Depth frames: pixel grid in the perspective frame vs Delaunay in the axis frame")
 
 

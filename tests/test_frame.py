@@ -374,3 +374,57 @@ def test_blocked_transforms_equal_one_matrix_product():
     assert frame.to_world(pts, out=out) is out
     assert np.array_equal(out, pts @ axes + frame.origin)
     assert np.array_equal(frame.vectors_to_world(np.asfortranarray(pts)), pts @ axes)
+
+
+# ---- coordinates too large for float64 distances (issue 14) ------------------------------
+@pytest.mark.parametrize("with_normals", [True, False])
+def test_coordinates_near_1e155_are_an_input_error_not_an_index_error(with_normals):
+    """Squared distances overflow at 1e155 and cKDTree then reports 'no neighbour' (index n);
+    that must surface as an InputError naming the cause, from choose_frame and height_field."""
+    pts = np.random.default_rng(0).random((200, 3)) * 1e155
+    nrm = np.tile([0.0, 0.0, 1.0], (200, 1))
+    with pytest.raises(InputError, match="byte order"):
+        frame = choose_frame(pts, nrm if with_normals else None, "auto")
+        height_field(pts, nrm, frame)
+
+
+def test_a_little_endian_body_read_as_big_endian_is_an_input_error():
+    """The bytes of ordinary doubles read with the wrong byte order give huge or tiny values."""
+    xyz = np.random.default_rng(1).random((300, 3)) * 100 + 1000
+    swapped = xyz.astype("<f8").view(">f8")
+    finite = np.isfinite(swapped).all(axis=1)
+    with pytest.raises(InputError, match="byte order"):
+        frame = choose_frame(swapped[finite], None, "z")
+        height_field(swapped[finite], np.tile([0.0, 0.0, 1.0], (int(finite.sum()), 1)), frame)
+
+
+def test_nearest_via_plane_treats_missing_neighbours_as_unknown():
+    """cKDTree returns index n for neighbours it cannot find; the helper must not index with it."""
+    from c1mesh.frame import _nearest_via_plane, _tree
+    pts = np.random.default_rng(2).random((100, 3))
+    expected = _tree(pts).query(pts, k=2)[0][:, 1]
+    np.testing.assert_array_equal(_nearest_via_plane(pts, pts, _tree(pts[:, :2])), expected)
+
+
+# ---- auto axis with coordinates in different units (issue 10) ------------------------------
+def _lonlat_terrain(n=5000, seed=0):
+    """Terrain with x, y in degrees (spread 0.02) and z in metres (spread ~60)."""
+    rng = np.random.default_rng(seed)
+    lon, lat = -122 + 0.02 * rng.random(n), 44 + 0.02 * rng.random(n)
+    z = 120 + 30 * np.sin((lon + 122) * 300) * np.cos((lat - 44) * 200) + rng.normal(0, 0.1, n)
+    return np.c_[lon, lat, z]
+
+
+@pytest.mark.parametrize("with_normals", [False, True])
+def test_auto_axis_survives_coordinates_in_different_units(with_normals, monkeypatch):
+    """Degrees for x, y and metres for z: PCA and estimated normals point sideways; the
+    auto axis must still be z. Without the unit check (monkeypatched off) it is not."""
+    import c1mesh.frame as frame_module
+    pts = _lonlat_terrain()
+    nrm = None
+    if with_normals:
+        from c1mesh.normals import estimate_normals
+        nrm = estimate_normals(pts, towards=(0.0, 0.0, 1.0))
+    np.testing.assert_array_equal(choose_frame(pts, nrm).axes[2], [0.0, 0.0, 1.0])
+    monkeypatch.setattr(frame_module, "UNIT_ANISOTROPY", np.inf)
+    assert abs(choose_frame(pts, nrm).axes[2][2]) < 0.5

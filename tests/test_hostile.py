@@ -236,16 +236,8 @@ def sample_cases(names: tuple[str, ...]) -> list[Case]:
     return cases
 
 
-#: Cases that end in frame.py on coordinates so large that their squares overflow (the
-#: fix of frame._nearest_via_plane / choose_frame belongs to the issue-10 work on the
-#: `overshoot` branch). strict: once that lands they pass, and these marks must go.
-FRAME_OVERFLOW = {"big_endian_header.ply", "huge_values.ply"}
-
-
-def _marked(cases: list[Case]) -> list:
-    reason = "huge coordinates crash frame.py; fixed on the overshoot branch (issue 10)"
-    return [pytest.param(c, id=c.name, marks=pytest.mark.xfail(strict=True, reason=reason))
-            if c.name in FRAME_OVERFLOW else pytest.param(c, id=c.name) for c in cases]
+def _params(cases: list[Case]) -> list:
+    return [pytest.param(c, id=c.name) for c in cases]
 
 
 def fast_cases() -> list[Case]:
@@ -422,13 +414,13 @@ def test_corpus_is_large_enough():
     assert len({c.name for c in fast_cases() + slow_cases()}) == len(fast_cases()) + len(slow_cases())
 
 
-@pytest.mark.parametrize("case", _marked(fast_cases()))
+@pytest.mark.parametrize("case", _params(fast_cases()))
 def test_hostile_input(server, case, tmp_path):
     run_case(server, case, tmp_path)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", _marked(slow_cases()))
+@pytest.mark.parametrize("case", _params(slow_cases()))
 def test_hostile_input_large_samples(server, case, tmp_path):
     run_case(server, case, tmp_path)
 

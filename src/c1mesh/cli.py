@@ -224,6 +224,9 @@ def main() -> None:
 @click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
               help="Depth images: metres per depth unit.")
 @click.option("--color", "color_image", help="Depth images: an RGB image of the same size for vertex colours.")
+@click.option("--overshoot", type=click.Choice(["limit", "off"]), default="limit", show_default=True,
+              help="limit: tame gradients that disagree with the heights and thin triangles "
+                   "(keeps C1); off: use the data as is.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
@@ -238,9 +241,20 @@ def main() -> None:
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
+@click.option("--crs", help="CRS of an input that has none: EPSG:XXXX, WKT, or a .prj/.wkt file.")
+@click.option("--resolution", type=float,
+              help="GeoTIFF cell size (-o *.tif); for meshes the target mean edge length (instead of --level).")
+@click.option("--slope", help="Also write a slope GeoTIFF (degrees) on the DEM's grid.")
+@click.option("--aspect", help="Also write an aspect GeoTIFF (degrees clockwise from north).")
+@click.option("--hillshade", help="Also write a hillshade GeoTIFF (uint8).")
+@click.option("--slope-method", type=click.Choice(["auto", "spline", "horn"]), default="auto",
+              show_default=True, help="Gradient for slope/aspect/hillshade: the spline's, or Horn's of the DEM.")
+@click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
+@click.pass_context
+def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
-        report, memory, jobs, quiet, verbose, debug, threads, seamless, scheduler):
+        overshoot, report, memory, jobs, quiet, verbose, debug,
+        threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
@@ -248,9 +262,12 @@ def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, a
     if seamless or scheduler:
         from c1mesh.pipeline import FitOptions
 
+        if resolution is not None or slope or aspect or hillshade or preview:
+            raise click.UsageError("--resolution, --slope, --aspect, --hillshade and --preview do not "
+                                   "work with --seamless yet; fit the survey to a mesh")
         options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
-                             ascii=ascii_ply)
+                             ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                       scheduler, quiet, debug)
         return
@@ -267,8 +284,11 @@ def fit(inputs, output, output_dir, suffix, input_format, classes, normals, k, a
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
-                         memory=memory, frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics,
+                         memory=memory, crs=crs, resolution=resolution, slope=slope, aspect=aspect,
+                         hillshade=hillshade, slope_method=slope_method, preview=preview,
+                         overshoot=overshoot, frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics,
                          depth_scale=depth_scale, color=color_image)
+    options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
         _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug)
@@ -350,6 +370,32 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
     _write_report(report, targets[-1], result, debug)
 
 
+def _check_geo(ctx, jobs_list, options, debug):
+    """Georeferencing options checked before any input is read (c1mesh.geo.check_before):
+    conflicts are usage errors (exit 2), a bad CRS or unwritable path exit 1. Returns the
+    options with the CRS parsed to WKT."""
+    from click.core import ParameterSource
+
+    from c1mesh.geo import check_before
+
+    if options.resolution is not None and ctx.get_parameter_source("level") != ParameterSource.DEFAULT:
+        raise click.UsageError("give either --level or --resolution, not both")
+    extras = (options.slope, options.aspect, options.hillshade, options.preview)
+    if len(jobs_list) > 1 and any(extras):
+        raise click.UsageError("--slope, --aspect, --hillshade and --preview name one file: "
+                               "use them with a single input")
+    extra = [(label, path) for label, path in (("slope raster", options.slope),
+                                               ("aspect raster", options.aspect),
+                                               ("hillshade raster", options.hillshade),
+                                               ("preview", options.preview)) if path]
+    try:
+        if extra:   # against the inputs, the outputs and each other (c1mesh.outputs)
+            plan_outputs([("output", dst) for _, dst in jobs_list] + extra, [src for src, _ in jobs_list])
+        return check_before([dst for _, dst in jobs_list], options)
+    except C1MeshError as exc:
+        _fail(_message(exc), debug)
+
+
 def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:
     """Usage errors for options that cannot apply to these inputs and outputs."""
     mesh_formats = {"ply" if dst == STDIO else Path(dst).suffix.lower().lstrip(".") for _, dst in pairs}
@@ -375,8 +421,10 @@ def _check_outputs(pairs, report, output_dir):
                              f"{exc.strerror or exc}.") from exc
     named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
     targets = plan_outputs(named, [src for src, _ in pairs])
+    from c1mesh.raster import is_raster_path
     for (_, dst), target in zip(pairs, targets):
-        mesh_format(dst, target=target)
+        if not is_raster_path(dst):     # GeoTIFF DEMs: checked by _check_geo
+            mesh_format(dst, target=target)
     return targets + [None] if report in (None, STDIO) else targets
 
 
@@ -408,18 +456,27 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug) -> None:
 
     from c1mesh.pipeline import STAGES
 
+    from c1mesh.raster import is_raster_path
+
     mesh_target, report_target = targets
-    options = replace(options, output_format=mesh_format(dst, target=mesh_target))
+    raster = is_raster_path(dst)
+    options = replace(options, output_format=None if raster else mesh_format(dst, target=mesh_target))
     show = _stderr_is_terminal() and not quiet
+
+    def run(target):
+        if not show:
+            return _run(src, target, options)
+        with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
+                               item_show_func=lambda s: s) as bar:
+            return _run(src, target, options, on_stage=lambda name: bar.update(1, name))
     try:
         with Outputs() as outputs:
-            with outputs.open(mesh_target) as mesh_file:
-                if show:
-                    with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
-                                           item_show_func=lambda s: s) as bar:
-                        result = _run(src, mesh_file, options, on_stage=lambda name: bar.update(1, name))
-                else:
-                    result = _run(src, mesh_file, options)
+            if raster:      # c1mesh.raster writes the GeoTIFFs, each atomically
+                result = run(dst)
+            else:
+                with outputs.open(mesh_target) as mesh_file:
+                    result = run(mesh_file)
+                _write_prj(outputs, dst, mesh_target, options.output_format, result)
             result["output"] = dst
             if report_target is not None:
                 with outputs.open(report_target, "w") as handle:
@@ -429,15 +486,46 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug) -> None:
         _fail(_message(exc), debug)
     if report == STDIO:
         click.echo(json.dumps(result, indent=2), err=True)
+    _warn(result, quiet)
     if verbose and not quiet:
         click.echo(_summary(result), err=True)
 
 
+def _write_prj(outputs, dst, mesh_target, fmt, result) -> None:
+    """The .prj sidecar (ESRI WKT) of a mesh file written in the same transaction as the mesh,
+    when a CRS was carried (c1mesh.crs; not for stdout or devices)."""
+    from c1mesh.crs import esri_wkt, prj_path
+    from c1mesh.formats import PRJ_SIDECAR
+
+    crs = (result.get("crs") or {}).get("wkt")
+    if not crs or fmt not in PRJ_SIDECAR or mesh_target.kind != "atomic":
+        return
+    (target,) = plan_outputs([("CRS sidecar", prj_path(dst))])
+    with outputs.open(target, "w") as handle:
+        handle.write(esri_wkt(crs) + "\n")
+
+
 def _summary(report: dict) -> str:
-    pts, mesh = report["points"], report["output_mesh"]
+    pts, mesh = report["points"], report.get("output_mesh")
     total = sum(report["seconds"].values())
-    return (f"{report['input']}: {pts['kept']} of {pts['read']} points -> {mesh['vertices']} vertices, "
-            f"{mesh['faces']} faces in {total:.2f} s")
+    made = (f"{mesh['vertices']} vertices, {mesh['faces']} faces" if mesh else
+            f"{report['raster']['cells_with_data']} of {report['raster']['cells']} raster cells")
+    line = f"{report['input']}: {pts['kept']} of {pts['read']} points -> {made} in {total:.2f} s"
+    frame = report.get("frame", {})
+    if "axis_choice" in frame:
+        e3 = ", ".join(f"{c:.3g}" for c in frame["axes"][2])
+        line += f"; height axis ({e3}), {frame['axis_choice']}"
+    if "overshoot" in report:
+        line += f"; gradients limited at {report['overshoot']['gradients_limited']} vertices"
+    return line
+
+
+def _warn(report: dict, quiet: bool) -> None:
+    """The report's warnings on stderr, one line each (not with -q)."""
+    if quiet:
+        return
+    for text in report.get("warnings", []):
+        click.echo(f"c1mesh: warning: {report.get('input')}: {text}", err=True)
 
 
 def _write_report(report, target, payload, debug) -> None:
@@ -477,6 +565,9 @@ def _fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debu
             results = _collect(iterator, len(work), show, verbose and not quiet)
     else:
         results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
+    for _, rep, _ in results:
+        if rep:
+            _warn(rep, quiet)
     failures = [(src, err) for src, _, err in results if err]
     _write_report(report, report_target,
                   {"inputs": [{"input": src, "report": rep, "error": err} for src, rep, err in results]}, debug)
@@ -525,6 +616,23 @@ def info(path, input_format, memory, intrinsics, depth_scale, debug):
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)
     click.echo(json.dumps(facts, indent=2))
+
+
+# ------------------------------------------------------------------------------- preview
+@main.command()
+@click.argument("path")
+@click.option("-o", "--output", required=True, help="The PNG to write.")
+@click.option("--debug", is_flag=True, help="Show tracebacks.")
+def preview(path, output, debug):
+    """Render PATH (a GeoTIFF DEM or a mesh with normals) as a shaded PNG."""
+    from c1mesh.geo import check_preview_path
+    from c1mesh.preview import render_file
+
+    try:
+        check_preview_path(output)
+        render_file(path, output)
+    except Exception as exc:  # noqa: BLE001
+        _fail(_message(exc), debug)
 
 
 # ------------------------------------------------------------------------------- schemes

@@ -16,6 +16,7 @@ class PointCloud:
     colors:         (N, 3) or (N, 4) uint8 RGB(A) or None.
     classification: (N,) integer LAS classification codes or None.
     extra:          other per-point fields by name, each (N,) array (kept, not interpreted).
+    crs:            WKT2 of the coordinate reference system the file declares, or None.
     grid_shape:     (height, width) when the points are an organised scan (pixels row by
                     row, N = height * width, invalid pixels non-finite), else None.
     viewpoint:      (7,) sensor position x, y, z and orientation quaternion qw, qx, qy, qz
@@ -27,6 +28,7 @@ class PointCloud:
     colors: np.ndarray | None = None
     classification: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    crs: str | None = None
     grid_shape: tuple[int, int] | None = None
     viewpoint: np.ndarray | None = None
 
@@ -42,6 +44,7 @@ class PointCloud:
             colors=pick(self.colors),
             classification=pick(self.classification),
             extra={k: v[mask] for k, v in self.extra.items()},
+            crs=self.crs,
             viewpoint=self.viewpoint,        # a subset is no longer a grid
         )
 

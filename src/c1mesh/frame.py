@@ -160,7 +160,10 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     everything = good.all()
     finite = np.ascontiguousarray(pts) if everything else pts[good]
     origin = np.median(finite, axis=0)
+    _check_extent(finite)
     e3 = _parse_axis(axis)
+    if e3 is None and _units_differ(finite):
+        e3 = _world_axis_by_layering(finite)
     if e3 is None:
         if normals is not None:
             normals = _as_n3(normals, "normals", len(pts))
@@ -225,6 +228,54 @@ def _auto_axis(points: np.ndarray, origin: np.ndarray, normals: np.ndarray | Non
     centred = points - origin
     e3 = np.linalg.eigh(centred.T @ centred)[1][:, 0]
     return -e3 if e3[np.argmax(np.abs(e3))] < 0 else e3
+
+
+UNIT_ANISOTROPY = 100.0
+"""Coordinates whose robust spreads differ by more than this factor are taken to be in
+different units (degrees and metres, metres and millimetres): then angles, normals and
+PCA directions mean nothing, and axis "auto" chooses among the world axes instead."""
+
+
+def _spreads(points: np.ndarray) -> np.ndarray:
+    """Robust per-coordinate spread (3,): the 5-95% inter-percentile range of points (n, 3)."""
+    low, high = np.percentile(points, [5, 95], axis=0)
+    return high - low
+
+
+def _units_differ(points: np.ndarray) -> bool:
+    """True when the coordinates' spreads differ by more than UNIT_ANISOTROPY (see there)."""
+    spread = _spreads(points)
+    return bool(spread.min() > 0 and spread.max() > UNIT_ANISOTROPY * spread.min())
+
+
+def auto_axis_reason(points: ArrayLike, has_normals: bool) -> str:
+    """How axis "auto" chooses e3 for these points (N, 3), in words for reports."""
+    pts = _as_n3(points, "points")
+    finite = pts[np.all(np.isfinite(pts), axis=1)]
+    if finite.shape[0] >= 3 and _units_differ(finite):
+        return ("auto: the coordinates are in different units (spreads differ by more than "
+                f"{UNIT_ANISOTROPY:g}x), so the world axis over which the points form a height field")
+    return "auto: the mean of the normals" if has_normals else "auto: least-variance direction (PCA)"
+
+
+def _world_axis_by_layering(points: np.ndarray, samples: int = 20000) -> np.ndarray:
+    """The world axis (+x, +y or +z) over which points (n, 3) are most nearly a height field.
+
+    Each coordinate is divided by its spread (unit-free). For each axis, every sampled
+    point's nearest neighbour over the other two coordinates is found; the score is the
+    median height difference to it over the median distance to it. Over the right axis
+    neighbours in the plane have similar heights (a slope); over a wrong one the surface
+    is folded onto itself and plane neighbours lie far apart in height.
+    """
+    scaled = points / _spreads(points)
+    scaled = scaled[:: max(1, scaled.shape[0] // samples)]
+    scores = []
+    for a in range(3):
+        plane = np.delete(scaled, a, axis=1)
+        distance, index = _tree(plane).query(plane, k=2)
+        step = np.abs(scaled[index[:, 1], a] - scaled[:, a])
+        scores.append(np.median(step) / max(np.median(distance[:, 1]), np.finfo(float).tiny))
+    return np.eye(3)[int(np.argmin(scores))]
 
 
 def _axes_from_e3(e3: np.ndarray) -> np.ndarray:
@@ -310,6 +361,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
         raise InputError(f"only {index.size} of {len(pts)} points have finite coordinates and a "
                          "usable (nonzero, finite) normal; a height field needs at least 3")
     local = frame.to_local(pts[index])
+    _check_extent(local)
     gradients, flipped = _gradients(n_local[index])
 
     keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame)
@@ -319,6 +371,23 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     return HeightField(xy=xy, z=local[keep, 2], gradients=gradients[keep],
                        source_index=index[keep].astype(np.int64), frame=frame, dropped=dropped,
                        flipped=flipped, stacked=n_stacked, spacing=spacing)
+
+
+MAX_EXTENT = 1e150
+"""Largest spread of local coordinates: squared distances of larger ones overflow float64."""
+
+
+def _check_extent(local: np.ndarray) -> None:
+    """InputError when local coordinates (n, 3) spread so far that distances overflow.
+
+    Coordinates near 1e155 (a little-endian body read as big-endian, a wrong scale
+    factor) make every squared distance inf, and KD-tree queries then find no neighbours.
+    """
+    span = float(np.max(np.ptp(local, axis=0))) if local.size else 0.0
+    if not span <= MAX_EXTENT:
+        raise InputError(f"the points spread over {span:.3g} units, too far for distances to be "
+                         "computed in float64; the coordinates are probably garbage (check the "
+                         "file's byte order, scale and offset)")
 
 
 def _gradients(n: np.ndarray) -> tuple[np.ndarray, int]:
@@ -455,13 +524,16 @@ def _nearest_via_plane(points: np.ndarray, query: np.ndarray, plane_tree: cKDTre
     """
     nearest = np.empty(query.shape[0])
     todo = np.arange(query.shape[0])
+    n = points.shape[0]
     for k in (6, 64):
-        plane, idx = plane_tree.query(query[todo, :2], k=min(k, points.shape[0]))
-        diff = points[idx] - query[todo, None, :]
+        plane, idx = plane_tree.query(query[todo, :2], k=min(k, n))
+        missing = idx >= n                                # cKDTree's "no neighbour" (inf distances)
+        diff = points[np.minimum(idx, n - 1)] - query[todo, None, :]
         d3 = np.sqrt(diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
                      + diff[..., 2] * diff[..., 2])
+        d3[missing] = np.inf
         best = np.partition(d3, 1, axis=1)[:, 1]          # [:, 0] is the point itself
-        done = best <= plane[:, -1]
+        done = (best <= plane[:, -1]) & ~missing.any(axis=1)
         nearest[todo[done]] = best[done]
         todo = todo[~done]
         if todo.size == 0:

@@ -16,10 +16,13 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.geo import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
+from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
-from c1mesh.frame import choose_frame, gradients_to_normals, height_field
+from c1mesh.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
 from c1mesh.interpolator import RSDInterpolator
+from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
 from c1mesh.threads import limit as thread_limit
 from c1mesh.threads import workers as thread_count
@@ -41,6 +44,8 @@ class FitOptions:
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
     scheme: shape-function tuple; level: each triangle becomes level² triangles;
+    overshoot: "limit" (default) limits gradients that disagree with the heights and picks
+    edge directions that keep thin triangles tame (c1mesh.limiter), "off" uses the data as is;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
     process-wide setting, by default the CPUs this process may use);
     output_format: mesh format of the output (default: its extension, PLY for a stream);
@@ -57,9 +62,21 @@ class FitOptions:
     scheme: str = "sextic"
     level: int = 4
     ascii: bool = False
+    overshoot: str = "limit"
     workers: int | None = None
     output_format: str | None = None
     memory: Any = None
+    # Georeferencing and rasters (c1mesh.crs, c1mesh.raster, c1mesh.preview): crs assigns a
+    # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
+    # cell size, or for meshes the target mean edge length (chooses the level); slope,
+    # aspect, hillshade are extra GeoTIFF paths; preview a PNG path.
+    crs: str | None = None
+    resolution: float | None = None
+    slope: str | None = None
+    aspect: str | None = None
+    hillshade: str | None = None
+    slope_method: str = "auto"
+    preview: str | None = None
     # perspective frame and organised scans (depth_fit.py): frame "auto" | "axis" |
     # "perspective"; viewpoint "x,y,z[,qw,qx,qy,qz]" or None (the file's, else the origin);
     # depth images: intrinsics (fx, fy, cx, cy) pixels, depth_scale metres per unit,
@@ -195,7 +212,7 @@ class SurfaceModel:
     normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
     cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
-    triangles index those n points).
+    triangles index those n points); overshoot: the limiter's report (c1mesh.limiter).
     """
 
     normal_source: str
@@ -204,6 +221,7 @@ class SurfaceModel:
     trim_report: Any
     used: np.ndarray
     interp: RSDInterpolator
+    overshoot: Any = None
 
 
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
@@ -214,6 +232,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     """
     timer = timer or _Timer(None)
     scheme = get_scheme(options.scheme)
+    if options.overshoot not in OVERSHOOT_MODES:
+        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
     with timer.stage("normals"):
         normals, normal_source = cloud_normals(cloud, options)
     with timer.stage("frame"):
@@ -226,9 +246,11 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
             raise InputError("no triangles are left after trimming; try --max-edge none")
         used, triangles = _compact(hf.xy, triangles)
     with timer.stage("interpolate"):
-        interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles=triangles,
-                                 scheme=scheme)
-    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp)
+        gradients, directions, overshoot = control_overshoot(
+            hf.xy[used], hf.z[used], hf.gradients[used], triangles, options.overshoot)
+        interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles,
+                                 scheme=scheme, directions=directions)
+    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot)
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -247,7 +269,7 @@ def fit(source, output=None, options: FitOptions | None = None,
     "write" the rest of the writing. Every stage uses at most options.workers threads.
     """
     options = options or FitOptions()
-    if output is not None:    # an output that cannot be written fails now, not after the work
+    if output is not None and not is_raster_path(output):   # fails now, not after the work
         check_output(output, options.output_format, inputs=(source,))
     with thread_limit(options.workers):
         return _fit(source, output, options, on_stage, keep_mesh)
@@ -255,9 +277,14 @@ def fit(source, output=None, options: FitOptions | None = None,
 
 def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
     """fit() inside its thread limit."""
+    geo = geo_plan(output, options)
+    if geo.rasters.items():
+        options = replace(options, axis=raster_axis(options.axis))
+    options, axis_reason = _resolve_axis(source, options)
     timer = _Timer(on_stage)
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
+        crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, _name(source))
     from c1mesh.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None) == "perspective":
         from c1mesh.depth_fit import fit_perspective
@@ -265,6 +292,19 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     model = build_surface(cloud, options, timer)
     normal_source, frame, hf, trim_report, used, interp = (
         model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
+    if geo.rasters.items():
+        with timer.stage("raster"):
+            raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs)
+        return _finish_geo(FitResult(None, {"input": _name(source), "output": _name(output),
+                                            "points": {"read": len(cloud), "kept": int(used.size),
+                                                       "spacing": float(hf.spacing)},
+                                            "frame": {"origin": frame.origin.tolist(),
+                                                      "axes": frame.axes.tolist()},
+                                            "raster": raster_report, "seconds": timer.seconds}),
+                           interp, frame, crs, crs_source, options)
+    if options.resolution is not None:
+        options = replace(options, level=level_for_edge(interp.points, interp.triangles,
+                                                        options.resolution))
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)
@@ -276,12 +316,83 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
                 write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
-                           ascii=options.ascii)
+                           ascii=options.ascii, crs=crs)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
                      used, interp, stream, timer)
-    return FitResult(mesh, report)
+    report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
+        auto_axis_reason(cloud.points, True)
+    report["overshoot"] = model.overshoot.as_dict()
+    report["pieces"] = mesh_pieces(interp.points, interp.triangles)
+    report["warnings"] = fit_warnings(report)
+    return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+LAS_FORMATS = ("las", "laz")
+
+
+def _resolve_axis(source, options: FitOptions) -> tuple[FitOptions, str]:
+    """The options with "auto" resolved for LAS/LAZ (z: elevation by the format's
+    definition), and a phrase saying how the height axis is chosen, for the report."""
+    if not (isinstance(options.axis, str) and options.axis.strip().lower() == "auto"):
+        return options, f"given: {options.axis}"
+    fmt = options.input_format or (Path(source).suffix if isinstance(source, (str, Path)) else "")
+    if str(fmt).lower().lstrip(".") in LAS_FORMATS:
+        return replace(options, axis="z"), "z: LAS/LAZ elevation"
+    return options, "auto"
+
+
+PIECES_WARN = 20
+"""More connected pieces than this in the trimmed triangulation draw a warning."""
+LARGEST_PIECE_WARN = 0.5
+"""A largest piece with less than this fraction of the triangles draws a warning."""
+AREA_LOSS_WARN = 0.25
+"""Trimming away more than this fraction of the convex hull's area draws a warning."""
+
+
+def mesh_pieces(xy: np.ndarray, triangles: np.ndarray) -> dict:
+    """Connected pieces (through shared edges) of a triangulation, and area kept.
+
+    xy (n, 2) plane points, triangles (T, 3). Returns {"count", "largest_fraction" (of
+    the triangles), "area_fraction" (triangulated area / convex hull area)}.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import ConvexHull
+
+    from c1mesh.topology import edge_table
+
+    table = edge_table(triangles, xy.shape[0])
+    slots = table.tri_edge.ravel()
+    order = np.argsort(slots, kind="stable")
+    pair = np.flatnonzero(slots[order][1:] == slots[order][:-1])
+    a, b = order[pair] // 3, order[pair + 1] // 3
+    graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(triangles.shape[0],) * 2)
+    count, label = connected_components(graph, directed=False)
+    u, v = xy[triangles[:, 1]] - xy[triangles[:, 0]], xy[triangles[:, 2]] - xy[triangles[:, 0]]
+    area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
+    try:
+        hull = ConvexHull(xy[np.unique(triangles)]).volume
+    except Exception:  # noqa: BLE001 - degenerate hull: report no loss
+        hull = area
+    return {"count": int(count),
+            "largest_fraction": float(np.bincount(label).max() / triangles.shape[0]),
+            "area_fraction": float(area / hull) if hull > 0 else 1.0}
+
+
+def fit_warnings(report: dict) -> list[str]:
+    """Plain-language warnings about a fit (the CLI prints them on stderr)."""
+    pieces = report["pieces"]
+    out = []
+    if pieces["count"] > PIECES_WARN or pieces["largest_fraction"] < LARGEST_PIECE_WARN:
+        out.append(f"the surface fell into {pieces['count']} pieces (the largest holds "
+                   f"{pieces['largest_fraction']:.0%} of the triangles); try a larger --max-edge "
+                   "(or none), or check --axis and --classes")
+    if 1.0 - pieces["area_fraction"] > AREA_LOSS_WARN:
+        out.append(f"the surface covers only {pieces['area_fraction']:.0%} of the input's extent "
+                   "(convex hull) after trimming; try a larger --max-edge (or none)")
+    return out
 
 
 class _StopWatch:

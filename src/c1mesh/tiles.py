@@ -357,8 +357,9 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     distributed.run_tiles (scheduler, jobs). on_tile is called with each tile's report
     row as it is written.
     """
-    from c1mesh.pipeline import _Timer, build_surface, fit
+    from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit
 
+    options, _ = _resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     timer = _Timer(None)
     with timer.stage("read"):
         survey = load_survey(sources, options)

@@ -155,7 +155,7 @@ def _check_mesh(mesh: SurfaceMesh) -> None:
 
 
 def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None = None,
-               ascii: bool = False) -> None:
+               ascii: bool = False, crs: str | None = None) -> None:
     """Write `mesh` to a path or a binary file object.
 
     The format comes from `fmt` if given, else from the path's extension; a file object
@@ -163,8 +163,10 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     A path is written by the rules of c1mesh.outputs: a regular file or new path to a
     temporary file beside it, renamed into place only when complete (an existing file's
     mode is kept); a character device or FIFO straight. A MeshStream is written block by block where the format allows (PLY) and
-    assembled in memory first otherwise. Raises InputError for unknown formats, missing
-    or unwritable directories.
+    assembled in memory first otherwise. `crs` (WKT) is written where the format has a
+    place for it (PLY header comment, GLB asset extras) and, for a regular-file path of
+    PLY/OBJ/STL/OFF, as an ESRI-WKT `.prj` sidecar. Raises InputError for unknown formats,
+    missing or unwritable directories.
     """
     if isinstance(mesh, SurfaceMesh):
         _check_mesh(mesh)
@@ -175,13 +177,25 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
             target = getattr(target, "buffer", None)
             if target is None:
                 raise InputError(f"Output stream '{name}' is in text mode; pass a binary stream such as sys.stdout.buffer.")
-        _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii)
+        _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii, **_crs_argument(key, crs))
         target.flush()
         return
     (planned,) = plan_outputs([("output", target)])
     key = _format(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
     with Outputs(deferred=False).open(planned) as f:
-        _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii)
+        _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii, **_crs_argument(key, crs))
+    if crs and key in PRJ_SIDECAR and planned.kind == "atomic":
+        from c1mesh.crs import write_prj
+        write_prj(target, crs)
+
+
+PRJ_SIDECAR = {"ply", "obj", "stl", "off"}
+"""Formats whose CRS also goes to a `.prj` sidecar (ESRI WKT) beside the file."""
+
+
+def _crs_argument(key: str, crs: str | None) -> dict:
+    """The writer's crs keyword where its format stores a CRS itself."""
+    return {"crs": crs} if crs and key in ("ply", "glb") else {}
 
 
 def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> None:

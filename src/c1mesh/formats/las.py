@@ -22,6 +22,7 @@ from typing import IO, Callable, Union
 import numpy as np
 
 from c1mesh.cloud import PointCloud
+from c1mesh.crs import las_crs
 from c1mesh.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
@@ -198,6 +199,7 @@ def read_las(data: Buffer, name: str, classes=None,
         if keep is None:
             check_alloc(reader.header.point_count * _KEPT_BYTES_PER_POINT, name,
                         f"the header's {reader.header.point_count} points")
+        crs = las_crs(reader.header)
         kept = 0
         dims = list(reader.header.point_format.dimension_names)
         nrm = find_columns(dims, NORMAL_NAMES)
@@ -221,6 +223,7 @@ def read_las(data: Buffer, name: str, classes=None,
             raise FormatError(f"LAS/LAZ file '{name}' has {decoded} points, not the "
                               f"{reader.header.point_count} its header says.")
     cloud = _assemble(parts)
+    cloud.crs = crs
     if keep is not None and decoded and not len(cloud):
         raise InputError(f"no points of class {keep.tolist()}; the file has classes {sorted(found)[:20]}")
     return cloud

@@ -17,6 +17,7 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
+from c1mesh.crs import crs_from_ply_header, ply_comment
 from c1mesh.formats._background import background_writes
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
 
@@ -323,7 +324,9 @@ def read_ply(data: bytes, name: str) -> PointCloud:
         rows = _ascii_vertices(elements, data, offset, name)
     else:
         rows = _binary_vertices(elements, data, offset, _ENDIAN[fmt], name)
-    return _cloud_from_rows(rows, vertex_el, name)
+    cloud = _cloud_from_rows(rows, vertex_el, name)
+    cloud.crs = crs_from_ply_header(data)
+    return cloud
 
 
 def _cloud_from_rows(rows: np.ndarray, el: Element, name: str) -> PointCloud:
@@ -360,9 +363,11 @@ def _vertex_dtype(stream: MeshStream, endian: str) -> np.dtype:
     return np.dtype(fields)
 
 
-def _header(stream: MeshStream, dtype: np.dtype, fmt: str) -> bytes:
+def _header(stream: MeshStream, dtype: np.dtype, fmt: str, crs: str | None = None) -> bytes:
     kinds = {"f8": "double", "u1": "uchar"}
-    lines = ["ply", f"format {fmt} 1.0", "comment written by c1mesh", f"element vertex {stream.vertex_count}"]
+    lines = ["ply", f"format {fmt} 1.0", "comment written by c1mesh"]
+    lines += [ply_comment(crs)] if crs else []
+    lines += [f"element vertex {stream.vertex_count}"]
     lines += [f"property {kinds[dtype[n].str[1:]]} {n}" for n in dtype.names]
     lines += [f"element face {stream.face_count}", "property list uchar int vertex_indices", "end_header", ""]
     return "\n".join(lines).encode("ascii")
@@ -382,13 +387,15 @@ def _vertex_rows(dtype: np.dtype, vertices, normals, colors) -> np.ndarray:
     return rows
 
 
-def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False) -> None:
+def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
+              crs: str | None = None) -> None:
     """Write a mesh (or a MeshStream, block by block) as PLY to binary file object `f`.
 
     Binary little endian, or ascii. Coordinates and normals are doubles so that large
     world coordinates (state-plane feet, UTM metres) keep their full precision. Rows are
     packed in blocks and written by a second thread while the next block is computed
     (formats/_background.py), so writing adds only a few block-sized buffers to memory.
+    `crs` (WKT) goes into the header as `comment crs <WKT>`, which read_ply reads back.
     """
     stream = mesh.stream(_WRITE_BLOCK) if isinstance(mesh, SurfaceMesh) else mesh
     if stream.vertex_count > np.iinfo(np.int32).max:
@@ -396,7 +403,7 @@ def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False)
                          "(use a lower --level or split the scan)")
     dtype = _vertex_dtype(stream, "=" if ascii else "<")
     with background_writes(f) as write:
-        write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian"))
+        write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian", crs))
         for vertices, normals, colors in stream.vertex_blocks():
             rows = _vertex_rows(dtype, vertices, normals if stream.has_normals else None,
                                 colors if stream.color_channels else None)

@@ -1,0 +1,129 @@
+"""The fit's georeferenced side, in one place the pipeline calls: the CRS to carry, the
+rasters and preview to write, and the level that gives a requested edge length.
+
+`geo_plan` checks everything that can be checked without the input (the CRS parses, the
+raster and preview paths have the right extensions and writable directories, options do
+not conflict), so the CLI can call it before any input is read.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from c1mesh import crs as crs_module
+from c1mesh.errors import InputError
+from c1mesh.raster import RasterTargets, is_raster_path, targets_for
+
+PREVIEW_SUFFIX = ".png"
+MAX_LEVEL = 64
+
+
+@dataclass
+class GeoPlan:
+    """What a fit writes besides (or instead of) the mesh."""
+
+    rasters: RasterTargets
+    user_crs: str | None
+    preview: str | None
+
+
+def geo_plan(output, options) -> GeoPlan:
+    """Validate the georeferencing options of a fit before any work (InputError if wrong)."""
+    user_crs = crs_module.parse_crs(options.crs) if options.crs else None
+    rasters = targets_for(output, options)
+    if options.resolution is not None and not options.resolution > 0:
+        raise InputError(f"--resolution must be a positive length, got {options.resolution}")
+    if options.preview is not None:
+        check_preview_path(options.preview)
+    if rasters.dem is not None:
+        check_writable(rasters.dem)
+    extra = [path for _, path in rasters.items() if path != rasters.dem]
+    extra += [options.preview] if options.preview else []
+    for path in extra:
+        check_writable(path)
+    named = [str(output)] if isinstance(output, (str, Path)) else []
+    named += extra
+    if len({str(Path(p).resolve()) for p in named}) != len(named):
+        raise InputError("two outputs (-o, --slope, --aspect, --hillshade, --preview) have the same path")
+    return GeoPlan(rasters, user_crs, options.preview)
+
+
+def check_preview_path(path) -> None:
+    """InputError unless `path` is a .png in a writable directory."""
+    if Path(path).suffix.lower() != PREVIEW_SUFFIX:
+        raise InputError(f"the preview '{path}' must be a .png file")
+    check_writable(path)
+
+
+def check_before(outputs, options):
+    """The georeferenced side of a fit's outputs, checked before the input is read: the
+    CRS, raster and preview paths, option conflicts (mesh outputs: c1mesh.outputs).
+    Returns the options with the CRS parsed to WKT (so it is parsed once)."""
+    from dataclasses import replace
+
+    if options.crs:
+        options = replace(options, crs=crs_module.parse_crs(options.crs))
+    for output in outputs:
+        if output == "-":
+            if targets_for(None, options).items():
+                raise InputError("GeoTIFF outputs cannot go to stdout; give -o FILE.tif")
+            continue
+        geo_plan(output, options)      # mesh outputs: c1mesh.outputs checks them
+    return options
+
+
+def check_writable(path) -> None:
+    """InputError unless `path` could be created: its directory exists and is writable."""
+    target = Path(path)
+    parent = target.parent
+    if target.is_dir():
+        raise InputError(f"Output path '{target}' is a directory; give a file name.")
+    if not parent.is_dir():
+        raise InputError(f"Output directory '{parent}' does not exist; create it first.")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"Output directory '{parent}' is not writable.")
+
+
+def resolve_crs(file_crs, user_crs, name):
+    """The CRS to carry and where it came from (crs.resolve)."""
+    return crs_module.resolve(file_crs, user_crs, name)
+
+
+def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Mean length of the triangles' edges (each shared edge counted from both sides)."""
+    total = 0.0
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        d = points[triangles[:, a]] - points[triangles[:, b]]
+        total += float(np.sqrt((d * d).sum(axis=1)).sum())
+    return total / (3 * triangles.shape[0])
+
+
+def level_for_edge(points: np.ndarray, triangles: np.ndarray, resolution: float) -> int:
+    """The refinement level whose output edges are closest to `resolution` on average:
+    level L splits every edge into L, so the mean edge becomes mean_input_edge / L."""
+    level = round(mean_edge_length(points, triangles) / resolution)
+    return int(min(max(level, 1), MAX_LEVEL))
+
+
+def finish(result, interp, frame, crs, crs_source, options):
+    """Add the CRS to the report and render the preview when one was asked for."""
+    facts = crs_module.describe(crs)
+    if facts is not None:
+        facts["source"] = crs_source
+    result.report["crs"] = facts
+    if options.resolution is not None and "level" in result.report:
+        result.report["resolution"] = options.resolution
+    if options.preview:
+        from c1mesh.preview import render_spline
+        start = time.perf_counter()
+        render_spline(interp, frame, options.preview, crs=crs)
+        result.report["seconds"]["preview"] = round(time.perf_counter() - start, 6)
+    return result
+
+
+__all__ = ["GeoPlan", "geo_plan", "check_writable", "resolve_crs", "level_for_edge", "finish",
+           "is_raster_path"]

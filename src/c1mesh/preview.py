@@ -1,0 +1,204 @@
+"""PNG previews: a hillshade coloured by height, with a scale bar and a height colour bar.
+
+Three sources, one picture: a fitted spline (`render_spline`: heights and exact normals
+sampled at pixel centres), a GeoTIFF DEM (`render_raster`: Horn's gradient of the DEM,
+since the spline is not at hand), and a mesh file with vertex normals (`render_mesh`:
+heights and normals of the vertices averaged per pixel). Pixels are in the scan frame's
+plane (x east, y north for terrain), north up. matplotlib is imported only here.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from c1mesh.errors import InputError
+from c1mesh.raster import RasterGrid, SplineSampler, hillshade, horn_gradient, is_raster_path
+
+PIXELS = 700
+"""Cells along the longer side of a preview."""
+
+
+def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIXELS) -> None:
+    """Preview of a fitted spline: sampled on a grid over its triangulation in the scan
+    frame (heights in world z when the frame's axes are the world's)."""
+    lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
+    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
+    world = np.allclose(frame.axes, np.eye(3))
+    sampler = SplineSampler(interp, (0.0, 0.0, frame.origin[2] if world else 0.0))
+    z, g = sampler.window(grid, range(grid.height), range(grid.width))
+    offset = frame.origin[:2] if world else np.zeros(2)
+    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
+              grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
+    render_arrays(z, g, extent, path, _units(crs), "C1 surface (exact normals)")
+
+
+def render_raster(source, path) -> None:
+    """Preview of a GeoTIFF DEM (band 1) with Horn's gradient of its cells."""
+    from c1mesh.raster import _rasterio
+    rasterio = _rasterio()
+    try:
+        with rasterio.open(source) as ds:
+            z = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+            res = abs(ds.transform.a)
+            bounds = ds.bounds
+            crs = ds.crs.to_wkt() if ds.crs else None
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"cannot read the raster '{source}': {exc}") from exc
+    padded = np.pad(z, 1, constant_values=np.nan)
+    g = horn_gradient(padded, res)
+    z = np.where(np.isfinite(g).all(axis=2), z, np.nan)   # edge cells have no 3x3 gradient
+    render_arrays(z, g, (bounds.left, bounds.right, bounds.bottom, bounds.top), path, _units(crs),
+                  f"{Path(str(source)).name} (Horn gradient)")
+
+
+def render_mesh(source, path, pixels: int = PIXELS) -> None:
+    """Preview of a mesh or point file with vertex normals: averages per pixel in the
+    frame where it is a height field (c1mesh.frame.choose_frame)."""
+    from c1mesh.formats import read_cloud
+    from c1mesh.frame import choose_frame
+
+    if Path(str(source)).suffix.lower() == ".glb":
+        from c1mesh.cloud import PointCloud
+        from c1mesh.formats.meshes import read_glb_vertices
+        points, normals = read_glb_vertices(Path(source).read_bytes())
+        document_crs = _glb_crs(Path(source).read_bytes())
+        cloud = PointCloud(points=points, normals=normals, crs=document_crs)
+    else:
+        cloud = read_cloud(source)
+    if cloud.normals is None:
+        raise InputError(f"'{source}' has no vertex normals to shade; fit it first (c1mesh fit)")
+    frame = choose_frame(cloud.points, cloud.normals)
+    if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
+        frame = choose_frame(cloud.points, cloud.normals, "z")
+    world = np.allclose(frame.axes, np.eye(3))
+    local = frame.to_local(cloud.points)
+    normals = frame.vectors_to_local(cloud.normals)
+    normals *= np.where(normals[:, 2:] < 0, -1.0, 1.0)
+    lo, hi = local[:, :2].min(axis=0), local[:, :2].max(axis=0)
+    area = max(float(np.prod(hi - lo)), 1e-300)
+    size = max(_pixel_size(lo, hi, pixels), 1.5 * math.sqrt(area / len(local)))
+    grid = RasterGrid.covering(lo, hi, size)
+    col = np.clip(((local[:, 0] - grid.west) / size).astype(np.int64), 0, grid.width - 1)
+    row = np.clip(((grid.north - local[:, 1]) / size).astype(np.int64), 0, grid.height - 1)
+    cell = row * grid.width + col
+    count = np.bincount(cell, minlength=grid.width * grid.height).astype(float)
+    mean = lambda v: np.bincount(cell, v, minlength=count.size) / np.where(count > 0, count, np.nan)  # noqa: E731
+    z = mean(local[:, 2]) + (frame.origin[2] if world else 0.0)
+    nz = mean(normals[:, 2])
+    g = np.stack([-mean(normals[:, 0]) / nz, -mean(normals[:, 1]) / nz], axis=-1)
+    shape = (grid.height, grid.width)
+    z, g = _fill_gaps(z.reshape(shape), g.reshape(shape + (2,)))
+    offset = frame.origin[:2] if world else np.zeros(2)
+    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * size,
+              grid.north + offset[1] - grid.height * size, grid.north + offset[1])
+    render_arrays(z, g, extent, path, _units(cloud.crs), f"{Path(str(source)).name} (vertex normals)")
+
+
+def _fill_gaps(z: np.ndarray, g: np.ndarray, passes: int = 2):
+    """Fill empty pixels that have at least 4 of 8 filled neighbours with their mean
+    (vertices of a refined mesh are not uniform, so some pixels inside it get none)."""
+    for _ in range(passes):
+        empty = ~np.isfinite(z)
+        if not empty.any():
+            break
+        stack = np.concatenate([z[..., None], g], axis=-1)
+        padded = np.pad(stack, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+        h, w = z.shape
+        shifts = [padded[1 + di:1 + di + h, 1 + dj:1 + dj + w] for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                  if di or dj]
+        neighbours = np.stack(shifts)                                   # (8, h, w, 3)
+        have = np.isfinite(neighbours[..., 0])
+        count = have.sum(axis=0)
+        total = np.where(have[..., None], neighbours, 0.0).sum(axis=0)
+        fill = empty & (count >= 4)
+        z[fill] = total[fill, 0] / count[fill]
+        g[fill] = total[fill, 1:] / count[fill, None]
+    return z, g
+
+
+def _glb_crs(data: bytes) -> str | None:
+    import json
+    import struct
+    length = struct.unpack_from("<I", data, 12)[0]
+    return json.loads(data[20:20 + length]).get("asset", {}).get("extras", {}).get("crs")
+
+
+def render_file(source, path) -> None:
+    """Preview of an existing output: a GeoTIFF DEM or a mesh file."""
+    if not Path(source).exists():
+        raise InputError(f"Input file '{source}' does not exist.")
+    (render_raster if is_raster_path(source) else render_mesh)(source, path)
+
+
+def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str, title: str) -> None:
+    """Draw heights z (h, w) shaded by gradients (h, w, 2) over extent (left, right, bottom,
+    top) and write the PNG atomically. NaN heights are transparent."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from c1mesh.formats import atomic_output
+
+    valid = np.isfinite(z) & np.isfinite(gradient).all(axis=-1)
+    if not valid.any():
+        raise InputError("nothing to preview: the surface covers no pixel")
+    lo, hi = np.percentile(z[valid], [1, 99])
+    hi = hi if hi > lo else lo + 1.0
+    rgba = matplotlib.colormaps["gist_earth"](np.clip((z - lo) / (hi - lo), 0, 1) * 0.85 + 0.1)
+    shade = hillshade(np.where(valid[..., None], gradient, 0.0))
+    rgba[..., :3] *= (0.25 + 0.75 * shade)[..., None]
+    rgba[..., 3] = valid
+    h, w = z.shape
+    plot_w = 5.6                                   # inches of map; margins around it
+    plot_h = plot_w * h / w
+    fig = Figure(figsize=(plot_w + 2.3, plot_h + 0.9), dpi=100)
+    FigureCanvasAgg(fig)
+    W, H = plot_w + 2.3, plot_h + 0.9
+    ax = fig.add_axes((1.1 / W, 0.4 / H, plot_w / W, plot_h / H))
+    ax.imshow(rgba, extent=extent, origin="upper", interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(labelsize=7)
+    _scale_bar(ax, extent, units)
+    cax = fig.add_axes(((1.3 + plot_w) / W, 0.2 + 0.4 / H, 0.15 / W, 0.6 * plot_h / H))
+    norm = matplotlib.colors.Normalize(lo, hi)
+    cmap = matplotlib.colors.ListedColormap(matplotlib.colormaps["gist_earth"](np.linspace(0.1, 0.95, 256)))
+    fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax).set_label(
+        f"height ({units})" if units else "height", fontsize=8)
+    cax.tick_params(labelsize=7)
+    with atomic_output(path, "wb") as handle:
+        fig.savefig(handle, format="png")
+
+
+def _scale_bar(ax, extent, units: str) -> None:
+    """A bar of a round length (1, 2 or 5 × 10^k) about a fifth of the width, bottom left."""
+    width = extent[1] - extent[0]
+    raw = width / 5
+    power = 10 ** math.floor(math.log10(raw))
+    length = max(m * power for m in (1, 2, 5) if m * power <= raw)
+    x0 = extent[0] + 0.05 * width
+    y0 = extent[2] + 0.05 * (extent[3] - extent[2])
+    ax.plot([x0, x0 + length], [y0, y0], color="black", linewidth=4, solid_capstyle="butt")
+    ax.plot([x0, x0 + length], [y0, y0], color="white", linewidth=1.5, solid_capstyle="butt")
+    ax.text(x0 + length / 2, y0 + 0.035 * (extent[3] - extent[2]), f"{length:g} {units}".strip(),
+            ha="center", va="bottom", fontsize=9,
+            bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1})
+
+
+def _pixel_size(lo, hi, pixels: int) -> float:
+    span = float(max(hi[0] - lo[0], hi[1] - lo[1]))
+    return span / pixels if span > 0 else 1.0
+
+
+_UNIT_NAMES = {"metre": "m", "meter": "m", "US survey foot": "ft (US)", "foot": "ft", "degree": "°"}
+
+
+def _units(crs: str | None) -> str:
+    """Short name of the horizontal unit of a CRS ('' when there is none)."""
+    if not crs:
+        return ""
+    from c1mesh.crs import describe
+    unit = describe(crs)["units"] or ""
+    return _UNIT_NAMES.get(unit, unit)

@@ -1,0 +1,496 @@
+"""GeoTIFF rasters from the C1 surface: DEM, slope, aspect and hillshade on one grid.
+
+The grid is aligned to multiples of the resolution R in world coordinates (x to the east,
+y to the north, z up: the surface must be a height field over the world XY plane, so the
+fit uses --axis z). Each cell holds the spline at the cell centre; cells whose centre lies
+outside the trimmed triangulation are nodata. Slope, aspect and hillshade come from a
+gradient at each cell centre: the spline's own analytic gradient ("spline"), or Horn's
+3x3 differences of the DEM ("horn", what `gdaldem slope` computes), chosen per resolution
+by "auto" (see AUTO_SPLINE_FROM). The rasters are computed and written in blocks of rows, so
+memory holds a few blocks, not the grid.
+
+Units: slope in degrees from horizontal (0-90); aspect in degrees clockwise from north of
+the downhill direction (0-360, GDAL's convention; 0 where the surface is exactly flat);
+hillshade 1-255 (uint8, 0 = nodata) for a light from azimuth 315°, altitude 45°, like
+`gdaldem hillshade`. Slope and aspect assume that x, y and z share one length unit.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from c1mesh import rsd
+from c1mesh.errors import DependencyError, InputError
+
+RASTER_SUFFIXES = (".tif", ".tiff")
+DEM_NODATA = -9999.0
+HILLSHADE_NODATA = 0
+BLOCK_ROWS = 256
+"""GeoTIFF tile size, and the most rows computed and written at a time."""
+BLOCK_CELLS = 1 << 17
+"""Cells computed at a time (fewer rows per block on wide grids): bounds the memory."""
+SLOPE_METHODS = ("auto", "spline", "horn")
+AUTO_SPLINE_FROM = 8.0
+"""`auto` uses the spline's gradient at resolutions of at least this many point spacings
+(√(area / points)) and Horn's differences of the DEM below. From the slope table in
+benchmarks/RESULTS.md (section geo): the sextic's gradient follows every error of the
+input normals (it interpolates them) and is only O(h) between points, so Horn's 3x3
+average of the spline's heights is closer to the true slope up to about 4 spacings with
+exact normals and 8 spacings with 3° normal noise; beyond that Horn's own truncation
+error (O(R²)) dominates and the spline gradient wins."""
+LIGHT_AZIMUTH, LIGHT_ALTITUDE = 315.0, 45.0
+
+
+def is_raster_path(path) -> bool:
+    """True when `path` names a GeoTIFF output (.tif/.tiff)."""
+    return isinstance(path, (str, Path)) and Path(path).suffix.lower() in RASTER_SUFFIXES
+
+
+def _rasterio():
+    try:
+        import rasterio
+    except ImportError as exc:
+        raise DependencyError('Writing GeoTIFF needs rasterio: pip install "rasterio>=1.3".') from exc
+    return rasterio
+
+
+# ---------------------------------------------------------------------------------- grid
+@dataclass(frozen=True)
+class RasterGrid:
+    """A north-up grid: column j, row i has its centre at (west + (j + ½)R, north − (i + ½)R).
+
+    west and north are multiples of the resolution R (world units), so grids of different
+    tiles at the same R line up cell for cell.
+    """
+
+    west: float
+    north: float
+    resolution: float
+    width: int
+    height: int
+
+    @classmethod
+    def covering(cls, lo, hi, resolution: float) -> "RasterGrid":
+        """The aligned grid that covers the box lo..hi (world x, y)."""
+        r = float(resolution)
+        if not (r > 0 and math.isfinite(r)):
+            raise InputError(f"--resolution must be a positive length, got {resolution!r}")
+        west, east = math.floor(lo[0] / r) * r, math.ceil(hi[0] / r) * r
+        south, north = math.floor(lo[1] / r) * r, math.ceil(hi[1] / r) * r
+        width, height = max(1, round((east - west) / r)), max(1, round((north - south) / r))
+        if width * height > 4e9:
+            raise InputError(f"a {width} x {height} grid at resolution {r:g} is too large; "
+                             "use a coarser --resolution")
+        return cls(west, north, r, int(width), int(height))
+
+    @property
+    def transform(self):
+        """The rasterio/GDAL affine transform of the grid."""
+        from affine import Affine
+        return Affine(self.resolution, 0.0, self.west, 0.0, -self.resolution, self.north)
+
+
+# ------------------------------------------------------------------------------- sampling
+def polynomial_form(scheme) -> tuple[np.ndarray, np.ndarray, float]:
+    """(K (21, P), exponents (P, 2), max error) of the spline on one triangle as a
+    polynomial in (λ0, λ1): coefficients C (T, 21) @ K are the monomial coefficients of
+    λ0^i λ1^j, (i, j) = exponents, i + j ≤ d, the scheme's degree.
+
+    Built by interpolating the basis on the degree-d lattice (unisolvent for degree d);
+    the returned error is the largest difference from rsd.basis at random barycentrics,
+    so a scheme that is not a polynomial of its stated degree is caught, not trusted.
+    """
+    degree = scheme.degree
+    if degree is None:
+        from c1mesh.properties import scheme_properties
+        degree = scheme_properties(scheme).degree
+    exponents = np.array([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)])
+    lattice = exponents / degree
+    lam = np.column_stack([lattice, 1.0 - lattice.sum(axis=1)])
+    vandermonde = lattice[:, :1] ** exponents[:, 0] * lattice[:, 1:] ** exponents[:, 1]
+    K = np.linalg.solve(vandermonde, rsd.basis(scheme, lam).T).T          # (21, P)
+    probe = np.random.default_rng(0).dirichlet((1, 1, 1), 200)
+    mono = probe[:, :1] ** exponents[:, 0] * probe[:, 1:2] ** exponents[:, 1]
+    error = float(np.abs(mono @ K.T - rsd.basis(scheme, probe).T).max())
+    return K, exponents, error
+
+
+class SplineSampler:
+    """Values and analytic gradients of a fitted spline at the cell centres of a grid.
+
+    interp: the RSDInterpolator in the scan frame; origin: (3,) the frame's origin. The
+    frame's axes must be the world axes (--axis z), so that local = world − origin and
+    the local gradient is the world gradient dz/dx, dz/dy.
+
+    Cells are found triangle by triangle (scan conversion: the cell centres inside each
+    triangle's bounding box, kept when their barycentric coordinates are ≥ −1e-10, the
+    tolerance of c1mesh.locate), and the spline is evaluated as its per-triangle
+    polynomial in (λ0, λ1) (polynomial_form): values and gradients are then sums of
+    monomials instead of 21 shape functions per point, the same numbers to ~1e-12.
+    """
+
+    TOLERANCE = 1e-10
+
+    def __init__(self, interp, origin):
+        self.interp = interp
+        self.origin = np.asarray(origin, dtype=np.float64)
+        K, self.exponents, error = polynomial_form(interp.scheme)
+        self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
+        tri, pts = interp.triangles, interp.points
+        xs = [pts[tri[:, k], 0] for k in range(3)]
+        ys = [pts[tri[:, k], 1] for k in range(3)]
+        self._lo = np.column_stack([np.minimum(np.minimum(xs[0], xs[1]), xs[2]),
+                                    np.minimum(np.minimum(ys[0], ys[1]), ys[2])])
+        self._hi = np.column_stack([np.maximum(np.maximum(xs[0], xs[1]), xs[2]),
+                                    np.maximum(np.maximum(ys[0], ys[1]), ys[2])])
+        self.degree = int(self.exponents.max())
+        self._index = {(int(i), int(j)): k for k, (i, j) in enumerate(self.exponents)}
+        self._index = np.array([[self._index.get((i, j), -1) for j in range(self.degree + 1)]
+                                for i in range(self.degree + 1)])
+        # per triangle, one contiguous array each (gathered per cell): for k = 0, 1 the
+        # gradient of λ_k and the vertex k+1 it is measured from
+        G = interp._G
+        self._bary = [(G[:, k, 0].copy(), G[:, k, 1].copy(), xs[k + 1], ys[k + 1]) for k in range(2)]
+        self._order = np.argsort(self._hi[:, 1])                         # by north edge
+        self._north = self._hi[self._order, 1]
+        self._span = float((self._hi[:, 1] - self._lo[:, 1]).max()) if len(tri) else 0.0
+
+    def window(self, grid: RasterGrid, rows: range, cols: range, gradients: bool = True):
+        """Heights (nrows, ncols) in world z and gradients (nrows, ncols, 2) at the centres
+        of grid cells rows × cols (indices may lie outside the grid: a halo); NaN outside
+        the triangulation. gradients=False skips them (returns None): a DEM alone, or
+        Horn's differences, need heights only."""
+        nr, nc = len(rows), len(cols)
+        cell, tri, l0, l1 = self.cells(grid, rows, cols)
+        values, grads = self._evaluate(tri, l0, l1, gradients)
+        z = np.full(nr * nc, np.nan)
+        z[cell] = values + self.origin[2]
+        if not gradients:
+            return z.reshape(nr, nc), None
+        g = np.full((nr * nc, 2), np.nan)
+        g[cell] = grads
+        return z.reshape(nr, nc), g.reshape(nr, nc, 2)
+
+    def cells(self, grid: RasterGrid, rows: range, cols: range):
+        """(flat cell index, triangle, λ0, λ1), each (m,), of every cell centre of rows ×
+        cols inside a triangle (a cell on a shared edge may appear twice: either triangle
+        gives the same C1 surface; the later one is kept by the callers' assignment)."""
+        r = grid.resolution
+        x0 = grid.west - self.origin[0]          # local x of the grid's west edge
+        y0 = grid.north - self.origin[1]
+        nc = len(cols)
+        top, bottom = y0 - (rows.start + 0.5) * r, y0 - (rows.stop - 0.5) * r
+        # triangles whose y-range meets the rows: north edge in [bottom, top + tallest]
+        slack = r * 1e-9
+        first = np.searchsorted(self._north, bottom - slack, side="left")
+        last = np.searchsorted(self._north, top + self._span + slack, side="right")
+        cand = self._order[first:last]
+        cand = cand[self._lo[cand, 1] <= top + slack]
+        cand = cand[(self._hi[cand, 0] >= x0 + (cols.start + 0.5) * r - slack)
+                    & (self._lo[cand, 0] <= x0 + (cols.stop - 0.5) * r + slack)]
+        eps = 1e-9
+        j0 = np.maximum(np.ceil((self._lo[cand, 0] - x0) / r - 0.5 - eps).astype(np.int64), cols.start)
+        j1 = np.minimum(np.floor((self._hi[cand, 0] - x0) / r - 0.5 + eps).astype(np.int64), cols.stop - 1)
+        i0 = np.maximum(np.ceil((y0 - self._hi[cand, 1]) / r - 0.5 - eps).astype(np.int64), rows.start)
+        i1 = np.minimum(np.floor((y0 - self._lo[cand, 1]) / r - 0.5 + eps).astype(np.int64), rows.stop - 1)
+        nj = np.maximum(j1 - j0 + 1, 0)
+        count = np.maximum(i1 - i0 + 1, 0) * nj
+        tri = np.repeat(cand, count)
+        local = np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count)
+        di, dj = np.divmod(local, np.repeat(nj, count))
+        ii = np.repeat(i0, count) + di
+        jj = np.repeat(j0, count) + dj
+        l0, l1 = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
+        tol = -self.TOLERANCE
+        keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
+        return (ii[keep] - rows.start) * nc + (jj[keep] - cols.start), tri[keep], l0[keep], l1[keep]
+
+    def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
+        """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
+        c1mesh.locate computes them (exact near the edge opposite vertex k)."""
+        out = []
+        for gx, gy, rx, ry in self._bary:
+            lam = gx[tri] * (px - rx[tri])
+            lam += gy[tri] * (py - ry[tri])
+            out.append(lam)
+        return out[0], out[1]
+
+    def _evaluate(self, tri, l0, l1, gradients: bool = True):
+        """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
+        barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,)."""
+        it = self.interp
+        if self.K is None:
+            C, G = it.coefficients[tri], it._G[tri]
+            lam = np.column_stack([l0, l1, 1.0 - l0 - l1])
+            return (rsd.values_at(it.scheme, C, lam),
+                    rsd.gradients_at(it.scheme, C, G, lam) if gradients else None)
+        A = self.K.T @ it.coefficients[tri].T                            # (P, m), rows contiguous
+        m, d = tri.size, self.degree
+        power0 = [np.ones(m), l0]
+        power1 = [np.ones(m), l1]
+        for _ in range(2, d + 1):
+            power0.append(power0[-1] * l0)
+            power1.append(power1[-1] * l1)
+        values, d0, d1 = np.zeros(m), np.zeros(m), np.zeros(m)
+        q, r, tmp = np.empty(m), np.empty(m), np.empty(m)
+        for i in range(d + 1):
+            # q = Σ_j a_ij λ1^j, r = ∂q/∂λ1; then F += λ0^i q, ∂F/∂λ0 += i λ0^(i−1) q, ∂F/∂λ1 += λ0^i r
+            q.fill(0.0)
+            r.fill(0.0)
+            for j in range(d + 1 - i):
+                row = A[self._index[i, j]]
+                np.multiply(row, power1[j], out=tmp)
+                q += tmp
+                if j and gradients:
+                    np.multiply(row, power1[j - 1], out=tmp)
+                    tmp *= j
+                    r += tmp
+            np.multiply(q, power0[i], out=tmp)
+            values += tmp
+            if not gradients:
+                continue
+            np.multiply(r, power0[i], out=tmp)
+            d1 += tmp
+            if i:
+                np.multiply(q, power0[i - 1], out=tmp)
+                tmp *= i
+                d0 += tmp
+        if not gradients:
+            return values, None
+        (g0x, g0y, _, _), (g1x, g1y, _, _) = self._bary
+        out = np.empty((m, 2))
+        out[:, 0] = d0 * g0x[tri] + d1 * g1x[tri]
+        out[:, 1] = d0 * g0y[tri] + d1 * g1y[tri]
+        return values, out
+
+
+def horn_gradient(dem: np.ndarray, resolution: float) -> np.ndarray:
+    """Horn's (1981) 3x3 gradient of a north-up DEM with a one-cell halo.
+
+    dem (h + 2, w + 2) → (h, w, 2) = (dz/dx east, dz/dy north); NaN where any of the nine
+    cells is NaN. This is `gdaldem slope`'s default method.
+    """
+    a, b, c = dem[:-2, :-2], dem[:-2, 1:-1], dem[:-2, 2:]
+    d, f = dem[1:-1, :-2], dem[1:-1, 2:]
+    g, h, i = dem[2:, :-2], dem[2:, 1:-1], dem[2:, 2:]
+    out = np.empty(a.shape + (2,))
+    out[..., 0] = ((c + 2 * f + i) - (a + 2 * d + g)) / (8 * resolution)
+    out[..., 1] = ((a + 2 * b + c) - (g + 2 * h + i)) / (8 * resolution)
+    return out
+
+
+def slope_degrees(gradient: np.ndarray) -> np.ndarray:
+    """Slope from horizontal in degrees, from gradients (..., 2)."""
+    return np.degrees(np.arctan(np.hypot(gradient[..., 0], gradient[..., 1])))
+
+
+def aspect_degrees(gradient: np.ndarray) -> np.ndarray:
+    """Azimuth of the downhill direction, degrees clockwise from north in [0, 360); 0 where
+    the gradient is exactly zero."""
+    gx, gy = gradient[..., 0], gradient[..., 1]
+    azimuth = np.mod(np.degrees(np.arctan2(-gx, -gy)), 360.0)
+    return np.where((gx == 0) & (gy == 0), 0.0, azimuth)
+
+
+def hillshade(gradient: np.ndarray, azimuth: float = LIGHT_AZIMUTH,
+              altitude: float = LIGHT_ALTITUDE) -> np.ndarray:
+    """Lambertian shade in [0, 1] of the unit normal (−gx, −gy, 1)/‖·‖ for a light from
+    `azimuth` (degrees clockwise from north) and `altitude` (degrees above the horizon)."""
+    az, alt = math.radians(azimuth), math.radians(altitude)
+    light = (math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt))
+    gx, gy = gradient[..., 0], gradient[..., 1]
+    shade = (-gx * light[0] - gy * light[1] + light[2]) / np.sqrt(gx * gx + gy * gy + 1.0)
+    return np.clip(shade, 0.0, 1.0)
+
+
+def choose_slope_method(method: str, resolution: float, spacing: float) -> str:
+    """'spline' or 'horn' for a requested method at a resolution and point spacing."""
+    if method not in SLOPE_METHODS:
+        raise InputError(f"slope method must be one of {', '.join(SLOPE_METHODS)}, got {method!r}")
+    if method != "auto":
+        return method
+    return "spline" if resolution >= AUTO_SPLINE_FROM * spacing else "horn"
+
+
+# ------------------------------------------------------------------------------- writing
+@dataclass
+class RasterTargets:
+    """Where each raster goes (None = not written)."""
+
+    dem: str | None = None
+    slope: str | None = None
+    aspect: str | None = None
+    hillshade: str | None = None
+
+    def items(self):
+        return [(k, v) for k, v in vars(self).items() if v is not None]
+
+
+def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
+                block_rows: int | None = None) -> Iterator[tuple[range, np.ndarray, np.ndarray | None]]:
+    """(rows, heights (n, w), gradients (n, w, 2)) for consecutive blocks of grid rows.
+
+    method "spline": the spline's gradient at each centre; "horn": Horn's differences of
+    the sampled heights (one extra cell around the block), the spline's gradient where a
+    neighbour is nodata (at the edges of the mesh); None: heights only.
+    """
+    block_rows = block_rows or max(1, min(BLOCK_ROWS, BLOCK_CELLS // grid.width))
+    for start in range(0, grid.height, block_rows):
+        rows = range(start, min(start + block_rows, grid.height))
+        if method != "horn":
+            z, g = sampler.window(grid, rows, range(grid.width), gradients=method == "spline")
+            yield rows, z, g
+            continue
+        halo = (range(rows.start - 1, rows.stop + 1), range(-1, grid.width + 1))
+        cell, tri, l0, l1 = sampler.cells(grid, *halo)
+        zh = np.full((len(halo[0]), len(halo[1])), np.nan)
+        zh.ravel()[cell] = sampler._evaluate(tri, l0, l1, False)[0] + sampler.origin[2]
+        z = zh[1:-1, 1:-1]
+        g = horn_gradient(zh, grid.resolution)
+        edge = np.isfinite(z) & ~np.isfinite(g).all(axis=2)
+        if edge.any():      # cells next to nodata: the spline's own gradient there
+            wanted = np.zeros(zh.shape, bool)
+            wanted[1:-1, 1:-1] = edge
+            some = wanted.ravel()[cell]
+            spline = np.full(zh.shape + (2,), np.nan)
+            spline.reshape(-1, 2)[cell[some]] = sampler._evaluate(tri[some], l0[some], l1[some], True)[1]
+            g[edge] = spline[1:-1, 1:-1][edge]
+        yield rows, z, g
+
+
+def _profile(grid: RasterGrid, dtype: str, nodata, crs: str | None) -> dict:
+    profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 1,
+               "dtype": dtype, "nodata": nodata, "transform": grid.transform,
+               "compress": "deflate", "tiled": True, "blockxsize": BLOCK_ROWS,
+               "blockysize": BLOCK_ROWS, "BIGTIFF": "IF_SAFER"}
+    if dtype.startswith("float"):
+        profile["predictor"] = 3   # floating-point predictor: deflate packs DEMs much better
+    if crs:
+        profile["crs"] = crs
+    return profile
+
+
+_KINDS = {"dem": ("float32", DEM_NODATA), "slope": ("float32", DEM_NODATA),
+          "aspect": ("float32", DEM_NODATA), "hillshade": ("uint8", HILLSHADE_NODATA)}
+
+
+def _layer(kind: str, z: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """The values of raster `kind` for one block, nodata filled in."""
+    outside = ~np.isfinite(z)
+    if kind == "dem":
+        return np.where(outside, DEM_NODATA, z)
+    elif kind == "slope":
+        out = slope_degrees(g)
+    elif kind == "aspect":
+        out = aspect_degrees(g)
+    else:
+        shade = np.rint(1.0 + 254.0 * hillshade(np.nan_to_num(g)))
+        return np.where(outside, HILLSHADE_NODATA, shade).astype(np.uint8)
+    return np.where(outside, DEM_NODATA, out).astype(np.float32)
+
+
+def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
+                  method: str = "spline", crs: str | None = None,
+                  block_rows: int | None = None, dem_dtype: str = "float32") -> dict:
+    """Write the requested rasters in one pass over the grid; returns a report dict.
+
+    dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
+    float32, the default, which rounds heights of 1e4 to ~1e-3).
+
+    Every file is written to a temporary file and renamed into place only when all of them
+    are complete (formats.atomic_output), with overviews (2x, 4x, ... averaged) added.
+    """
+    rasterio = _rasterio()
+    from c1mesh.formats import atomic_output
+
+    items = targets.items()
+    if not items:
+        return {}
+    cells_inside = 0
+    with contextlib.ExitStack() as stack:
+        temps = {kind: stack.enter_context(atomic_output(path, "path")) for kind, path in items}
+        kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
+        datasets = {kind: stack.enter_context(rasterio.open(temps[kind], "w", **_profile(
+            grid, *kinds[kind], crs))) for kind, _ in items}
+        shaded = any(kind != "dem" for kind, _ in items)
+        for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
+            cells_inside += int(np.isfinite(z).sum())
+            window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
+            for kind, ds in datasets.items():
+                ds.write(_layer(kind, z, g).astype(kinds[kind][0], copy=False), 1, window=window)
+        for kind, ds in datasets.items():
+            _build_overviews(ds, grid, kind)
+            ds.close()
+    return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
+                     "width": grid.width, "height": grid.height},
+            "cells": grid.width * grid.height, "cells_with_data": cells_inside,
+            "slope_method": method, "files": dict(items)}
+
+
+def _build_overviews(ds, grid: RasterGrid, kind: str) -> None:
+    """2x, 4x, ... overviews down to about one tile (averaged; nearest for hillshade)."""
+    from rasterio.enums import Resampling
+
+    factors, factor = [], 2
+    while max(grid.width, grid.height) / factor >= BLOCK_ROWS / 2 and factor <= 1024:
+        factors.append(factor)
+        factor *= 2
+    if factors:
+        ds.build_overviews(factors, Resampling.nearest if kind == "hillshade" else Resampling.average)
+
+
+# ------------------------------------------------------------------------ the fit's side
+def targets_for(output, options) -> RasterTargets:
+    """The rasters a fit writes: the DEM when `output` is a .tif, plus --slope/--aspect/
+    --hillshade. InputError when they are asked for without a --resolution."""
+    targets = RasterTargets(dem=str(output) if is_raster_path(output) else None,
+                            slope=options.slope, aspect=options.aspect, hillshade=options.hillshade)
+    if targets.items() and options.resolution is None:
+        raise InputError("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade) need --resolution")
+    if (options.slope or options.aspect or options.hillshade) and targets.dem is None:
+        raise InputError("--slope, --aspect and --hillshade come with a DEM: give -o DEM.tif")
+    for kind, path in targets.items():
+        if not is_raster_path(path):
+            raise InputError(f"the {kind} raster '{path}' must be a GeoTIFF (.tif or .tiff)")
+    return targets
+
+
+def raster_axis(axis):
+    """The height axis for raster outputs: world z (a DEM is z over x, y)."""
+    if isinstance(axis, str) and axis.strip().lower() in ("auto", "z", "+z"):
+        return "z"
+    raise InputError(f"a DEM is heights over the world XY plane; --axis {axis} cannot be used "
+                     "with GeoTIFF outputs (use --axis z or auto)")
+
+
+def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
+    """√(area of the triangulation / number of points): the mean point spacing."""
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    u, v = b - a, c - a
+    area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
+    return float(math.sqrt(area / points.shape[0]))
+
+
+def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None) -> dict:
+    """Sample a fitted spline onto the aligned grid covering its triangulation and write
+    the requested rasters; returns the report's "raster" section."""
+    if not np.allclose(frame.axes, np.eye(3)):
+        raise InputError("raster outputs need the world z axis as height axis (--axis z)")
+    if crs and (options.slope or options.aspect or options.hillshade):
+        from c1mesh.crs import describe
+        if describe(crs)["geographic"]:
+            raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
+                             "geographic (degrees): reproject to a projected CRS first")
+    lo = interp.points.min(axis=0) + frame.origin[:2]
+    hi = interp.points.max(axis=0) + frame.origin[:2]
+    grid = RasterGrid.covering(lo, hi, options.resolution)
+    spacing = mean_spacing(interp.points, interp.triangles)
+    method = choose_slope_method(options.slope_method, grid.resolution, spacing)
+    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin), method, crs)
+    report["point_spacing"] = float(spacing)
+    return report

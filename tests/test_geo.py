@@ -1,0 +1,335 @@
+"""Georeferenced terrain: CRS in and out, GeoTIFF DEM/slope/aspect/hillshade, previews, GLB.
+
+Truth comes from outside the code under test: EPSG codes of the bundled PDAL tiles,
+analytic terrains with exact normals, matplotlib's TrapezoidMapTriFinder for "inside the
+trimmed mesh", rasterio for reading the files, GDAL's hillshade formula.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from c1mesh.cli import main
+from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.formats import read_cloud, write_mesh
+from c1mesh.interpolator import RSDInterpolator
+from c1mesh.pipeline import FitOptions, fit
+
+pyproj = pytest.importorskip("pyproj")
+rasterio = pytest.importorskip("rasterio")
+
+DATA = Path(__file__).resolve().parent.parent / "data_samples"
+TILE = DATA / "4_6_crop.las"            # EPSG:2903, NAD83(HARN) / New Mexico Central (ftUS)
+AUTZEN = DATA / "autzen_trim.laz"        # WKT VLR: Lambert Conformal Conic, international feet
+OFFSET = np.array([640000.0, 850000.0, 120.0])
+
+
+def _crs(text):
+    return pyproj.CRS.from_user_input(text)
+
+
+def _terrain(n=3000, seed=1):
+    """Points of z = 0.4 sin(x) cos(0.7 y) + 0.1 x on [0, 6]², with the exact gradient."""
+    xy = np.random.default_rng(seed).random((n, 2)) * 6.0
+    x, y = xy[:, 0], xy[:, 1]
+    z = 0.4 * np.sin(x) * np.cos(0.7 * y) + 0.1 * x
+    g = np.column_stack([0.4 * np.cos(x) * np.cos(0.7 * y) + 0.1, -0.28 * np.sin(x) * np.sin(0.7 * y)])
+    return xy, z, g
+
+
+def _terrain_slope(x, y):
+    gx = 0.4 * np.cos(x) * np.cos(0.7 * y) + 0.1
+    gy = -0.28 * np.sin(x) * np.sin(0.7 * y)
+    return np.degrees(np.arctan(np.hypot(gx, gy)))
+
+
+def _terrain_file(path, n=3000):
+    xy, z, g = _terrain(n)
+    normals = np.column_stack([-g, np.ones(n)])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    write_mesh(SurfaceMesh(np.column_stack([xy, z]) + OFFSET, np.empty((0, 3), np.int64), normals), path)
+    return path
+
+
+def _cells(path):
+    """Band 1 (masked) and world x, y of every cell centre, from the file's own transform."""
+    ds = rasterio.open(path)
+    band = ds.read(1, masked=True)
+    rows, cols = np.indices(band.shape)
+    x, y = ds.transform @ (cols + 0.5, rows + 0.5)
+    return band, np.asarray(x), np.asarray(y), ds
+
+
+# ------------------------------------------------------------------------------- CRS in
+def test_las_geokeys_crs_is_read():
+    assert _crs(read_cloud(TILE).crs).to_epsg() == 2903
+
+
+def test_las_wkt_vlr_crs_is_read():
+    crs = _crs(read_cloud(AUTZEN).crs)
+    assert crs.is_projected and "Lambert_Conformal_Conic" in crs.to_wkt("WKT1_ESRI")
+    assert crs.axis_info[0].unit_name == "foot"
+
+
+def _info(path) -> dict:
+    """`c1mesh info PATH` in a child process (info needs a real stdout)."""
+    import os
+    import subprocess
+    import sys
+    src = str(Path(__file__).resolve().parent.parent / "src")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [src, os.environ.get("PYTHONPATH")])))
+    done = subprocess.run([sys.executable, "-m", "c1mesh.cli", "info", str(path)], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_info_shows_the_crs_of_las_and_of_our_ply(tmp_path):
+    runner = CliRunner()
+    assert _info(TILE)["crs"]["epsg"] == 2903
+    out = tmp_path / "ground.ply"
+    done = runner.invoke(main, ["fit", str(TILE), "--classes", "2", "--level", "1", "-o", str(out)])
+    assert done.exit_code == 0, done.output
+    assert _info(out)["crs"]["epsg"] == 2903
+    assert _crs((tmp_path / "ground.prj").read_text()).equals(_crs("EPSG:2903"))
+
+
+# ------------------------------------------------------------------------------ CRS out
+@pytest.mark.parametrize("ext", ["ply", "obj", "stl", "off", "glb"])
+def test_every_mesh_format_carries_the_crs(tmp_path, ext):
+    crs = _crs("EPSG:32633").to_wkt()
+    mesh = SurfaceMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.5]]) + OFFSET, np.array([[0, 1, 2]]),
+                       np.tile([0.0, 0.0, 1.0], (3, 1)))
+    out = tmp_path / f"m.{ext}"
+    write_mesh(mesh, out, crs=crs)
+    if ext == "glb":
+        data = out.read_bytes()
+        length = int.from_bytes(data[12:16], "little")
+        document = json.loads(data[20:20 + length])
+        assert _crs(document["asset"]["extras"]["crs"]).to_epsg() == 32633
+        assert not (tmp_path / "m.prj").exists()
+    else:
+        assert _crs((tmp_path / "m.prj").read_text()).to_epsg() == 32633
+    if ext == "ply":
+        assert _crs(read_cloud(out).crs).to_epsg() == 32633
+
+
+def test_crs_option_assigns_where_the_input_has_none(tmp_path):
+    src = _terrain_file(tmp_path / "t.ply", 400)
+    out = tmp_path / "out.ply"
+    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out), "--level", "1",
+                                     "--crs", "EPSG:32633", "--report", str(tmp_path / "r.json")])
+    assert done.exit_code == 0, done.output
+    assert _crs(read_cloud(out).crs).to_epsg() == 32633
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["crs"]["epsg"] == 32633 and report["crs"]["source"] == "option"
+
+
+def test_crs_option_that_contradicts_the_file_is_an_error(tmp_path):
+    out = tmp_path / "out.ply"
+    done = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out),
+                                     "--crs", "EPSG:4326"])
+    assert done.exit_code == 1 and "does not reproject" in done.output
+    assert not out.exists()
+    same = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out), "--level", "1",
+                                     "--crs", "EPSG:2903"])
+    assert same.exit_code == 0, same.output
+
+
+def test_crs_from_a_prj_file(tmp_path):
+    prj = tmp_path / "a.prj"
+    prj.write_text(_crs("EPSG:2903").to_wkt("WKT1_ESRI"))
+    from c1mesh.crs import parse_crs
+    assert _crs(parse_crs(str(prj))).equals(_crs("EPSG:2903"))
+
+
+# --------------------------------------------------------------------- fail before work
+@pytest.mark.parametrize("args, words", [
+    (["-o", "{tmp}/x.ply", "--crs", "EPSG:99999999"], "cannot parse the CRS"),
+    (["-o", "{tmp}/x.dem"], "Unsupported output format 'dem'"),
+    (["-o", "{tmp}/missing/x.tif", "--resolution", "1"], "does not exist"),
+    (["-o", "{tmp}/x.tif"], "need --resolution"),
+    (["-o", "{tmp}/x.ply", "--slope", "{tmp}/s.tif", "--resolution", "1"], "come with a DEM"),
+    (["-o", "{tmp}/x.tif", "--resolution", "1", "--slope", "{tmp}/s.png"], "must be a GeoTIFF"),
+    (["-o", "{tmp}/x.tif", "--resolution", "1", "--preview", "{tmp}/p.jpg"], "must be a .png"),
+    (["-o", "{tmp}/x.tif", "--resolution", "1", "--axis", "x"], "--axis x cannot be used"),
+])
+def test_bad_outputs_fail_before_the_input_is_read(tmp_path, args, words):
+    # the input does not exist: an error about it would mean the input was looked at first
+    argv = ["fit", str(tmp_path / "no-such-input.las")] + [a.format(tmp=tmp_path) for a in args]
+    done = CliRunner().invoke(main, argv)
+    assert done.exit_code == 1 and words in done.output, done.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_level_and_resolution_conflict_is_a_usage_error(tmp_path):
+    done = CliRunner().invoke(main, ["fit", str(TILE), "-o", str(tmp_path / "x.ply"), "--level", "3",
+                                     "--resolution", "2"])
+    assert done.exit_code == 2 and "--level or --resolution" in done.output
+
+
+# ------------------------------------------------------------------------------- rasters
+def _fitted(n=3000):
+    """The interpolator on the triangulation the fit pipeline uses (Delaunay, hull slivers
+    trimmed: they make the spline's gradient wrong by tens of degrees near the hull)."""
+    from c1mesh.triangulation import delaunay, trim
+    xy, z, g = _terrain(n)
+    triangles, _ = trim(xy, delaunay(xy), max_edge="auto")
+    return RSDInterpolator(xy, z, g, triangles=triangles)
+
+
+def test_dem_cells_are_the_interpolator_at_cell_centres(tmp_path):
+    from c1mesh.raster import RasterGrid, RasterTargets, SplineSampler, write_rasters
+    interp = _fitted()
+    origin = OFFSET
+    res = 0.05                                  # point spacing is 6 / √3000 ≈ 0.11
+    grid = RasterGrid.covering(interp.points.min(0) + origin[:2], interp.points.max(0) + origin[:2], res)
+    assert grid.west / res == round(grid.west / res) and grid.north / res == round(grid.north / res)
+    targets = RasterTargets(dem=str(tmp_path / "dem.tif"), slope=str(tmp_path / "slope.tif"))
+    write_rasters(targets, grid, SplineSampler(interp, origin), "spline", block_rows=37,
+                  dem_dtype="float64")
+    band, x, y, _ = _cells(tmp_path / "dem.tif")
+    expected = interp(np.column_stack([x.ravel() - origin[0], y.ravel() - origin[1]])).reshape(x.shape)
+    inside = np.isfinite(expected)
+    assert np.array_equal(~np.ma.getmaskarray(band), inside)
+    assert np.abs(band.data[inside] - (expected[inside] + origin[2])).max() < 1e-9
+    slope, *_ = _cells(tmp_path / "slope.tif")
+    err = slope.data[inside] - _terrain_slope(x[inside] - origin[0], y[inside] - origin[1])
+    assert math.sqrt(np.mean(err ** 2)) <= 1.0
+
+
+def test_slope_and_hillshade_from_the_cli_match_the_analytic_terrain(tmp_path):
+    src = _terrain_file(tmp_path / "t.ply")
+    runner = CliRunner()
+    for method in ("spline", "horn"):
+        done = runner.invoke(main, ["fit", str(src), "-o", str(tmp_path / f"dem_{method}.tif"),
+                                    "--resolution", "0.05", "--slope", str(tmp_path / f"s_{method}.tif"),
+                                    "--aspect", str(tmp_path / f"a_{method}.tif"), "--slope-method", method,
+                                    "--hillshade", str(tmp_path / f"h_{method}.tif"), "--crs", "EPSG:32633"])
+        assert done.exit_code == 0, done.output
+        slope, x, y, ds = _cells(tmp_path / f"s_{method}.tif")
+        assert ds.crs.to_epsg() == 32633
+        ok = ~np.ma.getmaskarray(slope)
+        lx, ly = x[ok] - OFFSET[0], y[ok] - OFFSET[1]
+        err = slope.data[ok] - _terrain_slope(lx, ly)
+        assert math.sqrt(np.mean(err ** 2)) <= 1.0, method
+        # GDAL's hillshade formula (gdaldem, azimuth 315, altitude 45) on the analytic terrain
+        aspect, *_ = _cells(tmp_path / f"a_{method}.tif")
+        shade, *_ = _cells(tmp_path / f"h_{method}.tif")
+        gx = 0.4 * np.cos(lx) * np.cos(0.7 * ly) + 0.1
+        gy = -0.28 * np.sin(lx) * np.sin(0.7 * ly)
+        s, a = np.arctan(np.hypot(gx, gy)), np.arctan2(-gx, -gy)   # aspect: downhill, from north
+        gdal = np.sin(np.radians(45)) * np.cos(s) + np.cos(np.radians(45)) * np.sin(s) * np.cos(np.radians(315) - a)
+        assert np.abs(shade.data[ok] - (1 + 254 * np.clip(gdal, 0, 1))).mean() < 2.0
+        # slope and aspect together give back the gradient: −tan(slope)·(sin, cos)(aspect)
+        t, rad = np.tan(np.radians(slope.data[ok])), np.radians(aspect.data[ok])
+        error = np.hypot(-t * np.sin(rad) - gx, -t * np.cos(rad) - gy)
+        assert math.sqrt(np.mean(error ** 2)) <= math.tan(math.radians(1.0)), method
+
+
+def test_aspect_of_planes_points_downhill():
+    from c1mesh.raster import aspect_degrees, slope_degrees
+    g = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])    # rising east, north, west, south
+    assert np.allclose(aspect_degrees(g), [270, 180, 90, 0])
+    assert np.allclose(slope_degrees(g), 45)
+    assert aspect_degrees(np.array([[0.0, 0.0], [-0.0, -0.0]])).tolist() == [0.0, 0.0]
+
+
+def test_lidar_ground_dem_slope_hillshade(tmp_path):
+    from matplotlib.tri import Triangulation
+    dem, slope, shade = tmp_path / "dem.tif", tmp_path / "slope.tif", tmp_path / "hs.tif"
+    done = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(dem),
+                                     "--resolution", "3", "--slope", str(slope), "--hillshade", str(shade)])
+    assert done.exit_code == 0, done.output
+    band, x, y, ds = _cells(dem)
+    assert ds.crs == rasterio.crs.CRS.from_epsg(2903)
+    assert ds.res == (3.0, 3.0) and ds.transform.c % 3 == 0 and ds.transform.f % 3 == 0
+    assert ds.block_shapes[0] == (256, 256) and ds.dtypes[0] == "float32"
+    # nodata exactly where the cell centre is outside the trimmed triangulation (the level-1 mesh)
+    mesh = fit(str(TILE), None, FitOptions(classes=(2,), level=1, axis="z")).mesh   # DEMs use --axis z
+    tri = Triangulation(mesh.vertices[:, 0], mesh.vertices[:, 1], mesh.faces)
+    outside = tri.get_trifinder()(x.ravel(), y.ravel()).reshape(x.shape) < 0
+    assert outside.any() and (~outside).sum() > 0.9 * outside.size
+    assert np.array_equal(np.ma.getmaskarray(band), outside)
+    for path in (slope, shade):
+        other = rasterio.open(path)
+        assert other.crs == ds.crs and other.transform == ds.transform
+        assert np.array_equal(np.ma.getmaskarray(other.read(1, masked=True)), outside)
+
+
+def test_dem_has_overviews_and_is_tiled(tmp_path):
+    src = _terrain_file(tmp_path / "t.ply")
+    dem = tmp_path / "dem.tif"
+    assert CliRunner().invoke(main, ["fit", str(src), "-o", str(dem), "--resolution", "0.01"]).exit_code == 0
+    with rasterio.open(dem) as ds:
+        assert ds.width >= 512 and ds.block_shapes[0] == (256, 256)
+        assert ds.overviews(1)[:2] == [2, 4]
+        assert ds.dtypes[0] == "float32" and ds.compression is not None
+
+
+def test_resolution_picks_the_level_for_a_mean_edge(tmp_path):
+    src = _terrain_file(tmp_path / "t.ply", 800)
+    mesh_l1 = fit(str(src), None, FitOptions(level=1, axis="z")).mesh
+
+    def mean_edge(m):
+        v, f = m.vertices, m.faces
+        return np.mean([np.linalg.norm(v[f[:, a]] - v[f[:, b]], axis=1).mean() for a, b in ((0, 1), (1, 2), (2, 0))])
+    target = mean_edge(mesh_l1) / 3.2
+    result = fit(str(src), None, FitOptions(resolution=target, axis="z"))
+    assert result.report["level"] == 3
+    assert abs(mean_edge(result.mesh) / target - 1) < 0.15
+
+
+# ------------------------------------------------------------------------------- GLB
+def test_glb_world_positions_match_the_ply_on_a_lidar_tile(tmp_path):
+    from c1mesh.formats.meshes import read_glb_positions
+    options = FitOptions(classes=(2,), level=2)
+    fit(str(TILE), str(tmp_path / "g.ply"), options, keep_mesh=False)
+    fit(str(TILE), str(tmp_path / "g.glb"), options, keep_mesh=False)
+    ply = read_cloud(tmp_path / "g.ply").points
+    glb = read_glb_positions((tmp_path / "g.glb").read_bytes())
+    assert np.abs(glb - ply).max() <= 1e-4
+    import trimesh                               # a peer reader applies the node translation
+    scene = trimesh.load(tmp_path / "g.glb")
+    peer = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
+    assert np.abs(np.asarray(peer.vertices) - ply).max() <= 1e-4
+    faces = np.asarray(peer.faces)
+    v = np.asarray(peer.vertices)
+    area = np.linalg.norm(np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]]), axis=1)
+    assert (area > 0).all()
+
+
+# ------------------------------------------------------------------------------- previews
+def _png_ok(path):
+    import matplotlib.image
+    img = matplotlib.image.imread(path)
+    assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 200
+    assert img[..., :3].std() > 0.05                     # not blank
+
+
+def test_preview_of_a_fit_and_of_its_outputs(tmp_path):
+    dem, ply = tmp_path / "dem.tif", tmp_path / "g.ply"
+    runner = CliRunner()
+    done = runner.invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(dem), "--resolution", "3",
+                                "--preview", str(tmp_path / "fit.png")])
+    assert done.exit_code == 0, done.output
+    _png_ok(tmp_path / "fit.png")
+    glb = tmp_path / "g.glb"
+    for out in (ply, glb):
+        assert runner.invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out), "--level", "2"]).exit_code == 0
+    for source, png in ((dem, "dem.png"), (ply, "ply.png"), (glb, "glb.png")):
+        done = runner.invoke(main, ["preview", str(source), "-o", str(tmp_path / png)])
+        assert done.exit_code == 0, done.output
+        _png_ok(tmp_path / png)
+    bad = runner.invoke(main, ["preview", str(tmp_path / "none.tif"), "-o", str(tmp_path / "x.png")])
+    assert bad.exit_code == 1 and "does not exist" in bad.output
+
+
+def test_point_cloud_crs_survives_subset():
+    cloud = PointCloud(points=np.zeros((3, 3)), crs="X")
+    assert cloud.subset(np.array([True, False, True])).crs == "X"

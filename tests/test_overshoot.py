@@ -1,0 +1,229 @@
+"""Issue 10: surfaces people trust on real scans (overshoot, pits, folds, holdout, defaults).
+
+Peers are computed here on the same data: matplotlib's reduced HCT (CubicTriInterpolator,
+kind='user') given the same normal-derived gradients on the same triangles, and scipy's
+linear TIN. Exact-data checks use analytic functions.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.tri as mtri
+import numpy as np
+import pytest
+from scipy.interpolate import LinearNDInterpolator
+from scipy.spatial import Delaunay
+
+from c1mesh import rsd
+from c1mesh.frame import choose_frame, height_field
+from c1mesh.interpolator import RSDInterpolator
+from c1mesh.limiter import RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients
+from c1mesh.normals import estimate_normals
+from c1mesh.pipeline import FitOptions, _compact, cloud_normals, fit, load_cloud
+from c1mesh.quality import folded_faces, interior_lattice, lattice_points, overshoot
+from c1mesh.topology import edge_table
+from c1mesh.triangulation import delaunay, trim
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+GROUND = {"4_6_crop": (SAMPLES / "4_6_crop.las", {}),
+          "autzen": (SAMPLES / "autzen_trim.laz", {}),
+          "autzen, --max-edge none": (SAMPLES / "autzen_trim.laz", {"max_edge": None})}
+
+
+def height_data(path, **options):
+    """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter."""
+    opts = FitOptions(classes=(2,), axis="z", **options)
+    cloud = load_cloud(path, opts)
+    normals, _ = cloud_normals(cloud, opts)
+    hf = height_field(cloud.points, normals, choose_frame(cloud.points, normals, "z"))
+    tri, _ = trim(hf.xy, delaunay(hf.xy), max_edge=opts.max_edge)
+    used, tri = _compact(hf.xy, tri)
+    return hf.xy[used], hf.z[used], hf.gradients[used], tri
+
+
+def rhct_surface(xy, z, g, tri, lam):
+    """matplotlib reduced HCT with gradients g, sampled inside every triangle (T, P)."""
+    t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=tri)
+    interp = mtri.CubicTriInterpolator(t, z, kind="user", dz=(g[:, 0], g[:, 1]))
+    pts = lattice_points(xy, tri, lam).reshape(-1, 2)
+    return np.ma.filled(interp(pts[:, 0], pts[:, 1]), np.nan).reshape(tri.shape[0], -1)
+
+
+def c1mesh_surface(xy, z, g, tri, lam, mode="limit"):
+    gradients, directions, _ = control_overshoot(xy, z, g, tri, mode)
+    interp = RSDInterpolator(xy, z, gradients, triangles=tri, directions=directions)
+    return interp.coefficients @ rsd.basis(interp.scheme, lam), interp
+
+
+@pytest.fixture(scope="module", params=list(GROUND))
+def ground(request):
+    path, options = GROUND[request.param]
+    return request.param, height_data(path, **options)
+
+
+@pytest.mark.slow
+def test_lidar_ground_overshoot_count_is_no_worse_than_reduced_hct(ground):
+    """Triangles leaving their corner range by > 1/4 of the longest edge: c1mesh (limited)
+    against matplotlib's reduced HCT given the raw gradients on the same triangles."""
+    name, (xy, z, g, tri) = ground
+    lam = interior_lattice(8)
+    ours = overshoot(c1mesh_surface(xy, z, g, tri, lam)[0], z, xy, tri)
+    peer = overshoot(rhct_surface(xy, z, g, tri, lam), z, xy, tri)
+    assert ours["count"] <= peer["count"], name
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("options", [{}, {"max_edge": None}])
+def test_autzen_ground_largest_overshoot_is_no_worse_than_reduced_hct(options):
+    """Largest overshoot on Autzen ground (the river bank): at most the reduced HCT's, and
+    without the limiter it is not (so the test can fail)."""
+    xy, z, g, tri = height_data(SAMPLES / "autzen_trim.laz", **options)
+    lam = interior_lattice(8)
+    peer = overshoot(rhct_surface(xy, z, g, tri, lam), z, xy, tri)["max"]
+    assert overshoot(c1mesh_surface(xy, z, g, tri, lam)[0], z, xy, tri)["max"] <= peer
+    if options:
+        assert overshoot(c1mesh_surface(xy, z, g, tri, lam, "off")[0], z, xy, tri)["max"] > peer
+
+
+@pytest.mark.slow
+def test_autzen_ground_has_no_pits_below_the_lowest_input_point():
+    """--max-edge none used to give closed pits 3 ft below the lowest ground point."""
+    result = fit(SAMPLES / "autzen_trim.laz", None, FitOptions(classes=(2,), max_edge=None))
+    cloud = load_cloud(SAMPLES / "autzen_trim.laz", FitOptions(classes=(2,)))
+    assert result.mesh.vertices[:, 2].min() >= cloud.points[:, 2].min() - 0.1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
+def test_lidar_ground_has_no_folded_faces_at_default_options(name):
+    result = fit(SAMPLES / name, None, FitOptions(classes=(2,)))
+    mesh = result.mesh
+    assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) == 0
+
+
+@pytest.mark.slow
+def test_autzen_ground_holdout_rms_is_no_worse_than_a_linear_tin():
+    """10% of the ground points held out (3 seeds); normals estimated from the rest."""
+    cloud = load_cloud(SAMPLES / "autzen_trim.laz", FitOptions(classes=(2,)))
+    ours, linear = [], []
+    for seed in range(3):
+        test = np.random.default_rng(seed).random(len(cloud)) < 0.1
+        train = cloud.points[~test]
+        normals = estimate_normals(train, towards=(0.0, 0.0, 1.0))
+        frame = choose_frame(train, normals, "z")
+        hf = height_field(train, normals, frame)
+        tri, _ = trim(hf.xy, delaunay(hf.xy))
+        used, tri = _compact(hf.xy, tri)
+        xy, z = hf.xy[used], hf.z[used]
+        local = frame.to_local(cloud.points[test])
+        _, interp = c1mesh_surface(xy, z, hf.gradients[used], tri, interior_lattice(2))
+        inside = interp.find_simplex(local[:, :2]) >= 0
+        q, truth = local[inside, :2], local[inside, 2]
+        ours.append(np.sqrt(np.mean((interp(q) - truth) ** 2)))
+        linear.append(np.sqrt(np.mean((LinearNDInterpolator(xy, z)(q) - truth) ** 2)))
+    assert np.mean(ours) <= np.mean(linear)
+
+
+def test_range_scan_folds_drop_with_the_limiter():
+    """pcl_bun0: folded faces (black specks) with the limiter are fewer than without."""
+    counts = {}
+    for mode in ("off", "limit"):
+        mesh = fit(SAMPLES / "pcl_bun0.pcd", None, FitOptions(overshoot=mode)).mesh
+        counts[mode] = folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals)
+    assert counts["limit"] < counts["off"] / 2
+
+
+# ---- exact data: nothing that matters changes ----------------------------------------------
+def _square(n, seed):
+    """n points in the unit square with its corners and ~sqrt(n) points on each side (so no
+    long hull edges; benchmarks/accuracy.py samples the same way)."""
+    rng = np.random.default_rng(seed)
+    k = int(np.sqrt(n))
+    t = rng.random((4, k))
+    sides = np.concatenate([np.c_[t[0], 0 * t[0]], np.c_[t[1], 1 + 0 * t[1]],
+                            np.c_[0 * t[2], t[2]], np.c_[1 + 0 * t[3], t[3]]])
+    corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1.0]])
+    return np.concatenate([corners, sides, rng.random((n - 4 - 4 * k, 2))])
+
+
+def test_limiter_leaves_exact_smooth_data_alone():
+    """Exact values and gradients of smooth functions pass the trapezoid test everywhere."""
+    pts = _square(1600, 3)
+    tri = Delaunay(pts).simplices
+    edges = edge_table(tri, len(pts)).edges
+    x, y = pts[:, 0], pts[:, 1]
+    for f, g in ((np.exp(x) * np.sin(2 * y), np.c_[np.exp(x) * np.sin(2 * y), 2 * np.exp(x) * np.cos(2 * y)]),
+                 (x * x + 2 * y * y + 0.5 * x * y, np.c_[2 * x + 0.5 * y, 4 * y + 0.5 * x])):
+        limited, changed = limit_gradients(pts, f, g, edges)
+        assert not changed.any()
+        np.testing.assert_array_equal(limited, g)
+
+
+def test_limited_fit_reproduces_planes_and_keeps_c1():
+    pts = _square(2000, 4)
+    tri = Delaunay(pts).simplices
+    z = 3 * pts[:, 0] - 2 * pts[:, 1] + 1
+    g = np.tile([3.0, -2.0], (len(pts), 1))
+    gradients, directions, report = control_overshoot(pts, z, g, tri)
+    assert report.directions_changed > 0 and report.gradients_limited == 0
+    interp = RSDInterpolator(pts, z, gradients, triangles=tri, directions=directions)
+    q = np.random.default_rng(5).random((3000, 2)) * 0.9 + 0.05
+    np.testing.assert_allclose(interp(q), 3 * q[:, 0] - 2 * q[:, 1] + 1, atol=1e-12)
+
+
+def test_noisy_gradients_are_limited_and_the_spline_stays_c1():
+    """Gradients that contradict flat heights are scaled down; the certificate still holds."""
+    pts = _square(400, 6)
+    tri = Delaunay(pts).simplices
+    z = np.zeros(len(pts))
+    g = np.zeros((len(pts), 2))
+    g[::7] = [5.0, 0.0]                                   # wild slopes on flat ground
+    gradients, directions, report = control_overshoot(pts, z, g, tri)
+    assert report.gradients_limited >= len(pts[::7]) - 4
+    assert np.abs(gradients).max() < 1e-12
+    interp = RSDInterpolator(pts, z, gradients, triangles=tri, directions=directions)
+    cert = interp.c1_certificate()
+    assert cert["gradient_jump"] < 1e-9 and cert["value_jump"] < 1e-12
+
+
+def _ratios(points, tri, table, directions):
+    """|G_l·u_n / G_n·u_n| for all (l, n), per triangle (T, 6)."""
+    G, _ = rsd.barycentric_gradients(points[tri])
+    u = directions[table.tri_edge]
+    out = []
+    for l, _, n in rsd.PERMS:
+        out.append(np.abs(np.einsum("ij,ij->i", G[:, l], u[:, n]) / np.einsum("ij,ij->i", G[:, n], u[:, n])))
+    return np.stack(out, axis=1)
+
+
+def test_edge_directions_bound_the_rsd_ratios_of_obtuse_slivers():
+    """Two obtuse slivers on the edge [(0,0), (1,0)]: the unit normal's foot from (3, 0.02)
+    falls at s = 3 (ratio 3); through the opposite vertices the line meets the edge at its
+    midpoint (ratios 1/2), and no edge keeps a ratio above RATIO_LIMIT."""
+    pts = np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 0.02], [-2.0, -0.02]])
+    tri = np.array([[0, 1, 2], [1, 0, 3]])
+    table = edge_table(tri, len(pts))
+    directions, changed = edge_directions(pts, tri, table)
+    normal = RSDInterpolator(pts, np.zeros(4), np.zeros((4, 2)), triangles=tri).directions
+    assert _ratios(pts, tri, table, normal).max() > 2.9
+    assert _ratios(pts, tri, table, directions).max() <= RATIO_LIMIT
+    shared = table.tri_edge[0][np.isin(table.tri_edge[0], table.tri_edge[1])][0]
+    assert changed[shared]
+    u = directions[shared]
+    assert abs(u[0] * 0.04 - u[1] * 5.0) < 1e-12 * np.hypot(5.0, 0.04)   # parallel to (5, 0.04)
+
+
+# ---- defaults -------------------------------------------------------------------------------
+def test_las_height_axis_is_z_and_the_report_says_so():
+    report = fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(2,))).report
+    np.testing.assert_array_equal(report["frame"]["axes"], np.eye(3))
+    assert "LAS" in report["frame"]["axis_choice"]
+    assert report["overshoot"]["gradients_limited"] > 0
+    assert report["warnings"] == []
+
+
+def test_a_surface_in_many_pieces_draws_a_warning():
+    report = fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(2,), max_edge=2.5)).report
+    assert report["pieces"]["count"] > 20
+    assert any("pieces" in w for w in report["warnings"])
+    assert any("--max-edge" in w for w in report["warnings"])
