@@ -27,7 +27,7 @@ from c1mesh.formats.obj import read_obj, write_obj
 from c1mesh.formats.pcd import read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
-from c1mesh.outputs import MESH_FORMATS, Outputs, mesh_format, plan_outputs
+from c1mesh.outputs import MESH_FORMATS, Outputs, format_key, mesh_format, plan_outputs
 
 __all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
@@ -51,17 +51,6 @@ assert SUPPORTED_OUTPUT == MESH_FORMATS, "c1mesh.outputs.MESH_FORMATS must list 
 def _is_stream(obj: object) -> bool:
     """True for file-like objects (stdin/stdout buffers, BytesIO), False for paths."""
     return not isinstance(obj, (str, bytes, os.PathLike)) and (hasattr(obj, "read") or hasattr(obj, "write"))
-
-
-def _format(fmt: str | None, where: str, supported: tuple[str, ...], direction: str) -> str:
-    """Normalise `fmt` ('.PLY' -> 'ply') and check it is in `supported`."""
-    key = (fmt or "").lower().lstrip(".")
-    if not key:
-        raise InputError(f"Cannot tell the {direction} format of '{where}' from its name; "
-                         f"use one of the extensions {', '.join(supported)}.")
-    if key not in supported:
-        raise InputError(f"Unsupported {direction} format '{key}' for '{where}'; supported: {', '.join(supported)}.")
-    return key
 
 
 def _read_path(path: Path) -> bytes:
@@ -120,7 +109,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
             name = str(getattr(source, "name", "<stream>"))
             if fmt is None:
                 raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
-            key = _format(fmt, name, SUPPORTED_INPUT, "input")
+            key = format_key(fmt, name, SUPPORTED_INPUT, "input")
             try:
                 data = read_bounded(source, name)
             except OSError as exc:
@@ -128,7 +117,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
         else:
             path = Path(source)
             name = str(path)
-            key = _format(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
+            key = format_key(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
             if key in ("las", "laz") and path.is_file():
                 return _read_las_file(path, classes)
             data = _read_path(path)
@@ -172,7 +161,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
         _check_mesh(mesh)
     if _is_stream(target):
         name = str(getattr(target, "name", "<stream>"))
-        key = _format(fmt or "ply", name, SUPPORTED_OUTPUT, "output")
+        key = format_key(fmt or "ply", name, SUPPORTED_OUTPUT, "output")
         if isinstance(target, io.TextIOBase):
             target = getattr(target, "buffer", None)
             if target is None:
@@ -181,7 +170,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
         target.flush()
         return
     (planned,) = plan_outputs([("output", target)])
-    key = _format(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
+    key = format_key(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
     with Outputs(deferred=False).open(planned) as f:
         _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii, **_crs_argument(key, crs))
     if crs and key in PRJ_SIDECAR and planned.kind == "atomic":
@@ -203,10 +192,10 @@ def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> 
     write there: unknown format, missing or unwritable directory, a directory or special
     file, or a path that is one of `inputs` (paths or streams; see c1mesh.outputs)."""
     if _is_stream(target):
-        _format(fmt or "ply", str(getattr(target, "name", "<stream>")), SUPPORTED_OUTPUT, "output")
+        format_key(fmt or "ply", str(getattr(target, "name", "<stream>")), SUPPORTED_OUTPUT, "output")
         return
     (planned,) = plan_outputs([("output", target)], inputs)
-    _format(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
+    format_key(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
 
 
 def _for_writer(mesh: SurfaceMesh | MeshStream, key: str) -> SurfaceMesh | MeshStream:
