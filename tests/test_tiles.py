@@ -284,3 +284,32 @@ def test_unreachable_scheduler_is_one_line_and_no_output(hill_tiles, tmp_path, m
     assert result.output.startswith(f"c1mesh: error: cannot reach the Dask scheduler {address}")
     assert result.output.count("\n") == 1
     assert not any((tmp_path / "out").iterdir())
+
+
+@pytest.mark.parametrize("signum_name", ["SIGINT", "SIGTERM"])
+def test_an_interrupted_seamless_run_leaves_no_tile_files(hill_tiles, tmp_path, signum_name):
+    """Interrupt `--seamless -O` once the first tile's hidden file is complete (renamed from
+    its .tmp into .NAME.tile-PID.ply) and later tiles are still running: nothing is left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    signum = getattr(signal, signum_name)
+    folder, paths, _ = hill_tiles
+    out = tmp_path / "out"
+    out.mkdir()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    proc = subprocess.Popen([sys.executable, "-m", "c1mesh.cli", "fit", *paths, "--seamless", "-O", str(out),
+                             "--level", "24"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    deadline = time.monotonic() + 240
+    while not any(".tile-" in p.name and not p.name.endswith(".tmp") for p in out.iterdir()):
+        assert proc.poll() is None, f"c1mesh ended before a tile was written: {proc.stderr.read().decode()}"
+        assert time.monotonic() < deadline, "no tile file appeared"
+        time.sleep(0.01)
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum, stderr
+    assert stderr.decode().splitlines() == [f"c1mesh: error: interrupted ({signum_name})"]
+    assert list(out.iterdir()) == []

@@ -436,6 +436,19 @@ def _remove_temp(tmp: str) -> None:
     _LIVE_TEMPS.discard(tmp)
 
 
+def register_temp(path: PathLike) -> None:
+    """List `path` as a temporary file of this process, removed by `remove_live_temps` (the
+    CLI's SIGINT/SIGTERM/SIGHUP handler) if the process is interrupted. Register a path
+    before creating the file: a signal between the two then finds nothing to remove, never
+    an unlisted file."""
+    _LIVE_TEMPS.add(os.fspath(path))
+
+
+def unregister_temp(path: PathLike) -> None:
+    """Stop listing `path` (it was renamed into place or removed)."""
+    _LIVE_TEMPS.discard(os.fspath(path))
+
+
 def remove_live_temps() -> None:
     """Remove every temporary output file of this process (for signal handlers)."""
     for tmp in list(_LIVE_TEMPS):

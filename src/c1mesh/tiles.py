@@ -285,11 +285,20 @@ def tile_stream(task: TileTask):
 
 
 def temp_path(output: str):
-    """The hidden file beside `output` a tile is written to before the run succeeds."""
+    """The hidden file beside `output` a tile is written to before the run succeeds.
+
+    The path is registered with c1mesh.outputs (register_temp) before anything is written
+    there, so an interrupted run (SIGINT, SIGTERM, SIGHUP) removes it; write_tiles
+    unregisters it once renamed into place or removed.
+    """
     from pathlib import Path
 
+    from c1mesh.outputs import register_temp
+
     target = Path(output)
-    return target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
+    temp = target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
+    register_temp(temp)
+    return temp
 
 
 def worker_address() -> str:
@@ -316,6 +325,7 @@ def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bo
     from pathlib import Path
 
     from c1mesh.formats import write_mesh
+    from c1mesh.outputs import unregister_temp
 
     temps: dict[int, Path] = {}
     rows: dict[int, dict] = {}
@@ -329,9 +339,11 @@ def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bo
                 on_tile(result.report)
         for index, temp in temps.items():
             os.replace(temp, outputs[index])
+            unregister_temp(temp)
     except BaseException:
         for temp in temps.values():
             temp.unlink(missing_ok=True)
+            unregister_temp(temp)
         raise
     return [rows[i] for i in sorted(rows)]
 

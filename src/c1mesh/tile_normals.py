@@ -1,0 +1,73 @@
+"""Estimated normals of a survey cut into tiles, with buffers sized by the data.
+
+normals.estimate_normals fits a plane to each point's k nearest distinct neighbours (3-D).
+A tile of a buffered_delaunay.TileGrid reads its cell grown by a buffer and estimates the
+normals of its own points from what it read. An own point's k nearest neighbours among
+the points read are its k nearest in the survey when the k-th of them is closer than
+every point not read: those lie outside the read rectangle, at a plane distance (hence a
+3-D distance) at least the point's distance to the unread part of the survey's box. When
+that holds for every own point the tile is done; otherwise its buffer doubles. The
+normals then agree with the whole survey's to rounding (the neighbourhoods are the same;
+only the centring of the coordinates differs).
+
+read3(rect) -> (index (m,) ascending survey numbers, xyz (m, 3)) gives the points in the
+closed rectangle of the plane, in the frame's coordinates (tile_spill.TileSpill.records).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from c1mesh.buffered_delaunay import TileGrid, _covers, _unread_strips
+
+
+@dataclass
+class TileNormals:
+    """Unit normals (m, 3) of a tile's own points, index (m,) their survey numbers; the
+    buffer it ended with and the rounds it took."""
+
+    tile: int
+    index: np.ndarray
+    normals: np.ndarray
+    buffer: float
+    rounds: int
+
+
+def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float,
+                 towards=(0.0, 0.0, 1.0)) -> TileNormals:
+    """Normals of one tile's own points (module docstring), oriented to face `towards`."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.normals import estimate_normals, unique_positions
+
+    box, cell = grid.box, grid.cell(tile)
+    rounds = 0
+    while True:
+        rounds += 1
+        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
+        index, xyz = read3(read_box)
+        own = grid.tile_of(xyz[:, :2]) == tile
+        if not own.any():
+            return TileNormals(tile, index[own], np.empty((0, 3)), buffer, rounds)
+        distinct, inverse = unique_positions(xyz)
+        enough = len(distinct) >= k
+        if _covers(read_box, box) or (enough and _neighbourhoods_inside(
+                cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, box)):
+            normals = estimate_normals(xyz, k=k, towards=towards)
+            return TileNormals(tile, index[own], normals[own], buffer, rounds)
+        buffer *= 2.0
+
+
+def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:
+    """True when every point's k-th nearest neighbour (itself counted, as Open3D counts it)
+    is closer than the unread part of the box (with a relative margin for rounding)."""
+    distance, _ = tree.query(points, k)
+    kth = distance[:, -1] if distance.ndim == 2 else distance
+    gap = np.full(len(points), np.inf)
+    for x0, y0, x1, y1 in _unread_strips(read_box, box, np.zeros(2)):
+        dx = np.maximum(np.maximum(x0 - points[:, 0], points[:, 0] - x1), 0.0)
+        dy = np.maximum(np.maximum(y0 - points[:, 1], points[:, 1] - y1), 0.0)
+        gap = np.minimum(gap, np.hypot(dx, dy))
+    return bool((kth * (1 + 1e-9) < gap).all())

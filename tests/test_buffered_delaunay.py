@@ -1,0 +1,185 @@
+"""Buffered tile Delaunay (c1mesh.buffered_delaunay): the union of the tiles' triangles is
+the survey's Delaunay triangulation.
+
+Ground truth is scipy's Delaunay (Qhull) of all the points at once, which the tiles never
+see; points are uniform random floats (general position: no four cocircular).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull, Delaunay
+
+import c1mesh.buffered_delaunay as bd
+from c1mesh.triangulation import _edge_lengths
+
+
+def _survey(kind: str, n: int = 4000, seed: int = 3) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 100.0, (n, 2))
+    if kind == "hole":               # an empty disc: tiles beside it need wider buffers
+        xy = xy[np.hypot(xy[:, 0] - 55.0, xy[:, 1] - 40.0) > 22.0]
+    elif kind == "clusters":         # dense clusters in a sparse field
+        xy = np.concatenate([rng.normal(30.0, 4.0, (n // 2, 2)), rng.normal(70.0, 8.0, (n // 3, 2)),
+                             rng.uniform(0.0, 100.0, (n // 10, 2))])
+    return xy
+
+
+def _grid(xy: np.ndarray, nx: int = 3, ny: int = 4) -> bd.TileGrid:
+    return bd.TileGrid((*xy.min(axis=0), *xy.max(axis=0)), nx, ny)
+
+
+def _faces(triangles: np.ndarray) -> set:
+    return set(map(tuple, np.sort(triangles, axis=1).tolist()))
+
+
+def _union(tiles) -> np.ndarray:
+    return np.concatenate([t.triangles for t in tiles])
+
+
+def _chunks(xy: np.ndarray, size: int = 700):
+    for start in range(0, len(xy), size):
+        yield np.arange(start, min(start + size, len(xy))), xy[start:start + size]
+
+
+@pytest.mark.parametrize("kind", ["uniform", "hole", "clusters"])
+@pytest.mark.parametrize("with_hull", [False, True])
+def test_union_of_tiles_is_the_global_delaunay(kind, with_hull):
+    xy = _survey(kind)
+    grid = _grid(xy)
+    hull = bd.streamed_hull(_chunks(xy)) if with_hull else None
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), grid, len(xy), hull=hull))
+    union = _union(tiles)
+    assert len(_faces(union)) == len(union)                    # no triangle twice
+    assert _faces(union) == _faces(Delaunay(xy).simplices)
+    for tile in tiles:                                          # each by its lowest corner's tile
+        if len(tile.triangles):
+            assert (grid.tile_of(xy[tile.triangles.min(axis=1)]) == tile.tile).all()
+
+
+@pytest.mark.parametrize("kind", ["uniform", "hole", "clusters"])
+def test_union_with_the_long_edge_trim_is_the_trimmed_global_delaunay(kind):
+    xy = _survey(kind)
+    whole = Delaunay(xy).simplices
+    lengths = _edge_lengths(xy, whole)
+    max_edge = 4.0 * float(np.median(lengths))
+    expected = whole[lengths.max(axis=1) <= max_edge]
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy),
+                                      hull=bd.streamed_hull(_chunks(xy)), max_edge=max_edge))
+    union = _union(tiles)
+    assert len(_faces(union)) == len(union)
+    assert _faces(union) == _faces(expected)
+
+
+def test_with_the_trim_a_uniform_survey_tile_reads_its_neighbourhood_only():
+    """12 tiles of uniform points: each reads its cell and a buffer of one or two max_edge,
+    far from the whole survey (a check that never certified would end reading it all)."""
+    xy = _survey("uniform")
+    lengths = _edge_lengths(xy, Delaunay(xy).simplices)
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy),
+                                      hull=bd.streamed_hull(_chunks(xy)),
+                                      max_edge=4.0 * float(np.median(lengths))))
+    assert max(t.read for t in tiles) < len(xy) / 2
+
+
+def test_buffers_grow_where_the_data_needs_them():
+    """Beside the empty disc the first buffer cannot certify the triangles bridging it:
+    those tiles triangulate again with wider buffers, dense tiles do not."""
+    xy = _survey("hole")
+    lengths = _edge_lengths(xy, Delaunay(xy).simplices)
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy),
+                                      hull=bd.streamed_hull(_chunks(xy)),
+                                      max_edge=4.0 * float(np.median(lengths))))
+    rounds = [t.rounds for t in tiles]
+    assert max(rounds) > 1 and min(rounds) == 1
+
+
+def test_without_the_circle_test_a_fixed_buffer_gets_it_wrong(monkeypatch):
+    """The check is what makes the union right: trusting every triangle of a fixed buffer
+    gives triangles that are not Delaunay (or misses some) beside the hole."""
+    xy = _survey("hole")
+    monkeypatch.setattr(bd, "_disks_clear", lambda xy, tri, *rest: np.ones(len(tri), dtype=bool))
+    monkeypatch.setattr(bd, "_hull_edges_final", lambda *args: True)
+    union = _union(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy)))
+    assert _faces(union) != _faces(Delaunay(xy).simplices)
+
+
+def test_streamed_hull_is_the_hull_of_all_points():
+    xy = _survey("clusters")
+    hull = bd.streamed_hull(_chunks(xy, 500))
+    assert set(hull.index.tolist()) == set(ConvexHull(xy).vertices.tolist())
+    assert np.array_equal(hull.xy, xy[hull.index])
+
+
+def test_circumcircles_match_the_equidistance_definition():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (30, 2))
+    triangles = Delaunay(xy).simplices
+    centre, radius = bd.circumcircles(xy, triangles)
+    for k in range(3):
+        assert np.allclose(np.hypot(*(xy[triangles[:, k]] - centre).T), radius, rtol=1e-9)
+
+
+@pytest.mark.parametrize("kind,n", [("uniform", 4000), ("uniform", 4001), ("hole", 4000), ("clusters", 4000)])
+def test_auto_max_edge_is_trims_to_the_bit(kind, n):
+    """The tiles' median edge, from certified short edges and the edge count 3n - 3 - h,
+    is the value trim takes from the whole triangulation."""
+    from c1mesh.triangulation import trim
+
+    xy = _survey(kind, n=n)
+    _, report = trim(xy, Delaunay(xy).simplices, max_edge="auto", min_circle_ratio=0.0)
+    tiled = bd.auto_max_edge(bd.ArrayReader(xy), _grid(xy), len(xy), bd.streamed_hull(_chunks(xy)))
+    assert tiled == report.max_edge
+
+
+def test_certified_short_edges_are_the_global_short_edges():
+    xy = _survey("hole")
+    grid, hull = _grid(xy), bd.streamed_hull(_chunks(xy))
+    bound = 2.0 * bd.mean_spacing(grid.box, len(xy))
+    tiled = np.sort(np.concatenate([bd._certified_edges(bd.ArrayReader(xy), grid, t, bound, hull)
+                                    for t in range(len(grid))]))
+    whole = Delaunay(xy)
+    pairs = {tuple(sorted(e)) for s in whole.simplices.tolist() for e in ((s[0], s[1]), (s[1], s[2]), (s[0], s[2]))}
+    a, b = np.array(sorted(pairs)).T
+    lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])
+    assert len(pairs) == 3 * len(xy) - 3 - len(ConvexHull(xy).vertices)      # the count the median uses
+    assert np.array_equal(tiled, np.sort(lengths[lengths <= bound]))
+
+
+def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
+    """The bundled LiDAR ground (class 2) in the fit's own plane (height field xy): 3 x 3
+    tiles give trim's auto max_edge and the long-edge-trimmed triangulation of the
+    pipeline's Delaunay (c1mesh.triangulation.delaunay)."""
+    pytest.importorskip("laspy")
+    from pathlib import Path
+
+    from c1mesh.pipeline import FitOptions, build_surface, load_cloud
+    from c1mesh.triangulation import delaunay, trim
+
+    options = FitOptions(classes=(2,))
+    cloud = load_cloud(Path(__file__).resolve().parent.parent / "data_samples" / "4_6_crop.las", options)
+    xy = build_surface(cloud, options).hf.xy
+    whole = delaunay(xy)
+    _, report = trim(xy, whole, max_edge="auto", min_circle_ratio=0.0)
+    grid, hull = bd.TileGrid((*xy.min(axis=0), *xy.max(axis=0)), 3, 3), bd.streamed_hull(_chunks(xy))
+    assert bd.auto_max_edge(bd.ArrayReader(xy), grid, len(xy), hull) == report.max_edge
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), grid, len(xy), hull=hull, max_edge=report.max_edge))
+    union = _union(tiles)
+    assert len(_faces(union)) == len(union)
+    assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= report.max_edge])
+
+
+@pytest.mark.parametrize("kind", ["uniform", "hole", "clusters"])
+def test_one_pass_trimmed_delaunay_is_trims_long_edge_result(kind):
+    """One triangulation per tile gives trim's auto max_edge and the survey's Delaunay
+    triangles up to it (filtered by each pass's longest edges)."""
+    from c1mesh.triangulation import trim
+
+    xy = _survey(kind)
+    whole = Delaunay(xy).simplices
+    _, report = trim(xy, whole, max_edge="auto", min_circle_ratio=0.0)
+    max_edge, passes = bd.trimmed_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy), bd.streamed_hull(_chunks(xy)))
+    assert max_edge == report.max_edge
+    union = np.concatenate([p.triangles[p.longest <= max_edge] for p in passes])
+    assert len(_faces(union)) == len(union)
+    assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= max_edge])

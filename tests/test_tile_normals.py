@@ -1,0 +1,67 @@
+"""Tile-local normal estimation (c1mesh.tile_normals) against normals.estimate_normals on
+the whole survey at once."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import c1mesh.buffered_delaunay as bd
+from c1mesh.tile_normals import tile_normals
+
+pytest.importorskip("open3d")
+
+
+class _Reader3:
+    def __init__(self, xyz):
+        self.xyz = xyz
+
+    def __call__(self, rect):
+        x0, y0, x1, y1 = rect
+        x, y = self.xyz[:, 0], self.xyz[:, 1]
+        index = np.flatnonzero((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+        return index, self.xyz[index]
+
+
+def _terrain(n=4000, seed=6, gap=False):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 60, (n, 2))
+    if gap:                                     # sparse strip: neighbourhoods reach far
+        xy = xy[(xy[:, 0] < 28) | (xy[:, 0] > 32) | (rng.uniform(size=len(xy)) < 0.03)]
+    z = 2 * np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 13) + rng.normal(0, 0.05, len(xy))
+    return np.column_stack([xy, z])
+
+
+@pytest.mark.parametrize("gap", [False, True])
+def test_tile_normals_are_the_whole_surveys(gap):
+    from c1mesh.normals import estimate_normals
+
+    xyz = _terrain(gap=gap)
+    grid = bd.TileGrid((*xyz[:, :2].min(axis=0), *xyz[:, :2].max(axis=0)), 3, 4)
+    whole = estimate_normals(xyz, k=16)
+    found = np.full(xyz.shape, np.nan)
+    seen = np.zeros(len(xyz), dtype=int)
+    rounds = []
+    for tile in range(len(grid)):
+        result = tile_normals(_Reader3(xyz), grid, tile, 16, buffer=1.0)
+        found[result.index] = result.normals
+        seen[result.index] += 1
+        rounds.append(result.rounds)
+    assert (seen == 1).all()                                    # every point once
+    assert np.allclose(found, whole, rtol=0, atol=1e-9)
+    assert max(rounds) > 1                                      # a 1.0 buffer is too small somewhere
+
+
+def test_a_buffer_too_small_without_the_check_gives_other_normals(monkeypatch):
+    """The neighbourhood check is what makes them equal: trusting a thin buffer changes
+    the normals of points near the tile borders."""
+    import c1mesh.tile_normals as tn
+    from c1mesh.normals import estimate_normals
+
+    xyz = _terrain()
+    grid = bd.TileGrid((*xyz[:, :2].min(axis=0), *xyz[:, :2].max(axis=0)), 3, 4)
+    monkeypatch.setattr(tn, "_neighbourhoods_inside", lambda *args: True)
+    found = np.full(xyz.shape, np.nan)
+    for tile in range(len(grid)):
+        result = tile_normals(_Reader3(xyz), grid, tile, 16, buffer=0.3)
+        found[result.index] = result.normals
+    assert not np.allclose(found, estimate_normals(xyz, k=16), rtol=0, atol=1e-6)

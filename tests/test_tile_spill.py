@@ -1,0 +1,61 @@
+"""Points binned to tiles on disk (c1mesh.tile_spill): what a tile reads back is what the
+in-memory reader gives, the tiles' Delaunay over the spill is scipy's, and no file stays."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+import c1mesh.buffered_delaunay as bd
+from c1mesh import outputs
+from c1mesh.frame import choose_frame
+from c1mesh.tile_spill import spill
+
+
+def _points(n=3000, seed=4):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 50, (n, 2))
+    return np.column_stack([xy, np.sin(xy[:, 0] / 7) + 0.1 * xy[:, 1]])
+
+
+def _chunks(points, size=256):
+    return (points[i:i + size] for i in range(0, len(points), size))
+
+
+def test_spilled_tiles_read_back_as_the_points_in_memory(tmp_path):
+    points = _points()
+    frame = choose_frame(points, axis="z")
+    local = frame.to_local(points)
+    grid = bd.TileGrid((*local[:, :2].min(axis=0), *local[:, :2].max(axis=0)), 4, 3)
+    memory = bd.ArrayReader(local[:, :2])
+    with spill(_chunks(points), frame, grid, tmp_path, "out.ply") as tiles:
+        assert tiles.counts.sum() == len(points)
+        for rect in [(-15, -15, -5, 5), (-30, -30, 30, 30), (24, -25, 60, -20), (-12.5, -20, -12.5, 15)]:
+            index, xy = tiles.read(rect)
+            expected_index, expected_xy = memory(rect)
+            assert np.array_equal(index, expected_index)
+            assert np.array_equal(xy, expected_xy)
+        union = np.concatenate([t.triangles for t in bd.buffered_delaunay(tiles.read, grid, len(points))])
+        assert {tuple(sorted(f)) for f in union.tolist()} == \
+            {tuple(sorted(f)) for f in Delaunay(local[:, :2]).simplices.tolist()}
+        assert len(list(tmp_path.iterdir())) == len(grid)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_spill_files_go_when_spilling_fails_and_are_listed_for_signals(tmp_path):
+    points = _points()
+    frame = choose_frame(points, axis="z")
+    local = frame.to_local(points)
+    grid = bd.TileGrid((*local[:, :2].min(axis=0), *local[:, :2].max(axis=0)), 2, 2)
+
+    def failing():
+        yield points[:100]
+        raise OSError("disk full")
+    with pytest.raises(OSError):
+        spill(failing(), frame, grid, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+    tiles = spill(_chunks(points), frame, grid, tmp_path)
+    assert {str(p) for p in tiles.paths} <= outputs._LIVE_TEMPS
+    outputs.remove_live_temps()                      # what the CLI's signal handler calls
+    assert list(tmp_path.iterdir()) == []
+    tiles.close()
