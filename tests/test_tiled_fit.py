@@ -57,7 +57,7 @@ def _in_memory(path, classes, level):
     interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used],
                              triangles=np.searchsorted(used, triangles))
     mesh = surface_stream(interp.refinement(level), frame, None).materialize()
-    return mesh, report.max_edge
+    return mesh, report.max_edge, len(used)
 
 
 def _match(a, b):
@@ -89,18 +89,19 @@ def _assert_same_mesh(path, whole):
 def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, classes=(2, 5))
-    whole, max_edge = _in_memory(source, [2], level)
+    whole, max_edge, kept = _in_memory(source, [2], level)
     options = FitOptions(classes=(2,), overshoot="off", level=level)
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=700)
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
+    assert report["points"]["kept"] == kept
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las", "tiled.ply"]   # no spill left
 
 
 def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
     source = SAMPLES / "4_6_crop.las"
-    whole, max_edge = _in_memory(source, [2], 2)
+    whole, max_edge, kept = _in_memory(source, [2], 2)
     options = FitOptions(classes=(2,), overshoot="off", level=2)
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
     assert report["tiles"] == 16
@@ -111,7 +112,7 @@ def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
 def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 24000)
-    whole, _ = _in_memory(source, [2], 2)
+    whole, _, _ = _in_memory(source, [2], 2)
     args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
             "--memory", "1M"]
     refused = CliRunner().invoke(main, args)
@@ -128,4 +129,4 @@ def test_memory_rule():
     assert fits_in_memory(1_000_000, 2 * 10**9)
     assert not fits_in_memory(12_000_000, 2 * 10**9)
     assert fits_in_memory(10**9, None)
-    assert points_per_tile(2 * 10**9) * 1_500 * 4 <= 2 * 10**9
+    assert points_per_tile(2 * 10**9) * 1_800 * 4 <= 2 * 10**9

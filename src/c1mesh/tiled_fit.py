@@ -46,10 +46,11 @@ import numpy as np
 
 from c1mesh.errors import InputError
 
-BYTES_PER_POINT = 1_500
+BYTES_PER_POINT = 1_800
 """Peak memory of the in-memory fit per input point (bytes). Measured: about 1.1 GB per
-million points at level 4 with file normals, 1.36–1.4 GB at level 1 with estimated
-normals (benchmarks); the rule takes the upper end with a margin."""
+million points at level 4 with file normals, 1.36–1.78 GB at level 1 with estimated
+normals (benchmarks; 1.78 GB: `c1mesh fit` of a 1M-point synthetic LAZ, --overshoot off);
+the rule takes the upper end."""
 TILE_SHARE = 4
 """A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
 reads its buffer too (about twice its points for the normals and the triangulation) and
@@ -104,6 +105,35 @@ def las_point_count(path) -> int:
 
     with laspy.open(str(path)) as reader:
         return int(reader.header.point_count)
+
+
+class CachedChunks:
+    """survey_stats.Chunks that decompress a source once: the first pass copies the world
+    points (float64 x, y, z) to a hidden temporary file, later passes read that file (a
+    LAZ decompression costs more than reading 24 bytes a point). Call close() to remove it."""
+
+    def __init__(self, chunks: Callable, temps: "_Temps", chunk: int = CHUNK):
+        self.source, self.chunk, self.path, self.complete = chunks, chunk, temps.new("points.bin"), False
+
+    def __call__(self):
+        if self.complete:
+            return self._cached()
+        return self._first()
+
+    def _first(self):
+        with open(self.path, "wb") as file:
+            for points, normals in self.source():
+                np.ascontiguousarray(points, dtype="<f8").tofile(file)
+                yield points, normals
+        self.complete = True
+
+    def _cached(self):
+        with open(self.path, "rb") as file:
+            while True:
+                part = np.fromfile(file, "<f8", count=3 * self.chunk)
+                if not len(part):
+                    return
+                yield part.reshape(-1, 3), None
 
 
 def las_chunks(path, classes=None, chunk: int = CHUNK) -> Callable:
@@ -168,20 +198,20 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if on_stage:
             on_stage(stage)
 
-    chunks = las_chunks(source, options.classes)
-    axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
-    frame = streamed_frame(chunks, axis)
-    count, box = _plane_box(chunks, frame)
-    if count < 3:
-        raise InputError(f"{source}: only {count} points" + (f" of class {list(options.classes)}"
-                                                             if options.classes else ""))
-    side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
-    grid = TileGrid(box, side, side)
-    done("frame")
     if directory is None:
         directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
     temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
     try:
+        chunks = CachedChunks(las_chunks(source, options.classes), temps)
+        axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
+        frame = streamed_frame(chunks, axis)
+        count, box = _plane_box(chunks, frame)
+        if count < 3:
+            raise InputError(f"{source}: only {count} points" + (f" of class {list(options.classes)}"
+                                                                 if options.classes else ""))
+        side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
+        grid = TileGrid(box, side, side)
+        done("frame")
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
             done("spill")
             heights = _height_spill(raw, grid, count, options, directory, temps.stem)
@@ -341,11 +371,11 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
             if np.any(rows >= len(records)) or np.any(records["index"][np.minimum(rows, len(records) - 1)] != corners):
                 raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
             records = records[rows]
-            kept += int((grid.tile_of(np.column_stack([records["x"], records["y"]])) == t).sum())
             local = np.searchsorted(corners, triangles)
-            added, face_count = _write_tile(records, local, frame, options, shared, written,
-                                            vertex_file, face_file)
+            added, new_corners, face_count = _write_tile(records, local, frame, options, shared,
+                                                         written, vertex_file, face_file)
             written += added
+            kept += new_corners
             faces += face_count
     if faces == 0:
         raise InputError("no triangles are left after trimming; try --max-edge none")
@@ -374,10 +404,10 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
 
 
 def _write_tile(records, triangles, frame, options, shared: dict, written: int,
-                vertex_file, face_file) -> tuple[int, int]:
+                vertex_file, face_file) -> tuple[int, int, int]:
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
     append its new vertices and its faces (global numbers); returns (vertices written,
-    faces written)."""
+    of which input points, faces written)."""
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.pipeline import surface_stream
 
@@ -397,7 +427,7 @@ def _write_tile(records, triangles, frame, options, shared: dict, written: int,
         out.tofile(vertex_file)
     for faces in stream.face_blocks():
         number.take(faces).astype("<i8").tofile(face_file)
-    return int(new.sum()), int(stream.face_count)
+    return int(new.sum()), int(new[:len(records)].sum()), int(stream.face_count)
 
 
 def _global_numbers(refinement, survey: np.ndarray, shared: dict, written: int) -> np.ndarray:
