@@ -48,12 +48,16 @@ def overshoot(surface: np.ndarray, z: np.ndarray, xy: np.ndarray, triangles: np.
 
 
 def folded_faces(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> int:
-    """Faces whose geometric normal is more than 90° from the mean of their corner normals.
+    """Faces whose geometric normal is more than 90° from any of their corner normals.
 
     vertices (M, 3), faces (K, 3) counter-clockwise seen from the side the vertex normals
-    (M, 3) point to. Such a face is shaded as a black speck or a needle.
+    (M, 3) point to. Issue 10's defect is a face whose geometric normal is more than 90°
+    away from "the normals written at its corners": a shader lights each corner with its
+    written normal, so one corner facing away from its own face already draws a black
+    speck or a needle-like crease, even when the mean of the three corners agrees with the
+    face. Comparing with every corner (not their mean) counts those too.
     """
     p = vertices[faces]
     geometric = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    corners = normals[faces].sum(axis=1)
-    return int(np.count_nonzero(np.einsum("ij,ij->i", geometric, corners) < 0))
+    facing = np.einsum("fd,fkd->fk", geometric, normals[faces])
+    return int(np.count_nonzero((facing < 0).any(axis=1)))
