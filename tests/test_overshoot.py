@@ -21,7 +21,8 @@ from c1mesh.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, lim
                              reconcile_gradients)
 from c1mesh.normals import estimate_normals
 from c1mesh.pipeline import FitOptions, _compact, cloud_normals, fit, load_cloud
-from c1mesh.quality import folded_faces, interior_lattice, lattice_points, overshoot
+from c1mesh.quality import (folded_faces, interior_lattice, lattice_points, overshoot,
+                            reduced_hct_folded_faces)
 from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay, trim
 
@@ -32,11 +33,13 @@ GROUND = {"4_6_crop": (SAMPLES / "4_6_crop.las", {}),
 
 
 def height_data(path, **options):
-    """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter."""
-    opts = FitOptions(classes=(2,), axis="z", **options)
+    """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter
+    (LiDAR ground unless options say otherwise)."""
+    opts = FitOptions(**{"classes": (2,), "axis": "z", **options})
     cloud = load_cloud(path, opts)
     normals, _ = cloud_normals(cloud, opts)
-    hf = height_field(cloud.points, normals, choose_frame(cloud.points, normals, "z"))
+    frame = choose_frame(cloud.points, normals, opts.axis)
+    hf = height_field(cloud.points, normals, frame, max_slope_deg=opts.max_slope)
     tri, _ = trim(hf.xy, delaunay(hf.xy), max_edge=opts.max_edge)
     used, tri = _compact(hf.xy, tri)
     return hf.xy[used], hf.z[used], hf.gradients[used], tri
@@ -151,6 +154,20 @@ def test_autzen_ground_holdout_rms_is_no_worse_than_a_linear_tin():
         ours.append(np.sqrt(np.mean((interp(q) - truth) ** 2)))
         linear.append(np.sqrt(np.mean((LinearNDInterpolator(xy, z)(q) - truth) ** 2)))
     assert np.mean(ours) <= np.mean(linear)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, options", [("autzen_trim.laz", {"classes": (2,), "axis": "z"}),
+                                           ("pcl_bun0.pcd", {"classes": None, "axis": "auto"})])
+def test_folded_faces_are_fewer_than_reduced_hct_with_the_same_gradients(name, options):
+    """c1mesh's default output against matplotlib's reduced HCT given the raw gradients on
+    the same triangles, refined to the same 16 faces per triangle."""
+    xy, z, g, tri = height_data(SAMPLES / name, **options)
+    mesh = fit(SAMPLES / name, None, FitOptions(**options)).mesh
+    ours = folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals)
+    peer, faces = reduced_hct_folded_faces(xy, z, g, tri)
+    assert len(mesh.faces) == faces
+    assert ours < peer
 
 
 def test_range_scan_folds_drop_with_the_limiter():
