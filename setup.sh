@@ -1,15 +1,20 @@
 #!/usr/bin/env bash
 # Sets up everything c1mesh needs on a fresh Debian machine, from this repository's own files:
-# the system library open3d needs (libusb-1.0-0), a virtual environment in .venv, and the
+# the Debian packages it needs (libusb-1.0-0, a C compiler), a virtual environment in .venv, and the
 # package with its dev extra (tests, matplotlib peer, sympy) installed editable.
 set -euo pipefail
 cd "$(dirname "$0")"
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+# Debian packages: libusb-1.0-0 for open3d; a C compiler for python-lzf, which PyPI has
+# only as source (the PCD reader's LZF decoder).
+missing=()
+ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
+command -v cc >/dev/null 2>&1 || missing+=(build-essential)
+if [ ${#missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ]; then
         apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
     else
-        echo "setup.sh: please install the Debian package libusb-1.0-0 (needed by open3d)" >&2
+        echo "setup.sh: please install the Debian packages ${missing[*]}" >&2
     fi
 fi
 [ -x .venv/bin/python ] || python3 -m venv .venv

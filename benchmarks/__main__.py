@@ -11,10 +11,10 @@ import time
 import traceback
 from pathlib import Path
 
-from benchmarks import accuracy, engine, geo, memory, noisy, pipeline, report, tiles, triangulation
+from benchmarks import accuracy, depth, engine, geo, memory, noisy, pipeline, report, tiles, triangulation
 from benchmarks.common import Config, Section
 
-SECTIONS = (engine, pipeline, triangulation, accuracy, noisy, memory, tiles, geo)
+SECTIONS = (engine, pipeline, triangulation, accuracy, noisy, memory, tiles, geo, depth)
 
 
 def main(argv: list[str] | None = None) -> int:

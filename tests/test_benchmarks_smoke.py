@@ -22,7 +22,8 @@ HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Noisy data: real scans, overshoot, folded faces, held-out RMS",
             "## Memory: peak RSS of a fit",
             "## Tiles: seamless survey vs one whole fit",
-            "## Geo: slope honesty, DEM speed, GLB precision")
+            "## Geo: slope honesty, DEM speed, GLB precision",
+            "## Depth frames: pixel grid in the perspective frame vs Delaunay in the axis frame")
 
 
 @pytest.mark.slow

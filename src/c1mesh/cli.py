@@ -88,6 +88,20 @@ def _parse_max_edge(value: str):
     return length
 
 
+def _parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
+    """--intrinsics fx,fy,cx,cy (pixels, fx and fy > 0); plain Python, so usage errors stay fast."""
+    if value is None:
+        return None
+    try:
+        parts = tuple(float(p) for p in value.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 4 or not all(math.isfinite(p) for p in parts) or parts[0] <= 0 or parts[1] <= 0:
+        raise click.BadParameter(f"expected fx,fy,cx,cy in pixels with fx, fy > 0, got {value!r}",
+                                 param_hint="'--intrinsics'")
+    return parts
+
+
 def _check_axis(value: str) -> None:
     """Usage error for an --axis that can never be a direction (checked again, and
     normalised, by c1mesh.frame)."""
@@ -201,6 +215,15 @@ def main() -> None:
 @click.option("--level", type=click.IntRange(1, 64), default=4, show_default=True,
               help="Each triangle is split into level² triangles.")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
+@click.option("--frame", "frame_kind", type=click.Choice(["auto", "axis", "perspective"]), default="auto",
+              show_default=True, help="axis: height over a plane (--axis); perspective: inverse depth over "
+              "the view rays from --viewpoint; auto: perspective for organised scans and depth images.")
+@click.option("--viewpoint", help="Sensor position x,y,z[,qw,qx,qy,qz] for --frame perspective "
+              "(default: the file's VIEWPOINT, else the origin).")
+@click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
+@click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
+              help="Depth images: metres per depth unit.")
+@click.option("--color", "color_image", help="Depth images: an RGB image of the same size for vertex colours.")
 @click.option("--overshoot", type=click.Choice(["limit", "off"]), default="limit", show_default=True,
               help="limit: tame gradients that disagree with the heights and thin triangles "
                    "(keeps C1); off: use the data as is.")
@@ -229,10 +252,12 @@ def main() -> None:
 @click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
 @click.pass_context
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
-        max_edge, scheme, level, ascii_ply, overshoot, report, memory, jobs, quiet, verbose, debug,
+        max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
+        overshoot, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
+    intrinsics = _parse_intrinsics(intrinsics)
     _check_axis(axis)
     if seamless or scheduler:
         from c1mesh.pipeline import FitOptions
@@ -261,7 +286,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
                          memory=memory, crs=crs, resolution=resolution, slope=slope, aspect=aspect,
                          hillshade=hillshade, slope_method=slope_method, preview=preview,
-                         overshoot=overshoot)
+                         overshoot=overshoot, frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics,
+                         depth_scale=depth_scale, color=color_image)
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
@@ -571,8 +597,11 @@ def _collect(iterator, total, show, verbose):
 @click.argument("path")
 @click.option("--input-format", help="Input format; required for stdin (-).")
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
+@click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
+@click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
+              help="Depth images: metres per depth unit.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
-def info(path, input_format, memory, debug):
+def info(path, input_format, memory, intrinsics, depth_scale, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
     from c1mesh.inspect import describe
 
@@ -582,7 +611,8 @@ def info(path, input_format, memory, debug):
         if path == STDIO:
             _check_stdin()
         _check_stdout()
-        facts = describe(sys.stdin.buffer if path == "-" else path, input_format, memory=memory)
+        facts = describe(sys.stdin.buffer if path == "-" else path, input_format, memory=memory,
+                         intrinsics=_parse_intrinsics(intrinsics), depth_scale=depth_scale)
     except Exception as exc:  # noqa: BLE001
         _fail(_message(exc), debug)
     click.echo(json.dumps(facts, indent=2))

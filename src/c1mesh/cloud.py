@@ -17,6 +17,10 @@ class PointCloud:
     classification: (N,) integer LAS classification codes or None.
     extra:          other per-point fields by name, each (N,) array (kept, not interpreted).
     crs:            WKT2 of the coordinate reference system the file declares, or None.
+    grid_shape:     (height, width) when the points are an organised scan (pixels row by
+                    row, N = height * width, invalid pixels non-finite), else None.
+    viewpoint:      (7,) sensor position x, y, z and orientation quaternion qw, qx, qy, qz
+                    in world coordinates when the file gives one (PCD VIEWPOINT), else None.
     """
 
     points: np.ndarray
@@ -25,6 +29,8 @@ class PointCloud:
     classification: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     crs: str | None = None
+    grid_shape: tuple[int, int] | None = None
+    viewpoint: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -39,6 +45,7 @@ class PointCloud:
             classification=pick(self.classification),
             extra={k: v[mask] for k, v in self.extra.items()},
             crs=self.crs,
+            viewpoint=self.viewpoint,        # a subset is no longer a grid
         )
 
 

@@ -12,7 +12,8 @@ from c1mesh.frame import choose_frame, height_field
 SAMPLE = 20_000
 
 
-def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None) -> dict:
+def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
+             intrinsics=None, depth_scale: float = 0.001) -> dict:
     """Facts about a point file as a JSON-ready dict.
 
     The height-field check runs on a random subsample of at most `sample` finite points
@@ -20,7 +21,12 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None) 
     estimated (Open3D) on the subsample; the output says how many points it used, since
     on the full cloud the answer can differ. `memory` bounds the bytes read (read_cloud).
     """
-    cloud = read_cloud(source, fmt, memory=memory)
+    from c1mesh.formats.depth import is_depth_image, read_depth_source
+    if is_depth_image(source, fmt):
+        from c1mesh.pipeline import FitOptions
+        cloud = read_depth_source(source, FitOptions(intrinsics=intrinsics, depth_scale=depth_scale))
+    else:
+        cloud = read_cloud(source, fmt, memory=memory)
     finite = np.isfinite(cloud.points).all(axis=1)
     pts = cloud.points[finite]
     facts: dict = {
@@ -37,7 +43,22 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None) 
     facts["crs"] = describe_crs(cloud.crs)
     if pts.shape[0]:
         facts["bounds"] = {"min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}
-    facts.update(_height_field_check(cloud, finite, sample))
+    facts.update(_view_facts(cloud))
+    if facts["fit_frame"] == "axis":
+        facts.update(_height_field_check(cloud, finite, sample))
+    return facts
+
+
+def _view_facts(cloud) -> dict:
+    """Organised or not, the viewpoint, and the frame `c1mesh fit` would use by default."""
+    from c1mesh.perspective import frame_kind
+    kind = frame_kind("auto", cloud.grid_shape is not None)
+    facts = {"organised": cloud.grid_shape is not None,
+             "viewpoint": None if cloud.viewpoint is None else [float(v) for v in cloud.viewpoint],
+             "fit_frame": kind}
+    if cloud.grid_shape is not None:
+        facts["grid"] = {"height": cloud.grid_shape[0], "width": cloud.grid_shape[1]}
+        facts["fit_triangulation"] = "pixel grid (perspective frame, depth jumps become holes)"
     return facts
 
 

@@ -77,6 +77,15 @@ class FitOptions:
     hillshade: str | None = None
     slope_method: str = "auto"
     preview: str | None = None
+    # perspective frame and organised scans (depth_fit.py): frame "auto" | "axis" |
+    # "perspective"; viewpoint "x,y,z[,qw,qx,qy,qz]" or None (the file's, else the origin);
+    # depth images: intrinsics (fx, fy, cx, cy) pixels, depth_scale metres per unit,
+    # color: path of an RGB image of the same size.
+    frame: str = "auto"
+    viewpoint: str | None = None
+    intrinsics: tuple[float, float, float, float] | None = None
+    depth_scale: float = 0.001
+    color: str | None = None
 
 
 @dataclass
@@ -108,6 +117,9 @@ class _Timer:
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
     """Read the input and keep only the requested LAS classes."""
+    from c1mesh.formats.depth import is_depth_image, read_depth_source
+    if is_depth_image(source, options.input_format):
+        return read_depth_source(source, options)
     cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory)
     if options.classes:
         if cloud.classification is None:
@@ -166,8 +178,11 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
             local[:n, :2] = block.points
             local[:n, 2] = block.values
             frame.to_world(local[:n], out=vertices[:n])
-            gradients_to_normals(block.gradients, out=local[:n])
-            frame.vectors_to_world(local[:n], out=normals[:n])
+            if hasattr(frame, "normals_from_gradients"):      # perspective.PerspectiveFrame
+                frame.normals_from_gradients(local[:n], block.gradients, out=normals[:n])
+            else:
+                gradients_to_normals(block.gradients, out=local[:n])
+                frame.vectors_to_world(local[:n], out=normals[:n])
             blended = None
             if fields:
                 blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
@@ -270,6 +285,10 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
         crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, _name(source))
+    from c1mesh.perspective import frame_kind
+    if frame_kind(options.frame, cloud.grid_shape is not None) == "perspective":
+        from c1mesh.depth_fit import fit_perspective
+        return fit_perspective(cloud, source, output, options, timer, keep_mesh)
     model = build_surface(cloud, options, timer)
     normal_source, frame, hf, trim_report, used, interp = (
         model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)

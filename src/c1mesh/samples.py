@@ -127,6 +127,54 @@ def write_points_xyz(cloud: PointCloud, path) -> None:
                header="x y z nx ny nz", comments="")
 
 
+# ------------------------------------------------------------- scenes seen from a viewpoint
+def pixel_rays(n: int, half_width: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Ray parameters (u, v) = (x/z, y/z), each (n, n), of an n×n pixel grid over
+    [-half_width, half_width]²: rows are v, columns u (a pinhole camera at the origin)."""
+    t = np.linspace(-half_width, half_width, n)
+    u, v = np.meshgrid(t, t)
+    return u, v
+
+
+def cylinder_from_inside(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The wall x² + y² = 1, 1 <= z <= 5, seen from the origin on its axis looking along +z.
+
+    Returns points and exact normals (n*n, 3), pixels row by row; pixels whose ray misses
+    that part of the wall are NaN. No plane sees this as a height field; the view rays do
+    (inverse depth w = sqrt(u² + v²), see docs/perspective.md).
+    """
+    u, v = pixel_rays(n)
+    r = np.hypot(u, v)
+    with np.errstate(divide="ignore"):
+        z = 1.0 / r
+    z[(z < 1.0) | (z > 5.0)] = np.nan
+    points = np.stack([u * z, v * z, z], axis=-1).reshape(-1, 3)
+    normals = np.column_stack([points[:, 0], points[:, 1], np.zeros(len(points))])
+    return points, normals
+
+
+def tilted_plane(n: int, normal=(0.3, -0.2, 1.0), offset: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Points and normals (n*n, 3) of the plane normal·X = offset seen from the origin
+    through an n×n pixel grid over [-0.5, 0.5]² in (u, v)."""
+    nrm = np.asarray(normal, dtype=float)
+    u, v = pixel_rays(n, 0.5)
+    z = offset / (nrm[0] * u + nrm[1] * v + nrm[2])
+    points = np.stack([u * z, v * z, z], axis=-1).reshape(-1, 3)
+    return points, np.tile(nrm, (len(points), 1))
+
+
+def write_organised_pcd(points: np.ndarray, normals: np.ndarray, shape: tuple[int, int], path) -> None:
+    """Binary PCD (float64 x y z normal_x normal_y normal_z) with WIDTH x HEIGHT = shape
+    (rows, columns reversed as PCD wants) and VIEWPOINT at the origin: an organised scan."""
+    height, width = shape
+    header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z normal_x normal_y normal_z\nSIZE 8 8 8 8 8 8\n"
+              "TYPE F F F F F F\nCOUNT 1 1 1 1 1 1\n"
+              f"WIDTH {width}\nHEIGHT {height}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {width * height}\n"
+              "DATA binary\n")
+    body = np.column_stack([points, normals]).astype("<f8")
+    Path(path).write_bytes(header.encode("ascii") + body.tobytes())
+
+
 def write_bundled_samples(folder) -> list[Path]:
     """The analytic files shipped in data_samples/ (small, deterministic)."""
     folder = Path(folder)

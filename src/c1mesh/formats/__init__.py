@@ -20,6 +20,7 @@ from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
 from c1mesh.formats._atomic import atomic_output
 from c1mesh.formats._limits import check_alloc, read_bounded, reading_budget
+from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
 from c1mesh.formats.meshes import write_glb, write_off, write_stl
 from c1mesh.formats.obj import read_obj, write_obj
@@ -35,6 +36,7 @@ Source = Union[str, "os.PathLike[str]", IO[bytes]]
 _READERS: dict[str, Callable[[bytes, str], PointCloud]] = {
     "ply": read_ply, "obj": read_obj, "xyz": read_xyz, "txt": read_xyz, "csv": read_xyz,
     "pcd": read_pcd, "las": read_las, "laz": read_las,
+    "png": read_depth_registry, "tif": read_depth_registry, "tiff": read_depth_registry,
 }
 _WRITERS: dict[str, Callable[..., None]] = {
     "ply": write_ply, "obj": write_obj, "stl": write_stl, "off": write_off, "glb": write_glb,

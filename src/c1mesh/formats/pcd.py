@@ -245,4 +245,23 @@ def read_pcd(data: bytes, name: str) -> PointCloud:
     """Read a PCD file held in `data` (`name` is for messages)."""
     header, offset = _parse_header(data, name)
     body = {"ascii": _ascii, "binary": _binary, "binary_compressed": _compressed}[header.data]
-    return _cloud(header, body(data, offset, header, name), name)
+    cloud = _cloud(header, body(data, offset, header, name), name)
+    _organisation(cloud, data, name)
+    return cloud
+
+
+# ----------------------------------------------------------------------------- organisation
+def _organisation(cloud: PointCloud, data: bytes, name: str) -> None:
+    """Set cloud.grid_shape from WIDTH x HEIGHT (HEIGHT > 1) and cloud.viewpoint from VIEWPOINT."""
+    values, _ = _header_lines(data, name)
+    width, height = _one(values, "WIDTH", name, 0), _one(values, "HEIGHT", name, 1)
+    if height > 1 and width * height == len(cloud):
+        cloud.grid_shape = (height, width)
+    if "VIEWPOINT" in values:
+        try:
+            viewpoint = np.array([float(v) for v in values["VIEWPOINT"]])
+        except ValueError:
+            raise FormatError(f"PCD file '{name}' has a non-numeric VIEWPOINT line.") from None
+        if viewpoint.shape != (7,) or not np.isfinite(viewpoint).all():
+            raise FormatError(f"PCD file '{name}' needs 7 finite numbers on its VIEWPOINT line (x y z qw qx qy qz).")
+        cloud.viewpoint = viewpoint

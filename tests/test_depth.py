@@ -1,0 +1,290 @@
+"""Perspective frame, organised scans and depth jumps (issue 11), against exact geometry."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from c1mesh.errors import InputError
+from c1mesh.formats import read_cloud
+from c1mesh.grid import depth_jumps, grid_mesh, grid_normals
+from c1mesh.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
+from c1mesh.pipeline import FitOptions, fit
+from depth_scenes import (cylinder_from_inside, tilted_plane, write_organised_pcd,
+                          write_unorganised_ply)
+
+MUG = "data_samples/table_scene_mug_stereo_textured.pcd"
+
+
+def _radial_error(vertices: np.ndarray) -> np.ndarray:
+    return np.abs(np.hypot(vertices[:, 0], vertices[:, 1]) - 1.0)
+
+
+# ------------------------------------------------------------------------ the frame's maps
+def test_gradient_of_inverse_depth_matches_finite_differences():
+    """∇w from a normal equals the finite-difference slope of w = 1/z over (u, v) on a sphere."""
+    centre, radius = np.array([0.2, -0.1, 3.0]), 1.0
+    def w_of(u, v):                       # nearer intersection of the ray (u, v, 1) with the sphere
+        d = np.array([u, v, 1.0])
+        b, c = d @ centre, d @ d
+        t = (b - np.sqrt(b * b - c * (centre @ centre - radius ** 2))) / c
+        return 1.0 / t
+    u, v, h = 0.05, 0.03, 1e-6
+    w = w_of(u, v)
+    point = np.array([u, v, 1.0]) / w
+    gradient, cosine = inverse_depth_gradients(np.array([[u, v, w]]), (point - centre)[None, :])
+    numeric = [(w_of(u + h, v) - w_of(u - h, v)) / (2 * h), (w_of(u, v + h) - w_of(u, v - h)) / (2 * h)]
+    np.testing.assert_allclose(gradient[0], numeric, rtol=1e-6)
+    assert 0 < cosine[0] <= 1
+
+
+def test_frame_round_trip_and_normals_face_the_viewpoint():
+    rotation = quaternion_matrix(0.9, 0.1, -0.3, 0.2)
+    frame = PerspectiveFrame(np.array([1.0, 2.0, -0.5]), rotation)
+    world = frame.origin + (np.array([[0.1, -0.2, 2.0], [0.5, 0.4, 1.0]]) @ rotation.T)
+    np.testing.assert_allclose(frame.to_world(frame.to_local(world)), world, atol=1e-13)
+    # a plane n·X = d in camera coordinates: w is affine with gradient (n_x, n_y)/d
+    n_cam, d = np.array([0.3, -0.2, 1.0]), 2.0
+    local = np.array([[0.1, 0.2, (0.3 * 0.1 - 0.2 * 0.2 + 1.0) / d]])
+    normal = frame.normals_from_gradients(local, np.array([[0.3 / d, -0.2 / d]]))
+    expected = -(rotation @ n_cam) / np.linalg.norm(n_cam)
+    np.testing.assert_allclose(normal[0], expected, atol=1e-14)
+
+
+# ------------------------------------------------------------------------ grid pieces
+def test_grid_mesh_splits_quads_along_the_shorter_diagonal_counter_clockwise():
+    points = np.zeros((2, 2, 3))
+    points[..., 0] = [[0, 1], [0, 1]]
+    points[..., 1] = [[0, 0], [1, 1]]
+    points[..., 2] = [[10.0, 10.0], [10.0, 10.5]]      # d is farther: a-d is the longer diagonal
+    uv = points[..., :2] / points[..., 2:]
+    tri, _ = grid_mesh(points, uv, np.ones((2, 2), bool))
+    assert sorted(map(sorted, tri.tolist())) == [[0, 1, 2], [1, 2, 3]]
+    flat_uv = uv.reshape(-1, 2)
+    p0, p1, p2 = (flat_uv[tri[:, k]] for k in range(3))
+    assert ((p1 - p0)[:, 0] * (p2 - p0)[:, 1] - (p1 - p0)[:, 1] * (p2 - p0)[:, 0] > 0).all()
+    tri, _ = grid_mesh(points, uv, np.array([[True, True], [True, False]]))
+    assert sorted(map(sorted, tri.tolist())) == [[0, 1, 2]]
+
+
+def test_grid_mesh_and_depth_jumps_agree_on_a_scene_with_jumps():
+    """The grid's slice-wise rules are depth_jumps' rules: same triangles on a step scene."""
+    points, normals = tilted_plane(20)
+    grid = points.reshape(20, 20, 3).copy()
+    grid[:, 10:] *= 1.5                                  # a depth jump down the middle column
+    uv = grid[..., :2] / grid[..., 2:]
+    valid = np.ones((20, 20), bool)
+    valid[3, 4] = False
+    tri, report = grid_mesh(grid, uv, valid)
+    assert report.removed["shadow_edge"] > 0
+    again, _ = depth_jumps(grid.reshape(-1, 3), tri)
+    assert again.shape == tri.shape                       # nothing left to remove
+    columns = tri % 20
+    assert not ((columns.min(axis=1) < 10) & (columns.max(axis=1) >= 10)).any()
+
+
+def test_depth_jumps_remove_curtains_but_keep_slopes():
+    # a step: two pixels at depth 1, two at depth 2 behind them
+    step = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.0, 0.01, 2.0]])
+    slope = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.0, 0.01, 1.01]])   # 45° to the ray
+    kept, report = depth_jumps(np.vstack([step, slope]), np.array([[0, 1, 2], [3, 4, 5]]))
+    assert kept.tolist() == [[3, 4, 5]]
+    assert report.removed["shadow_edge"] + report.removed["grazing"] == 1
+
+
+def test_smallest_eigenvectors_match_eigh():
+    from c1mesh.grid import smallest_eigenvectors
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(500, 3, 3))
+    a = m @ m.transpose(0, 2, 1)
+    vectors, flat = smallest_eigenvectors(a[:, 0, 0], a[:, 1, 1], a[:, 2, 2], a[:, 0, 1], a[:, 0, 2], a[:, 1, 2])
+    expected = np.linalg.eigh(a)[1][:, :, 0]
+    assert not flat.any()
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", vectors, expected)), 1.0, atol=1e-8)
+    line = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])          # rank 1: collinear points, no plane
+    assert smallest_eigenvectors(*(np.array([line[i, j]]) for i, j in
+                                   ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))))[1][0]
+
+
+def test_grid_normals_of_a_plane_are_exact_and_face_the_viewpoint():
+    points, normals = tilted_plane(30)
+    estimate = grid_normals(points.reshape(30, 30, 3), np.ones((30, 30), bool)).reshape(-1, 3)
+    expected = -normals / np.linalg.norm(normals, axis=1)[:, None]   # the plane faces away from +z
+    np.testing.assert_allclose(estimate, expected, atol=1e-6)        # float32 moments
+
+
+# ------------------------------------------------------------------------ files
+def test_pcd_carries_grid_shape_and_viewpoint(tmp_path):
+    points, normals = tilted_plane(5)
+    cloud = read_cloud(write_organised_pcd(tmp_path / "p.pcd", points, normals, (5, 5)))
+    assert cloud.grid_shape == (5, 5)
+    np.testing.assert_array_equal(cloud.viewpoint, [0, 0, 0, 1, 0, 0, 0])
+    assert read_cloud("data_samples/pcl_bun0.pcd").grid_shape is None
+
+
+def test_depth_png_becomes_an_organised_cloud(tmp_path):
+    from PIL import Image
+    depth = np.array([[1000, 2000, 0], [1500, 65535, 1200]], dtype=np.uint16)
+    Image.fromarray(depth).save(tmp_path / "d.png")
+    with pytest.raises(InputError, match="intrinsics"):
+        read_cloud(tmp_path / "d.png")
+    from c1mesh.formats.depth import read_depth
+    cloud = read_depth((tmp_path / "d.png").read_bytes(), "d.png", (100.0, 200.0, 1.0, 0.5), 0.001)
+    assert cloud.grid_shape == (2, 3)
+    expected = np.array([(0 - 1.0) * 1.0 / 100, (0 - 0.5) * 1.0 / 200, 1.0])
+    np.testing.assert_allclose(cloud.points[0], expected)
+    np.testing.assert_allclose(cloud.points[4, 2], 65.535)
+    assert np.isnan(cloud.points[2]).all()
+
+
+# ------------------------------------------------------------------------ whole fits
+def test_tilted_plane_in_perspective_is_reproduced_to_rounding(tmp_path):
+    normal, offset = np.array([0.3, -0.2, 1.0]), 2.0
+    points, normals = tilted_plane(25, normal, offset)
+    path = write_organised_pcd(tmp_path / "plane.pcd", points, normals, (25, 25))
+    result = fit(path, None, FitOptions(level=3))
+    assert result.report["frame"]["kind"] == "perspective"
+    assert result.report["triangles"]["method"] == "grid"
+    vertices, out_normals = result.mesh.vertices, result.mesh.vertex_normals
+    assert np.abs(vertices @ normal - offset).max() < 1e-12 * offset * 10
+    np.testing.assert_allclose(out_normals, np.tile(-normal / np.linalg.norm(normal), (len(vertices), 1)),
+                               atol=1e-12)
+
+
+def _cylinder_fit(tmp_path, n, unorganised=False):
+    points, normals = cylinder_from_inside(n)
+    if unorganised:
+        path = write_unorganised_ply(tmp_path / "cyl.ply", points, normals)
+        return fit(path, None, FitOptions(level=4, frame="perspective"))
+    return fit(write_organised_pcd(tmp_path / "cyl.pcd", points, normals, (n, n)), None, FitOptions(level=4))
+
+
+def test_cylinder_seen_from_inside_at_level_4(tmp_path):
+    error = _radial_error(_cylinder_fit(tmp_path, 100).mesh.vertices)
+    assert np.median(error) <= 1e-4
+    assert error.max() <= 2e-2
+
+
+def test_cylinder_error_shrinks_at_second_order(tmp_path):
+    """The sextic's value error is O(h²) (benchmarks: accuracy): halving h divides it by ~4."""
+    coarse = np.median(_radial_error(_cylinder_fit(tmp_path, 40).mesh.vertices))
+    fine = np.median(_radial_error(_cylinder_fit(tmp_path, 80).mesh.vertices))
+    assert np.log2(coarse / fine) > 1.7
+
+
+def test_cylinder_as_unorganised_ply_with_frame_perspective(tmp_path):
+    result = _cylinder_fit(tmp_path, 100, unorganised=True)
+    assert result.report["triangles"]["method"] == "delaunay"
+    error = _radial_error(result.mesh.vertices)
+    assert np.median(error) <= 1e-4
+    assert error.max() <= 2e-2
+
+
+def mug_face_checks(vertices, faces, normals):
+    """Fractions of faces seen within 5° of edge-on, and with a geometric normal more than 90°
+    from the mean of their corner normals."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    geometric = np.cross(b - a, c - a)
+    geometric /= np.linalg.norm(geometric, axis=1)[:, None]
+    ray = a + b + c
+    ray /= np.linalg.norm(ray, axis=1)[:, None]
+    edge_on = np.abs(np.einsum("ij,ij->i", geometric, ray)) < np.cos(np.radians(85.0))
+    corner = normals[faces].sum(axis=1)
+    flipped = np.einsum("ij,ij->i", geometric, corner) < 0
+    return float(edge_on.mean()), float(flipped.mean())
+
+
+@pytest.mark.slow
+def test_mug_frame_with_default_options():
+    from scipy.spatial import cKDTree
+
+    result = fit(MUG, None, FitOptions())
+    mesh = result.mesh
+    points = read_cloud(MUG).points
+    points = points[np.isfinite(points).all(axis=1)]
+    distance, _ = cKDTree(points).query(mesh.vertices, distance_upper_bound=0.05)
+    assert distance.max() <= 0.02
+    edge_on, flipped = mug_face_checks(mesh.vertices, mesh.faces, mesh.vertex_normals)
+    assert edge_on <= 1e-3
+    assert flipped <= 1e-4
+    to_vertex, _ = cKDTree(mesh.vertices).query(points, distance_upper_bound=1e-6)
+    assert np.mean(to_vertex <= 1e-9) >= 0.9        # the maps to the camera and back round
+
+
+# ------------------------------------------------------------------------ the command
+def _depth_png(tmp_path, depth_mm: np.ndarray):
+    from PIL import Image
+    Image.fromarray(depth_mm.astype(np.uint16)).save(tmp_path / "depth.png")
+    Image.fromarray(np.full(depth_mm.shape + (3,), (200, 30, 40), dtype=np.uint8)).save(tmp_path / "rgb.png")
+    return tmp_path / "depth.png"
+
+
+def test_cli_fits_a_depth_png_with_intrinsics_and_colour(tmp_path):
+    """A 16-bit depth PNG of a tilted plane (mm): vertices on the plane within the mm rounding."""
+    import json
+
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    fx, fy, cx, cy = 60.0, 60.0, 19.5, 14.5
+    cols, rows = np.meshgrid(np.arange(40.0), np.arange(30.0))
+    u, v = (cols - cx) / fx, (rows - cy) / fy
+    normal, offset = np.array([0.2, 0.1, 1.0]), 1.5
+    depth_mm = np.rint(1000 * offset / (normal[0] * u + normal[1] * v + normal[2]))
+    depth_mm[:4, :4] = 0                                  # no measurement there
+    png = _depth_png(tmp_path, depth_mm)
+    out = tmp_path / "frame.ply"
+    result = CliRunner().invoke(main, ["fit", str(png), "--intrinsics", f"{fx},{fy},{cx},{cy}",
+                                       "--color", str(tmp_path / "rgb.png"), "--level", "2",
+                                       "--normals", "estimate", "-o", str(out), "--report", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["frame"]["kind"] == "perspective" and report["triangles"]["method"] == "grid"
+    assert report["points"]["dropped"]["non_finite"] == 16
+    mesh = read_cloud(out)
+    residual = np.abs(mesh.points @ normal - offset) / np.linalg.norm(normal)
+    assert residual.max() < 2e-3                          # 0.5 mm rounding, tilted, plus the spline
+    assert (mesh.colors[:, :3] == (200, 30, 40)).all()
+
+
+def test_cli_depth_png_without_intrinsics_is_one_line(tmp_path):
+    png = _depth_png(tmp_path, np.full((4, 5), 1000))
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+    result = CliRunner().invoke(main, ["fit", str(png), "-o", str(tmp_path / "o.ply")])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "intrinsics" in lines[0] and "depth.png" in lines[0]
+    assert not (tmp_path / "o.ply").exists()
+
+
+def _info(path) -> dict:
+    """`c1mesh info PATH` in a child process (info needs a real standard output)."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "c1mesh.cli", "info", str(path)], capture_output=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_cli_info_says_organised_viewpoint_and_frame():
+    facts = _info(MUG)
+    assert facts["organised"] is True and facts["grid"] == {"height": 480, "width": 640}
+    assert facts["viewpoint"] == [0, 0, 0, 0, 1, 0, 0] and facts["fit_frame"] == "perspective"
+    hill = _info("data_samples/hill.ply")
+    assert hill["organised"] is False and hill["fit_frame"] == "axis" and hill["height_field"] is True
+
+
+def test_unorganised_points_hidden_on_the_same_ray_are_dropped(tmp_path):
+    """Farther copies of points on (numerically) the same rays must not pull the surface back."""
+    normal, offset = np.array([0.3, -0.2, 1.0]), 2.0
+    points, normals = tilted_plane(30, normal, offset)
+    hidden = np.vstack([points[:50] * 1.3, points[50:60]])
+    path = write_unorganised_ply(tmp_path / "dup.ply", np.vstack([points, hidden]),
+                                 np.vstack([normals, normals[:60]]))
+    result = fit(path, None, FitOptions(level=2, frame="perspective"))
+    assert result.report["points"]["dropped"]["hidden_on_same_ray"] == 60
+    assert np.abs(result.mesh.vertices @ normal - offset).max() < 1e-12
