@@ -126,24 +126,22 @@ def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.nd
     bad, _ = inconsistent_edges(p, f, A, edges)
     touched = np.zeros(n, dtype=bool)
     touched[edges[bad].ravel()] = True
-    a, b = edges[:, 0], edges[:, 1]
+    near = touched[edges[:, 0]] | touched[edges[:, 1]]      # only these edges reach a touched vertex
+    a, b = edges[near, 0], edges[near, 1]
     d = p[b] - p[a]
     length = np.linalg.norm(d, axis=1)
     keep = length > 0
     a, b, d, length = a[keep], b[keep], d[keep], length[keep]
     u = d / length[:, None]
     slope = (f[b] - f[a]) / length
-    M = np.zeros((n, 2, 2))
-    r = np.zeros((n, 2))
-    deg = np.zeros(n)
-    outer = u[:, :, None] * u[:, None, :]
-    for vertex in (a, b):
-        np.add.at(M, vertex, outer)
-        np.add.at(r, vertex, u * slope[:, None])
-        np.add.at(deg, vertex, 1.0)
-    weight = normal_weight * deg[touched]
-    M_t = M[touched] + weight[:, None, None] * np.eye(2)
-    r_t = r[touched] + weight[:, None] * A[touched]
+    terms = (u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1],
+             u[:, 0] * slope, u[:, 1] * slope, np.ones(a.size))
+    both = np.concatenate([a, b])
+    xx, xy, yy, rx, ry, deg = (np.bincount(both, np.concatenate([t, t]), minlength=n)[touched]
+                               for t in terms)
+    weight = normal_weight * deg
+    M_t = np.stack([np.stack([xx + weight, xy], axis=1), np.stack([xy, yy + weight], axis=1)], axis=1)
+    r_t = np.stack([rx, ry], axis=1) + weight[:, None] * A[touched]
     out = A.copy()
     out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
     return out, touched
