@@ -1,4 +1,5 @@
-"""``python -m benchmarks [--quick] [--out DIR]``: run every section, write DIR/RESULTS.md + PNGs.
+"""``python -m benchmarks [--quick] [--out DIR] [--only A,B]``: run every section (or the
+named ones), write DIR/RESULTS.md + PNGs.
 
 A section that fails is reported as failed (with the error) rather than stopping the run,
 so one broken peer (say, an open3d that will not import) does not lose the other sections.
@@ -22,12 +23,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="small sizes, < ~60 s (smoke test)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent,
                         help="directory for RESULTS.md and the PNGs (default: benchmarks/)")
+    parser.add_argument("--only", help="comma-separated section names to run (e.g. pipeline,depth); "
+                                        "default: all")
     args = parser.parse_args(argv)
+    sections_to_run = _chosen(args.only, parser)
     args.out.mkdir(parents=True, exist_ok=True)
     cfg = Config.make(args.quick, args.out)
     command = " ".join(["python -m benchmarks", *(sys.argv[1:] if argv is None else argv)])
     start, sections, failed = time.perf_counter(), [], 0
-    for mod in SECTIONS:
+    for mod in sections_to_run:
         t = time.perf_counter()
         print(f"[benchmarks] {mod.__name__} ...", file=sys.stderr, flush=True)
         try:
@@ -44,6 +48,18 @@ def main(argv: list[str] | None = None) -> int:
     report.write(args.out / "RESULTS.md", command, args.quick, sections, time.perf_counter() - start)
     print(f"[benchmarks] wrote {args.out / 'RESULTS.md'}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _chosen(only: str | None, parser: argparse.ArgumentParser) -> tuple:
+    """The sections named by --only (all without it), in the usual order."""
+    if not only:
+        return SECTIONS
+    names = {mod.__name__.split(".")[-1]: mod for mod in SECTIONS}
+    wanted = [name.strip() for name in only.split(",") if name.strip()]
+    unknown = [name for name in wanted if name not in names]
+    if unknown:
+        parser.error(f"unknown section(s) {', '.join(unknown)}; choose from {', '.join(names)}")
+    return tuple(mod for name, mod in names.items() if name in wanted)
 
 
 if __name__ == "__main__":

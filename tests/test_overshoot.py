@@ -17,10 +17,12 @@ from scipy.spatial import Delaunay
 from c1mesh import rsd
 from c1mesh.frame import choose_frame, height_field
 from c1mesh.interpolator import RSDInterpolator
-from c1mesh.limiter import RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients
+from c1mesh.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients,
+                             reconcile_gradients)
 from c1mesh.normals import estimate_normals
 from c1mesh.pipeline import FitOptions, _compact, cloud_normals, fit, load_cloud
-from c1mesh.quality import folded_faces, interior_lattice, lattice_points, overshoot
+from c1mesh.quality import (folded_faces, interior_lattice, lattice_points, overshoot,
+                            reduced_hct_folded_faces)
 from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay, trim
 
@@ -31,11 +33,13 @@ GROUND = {"4_6_crop": (SAMPLES / "4_6_crop.las", {}),
 
 
 def height_data(path, **options):
-    """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter."""
-    opts = FitOptions(classes=(2,), axis="z", **options)
+    """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter
+    (LiDAR ground unless options say otherwise)."""
+    opts = FitOptions(**{"classes": (2,), "axis": "z", **options})
     cloud = load_cloud(path, opts)
     normals, _ = cloud_normals(cloud, opts)
-    hf = height_field(cloud.points, normals, choose_frame(cloud.points, normals, "z"))
+    frame = choose_frame(cloud.points, normals, opts.axis)
+    hf = height_field(cloud.points, normals, frame, max_slope_deg=opts.max_slope)
     tri, _ = trim(hf.xy, delaunay(hf.xy), max_edge=opts.max_edge)
     used, tri = _compact(hf.xy, tri)
     return hf.xy[used], hf.z[used], hf.gradients[used], tri
@@ -86,6 +90,28 @@ def test_autzen_ground_largest_overshoot_is_no_worse_than_reduced_hct(options):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 10 target not met: 0.155 ft against rHCT's 0.149 ft, in a "
+                   "valley whose data pass the trapezoid test (docs/overshoot.md, What is not solved)")
+def test_4_6_crop_ground_largest_overshoot_is_no_worse_than_reduced_hct():
+    xy, z, g, tri = height_data(SAMPLES / "4_6_crop.las")
+    lam = interior_lattice(8)
+    peer = overshoot(rhct_surface(xy, z, g, tri, lam), z, xy, tri)["max"]
+    assert overshoot(c1mesh_surface(xy, z, g, tri, lam)[0], z, xy, tri)["max"] <= peer
+
+
+def test_folded_faces_compares_with_every_corner_normal():
+    """A flat face with one corner normal tilted 100° away is folded; the mean of the three
+    corners still agrees with the face, so a mean-based measure would miss it."""
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    faces = np.array([[0, 1, 2]])
+    up = [0.0, 0, 1]
+    tilted = [np.sin(np.radians(100)), 0, np.cos(np.radians(100))]
+    assert folded_faces(vertices, faces, np.array([up, up, up])) == 0
+    assert folded_faces(vertices, faces, np.array([up, up, tilted])) == 1
+    assert folded_faces(vertices, faces, -np.array([up, up, up])) == 1
+
+
+@pytest.mark.slow
 def test_autzen_ground_has_no_pits_below_the_lowest_input_point():
     """--max-edge none used to give closed pits 3 ft below the lowest ground point."""
     result = fit(SAMPLES / "autzen_trim.laz", None, FitOptions(classes=(2,), max_edge=None))
@@ -94,8 +120,14 @@ def test_autzen_ground_has_no_pits_below_the_lowest_input_point():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["4_6_crop.las", "autzen_trim.laz"])
+@pytest.mark.parametrize("name", [
+    "4_6_crop.las",
+    pytest.param("autzen_trim.laz", marks=pytest.mark.xfail(
+        strict=True, reason="issue 10 target not met: ~37 faces of 808k in needle creases of thin "
+                            "triangles whose short edge has a height step the normals deny "
+                            "(docs/overshoot.md, What is not solved)"))])
 def test_lidar_ground_has_no_folded_faces_at_default_options(name):
+    """Folded: geometric normal more than 90° from ANY corner normal (quality.folded_faces)."""
     result = fit(SAMPLES / name, None, FitOptions(classes=(2,)))
     mesh = result.mesh
     assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) == 0
@@ -122,6 +154,20 @@ def test_autzen_ground_holdout_rms_is_no_worse_than_a_linear_tin():
         ours.append(np.sqrt(np.mean((interp(q) - truth) ** 2)))
         linear.append(np.sqrt(np.mean((LinearNDInterpolator(xy, z)(q) - truth) ** 2)))
     assert np.mean(ours) <= np.mean(linear)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, options", [("autzen_trim.laz", {"classes": (2,), "axis": "z"}),
+                                           ("pcl_bun0.pcd", {"classes": None, "axis": "auto"})])
+def test_folded_faces_are_fewer_than_reduced_hct_with_the_same_gradients(name, options):
+    """c1mesh's default output against matplotlib's reduced HCT given the raw gradients on
+    the same triangles, refined to the same 16 faces per triangle."""
+    xy, z, g, tri = height_data(SAMPLES / name, **options)
+    mesh = fit(SAMPLES / name, None, FitOptions(**options)).mesh
+    ours = folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals)
+    peer, faces = reduced_hct_folded_faces(xy, z, g, tri)
+    assert len(mesh.faces) == faces
+    assert ours < peer
 
 
 def test_range_scan_folds_drop_with_the_limiter():
@@ -157,6 +203,33 @@ def test_limiter_leaves_exact_smooth_data_alone():
         limited, changed = limit_gradients(pts, f, g, edges)
         assert not changed.any()
         np.testing.assert_array_equal(limited, g)
+        reconciled, moved = reconcile_gradients(pts, f, g, edges)
+        assert not moved.any()
+        np.testing.assert_array_equal(reconciled, g)
+
+
+def test_reconciled_gradient_follows_the_heights_where_the_normal_contradicts_them():
+    """Heights of the plane z = x with one vertex's normal saying slope (0, 3): that vertex
+    gets the least-squares gradient of its edges' secant slopes and its normal (solved
+    here by numpy's lstsq on the stacked rows); its neighbours, whose heights agree with
+    their gradient (1, 0), keep it."""
+    pts = _square(400, 7)
+    tri = Delaunay(pts).simplices
+    edges = edge_table(tri, len(pts)).edges
+    z = pts[:, 0].copy()
+    g = np.tile([1.0, 0.0], (len(pts), 1))
+    k = int(np.argmin(np.linalg.norm(pts - 0.5, axis=1)))
+    g[k] = [0.0, 3.0]
+    reconciled, moved = reconcile_gradients(pts, z, g, edges)
+    ring = np.concatenate([edges[edges[:, 0] == k, 1], edges[edges[:, 1] == k, 0]])
+    d = pts[ring] - pts[k]
+    u = d / np.linalg.norm(d, axis=1)[:, None]
+    rows = np.vstack([u, np.sqrt(len(ring)) * np.eye(2)])
+    rhs = np.concatenate([(z[ring] - z[k]) / np.linalg.norm(d, axis=1), np.sqrt(len(ring)) * g[k]])
+    expected = np.linalg.lstsq(rows, rhs, rcond=None)[0]
+    assert moved[k]
+    np.testing.assert_allclose(reconciled[k], expected, atol=1e-12)
+    np.testing.assert_allclose(np.delete(reconciled, k, axis=0), np.delete(g, k, axis=0), atol=1e-12)
 
 
 def test_limited_fit_reproduces_planes_and_keeps_c1():

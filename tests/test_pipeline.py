@@ -234,3 +234,18 @@ def test_streamed_output_is_the_assembled_mesh(tmp_path, monkeypatch, ascii_ply)
     back = read_cloud(tmp_path / "streamed.ply")
     np.testing.assert_array_equal(back.points, whole.mesh.vertices)
     np.testing.assert_array_equal(back.colors, whole.mesh.vertex_colors)
+
+
+def test_mesh_pieces_counts_edge_connected_parts_and_the_area_they_cover():
+    """Two unit squares far apart and one half-square: 3 pieces; the largest holds 2 of 5
+    triangles; they cover 2.5 of the convex hull's 38.5 (shoelace over its corners
+    (0,0), (11,0), (6,6), (5,6), (0,1), worked by hand)."""
+    from c1mesh.pipeline import mesh_pieces
+
+    xy = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [5, 5], [6, 5], [6, 6], [5, 6],
+                   [10, 0], [11, 0], [10, 1]], float)
+    triangles = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7], [8, 9, 10]])
+    pieces = mesh_pieces(xy, triangles)
+    assert pieces["count"] == 3
+    assert pieces["largest_fraction"] == pytest.approx(2 / 5)
+    assert pieces["area_fraction"] == pytest.approx(2.5 / 38.5)

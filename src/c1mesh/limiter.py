@@ -3,7 +3,9 @@
 Two remedies, plain functions over arrays, applied by the fit pipeline between the height
 field and the RSDInterpolator:
 
-* `limit_gradients` scales a vertex gradient down where it disagrees with the heights of
+* `reconcile_gradients` blends a vertex gradient that disagrees with the heights of its
+  neighbours with their secant slopes (least squares), one gradient per vertex.
+* `limit_gradients` then scales a vertex gradient down where it disagrees with the heights of
   its neighbours (a Fritsch–Carlson-like limiter on the secants of the vertex's edges).
   A vertex has one gradient, shared by all its triangles, so the spline stays C1.
 * `edge_directions` picks, for every edge, the direction u the RSD spline uses across it
@@ -36,6 +38,8 @@ NOISE_FACTOR = 1.0
 """Residuals within this multiple of the median |trapezoid residual| (the noise floor of
 the data; O(h³) for exact smooth data) are tolerated, and so is a prediction that far
 outside the secant band."""
+NORMAL_WEIGHT = 1.0
+"""Weight of a vertex's normal against its edges' secant slopes in `reconcile_gradients`."""
 RATIO_LIMIT = 2.0
 """Edges whose unit-normal RSD ratio max(|s|, |1 − s|) exceeds this get another direction."""
 
@@ -59,16 +63,88 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     """Gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
     points (n, 2), values (n,), gradients (n, 2), triangles (T, 3). mode "limit" applies
-    `limit_gradients` and `edge_directions`; "off" returns the gradients unchanged and
+    `reconcile_gradients`, then `limit_gradients`, and `edge_directions`; "off" returns the gradients unchanged and
     None (the interpolator's unit normals). Returns (gradients, directions in the order
     of c1mesh.topology.edge_table(triangles, n).edges or None, report).
     """
     if mode == "off":
         return gradients, None, LimiterReport()
     table = edge_table(triangles, points.shape[0])
-    limited, changed = limit_gradients(points, values, gradients, table.edges)
+    reconciled, moved = reconcile_gradients(points, values, gradients, table.edges)
+    limited, changed = limit_gradients(points, values, reconciled, table.edges)
     directions, turned = edge_directions(points, triangles, table)
-    return limited, directions, LimiterReport(int(changed.sum()), int(turned.sum()))
+    return limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()))
+
+
+def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                       edges: np.ndarray, consistency: float = CONSISTENCY,
+                       noise_factor: float = NOISE_FACTOR) -> tuple[np.ndarray, dict]:
+    """Edges (E,) bool whose end gradients say something their heights do not.
+
+    For an edge k→j with d = p_j − p_k, Δ = f_j − f_k, δ_k = A_k·d, δ_j = A_j·d, the
+    trapezoid residual e = Δ − (δ_k + δ_j)/2 vanishes for every quadratic and is O(|d|³)
+    for smooth data. An edge is inconsistent when |e| > consistency · max(|Δ|, |δ_k|/2,
+    |δ_j|/2) + noise_factor · median |e| (the noise floor of the data set) + rounding.
+    Also returns the per-edge quantities {"delta", "pred_a", "pred_b", "noise"}.
+    """
+    p = np.asarray(points, dtype=float)
+    f = np.asarray(values, dtype=float)
+    A = np.asarray(gradients, dtype=float)
+    a, b = edges[:, 0], edges[:, 1]
+    d = p[b] - p[a]
+    delta = f[b] - f[a]
+    pred_a = np.einsum("ij,ij->i", A[a], d)
+    pred_b = np.einsum("ij,ij->i", A[b], d)
+    residual = delta - 0.5 * (pred_a + pred_b)
+    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
+    noise = noise_factor * float(np.median(np.abs(residual))) if residual.size else 0.0
+    rounding = 64 * np.finfo(float).eps * (np.abs(f[a]) + np.abs(f[b]) + np.abs(pred_a) + np.abs(pred_b))
+    bad = np.abs(residual) > consistency * scale + noise + rounding
+    return bad, {"delta": delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
+
+
+def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                        edges: np.ndarray, normal_weight: float = NORMAL_WEIGHT
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients (n, 2) blended with the 1-ring heights where they disagree with them.
+
+    At every vertex k touching an inconsistent edge (`inconsistent_edges`), the gradient
+    becomes the least-squares solution of the secant slopes of all its edges and the
+    normal's own gradient A_k:
+
+        min_G  Σ_e (G·û_e − Δ_e/|d_e|)² + normal_weight · deg_k · |G − A_k|²,
+
+    û_e the unit edge direction, deg_k the vertex's edge count: the heights and the normal
+    weigh the same at normal_weight = 1. Other vertices keep A_k, so exact smooth data
+    (no inconsistent edge) are unchanged. One gradient per vertex: the spline stays C1.
+    Returns (gradients, changed (n,) bool).
+    """
+    p = np.asarray(points, dtype=float)
+    f = np.asarray(values, dtype=float)
+    A = np.asarray(gradients, dtype=float)
+    n = p.shape[0]
+    bad, _ = inconsistent_edges(p, f, A, edges)
+    touched = np.zeros(n, dtype=bool)
+    touched[edges[bad].ravel()] = True
+    near = touched[edges[:, 0]] | touched[edges[:, 1]]      # only these edges reach a touched vertex
+    a, b = edges[near, 0], edges[near, 1]
+    d = p[b] - p[a]
+    length = np.linalg.norm(d, axis=1)
+    keep = length > 0
+    a, b, d, length = a[keep], b[keep], d[keep], length[keep]
+    u = d / length[:, None]
+    slope = (f[b] - f[a]) / length
+    terms = (u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1],
+             u[:, 0] * slope, u[:, 1] * slope, np.ones(a.size))
+    both = np.concatenate([a, b])
+    xx, xy, yy, rx, ry, deg = (np.bincount(both, np.concatenate([t, t]), minlength=n)[touched]
+                               for t in terms)
+    weight = normal_weight * deg
+    M_t = np.stack([np.stack([xx + weight, xy], axis=1), np.stack([xy, yy + weight], axis=1)], axis=1)
+    r_t = np.stack([rx, ry], axis=1) + weight[:, None] * A[touched]
+    out = A.copy()
+    out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
+    return out, touched
 
 
 def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -92,20 +168,11 @@ def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarra
     Scaling keeps the direction, and 0 always qualifies (a flat vertex cannot overshoot
     along an edge by itself).
     """
-    p = np.asarray(points, dtype=float)
-    f = np.asarray(values, dtype=float)
     A = np.asarray(gradients, dtype=float)
+    bad, parts = inconsistent_edges(points, values, A, edges, consistency, noise_factor)
     a, b = edges[:, 0], edges[:, 1]
-    d = p[b] - p[a]
-    delta = f[b] - f[a]
-    pred_a = np.einsum("ij,ij->i", A[a], d)
-    pred_b = np.einsum("ij,ij->i", A[b], d)
-    residual = delta - 0.5 * (pred_a + pred_b)
-    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
-    noise = noise_factor * float(np.median(np.abs(residual))) if residual.size else 0.0
-    rounding = 64 * np.finfo(float).eps * (np.abs(f[a]) + np.abs(f[b]) + np.abs(pred_a) + np.abs(pred_b))
-    bad = np.abs(residual) > consistency * scale + noise + rounding
-    factor = np.ones(p.shape[0])
+    delta, pred_a, pred_b, noise = parts["delta"], parts["pred_a"], parts["pred_b"], parts["noise"]
+    factor = np.ones(A.shape[0])
     for vertex, pred in ((a, pred_a), (b, pred_b)):
         t = _allowed_fraction(pred[bad], delta[bad], secant_factor, noise)
         np.minimum.at(factor, vertex[bad], t)
@@ -149,16 +216,38 @@ def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
     pa = p[first]
     pb = np.where((second >= 0)[:, None], p[np.maximum(second, 0)], np.nan)
     normal = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / np.linalg.norm(edge, axis=1)[:, None]
-    mid = 0.5 * (l + m)
-    candidates = [normal, pb - pa, mid - pa, mid - pb]
-    costs = np.stack([_worst_ratio(u, l, edge, pa, pb) for u in candidates])
-    best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
-    change = (costs[0] > ratio_limit) & (best > 0)
-    out = normal.copy()
-    for c in range(1, len(candidates)):
-        pick = change & (best == c)
-        out[pick] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
+    # The unit normal's foot is the projection of the opposite vertex onto the edge's line:
+    # s = (p_n − l)·e / |e|², so its worst ratio needs no cross products. Only the edges
+    # where it exceeds the limit (a few percent on real scans) weigh the other candidates.
+    change = _normal_ratio(l, edge, pa, pb) > ratio_limit
+    out = normal
+    if change.any():
+        idx = np.flatnonzero(change)
+        l_c, edge_c, pa_c, pb_c = l[idx], edge[idx], pa[idx], pb[idx]
+        mid = 0.5 * (l_c + m[idx])
+        candidates = [normal[idx], pb_c - pa_c, mid - pa_c, mid - pb_c]
+        costs = np.stack([_worst_ratio(u, l_c, edge_c, pa_c, pb_c) for u in candidates])
+        best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
+        turn = (costs[0] > ratio_limit) & (best > 0)
+        change[idx[~turn]] = False
+        for c in range(1, len(candidates)):
+            pick = turn & (best == c)
+            out[idx[pick]] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
     return out, change
+
+
+def _normal_ratio(l: np.ndarray, edge: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles
+    (pb rows of nan: a boundary edge, one triangle). A quick screen: `_worst_ratio`
+    decides on the edges it flags."""
+    length2 = np.einsum("ij,ij->i", edge, edge)
+    worst = np.zeros(edge.shape[0])
+    for pn in (pa, pb):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.einsum("ij,ij->i", pn - l, edge) / length2
+        ratio = np.maximum(np.abs(s), np.abs(1.0 - s))
+        np.fmax(worst, ratio, out=worst)                  # nan (boundary) leaves worst as is
+    return worst
 
 
 def _opposite_vertices(triangles: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:

@@ -324,7 +324,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
         auto_axis_reason(cloud.points, True)
     report["overshoot"] = model.overshoot.as_dict()
-    report["pieces"] = mesh_pieces(interp.points, interp.triangles)
+    report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
     report["warnings"] = fit_warnings(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
@@ -351,11 +351,15 @@ AREA_LOSS_WARN = 0.25
 """Trimming away more than this fraction of the convex hull's area draws a warning."""
 
 
-def mesh_pieces(xy: np.ndarray, triangles: np.ndarray) -> dict:
+def mesh_pieces(xy: np.ndarray, triangles: np.ndarray, table=None) -> dict:
     """Connected pieces (through shared edges) of a triangulation, and area kept.
 
-    xy (n, 2) plane points, triangles (T, 3). Returns {"count", "largest_fraction" (of
-    the triangles), "area_fraction" (triangulated area / convex hull area)}.
+    xy (n, 2) plane points, every one used by some triangle (as after _compact);
+    triangles (T, 3); table: their topology.EdgeTable when already built (the
+    interpolator has one). Returns {"count", "largest_fraction" (of the triangles),
+    "area_fraction" (triangulated area / convex hull area of the points)}. Each slot's
+    edge names its owner triangle, so the triangle pairs across interior edges come
+    without a sort; the hull is taken over the boundary vertices, which hold its corners.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -363,21 +367,23 @@ def mesh_pieces(xy: np.ndarray, triangles: np.ndarray) -> dict:
 
     from c1mesh.topology import edge_table
 
-    table = edge_table(triangles, xy.shape[0])
-    slots = table.tri_edge.ravel()
-    order = np.argsort(slots, kind="stable")
-    pair = np.flatnonzero(slots[order][1:] == slots[order][:-1])
-    a, b = order[pair] // 3, order[pair + 1] // 3
-    graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(triangles.shape[0],) * 2)
-    count, label = connected_components(graph, directed=False)
+    table = edge_table(triangles, xy.shape[0]) if table is None else table
+    count_t = triangles.shape[0]
+    across = table.owner[table.tri_edge]                      # (T, 3) owner of each slot's edge
+    this = np.broadcast_to(np.arange(count_t)[:, None], across.shape)
+    pair = across != this                                     # each interior edge once: its non-owner side
+    graph = coo_matrix((np.ones(int(pair.sum()), dtype=np.int8), (this[pair], across[pair])),
+                       shape=(count_t, count_t)).tocsr()
+    count, label = connected_components(graph, directed=True, connection="weak")
     u, v = xy[triangles[:, 1]] - xy[triangles[:, 0]], xy[triangles[:, 2]] - xy[triangles[:, 0]]
     area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
+    rim = np.unique(table.edges[table.count == 1])            # the hull's corners are among these
     try:
-        hull = ConvexHull(xy[np.unique(triangles)]).volume
+        hull = ConvexHull(xy[rim]).volume
     except Exception:  # noqa: BLE001 - degenerate hull: report no loss
         hull = area
     return {"count": int(count),
-            "largest_fraction": float(np.bincount(label).max() / triangles.shape[0]),
+            "largest_fraction": float(np.bincount(label).max() / count_t),
             "area_fraction": float(area / hull) if hull > 0 else 1.0}
 
 
