@@ -18,6 +18,8 @@ read) from the rest, errors at held-out points inside the trimmed triangulation.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from benchmarks.common import ROOT, Config, Section, verdict
@@ -38,18 +40,13 @@ METHODS = ("c1mesh off", "c1mesh limit", "rHCT", "rHCT limited", "linear", "CT")
 
 def stage_data(path, options: dict):
     """(cloud, frame, xy, z, raw gradients, triangles) as `c1mesh fit` builds them."""
-    from c1mesh.frame import choose_frame, height_field
-    from c1mesh.pipeline import FitOptions, _compact, _resolve_axis, cloud_normals, load_cloud
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.pipeline import FitOptions, _resolve_axis, build_surface, load_cloud
 
     opts, _ = _resolve_axis(path, FitOptions(**options))
     cloud = load_cloud(path, opts)
-    normals, _ = cloud_normals(cloud, opts)
-    frame = choose_frame(cloud.points, normals, opts.axis)
-    hf = height_field(cloud.points, normals, frame, max_slope_deg=opts.max_slope)
-    tri, _ = trim(hf.xy, delaunay(hf.xy), max_edge=opts.max_edge)
-    used, tri = _compact(hf.xy, tri)
-    return cloud, opts, frame, hf.xy[used], hf.z[used], hf.gradients[used], tri
+    model = build_surface(cloud, replace(opts, overshoot="off"))     # the raw gradients
+    interp = model.interp
+    return cloud, opts, model.frame, interp.points, interp.values, interp.gradients, interp.triangles
 
 
 def surfaces(xy, z, g, tri, lam) -> dict:

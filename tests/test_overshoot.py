@@ -20,7 +20,7 @@ from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients,
                              reconcile_gradients)
 from c1mesh.normals import estimate_normals
-from c1mesh.pipeline import FitOptions, _compact, cloud_normals, fit, load_cloud
+from c1mesh.pipeline import FitOptions, _compact, build_surface, fit, load_cloud
 from c1mesh.quality import (folded_faces, interior_lattice, lattice_points, overshoot,
                             reduced_hct_folded_faces)
 from c1mesh.topology import edge_table
@@ -35,14 +35,10 @@ GROUND = {"4_6_crop": (SAMPLES / "4_6_crop.las", {}),
 def height_data(path, **options):
     """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter
     (LiDAR ground unless options say otherwise)."""
-    opts = FitOptions(**{"classes": (2,), "axis": "z", **options})
-    cloud = load_cloud(path, opts)
-    normals, _ = cloud_normals(cloud, opts)
-    frame = choose_frame(cloud.points, normals, opts.axis)
-    hf = height_field(cloud.points, normals, frame, max_slope_deg=opts.max_slope)
-    tri, _ = trim(hf.xy, delaunay(hf.xy), max_edge=opts.max_edge)
-    used, tri = _compact(hf.xy, tri)
-    return hf.xy[used], hf.z[used], hf.gradients[used], tri
+    opts = FitOptions(**{"classes": (2,), "axis": "z", **options, "overshoot": "off"})
+    model = build_surface(load_cloud(path, opts), opts)
+    interp = model.interp
+    return interp.points, interp.values, interp.gradients, interp.triangles
 
 
 def rhct_surface(xy, z, g, tri, lam):
