@@ -18,7 +18,6 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
-from c1mesh.formats._atomic import atomic_output
 from c1mesh.formats._limits import check_alloc, read_bounded, reading_budget
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
@@ -27,7 +26,7 @@ from c1mesh.formats.obj import read_obj, write_obj
 from c1mesh.formats.pcd import read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
-from c1mesh.outputs import MESH_FORMATS, Outputs, format_key, mesh_format, plan_outputs
+from c1mesh.outputs import MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
 
 __all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
