@@ -1,9 +1,11 @@
 """The tiled fit (c1mesh.tiled_fit) against the in-memory fit of the same points.
 
 Ground truth: the in-memory stages on the whole cloud (estimate_normals, choose_frame,
-height_field, delaunay, the long-edge trim, RSDInterpolator with unit-normal directions,
-refinement), which never cut the survey. The tiled fit must give the same mesh: the same
-vertices to rounding, the same faces (compared through the matched vertices).
+height_field, delaunay, the long-edge trim, limiter.control_overshoot or unit-normal
+directions, RSDInterpolator, refinement), which never cut the survey. The tiled fit must
+give the same mesh: the same vertices to rounding, the same faces (compared through the
+matched vertices). The tiled limiter alone, given the in-memory height field, must give
+the in-memory limiter's gradients to the bit.
 """
 from __future__ import annotations
 
@@ -20,10 +22,15 @@ from click.testing import CliRunner
 
 from c1mesh.cli import main
 from c1mesh.frame import choose_frame, height_field
+from c1mesh.buffered_delaunay import TileGrid
 from c1mesh.interpolator import RSDInterpolator
+from c1mesh.limiter import control_overshoot
 from c1mesh.normals import estimate_normals
 from c1mesh.pipeline import FitOptions, surface_stream
-from c1mesh.tiled_fit import fit_tiled, fits_in_memory, points_per_tile
+from c1mesh.tile_spill import TileSpill
+from c1mesh.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
+from c1mesh.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits
+from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay, trim
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
@@ -43,8 +50,8 @@ def _terrain_las(path, n, seed=0, classes=(2,)):
         writer.write_points(record)
 
 
-def _in_memory(path, classes, level):
-    """The whole-cloud fit with the tiled path's reduced options (long-edge trim, no limiter)."""
+def _in_memory(path, classes, level, overshoot="limit"):
+    """The whole-cloud fit with the tiled path's reduced options (long-edge trim only)."""
     las = laspy.read(str(path))
     keep = np.isin(np.asarray(las.classification), classes)
     points = np.column_stack([las.x, las.y, las.z])[keep]
@@ -54,9 +61,12 @@ def _in_memory(path, classes, level):
     triangles, report = trim(hf.xy, delaunay(hf.xy), max_edge="auto", min_circle_ratio=0.0)
     assert report.removed["bowtie"] == 0          # else the reference is not the long-edge rule
     used = np.unique(triangles)
-    interp = RSDInterpolator(hf.xy[used], hf.z[used], hf.gradients[used],
-                             triangles=np.searchsorted(used, triangles))
+    triangles = np.searchsorted(used, triangles)
+    gradients, directions, limiter = control_overshoot(hf.xy[used], hf.z[used], hf.gradients[used],
+                                                       triangles, overshoot)
+    interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles, directions=directions)
     mesh = surface_stream(interp.refinement(level), frame, None).materialize()
+    mesh.limiter = limiter.as_dict()
     return mesh, report.max_edge, len(used)
 
 
@@ -85,28 +95,106 @@ def _assert_same_mesh(path, whole):
     assert len(np.unique(faces_tiled, axis=0)) == len(faces_tiled)     # every face once
 
 
-@pytest.mark.parametrize("level", [1, 3])
-def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level):
+@pytest.mark.parametrize("level,overshoot", [(1, "limit"), (3, "limit"), (2, "off")])
+def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, classes=(2, 5))
-    whole, max_edge, kept = _in_memory(source, [2], level)
-    options = FitOptions(classes=(2,), overshoot="off", level=level)
+    whole, max_edge, kept = _in_memory(source, [2], level, overshoot)
+    options = FitOptions(classes=(2,), overshoot=overshoot, level=level)
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=700)
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
     assert report["points"]["kept"] == kept
+    if overshoot == "limit":
+        assert whole.limiter["gradients_limited"] > 100        # the noise makes the limiter act
+        assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las", "tiled.ply"]   # no spill left
 
 
 def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
     source = SAMPLES / "4_6_crop.las"
     whole, max_edge, kept = _in_memory(source, [2], 2)
-    options = FitOptions(classes=(2,), overshoot="off", level=2)
+    options = FitOptions(classes=(2,), level=2)
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
+    assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
+
+
+class _Temps:
+    def __init__(self, directory):
+        self.directory = directory
+
+    def new(self, name):
+        return self.directory / name
+
+
+def _tiled_limiter(xy, z, gradients, triangles, side, directory):
+    """The tiled limiter on a height field held in memory, cut into side x side tiles:
+    (noise floors, per tile its TileLimits and its own triangles)."""
+    box = (*xy.min(axis=0), *xy.max(axis=0))
+    grid = TileGrid(box, side, side)
+    spill = TileSpill(grid, directory, "h", record=HEIGHT).__enter__()
+    home = grid.tile_of(xy)
+    for t in range(len(grid)):
+        rows = np.flatnonzero(home == t)
+        records = np.empty(len(rows), HEIGHT)
+        records["index"], records["x"], records["y"], records["z"] = rows, xy[rows, 0], xy[rows, 1], z[rows]
+        records["gx"], records["gy"] = gradients[rows, 0], gradients[rows, 1]
+        spill.append(t, records)
+    owner = home[triangles.min(axis=1)]
+    files = []
+    for t in range(len(grid)):
+        files.append(directory / f"tri-{t}.npy")
+        np.save(files[-1], triangles[owner == t])
+    longest = max(np.hypot(*(xy[triangles[:, i]] - xy[triangles[:, (i + 1) % 3]]).T).max() for i in range(3))
+    reach = halo_reach(longest)
+    floors = noise_floors(lambda: (read_halo(spill, files, grid, t, reach) for t in range(len(grid))),
+                          _Temps(directory))
+    tiles = [(tile_limits(read_halo(spill, files, grid, t, reach), triangles[owner == t], floors),
+              triangles[owner == t]) for t in range(len(grid)) if (owner == t).any()]
+    spill.close()
+    return floors, tiles
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_tiled_limiter_gives_the_whole_limiter_bits(tmp_path, seed):
+    """Given the same height field and triangles, every tile's limited gradients are the
+    whole-survey limiter's to the bit, its noise floors the whole survey's medians, its
+    directions the same lines; tiles are small (a few hundred points), so most vertices
+    have a neighbour or a 2-ring vertex in another tile."""
+    rng = np.random.default_rng(seed)
+    n = 6000
+    xy = rng.uniform(0, 100, (n, 2))
+    z = np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 13) * 5 + rng.normal(0, 0.05, n)
+    gradients = np.column_stack([np.cos(xy[:, 0] / 9) * np.cos(xy[:, 1] / 13) * 5 / 9,
+                                 -np.sin(xy[:, 0] / 9) * np.sin(xy[:, 1] / 13) * 5 / 13])
+    gradients += rng.normal(0, 0.2, (n, 2))
+    triangles, _ = trim(xy, delaunay(xy), max_edge="auto", min_circle_ratio=0.0)
+    used = np.unique(triangles)
+    xy, z, gradients, triangles = xy[used], z[used], gradients[used], np.searchsorted(used, triangles)
+    whole_gradients, whole_directions, report = control_overshoot(xy, z, gradients, triangles)
+    assert report.gradients_limited > 1000 and report.directions_changed > 100
+    edges = edge_table(triangles, len(xy)).edges
+    a, b = edges[:, 0], edges[:, 1]
+    residual = np.abs(z[b] - z[a] - 0.5 * (np.einsum("ij,ij->i", gradients[a] + gradients[b], xy[b] - xy[a])))
+    floors, tiles = _tiled_limiter(xy, z, gradients, triangles, 6, tmp_path)
+    assert np.isclose(floors.first, np.median(residual), rtol=1e-12, atol=0)
+    seen = np.zeros(len(xy), dtype=bool)
+    for limits, own in tiles:
+        corners = limits.records["index"]
+        assert np.array_equal(limits.gradients, whole_gradients[corners])        # bits
+        local_edges = corners[edge_table(limits.triangles, len(corners)).edges]
+        at = np.searchsorted(edges[:, 0] * len(xy) + edges[:, 1], local_edges[:, 0] * len(xy) + local_edges[:, 1])
+        assert np.array_equal(edges[at], local_edges)
+        whole = whole_directions[at]
+        cross = limits.directions[:, 0] * whole[:, 1] - limits.directions[:, 1] * whole[:, 0]
+        assert np.abs(cross).max() <= 1e-15 * np.abs(whole).max()                 # the same lines
+        assert np.array_equal(np.sort(corners[limits.triangles], axis=1), np.sort(own, axis=1))
+        seen[corners] = True
+    assert seen.all()
 
 
 def test_cli_fits_in_tiles_beyond_memory(tmp_path):
@@ -115,13 +203,15 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     whole, _, _ = _in_memory(source, [2], 2)
     args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
             "--memory", "1M"]
-    refused = CliRunner().invoke(main, args)
+    refused = CliRunner().invoke(main, args + ["--normals", "file"])
     assert refused.exit_code == 1
-    assert "--overshoot off" in refused.output and "terrain.las" in refused.output
+    assert "--normals file" in refused.output and "terrain.las" in refused.output
     assert not (tmp_path / "out.ply").exists()
-    result = CliRunner().invoke(main, args + ["--overshoot", "off", "--report", str(tmp_path / "r.json")])
+    result = CliRunner().invoke(main, args + ["--report", str(tmp_path / "r.json")])   # the limiter on
     assert result.exit_code == 0, result.output
-    assert json.loads((tmp_path / "r.json").read_text())["tiles"] == 4      # 24000 points, >= 10000 a tile
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["tiles"] == 4      # 24000 points, >= 10000 a tile
+    assert report["overshoot"]["gradients_limited"] == whole.limiter["gradients_limited"] > 0
     _assert_same_mesh(tmp_path / "out.ply", whole)
 
 

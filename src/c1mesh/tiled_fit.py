@@ -2,13 +2,15 @@
 
     survey stats (frame, box) → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
-    survey-wide) → per tile: RSD interpolator on its owned triangles → refine → append
-    to one vertex file and one face file → one mesh file
+    survey-wide) → the limiter's two noise floors (two passes: c1mesh.tiled_limiter)
+    → per tile: limited gradients and edge directions from its halo, RSD interpolator on
+    its owned triangles → refine → append to one vertex file and one face file → one
+    mesh file
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.survey_stats,
-tile_spill, tile_normals, buffered_delaunay), so the surface equals the in-memory fit of
-the same points with the same reduced options (below), to rounding; nothing depends on
-the grid.
+tile_spill, tile_normals, buffered_delaunay, tiled_limiter), so the surface equals the
+in-memory fit of the same points with the same reduced options (below), to rounding;
+nothing depends on the grid.
 
 What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
 
@@ -18,8 +20,8 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   stacking test of frame.height_field are not applied;
 - the trim is the long-edge rule only (no sliver peel, no bow-tie removal: both walk
   across the whole boundary, they are not tile-local);
-- the overshoot limiter is off (its noise floor is a survey-wide median and a vertex's
-  limit needs its whole star): edge directions are the unit normals.
+- the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
+  tile by tile with the survey's noise floors (c1mesh.tiled_limiter).
 
 The rule for the one output: a base triangle belongs to the tile holding its
 lowest-numbered corner point (buffered_delaunay); each tile refines only its own
@@ -93,9 +95,8 @@ def needs_tiles(source, options) -> bool:
     if options.resolution is not None or options.slope or options.aspect or options.hillshade or options.preview:
         raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "
                          "(raise --memory)")
-    if options.overshoot != "off" or options.normals == "file":
-        raise InputError(f"{need}; the tiled fit estimates normals and does not limit overshoot "
-                         "(not tile-local): add --overshoot off, or raise --memory")
+    if options.normals == "file":
+        raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
 
 
@@ -179,7 +180,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output.
 
     options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
-    output_format, ascii; overshoot must be "off" and normals not "file"); memory: the
+    overshoot, output_format, ascii; normals not "file"); memory: the
     budget in bytes, which sizes the tiles; per_tile: points per tile (overrides the
     budget, for tests); directory: where the temporary spill files go (default: beside a
     path output, else $TMPDIR). Returns a report dict (as pipeline.fit's, shorter).
@@ -219,8 +220,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             done("normals")
             max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps)
             done("triangulate")
+            limiter = None
+            if options.overshoot == "limit":
+                limiter = _Limiter(heights, grid, triangle_files, buffers, max_edge, temps)
+                done("noise floors")
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
-                                  output, temps)
+                                  output, temps, limiter)
             done("refine+write")
         finally:
             heights.close()
@@ -228,8 +233,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         temps.close()
     report.update({"input": str(source), "output": str(output), "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
-                                "estimated normals, long-edge trim only, no overshoot limiter "
-                                "(docs/tiles.md)"],
+                                "estimated normals, long-edge trim only (docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
@@ -237,8 +241,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
 
 
 def _check_options(options) -> None:
-    if options.overshoot != "off":
-        raise InputError("the tiled fit needs --overshoot off (the limiter is not tile-local)")
+    from c1mesh.limiter import OVERSHOOT_MODES
+
+    if options.overshoot not in OVERSHOOT_MODES:
+        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
     if options.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
 
@@ -346,7 +352,41 @@ def _triangulate(heights, grid, max_edge, temps):
     return limit, files, buffers
 
 
-def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps) -> dict:
+class _Limiter:
+    """The overshoot limiter over the tiles (c1mesh.tiled_limiter): the survey's noise
+    floors, found on construction, and each tile's limited data on demand."""
+
+    def __init__(self, heights, grid, triangle_files, buffers, max_edge, temps):
+        from c1mesh.tiled_limiter import halo_reach, longest_final_edge, noise_floors
+
+        self.heights, self.grid, self.files = heights, grid, triangle_files
+        longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files, grid, buffers)
+        self.reach = halo_reach(longest)
+        self.floors = noise_floors(lambda: (self._halo(t) for t in range(len(grid)) if self.files[t] is not None),
+                                   temps)
+        self.limited = self.turned = 0
+
+    def _halo(self, tile):
+        from c1mesh.tiled_limiter import read_halo
+
+        return read_halo(self.heights, self.files, self.grid, tile, self.reach)
+
+    def tile(self, tile: int, triangles: np.ndarray):
+        """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
+        from c1mesh.tiled_limiter import tile_limits
+
+        result = tile_limits(self._halo(tile), triangles, self.floors)
+        self.limited += result.limited
+        self.turned += result.turned
+        return result
+
+    def report(self) -> dict:
+        return {"gradients_limited": self.limited, "directions_changed": self.turned,
+                "noise_floors": [self.floors.first, self.floors.second]}
+
+
+def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
+                 limiter: "_Limiter | None" = None) -> dict:
     """Refine each tile's owned triangles, numbering shared vertices globally (module
     docstring), into one vertex and one face file; then write the mesh from them."""
     from c1mesh.cloud import MeshStream
@@ -362,6 +402,13 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                 continue
             triangles = np.load(triangle_files[t])
             if not len(triangles):
+                continue
+            if limiter is not None:
+                limits = limiter.tile(t, triangles)
+                added, new_corners, face_count = _write_tile(
+                    limits.records, limits.triangles, frame, options, shared, written, vertex_file,
+                    face_file, limits.gradients, limits.directions)
+                written, kept, faces = written + added, kept + new_corners, faces + face_count
                 continue
             reach = (max_edge if max_edge is not None else buffers[t]) * (1 + 1e-9)
             cell = grid.cell(t)
@@ -399,21 +446,27 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     with blas_threads(1):
         write_mesh(MeshStream(written, faces, True, 0, vertex_blocks, face_blocks), output,
                    options.output_format, ascii=options.ascii)
-    return {"kept": kept, "output_mesh": {"vertices": written, "faces": faces},
-            "shared_vertex_keys": len(shared)}
+    report = {"kept": kept, "output_mesh": {"vertices": written, "faces": faces},
+              "shared_vertex_keys": len(shared)}
+    if limiter is not None:
+        report["overshoot"] = limiter.report()
+    return report
 
 
 def _write_tile(records, triangles, frame, options, shared: dict, written: int,
-                vertex_file, face_file) -> tuple[int, int, int]:
+                vertex_file, face_file, gradients=None, directions=None) -> tuple[int, int, int]:
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
     append its new vertices and its faces (global numbers); returns (vertices written,
-    of which input points, faces written)."""
+    of which input points, faces written). gradients (n, 2) and directions (E, 2): the
+    limiter's (None: the records' gradients, unit-normal directions)."""
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.pipeline import surface_stream
 
     xy = np.column_stack([records["x"], records["y"]])
-    interp = RSDInterpolator(xy, records["z"], np.column_stack([records["gx"], records["gy"]]),
-                             triangles=triangles, scheme=options.scheme)
+    if gradients is None:
+        gradients = np.column_stack([records["gx"], records["gy"]])
+    interp = RSDInterpolator(xy, records["z"], gradients, triangles=triangles, scheme=options.scheme,
+                             directions=directions)
     refinement = interp.refinement(options.level)
     number = _global_numbers(refinement, records["index"], shared, written)
     new = number >= written

@@ -1,0 +1,241 @@
+"""The overshoot limiter (c1mesh.limiter) on a survey fitted in tiles, with its whole-survey result.
+
+The limiter is not tile-local in two ways:
+
+- its noise floors are survey-wide: the median |trapezoid residual| over every edge of the
+  final triangulation, once with the normals' gradients (for `reconcile_gradients`) and
+  once with the reconciled ones (for `limit_gradients`);
+- a vertex's reconciled gradient needs all its edges (its star), its limited gradient
+  needs the reconciled gradients of all its neighbours, and an edge's direction needs both
+  of its triangles (`edge_directions`).
+
+The halo rule. Every final triangle has edges at most L long (the long-edge trim's
+max_edge, or the longest edge of the untrimmed triangulation). A tile reads the height
+field in its cell grown by 3L (its halo) and the final triangles of every tile that cell
+meets, and keeps the triangles whose three corners it read. Then it holds the whole star
+of every vertex within 2L of its cell, so it has, exactly as the whole survey has them:
+
+- the reconciled gradient of every vertex within 2L of the cell (its star is inside);
+- the limited gradient and the edge directions of every corner of its own triangles
+  (those lie within L of the cell, their neighbours within 2L);
+- the residuals of the edges whose lower-numbered end lies in its cell (both ends within
+  L), each edge of the survey in exactly one tile.
+
+The two noise floors take a pass over the tiles each: every tile appends its edges'
+residuals to a file, and c1mesh.streamed_median finds their median to the bit. The third
+pass (the caller's) limits each tile's gradients with the floors passed in. The limiter's
+arithmetic on one vertex or edge does not depend on the rest of the mesh (its sums run
+over the vertex's edges in the same order, its local numbering follows the survey
+numbers), so the gradients come out with the bits of the whole-survey limiter given the
+same height field; directions too, up to the sign of a direction through two opposite
+vertices (which triangle of an edge is its "owner" depends on triangle order; the spline
+does not depend on that sign).
+"""
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+HALO_EDGES = 3
+"""A tile's halo, in longest final edges (module docstring)."""
+
+
+@dataclass
+class Halo:
+    """What one tile reads for the limiter: records (m,) height-field records (fields index,
+    x, y, z, gx, gy; ascending survey numbers) that are corners of `triangles`; triangles
+    (k, 3) the final triangles with all corners read, into records; own (m,) bool: the
+    records in the tile's cell."""
+
+    records: np.ndarray
+    triangles: np.ndarray
+    own: np.ndarray
+
+    @property
+    def points(self) -> np.ndarray:
+        return np.column_stack([self.records["x"], self.records["y"]])
+
+    @property
+    def gradients(self) -> np.ndarray:
+        return np.column_stack([self.records["gx"], self.records["gy"]])
+
+
+@dataclass(frozen=True)
+class NoiseFloors:
+    """The survey's median |trapezoid residual| over all final edges, with the normals'
+    gradients (first) and with the reconciled gradients (second); height units."""
+
+    first: float
+    second: float
+
+
+@dataclass
+class TileLimits:
+    """The limiter's result for the corners of one tile's triangles: records (c,) the
+    corners (ascending survey numbers), triangles (k, 3) into them, gradients (c, 2)
+    limited, directions (E, 2) in the order of topology.edge_table(triangles, c).edges;
+    limited: own vertices whose gradient changed, turned: own edges whose direction is
+    not the unit normal (own: in the tile's cell; lower end, for an edge)."""
+
+    records: np.ndarray
+    triangles: np.ndarray
+    gradients: np.ndarray
+    directions: np.ndarray
+    limited: int
+    turned: int
+
+
+def halo_reach(longest_edge: float) -> float:
+    """How far beyond its cell a tile reads (frame units), for final edges at most
+    longest_edge long; a relative margin keeps rounding on the safe side."""
+    return HALO_EDGES * float(longest_edge) * (1 + 1e-9)
+
+
+def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
+    """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
+    records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
+    or None."""
+    cell = grid.cell(tile)
+    rect = (cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach)
+    records = heights.records(rect)
+    parts = [np.empty((0, 3), np.int64)]
+    for other in heights.touching(rect):
+        if triangle_files[other] is None or not len(records):
+            continue
+        triangles = np.load(triangle_files[other])
+        rows = np.minimum(np.searchsorted(records["index"], triangles), len(records) - 1)
+        parts.append(rows[(records["index"][rows] == triangles).all(axis=1)])
+    triangles = np.concatenate(parts)
+    used = np.unique(triangles)
+    records = records[used]
+    own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
+    return Halo(records, np.searchsorted(used, triangles), own)
+
+
+def edge_residuals(points, values, gradients, edges) -> np.ndarray:
+    """(E,) |trapezoid residual| of each edge, with the limiter's own arithmetic
+    (limiter.inconsistent_edges)."""
+    from c1mesh.limiter import inconsistent_edges
+
+    _, parts = inconsistent_edges(points, values, gradients, edges)
+    return np.abs(parts["delta"] - 0.5 * (parts["pred_a"] + parts["pred_b"]))
+
+
+def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
+    """The survey's two noise floors, exactly. halos: a callable giving a fresh iterator
+    of every tile's Halo; temps: tiled_fit._Temps for the residual files."""
+    from c1mesh.streamed_median import streamed_median
+    from c1mesh.topology import edge_table
+
+    def floor(name, gradients_of):
+        path = temps.new(f"residuals-{name}.bin")
+        with open(path, "wb") as file:
+            for halo in halos():
+                if not len(halo.triangles):
+                    continue
+                edges = edge_table(halo.triangles, len(halo.records)).edges
+                mine = edges[halo.own[edges[:, 0]]]              # lower end in the cell
+                residuals = edge_residuals(halo.points, halo.records["z"], gradients_of(halo, edges), mine)
+                residuals.astype("<f8").tofile(file)
+        median = streamed_median(lambda: _float_blocks(path))
+        path.unlink()
+        return median
+
+    first = floor("first", lambda halo, edges: halo.gradients)
+    second = floor("second", lambda halo, edges: reconcile(halo.points, halo.records["z"],
+                                                           halo.gradients, edges, first)[0])
+    return NoiseFloors(first, second)
+
+
+def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
+    """The limited gradients and edge directions of one tile's own triangles, `owned`
+    (k, 3) survey numbers, all inside its halo."""
+    from c1mesh.limiter import edge_directions
+    from c1mesh.topology import edge_table
+
+    points, values = halo.points, halo.records["z"]
+    table = edge_table(halo.triangles, len(halo.records))
+    reconciled, moved = reconcile(points, values, halo.gradients, table.edges, floors.first)
+    limited, changed = limit(points, values, reconciled, table.edges, floors.second)
+    directions, turned = edge_directions(points, halo.triangles, table)
+    rows = np.searchsorted(halo.records["index"], owned)
+    if np.any(rows >= len(halo.records)) or np.any(halo.records["index"][np.minimum(rows, len(halo.records) - 1)] != owned):
+        raise RuntimeError("a tile's own triangle has a corner outside its halo")
+    corners = np.unique(rows)
+    triangles = np.searchsorted(corners, rows)
+    n = len(halo.records)
+    keys = table.edges[:, 0] * n + table.edges[:, 1]
+    sub = corners[edge_table(triangles, len(corners)).edges]
+    at = np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
+    return TileLimits(halo.records[corners], triangles, limited[corners], directions[at],
+                      int(((moved | changed) & halo.own).sum()),
+                      int((turned & halo.own[table.edges[:, 0]]).sum()))
+
+
+def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
+    """The longest edge of the survey's final triangles (as triangulation.trim measures
+    edges), tile by tile: tile t's own triangles have their corners within buffers[t]."""
+    from c1mesh.triangulation import _edge_lengths
+
+    longest = 0.0
+    for t, path in enumerate(triangle_files):
+        if path is None:
+            continue
+        triangles = np.load(path)
+        if not len(triangles):
+            continue
+        cell, reach = grid.cell(t), buffers[t] * (1 + 1e-9)
+        records = heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
+        rows = np.searchsorted(records["index"], triangles)
+        xy = np.column_stack([records["x"], records["y"]])
+        longest = max(longest, float(_edge_lengths(xy, rows).max()))
+    return longest
+
+
+def reconcile(points, values, gradients, edges, noise: float):
+    """limiter.reconcile_gradients with the survey's noise floor in place of the median
+    of the given edges."""
+    from c1mesh.limiter import reconcile_gradients
+
+    return _with_noise(reconcile_gradients, noise, points, values, gradients, edges)
+
+
+def limit(points, values, gradients, edges, noise: float):
+    """limiter.limit_gradients with the survey's noise floor in place of the median of
+    the given edges."""
+    from c1mesh.limiter import limit_gradients
+
+    return _with_noise(limit_gradients, noise, points, values, gradients, edges)
+
+
+def _with_noise(function, noise, *args):
+    if "noise" in inspect.signature(function).parameters:
+        return function(*args, noise=noise)
+    import c1mesh.limiter as limiter                   # until limiter takes noise=: its median, fixed
+    real = limiter.np
+
+    class _FixedMedian:
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        @staticmethod
+        def median(values, *a, **k):
+            return noise
+
+    limiter.np = _FixedMedian()
+    try:
+        return function(*args)
+    finally:
+        limiter.np = real
+
+
+def _float_blocks(path, block: int = 1 << 22):
+    with open(path, "rb") as file:
+        while True:
+            part = np.fromfile(file, "<f8", count=block)
+            if not len(part):
+                return
+            yield part
