@@ -357,9 +357,11 @@ class _Limiter:
     floors, found on construction, and each tile's limited data on demand."""
 
     def __init__(self, heights, grid, triangle_files, buffers, max_edge, temps):
-        from c1mesh.tiled_limiter import halo_reach, longest_final_edge, noise_floors
+        from c1mesh.tiled_limiter import RowMap, halo_reach, longest_final_edge, noise_floors
 
         self.heights, self.grid, self.files = heights, grid, triangle_files
+        self.row_map = RowMap(int(max(heights.tile(t)["index"].max() for t in range(len(grid))
+                                      if heights.counts[t])) + 1)
         longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files, grid, buffers)
         self.reach = halo_reach(longest)
         self.floors = noise_floors(lambda: (self._halo(t) for t in range(len(grid)) if self.files[t] is not None),
@@ -369,13 +371,13 @@ class _Limiter:
     def _halo(self, tile):
         from c1mesh.tiled_limiter import read_halo
 
-        return read_halo(self.heights, self.files, self.grid, tile, self.reach)
+        return read_halo(self.heights, self.files, self.grid, tile, self.reach, self.row_map)
 
     def tile(self, tile: int, triangles: np.ndarray):
         """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
         from c1mesh.tiled_limiter import tile_limits
 
-        result = tile_limits(self._halo(tile), triangles, self.floors)
+        result = tile_limits(self._halo(tile), triangles, self.floors, self.row_map)
         self.limited += result.limited
         self.turned += result.turned
         return result

@@ -94,10 +94,28 @@ def halo_reach(longest_edge: float) -> float:
     return HALO_EDGES * float(longest_edge) * (1 + 1e-9)
 
 
-def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
+class RowMap:
+    """Survey number -> row among the records of one halo: a dense table over the survey
+    (4 bytes a point; a binary search of random corners costs far more), filled for one
+    set of records at a time."""
+
+    def __init__(self, count: int):
+        self.table = np.full(count, -1, dtype=np.int32)
+
+    def rows(self, index: np.ndarray, numbers: np.ndarray) -> np.ndarray:
+        """The row in `index` (survey numbers of the records) of each of `numbers`
+        (any shape), -1 for numbers not in index."""
+        self.table[index] = np.arange(len(index), dtype=np.int32)
+        try:
+            return self.table[numbers].astype(np.int64)
+        finally:
+            self.table[index] = -1
+
+
+def read_halo(heights, triangle_files, grid, tile: int, reach: float, row_map: RowMap) -> Halo:
     """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
     records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
-    or None."""
+    or None; row_map: a RowMap over the survey's numbers."""
     cell = grid.cell(tile)
     rect = (cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach)
     records = heights.records(rect)
@@ -105,14 +123,20 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
     for other in heights.touching(rect):
         if triangle_files[other] is None or not len(records):
             continue
-        triangles = np.load(triangle_files[other])
-        rows = np.minimum(np.searchsorted(records["index"], triangles), len(records) - 1)
-        parts.append(rows[(records["index"][rows] == triangles).all(axis=1)])
-    triangles = np.concatenate(parts)
-    used = np.unique(triangles)
+        rows = row_map.rows(records["index"], np.load(triangle_files[other]))
+        parts.append(rows[(rows >= 0).all(axis=1)])
+    used, triangles = _compact(np.concatenate(parts), len(records))
     records = records[used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
-    return Halo(records, np.searchsorted(used, triangles), own)
+    return Halo(records, triangles, own)
+
+
+def _compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(used (u,) ascending rows that triangles use, triangles renumbered into used)."""
+    mark = np.zeros(count, dtype=bool)
+    mark[triangles] = True
+    new = np.cumsum(mark) - 1
+    return np.flatnonzero(mark), new[triangles]
 
 
 def edge_residuals(points, values, gradients, edges) -> np.ndarray:
@@ -150,9 +174,9 @@ def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
     return NoiseFloors(first, second)
 
 
-def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
+def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors, row_map: RowMap) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
-    (k, 3) survey numbers, all inside its halo."""
+    (k, 3) survey numbers, all inside its halo (row_map: a RowMap over the survey)."""
     from c1mesh.limiter import edge_directions
     from c1mesh.topology import edge_table
 
@@ -161,11 +185,10 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     reconciled, moved = reconcile(points, values, halo.gradients, table.edges, floors.first)
     limited, changed = limit(points, values, reconciled, table.edges, floors.second)
     directions, turned = edge_directions(points, halo.triangles, table)
-    rows = np.searchsorted(halo.records["index"], owned)
-    if np.any(rows >= len(halo.records)) or np.any(halo.records["index"][np.minimum(rows, len(halo.records) - 1)] != owned):
+    rows = row_map.rows(halo.records["index"], owned)
+    if np.any(rows < 0):
         raise RuntimeError("a tile's own triangle has a corner outside its halo")
-    corners = np.unique(rows)
-    triangles = np.searchsorted(corners, rows)
+    corners, triangles = _compact(rows, len(halo.records))
     n = len(halo.records)
     keys = table.edges[:, 0] * n + table.edges[:, 1]
     sub = corners[edge_table(triangles, len(corners)).edges]
