@@ -72,7 +72,7 @@ def _parse_memory(ctx, param, value):
 
 _MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
                 "are refused [default: half the RAM, at most 8G]. With fit, a LAS/LAZ file whose "
-                "points need more (1.8 kB per point) is fitted in tiles, with --overshoot off.")
+                "points need more (1.8 kB per point) is fitted in tiles (estimated normals, long-edge trim).")
 
 
 def _parse_max_edge(value: str):
