@@ -30,6 +30,7 @@ from c1mesh.pipeline import FitOptions, surface_stream
 from c1mesh.tile_spill import TileSpill
 from c1mesh.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
 from c1mesh.tiled_limiter import RowMap, halo_reach, noise_floors, read_halo, tile_limits
+from c1mesh.tiled_trim import drop_triangles, peeled
 from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay, trim
 
@@ -51,22 +52,22 @@ def _terrain_las(path, n, seed=0, classes=(2,)):
 
 
 def _in_memory(path, classes, level, overshoot="limit"):
-    """The whole-cloud fit with the tiled path's reduced options (long-edge trim only)."""
+    """The whole-cloud fit with the tiled path's reduced options (trim without bow-ties)."""
     las = laspy.read(str(path))
     keep = np.isin(np.asarray(las.classification), classes)
     points = np.column_stack([las.x, las.y, las.z])[keep]
     normals = estimate_normals(points, k=16, towards=(0, 0, 1))
     frame = choose_frame(points, normals, "z")
     hf = height_field(points, normals, frame)
-    triangles, report = trim(hf.xy, delaunay(hf.xy), max_edge="auto", min_circle_ratio=0.0)
-    assert report.removed["bowtie"] == 0          # else the reference is not the long-edge rule
+    triangles, report = trim(hf.xy, delaunay(hf.xy), max_edge="auto")
+    assert report.removed["bowtie"] == 0          # else the reference is not the tiled path's trim
     used = np.unique(triangles)
     triangles = np.searchsorted(used, triangles)
     gradients, directions, limiter = control_overshoot(hf.xy[used], hf.z[used], hf.gradients[used],
                                                        triangles, overshoot)
     interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles, directions=directions)
     mesh = surface_stream(interp.refinement(level), frame, None).materialize()
-    mesh.limiter = limiter.as_dict()
+    mesh.limiter, mesh.slivers = limiter.as_dict(), report.removed["sliver"]
     return mesh, report.max_edge, len(used)
 
 
@@ -106,6 +107,7 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot):
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
     assert report["points"]["kept"] == kept
+    assert report["trim"]["sliver"] == whole.slivers
     if overshoot == "limit":
         assert whole.limiter["gradients_limited"] > 100        # the noise makes the limiter act
         assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
@@ -119,6 +121,7 @@ def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
+    assert report["trim"]["sliver"] == whole.slivers > 0
     assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
 
@@ -220,3 +223,14 @@ def test_memory_rule():
     assert not fits_in_memory(12_000_000, 2 * 10**9)
     assert fits_in_memory(10**9, None)
     assert points_per_tile(2 * 10**9) * 1_800 * 4 <= 2 * 10**9
+
+
+def test_peel_takes_thin_components_that_reach_the_boundary():
+    """A chain of three thin triangles with one on the boundary goes whole; a thin triangle
+    inside, touching the chain only at a corner, stays (trim's rule: through edges)."""
+    chain = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4], [4, 10, 11], [20, 21, 22]])
+    boundary = np.array([False, False, True, False, False])
+    assert peeled(chain, boundary).tolist() == [True, True, True, False, False]
+    assert not peeled(chain, np.zeros(5, bool)).any()
+    kept = drop_triangles(np.array([[9, 8, 7], [3, 1, 2], [1, 2, 10]]), np.array([[2, 3, 1]]))
+    assert kept.tolist() == [[9, 8, 7], [1, 2, 10]]

@@ -1,0 +1,70 @@
+"""The trim's sliver peel (triangulation.trim) on a survey fitted in tiles.
+
+After the long-edge rule, `trim` peels thin triangles (circle ratio below
+min_circle_ratio) off the boundary, and then, repeatedly, the thin triangles each removal
+exposes. What it removes is therefore every connected set of thin triangles (joined
+through shared edges) with at least one triangle on the boundary of what the long-edge
+rule kept. Thin triangles are rare in a Delaunay triangulation (219 of 1M on synthetic
+terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memory:
+
+- one pass over the tiles: each tile reads its halo (cell + 2 longest edges, which holds
+  both triangles of every edge of its own triangles; tiled_limiter.read_halo) and lists
+  its own thin triangles, with whether each has an edge no other final triangle shares;
+- in memory: the components of that list through shared edges; those with a boundary
+  triangle are peeled;
+- each tile's triangle file loses its peeled triangles.
+
+Not done: trim's bow-tie removal (all but the largest fan at a vertex where fans meet),
+and the peel it starts again after each cut: a fan's size needs the whole star and its
+tie-break follows the in-memory triangle order, which tiles do not have. So the result
+equals trim's when trim removes no bow-tie.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+HALO_EDGES = 2
+"""A tile's halo for the peel, in longest final edges (module docstring)."""
+
+
+def thin_triangles(halo, min_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
+    on the boundary. halo: a tiled_limiter.Halo (own triangles: lowest corner in the cell)."""
+    from c1mesh.triangulation import _edge_lengths, _neighbours, circle_ratio
+
+    triangles = halo.triangles
+    if not len(triangles):
+        return np.empty((0, 3), np.int64), np.empty(0, bool)
+    own = halo.own[triangles.min(axis=1)]
+    thin = np.zeros(len(triangles), dtype=bool)
+    thin[own] = circle_ratio(_edge_lengths(halo.points, triangles[own])) < min_ratio
+    boundary = (_neighbours(triangles, len(halo.records))[thin] < 0).any(axis=1)
+    return halo.records["index"][triangles[thin]], boundary
+
+
+def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
+    """(k,) bool: which of the thin triangles (k, 3) (survey numbers) the peel removes:
+    those in a component, through shared edges, with a boundary triangle (boundary (k,))."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    k = len(triangles)
+    if not k or not boundary.any():
+        return np.zeros(k, dtype=bool)
+    ends = np.concatenate([np.sort(triangles[:, [a, b]], axis=1) for a, b in ((1, 2), (2, 0), (0, 1))])
+    owner = np.tile(np.arange(k), 3)
+    order = np.lexsort((ends[:, 1], ends[:, 0]))
+    ends, owner = ends[order], owner[order]
+    same = np.flatnonzero((ends[1:] == ends[:-1]).all(axis=1))
+    graph = coo_matrix((np.ones(same.size, np.int8), (owner[same], owner[same + 1])), shape=(k, k))
+    _, label = connected_components(graph, directed=False)
+    return np.isin(label, label[boundary])
+
+
+def drop_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """triangles (T, 3) without the rows that are, as sets of corners, rows of removed."""
+    if not len(removed) or not len(triangles):
+        return triangles
+    def rows(a):
+        return np.ascontiguousarray(np.sort(a, axis=1)).view([("", a.dtype)] * 3).ravel()
+    return triangles[~np.isin(rows(triangles), rows(removed.astype(triangles.dtype)))]
