@@ -33,7 +33,6 @@ does not depend on that sign).
 """
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
 from typing import Callable
 
@@ -140,12 +139,10 @@ def _compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def edge_residuals(points, values, gradients, edges) -> np.ndarray:
-    """(E,) |trapezoid residual| of each edge, with the limiter's own arithmetic
-    (limiter.inconsistent_edges)."""
-    from c1mesh.limiter import inconsistent_edges
+    """(E,) |trapezoid residual| of each edge, with the limiter's own arithmetic."""
+    from c1mesh.limiter import trapezoid_residuals
 
-    _, parts = inconsistent_edges(points, values, gradients, edges)
-    return np.abs(parts["delta"] - 0.5 * (parts["pred_a"] + parts["pred_b"]))
+    return np.abs(trapezoid_residuals(points, values, gradients, edges))
 
 
 def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
@@ -219,40 +216,17 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
 
 
 def reconcile(points, values, gradients, edges, noise: float):
-    """limiter.reconcile_gradients with the survey's noise floor in place of the median
-    of the given edges."""
+    """limiter.reconcile_gradients with the survey's noise floor."""
     from c1mesh.limiter import reconcile_gradients
 
-    return _with_noise(reconcile_gradients, noise, points, values, gradients, edges)
+    return reconcile_gradients(points, values, gradients, edges, noise_floor=noise)
 
 
 def limit(points, values, gradients, edges, noise: float):
-    """limiter.limit_gradients with the survey's noise floor in place of the median of
-    the given edges."""
+    """limiter.limit_gradients with the survey's noise floor."""
     from c1mesh.limiter import limit_gradients
 
-    return _with_noise(limit_gradients, noise, points, values, gradients, edges)
-
-
-def _with_noise(function, noise, *args):
-    if "noise" in inspect.signature(function).parameters:
-        return function(*args, noise=noise)
-    import c1mesh.limiter as limiter                   # until limiter takes noise=: its median, fixed
-    real = limiter.np
-
-    class _FixedMedian:
-        def __getattr__(self, name):
-            return getattr(real, name)
-
-        @staticmethod
-        def median(values, *a, **k):
-            return noise
-
-    limiter.np = _FixedMedian()
-    try:
-        return function(*args)
-    finally:
-        limiter.np = real
+    return limit_gradients(points, values, gradients, edges, noise_floor=noise)
 
 
 def _float_blocks(path, block: int = 1 << 22):
