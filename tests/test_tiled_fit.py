@@ -234,3 +234,41 @@ def test_peel_takes_thin_components_that_reach_the_boundary():
     assert not peeled(chain, np.zeros(5, bool)).any()
     kept = drop_triangles(np.array([[9, 8, 7], [3, 1, 2], [1, 2, 10]]), np.array([[2, 3, 1]]))
     assert kept.tolist() == [[9, 8, 7], [1, 2, 10]]
+
+
+def test_tiled_fit_carries_crs_and_colours(tmp_path):
+    """Autzen ground (a CRS, 8-bit RGB) fitted in tiles through the CLI: the PLY comment,
+    the .prj and the report carry the file's CRS as the in-memory fit does; every output
+    vertex at an input point has that point's colour (the file is the ground truth), and
+    vertices both fits write have the same colour to one step (blending rounds)."""
+    from c1mesh.formats import read_cloud
+
+    source = SAMPLES / "autzen_trim.laz"
+    base = ["fit", str(source), "--classes", "2", "--level", "2", "--normals", "estimate"]
+    whole = CliRunner().invoke(main, base + ["-o", str(tmp_path / "whole.ply"), "--report", str(tmp_path / "w.json")])
+    tiled = CliRunner().invoke(main, base + ["-o", str(tmp_path / "tiled.ply"), "--report", str(tmp_path / "t.json"),
+                                             "--memory", "2M"])
+    assert whole.exit_code == 0 and tiled.exit_code == 0, whole.output + tiled.output
+    report = json.loads((tmp_path / "t.json").read_text())
+    assert report["tiles"] == 4 and report["crs"]["source"] == "file"
+    assert report["crs"] == json.loads((tmp_path / "w.json").read_text())["crs"]
+    assert (tmp_path / "tiled.prj").read_text() == (tmp_path / "whole.prj").read_text()
+    a, b = read_cloud(tmp_path / "whole.ply"), read_cloud(tmp_path / "tiled.ply")
+    assert a.crs == b.crs is not None
+    assert b.colors is not None and len(np.unique(b.colors, axis=0)) > 100
+
+    def keys(xyz, decimals=6):
+        return [tuple(row) for row in np.round(xyz, decimals).tolist()]
+    las = laspy.read(str(source))
+    ground = np.asarray(las.classification) == 2
+    truth = dict(zip(keys(np.column_stack([las.x, las.y, las.z])[ground]),
+                     np.column_stack([las.red, las.green, las.blue])[ground].tolist()))
+    at_points = [(i, truth[k]) for i, k in enumerate(keys(b.points)) if k in truth]
+    assert len(at_points) > 20000
+    rows, colours = zip(*at_points)
+    assert np.array_equal(b.colors[list(rows)], np.asarray(colours))
+    whole_colour = dict(zip(keys(a.points, 3), a.colors.tolist()))      # refined points: to rounding
+    common = [(i, whole_colour[k]) for i, k in enumerate(keys(b.points, 3)) if k in whole_colour]
+    assert len(common) > 0.95 * len(b.points)
+    rows, colours = zip(*common)
+    assert np.abs(b.colors[list(rows)].astype(int) - np.asarray(colours)).max() <= 1

@@ -64,6 +64,8 @@ HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
                    ("gx", "<f8"), ("gy", "<f8")])
 """One height-field point in a spill: survey number, frame position, height, gradient."""
 VERTEX = np.dtype([("v", "<f8", 3), ("n", "<f8", 3)])
+VERTEX_RGB = np.dtype([("v", "<f8", 3), ("n", "<f8", 3), ("c", "u1", 3)])
+"""One output vertex in the temporary vertex file: position, normal (world), colour."""
 
 
 def fits_in_memory(point_count: int, memory: int | None) -> bool:
@@ -137,19 +139,64 @@ class CachedChunks:
                 yield part.reshape(-1, 3), None
 
 
-def las_chunks(path, classes=None, chunk: int = CHUNK) -> Callable:
+def las_chunks(path, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None) -> Callable:
     """survey_stats.Chunks over a LAS/LAZ file: a callable giving a fresh iterator of
-    (world points (m, 3), None) in file order, keeping only `classes` (None: all)."""
+    (world points (m, 3), None) in file order, keeping only `classes` (None: all).
+    colours: where each pass also sends the kept points' RGB, when the file has it."""
     import laspy
 
     def chunks():
         with laspy.open(str(path)) as reader:
+            names = set(reader.header.point_format.dimension_names)
             for part in reader.chunk_iterator(chunk):
                 xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
+                rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
+                       if colours is not None and {"red", "green", "blue"} <= names else None)
                 if classes:
-                    xyz = xyz[np.isin(np.asarray(part.classification), np.asarray(classes))]
+                    keep = np.isin(np.asarray(part.classification), np.asarray(classes))
+                    xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
+                if rgb is not None:
+                    colours.add(rgb)
                 yield xyz, None
     return chunks
+
+
+class Colours:
+    """The survey's RGB by survey number, in a temporary file of uint16 (as LAS stores
+    it), written on the first pass over the file; `of` gives uint8 colours by the
+    in-memory reader's rule (formats._common.colors_to_uint8: 16-bit when any channel
+    of the survey exceeds 255; no colours when all are zero)."""
+
+    def __init__(self, temps: "_Temps"):
+        self.path, self.count, self.largest, self._file = temps.new("colours.bin"), 0, 0, None
+        self._done = False
+
+    def add(self, rgb: np.ndarray) -> None:
+        if self._done:
+            return
+        if self._file is None:
+            self._file = open(self.path, "wb")
+        np.ascontiguousarray(rgb, dtype="<u2").tofile(self._file)
+        self.count += len(rgb)
+        self.largest = max(self.largest, int(rgb.max(initial=0)))
+
+    def finish(self) -> None:
+        """Close the file after the first pass (later passes add nothing)."""
+        if self._file is not None:
+            self._file.close()
+        self._done = True
+
+    @property
+    def present(self) -> bool:
+        return self.count > 0 and self.largest > 0
+
+    def of(self, survey: np.ndarray) -> np.ndarray | None:
+        """(k, 3) uint8 colours of the points with these survey numbers, or None."""
+        if not self.present:
+            return None
+        table = np.memmap(self.path, dtype="<u2", mode="r", shape=(self.count, 3))
+        rgb = np.asarray(table[survey]).astype(np.int64)
+        return (rgb >> 8 if self.largest > 255 else rgb).astype(np.uint8)
 
 
 class _Temps:
@@ -190,6 +237,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.tile_spill import spill
 
     _check_options(options)
+    crs, crs_source = survey_crs(source, options.crs)
     seconds, start = {}, time.perf_counter()
 
     def done(stage):
@@ -203,9 +251,11 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
     temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
     try:
-        chunks = CachedChunks(las_chunks(source, options.classes), temps)
+        colours = Colours(temps)
+        chunks = CachedChunks(las_chunks(source, options.classes, colours=colours), temps)
         axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
         frame = streamed_frame(chunks, axis)
+        colours.finish()
         count, box = _plane_box(chunks, frame)
         if count < 3:
             raise InputError(f"{source}: only {count} points" + (f" of class {list(options.classes)}"
@@ -232,7 +282,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                 limiter = _Limiter(heights, grid, triangle_files, longest, row_map, temps)
                 done("noise floors")
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
-                                  output, temps, limiter)
+                                  output, temps, limiter, crs, colours)
             done("refine+write")
         finally:
             heights.close()
@@ -240,12 +290,35 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         temps.close()
     report.update({"input": str(source), "output": str(output), "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
-                                "estimated normals, long-edge trim only (docs/tiles.md)"],
+                                "estimated normals, no bow-tie removal in the trim (docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
                    "trim": {"sliver": slivers},
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
+    report["crs"] = _describe_crs(crs, crs_source)
     return report
+
+
+def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
+    """(CRS WKT, "file" | "option" | None) of a LAS/LAZ survey: its header's CRS and the
+    user's --crs (WKT or any c1mesh.crs.parse_crs input) resolved as the in-memory fit
+    does (InputError when they differ)."""
+    import laspy
+
+    from c1mesh.crs import las_crs, parse_crs, resolve
+
+    with laspy.open(str(source)) as reader:
+        file_crs = las_crs(reader.header)
+    return resolve(file_crs, parse_crs(user_crs) if user_crs else None, str(source))
+
+
+def _describe_crs(crs, crs_source) -> dict | None:
+    from c1mesh.crs import describe
+
+    facts = describe(crs)
+    if facts is not None:
+        facts["source"] = crs_source
+    return facts
 
 
 def _check_options(options) -> None:
@@ -421,7 +494,8 @@ class _Limiter:
 
 
 def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
-                 limiter: "_Limiter | None" = None) -> dict:
+                 limiter: "_Limiter | None" = None, crs: str | None = None,
+                 colours: Colours | None = None) -> dict:
     """Refine each tile's owned triangles, numbering shared vertices globally (module
     docstring), into one vertex and one face file; then write the mesh from them."""
     from c1mesh.cloud import MeshStream
@@ -442,7 +516,8 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                 limits = limiter.tile(t, triangles)
                 added, new_corners, face_count = _write_tile(
                     limits.records, limits.triangles, frame, options, shared, written, vertex_file,
-                    face_file, limits.gradients, limits.directions)
+                    face_file, limits.gradients, limits.directions,
+                    None if colours is None else colours.of(limits.records["index"]))
                 written, kept, faces = written + added, kept + new_corners, faces + face_count
                 continue
             reach = (max_edge if max_edge is not None else buffers[t]) * (1 + 1e-9)
@@ -454,22 +529,24 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                 raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
             records = records[rows]
             local = np.searchsorted(corners, triangles)
-            added, new_corners, face_count = _write_tile(records, local, frame, options, shared,
-                                                         written, vertex_file, face_file)
+            added, new_corners, face_count = _write_tile(
+                records, local, frame, options, shared, written, vertex_file, face_file,
+                colors=None if colours is None else colours.of(records["index"]))
             written += added
             kept += new_corners
             faces += face_count
     if faces == 0:
         raise InputError("no triangles are left after trimming; try --max-edge none")
     block = CHUNK
+    coloured = colours is not None and colours.present
 
     def vertex_blocks():
         with open(vertex_path, "rb") as file:
             while True:
-                part = np.fromfile(file, VERTEX, count=block)
+                part = np.fromfile(file, VERTEX_RGB if coloured else VERTEX, count=block)
                 if not len(part):
                     return
-                yield part["v"], part["n"], None
+                yield part["v"], part["n"], part["c"] if coloured else None
 
     def face_blocks():
         with open(face_path, "rb") as file:
@@ -479,8 +556,8 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                     return
                 yield part.reshape(-1, 3)
     with blas_threads(1):
-        write_mesh(MeshStream(written, faces, True, 0, vertex_blocks, face_blocks), output,
-                   options.output_format, ascii=options.ascii)
+        write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
+                   options.output_format, ascii=options.ascii, crs=crs)
     report = {"kept": kept, "output_mesh": {"vertices": written, "faces": faces},
               "shared_vertex_keys": len(shared)}
     if limiter is not None:
@@ -489,11 +566,12 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
 
 
 def _write_tile(records, triangles, frame, options, shared: dict, written: int,
-                vertex_file, face_file, gradients=None, directions=None) -> tuple[int, int, int]:
+                vertex_file, face_file, gradients=None, directions=None, colors=None) -> tuple[int, int, int]:
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
     append its new vertices and its faces (global numbers); returns (vertices written,
     of which input points, faces written). gradients (n, 2) and directions (E, 2): the
-    limiter's (None: the records' gradients, unit-normal directions)."""
+    limiter's (None: the records' gradients, unit-normal directions); colors (n, 3) uint8
+    of the records, or None."""
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.pipeline import surface_stream
 
@@ -505,13 +583,15 @@ def _write_tile(records, triangles, frame, options, shared: dict, written: int,
     refinement = interp.refinement(options.level)
     number = _global_numbers(refinement, records["index"], shared, written)
     new = number >= written
-    stream = surface_stream(refinement, frame, None)
+    stream = surface_stream(refinement, frame, colors)
     position = 0
-    for vertices, normals, _ in stream.vertex_blocks():
+    for vertices, normals, blended in stream.vertex_blocks():
         keep = new[position:position + len(vertices)]
         position += len(vertices)
-        out = np.empty(int(keep.sum()), VERTEX)
+        out = np.empty(int(keep.sum()), VERTEX if colors is None else VERTEX_RGB)
         out["v"], out["n"] = vertices[keep], normals[keep]
+        if colors is not None:
+            out["c"] = blended[keep]
         out.tofile(vertex_file)
     for faces in stream.face_blocks():
         number.take(faces).astype("<i8").tofile(face_file)
