@@ -107,7 +107,7 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot):
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
     assert report["points"]["kept"] == kept
-    assert report["trim"]["sliver"] == whole.slivers
+    assert report["triangles"]["removed"]["sliver"] == whole.slivers
     if overshoot == "limit":
         assert whole.limiter["gradients_limited"] > 100        # the noise makes the limiter act
         assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
@@ -121,7 +121,7 @@ def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
-    assert report["trim"]["sliver"] == whole.slivers > 0
+    assert report["triangles"]["removed"]["sliver"] == whole.slivers > 0
     assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
 

@@ -292,7 +292,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
                                 "estimated normals, no bow-tie removal in the trim (docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
-                   "trim": {"sliver": slivers},
+                   "triangles": {"removed": {"sliver": slivers}, "max_edge": max_edge},
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = _describe_crs(crs, crs_source)
