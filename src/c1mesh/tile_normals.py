@@ -63,7 +63,9 @@ def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: flo
 def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:
     """True when every point's k-th nearest neighbour (itself counted, as Open3D counts it)
     is closer than the unread part of the box (with a relative margin for rounding)."""
-    distance, _ = tree.query(points, k)
+    from c1mesh.threads import workers
+
+    distance, _ = tree.query(points, k, workers=workers())
     kth = distance[:, -1] if distance.ndim == 2 else distance
     gap = np.full(len(points), np.inf)
     for x0, y0, x1, y1 in _unread_strips(read_box, box, np.zeros(2)):

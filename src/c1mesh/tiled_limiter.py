@@ -33,6 +33,7 @@ does not depend on that sign).
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable
 
@@ -96,19 +97,23 @@ def halo_reach(longest_edge: float) -> float:
 class RowMap:
     """Survey number -> row among the records of one halo: a dense table over the survey
     (4 bytes a point; a binary search of random corners costs far more), filled for one
-    set of records at a time."""
+    set of records at a time (`holding`)."""
 
     def __init__(self, count: int):
         self.table = np.full(count, -1, dtype=np.int32)
 
-    def rows(self, index: np.ndarray, numbers: np.ndarray) -> np.ndarray:
-        """The row in `index` (survey numbers of the records) of each of `numbers`
-        (any shape), -1 for numbers not in index."""
+    @contextmanager
+    def holding(self, index: np.ndarray):
+        """Within the block, `rows` finds the rows of `index` (survey numbers)."""
         self.table[index] = np.arange(len(index), dtype=np.int32)
         try:
-            return self.table[numbers].astype(np.int64)
+            yield self
         finally:
             self.table[index] = -1
+
+    def rows(self, numbers: np.ndarray) -> np.ndarray:
+        """The row of each of `numbers` (any shape) among the held index, -1 if absent."""
+        return self.table[numbers].astype(np.int64)
 
 
 def read_halo(heights, triangle_files, grid, tile: int, reach: float, row_map: RowMap) -> Halo:
@@ -119,11 +124,12 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float, row_map: R
     rect = (cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach)
     records = heights.records(rect)
     parts = [np.empty((0, 3), np.int64)]
-    for other in heights.touching(rect):
-        if triangle_files[other] is None or not len(records):
-            continue
-        rows = row_map.rows(records["index"], np.load(triangle_files[other]))
-        parts.append(rows[(rows >= 0).all(axis=1)])
+    with row_map.holding(records["index"]):
+        for other in heights.touching(rect):
+            if triangle_files[other] is None or not len(records):
+                continue
+            rows = row_map.rows(np.load(triangle_files[other]))
+            parts.append(rows[(rows >= 0).all(axis=1)])
     used, triangles = _compact(np.concatenate(parts), len(records))
     records = records[used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
@@ -182,7 +188,8 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors, row_map: Row
     reconciled, moved = reconcile(points, values, halo.gradients, table.edges, floors.first)
     limited, changed = limit(points, values, reconciled, table.edges, floors.second)
     directions, turned = edge_directions(points, halo.triangles, table)
-    rows = row_map.rows(halo.records["index"], owned)
+    with row_map.holding(halo.records["index"]):
+        rows = row_map.rows(owned)
     if np.any(rows < 0):
         raise RuntimeError("a tile's own triangle has a corner outside its halo")
     corners, triangles = _compact(rows, len(halo.records))
