@@ -270,16 +270,16 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             done("normals")
             max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps)
             done("triangulate")
-            from c1mesh.tiled_limiter import RowMap, longest_final_edge
+            from c1mesh.tiled_limiter import HaloCache, RowMap, halo_reach, longest_final_edge
 
-            row_map = RowMap(count)
             longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,
                                                                                 grid, buffers)
-            slivers = _peel(heights, grid, triangle_files, longest, row_map)
+            halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), RowMap(count), temps)
+            slivers = _peel(halos)
             done("peel")
             limiter = None
             if options.overshoot == "limit":
-                limiter = _Limiter(heights, grid, triangle_files, longest, row_map, temps)
+                limiter = _Limiter(halos, temps)
                 done("noise floors")
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
                                   output, temps, limiter, crs, colours)
@@ -433,31 +433,29 @@ def _triangulate(heights, grid, max_edge, temps):
     return limit, files, buffers
 
 
-def _peel(heights, grid, triangle_files, longest: float, row_map) -> int:
+def _peel(halos) -> int:
     """trim's sliver peel over the tiles (c1mesh.tiled_trim), with trim's default
-    min_circle_ratio: the peeled triangles leave their tiles' files. Returns how many."""
+    min_circle_ratio, on the halos (tiled_limiter.HaloCache, which then drops the peeled
+    triangles); the peeled triangles also leave their tiles' files. Returns how many."""
     import inspect
 
-    from c1mesh.tiled_limiter import read_halo
-    from c1mesh.tiled_trim import HALO_EDGES, drop_triangles, peeled, thin_triangles
+    from c1mesh.tiled_trim import drop_triangles, peeled, thin_triangles
     from c1mesh.triangulation import trim
 
     min_ratio = inspect.signature(trim).parameters["min_circle_ratio"].default
-    reach = HALO_EDGES * longest * (1 + 1e-9)
     thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty(0, np.int64)]
-    for t in range(len(grid)):
-        if triangle_files[t] is not None:
-            triangles, on_boundary = thin_triangles(read_halo(heights, triangle_files, grid, t, reach, row_map),
-                                                    min_ratio)
-            thin.append(triangles)
-            boundary.append(on_boundary)
-            tiles.append(np.full(len(triangles), t))
+    for t in halos.tiles():
+        triangles, on_boundary = thin_triangles(halos.halo(t), min_ratio)
+        thin.append(triangles)
+        boundary.append(on_boundary)
+        tiles.append(np.full(len(triangles), t))
     thin, tiles = np.concatenate(thin), np.concatenate(tiles)
     removed = peeled(thin, np.concatenate(boundary))
     for t in np.unique(tiles[removed]):
-        triangles = np.load(triangle_files[t])
-        with open(triangle_files[t], "wb") as file:
+        triangles = np.load(halos.files[t])
+        with open(halos.files[t], "wb") as file:
             np.save(file, drop_triangles(triangles, thin[removed & (tiles == t)]))
+    halos.removed = thin[removed]
     return int(removed.sum())
 
 
@@ -465,25 +463,18 @@ class _Limiter:
     """The overshoot limiter over the tiles (c1mesh.tiled_limiter): the survey's noise
     floors, found on construction, and each tile's limited data on demand."""
 
-    def __init__(self, heights, grid, triangle_files, longest: float, row_map, temps):
-        from c1mesh.tiled_limiter import halo_reach, noise_floors
+    def __init__(self, halos, temps):
+        from c1mesh.tiled_limiter import noise_floors
 
-        self.heights, self.grid, self.files, self.row_map = heights, grid, triangle_files, row_map
-        self.reach = halo_reach(longest)
-        self.floors = noise_floors(lambda: (self._halo(t) for t in range(len(grid)) if self.files[t] is not None),
-                                   temps)
+        self.halos = halos
+        self.floors = noise_floors(halos.halos, temps)
         self.limited = self.turned = 0
-
-    def _halo(self, tile):
-        from c1mesh.tiled_limiter import read_halo
-
-        return read_halo(self.heights, self.files, self.grid, tile, self.reach, self.row_map)
 
     def tile(self, tile: int, triangles: np.ndarray):
         """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
         from c1mesh.tiled_limiter import tile_limits
 
-        result = tile_limits(self._halo(tile), triangles, self.floors, self.row_map)
+        result = tile_limits(self.halos.halo(tile), triangles, self.floors, self.halos.row_map)
         self.limited += result.limited
         self.turned += result.turned
         return result

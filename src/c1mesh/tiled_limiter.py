@@ -136,6 +136,47 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float, row_map: R
     return Halo(records, triangles, own)
 
 
+class HaloCache:
+    """Every tile's halo, read from the spills once and kept in temporary files for the
+    later passes (a halo read costs a filter of up to nine tiles' points and triangles;
+    a cached one, one file read). Triangles removed after the first read (the peel) are
+    dropped as each halo is loaded. temps: tiled_fit._Temps."""
+
+    def __init__(self, heights, triangle_files, grid, reach: float, row_map: RowMap, temps):
+        self.heights, self.files, self.grid, self.reach, self.row_map = heights, triangle_files, grid, reach, row_map
+        self.temps, self.paths = temps, {}
+        self.removed = np.empty((0, 3), np.int64)
+
+    def tiles(self):
+        """The tiles that own triangles."""
+        return [t for t in range(len(self.grid)) if self.files[t] is not None]
+
+    def halo(self, tile: int) -> Halo:
+        if tile not in self.paths:
+            halo = read_halo(self.heights, self.files, self.grid, tile, self.reach, self.row_map)
+            self.paths[tile] = (self.temps.new(f"halo-{tile}.records"), self.temps.new(f"halo-{tile}.triangles"))
+            halo.records.tofile(self.paths[tile][0])
+            halo.triangles.astype("<i8").tofile(self.paths[tile][1])
+            return self._drop(halo)
+        records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
+        triangles = np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3)
+        own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
+        return self._drop(Halo(records, triangles, own))
+
+    def halos(self):
+        """A fresh iterator over the halos of all tiles that own triangles."""
+        return (self.halo(t) for t in self.tiles())
+
+    def _drop(self, halo: Halo) -> Halo:
+        if not len(self.removed) or not len(halo.triangles):
+            return halo
+        from c1mesh.tiled_trim import drop_triangles
+
+        survey = halo.records["index"][halo.triangles]
+        kept = drop_triangles(np.column_stack([survey, np.arange(len(survey))]), self.removed, columns=3)
+        return Halo(halo.records, halo.triangles[kept[:, 3]], halo.own)
+
+
 def _compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """(used (u,) ascending rows that triangles use, triangles renumbered into used)."""
     mark = np.zeros(count, dtype=bool)

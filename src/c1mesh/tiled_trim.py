@@ -7,9 +7,10 @@ through shared edges) with at least one triangle on the boundary of what the lon
 rule kept. Thin triangles are rare in a Delaunay triangulation (219 of 1M on synthetic
 terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memory:
 
-- one pass over the tiles: each tile reads its halo (cell + 2 longest edges, which holds
-  both triangles of every edge of its own triangles; tiled_limiter.read_halo) and lists
-  its own thin triangles, with whether each has an edge no other final triangle shares;
+- one pass over the tiles: each tile reads its halo (tiled_limiter.HaloCache, cell + 3
+  longest edges for the limiter; the peel needs 2, which hold both triangles of every
+  edge of its own triangles) and lists its own thin triangles, with whether each has an
+  edge no other final triangle shares;
 - in memory: the components of that list through shared edges; those with a boundary
   triangle are peeled;
 - each tile's triangle file loses its peeled triangles.
@@ -22,10 +23,6 @@ equals trim's when trim removes no bow-tie.
 from __future__ import annotations
 
 import numpy as np
-
-HALO_EDGES = 2
-"""A tile's halo for the peel, in longest final edges (module docstring)."""
-
 
 def thin_triangles(halo, min_ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
@@ -61,10 +58,13 @@ def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
     return np.isin(label, label[boundary])
 
 
-def drop_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
-    """triangles (T, 3) without the rows that are, as sets of corners, rows of removed."""
+def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
+    """The rows of triangles (T, >= 3) whose first `columns` = 3 entries are not, as a set
+    of corners, a row of removed (R, 3)."""
     if not len(removed) or not len(triangles):
         return triangles
+
     def rows(a):
         return np.ascontiguousarray(np.sort(a, axis=1)).view([("", a.dtype)] * 3).ravel()
-    return triangles[~np.isin(rows(triangles), rows(removed.astype(triangles.dtype)))]
+    corners = triangles[:, :columns]
+    return triangles[~np.isin(rows(corners.astype(np.int64)), rows(removed.astype(np.int64)))]
