@@ -59,12 +59,15 @@ def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
 
 
 def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
-    """The rows of triangles (T, >= 3) whose first `columns` = 3 entries are not, as a set
-    of corners, a row of removed (R, 3)."""
+    """The rows of triangles (T, >= 3) whose first three entries are not, as a set of
+    corners, a row of removed (R, 3, few): only rows sharing a removed triangle's lowest
+    corner are compared."""
     if not len(removed) or not len(triangles):
         return triangles
-
-    def rows(a):
-        return np.ascontiguousarray(np.sort(a, axis=1)).view([("", a.dtype)] * 3).ravel()
     corners = triangles[:, :columns]
-    return triangles[~np.isin(rows(corners.astype(np.int64)), rows(removed.astype(np.int64)))]
+    candidates = np.flatnonzero(np.isin(corners.min(axis=1), removed.min(axis=1)))
+    gone = {tuple(row) for row in np.sort(removed, axis=1).tolist()}
+    rows = np.sort(corners[candidates], axis=1).tolist()
+    keep = np.ones(len(triangles), dtype=bool)
+    keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
+    return triangles[keep]
