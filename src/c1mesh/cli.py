@@ -344,6 +344,11 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
     pairs = _plan(inputs, None, output_dir, suffix, input_format) if output_dir else [(inputs[0], output)]
     _check_conflicts(pairs, input_format, options.classes, options.ascii)
     try:
+        if options.crs:
+            from dataclasses import replace
+
+            from c1mesh.crs import parse_crs
+            options = replace(options, crs=parse_crs(options.crs))
         if output_dir and not Path(output_dir).exists():
             Path(output_dir).mkdir(parents=True)
         named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
