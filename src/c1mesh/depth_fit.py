@@ -193,6 +193,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     from c1mesh.properties import scheme_properties
     from c1mesh.schemes import get_scheme
     from c1mesh.threads import blas_threads
+    from c1mesh.topology import edge_table
 
     scheme = get_scheme(options.scheme)
     if options.overshoot not in OVERSHOOT_MODES:
@@ -209,10 +210,11 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
             raise InputError("no triangles are left after removing depth jumps")
         used, triangles = _compact(field_.uv, triangles)
     with timer.stage("interpolate"):
+        table = edge_table(triangles, used.size) if options.overshoot != "off" else None
         gradients, directions, overshoot = control_overshoot(
-            field_.uv[used], field_.w[used], field_.gradients[used], triangles, options.overshoot)
-        interp = RSDInterpolator(field_.uv[used], field_.w[used], gradients,
-                                 triangles=triangles, scheme=scheme, directions=directions)
+            field_.uv[used], field_.w[used], field_.gradients[used], triangles, options.overshoot, table)
+        interp = RSDInterpolator(field_.uv[used], field_.w[used], gradients, triangles=triangles,
+                                 scheme=scheme, directions=directions, edge_table=table)
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)
