@@ -353,3 +353,37 @@ def test_an_interrupted_seamless_run_leaves_no_tile_files(hill_tiles, tmp_path, 
     assert proc.returncode == 128 + signum, stderr
     assert stderr.decode().splitlines() == [f"c1mesh: error: interrupted ({signum_name})"]
     assert list(out.iterdir()) == []
+
+
+def test_seamless_survey_dem_and_hillshade_equal_the_concatenated_fit(tmp_path):
+    """`--seamless -o dem.tif` with rasters: the survey's GeoTIFFs hold the same cells as
+    those of the fit of the concatenated file (and its CRS); -O refuses raster options."""
+    laspy = pytest.importorskip("laspy")
+    rasterio = pytest.importorskip("rasterio")
+    source = laspy.read(SAMPLES / "4_6_crop.las")
+    ground = source.points[source.classification == 2]
+    west = ground.x < np.median(ground.x)
+    paths = []
+    for name, part_points in (("west.las", ground[west]), ("east.las", ground[~west]),
+                              ("whole.las", ground[np.argsort(~west, kind="stable")])):
+        part = laspy.LasData(source.header)
+        part.points = part_points
+        paths.append(str(tmp_path / name))
+        part.write(paths[-1])
+    runner = CliRunner()
+    raster_args = ["--resolution", "4", "--slope", str(tmp_path / "{}slope.tif")]
+    survey = runner.invoke(main, ["fit", *paths[:2], "--seamless", "-o", str(tmp_path / "dem.tif"),
+                                  *[a.format("s") for a in raster_args]])
+    assert survey.exit_code == 0, survey.output
+    whole = runner.invoke(main, ["fit", paths[2], "-o", str(tmp_path / "whole.tif"),
+                                 *[a.format("w") for a in raster_args]])
+    assert whole.exit_code == 0, whole.output
+    for ours, theirs in (("dem.tif", "whole.tif"), ("sslope.tif", "wslope.tif")):
+        with rasterio.open(tmp_path / ours) as a, rasterio.open(tmp_path / theirs) as b:
+            assert a.crs.to_epsg() == 2903 and a.transform == b.transform
+            cells = a.read(1)
+            assert np.isfinite(cells).mean() > 0.5
+            np.testing.assert_array_equal(cells, b.read(1))
+    refused = runner.invoke(main, ["fit", *paths[:2], "--seamless", "-O", str(tmp_path / "out"),
+                                   "--hillshade", str(tmp_path / "h.tif")])
+    assert refused.exit_code == 2 and "--seamless -o" in refused.output

@@ -122,11 +122,8 @@ class RSDInterpolator:
     def _directions(self, directions) -> np.ndarray:
         if directions is None:
             return _unit_normals(self.points, self.edges)
-        vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]
-        length = np.linalg.norm(vec, axis=1)
         u = _float_array(directions, "directions", (self.edges.shape[0], 2))
-        cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
-        bad = ~(np.abs(cross) > _DEGENERACY * np.linalg.norm(u, axis=1) * length)
+        bad = _crosses_badly(self.points, self.edges, u)
         if bad.any():
             e = int(np.flatnonzero(bad)[0])
             raise InputError(f"direction {e} is zero or parallel to its edge "
@@ -215,6 +212,22 @@ class RSDInterpolator:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
         return Refinement(self.points, self.values, self.gradients, self.triangles,
                           self.coefficients, self._G, self._table, self.scheme, level)
+
+
+def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,
+                   block: int = 1 << 16) -> np.ndarray:
+    """(E,) bool: direction u is zero, not finite, or within |sin| _DEGENERACY of parallel
+    to its edge v = points[j] − points[i], i.e. not (u × v)² > _DEGENERACY² |u|² |v|².
+    In blocks, so the temporaries stay in cache."""
+    bad = np.empty(edges.shape[0], dtype=bool)
+    for start in range(0, edges.shape[0], block):
+        part = slice(start, start + block)
+        vec = points[edges[part, 1]] - points[edges[part, 0]]
+        vx, vy, ux, uy = vec[:, 0], vec[:, 1], u[part, 0], u[part, 1]
+        cross = ux * vy - uy * vx
+        bound = (ux * ux + uy * uy) * (vx * vx + vy * vy) * (_DEGENERACY * _DEGENERACY)
+        np.logical_not(cross * cross > bound, out=bad[part])
+    return bad
 
 
 def _unit_normals(points: np.ndarray, edges: np.ndarray, block: int = 1 << 16) -> np.ndarray:
