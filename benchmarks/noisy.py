@@ -1,7 +1,8 @@
 """Noisy data: real scans in data_samples/, c1mesh before and after its overshoot control.
 
-For each sample the pipeline's own height field and trimmed triangles are shared by every
-method:
+For each sample the pipeline's own height field and trimmed triangles (without the curtains
+c1mesh.curtains removes: triangles along the height axis or folded against their data
+normals) are shared by every method:
   c1mesh off     RSD sextic with the normal-derived gradients as they are (--overshoot off);
   c1mesh limit   the default: limited gradients and edge directions (c1mesh.limiter);
   rHCT           matplotlib CubicTriInterpolator(kind='user') with the raw gradients;

@@ -2,7 +2,8 @@
 
     survey stats (frame, box) → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
-    survey-wide) → the limiter's two noise floors (two passes: c1mesh.tiled_limiter)
+    survey-wide) → sliver peel (c1mesh.tiled_trim) → the limiter's two noise floors
+    (two passes: c1mesh.tiled_limiter)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → append to one vertex file and one face file → one
     mesh file
@@ -14,12 +15,15 @@ nothing depends on the grid.
 
 What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
 
-- normals are always estimated (the spill keeps no file normals), colours are dropped;
+- normals are always estimated (the spill keeps no file normals); colours and the CRS
+  are carried;
 - the height field drops points with unusable or too steep normals and exact duplicate
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
   stacking test of frame.height_field are not applied;
-- the trim is the long-edge rule only (no sliver peel, no bow-tie removal: both walk
-  across the whole boundary, they are not tile-local);
+- the trim is the long-edge rule and the sliver peel (c1mesh.tiled_trim); bow-tie
+  removal is not done (its tie-break follows qhull's triangle order), and curtains
+  (c1mesh.curtains) stay, as their noise floor is a survey-wide median and their holes
+  need the whole trim;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
   tile by tile with the survey's noise floors (c1mesh.tiled_limiter).
 
