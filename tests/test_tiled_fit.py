@@ -51,7 +51,7 @@ def _terrain_las(path, n, seed=0, classes=(2,)):
         writer.write_points(record)
 
 
-def _in_memory(path, classes, level, overshoot="limit"):
+def _in_memory(path, classes, level, overshoot="limit", max_edge="auto"):
     """The whole-cloud fit with the tiled path's reduced options (trim without bow-ties)."""
     las = laspy.read(str(path))
     keep = np.isin(np.asarray(las.classification), classes)
@@ -59,7 +59,7 @@ def _in_memory(path, classes, level, overshoot="limit"):
     normals = estimate_normals(points, k=16, towards=(0, 0, 1))
     frame = choose_frame(points, normals, "z")
     hf = height_field(points, normals, frame)
-    triangles, report = trim(hf.xy, delaunay(hf.xy), max_edge="auto")
+    triangles, report = trim(hf.xy, delaunay(hf.xy), max_edge=max_edge)
     assert report.removed["bowtie"] == 0          # else the reference is not the tiled path's trim
     used = np.unique(triangles)
     triangles = np.searchsorted(used, triangles)
@@ -114,10 +114,13 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las", "tiled.ply"]   # no spill left
 
 
-def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path):
+@pytest.mark.parametrize("rule", ["auto", None])
+def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path, rule):
+    """Without a trim (None) the survey's hull slivers are peeled (96) and the halo is
+    sized by the longest final edge, found by a pass of its own."""
     source = SAMPLES / "4_6_crop.las"
-    whole, max_edge, kept = _in_memory(source, [2], 2)
-    options = FitOptions(classes=(2,), level=2)
+    whole, max_edge, kept = _in_memory(source, [2], 2, max_edge=rule)
+    options = FitOptions(classes=(2,), level=2, max_edge=rule)
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
