@@ -21,6 +21,7 @@ from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
+from c1mesh.height_gradients import height_gradients, height_neighbours, use_height_gradients
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -32,7 +33,7 @@ from c1mesh.schemes import get_scheme
 from c1mesh.triangulation import delaunay, trim
 
 NORMAL_MODES = ("auto", "file", "estimate")
-STAGES = ("read", "normals", "frame", "triangulate", "interpolate", "refine", "write")
+STAGES = ("read", "normals", "frame", "gradients", "triangulate", "interpolate", "refine", "write")
 
 
 @dataclass
@@ -63,6 +64,9 @@ class FitOptions:
     level: int = 4
     ascii: bool = False
     overshoot: str = "limit"
+    # vertex gradients (c1mesh.height_gradients): "auto" fits them to the heights where the
+    # normals were estimated and takes the file's normals otherwise; "normals" | "heights".
+    gradients: str = "auto"
     workers: int | None = None
     output_format: str | None = None
     memory: Any = None
@@ -239,6 +243,9 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     with timer.stage("frame"):
         frame = choose_frame(cloud.points, normals, options.axis)
         hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
+    with timer.stage("gradients"):
+        if use_height_gradients(options.gradients, normal_source):
+            hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
         triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
