@@ -111,3 +111,23 @@ def test_the_pipeline_fits_gradients_to_heights_only_where_normals_are_estimated
     np.testing.assert_allclose(ours, want, atol=1e-6)
     assert use_height_gradients("auto", "estimated") and not use_height_gradients("auto", "file")
     assert height_neighbours(16) == 24
+
+
+def test_the_cli_option_chooses_the_gradients_and_the_report_says_which(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+
+    xy = np.random.default_rng(5).random((500, 2)) * 10
+    z, _ = _quadratic(xy / 5)
+    source = tmp_path / "bare.xyz"
+    np.savetxt(source, np.c_[xy, z])
+    for option, want in (("auto", "heights"), ("normals", "normals")):
+        report = tmp_path / f"{option}.json"
+        result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / f"{option}.ply"),
+                                           "--axis", "z", "--level", "1", "--gradients", option,
+                                           "--report", str(report), "-q"])
+        assert result.exit_code == 0, result.output
+        assert json.loads(report.read_text())["gradients"] == want

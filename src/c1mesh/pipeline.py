@@ -216,7 +216,8 @@ class SurfaceModel:
     normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
     cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
-    triangles index those n points); overshoot: the limiter's report (c1mesh.limiter).
+    triangles index those n points); overshoot: the limiter's report (c1mesh.limiter);
+    gradient_source: "heights" (c1mesh.height_gradients) or "normals".
     """
 
     normal_source: str
@@ -226,6 +227,7 @@ class SurfaceModel:
     used: np.ndarray
     interp: RSDInterpolator
     overshoot: Any = None
+    gradient_source: str = "normals"
 
 
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
@@ -244,8 +246,10 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
         frame = choose_frame(cloud.points, normals, options.axis)
         hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
     with timer.stage("gradients"):
+        gradient_source = "normals"
         if use_height_gradients(options.gradients, normal_source):
             hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
+            gradient_source = "heights"
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
         triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
@@ -257,7 +261,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
             hf.xy[used], hf.z[used], hf.gradients[used], triangles, options.overshoot)
         interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles,
                                  scheme=scheme, directions=directions)
-    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot)
+    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -331,6 +335,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
         auto_axis_reason(cloud.points, True)
     report["overshoot"] = model.overshoot.as_dict()
+    report["gradients"] = model.gradient_source
     report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
     report["warnings"] = fit_warnings(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
