@@ -21,7 +21,8 @@ from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
-from c1mesh.height_gradients import height_gradients, height_neighbours, use_height_gradients
+from c1mesh.height_gradients import (height_gradients, height_neighbours, height_normals,
+                                     use_height_gradients)
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -230,6 +231,17 @@ class SurfaceModel:
     gradient_source: str = "normals"
 
 
+def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
+    """Whether the normals come from the height fit instead of PCA: they are to be
+    estimated, the gradients to come from the heights, and the height axis is given
+    (not "auto", whose frame is chosen from the normals)."""
+    if options.normals not in NORMAL_MODES:
+        raise InputError(f"--normals must be one of {', '.join(NORMAL_MODES)}, got {options.normals!r}")
+    estimated = options.normals == "estimate" or (cloud.normals is None and options.normals == "auto")
+    auto_axis = isinstance(options.axis, str) and options.axis.strip().lower() == "auto"
+    return estimated and not auto_axis and use_height_gradients(options.gradients, "estimated")
+
+
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
@@ -240,14 +252,20 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     scheme = get_scheme(options.scheme)
     if options.overshoot not in OVERSHOOT_MODES:
         raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
+    heights_first = _fit_heights_first(cloud, options)
     with timer.stage("normals"):
-        normals, normal_source = cloud_normals(cloud, options)
+        if heights_first:        # the frame needs no normals: the fit's serve the height field
+            frame = choose_frame(cloud.points, None, options.axis)
+            normals = height_normals(cloud.points, frame, k=height_neighbours(options.k))
+            normal_source = "estimated"
+        else:
+            normals, normal_source = cloud_normals(cloud, options)
     with timer.stage("frame"):
         frame = choose_frame(cloud.points, normals, options.axis)
         hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
     with timer.stage("gradients"):
-        gradient_source = "normals"
-        if use_height_gradients(options.gradients, normal_source):
+        gradient_source = "heights" if heights_first else "normals"
+        if not heights_first and use_height_gradients(options.gradients, normal_source):
             hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
             gradient_source = "heights"
     with timer.stage("triangulate"):
