@@ -306,3 +306,27 @@ def test_a_surface_in_many_pieces_draws_a_warning():
     assert report["pieces"]["count"] > 20
     assert any("pieces" in w for w in report["warnings"])
     assert any("--max-edge" in w for w in report["warnings"])
+
+
+def test_given_noise_floors_and_edge_table_reproduce_the_measured_ones():
+    """A tile of a survey passes the survey's noise floors and a prebuilt edge table; given
+    the floors this data set itself measures (independently: the medians of the trapezoid
+    residuals before and after reconciliation), the result is the same; a floor ten times
+    larger tolerates more and limits fewer vertices."""
+    from c1mesh.limiter import trapezoid_residuals
+    xy, z, g, tri = height_data(GROUND["4_6_crop"][0])
+    table = edge_table(tri, xy.shape[0])
+    before = float(np.median(np.abs(trapezoid_residuals(xy, z, g, table.edges))))
+    reconciled, _ = reconcile_gradients(xy, z, g, table.edges)
+    after = float(np.median(np.abs(trapezoid_residuals(xy, z, reconciled, table.edges))))
+    measured = control_overshoot(xy, z, g, tri)
+    given = control_overshoot(xy, z, g, tri, table=table, noise_floors=(before, after))
+    np.testing.assert_array_equal(given[0], measured[0])
+    np.testing.assert_array_equal(given[1], measured[1])
+    looser = control_overshoot(xy, z, g, tri, noise_floors=(10 * before, 10 * after))
+    assert 0 < looser[2].gradients_limited < measured[2].gradients_limited
+    plain = RSDInterpolator(xy, z, given[0], triangles=tri, directions=given[1])
+    shared = RSDInterpolator(xy, z, given[0], triangles=tri, directions=given[1], edge_table=table)
+    np.testing.assert_array_equal(shared.coefficients, plain.coefficients)
+    with pytest.raises(Exception, match="edge_table has"):
+        RSDInterpolator(xy, z, g, triangles=tri[:-1], edge_table=table)

@@ -146,6 +146,46 @@ def test_real_lidar_ground_cut_into_four_las_files(tmp_path):
     assert result.exit_code == 0, result.output
     _assert_union_is_whole(tmp_path / "whole.ply",
                            [tmp_path / "out" / f"ground{i}.c1.ply" for i in range(4)])
+    # The survey's CRS (EPSG:2903, from the LAS header) travels to every tile as to the
+    # whole fit: the same PLY header comment and the same .prj sidecar.
+    whole_crs = _crs_comment(tmp_path / "whole.ply")
+    assert whole_crs == "comment crs EPSG:2903"
+    whole_prj = (tmp_path / "whole.prj").read_text()
+    for i in range(4):
+        assert _crs_comment(tmp_path / "out" / f"ground{i}.c1.ply") == whole_crs
+        assert (tmp_path / "out" / f"ground{i}.c1.prj").read_text() == whole_prj
+    assert sorted(p.name for p in (tmp_path / "out").iterdir() if p.name.startswith(".")) == []
+
+
+def _crs_comment(path):
+    """The `comment crs ...` line of a PLY header, or None."""
+    header = Path(path).read_bytes().split(b"end_header", 1)[0].decode("ascii")
+    return next((line for line in header.splitlines() if line.startswith("comment crs")), None)
+
+
+def test_tiles_in_different_crs_are_refused_before_any_output(tmp_path):
+    """c1mesh does not reproject: two tiles declaring different CRSs stop the run with one
+    line naming both files, and nothing is written."""
+    laspy = pytest.importorskip("laspy")
+    pyproj = pytest.importorskip("pyproj")
+    source = laspy.read(SAMPLES / "4_6_crop.las")
+    ground = source.points[source.classification == 2]
+    half = ground.x < np.median(ground.x)
+    paths = []
+    for i, (part_points, epsg) in enumerate(((ground[half], 2903), (ground[~half], 32613))):
+        part = laspy.LasData(laspy.LasHeader(point_format=source.header.point_format,
+                                             version=source.header.version))
+        part.header.scales, part.header.offsets = source.header.scales, source.header.offsets
+        part.header.add_crs(pyproj.CRS.from_epsg(epsg))
+        part.points = part_points
+        paths.append(str(tmp_path / f"part{i}.las"))
+        part.write(paths[-1])
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, ["fit", *paths, "--seamless", "-O", str(out), "--level", "1"])
+    assert result.exit_code == 1
+    assert result.output.count("\n") == 1
+    assert paths[0] in result.output and paths[1] in result.output and "reproject" in result.output
+    assert list(out.iterdir()) == []
 
 
 def test_failed_tile_is_named_and_leaves_no_output(hill_tiles, tmp_path, monkeypatch):
@@ -313,3 +353,37 @@ def test_an_interrupted_seamless_run_leaves_no_tile_files(hill_tiles, tmp_path, 
     assert proc.returncode == 128 + signum, stderr
     assert stderr.decode().splitlines() == [f"c1mesh: error: interrupted ({signum_name})"]
     assert list(out.iterdir()) == []
+
+
+def test_seamless_survey_dem_and_hillshade_equal_the_concatenated_fit(tmp_path):
+    """`--seamless -o dem.tif` with rasters: the survey's GeoTIFFs hold the same cells as
+    those of the fit of the concatenated file (and its CRS); -O refuses raster options."""
+    laspy = pytest.importorskip("laspy")
+    rasterio = pytest.importorskip("rasterio")
+    source = laspy.read(SAMPLES / "4_6_crop.las")
+    ground = source.points[source.classification == 2]
+    west = ground.x < np.median(ground.x)
+    paths = []
+    for name, part_points in (("west.las", ground[west]), ("east.las", ground[~west]),
+                              ("whole.las", ground[np.argsort(~west, kind="stable")])):
+        part = laspy.LasData(source.header)
+        part.points = part_points
+        paths.append(str(tmp_path / name))
+        part.write(paths[-1])
+    runner = CliRunner()
+    raster_args = ["--resolution", "4", "--slope", str(tmp_path / "{}slope.tif")]
+    survey = runner.invoke(main, ["fit", *paths[:2], "--seamless", "-o", str(tmp_path / "dem.tif"),
+                                  *[a.format("s") for a in raster_args]])
+    assert survey.exit_code == 0, survey.output
+    whole = runner.invoke(main, ["fit", paths[2], "-o", str(tmp_path / "whole.tif"),
+                                 *[a.format("w") for a in raster_args]])
+    assert whole.exit_code == 0, whole.output
+    for ours, theirs in (("dem.tif", "whole.tif"), ("sslope.tif", "wslope.tif")):
+        with rasterio.open(tmp_path / ours) as a, rasterio.open(tmp_path / theirs) as b:
+            assert a.crs.to_epsg() == 2903 and a.transform == b.transform
+            cells = a.read(1)
+            assert np.isfinite(cells).mean() > 0.5
+            np.testing.assert_array_equal(cells, b.read(1))
+    refused = runner.invoke(main, ["fit", *paths[:2], "--seamless", "-O", str(tmp_path / "out"),
+                                   "--hillshade", str(tmp_path / "h.tif")])
+    assert refused.exit_code == 2 and "--seamless -o" in refused.output

@@ -266,13 +266,16 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     if seamless or scheduler:
         from c1mesh.pipeline import FitOptions
 
-        if resolution is not None or slope or aspect or hillshade or preview:
-            raise click.UsageError("--resolution, --slope, --aspect, --hillshade and --preview do not "
-                                   "work with --seamless yet; fit the survey to a mesh")
+        if output_dir and (resolution is not None or slope or aspect or hillshade or preview):
+            raise click.UsageError("--resolution, --slope, --aspect, --hillshade and --preview make one "
+                                   "survey-wide output: use them with --seamless -o, not -O")
         options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
-                             gradients=gradients)
+                             gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
+                             hillshade=hillshade, slope_method=slope_method, preview=preview)
+        if output and not output_dir:
+            options = _check_geo(ctx, [(inputs[0], output)], options, debug)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                       scheduler, quiet, debug)
         return
@@ -349,12 +352,19 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
     pairs = _plan(inputs, None, output_dir, suffix, input_format) if output_dir else [(inputs[0], output)]
     _check_conflicts(pairs, input_format, options.classes, options.ascii)
     try:
+        if options.crs:
+            from dataclasses import replace
+
+            from c1mesh.crs import parse_crs
+            options = replace(options, crs=parse_crs(options.crs))
         if output_dir and not Path(output_dir).exists():
             Path(output_dir).mkdir(parents=True)
         named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
         targets = plan_outputs(named, list(inputs))
+        from c1mesh.raster import is_raster_path
         for (_, dst), target in zip(pairs, targets):
-            mesh_format(dst, target=target)
+            if not is_raster_path(dst):
+                mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         _fail(_message(exc), debug)
     from c1mesh.tiles import fit_seamless

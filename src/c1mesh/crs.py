@@ -81,12 +81,18 @@ def resolve(file_crs: str | None, user_crs: str | None, name: str) -> tuple[str 
         return file_crs, ("file" if file_crs else None)
     if file_crs is None:
         return user_crs, "option"
-    pyproj = _pyproj()
-    a, b = pyproj.CRS.from_user_input(file_crs), pyproj.CRS.from_user_input(user_crs)
-    if not a.equals(b, ignore_axis_order=True):
+    if not same_crs(file_crs, user_crs):
+        pyproj = _pyproj()
+        a, b = pyproj.CRS.from_user_input(file_crs), pyproj.CRS.from_user_input(user_crs)
         raise InputError(f"'{name}' is in {a.name}, but --crs says {b.name}; c1mesh does not "
                          "reproject: drop --crs, or reproject the input first (e.g. pdal translate)")
     return file_crs, "file"
+
+
+def same_crs(a: str, b: str) -> bool:
+    """Whether two CRSs (WKT or any pyproj input) are the same, axis order aside."""
+    pyproj = _pyproj()
+    return pyproj.CRS.from_user_input(a).equals(pyproj.CRS.from_user_input(b), ignore_axis_order=True)
 
 
 def describe(wkt: str | None) -> dict | None:

@@ -19,7 +19,8 @@ from c1mesh.refine import RefinedMesh, Refinement
 from c1mesh.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.threads import limit, overlap
 from c1mesh.threads import workers as thread_count
-from c1mesh.topology import edge_table
+from c1mesh.topology import EdgeTable
+from c1mesh.topology import edge_table as build_edge_table
 from c1mesh.triangulation import delaunay
 
 # |sin| of the angle below which a triangle is degenerate or a direction parallel to its edge.
@@ -49,6 +50,8 @@ class RSDInterpolator:
     workers : threads for building the coefficients and for ``refine`` (None: the
         process-wide setting of c1mesh.threads, by default the CPUs this process may use).
         Results are the same for every count.
+    edge_table : c1mesh.topology.edge_table(triangles, N) when the caller has built it
+        already (the fit pipeline's overshoot control does), so the edges are numbered once.
 
     Attributes: points, values, gradients, triangles, edges (E, 2), directions (E, 2),
     scheme (ShapeTuple), coefficients (T, 21), workers.
@@ -56,7 +59,8 @@ class RSDInterpolator:
 
     def __init__(self, points, values, gradients, triangles=None,
                  scheme: "str | ShapeTuple" = DEFAULT_SCHEME, directions=None,
-                 fill_value: float = np.nan, workers: int | None = None):
+                 fill_value: float = np.nan, workers: int | None = None,
+                 edge_table: EdgeTable | None = None):
         self.points = _float_array(points, "points", (None, 2))
         n = self.points.shape[0]
         self.values = _float_array(values, "values", (n,))
@@ -66,13 +70,7 @@ class RSDInterpolator:
         self.triangles = self._triangles(triangles)
         self.workers = workers
         with limit(workers):
-            # rsd.mesh_coefficients in two passes: what needs no edge directions runs
-            # while another thread numbers the edges (numpy releases the GIL in both).
-            self._table, (C, self._G, _, degenerate) = overlap(
-                lambda: edge_table(self.triangles, n),
-                lambda: rsd.vertex_coefficients(
-                    self.points, self.values, self.gradients, self.triangles,
-                    min_sine=_DEGENERACY, threads=max(1, thread_count() - 1)))
+            self._table, (C, self._G, _, degenerate) = self._coefficients_and_edges(edge_table)
             self.edges = self._table.edges
             self.directions = self._directions(directions)
             rsd.ratio_coefficients(C, self._G, self.directions, self._table.tri_edge)
@@ -81,6 +79,23 @@ class RSDInterpolator:
         self._locator: TriangleLocator | None = None
 
     # ----------------------------------------------------------------- construction
+    def _coefficients_and_edges(self, table: EdgeTable | None) -> tuple:
+        """(edge table, rsd.vertex_coefficients(...)): rsd.mesh_coefficients in two passes,
+        what needs no edge directions runs while another thread numbers the edges (numpy
+        releases the GIL in both), unless the caller brought the table."""
+        n = self.points.shape[0]
+
+        def coefficients(threads: int):
+            return rsd.vertex_coefficients(self.points, self.values, self.gradients,
+                                           self.triangles, min_sine=_DEGENERACY, threads=threads)
+        if table is None:
+            return overlap(lambda: build_edge_table(self.triangles, n),
+                           lambda: coefficients(max(1, thread_count() - 1)))
+        if table.tri_edge.shape != self.triangles.shape:
+            raise InputError(f"edge_table has {table.tri_edge.shape[0]} triangles, "
+                             f"the mesh {self.triangles.shape[0]}")
+        return table, coefficients(thread_count())
+
     def _triangles(self, triangles) -> np.ndarray:
         n = self.points.shape[0]
         if triangles is None:
@@ -107,11 +122,8 @@ class RSDInterpolator:
     def _directions(self, directions) -> np.ndarray:
         if directions is None:
             return _unit_normals(self.points, self.edges)
-        vec = self.points[self.edges[:, 1]] - self.points[self.edges[:, 0]]
-        length = np.linalg.norm(vec, axis=1)
         u = _float_array(directions, "directions", (self.edges.shape[0], 2))
-        cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
-        bad = ~(np.abs(cross) > _DEGENERACY * np.linalg.norm(u, axis=1) * length)
+        bad = _crosses_badly(self.points, self.edges, u)
         if bad.any():
             e = int(np.flatnonzero(bad)[0])
             raise InputError(f"direction {e} is zero or parallel to its edge "
@@ -200,6 +212,22 @@ class RSDInterpolator:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
         return Refinement(self.points, self.values, self.gradients, self.triangles,
                           self.coefficients, self._G, self._table, self.scheme, level)
+
+
+def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,
+                   block: int = 1 << 16) -> np.ndarray:
+    """(E,) bool: direction u is zero, not finite, or within |sin| _DEGENERACY of parallel
+    to its edge v = points[j] − points[i], i.e. not (u × v)² > _DEGENERACY² |u|² |v|².
+    In blocks, so the temporaries stay in cache."""
+    bad = np.empty(edges.shape[0], dtype=bool)
+    for start in range(0, edges.shape[0], block):
+        part = slice(start, start + block)
+        vec = points[edges[part, 1]] - points[edges[part, 0]]
+        vx, vy, ux, uy = vec[:, 0], vec[:, 1], u[part, 0], u[part, 1]
+        cross = ux * vy - uy * vx
+        bound = (ux * ux + uy * uy) * (vx * vx + vy * vy) * (_DEGENERACY * _DEGENERACY)
+        np.logical_not(cross * cross > bound, out=bad[part])
+    return bad
 
 
 def _unit_normals(points: np.ndarray, edges: np.ndarray, block: int = 1 << 16) -> np.ndarray:

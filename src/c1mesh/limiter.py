@@ -58,54 +58,115 @@ class LimiterReport:
 
 
 def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-                      triangles: np.ndarray, mode: str = "limit"
+                      triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
+                      noise_floors: tuple[float, float] | None = None
                       ) -> tuple[np.ndarray, np.ndarray | None, LimiterReport]:
     """Gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
     points (n, 2), values (n,), gradients (n, 2), triangles (T, 3). mode "limit" applies
-    `reconcile_gradients`, then `limit_gradients`, and `edge_directions`; "off" returns the gradients unchanged and
-    None (the interpolator's unit normals). Returns (gradients, directions in the order
-    of c1mesh.topology.edge_table(triangles, n).edges or None, report).
+    `reconcile_gradients`, then `limit_gradients`, and `edge_directions`; "off" returns the
+    gradients unchanged and None (the interpolator's unit normals). table: the
+    c1mesh.topology.edge_table of the triangles if already built (pass the same table to
+    the RSDInterpolator so the edges are numbered once). noise_floors: the median
+    |trapezoid residual| before and after reconciliation, when they come from a larger
+    survey than these edges (a tile of it); None measures them here. Returns (gradients,
+    directions in the order of table.edges or None, report).
     """
     if mode == "off":
         return gradients, None, LimiterReport()
-    table = edge_table(triangles, points.shape[0])
-    reconciled, moved = reconcile_gradients(points, values, gradients, table.edges)
-    limited, changed = limit_gradients(points, values, reconciled, table.edges)
-    directions, turned = edge_directions(points, triangles, table)
+    table = edge_table(triangles, points.shape[0]) if table is None else table
+    before, after = noise_floors if noise_floors is not None else (None, None)
+    geometry = EdgeGeometry.of(points, values, table.edges)
+    predicted = geometry.predictions(gradients)
+    reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
+    # Reconciliation changes the gradients of touched vertices only, so only the edges
+    # that reach one ("near") predict anything new.
+    pred_a, pred_b = (pred.copy() for pred in predicted)
+    pred_a[near], pred_b[near] = geometry.predictions(reconciled, near)
+    limited, changed = _limit(reconciled, geometry, (pred_a, pred_b), SECANT_FACTOR,
+                              CONSISTENCY, NOISE_FACTOR, after)
+    directions, turned = _directions(points, triangles, table, geometry.d, RATIO_LIMIT)
     return limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()))
+
+
+@dataclass(frozen=True)
+class EdgeGeometry:
+    """What the consistency test needs of each edge a→b that no gradient changes.
+
+    a, b (E,) vertex indices; d (E, 2) = p_b − p_a; delta (E,) = f_b − f_a; size (E,) =
+    |f_a| + |f_b| (for the rounding allowance). Gathered once and shared by the
+    reconciliation, the limiter and the edge directions.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    d: np.ndarray
+    delta: np.ndarray
+    size: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, values: np.ndarray, edges: np.ndarray) -> "EdgeGeometry":
+        p = np.asarray(points, dtype=float)
+        f = np.asarray(values, dtype=float)
+        a, b = edges[:, 0], edges[:, 1]
+        fa, fb = f[a], f[b]
+        return cls(a, b, p[b] - p[a], fb - fa, np.abs(fa) + np.abs(fb))
+
+    def predictions(self, gradients: np.ndarray, rows: np.ndarray | slice = slice(None)
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(A_a·d, A_b·d) for the edges ``rows``: the height changes the end gradients predict."""
+        A = np.asarray(gradients, dtype=float)
+        d = self.d[rows]
+        return (np.einsum("ij,ij->i", A[self.a[rows]], d),
+                np.einsum("ij,ij->i", A[self.b[rows]], d))
+
+
+def trapezoid_residuals(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                        edges: np.ndarray) -> np.ndarray:
+    """e = Δ − (δ_a + δ_b)/2 per edge (E,): zero for every quadratic, O(|d|³) for smooth
+    data. The median of |e| over a survey's edges is its noise floor (`inconsistent_edges`)."""
+    geometry = EdgeGeometry.of(points, values, edges)
+    pred_a, pred_b = geometry.predictions(gradients)
+    return geometry.delta - 0.5 * (pred_a + pred_b)
 
 
 def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                        edges: np.ndarray, consistency: float = CONSISTENCY,
-                       noise_factor: float = NOISE_FACTOR) -> tuple[np.ndarray, dict]:
+                       noise_factor: float = NOISE_FACTOR, noise_floor: float | None = None
+                       ) -> tuple[np.ndarray, dict]:
     """Edges (E,) bool whose end gradients say something their heights do not.
 
     For an edge k→j with d = p_j − p_k, Δ = f_j − f_k, δ_k = A_k·d, δ_j = A_j·d, the
     trapezoid residual e = Δ − (δ_k + δ_j)/2 vanishes for every quadratic and is O(|d|³)
     for smooth data. An edge is inconsistent when |e| > consistency · max(|Δ|, |δ_k|/2,
-    |δ_j|/2) + noise_factor · median |e| (the noise floor of the data set) + rounding.
+    |δ_j|/2) + noise_factor · median |e| (the noise floor of the data set; ``noise_floor``
+    gives it when these edges are part of a larger survey) + rounding.
     Also returns the per-edge quantities {"delta", "pred_a", "pred_b", "noise"}.
     """
-    p = np.asarray(points, dtype=float)
-    f = np.asarray(values, dtype=float)
-    A = np.asarray(gradients, dtype=float)
-    a, b = edges[:, 0], edges[:, 1]
-    d = p[b] - p[a]
-    delta = f[b] - f[a]
-    pred_a = np.einsum("ij,ij->i", A[a], d)
-    pred_b = np.einsum("ij,ij->i", A[b], d)
+    geometry = EdgeGeometry.of(points, values, edges)
+    return _inconsistent(geometry, geometry.predictions(gradients), consistency,
+                         noise_factor, noise_floor)
+
+
+def _inconsistent(geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
+                  consistency: float, noise_factor: float, noise_floor: float | None
+                  ) -> tuple[np.ndarray, dict]:
+    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b)."""
+    pred_a, pred_b = predicted
+    delta = geometry.delta
     residual = delta - 0.5 * (pred_a + pred_b)
     scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
-    noise = noise_factor * float(np.median(np.abs(residual))) if residual.size else 0.0
-    rounding = 64 * np.finfo(float).eps * (np.abs(f[a]) + np.abs(f[b]) + np.abs(pred_a) + np.abs(pred_b))
+    if noise_floor is None:
+        noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
+    noise = noise_factor * noise_floor
+    rounding = 64 * np.finfo(float).eps * (geometry.size + np.abs(pred_a) + np.abs(pred_b))
     bad = np.abs(residual) > consistency * scale + noise + rounding
     return bad, {"delta": delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
 
 
 def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-                        edges: np.ndarray, normal_weight: float = NORMAL_WEIGHT
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        edges: np.ndarray, normal_weight: float = NORMAL_WEIGHT,
+                        noise_floor: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Gradients (n, 2) blended with the 1-ring heights where they disagree with them.
 
     At every vertex k touching an inconsistent edge (`inconsistent_edges`), the gradient
@@ -117,23 +178,32 @@ def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.nd
     û_e the unit edge direction, deg_k the vertex's edge count: the heights and the normal
     weigh the same at normal_weight = 1. Other vertices keep A_k, so exact smooth data
     (no inconsistent edge) are unchanged. One gradient per vertex: the spline stays C1.
-    Returns (gradients, changed (n,) bool).
+    noise_floor as in `inconsistent_edges`. Returns (gradients, changed (n,) bool).
     """
-    p = np.asarray(points, dtype=float)
-    f = np.asarray(values, dtype=float)
+    geometry = EdgeGeometry.of(points, values, edges)
+    out, touched, _ = _reconcile(gradients, geometry, geometry.predictions(gradients),
+                                 noise_floor, normal_weight)
+    return out, touched
+
+
+def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
+               noise_floor: float | None, normal_weight: float = NORMAL_WEIGHT
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`reconcile_gradients` on gathered edge data; also returns the (E,) bool edges that
+    reach a changed vertex."""
     A = np.asarray(gradients, dtype=float)
-    n = p.shape[0]
-    bad, _ = inconsistent_edges(p, f, A, edges)
+    n = A.shape[0]
+    bad, _ = _inconsistent(geometry, predicted, CONSISTENCY, NOISE_FACTOR, noise_floor)
     touched = np.zeros(n, dtype=bool)
-    touched[edges[bad].ravel()] = True
-    near = touched[edges[:, 0]] | touched[edges[:, 1]]      # only these edges reach a touched vertex
-    a, b = edges[near, 0], edges[near, 1]
-    d = p[b] - p[a]
+    touched[geometry.a[bad]] = True
+    touched[geometry.b[bad]] = True
+    near = touched[geometry.a] | touched[geometry.b]      # only these edges reach a touched vertex
+    a, b, d, delta = geometry.a[near], geometry.b[near], geometry.d[near], geometry.delta[near]
     length = np.linalg.norm(d, axis=1)
     keep = length > 0
-    a, b, d, length = a[keep], b[keep], d[keep], length[keep]
+    a, b, d, delta, length = a[keep], b[keep], d[keep], delta[keep], length[keep]
     u = d / length[:, None]
-    slope = (f[b] - f[a]) / length
+    slope = delta / length
     terms = (u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1],
              u[:, 0] * slope, u[:, 1] * slope, np.ones(a.size))
     both = np.concatenate([a, b])
@@ -144,13 +214,14 @@ def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.nd
     r_t = np.stack([rx, ry], axis=1) + weight[:, None] * A[touched]
     out = A.copy()
     out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
-    return out, touched
+    return out, touched, near
 
 
 def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                     edges: np.ndarray, secant_factor: float = SECANT_FACTOR,
                     consistency: float = CONSISTENCY,
-                    noise_factor: float = NOISE_FACTOR) -> tuple[np.ndarray, np.ndarray]:
+                    noise_factor: float = NOISE_FACTOR, noise_floor: float | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Gradients (n, 2) scaled down where they disagree with the neighbouring heights.
 
     points (n, 2), values (n,), gradients (n, 2) in the height-field frame; edges (E, 2)
@@ -166,11 +237,21 @@ def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarra
     at most that multiple of its size, as in Fritsch–Carlson); a vertex gradient is
     multiplied by the largest t in [0, 1] that meets this on all its inconsistent edges.
     Scaling keeps the direction, and 0 always qualifies (a flat vertex cannot overshoot
-    along an edge by itself).
+    along an edge by itself). noise_floor as in `inconsistent_edges`.
     """
+    geometry = EdgeGeometry.of(points, values, edges)
+    return _limit(gradients, geometry, geometry.predictions(gradients), secant_factor,
+                  consistency, noise_factor, noise_floor)
+
+
+def _limit(gradients: np.ndarray, geometry: EdgeGeometry,
+           predicted: tuple[np.ndarray, np.ndarray], secant_factor: float,
+           consistency: float, noise_factor: float, noise_floor: float | None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """`limit_gradients` on gathered edge data and the gradients' predictions."""
     A = np.asarray(gradients, dtype=float)
-    bad, parts = inconsistent_edges(points, values, A, edges, consistency, noise_factor)
-    a, b = edges[:, 0], edges[:, 1]
+    bad, parts = _inconsistent(geometry, predicted, consistency, noise_factor, noise_floor)
+    a, b = geometry.a, geometry.b
     delta, pred_a, pred_b, noise = parts["delta"], parts["pred_a"], parts["pred_b"], parts["noise"]
     factor = np.ones(A.shape[0])
     for vertex, pred in ((a, pred_a), (b, pred_b)):
@@ -210,56 +291,83 @@ def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
     spline stays C1 (Thm 3.4).
     """
     p = np.asarray(points, dtype=float)
-    l, m = p[table.edges[:, 0]], p[table.edges[:, 1]]
-    edge = m - l
-    first, second = _opposite_vertices(triangles, table)
-    pa = p[first]
-    pb = np.where((second >= 0)[:, None], p[np.maximum(second, 0)], np.nan)
-    normal = np.stack([-edge[:, 1], edge[:, 0]], axis=1) / np.linalg.norm(edge, axis=1)[:, None]
-    # The unit normal's foot is the projection of the opposite vertex onto the edge's line:
-    # s = (p_n − l)·e / |e|², so its worst ratio needs no cross products. Only the edges
-    # where it exceeds the limit (a few percent on real scans) weigh the other candidates.
-    change = _normal_ratio(l, edge, pa, pb) > ratio_limit
-    out = normal
-    if change.any():
-        idx = np.flatnonzero(change)
-        l_c, edge_c, pa_c, pb_c = l[idx], edge[idx], pa[idx], pb[idx]
-        mid = 0.5 * (l_c + m[idx])
-        candidates = [normal[idx], pb_c - pa_c, mid - pa_c, mid - pb_c]
-        costs = np.stack([_worst_ratio(u, l_c, edge_c, pa_c, pb_c) for u in candidates])
-        best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
-        turn = (costs[0] > ratio_limit) & (best > 0)
-        change[idx[~turn]] = False
-        for c in range(1, len(candidates)):
-            pick = turn & (best == c)
-            out[idx[pick]] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
+    edges = table.edges
+    return _directions(p, triangles, table, p[edges[:, 1]] - p[edges[:, 0]], ratio_limit)
+
+
+def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable, edge: np.ndarray,
+                ratio_limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """`edge_directions` given the edge vectors (E, 2) = p[edges[:, 1]] − p[edges[:, 0]]."""
+    length = np.sqrt(edge[:, 0] * edge[:, 0] + edge[:, 1] * edge[:, 1])
+    out = np.empty_like(edge)
+    np.divide(-edge[:, 1], length, out=out[:, 0])
+    np.divide(edge[:, 0], length, out=out[:, 1])
+    # The unit normal's foot is the projection of the opposite vertex onto the edge's line,
+    # so its worst ratio needs no cross products. Only the edges the screen flags (a few
+    # percent on real scans) weigh the other candidates, and `_worst_ratio` decides there.
+    change = _normal_ratio_screen(p, triangles, table) > ratio_limit * (1 - 1e-9)
+    if not change.any():
+        return out, change
+    idx = np.flatnonzero(change)
+    first, second = _opposite_vertices(triangles, table, idx)
+    l_c, edge_c = p[table.edges[idx, 0]], edge[idx]
+    pa_c = p[first]
+    pb_c = np.where((second >= 0)[:, None], p[np.maximum(second, 0)], np.nan)
+    mid = 0.5 * (l_c + p[table.edges[idx, 1]])
+    candidates = [out[idx], pb_c - pa_c, mid - pa_c, mid - pb_c]
+    costs = np.stack([_worst_ratio(u, l_c, edge_c, pa_c, pb_c) for u in candidates])
+    best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
+    turn = (costs[0] > ratio_limit) & (best > 0)
+    change[idx[~turn]] = False
+    for c in range(1, len(candidates)):
+        pick = turn & (best == c)
+        out[idx[pick]] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
     return out, change
 
 
-def _normal_ratio(l: np.ndarray, edge: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
-    """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles
-    (pb rows of nan: a boundary edge, one triangle). A quick screen: `_worst_ratio`
-    decides on the edges it flags."""
-    length2 = np.einsum("ij,ij->i", edge, edge)
-    worst = np.zeros(edge.shape[0])
-    for pn in (pa, pb):
+def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable) -> np.ndarray:
+    """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles,
+    s = (p_n − p_l)·e / |e|² the foot of the opposite vertex p_n on the edge's line (the
+    ratio does not depend on which end is p_l). Computed per triangle corner, then the
+    larger of an edge's two values is kept. A screen: `_worst_ratio` decides."""
+    x, y = p[:, 0][triangles.T], p[:, 1][triangles.T]        # (3, T): contiguous rows
+    ratio = np.empty(x.shape, dtype=float)
+    for k in range(3):
+        i, j = (k + 1) % 3, (k + 2) % 3
+        ex, ey = x[j] - x[i], y[j] - y[i]
+        foot = (x[k] - x[i]) * ex
+        foot += (y[k] - y[i]) * ey
+        ex *= ex
+        ey *= ey
+        ex += ey
         with np.errstate(invalid="ignore", divide="ignore"):
-            s = np.einsum("ij,ij->i", pn - l, edge) / length2
-        ratio = np.maximum(np.abs(s), np.abs(1.0 - s))
-        np.fmax(worst, ratio, out=worst)                  # nan (boundary) leaves worst as is
+            foot /= ex
+        np.subtract(1.0, foot, out=ey)
+        np.abs(ey, out=ey)
+        np.abs(foot, out=foot)
+        np.maximum(foot, ey, out=ratio[k])
+    slots, values = table.tri_edge.T.ravel(), ratio.ravel()
+    worst = np.zeros(table.edges.shape[0])
+    worst[slots] = values                                    # one of each edge's values …
+    larger = values > worst[slots]                           # … and the other where larger
+    worst[slots[larger]] = values[larger]
     return worst
 
 
-def _opposite_vertices(triangles: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:
-    """For every edge the vertex opposite it in its owner triangle, and in the other
-    triangle (-1 on the boundary)."""
-    E = table.edges.shape[0]
-    first = triangles[table.owner, table.owner_slot]
-    second = np.full(E, -1, dtype=np.int64)
-    opposite = triangles.ravel()
+def _opposite_vertices(triangles: np.ndarray, table: EdgeTable, idx: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """For the edges ``idx`` the vertex opposite each in its owner triangle, and in the
+    other triangle (-1 on the boundary)."""
+    first = triangles[table.owner[idx], table.owner_slot[idx]]
+    position = np.full(table.edges.shape[0], -1, dtype=np.int64)
+    position[idx] = np.arange(idx.size)
     slots = table.tri_edge.ravel()
-    other = opposite != first[slots]
-    second[slots[other]] = opposite[other]
+    at = position[slots]
+    mine = np.flatnonzero(at >= 0)
+    opposite = triangles.ravel()[mine]
+    other = opposite != first[at[mine]]
+    second = np.full(idx.size, -1, dtype=np.int64)
+    second[at[mine][other]] = opposite[other]
     return first, second
 
 

@@ -26,6 +26,7 @@ from c1mesh.height_gradients import (height_gradients, height_neighbours, height
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
+from c1mesh.topology import edge_table
 from c1mesh.threads import limit as thread_limit
 from c1mesh.threads import workers as thread_count
 from c1mesh.properties import scheme_properties
@@ -275,10 +276,11 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
             raise InputError("no triangles are left after trimming; try --max-edge none")
         used, triangles = _compact(hf.xy, triangles)
     with timer.stage("interpolate"):
+        table = edge_table(triangles, used.size) if options.overshoot != "off" else None
         gradients, directions, overshoot = control_overshoot(
-            hf.xy[used], hf.z[used], hf.gradients[used], triangles, options.overshoot)
+            hf.xy[used], hf.z[used], hf.gradients[used], triangles, options.overshoot, table)
         interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles,
-                                 scheme=scheme, directions=directions)
+                                 scheme=scheme, directions=directions, edge_table=table)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
 
 

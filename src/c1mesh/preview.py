@@ -31,7 +31,7 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
     offset = frame.origin[:2] if world else np.zeros(2)
     extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
               grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
-    render_arrays(z, g, extent, path, _units(crs), "C1 surface (exact normals)")
+    render_arrays(z, g, extent, path, _units(crs), "C1 surface (spline normals)")
 
 
 def render_raster(source, path) -> None:

@@ -79,9 +79,23 @@ def load_survey(sources: Sequence[str], options) -> Survey:
     normals = _concatenate([c.normals for c in clouds])
     colors = _concatenate([c.colors for c in clouds])
     classification = _concatenate([c.classification for c in clouds])
-    cloud = PointCloud(np.concatenate([c.points for c in clouds]), normals, colors, classification)
+    cloud = PointCloud(np.concatenate([c.points for c in clouds]), normals, colors, classification,
+                       crs=survey_crs(sources, [c.crs for c in clouds]))
     offsets = np.concatenate([[0], np.cumsum(counts)])
     return Survey(cloud, [str(s) for s in sources], offsets)
+
+
+def survey_crs(sources: Sequence[str], crs_list: Sequence[str | None]) -> str | None:
+    """The CRS (WKT) the inputs declare, one for the survey: inputs without one take it;
+    InputError naming two inputs that declare different ones (c1mesh does not reproject)."""
+    from c1mesh.crs import same_crs
+
+    declared = [(source, crs) for source, crs in zip(sources, crs_list) if crs]
+    for source, crs in declared[1:]:
+        if not same_crs(crs, declared[0][1]):
+            raise InputError(f"'{source}' and '{declared[0][0]}' declare different CRSs; c1mesh "
+                             "does not reproject: reproject the tiles to one CRS first (e.g. pdal translate)")
+    return declared[0][1] if declared else None
 
 
 def _concatenate(arrays: list) -> np.ndarray | None:
@@ -124,7 +138,7 @@ class TileTask:
     G (t, 3, 2): the survey interpolator's rows for them; owned (t,) bool: the triangles
     whose refinement this tile outputs (the rest is the halo); frame: the survey's
     ScanFrame; scheme: a scheme name or ShapeTuple; input_points: the input's point count;
-    ascii: write ASCII PLY.
+    ascii: write ASCII PLY; crs: the survey's CRS (WKT) for the PLY header, or None.
     """
 
     index: int
@@ -143,6 +157,7 @@ class TileTask:
     level: int
     input_points: int
     ascii: bool = False
+    crs: str | None = None
 
 
 class TilePlan:
@@ -154,9 +169,11 @@ class TilePlan:
     names and outputs are per input.
     """
 
-    def __init__(self, model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False):
+    def __init__(self, model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False,
+                 crs: str | None = None):
         interp = model.interp
         self.interp, self.frame, self.level, self.ascii = interp, model.frame, level, ascii   # not the cloud
+        self.crs = crs
         self.names, self.outputs = list(survey.names), [str(o) for o in outputs]
         self.counts = np.diff(survey.offsets)
         self.owners = triangle_owners(model, survey)
@@ -183,12 +200,14 @@ class TilePlan:
             i, self.names[i], self.outputs[i], interp.points[points], interp.values[points],
             interp.gradients[points], None if self.colors is None else self.colors[points],
             np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
-            owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]), self.ascii)
+            owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]), self.ascii,
+            self.crs)
 
 
-def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False) -> TilePlan:
+def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False,
+               crs: str | None = None) -> TilePlan:
     """The TilePlan of a survey's base surface (model: pipeline.SurfaceModel)."""
-    return TilePlan(model, survey, outputs, level, ascii)
+    return TilePlan(model, survey, outputs, level, ascii, crs)
 
 
 def _scheme_for_task(scheme):
@@ -226,7 +245,7 @@ def run_tile(task: TileTask, target=None) -> TileResult:
         mesh = stream.materialize()
     else:
         with blas_threads(1):        # as pipeline.fit: an idle BLAS pool spins on the writer's core
-            write_mesh(stream, target, ascii=task.ascii)
+            write_mesh(stream, target, ascii=task.ascii, crs=task.crs, sidecar=False)
     owned = int(task.owned.sum())
     report = {"tile": task.name, "output": task.output, "worker": worker_address(),
               "input_points": task.input_points, "base_triangles": owned,
@@ -314,38 +333,62 @@ def worker_address() -> str:
 
 
 def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bool = False,
-                on_tile: Callable[[dict], None] | None = None) -> list[dict]:
+                on_tile: Callable[[dict], None] | None = None, crs: str | None = None) -> list[dict]:
     """Write each tile's mesh to its output, all or nothing.
 
-    Meshes go to hidden temporary files beside their outputs and are renamed into place
-    only after every tile has succeeded; a failure (re-raised as InputError naming the
-    tile) removes them, so no output of the run appears. Returns the report rows in
-    input order.
+    Meshes (and, with a crs, their .prj sidecars for the formats that have one) go to
+    hidden temporary files beside their outputs and are renamed into place only after
+    every tile has succeeded; a failure (re-raised as InputError naming the tile) removes
+    them, so no output of the run appears. Returns the report rows in input order.
     """
     from pathlib import Path
 
     from c1mesh.formats import write_mesh
     from c1mesh.outputs import unregister_temp
 
-    temps: dict[int, Path] = {}
+    temps: dict[Path, Path] = {}                         # temporary file -> final path
     rows: dict[int, dict] = {}
     try:
         for result in results:
-            temp = temps[result.index] = temp_path(outputs[result.index])
+            output = outputs[result.index]
+            temp = temp_path(output)
+            temps[temp] = Path(output)
             if result.mesh is not None:                  # else run_tile wrote it there
-                write_mesh(result.mesh, temp, ascii=ascii)
+                write_mesh(result.mesh, temp, ascii=ascii, crs=crs, sidecar=False)
+            if crs and _has_sidecar(output):
+                temps.update(_temp_prj(output, crs))
             rows[result.index] = result.report
             if on_tile:
                 on_tile(result.report)
-        for index, temp in temps.items():
-            os.replace(temp, outputs[index])
+        for temp, final in temps.items():
+            os.replace(temp, final)
             unregister_temp(temp)
     except BaseException:
-        for temp in temps.values():
+        for temp in temps:
             temp.unlink(missing_ok=True)
             unregister_temp(temp)
         raise
     return [rows[i] for i in sorted(rows)]
+
+
+def _has_sidecar(output: str) -> bool:
+    """Whether the mesh format of `output` carries its CRS in a .prj sidecar."""
+    from c1mesh.formats import PRJ_SIDECAR
+    from c1mesh.outputs import mesh_format
+
+    return mesh_format(output) in PRJ_SIDECAR
+
+
+def _temp_prj(output: str, crs: str) -> dict:
+    """{temporary file: final .prj path} of `output`'s CRS sidecar (ESRI WKT), written."""
+    from c1mesh.crs import esri_wkt, prj_path
+    from c1mesh.outputs import plan_outputs
+
+    final = prj_path(output)
+    plan_outputs([("CRS sidecar", final)])          # not a device, FIFO or directory
+    temp = temp_path(str(final))
+    temp.write_text(esri_wkt(crs) + "\n", encoding="utf-8")
+    return {temp: final}
 
 
 class TileError(InputError):
@@ -369,9 +412,13 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     distributed.run_tiles (scheduler, jobs). on_tile is called with each tile's report
     row as it is written.
     """
+    from c1mesh.geo import resolve_crs
     from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit
 
+    from c1mesh.crs import describe, parse_crs
+
     options, _ = _resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
+    user_crs = parse_crs(options.crs) if options.crs else None
     timer = _Timer(None)
     with timer.stage("read"):
         survey = load_survey(sources, options)
@@ -382,6 +429,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         return report
     from c1mesh.distributed import run_tiles
 
+    crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
     report = {"inputs": list(survey.names), "outputs": list(outputs),
               "points": {"read": len(survey.cloud), "kept": int(model.used.size)},
@@ -390,12 +438,13 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
               "triangles": {"after_trim": model.trim_report.triangles_after,
                             "max_edge": model.trim_report.max_edge},
               "level": options.level, "ownership": "lowest-numbered corner point",
-              "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")}
-    tasks = plan_tiles(model, survey, outputs, options.level, options.ascii)
+              "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process"),
+              "crs": None if crs is None else {**describe(crs), "source": crs_source}}
+    tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)
     del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()
     report["tiles"] = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii,
-                                  on_tile=on_tile)
+                                  on_tile=on_tile, crs=crs)
     timer.seconds["tiles"] = round(time.perf_counter() - start, 6)
     report["seconds"] = timer.seconds
     return report

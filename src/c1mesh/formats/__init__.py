@@ -143,7 +143,7 @@ def _check_mesh(mesh: SurfaceMesh) -> None:
 
 
 def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None = None,
-               ascii: bool = False, crs: str | None = None) -> None:
+               ascii: bool = False, crs: str | None = None, sidecar: bool = True) -> None:
     """Write `mesh` to a path or a binary file object.
 
     The format comes from `fmt` if given, else from the path's extension; a file object
@@ -153,7 +153,8 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     mode is kept); a character device or FIFO straight. A MeshStream is written block by block where the format allows (PLY) and
     assembled in memory first otherwise. `crs` (WKT) is written where the format has a
     place for it (PLY header comment, GLB asset extras) and, for a regular-file path of
-    PLY/OBJ/STL/OFF, as an ESRI-WKT `.prj` sidecar. Raises InputError for unknown formats,
+    PLY/OBJ/STL/OFF, as an ESRI-WKT `.prj` sidecar (unless sidecar=False: a caller writing
+    to a temporary name commits the sidecar itself). Raises InputError for unknown formats,
     missing or unwritable directories.
     """
     if isinstance(mesh, SurfaceMesh):
@@ -172,7 +173,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     key = format_key(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
     with Outputs(deferred=False).open(planned) as f:
         _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii, **_crs_argument(key, crs))
-    if crs and key in PRJ_SIDECAR and planned.kind == "atomic":
+    if crs and sidecar and key in PRJ_SIDECAR and planned.kind == "atomic":
         from c1mesh.crs import write_prj
         write_prj(target, crs)
 
