@@ -131,3 +131,23 @@ def test_the_cli_option_chooses_the_gradients_and_the_report_says_which(tmp_path
                                            "--report", str(report), "-q"])
         assert result.exit_code == 0, result.output
         assert json.loads(report.read_text())["gradients"] == want
+
+
+def test_exact_terrain_without_normals_trips_the_limiter_no_more_than_exact_gradients():
+    """Exact heights of a smooth terrain: gradients fitted to the heights trip the
+    overshoot limiter (whose trapezoid test flags what heights and gradients disagree on)
+    at no more vertices than the analytic gradients do, give or take 1 in 1000; the PCA
+    normals' gradients, O(h) off, trip it at far more (so the test can fail)."""
+    xy = np.random.default_rng(6).random((20000, 2)) * 100
+    x, y = xy[:, 0], xy[:, 1]
+    points = np.c_[xy, 3 * np.sin(x / 10) * np.cos(y / 15) + 0.02 * x]
+    exact = np.c_[-(0.3 * np.cos(x / 10) * np.cos(y / 15) + 0.02), 0.2 * np.sin(x / 10) * np.sin(y / 15),
+                  np.ones(len(x))]
+    limited = {}
+    for name, normals, gradients in (("exact", exact, "auto"), ("heights", None, "auto"),
+                                     ("pca", None, "normals")):
+        model = build_surface(PointCloud(points=points, normals=normals),
+                              FitOptions(axis="z", gradients=gradients))
+        limited[name] = model.overshoot.gradients_limited
+    assert limited["heights"] <= limited["exact"] + len(points) // 1000, limited
+    assert limited["pca"] > 20 * (limited["heights"] + 1), limited
