@@ -144,13 +144,16 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
     tree = cKDTree(points)
     rows, views = [], []
     for name, options in (("defaults (perspective, grid)", FitOptions(level=level)),
+                          ("--overshoot off (perspective, grid, no limiter)",
+                           FitOptions(level=level, overshoot="off")),
                           ("--frame axis --axis z", FitOptions(level=level, frame="axis", axis="z"))):
         mesh = fit(MUG, None, options).mesh
         distance, _ = tree.query(mesh.vertices, distance_upper_bound=1.0)
         to_vertex, _ = cKDTree(mesh.vertices).query(points, distance_upper_bound=1e-6)
         checks = face_checks(mesh.vertices, mesh.faces, mesh.vertex_normals)
         rows.append((name, float(distance.max()), checks, float(np.mean(to_vertex <= 1e-9))))
-        views.append((name, _shaded_view(mesh)))
+        if options.overshoot != "off":
+            views.append((name, _shaded_view(mesh)))
         del mesh
     _plot(views, cfg.out / "depth.png")
     sec.add("### Mug frame quality (issue-11 targets)", "",
@@ -158,7 +161,8 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
             "than 85° from the view ray through their centroid (curtains across depth jumps); "
             "'flipped': faces whose geometric normal is more than 90° from the mean of their "
             "three corner normals (in parentheses: from any one corner normal, the project's "
-            "measure of a folded face, quality.folded_faces); 'kept': finite "
+            "measure of a folded face, quality.folded_faces); --overshoot off: the same fit "
+            "without the overshoot limiter (c1mesh.limiter in the (u, v, w) chart); 'kept': finite "
             "input points that are output vertices (within 1e-9 m). depth.png: both meshes "
             "shaded from their faces' geometric normals, seen from 20° above the camera (curtains "
             "show as streaks hanging from the mug's rim).", "",

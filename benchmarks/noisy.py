@@ -1,8 +1,10 @@
 """Noisy data: real scans in data_samples/, c1mesh before and after its overshoot control.
 
-For each sample the pipeline's own height field and trimmed triangles are shared by every
-method. The raw gradients are the pipeline's: fitted to the heights where normals are
-estimated (LiDAR: c1mesh.height_gradients), from the file's normals otherwise.
+For each sample the pipeline's own height field and trimmed triangles (without the curtains
+c1mesh.curtains removes: triangles along the height axis or folded against their data
+normals) are shared by every method. The raw gradients are the pipeline's: fitted to the
+heights where normals are estimated (LiDAR: c1mesh.height_gradients), from the file's
+normals otherwise.
   c1mesh off     RSD sextic with the raw gradients as they are (--overshoot off);
   c1mesh limit   the default: limited gradients and edge directions (c1mesh.limiter);
   c1mesh PCA     the default before gradients were fitted to heights: limit with gradients

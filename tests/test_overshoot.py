@@ -163,11 +163,12 @@ def test_lidar_ground_holdout_rms_is_no_worse_than_a_linear_tin(name):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, options", [("autzen_trim.laz", {"classes": (2,), "axis": "z"}),
-                                           ("pcl_bun0.pcd", {"classes": None, "axis": "auto"})])
+@pytest.mark.parametrize("name, options", [("autzen_trim.laz", {"classes": (2,), "axis": "z"})])
 def test_folded_faces_are_fewer_than_reduced_hct_with_the_same_gradients(name, options):
     """c1mesh's default output against matplotlib's reduced HCT given the raw gradients on
-    the same triangles, refined to the same 16 faces per triangle."""
+    the same triangles, refined to the same 16 faces per triangle. (pcl_bun0 was a case too:
+    without its curtains (c1mesh.curtains) neither folds, and test_curtains asks c1mesh for
+    at most 0.01%.)"""
     xy, z, g, tri = height_data(SAMPLES / name, **options)
     mesh = fit(SAMPLES / name, None, FitOptions(**options)).mesh
     ours = folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals)

@@ -1,7 +1,8 @@
 """The fit pipeline in the perspective frame: a scan seen from one viewpoint.
 
     normals → inverse depth over the rays → triangulate (pixel grid, or Delaunay in (u, v))
-    → drop depth jumps → interpolate w(u, v) → refine in (u, v) → map back → write
+    → drop depth jumps → limit overshoot → interpolate w(u, v) → refine in (u, v) → map back
+    → write
 
 pipeline.fit reads the input and branches here when the frame is perspective
 (--frame perspective, or auto with an organised scan); the stages after that reuse the
@@ -187,12 +188,16 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     """pipeline.fit after the read stage, in the perspective frame; returns a FitResult."""
     from c1mesh.formats import write_mesh
     from c1mesh.interpolator import RSDInterpolator
+    from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
     from c1mesh.pipeline import FitResult, _compact, _name, _StopWatch, surface_stream
     from c1mesh.properties import scheme_properties
     from c1mesh.schemes import get_scheme
     from c1mesh.threads import blas_threads
+    from c1mesh.topology import edge_table
 
     scheme = get_scheme(options.scheme)
+    if options.overshoot not in OVERSHOOT_MODES:
+        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
     frame, viewpoint_source = perspective_frame(cloud, options.viewpoint)
     camera = frame.to_camera(cloud.points)
     with timer.stage("normals"):
@@ -205,8 +210,11 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
             raise InputError("no triangles are left after removing depth jumps")
         used, triangles = _compact(field_.uv, triangles)
     with timer.stage("interpolate"):
-        interp = RSDInterpolator(field_.uv[used], field_.w[used], field_.gradients[used],
-                                 triangles=triangles, scheme=scheme)
+        table = edge_table(triangles, used.size) if options.overshoot != "off" else None
+        gradients, directions, overshoot = control_overshoot(
+            field_.uv[used], field_.w[used], field_.gradients[used], triangles, options.overshoot, table)
+        interp = RSDInterpolator(field_.uv[used], field_.w[used], gradients, triangles=triangles,
+                                 scheme=scheme, directions=directions, edge_table=table)
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)
@@ -231,6 +239,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
         "frame": {"kind": "perspective", "viewpoint": frame.origin.tolist(),
                   "viewpoint_from": viewpoint_source, "axes": frame.axes.tolist()},
         "triangles": tri_report,
+        "overshoot": overshoot.as_dict(),
         "level": options.level,
         "output_mesh": {"vertices": int(stream.vertex_count), "faces": int(stream.face_count)},
         "scheme": scheme_properties(interp.scheme).as_dict(),

@@ -1,6 +1,7 @@
 """The fit pipeline: a scan in, a refined C1 surface mesh out.
 
-    load → normals → frame → height field → triangulate + trim → interpolate → refine → write
+    load → normals → frame → height field → triangulate + trim (+ curtains) → interpolate → refine
+    → write
 
 Each stage is a library function; :func:`fit` chains them, times them, and returns the
 mesh with a JSON-ready report. Nothing here prints or exits: the CLI does that.
@@ -16,6 +17,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.curtains import remove_curtains
 from c1mesh.geo import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
 from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
@@ -272,6 +274,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
         triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
+        triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report)
         if triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
         used, triangles = _compact(hf.xy, triangles)

@@ -19,7 +19,8 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
   stacking test of frame.height_field are not applied;
 - the trim is the long-edge rule only (no sliver peel, no bow-tie removal: both walk
-  across the whole boundary, they are not tile-local);
+  across the whole boundary, they are not tile-local), and curtains (c1mesh.curtains)
+  stay, as their noise floor is a survey-wide median and their holes need that trim;
 - the overshoot limiter is off (its noise floor is a survey-wide median and a vertex's
   limit needs its whole star): edge directions are the unit normals.
 
