@@ -2,9 +2,14 @@
 
 For each sample the pipeline's own height field and trimmed triangles (without the curtains
 c1mesh.curtains removes: triangles along the height axis or folded against their data
-normals) are shared by every method:
-  c1mesh off     RSD sextic with the normal-derived gradients as they are (--overshoot off);
+normals) are shared by every method. The raw gradients are the pipeline's: fitted to the
+heights where normals are estimated (LiDAR: c1mesh.height_gradients), from the file's
+normals otherwise.
+  c1mesh off     RSD sextic with the raw gradients as they are (--overshoot off);
   c1mesh limit   the default: limited gradients and edge directions (c1mesh.limiter);
+  c1mesh PCA     the default before gradients were fitted to heights: limit with gradients
+                 from Open3D PCA normals (k = 16) of the same points (--gradients normals;
+                 the same as c1mesh limit where the file has normals);
   rHCT           matplotlib CubicTriInterpolator(kind='user') with the raw gradients;
   rHCT limited   the same with c1mesh's limited gradients;
   linear         scipy LinearNDInterpolator (never overshoots by construction);
@@ -36,7 +41,7 @@ SEEDS = (0, 1, 2)
 LATTICE = 8
 BIG = 100_000
 """Inputs with more points than this (the mug frame) get one held-out seed, not three."""
-METHODS = ("c1mesh off", "c1mesh limit", "rHCT", "rHCT limited", "linear", "CT")
+METHODS = ("c1mesh off", "c1mesh limit", "c1mesh PCA", "rHCT", "rHCT limited", "linear", "CT")
 
 
 def stage_data(path, options: dict):
@@ -50,8 +55,20 @@ def stage_data(path, options: dict):
     return cloud, opts, model.frame, interp.points, interp.values, interp.gradients, interp.triangles
 
 
-def surfaces(xy, z, g, tri, lam) -> dict:
-    """Every method's heights (T, P) at the lattice lam inside every triangle."""
+def pca_gradients(xy, z, g, k: int, estimated: bool):
+    """Gradients from Open3D PCA normals of the height-field points (n, 2), (n,) when the
+    pipeline estimated normals (`estimated`), else the raw gradients g (file normals)."""
+    from c1mesh.normals import estimate_normals
+
+    if not estimated:
+        return g
+    normals = estimate_normals(np.column_stack([xy, z]), k=k)
+    return -normals[:, :2] / normals[:, 2:]
+
+
+def surfaces(xy, z, g, tri, lam, pca=None) -> dict:
+    """Every method's heights (T, P) at the lattice lam inside every triangle (pca: the
+    PCA gradients for "c1mesh PCA", None: g)."""
     import matplotlib.tri as mtri
     from scipy.interpolate import CloughTocher2DInterpolator
 
@@ -63,7 +80,9 @@ def surfaces(xy, z, g, tri, lam) -> dict:
     pts = lattice_points(xy, tri, lam).reshape(-1, 2)
     out = {}
     limited, directions, _ = control_overshoot(xy, z, g, tri, "limit")
-    for name, grads, dirs in (("c1mesh off", g, None), ("c1mesh limit", limited, directions)):
+    pca_limited, _, _ = control_overshoot(xy, z, g if pca is None else pca, tri, "limit")
+    for name, grads, dirs in (("c1mesh off", g, None), ("c1mesh limit", limited, directions),
+                              ("c1mesh PCA", pca_limited, directions)):
         interp = RSDInterpolator(xy, z, grads, triangles=tri, directions=dirs)
         out[name] = interp.coefficients @ rsd.basis(interp.scheme, lam)
     t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=tri)
@@ -80,24 +99,26 @@ def folds(path, options: dict, xy, z, g, tri) -> dict:
     from c1mesh.quality import folded_faces, reduced_hct_folded_faces
 
     out = {}
-    for mode in ("off", "limit"):
-        mesh = fit(path, None, FitOptions(overshoot=mode, **options)).mesh
-        out[f"c1mesh {mode}"] = (folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), len(mesh.faces))
+    for label, mode, gradients in (("off", "off", "auto"), ("limit", "limit", "auto"), ("PCA", "limit", "normals")):
+        mesh = fit(path, None, FitOptions(overshoot=mode, gradients=gradients, **options)).mesh
+        out[f"c1mesh {label}"] = (folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), len(mesh.faces))
     out["rHCT"] = reduced_hct_folded_faces(xy, z, g, tri)
     return out
 
 
 def holdout(cloud, opts, seeds=SEEDS) -> dict:
-    """Held-out RMS per method (list over seeds), heights in the scan's units."""
+    """Held-out RMS per method (list over seeds), heights in the scan's units. The surface
+    is built from the training points by the pipeline's own stages (build_surface), with
+    the file's normals where it has them; "c1mesh PCA" is the same with --gradients normals
+    (its triangles can differ by a point dropped as too steep: errors are compared at the
+    held-out points every method covers)."""
     import matplotlib.tri as mtri
     from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 
-    from c1mesh.frame import choose_frame, height_field
+    from c1mesh.cloud import PointCloud
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.limiter import control_overshoot
-    from c1mesh.normals import estimate_normals
-    from c1mesh.pipeline import _compact
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.pipeline import build_surface
 
     finite = np.isfinite(cloud.points).all(axis=1)
     points = cloud.points[finite]
@@ -105,24 +126,19 @@ def holdout(cloud, opts, seeds=SEEDS) -> dict:
     result = {m: [] for m in METHODS}
     for seed in seeds:
         test = np.random.default_rng(seed).random(len(points)) < 0.1
-        train = points[~test]
-        if file_normals is not None:
-            normals = file_normals[~test]
-        else:
-            normals = estimate_normals(train, k=opts.k, towards=choose_frame(train, None, opts.axis).axes[2])
-        frame = choose_frame(train, normals, opts.axis)
-        hf = height_field(train, normals, frame, max_slope_deg=opts.max_slope)
-        tri, _ = trim(hf.xy, delaunay(hf.xy), max_edge=opts.max_edge)
-        used, tri = _compact(hf.xy, tri)
-        xy, z, g = hf.xy[used], hf.z[used], hf.gradients[used]
-        local = frame.to_local(points[test])
+        train = PointCloud(points=points[~test], normals=None if file_normals is None else file_normals[~test])
+        model = build_surface(train, replace(opts, overshoot="off", classes=None))
+        pca = build_surface(train, replace(opts, classes=None, gradients="normals")).interp
+        off = model.interp
+        xy, z, g, tri = off.points, off.values, off.gradients, off.triangles
+        local = model.frame.to_local(points[test])
         limited, directions, _ = control_overshoot(xy, z, g, tri, "limit")
-        off = RSDInterpolator(xy, z, g, triangles=tri)
         inside = off.find_simplex(local[:, :2]) >= 0
         q, truth = local[inside, :2], local[inside, 2]
         t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=tri)
         values = {"c1mesh off": off(q),
                   "c1mesh limit": RSDInterpolator(xy, z, limited, triangles=tri, directions=directions)(q),
+                  "c1mesh PCA": pca(q),
                   "linear": LinearNDInterpolator(xy, z)(q), "CT": CloughTocher2DInterpolator(xy, z)(q)}
         for name, grads in (("rHCT", g), ("rHCT limited", limited)):
             interp = mtri.CubicTriInterpolator(t, z, kind="user", dz=(grads[:, 0], grads[:, 1]))
@@ -145,13 +161,15 @@ def run(cfg: Config) -> Section:
     for label, name, options, kind in cases:
         path = SAMPLES / name
         cloud, opts, frame, xy, z, g, tri = stage_data(path, options)
-        over = {m: overshoot(s, z, xy, tri) for m, s in surfaces(xy, z, g, tri, lam).items()}
+        pca = pca_gradients(xy, z, g, opts.k, estimated=cloud.normals is None)
+        over = {m: overshoot(s, z, xy, tri) for m, s in surfaces(xy, z, g, tri, lam, pca).items()}
         over["linear"] = {"count": 0, "max": 0.0}
         rows_over.append(f"| {label} | {len(tri):,} | " + " | ".join(
             f"{over[m]['count']} / {over[m]['max']:.3g}" for m in METHODS) + " |")
         folded = folds(path, options, xy, z, g, tri)
         rows_fold.append(f"| {label} | " + " | ".join(
-            f"{folded[m][0]:,} ({100 * folded[m][0] / folded[m][1]:.3f}%)" for m in ("c1mesh off", "c1mesh limit", "rHCT"))
+            f"{folded[m][0]:,} ({100 * folded[m][0] / folded[m][1]:.3f}%)"
+            for m in ("c1mesh off", "c1mesh limit", "c1mesh PCA", "rHCT"))
             + " |")
         rms = holdout(cloud, opts, seeds if len(cloud) <= BIG else seeds[:1])
         rows_rms.append(f"| {label} | " + " | ".join(f"{np.mean(rms[m]):.4g}" for m in METHODS) + " |")
@@ -172,7 +190,7 @@ def run(cfg: Config) -> Section:
     sec.add("### Overshooting triangles / largest overshoot (scan units)", "",
             f"| sample | triangles | {header} |", "|---|---:|" + "---:|" * len(METHODS), *rows_over, "",
             "### Folded faces of the level-4 output", "",
-            "| sample | c1mesh off | c1mesh limit | rHCT |", "|---|---:|---:|---:|", *rows_fold, "",
+            "| sample | c1mesh off | c1mesh limit | c1mesh PCA | rHCT |", "|---|---:|---:|---:|---:|", *rows_fold, "",
             f"### Held-out RMS (mean over seeds {', '.join(map(str, seeds))}, inputs over {BIG:,} "
             "points seed 0 only; scan units)", "",
             f"| sample | {header} |", "|---|" + "---:|" * len(METHODS), *rows_rms, "")

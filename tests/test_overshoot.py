@@ -15,16 +15,14 @@ from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import Delaunay
 
 from c1mesh import rsd
-from c1mesh.frame import choose_frame, height_field
+from c1mesh.cloud import PointCloud
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients,
                              reconcile_gradients)
-from c1mesh.normals import estimate_normals
-from c1mesh.pipeline import FitOptions, _compact, build_surface, fit, load_cloud
+from c1mesh.pipeline import FitOptions, build_surface, fit, load_cloud
 from c1mesh.quality import (folded_faces, interior_lattice, lattice_points, overshoot,
                             reduced_hct_folded_faces)
 from c1mesh.topology import edge_table
-from c1mesh.triangulation import delaunay, trim
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 GROUND = {"4_6_crop": (SAMPLES / "4_6_crop.las", {}),
@@ -86,13 +84,16 @@ def test_autzen_ground_largest_overshoot_is_no_worse_than_reduced_hct(options):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 10 target not met: 0.155 ft against rHCT's 0.149 ft, in a "
-                   "valley whose data pass the trapezoid test (docs/overshoot.md, What is not solved)")
 def test_4_6_crop_ground_largest_overshoot_is_no_worse_than_reduced_hct():
-    xy, z, g, tri = height_data(SAMPLES / "4_6_crop.las")
+    """With gradients fitted to the heights (the default for estimated normals) c1mesh's
+    largest overshoot is below rHCT's given the same gradients; with the PCA normals'
+    gradients it was not (0.155 against 0.149 ft), so the test can fail."""
     lam = interior_lattice(8)
-    peer = overshoot(rhct_surface(xy, z, g, tri, lam), z, xy, tri)["max"]
-    assert overshoot(c1mesh_surface(xy, z, g, tri, lam)[0], z, xy, tri)["max"] <= peer
+    for gradients, ours_wins in (("auto", True), ("normals", False)):
+        xy, z, g, tri = height_data(SAMPLES / "4_6_crop.las", gradients=gradients)
+        peer = overshoot(rhct_surface(xy, z, g, tri, lam), z, xy, tri)["max"]
+        ours = overshoot(c1mesh_surface(xy, z, g, tri, lam)[0], z, xy, tri)["max"]
+        assert (ours <= peer) == ours_wins, (gradients, ours, peer)
 
 
 def test_folded_faces_compares_with_every_corner_normal():
@@ -129,27 +130,36 @@ def test_lidar_ground_has_no_folded_faces_at_default_options(name):
     assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) == 0
 
 
-@pytest.mark.slow
-def test_autzen_ground_holdout_rms_is_no_worse_than_a_linear_tin():
-    """10% of the ground points held out (3 seeds); normals estimated from the rest."""
-    cloud = load_cloud(SAMPLES / "autzen_trim.laz", FitOptions(classes=(2,)))
+def holdout_rms(path, seeds=(0, 1, 2)):
+    """Mean held-out RMS over seeds of c1mesh (default options) and scipy's linear TIN:
+    10% of the ground points held out, the surface built from the rest by the pipeline's
+    own stages (build_surface), errors at held-out points inside its triangles."""
+    cloud = load_cloud(path, FitOptions(classes=(2,)))
     ours, linear = [], []
-    for seed in range(3):
+    for seed in seeds:
         test = np.random.default_rng(seed).random(len(cloud)) < 0.1
-        train = cloud.points[~test]
-        normals = estimate_normals(train, towards=(0.0, 0.0, 1.0))
-        frame = choose_frame(train, normals, "z")
-        hf = height_field(train, normals, frame)
-        tri, _ = trim(hf.xy, delaunay(hf.xy))
-        used, tri = _compact(hf.xy, tri)
-        xy, z = hf.xy[used], hf.z[used]
-        local = frame.to_local(cloud.points[test])
-        _, interp = c1mesh_surface(xy, z, hf.gradients[used], tri, interior_lattice(2))
+        model = build_surface(PointCloud(points=cloud.points[~test]), FitOptions(axis="z"))
+        interp = model.interp
+        local = model.frame.to_local(cloud.points[test])
         inside = interp.find_simplex(local[:, :2]) >= 0
         q, truth = local[inside, :2], local[inside, 2]
         ours.append(np.sqrt(np.mean((interp(q) - truth) ** 2)))
-        linear.append(np.sqrt(np.mean((LinearNDInterpolator(xy, z)(q) - truth) ** 2)))
-    assert np.mean(ours) <= np.mean(linear)
+        tin = LinearNDInterpolator(interp.points, interp.values)(q)
+        linear.append(np.sqrt(np.mean((tin - truth) ** 2)))
+    return np.mean(ours), np.mean(linear)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [
+    "autzen_trim.laz",
+    pytest.param("4_6_crop.las", marks=pytest.mark.xfail(
+        strict=True, reason="issue 10 target not met: 1.011x the linear TIN; the sextic's value "
+                            "blend weights the nearest noisy height more than a TIN does "
+                            "(docs/overshoot.md, Gradients from the heights)"))])
+def test_lidar_ground_holdout_rms_is_no_worse_than_a_linear_tin(name):
+    """10% of the ground points held out (3 seeds); the fit sees the rest only."""
+    ours, linear = holdout_rms(SAMPLES / name)
+    assert ours <= linear
 
 
 @pytest.mark.slow

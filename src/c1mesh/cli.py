@@ -228,6 +228,9 @@ def main() -> None:
 @click.option("--overshoot", type=click.Choice(["limit", "off"]), default="limit", show_default=True,
               help="limit: tame gradients that disagree with the heights and thin triangles "
                    "(keeps C1); off: use the data as is.")
+@click.option("--gradients", type=click.Choice(["auto", "normals", "heights"]), default="auto",
+              show_default=True, help="Vertex gradients: heights: a local quadratic fit to the "
+                   "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
@@ -254,7 +257,7 @@ def main() -> None:
 @click.pass_context
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
-        overshoot, report, memory, jobs, quiet, verbose, debug,
+        overshoot, gradients, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
@@ -269,8 +272,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
-                             resolution=resolution, slope=slope, aspect=aspect, hillshade=hillshade,
-                             slope_method=slope_method, preview=preview)
+                             gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
+                             hillshade=hillshade, slope_method=slope_method, preview=preview)
         if output and not output_dir:
             options = _check_geo(ctx, [(inputs[0], output)], options, debug)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
@@ -291,7 +294,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
                          memory=memory, crs=crs, resolution=resolution, slope=slope, aspect=aspect,
                          hillshade=hillshade, slope_method=slope_method, preview=preview,
-                         overshoot=overshoot, frame=frame_kind, viewpoint=viewpoint, intrinsics=intrinsics,
+                         overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
+                         intrinsics=intrinsics,
                          depth_scale=depth_scale, color=color_image)
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))

@@ -23,6 +23,8 @@ from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
 from c1mesh.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
+from c1mesh.height_gradients import (height_gradients, height_neighbours, height_normals,
+                                     use_height_gradients)
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
@@ -35,7 +37,7 @@ from c1mesh.schemes import get_scheme
 from c1mesh.triangulation import delaunay, trim
 
 NORMAL_MODES = ("auto", "file", "estimate")
-STAGES = ("read", "normals", "frame", "triangulate", "interpolate", "refine", "write")
+STAGES = ("read", "normals", "frame", "gradients", "triangulate", "interpolate", "refine", "write")
 
 
 @dataclass
@@ -66,6 +68,9 @@ class FitOptions:
     level: int = 4
     ascii: bool = False
     overshoot: str = "limit"
+    # vertex gradients (c1mesh.height_gradients): "auto" fits them to the heights where the
+    # normals were estimated and takes the file's normals otherwise; "normals" | "heights".
+    gradients: str = "auto"
     workers: int | None = None
     output_format: str | None = None
     memory: Any = None
@@ -215,7 +220,8 @@ class SurfaceModel:
     normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
     cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
-    triangles index those n points); overshoot: the limiter's report (c1mesh.limiter).
+    triangles index those n points); overshoot: the limiter's report (c1mesh.limiter);
+    gradient_source: "heights" (c1mesh.height_gradients) or "normals".
     """
 
     normal_source: str
@@ -225,6 +231,18 @@ class SurfaceModel:
     used: np.ndarray
     interp: RSDInterpolator
     overshoot: Any = None
+    gradient_source: str = "normals"
+
+
+def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
+    """Whether the normals come from the height fit instead of PCA: they are to be
+    estimated, the gradients to come from the heights, and the height axis is given
+    (not "auto", whose frame is chosen from the normals)."""
+    if options.normals not in NORMAL_MODES:
+        raise InputError(f"--normals must be one of {', '.join(NORMAL_MODES)}, got {options.normals!r}")
+    estimated = options.normals == "estimate" or (cloud.normals is None and options.normals == "auto")
+    auto_axis = isinstance(options.axis, str) and options.axis.strip().lower() == "auto"
+    return estimated and not auto_axis and use_height_gradients(options.gradients, "estimated")
 
 
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
@@ -237,11 +255,22 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     scheme = get_scheme(options.scheme)
     if options.overshoot not in OVERSHOOT_MODES:
         raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
+    heights_first = _fit_heights_first(cloud, options)
     with timer.stage("normals"):
-        normals, normal_source = cloud_normals(cloud, options)
+        if heights_first:        # the frame needs no normals: the fit's serve the height field
+            frame = choose_frame(cloud.points, None, options.axis)
+            normals = height_normals(cloud.points, frame, k=height_neighbours(options.k))
+            normal_source = "estimated"
+        else:
+            normals, normal_source = cloud_normals(cloud, options)
     with timer.stage("frame"):
         frame = choose_frame(cloud.points, normals, options.axis)
         hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
+    with timer.stage("gradients"):
+        gradient_source = "heights" if heights_first else "normals"
+        if not heights_first and use_height_gradients(options.gradients, normal_source):
+            hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
+            gradient_source = "heights"
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
         triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
@@ -255,7 +284,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
             hf.xy[used], hf.z[used], hf.gradients[used], triangles, options.overshoot, table)
         interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles,
                                  scheme=scheme, directions=directions, edge_table=table)
-    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot)
+    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -329,6 +358,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
         auto_axis_reason(cloud.points, True)
     report["overshoot"] = model.overshoot.as_dict()
+    report["gradients"] = model.gradient_source
     report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
     report["warnings"] = fit_warnings(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)

@@ -15,8 +15,9 @@ nothing depends on the grid.
 
 What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
 
-- normals are always estimated (the spill keeps no file normals); colours and the CRS
-  are carried;
+- normals are always estimated (the spill keeps no file normals), and the vertex
+  gradients come from those normals (the in-memory fit fits them to the heights,
+  c1mesh.height_gradients); colours and the CRS are carried;
 - the height field drops points with unusable or too steep normals and exact duplicate
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
   stacking test of frame.height_field are not applied;

@@ -1,0 +1,153 @@
+"""Vertex gradients fitted to the heights (c1mesh.height_gradients) against analytic ones.
+
+Ground truth is the analytic gradient of the height function; the PCA route
+(c1mesh.normals.estimate_normals, then -n_xy / n_z) is the peer on the same points.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from c1mesh.cloud import PointCloud
+from c1mesh.errors import InputError
+from c1mesh.height_gradients import height_gradients, height_neighbours, use_height_gradients
+from c1mesh.normals import estimate_normals
+from c1mesh.pipeline import FitOptions, build_surface
+
+
+def _quadratic(xy):
+    x, y = xy[:, 0], xy[:, 1]
+    return 0.7 * x * x - 1.3 * x * y + 0.4 * y * y + 2 * x - y + 5, np.c_[1.4 * x - 1.3 * y + 2, -1.3 * x + 0.8 * y - 1]
+
+
+def _smooth(xy):
+    x, y = xy[:, 0], xy[:, 1]
+    return np.exp(x) * np.sin(2 * y), np.c_[np.exp(x) * np.sin(2 * y), 2 * np.exp(x) * np.cos(2 * y)]
+
+
+def test_quadratic_heights_give_exact_gradients():
+    xy = np.random.default_rng(0).random((2000, 2)) * 10
+    z, truth = _quadratic(xy)
+    np.testing.assert_allclose(height_gradients(xy, z), truth, atol=1e-6)
+
+
+def test_degree_one_is_exact_for_planes_and_not_for_quadratics():
+    xy = np.random.default_rng(1).random((1000, 2))
+    plane = 3 * xy[:, 0] - 2 * xy[:, 1] + 1
+    np.testing.assert_allclose(height_gradients(xy, plane, degree=1), np.tile([3.0, -2.0], (1000, 1)),
+                               atol=1e-7)
+    z, truth = _quadratic(xy)
+    assert np.abs(height_gradients(xy, z, degree=1) - truth).max() > 1e-3
+
+
+def test_smooth_heights_converge_at_second_order():
+    """Interior points (away from the one-sided rim): error / h² stays bounded as h halves."""
+    errors = []
+    for n in (2000, 8000, 32000):
+        xy = np.random.default_rng(2).random((n, 2))
+        z, truth = _smooth(xy)
+        inner = np.all((xy > 0.2) & (xy < 0.8), axis=1)
+        errors.append(np.sqrt(np.mean(np.sum((height_gradients(xy, z) - truth)[inner] ** 2, axis=1))))
+    rates = np.log2(np.array(errors[:-1]) / np.array(errors[1:])) * 2     # n x4 -> h / 2
+    assert np.all(rates > 1.7), (errors, rates)
+
+
+def test_heights_beat_pca_normals_on_curved_ground():
+    """On a curved surface the PCA plane's slope is O(h) off; the quadratic fit is exact."""
+    xy = np.random.default_rng(3).random((5000, 2)) * 20
+    z, truth = _quadratic(xy / 10)
+    truth = truth / 10
+    inner = np.all((xy > 2) & (xy < 18), axis=1)
+    normals = estimate_normals(np.c_[xy, z], k=16)
+    pca = -normals[:, :2] / normals[:, 2:]
+    ours = height_gradients(xy, z)
+    pca_error = np.abs(pca - truth)[inner].max()
+    assert pca_error > 1e-3
+    assert np.abs(ours - truth)[inner].max() < 1e-3 * pca_error
+
+
+def test_collinear_neighbourhoods_stay_finite():
+    """Points on a few scan lines: every neighbourhood of a point lies on one line."""
+    x = np.linspace(0, 1, 400)
+    xy = np.concatenate([np.c_[x, np.full_like(x, y)] for y in (0.0, 10.0, 20.0)])
+    z = 2 * xy[:, 0]
+    g = height_gradients(xy, z)
+    assert np.isfinite(g).all()
+    np.testing.assert_allclose(g[:, 0], 2.0, atol=1e-6)
+
+
+def test_bad_input_is_refused():
+    with pytest.raises(InputError):
+        height_gradients(np.zeros((5, 3)), np.zeros(5))
+    with pytest.raises(InputError):
+        height_gradients(np.zeros((2, 2)), np.zeros(2))
+    with pytest.raises(InputError):
+        height_gradients(np.random.default_rng(0).random((10, 2)), np.zeros(10), degree=3)
+    with pytest.raises(InputError):
+        use_height_gradients("smooth", "estimated")
+
+
+def test_the_pipeline_fits_gradients_to_heights_only_where_normals_are_estimated():
+    """auto: heights for estimated normals, the file's normals otherwise; the options
+    "normals" and "heights" force either."""
+    xy = np.random.default_rng(4).random((3000, 2)) * 10
+    z, truth = _quadratic(xy / 5)
+    truth = truth / 5
+    file_normals = np.c_[-truth, np.ones(len(z))] * 0.5 + np.c_[0.3, 0.0, 0.0]   # wrong on purpose
+    cloud = PointCloud(points=np.c_[xy, z], normals=file_normals)
+    bare = PointCloud(points=np.c_[xy, z])
+
+    def gradients(c, **options):
+        model = build_surface(c, FitOptions(axis="z", overshoot="off", **options))
+        return model.hf.gradients, truth[model.hf.source_index]
+
+    ours, want = gradients(bare)                         # estimated normals: heights
+    np.testing.assert_allclose(ours, want, atol=1e-6)
+    ours, want = gradients(bare, gradients="normals")    # the PCA normals: O(h) off
+    assert np.abs(ours - want).max() > 1e-3
+    ours, want = gradients(cloud)                        # file normals are kept
+    assert np.abs(ours - want).max() > 0.1
+    ours, want = gradients(cloud, gradients="heights")
+    np.testing.assert_allclose(ours, want, atol=1e-6)
+    assert use_height_gradients("auto", "estimated") and not use_height_gradients("auto", "file")
+    assert height_neighbours(16) == 24
+
+
+def test_the_cli_option_chooses_the_gradients_and_the_report_says_which(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+
+    xy = np.random.default_rng(5).random((500, 2)) * 10
+    z, _ = _quadratic(xy / 5)
+    source = tmp_path / "bare.xyz"
+    np.savetxt(source, np.c_[xy, z])
+    for option, want in (("auto", "heights"), ("normals", "normals")):
+        report = tmp_path / f"{option}.json"
+        result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / f"{option}.ply"),
+                                           "--axis", "z", "--level", "1", "--gradients", option,
+                                           "--report", str(report), "-q"])
+        assert result.exit_code == 0, result.output
+        assert json.loads(report.read_text())["gradients"] == want
+
+
+def test_exact_terrain_without_normals_trips_the_limiter_no_more_than_exact_gradients():
+    """Exact heights of a smooth terrain: gradients fitted to the heights trip the
+    overshoot limiter (whose trapezoid test flags what heights and gradients disagree on)
+    at no more vertices than the analytic gradients do, give or take 1 in 1000; the PCA
+    normals' gradients, O(h) off, trip it at far more (so the test can fail)."""
+    xy = np.random.default_rng(6).random((20000, 2)) * 100
+    x, y = xy[:, 0], xy[:, 1]
+    points = np.c_[xy, 3 * np.sin(x / 10) * np.cos(y / 15) + 0.02 * x]
+    exact = np.c_[-(0.3 * np.cos(x / 10) * np.cos(y / 15) + 0.02), 0.2 * np.sin(x / 10) * np.sin(y / 15),
+                  np.ones(len(x))]
+    limited = {}
+    for name, normals, gradients in (("exact", exact, "auto"), ("heights", None, "auto"),
+                                     ("pca", None, "normals")):
+        model = build_surface(PointCloud(points=points, normals=normals),
+                              FitOptions(axis="z", gradients=gradients))
+        limited[name] = model.overshoot.gradients_limited
+    assert limited["heights"] <= limited["exact"] + len(points) // 1000, limited
+    assert limited["pca"] > 20 * (limited["heights"] + 1), limited
