@@ -209,10 +209,11 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     whole, _, _ = _in_memory(source, [2], 2)
     args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
             "--memory", "1M"]
-    refused = CliRunner().invoke(main, args + ["--normals", "file"])
-    assert refused.exit_code == 1
-    assert "--normals file" in refused.output and "terrain.las" in refused.output
-    assert not (tmp_path / "out.ply").exists()
+    for option in (["--normals", "file"], ["--gradients", "heights"]):
+        refused = CliRunner().invoke(main, args + option)
+        assert refused.exit_code == 1
+        assert " ".join(option) in refused.output and "terrain.las" in refused.output
+        assert not (tmp_path / "out.ply").exists()
     result = CliRunner().invoke(main, args + ["--report", str(tmp_path / "r.json")])   # the limiter on
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "r.json").read_text())
@@ -247,7 +248,8 @@ def test_tiled_fit_carries_crs_and_colours(tmp_path):
     from c1mesh.formats import read_cloud
 
     source = SAMPLES / "autzen_trim.laz"
-    base = ["fit", str(source), "--classes", "2", "--level", "2", "--normals", "estimate"]
+    base = ["fit", str(source), "--classes", "2", "--level", "2", "--normals", "estimate",
+            "--gradients", "normals"]                  # the tiled fit's gradients
     whole = CliRunner().invoke(main, base + ["-o", str(tmp_path / "whole.ply"), "--report", str(tmp_path / "w.json")])
     tiled = CliRunner().invoke(main, base + ["-o", str(tmp_path / "tiled.ply"), "--report", str(tmp_path / "t.json"),
                                              "--memory", "2M"])

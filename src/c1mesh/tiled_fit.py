@@ -104,6 +104,9 @@ def needs_tiles(source, options) -> bool:
                          "(raise --memory)")
     if options.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
+    if getattr(options, "gradients", "auto") == "heights":
+        raise InputError(f"{need}; the tiled fit takes its gradients from the normals: drop "
+                         "--gradients heights, or raise --memory")
     return True
 
 
@@ -295,7 +298,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         temps.close()
     report.update({"input": str(source), "output": str(output), "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
-                                "estimated normals, no bow-tie removal in the trim (docs/tiles.md)"],
+                                "gradients from estimated normals, no bow-tie removal or curtains "
+                                "in the trim (docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
                    "triangles": {"removed": {"sliver": slivers}, "max_edge": max_edge},
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
@@ -333,6 +337,9 @@ def _check_options(options) -> None:
         raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
     if options.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
+    if getattr(options, "gradients", "auto") == "heights":
+        raise InputError("the tiled fit takes its gradients from the normals; --gradients heights "
+                         "needs the in-memory fit")
 
 
 def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float]]:
