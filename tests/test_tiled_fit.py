@@ -22,6 +22,7 @@ from click.testing import CliRunner
 
 from c1mesh.cli import main
 from c1mesh.frame import choose_frame, height_field
+from c1mesh.height_gradients import height_neighbours, height_normals
 from c1mesh.buffered_delaunay import TileGrid
 from c1mesh.interpolator import RSDInterpolator
 from c1mesh.limiter import control_overshoot
@@ -51,12 +52,16 @@ def _terrain_las(path, n, seed=0, classes=(2,)):
         writer.write_points(record)
 
 
-def _in_memory(path, classes, level, overshoot="limit", max_edge="auto"):
-    """The whole-cloud fit with the tiled path's reduced options (trim without bow-ties)."""
+def _in_memory(path, classes, level, overshoot="limit", max_edge="auto", gradients="heights"):
+    """The whole-cloud fit with the tiled path's reduced options (trim without bow-ties or
+    curtains); gradients fitted to the heights (the default for LAS) or from PCA normals."""
     las = laspy.read(str(path))
     keep = np.isin(np.asarray(las.classification), classes)
     points = np.column_stack([las.x, las.y, las.z])[keep]
-    normals = estimate_normals(points, k=16, towards=(0, 0, 1))
+    if gradients == "heights":
+        normals = height_normals(points, choose_frame(points, None, "z"), k=height_neighbours(16))
+    else:
+        normals = estimate_normals(points, k=16, towards=(0, 0, 1))
     frame = choose_frame(points, normals, "z")
     hf = height_field(points, normals, frame)
     triangles, report = trim(hf.xy, delaunay(hf.xy), max_edge=max_edge)
@@ -96,12 +101,14 @@ def _assert_same_mesh(path, whole):
     assert len(np.unique(faces_tiled, axis=0)) == len(faces_tiled)     # every face once
 
 
-@pytest.mark.parametrize("level,overshoot", [(1, "limit"), (3, "limit"), (2, "off")])
-def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot):
+@pytest.mark.parametrize("level,overshoot,gradients", [(1, "limit", "auto"), (3, "limit", "auto"),
+                                                       (2, "off", "normals"), (2, "limit", "normals")])
+def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot, gradients):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, classes=(2, 5))
-    whole, max_edge, kept = _in_memory(source, [2], level, overshoot)
-    options = FitOptions(classes=(2,), overshoot=overshoot, level=level)
+    whole, max_edge, kept = _in_memory(source, [2], level, overshoot,
+                                       gradients="normals" if gradients == "normals" else "heights")
+    options = FitOptions(classes=(2,), overshoot=overshoot, level=level, gradients=gradients)
     report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=700)
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
@@ -209,7 +216,7 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     whole, _, _ = _in_memory(source, [2], 2)
     args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
             "--memory", "1M"]
-    for option in (["--normals", "file"], ["--gradients", "heights"]):
+    for option in (["--normals", "file"],):
         refused = CliRunner().invoke(main, args + option)
         assert refused.exit_code == 1
         assert " ".join(option) in refused.output and "terrain.las" in refused.output

@@ -73,3 +73,33 @@ def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> b
         dy = np.maximum(np.maximum(y0 - points[:, 1], points[:, 1] - y1), 0.0)
         gap = np.minimum(gap, np.hypot(dx, dy))
     return bool((kth * (1 + 1e-9) < gap).all())
+
+
+def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float) -> TileNormals:
+    """Upward unit normals (frame coordinates) of one tile's own points from the heights:
+    c1mesh.height_gradients' fit over each point's k nearest neighbours in the plane,
+    what the in-memory fit uses for LAS/LAZ (`height_normals`). The buffer grows as for
+    `tile_normals` until every own point's k nearest plane neighbours lie in what was read
+    (their plane distance is below the unread part's), so each fit sees the survey's
+    neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.frame import gradients_to_normals
+    from c1mesh.height_gradients import height_gradients
+
+    box, cell = grid.box, grid.cell(tile)
+    rounds = 0
+    while True:
+        rounds += 1
+        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
+        index, xyz = read3(read_box)
+        own = grid.tile_of(xyz[:, :2]) == tile
+        if not own.any():
+            return TileNormals(tile, index[own], np.empty((0, 3)), buffer, rounds)
+        enough = len(xyz) > k + 1
+        if _covers(read_box, box) or (enough and _neighbourhoods_inside(
+                cKDTree(xyz[:, :2]), xyz[own, :2], k + 1, read_box, box)):
+            gradients = height_gradients(xyz[:, :2], xyz[:, 2], k=k)
+            return TileNormals(tile, index[own], gradients_to_normals(gradients[own]), buffer, rounds)
+        buffer *= 2.0
+

@@ -15,9 +15,10 @@ nothing depends on the grid.
 
 What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
 
-- normals are always estimated (the spill keeps no file normals), and the vertex
-  gradients come from those normals (the in-memory fit fits them to the heights,
-  c1mesh.height_gradients); colours and the CRS are carried;
+- normals are always estimated (the spill keeps no file normals): by default fitted to
+  the heights as in memory (c1mesh.height_gradients, tile by tile:
+  tile_normals.tile_height_normals), with --gradients normals by PCA (tile_normals);
+  colours and the CRS are carried;
 - the height field drops points with unusable or too steep normals and exact duplicate
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
   stacking test of frame.height_field are not applied;
@@ -104,9 +105,6 @@ def needs_tiles(source, options) -> bool:
                          "(raise --memory)")
     if options.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
-    if getattr(options, "gradients", "auto") == "heights":
-        raise InputError(f"{need}; the tiled fit takes its gradients from the normals: drop "
-                         "--gradients heights, or raise --memory")
     return True
 
 
@@ -298,8 +296,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         temps.close()
     report.update({"input": str(source), "output": str(output), "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
-                                "gradients from estimated normals, no bow-tie removal or curtains "
-                                "in the trim (docs/tiles.md)"],
+                                "no bow-tie removal or curtains in the trim (docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
                    "triangles": {"removed": {"sliver": slivers}, "max_edge": max_edge},
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
@@ -337,9 +334,6 @@ def _check_options(options) -> None:
         raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
     if options.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
-    if getattr(options, "gradients", "auto") == "heights":
-        raise InputError("the tiled fit takes its gradients from the normals; --gradients heights "
-                         "needs the in-memory fit")
 
 
 def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float]]:
@@ -359,7 +353,8 @@ def _height_spill(raw, grid, count: int, options, directory, stem: str):
     of HEIGHT records (entered; the caller closes it)."""
     from c1mesh.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
     from c1mesh.frame import _gradients
-    from c1mesh.tile_normals import tile_normals
+    from c1mesh.height_gradients import height_neighbours, use_height_gradients
+    from c1mesh.tile_normals import tile_height_normals, tile_normals
     from c1mesh.tile_spill import TileSpill
 
     def read3(rect):
@@ -370,10 +365,14 @@ def _height_spill(raw, grid, count: int, options, directory, stem: str):
     try:
         cos_max = math.cos(math.radians(options.max_slope))
         buffer = INITIAL_SPACINGS * mean_spacing(grid.box, count)
+        from_heights = use_height_gradients(getattr(options, "gradients", "auto"), "estimated")
         for t in range(len(grid)):
             if not raw.counts[t]:
                 continue
-            result = tile_normals(read3, grid, t, options.k, buffer, towards=(0.0, 0.0, 1.0))
+            if from_heights:
+                result = tile_height_normals(read3, grid, t, height_neighbours(options.k), buffer)
+            else:
+                result = tile_normals(read3, grid, t, options.k, buffer, towards=(0.0, 0.0, 1.0))
             own = raw.tile(t)                                     # survey order, as result.index
             normals = result.normals
             length = np.linalg.norm(normals, axis=1)
