@@ -284,3 +284,38 @@ def test_tiled_fit_carries_crs_and_colours(tmp_path):
     assert len(common) > 0.95 * len(b.points)
     rows, colours = zip(*common)
     assert np.abs(b.colors[list(rows)].astype(int) - np.asarray(colours)).max() <= 1
+
+
+def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp_path):
+    """`fit A.las B.las --seamless -o` with a survey larger than --memory allows: the files
+    are read one after another as one survey by the memory-bounded fit, which writes what
+    it writes for the concatenated file (the same bytes, compared), and matches the
+    in-memory fit of the whole cloud as the tiled fit does; -O is refused (one mesh only)."""
+    whole_file = tmp_path / "terrain.las"
+    _terrain_las(whole_file, 24000)
+    las = laspy.read(str(whole_file))
+    west = np.asarray(las.x) < np.median(np.asarray(las.x))
+    parts = []
+    for name, mask in (("west.las", west), ("east.las", ~west)):
+        part = laspy.LasData(las.header)
+        part.points = las.points[mask]
+        parts.append(tmp_path / name)
+        part.write(str(parts[-1]))
+    concatenated = laspy.LasData(las.header)
+    concatenated.points = las.points[np.argsort(~west, kind="stable")]
+    concatenated.write(str(tmp_path / "concatenated.las"))
+    args = ["--classes", "2", "--level", "2", "--memory", "1M"]
+    survey = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-o", str(tmp_path / "survey.ply"),
+                                       "--report", str(tmp_path / "survey.json"), *args])
+    assert survey.exit_code == 0, survey.output
+    single = CliRunner().invoke(main, ["fit", str(tmp_path / "concatenated.las"), "-o",
+                                       str(tmp_path / "single.ply"), *args])
+    assert single.exit_code == 0, single.output
+    report = json.loads((tmp_path / "survey.json").read_text())
+    assert report["tiles"] == 4 and report["input"] == [str(p) for p in parts]
+    assert (tmp_path / "survey.ply").read_bytes() == (tmp_path / "single.ply").read_bytes()
+    whole, _, _ = _in_memory(whole_file, [2], 2)
+    _assert_same_mesh(tmp_path / "survey.ply", whole)
+    refused = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "out"), *args])
+    assert refused.exit_code == 1 and "--seamless -o" in refused.output
+    assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []

@@ -86,26 +86,42 @@ def points_per_tile(memory: int) -> int:
 
 
 def needs_tiles(source, options) -> bool:
-    """True when `source` (a LAS/LAZ path) holds more points, by its header, than the
-    in-memory fit can take within options.memory bytes (BYTES_PER_POINT per point); then
-    it is fitted by `fit_tiled`. Streams, other formats and fits without a budget are
-    never tiled. Raises InputError when the input needs tiles but the options ask for
-    something the tiled fit does not do."""
-    if options.memory is None or not isinstance(source, (str, Path)):
+    """True when `source` (a LAS/LAZ path, or a list of them: one survey) holds more points,
+    by the headers, than the in-memory fit can take within options.memory bytes
+    (BYTES_PER_POINT per point); then it is fitted by `fit_tiled`. Streams, other formats
+    and fits without a budget are never tiled. Raises InputError when the input needs
+    tiles but the options ask for something the tiled fit does not do."""
+    paths = survey_paths(source)
+    if options.memory is None or paths is None:
         return False
-    if Path(source).suffix.lower() not in (".las", ".laz"):
+    if any(path.suffix.lower() not in (".las", ".laz") for path in paths):
         return False
-    count = las_point_count(source)
+    count = sum(las_point_count(path) for path in paths)
     if fits_in_memory(count, options.memory):
         return False
-    need = f"{source}: {count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB in one piece, " \
-           f"more than --memory {options.memory / 1e6:.0f} MB, so they are fitted in tiles"
+    need = f"{survey_name(paths)}: {count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB in " \
+           f"one piece, more than --memory {options.memory / 1e6:.0f} MB, so they are fitted in tiles"
     if options.resolution is not None or options.slope or options.aspect or options.hillshade or options.preview:
         raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "
                          "(raise --memory)")
     if options.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
+
+
+def survey_paths(source) -> list[Path] | None:
+    """The files of a tiled fit's input: one path, or a list of paths read as one survey
+    (`fit --seamless`); None for a stream or anything else."""
+    if isinstance(source, (str, Path)):
+        return [Path(source)]
+    if isinstance(source, (list, tuple)) and source and all(isinstance(s, (str, Path)) for s in source):
+        return [Path(s) for s in source]
+    return None
+
+
+def survey_name(paths: list[Path]) -> str:
+    """How messages name a survey: its file, or its first file and the count."""
+    return str(paths[0]) if len(paths) == 1 else f"{paths[0]} and {len(paths) - 1} more files"
 
 
 def las_point_count(path) -> int:
@@ -145,25 +161,34 @@ class CachedChunks:
                 yield part.reshape(-1, 3), None
 
 
-def las_chunks(path, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None) -> Callable:
-    """survey_stats.Chunks over a LAS/LAZ file: a callable giving a fresh iterator of
-    (world points (m, 3), None) in file order, keeping only `classes` (None: all).
-    colours: where each pass also sends the kept points' RGB, when the file has it."""
+def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None) -> Callable:
+    """survey_stats.Chunks over a LAS/LAZ file, or over several read one after another as
+    one survey: a callable giving a fresh iterator of (world points (m, 3), None) in file
+    order, keeping only `classes` (None: all). colours: where each pass also sends the
+    kept points' RGB, when every file has it (a survey has colours only if all its files
+    do, as in c1mesh.tiles.load_survey)."""
     import laspy
 
-    def chunks():
+    paths = survey_paths(source)
+
+    def dimensions(path):
         with laspy.open(str(path)) as reader:
-            names = set(reader.header.point_format.dimension_names)
-            for part in reader.chunk_iterator(chunk):
-                xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
-                rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
-                       if colours is not None and {"red", "green", "blue"} <= names else None)
-                if classes:
-                    keep = np.isin(np.asarray(part.classification), np.asarray(classes))
-                    xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
-                if rgb is not None:
-                    colours.add(rgb)
-                yield xyz, None
+            return set(reader.header.point_format.dimension_names)
+    rgb_everywhere = colours is not None and all({"red", "green", "blue"} <= dimensions(p) for p in paths)
+
+    def chunks():
+        for path in paths:
+            with laspy.open(str(path)) as reader:
+                for part in reader.chunk_iterator(chunk):
+                    xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
+                    rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
+                           if rgb_everywhere else None)
+                    if classes:
+                        keep = np.isin(np.asarray(part.classification), np.asarray(classes))
+                        xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
+                    if rgb is not None:
+                        colours.add(rgb)
+                    yield xyz, None
     return chunks
 
 
@@ -243,7 +268,9 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.tile_spill import spill
 
     _check_options(options)
-    crs, crs_source = survey_crs(source, options.crs)
+    paths = survey_paths(source)
+    name = survey_name(paths)
+    crs, crs_source = survey_crs(paths, options.crs)
     seconds, start = {}, time.perf_counter()
 
     def done(stage):
@@ -264,7 +291,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         colours.finish()
         count, box = _plane_box(chunks, frame)
         if count < 3:
-            raise InputError(f"{source}: only {count} points" + (f" of class {list(options.classes)}"
+            raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
         side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
         grid = TileGrid(box, side, side)
@@ -294,7 +321,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             heights.close()
     finally:
         temps.close()
-    report.update({"input": str(source), "output": str(output), "tiles": len(grid),
+    report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
+                   "output": str(output), "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
                                 "no bow-tie removal or curtains in the trim (docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
@@ -306,16 +334,22 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
 
 
 def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
-    """(CRS WKT, "file" | "option" | None) of a LAS/LAZ survey: its header's CRS and the
-    user's --crs (WKT or any c1mesh.crs.parse_crs input) resolved as the in-memory fit
-    does (InputError when they differ)."""
+    """(CRS WKT, "file" | "option" | None) of a LAS/LAZ survey (one path or a list): the
+    CRS its headers declare (c1mesh.tiles.survey_crs: one for all files, InputError when
+    two differ) and the user's --crs (WKT or any c1mesh.crs.parse_crs input) resolved as
+    the in-memory fit does (InputError when they differ)."""
     import laspy
 
     from c1mesh.crs import las_crs, parse_crs, resolve
+    from c1mesh.tiles import survey_crs as common_crs
 
-    with laspy.open(str(source)) as reader:
-        file_crs = las_crs(reader.header)
-    return resolve(file_crs, parse_crs(user_crs) if user_crs else None, str(source))
+    paths = survey_paths(source)
+    declared = []
+    for path in paths:
+        with laspy.open(str(path)) as reader:
+            declared.append(las_crs(reader.header))
+    file_crs = common_crs([str(p) for p in paths], declared)
+    return resolve(file_crs, parse_crs(user_crs) if user_crs else None, survey_name(paths))
 
 
 def _describe_crs(crs, crs_source) -> dict | None:

@@ -403,22 +403,32 @@ def tile_failure(task: TileTask, exc: BaseException) -> TileError:
 
 def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence[str] | None = None,
                  scheduler: str | None = None, jobs: int = 1,
-                 on_tile: Callable[[dict], None] | None = None) -> dict:
+                 on_tile: Callable[[dict], None] | None = None,
+                 on_stage: Callable[[str], None] | None = None) -> dict:
     """Fit the inputs as one survey; returns the report.
 
     output: one path for the whole survey's mesh (the fit of the concatenated cloud,
     written as `c1mesh fit` writes one input); or outputs: one path per input, each
     holding the triangles its input owns (module docstring), tiles run by
     distributed.run_tiles (scheduler, jobs). on_tile is called with each tile's report
-    row as it is written.
+    row as it is written. A LAS/LAZ survey larger than options.memory allows in one piece
+    goes, with output, to the memory-bounded fit (c1mesh.tiled_fit, on_stage called after
+    each of its stages); with outputs it is refused.
     """
     from c1mesh.geo import resolve_crs
     from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit
+    from c1mesh.tiled_fit import fit_tiled, needs_tiles
 
     from c1mesh.crs import describe, parse_crs
 
     options, _ = _resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     user_crs = parse_crs(options.crs) if options.crs else None
+    if needs_tiles(list(sources), options):              # larger than --memory allows
+        if output is None:
+            raise InputError("the survey is larger than --memory allows in one piece; the memory-bounded "
+                             "fit writes one mesh: use --seamless -o, or raise --memory")
+        report = fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage)
+        return report
     timer = _Timer(None)
     with timer.stage("read"):
         survey = load_survey(sources, options)
