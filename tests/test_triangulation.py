@@ -375,3 +375,30 @@ def test_neighbours_are_symmetric_and_share_the_edge():
     hull = ConvexHull(xy).simplices
     assert as_set(open_edges) == set(map(tuple, np.sort(hull, axis=1).tolist()))
     assert len(open_edges) == len(hull)
+
+
+def test_bowtie_tie_break_does_not_depend_on_triangle_order():
+    """Two fans of one triangle each meet at point 0: trim keeps the fan whose smallest
+    sorted corner triple comes first, (0, 1, 2), in either input order (a tile, which has
+    no qhull order, must decide the same way)."""
+    xy = np.array([[0, 0], [1, -0.6], [1, 0.6], [-1, 0.6], [-1, -0.6]], dtype=float)
+    right, left = [0, 1, 2], [0, 3, 4]
+    for triangles in ([right, left], [left, right]):
+        kept, report = trim(xy, np.array(triangles), max_edge=None)
+        assert report.removed["bowtie"] == 1
+        assert kept.tolist() == [right]
+
+
+def test_trim_of_lidar_ground_does_not_depend_on_triangle_order():
+    """Autzen ground has 57 bow-tie triangles; any permutation of qhull's triangles gives
+    the same trimmed set."""
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(Path(__file__).resolve().parent.parent / "data_samples" / "autzen_trim.laz"))
+    xy = np.column_stack([las.x, las.y])[np.asarray(las.classification) == 2]
+    xy = np.unique(xy, axis=0)
+    triangles = delaunay(xy)
+    kept, report = trim(xy, triangles)
+    assert report.removed["bowtie"] > 0
+    shuffled, _ = trim(xy, triangles[np.random.default_rng(0).permutation(len(triangles))])
+    as_set = lambda t: set(map(tuple, np.sort(t, axis=1).tolist()))      # noqa: E731
+    assert as_set(shuffled) == as_set(kept)

@@ -436,7 +436,10 @@ def _remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray) 
     """Remove all but the largest fan at every bowtie vertex; return the removed triangles.
 
     A vertex is a bowtie when more than 2 boundary edges meet there (each fan brings 2).
-    A fan is a set of live triangles around the vertex joined through edges at it.
+    A fan is a set of live triangles around the vertex joined through edges at it. Among
+    fans of equal size the one whose smallest triangle (corners sorted, then compared
+    lexicographically) comes first is kept: a rule of point numbers alone, so a tile that
+    holds the vertex's star decides as the whole triangulation does (c1mesh.tiled_trim).
     """
     open_t, open_k = np.nonzero(alive[:, None] & ((neighbours < 0) | ~alive[neighbours]))
     ends = np.concatenate([tri[open_t, (open_k + 1) % 3], tri[open_t, (open_k + 2) % 3]])
@@ -461,8 +464,14 @@ def _remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray) 
     graph = coo_matrix((np.ones(links.shape[1], dtype=np.int8), tuple(links)), shape=(t.size,) * 2)
     fan = connected_components(graph, directed=False)[1]
     size = np.bincount(fan)
-    # per vertex keep the fan with most triangles (ties: lowest fan label)
-    best = np.lexsort((fan, -size[fan], v))                    # sorted by v, then best fan first
+    # per vertex keep the fan with most triangles; ties: the fan holding the smallest
+    # triangle as a sorted corner triple (order-free: the same in any triangle order)
+    corners = np.sort(tri[t], axis=1)
+    rank = np.empty(t.size, dtype=np.int64)
+    rank[np.lexsort(corners.T[::-1])] = np.arange(t.size)
+    smallest = np.full(size.size, t.size, dtype=np.int64)
+    np.minimum.at(smallest, fan, rank)
+    best = np.lexsort((smallest[fan], -size[fan], v))          # sorted by v, then best fan first
     first = np.ones(best.size, dtype=bool)
     first[1:] = v[best[1:]] != v[best[:-1]]
     keep_fan = np.zeros(size.size, dtype=bool)
