@@ -84,24 +84,29 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     return {"shadow_edge": shadow, "grazing": grazing, "facing_away": away, "thinner_than_noise": thin}
 
 
-NOISE_SAMPLE = 200_000
-"""Edges the noise floor's median is taken over at most (a regular subsample of the
-triangles beyond that: the median of 200,000 values is within ~0.3% of the whole's)."""
-
-
 def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray) -> float:
-    """Median |trapezoid residual| (height units) of the triangles' edges: the height noise
-    the data's gradients cannot explain (c1mesh.limiter.trapezoid_residuals; O(h³) for
-    exact smooth data). Each interior edge is counted from both of its triangles, which
-    leaves the median of a triangulation as good as unchanged and needs no edge table;
-    large triangulations are sampled (every k-th triangle, `NOISE_SAMPLE` edges)."""
+    """Median |trapezoid residual| (height units) over every edge of the triangles, each
+    edge once: the height noise the data's gradients cannot explain
+    (c1mesh.limiter.trapezoid_residuals; O(h³) for exact smooth data).
+
+    Exact and independent of the triangles' order, so a survey fitted in tiles finds the
+    same floor by a streamed median of its tiles' edges (c1mesh.tiled_fit); edges run
+    from the lower point number to the higher, as the limiter's edge table has them.
+    """
     from c1mesh.limiter import trapezoid_residuals
+    from c1mesh.topology import sort_keys
 
     if triangles.shape[0] == 0:
         return 0.0
-    step = max(1, (3 * triangles.shape[0]) // NOISE_SAMPLE)
-    sample = triangles[::step]
-    edges = np.concatenate([sample[:, [0, 1]], sample[:, [1, 2]], sample[:, [2, 0]]])
+    n = np.int64(xy.shape[0])
+    tri = triangles.astype(np.int64, copy=False)
+    keys = np.concatenate([np.minimum(tri[:, a], tri[:, b]) * n + np.maximum(tri[:, a], tri[:, b])
+                           for a, b in ((0, 1), (1, 2), (2, 0))])
+    _, keys = sort_keys(keys, int(n) * int(n))
+    first = np.ones(keys.size, dtype=bool)
+    np.not_equal(keys[1:], keys[:-1], out=first[1:])
+    keys = keys[first]
+    edges = np.column_stack([keys // n, keys % n])
     return float(np.median(np.abs(trapezoid_residuals(xy, z, gradients, edges))))
 
 
