@@ -46,8 +46,8 @@ REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 
 
 def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
-                      shadow_angle: float = SHADOW_ANGLE, grazing_angle: float = GRAZING_ANGLE
-                      ) -> dict[str, np.ndarray]:
+                      shadow_angle: float = SHADOW_ANGLE, grazing_angle: float = GRAZING_ANGLE,
+                      floor: float | None = None) -> dict[str, np.ndarray]:
     """(T,) bool masks of the curtain triangles by reason (each triangle under its first reason,
     in the order of REASONS).
 
@@ -78,7 +78,8 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
         g = gradients[triangles[:, k]]
         away |= nz - nx * g[:, 0] - ny * g[:, 1] < 0
     away &= ~shadow & ~grazing
-    floor = noise_floor(xy, z, gradients, triangles)
+    if floor is None:                  # a tile passes the survey's (c1mesh.tiled_trim)
+        floor = noise_floor(xy, z, gradients, triangles)
     longest2 = np.maximum(np.maximum(plane2[0], plane2[1]), plane2[2])
     thin = (nz * nz < floor * floor * longest2) & ~shadow & ~grazing & ~away   # 2 area = |n_z|
     return {"shadow_edge": shadow, "grazing": grazing, "facing_away": away, "thinner_than_noise": thin}

@@ -308,8 +308,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), RowMap(count), temps)
-            slivers = _peel(halos)
-            done("peel")
+            removed = _trim(halos, grid, temps)
+            done("trim")
             limiter = None
             if options.overshoot == "limit":
                 limiter = _Limiter(halos, temps)
@@ -323,10 +323,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         temps.close()
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output), "tiles": len(grid),
-                   "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget: "
-                                "no bow-tie removal or curtains in the trim (docs/tiles.md)"],
+                   "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget "
+                                "(docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
-                   "triangles": {"removed": {"sliver": slivers}, "max_edge": max_edge},
+                   "triangles": {"removed": removed, "max_edge": max_edge},
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = _describe_crs(crs, crs_source)
@@ -478,13 +478,19 @@ def _triangulate(heights, grid, max_edge, temps):
     return limit, files, buffers
 
 
-def _peel(halos) -> int:
-    """trim's sliver peel over the tiles (c1mesh.tiled_trim), with trim's default
-    min_circle_ratio, on the halos (tiled_limiter.HaloCache, which then drops the peeled
-    triangles); the peeled triangles also leave their tiles' files. Returns how many."""
+def _trim(halos, grid, temps) -> dict[str, int]:
+    """The in-memory default trim after the long-edge rule, over the tiles
+    (c1mesh.tiled_trim): trim's sliver peel and bow-tie removal, then curtains
+    (c1mesh.curtains) with the survey's noise floor, then the peel and bow-tie removal
+    of the holes they left, as pipeline.build_surface runs them. halos: the
+    tiled_limiter.HaloCache, whose `removed` grows as triangles go (each halo drops them
+    as it loads); the removed triangles also leave their tiles' files. Returns the
+    removed counts by reason (as TrimReport.removed)."""
     import inspect
 
-    from c1mesh.tiled_trim import drop_triangles, peeled, thin_triangles
+    from c1mesh.curtains import REASONS
+    from c1mesh.tiled_limiter import edge_floor
+    from c1mesh.tiled_trim import curtain_cuts, thin_triangles
     from c1mesh.triangulation import trim
 
     min_ratio = inspect.signature(trim).parameters["min_circle_ratio"].default
@@ -494,14 +500,83 @@ def _peel(halos) -> int:
         thin.append(triangles)
         boundary.append(on_boundary)
         tiles.append(np.full(len(triangles), t))
-    thin, tiles = np.concatenate(thin), np.concatenate(tiles)
-    removed = peeled(thin, np.concatenate(boundary))
-    for t in np.unique(tiles[removed]):
-        triangles = np.load(halos.files[t])
-        with open(halos.files[t], "wb") as file:
-            np.save(file, drop_triangles(triangles, thin[removed & (tiles == t)]))
-    halos.removed = thin[removed]
-    return int(removed.sum())
+    state = _TrimState(halos, grid, np.concatenate(thin), np.concatenate(tiles))
+    state.settle(np.concatenate(boundary))
+    floor = edge_floor(halos.halos, temps, "curtains")
+    cut, owners, counts = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)], {r: 0 for r in REASONS}
+    for t in halos.tiles():
+        triangles, reasons = curtain_cuts(halos.halo(t), floor)
+        cut.append(triangles)
+        owners.append(np.full(len(triangles), t))
+        for reason, count in reasons.items():
+            counts[reason] += count
+    state.remove(np.concatenate(cut), np.concatenate(owners))
+    state.settle(state.next_to(np.concatenate(cut)))
+    state.write_files()
+    return {"sliver": state.sliver, "bowtie": state.bowtie, **counts}
+
+
+class _TrimState:
+    """What the tiled trim has removed so far. thin (k, 3): every thin triangle of the
+    survey after the long-edge rule (survey numbers; peeling only ever removes those),
+    owned by tiles (k,); `alive` marks those still in the mesh."""
+
+    def __init__(self, halos, grid, thin: np.ndarray, tiles: np.ndarray):
+        self.halos, self.grid, self.thin, self.tiles = halos, grid, thin, tiles
+        self.alive = np.ones(len(thin), dtype=bool)
+        self.removed, self.owners = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)]
+        self.sliver = self.bowtie = 0
+
+    def remove(self, triangles: np.ndarray, owners: np.ndarray) -> None:
+        """Remove triangles (k, 3) owned by tiles owners (k,); a thin one (a bow-tie fan's
+        or a curtain) can then no longer be peeled."""
+        if len(triangles):
+            gone = {tuple(row) for row in np.sort(triangles, axis=1).tolist()}
+            thin = np.sort(self.thin, axis=1).tolist()
+            self.alive &= np.array([tuple(row) not in gone for row in thin], dtype=bool)
+        self.removed.append(triangles)
+        self.owners.append(owners)
+        self.halos.removed = np.concatenate(self.removed)
+
+    def next_to(self, triangles: np.ndarray) -> np.ndarray:
+        """(k,) bool: the thin triangles sharing an edge with one of triangles."""
+        from c1mesh.tiled_trim import touching
+
+        return touching(self.thin, triangles)
+
+    def settle(self, front: np.ndarray) -> None:
+        """trim's loop: peel the live thin components that hold a live `front` triangle
+        (k,) bool, then cut bow-ties, peel from the cuts' neighbours, until no bow-tie is
+        left (triangulation.trim)."""
+        from c1mesh.tiled_trim import bowtie_cuts, peeled
+
+        while True:
+            live = np.flatnonzero(self.alive)
+            gone = live[peeled(self.thin[live], front[live])]
+            self.alive[gone] = False
+            self.sliver += len(gone)
+            self.remove(self.thin[gone], self.tiles[gone])
+            cut, owners = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)]
+            for t in self.halos.tiles():
+                triangles, tiles = bowtie_cuts(self.halos.halo(t), self.grid)
+                cut.append(triangles)
+                owners.append(tiles)
+            cut = np.concatenate(cut)
+            if not len(cut):
+                return
+            self.bowtie += len(cut)
+            self.remove(cut, np.concatenate(owners))
+            front = self.next_to(cut)
+
+    def write_files(self) -> None:
+        """Drop the removed triangles from their owners' triangle files."""
+        from c1mesh.tiled_trim import drop_triangles
+
+        removed, owners = np.concatenate(self.removed), np.concatenate(self.owners)
+        for t in np.unique(owners):
+            triangles = np.load(self.halos.files[t])
+            with open(self.halos.files[t], "wb") as file:
+                np.save(file, drop_triangles(triangles, removed[owners == t]))
 
 
 class _Limiter:

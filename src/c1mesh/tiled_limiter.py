@@ -192,29 +192,35 @@ def edge_residuals(points, values, gradients, edges) -> np.ndarray:
     return np.abs(trapezoid_residuals(points, values, gradients, edges))
 
 
-def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
-    """The survey's two noise floors, exactly. halos: a callable giving a fresh iterator
-    of every tile's Halo; temps: tiled_fit._Temps for the residual files."""
+def edge_floor(halos: Callable[[], object], temps, name: str, gradients_of=None) -> float:
+    """The median |trapezoid residual| over every final edge of the survey, exactly (each
+    edge from the tile holding its lower end). halos: a callable giving a fresh iterator
+    of every tile's Halo; gradients_of(halo, edges): the gradients (m, 2) to use (None:
+    the height field's); temps: tiled_fit._Temps for the residual file."""
     from c1mesh.streamed_median import streamed_median
     from c1mesh.topology import edge_table
 
-    def floor(name, gradients_of):
-        path = temps.new(f"residuals-{name}.bin")
-        with open(path, "wb") as file:
-            for halo in halos():
-                if not len(halo.triangles):
-                    continue
-                edges = edge_table(halo.triangles, len(halo.records)).edges
-                mine = edges[halo.own[edges[:, 0]]]              # lower end in the cell
-                residuals = edge_residuals(halo.points, halo.records["z"], gradients_of(halo, edges), mine)
-                residuals.astype("<f8").tofile(file)
-        median = streamed_median(lambda: _float_blocks(path))
-        path.unlink()
-        return median
+    path = temps.new(f"residuals-{name}.bin")
+    with open(path, "wb") as file:
+        for halo in halos():
+            if not len(halo.triangles):
+                continue
+            edges = edge_table(halo.triangles, len(halo.records)).edges
+            mine = edges[halo.own[edges[:, 0]]]              # lower end in the cell
+            gradients = halo.gradients if gradients_of is None else gradients_of(halo, edges)
+            residuals = edge_residuals(halo.points, halo.records["z"], gradients, mine)
+            residuals.astype("<f8").tofile(file)
+    median = streamed_median(lambda: _float_blocks(path))
+    path.unlink()
+    return median
 
-    first = floor("first", lambda halo, edges: halo.gradients)
-    second = floor("second", lambda halo, edges: reconcile(halo.points, halo.records["z"],
-                                                           halo.gradients, edges, first)[0])
+
+def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
+    """The survey's two noise floors, exactly. halos: a callable giving a fresh iterator
+    of every tile's Halo; temps: tiled_fit._Temps for the residual files."""
+    first = edge_floor(halos, temps, "first")
+    second = edge_floor(halos, temps, "second", lambda halo, edges: reconcile(
+        halo.points, halo.records["z"], halo.gradients, edges, first)[0])
     return NoiseFloors(first, second)
 
 

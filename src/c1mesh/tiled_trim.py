@@ -71,3 +71,53 @@ def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3)
     keep = np.ones(len(triangles), dtype=bool)
     keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
     return triangles[keep]
+
+
+def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
+    """What trim's bow-tie removal cuts around the tile's own vertices: (k, 3) survey
+    numbers of the triangles of every fan but the kept one, and (k,) the tile owning each
+    (the tile of its lowest-numbered corner). halo: a tiled_limiter.Halo, which holds the
+    whole star of every own vertex (its reach is at least one longest edge); the fan
+    tie-break (triangulation._remove_bowties) uses point numbers alone, and the halo's
+    rows follow the survey numbers, so the tile decides as the whole survey does."""
+    from c1mesh.triangulation import _neighbours, _remove_bowties
+
+    triangles = halo.triangles
+    if not len(triangles):
+        return np.empty((0, 3), np.int64), np.empty(0, np.int64)
+    alive = np.ones(len(triangles), dtype=bool)
+    cut = _remove_bowties(triangles, alive, _neighbours(triangles, len(halo.records)), at=halo.own)
+    return halo.records["index"][triangles[cut]], _owner_tiles(halo, triangles[cut], grid)
+
+
+def curtain_cuts(halo, floor: float) -> tuple[np.ndarray, dict[str, int]]:
+    """The tile's own triangles that curtains.curtain_triangles drops with the survey's
+    noise floor `floor`: (k, 3) survey numbers, and the count by reason."""
+    from c1mesh.curtains import REASONS, curtain_triangles
+
+    triangles = halo.triangles
+    if not len(triangles):
+        return np.empty((0, 3), np.int64), {reason: 0 for reason in REASONS}
+    own = triangles[halo.own[triangles.min(axis=1)]]
+    masks = curtain_triangles(halo.points, halo.records["z"], halo.gradients, own, floor=floor)
+    cut = np.logical_or.reduce([masks[reason] for reason in REASONS])
+    return halo.records["index"][own[cut]], {reason: int(masks[reason].sum()) for reason in REASONS}
+
+
+def touching(triangles: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(k,) bool: which of triangles (k, 3) share an edge with one of others (m, 3)
+    (survey numbers)."""
+    if not len(triangles) or not len(others):
+        return np.zeros(len(triangles), dtype=bool)
+    n = int(max(triangles.max(), others.max())) + 1
+
+    def keys(t):
+        return [np.minimum(t[:, a], t[:, b]) * n + np.maximum(t[:, a], t[:, b]) for a, b in ((0, 1), (1, 2), (2, 0))]
+    theirs = np.concatenate(keys(others))
+    return np.logical_or.reduce([np.isin(k, theirs) for k in keys(triangles)])
+
+
+def _owner_tiles(halo, rows: np.ndarray, grid) -> np.ndarray:
+    """(k,) the tile of the lowest-numbered corner of each triangle rows (k, 3) of the halo."""
+    lowest = rows.min(axis=1)
+    return grid.tile_of(np.column_stack([halo.records["x"][lowest], halo.records["y"][lowest]]))

@@ -432,7 +432,8 @@ def _peel(alive: np.ndarray, neighbours: np.ndarray, thin: np.ndarray, front: np
     return removed
 
 
-def _remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+def _remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
+                    at: np.ndarray | None = None) -> np.ndarray:
     """Remove all but the largest fan at every bowtie vertex; return the removed triangles.
 
     A vertex is a bowtie when more than 2 boundary edges meet there (each fan brings 2).
@@ -440,11 +441,15 @@ def _remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray) 
     fans of equal size the one whose smallest triangle (corners sorted, then compared
     lexicographically) comes first is kept: a rule of point numbers alone, so a tile that
     holds the vertex's star decides as the whole triangulation does (c1mesh.tiled_trim).
+    at: (n,) bool, the vertices to look at (None: all); a tile passes the vertices whose
+    whole star it holds.
     """
     open_t, open_k = np.nonzero(alive[:, None] & ((neighbours < 0) | ~alive[neighbours]))
     ends = np.concatenate([tri[open_t, (open_k + 1) % 3], tri[open_t, (open_k + 2) % 3]])
     n = tri.max(initial=0) + 1
     bow = np.bincount(ends, minlength=n) > 2
+    if at is not None:
+        bow &= at[:n]
     if not bow.any():
         return np.zeros(0, dtype=np.int64)
     live = np.flatnonzero(alive)
