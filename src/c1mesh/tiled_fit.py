@@ -2,7 +2,7 @@
 
     survey stats (frame, box) → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
-    survey-wide) → sliver peel (c1mesh.tiled_trim) → the limiter's two noise floors
+    survey-wide) → sliver peel, bow-ties, curtains (c1mesh.tiled_trim) → the limiter's two noise floors
     (two passes: c1mesh.tiled_limiter)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → append to one vertex file and one face file → one
@@ -22,10 +22,9 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
 - the height field drops points with unusable or too steep normals and exact duplicate
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
   stacking test of frame.height_field are not applied;
-- the trim is the long-edge rule and the sliver peel (c1mesh.tiled_trim); bow-tie
-  removal is not done (its tie-break follows qhull's triangle order), and curtains
-  (c1mesh.curtains) stay, as their noise floor is a survey-wide median and their holes
-  need the whole trim;
+- the trim is the in-memory default (long edges, sliver peel, bow-ties, then curtains
+  and what their holes expose), run over the tiles (`_trim`, c1mesh.tiled_trim), so it
+  is the same, not a reduction;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
   tile by tile with the survey's noise floors (c1mesh.tiled_limiter).
 

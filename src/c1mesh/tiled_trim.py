@@ -15,10 +15,11 @@ terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memor
   triangle are peeled;
 - each tile's triangle file loses its peeled triangles.
 
-Not done: trim's bow-tie removal (all but the largest fan at a vertex where fans meet),
-and the peel it starts again after each cut: a fan's size needs the whole star and its
-tie-break follows the in-memory triangle order, which tiles do not have. So the result
-equals trim's when trim removes no bow-tie.
+Bow-tie removal (all but the largest fan at a vertex where fans meet; ties by the fans'
+smallest sorted corner triple, a rule of point numbers) is decided by the tile whose cell
+holds the vertex, as its halo holds the vertex's whole star (`bowtie_cuts`); curtains
+(c1mesh.curtains) are per triangle given the survey's noise floor (`curtain_cuts`).
+tiled_fit._trim chains these into trim's loop and remove_curtains' clean-up.
 """
 from __future__ import annotations
 
