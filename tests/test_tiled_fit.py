@@ -343,3 +343,22 @@ def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp
     refused = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "out"), *args])
     assert refused.exit_code == 1 and "--seamless -o" in refused.output
     assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []
+
+
+def test_curtain_noise_floor_is_the_exact_median_over_every_edge_once():
+    """curtains.noise_floor: np.median of |trapezoid residual| over the edge table's
+    edges (each once), whatever the triangles' order and orientation, so tiles can find
+    it by a streamed median of their own edges."""
+    from c1mesh.curtains import noise_floor
+    from c1mesh.limiter import trapezoid_residuals
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 50, (3000, 2))
+    z = np.sin(xy[:, 0] / 7) + rng.normal(0, 0.05, len(xy))
+    gradients = np.column_stack([np.cos(xy[:, 0] / 7) / 7, np.zeros(len(xy))])
+    triangles = delaunay(xy)
+    edges = edge_table(triangles, len(xy)).edges
+    expected = np.median(np.abs(trapezoid_residuals(xy, z, gradients, edges)))
+    assert noise_floor(xy, z, gradients, triangles) == expected
+    shuffled = triangles[rng.permutation(len(triangles))][:, ::-1]
+    assert noise_floor(xy, z, gradients, shuffled) == expected
