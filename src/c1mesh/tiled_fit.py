@@ -493,24 +493,25 @@ def _trim(halos, grid, temps) -> dict[str, int]:
     from c1mesh.triangulation import trim
 
     min_ratio = inspect.signature(trim).parameters["min_circle_ratio"].default
-    thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty(0, np.int64)]
+    thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty((0, 3), np.int64)]
     for t in halos.tiles():
-        triangles, on_boundary = thin_triangles(halos.halo(t), min_ratio)
+        triangles, on_boundary, corners = thin_triangles(halos.halo(t), min_ratio, grid)
         thin.append(triangles)
         boundary.append(on_boundary)
-        tiles.append(np.full(len(triangles), t))
+        tiles.append(corners)
     state = _TrimState(halos, grid, np.concatenate(thin), np.concatenate(tiles))
-    state.settle(np.concatenate(boundary))
+    state.settle(np.concatenate(boundary), set(halos.tiles()))
     floor = edge_floor(halos.halos, temps, "curtains")
-    cut, owners, counts = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)], {r: 0 for r in REASONS}
+    cut, corners, counts = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)], {r: 0 for r in REASONS}
     for t in halos.tiles():
-        triangles, reasons = curtain_cuts(halos.halo(t), floor)
+        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid)
         cut.append(triangles)
-        owners.append(np.full(len(triangles), t))
+        corners.append(where)
         for reason, count in reasons.items():
             counts[reason] += count
-    state.remove(np.concatenate(cut), np.concatenate(owners))
-    state.settle(state.next_to(np.concatenate(cut)))
+    cut, corners = np.concatenate(cut), np.concatenate(corners)
+    state.remove(cut, corners)
+    state.settle(state.next_to(cut), set(corners.ravel().tolist()))
     state.write_files()
     return {"sliver": state.sliver, "bowtie": state.bowtie, **counts}
 
@@ -518,7 +519,7 @@ def _trim(halos, grid, temps) -> dict[str, int]:
 class _TrimState:
     """What the tiled trim has removed so far. thin (k, 3): every thin triangle of the
     survey after the long-edge rule (survey numbers; peeling only ever removes those),
-    owned by tiles (k,); `alive` marks those still in the mesh."""
+    tiles (k, 3) the tile of each corner; `alive` marks those still in the mesh."""
 
     def __init__(self, halos, grid, thin: np.ndarray, tiles: np.ndarray):
         self.halos, self.grid, self.thin, self.tiles = halos, grid, thin, tiles
@@ -526,15 +527,17 @@ class _TrimState:
         self.removed, self.owners = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)]
         self.sliver = self.bowtie = 0
 
-    def remove(self, triangles: np.ndarray, owners: np.ndarray) -> None:
-        """Remove triangles (k, 3) owned by tiles owners (k,); a thin one (a bow-tie fan's
-        or a curtain) can then no longer be peeled."""
+    def remove(self, triangles: np.ndarray, tiles: np.ndarray) -> None:
+        """Remove triangles (k, 3) whose corners lie in tiles (k, 3); a thin one (a
+        bow-tie fan's or a curtain) can then no longer be peeled."""
+        from c1mesh.tiled_trim import owner_tiles
+
         if len(triangles):
             gone = {tuple(row) for row in np.sort(triangles, axis=1).tolist()}
             thin = np.sort(self.thin, axis=1).tolist()
             self.alive &= np.array([tuple(row) not in gone for row in thin], dtype=bool)
         self.removed.append(triangles)
-        self.owners.append(owners)
+        self.owners.append(owner_tiles(triangles, tiles))
         self.halos.removed = np.concatenate(self.removed)
 
     def next_to(self, triangles: np.ndarray) -> np.ndarray:
@@ -543,10 +546,12 @@ class _TrimState:
 
         return touching(self.thin, triangles)
 
-    def settle(self, front: np.ndarray) -> None:
+    def settle(self, front: np.ndarray, pending: set) -> None:
         """trim's loop: peel the live thin components that hold a live `front` triangle
         (k,) bool, then cut bow-ties, peel from the cuts' neighbours, until no bow-tie is
-        left (triangulation.trim)."""
+        left (triangulation.trim). A bow-tie can only appear at a corner of a removed
+        triangle, so a round looks only at the tiles holding such corners: `pending`
+        (tile numbers) for the first, those of the triangles removed since, later."""
         from c1mesh.tiled_trim import bowtie_cuts, peeled
 
         while True:
@@ -555,17 +560,18 @@ class _TrimState:
             self.alive[gone] = False
             self.sliver += len(gone)
             self.remove(self.thin[gone], self.tiles[gone])
-            cut, owners = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)]
-            for t in self.halos.tiles():
-                triangles, tiles = bowtie_cuts(self.halos.halo(t), self.grid)
+            pending |= set(self.tiles[gone].ravel().tolist())
+            cut, corners = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)]
+            for t in sorted(pending & set(self.halos.tiles())):
+                triangles, where = bowtie_cuts(self.halos.halo(t), self.grid)
                 cut.append(triangles)
-                owners.append(tiles)
-            cut = np.concatenate(cut)
+                corners.append(where)
+            cut, corners = np.concatenate(cut), np.concatenate(corners)
             if not len(cut):
                 return
             self.bowtie += len(cut)
-            self.remove(cut, np.concatenate(owners))
-            front = self.next_to(cut)
+            self.remove(cut, corners)
+            front, pending = self.next_to(cut), set(corners.ravel().tolist())
 
     def write_files(self) -> None:
         """Drop the removed triangles from their owners' triangle files."""

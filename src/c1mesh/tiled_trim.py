@@ -25,19 +25,20 @@ from __future__ import annotations
 
 import numpy as np
 
-def thin_triangles(halo, min_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def thin_triangles(halo, min_ratio: float, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
-    on the boundary. halo: a tiled_limiter.Halo (own triangles: lowest corner in the cell)."""
+    on the boundary, (k, 3) the tile of each corner (grid: the buffered_delaunay.TileGrid).
+    halo: a tiled_limiter.Halo (own triangles: lowest corner in the cell)."""
     from c1mesh.triangulation import _edge_lengths, _neighbours, circle_ratio
 
     triangles = halo.triangles
     if not len(triangles):
-        return np.empty((0, 3), np.int64), np.empty(0, bool)
+        return np.empty((0, 3), np.int64), np.empty(0, bool), np.empty((0, 3), np.int64)
     own = halo.own[triangles.min(axis=1)]
     thin = np.zeros(len(triangles), dtype=bool)
     thin[own] = circle_ratio(_edge_lengths(halo.points, triangles[own])) < min_ratio
     boundary = (_neighbours(triangles, len(halo.records))[thin] < 0).any(axis=1)
-    return halo.records["index"][triangles[thin]], boundary
+    return halo.records["index"][triangles[thin]], boundary, corner_tiles(halo, triangles[thin], grid)
 
 
 def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
@@ -76,33 +77,35 @@ def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3)
 
 def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
     """What trim's bow-tie removal cuts around the tile's own vertices: (k, 3) survey
-    numbers of the triangles of every fan but the kept one, and (k,) the tile owning each
-    (the tile of its lowest-numbered corner). halo: a tiled_limiter.Halo, which holds the
-    whole star of every own vertex (its reach is at least one longest edge); the fan
-    tie-break (triangulation._remove_bowties) uses point numbers alone, and the halo's
-    rows follow the survey numbers, so the tile decides as the whole survey does."""
+    numbers of the triangles of every fan but the kept one, and (k, 3) the tile of each
+    corner. halo: a tiled_limiter.Halo, which holds the whole star of every own vertex
+    (its reach is at least one longest edge); the fan tie-break
+    (triangulation._remove_bowties) uses point numbers alone, and the halo's rows follow
+    the survey numbers, so the tile decides as the whole survey does."""
     from c1mesh.triangulation import _neighbours, _remove_bowties
 
     triangles = halo.triangles
     if not len(triangles):
-        return np.empty((0, 3), np.int64), np.empty(0, np.int64)
+        return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64)
     alive = np.ones(len(triangles), dtype=bool)
     cut = _remove_bowties(triangles, alive, _neighbours(triangles, len(halo.records)), at=halo.own)
-    return halo.records["index"][triangles[cut]], _owner_tiles(halo, triangles[cut], grid)
+    return halo.records["index"][triangles[cut]], corner_tiles(halo, triangles[cut], grid)
 
 
-def curtain_cuts(halo, floor: float) -> tuple[np.ndarray, dict[str, int]]:
+def curtain_cuts(halo, floor: float, grid) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The tile's own triangles that curtains.curtain_triangles drops with the survey's
-    noise floor `floor`: (k, 3) survey numbers, and the count by reason."""
+    noise floor `floor`: (k, 3) survey numbers, (k, 3) the tile of each corner, and the
+    count by reason."""
     from c1mesh.curtains import REASONS, curtain_triangles
 
     triangles = halo.triangles
     if not len(triangles):
-        return np.empty((0, 3), np.int64), {reason: 0 for reason in REASONS}
+        return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64), {reason: 0 for reason in REASONS}
     own = triangles[halo.own[triangles.min(axis=1)]]
     masks = curtain_triangles(halo.points, halo.records["z"], halo.gradients, own, floor=floor)
     cut = np.logical_or.reduce([masks[reason] for reason in REASONS])
-    return halo.records["index"][own[cut]], {reason: int(masks[reason].sum()) for reason in REASONS}
+    return (halo.records["index"][own[cut]], corner_tiles(halo, own[cut], grid),
+            {reason: int(masks[reason].sum()) for reason in REASONS})
 
 
 def touching(triangles: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -118,7 +121,15 @@ def touching(triangles: np.ndarray, others: np.ndarray) -> np.ndarray:
     return np.logical_or.reduce([np.isin(k, theirs) for k in keys(triangles)])
 
 
-def _owner_tiles(halo, rows: np.ndarray, grid) -> np.ndarray:
-    """(k,) the tile of the lowest-numbered corner of each triangle rows (k, 3) of the halo."""
-    lowest = rows.min(axis=1)
-    return grid.tile_of(np.column_stack([halo.records["x"][lowest], halo.records["y"][lowest]]))
+def corner_tiles(halo, rows: np.ndarray, grid) -> np.ndarray:
+    """(k, 3) the tile whose cell holds each corner of the halo's triangles rows (k, 3)."""
+    if not len(rows):
+        return np.empty((0, 3), np.int64)
+    xy = np.column_stack([halo.records["x"][rows.ravel()], halo.records["y"][rows.ravel()]])
+    return grid.tile_of(xy).reshape(-1, 3)
+
+
+def owner_tiles(triangles: np.ndarray, tiles: np.ndarray) -> np.ndarray:
+    """(k,) the tile owning each triangle (k, 3) (survey numbers), the tile of its
+    lowest-numbered corner, given the tile of each corner (k, 3)."""
+    return tiles[np.arange(len(triangles)), np.argmin(triangles, axis=1)]
