@@ -574,7 +574,7 @@ class _TrimState:
             front, pending = self.next_to(cut), set(corners.ravel().tolist())
 
     def write_files(self) -> None:
-        """Drop the removed triangles from their owners' triangle files."""
+        """Drop the removed triangles from their owners' triangle files and the cached halos."""
         from c1mesh.tiled_trim import drop_triangles
 
         removed, owners = np.concatenate(self.removed), np.concatenate(self.owners)
@@ -582,6 +582,7 @@ class _TrimState:
             triangles = np.load(self.halos.files[t])
             with open(self.halos.files[t], "wb") as file:
                 np.save(file, drop_triangles(triangles, removed[owners == t]))
+        self.halos.prune()
 
 
 class _Limiter:

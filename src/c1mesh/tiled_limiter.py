@@ -163,6 +163,13 @@ class HaloCache:
         own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
         return self._drop(Halo(records, triangles, own))
 
+    def prune(self) -> None:
+        """Rewrite the cached halos without the removed triangles, once the trim is done
+        (and the tiles' triangle files without them), so later passes need not drop them."""
+        for tile, (_, triangles_path) in self.paths.items():
+            self.halo(tile).triangles.astype("<i8").tofile(triangles_path)
+        self.removed = np.empty((0, 3), np.int64)
+
     def halos(self):
         """A fresh iterator over the halos of all tiles that own triangles."""
         return (self.halo(t) for t in self.tiles())
