@@ -42,7 +42,21 @@ def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: flo
 
     from c1mesh.normals import estimate_normals, unique_positions
 
-    box, cell = grid.box, grid.cell(tile)
+    def neighbours_read(xyz, own, read_box):
+        distinct, inverse = unique_positions(xyz)
+        return len(distinct) >= k and _neighbourhoods_inside(
+            cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, grid.box)
+
+    return _grown(read3, grid, tile, buffer, neighbours_read,
+                  lambda xyz, own: estimate_normals(xyz, k=k, towards=towards)[own])
+
+
+def _grown(read3: Callable, grid: TileGrid, tile: int, buffer: float,
+           neighbours_read: Callable, normals_of: Callable) -> TileNormals:
+    """A tile's normals from the points within `buffer` of its cell, the buffer doubled until
+    neighbours_read(xyz, own, read_box) says every own point's neighbourhood was read (or the
+    read box covers the survey); normals_of(xyz, own) gives the own points' normals."""
+    cell = grid.cell(tile)
     rounds = 0
     while True:
         rounds += 1
@@ -51,12 +65,8 @@ def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: flo
         own = grid.tile_of(xyz[:, :2]) == tile
         if not own.any():
             return TileNormals(tile, index[own], np.empty((0, 3)), buffer, rounds)
-        distinct, inverse = unique_positions(xyz)
-        enough = len(distinct) >= k
-        if _covers(read_box, box) or (enough and _neighbourhoods_inside(
-                cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, box)):
-            normals = estimate_normals(xyz, k=k, towards=towards)
-            return TileNormals(tile, index[own], normals[own], buffer, rounds)
+        if _covers(read_box, grid.box) or neighbours_read(xyz, own, read_box):
+            return TileNormals(tile, index[own], normals_of(xyz, own), buffer, rounds)
         buffer *= 2.0
 
 
@@ -87,19 +97,9 @@ def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buff
     from c1mesh.frame import gradients_to_normals
     from c1mesh.height_gradients import height_gradients
 
-    box, cell = grid.box, grid.cell(tile)
-    rounds = 0
-    while True:
-        rounds += 1
-        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
-        index, xyz = read3(read_box)
-        own = grid.tile_of(xyz[:, :2]) == tile
-        if not own.any():
-            return TileNormals(tile, index[own], np.empty((0, 3)), buffer, rounds)
-        enough = len(xyz) > k + 1
-        if _covers(read_box, box) or (enough and _neighbourhoods_inside(
-                cKDTree(xyz[:, :2]), xyz[own, :2], k + 1, read_box, box)):
-            gradients = height_gradients(xyz[:, :2], xyz[:, 2], k=k)
-            return TileNormals(tile, index[own], gradients_to_normals(gradients[own]), buffer, rounds)
-        buffer *= 2.0
+    def neighbours_read(xyz, own, read_box):
+        return len(xyz) > k + 1 and _neighbourhoods_inside(
+            cKDTree(xyz[:, :2]), xyz[own, :2], k + 1, read_box, grid.box)
 
+    return _grown(read3, grid, tile, buffer, neighbours_read,
+                  lambda xyz, own: gradients_to_normals(height_gradients(xyz[:, :2], xyz[:, 2], k=k)[own]))
