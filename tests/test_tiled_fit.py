@@ -117,6 +117,7 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot, gradients)
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
     assert report["points"]["kept"] == kept
+    assert whole.removed["bowtie"] > 0 and whole.removed["thinner_than_noise"] > 0   # both cuts act
     assert report["triangles"]["removed"] == whole.removed
     if overshoot == "limit":
         assert whole.limiter["gradients_limited"] > 100        # the noise makes the limiter act
