@@ -107,8 +107,20 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
     first = np.ones(keys.size, dtype=bool)
     np.not_equal(keys[1:], keys[:-1], out=first[1:])
     keys = keys[first]
-    edges = np.column_stack([keys // n, keys % n])
-    return float(np.median(np.abs(trapezoid_residuals(xy, z, gradients, edges))))
+    return float(np.median(np.abs(_residuals(xy, z, gradients, keys // n, keys % n))))
+
+
+def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarray,
+               b: np.ndarray) -> np.ndarray:
+    """limiter.trapezoid_residuals of the edges a→b (E,), bit for bit, from contiguous
+    column gathers (a ascending, as unique sorted keys give it: 3x faster than row gathers
+    of (E, 2) arrays at 3M edges)."""
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    gx, gy = np.ascontiguousarray(gradients[:, 0]), np.ascontiguousarray(gradients[:, 1])
+    dx, dy = x[b] - x[a], y[b] - y[a]
+    pred_a = gx[a] * dx + gy[a] * dy
+    pred_b = gx[b] * dx + gy[b] * dy
+    return (z[b] - z[a]) - 0.5 * (pred_a + pred_b)
 
 
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,

@@ -108,17 +108,26 @@ class EdgeGeometry:
     def of(cls, points: np.ndarray, values: np.ndarray, edges: np.ndarray) -> "EdgeGeometry":
         p = np.asarray(points, dtype=float)
         f = np.asarray(values, dtype=float)
-        a, b = edges[:, 0], edges[:, 1]
+        a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
+        d = np.empty((a.size, 2))
+        for c in range(2):                        # column gathers: contiguous, cache-friendly
+            column = np.ascontiguousarray(p[:, c])
+            np.subtract(column[b], column[a], out=d[:, c])
         fa, fb = f[a], f[b]
-        return cls(a, b, p[b] - p[a], fb - fa, np.abs(fa) + np.abs(fb))
+        return cls(a, b, d, fb - fa, np.abs(fa) + np.abs(fb))
 
     def predictions(self, gradients: np.ndarray, rows: np.ndarray | slice = slice(None)
                     ) -> tuple[np.ndarray, np.ndarray]:
         """(A_a·d, A_b·d) for the edges ``rows``: the height changes the end gradients predict."""
         A = np.asarray(gradients, dtype=float)
-        d = self.d[rows]
-        return (np.einsum("ij,ij->i", A[self.a[rows]], d),
-                np.einsum("ij,ij->i", A[self.b[rows]], d))
+        gx, gy = np.ascontiguousarray(A[:, 0]), np.ascontiguousarray(A[:, 1])
+        dx, dy = np.ascontiguousarray(self.d[rows, 0]), np.ascontiguousarray(self.d[rows, 1])
+        out = []
+        for end in (self.a[rows], self.b[rows]):
+            pred = gx[end] * dx
+            pred += gy[end] * dy
+            out.append(pred)
+        return out[0], out[1]
 
 
 def trapezoid_residuals(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
