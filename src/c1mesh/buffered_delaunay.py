@@ -151,19 +151,12 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
     if max_edge is not None:
         buffer = max(buffer, max_edge * (1 + 1e-9))
     hull_edges = None if hull is None else hull.edges()
-    rounds = 0
-    while True:
-        rounds += 1
-        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
-        index, xy = read(read_box)
-        own = grid.tile_of(xy) == tile
-        covers = _covers(read_box, box)
-        if not own.any():
+    for reading in growing_reads(read, grid, tile, buffer):
+        read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
+        buffer, rounds = reading.buffer, reading.round
+        if not own.any() or (index.size < 3 and covers):
             return TileTriangles(tile, np.empty((0, 3), np.int64), buffer, len(index), rounds)
         if index.size < 3:
-            if covers:
-                return TileTriangles(tile, np.empty((0, 3), np.int64), buffer, len(index), rounds)
-            buffer *= 2.0
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
@@ -184,7 +177,6 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             mine = at_own & (own[simplices] & _lowest_corner(index[simplices])).any(axis=1)
             keep = simplices[mine]
             return TileTriangles(tile, index[keep], buffer, len(index), rounds)
-        buffer *= 2.0
 
 
 def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -197,6 +189,35 @@ def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def _lowest_corner(corners: np.ndarray) -> np.ndarray:
     """(k, 3) bool: which corner holds the lowest survey number of its triangle."""
     return corners == corners.min(axis=1, keepdims=True)
+
+
+@dataclass
+class Reading:
+    """One read of a tile with a buffer: round (1, 2, ...), buffer (frame units), box (x0,
+    y0, x1, y1) read, index (m,) survey numbers and points (m, 2 or 3) read, own (m,) bool
+    the points in the tile's cell, covers: the box holds the whole survey."""
+
+    round: int
+    buffer: float
+    box: tuple
+    index: np.ndarray
+    points: np.ndarray
+    own: np.ndarray
+    covers: bool
+
+
+def growing_reads(read: Callable, grid: "TileGrid", tile: int, buffer: float) -> Iterator[Reading]:
+    """Reads of a tile's cell widened by `buffer`, the buffer doubled for each next one: a
+    caller takes readings until what it needs lies inside what was read (or it covers the
+    survey), so buffers are sized by the data."""
+    cell, rounds = grid.cell(tile), 0
+    while True:
+        rounds += 1
+        box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
+        index, points = read(box)
+        yield Reading(rounds, buffer, box, index, points, grid.tile_of(points[:, :2]) == tile,
+                      _covers(box, grid.box))
+        buffer *= 2.0
 
 
 def _covers(read_box, box) -> bool:
@@ -494,18 +515,13 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
     from c1mesh.triangulation import _edge_lengths, _neighbours, delaunay
 
     box, cell = grid.box, grid.cell(tile)
-    buffer, rounds = bound * (1 + 1e-9), 0
-    while True:
-        rounds += 1
-        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
-        index, xy = read(read_box)
-        own = grid.tile_of(xy) == tile
-        covers = _covers(read_box, box)
+    for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
+        read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
+        buffer, rounds = reading.buffer, reading.round
         if not own.any() or index.size < 3:
             if not own.any() or covers:
                 empty = np.empty(0)
                 return TilePass(tile, empty, np.empty((0, 3), np.int64), empty, buffer, len(index), rounds)
-            buffer *= 2.0
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
@@ -529,7 +545,6 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
                          and _centres_clear(circle, np.hypot(*(local[ae] - circle).T), strips, regions,
                                             np.abs(local).max()).all())
             if not certified:
-                buffer *= 2.0
                 continue
         return TilePass(tile, lengths[edge_mine], index[simplices[triangle_mine]], longest[triangle_mine],
                         buffer, len(index), rounds)

@@ -187,17 +187,14 @@ def _nearest_per_ray(field: ViewField) -> np.ndarray:
 def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh: bool):
     """pipeline.fit after the read stage, in the perspective frame; returns a FitResult."""
     from c1mesh.formats import write_mesh
-    from c1mesh.interpolator import RSDInterpolator
-    from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
-    from c1mesh.pipeline import FitResult, _compact, _name, _StopWatch, surface_stream
+    from c1mesh.limiter import check_mode
+    from c1mesh.pipeline import FitResult, _compact, _name, _StopWatch, limited_interpolator, surface_stream
     from c1mesh.properties import scheme_properties
     from c1mesh.schemes import get_scheme
     from c1mesh.threads import blas_threads
-    from c1mesh.topology import edge_table
 
     scheme = get_scheme(options.scheme)
-    if options.overshoot not in OVERSHOOT_MODES:
-        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
+    check_mode(options.overshoot)
     frame, viewpoint_source = perspective_frame(cloud, options.viewpoint)
     camera = frame.to_camera(cloud.points)
     with timer.stage("normals"):
@@ -210,11 +207,8 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
             raise InputError("no triangles are left after removing depth jumps")
         used, triangles = _compact(field_.uv, triangles)
     with timer.stage("interpolate"):
-        table = edge_table(triangles, used.size) if options.overshoot != "off" else None
-        gradients, directions, overshoot = control_overshoot(
-            field_.uv[used], field_.w[used], field_.gradients[used], triangles, options.overshoot, table)
-        interp = RSDInterpolator(field_.uv[used], field_.w[used], gradients, triangles=triangles,
-                                 scheme=scheme, directions=directions, edge_table=table)
+        interp, overshoot = limited_interpolator(field_.uv[used], field_.w[used], field_.gradients[used],
+                                                 triangles, scheme, options.overshoot)
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)

@@ -44,6 +44,14 @@ RATIO_LIMIT = 2.0
 """Edges whose unit-normal RSD ratio max(|s|, |1 − s|) exceeds this get another direction."""
 
 
+def check_mode(mode: str) -> None:
+    """InputError unless `mode` is one of OVERSHOOT_MODES (checked before a fit's work)."""
+    from c1mesh.errors import InputError
+
+    if mode not in OVERSHOOT_MODES:
+        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {mode!r}")
+
+
 @dataclass
 class LimiterReport:
     """What the remedies changed: vertices whose gradient was scaled down, and edges whose

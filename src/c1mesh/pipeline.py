@@ -26,7 +26,8 @@ from c1mesh.frame import auto_axis_reason, choose_frame, gradients_to_normals, h
 from c1mesh.height_gradients import (height_gradients, height_neighbours, height_normals,
                                      use_height_gradients)
 from c1mesh.interpolator import RSDInterpolator
-from c1mesh.limiter import OVERSHOOT_MODES, control_overshoot
+from c1mesh.limiter import check_mode as check_overshoot_mode
+from c1mesh.limiter import control_overshoot
 from c1mesh.threads import blas_threads, prefetch, ring
 from c1mesh.topology import edge_table
 from c1mesh.threads import limit as thread_limit
@@ -142,10 +143,14 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
     return cloud
 
 
+def _check_normals_mode(mode: str) -> None:
+    if mode not in NORMAL_MODES:
+        raise InputError(f"--normals must be one of {', '.join(NORMAL_MODES)}, got {mode!r}")
+
+
 def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, str]:
     """The normals to use and where they came from ("file" or "estimated")."""
-    if options.normals not in NORMAL_MODES:
-        raise InputError(f"--normals must be one of {', '.join(NORMAL_MODES)}, got {options.normals!r}")
+    _check_normals_mode(options.normals)
     if options.normals == "file" and cloud.normals is None:
         raise InputError("the input has no normals; use --normals estimate (or auto)")
     if cloud.normals is not None and options.normals != "estimate":
@@ -238,8 +243,7 @@ def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
     """Whether the normals come from the height fit instead of PCA: they are to be
     estimated, the gradients to come from the heights, and the height axis is given
     (not "auto", whose frame is chosen from the normals)."""
-    if options.normals not in NORMAL_MODES:
-        raise InputError(f"--normals must be one of {', '.join(NORMAL_MODES)}, got {options.normals!r}")
+    _check_normals_mode(options.normals)
     estimated = options.normals == "estimate" or (cloud.normals is None and options.normals == "auto")
     auto_axis = isinstance(options.axis, str) and options.axis.strip().lower() == "auto"
     return estimated and not auto_axis and use_height_gradients(options.gradients, "estimated")
@@ -253,8 +257,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     """
     timer = timer or _Timer(None)
     scheme = get_scheme(options.scheme)
-    if options.overshoot not in OVERSHOOT_MODES:
-        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
+    check_overshoot_mode(options.overshoot)
     heights_first = _fit_heights_first(cloud, options)
     with timer.stage("normals"):
         if heights_first:        # the frame needs no normals: the fit's serve the height field
@@ -279,12 +282,21 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
             raise InputError("no triangles are left after trimming; try --max-edge none")
         used, triangles = _compact(hf.xy, triangles)
     with timer.stage("interpolate"):
-        table = edge_table(triangles, used.size) if options.overshoot != "off" else None
-        gradients, directions, overshoot = control_overshoot(
-            hf.xy[used], hf.z[used], hf.gradients[used], triangles, options.overshoot, table)
-        interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles,
-                                 scheme=scheme, directions=directions, edge_table=table)
+        interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
+                                                 scheme, options.overshoot)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
+
+
+def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str
+                         ) -> tuple[RSDInterpolator, Any]:
+    """The RSDInterpolator of a (noisy) height field with its overshoot controlled
+    (c1mesh.limiter.control_overshoot in mode `overshoot`), the edges numbered once for
+    both; and the limiter's report. Shared by the plane and the perspective fits."""
+    table = edge_table(triangles, points.shape[0]) if overshoot != "off" else None
+    limited, directions, report = control_overshoot(points, values, gradients, triangles, overshoot, table)
+    interp = RSDInterpolator(points, values, limited, triangles=triangles, scheme=scheme,
+                             directions=directions, edge_table=table)
+    return interp, report
 
 
 def fit(source, output=None, options: FitOptions | None = None,

@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from c1mesh.buffered_delaunay import TileGrid, _covers, _unread_strips
+from c1mesh.buffered_delaunay import TileGrid, _unread_strips, growing_reads
 
 
 @dataclass
@@ -56,18 +56,12 @@ def _grown(read3: Callable, grid: TileGrid, tile: int, buffer: float,
     """A tile's normals from the points within `buffer` of its cell, the buffer doubled until
     neighbours_read(xyz, own, read_box) says every own point's neighbourhood was read (or the
     read box covers the survey); normals_of(xyz, own) gives the own points' normals."""
-    cell = grid.cell(tile)
-    rounds = 0
-    while True:
-        rounds += 1
-        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
-        index, xyz = read3(read_box)
-        own = grid.tile_of(xyz[:, :2]) == tile
+    for reading in growing_reads(read3, grid, tile, buffer):
+        index, xyz, own = reading.index, reading.points, reading.own
         if not own.any():
-            return TileNormals(tile, index[own], np.empty((0, 3)), buffer, rounds)
-        if _covers(read_box, grid.box) or neighbours_read(xyz, own, read_box):
-            return TileNormals(tile, index[own], normals_of(xyz, own), buffer, rounds)
-        buffer *= 2.0
+            return TileNormals(tile, index[own], np.empty((0, 3)), reading.buffer, reading.round)
+        if reading.covers or neighbours_read(xyz, own, reading.box):
+            return TileNormals(tile, index[own], normals_of(xyz, own), reading.buffer, reading.round)
 
 
 def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:

@@ -361,10 +361,9 @@ def _describe_crs(crs, crs_source) -> dict | None:
 
 
 def _check_options(options) -> None:
-    from c1mesh.limiter import OVERSHOOT_MODES
+    from c1mesh.limiter import check_mode
 
-    if options.overshoot not in OVERSHOOT_MODES:
-        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {options.overshoot!r}")
+    check_mode(options.overshoot)
     if options.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
 
