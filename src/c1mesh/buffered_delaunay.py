@@ -408,15 +408,11 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
     from scipy.spatial import Delaunay
 
     box, cell = grid.box, grid.cell(tile)
-    buffer = bound * (1 + 1e-9)
-    while True:
-        read_box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
-        index, xy = read(read_box)
-        own = grid.tile_of(xy) == tile
+    for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
+        read_box, index, xy, own = reading.box, reading.index, reading.points, reading.own
         if not own.any() or index.size < 3:
-            if not own.any() or _covers(read_box, box):
+            if not own.any() or reading.covers:
                 return np.empty(0)
-            buffer *= 2.0
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
@@ -427,7 +423,7 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
         lower = np.where(index[a] < index[b], a, b)
         lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
         mine = own[lower] & (lengths <= bound)
-        if _covers(read_box, box):
+        if reading.covers:
             return lengths[mine]
         t, k, a, b = t[mine], k[mine], a[mine], b[mine]
         centres, _ = circumcircles(local, simplices)
@@ -437,7 +433,6 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
         regions = _clip_to_hull(strips, hull.xy - centre)
         if _centres_clear(circle_centre, radius, strips, regions, np.abs(local).max()).all():
             return lengths[mine]
-        buffer *= 2.0
 
 
 def _smallest_empty_circle(xy, simplices, neighbors, t, k, a, b, centres) -> np.ndarray:
