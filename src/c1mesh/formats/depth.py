@@ -24,19 +24,6 @@ DEPTH_FORMATS = ("png", "tif", "tiff")
 DEFAULT_DEPTH_SCALE = 0.001
 
 
-def parse_intrinsics(value: str | None) -> tuple[float, float, float, float] | None:
-    """'fx,fy,cx,cy' (pixels) -> four floats; None stays None."""
-    if value is None:
-        return None
-    try:
-        parts = tuple(float(p) for p in value.split(","))
-    except ValueError:
-        parts = ()
-    if len(parts) != 4 or not np.isfinite(parts).all() or parts[0] <= 0 or parts[1] <= 0:
-        raise InputError(f"--intrinsics must be fx,fy,cx,cy in pixels with fx, fy > 0, got {value!r}")
-    return parts  # type: ignore[return-value]
-
-
 def read_depth(data: bytes, name: str, intrinsics=None, depth_scale: float = DEFAULT_DEPTH_SCALE,
                color: bytes | None = None, color_name: str = "") -> PointCloud:
     """An organised PointCloud (grid_shape = image shape, viewpoint at the origin) from a depth image.
