@@ -267,7 +267,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
         else:
             normals, normal_source = cloud_normals(cloud, options)
     with timer.stage("frame"):
-        frame = choose_frame(cloud.points, normals, options.axis)
+        if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
+            frame = choose_frame(cloud.points, normals, options.axis)
         hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
     with timer.stage("gradients"):
         gradient_source = "heights" if heights_first else "normals"
