@@ -363,3 +363,86 @@ def test_curtain_noise_floor_is_the_exact_median_over_every_edge_once():
     assert noise_floor(xy, z, gradients, triangles) == expected
     shuffled = triangles[rng.permutation(len(triangles))][:, ::-1]
     assert noise_floor(xy, z, gradients, shuffled) == expected
+
+
+def _tile_rows_agree(report, level):
+    """The report's per-tile rows against the fit's own totals: one row per tile, every
+    tile's height-field points and owned triangles counted once (the faces are L^2 per
+    base triangle), every tile with a worker and its seconds."""
+    rows = report["tile_tasks"]
+    assert [r["tile"] for r in rows] == list(range(report["tiles"]))
+    assert sum(r["triangles"] for r in rows) * level * level == report["output_mesh"]["faces"]
+    assert report["points"]["kept"] <= sum(r["points"] for r in rows) <= report["points"]["read"]
+    assert all(r["worker"] and r["seconds"] > 0 for r in rows if r["triangles"])
+    return {p["worker"] for r in rows for p in r["passes"].values()}
+
+
+def test_tiled_fit_writes_the_same_bytes_wherever_its_tiles_run(tmp_path):
+    """The tile tasks (normals, triangulation, refinement) in this process, on a pool of
+    two processes (-j 2) and on a Dask LocalCluster of two workers (--scheduler) write
+    the same file, byte for byte; the report names the workers that ran each tile."""
+    distributed = pytest.importorskip("distributed")
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 4000, seed=3)
+    options = FitOptions(classes=[2], level=2)
+    here = fit_tiled(source, tmp_path / "here.ply", options, memory=10**9, per_tile=450)
+    assert here["tiles"] == 9
+    pool = fit_tiled(source, tmp_path / "pool.ply", options, memory=10**9, per_tile=450, jobs=2)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        dask = fit_tiled(source, tmp_path / "dask.ply", options, memory=10**9, per_tile=450,
+                         scheduler=cluster.scheduler_address)
+        dask_workers = set(cluster.scheduler.workers)
+    expected = (tmp_path / "here.ply").read_bytes()
+    assert (tmp_path / "pool.ply").read_bytes() == expected
+    assert (tmp_path / "dask.ply").read_bytes() == expected
+    here_workers, pool_workers = _tile_rows_agree(here, 2), _tile_rows_agree(pool, 2)
+    assert _tile_rows_agree(dask, 2) == dask_workers and len(dask_workers) == 2
+    assert len(here_workers) == 1 and len(pool_workers) == 2 and not here_workers & pool_workers
+    assert [r["triangles"] for r in pool["tile_tasks"]] == [r["triangles"] for r in here["tile_tasks"]]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dask.ply", "here.ply", "pool.ply", "terrain.las"]
+
+
+def _big_las(tmp_path):
+    """A LAS the CLI fits in 4 tiles under --memory 1M, and the arguments that do so."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 12000, seed=5)
+    return source, ["fit", str(source), "--classes", "2", "--level", "1", "--memory", "1M"]
+
+
+def test_cli_runs_tiles_on_jobs(tmp_path):
+    """`fit BIG.las --memory 1M -j 2` fits in tiles on two processes and writes what one
+    process writes."""
+    source, args = _big_las(tmp_path)
+    one = CliRunner().invoke(main, args + ["-o", str(tmp_path / "one.ply")])
+    two = CliRunner().invoke(main, args + ["-o", str(tmp_path / "two.ply"), "-j", "2",
+                                           "--report", str(tmp_path / "two.json")])
+    assert one.exit_code == 0 and two.exit_code == 0, one.output + two.output
+    assert (tmp_path / "one.ply").read_bytes() == (tmp_path / "two.ply").read_bytes()
+    report = json.loads((tmp_path / "two.json").read_text())
+    assert report["scheduler"] == "2 local processes"
+    assert len(_tile_rows_agree(report, 1)) == 2
+
+
+def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
+    """A tile whose task fails stops the fit with exit 1, one line naming the tile, and
+    no output (in this process and on a pool of two)."""
+    import c1mesh.tiled_fit as tiled_fit
+
+    source, args = _big_las(tmp_path)
+    real = tiled_fit._refine_tile
+
+    def failing(job, t, part):
+        if t == 2:
+            raise ValueError("no good")
+        return real(job, t, part)
+    monkeypatch.setattr(tiled_fit, "_refine_tile", failing)
+    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply")])
+    assert here.exit_code == 1
+    assert here.output.startswith("c1mesh: error: tile 2 (cell ") and here.output.endswith(": no good\n")
+    assert here.output.count("\n") == 1
+    monkeypatch.setattr(tiled_fit, "_refine_tile", tiled_fit._tile_heights)   # fails on every worker
+    pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "2"])
+    assert pool.exit_code == 1 and pool.output.startswith("c1mesh: error: tile ")
+    assert "_RefineJob" in pool.output and pool.output.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]

@@ -33,7 +33,7 @@ A tile needs its points only through `read(rectangle)`, so points may come from 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -546,7 +546,9 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
 
 
 def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_edge="auto",
-                     keep: Callable[[TilePass], object] = lambda p: p) -> tuple[float, list]:
+                     keep: Callable[[TilePass], object] = lambda p: p,
+                     passes: Callable[[float], Iterable[tuple[np.ndarray, object]]] | None = None
+                     ) -> tuple[float, list]:
     """The survey's Delaunay triangulation after the long-edge trim, tile by tile, with one
     triangulation per tile: (max_edge, [keep(pass) per tile]).
 
@@ -556,19 +558,25 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     case the median comes out above it); its TilePass holds triangles up to B, of which
     those with longest <= max_edge are the result. keep(pass) is what is kept per tile
     (the default keeps the pass; a caller short of memory writes it to disk and keeps a path).
+    passes(bound): instead of the tile loop here, the (short lengths, kept) of every tile's
+    tile_pass up to bound, in any order (the median does not depend on it), the kept list
+    in that order (c1mesh.tiled_fit runs the tiles as tasks this way).
     """
     from c1mesh.triangulation import AUTO_EDGE_FACTOR
 
     edges = 3 * count - 3 - len(hull.index)
     auto = isinstance(max_edge, str)
     bound = 2.0 * AUTO_EDGE_FACTOR * mean_spacing(grid.box, count) if auto else float(max_edge)
-    while True:
-        shorts, kept = [], []
+    def one_by_one(bound):
         for tile in range(len(grid)):
             result = tile_pass(read, grid, tile, bound, hull)
-            shorts.append(result.short)
-            result.short = None
-            kept.append(keep(result))
+            short, result.short = result.short, None
+            yield short, keep(result)
+    while True:
+        shorts, kept = [], []
+        for short, result in (passes or one_by_one)(bound):
+            shorts.append(short)
+            kept.append(result)
         if not auto:
             return bound, kept
         short = np.concatenate(shorts)

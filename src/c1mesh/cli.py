@@ -234,14 +234,17 @@ def main() -> None:
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
-              help="Parallel processes for several inputs.")
+              help="Parallel processes for several inputs, or for the tiles of --seamless -O "
+                   "and of a fit larger than --memory.")
 @click.option("--threads", type=click.IntRange(1, 1024), default=None,
               help="Threads in all (BLAS included); with --jobs N each process gets "
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")
 @click.option("--seamless", is_flag=True,
               help="Treat the inputs as one survey: -o writes one mesh, -O one mesh per input that "
                    "joins its neighbours exactly (docs/tiles.md).")
-@click.option("--scheduler", help="With --seamless -O: run the tiles on this Dask scheduler (tcp://HOST:PORT).")
+@click.option("--scheduler", help="With --seamless -O, or a fit larger than --memory: run the tiles on this "
+                                  "Dask scheduler (tcp://HOST:PORT); for the latter its workers must see "
+                                  "the output's folder (the spill files).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
@@ -300,7 +303,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
-        _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug)
+        _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug, jobs)
         return
     _fit_batch(pairs, targets[-1], options, report, jobs, quiet, verbose, debug)
 
@@ -341,8 +344,7 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
 def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                   scheduler, quiet, debug) -> None:
     """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
-    if scheduler and not output_dir:
-        raise click.UsageError("--scheduler needs --seamless -O DIR (one output per input)")
+
     if STDIO in inputs:
         raise click.UsageError("--seamless reads files, not stdin (-)")
     if output and output_dir:
@@ -458,18 +460,20 @@ def _check_stdout() -> None:
         raise InputError("Standard output is closed; c1mesh info prints its answer there.") from None
 
 
-def _run(src: str, target, options, on_stage=None) -> dict:
-    """Fit one input to one output (a path, or a file object then with options.output_format)."""
+def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None) -> dict:
+    """Fit one input to one output (a path, or a file object then with options.output_format);
+    an input fitted in tiles runs them on `jobs` local processes."""
     from c1mesh.pipeline import fit as fit_pipeline
     from c1mesh.tiled_fit import fit_tiled, needs_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
     if needs_tiles(source, options):          # larger than --memory allows: c1mesh.tiled_fit
-        return fit_tiled(source, target, options, options.memory, on_stage=on_stage)
+        return fit_tiled(source, target, options, options.memory, on_stage=on_stage, jobs=jobs,
+                         on_tile=on_tile)
     return fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
 
 
-def _fit_one(src, dst, targets, options, report, quiet, verbose, debug) -> None:
+def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int = 1) -> None:
     """Fit one input; the mesh and the report are committed together, or neither is."""
     from dataclasses import replace
 
@@ -484,10 +488,11 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug) -> None:
 
     def run(target):
         if not show:
-            return _run(src, target, options)
+            return _run(src, target, options, jobs=jobs)
         with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
                                item_show_func=lambda s: s) as bar:
-            return _run(src, target, options, on_stage=lambda name: bar.update(1, name))
+            return _run(src, target, options, on_stage=lambda name: bar.update(1, name), jobs=jobs,
+                        on_tile=lambda name, done, tiles: bar.update(0, f"{name}: tile {done} of {tiles}"))
     try:
         with Outputs() as outputs:
             if raster:      # c1mesh.raster writes the GeoTIFFs, each atomically

@@ -7,10 +7,10 @@ so workers need no shared file system.
 """
 from __future__ import annotations
 
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 from c1mesh.errors import InputError
-from c1mesh.tiles import TileResult, TileTask, run_tile, temp_path, tile_failure
+from c1mesh.tiles import TileError, TileResult, TileTask, run_tile, temp_path, tile_failure
 
 CONNECT_SECONDS = 30
 """How long to try reaching a --scheduler before giving up."""
@@ -127,3 +127,119 @@ def _run_on(client, tasks: Sequence[TileTask]) -> Iterator[TileResult]:
             yield result
     finally:
         client.cancel(list(pending))
+
+
+class TaskRunner:
+    """Where the tile tasks of a memory-bounded fit (c1mesh.tiled_fit) run, for all its
+    passes: in this process (jobs 1), on a local pool of `jobs` processes (LOCAL_POOL;
+    started by the forkserver, so a worker holds only what its tasks read, not a copy of
+    this process), or on the Dask cluster at `scheduler`. Use as a context manager; the
+    pool or cluster is started once and serves every `map`.
+
+    Tasks are module-level functions of picklable arguments (paths, small objects): they
+    read their inputs from files and write their outputs to files, so a remote worker
+    needs the same file system (the spill folder) as this process.
+    """
+
+    def __init__(self, scheduler: str | None = None, jobs: int = 1):
+        self.scheduler, self.jobs = scheduler, max(1, int(jobs))
+        self.pool = self.client = self.cluster = None
+
+    @property
+    def kind(self) -> str:
+        """How the tasks run, for the report."""
+        if self.scheduler is not None:
+            return self.scheduler
+        if self.jobs == 1:
+            return "in process"
+        return f"{self.jobs} local processes" if LOCAL_POOL == "processes" else f"LocalCluster of {self.jobs} workers"
+
+    @property
+    def workers(self) -> int:
+        """Tasks that run at once."""
+        if self.client is not None:
+            return max(1, sum(self.client.nthreads().values()))
+        return self.jobs
+
+    def __enter__(self) -> "TaskRunner":
+        if self.scheduler is not None:
+            from distributed import Client
+
+            try:
+                self.client = Client(self.scheduler, timeout=CONNECT_SECONDS)
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise InputError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from exc
+        elif self.jobs > 1 and LOCAL_POOL == "processes":
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("forkserver"))
+        elif self.jobs > 1:
+            from distributed import Client, LocalCluster
+
+            self.cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
+                                        dashboard_address=None)
+            self.client = Client(self.cluster)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for part in (self.client, self.cluster):
+            if part is not None:
+                part.close()
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+        self.pool = self.client = self.cluster = None
+
+    def map(self, function: Callable, count: int, arguments: Callable[[int], tuple],
+            name: Callable[[int], str]) -> Iterator[tuple[int, object]]:
+        """Yield (i, function(*arguments(i))) for i in range(count), in completion order.
+        A task that raises stops the run: tiles.TileError "tile NAME: ..." (name(i)), the
+        tasks not yet finished are cancelled."""
+        if self.pool is None and self.client is None:
+            for i in range(count):
+                try:
+                    result = function(*arguments(i))
+                except Exception as exc:  # noqa: BLE001 — any failure of a tile is named by its tile
+                    raise _failure(name(i), exc) from exc
+                yield i, result
+            return
+        pending: dict = {}
+        if self.pool is not None:
+            from concurrent.futures import FIRST_COMPLETED, wait
+
+            submit = lambda i: self.pool.submit(function, *arguments(i))          # noqa: E731
+            wait_some = lambda: wait(pending, return_when=FIRST_COMPLETED).done  # noqa: E731
+            failed = lambda future: future.exception()                          # noqa: E731
+        else:
+            from distributed import as_completed
+
+            completed = as_completed()
+
+            def submit(i):
+                future = self.client.submit(function, *arguments(i), pure=False, key=f"c1mesh-{name(i)}-{id(pending):x}-{i}")
+                completed.add(future)
+                return future
+            wait_some = lambda: [next(completed)]                                # noqa: E731
+            failed = lambda future: future.exception() if future.status == "error" else None  # noqa: E731
+        try:
+            for future, i in _windowed(count, _IN_FLIGHT * self.workers, pending, submit, wait_some):
+                exc = failed(future)
+                if exc is not None:
+                    raise _failure(name(i), exc)
+                yield i, future.result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+    def ordered(self, function: Callable, count: int, arguments: Callable[[int], tuple],
+                name: Callable[[int], str]) -> list:
+        """[function(*arguments(i)) for i in range(count)], run as `map` runs them."""
+        results: list = [None] * count
+        for i, result in self.map(function, count, arguments, name):
+            results[i] = result
+        return results
+
+
+def _failure(name: str, exc: BaseException) -> TileError:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return TileError(f"tile {name}: {text}")

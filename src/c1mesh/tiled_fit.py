@@ -42,6 +42,7 @@ the whole-survey refinement uses the edge's owner triangle: the two agree to rou
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import tempfile
@@ -214,6 +215,7 @@ class Colours:
         """Close the file after the first pass (later passes add nothing)."""
         if self._file is not None:
             self._file.close()
+            self._file = None                   # picklable: tasks read the colours file
         self._done = True
 
     @property
@@ -253,7 +255,9 @@ class _Temps:
 
 
 def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
-              on_stage: Callable[[str], None] | None = None, directory=None) -> dict:
+              on_stage: Callable[[str], None] | None = None, directory=None,
+              scheduler: str | None = None, jobs: int = 1,
+              on_tile: Callable[[str, int, int], None] | None = None) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output.
 
     options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
@@ -261,7 +265,15 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     budget in bytes, which sizes the tiles; per_tile: points per tile (overrides the
     budget, for tests); directory: where the temporary spill files go (default: beside a
     path output, else $TMPDIR). Returns a report dict (as pipeline.fit's, shorter).
+
+    The per-tile passes (normals, triangulation, refinement) run as tasks
+    (distributed.TaskRunner): here (jobs 1), on `jobs` local processes, each with
+    1 / jobs of the memory budget (the tiles are sized for it), or on the Dask cluster
+    at `scheduler` (each worker with the whole budget), whose workers must see
+    `directory`. The output bytes do not depend on where the tasks ran. on_tile(pass,
+    tiles done, tiles) is called as each tile's task of a pass finishes (progress).
     """
+    from c1mesh.distributed import TaskRunner
     from c1mesh.buffered_delaunay import TileGrid
     from c1mesh.survey_stats import streamed_frame
     from c1mesh.tile_spill import spill
@@ -282,6 +294,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     if directory is None:
         directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
     temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
+    stack = contextlib.ExitStack()
     try:
         colours = Colours(temps)
         chunks = CachedChunks(las_chunks(source, options.classes, colours=colours), temps)
@@ -292,15 +305,18 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if count < 3:
             raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
-        side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
+        share = jobs if scheduler is None else 1            # local workers split the budget
+        side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory // share)))))
         grid = TileGrid(box, side, side)
         done("frame")
+        runner = stack.enter_context(TaskRunner(scheduler, jobs))
+        rows = _TileRows(grid, _task_threads(options, runner), on_tile)
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
             done("spill")
-            heights = _height_spill(raw, grid, count, options, directory, temps.stem)
+            heights = _height_spill(raw, grid, count, options, directory, temps.stem, runner, rows)
         try:
             done("normals")
-            max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps)
+            max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps, runner, rows)
             done("triangulate")
             from c1mesh.tiled_limiter import HaloCache, RowMap, halo_reach, longest_final_edge
 
@@ -314,11 +330,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                 limiter = _Limiter(halos, temps)
                 done("noise floors")
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
-                                  output, temps, limiter, crs, colours)
+                                  output, temps, limiter, crs, colours, runner, rows)
             done("refine+write")
         finally:
             heights.close()
     finally:
+        stack.close()
         temps.close()
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output), "tiles": len(grid),
@@ -326,6 +343,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                 "(docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
                    "triangles": {"removed": removed, "max_edge": max_edge},
+                   "scheduler": runner.kind,
+                   "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = _describe_crs(crs, crs_source)
@@ -379,50 +398,132 @@ def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float]]:
     return count, (float(low[0]), float(low[1]), float(high[0]), float(high[1]))
 
 
-def _height_spill(raw, grid, count: int, options, directory, stem: str):
+def _height_spill(raw, grid, count: int, options, directory, stem: str, runner, rows: "_TileRows"):
     """Per tile: normals of its own points (tile_normals), then its height-field points
     (usable, not too steep, exact duplicate positions dropped), spilled to a new TileSpill
-    of HEIGHT records (entered; the caller closes it)."""
+    of HEIGHT records (entered; the caller closes it). Each tile is a task (`_tile_heights`)
+    that reads the raw spill and writes its own height file, run by runner
+    (distributed.TaskRunner)."""
     from c1mesh.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
-    from c1mesh.frame import _gradients
     from c1mesh.height_gradients import height_neighbours, use_height_gradients
-    from c1mesh.tile_normals import tile_height_normals, tile_normals
     from c1mesh.tile_spill import TileSpill
-
-    def read3(rect):
-        records = raw.records(rect)
-        return records["index"], np.column_stack([records["x"], records["y"], records["z"]])
 
     heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
     try:
-        cos_max = math.cos(math.radians(options.max_slope))
-        buffer = INITIAL_SPACINGS * mean_spacing(grid.box, count)
-        from_heights = use_height_gradients(getattr(options, "gradients", "auto"), "estimated")
-        for t in range(len(grid)):
-            if not raw.counts[t]:
-                continue
-            if from_heights:
-                result = tile_height_normals(read3, grid, t, height_neighbours(options.k), buffer)
-            else:
-                result = tile_normals(read3, grid, t, options.k, buffer, towards=(0.0, 0.0, 1.0))
-            own = raw.tile(t)                                     # survey order, as result.index
-            normals = result.normals
-            length = np.linalg.norm(normals, axis=1)
-            usable = np.isfinite(length) & (length > 0)
-            usable[usable] &= np.abs(normals[usable, 2] / length[usable]) >= cos_max
-            own, normals = own[usable], normals[usable]
-            first = _first_of_positions(own["x"], own["y"])
-            own, normals = own[first], normals[first]
-            gradients, _ = _gradients(normals)
-            records = np.empty(len(own), HEIGHT)
-            for name in ("index", "x", "y", "z"):
-                records[name] = own[name]
-            records["gx"], records["gy"] = gradients[:, 0], gradients[:, 1]
-            heights.append(t, records)
+        job = _HeightJob(raw, grid, options.k, height_neighbours(options.k), math.cos(math.radians(options.max_slope)),
+                         INITIAL_SPACINGS * mean_spacing(grid.box, count),
+                         use_height_gradients(getattr(options, "gradients", "auto"), "estimated"),
+                         rows.threads)
+        tiles = [t for t in range(len(grid)) if raw.counts[t]]
+        for i, row in runner.map(_tile_heights, len(tiles), lambda i: (job, tiles[i], heights.paths[tiles[i]]),
+                                 lambda i: rows.name(tiles[i])):
+            heights.counts[tiles[i]] = row.pop("points")
+            rows.add(tiles[i], "normals", row)
     except BaseException:
         heights.close()
         raise
     return heights
+
+
+class _HeightJob:
+    """What every tile's normals task shares (picklable): raw the raw TileSpill, the grid,
+    k (PCA neighbours), height_k (height-fit neighbours), cos_max (steepest normal
+    allowed), buffer (first read buffer, frame units), from_heights (normals fitted to the
+    heights, else PCA), threads per task (None: the process's setting)."""
+
+    def __init__(self, raw, grid, k, height_k, cos_max, buffer, from_heights, threads):
+        self.raw, self.grid, self.k, self.height_k, self.cos_max = raw, grid, k, height_k, cos_max
+        self.buffer, self.from_heights, self.threads = buffer, from_heights, threads
+
+    def read3(self, rect):
+        records = self.raw.records(rect)
+        return records["index"], np.column_stack([records["x"], records["y"], records["z"]])
+
+
+def _tile_heights(job: _HeightJob, t: int, path) -> dict:
+    """One tile's height-field records (HEIGHT) written to path; returns its report row
+    (points written, seconds, worker)."""
+    from c1mesh.frame import _gradients
+    from c1mesh.threads import limit
+    from c1mesh.tile_normals import tile_height_normals, tile_normals
+
+    start = time.perf_counter()
+    with limit(job.threads):
+        if job.from_heights:
+            result = tile_height_normals(job.read3, job.grid, t, job.height_k, job.buffer)
+        else:
+            result = tile_normals(job.read3, job.grid, t, job.k, job.buffer, towards=(0.0, 0.0, 1.0))
+        own = job.raw.tile(t)                                     # survey order, as result.index
+        normals = result.normals
+        length = np.linalg.norm(normals, axis=1)
+        usable = np.isfinite(length) & (length > 0)
+        usable[usable] &= np.abs(normals[usable, 2] / length[usable]) >= job.cos_max
+        own, normals = own[usable], normals[usable]
+        first = _first_of_positions(own["x"], own["y"])
+        own, normals = own[first], normals[first]
+        gradients, _ = _gradients(normals)
+        records = np.empty(len(own), HEIGHT)
+        for name in ("index", "x", "y", "z"):
+            records[name] = own[name]
+        records["gx"], records["gy"] = gradients[:, 0], gradients[:, 1]
+        with open(path, "wb") as file:
+            records.tofile(file)
+    return _row(len(records), start)
+
+
+def _row(points: int, start: float) -> dict:
+    """A task's report row: its points, seconds since start, the worker that ran it."""
+    from c1mesh.tiles import worker_address
+
+    return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address()}
+
+
+class _TileRows:
+    """The per-tile report rows of a tiled fit: for each tile, what each pass's task did
+    (seconds, worker), its height-field points and its final triangles; threads: the
+    threads each task may use (None: the process's setting)."""
+
+    def __init__(self, grid, threads, on_tile=None):
+        self.grid, self.threads, self.on_tile = grid, threads, on_tile
+        self.passes: dict[int, dict] = {}
+
+    def name(self, t: int) -> str:
+        """How a message names tile t: its number and cell (frame units)."""
+        x0, y0, x1, y1 = self.grid.cell(t)
+        return f"{t} (cell {x0:.2f}..{x1:.2f} x {y0:.2f}..{y1:.2f})"
+
+    def add(self, t: int, stage: str, row: dict) -> None:
+        self.passes.setdefault(t, {})[stage] = row
+        if self.on_tile:
+            done = sum(stage in passes for passes in self.passes.values())
+            self.on_tile(stage, done, len(self.grid))
+
+    def table(self, points: np.ndarray, triangles: dict) -> list[dict]:
+        """One row per tile: tile, cell, points (height field), triangles (owned final
+        base triangles), seconds (all its tasks), worker (of its last task), and per pass
+        the seconds and worker."""
+        out = []
+        for t in range(len(self.grid)):
+            passes = self.passes.get(t, {})
+            last = list(passes.values())[-1] if passes else {}
+            out.append({"tile": t, "cell": [round(c, 6) for c in self.grid.cell(t)],
+                        "points": int(points[t]), "triangles": int(triangles.get(t, 0)),
+                        "seconds": round(sum(p["seconds"] for p in passes.values()), 3),
+                        "worker": last.get("worker"),
+                        "passes": {k: {"seconds": p["seconds"], "worker": p["worker"]} for k, p in passes.items()}})
+        return out
+
+
+def _task_threads(options, runner) -> int | None:
+    """Threads each tile task may use: the fit's (options.workers; None: the process's
+    setting) in this process, shared by the local workers, one on a Dask worker."""
+    from c1mesh.threads import per_process
+
+    if runner.scheduler is not None:
+        return 1
+    if runner.jobs == 1:
+        return options.workers
+    return per_process(options.workers, runner.jobs)
 
 
 def _first_of_positions(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -433,47 +534,77 @@ def _first_of_positions(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.sort(order[new])
 
 
-def _triangulate(heights, grid, max_edge, temps):
-    """The survey's Delaunay triangulation with the long-edge trim, tile by tile:
-    (max_edge or None, per tile a .npy file of its owned triangles (survey numbers) or
-    None, per tile the buffer its corners lie within)."""
-    from c1mesh.buffered_delaunay import (INITIAL_SPACINGS, buffered_delaunay, mean_spacing,
-                                          streamed_hull, trimmed_delaunay)
+def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
+    """The survey's Delaunay triangulation with the long-edge trim, each tile a task
+    (`_tile_delaunay`, `_tile_trimmed`) that reads the height spill and writes its owned
+    triangles to a file: (max_edge or None, per tile a .npy file of its owned triangles
+    (survey numbers), per tile the buffer its corners lie within)."""
+    from c1mesh.buffered_delaunay import INITIAL_SPACINGS, mean_spacing, streamed_hull, trimmed_delaunay
 
     count = int(heights.counts.sum())
     if count < 3:
         raise InputError(f"only {count} points are left for the height field; need at least 3")
     hull = streamed_hull((r["index"], np.column_stack([r["x"], r["y"]]))
                          for r in (heights.tile(t) for t in range(len(grid))))
-    files: list = [None] * len(grid)
+    files = [temps.new(f"triangles-{t}.npy") for t in range(len(grid))]
     buffers = np.zeros(len(grid))
-
-    def save(tile, triangles, buffer):
-        path = temps.new(f"triangles-{tile}.npy")
-        with open(path, "wb") as file:
-            np.save(file, triangles)
-        files[tile], buffers[tile] = path, buffer
-
     if max_edge is None:
         first = INITIAL_SPACINGS * mean_spacing(grid.box, count)
-        for result in buffered_delaunay(heights.read, grid, count, first, hull):
-            save(result.tile, result.triangles, result.buffer)
+        for t, (buffer, row) in runner.map(_tile_delaunay, len(grid),
+                                           lambda t: (heights, grid, t, first, hull, files[t], rows.threads),
+                                           rows.name):
+            buffers[t] = buffer
+            rows.add(t, "triangulate", row)
         return None, files, buffers
-    longest: dict[int, Path] = {}
+    longest = [temps.new(f"longest-{t}.npy") for t in range(len(grid))]
 
-    def keep(result):
-        save(result.tile, result.triangles, result.buffer)
-        path = temps.new(f"longest-{result.tile}.npy")
-        np.save(open(path, "wb"), result.longest)
-        longest[result.tile] = path
-        return None
-    limit, _ = trimmed_delaunay(heights.read, grid, count, hull, max_edge, keep=keep)
-    for tile, path in longest.items():
-        triangles = np.load(files[tile])
-        short = np.load(path) <= limit
+    def passes(bound):
+        for t, (short, buffer, row) in runner.map(
+                _tile_trimmed, len(grid),
+                lambda t: (heights, grid, t, bound, hull, files[t], longest[t], rows.threads), rows.name):
+            buffers[t] = buffer
+            rows.add(t, "triangulate", row)
+            yield short, t
+    limit, _ = trimmed_delaunay(heights.read, grid, count, hull, max_edge, passes=passes)
+    for t in range(len(grid)):
+        triangles = np.load(files[t])
+        short = np.load(longest[t]) <= limit
         if not short.all():
-            np.save(open(files[tile], "wb"), triangles[short])
+            _save(files[t], triangles[short])
     return limit, files, buffers
+
+
+def _save(path, array: np.ndarray) -> None:
+    with open(path, "wb") as file:
+        np.save(file, array)
+
+
+def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) -> tuple[float, dict]:
+    """Tile t's final triangles (buffered_delaunay.tile_triangles) saved to path (.npy);
+    returns (its buffer, its report row)."""
+    from c1mesh.buffered_delaunay import tile_triangles
+    from c1mesh.threads import limit
+
+    start = time.perf_counter()
+    with limit(threads):
+        result = tile_triangles(heights.read, grid, t, buffer, hull)
+    _save(path, result.triangles)
+    return result.buffer, _row(result.read, start)
+
+
+def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path, threads):
+    """Tile t's triangles with edges up to bound (buffered_delaunay.tile_pass) saved to
+    path, their longest edges to longest_path; returns (its certified short edge lengths,
+    its buffer, its report row)."""
+    from c1mesh.buffered_delaunay import tile_pass
+    from c1mesh.threads import limit
+
+    start = time.perf_counter()
+    with limit(threads):
+        result = tile_pass(heights.read, grid, t, bound, hull)
+    _save(path, result.triangles)
+    _save(longest_path, result.longest)
+    return result.short, result.buffer, _row(result.read, start)
 
 
 def _trim(halos, grid, temps) -> dict[str, int]:
@@ -586,7 +717,8 @@ class _TrimState:
 
 class _Limiter:
     """The overshoot limiter over the tiles (c1mesh.tiled_limiter): the survey's noise
-    floors, found on construction, and each tile's limited data on demand."""
+    floors, found on construction; a refinement task (`_refine_tile`) limits its tile's
+    data from the cached halo (halos, picklable) and these floors."""
 
     def __init__(self, halos, temps):
         from c1mesh.tiled_limiter import noise_floors
@@ -599,62 +731,112 @@ class _Limiter:
         """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
         from c1mesh.tiled_limiter import tile_limits
 
-        result = tile_limits(self.halos.halo(tile), triangles, self.floors, self.halos.row_map)
-        self.limited += result.limited
-        self.turned += result.turned
-        return result
+        return tile_limits(self.halos.halo(tile), triangles, self.floors, self.halos.row_map)
 
     def report(self) -> dict:
         return {"gradients_limited": self.limited, "directions_changed": self.turned,
                 "noise_floors": [self.floors.first, self.floors.second]}
 
 
+class _RefineJob:
+    """What every tile's refinement task shares (picklable; the files it names are read
+    by the task): the height spill, grid, per tile its triangle file and buffer, max_edge,
+    frame, options, limiter (None: --overshoot off), colours, threads per task."""
+
+    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads):
+        self.heights, self.grid, self.files, self.buffers = heights, grid, triangle_files, buffers
+        self.max_edge, self.frame, self.scheme, self.level = max_edge, frame, options.scheme, options.level
+        self.limiter, self.colours, self.threads = limiter, colours, threads
+
+    def tile_data(self, t: int, triangles: np.ndarray):
+        """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
+        directions or None, limited, turned) of tile t's own triangles (survey numbers)."""
+        if self.limiter is not None:
+            limits = self.limiter.tile(t, triangles)
+            return (limits.records, limits.triangles, limits.gradients, limits.directions,
+                    limits.limited, limits.turned)
+        reach = (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
+        cell = self.grid.cell(t)
+        records = self.heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
+        corners = np.unique(triangles)
+        rows = np.searchsorted(records["index"], corners)
+        if np.any(rows >= len(records)) or np.any(records["index"][np.minimum(rows, len(records) - 1)] != corners):
+            raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
+        return records[rows], np.searchsorted(corners, triangles), None, None, 0, 0
+
+
+class _Part:
+    """The temporary files of one tile's refinement: vertices (all of its refinement's
+    output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
+    (.npz: the border keys of `_border_keys` and the points they name)."""
+
+    def __init__(self, temps, t: int):
+        self.vertices, self.faces = temps.new(f"part-{t}.vertices"), temps.new(f"part-{t}.faces")
+        self.keys = temps.new(f"part-{t}.keys")
+
+    def remove(self) -> None:
+        for path in (self.vertices, self.faces, self.keys):
+            path.unlink(missing_ok=True)
+
+
+def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
+    """Refine tile t's own triangles into its part files; returns its report row with
+    vertices, corners (input points among them, first), faces, triangles, limited,
+    turned, or None for a tile without triangles."""
+    from c1mesh.threads import limit
+
+    start = time.perf_counter()
+    triangles = np.load(job.files[t])
+    if not len(triangles):
+        return None
+    with limit(job.threads):
+        records, local, gradients, directions, limited, turned = job.tile_data(t, triangles)
+        colors = None if job.colours is None else job.colours.of(records["index"])
+        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors)
+    return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned,
+            **_row(len(records), start)}
+
+
 def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
                  limiter: "_Limiter | None" = None, crs: str | None = None,
-                 colours: Colours | None = None) -> dict:
-    """Refine each tile's owned triangles, numbering shared vertices globally (module
+                 colours: Colours | None = None, runner=None, rows: "_TileRows | None" = None) -> dict:
+    """Refine each tile's owned triangles (a task per tile, `_refine_tile`, writing part
+    files), then join the parts in tile order, numbering shared vertices globally (module
     docstring), into one vertex and one face file; then write the mesh from them."""
     from c1mesh.cloud import MeshStream
+    from c1mesh.distributed import TaskRunner
     from c1mesh.formats import write_mesh
     from c1mesh.threads import blas_threads
 
+    runner = runner or TaskRunner()
+    rows = rows or _TileRows(grid, options.workers)
+    coloured = colours is not None and colours.present
+    job = _RefineJob(heights, grid, triangle_files, buffers, max_edge, frame, options, limiter,
+                     colours if coloured else None, rows.threads)
+    tiles = [t for t in range(len(grid)) if triangle_files[t] is not None]
+    parts = {t: _Part(temps, t) for t in tiles}
     vertex_path, face_path = temps.new("vertices.bin"), temps.new("faces.bin")
-    shared: dict = {}
-    written = faces = kept = 0
+    join = _Join(VERTEX_RGB if coloured else VERTEX)
+    triangles_per_tile, ready, next_tile = {}, {}, 0
     with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file:
-        for t in range(len(grid)):
-            if triangle_files[t] is None:
-                continue
-            triangles = np.load(triangle_files[t])
-            if not len(triangles):
-                continue
-            if limiter is not None:
-                limits = limiter.tile(t, triangles)
-                added, new_corners, face_count = _write_tile(
-                    limits.records, limits.triangles, frame, options, shared, written, vertex_file,
-                    face_file, limits.gradients, limits.directions,
-                    None if colours is None else colours.of(limits.records["index"]))
-                written, kept, faces = written + added, kept + new_corners, faces + face_count
-                continue
-            reach = (max_edge if max_edge is not None else buffers[t]) * (1 + 1e-9)
-            cell = grid.cell(t)
-            records = heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
-            corners = np.unique(triangles)
-            rows = np.searchsorted(records["index"], corners)
-            if np.any(rows >= len(records)) or np.any(records["index"][np.minimum(rows, len(records) - 1)] != corners):
-                raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
-            records = records[rows]
-            local = np.searchsorted(corners, triangles)
-            added, new_corners, face_count = _write_tile(
-                records, local, frame, options, shared, written, vertex_file, face_file,
-                colors=None if colours is None else colours.of(records["index"]))
-            written += added
-            kept += new_corners
-            faces += face_count
+        for i, row in runner.map(_refine_tile, len(tiles), lambda i: (job, tiles[i], parts[tiles[i]]),
+                                 lambda i: rows.name(tiles[i])):
+            ready[i] = row
+            while next_tile in ready:                       # join in tile order, as soon as possible
+                t, row = tiles[next_tile], ready.pop(next_tile)
+                if row is not None:
+                    join.add(parts[t], row, vertex_file, face_file)
+                    triangles_per_tile[t] = row["triangles"]
+                    if limiter is not None:
+                        limiter.limited += row["limited"]
+                        limiter.turned += row["turned"]
+                    rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker")})
+                parts[t].remove()
+                next_tile += 1
+    written, faces = join.written, join.faces
     if faces == 0:
         raise InputError("no triangles are left after trimming; try --max-edge none")
     block = CHUNK
-    coloured = colours is not None and colours.present
 
     def vertex_blocks():
         with open(vertex_path, "rb") as file:
@@ -674,70 +856,119 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     with blas_threads(1):
         write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
                    options.output_format, ascii=options.ascii, crs=crs)
-    report = {"kept": kept, "output_mesh": {"vertices": written, "faces": faces},
-              "shared_vertex_keys": len(shared)}
+    report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
+              "shared_vertex_keys": len(join.shared), "triangles_per_tile": triangles_per_tile}
     if limiter is not None:
         report["overshoot"] = limiter.report()
     return report
 
 
-def _write_tile(records, triangles, frame, options, shared: dict, written: int,
-                vertex_file, face_file, gradients=None, directions=None, colors=None) -> tuple[int, int, int]:
+class _Join:
+    """The one vertex file and one face file made from the tiles' parts, in tile order:
+    a border vertex (key in `shared`) is written by the first tile that has it; written,
+    faces: counts so far; kept: input points among the vertices written."""
+
+    def __init__(self, dtype: np.dtype):
+        self.dtype, self.shared = dtype, {}
+        self.written = self.faces = self.kept = 0
+
+    def add(self, part: _Part, row: dict, vertex_file, face_file) -> None:
+        with open(part.keys, "rb") as file:
+            stored = np.load(file)
+            keys, points = _stored_keys(stored)
+        number = _global_numbers(keys, points, row["vertices"], self.shared, self.written)
+        new = number >= self.written
+        with open(part.vertices, "rb") as file:
+            position = 0
+            while True:
+                block = np.fromfile(file, self.dtype, count=CHUNK)
+                if not len(block):
+                    break
+                block[new[position:position + len(block)]].tofile(vertex_file)
+                position += len(block)
+        with open(part.faces, "rb") as file:
+            while True:
+                block = np.fromfile(file, "<i8", count=3 * CHUNK)
+                if not len(block):
+                    break
+                number.take(block).astype("<i8").tofile(face_file)
+        self.written += int(new.sum())
+        self.kept += int(new[:row["corners"]].sum())
+        self.faces += row["faces"]
+
+
+def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,
+                colors=None) -> dict:
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
-    append its new vertices and its faces (global numbers); returns (vertices written,
-    of which input points, faces written). gradients (n, 2) and directions (E, 2): the
-    limiter's (None: the records' gradients, unit-normal directions); colors (n, 3) uint8
-    of the records, or None."""
+    write all its output points (world position, normal, colour), its faces (tile-local
+    numbers) and its border keys to its part files; returns {vertices, corners, faces}.
+    gradients (n, 2) and directions (E, 2): the limiter's (None: the records' gradients,
+    unit-normal directions); colors (n, 3) uint8 of the records, or None."""
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.pipeline import surface_stream
 
     xy = np.column_stack([records["x"], records["y"]])
     if gradients is None:
         gradients = np.column_stack([records["gx"], records["gy"]])
-    interp = RSDInterpolator(xy, records["z"], gradients, triangles=triangles, scheme=options.scheme,
+    interp = RSDInterpolator(xy, records["z"], gradients, triangles=triangles, scheme=scheme,
                              directions=directions)
-    refinement = interp.refinement(options.level)
-    number = _global_numbers(refinement, records["index"], shared, written)
-    new = number >= written
+    refinement = interp.refinement(level)
+    with open(part.keys, "wb") as file:
+        np.savez(file, **_border_keys(refinement, records["index"]))
     stream = surface_stream(refinement, frame, colors)
-    position = 0
-    for vertices, normals, blended in stream.vertex_blocks():
-        keep = new[position:position + len(vertices)]
-        position += len(vertices)
-        out = np.empty(int(keep.sum()), VERTEX if colors is None else VERTEX_RGB)
-        out["v"], out["n"] = vertices[keep], normals[keep]
-        if colors is not None:
-            out["c"] = blended[keep]
-        out.tofile(vertex_file)
-    for faces in stream.face_blocks():
-        number.take(faces).astype("<i8").tofile(face_file)
-    return int(new.sum()), int(new[:len(records)].sum()), int(stream.face_count)
+    with open(part.vertices, "wb") as file:
+        for vertices, normals, blended in stream.vertex_blocks():
+            out = np.empty(len(vertices), VERTEX if colors is None else VERTEX_RGB)
+            out["v"], out["n"] = vertices, normals
+            if colors is not None:
+                out["c"] = blended
+            out.tofile(file)
+    with open(part.faces, "wb") as file:
+        for faces in stream.face_blocks():
+            np.asarray(faces, dtype="<i8").tofile(file)
+    return {"vertices": int(refinement.vertex_count), "corners": len(records), "faces": int(stream.face_count)}
 
 
-def _global_numbers(refinement, survey: np.ndarray, shared: dict, written: int) -> np.ndarray:
-    """(M,) the global number of each of the tile refinement's output points: a shared
-    key already in `shared` keeps its number; every other point gets the next new number
-    (written, written + 1, ... in output order), and new shared keys are added."""
+def _border_keys(refinement, survey: np.ndarray) -> dict[str, np.ndarray]:
+    """The keys of the tile refinement's output points that may be shared with another
+    tile (module docstring), as arrays: corner_keys (c,) survey numbers and corner_points
+    (c,) their output points; edge_keys (e, 3) (lower end, higher end, position from the
+    lower end) and edge_points (e,)."""
     table, L = refinement.table, refinement.level
     border = np.flatnonzero(table.count == 1)                  # edges of one owned triangle
-    keys: list = []
-    points: list = []
     ends = table.edges[border]
-    for corner in np.unique(ends):
-        keys.append(int(survey[corner]))
-        points.append(int(corner))
-    if L > 1:
+    corners = np.unique(ends)
+    edge_keys, edge_points = np.empty((0, 3), np.int64), np.empty(0, np.int64)
+    if L > 1 and len(border):
         code = refinement.edge_code[border]
-        first, forward = code >> 1, (code & 1).astype(bool)
-        for e, start, fwd in zip(range(len(border)), first.tolist(), forward.tolist()):
-            a, b = int(survey[ends[e, 0]]), int(survey[ends[e, 1]])
-            for j in range(L - 1):
-                keys.append((a, b, j if fwd else L - 2 - j))
-                points.append(start + j)
-    number = np.full(refinement.vertex_count, -1, dtype=np.int64)
-    known = [(p, shared[k]) for k, p in zip(keys, points) if k in shared]
-    for p, n in known:
-        number[p] = n
+        first, forward = (code >> 1).astype(np.int64), (code & 1).astype(bool)
+        j = np.arange(L - 1)
+        a = np.repeat(survey[ends[:, 0]].astype(np.int64), L - 1)
+        b = np.repeat(survey[ends[:, 1]].astype(np.int64), L - 1)
+        step = np.tile(j, len(border))
+        position = np.where(np.repeat(forward, L - 1), step, L - 2 - step)
+        edge_keys = np.column_stack([a, b, position])
+        edge_points = (np.repeat(first, L - 1) + step).astype(np.int64)
+    return {"corner_keys": survey[corners].astype(np.int64), "corner_points": corners.astype(np.int64),
+            "edge_keys": edge_keys, "edge_points": edge_points}
+
+
+def _stored_keys(stored) -> tuple[list, list]:
+    """The border keys and their points (`_border_keys`, from its .npz) as the lists
+    `_global_numbers` takes: corners first (int keys), then edge points (tuple keys)."""
+    keys = stored["corner_keys"].tolist() + [tuple(k) for k in stored["edge_keys"].tolist()]
+    points = stored["corner_points"].tolist() + stored["edge_points"].tolist()
+    return keys, points
+
+
+def _global_numbers(keys: list, points: list, vertex_count: int, shared: dict, written: int) -> np.ndarray:
+    """(M,) the global number of each of a tile refinement's M output points: a shared
+    key already in `shared` keeps its number; every other point gets the next new number
+    (written, written + 1, ... in output order), and new shared keys are added."""
+    number = np.full(vertex_count, -1, dtype=np.int64)
+    for k, p in zip(keys, points):
+        if k in shared:
+            number[p] = shared[k]
     new = number < 0
     number[new] = written + np.arange(int(new.sum()))
     for k, p in zip(keys, points):

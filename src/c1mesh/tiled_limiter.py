@@ -102,6 +102,12 @@ class RowMap:
     def __init__(self, count: int):
         self.table = np.full(count, -1, dtype=np.int32)
 
+    def __getstate__(self) -> dict:
+        return {"count": len(self.table)}        # a task gets an empty table of its own
+
+    def __setstate__(self, state: dict) -> None:
+        self.table = np.full(state["count"], -1, dtype=np.int32)
+
     @contextmanager
     def holding(self, index: np.ndarray):
         """Within the block, `rows` finds the rows of `index` (survey numbers)."""

@@ -427,8 +427,12 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         if output is None:
             raise InputError("the survey is larger than --memory allows in one piece; the memory-bounded "
                              "fit writes one mesh: use --seamless -o, or raise --memory")
-        report = fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage)
-        return report
+        return fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage,
+                         scheduler=scheduler, jobs=jobs)
+    if scheduler is not None and output is not None:
+        raise InputError(f"--scheduler runs the tiles of --seamless -O, or of a fit larger than --memory "
+                         f"allows; {sources[0]} is fitted in memory in one piece: drop --scheduler, "
+                         "or use -O DIR")
     timer = _Timer(None)
     with timer.stage("read"):
         survey = load_survey(sources, options)
