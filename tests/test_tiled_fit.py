@@ -446,3 +446,28 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     assert pool.exit_code == 1 and pool.output.startswith("c1mesh: error: tile ")
     assert "_RefineJob" in pool.output and pool.output.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+
+
+@pytest.mark.slow
+def test_cli_sends_tiles_to_a_scheduler(tmp_path):
+    """`fit BIG.las --memory 1M --scheduler ADDR -o out.ply` runs the tiles on the cluster
+    (both workers named in the report) and writes what a local run writes; an input that
+    fits in memory is refused with --scheduler (nothing would go to the cluster)."""
+    distributed = pytest.importorskip("distributed")
+    source, args = _big_las(tmp_path)
+    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "here.ply")])
+    assert here.exit_code == 0, here.output
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        sent = CliRunner().invoke(main, args + ["-o", str(tmp_path / "dask.ply"), "--scheduler",
+                                                cluster.scheduler_address, "--report", str(tmp_path / "r.json")])
+        small = CliRunner().invoke(main, args[:-2] + ["-o", str(tmp_path / "small.ply"), "--scheduler",
+                                                      cluster.scheduler_address])
+        workers = set(cluster.scheduler.workers)
+    assert sent.exit_code == 0, sent.output
+    assert (tmp_path / "dask.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["scheduler"] == cluster.scheduler_address
+    assert _tile_rows_agree(report, 1) == workers and len(workers) == 2
+    assert small.exit_code == 1 and "--scheduler" in small.output and "in memory" in small.output
+    assert not (tmp_path / "small.ply").exists()

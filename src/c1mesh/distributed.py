@@ -1,9 +1,12 @@
-"""Running tile tasks (c1mesh.tiles.TileTask) in this process or on Dask.
+"""Running tile tasks in this process, on a local pool, or on Dask (TaskRunner, the one
+executor choice): the seamless fit's (c1mesh.tiles.TileTask, run_tiles) and the
+memory-bounded fit's passes (c1mesh.tiled_fit).
 
 Each tile is one task; its result depends only on the task, never on where or in which
 order it ran, so the written bytes do not depend on the scheduler or the worker count.
-Results are handed back to the caller as they complete; it writes them (tiles.write_tiles),
-so workers need no shared file system.
+A seamless tile's result comes back to the caller, which writes it (tiles.write_tiles), so
+its workers need no shared file system; a memory-bounded fit's tasks read and write spill
+files, so its workers must see the folder they are in.
 """
 from __future__ import annotations
 
@@ -41,22 +44,9 @@ def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
         for task in tasks:
             yield _run_here(task)
         return
-    if scheduler is None and LOCAL_POOL == "processes":
-        yield from _run_in_pool(tasks, jobs)
-        return
-    from distributed import Client, LocalCluster
-
-    if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout=CONNECT_SECONDS)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from exc
-        with client:
-            yield from _run_on(client, tasks)
-        return
-    with LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
-        yield from _run_on(client, tasks)
+    with TaskRunner(scheduler, jobs, start_method=None, scatter=True) as runner:
+        for _, result in runner.map(run_tile, len(tasks), lambda i: (tasks[i],), lambda i: tasks[i].name):
+            yield result
 
 
 def _run_here(task: TileTask) -> TileResult:
@@ -86,63 +76,22 @@ def _windowed(count: int, window: int, pending: dict, submit, wait_some) -> Iter
             yield future, pending.pop(future)
 
 
-def _run_in_pool(tasks: Sequence[TileTask], jobs: int) -> Iterator[TileResult]:
-    """The tasks on a ProcessPoolExecutor of `jobs` processes, yielded as they complete."""
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    pending: dict = {}
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        try:
-            for future, i in _windowed(len(tasks), _IN_FLIGHT * jobs, pending,
-                                       lambda i: pool.submit(run_tile, tasks[i]),
-                                       lambda: wait(pending, return_when=FIRST_COMPLETED).done):
-                if future.exception() is not None:
-                    raise tile_failure(tasks[i], future.exception())
-                yield future.result()
-        finally:
-            for future in pending:
-                future.cancel()
-
-
-def _run_on(client, tasks: Sequence[TileTask]) -> Iterator[TileResult]:
-    """Submit the tasks to client (a few per worker at a time), yield results as they complete."""
-    from distributed import as_completed
-
-    workers = max(1, sum(client.nthreads().values()))
-    pending: dict = {}
-    completed = as_completed()
-
-    def submit(i: int):
-        data = client.scatter(tasks[i], hash=False)   # the arrays travel as data, not in the graph
-        future = client.submit(run_tile, data, key=f"c1mesh-tile-{i}-{id(tasks):x}", pure=False)
-        completed.add(future)
-        return future
-    try:
-        for future, i in _windowed(len(tasks), _IN_FLIGHT * workers, pending, submit,
-                                   lambda: [next(completed)]):
-            if future.status == "error":
-                raise tile_failure(tasks[i], future.exception())
-            result = future.result()
-            future.release()
-            yield result
-    finally:
-        client.cancel(list(pending))
-
-
 class TaskRunner:
-    """Where the tile tasks of a memory-bounded fit (c1mesh.tiled_fit) run, for all its
-    passes: in this process (jobs 1), on a local pool of `jobs` processes (LOCAL_POOL;
-    started by the forkserver, so a worker holds only what its tasks read, not a copy of
-    this process), or on the Dask cluster at `scheduler`. Use as a context manager; the
-    pool or cluster is started once and serves every `map`.
+    """Where tile tasks run: in this process (jobs 1), on a local pool of `jobs`
+    processes or a LocalCluster (LOCAL_POOL), or on the Dask cluster at `scheduler`. Use
+    as a context manager; the pool or cluster is started once and serves every `map`
+    (a memory-bounded fit, c1mesh.tiled_fit, maps each of its passes over the tiles).
 
-    Tasks are module-level functions of picklable arguments (paths, small objects): they
-    read their inputs from files and write their outputs to files, so a remote worker
-    needs the same file system (the spill folder) as this process.
+    start_method: how the pool starts its processes (multiprocessing; None: the
+    platform's default). The memory-bounded fit uses "forkserver", so a worker holds only
+    what its tasks read, not a copy of this process's pages. scatter: send each task's
+    arguments to Dask as data (large arrays), not inside the task graph.
     """
 
-    def __init__(self, scheduler: str | None = None, jobs: int = 1):
+    def __init__(self, scheduler: str | None = None, jobs: int = 1, start_method: str | None = "forkserver",
+                 scatter: bool = False):
         self.scheduler, self.jobs = scheduler, max(1, int(jobs))
+        self.start_method, self.scatter = start_method, scatter
         self.pool = self.client = self.cluster = None
 
     @property
@@ -173,7 +122,7 @@ class TaskRunner:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("forkserver"))
+            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context(self.start_method))
         elif self.jobs > 1:
             from distributed import Client, LocalCluster
 
@@ -216,7 +165,10 @@ class TaskRunner:
             completed = as_completed()
 
             def submit(i):
-                future = self.client.submit(function, *arguments(i), pure=False, key=f"c1mesh-{name(i)}-{id(pending):x}-{i}")
+                data = arguments(i)
+                if self.scatter:                 # the arrays travel as data, not in the graph
+                    data = [self.client.scatter(a, hash=False) for a in data]
+                future = self.client.submit(function, *data, pure=False, key=f"c1mesh-tile-{i}-{id(pending):x}")
                 completed.add(future)
                 return future
             wait_some = lambda: [next(completed)]                                # noqa: E731
@@ -226,18 +178,16 @@ class TaskRunner:
                 exc = failed(future)
                 if exc is not None:
                     raise _failure(name(i), exc)
-                yield i, future.result()
+                result = future.result()
+                if self.client is not None:
+                    future.release()
+                yield i, result
         finally:
-            for future in pending:
-                future.cancel()
-
-    def ordered(self, function: Callable, count: int, arguments: Callable[[int], tuple],
-                name: Callable[[int], str]) -> list:
-        """[function(*arguments(i)) for i in range(count)], run as `map` runs them."""
-        results: list = [None] * count
-        for i, result in self.map(function, count, arguments, name):
-            results[i] = result
-        return results
+            if self.client is not None:
+                self.client.cancel(list(pending))
+            else:
+                for future in pending:
+                    future.cancel()
 
 
 def _failure(name: str, exc: BaseException) -> TileError:
