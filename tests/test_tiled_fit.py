@@ -255,6 +255,11 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
 
 
 def test_memory_rule():
+    from c1mesh.tiled_fit import grid_side
+
+    assert grid_side(2_000_000, 10**9) == 4                  # 138,888 points a tile at most
+    assert grid_side(2_000_000, 10**9, workers=2) == grid_side(2_000_000, 10**9 // 2) == 6
+    assert grid_side(2_000_000, 10**9, per_tile=10**6) == 2
     assert fits_in_memory(1_000_000, 2 * 10**9)
     assert not fits_in_memory(12_000_000, 2 * 10**9)
     assert fits_in_memory(10**9, None)
@@ -411,12 +416,12 @@ def _big_las(tmp_path):
 
 
 def test_cli_runs_tiles_on_jobs(tmp_path):
-    """`fit BIG.las --memory 1M -j 2` fits in tiles on two processes and writes what one
-    process writes."""
+    """`fit BIG.las --memory 2M -j 2` fits in tiles on two processes, each with half the
+    budget, and writes what one process writes with that half (the same tiles)."""
     source, args = _big_las(tmp_path)
     one = CliRunner().invoke(main, args + ["-o", str(tmp_path / "one.ply")])
-    two = CliRunner().invoke(main, args + ["-o", str(tmp_path / "two.ply"), "-j", "2",
-                                           "--report", str(tmp_path / "two.json")])
+    two = CliRunner().invoke(main, args[:-1] + ["2M", "-o", str(tmp_path / "two.ply"), "-j", "2",
+                                                "--report", str(tmp_path / "two.json")])
     assert one.exit_code == 0 and two.exit_code == 0, one.output + two.output
     assert (tmp_path / "one.ply").read_bytes() == (tmp_path / "two.ply").read_bytes()
     report = json.loads((tmp_path / "two.json").read_text())

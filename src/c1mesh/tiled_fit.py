@@ -85,6 +85,15 @@ def points_per_tile(memory: int) -> int:
     return max(10_000, int(memory // (BYTES_PER_POINT * TILE_SHARE)))
 
 
+def grid_side(count: int, memory: int, workers: int = 1, per_tile: int | None = None) -> int:
+    """Tiles along each side of the square grid for count points: each of `workers`
+    local workers running a tile at once gets 1 / workers of the memory budget (bytes),
+    so its tiles hold at most points_per_tile(memory // workers) points; per_tile
+    overrides that (tests). The grid, and so the output bytes, depend on the budget per
+    worker only, not on where the tiles run."""
+    return max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory // max(1, workers))))))
+
+
 def needs_tiles(source, options) -> bool:
     """True when `source` (a LAS/LAZ path, or a list of them: one survey) holds more points,
     by the headers, than the in-memory fit can take within options.memory bytes
@@ -305,8 +314,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if count < 3:
             raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
-        share = jobs if scheduler is None else 1            # local workers split the budget
-        side = max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory // share)))))
+        side = grid_side(count, memory, jobs if scheduler is None else 1, per_tile)
         grid = TileGrid(box, side, side)
         done("frame")
         runner = stack.enter_context(TaskRunner(scheduler, jobs))
@@ -472,10 +480,15 @@ def _tile_heights(job: _HeightJob, t: int, path) -> dict:
 
 
 def _row(points: int, start: float) -> dict:
-    """A task's report row: its points, seconds since start, the worker that ran it."""
+    """A task's report row: its points, seconds since start, the worker that ran it and
+    that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
+    interpreter's own)."""
+    import resource
+
     from c1mesh.tiles import worker_address
 
-    return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address()}
+    return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address(),
+            "worker_peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
 
 
 class _TileRows:
@@ -501,7 +514,7 @@ class _TileRows:
     def table(self, points: np.ndarray, triangles: dict) -> list[dict]:
         """One row per tile: tile, cell, points (height field), triangles (owned final
         base triangles), seconds (all its tasks), worker (of its last task), and per pass
-        the seconds and worker."""
+        the seconds, worker and its peak RSS so far (MB)."""
         out = []
         for t in range(len(self.grid)):
             passes = self.passes.get(t, {})
@@ -510,7 +523,8 @@ class _TileRows:
                         "points": int(points[t]), "triangles": int(triangles.get(t, 0)),
                         "seconds": round(sum(p["seconds"] for p in passes.values()), 3),
                         "worker": last.get("worker"),
-                        "passes": {k: {"seconds": p["seconds"], "worker": p["worker"]} for k, p in passes.items()}})
+                        "passes": {k: {key: p[key] for key in ("seconds", "worker", "worker_peak_mb")}
+                                   for k, p in passes.items()}})
         return out
 
 
@@ -830,7 +844,7 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                     if limiter is not None:
                         limiter.limited += row["limited"]
                         limiter.turned += row["turned"]
-                    rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker")})
+                    rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
                 parts[t].remove()
                 next_tile += 1
     written, faces = join.written, join.faces
