@@ -567,11 +567,13 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     edges = 3 * count - 3 - len(hull.index)
     auto = isinstance(max_edge, str)
     bound = 2.0 * AUTO_EDGE_FACTOR * mean_spacing(grid.box, count) if auto else float(max_edge)
+
     def one_by_one(bound):
         for tile in range(len(grid)):
             result = tile_pass(read, grid, tile, bound, hull)
             short, result.short = result.short, None
             yield short, keep(result)
+
     while True:
         shorts, kept = [], []
         for short, result in (passes or one_by_one)(bound):

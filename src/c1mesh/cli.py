@@ -344,7 +344,6 @@ def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, s
 def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                   scheduler, quiet, debug) -> None:
     """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
-
     if STDIO in inputs:
         raise click.UsageError("--seamless reads files, not stdin (-)")
     if output and output_dir:
