@@ -5,8 +5,12 @@
     survey-wide) → sliver peel, bow-ties, curtains (c1mesh.tiled_trim) → the limiter's two noise floors
     (two passes: c1mesh.tiled_limiter)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
-    its owned triangles → refine → append to one vertex file and one face file → one
-    mesh file
+    its owned triangles → refine → a part file → the parts joined in tile order into one
+    vertex file and one face file → one mesh file
+
+The three "per tile" passes are tasks (distributed.TaskRunner: this process, -j local
+processes or a Dask cluster) that read the spill files and write their results to files;
+the rest runs here. Nothing of the output depends on where the tasks ran.
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.survey_stats,
 tile_spill, tile_normals, buffered_delaunay, tiled_limiter), so the surface equals the
