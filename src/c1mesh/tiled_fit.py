@@ -8,9 +8,11 @@
     its owned triangles → refine → a part file → the parts joined in tile order into one
     vertex file and one face file → one mesh file
 
-The three "per tile" passes are tasks (distributed.TaskRunner: this process, -j local
-processes or a Dask cluster) that read the spill files and write their results to files;
-the rest runs here. Nothing of the output depends on where the tasks ran.
+The "per tile" passes, the first read of every tile's halo and the noise floors'
+residuals are tasks (distributed.TaskRunner: this process, -j local processes or a Dask
+cluster) that read the spill files and write their results to files; the rest (frame,
+spill, hull, the trim's peel and bow-tie rounds, the medians, the join) runs here.
+Nothing of the output depends on where the tasks ran.
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.survey_stats,
 tile_spill, tile_normals, buffered_delaunay, tiled_limiter), so the surface equals the
@@ -335,11 +337,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), RowMap(count), temps)
+            halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             removed = _trim(halos, grid, temps)
             done("trim")
             limiter = None
             if options.overshoot == "limit":
-                limiter = _Limiter(halos, temps)
+                limiter = _Limiter(halos, temps, runner, rows.name)
                 done("noise floors")
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
                                   output, temps, limiter, crs, colours, runner, rows)
@@ -738,11 +741,12 @@ class _Limiter:
     floors, found on construction; a refinement task (`_refine_tile`) limits its tile's
     data from the cached halo (halos, picklable) and these floors."""
 
-    def __init__(self, halos, temps):
-        from c1mesh.tiled_limiter import noise_floors
+    def __init__(self, halos, temps, runner=None, name=str):
+        from c1mesh.distributed import TaskRunner
+        from c1mesh.tiled_limiter import noise_floors_on
 
         self.halos = halos
-        self.floors = noise_floors(halos.halos, temps)
+        self.floors = noise_floors_on(halos, temps, runner or TaskRunner(), name)
         self.limited = self.turned = 0
 
     def tile(self, tile: int, triangles: np.ndarray):

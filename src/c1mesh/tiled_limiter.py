@@ -33,6 +33,7 @@ does not depend on that sign).
 """
 from __future__ import annotations
 
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable
@@ -169,6 +170,18 @@ class HaloCache:
         own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
         return self._drop(Halo(records, triangles, own))
 
+    def prefetch(self, runner, name=str, on_done=None) -> None:
+        """Read every tile's halo and cache it, each tile a task on runner
+        (distributed.TaskRunner; `cache_halo`), before the passes that use them.
+        name(t) names tile t in errors; on_done(t, row) gets each task's report row."""
+        tiles = [t for t in self.tiles() if t not in self.paths]
+        paths = {t: (self.temps.new(f"halo-{t}.records"), self.temps.new(f"halo-{t}.triangles")) for t in tiles}
+        for i, row in runner.map(cache_halo, len(tiles), lambda i: (self, tiles[i], paths[tiles[i]]),
+                                 lambda i: name(tiles[i])):
+            self.paths[tiles[i]] = paths[tiles[i]]
+            if on_done:
+                on_done(tiles[i], row)
+
     def prune(self) -> None:
         """Rewrite the cached halos without the removed triangles, once the trim is done
         (and the tiles' triangle files without them), so later passes need not drop them."""
@@ -188,6 +201,18 @@ class HaloCache:
         survey = halo.records["index"][halo.triangles]
         kept = drop_triangles(np.column_stack([survey, np.arange(len(survey))]), self.removed, columns=3)
         return Halo(halo.records, halo.triangles[kept[:, 3]], halo.own)
+
+
+def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
+    """Read tile's halo (read_halo) and write it to paths (records, triangles), as
+    HaloCache.halo caches it; returns a report row (points, seconds, worker)."""
+    from c1mesh.tiled_fit import _row
+
+    start = time.perf_counter()
+    halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach, cache.row_map)
+    halo.records.tofile(paths[0])
+    halo.triangles.astype("<i8").tofile(paths[1])
+    return _row(len(halo.records), start)
 
 
 def _compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -235,6 +260,51 @@ def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
     second = edge_floor(halos, temps, "second", lambda halo, edges: reconcile(
         halo.points, halo.records["z"], halo.gradients, edges, first)[0])
     return NoiseFloors(first, second)
+
+
+def noise_floors_on(cache: HaloCache, temps, runner, name=str) -> NoiseFloors:
+    """noise_floors with each tile's residuals a task on runner (distributed.TaskRunner;
+    `tile_residuals`) writing its own file: the same two medians, to the bit (the median
+    does not depend on the order of the values). cache: a HaloCache holding every halo
+    (after prune); name(t) names tile t in errors."""
+    first = _floor_on(cache, temps, runner, name, "first", None)
+    return NoiseFloors(first, _floor_on(cache, temps, runner, name, "second", first))
+
+
+def _floor_on(cache: HaloCache, temps, runner, name, label: str, reconciled_with: float | None) -> float:
+    from c1mesh.streamed_median import streamed_median
+
+    tiles = cache.tiles()
+    paths = [temps.new(f"residuals-{label}-{t}.bin") for t in tiles]
+    for _ in runner.map(tile_residuals, len(tiles), lambda i: (cache, tiles[i], reconciled_with, paths[i]),
+                        lambda i: name(tiles[i])):
+        pass
+
+    def blocks():
+        for path in paths:
+            yield from _float_blocks(path)
+    median = streamed_median(blocks)
+    for path in paths:
+        path.unlink()
+    return median
+
+
+def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, path) -> None:
+    """Write to path the |trapezoid residual| of every final edge whose lower end lies in
+    tile's cell (edge_floor's values for that tile): with the height field's gradients,
+    or, given the first noise floor, with the gradients reconciled with it."""
+    from c1mesh.topology import edge_table
+
+    halo = cache.halo(tile)
+    residuals = np.empty(0)
+    if len(halo.triangles):
+        edges = edge_table(halo.triangles, len(halo.records)).edges
+        mine = edges[halo.own[edges[:, 0]]]                  # lower end in the cell
+        gradients = halo.gradients
+        if reconciled_with is not None:
+            gradients = reconcile(halo.points, halo.records["z"], gradients, edges, reconciled_with)[0]
+        residuals = edge_residuals(halo.points, halo.records["z"], gradients, mine)
+    residuals.astype("<f8").tofile(path)
 
 
 def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors, row_map: RowMap) -> TileLimits:
