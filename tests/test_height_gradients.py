@@ -126,6 +126,31 @@ def test_gradients_do_not_depend_on_point_numbering_or_far_points(k):
         np.testing.assert_array_equal(got, reference[origin])
 
 
+def test_a_stack_larger_than_the_first_query_is_still_order_free():
+    """40 points at one plane position (a vertical stack; more than the k + 1 + TIE_EXTRA
+    candidates the first query returns, so the query must grow): each stacked point's
+    neighbours are the other 39, by height, and its gradient does not depend on the
+    numbering; the grid points' gradients neither."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.height_gradients import TIE_EXTRA, nearest_neighbours
+
+    xy, z = _grid_with_ties(2)
+    stack = 40
+    assert stack > 6 + 1 + TIE_EXTRA
+    xy = np.concatenate([xy, np.tile([[0.5, 0.5]], (stack, 1))])
+    z = np.concatenate([z, np.random.default_rng(3).normal(size=stack)])
+    first = len(xy) - stack
+    index, _ = nearest_neighbours(cKDTree(xy), xy, z, np.array([first]), 6)
+    others = np.arange(first + 1, len(xy))
+    np.testing.assert_array_equal(index[0], others[np.argsort(z[others])][:6])
+    reference = height_gradients(xy, z, k=6)
+    assert np.isfinite(reference).all()
+    for seed in range(3):
+        shuffle = np.random.default_rng(seed).permutation(len(xy))
+        np.testing.assert_array_equal(height_gradients(xy[shuffle], z[shuffle], k=6), reference[shuffle])
+
+
 def test_bad_input_is_refused():
     with pytest.raises(InputError):
         height_gradients(np.zeros((5, 3)), np.zeros(5))
