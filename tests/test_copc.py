@@ -1,0 +1,139 @@
+"""COPC input: whole reads as LAZ, region reads by the octree, and fits by bounds.
+
+Ground truth: laspy's plain LAZ reader of the same file (a whole read), and a whole read
+filtered with numpy (a region read must return exactly those points, in that order).
+"""
+from __future__ import annotations
+
+import io
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+laspy = pytest.importorskip("laspy")
+
+from c1mesh.errors import FormatError, InputError  # noqa: E402
+from c1mesh.formats import read_cloud  # noqa: E402
+from c1mesh.formats.copc import copc_summary, is_copc, parse_box, points_to_read, region_cost  # noqa: E402
+from c1mesh.formats.las import read_las  # noqa: E402
+
+DATA = Path(__file__).resolve().parent.parent / "data_samples"
+COPC = DATA / "simple.copc.laz"
+PLAIN_LAZ = DATA / "autzen_trim.laz"
+
+
+def _whole(path=COPC):
+    """The file read whole by laspy's plain reader (world x, y, z and classification)."""
+    las = laspy.read(str(path))
+    return np.column_stack([las.x, las.y, las.z]), np.asarray(las.classification)
+
+
+def _boxes(points: np.ndarray, count: int, seed: int = 0):
+    """Random boxes over the points' extent, some with sides exactly on point coordinates
+    (the closed box must keep those), one around everything, one beside the data."""
+    rng = np.random.default_rng(seed)
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    boxes = [(lo[0], lo[1], hi[0], hi[1]), (hi[0] + 1, hi[1] + 1, hi[0] + 2, hi[1] + 2)]
+    for _ in range(count):
+        a, b = np.sort(rng.uniform(lo, hi, (2, 2)), axis=0)
+        boxes.append((a[0], a[1], b[0], b[1]))
+        p, q = points[rng.integers(len(points), size=2)]
+        boxes.append((min(p[0], q[0]), min(p[1], q[1]), max(p[0], q[0]), max(p[1], q[1])))
+    return boxes
+
+
+def _in(points, box):
+    return ((points[:, 0] >= box[0]) & (points[:, 0] <= box[2])
+            & (points[:, 1] >= box[1]) & (points[:, 1] <= box[3]))
+
+
+def test_sample_is_copc_and_a_plain_read_is_the_laz_read():
+    assert is_copc(COPC) and not is_copc(PLAIN_LAZ)
+    cloud = read_cloud(COPC)
+    points, classification = _whole()
+    assert len(cloud) == 1065
+    np.testing.assert_array_equal(cloud.points, points)
+    np.testing.assert_array_equal(cloud.classification, classification)
+    assert cloud.colors is not None and cloud.crs
+
+
+@pytest.mark.parametrize("path, count", [(COPC, 12), (PLAIN_LAZ, 3)], ids=["copc", "plain-laz"])
+def test_a_region_read_is_the_whole_read_filtered(path, count):
+    points, classification = _whole(path)
+    whole = read_cloud(path)
+    checked = 0
+    for box in _boxes(points, count):
+        part = read_cloud(path, bounds=box)
+        keep = _in(points, box)
+        np.testing.assert_array_equal(part.points, points[keep])
+        np.testing.assert_array_equal(part.classification, classification[keep])
+        if whole.colors is not None:
+            np.testing.assert_array_equal(part.colors, whole.colors[keep])
+        ground = read_cloud(path, bounds=box, classes=[2]) if (keep & (classification == 2)).any() else None
+        if ground is not None:
+            np.testing.assert_array_equal(ground.points, points[keep & (classification == 2)])
+        checked += int(keep.sum())
+    assert checked > len(points)          # the boxes held points, not only empty reads
+
+
+def test_a_region_read_fetches_only_the_nodes_meeting_the_box():
+    points, _ = _whole()
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    quarter = (lo[0], lo[1], (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2)
+    everything, some = region_cost(COPC, None), region_cost(COPC, quarter)
+    assert everything.points == 1065 and len(everything.nodes) == 65
+    assert _in(points, quarter).sum() <= some.points < everything.points
+    assert some.bytes < everything.bytes
+    assert points_to_read(COPC, quarter) == some.points
+
+    class Counting(io.BytesIO):
+        read_bytes = 0
+
+        def read(self, n=-1):
+            out = super().read(n)
+            Counting.read_bytes += len(out)
+            return out
+
+        def readinto(self, buffer):
+            got = super().readinto(buffer)
+            Counting.read_bytes += got
+            return got
+
+    data = COPC.read_bytes()
+    read_las(data, "x", open_stream=lambda: Counting(data), bounds=quarter)
+    region = Counting.read_bytes
+    Counting.read_bytes = 0
+    read_las(data, "x", open_stream=lambda: Counting(data))
+    assert region < Counting.read_bytes
+    assert region < some.bytes + (Counting.read_bytes - everything.bytes)   # nodes + header-sized reads
+
+
+def test_a_corrupt_node_entry_is_a_format_error():
+    data = bytearray(COPC.read_bytes())
+    with laspy.CopcReader.open(str(COPC)) as reader:
+        root = reader.copc_info.hierarchy_root_offset
+    # the root page's first entry: key (4 x i32), offset u64, byte size i32, point count i32
+    struct.pack_into("<Q", data, root + 16, len(data) + 10)
+    with pytest.raises(FormatError, match="corrupt hierarchy"):
+        read_las(bytes(data), "bad.copc.laz", bounds=parse_box("0,0,1e7,1e7"))
+
+
+def test_bad_bounds_are_refused():
+    with pytest.raises(InputError, match="four"):
+        parse_box("1,2,3")
+    with pytest.raises(InputError, match="empty"):
+        parse_box("3,0,1,1")
+    with pytest.raises(InputError, match="finite"):
+        read_cloud(COPC, bounds=(0, 0, np.nan, 1))
+
+
+def test_info_names_the_octree():
+    summary = copc_summary(COPC)
+    assert summary["nodes"] == 65 and summary["levels"] == 4
+    points, _ = _whole()
+    assert np.all(points >= np.array(summary["cube"]["min"]) - 1e-6)
+    assert np.all(points <= np.array(summary["cube"]["max"]) + 1e-6)
+    assert copc_summary(PLAIN_LAZ) is None
