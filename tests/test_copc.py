@@ -137,3 +137,87 @@ def test_info_names_the_octree():
     assert np.all(points >= np.array(summary["cube"]["min"]) - 1e-6)
     assert np.all(points <= np.array(summary["cube"]["max"]) + 1e-6)
     assert copc_summary(PLAIN_LAZ) is None
+
+
+# ------------------------------------------------------------------ fits by bounds
+def _region(points):
+    """A box over most of the sample's middle: a few hundred points, cut through the data."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    return tuple(float(v) for v in (lo[0] + 0.1 * (hi[0] - lo[0]), lo[1] + 0.15 * (hi[1] - lo[1]),
+            lo[0] + 0.8 * (hi[0] - lo[0]), lo[1] + 0.9 * (hi[1] - lo[1])))
+
+
+def _ply_body(path: Path) -> tuple[list[bytes], bytes]:
+    """A binary PLY's header lines without comments, and its body."""
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = [line for line in data[:end].split(b"\n") if not line.startswith(b"comment")]
+    return header, data[end:]
+
+
+def _filtered_las(path: Path, box, target: Path) -> Path:
+    """The whole file filtered by numpy to the box, written as a plain LAS 1.4 with the
+    same scales and offsets (the points' coordinates are the same to the bit)."""
+    las = laspy.read(str(path))
+    keep = _in(np.column_stack([las.x, las.y]), box)
+    header = laspy.LasHeader(point_format=las.header.point_format.id, version="1.4")
+    header.scales, header.offsets = las.header.scales, las.header.offsets
+    out = laspy.LasData(header)
+    out.X, out.Y, out.Z = las.X[keep], las.Y[keep], las.Z[keep]
+    out.classification = np.asarray(las.classification)[keep]
+    for c in ("red", "green", "blue"):
+        out[c] = np.asarray(las[c])[keep]
+    out.write(str(target))
+    return target
+
+
+def test_a_fit_by_bounds_is_the_fit_of_the_filtered_points(tmp_path):
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+
+    box = _region(_whole()[0])
+    runner = CliRunner()
+    by_bounds, filtered = tmp_path / "bounds.ply", tmp_path / "filtered.ply"
+    source = _filtered_las(COPC, box, tmp_path / "filtered.las")
+    for args in (["fit", str(COPC), "--bounds", ",".join(map(repr, box)), "-o", str(by_bounds)],
+                 ["fit", str(source), "-o", str(filtered)]):
+        result = runner.invoke(main, args + ["--classes", "2", "--level", "2", "-q"])
+        assert result.exit_code == 0, result.output
+    assert _ply_body(by_bounds) == _ply_body(filtered)
+    whole = tmp_path / "whole.ply"
+    assert runner.invoke(main, ["fit", str(COPC), "--classes", "2", "--level", "2", "-q", "-o", str(whole)]).exit_code == 0
+    assert _ply_body(whole)[1] != _ply_body(by_bounds)[1]     # the bounds did cut something
+
+
+def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path):
+    from c1mesh.pipeline import FitOptions
+    from c1mesh.tiled_fit import fit_tiled, needs_tiles
+
+    box = _region(_whole()[0])
+    source = _filtered_las(COPC, box, tmp_path / "filtered.las")
+    options = FitOptions(level=2, memory=10**9)
+    report = fit_tiled(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box),
+                       memory=10**9, per_tile=120)
+    fit_tiled(str(source), tmp_path / "filtered.ply", options, memory=10**9, per_tile=120)
+    assert report["tiles"] >= 4
+    assert _ply_body(tmp_path / "bounds.ply") == _ply_body(tmp_path / "filtered.ply")
+    # the tiling decision counts the nodes a region read decodes, not the whole header
+    budget = 1065 * 1800 - 1
+    assert needs_tiles(str(COPC), FitOptions(memory=budget))
+    assert not needs_tiles(str(COPC), FitOptions(memory=budget, bounds=box))
+
+
+def test_a_seamless_survey_by_bounds_reads_each_input_filtered(tmp_path):
+    from c1mesh.pipeline import FitOptions
+    from c1mesh.tiles import load_survey
+
+    points, _ = _whole()
+    box = _region(points)
+    everything = (-1e9, -1e9, 1e9, 1e9)
+    plain = _filtered_las(COPC, everything, tmp_path / "plain.las")       # the same points, not COPC
+    survey = load_survey([str(COPC), str(plain)], FitOptions(bounds=box))
+    inside = points[_in(points, box)]
+    np.testing.assert_array_equal(survey.cloud.points, np.concatenate([inside, inside]))
+    assert list(np.diff(survey.offsets)) == [len(inside), len(inside)]
+    assert 0 < len(inside) < len(points)
