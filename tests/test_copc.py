@@ -221,3 +221,19 @@ def test_a_seamless_survey_by_bounds_reads_each_input_filtered(tmp_path):
     np.testing.assert_array_equal(survey.cloud.points, np.concatenate([inside, inside]))
     assert list(np.diff(survey.offsets)) == [len(inside), len(inside)]
     assert 0 < len(inside) < len(points)
+
+
+def test_cli_info_says_copc(tmp_path):
+    import subprocess
+    import sys
+
+    def info(path):
+        done = subprocess.run([sys.executable, "-m", "c1mesh.cli", "info", str(path)], capture_output=True,
+                              timeout=300, check=True)
+        return json.loads(done.stdout)
+
+    facts = info(COPC)
+    assert facts["copc"]["nodes"] == 65 and facts["points"] == 1065
+    plain = _filtered_las(COPC, (-1e9, -1e9, 1e9, 1e9), tmp_path / "plain.laz")
+    facts = info(plain)
+    assert "copc" not in facts and facts["points"] == 1065
