@@ -121,6 +121,33 @@ def test_a_corrupt_node_entry_is_a_format_error():
         read_las(bytes(data), "bad.copc.laz", bounds=parse_box("0,0,1e7,1e7"))
 
 
+def _orphaned(data: bytes) -> bytes:
+    """The sample with one leaf node's key moved to level 9: its parent is missing, so a
+    walk of the hierarchy from the root no longer reaches it (the chunk table still does)."""
+    data = bytearray(data)
+    with laspy.CopcReader.open(str(COPC)) as reader:
+        root, size = reader.copc_info.hierarchy_root_offset, reader.copc_info.hierarchy_root_size
+    for at in range(root, root + size, 32):
+        level, points = struct.unpack_from("<i", data, at)[0], struct.unpack_from("<i", data, at + 28)[0]
+        if level == 3 and points > 0:
+            struct.pack_into("<i", data, at, 9)
+            return bytes(data)
+    raise AssertionError("no leaf entry in the root page")
+
+
+def test_a_hierarchy_that_misses_a_node_is_read_by_its_chunk_table(tmp_path):
+    from c1mesh.formats.copc import Copc
+
+    broken = tmp_path / "orphan.copc.laz"
+    broken.write_bytes(_orphaned(COPC.read_bytes()))
+    with Copc(lambda: open(broken, "rb"), str(broken), broken.stat().st_size) as copc:
+        assert not copc.complete and sum(n.point_count for n in copc.nodes()) < 1065
+    points, _ = _whole()
+    assert points_to_read(broken, (-1e9, -1e9, 1e9, 1e9)) == 1065
+    for box in _boxes(points, 4):
+        np.testing.assert_array_equal(read_cloud(broken, bounds=box).points, points[_in(points, box)])
+
+
 def test_bad_bounds_are_refused():
     with pytest.raises(InputError, match="four"):
         parse_box("1,2,3")
@@ -132,7 +159,7 @@ def test_bad_bounds_are_refused():
 
 def test_info_names_the_octree():
     summary = copc_summary(COPC)
-    assert summary["nodes"] == 65 and summary["levels"] == 4
+    assert summary["nodes"] == 65 and summary["levels"] == 4 and summary["hierarchy_reaches_every_point"]
     points, _ = _whole()
     assert np.all(points >= np.array(summary["cube"]["min"]) - 1e-6)
     assert np.all(points <= np.array(summary["cube"]["max"]) + 1e-6)

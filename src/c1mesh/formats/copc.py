@@ -130,6 +130,17 @@ class Copc:
             self.stream.close()
             raise
         self.header = self.reader.header
+        self._complete: bool | None = None
+
+    @property
+    def complete(self) -> bool:
+        """Whether the hierarchy reaches every point: the nodes found by walking it from the
+        root hold the header's point count. A writer that leaves a node without its parent
+        makes that node unreachable; a region read would then lose its points silently, so
+        callers read such a file by its chunk table instead."""
+        if self._complete is None:
+            self._complete = sum(n.point_count for n in self.nodes()) == self.header.point_count
+        return self._complete
 
     def close(self) -> None:
         self.stream.close()
@@ -234,7 +245,7 @@ def copc_summary(path) -> dict | None:
         center, half = np.asarray(info.center, dtype=np.float64), float(info.halfsize)
         return {"nodes": len(nodes), "levels": 1 + max((n.key[0] for n in nodes), default=0),
                 "cube": {"min": (center - half).tolist(), "max": (center + half).tolist()},
-                "spacing": float(info.spacing)}
+                "spacing": float(info.spacing), "hierarchy_reaches_every_point": copc.complete}
 
 
 def region_chunks(path, box: Box, chunk: int) -> Iterator:
@@ -249,9 +260,10 @@ def region_chunks(path, box: Box, chunk: int) -> Iterator:
             return
         if is_copc_header(reader.header) and reader.header.are_points_compressed:
             with Copc(lambda: open(path, "rb"), str(path), os.path.getsize(path)) as copc:
-                for part in copc.records(copc.nodes(box), chunk):
-                    yield part[inside(np.asarray(part.x), np.asarray(part.y), box)]
-            return
+                if copc.complete:
+                    for part in copc.records(copc.nodes(box), chunk):
+                        yield part[inside(np.asarray(part.x), np.asarray(part.y), box)]
+                    return
         for part in reader.chunk_iterator(chunk):
             yield part[inside(np.asarray(part.x), np.asarray(part.y), box)]
 
@@ -269,4 +281,5 @@ def points_to_read(path, box: Box | None) -> int:
             return 0
         if not (is_copc_header(header) and header.are_points_compressed):
             return int(header.point_count)
-    return region_cost(path, box).points
+    with Copc(lambda: open(path, "rb"), str(path), os.path.getsize(path)) as copc:
+        return sum(n.point_count for n in copc.nodes(box)) if copc.complete else int(copc.header.point_count)

@@ -268,8 +268,11 @@ def _point_chunks(reader, data: Buffer, name: str, open_stream: Callable[[], IO[
         yield iter(()), 0
     elif is_copc_header(header) and header.are_points_compressed:
         with Copc(open_stream, name, len(data)) as copc:
-            nodes = copc.nodes(bounds)
-            yield copc.records(nodes, _CHUNK, _wanted_fields()), sum(n.point_count for n in nodes)
+            if copc.complete:
+                nodes = copc.nodes(bounds)
+                yield copc.records(nodes, _CHUNK, _wanted_fields()), sum(n.point_count for n in nodes)
+            else:      # a node the hierarchy does not reach: only the chunk table has every point
+                yield reader.chunk_iterator(_CHUNK), header.point_count
     else:
         yield reader.chunk_iterator(_CHUNK), header.point_count
 
