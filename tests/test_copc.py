@@ -88,6 +88,12 @@ def test_a_region_read_fetches_only_the_nodes_meeting_the_box():
     assert _in(points, quarter).sum() <= some.points < everything.points
     assert some.bytes < everything.bytes
     assert points_to_read(COPC, quarter) == some.points
+    with laspy.CopcReader.open(str(COPC)) as reader:        # laspy's own walk of the hierarchy
+        from laspy.copc import Bounds, load_octree_for_query
+
+        theirs = load_octree_for_query(reader.source, reader.copc_info, reader.root_page,
+                                       Bounds(np.array([*quarter[:2], -1e9]), np.array([*quarter[2:], 1e9])))
+        assert {(n.key.level, n.key.x, n.key.y, n.key.z) for n in theirs if n.point_count} == {n.key for n in some.nodes}
 
     class Counting(io.BytesIO):
         read_bytes = 0

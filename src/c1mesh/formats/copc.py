@@ -12,9 +12,10 @@ returns exactly the points of a whole read that lie in the box, in the same orde
 order of the LAZ chunk table a whole read walks), so everything downstream — survey
 numbers, ownership, ties — is as if the whole file had been read and filtered.
 
-laspy parses the hierarchy (laspy.copc.load_octree_for_query: it follows hierarchy
-pages only into cubes that meet the box); the chunks are read here and decompressed by
-lazrs, a batch of nodes at a time, so memory holds one batch and the kept points.
+The hierarchy is walked here from the root, descending only into cubes that meet the
+box and reading the hierarchy pages it reaches (laspy parses each page); the chunks are
+read here too and decompressed by lazrs, a batch of nodes at a time, so memory holds
+one batch and the kept points.
 """
 from __future__ import annotations
 
@@ -131,6 +132,7 @@ class Copc:
             raise
         self.header = self.reader.header
         self._complete: bool | None = None
+        self._entries: dict | None = None
 
     @property
     def complete(self) -> bool:
@@ -154,23 +156,53 @@ class Copc:
     def nodes(self, box: Box | None = None) -> list[Node]:
         """The nodes holding points whose cubes meet the box (None: all), in file order.
 
-        The box is grown by two coordinate steps so that rounding in the cube arithmetic
-        cannot drop a node holding a point on the box's edge; the exact test is per point.
+        A walk of the hierarchy from the root that descends only into cubes meeting the
+        box, reading the hierarchy pages it reaches (laspy parses them). The box is grown
+        by two coordinate steps so that rounding in the cube arithmetic cannot drop a node
+        holding a point on the box's edge; the exact test is per point.
         """
-        from laspy.copc import Bounds, load_octree_for_query
-
-        query = None
+        info = self.reader.copc_info
+        lo = np.asarray(info.center, dtype=np.float64)[:2] - info.halfsize
         if box is not None:
             pad = 2 * np.asarray(self.header.scales[:2], dtype=np.float64)
-            query = Bounds(np.array([box[0] - pad[0], box[1] - pad[1], -np.inf]),
-                           np.array([box[2] + pad[0], box[3] + pad[1], np.inf]))
-        found = load_octree_for_query(self.stream, self.reader.copc_info, self.reader.root_page,
-                                      query_bounds=query)
-        nodes = [Node((n.key.level, n.key.x, n.key.y, n.key.z), int(n.offset), int(n.byte_size),
-                      int(n.point_count)) for n in found if n.point_count > 0]
+            box = (box[0] - pad[0], box[1] - pad[1], box[2] + pad[0], box[3] + pad[1])
+        nodes, stack = [], [(0, 0, 0, 0)]
+        while stack:
+            key = stack.pop()
+            entry = self._entry(key)
+            if entry is None or (box is not None and not _cube_meets(key, lo, 2 * info.halfsize, box)):
+                continue
+            offset, byte_size, point_count = entry
+            if point_count > 0:
+                nodes.append(Node(key, offset, byte_size, point_count))
+            level, x, y, z = key
+            stack.extend((level + 1, 2 * x + (d & 1), 2 * y + (d >> 1 & 1), 2 * z + (d >> 2 & 1))
+                         for d in range(8))
         nodes.sort(key=lambda n: n.offset)
         self._check(nodes)
         return nodes
+
+    def _entry(self, key: tuple[int, int, int, int]) -> tuple[int, int, int] | None:
+        """(offset, byte size, point count) of a node's hierarchy entry, None if it has
+        none; a page entry (point count -1) is read and its entries added first."""
+        if self._entries is None:
+            self._entries = _page_entries(self.reader.root_page)
+        entry = self._entries.get(key)
+        while entry is not None and entry[2] == -1:
+            from laspy.copc import HierarchyPage
+
+            offset, size, _ = entry
+            if size <= 0 or offset + size > self.size:
+                raise FormatError(f"COPC file '{self.name}' has a corrupt hierarchy: page {key} lies at "
+                                  f"bytes {offset}+{size}, outside the file.")
+            self.stream.seek(offset)
+            page = _page_entries(HierarchyPage.from_bytes(self.stream.read(size)))
+            if page.get(key, (0, 0, 0))[2] == -1:
+                raise FormatError(f"COPC file '{self.name}' has a corrupt hierarchy: page {key} refers to itself.")
+            self._entries[key] = (0, 0, 0)        # replaced by the page's own entry for key, if any
+            self._entries.update(page)
+            entry = self._entries.get(key)
+        return entry
 
     def _check(self, nodes: list[Node]) -> None:
         """FormatError for node entries that cannot be right: a byte range outside the file,
@@ -222,6 +254,21 @@ class Copc:
             [(n.point_count, n.byte_size) for n in nodes], selection)
         record = PackedPointRecord.from_buffer(points, fmt)
         return ScaleAwarePointRecord(record.array, fmt, self.header.scales, self.header.offsets)
+
+
+def _page_entries(page) -> dict:
+    """{(level, x, y, z): (offset, byte size, point count)} of a laspy HierarchyPage."""
+    return {(e.key.level, e.key.x, e.key.y, e.key.z): (int(e.offset), int(e.byte_size), int(e.point_count))
+            for e in page.entries.values()}
+
+
+def _cube_meets(key: tuple[int, int, int, int], lo: np.ndarray, side: float, box: Box) -> bool:
+    """Whether the x/y square of an octree node (root square from lo, of side `side`)
+    meets the closed box."""
+    level, x, y, _ = key
+    step = side / (1 << level)
+    x0, y0 = lo[0] + x * step, lo[1] + y * step
+    return x0 <= box[2] and x0 + step >= box[0] and y0 <= box[3] and y0 + step >= box[1]
 
 
 def region_cost(path, box: Box | None) -> RegionCost:
