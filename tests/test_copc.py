@@ -125,6 +125,14 @@ def test_a_corrupt_node_entry_is_a_format_error():
     struct.pack_into("<Q", data, root + 16, len(data) + 10)
     with pytest.raises(FormatError, match="corrupt hierarchy"):
         read_las(bytes(data), "bad.copc.laz", bounds=parse_box("0,0,1e7,1e7"))
+    # the same entry made a hierarchy page outside the file, then a page that holds itself
+    data = bytearray(COPC.read_bytes())
+    struct.pack_into("<Qii", data, root + 16, len(data) + 10, 64, -1)
+    with pytest.raises(FormatError, match="page .* outside the file"):
+        read_las(bytes(data), "bad.copc.laz", bounds=parse_box("0,0,1e7,1e7"))
+    struct.pack_into("<Qii", data, root + 16, root, 32, -1)
+    with pytest.raises(FormatError, match="refers to itself"):
+        read_las(bytes(data), "bad.copc.laz", bounds=parse_box("0,0,1e7,1e7"))
 
 
 def _orphaned(data: bytes) -> bytes:
