@@ -28,6 +28,7 @@ from c1mesh.crs import las_crs
 from c1mesh.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
+from c1mesh.formats.copc import inside
 
 Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
@@ -217,9 +218,10 @@ def read_las(data: Buffer, name: str, classes=None,
         decoded, in_box, found = 0, 0, set()
         for chunk in chunks:
             decoded += len(chunk)
-            rows = _rows(chunk, keep, bounds)
             classification = np.asarray(chunk.classification)
-            in_region = classification if bounds is None else classification[_rows(chunk, None, bounds)]
+            box = None if bounds is None else inside(np.asarray(chunk.x), np.asarray(chunk.y), bounds)
+            in_region = classification if box is None else classification[box]
+            rows = _rows(classification, keep, box)
             in_box += len(in_region)
             found.update(np.unique(in_region).tolist())
             take = (lambda a: np.asarray(a)) if rows is None else (lambda a: np.asarray(a)[rows])  # noqa: E731
@@ -242,13 +244,11 @@ def read_las(data: Buffer, name: str, classes=None,
     return cloud
 
 
-def _rows(chunk, keep: np.ndarray | None, bounds) -> np.ndarray | None:
-    """(m,) bool: the chunk's points of the kept classes inside the bounds (None: all)."""
-    from c1mesh.formats.copc import inside
-
-    rows = None if keep is None else np.isin(np.asarray(chunk.classification), keep)
-    if bounds is not None:
-        box = inside(np.asarray(chunk.x), np.asarray(chunk.y), bounds)
+def _rows(classification: np.ndarray, keep: np.ndarray | None, box: np.ndarray | None) -> np.ndarray | None:
+    """(m,) bool: a chunk's points of the kept classes (keep) inside the bounds (box: (m,)
+    bool), or None when every point is kept."""
+    rows = None if keep is None else np.isin(classification, keep)
+    if box is not None:
         rows = box if rows is None else rows & box
     return rows
 
