@@ -278,3 +278,16 @@ def test_cli_info_says_copc(tmp_path):
     plain = _filtered_las(COPC, (-1e9, -1e9, 1e9, 1e9), tmp_path / "plain.laz")
     facts = info(plain)
     assert "copc" not in facts and facts["points"] == 1065
+
+
+def test_copc_on_stdin_is_fitted_as_the_file(tmp_path):
+    import subprocess
+    import sys
+
+    box = ",".join(map(repr, _region(_whole()[0])))
+    args = ["--classes", "2", "--level", "1", "--bounds", box, "-q", "-o"]
+    fit = [sys.executable, "-m", "c1mesh.cli", "fit"]
+    subprocess.run(fit + [str(COPC)] + args + [str(tmp_path / "file.ply")], check=True, timeout=300)
+    subprocess.run(fit + ["-", "--input-format", "copc"] + args + [str(tmp_path / "stdin.ply")],
+                   input=COPC.read_bytes(), check=True, timeout=300)
+    assert (tmp_path / "file.ply").read_bytes() == (tmp_path / "stdin.ply").read_bytes()

@@ -210,7 +210,7 @@ def main() -> None:
 @click.option("-O", "--output-dir", type=click.Path(file_okay=False),
               help="Directory for outputs of several inputs (each named input stem + --suffix).")
 @click.option("--suffix", default=".c1.ply", show_default=True, help="Output name suffix with -O.")
-@click.option("--input-format", help="Input format (ply, obj, xyz, txt, csv, pcd, las, laz); required for stdin (-).")
+@click.option("--input-format", help="Input format (ply, obj, xyz, txt, csv, pcd, las, laz, copc); required for stdin (-).")
 @click.option("--classes", help="Keep only these LAS classification codes, e.g. 2 or 2,9 (2 = ground).")
 @click.option("--normals", type=click.Choice(["auto", "file", "estimate"]), default="auto", show_default=True,
               help="auto: the file's normals if present, else estimated (Open3D).")
@@ -434,9 +434,9 @@ def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:
         raise click.UsageError(f"--ascii applies to PLY output only, not .{sorted(mesh_formats - {'ply'})[0]}")
     if classes:
         kinds = {(input_format or Path(src).suffix).lower().lstrip(".") for src, _ in pairs}
-        if kinds - {"las", "laz"}:
+        if kinds - {"las", "laz", "copc"}:
             raise click.UsageError("--classes needs LAS/LAZ input (a classification field), not "
-                                   f".{sorted(kinds - {'las', 'laz'})[0] or '(no extension)'}")
+                                   f".{sorted(kinds - {'las', 'laz', 'copc'})[0] or '(no extension)'}")
 
 
 def _check_outputs(pairs, report, output_dir):

@@ -383,7 +383,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
-LAS_FORMATS = ("las", "laz")
+LAS_FORMATS = ("las", "laz", "copc")
 
 
 def _resolve_axis(source, options: FitOptions) -> tuple[FitOptions, str]:
