@@ -99,8 +99,12 @@ def _commit() -> str:
 
 def report(folder: Path) -> None:
     """Print the markdown table and write benchmarks/survey_size.png from the log."""
-    rows = [json.loads(line) for line in (folder / "survey_size.jsonl").read_text().splitlines() if line]
-    rows.sort(key=lambda r: r["points"])
+    latest = {}                                   # a size run again replaces its earlier row
+    for line in (folder / "survey_size.jsonl").read_text().splitlines():
+        if line:
+            row = json.loads(line)
+            latest[row["file"]] = row
+    rows = sorted(latest.values(), key=lambda r: r["points"])
     peer = rows[0]
     print("| points | tiles | wall | CPU (user + sys) | wall per M points | throughput / 1M in memory "
           "| peak RSS (tree) | RSS per input point | load before / after |")

@@ -76,6 +76,81 @@ def test_collinear_neighbourhoods_stay_finite():
     np.testing.assert_allclose(g[:, 0], 2.0, atol=1e-6)
 
 
+def _grid_with_ties(seed):
+    """A 9 x 9 unit grid around the origin (every ring of neighbours equally far), three
+    extra points on grid positions with other heights, random heights: (xy, z)."""
+    g = np.arange(-4.0, 5.0)
+    xy = np.c_[np.repeat(g, 9), np.tile(g, 9)]
+    xy = np.concatenate([xy, [[2.0, 1.0], [-3.0, 0.0], [1.0, -1.0]]])
+    return xy, np.random.default_rng(seed).normal(size=len(xy))
+
+
+def test_a_distance_tie_is_broken_by_the_offsets():
+    """From the origin the 4 nearest points are 1 away, the next 4 (plus a duplicate of
+    (1, -1)) sqrt 2 away: with k = 6, the two nearest of those by the stated rule (dx,
+    then dy, then the height) are (-1, -1) and (-1, 1); then k = 10 takes all five at
+    sqrt 2, the duplicate after (1, -1) by height, and (-2, 0) as the first of the
+    ring at 2."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.height_gradients import nearest_neighbours
+
+    xy, z = _grid_with_ties(0)
+    centre = np.flatnonzero((xy == 0).all(axis=1))
+    tree = cKDTree(xy)
+    got = xy[nearest_neighbours(tree, xy, z, centre, 6)[0][0]]
+    np.testing.assert_array_equal(got, [[-1, 0], [0, -1], [0, 1], [1, 0], [-1, -1], [-1, 1]])
+    index = nearest_neighbours(tree, xy, z, centre, 10)[0][0]
+    want = [[-1, 0], [0, -1], [0, 1], [1, 0], [-1, -1], [-1, 1], [1, -1], [1, -1], [1, 1], [-2, 0]]
+    np.testing.assert_array_equal(xy[index], want)
+    duplicate = index[6:8]
+    assert z[duplicate[0]] < z[duplicate[1]]
+
+
+@pytest.mark.parametrize("k", [6, 10, 24])
+def test_gradients_do_not_depend_on_point_numbering_or_far_points(k):
+    """Ties everywhere (a unit grid): every gradient is the same to the bit when the
+    points are renumbered, and the origin's is the same when all points beyond its
+    neighbourhood (more than 3 away) are dropped. This is what lets a tile, which holds
+    its points in another order and misses the far ones, give the survey's gradients."""
+    xy, z = _grid_with_ties(1)
+    reference = height_gradients(xy, z, k=k)
+    for seed in range(4):
+        shuffle = np.random.default_rng(seed).permutation(len(xy))
+        np.testing.assert_array_equal(height_gradients(xy[shuffle], z[shuffle], k=k), reference[shuffle])
+    origin = np.flatnonzero((xy == 0).all(axis=1))[0]
+    near = np.flatnonzero(np.hypot(*xy.T) <= 3)            # k = 24: the 24th and 25th are at sqrt 8
+    for seed in range(4):
+        keep = np.random.default_rng(seed).permutation(near)
+        got = height_gradients(xy[keep], z[keep], k=k)[np.flatnonzero(keep == origin)[0]]
+        np.testing.assert_array_equal(got, reference[origin])
+
+
+def test_a_stack_larger_than_the_first_query_is_still_order_free():
+    """40 points at one plane position (a vertical stack; more than the k + 1 + TIE_EXTRA
+    candidates the first query returns, so the query must grow): each stacked point's
+    neighbours are the other 39, by height, and its gradient does not depend on the
+    numbering; the grid points' gradients neither."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.height_gradients import TIE_EXTRA, nearest_neighbours
+
+    xy, z = _grid_with_ties(2)
+    stack = 40
+    assert stack > 6 + 1 + TIE_EXTRA
+    xy = np.concatenate([xy, np.tile([[0.5, 0.5]], (stack, 1))])
+    z = np.concatenate([z, np.random.default_rng(3).normal(size=stack)])
+    first = len(xy) - stack
+    index, _ = nearest_neighbours(cKDTree(xy), xy, z, np.array([first]), 6)
+    others = np.arange(first + 1, len(xy))
+    np.testing.assert_array_equal(index[0], others[np.argsort(z[others])][:6])
+    reference = height_gradients(xy, z, k=6)
+    assert np.isfinite(reference).all()
+    for seed in range(3):
+        shuffle = np.random.default_rng(seed).permutation(len(xy))
+        np.testing.assert_array_equal(height_gradients(xy[shuffle], z[shuffle], k=6), reference[shuffle])
+
+
 def test_bad_input_is_refused():
     with pytest.raises(InputError):
         height_gradients(np.zeros((5, 3)), np.zeros(5))

@@ -18,8 +18,6 @@ from c1mesh.cli import main
 from c1mesh.cloud import PointCloud
 from c1mesh.samples import sample_surface, write_points_ply
 
-SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
-
 
 def _load(path):
     mesh = trimesh.load(path, process=False, force="mesh")
@@ -123,21 +121,10 @@ def test_seamless_tiles_merge_into_the_whole_fit(hill_tiles, tmp_path):
     assert (counts == 2).all()
 
 
-def test_real_lidar_ground_cut_into_four_las_files(tmp_path):
-    laspy = pytest.importorskip("laspy")
-    source = laspy.read(SAMPLES / "4_6_crop.las")
-    ground = source.points[source.classification == 2]
-    xyz = np.column_stack([ground.x, ground.y, ground.z])
-    cells = _grid_cells(xyz)
-    paths = []
-    for i in range(4):
-        part = laspy.LasData(source.header)
-        part.points = ground[cells == i]
-        paths.append(str(tmp_path / f"ground{i}.las"))
-        part.write(paths[-1])
-    whole = laspy.LasData(source.header)
-    whole.points = ground[np.argsort(cells, kind="stable")]
-    whole.write(tmp_path / "ground.las")
+def test_real_lidar_ground_cut_into_four_las_files(tmp_path, crop_ground):
+    cells = _grid_cells(crop_ground.xyz)
+    paths = [crop_ground.write(tmp_path / f"ground{i}.las", cells == i) for i in range(4)]
+    crop_ground.write(tmp_path / "ground.las", np.argsort(cells, kind="stable"))
     runner = CliRunner()
     args = ["--level", "2", "--normals", "estimate"]
     assert runner.invoke(main, ["fit", str(tmp_path / "ground.las"), "-o", str(tmp_path / "whole.ply"),
@@ -163,23 +150,14 @@ def _crs_comment(path):
     return next((line for line in header.splitlines() if line.startswith("comment crs")), None)
 
 
-def test_tiles_in_different_crs_are_refused_before_any_output(tmp_path):
+def test_tiles_in_different_crs_are_refused_before_any_output(tmp_path, crop_ground):
     """c1mesh does not reproject: two tiles declaring different CRSs stop the run with one
     line naming both files, and nothing is written."""
-    laspy = pytest.importorskip("laspy")
-    pyproj = pytest.importorskip("pyproj")
-    source = laspy.read(SAMPLES / "4_6_crop.las")
-    ground = source.points[source.classification == 2]
-    half = ground.x < np.median(ground.x)
-    paths = []
-    for i, (part_points, epsg) in enumerate(((ground[half], 2903), (ground[~half], 32613))):
-        part = laspy.LasData(laspy.LasHeader(point_format=source.header.point_format,
-                                             version=source.header.version))
-        part.header.scales, part.header.offsets = source.header.scales, source.header.offsets
-        part.header.add_crs(pyproj.CRS.from_epsg(epsg))
-        part.points = part_points
-        paths.append(str(tmp_path / f"part{i}.las"))
-        part.write(paths[-1])
+    pytest.importorskip("pyproj")
+    x = crop_ground.xyz[:, 0]
+    half = x < np.median(x)
+    paths = [crop_ground.write(tmp_path / f"part{i}.las", rows, epsg=epsg)
+             for i, (rows, epsg) in enumerate(((half, 2903), (~half, 32613)))]
     out = tmp_path / "out"
     result = CliRunner().invoke(main, ["fit", *paths, "--seamless", "-O", str(out), "--level", "1"])
     assert result.exit_code == 1
@@ -355,21 +333,15 @@ def test_an_interrupted_seamless_run_leaves_no_tile_files(hill_tiles, tmp_path, 
     assert list(out.iterdir()) == []
 
 
-def test_seamless_survey_dem_and_hillshade_equal_the_concatenated_fit(tmp_path):
+def test_seamless_survey_dem_and_hillshade_equal_the_concatenated_fit(tmp_path, crop_ground):
     """`--seamless -o dem.tif` with rasters: the survey's GeoTIFFs hold the same cells as
     those of the fit of the concatenated file (and its CRS); -O refuses raster options."""
-    laspy = pytest.importorskip("laspy")
     rasterio = pytest.importorskip("rasterio")
-    source = laspy.read(SAMPLES / "4_6_crop.las")
-    ground = source.points[source.classification == 2]
-    west = ground.x < np.median(ground.x)
-    paths = []
-    for name, part_points in (("west.las", ground[west]), ("east.las", ground[~west]),
-                              ("whole.las", ground[np.argsort(~west, kind="stable")])):
-        part = laspy.LasData(source.header)
-        part.points = part_points
-        paths.append(str(tmp_path / name))
-        part.write(paths[-1])
+    x = crop_ground.xyz[:, 0]
+    west = x < np.median(x)
+    paths = [crop_ground.write(tmp_path / name, rows)
+             for name, rows in (("west.las", west), ("east.las", ~west),
+                                ("whole.las", np.argsort(~west, kind="stable")))]
     runner = CliRunner()
     raster_args = ["--resolution", "4", "--slope", str(tmp_path / "{}slope.tif")]
     survey = runner.invoke(main, ["fit", *paths[:2], "--seamless", "-o", str(tmp_path / "dem.tif"),

@@ -70,6 +70,17 @@ def _parse_memory(ctx, param, value):
         raise click.BadParameter(str(exc))
 
 
+def _parse_bounds(ctx, param, value):
+    """--bounds: XMIN,YMIN,XMAX,YMAX (None = the whole input)."""
+    if value is None:
+        return None
+    from c1mesh.formats.copc import parse_box
+    try:
+        return parse_box(value)
+    except C1MeshError as exc:
+        raise click.BadParameter(str(exc))
+
+
 _MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
                 "are refused [default: half the RAM, at most 8G]. With fit, a LAS/LAZ file whose "
                 "points need more (1.8 kB per point) is fitted in tiles (estimated normals, long-edge trim).")
@@ -199,7 +210,7 @@ def main() -> None:
 @click.option("-O", "--output-dir", type=click.Path(file_okay=False),
               help="Directory for outputs of several inputs (each named input stem + --suffix).")
 @click.option("--suffix", default=".c1.ply", show_default=True, help="Output name suffix with -O.")
-@click.option("--input-format", help="Input format (ply, obj, xyz, txt, csv, pcd, las, laz); required for stdin (-).")
+@click.option("--input-format", help="Input format (ply, obj, xyz, txt, csv, pcd, las, laz, copc); required for stdin (-).")
 @click.option("--classes", help="Keep only these LAS classification codes, e.g. 2 or 2,9 (2 = ground).")
 @click.option("--normals", type=click.Choice(["auto", "file", "estimate"]), default="auto", show_default=True,
               help="auto: the file's normals if present, else estimated (Open3D).")
@@ -233,6 +244,9 @@ def main() -> None:
                    "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
+@click.option("--bounds", callback=_parse_bounds, metavar="XMIN,YMIN,XMAX,YMAX",
+              help="Fit only the points in this x/y box (file units); a COPC file is read by its "
+                   "octree, decoding only the nodes that meet the box.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs, or for the tiles of --seamless -O "
                    "and of a fit larger than --memory.")
@@ -261,7 +275,8 @@ def main() -> None:
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
         overshoot, gradients, report, memory, jobs, quiet, verbose, debug,
-        threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler):
+        threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler,
+        bounds):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
@@ -276,7 +291,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
-                             hillshade=hillshade, slope_method=slope_method, preview=preview)
+                             hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds)
         if output and not output_dir:
             options = _check_geo(ctx, [(inputs[0], output)], options, debug)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
@@ -299,7 +314,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          hillshade=hillshade, slope_method=slope_method, preview=preview,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
                          intrinsics=intrinsics,
-                         depth_scale=depth_scale, color=color_image)
+                         depth_scale=depth_scale, color=color_image, bounds=bounds)
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
@@ -420,9 +435,9 @@ def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:
         raise click.UsageError(f"--ascii applies to PLY output only, not .{sorted(mesh_formats - {'ply'})[0]}")
     if classes:
         kinds = {(input_format or Path(src).suffix).lower().lstrip(".") for src, _ in pairs}
-        if kinds - {"las", "laz"}:
+        if kinds - {"las", "laz", "copc"}:
             raise click.UsageError("--classes needs LAS/LAZ input (a classification field), not "
-                                   f".{sorted(kinds - {'las', 'laz'})[0] or '(no extension)'}")
+                                   f".{sorted(kinds - {'las', 'laz', 'copc'})[0] or '(no extension)'}")
 
 
 def _check_outputs(pairs, report, output_dir):

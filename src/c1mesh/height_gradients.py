@@ -26,6 +26,13 @@ NEIGHBOUR_FACTOR = 1.5
 """The quadratic fit uses this many times the k of the PCA normals (5 unknowns, not 3)."""
 BLOCK = 1 << 15
 """Points per block: the (block, k, terms) design array stays at a few tens of MB."""
+TIE_EXTRA = 8
+"""Candidates queried beyond the k + 1 nearest where a distance ties at the k-th: enough
+to see every point tied with the k-th on a 1 cm grid (the query doubles when not)."""
+TIE_MARGIN = 1e-12
+"""Relative margin between our squared distances and the KD tree's (which sums the same
+squares, possibly rounded differently): a k-th distance closer than this to the first
+unqueried one counts as a tie."""
 RIDGE = 1e-9
 """Relative ridge on the normal equations: a neighbourhood whose offsets lie on one line
 (a scan line) leaves the slope and curvature across it undetermined; the ridge sets them
@@ -73,6 +80,10 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     in weighted least squares with weights w_j = 1 / (1 + |d_j|² / r²), r the median
     neighbour distance (closer neighbours say more about the slope at the point). The
     result is g. Offsets are scaled by r before the solve (conditioning at any unit).
+    The neighbours and the order of the sums depend only on the coordinates
+    (`nearest_neighbours`: distance ties broken by the offsets), so the result does not
+    change, to the bit, when the points are renumbered or points outside the
+    neighbourhoods are dropped: a tile gives the survey's gradients.
     The fit is exact for any quadratic (degree 2) or affine (degree 1) height function
     whenever the neighbours determine it; where they do not (fewer than 5 non-collinear
     neighbours), the ridge RIDGE keeps the solve finite and the quadratic terms small.
@@ -99,18 +110,80 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     out = np.empty((n, 2))
     for start in range(0, n, BLOCK):
         centre = np.arange(start, min(start + BLOCK, n))
-        _, index = tree.query(xy[centre], k=k + 1, workers=workers)
-        out[order[centre]] = _fit_block(xy, z, centre, index[:, 1:], degree)
+        neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, workers)
+        out[order[centre]] = _fit_block(z, centre, neighbours, offsets, degree)
     return out
 
 
-def _fit_block(xy: np.ndarray, z: np.ndarray, centre: np.ndarray, neighbours: np.ndarray,
+def nearest_neighbours(tree, xy: np.ndarray, z: np.ndarray, centre: np.ndarray, k: int,
+                       workers: int = -1) -> tuple[np.ndarray, tuple]:
+    """(indices (b, k), their offsets (dx, dy, dx² + dy²) each (b, k)) of the k nearest
+    other points of the points `centre` (b,), by a rule that depends only on the
+    coordinates: nearest by squared plane distance, ties broken by the offset (dx, then
+    dy, then the height), each row in that order.
+
+    Why: a KD tree breaks distance ties by its own point numbering, so on a grid (LiDAR's
+    1 cm) a point whose k-th and (k+1)-th neighbours are equally far got a different
+    neighbour set in a tile than in the whole survey; and the least-squares sums, added
+    in row order, must be added in the same order to agree to the bit.
+    tree: cKDTree of xy (n, 2); z (n,) the heights; k < n.
+    """
+    n = len(xy)
+    if n < k + 2:
+        neighbours = _sorted_neighbours(tree, xy, z, centre, k, workers)
+        return neighbours, _offsets(xy, centre, neighbours)
+    _, index = tree.query(xy[centre], k=k + 2, workers=workers)
+    ux, uy, dist2 = _offsets(xy, centre, index)
+    # The tree's order is the canonical one when the point itself comes first, the
+    # distances then strictly increase, and the (k+1)-th is clearly farther than the k-th.
+    plain = ((index[:, 0] == centre) & (dist2[:, 1] > 0)
+             & (dist2[:, 2:k + 1] > dist2[:, 1:k]).all(axis=1)
+             & (dist2[:, k] < dist2[:, k + 1] * (1 - TIE_MARGIN)))
+    neighbours = index[:, 1:k + 1]
+    offsets = ux[:, 1:k + 1], uy[:, 1:k + 1], dist2[:, 1:k + 1]
+    tied = np.flatnonzero(~plain)
+    if tied.size:
+        neighbours[tied] = _sorted_neighbours(tree, xy, z, centre[tied], k, workers)
+        for array, fixed in zip(offsets, _offsets(xy, centre[tied], neighbours[tied])):
+            array[tied] = fixed
+    return neighbours, offsets
+
+
+def _sorted_neighbours(tree, xy, z, centre, k, workers):
+    """`nearest_neighbours` the slow way: query k + 1 + TIE_EXTRA candidates, sort them by
+    (distance², dx, dy, z), and keep the first k when the k-th is clearly closer than the
+    last candidate (so no unqueried point ties with it); double the query where not."""
+    n = len(xy)
+    out = np.empty((centre.size, k), np.int64)
+    todo = np.arange(centre.size)
+    count = k + 1 + TIE_EXTRA
+    while todo.size:
+        count = min(count, n)
+        _, index = tree.query(xy[centre[todo]], k=count, workers=workers)
+        ux, uy, dist2 = _offsets(xy, centre[todo], index)
+        dist2[index == centre[todo, None]] = -1.0                 # the point itself sorts first
+        rank = np.lexsort((z[index], uy, ux, dist2), axis=-1)
+        index, dist2 = np.take_along_axis(index, rank, 1), np.take_along_axis(dist2, rank, 1)
+        done = (count == n) | (dist2[:, k] < dist2[:, -1] * (1 - TIE_MARGIN))
+        out[todo[done]] = index[done, 1:k + 1]
+        todo = todo[~done]
+        count *= 2
+    return out
+
+
+def _offsets(xy, centre, neighbours):
+    """(dx, dy, dx² + dy²), each (b, k): plane offsets of the neighbours from their centre."""
+    ux = xy[neighbours, 0] - xy[centre, 0, None]
+    uy = xy[neighbours, 1] - xy[centre, 1, None]
+    return ux, uy, ux * ux + uy * uy
+
+
+def _fit_block(z: np.ndarray, centre: np.ndarray, neighbours: np.ndarray, offsets: tuple,
                degree: int) -> np.ndarray:
     """Gradients (b, 2) of the weighted local fits at points `centre` (b,) with their
-    neighbour indices (b, k); see `height_gradients`."""
-    ux = xy[neighbours, 0] - xy[centre, 0, None]                 # (b, k) offsets
-    uy = xy[neighbours, 1] - xy[centre, 1, None]
-    dist2 = ux * ux + uy * uy
+    neighbour indices (b, k) and offsets (dx, dy, dx² + dy²), each (b, k); see
+    `height_gradients`. The sums over neighbours run in the columns' order."""
+    ux, uy, dist2 = offsets
     scale2 = np.median(dist2, axis=1)
     scale2 = np.where(scale2 > 0, scale2, 1.0)
     scale = np.sqrt(scale2)

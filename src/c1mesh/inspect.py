@@ -43,10 +43,27 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
     facts["crs"] = describe_crs(cloud.crs)
     if pts.shape[0]:
         facts["bounds"] = {"min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}
+    copc = _copc_facts(source, fmt)
+    if copc is not None:
+        facts["copc"] = copc
     facts.update(_view_facts(cloud))
     if facts["fit_frame"] == "axis":
         facts.update(_height_field_check(cloud, finite, sample))
     return facts
+
+
+def _copc_facts(source, fmt: str | None) -> dict | None:
+    """A COPC file's octree (node count, levels, root cube, spacing) from its header and
+    hierarchy alone; None for anything else (streams, other formats, plain LAS/LAZ)."""
+    from pathlib import Path
+
+    if not isinstance(source, (str, Path)) or (fmt or Path(source).suffix).lower().lstrip(".") not in ("laz", "copc"):
+        return None
+    from c1mesh.formats.copc import copc_summary
+    from c1mesh.formats.las import _laspy_errors
+
+    with _laspy_errors(str(source)):
+        return copc_summary(source)
 
 
 def _view_facts(cloud) -> dict:

@@ -55,7 +55,9 @@ class FitOptions:
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
     process-wide setting, by default the CPUs this process may use);
     output_format: mesh format of the output (default: its extension, PLY for a stream);
-    memory: bytes (or a size such as "4G") the reader may read and decode, None = default.
+    memory: bytes (or a size such as "4G") the reader may read and decode, None = default;
+    bounds: (xmin, ymin, xmax, ymax) world x/y box, closed: fit only the points inside
+    (a COPC file decodes only the octree nodes that meet it: c1mesh.formats.copc).
     """
 
     input_format: str | None = None
@@ -75,6 +77,7 @@ class FitOptions:
     workers: int | None = None
     output_format: str | None = None
     memory: Any = None
+    bounds: tuple[float, float, float, float] | None = None
     # Georeferencing and rasters (c1mesh.crs, c1mesh.raster, c1mesh.preview): crs assigns a
     # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
     # cell size, or for meshes the target mean edge length (chooses the level); slope,
@@ -129,7 +132,8 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
     from c1mesh.formats.depth import is_depth_image, read_depth_source
     if is_depth_image(source, options.input_format):
         return read_depth_source(source, options)
-    cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory)
+    cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory,
+                       bounds=options.bounds)
     if options.classes:
         if cloud.classification is None:
             raise InputError("--classes needs a file with a classification field (LAS/LAZ)")
@@ -139,7 +143,9 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
             raise InputError(f"no points of class {list(options.classes)}; the file has classes {found}")
         cloud = cloud.subset(keep)
     if len(cloud) == 0:
-        raise InputError("the input has no points")
+        where = f"{getattr(source, 'name', source)}: " if options.bounds else ""
+        raise InputError(f"{where}the input has no points" + (f" inside --bounds {','.join(map(str, options.bounds))}"
+                                                             if options.bounds else ""))
     return cloud
 
 
@@ -377,7 +383,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
-LAS_FORMATS = ("las", "laz")
+LAS_FORMATS = ("las", "laz", "copc")
 
 
 def _resolve_axis(source, options: FitOptions) -> tuple[FitOptions, str]:

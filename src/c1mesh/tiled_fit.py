@@ -106,12 +106,14 @@ def needs_tiles(source, options) -> bool:
     (BYTES_PER_POINT per point); then it is fitted by `fit_tiled`. Streams, other formats
     and fits without a budget are never tiled. Raises InputError when the input needs
     tiles but the options ask for something the tiled fit does not do."""
+    from c1mesh.formats.copc import points_to_read
+
     paths = survey_paths(source)
     if options.memory is None or paths is None:
         return False
     if any(path.suffix.lower() not in (".las", ".laz") for path in paths):
         return False
-    count = sum(las_point_count(path) for path in paths)
+    count = sum(points_to_read(path, getattr(options, "bounds", None)) for path in paths)
     if fits_in_memory(count, options.memory):
         return False
     need = f"{survey_name(paths)}: {count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB in " \
@@ -176,13 +178,17 @@ class CachedChunks:
                 yield part.reshape(-1, 3), None
 
 
-def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None) -> Callable:
+def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None,
+               bounds=None) -> Callable:
     """survey_stats.Chunks over a LAS/LAZ file, or over several read one after another as
     one survey: a callable giving a fresh iterator of (world points (m, 3), None) in file
     order, keeping only `classes` (None: all). colours: where each pass also sends the
     kept points' RGB, when every file has it (a survey has colours only if all its files
-    do, as in c1mesh.tiles.load_survey)."""
+    do, as in c1mesh.tiles.load_survey). bounds: only the points in this closed x/y box
+    (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it."""
     import laspy
+
+    from c1mesh.formats.copc import region_chunks
 
     paths = survey_paths(source)
 
@@ -194,7 +200,8 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     def chunks():
         for path in paths:
             with laspy.open(str(path)) as reader:
-                for part in reader.chunk_iterator(chunk):
+                parts = reader.chunk_iterator(chunk) if bounds is None else region_chunks(path, bounds, chunk)
+                for part in parts:
                     xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
                     rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
                            if rgb_everywhere else None)
@@ -312,7 +319,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     stack = contextlib.ExitStack()
     try:
         colours = Colours(temps)
-        chunks = CachedChunks(las_chunks(source, options.classes, colours=colours), temps)
+        chunks = CachedChunks(las_chunks(source, options.classes, colours=colours,
+                                         bounds=getattr(options, "bounds", None)), temps)
         axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
         frame = streamed_frame(chunks, axis)
         colours.finish()

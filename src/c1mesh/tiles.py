@@ -63,7 +63,7 @@ def load_survey(sources: Sequence[str], options) -> Survey:
 
     clouds = []
     for source in sources:
-        cloud = read_cloud(source, options.input_format)
+        cloud = read_cloud(source, options.input_format, bounds=getattr(options, "bounds", None))
         if options.classes:
             if cloud.classification is None:
                 raise InputError(f"{source}: --classes needs a classification field (LAS/LAZ)")
@@ -72,7 +72,8 @@ def load_survey(sources: Sequence[str], options) -> Survey:
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
     if counts.sum() == 0:
         raise InputError("the inputs have no points" + (f" of class {list(options.classes)}"
-                                                        if options.classes else ""))
+                                                        if options.classes else "")
+                         + (" inside --bounds" if getattr(options, "bounds", None) else ""))
     if options.normals == "file" and any(c.normals is None for c in clouds):
         missing = next(s for s, c in zip(sources, clouds) if c.normals is None)
         raise InputError(f"{missing}: the input has no normals; use --normals estimate (or auto)")

@@ -19,6 +19,7 @@ import numpy as np
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
 from c1mesh.formats._limits import check_alloc, read_bounded, reading_budget
+from c1mesh.formats.copc import check_box, inside
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
 from c1mesh.formats.meshes import write_glb, write_off, write_stl
@@ -34,7 +35,7 @@ Source = Union[str, "os.PathLike[str]", IO[bytes]]
 
 _READERS: dict[str, Callable[[bytes, str], PointCloud]] = {
     "ply": read_ply, "obj": read_obj, "xyz": read_xyz, "txt": read_xyz, "csv": read_xyz,
-    "pcd": read_pcd, "las": read_las, "laz": read_las,
+    "pcd": read_pcd, "las": read_las, "laz": read_las, "copc": read_las,
     "png": read_depth_registry, "tif": read_depth_registry, "tiff": read_depth_registry,
 }
 _WRITERS: dict[str, Callable[..., None]] = {
@@ -76,7 +77,7 @@ def _read_path(path: Path) -> bytes:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
 
-def _read_las_file(path: Path, classes: Sequence[int] | None) -> PointCloud:
+def _read_las_file(path: Path, classes: Sequence[int] | None, bounds=None) -> PointCloud:
     """A LAS/LAZ file through a memory map: laspy streams the body from the file in chunks,
     so memory holds the kept points, not the file."""
     name = str(path)
@@ -85,13 +86,14 @@ def _read_las_file(path: Path, classes: Sequence[int] | None) -> PointCloud:
             if os.fstat(f.fileno()).st_size == 0:
                 raise FormatError(f"Input '{name}' is empty.")
             with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data, np.errstate(all="ignore"):
-                return read_las(data, name, classes=classes, open_stream=lambda: open(path, "rb"))
+                return read_las(data, name, classes=classes, open_stream=lambda: open(path, "rb"),
+                                bounds=bounds)
     except OSError as exc:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
 
 def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | None = None,
-               memory: int | str | None = None) -> PointCloud:
+               memory: int | str | None = None, bounds: Sequence[float] | None = None) -> PointCloud:
     """Read a point cloud from a path or a binary file object.
 
     The format comes from `fmt` if given, else from the path's extension (case-insensitive);
@@ -99,10 +101,15 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
     only those classification codes while a LAS/LAZ file is decoded (other formats return
     every point; the caller filters). `memory` (bytes or a size such as '4G'; default half
     the RAM, at most 8 GiB) bounds the bytes read and decoded: a header or stream that
-    needs more is refused before allocating. Raises InputError for missing/unreadable
+    needs more is refused before allocating. `bounds` (xmin, ymin, xmax, ymax; world
+    units, closed) keeps only the points in that x/y box, in file order: a COPC file
+    decodes only the octree nodes that meet it (c1mesh.formats.copc), other LAS/LAZ are
+    filtered chunk by chunk, other formats after reading. Raises InputError for missing/unreadable
     paths and unknown formats, FormatError for empty, malformed or over-budget files,
     DependencyError when an optional reader library is missing.
     """
+    if bounds is not None:
+        bounds = check_box(bounds)
     with reading_budget(memory):
         if _is_stream(source):
             name = str(getattr(source, "name", "<stream>"))
@@ -117,15 +124,22 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
             path = Path(source)
             name = str(path)
             key = format_key(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
-            if key in ("las", "laz") and path.is_file():
-                return _read_las_file(path, classes)
+            if key in ("las", "laz", "copc") and path.is_file():
+                return _read_las_file(path, classes, bounds)
             data = _read_path(path)
         if not data:
             raise FormatError(f"Input '{name}' is empty.")
         with np.errstate(all="ignore"):  # overflow / NaN in a body are data, not news
-            if key in ("las", "laz"):
-                return read_las(data, name, classes=classes)
-            return _READERS[key](data, name)
+            if key in ("las", "laz", "copc"):
+                return read_las(data, name, classes=classes, bounds=bounds)
+            return _in_box(_READERS[key](data, name), bounds)
+
+
+def _in_box(cloud: PointCloud, bounds) -> PointCloud:
+    """The cloud's points inside the closed x/y box (all of them for bounds None)."""
+    if bounds is None:
+        return cloud
+    return cloud.subset(inside(cloud.points[:, 0], cloud.points[:, 1], bounds))
 
 
 def _check_mesh(mesh: SurfaceMesh) -> None:

@@ -8,7 +8,9 @@ normals. Other dimensions (intensity, gps_time, ...) are not kept: the fit never
 them, and copying them would multiply the memory a tile needs.
 
 The body is decoded in chunks (laspy's chunk iterator) and a `classes` filter is
-applied per chunk, so memory holds the compressed file plus the kept points only.
+applied per chunk, so memory holds the compressed file plus the kept points only. A
+`bounds` box is applied per chunk too; a COPC file (c1mesh.formats.copc) then decodes
+only the octree nodes that meet the box.
 Every header count is checked against the file size (and, for LAZ, the chunk table)
 before laspy allocates anything.
 """
@@ -26,6 +28,7 @@ from c1mesh.crs import las_crs
 from c1mesh.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
+from c1mesh.formats.copc import inside
 
 Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
@@ -53,10 +56,7 @@ def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
         raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.")
     _check_header(data, name)
     with _laspy_errors(name):
-        selection = laspy.DecompressionSelection
-        wanted = (selection.XY_RETURNS_CHANNEL | selection.Z | selection.CLASSIFICATION
-                  | selection.RGB | selection.ALL_EXTRA_BYTES)
-        reader = laspy.open(open_stream(), decompression_selection=wanted)
+        reader = laspy.open(open_stream(), decompression_selection=_wanted_fields())
         try:
             _check_length(reader.header, len(data), name)
             _check_laz_chunks(data, reader.header, name, open_stream)
@@ -64,6 +64,13 @@ def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
             reader.close()
             raise
         return reader
+
+
+def _wanted_fields():
+    """The LAZ fields the reader decodes: xyz, classification, RGB and extra bytes (normals)."""
+    selection = _laspy().DecompressionSelection
+    return (selection.XY_RETURNS_CHANNEL | selection.Z | selection.CLASSIFICATION
+            | selection.RGB | selection.ALL_EXTRA_BYTES)
 
 
 @contextlib.contextmanager
@@ -184,19 +191,22 @@ _CHUNK = 1 << 20   # points decoded at a time
 
 
 def read_las(data: Buffer, name: str, classes=None,
-             open_stream: Callable[[], IO[bytes]] | None = None) -> PointCloud:
+             open_stream: Callable[[], IO[bytes]] | None = None, bounds=None) -> PointCloud:
     """Read a LAS or LAZ file whose bytes are `data` (`name` is for messages).
 
     `data` may be a memory map of the file (read_cloud maps regular files, so the body is
     never copied into memory) and `open_stream` then opens the file again for laspy;
     by default the stream is a BytesIO over `data`. `classes`: classification codes to
     keep (None keeps all), applied per decoded chunk; the kept points are checked against
-    the reading budget as they accumulate.
+    the reading budget as they accumulate. `bounds`: keep only the points in this closed
+    x/y box (formats.copc.Box, world units), in file order; a COPC file then decodes only
+    the octree nodes that meet the box, a file whose header extent misses it nothing.
     """
     open_stream = open_stream or (lambda: io.BytesIO(data))
     keep = None if classes is None else np.asarray(list(classes), dtype=np.int64)
-    with _open(data, name, open_stream) as reader, _laspy_errors(name):
-        if keep is None:
+    with _open(data, name, open_stream) as reader, _laspy_errors(name), \
+            _point_chunks(reader, data, name, open_stream, bounds) as (chunks, expected):
+        if keep is None and bounds is None:
             check_alloc(reader.header.point_count * _KEPT_BYTES_PER_POINT, name,
                         f"the header's {reader.header.point_count} points")
         crs = las_crs(reader.header)
@@ -205,11 +215,15 @@ def read_las(data: Buffer, name: str, classes=None,
         nrm = find_columns(dims, NORMAL_NAMES)
         has_rgb = all(c in dims for c in _RGB)
         parts: dict[str, list[np.ndarray]] = {"points": [], "classification": [], "rgb": [], "normals": []}
-        decoded, found = 0, set()
-        for chunk in reader.chunk_iterator(_CHUNK):
+        decoded, in_box, found = 0, 0, set()
+        for chunk in chunks:
             decoded += len(chunk)
-            found.update(np.unique(np.asarray(chunk.classification)).tolist())
-            rows = None if keep is None else np.isin(np.asarray(chunk.classification), keep)
+            classification = np.asarray(chunk.classification)
+            box = None if bounds is None else inside(np.asarray(chunk.x), np.asarray(chunk.y), bounds)
+            in_region = classification if box is None else classification[box]
+            rows = _rows(classification, keep, box)
+            in_box += len(in_region)
+            found.update(np.unique(in_region).tolist())
             take = (lambda a: np.asarray(a)) if rows is None else (lambda a: np.asarray(a)[rows])  # noqa: E731
             parts["points"].append(np.column_stack([take(chunk.x), take(chunk.y), take(chunk.z)]).astype(np.float64))
             parts["classification"].append(take(chunk.classification).copy())
@@ -219,14 +233,48 @@ def read_las(data: Buffer, name: str, classes=None,
                 parts["rgb"].append(np.column_stack([take(chunk[c]) for c in _RGB]))
             if None not in nrm:
                 parts["normals"].append(np.column_stack([take(chunk[dims[i]]) for i in nrm]).astype(np.float64))
-        if decoded != reader.header.point_count:
+        if decoded != expected:
             raise FormatError(f"LAS/LAZ file '{name}' has {decoded} points, not the "
-                              f"{reader.header.point_count} its header says.")
+                              f"{expected} its {'hierarchy' if bounds is not None else 'header'} says.")
     cloud = _assemble(parts)
     cloud.crs = crs
-    if keep is not None and decoded and not len(cloud):
-        raise InputError(f"no points of class {keep.tolist()}; the file has classes {sorted(found)[:20]}")
+    if keep is not None and in_box and not len(cloud):
+        raise InputError(f"no points of class {keep.tolist()}; the file has classes {sorted(found)[:20]}"
+                         + (" inside the bounds" if bounds is not None else ""))
     return cloud
+
+
+def _rows(classification: np.ndarray, keep: np.ndarray | None, box: np.ndarray | None) -> np.ndarray | None:
+    """(m,) bool: a chunk's points of the kept classes (keep) inside the bounds (box: (m,)
+    bool), or None when every point is kept."""
+    rows = None if keep is None else np.isin(classification, keep)
+    if box is not None:
+        rows = box if rows is None else rows & box
+    return rows
+
+
+@contextlib.contextmanager
+def _point_chunks(reader, data: Buffer, name: str, open_stream: Callable[[], IO[bytes]], bounds):
+    """(point records to decode, how many points they hold): the whole body by laspy's
+    chunk iterator; with bounds, nothing when the header's extent misses the box, only
+    the octree nodes meeting the box for a COPC file, else the whole body (filtered by
+    the caller)."""
+    from c1mesh.formats.copc import Copc, header_meets, is_copc_header
+
+    header = reader.header
+    if bounds is None:
+        yield reader.chunk_iterator(_CHUNK), header.point_count
+    elif not header_meets(header, bounds):
+        yield iter(()), 0
+    elif is_copc_header(header) and header.are_points_compressed:
+        with Copc(open_stream, name, len(data)) as copc:
+            if copc.complete:
+                nodes = copc.nodes(bounds)
+                yield copc.records(nodes, _CHUNK, _wanted_fields()), sum(n.point_count for n in nodes)
+            else:      # a node the hierarchy does not reach: only the chunk table has every point
+                yield reader.chunk_iterator(_CHUNK), header.point_count
+    else:
+        yield reader.chunk_iterator(_CHUNK), header.point_count
 
 
 def _assemble(parts: dict[str, list[np.ndarray]]) -> PointCloud:
