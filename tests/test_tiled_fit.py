@@ -256,10 +256,14 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
 
 
 def test_memory_rule():
-    from c1mesh.tiled_fit import grid_side
+    from c1mesh.tiled_fit import grid_side, tiles_at_once
 
     assert grid_side(2_000_000, 10**9) == 4                  # 138,888 points a tile at most
-    assert grid_side(2_000_000, 10**9, workers=2) == grid_side(2_000_000, 10**9 // 2) == 6
+    assert tiles_at_once(2 * 10**9, 8) == 2                   # half the budget to tiles of 1/4 of it
+    assert tiles_at_once(2 * 10**9, 1) == 1
+    assert points_per_tile(64 * 10**9) == 1_000_000             # capped: more tiles in flight instead
+    assert tiles_at_once(64 * 10**9, 8) == 8
+    assert tiles_at_once(64 * 10**9, 64) == 17                  # 32 GB over 1.8 GB a tile
     assert grid_side(2_000_000, 10**9, per_tile=10**6) == 2
     assert fits_in_memory(1_000_000, 2 * 10**9)
     assert not fits_in_memory(12_000_000, 2 * 10**9)
@@ -416,13 +420,22 @@ def _big_las(tmp_path):
     return source, ["fit", str(source), "--classes", "2", "--level", "1", "--memory", "1M"]
 
 
-def test_cli_runs_tiles_on_jobs(tmp_path):
-    """`fit BIG.las --memory 2M -j 2` fits in tiles on two processes, each with half the
-    budget, and writes what one process writes with that half (the same tiles)."""
+def _every_job_at_once(monkeypatch):
+    """Let -j N run N tile tasks at once under the tiny budgets of these tests (the budget's
+    own rule, tiles_at_once, is tested in test_memory_rule)."""
+    import c1mesh.tiled_fit as tiled_fit
+
+    monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs: jobs)
+
+
+def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):
+    """`fit BIG.las --memory 1M -j 2` fits in tiles on two processes and writes what one
+    process writes: the tiles come from the budget, not from the number of jobs."""
+    _every_job_at_once(monkeypatch)
     source, args = _big_las(tmp_path)
     one = CliRunner().invoke(main, args + ["-o", str(tmp_path / "one.ply")])
-    two = CliRunner().invoke(main, args[:-1] + ["2M", "-o", str(tmp_path / "two.ply"), "-j", "2",
-                                                "--report", str(tmp_path / "two.json")])
+    two = CliRunner().invoke(main, args + ["-o", str(tmp_path / "two.ply"), "-j", "2",
+                                           "--report", str(tmp_path / "two.json")])
     assert one.exit_code == 0 and two.exit_code == 0, one.output + two.output
     assert (tmp_path / "one.ply").read_bytes() == (tmp_path / "two.ply").read_bytes()
     report = json.loads((tmp_path / "two.json").read_text())
@@ -435,6 +448,7 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     no output (in this process and on a pool of two)."""
     import c1mesh.tiled_fit as tiled_fit
 
+    _every_job_at_once(monkeypatch)
     source, args = _big_las(tmp_path)
     real = tiled_fit._refine_tile
 

@@ -249,7 +249,7 @@ def main() -> None:
                    "octree, decoding only the nodes that meet the box.")
 @click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Parallel processes for several inputs, or for the tiles of --seamless -O "
-                   "and of a fit larger than --memory.")
+                   "and of a fit larger than --memory (as many tiles at once as --memory allows).")
 @click.option("--threads", type=click.IntRange(1, 1024), default=None,
               help="Threads in all (BLAS included); with --jobs N each process gets "
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")

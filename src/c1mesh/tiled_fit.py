@@ -69,6 +69,9 @@ TILE_SHARE = 4
 """A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
 reads its buffer too (about twice its points for the normals and the triangulation) and
 the survey-wide state (edge lengths for the median, the border vertex keys) shares the rest."""
+TILE_POINTS_CAP = 1_000_000
+"""Largest tile (points): past this the halo's share of a tile's work is already small, and
+a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
 CHUNK = 1_000_000
 """Points per chunk read from a LAS/LAZ file."""
 
@@ -87,17 +90,28 @@ def fits_in_memory(point_count: int, memory: int | None) -> bool:
 
 
 def points_per_tile(memory: int) -> int:
-    """The points a tile may hold under a budget of memory bytes (at least 10,000)."""
-    return max(10_000, int(memory // (BYTES_PER_POINT * TILE_SHARE)))
+    """The points a tile may hold under a budget of memory bytes: 1 / TILE_SHARE of it at
+    BYTES_PER_POINT, at least 10,000 and at most TILE_POINTS_CAP."""
+    return max(10_000, min(TILE_POINTS_CAP, int(memory // (BYTES_PER_POINT * TILE_SHARE))))
 
 
-def grid_side(count: int, memory: int, workers: int = 1, per_tile: int | None = None) -> int:
-    """Tiles along each side of the square grid for count points: each of `workers`
-    local workers running a tile at once gets 1 / workers of the memory budget (bytes),
-    so its tiles hold at most points_per_tile(memory // workers) points; per_tile
-    overrides that (tests). The grid, and so the output bytes, depend on the budget per
-    worker only, not on where the tiles run."""
-    return max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory // max(1, workers))))))
+def grid_side(count: int, memory: int, per_tile: int | None = None) -> int:
+    """Tiles along each side of the square grid for count points, each holding at most
+    points_per_tile(memory) points (per_tile overrides that, for tests). The grid, and so
+    the output bytes, depend on the budget only, never on how many workers run the tiles."""
+    return max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
+
+
+def tiles_at_once(memory: int, jobs: int) -> int:
+    """How many of `jobs` local processes may each hold a tile at once within memory bytes.
+
+    A tile task's peak is about its tile's points at BYTES_PER_POINT (the in-memory fit's
+    rule; measured: a worker peaked at 207 MB on tiles of 69,444 points, 125 MB by the
+    rule, its interpreter 100 MB of it), so half the budget goes to tasks in flight and
+    the rest to the parent's survey-wide state: two at the default TILE_SHARE, more once
+    a larger budget meets TILE_POINTS_CAP. Asking for more jobs than this runs this many."""
+    task_bytes = points_per_tile(memory) * BYTES_PER_POINT
+    return max(1, min(int(jobs), int(memory // (2 * task_bytes)) or 1))
 
 
 def needs_tiles(source, options) -> bool:
@@ -139,14 +153,6 @@ def survey_paths(source) -> list[Path] | None:
 def survey_name(paths: list[Path]) -> str:
     """How messages name a survey: its file, or its first file and the count."""
     return str(paths[0]) if len(paths) == 1 else f"{paths[0]} and {len(paths) - 1} more files"
-
-
-def las_point_count(path) -> int:
-    """The point count of a LAS/LAZ file's header (before any class filter)."""
-    import laspy
-
-    with laspy.open(str(path)) as reader:
-        return int(reader.header.point_count)
 
 
 class CachedChunks:
@@ -289,10 +295,11 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     path output, else $TMPDIR). Returns a report dict (as pipeline.fit's, shorter).
 
     The per-tile passes (normals, triangulation, refinement) run as tasks
-    (distributed.TaskRunner): here (jobs 1), on `jobs` local processes, each with
-    1 / jobs of the memory budget (the tiles are sized for it), or on the Dask cluster
-    at `scheduler` (each worker with the whole budget), whose workers must see
-    `directory`. The output bytes do not depend on where the tasks ran. on_tile(pass,
+    (distributed.TaskRunner): here (jobs 1), on up to `jobs` local processes (as many
+    as the budget lets hold a tile at once, `tiles_at_once`), or on the Dask cluster at
+    `scheduler` (a tile at a time per worker thread), whose workers must see `directory`.
+    The tiles are sized by the budget alone, so the output bytes do not depend on where
+    the tasks ran or on how many ran at once. on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
     """
     from c1mesh.distributed import TaskRunner
@@ -328,10 +335,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if count < 3:
             raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
-        side = grid_side(count, memory, jobs if scheduler is None else 1, per_tile)
+        side = grid_side(count, memory, per_tile)
         grid = TileGrid(box, side, side)
         done("frame")
-        runner = stack.enter_context(TaskRunner(scheduler, jobs))
+        runner = stack.enter_context(TaskRunner(scheduler, jobs if scheduler else tiles_at_once(memory, jobs)))
         rows = _TileRows(grid, _task_threads(options, runner), on_tile)
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
             done("spill")
