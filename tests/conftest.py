@@ -48,3 +48,50 @@ def crop_ground():
     """GroundParts of data_samples/4_6_crop.las (9003 ground points, EPSG:2903)."""
     pytest.importorskip("laspy")
     return GroundParts(SAMPLES / "4_6_crop.las")
+
+
+@pytest.fixture
+def dask_processes():
+    """A real `dask scheduler` and two `dask worker` processes on 127.0.0.1 (the `dask`
+    command next to this Python, this test's sys.path as their PYTHONPATH); yields the
+    scheduler address once both workers have joined, then stops them by their pids
+    (SIGINT, then SIGKILL after 30 s)."""
+    pytest.importorskip("distributed")
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    from distributed import Client
+
+    command = Path(sys.executable).with_name("dask")
+    if not command.exists():
+        pytest.skip("no `dask` command next to this Python")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"env": dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)),
+             "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    processes = []
+    try:
+        processes.append(subprocess.Popen([str(command), "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                           "--dashboard-address", ":0"], **quiet))
+        for _ in range(2):
+            processes.append(subprocess.Popen([str(command), "worker", address, "--nthreads", "1", "--nworkers", "1",
+                                               "--host", "127.0.0.1", "--no-dashboard"], **quiet))
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+        yield address
+    finally:
+        for process in reversed(processes):
+            process.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 30
+        for process in reversed(processes):
+            try:
+                process.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()

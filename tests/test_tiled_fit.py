@@ -494,52 +494,15 @@ def test_cli_sends_tiles_to_a_scheduler(tmp_path):
 
 
 @pytest.mark.slow
-def test_real_dask_scheduler_and_two_workers_fit_the_tiles(tmp_path):
+def test_real_dask_scheduler_and_two_workers_fit_the_tiles(tmp_path, dask_processes):
     """`dask scheduler` + two `dask worker` processes on 127.0.0.1 (they share this file
     system, as the spill needs), then `fit BIG.las --memory 1M --scheduler`: the bytes of a
     local run, both workers in the report."""
-    pytest.importorskip("distributed")
-    import os
-    import signal
-    import socket
-    import subprocess
-    import sys
-    import time
-
-    command = Path(sys.executable).with_name("dask")
-    if not command.exists():
-        pytest.skip("no `dask` command next to this Python")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    address = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
-    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
     source, args = _big_las(tmp_path)
-    processes = []
-    try:
-        processes.append(subprocess.Popen([str(command), "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                           "--dashboard-address", ":0"], **quiet))
-        for _ in range(2):
-            processes.append(subprocess.Popen([str(command), "worker", address, "--nthreads", "1", "--nworkers", "1",
-                                               "--host", "127.0.0.1", "--no-dashboard"], **quiet))
-        from distributed import Client
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=120)
-        here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "here.ply")])
-        sent = CliRunner().invoke(main, args + ["-o", str(tmp_path / "cluster.ply"), "--scheduler", address,
-                                                "--report", str(tmp_path / "r.json")])
-        assert here.exit_code == 0 and sent.exit_code == 0, here.output + sent.output
-        assert (tmp_path / "cluster.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
-        workers = _tile_rows_agree(json.loads((tmp_path / "r.json").read_text()), 1)
-        assert len(workers) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in workers)
-    finally:
-        for process in reversed(processes):
-            process.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 30
-        for process in reversed(processes):
-            try:
-                process.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "here.ply")])
+    sent = CliRunner().invoke(main, args + ["-o", str(tmp_path / "cluster.ply"), "--scheduler", dask_processes,
+                                            "--report", str(tmp_path / "r.json")])
+    assert here.exit_code == 0 and sent.exit_code == 0, here.output + sent.output
+    assert (tmp_path / "cluster.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+    workers = _tile_rows_agree(json.loads((tmp_path / "r.json").read_text()), 1)
+    assert len(workers) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in workers)

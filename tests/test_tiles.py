@@ -236,57 +236,22 @@ def _free_port():
 
 
 @pytest.mark.slow
-def test_real_dask_scheduler_and_two_workers(hill_tiles, tmp_path):
+def test_real_dask_scheduler_and_two_workers(hill_tiles, tmp_path, dask_processes):
     """`dask scheduler` + two `dask worker` processes on 127.0.0.1, then --scheduler."""
-    pytest.importorskip("distributed")
     import json
-    import os
-    import signal
-    import subprocess
-    import sys
-    import time
 
     folder, paths, _ = hill_tiles
-    command = Path(sys.executable).with_name("dask")     # the `dask` command of this environment
-    if not command.exists():
-        pytest.skip("no `dask` command next to this Python")
-    dask, worker = [str(command), "scheduler"], [str(command), "worker"]
-    port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
-    processes = []
-    try:
-        processes.append(subprocess.Popen([*dask, "--host", "127.0.0.1", "--port", str(port),
-                                           "--dashboard-address", ":0"], env=env,
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        for _ in range(2):
-            processes.append(subprocess.Popen([*worker, address, "--nthreads", "1", "--nworkers", "1",
-                                               "--host", "127.0.0.1", "--no-dashboard"], env=env,
-                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        from distributed import Client
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=120)
-        runner = CliRunner()
-        result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "here"), "--level", "2"])
-        assert result.exit_code == 0, result.output
-        result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "cluster"), "--level", "2",
-                                      "--scheduler", address, "--report", str(tmp_path / "report.json")])
-        assert result.exit_code == 0, result.output
-        for path in paths:
-            out = Path(path).stem + ".c1.ply"
-            assert (tmp_path / "here" / out).read_bytes() == (tmp_path / "cluster" / out).read_bytes()
-        workers = {row["worker"] for row in json.loads((tmp_path / "report.json").read_text())["tiles"]}
-        assert len(workers) == 2
-    finally:
-        for process in reversed(processes):
-            process.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 30
-        for process in reversed(processes):
-            try:
-                process.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+    runner = CliRunner()
+    result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "here"), "--level", "2"])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path / "cluster"), "--level", "2",
+                                  "--scheduler", dask_processes, "--report", str(tmp_path / "report.json")])
+    assert result.exit_code == 0, result.output
+    for path in paths:
+        out = Path(path).stem + ".c1.ply"
+        assert (tmp_path / "here" / out).read_bytes() == (tmp_path / "cluster" / out).read_bytes()
+    workers = {row["worker"] for row in json.loads((tmp_path / "report.json").read_text())["tiles"]}
+    assert len(workers) == 2
 
 
 def test_unreachable_scheduler_is_one_line_and_no_output(hill_tiles, tmp_path, monkeypatch):
