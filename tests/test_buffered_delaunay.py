@@ -183,3 +183,41 @@ def test_one_pass_trimmed_delaunay_is_trims_long_edge_result(kind):
     union = np.concatenate([p.triangles[p.longest <= max_edge] for p in passes])
     assert len(_faces(union)) == len(union)
     assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= max_edge])
+
+
+@pytest.mark.parametrize("edges", [4001, 4002])
+def test_short_median_is_the_partitioned_median_from_arrays_and_files(tmp_path, edges):
+    """short_median reads the tiles' short lengths (arrays or .npy files) and gives the
+    value np.partition of their concatenation gives, to the bit; None when at most half
+    of the survey's edges are short."""
+    rng = np.random.default_rng(5)
+    tiles = [rng.uniform(0.0, 3.0, size) for size in (0, 700, 1300, 900, 400)]
+    short = np.concatenate(tiles)
+    upper = edges // 2
+    ranked = np.partition(short, [upper - 1, upper])
+    expected = float(ranked[upper] if edges % 2 else np.mean(ranked[upper - 1:upper + 1]))
+    paths = []
+    for i, lengths in enumerate(tiles):
+        paths.append(tmp_path / f"short-{i}.npy")
+        np.save(paths[-1], lengths)
+    assert bd.short_median(tiles, edges) == expected
+    assert bd.short_median(paths, edges) == expected
+    assert bd.short_median(tiles[:3], edges) is None                     # 2000 short of 4001+
+
+
+def test_short_median_holds_no_survey_sized_array():
+    """The median of 4M short lengths in 16 tiles never holds half of them at once (the
+    concatenation the tiled fit's parent used to make grew it by 24 bytes a point)."""
+    import tracemalloc
+
+    rng = np.random.default_rng(6)
+    tiles = [rng.uniform(1.0, 2.0, 250_000) for _ in range(16)]
+    survey_bytes = sum(t.nbytes for t in tiles)
+    tracemalloc.start()
+    try:
+        median = bd.short_median(tiles, 2 * 4_000_000 - 1)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert median == float(np.partition(np.concatenate(tiles), 3_999_999)[3_999_999])
+    assert peak < survey_bytes / 2

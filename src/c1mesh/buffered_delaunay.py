@@ -32,6 +32,7 @@ A tile needs its points only through `read(rectangle)`, so points may come from 
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator
 
@@ -560,7 +561,8 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     (the default keeps the pass; a caller short of memory writes it to disk and keeps a path).
     passes(bound): instead of the tile loop here, the (short lengths, kept) of every tile's
     tile_pass up to bound, in any order (the median does not depend on it), the kept list
-    in that order (c1mesh.tiled_fit runs the tiles as tasks this way).
+    in that order (c1mesh.tiled_fit runs the tiles as tasks this way); a tile's short
+    lengths may be an array or the path of a .npy file holding it (`short_median`).
     """
     from c1mesh.triangulation import AUTO_EDGE_FACTOR
 
@@ -581,14 +583,50 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
             kept.append(result)
         if not auto:
             return bound, kept
-        short = np.concatenate(shorts)
-        if short.size > edges // 2:
-            upper = edges // 2
-            ranked = np.partition(short, [upper - 1, upper] if edges % 2 == 0 else [upper])
-            median = float(ranked[upper] if edges % 2 else np.mean(ranked[upper - 1:upper + 1]))
+        median = short_median(shorts, edges)
+        if median is not None:
             limit = float(AUTO_EDGE_FACTOR * median)
             if limit <= bound:
                 return limit, kept
             bound = limit
         else:
             bound *= 2.0
+
+
+SHORT_GATHER = 1 << 20
+"""short_median collects at most this many lengths (8 MB) to partition them."""
+
+
+def short_median(shorts: list, edges: int) -> float | None:
+    """The median of the survey's `edges` Delaunay edge lengths from the certified short
+    ones (per tile an array, or the path of a .npy file of it; each at most the bound,
+    so every longer edge ranks above them): the value np.partition of their
+    concatenation gives, to the bit, or None when at most half of the edges are short.
+
+    The lengths are never concatenated (about 3 per survey point): the ranks are found
+    by streamed_median.order_statistic, holding one tile's lengths and at most
+    SHORT_GATHER candidates, so the parent's memory does not grow with the survey."""
+    from c1mesh.streamed_median import order_statistic
+
+    def chunks():
+        for short in shorts:
+            yield np.load(short) if isinstance(short, (str, os.PathLike)) else short
+    if sum(_length(short) for short in shorts) <= edges // 2:
+        return None
+    upper = edges // 2
+    if edges % 2:
+        return order_statistic(chunks, upper, SHORT_GATHER)
+    middle = [order_statistic(chunks, rank, SHORT_GATHER) for rank in (upper - 1, upper)]
+    return float(np.mean(np.array(middle)))
+
+
+def _length(short) -> int:
+    """Values in a 1-D array, or in the .npy file at a path (read from its header)."""
+    if not isinstance(short, (str, os.PathLike)):
+        return len(short)
+    with open(short, "rb") as file:
+        version = np.lib.format.read_magic(file)
+        header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                  else np.lib.format.read_array_header_2_0)
+        shape, _, _ = header(file)
+    return int(np.prod(shape))

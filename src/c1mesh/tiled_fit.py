@@ -593,14 +593,16 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
             rows.add(t, "triangulate", row)
         return None, files, buffers
     longest = [temps.new(f"longest-{t}.npy") for t in range(len(grid))]
+    shorts = [temps.new(f"short-{t}.npy") for t in range(len(grid))]
 
     def passes(bound):
-        for t, (short, buffer, row) in runner.map(
+        for t, (buffer, row) in runner.map(
                 _tile_trimmed, len(grid),
-                lambda t: (heights, grid, t, bound, hull, files[t], longest[t], rows.threads), rows.name):
+                lambda t: (heights, grid, t, bound, hull, files[t], longest[t], shorts[t], rows.threads),
+                rows.name):
             buffers[t] = buffer
             rows.add(t, "triangulate", row)
-            yield short, t
+            yield shorts[t], t
     limit, _ = trimmed_delaunay(heights.read, grid, count, hull, max_edge, passes=passes)
     for t in range(len(grid)):
         triangles = np.load(files[t])
@@ -628,10 +630,12 @@ def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) ->
     return result.buffer, _row(result.read, start)
 
 
-def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path, threads):
+def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path, short_path, threads):
     """Tile t's triangles with edges up to bound (buffered_delaunay.tile_pass) saved to
-    path, their longest edges to longest_path; returns (its certified short edge lengths,
-    its buffer, its report row)."""
+    path, their longest edges to longest_path, its certified short edge lengths to
+    short_path (the survey's would grow the parent by 24 bytes a point:
+    buffered_delaunay.short_median reads them back a tile at a time); returns (its
+    buffer, its report row)."""
     from c1mesh.buffered_delaunay import tile_pass
     from c1mesh.threads import limit
 
@@ -640,7 +644,8 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path,
         result = tile_pass(heights.read, grid, t, bound, hull)
     _save(path, result.triangles)
     _save(longest_path, result.longest)
-    return result.short, result.buffer, _row(result.read, start)
+    _save(short_path, result.short)
+    return result.buffer, _row(result.read, start)
 
 
 def _trim(halos, grid, temps) -> dict[str, int]:
