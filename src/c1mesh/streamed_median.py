@@ -23,8 +23,9 @@ Chunks = Callable[[], Iterable[np.ndarray]]
 
 RADIX_BITS = 16
 """Bits of the value's pattern each histogram pass resolves (2**16 bins)."""
-GATHER = 1 << 22
-"""A bin with at most this many values is collected and partitioned in memory (32 MB)."""
+GATHER = 1 << 20
+"""A bin with at most this many values is collected and partitioned in memory (8 MB;
+the collected parts, their concatenation and the partition's copy are held at once)."""
 
 
 def streamed_median(chunks: Chunks, gather: int = GATHER) -> float:

@@ -216,6 +216,7 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
                         xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
                     if rgb is not None:
                         colours.add(rgb)
+                    del part, rgb               # not held while the next chunk decodes
                     yield xyz, None
     return chunks
 

@@ -366,7 +366,12 @@ def limit(points, values, gradients, edges, noise: float):
     return limit_gradients(points, values, gradients, edges, noise_floor=noise)
 
 
-def _float_blocks(path, block: int = 1 << 22):
+FLOAT_BLOCK = 1 << 20
+"""Residuals read per block (8 MB): streamed_median makes a few block-sized temporaries
+per pass (bit patterns, shifted digits, masks), so the block bounds the noise floors' peak."""
+
+
+def _float_blocks(path, block: int = FLOAT_BLOCK):
     with open(path, "rb") as file:
         while True:
             part = np.fromfile(file, "<f8", count=block)
