@@ -74,6 +74,11 @@ TILE_POINTS_CAP = 1_000_000
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
 CHUNK = 1_000_000
 """Points per chunk read from a LAS/LAZ file."""
+WRITE_BLOCK = 1 << 18
+"""Vertices (faces) per block streamed from the joined files to the mesh writer, as the
+PLY writer packs them: the writer holds a few blocks in flight (its packed rows and its
+background queue), so with 1M-vertex (48 MB) blocks the write alone held well over
+100 MB whatever the budget."""
 
 HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
                    ("gx", "<f8"), ("gy", "<f8")])
@@ -879,7 +884,7 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     written, faces = join.written, join.faces
     if faces == 0:
         raise InputError("no triangles are left after trimming; try --max-edge none")
-    block = CHUNK
+    block = WRITE_BLOCK
 
     def vertex_blocks():
         with open(vertex_path, "rb") as file:
