@@ -67,8 +67,15 @@ def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3)
     if not len(removed) or not len(triangles):
         return triangles
     corners = triangles[:, :columns]
-    candidates = np.flatnonzero(np.isin(corners.min(axis=1), removed.min(axis=1)))
-    gone = {tuple(row) for row in np.sort(removed, axis=1).tolist()}
+    lowest = corners.min(axis=1)
+    removed_lowest = removed.min(axis=1)
+    candidates = np.flatnonzero(np.isin(lowest, removed_lowest))
+    if not len(candidates):
+        return triangles
+    # Only removed triangles that share a lowest corner with a candidate can match: a
+    # survey's removed list grows with the survey, a halo's share of it does not.
+    near = removed[np.isin(removed_lowest, lowest[candidates])]
+    gone = {tuple(row) for row in np.sort(near, axis=1).tolist()}
     rows = np.sort(corners[candidates], axis=1).tolist()
     keep = np.ones(len(triangles), dtype=bool)
     keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
