@@ -369,3 +369,25 @@ def test_autzen_folds_are_level_4_sampling_of_sliver_creases_not_folds_of_the_sp
     np.testing.assert_array_equal(_folded_per_face(patch.refine(4)).reshape(folding.size, -1).any(axis=1),
                                   np.ones(folding.size, dtype=bool))
     assert not _folded_per_face(patch.refine(32)).any()
+
+
+def noisy_random_ground(side: float = 40.0, density: float = 4.0, noise: float = 0.02, seed: int = 0):
+    """(n, 3) points of benchmarks.tiled_delaunay's synthetic LiDAR ground in a side × side m
+    square: uniform random positions at `density` per m², smooth relief, Gaussian height
+    noise of `noise` m (no normals: the fit estimates gradients from the heights)."""
+    rng = np.random.default_rng(seed)
+    n = int(side * side * density)
+    x, y = rng.uniform(0, side, n), rng.uniform(0, side, n)
+    z = 100 + 10 * np.sin(x / 150) * np.cos(y / 200) + 3 * np.sin(x / 37 + y / 53) + rng.normal(0, noise, n)
+    return np.column_stack([x, y, z])
+
+
+@pytest.mark.xfail(strict=True, reason="issue 10, found this session: near-coincident random points "
+                                       "with 2 cm noise fold faces and leave thinner-than-noise holes "
+                                       "(remedy to try: merge points closer than the noise floor)")
+def test_noisy_random_ground_has_no_folded_faces_at_default_options():
+    """Random ground points with 2 cm noise, fitted as a LAS ground tile is (axis z, gradients
+    fitted to the heights, the limiter): no folded face at level 4."""
+    cloud = PointCloud(points=noisy_random_ground())
+    model = build_surface(cloud, FitOptions(axis="z"))
+    assert not _folded_per_face(model.interp.refine(4)).any()      # 81 of 201,632 fold today
