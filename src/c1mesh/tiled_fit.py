@@ -68,7 +68,7 @@ the rule takes the upper end."""
 TILE_SHARE = 4
 """A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
 reads its buffer too (about twice its points for the normals and the triangulation) and
-the survey-wide state (edge lengths for the median, the border vertex keys) shares the rest."""
+the survey-wide state (the row map, the border vertex keys) shares the rest."""
 TILE_POINTS_CAP = 1_000_000
 """Largest tile (points): past this the halo's share of a tile's work is already small, and
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
@@ -116,7 +116,7 @@ def tiles_at_once(memory: int, jobs: int) -> int:
     the rest to the parent's survey-wide state: two at the default TILE_SHARE, more once
     a larger budget meets TILE_POINTS_CAP. Asking for more jobs than this runs this many."""
     task_bytes = points_per_tile(memory) * BYTES_PER_POINT
-    return max(1, min(int(jobs), int(memory // (2 * task_bytes)) or 1))
+    return max(1, min(int(jobs), int(memory // (2 * task_bytes))))
 
 
 def needs_tiles(source, options) -> bool:
