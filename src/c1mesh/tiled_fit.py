@@ -210,19 +210,17 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
 
     def chunks():
         for path in paths:
-            with laspy.open(str(path)) as reader:
-                parts = reader.chunk_iterator(chunk) if bounds is None else region_chunks(path, bounds, chunk)
-                for part in parts:
-                    xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
-                    rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
-                           if rgb_everywhere else None)
-                    if classes:
-                        keep = np.isin(np.asarray(part.classification), np.asarray(classes))
-                        xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
-                    if rgb is not None:
-                        colours.add(rgb)
-                    del part, rgb               # not held while the next chunk decodes
-                    yield xyz, None
+            for part in region_chunks(path, bounds, chunk):
+                xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
+                rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
+                       if rgb_everywhere else None)
+                if classes:
+                    keep = np.isin(np.asarray(part.classification), np.asarray(classes))
+                    xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
+                if rgb is not None:
+                    colours.add(rgb)
+                del part, rgb               # not held while the next chunk decodes
+                yield xyz, None
     return chunks
 
 

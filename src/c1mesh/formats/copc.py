@@ -295,14 +295,17 @@ def copc_summary(path) -> dict | None:
                 "spacing": float(info.spacing), "hierarchy_reaches_every_point": copc.complete}
 
 
-def region_chunks(path, box: Box, chunk: int) -> Iterator:
+def region_chunks(path, box: Box | None, chunk: int) -> Iterator:
     """laspy point records of the LAS/LAZ file at `path` inside the closed x/y box, in
     file order, about `chunk` points decoded at a time: only the nodes meeting the box
     of a COPC file, nothing of a file whose header extent misses the box, else every
-    chunk of the body, filtered."""
+    chunk of the body, filtered (box None: every chunk as it is)."""
     import laspy
 
     with laspy.open(str(path)) as reader:
+        if box is None:
+            yield from reader.chunk_iterator(chunk)
+            return
         if not header_meets(reader.header, box):
             return
         if is_copc_header(reader.header) and reader.header.are_points_compressed:
