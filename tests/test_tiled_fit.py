@@ -31,7 +31,7 @@ from c1mesh.normals import estimate_normals
 from c1mesh.pipeline import FitOptions, surface_stream
 from c1mesh.tile_spill import TileSpill
 from c1mesh.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
-from c1mesh.tiled_limiter import RowMap, halo_reach, noise_floors, read_halo, tile_limits
+from c1mesh.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits
 from c1mesh.tiled_trim import drop_triangles, peeled
 from c1mesh.topology import edge_table
 from c1mesh.triangulation import delaunay, trim
@@ -189,10 +189,10 @@ def _tiled_limiter(xy, z, gradients, triangles, side, directory):
         files.append(directory / f"tri-{t}.npy")
         np.save(files[-1], triangles[owner == t])
     longest = max(np.hypot(*(xy[triangles[:, i]] - xy[triangles[:, (i + 1) % 3]]).T).max() for i in range(3))
-    reach, rows = halo_reach(longest), RowMap(len(xy))
-    floors = noise_floors(lambda: (read_halo(spill, files, grid, t, reach, rows) for t in range(len(grid))),
+    reach = halo_reach(longest)
+    floors = noise_floors(lambda: (read_halo(spill, files, grid, t, reach) for t in range(len(grid))),
                           _Temps(directory))
-    tiles = [(tile_limits(read_halo(spill, files, grid, t, reach, rows), triangles[owner == t], floors, rows),
+    tiles = [(tile_limits(read_halo(spill, files, grid, t, reach), triangles[owner == t], floors),
               triangles[owner == t]) for t in range(len(grid)) if (owner == t).any()]
     spill.close()
     return floors, tiles

@@ -351,11 +351,11 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             done("normals")
             max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps, runner, rows)
             done("triangulate")
-            from c1mesh.tiled_limiter import HaloCache, RowMap, halo_reach, longest_final_edge
+            from c1mesh.tiled_limiter import HaloCache, halo_reach, longest_final_edge
 
             longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,
                                                                                 grid, buffers)
-            halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), RowMap(count), temps)
+            halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             removed = _trim(halos, grid, temps)
             done("trim")
@@ -777,7 +777,7 @@ class _Limiter:
         """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
         from c1mesh.tiled_limiter import tile_limits
 
-        return tile_limits(self.halos.halo(tile), triangles, self.floors, self.halos.row_map)
+        return tile_limits(self.halos.halo(tile), triangles, self.floors)
 
     def report(self) -> dict:
         return {"gradients_limited": self.limited, "directions_changed": self.turned,
