@@ -41,7 +41,8 @@ both tiles' owned regions: a corner point, or a point on a base edge that only o
 triangle of the tile has. Such vertices are numbered globally by a key that does not
 depend on the tile — the survey number of a corner, (lower end, higher end, position from
 the lower end) of an edge point — and written once, by the first tile that reaches them;
-later tiles refer to that number. All other vertices are written by their only tile.
+later tiles refer to that number (c1mesh.tiled_join, which forgets a key once no later
+tile can meet it). All other vertices are written by their only tile.
 Edge points on a tile border are thus evaluated from the first tile's triangle, where
 the whole-survey refinement uses the edge's owner triangle: the two agree to rounding
 (the spline is continuous), which is the only difference.
@@ -790,9 +791,17 @@ class _RefineJob:
     frame, options, limiter (None: --overshoot off), colours, threads per task."""
 
     def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads):
+        from c1mesh.tiled_join import KeyExpiry
+
         self.heights, self.grid, self.files, self.buffers = heights, grid, triangle_files, buffers
         self.max_edge, self.frame, self.scheme, self.level = max_edge, frame, options.scheme, options.level
         self.limiter, self.colours, self.threads = limiter, colours, threads
+        self.expiry = KeyExpiry(grid, [self.reach(t) for t in range(len(grid))])
+
+    def reach(self, t: int) -> float:
+        """How far beyond its cell the corners of tile t's own triangles lie (frame units):
+        the trim's max_edge, else its Delaunay buffer, with a relative margin for rounding."""
+        return (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
 
     def tile_data(self, t: int, triangles: np.ndarray):
         """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
@@ -801,7 +810,7 @@ class _RefineJob:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
                     limits.limited, limits.turned)
-        reach = (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
+        reach = self.reach(t)
         cell = self.grid.cell(t)
         records = self.heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
         corners = np.unique(triangles)
@@ -814,7 +823,7 @@ class _RefineJob:
 class _Part:
     """The temporary files of one tile's refinement: vertices (all of its refinement's
     output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
-    (.npz: the border keys of `_border_keys` and the points they name)."""
+    (.npz: the border keys of `tiled_join.border_keys`, their points and last tiles)."""
 
     def __init__(self, temps, t: int):
         self.vertices, self.faces = temps.new(f"part-{t}.vertices"), temps.new(f"part-{t}.faces")
@@ -838,7 +847,8 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     with limit(job.threads):
         records, local, gradients, directions, limited, turned = job.tile_data(t, triangles)
         colors = None if job.colours is None else job.colours.of(records["index"])
-        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors)
+        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
+                             job.expiry)
     return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned,
             **_row(len(records), start)}
 
@@ -853,6 +863,7 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     from c1mesh.distributed import TaskRunner
     from c1mesh.formats import write_mesh
     from c1mesh.threads import blas_threads
+    from c1mesh.tiled_join import PartJoin
 
     runner = runner or TaskRunner()
     rows = rows or _TileRows(grid, options.workers)
@@ -862,7 +873,7 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     tiles = [t for t in range(len(grid)) if triangle_files[t] is not None]
     parts = {t: _Part(temps, t) for t in tiles}
     vertex_path, face_path = temps.new("vertices.bin"), temps.new("faces.bin")
-    join = _Join(VERTEX_RGB if coloured else VERTEX)
+    join = PartJoin(VERTEX_RGB if coloured else VERTEX)
     triangles_per_tile, ready, next_tile = {}, {}, 0
     with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file:
         for i, row in runner.map(_refine_tile, len(tiles), lambda i: (job, tiles[i], parts[tiles[i]]),
@@ -871,13 +882,14 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
             while next_tile in ready:                       # join in tile order, as soon as possible
                 t, row = tiles[next_tile], ready.pop(next_tile)
                 if row is not None:
-                    join.add(parts[t], row, vertex_file, face_file)
+                    join.add(t, parts[t], row, vertex_file, face_file)
                     triangles_per_tile[t] = row["triangles"]
                     if limiter is not None:
                         limiter.limited += row["limited"]
                         limiter.turned += row["turned"]
                     rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
                 parts[t].remove()
+                join.passed(t)
                 next_tile += 1
     written, faces = join.written, join.faces
     if faces == 0:
@@ -903,55 +915,24 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
         write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
                    options.output_format, ascii=options.ascii, crs=crs)
     report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
-              "shared_vertex_keys": len(join.shared), "triangles_per_tile": triangles_per_tile}
+              "shared_vertex_keys": join.keys,
+              "shared_vertex_keys_held": join.shared.peak, "triangles_per_tile": triangles_per_tile}
     if limiter is not None:
         report["overshoot"] = limiter.report()
     return report
 
 
-class _Join:
-    """The one vertex file and one face file made from the tiles' parts, in tile order:
-    a border vertex (key in `shared`) is written by the first tile that has it; written,
-    faces: counts so far; kept: input points among the vertices written."""
-
-    def __init__(self, dtype: np.dtype):
-        self.dtype, self.shared = dtype, {}
-        self.written = self.faces = self.kept = 0
-
-    def add(self, part: _Part, row: dict, vertex_file, face_file) -> None:
-        with open(part.keys, "rb") as file:
-            stored = np.load(file)
-            keys, points = _stored_keys(stored)
-        number = _global_numbers(keys, points, row["vertices"], self.shared, self.written)
-        new = number >= self.written
-        with open(part.vertices, "rb") as file:
-            position = 0
-            while True:
-                block = np.fromfile(file, self.dtype, count=CHUNK)
-                if not len(block):
-                    break
-                block[new[position:position + len(block)]].tofile(vertex_file)
-                position += len(block)
-        with open(part.faces, "rb") as file:
-            while True:
-                block = np.fromfile(file, "<i8", count=3 * CHUNK)
-                if not len(block):
-                    break
-                number.take(block).astype("<i8").tofile(face_file)
-        self.written += int(new.sum())
-        self.kept += int(new[:row["corners"]].sum())
-        self.faces += row["faces"]
-
-
 def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,
-                colors=None) -> dict:
+                colors=None, expiry=None) -> dict:
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
     write all its output points (world position, normal, colour), its faces (tile-local
     numbers) and its border keys to its part files; returns {vertices, corners, faces}.
     gradients (n, 2) and directions (E, 2): the limiter's (None: the records' gradients,
-    unit-normal directions); colors (n, 3) uint8 of the records, or None."""
+    unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
+    tiled_join.KeyExpiry that gives each border key its last tile."""
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.pipeline import surface_stream
+    from c1mesh.tiled_join import border_keys
 
     xy = np.column_stack([records["x"], records["y"]])
     if gradients is None:
@@ -960,7 +941,7 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
                              directions=directions)
     refinement = interp.refinement(level)
     with open(part.keys, "wb") as file:
-        np.savez(file, **_border_keys(refinement, records["index"]))
+        np.savez(file, **border_keys(refinement, records["index"], xy, expiry))
     stream = surface_stream(refinement, frame, colors)
     with open(part.vertices, "wb") as file:
         for vertices, normals, blended in stream.vertex_blocks():
@@ -973,50 +954,3 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
         for faces in stream.face_blocks():
             np.asarray(faces, dtype="<i8").tofile(file)
     return {"vertices": int(refinement.vertex_count), "corners": len(records), "faces": int(stream.face_count)}
-
-
-def _border_keys(refinement, survey: np.ndarray) -> dict[str, np.ndarray]:
-    """The keys of the tile refinement's output points that may be shared with another
-    tile (module docstring), as arrays: corner_keys (c,) survey numbers and corner_points
-    (c,) their output points; edge_keys (e, 3) (lower end, higher end, position from the
-    lower end) and edge_points (e,)."""
-    table, L = refinement.table, refinement.level
-    border = np.flatnonzero(table.count == 1)                  # edges of one owned triangle
-    ends = table.edges[border]
-    corners = np.unique(ends)
-    edge_keys, edge_points = np.empty((0, 3), np.int64), np.empty(0, np.int64)
-    if L > 1 and len(border):
-        code = refinement.edge_code[border]
-        first, forward = (code >> 1).astype(np.int64), (code & 1).astype(bool)
-        j = np.arange(L - 1)
-        a = np.repeat(survey[ends[:, 0]].astype(np.int64), L - 1)
-        b = np.repeat(survey[ends[:, 1]].astype(np.int64), L - 1)
-        step = np.tile(j, len(border))
-        position = np.where(np.repeat(forward, L - 1), step, L - 2 - step)
-        edge_keys = np.column_stack([a, b, position])
-        edge_points = (np.repeat(first, L - 1) + step).astype(np.int64)
-    return {"corner_keys": survey[corners].astype(np.int64), "corner_points": corners.astype(np.int64),
-            "edge_keys": edge_keys, "edge_points": edge_points}
-
-
-def _stored_keys(stored) -> tuple[list, list]:
-    """The border keys and their points (`_border_keys`, from its .npz) as the lists
-    `_global_numbers` takes: corners first (int keys), then edge points (tuple keys)."""
-    keys = stored["corner_keys"].tolist() + [tuple(k) for k in stored["edge_keys"].tolist()]
-    points = stored["corner_points"].tolist() + stored["edge_points"].tolist()
-    return keys, points
-
-
-def _global_numbers(keys: list, points: list, vertex_count: int, shared: dict, written: int) -> np.ndarray:
-    """(M,) the global number of each of a tile refinement's M output points: a shared
-    key already in `shared` keeps its number; every other point gets the next new number
-    (written, written + 1, ... in output order), and new shared keys are added."""
-    number = np.full(vertex_count, -1, dtype=np.int64)
-    for k, p in zip(keys, points):
-        if k in shared:
-            number[p] = shared[k]
-    new = number < 0
-    number[new] = written + np.arange(int(new.sum()))
-    for k, p in zip(keys, points):
-        shared.setdefault(k, int(number[p]))
-    return number
