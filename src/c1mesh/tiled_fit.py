@@ -687,7 +687,7 @@ def _trim(halos, grid, temps) -> dict[str, int]:
             counts[reason] += count
     cut, corners = np.concatenate(cut), np.concatenate(corners)
     state.remove(cut, corners)
-    state.settle(state.next_to(cut), set(corners.ravel().tolist()))
+    state.settle(state.next_to(cut), set(np.unique(corners).tolist()))
     state.write_files()
     return {"sliver": state.sliver, "bowtie": state.bowtie, **counts}
 
@@ -706,12 +706,13 @@ class _TrimState:
     def remove(self, triangles: np.ndarray, tiles: np.ndarray) -> None:
         """Remove triangles (k, 3) whose corners lie in tiles (k, 3); a thin one (a
         bow-tie fan's or a curtain) can then no longer be peeled."""
-        from c1mesh.tiled_trim import owner_tiles
+        from c1mesh.tiled_trim import drop_triangles, owner_tiles
 
-        if len(triangles):
-            gone = {tuple(row) for row in np.sort(triangles, axis=1).tolist()}
-            thin = np.sort(self.thin, axis=1).tolist()
-            self.alive &= np.array([tuple(row) not in gone for row in thin], dtype=bool)
+        if len(triangles):                  # compares only rows sharing a lowest corner with a thin one
+            kept = drop_triangles(np.column_stack([self.thin, np.arange(len(self.thin))]), triangles)
+            still = np.zeros(len(self.thin), dtype=bool)
+            still[kept[:, 3]] = True
+            self.alive &= still
         self.removed.append(triangles)
         self.owners.append(owner_tiles(triangles, tiles))
         self.halos.removed = np.concatenate(self.removed)
@@ -736,7 +737,7 @@ class _TrimState:
             self.alive[gone] = False
             self.sliver += len(gone)
             self.remove(self.thin[gone], self.tiles[gone])
-            pending |= set(self.tiles[gone].ravel().tolist())
+            pending |= set(np.unique(self.tiles[gone]).tolist())
             cut, corners = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)]
             for t in sorted(pending & set(self.halos.tiles())):
                 triangles, where = bowtie_cuts(self.halos.halo(t), self.grid)
@@ -747,7 +748,7 @@ class _TrimState:
                 return
             self.bowtie += len(cut)
             self.remove(cut, corners)
-            front, pending = self.next_to(cut), set(corners.ravel().tolist())
+            front, pending = self.next_to(cut), set(np.unique(corners).tolist())
 
     def write_files(self) -> None:
         """Drop the removed triangles from their owners' triangle files and the cached halos."""
