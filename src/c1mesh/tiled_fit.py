@@ -75,11 +75,12 @@ TILE_POINTS_CAP = 1_000_000
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
 CHUNK = 1_000_000
 """Points per chunk read from a LAS/LAZ file."""
-WRITE_BLOCK = 1 << 18
+WRITE_BLOCK = 1 << 16
 """Vertices (faces) per block streamed from the joined files to the mesh writer, as the
-PLY writer packs them: the writer holds a few blocks in flight (its packed rows and its
-background queue), so with 1M-vertex (48 MB) blocks the write alone held well over
-100 MB whatever the budget."""
+PLY writer packs them: the writer holds a few blocks in flight (the block read, its
+packed rows and up to four in its background queue, about 6 × 3.3 MB of coloured
+vertices at this size), so with 1M-vertex (48 MB) blocks the write alone held well over
+100 MB whatever the budget, and still about 40 MB at 256k."""
 
 HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
                    ("gx", "<f8"), ("gy", "<f8")])
