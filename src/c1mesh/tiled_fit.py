@@ -213,17 +213,25 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     def chunks():
         for path in paths:
             for part in region_chunks(path, bounds, chunk):
-                xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
-                rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
-                       if rgb_everywhere else None)
-                if classes:
-                    keep = np.isin(np.asarray(part.classification), np.asarray(classes))
-                    xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
-                if rgb is not None:
-                    colours.add(rgb)
-                del part, rgb               # not held while the next chunk decodes
+                keep = np.isin(np.asarray(part.classification), np.asarray(classes)) if classes else None
+                xyz = _kept_columns(part, ("x", "y", "z"), keep, np.float64)
+                if rgb_everywhere:
+                    colours.add(_kept_columns(part, ("red", "green", "blue"), keep, np.uint16))
+                del part                    # not held while the next chunk decodes
                 yield xyz, None
     return chunks
+
+
+def _kept_columns(part, names, keep, dtype) -> np.ndarray:
+    """(m, len(names)) the named dimensions of a laspy record's rows `keep` (bool, or None:
+    all), filled a column at a time: a whole-chunk (n, 3) copy and its filtered copy
+    would be held at once, beside the decoded chunk and the one the reader still holds."""
+    count = len(part) if keep is None else int(np.count_nonzero(keep))
+    out = np.empty((count, len(names)), dtype=dtype)
+    for i, name in enumerate(names):
+        column = np.asarray(getattr(part, name) if name in ("x", "y", "z") else part[name])
+        out[:, i] = column if keep is None else column[keep]
+    return out
 
 
 class Colours:
