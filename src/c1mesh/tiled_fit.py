@@ -69,7 +69,8 @@ the rule takes the upper end."""
 TILE_SHARE = 4
 """A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
 reads its buffer too (about twice its points for the normals and the triangulation) and
-the survey-wide state (the row map, the border vertex keys) shares the rest."""
+the parent's state (the interpreter, the join's band of border keys, the trim's removed
+triangles) shares the rest."""
 TILE_POINTS_CAP = 1_000_000
 """Largest tile (points): past this the halo's share of a tile's work is already small, and
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
