@@ -520,12 +520,11 @@ def _row(points: int, start: float) -> dict:
     """A task's report row: its points, seconds since start, the worker that ran it and
     that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
     interpreter's own)."""
-    import resource
-
+    from c1mesh.platform_memory import peak_rss_mb
     from c1mesh.tiles import worker_address
 
     return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address(),
-            "worker_peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+            "worker_peak_mb": peak_rss_mb()}
 
 
 class _TileRows:
