@@ -554,7 +554,9 @@ def _summary(report: dict) -> str:
         e3 = ", ".join(f"{c:.3g}" for c in frame["axes"][2])
         line += f"; height axis ({e3}), {frame['axis_choice']}"
     if "overshoot" in report:
-        line += f"; gradients limited at {report['overshoot']['gradients_limited']} vertices"
+        over = report["overshoot"]
+        line += (f"; heights reconciled at {over['heights_reconciled']}, "
+                 f"gradients limited at {over['gradients_limited']} vertices")
     return line
 
 
