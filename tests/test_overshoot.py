@@ -132,9 +132,10 @@ def test_lidar_ground_has_no_folded_faces_at_default_options(name):
 
 
 def holdout_rms(path, seeds=(0, 1, 2)):
-    """Mean held-out RMS over seeds of c1mesh (default options) and scipy's linear TIN:
-    10% of the ground points held out, the surface built from the rest by the pipeline's
-    own stages (build_surface), errors at held-out points inside its triangles."""
+    """Mean held-out RMS over seeds of c1mesh (default options) and scipy's linear TIN of
+    the same points and their input heights: 10% of the ground points held out, the
+    surface built from the rest by the pipeline's own stages (build_surface), errors at
+    held-out points inside its triangles."""
     cloud = load_cloud(path, FitOptions(classes=(2,)))
     ours, linear = [], []
     for seed in seeds:
@@ -145,7 +146,7 @@ def holdout_rms(path, seeds=(0, 1, 2)):
         inside = interp.find_simplex(local[:, :2]) >= 0
         q, truth = local[inside, :2], local[inside, 2]
         ours.append(np.sqrt(np.mean((interp(q) - truth) ** 2)))
-        tin = LinearNDInterpolator(interp.points, interp.values)(q)
+        tin = LinearNDInterpolator(interp.points, model.hf.z[model.used])(q)   # the data's heights
         linear.append(np.sqrt(np.mean((tin - truth) ** 2)))
     return np.mean(ours), np.mean(linear)
 
@@ -154,9 +155,10 @@ def holdout_rms(path, seeds=(0, 1, 2)):
 @pytest.mark.parametrize("name", [
     "autzen_trim.laz",
     pytest.param("4_6_crop.las", marks=pytest.mark.xfail(
-        strict=True, reason="issue 10 target not met: 1.011x the linear TIN; the sextic's Psi1 = Phi "
-                            "carries each noisy vertex gradient about twice as far into a triangle "
-                            "as cubic Hermite (quintic 1.001x, rHCT 0.989x with the same gradients)"))])
+        strict=True, reason="issue 10 target not met: 1.017x the linear TIN (1.011x before the heights "
+                            "of near pairs were reconciled); the sextic's Psi1 = Phi carries each "
+                            "noisy vertex gradient about twice as far into a triangle as cubic "
+                            "Hermite (quintic 1.001x, rHCT 0.989x with the same gradients)"))])
 def test_lidar_ground_holdout_rms_is_no_worse_than_a_linear_tin(name):
     """10% of the ground points held out (3 seeds); the fit sees the rest only."""
     ours, linear = holdout_rms(SAMPLES / name)

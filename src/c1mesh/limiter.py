@@ -80,7 +80,7 @@ class LimiterReport:
 
 def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                       triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
-                      noise_floors: tuple[float, float] | None = None
+                      noise_floors: tuple[float, float] | None = None, heights: bool = True
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
     """Heights, gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
@@ -91,8 +91,10 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     already built (pass the same table to the RSDInterpolator so the edges are numbered
     once). noise_floors: the median |trapezoid residual| of the input data and after both
     reconciliations, when they come from a larger survey than these edges (a tile of it);
-    None measures them here. Returns (values, gradients, directions in the order of
-    table.edges or None, report).
+    None measures them here. heights=False skips `reconcile_heights`: its crease test
+    compares a slope error with 1 (45°), which needs the plane's and the height's units to
+    agree, as in a height field and not in a depth chart (u, v, w). Returns (values,
+    gradients, directions in the order of table.edges or None, report).
     """
     if mode == "off":
         return values, gradients, None, LimiterReport()
@@ -103,7 +105,9 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     residual = geometry.delta - 0.5 * (predicted[0] + predicted[1])
     if before is None:
         before = float(np.median(np.abs(residual))) if residual.size else 0.0
-    values, lifted = _reconcile_heights(values, geometry, residual, table, triangles, before)
+    lifted = np.zeros(values.shape[0], dtype=bool)
+    if heights:
+        values, lifted = _reconcile_heights(values, geometry, residual, table, before)
     if lifted.any():
         geometry = EdgeGeometry.of(points, values, table.edges)
     reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
@@ -130,7 +134,7 @@ def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     D/L (D the longest edge of the edge's triangles, L = `CREASE_LEVEL`) samples that
     crease with a slope error of about (D/L)·6|e|/d². Above 1 (45°) sub-faces fold
     against the spline's normals and show as needles, though the spline itself is C1 and
-    does not fold (docs/overshoot.md, "Near-coincident points").
+    does not fold (docs/overshoot.md, "Remedy 3").
 
     What: every edge with 6|e|·D > L·d² moves each end by half its residual, toward each
     other's prediction (a residual of zero for the pair), clipped to HEIGHT_CLIP ×
@@ -146,12 +150,11 @@ def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     residual = geometry.delta - 0.5 * (pred_a + pred_b)
     if noise_floor is None:
         noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
-    return _reconcile_heights(values, geometry, residual, table, triangles, noise_floor)
+    return _reconcile_heights(values, geometry, residual, table, noise_floor)
 
 
 def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: np.ndarray,
-                       table: EdgeTable, triangles: np.ndarray, noise_floor: float
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       table: EdgeTable, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
     """`reconcile_heights` on gathered edge data and residuals (E,)."""
     f = np.asarray(values, dtype=float)
     n = f.shape[0]
