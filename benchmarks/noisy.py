@@ -79,11 +79,11 @@ def surfaces(xy, z, g, tri, lam, pca=None) -> dict:
 
     pts = lattice_points(xy, tri, lam).reshape(-1, 2)
     out = {}
-    limited, directions, _ = control_overshoot(xy, z, g, tri, "limit")
-    pca_limited, _, _ = control_overshoot(xy, z, g if pca is None else pca, tri, "limit")
-    for name, grads, dirs in (("c1mesh off", g, None), ("c1mesh limit", limited, directions),
-                              ("c1mesh PCA", pca_limited, directions)):
-        interp = RSDInterpolator(xy, z, grads, triangles=tri, directions=dirs)
+    heights, limited, directions, _ = control_overshoot(xy, z, g, tri, "limit")
+    pca_heights, pca_limited, _, _ = control_overshoot(xy, z, g if pca is None else pca, tri, "limit")
+    for name, values, grads, dirs in (("c1mesh off", z, g, None), ("c1mesh limit", heights, limited, directions),
+                                      ("c1mesh PCA", pca_heights, pca_limited, directions)):
+        interp = RSDInterpolator(xy, values, grads, triangles=tri, directions=dirs)
         out[name] = interp.coefficients @ rsd.basis(interp.scheme, lam)
     t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=tri)
     for name, grads in (("rHCT", g), ("rHCT limited", limited)):
@@ -132,12 +132,12 @@ def holdout(cloud, opts, seeds=SEEDS) -> dict:
         off = model.interp
         xy, z, g, tri = off.points, off.values, off.gradients, off.triangles
         local = model.frame.to_local(points[test])
-        limited, directions, _ = control_overshoot(xy, z, g, tri, "limit")
+        heights, limited, directions, _ = control_overshoot(xy, z, g, tri, "limit")
         inside = off.find_simplex(local[:, :2]) >= 0
         q, truth = local[inside, :2], local[inside, 2]
         t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=tri)
         values = {"c1mesh off": off(q),
-                  "c1mesh limit": RSDInterpolator(xy, z, limited, triangles=tri, directions=directions)(q),
+                  "c1mesh limit": RSDInterpolator(xy, heights, limited, triangles=tri, directions=directions)(q),
                   "c1mesh PCA": pca(q),
                   "linear": LinearNDInterpolator(xy, z)(q), "CT": CloughTocher2DInterpolator(xy, z)(q)}
         for name, grads in (("rHCT", g), ("rHCT limited", limited)):

@@ -70,9 +70,9 @@ def _in_memory(path, classes, level, overshoot="limit", max_edge="auto", gradien
     triangles, report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, report)
     used = np.unique(triangles)
     triangles = np.searchsorted(used, triangles)
-    gradients, directions, limiter = control_overshoot(hf.xy[used], hf.z[used], hf.gradients[used],
-                                                       triangles, overshoot)
-    interp = RSDInterpolator(hf.xy[used], hf.z[used], gradients, triangles=triangles, directions=directions)
+    values, gradients, directions, limiter = control_overshoot(hf.xy[used], hf.z[used], hf.gradients[used],
+                                                               triangles, overshoot)
+    interp = RSDInterpolator(hf.xy[used], values, gradients, triangles=triangles, directions=directions)
     mesh = surface_stream(interp.refinement(level), frame, None).materialize()
     mesh.limiter, mesh.slivers = limiter.as_dict(), report.removed["sliver"]
     mesh.removed = {k: v for k, v in report.removed.items() if k != "long_edge"}
@@ -214,8 +214,9 @@ def test_tiled_limiter_gives_the_whole_limiter_bits(tmp_path, seed):
     triangles, _ = trim(xy, delaunay(xy), max_edge="auto", min_circle_ratio=0.0)
     used = np.unique(triangles)
     xy, z, gradients, triangles = xy[used], z[used], gradients[used], np.searchsorted(used, triangles)
-    whole_gradients, whole_directions, report = control_overshoot(xy, z, gradients, triangles)
+    whole_values, whole_gradients, whole_directions, report = control_overshoot(xy, z, gradients, triangles)
     assert report.gradients_limited > 1000 and report.directions_changed > 100
+    assert report.heights_reconciled > 20
     edges = edge_table(triangles, len(xy)).edges
     a, b = edges[:, 0], edges[:, 1]
     residual = np.abs(z[b] - z[a] - 0.5 * (np.einsum("ij,ij->i", gradients[a] + gradients[b], xy[b] - xy[a])))
@@ -225,6 +226,7 @@ def test_tiled_limiter_gives_the_whole_limiter_bits(tmp_path, seed):
     for limits, own in tiles:
         corners = limits.records["index"]
         assert np.array_equal(limits.gradients, whole_gradients[corners])        # bits
+        assert np.array_equal(limits.records["z"], whole_values[corners])
         local_edges = corners[edge_table(limits.triangles, len(corners)).edges]
         at = np.searchsorted(edges[:, 0] * len(xy) + edges[:, 1], local_edges[:, 0] * len(xy) + local_edges[:, 1])
         assert np.array_equal(edges[at], local_edges)

@@ -237,8 +237,8 @@ def main() -> None:
               help="Depth images: metres per depth unit.")
 @click.option("--color", "color_image", help="Depth images: an RGB image of the same size for vertex colours.")
 @click.option("--overshoot", type=click.Choice(["limit", "off"]), default="limit", show_default=True,
-              help="limit: tame gradients that disagree with the heights and thin triangles "
-                   "(keeps C1); off: use the data as is.")
+              help="limit: ease the heights of near-coincident noisy points, tame gradients that "
+                   "disagree with the heights, and thin triangles (keeps C1); off: use the data as is.")
 @click.option("--gradients", type=click.Choice(["auto", "normals", "heights"]), default="auto",
               show_default=True, help="Vertex gradients: heights: a local quadratic fit to the "
                    "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
@@ -554,7 +554,9 @@ def _summary(report: dict) -> str:
         e3 = ", ".join(f"{c:.3g}" for c in frame["axes"][2])
         line += f"; height axis ({e3}), {frame['axis_choice']}"
     if "overshoot" in report:
-        line += f"; gradients limited at {report['overshoot']['gradients_limited']} vertices"
+        over = report["overshoot"]
+        line += (f"; heights reconciled at {over['heights_reconciled']}, "
+                 f"gradients limited at {over['gradients_limited']} vertices")
     return line
 
 

@@ -208,7 +208,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
         used, triangles = _compact(field_.uv, triangles)
     with timer.stage("interpolate"):
         interp, overshoot = limited_interpolator(field_.uv[used], field_.w[used], field_.gradients[used],
-                                                 triangles, scheme, options.overshoot)
+                                                 triangles, scheme, options.overshoot, heights=False)
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         refinement = interp.refinement(options.level)

@@ -1,8 +1,12 @@
 """Overshoot control for noisy scans that keeps the spline C1 (docs/overshoot.md).
 
-Two remedies, plain functions over arrays, applied by the fit pipeline between the height
+The remedies, plain functions over arrays, applied by the fit pipeline between the height
 field and the RSDInterpolator:
 
+* `reconcile_heights` moves the two heights of a short edge, by at most `HEIGHT_CLIP`
+  noise floors, where their difference disagrees with their gradients so much that the
+  spline would crease across the edge's triangles more sharply than their sub-faces can
+  show (near-coincident points with independent noise). Heights stay one per vertex.
 * `reconcile_gradients` blends a vertex gradient that disagrees with the heights of its
   neighbours with their secant slopes (least squares), one gradient per vertex.
 * `limit_gradients` then scales a vertex gradient down where it disagrees with the heights of
@@ -42,6 +46,13 @@ NORMAL_WEIGHT = 1.0
 """Weight of a vertex's normal against its edges' secant slopes in `reconcile_gradients`."""
 RATIO_LIMIT = 2.0
 """Edges whose unit-normal RSD ratio max(|s|, |1 − s|) exceeds this get another direction."""
+CREASE_LEVEL = 4
+"""The refinement level (sub-faces per triangle edge) whose sampling `reconcile_heights`
+protects: the default level. A fixed constant, so --level changes the sampling only."""
+HEIGHT_CLIP = 2.0
+"""`reconcile_heights` moves a height by at most this multiple of the noise floor: half of
+an edge's residual up to twice the floor, what noise alone explains; larger misfits are
+features (a kerb, a wall foot) and keep the rest."""
 
 
 def check_mode(mode: str) -> None:
@@ -54,38 +65,51 @@ def check_mode(mode: str) -> None:
 
 @dataclass
 class LimiterReport:
-    """What the remedies changed: vertices whose gradient was scaled down, and edges whose
-    direction is not the unit normal."""
+    """What the remedies changed: vertices whose height moved (`reconcile_heights`) or whose
+    gradient changed, and edges whose direction is not the unit normal."""
 
     gradients_limited: int = 0
     directions_changed: int = 0
+    heights_reconciled: int = 0
 
     def as_dict(self) -> dict:
         return {"gradients_limited": self.gradients_limited,
-                "directions_changed": self.directions_changed}
+                "directions_changed": self.directions_changed,
+                "heights_reconciled": self.heights_reconciled}
 
 
 def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                       triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
-                      noise_floors: tuple[float, float] | None = None
-                      ) -> tuple[np.ndarray, np.ndarray | None, LimiterReport]:
-    """Gradients and edge directions for an RSDInterpolator on a (noisy) height field.
+                      noise_floors: tuple[float, float] | None = None, heights: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
+    """Heights, gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
     points (n, 2), values (n,), gradients (n, 2), triangles (T, 3). mode "limit" applies
-    `reconcile_gradients`, then `limit_gradients`, and `edge_directions`; "off" returns the
-    gradients unchanged and None (the interpolator's unit normals). table: the
-    c1mesh.topology.edge_table of the triangles if already built (pass the same table to
-    the RSDInterpolator so the edges are numbered once). noise_floors: the median
-    |trapezoid residual| before and after reconciliation, when they come from a larger
-    survey than these edges (a tile of it); None measures them here. Returns (gradients,
-    directions in the order of table.edges or None, report).
+    `reconcile_heights`, `reconcile_gradients`, then `limit_gradients`, and
+    `edge_directions`; "off" returns the values and gradients unchanged and None (the
+    interpolator's unit normals). table: the c1mesh.topology.edge_table of the triangles if
+    already built (pass the same table to the RSDInterpolator so the edges are numbered
+    once). noise_floors: the median |trapezoid residual| of the input data and after both
+    reconciliations, when they come from a larger survey than these edges (a tile of it);
+    None measures them here. heights=False skips `reconcile_heights`: its crease test
+    compares a slope error with 1 (45°), which needs the plane's and the height's units to
+    agree, as in a height field and not in a depth chart (u, v, w). Returns (values,
+    gradients, directions in the order of table.edges or None, report).
     """
     if mode == "off":
-        return gradients, None, LimiterReport()
+        return values, gradients, None, LimiterReport()
     table = edge_table(triangles, points.shape[0]) if table is None else table
     before, after = noise_floors if noise_floors is not None else (None, None)
     geometry = EdgeGeometry.of(points, values, table.edges)
-    predicted = geometry.predictions(gradients)
+    predicted = geometry.predictions(gradients)             # heights do not change these
+    residual = geometry.delta - 0.5 * (predicted[0] + predicted[1])
+    if before is None:
+        before = float(np.median(np.abs(residual))) if residual.size else 0.0
+    lifted = np.zeros(values.shape[0], dtype=bool)
+    if heights:
+        values, lifted = _reconcile_heights(values, geometry, residual, table, before)
+    if lifted.any():
+        geometry = EdgeGeometry.of(points, values, table.edges)
     reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
     # Reconciliation changes the gradients of touched vertices only, so only the edges
     # that reach one ("near") predict anything new.
@@ -94,7 +118,68 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     limited, changed = _limit(reconciled, geometry, (pred_a, pred_b), SECANT_FACTOR,
                               CONSISTENCY, NOISE_FACTOR, after)
     directions, turned = _directions(points, triangles, table, geometry.d, RATIO_LIMIT)
-    return limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()))
+    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
+                                                      int(lifted.sum()))
+
+
+def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                      triangles: np.ndarray, table: EdgeTable | None = None,
+                      noise_floor: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (n,) of short edges moved toward what their gradients say, within the noise.
+
+    Why: two points d apart whose heights differ by noise make the spline rise by the
+    edge's trapezoid residual e = Δ − (δ_a + δ_b)/2 across d, while their gradients say it
+    does not. The spline then creases along the edge's triangles with a curvature of about
+    6|e|/d² (a cubic's, rising e over d with zero end slopes), and a sub-face of length
+    D/L (D the longest edge of the edge's triangles, L = `CREASE_LEVEL`) samples that
+    crease with a slope error of about (D/L)·6|e|/d². Above 1 (45°) sub-faces fold
+    against the spline's normals and show as needles, though the spline itself is C1 and
+    does not fold (docs/overshoot.md, "Remedy 3").
+
+    What: every edge with 6|e|·D > L·d² moves each end by half its residual, toward each
+    other's prediction (a residual of zero for the pair), clipped to HEIGHT_CLIP ×
+    noise_floor (the median |e| over all edges; measured here when None); a vertex on
+    several such edges moves by the mean of their moves. One height per vertex, so the
+    spline stays C1. Exact data of any quadratic have e = 0 and move nothing; smooth data
+    have e = O(d³), so only an edge far shorter than its triangles can qualify, and it
+    moves by at most half its O(d³) residual. Returns (values, changed (n,) bool).
+    """
+    table = edge_table(triangles, points.shape[0]) if table is None else table
+    geometry = EdgeGeometry.of(points, values, table.edges)
+    pred_a, pred_b = geometry.predictions(gradients)
+    residual = geometry.delta - 0.5 * (pred_a + pred_b)
+    if noise_floor is None:
+        noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
+    return _reconcile_heights(values, geometry, residual, table, noise_floor)
+
+
+def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: np.ndarray,
+                       table: EdgeTable, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """`reconcile_heights` on gathered edge data and residuals (E,)."""
+    f = np.asarray(values, dtype=float)
+    n = f.shape[0]
+    length2 = geometry.d[:, 0] ** 2 + geometry.d[:, 1] ** 2
+    reach2 = _longest_adjacent_edge2(length2, table)
+    creasing = 6.0 * np.abs(residual) * np.sqrt(reach2) > CREASE_LEVEL * length2
+    if noise_floor <= 0 or not creasing.any():
+        return f, np.zeros(n, dtype=bool)
+    move = np.clip(0.5 * residual[creasing], -HEIGHT_CLIP * noise_floor, HEIGHT_CLIP * noise_floor)
+    ends = np.concatenate([geometry.a[creasing], geometry.b[creasing]])
+    total = np.bincount(ends, np.concatenate([move, -move]), minlength=n)
+    count = np.bincount(ends, minlength=n)
+    changed = count > 0
+    out = f.copy()
+    out[changed] += total[changed] / count[changed]
+    return out, changed
+
+
+def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray:
+    """(E,) the squared longest edge of the triangles that contain each edge."""
+    per_triangle = length2[table.tri_edge].max(axis=1)
+    out = np.zeros_like(length2)
+    for k in range(3):
+        np.maximum.at(out, table.tri_edge[:, k], per_triangle)
+    return out
 
 
 @dataclass(frozen=True)

@@ -294,13 +294,15 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
 
 
-def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str
-                         ) -> tuple[RSDInterpolator, Any]:
+def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,
+                         heights: bool = True) -> tuple[RSDInterpolator, Any]:
     """The RSDInterpolator of a (noisy) height field with its overshoot controlled
-    (c1mesh.limiter.control_overshoot in mode `overshoot`), the edges numbered once for
-    both; and the limiter's report. Shared by the plane and the perspective fits."""
+    (c1mesh.limiter.control_overshoot in mode `overshoot`: its values are the reconciled
+    heights), the edges numbered once for both; and the limiter's report. Shared by the
+    plane and the perspective fits (these pass heights=False; control_overshoot says why)."""
     table = edge_table(triangles, points.shape[0]) if overshoot != "off" else None
-    limited, directions, report = control_overshoot(points, values, gradients, triangles, overshoot, table)
+    values, limited, directions, report = control_overshoot(points, values, gradients, triangles,
+                                                            overshoot, table, heights=heights)
     interp = RSDInterpolator(points, values, limited, triangles=triangles, scheme=scheme,
                              directions=directions, edge_table=table)
     return interp, report

@@ -782,7 +782,7 @@ class _Limiter:
 
         self.halos = halos
         self.floors = noise_floors_on(halos, temps, runner or TaskRunner(), name)
-        self.limited = self.turned = 0
+        self.limited = self.turned = self.lifted = 0
 
     def tile(self, tile: int, triangles: np.ndarray):
         """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
@@ -792,6 +792,7 @@ class _Limiter:
 
     def report(self) -> dict:
         return {"gradients_limited": self.limited, "directions_changed": self.turned,
+                "heights_reconciled": self.lifted,
                 "noise_floors": [self.floors.first, self.floors.second]}
 
 
@@ -815,11 +816,11 @@ class _RefineJob:
 
     def tile_data(self, t: int, triangles: np.ndarray):
         """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
-        directions or None, limited, turned) of tile t's own triangles (survey numbers)."""
+        directions or None, limited, turned, lifted) of tile t's own triangles (survey numbers)."""
         if self.limiter is not None:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
-                    limits.limited, limits.turned)
+                    limits.limited, limits.turned, limits.lifted)
         reach = self.reach(t)
         cell = self.grid.cell(t)
         records = self.heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
@@ -827,7 +828,7 @@ class _RefineJob:
         rows = np.searchsorted(records["index"], corners)
         if np.any(rows >= len(records)) or np.any(records["index"][np.minimum(rows, len(records) - 1)] != corners):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
-        return records[rows], np.searchsorted(corners, triangles), None, None, 0, 0
+        return records[rows], np.searchsorted(corners, triangles), None, None, 0, 0, 0
 
 
 class _Part:
@@ -847,7 +848,7 @@ class _Part:
 def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     """Refine tile t's own triangles into its part files; returns its report row with
     vertices, corners (input points among them, first), faces, triangles, limited,
-    turned, or None for a tile without triangles."""
+    turned, lifted, or None for a tile without triangles."""
     from c1mesh.threads import limit
 
     start = time.perf_counter()
@@ -855,11 +856,11 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     if not len(triangles):
         return None
     with limit(job.threads):
-        records, local, gradients, directions, limited, turned = job.tile_data(t, triangles)
+        records, local, gradients, directions, limited, turned, lifted = job.tile_data(t, triangles)
         colors = None if job.colours is None else job.colours.of(records["index"])
         counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
                              job.expiry)
-    return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned,
+    return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned, "lifted": lifted,
             **_row(len(records), start)}
 
 
@@ -897,6 +898,7 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                     if limiter is not None:
                         limiter.limited += row["limited"]
                         limiter.turned += row["turned"]
+                        limiter.lifted += row["lifted"]
                     rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
                 parts[t].remove()
                 join.passed(t)

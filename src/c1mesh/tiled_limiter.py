@@ -3,21 +3,23 @@
 The limiter is not tile-local in two ways:
 
 - its noise floors are survey-wide: the median |trapezoid residual| over every edge of the
-  final triangulation, once with the normals' gradients (for `reconcile_gradients`) and
-  once with the reconciled ones (for `limit_gradients`);
-- a vertex's reconciled gradient needs all its edges (its star), its limited gradient
-  needs the reconciled gradients of all its neighbours, and an edge's direction needs both
-  of its triangles (`edge_directions`).
+  final triangulation, once with the input heights and gradients (for `reconcile_heights`
+  and `reconcile_gradients`) and once with the reconciled ones (for `limit_gradients`);
+- a vertex's reconciled height needs its star (its edges and their triangles), its
+  reconciled gradient the reconciled heights of all its neighbours, its limited gradient
+  the reconciled gradients of all its neighbours, and an edge's direction both of its
+  triangles (`edge_directions`).
 
 The halo rule. Every final triangle has edges at most L long (the long-edge trim's
 max_edge, or the longest edge of the untrimmed triangulation). A tile reads the height
-field in its cell grown by 3L (its halo) and the final triangles of every tile that cell
+field in its cell grown by 4L (its halo) and the final triangles of every tile that cell
 meets, and keeps the triangles whose three corners it read. Then it holds the whole star
-of every vertex within 2L of its cell, so it has, exactly as the whole survey has them:
+of every vertex within 3L of its cell, so it has, exactly as the whole survey has them:
 
-- the reconciled gradient of every vertex within 2L of the cell (its star is inside);
-- the limited gradient and the edge directions of every corner of its own triangles
-  (those lie within L of the cell, their neighbours within 2L);
+- the reconciled height of every vertex within 3L of the cell (its star is inside), and
+  the reconciled gradient of every vertex within 2L;
+- the limited gradient, the reconciled height and the edge directions of every corner of
+  its own triangles (those lie within L of the cell, their neighbours within 2L);
 - the residuals of the edges whose lower-numbered end lies in its cell (both ends within
   L), each edge of the survey in exactly one tile.
 
@@ -39,7 +41,7 @@ from typing import Callable
 
 import numpy as np
 
-HALO_EDGES = 3
+HALO_EDGES = 4
 """A tile's halo, in longest final edges (module docstring)."""
 
 
@@ -65,8 +67,8 @@ class Halo:
 
 @dataclass(frozen=True)
 class NoiseFloors:
-    """The survey's median |trapezoid residual| over all final edges, with the normals'
-    gradients (first) and with the reconciled gradients (second); height units."""
+    """The survey's median |trapezoid residual| over all final edges, with the input heights
+    and gradients (first) and with the reconciled ones (second); height units."""
 
     first: float
     second: float
@@ -75,10 +77,11 @@ class NoiseFloors:
 @dataclass
 class TileLimits:
     """The limiter's result for the corners of one tile's triangles: records (c,) the
-    corners (ascending survey numbers), triangles (k, 3) into them, gradients (c, 2)
-    limited, directions (E, 2) in the order of topology.edge_table(triangles, c).edges;
-    limited: own vertices whose gradient changed, turned: own edges whose direction is
-    not the unit normal (own: in the tile's cell; lower end, for an edge)."""
+    corners (ascending survey numbers; their z reconciled), triangles (k, 3) into them,
+    gradients (c, 2) limited, directions (E, 2) in the order of
+    topology.edge_table(triangles, c).edges; limited: own vertices whose gradient changed,
+    turned: own edges whose direction is not the unit normal, lifted: own vertices whose
+    height moved (own: in the tile's cell; lower end, for an edge)."""
 
     records: np.ndarray
     triangles: np.ndarray
@@ -86,6 +89,7 @@ class TileLimits:
     directions: np.ndarray
     limited: int
     turned: int
+    lifted: int = 0
 
 
 def halo_reach(longest_edge: float) -> float:
@@ -214,11 +218,11 @@ def edge_residuals(points, values, gradients, edges) -> np.ndarray:
     return np.abs(trapezoid_residuals(points, values, gradients, edges))
 
 
-def edge_floor(halos: Callable[[], object], temps, name: str, gradients_of=None) -> float:
+def edge_floor(halos: Callable[[], object], temps, name: str, data_of=None) -> float:
     """The median |trapezoid residual| over every final edge of the survey, exactly (each
     edge from the tile holding its lower end). halos: a callable giving a fresh iterator
-    of every tile's Halo; gradients_of(halo, edges): the gradients (m, 2) to use (None:
-    the height field's); temps: tiled_fit._Temps for the residual file."""
+    of every tile's Halo; data_of(halo, table): the heights (m,) and gradients (m, 2) to
+    use (None: the height field's); temps: tiled_fit._Temps for the residual file."""
     from c1mesh.streamed_median import streamed_median
     from c1mesh.topology import edge_table
 
@@ -227,10 +231,10 @@ def edge_floor(halos: Callable[[], object], temps, name: str, gradients_of=None)
         for halo in halos():
             if not len(halo.triangles):
                 continue
-            edges = edge_table(halo.triangles, len(halo.records)).edges
-            mine = edges[halo.own[edges[:, 0]]]              # lower end in the cell
-            gradients = halo.gradients if gradients_of is None else gradients_of(halo, edges)
-            residuals = edge_residuals(halo.points, halo.records["z"], gradients, mine)
+            table = edge_table(halo.triangles, len(halo.records))
+            mine = table.edges[halo.own[table.edges[:, 0]]]  # lower end in the cell
+            values, gradients = (halo.records["z"], halo.gradients) if data_of is None else data_of(halo, table)
+            residuals = edge_residuals(halo.points, values, gradients, mine)
             residuals.astype("<f8").tofile(file)
     median = streamed_median(lambda: _float_blocks(path))
     path.unlink()
@@ -241,8 +245,7 @@ def noise_floors(halos: Callable[[], object], temps) -> NoiseFloors:
     """The survey's two noise floors, exactly. halos: a callable giving a fresh iterator
     of every tile's Halo; temps: tiled_fit._Temps for the residual files."""
     first = edge_floor(halos, temps, "first")
-    second = edge_floor(halos, temps, "second", lambda halo, edges: reconcile(
-        halo.points, halo.records["z"], halo.gradients, edges, first)[0])
+    second = edge_floor(halos, temps, "second", lambda halo, table: reconciled(halo, table, first)[:2])
     return NoiseFloors(first, second)
 
 
@@ -275,19 +278,19 @@ def _floor_on(cache: HaloCache, temps, runner, name, label: str, reconciled_with
 
 def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, path) -> None:
     """Write to path the |trapezoid residual| of every final edge whose lower end lies in
-    tile's cell (edge_floor's values for that tile): with the height field's gradients,
-    or, given the first noise floor, with the gradients reconciled with it."""
+    tile's cell (edge_floor's values for that tile): with the height field's heights and
+    gradients, or, given the first noise floor, with both reconciled with it."""
     from c1mesh.topology import edge_table
 
     halo = cache.halo(tile)
     residuals = np.empty(0)
     if len(halo.triangles):
-        edges = edge_table(halo.triangles, len(halo.records)).edges
-        mine = edges[halo.own[edges[:, 0]]]                  # lower end in the cell
-        gradients = halo.gradients
+        table = edge_table(halo.triangles, len(halo.records))
+        mine = table.edges[halo.own[table.edges[:, 0]]]      # lower end in the cell
+        values, gradients = halo.records["z"], halo.gradients
         if reconciled_with is not None:
-            gradients = reconcile(halo.points, halo.records["z"], gradients, edges, reconciled_with)[0]
-        residuals = edge_residuals(halo.points, halo.records["z"], gradients, mine)
+            values, gradients, _, _ = reconciled(halo, table, reconciled_with)
+        residuals = edge_residuals(halo.points, values, gradients, mine)
     residuals.astype("<f8").tofile(path)
 
 
@@ -297,10 +300,10 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     from c1mesh.limiter import edge_directions
     from c1mesh.topology import edge_table
 
-    points, values = halo.points, halo.records["z"]
+    points = halo.points
     table = edge_table(halo.triangles, len(halo.records))
-    reconciled, moved = reconcile(points, values, halo.gradients, table.edges, floors.first)
-    limited, changed = limit(points, values, reconciled, table.edges, floors.second)
+    values, gradients, lifted, moved = reconciled(halo, table, floors.first)
+    limited, changed = limit(points, values, gradients, table.edges, floors.second)
     directions, turned = edge_directions(points, halo.triangles, table)
     rows = halo_rows(halo.records["index"], owned)
     if np.any(rows < 0):
@@ -310,9 +313,11 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     keys = table.edges[:, 0] * n + table.edges[:, 1]
     sub = corners[edge_table(triangles, len(corners)).edges]
     at = np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
-    return TileLimits(halo.records[corners], triangles, limited[corners], directions[at],
+    records = halo.records[corners]
+    records["z"] = values[corners]
+    return TileLimits(records, triangles, limited[corners], directions[at],
                       int(((moved | changed) & halo.own).sum()),
-                      int((turned & halo.own[table.edges[:, 0]]).sum()))
+                      int((turned & halo.own[table.edges[:, 0]]).sum()), int((lifted & halo.own).sum()))
 
 
 def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
@@ -335,11 +340,18 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
     return longest
 
 
-def reconcile(points, values, gradients, edges, noise: float):
-    """limiter.reconcile_gradients with the survey's noise floor."""
-    from c1mesh.limiter import reconcile_gradients
+def reconciled(halo: Halo, table, noise: float):
+    """The halo's heights and gradients reconciled as limiter.control_overshoot does, with
+    the survey's first noise floor: (values (m,), gradients (m, 2), heights moved (m,) bool,
+    gradients changed (m,) bool). Exact for vertices within 3L (heights) and 2L
+    (gradients) of the cell (module docstring)."""
+    from c1mesh.limiter import reconcile_gradients, reconcile_heights
 
-    return reconcile_gradients(points, values, gradients, edges, noise_floor=noise)
+    points = halo.points
+    values, lifted = reconcile_heights(points, halo.records["z"], halo.gradients, halo.triangles,
+                                       table, noise_floor=noise)
+    gradients, moved = reconcile_gradients(points, values, halo.gradients, table.edges, noise_floor=noise)
+    return values, gradients, lifted, moved
 
 
 def limit(points, values, gradients, edges, noise: float):
