@@ -144,19 +144,22 @@ class TaskRunner:
         """Yield (i, function(*arguments(i))) for i in range(count), in completion order.
         A task that raises stops the run: tiles.TileError "tile NAME: ..." (name(i)), the
         tasks not yet finished are cancelled."""
+        from c1mesh.platform_memory import release_free_heap
+
         if self.pool is None and self.client is None:
             for i in range(count):
                 try:
                     result = function(*arguments(i))
                 except Exception as exc:  # noqa: BLE001 — any failure of a tile is named by its tile
                     raise _failure(name(i), exc) from exc
+                release_free_heap()
                 yield i, result
             return
         pending: dict = {}
         if self.pool is not None:
             from concurrent.futures import FIRST_COMPLETED, wait
 
-            submit = lambda i: self.pool.submit(function, *arguments(i))          # noqa: E731
+            submit = lambda i: self.pool.submit(_then_release, function, *arguments(i))  # noqa: E731
             wait_some = lambda: wait(pending, return_when=FIRST_COMPLETED).done  # noqa: E731
             failed = lambda future: future.exception()                          # noqa: E731
         else:
@@ -188,6 +191,18 @@ class TaskRunner:
             else:
                 for future in pending:
                     future.cancel()
+
+
+def _then_release(function: Callable, *arguments):
+    """function(*arguments) in a pool worker, then the heap it freed given back
+    (platform_memory.release_free_heap): tasks of one size then peak at one size, however
+    many a worker has run; the same is done after each task run in this process."""
+    from c1mesh.platform_memory import release_free_heap
+
+    try:
+        return function(*arguments)
+    finally:
+        release_free_heap()
 
 
 def _failure(name: str, exc: BaseException) -> TileError:

@@ -36,14 +36,13 @@ the outputs (M values, 2M gradients, 2M coordinates, 3·L²·T indices).
 """
 from __future__ import annotations
 
-import ctypes
-import sys
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
 import numpy as np
 
 from c1mesh import rsd
+from c1mesh.platform_memory import madvise as _madvise
 from c1mesh.schemes import ShapeTuple
 from c1mesh.threads import blas_threads, run_parallel
 from c1mesh.threads import workers as thread_count
@@ -449,20 +448,6 @@ def _populate(address: int, length: int) -> bool:
     first = -(-address // _PAGE) * _PAGE
     last = (address + length) // _PAGE * _PAGE
     return last <= first or _madvise(first, last - first, _MADV_POPULATE_WRITE) == 0
-
-
-def _load_madvise():
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        madvise = libc.madvise
-    except (OSError, AttributeError):
-        return None
-    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-    madvise.restype = ctypes.c_int
-    return madvise
-
-
-_madvise = _load_madvise() if sys.platform.startswith("linux") else None
 
 
 def _template_columns(pat: LatticePattern) -> np.ndarray:

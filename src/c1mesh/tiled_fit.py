@@ -41,7 +41,8 @@ both tiles' owned regions: a corner point, or a point on a base edge that only o
 triangle of the tile has. Such vertices are numbered globally by a key that does not
 depend on the tile — the survey number of a corner, (lower end, higher end, position from
 the lower end) of an edge point — and written once, by the first tile that reaches them;
-later tiles refer to that number. All other vertices are written by their only tile.
+later tiles refer to that number (c1mesh.tiled_join, which forgets a key once no later
+tile can meet it). All other vertices are written by their only tile.
 Edge points on a tile border are thus evaluated from the first tile's triangle, where
 the whole-survey refinement uses the edge's owner triangle: the two agree to rounding
 (the spline is continuous), which is the only difference.
@@ -54,7 +55,8 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -68,17 +70,19 @@ the rule takes the upper end."""
 TILE_SHARE = 4
 """A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
 reads its buffer too (about twice its points for the normals and the triangulation) and
-the survey-wide state (the row map, the border vertex keys) shares the rest."""
+the parent's state (the interpreter, the join's band of border keys, the trim's removed
+triangles) shares the rest."""
 TILE_POINTS_CAP = 1_000_000
 """Largest tile (points): past this the halo's share of a tile's work is already small, and
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
 CHUNK = 1_000_000
 """Points per chunk read from a LAS/LAZ file."""
-WRITE_BLOCK = 1 << 18
+WRITE_BLOCK = 1 << 16
 """Vertices (faces) per block streamed from the joined files to the mesh writer, as the
-PLY writer packs them: the writer holds a few blocks in flight (its packed rows and its
-background queue), so with 1M-vertex (48 MB) blocks the write alone held well over
-100 MB whatever the budget."""
+PLY writer packs them: the writer holds a few blocks in flight (the block read, its
+packed rows and up to four in its background queue, about 6 × 3.3 MB of coloured
+vertices at this size), so with 1M-vertex (48 MB) blocks the write alone held well over
+100 MB whatever the budget, and still about 40 MB at 256k."""
 
 HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
                    ("gx", "<f8"), ("gy", "<f8")])
@@ -190,13 +194,14 @@ class CachedChunks:
 
 
 def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None,
-               bounds=None) -> Callable:
+               bounds=None, file_counts: list | None = None) -> Callable:
     """survey_stats.Chunks over a LAS/LAZ file, or over several read one after another as
     one survey: a callable giving a fresh iterator of (world points (m, 3), None) in file
     order, keeping only `classes` (None: all). colours: where each pass also sends the
     kept points' RGB, when every file has it (a survey has colours only if all its files
     do, as in c1mesh.tiles.load_survey). bounds: only the points in this closed x/y box
-    (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it."""
+    (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it.
+    file_counts: a list each pass refills with the points it kept from each file."""
     import laspy
 
     from c1mesh.formats.copc import region_chunks
@@ -209,19 +214,33 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     rgb_everywhere = colours is not None and all({"red", "green", "blue"} <= dimensions(p) for p in paths)
 
     def chunks():
+        if file_counts is not None:
+            file_counts.clear()
         for path in paths:
+            kept = 0
             for part in region_chunks(path, bounds, chunk):
-                xyz = np.column_stack([np.asarray(part.x), np.asarray(part.y), np.asarray(part.z)])
-                rgb = (np.column_stack([np.asarray(part[c]) for c in ("red", "green", "blue")])
-                       if rgb_everywhere else None)
-                if classes:
-                    keep = np.isin(np.asarray(part.classification), np.asarray(classes))
-                    xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
-                if rgb is not None:
-                    colours.add(rgb)
-                del part, rgb               # not held while the next chunk decodes
+                keep = np.isin(np.asarray(part.classification), np.asarray(classes)) if classes else None
+                xyz = _kept_columns(part, ("x", "y", "z"), keep, np.float64)
+                if rgb_everywhere:
+                    colours.add(_kept_columns(part, ("red", "green", "blue"), keep, np.uint16))
+                del part                    # not held while the next chunk decodes
+                kept += len(xyz)
                 yield xyz, None
+            if file_counts is not None:
+                file_counts.append(kept)
     return chunks
+
+
+def _kept_columns(part, names, keep, dtype) -> np.ndarray:
+    """(m, len(names)) the named dimensions of a laspy record's rows `keep` (bool, or None:
+    all), filled a column at a time: a whole-chunk (n, 3) copy and its filtered copy
+    would be held at once, beside the decoded chunk and the one the reader still holds."""
+    count = len(part) if keep is None else int(np.count_nonzero(keep))
+    out = np.empty((count, len(names)), dtype=dtype)
+    for i, name in enumerate(names):
+        column = np.asarray(getattr(part, name) if name in ("x", "y", "z") else part[name])
+        out[:, i] = column if keep is None else column[keep]
+    return out
 
 
 class Colours:
@@ -289,8 +308,11 @@ class _Temps:
 def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
               on_stage: Callable[[str], None] | None = None, directory=None,
               scheduler: str | None = None, jobs: int = 1,
-              on_tile: Callable[[str, int, int], None] | None = None) -> dict:
-    """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output.
+              on_tile: Callable[[str, int, int], None] | None = None,
+              outputs: Sequence[str] | None = None) -> dict:
+    """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
+    with outputs (one path per input file, output None), each input's owned part of it
+    (c1mesh.tiled_outputs: `fit --seamless -O` beyond --memory).
 
     options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
     overshoot, output_format, ascii; normals not "file"); memory: the
@@ -324,14 +346,18 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if on_stage:
             on_stage(stage)
 
+    if outputs is not None and len(outputs) != len(paths):
+        raise ValueError("outputs must name one path per input file")
+    target = outputs[0] if outputs is not None else output
     if directory is None:
-        directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
-    temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
+        directory = Path(target).parent if isinstance(target, (str, Path)) else Path(tempfile.gettempdir())
+    temps = _Temps(directory, Path(str(target)).name if isinstance(target, (str, Path)) else "c1mesh")
+    file_counts: list[int] = []
     stack = contextlib.ExitStack()
     try:
         colours = Colours(temps)
         chunks = CachedChunks(las_chunks(source, options.classes, colours=colours,
-                                         bounds=getattr(options, "bounds", None)), temps)
+                                         bounds=getattr(options, "bounds", None), file_counts=file_counts), temps)
         axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
         frame = streamed_frame(chunks, axis)
         colours.finish()
@@ -351,11 +377,11 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             done("normals")
             max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps, runner, rows)
             done("triangulate")
-            from c1mesh.tiled_limiter import HaloCache, RowMap, halo_reach, longest_final_edge
+            from c1mesh.tiled_limiter import HaloCache, halo_reach, longest_final_edge
 
             longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,
                                                                                 grid, buffers)
-            halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), RowMap(count), temps)
+            halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             removed = _trim(halos, grid, temps)
             done("trim")
@@ -363,8 +389,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             if options.overshoot == "limit":
                 limiter = _Limiter(halos, temps, runner, rows.name)
                 done("noise floors")
+            split = None if outputs is None else _Split(_input_owners(file_counts), outputs,
+                                                         [str(p) for p in paths])
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
-                                  output, temps, limiter, crs, colours, runner, rows)
+                                  output, temps, limiter, crs, colours, runner, rows, split)
             done("refine+write")
         finally:
             heights.close()
@@ -372,7 +400,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         stack.close()
         temps.close()
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
-                   "output": str(output), "tiles": len(grid),
+                   "output": str(output) if outputs is None else [str(o) for o in outputs],
+                   "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget "
                                 "(docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
@@ -383,6 +412,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = _describe_crs(crs, crs_source)
     return report
+
+
+def _input_owners(file_counts: list[int]):
+    from c1mesh.tiled_outputs import InputOwners
+
+    return InputOwners(file_counts)
 
 
 def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
@@ -509,12 +544,11 @@ def _row(points: int, start: float) -> dict:
     """A task's report row: its points, seconds since start, the worker that ran it and
     that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
     interpreter's own)."""
-    import resource
-
+    from c1mesh.platform_memory import peak_rss_mb
     from c1mesh.tiles import worker_address
 
     return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address(),
-            "worker_peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+            "worker_peak_mb": peak_rss_mb()}
 
 
 class _TileRows:
@@ -686,7 +720,7 @@ def _trim(halos, grid, temps) -> dict[str, int]:
             counts[reason] += count
     cut, corners = np.concatenate(cut), np.concatenate(corners)
     state.remove(cut, corners)
-    state.settle(state.next_to(cut), set(corners.ravel().tolist()))
+    state.settle(state.next_to(cut), set(np.unique(corners).tolist()))
     state.write_files()
     return {"sliver": state.sliver, "bowtie": state.bowtie, **counts}
 
@@ -705,12 +739,13 @@ class _TrimState:
     def remove(self, triangles: np.ndarray, tiles: np.ndarray) -> None:
         """Remove triangles (k, 3) whose corners lie in tiles (k, 3); a thin one (a
         bow-tie fan's or a curtain) can then no longer be peeled."""
-        from c1mesh.tiled_trim import owner_tiles
+        from c1mesh.tiled_trim import drop_triangles, owner_tiles
 
-        if len(triangles):
-            gone = {tuple(row) for row in np.sort(triangles, axis=1).tolist()}
-            thin = np.sort(self.thin, axis=1).tolist()
-            self.alive &= np.array([tuple(row) not in gone for row in thin], dtype=bool)
+        if len(triangles):                  # compares only rows sharing a lowest corner with a thin one
+            kept = drop_triangles(np.column_stack([self.thin, np.arange(len(self.thin))]), triangles)
+            still = np.zeros(len(self.thin), dtype=bool)
+            still[kept[:, 3]] = True
+            self.alive &= still
         self.removed.append(triangles)
         self.owners.append(owner_tiles(triangles, tiles))
         self.halos.removed = np.concatenate(self.removed)
@@ -735,7 +770,7 @@ class _TrimState:
             self.alive[gone] = False
             self.sliver += len(gone)
             self.remove(self.thin[gone], self.tiles[gone])
-            pending |= set(self.tiles[gone].ravel().tolist())
+            pending |= set(np.unique(self.tiles[gone]).tolist())
             cut, corners = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)]
             for t in sorted(pending & set(self.halos.tiles())):
                 triangles, where = bowtie_cuts(self.halos.halo(t), self.grid)
@@ -746,7 +781,7 @@ class _TrimState:
                 return
             self.bowtie += len(cut)
             self.remove(cut, corners)
-            front, pending = self.next_to(cut), set(corners.ravel().tolist())
+            front, pending = self.next_to(cut), set(np.unique(corners).tolist())
 
     def write_files(self) -> None:
         """Drop the removed triangles from their owners' triangle files and the cached halos."""
@@ -777,7 +812,7 @@ class _Limiter:
         """tiled_limiter.TileLimits of the tile's own triangles (survey numbers)."""
         from c1mesh.tiled_limiter import tile_limits
 
-        return tile_limits(self.halos.halo(tile), triangles, self.floors, self.halos.row_map)
+        return tile_limits(self.halos.halo(tile), triangles, self.floors)
 
     def report(self) -> dict:
         return {"gradients_limited": self.limited, "directions_changed": self.turned,
@@ -788,12 +823,22 @@ class _Limiter:
 class _RefineJob:
     """What every tile's refinement task shares (picklable; the files it names are read
     by the task): the height spill, grid, per tile its triangle file and buffer, max_edge,
-    frame, options, limiter (None: --overshoot off), colours, threads per task."""
+    frame, options, limiter (None: --overshoot off), colours, threads per task, owners
+    (tiled_outputs.InputOwners, with -O: each part then records its faces' owner inputs)."""
 
-    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads):
+    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads,
+                 owners=None):
+        from c1mesh.tiled_join import KeyExpiry
+
         self.heights, self.grid, self.files, self.buffers = heights, grid, triangle_files, buffers
         self.max_edge, self.frame, self.scheme, self.level = max_edge, frame, options.scheme, options.level
-        self.limiter, self.colours, self.threads = limiter, colours, threads
+        self.limiter, self.colours, self.threads, self.owners = limiter, colours, threads, owners
+        self.expiry = KeyExpiry(grid, [self.reach(t) for t in range(len(grid))])
+
+    def reach(self, t: int) -> float:
+        """How far beyond its cell the corners of tile t's own triangles lie (frame units):
+        the trim's max_edge, else its Delaunay buffer, with a relative margin for rounding."""
+        return (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
 
     def tile_data(self, t: int, triangles: np.ndarray):
         """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
@@ -802,7 +847,7 @@ class _RefineJob:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
                     limits.limited, limits.turned, limits.lifted)
-        reach = (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
+        reach = self.reach(t)
         cell = self.grid.cell(t)
         records = self.heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
         corners = np.unique(triangles)
@@ -815,14 +860,15 @@ class _RefineJob:
 class _Part:
     """The temporary files of one tile's refinement: vertices (all of its refinement's
     output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
-    (.npz: the border keys of `_border_keys` and the points they name)."""
+    (.npz: the border keys of `tiled_join.border_keys`, their points and last tiles),
+    owners (int32 per face, with -O: tiled_outputs.face_owners)."""
 
     def __init__(self, temps, t: int):
         self.vertices, self.faces = temps.new(f"part-{t}.vertices"), temps.new(f"part-{t}.faces")
-        self.keys = temps.new(f"part-{t}.keys")
+        self.keys, self.owners = temps.new(f"part-{t}.keys"), temps.new(f"part-{t}.owners")
 
     def remove(self) -> None:
-        for path in (self.vertices, self.faces, self.keys):
+        for path in (self.vertices, self.faces, self.keys, self.owners):
             path.unlink(missing_ok=True)
 
 
@@ -839,40 +885,54 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     with limit(job.threads):
         records, local, gradients, directions, limited, turned, lifted = job.tile_data(t, triangles)
         colors = None if job.colours is None else job.colours.of(records["index"])
-        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors)
+        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
+                             job.expiry)
+        if job.owners is not None:
+            from c1mesh.tiled_outputs import face_owners
+
+            owner = face_owners(job.owners, triangles, job.level)
+            if len(owner) != counts["faces"]:
+                raise RuntimeError(f"tile {t}: {counts['faces']} faces, {len(owner)} owners")
+            owner.astype("<i4").tofile(part.owners)
     return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned, "lifted": lifted,
             **_row(len(records), start)}
 
 
 def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
                  limiter: "_Limiter | None" = None, crs: str | None = None,
-                 colours: Colours | None = None, runner=None, rows: "_TileRows | None" = None) -> dict:
+                 colours: Colours | None = None, runner=None, rows: "_TileRows | None" = None,
+                 split: "_Split | None" = None) -> dict:
     """Refine each tile's owned triangles (a task per tile, `_refine_tile`, writing part
     files), then join the parts in tile order, numbering shared vertices globally (module
-    docstring), into one vertex and one face file; then write the mesh from them."""
+    docstring), into one vertex and one face file; then write the mesh from them, or with
+    split (-O), each input's part of it (c1mesh.tiled_outputs)."""
     from c1mesh.cloud import MeshStream
     from c1mesh.distributed import TaskRunner
     from c1mesh.formats import write_mesh
     from c1mesh.threads import blas_threads
+    from c1mesh.tiled_join import PartJoin
 
     runner = runner or TaskRunner()
     rows = rows or _TileRows(grid, options.workers)
     coloured = colours is not None and colours.present
     job = _RefineJob(heights, grid, triangle_files, buffers, max_edge, frame, options, limiter,
-                     colours if coloured else None, rows.threads)
+                     colours if coloured else None, rows.threads, None if split is None else split.owners)
     tiles = [t for t in range(len(grid)) if triangle_files[t] is not None]
     parts = {t: _Part(temps, t) for t in tiles}
-    vertex_path, face_path = temps.new("vertices.bin"), temps.new("faces.bin")
-    join = _Join(VERTEX_RGB if coloured else VERTEX)
+    vertex_path, face_path, owner_path = temps.new("vertices.bin"), temps.new("faces.bin"), temps.new("owners.bin")
+    join = PartJoin(VERTEX_RGB if coloured else VERTEX)
     triangles_per_tile, ready, next_tile = {}, {}, 0
-    with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file:
+    with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file, \
+            open(owner_path, "wb") as owner_file:
         for i, row in runner.map(_refine_tile, len(tiles), lambda i: (job, tiles[i], parts[tiles[i]]),
                                  lambda i: rows.name(tiles[i])):
             ready[i] = row
             while next_tile in ready:                       # join in tile order, as soon as possible
                 t, row = tiles[next_tile], ready.pop(next_tile)
                 if row is not None:
-                    join.add(parts[t], row, vertex_file, face_file)
+                    join.add(t, parts[t], row, vertex_file, face_file)
+                    if split is not None:
+                        _append(parts[t].owners, owner_file)
                     triangles_per_tile[t] = row["triangles"]
                     if limiter is not None:
                         limiter.limited += row["limited"]
@@ -880,10 +940,20 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                         limiter.lifted += row["lifted"]
                     rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
                 parts[t].remove()
+                join.passed(t)
                 next_tile += 1
     written, faces = join.written, join.faces
     if faces == 0:
         raise InputError("no triangles are left after trimming; try --max-edge none")
+    report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
+              "shared_vertex_keys": join.keys,
+              "shared_vertex_keys_held": join.shared.peak, "triangles_per_tile": triangles_per_tile}
+    if limiter is not None:
+        report["overshoot"] = limiter.report()
+    if split is not None:
+        report["output_meshes"] = split.write(vertex_path, VERTEX_RGB if coloured else VERTEX, face_path, owner_path,
+                                        temps, options, crs)
+        return report
     block = WRITE_BLOCK
 
     def vertex_blocks():
@@ -904,56 +974,47 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     with blas_threads(1):
         write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
                    options.output_format, ascii=options.ascii, crs=crs)
-    report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
-              "shared_vertex_keys": len(join.shared), "triangles_per_tile": triangles_per_tile}
-    if limiter is not None:
-        report["overshoot"] = limiter.report()
     return report
 
 
-class _Join:
-    """The one vertex file and one face file made from the tiles' parts, in tile order:
-    a border vertex (key in `shared`) is written by the first tile that has it; written,
-    faces: counts so far; kept: input points among the vertices written."""
+def _append(source: Path, file) -> None:
+    """Copy the file at source to the end of the open file, a block at a time."""
+    with open(source, "rb") as part:
+        while True:
+            block = part.read(1 << 24)
+            if not block:
+                return
+            file.write(block)
 
-    def __init__(self, dtype: np.dtype):
-        self.dtype, self.shared = dtype, {}
-        self.written = self.faces = self.kept = 0
 
-    def add(self, part: _Part, row: dict, vertex_file, face_file) -> None:
-        with open(part.keys, "rb") as file:
-            stored = np.load(file)
-            keys, points = _stored_keys(stored)
-        number = _global_numbers(keys, points, row["vertices"], self.shared, self.written)
-        new = number >= self.written
-        with open(part.vertices, "rb") as file:
-            position = 0
-            while True:
-                block = np.fromfile(file, self.dtype, count=CHUNK)
-                if not len(block):
-                    break
-                block[new[position:position + len(block)]].tofile(vertex_file)
-                position += len(block)
-        with open(part.faces, "rb") as file:
-            while True:
-                block = np.fromfile(file, "<i8", count=3 * CHUNK)
-                if not len(block):
-                    break
-                number.take(block).astype("<i8").tofile(face_file)
-        self.written += int(new.sum())
-        self.kept += int(new[:row["corners"]].sum())
-        self.faces += row["faces"]
+@dataclass
+class _Split:
+    """-O: the survey's owner inputs (tiled_outputs.InputOwners), one output path and one
+    name per input."""
+
+    owners: object
+    outputs: Sequence[str]
+    names: Sequence[str]
+
+    def write(self, vertex_path, dtype, face_path, owner_path, temps, options, crs) -> list[dict]:
+        """Split the joined faces by owner and write every input's mesh (all or nothing)."""
+        from c1mesh.tiled_outputs import split_faces, write_outputs
+
+        paths, _ = split_faces(face_path, owner_path, len(self.outputs), temps)
+        return write_outputs(vertex_path, dtype, paths, self.outputs, options, crs, self.names)
 
 
 def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,
-                colors=None) -> dict:
+                colors=None, expiry=None) -> dict:
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
     write all its output points (world position, normal, colour), its faces (tile-local
     numbers) and its border keys to its part files; returns {vertices, corners, faces}.
     gradients (n, 2) and directions (E, 2): the limiter's (None: the records' gradients,
-    unit-normal directions); colors (n, 3) uint8 of the records, or None."""
+    unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
+    tiled_join.KeyExpiry that gives each border key its last tile."""
     from c1mesh.interpolator import RSDInterpolator
     from c1mesh.pipeline import surface_stream
+    from c1mesh.tiled_join import border_keys
 
     xy = np.column_stack([records["x"], records["y"]])
     if gradients is None:
@@ -962,7 +1023,7 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
                              directions=directions)
     refinement = interp.refinement(level)
     with open(part.keys, "wb") as file:
-        np.savez(file, **_border_keys(refinement, records["index"]))
+        np.savez(file, **border_keys(refinement, records["index"], xy, expiry))
     stream = surface_stream(refinement, frame, colors)
     with open(part.vertices, "wb") as file:
         for vertices, normals, blended in stream.vertex_blocks():
@@ -975,50 +1036,3 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
         for faces in stream.face_blocks():
             np.asarray(faces, dtype="<i8").tofile(file)
     return {"vertices": int(refinement.vertex_count), "corners": len(records), "faces": int(stream.face_count)}
-
-
-def _border_keys(refinement, survey: np.ndarray) -> dict[str, np.ndarray]:
-    """The keys of the tile refinement's output points that may be shared with another
-    tile (module docstring), as arrays: corner_keys (c,) survey numbers and corner_points
-    (c,) their output points; edge_keys (e, 3) (lower end, higher end, position from the
-    lower end) and edge_points (e,)."""
-    table, L = refinement.table, refinement.level
-    border = np.flatnonzero(table.count == 1)                  # edges of one owned triangle
-    ends = table.edges[border]
-    corners = np.unique(ends)
-    edge_keys, edge_points = np.empty((0, 3), np.int64), np.empty(0, np.int64)
-    if L > 1 and len(border):
-        code = refinement.edge_code[border]
-        first, forward = (code >> 1).astype(np.int64), (code & 1).astype(bool)
-        j = np.arange(L - 1)
-        a = np.repeat(survey[ends[:, 0]].astype(np.int64), L - 1)
-        b = np.repeat(survey[ends[:, 1]].astype(np.int64), L - 1)
-        step = np.tile(j, len(border))
-        position = np.where(np.repeat(forward, L - 1), step, L - 2 - step)
-        edge_keys = np.column_stack([a, b, position])
-        edge_points = (np.repeat(first, L - 1) + step).astype(np.int64)
-    return {"corner_keys": survey[corners].astype(np.int64), "corner_points": corners.astype(np.int64),
-            "edge_keys": edge_keys, "edge_points": edge_points}
-
-
-def _stored_keys(stored) -> tuple[list, list]:
-    """The border keys and their points (`_border_keys`, from its .npz) as the lists
-    `_global_numbers` takes: corners first (int keys), then edge points (tuple keys)."""
-    keys = stored["corner_keys"].tolist() + [tuple(k) for k in stored["edge_keys"].tolist()]
-    points = stored["corner_points"].tolist() + stored["edge_points"].tolist()
-    return keys, points
-
-
-def _global_numbers(keys: list, points: list, vertex_count: int, shared: dict, written: int) -> np.ndarray:
-    """(M,) the global number of each of a tile refinement's M output points: a shared
-    key already in `shared` keeps its number; every other point gets the next new number
-    (written, written + 1, ... in output order), and new shared keys are added."""
-    number = np.full(vertex_count, -1, dtype=np.int64)
-    for k, p in zip(keys, points):
-        if k in shared:
-            number[p] = shared[k]
-    new = number < 0
-    number[new] = written + np.arange(int(new.sum()))
-    for k, p in zip(keys, points):
-        shared.setdefault(k, int(number[p]))
-    return number

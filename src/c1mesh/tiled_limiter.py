@@ -36,7 +36,6 @@ does not depend on that sign).
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable
 
@@ -99,48 +98,33 @@ def halo_reach(longest_edge: float) -> float:
     return HALO_EDGES * float(longest_edge) * (1 + 1e-9)
 
 
-class RowMap:
-    """Survey number -> row among the records of one halo: a dense table over the survey
-    (4 bytes a point; a binary search of random corners costs far more), filled for one
-    set of records at a time (`holding`)."""
-
-    def __init__(self, count: int):
-        self.table = np.full(count, -1, dtype=np.int32)
-
-    def __getstate__(self) -> dict:
-        return {"count": len(self.table)}        # a task gets an empty table of its own
-
-    def __setstate__(self, state: dict) -> None:
-        self.table = np.full(state["count"], -1, dtype=np.int32)
-
-    @contextmanager
-    def holding(self, index: np.ndarray):
-        """Within the block, `rows` finds the rows of `index` (survey numbers)."""
-        self.table[index] = np.arange(len(index), dtype=np.int32)
-        try:
-            yield self
-        finally:
-            self.table[index] = -1
-
-    def rows(self, numbers: np.ndarray) -> np.ndarray:
-        """The row of each of `numbers` (any shape) among the held index, -1 if absent."""
-        return self.table[numbers].astype(np.int64)
+def halo_rows(index: np.ndarray, numbers: np.ndarray) -> np.ndarray:
+    """The row of each of `numbers` (survey numbers, any shape) among `index` (a halo's
+    survey numbers, ascending and distinct), -1 where absent. A binary search over the
+    halo: its memory is the halo's and the query's, whatever the survey's size (a dense
+    table over the survey cost 4 bytes a survey point in every process)."""
+    numbers = np.asarray(numbers, dtype=np.int64)
+    if not len(index):
+        return np.full(numbers.shape, -1, dtype=np.int64)
+    rows = np.searchsorted(index, numbers)
+    np.minimum(rows, len(index) - 1, out=rows)
+    rows[index[rows] != numbers] = -1
+    return rows
 
 
-def read_halo(heights, triangle_files, grid, tile: int, reach: float, row_map: RowMap) -> Halo:
+def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
     """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
     records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
-    or None; row_map: a RowMap over the survey's numbers."""
+    or None."""
     cell = grid.cell(tile)
     rect = (cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach)
     records = heights.records(rect)
     parts = [np.empty((0, 3), np.int64)]
-    with row_map.holding(records["index"]):
-        for other in heights.touching(rect):
-            if triangle_files[other] is None or not len(records):
-                continue
-            rows = row_map.rows(np.load(triangle_files[other]))
-            parts.append(rows[(rows >= 0).all(axis=1)])
+    for other in heights.touching(rect):
+        if triangle_files[other] is None or not len(records):
+            continue
+        rows = halo_rows(records["index"], np.load(triangle_files[other]))
+        parts.append(rows[(rows >= 0).all(axis=1)])
     used, triangles = _compact(np.concatenate(parts), len(records))
     records = records[used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
@@ -153,8 +137,8 @@ class HaloCache:
     a cached one, one file read). Triangles removed after the first read (the peel) are
     dropped as each halo is loaded. temps: tiled_fit._Temps."""
 
-    def __init__(self, heights, triangle_files, grid, reach: float, row_map: RowMap, temps):
-        self.heights, self.files, self.grid, self.reach, self.row_map = heights, triangle_files, grid, reach, row_map
+    def __init__(self, heights, triangle_files, grid, reach: float, temps):
+        self.heights, self.files, self.grid, self.reach = heights, triangle_files, grid, reach
         self.temps, self.paths = temps, {}
         self.removed = np.empty((0, 3), np.int64)
 
@@ -164,7 +148,7 @@ class HaloCache:
 
     def halo(self, tile: int) -> Halo:
         if tile not in self.paths:
-            halo = read_halo(self.heights, self.files, self.grid, tile, self.reach, self.row_map)
+            halo = read_halo(self.heights, self.files, self.grid, tile, self.reach)
             self.paths[tile] = (self.temps.new(f"halo-{tile}.records"), self.temps.new(f"halo-{tile}.triangles"))
             halo.records.tofile(self.paths[tile][0])
             halo.triangles.astype("<i8").tofile(self.paths[tile][1])
@@ -213,7 +197,7 @@ def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
     from c1mesh.tiled_fit import _row
 
     start = time.perf_counter()
-    halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach, cache.row_map)
+    halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach)
     halo.records.tofile(paths[0])
     halo.triangles.astype("<i8").tofile(paths[1])
     return _row(len(halo.records), start)
@@ -310,9 +294,9 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
     residuals.astype("<f8").tofile(path)
 
 
-def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors, row_map: RowMap) -> TileLimits:
+def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
-    (k, 3) survey numbers, all inside its halo (row_map: a RowMap over the survey)."""
+    (k, 3) survey numbers, all inside its halo."""
     from c1mesh.limiter import edge_directions
     from c1mesh.topology import edge_table
 
@@ -321,8 +305,7 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors, row_map: Row
     values, gradients, lifted, moved = reconciled(halo, table, floors.first)
     limited, changed = limit(points, values, gradients, table.edges, floors.second)
     directions, turned = edge_directions(points, halo.triangles, table)
-    with row_map.holding(halo.records["index"]):
-        rows = row_map.rows(owned)
+    rows = halo_rows(halo.records["index"], owned)
     if np.any(rows < 0):
         raise RuntimeError("a tile's own triangle has a corner outside its halo")
     corners, triangles = _compact(rows, len(halo.records))
