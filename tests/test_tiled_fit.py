@@ -87,6 +87,25 @@ def _match(a, b):
     return order
 
 
+def _assert_exact_merge(paths, whole_path):
+    """Merging the meshes at paths by exactly equal vertices gives the mesh at whole_path:
+    the same vertex set, bit for bit, and the same faces, each once."""
+    whole = trimesh.load(whole_path, process=False, force="mesh")
+    keys = np.ascontiguousarray(np.asarray(whole.vertices, float)).view("V24").ravel()
+    order = np.argsort(keys)
+    faces = []
+    for path in paths:
+        part = trimesh.load(path, process=False, force="mesh")
+        mine = np.ascontiguousarray(np.asarray(part.vertices, float)).view("V24").ravel()
+        at = order[np.searchsorted(keys[order], mine)]
+        assert np.array_equal(keys[at], mine)                  # every vertex is a whole vertex, bit for bit
+        faces.append(np.sort(at[np.asarray(part.faces)], axis=1))
+    merged = np.concatenate(faces)
+    expected = np.sort(np.asarray(whole.faces), axis=1)
+    assert len(np.unique(merged, axis=0)) == len(merged) == len(expected)
+    np.testing.assert_array_equal(np.unique(merged, axis=0), np.unique(expected, axis=0))
+
+
 def _assert_same_mesh(path, whole):
     """The mesh file at path has whole's vertices (to rounding) and faces, each face once."""
     tiled = trimesh.load(path, process=False, force="mesh")
@@ -327,7 +346,10 @@ def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp
     """`fit A.las B.las --seamless -o` with a survey larger than --memory allows: the files
     are read one after another as one survey by the memory-bounded fit, which writes what
     it writes for the concatenated file (the same bytes, compared), and matches the
-    in-memory fit of the whole cloud as the tiled fit does; -O is refused (one mesh only)."""
+    in-memory fit of the whole cloud as the tiled fit does. With -O the same fit is split
+    by the ownership rule: each input's mesh is the in-memory `--seamless -O` mesh of that
+    input (to rounding), and merging the outputs' exactly equal vertices gives the -o mesh
+    (the border vertices are the same bits in both outputs)."""
     whole_file = tmp_path / "terrain.las"
     _terrain_las(whole_file, 24000)
     las = laspy.read(str(whole_file))
@@ -353,9 +375,18 @@ def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp
     assert (tmp_path / "survey.ply").read_bytes() == (tmp_path / "single.ply").read_bytes()
     whole, _, _ = _in_memory(whole_file, [2], 2)
     _assert_same_mesh(tmp_path / "survey.ply", whole)
-    refused = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "out"), *args])
-    assert refused.exit_code == 1 and "--seamless -o" in refused.output
-    assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []
+    split = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "out"),
+                                      "--report", str(tmp_path / "split.json"), *args])
+    assert split.exit_code == 0, split.output
+    assert json.loads((tmp_path / "split.json").read_text())["tiles"] == 4      # the tiled fit ran
+    memory = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "mem"),
+                                       *args[:-2]])
+    assert memory.exit_code == 0, memory.output
+    outputs = [tmp_path / "out" / f"{p.stem}.c1.ply" for p in parts]       # named as in batch mode
+    for tiled_output in outputs:
+        assert len(trimesh.load(tiled_output, process=False).faces) > 10000          # each input owns a part
+        _assert_same_mesh(tiled_output, trimesh.load(tmp_path / "mem" / tiled_output.name, process=False))
+    _assert_exact_merge(outputs, tmp_path / "survey.ply")
 
 
 def test_curtain_noise_floor_is_the_exact_median_over_every_edge_once():

@@ -55,7 +55,8 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -192,13 +193,14 @@ class CachedChunks:
 
 
 def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None,
-               bounds=None) -> Callable:
+               bounds=None, file_counts: list | None = None) -> Callable:
     """survey_stats.Chunks over a LAS/LAZ file, or over several read one after another as
     one survey: a callable giving a fresh iterator of (world points (m, 3), None) in file
     order, keeping only `classes` (None: all). colours: where each pass also sends the
     kept points' RGB, when every file has it (a survey has colours only if all its files
     do, as in c1mesh.tiles.load_survey). bounds: only the points in this closed x/y box
-    (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it."""
+    (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it.
+    file_counts: a list each pass refills with the points it kept from each file."""
     import laspy
 
     from c1mesh.formats.copc import region_chunks
@@ -211,14 +213,20 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     rgb_everywhere = colours is not None and all({"red", "green", "blue"} <= dimensions(p) for p in paths)
 
     def chunks():
+        if file_counts is not None:
+            file_counts.clear()
         for path in paths:
+            kept = 0
             for part in region_chunks(path, bounds, chunk):
                 keep = np.isin(np.asarray(part.classification), np.asarray(classes)) if classes else None
                 xyz = _kept_columns(part, ("x", "y", "z"), keep, np.float64)
                 if rgb_everywhere:
                     colours.add(_kept_columns(part, ("red", "green", "blue"), keep, np.uint16))
                 del part                    # not held while the next chunk decodes
+                kept += len(xyz)
                 yield xyz, None
+            if file_counts is not None:
+                file_counts.append(kept)
     return chunks
 
 
@@ -299,8 +307,11 @@ class _Temps:
 def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
               on_stage: Callable[[str], None] | None = None, directory=None,
               scheduler: str | None = None, jobs: int = 1,
-              on_tile: Callable[[str, int, int], None] | None = None) -> dict:
-    """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output.
+              on_tile: Callable[[str, int, int], None] | None = None,
+              outputs: Sequence[str] | None = None) -> dict:
+    """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
+    with outputs (one path per input file, output None), each input's owned part of it
+    (c1mesh.tiled_outputs: `fit --seamless -O` beyond --memory).
 
     options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
     overshoot, output_format, ascii; normals not "file"); memory: the
@@ -336,14 +347,18 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if on_stage:
             on_stage(stage)
 
+    if outputs is not None and len(outputs) != len(paths):
+        raise ValueError("outputs must name one path per input file")
+    target = outputs[0] if outputs is not None else output
     if directory is None:
-        directory = Path(output).parent if isinstance(output, (str, Path)) else Path(tempfile.gettempdir())
-    temps = _Temps(directory, Path(str(output)).name if isinstance(output, (str, Path)) else "c1mesh")
+        directory = Path(target).parent if isinstance(target, (str, Path)) else Path(tempfile.gettempdir())
+    temps = _Temps(directory, Path(str(target)).name if isinstance(target, (str, Path)) else "c1mesh")
+    file_counts: list[int] = []
     stack = contextlib.ExitStack()
     try:
         colours = Colours(temps)
         chunks = CachedChunks(las_chunks(source, options.classes, colours=colours,
-                                         bounds=getattr(options, "bounds", None)), temps)
+                                         bounds=getattr(options, "bounds", None), file_counts=file_counts), temps)
         axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
         frame = streamed_frame(chunks, axis)
         colours.finish()
@@ -375,8 +390,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             if options.overshoot == "limit":
                 limiter = _Limiter(halos, temps, runner, rows.name)
                 done("noise floors")
+            split = None if outputs is None else _Split(_input_owners(file_counts), outputs,
+                                                         [str(p) for p in paths])
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
-                                  output, temps, limiter, crs, colours, runner, rows)
+                                  output, temps, limiter, crs, colours, runner, rows, split)
             done("refine+write")
         finally:
             heights.close()
@@ -384,7 +401,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         stack.close()
         temps.close()
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
-                   "output": str(output), "tiles": len(grid),
+                   "output": str(output) if outputs is None else [str(o) for o in outputs],
+                   "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget "
                                 "(docs/tiles.md)"],
                    "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
@@ -395,6 +413,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = _describe_crs(crs, crs_source)
     return report
+
+
+def _input_owners(file_counts: list[int]):
+    from c1mesh.tiled_outputs import InputOwners
+
+    return InputOwners(file_counts)
 
 
 def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
@@ -800,14 +824,16 @@ class _Limiter:
 class _RefineJob:
     """What every tile's refinement task shares (picklable; the files it names are read
     by the task): the height spill, grid, per tile its triangle file and buffer, max_edge,
-    frame, options, limiter (None: --overshoot off), colours, threads per task."""
+    frame, options, limiter (None: --overshoot off), colours, threads per task, owners
+    (tiled_outputs.InputOwners, with -O: each part then records its faces' owner inputs)."""
 
-    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads):
+    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads,
+                 owners=None):
         from c1mesh.tiled_join import KeyExpiry
 
         self.heights, self.grid, self.files, self.buffers = heights, grid, triangle_files, buffers
         self.max_edge, self.frame, self.scheme, self.level = max_edge, frame, options.scheme, options.level
-        self.limiter, self.colours, self.threads = limiter, colours, threads
+        self.limiter, self.colours, self.threads, self.owners = limiter, colours, threads, owners
         self.expiry = KeyExpiry(grid, [self.reach(t) for t in range(len(grid))])
 
     def reach(self, t: int) -> float:
@@ -835,14 +861,15 @@ class _RefineJob:
 class _Part:
     """The temporary files of one tile's refinement: vertices (all of its refinement's
     output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
-    (.npz: the border keys of `tiled_join.border_keys`, their points and last tiles)."""
+    (.npz: the border keys of `tiled_join.border_keys`, their points and last tiles),
+    owners (int32 per face, with -O: tiled_outputs.face_owners)."""
 
     def __init__(self, temps, t: int):
         self.vertices, self.faces = temps.new(f"part-{t}.vertices"), temps.new(f"part-{t}.faces")
-        self.keys = temps.new(f"part-{t}.keys")
+        self.keys, self.owners = temps.new(f"part-{t}.keys"), temps.new(f"part-{t}.owners")
 
     def remove(self) -> None:
-        for path in (self.vertices, self.faces, self.keys):
+        for path in (self.vertices, self.faces, self.keys, self.owners):
             path.unlink(missing_ok=True)
 
 
@@ -861,16 +888,25 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
         colors = None if job.colours is None else job.colours.of(records["index"])
         counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
                              job.expiry)
+        if job.owners is not None:
+            from c1mesh.tiled_outputs import face_owners
+
+            owner = face_owners(job.owners, triangles, job.level)
+            if len(owner) != counts["faces"]:
+                raise RuntimeError(f"tile {t}: {counts['faces']} faces, {len(owner)} owners")
+            owner.astype("<i4").tofile(part.owners)
     return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned, "lifted": lifted,
             **_row(len(records), start)}
 
 
 def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
                  limiter: "_Limiter | None" = None, crs: str | None = None,
-                 colours: Colours | None = None, runner=None, rows: "_TileRows | None" = None) -> dict:
+                 colours: Colours | None = None, runner=None, rows: "_TileRows | None" = None,
+                 split: "_Split | None" = None) -> dict:
     """Refine each tile's owned triangles (a task per tile, `_refine_tile`, writing part
     files), then join the parts in tile order, numbering shared vertices globally (module
-    docstring), into one vertex and one face file; then write the mesh from them."""
+    docstring), into one vertex and one face file; then write the mesh from them, or with
+    split (-O), each input's part of it (c1mesh.tiled_outputs)."""
     from c1mesh.cloud import MeshStream
     from c1mesh.distributed import TaskRunner
     from c1mesh.formats import write_mesh
@@ -882,13 +918,14 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     rows = rows or _TileRows(grid, options.workers)
     coloured = colours is not None and colours.present
     job = _RefineJob(heights, grid, triangle_files, buffers, max_edge, frame, options, limiter,
-                     colours if coloured else None, rows.threads)
+                     colours if coloured else None, rows.threads, None if split is None else split.owners)
     tiles = [t for t in range(len(grid)) if triangle_files[t] is not None]
     parts = {t: _Part(temps, t) for t in tiles}
-    vertex_path, face_path = temps.new("vertices.bin"), temps.new("faces.bin")
+    vertex_path, face_path, owner_path = temps.new("vertices.bin"), temps.new("faces.bin"), temps.new("owners.bin")
     join = PartJoin(VERTEX_RGB if coloured else VERTEX)
     triangles_per_tile, ready, next_tile = {}, {}, 0
-    with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file:
+    with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file, \
+            open(owner_path, "wb") as owner_file:
         for i, row in runner.map(_refine_tile, len(tiles), lambda i: (job, tiles[i], parts[tiles[i]]),
                                  lambda i: rows.name(tiles[i])):
             ready[i] = row
@@ -896,6 +933,8 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                 t, row = tiles[next_tile], ready.pop(next_tile)
                 if row is not None:
                     join.add(t, parts[t], row, vertex_file, face_file)
+                    if split is not None:
+                        _append(parts[t].owners, owner_file)
                     triangles_per_tile[t] = row["triangles"]
                     if limiter is not None:
                         limiter.limited += row["limited"]
@@ -908,6 +947,15 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     written, faces = join.written, join.faces
     if faces == 0:
         raise InputError("no triangles are left after trimming; try --max-edge none")
+    report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
+              "shared_vertex_keys": join.keys,
+              "shared_vertex_keys_held": join.shared.peak, "triangles_per_tile": triangles_per_tile}
+    if limiter is not None:
+        report["overshoot"] = limiter.report()
+    if split is not None:
+        report["output_meshes"] = split.write(vertex_path, VERTEX_RGB if coloured else VERTEX, face_path, owner_path,
+                                        temps, options, crs)
+        return report
     block = WRITE_BLOCK
 
     def vertex_blocks():
@@ -922,12 +970,34 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     with blas_threads(1):
         write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
                    options.output_format, ascii=options.ascii, crs=crs)
-    report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
-              "shared_vertex_keys": join.keys,
-              "shared_vertex_keys_held": join.shared.peak, "triangles_per_tile": triangles_per_tile}
-    if limiter is not None:
-        report["overshoot"] = limiter.report()
     return report
+
+
+def _append(source: Path, file) -> None:
+    """Copy the file at source to the end of the open file, a block at a time."""
+    with open(source, "rb") as part:
+        while True:
+            block = part.read(1 << 24)
+            if not block:
+                return
+            file.write(block)
+
+
+@dataclass
+class _Split:
+    """-O: the survey's owner inputs (tiled_outputs.InputOwners), one output path and one
+    name per input."""
+
+    owners: object
+    outputs: Sequence[str]
+    names: Sequence[str]
+
+    def write(self, vertex_path, dtype, face_path, owner_path, temps, options, crs) -> list[dict]:
+        """Split the joined faces by owner and write every input's mesh (all or nothing)."""
+        from c1mesh.tiled_outputs import split_faces, write_outputs
+
+        paths, _ = split_faces(face_path, owner_path, len(self.outputs), temps)
+        return write_outputs(vertex_path, dtype, paths, self.outputs, options, crs, self.names)
 
 
 def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,

@@ -413,8 +413,9 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     holding the triangles its input owns (module docstring), tiles run by
     distributed.run_tiles (scheduler, jobs). on_tile is called with each tile's report
     row as it is written. A LAS/LAZ survey larger than options.memory allows in one piece
-    goes, with output, to the memory-bounded fit (c1mesh.tiled_fit, on_stage called after
-    each of its stages); with outputs it is refused.
+    goes to the memory-bounded fit (c1mesh.tiled_fit, on_stage called after each of its
+    stages), which writes the one mesh, or splits it into the outputs by the same
+    ownership rule (c1mesh.tiled_outputs; on_tile then gets each output's row at the end).
     """
     from c1mesh.geo import resolve_crs
     from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit
@@ -425,11 +426,14 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     options, _ = _resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     user_crs = parse_crs(options.crs) if options.crs else None
     if needs_tiles(list(sources), options):              # larger than --memory allows
-        if output is None:
-            raise InputError("the survey is larger than --memory allows in one piece; the memory-bounded "
-                             "fit writes one mesh: use --seamless -o, or raise --memory")
-        return fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage,
-                         scheduler=scheduler, jobs=jobs)
+        report = fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage,
+                           scheduler=scheduler, jobs=jobs, outputs=outputs)
+        if outputs is not None:
+            report["ownership"] = "lowest-numbered corner point"
+            for row in report["output_meshes"]:
+                if on_tile:
+                    on_tile({"tile": row["input"], **row})
+        return report
     if scheduler is not None and output is not None:
         raise InputError(f"--scheduler runs the tiles of --seamless -O, or of a fit larger than --memory "
                          f"allows; {sources[0]} is fitted in memory in one piece: drop --scheduler, "
