@@ -59,3 +59,22 @@ def test_spill_files_go_when_spilling_fails_and_are_listed_for_signals(tmp_path)
     outputs.remove_live_temps()                      # what the CLI's signal handler calls
     assert list(tmp_path.iterdir()) == []
     tiles.close()
+
+
+def test_file_blocks_read_the_rest_of_a_file_in_blocks_of_at_most_rows(tmp_path):
+    from c1mesh.tile_spill import file_blocks
+
+    values = np.arange(2_500, dtype="<f8")
+    path = tmp_path / "values.bin"
+    values.tofile(path)
+    with open(path, "rb") as file:
+        blocks = list(file_blocks(file, "<f8", 1_000))
+    assert [len(b) for b in blocks] == [1_000, 1_000, 500]
+    assert np.array_equal(np.concatenate(blocks), values)
+    with open(path, "rb") as file:
+        file.seek(8 * 2_400)                                   # from where the file stands
+        rest = list(file_blocks(file, "<f8", 1_000))
+    assert len(rest) == 1 and np.array_equal(rest[0], values[2_400:])
+    with open(path, "rb") as file:
+        file.seek(8 * 2_500)
+        assert list(file_blocks(file, "<f8", 1_000)) == []

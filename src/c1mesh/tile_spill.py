@@ -127,3 +127,19 @@ def spill(chunks: Iterable[np.ndarray], frame, grid: TileGrid, directory=None, s
         result.close()
         raise
     return result
+
+
+def file_blocks(file, dtype, rows: int) -> Iterator[np.ndarray]:
+    """Arrays of up to `rows` records of dtype read from an open binary file to its end,
+    each allocated at the size it is read. np.fromfile(count=rows) allocates all `rows`
+    and shrinks the array when fewer remain; glibc then keeps the shrunken blocks' tails
+    apart (measured: the noise floors' median over 289 tile residual files grew the
+    parent from 171 to 434 MB at 12M points)."""
+    dtype = np.dtype(dtype)
+    remaining = (os.fstat(file.fileno()).st_size - file.tell()) // dtype.itemsize
+    while remaining > 0:
+        part = np.fromfile(file, dtype, count=min(rows, remaining))
+        if not len(part):
+            return
+        remaining -= len(part)
+        yield part

@@ -185,11 +185,10 @@ class CachedChunks:
         self.complete = True
 
     def _cached(self):
+        from c1mesh.tile_spill import file_blocks
+
         with open(self.path, "rb") as file:
-            while True:
-                part = np.fromfile(file, "<f8", count=3 * self.chunk)
-                if not len(part):
-                    return
+            for part in file_blocks(file, "<f8", 3 * self.chunk):
                 yield part.reshape(-1, 3), None
 
 
@@ -330,6 +329,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     """
     from c1mesh.distributed import TaskRunner
     from c1mesh.buffered_delaunay import TileGrid
+    from c1mesh.platform_memory import release_free_heap
     from c1mesh.survey_stats import streamed_frame
     from c1mesh.tile_spill import spill
 
@@ -341,6 +341,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
 
     def done(stage):
         nonlocal start
+        release_free_heap()                 # a stage's freed heap would sit under the next one's peak
         seconds[stage] = round(time.perf_counter() - start, 3)
         start = time.perf_counter()
         if on_stage:
@@ -910,6 +911,7 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     from c1mesh.distributed import TaskRunner
     from c1mesh.formats import write_mesh
     from c1mesh.threads import blas_threads
+    from c1mesh.tile_spill import file_blocks
     from c1mesh.tiled_join import PartJoin
 
     runner = runner or TaskRunner()
@@ -958,18 +960,12 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
 
     def vertex_blocks():
         with open(vertex_path, "rb") as file:
-            while True:
-                part = np.fromfile(file, VERTEX_RGB if coloured else VERTEX, count=block)
-                if not len(part):
-                    return
+            for part in file_blocks(file, VERTEX_RGB if coloured else VERTEX, block):
                 yield part["v"], part["n"], part["c"] if coloured else None
 
     def face_blocks():
         with open(face_path, "rb") as file:
-            while True:
-                part = np.fromfile(file, "<i8", count=3 * block)
-                if not len(part):
-                    return
+            for part in file_blocks(file, "<i8", 3 * block):
                 yield part.reshape(-1, 3)
     with blas_threads(1):
         write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,

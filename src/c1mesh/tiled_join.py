@@ -161,19 +161,15 @@ class PartJoin:
         number = global_numbers(keys, points, last, tile, row["vertices"], self.shared, self.written)
         new = number >= self.written
         self.keys += int(new[np.asarray(points, dtype=np.int64)].sum())
+        from c1mesh.tile_spill import file_blocks
+
         with open(part.vertices, "rb") as file:
             position = 0
-            while True:
-                block = np.fromfile(file, self.dtype, count=CHUNK)
-                if not len(block):
-                    break
+            for block in file_blocks(file, self.dtype, CHUNK):
                 block[new[position:position + len(block)]].tofile(vertex_file)
                 position += len(block)
         with open(part.faces, "rb") as file:
-            while True:
-                block = np.fromfile(file, "<i8", count=3 * CHUNK)
-                if not len(block):
-                    break
+            for block in file_blocks(file, "<i8", 3 * CHUNK):
                 number.take(block).astype("<i8").tofile(face_file)
         self.written += int(new.sum())
         self.kept += int(new[:row["corners"]].sum())

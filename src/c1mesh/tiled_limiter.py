@@ -367,9 +367,7 @@ per pass (bit patterns, shifted digits, masks), so the block bounds the noise fl
 
 
 def _float_blocks(path, block: int = FLOAT_BLOCK):
+    from c1mesh.tile_spill import file_blocks
+
     with open(path, "rb") as file:
-        while True:
-            part = np.fromfile(file, "<f8", count=block)
-            if not len(part):
-                return
-            yield part
+        yield from file_blocks(file, "<f8", block)
