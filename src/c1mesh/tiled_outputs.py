@@ -49,14 +49,14 @@ def face_owners(owners: InputOwners, triangles: np.ndarray, level: int) -> np.nd
 def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> tuple[list[Path], np.ndarray]:
     """Stream the joined faces (int64 triples, global numbers) and their owners (int32) into
     one face file per output; returns (paths, face counts (outputs,))."""
+    from c1mesh.tile_spill import file_blocks
+
     paths = [temps.new(f"output-{i}.faces") for i in range(outputs)]
     counts = np.zeros(outputs, dtype=np.int64)
     with open(face_path, "rb") as faces, open(owner_path, "rb") as owner_file:
-        while True:
-            block = np.fromfile(faces, "<i8", count=3 * BLOCK).reshape(-1, 3)
+        for block in file_blocks(faces, "<i8", 3 * BLOCK):
+            block = block.reshape(-1, 3)
             owner = np.fromfile(owner_file, "<i4", count=len(block))
-            if not len(block):
-                break
             if len(owner) != len(block):
                 raise RuntimeError("the joined faces and their owners differ in length")
             for i in np.unique(owner):
@@ -103,6 +103,7 @@ def _write_one(records: np.ndarray, face_path: Path, target: Path, options, crs)
     from c1mesh.cloud import MeshStream
     from c1mesh.formats import write_mesh
     from c1mesh.threads import blas_threads
+    from c1mesh.tile_spill import file_blocks
 
     used = _used_vertices(face_path)
     coloured = records.dtype.names is not None and "c" in records.dtype.names
@@ -117,10 +118,7 @@ def _write_one(records: np.ndarray, face_path: Path, target: Path, options, crs)
         if not face_count:
             return
         with open(face_path, "rb") as file:
-            while True:
-                block = np.fromfile(file, "<i8", count=3 * BLOCK)
-                if not len(block):
-                    return
+            for block in file_blocks(file, "<i8", 3 * BLOCK):
                 yield np.searchsorted(used, block).reshape(-1, 3)
     with blas_threads(1):
         write_mesh(MeshStream(len(used), face_count, True, 3 if coloured else 0, vertex_blocks, face_blocks),
@@ -135,17 +133,16 @@ MERGE = 1 << 22
 def _used_vertices(face_path: Path) -> np.ndarray:
     """Sorted unique global numbers of the faces in face_path, merged a batch of blocks at
     a time (a merge per block would sort the growing set once per block)."""
+    from c1mesh.tile_spill import file_blocks
+
     used, pending, size = np.empty(0, dtype=np.int64), [], 0
     if not face_path.exists():
         return used
     with open(face_path, "rb") as file:
-        while True:
-            block = np.fromfile(file, "<i8", count=3 * BLOCK)
-            if len(block):
-                pending.append(np.unique(block))
-                size += len(pending[-1])
-            if pending and (size >= MERGE or not len(block)):
+        for block in file_blocks(file, "<i8", 3 * BLOCK):
+            pending.append(np.unique(block))
+            size += len(pending[-1])
+            if size >= MERGE:
                 used = np.unique(np.concatenate([used, *pending]))
                 pending, size = [], 0
-            if not len(block):
-                return used
+    return np.unique(np.concatenate([used, *pending])) if pending else used
