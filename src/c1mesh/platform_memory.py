@@ -23,24 +23,23 @@ def _libc():
         return None
 
 
-def _load_madvise():
+def _libc_function(name: str, argtypes: list, restype):
+    """The C library's function `name` with its signature set, or None (not Linux, no
+    such symbol)."""
     libc = _libc() if sys.platform.startswith("linux") else None
-    madvise = getattr(libc, "madvise", None)
-    if madvise is None:
+    function = getattr(libc, name, None)
+    if function is None:
         return None
-    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-    madvise.restype = ctypes.c_int
-    return madvise
+    function.argtypes, function.restype = argtypes, restype
+    return function
+
+
+def _load_madvise():
+    return _libc_function("madvise", [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int)
 
 
 def _load_malloc_trim():
-    libc = _libc() if sys.platform.startswith("linux") else None
-    trim = getattr(libc, "malloc_trim", None)
-    if trim is None:
-        return None
-    trim.argtypes = [ctypes.c_size_t]
-    trim.restype = ctypes.c_int
-    return trim
+    return _libc_function("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
 
 
 madvise = _load_madvise()

@@ -70,31 +70,17 @@ def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> tuple
 def write_outputs(vertex_path: Path, dtype: np.dtype, face_paths: list[Path], outputs: Sequence[str],
                   options, crs: str | None, names: Sequence[str]) -> list[dict]:
     """Write each output's mesh from the joined vertex records (`dtype`, global numbers) and
-    its face file, all or nothing: hidden files beside the outputs, renamed into place
-    once every one is written (c1mesh.tiles.write_tiles' rule). Returns one report row per
-    input: input, output, vertices, faces."""
-    from c1mesh.outputs import unregister_temp
-    from c1mesh.tiles import _has_sidecar, _temp_prj, temp_path
+    its face file, all or nothing (c1mesh.tiles.staged_outputs, as write_tiles). Returns
+    one report row per input: input, output, vertices, faces."""
+    from c1mesh.tiles import staged_outputs
 
     records = np.memmap(vertex_path, dtype=dtype, mode="r") if os.path.getsize(vertex_path) else \
         np.empty(0, dtype=dtype)
-    temps: dict[Path, Path] = {}
     rows = []
-    try:
+    with staged_outputs(crs) as stage:
         for name, output, faces in zip(names, outputs, face_paths):
-            temp = temp_path(output)
-            temps[temp] = Path(output)
-            rows.append({"input": name, "output": str(output), **_write_one(records, faces, temp, options, crs)})
-            if crs and _has_sidecar(output):
-                temps.update(_temp_prj(output, crs))
-        for temp, final in temps.items():
-            os.replace(temp, final)
-            unregister_temp(temp)
-    except BaseException:
-        for temp in temps:
-            temp.unlink(missing_ok=True)
-            unregister_temp(temp)
-        raise
+            rows.append({"input": name, "output": str(output),
+                         **_write_one(records, faces, stage(output), options, crs)})
     return rows
 
 

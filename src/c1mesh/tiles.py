@@ -22,6 +22,7 @@ bit-identical. Merging exactly equal vertices of all outputs gives the whole-sur
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import time
@@ -342,25 +343,40 @@ def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bo
     every tile has succeeded; a failure (re-raised as InputError naming the tile) removes
     them, so no output of the run appears. Returns the report rows in input order.
     """
-    from pathlib import Path
-
     from c1mesh.formats import write_mesh
-    from c1mesh.outputs import unregister_temp
 
-    temps: dict[Path, Path] = {}                         # temporary file -> final path
     rows: dict[int, dict] = {}
-    try:
+    with staged_outputs(crs) as stage:
         for result in results:
-            output = outputs[result.index]
-            temp = temp_path(output)
-            temps[temp] = Path(output)
+            temp = stage(outputs[result.index])
             if result.mesh is not None:                  # else run_tile wrote it there
                 write_mesh(result.mesh, temp, ascii=ascii, crs=crs, sidecar=False)
-            if crs and _has_sidecar(output):
-                temps.update(_temp_prj(output, crs))
             rows[result.index] = result.report
             if on_tile:
                 on_tile(result.report)
+    return [rows[i] for i in sorted(rows)]
+
+
+@contextlib.contextmanager
+def staged_outputs(crs: str | None = None):
+    """All or nothing for several outputs: yields stage(output), which gives the hidden
+    file beside `output` to write (`temp_path`; with a crs, the .prj sidecar of formats
+    that have one is staged too). When the block ends, every staged file is renamed into
+    place; when it raises, every one is removed, so no output of the run appears."""
+    from pathlib import Path
+
+    from c1mesh.outputs import unregister_temp
+
+    temps: dict[Path, Path] = {}                         # temporary file -> final path
+
+    def stage(output) -> Path:
+        temp = temp_path(output)
+        temps[temp] = Path(output)
+        if crs and _has_sidecar(output):
+            temps.update(_temp_prj(output, crs))
+        return temp
+    try:
+        yield stage
         for temp, final in temps.items():
             os.replace(temp, final)
             unregister_temp(temp)
@@ -369,7 +385,6 @@ def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bo
             temp.unlink(missing_ok=True)
             unregister_temp(temp)
         raise
-    return [rows[i] for i in sorted(rows)]
 
 
 def _has_sidecar(output: str) -> bool:
