@@ -109,7 +109,7 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     if heights:
         values, lifted = _reconcile_heights(values, geometry, residual, table, before)
     if lifted.any():
-        geometry = EdgeGeometry.of(points, values, table.edges)
+        geometry = geometry.with_values(values)
     reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
     # Reconciliation changes the gradients of touched vertices only, so only the edges
     # that reach one ("near") predict anything new.
@@ -208,6 +208,12 @@ class EdgeGeometry:
             np.subtract(column[b], column[a], out=d[:, c])
         fa, fb = f[a], f[b]
         return cls(a, b, d, fb - fa, np.abs(fa) + np.abs(fb))
+
+    def with_values(self, values: np.ndarray) -> "EdgeGeometry":
+        """The same edges over new heights (the positions' differences d are kept)."""
+        f = np.asarray(values, dtype=float)
+        fa, fb = f[self.a], f[self.b]
+        return EdgeGeometry(self.a, self.b, self.d, fb - fa, np.abs(fa) + np.abs(fb))
 
     def predictions(self, gradients: np.ndarray, rows: np.ndarray | slice = slice(None)
                     ) -> tuple[np.ndarray, np.ndarray]:

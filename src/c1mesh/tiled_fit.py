@@ -52,6 +52,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -329,6 +330,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     """
     from c1mesh.distributed import TaskRunner
     from c1mesh.buffered_delaunay import TileGrid
+    from c1mesh.tiled_outputs import InputOwners
     from c1mesh.platform_memory import release_free_heap
     from c1mesh.survey_stats import streamed_frame
     from c1mesh.tile_spill import spill
@@ -390,7 +392,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             if options.overshoot == "limit":
                 limiter = _Limiter(halos, temps, runner, rows.name)
                 done("noise floors")
-            split = None if outputs is None else _Split(_input_owners(file_counts), outputs,
+            split = None if outputs is None else _Split(InputOwners(file_counts), outputs,
                                                          [str(p) for p in paths])
             report = _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
                                   output, temps, limiter, crs, colours, runner, rows, split)
@@ -413,12 +415,6 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = _describe_crs(crs, crs_source)
     return report
-
-
-def _input_owners(file_counts: list[int]):
-    from c1mesh.tiled_outputs import InputOwners
-
-    return InputOwners(file_counts)
 
 
 def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
@@ -934,7 +930,8 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
                 if row is not None:
                     join.add(t, parts[t], row, vertex_file, face_file)
                     if split is not None:
-                        _append(parts[t].owners, owner_file)
+                        with open(parts[t].owners, "rb") as owners:
+                            shutil.copyfileobj(owners, owner_file)
                     triangles_per_tile[t] = row["triangles"]
                     if limiter is not None:
                         limiter.limited += row["limited"]
@@ -973,16 +970,6 @@ def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, option
     return report
 
 
-def _append(source: Path, file) -> None:
-    """Copy the file at source to the end of the open file, a block at a time."""
-    with open(source, "rb") as part:
-        while True:
-            block = part.read(1 << 24)
-            if not block:
-                return
-            file.write(block)
-
-
 @dataclass
 class _Split:
     """-O: the survey's owner inputs (tiled_outputs.InputOwners), one output path and one
@@ -996,7 +983,7 @@ class _Split:
         """Split the joined faces by owner and write every input's mesh (all or nothing)."""
         from c1mesh.tiled_outputs import split_faces, write_outputs
 
-        paths, _ = split_faces(face_path, owner_path, len(self.outputs), temps)
+        paths = split_faces(face_path, owner_path, len(self.outputs), temps)
         return write_outputs(vertex_path, dtype, paths, self.outputs, options, crs, self.names)
 
 

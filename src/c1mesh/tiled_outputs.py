@@ -35,9 +35,6 @@ class InputOwners:
         """(…) int32 input index of each survey number."""
         return np.searchsorted(self.ends, numbers, side="right").astype(np.int32)
 
-    def __len__(self) -> int:
-        return len(self.ends)
-
 
 def face_owners(owners: InputOwners, triangles: np.ndarray, level: int) -> np.ndarray:
     """(k·level²,) int32 owner input of each refined face of the base triangles (k, 3)
@@ -46,13 +43,12 @@ def face_owners(owners: InputOwners, triangles: np.ndarray, level: int) -> np.nd
     return np.repeat(owners.of(triangles.min(axis=1)), level * level)
 
 
-def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> tuple[list[Path], np.ndarray]:
+def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> list[Path]:
     """Stream the joined faces (int64 triples, global numbers) and their owners (int32) into
-    one face file per output; returns (paths, face counts (outputs,))."""
+    one face file per output; returns their paths."""
     from c1mesh.tile_spill import file_blocks
 
     paths = [temps.new(f"output-{i}.faces") for i in range(outputs)]
-    counts = np.zeros(outputs, dtype=np.int64)
     with open(face_path, "rb") as faces, open(owner_path, "rb") as owner_file:
         for block in file_blocks(faces, "<i8", 3 * BLOCK):
             block = block.reshape(-1, 3)
@@ -63,8 +59,7 @@ def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> tuple
                 mine = block[owner == i]
                 with open(paths[i], "ab") as file:
                     mine.tofile(file)
-                counts[i] += len(mine)
-    return paths, counts
+    return paths
 
 
 def write_outputs(vertex_path: Path, dtype: np.dtype, face_paths: list[Path], outputs: Sequence[str],
