@@ -745,7 +745,8 @@ class _TrimState:
             self.alive &= still
         self.removed.append(triangles)
         self.owners.append(owner_tiles(triangles, tiles))
-        self.halos.removed = np.concatenate(self.removed)
+        removed, owners = np.concatenate(self.removed), np.concatenate(self.owners)
+        self.halos.removed = {int(t): removed[owners == t] for t in np.unique(owners)}
 
     def next_to(self, triangles: np.ndarray) -> np.ndarray:
         """(k,) bool: the thin triangles sharing an edge with one of triangles."""
