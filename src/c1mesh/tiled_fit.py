@@ -730,12 +730,12 @@ class _TrimState:
     def __init__(self, halos, grid, thin: np.ndarray, tiles: np.ndarray):
         self.halos, self.grid, self.thin, self.tiles = halos, grid, thin, tiles
         self.alive = np.ones(len(thin), dtype=bool)
-        self.removed, self.owners = [np.empty((0, 3), np.int64)], [np.empty(0, np.int64)]
         self.sliver = self.bowtie = 0
 
     def remove(self, triangles: np.ndarray, tiles: np.ndarray) -> None:
         """Remove triangles (k, 3) whose corners lie in tiles (k, 3); a thin one (a
-        bow-tie fan's or a curtain) can then no longer be peeled."""
+        bow-tie fan's or a curtain) can then no longer be peeled. The halo cache keeps
+        them by owner tile (HaloCache.removed)."""
         from c1mesh.tiled_trim import drop_triangles, owner_tiles
 
         if len(triangles):                  # compares only rows sharing a lowest corner with a thin one
@@ -743,10 +743,12 @@ class _TrimState:
             still = np.zeros(len(self.thin), dtype=bool)
             still[kept[:, 3]] = True
             self.alive &= still
-        self.removed.append(triangles)
-        self.owners.append(owner_tiles(triangles, tiles))
-        removed, owners = np.concatenate(self.removed), np.concatenate(self.owners)
-        self.halos.removed = {int(t): removed[owners == t] for t in np.unique(owners)}
+        owners = owner_tiles(triangles, tiles)
+        order = np.argsort(owners, kind="stable")
+        tile_numbers, starts = np.unique(owners[order], return_index=True)
+        for t, group in zip(tile_numbers.tolist(), np.split(triangles[order], starts[1:])):
+            earlier = self.halos.removed.get(t)
+            self.halos.removed[t] = group if earlier is None else np.concatenate([earlier, group])
 
     def next_to(self, triangles: np.ndarray) -> np.ndarray:
         """(k,) bool: the thin triangles sharing an edge with one of triangles."""
@@ -785,11 +787,10 @@ class _TrimState:
         """Drop the removed triangles from their owners' triangle files and the cached halos."""
         from c1mesh.tiled_trim import drop_triangles
 
-        removed, owners = np.concatenate(self.removed), np.concatenate(self.owners)
-        for t in np.unique(owners):
+        for t, removed in self.halos.removed.items():
             triangles = np.load(self.halos.files[t])
             with open(self.halos.files[t], "wb") as file:
-                np.save(file, drop_triangles(triangles, removed[owners == t]))
+                np.save(file, drop_triangles(triangles, removed))
         self.halos.prune()
 
 
