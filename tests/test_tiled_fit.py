@@ -539,3 +539,57 @@ def test_real_dask_scheduler_and_two_workers_fit_the_tiles(tmp_path, dask_proces
     assert (tmp_path / "cluster.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
     workers = _tile_rows_agree(json.loads((tmp_path / "r.json").read_text()), 1)
     assert len(workers) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in workers)
+
+
+def _stderr_on_a_terminal(args: list[str]) -> str:
+    """What `c1mesh ARGS` writes to stderr when stderr is a terminal (a pseudo-terminal
+    here), read as it runs; fails on a non-zero exit."""
+    import os
+    import pty
+    import subprocess
+    import sys
+
+    leader, follower = pty.openpty()
+    child = subprocess.Popen([sys.executable, "-m", "c1mesh.cli", *args], stdin=subprocess.DEVNULL,
+                             stdout=subprocess.DEVNULL, stderr=follower)
+    os.close(follower)
+    chunks = []
+    while True:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:                     # EIO: the child closed its end
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    os.close(leader)
+    assert child.wait(timeout=300) == 0, b"".join(chunks).decode(errors="replace")
+    return b"".join(chunks).decode(errors="replace")
+
+
+def test_fits_in_tiles_show_their_tiles_on_a_terminal_and_nothing_on_a_pipe(tmp_path):
+    """A fit larger than --memory, of one file or of a `--seamless -O` survey: on a
+    terminal the progress bar names each stage and counts each pass's tiles as they
+    finish, not only the outputs once everything is done; on a pipe stderr stays empty."""
+    whole_file = tmp_path / "terrain.las"
+    _terrain_las(whole_file, 24000)
+    las = laspy.read(str(whole_file))
+    west = np.asarray(las.x) < np.median(np.asarray(las.x))
+    parts = []
+    for name, mask in (("west.las", west), ("east.las", ~west)):
+        part = laspy.LasData(las.header)
+        part.points = las.points[mask]
+        parts.append(str(tmp_path / name))
+        part.write(parts[-1])
+    args = ["fit", *parts, "--seamless", "--classes", "2", "--level", "2", "--memory", "1M"]
+    shown = _stderr_on_a_terminal([*args, "-O", str(tmp_path / "tty")])
+    for stage in ("normals: tile 4 of 4", "triangulate: tile 4 of 4", "refine: tile 4 of 4", "refine+write"):
+        assert stage in shown, shown
+    assert sorted(p.name for p in (tmp_path / "tty").iterdir()) == ["east.c1.ply", "west.c1.ply"]
+    single = _stderr_on_a_terminal(["fit", str(whole_file), "-o", str(tmp_path / "single.ply"), *args[-6:]])
+    assert "normals: tile 4 of 4" in single and "refine: tile 4 of 4" in single, single
+    import subprocess
+    import sys
+    piped = subprocess.run([sys.executable, "-m", "c1mesh.cli", *args, "-O", str(tmp_path / "pipe")],
+                           capture_output=True, text=True, timeout=300)
+    assert piped.returncode == 0 and piped.stderr == "", piped.stderr

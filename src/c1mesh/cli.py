@@ -386,20 +386,50 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
     from c1mesh.tiles import fit_seamless
 
     options.workers = _threads_per_process(threads, 1)
-    show = _stderr_is_terminal() and not quiet and bool(output_dir)
     mesh = sys.stdout.buffer if output == STDIO else output
+    outputs = [d for _, d in pairs] if output_dir else None
     try:
-        if show:
-            with click.progressbar(length=len(pairs), label="tiles", file=sys.stderr,
-                                   item_show_func=lambda s: s) as bar:
-                result = fit_seamless(inputs, options, mesh, [d for _, d in pairs], scheduler, jobs,
-                                      on_tile=lambda row: bar.update(1, row["tile"]))
+        if _stderr_is_terminal() and not quiet:
+            progress, callbacks = _survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
+            with progress:
+                result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs, **callbacks)
         else:
-            result = fit_seamless(inputs, options, mesh, [d for _, d in pairs] if output_dir else None,
-                                  scheduler, jobs)
+            result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs)
     except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
         _fail(_message(exc), debug)
     _write_report(report, targets[-1], result, debug)
+
+
+def _caption(bar, text: str) -> None:
+    """Show text beside a click progress bar without advancing it: bar.update(0, text)
+    sets the text but draws nothing until the next step (a tiled fit's tile counts then
+    never appeared)."""
+    bar.current_item = text
+    bar.render_progress()
+
+
+def _survey_progress(inputs, options, outputs: int):
+    """A --seamless fit's progress bar on stderr and the fit_seamless callbacks that move
+    it: for a survey fitted in tiles beyond --memory (c1mesh.tiled_fit), its stages with
+    each pass's tile count, as a single large input shows them; in memory, the outputs
+    of -O as their tiles are written, or the stages of the one -o fit."""
+    from c1mesh.pipeline import STAGES
+    from c1mesh.tiled_fit import TILED_STAGES
+    from c1mesh.tiles import survey_needs_tiles
+
+    def bar(length, label):
+        return click.progressbar(length=length, label=label, file=sys.stderr, item_show_func=lambda s: s)
+
+    if survey_needs_tiles(inputs, options):
+        progress = bar(len(TILED_STAGES), "fitting survey")
+        return progress, {"on_stage": lambda name: progress.update(1, name),
+                          "on_tile_pass": lambda name, done, tiles: _caption(progress,
+                                                                             f"{name}: tile {done} of {tiles}")}
+    if outputs:
+        progress = bar(outputs, "tiles")
+        return progress, {"on_tile": lambda row: progress.update(1, row["tile"])}
+    progress = bar(len(STAGES), "fitting survey")
+    return progress, {"on_stage": lambda name: progress.update(1, name)}
 
 
 def _check_geo(ctx, jobs_list, options, debug):
@@ -506,7 +536,7 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
         with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
                                item_show_func=lambda s: s) as bar:
             return _run(src, target, options, on_stage=lambda name: bar.update(1, name), jobs=jobs,
-                        on_tile=lambda name, done, tiles: bar.update(0, f"{name}: tile {done} of {tiles}"))
+                        on_tile=lambda name, done, tiles: _caption(bar, f"{name}: tile {done} of {tiles}"))
     try:
         with Outputs() as outputs:
             if raster:      # c1mesh.raster writes the GeoTIFFs, each atomically

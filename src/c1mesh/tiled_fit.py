@@ -78,6 +78,9 @@ TILE_POINTS_CAP = 1_000_000
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
 CHUNK = 1_000_000
 """Points per chunk read from a LAS/LAZ file."""
+TILED_STAGES = ("frame", "spill", "normals", "triangulate", "trim", "noise floors", "refine+write")
+"""The stages fit_tiled reports (on_stage, the report's seconds), in order; "noise floors"
+only with the overshoot limiter (the default)."""
 WRITE_BLOCK = 1 << 16
 """Vertices (faces) per block streamed from the joined files to the mesh writer, as the
 PLY writer packs them: the writer holds a few blocks in flight (the block read, its

@@ -417,37 +417,47 @@ def tile_failure(task: TileTask, exc: BaseException) -> TileError:
     return TileError(f"tile {task.name}: {text}")
 
 
+def survey_needs_tiles(sources: Sequence[str], options) -> bool:
+    """Whether fit_seamless fits the survey in tiles (c1mesh.tiled_fit): a LAS/LAZ survey
+    larger than options.memory allows in one piece. Reads the inputs' headers only."""
+    from c1mesh.pipeline import _resolve_axis
+    from c1mesh.tiled_fit import needs_tiles
+
+    options, _ = _resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
+    return needs_tiles(list(sources), options)
+
+
 def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence[str] | None = None,
                  scheduler: str | None = None, jobs: int = 1,
                  on_tile: Callable[[dict], None] | None = None,
-                 on_stage: Callable[[str], None] | None = None) -> dict:
+                 on_stage: Callable[[str], None] | None = None,
+                 on_tile_pass: Callable[[str, int, int], None] | None = None) -> dict:
     """Fit the inputs as one survey; returns the report.
 
     output: one path for the whole survey's mesh (the fit of the concatenated cloud,
     written as `c1mesh fit` writes one input); or outputs: one path per input, each
     holding the triangles its input owns (module docstring), tiles run by
-    distributed.run_tiles (scheduler, jobs). on_tile is called with each tile's report
-    row as it is written. A LAS/LAZ survey larger than options.memory allows in one piece
-    goes to the memory-bounded fit (c1mesh.tiled_fit, on_stage called after each of its
-    stages), which writes the one mesh, or splits it into the outputs by the same
-    ownership rule (c1mesh.tiled_outputs; on_tile then gets each output's row at the end).
+    distributed.run_tiles (scheduler, jobs). Progress: on_tile is called with each
+    tile's report row as it is written (in-memory -O); on_stage after each stage
+    (in-memory -o: pipeline.STAGES; in tiles: tiled_fit.TILED_STAGES). A LAS/LAZ survey
+    larger than options.memory allows in one piece (survey_needs_tiles) goes to the
+    memory-bounded fit (c1mesh.tiled_fit; on_tile_pass(pass, tiles done, tiles) as each
+    tile task finishes), which writes the one mesh, or splits it into the outputs by the
+    same ownership rule (c1mesh.tiled_outputs).
     """
     from c1mesh.geo import resolve_crs
     from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit
-    from c1mesh.tiled_fit import fit_tiled, needs_tiles
+    from c1mesh.tiled_fit import fit_tiled
 
     from c1mesh.crs import describe, parse_crs
 
     options, _ = _resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     user_crs = parse_crs(options.crs) if options.crs else None
-    if needs_tiles(list(sources), options):              # larger than --memory allows
+    if survey_needs_tiles(sources, options):
         report = fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage,
-                           scheduler=scheduler, jobs=jobs, outputs=outputs)
+                           scheduler=scheduler, jobs=jobs, outputs=outputs, on_tile=on_tile_pass)
         if outputs is not None:
             report["ownership"] = "lowest-numbered corner point"
-            for row in report["output_meshes"]:
-                if on_tile:
-                    on_tile({"tile": row["input"], **row})
         return report
     if scheduler is not None and output is not None:
         raise InputError(f"--scheduler runs the tiles of --seamless -O, or of a fit larger than --memory "
@@ -457,7 +467,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     with timer.stage("read"):
         survey = load_survey(sources, options)
     if output is not None:
-        report = fit(survey.cloud, output, options, keep_mesh=False).report
+        report = fit(survey.cloud, output, options, on_stage=on_stage, keep_mesh=False).report
         report["input"] = list(survey.names)
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
         return report
