@@ -115,7 +115,45 @@ def report(folder: Path) -> None:
         print(f"| {r['points']:,} | {r['tiles'] or 'in memory'} | {r['seconds']:.0f} s | {r['cpu_seconds']:.0f} s "
               f"| {per_m:.1f} s | {relative:.2f} | {r['tree_peak_rss'] / 2**30:.2f} GiB "
               f"| {r['tree_peak_rss'] / r['points']:.0f} B | {r['load_before']:.1f} / {r['load_after']:.1f} |")
+    tiled = [r for r in rows if r["tiles"]]
+    _stage_table(tiled)
+    _linearity(tiled)
     _plot(rows, Path(__file__).resolve().parent / "survey_size.png")
+
+
+def _stage_table(rows: list[dict]) -> None:
+    """Wall seconds per million points of each stage of the tiled fits."""
+    stages = list(dict.fromkeys(stage for r in rows for stage in r["stage_seconds"]))
+    print("\n| points | " + " | ".join(stages) + " |")
+    print("|---:|" + "---:|" * len(stages))
+    for r in rows:
+        per_m = [r["stage_seconds"].get(stage, 0.0) / (r["points"] / 1e6) for stage in stages]
+        print(f"| {r['points']:,} | " + " | ".join(f"{v:.1f}" for v in per_m) + " |")
+
+
+def linear_fit(rows: list[dict], key: str) -> tuple[float, float, float]:
+    """Least squares key = a + b * (million points) over rows: (a seconds, b seconds per
+    million points, the largest |residual| / key)."""
+    import numpy as np
+
+    millions = np.array([r["points"] / 1e6 for r in rows])
+    seconds = np.array([r[key] for r in rows])
+    b, a = np.polyfit(millions, seconds, 1)
+    return float(a), float(b), float(np.max(np.abs(seconds - (a + b * millions)) / seconds))
+
+
+def _linearity(rows: list[dict]) -> None:
+    """How far the tiled fits' wall and CPU seconds are from a straight line in the size."""
+    if len(rows) < 3:
+        return
+    print()
+    for key, label in (("seconds", "wall"), ("cpu_seconds", "CPU")):
+        a, b, worst = linear_fit(rows, key)
+        per_m = [r[key] / (r["points"] / 1e6) for r in rows]
+        print(f"- {label}: {a:.0f} s + {b:.1f} s per million points (least squares over "
+              f"{rows[0]['points'] / 1e6:g}M-{rows[-1]['points'] / 1e6:g}M); largest residual "
+              f"{100 * worst:.1f}% of the measured time; per million points "
+              f"{min(per_m):.1f}-{max(per_m):.1f} s.")
 
 
 def _plot(rows: list[dict], path: Path) -> None:
@@ -128,6 +166,12 @@ def _plot(rows: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(millions, [r["seconds"] for r in rows], "o-", label="wall")
     ax.plot(millions, [r["cpu_seconds"] for r in rows], "s--", label="CPU (user + sys)")
+    tiled = [r for r in rows if r["tiles"]]
+    if len(tiled) >= 3:
+        a, b, _ = linear_fit(tiled, "seconds")
+        span = [tiled[0]["points"] / 1e6, tiled[-1]["points"] / 1e6]
+        ax.plot(span, [a + b * m for m in span], ":", color="grey",
+                label=f"wall, least squares: {a:.0f} s + {b:.1f} s/M")
     ax.set_xlabel("survey size (million points)")
     ax.set_ylabel("seconds")
     ax.set_title(f"c1mesh fit --level 1 --memory {MEMORY} (LAZ, class 2)")
