@@ -849,14 +849,14 @@ class _RefineJob:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
                     limits.limited, limits.turned, limits.lifted)
-        reach = self.reach(t)
-        cell = self.grid.cell(t)
-        records = self.heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
-        corners = np.unique(triangles)
-        rows = np.searchsorted(records["index"], corners)
-        if np.any(rows >= len(records)) or np.any(records["index"][np.minimum(rows, len(records) - 1)] != corners):
+        from c1mesh.tiled_limiter import halo_rect, halo_rows
+
+        records = self.heights.records(halo_rect(self.grid, t, self.reach(t)))
+        corners, local = np.unique(triangles, return_inverse=True)
+        rows = halo_rows(records["index"], corners)
+        if np.any(rows < 0):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
-        return records[rows], np.searchsorted(corners, triangles), None, None, 0, 0, 0
+        return records[rows], local.reshape(triangles.shape), None, None, 0, 0, 0
 
 
 class _Part:

@@ -355,7 +355,7 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
             continue
         cell, reach = grid.cell(t), buffers[t] * (1 + 1e-9)
         records = heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
-        rows = np.searchsorted(records["index"], triangles)
+        rows = halo_rows(records["index"], triangles)
         xy = np.column_stack([records["x"], records["y"]])
         longest = max(longest, float(_edge_lengths(xy, rows).max()))
     return longest
