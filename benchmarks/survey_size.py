@@ -163,7 +163,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     millions = [r["points"] / 1e6 for r in rows]
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, (ax, per) = plt.subplots(1, 2, figsize=(11, 4))
     ax.plot(millions, [r["seconds"] for r in rows], "o-", label="wall")
     ax.plot(millions, [r["cpu_seconds"] for r in rows], "s--", label="CPU (user + sys)")
     tiled = [r for r in rows if r["tiles"]]
@@ -177,6 +177,14 @@ def _plot(rows: list[dict], path: Path) -> None:
     ax.set_title(f"c1mesh fit --level 1 --memory {MEMORY} (LAZ, class 2)")
     ax.grid(alpha=0.3)
     ax.legend()
+    per.plot(millions, [r["seconds"] / m for r, m in zip(rows, millions)], "o-", label="wall")
+    per.plot(millions, [r["cpu_seconds"] / m for r, m in zip(rows, millions)], "s--", label="CPU (user + sys)")
+    per.set_ylim(bottom=0)
+    per.set_xlabel("survey size (million points)")
+    per.set_ylabel("seconds per million points")
+    per.set_title("flat = linear (the 1M fit is in memory)")
+    per.grid(alpha=0.3)
+    per.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
