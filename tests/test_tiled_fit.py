@@ -342,14 +342,9 @@ def test_tiled_fit_carries_crs_and_colours(tmp_path):
     assert np.abs(b.colors[list(rows)].astype(int) - np.asarray(colours)).max() <= 1
 
 
-def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp_path):
-    """`fit A.las B.las --seamless -o` with a survey larger than --memory allows: the files
-    are read one after another as one survey by the memory-bounded fit, which writes what
-    it writes for the concatenated file (the same bytes, compared), and matches the
-    in-memory fit of the whole cloud as the tiled fit does. With -O the same fit is split
-    by the ownership rule: each input's mesh is the in-memory `--seamless -O` mesh of that
-    input (to rounding), and merging the outputs' exactly equal vertices gives the -o mesh
-    (the border vertices are the same bits in both outputs)."""
+def _west_east_survey(tmp_path):
+    """A synthetic LAS of 24,000 points (terrain.las) and its west and east halves (at the
+    median x) as two LAS files: (whole path, [west path, east path], the LasData, west mask)."""
     whole_file = tmp_path / "terrain.las"
     _terrain_las(whole_file, 24000)
     las = laspy.read(str(whole_file))
@@ -360,6 +355,18 @@ def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp
         part.points = las.points[mask]
         parts.append(tmp_path / name)
         part.write(str(parts[-1]))
+    return whole_file, parts, las, west
+
+
+def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp_path):
+    """`fit A.las B.las --seamless -o` with a survey larger than --memory allows: the files
+    are read one after another as one survey by the memory-bounded fit, which writes what
+    it writes for the concatenated file (the same bytes, compared), and matches the
+    in-memory fit of the whole cloud as the tiled fit does. With -O the same fit is split
+    by the ownership rule: each input's mesh is the in-memory `--seamless -O` mesh of that
+    input (to rounding), and merging the outputs' exactly equal vertices gives the -o mesh
+    (the border vertices are the same bits in both outputs)."""
+    whole_file, parts, las, west = _west_east_survey(tmp_path)
     concatenated = laspy.LasData(las.header)
     concatenated.points = las.points[np.argsort(~west, kind="stable")]
     concatenated.write(str(tmp_path / "concatenated.las"))
@@ -571,17 +578,8 @@ def test_fits_in_tiles_show_their_tiles_on_a_terminal_and_nothing_on_a_pipe(tmp_
     """A fit larger than --memory, of one file or of a `--seamless -O` survey: on a
     terminal the progress bar names each stage and counts each pass's tiles as they
     finish, not only the outputs once everything is done; on a pipe stderr stays empty."""
-    whole_file = tmp_path / "terrain.las"
-    _terrain_las(whole_file, 24000)
-    las = laspy.read(str(whole_file))
-    west = np.asarray(las.x) < np.median(np.asarray(las.x))
-    parts = []
-    for name, mask in (("west.las", west), ("east.las", ~west)):
-        part = laspy.LasData(las.header)
-        part.points = las.points[mask]
-        parts.append(str(tmp_path / name))
-        part.write(parts[-1])
-    args = ["fit", *parts, "--seamless", "--classes", "2", "--level", "2", "--memory", "1M"]
+    whole_file, parts, _, _ = _west_east_survey(tmp_path)
+    args = ["fit", *map(str, parts), "--seamless", "--classes", "2", "--level", "2", "--memory", "1M"]
     shown = _stderr_on_a_terminal([*args, "-O", str(tmp_path / "tty")])
     for stage in ("normals: tile 4 of 4", "triangulate: tile 4 of 4", "refine: tile 4 of 4", "refine+write"):
         assert stage in shown, shown
