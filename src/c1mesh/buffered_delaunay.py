@@ -62,6 +62,12 @@ class TileGrid:
         return (x0 + i * w, y0 + j * h, x1 if i == self.nx - 1 else x0 + (i + 1) * w,
                 y1 if j == self.ny - 1 else y0 + (j + 1) * h)
 
+    def grown(self, t: int, by: float) -> tuple[float, float, float, float]:
+        """The closed rectangle of tile t's cell grown by `by` on every side (what a tile
+        reads for its buffer or halo)."""
+        cell = self.cell(t)
+        return (cell[0] - by, cell[1] - by, cell[2] + by, cell[3] + by)
+
     def tile_of(self, xy: np.ndarray) -> np.ndarray:
         """(m,) the tile of each point (m, 2): half-open cells, points on the box's far
         sides in the last row or column."""
@@ -211,10 +217,10 @@ def growing_reads(read: Callable, grid: "TileGrid", tile: int, buffer: float) ->
     """Reads of a tile's cell widened by `buffer`, the buffer doubled for each next one: a
     caller takes readings until what it needs lies inside what was read (or it covers the
     survey), so buffers are sized by the data."""
-    cell, rounds = grid.cell(tile), 0
+    rounds = 0
     while True:
         rounds += 1
-        box = (cell[0] - buffer, cell[1] - buffer, cell[2] + buffer, cell[3] + buffer)
+        box = grid.grown(tile, buffer)
         index, points = read(box)
         yield Reading(rounds, buffer, box, index, points, grid.tile_of(points[:, :2]) == tile,
                       _covers(box, grid.box))

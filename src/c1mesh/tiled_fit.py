@@ -849,9 +849,9 @@ class _RefineJob:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
                     limits.limited, limits.turned, limits.lifted)
-        from c1mesh.tiled_limiter import halo_rect, halo_rows
+        from c1mesh.tiled_limiter import halo_rows
 
-        records = self.heights.records(halo_rect(self.grid, t, self.reach(t)))
+        records = self.heights.records(self.grid.grown(t, self.reach(t)))
         corners, local = np.unique(triangles, return_inverse=True)
         rows = halo_rows(records["index"], corners)
         if np.any(rows < 0):

@@ -116,17 +116,11 @@ def halo_rows(index: np.ndarray, numbers: np.ndarray) -> np.ndarray:
     return rows[where.ravel()].reshape(numbers.shape)
 
 
-def halo_rect(grid, tile: int, reach: float) -> tuple[float, float, float, float]:
-    """(x0, y0, x1, y1) the closed rectangle a tile's halo reads: its cell grown by reach."""
-    cell = grid.cell(tile)
-    return (cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach)
-
-
 def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
     """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
     records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
     or None."""
-    rect = halo_rect(grid, tile, reach)
+    rect = grid.grown(tile, reach)
     records = heights.records(rect)
     parts = [np.empty((0, 3), np.int64)]
     for other in heights.touching(rect):
@@ -201,7 +195,7 @@ class HaloCache:
         return (self.halo(t) for t in self.tiles())
 
     def _drop(self, tile: int, halo: Halo) -> Halo:
-        near = [self.removed[t] for t in self.heights.touching(halo_rect(self.grid, tile, self.reach))
+        near = [self.removed[t] for t in self.heights.touching(self.grid.grown(tile, self.reach))
                 if t in self.removed]
         if not near or not len(halo.triangles):
             return halo
@@ -353,8 +347,7 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
         triangles = np.load(path)
         if not len(triangles):
             continue
-        cell, reach = grid.cell(t), buffers[t] * (1 + 1e-9)
-        records = heights.records((cell[0] - reach, cell[1] - reach, cell[2] + reach, cell[3] + reach))
+        records = heights.records(grid.grown(t, buffers[t] * (1 + 1e-9)))
         rows = halo_rows(records["index"], triangles)
         xy = np.column_stack([records["x"], records["y"]])
         longest = max(longest, float(_edge_lengths(xy, rows).max()))
