@@ -400,6 +400,11 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
     _write_report(report, targets[-1], result, debug)
 
 
+def _stage_bar(length: int, label: str):
+    """A click progress bar on stderr of `length` steps, showing each step's name."""
+    return click.progressbar(length=length, label=label, file=sys.stderr, item_show_func=lambda s: s)
+
+
 def _caption(bar, text: str) -> None:
     """Show text beside a click progress bar without advancing it: bar.update(0, text)
     sets the text but draws nothing until the next step (a tiled fit's tile counts then
@@ -417,18 +422,15 @@ def _survey_progress(inputs, options, outputs: int):
     from c1mesh.tiled_fit import TILED_STAGES
     from c1mesh.tiles import survey_needs_tiles
 
-    def bar(length, label):
-        return click.progressbar(length=length, label=label, file=sys.stderr, item_show_func=lambda s: s)
-
     if survey_needs_tiles(inputs, options):
-        progress = bar(len(TILED_STAGES), "fitting survey")
+        progress = _stage_bar(len(TILED_STAGES), "fitting survey")
         return progress, {"on_stage": lambda name: progress.update(1, name),
                           "on_tile_pass": lambda name, done, tiles: _caption(progress,
                                                                              f"{name}: tile {done} of {tiles}")}
     if outputs:
-        progress = bar(outputs, "tiles")
+        progress = _stage_bar(outputs, "tiles")
         return progress, {"on_tile": lambda row: progress.update(1, row["tile"])}
-    progress = bar(len(STAGES), "fitting survey")
+    progress = _stage_bar(len(STAGES), "fitting survey")
     return progress, {"on_stage": lambda name: progress.update(1, name)}
 
 
@@ -533,8 +535,7 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
     def run(target):
         if not show:
             return _run(src, target, options, jobs=jobs)
-        with click.progressbar(length=len(STAGES), label=f"fitting {src}", file=sys.stderr,
-                               item_show_func=lambda s: s) as bar:
+        with _stage_bar(len(STAGES), f"fitting {src}") as bar:
             return _run(src, target, options, on_stage=lambda name: bar.update(1, name), jobs=jobs,
                         on_tile=lambda name, done, tiles: _caption(bar, f"{name}: tile {done} of {tiles}"))
     try:
