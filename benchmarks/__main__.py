@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -18,15 +19,28 @@ from benchmarks.common import Config, Section
 SECTIONS = (engine, pipeline, triangulation, accuracy, noisy, memory, tiles, geo, depth)
 
 
+def _output_folder(out: Path | None, quick: bool) -> Path:
+    """Where RESULTS.md and the plots go: the folder asked for; else benchmarks/ for a full
+    run, and a fresh temporary folder for --quick (its small sizes are not results)."""
+    if out is not None:
+        return out
+    if quick:
+        return Path(tempfile.mkdtemp(prefix="c1mesh-bench-quick-"))
+    return Path(__file__).resolve().parent
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true", help="small sizes, < ~60 s (smoke test)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent,
-                        help="directory for RESULTS.md and the PNGs (default: benchmarks/)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="directory for RESULTS.md and the PNGs (default: benchmarks/ for a full "
+                             "run; a new temporary folder for --quick, so a smoke run never "
+                             "overwrites the committed results)")
     parser.add_argument("--only", help="comma-separated section names to run (e.g. pipeline,depth); "
                                         "default: all")
     args = parser.parse_args(argv)
     sections_to_run = _chosen(args.only, parser)
+    args.out = _output_folder(args.out, args.quick)
     args.out.mkdir(parents=True, exist_ok=True)
     cfg = Config.make(args.quick, args.out)
     command = " ".join(["python -m benchmarks", *(sys.argv[1:] if argv is None else argv)])

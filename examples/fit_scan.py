@@ -1,8 +1,9 @@
 """The whole pipeline from Python: a scan file in, a smooth mesh and a report out.
 
 Run: python examples/fit_scan.py [input] [output]
-Defaults to the bundled analytic sample data_samples/hill.ply and writes <input stem>.c1.ply
-into a temporary folder; prints the report's main numbers. A LAS/LAZ input is fitted to
+Defaults to the bundled analytic sample data_samples/hill.ply; without an output it writes
+<input stem>.c1.ply into a temporary folder that it removes when done. Prints the report's
+main numbers. A LAS/LAZ input is fitted to
 its ground points (classification 2), as airborne LiDAR holds trees and roofs too, e.g.
 python examples/fit_scan.py data_samples/4_6_crop.las
 """
@@ -14,11 +15,11 @@ from c1mesh.pipeline import FitOptions, fit
 
 here = Path(__file__).resolve().parent.parent
 source = Path(sys.argv[1] if len(sys.argv) > 1 else here / "data_samples" / "hill.ply")
-target = sys.argv[2] if len(sys.argv) > 2 else Path(tempfile.mkdtemp()) / (source.stem + ".c1.ply")
 ground = (2,) if source.suffix.lower() in (".las", ".laz") else None
 
-result = fit(source, target, FitOptions(level=4, classes=ground))
-report = result.report
+with tempfile.TemporaryDirectory() as scratch:
+    target = sys.argv[2] if len(sys.argv) > 2 else Path(scratch) / (source.stem + ".c1.ply")
+    report = fit(source, target, FitOptions(level=4, classes=ground)).report
 print(f"wrote {target}: {report['output_mesh']['vertices']} vertices, {report['output_mesh']['faces']} faces")
 print(f"kept {report['points']['kept']} of {report['points']['read']} points; "
       f"triangles {report['triangles']['before_trim']} -> {report['triangles']['after_trim']} after trimming")

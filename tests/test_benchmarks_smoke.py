@@ -44,3 +44,19 @@ def test_quick_benchmark_writes_results(tmp_path):
     assert "Fitting sees the training points only" in text
     assert (tmp_path / "engine.png").exists() and (tmp_path / "accuracy.png").exists()
     assert (tmp_path / "tiles.png").exists()
+
+
+def test_quick_run_without_out_never_writes_into_benchmarks(tmp_path, monkeypatch):
+    """--quick without --out writes into a new temporary folder, so the committed
+    benchmarks/RESULTS.md and plots survive a smoke run; a full run still defaults to benchmarks/."""
+    sys.path.insert(0, str(ROOT))
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    from benchmarks.__main__ import _output_folder
+
+    quick = _output_folder(None, quick=True)
+    assert quick.parent == tmp_path and quick.is_dir() and not any(quick.iterdir())
+    assert _output_folder(None, quick=False) == ROOT / "benchmarks"
+    assert _output_folder(tmp_path / "mine", quick=True) == tmp_path / "mine"
