@@ -246,6 +246,14 @@ def test_a_header_height_with_file_normals_keeps_the_auto_axis(tmp_path):
     assert abs(result.report["frame"]["axes"][2][2]) < 0.95     # tilted 30° off z
 
 
+def test_a_height_column_at_two_plan_positions_is_refused(tmp_path):
+    """Five heights at two (x, y) positions: the slope fit says what is missing."""
+    path = tmp_path / "two.csv"
+    path.write_text("x,y,z\n0,0,1\n0,0,2\n1,1,3\n1,1,4\n1,1,5\n")
+    with pytest.raises(InputError, match="at least 3 distinct .x, y. positions, got 5 points at 2"):
+        fit(path, None, FitOptions())
+
+
 def test_room_is_not_a_height_field():
     with pytest.raises(NotAHeightFieldError, match="height field"):
         fit(SAMPLES / "o3d_cloud_bin_0.pcd", None, FitOptions())
