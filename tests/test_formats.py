@@ -230,6 +230,31 @@ def test_csv_named_columns_in_any_order(tmp_path):
     np.testing.assert_array_equal(cloud.colors, RGB)
 
 
+@pytest.mark.parametrize("header, column", [
+    ('"","x","y","z"', "z"),                                    # R's write.csv (MASS topo)
+    ("easting,northing,h", "h"),
+    ("East,North,Elevation", "elevation"),
+    ("lon;lat;height", "height"),
+    ("x y elev nx ny nz", "elev"),
+], ids=["R-z", "h", "elevation", "height", "with-normals"])
+def test_header_names_the_height_column(tmp_path, header, column):
+    """Issue 21: a header's z, elev, elevation, height or h column is recorded as the height
+    (and h is read as the third coordinate), so the fit can take it in units of its own."""
+    sep = ";" if ";" in header else "," if "," in header else " "
+    blocks = (np.arange(3.0)[:, None], PTS) if header.startswith('""') else (PTS,)
+    blocks += (NRM,) if "nx" in header else ()
+    (tmp_path / "h.csv").write_text(header + "\n" + table_text(*blocks, sep=sep))
+    cloud = read_cloud(tmp_path / "h.csv")
+    np.testing.assert_array_equal(cloud.points, PTS)
+    assert cloud.height_column == column
+    assert cloud.subset(np.array([True, False, True])).height_column == column
+
+
+def test_headerless_table_names_no_height_column(tmp_path):
+    (tmp_path / "bare.xyz").write_text(table_text(PTS))
+    assert read_cloud(tmp_path / "bare.xyz").height_column is None
+
+
 @pytest.mark.parametrize("scale", [1.0, 255.0], ids=["0..1", "0..255"])
 def test_headerless_xyzrgb_is_not_read_as_normals(tmp_path, scale):
     rgb = np.array([[0.2, 0.4, 0.6], [1.0, 1.0, 1.0], [0.0, 0.5, 0.25]])

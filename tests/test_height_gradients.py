@@ -226,3 +226,65 @@ def test_exact_terrain_without_normals_trips_the_limiter_no_more_than_exact_grad
         limited[name] = model.overshoot.gradients_limited
     assert limited["heights"] <= limited["exact"] + len(points) // 1000, limited
     assert limited["pca"] > 20 * (limited["heights"] + 1), limited
+
+
+def test_fewer_than_three_distinct_plane_positions_are_refused():
+    """Many points at two (x, y) positions span no plane: no slope can be fitted there."""
+    xy = np.repeat([[0.0, 0.0], [1.0, 0.5]], 5, axis=0)
+    with pytest.raises(InputError, match="3 distinct .* positions, got 10 points at 2"):
+        height_gradients(xy, np.arange(10.0))
+    with pytest.raises(InputError, match="got 4 points at 1"):
+        height_gradients(np.ones((4, 2)), np.arange(4.0))
+    height_gradients(np.r_[xy, [[3.0, -1.0]]], np.arange(11.0))     # a third position suffices
+
+
+def _hill_m_over_km(xy):
+    """Heights in metres over x, y in kilometres, and their gradients in metres per km."""
+    x, y = xy[:, 0], xy[:, 1]
+    return (150 * np.sin(x) * np.cos(y) + 40 * x,
+            np.c_[150 * np.cos(x) * np.cos(y) + 40, -150 * np.sin(x) * np.sin(y)])
+
+
+def _km_csv(path, n):
+    """A CSV 'x,y,z' of n random points of `_hill_m_over_km` on [0, 3] x [0, 2] km."""
+    xy = np.random.default_rng(n).random((n, 2)) * [3.0, 2.0]
+    np.savetxt(path, np.c_[xy, _hill_m_over_km(xy)[0]], delimiter=",", header="x,y,z", comments="")
+    return xy
+
+
+def test_csv_heights_in_metres_over_kilometres_give_the_analytic_gradients(tmp_path):
+    """Issue 21: the slopes, ~200 m per km, read as numbers of one metric are ~89.7° steep;
+    the header names z, so the gradients are fitted to the heights over the plan: every
+    point is kept and the error of the local quadratic fit falls as h² (to a quarter
+    with 4x the points), and the spline's gradient is as good as the spline's with the
+    exact gradients (its own discretisation error, O(h))."""
+    from c1mesh.formats import read_cloud
+    from c1mesh.interpolator import RSDInterpolator
+
+    errors = []
+    for n in (1000, 4000):
+        xy = _km_csv(tmp_path / f"hill{n}.csv", n)
+        model = build_surface(read_cloud(tmp_path / f"hill{n}.csv"), FitOptions())
+        assert model.hf.z.size == n
+        origin = model.frame.origin
+        truth = _hill_m_over_km(model.hf.xy + origin[:2])[1]
+        errors.append(np.sqrt(np.mean((model.hf.gradients - truth) ** 2)))
+    assert errors[1] < errors[0] / 3, errors
+    assert errors[1] < 1e-2 * np.sqrt(np.mean(truth ** 2)), errors
+    queries = np.random.default_rng(7).random((2000, 2)) * [2.4, 1.4] + 0.3
+    ours = model.interp.gradient(queries - origin[:2]) - _hill_m_over_km(queries)[1]
+    exact = RSDInterpolator(xy, *_hill_m_over_km(xy)).gradient(queries) - _hill_m_over_km(queries)[1]
+    assert np.sqrt(np.mean(ours ** 2)) < 1.25 * np.sqrt(np.mean(exact ** 2))
+
+
+def test_csv_heights_fit_the_same_in_any_unit(tmp_path):
+    """Heights in metres and in kilometres over the same km plan give the same gradients,
+    scaled by 1000: nothing in the fit compares heights with plan distances."""
+    from c1mesh.formats import read_cloud
+
+    _km_csv(tmp_path / "m.csv", 2000)
+    metres = read_cloud(tmp_path / "m.csv")
+    km = PointCloud(points=metres.points * [1, 1, 1e-3], height_column="z")
+    in_m, in_km = (build_surface(c, FitOptions()).hf for c in (metres, km))
+    np.testing.assert_array_equal(in_m.source_index, in_km.source_index)
+    np.testing.assert_allclose(in_m.gradients, 1e3 * in_km.gradients, rtol=1e-9, atol=0)

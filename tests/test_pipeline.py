@@ -199,6 +199,61 @@ def test_lidar_ground_class_with_estimated_normals(tmp_path):
         fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(99,)))
 
 
+def _plan_areas(vertices, faces):
+    """Twice the signed area of each face over (x, y): positive when counter-clockwise."""
+    p = vertices[faces]
+    return ((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
+            - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0]))
+
+
+def test_topo_csv_heights_in_feet_over_a_plan_in_50_ft_units():
+    """Issue 21: R's MASS topo (x, y in 50 ft, z in ft). Its header names z, so z is the
+    height in units of its own: every point is a vertex at its height and no face folds
+    over the plan. Before, the auto axis was nearly y (26 of 52 points became vertices,
+    279 faces folded in plan view), and --axis z refused normals that x, y and z in one
+    metric made nearly horizontal."""
+    from c1mesh.quality import folded_faces
+
+    table = np.genfromtxt(SAMPLES / "topo.csv", delimiter=",", skip_header=1, usecols=(1, 2, 3))
+    assert table.shape == (52, 3)
+    result = fit(SAMPLES / "topo.csv", None, FitOptions())
+    mesh, report = result.mesh, result.report
+    assert report["points"]["kept"] == 52
+    assert "height column 'z'" in report["frame"]["axis_choice"]
+    assert report["warnings"] == []
+    distance, vertex = cKDTree(mesh.vertices[:, :2]).query(table[:, :2])
+    assert distance.max() < 1e-12
+    np.testing.assert_allclose(mesh.vertices[vertex, 2], table[:, 2], rtol=0, atol=1e-9)
+    assert (_plan_areas(mesh.vertices, mesh.faces) > 0).all()
+    # in the data's own single metric (heights in 50 ft) no face turns against its normals
+    foot = 1 / 50
+    assert folded_faces(mesh.vertices * [1, 1, foot], mesh.faces, mesh.vertex_normals * [foot, foot, 1]) == 0
+
+
+def test_topo_csv_with_axis_z_is_the_same_fit():
+    """`--axis z` names the axis the header names: the same plan-unit fit, not a refusal."""
+    auto = fit(SAMPLES / "topo.csv", None, FitOptions(level=2)).mesh
+    given = fit(SAMPLES / "topo.csv", None, FitOptions(level=2, axis="z")).mesh
+    np.testing.assert_array_equal(given.vertices, auto.vertices)
+    np.testing.assert_array_equal(given.faces, auto.faces)
+
+
+def test_a_header_height_with_file_normals_keeps_the_auto_axis(tmp_path):
+    """File normals say x, y and z share one metric, so "auto" still finds a tilted scan's
+    axis from them (wave_tilted_offset.xyz has the header x y z nx ny nz)."""
+    result = fit(SAMPLES / "wave_tilted_offset.xyz", None, FitOptions(level=1))
+    assert result.report["frame"]["axis_choice"] == "auto: the mean of the normals"
+    assert abs(result.report["frame"]["axes"][2][2]) < 0.95     # tilted 30° off z
+
+
+def test_a_height_column_at_two_plan_positions_is_refused(tmp_path):
+    """Five heights at two (x, y) positions: the slope fit says what is missing."""
+    path = tmp_path / "two.csv"
+    path.write_text("x,y,z\n0,0,1\n0,0,2\n1,1,3\n1,1,4\n1,1,5\n")
+    with pytest.raises(InputError, match="at least 3 distinct .x, y. positions, got 5 points at 2"):
+        fit(path, None, FitOptions())
+
+
 def test_room_is_not_a_height_field():
     with pytest.raises(NotAHeightFieldError, match="height field"):
         fit(SAMPLES / "o3d_cloud_bin_0.pcd", None, FitOptions())

@@ -21,6 +21,11 @@ class PointCloud:
                     row, N = height * width, invalid pixels non-finite), else None.
     viewpoint:      (7,) sensor position x, y, z and orientation quaternion qw, qx, qy, qz
                     in world coordinates when the file gives one (PCD VIEWPOINT), else None.
+    height_column:  the header name of the column read as points[:, 2] when the file names
+                    it as a height (a text table's z, elev, elevation, height, h, alt or
+                    altitude), else None. Such heights need not share the units of x and y
+                    (R's `topo`: x, y in 50 ft, z in ft), so the fit takes them as heights
+                    over the plan (x, y) instead of angles in one 3-D metric.
     """
 
     points: np.ndarray
@@ -31,6 +36,7 @@ class PointCloud:
     crs: str | None = None
     grid_shape: tuple[int, int] | None = None
     viewpoint: np.ndarray | None = None
+    height_column: str | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -46,6 +52,7 @@ class PointCloud:
             extra={k: v[mask] for k, v in self.extra.items()},
             crs=self.crs,
             viewpoint=self.viewpoint,        # a subset is no longer a grid
+            height_column=self.height_column,
         )
 
 

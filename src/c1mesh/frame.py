@@ -120,7 +120,9 @@ class HeightField:
     flipped:      normals that pointed to the -e3 side and were flipped (signs are ignored).
     stacked:      kept points that lie above or below another point (see `height_field`).
     spacing:      median 3D distance (local units) from a point to its nearest neighbour
-                  (one point per distinct (x, y)): the typical point spacing h on the surface.
+                  (one point per distinct (x, y)): the typical point spacing h on the surface;
+                  the plane distance, in the units of x and y, for a height field built
+                  with common_metric=False.
     """
 
     xy: np.ndarray
@@ -304,7 +306,8 @@ def gradients_to_normals(gradients: ArrayLike, out: np.ndarray | None = None) ->
 
 def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
                  max_slope_deg: float = 85.0, max_stacked: float = 0.10,
-                 max_facing_away: float | None = None, merge_tol: float = 1e-6) -> HeightField:
+                 max_facing_away: float | None = None, merge_tol: float = 1e-6,
+                 common_metric: bool = True) -> HeightField:
     """Project a scan with normals to heights and gradients over the frame's plane.
 
     points, normals: (N, 3) world coordinates and normals (any length, any sign).
@@ -327,6 +330,16 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
                      first (lowest input index) of each group is kept with its own z and
                      normal (not an average: duplicates with different z are stacking, which
                      averaging would hide), the others are counted as "duplicate".
+    common_metric:   True when x, y and the heights share one unit, so that slopes are
+                     angles and 3-D distances mean something. False for heights in a unit
+                     of their own (a text table's height column: R's `topo` has x, y in
+                     50 ft and z in ft), whose normals only carry gradients fitted to the
+                     heights in plane units (c1mesh.height_gradients): then no point is
+                     "too_steep" and max_facing_away is not applied (angles depend on the
+                     units), the spacing h is measured in the plane, and only points that
+                     share their exact (x, y) with a different height count as stacked
+                     (a jump "larger than the slopes explain" needs a margin in height
+                     units; a second height at one plane position is stacking in any unit).
     Raises InputError for bad shapes or when fewer than 3 non-collinear points remain,
     NotAHeightFieldError when the cloud is not a graph over the plane.
     """
@@ -346,8 +359,8 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     dropped["bad_normal"] = int((finite & ~usable).sum())
     index = np.flatnonzero(usable)
     up = n_local[index, 2] / length[index]
-    cos_max = np.cos(np.radians(max_slope_deg))
-    _check_facing_away(up, cos_max, max_facing_away, max_slope_deg, frame)
+    cos_max = np.cos(np.radians(max_slope_deg)) if common_metric else 0.0
+    _check_facing_away(up, cos_max, max_facing_away if common_metric else None, max_slope_deg, frame)
 
     steep = np.abs(up) < cos_max
     dropped["too_steep"] = int(steep.sum())
@@ -364,7 +377,8 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     _check_extent(local)
     gradients, flipped = _gradients(n_local[index])
 
-    keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame)
+    keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame,
+                                                common_metric)
     dropped["duplicate"] = int(index.size - keep.size)
     xy = local[keep, :2]
     _check_spread(xy)
@@ -419,13 +433,16 @@ def _check_facing_away(up: np.ndarray, cos_max: float, max_facing_away: float | 
 
 
 def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: float,
-                     merge_tol: float, frame: ScanFrame) -> tuple[np.ndarray, int, float]:
+                     merge_tol: float, frame: ScanFrame,
+                     common_metric: bool = True) -> tuple[np.ndarray, int, float]:
     """Stacking test and duplicate merging on local points (n, 3) with their gradients.
 
     Returns (keep, stacked, spacing): ascending indices into `local` of the points kept
     (one per duplicate group, the first), the number of stacked points, and the spacing h.
     Exact duplicates in (x, y) are grouped by sorting; distinct positions go into one KD
     tree whose pairs within h serve both the stacking test and the near-duplicate merge.
+    Without a common metric (see `height_field`) h is the plane spacing and only exact
+    duplicates with different heights count as stacked.
     """
     xy, z = local[:, :2], local[:, 2]
     order, xs, ys = _sort_xy(xy)
@@ -445,16 +462,22 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: floa
     np.maximum.at(z_max, group, z)
 
     plane_tree = _tree(xy[first])
-    spacing = _spacing(local[first], plane_tree=plane_tree)
+    if common_metric:
+        spacing = _spacing(local[first], plane_tree=plane_tree)
+    else:
+        spacing = _plane_spacing(xy[first], plane_tree)
     pairs = plane_tree.query_pairs(spacing, output_type="ndarray")
     i, j = pairs[:, 0], pairs[:, 1]
     dist = np.linalg.norm(xy[first[i]] - xy[first[j]], axis=1)
-    slope = np.maximum(np.linalg.norm(gradients[first[i]], axis=1),
-                       np.linalg.norm(gradients[first[j]], axis=1))
-    jump = np.abs(z[first[i]] - z[first[j]]) > STACK_MARGIN * spacing + slope * dist
-    bad = (z_max - z_min) > STACK_MARGIN * spacing
-    bad[i[jump]] = True
-    bad[j[jump]] = True
+    if common_metric:
+        slope = np.maximum(np.linalg.norm(gradients[first[i]], axis=1),
+                           np.linalg.norm(gradients[first[j]], axis=1))
+        jump = np.abs(z[first[i]] - z[first[j]]) > STACK_MARGIN * spacing + slope * dist
+        bad = (z_max - z_min) > STACK_MARGIN * spacing
+        bad[i[jump]] = True
+        bad[j[jump]] = True
+    else:
+        bad = z_max > z_min
     stacked = int(bad[group].sum())
     if stacked > max_stacked * z.size:
         raise NotAHeightFieldError(
@@ -511,6 +534,13 @@ def _spacing(points: np.ndarray, samples: int = 20000, plane_tree: cKDTree | Non
     else:
         nearest = _tree(points).query(query, k=2)[0][:, 1]
     return float(np.median(nearest))
+
+
+def _plane_spacing(xy: np.ndarray, plane_tree: cKDTree, samples: int = 20000) -> float:
+    """Median plane distance from distinct points xy (n >= 2, 2) to their nearest other
+    point, from <= `samples` queries of their KD tree `plane_tree`."""
+    query = xy[:: max(1, xy.shape[0] // samples)]
+    return float(np.median(plane_tree.query(query, k=2)[0][:, 1]))
 
 
 def _nearest_via_plane(points: np.ndarray, query: np.ndarray, plane_tree: cKDTree) -> np.ndarray:

@@ -88,7 +88,12 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     whenever the neighbours determine it; where they do not (fewer than 5 non-collinear
     neighbours), the ridge RIDGE keeps the solve finite and the quadratic terms small.
     workers: threads for the neighbour search (scipy cKDTree.query).
-    Raises InputError for bad shapes, fewer than 3 points, or degree not 1 or 2.
+    Units: xy in one unit (the plan's), z in any unit; the gradients are in z units per
+    xy unit. Nothing compares heights with plane distances, so heights in feet over a
+    plan in 50 ft cells (R's `topo`) or in metres over kilometres are fitted as well as
+    heights in the units of the plan.
+    Raises InputError for bad shapes, fewer than 3 distinct plane positions (no slope
+    can be fitted), or degree not 1 or 2.
     """
     from scipy.spatial import cKDTree
 
@@ -99,8 +104,10 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     if degree not in (1, 2):
         raise InputError(f"height_gradients fits degree 1 or 2, got {degree}")
     n = xy.shape[0]
-    if n < 3:
-        raise InputError(f"height_gradients needs at least 3 points, got {n}")
+    positions = _distinct_positions(xy, 3)
+    if positions < 3:
+        raise InputError(f"fitting slopes to heights needs at least 3 distinct (x, y) positions, "
+                         f"got {n} point{'s' if n != 1 else ''} at {positions}")
     k = int(min(max(k, 2 if degree == 1 else 5), n - 1))
     # Points in a KD tree's leaf order: neighbours then sit close in memory, and the
     # queries and gathers below run about twice as fast as in the input's order.
@@ -113,6 +120,17 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
         neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, workers)
         out[order[centre]] = _fit_block(z, centre, neighbours, offsets, degree)
     return out
+
+
+def _distinct_positions(xy: np.ndarray, enough: int) -> int:
+    """How many distinct rows points xy (n, 2) have, counted up to `enough` (O(n · enough)
+    comparisons, no sort): the count when it is below `enough`, else `enough`."""
+    seen = []
+    new = np.ones(xy.shape[0], dtype=bool)
+    while len(seen) < enough and new.any():
+        seen.append(xy[int(np.argmax(new))])
+        new &= (xy != seen[-1]).any(axis=1)
+    return len(seen)
 
 
 def nearest_neighbours(tree, xy: np.ndarray, z: np.ndarray, centre: np.ndarray, k: int,

@@ -255,6 +255,30 @@ def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
     return estimated and not auto_axis and use_height_gradients(options.gradients, "estimated")
 
 
+def height_column_axis(cloud: PointCloud, options: FitOptions) -> tuple[FitOptions, str | None]:
+    """The options with axis "auto" resolved to z where a text table's header names its
+    third column as a height (PointCloud.height_column) and the normals are to be
+    estimated, and a phrase for the report (None when nothing was resolved).
+
+    A named height is the height whatever its units; file normals instead say that x, y
+    and z share one metric (a normal is a direction in it), so with them "auto" keeps
+    choosing the axis from the normals (a tilted scan exported with a header).
+    """
+    auto_axis = isinstance(options.axis, str) and options.axis.strip().lower() == "auto"
+    estimated = options.normals == "estimate" or (cloud.normals is None and options.normals == "auto")
+    if cloud.height_column is None or not auto_axis or not estimated:
+        return options, None
+    return replace(options, axis="z"), f"z: the header's height column '{cloud.height_column}'"
+
+
+def _plan_heights(cloud: PointCloud, frame) -> bool:
+    """Whether the heights are a header's height column over the plan (x, y): the frame's
+    axis is ±z and the file names z as a height. Then its units need not be those of x
+    and y, and nothing may treat (x, y, z) as one metric (frame.height_field's
+    common_metric, the curtain rules' angles)."""
+    return cloud.height_column is not None and bool(np.array_equal(np.abs(frame.axes[2]), [0.0, 0.0, 1.0]))
+
+
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
@@ -264,18 +288,22 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     timer = timer or _Timer(None)
     scheme = get_scheme(options.scheme)
     check_overshoot_mode(options.overshoot)
+    options = height_column_axis(cloud, options)[0]
     heights_first = _fit_heights_first(cloud, options)
+    plan_heights = False          # heights in units of their own over the plan (x, y)
     with timer.stage("normals"):
         if heights_first:        # the frame needs no normals: the fit's serve the height field
             frame = choose_frame(cloud.points, None, options.axis)
             normals = height_normals(cloud.points, frame, k=height_neighbours(options.k))
             normal_source = "estimated"
+            plan_heights = _plan_heights(cloud, frame)
         else:
             normals, normal_source = cloud_normals(cloud, options)
     with timer.stage("frame"):
         if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
             frame = choose_frame(cloud.points, normals, options.axis)
-        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope)
+        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
+                          common_metric=not plan_heights)
     with timer.stage("gradients"):
         gradient_source = "heights" if heights_first else "normals"
         if not heights_first and use_height_gradients(options.gradients, normal_source):
@@ -284,13 +312,14 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
         triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
-        triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report)
+        if not plan_heights:     # its angles and noise widths compare heights with plane lengths
+            triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report)
         if triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
         used, triangles = _compact(hf.xy, triangles)
     with timer.stage("interpolate"):
         interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
-                                                 scheme, options.overshoot)
+                                                 scheme, options.overshoot, heights=not plan_heights)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
 
 
@@ -299,7 +328,8 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
     """The RSDInterpolator of a (noisy) height field with its overshoot controlled
     (c1mesh.limiter.control_overshoot in mode `overshoot`: its values are the reconciled
     heights), the edges numbered once for both; and the limiter's report. Shared by the
-    plane and the perspective fits (these pass heights=False; control_overshoot says why)."""
+    plane and the perspective fits (these pass heights=False; control_overshoot says why, and
+    so do plane fits of heights in units of their own, `_plan_heights`)."""
     table = edge_table(triangles, points.shape[0]) if overshoot != "off" else None
     values, limited, directions, report = control_overshoot(points, values, gradients, triangles,
                                                             overshoot, table, heights=heights)
@@ -340,6 +370,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
         crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, _name(source))
+    options, column_reason = height_column_axis(cloud, options)
+    axis_reason = column_reason or axis_reason
     from c1mesh.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None) == "perspective":
         from c1mesh.depth_fit import fit_perspective

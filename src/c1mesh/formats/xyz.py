@@ -5,10 +5,14 @@ has one (semicolon first, so '1,5;2,5' is reported rather than misread). Double 
 around values and names (R's write.csv) are ignored, and so is a UTF-8 byte-order mark.
 Blank lines and lines starting with '#' are skipped. Leading lines that do not start
 with a number are header lines; the last of them names the columns, in any order and
-any case (x y z, also lon/lat/elev, easting/northing/height; nx ny nz or normal_x..,
+any case (x y z, also lon/lat/elev, easting/northing/height or h; nx ny nz or normal_x..,
 r g b or red green blue [alpha], classification; CloudCompare's '//X,Y,Z' works too;
 other names, such as the unnamed index column of R and pandas, go to `extra`). A lone
 integer first line equal to the number of rows (the .pts point count) is skipped.
+A header's third coordinate is by its name a height (z, elev, elevation, height, h, alt,
+altitude): the cloud records the name as `PointCloud.height_column`, and a fit without
+the file's normals takes that column as the height axis, in units that need not be
+those of x and y (c1mesh.pipeline).
 
 Without a header the column count decides (see `_layout`):
   3: x y z                 4: x y z scalar
@@ -36,7 +40,7 @@ _SPLIT = re.compile(r"[\s,;]+")
 XYZ_NAMES = (
     ("x", "lon", "long", "longitude", "easting", "east"),
     ("y", "lat", "latitude", "northing", "north"),
-    ("z", "elev", "elevation", "height", "alt", "altitude"),
+    ("z", "elev", "elevation", "height", "h", "alt", "altitude"),
 )
 
 
@@ -167,7 +171,7 @@ def _cloud_from_named(table: np.ndarray, names: list[str], name: str) -> PointCl
     nrm = find_columns(names, NORMAL_NAMES)
     rgba = find_columns(names, COLOR_NAMES)
     cls = find_columns(names, (("classification", "class"),))[0]
-    cloud = PointCloud(points=table[:, xyz])
+    cloud = PointCloud(points=table[:, xyz], height_column=names[xyz[2]])
     used = set(xyz)
     if None not in nrm:
         cloud.normals, used = table[:, nrm], used | set(nrm)
