@@ -16,11 +16,12 @@ from c1mesh.cloud import MeshStream, SurfaceMesh
 STREAM_BLOCK = 1 << 18
 """Rows per block when a SurfaceMesh in memory is written as a stream (views, no copies)."""
 
-TEXT_ROWS = 1 << 14
-"""Rows formatted as text at a time: ~2 MB of text, ~15 MB of transient Python objects."""
+TEXT_ROWS = 1 << 12
+"""Rows formatted as text at a time: ~0.5 MB of text, ~3 MB of transient Python objects."""
 
-BINARY_ROWS = 1 << 16
-"""Rows packed into binary records at a time (STL: 50 bytes a face plus float64 temporaries)."""
+BINARY_ROWS = 1 << 14
+"""Rows packed into binary records at a time (STL: 0.8 MB of 50-byte records, plus ~3 MB
+of float64 temporaries for the corners and normals)."""
 
 
 def as_stream(mesh: SurfaceMesh | MeshStream) -> MeshStream:
