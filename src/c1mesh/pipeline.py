@@ -182,7 +182,7 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
     Each pass evaluates the spline block by block (refine.Refinement) and turns every
     block into world vertices, unit normals on the axis side and, when the input has
     colours (N, c) uint8, colours blended linearly; nothing of the size of the output is
-    held, so a writer that streams (PLY) needs only block-sized memory. Blocks are
+    held, so the writers (all of them stream) need only block-sized memory. Blocks are
     computed by a second thread a few blocks ahead of the writer (c1mesh.threads.prefetch).
     """
     fields = [] if colors is None else [colors.astype(float)]

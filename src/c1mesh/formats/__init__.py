@@ -164,10 +164,10 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     defaults to binary PLY. `ascii` selects ascii PLY (other formats have one encoding).
     A path is written by the rules of c1mesh.outputs: a regular file or new path to a
     temporary file beside it, renamed into place only when complete (an existing file's
-    mode is kept); a character device or FIFO straight. A MeshStream is written block by block where the format allows (PLY) and
-    assembled in memory first otherwise. `crs` (WKT) is written where the format has a
-    place for it (PLY header comment, GLB asset extras) and, for a regular-file path of
-    PLY/OBJ/STL/OFF, as an ESRI-WKT `.prj` sidecar (unless sidecar=False: a caller writing
+    mode is kept); a character device or FIFO straight. Every format writes a MeshStream
+    block by block, never assembling it (STL also holds the vertex positions: a face may
+    name any vertex). `crs` (WKT) is written where the format has a place for it (PLY
+    header comment, GLB asset extras) and, for a regular-file path of PLY/OBJ/STL/OFF, as an ESRI-WKT `.prj` sidecar (unless sidecar=False: a caller writing
     to a temporary name commits the sidecar itself). Raises InputError for unknown formats,
     missing or unwritable directories.
     """
@@ -180,13 +180,13 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
             target = getattr(target, "buffer", None)
             if target is None:
                 raise InputError(f"Output stream '{name}' is in text mode; pass a binary stream such as sys.stdout.buffer.")
-        _WRITERS[key](_for_writer(mesh, key), target, ascii=ascii, **_crs_argument(key, crs))
+        _WRITERS[key](mesh, target, ascii=ascii, **_crs_argument(key, crs))
         target.flush()
         return
     (planned,) = plan_outputs([("output", target)])
     key = format_key(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
     with Outputs(deferred=False).open(planned) as f:
-        _WRITERS[key](_for_writer(mesh, key), f, ascii=ascii, **_crs_argument(key, crs))
+        _WRITERS[key](mesh, f, ascii=ascii, **_crs_argument(key, crs))
     if crs and sidecar and key in PRJ_SIDECAR and planned.kind == "atomic":
         from c1mesh.crs import write_prj
         write_prj(target, crs)
@@ -211,12 +211,3 @@ def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> 
     (planned,) = plan_outputs([("output", target)], inputs)
     format_key(fmt or mesh_format(target, fmt, planned), str(target), SUPPORTED_OUTPUT, "output")
 
-
-def _for_writer(mesh: SurfaceMesh | MeshStream, key: str) -> SurfaceMesh | MeshStream:
-    """What the writer of format `key` takes: PLY streams, the others need whole arrays."""
-    if isinstance(mesh, MeshStream) and key not in _STREAMING:
-        return mesh.materialize()
-    return mesh
-
-
-_STREAMING = {"ply"}

@@ -7,14 +7,18 @@ coordinates must be kept.
 """
 from __future__ import annotations
 
-import io
 import json
 import struct
-from typing import IO
+from dataclasses import dataclass
+from typing import IO, Iterator
 
 import numpy as np
 
-from c1mesh.cloud import SurfaceMesh
+from c1mesh.cloud import MeshStream, SurfaceMesh
+from c1mesh.errors import InputError
+from c1mesh.formats._background import background_writes
+from c1mesh.formats._blocks import (BINARY_ROWS, TEXT_ROWS, as_stream, face_chunks, text_rows, vertex_bounds,
+                                    vertex_chunks, vertex_table)
 
 
 def _facet_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -24,29 +28,45 @@ def _facet_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
-def write_stl(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = False) -> None:
-    """Binary STL: 80-byte header, uint32 count, then per triangle normal, 3 corners, attribute."""
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    rows = np.zeros(len(faces), np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")]))
-    rows["n"] = _facet_normals(v, faces)
-    rows["v"] = v[faces]
-    f.write(b"binary STL written by c1mesh".ljust(80, b" "))
-    f.write(np.uint32(len(faces)).astype("<u4").tobytes())
-    f.write(rows.tobytes())
+_STL_ROW = np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
 
 
-def write_off(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = True) -> None:
+def write_stl(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False) -> None:
+    """Binary STL: 80-byte header, uint32 count, then per triangle normal, 3 corners, attribute.
+
+    Written face block by face block. A face may name any vertex, so the vertex positions
+    are held as one float64 table (24 bytes a vertex, about a quarter of the file's 50
+    bytes a face; nothing else of the mesh's size): facet normals are computed from the
+    doubles, then stored as float32 with the corners.
+    """
+    stream = as_stream(mesh)
+    if stream.face_count > _UINT32_MAX:
+        raise InputError(f"STL stores the triangle count as uint32; {stream.face_count:,} triangles are "
+                         "too many (use a lower --level or split the scan)")
+    table = vertex_table(mesh)
+    with background_writes(f) as write:
+        write(b"binary STL written by c1mesh".ljust(80, b" "))
+        write(np.uint32(stream.face_count).astype("<u4").tobytes())
+        for faces in face_chunks(stream, BINARY_ROWS):
+            rows = np.zeros(len(faces), _STL_ROW)
+            rows["n"] = _facet_normals(table, faces)
+            rows["v"] = table[faces]
+            write(memoryview(rows).cast("B"))
+
+
+def write_off(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = True) -> None:
     """OFF text: vertex coordinates with round-trip (repr) precision, then '3 a b c' faces.
 
     Plain OFF has no normals; colours are not written (COFF is read inconsistently).
+    Written block by block (formats/_blocks.py): memory stays a few blocks of text.
     """
-    out = io.StringIO()
-    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    out.write(f"OFF\n{len(mesh.vertices)} {len(faces)} 0\n")
-    out.writelines(" ".join(map(repr, row)) + "\n" for row in np.asarray(mesh.vertices, np.float64).tolist())
-    out.writelines(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist())
-    f.write(out.getvalue().encode("ascii"))
+    stream = as_stream(mesh)
+    with background_writes(f) as write:
+        write(f"OFF\n{stream.vertex_count} {stream.face_count} 0\n".encode("ascii"))
+        for vertices, _, _ in vertex_chunks(stream, TEXT_ROWS):
+            write(text_rows(np.asarray(vertices, np.float64).tolist()))
+        for faces in face_chunks(stream, TEXT_ROWS):
+            write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
 
 
 def glb_origin(vertices: np.ndarray) -> np.ndarray:
@@ -57,7 +77,63 @@ def glb_origin(vertices: np.ndarray) -> np.ndarray:
     return 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
 
 
-def write_glb(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = False, crs: str | None = None) -> None:
+@dataclass(frozen=True)
+class _GlbPart:
+    """One bufferView + accessor of the GLB: `count` elements of `width` bytes each."""
+
+    name: str          # POSITION, NORMAL, COLOR_0 or indices
+    count: int
+    width: int
+    target: int        # 34962 vertex attributes, 34963 indices
+    component: int     # 5126 float, 5121 unsigned byte, 5125 unsigned int
+    kind: str          # VEC3, VEC4, SCALAR
+    normalized: bool = False
+
+
+def _glb_parts(stream: MeshStream) -> list[_GlbPart]:
+    """The GLB's parts in the order their bytes follow each other in the BIN chunk."""
+    m = stream.vertex_count
+    parts = [_GlbPart("POSITION", m, 12, 34962, 5126, "VEC3")]
+    if stream.has_normals:
+        parts.append(_GlbPart("NORMAL", m, 12, 34962, 5126, "VEC3"))
+    if stream.color_channels:   # glTF wants 4-byte aligned elements: RGB is padded to RGBA
+        parts.append(_GlbPart("COLOR_0", m, 4, 34962, 5121, "VEC4", normalized=True))
+    parts.append(_GlbPart("indices", 3 * stream.face_count, 4, 34963, 5125, "SCALAR"))
+    return parts
+
+
+def _glb_document(parts: list[_GlbPart], origin: np.ndarray, low: np.ndarray, high: np.ndarray,
+                  crs: str | None) -> tuple[dict, int]:
+    """(glTF JSON document, BIN chunk length) from the parts' counts alone, so the JSON
+    chunk can be written before any vertex. low/high: the float32 offsets' bounds."""
+    views, accessors, offset = [], [], 0
+    for i, part in enumerate(parts):
+        length = part.count * part.width           # every width is 4 or 12: no padding
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": length, "target": part.target})
+        accessor = {"bufferView": i, "componentType": part.component, "count": part.count, "type": part.kind}
+        if part.normalized:
+            accessor["normalized"] = True
+        if i == 0 and part.count:
+            accessor["min"] = low.astype(float).tolist()
+            accessor["max"] = high.astype(float).tolist()
+        accessors.append(accessor)
+        offset += length
+    extras = {"generator": "c1mesh", "origin": origin.tolist()}
+    if crs:
+        extras["crs"] = crs
+    attributes = {part.name: i for i, part in enumerate(parts[:-1])}
+    document = {
+        "asset": {"version": "2.0", "generator": "c1mesh", "extras": extras},
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "translation": origin.tolist()}],
+        "meshes": [{"primitives": [{"attributes": attributes, "indices": len(parts) - 1, "mode": 4}]}],
+        "buffers": [{"byteLength": offset}], "bufferViews": views, "accessors": accessors,
+    }
+    return document, offset
+
+
+def write_glb(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
+              crs: str | None = None) -> None:
     """glTF 2.0 binary: one mesh, one node whose translation is the local origin.
 
     Positions are float32 offsets from the bounding-box centre (glb_origin), and the
@@ -66,57 +142,56 @@ def write_glb(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = False, crs: str | N
     (LiDAR at 1e6 ft would lose 0.06 ft). Normals are float32, colours normalised
     uint8 (COLOR_0), indices uint32. No axis swap: the world frame is written as is.
     The CRS (WKT) and the origin are in asset.extras.
+
+    Streamed: every byte length follows from the counts, so the JSON chunk is written
+    first, then the BIN chunk one block at a time. The bounding box takes one pass over
+    the vertices before, and each vertex attribute its own pass (they are separate
+    bufferViews); float32(x - origin) is monotonic in x, so the float32 bounds of the
+    offsets are the offsets of the float64 bounds.
     """
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
-    origin = glb_origin(v)
-    local = (v - origin).astype("<f4")
-    parts = [(local, 34962, 5126, "VEC3", False)]
-    attributes = {"POSITION": 0}
-    if mesh.vertex_normals is not None:
-        attributes["NORMAL"] = len(parts)
-        parts.append((np.asarray(mesh.vertex_normals, "<f4"), 34962, 5126, "VEC3", False))
-    if mesh.vertex_colors is not None:
-        colors = np.asarray(mesh.vertex_colors, np.uint8)
-        if colors.shape[1] == 3:   # glTF wants 4-byte aligned elements: pad RGB to RGBA
-            colors = np.column_stack([colors, np.full(len(colors), 255, np.uint8)])
-        attributes["COLOR_0"] = len(parts)
-        parts.append((colors, 34962, 5121, "VEC4", True))
-    indices = len(parts)
-    parts.append((faces.astype("<u4").ravel(), 34963, 5125, "SCALAR", False))
-    views, accessors, chunks, offset = [], [], [], 0
-    for i, (arr, target, component, kind, normalized) in enumerate(parts):
-        data = np.ascontiguousarray(arr).tobytes()
-        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data), "target": target})
-        accessor = {"bufferView": i, "componentType": component, "count": int(len(arr)), "type": kind}
-        if normalized:
-            accessor["normalized"] = True
-        if i == 0 and len(arr):
-            accessor["min"] = local.min(axis=0).astype(float).tolist()
-            accessor["max"] = local.max(axis=0).astype(float).tolist()
-        accessors.append(accessor)
-        chunks.append(data + b"\0" * (-len(data) % 4))
-        offset += len(chunks[-1])
-    extras = {"generator": "c1mesh", "origin": origin.tolist()}
-    if crs:
-        extras["crs"] = crs
-    document = {
-        "asset": {"version": "2.0", "generator": "c1mesh", "extras": extras},
-        "scene": 0, "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0, "translation": origin.tolist()}],
-        "meshes": [{"primitives": [{"attributes": attributes, "indices": indices, "mode": 4}]}],
-        "buffers": [{"byteLength": offset}], "bufferViews": views, "accessors": accessors,
-    }
-    _write_glb_chunks(f, json.dumps(document, separators=(",", ":")).encode("utf-8"), b"".join(chunks))
-
-
-def _write_glb_chunks(f: IO[bytes], text: bytes, binary: bytes) -> None:
-    """GLB container: 12-byte header, JSON chunk (space padded), BIN chunk (zero padded)."""
+    stream = as_stream(mesh)
+    if stream.vertex_count > _UINT32_MAX:
+        raise InputError(f"GLB stores vertex indices as uint32; {stream.vertex_count:,} vertices are "
+                         "too many (use a lower --level or split the scan)")
+    low, high = vertex_bounds(stream)
+    origin = 0.5 * (low + high) if stream.vertex_count else np.zeros(3)
+    parts = _glb_parts(stream)
+    document, binary_length = _glb_document(parts, origin, (low - origin).astype("<f4"),
+                                            (high - origin).astype("<f4"), crs)
+    text = json.dumps(document, separators=(",", ":")).encode("utf-8")
     text += b" " * (-len(text) % 4)
-    total = 12 + 8 + len(text) + 8 + len(binary)
-    f.write(struct.pack("<4sII", b"glTF", 2, total))
-    f.write(struct.pack("<I4s", len(text), b"JSON") + text)
-    f.write(struct.pack("<I4s", len(binary), b"BIN\0") + binary)
+    total = 12 + 8 + len(text) + 8 + binary_length
+    if total > _UINT32_MAX:
+        raise InputError(f"a GLB holds at most 4 GiB; this mesh needs {total / 2**30:.1f} GiB "
+                         "(use a lower --level, or PLY)")
+    with background_writes(f) as write:
+        write(struct.pack("<4sII", b"glTF", 2, total))
+        write(struct.pack("<I4s", len(text), b"JSON") + text)
+        write(struct.pack("<I4s", binary_length, b"BIN\0"))
+        for part in parts:
+            for data in _glb_part_blocks(part.name, stream, origin):
+                write(memoryview(np.ascontiguousarray(data)).cast("B"))
+
+
+def _glb_part_blocks(name: str, stream: MeshStream, origin: np.ndarray) -> Iterator[np.ndarray]:
+    """The arrays of one GLB part, block by block, in their file dtypes (fresh arrays)."""
+    if name == "indices":
+        for faces in face_chunks(stream, BINARY_ROWS):
+            yield faces.astype("<u4").ravel()
+        return
+    for vertices, normals, colors in vertex_chunks(stream, BINARY_ROWS):
+        if name == "POSITION":
+            yield (np.asarray(vertices, dtype=np.float64) - origin).astype("<f4")
+        elif name == "NORMAL":
+            yield np.array(normals, "<f4")          # a copy: the stream may reuse its buffer
+        else:
+            colors = np.array(colors, np.uint8)
+            if colors.shape[1] == 3:
+                colors = np.column_stack([colors, np.full(len(colors), 255, np.uint8)])
+            yield colors
+
+
+_UINT32_MAX = 2**32 - 1
 
 
 def read_glb_positions(data: bytes) -> np.ndarray:

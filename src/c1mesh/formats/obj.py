@@ -7,14 +7,15 @@ colours (floats 0..1) become uint8. Everything else (faces, groups, materials) i
 """
 from __future__ import annotations
 
-import io
 import re
 from typing import IO
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError
+from c1mesh.formats._background import background_writes
+from c1mesh.formats._blocks import TEXT_ROWS, as_stream, face_chunks, text_rows, vertex_chunks
 from c1mesh.formats._common import colors_to_uint8, decode_text, is_number, loadtxt
 
 _KEYWORD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
@@ -87,22 +88,25 @@ def read_obj(data: bytes, name: str) -> PointCloud:
     return PointCloud(points=np.ascontiguousarray(v[:, :3]), normals=normals, colors=colors)
 
 
-def write_obj(mesh: SurfaceMesh, f: IO[bytes], ascii: bool = True) -> None:
+def write_obj(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = True) -> None:
     """Write `mesh` as OBJ text: `v` with round-trip (repr) precision, `vn`, 1-based faces.
 
     Colours go on the `v` lines as floats 0..1 (a widely read extension; alpha is dropped).
+    Written block by block (formats/_blocks.py), so memory stays a few blocks of text; the
+    `vn` lines follow all `v` lines, so a mesh with normals takes a second vertex pass.
     """
-    out = io.StringIO()
-    out.write("# written by c1mesh\n")
-    rows = np.asarray(mesh.vertices, dtype=np.float64).tolist()
-    if mesh.vertex_colors is not None:
-        rgb = (np.asarray(mesh.vertex_colors)[:, :3] / 255.0).tolist()
-        rows = [v + c for v, c in zip(rows, rgb)]
-    out.writelines("v " + " ".join(map(repr, row)) + "\n" for row in rows)
-    if mesh.vertex_normals is not None:
-        normals = np.asarray(mesh.vertex_normals, dtype=np.float64).tolist()
-        out.writelines("vn " + " ".join(map(repr, row)) + "\n" for row in normals)
-    faces = (np.asarray(mesh.faces, dtype=np.int64) + 1).tolist()
-    pattern = "f {0}//{0} {1}//{1} {2}//{2}\n" if mesh.vertex_normals is not None else "f {0} {1} {2}\n"
-    out.writelines(pattern.format(*face) for face in faces)
-    f.write(out.getvalue().encode("ascii"))
+    stream = as_stream(mesh)
+    with background_writes(f) as write:
+        write(b"# written by c1mesh\n")
+        for vertices, _, colors in vertex_chunks(stream, TEXT_ROWS):
+            rows = np.asarray(vertices, dtype=np.float64).tolist()
+            if colors is not None:
+                rgb = (np.asarray(colors)[:, :3] / 255.0).tolist()
+                rows = [v + c for v, c in zip(rows, rgb)]
+            write(text_rows(rows, "v "))
+        if stream.has_normals:
+            for _, normals, _ in vertex_chunks(stream, TEXT_ROWS):
+                write(text_rows(np.asarray(normals, dtype=np.float64).tolist(), "vn "))
+        pattern = "f {0}//{0} {1}//{1} {2}//{2}\n" if stream.has_normals else "f {0} {1} {2}\n"
+        for faces in face_chunks(stream, TEXT_ROWS):
+            write("".join(pattern.format(*face) for face in (faces + 1).tolist()).encode("ascii"))

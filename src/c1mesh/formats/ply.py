@@ -19,6 +19,7 @@ from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
 from c1mesh.crs import crs_from_ply_header, ply_comment
 from c1mesh.formats._background import background_writes
+from c1mesh.formats._blocks import TEXT_ROWS, face_chunks, text_rows, vertex_chunks
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
 
 #: PLY scalar type names (both spellings) -> numpy type code without byte order.
@@ -404,23 +405,30 @@ def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
     dtype = _vertex_dtype(stream, "=" if ascii else "<")
     with background_writes(f) as write:
         write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian", crs))
+        if ascii:
+            _write_ascii_body(stream, dtype, write)
+            return
         for vertices, normals, colors in stream.vertex_blocks():
             rows = _vertex_rows(dtype, vertices, normals if stream.has_normals else None,
                                 colors if stream.color_channels else None)
-            if ascii:   # round-trip precision: repr of each double
-                cols = [rows[n].tolist() for n in rows.dtype.names]
-                write("".join(" ".join(map(repr, v)) + "\n" for v in zip(*cols)).encode("ascii"))
-            else:
-                write(memoryview(rows).cast("B"))
+            write(memoryview(rows).cast("B"))
         face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
         for faces in stream.face_blocks():
-            if ascii:
-                write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
-                continue
             face_rows = np.empty(len(faces), face_dtype)
             face_rows["n"] = 3
             face_rows["v"] = faces
             write(memoryview(face_rows).cast("B"))
+
+
+def _write_ascii_body(stream: MeshStream, dtype: np.dtype, write) -> None:
+    """ASCII PLY vertex and face lines, formatted TEXT_ROWS rows at a time so that the
+    Python floats and strings of a block stay a few MB (formats/_blocks.py)."""
+    for vertices, normals, colors in vertex_chunks(stream, TEXT_ROWS):
+        rows = _vertex_rows(dtype, vertices, normals, colors)
+        cols = [rows[n].tolist() for n in rows.dtype.names]   # round-trip precision: repr of each double
+        write(text_rows(zip(*cols)))
+    for faces in face_chunks(stream, TEXT_ROWS):
+        write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
 
 
 _WRITE_BLOCK = 1 << 18   # rows packed per write
