@@ -282,9 +282,10 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
     _check_axis(axis)
-    from c1mesh.geo import dem_frame_error     # GeoTIFFs of a depth frame: refused before any work
-    if frame_error := dem_frame_error(frame_kind, [output, output_dir and "x" + suffix], slope, aspect, hillshade):
-        raise click.UsageError(frame_error)
+    if frame_kind == "perspective":     # GeoTIFFs of a depth frame, refused before any work (geo loads numpy)
+        from c1mesh.geo import dem_frame_error
+        if frame_error := dem_frame_error(frame_kind, [output, output_dir and "x" + suffix], slope, aspect, hillshade):
+            raise click.UsageError(frame_error)
     if seamless or scheduler:
         from c1mesh.pipeline import FitOptions
 
