@@ -423,3 +423,15 @@ def test_preview_of_a_depth_frame_fit_shows_the_surface(tmp_path, kind):
     assert width == 790 and 200 < height < 2000                 # 7.9 in at 100 dpi; the map's aspect
     coverage = _axes_coverage(preview)
     assert 0.9 * expected <= coverage <= expected + 0.05        # + the scale bar over the background
+
+
+def test_resolution_picks_the_level_of_a_perspective_fit_from_world_edges(tmp_path):
+    """--resolution R in the perspective frame: the level whose mean output edge in world
+    units is R (edges measured on the level-1 mesh, which is the grid triangulation)."""
+    points, normals = tilted_plane(25)
+    path = write_organised_pcd(tmp_path / "plane.pcd", points, normals, (25, 25))
+    base = fit(path, None, FitOptions(level=1)).mesh
+    v, f = base.vertices, base.faces
+    edges = np.concatenate([np.linalg.norm(v[f[:, a]] - v[f[:, b]], axis=1) for a, b in ((0, 1), (1, 2), (2, 0))])
+    report = fit(path, None, FitOptions(resolution=float(edges.mean()) / 3)).report
+    assert (report["level"], report["level_from"]) == (3, "resolution")

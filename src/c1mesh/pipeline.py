@@ -54,7 +54,7 @@ class FitOptions:
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
     scheme: shape-function tuple; level: each triangle becomes level² triangles, None =
     chosen: PLANE_LEVEL for a height field, about one output vertex per valid pixel in the
-    perspective frame (depth_fit.data_level);
+    perspective frame (depth_fit.perspective_level);
     overshoot: "limit" (default) limits gradients that disagree with the heights and picks
     edge directions that keep thin triangles tame (c1mesh.limiter), "off" uses the data as is;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
