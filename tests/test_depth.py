@@ -435,3 +435,31 @@ def test_resolution_picks_the_level_of_a_perspective_fit_from_world_edges(tmp_pa
     edges = np.concatenate([np.linalg.norm(v[f[:, a]] - v[f[:, b]], axis=1) for a, b in ((0, 1), (1, 2), (2, 0))])
     report = fit(path, None, FitOptions(resolution=float(edges.mean()) / 3)).report
     assert (report["level"], report["level_from"]) == (3, "resolution")
+
+
+def test_preview_rasteriser_shows_the_topmost_face_with_interpolated_heights():
+    """preview._rasterize on two squares seen from above: a tilted one z = 0.1 x over
+    [0, 10]² and a level one z = 5 over [2, 4]²: every pixel centre over the upper square
+    has height 5, the others the tilted plane's height there (linear in x: exact), and the
+    gradient is the normals' (-nx/nz, -ny/nz)."""
+    from c1mesh.preview import _rasterize
+    from c1mesh.raster import RasterGrid
+
+    def square(x0, x1, z_of_x):
+        corners = np.array([[x0, x0], [x1, x0], [x1, x1], [x0, x1]], dtype=float)
+        return np.column_stack([corners, z_of_x(corners[:, 0])])
+    low = square(0.0, 10.0, lambda x: 0.1 * x)
+    high = square(2.0, 4.0, lambda x: np.full_like(x, 5.0))
+    vertices = np.vstack([low, high])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    up = np.vstack([np.tile([-0.1, 0.0, 1.0], (4, 1)), np.tile([0.0, 0.0, 1.0], (4, 1))])
+    grid = RasterGrid.covering((0.0, 0.0), (10.0, 10.0), 0.5)
+    z, g = _rasterize(vertices, up, faces, grid)
+    x = grid.west + (np.arange(grid.width) + 0.5) * grid.resolution
+    y = grid.north - (np.arange(grid.height) + 0.5) * grid.resolution
+    xx, yy = np.meshgrid(x, y)
+    on_high = (xx > 2) & (xx < 4) & (yy > 2) & (yy < 4)
+    np.testing.assert_allclose(z[on_high], 5.0)
+    np.testing.assert_allclose(z[~on_high], 0.1 * xx[~on_high], atol=1e-12)
+    np.testing.assert_allclose(g[~on_high], np.tile([0.1, 0.0], ((~on_high).sum(), 1)), atol=1e-12)
+    np.testing.assert_allclose(g[on_high], 0.0, atol=1e-12)

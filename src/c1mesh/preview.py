@@ -37,10 +37,10 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
     render_arrays(z, g, extent, path, _units(crs), "C1 surface (spline normals)")
 
 
-PREVIEW_VERTICES = 2_000_000
+PREVIEW_VERTICES = 1_000_000
 """The most vertices of the refinement a perspective fit's preview is drawn from (the
-output's level, or the highest level below it that stays under this): more than the
-picture's pixels, and bounded whatever --level the output has."""
+output's level, or the highest level below it that stays under this): about three per
+pixel of a PIXELS-wide picture, and bounded whatever --level the output has."""
 
 
 def render_fit(interp, frame, path, crs: str | None = None, level: int | None = None) -> None:
@@ -80,9 +80,13 @@ def render_surface(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
     local = frame.to_local(vertices)
     up = frame.vectors_to_local(normals)
     up *= np.where(up[:, 2:] < 0, -1.0, 1.0)
-    lo, hi = local[:, :2].min(axis=0), local[:, :2].max(axis=0)
+    finite = np.isfinite(local).all(axis=1)          # faces with another corner draw nothing
+    if not finite.any():
+        raise InputError("nothing to preview: the surface has no finite vertex")
+    lo, hi = local[finite, :2].min(axis=0), local[finite, :2].max(axis=0)
     grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
-    z, g = _rasterize(local, up, np.asarray(faces), grid)
+    with np.errstate(invalid="ignore"):
+        z, g = _rasterize(local, up, np.asarray(faces), grid)
     z += frame.origin[2] if world else 0.0
     offset = frame.origin[:2] if world else np.zeros(2)
     size = grid.resolution
@@ -91,7 +95,7 @@ def render_surface(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
     render_arrays(z, g, extent, path, _units(crs), title)
 
 
-_RASTER_CHUNK = 1 << 21
+_RASTER_CHUNK = 1 << 19
 """Candidate (face, pixel) pairs per step of _rasterize (bounds its temporaries)."""
 
 
@@ -106,8 +110,9 @@ def _rasterize(local: np.ndarray, up: np.ndarray, faces: np.ndarray, grid: Raste
     last_col = np.floor(col[faces].max(axis=1)).astype(np.int64).clip(-1, w - 1)
     first_row = np.ceil(row[faces].min(axis=1)).astype(np.int64).clip(0, h)
     last_row = np.floor(row[faces].max(axis=1)).astype(np.int64).clip(-1, h - 1)
-    cols = np.maximum(last_col - first_col + 1, 0)
-    rows = np.maximum(last_row - first_row + 1, 0)
+    finite = np.isfinite(col[faces]).all(axis=1) & np.isfinite(row[faces]).all(axis=1)
+    cols = np.where(finite, np.maximum(last_col - first_col + 1, 0), 0)
+    rows = np.where(finite, np.maximum(last_row - first_row + 1, 0), 0)
     candidates = cols * rows
     best = np.full(h * w, -np.inf)
     out = np.full((h * w, 3), np.nan)                               # z, gradient x, gradient y
