@@ -205,15 +205,23 @@ def mug_edge_on(vertices, faces):
 
 
 @pytest.fixture(scope="module")
+def mug_default():
+    return fit(MUG, None, FitOptions())
+
+
+@pytest.fixture(scope="module")
 def mug_mesh():
-    return fit(MUG, None, FitOptions()).mesh
+    return fit(MUG, None, FitOptions(level=4)).mesh
 
 
 @pytest.mark.slow
-def test_mug_frame_with_default_options(mug_mesh):
+def test_mug_frame_with_default_options(mug_default):
     from scipy.spatial import cKDTree
 
-    mesh = mug_mesh
+    mesh, report = mug_default.mesh, mug_default.report
+    # the level from the data: level 1 keeps every vertex an input point (one per valid pixel)
+    assert (report["level"], report["level_from"]) == (1, "data")
+    assert len(mesh.vertices) == report["points"]["kept"]
     points = read_cloud(MUG).points
     points = points[np.isfinite(points).all(axis=1)]
     distance, _ = cKDTree(points).query(mesh.vertices, distance_upper_bound=0.05)
@@ -226,8 +234,10 @@ def test_mug_frame_with_default_options(mug_mesh):
 @pytest.mark.slow
 def test_mug_frame_folds_at_most_one_face_in_ten_thousand(mug_mesh):
     """Folded faces by the project's measure (quality.folded_faces: any corner normal more
-    than 90° from the face's geometric normal), the issue's ≤ 0.01%. The overshoot limiter
-    in the (u, v, w) chart brings them there: 0.084% without it (--overshoot off)."""
+    than 90° from the face's geometric normal), the issue's ≤ 0.01%, at level 4. The
+    overshoot limiter in the (u, v, w) chart brings them there: 0.084% without it
+    (--overshoot off). The default level 1 (one face per grid triangle) samples the same
+    spline coarsely and folds more faces: docs/perspective.md gives the count."""
     from c1mesh.quality import folded_faces
 
     mesh = mug_mesh
@@ -312,3 +322,144 @@ def test_unorganised_points_hidden_on_the_same_ray_are_dropped(tmp_path):
     result = fit(path, None, FitOptions(level=2, frame="perspective"))
     assert result.report["points"]["dropped"]["hidden_on_same_ray"] == 60
     assert np.abs(result.mesh.vertices @ normal - offset).max() < 1e-12
+
+
+# ------------------------------------------------------------------------ the level from the data
+def _plane_depth_png(tmp_path, cols=64, rows=48):
+    """A 16-bit depth PNG (mm) of the plane n·X = 1.5 with n = (0.2, 0.1, 1), a missing
+    (zero) block in a corner; returns the PNG, the intrinsics and the valid pixel count."""
+    fx, fy, cx, cy = 60.0, 60.0, (cols - 1) / 2, (rows - 1) / 2
+    c, r = np.meshgrid(np.arange(float(cols)), np.arange(float(rows)))
+    depth_mm = np.rint(1500.0 / (0.2 * (c - cx) / fx + 0.1 * (r - cy) / fy + 1.0))
+    depth_mm[:8, :10] = 0
+    return _depth_png(tmp_path, depth_mm), (fx, fy, cx, cy), int((depth_mm > 0).sum())
+
+
+def test_default_level_of_a_depth_frame_gives_about_one_vertex_per_valid_pixel(tmp_path):
+    png, intrinsics, valid = _plane_depth_png(tmp_path)
+    options = FitOptions(intrinsics=intrinsics, normals="estimate")
+    report = fit(png, None, options).report
+    assert report["level_from"] == "data" and report["points"]["measured"] == valid
+    assert valid / 2 <= report["output_mesh"]["vertices"] <= 2 * valid
+    given = fit(png, None, FitOptions(intrinsics=intrinsics, normals="estimate", level=3)).report
+    assert (given["level"], given["level_from"]) == (3, "option")
+    triangles = given["triangles"]["after_trim"]
+    assert given["output_mesh"]["faces"] == 9 * triangles           # level² faces per triangle
+
+
+def test_axis_frame_default_level_stays_4(tmp_path):
+    """A height field keeps the constant PLANE_LEVEL = 4 (its output bytes do not change)."""
+    from c1mesh.pipeline import PLANE_LEVEL
+
+    points, normals = tilted_plane(20)
+    path = write_unorganised_ply(tmp_path / "plane.ply", points, normals)
+    report = fit(path, None, FitOptions(frame="axis")).report
+    assert PLANE_LEVEL == 4 and (report["level"], report["level_from"]) == (4, "default")
+    assert report["output_mesh"]["faces"] == 16 * report["triangles"]["after_trim"]
+
+
+# ------------------------------------------------------------------------ the preview
+def _axes_coverage(png) -> float:
+    """Fraction of the map's pixels that are not the white background, in a preview PNG
+    (preview.render_arrays' layout: 100 dpi, the map 5.6 in wide at 1.1 in from the left
+    and 0.4 in from the bottom, 0.9 in of margins in height), 3 pixels inside its frame."""
+    from PIL import Image
+
+    with Image.open(png) as image:
+        assert image.format == "PNG"
+        pixels = np.asarray(image.convert("RGB"))
+    height = pixels.shape[0]
+    map_height = height - 90
+    top, bottom = height - 40 - map_height, height - 40
+    inside = pixels[top + 3:bottom - 3, 110 + 3:670 - 3]
+    return float((inside != 255).any(axis=-1).mean())
+
+
+def _plane_quad_fraction(corners: np.ndarray, normal: np.ndarray) -> float:
+    """Area of the convex quadrilateral `corners` (4, 3), on the plane with `normal`, over
+    the area of its bounding box seen along the normal in the frame a preview uses
+    (frame.choose_frame: e1 from the normal alone)."""
+    from c1mesh.frame import choose_frame
+
+    frame = choose_frame(corners, np.tile(normal, (4, 1)))
+    xy = frame.to_local(corners)[:, :2]
+    x, y = xy[:, 0], xy[:, 1]
+    area = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    return float(area / np.prod(xy.max(axis=0) - xy.min(axis=0)))
+
+
+@pytest.mark.parametrize("kind", ["organised pcd", "depth png", "unorganised --frame perspective"])
+def test_preview_of_a_depth_frame_fit_shows_the_surface(tmp_path, kind):
+    """--preview of a perspective fit writes a PNG whose map is covered by the surface: a
+    tilted plane seen through a pixel grid is a convex quadrilateral, which fills the
+    fraction area / bounding box of the map (less a pixel at the borders)."""
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from c1mesh.cli import main
+    normal = np.array([0.3, -0.2, 1.0]) if kind != "depth png" else np.array([0.2, 0.1, 1.0])
+    if kind == "depth png":
+        png, intrinsics, _ = _plane_depth_png(tmp_path)
+        args = [str(png), "--intrinsics", ",".join(map(str, intrinsics)), "--normals", "estimate"]
+        c, r = np.array([0.0, 63.0, 63.0, 0.0]), np.array([0.0, 0.0, 47.0, 47.0])
+        ray = np.column_stack([(c - intrinsics[2]) / intrinsics[0], (r - intrinsics[3]) / intrinsics[1],
+                               np.ones(4)])
+        corners = ray * (1.5 / (ray @ normal))[:, None]
+        expected = _plane_quad_fraction(corners, normal) - 80 / (64 * 48)      # less the missing block
+    else:
+        points, normals = tilted_plane(40, normal, 2.0)
+        if kind == "organised pcd":
+            args = [str(write_organised_pcd(tmp_path / "plane.pcd", points, normals, (40, 40)))]
+        else:
+            args = [str(write_unorganised_ply(tmp_path / "plane.ply", points, normals)), "--frame", "perspective"]
+        corners = points.reshape(40, 40, 3)[[0, 0, -1, -1], [0, -1, -1, 0]]
+        expected = _plane_quad_fraction(corners, normal)
+    preview = tmp_path / "preview.png"
+    done = CliRunner().invoke(main, ["fit", *args, "-o", str(tmp_path / "out.ply"), "--preview", str(preview)])
+    assert done.exit_code == 0, done.output
+    assert preview.is_file()
+    with Image.open(preview) as image:
+        width, height = image.size
+    assert width == 790 and 200 < height < 2000                 # 7.9 in at 100 dpi; the map's aspect
+    coverage = _axes_coverage(preview)
+    assert 0.9 * expected <= coverage <= expected + 0.05        # + the scale bar over the background
+
+
+def test_resolution_picks_the_level_of_a_perspective_fit_from_world_edges(tmp_path):
+    """--resolution R in the perspective frame: the level whose mean output edge in world
+    units is R (edges measured on the level-1 mesh, which is the grid triangulation)."""
+    points, normals = tilted_plane(25)
+    path = write_organised_pcd(tmp_path / "plane.pcd", points, normals, (25, 25))
+    base = fit(path, None, FitOptions(level=1)).mesh
+    v, f = base.vertices, base.faces
+    edges = np.concatenate([np.linalg.norm(v[f[:, a]] - v[f[:, b]], axis=1) for a, b in ((0, 1), (1, 2), (2, 0))])
+    report = fit(path, None, FitOptions(resolution=float(edges.mean()) / 3)).report
+    assert (report["level"], report["level_from"]) == (3, "resolution")
+
+
+def test_preview_rasteriser_shows_the_topmost_face_with_interpolated_heights():
+    """preview._rasterize on two squares seen from above: a tilted one z = 0.1 x over
+    [0, 10]² and a level one z = 5 over [2, 4]²: every pixel centre over the upper square
+    has height 5, the others the tilted plane's height there (linear in x: exact), and the
+    gradient is the normals' (-nx/nz, -ny/nz)."""
+    from c1mesh.preview import _rasterize
+    from c1mesh.raster import RasterGrid
+
+    def square(x0, x1, z_of_x):
+        corners = np.array([[x0, x0], [x1, x0], [x1, x1], [x0, x1]], dtype=float)
+        return np.column_stack([corners, z_of_x(corners[:, 0])])
+    low = square(0.0, 10.0, lambda x: 0.1 * x)
+    high = square(2.0, 4.0, lambda x: np.full_like(x, 5.0))
+    vertices = np.vstack([low, high])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    up = np.vstack([np.tile([-0.1, 0.0, 1.0], (4, 1)), np.tile([0.0, 0.0, 1.0], (4, 1))])
+    grid = RasterGrid.covering((0.0, 0.0), (10.0, 10.0), 0.5)
+    z, g = _rasterize(vertices, up, faces, grid)
+    x = grid.west + (np.arange(grid.width) + 0.5) * grid.resolution
+    y = grid.north - (np.arange(grid.height) + 0.5) * grid.resolution
+    xx, yy = np.meshgrid(x, y)
+    on_high = (xx > 2) & (xx < 4) & (yy > 2) & (yy < 4)
+    np.testing.assert_allclose(z[on_high], 5.0)
+    np.testing.assert_allclose(z[~on_high], 0.1 * xx[~on_high], atol=1e-12)
+    np.testing.assert_allclose(g[~on_high], np.tile([0.1, 0.0], ((~on_high).sum(), 1)), atol=1e-12)
+    np.testing.assert_allclose(g[on_high], 0.0, atol=1e-12)

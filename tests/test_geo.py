@@ -333,3 +333,35 @@ def test_preview_of_a_fit_and_of_its_outputs(tmp_path):
 def test_point_cloud_crs_survives_subset():
     cloud = PointCloud(points=np.zeros((3, 3)), crs="X")
     assert cloud.subset(np.array([True, False, True])).crs == "X"
+
+
+# ------------------------------------------------------------------- DEMs and the perspective frame
+@pytest.mark.parametrize("args", [
+    ["-o", "{tmp}/x.tif", "--resolution", "1", "--frame", "perspective"],
+    ["-o", "{tmp}/x.ply", "--slope", "{tmp}/s.tif", "--resolution", "1", "--frame", "perspective"],
+    ["-O", "{tmp}/out", "--suffix", ".tif", "--resolution", "1", "--frame", "perspective"],
+])
+def test_geotiff_outputs_of_a_perspective_frame_are_a_usage_error_before_any_work(tmp_path, args):
+    # the input does not exist: an error about it would mean the input was looked at first
+    argv = ["fit", str(tmp_path / "no-such-input.pcd")] + [a.format(tmp=tmp_path) for a in args]
+    done = CliRunner().invoke(main, argv)
+    assert done.exit_code == 2 and "perspective frame" in done.output, done.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_organised_height_raster_with_auto_frame_is_fitted_as_a_dem(tmp_path):
+    """An organised PCD (a grid of heights, HEIGHT > 1) would be a perspective fit; asked
+    for a DEM, --frame auto fits it in the axis frame: the cells are the plane's heights."""
+    from c1mesh.samples import write_organised_pcd
+
+    x, y = np.meshgrid(np.linspace(0.0, 6.0, 25), np.linspace(0.0, 6.0, 25))
+    z = 0.3 * x - 0.2 * y + 1.0
+    normal = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
+    points = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    write_organised_pcd(points, np.tile(normal, (len(points), 1)), (25, 25), tmp_path / "grid.pcd")
+    dem = tmp_path / "dem.tif"
+    done = CliRunner().invoke(main, ["fit", str(tmp_path / "grid.pcd"), "-o", str(dem), "--resolution", "0.5"])
+    assert done.exit_code == 0, done.output
+    band, cx, cy, _ = _cells(dem)
+    assert band.count() > 100
+    np.testing.assert_allclose(band.compressed(), (0.3 * cx - 0.2 * cy + 1.0)[~band.mask], atol=1e-9)

@@ -224,8 +224,9 @@ def main() -> None:
               help="Remove triangles with a longer edge: auto, none, or a length in the scan's units.")
 @click.option("--scheme", type=click.Choice(["sextic", "quintic", "ex39b"]), default="sextic",
               show_default=True, help="Shape-function tuple (see `c1mesh schemes`).")
-@click.option("--level", type=click.IntRange(1, 64), default=4, show_default=True,
-              help="Each triangle is split into level² triangles.")
+@click.option("--level", type=click.IntRange(1, 64), default=None,
+              help="Each triangle is split into level² triangles.  [default: 4; in the perspective "
+                   "frame the level giving about one vertex per valid pixel or point: 1 for a depth frame]")
 @click.option("--ascii", "ascii_ply", is_flag=True, help="Write ASCII PLY instead of binary.")
 @click.option("--frame", "frame_kind", type=click.Choice(["auto", "axis", "perspective"]), default="auto",
               show_default=True, help="axis: height over a plane (--axis); perspective: inverse depth over "
@@ -281,6 +282,10 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
     _check_axis(axis)
+    if frame_kind == "perspective":     # GeoTIFFs of a depth frame, refused before any work (geo loads numpy)
+        from c1mesh.geo import dem_frame_error
+        if frame_error := dem_frame_error(frame_kind, [output, output_dir and "x" + suffix], slope, aspect, hillshade):
+            raise click.UsageError(frame_error)
     if seamless or scheduler:
         from c1mesh.pipeline import FitOptions
 

@@ -5,8 +5,10 @@
     → write
 
 pipeline.fit reads the input and branches here when the frame is perspective
-(--frame perspective, or auto with an organised scan); the stages after that reuse the
-pipeline's interpolator, refinement and writers. Nothing here prints or exits.
+(--frame perspective, or auto with an organised scan and no GeoTIFF output); the stages
+after that reuse the pipeline's interpolator, and its refine, write and preview code
+(pipeline.write_surface, geo.finish). Without --level the level is chosen from the data
+(perspective_level). Nothing here prints or exits.
 """
 from __future__ import annotations
 
@@ -184,14 +186,19 @@ def _nearest_per_ray(field: ViewField) -> np.ndarray:
     return np.sort(index[first])
 
 
-def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh: bool):
-    """pipeline.fit after the read stage, in the perspective frame; returns a FitResult."""
-    from c1mesh.formats import write_mesh
+def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh: bool,
+                    crs: str | None = None, crs_source: str | None = None):
+    """pipeline.fit after the read stage, in the perspective frame; returns a FitResult.
+
+    The refine, write and preview stages are the plane fit's (pipeline.write_surface,
+    geo.finish); crs: the CRS to carry (usually none: a depth frame's coordinates are the
+    camera's, unless a --crs or the file names one), crs_source where it came from.
+    """
+    from c1mesh.geo import finish
     from c1mesh.limiter import check_mode
-    from c1mesh.pipeline import FitResult, _compact, _name, _StopWatch, limited_interpolator, surface_stream
+    from c1mesh.pipeline import FitResult, _compact, _name, limited_interpolator, write_surface
     from c1mesh.properties import scheme_properties
     from c1mesh.schemes import get_scheme
-    from c1mesh.threads import blas_threads
 
     scheme = get_scheme(options.scheme)
     check_mode(options.overshoot)
@@ -209,38 +216,56 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     with timer.stage("interpolate"):
         interp, overshoot = limited_interpolator(field_.uv[used], field_.w[used], field_.gradients[used],
                                                  triangles, scheme, options.overshoot, heights=False)
-    streaming = output is not None and not keep_mesh
-    with timer.stage("refine"):
-        refinement = interp.refinement(options.level)
-        colors = None if cloud.colors is None else cloud.colors[used]
-        stream = facing_viewpoint(surface_stream(refinement, frame, colors))
-        mesh = None if streaming else stream.materialize()
-    with timer.stage("write"):
-        if output is not None:
-            evaluating = _StopWatch()
-            with blas_threads(1 if streaming else None):
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
-                           ascii=options.ascii)
-    if streaming:
-        timer.move("write", "refine", evaluating.seconds)
+    level, level_from = perspective_level(interp, field_, used, options)
+    options = replace(options, level=level)
+    colors = None if cloud.colors is None else cloud.colors[used]
+    mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh,
+                                 faces_facing=facing_viewpoint)
     dropped = dict(field_.dropped)
     dropped["unreferenced_after_trim"] = int(field_.usable.sum() - used.size)
     report = {
         "input": _name(source), "output": _name(output),
         "points": {"read": len(cloud), "dropped": dropped, "kept": int(used.size),
+                   "measured": measured_points(field_),
                    "organised": None if cloud.grid_shape is None else list(cloud.grid_shape)},
         "normals": normal_source,
         "frame": {"kind": "perspective", "viewpoint": frame.origin.tolist(),
                   "viewpoint_from": viewpoint_source, "axes": frame.axes.tolist()},
         "triangles": tri_report,
         "overshoot": overshoot.as_dict(),
-        "level": options.level,
+        "level": level,
+        "level_from": level_from,
         "output_mesh": {"vertices": int(stream.vertex_count), "faces": int(stream.face_count)},
         "scheme": scheme_properties(interp.scheme).as_dict(),
         "c1_certificate": interp.c1_certificate(),
         "seconds": timer.seconds,
     }
-    return FitResult(mesh, report)
+    return finish(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+def measured_points(field_: ViewField) -> int:
+    """Input points that are measurements: finite and in front of the viewpoint (a depth
+    image's valid pixels; the others are its 'no measurement' zeros or NaN rows)."""
+    return int(field_.w.size - field_.dropped["non_finite"] - field_.dropped["behind_viewpoint"])
+
+
+def perspective_level(interp, field_: ViewField, used: np.ndarray, options) -> tuple[int, str]:
+    """The refinement level of a perspective fit and where it came from.
+
+    "option": --level; "resolution": the level whose mean output edge (world units,
+    measured on the camera points: the same lengths) is --resolution (geo.level_for_edge);
+    "data": the level whose vertex count is nearest one per measured input point
+    (geo.level_for_vertices): a depth frame is already sampled at the sensor's pixel
+    spacing, so finer levels add vertices (level² faces per triangle), not data. On a
+    640 x 480 frame that is level 1, not the plane fit's 4 (16x the vertices).
+    """
+    from c1mesh.geo import level_for_edge, level_for_vertices
+
+    if options.resolution is not None:
+        return level_for_edge(field_.camera[used], interp.triangles, options.resolution), "resolution"
+    if options.level is not None:
+        return int(options.level), "option"
+    return level_for_vertices(interp, measured_points(field_)), "data"
 
 
 def facing_viewpoint(stream: MeshStream) -> MeshStream:

@@ -7,6 +7,7 @@ not conflict), so the CLI can call it before any input is read.
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -34,6 +35,9 @@ class GeoPlan:
 def geo_plan(output, options) -> GeoPlan:
     """Validate the georeferencing options of a fit before any work (InputError if wrong)."""
     user_crs = crs_module.parse_crs(options.crs) if options.crs else None
+    frame_error = dem_frame_error(options.frame, [output], options.slope, options.aspect, options.hillshade)
+    if frame_error:
+        raise InputError(frame_error)
     rasters = targets_for(output, options)
     if options.resolution is not None and not options.resolution > 0:
         raise InputError(f"--resolution must be a positive length, got {options.resolution}")
@@ -109,8 +113,55 @@ def level_for_edge(points: np.ndarray, triangles: np.ndarray, resolution: float)
     return int(min(max(level, 1), MAX_LEVEL))
 
 
+def refined_vertex_count(interp, level: int) -> int:
+    """Vertices of the level-`level` refinement of interp's triangulation, without building
+    it: the N points, L − 1 per edge and (L − 1)(L − 2)/2 inside each triangle
+    (refine.Refinement numbers them so)."""
+    edges = interp._table.edges.shape[0]
+    inside = (level - 1) * (level - 2) // 2
+    return int(interp.points.shape[0] + edges * (level - 1) + interp.triangles.shape[0] * inside)
+
+
+def level_for_vertices(interp, target: int, most: int = MAX_LEVEL) -> int:
+    """The level (1..most) whose refinement has the vertex count nearest `target` by
+    ratio (|log(count / target)| smallest; ties: the lower level)."""
+    best, best_gap = 1, math.inf
+    for level in range(1, most + 1):
+        count = refined_vertex_count(interp, level)
+        gap = abs(math.log(count / max(target, 1)))
+        if gap < best_gap:
+            best, best_gap = level, gap
+        if count >= target:          # counts grow with the level: later ones are farther
+            break
+    return best
+
+
+def dem_frame_error(frame: str, outputs, slope=None, aspect=None, hillshade=None) -> str | None:
+    """Why the fit cannot write its GeoTIFF outputs, or None.
+
+    frame: --frame; outputs: the output paths (None and streams are skipped); slope,
+    aspect, hillshade: the raster paths of those options (or None). A DEM
+    (and slope, aspect, hillshade on its grid) is a height over a map plane: it has no
+    meaning in the perspective frame (inverse depth over the view rays of a depth frame).
+    --frame auto fits an organised input in the axis frame when a DEM is asked for
+    (perspective.frame_kind), so only an explicit --frame perspective conflicts. A
+    preview is no GeoTIFF: a depth frame may have one. Plain Python (no input read).
+    """
+    if frame != "perspective":
+        return None
+    named = [str(o) for o in outputs if is_raster_path(o)]
+    named += [f"--{flag} {path}" for flag, path in (("slope", slope), ("aspect", aspect),
+                                                   ("hillshade", hillshade)) if path]
+    if not named:
+        return None
+    return (f"GeoTIFF outputs ({', '.join(named)}) are heights over a map plane and have no meaning "
+            "in the perspective frame; drop --frame perspective (the DEM is fitted in the axis frame) "
+            "or write a mesh")
+
+
 def finish(result, interp, frame, crs, crs_source, options):
-    """Add the CRS to the report and render the preview when one was asked for."""
+    """Add the CRS to the report and render the preview when one was asked for (both
+    frames: preview.render_fit)."""
     facts = crs_module.describe(crs)
     if facts is not None:
         facts["source"] = crs_source
@@ -118,12 +169,12 @@ def finish(result, interp, frame, crs, crs_source, options):
     if options.resolution is not None and "level" in result.report:
         result.report["resolution"] = options.resolution
     if options.preview:
-        from c1mesh.preview import render_spline
+        from c1mesh.preview import render_fit
         start = time.perf_counter()
-        render_spline(interp, frame, options.preview, crs=crs)
+        render_fit(interp, frame, options.preview, crs=crs, level=result.report.get("level"))
         result.report["seconds"]["preview"] = round(time.perf_counter() - start, 6)
     return result
 
 
 __all__ = ["GeoPlan", "geo_plan", "check_writable", "resolve_crs", "level_for_edge", "finish",
-           "is_raster_path"]
+           "is_raster_path", "dem_frame_error", "level_for_vertices", "refined_vertex_count"]

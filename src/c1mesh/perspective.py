@@ -165,10 +165,13 @@ def frame_from_viewpoint(viewpoint: np.ndarray | None) -> PerspectiveFrame:
     return PerspectiveFrame(viewpoint[:3], quaternion_matrix(*viewpoint[3:7]))
 
 
-def frame_kind(requested: str, organised: bool) -> str:
-    """'axis' or 'perspective' for --frame `requested`: auto = perspective for organised scans."""
+def frame_kind(requested: str, organised: bool, dem: bool = False) -> str:
+    """'axis' or 'perspective' for --frame `requested`: auto = perspective for organised
+    scans, unless a DEM (GeoTIFF outputs, `dem`) is asked for: a DEM is heights over a map
+    plane, so an organised height raster is still fitted in the axis frame (an explicit
+    --frame perspective with GeoTIFF outputs is refused up front: geo.dem_frame_error)."""
     if requested not in FRAMES:
         raise InputError(f"--frame must be one of {', '.join(FRAMES)}, got {requested!r}")
     if requested == "auto":
-        return "perspective" if organised else "axis"
+        return "perspective" if organised and not dem else "axis"
     return requested

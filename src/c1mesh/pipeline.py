@@ -38,6 +38,9 @@ from c1mesh.schemes import get_scheme
 from c1mesh.triangulation import delaunay, trim
 
 NORMAL_MODES = ("auto", "file", "estimate")
+PLANE_LEVEL = 4
+"""The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
+--level nor --resolution is given."""
 STAGES = ("read", "normals", "frame", "gradients", "triangulate", "interpolate", "refine", "write")
 
 
@@ -49,7 +52,9 @@ class FitOptions:
     k: neighbours for normal estimation; classes: LAS classification codes to keep;
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
-    scheme: shape-function tuple; level: each triangle becomes level² triangles;
+    scheme: shape-function tuple; level: each triangle becomes level² triangles, None =
+    chosen: PLANE_LEVEL for a height field, about one output vertex per valid pixel in the
+    perspective frame (depth_fit.perspective_level);
     overshoot: "limit" (default) limits gradients that disagree with the heights and picks
     edge directions that keep thin triangles tame (c1mesh.limiter), "off" uses the data as is;
     workers: threads for every stage and for BLAS (c1mesh.threads.limit; None: the
@@ -68,7 +73,7 @@ class FitOptions:
     max_slope: float = 85.0
     max_edge: Any = "auto"
     scheme: str = "sextic"
-    level: int = 4
+    level: int | None = None
     ascii: bool = False
     overshoot: str = "limit"
     # vertex gradients (c1mesh.height_gradients): "auto" fits them to the heights where the
@@ -373,9 +378,9 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     options, column_reason = height_column_axis(cloud, options)
     axis_reason = column_reason or axis_reason
     from c1mesh.perspective import frame_kind
-    if frame_kind(options.frame, cloud.grid_shape is not None) == "perspective":
+    if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
         from c1mesh.depth_fit import fit_perspective
-        return fit_perspective(cloud, source, output, options, timer, keep_mesh)
+        return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
     model = build_surface(cloud, options, timer)
     normal_source, frame, hf, trim_report, used, interp = (
         model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
@@ -389,14 +394,58 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                                                       "axes": frame.axes.tolist()},
                                             "raster": raster_report, "seconds": timer.seconds}),
                            interp, frame, crs, crs_source, options)
+    level, level_from = plane_level(interp, options)
+    options = replace(options, level=level)
+    colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
+    mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh)
+    report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
+                     used, interp, stream, timer)
+    report["level_from"] = level_from
+    report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
+        auto_axis_reason(cloud.points, True)
+    report["overshoot"] = model.overshoot.as_dict()
+    report["gradients"] = model.gradient_source
+    report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
+    report["warnings"] = fit_warnings(report)
+    return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+def plane_level(interp: RSDInterpolator, options: FitOptions) -> tuple[int, str]:
+    """The refinement level of a height-field fit and where it came from: "option"
+    (--level), "resolution" (the level whose mean output edge is --resolution, geo.level_for_edge)
+    or "default" (PLANE_LEVEL)."""
     if options.resolution is not None:
-        options = replace(options, level=level_for_edge(interp.points, interp.triangles,
-                                                        options.resolution))
+        return level_for_edge(interp.points, interp.triangles, options.resolution), "resolution"
+    if options.level is not None:
+        return options.level, "option"
+    return PLANE_LEVEL, "default"
+
+
+def with_plane_level(options: FitOptions) -> FitOptions:
+    """The options with level PLANE_LEVEL when none is given: the tiled fits
+    (tiles.fit_seamless, tiled_fit.fit_tiled) are height fields, whose level does not
+    depend on the data."""
+    return options if options.level is not None else replace(options, level=PLANE_LEVEL)
+
+
+def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, output, options: FitOptions,
+                  crs: str | None, timer: _Timer, keep_mesh: bool,
+                  faces_facing: Callable[[MeshStream], MeshStream] | None = None):
+    """The refine and write stages of a whole-input fit, the same for every frame.
+
+    Refines interp at options.level (an int) into world coordinates through `frame`
+    (frame.ScanFrame or perspective.PerspectiveFrame: surface_stream), optionally passes
+    the stream through faces_facing (the perspective fit turns its faces to the
+    viewpoint), and writes it to output (path, stream or None) in options.output_format
+    with the CRS `crs` (None: none). keep_mesh=False with an output streams block by
+    block (the mesh is then None; the time the writer waited for evaluated blocks is
+    booked to "refine"). Returns (mesh or None, the MeshStream).
+    """
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
-        refinement = interp.refinement(options.level)
-        colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
-        stream = surface_stream(refinement, frame, colors)
+        stream = surface_stream(interp.refinement(options.level), frame, colors)
+        if faces_facing is not None:
+            stream = faces_facing(stream)
         mesh = None if streaming else stream.materialize()
     with timer.stage("write"):
         if output is not None:
@@ -406,15 +455,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                            ascii=options.ascii, crs=crs)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
-    report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
-                     used, interp, stream, timer)
-    report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
-        auto_axis_reason(cloud.points, True)
-    report["overshoot"] = model.overshoot.as_dict()
-    report["gradients"] = model.gradient_source
-    report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
-    report["warnings"] = fit_warnings(report)
-    return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+    return mesh, stream
 
 
 LAS_FORMATS = ("las", "laz", "copc")

@@ -1,10 +1,13 @@
 """PNG previews: a hillshade coloured by height, with a scale bar and a height colour bar.
 
-Three sources, one picture: a fitted spline (`render_spline`: heights and exact normals
-sampled at pixel centres), a GeoTIFF DEM (`render_raster`: Horn's gradient of the DEM,
-since the spline is not at hand), and a mesh file with vertex normals (`render_mesh`:
-heights and normals of the vertices averaged per pixel). Pixels are in the scan frame's
-plane (x east, y north for terrain), north up. matplotlib is imported only here.
+Four sources, one picture: a fitted spline in a frame whose chart is a plane
+(`render_spline`: heights and exact normals sampled at pixel centres), a surface mesh in
+world coordinates, whatever frame made it (`render_surface`: the topmost face at each
+pixel centre, heights and normals interpolated over it; the perspective fit's preview),
+a GeoTIFF DEM (`render_raster`: Horn's gradient of the DEM, since the spline is not at
+hand), and a mesh file with vertex normals (`render_mesh`: heights and normals of the
+vertices averaged per pixel). Pixels are in the scan frame's plane (x east, y north for
+terrain), north up. matplotlib is imported only here.
 """
 from __future__ import annotations
 
@@ -34,6 +37,146 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
     render_arrays(z, g, extent, path, _units(crs), "C1 surface (spline normals)")
 
 
+PREVIEW_VERTICES = 1_000_000
+"""The most vertices of the refinement a perspective fit's preview is drawn from (the
+output's level, or the highest level below it that stays under this): about three per
+pixel of a PIXELS-wide picture, and bounded whatever --level the output has."""
+
+
+def render_fit(interp, frame, path, crs: str | None = None, level: int | None = None) -> None:
+    """The preview of a fit (geo.finish calls this for every fit).
+
+    frame.ScanFrame (the spline is a height over a plane): render_spline. Otherwise (the
+    perspective frame: the chart (u, v) of inverse depth is no map plane) the refined
+    surface in world coordinates, at `level` or the highest lower level with at most
+    PREVIEW_VERTICES vertices, drawn by render_surface.
+    """
+    if not hasattr(frame, "normals_from_gradients"):
+        render_spline(interp, frame, path, crs=crs)
+        return
+    from c1mesh.geo import refined_vertex_count
+    from c1mesh.pipeline import surface_stream
+
+    level = max(1, int(level or 1))
+    while level > 1 and refined_vertex_count(interp, level) > PREVIEW_VERTICES:
+        level -= 1
+    mesh = surface_stream(interp.refinement(level), frame, None).materialize()
+    render_surface(mesh.vertices, mesh.faces, mesh.vertex_normals, path, crs=crs,
+                   title="C1 surface (perspective fit)")
+
+
+def render_surface(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, path,
+                   crs: str | None = None, title: str = "C1 surface", pixels: int = PIXELS) -> None:
+    """Preview of a surface mesh: vertices (N, 3) world coordinates, faces (F, 3) vertex
+    indices, normals (N, 3) unit vertex normals (any sign).
+
+    Seen along the axis where the surface is most nearly a height field (frame.choose_frame
+    of the vertices and normals; world z for terrain within 10° of it), so the picture does
+    not depend on the frame that made the mesh. Each pixel centre takes the topmost face
+    over it (a z-buffer: nearer faces hide farther ones), its height and normal
+    interpolated linearly (barycentric) over the face.
+    """
+    frame, world = _view_frame(vertices, normals)
+    local = frame.to_local(vertices)
+    up = frame.vectors_to_local(normals)
+    up *= np.where(up[:, 2:] < 0, -1.0, 1.0)
+    finite = np.isfinite(local).all(axis=1)          # faces with another corner draw nothing
+    if not finite.any():
+        raise InputError("nothing to preview: the surface has no finite vertex")
+    lo, hi = local[finite, :2].min(axis=0), local[finite, :2].max(axis=0)
+    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
+    with np.errstate(invalid="ignore"):
+        z, g = _rasterize(local, up, np.asarray(faces), grid)
+    z += frame.origin[2] if world else 0.0
+    offset = frame.origin[:2] if world else np.zeros(2)
+    size = grid.resolution
+    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * size,
+              grid.north + offset[1] - grid.height * size, grid.north + offset[1])
+    render_arrays(z, g, extent, path, _units(crs), title)
+
+
+_RASTER_CHUNK = 1 << 19
+"""Candidate (face, pixel) pairs per step of _rasterize (bounds its temporaries)."""
+
+
+def _rasterize(local: np.ndarray, up: np.ndarray, faces: np.ndarray, grid: RasterGrid):
+    """Heights (h, w) and gradients (h, w, 2) at the pixel centres of `grid` from the topmost
+    face over each (NaN where none): local (N, 3) vertices in the view frame (x, y over the
+    grid, z up), up (N, 3) their normals in that frame with z >= 0."""
+    h, w = grid.height, grid.width
+    col = (local[:, 0] - grid.west) / grid.resolution - 0.5       # pixel centres at integers
+    row = (grid.north - local[:, 1]) / grid.resolution - 0.5
+    first_col = np.ceil(col[faces].min(axis=1)).astype(np.int64).clip(0, w)
+    last_col = np.floor(col[faces].max(axis=1)).astype(np.int64).clip(-1, w - 1)
+    first_row = np.ceil(row[faces].min(axis=1)).astype(np.int64).clip(0, h)
+    last_row = np.floor(row[faces].max(axis=1)).astype(np.int64).clip(-1, h - 1)
+    finite = np.isfinite(col[faces]).all(axis=1) & np.isfinite(row[faces]).all(axis=1)
+    cols = np.where(finite, np.maximum(last_col - first_col + 1, 0), 0)
+    rows = np.where(finite, np.maximum(last_row - first_row + 1, 0), 0)
+    candidates = cols * rows
+    best = np.full(h * w, -np.inf)
+    out = np.full((h * w, 3), np.nan)                               # z, gradient x, gradient y
+    ends = np.cumsum(candidates)
+    start = 0
+    while start < faces.shape[0]:
+        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + _RASTER_CHUNK, "right"))
+        stop = max(stop, start + 1)
+        part = slice(start, stop)
+        face = np.repeat(np.arange(start, stop), candidates[part])
+        step = np.arange(face.size) - np.repeat(np.cumsum(candidates[part]) - candidates[part],
+                                                candidates[part])
+        pc = first_col[face] + step % cols[face]
+        pr = first_row[face] + step // np.maximum(cols[face], 1)
+        _draw(col, row, local[:, 2], up, faces[face], pc, pr, w, best, out)
+        start = stop
+    return out[:, 0].reshape(h, w), out[:, 1:].reshape(h, w, 2)
+
+
+def _draw(col, row, height, up, corners, pc, pr, width, best, out) -> None:
+    """Rasterise candidate pixels (pc, pr) of faces `corners` (K, 3) into the z-buffer
+    best (h*w,) and out (h*w, 3): a pixel inside a face (barycentric weights >= 0, with
+    a tolerance so shared edges leave no gap) takes it when it is higher than what the
+    pixel holds."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    bx, by = col[b] - col[a], row[b] - row[a]
+    cx, cy = col[c] - col[a], row[c] - row[a]
+    px, py = pc - col[a], pr - row[a]
+    area = bx * cy - by * cx
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wb = (px * cy - py * cx) / area
+        wc = (bx * py - by * px) / area
+    wa = 1.0 - wb - wc
+    inside = (area != 0) & (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9)
+    if not inside.any():
+        return
+    wa, wb, wc, a, b, c = wa[inside], wb[inside], wc[inside], a[inside], b[inside], c[inside]
+    pixel = pr[inside] * width + pc[inside]
+    z = wa * height[a] + wb * height[b] + wc * height[c]
+    order = np.lexsort((z, pixel))                         # by pixel, highest last
+    last = np.r_[pixel[order][1:] != pixel[order][:-1], True]
+    top = order[last]
+    pixel, z = pixel[top], z[top]
+    higher = z > best[pixel]
+    pixel, top = pixel[higher], top[higher]
+    n = wa[top, None] * up[a[top]] + wb[top, None] * up[b[top]] + wc[top, None] * up[c[top]]
+    nz = np.maximum(n[:, 2], 1e-3)                          # seen edge-on: steep, not undefined
+    best[pixel] = z[higher]
+    out[pixel, 0] = z[higher]
+    out[pixel, 1] = -n[:, 0] / nz
+    out[pixel, 2] = -n[:, 1] / nz
+
+
+def _view_frame(points: np.ndarray, normals: np.ndarray):
+    """The frame a surface is seen in (render_surface, render_mesh) and whether its axes
+    are the world's: where it is a height field, world z for terrain within 10° of it."""
+    from c1mesh.frame import choose_frame
+
+    frame = choose_frame(points, normals)
+    if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
+        frame = choose_frame(points, normals, "z")
+    return frame, bool(np.allclose(frame.axes, np.eye(3)))
+
+
 def render_raster(source, path) -> None:
     """Preview of a GeoTIFF DEM (band 1) with Horn's gradient of its cells."""
     from c1mesh.raster import _rasterio
@@ -57,7 +200,6 @@ def render_mesh(source, path, pixels: int = PIXELS) -> None:
     """Preview of a mesh or point file with vertex normals: averages per pixel in the
     frame where it is a height field (c1mesh.frame.choose_frame)."""
     from c1mesh.formats import read_cloud
-    from c1mesh.frame import choose_frame
 
     if Path(str(source)).suffix.lower() == ".glb":
         from c1mesh.cloud import PointCloud
@@ -69,10 +211,7 @@ def render_mesh(source, path, pixels: int = PIXELS) -> None:
         cloud = read_cloud(source)
     if cloud.normals is None:
         raise InputError(f"'{source}' has no vertex normals to shade; fit it first (c1mesh fit)")
-    frame = choose_frame(cloud.points, cloud.normals)
-    if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
-        frame = choose_frame(cloud.points, cloud.normals, "z")
-    world = np.allclose(frame.axes, np.eye(3))
+    frame, world = _view_frame(cloud.points, cloud.normals)
     local = frame.to_local(cloud.points)
     normals = frame.vectors_to_local(cloud.normals)
     normals *= np.where(normals[:, 2:] < 0, -1.0, 1.0)

@@ -338,6 +338,9 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.survey_stats import streamed_frame
     from c1mesh.tile_spill import spill
 
+    from c1mesh.pipeline import with_plane_level
+
+    options = with_plane_level(options)
     _check_options(options)
     paths = survey_paths(source)
     name = survey_name(paths)

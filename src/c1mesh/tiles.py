@@ -446,7 +446,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     same ownership rule (c1mesh.tiled_outputs).
     """
     from c1mesh.geo import resolve_crs
-    from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit
+    from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit, with_plane_level
     from c1mesh.tiled_fit import fit_tiled
 
     from c1mesh.crs import describe, parse_crs
@@ -472,6 +472,8 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
         return report
     from c1mesh.distributed import run_tiles
+
+    options = with_plane_level(options)         # a height field: PLANE_LEVEL unless --level is given
 
     crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
