@@ -413,7 +413,10 @@ class Refinement:
         blocks = -(-T // self.rows)
         count = max(1, min(thread_count(workers), MAX_WORKERS, blocks))
         bounds = [min(T, blocks * i // count * self.rows) for i in range(count + 1)]
-        with blas_threads(1 if count > 1 else None):      # BLAS's own threads would fight ours
+        # One BLAS thread, with one worker too: BLAS's own threads fight ours, and alone
+        # they are slower still on blocks this size (200k-point hill, level 4, one worker:
+        # 1.0-2.4 s with BLAS's two threads, 0.2-0.7 s with one; busy 2-core machine).
+        with blas_threads(1):
             run_parallel(work, list(zip(bounds[:-1], bounds[1:])))
         mesh = RefinedMesh(points, triangles, values, gradients, self.level, refinement=self)
         mesh._parent = parent
