@@ -21,7 +21,9 @@ Values and gradients are matrix products: coefficients (c × 21) @ basis (21 × 
 P non-vertex lattice points of every triangle of a block, with basis matrices built once
 per level and tuple (rsd.basis); point coordinates are corner coordinates (c × 6) @ a
 fixed blending matrix (6 × 2P). The points each triangle owns (owned edges, interior)
-are then gathered straight into the output by one index list per block. Evaluating the
+are then gathered straight into the output by one index list per block. Every product
+runs over the full block height, a short last block padded, so that a point's bits do not
+depend on the block it falls in (_BlockBuffers; `--seamless -O` tiles rely on it). Evaluating the
 points of non-owned edges too wastes some arithmetic, but one longer product per block
 beats selecting the inputs of each edge slot and three short products (measured at 1M
 points, level 4, one thread: vertices 0.56 → 0.48 s; np.take of the kept indices rather
@@ -483,8 +485,8 @@ class _BlockBuffers:
     block (the last of a range) included: the rows past its triangles are padding (zeros,
     or finite rows left by the previous block) and are never read back. So every product
     has one shape, and a point's bits do not depend on which block it falls in. They
-    would otherwise: OpenBLAS (0.3.31, SkylakeX kernels) computes products with
-    M·N·K ≤ 10⁶ with a separate small-matrix kernel that rounds differently, so a
+    would otherwise: OpenBLAS (0.3.31, SkylakeX kernels) computes small products
+    (measured: M·N·K below about 10⁶) with a separate kernel that rounds differently, so a
     triangle in a short last block came out different in the last bit from the same
     triangle in a full block. A tile of `--seamless -O` numbers its triangles differently
     from its neighbour, so a border point fell in a short block in one tile and a full
