@@ -431,3 +431,59 @@ def test_worker_errors_reach_the_caller(mesh, monkeypatch):
     with pytest.raises(MemoryError, match="worker failed"):
         refinement.mesh(workers=2)
     assert sorted(calls)[0] == 0 and len(calls) == 2
+
+
+def _interior_bits(refinement, mesh, triangle):
+    """The bytes of the points, values and gradients inside one triangle of a refinement
+    (interior points come last among the triangle's points, and every triangle owns them)."""
+    stop = int(refinement.tri_start[triangle + 1])
+    part = slice(stop - refinement.n_int, stop)
+    return mesh.points[part].tobytes() + mesh.values[part].tobytes() + mesh.gradients[part].tobytes()
+
+
+def _sub_refinement(interp, first, last, level):
+    """The refinement of triangles [first, last) alone (same coefficient rows), as a
+    --seamless tile refines a subset of the survey's triangles."""
+    from c1mesh.refine import Refinement
+    from c1mesh.topology import edge_table
+    part = slice(first, last)
+    triangles = interp.triangles[part]
+    return Refinement(interp.points, interp.values, interp.gradients, triangles, interp.coefficients[part],
+                      interp._G[part], edge_table(triangles, len(interp.points)), interp.scheme, level)
+
+
+@pytest.mark.parametrize("level", [4, 8])
+def test_a_point_has_the_same_bits_in_a_block_of_any_size(level):
+    """A refined point's bits must not depend on the block its triangle is evaluated in:
+    a full block, a short last block of a few triangles, at any offset, with one BLAS
+    thread or two. (--seamless -O tiles evaluate a border triangle in different blocks;
+    issue 21: OpenBLAS's small-matrix kernel, taken by short blocks only, rounded
+    differently and the tiles wrote one border vertex with two different bits.)"""
+    from c1mesh.threads import blas_threads
+    pts, tris = random_mesh({4: 5000, 8: 2000}[level], seed=11)
+    interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
+    whole = interp.refinement(level)
+    assert whole.rows < len(interp.triangles), "the whole refinement must have a full block"
+    with blas_threads(1):
+        reference = whole.mesh(workers=1)
+    assert whole.n_int > 0
+    probes = [0, 1, 7, whole.rows // 2, whole.rows - 1]
+    for first, count in [(0, 1), (1, 5), (0, 40), (3, 300), (whole.rows // 2 - 2, 64)]:
+        part = _sub_refinement(interp, first, first + count, level)
+        with blas_threads(1):
+            got = part.mesh(workers=1)
+        for t in [p for p in probes if first <= p < first + count]:
+            assert _interior_bits(part, got, t - first) == _interior_bits(whole, reference, t), (first, count, t)
+    with blas_threads(2):                  # the streamed pass keeps the caller's BLAS threads
+        two_threads = _streamed(whole)
+    assert all(_interior_bits(whole, two_threads, t) == _interior_bits(whole, reference, t) for t in probes)
+
+
+def _streamed(refinement):
+    """The refined points, values and gradients of a streamed pass (vertex_blocks)."""
+    from types import SimpleNamespace
+    M = refinement.vertex_count
+    out = SimpleNamespace(points=np.empty((M, 2)), values=np.empty(M), gradients=np.empty((M, 2)))
+    for _ in refinement.vertex_blocks(out=[out.points, out.values, out.gradients]):
+        pass
+    return out

@@ -52,16 +52,16 @@ def _grid_cells(points, nx=2, ny=2):
 
 
 def _assert_union_is_whole(whole_path, tile_paths):
-    """The exact-vertex merge of the tiles is the whole mesh: same vertices (to rounding,
-    matched one to one), same faces, the same boundary; and every vertex the tiles share
+    """The exact-vertex merge of the tiles is the whole mesh: the same vertices to the bit
+    (matched one to one), same faces, the same boundary; and every vertex the tiles share
     is bit-identical (else the merge would keep two copies and have more vertices)."""
     wv, wf = _load(whole_path)
     tiles = [_load(p) for p in tile_paths]
     mv, mf = _merge_exact(tiles)
     assert mv.shape == wv.shape
+    assert {row.tobytes() for row in mv} == {row.tobytes() for row in wv}
     distance, match = cKDTree(wv).query(mv)
-    scale = np.abs(wv).max()
-    assert distance.max() <= 1e-12 * scale
+    assert distance.max() == 0
     assert np.unique(match).size == match.size                     # one to one
     assert _face_set(match[mf]) == _face_set(wf)
     assert _face_set(match[_boundary_edges(mf)]) == _face_set(_boundary_edges(wf))
@@ -324,3 +324,75 @@ def test_seamless_survey_dem_and_hillshade_equal_the_concatenated_fit(tmp_path, 
     refused = runner.invoke(main, ["fit", *paths[:2], "--seamless", "-O", str(tmp_path / "out"),
                                    "--hillshade", str(tmp_path / "h.tif")])
     assert refused.exit_code == 2 and "--seamless -o" in refused.output
+
+
+def _assert_tiles_share_border_bits(whole_path, tile_paths):
+    """The -O outputs join exactly (docs/tiles.md): a vertex held by several tiles has the
+    same bits in each, so merging exactly equal vertices gives the whole fit's vertex
+    count, and the merged vertices are the whole fit's, bit for bit.
+
+    Which tiles hold a vertex is decided without its bits: every tile vertex is matched to
+    the nearest vertex of the whole fit (the ground truth, fitted from one file)."""
+    wv, _ = _load(whole_path)
+    tiles = [_load(p) for p in tile_paths]
+    tree = cKDTree(wv)
+    holders = {}                                        # whole-fit vertex -> its copies in the tiles
+    for v, _ in tiles:
+        distance, match = tree.query(v)
+        assert distance.max() <= 1e-9 * np.abs(wv).max()
+        for index, row in zip(match.tolist(), v):
+            holders.setdefault(index, []).append(row.tobytes())
+    shared = {i: copies for i, copies in holders.items() if len(copies) > 1}
+    assert len(shared) > 100, "the tiles share few border vertices: the test would prove little"
+    differing = [i for i, copies in shared.items() if len(set(copies)) > 1]
+    assert differing == [], f"{len(differing)} of {len(shared)} border vertices differ between tiles"
+    merged, _ = _merge_exact(tiles)
+    assert len(merged) == len(wv)
+    assert {row.tobytes() for row in merged} == {row.tobytes() for row in wv}
+
+
+@pytest.fixture(scope="module")
+def large_hill_survey(tmp_path_factory):
+    """A 2×2 survey large enough that each tile refines full blocks and a short last one
+    (50k points with exact normals, level 2: about 25k base triangles per tile against
+    21,845 per block), and the whole fit of its concatenation."""
+    folder = tmp_path_factory.mktemp("large_hill")
+    cloud = sample_surface("hill", n=50_000, seed=5)
+    cells = _grid_cells(cloud.points)
+    paths, parts = [], []
+    for i in range(4):
+        parts.append(cloud.subset(cells == i))
+        paths.append(str(folder / f"tile{i}.ply"))
+        write_points_ply(parts[-1], paths[-1])
+    whole = folder / "whole.ply"
+    write_points_ply(PointCloud(np.concatenate([p.points for p in parts]),
+                                np.concatenate([p.normals for p in parts])), whole)
+    result = CliRunner().invoke(main, ["fit", str(whole), "-o", str(folder / "whole.c1.ply"), "--level", "2"])
+    assert result.exit_code == 0, result.output
+    return paths, folder / "whole.c1.ply"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_tiles_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path, jobs):
+    """Issue 21: the four -O outputs merged into 23 more vertices than the whole fit,
+    border vertices written with different bits by the two tiles holding them."""
+    paths, whole = large_hill_survey
+    result = CliRunner().invoke(main, ["fit", *paths, "--seamless", "-O", str(tmp_path), "--level", "2",
+                                       "-j", jobs])
+    assert result.exit_code == 0, result.output
+    _assert_tiles_share_border_bits(whole, [tmp_path / (Path(p).stem + ".c1.ply") for p in paths])
+
+
+@pytest.mark.slow
+def test_tiles_on_a_dask_cluster_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from c1mesh.pipeline import FitOptions
+    from c1mesh.tiles import fit_seamless
+
+    paths, whole = large_hill_survey
+    outputs = [str(tmp_path / (Path(p).stem + ".ply")) for p in paths]
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        fit_seamless(paths, FitOptions(level=2), outputs=outputs, scheduler=cluster.scheduler_address)
+    _assert_tiles_share_border_bits(whole, outputs)

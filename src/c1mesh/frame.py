@@ -78,30 +78,45 @@ class ScanFrame:
 
 
 _ROWS = 1 << 14
-"""Rows per block in `_transform`: small enough that OpenBLAS runs each product on one thread."""
+"""Rows of every product in `_transform`: small enough that OpenBLAS runs each product on one thread."""
 
 
 def _transform(rows: ArrayLike, matrix: np.ndarray, before: np.ndarray | None = None,
                after: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
-    """(rows - before) @ matrix + after for rows (N, 3), block by block, into ``out`` if given.
+    """(rows - before) @ matrix + after for rows (N, 3) (or one row (3,)), into ``out`` if given.
 
-    Each output row is the same BLAS product as in one big call (bit-identical), but small
-    blocks keep OpenBLAS on one thread: its second thread waits for a free core, which on
-    a busy 2-core machine made a 1M-row product take 0.4 s instead of 0.02 s. Blocks also
-    avoid a full-size temporary for ``rows - before``.
+    Every product is one BLAS call of exactly _ROWS rows (the last block padded with
+    zeros), so a row's bits do not depend on how many rows come with it: a one-row
+    product takes BLAS's matrix-vector path (gemv), which rounds differently from the
+    matrix-matrix one, and a transposed `matrix` (to_local) showed it (issue 21: a point
+    transformed alone must equal the same point transformed inside a cloud). Small
+    blocks also keep OpenBLAS on one thread: its second thread waits for a free core,
+    which on a busy 2-core machine made a 1M-row product take 0.4 s instead of 0.02 s;
+    and they avoid a full-size temporary for ``rows - before``.
     """
     data = np.asarray(rows, dtype=np.float64)
-    if data.ndim != 2 or data.shape[0] <= _ROWS:
-        blocks = [slice(None)]                     # also keeps other shapes' behaviour
-    else:
-        out = np.empty((data.shape[0], matrix.shape[1])) if out is None else out
-        blocks = [slice(start, start + _ROWS) for start in range(0, data.shape[0], _ROWS)]
-    for block in blocks:
-        part = data[block] if before is None else data[block] - before
-        product = np.matmul(part, matrix, out=None if out is None else out[block])
+    flat = data.reshape(-1, data.shape[-1]) if data.ndim != 2 else data
+    count = flat.shape[0]
+    result = np.empty((count, matrix.shape[1])) if out is None else out if out.ndim == 2 else \
+        out.reshape(count, matrix.shape[1])
+    matrix = np.ascontiguousarray(matrix)
+    padded = None
+    for start in range(0, count, _ROWS):
+        block = slice(start, min(start + _ROWS, count))
+        n = block.stop - block.start
+        if n == _ROWS:
+            part = flat[block] if before is None else flat[block] - before
+            product = np.matmul(part, matrix, out=result[block])
+        else:                                       # the last block: padded to _ROWS rows
+            padded = np.zeros((_ROWS, flat.shape[1])) if padded is None else padded
+            np.subtract(flat[block], 0.0 if before is None else before, out=padded[:n])
+            product = result[block]
+            product[...] = np.matmul(padded, matrix)[:n]
         if after is not None:
             product += after
-    return product if out is None else out
+    if out is not None:
+        return out
+    return result.reshape(data.shape[:-1] + (matrix.shape[1],)) if data.ndim != 2 else result
 
 
 @dataclass

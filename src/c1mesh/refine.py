@@ -21,7 +21,9 @@ Values and gradients are matrix products: coefficients (c × 21) @ basis (21 × 
 P non-vertex lattice points of every triangle of a block, with basis matrices built once
 per level and tuple (rsd.basis); point coordinates are corner coordinates (c × 6) @ a
 fixed blending matrix (6 × 2P). The points each triangle owns (owned edges, interior)
-are then gathered straight into the output by one index list per block. Evaluating the
+are then gathered straight into the output by one index list per block. Every product
+runs over the full block height, a short last block padded, so that a point's bits do not
+depend on the block it falls in (_BlockBuffers; `--seamless -O` tiles rely on it). Evaluating the
 points of non-owned edges too wastes some arithmetic, but one longer product per block
 beats selecting the inputs of each edge slot and three short products (measured at 1M
 points, level 4, one thread: vertices 0.56 → 0.48 s; np.take of the kept indices rather
@@ -180,19 +182,24 @@ class _PointSet:
             self._blend[d] = W
         return self._blend[d]
 
-    def spline(self, C, G, values, gradients, scratch) -> None:
-        """values (c, P) and gradients (c, P, 2) from coefficients C (c, 21), G (c, 3, 2)."""
-        c, P = C.shape[0], self.P
+    def spline(self, C, G, count, values, gradients, scratch) -> None:
+        """values (count, P) and gradients (count, P, 2) of the first `count` rows of the
+        full-height buffers: coefficients C (rows, 21) (rows past count are padding),
+        G (count, 3, 2), values (rows, P), scratch (rows, 2P), gradients (count, P, 2).
+
+        The two BLAS products always run over all `rows` rows, whatever count is: see
+        _BlockBuffers for why a product's shape must not depend on the block."""
+        P = self.P
         np.matmul(C, self.B, out=values)
-        d = scratch[:c, :2 * P]
-        np.matmul(C, self.D, out=d)                    # (c, P, 2): C @ D0 and C @ D1 per point
-        # ∇F = (C @ D0) G_0 + (C @ D1) G_1: per triangle, (P × 2) @ (2 × 2)
-        np.matmul(d.reshape(c, P, 2), G[:, :2, :], out=gradients)
+        np.matmul(C, self.D, out=scratch)              # (rows, P, 2): C @ D0 and C @ D1 per point
+        # ∇F = (C @ D0) G_0 + (C @ D1) G_1: per triangle, (P × 2) @ (2 × 2), one shape per triangle
+        np.matmul(scratch[:count].reshape(count, P, 2), G[:, :2, :], out=gradients)
 
     def blend(self, corners, out) -> None:
-        """out (c, P·d) = barycentric blend of corners (c, 3, d)."""
-        c, _, d = corners.shape
-        np.matmul(corners.reshape(c, 3 * d), self.blend_matrix(d), out=out)
+        """out (rows, P·d) = barycentric blend of corners (rows, 3, d), all rows (padding
+        included, as in spline)."""
+        rows, _, d = corners.shape
+        np.matmul(corners.reshape(rows, 3 * d), self.blend_matrix(d), out=out)
 
 
 class Refinement:
@@ -314,11 +321,12 @@ class Refinement:
         n = kept.size
         for source, corners, all_points, target in zip([self.points] + fields, buf.corners, buf.blended,
                                                        [dest.points] + dest.fields):
-            corners = np.take(source, tri, axis=0, out=corners[:c], mode="clip")   # clip: unbuffered out
-            at.blend(corners, all_points[:c])
+            np.take(source, tri, axis=0, out=corners[:c], mode="clip")   # clip: unbuffered out
+            at.blend(corners, all_points)                                # all rows: _BlockBuffers
             np.take(all_points[:c].reshape(c * P, target.shape[1]), kept, axis=0, out=target[:n], mode="clip")
         if spline:
-            at.spline(self.coefficients[rows], self.G[rows], buf.values[:c], buf.gradients[:c], buf.scratch)
+            buf.coefficients[:c] = self.coefficients[rows]
+            at.spline(buf.coefficients, self.G[rows], c, buf.values, buf.gradients[:c], buf.scratch)
             np.take(buf.values[:c].ravel(), kept, out=dest.values[:n], mode="clip")
             np.take(buf.gradients[:c].reshape(c * P, 2), kept, axis=0, out=dest.gradients[:n], mode="clip")
 
@@ -407,7 +415,10 @@ class Refinement:
         blocks = -(-T // self.rows)
         count = max(1, min(thread_count(workers), MAX_WORKERS, blocks))
         bounds = [min(T, blocks * i // count * self.rows) for i in range(count + 1)]
-        with blas_threads(1 if count > 1 else None):      # BLAS's own threads would fight ours
+        # One BLAS thread, with one worker too: BLAS's own threads fight ours, and alone
+        # they are slower still on blocks this size (200k-point hill, level 4, one worker:
+        # 1.0-2.4 s with BLAS's two threads, 0.2-0.7 s with one; busy 2-core machine).
+        with blas_threads(1):
             run_parallel(work, list(zip(bounds[:-1], bounds[1:])))
         mesh = RefinedMesh(points, triangles, values, gradients, self.level, refinement=self)
         mesh._parent = parent
@@ -465,14 +476,29 @@ def _template_columns(pat: LatticePattern) -> np.ndarray:
 class _BlockBuffers:
     """Reusable per-block arrays for blocks of up to rows triangles with P evaluated points
     each: keep (rows, P) which points the triangles own (interior columns always True),
-    gathered corners and blended points per source (points, then fields), spline values
-    (rows, P), gradients (rows, P, 2), matmul scratch (rows, 2P), and `output` (the kept
-    points, when the caller gave no full-size arrays)."""
+    gathered corners and blended points per source (points, then fields), the block's
+    spline coefficients (rows, 21), spline values (rows, P), gradients (rows, P, 2),
+    matmul scratch (rows, 2P), and `output` (the kept points, when the caller gave no
+    full-size arrays).
+
+    Every BLAS product of a block runs over all `rows` rows of these buffers, a short
+    block (the last of a range) included: the rows past its triangles are padding (zeros,
+    or finite rows left by the previous block) and are never read back. So every product
+    has one shape, and a point's bits do not depend on which block it falls in. They
+    would otherwise: OpenBLAS (0.3.31, SkylakeX kernels) computes small products
+    (measured: M·N·K below about 10⁶) with a separate kernel that rounds differently, so a
+    triangle in a short last block came out different in the last bit from the same
+    triangle in a full block. A tile of `--seamless -O` numbers its triangles differently
+    from its neighbour, so a border point fell in a short block in one tile and a full
+    one in the other, and the two tiles wrote the same border vertex with different bits
+    (issue 21). Within one shape, a row's bits do not depend on its position or on the
+    BLAS thread count (tests/test_engine.py checks both)."""
 
     def __init__(self, rows: int, P: int, n_edge: int, fields: list, spline: bool):
         self.keep = np.ones((rows, P), dtype=bool)
         widths = [2] + [f.shape[1] for f in fields]
-        self.corners = [np.empty((rows, 3, d)) for d in widths]
+        self.corners = [np.zeros((rows, 3, d)) for d in widths]
+        self.coefficients = np.zeros((rows, 21)) if spline else None
         self.blended = [np.empty((rows, P * d)) for d in widths]
         self.values = np.empty((rows, P)) if spline else None
         self.gradients = np.empty((rows, P, 2)) if spline else None
