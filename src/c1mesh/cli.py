@@ -9,6 +9,8 @@ and usage errors are quick.
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import os
@@ -17,12 +19,14 @@ import sys
 import traceback
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 import click
 
 from c1mesh import __version__
 from c1mesh.errors import C1MeshError, InputError
-from c1mesh.outputs import STDIO, Outputs, mesh_format, plan_outputs, remove_live_temps
+from c1mesh.outputs import (INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO, Outputs,
+                            mesh_format, plan_outputs, remove_live_temps)
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -139,8 +143,38 @@ def _stderr_is_terminal() -> bool:
         return False
 
 
+def _usage_line(exc: click.UsageError) -> str:
+    """A usage error as the one line cli/README.md promises: `c1mesh: error: ...`, with
+    the command whose --help lists the options."""
+    text = " ".join(exc.format_message().split()).rstrip(".")
+    where = exc.ctx.command_path if exc.ctx is not None else "c1mesh"
+    return f"c1mesh: error: {text}; see '{where} --help'"
+
+
 class _Group(click.Group):
-    """A click group whose unexpected failures are still one line on stderr and exit 1."""
+    """A click group whose usage errors are one line on stderr and exit 2, and whose
+    unexpected failures are one line and exit 1."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        """click's main, except that a usage error prints one line instead of click's
+        Usage/Try/Error block (a caller passing standalone_mode=False gets click's exceptions)."""
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as exc:    # bare `c1mesh`: the help, as click shows it
+            exc.show()
+            sys.exit(exc.exit_code)
+        except click.UsageError as exc:
+            click.echo(_usage_line(exc), err=True)
+            sys.exit(EXIT_USAGE)
+        except click.ClickException as exc:
+            click.echo(f"c1mesh: error: {' '.join(exc.format_message().split())}", err=True)
+            sys.exit(exc.exit_code)
+        except click.exceptions.Abort:
+            click.echo("c1mesh: error: aborted", err=True)
+            sys.exit(EXIT_FAILURE)
+        sys.exit(code if isinstance(code, int) else EXIT_OK)
 
     def invoke(self, ctx):
         previous = {sig: signal.signal(sig, _interrupted) for sig in _SIGNALS}

@@ -47,6 +47,16 @@ STDIO = "-"
 MESH_FORMATS = ("ply", "obj", "stl", "off", "glb")
 """Mesh file extensions c1mesh writes (the writers are in c1mesh.formats)."""
 
+RASTER_FORMATS = ("tif", "tiff")
+"""GeoTIFF DEM extensions c1mesh writes (c1mesh.raster; a fit needs --resolution for them)."""
+
+OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
+"""Every output extension of `c1mesh fit`: the one list behind its help, errors and docs."""
+
+INPUT_FORMATS = ("ply", "obj", "xyz", "txt", "csv", "pcd", "las", "laz", "copc", "png", "tif", "tiff")
+"""Input format names (--input-format, and file extensions; COPC files end in .laz): the
+readers registered in c1mesh.formats, which checks that it reads exactly these."""
+
 WRITE_BEHIND = 64 << 20
 """Bytes written between two requests to start the kernel's writeback."""
 
@@ -83,27 +93,30 @@ class Target:
 
 # ------------------------------------------------------------------------------ planning
 def format_key(fmt: str | None, where: str, supported: Sequence[str], direction: str,
-               error: type[InputError] = InputError) -> str:
+               error: type[InputError] = InputError, listed: Sequence[str] | None = None) -> str:
     """Normalise a format name or extension ('.PLY' -> 'ply') and check it is in `supported`.
 
-    where: the file named in the message; direction: "input" or "output". Raises `error`.
+    where: the file named in the message; direction: "input" or "output"; listed: the
+    formats the message offers (default `supported`). Raises `error`.
     """
     key = (fmt or "").lower().lstrip(".")
+    offered = ", ".join(listed or supported)
     if not key:
         raise error(f"Cannot tell the {direction} format of '{where}' from its name; "
-                    f"use one of the extensions {', '.join(supported)}.")
+                    f"use one of the extensions {offered}.")
     if key not in supported:
-        raise error(f"Unsupported {direction} format '{key}' for '{where}'; supported: {', '.join(supported)}.")
+        raise error(f"Unsupported {direction} format '{key}' for '{where}'; supported: {offered}.")
     return key
 
 
 def mesh_format(path: PathLike, fmt: str | None = None, target: Target | None = None) -> str:
     """The mesh format of `path` ('.PLY' -> 'ply') from `fmt` or its extension; OutputError if
-    unknown. A stream, device or FIFO target without an extension (/dev/stdout) gets PLY."""
+    unknown (the message offers every output format, GeoTIFF DEMs included: a fit writes
+    those too). A stream, device or FIFO target without an extension (/dev/stdout) gets PLY."""
     key = fmt or Path(path).suffix
     if not key.lstrip(".") and target is not None and target.kind != "atomic":
         return "ply"
-    return format_key(key, str(path), MESH_FORMATS, "output", OutputError)
+    return format_key(key, str(path), MESH_FORMATS, "output", OutputError, listed=OUTPUT_FORMATS)
 
 
 def plan_outputs(outputs: Iterable[tuple[str, PathLike | None]],
