@@ -85,6 +85,15 @@ def _parse_bounds(ctx, param, value):
         raise click.BadParameter(str(exc))
 
 
+def _extensions(formats) -> str:
+    """Formats as the extensions a user types: '.ply .obj'."""
+    return " ".join(f".{fmt}" for fmt in formats)
+
+
+_OUTPUT_HELP = (f"Output: a mesh ({_extensions(MESH_FORMATS)}) or a GeoTIFF DEM ({_extensions(RASTER_FORMATS)}, "
+                "with --resolution), or - for binary PLY on stdout.")
+_INPUT_FORMAT_HELP = (f"Input format ({', '.join(INPUT_FORMATS)}) [default: the file's extension]; "
+                      "required for stdin (-).")
 _MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
                 "are refused [default: half the RAM, at most 8G]. With fit, a LAS/LAZ file whose "
                 "points need more (1.8 kB per point) is fitted in tiles (estimated normals, long-edge trim).")
@@ -402,11 +411,12 @@ def main() -> None:
 # ---------------------------------------------------------------------------------- fit
 @main.command()
 @click.argument("inputs", nargs=-1, required=True)
-@click.option("-o", "--output", help="Output mesh (.ply .obj .stl .off .glb), or - for binary PLY on stdout.")
+@click.option("-o", "--output", help=_OUTPUT_HELP)
 @click.option("-O", "--output-dir", type=click.Path(file_okay=False),
               help="Directory for outputs of several inputs (each named input stem + --suffix).")
-@click.option("--suffix", default=".c1.ply", show_default=True, help="Output name suffix with -O.")
-@click.option("--input-format", help="Input format (ply, obj, xyz, txt, csv, pcd, las, laz, copc); required for stdin (-).")
+@click.option("--suffix", default=".c1.ply", show_default=True,
+              help="Output name suffix with -O; its extension picks the format, as for -o.")
+@click.option("--input-format", help=_INPUT_FORMAT_HELP)
 @click.option("--classes", help="Keep only these LAS classification codes, e.g. 2 or 2,9 (2 = ground).")
 @click.option("--normals", type=click.Choice(["auto", "file", "estimate"]), default="auto", show_default=True,
               help="auto: the file's normals if present, else estimated (Open3D).")
@@ -849,7 +859,7 @@ def _collect(iterator, total, show, verbose):
 # ---------------------------------------------------------------------------------- info
 @main.command()
 @click.argument("path")
-@click.option("--input-format", help="Input format; required for stdin (-).")
+@click.option("--input-format", help=_INPUT_FORMAT_HELP)
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
 @click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
