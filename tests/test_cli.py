@@ -361,7 +361,8 @@ def test_readmes_list_exactly_the_registry_formats():
     assert tuple(written.split()) == OUTPUT_FORMATS
     reference = (ROOT / "cli" / "README.md").read_text()
     row = next(line for line in reference.splitlines() if line.startswith("| `--input-format FMT`"))
-    assert tuple(re.search(r"\| `([a-z ]+)`", row.split("|", 3)[3]).group(1).split()) == INPUT_FORMATS
+    meaning = row.split("|")[3]
+    assert tuple(re.match(r" `([a-z ]+)`", meaning).group(1).split()) == INPUT_FORMATS
     paragraph = reference[reference.index("Output formats by extension:"):reference.index("What each format keeps")]
     assert tuple(re.findall(r"`\.([a-z]+)`", paragraph)) == OUTPUT_FORMATS
 
