@@ -125,7 +125,7 @@ def _run_as_written(command: str, folder: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("command", RUN)
+@pytest.mark.parametrize("command", RUN, ids=[_without_comment(c.removeprefix(SETUP))[:70] for c in RUN])
 def test_readme_command_runs_as_written(command, workdir):
     _run_as_written(command.removeprefix(SETUP), workdir)
     for inline in AFTER.get(_without_comment(command), []):
