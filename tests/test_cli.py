@@ -285,6 +285,7 @@ _USAGE_CASES = {
                            ["Unsupported output format 'xyz'", "--ascii applies to PLY output only"]),
     "several inputs to -o": (["fit", "IN.ply", "IN2.ply", "-o", "OUT.ply"], ["several inputs need -O"]),
     "unknown command": (["frobnicate"], ["No such command 'frobnicate'"]),
+    "preview not a PNG": (["preview", "IN.tif", "-o", "OUT.jpg"], ["must be a .png file"]),
 }
 
 
@@ -296,7 +297,7 @@ def test_usage_errors_are_one_line_and_exit_2_before_any_input_is_read(tmp_path,
     args, words = _USAGE_CASES[case]
     names = {"IN.ply": "missing.ply", "IN2.ply": "missing2.ply", "IN.laz": "missing.laz",
              "OUT.ply": "out.ply", "OUT.tif": "out.tif", "OUT.xyz": "out.xyz", "SLOPE.tif": "slope.tif",
-             "SLOPE.ply": "slope.ply"}
+             "SLOPE.ply": "slope.ply", "IN.tif": "missing.tif", "OUT.jpg": "out.jpg"}
     argv = [str(tmp_path / names[a]) if a in names else a for a in args]
     proc = run(*argv)
     assert proc.returncode == 2, proc.stderr

@@ -2,7 +2,9 @@
 
 Exit codes (cli/README.md): 0 success, 1 failure, 2 usage error, 3 batch where some
 inputs failed, 128+N killed by signal N (SIGINT 130, SIGTERM 143, SIGHUP 129). Errors
-are one line on stderr; --debug shows the traceback. Progress goes to stderr only when
+are one line on stderr; --debug shows the traceback. A usage error is everything the
+command line shows on its own (values, conflicting options, output extensions): all of
+its problems are named in that one line, before any input is read (`usage_error`). Progress goes to stderr only when
 stderr is a terminal. Every output path is checked (c1mesh.outputs) before any input is
 read. Nothing heavy (numpy, scipy, open3d) is imported until a command runs, so --help
 and usage errors are quick.
@@ -279,7 +281,14 @@ def _info_usage_problems(ctx: click.Context) -> list[str]:
     return problems
 
 
-_USAGE_CHECKS = {"fit": _fit_usage_problems, "info": _info_usage_problems}
+def _preview_usage_problems(ctx: click.Context) -> list[str]:
+    """What is wrong with a `preview` command line on its own (exit 2)."""
+    output = ctx.params["output"]
+    return [] if Path(output).suffix.lower() == ".png" else [f"the preview '{output}' must be a .png file"]
+
+
+_USAGE_CHECKS = {"fit": _fit_usage_problems, "info": _info_usage_problems, "preview": _preview_usage_problems}
+"""Per command: every problem its command line shows on its own, checked before any work."""
 
 
 def _check_usage(ctx: click.Context) -> None:
@@ -302,6 +311,8 @@ def usage_error(argv: Sequence[str]) -> str | None:
                         _check_usage(sub)
     except click.exceptions.Exit:
         return None
+    except click.exceptions.NoArgsIsHelpError:     # bare `c1mesh` prints the help and exits 2
+        return f"c1mesh: error: give a command ({', '.join(main.commands)}); see 'c1mesh --help'"
     except click.UsageError as exc:
         return _usage_line(exc)
     return None
@@ -891,6 +902,7 @@ def preview(path, output, debug):
     from c1mesh.geo import check_preview_path
     from c1mesh.preview import render_file
 
+    _check_usage(click.get_current_context())
     try:
         check_preview_path(output)
         render_file(path, output)
