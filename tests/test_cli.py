@@ -329,7 +329,7 @@ def test_help_and_errors_list_exactly_the_registry_formats():
 
     from c1mesh import formats, raster
     from c1mesh.cli import fit, info
-    from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, OutputError, mesh_format
+    from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS
 
     assert formats.SUPPORTED_INPUT == INPUT_FORMATS and formats.SUPPORTED_OUTPUT == MESH_FORMATS
     assert OUTPUT_FORMATS == MESH_FORMATS + RASTER_FORMATS
@@ -343,9 +343,6 @@ def test_help_and_errors_list_exactly_the_registry_formats():
         return tuple(re.search(r"supported: ([a-z, ]+)", message).group(1).split(", "))
     assert supported(usage_error(["fit", "a.ply", "-o", "b.xyz"])) == OUTPUT_FORMATS
     assert supported(usage_error(["fit", "a.e57", "--input-format", "e57", "-o", "b.ply"])) == INPUT_FORMATS
-    with pytest.raises(OutputError) as refused:
-        mesh_format("b.xyz")
-    assert supported(str(refused.value)) == OUTPUT_FORMATS
 
 
 def test_readmes_list_exactly_the_registry_formats():

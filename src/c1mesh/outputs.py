@@ -93,30 +93,27 @@ class Target:
 
 # ------------------------------------------------------------------------------ planning
 def format_key(fmt: str | None, where: str, supported: Sequence[str], direction: str,
-               error: type[InputError] = InputError, listed: Sequence[str] | None = None) -> str:
+               error: type[InputError] = InputError) -> str:
     """Normalise a format name or extension ('.PLY' -> 'ply') and check it is in `supported`.
 
-    where: the file named in the message; direction: "input" or "output"; listed: the
-    formats the message offers (default `supported`). Raises `error`.
+    where: the file named in the message; direction: "input" or "output". Raises `error`.
     """
     key = (fmt or "").lower().lstrip(".")
-    offered = ", ".join(listed or supported)
     if not key:
         raise error(f"Cannot tell the {direction} format of '{where}' from its name; "
-                    f"use one of the extensions {offered}.")
+                    f"use one of the extensions {', '.join(supported)}.")
     if key not in supported:
-        raise error(f"Unsupported {direction} format '{key}' for '{where}'; supported: {offered}.")
+        raise error(f"Unsupported {direction} format '{key}' for '{where}'; supported: {', '.join(supported)}.")
     return key
 
 
 def mesh_format(path: PathLike, fmt: str | None = None, target: Target | None = None) -> str:
     """The mesh format of `path` ('.PLY' -> 'ply') from `fmt` or its extension; OutputError if
-    unknown (the message offers every output format, GeoTIFF DEMs included: a fit writes
-    those too). A stream, device or FIFO target without an extension (/dev/stdout) gets PLY."""
+    unknown. A stream, device or FIFO target without an extension (/dev/stdout) gets PLY."""
     key = fmt or Path(path).suffix
     if not key.lstrip(".") and target is not None and target.kind != "atomic":
         return "ply"
-    return format_key(key, str(path), MESH_FORMATS, "output", OutputError, listed=OUTPUT_FORMATS)
+    return format_key(key, str(path), MESH_FORMATS, "output", OutputError)
 
 
 def plan_outputs(outputs: Iterable[tuple[str, PathLike | None]],
