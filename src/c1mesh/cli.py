@@ -475,7 +475,8 @@ def main() -> None:
                    "joins its neighbours exactly (docs/tiles.md).")
 @click.option("--scheduler", help="With --seamless -O, or a fit larger than --memory: run the tiles on this "
                                   "Dask scheduler (tcp://HOST:PORT); for the latter its workers must see "
-                                  "the output's folder (the spill files).")
+                                  "the output's folder (the spill files). A fit within --memory runs here, "
+                                  "with a note.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
