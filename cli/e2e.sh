@@ -110,7 +110,7 @@ check "/dev/null is still a character device" 0 $?
 $C1MESH fit "$work/same.ply" -o /dev/stdout --level 1 > "$work/stdout.ply" && head -c 3 "$work/stdout.ply" | grep -q ply
 check "-o /dev/stdout writes the mesh to stdout" 0 $?
 $C1MESH fit "$work/same.ply" -o "$work/x.xyz" 2> "$work/err"
-check "unsupported output extension fails" 1 $?
+check "unsupported output extension is a usage error" 2 $?
 if ls -A "$work" | grep -q '\.tmp$'; then false; else true; fi
 check "no temporary files are left" 0 $?
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from c1mesh.cli import main
+from c1mesh.cli import main, usage_error
 from c1mesh.formats import read_cloud
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -270,3 +270,119 @@ def test_completion_files_are_current(shell):
            "COMP_CWORD": "2"}
     offered = subprocess.run([str(exe)], env=env, capture_output=True, timeout=60).stdout
     assert b"--level" in offered
+
+
+# ------------------------------------------------------------------- usage errors: one line
+_USAGE_CASES = {
+    "level 0": (["fit", "IN.ply", "-o", "OUT.ply", "--level", "0"], ["'--level'"]),
+    "no -o": (["fit", "IN.ply"], ["give -o OUTPUT"]),
+    "classes on a PLY": (["fit", "IN.ply", "-o", "OUT.ply", "--classes", "2"], ["--classes needs LAS/LAZ"]),
+    "slope with a mesh output": (["fit", "IN.laz", "-o", "OUT.ply", "--slope", "SLOPE.tif"],
+                                 ["need --resolution", "come with a DEM: give -o DEM.tif"]),
+    "slope not a tif, no resolution": (["fit", "IN.laz", "-o", "OUT.tif", "--slope", "SLOPE.ply"],
+                                       ["need --resolution", "'SLOPE.ply' must be a GeoTIFF"]),
+    "unsupported output": (["fit", "IN.ply", "-o", "OUT.xyz", "--ascii"],
+                           ["Unsupported output format 'xyz'", "--ascii applies to PLY output only"]),
+    "several inputs to -o": (["fit", "IN.ply", "IN2.ply", "-o", "OUT.ply"], ["several inputs need -O"]),
+    "unknown command": (["frobnicate"], ["No such command 'frobnicate'"]),
+    "preview not a PNG": (["preview", "IN.tif", "-o", "OUT.jpg"], ["must be a .png file"]),
+}
+
+
+@pytest.mark.parametrize("case", list(_USAGE_CASES))
+def test_usage_errors_are_one_line_and_exit_2_before_any_input_is_read(tmp_path, case):
+    """cli/README.md: a usage error is one `c1mesh: error:` line, exit 2, nothing written;
+    conflicting options are all named in that line. The inputs do not exist, so an error
+    about them would show that they were looked at before the command line was checked."""
+    args, words = _USAGE_CASES[case]
+    names = {"IN.ply": "missing.ply", "IN2.ply": "missing2.ply", "IN.laz": "missing.laz",
+             "OUT.ply": "out.ply", "OUT.tif": "out.tif", "OUT.xyz": "out.xyz", "SLOPE.tif": "slope.tif",
+             "SLOPE.ply": "slope.ply", "IN.tif": "missing.tif", "OUT.jpg": "out.jpg"}
+    argv = [str(tmp_path / names[a]) if a in names else a for a in args]
+    proc = run(*argv)
+    assert proc.returncode == 2, proc.stderr
+    assert_one_line_error(proc.stderr)
+    line = proc.stderr.decode().strip()
+    for word in words:
+        assert word.replace("SLOPE.ply", str(tmp_path / "slope.ply")) in line, line
+    assert "does not exist" not in line and list(tmp_path.iterdir()) == []
+    assert usage_error(argv) == line.replace("python -m c1mesh.cli", "c1mesh")   # the public check agrees
+
+
+def test_usage_error_is_none_for_good_command_lines(tmp_path):
+    assert usage_error(["fit", "scan.ply", "-o", "mesh.ply", "--level", "2"]) is None
+    assert usage_error(["fit", "tile.laz", "--classes", "2", "-o", "dem.tif", "--resolution", "1",
+                        "--slope", "slope.tif", "--preview", "p.png"]) is None
+    assert usage_error(["fit", "--help"]) is None and usage_error(["info", "scan.ply"]) is None
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------- one list of formats
+def _option_help(command, name: str) -> str:
+    return next(p.help for p in command.params if p.name == name)
+
+
+def test_help_and_errors_list_exactly_the_registry_formats():
+    """-o's help, --input-format's help (fit and info) and the unsupported-format errors name
+    the formats of c1mesh.outputs, which c1mesh.formats and c1mesh.raster read and write."""
+    import re
+
+    from c1mesh import formats, raster
+    from c1mesh.cli import fit, info
+    from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS
+
+    assert formats.SUPPORTED_INPUT == INPUT_FORMATS and formats.SUPPORTED_OUTPUT == MESH_FORMATS
+    assert OUTPUT_FORMATS == MESH_FORMATS + RASTER_FORMATS
+    assert raster.RASTER_SUFFIXES == tuple("." + f for f in RASTER_FORMATS)
+    assert tuple(re.findall(r"\.([a-z]+)\b", _option_help(fit, "output"))) == OUTPUT_FORMATS
+    for command in (fit, info):
+        listed = re.search(r"\(([a-z, ]+)\)", _option_help(command, "input_format")).group(1)
+        assert tuple(listed.split(", ")) == INPUT_FORMATS
+
+    def supported(message: str) -> tuple[str, ...]:
+        return tuple(re.search(r"supported: ([a-z, ]+)", message).group(1).split(", "))
+    assert supported(usage_error(["fit", "a.ply", "-o", "b.xyz"])) == OUTPUT_FORMATS
+    assert supported(usage_error(["fit", "a.e57", "--input-format", "e57", "-o", "b.ply"])) == INPUT_FORMATS
+
+
+def test_readmes_list_exactly_the_registry_formats():
+    """README.md's 'in'/'out' lists and cli/README.md's --input-format row and output
+    paragraph name the registry's formats, no more, no fewer."""
+    import re
+
+    from c1mesh.outputs import INPUT_FORMATS, OUTPUT_FORMATS
+
+    readme = (ROOT / "README.md").read_text()
+    read_in = re.search(r"# ([A-Z/]+) in\b", readme).group(1)
+    written = re.search(r"; ([a-z ]+) out\b", readme).group(1)
+    assert tuple(read_in.lower().split("/")) == INPUT_FORMATS
+    assert tuple(written.split()) == OUTPUT_FORMATS
+    reference = (ROOT / "cli" / "README.md").read_text()
+    row = next(line for line in reference.splitlines() if line.startswith("| `--input-format FMT`"))
+    meaning = row.split("|")[3]
+    assert tuple(re.match(r" `([a-z ]+)`", meaning).group(1).split()) == INPUT_FORMATS
+    paragraph = reference[reference.index("Output formats by extension:"):reference.index("What each format keeps")]
+    assert tuple(re.findall(r"`\.([a-z]+)`", paragraph)) == OUTPUT_FORMATS
+
+
+# ------------------------------------------------------------------- --scheduler, in memory
+@pytest.mark.parametrize("survey", [False, True], ids=["one file", "--seamless -o"])
+def test_scheduler_for_a_fit_in_memory_fits_here_with_a_note(tmp_path, survey):
+    """README: `fit BIG.laz ... -o big.ply --memory 2G --scheduler ADDR`. When the input fits
+    in memory there are no tiles to send: the fit runs here, writes what a run without
+    --scheduler writes, prints one `c1mesh: note:` line and says so in the report."""
+    distributed = pytest.importorskip("distributed")
+    args = ["fit", str(SAMPLES / "4_6_crop.las"), "--classes", "2", "--level", "2", "--memory", "2G"]
+    args += ["--seamless"] if survey else []
+    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "here.ply")])
+    assert here.exit_code == 0, here.output
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        sent = CliRunner().invoke(main, args + ["-o", str(tmp_path / "big.ply"), "--scheduler",
+                                                cluster.scheduler_address, "--report", str(tmp_path / "r.json")])
+    assert sent.exit_code == 0, sent.output
+    notes = [line for line in sent.stderr.splitlines() if line.startswith("c1mesh: note: ")]
+    assert len(notes) == 1 and "--scheduler not used" in notes[0], sent.stderr
+    assert "c1mesh: error" not in sent.stderr
+    assert json.loads((tmp_path / "r.json").read_text())["scheduler"].startswith("not used: ")
+    assert (tmp_path / "big.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()

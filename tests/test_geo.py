@@ -149,21 +149,23 @@ def test_crs_from_a_prj_file(tmp_path):
 
 
 # --------------------------------------------------------------------- fail before work
-@pytest.mark.parametrize("args, words", [
-    (["-o", "{tmp}/x.ply", "--crs", "EPSG:99999999"], "cannot parse the CRS"),
-    (["-o", "{tmp}/x.dem"], "Unsupported output format 'dem'"),
-    (["-o", "{tmp}/missing/x.tif", "--resolution", "1"], "does not exist"),
-    (["-o", "{tmp}/x.tif"], "need --resolution"),
-    (["-o", "{tmp}/x.ply", "--slope", "{tmp}/s.tif", "--resolution", "1"], "come with a DEM"),
-    (["-o", "{tmp}/x.tif", "--resolution", "1", "--slope", "{tmp}/s.png"], "must be a GeoTIFF"),
-    (["-o", "{tmp}/x.tif", "--resolution", "1", "--preview", "{tmp}/p.jpg"], "must be a .png"),
-    (["-o", "{tmp}/x.tif", "--resolution", "1", "--axis", "x"], "--axis x cannot be used"),
+@pytest.mark.parametrize("args, code, words", [
+    (["-o", "{tmp}/x.ply", "--crs", "EPSG:99999999"], 1, "cannot parse the CRS"),
+    (["-o", "{tmp}/x.dem"], 2, "Unsupported output format 'dem'"),
+    (["-o", "{tmp}/missing/x.tif", "--resolution", "1"], 1, "does not exist"),
+    (["-o", "{tmp}/x.tif"], 2, "need --resolution"),
+    (["-o", "{tmp}/x.ply", "--slope", "{tmp}/s.tif", "--resolution", "1"], 2, "come with a DEM"),
+    (["-o", "{tmp}/x.tif", "--resolution", "1", "--slope", "{tmp}/s.png"], 2, "must be a GeoTIFF"),
+    (["-o", "{tmp}/x.tif", "--resolution", "1", "--preview", "{tmp}/p.jpg"], 2, "must be a .png"),
+    (["-o", "{tmp}/x.tif", "--resolution", "1", "--axis", "x"], 2, "--axis x cannot be used"),
 ])
-def test_bad_outputs_fail_before_the_input_is_read(tmp_path, args, words):
+def test_bad_outputs_fail_before_the_input_is_read(tmp_path, args, code, words):
+    """Conflicts the command line alone shows are usage errors (exit 2); a bad CRS or a
+    missing directory exit 1; all before the input is read."""
     # the input does not exist: an error about it would mean the input was looked at first
     argv = ["fit", str(tmp_path / "no-such-input.las")] + [a.format(tmp=tmp_path) for a in args]
     done = CliRunner().invoke(main, argv)
-    assert done.exit_code == 1 and words in done.output, done.output
+    assert done.exit_code == code and words in done.output, done.output
     assert list(tmp_path.iterdir()) == []
 
 

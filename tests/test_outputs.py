@@ -199,7 +199,7 @@ def _blocking_input(tmp_path: Path) -> Path:
 
 
 @pytest.mark.parametrize("args, code, message", [
-    (["-o", "OUT.xyz"], 1, "Unsupported output format 'xyz'"),
+    (["-o", "OUT.xyz"], 2, "Unsupported output format 'xyz'"),
     (["-o", "NODIR/o.ply"], 1, "does not exist"),
     (["-o", "OUT.ply", "--report", "NODIR/r.json"], 1, "does not exist"),
     (["-o", "OUT.obj", "--ascii"], 2, "--ascii applies to PLY output only"),

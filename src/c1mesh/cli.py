@@ -2,13 +2,17 @@
 
 Exit codes (cli/README.md): 0 success, 1 failure, 2 usage error, 3 batch where some
 inputs failed, 128+N killed by signal N (SIGINT 130, SIGTERM 143, SIGHUP 129). Errors
-are one line on stderr; --debug shows the traceback. Progress goes to stderr only when
+are one line on stderr; --debug shows the traceback. A usage error is everything the
+command line shows on its own (values, conflicting options, output extensions): all of
+its problems are named in that one line, before any input is read (`usage_error`). Progress goes to stderr only when
 stderr is a terminal. Every output path is checked (c1mesh.outputs) before any input is
 read. Nothing heavy (numpy, scipy, open3d) is imported until a command runs, so --help
 and usage errors are quick.
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import os
@@ -17,12 +21,14 @@ import sys
 import traceback
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 import click
 
 from c1mesh import __version__
 from c1mesh.errors import C1MeshError, InputError
-from c1mesh.outputs import STDIO, Outputs, mesh_format, plan_outputs, remove_live_temps
+from c1mesh.outputs import (INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO, Outputs,
+                            mesh_format, plan_outputs, remove_live_temps)
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -81,6 +87,15 @@ def _parse_bounds(ctx, param, value):
         raise click.BadParameter(str(exc))
 
 
+def _extensions(formats) -> str:
+    """Formats as the extensions a user types: '.ply .obj'."""
+    return " ".join(f".{fmt}" for fmt in formats)
+
+
+_OUTPUT_HELP = (f"Output: a mesh ({_extensions(MESH_FORMATS)}) or a GeoTIFF DEM ({_extensions(RASTER_FORMATS)}, "
+                "with --resolution), or - for binary PLY on stdout.")
+_INPUT_FORMAT_HELP = (f"Input format ({', '.join(INPUT_FORMATS)}) [default: the file's extension]; "
+                      "required for stdin (-).")
 _MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
                 "are refused [default: half the RAM, at most 8G]. With fit, a LAS/LAZ file whose "
                 "points need more (1.8 kB per point) is fitted in tiles (estimated normals, long-edge trim).")
@@ -132,6 +147,180 @@ def _check_axis(value: str) -> None:
                                  param_hint="'--axis'")
 
 
+_DEM_AXES = ("auto", "z", "+z")
+"""--axis values a GeoTIFF output allows (as c1mesh.raster.raster_axis: a DEM is z over x, y)."""
+_LAS_FORMATS = ("las", "laz", "copc")
+
+
+def _extension(path: str) -> str:
+    """The lower-case extension of an output path without its dot ('' for none); stdout is PLY."""
+    return "ply" if path == STDIO else Path(path).suffix.lower().lstrip(".")
+
+
+def _output_paths(params: dict) -> list[str]:
+    """The mesh or DEM outputs a fit command line names: -o, or each input's path under -O."""
+    if params["output_dir"]:
+        return [str(Path(params["output_dir"]) / (("stdin" if src == STDIO else Path(src).stem) + params["suffix"]))
+                for src in params["inputs"]]
+    return [params["output"]] if params["output"] else []
+
+
+def _input_format_problems(input_format: str | None) -> list[str]:
+    if input_format and input_format.lower().lstrip(".") not in INPUT_FORMATS:
+        return [f"Unsupported input format '{input_format}' for --input-format; supported: "
+                f"{', '.join(INPUT_FORMATS)}"]
+    return []
+
+
+def _value_problems(params: dict) -> list[str]:
+    """Option values that are wrong whatever the inputs and the other options."""
+    problems = _input_format_problems(params["input_format"])
+    for hint, parse, value in (("--classes", _parse_classes, params["classes"]),
+                               ("--max-edge", _parse_max_edge, params["max_edge"]),
+                               ("--intrinsics", _parse_intrinsics, params["intrinsics"]),
+                               ("--axis", _check_axis, params["axis"])):
+        try:
+            parse(value)
+        except click.BadParameter as exc:
+            exc.param_hint = exc.param_hint or f"'{hint}'"
+            problems.append(exc.format_message())
+    resolution = params["resolution"]
+    if resolution is not None and not (resolution > 0 and math.isfinite(resolution)):
+        problems.append(f"--resolution must be a positive finite length, got {resolution}")
+    return problems
+
+
+def _io_problems(params: dict, outputs: list[str]) -> list[str]:
+    """Inputs and outputs that do not fit together: stdin, -o against -O, clashing -O names."""
+    inputs, output, output_dir, seamless = (params[k] for k in ("inputs", "output", "output_dir", "seamless"))
+    problems = []
+    if STDIO in inputs:
+        if seamless:
+            problems.append("--seamless reads files, not stdin (-)")
+        elif len(inputs) > 1:
+            problems.append("stdin (-) can only be the single input")
+        elif not params["input_format"]:
+            problems.append("reading stdin (-) needs --input-format")
+    if output and output_dir:
+        problems.append("use either -o/--output or -O/--output-dir")
+    elif not output and not output_dir:
+        problems.append("give -o OUTPUT (one mesh of the survey) or -O DIR (one mesh per input)" if seamless
+                        else "give -o OUTPUT (or -O DIR for several inputs)")
+    elif output and len(inputs) > 1 and not seamless:
+        problems.append("several inputs need -O/--output-dir, not -o (or --seamless -o for one mesh of all)")
+    clash = sorted({dst for dst in outputs if outputs.count(dst) > 1})
+    if clash:
+        problems.append(f"several inputs would write the same output {clash[0]}; rename them or run them "
+                        "separately")
+    return problems
+
+
+def _format_problems(params: dict, outputs: list[str]) -> list[str]:
+    """Output extensions c1mesh does not write, and options the formats cannot take."""
+    problems = [f"Unsupported output format '{_extension(dst)}' for '{dst}'; supported: {', '.join(OUTPUT_FORMATS)}"
+                for dst in outputs if _extension(dst) and _extension(dst) not in OUTPUT_FORMATS]
+    if params["ascii_ply"]:
+        others = sorted({_extension(dst) for dst in outputs} - {"ply", ""})
+        if others:
+            problems.append(f"--ascii applies to PLY output only, not .{others[0]}")
+    if params["classes"]:
+        kinds = {(params["input_format"] or Path(src).suffix).lower().lstrip(".") for src in params["inputs"]
+                 if src != STDIO or params["input_format"]}
+        others = sorted(kinds - set(_LAS_FORMATS))
+        if others:
+            problems.append("--classes needs LAS/LAZ input (a classification field), not "
+                            f".{others[0] or '(no extension)'}")
+    return problems
+
+
+def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> list[str]:
+    """GeoTIFF and preview options against the outputs, --resolution, --level and --axis."""
+    dems = [dst for dst in outputs if _extension(dst) in RASTER_FORMATS]
+    extras = {kind: params[kind] for kind in ("slope", "aspect", "hillshade") if params[kind]}
+    resolution, preview = params["resolution"], params["preview"]
+    if params["seamless"] and params["output_dir"] and (resolution is not None or extras or preview):
+        return ["--resolution, --slope, --aspect, --hillshade and --preview make one survey-wide output: "
+                "use them with --seamless -o, not -O"]
+    if len(params["inputs"]) > 1 and not params["seamless"] and (extras or preview):
+        return ["--slope, --aspect, --hillshade and --preview name one file: use them with a single input"]
+    problems = []
+    if resolution is not None and level_given:
+        problems.append("give either --level or --resolution, not both")
+    if (dems or extras) and resolution is None:
+        problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade) need --resolution")
+    if extras and not dems:
+        problems.append("--slope, --aspect and --hillshade come with a DEM: give -o DEM.tif")
+    problems += [f"the {kind} raster '{path}' must be a GeoTIFF (.tif or .tiff)"
+                 for kind, path in extras.items() if _extension(path) not in RASTER_FORMATS]
+    if preview and Path(preview).suffix.lower() != ".png":
+        problems.append(f"the preview '{preview}' must be a .png file")
+    if params["frame_kind"] == "perspective" and (dems or extras):   # geo loads numpy: only here
+        from c1mesh.geo import dem_frame_error
+        problems.append(dem_frame_error("perspective", dems, *(params[k] for k in ("slope", "aspect", "hillshade"))))
+    if (dems or extras) and params["axis"].strip().lower() not in _DEM_AXES:
+        problems.append(f"a DEM is heights over the world XY plane; --axis {params['axis']} cannot be used "
+                        "with GeoTIFF outputs (use --axis z or auto)")
+    return problems
+
+
+def _fit_usage_problems(ctx: click.Context) -> list[str]:
+    """Everything wrong with a `fit` command line that the command line alone shows, all
+    at once, so that one run names the whole fix (exit 2). Reads no input; the file system
+    (missing directories, outputs equal to inputs) is checked later (exit 1)."""
+    from click.core import ParameterSource
+
+    params = ctx.params
+    outputs = _output_paths(params)
+    level_given = ctx.get_parameter_source("level") != ParameterSource.DEFAULT
+    return (_value_problems(params) + _io_problems(params, outputs) + _format_problems(params, outputs)
+            + _raster_problems(params, outputs, level_given))
+
+
+def _info_usage_problems(ctx: click.Context) -> list[str]:
+    """What is wrong with an `info` command line on its own (exit 2)."""
+    problems = _input_format_problems(ctx.params["input_format"])
+    if ctx.params["path"] == STDIO and not ctx.params["input_format"]:
+        problems.append("reading stdin (-) needs --input-format")
+    return problems
+
+
+def _preview_usage_problems(ctx: click.Context) -> list[str]:
+    """What is wrong with a `preview` command line on its own (exit 2)."""
+    output = ctx.params["output"]
+    return [] if Path(output).suffix.lower() == ".png" else [f"the preview '{output}' must be a .png file"]
+
+
+_USAGE_CHECKS = {"fit": _fit_usage_problems, "info": _info_usage_problems, "preview": _preview_usage_problems}
+"""Per command: every problem its command line shows on its own, checked before any work."""
+
+
+def _check_usage(ctx: click.Context) -> None:
+    """Raise one UsageError naming every problem of the command line (exit 2)."""
+    problems = _USAGE_CHECKS[ctx.command.name](ctx)
+    if problems:
+        raise click.UsageError("; ".join(problems), ctx=ctx)
+
+
+def usage_error(argv: Sequence[str]) -> str | None:
+    """The one line `c1mesh ARGV...` prints for a usage error (it then exits 2), or None
+    when the command line is well formed. Only parses and checks the arguments: reads no
+    input, writes nothing (the text of a --help or --version in argv is discarded)."""
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            with main.make_context("c1mesh", list(argv)) as ctx:
+                name, command, rest = main.resolve_command(ctx, [*ctx._protected_args, *ctx.args])
+                with command.make_context(name, rest, parent=ctx) as sub:
+                    if name in _USAGE_CHECKS:
+                        _check_usage(sub)
+    except click.exceptions.Exit:
+        return None
+    except click.exceptions.NoArgsIsHelpError:     # bare `c1mesh` prints the help and exits 2
+        return f"c1mesh: error: give a command ({', '.join(main.commands)}); see 'c1mesh --help'"
+    except click.UsageError as exc:
+        return _usage_line(exc)
+    return None
+
+
 def _stderr_is_terminal() -> bool:
     try:
         return os.isatty(sys.stderr.fileno())
@@ -139,8 +328,38 @@ def _stderr_is_terminal() -> bool:
         return False
 
 
+def _usage_line(exc: click.UsageError) -> str:
+    """A usage error as the one line cli/README.md promises: `c1mesh: error: ...`, with
+    the command whose --help lists the options."""
+    text = " ".join(exc.format_message().split()).rstrip(".")
+    where = exc.ctx.command_path if exc.ctx is not None else "c1mesh"
+    return f"c1mesh: error: {text}; see '{where} --help'"
+
+
 class _Group(click.Group):
-    """A click group whose unexpected failures are still one line on stderr and exit 1."""
+    """A click group whose usage errors are one line on stderr and exit 2, and whose
+    unexpected failures are one line and exit 1."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        """click's main, except that a usage error prints one line instead of click's
+        Usage/Try/Error block (a caller passing standalone_mode=False gets click's exceptions)."""
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as exc:    # bare `c1mesh`: the help, as click shows it
+            exc.show()
+            sys.exit(exc.exit_code)
+        except click.UsageError as exc:
+            click.echo(_usage_line(exc), err=True)
+            sys.exit(EXIT_USAGE)
+        except click.ClickException as exc:
+            click.echo(f"c1mesh: error: {' '.join(exc.format_message().split())}", err=True)
+            sys.exit(exc.exit_code)
+        except click.exceptions.Abort:
+            click.echo("c1mesh: error: aborted", err=True)
+            sys.exit(EXIT_FAILURE)
+        sys.exit(code if isinstance(code, int) else EXIT_OK)
 
     def invoke(self, ctx):
         previous = {sig: signal.signal(sig, _interrupted) for sig in _SIGNALS}
@@ -206,11 +425,12 @@ def main() -> None:
 # ---------------------------------------------------------------------------------- fit
 @main.command()
 @click.argument("inputs", nargs=-1, required=True)
-@click.option("-o", "--output", help="Output mesh (.ply .obj .stl .off .glb), or - for binary PLY on stdout.")
+@click.option("-o", "--output", help=_OUTPUT_HELP)
 @click.option("-O", "--output-dir", type=click.Path(file_okay=False),
               help="Directory for outputs of several inputs (each named input stem + --suffix).")
-@click.option("--suffix", default=".c1.ply", show_default=True, help="Output name suffix with -O.")
-@click.option("--input-format", help="Input format (ply, obj, xyz, txt, csv, pcd, las, laz, copc); required for stdin (-).")
+@click.option("--suffix", default=".c1.ply", show_default=True,
+              help="Output name suffix with -O; its extension picks the format, as for -o.")
+@click.option("--input-format", help=_INPUT_FORMAT_HELP)
 @click.option("--classes", help="Keep only these LAS classification codes, e.g. 2 or 2,9 (2 = ground).")
 @click.option("--normals", type=click.Choice(["auto", "file", "estimate"]), default="auto", show_default=True,
               help="auto: the file's normals if present, else estimated (Open3D).")
@@ -259,7 +479,8 @@ def main() -> None:
                    "joins its neighbours exactly (docs/tiles.md).")
 @click.option("--scheduler", help="With --seamless -O, or a fit larger than --memory: run the tiles on this "
                                   "Dask scheduler (tcp://HOST:PORT); for the latter its workers must see "
-                                  "the output's folder (the spill files).")
+                                  "the output's folder (the spill files). A fit within --memory runs here, "
+                                  "with a note.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary.")
 @click.option("-v", "--verbose", is_flag=True, help="Print a summary line per input on stderr.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
@@ -279,19 +500,12 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler,
         bounds):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
+    _check_usage(ctx)       # every usage error at once, before any input is read
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
-    _check_axis(axis)
-    if frame_kind == "perspective":     # GeoTIFFs of a depth frame, refused before any work (geo loads numpy)
-        from c1mesh.geo import dem_frame_error
-        if frame_error := dem_frame_error(frame_kind, [output, output_dir and "x" + suffix], slope, aspect, hillshade):
-            raise click.UsageError(frame_error)
-    if seamless or scheduler:
+    if seamless:
         from c1mesh.pipeline import FitOptions
 
-        if output_dir and (resolution is not None or slope or aspect or hillshade or preview):
-            raise click.UsageError("--resolution, --slope, --aspect, --hillshade and --preview make one "
-                                   "survey-wide output: use them with --seamless -o, not -O")
         options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
@@ -302,8 +516,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                       scheduler, quiet, debug)
         return
-    pairs = _plan(inputs, output, output_dir, suffix, input_format)
-    _check_conflicts(pairs, input_format, classes, ascii_ply)
+    pairs = _plan(inputs, output, output_dir, suffix)
     if scheme == "quintic" and not quiet:
         click.echo("c1mesh: warning: the quintic scheme does not reproduce planes and its normals "
                    "do not converge; use sextic unless you need the 2022 procedure", err=True)
@@ -323,9 +536,9 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
-        _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug, jobs)
+        _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug, jobs, scheduler)
         return
-    _fit_batch(pairs, targets[-1], options, report, jobs, quiet, verbose, debug)
+    _fit_batch(pairs, targets[-1], options, report, jobs, quiet, verbose, debug, scheduler)
 
 
 def _threads_per_process(threads: int | None, jobs: int) -> int:
@@ -337,41 +550,16 @@ def _threads_per_process(threads: int | None, jobs: int) -> int:
     return count
 
 
-def _plan(inputs, output, output_dir, suffix, input_format) -> list[tuple[str, str]]:
-    """(input, output) pairs; usage errors (exit 2) for inconsistent options."""
-    if len(inputs) > 1 and output:
-        raise click.UsageError("several inputs need -O/--output-dir, not -o")
-    if output and output_dir:
-        raise click.UsageError("use either -o/--output or -O/--output-dir")
-    if "-" in inputs and not input_format:
-        raise click.UsageError("reading stdin (-) needs --input-format")
-    if "-" in inputs and len(inputs) > 1:
-        raise click.UsageError("stdin (-) can only be the single input")
-    if output_dir:
-        pairs = [(src, str(Path(output_dir) / (("stdin" if src == "-" else Path(src).stem) + suffix)))
-                 for src in inputs]
-        outputs = [dst for _, dst in pairs]
-        clash = sorted({d for d in outputs if outputs.count(d) > 1})
-        if clash:
-            raise click.UsageError(f"several inputs would write the same output {clash[0]}; rename them "
-                                   "or run them separately")
-        return pairs
-    if not output:
-        raise click.UsageError("give -o OUTPUT (or -O DIR for several inputs)")
-    return [(inputs[0], output)]
+def _plan(inputs, output, output_dir, suffix) -> list[tuple[str, str]]:
+    """(input, output) pairs of a command line that passed _check_usage."""
+    params = {"inputs": inputs, "output": output, "output_dir": output_dir, "suffix": suffix}
+    return list(zip(inputs, _output_paths(params)))
 
 
 def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                   scheduler, quiet, debug) -> None:
     """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
-    if STDIO in inputs:
-        raise click.UsageError("--seamless reads files, not stdin (-)")
-    if output and output_dir:
-        raise click.UsageError("use either -o/--output or -O/--output-dir")
-    if not output and not output_dir:
-        raise click.UsageError("give -o OUTPUT (one mesh) or -O DIR (one mesh per input)")
-    pairs = _plan(inputs, None, output_dir, suffix, input_format) if output_dir else [(inputs[0], output)]
-    _check_conflicts(pairs, input_format, options.classes, options.ascii)
+    pairs = _plan(inputs, None, output_dir, suffix) if output_dir else [(inputs[0], output)]
     try:
         if options.crs:
             from dataclasses import replace
@@ -388,11 +576,14 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         _fail(_message(exc), debug)
-    from c1mesh.tiles import fit_seamless
+    from c1mesh.tiles import fit_seamless, survey_needs_tiles
 
     options.workers = _threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
     outputs = [d for _, d in pairs] if output_dir else None
+    unused = None
+    if scheduler is not None and not output_dir and not survey_needs_tiles(list(inputs), options):
+        scheduler, unused = None, _SCHEDULER_UNUSED.format(what="the survey")   # one fit, in this process
     try:
         if _stderr_is_terminal() and not quiet:
             progress, callbacks = _survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
@@ -402,7 +593,10 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
             result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs)
     except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
         _fail(_message(exc), debug)
+    if unused:
+        result["scheduler"] = unused
     _write_report(report, targets[-1], result, debug)
+    _note(result, quiet)
 
 
 def _stage_bar(length: int, label: str):
@@ -440,19 +634,11 @@ def _survey_progress(inputs, options, outputs: int):
 
 
 def _check_geo(ctx, jobs_list, options, debug):
-    """Georeferencing options checked before any input is read (c1mesh.geo.check_before):
-    conflicts are usage errors (exit 2), a bad CRS or unwritable path exit 1. Returns the
-    options with the CRS parsed to WKT."""
-    from click.core import ParameterSource
-
+    """Georeferencing options checked before any input is read (c1mesh.geo.check_before;
+    their conflicts are usage errors, found by _check_usage): a bad CRS or an unwritable
+    path exit 1. Returns the options with the CRS parsed to WKT."""
     from c1mesh.geo import check_before
 
-    if options.resolution is not None and ctx.get_parameter_source("level") != ParameterSource.DEFAULT:
-        raise click.UsageError("give either --level or --resolution, not both")
-    extras = (options.slope, options.aspect, options.hillshade, options.preview)
-    if len(jobs_list) > 1 and any(extras):
-        raise click.UsageError("--slope, --aspect, --hillshade and --preview name one file: "
-                               "use them with a single input")
     extra = [(label, path) for label, path in (("slope raster", options.slope),
                                                ("aspect raster", options.aspect),
                                                ("hillshade raster", options.hillshade),
@@ -463,18 +649,6 @@ def _check_geo(ctx, jobs_list, options, debug):
         return check_before([dst for _, dst in jobs_list], options)
     except C1MeshError as exc:
         _fail(_message(exc), debug)
-
-
-def _check_conflicts(pairs, input_format, classes, ascii_ply) -> None:
-    """Usage errors for options that cannot apply to these inputs and outputs."""
-    mesh_formats = {"ply" if dst == STDIO else Path(dst).suffix.lower().lstrip(".") for _, dst in pairs}
-    if ascii_ply and mesh_formats - {"ply"}:
-        raise click.UsageError(f"--ascii applies to PLY output only, not .{sorted(mesh_formats - {'ply'})[0]}")
-    if classes:
-        kinds = {(input_format or Path(src).suffix).lower().lstrip(".") for src, _ in pairs}
-        if kinds - {"las", "laz", "copc"}:
-            raise click.UsageError("--classes needs LAS/LAZ input (a classification field), not "
-                                   f".{sorted(kinds - {'las', 'laz', 'copc'})[0] or '(no extension)'}")
 
 
 def _check_outputs(pairs, report, output_dir):
@@ -511,20 +685,31 @@ def _check_stdout() -> None:
         raise InputError("Standard output is closed; c1mesh info prints its answer there.") from None
 
 
-def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None) -> dict:
+_SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one piece in this process "
+                     "(the scheduler runs the tiles of a larger fit, or of --seamless -O)")
+"""The report's `scheduler` when a --scheduler had no tiles to run; also the note on stderr."""
+
+
+def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, scheduler=None) -> dict:
     """Fit one input to one output (a path, or a file object then with options.output_format);
-    an input fitted in tiles runs them on `jobs` local processes."""
+    an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
+    processes. An input that fits in memory is fitted here, and a scheduler given for it is
+    recorded in the report as not used (the note `_note` prints)."""
     from c1mesh.pipeline import fit as fit_pipeline
     from c1mesh.tiled_fit import fit_tiled, needs_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
     if needs_tiles(source, options):          # larger than --memory allows: c1mesh.tiled_fit
         return fit_tiled(source, target, options, options.memory, on_stage=on_stage, jobs=jobs,
-                         on_tile=on_tile)
-    return fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
+                         on_tile=on_tile, scheduler=scheduler)
+    report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
+    if scheduler is not None:
+        report["scheduler"] = _SCHEDULER_UNUSED.format(what="the input")
+    return report
 
 
-def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int = 1) -> None:
+def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int = 1,
+             scheduler: str | None = None) -> None:
     """Fit one input; the mesh and the report are committed together, or neither is."""
     from dataclasses import replace
 
@@ -539,10 +724,11 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
 
     def run(target):
         if not show:
-            return _run(src, target, options, jobs=jobs)
+            return _run(src, target, options, jobs=jobs, scheduler=scheduler)
         with _stage_bar(len(STAGES), f"fitting {src}") as bar:
             return _run(src, target, options, on_stage=lambda name: bar.update(1, name), jobs=jobs,
-                        on_tile=lambda name, done, tiles: _caption(bar, f"{name}: tile {done} of {tiles}"))
+                        on_tile=lambda name, done, tiles: _caption(bar, f"{name}: tile {done} of {tiles}"),
+                        scheduler=scheduler)
     try:
         with Outputs() as outputs:
             if raster:      # c1mesh.raster writes the GeoTIFFs, each atomically
@@ -560,6 +746,7 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
         _fail(_message(exc), debug)
     if report == STDIO:
         click.echo(json.dumps(result, indent=2), err=True)
+    _note(result, quiet)
     _warn(result, quiet)
     if verbose and not quiet:
         click.echo(_summary(result), err=True)
@@ -596,6 +783,22 @@ def _summary(report: dict) -> str:
     return line
 
 
+def _note(report: dict, quiet: bool) -> None:
+    """One `c1mesh: note:` line on stderr (not with -q) when a --scheduler given was not
+    used: the user asked for the cluster and should know the work stayed here."""
+    used = report.get("scheduler")
+    if not quiet and isinstance(used, str) and used.startswith("not used"):
+        click.echo(f"c1mesh: note: {_input_name(report)}: --scheduler {used}", err=True)
+
+
+def _input_name(report: dict) -> str:
+    """The input(s) a report is about, for a message: one name, or the first and a count."""
+    names = report.get("input", report.get("inputs"))
+    if isinstance(names, (list, tuple)):
+        return names[0] if len(names) == 1 else f"{names[0]} and {len(names) - 1} more"
+    return str(names)
+
+
 def _warn(report: dict, quiet: bool) -> None:
     """The report's warnings on stderr, one line each (not with -q)."""
     if quiet:
@@ -622,15 +825,15 @@ def _write_report(report, target, payload, debug) -> None:
 
 
 def _batch_worker(args):
-    src, dst, options = args
+    src, dst, options, scheduler = args
     try:
-        return src, _run(src, dst, options), None
+        return src, _run(src, dst, options, scheduler=scheduler), None
     except Exception as exc:  # noqa: BLE001 — reported per file, the batch goes on
         return src, None, _message(exc)
 
 
-def _fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debug) -> None:
-    work = [(src, dst, options) for src, dst in pairs]
+def _fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debug, scheduler=None) -> None:
+    work = [(src, dst, options, scheduler) for src, dst in pairs]
     results = []
     show = _stderr_is_terminal() and not quiet
     if jobs > 1:
@@ -643,6 +846,7 @@ def _fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debu
         results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
     for _, rep, _ in results:
         if rep:
+            _note(rep, quiet)
             _warn(rep, quiet)
     failures = [(src, err) for src, _, err in results if err]
     _write_report(report, report_target,
@@ -671,7 +875,7 @@ def _collect(iterator, total, show, verbose):
 # ---------------------------------------------------------------------------------- info
 @main.command()
 @click.argument("path")
-@click.option("--input-format", help="Input format; required for stdin (-).")
+@click.option("--input-format", help=_INPUT_FORMAT_HELP)
 @click.option("--memory", callback=_parse_memory, help=_MEMORY_HELP)
 @click.option("--intrinsics", help="Depth images: the camera's fx,fy,cx,cy in pixels.")
 @click.option("--depth-scale", type=click.FloatRange(0, min_open=True), default=0.001, show_default=True,
@@ -681,8 +885,7 @@ def info(path, input_format, memory, intrinsics, depth_scale, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
     from c1mesh.inspect import describe
 
-    if path == "-" and not input_format:
-        raise click.UsageError("reading stdin (-) needs --input-format")
+    _check_usage(click.get_current_context())
     try:
         if path == STDIO:
             _check_stdin()
@@ -704,6 +907,7 @@ def preview(path, output, debug):
     from c1mesh.geo import check_preview_path
     from c1mesh.preview import render_file
 
+    _check_usage(click.get_current_context())
     try:
         check_preview_path(output)
         render_file(path, output)

@@ -47,6 +47,16 @@ STDIO = "-"
 MESH_FORMATS = ("ply", "obj", "stl", "off", "glb")
 """Mesh file extensions c1mesh writes (the writers are in c1mesh.formats)."""
 
+RASTER_FORMATS = ("tif", "tiff")
+"""GeoTIFF DEM extensions c1mesh writes (c1mesh.raster; a fit needs --resolution for them)."""
+
+OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
+"""Every output extension of `c1mesh fit`: the one list behind its help, errors and docs."""
+
+INPUT_FORMATS = ("ply", "obj", "xyz", "txt", "csv", "pcd", "las", "laz", "copc", "png", "tif", "tiff")
+"""Input format names (--input-format, and file extensions; COPC files end in .laz): the
+readers registered in c1mesh.formats, which checks that it reads exactly these."""
+
 WRITE_BEHIND = 64 << 20
 """Bytes written between two requests to start the kernel's writeback."""
 

@@ -26,8 +26,9 @@ import numpy as np
 
 from c1mesh import rsd
 from c1mesh.errors import DependencyError, InputError
+from c1mesh.outputs import RASTER_FORMATS
 
-RASTER_SUFFIXES = (".tif", ".tiff")
+RASTER_SUFFIXES = tuple(f".{fmt}" for fmt in RASTER_FORMATS)
 DEM_NODATA = -9999.0
 HILLSHADE_NODATA = 0
 BLOCK_ROWS = 256

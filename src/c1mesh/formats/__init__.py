@@ -27,7 +27,7 @@ from c1mesh.formats.obj import read_obj, write_obj
 from c1mesh.formats.pcd import read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
-from c1mesh.outputs import MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
+from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
 
 __all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
@@ -46,6 +46,7 @@ SUPPORTED_INPUT: tuple[str, ...] = tuple(_READERS)
 #: Output file extensions `write_mesh` understands (lower case, no dot).
 SUPPORTED_OUTPUT: tuple[str, ...] = tuple(_WRITERS)
 assert SUPPORTED_OUTPUT == MESH_FORMATS, "c1mesh.outputs.MESH_FORMATS must list the writers"
+assert SUPPORTED_INPUT == INPUT_FORMATS, "c1mesh.outputs.INPUT_FORMATS must list the readers"
 
 
 def _is_stream(obj: object) -> bool:
