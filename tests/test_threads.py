@@ -286,3 +286,16 @@ def test_cli_asks_openmp_for_the_same_share(tmp_path, monkeypatch, args, each):
                                        "--level", "1", *args])
     assert result.exit_code == 0, result.output
     assert os.environ["OMP_NUM_THREADS"] == each
+
+
+def test_limits_that_close_out_of_order_give_back_the_setting_before_them():
+    """Tiles fitted in two threads each open a limit; the first opened may close first."""
+    before, blas_before = threads.workers(), _blas()
+    first, second = threads.limit(2), threads.limit(1)
+    first.__enter__()
+    second.__enter__()
+    assert threads.workers() == 1 and set(_blas()) == {1}
+    first.__exit__(None, None, None)
+    assert threads.workers() == 1 and set(_blas()) == {1}      # the newest open block holds
+    second.__exit__(None, None, None)
+    assert threads.workers() == before and _blas() == blas_before

@@ -41,14 +41,27 @@ _DONE = object()
 
 
 _WORKERS: int | None = None
-"""The process-wide thread count set by set_workers / limit; None: available_cpus()."""
+"""The process-wide thread count set by set_workers; None: available_cpus()."""
+
+_OPEN_LIMITS: list[tuple[object, int]] = []
+"""(token, count) of every `limit` block open now, oldest first: the newest one is in force.
+A list, not a saved previous value, because blocks opened in two threads (tiles fitted in
+a thread pool) may close in any order."""
+
+_LIMITS_LOCK = threading.Lock()
+_BLAS_BEFORE_LIMITS = None
+"""threadpoolctl's limiter made when the first open block began; it restores BLAS's own
+setting when the last one ends."""
 
 
 def workers(requested: int | None = None) -> int:
     """Threads a c1mesh stage may use: `requested` when given (a per-call `workers=`
-    argument), else the process-wide setting, else the CPUs this process may use."""
+    argument), else the newest open `limit` block's, else set_workers', else the CPUs
+    this process may use."""
     if requested is not None:
         return _checked(requested)
+    if _OPEN_LIMITS:
+        return _OPEN_LIMITS[-1][1]
     return _WORKERS if _WORKERS is not None else available_cpus()
 
 
@@ -78,19 +91,35 @@ def set_workers(count: int | None) -> None:
 def limit(count: int | None) -> Iterator[int]:
     """Within the block every c1mesh pool, and BLAS, use at most `count` threads
     (None: leave the current setting); yields the count in force. The setting is
-    process-wide while the block runs (not per thread), like threadpoolctl's."""
-    global _WORKERS
+    process-wide while the block runs (not per thread), like threadpoolctl's; the newest
+    open block is in force, and blocks may close in any order."""
     if count is None:
         yield workers()
         return
-    count = _checked(count)
-    previous = _WORKERS
-    _WORKERS = count
+    token = object()
+    with _LIMITS_LOCK:
+        _OPEN_LIMITS.append((token, _checked(count)))
+        _follow_open_limits()
     try:
-        with blas_threads(count):
-            yield count
+        yield count
     finally:
-        _WORKERS = previous
+        with _LIMITS_LOCK:
+            _OPEN_LIMITS[:] = [entry for entry in _OPEN_LIMITS if entry[0] is not token]
+            _follow_open_limits()
+
+
+def _follow_open_limits() -> None:
+    """BLAS follows the newest open `limit` block; with none open, BLAS gets back the
+    setting it had before the first (called with _LIMITS_LOCK held)."""
+    global _BLAS_BEFORE_LIMITS
+    if _OPEN_LIMITS:
+        from threadpoolctl import ThreadpoolController   # a new one sees BLAS libraries loaded since (scipy's)
+        limiter = ThreadpoolController().limit(limits=_OPEN_LIMITS[-1][1], user_api="blas")
+        if _BLAS_BEFORE_LIMITS is None:
+            _BLAS_BEFORE_LIMITS = limiter
+    elif _BLAS_BEFORE_LIMITS is not None:
+        _BLAS_BEFORE_LIMITS.restore_original_limits()
+        _BLAS_BEFORE_LIMITS = None
 
 
 def per_process(total: int | None, processes: int) -> int:
