@@ -155,6 +155,12 @@ def _parse_property(words: list[str], bad: str) -> Prop:
 
 
 # ----------------------------------------------------------------------------- binary body
+def _count_field(index: int) -> str:
+    """Name of the count field of the list property at `index`. It holds a space, which a
+    PLY header's whitespace-separated property names cannot, so no property collides."""
+    return f"count of {index}"
+
+
 def _row_dtype(el: Element, endian: str, list_lengths: list[int]) -> np.dtype:
     """Structured dtype of one row, lists given fixed lengths (one per list property)."""
     fields, lengths = [], iter(list_lengths)
@@ -162,7 +168,7 @@ def _row_dtype(el: Element, endian: str, list_lengths: list[int]) -> np.dtype:
         if p.count_type is None:
             fields.append((p.name, endian + PLY_TYPES[p.type]))
         else:
-            fields.append((f"__count{i}", endian + PLY_TYPES[p.count_type]))
+            fields.append((_count_field(i), endian + PLY_TYPES[p.count_type]))
             fields.append((p.name, endian + PLY_TYPES[p.type], (next(lengths),)))
     return np.dtype(fields)
 
@@ -200,7 +206,7 @@ def _read_binary_element(el: Element, buf: bytes, offset: int, endian: str, name
     end = offset + el.count * dtype.itemsize
     if end <= len(buf):
         rows = np.frombuffer(buf, dtype, el.count, offset)
-        counts = [f for f in dtype.names if f.startswith("__count")]
+        counts = [_count_field(i) for i, p in enumerate(el.props) if p.count_type is not None]
         if all((rows[f] == n).all() for f, n in zip(counts, lengths)):
             return rows, end
     if not el.has_lists:
