@@ -840,6 +840,21 @@ def test_non_regular_input_is_capped_unless_memory_is_given(monkeypatch):
     assert stream.served > 3 << 20
 
 
+def test_stdin_from_a_regular_file_or_bytes_in_memory_is_not_capped(tmp_path, monkeypatch):
+    """Only what can be endless is capped: stdin redirected from a file and a BytesIO read
+    up to the budget, past STREAM_LIMIT (here 1 MiB)."""
+    import c1mesh.formats._limits as limits
+
+    monkeypatch.setattr(limits, "STREAM_LIMIT", 1 << 20)
+    path = tmp_path / "big.xyz"
+    path.write_bytes(b"1 2 3\n" * 400_000)                 # 2.3 MiB
+    with open(path, "rb") as stdin:
+        assert len(read_cloud(stdin, fmt="xyz")) == 400_000
+    assert len(read_cloud(io.BytesIO(path.read_bytes()), fmt="xyz")) == 400_000
+    with pytest.raises(FormatError, match="not a regular file and goes on past 1.0 MiB"):
+        read_cloud(io.BufferedReader(EndlessText()), fmt="xyz")
+
+
 @pytest.mark.parametrize("fmt, line, message", [
     ("ply", b"\x93garbage", "'endless' is not a PLY file"),
     ("xyz", b"\0", "'endless' contains binary data"),

@@ -19,7 +19,7 @@ import numpy as np
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
 from c1mesh.formats._common import decode_text
-from c1mesh.formats._limits import check_alloc, read_bounded, reading_budget
+from c1mesh.formats._limits import budget, check_alloc, read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
@@ -68,6 +68,19 @@ def _head_check(key: str, name: str) -> Callable[[bytes], None]:
         if key in ("xyz", "txt", "csv", "obj"):
             decode_text(head, name, "OBJ" if key == "obj" else "Point")
     return check
+
+
+def _limit_of_stream(stream: IO[bytes]) -> int | None:
+    """The reading budget for a stream that cannot be endless: a regular file (stdin
+    redirected from a file) or a BytesIO, already in memory; None (the cap of non-regular
+    inputs, formats._limits.stream_limit) for anything else (a pipe, a socket, a device)."""
+    if isinstance(stream, io.BytesIO):
+        return budget()
+    try:
+        info = os.fstat(stream.fileno())
+    except (AttributeError, OSError, ValueError):   # io.UnsupportedOperation is an OSError
+        return None
+    return budget() if stat.S_ISREG(info.st_mode) else None
 
 
 def _read_path(path: Path, key: str) -> bytes:
@@ -139,7 +152,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
                 raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
             key = format_key(fmt, name, SUPPORTED_INPUT, "input")
             try:
-                data = read_bounded(source, name, head_check=_head_check(key, name))
+                data = read_bounded(source, name, _limit_of_stream(source), _head_check(key, name))
             except OSError as exc:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         else:
