@@ -935,3 +935,28 @@ def test_ply_list_named_like_an_internal_field(tmp_path, list_name):
     cloud = read_cloud(path)
     np.testing.assert_array_equal(cloud.points, xyz)
     np.testing.assert_array_equal(cloud.extra["__count0x"], [5, 5, 5, 5])
+
+
+def test_depth_png_bomb_is_refused_before_decoding(monkeypatch):
+    """A small PNG claiming a big frame of zeros: its header size is checked against the
+    compression-ratio rule (SMALL_DECODE here 64 KiB) and the budget before the pixels are
+    decoded; --memory lifts the ratio rule."""
+    from PIL import Image
+
+    import c1mesh.formats._limits as limits
+    from c1mesh.formats.depth import read_depth
+
+    monkeypatch.setattr(limits, "SMALL_DECODE", 64 << 10)
+    buf = io.BytesIO()
+    Image.fromarray(np.zeros((500, 400), np.uint16)).save(buf, format="PNG")
+    data = buf.getvalue()
+    assert len(data) < 10_000                               # 400 kB of pixels from a few kB
+    intrinsics = (500.0, 500.0, 200.0, 250.0)
+    with pytest.raises(FormatError, match=r"the 400x500 image would decode .* decompression bomb"):
+        read_depth(data, "bomb.png", intrinsics)
+    with limits.reading_budget("8M"):                       # 200k pixels x 96 bytes > 8 MiB
+        with pytest.raises(FormatError, match="decoding the 400x500 image needs 18.3 MiB"):
+            read_depth(data, "bomb.png", intrinsics)
+    with limits.reading_budget("64M"):
+        cloud = read_depth(data, "bomb.png", intrinsics)
+    assert cloud.grid_shape == (500, 400) and np.isnan(cloud.points).all()

@@ -54,6 +54,10 @@ def _is_stream(obj: object) -> bool:
     return not isinstance(obj, (str, bytes, os.PathLike)) and (hasattr(obj, "read") or hasattr(obj, "write"))
 
 
+_TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")   # classic and BigTIFF, both byte orders
+_IMAGE_MAGIC = {"png": (b"\x89PNG\r\n\x1a\n",), "tif": _TIFF_MAGIC, "tiff": _TIFF_MAGIC}
+
+
 def _head_check(key: str, name: str) -> Callable[[bytes], None]:
     """A check of the first bytes of a stream read as format `key`: FormatError unless they
     start like such a file (the readers repeat the full check), so that a stream of garbage
@@ -67,6 +71,8 @@ def _head_check(key: str, name: str) -> Callable[[bytes], None]:
             raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with 'LASF'.")
         if key in ("xyz", "txt", "csv", "obj"):
             decode_text(head, name, "OBJ" if key == "obj" else "Point")
+        if key in _IMAGE_MAGIC and not head.startswith(_IMAGE_MAGIC[key]):
+            raise FormatError(f"'{name}' is not a {key.upper()} image: it does not start with its signature.")
     return check
 
 
@@ -83,11 +89,12 @@ def _limit_of_stream(stream: IO[bytes]) -> int | None:
     return budget() if stat.S_ISREG(info.st_mode) else None
 
 
-def _read_path(path: Path, key: str) -> bytes:
+def _read_path(path: Path, key: str | None = None) -> bytes:
     """All bytes of `path` within the reading budget; InputError for missing files and directories.
 
     A regular file larger than the budget is refused from its size; anything else (a FIFO,
-    /dev/zero, /dev/stdin) has its first 64 KiB checked to start like a `key` file, then is
+    /dev/zero, /dev/stdin) has its first 64 KiB checked to start like a `key` file (format
+    key, if given), then is
     read piece by piece and refused once it passes the limit of non-regular inputs
     (formats._limits.stream_limit: 256 MiB, or the budget with --memory).
     """
@@ -104,7 +111,7 @@ def _read_path(path: Path, key: str) -> bytes:
             check_alloc(info.st_size, str(path), "reading the file")
             return path.read_bytes()
         with open(path, "rb") as stream:
-            return read_bounded(stream, str(path), head_check=_head_check(key, str(path)))
+            return read_bounded(stream, str(path), head_check=key and _head_check(key, str(path)))
     except OSError as exc:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
