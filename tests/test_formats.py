@@ -960,3 +960,22 @@ def test_depth_png_bomb_is_refused_before_decoding(monkeypatch):
     with limits.reading_budget("64M"):
         cloud = read_depth(data, "bomb.png", intrinsics)
     assert cloud.grid_shape == (500, 400) and np.isnan(cloud.points).all()
+
+
+@pytest.mark.parametrize("kind", ["ply", "pcd"])
+def test_decoded_vertices_count_against_the_budget(tmp_path, kind):
+    """--memory bounds what a file decodes to, not only its size: 100k float32 points
+    (1.2 MB) become 4.8 MB of float64 points and normals, more than a 4 MiB budget."""
+    rows = np.random.default_rng(6).uniform(0, 1, (100_000, 3)).astype("<f4")
+    if kind == "ply":
+        head = b"ply\nformat binary_little_endian 1.0\nelement vertex 100000\n" + b"".join(
+            f"property float {c}\n".encode() for c in "xyz") + b"end_header\n"
+    else:
+        head = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100000\n"
+                b"HEIGHT 1\nPOINTS 100000\nDATA binary\n")
+    path = tmp_path / f"p.{kind}"
+    path.write_bytes(head + rows.tobytes())
+    with pytest.raises(FormatError, match=r"p\.%s': decoding the 100000 (vertices|points) needs 5.7 MiB, "
+                                          r"more than the reading budget of 4.0 MiB" % kind):
+        read_cloud(path, memory="4M")
+    np.testing.assert_array_equal(read_cloud(path, memory="8M").points, rows.astype(np.float64))

@@ -260,6 +260,9 @@ def _extra(header: Header, columns: list[np.ndarray], used: set[str]) -> dict[st
 def read_pcd(data: bytes, name: str) -> PointCloud:
     """Read a PCD file held in `data` (`name` is for messages)."""
     header, offset = _parse_header(data, name)
+    if header.data != "binary_compressed":   # (the compressed body checks its decoded size)
+        check_alloc(len(data) + header.points * _KEPT_BYTES_PER_POINT, name,
+                    f"decoding the {header.points} points")
     body = {"ascii": _ascii, "binary": _binary, "binary_compressed": _compressed}[header.data]
     cloud = _cloud(header, body(data, offset, header, name), name)
     _organisation(cloud, data, name)

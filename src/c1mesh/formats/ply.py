@@ -20,6 +20,7 @@ from c1mesh.errors import FormatError, InputError
 from c1mesh.crs import crs_from_ply_header, ply_comment
 from c1mesh.formats._background import background_writes
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
+from c1mesh.formats._limits import check_alloc
 
 #: PLY scalar type names (both spellings) -> numpy type code without byte order.
 PLY_TYPES = {
@@ -320,12 +321,18 @@ def _parse_ascii_rows(el: Element, lines: list[str], name: str) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- reader
+#: Bytes per vertex the reader builds besides the file's bytes: points and normals as float64.
+_KEPT_BYTES_PER_VERTEX = 48
+
+
 def read_ply(data: bytes, name: str) -> PointCloud:
     """Read the vertex element of a PLY file held in `data` (`name` is for messages)."""
     fmt, elements, offset = _parse_header(data, name)
     vertex_el = next((el for el in elements if el.name == "vertex"), None)
     if vertex_el is None:
         raise FormatError(f"PLY file '{name}' has no 'vertex' element.")
+    check_alloc(len(data) + vertex_el.count * _KEPT_BYTES_PER_VERTEX, name,
+                f"decoding the {vertex_el.count} vertices")
     if fmt == "ascii":
         rows = _ascii_vertices(elements, data, offset, name)
     else:
