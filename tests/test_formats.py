@@ -979,3 +979,18 @@ def test_decoded_vertices_count_against_the_budget(tmp_path, kind):
                                           r"more than the reading budget of 4.0 MiB" % kind):
         read_cloud(path, memory="4M")
     np.testing.assert_array_equal(read_cloud(path, memory="8M").points, rows.astype(np.float64))
+
+
+def test_pcd_head_check_accepts_any_start_of_a_real_header():
+    """The 64 KiB head of a PCD stream may be all comments or end inside a keyword; only a
+    line that is neither a comment nor a PCD keyword is refused."""
+    from c1mesh.formats.pcd import check_pcd_head
+
+    check_pcd_head(b"# comment\n" * 6000, "s.pcd")              # 60 kB of comments
+    check_pcd_head(b"# .PCD v0.7\nVERSION 0.7\nFIE", "s.pcd")
+    check_pcd_head(b"# .PCD v0.7\nVERS", "s.pcd")
+    for bad in (b"\x93\x01garbage", b"# c\nply\nformat ascii 1.0\n"):
+        with pytest.raises(FormatError, match="'s.pcd' is not a PCD file"):
+            check_pcd_head(bad, "s.pcd")
+    data = real("table_scene_mug_stereo_textured.pcd").read_bytes()
+    check_pcd_head(data[:64 << 10], "mug.pcd")

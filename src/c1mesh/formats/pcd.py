@@ -118,15 +118,17 @@ def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
 
 def check_pcd_head(head: bytes, name: str) -> None:
     """FormatError unless `head` (the first bytes of a stream) starts like a PCD header:
-    comment lines, then a line starting with a PCD keyword."""
-    for line in head.split(b"\n")[:-1] or [head]:
+    comment lines, then a line starting with a PCD keyword (a head of comments passes)."""
+    lines = head.split(b"\n")
+    for number, line in enumerate(lines, start=1):
         words = line.decode("latin-1").split()
         if not words or words[0].startswith("#"):
             continue
         if words[0].upper() in _KEYS:
             return
-        break
-    raise FormatError(f"'{name}' is not a PCD file: it does not start with a PCD header line.")
+        if number == len(lines) and len(words) == 1 and any(k.startswith(words[0].upper()) for k in _KEYS):
+            return   # a keyword cut off where the head ends
+        raise FormatError(f"'{name}' is not a PCD file: it does not start with a PCD header line.")
 
 
 # ----------------------------------------------------------------------------- bodies
