@@ -93,10 +93,10 @@ def _read_path(path: Path, key: str | None = None) -> bytes:
     """All bytes of `path` within the reading budget; InputError for missing files and directories.
 
     A regular file larger than the budget is refused from its size; anything else (a FIFO,
-    /dev/zero, /dev/stdin) has its first 64 KiB checked to start like a `key` file (format
-    key, if given), then is
-    read piece by piece and refused once it passes the limit of non-regular inputs
-    (formats._limits.stream_limit: 256 MiB, or the budget with --memory).
+    /dev/zero, a /dev/stdin that is a pipe) has its first 64 KiB checked to start like a
+    file of format `key` (if given), then is read piece by piece and refused once it
+    passes the limit of non-regular inputs (formats._limits.stream_limit: 256 MiB, or the
+    budget with --memory).
     """
     try:
         info = path.stat()
@@ -111,7 +111,7 @@ def _read_path(path: Path, key: str | None = None) -> bytes:
             check_alloc(info.st_size, str(path), "reading the file")
             return path.read_bytes()
         with open(path, "rb") as stream:
-            return read_bounded(stream, str(path), head_check=key and _head_check(key, str(path)))
+            return read_bounded(stream, str(path), head_check=_head_check(key, str(path)) if key else None)
     except OSError as exc:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
@@ -141,7 +141,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
     every point; the caller filters). `memory` (bytes or a size such as '4G'; default half
     the RAM, at most 8 GiB) bounds the bytes read and decoded: a header or stream that
     needs more is refused before allocating; without `memory`, a device, pipe or stream
-    may deliver at most 256 MiB and a compressed PCD body may not expand more than 24-fold
+    (not a regular file, not a BytesIO) may deliver at most 256 MiB and a compressed PCD body may not expand more than 24-fold
     past 16 MiB (formats._limits), limits that an explicit `memory` lifts. `bounds`
     (xmin, ymin, xmax, ymax; world units, closed) keeps only the points in that x/y box,
     in file order: a COPC file decodes only the octree nodes that meet it

@@ -9,7 +9,7 @@ FormatError naming the file and the field, before allocating.
 Two limits hold only while the user has not given --memory, because they refuse inputs
 that are possible but almost certainly hostile; an explicit --memory lifts them up to
 the budget:
-  - a non-regular input (a device, FIFO or stdin) may deliver at most STREAM_LIMIT
+  - a non-regular input (a device, FIFO, or stdin from a pipe) may deliver at most STREAM_LIMIT
     bytes, so /dev/zero or an endless pipe stops early, not at the budget;
   - a compressed body may decode to at most max(SANE_RATIO x its compressed size,
     SMALL_DECODE) bytes (`check_expansion`), so a small LZF bomb is refused before
@@ -21,14 +21,14 @@ import contextlib
 import contextvars
 import os
 import re
-from typing import IO, Iterator
+from typing import IO, Callable, Iterator
 
 from c1mesh.errors import FormatError, InputError
 
 _GIB = 1 << 30
 _BUDGET: contextvars.ContextVar[int | None] = contextvars.ContextVar("c1mesh_read_budget", default=None)
 _EXPLICIT: contextvars.ContextVar[bool] = contextvars.ContextVar("c1mesh_read_budget_given", default=False)
-#: Most bytes a device, FIFO or stdin may deliver unless --memory is given.
+#: Most bytes a device, FIFO or piped stdin may deliver unless --memory is given.
 STREAM_LIMIT = 256 << 20
 #: Most decoded bytes per compressed byte unless --memory is given. LZF can expand 88-fold
 #: (a run of zeros); point data compresses far less (the mug sample 2.9-fold, an organised
@@ -120,7 +120,7 @@ def check_expansion(packed: int, unpacked: int, name: str, what: str) -> None:
 
 
 def read_bounded(stream: IO[bytes], name: str, limit: int | None = None,
-                 head_check=None) -> bytes:
+                 head_check: Callable[[bytes], None] | None = None) -> bytes:
     """All bytes of a stream or non-regular file, FormatError past `limit` (`stream_limit()`).
 
     Read in 16 MiB pieces, so an endless source (/dev/zero) stops at the limit instead of
