@@ -9,10 +9,12 @@ from __future__ import annotations
 import functools
 import io
 import struct
+import time
 import warnings
 from pathlib import Path
 
 import laspy
+import lzf
 import numpy as np
 import open3d as o3d
 import pytest
@@ -23,7 +25,7 @@ from hypothesis import strategies as st
 from c1mesh.cloud import PointCloud, SurfaceMesh
 from c1mesh.errors import C1MeshError, DependencyError, FormatError, InputError
 from c1mesh.formats import SUPPORTED_INPUT, SUPPORTED_OUTPUT, atomic_output, read_cloud, write_mesh
-from c1mesh.formats.lzf import LZFError, lzf_decompress, lzf_decompress_python
+from c1mesh.formats.lzf import LZFError, lzf_decompress
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
@@ -349,24 +351,25 @@ def test_real_pcd_files_match_open3d():
     assert len(scene) == 307200 and int((~np.isnan(scene.points).any(axis=1)).sum()) == 209280
 
 
-@pytest.mark.parametrize("decode", [lzf_decompress, lzf_decompress_python], ids=["default", "python"])
-def test_lzf_overlapping_and_long_back_references(decode):
+def test_lzf_overlapping_and_long_back_references():
     # literal 'ab', then copy 5 from distance 2 (overlapping), then copy 9+2 from distance 1 (length byte)
     stream = bytes([1]) + b"ab" + bytes([(5 - 2) << 5, 1]) + bytes([7 << 5, 9 + 2 - 2 - 7, 0])
-    assert decode(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
+    assert lzf_decompress(stream, 2 + 5 + 11) == b"ab" + b"ababa" + b"a" * 11
     for bad, size in ((bytes([5]) + b"abc", 6),                    # literal run longer than the input
                       (bytes([0]) + b"a" + bytes([1 << 5, 9]), 4),  # reference before the start
-                      (stream, 2 + 5 + 10), (stream, 2 + 5 + 12)):  # decodes to another size
+                      (stream, 2 + 5 + 10), (stream, 2 + 5 + 12),   # decodes to another size
+                      (bytes([0]) + b"a", 0)):                      # data where nothing is promised
         with pytest.raises(LZFError):
-            decode(bad, size)
+            lzf_decompress(bad, size)
 
 
-def test_lzf_decoders_agree_on_a_real_compressed_body():
-    data = real("table_scene_mug_stereo_textured.pcd").read_bytes()
-    body = data.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
-    packed, unpacked = struct.unpack_from("<II", data, body)
-    stream = data[body + 8: body + 8 + packed]
-    assert bytes(lzf_decompress(stream, unpacked)) == bytes(lzf_decompress_python(stream, unpacked))
+def test_lzf_has_one_decoder_the_required_c_library():
+    """python-lzf is a required dependency, so there is no pure-Python fallback to keep in step."""
+    import c1mesh.formats.lzf as module
+
+    assert not [n for n in vars(module) if "python" in n.lower()]
+    payload = np.random.default_rng(5).integers(0, 4, 100_000, np.uint8).tobytes()
+    assert lzf_decompress(lzf.compress(payload), len(payload)) == payload
 
 
 # ============================================================================ LAS / LAZ
@@ -683,9 +686,25 @@ def test_30k_properties_are_refused_fast(tmp_path):
     assert time.perf_counter() - start < 2.0
 
 
+class EndlessText(io.RawIOBase):
+    """A binary stream of '1 2 3' lines that never ends; counts the bytes it served."""
+
+    def __init__(self, line: bytes = b"1 2 3\n"):
+        self.line, self.served, self.name = line, 0, "endless"
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        chunk = (self.line * (len(buffer) // len(self.line) + 1))[:len(buffer)]
+        buffer[:len(chunk)] = chunk
+        self.served += len(chunk)
+        return len(chunk)
+
+
 def test_reading_budget_bounds_files_and_endless_streams(tmp_path):
-    with pytest.raises(FormatError, match="'/dev/zero' goes on past the reading budget of 2.0 MiB"):
-        read_cloud("/dev/zero", fmt="xyz", memory="2M")
+    with pytest.raises(FormatError, match="'endless' goes on past the reading budget of 2.0 MiB"):
+        read_cloud(io.BufferedReader(EndlessText()), fmt="xyz", memory="2M")
     (tmp_path / "big.xyz").write_bytes(b"1 2 3\n" * 400_000)
     with pytest.raises(FormatError, match="big.xyz.*2.3 MiB, more than the reading budget of 1.0 MiB"):
         read_cloud(tmp_path / "big.xyz", memory=1 << 20)
@@ -828,3 +847,175 @@ def test_laspy_failures_always_say_why(raised, message):
     with pytest.raises(FormatError, match=f"'tile.laz'.*{message}"):
         with _laspy_errors("tile.laz"):
             raise raised
+
+
+def test_non_regular_input_is_capped_unless_memory_is_given(monkeypatch):
+    """Without --memory an endless stream stops at STREAM_LIMIT (here 1 MiB), not at the
+    budget; an explicit --memory lifts the cap to itself."""
+    import c1mesh.formats._limits as limits
+
+    monkeypatch.setattr(limits, "STREAM_LIMIT", 1 << 20)
+    stream = EndlessText()
+    with pytest.raises(FormatError, match="'endless' is not a regular file and goes on past 1.0 MiB"):
+        read_cloud(io.BufferedReader(stream), fmt="xyz")
+    assert stream.served <= (1 << 20) + (16 << 20)
+    stream = EndlessText()
+    with pytest.raises(FormatError, match="'endless' goes on past the reading budget of 3.0 MiB"):
+        read_cloud(io.BufferedReader(stream), fmt="xyz", memory="3M")
+    assert stream.served > 3 << 20
+
+
+def test_stdin_from_a_regular_file_or_bytes_in_memory_is_not_capped(tmp_path, monkeypatch):
+    """Only what can be endless is capped: stdin redirected from a file and a BytesIO read
+    up to the budget, past STREAM_LIMIT (here 1 MiB)."""
+    import c1mesh.formats._limits as limits
+
+    monkeypatch.setattr(limits, "STREAM_LIMIT", 1 << 20)
+    path = tmp_path / "big.xyz"
+    path.write_bytes(b"1 2 3\n" * 400_000)                 # 2.3 MiB
+    with open(path, "rb") as stdin:
+        assert len(read_cloud(stdin, fmt="xyz")) == 400_000
+    assert len(read_cloud(io.BytesIO(path.read_bytes()), fmt="xyz")) == 400_000
+    with pytest.raises(FormatError, match="not a regular file and goes on past 1.0 MiB"):
+        read_cloud(io.BufferedReader(EndlessText()), fmt="xyz")
+
+
+@pytest.mark.parametrize("fmt, line, message", [
+    ("ply", b"\x93garbage", "'endless' is not a PLY file"),
+    ("xyz", b"\0", "'endless' contains binary data"),
+    ("pcd", b"\x01\x02 3\n", "'endless' is not a PCD file"),
+    ("las", b"NOTLAS", "'endless' is not a LAS/LAZ file"),
+])
+def test_garbage_stream_fails_after_its_first_64_kib(fmt, line, message):
+    """A stream that does not start like its format is refused from its head, with the
+    reading budget far away: /dev/urandom as PLY, /dev/zero as text."""
+    stream = EndlessText(line)
+    with pytest.raises(FormatError, match=message):
+        read_cloud(io.BufferedReader(stream, buffer_size=4096), fmt=fmt, memory="1G")
+    assert stream.served <= 64 << 10
+
+
+@pytest.mark.parametrize("device, fmt, message", [("/dev/urandom", "ply", "not a PLY file"),
+                                                  ("/dev/zero", "xyz", "contains binary data")])
+def test_devices_fail_fast(device, fmt, message):
+    """Refused from the first 64 KiB, not at the budget (64M here: a regression reads that much
+    and fails with the budget's message instead)."""
+    start = time.perf_counter()
+    with pytest.raises(FormatError, match=message):
+        read_cloud(device, fmt=fmt, memory="64M")
+    assert time.perf_counter() - start < 2.0
+
+
+def _zero_pcd(points: int) -> bytes:
+    """A binary_compressed PCD of `points` points at the origin: LZF's 88-fold best case."""
+    packed = lzf.compress(bytes(12 * points))
+    head = (f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {points}\n"
+            f"HEIGHT 1\nPOINTS {points}\nDATA binary_compressed\n").encode()
+    return head + struct.pack("<II", len(packed), 12 * points) + packed
+
+
+def test_lzf_bomb_is_refused_before_decoding_unless_memory_is_given(tmp_path, monkeypatch):
+    """A body that expands more than SANE_RATIO-fold past SMALL_DECODE (here 1 MiB) is
+    refused without being decoded; --memory (the user vouching for the file) lifts that."""
+    import c1mesh.formats._limits as limits
+    import c1mesh.formats.pcd as pcd
+
+    monkeypatch.setattr(limits, "SMALL_DECODE", 1 << 20)
+    path = tmp_path / "bomb.pcd"
+    path.write_bytes(_zero_pcd(200_000))          # 2.4 MB from ~30 KB
+    decoded = []
+    monkeypatch.setattr(pcd, "lzf_decompress", lambda src, n: decoded.append(n) or lzf.decompress(src, n))
+    with pytest.raises(FormatError, match=r"bomb.pcd.*2.3 MiB \(\d\d-fold.*decompression bomb.*--memory"):
+        read_cloud(path)
+    assert decoded == []
+    cloud = read_cloud(path, memory="64M")
+    assert decoded == [2_400_000] and len(cloud) == 200_000 and not cloud.points.any()
+
+
+def test_lzf_bomb_within_small_decode_reads():
+    """Below SMALL_DECODE (16 MiB) any ratio is harmless and reads."""
+    cloud = read_cloud(io.BytesIO(_zero_pcd(100_000)), fmt="pcd")
+    assert len(cloud) == 100_000 and not cloud.points.any()
+
+
+def test_pcd_ascii_point_count_checked_against_the_body_size(tmp_path):
+    path = tmp_path / "lies.pcd"
+    path.write_bytes(b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1000000\n"
+                     b"HEIGHT 1\nPOINTS 1000000\nDATA ascii\n" + b"1 2 3\n" * 100)
+    with pytest.raises(FormatError, match="lies.pcd' is truncated: 600 data bytes for the 1000000 points"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("list_name", ["__count1", "f0"])
+def test_ply_list_named_like_an_internal_field(tmp_path, list_name):
+    """A list property may carry any name a header allows, also that of a count field
+    (the list at index 1 named '__count1' was "field occurs more than once")."""
+    xyz = np.arange(12, dtype="<f4").reshape(4, 3)
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\n"
+              f"property list uchar float {list_name}\nproperty float y\nproperty float z\n"
+              "property uchar __count0x\nend_header\n").encode()
+    rows = b"".join(struct.pack("<fBff", x, 2, 7.0, 8.0) + struct.pack("<ffB", y, z, 5) for x, y, z in xyz)
+    path = tmp_path / "clash.ply"
+    path.write_bytes(header + rows)
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud.points, xyz)
+    np.testing.assert_array_equal(cloud.extra["__count0x"], [5, 5, 5, 5])
+
+
+def test_depth_png_bomb_is_refused_before_decoding(monkeypatch):
+    """A small PNG claiming a big frame of zeros: its header size is checked against the
+    compression-ratio rule (SMALL_DECODE here 64 KiB) and the budget before the pixels are
+    decoded; --memory lifts the ratio rule."""
+    from PIL import Image
+
+    import c1mesh.formats._limits as limits
+    from c1mesh.formats.depth import read_depth
+
+    monkeypatch.setattr(limits, "SMALL_DECODE", 64 << 10)
+    buf = io.BytesIO()
+    Image.fromarray(np.zeros((500, 400), np.uint16)).save(buf, format="PNG")
+    data = buf.getvalue()
+    assert len(data) < 10_000                               # 400 kB of pixels from a few kB
+    intrinsics = (500.0, 500.0, 200.0, 250.0)
+    with pytest.raises(FormatError, match=r"the 400x500 image would decode .* decompression bomb"):
+        read_depth(data, "bomb.png", intrinsics)
+    with limits.reading_budget("8M"):                       # 200k pixels x 96 bytes > 8 MiB
+        with pytest.raises(FormatError, match="decoding the 400x500 image needs 18.3 MiB"):
+            read_depth(data, "bomb.png", intrinsics)
+    with limits.reading_budget("64M"):
+        cloud = read_depth(data, "bomb.png", intrinsics)
+    assert cloud.grid_shape == (500, 400) and np.isnan(cloud.points).all()
+
+
+@pytest.mark.parametrize("kind", ["ply", "pcd"])
+def test_decoded_vertices_count_against_the_budget(tmp_path, kind):
+    """--memory bounds what a file decodes to, not only its size: 100k float32 points
+    (1.2 MB) become 4.8 MB of float64 points and normals, more than a 4 MiB budget."""
+    rows = np.random.default_rng(6).uniform(0, 1, (100_000, 3)).astype("<f4")
+    if kind == "ply":
+        head = b"ply\nformat binary_little_endian 1.0\nelement vertex 100000\n" + b"".join(
+            f"property float {c}\n".encode() for c in "xyz") + b"end_header\n"
+    else:
+        head = (b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100000\n"
+                b"HEIGHT 1\nPOINTS 100000\nDATA binary\n")
+    path = tmp_path / f"p.{kind}"
+    path.write_bytes(head + rows.tobytes())
+    with pytest.raises(FormatError, match=r"p\.%s': decoding the 100000 (vertices|points) needs 5.7 MiB, "
+                                          r"more than the reading budget of 4.0 MiB" % kind):
+        read_cloud(path, memory="4M")
+    np.testing.assert_array_equal(read_cloud(path, memory="8M").points, rows.astype(np.float64))
+
+
+def test_pcd_head_check_accepts_any_start_of_a_real_header():
+    """The 64 KiB head of a PCD stream may be all comments or end inside a keyword; only a
+    line that is neither a comment nor a PCD keyword is refused."""
+    from c1mesh.formats.pcd import check_pcd_head
+
+    check_pcd_head(b"# comment\n" * 6000, "s.pcd")              # 60 kB of comments
+    check_pcd_head(b"# .PCD v0.7\nVERSION 0.7\nFIE", "s.pcd")
+    check_pcd_head(b"# .PCD v0.7\nVERS", "s.pcd")
+    for bad in (b"\x93\x01garbage", b"# c\nply\nformat ascii 1.0\n"):
+        with pytest.raises(FormatError, match="'s.pcd' is not a PCD file"):
+            check_pcd_head(bad, "s.pcd")
+    data = real("table_scene_mug_stereo_textured.pcd").read_bytes()
+    check_pcd_head(data[:64 << 10], "mug.pcd")

@@ -96,6 +96,11 @@ def crafted_ply() -> list[Case]:
         Case("ascii_short_row.ply", _ply(["element vertex 3", *_XYZ_PROPS], b"1 2 3\n4 5\n6 7 8\n", fmt="ascii")),
         Case("zero_vertices.ply", _ply(["element vertex 0", *_XYZ_PROPS])),
         Case("nan_vertices.ply", _ply(["element vertex 50", *_XYZ_PROPS], np.full((50, 3), np.nan, "<f4").tobytes())),
+        Case("list_named_like_a_count_field.ply", _ply(["element vertex 50", "property float x",
+                                                        "property list uchar float __count1", "property float y",
+                                                        "property float z"],
+                                                       b"".join(struct.pack("<fB", x, 0) + struct.pack("<ff", y, z)
+                                                                for x, y, z in pts.tolist()))),
         Case("huge_values.ply", _ply(["element vertex 50", "property double x", "property double y",
                                       "property double z"], (pts.astype("<f8") * 1e300).tobytes())),
     ]
@@ -120,6 +125,8 @@ def crafted_pcd() -> list[Case]:
                                           + bytes(1000))),
         Case("compressed_bomb.pcd", _pcd(1_000_000, "binary_compressed",
                                          struct.pack("<II", len(zeros), 12_000_000) + zeros)),
+        Case("compressed_bomb_3m.pcd", _pcd(3_000_000, "binary_compressed",    # 36 MB from ~420 KB
+                                            struct.pack("<II", 3 * len(zeros), 36_000_000) + zeros * 3)),
         Case("compressed_packed_past_end.pcd", _pcd(10, "binary_compressed", struct.pack("<II", 10**9, 120))),
         Case("compressed_garbage.pcd", _pcd(1000, "binary_compressed", struct.pack("<II", 4000, 12_000)
                                             + bytes(np.random.default_rng(2).integers(0, 256, 4000, np.uint8)))),
@@ -187,6 +194,10 @@ def crafted_text() -> list[Case]:
     rows = "".join(f"{a!r},{b!r},{c!r}\n" for a, b, c in zip(xy[:, 0], xy[:, 1], z))
     return [
         Case("dev_zero.xyz", path="/dev/zero", args=("--memory", "64M"), size=64 << 20),
+        # Garbage from a device fails from its first 64 KiB, not at --memory (512M here, so
+        # that reading up to it breaks the RSS bound of a zero-byte input).
+        Case("dev_zero_512m.xyz", path="/dev/zero", args=("--memory", "512M"), size=0),
+        Case("dev_urandom_512m.ply", path="/dev/urandom", args=("--memory", "512M"), size=0),
         Case("bom.csv", b"\xef\xbb\xbfx,y,z\n" + rows.encode()),
         Case("r_write_csv.csv", ('"","x","y","z"\n' + "".join(f'"{i}",{r}' for i, r in
                                                               enumerate(rows.splitlines(True)))).encode()),
@@ -432,3 +443,46 @@ def test_memory_option_is_checked_before_reading(tmp_path):
 
     result = CliRunner().invoke(main, ["info", "/dev/zero", "--input-format", "xyz", "--memory", "lots"])
     assert result.exit_code == 2 and "--memory must be a size" in result.output
+
+
+def test_standard_input_that_is_a_directory_is_one_error_line(tmp_path):
+    """CPython cannot start with a directory on stdin (a 4-line fatal error before any
+    Python code runs), so bin/c1mesh, the installed `c1mesh` command, checks for it and
+    otherwise runs c1mesh-python (here a stand-in beside it), also through a symlink."""
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    launcher = bindir / "c1mesh"
+    launcher.write_bytes((ROOT / "bin" / "c1mesh").read_bytes())
+    launcher.chmod(0o755)
+    stand_in = bindir / "c1mesh-python"
+    stand_in.write_text(f"#!{sys.executable}\nimport sys\nfrom c1mesh.cli import run\nsys.exit(run())\n")
+    stand_in.chmod(0o755)
+    (tmp_path / "link").symlink_to(launcher)
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    directory = os.open("/", os.O_RDONLY)
+    try:
+        fatal = subprocess.run([sys.executable, "-c", "pass"], stdin=directory, capture_output=True, timeout=60)
+        proc = subprocess.run([str(launcher), "fit", "-", "--input-format", "xyz", "-o", str(tmp_path / "x.ply")],
+                              stdin=directory, capture_output=True, timeout=60, env=env, cwd=tmp_path)
+    finally:
+        os.close(directory)
+    assert fatal.returncode != 0 and b"Fatal Python error" in fatal.stderr   # why the launcher exists
+    assert proc.returncode == 1
+    assert proc.stderr.decode().splitlines() == ["c1mesh: error: Input '<stdin>' is a directory, not a point file."]
+    assert not (tmp_path / "x.ply").exists()
+    with open(SAMPLES / "wave_tilted_offset.xyz", "rb") as stdin:
+        ok = subprocess.run([str(tmp_path / "link"), "info", "-", "--input-format", "xyz"], stdin=stdin,
+                            capture_output=True, timeout=120, env=env, cwd=tmp_path)
+    assert ok.returncode == 0, ok.stderr.decode()
+    assert json.loads(ok.stdout)["points"] == len(read_cloud_points(SAMPLES / "wave_tilted_offset.xyz"))
+    usage = subprocess.run([str(launcher), "fit"], capture_output=True, timeout=60, env=env)
+    assert b"Usage: c1mesh fit" in usage.stderr + usage.stdout
+    completion = subprocess.run([str(launcher)], capture_output=True, timeout=60,
+                                env=dict(env, _C1MESH_COMPLETE="bash_source"))
+    assert completion.stdout == (ROOT / "cli" / "completions" / "c1mesh.bash").read_bytes()
+
+
+def read_cloud_points(path: Path):
+    from c1mesh.formats import read_cloud
+
+    return read_cloud(path).points

@@ -427,3 +427,43 @@ def test_atomic_output_keeps_mode_and_writes_devices_straight(tmp_path):
     with pytest.raises(OutputError, match="No space left"):
         with atomic_output("/dev/full") as f:
             f.write(b"x" * 100_000)
+
+
+def _blocked_opening_a_fifo(pid: int) -> bool:
+    """True while process `pid` waits in open() for the other end of a FIFO (Linux)."""
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/wchan").read_text().strip() == "wait_for_partner"
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/wchan").exists(), reason="needs Linux /proc/PID/wchan")
+def test_a_killed_run_waiting_for_its_fifo_input_leaves_no_temp_file(tmp_path):
+    """The temporary output is created at the first write, so a run killed (SIGKILL: no
+    handler can clean up) while its input FIFO has no writer leaves nothing behind."""
+    fifo = tmp_path / "in.xyz"
+    os.mkfifo(fifo)
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = subprocess.Popen(C1MESH + ["fit", str(fifo), "-o", str(out / "out.ply"), "--report",
+                                      str(out / "r.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while not _blocked_opening_a_fifo(proc.pid):
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "c1mesh never opened its input"
+            time.sleep(0.02)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=60)
+    assert list(out.iterdir()) == []
+
+
+def test_an_output_with_nothing_written_is_still_created(tmp_path):
+    """Creating the temp file at the first write must not lose an output that is empty."""
+    (target,) = plan_outputs([("output", tmp_path / "empty.txt")])
+    with Outputs() as outputs:
+        with outputs.open(target, "w"):
+            assert list(tmp_path.iterdir()) == []
+        outputs.commit()
+    assert (tmp_path / "empty.txt").read_bytes() == b""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.txt"]

@@ -931,5 +931,11 @@ def schemes():
                    f"{'yes' if p.reproduces_affine else 'no':<6}  {description}{mark}")
 
 
+def run() -> None:
+    """The c1mesh-python console script, which the `c1mesh` launcher (bin/c1mesh) runs: named
+    c1mesh in usage lines and shell completion (_C1MESH_COMPLETE) whatever its file name."""
+    main(prog_name="c1mesh")
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

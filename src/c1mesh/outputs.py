@@ -296,7 +296,71 @@ class _Raw(io.FileIO):
         return written
 
 
-def _wrap(raw: _Raw, mode: str) -> IO:
+class _LazyTemp(io.RawIOBase):
+    """The temporary file of an atomic target, created at the first write (or seek,
+    fileno), not when the output is opened.
+
+    A run opens its outputs before it reads its input; an input that blocks (a FIFO with no
+    writer yet) would otherwise keep an empty temp file beside the target, left behind if
+    the run is killed with SIGKILL. Writes go to a _Raw (errors name the target, early
+    writeback) once the file exists.
+    """
+
+    def __init__(self, target: Target):
+        super().__init__()
+        self.target = target
+        self.path: str | None = None
+        self._raw: _Raw | None = None
+
+    def create(self) -> str:
+        """The temp file's path, creating it now if nothing was written yet."""
+        if self._raw is None:
+            fd, self.path = _make_temp(self.target)
+            self._raw = _Raw(fd, "wb")
+            self._raw.target_name, self._raw.write_behind = self.target.path, True
+        return self.path
+
+    def remove(self) -> None:
+        """Close and delete the temp file, if it was created."""
+        if self._raw is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self._raw.close()
+            _remove_temp(self.path)
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def write(self, data) -> int:
+        self.create()
+        return self._raw.write(data)
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        if self._raw is None and offset == 0 and whence in (io.SEEK_SET, io.SEEK_CUR):
+            return 0
+        self.create()
+        return self._raw.seek(offset, whence)
+
+    def tell(self) -> int:
+        return 0 if self._raw is None else self._raw.tell()
+
+    def truncate(self, size: int | None = None) -> int:
+        self.create()
+        return self._raw.truncate(size)
+
+    def fileno(self) -> int:
+        self.create()
+        return self._raw.fileno()
+
+    def close(self) -> None:
+        if self._raw is not None:
+            self._raw.close()
+        super().close()
+
+
+def _wrap(raw: io.RawIOBase, mode: str) -> IO:
     buffered = io.BufferedWriter(raw)
     return buffered if mode == "wb" else io.TextIOWrapper(buffered, encoding="utf-8")
 
@@ -369,20 +433,26 @@ class Outputs:
 
     @contextlib.contextmanager
     def _atomic(self, target: Target, mode: str) -> Iterator[IO | Path]:
-        fd, tmp = _make_temp(target)
+        if mode == "path":
+            fd, tmp = _make_temp(target)
+            os.close(fd)
+            temp = None
+        else:
+            temp, tmp = _LazyTemp(target), None
         try:
-            if mode == "path":
-                os.close(fd)
+            if temp is None:
                 yield Path(tmp)
             else:
-                raw = _Raw(fd, "wb")
-                raw.target_name, raw.write_behind = target.path, True
-                with _wrap(raw, mode) as handle:
+                with _wrap(temp, mode) as handle:
                     yield handle
                     _finish(handle, target.path, sync=True)
+                    tmp = temp.create()          # an output with nothing written still exists
             _settle_permissions(tmp, target)
         except BaseException:
-            _remove_temp(tmp)
+            if temp is not None:
+                temp.remove()
+            elif tmp is not None:
+                _remove_temp(tmp)
             raise
         if self.deferred:
             self._pending.append((tmp, target))

@@ -18,13 +18,14 @@ import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.errors import FormatError, InputError
-from c1mesh.formats._limits import check_alloc, read_bounded, reading_budget
+from c1mesh.formats._common import decode_text
+from c1mesh.formats._limits import budget, check_alloc, read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
 from c1mesh.formats.meshes import write_glb, write_off, write_stl
 from c1mesh.formats.obj import read_obj, write_obj
-from c1mesh.formats.pcd import read_pcd
+from c1mesh.formats.pcd import check_pcd_head, read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
 from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
@@ -54,11 +55,49 @@ def _is_stream(obj: object) -> bool:
     return not isinstance(obj, (str, bytes, os.PathLike)) and (hasattr(obj, "read") or hasattr(obj, "write"))
 
 
-def _read_path(path: Path) -> bytes:
+_TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")   # classic and BigTIFF, both byte orders
+_IMAGE_MAGIC = {"png": (b"\x89PNG\r\n\x1a\n",), "tif": _TIFF_MAGIC, "tiff": _TIFF_MAGIC}
+
+
+def _head_check(key: str, name: str) -> Callable[[bytes], None]:
+    """A check of the first bytes of a stream read as format `key`: FormatError unless they
+    start like such a file (the readers repeat the full check), so that a stream of garbage
+    (/dev/urandom as PLY, /dev/zero as text) fails after 64 KiB, not at the reading limit."""
+    def check(head: bytes) -> None:
+        if key == "ply" and not head.startswith((b"ply\n", b"ply\r\n")):
+            raise FormatError(f"'{name}' is not a PLY file: it does not start with the 'ply' magic line.")
+        if key == "pcd":
+            check_pcd_head(head, name)
+        if key in ("las", "laz", "copc") and not head.startswith(b"LASF"):
+            raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with 'LASF'.")
+        if key in ("xyz", "txt", "csv", "obj"):
+            decode_text(head, name, "OBJ" if key == "obj" else "Point")
+        if key in _IMAGE_MAGIC and not head.startswith(_IMAGE_MAGIC[key]):
+            raise FormatError(f"'{name}' is not a {key.upper()} image: it does not start with its signature.")
+    return check
+
+
+def _limit_of_stream(stream: IO[bytes]) -> int | None:
+    """The reading budget for a stream that cannot be endless: a regular file (stdin
+    redirected from a file) or a BytesIO, already in memory; None (the cap of non-regular
+    inputs, formats._limits.stream_limit) for anything else (a pipe, a socket, a device)."""
+    if isinstance(stream, io.BytesIO):
+        return budget()
+    try:
+        info = os.fstat(stream.fileno())
+    except (AttributeError, OSError, ValueError):   # io.UnsupportedOperation is an OSError
+        return None
+    return budget() if stat.S_ISREG(info.st_mode) else None
+
+
+def _read_path(path: Path, key: str | None = None) -> bytes:
     """All bytes of `path` within the reading budget; InputError for missing files and directories.
 
     A regular file larger than the budget is refused from its size; anything else (a FIFO,
-    /dev/zero, /dev/stdin) is read piece by piece and refused once it passes the budget.
+    /dev/zero, a /dev/stdin that is a pipe) has its first 64 KiB checked to start like a
+    file of format `key` (if given), then is read piece by piece and refused once it
+    passes the limit of non-regular inputs (formats._limits.stream_limit: 256 MiB, or the
+    budget with --memory).
     """
     try:
         info = path.stat()
@@ -73,7 +112,7 @@ def _read_path(path: Path) -> bytes:
             check_alloc(info.st_size, str(path), "reading the file")
             return path.read_bytes()
         with open(path, "rb") as stream:
-            return read_bounded(stream, str(path))
+            return read_bounded(stream, str(path), head_check=_head_check(key, str(path)) if key else None)
     except OSError as exc:
         raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
@@ -102,12 +141,15 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
     only those classification codes while a LAS/LAZ file is decoded (other formats return
     every point; the caller filters). `memory` (bytes or a size such as '4G'; default half
     the RAM, at most 8 GiB) bounds the bytes read and decoded: a header or stream that
-    needs more is refused before allocating. `bounds` (xmin, ymin, xmax, ymax; world
-    units, closed) keeps only the points in that x/y box, in file order: a COPC file
-    decodes only the octree nodes that meet it (c1mesh.formats.copc), other LAS/LAZ are
-    filtered chunk by chunk, other formats after reading. Raises InputError for missing/unreadable
-    paths and unknown formats, FormatError for empty, malformed or over-budget files,
-    DependencyError when an optional reader library is missing.
+    needs more is refused before allocating; without `memory`, a device, pipe or stream
+    (not a regular file, not a BytesIO) may deliver at most 256 MiB and a compressed PCD body may not expand more than 24-fold
+    past 16 MiB (formats._limits), limits that an explicit `memory` lifts. `bounds`
+    (xmin, ymin, xmax, ymax; world units, closed) keeps only the points in that x/y box,
+    in file order: a COPC file decodes only the octree nodes that meet it
+    (c1mesh.formats.copc), other LAS/LAZ are filtered chunk by chunk, other formats after
+    reading. Raises InputError for missing/unreadable paths and unknown formats,
+    FormatError for empty, malformed or over-budget files, DependencyError when an
+    optional reader library is missing.
     """
     if bounds is not None:
         bounds = check_box(bounds)
@@ -118,7 +160,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
                 raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
             key = format_key(fmt, name, SUPPORTED_INPUT, "input")
             try:
-                data = read_bounded(source, name)
+                data = read_bounded(source, name, _limit_of_stream(source), _head_check(key, name))
             except OSError as exc:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         else:
@@ -127,7 +169,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
             key = format_key(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
             if key in ("las", "laz", "copc") and path.is_file():
                 return _read_las_file(path, classes, bounds)
-            data = _read_path(path)
+            data = _read_path(path, key)
         if not data:
             raise FormatError(f"Input '{name}' is empty.")
         with np.errstate(all="ignore"):  # overflow / NaN in a body are data, not news

@@ -63,16 +63,34 @@ def read_depth_registry(data: bytes, name: str) -> PointCloud:
     return read_depth(data, name)
 
 
+#: Bytes per pixel a depth frame takes once decoded: the pixel, z, the pixel grid and the
+#: (N, 3) float64 points with their temporaries.
+_BYTES_PER_PIXEL = 96
+#: Bytes per pixel of the decoded image, by Pillow mode (4 for modes not listed).
+_MODE_BYTES = {"1": 1, "L": 1, "P": 1, "LA": 2, "I;16": 2, "I;16B": 2, "I;16L": 2, "RGB": 3}
+
+
 def _image(data: bytes, name: str, mode: str | None = None) -> np.ndarray:
-    """Pixels of an image file's bytes as an array ((H, W) or (H, W, C)), via Pillow."""
+    """Pixels of an image file's bytes as an array ((H, W) or (H, W, C)), via Pillow.
+
+    The size in the header is checked against the reading budget (and, without --memory,
+    the compression ratio of formats._limits) before the pixels are decoded: a small PNG
+    can claim a huge frame of zeros.
+    """
     from PIL import Image, UnidentifiedImageError
+
+    from c1mesh.formats._limits import check_alloc, check_expansion
 
     try:
         with Image.open(io.BytesIO(data)) as image:
+            pixels = image.width * image.height
+            raw = pixels * _MODE_BYTES.get(image.mode, 4)
+            check_expansion(len(data), raw, name, f"the {image.width}x{image.height} image")
+            check_alloc(pixels * _BYTES_PER_PIXEL, name, f"decoding the {image.width}x{image.height} image")
             if mode is not None and image.mode != mode:
                 image = image.convert(mode)
             return np.asarray(image)
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError) as exc:
         raise FormatError(f"'{name}' is not a readable image: {exc}") from None
 
 
@@ -89,15 +107,15 @@ def read_depth_source(source, options) -> PointCloud:
     colour, within the reading budget of options.memory (formats.read_cloud's rules)."""
     from pathlib import Path
 
-    from c1mesh.formats import _read_path, read_bounded, reading_budget
+    from c1mesh.formats import _limit_of_stream, _read_path, read_bounded, reading_budget
 
     with reading_budget(getattr(options, "memory", None)):
         if isinstance(source, (str, Path)):
-            name, data = str(source), _read_path(Path(source))
+            name, data = str(source), _read_path(Path(source), Path(source).suffix.lower().lstrip(".") or None)
         else:
             name = str(getattr(source, "name", "<stream>"))
             try:
-                data = read_bounded(source, name)
+                data = read_bounded(source, name, _limit_of_stream(source))
             except OSError as exc:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         if not data:

@@ -18,7 +18,7 @@ import numpy as np
 from c1mesh.cloud import PointCloud
 from c1mesh.errors import FormatError
 from c1mesh.formats._common import NORMAL_NAMES, find_columns, loadtxt
-from c1mesh.formats._limits import check_alloc
+from c1mesh.formats._limits import check_alloc, check_expansion
 from c1mesh.formats.lzf import MAX_EXPANSION, LZFError, lzf_decompress
 
 _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
@@ -116,6 +116,21 @@ def _parse_header(data: bytes, name: str) -> tuple[Header, int]:
     return Header(names, types, counts, points, kind), offset
 
 
+def check_pcd_head(head: bytes, name: str) -> None:
+    """FormatError unless `head` (the first bytes of a stream) starts like a PCD header:
+    comment lines, then a line starting with a PCD keyword (a head of comments passes)."""
+    lines = head.split(b"\n")
+    for number, line in enumerate(lines, start=1):
+        words = line.decode("latin-1").split()
+        if not words or words[0].startswith("#"):
+            continue
+        if words[0].upper() in _KEYS:
+            return
+        if number == len(lines) and len(words) == 1 and any(k.startswith(words[0].upper()) for k in _KEYS):
+            return   # a keyword cut off where the head ends
+        raise FormatError(f"'{name}' is not a PCD file: it does not start with a PCD header line.")
+
+
 # ----------------------------------------------------------------------------- bodies
 def _truncated(name: str, header: Header, detail: str) -> FormatError:
     return FormatError(f"PCD file '{name}' is truncated: {detail} for the {header.points} points the header promises.")
@@ -146,6 +161,7 @@ def _compressed(data: bytes, offset: int, header: Header, name: str) -> list[np.
         raise FormatError(f"PCD file '{name}' claims {unpacked} bytes from {packed} compressed ones; it is corrupt.")
     if len(data) - offset - 8 < packed:
         raise _truncated(name, header, f"{len(data) - offset - 8} compressed bytes, {packed} needed")
+    check_expansion(packed, unpacked, name, f"the compressed body of {header.points} points")
     check_alloc(unpacked + header.points * _KEPT_BYTES_PER_POINT, name,
                 f"decoding the {header.points} compressed points")
     try:
@@ -162,6 +178,8 @@ def _compressed(data: bytes, offset: int, header: Header, name: str) -> list[np.
 
 def _ascii(data: bytes, offset: int, header: Header, name: str) -> list[np.ndarray]:
     """Per-field (N, count) arrays of an ascii body; float fields stay float64 (the text's precision)."""
+    if header.points * sum(header.counts) * 2 > len(data) - offset + 1:   # a digit and a separator per value
+        raise _truncated(name, header, f"{len(data) - offset} data bytes")
     lines = [ln for ln in data[offset:].decode("latin-1").splitlines() if ln.strip()]
     if len(lines) < header.points:
         raise _truncated(name, header, f"{len(lines)} data lines")
@@ -244,6 +262,9 @@ def _extra(header: Header, columns: list[np.ndarray], used: set[str]) -> dict[st
 def read_pcd(data: bytes, name: str) -> PointCloud:
     """Read a PCD file held in `data` (`name` is for messages)."""
     header, offset = _parse_header(data, name)
+    if header.data != "binary_compressed":   # (the compressed body checks its decoded size)
+        check_alloc(len(data) + header.points * _KEPT_BYTES_PER_POINT, name,
+                    f"decoding the {header.points} points")
     body = {"ascii": _ascii, "binary": _binary, "binary_compressed": _compressed}[header.data]
     cloud = _cloud(header, body(data, offset, header, name), name)
     _organisation(cloud, data, name)

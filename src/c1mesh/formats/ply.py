@@ -21,6 +21,7 @@ from c1mesh.crs import crs_from_ply_header, ply_comment
 from c1mesh.formats._background import background_writes
 from c1mesh.formats._blocks import TEXT_ROWS, face_chunks, text_rows, vertex_chunks
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
+from c1mesh.formats._limits import check_alloc
 
 #: PLY scalar type names (both spellings) -> numpy type code without byte order.
 PLY_TYPES = {
@@ -156,6 +157,12 @@ def _parse_property(words: list[str], bad: str) -> Prop:
 
 
 # ----------------------------------------------------------------------------- binary body
+def _count_field(index: int) -> str:
+    """Name of the count field of the list property at `index`. It holds a space, which a
+    PLY header's whitespace-separated property names cannot, so no property collides."""
+    return f"count of {index}"
+
+
 def _row_dtype(el: Element, endian: str, list_lengths: list[int]) -> np.dtype:
     """Structured dtype of one row, lists given fixed lengths (one per list property)."""
     fields, lengths = [], iter(list_lengths)
@@ -163,7 +170,7 @@ def _row_dtype(el: Element, endian: str, list_lengths: list[int]) -> np.dtype:
         if p.count_type is None:
             fields.append((p.name, endian + PLY_TYPES[p.type]))
         else:
-            fields.append((f"__count{i}", endian + PLY_TYPES[p.count_type]))
+            fields.append((_count_field(i), endian + PLY_TYPES[p.count_type]))
             fields.append((p.name, endian + PLY_TYPES[p.type], (next(lengths),)))
     return np.dtype(fields)
 
@@ -201,7 +208,7 @@ def _read_binary_element(el: Element, buf: bytes, offset: int, endian: str, name
     end = offset + el.count * dtype.itemsize
     if end <= len(buf):
         rows = np.frombuffer(buf, dtype, el.count, offset)
-        counts = [f for f in dtype.names if f.startswith("__count")]
+        counts = [_count_field(i) for i, p in enumerate(el.props) if p.count_type is not None]
         if all((rows[f] == n).all() for f, n in zip(counts, lengths)):
             return rows, end
     if not el.has_lists:
@@ -315,12 +322,18 @@ def _parse_ascii_rows(el: Element, lines: list[str], name: str) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- reader
+#: Bytes per vertex the reader builds besides the file's bytes: points and normals as float64.
+_KEPT_BYTES_PER_VERTEX = 48
+
+
 def read_ply(data: bytes, name: str) -> PointCloud:
     """Read the vertex element of a PLY file held in `data` (`name` is for messages)."""
     fmt, elements, offset = _parse_header(data, name)
     vertex_el = next((el for el in elements if el.name == "vertex"), None)
     if vertex_el is None:
         raise FormatError(f"PLY file '{name}' has no 'vertex' element.")
+    check_alloc(len(data) + vertex_el.count * _KEPT_BYTES_PER_VERTEX, name,
+                f"decoding the {vertex_el.count} vertices")
     if fmt == "ascii":
         rows = _ascii_vertices(elements, data, offset, name)
     else:
