@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
-from c1mesh.curtains import remove_curtains
+from c1mesh.curtains import remove_curtains, view_rules_apply
 from c1mesh.geo import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
 from c1mesh.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.errors import InputError
@@ -284,7 +284,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
         triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
-        triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report)
+        triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report,
+                                                 view_rules_apply(options.classes, frame.axes))
         if triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
         used, triangles = _compact(hf.xy, triangles)
@@ -349,7 +350,9 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
     if geo.rasters.items():
         with timer.stage("raster"):
-            raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs)
+            data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
+            raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs, data_xy,
+                                              trim_report.max_edge)
         return _finish_geo(FitResult(None, {"input": _name(source), "output": _name(output),
                                             "points": {"read": len(cloud), "kept": int(used.size),
                                                        "spacing": float(hf.spacing)},

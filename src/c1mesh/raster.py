@@ -132,13 +132,20 @@ class SplineSampler:
     tolerance of c1mesh.locate), and the spline is evaluated as its per-triangle
     polynomial in (λ0, λ1) (polynomial_form): values and gradients are then sums of
     monomials instead of 21 shape functions per point, the same numbers to ~1e-12.
+
+    Cells whose centre lies in no triangle but which hold a point of data_xy (m, 2) (local
+    plane coordinates, the fitted points) get the nearest triangle within `reach` (local
+    units; None: any distance) and their barycentrics in it, which may be negative
+    (NearestTriangles): the triangle's polynomial extended to the centre.
     """
 
     TOLERANCE = 1e-10
 
-    def __init__(self, interp, origin):
+    def __init__(self, interp, origin, data_xy=None, reach: float | None = None):
         self.interp = interp
         self.origin = np.asarray(origin, dtype=np.float64)
+        self._data = None if data_xy is None else _RowSorted(data_xy)
+        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed
         K, self.exponents, error = polynomial_form(interp.scheme)
         self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
         tri, pts = interp.triangles, interp.points
@@ -208,7 +215,29 @@ class SplineSampler:
         l0, l1 = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
         tol = -self.TOLERANCE
         keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
-        return (ii[keep] - rows.start) * nc + (jj[keep] - cols.start), tri[keep], l0[keep], l1[keep]
+        cell = (ii[keep] - rows.start) * nc + (jj[keep] - cols.start)
+        found = (cell, tri[keep], l0[keep], l1[keep])
+        if self._data is None:
+            return found
+        return tuple(np.concatenate(pair) for pair in zip(found, self._uncovered(grid, rows, cols, cell)))
+
+    def _uncovered(self, grid: RasterGrid, rows: range, cols: range, covered: np.ndarray):
+        """(cell, triangle, λ0, λ1) of the cells of rows × cols that hold data points but
+        whose centre lies in no triangle (`covered`: the flat cells that do), from their
+        nearest triangle within reach; cells with none are left out (nodata)."""
+        r, nc = grid.resolution, len(cols)
+        x0, y0 = grid.west - self.origin[0], grid.north - self.origin[1]
+        ii, jj = self._data.cells(x0, y0, r, rows, cols)
+        cell = np.unique((ii - rows.start) * nc + (jj - cols.start))
+        cell = cell[~np.isin(cell, covered)]
+        i, j = np.divmod(cell, nc)
+        cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
+        if self._nearest is None and cell.size:
+            self._nearest = NearestTriangles(self.interp.points, self.interp.triangles, self._reach)
+        tri = self._nearest.of(np.column_stack([cx, cy])) if cell.size else np.zeros(0, np.int64)
+        has = tri >= 0
+        l0, l1 = self._barycentric(tri[has], cx[has], cy[has])
+        return cell[has], tri[has], l0, l1
 
     def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
         """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
@@ -267,6 +296,83 @@ class SplineSampler:
         out[:, 0] = d0 * g0x[tri] + d1 * g1x[tri]
         out[:, 1] = d0 * g0y[tri] + d1 * g1y[tri]
         return values, out
+
+
+class _RowSorted:
+    """Plane points (m, 2) sorted by y, to list the grid cells that hold points row band
+    by row band (a block of rows reads only its band)."""
+
+    def __init__(self, xy):
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        order = np.argsort(xy[:, 1], kind="stable")
+        self.x, self.y = xy[order, 0], xy[order, 1]
+
+    def cells(self, x0: float, y0: float, r: float, rows: range, cols: range):
+        """Row and column indices (k,) of the points inside the cells rows × cols of the
+        grid whose west edge is local x0 and north edge local y0, cell size r (a point on
+        a cell's west or north edge belongs to that cell)."""
+        low, high = y0 - rows.stop * r, y0 - rows.start * r
+        band = slice(np.searchsorted(self.y, low, side="right"), np.searchsorted(self.y, high, side="right"))
+        ii = np.floor((y0 - self.y[band]) / r).astype(np.int64)
+        jj = np.floor((self.x[band] - x0) / r).astype(np.int64)
+        inside = (ii >= rows.start) & (ii < rows.stop) & (jj >= cols.start) & (jj < cols.stop)
+        return ii[inside], jj[inside]
+
+
+class NearestTriangles:
+    """The nearest triangle to plane points, within a reach.
+
+    points (n, 2), triangles (T, 3): a triangulation in the plane (local units); reach:
+    the largest distance searched (None: any). A triangle at distance d from p has all
+    three corners within d + L of p, L its longest edge, and the nearest corner's
+    triangles bound d from above: so the triangles of the corners within d_corner + L_max
+    of p are the candidates, and their exact point-triangle distances decide. Ties go to
+    the lowest triangle number, so the answer does not depend on the search order.
+    """
+
+    def __init__(self, points: np.ndarray, triangles: np.ndarray, reach: float | None = None):
+        from scipy.spatial import cKDTree
+
+        self.points, self.triangles = np.asarray(points, dtype=np.float64), np.asarray(triangles)
+        self.reach = np.inf if reach is None else float(reach)
+        corners = self.points[self.triangles]                                   # (T, 3, 2)
+        edges = corners[:, [1, 2, 0]] - corners
+        self.longest = float(np.sqrt((edges ** 2).sum(axis=2)).max()) if len(self.triangles) else 0.0
+        order = np.argsort(self.triangles.ravel(), kind="stable")
+        self._of_vertex = order // 3                                            # triangles by vertex
+        self._start = np.searchsorted(self.triangles.ravel()[order], np.arange(len(self.points) + 1))
+        self._tree = cKDTree(self.points)
+
+    def of(self, query: np.ndarray) -> np.ndarray:
+        """(q,) the nearest triangle to each query point (q, 2) within the reach, -1 if none."""
+        out = np.full(len(query), -1, dtype=np.int64)
+        if not len(self.triangles) or not len(query):
+            return out
+        first, _ = self._tree.query(query)
+        for q, (p, d) in enumerate(zip(query, first)):
+            if d - self.longest > self.reach:                # every triangle is farther than reach
+                continue
+            near = self._tree.query_ball_point(p, d + self.longest)
+            cand = np.unique(np.concatenate([self._of_vertex[self._start[v]:self._start[v + 1]]
+                                             for v in near]))
+            dist = point_triangle_distance(p, self.points[self.triangles[cand]])
+            best = np.flatnonzero(dist == dist.min())
+            if dist[best[0]] <= self.reach:
+                out[q] = cand[best].min()
+        return out
+
+
+def point_triangle_distance(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(k,) Euclidean distance from the plane point p (2,) to the triangles corners (k, 3, 2):
+    0 inside, else the distance to the nearest of the three edges."""
+    a, b = corners, corners[:, [1, 2, 0]]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    edge = np.sqrt((((a + t[..., None] * ab) - p) ** 2).sum(axis=2)).min(axis=1)
+    cross = ab[..., 0] * (p[1] - a[..., 1]) - ab[..., 1] * (p[0] - a[..., 0])   # (k, 3)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return np.where(inside, 0.0, edge)
 
 
 def horn_gradient(dem: np.ndarray, resolution: float) -> np.ndarray:
@@ -476,9 +582,12 @@ def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(math.sqrt(area / points.shape[0]))
 
 
-def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None) -> dict:
+def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None,
+                      data_xy=None, reach: float | None = None) -> dict:
     """Sample a fitted spline onto the aligned grid covering its triangulation and write
-    the requested rasters; returns the report's "raster" section."""
+    the requested rasters; returns the report's "raster" section. data_xy (m, 2): the
+    fitted points in the frame's plane (their cells always get a value within `reach`,
+    the trim's max_edge: SplineSampler); None: the triangulation alone decides."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     if crs and (options.slope or options.aspect or options.hillshade):
@@ -491,6 +600,6 @@ def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str |
     grid = RasterGrid.covering(lo, hi, options.resolution)
     spacing = mean_spacing(interp.points, interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
-    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin), method, crs)
+    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin, data_xy, reach), method, crs)
     report["point_spacing"] = float(spacing)
     return report

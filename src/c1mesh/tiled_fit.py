@@ -389,7 +389,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
-            removed = _trim(halos, grid, temps)
+            from c1mesh.curtains import view_rules_apply
+            removed = _trim(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
             done("trim")
             limiter = None
             if options.overshoot == "limit":
@@ -686,14 +687,14 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path,
     return result.buffer, _row(result.read, start)
 
 
-def _trim(halos, grid, temps) -> dict[str, int]:
+def _trim(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     """The in-memory default trim after the long-edge rule, over the tiles
     (c1mesh.tiled_trim): trim's sliver peel and bow-tie removal, then curtains
     (c1mesh.curtains) with the survey's noise floor, then the peel and bow-tie removal
     of the holes they left, as pipeline.build_surface runs them. halos: the
     tiled_limiter.HaloCache, whose `removed` grows as triangles go (each halo drops them
     as it loads); the removed triangles also leave their tiles' files. Returns the
-    removed counts by reason (as TrimReport.removed)."""
+    removed counts by reason (as TrimReport.removed). view_rules: curtains.view_rules_apply."""
     import inspect
 
     from c1mesh.curtains import REASONS
@@ -713,7 +714,7 @@ def _trim(halos, grid, temps) -> dict[str, int]:
     floor = edge_floor(halos.halos, temps, "curtains")
     cut, corners, counts = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)], {r: 0 for r in REASONS}
     for t in halos.tiles():
-        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid)
+        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid, view_rules)
         cut.append(triangles)
         corners.append(where)
         for reason, count in reasons.items():
