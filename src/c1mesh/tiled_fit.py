@@ -381,7 +381,9 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             heights = _height_spill(raw, grid, count, options, directory, temps.stem, runner, rows)
         try:
             done("normals")
-            max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps, runner, rows)
+            max_edge, triangle_files, buffers, delaunay_count = _triangulate(heights, grid, options.max_edge,
+                                                                             temps, runner, rows)
+            long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files)
             done("triangulate")
             from c1mesh.tiled_limiter import HaloCache, halo_reach, longest_final_edge
 
@@ -406,12 +408,16 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         stack.close()
         temps.close()
+    from c1mesh.pipeline import _auto_limit, fit_warnings
+    kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output) if outputs is None else [str(o) for o in outputs],
                    "tiles": len(grid),
                    "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget "
-                                "(docs/tiles.md)"],
-                   "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
+                                "(docs/tiles.md)",
+                                *fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
+                                              _auto_limit(options.max_edge))],
+                   "points": {"read": count, "kept": kept}, "max_edge": max_edge,
                    "triangles": {"removed": removed, "max_edge": max_edge},
                    "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
@@ -613,7 +619,9 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
     """The survey's Delaunay triangulation with the long-edge trim, each tile a task
     (`_tile_delaunay`, `_tile_trimmed`) that reads the height spill and writes its owned
     triangles to a file: (max_edge or None, per tile a .npy file of its owned triangles
-    (survey numbers), per tile the buffer its corners lie within)."""
+    (survey numbers), per tile the buffer its corners lie within, the triangle count of
+    the whole Delaunay triangulation: 2n - 2 - h by Euler's formula, n points and h hull
+    corners, exact unless points lie on the hull between its corners)."""
     from c1mesh.buffered_delaunay import INITIAL_SPACINGS, mean_spacing, streamed_hull, trimmed_delaunay
 
     count = int(heights.counts.sum())
@@ -630,7 +638,7 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
                                            rows.name):
             buffers[t] = buffer
             rows.add(t, "triangulate", row)
-        return None, files, buffers
+        return None, files, buffers, 2 * count - 2 - len(hull.index)
     longest = [temps.new(f"longest-{t}.npy") for t in range(len(grid))]
     shorts = [temps.new(f"short-{t}.npy") for t in range(len(grid))]
 
@@ -648,7 +656,7 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
         short = np.load(longest[t]) <= limit
         if not short.all():
             _save(files[t], triangles[short])
-    return limit, files, buffers
+    return limit, files, buffers, 2 * count - 2 - len(hull.index)
 
 
 def _save(path, array: np.ndarray) -> None:
