@@ -1,9 +1,9 @@
 """Issue 21: a DEM cell that holds input points has a value; curtain rules and LAS ground.
 
 Truth: the analytic surface and its exact normals, rasterio reading the written GeoTIFF,
-the spline evaluated by rsd.values_at on barycentrics solved here from the triangle's
-corners (not the raster's polynomial form), and a brute-force nearest triangle (every
-kept triangle's distance, computed here).
+RSDInterpolator's own evaluation of the spline and its gradient (not the raster's
+polynomial form), and a brute-force nearest triangle and closest point (every kept
+triangle's, computed here).
 """
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from c1mesh import rsd
 from c1mesh.cloud import PointCloud
 from c1mesh.pipeline import FitOptions, build_surface, fit, load_cloud
 
@@ -50,19 +49,24 @@ def _cells_of(points, transform):
 
 
 def _distance(p, corners):
-    """Distance from p (2,) to each triangle corners (T, 3, 2), by brute force."""
-    out = np.full(len(corners), np.inf)
+    """Distance from p (2,) to each triangle corners (T, 3, 2), and the closest point of
+    each (T, 2), by brute force."""
+    out, closest = np.full(len(corners), np.inf), np.repeat(p[None], len(corners), axis=0)
     for k in range(3):
         a, b = corners[:, k], corners[:, (k + 1) % 3]
         ab = b - a
         t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
-        out = np.minimum(out, np.linalg.norm(a + t[:, None] * ab - p, axis=1))
+        foot = a + t[:, None] * ab
+        d = np.linalg.norm(foot - p, axis=1)
+        closer = d < out
+        out[closer], closest[closer] = d[closer], foot[closer]
     sides = []
     for k in range(3):
         e, q = corners[:, (k + 1) % 3] - corners[:, k], p - corners[:, k]
         sides.append(e[:, 0] * q[:, 1] - e[:, 1] * q[:, 0])
     inside = np.all(np.array(sides) >= 0, axis=0) | np.all(np.array(sides) <= 0, axis=0)
-    return np.where(inside, 0.0, out)
+    closest[inside] = p
+    return np.where(inside, 0.0, out), closest
 
 
 def _trifinder(interp):
@@ -72,18 +76,19 @@ def _trifinder(interp):
     return Triangulation(interp.points[:, 0], interp.points[:, 1], interp.triangles).get_trifinder()
 
 
-def _spline_at(interp, t, p):
-    """The spline of triangle t (its polynomial, extended) at local plane point p."""
-    a, b, c = interp.points[interp.triangles[t]]
-    l0, l1 = np.linalg.solve(np.column_stack([a - c, b - c]), p - c)
-    lam = np.array([[l0, l1, 1.0 - l0 - l1]])
-    return float(rsd.values_at(interp.scheme, interp.coefficients[[t]], lam)[0])
+def _continued(interp, q, p):
+    """The spline at q (a point of the mesh, RSDInterpolator's own evaluation) continued
+    linearly to p: value + gradient · (p − q)."""
+    value, gradient = interp(q[None])[0], interp.gradient(q[None])[0]
+    assert np.isfinite(value)
+    return float(value + gradient @ (p - q))
 
 
 def _check_dem(cloud, options, dem_path):
     """Every cell holding a point has a value; cells whose centre is in no kept triangle
-    hold the nearest kept triangle's spline, when that triangle is within max_edge (else
-    nodata). Returns the number of such filled cells."""
+    hold the nearest kept triangle's spline at its point closest to the centre, continued
+    linearly, when that triangle is within max_edge (else nodata). Returns the number of
+    such filled cells."""
     dem, transform, nodata = _read_dem(dem_path)
     model = build_surface(cloud, replace(options, axis="z"))
     interp, origin, reach = model.interp, model.frame.origin, model.trim_report.max_edge
@@ -96,7 +101,7 @@ def _check_dem(cloud, options, dem_path):
     assert np.all(dem[tuple(cells[inside].T)] != nodata)
     filled = 0
     for (i, j), centre in zip(cells[~inside].tolist(), centres[~inside]):
-        distance = _distance(centre, corners)
+        distance, closest = _distance(centre, corners)
         nearest = int(np.flatnonzero(distance == distance.min()).min())
         on_grid = 0 <= i < dem.shape[0] and 0 <= j < dem.shape[1]
         if reach is not None and distance[nearest] > reach:
@@ -106,7 +111,7 @@ def _check_dem(cloud, options, dem_path):
         assert dem[i, j] != nodata, f"cell {(i, j)} holds points and is nodata"
         if distance[nearest] > 0:
             filled += 1
-            expected = _spline_at(interp, nearest, centre) + origin[2]
+            expected = _continued(interp, closest[nearest], centre) + origin[2]
             assert dem[i, j] == pytest.approx(expected, abs=2e-6 * max(1.0, abs(expected)))
     return filled
 

@@ -2,8 +2,15 @@
 
 The grid is aligned to multiples of the resolution R in world coordinates (x to the east,
 y to the north, z up: the surface must be a height field over the world XY plane, so the
-fit uses --axis z). Each cell holds the spline at the cell centre; cells whose centre lies
-outside the trimmed triangulation are nodata. Slope, aspect and hillshade come from a
+fit uses --axis z). Each cell holds the spline at the cell centre. A cell whose centre lies
+outside the trimmed triangulation but which holds input points (the trim removed the
+triangle under its centre, or the centre lies just past the mesh's rim) holds the spline
+of the nearest kept triangle, when that triangle lies within `reach` of the centre (the
+fit passes its max_edge): the spline's value and gradient at the triangle's point closest
+to the centre, continued linearly to the centre (slope rasters take that gradient).
+Nodata is therefore only where there is no data: cells without points outside the
+trimmed triangulation, and cells whose points lie more than `reach` from every kept
+triangle (in a gap wider than --max-edge). Slope, aspect and hillshade come from a
 gradient at each cell centre: the spline's own analytic gradient ("spline"), or Horn's
 3x3 differences of the DEM ("horn", what `gdaldem slope` computes), chosen per resolution
 by "auto" (see AUTO_SPLINE_FROM). The rasters are computed and written in blocks of rows, so
@@ -135,8 +142,8 @@ class SplineSampler:
 
     Cells whose centre lies in no triangle but which hold a point of data_xy (m, 2) (local
     plane coordinates, the fitted points) get the nearest triangle within `reach` (local
-    units; None: any distance) and their barycentrics in it, which may be negative
-    (NearestTriangles): the triangle's polynomial extended to the centre.
+    units; None: any distance; NearestTriangles), evaluated at its point closest to the
+    centre and continued linearly from there (`_evaluate`).
     """
 
     TOLERANCE = 1e-10
@@ -173,8 +180,8 @@ class SplineSampler:
         the triangulation. gradients=False skips them (returns None): a DEM alone, or
         Horn's differences, need heights only."""
         nr, nc = len(rows), len(cols)
-        cell, tri, l0, l1 = self.cells(grid, rows, cols)
-        values, grads = self._evaluate(tri, l0, l1, gradients)
+        cell, tri, l0, l1, shift = self.cells(grid, rows, cols)
+        values, grads = self._evaluate(tri, l0, l1, gradients, shift)
         z = np.full(nr * nc, np.nan)
         z[cell] = values + self.origin[2]
         if not gradients:
@@ -184,9 +191,12 @@ class SplineSampler:
         return z.reshape(nr, nc), g.reshape(nr, nc, 2)
 
     def cells(self, grid: RasterGrid, rows: range, cols: range):
-        """(flat cell index, triangle, λ0, λ1), each (m,), of every cell centre of rows ×
-        cols inside a triangle (a cell on a shared edge may appear twice: either triangle
-        gives the same C1 surface; the later one is kept by the callers' assignment)."""
+        """(flat cell index, triangle, λ0, λ1), each (m,), and shift (m, 2), of every cell
+        centre of rows × cols inside a triangle (shift 0; a cell on a shared edge may appear
+        twice: either triangle gives the same C1 surface; the later one is kept by the
+        callers' assignment), then of the cells holding data points whose centre is in no
+        triangle: the point q of the nearest triangle closest to the centre (λ0, λ1 of q)
+        and shift = centre − q (local units), for `_evaluate`'s linear continuation."""
         r = grid.resolution
         x0 = grid.west - self.origin[0]          # local x of the grid's west edge
         y0 = grid.north - self.origin[1]
@@ -216,15 +226,16 @@ class SplineSampler:
         tol = -self.TOLERANCE
         keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
         cell = (ii[keep] - rows.start) * nc + (jj[keep] - cols.start)
-        found = (cell, tri[keep], l0[keep], l1[keep])
+        found = (cell, tri[keep], l0[keep], l1[keep], np.zeros((cell.size, 2)))
         if self._data is None:
             return found
         return tuple(np.concatenate(pair) for pair in zip(found, self._uncovered(grid, rows, cols, cell)))
 
     def _uncovered(self, grid: RasterGrid, rows: range, cols: range, covered: np.ndarray):
-        """(cell, triangle, λ0, λ1) of the cells of rows × cols that hold data points but
-        whose centre lies in no triangle (`covered`: the flat cells that do), from their
-        nearest triangle within reach; cells with none are left out (nodata)."""
+        """(cell, triangle, λ0, λ1, shift) of the cells of rows × cols that hold data points
+        but whose centre lies in no triangle (`covered`: the flat cells that do), from
+        their nearest triangle within reach (at its point closest to the centre); cells
+        with none are left out (nodata)."""
         r, nc = grid.resolution, len(cols)
         x0, y0 = grid.west - self.origin[0], grid.north - self.origin[1]
         ii, jj = self._data.cells(x0, y0, r, rows, cols)
@@ -236,8 +247,11 @@ class SplineSampler:
             self._nearest = NearestTriangles(self.interp.points, self.interp.triangles, self._reach)
         tri = self._nearest.of(np.column_stack([cx, cy])) if cell.size else np.zeros(0, np.int64)
         has = tri >= 0
-        l0, l1 = self._barycentric(tri[has], cx[has], cy[has])
-        return cell[has], tri[has], l0, l1
+        centre = np.column_stack([cx[has], cy[has]])
+        tri = tri[has]
+        q = closest_points(centre, self.interp.points[self.interp.triangles[tri]])
+        l0, l1 = self._barycentric(tri, q[:, 0], q[:, 1])
+        return cell[has], tri, l0, l1, centre - q
 
     def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
         """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
@@ -249,7 +263,22 @@ class SplineSampler:
             out.append(lam)
         return out[0], out[1]
 
-    def _evaluate(self, tri, l0, l1, gradients: bool = True):
+    def _evaluate(self, tri, l0, l1, gradients: bool = True, shift=None):
+        """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
+        barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,), continued linearly by
+        shift (m, 2) (None: 0): value + gradient · shift, the gradient unchanged. The
+        triangle's polynomial itself is not continued past the triangle: past a thin one
+        it grows as the power of its degree (a sextic continued past rim triangles gave
+        slopes off by up to 76° on an analytic terrain)."""
+        values, grads = self._polynomial(tri, l0, l1, gradients)
+        moved = np.zeros(0, np.int64) if shift is None else np.flatnonzero(shift.any(axis=1))
+        if moved.size:
+            slope = grads[moved] if grads is not None else \
+                self._polynomial(tri[moved], l0[moved], l1[moved], True)[1]
+            values[moved] += slope[:, 0] * shift[moved, 0] + slope[:, 1] * shift[moved, 1]
+        return values, grads
+
+    def _polynomial(self, tri, l0, l1, gradients: bool = True):
         """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
         barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,)."""
         it = self.interp
@@ -363,6 +392,21 @@ class NearestTriangles:
         return out
 
 
+def closest_points(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(m, 2) the point of each triangle corners (m, 3, 2) closest to the plane point p
+    (m, 2): p itself inside, else the nearest point of its three edges."""
+    a, b = corners, corners[:, [1, 2, 0]]
+    ab = b - a
+    rel = p[:, None, :] - a
+    t = np.clip((rel * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    foot = a + t[..., None] * ab                                              # (m, 3, 2)
+    nearest = np.argmin(((foot - p[:, None, :]) ** 2).sum(axis=2), axis=1)
+    q = foot[np.arange(len(p)), nearest]
+    cross = ab[..., 0] * rel[..., 1] - ab[..., 1] * rel[..., 0]               # (m, 3)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return np.where(inside[:, None], p, q)
+
+
 def point_triangle_distance(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """(k,) Euclidean distance from the plane point p (2,) to the triangles corners (k, 3, 2):
     0 inside, else the distance to the nearest of the three edges."""
@@ -453,9 +497,9 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
             yield rows, z, g
             continue
         halo = (range(rows.start - 1, rows.stop + 1), range(-1, grid.width + 1))
-        cell, tri, l0, l1 = sampler.cells(grid, *halo)
+        cell, tri, l0, l1, shift = sampler.cells(grid, *halo)
         zh = np.full((len(halo[0]), len(halo[1])), np.nan)
-        zh.ravel()[cell] = sampler._evaluate(tri, l0, l1, False)[0] + sampler.origin[2]
+        zh.ravel()[cell] = sampler._evaluate(tri, l0, l1, False, shift)[0] + sampler.origin[2]
         z = zh[1:-1, 1:-1]
         g = horn_gradient(zh, grid.resolution)
         edge = np.isfinite(z) & ~np.isfinite(g).all(axis=2)
