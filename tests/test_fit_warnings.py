@@ -10,7 +10,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 from click.testing import CliRunner
 
 from c1mesh.cli import main
@@ -43,6 +42,7 @@ def test_readme_autzen_ground_sample_prints_no_warning(tmp_path):
     and its --seamless forms: no warning (it was "32 pieces" and "covers only 66%")."""
     runner = CliRunner()
     for args in (["-o", str(tmp_path / "ground.glb")],
+                 ["-o", str(tmp_path / "dem.tif"), "--resolution", "3"],
                  ["--seamless", "-o", str(tmp_path / "seamless.ply")],
                  ["--seamless", "-O", str(tmp_path / "out")]):
         result = runner.invoke(main, ["fit", str(AUTZEN), "--classes", "2", *args])
@@ -50,11 +50,13 @@ def test_readme_autzen_ground_sample_prints_no_warning(tmp_path):
         assert "warning" not in _stderr(result), args
 
 
-def test_a_max_edge_below_the_point_spacing_warns_and_auto_does_not():
+def test_a_max_edge_below_the_point_spacing_warns_and_auto_does_not(tmp_path):
     cloud = _terrain(4000, 60.0)                       # spacing √(3600 / 4000) = 0.95
     assert fit(cloud, None, FitOptions(axis="z", level=1)).report["warnings"] == []
     warnings = fit(cloud, None, FitOptions(axis="z", level=1, max_edge=0.8)).report["warnings"]
     assert len(warnings) == 1 and warnings[0].startswith("--max-edge 0.8 removed")
+    raster = fit(cloud, tmp_path / "dem.tif", FitOptions(axis="z", max_edge=0.8, resolution=1.0))
+    assert raster.report["warnings"] == [warnings[0].split(" (the surface fell")[0]]   # DEMs too
 
 
 def test_a_wrong_height_axis_warns_and_the_right_one_does_not():

@@ -358,7 +358,11 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                                                        "spacing": float(hf.spacing)},
                                             "frame": {"origin": frame.origin.tolist(),
                                                       "axes": frame.axes.tolist()},
-                                            "raster": raster_report, "seconds": timer.seconds}),
+                                            "raster": raster_report, "seconds": timer.seconds,
+                                            "warnings": fit_warnings(
+                                                len(cloud), int(used.size), trim_report.triangles_before,
+                                                trim_report.removed.get("long_edge", 0),
+                                                trim_report.max_edge, _auto_limit(options.max_edge))}),
                            interp, frame, crs, crs_source, options)
     if options.resolution is not None:
         options = replace(options, level=level_for_edge(interp.points, interp.triangles,
