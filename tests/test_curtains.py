@@ -148,7 +148,7 @@ def test_range_scan_folds_come_from_curtains(monkeypatch):
     """pcl_bun0 at default options: removing the curtains at its silhouette and across its
     self-occlusions (and slivers narrower than its noise) takes away the folded faces."""
     removed, _ = _bun0_folds()
-    monkeypatch.setattr(pipeline, "remove_curtains", lambda xy, z, g, tri, report: (tri, report))
+    monkeypatch.setattr(pipeline, "remove_curtains", lambda xy, z, g, tri, report, *view: (tri, report))
     kept, _ = _bun0_folds()
     assert removed < kept / 4
 

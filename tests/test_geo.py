@@ -252,11 +252,21 @@ def test_lidar_ground_dem_slope_hillshade(tmp_path):
     assert ds.crs == rasterio.crs.CRS.from_epsg(2903)
     assert ds.res == (3.0, 3.0) and ds.transform.c % 3 == 0 and ds.transform.f % 3 == 0
     assert ds.block_shapes[0] == (256, 256) and ds.dtypes[0] == "float32"
-    # nodata exactly where the cell centre is outside the trimmed triangulation (the level-1 mesh)
+    # nodata exactly where the cell centre is outside the trimmed triangulation (the level-1
+    # mesh) and the cell holds no ground point (issue 21; every point of this tile lies
+    # within --max-edge of a kept triangle: tests/test_dem_holes.py checks the reach)
     mesh = fit(str(TILE), None, FitOptions(classes=(2,), level=1, axis="z")).mesh   # DEMs use --axis z
     tri = Triangulation(mesh.vertices[:, 0], mesh.vertices[:, 1], mesh.faces)
+    from c1mesh.pipeline import load_cloud
+    points = load_cloud(str(TILE), FitOptions(classes=(2,))).points
+    rows = np.floor((points[:, 1] - ds.transform.f) / ds.transform.e).astype(int)
+    cols = np.floor((points[:, 0] - ds.transform.c) / ds.transform.a).astype(int)
+    holds_points = np.zeros(x.shape, bool)
+    holds_points[rows, cols] = True
     outside = tri.get_trifinder()(x.ravel(), y.ravel()).reshape(x.shape) < 0
     assert outside.any() and (~outside).sum() > 0.9 * outside.size
+    assert (outside & holds_points).any()                          # cells the rule fills
+    outside &= ~holds_points
     assert np.array_equal(np.ma.getmaskarray(band), outside)
     for path in (slope, shade):
         other = rasterio.open(path)

@@ -595,6 +595,7 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
         _fail(_message(exc), debug)
     if unused:
         result["scheduler"] = unused
+    _warn(result, quiet)
     _write_report(report, targets[-1], result, debug)
     _note(result, quiet)
 
@@ -803,8 +804,10 @@ def _warn(report: dict, quiet: bool) -> None:
     """The report's warnings on stderr, one line each (not with -q)."""
     if quiet:
         return
+    name = report.get("input", report.get("inputs"))
+    name = ", ".join(map(str, name)) if isinstance(name, (list, tuple)) else name
     for text in report.get("warnings", []):
-        click.echo(f"c1mesh: warning: {report.get('input')}: {text}", err=True)
+        click.echo(f"c1mesh: warning: {name}: {text}", err=True)
 
 
 def _write_report(report, target, payload, debug) -> None:

@@ -32,6 +32,17 @@ residual, below the width of all but degenerate triangles; tested on the analyti
 samples). Holes are left where curtains were; `remove_curtains` then lets
 triangulation.trim peel the slivers and bowties the holes expose, so the result keeps
 trim's guarantees (edge-manifold, no bowtie vertex).
+
+The first three rules take e3 as a view ray: they find what a scanner looking along e3
+cannot have seen as a graph. Aerial LiDAR ground (LAS/LAZ points of the bare-earth classes
+`GROUND_CLASSES`, selected with --classes, heights along world z) is a height field by the
+format's definition: the classifier kept one return per place, the last one from above, so
+a steep triangle there is a steep bank or a ditch wall, not a curtain, and removing it
+opens a hole inside the data (issue 21: on a 0.93 m ground tile, 101 of 483 removed
+triangles were shadow_edge, facing_away or grazing, and their cells lost their DEM
+values). `view_rules` says whether they run; "thinner_than_noise" is a property of the
+spline on any data (it divides by the triangle's width) and always runs, as do trim's
+long_edge, sliver and bowtie rules.
 """
 from __future__ import annotations
 
@@ -43,11 +54,27 @@ from c1mesh.grid import GRAZING_ANGLE, SHADOW_ANGLE
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
+VIEW_REASONS = ("shadow_edge", "grazing", "facing_away")
+"""The rules that take the height axis as a view ray (skipped on aerial ground)."""
+GROUND_CLASSES = (2, 8, 9, 11)
+"""ASPRS LAS classes of surfaces seen from above: ground, model key-point (a subset of
+ground in LAS 1.0-1.3), water, road surface."""
+
+
+def view_rules_apply(classes, axes) -> bool:
+    """Whether the view-dependent curtain rules (VIEW_REASONS) run: not on aerial ground,
+    that is when the fit keeps only LAS classes of GROUND_CLASSES (classes: the --classes
+    tuple, None for all points) and the height axis is world z (axes (3, 3): the frame's
+    rows, e3 last). Decided from the options and the frame alone, so the in-memory and the
+    tiled fit decide alike."""
+    ground = bool(classes) and all(int(c) in GROUND_CLASSES for c in classes)
+    world_z = np.allclose(np.asarray(axes, dtype=float)[2], (0.0, 0.0, 1.0))
+    return not (ground and world_z)
 
 
 def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
                       shadow_angle: float = SHADOW_ANGLE, grazing_angle: float = GRAZING_ANGLE,
-                      floor: float | None = None) -> dict[str, np.ndarray]:
+                      floor: float | None = None, view_rules: bool = True) -> dict[str, np.ndarray]:
     """(T,) bool masks of the curtain triangles by reason (each triangle under its first reason,
     in the order of REASONS).
 
@@ -55,6 +82,7 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     coordinates, heights along e3, data gradients ∇z from the normals); triangles (T, 3)
     indices into them. Angles in degrees. Component by component and without square
     roots (squared comparisons), as this runs on every triangle of every fit.
+    view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
     corners = [[xy[triangles[:, k], 0], xy[triangles[:, k], 1], z[triangles[:, k]]] for k in range(3)]
     edges = [[corners[(k + 1) % 3][c] - corners[k][c] for c in range(3)] for k in range(3)]
@@ -81,6 +109,8 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     if floor is None:                  # a tile passes the survey's (c1mesh.tiled_trim)
         floor = noise_floor(xy, z, gradients, triangles)
     longest2 = np.maximum(np.maximum(plane2[0], plane2[1]), plane2[2])
+    if not view_rules:
+        shadow, grazing, away = (np.zeros(triangles.shape[0], dtype=bool) for _ in range(3))
     thin = (nz * nz < floor * floor * longest2) & ~shadow & ~grazing & ~away   # 2 area = |n_z|
     return {"shadow_edge": shadow, "grazing": grazing, "facing_away": away, "thinner_than_noise": thin}
 
@@ -124,7 +154,7 @@ def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarr
 
 
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
-                    trim_report):
+                    trim_report, view_rules: bool = True):
     """Triangles (T', 3) without curtains, and the trim report (triangulation.TrimReport)
     with the curtains counted by reason in its "removed" (and the slivers and bowties the
     holes exposed added to trim's own counts).
@@ -136,7 +166,7 @@ def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triang
     """
     from c1mesh.triangulation import trim
 
-    masks = curtain_triangles(xy, z, gradients, triangles)
+    masks = curtain_triangles(xy, z, gradients, triangles, view_rules=view_rules)
     curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
     removed = dict(trim_report.removed)
     removed.update({reason: int(masks[reason].sum()) for reason in REASONS})

@@ -2,8 +2,15 @@
 
 The grid is aligned to multiples of the resolution R in world coordinates (x to the east,
 y to the north, z up: the surface must be a height field over the world XY plane, so the
-fit uses --axis z). Each cell holds the spline at the cell centre; cells whose centre lies
-outside the trimmed triangulation are nodata. Slope, aspect and hillshade come from a
+fit uses --axis z). Each cell holds the spline at the cell centre. A cell whose centre lies
+outside the trimmed triangulation but which holds input points (the trim removed the
+triangle under its centre, or the centre lies just past the mesh's rim) holds the spline
+of the nearest kept triangle, when that triangle lies within `reach` of the centre (the
+fit passes its max_edge): the spline's value and gradient at the triangle's point closest
+to the centre, continued linearly to the centre (slope rasters take that gradient).
+Nodata is therefore only where there is no data: cells without points outside the
+trimmed triangulation, and cells whose points lie more than `reach` from every kept
+triangle (in a gap wider than --max-edge). Slope, aspect and hillshade come from a
 gradient at each cell centre: the spline's own analytic gradient ("spline"), or Horn's
 3x3 differences of the DEM ("horn", what `gdaldem slope` computes), chosen per resolution
 by "auto" (see AUTO_SPLINE_FROM). The rasters are computed and written in blocks of rows, so
@@ -133,13 +140,20 @@ class SplineSampler:
     tolerance of c1mesh.locate), and the spline is evaluated as its per-triangle
     polynomial in (λ0, λ1) (polynomial_form): values and gradients are then sums of
     monomials instead of 21 shape functions per point, the same numbers to ~1e-12.
+
+    Cells whose centre lies in no triangle but which hold a point of data_xy (m, 2) (local
+    plane coordinates, the fitted points) get the nearest triangle within `reach` (local
+    units; None: any distance; NearestTriangles), evaluated at its point closest to the
+    centre and continued linearly from there (`_evaluate`).
     """
 
     TOLERANCE = 1e-10
 
-    def __init__(self, interp, origin):
+    def __init__(self, interp, origin, data_xy=None, reach: float | None = None):
         self.interp = interp
         self.origin = np.asarray(origin, dtype=np.float64)
+        self._data = None if data_xy is None else _RowSorted(data_xy)
+        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed
         K, self.exponents, error = polynomial_form(interp.scheme)
         self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
         tri, pts = interp.triangles, interp.points
@@ -167,8 +181,8 @@ class SplineSampler:
         the triangulation. gradients=False skips them (returns None): a DEM alone, or
         Horn's differences, need heights only."""
         nr, nc = len(rows), len(cols)
-        cell, tri, l0, l1 = self.cells(grid, rows, cols)
-        values, grads = self._evaluate(tri, l0, l1, gradients)
+        cell, tri, l0, l1, shift = self.cells(grid, rows, cols)
+        values, grads = self._evaluate(tri, l0, l1, gradients, shift)
         z = np.full(nr * nc, np.nan)
         z[cell] = values + self.origin[2]
         if not gradients:
@@ -178,9 +192,12 @@ class SplineSampler:
         return z.reshape(nr, nc), g.reshape(nr, nc, 2)
 
     def cells(self, grid: RasterGrid, rows: range, cols: range):
-        """(flat cell index, triangle, λ0, λ1), each (m,), of every cell centre of rows ×
-        cols inside a triangle (a cell on a shared edge may appear twice: either triangle
-        gives the same C1 surface; the later one is kept by the callers' assignment)."""
+        """(flat cell index, triangle, λ0, λ1), each (m,), and shift (m, 2), of every cell
+        centre of rows × cols inside a triangle (shift 0; a cell on a shared edge may appear
+        twice: either triangle gives the same C1 surface; the later one is kept by the
+        callers' assignment), then of the cells holding data points whose centre is in no
+        triangle: the point q of the nearest triangle closest to the centre (λ0, λ1 of q)
+        and shift = centre − q (local units), for `_evaluate`'s linear continuation."""
         r = grid.resolution
         x0 = grid.west - self.origin[0]          # local x of the grid's west edge
         y0 = grid.north - self.origin[1]
@@ -209,7 +226,33 @@ class SplineSampler:
         l0, l1 = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
         tol = -self.TOLERANCE
         keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
-        return (ii[keep] - rows.start) * nc + (jj[keep] - cols.start), tri[keep], l0[keep], l1[keep]
+        cell = (ii[keep] - rows.start) * nc + (jj[keep] - cols.start)
+        found = (cell, tri[keep], l0[keep], l1[keep], np.zeros((cell.size, 2)))
+        if self._data is None:
+            return found
+        return tuple(np.concatenate(pair) for pair in zip(found, self._uncovered(grid, rows, cols, cell)))
+
+    def _uncovered(self, grid: RasterGrid, rows: range, cols: range, covered: np.ndarray):
+        """(cell, triangle, λ0, λ1, shift) of the cells of rows × cols that hold data points
+        but whose centre lies in no triangle (`covered`: the flat cells that do), from
+        their nearest triangle within reach (at its point closest to the centre); cells
+        with none are left out (nodata)."""
+        r, nc = grid.resolution, len(cols)
+        x0, y0 = grid.west - self.origin[0], grid.north - self.origin[1]
+        ii, jj = self._data.cells(x0, y0, r, rows, cols)
+        cell = np.unique((ii - rows.start) * nc + (jj - cols.start))
+        cell = cell[~np.isin(cell, covered)]
+        i, j = np.divmod(cell, nc)
+        cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
+        if self._nearest is None and cell.size:
+            self._nearest = NearestTriangles(self.interp.points, self.interp.triangles, self._reach)
+        tri = self._nearest.of(np.column_stack([cx, cy])) if cell.size else np.zeros(0, np.int64)
+        has = tri >= 0
+        centre = np.column_stack([cx[has], cy[has]])
+        tri = tri[has]
+        q = closest_points(centre, self.interp.points[self.interp.triangles[tri]])
+        l0, l1 = self._barycentric(tri, q[:, 0], q[:, 1])
+        return cell[has], tri, l0, l1, centre - q
 
     def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
         """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
@@ -221,7 +264,22 @@ class SplineSampler:
             out.append(lam)
         return out[0], out[1]
 
-    def _evaluate(self, tri, l0, l1, gradients: bool = True):
+    def _evaluate(self, tri, l0, l1, gradients: bool = True, shift=None):
+        """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
+        barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,), continued linearly by
+        shift (m, 2) (None: 0): value + gradient · shift, the gradient unchanged. The
+        triangle's polynomial itself is not continued past the triangle: past a thin one
+        it grows as the power of its degree (a sextic continued past rim triangles gave
+        slopes off by up to 76° on an analytic terrain)."""
+        values, grads = self._polynomial(tri, l0, l1, gradients)
+        moved = np.zeros(0, np.int64) if shift is None else np.flatnonzero(shift.any(axis=1))
+        if moved.size:
+            slope = grads[moved] if grads is not None else \
+                self._polynomial(tri[moved], l0[moved], l1[moved], True)[1]
+            values[moved] += slope[:, 0] * shift[moved, 0] + slope[:, 1] * shift[moved, 1]
+        return values, grads
+
+    def _polynomial(self, tri, l0, l1, gradients: bool = True):
         """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
         barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,)."""
         it = self.interp
@@ -268,6 +326,98 @@ class SplineSampler:
         out[:, 0] = d0 * g0x[tri] + d1 * g1x[tri]
         out[:, 1] = d0 * g0y[tri] + d1 * g1y[tri]
         return values, out
+
+
+class _RowSorted:
+    """Plane points (m, 2) sorted by y, to list the grid cells that hold points row band
+    by row band (a block of rows reads only its band)."""
+
+    def __init__(self, xy):
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        order = np.argsort(xy[:, 1], kind="stable")
+        self.x, self.y = xy[order, 0], xy[order, 1]
+
+    def cells(self, x0: float, y0: float, r: float, rows: range, cols: range):
+        """Row and column indices (k,) of the points inside the cells rows × cols of the
+        grid whose west edge is local x0 and north edge local y0, cell size r (a point on
+        a cell's west or north edge belongs to that cell)."""
+        low, high = y0 - rows.stop * r, y0 - rows.start * r
+        band = slice(np.searchsorted(self.y, low, side="right"), np.searchsorted(self.y, high, side="right"))
+        ii = np.floor((y0 - self.y[band]) / r).astype(np.int64)
+        jj = np.floor((self.x[band] - x0) / r).astype(np.int64)
+        inside = (ii >= rows.start) & (ii < rows.stop) & (jj >= cols.start) & (jj < cols.stop)
+        return ii[inside], jj[inside]
+
+
+class NearestTriangles:
+    """The nearest triangle to plane points, within a reach.
+
+    points (n, 2), triangles (T, 3): a triangulation in the plane (local units); reach:
+    the largest distance searched (None: any). A triangle at distance d from p has all
+    three corners within d + L of p, L its longest edge, and the nearest corner's
+    triangles bound d from above: so the triangles of the corners within d_corner + L_max
+    of p are the candidates, and their exact point-triangle distances decide. Ties go to
+    the lowest triangle number, so the answer does not depend on the search order.
+    """
+
+    def __init__(self, points: np.ndarray, triangles: np.ndarray, reach: float | None = None):
+        from scipy.spatial import cKDTree
+
+        self.points, self.triangles = np.asarray(points, dtype=np.float64), np.asarray(triangles)
+        self.reach = np.inf if reach is None else float(reach)
+        corners = self.points[self.triangles]                                   # (T, 3, 2)
+        edges = corners[:, [1, 2, 0]] - corners
+        self.longest = float(np.sqrt((edges ** 2).sum(axis=2)).max()) if len(self.triangles) else 0.0
+        order = np.argsort(self.triangles.ravel(), kind="stable")
+        self._of_vertex = order // 3                                            # triangles by vertex
+        self._start = np.searchsorted(self.triangles.ravel()[order], np.arange(len(self.points) + 1))
+        self._tree = cKDTree(self.points)
+
+    def of(self, query: np.ndarray) -> np.ndarray:
+        """(q,) the nearest triangle to each query point (q, 2) within the reach, -1 if none."""
+        out = np.full(len(query), -1, dtype=np.int64)
+        if not len(self.triangles) or not len(query):
+            return out
+        first, _ = self._tree.query(query)
+        for q, (p, d) in enumerate(zip(query, first)):
+            if d - self.longest > self.reach:                # every triangle is farther than reach
+                continue
+            near = self._tree.query_ball_point(p, d + self.longest)
+            cand = np.unique(np.concatenate([self._of_vertex[self._start[v]:self._start[v + 1]]
+                                             for v in near]))
+            dist = point_triangle_distance(p, self.points[self.triangles[cand]])
+            best = np.flatnonzero(dist == dist.min())
+            if dist[best[0]] <= self.reach:
+                out[q] = cand[best].min()
+        return out
+
+
+def closest_points(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(m, 2) the point of each triangle corners (m, 3, 2) closest to the plane point p
+    (m, 2): p itself inside, else the nearest point of its three edges."""
+    a, b = corners, corners[:, [1, 2, 0]]
+    ab = b - a
+    rel = p[:, None, :] - a
+    t = np.clip((rel * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    foot = a + t[..., None] * ab                                              # (m, 3, 2)
+    nearest = np.argmin(((foot - p[:, None, :]) ** 2).sum(axis=2), axis=1)
+    q = foot[np.arange(len(p)), nearest]
+    cross = ab[..., 0] * rel[..., 1] - ab[..., 1] * rel[..., 0]               # (m, 3)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return np.where(inside[:, None], p, q)
+
+
+def point_triangle_distance(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(k,) Euclidean distance from the plane point p (2,) to the triangles corners (k, 3, 2):
+    0 inside, else the distance to the nearest of the three edges."""
+    a, b = corners, corners[:, [1, 2, 0]]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    edge = np.sqrt((((a + t[..., None] * ab) - p) ** 2).sum(axis=2)).min(axis=1)
+    cross = ab[..., 0] * (p[1] - a[..., 1]) - ab[..., 1] * (p[0] - a[..., 0])   # (k, 3)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return np.where(inside, 0.0, edge)
 
 
 def horn_gradient(dem: np.ndarray, resolution: float) -> np.ndarray:
@@ -348,9 +498,9 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
             yield rows, z, g
             continue
         halo = (range(rows.start - 1, rows.stop + 1), range(-1, grid.width + 1))
-        cell, tri, l0, l1 = sampler.cells(grid, *halo)
+        cell, tri, l0, l1, shift = sampler.cells(grid, *halo)
         zh = np.full((len(halo[0]), len(halo[1])), np.nan)
-        zh.ravel()[cell] = sampler._evaluate(tri, l0, l1, False)[0] + sampler.origin[2]
+        zh.ravel()[cell] = sampler._evaluate(tri, l0, l1, False, shift)[0] + sampler.origin[2]
         z = zh[1:-1, 1:-1]
         g = horn_gradient(zh, grid.resolution)
         edge = np.isfinite(z) & ~np.isfinite(g).all(axis=2)
@@ -477,9 +627,12 @@ def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(math.sqrt(area / points.shape[0]))
 
 
-def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None) -> dict:
+def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None,
+                      data_xy=None, reach: float | None = None) -> dict:
     """Sample a fitted spline onto the aligned grid covering its triangulation and write
-    the requested rasters; returns the report's "raster" section."""
+    the requested rasters; returns the report's "raster" section. data_xy (m, 2): the
+    fitted points in the frame's plane (their cells always get a value within `reach`,
+    the trim's max_edge: SplineSampler); None: the triangulation alone decides."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     if crs and (options.slope or options.aspect or options.hillshade):
@@ -492,6 +645,6 @@ def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str |
     grid = RasterGrid.covering(lo, hi, options.resolution)
     spacing = mean_spacing(interp.points, interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
-    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin), method, crs)
+    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin, data_xy, reach), method, crs)
     report["point_spacing"] = float(spacing)
     return report

@@ -384,7 +384,9 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             heights = _height_spill(raw, grid, count, options, directory, temps.stem, runner, rows)
         try:
             done("normals")
-            max_edge, triangle_files, buffers = _triangulate(heights, grid, options.max_edge, temps, runner, rows)
+            max_edge, triangle_files, buffers, delaunay_count = _triangulate(heights, grid, options.max_edge,
+                                                                             temps, runner, rows)
+            long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files)
             done("triangulate")
             from c1mesh.tiled_limiter import HaloCache, halo_reach, longest_final_edge
 
@@ -392,7 +394,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
-            removed = _trim(halos, grid, temps)
+            from c1mesh.curtains import view_rules_apply
+            removed = _trim(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
             done("trim")
             limiter = None
             if options.overshoot == "limit":
@@ -408,12 +411,16 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         stack.close()
         temps.close()
+    from c1mesh.pipeline import _auto_limit, fit_warnings
+    kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output) if outputs is None else [str(o) for o in outputs],
                    "tiles": len(grid),
-                   "warnings": [f"fitted in {len(grid)} tiles to stay within the memory budget "
-                                "(docs/tiles.md)"],
-                   "points": {"read": count, "kept": report.pop("kept")}, "max_edge": max_edge,
+                   # a note, not a warning: the result is the in-memory fit's (docs/tiles.md)
+                   "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
+                   "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
+                                            _auto_limit(options.max_edge)),
+                   "points": {"read": count, "kept": kept}, "max_edge": max_edge,
                    "triangles": {"removed": removed, "max_edge": max_edge},
                    "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
@@ -615,7 +622,9 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
     """The survey's Delaunay triangulation with the long-edge trim, each tile a task
     (`_tile_delaunay`, `_tile_trimmed`) that reads the height spill and writes its owned
     triangles to a file: (max_edge or None, per tile a .npy file of its owned triangles
-    (survey numbers), per tile the buffer its corners lie within)."""
+    (survey numbers), per tile the buffer its corners lie within, the triangle count of
+    the whole Delaunay triangulation: 2n - 2 - h by Euler's formula, n points and h hull
+    corners, exact unless points lie on the hull between its corners)."""
     from c1mesh.buffered_delaunay import INITIAL_SPACINGS, mean_spacing, streamed_hull, trimmed_delaunay
 
     count = int(heights.counts.sum())
@@ -632,7 +641,7 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
                                            rows.name):
             buffers[t] = buffer
             rows.add(t, "triangulate", row)
-        return None, files, buffers
+        return None, files, buffers, 2 * count - 2 - len(hull.index)
     longest = [temps.new(f"longest-{t}.npy") for t in range(len(grid))]
     shorts = [temps.new(f"short-{t}.npy") for t in range(len(grid))]
 
@@ -650,7 +659,7 @@ def _triangulate(heights, grid, max_edge, temps, runner, rows: _TileRows):
         short = np.load(longest[t]) <= limit
         if not short.all():
             _save(files[t], triangles[short])
-    return limit, files, buffers
+    return limit, files, buffers, 2 * count - 2 - len(hull.index)
 
 
 def _save(path, array: np.ndarray) -> None:
@@ -689,14 +698,14 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path,
     return result.buffer, _row(result.read, start)
 
 
-def _trim(halos, grid, temps) -> dict[str, int]:
+def _trim(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     """The in-memory default trim after the long-edge rule, over the tiles
     (c1mesh.tiled_trim): trim's sliver peel and bow-tie removal, then curtains
     (c1mesh.curtains) with the survey's noise floor, then the peel and bow-tie removal
     of the holes they left, as pipeline.build_surface runs them. halos: the
     tiled_limiter.HaloCache, whose `removed` grows as triangles go (each halo drops them
     as it loads); the removed triangles also leave their tiles' files. Returns the
-    removed counts by reason (as TrimReport.removed)."""
+    removed counts by reason (as TrimReport.removed). view_rules: curtains.view_rules_apply."""
     import inspect
 
     from c1mesh.curtains import REASONS
@@ -716,7 +725,7 @@ def _trim(halos, grid, temps) -> dict[str, int]:
     floor = edge_floor(halos.halos, temps, "curtains")
     cut, corners, counts = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)], {r: 0 for r in REASONS}
     for t in halos.tiles():
-        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid)
+        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid, view_rules)
         cut.append(triangles)
         corners.append(where)
         for reason, count in reasons.items():

@@ -99,17 +99,19 @@ def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
     return halo.records["index"][triangles[cut]], corner_tiles(halo, triangles[cut], grid)
 
 
-def curtain_cuts(halo, floor: float, grid) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+def curtain_cuts(halo, floor: float, grid, view_rules: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The tile's own triangles that curtains.curtain_triangles drops with the survey's
-    noise floor `floor`: (k, 3) survey numbers, (k, 3) the tile of each corner, and the
-    count by reason."""
+    noise floor `floor` (and view_rules, curtains.view_rules_apply): (k, 3) survey
+    numbers, (k, 3) the tile of each corner, and the count by reason."""
     from c1mesh.curtains import REASONS, curtain_triangles
 
     triangles = halo.triangles
     if not len(triangles):
         return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64), {reason: 0 for reason in REASONS}
     own = triangles[halo.own[triangles.min(axis=1)]]
-    masks = curtain_triangles(halo.points, halo.records["z"], halo.gradients, own, floor=floor)
+    masks = curtain_triangles(halo.points, halo.records["z"], halo.gradients, own, floor=floor,
+                              view_rules=view_rules)
     cut = np.logical_or.reduce([masks[reason] for reason in REASONS])
     return (halo.records["index"][own[cut]], corner_tiles(halo, own[cut], grid),
             {reason: int(masks[reason].sum()) for reason in REASONS})

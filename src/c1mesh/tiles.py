@@ -446,7 +446,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     same ownership rule (c1mesh.tiled_outputs).
     """
     from c1mesh.geo import resolve_crs
-    from c1mesh.pipeline import _resolve_axis, _Timer, build_surface, fit, with_plane_level
+    from c1mesh.pipeline import _resolve_axis, _Timer, _auto_limit, build_surface, fit, fit_warnings, with_plane_level
     from c1mesh.tiled_fit import fit_tiled
 
     from c1mesh.crs import describe, parse_crs
@@ -485,7 +485,11 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
                             "max_edge": model.trim_report.max_edge},
               "level": options.level, "ownership": "lowest-numbered corner point",
               "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process"),
-              "crs": None if crs is None else {**describe(crs), "source": crs_source}}
+              "crs": None if crs is None else {**describe(crs), "source": crs_source},
+              "warnings": fit_warnings(len(survey.cloud), int(model.used.size),
+                                       model.trim_report.triangles_before,
+                                       model.trim_report.removed.get("long_edge", 0),
+                                       model.trim_report.max_edge, _auto_limit(options.max_edge))}
     tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)
     del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()

@@ -1,0 +1,98 @@
+"""Issue 21: fit warnings only when the result is probably wrong (a wrong height axis, a
+--max-edge that removes triangles between dense points), the same on every path.
+
+Truth: the README's own LiDAR sample (its holes are buildings and trees, right for
+ground), analytic terrain with a known right axis, and a --max-edge below the spacing of
+points laid out by the test.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from c1mesh.cli import main
+from c1mesh.cloud import PointCloud
+from c1mesh.pipeline import FitOptions, fit
+
+DATA = Path(__file__).resolve().parent.parent / "data_samples"
+AUTZEN = DATA / "autzen_trim.laz"
+TILE = DATA / "4_6_crop.las"
+
+
+def _terrain(n, side, seed=1, normals=True):
+    """n uniform points on [0, side]² of z = 3 sin(x/9) cos(y/7) + 0.05 x (exact normals)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.random((n, 2)) * side
+    z = 3 * np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 7) + 0.05 * xy[:, 0]
+    gx = 3 / 9 * np.cos(xy[:, 0] / 9) * np.cos(xy[:, 1] / 7) + 0.05
+    gy = -3 / 7 * np.sin(xy[:, 0] / 9) * np.sin(xy[:, 1] / 7)
+    n3 = np.column_stack([-gx, -gy, np.ones_like(gx)])
+    n3 /= np.linalg.norm(n3, axis=1, keepdims=True)
+    return PointCloud(np.column_stack([xy, z]), n3 if normals else None)
+
+
+def _stderr(result):
+    return getattr(result, "stderr", None) or result.output
+
+
+def test_readme_autzen_ground_sample_prints_no_warning(tmp_path):
+    """`c1mesh fit data_samples/autzen_trim.laz --classes 2 -o ground.glb` (the README's)
+    and its --seamless forms: no warning (it was "32 pieces" and "covers only 66%")."""
+    runner = CliRunner()
+    for args in (["-o", str(tmp_path / "ground.glb")],
+                 ["-o", str(tmp_path / "dem.tif"), "--resolution", "3"],
+                 ["--seamless", "-o", str(tmp_path / "seamless.ply")],
+                 ["--seamless", "-O", str(tmp_path / "out")]):
+        result = runner.invoke(main, ["fit", str(AUTZEN), "--classes", "2", *args])
+        assert result.exit_code == 0, _stderr(result)
+        assert "warning" not in _stderr(result), args
+
+
+def test_a_max_edge_below_the_point_spacing_warns_and_auto_does_not(tmp_path):
+    cloud = _terrain(4000, 60.0)                       # spacing √(3600 / 4000) = 0.95
+    assert fit(cloud, None, FitOptions(axis="z", level=1)).report["warnings"] == []
+    warnings = fit(cloud, None, FitOptions(axis="z", level=1, max_edge=0.8)).report["warnings"]
+    assert len(warnings) == 1 and warnings[0].startswith("--max-edge 0.8 removed")
+    raster = fit(cloud, tmp_path / "dem.tif", FitOptions(axis="z", max_edge=0.8, resolution=1.0))
+    assert raster.report["warnings"] == [warnings[0].split(" (the surface fell")[0]]   # DEMs too
+
+
+def test_a_wrong_height_axis_warns_and_the_right_one_does_not():
+    """52 points of terrain with a steep relief, normals estimated: seen along x most
+    points fold over others; along z (the right axis, heights in the units of x and y)
+    the fit is clean."""
+    rng = np.random.default_rng(0)
+    xy = rng.random((52, 2)) * 6.5
+    z = 850 + 60 * np.sin(xy[:, 0]) * np.cos(0.8 * xy[:, 1]) - 20 * xy[:, 1]
+    right = PointCloud(np.column_stack([xy, (z - 850) / 50]))
+    assert fit(right, None, FitOptions(axis="z", level=1)).report["warnings"] == []
+    cloud = PointCloud(np.column_stack([xy, z]))
+    report = fit(cloud, None, FitOptions(axis="x", level=1)).report
+    assert report["points"]["kept"] < 0.8 * 52                       # the case is there
+    assert len(report["warnings"]) == 1 and report["warnings"][0].endswith("check --axis (and --classes)")
+
+
+def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
+    """--max-edge 2.5 on the 0.75 m ground tile: one warning, the same rule and numbers in
+    the in-memory fit, --seamless -O and the tiled fit (which cannot count pieces)."""
+    from c1mesh.tiled_fit import fit_tiled
+    from c1mesh.tiles import fit_seamless
+
+    options = FitOptions(classes=(2,), level=1, max_edge=2.5)
+    whole = fit(TILE, None, options).report["warnings"]
+    seamless = fit_seamless([str(TILE)], options, outputs=[str(tmp_path / "o.ply")])["warnings"]
+    tiled = fit_tiled(TILE, tmp_path / "t.ply", options, memory=10**9, per_tile=1000)["warnings"]
+    assert len(whole) == 1 and whole[0].startswith("--max-edge 2.5 removed")
+    assert seamless == [w.split(" (the surface fell")[0] for w in whole]
+    assert tiled == seamless
+
+
+def test_a_fit_in_tiles_of_autzen_ground_warns_nothing(tmp_path):
+    """Beyond --memory the same rule: no warning (the tile count is a note, not a warning)."""
+    from c1mesh.tiled_fit import fit_tiled
+
+    report = fit_tiled(AUTZEN, tmp_path / "t.ply", FitOptions(classes=(2,), level=1), memory=10**9,
+                       per_tile=7000)
+    assert report["warnings"] == [] and report["note"].startswith("fitted in 4 tiles")
