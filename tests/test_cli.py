@@ -386,3 +386,19 @@ def test_scheduler_for_a_fit_in_memory_fits_here_with_a_note(tmp_path, survey):
     assert "c1mesh: error" not in sent.stderr
     assert json.loads((tmp_path / "r.json").read_text())["scheduler"].startswith("not used: ")
     assert (tmp_path / "big.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+
+
+@pytest.mark.parametrize("stdin", [False, True])
+def test_an_error_of_the_fit_itself_names_the_input(tmp_path, stdin):
+    """The room scan is walls and floor, not a height field: the one error line says which
+    input it is about (the fit's own message does not name it), and no output is left."""
+    room, out = SAMPLES / "o3d_cloud_bin_0.pcd", tmp_path / "room.ply"
+    if stdin:
+        proc = subprocess.run([sys.executable, "-m", "c1mesh.cli", "fit", "-", "--input-format", "pcd",
+                               "-o", str(out)], stdin=room.open("rb"), capture_output=True, text=True)
+    else:
+        proc = run("fit", room, "-o", out)
+    lines = (proc.stderr if isinstance(proc.stderr, str) else proc.stderr.decode()).splitlines()
+    assert proc.returncode == 1 and len(lines) == 1 and not out.exists()
+    name = "<stdin>" if stdin else str(room)
+    assert lines[0].startswith(f"c1mesh: error: {name}: ") and "not a height field" in lines[0]

@@ -42,6 +42,13 @@ def _fail(message: str, debug: bool = False) -> None:
     sys.exit(EXIT_FAILURE)
 
 
+def _naming(src: str, text: str) -> str:
+    """`text` led by the input it is about, unless it names it already (readers do; the
+    fit's own errors, such as "not a height field", do not)."""
+    name = "<stdin>" if src == STDIO else str(src)
+    return text if name in text else f"{name}: {text}"
+
+
 def _message(exc: BaseException) -> str:
     """A one-line description of an exception for the user."""
     if isinstance(exc, C1MeshError):
@@ -744,7 +751,7 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
                     handle.write(json.dumps(result, indent=2) + "\n")
             outputs.commit()
     except Exception as exc:  # noqa: BLE001 — any failure is one line
-        _fail(_message(exc), debug)
+        _fail(_naming(src, _message(exc)), debug)
     if report == STDIO:
         click.echo(json.dumps(result, indent=2), err=True)
     _note(result, quiet)
