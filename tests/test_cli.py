@@ -402,3 +402,14 @@ def test_an_error_of_the_fit_itself_names_the_input(tmp_path, stdin):
     assert proc.returncode == 1 and len(lines) == 1 and not out.exists()
     name = "<stdin>" if stdin else str(room)
     assert lines[0].startswith(f"c1mesh: error: {name}: ") and "not a height field" in lines[0]
+
+
+def test_a_cloud_whose_fit_needs_more_than_memory_is_refused_before_the_fit(tmp_path):
+    """hill.ply's 3,000 points need about 5.4 MB in memory (1.8 kB each); a PLY is not fitted
+    in tiles, so --memory 4M refuses it in one line, and 8M fits it."""
+    out = tmp_path / "hill.ply"
+    proc = run("fit", SAMPLES / "hill.ply", "-o", out, "--memory", "4M")
+    assert proc.returncode == 1 and not out.exists()
+    assert_one_line_error(proc.stderr)
+    assert "3000 points need about 5 MB" in proc.stderr.decode() and "hill.ply" in proc.stderr.decode()
+    assert run("fit", SAMPLES / "hill.ply", "-o", out, "--memory", "8M", "--level", "1").returncode == 0

@@ -147,11 +147,23 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
             found = np.unique(cloud.classification)[:20].tolist()
             raise InputError(f"no points of class {list(options.classes)}; the file has classes {found}")
         cloud = cloud.subset(keep)
+    _check_fit_memory(len(cloud), options.memory)
     if len(cloud) == 0:
         where = f"{getattr(source, 'name', source)}: " if options.bounds else ""
         raise InputError(f"{where}the input has no points" + (f" inside --bounds {','.join(map(str, options.bounds))}"
                                                              if options.bounds else ""))
     return cloud
+
+
+def _check_fit_memory(count: int, memory: int | None) -> None:
+    """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
+    --memory bytes (tiled_fit.BYTES_PER_POINT per point). LAS/LAZ inputs beyond it never get
+    here (they are fitted in tiles); other formats would otherwise run over the budget."""
+    from c1mesh.tiled_fit import BYTES_PER_POINT, fits_in_memory
+    if not fits_in_memory(count, memory):
+        raise InputError(f"{count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB to fit in "
+                         f"memory, more than --memory {memory / 1e6:.0f} MB; only LAS/LAZ inputs are "
+                         "fitted in tiles: raise --memory, thin the input, or convert it to LAS/LAZ")
 
 
 def _check_normals_mode(mode: str) -> None:
