@@ -432,3 +432,24 @@ def test_height_column_angles_without_z_factor_are_refused_before_any_output(tmp
     done = CliRunner().invoke(main, ["fit", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
                                      "--aspect", str(tmp_path / "aspect.tif")])
     assert done.exit_code == 0, done.output
+
+
+@pytest.mark.parametrize("z_factor, shading", [(0.001, (0.03, -0.04)), (None, (0.0, 0.0))],
+                         ids=["z-factor", "unknown"])
+def test_preview_of_a_height_column_shades_with_the_z_factor(tmp_path, monkeypatch, z_factor, shading):
+    """The preview's light sees the gradient in height per x, y unit times --z-factor (the
+    km/m plane: (30, −40) m/km · 0.001); without a factor the slopes are unknown and the
+    picture is unshaded (zero gradient) instead of lit as if metres were km."""
+    import c1mesh.preview as preview
+
+    seen = []
+    monkeypatch.setattr(preview, "render_arrays", lambda z, g, *rest: seen.append(g))
+    src = _km_m_plane_csv(tmp_path / "plane.csv")
+    fit(src, None, FitOptions(level=1, preview=str(tmp_path / "p.png"), z_factor=z_factor))
+    (gradient,) = seen
+    inside = np.isfinite(gradient).all(axis=-1)
+    assert inside.sum() > 1000
+    # the heights' least-squares gradients of a plane are exact to rounding (~1e-8 here);
+    # one level of the 8-bit shading is a gradient change of ~4e-3
+    np.testing.assert_allclose(gradient[inside], np.broadcast_to(shading, gradient[inside].shape),
+                               rtol=0, atol=1e-6)
