@@ -286,6 +286,13 @@ _USAGE_CASES = {
     "several inputs to -o": (["fit", "IN.ply", "IN2.ply", "-o", "OUT.ply"], ["several inputs need -O"]),
     "unknown command": (["frobnicate"], ["No such command 'frobnicate'"]),
     "preview not a PNG": (["preview", "IN.tif", "-o", "OUT.jpg"], ["must be a .png file"]),
+    "z-factor zero": (["fit", "IN.ply", "-o", "OUT.tif", "--resolution", "1", "--slope", "SLOPE.tif",
+                       "--z-factor", "0"], ["--z-factor must be a positive finite number"]),
+    "z-factor NaN with another problem": (["fit", "IN.ply", "-o", "OUT.ply", "--z-factor", "nan", "--level", "2",
+                                           "--resolution", "1"],
+                                          ["--z-factor must be a positive finite number", "got nan",
+                                           "either --level or --resolution"]),
+    "z-factor inf": (["fit", "IN.ply", "-o", "OUT.ply", "--z-factor", "inf"], ["got inf"]),
 }
 
 
@@ -413,3 +420,43 @@ def test_a_cloud_whose_fit_needs_more_than_memory_is_refused_before_the_fit(tmp_
     assert_one_line_error(proc.stderr)
     assert "3000 points need about 5 MB" in proc.stderr.decode() and "hill.ply" in proc.stderr.decode()
     assert run("fit", SAMPLES / "hill.ply", "-o", out, "--memory", "8M", "--level", "1").returncode == 0
+
+
+# ------------------------------------------ --max-slope of a header height column (issue 21)
+def _paraboloid_csv(path, n=500, seed=5):
+    """x,y in km on [0, 3]², z = 500 m/km² · x² in metres (header x,y,z: a height column).
+    With 0.001 km per m the true slope is atan(x) (∇z = (1000 x, 0) m/km, exactly what the
+    height fit returns for a quadratic); points within 0.02 km of x = 1 are left out, so
+    that --max-slope 45 drops exactly those with x > 1."""
+    xy = np.random.default_rng(seed).random((n, 2)) * 3.0
+    xy = xy[np.abs(xy[:, 0] - 1.0) > 0.02]
+    path.write_text("x,y,z\n" + "".join(f"{x:.17g},{y:.17g},{500 * x * x:.17g}\n" for x, y in xy))
+    return path, xy
+
+
+def test_max_slope_of_a_height_column_applies_with_the_z_factor(tmp_path):
+    """Issue 21 leftover: with a header height column --max-slope was silently not applied.
+    With --z-factor the slope is an angle, and the points steeper than 45° (x > 1) are the
+    ones dropped, counted as too_steep."""
+    from c1mesh.pipeline import FitOptions, fit
+
+    src, xy = _paraboloid_csv(tmp_path / "bowl.csv")
+    report = fit(src, None, FitOptions(level=1, max_slope=45.0, z_factor=0.001)).report
+    assert report["points"]["dropped"]["too_steep"] == int((xy[:, 0] > 1).sum()) > 100
+    assert "max_slope_not_applied" not in report
+    everything = fit(src, None, FitOptions(level=1, max_slope=89.9, z_factor=0.001)).report
+    assert everything["points"]["dropped"]["too_steep"] == 0
+
+
+def test_max_slope_given_without_z_factor_is_a_note(tmp_path):
+    """Without --z-factor slopes of metres over km are no angles: --max-slope given drops
+    nothing and says so in one note line (the output is written, exit 0); left at its
+    default it says nothing."""
+    src, _ = _paraboloid_csv(tmp_path / "bowl.csv")
+    given = run("fit", src, "-o", tmp_path / "a.ply", "--level", "1", "--max-slope", "45")
+    assert given.returncode == 0, given.stderr
+    notes = [line for line in given.stderr.decode().splitlines() if line.startswith("c1mesh: note:")]
+    assert len(notes) == 1 and "--max-slope was not applied" in notes[0] and "--z-factor" in notes[0]
+    assert read_cloud(tmp_path / "a.ply").points.shape[0] > 0
+    default = run("fit", src, "-o", tmp_path / "b.ply", "--level", "1")
+    assert default.returncode == 0 and "--max-slope" not in default.stderr.decode()

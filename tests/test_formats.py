@@ -1019,3 +1019,34 @@ def test_pcd_head_check_accepts_any_start_of_a_real_header():
             check_pcd_head(bad, "s.pcd")
     data = real("table_scene_mug_stereo_textured.pcd").read_bytes()
     check_pcd_head(data[:64 << 10], "mug.pcd")
+
+
+def test_info_on_a_height_column_says_what_fit_does():
+    """Issue 21 leftover: `c1mesh info data_samples/topo.csv` suggested the axis chosen from
+    estimated normals (about y), while `fit` takes the header's height column z. The peer
+    here is the fit itself: info's suggested axis is the fit's height axis, and both name
+    the height column as the reason."""
+    from c1mesh.inspect import describe
+    from c1mesh.pipeline import FitOptions, fit
+
+    facts = describe(REAL / "topo.csv")
+    frame = fit(REAL / "topo.csv", None, FitOptions(level=1)).report["frame"]
+    assert facts["suggested_axis"] == frame["axes"][2] == [0.0, 0.0, 1.0]
+    assert facts["height_field"] is True
+    assert "height column 'z'" in facts["axis_choice"] and "height column 'z'" in frame["axis_choice"]
+    assert "units of their own" in facts["axis_choice"]
+
+
+def test_info_on_a_height_column_refuses_what_fit_refuses(tmp_path):
+    """Five heights at two plan positions: the fit refuses them as no height field over the
+    header's z, and info says so with the fit's reason instead of suggesting another axis."""
+    from c1mesh.inspect import describe
+    from c1mesh.pipeline import FitOptions, fit
+
+    path = tmp_path / "two.csv"
+    path.write_text("x,y,z\n0,0,1\n0,0,2\n1,1,3\n1,1,4\n1,1,5\n")
+    with pytest.raises(InputError) as refused:
+        fit(path, None, FitOptions())
+    facts = describe(path)
+    assert facts["height_field"] is False and facts["suggested_axis"] is None
+    assert facts["height_field_note"] == str(refused.value)

@@ -377,3 +377,79 @@ def test_organised_height_raster_with_auto_frame_is_fitted_as_a_dem(tmp_path):
     band, cx, cy, _ = _cells(dem)
     assert band.count() > 100
     np.testing.assert_allclose(band.compressed(), (0.3 * cx - 0.2 * cy + 1.0)[~band.mask], atol=1e-9)
+
+
+# --------------------------------------------- heights in units of their own (issue 21)
+GRADIENT_M_PER_KM = (30.0, -40.0)          # a plane rising 30 m per km east, falling 40 m per km north
+
+
+def _km_m_plane_csv(path, n=400, seed=3):
+    """A CSV `x,y,z`: x, y in km on [0, 10]², z = 200 m + 30 m/km x − 40 m/km y in metres.
+    Its header names z, so the fit takes z as heights in units of their own."""
+    xy = np.random.default_rng(seed).random((n, 2)) * 10.0
+    z = 200.0 + GRADIENT_M_PER_KM[0] * xy[:, 0] + GRADIENT_M_PER_KM[1] * xy[:, 1]
+    path.write_text("x,y,z\n" + "".join(f"{x:.17g},{y:.17g},{h:.17g}\n" for (x, y), h in zip(xy, z)))
+    return path
+
+
+def test_height_column_slope_and_hillshade_take_the_z_factor(tmp_path):
+    """Issue 21 leftover: with a header height column the slope came out as if metres were
+    km (topo: ~88°). With --z-factor 0.001 (km per m) slope = atan(|∇z| · 0.001) on every
+    cell, the hillshade is GDAL's formula at that slope, and aspect is the plan direction
+    downhill, the same without a z-factor."""
+    src = _km_m_plane_csv(tmp_path / "plane.csv")
+    out = {k: tmp_path / f"{k}.tif" for k in ("dem", "slope", "aspect", "hillshade")}
+    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out["dem"]), "--resolution", "0.25",
+                                     "--slope", str(out["slope"]), "--aspect", str(out["aspect"]),
+                                     "--hillshade", str(out["hillshade"]), "--z-factor", "0.001"])
+    assert done.exit_code == 0, done.output
+    gx, gy = GRADIENT_M_PER_KM
+    s = math.atan(math.hypot(gx, gy) * 0.001)                     # 2.862°
+    a = math.atan2(-gx, -gy)                                      # downhill azimuth from north
+    slope = _cells(out["slope"])[0]
+    assert slope.count() > 1000
+    np.testing.assert_allclose(slope.compressed(), math.degrees(s), rtol=0, atol=1e-4)
+    aspect = _cells(out["aspect"])[0]
+    np.testing.assert_allclose(aspect.compressed(), math.degrees(a) % 360, rtol=0, atol=1e-4)
+    gdal = math.sin(math.radians(45)) * math.cos(s) + \
+        math.cos(math.radians(45)) * math.sin(s) * math.cos(math.radians(315) - a)
+    shade = _cells(out["hillshade"])[0]
+    assert set(shade.compressed().tolist()) == {round(1 + 254 * gdal)}
+
+
+@pytest.mark.parametrize("asked", [["--slope", "slope.tif"], ["--hillshade", "shade.tif"]], ids=["slope", "hillshade"])
+def test_height_column_angles_without_z_factor_are_refused_before_any_output(tmp_path, asked):
+    """Without --z-factor the angle of metres over km is unknown: one line naming the fix,
+    exit 1, and no file written (no DEM either). --aspect alone needs no factor."""
+    src = _km_m_plane_csv(tmp_path / "plane.csv")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
+                                     asked[0], str(tmp_path / asked[1])])
+    assert done.exit_code == 1
+    lines = done.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("c1mesh: error: ") and "--z-factor" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
+                                     "--aspect", str(tmp_path / "aspect.tif")])
+    assert done.exit_code == 0, done.output
+
+
+@pytest.mark.parametrize("z_factor, shading", [(0.001, (0.03, -0.04)), (None, (0.0, 0.0))],
+                         ids=["z-factor", "unknown"])
+def test_preview_of_a_height_column_shades_with_the_z_factor(tmp_path, monkeypatch, z_factor, shading):
+    """The preview's light sees the gradient in height per x, y unit times --z-factor (the
+    km/m plane: (30, −40) m/km · 0.001); without a factor the slopes are unknown and the
+    picture is unshaded (zero gradient) instead of lit as if metres were km."""
+    import c1mesh.preview as preview
+
+    seen = []
+    monkeypatch.setattr(preview, "render_arrays", lambda z, g, *rest: seen.append(g))
+    src = _km_m_plane_csv(tmp_path / "plane.csv")
+    fit(src, None, FitOptions(level=1, preview=str(tmp_path / "p.png"), z_factor=z_factor))
+    (gradient,) = seen
+    inside = np.isfinite(gradient).all(axis=-1)
+    assert inside.sum() > 1000
+    # the heights' least-squares gradients of a plane are exact to rounding (~1e-8 here);
+    # one level of the 8-bit shading is a gradient change of ~4e-3
+    np.testing.assert_allclose(gradient[inside], np.broadcast_to(shading, gradient[inside].shape),
+                               rtol=0, atol=1e-6)

@@ -194,6 +194,9 @@ def _value_problems(params: dict) -> list[str]:
     resolution = params["resolution"]
     if resolution is not None and not (resolution > 0 and math.isfinite(resolution)):
         problems.append(f"--resolution must be a positive finite length, got {resolution}")
+    z_factor = params["z_factor"]
+    if z_factor is not None and not (z_factor > 0 and math.isfinite(z_factor)):
+        problems.append(f"--z-factor must be a positive finite number (x, y units per height unit), got {z_factor}")
     return problems
 
 
@@ -444,9 +447,12 @@ def main() -> None:
 @click.option("--k", "k", type=click.IntRange(3, 1000), default=16, show_default=True,
               help="Neighbours for normal estimation.")
 @click.option("--axis", default="auto", show_default=True,
-              help="Height axis: auto, x, y, z or X,Y,Z (auto: mean normal, or PCA without normals).")
+              help="Height axis: auto, x, y, z or X,Y,Z (auto: z for LAS/LAZ and for a CSV whose header "
+                   "names a height column (z, elev, elevation, height, h, alt, altitude) when normals are "
+                   "estimated; else the mean normal, or PCA without normals).")
 @click.option("--max-slope", type=click.FloatRange(0, 90, min_open=True, max_open=True), default=85.0,
-              show_default=True, help="Drop points whose normal is within this many degrees of the plane.")
+              show_default=True, help="Drop points whose surface is steeper than this many degrees; for a "
+                   "CSV header height column only with --z-factor (else a note says it was not applied).")
 @click.option("--max-edge", default="auto", show_default=True,
               help="Remove triangles with a longer edge: auto, none, or a length in the scan's units.")
 @click.option("--scheme", type=click.Choice(["sextic", "quintic", "ex39b"]), default="sextic",
@@ -497,6 +503,10 @@ def main() -> None:
 @click.option("--slope", help="Also write a slope GeoTIFF (degrees) on the DEM's grid.")
 @click.option("--aspect", help="Also write an aspect GeoTIFF (degrees clockwise from north).")
 @click.option("--hillshade", help="Also write a hillshade GeoTIFF (uint8).")
+@click.option("--z-factor", "z_factor", type=float, default=None,
+              help="x, y units per height unit (ArcGIS's z-factor, 1/gdaldem -s) for --slope, --hillshade, "
+                   "the preview's shading and a height column's --max-slope.  [default: 1; required for "
+                   "--slope/--hillshade of a CSV header height column, whose units may differ]")
 @click.option("--slope-method", type=click.Choice(["auto", "spline", "horn"]), default="auto",
               show_default=True, help="Gradient for slope/aspect/hillshade: the spline's, or Horn's of the DEM.")
 @click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
@@ -504,8 +514,8 @@ def main() -> None:
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
         overshoot, gradients, report, memory, jobs, quiet, verbose, debug,
-        threads, crs, resolution, slope, aspect, hillshade, slope_method, preview, seamless, scheduler,
-        bounds):
+        threads, crs, resolution, slope, aspect, hillshade, z_factor, slope_method, preview, seamless,
+        scheduler, bounds):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     _check_usage(ctx)       # every usage error at once, before any input is read
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
@@ -517,7 +527,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
-                             hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds)
+                             hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
+                             z_factor=z_factor)
         if output and not output_dir:
             options = _check_geo(ctx, [(inputs[0], output)], options, debug)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
@@ -538,7 +549,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          memory=memory, crs=crs, resolution=resolution, slope=slope, aspect=aspect,
                          hillshade=hillshade, slope_method=slope_method, preview=preview,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
-                         intrinsics=intrinsics,
+                         intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds)
     options = _check_geo(ctx, pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
@@ -792,11 +803,26 @@ def _summary(report: dict) -> str:
 
 
 def _note(report: dict, quiet: bool) -> None:
-    """One `c1mesh: note:` line on stderr (not with -q) when a --scheduler given was not
-    used: the user asked for the cluster and should know the work stayed here."""
+    """`c1mesh: note:` lines on stderr (not with -q) for options given that did nothing: a
+    --scheduler not used (the user asked for the cluster and should know the work stayed
+    here), and a --max-slope given for heights whose slopes are no angles (the report's
+    max_slope_not_applied; its default then goes unmentioned)."""
+    if quiet:
+        return
     used = report.get("scheduler")
-    if not quiet and isinstance(used, str) and used.startswith("not used"):
+    if isinstance(used, str) and used.startswith("not used"):
         click.echo(f"c1mesh: note: {_input_name(report)}: --scheduler {used}", err=True)
+    why = report.get("max_slope_not_applied")
+    if why and _option_given("max_slope"):
+        click.echo(f"c1mesh: note: {_input_name(report)}: --max-slope was not applied: {why}", err=True)
+
+
+def _option_given(name: str) -> bool:
+    """Whether option `name` of the running command was given on its command line."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context(silent=True)
+    return ctx is not None and ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
 
 
 def _input_name(report: dict) -> str:

@@ -171,7 +171,8 @@ def finish(result, interp, frame, crs, crs_source, options):
     if options.preview:
         from c1mesh.preview import render_fit
         start = time.perf_counter()
-        render_fit(interp, frame, options.preview, crs=crs, level=result.report.get("level"))
+        render_fit(interp, frame, options.preview, crs=crs, level=result.report.get("level"),
+                   z_factor=result.report.get("z_factor", 1.0))      # None: unknown (pipeline)
         result.report["seconds"]["preview"] = round(time.perf_counter() - start, 6)
     return result
 

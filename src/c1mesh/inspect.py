@@ -52,6 +52,15 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
     return facts
 
 
+def _fit_axis(cloud) -> str | None:
+    """The axis `c1mesh fit` with default options resolves "auto" to before looking at
+    normals, and why (pipeline.height_column_axis, the rule the fit applies: a text
+    table's header height column); None when the fit chooses it from the normals."""
+    from c1mesh.pipeline import FitOptions, height_column_axis
+    options, reason = height_column_axis(cloud, FitOptions())
+    return None if reason is None else (options.axis, reason)
+
+
 def _copc_facts(source, fmt: str | None) -> dict | None:
     """A COPC file's octree (node count, levels, root cube, spacing) from its header and
     hierarchy alone; None for anything else (streams, other formats, plain LAS/LAZ)."""
@@ -91,7 +100,10 @@ def _fields(cloud) -> list[str]:
 
 
 def _height_field_check(cloud, finite, sample: int) -> dict:
-    """Suggested axis and height-field verdict from a subsample of the finite points."""
+    """Suggested axis and height-field verdict from a subsample of the finite points, as
+    the default fit decides them: over a header's height column (heights in units of
+    their own: gradients fitted to the heights, no 3-D angles; "axis_choice" says so), else
+    over the axis chosen from the file's or estimated normals."""
     rows = np.flatnonzero(finite)
     if len(rows) > sample:
         rows = np.sort(np.random.default_rng(0).choice(rows, sample, replace=False))
@@ -100,6 +112,9 @@ def _height_field_check(cloud, finite, sample: int) -> dict:
              "height_field_scope": ("all finite points" if len(rows) == finite.sum() else
                                     f"an estimate from a random sample of {len(rows)} of "
                                     f"{int(finite.sum())} finite points")}
+    given = _fit_axis(cloud)
+    if given is not None:
+        return {**_height_column_check(points, *given), **scope}
     normals, source = (None, "estimated") if cloud.normals is None else (cloud.normals[rows], "file")
     try:
         if normals is None:
@@ -114,3 +129,22 @@ def _height_field_check(cloud, finite, sample: int) -> dict:
                 "normals_used": source, **scope}
     return {"suggested_axis": [round(float(v), 6) for v in frame.axes[2]], "height_field": True,
             "normals_used": source, **scope}
+
+
+def _height_column_check(points: np.ndarray, axis: str, reason: str) -> dict:
+    """The height-field verdict over the given axis of a header height column, with the
+    normals the fit uses there (pipeline.build_surface: fitted to the heights, compared in
+    plan units only, frame.height_field's common_metric=False)."""
+    from c1mesh.height_gradients import height_neighbours, height_normals
+    from c1mesh.pipeline import FitOptions
+
+    facts = {"axis_choice": reason + " (heights in units of their own: the fit works in "
+                                     "plan units and fits the gradients to the heights)",
+             "normals_used": "fitted to the heights"}
+    try:
+        frame = choose_frame(points, None, axis)
+        normals = height_normals(points, frame, k=height_neighbours(FitOptions().k))
+        height_field(points, normals, frame, common_metric=False)
+    except C1MeshError as exc:
+        return {"suggested_axis": None, "height_field": False, "height_field_note": str(exc), **facts}
+    return {"suggested_axis": [round(float(v), 6) for v in frame.axes[2]], "height_field": True, **facts}

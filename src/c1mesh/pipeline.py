@@ -94,6 +94,11 @@ class FitOptions:
     hillshade: str | None = None
     slope_method: str = "auto"
     preview: str | None = None
+    # z_factor: x, y units per height unit (ArcGIS's z-factor; gdaldem's -s is its inverse),
+    # for the angles of slope, hillshade and the preview's shading (atan(|grad z| * z_factor))
+    # and, for a header height column fitted in plan units, of max_slope. None: 1 where x, y
+    # and z share one unit; unknown for a header height column (`angle_z_factor`).
+    z_factor: float | None = None
     # perspective frame and organised scans (depth_fit.py): frame "auto" | "axis" |
     # "perspective"; viewpoint "x,y,z[,qw,qx,qy,qz]" or None (the file's, else the origin);
     # depth images: intrinsics (fx, fy, cx, cy) pixels, depth_scale metres per unit,
@@ -250,6 +255,8 @@ class SurfaceModel:
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
     triangles index those n points); overshoot: the limiter's report (c1mesh.limiter);
     gradient_source: "heights" (c1mesh.height_gradients) or "normals".
+    max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
+    and no z_factor: slopes are no angles), else None.
     """
 
     normal_source: str
@@ -260,6 +267,7 @@ class SurfaceModel:
     interp: RSDInterpolator
     overshoot: Any = None
     gradient_source: str = "normals"
+    max_slope_not_applied: str | None = None
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -296,6 +304,49 @@ def _plan_heights(cloud: PointCloud, frame) -> bool:
     return cloud.height_column is not None and bool(np.array_equal(np.abs(frame.axes[2]), [0.0, 0.0, 1.0]))
 
 
+def plan_unit_heights(cloud: PointCloud, options: FitOptions) -> bool:
+    """Whether build_surface fits these heights in plan units (`_plan_heights`: a header's
+    height column over x, y, the gradients fitted to the heights), so that no angle is
+    known without a z_factor. Reads nothing; the frame of a given axis is cheap."""
+    options = height_column_axis(cloud, options)[0]
+    if cloud.height_column is None or not _fit_heights_first(cloud, options):
+        return False
+    return _plan_heights(cloud, choose_frame(cloud.points, None, options.axis))
+
+
+def angle_z_factor(cloud: PointCloud, options: FitOptions) -> float | None:
+    """x, y units per height unit for slope angles: options.z_factor when given, 1 when x,
+    y and z share one unit, None (unknown) for heights in units of their own."""
+    if options.z_factor is not None:
+        return float(options.z_factor)
+    return None if plan_unit_heights(cloud, options) else 1.0
+
+
+def check_angles(cloud: PointCloud, options: FitOptions, name) -> None:
+    """InputError, before any work, for slope or hillshade rasters of heights whose units
+    are not those of x and y and no z_factor to relate them (angles would be wrong)."""
+    if (options.slope or options.hillshade) and angle_z_factor(cloud, options) is None:
+        raise InputError(
+            f"{name}: the header's height column '{cloud.height_column}' may be in other units "
+            "than x and y, so slope and hillshade angles are unknown; give --z-factor F, the "
+            "x, y units per height unit (1 if they share a unit; 0.02 for x, y in 50 ft and z "
+            "in ft); --aspect needs none")
+
+
+def _drop_too_steep(hf, max_slope: float, z_factor: float) -> None:
+    """Drop the points of a plan-unit height field (heights in units of their own) whose
+    slope atan(|grad| * z_factor) exceeds max_slope degrees, as frame.height_field does
+    for one metric; counted as "too_steep". Changes hf in place."""
+    steep = np.hypot(hf.gradients[:, 0], hf.gradients[:, 1]) * z_factor > np.tan(np.radians(max_slope))
+    if not steep.any():
+        return
+    keep = ~steep
+    hf.xy, hf.z, hf.gradients, hf.source_index = hf.xy[keep], hf.z[keep], hf.gradients[keep], hf.source_index[keep]
+    hf.dropped["too_steep"] += int(steep.sum())
+    if hf.xy.shape[0] < 3:
+        raise InputError(f"only {hf.xy.shape[0]} points have a slope below --max-slope {max_slope:g}°")
+
+
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
@@ -321,6 +372,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
             frame = choose_frame(cloud.points, normals, options.axis)
         hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
                           common_metric=not plan_heights)
+        max_slope_not_applied = None
+        if plan_heights and options.z_factor is not None:
+            _drop_too_steep(hf, options.max_slope, float(options.z_factor))
+        elif plan_heights:
+            max_slope_not_applied = (f"the header's height column '{cloud.height_column}' may be in "
+                                     "other units than x and y, so slopes are no angles; give --z-factor")
     with timer.stage("gradients"):
         gradient_source = "heights" if heights_first else "normals"
         if not heights_first and use_height_gradients(options.gradients, normal_source):
@@ -338,7 +395,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
     with timer.stage("interpolate"):
         interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
                                                  scheme, options.overshoot, heights=not plan_heights)
-    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source)
+    return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
+                        max_slope_not_applied)
 
 
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,
@@ -390,6 +448,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, _name(source))
     options, column_reason = height_column_axis(cloud, options)
     axis_reason = column_reason or axis_reason
+    check_angles(cloud, options, _name(source))
+    angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
     from c1mesh.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
         from c1mesh.depth_fit import fit_perspective
@@ -411,7 +471,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                                             "warnings": fit_warnings(
                                                 len(cloud), int(used.size), trim_report.triangles_before,
                                                 trim_report.removed.get("long_edge", 0),
-                                                trim_report.max_edge, _auto_limit(options.max_edge))}),
+                                                trim_report.max_edge, _auto_limit(options.max_edge)),
+                                            **_angle_facts(angles, model)}),
                            interp, frame, crs, crs_source, options)
     level, level_from = plane_level(interp, options)
     options = replace(options, level=level)
@@ -425,10 +486,18 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report["overshoot"] = model.overshoot.as_dict()
     report["gradients"] = model.gradient_source
     report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
+    report.update(_angle_facts(angles, model))
     report["warnings"] = fit_warnings(len(cloud), int(used.size), trim_report.triangles_before,
                                       trim_report.removed.get("long_edge", 0), trim_report.max_edge,
                                       _auto_limit(options.max_edge), report["pieces"]["count"])
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+def _angle_facts(angles: dict, model: SurfaceModel) -> dict:
+    """The report's z_factor (None: unknown) and, when it did nothing, why max_slope did not apply."""
+    if model.max_slope_not_applied is None:
+        return dict(angles)
+    return {**angles, "max_slope_not_applied": model.max_slope_not_applied}
 
 
 def plane_level(interp: RSDInterpolator, options: FitOptions) -> tuple[int, str]:

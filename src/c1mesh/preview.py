@@ -23,9 +23,12 @@ PIXELS = 700
 """Cells along the longer side of a preview."""
 
 
-def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIXELS) -> None:
+def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIXELS,
+                  z_factor: float | None = 1.0) -> None:
     """Preview of a fitted spline: sampled on a grid over its triangulation in the scan
-    frame (heights in world z when the frame's axes are the world's)."""
+    frame (heights in world z when the frame's axes are the world's). z_factor: x, y units
+    per height unit for the shading (raster.py); None (heights in units of their own, the
+    factor unknown): coloured by height, unshaded, since any light would fake the slopes."""
     lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
     grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
     world = np.allclose(frame.axes, np.eye(3))
@@ -34,7 +37,11 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
     offset = frame.origin[:2] if world else np.zeros(2)
     extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
               grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
-    render_arrays(z, g, extent, path, _units(crs), "C1 surface (spline normals)")
+    if z_factor is None:
+        render_arrays(z, np.zeros_like(g), extent, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
+        return
+    render_arrays(z, g if z_factor == 1.0 else g * z_factor, extent, path, _units(crs),
+                  "C1 surface (spline normals)")
 
 
 PREVIEW_VERTICES = 1_000_000
@@ -43,16 +50,17 @@ output's level, or the highest level below it that stays under this): about thre
 pixel of a PIXELS-wide picture, and bounded whatever --level the output has."""
 
 
-def render_fit(interp, frame, path, crs: str | None = None, level: int | None = None) -> None:
+def render_fit(interp, frame, path, crs: str | None = None, level: int | None = None,
+               z_factor: float | None = 1.0) -> None:
     """The preview of a fit (geo.finish calls this for every fit).
 
     frame.ScanFrame (the spline is a height over a plane): render_spline. Otherwise (the
     perspective frame: the chart (u, v) of inverse depth is no map plane) the refined
     surface in world coordinates, at `level` or the highest lower level with at most
-    PREVIEW_VERTICES vertices, drawn by render_surface.
+    PREVIEW_VERTICES vertices, drawn by render_surface. z_factor: render_spline's.
     """
     if not hasattr(frame, "normals_from_gradients"):
-        render_spline(interp, frame, path, crs=crs)
+        render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
         return
     from c1mesh.geo import refined_vertex_count
     from c1mesh.pipeline import surface_stream

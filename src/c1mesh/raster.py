@@ -19,7 +19,10 @@ memory holds a few blocks, not the grid.
 Units: slope in degrees from horizontal (0-90); aspect in degrees clockwise from north of
 the downhill direction (0-360, GDAL's convention; 0 where the surface is exactly flat);
 hillshade 1-255 (uint8, 0 = nodata) for a light from azimuth 315°, altitude 45°, like
-`gdaldem hillshade`. Slope and aspect assume that x, y and z share one length unit.
+`gdaldem hillshade`. Slope and hillshade take the gradient times the z-factor, the x, y
+units per height unit (ArcGIS's z-factor, the inverse of gdaldem's -s scale; 1 when x, y
+and z share one unit): slope = atan(|∇z| · z_factor). Aspect needs none (a direction in
+the plan does not depend on the height unit).
 """
 from __future__ import annotations
 
@@ -530,25 +533,29 @@ _KINDS = {"dem": ("float32", DEM_NODATA), "slope": ("float32", DEM_NODATA),
           "aspect": ("float32", DEM_NODATA), "hillshade": ("uint8", HILLSHADE_NODATA)}
 
 
-def _layer(kind: str, z: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """The values of raster `kind` for one block, nodata filled in."""
+def _layer(kind: str, z: np.ndarray, g: np.ndarray, z_factor: float = 1.0) -> np.ndarray:
+    """The values of raster `kind` for one block, nodata filled in; z_factor: x, y units
+    per height unit, scaling the gradient (height per x, y unit) of slope and hillshade."""
     outside = ~np.isfinite(z)
     if kind == "dem":
         return np.where(outside, DEM_NODATA, z)
     elif kind == "slope":
-        out = slope_degrees(g)
+        out = slope_degrees(g if z_factor == 1.0 else g * z_factor)
     elif kind == "aspect":
         out = aspect_degrees(g)
     else:
-        shade = np.rint(1.0 + 254.0 * hillshade(np.nan_to_num(g)))
+        shade = np.rint(1.0 + 254.0 * hillshade(np.nan_to_num(g if z_factor == 1.0 else g * z_factor)))
         return np.where(outside, HILLSHADE_NODATA, shade).astype(np.uint8)
     return np.where(outside, DEM_NODATA, out).astype(np.float32)
 
 
 def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
                   method: str = "spline", crs: str | None = None,
-                  block_rows: int | None = None, dem_dtype: str = "float32") -> dict:
+                  block_rows: int | None = None, dem_dtype: str = "float32",
+                  z_factor: float = 1.0) -> dict:
     """Write the requested rasters in one pass over the grid; returns a report dict.
+
+    z_factor: x, y units per height unit, for slope and hillshade (module docstring).
 
     dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
     float32, the default, which rounds heights of 1e4 to ~1e-3).
@@ -573,14 +580,14 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
             cells_inside += int(np.isfinite(z).sum())
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
-                ds.write(_layer(kind, z, g).astype(kinds[kind][0], copy=False), 1, window=window)
+                ds.write(_layer(kind, z, g, z_factor).astype(kinds[kind][0], copy=False), 1, window=window)
         for kind, ds in datasets.items():
             _build_overviews(ds, grid, kind)
             ds.close()
     return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
                      "width": grid.width, "height": grid.height},
             "cells": grid.width * grid.height, "cells_with_data": cells_inside,
-            "slope_method": method, "files": dict(items)}
+            "slope_method": method, "z_factor": z_factor, "files": dict(items)}
 
 
 def _build_overviews(ds, grid: RasterGrid, kind: str) -> None:
@@ -632,7 +639,9 @@ def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str |
     """Sample a fitted spline onto the aligned grid covering its triangulation and write
     the requested rasters; returns the report's "raster" section. data_xy (m, 2): the
     fitted points in the frame's plane (their cells always get a value within `reach`,
-    the trim's max_edge: SplineSampler); None: the triangulation alone decides."""
+    the trim's max_edge: SplineSampler); None: the triangulation alone decides.
+    options.z_factor (None: 1) scales slope and hillshade; heights in units of their own
+    without one are refused before (pipeline.check_angles)."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     if crs and (options.slope or options.aspect or options.hillshade):
@@ -645,6 +654,8 @@ def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str |
     grid = RasterGrid.covering(lo, hi, options.resolution)
     spacing = mean_spacing(interp.points, interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
-    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin, data_xy, reach), method, crs)
+    z_factor = 1.0 if getattr(options, "z_factor", None) is None else float(options.z_factor)
+    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin, data_xy, reach), method, crs,
+                           z_factor=z_factor)
     report["point_spacing"] = float(spacing)
     return report
