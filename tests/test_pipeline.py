@@ -304,3 +304,33 @@ def test_mesh_pieces_counts_edge_connected_parts_and_the_area_they_cover():
     assert pieces["count"] == 3
     assert pieces["largest_fraction"] == pytest.approx(2 / 5)
     assert pieces["area_fraction"] == pytest.approx(2.5 / 38.5)
+
+
+def test_a_survey_of_height_column_tables_is_fitted_like_the_whole_table(tmp_path):
+    """topo.csv cut into a west and an east file: --seamless -o fits them in plan units like
+    the one table (the union equals the whole fit, docs/tiles.md), and a survey where only
+    one file names a height column is refused."""
+    import subprocess
+    import sys
+
+    from c1mesh.formats import read_cloud
+
+    lines = (SAMPLES / "topo.csv").read_text().splitlines()
+    header, rows = lines[0], lines[1:]
+    west = [r for r in rows if float(r.split(",")[1]) < 3.0]
+    east = [r for r in rows if float(r.split(",")[1]) >= 3.0]
+    (tmp_path / "west.csv").write_text("\n".join([header, *west]) + "\n")
+    (tmp_path / "east.csv").write_text("\n".join([header, *east]) + "\n")
+    cli = [sys.executable, "-m", "c1mesh.cli", "fit"]
+    whole = subprocess.run(cli + [str(SAMPLES / "topo.csv"), "--level", "2", "-o", str(tmp_path / "whole.ply")],
+                           capture_output=True, text=True)
+    union = subprocess.run(cli + [str(tmp_path / "west.csv"), str(tmp_path / "east.csv"), "--seamless",
+                                  "--level", "2", "-o", str(tmp_path / "union.ply")], capture_output=True, text=True)
+    assert whole.returncode == 0 and union.returncode == 0, union.stderr
+    rows_of = lambda name: np.unique(read_cloud(tmp_path / name).points, axis=0)  # noqa: E731
+    np.testing.assert_array_equal(rows_of("union.ply"), rows_of("whole.ply"))
+    (tmp_path / "plain.xyz").write_text("".join(" ".join(r.split(",")[1:]) + "\n" for r in east))  # no header
+    mixed = subprocess.run(cli + [str(tmp_path / "west.csv"), str(tmp_path / "plain.xyz"), "--seamless",
+                                  "-o", str(tmp_path / "mixed.ply")], capture_output=True, text=True)
+    assert mixed.returncode == 1 and "names a height column" in mixed.stderr
+    assert not (tmp_path / "mixed.ply").exists()

@@ -82,9 +82,24 @@ def load_survey(sources: Sequence[str], options) -> Survey:
     colors = _concatenate([c.colors for c in clouds])
     classification = _concatenate([c.classification for c in clouds])
     cloud = PointCloud(np.concatenate([c.points for c in clouds]), normals, colors, classification,
-                       crs=survey_crs(sources, [c.crs for c in clouds]))
+                       crs=survey_crs(sources, [c.crs for c in clouds]),
+                       height_column=survey_height_column(sources, clouds))
     offsets = np.concatenate([[0], np.cumsum(counts)])
     return Survey(cloud, [str(s) for s in sources], offsets)
+
+
+def survey_height_column(sources: Sequence[str], clouds: Sequence[PointCloud]) -> str | None:
+    """The header height column the inputs name (PointCloud.height_column), one for the
+    survey, so a survey of such tables is fitted in plan units like one of them; None when
+    none names one; InputError when only some do, since then the heights of some inputs would
+    be fitted in a common metric with x and y, and others not."""
+    named = [c.height_column for c in clouds]
+    if any(named) and not all(named):
+        with_column = next(s for s, name in zip(sources, named) if name)
+        without = next(s for s, name in zip(sources, named) if not name)
+        raise InputError(f"'{with_column}' names a height column and '{without}' does not: the heights "
+                         "would be fitted in different units; give every input the same header")
+    return named[0]
 
 
 def survey_crs(sources: Sequence[str], crs_list: Sequence[str | None]) -> str | None:
