@@ -277,7 +277,7 @@ def pipeline_status() -> str:
     """'' when ``c1mesh fit`` can run, else why not (the pipeline is written concurrently)."""
     try:
         import c1mesh.cli  # noqa: F401
-        import c1mesh.pipeline  # noqa: F401
+        import c1mesh.pipeline.driver  # noqa: F401
     except Exception as exc:  # noqa: BLE001 - any failure means "not available yet"
         return f"{type(exc).__name__}: {exc}"
     return ""

@@ -5,7 +5,7 @@ organised, no normals) is fitted twice: with no options (perspective frame, pixe
 triangles, depth jumps removed) and with ``--frame axis --axis z`` (the plane path:
 Open3D normals, Delaunay, edge-length trimming), the only way the axis frame accepts it.
 Speed: the triangulation alone in-process (grid.grid_mesh: the grid's triangles, oriented, without
-depth jumps, vs c1mesh.triangulation.delaunay on the same (u, v) points), and ``c1mesh fit`` end to
+depth jumps, vs c1mesh.engine.triangulation.delaunay on the same (u, v) points), and ``c1mesh fit`` end to
 end as child processes. Quality: measured on the meshes of in-process fits at the same
 level, against the issue-11 targets. Geometry: a tilted plane and the inside of a cylinder
 (x² + y² = 1, z from 1 to 5, seen along its axis) with exact normals.
@@ -40,7 +40,7 @@ def run(cfg: Config) -> Section:
 
 # ----------------------------------------------------------------------------- speed
 def _mug_field():
-    from c1mesh.depth_fit import camera_normals, perspective_frame, view_field
+    from c1mesh.pipeline.depth_fit import camera_normals, perspective_frame, view_field
     from c1mesh.formats import read_cloud
 
     cloud = read_cloud(MUG)
@@ -51,9 +51,9 @@ def _mug_field():
 
 
 def _triangulation(cfg: Config, sec: Section) -> None:
-    from c1mesh.grid import grid_mesh
-    from c1mesh.threads import limit, workers
-    from c1mesh.triangulation import delaunay
+    from c1mesh.fit.grid import grid_mesh
+    from c1mesh.core.threads import limit, workers
+    from c1mesh.engine.triangulation import delaunay
 
     cloud, field = _mug_field()
     height, width = cloud.grid_shape
@@ -83,7 +83,7 @@ def _triangulation(cfg: Config, sec: Section) -> None:
     sec.add("### Triangulation of the mug frame", "",
             f"The same {usable.size:,} points (finite, in front, usable normal). Grid = "
             "`grid.grid_mesh` (quads split, oriented, depth jumps removed; one thread); Delaunay = "
-            "`c1mesh.triangulation.delaunay` in (u, v), before any trimming, on one thread (equal "
+            "`c1mesh.engine.triangulation.delaunay` in (u, v), before any trimming, on one thread (equal "
             f"threads, the headline) and on the process's {threads} threads (its default).", "",
             "| method | threads | time (median) | triangles | Delaunay / grid |", "|---|---:|---:|---:|---:|",
             f"| pixel grid + depth jumps | 1 | {fmt_s(median(times['grid']))} | {counts['grid']:,} | — |",
@@ -149,7 +149,7 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
     from scipy.spatial import cKDTree
 
     from c1mesh.formats import read_cloud
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions, fit
 
     points = read_cloud(MUG).points
     points = points[np.isfinite(points).all(axis=1)]
@@ -174,7 +174,7 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
             "'flipped': faces whose geometric normal is more than 90° from the mean of their "
             "three corner normals (in parentheses: from any one corner normal, the project's "
             "measure of a folded face, quality.folded_faces); --overshoot off: the same fit "
-            "without the overshoot limiter (c1mesh.limiter in the (u, v, w) chart); 'kept': finite "
+            "without the overshoot limiter (c1mesh.fit.limiter in the (u, v, w) chart); 'kept': finite "
             "input points that are output vertices (within 1e-9 m). depth.png: both meshes "
             "shaded from their faces' geometric normals, seen from 20° above the camera (curtains "
             "show as streaks hanging from the mug's rim).", "",
@@ -243,10 +243,10 @@ def _plot(views, path: Path) -> None:
 
 # ----------------------------------------------------------------------------- geometry
 def _geometry(cfg: Config, sec: Section) -> None:
-    from c1mesh.cloud import SurfaceMesh
+    from c1mesh.core.cloud import SurfaceMesh
     from c1mesh.formats import write_mesh
-    from c1mesh.pipeline import FitOptions, fit
-    from c1mesh.samples import cylinder_from_inside, tilted_plane, write_organised_pcd
+    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.testing.samples import cylinder_from_inside, tilted_plane, write_organised_pcd
 
     sizes = (25, 50, 100) if cfg.quick else (25, 50, 100, 200)
     rows = []

@@ -27,9 +27,11 @@ from scipy.spatial import Delaunay  # noqa: E402
 
 from benchmarks.common import (Config, Section, fmt_s, fmt_x, franke, median, paired,  # noqa: E402
                                random_points, ratio, verdict)
-from c1mesh import RSDInterpolator, rsd, threads  # noqa: E402
-from c1mesh.refine import MAX_WORKERS, lattice_pattern  # noqa: E402
-from c1mesh.threads import available_cpus  # noqa: E402
+from c1mesh import RSDInterpolator  # noqa: E402
+from c1mesh.core import threads  # noqa: E402
+from c1mesh.engine import rsd  # noqa: E402
+from c1mesh.engine.refine import MAX_WORKERS, lattice_pattern  # noqa: E402
+from c1mesh.core.threads import available_cpus  # noqa: E402
 
 ALL = min(available_cpus(), MAX_WORKERS)
 """Threads refine uses by default (all cores, at most MAX_WORKERS)."""
@@ -92,7 +94,7 @@ def run(cfg: Config) -> Section:
             "|---:|---:|---:|---:|---:|", *build_rows, "")
     sec.add("### Refine", "",
             f"Threads: matplotlib runs in one thread (its numpy code starts none). c1mesh "
-            f"refine is timed twice: with one thread (c1mesh.threads.limit(1), BLAS limited "
+            f"refine is timed twice: with one thread (c1mesh.core.threads.limit(1), BLAS limited "
             f"to 1 too) and with all cores ({ALL} threads here: the {available_cpus()} CPUs "
             f"this process may use, at most refine.MAX_WORKERS = {MAX_WORKERS}; fewer when "
             "the mesh has fewer blocks, the count used is in brackets). Both ratios are "

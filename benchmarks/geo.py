@@ -51,7 +51,7 @@ def _noisy(normals: np.ndarray, degrees: float, seed: int = 5) -> np.ndarray:
 
 
 def _fit(src: Path, dem: Path, resolution: float, method: str, slope: Path) -> None:
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions, fit
     fit(str(src), str(dem), FitOptions(axis="z", normals="file", resolution=resolution,
                                        slope=str(slope), slope_method=method), keep_mesh=False)
 
@@ -125,7 +125,7 @@ def glb_vs_ply(tmp: Path, source: Path, level: int = 2) -> float:
     """Largest |world position difference| between the GLB and the PLY of one fit."""
     from c1mesh.formats import read_cloud
     from c1mesh.formats.meshes import read_glb_positions
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions, fit
     options = FitOptions(classes=(2,), level=level)
     fit(str(source), str(tmp / "tile.ply"), options, keep_mesh=False)
     fit(str(source), str(tmp / "tile.glb"), options, keep_mesh=False)
@@ -139,7 +139,7 @@ def lidar_rasters(tmp: Path, source: Path, resolution: float) -> dict:
     import rasterio
 
     from c1mesh.formats import read_cloud
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions, fit
     files = {k: tmp / f"lidar_{k}.tif" for k in ("dem", "slope", "hillshade")}
     report = fit(str(source), str(files["dem"]), FitOptions(classes=(2,), resolution=resolution,
                                                             slope=str(files["slope"]),

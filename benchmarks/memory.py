@@ -6,10 +6,10 @@ writing a binary PLY to stdout, which goes to /dev/null (so no file of gigabytes
 written; the mesh is streamed block by block either way, ``fit(..., keep_mesh=False)``,
 so the process never holds the output arrays). A child that only imports the same
 modules gives the interpreter + imports baseline; "above baseline" subtracts it. One more
-child running ``c1mesh.pipeline.fit`` at level 4 records the peak reached by the end of
+child running ``c1mesh.pipeline.driver.fit`` at level 4 records the peak reached by the end of
 each stage.
 
-While ``c1mesh.pipeline`` cannot be imported, the child instead builds
+While ``c1mesh.pipeline.driver`` cannot be imported, the child instead builds
 ``RSDInterpolator(...).refine(L)`` from the same terrain and the section says so.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ def run(cfg: Config) -> Section:
         src = Path(tmp) / "in.ply"
         write_cloud_ply(src, *terrain_cloud(n))
         if not why:
-            imports = "import c1mesh.cli, c1mesh.pipeline"
+            imports = "import c1mesh.cli, c1mesh.pipeline.driver"
             what = f"`c1mesh fit` of {n:,} points ({fmt_bytes(src.stat().st_size)} binary PLY)"
         else:
             imports = "import scipy.spatial, c1mesh"
@@ -63,7 +63,7 @@ def run(cfg: Config) -> Section:
                               "(none set)", "—"))
     sec.add("")
     if stages:
-        sec.add(f"Peak RSS reached by the end of each stage (one `c1mesh.pipeline.fit` run at "
+        sec.add(f"Peak RSS reached by the end of each stage (one `c1mesh.pipeline.driver.fit` run at "
                 f"level {STAGE_LEVEL} in a child, writing a file):", "",
                 "| stage | peak so far | per input point |", "|---|---:|---:|",
                 *[f"| {name} | {fmt_bytes(rss)} | {rss / n:,.0f} B |" for name, rss in stages], "")
@@ -89,8 +89,8 @@ def _peak() -> int:
 
 
 def _stages_child(src: str, dst: str, level: int) -> dict:
-    """c1mesh.pipeline.fit as the CLI runs it (streaming), recording the peak RSS per stage."""
-    from c1mesh.pipeline import FitOptions, fit
+    """c1mesh.pipeline.driver.fit as the CLI runs it (streaming), recording the peak RSS per stage."""
+    from c1mesh.pipeline.driver import FitOptions, fit
 
     stages = [("interpreter + imports", _peak())]
     fit(src, dst, FitOptions(level=level), on_stage=lambda name: stages.append((name, _peak())),

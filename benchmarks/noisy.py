@@ -1,12 +1,12 @@
 """Noisy data: real scans in data_samples/, c1mesh before and after its overshoot control.
 
 For each sample the pipeline's own height field and trimmed triangles (without the curtains
-c1mesh.curtains removes: triangles along the height axis or folded against their data
+c1mesh.fit.curtains removes: triangles along the height axis or folded against their data
 normals) are shared by every method. The raw gradients are the pipeline's: fitted to the
-heights where normals are estimated (LiDAR: c1mesh.height_gradients), from the file's
+heights where normals are estimated (LiDAR: c1mesh.fit.height_gradients), from the file's
 normals otherwise.
   c1mesh off     RSD sextic with the raw gradients as they are (--overshoot off);
-  c1mesh limit   the default: limited gradients and edge directions (c1mesh.limiter);
+  c1mesh limit   the default: limited gradients and edge directions (c1mesh.fit.limiter);
   c1mesh PCA     the default before gradients were fitted to heights: limit with gradients
                  from Open3D PCA normals (k = 16) of the same points (--gradients normals;
                  the same as c1mesh limit where the file has normals);
@@ -46,7 +46,7 @@ METHODS = ("c1mesh off", "c1mesh limit", "c1mesh PCA", "rHCT", "rHCT limited", "
 
 def stage_data(path, options: dict):
     """(cloud, frame, xy, z, raw gradients, triangles) as `c1mesh fit` builds them."""
-    from c1mesh.pipeline import FitOptions, _resolve_axis, build_surface, load_cloud
+    from c1mesh.pipeline.driver import FitOptions, _resolve_axis, build_surface, load_cloud
 
     opts, _ = _resolve_axis(path, FitOptions(**options))
     cloud = load_cloud(path, opts)
@@ -58,7 +58,7 @@ def stage_data(path, options: dict):
 def pca_gradients(xy, z, g, k: int, estimated: bool):
     """Gradients from Open3D PCA normals of the height-field points (n, 2), (n,) when the
     pipeline estimated normals (`estimated`), else the raw gradients g (file normals)."""
-    from c1mesh.normals import estimate_normals
+    from c1mesh.fit.normals import estimate_normals
 
     if not estimated:
         return g
@@ -72,10 +72,10 @@ def surfaces(xy, z, g, tri, lam, pca=None) -> dict:
     import matplotlib.tri as mtri
     from scipy.interpolate import CloughTocher2DInterpolator
 
-    from c1mesh import rsd
-    from c1mesh.interpolator import RSDInterpolator
-    from c1mesh.limiter import control_overshoot
-    from c1mesh.quality import lattice_points
+    from c1mesh.engine import rsd
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.fit.limiter import control_overshoot
+    from c1mesh.testing.quality import lattice_points
 
     pts = lattice_points(xy, tri, lam).reshape(-1, 2)
     out = {}
@@ -95,8 +95,8 @@ def surfaces(xy, z, g, tri, lam, pca=None) -> dict:
 
 def folds(path, options: dict, xy, z, g, tri) -> dict:
     """Folded faces of c1mesh's output (off / limit) and of rHCT refined at level 4."""
-    from c1mesh.pipeline import FitOptions, fit
-    from c1mesh.quality import folded_faces, reduced_hct_folded_faces
+    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.testing.quality import folded_faces, reduced_hct_folded_faces
 
     out = {}
     for label, mode, gradients in (("off", "off", "auto"), ("limit", "limit", "auto"), ("PCA", "limit", "normals")):
@@ -115,10 +115,10 @@ def holdout(cloud, opts, seeds=SEEDS) -> dict:
     import matplotlib.tri as mtri
     from scipy.interpolate import CloughTocher2DInterpolator, LinearNDInterpolator
 
-    from c1mesh.cloud import PointCloud
-    from c1mesh.interpolator import RSDInterpolator
-    from c1mesh.limiter import control_overshoot
-    from c1mesh.pipeline import build_surface
+    from c1mesh.core.cloud import PointCloud
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.fit.limiter import control_overshoot
+    from c1mesh.pipeline.driver import build_surface
 
     finite = np.isfinite(cloud.points).all(axis=1)
     points = cloud.points[finite]
@@ -150,7 +150,7 @@ def holdout(cloud, opts, seeds=SEEDS) -> dict:
 
 
 def run(cfg: Config) -> Section:
-    from c1mesh.quality import interior_lattice, overshoot
+    from c1mesh.testing.quality import interior_lattice, overshoot
 
     sec = Section("Noisy data: real scans, overshoot, folded faces, held-out RMS")
     sec.add(__doc__.split("\n\n", 1)[1].strip(), "")

@@ -12,7 +12,7 @@ vertex count is set by its octree depth; both counts are shown.
 
 Run as ``python -m benchmarks.pipeline poisson IN.ply OUT.ply DEPTH`` for the Poisson child,
 or ``... stages IN.ply OUT.ply LEVEL`` for the library stages (used only while
-``c1mesh.pipeline`` cannot be imported).
+``c1mesh.pipeline.driver`` cannot be imported).
 """
 from __future__ import annotations
 
@@ -146,7 +146,7 @@ def _stages(src: str, dst: str, level: int) -> dict:
     from scipy.spatial import Delaunay
 
     from c1mesh import RSDInterpolator
-    from c1mesh.cloud import SurfaceMesh
+    from c1mesh.core.cloud import SurfaceMesh
     from c1mesh.formats import read_cloud, write_mesh
 
     seconds, t = {}, time.perf_counter()

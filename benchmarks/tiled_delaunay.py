@@ -52,10 +52,10 @@ def _world_chunks(path: str):
 
 
 def run(path: str, per_tile: int = 500_000) -> None:
-    import c1mesh.buffered_delaunay as bd
-    from c1mesh.outputs import register_temp, unregister_temp
-    from c1mesh.survey_stats import streamed_frame
-    from c1mesh.tile_spill import spill
+    import c1mesh.survey.buffered_delaunay as bd
+    from c1mesh.core.outputs import register_temp, unregister_temp
+    from c1mesh.survey.survey_stats import streamed_frame
+    from c1mesh.survey.tile_spill import spill
 
     t0 = time.perf_counter()
     frame = streamed_frame(lambda: ((p, None) for p in _world_chunks(path)))
@@ -106,8 +106,8 @@ def run(path: str, per_tile: int = 500_000) -> None:
 
 
 def whole(path: str) -> None:
-    from c1mesh.frame import choose_frame
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.fit.frame import choose_frame
+    from c1mesh.engine.triangulation import delaunay, trim
 
     t0 = time.perf_counter()
     points = np.concatenate(list(_world_chunks(path)))

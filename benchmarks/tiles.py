@@ -4,7 +4,7 @@ The survey is the smooth terrain of benchmarks.common at 100 points per m², wit
 normals, cut into a grid of PLY files of about TILE_POINTS points each; the peer is
 `c1mesh fit` of the same points as one file (what --seamless -o writes). Each size runs
 both as child processes, alternately, `reps` times; the ratio is the median over
-repetitions of seamless / whole. One tile task (c1mesh.tiles.run_tile) of the largest
+repetitions of seamless / whole. One tile task (c1mesh.survey.tiles.run_tile) of the largest
 survey is also run alone in a child to give the peak memory of one task, the figure that
 matters when tiles run on Dask workers. `-j 2` (a pool of two worker processes) is
 timed once at the smallest size against `-j 1` (tiles in the process);
@@ -100,7 +100,7 @@ def _tile_task_peak(paths: list[str], folder: Path) -> dict:
     info = json.loads(done.stdout)
     alone = run_child([exe, "-m", "benchmarks.tiles", "task", str(task_file)])
     _check(alone, "tile task")
-    base = run_child([exe, "-c", "import c1mesh.tiles, c1mesh.refine, c1mesh.pipeline"]).peak_rss
+    base = run_child([exe, "-c", "import c1mesh.survey.tiles, c1mesh.engine.refine, c1mesh.pipeline.driver"]).peak_rss
     return {"peak": alone.peak_rss, "imports": base, "points": info["points"],
             "report": json.loads(alone.stdout)}
 
@@ -157,8 +157,8 @@ def _plot(rows: list[dict], path: Path) -> None:
 
 def _plan_child(task_file: str, paths: list[str]) -> dict:
     """Build the survey model and pickle the middle input's tile task to task_file."""
-    from c1mesh.pipeline import FitOptions, build_surface
-    from c1mesh.tiles import load_survey, plan_tiles
+    from c1mesh.pipeline.driver import FitOptions, build_surface
+    from c1mesh.survey.tiles import load_survey, plan_tiles
 
     options = FitOptions(level=LEVEL)
     survey = load_survey(paths, options)
@@ -169,7 +169,7 @@ def _plan_child(task_file: str, paths: list[str]) -> dict:
 
 
 def _task_child(task_file: str) -> dict:
-    from c1mesh.tiles import run_tile
+    from c1mesh.survey.tiles import run_tile
 
     return run_tile(pickle.loads(Path(task_file).read_bytes())).report
 

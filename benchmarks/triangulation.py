@@ -1,7 +1,7 @@
-"""Triangulation at scale: plain ``scipy.spatial.Delaunay`` vs ``c1mesh.triangulation.delaunay``.
+"""Triangulation at scale: plain ``scipy.spatial.Delaunay`` vs ``c1mesh.engine.triangulation.delaunay``.
 
 The fit pipeline triangulates every cloud, and at 1M points Delaunay is one of its largest
-stages. ``c1mesh.triangulation.delaunay`` may add spatial presorting or tiling; while it
+stages. ``c1mesh.engine.triangulation.delaunay`` may add spatial presorting or tiling; while it
 does not exist the row says "pending" and only scipy is measured.
 """
 from __future__ import annotations
@@ -15,13 +15,13 @@ from benchmarks.common import Config, Section, fmt_s, fmt_x, median, paired, ran
 
 
 def _ours():
-    """c1mesh.triangulation.delaunay, or None with the reason it is unavailable."""
+    """c1mesh.engine.triangulation.delaunay, or None with the reason it is unavailable."""
     try:
-        mod = importlib.import_module("c1mesh.triangulation")
+        mod = importlib.import_module("c1mesh.engine.triangulation")
     except Exception as exc:  # noqa: BLE001 - any import failure means "not there yet"
-        return None, f"c1mesh.triangulation not importable ({type(exc).__name__})"
+        return None, f"c1mesh.engine.triangulation not importable ({type(exc).__name__})"
     fn = getattr(mod, "delaunay", None)
-    return (fn, "") if callable(fn) else (None, "c1mesh.triangulation has no delaunay()")
+    return (fn, "") if callable(fn) else (None, "c1mesh.engine.triangulation has no delaunay()")
 
 
 def _triangles(result) -> np.ndarray:
@@ -38,7 +38,7 @@ def same_triangles(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def run(cfg: Config) -> Section:
-    sec = Section("Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay")
+    sec = Section("Triangulation: scipy Delaunay vs c1mesh.engine.triangulation.delaunay")
     fn, why = _ours()
     sec.add(f"Uniform random points in the unit square, {cfg.reps} repetitions interleaved. "
             "Ratio = scipy time / c1mesh time (> 1 means c1mesh is faster). 'same triangles': "

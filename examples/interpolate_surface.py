@@ -10,7 +10,7 @@ thin hull triangles, where the largest errors sit; `c1mesh fit` trims them.)
 import numpy as np
 
 from c1mesh import RSDInterpolator
-from c1mesh.samples import SURFACES, unit_square_points
+from c1mesh.testing.samples import SURFACES, unit_square_points
 
 surface = SURFACES["wave"]
 points = unit_square_points(2000, seed=0)

@@ -5,9 +5,9 @@ from pathlib import Path
 
 import numpy as np
 
-from c1mesh.cloud import SurfaceMesh
+from c1mesh.core.cloud import SurfaceMesh
 from c1mesh.formats import write_mesh
-from c1mesh.samples import cylinder_from_inside, tilted_plane, write_organised_pcd as _write_pcd
+from c1mesh.testing.samples import cylinder_from_inside, tilted_plane, write_organised_pcd as _write_pcd
 
 __all__ = ["cylinder_from_inside", "tilted_plane", "write_organised_pcd", "write_unorganised_ply"]
 

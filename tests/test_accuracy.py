@@ -11,7 +11,9 @@ import pytest
 from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import Delaunay
 
-from c1mesh import RSDInterpolator, rsd
+from c1mesh import RSDInterpolator
+
+from c1mesh.engine import rsd
 
 
 def smooth(xy):

@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 HEADINGS = ("## Summary", "## Engine: refine vs matplotlib rHCT vs floor",
             "## Pipeline: c1mesh fit vs Open3D Poisson",
-            "## Triangulation: scipy Delaunay vs c1mesh.triangulation.delaunay",
+            "## Triangulation: scipy Delaunay vs c1mesh.engine.triangulation.delaunay",
             "## Accuracy: convergence orders and a real terrain",
             "## Noisy data: real scans, overshoot, folded faces, held-out RMS",
             "## Memory: peak RSS of a fit",

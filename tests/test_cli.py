@@ -331,12 +331,14 @@ def _option_help(command, name: str) -> str:
 
 def test_help_and_errors_list_exactly_the_registry_formats():
     """-o's help, --input-format's help (fit and info) and the unsupported-format errors name
-    the formats of c1mesh.outputs, which c1mesh.formats and c1mesh.raster read and write."""
+    the formats of c1mesh.core.outputs, which c1mesh.formats and c1mesh.geo.raster read and write."""
     import re
 
-    from c1mesh import formats, raster
+    from c1mesh import formats
+
+    from c1mesh.geo import raster
     from c1mesh.cli import fit, info
-    from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS
+    from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS
 
     assert formats.SUPPORTED_INPUT == INPUT_FORMATS and formats.SUPPORTED_OUTPUT == MESH_FORMATS
     assert OUTPUT_FORMATS == MESH_FORMATS + RASTER_FORMATS
@@ -357,7 +359,7 @@ def test_readmes_list_exactly_the_registry_formats():
     paragraph name the registry's formats, no more, no fewer."""
     import re
 
-    from c1mesh.outputs import INPUT_FORMATS, OUTPUT_FORMATS
+    from c1mesh.core.outputs import INPUT_FORMATS, OUTPUT_FORMATS
 
     readme = (ROOT / "README.md").read_text()
     read_in = re.search(r"# ([A-Z/]+) in\b", readme).group(1)
@@ -438,7 +440,7 @@ def test_max_slope_of_a_height_column_applies_with_the_z_factor(tmp_path):
     """Issue 21 leftover: with a header height column --max-slope was silently not applied.
     With --z-factor the slope is an angle, and the points steeper than 45° (x > 1) are the
     ones dropped, counted as too_steep."""
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions, fit
 
     src, xy = _paraboloid_csv(tmp_path / "bowl.csv")
     report = fit(src, None, FitOptions(level=1, max_slope=45.0, z_factor=0.001)).report

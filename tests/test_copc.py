@@ -15,7 +15,7 @@ import pytest
 
 laspy = pytest.importorskip("laspy")
 
-from c1mesh.errors import FormatError, InputError  # noqa: E402
+from c1mesh.core.errors import FormatError, InputError  # noqa: E402
 from c1mesh.formats import read_cloud  # noqa: E402
 from c1mesh.formats.copc import copc_summary, is_copc, parse_box, points_to_read, region_cost  # noqa: E402
 from c1mesh.formats.las import read_las  # noqa: E402
@@ -232,8 +232,8 @@ def test_a_fit_by_bounds_is_the_fit_of_the_filtered_points(tmp_path):
 
 
 def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path):
-    from c1mesh.pipeline import FitOptions
-    from c1mesh.tiled_fit import fit_tiled, needs_tiles
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.survey.tiled_fit import fit_tiled, needs_tiles
 
     box = _region(_whole()[0])
     source = _filtered_las(COPC, box, tmp_path / "filtered.las")
@@ -250,8 +250,8 @@ def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path)
 
 
 def test_a_seamless_survey_by_bounds_reads_each_input_filtered(tmp_path):
-    from c1mesh.pipeline import FitOptions
-    from c1mesh.tiles import load_survey
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.survey.tiles import load_survey
 
     points, _ = _whole()
     box = _region(points)

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from c1mesh.cloud import PointCloud
-from c1mesh.pipeline import FitOptions, build_surface, fit, load_cloud
+from c1mesh.core.cloud import PointCloud
+from c1mesh.pipeline.driver import FitOptions, build_surface, fit, load_cloud
 
 rasterio = pytest.importorskip("rasterio")
 
@@ -70,7 +70,7 @@ def _distance(p, corners):
 
 
 def _trifinder(interp):
-    """matplotlib's point location in the kept triangles (independent of c1mesh.locate)."""
+    """matplotlib's point location in the kept triangles (independent of c1mesh.engine.locate)."""
     from matplotlib.tri import Triangulation
 
     return Triangulation(interp.points[:, 0], interp.points[:, 1], interp.triangles).get_trifinder()
@@ -148,7 +148,7 @@ def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
 
 
 def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
-    from c1mesh.tiles import fit_seamless
+    from c1mesh.survey.tiles import fit_seamless
 
     options = FitOptions(classes=(2,), resolution=1.0)
     fit(TILE, tmp_path / "fit.tif", options)
@@ -159,7 +159,7 @@ def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
 
 # ---------------------------------------------------------------- curtain rules on ground
 def test_view_rules_apply_only_off_las_ground():
-    from c1mesh.curtains import view_rules_apply
+    from c1mesh.fit.curtains import view_rules_apply
 
     eye = np.eye(3)
     assert not view_rules_apply((2,), eye)

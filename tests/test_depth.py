@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from c1mesh.errors import InputError
+from c1mesh.core.errors import InputError
 from c1mesh.formats import read_cloud
-from c1mesh.grid import depth_jumps, grid_mesh, grid_normals
-from c1mesh.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
-from c1mesh.pipeline import FitOptions, fit
+from c1mesh.fit.grid import depth_jumps, grid_mesh, grid_normals
+from c1mesh.fit.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
+from c1mesh.pipeline.driver import FitOptions, fit
 from depth_scenes import (cylinder_from_inside, tilted_plane, write_organised_pcd,
                           write_unorganised_ply)
 
@@ -92,7 +92,7 @@ def test_depth_jumps_remove_curtains_but_keep_slopes():
 
 
 def test_smallest_eigenvectors_match_eigh():
-    from c1mesh.grid import smallest_eigenvectors
+    from c1mesh.fit.grid import smallest_eigenvectors
     rng = np.random.default_rng(5)
     m = rng.normal(size=(500, 3, 3))
     a = m @ m.transpose(0, 2, 1)
@@ -238,7 +238,7 @@ def test_mug_frame_folds_at_most_one_face_in_ten_thousand(mug_mesh):
     overshoot limiter in the (u, v, w) chart brings them there: 0.084% without it
     (--overshoot off). The default level 1 (one face per grid triangle) samples the same
     spline coarsely and folds more faces: docs/perspective.md gives the count."""
-    from c1mesh.quality import folded_faces
+    from c1mesh.testing.quality import folded_faces
 
     mesh = mug_mesh
     assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) <= 1e-4 * len(mesh.faces)
@@ -349,7 +349,7 @@ def test_default_level_of_a_depth_frame_gives_about_one_vertex_per_valid_pixel(t
 
 def test_axis_frame_default_level_stays_4(tmp_path):
     """A height field keeps the constant PLANE_LEVEL = 4 (its output bytes do not change)."""
-    from c1mesh.pipeline import PLANE_LEVEL
+    from c1mesh.pipeline.driver import PLANE_LEVEL
 
     points, normals = tilted_plane(20)
     path = write_unorganised_ply(tmp_path / "plane.ply", points, normals)
@@ -379,7 +379,7 @@ def _plane_quad_fraction(corners: np.ndarray, normal: np.ndarray) -> float:
     """Area of the convex quadrilateral `corners` (4, 3), on the plane with `normal`, over
     the area of its bounding box seen along the normal in the frame a preview uses
     (frame.choose_frame: e1 from the normal alone)."""
-    from c1mesh.frame import choose_frame
+    from c1mesh.fit.frame import choose_frame
 
     frame = choose_frame(corners, np.tile(normal, (4, 1)))
     xy = frame.to_local(corners)[:, :2]
@@ -442,8 +442,8 @@ def test_preview_rasteriser_shows_the_topmost_face_with_interpolated_heights():
     [0, 10]² and a level one z = 5 over [2, 4]²: every pixel centre over the upper square
     has height 5, the others the tilted plane's height there (linear in x: exact), and the
     gradient is the normals' (-nx/nz, -ny/nz)."""
-    from c1mesh.preview import _rasterize
-    from c1mesh.raster import RasterGrid
+    from c1mesh.geo.preview import _rasterize
+    from c1mesh.geo.raster import RasterGrid
 
     def square(x0, x1, z_of_x):
         corners = np.array([[x0, x0], [x1, x0], [x1, x1], [x0, x1]], dtype=float)

@@ -6,11 +6,12 @@ import pytest
 from scipy.spatial import Delaunay
 
 import reference_rsd as ref
-from c1mesh import RSDInterpolator, rsd
-from c1mesh.errors import InputError
-from c1mesh.properties import scheme_properties
-from c1mesh.schemes import NAMED_TUPLES, get_scheme
-from c1mesh.topology import mesh_edges
+from c1mesh import RSDInterpolator
+from c1mesh.engine import rsd
+from c1mesh.core.errors import InputError
+from c1mesh.engine.properties import scheme_properties
+from c1mesh.engine.schemes import NAMED_TUPLES, get_scheme
+from c1mesh.engine.topology import mesh_edges
 
 
 def franke(x):
@@ -345,7 +346,7 @@ def test_refined_linear_field_is_barycentric_blend(mesh):
 def test_refinement_in_many_small_blocks(monkeypatch, level):
     """Blocks of a few triangles (so edges are owned across block boundaries) must give
     the same conforming, correct mesh as one block: pointwise values, shared edge points."""
-    import c1mesh.refine as refine_module
+    import c1mesh.engine.refine as refine_module
     pts, tris = random_mesh(200, seed=4)
     interp = RSDInterpolator(pts, smooth(pts), smooth_grad(pts), triangles=tris)
     whole = interp.refine(level)
@@ -376,7 +377,7 @@ def test_vertex_blocks_cover_the_output_once(mesh):
 
 
 def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
-    from c1mesh.topology import edge_table
+    from c1mesh.engine.topology import edge_table
     points, triangles = mesh
     interp = RSDInterpolator(points, smooth(points), smooth_grad(points), triangles=triangles)
     table = edge_table(interp.triangles, len(points))
@@ -399,7 +400,7 @@ def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
 def test_workers_and_prefaulting_change_no_byte(mesh, monkeypatch, workers):
     """Worker threads (each a range of blocks) and page pre-faulting must never alter
     outputs: one worker without pre-faulting and several with it give identical arrays."""
-    import c1mesh.refine as refine_module
+    import c1mesh.engine.refine as refine_module
     pts, tris = mesh
     interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
     monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 200)            # many blocks per worker
@@ -416,7 +417,7 @@ def test_workers_and_prefaulting_change_no_byte(mesh, monkeypatch, workers):
 
 
 def test_worker_errors_reach_the_caller(mesh, monkeypatch):
-    import c1mesh.refine as refine_module
+    import c1mesh.engine.refine as refine_module
     pts, tris = mesh
     calls = []
 
@@ -444,8 +445,8 @@ def _interior_bits(refinement, mesh, triangle):
 def _sub_refinement(interp, first, last, level):
     """The refinement of triangles [first, last) alone (same coefficient rows), as a
     --seamless tile refines a subset of the survey's triangles."""
-    from c1mesh.refine import Refinement
-    from c1mesh.topology import edge_table
+    from c1mesh.engine.refine import Refinement
+    from c1mesh.engine.topology import edge_table
     part = slice(first, last)
     triangles = interp.triangles[part]
     return Refinement(interp.points, interp.values, interp.gradients, triangles, interp.coefficients[part],
@@ -459,7 +460,7 @@ def test_a_point_has_the_same_bits_in_a_block_of_any_size(level):
     thread or two. (--seamless -O tiles evaluate a border triangle in different blocks;
     issue 21: OpenBLAS's small-matrix kernel, taken by short blocks only, rounded
     differently and the tiles wrote one border vertex with two different bits.)"""
-    from c1mesh.threads import blas_threads
+    from c1mesh.core.threads import blas_threads
     pts, tris = random_mesh({4: 5000, 8: 2000}[level], seed=11)
     interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
     whole = interp.refinement(level)

@@ -68,7 +68,7 @@ def test_refined_values_match_pointwise_and_vertices_exact(drawn):
     lam0 = np.einsum("md,md->m", G[:, 0], r.points - anchor)
     lam1 = np.einsum("md,md->m", G[:, 1], r.points - pts[tris[tri_of_point, 2]])
     lam = np.stack([lam0, lam1, 1 - lam0 - lam1], 1)
-    from c1mesh import rsd
+    from c1mesh.engine import rsd
     expected = np.einsum("mj,jm->m", interp.coefficients[tri_of_point], rsd.basis(interp.scheme, lam))
     tol = 1e-9 * (1 + np.abs(interp.coefficients).max())
     np.testing.assert_allclose(r.values, expected, atol=tol)

@@ -13,8 +13,8 @@ import numpy as np
 from click.testing import CliRunner
 
 from c1mesh.cli import main
-from c1mesh.cloud import PointCloud
-from c1mesh.pipeline import FitOptions, fit
+from c1mesh.core.cloud import PointCloud
+from c1mesh.pipeline.driver import FitOptions, fit
 
 DATA = Path(__file__).resolve().parent.parent / "data_samples"
 AUTZEN = DATA / "autzen_trim.laz"
@@ -77,8 +77,8 @@ def test_a_wrong_height_axis_warns_and_the_right_one_does_not():
 def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
     """--max-edge 2.5 on the 0.75 m ground tile: one warning, the same rule and numbers in
     the in-memory fit, --seamless -O and the tiled fit (which cannot count pieces)."""
-    from c1mesh.tiled_fit import fit_tiled
-    from c1mesh.tiles import fit_seamless
+    from c1mesh.survey.tiled_fit import fit_tiled
+    from c1mesh.survey.tiles import fit_seamless
 
     options = FitOptions(classes=(2,), level=1, max_edge=2.5)
     whole = fit(TILE, None, options).report["warnings"]
@@ -91,7 +91,7 @@ def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
 
 def test_a_fit_in_tiles_of_autzen_ground_warns_nothing(tmp_path):
     """Beyond --memory the same rule: no warning (the tile count is a note, not a warning)."""
-    from c1mesh.tiled_fit import fit_tiled
+    from c1mesh.survey.tiled_fit import fit_tiled
 
     report = fit_tiled(AUTZEN, tmp_path / "t.ply", FitOptions(classes=(2,), level=1), memory=10**9,
                        per_tile=7000)

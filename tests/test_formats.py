@@ -22,8 +22,8 @@ import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from c1mesh.cloud import PointCloud, SurfaceMesh
-from c1mesh.errors import C1MeshError, DependencyError, FormatError, InputError
+from c1mesh.core.cloud import PointCloud, SurfaceMesh
+from c1mesh.core.errors import C1MeshError, DependencyError, FormatError, InputError
 from c1mesh.formats import SUPPORTED_INPUT, SUPPORTED_OUTPUT, atomic_output, read_cloud, write_mesh
 from c1mesh.formats.lzf import LZFError, lzf_decompress
 
@@ -559,7 +559,7 @@ def test_atomic_output_permissions_follow_the_umask_without_changing_it(tmp_path
 
 
 def test_unwritable_directory(tmp_path, monkeypatch):
-    import c1mesh.outputs as atomic
+    import c1mesh.core.outputs as atomic
 
     def denied(**kwargs):
         raise PermissionError(13, "Permission denied")
@@ -821,7 +821,7 @@ def test_atomic_output_starts_writeback_as_it_goes(tmp_path, monkeypatch):
     bytes on disk are exactly what was written, buffered or not)."""
     import os
 
-    import c1mesh.outputs as atomic_module
+    import c1mesh.core.outputs as atomic_module
     calls = []
     real = os.posix_fadvise
 
@@ -1026,8 +1026,8 @@ def test_info_on_a_height_column_says_what_fit_does():
     estimated normals (about y), while `fit` takes the header's height column z. The peer
     here is the fit itself: info's suggested axis is the fit's height axis, and both name
     the height column as the reason."""
-    from c1mesh.inspect import describe
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.inspect import describe
+    from c1mesh.pipeline.driver import FitOptions, fit
 
     facts = describe(REAL / "topo.csv")
     frame = fit(REAL / "topo.csv", None, FitOptions(level=1)).report["frame"]
@@ -1040,8 +1040,8 @@ def test_info_on_a_height_column_says_what_fit_does():
 def test_info_on_a_height_column_refuses_what_fit_refuses(tmp_path):
     """Five heights at two plan positions: the fit refuses them as no height field over the
     header's z, and info says so with the fit's reason instead of suggesting another axis."""
-    from c1mesh.inspect import describe
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.inspect import describe
+    from c1mesh.pipeline.driver import FitOptions, fit
 
     path = tmp_path / "two.csv"
     path.write_text("x,y,z\n0,0,1\n0,0,2\n1,1,3\n1,1,4\n1,1,5\n")

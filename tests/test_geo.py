@@ -15,10 +15,10 @@ import pytest
 from click.testing import CliRunner
 
 from c1mesh.cli import main
-from c1mesh.cloud import PointCloud, SurfaceMesh
+from c1mesh.core.cloud import PointCloud, SurfaceMesh
 from c1mesh.formats import read_cloud, write_mesh
-from c1mesh.interpolator import RSDInterpolator
-from c1mesh.pipeline import FitOptions, fit
+from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.pipeline.driver import FitOptions, fit
 
 pyproj = pytest.importorskip("pyproj")
 rasterio = pytest.importorskip("rasterio")
@@ -144,7 +144,7 @@ def test_crs_option_that_contradicts_the_file_is_an_error(tmp_path):
 def test_crs_from_a_prj_file(tmp_path):
     prj = tmp_path / "a.prj"
     prj.write_text(_crs("EPSG:2903").to_wkt("WKT1_ESRI"))
-    from c1mesh.crs import parse_crs
+    from c1mesh.geo.crs import parse_crs
     assert _crs(parse_crs(str(prj))).equals(_crs("EPSG:2903"))
 
 
@@ -179,14 +179,14 @@ def test_level_and_resolution_conflict_is_a_usage_error(tmp_path):
 def _fitted(n=3000):
     """The interpolator on the triangulation the fit pipeline uses (Delaunay, hull slivers
     trimmed: they make the spline's gradient wrong by tens of degrees near the hull)."""
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay, trim
     xy, z, g = _terrain(n)
     triangles, _ = trim(xy, delaunay(xy), max_edge="auto")
     return RSDInterpolator(xy, z, g, triangles=triangles)
 
 
 def test_dem_cells_are_the_interpolator_at_cell_centres(tmp_path):
-    from c1mesh.raster import RasterGrid, RasterTargets, SplineSampler, write_rasters
+    from c1mesh.geo.raster import RasterGrid, RasterTargets, SplineSampler, write_rasters
     interp = _fitted()
     origin = OFFSET
     res = 0.05                                  # point spacing is 6 / √3000 ≈ 0.11
@@ -235,7 +235,7 @@ def test_slope_and_hillshade_from_the_cli_match_the_analytic_terrain(tmp_path):
 
 
 def test_aspect_of_planes_points_downhill():
-    from c1mesh.raster import aspect_degrees, slope_degrees
+    from c1mesh.geo.raster import aspect_degrees, slope_degrees
     g = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])    # rising east, north, west, south
     assert np.allclose(aspect_degrees(g), [270, 180, 90, 0])
     assert np.allclose(slope_degrees(g), 45)
@@ -257,7 +257,7 @@ def test_lidar_ground_dem_slope_hillshade(tmp_path):
     # within --max-edge of a kept triangle: tests/test_dem_holes.py checks the reach)
     mesh = fit(str(TILE), None, FitOptions(classes=(2,), level=1, axis="z")).mesh   # DEMs use --axis z
     tri = Triangulation(mesh.vertices[:, 0], mesh.vertices[:, 1], mesh.faces)
-    from c1mesh.pipeline import load_cloud
+    from c1mesh.pipeline.driver import load_cloud
     points = load_cloud(str(TILE), FitOptions(classes=(2,))).points
     rows = np.floor((points[:, 1] - ds.transform.f) / ds.transform.e).astype(int)
     cols = np.floor((points[:, 0] - ds.transform.c) / ds.transform.a).astype(int)
@@ -364,7 +364,7 @@ def test_geotiff_outputs_of_a_perspective_frame_are_a_usage_error_before_any_wor
 def test_organised_height_raster_with_auto_frame_is_fitted_as_a_dem(tmp_path):
     """An organised PCD (a grid of heights, HEIGHT > 1) would be a perspective fit; asked
     for a DEM, --frame auto fits it in the axis frame: the cells are the plane's heights."""
-    from c1mesh.samples import write_organised_pcd
+    from c1mesh.testing.samples import write_organised_pcd
 
     x, y = np.meshgrid(np.linspace(0.0, 6.0, 25), np.linspace(0.0, 6.0, 25))
     z = 0.3 * x - 0.2 * y + 1.0
@@ -440,7 +440,7 @@ def test_preview_of_a_height_column_shades_with_the_z_factor(tmp_path, monkeypat
     """The preview's light sees the gradient in height per x, y unit times --z-factor (the
     km/m plane: (30, −40) m/km · 0.001); without a factor the slopes are unknown and the
     picture is unshaded (zero gradient) instead of lit as if metres were km."""
-    import c1mesh.preview as preview
+    import c1mesh.geo.preview as preview
 
     seen = []
     monkeypatch.setattr(preview, "render_arrays", lambda z, g, *rest: seen.append(g))

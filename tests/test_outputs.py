@@ -1,4 +1,4 @@
-"""Output paths never destroy an input or a complete file (c1mesh.outputs, the CLI's use of it).
+"""Output paths never destroy an input or a complete file (c1mesh.core.outputs, the CLI's use of it).
 
 Each case builds the situation on a real file system and runs the real command in a
 subprocess, then looks at the files: inputs byte-identical, no temporary files left,
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from c1mesh.errors import InputError
-from c1mesh.outputs import OutputError, Outputs, atomic_output, plan_outputs
+from c1mesh.core.errors import InputError
+from c1mesh.core.outputs import OutputError, Outputs, atomic_output, plan_outputs
 
 ROOT = Path(__file__).resolve().parent.parent
 HILL = ROOT / "data_samples" / "hill.ply"
@@ -219,7 +219,7 @@ def test_output_problems_fail_before_the_input_is_read(tmp_path, args, code, mes
 
 
 def test_a_huge_but_valid_axis_is_a_direction(tmp_path):
-    from c1mesh.frame import _parse_axis
+    from c1mesh.fit.frame import _parse_axis
 
     assert np.allclose(_parse_axis("1e200,1e200,1e200"), np.full(3, 3 ** -0.5))
     assert np.allclose(_parse_axis("1e-320,0,0"), [1, 0, 0])
@@ -228,7 +228,7 @@ def test_a_huge_but_valid_axis_is_a_direction(tmp_path):
 
 
 def test_library_fit_checks_its_output_before_reading(monkeypatch, tmp_path):
-    import c1mesh.pipeline as pipeline
+    import c1mesh.pipeline.driver as pipeline
 
     def must_not_read(*args, **kwargs):
         raise AssertionError("the input was read before the output was checked")

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from c1mesh.cloud import PointCloud
-from c1mesh.errors import C1MeshError, InputError, NotAHeightFieldError
+from c1mesh.core.cloud import PointCloud
+from c1mesh.core.errors import C1MeshError, InputError, NotAHeightFieldError
 from c1mesh.formats import read_cloud
-from c1mesh.pipeline import FitOptions, fit
-from c1mesh.samples import SURFACES, exact_normals, rotation_about, sample_surface, write_points_ply
+from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.testing.samples import SURFACES, exact_normals, rotation_about, sample_surface, write_points_ply
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 
@@ -212,7 +212,7 @@ def test_topo_csv_heights_in_feet_over_a_plan_in_50_ft_units():
     over the plan. Before, the auto axis was nearly y (26 of 52 points became vertices,
     279 faces folded in plan view), and --axis z refused normals that x, y and z in one
     metric made nearly horizontal."""
-    from c1mesh.quality import folded_faces
+    from c1mesh.testing.quality import folded_faces
 
     table = np.genfromtxt(SAMPLES / "topo.csv", delimiter=",", skip_header=1, usecols=(1, 2, 3))
     assert table.shape == (52, 3)
@@ -277,7 +277,7 @@ def test_too_few_or_degenerate_points(tmp_path, points, message):
 def test_streamed_output_is_the_assembled_mesh(tmp_path, monkeypatch, ascii_ply):
     """keep_mesh=False (what the CLI does) writes block by block; the file must be
     byte-identical to writing the assembled mesh, with colours, across many blocks."""
-    import c1mesh.refine as refine_module
+    import c1mesh.engine.refine as refine_module
     monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 300)
     path = _colored_hill(tmp_path)
     whole = fit(path, tmp_path / "whole.ply", FitOptions(level=3, ascii=ascii_ply, axis="z"))
@@ -295,7 +295,7 @@ def test_mesh_pieces_counts_edge_connected_parts_and_the_area_they_cover():
     """Two unit squares far apart and one half-square: 3 pieces; the largest holds 2 of 5
     triangles; they cover 2.5 of the convex hull's 38.5 (shoelace over its corners
     (0,0), (11,0), (6,6), (5,6), (0,1), worked by hand)."""
-    from c1mesh.pipeline import mesh_pieces
+    from c1mesh.pipeline.driver import mesh_pieces
 
     xy = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [5, 5], [6, 5], [6, 6], [5, 6],
                    [10, 0], [11, 0], [10, 1]], float)

@@ -1,4 +1,4 @@
-"""c1mesh.platform_memory: the one module that asks the C library and the OS about memory.
+"""c1mesh.core.platform_memory: the one module that asks the C library and the OS about memory.
 
 Ground truth: the kernel's count of this process's resident pages (/proc/self/statm)."""
 from __future__ import annotations
@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from c1mesh.platform_memory import madvise, peak_rss_mb, release_free_heap
+from c1mesh.core.platform_memory import madvise, peak_rss_mb, release_free_heap
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc and /proc are Linux's")
 

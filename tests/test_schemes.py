@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from c1mesh import RSDInterpolator
-from c1mesh.properties import scheme_properties
-from c1mesh.schemes import (NAMED_TUPLES, SEXTIC, InvalidSchemeError, get_scheme, tuple_from_callables,
+from c1mesh.engine.properties import scheme_properties
+from c1mesh.engine.schemes import (NAMED_TUPLES, SEXTIC, InvalidSchemeError, get_scheme, tuple_from_callables,
                             tuple_from_sympy, validate_tuple)
 
 

@@ -1,10 +1,10 @@
-"""c1mesh.streamed_median against np.median on the same values held in memory."""
+"""c1mesh.survey.streamed_median against np.median on the same values held in memory."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from c1mesh.streamed_median import order_statistic, streamed_median
+from c1mesh.survey.streamed_median import order_statistic, streamed_median
 
 
 def _chunks(values, size):

@@ -1,13 +1,13 @@
-"""Survey-wide frame from streamed passes (c1mesh.survey_stats) against frame.choose_frame
+"""Survey-wide frame from streamed passes (c1mesh.survey.survey_stats) against frame.choose_frame
 on the whole cloud at once."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from c1mesh.frame import choose_frame
-from c1mesh.samples import sample_surface
-from c1mesh.survey_stats import streamed_frame, streamed_median
+from c1mesh.fit.frame import choose_frame
+from c1mesh.testing.samples import sample_surface
+from c1mesh.survey.survey_stats import streamed_frame, streamed_median
 
 
 def _chunked(points, normals, size):

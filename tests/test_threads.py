@@ -1,4 +1,4 @@
-"""c1mesh.threads: prefetching block generators, parallel ranges, the BLAS limit, and the
+"""c1mesh.core.threads: prefetching block generators, parallel ranges, the BLAS limit, and the
 one thread-count knob every pool follows (bit-identical results for every count)."""
 import json
 import os
@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from c1mesh import threads
-from c1mesh.errors import InputError
-from c1mesh.threads import blas_threads, prefetch, ring, run_parallel
+from c1mesh.core import threads
+from c1mesh.core.errors import InputError
+from c1mesh.core.threads import blas_threads, prefetch, ring, run_parallel
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 
@@ -185,16 +185,16 @@ class _ThreadCensus:
 
 def _big_mesh_inputs(n=60_000, seed=0):
     """Enough points for the tiled triangulation and several coefficient blocks."""
-    from c1mesh.triangulation import TILED_FROM
+    from c1mesh.engine.triangulation import TILED_FROM
     rng = np.random.default_rng(seed)
     xy = rng.random((max(n, TILED_FROM + 5_000), 2))
     return xy, np.sin(3 * xy[:, 0]) * xy[:, 1], np.column_stack([np.cos(xy[:, 1]), xy[:, 0]])
 
 
 def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
-    from c1mesh.interpolator import RSDInterpolator
-    from c1mesh.pipeline import FitOptions, fit
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.engine.triangulation import delaunay, trim
     xy, z, g = _big_mesh_inputs()
     census = _ThreadCensus(monkeypatch)
     with threads.limit(1):
@@ -205,9 +205,9 @@ def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
 
 
 def test_every_pool_stays_within_the_limit(monkeypatch, tmp_path):
-    from c1mesh import refine
-    from c1mesh.interpolator import RSDInterpolator
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.engine import refine
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.engine.triangulation import delaunay, trim
     xy, z, g = _big_mesh_inputs()
     census = _ThreadCensus(monkeypatch)
     parallel = []
@@ -225,8 +225,8 @@ def test_every_pool_stays_within_the_limit(monkeypatch, tmp_path):
 
 
 def test_results_are_bit_identical_for_every_thread_count():
-    from c1mesh.interpolator import RSDInterpolator
-    from c1mesh.triangulation import delaunay, trim
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.engine.triangulation import delaunay, trim
     xy, z, g = _big_mesh_inputs()
     results = []
     for count in (1, 2, 3):
@@ -242,7 +242,7 @@ def test_results_are_bit_identical_for_every_thread_count():
 
 
 def test_the_fit_writes_the_same_bytes_with_one_thread_or_several(tmp_path):
-    from c1mesh.pipeline import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions, fit
     written = []
     for count in (1, 2, 4):
         out = tmp_path / f"t{count}.ply"

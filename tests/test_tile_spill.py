@@ -1,4 +1,4 @@
-"""Points binned to tiles on disk (c1mesh.tile_spill): what a tile reads back is what the
+"""Points binned to tiles on disk (c1mesh.survey.tile_spill): what a tile reads back is what the
 in-memory reader gives, the tiles' Delaunay over the spill is scipy's, and no file stays."""
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-import c1mesh.buffered_delaunay as bd
-from c1mesh import outputs
-from c1mesh.frame import choose_frame
-from c1mesh.tile_spill import spill
+import c1mesh.survey.buffered_delaunay as bd
+from c1mesh.core import outputs
+from c1mesh.fit.frame import choose_frame
+from c1mesh.survey.tile_spill import spill
 
 
 def _points(n=3000, seed=4):
@@ -62,7 +62,7 @@ def test_spill_files_go_when_spilling_fails_and_are_listed_for_signals(tmp_path)
 
 
 def test_file_blocks_read_the_rest_of_a_file_in_blocks_of_at_most_rows(tmp_path):
-    from c1mesh.tile_spill import file_blocks
+    from c1mesh.survey.tile_spill import file_blocks
 
     values = np.arange(2_500, dtype="<f8")
     path = tmp_path / "values.bin"

@@ -1,4 +1,4 @@
-"""The tiled fit (c1mesh.tiled_fit) against the in-memory fit of the same points.
+"""The tiled fit (c1mesh.survey.tiled_fit) against the in-memory fit of the same points.
 
 Ground truth: the in-memory stages on the whole cloud (estimate_normals, choose_frame,
 height_field, delaunay, the long-edge trim, limiter.control_overshoot or unit-normal
@@ -27,20 +27,20 @@ laspy = pytest.importorskip("laspy")
 from click.testing import CliRunner
 
 from c1mesh.cli import main
-from c1mesh.curtains import REASONS, remove_curtains
-from c1mesh.frame import choose_frame, height_field
-from c1mesh.height_gradients import height_neighbours, height_normals
-from c1mesh.buffered_delaunay import TileGrid
-from c1mesh.interpolator import RSDInterpolator
-from c1mesh.limiter import control_overshoot
-from c1mesh.normals import estimate_normals
-from c1mesh.pipeline import FitOptions, surface_stream
-from c1mesh.tile_spill import TileSpill
-from c1mesh.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
-from c1mesh.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits
-from c1mesh.tiled_trim import drop_triangles, peeled
-from c1mesh.topology import edge_table
-from c1mesh.triangulation import delaunay, trim
+from c1mesh.fit.curtains import REASONS, remove_curtains
+from c1mesh.fit.frame import choose_frame, height_field
+from c1mesh.fit.height_gradients import height_neighbours, height_normals
+from c1mesh.survey.buffered_delaunay import TileGrid
+from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.fit.limiter import control_overshoot
+from c1mesh.fit.normals import estimate_normals
+from c1mesh.pipeline.driver import FitOptions, surface_stream
+from c1mesh.survey.tile_spill import TileSpill
+from c1mesh.survey.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
+from c1mesh.survey.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits
+from c1mesh.survey.tiled_trim import drop_triangles, peeled
+from c1mesh.engine.topology import edge_table
+from c1mesh.engine.triangulation import delaunay, trim
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 
@@ -283,7 +283,7 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
 
 
 def test_memory_rule():
-    from c1mesh.tiled_fit import grid_side, tiles_at_once
+    from c1mesh.survey.tiled_fit import grid_side, tiles_at_once
 
     assert grid_side(2_000_000, 10**9) == 4                  # 138,888 points a tile at most
     assert tiles_at_once(2 * 10**9, 8) == 2                   # half the budget to tiles of 1/4 of it
@@ -406,8 +406,8 @@ def test_curtain_noise_floor_is_the_exact_median_over_every_edge_once():
     """curtains.noise_floor: np.median of |trapezoid residual| over the edge table's
     edges (each once), whatever the triangles' order and orientation, so tiles can find
     it by a streamed median of their own edges."""
-    from c1mesh.curtains import noise_floor
-    from c1mesh.limiter import trapezoid_residuals
+    from c1mesh.fit.curtains import noise_floor
+    from c1mesh.fit.limiter import trapezoid_residuals
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 50, (3000, 2))
@@ -469,7 +469,7 @@ def _big_las(tmp_path):
 def _every_job_at_once(monkeypatch):
     """Let -j N run N tile tasks at once under the tiny budgets of these tests (the budget's
     own rule, tiles_at_once, is tested in test_memory_rule)."""
-    import c1mesh.tiled_fit as tiled_fit
+    import c1mesh.survey.tiled_fit as tiled_fit
 
     monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs: jobs)
 
@@ -492,7 +492,7 @@ def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):
 def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     """A tile whose task fails stops the fit with exit 1, one line naming the tile, and
     no output (in this process and on a pool of two)."""
-    import c1mesh.tiled_fit as tiled_fit
+    import c1mesh.survey.tiled_fit as tiled_fit
 
     _every_job_at_once(monkeypatch)
     source, args = _big_las(tmp_path)

@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from c1mesh.buffered_delaunay import TileGrid
-from c1mesh.interpolator import RSDInterpolator
-from c1mesh.tiled_join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
-from c1mesh.tiled_limiter import halo_rows
-from c1mesh.triangulation import delaunay, trim
+from c1mesh.survey.buffered_delaunay import TileGrid
+from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.survey.tiled_join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
+from c1mesh.survey.tiled_limiter import halo_rows
+from c1mesh.engine.triangulation import delaunay, trim
 
 
 def test_halo_rows_equal_a_dense_table_over_the_survey():

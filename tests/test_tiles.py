@@ -1,4 +1,4 @@
-"""Seamless surveys (c1mesh.tiles): union of the per-input outputs equals the whole fit.
+"""Seamless surveys (c1mesh.survey.tiles): union of the per-input outputs equals the whole fit.
 
 Ground truth is the fit of the concatenated cloud (one file), computed independently of
 the tile code; the per-input outputs are read back from disk and merged by exactly equal
@@ -15,8 +15,8 @@ from click.testing import CliRunner
 from scipy.spatial import cKDTree
 
 from c1mesh.cli import main
-from c1mesh.cloud import PointCloud
-from c1mesh.samples import sample_surface, write_points_ply
+from c1mesh.core.cloud import PointCloud
+from c1mesh.testing.samples import sample_surface, write_points_ply
 
 
 def _load(path):
@@ -167,7 +167,7 @@ def test_tiles_in_different_crs_are_refused_before_any_output(tmp_path, crop_gro
 
 
 def test_failed_tile_is_named_and_leaves_no_output(hill_tiles, tmp_path, monkeypatch):
-    import c1mesh.distributed as distributed
+    import c1mesh.survey.distributed as distributed
 
     folder, paths, _ = hill_tiles
     real = distributed.run_tile
@@ -186,8 +186,8 @@ def test_failed_tile_is_named_and_leaves_no_output(hill_tiles, tmp_path, monkeyp
 def test_dask_local_cluster_writes_the_same_bytes(hill_tiles, tmp_path):
     """Tiles sent to a dask.distributed LocalCluster of two workers (threads, to start fast)."""
     distributed = pytest.importorskip("distributed")
-    from c1mesh.pipeline import FitOptions
-    from c1mesh.tiles import fit_seamless
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.survey.tiles import fit_seamless
 
     folder, paths, _ = hill_tiles
     options = FitOptions(level=2)
@@ -256,7 +256,7 @@ def test_real_dask_scheduler_and_two_workers(hill_tiles, tmp_path, dask_processe
 
 def test_unreachable_scheduler_is_one_line_and_no_output(hill_tiles, tmp_path, monkeypatch):
     pytest.importorskip("distributed")
-    import c1mesh.distributed as distributed
+    import c1mesh.survey.distributed as distributed
 
     monkeypatch.setattr(distributed, "CONNECT_SECONDS", 1)
     folder, paths, _ = hill_tiles
@@ -387,8 +387,8 @@ def test_tiles_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path,
 @pytest.mark.slow
 def test_tiles_on_a_dask_cluster_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path):
     distributed = pytest.importorskip("distributed")
-    from c1mesh.pipeline import FitOptions
-    from c1mesh.tiles import fit_seamless
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.survey.tiles import fit_seamless
 
     paths, whole = large_hill_survey
     outputs = [str(tmp_path / (Path(p).stem + ".ply")) for p in paths]

@@ -1,10 +1,10 @@
-"""Edge numbering (c1mesh.topology) against plain numpy constructions of the same things."""
+"""Edge numbering (c1mesh.engine.topology) against plain numpy constructions of the same things."""
 import numpy as np
 import pytest
 
-from c1mesh.errors import InputError
-from c1mesh.topology import edge_table, sort_keys
-from c1mesh.triangulation import delaunay
+from c1mesh.core.errors import InputError
+from c1mesh.engine.topology import edge_table, sort_keys
+from c1mesh.engine.triangulation import delaunay
 
 
 @pytest.mark.parametrize("bound", [1000 * 1000, 2 ** 62])      # packed sort; no room: argsort

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from c1mesh import triangulation as tr
-from c1mesh.errors import InputError
-from c1mesh.triangulation import TrimReport, circle_ratio, delaunay, trim
+from c1mesh.engine import triangulation as tr
+from c1mesh.core.errors import InputError
+from c1mesh.engine.triangulation import TrimReport, circle_ratio, delaunay, trim
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 

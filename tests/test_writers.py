@@ -27,7 +27,7 @@ from trimesh.exchange import obj as tm_obj
 from trimesh.exchange import ply as tm_ply
 from trimesh.exchange import stl as tm_stl
 
-from c1mesh.cloud import MeshStream, SurfaceMesh
+from c1mesh.core.cloud import MeshStream, SurfaceMesh
 from c1mesh.formats import write_mesh
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -198,7 +198,7 @@ def grid_stream(n: int, block: int = 4096) -> MeshStream:
 _PEAKS_IMPORTS = """
 import json, sys
 import numpy as np
-from c1mesh.cloud import MeshStream
+from c1mesh.core.cloud import MeshStream
 from c1mesh.formats import write_mesh
 """
 

@@ -11,14 +11,14 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from c1mesh.errors import C1MeshError, InputError, NotAHeightFieldError  # noqa: F401
+from c1mesh.core.errors import C1MeshError, InputError, NotAHeightFieldError  # noqa: F401
 
 _LAZY = {
-    "RSDInterpolator": "c1mesh.interpolator",
-    "RefinedMesh": "c1mesh.refine",
-    "NAMED_TUPLES": "c1mesh.schemes",
-    "ShapeTuple": "c1mesh.schemes",
-    "get_scheme": "c1mesh.schemes",
+    "RSDInterpolator": "c1mesh.engine.interpolator",
+    "RefinedMesh": "c1mesh.engine.refine",
+    "NAMED_TUPLES": "c1mesh.engine.schemes",
+    "ShapeTuple": "c1mesh.engine.schemes",
+    "get_scheme": "c1mesh.engine.schemes",
 }
 
 __all__ = ["C1MeshError", "InputError", "NotAHeightFieldError", *_LAZY]

@@ -5,7 +5,7 @@ inputs failed, 128+N killed by signal N (SIGINT 130, SIGTERM 143, SIGHUP 129). E
 are one line on stderr; --debug shows the traceback. A usage error is everything the
 command line shows on its own (values, conflicting options, output extensions): all of
 its problems are named in that one line, before any input is read (`usage_error`). Progress goes to stderr only when
-stderr is a terminal. Every output path is checked (c1mesh.outputs) before any input is
+stderr is a terminal. Every output path is checked (c1mesh.core.outputs) before any input is
 read. Nothing heavy (numpy, scipy, open3d) is imported until a command runs, so --help
 and usage errors are quick.
 """
@@ -26,8 +26,8 @@ from typing import Sequence
 import click
 
 from c1mesh import __version__
-from c1mesh.errors import C1MeshError, InputError
-from c1mesh.outputs import (INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO, Outputs,
+from c1mesh.core.errors import C1MeshError, InputError
+from c1mesh.core.outputs import (INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO, Outputs,
                             mesh_format, plan_outputs, remove_live_temps)
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
@@ -138,7 +138,7 @@ def _parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
 
 def _check_axis(value: str) -> None:
     """Usage error for an --axis that can never be a direction (checked again, and
-    normalised, by c1mesh.frame)."""
+    normalised, by c1mesh.fit.frame)."""
     text = value.strip().lower().lstrip("+-")
     if text in ("auto", "x", "y", "z"):
         return
@@ -155,7 +155,7 @@ def _check_axis(value: str) -> None:
 
 
 _DEM_AXES = ("auto", "z", "+z")
-"""--axis values a GeoTIFF output allows (as c1mesh.raster.raster_axis: a DEM is z over x, y)."""
+"""--axis values a GeoTIFF output allows (as c1mesh.geo.raster.raster_axis: a DEM is z over x, y)."""
 _LAS_FORMATS = ("las", "laz", "copc")
 
 
@@ -265,7 +265,7 @@ def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> lis
     if preview and Path(preview).suffix.lower() != ".png":
         problems.append(f"the preview '{preview}' must be a .png file")
     if params["frame_kind"] == "perspective" and (dems or extras):   # geo loads numpy: only here
-        from c1mesh.geo import dem_frame_error
+        from c1mesh.geo.products import dem_frame_error
         problems.append(dem_frame_error("perspective", dems, *(params[k] for k in ("slope", "aspect", "hillshade"))))
     if (dems or extras) and params["axis"].strip().lower() not in _DEM_AXES:
         problems.append(f"a DEM is heights over the world XY plane; --axis {params['axis']} cannot be used "
@@ -521,7 +521,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     classes, max_edge = _parse_classes(classes), _parse_max_edge(max_edge)
     intrinsics = _parse_intrinsics(intrinsics)
     if seamless:
-        from c1mesh.pipeline import FitOptions
+        from c1mesh.pipeline.driver import FitOptions
 
         options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                              max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level,
@@ -542,7 +542,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         targets = _check_outputs(pairs, report, output_dir)
     except (C1MeshError, OSError) as exc:
         _fail(_message(exc), debug)
-    from c1mesh.pipeline import FitOptions
+    from c1mesh.pipeline.driver import FitOptions
 
     options = FitOptions(input_format=input_format, axis=axis, normals=normals, k=k, classes=classes,
                          max_slope=max_slope, max_edge=max_edge, scheme=scheme, level=level, ascii=ascii_ply,
@@ -562,7 +562,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
 def _threads_per_process(threads: int | None, jobs: int) -> int:
     """--threads shared by the --jobs processes, so together they do not oversubscribe
     (Open3D's OpenMP threads included)."""
-    from c1mesh.threads import openmp_at_start, per_process
+    from c1mesh.core.threads import openmp_at_start, per_process
     count = per_process(threads, jobs)
     openmp_at_start(count)
     return count
@@ -576,25 +576,25 @@ def _plan(inputs, output, output_dir, suffix) -> list[tuple[str, str]]:
 
 def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                   scheduler, quiet, debug) -> None:
-    """`fit --seamless`: the inputs as one survey (c1mesh.tiles), one line on any failure."""
+    """`fit --seamless`: the inputs as one survey (c1mesh.survey.tiles), one line on any failure."""
     pairs = _plan(inputs, None, output_dir, suffix) if output_dir else [(inputs[0], output)]
     try:
         if options.crs:
             from dataclasses import replace
 
-            from c1mesh.crs import parse_crs
+            from c1mesh.geo.crs import parse_crs
             options = replace(options, crs=parse_crs(options.crs))
         if output_dir and not Path(output_dir).exists():
             Path(output_dir).mkdir(parents=True)
         named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
         targets = plan_outputs(named, list(inputs))
-        from c1mesh.raster import is_raster_path
+        from c1mesh.geo.raster import is_raster_path
         for (_, dst), target in zip(pairs, targets):
             if not is_raster_path(dst):
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         _fail(_message(exc), debug)
-    from c1mesh.tiles import fit_seamless, survey_needs_tiles
+    from c1mesh.survey.tiles import fit_seamless, survey_needs_tiles
 
     options.workers = _threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
@@ -633,12 +633,12 @@ def _caption(bar, text: str) -> None:
 
 def _survey_progress(inputs, options, outputs: int):
     """A --seamless fit's progress bar on stderr and the fit_seamless callbacks that move
-    it: for a survey fitted in tiles beyond --memory (c1mesh.tiled_fit), its stages with
+    it: for a survey fitted in tiles beyond --memory (c1mesh.survey.tiled_fit), its stages with
     each pass's tile count, as a single large input shows them; in memory, the outputs
     of -O as their tiles are written, or the stages of the one -o fit."""
-    from c1mesh.pipeline import STAGES
-    from c1mesh.tiled_fit import TILED_STAGES
-    from c1mesh.tiles import survey_needs_tiles
+    from c1mesh.pipeline.driver import STAGES
+    from c1mesh.survey.tiled_fit import TILED_STAGES
+    from c1mesh.survey.tiles import survey_needs_tiles
 
     if survey_needs_tiles(inputs, options):
         progress = _stage_bar(len(TILED_STAGES), "fitting survey")
@@ -653,17 +653,17 @@ def _survey_progress(inputs, options, outputs: int):
 
 
 def _check_geo(ctx, jobs_list, options, debug):
-    """Georeferencing options checked before any input is read (c1mesh.geo.check_before;
+    """Georeferencing options checked before any input is read (c1mesh.geo.products.check_before;
     their conflicts are usage errors, found by _check_usage): a bad CRS or an unwritable
     path exit 1. Returns the options with the CRS parsed to WKT."""
-    from c1mesh.geo import check_before
+    from c1mesh.geo.products import check_before
 
     extra = [(label, path) for label, path in (("slope raster", options.slope),
                                                ("aspect raster", options.aspect),
                                                ("hillshade raster", options.hillshade),
                                                ("preview", options.preview)) if path]
     try:
-        if extra:   # against the inputs, the outputs and each other (c1mesh.outputs)
+        if extra:   # against the inputs, the outputs and each other (c1mesh.core.outputs)
             plan_outputs([("output", dst) for _, dst in jobs_list] + extra, [src for src, _ in jobs_list])
         return check_before([dst for _, dst in jobs_list], options)
     except C1MeshError as exc:
@@ -672,7 +672,7 @@ def _check_geo(ctx, jobs_list, options, debug):
 
 def _check_outputs(pairs, report, output_dir):
     """All output targets (the meshes, then the report or None), checked against the inputs
-    and each other before any input is read (c1mesh.outputs); raises C1MeshError/OSError."""
+    and each other before any input is read (c1mesh.core.outputs); raises C1MeshError/OSError."""
     if any(src == STDIO for src, _ in pairs):
         _check_stdin()
     if output_dir and not Path(output_dir).exists():
@@ -683,7 +683,7 @@ def _check_outputs(pairs, report, output_dir):
                              f"{exc.strerror or exc}.") from exc
     named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
     targets = plan_outputs(named, [src for src, _ in pairs])
-    from c1mesh.raster import is_raster_path
+    from c1mesh.geo.raster import is_raster_path
     for (_, dst), target in zip(pairs, targets):
         if not is_raster_path(dst):     # GeoTIFF DEMs: checked by _check_geo
             mesh_format(dst, target=target)
@@ -714,11 +714,11 @@ def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, 
     an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
     processes. An input that fits in memory is fitted here, and a scheduler given for it is
     recorded in the report as not used (the note `_note` prints)."""
-    from c1mesh.pipeline import fit as fit_pipeline
-    from c1mesh.tiled_fit import fit_tiled, needs_tiles
+    from c1mesh.pipeline.driver import fit as fit_pipeline
+    from c1mesh.survey.tiled_fit import fit_tiled, needs_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
-    if needs_tiles(source, options):          # larger than --memory allows: c1mesh.tiled_fit
+    if needs_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit
         return fit_tiled(source, target, options, options.memory, on_stage=on_stage, jobs=jobs,
                          on_tile=on_tile, scheduler=scheduler)
     report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
@@ -732,9 +732,9 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
     """Fit one input; the mesh and the report are committed together, or neither is."""
     from dataclasses import replace
 
-    from c1mesh.pipeline import STAGES
+    from c1mesh.pipeline.driver import STAGES
 
-    from c1mesh.raster import is_raster_path
+    from c1mesh.geo.raster import is_raster_path
 
     mesh_target, report_target = targets
     raster = is_raster_path(dst)
@@ -750,7 +750,7 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
                         scheduler=scheduler)
     try:
         with Outputs() as outputs:
-            if raster:      # c1mesh.raster writes the GeoTIFFs, each atomically
+            if raster:      # c1mesh.geo.raster writes the GeoTIFFs, each atomically
                 result = run(dst)
             else:
                 with outputs.open(mesh_target) as mesh_file:
@@ -773,8 +773,8 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
 
 def _write_prj(outputs, dst, mesh_target, fmt, result) -> None:
     """The .prj sidecar (ESRI WKT) of a mesh file written in the same transaction as the mesh,
-    when a CRS was carried (c1mesh.crs; not for stdout or devices)."""
-    from c1mesh.crs import esri_wkt, prj_path
+    when a CRS was carried (c1mesh.geo.crs; not for stdout or devices)."""
+    from c1mesh.geo.crs import esri_wkt, prj_path
     from c1mesh.formats import PRJ_SIDECAR
 
     crs = (result.get("crs") or {}).get("wkt")
@@ -919,7 +919,7 @@ def _collect(iterator, total, show, verbose):
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def info(path, input_format, memory, intrinsics, depth_scale, debug):
     """Describe a point file: points, fields, normals, bounds, suggested axis, height field?"""
-    from c1mesh.inspect import describe
+    from c1mesh.pipeline.inspect import describe
 
     _check_usage(click.get_current_context())
     try:
@@ -940,8 +940,8 @@ def info(path, input_format, memory, intrinsics, depth_scale, debug):
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def preview(path, output, debug):
     """Render PATH (a GeoTIFF DEM or a mesh with normals) as a shaded PNG."""
-    from c1mesh.geo import check_preview_path
-    from c1mesh.preview import render_file
+    from c1mesh.geo.products import check_preview_path
+    from c1mesh.geo.preview import render_file
 
     _check_usage(click.get_current_context())
     try:
@@ -955,8 +955,8 @@ def preview(path, output, debug):
 @main.command()
 def schemes():
     """List the shape-function tuples with their computed properties."""
-    from c1mesh.properties import scheme_properties
-    from c1mesh.schemes import DEFAULT_SCHEME, NAMED_TUPLES
+    from c1mesh.engine.properties import scheme_properties
+    from c1mesh.engine.schemes import DEFAULT_SCHEME, NAMED_TUPLES
 
     click.echo(f"{'name':<9} {'degree':>6}  {'constants':<9}  {'affine':<6}  description")
     for name, tup in NAMED_TUPLES.items():

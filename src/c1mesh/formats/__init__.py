@@ -2,7 +2,7 @@
 
 `read_cloud` picks a reader by file extension (or `fmt`), loads the bytes once and hands
 them to the format module; `write_mesh` picks a writer the same way and, for a path,
-writes by the rules of c1mesh.outputs, so that a failed write never leaves a partial file.
+writes by the rules of c1mesh.core.outputs, so that a failed write never leaves a partial file.
 Both also work on binary file objects (stdin / stdout), where `fmt` says the format.
 """
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import IO, Callable, Sequence, Union
 
 import numpy as np
 
-from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
-from c1mesh.errors import FormatError, InputError
+from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.core.errors import FormatError, InputError
 from c1mesh.formats._common import decode_text
 from c1mesh.formats._limits import budget, check_alloc, read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
@@ -28,7 +28,7 @@ from c1mesh.formats.obj import read_obj, write_obj
 from c1mesh.formats.pcd import check_pcd_head, read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
-from c1mesh.outputs import INPUT_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
+from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
 
 __all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
@@ -46,8 +46,8 @@ _WRITERS: dict[str, Callable[..., None]] = {
 SUPPORTED_INPUT: tuple[str, ...] = tuple(_READERS)
 #: Output file extensions `write_mesh` understands (lower case, no dot).
 SUPPORTED_OUTPUT: tuple[str, ...] = tuple(_WRITERS)
-assert SUPPORTED_OUTPUT == MESH_FORMATS, "c1mesh.outputs.MESH_FORMATS must list the writers"
-assert SUPPORTED_INPUT == INPUT_FORMATS, "c1mesh.outputs.INPUT_FORMATS must list the readers"
+assert SUPPORTED_OUTPUT == MESH_FORMATS, "c1mesh.core.outputs.MESH_FORMATS must list the writers"
+assert SUPPORTED_INPUT == INPUT_FORMATS, "c1mesh.core.outputs.INPUT_FORMATS must list the readers"
 
 
 def _is_stream(obj: object) -> bool:
@@ -205,7 +205,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
 
     The format comes from `fmt` if given, else from the path's extension; a file object
     defaults to binary PLY. `ascii` selects ascii PLY (other formats have one encoding).
-    A path is written by the rules of c1mesh.outputs: a regular file or new path to a
+    A path is written by the rules of c1mesh.core.outputs: a regular file or new path to a
     temporary file beside it, renamed into place only when complete (an existing file's
     mode is kept); a character device or FIFO straight. Every format writes a MeshStream
     block by block, never assembling it (STL also holds the vertex positions: a face may
@@ -231,7 +231,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     with Outputs(deferred=False).open(planned) as f:
         _WRITERS[key](mesh, f, ascii=ascii, **_crs_argument(key, crs))
     if crs and sidecar and key in PRJ_SIDECAR and planned.kind == "atomic":
-        from c1mesh.crs import write_prj
+        from c1mesh.geo.crs import write_prj
         write_prj(target, crs)
 
 
@@ -247,7 +247,7 @@ def _crs_argument(key: str, crs: str | None) -> dict:
 def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> None:
     """Raise InputError now, before any work, if `write_mesh(..., target, fmt)` could not
     write there: unknown format, missing or unwritable directory, a directory or special
-    file, or a path that is one of `inputs` (paths or streams; see c1mesh.outputs)."""
+    file, or a path that is one of `inputs` (paths or streams; see c1mesh.core.outputs)."""
     if _is_stream(target):
         format_key(fmt or "ply", str(getattr(target, "name", "<stream>")), SUPPORTED_OUTPUT, "output")
         return

@@ -12,7 +12,7 @@ import queue
 import threading
 from typing import IO, Callable, Iterator
 
-from c1mesh.threads import workers
+from c1mesh.core.threads import workers
 
 _DEPTH = 4   # blocks in flight
 
@@ -21,7 +21,7 @@ _DEPTH = 4   # blocks in flight
 def background_writes(f: IO[bytes]) -> Iterator[Callable[[object], None]]:
     """Yield write(buffer): queue `buffer` (bytes-like, not modified afterwards) for `f`.
 
-    With one worker allowed (c1mesh.threads.workers()) buffers are written at once, in
+    With one worker allowed (c1mesh.core.threads.workers()) buffers are written at once, in
     the caller's thread."""
     if workers() == 1:
         yield f.write

@@ -11,7 +11,7 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from c1mesh.cloud import MeshStream, SurfaceMesh
+from c1mesh.core.cloud import MeshStream, SurfaceMesh
 
 STREAM_BLOCK = 1 << 18
 """Rows per block when a SurfaceMesh in memory is written as a stream (views, no copies)."""

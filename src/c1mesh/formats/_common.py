@@ -5,7 +5,7 @@ import warnings
 
 import numpy as np
 
-from c1mesh.errors import FormatError
+from c1mesh.core.errors import FormatError
 
 #: Names under which files store normal components, lower-case, per axis.
 NORMAL_NAMES = (

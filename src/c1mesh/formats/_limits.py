@@ -23,7 +23,7 @@ import os
 import re
 from typing import IO, Callable, Iterator
 
-from c1mesh.errors import FormatError, InputError
+from c1mesh.core.errors import FormatError, InputError
 
 _GIB = 1 << 30
 _BUDGET: contextvars.ContextVar[int | None] = contextvars.ContextVar("c1mesh_read_budget", default=None)

@@ -26,7 +26,7 @@ from typing import IO, Callable, Iterator, Sequence
 
 import numpy as np
 
-from c1mesh.errors import FormatError, InputError
+from c1mesh.core.errors import FormatError, InputError
 
 Box = tuple[float, float, float, float]
 """(xmin, ymin, xmax, ymax) in the file's world units; closed on every side."""

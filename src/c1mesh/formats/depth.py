@@ -17,8 +17,8 @@ import io
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud
-from c1mesh.errors import FormatError, InputError
+from c1mesh.core.cloud import PointCloud
+from c1mesh.core.errors import FormatError, InputError
 
 DEPTH_FORMATS = ("png", "tif", "tiff")
 DEFAULT_DEPTH_SCALE = 0.001

@@ -23,9 +23,9 @@ from typing import IO, Callable, Union
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud
-from c1mesh.crs import las_crs
-from c1mesh.errors import DependencyError, FormatError, InputError
+from c1mesh.core.cloud import PointCloud
+from c1mesh.geo.crs import las_crs
+from c1mesh.core.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
 from c1mesh.formats.copc import inside

@@ -12,8 +12,8 @@ from typing import IO
 
 import numpy as np
 
-from c1mesh.cloud import MeshStream, PointCloud, SurfaceMesh
-from c1mesh.errors import FormatError
+from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.core.errors import FormatError
 from c1mesh.formats._background import background_writes
 from c1mesh.formats._blocks import TEXT_ROWS, as_stream, face_chunks, text_rows, vertex_chunks
 from c1mesh.formats._common import colors_to_uint8, decode_text, is_number, loadtxt

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud
-from c1mesh.errors import FormatError
+from c1mesh.core.cloud import PointCloud
+from c1mesh.core.errors import FormatError
 from c1mesh.formats._common import NORMAL_NAMES, find_columns, loadtxt
 from c1mesh.formats._limits import check_alloc, check_expansion
 from c1mesh.formats.lzf import MAX_EXPANSION, LZFError, lzf_decompress

@@ -12,7 +12,7 @@ integer first line equal to the number of rows (the .pts point count) is skipped
 A header's third coordinate is by its name a height (z, elev, elevation, height, h, alt,
 altitude): the cloud records the name as `PointCloud.height_column`, and a fit without
 the file's normals takes that column as the height axis, in units that need not be
-those of x and y (c1mesh.pipeline).
+those of x and y (c1mesh.pipeline.driver).
 
 Without a header the column count decides (see `_layout`):
   3: x y z                 4: x y z scalar
@@ -31,8 +31,8 @@ import re
 
 import numpy as np
 
-from c1mesh.cloud import PointCloud
-from c1mesh.errors import FormatError
+from c1mesh.core.cloud import PointCloud
+from c1mesh.core.errors import FormatError
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, decode_text, find_columns, is_number, loadtxt
 
 _SPLIT = re.compile(r"[\s,;]+")

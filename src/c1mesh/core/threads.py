@@ -1,0 +1,262 @@
+"""The few places c1mesh uses more than one core, in one module, and the one knob for them.
+
+* `workers()`: how many threads c1mesh may use at once. Every pool in the package
+  (spline coefficients, tiled triangulation, trimming, refinement, prefetching, the
+  background writer) asks it, and so does BLAS inside `limit`. Default: the CPUs this
+  process may use (`available_cpus`); `set_workers(n)` changes it for the process,
+  `limit(n)` for a block (FitOptions.workers, the CLI's --threads). With 1 worker nothing
+  runs in a second thread. Results do not depend on the count: every pool splits work
+  into the same blocks and collects them in the same order.
+* `run_parallel`: contiguous ranges of independent work in threads (Refinement.mesh
+  evaluates ranges of triangle blocks into disjoint slices of its outputs).
+* `prefetch`: a block generator run in a second thread a few blocks ahead of its
+  consumer (a streamed fit: spline evaluation in one thread, packing rows for the file
+  format in another, the file write in a third).
+* `blas_threads`: the BLAS thread pool limited while our own threads run, since a
+  multi-threaded BLAS called from several threads oversubscribes the cores.
+
+numpy releases the GIL inside its kernels (matrix products, gathers, ufuncs), which is
+what makes plain threads pay off here.
+
+Blocks handed over by `prefetch` must not be overwritten while the consumer still holds
+them: a generator that reuses buffers has to rotate through at least `depth + 2` of them
+(one being filled, `depth` queued, one held by the consumer), which is what `ring(depth)`
+says.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import threading
+from typing import Callable, Iterator, TypeVar
+
+import numpy as np
+
+from c1mesh.core.errors import InputError
+
+Item = TypeVar("Item")
+
+_DONE = object()
+
+
+_WORKERS: int | None = None
+"""The process-wide thread count set by set_workers; None: available_cpus()."""
+
+_OPEN_LIMITS: list[tuple[object, int]] = []
+"""(token, count) of every `limit` block open now, oldest first: the newest one is in force.
+A list, not a saved previous value, because blocks opened in two threads (tiles fitted in
+a thread pool) may close in any order."""
+
+_LIMITS_LOCK = threading.Lock()
+_BLAS_BEFORE_LIMITS = None
+"""threadpoolctl's limiter made when the first open block began; it restores BLAS's own
+setting when the last one ends."""
+
+
+def workers(requested: int | None = None) -> int:
+    """Threads a c1mesh stage may use: `requested` when given (a per-call `workers=`
+    argument), else the newest open `limit` block's, else set_workers', else the CPUs
+    this process may use."""
+    if requested is not None:
+        return _checked(requested)
+    if _OPEN_LIMITS:
+        return _OPEN_LIMITS[-1][1]
+    return _WORKERS if _WORKERS is not None else available_cpus()
+
+
+def _checked(count) -> int:
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+        raise InputError(f"the number of threads must be a whole number >= 1, got {count!r}")
+    return int(count)
+
+
+_PROCESS_BLAS = None
+
+
+def set_workers(count: int | None) -> None:
+    """Set the process-wide thread count (None: back to the CPUs this process may use).
+
+    BLAS's pools are limited to the same count until the next call."""
+    global _WORKERS, _PROCESS_BLAS
+    _WORKERS = None if count is None else _checked(count)
+    if _PROCESS_BLAS is not None:
+        _PROCESS_BLAS.restore_original_limits()
+        _PROCESS_BLAS = None
+    if count is not None:
+        _PROCESS_BLAS = _controller().limit(limits=_WORKERS, user_api="blas")
+
+
+@contextlib.contextmanager
+def limit(count: int | None) -> Iterator[int]:
+    """Within the block every c1mesh pool, and BLAS, use at most `count` threads
+    (None: leave the current setting); yields the count in force. The setting is
+    process-wide while the block runs (not per thread), like threadpoolctl's; the newest
+    open block is in force, and blocks may close in any order."""
+    if count is None:
+        yield workers()
+        return
+    token = object()
+    with _LIMITS_LOCK:
+        _OPEN_LIMITS.append((token, _checked(count)))
+        _follow_open_limits()
+    try:
+        yield count
+    finally:
+        with _LIMITS_LOCK:
+            _OPEN_LIMITS[:] = [entry for entry in _OPEN_LIMITS if entry[0] is not token]
+            _follow_open_limits()
+
+
+def _follow_open_limits() -> None:
+    """BLAS follows the newest open `limit` block; with none open, BLAS gets back the
+    setting it had before the first (called with _LIMITS_LOCK held)."""
+    global _BLAS_BEFORE_LIMITS
+    if _OPEN_LIMITS:
+        from threadpoolctl import ThreadpoolController   # a new one sees BLAS libraries loaded since (scipy's)
+        limiter = ThreadpoolController().limit(limits=_OPEN_LIMITS[-1][1], user_api="blas")
+        if _BLAS_BEFORE_LIMITS is None:
+            _BLAS_BEFORE_LIMITS = limiter
+    elif _BLAS_BEFORE_LIMITS is not None:
+        _BLAS_BEFORE_LIMITS.restore_original_limits()
+        _BLAS_BEFORE_LIMITS = None
+
+
+def per_process(total: int | None, processes: int) -> int:
+    """Threads for each of `processes` processes sharing `total` threads (None: the CPUs
+    this process may use), at least 1, so N processes do not oversubscribe the cores."""
+    return max(1, workers(total) // max(1, int(processes)))
+
+
+def openmp_at_start(count: int) -> None:
+    """Ask OpenMP runtimes that have not started yet for `count` threads.
+
+    Open3D's normal estimation runs OpenMP threads that threadpoolctl cannot see (its
+    runtime is linked in); OpenMP reads OMP_NUM_THREADS when it starts, so the CLI calls
+    this before anything imports Open3D. It holds for the rest of the process, and for
+    processes started from it (the --jobs workers)."""
+    os.environ["OMP_NUM_THREADS"] = str(_checked(count))
+
+
+def ring(depth: int) -> int:
+    """Buffers a generator must rotate through to be prefetched `depth` blocks ahead."""
+    return depth + 2
+
+
+def prefetch(blocks: Iterator[Item], depth: int = 2) -> Iterator[Item]:
+    """Yield the items of `blocks`, produced by a background thread up to `depth` ahead.
+
+    An exception raised by `blocks` is re-raised here, at the item where it happened.
+    Closing this generator early (the consumer failed) stops the producer at its next
+    item and waits for it, so no thread outlives the stream. With one worker (`workers`)
+    the blocks are produced in the caller's thread, in the same order.
+    """
+    if workers() == 1:
+        yield from blocks
+        return
+    handover: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                handover.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in blocks:
+                if not put((item, None)):
+                    return
+        except BaseException as error:            # handed to the consumer, raised there
+            put((_DONE, error))
+            return
+        put((_DONE, None))
+
+    producer = threading.Thread(target=produce, name="c1mesh-prefetch", daemon=True)
+    producer.start()
+    try:
+        while True:
+            item, error = handover.get()
+            if error is not None:
+                raise error
+            if item is _DONE:
+                return
+            yield item
+    finally:
+        stop.set()
+        producer.join()
+        close = getattr(blocks, "close", None)
+        if close is not None:
+            close()
+
+
+_BLAS = None
+
+
+def blas_threads(limit: int | None) -> contextlib.AbstractContextManager:
+    """A context limiting the BLAS thread pools to `limit` threads (None: no change).
+
+    Two of our threads each calling a multi-threaded BLAS oversubscribe the cores and
+    serialise on its pool (measured at 1M points, level 4: Refinement.mesh with two
+    workers took 0.95 s with BLAS's two threads each, 0.58 s with one; a single worker
+    0.85 s); an idle BLAS pool also spins on the core a writer thread needs. The limit
+    is process-wide while the context is open (threadpoolctl does it for OpenBLAS, MKL
+    and BLIS alike).
+    """
+    if limit is None:
+        return contextlib.nullcontext()
+    return _controller().limit(limits=limit, user_api="blas")
+
+
+def _controller():
+    """threadpoolctl's controller of the BLAS libraries loaded (made once, lazily)."""
+    global _BLAS
+    if _BLAS is None:
+        from threadpoolctl import ThreadpoolController
+        _BLAS = ThreadpoolController()
+    return _BLAS
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                                  # not Linux
+        return os.cpu_count() or 1
+
+
+def overlap(background: Callable[[], Item], foreground: Callable[[], object]) -> tuple:
+    """(background(), foreground()): the first run in a second thread while the second
+    runs in this one (numpy releases the GIL in both), or one after the other when only
+    one worker is allowed. An error in either is raised here."""
+    if workers() == 1:
+        return background(), foreground()
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(1, thread_name_prefix="c1mesh-overlap") as pool:
+        pending = pool.submit(background)
+        here = foreground()
+        return pending.result(), here
+
+
+def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:
+    """work(*r) for every r in ranges: the first in this thread, the rest in threads;
+    the first error raised by any of them is re-raised here."""
+    errors = []
+
+    def guarded(*r):
+        try:
+            work(*r)
+        except BaseException as error:                     # re-raised in the caller
+            errors.append(error)
+    threads = [threading.Thread(target=guarded, args=r, name="c1mesh-worker", daemon=True) for r in ranges[1:]]
+    for thread in threads:
+        thread.start()
+    guarded(*ranges[0])
+    for thread in threads:
+        thread.join()
+    if errors:
+        raise errors[0]

@@ -1,0 +1,225 @@
+"""Curtains in the axis frame: triangles that hang along the height axis, fold against their
+data, or are thinner than the data's noise.
+
+A height field over a plane sees the scan along the plane's axis e3, as a depth camera sees
+it along its rays (a parallel projection instead of a central one). Where the surface is
+not a graph over the plane (a silhouette the surface curves past, an ear in front of the
+head, two layers of points), the Delaunay triangulation in (x, y) joins points across the
+gap with triangles that hang nearly parallel to e3 — curtains. Seen from above they are
+the black streaks and folded specks of issue 10; issue 11's rule for depth jumps, "holes,
+not curtains", applies to them as well. A triangle is dropped as
+
+* "shadow_edge": one of its edges runs within `SHADOW_ANGLE` of e3 (grid.depth_jumps' rule,
+  PCL's shadow angle, with e3 as the view ray);
+* "grazing": its plane's normal is more than `GRAZING_ANGLE` from e3 (seen edge-on);
+* "facing_away": its plane's normal is more than 90° from the data normal of one of its
+  corners (both taken on the axis side, normal signs are not trusted). The linear
+  triangle is then already folded against its data, by the measure of
+  quality.folded_faces: the points it joins belong to surface patches that face apart
+  (the front and the back of a silhouette, a point from another layer), and any
+  interpolant of those normals over it turns by more than 90° inside it;
+* "thinner_than_noise": its width in the plane (twice its area over its longest edge) is
+  below the noise floor of the heights (the median |trapezoid residual| of the
+  triangulation's edges, c1mesh.fit.limiter's measure of noise). The heights then set the
+  slope across it only to within more than 1 (45°), and the spline, which interpolates
+  them exactly, turns by that much across a sliver narrower than the noise: on the bunny
+  two 0.5 mm wide slivers (noise floor 1.0 mm) held the last folded faces.
+
+All four are properties of the input triangle and its data, not of the spline, so exact
+data of a height field over the plane whose slopes are below tan(90° - GRAZING_ANGLE) and
+whose curvature the triangles resolve lose nothing (their noise floor is an O(h³)
+residual, below the width of all but degenerate triangles; tested on the analytic
+samples). Holes are left where curtains were; `remove_curtains` then lets
+triangulation.trim peel the slivers and bowties the holes expose, so the result keeps
+trim's guarantees (edge-manifold, no bowtie vertex).
+
+The first three rules take e3 as a view ray: they find what a scanner looking along e3
+cannot have seen as a graph. Aerial LiDAR ground (LAS/LAZ points of the bare-earth classes
+`GROUND_CLASSES`, selected with --classes, heights along world z) is a height field by the
+format's definition: the classifier kept one return per place, the last one from above, so
+a steep triangle there is a steep bank or a ditch wall, not a curtain, and removing it
+opens a hole inside the data (issue 21: on a 0.93 m ground tile, 101 of 483 removed
+triangles were shadow_edge, facing_away or grazing, and their cells lost their DEM
+values). `view_rules` says whether they run; "thinner_than_noise" is a property of the
+spline on any data (it divides by the triangle's width) and always runs, as do trim's
+long_edge, sliver and bowtie rules.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from c1mesh.fit.grid import GRAZING_ANGLE, SHADOW_ANGLE
+
+REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
+"""Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
+VIEW_REASONS = ("shadow_edge", "grazing", "facing_away")
+"""The rules that take the height axis as a view ray (skipped on aerial ground)."""
+GROUND_CLASSES = (2, 8, 9, 11)
+"""ASPRS LAS classes of surfaces seen from above: ground, model key-point (a subset of
+ground in LAS 1.0-1.3), water, road surface."""
+
+
+def view_rules_apply(classes, axes) -> bool:
+    """Whether the view-dependent curtain rules (VIEW_REASONS) run: not on aerial ground,
+    that is when the fit keeps only LAS classes of GROUND_CLASSES (classes: the --classes
+    tuple, None for all points) and the height axis is world z (axes (3, 3): the frame's
+    rows, e3 last). Decided from the options and the frame alone, so the in-memory and the
+    tiled fit decide alike."""
+    ground = bool(classes) and all(int(c) in GROUND_CLASSES for c in classes)
+    world_z = np.allclose(np.asarray(axes, dtype=float)[2], (0.0, 0.0, 1.0))
+    return not (ground and world_z)
+
+
+def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
+                      shadow_angle: float = SHADOW_ANGLE, grazing_angle: float = GRAZING_ANGLE,
+                      floor: float | None = None, view_rules: bool = True) -> dict[str, np.ndarray]:
+    """(T,) bool masks of the curtain triangles by reason (each triangle under its first reason,
+    in the order of REASONS).
+
+    xy (n, 2), z (n,) and gradients (n, 2) of a height field (frame.HeightField: local
+    coordinates, heights along e3, data gradients ∇z from the normals); triangles (T, 3)
+    indices into them. Angles in degrees. Component by component and without square
+    roots (squared comparisons), as this runs on every triangle of every fit.
+    view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
+    """
+    corners = [[xy[triangles[:, k], 0], xy[triangles[:, k], 1], z[triangles[:, k]]] for k in range(3)]
+    edges = [[corners[(k + 1) % 3][c] - corners[k][c] for c in range(3)] for k in range(3)]
+    cos2_shadow = np.cos(np.radians(shadow_angle)) ** 2
+    shadow = np.zeros(triangles.shape[0], dtype=bool)
+    plane2 = []                                                   # squared lengths in the plane
+    for ex, ey, ez in edges:
+        flat2 = ex * ex + ey * ey
+        plane2.append(flat2)
+        shadow |= ez * ez > cos2_shadow * (flat2 + ez * ez)
+    (ux, uy, uz), (vx, vy, vz) = edges[0], [-c for c in edges[2]]  # p1 - p0, p2 - p0
+    nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    flip = np.where(nz < 0, -1.0, 1.0)                            # the normal on the axis side
+    nx, ny, nz = nx * flip, ny * flip, nz * flip
+    cos2_grazing = np.cos(np.radians(grazing_angle)) ** 2
+    grazing = ~(nz * nz >= cos2_grazing * (nx * nx + ny * ny + nz * nz)) & ~shadow
+    # data normals on the axis side: (-g, 1); the plane's normal faces away from one of
+    # them when their dot product is negative (the lengths do not change its sign).
+    away = np.zeros(triangles.shape[0], dtype=bool)
+    for k in range(3):
+        g = gradients[triangles[:, k]]
+        away |= nz - nx * g[:, 0] - ny * g[:, 1] < 0
+    away &= ~shadow & ~grazing
+    if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
+        floor = noise_floor(xy, z, gradients, triangles)
+    longest2 = np.maximum(np.maximum(plane2[0], plane2[1]), plane2[2])
+    if not view_rules:
+        shadow, grazing, away = (np.zeros(triangles.shape[0], dtype=bool) for _ in range(3))
+    thin = (nz * nz < floor * floor * longest2) & ~shadow & ~grazing & ~away   # 2 area = |n_z|
+    return {"shadow_edge": shadow, "grazing": grazing, "facing_away": away, "thinner_than_noise": thin}
+
+
+def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray) -> float:
+    """Median |trapezoid residual| (height units) over every edge of the triangles, each
+    edge once: the height noise the data's gradients cannot explain
+    (c1mesh.fit.limiter.trapezoid_residuals; O(h³) for exact smooth data).
+
+    Exact and independent of the triangles' order, so a survey fitted in tiles finds the
+    same floor by a streamed median of its tiles' edges (c1mesh.survey.tiled_fit); edges run
+    from the lower point number to the higher, as the limiter's edge table has them.
+    """
+    from c1mesh.fit.limiter import trapezoid_residuals
+    from c1mesh.engine.topology import sort_keys
+
+    if triangles.shape[0] == 0:
+        return 0.0
+    n = np.int64(xy.shape[0])
+    tri = triangles.astype(np.int64, copy=False)
+    keys = np.concatenate([np.minimum(tri[:, a], tri[:, b]) * n + np.maximum(tri[:, a], tri[:, b])
+                           for a, b in ((0, 1), (1, 2), (2, 0))])
+    _, keys = sort_keys(keys, int(n) * int(n))
+    first = np.ones(keys.size, dtype=bool)
+    np.not_equal(keys[1:], keys[:-1], out=first[1:])
+    keys = keys[first]
+    return float(np.median(np.abs(_residuals(xy, z, gradients, keys // n, keys % n))))
+
+
+def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarray,
+               b: np.ndarray) -> np.ndarray:
+    """limiter.trapezoid_residuals of the edges a→b (E,), bit for bit, from contiguous
+    column gathers (a ascending, as unique sorted keys give it: 3x faster than row gathers
+    of (E, 2) arrays at 3M edges)."""
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    gx, gy = np.ascontiguousarray(gradients[:, 0]), np.ascontiguousarray(gradients[:, 1])
+    dx, dy = x[b] - x[a], y[b] - y[a]
+    pred_a = gx[a] * dx + gy[a] * dy
+    pred_b = gx[b] * dx + gy[b] * dy
+    return (z[b] - z[a]) - 0.5 * (pred_a + pred_b)
+
+
+def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
+                    trim_report, view_rules: bool = True):
+    """Triangles (T', 3) without curtains, and the trim report (triangulation.TrimReport)
+    with the curtains counted by reason in its "removed" (and the slivers and bowties the
+    holes exposed added to trim's own counts).
+
+    triangles: the trimmed triangulation (triangulation.trim), so that a triangle trim
+    removes as too long or thin is counted there, not here. trim runs again only when a
+    hole exposes a sliver or leaves a bowtie vertex (`_needs_trim`), which a few isolated
+    holes in a large survey rarely do.
+    """
+    from c1mesh.engine.triangulation import trim
+
+    masks = curtain_triangles(xy, z, gradients, triangles, view_rules=view_rules)
+    curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
+    removed = dict(trim_report.removed)
+    removed.update({reason: int(masks[reason].sum()) for reason in REASONS})
+    if not curtain.any():
+        return triangles, replace(trim_report, removed=removed)
+    kept = triangles[~curtain]
+    if _needs_trim(xy, kept, triangles[curtain]):
+        kept, cleanup = trim(xy, kept, max_edge=None)
+        for reason, count in cleanup.removed.items():
+            removed[reason] = removed.get(reason, 0) + count
+    used = np.count_nonzero(np.bincount(kept.ravel(), minlength=xy.shape[0]))
+    return kept, replace(trim_report, triangles_after=int(kept.shape[0]), removed=removed,
+                         unreferenced_points=int(xy.shape[0] - used))
+
+
+def _needs_trim(xy: np.ndarray, kept: np.ndarray, cut: np.ndarray,
+                min_circle_ratio: float = 0.01) -> bool:
+    """Whether removing the triangles `cut` (C, 3) left a bowtie vertex or exposed a boundary
+    triangle thinner than trim's sliver rule, in the remaining triangles `kept` (T', 3).
+
+    Only the corners of cut triangles can become bowties, and only kept triangles that
+    shared an edge with a cut one are newly on the boundary. A vertex's k remaining
+    triangles form one fan exactly when m, the number of its edges shared by two of them,
+    is k (closed fan) or k - 1 (open fan); fewer means several fans.
+    """
+    from c1mesh.engine.triangulation import circle_ratio
+
+    n = xy.shape[0]
+    touched = np.zeros(n, dtype=bool)
+    touched[cut.ravel()] = True
+    patch = kept[touched[kept].any(axis=1)]
+    if patch.shape[0] == 0:
+        return False
+    keys, owners = [], []
+    for k in range(3):                                 # the two edges at each touched corner
+        v = patch[:, k]
+        at = touched[v]
+        for other in (patch[:, (k + 1) % 3], patch[:, (k + 2) % 3]):
+            keys.append(v[at] * n + other[at])
+        owners.append(v[at])
+    edge_keys, edge_count = np.unique(np.concatenate(keys), return_counts=True)
+    incident = np.bincount(np.concatenate(owners), minlength=n)
+    shared = np.bincount(edge_keys[edge_count == 2] // n, minlength=n)
+    if np.any(touched & (incident > 0) & (shared < incident - 1)):
+        return True
+    cut_edges = np.concatenate([np.sort(cut[:, [i, j]], axis=1) for i, j in ((0, 1), (1, 2), (2, 0))])
+    cut_keys = cut_edges[:, 0] * n + cut_edges[:, 1]
+    exposed = np.zeros(patch.shape[0], dtype=bool)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        pair = np.sort(patch[:, [i, j]], axis=1)
+        exposed |= np.isin(pair[:, 0] * n + pair[:, 1], cut_keys)
+    if not exposed.any():
+        return False
+    p = xy[patch[exposed]]
+    lengths = np.stack([np.linalg.norm(p[:, (k + 1) % 3] - p[:, k], axis=1) for k in range(3)], axis=1)
+    return bool(np.any(circle_ratio(lengths) < min_circle_ratio))

@@ -1,0 +1,497 @@
+"""Overshoot control for noisy scans that keeps the spline C1 (docs/overshoot.md).
+
+The remedies, plain functions over arrays, applied by the fit pipeline between the height
+field and the RSDInterpolator:
+
+* `reconcile_heights` moves the two heights of a short edge, by at most `HEIGHT_CLIP`
+  noise floors, where their difference disagrees with their gradients so much that the
+  spline would crease across the edge's triangles more sharply than their sub-faces can
+  show (near-coincident points with independent noise). Heights stay one per vertex.
+* `reconcile_gradients` blends a vertex gradient that disagrees with the heights of its
+  neighbours with their secant slopes (least squares), one gradient per vertex.
+* `limit_gradients` then scales a vertex gradient down where it disagrees with the heights of
+  its neighbours (a Fritsch–Carlson-like limiter on the secants of the vertex's edges).
+  A vertex has one gradient, shared by all its triangles, so the spline stays C1.
+* `edge_directions` picks, for every edge, the direction u the RSD spline uses across it
+  (Thm 3.4: any vector not parallel to the edge, one per edge, shared by both triangles).
+  The unit normal makes the ratios r_ln = G_l·u_n / G_n·u_n blow up on obtuse thin
+  triangles; a direction through the opposite vertices keeps them within [-1, 0].
+
+Both change nothing on well-behaved data: the limiter only acts on edges whose data fail
+the trapezoid test (below), which exact data of any quadratic passes and smooth data
+passes up to O(h³); the directions change only edges whose unit-normal ratio exceeds
+`RATIO_LIMIT`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from c1mesh.engine.topology import EdgeTable, edge_table
+
+OVERSHOOT_MODES = ("limit", "off")
+
+SECANT_FACTOR = 2.0
+"""A gradient may predict at most this multiple of an inconsistent edge's height change
+(Fritsch–Carlson allow 3 for cubic Hermite; the RSD edge curve uses Φ(t) = t³(10 − 15t +
+6t²) for the derivative term too, whose bump is about twice the cubic one)."""
+CONSISTENCY = 0.25
+"""An edge is inconsistent when its trapezoid residual exceeds this fraction of its scale."""
+NOISE_FACTOR = 1.0
+"""Residuals within this multiple of the median |trapezoid residual| (the noise floor of
+the data; O(h³) for exact smooth data) are tolerated, and so is a prediction that far
+outside the secant band."""
+NORMAL_WEIGHT = 1.0
+"""Weight of a vertex's normal against its edges' secant slopes in `reconcile_gradients`."""
+RATIO_LIMIT = 2.0
+"""Edges whose unit-normal RSD ratio max(|s|, |1 − s|) exceeds this get another direction."""
+CREASE_LEVEL = 4
+"""The refinement level (sub-faces per triangle edge) whose sampling `reconcile_heights`
+protects: the default level. A fixed constant, so --level changes the sampling only."""
+HEIGHT_CLIP = 2.0
+"""`reconcile_heights` moves a height by at most this multiple of the noise floor: half of
+an edge's residual up to twice the floor, what noise alone explains; larger misfits are
+features (a kerb, a wall foot) and keep the rest."""
+
+
+def check_mode(mode: str) -> None:
+    """InputError unless `mode` is one of OVERSHOOT_MODES (checked before a fit's work)."""
+    from c1mesh.core.errors import InputError
+
+    if mode not in OVERSHOOT_MODES:
+        raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {mode!r}")
+
+
+@dataclass
+class LimiterReport:
+    """What the remedies changed: vertices whose height moved (`reconcile_heights`) or whose
+    gradient changed, and edges whose direction is not the unit normal."""
+
+    gradients_limited: int = 0
+    directions_changed: int = 0
+    heights_reconciled: int = 0
+
+    def as_dict(self) -> dict:
+        return {"gradients_limited": self.gradients_limited,
+                "directions_changed": self.directions_changed,
+                "heights_reconciled": self.heights_reconciled}
+
+
+def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                      triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
+                      noise_floors: tuple[float, float] | None = None, heights: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
+    """Heights, gradients and edge directions for an RSDInterpolator on a (noisy) height field.
+
+    points (n, 2), values (n,), gradients (n, 2), triangles (T, 3). mode "limit" applies
+    `reconcile_heights`, `reconcile_gradients`, then `limit_gradients`, and
+    `edge_directions`; "off" returns the values and gradients unchanged and None (the
+    interpolator's unit normals). table: the c1mesh.engine.topology.edge_table of the triangles if
+    already built (pass the same table to the RSDInterpolator so the edges are numbered
+    once). noise_floors: the median |trapezoid residual| of the input data and after both
+    reconciliations, when they come from a larger survey than these edges (a tile of it);
+    None measures them here. heights=False skips `reconcile_heights`: its crease test
+    compares a slope error with 1 (45°), which needs the plane's and the height's units to
+    agree, as in a height field and not in a depth chart (u, v, w). Returns (values,
+    gradients, directions in the order of table.edges or None, report).
+    """
+    if mode == "off":
+        return values, gradients, None, LimiterReport()
+    table = edge_table(triangles, points.shape[0]) if table is None else table
+    before, after = noise_floors if noise_floors is not None else (None, None)
+    geometry = EdgeGeometry.of(points, values, table.edges)
+    predicted = geometry.predictions(gradients)             # heights do not change these
+    residual = geometry.delta - 0.5 * (predicted[0] + predicted[1])
+    if before is None:
+        before = float(np.median(np.abs(residual))) if residual.size else 0.0
+    lifted = np.zeros(values.shape[0], dtype=bool)
+    if heights:
+        values, lifted = _reconcile_heights(values, geometry, residual, table, before)
+    if lifted.any():
+        geometry = geometry.with_values(values)
+    reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
+    # Reconciliation changes the gradients of touched vertices only, so only the edges
+    # that reach one ("near") predict anything new.
+    pred_a, pred_b = (pred.copy() for pred in predicted)
+    pred_a[near], pred_b[near] = geometry.predictions(reconciled, near)
+    limited, changed = _limit(reconciled, geometry, (pred_a, pred_b), SECANT_FACTOR,
+                              CONSISTENCY, NOISE_FACTOR, after)
+    directions, turned = _directions(points, triangles, table, geometry.d, RATIO_LIMIT)
+    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
+                                                      int(lifted.sum()))
+
+
+def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                      triangles: np.ndarray, table: EdgeTable | None = None,
+                      noise_floor: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (n,) of short edges moved toward what their gradients say, within the noise.
+
+    Why: two points d apart whose heights differ by noise make the spline rise by the
+    edge's trapezoid residual e = Δ − (δ_a + δ_b)/2 across d, while their gradients say it
+    does not. The spline then creases along the edge's triangles with a curvature of about
+    6|e|/d² (a cubic's, rising e over d with zero end slopes), and a sub-face of length
+    D/L (D the longest edge of the edge's triangles, L = `CREASE_LEVEL`) samples that
+    crease with a slope error of about (D/L)·6|e|/d². Above 1 (45°) sub-faces fold
+    against the spline's normals and show as needles, though the spline itself is C1 and
+    does not fold (docs/overshoot.md, "Remedy 3").
+
+    What: every edge with 6|e|·D > L·d² moves each end by half its residual, toward each
+    other's prediction (a residual of zero for the pair), clipped to HEIGHT_CLIP ×
+    noise_floor (the median |e| over all edges; measured here when None); a vertex on
+    several such edges moves by the mean of their moves. One height per vertex, so the
+    spline stays C1. Exact data of any quadratic have e = 0 and move nothing; smooth data
+    have e = O(d³), so only an edge far shorter than its triangles can qualify, and it
+    moves by at most half its O(d³) residual. Returns (values, changed (n,) bool).
+    """
+    table = edge_table(triangles, points.shape[0]) if table is None else table
+    geometry = EdgeGeometry.of(points, values, table.edges)
+    pred_a, pred_b = geometry.predictions(gradients)
+    residual = geometry.delta - 0.5 * (pred_a + pred_b)
+    if noise_floor is None:
+        noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
+    return _reconcile_heights(values, geometry, residual, table, noise_floor)
+
+
+def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: np.ndarray,
+                       table: EdgeTable, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """`reconcile_heights` on gathered edge data and residuals (E,)."""
+    f = np.asarray(values, dtype=float)
+    n = f.shape[0]
+    length2 = geometry.d[:, 0] ** 2 + geometry.d[:, 1] ** 2
+    reach2 = _longest_adjacent_edge2(length2, table)
+    creasing = 6.0 * np.abs(residual) * np.sqrt(reach2) > CREASE_LEVEL * length2
+    if noise_floor <= 0 or not creasing.any():
+        return f, np.zeros(n, dtype=bool)
+    move = np.clip(0.5 * residual[creasing], -HEIGHT_CLIP * noise_floor, HEIGHT_CLIP * noise_floor)
+    ends = np.concatenate([geometry.a[creasing], geometry.b[creasing]])
+    total = np.bincount(ends, np.concatenate([move, -move]), minlength=n)
+    count = np.bincount(ends, minlength=n)
+    changed = count > 0
+    out = f.copy()
+    out[changed] += total[changed] / count[changed]
+    return out, changed
+
+
+def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray:
+    """(E,) the squared longest edge of the triangles that contain each edge."""
+    per_triangle = length2[table.tri_edge].max(axis=1)
+    out = np.zeros_like(length2)
+    for k in range(3):
+        np.maximum.at(out, table.tri_edge[:, k], per_triangle)
+    return out
+
+
+@dataclass(frozen=True)
+class EdgeGeometry:
+    """What the consistency test needs of each edge a→b that no gradient changes.
+
+    a, b (E,) vertex indices; d (E, 2) = p_b − p_a; delta (E,) = f_b − f_a; size (E,) =
+    |f_a| + |f_b| (for the rounding allowance). Gathered once and shared by the
+    reconciliation, the limiter and the edge directions.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    d: np.ndarray
+    delta: np.ndarray
+    size: np.ndarray
+
+    @classmethod
+    def of(cls, points: np.ndarray, values: np.ndarray, edges: np.ndarray) -> "EdgeGeometry":
+        p = np.asarray(points, dtype=float)
+        f = np.asarray(values, dtype=float)
+        a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
+        d = np.empty((a.size, 2))
+        for c in range(2):                        # column gathers: contiguous, cache-friendly
+            column = np.ascontiguousarray(p[:, c])
+            np.subtract(column[b], column[a], out=d[:, c])
+        fa, fb = f[a], f[b]
+        return cls(a, b, d, fb - fa, np.abs(fa) + np.abs(fb))
+
+    def with_values(self, values: np.ndarray) -> "EdgeGeometry":
+        """The same edges over new heights (the positions' differences d are kept)."""
+        f = np.asarray(values, dtype=float)
+        fa, fb = f[self.a], f[self.b]
+        return EdgeGeometry(self.a, self.b, self.d, fb - fa, np.abs(fa) + np.abs(fb))
+
+    def predictions(self, gradients: np.ndarray, rows: np.ndarray | slice = slice(None)
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """(A_a·d, A_b·d) for the edges ``rows``: the height changes the end gradients predict."""
+        A = np.asarray(gradients, dtype=float)
+        gx, gy = np.ascontiguousarray(A[:, 0]), np.ascontiguousarray(A[:, 1])
+        dx, dy = np.ascontiguousarray(self.d[rows, 0]), np.ascontiguousarray(self.d[rows, 1])
+        out = []
+        for end in (self.a[rows], self.b[rows]):
+            pred = gx[end] * dx
+            pred += gy[end] * dy
+            out.append(pred)
+        return out[0], out[1]
+
+
+def trapezoid_residuals(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                        edges: np.ndarray) -> np.ndarray:
+    """e = Δ − (δ_a + δ_b)/2 per edge (E,): zero for every quadratic, O(|d|³) for smooth
+    data. The median of |e| over a survey's edges is its noise floor (`inconsistent_edges`)."""
+    geometry = EdgeGeometry.of(points, values, edges)
+    pred_a, pred_b = geometry.predictions(gradients)
+    return geometry.delta - 0.5 * (pred_a + pred_b)
+
+
+def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                       edges: np.ndarray, consistency: float = CONSISTENCY,
+                       noise_factor: float = NOISE_FACTOR, noise_floor: float | None = None
+                       ) -> tuple[np.ndarray, dict]:
+    """Edges (E,) bool whose end gradients say something their heights do not.
+
+    For an edge k→j with d = p_j − p_k, Δ = f_j − f_k, δ_k = A_k·d, δ_j = A_j·d, the
+    trapezoid residual e = Δ − (δ_k + δ_j)/2 vanishes for every quadratic and is O(|d|³)
+    for smooth data. An edge is inconsistent when |e| > consistency · max(|Δ|, |δ_k|/2,
+    |δ_j|/2) + noise_factor · median |e| (the noise floor of the data set; ``noise_floor``
+    gives it when these edges are part of a larger survey) + rounding.
+    Also returns the per-edge quantities {"delta", "pred_a", "pred_b", "noise"}.
+    """
+    geometry = EdgeGeometry.of(points, values, edges)
+    return _inconsistent(geometry, geometry.predictions(gradients), consistency,
+                         noise_factor, noise_floor)
+
+
+def _inconsistent(geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
+                  consistency: float, noise_factor: float, noise_floor: float | None
+                  ) -> tuple[np.ndarray, dict]:
+    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b)."""
+    pred_a, pred_b = predicted
+    delta = geometry.delta
+    residual = delta - 0.5 * (pred_a + pred_b)
+    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
+    if noise_floor is None:
+        noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
+    noise = noise_factor * noise_floor
+    rounding = 64 * np.finfo(float).eps * (geometry.size + np.abs(pred_a) + np.abs(pred_b))
+    bad = np.abs(residual) > consistency * scale + noise + rounding
+    return bad, {"delta": delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
+
+
+def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                        edges: np.ndarray, normal_weight: float = NORMAL_WEIGHT,
+                        noise_floor: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients (n, 2) blended with the 1-ring heights where they disagree with them.
+
+    At every vertex k touching an inconsistent edge (`inconsistent_edges`), the gradient
+    becomes the least-squares solution of the secant slopes of all its edges and the
+    normal's own gradient A_k:
+
+        min_G  Σ_e (G·û_e − Δ_e/|d_e|)² + normal_weight · deg_k · |G − A_k|²,
+
+    û_e the unit edge direction, deg_k the vertex's edge count: the heights and the normal
+    weigh the same at normal_weight = 1. Other vertices keep A_k, so exact smooth data
+    (no inconsistent edge) are unchanged. One gradient per vertex: the spline stays C1.
+    noise_floor as in `inconsistent_edges`. Returns (gradients, changed (n,) bool).
+    """
+    geometry = EdgeGeometry.of(points, values, edges)
+    out, touched, _ = _reconcile(gradients, geometry, geometry.predictions(gradients),
+                                 noise_floor, normal_weight)
+    return out, touched
+
+
+def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
+               noise_floor: float | None, normal_weight: float = NORMAL_WEIGHT
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`reconcile_gradients` on gathered edge data; also returns the (E,) bool edges that
+    reach a changed vertex."""
+    A = np.asarray(gradients, dtype=float)
+    n = A.shape[0]
+    bad, _ = _inconsistent(geometry, predicted, CONSISTENCY, NOISE_FACTOR, noise_floor)
+    touched = np.zeros(n, dtype=bool)
+    touched[geometry.a[bad]] = True
+    touched[geometry.b[bad]] = True
+    near = touched[geometry.a] | touched[geometry.b]      # only these edges reach a touched vertex
+    a, b, d, delta = geometry.a[near], geometry.b[near], geometry.d[near], geometry.delta[near]
+    length = np.linalg.norm(d, axis=1)
+    keep = length > 0
+    a, b, d, delta, length = a[keep], b[keep], d[keep], delta[keep], length[keep]
+    u = d / length[:, None]
+    slope = delta / length
+    terms = (u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1],
+             u[:, 0] * slope, u[:, 1] * slope, np.ones(a.size))
+    both = np.concatenate([a, b])
+    xx, xy, yy, rx, ry, deg = (np.bincount(both, np.concatenate([t, t]), minlength=n)[touched]
+                               for t in terms)
+    weight = normal_weight * deg
+    M_t = np.stack([np.stack([xx + weight, xy], axis=1), np.stack([xy, yy + weight], axis=1)], axis=1)
+    r_t = np.stack([rx, ry], axis=1) + weight[:, None] * A[touched]
+    out = A.copy()
+    out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
+    return out, touched, near
+
+
+def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+                    edges: np.ndarray, secant_factor: float = SECANT_FACTOR,
+                    consistency: float = CONSISTENCY,
+                    noise_factor: float = NOISE_FACTOR, noise_floor: float | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients (n, 2) scaled down where they disagree with the neighbouring heights.
+
+    points (n, 2), values (n,), gradients (n, 2) in the height-field frame; edges (E, 2)
+    vertex pairs of the triangulation. Returns (new gradients, changed (n,) bool).
+
+    For an edge k→j with d = p_j − p_k, the height change Δ = f_j − f_k and the changes
+    the end gradients predict, δ_k = A_k·d and δ_j = A_j·d, the trapezoid residual
+    e = Δ − (δ_k + δ_j)/2 vanishes for every quadratic and is O(|d|³) for smooth data.
+    An edge is inconsistent when |e| > consistency · max(|Δ|, |δ_k|/2, |δ_j|/2) +
+    noise_factor · median |e| (the noise floor of the whole data set) + rounding: the
+    gradients then say something the heights do not. On inconsistent edges each end's
+    prediction must lie between 0 and secant_factor · Δ (so it has the secant's sign and
+    at most that multiple of its size, as in Fritsch–Carlson); a vertex gradient is
+    multiplied by the largest t in [0, 1] that meets this on all its inconsistent edges.
+    Scaling keeps the direction, and 0 always qualifies (a flat vertex cannot overshoot
+    along an edge by itself). noise_floor as in `inconsistent_edges`.
+    """
+    geometry = EdgeGeometry.of(points, values, edges)
+    return _limit(gradients, geometry, geometry.predictions(gradients), secant_factor,
+                  consistency, noise_factor, noise_floor)
+
+
+def _limit(gradients: np.ndarray, geometry: EdgeGeometry,
+           predicted: tuple[np.ndarray, np.ndarray], secant_factor: float,
+           consistency: float, noise_factor: float, noise_floor: float | None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """`limit_gradients` on gathered edge data and the gradients' predictions."""
+    A = np.asarray(gradients, dtype=float)
+    bad, parts = _inconsistent(geometry, predicted, consistency, noise_factor, noise_floor)
+    a, b = geometry.a, geometry.b
+    delta, pred_a, pred_b, noise = parts["delta"], parts["pred_a"], parts["pred_b"], parts["noise"]
+    factor = np.ones(A.shape[0])
+    for vertex, pred in ((a, pred_a), (b, pred_b)):
+        t = _allowed_fraction(pred[bad], delta[bad], secant_factor, noise)
+        np.minimum.at(factor, vertex[bad], t)
+    changed = factor < 1.0
+    limited = A.copy()
+    limited[changed] *= factor[changed, None]
+    return limited, changed
+
+
+def _allowed_fraction(pred: np.ndarray, delta: np.ndarray, secant_factor: float,
+                      slack: float) -> np.ndarray:
+    """Largest t in [0, 1] with t·pred in [min(0, c·delta) − slack, max(0, c·delta) + slack]."""
+    bound = secant_factor * delta
+    high = np.maximum(bound, 0.0) + slack
+    low = np.minimum(bound, 0.0) - slack
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(pred > 0, high / pred, np.where(pred < 0, low / pred, 1.0))
+    return np.clip(t, 0.0, 1.0)
+
+
+def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
+                    ratio_limit: float = RATIO_LIMIT) -> tuple[np.ndarray, np.ndarray]:
+    """One direction per edge of ``table`` (E, 2) that keeps the RSD ratios small.
+
+    In a triangle with the edge [p_l, p_m] opposite p_n, a direction u through p_n meets
+    the edge's line at q = p_l + s (p_m − p_l), and then G_l·u / G_n·u = −(1 − s) and
+    G_m·u / G_n·u = −s: the ratios are bounded by 1 when q lies on the edge, and grow
+    without bound for the unit normal on obtuse thin triangles (its foot q falls far
+    outside the edge). Candidates: the unit normal, the line joining the two opposite
+    vertices (interior edges; q on the edge when the quadrilateral is convex), and the
+    lines from each opposite vertex to the edge's midpoint. The unit normal is kept
+    unless its worst ratio over the edge's triangles exceeds ``ratio_limit``; otherwise
+    the candidate with the smallest worst ratio wins. Returns (directions (E, 2),
+    changed (E,) bool). Every direction is used by both triangles of its edge, so the
+    spline stays C1 (Thm 3.4).
+    """
+    p = np.asarray(points, dtype=float)
+    edges = table.edges
+    return _directions(p, triangles, table, p[edges[:, 1]] - p[edges[:, 0]], ratio_limit)
+
+
+def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable, edge: np.ndarray,
+                ratio_limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """`edge_directions` given the edge vectors (E, 2) = p[edges[:, 1]] − p[edges[:, 0]]."""
+    length = np.sqrt(edge[:, 0] * edge[:, 0] + edge[:, 1] * edge[:, 1])
+    out = np.empty_like(edge)
+    np.divide(-edge[:, 1], length, out=out[:, 0])
+    np.divide(edge[:, 0], length, out=out[:, 1])
+    # The unit normal's foot is the projection of the opposite vertex onto the edge's line,
+    # so its worst ratio needs no cross products. Only the edges the screen flags (a few
+    # percent on real scans) weigh the other candidates, and `_worst_ratio` decides there.
+    change = _normal_ratio_screen(p, triangles, table) > ratio_limit * (1 - 1e-9)
+    if not change.any():
+        return out, change
+    idx = np.flatnonzero(change)
+    first, second = _opposite_vertices(triangles, table, idx)
+    l_c, edge_c = p[table.edges[idx, 0]], edge[idx]
+    pa_c = p[first]
+    pb_c = np.where((second >= 0)[:, None], p[np.maximum(second, 0)], np.nan)
+    mid = 0.5 * (l_c + p[table.edges[idx, 1]])
+    candidates = [out[idx], pb_c - pa_c, mid - pa_c, mid - pb_c]
+    costs = np.stack([_worst_ratio(u, l_c, edge_c, pa_c, pb_c) for u in candidates])
+    best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
+    turn = (costs[0] > ratio_limit) & (best > 0)
+    change[idx[~turn]] = False
+    for c in range(1, len(candidates)):
+        pick = turn & (best == c)
+        out[idx[pick]] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
+    return out, change
+
+
+def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable) -> np.ndarray:
+    """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles,
+    s = (p_n − p_l)·e / |e|² the foot of the opposite vertex p_n on the edge's line (the
+    ratio does not depend on which end is p_l). Computed per triangle corner, then the
+    larger of an edge's two values is kept. A screen: `_worst_ratio` decides."""
+    x, y = p[:, 0][triangles.T], p[:, 1][triangles.T]        # (3, T): contiguous rows
+    ratio = np.empty(x.shape, dtype=float)
+    for k in range(3):
+        i, j = (k + 1) % 3, (k + 2) % 3
+        ex, ey = x[j] - x[i], y[j] - y[i]
+        foot = (x[k] - x[i]) * ex
+        foot += (y[k] - y[i]) * ey
+        ex *= ex
+        ey *= ey
+        ex += ey
+        with np.errstate(invalid="ignore", divide="ignore"):
+            foot /= ex
+        np.subtract(1.0, foot, out=ey)
+        np.abs(ey, out=ey)
+        np.abs(foot, out=foot)
+        np.maximum(foot, ey, out=ratio[k])
+    slots, values = table.tri_edge.T.ravel(), ratio.ravel()
+    worst = np.zeros(table.edges.shape[0])
+    worst[slots] = values                                    # one of each edge's values …
+    larger = values > worst[slots]                           # … and the other where larger
+    worst[slots[larger]] = values[larger]
+    return worst
+
+
+def _opposite_vertices(triangles: np.ndarray, table: EdgeTable, idx: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """For the edges ``idx`` the vertex opposite each in its owner triangle, and in the
+    other triangle (-1 on the boundary)."""
+    first = triangles[table.owner[idx], table.owner_slot[idx]]
+    position = np.full(table.edges.shape[0], -1, dtype=np.int64)
+    position[idx] = np.arange(idx.size)
+    slots = table.tri_edge.ravel()
+    at = position[slots]
+    mine = np.flatnonzero(at >= 0)
+    opposite = triangles.ravel()[mine]
+    other = opposite != first[at[mine]]
+    second = np.full(idx.size, -1, dtype=np.int64)
+    second[at[mine][other]] = opposite[other]
+    return first, second
+
+
+def _worst_ratio(u: np.ndarray, l: np.ndarray, edge: np.ndarray, pa: np.ndarray,
+                 pb: np.ndarray) -> np.ndarray:
+    """max over the edge's triangles of max(|s|, |1 − s|) for direction u (nan rows: inf)."""
+    cross_eu = edge[:, 0] * u[:, 1] - edge[:, 1] * u[:, 0]
+    worst = np.zeros(u.shape[0])
+    for pn in (pa, pb):
+        rel = pn - l
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0]) / cross_eu
+        ratio = np.maximum(np.abs(s), np.abs(1.0 - s))
+        present = np.isfinite(pn).all(axis=1)
+        ratio = np.where(present, ratio, 0.0)
+        worst = np.maximum(worst, np.where(np.isfinite(ratio), ratio, np.inf))
+    bad = ~np.isfinite(u).all(axis=1) | (np.abs(cross_eu) <= 1e-9 * np.linalg.norm(edge, axis=1)
+                                          * np.linalg.norm(np.nan_to_num(u), axis=1))
+    return np.where(bad, np.inf, worst)

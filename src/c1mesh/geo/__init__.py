@@ -1,0 +1,1 @@
+"""Layer 4: the georeferenced side: CRS, GeoTIFF rasters, previews."""

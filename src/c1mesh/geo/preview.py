@@ -1,0 +1,351 @@
+"""PNG previews: a hillshade coloured by height, with a scale bar and a height colour bar.
+
+Four sources, one picture: a fitted spline in a frame whose chart is a plane
+(`render_spline`: heights and exact normals sampled at pixel centres), a surface mesh in
+world coordinates, whatever frame made it (`render_surface`: the topmost face at each
+pixel centre, heights and normals interpolated over it; the perspective fit's preview),
+a GeoTIFF DEM (`render_raster`: Horn's gradient of the DEM, since the spline is not at
+hand), and a mesh file with vertex normals (`render_mesh`: heights and normals of the
+vertices averaged per pixel). Pixels are in the scan frame's plane (x east, y north for
+terrain), north up. matplotlib is imported only here.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from c1mesh.core.errors import InputError
+from c1mesh.geo.raster import RasterGrid, SplineSampler, hillshade, horn_gradient, is_raster_path
+
+PIXELS = 700
+"""Cells along the longer side of a preview."""
+
+
+def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIXELS,
+                  z_factor: float | None = 1.0) -> None:
+    """Preview of a fitted spline: sampled on a grid over its triangulation in the scan
+    frame (heights in world z when the frame's axes are the world's). z_factor: x, y units
+    per height unit for the shading (raster.py); None (heights in units of their own, the
+    factor unknown): coloured by height, unshaded, since any light would fake the slopes."""
+    lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
+    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
+    world = np.allclose(frame.axes, np.eye(3))
+    sampler = SplineSampler(interp, (0.0, 0.0, frame.origin[2] if world else 0.0))
+    z, g = sampler.window(grid, range(grid.height), range(grid.width))
+    offset = frame.origin[:2] if world else np.zeros(2)
+    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
+              grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
+    if z_factor is None:
+        render_arrays(z, np.zeros_like(g), extent, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
+        return
+    render_arrays(z, g if z_factor == 1.0 else g * z_factor, extent, path, _units(crs),
+                  "C1 surface (spline normals)")
+
+
+PREVIEW_VERTICES = 1_000_000
+"""The most vertices of the refinement a perspective fit's preview is drawn from (the
+output's level, or the highest level below it that stays under this): about three per
+pixel of a PIXELS-wide picture, and bounded whatever --level the output has."""
+
+
+def render_fit(interp, frame, path, crs: str | None = None, level: int | None = None,
+               z_factor: float | None = 1.0) -> None:
+    """The preview of a fit (geo.finish calls this for every fit).
+
+    frame.ScanFrame (the spline is a height over a plane): render_spline. Otherwise (the
+    perspective frame: the chart (u, v) of inverse depth is no map plane) the refined
+    surface in world coordinates, at `level` or the highest lower level with at most
+    PREVIEW_VERTICES vertices, drawn by render_surface. z_factor: render_spline's.
+    """
+    if not hasattr(frame, "normals_from_gradients"):
+        render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
+        return
+    from c1mesh.geo.products import refined_vertex_count
+    from c1mesh.pipeline.driver import surface_stream
+
+    level = max(1, int(level or 1))
+    while level > 1 and refined_vertex_count(interp, level) > PREVIEW_VERTICES:
+        level -= 1
+    mesh = surface_stream(interp.refinement(level), frame, None).materialize()
+    render_surface(mesh.vertices, mesh.faces, mesh.vertex_normals, path, crs=crs,
+                   title="C1 surface (perspective fit)")
+
+
+def render_surface(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, path,
+                   crs: str | None = None, title: str = "C1 surface", pixels: int = PIXELS) -> None:
+    """Preview of a surface mesh: vertices (N, 3) world coordinates, faces (F, 3) vertex
+    indices, normals (N, 3) unit vertex normals (any sign).
+
+    Seen along the axis where the surface is most nearly a height field (frame.choose_frame
+    of the vertices and normals; world z for terrain within 10° of it), so the picture does
+    not depend on the frame that made the mesh. Each pixel centre takes the topmost face
+    over it (a z-buffer: nearer faces hide farther ones), its height and normal
+    interpolated linearly (barycentric) over the face.
+    """
+    frame, world = _view_frame(vertices, normals)
+    local = frame.to_local(vertices)
+    up = frame.vectors_to_local(normals)
+    up *= np.where(up[:, 2:] < 0, -1.0, 1.0)
+    finite = np.isfinite(local).all(axis=1)          # faces with another corner draw nothing
+    if not finite.any():
+        raise InputError("nothing to preview: the surface has no finite vertex")
+    lo, hi = local[finite, :2].min(axis=0), local[finite, :2].max(axis=0)
+    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
+    with np.errstate(invalid="ignore"):
+        z, g = _rasterize(local, up, np.asarray(faces), grid)
+    z += frame.origin[2] if world else 0.0
+    offset = frame.origin[:2] if world else np.zeros(2)
+    size = grid.resolution
+    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * size,
+              grid.north + offset[1] - grid.height * size, grid.north + offset[1])
+    render_arrays(z, g, extent, path, _units(crs), title)
+
+
+_RASTER_CHUNK = 1 << 19
+"""Candidate (face, pixel) pairs per step of _rasterize (bounds its temporaries)."""
+
+
+def _rasterize(local: np.ndarray, up: np.ndarray, faces: np.ndarray, grid: RasterGrid):
+    """Heights (h, w) and gradients (h, w, 2) at the pixel centres of `grid` from the topmost
+    face over each (NaN where none): local (N, 3) vertices in the view frame (x, y over the
+    grid, z up), up (N, 3) their normals in that frame with z >= 0."""
+    h, w = grid.height, grid.width
+    col = (local[:, 0] - grid.west) / grid.resolution - 0.5       # pixel centres at integers
+    row = (grid.north - local[:, 1]) / grid.resolution - 0.5
+    first_col = np.ceil(col[faces].min(axis=1)).astype(np.int64).clip(0, w)
+    last_col = np.floor(col[faces].max(axis=1)).astype(np.int64).clip(-1, w - 1)
+    first_row = np.ceil(row[faces].min(axis=1)).astype(np.int64).clip(0, h)
+    last_row = np.floor(row[faces].max(axis=1)).astype(np.int64).clip(-1, h - 1)
+    finite = np.isfinite(col[faces]).all(axis=1) & np.isfinite(row[faces]).all(axis=1)
+    cols = np.where(finite, np.maximum(last_col - first_col + 1, 0), 0)
+    rows = np.where(finite, np.maximum(last_row - first_row + 1, 0), 0)
+    candidates = cols * rows
+    best = np.full(h * w, -np.inf)
+    out = np.full((h * w, 3), np.nan)                               # z, gradient x, gradient y
+    ends = np.cumsum(candidates)
+    start = 0
+    while start < faces.shape[0]:
+        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + _RASTER_CHUNK, "right"))
+        stop = max(stop, start + 1)
+        part = slice(start, stop)
+        face = np.repeat(np.arange(start, stop), candidates[part])
+        step = np.arange(face.size) - np.repeat(np.cumsum(candidates[part]) - candidates[part],
+                                                candidates[part])
+        pc = first_col[face] + step % cols[face]
+        pr = first_row[face] + step // np.maximum(cols[face], 1)
+        _draw(col, row, local[:, 2], up, faces[face], pc, pr, w, best, out)
+        start = stop
+    return out[:, 0].reshape(h, w), out[:, 1:].reshape(h, w, 2)
+
+
+def _draw(col, row, height, up, corners, pc, pr, width, best, out) -> None:
+    """Rasterise candidate pixels (pc, pr) of faces `corners` (K, 3) into the z-buffer
+    best (h*w,) and out (h*w, 3): a pixel inside a face (barycentric weights >= 0, with
+    a tolerance so shared edges leave no gap) takes it when it is higher than what the
+    pixel holds."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    bx, by = col[b] - col[a], row[b] - row[a]
+    cx, cy = col[c] - col[a], row[c] - row[a]
+    px, py = pc - col[a], pr - row[a]
+    area = bx * cy - by * cx
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wb = (px * cy - py * cx) / area
+        wc = (bx * py - by * px) / area
+    wa = 1.0 - wb - wc
+    inside = (area != 0) & (wa >= -1e-9) & (wb >= -1e-9) & (wc >= -1e-9)
+    if not inside.any():
+        return
+    wa, wb, wc, a, b, c = wa[inside], wb[inside], wc[inside], a[inside], b[inside], c[inside]
+    pixel = pr[inside] * width + pc[inside]
+    z = wa * height[a] + wb * height[b] + wc * height[c]
+    order = np.lexsort((z, pixel))                         # by pixel, highest last
+    last = np.r_[pixel[order][1:] != pixel[order][:-1], True]
+    top = order[last]
+    pixel, z = pixel[top], z[top]
+    higher = z > best[pixel]
+    pixel, top = pixel[higher], top[higher]
+    n = wa[top, None] * up[a[top]] + wb[top, None] * up[b[top]] + wc[top, None] * up[c[top]]
+    nz = np.maximum(n[:, 2], 1e-3)                          # seen edge-on: steep, not undefined
+    best[pixel] = z[higher]
+    out[pixel, 0] = z[higher]
+    out[pixel, 1] = -n[:, 0] / nz
+    out[pixel, 2] = -n[:, 1] / nz
+
+
+def _view_frame(points: np.ndarray, normals: np.ndarray):
+    """The frame a surface is seen in (render_surface, render_mesh) and whether its axes
+    are the world's: where it is a height field, world z for terrain within 10° of it."""
+    from c1mesh.fit.frame import choose_frame
+
+    frame = choose_frame(points, normals)
+    if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
+        frame = choose_frame(points, normals, "z")
+    return frame, bool(np.allclose(frame.axes, np.eye(3)))
+
+
+def render_raster(source, path) -> None:
+    """Preview of a GeoTIFF DEM (band 1) with Horn's gradient of its cells."""
+    from c1mesh.geo.raster import _rasterio
+    rasterio = _rasterio()
+    try:
+        with rasterio.open(source) as ds:
+            z = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
+            res = abs(ds.transform.a)
+            bounds = ds.bounds
+            crs = ds.crs.to_wkt() if ds.crs else None
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"cannot read the raster '{source}': {exc}") from exc
+    padded = np.pad(z, 1, constant_values=np.nan)
+    g = horn_gradient(padded, res)
+    z = np.where(np.isfinite(g).all(axis=2), z, np.nan)   # edge cells have no 3x3 gradient
+    render_arrays(z, g, (bounds.left, bounds.right, bounds.bottom, bounds.top), path, _units(crs),
+                  f"{Path(str(source)).name} (Horn gradient)")
+
+
+def render_mesh(source, path, pixels: int = PIXELS) -> None:
+    """Preview of a mesh or point file with vertex normals: averages per pixel in the
+    frame where it is a height field (c1mesh.fit.frame.choose_frame)."""
+    from c1mesh.formats import read_cloud
+
+    if Path(str(source)).suffix.lower() == ".glb":
+        from c1mesh.core.cloud import PointCloud
+        from c1mesh.formats.meshes import read_glb_vertices
+        points, normals = read_glb_vertices(Path(source).read_bytes())
+        document_crs = _glb_crs(Path(source).read_bytes())
+        cloud = PointCloud(points=points, normals=normals, crs=document_crs)
+    else:
+        cloud = read_cloud(source)
+    if cloud.normals is None:
+        raise InputError(f"'{source}' has no vertex normals to shade; fit it first (c1mesh fit)")
+    frame, world = _view_frame(cloud.points, cloud.normals)
+    local = frame.to_local(cloud.points)
+    normals = frame.vectors_to_local(cloud.normals)
+    normals *= np.where(normals[:, 2:] < 0, -1.0, 1.0)
+    lo, hi = local[:, :2].min(axis=0), local[:, :2].max(axis=0)
+    area = max(float(np.prod(hi - lo)), 1e-300)
+    size = max(_pixel_size(lo, hi, pixels), 1.5 * math.sqrt(area / len(local)))
+    grid = RasterGrid.covering(lo, hi, size)
+    col = np.clip(((local[:, 0] - grid.west) / size).astype(np.int64), 0, grid.width - 1)
+    row = np.clip(((grid.north - local[:, 1]) / size).astype(np.int64), 0, grid.height - 1)
+    cell = row * grid.width + col
+    count = np.bincount(cell, minlength=grid.width * grid.height).astype(float)
+    mean = lambda v: np.bincount(cell, v, minlength=count.size) / np.where(count > 0, count, np.nan)  # noqa: E731
+    z = mean(local[:, 2]) + (frame.origin[2] if world else 0.0)
+    nz = mean(normals[:, 2])
+    g = np.stack([-mean(normals[:, 0]) / nz, -mean(normals[:, 1]) / nz], axis=-1)
+    shape = (grid.height, grid.width)
+    z, g = _fill_gaps(z.reshape(shape), g.reshape(shape + (2,)))
+    offset = frame.origin[:2] if world else np.zeros(2)
+    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * size,
+              grid.north + offset[1] - grid.height * size, grid.north + offset[1])
+    render_arrays(z, g, extent, path, _units(cloud.crs), f"{Path(str(source)).name} (vertex normals)")
+
+
+def _fill_gaps(z: np.ndarray, g: np.ndarray, passes: int = 2):
+    """Fill empty pixels that have at least 4 of 8 filled neighbours with their mean
+    (vertices of a refined mesh are not uniform, so some pixels inside it get none)."""
+    for _ in range(passes):
+        empty = ~np.isfinite(z)
+        if not empty.any():
+            break
+        stack = np.concatenate([z[..., None], g], axis=-1)
+        padded = np.pad(stack, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+        h, w = z.shape
+        shifts = [padded[1 + di:1 + di + h, 1 + dj:1 + dj + w] for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                  if di or dj]
+        neighbours = np.stack(shifts)                                   # (8, h, w, 3)
+        have = np.isfinite(neighbours[..., 0])
+        count = have.sum(axis=0)
+        total = np.where(have[..., None], neighbours, 0.0).sum(axis=0)
+        fill = empty & (count >= 4)
+        z[fill] = total[fill, 0] / count[fill]
+        g[fill] = total[fill, 1:] / count[fill, None]
+    return z, g
+
+
+def _glb_crs(data: bytes) -> str | None:
+    import json
+    import struct
+    length = struct.unpack_from("<I", data, 12)[0]
+    return json.loads(data[20:20 + length]).get("asset", {}).get("extras", {}).get("crs")
+
+
+def render_file(source, path) -> None:
+    """Preview of an existing output: a GeoTIFF DEM or a mesh file."""
+    if not Path(source).exists():
+        raise InputError(f"Input file '{source}' does not exist.")
+    (render_raster if is_raster_path(source) else render_mesh)(source, path)
+
+
+def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str, title: str) -> None:
+    """Draw heights z (h, w) shaded by gradients (h, w, 2) over extent (left, right, bottom,
+    top) and write the PNG atomically. NaN heights are transparent."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from c1mesh.formats import atomic_output
+
+    valid = np.isfinite(z) & np.isfinite(gradient).all(axis=-1)
+    if not valid.any():
+        raise InputError("nothing to preview: the surface covers no pixel")
+    lo, hi = np.percentile(z[valid], [1, 99])
+    hi = hi if hi > lo else lo + 1.0
+    rgba = matplotlib.colormaps["gist_earth"](np.clip((z - lo) / (hi - lo), 0, 1) * 0.85 + 0.1)
+    shade = hillshade(np.where(valid[..., None], gradient, 0.0))
+    rgba[..., :3] *= (0.25 + 0.75 * shade)[..., None]
+    rgba[..., 3] = valid
+    h, w = z.shape
+    plot_w = 5.6                                   # inches of map; margins around it
+    plot_h = plot_w * h / w
+    fig = Figure(figsize=(plot_w + 2.3, plot_h + 0.9), dpi=100)
+    FigureCanvasAgg(fig)
+    W, H = plot_w + 2.3, plot_h + 0.9
+    ax = fig.add_axes((1.1 / W, 0.4 / H, plot_w / W, plot_h / H))
+    ax.imshow(rgba, extent=extent, origin="upper", interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(labelsize=7)
+    _scale_bar(ax, extent, units)
+    cax = fig.add_axes(((1.3 + plot_w) / W, 0.2 + 0.4 / H, 0.15 / W, 0.6 * plot_h / H))
+    norm = matplotlib.colors.Normalize(lo, hi)
+    cmap = matplotlib.colors.ListedColormap(matplotlib.colormaps["gist_earth"](np.linspace(0.1, 0.95, 256)))
+    fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=cax).set_label(
+        f"height ({units})" if units else "height", fontsize=8)
+    cax.tick_params(labelsize=7)
+    with atomic_output(path, "wb") as handle:
+        fig.savefig(handle, format="png")
+
+
+def _scale_bar(ax, extent, units: str) -> None:
+    """A bar of a round length (1, 2 or 5 × 10^k) about a fifth of the width, bottom left."""
+    width = extent[1] - extent[0]
+    raw = width / 5
+    power = 10 ** math.floor(math.log10(raw))
+    length = max(m * power for m in (1, 2, 5) if m * power <= raw)
+    x0 = extent[0] + 0.05 * width
+    y0 = extent[2] + 0.05 * (extent[3] - extent[2])
+    ax.plot([x0, x0 + length], [y0, y0], color="black", linewidth=4, solid_capstyle="butt")
+    ax.plot([x0, x0 + length], [y0, y0], color="white", linewidth=1.5, solid_capstyle="butt")
+    ax.text(x0 + length / 2, y0 + 0.035 * (extent[3] - extent[2]), f"{length:g} {units}".strip(),
+            ha="center", va="bottom", fontsize=9,
+            bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1})
+
+
+def _pixel_size(lo, hi, pixels: int) -> float:
+    span = float(max(hi[0] - lo[0], hi[1] - lo[1]))
+    return span / pixels if span > 0 else 1.0
+
+
+_UNIT_NAMES = {"metre": "m", "meter": "m", "US survey foot": "ft (US)", "foot": "ft", "degree": "°"}
+
+
+def _units(crs: str | None) -> str:
+    """Short name of the horizontal unit of a CRS ('' when there is none)."""
+    if not crs:
+        return ""
+    from c1mesh.geo.crs import describe
+    unit = describe(crs)["units"] or ""
+    return _UNIT_NAMES.get(unit, unit)

@@ -1,0 +1,181 @@
+"""The fit's georeferenced side, in one place the pipeline calls: the CRS to carry, the
+rasters and preview to write, and the level that gives a requested edge length.
+
+`geo_plan` checks everything that can be checked without the input (the CRS parses, the
+raster and preview paths have the right extensions and writable directories, options do
+not conflict), so the CLI can call it before any input is read.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from c1mesh.geo import crs as crs_module
+from c1mesh.core.errors import InputError
+from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
+
+PREVIEW_SUFFIX = ".png"
+MAX_LEVEL = 64
+
+
+@dataclass
+class GeoPlan:
+    """What a fit writes besides (or instead of) the mesh."""
+
+    rasters: RasterTargets
+    user_crs: str | None
+    preview: str | None
+
+
+def geo_plan(output, options) -> GeoPlan:
+    """Validate the georeferencing options of a fit before any work (InputError if wrong)."""
+    user_crs = crs_module.parse_crs(options.crs) if options.crs else None
+    frame_error = dem_frame_error(options.frame, [output], options.slope, options.aspect, options.hillshade)
+    if frame_error:
+        raise InputError(frame_error)
+    rasters = targets_for(output, options)
+    if options.resolution is not None and not options.resolution > 0:
+        raise InputError(f"--resolution must be a positive length, got {options.resolution}")
+    if options.preview is not None:
+        check_preview_path(options.preview)
+    if rasters.dem is not None:
+        check_writable(rasters.dem)
+    extra = [path for _, path in rasters.items() if path != rasters.dem]
+    extra += [options.preview] if options.preview else []
+    for path in extra:
+        check_writable(path)
+    named = [str(output)] if isinstance(output, (str, Path)) else []
+    named += extra
+    if len({str(Path(p).resolve()) for p in named}) != len(named):
+        raise InputError("two outputs (-o, --slope, --aspect, --hillshade, --preview) have the same path")
+    return GeoPlan(rasters, user_crs, options.preview)
+
+
+def check_preview_path(path) -> None:
+    """InputError unless `path` is a .png in a writable directory."""
+    if Path(path).suffix.lower() != PREVIEW_SUFFIX:
+        raise InputError(f"the preview '{path}' must be a .png file")
+    check_writable(path)
+
+
+def check_before(outputs, options):
+    """The georeferenced side of a fit's outputs, checked before the input is read: the
+    CRS, raster and preview paths, option conflicts (mesh outputs: c1mesh.core.outputs).
+    Returns the options with the CRS parsed to WKT (so it is parsed once)."""
+    from dataclasses import replace
+
+    if options.crs:
+        options = replace(options, crs=crs_module.parse_crs(options.crs))
+    for output in outputs:
+        if output == "-":
+            if targets_for(None, options).items():
+                raise InputError("GeoTIFF outputs cannot go to stdout; give -o FILE.tif")
+            continue
+        geo_plan(output, options)      # mesh outputs: c1mesh.core.outputs checks them
+    return options
+
+
+def check_writable(path) -> None:
+    """InputError unless `path` could be created: its directory exists and is writable."""
+    target = Path(path)
+    parent = target.parent
+    if target.is_dir():
+        raise InputError(f"Output path '{target}' is a directory; give a file name.")
+    if not parent.is_dir():
+        raise InputError(f"Output directory '{parent}' does not exist; create it first.")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"Output directory '{parent}' is not writable.")
+
+
+def resolve_crs(file_crs, user_crs, name):
+    """The CRS to carry and where it came from (crs.resolve)."""
+    return crs_module.resolve(file_crs, user_crs, name)
+
+
+def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Mean length of the triangles' edges (each shared edge counted from both sides)."""
+    total = 0.0
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        d = points[triangles[:, a]] - points[triangles[:, b]]
+        total += float(np.sqrt((d * d).sum(axis=1)).sum())
+    return total / (3 * triangles.shape[0])
+
+
+def level_for_edge(points: np.ndarray, triangles: np.ndarray, resolution: float) -> int:
+    """The refinement level whose output edges are closest to `resolution` on average:
+    level L splits every edge into L, so the mean edge becomes mean_input_edge / L."""
+    level = round(mean_edge_length(points, triangles) / resolution)
+    return int(min(max(level, 1), MAX_LEVEL))
+
+
+def refined_vertex_count(interp, level: int) -> int:
+    """Vertices of the level-`level` refinement of interp's triangulation, without building
+    it: the N points, L − 1 per edge and (L − 1)(L − 2)/2 inside each triangle
+    (refine.Refinement numbers them so)."""
+    edges = interp._table.edges.shape[0]
+    inside = (level - 1) * (level - 2) // 2
+    return int(interp.points.shape[0] + edges * (level - 1) + interp.triangles.shape[0] * inside)
+
+
+def level_for_vertices(interp, target: int, most: int = MAX_LEVEL) -> int:
+    """The level (1..most) whose refinement has the vertex count nearest `target` by
+    ratio (|log(count / target)| smallest; ties: the lower level)."""
+    best, best_gap = 1, math.inf
+    for level in range(1, most + 1):
+        count = refined_vertex_count(interp, level)
+        gap = abs(math.log(count / max(target, 1)))
+        if gap < best_gap:
+            best, best_gap = level, gap
+        if count >= target:          # counts grow with the level: later ones are farther
+            break
+    return best
+
+
+def dem_frame_error(frame: str, outputs, slope=None, aspect=None, hillshade=None) -> str | None:
+    """Why the fit cannot write its GeoTIFF outputs, or None.
+
+    frame: --frame; outputs: the output paths (None and streams are skipped); slope,
+    aspect, hillshade: the raster paths of those options (or None). A DEM
+    (and slope, aspect, hillshade on its grid) is a height over a map plane: it has no
+    meaning in the perspective frame (inverse depth over the view rays of a depth frame).
+    --frame auto fits an organised input in the axis frame when a DEM is asked for
+    (perspective.frame_kind), so only an explicit --frame perspective conflicts. A
+    preview is no GeoTIFF: a depth frame may have one. Plain Python (no input read).
+    """
+    if frame != "perspective":
+        return None
+    named = [str(o) for o in outputs if is_raster_path(o)]
+    named += [f"--{flag} {path}" for flag, path in (("slope", slope), ("aspect", aspect),
+                                                   ("hillshade", hillshade)) if path]
+    if not named:
+        return None
+    return (f"GeoTIFF outputs ({', '.join(named)}) are heights over a map plane and have no meaning "
+            "in the perspective frame; drop --frame perspective (the DEM is fitted in the axis frame) "
+            "or write a mesh")
+
+
+def finish(result, interp, frame, crs, crs_source, options):
+    """Add the CRS to the report and render the preview when one was asked for (both
+    frames: preview.render_fit)."""
+    facts = crs_module.describe(crs)
+    if facts is not None:
+        facts["source"] = crs_source
+    result.report["crs"] = facts
+    if options.resolution is not None and "level" in result.report:
+        result.report["resolution"] = options.resolution
+    if options.preview:
+        from c1mesh.geo.preview import render_fit
+        start = time.perf_counter()
+        render_fit(interp, frame, options.preview, crs=crs, level=result.report.get("level"),
+                   z_factor=result.report.get("z_factor", 1.0))      # None: unknown (pipeline)
+        result.report["seconds"]["preview"] = round(time.perf_counter() - start, 6)
+    return result
+
+
+__all__ = ["GeoPlan", "geo_plan", "check_writable", "resolve_crs", "level_for_edge", "finish",
+           "is_raster_path", "dem_frame_error", "level_for_vertices", "refined_vertex_count"]

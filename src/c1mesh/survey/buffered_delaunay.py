@@ -1,0 +1,638 @@
+"""Delaunay triangulation of a survey cut into rectangular tiles, with buffers sized by the data.
+
+The survey's points lie in the frame's plane (2-D, the height field's xy) inside the
+survey's bounding box B. The box is cut into an nx × ny grid of tiles; tile t holds the
+points that fall in its cell (half-open cells, the last row and column closed). A tile
+reads its cell grown by a buffer b, the closed rectangle E, and triangulates what it read
+(Q = the points in E) on its own.
+
+The buffer rule (why a tile's triangles are final). A triangle of Del(Q) whose open
+circumdisk holds no point of the survey is a triangle of the survey's Delaunay
+triangulation Del(P). Every point the tile has not read lies in B \\ E, so a triangle is
+*safe* when its circumdisk does not reach B \\ E. A hull edge of Q is safe when the open
+half-plane beyond it does not reach B \\ E (then it is a hull edge of P too). The tests
+are conservative: a disk or half-plane that only touches B \\ E counts as reaching it.
+
+The ownership rule (who writes a triangle). A triangle belongs to the tile holding its
+lowest-numbered corner point (points numbered as the survey gives them), the rule
+c1mesh.survey.tiles uses for inputs. A tile's result is final when every triangle of Del(Q) at
+one of its own points is safe, and so is every hull edge of Q at one of its own points:
+then the star of each own point p in Del(Q) is its star in Del(P). (The safe triangles
+around p are triangles of Del(P) and cover a whole neighbourhood of p, or, with p on Q's
+hull, the whole angle between its two safe hull edges, beyond which P has no points;
+Del(P)'s triangles at p cannot overlap them, so they are the same.) Otherwise the buffer
+is doubled and the tile triangulated again; at worst E covers B, Q = P and every triangle
+is safe, so the loop ends. The union over tiles of the triangles each tile owns is
+therefore Del(P), every triangle exactly once, for points in general position (no four
+cocircular), whatever the grid: dense tiles end with the first buffer, sparse ones
+(ground under trees, water) grow theirs.
+
+A tile needs its points only through `read(rectangle)`, so points may come from memory
+(`ArrayReader`) or from files binned on a first pass; a tile holds only what it read.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+Reader = Callable[[tuple[float, float, float, float]], tuple[np.ndarray, np.ndarray]]
+"""read((x0, y0, x1, y1)) -> (index (m,) int64 ascending survey point numbers, xy (m, 2)
+float64) of the points in the closed rectangle."""
+
+INITIAL_SPACINGS = 4.0
+"""The first buffer, in mean point spacings (sqrt(area of B / point count))."""
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """An nx × ny grid of equal cells over the box (x0, y0, x1, y1) (frame units)."""
+
+    box: tuple[float, float, float, float]
+    nx: int
+    ny: int
+
+    def cell(self, t: int) -> tuple[float, float, float, float]:
+        """The rectangle of tile t (t = i + nx·j)."""
+        x0, y0, x1, y1 = self.box
+        i, j = t % self.nx, t // self.nx
+        w, h = (x1 - x0) / self.nx, (y1 - y0) / self.ny
+        return (x0 + i * w, y0 + j * h, x1 if i == self.nx - 1 else x0 + (i + 1) * w,
+                y1 if j == self.ny - 1 else y0 + (j + 1) * h)
+
+    def grown(self, t: int, by: float) -> tuple[float, float, float, float]:
+        """The closed rectangle of tile t's cell grown by `by` on every side (what a tile
+        reads for its buffer or halo)."""
+        cell = self.cell(t)
+        return (cell[0] - by, cell[1] - by, cell[2] + by, cell[3] + by)
+
+    def tile_of(self, xy: np.ndarray) -> np.ndarray:
+        """(m,) the tile of each point (m, 2): half-open cells, points on the box's far
+        sides in the last row or column."""
+        x0, y0, x1, y1 = self.box
+        i = np.floor((xy[:, 0] - x0) / (x1 - x0) * self.nx).astype(np.int64)
+        j = np.floor((xy[:, 1] - y0) / (y1 - y0) * self.ny).astype(np.int64)
+        return np.clip(i, 0, self.nx - 1) + self.nx * np.clip(j, 0, self.ny - 1)
+
+    def __len__(self) -> int:
+        return self.nx * self.ny
+
+
+class ArrayReader:
+    """A Reader over points held in memory, (n, 2) in survey order."""
+
+    def __init__(self, xy: np.ndarray):
+        self.xy = np.asarray(xy, dtype=np.float64)
+
+    def __call__(self, rect):
+        x0, y0, x1, y1 = rect
+        x, y = self.xy[:, 0], self.xy[:, 1]
+        index = np.flatnonzero((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+        return index, self.xy[index]
+
+
+@dataclass
+class TileTriangles:
+    """One tile's final triangles: triangles (k, 3) int64 survey point numbers, in the
+    orientation Qhull gave; buffer: the buffer (frame units) it ended with; read: points
+    read in the last round; rounds: triangulations it took."""
+
+    tile: int
+    triangles: np.ndarray
+    buffer: float
+    read: int
+    rounds: int
+
+
+def mean_spacing(box, count: int) -> float:
+    """sqrt(area / count): the mean distance between neighbouring points, frame units."""
+    x0, y0, x1, y1 = box
+    return float(np.sqrt(max((x1 - x0) * (y1 - y0), 1e-300) / max(count, 1)))
+
+
+@dataclass(frozen=True)
+class Hull:
+    """The survey's convex hull: index (h,) survey numbers of its corner points and xy
+    (h, 2) their coordinates, counter-clockwise. Found on the first pass (`streamed_hull`)."""
+
+    index: np.ndarray
+    xy: np.ndarray
+
+    def edges(self) -> set[tuple[int, int]]:
+        """The hull's edges as (lower, higher) survey numbers."""
+        a, b = self.index, np.roll(self.index, -1)
+        return set(zip(np.minimum(a, b).tolist(), np.maximum(a, b).tolist()))
+
+
+def streamed_hull(chunks) -> Hull:
+    """The convex hull of points given in chunks of (index (m,), xy (m, 2)), holding only
+    one chunk and the hull so far: the hull of the union is the hull of the chunks' hulls."""
+    from scipy.spatial import ConvexHull
+
+    index, xy = np.empty(0, np.int64), np.empty((0, 2))
+    for chunk_index, chunk_xy in chunks:
+        index = np.concatenate([index, np.asarray(chunk_index, np.int64)])
+        xy = np.concatenate([xy, np.asarray(chunk_xy, np.float64)])
+        if len(index) >= 3:
+            corners = ConvexHull(xy).vertices                 # counter-clockwise in 2-D
+            index, xy = index[corners], xy[corners]
+    return Hull(index, xy)
+
+
+def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
+                   hull: Hull | None = None, max_edge: float | None = None) -> TileTriangles:
+    """Triangulate one tile, growing its buffer until its own triangles are final (module
+    docstring); buffer: the first one, frame units (> 0). hull: the survey's convex hull
+    from a first pass, or None. With it, points not read are known to lie in the hull as
+    well as outside the read rectangle, and a hull edge of what was read is final when it
+    is an edge of the survey's hull, so tiles along the survey's border keep small buffers
+    (without it, their hull triangles' wide circles make them read most of the survey).
+    max_edge: keep only the triangles whose edges are all at most this long (the long-edge
+    trim), which needs only those to be safe once the buffer exceeds max_edge (module
+    docstring); None keeps every triangle."""
+    from scipy.spatial import Delaunay
+
+    box, cell = grid.box, grid.cell(tile)
+    if max_edge is not None:
+        buffer = max(buffer, max_edge * (1 + 1e-9))
+    hull_edges = None if hull is None else hull.edges()
+    for reading in growing_reads(read, grid, tile, buffer):
+        read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
+        buffer, rounds = reading.buffer, reading.round
+        if not own.any() or (index.size < 3 and covers):
+            return TileTriangles(tile, np.empty((0, 3), np.int64), buffer, len(index), rounds)
+        if index.size < 3:
+            continue
+        centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
+        local = xy - centre                          # small coordinates: circumcentres round less
+        tri = Delaunay(local)
+        simplices = tri.simplices.astype(np.int64)
+        at_own = own[simplices].any(axis=1)
+        if max_edge is not None:
+            at_own &= _longest_edge(xy, simplices) <= max_edge    # survey coordinates: trim's bits
+        if covers:
+            safe = True
+        else:
+            strips = _unread_strips(read_box, box, centre)
+            regions = None if hull is None else _clip_to_hull(strips, hull.xy - centre)
+            safe = (_disks_clear(local, simplices[at_own], strips, regions).all()
+                    and (max_edge is not None
+                         or _hull_edges_final(local, index, simplices, tri.neighbors, own, strips, hull_edges)))
+        if safe:
+            mine = at_own & (own[simplices] & _lowest_corner(index[simplices])).any(axis=1)
+            keep = simplices[mine]
+            return TileTriangles(tile, index[keep], buffer, len(index), rounds)
+
+
+def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(k,) the longest edge of each triangle, as triangulation.trim measures edges."""
+    from c1mesh.engine.triangulation import _edge_lengths
+
+    return _edge_lengths(xy, triangles).max(axis=1)
+
+
+def _lowest_corner(corners: np.ndarray) -> np.ndarray:
+    """(k, 3) bool: which corner holds the lowest survey number of its triangle."""
+    return corners == corners.min(axis=1, keepdims=True)
+
+
+@dataclass
+class Reading:
+    """One read of a tile with a buffer: round (1, 2, ...), buffer (frame units), box (x0,
+    y0, x1, y1) read, index (m,) survey numbers and points (m, 2 or 3) read, own (m,) bool
+    the points in the tile's cell, covers: the box holds the whole survey."""
+
+    round: int
+    buffer: float
+    box: tuple
+    index: np.ndarray
+    points: np.ndarray
+    own: np.ndarray
+    covers: bool
+
+
+def growing_reads(read: Callable, grid: "TileGrid", tile: int, buffer: float) -> Iterator[Reading]:
+    """Reads of a tile's cell widened by `buffer`, the buffer doubled for each next one: a
+    caller takes readings until what it needs lies inside what was read (or it covers the
+    survey), so buffers are sized by the data."""
+    rounds = 0
+    while True:
+        rounds += 1
+        box = grid.grown(tile, buffer)
+        index, points = read(box)
+        yield Reading(rounds, buffer, box, index, points, grid.tile_of(points[:, :2]) == tile,
+                      _covers(box, grid.box))
+        buffer *= 2.0
+
+
+def _covers(read_box, box) -> bool:
+    return read_box[0] <= box[0] and read_box[1] <= box[1] and read_box[2] >= box[2] and read_box[3] >= box[3]
+
+
+def _unread_strips(read_box, box, centre) -> np.ndarray:
+    """(s, 4) the parts of B outside the read rectangle E, as rectangles (x0, y0, x1, y1)
+    relative to centre: the left, right, bottom and top strips of B that E does not reach."""
+    ex0, ey0, ex1, ey1 = read_box
+    bx0, by0, bx1, by1 = box
+    strips = []
+    if ex0 > bx0:
+        strips.append((bx0, by0, ex0, by1))
+    if ex1 < bx1:
+        strips.append((ex1, by0, bx1, by1))
+    if ey0 > by0:
+        strips.append((bx0, by0, bx1, ey0))
+    if ey1 < by1:
+        strips.append((bx0, ey1, bx1, by1))
+    out = np.array(strips, dtype=np.float64).reshape(-1, 4)
+    return out - np.tile(centre, 2)
+
+
+def _disks_clear(xy: np.ndarray, triangles: np.ndarray, strips: np.ndarray,
+                 regions: list[np.ndarray] | None = None) -> np.ndarray:
+    """(k,) True where a triangle's circumdisk stays clear of every unread strip (with a
+    relative margin of 1e-9 of the radius, so rounding never clears a disk that touches
+    one). regions: each strip clipped to the survey's hull (convex polygons, (m, 2)), or
+    None: a disk that reaches a strip's rectangle must then also reach its polygon."""
+    centre, radius = circumcircles(xy, triangles)
+    reach = radius * (1 + 1e-9) + 1e-12 * np.abs(xy).max()
+    clear = np.ones(len(triangles), dtype=bool)
+    for s, (x0, y0, x1, y1) in enumerate(strips):
+        dx = np.maximum(np.maximum(x0 - centre[:, 0], centre[:, 0] - x1), 0.0)
+        dy = np.maximum(np.maximum(y0 - centre[:, 1], centre[:, 1] - y1), 0.0)
+        hits = np.hypot(dx, dy) <= reach
+        if regions is not None and hits.any():
+            candidates = np.flatnonzero(hits)
+            hits[candidates] = _disks_meet_polygon(centre[candidates], reach[candidates], regions[s])
+        clear &= ~hits
+    return clear
+
+
+def _disks_meet_polygon(centre: np.ndarray, reach: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(k,) True where the closed disk (centre, reach) meets the convex polygon (m, 2)
+    (counter-clockwise; empty: meets nothing): its centre is inside, or an edge is within reach."""
+    if len(polygon) == 0:
+        return np.zeros(len(centre), dtype=bool)
+    if len(polygon) < 3:
+        polygon = np.concatenate([polygon, polygon[:1]])
+    a, b = polygon, np.roll(polygon, -1, axis=0)
+    meets = np.zeros(len(centre), dtype=bool)
+    inside = np.ones(len(centre), dtype=bool)
+    for (ax, ay), (bx, by) in zip(a, b):
+        ex, ey = bx - ax, by - ay
+        px, py = centre[:, 0] - ax, centre[:, 1] - ay
+        inside &= ex * py - ey * px >= 0.0
+        t = np.clip((px * ex + py * ey) / max(ex * ex + ey * ey, 1e-300), 0.0, 1.0)
+        meets |= np.hypot(px - t * ex, py - t * ey) <= reach
+    return meets | inside
+
+
+def _clip_to_hull(strips: np.ndarray, hull: np.ndarray) -> list[np.ndarray]:
+    """Each strip rectangle (x0, y0, x1, y1) intersected with the convex polygon hull
+    (m, 2, counter-clockwise), by clipping the hull against the rectangle's four sides."""
+    regions = []
+    for x0, y0, x1, y1 in strips:
+        polygon = hull
+        for axis, bound, keep_below in ((0, x0, False), (0, x1, True), (1, y0, False), (1, y1, True)):
+            polygon = _clip_half(polygon, axis, bound, keep_below)
+        regions.append(polygon)
+    return regions
+
+
+def _clip_half(polygon: np.ndarray, axis: int, bound: float, keep_below: bool) -> np.ndarray:
+    """The convex polygon cut to coordinate[axis] <= bound (keep_below) or >= bound."""
+    if len(polygon) == 0:
+        return polygon
+    side = polygon[:, axis] - bound
+    if keep_below:
+        side = -side
+    out = []
+    for i in range(len(polygon)):
+        p, q = polygon[i], polygon[(i + 1) % len(polygon)]
+        sp, sq = side[i], side[(i + 1) % len(polygon)]
+        if sp >= 0:
+            out.append(p)
+        if (sp >= 0) != (sq >= 0):
+            out.append(p + (q - p) * (sp / (sp - sq)))
+    return np.array(out).reshape(-1, 2)
+
+
+def circumcircles(xy: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Circumcentres (k, 2) and radii (k,) of triangles (k, 3) into xy (n, 2); a degenerate
+    (collinear) triangle gets an infinite radius."""
+    a, b, c = xy[triangles[:, 0]], xy[triangles[:, 1]], xy[triangles[:, 2]]
+    b, c = b - a, c - a
+    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    bb, cc = (b * b).sum(axis=1), (c * c).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ux = (c[:, 1] * bb - b[:, 1] * cc) / d
+        uy = (b[:, 0] * cc - c[:, 0] * bb) / d
+    radius = np.hypot(ux, uy)
+    radius[~np.isfinite(radius)] = np.inf
+    return a + np.column_stack([ux, uy]), radius
+
+
+def _hull_edges_final(xy, index, simplices, neighbors, own, strips, hull_edges) -> bool:
+    """True when every hull edge of the tile's triangulation that ends at one of the tile's
+    own points is a hull edge of the survey: an edge of the survey's hull (hull_edges, a
+    set of (lower, higher) survey numbers), or, without it, an edge with no strip corner on
+    or beyond its line (a strip is convex: it meets the open half-plane beyond the edge only
+    if a corner lies there)."""
+    tri, slot = np.nonzero(neighbors < 0)
+    if tri.size == 0 or len(strips) == 0:
+        return True
+    a = simplices[tri, (slot + 1) % 3]
+    b = simplices[tri, (slot + 2) % 3]
+    opposite = simplices[tri, slot]
+    mine = own[a] | own[b]
+    a, b, opposite = a[mine], b[mine], opposite[mine]
+    if a.size == 0:
+        return True
+    if hull_edges is not None:
+        ia, ib = index[a], index[b]
+        return all(edge in hull_edges for edge in zip(np.minimum(ia, ib).tolist(), np.maximum(ia, ib).tolist()))
+    edge = xy[b] - xy[a]
+    normal = np.column_stack([edge[:, 1], -edge[:, 0]])
+    inward = ((xy[opposite] - xy[a]) * normal).sum(axis=1)
+    normal[inward > 0] *= -1.0                             # point away from the triangle
+    length = np.hypot(normal[:, 0], normal[:, 1])
+    scale = np.abs(strips).max()
+    for x0, y0, x1, y1 in strips:
+        for corner in ((x0, y0), (x1, y0), (x0, y1), (x1, y1)):
+            beyond = ((np.asarray(corner) - xy[a]) * normal).sum(axis=1)
+            if (beyond > -1e-12 * scale * length).any():
+                return False
+    return True
+
+
+def buffered_delaunay(read: Reader, grid: TileGrid, count: int, buffer: float | None = None,
+                      hull: Hull | None = None, max_edge: float | None = None) -> Iterator[TileTriangles]:
+    """Each tile's final triangles, tile by tile (module docstring). count: the survey's
+    point count (sizes the first buffer: INITIAL_SPACINGS mean spacings unless given);
+    hull: the survey's convex hull (streamed_hull), which keeps border tiles' buffers small;
+    max_edge: keep only triangles with every edge at most this long (None: all)."""
+    first = buffer if buffer is not None else INITIAL_SPACINGS * mean_spacing(grid.box, count)
+    for tile in range(len(grid)):
+        yield tile_triangles(read, grid, tile, first, hull, max_edge)
+
+
+# ------------------------------------------------------------- the survey's edge statistic
+def edge_length_median(read: Reader, grid: TileGrid, count: int, hull: Hull,
+                       bound: float | None = None) -> float:
+    """The median edge length of the survey's Delaunay triangulation (each edge once), as
+    triangulation.trim computes it for max_edge="auto" from the whole triangulation: the
+    same value to the bit, found tile by tile.
+
+    The triangulation of n points in general position with h hull corners has
+    E = 3n - 3 - h edges, so the median's ranks are known from the first pass (count,
+    hull). Each tile certifies the edges of length at most `bound` at its own points (an
+    edge belongs to the tile of its lower-numbered end): an edge of the tile's
+    triangulation is an edge of the survey's when one circle through its two ends is
+    empty of what was read and clear of what was not — the smallest circle of the pencil
+    between the circumcircles of its two triangles (for a short edge usually its
+    diametral circle, which a buffer above `bound` always holds). Uncertified edges grow
+    the tile's buffer; when fewer than half the survey's edges are that short, `bound`
+    doubles (default: 4 mean spacings).
+    """
+    edges = 3 * count - 3 - len(hull.index)
+    if edges < 1:
+        raise ValueError("the survey has no edges")
+    bound = bound or 4.0 * mean_spacing(grid.box, count)
+    while True:
+        short = np.concatenate([_certified_edges(read, grid, tile, bound, hull) for tile in range(len(grid))])
+        if short.size > edges // 2:
+            break
+        bound *= 2.0
+    upper = edges // 2
+    ranked = np.partition(short, [upper - 1, upper] if edges % 2 == 0 else [upper])
+    return float(ranked[upper] if edges % 2 else np.mean(ranked[upper - 1:upper + 1]))
+
+
+def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> np.ndarray:
+    """Lengths of the survey's Delaunay edges of length <= bound whose lower-numbered end
+    is one of the tile's points (edge_length_median)."""
+    from scipy.spatial import Delaunay
+
+    box, cell = grid.box, grid.cell(tile)
+    for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
+        read_box, index, xy, own = reading.box, reading.index, reading.points, reading.own
+        if not own.any() or index.size < 3:
+            if not own.any() or reading.covers:
+                return np.empty(0)
+            continue
+        centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
+        local = xy - centre
+        tri = Delaunay(local)
+        simplices = tri.simplices.astype(np.int64)
+        t, k = np.nonzero((tri.neighbors < 0) | (tri.neighbors > np.arange(len(simplices))[:, None]))
+        a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
+        lower = np.where(index[a] < index[b], a, b)
+        lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
+        mine = own[lower] & (lengths <= bound)
+        if reading.covers:
+            return lengths[mine]
+        t, k, a, b = t[mine], k[mine], a[mine], b[mine]
+        centres, _ = circumcircles(local, simplices)
+        circle_centre = _smallest_empty_circle(local, simplices, tri.neighbors, t, k, a, b, centres)
+        radius = np.hypot(*(local[a] - circle_centre).T)
+        strips = _unread_strips(read_box, box, centre)
+        regions = _clip_to_hull(strips, hull.xy - centre)
+        if _centres_clear(circle_centre, radius, strips, regions, np.abs(local).max()).all():
+            return lengths[mine]
+
+
+def _smallest_empty_circle(xy, simplices, neighbors, t, k, a, b, centres) -> np.ndarray:
+    """(e, 2) centres of the smallest circle through each edge's ends (a, b) that is empty
+    of the triangulated points: on the edge's bisector, between the circumcentres of its
+    two triangles (or from triangle t's circumcentre outwards, for a hull edge), the point
+    nearest the edge's midpoint."""
+    mid = (xy[a] + xy[b]) / 2
+    c1 = centres[t]
+    other = neighbors[t, k]
+    hull_edge = other < 0
+    c2 = np.where(hull_edge[:, None], c1, centres[np.maximum(other, 0)])
+    span = c2 - c1
+    length2 = (span * span).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.clip(((mid - c1) * span).sum(axis=1) / length2, 0.0, 1.0)
+    s[length2 == 0] = 0.0
+    best = c1 + s[:, None] * span
+    if hull_edge.any():                          # the pencil runs from c1 away from the third corner
+        h = np.flatnonzero(hull_edge)
+        apex = xy[simplices[t[h], k[h]]]
+        edge = xy[b[h]] - xy[a[h]]
+        outward = np.column_stack([edge[:, 1], -edge[:, 0]])
+        flip = ((apex - xy[a[h]]) * outward).sum(axis=1) > 0
+        outward[flip] *= -1.0
+        beyond = ((mid[h] - c1[h]) * outward).sum(axis=1) > 0
+        best[h] = np.where(beyond[:, None], mid[h], c1[h])
+    return best
+
+
+def _centres_clear(centre, radius, strips, regions, scale) -> np.ndarray:
+    """(e,) True where the disk (centre, radius) stays clear of every unread strip clipped
+    to the survey's hull (conservative, as _disks_clear)."""
+    reach = radius * (1 + 1e-9) + 1e-12 * scale
+    clear = np.ones(len(centre), dtype=bool)
+    for s, (x0, y0, x1, y1) in enumerate(strips):
+        dx = np.maximum(np.maximum(x0 - centre[:, 0], centre[:, 0] - x1), 0.0)
+        dy = np.maximum(np.maximum(y0 - centre[:, 1], centre[:, 1] - y1), 0.0)
+        hits = np.hypot(dx, dy) <= reach
+        if hits.any():
+            candidates = np.flatnonzero(hits)
+            hits[candidates] = _disks_meet_polygon(centre[candidates], reach[candidates], regions[s])
+        clear &= ~hits
+    return clear
+
+
+def auto_max_edge(read: Reader, grid: TileGrid, count: int, hull: Hull) -> float:
+    """max_edge="auto" for the survey, as triangulation.trim resolves it from the whole
+    triangulation (AUTO_EDGE_FACTOR x the median edge), without holding the survey."""
+    from c1mesh.engine.triangulation import AUTO_EDGE_FACTOR
+
+    return float(AUTO_EDGE_FACTOR * edge_length_median(read, grid, count, hull))
+
+
+# ------------------------------------------------- one pass: the trimmed triangulation
+@dataclass
+class TilePass:
+    """What one triangulation of a tile certifies for a bound B: short (e,) lengths of the
+    survey's Delaunay edges of length <= B at its own points (edge_length_median);
+    triangles (k, 3) survey numbers of the survey's Delaunay triangles it owns whose edges
+    are all <= B, longest (k,) their longest edge; buffer, read, rounds as TileTriangles."""
+
+    tile: int
+    short: np.ndarray
+    triangles: np.ndarray
+    longest: np.ndarray
+    buffer: float
+    read: int
+    rounds: int
+
+
+def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> TilePass:
+    """Triangulate one tile once for both the edge statistic and the trimmed triangles up
+    to `bound` (frame units), growing its buffer (from bound) until both are certified."""
+    from c1mesh.engine.triangulation import _edge_lengths, _neighbours, delaunay
+
+    box, cell = grid.box, grid.cell(tile)
+    for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
+        read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
+        buffer, rounds = reading.buffer, reading.round
+        if not own.any() or index.size < 3:
+            if not own.any() or covers:
+                empty = np.empty(0)
+                return TilePass(tile, empty, np.empty((0, 3), np.int64), empty, buffer, len(index), rounds)
+            continue
+        centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
+        local = xy - centre
+        simplices = delaunay(local)
+        neighbors = _neighbours(simplices, len(local))
+        # edges, each once: on the hull or towards a higher-numbered triangle
+        t, k = np.nonzero((neighbors < 0) | (neighbors > np.arange(len(simplices))[:, None]))
+        a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
+        lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
+        edge_mine = own[np.where(index[a] < index[b], a, b)] & (lengths <= bound)
+        longest = _edge_lengths(xy, simplices).max(axis=1)
+        triangle_mine = (own[simplices] & _lowest_corner(index[simplices])).any(axis=1) & (longest <= bound)
+        if not covers:
+            strips = _unread_strips(read_box, box, centre)
+            regions = _clip_to_hull(strips, hull.xy - centre)
+            at_own = own[simplices].any(axis=1) & (longest <= bound)
+            centres, _ = circumcircles(local, simplices)
+            te, ke, ae, be = t[edge_mine], k[edge_mine], a[edge_mine], b[edge_mine]
+            circle = _smallest_empty_circle(local, simplices, neighbors, te, ke, ae, be, centres)
+            certified = (_disks_clear(local, simplices[at_own], strips, regions).all()
+                         and _centres_clear(circle, np.hypot(*(local[ae] - circle).T), strips, regions,
+                                            np.abs(local).max()).all())
+            if not certified:
+                continue
+        return TilePass(tile, lengths[edge_mine], index[simplices[triangle_mine]], longest[triangle_mine],
+                        buffer, len(index), rounds)
+
+
+def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_edge="auto",
+                     keep: Callable[[TilePass], object] = lambda p: p,
+                     passes: Callable[[float], Iterable[tuple[np.ndarray, object]]] | None = None
+                     ) -> tuple[float, list]:
+    """The survey's Delaunay triangulation after the long-edge trim, tile by tile, with one
+    triangulation per tile: (max_edge, [keep(pass) per tile]).
+
+    max_edge: a length, or "auto" (trim's rule: AUTO_EDGE_FACTOR x the median edge,
+    edge_length_median's method). Each tile certifies up to a bound B (max_edge, or for
+    "auto" 2 x AUTO_EDGE_FACTOR mean spacings, raised and the pass repeated in the rare
+    case the median comes out above it); its TilePass holds triangles up to B, of which
+    those with longest <= max_edge are the result. keep(pass) is what is kept per tile
+    (the default keeps the pass; a caller short of memory writes it to disk and keeps a path).
+    passes(bound): instead of the tile loop here, the (short lengths, kept) of every tile's
+    tile_pass up to bound, in any order (the median does not depend on it), the kept list
+    in that order (c1mesh.survey.tiled_fit runs the tiles as tasks this way); a tile's short
+    lengths may be an array or the path of a .npy file holding it (`short_median`).
+    """
+    from c1mesh.engine.triangulation import AUTO_EDGE_FACTOR
+
+    edges = 3 * count - 3 - len(hull.index)
+    auto = isinstance(max_edge, str)
+    bound = 2.0 * AUTO_EDGE_FACTOR * mean_spacing(grid.box, count) if auto else float(max_edge)
+
+    def one_by_one(bound):
+        for tile in range(len(grid)):
+            result = tile_pass(read, grid, tile, bound, hull)
+            short, result.short = result.short, None
+            yield short, keep(result)
+
+    while True:
+        shorts, kept = [], []
+        for short, result in (passes or one_by_one)(bound):
+            shorts.append(short)
+            kept.append(result)
+        if not auto:
+            return bound, kept
+        median = short_median(shorts, edges)
+        if median is not None:
+            limit = float(AUTO_EDGE_FACTOR * median)
+            if limit <= bound:
+                return limit, kept
+            bound = limit
+        else:
+            bound *= 2.0
+
+
+SHORT_GATHER = 1 << 20
+"""short_median collects at most this many lengths (8 MB) to partition them."""
+
+
+def short_median(shorts: list, edges: int) -> float | None:
+    """The median of the survey's `edges` Delaunay edge lengths from the certified short
+    ones (per tile an array, or the path of a .npy file of it; each at most the bound,
+    so every longer edge ranks above them): the value np.partition of their
+    concatenation gives, to the bit, or None when at most half of the edges are short.
+
+    The lengths are never concatenated (about 3 per survey point): the ranks are found
+    by streamed_median.order_statistic, holding one tile's lengths and at most
+    SHORT_GATHER candidates, so the parent's memory does not grow with the survey."""
+    from c1mesh.survey.streamed_median import order_statistic
+
+    def chunks():
+        for short in shorts:
+            yield np.load(short) if isinstance(short, (str, os.PathLike)) else short
+    if sum(_length(short) for short in shorts) <= edges // 2:
+        return None
+    upper = edges // 2
+    if edges % 2:
+        return order_statistic(chunks, upper, SHORT_GATHER)
+    middle = [order_statistic(chunks, rank, SHORT_GATHER) for rank in (upper - 1, upper)]
+    return float(np.mean(np.array(middle)))
+
+
+def _length(short) -> int:
+    """Values in a 1-D array, or in the .npy file at a path (read from its header)."""
+    if not isinstance(short, (str, os.PathLike)):
+        return len(short)
+    with open(short, "rb") as file:
+        version = np.lib.format.read_magic(file)
+        header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                  else np.lib.format.read_array_header_2_0)
+        shape, _, _ = header(file)
+    return int(np.prod(shape))

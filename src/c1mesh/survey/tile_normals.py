@@ -1,0 +1,99 @@
+"""Estimated normals of a survey cut into tiles, with buffers sized by the data.
+
+normals.estimate_normals fits a plane to each point's k nearest distinct neighbours (3-D).
+A tile of a buffered_delaunay.TileGrid reads its cell grown by a buffer and estimates the
+normals of its own points from what it read. An own point's k nearest neighbours among
+the points read are its k nearest in the survey when the k-th of them is closer than
+every point not read: those lie outside the read rectangle, at a plane distance (hence a
+3-D distance) at least the point's distance to the unread part of the survey's box. When
+that holds for every own point the tile is done; otherwise its buffer doubles. The
+normals then agree with the whole survey's to rounding (the neighbourhoods are the same;
+only the centring of the coordinates differs).
+
+read3(rect) -> (index (m,) ascending survey numbers, xyz (m, 3)) gives the points in the
+closed rectangle of the plane, in the frame's coordinates (tile_spill.TileSpill.records).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from c1mesh.survey.buffered_delaunay import TileGrid, _unread_strips, growing_reads
+
+
+@dataclass
+class TileNormals:
+    """Unit normals (m, 3) of a tile's own points, index (m,) their survey numbers; the
+    buffer it ended with and the rounds it took."""
+
+    tile: int
+    index: np.ndarray
+    normals: np.ndarray
+    buffer: float
+    rounds: int
+
+
+def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float,
+                 towards=(0.0, 0.0, 1.0)) -> TileNormals:
+    """Normals of one tile's own points (module docstring), oriented to face `towards`."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.fit.normals import estimate_normals, unique_positions
+
+    def neighbours_read(xyz, own, read_box):
+        distinct, inverse = unique_positions(xyz)
+        return len(distinct) >= k and _neighbourhoods_inside(
+            cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, grid.box)
+
+    return _grown(read3, grid, tile, buffer, neighbours_read,
+                  lambda xyz, own: estimate_normals(xyz, k=k, towards=towards)[own])
+
+
+def _grown(read3: Callable, grid: TileGrid, tile: int, buffer: float,
+           neighbours_read: Callable, normals_of: Callable) -> TileNormals:
+    """A tile's normals from the points within `buffer` of its cell, the buffer doubled until
+    neighbours_read(xyz, own, read_box) says every own point's neighbourhood was read (or the
+    read box covers the survey); normals_of(xyz, own) gives the own points' normals."""
+    for reading in growing_reads(read3, grid, tile, buffer):
+        index, xyz, own = reading.index, reading.points, reading.own
+        if not own.any():
+            return TileNormals(tile, index[own], np.empty((0, 3)), reading.buffer, reading.round)
+        if reading.covers or neighbours_read(xyz, own, reading.box):
+            return TileNormals(tile, index[own], normals_of(xyz, own), reading.buffer, reading.round)
+
+
+def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:
+    """True when every point's k-th nearest neighbour (itself counted, as Open3D counts it)
+    is closer than the unread part of the box (with a relative margin for rounding)."""
+    from c1mesh.core.threads import workers
+
+    distance, _ = tree.query(points, k, workers=workers())
+    kth = distance[:, -1] if distance.ndim == 2 else distance
+    gap = np.full(len(points), np.inf)
+    for x0, y0, x1, y1 in _unread_strips(read_box, box, np.zeros(2)):
+        dx = np.maximum(np.maximum(x0 - points[:, 0], points[:, 0] - x1), 0.0)
+        dy = np.maximum(np.maximum(y0 - points[:, 1], points[:, 1] - y1), 0.0)
+        gap = np.minimum(gap, np.hypot(dx, dy))
+    return bool((kth * (1 + 1e-9) < gap).all())
+
+
+def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float) -> TileNormals:
+    """Upward unit normals (frame coordinates) of one tile's own points from the heights:
+    c1mesh.fit.height_gradients' fit over each point's k nearest neighbours in the plane,
+    what the in-memory fit uses for LAS/LAZ (`height_normals`). The buffer grows as for
+    `tile_normals` until every own point's k nearest plane neighbours lie in what was read
+    (their plane distance is below the unread part's), so each fit sees the survey's
+    neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.fit.frame import gradients_to_normals
+    from c1mesh.fit.height_gradients import height_gradients
+
+    def neighbours_read(xyz, own, read_box):
+        return len(xyz) > k + 1 and _neighbourhoods_inside(
+            cKDTree(xyz[:, :2]), xyz[own, :2], k + 1, read_box, grid.box)
+
+    return _grown(read3, grid, tile, buffer, neighbours_read,
+                  lambda xyz, own: gradients_to_normals(height_gradients(xyz[:, :2], xyz[:, 2], k=k)[own]))
