@@ -148,7 +148,7 @@ def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
 
 
 def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
-    from c1mesh.survey.tiles import fit_seamless
+    from c1mesh.pipeline.survey_fit import fit_seamless
 
     options = FitOptions(classes=(2,), resolution=1.0)
     fit(TILE, tmp_path / "fit.tif", options)

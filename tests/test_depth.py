@@ -349,7 +349,7 @@ def test_default_level_of_a_depth_frame_gives_about_one_vertex_per_valid_pixel(t
 
 def test_axis_frame_default_level_stays_4(tmp_path):
     """A height field keeps the constant PLANE_LEVEL = 4 (its output bytes do not change)."""
-    from c1mesh.pipeline.driver import PLANE_LEVEL
+    from c1mesh.fit.surface import PLANE_LEVEL
 
     points, normals = tilted_plane(20)
     path = write_unorganised_ply(tmp_path / "plane.ply", points, normals)

@@ -78,7 +78,7 @@ def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
     """--max-edge 2.5 on the 0.75 m ground tile: one warning, the same rule and numbers in
     the in-memory fit, --seamless -O and the tiled fit (which cannot count pieces)."""
     from c1mesh.survey.tiled_fit import fit_tiled
-    from c1mesh.survey.tiles import fit_seamless
+    from c1mesh.pipeline.survey_fit import fit_seamless
 
     options = FitOptions(classes=(2,), level=1, max_edge=2.5)
     whole = fit(TILE, None, options).report["warnings"]

@@ -34,7 +34,8 @@ from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.fit.limiter import control_overshoot
 from c1mesh.fit.normals import estimate_normals
-from c1mesh.pipeline.driver import FitOptions, surface_stream
+from c1mesh.fit.surface import surface_stream
+from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.survey.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
 from c1mesh.survey.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits

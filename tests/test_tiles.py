@@ -187,7 +187,7 @@ def test_dask_local_cluster_writes_the_same_bytes(hill_tiles, tmp_path):
     """Tiles sent to a dask.distributed LocalCluster of two workers (threads, to start fast)."""
     distributed = pytest.importorskip("distributed")
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.survey.tiles import fit_seamless
+    from c1mesh.pipeline.survey_fit import fit_seamless
 
     folder, paths, _ = hill_tiles
     options = FitOptions(level=2)
@@ -388,7 +388,7 @@ def test_tiles_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path,
 def test_tiles_on_a_dask_cluster_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path):
     distributed = pytest.importorskip("distributed")
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.survey.tiles import fit_seamless
+    from c1mesh.pipeline.survey_fit import fit_seamless
 
     paths, whole = large_hill_survey
     outputs = [str(tmp_path / (Path(p).stem + ".ply")) for p in paths]

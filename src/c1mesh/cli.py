@@ -594,7 +594,8 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         _fail(_message(exc), debug)
-    from c1mesh.survey.tiles import fit_seamless, survey_needs_tiles
+    from c1mesh.pipeline.survey_fit import fit_seamless
+    from c1mesh.survey.tiles import survey_needs_tiles
 
     options.workers = _threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output

@@ -22,6 +22,10 @@ fraction of normals clearly faces away from e3.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
+from pathlib import Path
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -595,3 +599,17 @@ def _check_spread(xy: np.ndarray) -> None:
     if sv[1] <= 1e-10 * sv[0]:
         raise InputError("all points lie on one line in the plane of the height axis, so they span "
                          "no surface; check the input or choose another --axis")
+
+
+LAS_FORMATS = ("las", "laz", "copc")
+
+
+def resolve_axis(source, options) -> tuple[FitOptions, str]:
+    """The options with "auto" resolved for LAS/LAZ (z: elevation by the format's
+    definition), and a phrase saying how the height axis is chosen, for the report."""
+    if not (isinstance(options.axis, str) and options.axis.strip().lower() == "auto"):
+        return options, f"given: {options.axis}"
+    fmt = options.input_format or (Path(source).suffix if isinstance(source, (str, Path)) else "")
+    if str(fmt).lower().lstrip(".") in LAS_FORMATS:
+        return replace(options, axis="z"), "z: LAS/LAZ elevation"
+    return options, "auto"

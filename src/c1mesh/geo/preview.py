@@ -63,7 +63,7 @@ def render_fit(interp, frame, path, crs: str | None = None, level: int | None = 
         render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
         return
     from c1mesh.geo.products import refined_vertex_count
-    from c1mesh.pipeline.driver import surface_stream
+    from c1mesh.fit.surface import surface_stream
 
     level = max(1, int(level or 1))
     while level > 1 and refined_vertex_count(interp, level) > PREVIEW_VERTICES:

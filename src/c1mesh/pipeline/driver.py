@@ -36,9 +36,11 @@ from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import Refinement
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay, trim
+from c1mesh.fit.frame import LAS_FORMATS, resolve_axis
+from c1mesh.fit.surface import PLANE_LEVEL, surface_stream, with_plane_level
+from c1mesh.fit.warnings import auto_limit, fit_warnings
 
 NORMAL_MODES = ("auto", "file", "estimate")
-PLANE_LEVEL = 4
 """The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
 --level nor --resolution is given."""
 STAGES = ("read", "normals", "frame", "gradients", "triangulate", "interpolate", "refine", "write")
@@ -192,50 +194,6 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     normals = np.full(cloud.points.shape, np.nan)
     normals[finite] = estimate_normals(points, k=options.k, towards=towards)
     return normals, "estimated"
-
-
-_PREFETCH = 2
-"""Blocks a streamed surface is computed ahead of its writer."""
-
-
-def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> MeshStream:
-    """The refined surface in world coordinates as a MeshStream (heights = spline values).
-
-    Each pass evaluates the spline block by block (refine.Refinement) and turns every
-    block into world vertices, unit normals on the axis side and, when the input has
-    colours (N, c) uint8, colours blended linearly; nothing of the size of the output is
-    held, so the writers (all of them stream) need only block-sized memory. Blocks are
-    computed by a second thread a few blocks ahead of the writer (c1mesh.core.threads.prefetch).
-    """
-    fields = [] if colors is None else [colors.astype(float)]
-
-    def world_blocks():
-        size = refinement.largest_block
-        local = np.empty((size, 3))
-        slots = [(np.empty((size, 3)), np.empty((size, 3))) for _ in range(ring(_PREFETCH))]
-        for i, block in enumerate(refinement.vertex_blocks(fields=fields)):
-            vertices, normals = slots[i % len(slots)]
-            n = block.stop - block.start
-            local[:n, :2] = block.points
-            local[:n, 2] = block.values
-            frame.to_world(local[:n], out=vertices[:n])
-            if hasattr(frame, "normals_from_gradients"):      # perspective.PerspectiveFrame
-                frame.normals_from_gradients(local[:n], block.gradients, out=normals[:n])
-            else:
-                gradients_to_normals(block.gradients, out=local[:n])
-                frame.vectors_to_world(local[:n], out=normals[:n])
-            blended = None
-            if fields:
-                blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
-            yield vertices[:n], normals[:n], blended
-
-    def vertex_blocks():
-        return prefetch(world_blocks(), _PREFETCH)
-
-    def face_blocks():
-        return prefetch((faces for _, faces in refinement.face_blocks(ring=ring(_PREFETCH))), _PREFETCH)
-    return MeshStream(refinement.vertex_count, refinement.face_count, True,
-                      0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
 
 def _compact(xy, triangles):
@@ -441,7 +399,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     geo = geo_plan(output, options)
     if geo.rasters.items():
         options = replace(options, axis=raster_axis(options.axis))
-    options, axis_reason = _resolve_axis(source, options)
+    options, axis_reason = resolve_axis(source, options)
     timer = _Timer(on_stage)
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
@@ -471,7 +429,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                                             "warnings": fit_warnings(
                                                 len(cloud), int(used.size), trim_report.triangles_before,
                                                 trim_report.removed.get("long_edge", 0),
-                                                trim_report.max_edge, _auto_limit(options.max_edge)),
+                                                trim_report.max_edge, auto_limit(options.max_edge)),
                                             **_angle_facts(angles, model)}),
                            interp, frame, crs, crs_source, options)
     level, level_from = plane_level(interp, options)
@@ -489,7 +447,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report.update(_angle_facts(angles, model))
     report["warnings"] = fit_warnings(len(cloud), int(used.size), trim_report.triangles_before,
                                       trim_report.removed.get("long_edge", 0), trim_report.max_edge,
-                                      _auto_limit(options.max_edge), report["pieces"]["count"])
+                                      auto_limit(options.max_edge), report["pieces"]["count"])
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
@@ -509,13 +467,6 @@ def plane_level(interp: RSDInterpolator, options: FitOptions) -> tuple[int, str]
     if options.level is not None:
         return options.level, "option"
     return PLANE_LEVEL, "default"
-
-
-def with_plane_level(options: FitOptions) -> FitOptions:
-    """The options with level PLANE_LEVEL when none is given: the tiled fits
-    (tiles.fit_seamless, tiled_fit.fit_tiled) are height fields, whose level does not
-    depend on the data."""
-    return options if options.level is not None else replace(options, level=PLANE_LEVEL)
 
 
 def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, output, options: FitOptions,
@@ -546,69 +497,6 @@ def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, out
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     return mesh, stream
-
-
-LAS_FORMATS = ("las", "laz", "copc")
-
-
-def _resolve_axis(source, options: FitOptions) -> tuple[FitOptions, str]:
-    """The options with "auto" resolved for LAS/LAZ (z: elevation by the format's
-    definition), and a phrase saying how the height axis is chosen, for the report."""
-    if not (isinstance(options.axis, str) and options.axis.strip().lower() == "auto"):
-        return options, f"given: {options.axis}"
-    fmt = options.input_format or (Path(source).suffix if isinstance(source, (str, Path)) else "")
-    if str(fmt).lower().lstrip(".") in LAS_FORMATS:
-        return replace(options, axis="z"), "z: LAS/LAZ elevation"
-    return options, "auto"
-
-
-UNUSED_POINTS_WARN = 0.2
-"""More than this fraction of the points in no triangle of the surface draws the wrong-axis
-warning. A right axis leaves few: 0.4% on Autzen ground (points alone inside building
-footprints), 8.6% on the bunny range scan (its silhouette); a wrong one on a 52-point
-terrain 31-67% (the points fold over each other seen along it)."""
-LONG_EDGE_WARN = 0.1
-"""More than this fraction of the triangles removed by the --max-edge rule draws the
-max-edge warning: a courtyard or a building footprint is spanned by a few long triangles
-(Autzen ground at the auto limit: 3.1%), but a limit near the point spacing cuts
-triangles inside dense data (uniform points at 1.6x their spacing: 38%)."""
-
-
-def fit_warnings(points: int, used: int, triangles: int, long_edge: int, max_edge,
-                 auto_limit: bool = False, pieces: int | None = None) -> list[str]:
-    """Plain-language warnings about a fit whose result is probably wrong (the CLI prints
-    them on stderr), the same for the in-memory and the tiled fit.
-
-    points: the points the fit was given (after --classes and --bounds); used: those that
-    are vertices of the trimmed surface; triangles: the triangles of the whole Delaunay
-    triangulation before the trim; long_edge: how many of them the --max-edge rule removed
-    (limit max_edge, length units or None; auto_limit: it is --max-edge auto's);
-    pieces: connected pieces of the result, when known (named in the message).
-
-    Holes the trim leaves over gaps in the data (courtyards, building footprints under
-    LiDAR ground) remove few triangles and leave few points out, so they draw no warning.
-    A --max-edge near the data's spacing removes triangles between dense points; the
-    auto limit (triangulation.AUTO_EDGE_FACTOR x the median edge) does that only where the
-    points are far from evenly spread over the plane, and a wrong height axis, which also
-    leaves many points folded over others and off the surface, is the likely cause. At
-    most one warning: the first that applies of these.
-    """
-    unused = f"{points - used} of the {points} points are in no triangle"
-    dense = bool(triangles) and max_edge is not None and long_edge / triangles > LONG_EDGE_WARN
-    if dense and not auto_limit:
-        split = "" if pieces is None else f" (the surface fell into {pieces} pieces)"
-        return [f"--max-edge {max_edge:.6g} removed {long_edge / triangles:.0%} of the triangles, also "
-                f"between dense points, and {unused}; try a larger --max-edge, auto or none{split}"]
-    if dense or (points and 1.0 - used / points > UNUSED_POINTS_WARN):
-        removed = f"--max-edge auto removed {long_edge / triangles:.0%} of the triangles and " if dense else ""
-        return [f"{removed}{unused} of the surface: seen along the height axis the points fold "
-                "over each other or bunch up; check --axis (and --classes)"]
-    return []
-
-
-def _auto_limit(max_edge) -> bool:
-    """Whether the --max-edge option asks for the auto limit."""
-    return isinstance(max_edge, str) and max_edge.strip().lower() == "auto"
 
 
 def mesh_pieces(xy: np.ndarray, triangles: np.ndarray, table=None) -> dict:

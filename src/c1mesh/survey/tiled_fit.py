@@ -338,7 +338,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.survey.survey_stats import streamed_frame
     from c1mesh.survey.tile_spill import spill
 
-    from c1mesh.pipeline.driver import with_plane_level
+    from c1mesh.fit.surface import with_plane_level
 
     options = with_plane_level(options)
     _check_options(options)
@@ -411,7 +411,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         stack.close()
         temps.close()
-    from c1mesh.pipeline.driver import _auto_limit, fit_warnings
+    from c1mesh.fit.warnings import auto_limit, fit_warnings
     kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output) if outputs is None else [str(o) for o in outputs],
@@ -419,7 +419,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    # a note, not a warning: the result is the in-memory fit's (docs/tiles.md)
                    "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
                    "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
-                                            _auto_limit(options.max_edge)),
+                                            auto_limit(options.max_edge)),
                    "points": {"read": count, "kept": kept}, "max_edge": max_edge,
                    "triangles": {"removed": removed, "max_edge": max_edge},
                    "scheduler": runner.kind,
@@ -1013,7 +1013,7 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
     unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
     tiled_join.KeyExpiry that gives each border key its last tile."""
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.pipeline.driver import surface_stream
+    from c1mesh.fit.surface import surface_stream
     from c1mesh.survey.tiled_join import border_keys
 
     xy = np.column_stack([records["x"], records["y"]])

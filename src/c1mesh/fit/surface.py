@@ -1,0 +1,71 @@
+"""The refined surface in world coordinates, as a stream of blocks for the writers, and the
+level a height field is refined at unless asked otherwise.
+
+Every path (the in-memory fit, -O tiles, the memory-bounded survey fit, previews) turns a
+refinement into world vertices, normals and colours through `surface_stream`.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from c1mesh.core.cloud import MeshStream
+from c1mesh.core.threads import prefetch, ring
+from c1mesh.engine.refine import Refinement
+from c1mesh.fit.frame import gradients_to_normals
+
+PLANE_LEVEL = 4
+"""The refinement level of a height-field (axis-frame) fit when neither --level nor
+--resolution is given: each triangle is split into 16."""
+
+
+_PREFETCH = 2
+"""Blocks a streamed surface is computed ahead of its writer."""
+
+
+def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> MeshStream:
+    """The refined surface in world coordinates as a MeshStream (heights = spline values).
+
+    Each pass evaluates the spline block by block (refine.Refinement) and turns every
+    block into world vertices, unit normals on the axis side and, when the input has
+    colours (N, c) uint8, colours blended linearly; nothing of the size of the output is
+    held, so the writers (all of them stream) need only block-sized memory. Blocks are
+    computed by a second thread a few blocks ahead of the writer (c1mesh.core.threads.prefetch).
+    """
+    fields = [] if colors is None else [colors.astype(float)]
+
+    def world_blocks():
+        size = refinement.largest_block
+        local = np.empty((size, 3))
+        slots = [(np.empty((size, 3)), np.empty((size, 3))) for _ in range(ring(_PREFETCH))]
+        for i, block in enumerate(refinement.vertex_blocks(fields=fields)):
+            vertices, normals = slots[i % len(slots)]
+            n = block.stop - block.start
+            local[:n, :2] = block.points
+            local[:n, 2] = block.values
+            frame.to_world(local[:n], out=vertices[:n])
+            if hasattr(frame, "normals_from_gradients"):      # perspective.PerspectiveFrame
+                frame.normals_from_gradients(local[:n], block.gradients, out=normals[:n])
+            else:
+                gradients_to_normals(block.gradients, out=local[:n])
+                frame.vectors_to_world(local[:n], out=normals[:n])
+            blended = None
+            if fields:
+                blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
+            yield vertices[:n], normals[:n], blended
+
+    def vertex_blocks():
+        return prefetch(world_blocks(), _PREFETCH)
+
+    def face_blocks():
+        return prefetch((faces for _, faces in refinement.face_blocks(ring=ring(_PREFETCH))), _PREFETCH)
+    return MeshStream(refinement.vertex_count, refinement.face_count, True,
+                      0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
+
+
+def with_plane_level(options):
+    """The options with level PLANE_LEVEL when none is given: the tiled fits
+    (tiles.fit_seamless, tiled_fit.fit_tiled) are height fields, whose level does not
+    depend on the data."""
+    return options if options.level is not None else replace(options, level=PLANE_LEVEL)
