@@ -144,7 +144,7 @@ def test_crs_option_that_contradicts_the_file_is_an_error(tmp_path):
 def test_crs_from_a_prj_file(tmp_path):
     prj = tmp_path / "a.prj"
     prj.write_text(_crs("EPSG:2903").to_wkt("WKT1_ESRI"))
-    from c1mesh.geo.crs import parse_crs
+    from c1mesh.core.crs import parse_crs
     assert _crs(parse_crs(str(prj))).equals(_crs("EPSG:2903"))
 
 

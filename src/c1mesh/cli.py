@@ -582,7 +582,7 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
         if options.crs:
             from dataclasses import replace
 
-            from c1mesh.geo.crs import parse_crs
+            from c1mesh.core.crs import parse_crs
             options = replace(options, crs=parse_crs(options.crs))
         if output_dir and not Path(output_dir).exists():
             Path(output_dir).mkdir(parents=True)
@@ -774,8 +774,8 @@ def _fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: in
 
 def _write_prj(outputs, dst, mesh_target, fmt, result) -> None:
     """The .prj sidecar (ESRI WKT) of a mesh file written in the same transaction as the mesh,
-    when a CRS was carried (c1mesh.geo.crs; not for stdout or devices)."""
-    from c1mesh.geo.crs import esri_wkt, prj_path
+    when a CRS was carried (c1mesh.core.crs; not for stdout or devices)."""
+    from c1mesh.core.crs import esri_wkt, prj_path
     from c1mesh.formats import PRJ_SIDECAR
 
     crs = (result.get("crs") or {}).get("wkt")

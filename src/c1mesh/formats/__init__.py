@@ -231,7 +231,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     with Outputs(deferred=False).open(planned) as f:
         _WRITERS[key](mesh, f, ascii=ascii, **_crs_argument(key, crs))
     if crs and sidecar and key in PRJ_SIDECAR and planned.kind == "atomic":
-        from c1mesh.geo.crs import write_prj
+        from c1mesh.core.crs import write_prj
         write_prj(target, crs)
 
 

@@ -24,7 +24,7 @@ from typing import IO, Callable, Union
 import numpy as np
 
 from c1mesh.core.cloud import PointCloud
-from c1mesh.geo.crs import las_crs
+from c1mesh.core.crs import las_crs
 from c1mesh.core.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc

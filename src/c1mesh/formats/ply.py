@@ -17,7 +17,7 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.core.errors import FormatError, InputError
-from c1mesh.geo.crs import crs_from_ply_header, ply_comment
+from c1mesh.core.crs import crs_from_ply_header, ply_comment
 from c1mesh.formats._background import background_writes
 from c1mesh.formats._blocks import TEXT_ROWS, face_chunks, text_rows, vertex_chunks
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native

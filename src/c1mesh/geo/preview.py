@@ -346,6 +346,6 @@ def _units(crs: str | None) -> str:
     """Short name of the horizontal unit of a CRS ('' when there is none)."""
     if not crs:
         return ""
-    from c1mesh.geo.crs import describe
+    from c1mesh.core.crs import describe
     unit = describe(crs)["units"] or ""
     return _UNIT_NAMES.get(unit, unit)

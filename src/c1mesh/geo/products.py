@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from c1mesh.geo import crs as crs_module
+from c1mesh.core import crs as crs_module
 from c1mesh.core.errors import InputError
 from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
 

@@ -645,7 +645,7 @@ def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str |
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     if crs and (options.slope or options.aspect or options.hillshade):
-        from c1mesh.geo.crs import describe
+        from c1mesh.core.crs import describe
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
                              "geographic (degrees): reproject to a projected CRS first")

@@ -85,7 +85,7 @@ class FitOptions:
     output_format: str | None = None
     memory: Any = None
     bounds: tuple[float, float, float, float] | None = None
-    # Georeferencing and rasters (c1mesh.geo.crs, c1mesh.geo.raster, c1mesh.geo.preview): crs assigns a
+    # Georeferencing and rasters (c1mesh.core.crs, c1mesh.geo.raster, c1mesh.geo.preview): crs assigns a
     # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
     # cell size, or for meshes the target mean edge length (chooses the level); slope,
     # aspect, hillshade are extra GeoTIFF paths; preview a PNG path.

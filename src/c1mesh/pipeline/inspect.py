@@ -39,7 +39,7 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
     if cloud.classification is not None:
         classes, counts = np.unique(cloud.classification, return_counts=True)
         facts["classes"] = {int(c): int(n) for c, n in zip(classes, counts)}
-    from c1mesh.geo.crs import describe as describe_crs
+    from c1mesh.core.crs import describe as describe_crs
     facts["crs"] = describe_crs(cloud.crs)
     if pts.shape[0]:
         facts["bounds"] = {"min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}

@@ -13,7 +13,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.fit.frame import resolve_axis
 from c1mesh.fit.surface import with_plane_level
 from c1mesh.fit.warnings import auto_limit, fit_warnings
-from c1mesh.geo.crs import describe, parse_crs
+from c1mesh.core.crs import describe, parse_crs
 from c1mesh.geo.products import resolve_crs
 from c1mesh.pipeline.driver import _Timer, build_surface, fit
 from c1mesh.survey.distributed import run_tiles

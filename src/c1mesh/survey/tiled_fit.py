@@ -433,11 +433,11 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
 def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
     """(CRS WKT, "file" | "option" | None) of a LAS/LAZ survey (one path or a list): the
     CRS its headers declare (c1mesh.survey.tiles.survey_crs: one for all files, InputError when
-    two differ) and the user's --crs (WKT or any c1mesh.geo.crs.parse_crs input) resolved as
+    two differ) and the user's --crs (WKT or any c1mesh.core.crs.parse_crs input) resolved as
     the in-memory fit does (InputError when they differ)."""
     import laspy
 
-    from c1mesh.geo.crs import las_crs, parse_crs, resolve
+    from c1mesh.core.crs import las_crs, parse_crs, resolve
     from c1mesh.survey.tiles import survey_crs as common_crs
 
     paths = survey_paths(source)
@@ -450,7 +450,7 @@ def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
 
 
 def _describe_crs(crs, crs_source) -> dict | None:
-    from c1mesh.geo.crs import describe
+    from c1mesh.core.crs import describe
 
     facts = describe(crs)
     if facts is not None:

@@ -105,7 +105,7 @@ def survey_height_column(sources: Sequence[str], clouds: Sequence[PointCloud]) -
 def survey_crs(sources: Sequence[str], crs_list: Sequence[str | None]) -> str | None:
     """The CRS (WKT) the inputs declare, one for the survey: inputs without one take it;
     InputError naming two inputs that declare different ones (c1mesh does not reproject)."""
-    from c1mesh.geo.crs import same_crs
+    from c1mesh.core.crs import same_crs
 
     declared = [(source, crs) for source, crs in zip(sources, crs_list) if crs]
     for source, crs in declared[1:]:
@@ -412,7 +412,7 @@ def _has_sidecar(output: str) -> bool:
 
 def _temp_prj(output: str, crs: str) -> dict:
     """{temporary file: final .prj path} of `output`'s CRS sidecar (ESRI WKT), written."""
-    from c1mesh.geo.crs import esri_wkt, prj_path
+    from c1mesh.core.crs import esri_wkt, prj_path
     from c1mesh.core.outputs import plan_outputs
 
     final = prj_path(output)

@@ -4,7 +4,8 @@ c1mesh never reprojects: points keep the coordinates of their file, and the CRS 
 carried from the input to every output (native in GeoTIFF, a header comment in PLY, a
 `.prj` sidecar beside PLY/OBJ/STL/OFF, the asset's extras in GLB). Inside the library a
 CRS travels as a WKT2 string (``str``), so that numpy-only code never needs pyproj;
-pyproj is imported here only when a CRS is parsed or converted.
+pyproj is imported here only when a CRS is parsed or converted. It lives in core because
+the file formats (layer 2) read and write it (LAS VLRs, PLY comments, .prj sidecars).
 
 Policy when the input has a CRS and the user passes ``--crs`` too: equal CRSs (same
 definition, axis order ignored) are accepted; different ones are an error, since
@@ -126,7 +127,7 @@ def prj_path(mesh_path) -> Path:
 
 def write_prj(mesh_path, wkt: str) -> Path:
     """Write the ESRI-WKT sidecar of `mesh_path` atomically; returns its path."""
-    from c1mesh.formats import atomic_output
+    from c1mesh.core.outputs import atomic_output
 
     target = prj_path(mesh_path)
     with atomic_output(target, "w") as handle:
