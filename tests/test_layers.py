@@ -1,0 +1,40 @@
+"""The package's layers (README, Layout): each subpackage imports only from those below it.
+
+import-linter's layers contract in `.importlinter` checks every import of the package, also
+those inside functions. The second test turns the stack upside down, so the same check on
+the same code has to fail: a wrong-direction import cannot pass unseen.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+LINT = Path(sys.executable).with_name("lint-imports")
+
+
+def _lint(config: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    return subprocess.run([str(LINT), "--no-cache", str(config)], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_every_import_goes_down_the_layers():
+    done = _lint(ROOT / ".importlinter")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "1 kept, 0 broken" in done.stdout
+
+
+def test_the_contract_fails_on_imports_in_the_wrong_direction(tmp_path):
+    config = (ROOT / ".importlinter").read_text()
+    layers = ["c1mesh.cli", "c1mesh.pipeline", "c1mesh.geo : c1mesh.survey", "c1mesh.fit",
+              "c1mesh.engine : c1mesh.formats", "c1mesh.core"]
+    listed = "\n".join(f"    {layer}" for layer in layers)
+    assert listed in config                          # the stack this test turns over
+    upside_down = config.replace(listed, "\n".join(f"    {layer}" for layer in reversed(layers)))
+    (tmp_path / "upside_down.ini").write_text(upside_down)
+    done = _lint(tmp_path / "upside_down.ini")
+    assert done.returncode != 0
+    assert "c1mesh.cli is not allowed to import c1mesh.core" in done.stdout   # now the lowest layer
