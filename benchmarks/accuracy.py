@@ -14,7 +14,7 @@ Observed order = log2(error(N) / error(4N)), i.e. per halving of h.
 Terrain part: matplotlib's jacksboro_fault_dem.npz (metres, 3 arc-second grid, spacing
 taken from its dx/dy keys), subsampled. The methods see the training points only: sextic
 and rHCT get gradients fitted to the training heights as `c1mesh fit` does for a scan
-without normals and height axis z (c1mesh.fit.height_gradients, a weighted local quadratic
+without normals and height axis z (c1mesh.stages.height_gradients, a weighted local quadratic
 over 24 neighbours), CT estimates its own from the training values. Errors at all held-out grid points inside
 the hull; the gradient reference there is central differences on the full grid.
 """
@@ -185,7 +185,7 @@ def _plot(results, sizes, path) -> None:
 def training_gradients(xyz: np.ndarray) -> np.ndarray:
     """Gradients (n, 2) at training points (n, 3) fitted to their heights, as the fit
     pipeline gets them for a scan without normals and height axis z."""
-    from c1mesh.fit.height_gradients import height_gradients, height_neighbours
+    from c1mesh.stages.height_gradients import height_gradients, height_neighbours
     return height_gradients(xyz[:, :2], xyz[:, 2], k=height_neighbours(16))
 
 
@@ -214,7 +214,7 @@ def _terrain(sec: Section, crop: int | None = None) -> list[str]:
            f"grid spacing {dx:.1f} m × {dy:.1f} m from dx = dy = {float(data['dx']):.6g}°)", "",
            "Fitting sees the training points only: sextic and rHCT get gradients fitted to the "
            "training heights, as `c1mesh fit` gets them for a scan without normals "
-           "(c1mesh.fit.height_gradients, a weighted local quadratic over 24 neighbours); "
+           "(c1mesh.stages.height_gradients, a weighted local quadratic over 24 neighbours); "
            "CT estimates its own gradients from the training values. "
            "Errors at every held-out grid point inside the hull; gradient errors are against "
            "central differences on the full grid (approximate; elevations are whole metres).", "",

@@ -51,7 +51,7 @@ def _mug_field():
 
 
 def _triangulation(cfg: Config, sec: Section) -> None:
-    from c1mesh.fit.grid import grid_mesh
+    from c1mesh.stages.grid import grid_mesh
     from c1mesh.core.threads import limit, workers
     from c1mesh.engine.triangulation import delaunay
 
@@ -174,7 +174,7 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
             "'flipped': faces whose geometric normal is more than 90° from the mean of their "
             "three corner normals (in parentheses: from any one corner normal, the project's "
             "measure of a folded face, quality.folded_faces); --overshoot off: the same fit "
-            "without the overshoot limiter (c1mesh.fit.limiter in the (u, v, w) chart); 'kept': finite "
+            "without the overshoot limiter (c1mesh.stages.limiter in the (u, v, w) chart); 'kept': finite "
             "input points that are output vertices (within 1e-9 m). depth.png: both meshes "
             "shaded from their faces' geometric normals, seen from 20° above the camera (curtains "
             "show as streaks hanging from the mug's rim).", "",

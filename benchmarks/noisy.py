@@ -1,12 +1,12 @@
 """Noisy data: real scans in data_samples/, c1mesh before and after its overshoot control.
 
 For each sample the pipeline's own height field and trimmed triangles (without the curtains
-c1mesh.fit.curtains removes: triangles along the height axis or folded against their data
+c1mesh.stages.curtains removes: triangles along the height axis or folded against their data
 normals) are shared by every method. The raw gradients are the pipeline's: fitted to the
-heights where normals are estimated (LiDAR: c1mesh.fit.height_gradients), from the file's
+heights where normals are estimated (LiDAR: c1mesh.stages.height_gradients), from the file's
 normals otherwise.
   c1mesh off     RSD sextic with the raw gradients as they are (--overshoot off);
-  c1mesh limit   the default: limited gradients and edge directions (c1mesh.fit.limiter);
+  c1mesh limit   the default: limited gradients and edge directions (c1mesh.stages.limiter);
   c1mesh PCA     the default before gradients were fitted to heights: limit with gradients
                  from Open3D PCA normals (k = 16) of the same points (--gradients normals;
                  the same as c1mesh limit where the file has normals);
@@ -46,7 +46,7 @@ METHODS = ("c1mesh off", "c1mesh limit", "c1mesh PCA", "rHCT", "rHCT limited", "
 
 def stage_data(path, options: dict):
     """(cloud, frame, xy, z, raw gradients, triangles) as `c1mesh fit` builds them."""
-    from c1mesh.fit.frame import resolve_axis
+    from c1mesh.stages.frame import resolve_axis
     from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
 
     opts, _ = resolve_axis(path, FitOptions(**options))
@@ -59,7 +59,7 @@ def stage_data(path, options: dict):
 def pca_gradients(xy, z, g, k: int, estimated: bool):
     """Gradients from Open3D PCA normals of the height-field points (n, 2), (n,) when the
     pipeline estimated normals (`estimated`), else the raw gradients g (file normals)."""
-    from c1mesh.fit.normals import estimate_normals
+    from c1mesh.stages.normals import estimate_normals
 
     if not estimated:
         return g
@@ -75,7 +75,7 @@ def surfaces(xy, z, g, tri, lam, pca=None) -> dict:
 
     from c1mesh.engine import rsd
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.fit.limiter import control_overshoot
+    from c1mesh.stages.limiter import control_overshoot
     from c1mesh.testing.quality import lattice_points
 
     pts = lattice_points(xy, tri, lam).reshape(-1, 2)
@@ -118,7 +118,7 @@ def holdout(cloud, opts, seeds=SEEDS) -> dict:
 
     from c1mesh.core.cloud import PointCloud
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.fit.limiter import control_overshoot
+    from c1mesh.stages.limiter import control_overshoot
     from c1mesh.pipeline.driver import build_surface
 
     finite = np.isfinite(cloud.points).all(axis=1)

@@ -106,7 +106,7 @@ def run(path: str, per_tile: int = 500_000) -> None:
 
 
 def whole(path: str) -> None:
-    from c1mesh.fit.frame import choose_frame
+    from c1mesh.stages.frame import choose_frame
     from c1mesh.engine.triangulation import delaunay, trim
 
     t0 = time.perf_counter()

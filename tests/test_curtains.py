@@ -1,4 +1,4 @@
-"""Curtains in the axis frame (c1mesh.fit.curtains): depth jumps are holes, not curtains, over a
+"""Curtains in the axis frame (c1mesh.stages.curtains): depth jumps are holes, not curtains, over a
 plane too; slivers narrower than the height noise go with them."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import c1mesh.pipeline.driver as pipeline
-from c1mesh.fit.curtains import REASONS, _needs_trim, curtain_triangles, noise_floor, remove_curtains
+from c1mesh.stages.curtains import REASONS, _needs_trim, curtain_triangles, noise_floor, remove_curtains
 from c1mesh.pipeline.driver import FitOptions, fit
 from c1mesh.testing.quality import folded_faces
 from c1mesh.engine.triangulation import delaunay, trim

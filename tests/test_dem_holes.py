@@ -159,7 +159,7 @@ def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
 
 # ---------------------------------------------------------------- curtain rules on ground
 def test_view_rules_apply_only_off_las_ground():
-    from c1mesh.fit.curtains import view_rules_apply
+    from c1mesh.stages.curtains import view_rules_apply
 
     eye = np.eye(3)
     assert not view_rules_apply((2,), eye)

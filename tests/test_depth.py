@@ -6,8 +6,8 @@ import pytest
 
 from c1mesh.core.errors import InputError
 from c1mesh.formats import read_cloud
-from c1mesh.fit.grid import depth_jumps, grid_mesh, grid_normals
-from c1mesh.fit.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
+from c1mesh.stages.grid import depth_jumps, grid_mesh, grid_normals
+from c1mesh.stages.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
 from c1mesh.pipeline.driver import FitOptions, fit
 from depth_scenes import (cylinder_from_inside, tilted_plane, write_organised_pcd,
                           write_unorganised_ply)
@@ -92,7 +92,7 @@ def test_depth_jumps_remove_curtains_but_keep_slopes():
 
 
 def test_smallest_eigenvectors_match_eigh():
-    from c1mesh.fit.grid import smallest_eigenvectors
+    from c1mesh.stages.grid import smallest_eigenvectors
     rng = np.random.default_rng(5)
     m = rng.normal(size=(500, 3, 3))
     a = m @ m.transpose(0, 2, 1)
@@ -349,7 +349,7 @@ def test_default_level_of_a_depth_frame_gives_about_one_vertex_per_valid_pixel(t
 
 def test_axis_frame_default_level_stays_4(tmp_path):
     """A height field keeps the constant PLANE_LEVEL = 4 (its output bytes do not change)."""
-    from c1mesh.fit.surface import PLANE_LEVEL
+    from c1mesh.stages.surface import PLANE_LEVEL
 
     points, normals = tilted_plane(20)
     path = write_unorganised_ply(tmp_path / "plane.ply", points, normals)
@@ -379,7 +379,7 @@ def _plane_quad_fraction(corners: np.ndarray, normal: np.ndarray) -> float:
     """Area of the convex quadrilateral `corners` (4, 3), on the plane with `normal`, over
     the area of its bounding box seen along the normal in the frame a preview uses
     (frame.choose_frame: e1 from the normal alone)."""
-    from c1mesh.fit.frame import choose_frame
+    from c1mesh.stages.frame import choose_frame
 
     frame = choose_frame(corners, np.tile(normal, (4, 1)))
     xy = frame.to_local(corners)[:, :2]

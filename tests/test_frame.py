@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from c1mesh.core.errors import InputError, NotAHeightFieldError
-from c1mesh.fit.frame import HeightField, ScanFrame, choose_frame, gradients_to_normals, height_field
+from c1mesh.stages.frame import HeightField, ScanFrame, choose_frame, gradients_to_normals, height_field
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 LIDAR_OFFSET = np.array([6.4e5, 8.5e5, 420.0])
@@ -337,7 +337,7 @@ def test_lidar_ground_is_a_height_field_and_all_returns_are_not():
 # --- fast paths must give the slow paths' exact bits ----------------------------------------
 
 def test_sort_xy_is_lexsort_with_ties_in_x_and_y():
-    from c1mesh.fit.frame import _sort_xy
+    from c1mesh.stages.frame import _sort_xy
     rng = np.random.default_rng(5)
     xy = rng.integers(0, 30, size=(5000, 2)).astype(float)   # many ties, exact duplicates
     xy[::7, 0] = -0.0
@@ -352,7 +352,7 @@ def test_sort_xy_is_lexsort_with_ties_in_x_and_y():
 def test_spacing_from_the_plane_tree_is_the_3d_tree_median_bit_for_bit(sparse):
     """A sparse layer over a dense one: its plane neighbours are all in the other layer,
     so the exact fallback (a 3D tree for those rows) is needed."""
-    from c1mesh.fit.frame import _spacing, _tree
+    from c1mesh.stages.frame import _spacing, _tree
     rng = np.random.default_rng(6)
     xy = rng.random((20000 + sparse, 2))
     z = np.sin(4 * xy[:, 0]) * 0.1
@@ -400,7 +400,7 @@ def test_a_little_endian_body_read_as_big_endian_is_an_input_error():
 
 def test_nearest_via_plane_treats_missing_neighbours_as_unknown():
     """cKDTree returns index n for neighbours it cannot find; the helper must not index with it."""
-    from c1mesh.fit.frame import _nearest_via_plane, _tree
+    from c1mesh.stages.frame import _nearest_via_plane, _tree
     pts = np.random.default_rng(2).random((100, 3))
     expected = _tree(pts).query(pts, k=2)[0][:, 1]
     np.testing.assert_array_equal(_nearest_via_plane(pts, pts, _tree(pts[:, :2])), expected)
@@ -419,11 +419,11 @@ def _lonlat_terrain(n=5000, seed=0):
 def test_auto_axis_survives_coordinates_in_different_units(with_normals, monkeypatch):
     """Degrees for x, y and metres for z: PCA and estimated normals point sideways; the
     auto axis must still be z. Without the unit check (monkeypatched off) it is not."""
-    import c1mesh.fit.frame as frame_module
+    import c1mesh.stages.frame as frame_module
     pts = _lonlat_terrain()
     nrm = None
     if with_normals:
-        from c1mesh.fit.normals import estimate_normals
+        from c1mesh.stages.normals import estimate_normals
         nrm = estimate_normals(pts, towards=(0.0, 0.0, 1.0))
     np.testing.assert_array_equal(choose_frame(pts, nrm).axes[2], [0.0, 0.0, 1.0])
     monkeypatch.setattr(frame_module, "UNIT_ANISOTROPY", np.inf)
@@ -436,7 +436,7 @@ def test_a_row_has_the_same_bits_alone_and_inside_a_cloud(method):
     has inside a large cloud (issue 21: a one-row product took BLAS's matrix-vector path
     and rounded differently; --seamless -O tiles transform their border points in
     differently sized blocks)."""
-    from c1mesh.fit.frame import _ROWS
+    from c1mesh.stages.frame import _ROWS
     rng = np.random.default_rng(7)
     frames = [ScanFrame(LIDAR_OFFSET + rng.normal(size=3), rotation(rng.normal(size=3), rng.uniform(0.1, 3)))
               for _ in range(4)]

@@ -1,7 +1,7 @@
-"""Vertex gradients fitted to the heights (c1mesh.fit.height_gradients) against analytic ones.
+"""Vertex gradients fitted to the heights (c1mesh.stages.height_gradients) against analytic ones.
 
 Ground truth is the analytic gradient of the height function; the PCA route
-(c1mesh.fit.normals.estimate_normals, then -n_xy / n_z) is the peer on the same points.
+(c1mesh.stages.normals.estimate_normals, then -n_xy / n_z) is the peer on the same points.
 """
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import InputError
-from c1mesh.fit.height_gradients import height_gradients, height_neighbours, use_height_gradients
-from c1mesh.fit.normals import estimate_normals
+from c1mesh.stages.height_gradients import height_gradients, height_neighbours, use_height_gradients
+from c1mesh.stages.normals import estimate_normals
 from c1mesh.pipeline.driver import FitOptions, build_surface
 
 
@@ -93,7 +93,7 @@ def test_a_distance_tie_is_broken_by_the_offsets():
     ring at 2."""
     from scipy.spatial import cKDTree
 
-    from c1mesh.fit.height_gradients import nearest_neighbours
+    from c1mesh.stages.height_gradients import nearest_neighbours
 
     xy, z = _grid_with_ties(0)
     centre = np.flatnonzero((xy == 0).all(axis=1))
@@ -133,7 +133,7 @@ def test_a_stack_larger_than_the_first_query_is_still_order_free():
     numbering; the grid points' gradients neither."""
     from scipy.spatial import cKDTree
 
-    from c1mesh.fit.height_gradients import TIE_EXTRA, nearest_neighbours
+    from c1mesh.stages.height_gradients import TIE_EXTRA, nearest_neighbours
 
     xy, z = _grid_with_ties(2)
     stack = 40

@@ -269,7 +269,7 @@ def slow_cases() -> list[Case]:
 SERVER = textwrap.dedent(r"""
     import json, os, signal, sys, time
     import numpy, scipy.spatial, open3d
-    import c1mesh.cli, c1mesh.pipeline.driver, c1mesh.pipeline.inspect, c1mesh.fit.normals
+    import c1mesh.cli, c1mesh.pipeline.driver, c1mesh.pipeline.inspect, c1mesh.stages.normals
 
     def status_kb(field):
         with open("/proc/self/status") as f:

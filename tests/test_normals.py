@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import DependencyError, InputError
-from c1mesh.fit.normals import estimate_normals, orient_normals
+from c1mesh.stages.normals import estimate_normals, orient_normals
 
 
 
@@ -145,7 +145,7 @@ def test_repeated_positions_share_the_normal_of_their_plane():
 
 
 def test_unique_positions_is_exact_and_merges_signed_zeros():
-    from c1mesh.fit.normals import unique_positions
+    from c1mesh.stages.normals import unique_positions
 
     rng = np.random.default_rng(4)
     base = rng.normal(size=(300, 3))

@@ -17,7 +17,7 @@ from scipy.spatial import Delaunay
 from c1mesh.engine import rsd
 from c1mesh.core.cloud import PointCloud
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.fit.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients,
+from c1mesh.stages.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients,
                              reconcile_gradients)
 from c1mesh.pipeline.driver import FitOptions, build_surface, fit, load_cloud
 from c1mesh.testing.quality import (folded_faces, interior_lattice, lattice_points, overshoot,
@@ -170,7 +170,7 @@ def test_lidar_ground_holdout_rms_is_no_worse_than_a_linear_tin(name):
 def test_folded_faces_are_fewer_than_reduced_hct_with_the_same_gradients(name, options):
     """c1mesh's default output against matplotlib's reduced HCT given the raw gradients on
     the same triangles, refined to the same 16 faces per triangle. (pcl_bun0 was a case too:
-    without its curtains (c1mesh.fit.curtains) neither folds, and test_curtains asks c1mesh for
+    without its curtains (c1mesh.stages.curtains) neither folds, and test_curtains asks c1mesh for
     at most 0.01%.)"""
     xy, z, g, tri = height_data(SAMPLES / name, **options)
     mesh = fit(SAMPLES / name, None, FitOptions(**options)).mesh
@@ -318,7 +318,7 @@ def test_given_noise_floors_and_edge_table_reproduce_the_measured_ones():
     the floors this data set itself measures (independently: the medians of the trapezoid
     residuals of the input, and after the heights and gradients are reconciled), the result
     is the same; floors ten times larger tolerate more and limit fewer vertices."""
-    from c1mesh.fit.limiter import reconcile_heights, trapezoid_residuals
+    from c1mesh.stages.limiter import reconcile_heights, trapezoid_residuals
     xy, z, g, tri = height_data(GROUND["4_6_crop"][0])
     table = edge_table(tri, xy.shape[0])
     before = float(np.median(np.abs(trapezoid_residuals(xy, z, g, table.edges))))
@@ -414,7 +414,7 @@ def _noisy_pair_patch(rng, noise=0.02):
 
 def test_reconcile_heights_leaves_exact_quadratic_data_alone():
     """The trapezoid residual vanishes on every quadratic, so even the 1 mm edge moves nothing."""
-    from c1mesh.fit.limiter import reconcile_heights
+    from c1mesh.stages.limiter import reconcile_heights
     xy, z, g, tri = _noisy_pair_patch(np.random.default_rng(1))
     moved, _ = reconcile_heights(xy, z, g, tri)
     assert np.abs(moved - z).max() <= 1e-15
@@ -426,7 +426,7 @@ def test_reconcile_heights_closes_a_noisy_near_pair_within_the_clip():
     near pairs (edges under 5 mm; random points have two more) move, the pair's residual
     closes exactly (half of it is under HEIGHT_CLIP noise floors), and a far
     larger misfit (a 20-floor step) moves each end by exactly the clip and keeps the rest."""
-    from c1mesh.fit.limiter import HEIGHT_CLIP, reconcile_heights, trapezoid_residuals
+    from c1mesh.stages.limiter import HEIGHT_CLIP, reconcile_heights, trapezoid_residuals
     rng = np.random.default_rng(2)
     xy, z, g, tri = _noisy_pair_patch(rng)
     exact_rise = z[-1] - z[0]

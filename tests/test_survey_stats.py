@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from c1mesh.fit.frame import choose_frame
+from c1mesh.stages.frame import choose_frame
 from c1mesh.testing.samples import sample_surface
 from c1mesh.survey.survey_stats import streamed_frame, streamed_median
 

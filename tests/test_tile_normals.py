@@ -33,7 +33,7 @@ def _terrain(n=4000, seed=6, gap=False):
 
 @pytest.mark.parametrize("gap", [False, True])
 def test_tile_normals_are_the_whole_surveys(gap):
-    from c1mesh.fit.normals import estimate_normals
+    from c1mesh.stages.normals import estimate_normals
 
     xyz = _terrain(gap=gap)
     grid = bd.TileGrid((*xyz[:, :2].min(axis=0), *xyz[:, :2].max(axis=0)), 3, 4)
@@ -55,7 +55,7 @@ def test_a_buffer_too_small_without_the_check_gives_other_normals(monkeypatch):
     """The neighbourhood check is what makes them equal: trusting a thin buffer changes
     the normals of points near the tile borders."""
     import c1mesh.survey.tile_normals as tn
-    from c1mesh.fit.normals import estimate_normals
+    from c1mesh.stages.normals import estimate_normals
 
     xyz = _terrain()
     grid = bd.TileGrid((*xyz[:, :2].min(axis=0), *xyz[:, :2].max(axis=0)), 3, 4)

@@ -8,7 +8,7 @@ from scipy.spatial import Delaunay
 
 import c1mesh.survey.buffered_delaunay as bd
 from c1mesh.core import outputs
-from c1mesh.fit.frame import choose_frame
+from c1mesh.stages.frame import choose_frame
 from c1mesh.survey.tile_spill import spill
 
 

@@ -27,14 +27,14 @@ laspy = pytest.importorskip("laspy")
 from click.testing import CliRunner
 
 from c1mesh.cli import main
-from c1mesh.fit.curtains import REASONS, remove_curtains
-from c1mesh.fit.frame import choose_frame, height_field
-from c1mesh.fit.height_gradients import height_neighbours, height_normals
+from c1mesh.stages.curtains import REASONS, remove_curtains
+from c1mesh.stages.frame import choose_frame, height_field
+from c1mesh.stages.height_gradients import height_neighbours, height_normals
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.fit.limiter import control_overshoot
-from c1mesh.fit.normals import estimate_normals
-from c1mesh.fit.surface import surface_stream
+from c1mesh.stages.limiter import control_overshoot
+from c1mesh.stages.normals import estimate_normals
+from c1mesh.stages.surface import surface_stream
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.survey.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
@@ -407,8 +407,8 @@ def test_curtain_noise_floor_is_the_exact_median_over_every_edge_once():
     """curtains.noise_floor: np.median of |trapezoid residual| over the edge table's
     edges (each once), whatever the triangles' order and orientation, so tiles can find
     it by a streamed median of their own edges."""
-    from c1mesh.fit.curtains import noise_floor
-    from c1mesh.fit.limiter import trapezoid_residuals
+    from c1mesh.stages.curtains import noise_floor
+    from c1mesh.stages.limiter import trapezoid_residuals
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 50, (3000, 2))

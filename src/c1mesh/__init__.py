@@ -1,27 +1,48 @@
 """c1mesh: smooth C1 surface meshes from scanned points with normals.
 
-The engine is Stacho's reduced-side-derivative (RSD) C1 spline: `RSDInterpolator` is built
-from points, values and gradients like scipy's interpolators, and `refine` evaluates it on
-a uniform subdivision of every triangle as one matrix product.
+A few verbs and types, like laspy's:
 
-The numerical names below are imported on first use (PEP 562), so that `import c1mesh`
-and the `c1mesh` command's --help and usage errors do not load numpy and scipy.
+    import c1mesh
+    result = c1mesh.fit("scan.ply", "surface.ply", c1mesh.FitOptions(level=3))
+    result.report["points"]            # what the CLI's --report writes
+    cloud = c1mesh.read_cloud("scan.laz", classes=(2,))
+
+`fit` runs the whole pipeline on one input (`fit_seamless` on several, as one survey);
+`read_cloud` / `write_mesh` are the format registry; `RSDInterpolator` is Stacho's
+reduced-side-derivative C1 spline built from points, values and gradients like scipy's
+interpolators, and `Refinement` evaluates it on a uniform subdivision of every triangle
+as one matrix product. Errors are `C1MeshError` and its subclasses.
+
+The names are imported on first use (PEP 562), so that `import c1mesh` and the `c1mesh`
+command's --help and usage errors do not load numpy and scipy.
 """
 from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from c1mesh.core.errors import C1MeshError, InputError, NotAHeightFieldError  # noqa: F401
+from c1mesh.core.errors import (C1MeshError, DependencyError, FormatError, InputError,  # noqa: F401
+                                NotAHeightFieldError)
 
 _LAZY = {
+    "fit": "c1mesh.pipeline.driver",
+    "FitOptions": "c1mesh.pipeline.driver",
+    "FitResult": "c1mesh.pipeline.driver",
+    "fit_seamless": "c1mesh.pipeline.survey_fit",
+    "read_cloud": "c1mesh.formats",
+    "write_mesh": "c1mesh.formats",
+    "PointCloud": "c1mesh.core.cloud",
+    "SurfaceMesh": "c1mesh.core.cloud",
     "RSDInterpolator": "c1mesh.engine.interpolator",
+    "Refinement": "c1mesh.engine.refine",
     "RefinedMesh": "c1mesh.engine.refine",
+    "TileError": "c1mesh.survey.tiles",
     "NAMED_TUPLES": "c1mesh.engine.schemes",
     "ShapeTuple": "c1mesh.engine.schemes",
     "get_scheme": "c1mesh.engine.schemes",
 }
 
-__all__ = ["C1MeshError", "InputError", "NotAHeightFieldError", *_LAZY]
+__all__ = ["C1MeshError", "DependencyError", "FormatError", "InputError", "NotAHeightFieldError",
+           "__version__", *_LAZY]
 
 
 def __getattr__(name: str):

@@ -138,7 +138,7 @@ def _parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
 
 def _check_axis(value: str) -> None:
     """Usage error for an --axis that can never be a direction (checked again, and
-    normalised, by c1mesh.fit.frame)."""
+    normalised, by c1mesh.stages.frame)."""
     text = value.strip().lower().lstrip("+-")
     if text in ("auto", "x", "y", "z"):
         return

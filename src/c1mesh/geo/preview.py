@@ -63,7 +63,7 @@ def render_fit(interp, frame, path, crs: str | None = None, level: int | None = 
         render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
         return
     from c1mesh.geo.products import refined_vertex_count
-    from c1mesh.fit.surface import surface_stream
+    from c1mesh.stages.surface import surface_stream
 
     level = max(1, int(level or 1))
     while level > 1 and refined_vertex_count(interp, level) > PREVIEW_VERTICES:
@@ -177,7 +177,7 @@ def _draw(col, row, height, up, corners, pc, pr, width, best, out) -> None:
 def _view_frame(points: np.ndarray, normals: np.ndarray):
     """The frame a surface is seen in (render_surface, render_mesh) and whether its axes
     are the world's: where it is a height field, world z for terrain within 10° of it."""
-    from c1mesh.fit.frame import choose_frame
+    from c1mesh.stages.frame import choose_frame
 
     frame = choose_frame(points, normals)
     if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
@@ -206,7 +206,7 @@ def render_raster(source, path) -> None:
 
 def render_mesh(source, path, pixels: int = PIXELS) -> None:
     """Preview of a mesh or point file with vertex normals: averages per pixel in the
-    frame where it is a height field (c1mesh.fit.frame.choose_frame)."""
+    frame where it is a height field (c1mesh.stages.frame.choose_frame)."""
     from c1mesh.formats import read_cloud
 
     if Path(str(source)).suffix.lower() == ".glb":

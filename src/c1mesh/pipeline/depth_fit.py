@@ -18,8 +18,8 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud
 from c1mesh.core.errors import InputError
-from c1mesh.fit.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
-from c1mesh.fit.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, \
+from c1mesh.stages.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
+from c1mesh.stages.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, \
     parse_viewpoint
 
 
@@ -93,7 +93,7 @@ def camera_normals(cloud: PointCloud, camera: np.ndarray, frame: PerspectiveFram
         estimate = grid_normals(camera.reshape(height, width, 3), valid).reshape(-1, 3)
         source = "grid"
     else:
-        from c1mesh.fit.normals import estimate_normals
+        from c1mesh.stages.normals import estimate_normals
         finite = np.isfinite(camera).all(axis=1)
         if finite.sum() < 3:
             raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
@@ -195,7 +195,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     camera's, unless a --crs or the file names one), crs_source where it came from.
     """
     from c1mesh.geo.products import finish
-    from c1mesh.fit.limiter import check_mode
+    from c1mesh.stages.limiter import check_mode
     from c1mesh.pipeline.driver import FitResult, _compact, _name, limited_interpolator, write_surface
     from c1mesh.engine.properties import scheme_properties
     from c1mesh.engine.schemes import get_scheme

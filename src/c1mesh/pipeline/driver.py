@@ -17,17 +17,17 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
-from c1mesh.fit.curtains import remove_curtains, view_rules_apply
+from c1mesh.stages.curtains import remove_curtains, view_rules_apply
 from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
 from c1mesh.geo.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.core.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
-from c1mesh.fit.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
-from c1mesh.fit.height_gradients import (height_gradients, height_neighbours, height_normals,
+from c1mesh.stages.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
+from c1mesh.stages.height_gradients import (height_gradients, height_neighbours, height_normals,
                                      use_height_gradients)
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.fit.limiter import check_mode as check_overshoot_mode
-from c1mesh.fit.limiter import control_overshoot
+from c1mesh.stages.limiter import check_mode as check_overshoot_mode
+from c1mesh.stages.limiter import control_overshoot
 from c1mesh.core.threads import blas_threads, prefetch, ring
 from c1mesh.engine.topology import edge_table
 from c1mesh.core.threads import limit as thread_limit
@@ -36,9 +36,9 @@ from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import Refinement
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay, trim
-from c1mesh.fit.frame import LAS_FORMATS, resolve_axis
-from c1mesh.fit.surface import PLANE_LEVEL, surface_stream, with_plane_level
-from c1mesh.fit.warnings import auto_limit, fit_warnings
+from c1mesh.stages.frame import LAS_FORMATS, resolve_axis
+from c1mesh.stages.surface import PLANE_LEVEL, surface_stream, with_plane_level
+from c1mesh.stages.warnings import auto_limit, fit_warnings
 
 NORMAL_MODES = ("auto", "file", "estimate")
 """The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
@@ -58,7 +58,7 @@ class FitOptions:
     chosen: PLANE_LEVEL for a height field, about one output vertex per valid pixel in the
     perspective frame (depth_fit.perspective_level);
     overshoot: "limit" (default) limits gradients that disagree with the heights and picks
-    edge directions that keep thin triangles tame (c1mesh.fit.limiter), "off" uses the data as is;
+    edge directions that keep thin triangles tame (c1mesh.stages.limiter), "off" uses the data as is;
     workers: threads for every stage and for BLAS (c1mesh.core.threads.limit; None: the
     process-wide setting, by default the CPUs this process may use);
     output_format: mesh format of the output (default: its extension, PLY for a stream);
@@ -78,7 +78,7 @@ class FitOptions:
     level: int | None = None
     ascii: bool = False
     overshoot: str = "limit"
-    # vertex gradients (c1mesh.fit.height_gradients): "auto" fits them to the heights where the
+    # vertex gradients (c1mesh.stages.height_gradients): "auto" fits them to the heights where the
     # normals were estimated and takes the file's normals otherwise; "normals" | "heights".
     gradients: str = "auto"
     workers: int | None = None
@@ -185,7 +185,7 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
         raise InputError("the input has no normals; use --normals estimate (or auto)")
     if cloud.normals is not None and options.normals != "estimate":
         return cloud.normals, "file"
-    from c1mesh.fit.normals import estimate_normals
+    from c1mesh.stages.normals import estimate_normals
     finite = np.isfinite(cloud.points).all(axis=1)
     if finite.sum() < 3:
         raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
@@ -211,8 +211,8 @@ class SurfaceModel:
     normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
     cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
-    triangles index those n points); overshoot: the limiter's report (c1mesh.fit.limiter);
-    gradient_source: "heights" (c1mesh.fit.height_gradients) or "normals".
+    triangles index those n points); overshoot: the limiter's report (c1mesh.stages.limiter);
+    gradient_source: "heights" (c1mesh.stages.height_gradients) or "normals".
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
     """
@@ -360,7 +360,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,
                          heights: bool = True) -> tuple[RSDInterpolator, Any]:
     """The RSDInterpolator of a (noisy) height field with its overshoot controlled
-    (c1mesh.fit.limiter.control_overshoot in mode `overshoot`: its values are the reconciled
+    (c1mesh.stages.limiter.control_overshoot in mode `overshoot`: its values are the reconciled
     heights), the edges numbered once for both; and the limiter's report. Shared by the
     plane and the perspective fits (these pass heights=False; control_overshoot says why, and
     so do plane fits of heights in units of their own, `_plan_heights`)."""
@@ -408,7 +408,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     axis_reason = column_reason or axis_reason
     check_angles(cloud, options, _name(source))
     angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
-    from c1mesh.fit.perspective import frame_kind
+    from c1mesh.stages.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
         from c1mesh.pipeline.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)

@@ -5,7 +5,7 @@ import numpy as np
 
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.formats import read_cloud
-from c1mesh.fit.frame import choose_frame, height_field
+from c1mesh.stages.frame import choose_frame, height_field
 
 
 #: Points the height-field check looks at: a random subsample keeps `info` under a second.
@@ -77,7 +77,7 @@ def _copc_facts(source, fmt: str | None) -> dict | None:
 
 def _view_facts(cloud) -> dict:
     """Organised or not, the viewpoint, and the frame `c1mesh fit` would use by default."""
-    from c1mesh.fit.perspective import frame_kind
+    from c1mesh.stages.perspective import frame_kind
     kind = frame_kind("auto", cloud.grid_shape is not None)
     facts = {"organised": cloud.grid_shape is not None,
              "viewpoint": None if cloud.viewpoint is None else [float(v) for v in cloud.viewpoint],
@@ -120,7 +120,7 @@ def _height_field_check(cloud, finite, sample: int) -> dict:
         if normals is None:
             if len(rows) < 3:
                 raise InputError(f"only {len(rows)} finite points; need at least 3")
-            from c1mesh.fit.normals import estimate_normals
+            from c1mesh.stages.normals import estimate_normals
             normals = estimate_normals(points, towards=choose_frame(points, None, "auto").axes[2])
         frame = choose_frame(points, normals, "auto")
         height_field(points, normals, frame)
@@ -135,7 +135,7 @@ def _height_column_check(points: np.ndarray, axis: str, reason: str) -> dict:
     """The height-field verdict over the given axis of a header height column, with the
     normals the fit uses there (pipeline.build_surface: fitted to the heights, compared in
     plan units only, frame.height_field's common_metric=False)."""
-    from c1mesh.fit.height_gradients import height_neighbours, height_normals
+    from c1mesh.stages.height_gradients import height_neighbours, height_normals
     from c1mesh.pipeline.driver import FitOptions
 
     facts = {"axis_choice": reason + " (heights in units of their own: the fit works in "

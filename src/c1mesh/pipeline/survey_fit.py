@@ -10,9 +10,9 @@ import time
 from typing import Callable, Sequence
 
 from c1mesh.core.errors import InputError
-from c1mesh.fit.frame import resolve_axis
-from c1mesh.fit.surface import with_plane_level
-from c1mesh.fit.warnings import auto_limit, fit_warnings
+from c1mesh.stages.frame import resolve_axis
+from c1mesh.stages.surface import with_plane_level
+from c1mesh.stages.warnings import auto_limit, fit_warnings
 from c1mesh.core.crs import describe, parse_crs
 from c1mesh.geo.products import resolve_crs
 from c1mesh.pipeline.driver import _Timer, build_surface, fit

@@ -1,7 +1,7 @@
 """The exact median of non-negative floats that do not fit in memory, read in chunks.
 
 The overshoot limiter's noise floor is the median |trapezoid residual| over every edge of
-the survey (c1mesh.fit.limiter). A survey fitted in tiles spills those residuals to a file;
+the survey (c1mesh.stages.limiter). A survey fitted in tiles spills those residuals to a file;
 this module finds `np.median` of them to the bit while holding one chunk and a small
 set of candidates.
 

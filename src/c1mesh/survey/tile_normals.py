@@ -40,7 +40,7 @@ def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: flo
     """Normals of one tile's own points (module docstring), oriented to face `towards`."""
     from scipy.spatial import cKDTree
 
-    from c1mesh.fit.normals import estimate_normals, unique_positions
+    from c1mesh.stages.normals import estimate_normals, unique_positions
 
     def neighbours_read(xyz, own, read_box):
         distinct, inverse = unique_positions(xyz)
@@ -81,15 +81,15 @@ def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> b
 
 def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float) -> TileNormals:
     """Upward unit normals (frame coordinates) of one tile's own points from the heights:
-    c1mesh.fit.height_gradients' fit over each point's k nearest neighbours in the plane,
+    c1mesh.stages.height_gradients' fit over each point's k nearest neighbours in the plane,
     what the in-memory fit uses for LAS/LAZ (`height_normals`). The buffer grows as for
     `tile_normals` until every own point's k nearest plane neighbours lie in what was read
     (their plane distance is below the unread part's), so each fit sees the survey's
     neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
     from scipy.spatial import cKDTree
 
-    from c1mesh.fit.frame import gradients_to_normals
-    from c1mesh.fit.height_gradients import height_gradients
+    from c1mesh.stages.frame import gradients_to_normals
+    from c1mesh.stages.height_gradients import height_gradients
 
     def neighbours_read(xyz, own, read_box):
         return len(xyz) > k + 1 and _neighbourhoods_inside(

@@ -22,7 +22,7 @@ nothing depends on the grid.
 What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
 
 - normals are always estimated (the spill keeps no file normals): by default fitted to
-  the heights as in memory (c1mesh.fit.height_gradients, tile by tile:
+  the heights as in memory (c1mesh.stages.height_gradients, tile by tile:
   tile_normals.tile_height_normals), with --gradients normals by PCA (tile_normals);
   colours and the CRS are carried;
 - the height field drops points with unusable or too steep normals and exact duplicate
@@ -338,7 +338,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.survey.survey_stats import streamed_frame
     from c1mesh.survey.tile_spill import spill
 
-    from c1mesh.fit.surface import with_plane_level
+    from c1mesh.stages.surface import with_plane_level
 
     options = with_plane_level(options)
     _check_options(options)
@@ -394,7 +394,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
-            from c1mesh.fit.curtains import view_rules_apply
+            from c1mesh.stages.curtains import view_rules_apply
             removed = _trim(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
             done("trim")
             limiter = None
@@ -411,7 +411,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         stack.close()
         temps.close()
-    from c1mesh.fit.warnings import auto_limit, fit_warnings
+    from c1mesh.stages.warnings import auto_limit, fit_warnings
     kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output) if outputs is None else [str(o) for o in outputs],
@@ -459,7 +459,7 @@ def _describe_crs(crs, crs_source) -> dict | None:
 
 
 def _check_options(options) -> None:
-    from c1mesh.fit.limiter import check_mode
+    from c1mesh.stages.limiter import check_mode
 
     check_mode(options.overshoot)
     if options.normals == "file":
@@ -484,7 +484,7 @@ def _height_spill(raw, grid, count: int, options, directory, stem: str, runner, 
     that reads the raw spill and writes its own height file, run by runner
     (distributed.TaskRunner)."""
     from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
-    from c1mesh.fit.height_gradients import height_neighbours, use_height_gradients
+    from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
     from c1mesh.survey.tile_spill import TileSpill
 
     heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
@@ -522,7 +522,7 @@ class _HeightJob:
 def _tile_heights(job: _HeightJob, t: int, path) -> dict:
     """One tile's height-field records (HEIGHT) written to path; returns its report row
     (points written, seconds, worker)."""
-    from c1mesh.fit.frame import _gradients
+    from c1mesh.stages.frame import _gradients
     from c1mesh.core.threads import limit
     from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
 
@@ -701,14 +701,14 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path,
 def _trim(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     """The in-memory default trim after the long-edge rule, over the tiles
     (c1mesh.survey.tiled_trim): trim's sliver peel and bow-tie removal, then curtains
-    (c1mesh.fit.curtains) with the survey's noise floor, then the peel and bow-tie removal
+    (c1mesh.stages.curtains) with the survey's noise floor, then the peel and bow-tie removal
     of the holes they left, as pipeline.build_surface runs them. halos: the
     tiled_limiter.HaloCache, whose `removed` grows as triangles go (each halo drops them
     as it loads); the removed triangles also leave their tiles' files. Returns the
     removed counts by reason (as TrimReport.removed). view_rules: curtains.view_rules_apply."""
     import inspect
 
-    from c1mesh.fit.curtains import REASONS
+    from c1mesh.stages.curtains import REASONS
     from c1mesh.survey.tiled_limiter import edge_floor
     from c1mesh.survey.tiled_trim import curtain_cuts, thin_triangles
     from c1mesh.engine.triangulation import trim
@@ -1013,7 +1013,7 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
     unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
     tiled_join.KeyExpiry that gives each border key its last tile."""
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.fit.surface import surface_stream
+    from c1mesh.stages.surface import surface_stream
     from c1mesh.survey.tiled_join import border_keys
 
     xy = np.column_stack([records["x"], records["y"]])

@@ -1,4 +1,4 @@
-"""The overshoot limiter (c1mesh.fit.limiter) on a survey fitted in tiles, with its whole-survey result.
+"""The overshoot limiter (c1mesh.stages.limiter) on a survey fitted in tiles, with its whole-survey result.
 
 The limiter is not tile-local in two ways:
 
@@ -228,7 +228,7 @@ def _compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]
 
 def edge_residuals(points, values, gradients, edges) -> np.ndarray:
     """(E,) |trapezoid residual| of each edge, with the limiter's own arithmetic."""
-    from c1mesh.fit.limiter import trapezoid_residuals
+    from c1mesh.stages.limiter import trapezoid_residuals
 
     return np.abs(trapezoid_residuals(points, values, gradients, edges))
 
@@ -312,7 +312,7 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
 def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
     (k, 3) survey numbers, all inside its halo."""
-    from c1mesh.fit.limiter import edge_directions
+    from c1mesh.stages.limiter import edge_directions
     from c1mesh.engine.topology import edge_table
 
     points = halo.points
@@ -359,7 +359,7 @@ def reconciled(halo: Halo, table, noise: float):
     the survey's first noise floor: (values (m,), gradients (m, 2), heights moved (m,) bool,
     gradients changed (m,) bool). Exact for vertices within 3L (heights) and 2L
     (gradients) of the cell (module docstring)."""
-    from c1mesh.fit.limiter import reconcile_gradients, reconcile_heights
+    from c1mesh.stages.limiter import reconcile_gradients, reconcile_heights
 
     points = halo.points
     values, lifted = reconcile_heights(points, halo.records["z"], halo.gradients, halo.triangles,
@@ -370,7 +370,7 @@ def reconciled(halo: Halo, table, noise: float):
 
 def limit(points, values, gradients, edges, noise: float):
     """limiter.limit_gradients with the survey's noise floor."""
-    from c1mesh.fit.limiter import limit_gradients
+    from c1mesh.stages.limiter import limit_gradients
 
     return limit_gradients(points, values, gradients, edges, noise_floor=noise)
 

@@ -18,7 +18,7 @@ terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memor
 Bow-tie removal (all but the largest fan at a vertex where fans meet; ties by the fans'
 smallest sorted corner triple, a rule of point numbers) is decided by the tile whose cell
 holds the vertex, as its halo holds the vertex's whole star (`bowtie_cuts`); curtains
-(c1mesh.fit.curtains) are per triangle given the survey's noise floor (`curtain_cuts`).
+(c1mesh.stages.curtains) are per triangle given the survey's noise floor (`curtain_cuts`).
 tiled_fit._trim chains these into trim's loop and remove_curtains' clean-up.
 """
 from __future__ import annotations
@@ -104,7 +104,7 @@ def curtain_cuts(halo, floor: float, grid, view_rules: bool = True
     """The tile's own triangles that curtains.curtain_triangles drops with the survey's
     noise floor `floor` (and view_rules, curtains.view_rules_apply): (k, 3) survey
     numbers, (k, 3) the tile of each corner, and the count by reason."""
-    from c1mesh.fit.curtains import REASONS, curtain_triangles
+    from c1mesh.stages.curtains import REASONS, curtain_triangles
 
     triangles = halo.triangles
     if not len(triangles):

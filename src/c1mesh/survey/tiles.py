@@ -281,7 +281,7 @@ def tile_stream(task: TileTask):
     """
     from dataclasses import replace
 
-    from c1mesh.fit.surface import surface_stream
+    from c1mesh.stages.surface import surface_stream
     from c1mesh.engine.refine import Refinement
     from c1mesh.engine.schemes import get_scheme
     from c1mesh.engine.topology import edge_table
@@ -435,7 +435,7 @@ def tile_failure(task: TileTask, exc: BaseException) -> TileError:
 def survey_needs_tiles(sources: Sequence[str], options) -> bool:
     """Whether fit_seamless fits the survey in tiles (c1mesh.survey.tiled_fit): a LAS/LAZ survey
     larger than options.memory allows in one piece. Reads the inputs' headers only."""
-    from c1mesh.fit.frame import resolve_axis
+    from c1mesh.stages.frame import resolve_axis
     from c1mesh.survey.tiled_fit import needs_tiles
 
     options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file

@@ -20,7 +20,7 @@ not curtains", applies to them as well. A triangle is dropped as
   interpolant of those normals over it turns by more than 90° inside it;
 * "thinner_than_noise": its width in the plane (twice its area over its longest edge) is
   below the noise floor of the heights (the median |trapezoid residual| of the
-  triangulation's edges, c1mesh.fit.limiter's measure of noise). The heights then set the
+  triangulation's edges, c1mesh.stages.limiter's measure of noise). The heights then set the
   slope across it only to within more than 1 (45°), and the spline, which interpolates
   them exactly, turns by that much across a sliver narrower than the noise: on the bunny
   two 0.5 mm wide slivers (noise floor 1.0 mm) held the last folded faces.
@@ -50,7 +50,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from c1mesh.fit.grid import GRAZING_ANGLE, SHADOW_ANGLE
+from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
@@ -118,13 +118,13 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
 def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray) -> float:
     """Median |trapezoid residual| (height units) over every edge of the triangles, each
     edge once: the height noise the data's gradients cannot explain
-    (c1mesh.fit.limiter.trapezoid_residuals; O(h³) for exact smooth data).
+    (c1mesh.stages.limiter.trapezoid_residuals; O(h³) for exact smooth data).
 
     Exact and independent of the triangles' order, so a survey fitted in tiles finds the
     same floor by a streamed median of its tiles' edges (c1mesh.survey.tiled_fit); edges run
     from the lower point number to the higher, as the limiter's edge table has them.
     """
-    from c1mesh.fit.limiter import trapezoid_residuals
+    from c1mesh.stages.limiter import trapezoid_residuals
     from c1mesh.engine.topology import sort_keys
 
     if triangles.shape[0] == 0:

@@ -1,7 +1,7 @@
 """Vertex gradients of a height field estimated from the heights themselves.
 
 Where a scan carries no normals (LAS/LAZ, bare xyz), the pipeline estimates them by PCA of
-the k nearest neighbours in 3-D (c1mesh.fit.normals) and turns them into gradients. A PCA
+the k nearest neighbours in 3-D (c1mesh.stages.normals) and turns them into gradients. A PCA
 plane is the best plane through the neighbourhood, so on curved ground its slope is off
 by O(h) and across a step it is smeared over the whole neighbourhood; the spline, which
 interpolates the heights exactly, then meets gradients that its own heights contradict.
@@ -54,13 +54,13 @@ def height_neighbours(k: int) -> int:
 
 def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
     """World unit normals (N, 3) of the height field fitted to world points (N, 3) in a
-    given frame (c1mesh.fit.frame.ScanFrame): `height_gradients` of the local heights turned
+    given frame (c1mesh.stages.frame.ScanFrame): `height_gradients` of the local heights turned
     into upward normals. NaN rows for points with a non-finite coordinate.
 
     What the pipeline uses instead of PCA normals when the height axis is given (LAS/LAZ:
     z): the frame needs no normals then, and the height field's gradients are the fit's.
     """
-    from c1mesh.fit.frame import gradients_to_normals
+    from c1mesh.stages.frame import gradients_to_normals
 
     pts = np.asarray(points, dtype=np.float64)
     finite = np.isfinite(pts).all(axis=1)

@@ -353,7 +353,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
                      angles and 3-D distances mean something. False for heights in a unit
                      of their own (a text table's height column: R's `topo` has x, y in
                      50 ft and z in ft), whose normals only carry gradients fitted to the
-                     heights in plane units (c1mesh.fit.height_gradients): then no point is
+                     heights in plane units (c1mesh.stages.height_gradients): then no point is
                      "too_steep" and max_facing_away is not applied (angles depend on the
                      units), the spacing h is measured in the plane, and only points that
                      share their exact (x, y) with a different height count as stacked
@@ -364,7 +364,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     """
     pts = _as_n3(points, "points")
     if normals is None:
-        raise InputError("a height field needs normals; estimate them with c1mesh.fit.normals.estimate_normals")
+        raise InputError("a height field needs normals; estimate them with c1mesh.stages.normals.estimate_normals")
     nrm = _as_n3(normals, "normals", len(pts))
     if not 0.0 < max_slope_deg < 90.0:
         raise InputError(f"max_slope_deg must be between 0 and 90 degrees, got {max_slope_deg}")

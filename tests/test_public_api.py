@@ -1,0 +1,44 @@
+"""The public face: `import c1mesh` gives the verbs and types of the README, lazily."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import c1mesh
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+
+
+@pytest.mark.parametrize("name", c1mesh.__all__)
+def test_every_public_name_resolves(name):
+    assert getattr(c1mesh, name) is not None
+    assert name in dir(c1mesh)
+
+
+def test_every_error_class_is_a_c1mesh_error():
+    for name in ("InputError", "FormatError", "NotAHeightFieldError", "DependencyError", "TileError"):
+        assert issubclass(getattr(c1mesh, name), c1mesh.C1MeshError)
+
+
+def test_importing_c1mesh_loads_no_numpy():
+    code = "import sys, c1mesh; print('numpy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_fit_is_the_pipeline_verb_even_after_the_stage_package_is_imported():
+    """`c1mesh.fit` is the function; no subpackage of that name may shadow it once the
+    stages are imported (the stage package is c1mesh.stages)."""
+    import c1mesh.stages.frame  # noqa: F401
+
+    result = c1mesh.fit(SAMPLES / "hill.ply", None, c1mesh.FitOptions(level=2))
+    cloud = c1mesh.read_cloud(SAMPLES / "hill.ply")
+    assert callable(c1mesh.fit) and isinstance(result, c1mesh.FitResult)
+    assert isinstance(result.mesh, c1mesh.SurfaceMesh) and isinstance(cloud, c1mesh.PointCloud)
+    # every input point is a vertex of the interpolating surface, at its own height
+    rows = {tuple(p) for p in np.round(result.mesh.vertices, 12)}
+    assert sum(tuple(p) in rows for p in np.round(cloud.points, 12)) == len(cloud)
