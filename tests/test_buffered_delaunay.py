@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial import ConvexHull, Delaunay
 
 import c1mesh.survey.buffered_delaunay as bd
-from c1mesh.engine.triangulation import _edge_lengths
+from c1mesh.engine.triangulation import edge_lengths
 
 
 def _survey(kind: str, n: int = 4000, seed: int = 3) -> np.ndarray:
@@ -61,7 +61,7 @@ def test_union_of_tiles_is_the_global_delaunay(kind, with_hull):
 def test_union_with_the_long_edge_trim_is_the_trimmed_global_delaunay(kind):
     xy = _survey(kind)
     whole = Delaunay(xy).simplices
-    lengths = _edge_lengths(xy, whole)
+    lengths = edge_lengths(xy, whole)
     max_edge = 4.0 * float(np.median(lengths))
     expected = whole[lengths.max(axis=1) <= max_edge]
     tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy),
@@ -75,7 +75,7 @@ def test_with_the_trim_a_uniform_survey_tile_reads_its_neighbourhood_only():
     """12 tiles of uniform points: each reads its cell and a buffer of one or two max_edge,
     far from the whole survey (a check that never certified would end reading it all)."""
     xy = _survey("uniform")
-    lengths = _edge_lengths(xy, Delaunay(xy).simplices)
+    lengths = edge_lengths(xy, Delaunay(xy).simplices)
     tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy),
                                       hull=bd.streamed_hull(_chunks(xy)),
                                       max_edge=4.0 * float(np.median(lengths))))
@@ -86,7 +86,7 @@ def test_buffers_grow_where_the_data_needs_them():
     """Beside the empty disc the first buffer cannot certify the triangles bridging it:
     those tiles triangulate again with wider buffers, dense tiles do not."""
     xy = _survey("hole")
-    lengths = _edge_lengths(xy, Delaunay(xy).simplices)
+    lengths = edge_lengths(xy, Delaunay(xy).simplices)
     tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy),
                                       hull=bd.streamed_hull(_chunks(xy)),
                                       max_edge=4.0 * float(np.median(lengths))))
@@ -166,7 +166,7 @@ def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
     tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), grid, len(xy), hull=hull, max_edge=report.max_edge))
     union = _union(tiles)
     assert len(_faces(union)) == len(union)
-    assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= report.max_edge])
+    assert _faces(union) == _faces(whole[edge_lengths(xy, whole).max(axis=1) <= report.max_edge])
 
 
 @pytest.mark.parametrize("kind", ["uniform", "hole", "clusters"])
@@ -182,7 +182,7 @@ def test_one_pass_trimmed_delaunay_is_trims_long_edge_result(kind):
     assert max_edge == report.max_edge
     union = np.concatenate([p.triangles[p.longest <= max_edge] for p in passes])
     assert len(_faces(union)) == len(union)
-    assert _faces(union) == _faces(whole[_edge_lengths(xy, whole).max(axis=1) <= max_edge])
+    assert _faces(union) == _faces(whole[edge_lengths(xy, whole).max(axis=1) <= max_edge])
 
 
 @pytest.mark.parametrize("edges", [4001, 4002])

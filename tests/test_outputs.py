@@ -219,10 +219,10 @@ def test_output_problems_fail_before_the_input_is_read(tmp_path, args, code, mes
 
 
 def test_a_huge_but_valid_axis_is_a_direction(tmp_path):
-    from c1mesh.stages.frame import _parse_axis
+    from c1mesh.stages.frame import parse_axis
 
-    assert np.allclose(_parse_axis("1e200,1e200,1e200"), np.full(3, 3 ** -0.5))
-    assert np.allclose(_parse_axis("1e-320,0,0"), [1, 0, 0])
+    assert np.allclose(parse_axis("1e200,1e200,1e200"), np.full(3, 3 ** -0.5))
+    assert np.allclose(parse_axis("1e-320,0,0"), [1, 0, 0])
     proc = run("fit", HILL, "-o", tmp_path / "o.ply", "--axis", "1e200,1e200,1e200", "--level", "1")
     assert proc.returncode == 0, proc.stderr
 

@@ -263,8 +263,13 @@ class TrimReport:
     unreferenced_points: int = 0
 
 
+MIN_CIRCLE_RATIO = 0.01
+"""trim's default: a boundary triangle whose inscribed/circumscribed radius ratio is below
+this is a sliver (the in-memory and the tiled trim use the same value)."""
+
+
 def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "auto",
-         min_circle_ratio: float = 0.01) -> tuple[np.ndarray, TrimReport]:
+         min_circle_ratio: float = MIN_CIRCLE_RATIO) -> tuple[np.ndarray, TrimReport]:
     """Remove gap-bridging and thin boundary triangles; return (triangles (T', 3), report).
 
     xy:        (n, 2) plane points; triangles: (T, 3) indices into xy, e.g. from `delaunay`.
@@ -283,8 +288,8 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     """
     pts = _as_xy(xy)
     tri = _as_triangles(triangles, pts.shape[0])
-    lengths, neighbours = overlap(lambda: _edge_lengths(pts, tri),     # independent
-                                  lambda: _neighbours(tri, pts.shape[0]))
+    lengths, neighbours = overlap(lambda: edge_lengths(pts, tri),     # independent
+                                  lambda: triangle_neighbours(tri, pts.shape[0]))
     limit = _edge_limit(lengths, neighbours, max_edge)
     if not 0.0 <= min_circle_ratio <= 1.0:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
@@ -300,7 +305,7 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     front = front[thin[front]]
     while True:
         sliver += _peel(alive, neighbours, thin, front)
-        cut = _remove_bowties(tri, alive, neighbours)
+        cut = remove_bowties(tri, alive, neighbours)
         if cut.size == 0:
             break
         bowtie += cut.size
@@ -354,7 +359,7 @@ def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
     return tri.astype(np.int64, copy=False)
 
 
-def _edge_lengths(xy: np.ndarray, tri: np.ndarray, block: int = 1 << 15) -> np.ndarray:
+def edge_lengths(xy: np.ndarray, tri: np.ndarray, block: int = 1 << 15) -> np.ndarray:
     """(T, 3) length of the edge opposite vertex k.
 
     From coordinate components, a block of triangles at a time: the corner gathers stay
@@ -371,7 +376,7 @@ def _edge_lengths(xy: np.ndarray, tri: np.ndarray, block: int = 1 << 15) -> np.n
     return lengths
 
 
-def _neighbours(tri: np.ndarray, n: int) -> np.ndarray:
+def triangle_neighbours(tri: np.ndarray, n: int) -> np.ndarray:
     """(T, 3) triangle across the edge opposite vertex k, or -1; InputError if an edge has 3+."""
     key = np.empty(tri.shape, dtype=np.int64)              # position 3t + k: edge opposite k
     for k in range(3):
@@ -432,7 +437,7 @@ def _peel(alive: np.ndarray, neighbours: np.ndarray, thin: np.ndarray, front: np
     return removed
 
 
-def _remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
+def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
                     at: np.ndarray | None = None) -> np.ndarray:
     """Remove all but the largest fan at every bowtie vertex; return the removed triangles.
 

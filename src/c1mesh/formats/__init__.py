@@ -77,7 +77,7 @@ def _head_check(key: str, name: str) -> Callable[[bytes], None]:
     return check
 
 
-def _limit_of_stream(stream: IO[bytes]) -> int | None:
+def limit_of_stream(stream: IO[bytes]) -> int | None:
     """The reading budget for a stream that cannot be endless: a regular file (stdin
     redirected from a file) or a BytesIO, already in memory; None (the cap of non-regular
     inputs, formats._limits.stream_limit) for anything else (a pipe, a socket, a device)."""
@@ -90,7 +90,7 @@ def _limit_of_stream(stream: IO[bytes]) -> int | None:
     return budget() if stat.S_ISREG(info.st_mode) else None
 
 
-def _read_path(path: Path, key: str | None = None) -> bytes:
+def read_path(path: Path, key: str | None = None) -> bytes:
     """All bytes of `path` within the reading budget; InputError for missing files and directories.
 
     A regular file larger than the budget is refused from its size; anything else (a FIFO,
@@ -160,7 +160,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
                 raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
             key = format_key(fmt, name, SUPPORTED_INPUT, "input")
             try:
-                data = read_bounded(source, name, _limit_of_stream(source), _head_check(key, name))
+                data = read_bounded(source, name, limit_of_stream(source), _head_check(key, name))
             except OSError as exc:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         else:
@@ -169,7 +169,7 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
             key = format_key(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
             if key in ("las", "laz", "copc") and path.is_file():
                 return _read_las_file(path, classes, bounds)
-            data = _read_path(path, key)
+            data = read_path(path, key)
         if not data:
             raise FormatError(f"Input '{name}' is empty.")
         with np.errstate(all="ignore"):  # overflow / NaN in a body are data, not news

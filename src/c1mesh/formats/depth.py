@@ -107,19 +107,19 @@ def read_depth_source(source, options) -> PointCloud:
     colour, within the reading budget of options.memory (formats.read_cloud's rules)."""
     from pathlib import Path
 
-    from c1mesh.formats import _limit_of_stream, _read_path, read_bounded, reading_budget
+    from c1mesh.formats import limit_of_stream, read_path, read_bounded, reading_budget
 
     with reading_budget(getattr(options, "memory", None)):
         if isinstance(source, (str, Path)):
-            name, data = str(source), _read_path(Path(source), Path(source).suffix.lower().lstrip(".") or None)
+            name, data = str(source), read_path(Path(source), Path(source).suffix.lower().lstrip(".") or None)
         else:
             name = str(getattr(source, "name", "<stream>"))
             try:
-                data = read_bounded(source, name, _limit_of_stream(source))
+                data = read_bounded(source, name, limit_of_stream(source))
             except OSError as exc:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         if not data:
             raise FormatError(f"Input '{name}' is empty.")
-        color = None if options.color is None else _read_path(Path(options.color))
+        color = None if options.color is None else read_path(Path(options.color))
     return read_depth(data, name, options.intrinsics, options.depth_scale, color,
                       str(options.color or ""))

@@ -187,8 +187,8 @@ def _view_frame(points: np.ndarray, normals: np.ndarray):
 
 def render_raster(source, path) -> None:
     """Preview of a GeoTIFF DEM (band 1) with Horn's gradient of its cells."""
-    from c1mesh.geo.raster import _rasterio
-    rasterio = _rasterio()
+    from c1mesh.geo.raster import rasterio_module
+    rasterio = rasterio_module()
     try:
         with rasterio.open(source) as ds:
             z = ds.read(1, masked=True).astype(np.float64).filled(np.nan)

@@ -62,7 +62,7 @@ def is_raster_path(path) -> bool:
     return isinstance(path, (str, Path)) and Path(path).suffix.lower() in RASTER_SUFFIXES
 
 
-def _rasterio():
+def rasterio_module():
     try:
         import rasterio
     except ImportError as exc:
@@ -563,7 +563,7 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     Every file is written to a temporary file and renamed into place only when all of them
     are complete (formats.atomic_output), with overviews (2x, 4x, ... averaged) added.
     """
-    rasterio = _rasterio()
+    rasterio = rasterio_module()
     from c1mesh.formats import atomic_output
 
     items = targets.items()

@@ -182,7 +182,7 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     finite = np.ascontiguousarray(pts) if everything else pts[good]
     origin = np.median(finite, axis=0)
     _check_extent(finite)
-    e3 = _parse_axis(axis)
+    e3 = parse_axis(axis)
     if e3 is None and _units_differ(finite):
         e3 = _world_axis_by_layering(finite)
     if e3 is None:
@@ -190,7 +190,7 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
             normals = _as_n3(normals, "normals", len(pts))
             normals = np.ascontiguousarray(normals) if everything else normals[good]
         e3 = _auto_axis(finite, origin, normals)
-    return ScanFrame(origin=origin, axes=_axes_from_e3(e3))
+    return ScanFrame(origin=origin, axes=axes_from_e3(e3))
 
 
 def _as_n3(a: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
@@ -202,7 +202,7 @@ def _as_n3(a: ArrayLike, name: str, n: int | None = None) -> np.ndarray:
     return arr
 
 
-def _parse_axis(axis: str | ArrayLike) -> np.ndarray | None:
+def parse_axis(axis: str | ArrayLike) -> np.ndarray | None:
     """Unit e3 from an axis specification, or None for "auto"."""
     if isinstance(axis, str):
         text = axis.strip().lower()
@@ -299,7 +299,7 @@ def _world_axis_by_layering(points: np.ndarray, samples: int = 20000) -> np.ndar
     return np.eye(3)[int(np.argmin(scores))]
 
 
-def _axes_from_e3(e3: np.ndarray) -> np.ndarray:
+def axes_from_e3(e3: np.ndarray) -> np.ndarray:
     """Rows e1, e2, e3 of a right-handed orthonormal frame with the given unit e3."""
     dominant = int(np.argmax(np.abs(e3)))
     candidates = [(dominant + 1) % 3, (dominant + 2) % 3]
@@ -394,7 +394,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
                          "usable (nonzero, finite) normal; a height field needs at least 3")
     local = frame.to_local(pts[index])
     _check_extent(local)
-    gradients, flipped = _gradients(n_local[index])
+    gradients, flipped = normal_gradients(n_local[index])
 
     keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame,
                                                 common_metric)
@@ -423,7 +423,7 @@ def _check_extent(local: np.ndarray) -> None:
                          "file's byte order, scale and offset)")
 
 
-def _gradients(n: np.ndarray) -> tuple[np.ndarray, int]:
+def normal_gradients(n: np.ndarray) -> tuple[np.ndarray, int]:
     """∇f = (-n_x / n_z, -n_y / n_z) (n, 2) of local normals n (n, 3) with n_z != 0, and how
     many had n_z < 0. Flipping a normal first changes no bit of its gradient (signs of
     numerator and denominator flip together), so no flipped copy is made."""
@@ -604,8 +604,8 @@ def _check_spread(xy: np.ndarray) -> None:
 LAS_FORMATS = ("las", "laz", "copc")
 
 
-def resolve_axis(source, options) -> tuple[FitOptions, str]:
-    """The options with "auto" resolved for LAS/LAZ (z: elevation by the format's
+def resolve_axis(source, options) -> tuple[object, str]:
+    """The options (pipeline.driver.FitOptions) with "auto" resolved for LAS/LAZ (z: elevation by the format's
     definition), and a phrase saying how the height axis is chosen, for the report."""
     if not (isinstance(options.axis, str) and options.axis.strip().lower() == "auto"):
         return options, f"given: {options.axis}"

@@ -175,7 +175,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
         if covers:
             safe = True
         else:
-            strips = _unread_strips(read_box, box, centre)
+            strips = unread_strips(read_box, box, centre)
             regions = None if hull is None else _clip_to_hull(strips, hull.xy - centre)
             safe = (_disks_clear(local, simplices[at_own], strips, regions).all()
                     and (max_edge is not None
@@ -188,9 +188,9 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
 
 def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(k,) the longest edge of each triangle, as triangulation.trim measures edges."""
-    from c1mesh.engine.triangulation import _edge_lengths
+    from c1mesh.engine.triangulation import edge_lengths
 
-    return _edge_lengths(xy, triangles).max(axis=1)
+    return edge_lengths(xy, triangles).max(axis=1)
 
 
 def _lowest_corner(corners: np.ndarray) -> np.ndarray:
@@ -231,7 +231,7 @@ def _covers(read_box, box) -> bool:
     return read_box[0] <= box[0] and read_box[1] <= box[1] and read_box[2] >= box[2] and read_box[3] >= box[3]
 
 
-def _unread_strips(read_box, box, centre) -> np.ndarray:
+def unread_strips(read_box, box, centre) -> np.ndarray:
     """(s, 4) the parts of B outside the read rectangle E, as rectangles (x0, y0, x1, y1)
     relative to centre: the left, right, bottom and top strips of B that E does not reach."""
     ex0, ey0, ex1, ey1 = read_box
@@ -436,7 +436,7 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
         centres, _ = circumcircles(local, simplices)
         circle_centre = _smallest_empty_circle(local, simplices, tri.neighbors, t, k, a, b, centres)
         radius = np.hypot(*(local[a] - circle_centre).T)
-        strips = _unread_strips(read_box, box, centre)
+        strips = unread_strips(read_box, box, centre)
         regions = _clip_to_hull(strips, hull.xy - centre)
         if _centres_clear(circle_centre, radius, strips, regions, np.abs(local).max()).all():
             return lengths[mine]
@@ -514,7 +514,7 @@ class TilePass:
 def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> TilePass:
     """Triangulate one tile once for both the edge statistic and the trimmed triangles up
     to `bound` (frame units), growing its buffer (from bound) until both are certified."""
-    from c1mesh.engine.triangulation import _edge_lengths, _neighbours, delaunay
+    from c1mesh.engine.triangulation import edge_lengths, triangle_neighbours, delaunay
 
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
@@ -528,16 +528,16 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
         simplices = delaunay(local)
-        neighbors = _neighbours(simplices, len(local))
+        neighbors = triangle_neighbours(simplices, len(local))
         # edges, each once: on the hull or towards a higher-numbered triangle
         t, k = np.nonzero((neighbors < 0) | (neighbors > np.arange(len(simplices))[:, None]))
         a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
         lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
         edge_mine = own[np.where(index[a] < index[b], a, b)] & (lengths <= bound)
-        longest = _edge_lengths(xy, simplices).max(axis=1)
+        longest = edge_lengths(xy, simplices).max(axis=1)
         triangle_mine = (own[simplices] & _lowest_corner(index[simplices])).any(axis=1) & (longest <= bound)
         if not covers:
-            strips = _unread_strips(read_box, box, centre)
+            strips = unread_strips(read_box, box, centre)
             regions = _clip_to_hull(strips, hull.xy - centre)
             at_own = own[simplices].any(axis=1) & (longest <= bound)
             centres, _ = circumcircles(local, simplices)

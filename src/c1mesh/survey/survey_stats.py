@@ -79,15 +79,15 @@ def streamed_frame(chunks: Chunks, axis="auto"):
     when no chunk has normals, the least-variance direction of the points about the origin.
     The sums run chunk by chunk in survey order, so e3 agrees with choose_frame on the whole
     cloud to rounding (a different summation order), and does not depend on any tiling."""
-    from c1mesh.stages.frame import ScanFrame, _axes_from_e3, _parse_axis
+    from c1mesh.stages.frame import ScanFrame, axes_from_e3, parse_axis
 
     origin = streamed_median(chunks)
-    e3 = _parse_axis(axis)
+    e3 = parse_axis(axis)
     if e3 is None:
         e3 = _normal_axis(chunks)
     if e3 is None:
         e3 = _least_variance_axis(chunks, origin)
-    return ScanFrame(origin=origin, axes=_axes_from_e3(e3))
+    return ScanFrame(origin=origin, axes=axes_from_e3(e3))
 
 
 def _unit_normals(points, normals) -> np.ndarray:

@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from c1mesh.survey.buffered_delaunay import TileGrid, _unread_strips, growing_reads
+from c1mesh.survey.buffered_delaunay import TileGrid, unread_strips, growing_reads
 
 
 @dataclass
@@ -72,7 +72,7 @@ def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> b
     distance, _ = tree.query(points, k, workers=workers())
     kth = distance[:, -1] if distance.ndim == 2 else distance
     gap = np.full(len(points), np.inf)
-    for x0, y0, x1, y1 in _unread_strips(read_box, box, np.zeros(2)):
+    for x0, y0, x1, y1 in unread_strips(read_box, box, np.zeros(2)):
         dx = np.maximum(np.maximum(x0 - points[:, 0], points[:, 0] - x1), 0.0)
         dy = np.maximum(np.maximum(y0 - points[:, 1], points[:, 1] - y1), 0.0)
         gap = np.minimum(gap, np.hypot(dx, dy))

@@ -522,7 +522,7 @@ class _HeightJob:
 def _tile_heights(job: _HeightJob, t: int, path) -> dict:
     """One tile's height-field records (HEIGHT) written to path; returns its report row
     (points written, seconds, worker)."""
-    from c1mesh.stages.frame import _gradients
+    from c1mesh.stages.frame import normal_gradients
     from c1mesh.core.threads import limit
     from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
 
@@ -540,17 +540,17 @@ def _tile_heights(job: _HeightJob, t: int, path) -> dict:
         own, normals = own[usable], normals[usable]
         first = _first_of_positions(own["x"], own["y"])
         own, normals = own[first], normals[first]
-        gradients, _ = _gradients(normals)
+        gradients, _ = normal_gradients(normals)
         records = np.empty(len(own), HEIGHT)
         for name in ("index", "x", "y", "z"):
             records[name] = own[name]
         records["gx"], records["gy"] = gradients[:, 0], gradients[:, 1]
         with open(path, "wb") as file:
             records.tofile(file)
-    return _row(len(records), start)
+    return task_row(len(records), start)
 
 
-def _row(points: int, start: float) -> dict:
+def task_row(points: int, start: float) -> dict:
     """A task's report row: its points, seconds since start, the worker that ran it and
     that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
     interpreter's own)."""
@@ -677,7 +677,7 @@ def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) ->
     with limit(threads):
         result = tile_triangles(heights.read, grid, t, buffer, hull)
     _save(path, result.triangles)
-    return result.buffer, _row(result.read, start)
+    return result.buffer, task_row(result.read, start)
 
 
 def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path, short_path, threads):
@@ -695,7 +695,7 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path,
     _save(path, result.triangles)
     _save(longest_path, result.longest)
     _save(short_path, result.short)
-    return result.buffer, _row(result.read, start)
+    return result.buffer, task_row(result.read, start)
 
 
 def _trim(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
@@ -706,14 +706,11 @@ def _trim(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     tiled_limiter.HaloCache, whose `removed` grows as triangles go (each halo drops them
     as it loads); the removed triangles also leave their tiles' files. Returns the
     removed counts by reason (as TrimReport.removed). view_rules: curtains.view_rules_apply."""
-    import inspect
-
+    
     from c1mesh.stages.curtains import REASONS
     from c1mesh.survey.tiled_limiter import edge_floor
     from c1mesh.survey.tiled_trim import curtain_cuts, thin_triangles
-    from c1mesh.engine.triangulation import trim
-
-    min_ratio = inspect.signature(trim).parameters["min_circle_ratio"].default
+    from c1mesh.engine.triangulation import MIN_CIRCLE_RATIO as min_ratio
     thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty((0, 3), np.int64)]
     for t in halos.tiles():
         triangles, on_boundary, corners = thin_triangles(halos.halo(t), min_ratio, grid)
@@ -909,7 +906,7 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
                 raise RuntimeError(f"tile {t}: {counts['faces']} faces, {len(owner)} owners")
             owner.astype("<i4").tofile(part.owners)
     return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned, "lifted": lifted,
-            **_row(len(records), start)}
+            **task_row(len(records), start)}
 
 
 def _write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,

@@ -209,13 +209,13 @@ class HaloCache:
 def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
     """Read tile's halo (read_halo) and write it to paths (records, triangles), as
     HaloCache.halo caches it; returns a report row (points, seconds, worker)."""
-    from c1mesh.survey.tiled_fit import _row
+    from c1mesh.survey.tiled_fit import task_row
 
     start = time.perf_counter()
     halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach)
     halo.records.tofile(paths[0])
     halo.triangles.astype("<i8").tofile(paths[1])
-    return _row(len(halo.records), start)
+    return task_row(len(halo.records), start)
 
 
 def _compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -338,7 +338,7 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
 def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
     """The longest edge of the survey's final triangles (as triangulation.trim measures
     edges), tile by tile: tile t's own triangles have their corners within buffers[t]."""
-    from c1mesh.engine.triangulation import _edge_lengths
+    from c1mesh.engine.triangulation import edge_lengths
 
     longest = 0.0
     for t, path in enumerate(triangle_files):
@@ -350,7 +350,7 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
         records = heights.records(grid.grown(t, buffers[t] * (1 + 1e-9)))
         rows = halo_rows(records["index"], triangles)
         xy = np.column_stack([records["x"], records["y"]])
-        longest = max(longest, float(_edge_lengths(xy, rows).max()))
+        longest = max(longest, float(edge_lengths(xy, rows).max()))
     return longest
 
 

@@ -29,15 +29,15 @@ def thin_triangles(halo, min_ratio: float, grid) -> tuple[np.ndarray, np.ndarray
     """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
     on the boundary, (k, 3) the tile of each corner (grid: the buffered_delaunay.TileGrid).
     halo: a tiled_limiter.Halo (own triangles: lowest corner in the cell)."""
-    from c1mesh.engine.triangulation import _edge_lengths, _neighbours, circle_ratio
+    from c1mesh.engine.triangulation import edge_lengths, triangle_neighbours, circle_ratio
 
     triangles = halo.triangles
     if not len(triangles):
         return np.empty((0, 3), np.int64), np.empty(0, bool), np.empty((0, 3), np.int64)
     own = halo.own[triangles.min(axis=1)]
     thin = np.zeros(len(triangles), dtype=bool)
-    thin[own] = circle_ratio(_edge_lengths(halo.points, triangles[own])) < min_ratio
-    boundary = (_neighbours(triangles, len(halo.records))[thin] < 0).any(axis=1)
+    thin[own] = circle_ratio(edge_lengths(halo.points, triangles[own])) < min_ratio
+    boundary = (triangle_neighbours(triangles, len(halo.records))[thin] < 0).any(axis=1)
     return halo.records["index"][triangles[thin]], boundary, corner_tiles(halo, triangles[thin], grid)
 
 
@@ -87,15 +87,15 @@ def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
     numbers of the triangles of every fan but the kept one, and (k, 3) the tile of each
     corner. halo: a tiled_limiter.Halo, which holds the whole star of every own vertex
     (its reach is at least one longest edge); the fan tie-break
-    (triangulation._remove_bowties) uses point numbers alone, and the halo's rows follow
+    (triangulation.remove_bowties) uses point numbers alone, and the halo's rows follow
     the survey numbers, so the tile decides as the whole survey does."""
-    from c1mesh.engine.triangulation import _neighbours, _remove_bowties
+    from c1mesh.engine.triangulation import triangle_neighbours, remove_bowties
 
     triangles = halo.triangles
     if not len(triangles):
         return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64)
     alive = np.ones(len(triangles), dtype=bool)
-    cut = _remove_bowties(triangles, alive, _neighbours(triangles, len(halo.records)), at=halo.own)
+    cut = remove_bowties(triangles, alive, triangle_neighbours(triangles, len(halo.records)), at=halo.own)
     return halo.records["index"][triangles[cut]], corner_tiles(halo, triangles[cut], grid)
 
 
