@@ -10,7 +10,6 @@ from __future__ import annotations
 import io
 import mmap
 import os
-import stat
 from pathlib import Path
 from typing import IO, Callable, Sequence, Union
 
@@ -18,16 +17,16 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.core.errors import FormatError, InputError
-from c1mesh.formats._common import decode_text
-from c1mesh.formats._limits import budget, check_alloc, read_bounded, reading_budget
+from c1mesh.formats._limits import read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
 from c1mesh.formats.meshes import write_glb, write_off, write_stl
 from c1mesh.formats.obj import read_obj, write_obj
-from c1mesh.formats.pcd import check_pcd_head, read_pcd
+from c1mesh.formats.pcd import read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
+from c1mesh.formats.reading import head_check, is_stream, limit_of_stream, read_path
 from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
 
 __all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
@@ -48,73 +47,6 @@ SUPPORTED_INPUT: tuple[str, ...] = tuple(_READERS)
 SUPPORTED_OUTPUT: tuple[str, ...] = tuple(_WRITERS)
 assert SUPPORTED_OUTPUT == MESH_FORMATS, "c1mesh.core.outputs.MESH_FORMATS must list the writers"
 assert SUPPORTED_INPUT == INPUT_FORMATS, "c1mesh.core.outputs.INPUT_FORMATS must list the readers"
-
-
-def _is_stream(obj: object) -> bool:
-    """True for file-like objects (stdin/stdout buffers, BytesIO), False for paths."""
-    return not isinstance(obj, (str, bytes, os.PathLike)) and (hasattr(obj, "read") or hasattr(obj, "write"))
-
-
-_TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")   # classic and BigTIFF, both byte orders
-_IMAGE_MAGIC = {"png": (b"\x89PNG\r\n\x1a\n",), "tif": _TIFF_MAGIC, "tiff": _TIFF_MAGIC}
-
-
-def _head_check(key: str, name: str) -> Callable[[bytes], None]:
-    """A check of the first bytes of a stream read as format `key`: FormatError unless they
-    start like such a file (the readers repeat the full check), so that a stream of garbage
-    (/dev/urandom as PLY, /dev/zero as text) fails after 64 KiB, not at the reading limit."""
-    def check(head: bytes) -> None:
-        if key == "ply" and not head.startswith((b"ply\n", b"ply\r\n")):
-            raise FormatError(f"'{name}' is not a PLY file: it does not start with the 'ply' magic line.")
-        if key == "pcd":
-            check_pcd_head(head, name)
-        if key in ("las", "laz", "copc") and not head.startswith(b"LASF"):
-            raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with 'LASF'.")
-        if key in ("xyz", "txt", "csv", "obj"):
-            decode_text(head, name, "OBJ" if key == "obj" else "Point")
-        if key in _IMAGE_MAGIC and not head.startswith(_IMAGE_MAGIC[key]):
-            raise FormatError(f"'{name}' is not a {key.upper()} image: it does not start with its signature.")
-    return check
-
-
-def limit_of_stream(stream: IO[bytes]) -> int | None:
-    """The reading budget for a stream that cannot be endless: a regular file (stdin
-    redirected from a file) or a BytesIO, already in memory; None (the cap of non-regular
-    inputs, formats._limits.stream_limit) for anything else (a pipe, a socket, a device)."""
-    if isinstance(stream, io.BytesIO):
-        return budget()
-    try:
-        info = os.fstat(stream.fileno())
-    except (AttributeError, OSError, ValueError):   # io.UnsupportedOperation is an OSError
-        return None
-    return budget() if stat.S_ISREG(info.st_mode) else None
-
-
-def read_path(path: Path, key: str | None = None) -> bytes:
-    """All bytes of `path` within the reading budget; InputError for missing files and directories.
-
-    A regular file larger than the budget is refused from its size; anything else (a FIFO,
-    /dev/zero, a /dev/stdin that is a pipe) has its first 64 KiB checked to start like a
-    file of format `key` (if given), then is read piece by piece and refused once it
-    passes the limit of non-regular inputs (formats._limits.stream_limit: 256 MiB, or the
-    budget with --memory).
-    """
-    try:
-        info = path.stat()
-    except FileNotFoundError:
-        raise InputError(f"Input file '{path}' does not exist.") from None
-    except OSError as exc:
-        raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
-    if stat.S_ISDIR(info.st_mode):
-        raise InputError(f"Input path '{path}' is a directory, not a point file.")
-    try:
-        if stat.S_ISREG(info.st_mode):
-            check_alloc(info.st_size, str(path), "reading the file")
-            return path.read_bytes()
-        with open(path, "rb") as stream:
-            return read_bounded(stream, str(path), head_check=_head_check(key, str(path)) if key else None)
-    except OSError as exc:
-        raise InputError(f"Cannot read input file '{path}': {exc.strerror or exc}.") from exc
 
 
 def _read_las_file(path: Path, classes: Sequence[int] | None, bounds=None) -> PointCloud:
@@ -154,13 +86,13 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
     if bounds is not None:
         bounds = check_box(bounds)
     with reading_budget(memory):
-        if _is_stream(source):
+        if is_stream(source):
             name = str(getattr(source, "name", "<stream>"))
             if fmt is None:
                 raise InputError(f"Reading points from '{name}' needs an explicit format, one of {', '.join(SUPPORTED_INPUT)}.")
             key = format_key(fmt, name, SUPPORTED_INPUT, "input")
             try:
-                data = read_bounded(source, name, limit_of_stream(source), _head_check(key, name))
+                data = read_bounded(source, name, limit_of_stream(source), head_check(key, name))
             except OSError as exc:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         else:
@@ -216,7 +148,7 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     """
     if isinstance(mesh, SurfaceMesh):
         _check_mesh(mesh)
-    if _is_stream(target):
+    if is_stream(target):
         name = str(getattr(target, "name", "<stream>"))
         key = format_key(fmt or "ply", name, SUPPORTED_OUTPUT, "output")
         if isinstance(target, io.TextIOBase):
@@ -248,7 +180,7 @@ def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> 
     """Raise InputError now, before any work, if `write_mesh(..., target, fmt)` could not
     write there: unknown format, missing or unwritable directory, a directory or special
     file, or a path that is one of `inputs` (paths or streams; see c1mesh.core.outputs)."""
-    if _is_stream(target):
+    if is_stream(target):
         format_key(fmt or "ply", str(getattr(target, "name", "<stream>")), SUPPORTED_OUTPUT, "output")
         return
     (planned,) = plan_outputs([("output", target)], inputs)

@@ -107,7 +107,8 @@ def read_depth_source(source, options) -> PointCloud:
     colour, within the reading budget of options.memory (formats.read_cloud's rules)."""
     from pathlib import Path
 
-    from c1mesh.formats import limit_of_stream, read_path, read_bounded, reading_budget
+    from c1mesh.formats._limits import read_bounded, reading_budget
+    from c1mesh.formats.reading import limit_of_stream, read_path
 
     with reading_budget(getattr(options, "memory", None)):
         if isinstance(source, (str, Path)):

@@ -62,7 +62,7 @@ def render_fit(interp, frame, path, crs: str | None = None, level: int | None = 
     if not hasattr(frame, "normals_from_gradients"):
         render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
         return
-    from c1mesh.geo.products import refined_vertex_count
+    from c1mesh.stages.surface import refined_vertex_count
     from c1mesh.stages.surface import surface_stream
 
     level = max(1, int(level or 1))

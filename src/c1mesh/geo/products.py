@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from c1mesh.core import crs as crs_module
+from c1mesh.stages.surface import refined_vertex_count
 from c1mesh.core.errors import InputError
 from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
 
@@ -111,15 +112,6 @@ def level_for_edge(points: np.ndarray, triangles: np.ndarray, resolution: float)
     level L splits every edge into L, so the mean edge becomes mean_input_edge / L."""
     level = round(mean_edge_length(points, triangles) / resolution)
     return int(min(max(level, 1), MAX_LEVEL))
-
-
-def refined_vertex_count(interp, level: int) -> int:
-    """Vertices of the level-`level` refinement of interp's triangulation, without building
-    it: the N points, L − 1 per edge and (L − 1)(L − 2)/2 inside each triangle
-    (refine.Refinement numbers them so)."""
-    edges = interp._table.edges.shape[0]
-    inside = (level - 1) * (level - 2) // 2
-    return int(interp.points.shape[0] + edges * (level - 1) + interp.triangles.shape[0] * inside)
 
 
 def level_for_vertices(interp, target: int, most: int = MAX_LEVEL) -> int:
