@@ -41,6 +41,7 @@ RUNS = {
     "hill-glb": (["{S}/hill.ply", "--level", "2", "-o", "hill.glb"], ["hill.glb"]),
     "hill-ascii": (["{S}/hill.ply", "--level", "2", "--ascii", "-o", "hill_ascii.ply"], ["hill_ascii.ply"]),
     "wave": (["{S}/wave_tilted_offset.xyz", "-o", "wave.ply"], ["wave.ply"]),
+    "topo": (["{S}/topo.csv", "-o", "topo.ply"], ["topo.ply"]),
     "bunny": (["{S}/pcl_bun0.pcd", "-o", "bunny.ply"], ["bunny.ply"]),
     "crop": (["{S}/4_6_crop.las", "--classes", "2", "-o", "crop.ply"], ["crop.ply", "crop.prj"]),
     "autzen": (["{S}/autzen_trim.laz", "--classes", "2", "-o", "autzen.ply"], ["autzen.ply", "autzen.prj"]),
