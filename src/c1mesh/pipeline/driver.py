@@ -428,9 +428,9 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
     mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh)
-    frame_facts = _frame_facts(frame)
-    frame_facts["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
-    report = _report(source, output, options, cloud, model, frame_facts, level_from, stream, timer, angles,
+    frame_report = frame_facts(frame)
+    frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
+    report = _report(source, output, options, cloud, model, frame_report, level_from, stream, timer, angles,
                      crs_facts(crs, crs_source))
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
@@ -555,22 +555,23 @@ class _StopWatch:
         return timed
 
 
-def _frame_facts(frame) -> dict:
+def frame_facts(frame) -> dict:
     """The report's frame of a height-field (axis frame) fit."""
     return {"kind": "axis", "origin": frame.origin.tolist(), "axes": frame.axes.tolist()}
 
 
-def _trim_facts(trim_report) -> dict:
+def trim_facts(trim_report) -> dict:
     """The report's triangles of a Delaunay triangulation and its trim."""
     return {"before_trim": trim_report.triangles_before, "after_trim": trim_report.triangles_after,
             "removed": dict(trim_report.removed), "max_edge": trim_report.max_edge}
 
 
-def _surface_facts(cloud, model: SurfaceModel, options, pieces: dict | None = None) -> dict:
-    """The report's facts of a built surface that every in-memory axis-frame path shares:
-    the pieces (computed unless given), the C1 certificate, the scheme and the warnings."""
+def surface_facts(cloud, model: SurfaceModel, options) -> dict:
+    """The report's facts of a built surface that every in-memory axis-frame path shares
+    (the plane fit, the DEM, --seamless -O): the pieces, the C1 certificate, the scheme
+    and the warnings."""
     interp, trim_report = model.interp, model.trim_report
-    pieces = mesh_pieces(interp.points, interp.triangles, interp._table) if pieces is None else pieces
+    pieces = mesh_pieces(interp.points, interp.triangles, interp._table)
     return {"pieces": pieces, "c1_certificate": interp.c1_certificate(),
             "scheme": scheme_properties(interp.scheme).as_dict(),
             "warnings": fit_warnings(len(cloud), int(model.used.size), trim_report.triangles_before,
@@ -578,7 +579,7 @@ def _surface_facts(cloud, model: SurfaceModel, options, pieces: dict | None = No
                                      auto_limit(options.max_edge), pieces["count"])}
 
 
-def _report(source, output, options, cloud, model: SurfaceModel, frame_facts: dict, level_from: str,
+def _report(source, output, options, cloud, model: SurfaceModel, frame_report: dict, level_from: str,
             mesh, timer, angles: dict, crs: dict | None) -> dict:
     """The report of a plane (axis frame) mesh fit (c1mesh.pipeline.report's schema)."""
     hf, used = model.hf, model.used
@@ -588,10 +589,10 @@ def _report(source, output, options, cloud, model: SurfaceModel, frame_facts: di
         input=_name(source), output=_name(output),
         points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
                 "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)},
-        normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts,
-        triangles=_trim_facts(model.trim_report), level=options.level, level_from=level_from,
+        normals=model.normal_source, gradients=model.gradient_source, frame=frame_report,
+        triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
         output_mesh={"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
-        **_surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
+        **surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
         z_factor=angles["z_factor"])
     report["overshoot"] = model.overshoot.as_dict()
     return {**report, **_slope_note(model)}
@@ -604,9 +605,9 @@ def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, a
     report = common_report(
         input=_name(source), output=_name(output),
         points={"read": len(cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
-        normals=model.normal_source, gradients=model.gradient_source, frame=_frame_facts(model.frame),
-        triangles=_trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
-        **_surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
+        normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
+        triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
+        **surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
         z_factor=angles["z_factor"])
     return {**report, **_slope_note(model)}
 
