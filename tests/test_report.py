@@ -101,6 +101,9 @@ def test_the_paths_say_what_they_are(reports):
     assert names["seamless -o"] == names["seamless -O"] == ["west.las", "east.las"]
     assert len(reports["seamless -O"]["output"]) == 2
     assert reports["perspective"]["threads"] == reports["plane"]["threads"]
+    for name in ("plane", "perspective", "seamless -o", "tiled"):      # each triangle became level² faces
+        report = reports[name]
+        assert report["output_mesh"]["faces"] == report["triangles"]["after_trim"] * report["level"] ** 2, name
 
 
 def test_validate_report_flags_a_missing_or_undeclared_key(reports):
@@ -111,3 +114,13 @@ def test_validate_report_flags_a_missing_or_undeclared_key(reports):
     assert validate_report(report) == ["missing points.kept"]
     report = dict(reports["plane"], surprise=1)
     assert validate_report(report) == ["undeclared key 'surprise' (add it to REQUIRED or OPTIONAL)"]
+
+
+def test_cli_readme_documents_every_key():
+    """cli/README.md's *The report* tables name exactly the schema's keys."""
+    import re
+
+    text = (Path(__file__).parents[1] / "cli" / "README.md").read_text()
+    section = text[text.index("### The report (`--report`)"):text.index("## `c1mesh info")]
+    documented = re.findall(r"^\| `([a-z_0-9]+)` \|", section, flags=re.M)
+    assert documented == list(REQUIRED) + list(OPTIONAL)

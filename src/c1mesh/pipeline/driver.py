@@ -566,17 +566,19 @@ def trim_facts(trim_report) -> dict:
             "removed": dict(trim_report.removed), "max_edge": trim_report.max_edge}
 
 
-def surface_facts(cloud, model: SurfaceModel, options) -> dict:
+def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool = True) -> dict:
     """The report's facts of a built surface that every in-memory axis-frame path shares
     (the plane fit, the DEM, --seamless -O): the pieces, the C1 certificate, the scheme
-    and the warnings."""
+    and the warnings. pieces_in_warnings=False words the warnings without the piece
+    count, as the tiled fit (which cannot count pieces) words them: the DEM and -O do."""
     interp, trim_report = model.interp, model.trim_report
     pieces = mesh_pieces(interp.points, interp.triangles, interp._table)
     return {"pieces": pieces, "c1_certificate": interp.c1_certificate(),
             "scheme": scheme_properties(interp.scheme).as_dict(),
             "warnings": fit_warnings(len(cloud), int(model.used.size), trim_report.triangles_before,
                                      trim_report.removed.get("long_edge", 0), trim_report.max_edge,
-                                     auto_limit(options.max_edge), pieces["count"])}
+                                     auto_limit(options.max_edge),
+                                     pieces["count"] if pieces_in_warnings else None)}
 
 
 def _report(source, output, options, cloud, model: SurfaceModel, frame_report: dict, level_from: str,
@@ -607,8 +609,9 @@ def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, a
         points={"read": len(cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
         triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
-        **surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
+        **surface_facts(cloud, model, options, pieces_in_warnings=False), crs=crs, seconds=timer.seconds, threads=thread_count(),
         z_factor=angles["z_factor"])
+    report["overshoot"] = model.overshoot.as_dict()
     return {**report, **_slope_note(model)}
 
 

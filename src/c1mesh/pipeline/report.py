@@ -22,8 +22,8 @@ REQUIRED: dict[str, tuple[str, str, str]] = {
                 "—", "never null"),
     "gradients": ("where the vertex gradients came from: heights or normals (perspective: normals, "
                   "of the inverse depth)", "—", "never null"),
-    "frame": ("the fit's frame: kind (axis | perspective), origin, axes (rows e1, e2, e3; "
-              "e3 the height axis or viewing direction)", "length units", "never null"),
+    "frame": ("the fit's frame: kind (axis or perspective), origin (perspective: the viewpoint), axes "
+              "(rows e1, e2, e3; e3 the height axis or the viewing direction)", "length units", "never null"),
     "triangles": ("the triangulation: after_trim, max_edge (the trim's limit, null: none), "
                   "and per path before_trim, removed by reason", "triangles; max_edge in length units",
                   "never null"),
@@ -41,7 +41,7 @@ REQUIRED: dict[str, tuple[str, str, str]] = {
                "null for the memory-bounded tiled fit"),
     "warnings": ("plain-language warnings about a result that is probably wrong (also on stderr)",
                  "—", "never null; always [] in the perspective frame (the rules are the height axis's)"),
-    "crs": ("the CRS carried: describe() facts plus source (file | option)", "—", "null: no CRS"),
+    "crs": ("the CRS carried: its name, EPSG code, units and WKT, and source (file or option)", "—", "null: no CRS"),
     "seconds": ("wall-clock seconds per stage", "s", "never null"),
     "threads": ("threads every stage and BLAS could use", "count", "never null"),
     "z_factor": ("x, y units per height unit used for angles", "length/height",
@@ -58,9 +58,9 @@ REQUIRED_PARTS: dict[str, tuple[str, ...]] = {
 
 OPTIONAL: dict[str, str] = {
     "raster": "a raster (DEM) output: the GeoTIFFs written, cells, cells_with_data",
-    "overshoot": "the limiter ran (--overshoot limit; every in-memory mesh fit also with off): "
-                 "vertices and edges changed",
-    "resolution": "--resolution was given (its value)",
+    "overshoot": "every in-memory fit (zeros under --overshoot off), the tiled fit under --overshoot "
+                 "limit: the vertices and edges the limiter changed",
+    "resolution": "--resolution was given (its value: the DEM's cell size, or the mesh's target mean edge)",
     "max_slope_not_applied": "a header height column without --z-factor: why --max-slope dropped nothing",
     "ownership": "--seamless -O: the rule that gives each triangle to one output",
     "scheduler": "tiles ran (--seamless -O, the tiled fit), or --scheduler was given and not used",

@@ -76,9 +76,10 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         points={"read": len(survey.cloud), "kept": int(model.used.size)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
         triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
-        output_mesh=None, **surface_facts(survey.cloud, model, options), crs=crs_facts(crs, crs_source),
+        output_mesh=None, **surface_facts(survey.cloud, model, options, pieces_in_warnings=False),
+        crs=crs_facts(crs, crs_source),
         seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options))
-    report.update({"ownership": OWNERSHIP,
+    report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
                    "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})
     tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)
     del model, survey               # the cloud and height field: the plan keeps what tiles need
