@@ -829,7 +829,7 @@ def _option_given(name: str) -> bool:
 
 def _input_name(report: dict) -> str:
     """The input(s) a report is about, for a message: one name, or the first and a count."""
-    names = report.get("input", report.get("inputs"))
+    names = report.get("input")
     if isinstance(names, (list, tuple)):
         return names[0] if len(names) == 1 else f"{names[0]} and {len(names) - 1} more"
     return str(names)
@@ -839,7 +839,7 @@ def _warn(report: dict, quiet: bool) -> None:
     """The report's warnings on stderr, one line each (not with -q)."""
     if quiet:
         return
-    name = report.get("input", report.get("inputs"))
+    name = report.get("input")
     name = ", ".join(map(str, name)) if isinstance(name, (list, tuple)) else name
     for text in report.get("warnings", []):
         click.echo(f"c1mesh: warning: {name}: {text}", err=True)

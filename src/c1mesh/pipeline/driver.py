@@ -381,7 +381,8 @@ def fit(source, output=None, options: FitOptions | None = None,
     already loaded (classes already selected: c1mesh.survey.tiles does this); output: path,
     binary stream, or None to only return the mesh. Returns the mesh (world coordinates,
     unit vertex normals on the axis side, colours when the input has them) and a report
-    dict (counts, frame, trimming, scheme properties, C1 certificate, timings).
+    dict (counts, frame, trimming, scheme properties, C1 certificate, timings; the schema
+    of c1mesh.pipeline.report, the same on every path).
     keep_mesh=False (with an output) streams the mesh to the output block by block
     instead of assembling it: the result's mesh is then None, and memory and time drop
     (the CLI does this). The spline is then evaluated by a second thread ahead of the
