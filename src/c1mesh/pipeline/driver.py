@@ -610,8 +610,8 @@ def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, a
         points={"read": len(cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
         triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
-        **surface_facts(cloud, model, options, pieces_in_warnings=False), crs=crs, seconds=timer.seconds, threads=thread_count(),
-        z_factor=angles["z_factor"])
+        **surface_facts(cloud, model, options, pieces_in_warnings=False), crs=crs, seconds=timer.seconds,
+        threads=thread_count(), z_factor=angles["z_factor"])
     report["overshoot"] = model.overshoot.as_dict()
     return {**report, **_slope_note(model)}
 
