@@ -716,12 +716,13 @@ def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, 
     processes. An input that fits in memory is fitted here, and a scheduler given for it is
     recorded in the report as not used (the note `_note` prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
-    from c1mesh.survey.tiled_fit import fit_tiled, needs_tiles
+    from c1mesh.pipeline.survey_fit import fit_in_tiles
+    from c1mesh.survey.tiled_fit import needs_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
     if needs_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit
-        return fit_tiled(source, target, options, options.memory, on_stage=on_stage, jobs=jobs,
-                         on_tile=on_tile, scheduler=scheduler)
+        return fit_in_tiles(source, target, options, on_stage=on_stage, jobs=jobs, on_tile=on_tile,
+                            scheduler=scheduler)
     report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
     if scheduler is not None:
         report["scheduler"] = _SCHEDULER_UNUSED.format(what="the input")
@@ -828,7 +829,7 @@ def _option_given(name: str) -> bool:
 
 def _input_name(report: dict) -> str:
     """The input(s) a report is about, for a message: one name, or the first and a count."""
-    names = report.get("input", report.get("inputs"))
+    names = report.get("input")
     if isinstance(names, (list, tuple)):
         return names[0] if len(names) == 1 else f"{names[0]} and {len(names) - 1} more"
     return str(names)
@@ -838,7 +839,7 @@ def _warn(report: dict, quiet: bool) -> None:
     """The report's warnings on stderr, one line each (not with -q)."""
     if quiet:
         return
-    name = report.get("input", report.get("inputs"))
+    name = report.get("input")
     name = ", ".join(map(str, name)) if isinstance(name, (list, tuple)) else name
     for text in report.get("warnings", []):
         click.echo(f"c1mesh: warning: {name}: {text}", err=True)

@@ -196,8 +196,8 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     """
     from c1mesh.geo.products import finish
     from c1mesh.stages.limiter import check_mode
-    from c1mesh.pipeline.driver import FitResult, _compact, _name, limited_interpolator, write_surface
-    from c1mesh.engine.properties import scheme_properties
+    from c1mesh.pipeline.driver import FitResult, _compact, limited_interpolator, write_surface
+    from c1mesh.pipeline.report import crs_facts
     from c1mesh.engine.schemes import get_scheme
 
     scheme = get_scheme(options.scheme)
@@ -221,26 +221,40 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     colors = None if cloud.colors is None else cloud.colors[used]
     mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh,
                                  faces_facing=facing_viewpoint)
+    report = perspective_report(source, output, cloud, field_, used, interp, overshoot, stream, normal_source,
+                                frame, viewpoint_source, tri_report, level_from, options, timer,
+                                crs_facts(crs, crs_source))
+    return finish(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+def perspective_report(source, output, cloud, field_: ViewField, used, interp, overshoot, stream,
+                       normal_source: str, frame: PerspectiveFrame, viewpoint_source: str, tri_report: dict,
+                       level_from: str, options, timer, crs: dict | None) -> dict:
+    """The report of a perspective fit (c1mesh.pipeline.report's schema). Its gradients are
+    of the inverse depth, from the normals; its warnings are [] (the warning rules are the
+    height axis's); its z_factor is --z-factor's, else 1 (camera x, y, z share one unit)."""
+    from c1mesh.core.threads import workers as thread_count
+    from c1mesh.pipeline.driver import _name, mesh_pieces
+    from c1mesh.pipeline.report import common_report, scheme_facts
+
     dropped = dict(field_.dropped)
     dropped["unreferenced_after_trim"] = int(field_.usable.sum() - used.size)
-    report = {
-        "input": _name(source), "output": _name(output),
-        "points": {"read": len(cloud), "dropped": dropped, "kept": int(used.size),
-                   "measured": measured_points(field_),
-                   "organised": None if cloud.grid_shape is None else list(cloud.grid_shape)},
-        "normals": normal_source,
-        "frame": {"kind": "perspective", "viewpoint": frame.origin.tolist(),
-                  "viewpoint_from": viewpoint_source, "axes": frame.axes.tolist()},
-        "triangles": tri_report,
-        "overshoot": overshoot.as_dict(),
-        "level": level,
-        "level_from": level_from,
-        "output_mesh": {"vertices": int(stream.vertex_count), "faces": int(stream.face_count)},
-        "scheme": scheme_properties(interp.scheme).as_dict(),
-        "c1_certificate": interp.c1_certificate(),
-        "seconds": timer.seconds,
-    }
-    return finish(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+    report = common_report(
+        input=_name(source), output=_name(output),
+        points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
+                "measured": measured_points(field_),
+                "organised": None if cloud.grid_shape is None else list(cloud.grid_shape)},
+        normals=normal_source, gradients="normals",
+        frame={"kind": "perspective", "origin": frame.origin.tolist(), "viewpoint": frame.origin.tolist(),
+               "viewpoint_from": viewpoint_source, "axes": frame.axes.tolist()},
+        triangles=tri_report, level=options.level, level_from=level_from,
+        output_mesh={"vertices": int(stream.vertex_count), "faces": int(stream.face_count)},
+        scheme=scheme_facts(options.scheme), c1_certificate=interp.c1_certificate(),
+        pieces=mesh_pieces(interp.points, interp.triangles, interp._table), warnings=[], crs=crs,
+        seconds=timer.seconds, threads=thread_count(),
+        z_factor=1.0 if options.z_factor is None else float(options.z_factor))
+    report["overshoot"] = overshoot.as_dict()
+    return report
 
 
 def measured_points(field_: ViewField) -> int:

@@ -22,23 +22,23 @@ from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge,
 from c1mesh.geo.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.core.errors import InputError
 from c1mesh.formats import check_output, read_cloud, write_mesh
-from c1mesh.stages.frame import auto_axis_reason, choose_frame, gradients_to_normals, height_field
+from c1mesh.stages.frame import auto_axis_reason, choose_frame, height_field
 from c1mesh.stages.height_gradients import (height_gradients, height_neighbours, height_normals,
                                      use_height_gradients)
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.stages.limiter import control_overshoot
-from c1mesh.core.threads import blas_threads, prefetch, ring
+from c1mesh.core.threads import blas_threads
 from c1mesh.engine.topology import edge_table
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.properties import scheme_properties
-from c1mesh.engine.refine import Refinement
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay, trim
-from c1mesh.stages.frame import LAS_FORMATS, resolve_axis
-from c1mesh.stages.surface import PLANE_LEVEL, surface_stream, with_plane_level
+from c1mesh.stages.frame import resolve_axis
+from c1mesh.stages.surface import PLANE_LEVEL, surface_stream
 from c1mesh.stages.warnings import auto_limit, fit_warnings
+from c1mesh.pipeline.report import common_report, crs_facts
 
 NORMAL_MODES = ("auto", "file", "estimate")
 """The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
@@ -380,7 +380,8 @@ def fit(source, output=None, options: FitOptions | None = None,
     already loaded (classes already selected: c1mesh.survey.tiles does this); output: path,
     binary stream, or None to only return the mesh. Returns the mesh (world coordinates,
     unit vertex normals on the axis side, colours when the input has them) and a report
-    dict (counts, frame, trimming, scheme properties, C1 certificate, timings).
+    dict (counts, frame, trimming, scheme properties, C1 certificate, timings; the schema
+    of c1mesh.pipeline.report, the same on every path).
     keep_mesh=False (with an output) streams the mesh to the output block by block
     instead of assembling it: the result's mesh is then None, and memory and time drop
     (the CLI does this). The spline is then evaluated by a second thread ahead of the
@@ -413,49 +414,32 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         from c1mesh.pipeline.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
     model = build_surface(cloud, options, timer)
-    normal_source, frame, hf, trim_report, used, interp = (
-        model.normal_source, model.frame, model.hf, model.trim_report, model.used, model.interp)
+    frame, hf, trim_report, used, interp = model.frame, model.hf, model.trim_report, model.used, model.interp
     if geo.rasters.items():
         with timer.stage("raster"):
             data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
             raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs, data_xy,
                                               trim_report.max_edge)
-        return _finish_geo(FitResult(None, {"input": _name(source), "output": _name(output),
-                                            "points": {"read": len(cloud), "kept": int(used.size),
-                                                       "spacing": float(hf.spacing)},
-                                            "frame": {"origin": frame.origin.tolist(),
-                                                      "axes": frame.axes.tolist()},
-                                            "raster": raster_report, "seconds": timer.seconds,
-                                            "warnings": fit_warnings(
-                                                len(cloud), int(used.size), trim_report.triangles_before,
-                                                trim_report.removed.get("long_edge", 0),
-                                                trim_report.max_edge, auto_limit(options.max_edge)),
-                                            **_angle_facts(angles, model)}),
+        report = _raster_report(source, output, options, cloud, model, timer, angles, crs_facts(crs, crs_source))
+        report["raster"] = raster_report
+        return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options)
     level, level_from = plane_level(interp, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
     mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh)
-    report = _report(source, output, options, cloud, normal_source, frame, hf, trim_report,
-                     used, interp, stream, timer)
-    report["level_from"] = level_from
-    report["frame"]["axis_choice"] = axis_reason if axis_reason != "auto" else \
-        auto_axis_reason(cloud.points, True)
-    report["overshoot"] = model.overshoot.as_dict()
-    report["gradients"] = model.gradient_source
-    report["pieces"] = mesh_pieces(interp.points, interp.triangles, interp._table)
-    report.update(_angle_facts(angles, model))
-    report["warnings"] = fit_warnings(len(cloud), int(used.size), trim_report.triangles_before,
-                                      trim_report.removed.get("long_edge", 0), trim_report.max_edge,
-                                      auto_limit(options.max_edge), report["pieces"]["count"])
+    frame_report = frame_facts(frame)
+    frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
+    report = _report(source, output, options, cloud, model, frame_report, level_from, stream, timer, angles,
+                     crs_facts(crs, crs_source))
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
-def _angle_facts(angles: dict, model: SurfaceModel) -> dict:
-    """The report's z_factor (None: unknown) and, when it did nothing, why max_slope did not apply."""
+def _slope_note(model: SurfaceModel) -> dict:
+    """The report's optional max_slope_not_applied: why max_slope dropped nothing, when it did not apply."""
     if model.max_slope_not_applied is None:
-        return dict(angles)
-    return {**angles, "max_slope_not_applied": model.max_slope_not_applied}
+        return {}
+    return {"max_slope_not_applied": model.max_slope_not_applied}
 
 
 def plane_level(interp: RSDInterpolator, options: FitOptions) -> tuple[int, str]:
@@ -571,30 +555,64 @@ class _StopWatch:
         return timed
 
 
-def _report(source, output, options, cloud, normal_source, frame, hf, trim_report, used,
-            interp, mesh, timer) -> dict:
-    props = scheme_properties(interp.scheme)
+def frame_facts(frame) -> dict:
+    """The report's frame of a height-field (axis frame) fit."""
+    return {"kind": "axis", "origin": frame.origin.tolist(), "axes": frame.axes.tolist()}
+
+
+def trim_facts(trim_report) -> dict:
+    """The report's triangles of a Delaunay triangulation and its trim."""
+    return {"before_trim": trim_report.triangles_before, "after_trim": trim_report.triangles_after,
+            "removed": dict(trim_report.removed), "max_edge": trim_report.max_edge}
+
+
+def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool = True) -> dict:
+    """The report's facts of a built surface that every in-memory axis-frame path shares
+    (the plane fit, the DEM, --seamless -O): the pieces, the C1 certificate, the scheme
+    and the warnings. pieces_in_warnings=False words the warnings without the piece
+    count, as the tiled fit (which cannot count pieces) words them: the DEM and -O do."""
+    interp, trim_report = model.interp, model.trim_report
+    pieces = mesh_pieces(interp.points, interp.triangles, interp._table)
+    return {"pieces": pieces, "c1_certificate": interp.c1_certificate(),
+            "scheme": scheme_properties(interp.scheme).as_dict(),
+            "warnings": fit_warnings(len(cloud), int(model.used.size), trim_report.triangles_before,
+                                     trim_report.removed.get("long_edge", 0), trim_report.max_edge,
+                                     auto_limit(options.max_edge),
+                                     pieces["count"] if pieces_in_warnings else None)}
+
+
+def _report(source, output, options, cloud, model: SurfaceModel, frame_report: dict, level_from: str,
+            mesh, timer, angles: dict, crs: dict | None) -> dict:
+    """The report of a plane (axis frame) mesh fit (c1mesh.pipeline.report's schema)."""
+    hf, used = model.hf, model.used
     dropped = dict(hf.dropped)
     dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - used.size)
-    return {
-        "input": _name(source),
-        "output": _name(output),
-        "points": {"read": len(cloud), "dropped": dropped, "kept": int(used.size),
-                   "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked),
-                   "spacing": float(hf.spacing)},
-        "normals": normal_source,
-        "frame": {"origin": frame.origin.tolist(), "axes": frame.axes.tolist()},
-        "triangles": {"before_trim": trim_report.triangles_before,
-                      "after_trim": trim_report.triangles_after,
-                      "removed": dict(trim_report.removed),
-                      "max_edge": trim_report.max_edge},
-        "level": options.level,
-        "output_mesh": {"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
-        "scheme": props.as_dict(),
-        "c1_certificate": interp.c1_certificate(),
-        "seconds": timer.seconds,
-        "threads": thread_count(),
-    }
+    report = common_report(
+        input=_name(source), output=_name(output),
+        points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
+                "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)},
+        normals=model.normal_source, gradients=model.gradient_source, frame=frame_report,
+        triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
+        output_mesh={"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
+        **surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
+        z_factor=angles["z_factor"])
+    report["overshoot"] = model.overshoot.as_dict()
+    return {**report, **_slope_note(model)}
+
+
+def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, angles: dict,
+                   crs: dict | None) -> dict:
+    """The report of a raster (DEM) fit: no refinement, so level, level_from and
+    output_mesh are null; the caller adds the raster section."""
+    report = common_report(
+        input=_name(source), output=_name(output),
+        points={"read": len(cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
+        normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
+        triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
+        **surface_facts(cloud, model, options, pieces_in_warnings=False), crs=crs, seconds=timer.seconds,
+        threads=thread_count(), z_factor=angles["z_factor"])
+    report["overshoot"] = model.overshoot.as_dict()
+    return {**report, **_slope_note(model)}
 
 
 def _name(obj) -> str | None:

@@ -12,13 +12,19 @@ from typing import Callable, Sequence
 from c1mesh.core.errors import InputError
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.surface import with_plane_level
-from c1mesh.stages.warnings import auto_limit, fit_warnings
-from c1mesh.core.crs import describe, parse_crs
+from c1mesh.core.crs import parse_crs
+from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
-from c1mesh.pipeline.driver import _Timer, build_surface, fit
+from c1mesh.pipeline.driver import (_Timer, angle_z_factor, build_surface, fit, frame_facts, surface_facts,
+                                    trim_facts)
+from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
 from c1mesh.survey.tiled_fit import fit_tiled
 from c1mesh.survey.tiles import load_survey, plan_tiles, survey_needs_tiles, write_tiles
+
+
+OWNERSHIP = "lowest-numbered corner point"
+"""The report's ownership of --seamless -O: the rule that gives each triangle to one output."""
 
 
 def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence[str] | None = None,
@@ -43,10 +49,10 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     user_crs = parse_crs(options.crs) if options.crs else None
     if survey_needs_tiles(sources, options):
-        report = fit_tiled(list(sources), output, options, options.memory, on_stage=on_stage,
-                           scheduler=scheduler, jobs=jobs, outputs=outputs, on_tile=on_tile_pass)
+        report = fit_in_tiles(list(sources), output, options, on_stage=on_stage,
+                              scheduler=scheduler, jobs=jobs, outputs=outputs, on_tile=on_tile_pass)
         if outputs is not None:
-            report["ownership"] = "lowest-numbered corner point"
+            report["ownership"] = OWNERSHIP
         return report
     if scheduler is not None and output is not None:
         raise InputError(f"--scheduler runs the tiles of --seamless -O, or of a fit larger than --memory "
@@ -60,28 +66,49 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         report["input"] = list(survey.names)
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
         return report
+    level_from = "default" if options.level is None else "option"
     options = with_plane_level(options)         # a height field: PLANE_LEVEL unless --level is given
 
     crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
-    report = {"inputs": list(survey.names), "outputs": list(outputs),
-              "points": {"read": len(survey.cloud), "kept": int(model.used.size)},
-              "normals": model.normal_source,
-              "frame": {"origin": model.frame.origin.tolist(), "axes": model.frame.axes.tolist()},
-              "triangles": {"after_trim": model.trim_report.triangles_after,
-                            "max_edge": model.trim_report.max_edge},
-              "level": options.level, "ownership": "lowest-numbered corner point",
-              "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process"),
-              "crs": None if crs is None else {**describe(crs), "source": crs_source},
-              "warnings": fit_warnings(len(survey.cloud), int(model.used.size),
-                                       model.trim_report.triangles_before,
-                                       model.trim_report.removed.get("long_edge", 0),
-                                       model.trim_report.max_edge, auto_limit(options.max_edge))}
+    report = common_report(
+        input=list(survey.names), output=list(outputs),
+        points={"read": len(survey.cloud), "kept": int(model.used.size)},
+        normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
+        triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
+        output_mesh=None, **surface_facts(survey.cloud, model, options, pieces_in_warnings=False),
+        crs=crs_facts(crs, crs_source),
+        seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options))
+    report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
+                   "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})
     tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)
     del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()
     report["tiles"] = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii,
                                   on_tile=on_tile, crs=crs)
     timer.seconds["tiles"] = round(time.perf_counter() - start, 6)
-    report["seconds"] = timer.seconds
     return report
+
+
+def fit_in_tiles(source, output, options, **run) -> dict:
+    """The memory-bounded fit (c1mesh.survey.tiled_fit.fit_tiled: source one LAS/LAZ path or
+    a list, output a mesh path, run its other keyword arguments: on_stage, jobs, on_tile,
+    scheduler, outputs) with its facts made the report of c1mesh.pipeline.report's schema."""
+    facts = fit_tiled(source, output, options, options.memory, **run)
+    return tiled_report(facts, options)
+
+
+def tiled_report(facts: dict, options) -> dict:
+    """The report of a memory-bounded fit from the facts fit_tiled returns (consumed). No
+    one interpolator is held, so c1_certificate and pieces are null; its normals are
+    always estimated (it refuses --normals file)."""
+    level = facts.pop("level")
+    report = common_report(
+        input=facts.pop("input"), output=facts.pop("output"), points=facts.pop("points"),
+        normals="estimated", gradients=facts.pop("gradients"), frame={"kind": "axis", **facts.pop("frame")},
+        triangles=facts.pop("triangles"), level=level,
+        level_from="default" if options.level is None else "option", output_mesh=facts.pop("output_mesh"),
+        scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
+        crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
+        z_factor=1.0 if options.z_factor is None else float(options.z_factor))
+    return {**report, **facts}

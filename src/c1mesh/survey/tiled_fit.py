@@ -321,7 +321,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     overshoot, output_format, ascii; normals not "file"); memory: the
     budget in bytes, which sizes the tiles; per_tile: points per tile (overrides the
     budget, for tests); directory: where the temporary spill files go (default: beside a
-    path output, else $TMPDIR). Returns a report dict (as pipeline.fit's, shorter).
+    path output, else $TMPDIR). Returns the fit's facts (input, output, points, frame,
+    triangles, gradients, level, output_mesh, warnings, crs, seconds, and the tiles' own:
+    tiles, tile_tasks, scheduler, ...), which c1mesh.pipeline.survey_fit.tiled_report makes
+    the report of c1mesh.pipeline.report's schema.
 
     The per-tile passes (normals, triangulation, refinement) run as tasks
     (distributed.TaskRunner): here (jobs 1), on up to `jobs` local processes (as many
@@ -411,6 +414,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         stack.close()
         temps.close()
+    from c1mesh.stages.height_gradients import use_height_gradients
     from c1mesh.stages.warnings import auto_limit, fit_warnings
     kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
@@ -421,8 +425,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
                                             auto_limit(options.max_edge)),
                    "points": {"read": count, "kept": kept}, "max_edge": max_edge,
-                   "triangles": {"removed": removed, "max_edge": max_edge},
-                   "scheduler": runner.kind,
+                   "triangles": {"before_trim": delaunay_count,
+                                 "after_trim": sum(report["triangles_per_tile"].values()),
+                                 "removed": removed, "max_edge": max_edge},
+                   "gradients": "heights" if use_height_gradients(getattr(options, "gradients", "auto"),
+                                                                  "estimated") else "normals",
+                   "level": options.level, "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
