@@ -196,7 +196,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     """
     from c1mesh.geo.products import finish
     from c1mesh.stages.limiter import check_mode
-    from c1mesh.pipeline.driver import FitResult, _compact, limited_interpolator, write_surface
+    from c1mesh.pipeline.driver import FitResult, compact_vertices, limited_interpolator, write_surface
     from c1mesh.pipeline.report import crs_facts
     from c1mesh.engine.schemes import get_scheme
 
@@ -212,7 +212,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
         triangles, tri_report, method = view_triangles(field_, cloud.grid_shape, options.max_edge)
         if triangles.shape[0] == 0:
             raise InputError("no triangles are left after removing depth jumps")
-        used, triangles = _compact(field_.uv, triangles)
+        used, triangles = compact_vertices(field_.uv, triangles)
     with timer.stage("interpolate"):
         interp, overshoot = limited_interpolator(field_.uv[used], field_.w[used], field_.gradients[used],
                                                  triangles, scheme, options.overshoot, heights=False)
@@ -234,13 +234,13 @@ def perspective_report(source, output, cloud, field_: ViewField, used, interp, o
     of the inverse depth, from the normals; its warnings are [] (the warning rules are the
     height axis's); its z_factor is --z-factor's, else 1 (camera x, y, z share one unit)."""
     from c1mesh.core.threads import workers as thread_count
-    from c1mesh.pipeline.driver import _name, mesh_pieces
+    from c1mesh.pipeline.driver import display_name, mesh_pieces
     from c1mesh.pipeline.report import common_report, scheme_facts
 
     dropped = dict(field_.dropped)
     dropped["unreferenced_after_trim"] = int(field_.usable.sum() - used.size)
     report = common_report(
-        input=_name(source), output=_name(output),
+        input=display_name(source), output=display_name(output),
         points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
                 "measured": measured_points(field_),
                 "organised": None if cloud.grid_shape is None else list(cloud.grid_shape)},

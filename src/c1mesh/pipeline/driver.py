@@ -118,7 +118,7 @@ class FitResult:
     report: dict = field(default_factory=dict)
 
 
-class _Timer:
+class StageTimer:
     """Per-stage wall-clock timings, plus an optional progress callback per finished stage."""
 
     def __init__(self, on_stage: Callable[[str], None] | None):
@@ -196,7 +196,7 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
     return normals, "estimated"
 
 
-def _compact(xy, triangles):
+def compact_vertices(xy, triangles):
     """Drop points no triangle uses; returns (used point indices, re-indexed triangles)."""
     used = np.flatnonzero(np.bincount(triangles.ravel(), minlength=xy.shape[0]))   # sorted, as np.unique
     remap = np.full(xy.shape[0], -1, dtype=np.int64)
@@ -305,13 +305,13 @@ def _drop_too_steep(hf, max_slope: float, z_factor: float) -> None:
         raise InputError(f"only {hf.xy.shape[0]} points have a slope below --max-slope {max_slope:g}°")
 
 
-def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None" = None) -> SurfaceModel:
+def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | None" = None) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
     The stages every fit shares, whole-file or tiled (c1mesh.survey.tiles), so a stage added
-    here reaches both. timer: a _Timer that books each stage (None: untimed).
+    here reaches both. timer: a StageTimer that books each stage (None: untimed).
     """
-    timer = timer or _Timer(None)
+    timer = timer or StageTimer(None)
     scheme = get_scheme(options.scheme)
     check_overshoot_mode(options.overshoot)
     options = height_column_axis(cloud, options)[0]
@@ -349,7 +349,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "_Timer | None"
                                                      view_rules_apply(options.classes, frame.axes))
         if triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
-        used, triangles = _compact(hf.xy, triangles)
+        used, triangles = compact_vertices(hf.xy, triangles)
     with timer.stage("interpolate"):
         interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
                                                  scheme, options.overshoot, heights=not plan_heights)
@@ -401,13 +401,13 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     if geo.rasters.items():
         options = replace(options, axis=raster_axis(options.axis))
     options, axis_reason = resolve_axis(source, options)
-    timer = _Timer(on_stage)
+    timer = StageTimer(on_stage)
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
-        crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, _name(source))
+        crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, display_name(source))
     options, column_reason = height_column_axis(cloud, options)
     axis_reason = column_reason or axis_reason
-    check_angles(cloud, options, _name(source))
+    check_angles(cloud, options, display_name(source))
     angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
     from c1mesh.stages.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
@@ -454,7 +454,7 @@ def plane_level(interp: RSDInterpolator, options: FitOptions) -> tuple[int, str]
 
 
 def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, output, options: FitOptions,
-                  crs: str | None, timer: _Timer, keep_mesh: bool,
+                  crs: str | None, timer: StageTimer, keep_mesh: bool,
                   faces_facing: Callable[[MeshStream], MeshStream] | None = None):
     """The refine and write stages of a whole-input fit, the same for every frame.
 
@@ -486,7 +486,7 @@ def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, out
 def mesh_pieces(xy: np.ndarray, triangles: np.ndarray, table=None) -> dict:
     """Connected pieces (through shared edges) of a triangulation, and area kept.
 
-    xy (n, 2) plane points, every one used by some triangle (as after _compact);
+    xy (n, 2) plane points, every one used by some triangle (as after compact_vertices);
     triangles (T, 3); table: their topology.EdgeTable when already built (the
     interpolator has one). Returns {"count", "largest_fraction" (of the triangles),
     "area_fraction" (triangulated area / convex hull area of the points)}. Each slot's
@@ -588,7 +588,7 @@ def _report(source, output, options, cloud, model: SurfaceModel, frame_report: d
     dropped = dict(hf.dropped)
     dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - used.size)
     report = common_report(
-        input=_name(source), output=_name(output),
+        input=display_name(source), output=display_name(output),
         points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
                 "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_report,
@@ -605,7 +605,7 @@ def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, a
     """The report of a raster (DEM) fit: no refinement, so level, level_from and
     output_mesh are null; the caller adds the raster section."""
     report = common_report(
-        input=_name(source), output=_name(output),
+        input=display_name(source), output=display_name(output),
         points={"read": len(cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
         triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
@@ -615,7 +615,8 @@ def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, a
     return {**report, **_slope_note(model)}
 
 
-def _name(obj) -> str | None:
+def display_name(obj) -> str | None:
+    """How the report names an input or output: its path, a stream's name, or None."""
     if obj is None:
         return None
     if isinstance(obj, (str, Path)):

@@ -15,7 +15,7 @@ from c1mesh.stages.surface import with_plane_level
 from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
-from c1mesh.pipeline.driver import (_Timer, angle_z_factor, build_surface, fit, frame_facts, surface_facts,
+from c1mesh.pipeline.driver import (StageTimer, angle_z_factor, build_surface, fit, frame_facts, surface_facts,
                                     trim_facts)
 from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
@@ -58,7 +58,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         raise InputError(f"--scheduler runs the tiles of --seamless -O, or of a fit larger than --memory "
                          f"allows; {sources[0]} is fitted in memory in one piece: drop --scheduler, "
                          "or use -O DIR")
-    timer = _Timer(None)
+    timer = StageTimer(None)
     with timer.stage("read"):
         survey = load_survey(sources, options)
     if output is not None:
