@@ -41,11 +41,9 @@ def test_the_contract_fails_on_imports_in_the_wrong_direction(tmp_path):
 
 
 KNOWN_CYCLES = [
-    # issue 22 still to break: the survey's task runner and the tiles it runs import each other;
-    # the depth-frame fit and the driver share write_surface and the report helpers.
+    # issue 22 still to break: the survey's task runner and the tiles it runs import each other
     {"c1mesh.survey.distributed", "c1mesh.survey.tiled_fit", "c1mesh.survey.tiled_limiter",
      "c1mesh.survey.tiled_outputs", "c1mesh.survey.tiles"},
-    {"c1mesh.pipeline.depth_fit", "c1mesh.pipeline.driver"},
 ]
 
 

@@ -295,7 +295,7 @@ def test_mesh_pieces_counts_edge_connected_parts_and_the_area_they_cover():
     """Two unit squares far apart and one half-square: 3 pieces; the largest holds 2 of 5
     triangles; they cover 2.5 of the convex hull's 38.5 (shoelace over its corners
     (0,0), (11,0), (6,6), (5,6), (0,1), worked by hand)."""
-    from c1mesh.pipeline.driver import mesh_pieces
+    from c1mesh.pipeline.steps import mesh_pieces
 
     xy = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [5, 5], [6, 5], [6, 6], [5, 6],
                    [10, 0], [11, 0], [10, 1]], float)

@@ -196,7 +196,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     """
     from c1mesh.geo.products import finish
     from c1mesh.stages.limiter import check_mode
-    from c1mesh.pipeline.driver import FitResult, compact_vertices, limited_interpolator, write_surface
+    from c1mesh.pipeline.steps import FitResult, compact_vertices, limited_interpolator, write_surface
     from c1mesh.pipeline.report import crs_facts
     from c1mesh.engine.schemes import get_scheme
 
@@ -234,7 +234,7 @@ def perspective_report(source, output, cloud, field_: ViewField, used, interp, o
     of the inverse depth, from the normals; its warnings are [] (the warning rules are the
     height axis's); its z_factor is --z-factor's, else 1 (camera x, y, z share one unit)."""
     from c1mesh.core.threads import workers as thread_count
-    from c1mesh.pipeline.driver import display_name, mesh_pieces
+    from c1mesh.pipeline.steps import display_name, mesh_pieces
     from c1mesh.pipeline.report import common_report, scheme_facts
 
     dropped = dict(field_.dropped)

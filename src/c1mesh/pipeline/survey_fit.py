@@ -15,7 +15,8 @@ from c1mesh.stages.surface import with_plane_level
 from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
-from c1mesh.pipeline.driver import (StageTimer, angle_z_factor, build_surface, fit, frame_facts, surface_facts,
+from c1mesh.pipeline.steps import StageTimer
+from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, surface_facts,
                                     trim_facts)
 from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
