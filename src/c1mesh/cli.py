@@ -595,7 +595,7 @@ def _fit_seamless(inputs, output, output_dir, suffix, input_format, options, rep
     except (C1MeshError, OSError) as exc:
         _fail(_message(exc), debug)
     from c1mesh.pipeline.survey_fit import fit_seamless
-    from c1mesh.survey.tiles import survey_needs_tiles
+    from c1mesh.survey.tiled_fit import survey_needs_tiles
 
     options.workers = _threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
@@ -639,7 +639,7 @@ def _survey_progress(inputs, options, outputs: int):
     of -O as their tiles are written, or the stages of the one -o fit."""
     from c1mesh.pipeline.driver import STAGES
     from c1mesh.survey.tiled_fit import TILED_STAGES
-    from c1mesh.survey.tiles import survey_needs_tiles
+    from c1mesh.survey.tiled_fit import survey_needs_tiles
 
     if survey_needs_tiles(inputs, options):
         progress = _stage_bar(len(TILED_STAGES), "fitting survey")

@@ -62,6 +62,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.survey.tiles import task_row
 
 BYTES_PER_POINT = 1_800
 """Peak memory of the in-memory fit per input point (bytes). Measured: about 1.1 GB per
@@ -151,6 +152,15 @@ def needs_tiles(source, options) -> bool:
     if options.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
+
+
+def survey_needs_tiles(sources: Sequence[str], options) -> bool:
+    """Whether fit_seamless fits the survey in tiles (c1mesh.survey.tiled_fit): a LAS/LAZ survey
+    larger than options.memory allows in one piece. Reads the inputs' headers only."""
+    from c1mesh.stages.frame import resolve_axis
+
+    options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
+    return needs_tiles(list(sources), options)
 
 
 def survey_paths(source) -> list[Path] | None:
@@ -556,17 +566,6 @@ def _tile_heights(job: _HeightJob, t: int, path) -> dict:
         with open(path, "wb") as file:
             records.tofile(file)
     return task_row(len(records), start)
-
-
-def task_row(points: int, start: float) -> dict:
-    """A task's report row: its points, seconds since start, the worker that ran it and
-    that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
-    interpreter's own)."""
-    from c1mesh.core.platform_memory import peak_rss_mb
-    from c1mesh.survey.tiles import worker_address
-
-    return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address(),
-            "worker_peak_mb": peak_rss_mb()}
 
 
 class _TileRows:

@@ -209,7 +209,7 @@ class HaloCache:
 def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
     """Read tile's halo (read_halo) and write it to paths (records, triangles), as
     HaloCache.halo caches it; returns a report row (points, seconds, worker)."""
-    from c1mesh.survey.tiled_fit import task_row
+    from c1mesh.survey.tiles import task_row
 
     start = time.perf_counter()
     halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach)

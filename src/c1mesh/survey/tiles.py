@@ -349,6 +349,16 @@ def worker_address() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+def task_row(points: int, start: float) -> dict:
+    """A task's report row: its points, seconds since start, the worker that ran it and
+    that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
+    interpreter's own)."""
+    from c1mesh.core.platform_memory import peak_rss_mb
+
+    return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address(),
+            "worker_peak_mb": peak_rss_mb()}
+
+
 def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bool = False,
                 on_tile: Callable[[dict], None] | None = None, crs: str | None = None) -> list[dict]:
     """Write each tile's mesh to its output, all or nothing.
@@ -432,11 +442,3 @@ def tile_failure(task: TileTask, exc: BaseException) -> TileError:
     return TileError(f"tile {task.name}: {text}")
 
 
-def survey_needs_tiles(sources: Sequence[str], options) -> bool:
-    """Whether fit_seamless fits the survey in tiles (c1mesh.survey.tiled_fit): a LAS/LAZ survey
-    larger than options.memory allows in one piece. Reads the inputs' headers only."""
-    from c1mesh.stages.frame import resolve_axis
-    from c1mesh.survey.tiled_fit import needs_tiles
-
-    options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
-    return needs_tiles(list(sources), options)
