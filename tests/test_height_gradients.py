@@ -288,3 +288,27 @@ def test_csv_heights_fit_the_same_in_any_unit(tmp_path):
     in_m, in_km = (build_surface(c, FitOptions()).hf for c in (metres, km))
     np.testing.assert_array_equal(in_m.source_index, in_km.source_index)
     np.testing.assert_allclose(in_m.gradients, 1e3 * in_km.gradients, rtol=1e-9, atol=0)
+
+
+def test_the_neighbour_search_uses_the_thread_knob_and_gives_the_same_gradients(monkeypatch):
+    """Under `limit(n)` every cKDTree query of height_gradients runs in n threads (it ran in
+    all CPUs, workers=-1, whatever --threads said); the gradients do not depend on n."""
+    import scipy.spatial
+
+    from c1mesh.core.threads import limit
+
+    asked = []
+
+    class RecordingTree(scipy.spatial.cKDTree):
+        def query(self, *args, **kwargs):
+            asked.append(kwargs.get("workers", 1))
+            return super().query(*args, **kwargs)
+    xy = np.random.default_rng(4).random((3000, 2))
+    z = np.sin(3 * xy[:, 0]) + xy[:, 1] ** 2
+    plain = height_gradients(xy, z, k=24)
+    monkeypatch.setattr(scipy.spatial, "cKDTree", RecordingTree)
+    for threads in (1, 2):
+        asked.clear()
+        with limit(threads):
+            np.testing.assert_array_equal(height_gradients(xy, z, k=24), plain)
+        assert asked and set(asked) == {threads}

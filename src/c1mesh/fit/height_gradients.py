@@ -71,7 +71,7 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
 
 
 def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2,
-                     workers: int = -1) -> np.ndarray:
+                     workers: int | None = None) -> np.ndarray:
     """Gradients (n, 2) of heights z (n,) over plane points xy (n, 2), one per point.
 
     For point i with neighbours j (the k nearest other points in the plane), the offsets
@@ -87,7 +87,8 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     The fit is exact for any quadratic (degree 2) or affine (degree 1) height function
     whenever the neighbours determine it; where they do not (fewer than 5 non-collinear
     neighbours), the ridge RIDGE keeps the solve finite and the quadratic terms small.
-    workers: threads for the neighbour search (scipy cKDTree.query).
+    workers: threads for the neighbour search (scipy cKDTree.query); None: the thread
+    knob's count (c1mesh.core.threads.workers), as every pool of the package.
     Units: xy in one unit (the plan's), z in any unit; the gradients are in z units per
     xy unit. Nothing compares heights with plane distances, so heights in feet over a
     plan in 50 ft cells (R's `topo`) or in metres over kilometres are fitted as well as
@@ -97,6 +98,9 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     """
     from scipy.spatial import cKDTree
 
+    from c1mesh.core.threads import workers as thread_count
+
+    workers = thread_count(workers)
     xy = np.asarray(xy, dtype=np.float64)
     z = np.asarray(z, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or z.shape != (xy.shape[0],):
