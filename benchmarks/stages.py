@@ -3,6 +3,7 @@
     python -m benchmarks.stages make FOLDER          # FOLDER/terrain.laz and FOLDER/normals.ply, 1M points
     python -m benchmarks.stages run FOLDER [REPS]    # the fits and the floors, REPS alternating rounds (3)
     python -m benchmarks.stages read FOLDER [REPS]   # LAZ read seconds at --threads 1 and 2
+    python -m benchmarks.stages table RUN.json       # the markdown table of a run's output
 
 The cases are the two of issue 23: the LAZ without normals at level 1 (`--classes 2`) and the
 PLY with exact normals at level 4. The fits run as child processes (`c1mesh fit ... --report`),
@@ -12,7 +13,9 @@ fit and every floor once, back to back; the table shows medians over the rounds.
 The floors (a child process too, the same thread count):
 * read: laspy's decode of the LAZ (lazrs), or numpy reading the PLY's bytes;
 * normals / gradients: one `cKDTree.query(xy, k, workers=)` of every point (k = 25, the
-  height fit's 24 neighbours and the point itself), the tree built before the clock starts;
+  height fit's 24 neighbours and the point itself), points in the KD tree's leaf order as
+  the height fit has them (about twice as fast as file order), the tree built before the
+  clock starts;
 * triangulate: scipy's Delaunay of the centred x, y;
 * interpolate: one sort of the 3T edge keys of that triangulation (the limiter's and the
   interpolator's work is a few vectorised passes over the edge table this sort builds);
@@ -68,10 +71,12 @@ def _floor_child(source: str, output_bytes: int, threads: int) -> None:
         xy = rows[:, :2].copy()
     seconds["read"] = time.perf_counter() - start
     xy -= xy.mean(axis=0)
-    tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)
+    leaf_order = xy[cKDTree(xy, balanced_tree=False, compact_nodes=False).indices]
+    tree = cKDTree(leaf_order, balanced_tree=False, compact_nodes=False)
     start = time.perf_counter()
-    tree.query(xy, k=25, workers=threads)
+    tree.query(leaf_order, k=25, workers=threads)
     seconds["knn"] = time.perf_counter() - start
+    del tree, leaf_order
     start = time.perf_counter()
     tri = Delaunay(xy).simplices.astype(np.int64)
     seconds["delaunay"] = time.perf_counter() - start
@@ -143,6 +148,39 @@ def read_seconds(folder: Path, reps: int = 3) -> dict:
     return {threads: {"runs": runs, "median": statistics.median(runs)} for threads, runs in seconds.items()}
 
 
+FLOOR_OF = {"read": ("read", "laspy/lazrs decode (PLY: numpy reads the bytes)"),
+            "normals": ("knn", "one cKDTree.query, k = 25"),
+            "gradients": ("knn", "one cKDTree.query, k = 25"),
+            "triangulate": ("delaunay", "scipy Delaunay"),
+            "interpolate": ("edge_sort", "one sort of the 3T edge keys"),
+            "write": ("write", "the output's bytes to disk, fsync")}
+
+
+def table(rounds: list[dict]) -> str:
+    """Markdown: per case, each stage's median seconds next to its floor's, and the wall,
+    peak RSS and RSS per input point (medians over the rounds)."""
+    med = statistics.median
+    lines = ["| case | stage | c1mesh fit (s) | floor | floor (s) | stage / floor |",
+             "|---|---|---:|---|---:|---:|"]
+    for case in CASES:
+        stages = rounds[0][case]["fit"]["seconds"]
+        for stage in stages:
+            took = med(r[case]["fit"]["seconds"][stage] for r in rounds)
+            key, what = FLOOR_OF.get(stage, (None, "—"))
+            no_search = stage in ("normals", "gradients") and (case == "ply" or stage == "gradients")
+            if key is None or no_search:      # the PLY's gradients come from its normals; a LAZ's in "normals"
+                lines.append(f"| {case} | {stage} | {took:.2f} | — | | |")
+                continue
+            floor = med(r[case]["floors"][key] for r in rounds)
+            lines.append(f"| {case} | {stage} | {took:.2f} | {what} | {floor:.2f} | {took / floor:.1f}× |")
+        wall = med(r[case]["fit"]["wall"] for r in rounds)
+        rss = med(r[case]["fit"]["rss"] for r in rounds)
+        points = rounds[0][case]["fit"]["points"]["read"]
+        lines.append(f"| {case} | **wall** (child process) | {wall:.2f} | peak RSS {rss / 2**30:.2f} GiB, "
+                     f"{rss / points:.0f} bytes per input point | | |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str]) -> None:
     command, folder = argv[0], Path(argv[1])
     reps = int(argv[2]) if len(argv) > 2 else 3
@@ -150,6 +188,8 @@ def main(argv: list[str]) -> None:
         make(folder)
     elif command == "run":
         print(json.dumps(run(folder, reps), indent=1))
+    elif command == "table":
+        print(table(json.loads(folder.read_text())))
     elif command == "read":
         print(json.dumps(read_seconds(folder, reps), indent=1))
     else:
