@@ -158,3 +158,48 @@ def test_range_scan_folds_at_most_one_face_in_ten_thousand():
     (Open3D's room fragment is refused there as no height field)."""
     folded, faces = _bun0_folds()
     assert folded <= 1e-4 * faces
+
+
+def _curtain_reasons_one_by_one(xy, z, gradients, triangles, floor):
+    """The REASONS of each triangle from the module docstring's angles, one triangle at a
+    time with vectors, norms and arccos (the reference for curtain_triangles' squared,
+    component-wise comparisons)."""
+    from c1mesh.fit.curtains import GRAZING_ANGLE, SHADOW_ANGLE
+
+    reasons = []
+    for tri in triangles:
+        p = np.column_stack([xy[tri], z[tri]])
+        edges = [p[(k + 1) % 3] - p[k] for k in range(3)]
+        from_axis = [np.degrees(np.arccos(abs(e[2]) / np.linalg.norm(e))) for e in edges]
+        normal = np.cross(p[1] - p[0], p[2] - p[0])
+        normal *= np.sign(normal[2])
+        tilt = np.degrees(np.arccos(normal[2] / np.linalg.norm(normal)))
+        data = [np.array([-gx, -gy, 1.0]) for gx, gy in gradients[tri]]
+        width = normal[2] / max(np.linalg.norm(e[:2]) for e in edges)      # in the plane: 2 area / longest
+        if min(from_axis) < SHADOW_ANGLE:
+            reasons.append("shadow_edge")
+        elif tilt > GRAZING_ANGLE:
+            reasons.append("grazing")
+        elif any(normal @ d < 0 for d in data):
+            reasons.append("facing_away")
+        elif width < floor:
+            reasons.append("thinner_than_noise")
+        else:
+            reasons.append(None)
+    return np.array(reasons, dtype=object)
+
+
+def test_curtain_masks_match_the_angles_triangle_by_triangle_on_strided_inputs():
+    """Rough random heights over random points (every reason occurs), the inputs passed as
+    strided views and int32 triangles: each triangle's mask is its reason by the angles."""
+    rng = np.random.default_rng(11)
+    table = rng.random((3000, 5))
+    xy, z = table[:, :2], 0.08 * table[:, 2] + 0.02 * np.sin(9 * table[:, 0])   # (n, 2) view, stride 5
+    gradients = np.asfortranarray(rng.normal(scale=2.0, size=(3000, 2)))
+    triangles = delaunay(np.ascontiguousarray(xy)).astype(np.int32)[:, ::-1][:, [2, 1, 0]]  # strided view
+    floor = 0.004
+    masks = curtain_triangles(xy, z, gradients, triangles, floor=floor)
+    truth = _curtain_reasons_one_by_one(xy, z, gradients, triangles, floor)
+    for reason in REASONS:
+        assert masks[reason].sum() > 0
+        np.testing.assert_array_equal(masks[reason], truth == reason, err_msg=reason)

@@ -427,6 +427,53 @@ def test_las_classes_filter_matches_laspy(name):
         read_cloud(real(name), classes=(77,))
 
 
+def many_chunk_laz(path: Path, n: int = 120_000) -> None:
+    """A LAZ of n points with RGB over several 50 000-point LAZ chunks (lazrs's parallel
+    decoder splits its work by chunk), coordinates and classes from a seeded generator."""
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [500000.0, 4000000.0, 0.0]
+    rng = np.random.default_rng(7)
+    las = laspy.LasData(header)
+    las.x, las.y = 500000 + rng.uniform(0, 200, n), 4000000 + rng.uniform(0, 200, n)
+    las.z = rng.normal(100, 3, n)
+    las.classification = rng.choice(np.array([1, 2, 6], np.uint8), n)
+    for band in ("red", "green", "blue"):
+        las[band] = rng.integers(0, 65536, n, dtype=np.uint16)
+    las.write(str(path))
+
+
+@pytest.mark.parametrize("read", ["whole", "survey chunks"])
+def test_laz_decoder_follows_the_thread_knob_and_decodes_the_same_points(tmp_path, monkeypatch, read):
+    """One worker decodes in lazrs's single thread, more in its parallel decoder; both give
+    laspy's points exactly (the whole-file reader and the survey's chunk reader alike)."""
+    from c1mesh.core.threads import limit
+    from c1mesh.formats.copc import region_chunks
+
+    many_chunk_laz(tmp_path / "tile.laz")
+    truth = laspy.read(str(tmp_path / "tile.laz"), laz_backend=laspy.LazBackend.Lazrs)
+    opened, laspy_open = [], laspy.open
+
+    def recording_open(*args, **kwargs):
+        opened.append(kwargs.get("laz_backend"))
+        return laspy_open(*args, **kwargs)
+    monkeypatch.setattr(laspy, "open", recording_open)
+
+    def decode():
+        if read == "whole":
+            cloud = read_cloud(tmp_path / "tile.laz")
+            return cloud.points, cloud.classification
+        parts = list(region_chunks(tmp_path / "tile.laz", None, 30_000))
+        return (np.concatenate([np.column_stack([p.x, p.y, p.z]) for p in parts]),
+                np.concatenate([np.asarray(p.classification) for p in parts]))
+    for threads, backend in ((1, laspy.LazBackend.Lazrs), (2, laspy.LazBackend.LazrsParallel)):
+        opened.clear()
+        with limit(threads):
+            points, classes = decode()
+        assert opened == [backend]
+        np.testing.assert_array_equal(points, np.column_stack([truth.x, truth.y, truth.z]))
+        np.testing.assert_array_equal(classes, truth.classification)
+
+
 def test_laz_without_backend_raises_dependency_error(monkeypatch):
     monkeypatch.setattr(laspy.LazBackend, "detect_available", staticmethod(lambda: ()))
     with pytest.raises(DependencyError, match=r'pip install "laspy\[lazrs\]"'):

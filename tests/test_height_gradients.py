@@ -288,3 +288,48 @@ def test_csv_heights_fit_the_same_in_any_unit(tmp_path):
     in_m, in_km = (build_surface(c, FitOptions()).hf for c in (metres, km))
     np.testing.assert_array_equal(in_m.source_index, in_km.source_index)
     np.testing.assert_allclose(in_m.gradients, 1e3 * in_km.gradients, rtol=1e-9, atol=0)
+
+
+def test_the_neighbour_search_uses_the_thread_knob_and_gives_the_same_gradients(monkeypatch):
+    """Under `limit(n)` every cKDTree query of height_gradients runs in n threads (it ran in
+    all CPUs, workers=-1, whatever --threads said); the gradients do not depend on n."""
+    import scipy.spatial
+
+    from c1mesh.core.threads import limit
+
+    asked = []
+
+    class RecordingTree(scipy.spatial.cKDTree):
+        def query(self, *args, **kwargs):
+            asked.append(kwargs.get("workers", 1))
+            return super().query(*args, **kwargs)
+    xy = np.random.default_rng(4).random((3000, 2))
+    z = np.sin(3 * xy[:, 0]) + xy[:, 1] ** 2
+    plain = height_gradients(xy, z, k=24)
+    monkeypatch.setattr(scipy.spatial, "cKDTree", RecordingTree)
+    for threads in (1, 2):
+        asked.clear()
+        with limit(threads):
+            np.testing.assert_array_equal(height_gradients(xy, z, k=24), plain)
+        assert asked and set(asked) == {threads}
+
+
+def test_reused_block_buffers_give_the_bits_of_fresh_ones():
+    """height_gradients reuses one pair of design buffers across its blocks (the last one
+    partial); each block refitted with freshly allocated buffers gives the same bits."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.fit.height_gradients import BLOCK, _fit_block, nearest_neighbours
+
+    n, k = BLOCK + 7000, 24
+    xy = np.random.default_rng(9).random((n, 2)) * 200.0
+    z = np.sin(xy[:, 0] / 17) * np.cos(xy[:, 1] / 23) + 0.01 * np.random.default_rng(10).normal(size=n)
+    order = cKDTree(xy, balanced_tree=False, compact_nodes=False).indices
+    sorted_xy, sorted_z = xy[order], z[order]
+    tree = cKDTree(sorted_xy, balanced_tree=False, compact_nodes=False)
+    fresh = np.empty((n, 2))
+    for start in (0, BLOCK):
+        centre = np.arange(start, min(start + BLOCK, n))
+        neighbours, offsets = nearest_neighbours(tree, sorted_xy, sorted_z, centre, k)
+        fresh[order[centre]] = _fit_block(sorted_z, centre, neighbours, offsets, 2)
+    np.testing.assert_array_equal(height_gradients(xy, z, k=k), fresh)

@@ -302,7 +302,9 @@ def region_chunks(path, box: Box | None, chunk: int) -> Iterator:
     chunk of the body, filtered (box None: every chunk as it is)."""
     import laspy
 
-    with laspy.open(str(path)) as reader:
+    from c1mesh.formats.las import laz_backend
+
+    with laspy.open(str(path), laz_backend=laz_backend()) as reader:
         if box is None:
             yield from reader.chunk_iterator(chunk)
             return

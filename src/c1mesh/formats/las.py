@@ -56,7 +56,8 @@ def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
         raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.")
     _check_header(data, name)
     with _laspy_errors(name):
-        reader = laspy.open(open_stream(), decompression_selection=_wanted_fields())
+        reader = laspy.open(open_stream(), decompression_selection=_wanted_fields(),
+                            laz_backend=laz_backend())
         try:
             _check_length(reader.header, len(data), name)
             _check_laz_chunks(data, reader.header, name, open_stream)
@@ -64,6 +65,20 @@ def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
             reader.close()
             raise
         return reader
+
+
+def laz_backend():
+    """The laspy LAZ backend under the thread knob: lazrs in one thread when
+    `workers()` is 1, else lazrs's parallel decoder (the LAZ chunks of each read decoded
+    in rayon threads; laspy's own default, and the same decoded bytes).
+
+    rayon's pool cannot be bounded per call: lazrs does not take a thread count, and its
+    global pool is sized once per process, to RAYON_NUM_THREADS or the CPU count. So the
+    knob chooses between one thread and that pool."""
+    from c1mesh.core.threads import workers
+
+    backends = _laspy().LazBackend
+    return backends.Lazrs if workers() == 1 else backends.LazrsParallel
 
 
 def _wanted_fields():

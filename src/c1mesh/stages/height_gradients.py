@@ -71,7 +71,7 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
 
 
 def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2,
-                     workers: int = -1) -> np.ndarray:
+                     workers: int | None = None) -> np.ndarray:
     """Gradients (n, 2) of heights z (n,) over plane points xy (n, 2), one per point.
 
     For point i with neighbours j (the k nearest other points in the plane), the offsets
@@ -87,7 +87,8 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     The fit is exact for any quadratic (degree 2) or affine (degree 1) height function
     whenever the neighbours determine it; where they do not (fewer than 5 non-collinear
     neighbours), the ridge RIDGE keeps the solve finite and the quadratic terms small.
-    workers: threads for the neighbour search (scipy cKDTree.query).
+    workers: threads for the neighbour search (scipy cKDTree.query); None: the thread
+    knob's count (c1mesh.core.threads.workers), as every pool of the package.
     Units: xy in one unit (the plan's), z in any unit; the gradients are in z units per
     xy unit. Nothing compares heights with plane distances, so heights in feet over a
     plan in 50 ft cells (R's `topo`) or in metres over kilometres are fitted as well as
@@ -97,6 +98,9 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     """
     from scipy.spatial import cKDTree
 
+    from c1mesh.core.threads import workers as thread_count
+
+    workers = thread_count(workers)
     xy = np.asarray(xy, dtype=np.float64)
     z = np.asarray(z, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2 or z.shape != (xy.shape[0],):
@@ -115,10 +119,12 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     xy, z = xy[order], z[order]
     tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)
     out = np.empty((n, 2))
+    terms = 2 if degree == 1 else 5
+    work = tuple(np.empty((min(BLOCK, n), k, terms)) for _ in range(2))   # touched once, not per block
     for start in range(0, n, BLOCK):
         centre = np.arange(start, min(start + BLOCK, n))
         neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, workers)
-        out[order[centre]] = _fit_block(z, centre, neighbours, offsets, degree)
+        out[order[centre]] = _fit_block(z, centre, neighbours, offsets, degree, work)
     return out
 
 
@@ -197,10 +203,13 @@ def _offsets(xy, centre, neighbours):
 
 
 def _fit_block(z: np.ndarray, centre: np.ndarray, neighbours: np.ndarray, offsets: tuple,
-               degree: int) -> np.ndarray:
+               degree: int, work: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Gradients (b, 2) of the weighted local fits at points `centre` (b,) with their
     neighbour indices (b, k) and offsets (dx, dy, dx² + dy²), each (b, k); see
-    `height_gradients`. The sums over neighbours run in the columns' order."""
+    `height_gradients`. The sums over neighbours run in the columns' order.
+    work: two C-order buffers of at least (b, k, terms) floats for the design and the
+    weighted design, reused across blocks (fresh pages are slow to touch); None
+    allocates them. Same arrays, same layout, so the same bits either way."""
     ux, uy, dist2 = offsets
     scale2 = np.median(dist2, axis=1)
     scale2 = np.where(scale2 > 0, scale2, 1.0)
@@ -210,13 +219,15 @@ def _fit_block(z: np.ndarray, centre: np.ndarray, neighbours: np.ndarray, offset
     w = 1.0 / (1.0 + dist2 / scale2[:, None])
     dz = z[neighbours] - z[centre, None]
     m = 2 if degree == 1 else 5
-    design = np.empty((centre.size, neighbours.shape[1], m))
+    shape = (centre.size, neighbours.shape[1], m)
+    design_buffer, weighted_buffer = work or (np.empty(shape), np.empty(shape))
+    design = design_buffer[:centre.size]
     design[..., 0], design[..., 1] = ux, uy
     if degree == 2:
         np.multiply(0.5 * ux, ux, out=design[..., 2])
         np.multiply(ux, uy, out=design[..., 3])
         np.multiply(0.5 * uy, uy, out=design[..., 4])
-    weighted = (design * w[..., None]).transpose(0, 2, 1)         # (b, m, k)
+    weighted = np.multiply(design, w[..., None], out=weighted_buffer[:centre.size]).transpose(0, 2, 1)  # (b, m, k)
     normal = np.matmul(weighted, design)                          # batched BLAS: 15x einsum's speed
     rhs = np.matmul(weighted, dz[..., None])
     ridge = RIDGE * np.trace(normal, axis1=1, axis2=2) + np.finfo(float).tiny
