@@ -164,7 +164,7 @@ def _curtain_reasons_one_by_one(xy, z, gradients, triangles, floor):
     """The REASONS of each triangle from the module docstring's angles, one triangle at a
     time with vectors, norms and arccos (the reference for curtain_triangles' squared,
     component-wise comparisons)."""
-    from c1mesh.fit.curtains import GRAZING_ANGLE, SHADOW_ANGLE
+    from c1mesh.stages.curtains import GRAZING_ANGLE, SHADOW_ANGLE
 
     reasons = []
     for tri in triangles:

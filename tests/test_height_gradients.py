@@ -319,7 +319,7 @@ def test_reused_block_buffers_give_the_bits_of_fresh_ones():
     partial); each block refitted with freshly allocated buffers gives the same bits."""
     from scipy.spatial import cKDTree
 
-    from c1mesh.fit.height_gradients import BLOCK, _fit_block, nearest_neighbours
+    from c1mesh.stages.height_gradients import BLOCK, _fit_block, nearest_neighbours
 
     n, k = BLOCK + 7000, 24
     xy = np.random.default_rng(9).random((n, 2)) * 200.0

@@ -55,7 +55,7 @@ def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
     if _is_compressed(data) and not laspy.LazBackend.detect_available():
         raise DependencyError(f"Reading the LAZ file '{name}' needs a LAZ backend: {_INSTALL}.")
     _check_header(data, name)
-    with _laspy_errors(name):
+    with laspy_errors(name):
         reader = laspy.open(open_stream(), decompression_selection=_wanted_fields(),
                             laz_backend=laz_backend())
         try:
@@ -89,7 +89,7 @@ def _wanted_fields():
 
 
 @contextlib.contextmanager
-def _laspy_errors(name: str):
+def laspy_errors(name: str):
     """Turn laspy's and lazrs's exceptions into FormatError / DependencyError naming the file."""
     try:
         yield
@@ -219,7 +219,7 @@ def read_las(data: Buffer, name: str, classes=None,
     """
     open_stream = open_stream or (lambda: io.BytesIO(data))
     keep = None if classes is None else np.asarray(list(classes), dtype=np.int64)
-    with _open(data, name, open_stream) as reader, _laspy_errors(name), \
+    with _open(data, name, open_stream) as reader, laspy_errors(name), \
             _point_chunks(reader, data, name, open_stream, bounds) as (chunks, expected):
         if keep is None and bounds is None:
             check_alloc(reader.header.point_count * _KEPT_BYTES_PER_POINT, name,

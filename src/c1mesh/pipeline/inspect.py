@@ -69,9 +69,9 @@ def _copc_facts(source, fmt: str | None) -> dict | None:
     if not isinstance(source, (str, Path)) or (fmt or Path(source).suffix).lower().lstrip(".") not in ("laz", "copc"):
         return None
     from c1mesh.formats.copc import copc_summary
-    from c1mesh.formats.las import _laspy_errors
+    from c1mesh.formats.las import laspy_errors
 
-    with _laspy_errors(str(source)):
+    with laspy_errors(str(source)):
         return copc_summary(source)
 
 
