@@ -73,7 +73,7 @@ def test_interpolates_vertex_values_and_gradients(mesh, name):
 
 def _edge_samples(interp, tris):
     """For each interior edge, its two triangles and exact barycentrics of edge points in each."""
-    table = interp._table
+    table = interp.edge_table
     s = np.linspace(0.05, 0.95, 7)
     for e in np.flatnonzero(table.count == 2):
         owners = np.flatnonzero((table.tri_edge == e).any(axis=1))
@@ -91,7 +91,7 @@ def _local_eval(interp, t, lam):
     C = interp.coefficients[t]
     value = C @ rsd.basis(interp.scheme, lam)
     D0, D1 = rsd.gradient_basis(interp.scheme, lam)
-    G = interp._G[t]
+    G = interp.lambda_gradients[t]
     grad = np.outer(C @ D0, G[0]) + np.outer(C @ D1, G[1])
     return value, grad
 
@@ -121,7 +121,7 @@ def test_without_shared_directions_the_spline_is_not_c1(mesh):
     interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
     rng = np.random.default_rng(3)
     interp.coefficients = rsd.triangle_coefficients(
-        pts[tris], interp.values[tris], interp.gradients[tris], rng.normal(size=(len(tris), 3, 2)), interp._G)
+        pts[tris], interp.values[tris], interp.gradients[tris], rng.normal(size=(len(tris), 3, 2)), interp.lambda_gradients)
     jumps = [np.abs(_local_eval(interp, t1, l1)[1] - _local_eval(interp, t2, l2)[1]).max()
              for _, (t1, t2), (l1, l2), _ in _edge_samples(interp, tris)]
     assert max(jumps) > 1e-3
@@ -142,7 +142,7 @@ def test_reduced_side_derivative_formula(mesh, name):
             lam = np.zeros((9, 3))
             lam[:, i], lam[:, j] = s, 1 - s
             _, grad = _local_eval(interp, t, lam)
-            u = interp.directions[interp._table.tri_edge[t, k]]
+            u = interp.directions[interp.edge_table.tri_edge[t, k]]
             Ai, Aj = A[tris[t, i]], A[tris[t, j]]
             expected = psi1(s) * (Ai @ u) + psi1(1 - s) * (Aj @ u)
             np.testing.assert_allclose(grad @ u, expected, atol=1e-10 * (1 + np.abs(expected).max()))
@@ -322,12 +322,12 @@ def test_c1_certificate_measures_jumps(mesh):
     pts, tris = mesh
     interp = RSDInterpolator(pts, franke(pts), smooth_grad(pts), triangles=tris)
     cert = interp.c1_certificate()
-    assert cert["edges_checked"] == int((interp._table.count == 2).sum())
+    assert cert["edges_checked"] == int((interp.edge_table.count == 2).sum())
     assert cert["value_jump"] < 1e-12 and cert["gradient_jump"] < 1e-11
     # breaking the shared directions must show up in the certificate
     interp.coefficients = rsd.triangle_coefficients(
         pts[tris], interp.values[tris], interp.gradients[tris],
-        np.random.default_rng(0).normal(size=(len(tris), 3, 2)), interp._G)
+        np.random.default_rng(0).normal(size=(len(tris), 3, 2)), interp.lambda_gradients)
     assert interp.c1_certificate()["gradient_jump"] > 1e-3
 
 
@@ -387,7 +387,7 @@ def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
     two = rsd.mesh_coefficients(*args, chunk=7, threads=2)
     for a, b in zip(one, two):
         assert np.array_equal(a, b)
-    assert np.array_equal(one[0], interp.coefficients) and np.array_equal(one[1], interp._G)
+    assert np.array_equal(one[0], interp.coefficients) and np.array_equal(one[1], interp.lambda_gradients)
     t = interp.triangles
     corners = interp.points[t]
     G, det = rsd.barycentric_gradients(corners)
@@ -450,7 +450,7 @@ def _sub_refinement(interp, first, last, level):
     part = slice(first, last)
     triangles = interp.triangles[part]
     return Refinement(interp.points, interp.values, interp.gradients, triangles, interp.coefficients[part],
-                      interp._G[part], edge_table(triangles, len(interp.points)), interp.scheme, level)
+                      interp.lambda_gradients[part], edge_table(triangles, len(interp.points)), interp.scheme, level)
 
 
 @pytest.mark.parametrize("level", [4, 8])

@@ -63,7 +63,7 @@ def test_refined_values_match_pointwise_and_vertices_exact(drawn):
     # evaluate each refined point in its own parent (no point location involved)
     tri_of_point = np.empty(len(r.points), dtype=int)
     tri_of_point[r.triangles.ravel()] = np.repeat(r.parent, 3)
-    G = interp._G[tri_of_point]
+    G = interp.lambda_gradients[tri_of_point]
     anchor = pts[tris[tri_of_point, 1]]
     lam0 = np.einsum("md,md->m", G[:, 0], r.points - anchor)
     lam1 = np.einsum("md,md->m", G[:, 1], r.points - pts[tris[tri_of_point, 2]])
@@ -84,4 +84,4 @@ def test_c1_certificate_small_on_any_mesh(drawn):
     cert = interp.c1_certificate()
     cond = 1 + np.abs(interp.coefficients).max()
     assert cert["value_jump"] <= 1e-13 * cond
-    assert cert["gradient_jump"] <= 1e-11 * cond * (1 + np.abs(interp._G).max())
+    assert cert["gradient_jump"] <= 1e-11 * cond * (1 + np.abs(interp.lambda_gradients).max())

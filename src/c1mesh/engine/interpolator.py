@@ -54,7 +54,10 @@ class RSDInterpolator:
         already (the fit pipeline's overshoot control does), so the edges are numbered once.
 
     Attributes: points, values, gradients, triangles, edges (E, 2), directions (E, 2),
-    scheme (ShapeTuple), coefficients (T, 21), workers.
+    scheme (ShapeTuple), coefficients (T, 21), workers, edge_table (the
+    c1mesh.engine.topology.EdgeTable of the triangles: edges, each triangle's edges and
+    their neighbours), lambda_gradients (T, 3, 2): the gradient of each triangle's three
+    barycentric coordinates (rsd.gradients_at turns spline derivatives into ∇F with it).
     """
 
     def __init__(self, points, values, gradients, triangles=None,
@@ -70,10 +73,10 @@ class RSDInterpolator:
         self.triangles = self._triangles(triangles)
         self.workers = workers
         with limit(workers):
-            self._table, (C, self._G, _, degenerate) = self._coefficients_and_edges(edge_table)
-            self.edges = self._table.edges
+            self.edge_table, (C, self.lambda_gradients, _, degenerate) = self._coefficients_and_edges(edge_table)
+            self.edges = self.edge_table.edges
             self.directions = self._directions(directions)
-            rsd.ratio_coefficients(C, self._G, self.directions, self._table.tri_edge)
+            rsd.ratio_coefficients(C, self.lambda_gradients, self.directions, self.edge_table.tri_edge)
         self.coefficients = C
         self._check_degenerate(degenerate)
         self._locator: TriangleLocator | None = None
@@ -138,7 +141,7 @@ class RSDInterpolator:
         shape = xy.shape[:-1]
         xy = xy.reshape(-1, 2)
         if self._locator is None:
-            self._locator = TriangleLocator(self.points, self.triangles, self._G)
+            self._locator = TriangleLocator(self.points, self.triangles, self.lambda_gradients)
         tri, lam = self._locator.find(xy)
         return xy, tri, lam, shape
 
@@ -158,7 +161,7 @@ class RSDInterpolator:
         inside = tri >= 0
         if inside.any():
             t = tri[inside]
-            out[inside] = rsd.gradients_at(self.scheme, self.coefficients[t], self._G[t], lam[inside])
+            out[inside] = rsd.gradients_at(self.scheme, self.coefficients[t], self.lambda_gradients[t], lam[inside])
         return out.reshape(shape + (2,))
 
     def find_simplex(self, xi) -> np.ndarray:
@@ -174,7 +177,7 @@ class RSDInterpolator:
         exact edge barycentrics. Jumps are relative to the largest |value| and |gradient| of
         the data. Returns {"edges_checked", "value_jump", "gradient_jump"}.
         """
-        table = self._table
+        table = self.edge_table
         interior = np.flatnonzero(table.count == 2)
         rng = np.random.default_rng(seed)
         if interior.size > max_edges:
@@ -194,7 +197,7 @@ class RSDInterpolator:
             lam[local == b[:, None]] = np.tile(s, interior.size)
             C = self.coefficients[t]
             results.append((rsd.values_at(self.scheme, C, lam),
-                            rsd.gradients_at(self.scheme, C, self._G[t], lam)))
+                            rsd.gradients_at(self.scheme, C, self.lambda_gradients[t], lam)))
         (v1, g1), (v2, g2) = results
         value_scale = max(float(np.abs(self.values).max()), np.finfo(float).tiny)
         grad_scale = max(float(np.abs(self.gradients).max()), np.finfo(float).tiny)
@@ -211,7 +214,7 @@ class RSDInterpolator:
     def refinement(self, level: int) -> Refinement:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
         return Refinement(self.points, self.values, self.gradients, self.triangles,
-                          self.coefficients, self._G, self._table, self.scheme, level)
+                          self.coefficients, self.lambda_gradients, self.edge_table, self.scheme, level)
 
 
 def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,

@@ -172,7 +172,7 @@ class SplineSampler:
                                 for i in range(self.degree + 1)])
         # per triangle, one contiguous array each (gathered per cell): for k = 0, 1 the
         # gradient of λ_k and the vertex k+1 it is measured from
-        G = interp._G
+        G = interp.lambda_gradients
         self._bary = [(G[:, k, 0].copy(), G[:, k, 1].copy(), xs[k + 1], ys[k + 1]) for k in range(2)]
         self._order = np.argsort(self._hi[:, 1])                         # by north edge
         self._north = self._hi[self._order, 1]
@@ -287,7 +287,7 @@ class SplineSampler:
         barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,)."""
         it = self.interp
         if self.K is None:
-            C, G = it.coefficients[tri], it._G[tri]
+            C, G = it.coefficients[tri], it.lambda_gradients[tri]
             lam = np.column_stack([l0, l1, 1.0 - l0 - l1])
             return (rsd.values_at(it.scheme, C, lam),
                     rsd.gradients_at(it.scheme, C, G, lam) if gradients else None)

@@ -250,7 +250,7 @@ def perspective_report(source, output, cloud, field_: ViewField, used, interp, o
         triangles=tri_report, level=options.level, level_from=level_from,
         output_mesh={"vertices": int(stream.vertex_count), "faces": int(stream.face_count)},
         scheme=scheme_facts(options.scheme), c1_certificate=interp.c1_certificate(),
-        pieces=mesh_pieces(interp.points, interp.triangles, interp._table), warnings=[], crs=crs,
+        pieces=mesh_pieces(interp.points, interp.triangles, interp.edge_table), warnings=[], crs=crs,
         seconds=timer.seconds, threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor))
     report["overshoot"] = overshoot.as_dict()

@@ -416,7 +416,7 @@ def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool 
     and the warnings. pieces_in_warnings=False words the warnings without the piece
     count, as the tiled fit (which cannot count pieces) words them: the DEM and -O do."""
     interp, trim_report = model.interp, model.trim_report
-    pieces = mesh_pieces(interp.points, interp.triangles, interp._table)
+    pieces = mesh_pieces(interp.points, interp.triangles, interp.edge_table)
     return {"pieces": pieces, "c1_certificate": interp.c1_certificate(),
             "scheme": scheme_properties(interp.scheme).as_dict(),
             "warnings": fit_warnings(len(cloud), int(model.used.size), trim_report.triangles_before,

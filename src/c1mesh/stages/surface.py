@@ -75,6 +75,6 @@ def refined_vertex_count(interp, level: int) -> int:
     """Vertices of the level-`level` refinement of interp's triangulation, without building
     it: the N points, L − 1 per edge and (L − 1)(L − 2)/2 inside each triangle
     (refine.Refinement numbers them so)."""
-    edges = interp._table.edges.shape[0]
+    edges = interp.edge_table.edges.shape[0]
     inside = (level - 1) * (level - 2) // 2
     return int(interp.points.shape[0] + edges * (level - 1) + interp.triangles.shape[0] * inside)

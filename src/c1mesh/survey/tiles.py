@@ -194,7 +194,7 @@ class TilePlan:
         self.names, self.outputs = list(survey.names), [str(o) for o in outputs]
         self.counts = np.diff(survey.offsets)
         self.owners = triangle_owners(model, survey)
-        self.across = neighbours(interp._table)
+        self.across = neighbours(interp.edge_table)
         colors = survey.cloud.colors
         self.colors = None if colors is None else colors[model.hf.source_index[model.used]]
         self.scheme = _scheme_for_task(interp.scheme)
@@ -216,7 +216,7 @@ class TilePlan:
         return TileTask(
             i, self.names[i], self.outputs[i], interp.points[points], interp.values[points],
             interp.gradients[points], None if self.colors is None else self.colors[points],
-            np.searchsorted(points, corners), interp.coefficients[keep], interp._G[keep],
+            np.searchsorted(points, corners), interp.coefficients[keep], interp.lambda_gradients[keep],
             owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]), self.ascii,
             self.crs)
 
