@@ -889,10 +889,10 @@ def test_atomic_output_starts_writeback_as_it_goes(tmp_path, monkeypatch):
 @pytest.mark.parametrize("raised, message", [(MemoryError(), "out of memory while decoding"),
                                              (RuntimeError(""), "cannot be read: RuntimeError")])
 def test_laspy_failures_always_say_why(raised, message):
-    from c1mesh.formats.las import _laspy_errors
+    from c1mesh.formats.las import laspy_errors
 
     with pytest.raises(FormatError, match=f"'tile.laz'.*{message}"):
-        with _laspy_errors("tile.laz"):
+        with laspy_errors("tile.laz"):
             raise raised
 
 

@@ -302,7 +302,6 @@ def region_chunks(path, box: Box | None, chunk: int) -> Iterator:
     chunk of the body, filtered (box None: every chunk as it is)."""
     import laspy
 
-    from c1mesh.formats.las import laz_backend
 
     with laspy.open(str(path), laz_backend=laz_backend()) as reader:
         if box is None:
@@ -335,3 +334,19 @@ def points_to_read(path, box: Box | None) -> int:
             return int(header.point_count)
     with Copc(lambda: open(path, "rb"), str(path), os.path.getsize(path)) as copc:
         return sum(n.point_count for n in copc.nodes(box)) if copc.complete else int(copc.header.point_count)
+
+
+def laz_backend():
+    """The laspy LAZ backend under the thread knob: lazrs in one thread when
+    `workers()` is 1, else lazrs's parallel decoder (the LAZ chunks of each read decoded
+    in rayon threads; laspy's own default, and the same decoded bytes).
+
+    rayon's pool cannot be bounded per call: lazrs does not take a thread count, and its
+    global pool is sized once per process, to RAYON_NUM_THREADS or the CPU count. So the
+    knob chooses between one thread and that pool."""
+    from c1mesh.core.threads import workers
+
+    import laspy
+
+    backends = laspy.LazBackend
+    return backends.Lazrs if workers() == 1 else backends.LazrsParallel

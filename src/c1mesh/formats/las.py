@@ -28,7 +28,7 @@ from c1mesh.core.crs import las_crs
 from c1mesh.core.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
-from c1mesh.formats.copc import inside
+from c1mesh.formats.copc import inside, laz_backend
 
 Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
@@ -65,20 +65,6 @@ def _open(data: Buffer, name: str, open_stream: Callable[[], IO[bytes]]):
             reader.close()
             raise
         return reader
-
-
-def laz_backend():
-    """The laspy LAZ backend under the thread knob: lazrs in one thread when
-    `workers()` is 1, else lazrs's parallel decoder (the LAZ chunks of each read decoded
-    in rayon threads; laspy's own default, and the same decoded bytes).
-
-    rayon's pool cannot be bounded per call: lazrs does not take a thread count, and its
-    global pool is sized once per process, to RAYON_NUM_THREADS or the CPU count. So the
-    knob chooses between one thread and that pool."""
-    from c1mesh.core.threads import workers
-
-    backends = _laspy().LazBackend
-    return backends.Lazrs if workers() == 1 else backends.LazrsParallel
 
 
 def _wanted_fields():
