@@ -107,7 +107,8 @@ def run(path: str, per_tile: int = 500_000) -> None:
 
 def whole(path: str) -> None:
     from c1mesh.stages.frame import choose_frame
-    from c1mesh.engine.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import trim
 
     t0 = time.perf_counter()
     points = np.concatenate(list(_world_chunks(path)))

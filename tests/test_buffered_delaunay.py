@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial import ConvexHull, Delaunay
 
 import c1mesh.survey.buffered_delaunay as bd
-from c1mesh.engine.triangulation import edge_lengths
+from c1mesh.stages.trim import edge_lengths
 
 
 def _survey(kind: str, n: int = 4000, seed: int = 3) -> np.ndarray:
@@ -124,7 +124,7 @@ def test_circumcircles_match_the_equidistance_definition():
 def test_auto_max_edge_is_trims_to_the_bit(kind, n):
     """The tiles' median edge, from certified short edges and the edge count 3n - 3 - h,
     is the value trim takes from the whole triangulation."""
-    from c1mesh.engine.triangulation import trim
+    from c1mesh.stages.trim import trim
 
     xy = _survey(kind, n=n)
     _, report = trim(xy, Delaunay(xy).simplices, max_edge="auto", min_circle_ratio=0.0)
@@ -154,7 +154,8 @@ def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
     from pathlib import Path
 
     from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
-    from c1mesh.engine.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import trim
 
     options = FitOptions(classes=(2,))
     cloud = load_cloud(Path(__file__).resolve().parent.parent / "data_samples" / "4_6_crop.las", options)
@@ -173,7 +174,7 @@ def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
 def test_one_pass_trimmed_delaunay_is_trims_long_edge_result(kind):
     """One triangulation per tile gives trim's auto max_edge and the survey's Delaunay
     triangles up to it (filtered by each pass's longest edges)."""
-    from c1mesh.engine.triangulation import trim
+    from c1mesh.stages.trim import trim
 
     xy = _survey(kind)
     whole = Delaunay(xy).simplices

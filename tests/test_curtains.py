@@ -11,7 +11,8 @@ import c1mesh.pipeline.driver as pipeline
 from c1mesh.stages.curtains import REASONS, _needs_trim, curtain_triangles, noise_floor, remove_curtains
 from c1mesh.pipeline.driver import FitOptions, fit
 from c1mesh.testing.quality import folded_faces
-from c1mesh.engine.triangulation import delaunay, trim
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.trim import trim
 
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
 

@@ -179,7 +179,8 @@ def test_level_and_resolution_conflict_is_a_usage_error(tmp_path):
 def _fitted(n=3000):
     """The interpolator on the triangulation the fit pipeline uses (Delaunay, hull slivers
     trimmed: they make the spline's gradient wrong by tens of degrees near the hull)."""
-    from c1mesh.engine.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import trim
     xy, z, g = _terrain(n)
     triangles, _ = trim(xy, delaunay(xy), max_edge="auto")
     return RSDInterpolator(xy, z, g, triangles=triangles)

@@ -194,7 +194,8 @@ def _big_mesh_inputs(n=60_000, seed=0):
 def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
     from c1mesh.engine.interpolator import RSDInterpolator
     from c1mesh.pipeline.driver import FitOptions, fit
-    from c1mesh.engine.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import trim
     xy, z, g = _big_mesh_inputs()
     census = _ThreadCensus(monkeypatch)
     with threads.limit(1):
@@ -207,7 +208,8 @@ def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
 def test_every_pool_stays_within_the_limit(monkeypatch, tmp_path):
     from c1mesh.engine import refine
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.engine.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import trim
     xy, z, g = _big_mesh_inputs()
     census = _ThreadCensus(monkeypatch)
     parallel = []
@@ -226,7 +228,8 @@ def test_every_pool_stays_within_the_limit(monkeypatch, tmp_path):
 
 def test_results_are_bit_identical_for_every_thread_count():
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.engine.triangulation import delaunay, trim
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import trim
     xy, z, g = _big_mesh_inputs()
     results = []
     for count in (1, 2, 3):

@@ -41,7 +41,8 @@ from c1mesh.survey.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_pe
 from c1mesh.survey.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits
 from c1mesh.survey.tiled_trim import drop_triangles, peeled
 from c1mesh.engine.topology import edge_table
-from c1mesh.engine.triangulation import delaunay, trim
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.trim import trim
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 

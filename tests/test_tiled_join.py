@@ -15,7 +15,8 @@ from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.survey.tiled_join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
 from c1mesh.survey.tiled_limiter import halo_rows
-from c1mesh.engine.triangulation import delaunay, trim
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.trim import trim
 
 
 def test_halo_rows_equal_a_dense_table_over_the_survey():

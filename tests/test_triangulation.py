@@ -8,8 +8,10 @@ import pytest
 from scipy.spatial import Delaunay
 
 from c1mesh.engine import triangulation as tr
+from c1mesh.stages import trim as trim_stage
 from c1mesh.core.errors import InputError
-from c1mesh.engine.triangulation import TrimReport, circle_ratio, delaunay, trim
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.trim import TrimReport, circle_ratio, trim
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 
@@ -153,7 +155,7 @@ def test_unusable_points_are_input_errors(xy, msg):
 def test_circle_ratio_is_one_for_equilateral_and_twice_matplotlibs(mtri):
     xy = np.random.default_rng(4).random((200, 2))
     tri = Delaunay(xy).simplices
-    ours = circle_ratio(tr.edge_lengths(xy, tri))
+    ours = circle_ratio(trim_stage.edge_lengths(xy, tri))
     theirs = mtri.TriAnalyzer(mtri.Triangulation(xy[:, 0], xy[:, 1], tri)).circle_ratios(rescale=False)
     assert np.allclose(ours, 2 * theirs)
     assert circle_ratio(np.array([[1.0, 1.0, 1.0], [1.0, 1.0, 2.0], [0.0, 1.0, 1.0]])) == \
@@ -220,7 +222,7 @@ def test_hull_slivers_are_peeled_like_matplotlibs_flat_triangle_mask(mtri):
         min_circle_ratio=0.01 / 2, rescale=False)
     assert rep.removed["sliver"] == int(flat.sum()) > 20
     assert as_set(out) == as_set(tri[~flat])
-    assert min(circle_ratio(tr.edge_lengths(xy, out))[_boundary(out)]) >= 0.01
+    assert min(circle_ratio(trim_stage.edge_lengths(xy, out))[_boundary(out)]) >= 0.01
 
 
 def test_sliver_peeling_after_long_edge_removal_matches_matplotlib_with_a_mask(mtri):
@@ -229,7 +231,7 @@ def test_sliver_peeling_after_long_edge_removal_matches_matplotlib_with_a_mask(m
     xy = np.vstack([bulged_arc(7), grid_with_hole() / 30 - [0.5, 1.0]])
     tri = delaunay(xy)
     out, rep = trim(xy, tri, max_edge=0.08)
-    long = tr.edge_lengths(xy, tri).max(axis=1) > 0.08
+    long = trim_stage.edge_lengths(xy, tri).max(axis=1) > 0.08
     peer = mtri.Triangulation(xy[:, 0], xy[:, 1], tri, mask=long)
     flat = mtri.TriAnalyzer(peer).get_flat_tri_mask(min_circle_ratio=0.005, rescale=False)
     theirs = tri[~flat]
@@ -254,7 +256,7 @@ def test_interior_slivers_are_never_removed():
     rng = np.random.default_rng(8)
     xy = np.vstack([rng.random((400, 2)), [[0.5, 0.5], [0.5, 0.50001]]])   # needles around a pair
     tri = delaunay(xy)
-    thin = circle_ratio(tr.edge_lengths(xy, tri)) < 0.01
+    thin = circle_ratio(trim_stage.edge_lengths(xy, tri)) < 0.01
     interior_thin = thin & np.all(np.abs(xy[tri].mean(axis=1) - 0.5) < 0.3, axis=1)
     assert interior_thin.sum() >= 2
     out, _ = trim(xy, tri, max_edge=None)
@@ -330,7 +332,7 @@ def test_lidar_ground_gives_a_sane_trimmed_mesh():
                                                     plain[:, [2, 0]]]), axis=1), axis=0)
     median = np.median(np.linalg.norm(xy[plain_edges[:, 0]] - xy[plain_edges[:, 1]], axis=1))
     assert rep.max_edge == pytest.approx(4 * median)
-    assert tr.edge_lengths(xy, out).max() <= rep.max_edge
+    assert trim_stage.edge_lengths(xy, out).max() <= rep.max_edge
     assert rep.triangles_before == len(tri) == len(plain)
     assert rep.triangles_before - rep.triangles_after == sum(rep.removed.values())
     assert rep.unreferenced_points == len(xy) - np.unique(out).size
@@ -363,7 +365,7 @@ def test_neighbours_are_symmetric_and_share_the_edge():
     rng = np.random.default_rng(9)
     xy = rng.random((3000, 2))
     tri = delaunay(xy)
-    nb = tr.triangle_neighbours(tri, len(xy))
+    nb = trim_stage.triangle_neighbours(tri, len(xy))
     t, k = np.nonzero(nb >= 0)
     edge = np.sort(np.stack([tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]], axis=1), axis=1)
     other = tri[nb[t, k]]

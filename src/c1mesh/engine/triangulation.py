@@ -1,4 +1,4 @@
-"""Delaunay triangulation of the projected scan, and trimming of what should not be meshed.
+"""Delaunay triangulation of the projected scan.
 
 `delaunay` returns the same triangles as `scipy.spatial.Delaunay(xy).simplices` (as a set
 of vertex triples, for points in general position), 2-2.5x faster at 1M uniform random
@@ -34,14 +34,11 @@ returns a valid Delaunay triangulation that may choose other diagonals than plai
 Exact duplicate points: qhull uses one copy (which one is unspecified); c1mesh's
 height_field merges duplicates before triangulating.
 
-`trim` removes triangles that bridge gaps (any edge longer than `max_edge`) and then peels
-thin triangles ("slivers") off the boundary, because the spline divides by quantities that
-vanish as triangles flatten.
+Trimming what should not be meshed is a fit stage: c1mesh.stages.trim.
 """
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -50,22 +47,12 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.threads import overlap, workers
-from c1mesh.engine.topology import sort_keys
+from c1mesh.core.threads import workers
 
 TILE_POINTS = 10_000
 """Points per tile: qhull time per point is flat up to ~25k points and grows beyond."""
 TILED_FROM = 50_000
 """Inputs with fewer points go to one plain qhull call (tiling gains nothing there)."""
-AUTO_EDGE_FACTOR = 4.0
-"""max_edge="auto" is this times the median edge length. In the Delaunay triangulation of
-uniform random points (the most irregular gap-free sampling) the longest edge of a triangle
-stays below ~4x the median edge: 0-2 of 650,000 interior triangles exceed it. Real LiDAR
-ground (4_6_crop.las, class 2) loses 4% of its area at 4x, mostly under trees and buildings
-(81% of that area holds non-ground returns); at 2.5x it would also cut the many holes left
-by one or two missing points."""
-
-
 # --- Delaunay -----------------------------------------------------------------------------
 
 def delaunay(xy: ArrayLike) -> np.ndarray:
@@ -79,7 +66,7 @@ def delaunay(xy: ArrayLike) -> np.ndarray:
     test; none after centring). Raises InputError for non-finite or fewer than 3 points,
     or when all points lie on one line.
     """
-    pts = _as_xy(xy)
+    pts = as_xy(xy)
     if pts.shape[0] < 3:
         raise InputError(f"a triangulation needs at least 3 points, got {pts.shape[0]}")
     pts = pts - (pts.min(axis=0) + pts.max(axis=0)) / 2
@@ -91,7 +78,7 @@ def delaunay(xy: ArrayLike) -> np.ndarray:
     return _qhull(pts)
 
 
-def _as_xy(xy: ArrayLike) -> np.ndarray:
+def as_xy(xy: ArrayLike) -> np.ndarray:
     pts = np.asarray(xy, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
         raise InputError(f"plane points must be an array of shape (n, 2), got shape {pts.shape}")
@@ -240,252 +227,3 @@ def _fill_band(xy: np.ndarray, band: np.ndarray, frontier: np.ndarray, whole: bo
     flip = cross[keep] < 0
     tri[flip] = tri[flip][:, ::-1]
     return tri, float(np.abs(cross[keep]).sum()), float(np.abs(cross).sum()), len(dt.convex_hull)
-
-
-# --- trimming -----------------------------------------------------------------------------
-
-@dataclass
-class TrimReport:
-    """What `trim` did.
-
-    triangles_before / triangles_after: counts in and out.
-    removed: triangles removed by reason: "long_edge" (an edge longer than max_edge),
-             "sliver" (thin boundary triangles), "bowtie" (fans that touched the rest of
-             the mesh at a single vertex).
-    max_edge: the edge-length limit used (local units), or None when disabled.
-    unreferenced_points: points of xy that no remaining triangle uses.
-    """
-
-    triangles_before: int
-    triangles_after: int
-    removed: dict[str, int] = field(default_factory=dict)
-    max_edge: float | None = None
-    unreferenced_points: int = 0
-
-
-MIN_CIRCLE_RATIO = 0.01
-"""trim's default: a boundary triangle whose inscribed/circumscribed radius ratio is below
-this is a sliver (the in-memory and the tiled trim use the same value)."""
-
-
-def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "auto",
-         min_circle_ratio: float = MIN_CIRCLE_RATIO) -> tuple[np.ndarray, TrimReport]:
-    """Remove gap-bridging and thin boundary triangles; return (triangles (T', 3), report).
-
-    xy:        (n, 2) plane points; triangles: (T, 3) indices into xy, e.g. from `delaunay`.
-    max_edge:  triangles with an edge longer than this are removed (bridges over gaps,
-               long hull triangles; holes stay holes). "auto" = AUTO_EDGE_FACTOR x the
-               median edge length of the input triangulation; None (or "none") disables.
-    min_circle_ratio: boundary triangles whose inradius/circumradius ratio, scaled so an
-               equilateral triangle has 1 (matplotlib's TriAnalyzer ratio x 2), is below
-               this are removed, repeatedly while newly exposed boundary triangles
-               qualify. Interior triangles are never removed by this rule. 0 disables.
-    Guarantees: the result is a subset of the input in input order and orientation; if
-    the input is edge-manifold (every edge in at most 2 triangles, as any triangulation
-    is) so is the result, and no vertex is a bowtie: the triangles around every vertex
-    form one fan (where two fans met at a vertex, the smaller ones are removed).
-    Raises InputError for bad shapes, indices, options, or a non-edge-manifold input.
-    """
-    pts = _as_xy(xy)
-    tri = _as_triangles(triangles, pts.shape[0])
-    lengths, neighbours = overlap(lambda: edge_lengths(pts, tri),     # independent
-                                  lambda: triangle_neighbours(tri, pts.shape[0]))
-    limit = _edge_limit(lengths, neighbours, max_edge)
-    if not 0.0 <= min_circle_ratio <= 1.0:
-        raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
-
-    alive = np.ones(tri.shape[0], dtype=bool)
-    if limit is not None:
-        for k in range(3):
-            alive &= ~(lengths[:, k] > limit)
-    long_edge = int((~alive).sum())
-    thin = _Thin(lengths, min_circle_ratio)
-    sliver = bowtie = 0
-    front = np.flatnonzero(alive & _on_boundary(alive, neighbours))
-    front = front[thin[front]]
-    while True:
-        sliver += _peel(alive, neighbours, thin, front)
-        cut = remove_bowties(tri, alive, neighbours)
-        if cut.size == 0:
-            break
-        bowtie += cut.size
-        front = neighbours[cut].ravel()
-    out = tri[alive]
-    used = np.count_nonzero(np.bincount(out.ravel(), minlength=pts.shape[0]))
-    report = TrimReport(triangles_before=int(tri.shape[0]), triangles_after=int(out.shape[0]),
-                        removed={"long_edge": long_edge, "sliver": sliver, "bowtie": bowtie},
-                        max_edge=limit, unreferenced_points=int(pts.shape[0] - used))
-    return out, report
-
-
-def circle_ratio(lengths: np.ndarray) -> np.ndarray:
-    """2 r_in / R_circ of triangles with edge lengths (T, 3): 1 for equilateral, 0 if flat.
-
-    From Heron: 16 A^2 = P (P-2a)(P-2b)(P-2c) with r = 2A/P, R = abc/4A, so
-    2r/R = (P-2a)(P-2b)(P-2c) / (abc).
-    """
-    a, b, c = lengths[:, 0], lengths[:, 1], lengths[:, 2]
-    p = a + b + c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = (p - 2 * a) * (p - 2 * b) * (p - 2 * c) / (a * b * c)
-    return np.nan_to_num(np.clip(ratio, 0.0, 1.0), nan=0.0)
-
-
-class _Thin:
-    """thin[idx]: circle_ratio < min_ratio for triangles idx, computed only where asked
-    (peeling looks at boundary triangles only) and remembered."""
-
-    def __init__(self, lengths: np.ndarray, min_ratio: float):
-        self.lengths, self.min_ratio = lengths, min_ratio
-        self.known = np.zeros(lengths.shape[0], dtype=bool)
-        self.value = np.zeros(lengths.shape[0], dtype=bool)
-
-    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
-        new = idx[~self.known[idx]]
-        self.value[new] = circle_ratio(self.lengths[new]) < self.min_ratio
-        self.known[new] = True
-        return self.value[idx]
-
-
-def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
-    tri = np.asarray(triangles)
-    if tri.size == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
-        raise InputError(f"triangles must be an integer array of shape (T, 3), got {tri.dtype} "
-                         f"with shape {tri.shape}")
-    if tri.min() < 0 or tri.max() >= n:
-        raise InputError(f"triangle indices must lie in [0, {n}), got {tri.min()}..{tri.max()}")
-    return tri.astype(np.int64, copy=False)
-
-
-def edge_lengths(xy: np.ndarray, tri: np.ndarray, block: int = 1 << 15) -> np.ndarray:
-    """(T, 3) length of the edge opposite vertex k.
-
-    From coordinate components, a block of triangles at a time: the corner gathers stay
-    in cache instead of being two fresh (T, 3) arrays (fresh memory is slow to touch).
-    """
-    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
-    lengths = np.empty(tri.shape)
-    for start in range(0, tri.shape[0], block):
-        corners = tri[start:start + block].T
-        px, py, out = x[corners], y[corners], lengths[start:start + block]
-        for k in range(3):
-            i, j = (k + 2) % 3, (k + 1) % 3
-            np.hypot(px[i] - px[j], py[i] - py[j], out=out[:, k])
-    return lengths
-
-
-def triangle_neighbours(tri: np.ndarray, n: int) -> np.ndarray:
-    """(T, 3) triangle across the edge opposite vertex k, or -1; InputError if an edge has 3+."""
-    key = np.empty(tri.shape, dtype=np.int64)              # position 3t + k: edge opposite k
-    for k in range(3):
-        a, b = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
-        np.minimum(a, b, out=key[:, k])
-        key[:, k] *= n
-        key[:, k] += np.maximum(a, b)
-    order, key = sort_keys(key.ravel(), n * n)
-    same = key[1:] == key[:-1]
-    if np.any(same[1:] & same[:-1]):
-        raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
-                         "more triangles); pass a triangulation such as delaunay(xy)")
-    pair = np.flatnonzero(same)
-    first = order[pair]
-    pair += 1
-    second = order[pair]
-    nb = key                                               # dead sorted keys: fresh memory is slow to touch
-    nb.fill(-1)
-    nb[first] = np.floor_divide(second, 3, out=pair)       # reuse buffers no longer needed
-    nb[second] = np.floor_divide(first, 3, out=first)
-    return nb.reshape(-1, 3)
-
-
-def _edge_limit(lengths: np.ndarray, neighbours: np.ndarray, max_edge) -> float | None:
-    """The max_edge option resolved to a length, or None."""
-    if max_edge is None or (isinstance(max_edge, str) and max_edge.strip().lower() == "none"):
-        return None
-    if isinstance(max_edge, str) and max_edge.strip().lower() == "auto":
-        once = (neighbours < 0) | (neighbours > np.arange(len(neighbours))[:, None])
-        return float(AUTO_EDGE_FACTOR * np.median(lengths[once])) if once.any() else None
-    try:
-        limit = float(max_edge)
-    except (TypeError, ValueError):
-        limit = float("nan")
-    if not np.isfinite(limit) or limit <= 0:
-        raise InputError(f"max_edge must be 'auto', None or a positive length, got {max_edge!r}")
-    return limit
-
-
-def _on_boundary(alive: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-    """(T,) True for triangles with an edge that has no live triangle across it."""
-    return np.any((neighbours < 0) | ~alive[neighbours], axis=1)
-
-
-def _peel(alive: np.ndarray, neighbours: np.ndarray, thin: np.ndarray, front: np.ndarray) -> int:
-    """Remove live thin triangles starting from `front`, then their thin live neighbours,
-    repeatedly (a removed triangle exposes its neighbours). Returns how many were removed."""
-    removed = 0
-    front = np.unique(front[front >= 0])
-    front = front[alive[front] & thin[front] & _on_boundary(alive, neighbours[front])] \
-        if front.size else front
-    while front.size:
-        alive[front] = False
-        removed += front.size
-        nxt = np.unique(neighbours[front].ravel())
-        nxt = nxt[nxt >= 0]
-        front = nxt[alive[nxt] & thin[nxt]]
-    return removed
-
-
-def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
-                    at: np.ndarray | None = None) -> np.ndarray:
-    """Remove all but the largest fan at every bowtie vertex; return the removed triangles.
-
-    A vertex is a bowtie when more than 2 boundary edges meet there (each fan brings 2).
-    A fan is a set of live triangles around the vertex joined through edges at it. Among
-    fans of equal size the one whose smallest triangle (corners sorted, then compared
-    lexicographically) comes first is kept: a rule of point numbers alone, so a tile that
-    holds the vertex's star decides as the whole triangulation does (c1mesh.survey.tiled_trim).
-    at: (n,) bool, the vertices to look at (None: all); a tile passes the vertices whose
-    whole star it holds.
-    """
-    open_t, open_k = np.nonzero(alive[:, None] & ((neighbours < 0) | ~alive[neighbours]))
-    ends = np.concatenate([tri[open_t, (open_k + 1) % 3], tri[open_t, (open_k + 2) % 3]])
-    n = tri.max(initial=0) + 1
-    bow = np.bincount(ends, minlength=n) > 2
-    if at is not None:
-        bow &= at[:n]
-    if not bow.any():
-        return np.zeros(0, dtype=np.int64)
-    live = np.flatnonzero(alive)
-    t, j = np.nonzero(bow[tri[live]])                          # incidences (triangle, slot)
-    t = live[t]
-    v = tri[t, j]
-    key = v * len(tri) + t
-    order = np.argsort(key)
-    # neighbours through the two edges at v (opposite the other two slots)
-    links = []
-    for step in (1, 2):
-        other = neighbours[t, (j + step) % 3]
-        ok = (other >= 0) & alive[np.maximum(other, 0)]
-        pos = order[np.searchsorted(key[order], v[ok] * len(tri) + other[ok])]
-        links.append(np.stack([np.flatnonzero(ok), pos]))
-    links = np.concatenate(links, axis=1)
-    graph = coo_matrix((np.ones(links.shape[1], dtype=np.int8), tuple(links)), shape=(t.size,) * 2)
-    fan = connected_components(graph, directed=False)[1]
-    size = np.bincount(fan)
-    # per vertex keep the fan with most triangles; ties: the fan holding the smallest
-    # triangle as a sorted corner triple (order-free: the same in any triangle order)
-    corners = np.sort(tri[t], axis=1)
-    rank = np.empty(t.size, dtype=np.int64)
-    rank[np.lexsort(corners.T[::-1])] = np.arange(t.size)
-    smallest = np.full(size.size, t.size, dtype=np.int64)
-    np.minimum.at(smallest, fan, rank)
-    best = np.lexsort((smallest[fan], -size[fan], v))          # sorted by v, then best fan first
-    first = np.ones(best.size, dtype=bool)
-    first[1:] = v[best[1:]] != v[best[:-1]]
-    keep_fan = np.zeros(size.size, dtype=bool)
-    keep_fan[fan[best[first]]] = True
-    cut = np.unique(t[~keep_fan[fan]])
-    alive[cut] = False
-    return cut

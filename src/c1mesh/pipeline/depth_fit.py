@@ -133,7 +133,7 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
     """Triangles (T, 3) over the usable points, counter-clockwise in (u, v), without depth jumps.
 
     Organised: the pixel grid (grid.grid_triangles); otherwise Delaunay in (u, v) then
-    trimmed of long edges, slivers and bowties (triangulation.trim). Returns the triangles
+    trimmed of long edges, slivers and bowties (trim.trim). Returns the triangles
     (indices into the field's rows), the report entry and the method ("grid" | "delaunay").
     """
     if grid_shape is not None:
@@ -154,7 +154,7 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
         removed = {"zero_area": flat, **jumps.removed}
     limit = None
     if method == "delaunay" and tri.shape[0]:
-        from c1mesh.engine.triangulation import trim
+        from c1mesh.stages.trim import trim
         used = np.flatnonzero(np.bincount(tri.ravel(), minlength=field.w.size))
         remap = np.full(field.w.size, -1, dtype=np.int64)
         remap[used] = np.arange(used.size)

@@ -28,7 +28,8 @@ from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.schemes import get_scheme
-from c1mesh.engine.triangulation import delaunay, trim
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.trim import trim
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.warnings import auto_limit, fit_warnings
@@ -170,7 +171,7 @@ class SurfaceModel:
     """The C1 spline of a cloud before refinement (what `build_surface` returns).
 
     normal_source: "file" or "estimated"; frame: the ScanFrame; hf: the HeightField of the
-    cloud; trim_report: triangulation.TrimReport; used: (n,) ascending indices into hf of
+    cloud; trim_report: trim.TrimReport; used: (n,) ascending indices into hf of
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
     triangles index those n points); overshoot: the limiter's report (c1mesh.stages.limiter);
     gradient_source: "heights" (c1mesh.stages.height_gradients) or "normals".

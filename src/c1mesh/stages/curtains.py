@@ -30,7 +30,7 @@ data of a height field over the plane whose slopes are below tan(90° - GRAZING_
 whose curvature the triangles resolve lose nothing (their noise floor is an O(h³)
 residual, below the width of all but degenerate triangles; tested on the analytic
 samples). Holes are left where curtains were; `remove_curtains` then lets
-triangulation.trim peel the slivers and bowties the holes expose, so the result keeps
+trim.trim peel the slivers and bowties the holes expose, so the result keeps
 trim's guarantees (edge-manifold, no bowtie vertex).
 
 The first three rules take e3 as a view ray: they find what a scanner looking along e3
@@ -156,16 +156,16 @@ def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarr
 
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
                     trim_report, view_rules: bool = True):
-    """Triangles (T', 3) without curtains, and the trim report (triangulation.TrimReport)
+    """Triangles (T', 3) without curtains, and the trim report (trim.TrimReport)
     with the curtains counted by reason in its "removed" (and the slivers and bowties the
     holes exposed added to trim's own counts).
 
-    triangles: the trimmed triangulation (triangulation.trim), so that a triangle trim
+    triangles: the trimmed triangulation (trim.trim), so that a triangle trim
     removes as too long or thin is counted there, not here. trim runs again only when a
     hole exposes a sliver or leaves a bowtie vertex (`_needs_trim`), which a few isolated
     holes in a large survey rarely do.
     """
-    from c1mesh.engine.triangulation import trim
+    from c1mesh.stages.trim import trim
 
     masks = curtain_triangles(xy, z, gradients, triangles, view_rules=view_rules)
     curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
@@ -193,7 +193,7 @@ def _needs_trim(xy: np.ndarray, kept: np.ndarray, cut: np.ndarray,
     triangles form one fan exactly when m, the number of its edges shared by two of them,
     is k (closed fan) or k - 1 (open fan); fewer means several fans.
     """
-    from c1mesh.engine.triangulation import circle_ratio
+    from c1mesh.stages.trim import circle_ratio
 
     n = xy.shape[0]
     touched = np.zeros(n, dtype=bool)

@@ -29,7 +29,7 @@ def fit_warnings(points: int, used: int, triangles: int, long_edge: int, max_edg
     Holes the trim leaves over gaps in the data (courtyards, building footprints under
     LiDAR ground) remove few triangles and leave few points out, so they draw no warning.
     A --max-edge near the data's spacing removes triangles between dense points; the
-    auto limit (triangulation.AUTO_EDGE_FACTOR x the median edge) does that only where the
+    auto limit (trim.AUTO_EDGE_FACTOR x the median edge) does that only where the
     points are far from evenly spread over the plane, and a wrong height axis, which also
     leaves many points folded over others and off the surface, is the likely cause. At
     most one warning: the first that applies of these.

@@ -187,8 +187,8 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
 
 
 def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(k,) the longest edge of each triangle, as triangulation.trim measures edges."""
-    from c1mesh.engine.triangulation import edge_lengths
+    """(k,) the longest edge of each triangle, as trim.trim measures edges."""
+    from c1mesh.stages.trim import edge_lengths
 
     return edge_lengths(xy, triangles).max(axis=1)
 
@@ -381,7 +381,7 @@ def buffered_delaunay(read: Reader, grid: TileGrid, count: int, buffer: float | 
 def edge_length_median(read: Reader, grid: TileGrid, count: int, hull: Hull,
                        bound: float | None = None) -> float:
     """The median edge length of the survey's Delaunay triangulation (each edge once), as
-    triangulation.trim computes it for max_edge="auto" from the whole triangulation: the
+    trim.trim computes it for max_edge="auto" from the whole triangulation: the
     same value to the bit, found tile by tile.
 
     The triangulation of n points in general position with h hull corners has
@@ -487,9 +487,9 @@ def _centres_clear(centre, radius, strips, regions, scale) -> np.ndarray:
 
 
 def auto_max_edge(read: Reader, grid: TileGrid, count: int, hull: Hull) -> float:
-    """max_edge="auto" for the survey, as triangulation.trim resolves it from the whole
+    """max_edge="auto" for the survey, as trim.trim resolves it from the whole
     triangulation (AUTO_EDGE_FACTOR x the median edge), without holding the survey."""
-    from c1mesh.engine.triangulation import AUTO_EDGE_FACTOR
+    from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 
     return float(AUTO_EDGE_FACTOR * edge_length_median(read, grid, count, hull))
 
@@ -514,7 +514,8 @@ class TilePass:
 def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> TilePass:
     """Triangulate one tile once for both the edge statistic and the trimmed triangles up
     to `bound` (frame units), growing its buffer (from bound) until both are certified."""
-    from c1mesh.engine.triangulation import edge_lengths, triangle_neighbours, delaunay
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import edge_lengths, triangle_neighbours
 
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
@@ -570,7 +571,7 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     in that order (c1mesh.survey.tiled_fit runs the tiles as tasks this way); a tile's short
     lengths may be an array or the path of a .npy file holding it (`short_median`).
     """
-    from c1mesh.engine.triangulation import AUTO_EDGE_FACTOR
+    from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 
     edges = 3 * count - 3 - len(hull.index)
     auto = isinstance(max_edge, str)

@@ -717,7 +717,7 @@ def _trim(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     from c1mesh.stages.curtains import REASONS
     from c1mesh.survey.tiled_limiter import edge_floor
     from c1mesh.survey.tiled_trim import curtain_cuts, thin_triangles
-    from c1mesh.engine.triangulation import MIN_CIRCLE_RATIO as min_ratio
+    from c1mesh.stages.trim import MIN_CIRCLE_RATIO as min_ratio
     thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty((0, 3), np.int64)]
     for t in halos.tiles():
         triangles, on_boundary, corners = thin_triangles(halos.halo(t), min_ratio, grid)
@@ -778,7 +778,7 @@ class _TrimState:
     def settle(self, front: np.ndarray, pending: set) -> None:
         """trim's loop: peel the live thin components that hold a live `front` triangle
         (k,) bool, then cut bow-ties, peel from the cuts' neighbours, until no bow-tie is
-        left (triangulation.trim). A bow-tie can only appear at a corner of a removed
+        left (trim.trim). A bow-tie can only appear at a corner of a removed
         triangle, so a round looks only at the tiles holding such corners: `pending`
         (tile numbers) for the first, those of the triangles removed since, later."""
         from c1mesh.survey.tiled_trim import bowtie_cuts, peeled

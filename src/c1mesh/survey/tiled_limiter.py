@@ -336,9 +336,9 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
 
 
 def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
-    """The longest edge of the survey's final triangles (as triangulation.trim measures
+    """The longest edge of the survey's final triangles (as trim.trim measures
     edges), tile by tile: tile t's own triangles have their corners within buffers[t]."""
-    from c1mesh.engine.triangulation import edge_lengths
+    from c1mesh.stages.trim import edge_lengths
 
     longest = 0.0
     for t, path in enumerate(triangle_files):

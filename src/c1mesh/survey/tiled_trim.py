@@ -1,4 +1,4 @@
-"""The trim's sliver peel (triangulation.trim) on a survey fitted in tiles.
+"""The trim's sliver peel (trim.trim) on a survey fitted in tiles.
 
 After the long-edge rule, `trim` peels thin triangles (circle ratio below
 min_circle_ratio) off the boundary, and then, repeatedly, the thin triangles each removal
@@ -29,7 +29,7 @@ def thin_triangles(halo, min_ratio: float, grid) -> tuple[np.ndarray, np.ndarray
     """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
     on the boundary, (k, 3) the tile of each corner (grid: the buffered_delaunay.TileGrid).
     halo: a tiled_limiter.Halo (own triangles: lowest corner in the cell)."""
-    from c1mesh.engine.triangulation import edge_lengths, triangle_neighbours, circle_ratio
+    from c1mesh.stages.trim import edge_lengths, triangle_neighbours, circle_ratio
 
     triangles = halo.triangles
     if not len(triangles):
@@ -87,9 +87,9 @@ def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
     numbers of the triangles of every fan but the kept one, and (k, 3) the tile of each
     corner. halo: a tiled_limiter.Halo, which holds the whole star of every own vertex
     (its reach is at least one longest edge); the fan tie-break
-    (triangulation.remove_bowties) uses point numbers alone, and the halo's rows follow
+    (trim.remove_bowties) uses point numbers alone, and the halo's rows follow
     the survey numbers, so the tile decides as the whole survey does."""
-    from c1mesh.engine.triangulation import triangle_neighbours, remove_bowties
+    from c1mesh.stages.trim import triangle_neighbours, remove_bowties
 
     triangles = halo.triangles
     if not len(triangles):
