@@ -73,7 +73,6 @@ def _checked(count) -> int:
 
 _PROCESS_BLAS = None
 
-
 def set_workers(count: int | None) -> None:
     """Set the process-wide thread count (None: back to the CPUs this process may use).
 
@@ -113,8 +112,7 @@ def _follow_open_limits() -> None:
     setting it had before the first (called with _LIMITS_LOCK held)."""
     global _BLAS_BEFORE_LIMITS
     if _OPEN_LIMITS:
-        from threadpoolctl import ThreadpoolController   # a new one sees BLAS libraries loaded since (scipy's)
-        limiter = ThreadpoolController().limit(limits=_OPEN_LIMITS[-1][1], user_api="blas")
+        limiter = _controller().limit(limits=_OPEN_LIMITS[-1][1], user_api="blas")
         if _BLAS_BEFORE_LIMITS is None:
             _BLAS_BEFORE_LIMITS = limiter
     elif _BLAS_BEFORE_LIMITS is not None:
@@ -194,8 +192,6 @@ def prefetch(blocks: Iterator[Item], depth: int = 2) -> Iterator[Item]:
             close()
 
 
-_BLAS = None
-
 
 def blas_threads(limit: int | None) -> contextlib.AbstractContextManager:
     """A context limiting the BLAS thread pools to `limit` threads (None: no change).
@@ -213,12 +209,11 @@ def blas_threads(limit: int | None) -> contextlib.AbstractContextManager:
 
 
 def _controller():
-    """threadpoolctl's controller of the BLAS libraries loaded (made once, lazily)."""
-    global _BLAS
-    if _BLAS is None:
-        from threadpoolctl import ThreadpoolController
-        _BLAS = ThreadpoolController()
-    return _BLAS
+    """threadpoolctl's controller of the BLAS libraries loaded now: made on every call
+    (~1.5 ms), so that libraries loaded after the first call (scipy's own OpenBLAS) are
+    limited too."""
+    from threadpoolctl import ThreadpoolController
+    return ThreadpoolController()
 
 
 def available_cpus() -> int:
