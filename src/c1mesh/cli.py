@@ -27,8 +27,8 @@ import click
 
 from c1mesh import __version__
 from c1mesh.core.errors import C1MeshError, InputError
-from c1mesh.core.outputs import (INPUT_FORMATS, MESH_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO, Outputs,
-                            mesh_format, plan_outputs, remove_live_temps)
+from c1mesh.core.outputs import (DEM_AXES, INPUT_FORMATS, LAS_FORMATS, MESH_FORMATS, OUTPUT_FORMATS,
+                                 RASTER_FORMATS, STDIO, Outputs, mesh_format, plan_outputs, remove_live_temps)
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_PARTIAL = 0, 1, 2, 3
 _SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -154,11 +154,6 @@ def _check_axis(value: str) -> None:
                                  param_hint="'--axis'")
 
 
-_DEM_AXES = ("auto", "z", "+z")
-"""--axis values a GeoTIFF output allows (as c1mesh.geo.raster.raster_axis: a DEM is z over x, y)."""
-_LAS_FORMATS = ("las", "laz", "copc")
-
-
 def _extension(path: str) -> str:
     """The lower-case extension of an output path without its dot ('' for none); stdout is PLY."""
     return "ply" if path == STDIO else Path(path).suffix.lower().lstrip(".")
@@ -236,7 +231,7 @@ def _format_problems(params: dict, outputs: list[str]) -> list[str]:
     if params["classes"]:
         kinds = {(params["input_format"] or Path(src).suffix).lower().lstrip(".") for src in params["inputs"]
                  if src != STDIO or params["input_format"]}
-        others = sorted(kinds - set(_LAS_FORMATS))
+        others = sorted(kinds - set(LAS_FORMATS))
         if others:
             problems.append("--classes needs LAS/LAZ input (a classification field), not "
                             f".{others[0] or '(no extension)'}")
@@ -267,7 +262,7 @@ def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> lis
     if params["frame_kind"] == "perspective" and (dems or extras):   # geo loads numpy: only here
         from c1mesh.geo.products import dem_frame_error
         problems.append(dem_frame_error("perspective", dems, *(params[k] for k in ("slope", "aspect", "hillshade"))))
-    if (dems or extras) and params["axis"].strip().lower() not in _DEM_AXES:
+    if (dems or extras) and params["axis"].strip().lower() not in DEM_AXES:
         problems.append(f"a DEM is heights over the world XY plane; --axis {params['axis']} cannot be used "
                         "with GeoTIFF outputs (use --axis z or auto)")
     return problems

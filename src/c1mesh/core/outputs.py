@@ -56,6 +56,10 @@ OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
 INPUT_FORMATS = ("ply", "obj", "xyz", "txt", "csv", "pcd", "las", "laz", "copc", "png", "tif", "tiff")
 """Input format names (--input-format, and file extensions; COPC files end in .laz): the
 readers registered in c1mesh.formats, which checks that it reads exactly these."""
+LAS_FORMATS = ("las", "laz", "copc")
+"""The LAS family among INPUT_FORMATS: classification codes, heights along world z."""
+DEM_AXES = ("auto", "z", "+z")
+"""--axis values a GeoTIFF output allows: a DEM is heights along world z over x, y."""
 
 WRITE_BEHIND = 64 << 20
 """Bytes written between two requests to start the kernel's writeback."""

@@ -27,7 +27,7 @@ from c1mesh.formats.pcd import read_pcd
 from c1mesh.formats.ply import read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
 from c1mesh.formats.reading import head_check, is_stream, limit_of_stream, read_path
-from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
+from c1mesh.core.outputs import INPUT_FORMATS, LAS_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
 
 __all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
@@ -99,13 +99,13 @@ def read_cloud(source: Source, fmt: str | None = None, classes: Sequence[int] | 
             path = Path(source)
             name = str(path)
             key = format_key(fmt or path.suffix, name, SUPPORTED_INPUT, "input")
-            if key in ("las", "laz", "copc") and path.is_file():
+            if key in LAS_FORMATS and path.is_file():
                 return _read_las_file(path, classes, bounds)
             data = read_path(path, key)
         if not data:
             raise FormatError(f"Input '{name}' is empty.")
         with np.errstate(all="ignore"):  # overflow / NaN in a body are data, not news
-            if key in ("las", "laz", "copc"):
+            if key in LAS_FORMATS:
                 return read_las(data, name, classes=classes, bounds=bounds)
             return _in_box(_READERS[key](data, name), bounds)
 

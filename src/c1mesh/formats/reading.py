@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import IO, Callable
 
 from c1mesh.core.errors import FormatError, InputError
+from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.formats._common import decode_text
 from c1mesh.formats._limits import budget, check_alloc, read_bounded
 from c1mesh.formats.pcd import check_pcd_head
@@ -37,7 +38,7 @@ def head_check(key: str, name: str) -> Callable[[bytes], None]:
             raise FormatError(f"'{name}' is not a PLY file: it does not start with the 'ply' magic line.")
         if key == "pcd":
             check_pcd_head(head, name)
-        if key in ("las", "laz", "copc") and not head.startswith(b"LASF"):
+        if key in LAS_FORMATS and not head.startswith(b"LASF"):
             raise FormatError(f"'{name}' is not a LAS/LAZ file: it does not start with 'LASF'.")
         if key in ("xyz", "txt", "csv", "obj"):
             decode_text(head, name, "OBJ" if key == "obj" else "Point")

@@ -36,7 +36,7 @@ import numpy as np
 
 from c1mesh.engine import rsd
 from c1mesh.core.errors import DependencyError, InputError
-from c1mesh.core.outputs import RASTER_FORMATS
+from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS
 
 RASTER_SUFFIXES = tuple(f".{fmt}" for fmt in RASTER_FORMATS)
 DEM_NODATA = -9999.0
@@ -620,7 +620,7 @@ def targets_for(output, options) -> RasterTargets:
 
 def raster_axis(axis):
     """The height axis for raster outputs: world z (a DEM is z over x, y)."""
-    if isinstance(axis, str) and axis.strip().lower() in ("auto", "z", "+z"):
+    if isinstance(axis, str) and axis.strip().lower() in DEM_AXES:
         return "z"
     raise InputError(f"a DEM is heights over the world XY plane; --axis {axis} cannot be used "
                      "with GeoTIFF outputs (use --axis z or auto)")

@@ -34,6 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.errors import InputError, NotAHeightFieldError
 
 _WORLD_AXES = {"x": 0, "y": 1, "z": 2}
@@ -599,9 +600,6 @@ def _check_spread(xy: np.ndarray) -> None:
     if sv[1] <= 1e-10 * sv[0]:
         raise InputError("all points lie on one line in the plane of the height axis, so they span "
                          "no surface; check the input or choose another --axis")
-
-
-LAS_FORMATS = ("las", "laz", "copc")
 
 
 def resolve_axis(source, options) -> tuple[object, str]:
