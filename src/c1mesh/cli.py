@@ -525,7 +525,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
                              z_factor=z_factor)
         if output and not output_dir:
-            options = _check_geo(ctx, [(inputs[0], output)], options, debug)
+            options = _check_geo([(inputs[0], output)], options, debug)
         _fit_seamless(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
                       scheduler, quiet, debug)
         return
@@ -546,7 +546,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
                          intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds)
-    options = _check_geo(ctx, pairs, options, debug)
+    options = _check_geo(pairs, options, debug)
     options.workers = _threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:
         _fit_one(*pairs[0], targets, options, report, quiet, verbose, debug, jobs, scheduler)
@@ -648,7 +648,7 @@ def _survey_progress(inputs, options, outputs: int):
     return progress, {"on_stage": lambda name: progress.update(1, name)}
 
 
-def _check_geo(ctx, jobs_list, options, debug):
+def _check_geo(jobs_list, options, debug):
     """Georeferencing options checked before any input is read (c1mesh.geo.products.check_before;
     their conflicts are usage errors, found by _check_usage): a bad CRS or an unwritable
     path exit 1. Returns the options with the CRS parsed to WKT."""
