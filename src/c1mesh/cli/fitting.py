@@ -1,0 +1,221 @@
+"""Running `fit` once its command line is checked: one input, a batch of inputs (each
+failure reported, exit 3), or a --seamless survey; the mesh, its .prj sidecar and the
+JSON report are committed together or not at all (c1mesh.core.outputs.Outputs).
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from c1mesh.cli.messages import note, summary, warn
+from c1mesh.cli.options import plan
+from c1mesh.cli.progress import caption, stage_bar, survey_progress
+from c1mesh.cli.shell import EXIT_PARTIAL, fail, message, naming, stderr_is_terminal, worker_start
+from c1mesh.core.errors import C1MeshError
+from c1mesh.core.outputs import STDIO, Outputs, mesh_format, plan_outputs
+
+
+def threads_per_process(threads: int | None, jobs: int) -> int:
+    """--threads shared by the --jobs processes, so together they do not oversubscribe
+    (Open3D's OpenMP threads included)."""
+    from c1mesh.core.threads import openmp_at_start, per_process
+    count = per_process(threads, jobs)
+    openmp_at_start(count)
+    return count
+
+
+def fit_survey(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
+               scheduler, quiet, debug) -> None:
+    """`fit --seamless`: the inputs as one survey (c1mesh.survey.tiles), one line on any failure."""
+    pairs = plan(inputs, None, output_dir, suffix) if output_dir else [(inputs[0], output)]
+    try:
+        if options.crs:
+            from dataclasses import replace
+
+            from c1mesh.core.crs import parse_crs
+            options = replace(options, crs=parse_crs(options.crs))
+        if output_dir and not Path(output_dir).exists():
+            Path(output_dir).mkdir(parents=True)
+        named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
+        targets = plan_outputs(named, list(inputs))
+        from c1mesh.geo.raster import is_raster_path
+        for (_, dst), target in zip(pairs, targets):
+            if not is_raster_path(dst):
+                mesh_format(dst, target=target)
+    except (C1MeshError, OSError) as exc:
+        fail(message(exc), debug)
+    from c1mesh.pipeline.survey_fit import fit_seamless
+    from c1mesh.survey.tiled_fit import survey_needs_tiles
+
+    options.workers = threads_per_process(threads, 1)
+    mesh = sys.stdout.buffer if output == STDIO else output
+    outputs = [d for _, d in pairs] if output_dir else None
+    unused = None
+    if scheduler is not None and not output_dir and not survey_needs_tiles(list(inputs), options):
+        scheduler, unused = None, _SCHEDULER_UNUSED.format(what="the survey")   # one fit, in this process
+    try:
+        if stderr_is_terminal() and not quiet:
+            progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
+            with progress:
+                result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs, **callbacks)
+        else:
+            result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs)
+    except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
+        fail(message(exc), debug)
+    if unused:
+        result["scheduler"] = unused
+    warn(result, quiet)
+    _write_report(report, targets[-1], result, debug)
+    note(result, quiet)
+
+
+_SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one piece in this process "
+                     "(the scheduler runs the tiles of a larger fit, or of --seamless -O)")
+"""The report's `scheduler` when a --scheduler had no tiles to run; also the note on stderr."""
+
+
+def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, scheduler=None) -> dict:
+    """Fit one input to one output (a path, or a file object then with options.output_format);
+    an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
+    processes. An input that fits in memory is fitted here, and a scheduler given for it is
+    recorded in the report as not used (the line c1mesh.cli.messages.note prints)."""
+    from c1mesh.pipeline.driver import fit as fit_pipeline
+    from c1mesh.pipeline.survey_fit import fit_in_tiles
+    from c1mesh.survey.tiled_fit import needs_tiles
+
+    source = sys.stdin.buffer if src == STDIO else src
+    if needs_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit
+        return fit_in_tiles(source, target, options, on_stage=on_stage, jobs=jobs, on_tile=on_tile,
+                            scheduler=scheduler)
+    report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
+    if scheduler is not None:
+        report["scheduler"] = _SCHEDULER_UNUSED.format(what="the input")
+    return report
+
+
+def fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int = 1,
+            scheduler: str | None = None) -> None:
+    """Fit one input; the mesh and the report are committed together, or neither is."""
+    from dataclasses import replace
+
+    from c1mesh.pipeline.driver import STAGES
+
+    from c1mesh.geo.raster import is_raster_path
+
+    mesh_target, report_target = targets
+    raster = is_raster_path(dst)
+    options = replace(options, output_format=None if raster else mesh_format(dst, target=mesh_target))
+    show = stderr_is_terminal() and not quiet
+
+    def run(target):
+        if not show:
+            return _run(src, target, options, jobs=jobs, scheduler=scheduler)
+        with stage_bar(len(STAGES), f"fitting {src}") as bar:
+            return _run(src, target, options, on_stage=lambda name: bar.update(1, name), jobs=jobs,
+                        on_tile=lambda name, done, tiles: caption(bar, f"{name}: tile {done} of {tiles}"),
+                        scheduler=scheduler)
+    try:
+        with Outputs() as outputs:
+            if raster:      # c1mesh.geo.raster writes the GeoTIFFs, each atomically
+                result = run(dst)
+            else:
+                with outputs.open(mesh_target) as mesh_file:
+                    result = run(mesh_file)
+                _write_prj(outputs, dst, mesh_target, options.output_format, result)
+            result["output"] = dst
+            if report_target is not None:
+                with outputs.open(report_target, "w") as handle:
+                    handle.write(json.dumps(result, indent=2) + "\n")
+            outputs.commit()
+    except Exception as exc:  # noqa: BLE001 — any failure is one line
+        fail(naming(src, message(exc)), debug)
+    if report == STDIO:
+        click.echo(json.dumps(result, indent=2), err=True)
+    note(result, quiet)
+    warn(result, quiet)
+    if verbose and not quiet:
+        click.echo(summary(result), err=True)
+
+
+def _write_prj(outputs, dst, mesh_target, fmt, result) -> None:
+    """The .prj sidecar (ESRI WKT) of a mesh file written in the same transaction as the mesh,
+    when a CRS was carried (c1mesh.core.crs; not for stdout or devices)."""
+    from c1mesh.core.crs import esri_wkt, prj_path
+    from c1mesh.formats import PRJ_SIDECAR
+
+    crs = (result.get("crs") or {}).get("wkt")
+    if not crs or fmt not in PRJ_SIDECAR or mesh_target.kind != "atomic":
+        return
+    (target,) = plan_outputs([("CRS sidecar", prj_path(dst))])
+    with outputs.open(target, "w") as handle:
+        handle.write(esri_wkt(crs) + "\n")
+
+
+def _write_report(report, target, payload, debug) -> None:
+    """The batch's JSON report to its checked target (or stderr for -)."""
+    if not report:
+        return
+    text = json.dumps(payload, indent=2)
+    if report == STDIO:
+        click.echo(text, err=True)
+        return
+    try:
+        with Outputs() as outputs:
+            with outputs.open(target, "w") as handle:
+                handle.write(text + "\n")
+            outputs.commit()
+    except (C1MeshError, OSError) as exc:
+        fail(f"cannot write report '{report}': {message(exc)}", debug)
+
+
+def _batch_worker(args):
+    src, dst, options, scheduler = args
+    try:
+        return src, _run(src, dst, options, scheduler=scheduler), None
+    except Exception as exc:  # noqa: BLE001 — reported per file, the batch goes on
+        return src, None, message(exc)
+
+
+def fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debug, scheduler=None) -> None:
+    """Fit several inputs, each on its own (in `jobs` processes): a failing input is
+    listed on stderr and the others are still written; exit 3 when some failed."""
+    work = [(src, dst, options, scheduler) for src, dst in pairs]
+    results = []
+    show = stderr_is_terminal() and not quiet
+    if jobs > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=jobs, initializer=worker_start) as pool:
+            iterator = pool.map(_batch_worker, work)
+            results = _collect(iterator, len(work), show, verbose and not quiet)
+    else:
+        results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
+    for _, rep, _ in results:
+        if rep:
+            note(rep, quiet)
+            warn(rep, quiet)
+    failures = [(src, err) for src, _, err in results if err]
+    _write_report(report, report_target,
+                  {"inputs": [{"input": src, "report": rep, "error": err} for src, rep, err in results]}, debug)
+    if failures:
+        for src, err in failures:
+            click.echo(f"c1mesh: failed: {src}: {err}", err=True)
+        click.echo(f"c1mesh: {len(failures)} of {len(results)} inputs failed", err=True)
+        sys.exit(EXIT_PARTIAL)
+
+
+def _collect(iterator, total, show, verbose):
+    results = []
+    if show:
+        with click.progressbar(iterator, length=total, label="fitting", file=sys.stderr) as bar:
+            for item in bar:
+                results.append(item)
+    else:
+        for item in iterator:
+            results.append(item)
+            if verbose and item[1]:
+                click.echo(summary(item[1]), err=True)
+    return results

@@ -1,0 +1,66 @@
+"""What `fit` prints on stderr about a finished fit: the -v summary line, `c1mesh: note:`
+lines for options that did nothing, and the report's warnings (cli/README.md).
+"""
+from __future__ import annotations
+
+import click
+
+
+def summary(report: dict) -> str:
+    """The -v line about one fit: points kept of read, what was made, seconds, and the
+    height axis and limiter counts where the report has them."""
+    pts, mesh = report["points"], report.get("output_mesh")
+    total = sum(report["seconds"].values())
+    made = (f"{mesh['vertices']} vertices, {mesh['faces']} faces" if mesh else
+            f"{report['raster']['cells_with_data']} of {report['raster']['cells']} raster cells")
+    line = f"{report['input']}: {pts['kept']} of {pts['read']} points -> {made} in {total:.2f} s"
+    frame = report.get("frame", {})
+    if "axis_choice" in frame:
+        e3 = ", ".join(f"{c:.3g}" for c in frame["axes"][2])
+        line += f"; height axis ({e3}), {frame['axis_choice']}"
+    if "overshoot" in report:
+        over = report["overshoot"]
+        line += (f"; heights reconciled at {over['heights_reconciled']}, "
+                 f"gradients limited at {over['gradients_limited']} vertices")
+    return line
+
+
+def note(report: dict, quiet: bool) -> None:
+    """`c1mesh: note:` lines on stderr (not with -q) for options given that did nothing: a
+    --scheduler not used (the user asked for the cluster and should know the work stayed
+    here), and a --max-slope given for heights whose slopes are no angles (the report's
+    max_slope_not_applied; its default then goes unmentioned)."""
+    if quiet:
+        return
+    used = report.get("scheduler")
+    if isinstance(used, str) and used.startswith("not used"):
+        click.echo(f"c1mesh: note: {_input_name(report)}: --scheduler {used}", err=True)
+    why = report.get("max_slope_not_applied")
+    if why and _option_given("max_slope"):
+        click.echo(f"c1mesh: note: {_input_name(report)}: --max-slope was not applied: {why}", err=True)
+
+
+def _option_given(name: str) -> bool:
+    """Whether option `name` of the running command was given on its command line."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context(silent=True)
+    return ctx is not None and ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
+
+
+def _input_name(report: dict) -> str:
+    """The input(s) a report is about, for a message: one name, or the first and a count."""
+    names = report.get("input")
+    if isinstance(names, (list, tuple)):
+        return names[0] if len(names) == 1 else f"{names[0]} and {len(names) - 1} more"
+    return str(names)
+
+
+def warn(report: dict, quiet: bool) -> None:
+    """The report's warnings on stderr, one line each (not with -q)."""
+    if quiet:
+        return
+    name = report.get("input")
+    name = ", ".join(map(str, name)) if isinstance(name, (list, tuple)) else name
+    for text in report.get("warnings", []):
+        click.echo(f"c1mesh: warning: {name}: {text}", err=True)

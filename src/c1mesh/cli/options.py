@@ -1,0 +1,129 @@
+"""Parsing the `c1mesh` command's option values and naming its outputs, in plain Python
+(no numpy), so that --help and usage errors stay quick. A bad value raises
+click.BadParameter; c1mesh.cli.usage collects them into one usage error.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import click
+
+from c1mesh.core.errors import C1MeshError
+from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, RASTER_FORMATS, STDIO
+
+
+def parse_classes(value: str | None) -> tuple[int, ...] | None:
+    """--classes: comma-separated LAS classification codes (None = every class)."""
+    if not value:
+        return None
+    try:
+        return tuple(int(v) for v in value.split(",") if v.strip())
+    except ValueError:
+        raise click.BadParameter(f"expected comma-separated integers such as 2,9, got {value!r}")
+
+
+def parse_memory_option(ctx, param, value):
+    """--memory: a size such as 512M or 8G (None = the reader's default)."""
+    if value is None:
+        return None
+    from c1mesh.formats._limits import parse_memory
+    try:
+        return parse_memory(value)
+    except C1MeshError as exc:
+        raise click.BadParameter(str(exc))
+
+
+def parse_bounds_option(ctx, param, value):
+    """--bounds: XMIN,YMIN,XMAX,YMAX (None = the whole input)."""
+    if value is None:
+        return None
+    from c1mesh.formats.copc import parse_box
+    try:
+        return parse_box(value)
+    except C1MeshError as exc:
+        raise click.BadParameter(str(exc))
+
+
+def _extensions(formats) -> str:
+    """Formats as the extensions a user types: '.ply .obj'."""
+    return " ".join(f".{fmt}" for fmt in formats)
+
+
+OUTPUT_HELP = (f"Output: a mesh ({_extensions(MESH_FORMATS)}) or a GeoTIFF DEM ({_extensions(RASTER_FORMATS)}, "
+                "with --resolution), or - for binary PLY on stdout.")
+
+
+INPUT_FORMAT_HELP = (f"Input format ({', '.join(INPUT_FORMATS)}) [default: the file's extension]; "
+                      "required for stdin (-).")
+
+
+MEMORY_HELP = ("Most bytes of input to read and decode, e.g. 512M or 8G; larger or endless inputs "
+                "are refused [default: half the RAM, at most 8G]. With fit, a LAS/LAZ file whose "
+                "points need more (1.8 kB per point) is fitted in tiles (estimated normals, long-edge trim).")
+
+
+def parse_max_edge(value: str):
+    """--max-edge: 'auto', None for 'none', or a positive finite length in the scan's units."""
+    if value.lower() == "auto":
+        return "auto"
+    if value.lower() == "none":
+        return None
+    try:
+        length = float(value)
+    except ValueError:
+        raise click.BadParameter(f"expected auto, none or a positive length, got {value!r}")
+    if not (length > 0 and math.isfinite(length)):
+        raise click.BadParameter(f"expected a positive finite length (or none), got {value!r}")
+    return length
+
+
+def parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
+    """--intrinsics fx,fy,cx,cy (pixels, fx and fy > 0); plain Python, so usage errors stay fast."""
+    if value is None:
+        return None
+    try:
+        parts = tuple(float(p) for p in value.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 4 or not all(math.isfinite(p) for p in parts) or parts[0] <= 0 or parts[1] <= 0:
+        raise click.BadParameter(f"expected fx,fy,cx,cy in pixels with fx, fy > 0, got {value!r}",
+                                 param_hint="'--intrinsics'")
+    return parts
+
+
+def check_axis(value: str) -> None:
+    """Usage error for an --axis that can never be a direction (checked again, and
+    normalised, by c1mesh.stages.frame)."""
+    text = value.strip().lower().lstrip("+-")
+    if text in ("auto", "x", "y", "z"):
+        return
+    try:
+        parts = [float(part) for part in text.split(",")]
+    except ValueError:
+        parts = []
+    if len(parts) != 3:
+        raise click.BadParameter(f"expected auto, x, y, z (optionally signed) or X,Y,Z, got {value!r}",
+                                 param_hint="'--axis'")
+    if not all(math.isfinite(p) for p in parts) or not any(parts):
+        raise click.BadParameter(f"the axis {value!r} has no direction (zero, NaN or Inf)",
+                                 param_hint="'--axis'")
+
+
+def extension(path: str) -> str:
+    """The lower-case extension of an output path without its dot ('' for none); stdout is PLY."""
+    return "ply" if path == STDIO else Path(path).suffix.lower().lstrip(".")
+
+
+def output_paths(params: dict) -> list[str]:
+    """The mesh or DEM outputs a fit command line names: -o, or each input's path under -O."""
+    if params["output_dir"]:
+        return [str(Path(params["output_dir"]) / (("stdin" if src == STDIO else Path(src).stem) + params["suffix"]))
+                for src in params["inputs"]]
+    return [params["output"]] if params["output"] else []
+
+
+def plan(inputs, output, output_dir, suffix) -> list[tuple[str, str]]:
+    """(input, output) pairs of a command line that passed check_usage."""
+    params = {"inputs": inputs, "output": output, "output_dir": output_dir, "suffix": suffix}
+    return list(zip(inputs, output_paths(params)))

@@ -1,0 +1,155 @@
+"""Usage errors (exit 2): everything wrong with a command line that the command line
+alone shows, all named in one line before any input is read (cli/README.md, Exit codes).
+The file system (missing directories, outputs equal to inputs) is checked later, by
+c1mesh.cli.outputs_check (exit 1).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import click
+
+from c1mesh.cli.options import (check_axis, extension, output_paths, parse_classes, parse_intrinsics,
+                                parse_max_edge)
+from c1mesh.core.outputs import DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO
+
+
+def input_format_problems(input_format: str | None) -> list[str]:
+    """The problem with an --input-format c1mesh does not read ([] when none or known)."""
+    if input_format and input_format.lower().lstrip(".") not in INPUT_FORMATS:
+        return [f"Unsupported input format '{input_format}' for --input-format; supported: "
+                f"{', '.join(INPUT_FORMATS)}"]
+    return []
+
+
+def _value_problems(params: dict) -> list[str]:
+    """Option values that are wrong whatever the inputs and the other options."""
+    problems = input_format_problems(params["input_format"])
+    for hint, parse, value in (("--classes", parse_classes, params["classes"]),
+                               ("--max-edge", parse_max_edge, params["max_edge"]),
+                               ("--intrinsics", parse_intrinsics, params["intrinsics"]),
+                               ("--axis", check_axis, params["axis"])):
+        try:
+            parse(value)
+        except click.BadParameter as exc:
+            exc.param_hint = exc.param_hint or f"'{hint}'"
+            problems.append(exc.format_message())
+    resolution = params["resolution"]
+    if resolution is not None and not (resolution > 0 and math.isfinite(resolution)):
+        problems.append(f"--resolution must be a positive finite length, got {resolution}")
+    z_factor = params["z_factor"]
+    if z_factor is not None and not (z_factor > 0 and math.isfinite(z_factor)):
+        problems.append(f"--z-factor must be a positive finite number (x, y units per height unit), got {z_factor}")
+    return problems
+
+
+def _io_problems(params: dict, outputs: list[str]) -> list[str]:
+    """Inputs and outputs that do not fit together: stdin, -o against -O, clashing -O names."""
+    inputs, output, output_dir, seamless = (params[k] for k in ("inputs", "output", "output_dir", "seamless"))
+    problems = []
+    if STDIO in inputs:
+        if seamless:
+            problems.append("--seamless reads files, not stdin (-)")
+        elif len(inputs) > 1:
+            problems.append("stdin (-) can only be the single input")
+        elif not params["input_format"]:
+            problems.append("reading stdin (-) needs --input-format")
+    if output and output_dir:
+        problems.append("use either -o/--output or -O/--output-dir")
+    elif not output and not output_dir:
+        problems.append("give -o OUTPUT (one mesh of the survey) or -O DIR (one mesh per input)" if seamless
+                        else "give -o OUTPUT (or -O DIR for several inputs)")
+    elif output and len(inputs) > 1 and not seamless:
+        problems.append("several inputs need -O/--output-dir, not -o (or --seamless -o for one mesh of all)")
+    clash = sorted({dst for dst in outputs if outputs.count(dst) > 1})
+    if clash:
+        problems.append(f"several inputs would write the same output {clash[0]}; rename them or run them "
+                        "separately")
+    return problems
+
+
+def _format_problems(params: dict, outputs: list[str]) -> list[str]:
+    """Output extensions c1mesh does not write, and options the formats cannot take."""
+    problems = [f"Unsupported output format '{extension(dst)}' for '{dst}'; supported: {', '.join(OUTPUT_FORMATS)}"
+                for dst in outputs if extension(dst) and extension(dst) not in OUTPUT_FORMATS]
+    if params["ascii_ply"]:
+        others = sorted({extension(dst) for dst in outputs} - {"ply", ""})
+        if others:
+            problems.append(f"--ascii applies to PLY output only, not .{others[0]}")
+    if params["classes"]:
+        kinds = {(params["input_format"] or Path(src).suffix).lower().lstrip(".") for src in params["inputs"]
+                 if src != STDIO or params["input_format"]}
+        others = sorted(kinds - set(LAS_FORMATS))
+        if others:
+            problems.append("--classes needs LAS/LAZ input (a classification field), not "
+                            f".{others[0] or '(no extension)'}")
+    return problems
+
+
+def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> list[str]:
+    """GeoTIFF and preview options against the outputs, --resolution, --level and --axis."""
+    dems = [dst for dst in outputs if extension(dst) in RASTER_FORMATS]
+    extras = {kind: params[kind] for kind in ("slope", "aspect", "hillshade") if params[kind]}
+    resolution, preview = params["resolution"], params["preview"]
+    if params["seamless"] and params["output_dir"] and (resolution is not None or extras or preview):
+        return ["--resolution, --slope, --aspect, --hillshade and --preview make one survey-wide output: "
+                "use them with --seamless -o, not -O"]
+    if len(params["inputs"]) > 1 and not params["seamless"] and (extras or preview):
+        return ["--slope, --aspect, --hillshade and --preview name one file: use them with a single input"]
+    problems = []
+    if resolution is not None and level_given:
+        problems.append("give either --level or --resolution, not both")
+    if (dems or extras) and resolution is None:
+        problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade) need --resolution")
+    if extras and not dems:
+        problems.append("--slope, --aspect and --hillshade come with a DEM: give -o DEM.tif")
+    problems += [f"the {kind} raster '{path}' must be a GeoTIFF (.tif or .tiff)"
+                 for kind, path in extras.items() if extension(path) not in RASTER_FORMATS]
+    if preview and Path(preview).suffix.lower() != ".png":
+        problems.append(f"the preview '{preview}' must be a .png file")
+    if params["frame_kind"] == "perspective" and (dems or extras):   # geo loads numpy: only here
+        from c1mesh.geo.products import dem_frame_error
+        problems.append(dem_frame_error("perspective", dems, *(params[k] for k in ("slope", "aspect", "hillshade"))))
+    if (dems or extras) and params["axis"].strip().lower() not in DEM_AXES:
+        problems.append(f"a DEM is heights over the world XY plane; --axis {params['axis']} cannot be used "
+                        "with GeoTIFF outputs (use --axis z or auto)")
+    return problems
+
+
+def _fit_usage_problems(ctx: click.Context) -> list[str]:
+    """Everything wrong with a `fit` command line that the command line alone shows, all
+    at once, so that one run names the whole fix (exit 2). Reads no input; the file system
+    (missing directories, outputs equal to inputs) is checked later (exit 1)."""
+    from click.core import ParameterSource
+
+    params = ctx.params
+    outputs = output_paths(params)
+    level_given = ctx.get_parameter_source("level") != ParameterSource.DEFAULT
+    return (_value_problems(params) + _io_problems(params, outputs) + _format_problems(params, outputs)
+            + _raster_problems(params, outputs, level_given))
+
+
+def _info_usage_problems(ctx: click.Context) -> list[str]:
+    """What is wrong with an `info` command line on its own (exit 2)."""
+    problems = input_format_problems(ctx.params["input_format"])
+    if ctx.params["path"] == STDIO and not ctx.params["input_format"]:
+        problems.append("reading stdin (-) needs --input-format")
+    return problems
+
+
+def _preview_usage_problems(ctx: click.Context) -> list[str]:
+    """What is wrong with a `preview` command line on its own (exit 2)."""
+    output = ctx.params["output"]
+    return [] if Path(output).suffix.lower() == ".png" else [f"the preview '{output}' must be a .png file"]
+
+
+USAGE_CHECKS = {"fit": _fit_usage_problems, "info": _info_usage_problems, "preview": _preview_usage_problems}
+"""Per command: every problem its command line shows on its own, checked before any work."""
+
+
+def check_usage(ctx: click.Context) -> None:
+    """Raise one UsageError naming every problem of the command line (exit 2)."""
+    problems = USAGE_CHECKS[ctx.command.name](ctx)
+    if problems:
+        raise click.UsageError("; ".join(problems), ctx=ctx)
