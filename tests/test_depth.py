@@ -443,7 +443,7 @@ def test_preview_rasteriser_shows_the_topmost_face_with_interpolated_heights():
     has height 5, the others the tilted plane's height there (linear in x: exact), and the
     gradient is the normals' (-nx/nz, -ny/nz)."""
     from c1mesh.geo.preview import _rasterize
-    from c1mesh.geo.raster import RasterGrid
+    from c1mesh.geo.raster_grid import RasterGrid
 
     def square(x0, x1, z_of_x):
         corners = np.array([[x0, x0], [x1, x0], [x1, x1], [x0, x1]], dtype=float)

@@ -187,7 +187,8 @@ def _fitted(n=3000):
 
 
 def test_dem_cells_are_the_interpolator_at_cell_centres(tmp_path):
-    from c1mesh.geo.raster import RasterGrid, RasterTargets, SplineSampler, write_rasters
+    from c1mesh.geo.raster import RasterTargets, write_rasters
+    from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
     interp = _fitted()
     origin = OFFSET
     res = 0.05                                  # point spacing is 6 / √3000 ≈ 0.11

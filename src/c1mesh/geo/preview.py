@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.geo.raster import RasterGrid, SplineSampler, hillshade, horn_gradient, is_raster_path
+from c1mesh.geo.raster import hillshade, horn_gradient, is_raster_path
+from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 
 PIXELS = 700
 """Cells along the longer side of a preview."""

@@ -1,0 +1,372 @@
+"""The cells of a north-up raster grid and the fitted spline sampled at their centres.
+
+RasterGrid is the grid, aligned to multiples of the resolution R in world coordinates (x
+to the east, y to the north), so grids of different tiles at one R line up cell for cell.
+SplineSampler gives the spline's value and analytic gradient at the centre of each cell
+inside the trimmed triangulation, and at a cell outside it that holds input points, the
+spline of the nearest kept triangle within a reach (NearestTriangles), continued linearly
+from that triangle's point closest to the centre. c1mesh.geo.raster turns these samples
+into the DEM, slope, aspect and hillshade GeoTIFFs; c1mesh.geo.preview into a PNG.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from c1mesh.core.errors import InputError
+from c1mesh.engine import rsd
+
+
+# ---------------------------------------------------------------------------------- grid
+@dataclass(frozen=True)
+class RasterGrid:
+    """A north-up grid: column j, row i has its centre at (west + (j + ½)R, north − (i + ½)R).
+
+    west and north are multiples of the resolution R (world units), so grids of different
+    tiles at the same R line up cell for cell.
+    """
+
+    west: float
+    north: float
+    resolution: float
+    width: int
+    height: int
+
+    @classmethod
+    def covering(cls, lo, hi, resolution: float) -> "RasterGrid":
+        """The aligned grid that covers the box lo..hi (world x, y)."""
+        r = float(resolution)
+        if not (r > 0 and math.isfinite(r)):
+            raise InputError(f"--resolution must be a positive length, got {resolution!r}")
+        west, east = math.floor(lo[0] / r) * r, math.ceil(hi[0] / r) * r
+        south, north = math.floor(lo[1] / r) * r, math.ceil(hi[1] / r) * r
+        width, height = max(1, round((east - west) / r)), max(1, round((north - south) / r))
+        if width * height > 4e9:
+            raise InputError(f"a {width} x {height} grid at resolution {r:g} is too large; "
+                             "use a coarser --resolution")
+        return cls(west, north, r, int(width), int(height))
+
+    @property
+    def transform(self):
+        """The rasterio/GDAL affine transform of the grid."""
+        from affine import Affine
+        return Affine(self.resolution, 0.0, self.west, 0.0, -self.resolution, self.north)
+
+
+# ------------------------------------------------------------------------------- sampling
+def polynomial_form(scheme) -> tuple[np.ndarray, np.ndarray, float]:
+    """(K (21, P), exponents (P, 2), max error) of the spline on one triangle as a
+    polynomial in (λ0, λ1): coefficients C (T, 21) @ K are the monomial coefficients of
+    λ0^i λ1^j, (i, j) = exponents, i + j ≤ d, the scheme's degree.
+
+    Built by interpolating the basis on the degree-d lattice (unisolvent for degree d);
+    the returned error is the largest difference from rsd.basis at random barycentrics,
+    so a scheme that is not a polynomial of its stated degree is caught, not trusted.
+    """
+    degree = scheme.degree
+    if degree is None:
+        from c1mesh.engine.properties import scheme_properties
+        degree = scheme_properties(scheme).degree
+    exponents = np.array([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)])
+    lattice = exponents / degree
+    lam = np.column_stack([lattice, 1.0 - lattice.sum(axis=1)])
+    vandermonde = lattice[:, :1] ** exponents[:, 0] * lattice[:, 1:] ** exponents[:, 1]
+    K = np.linalg.solve(vandermonde, rsd.basis(scheme, lam).T).T          # (21, P)
+    probe = np.random.default_rng(0).dirichlet((1, 1, 1), 200)
+    mono = probe[:, :1] ** exponents[:, 0] * probe[:, 1:2] ** exponents[:, 1]
+    error = float(np.abs(mono @ K.T - rsd.basis(scheme, probe).T).max())
+    return K, exponents, error
+
+
+class SplineSampler:
+    """Values and analytic gradients of a fitted spline at the cell centres of a grid.
+
+    interp: the RSDInterpolator in the scan frame; origin: (3,) the frame's origin. The
+    frame's axes must be the world axes (--axis z), so that local = world − origin and
+    the local gradient is the world gradient dz/dx, dz/dy.
+
+    Cells are found triangle by triangle (scan conversion: the cell centres inside each
+    triangle's bounding box, kept when their barycentric coordinates are ≥ −1e-10, the
+    tolerance of c1mesh.engine.locate), and the spline is evaluated as its per-triangle
+    polynomial in (λ0, λ1) (polynomial_form): values and gradients are then sums of
+    monomials instead of 21 shape functions per point, the same numbers to ~1e-12.
+
+    Cells whose centre lies in no triangle but which hold a point of data_xy (m, 2) (local
+    plane coordinates, the fitted points) get the nearest triangle within `reach` (local
+    units; None: any distance; NearestTriangles), evaluated at its point closest to the
+    centre and continued linearly from there (`evaluate`).
+    """
+
+    TOLERANCE = 1e-10
+
+    def __init__(self, interp, origin, data_xy=None, reach: float | None = None):
+        self.interp = interp
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self._data = None if data_xy is None else _RowSorted(data_xy)
+        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed
+        K, self.exponents, error = polynomial_form(interp.scheme)
+        self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
+        tri, pts = interp.triangles, interp.points
+        xs = [pts[tri[:, k], 0] for k in range(3)]
+        ys = [pts[tri[:, k], 1] for k in range(3)]
+        self._lo = np.column_stack([np.minimum(np.minimum(xs[0], xs[1]), xs[2]),
+                                    np.minimum(np.minimum(ys[0], ys[1]), ys[2])])
+        self._hi = np.column_stack([np.maximum(np.maximum(xs[0], xs[1]), xs[2]),
+                                    np.maximum(np.maximum(ys[0], ys[1]), ys[2])])
+        self.degree = int(self.exponents.max())
+        self._index = {(int(i), int(j)): k for k, (i, j) in enumerate(self.exponents)}
+        self._index = np.array([[self._index.get((i, j), -1) for j in range(self.degree + 1)]
+                                for i in range(self.degree + 1)])
+        # per triangle, one contiguous array each (gathered per cell): for k = 0, 1 the
+        # gradient of λ_k and the vertex k+1 it is measured from
+        G = interp.lambda_gradients
+        self._bary = [(G[:, k, 0].copy(), G[:, k, 1].copy(), xs[k + 1], ys[k + 1]) for k in range(2)]
+        self._order = np.argsort(self._hi[:, 1])                         # by north edge
+        self._north = self._hi[self._order, 1]
+        self._span = float((self._hi[:, 1] - self._lo[:, 1]).max()) if len(tri) else 0.0
+
+    def window(self, grid: RasterGrid, rows: range, cols: range, gradients: bool = True):
+        """Heights (nrows, ncols) in world z and gradients (nrows, ncols, 2) at the centres
+        of grid cells rows × cols (indices may lie outside the grid: a halo); NaN outside
+        the triangulation. gradients=False skips them (returns None): a DEM alone, or
+        Horn's differences, need heights only."""
+        nr, nc = len(rows), len(cols)
+        cell, tri, l0, l1, shift = self.cells(grid, rows, cols)
+        values, grads = self.evaluate(tri, l0, l1, gradients, shift)
+        z = np.full(nr * nc, np.nan)
+        z[cell] = values + self.origin[2]
+        if not gradients:
+            return z.reshape(nr, nc), None
+        g = np.full((nr * nc, 2), np.nan)
+        g[cell] = grads
+        return z.reshape(nr, nc), g.reshape(nr, nc, 2)
+
+    def cells(self, grid: RasterGrid, rows: range, cols: range):
+        """(flat cell index, triangle, λ0, λ1), each (m,), and shift (m, 2), of every cell
+        centre of rows × cols inside a triangle (shift 0; a cell on a shared edge may appear
+        twice: either triangle gives the same C1 surface; the later one is kept by the
+        callers' assignment), then of the cells holding data points whose centre is in no
+        triangle: the point q of the nearest triangle closest to the centre (λ0, λ1 of q)
+        and shift = centre − q (local units), for `evaluate`'s linear continuation."""
+        r = grid.resolution
+        x0 = grid.west - self.origin[0]          # local x of the grid's west edge
+        y0 = grid.north - self.origin[1]
+        nc = len(cols)
+        top, bottom = y0 - (rows.start + 0.5) * r, y0 - (rows.stop - 0.5) * r
+        # triangles whose y-range meets the rows: north edge in [bottom, top + tallest]
+        slack = r * 1e-9
+        first = np.searchsorted(self._north, bottom - slack, side="left")
+        last = np.searchsorted(self._north, top + self._span + slack, side="right")
+        cand = self._order[first:last]
+        cand = cand[self._lo[cand, 1] <= top + slack]
+        cand = cand[(self._hi[cand, 0] >= x0 + (cols.start + 0.5) * r - slack)
+                    & (self._lo[cand, 0] <= x0 + (cols.stop - 0.5) * r + slack)]
+        eps = 1e-9
+        j0 = np.maximum(np.ceil((self._lo[cand, 0] - x0) / r - 0.5 - eps).astype(np.int64), cols.start)
+        j1 = np.minimum(np.floor((self._hi[cand, 0] - x0) / r - 0.5 + eps).astype(np.int64), cols.stop - 1)
+        i0 = np.maximum(np.ceil((y0 - self._hi[cand, 1]) / r - 0.5 - eps).astype(np.int64), rows.start)
+        i1 = np.minimum(np.floor((y0 - self._lo[cand, 1]) / r - 0.5 + eps).astype(np.int64), rows.stop - 1)
+        nj = np.maximum(j1 - j0 + 1, 0)
+        count = np.maximum(i1 - i0 + 1, 0) * nj
+        tri = np.repeat(cand, count)
+        local = np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count)
+        di, dj = np.divmod(local, np.repeat(nj, count))
+        ii = np.repeat(i0, count) + di
+        jj = np.repeat(j0, count) + dj
+        l0, l1 = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
+        tol = -self.TOLERANCE
+        keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
+        cell = (ii[keep] - rows.start) * nc + (jj[keep] - cols.start)
+        found = (cell, tri[keep], l0[keep], l1[keep], np.zeros((cell.size, 2)))
+        if self._data is None:
+            return found
+        return tuple(np.concatenate(pair) for pair in zip(found, self._uncovered(grid, rows, cols, cell)))
+
+    def _uncovered(self, grid: RasterGrid, rows: range, cols: range, covered: np.ndarray):
+        """(cell, triangle, λ0, λ1, shift) of the cells of rows × cols that hold data points
+        but whose centre lies in no triangle (`covered`: the flat cells that do), from
+        their nearest triangle within reach (at its point closest to the centre); cells
+        with none are left out (nodata)."""
+        r, nc = grid.resolution, len(cols)
+        x0, y0 = grid.west - self.origin[0], grid.north - self.origin[1]
+        ii, jj = self._data.cells(x0, y0, r, rows, cols)
+        cell = np.unique((ii - rows.start) * nc + (jj - cols.start))
+        cell = cell[~np.isin(cell, covered)]
+        i, j = np.divmod(cell, nc)
+        cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
+        if self._nearest is None and cell.size:
+            self._nearest = NearestTriangles(self.interp.points, self.interp.triangles, self._reach)
+        tri = self._nearest.of(np.column_stack([cx, cy])) if cell.size else np.zeros(0, np.int64)
+        has = tri >= 0
+        centre = np.column_stack([cx[has], cy[has]])
+        tri = tri[has]
+        q = closest_points(centre, self.interp.points[self.interp.triangles[tri]])
+        l0, l1 = self._barycentric(tri, q[:, 0], q[:, 1])
+        return cell[has], tri, l0, l1, centre - q
+
+    def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
+        """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
+        c1mesh.engine.locate computes them (exact near the edge opposite vertex k)."""
+        out = []
+        for gx, gy, rx, ry in self._bary:
+            lam = gx[tri] * (px - rx[tri])
+            lam += gy[tri] * (py - ry[tri])
+            out.append(lam)
+        return out[0], out[1]
+
+    def evaluate(self, tri, l0, l1, gradients: bool = True, shift=None):
+        """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
+        barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,), continued linearly by
+        shift (m, 2) (None: 0): value + gradient · shift, the gradient unchanged. The
+        triangle's polynomial itself is not continued past the triangle: past a thin one
+        it grows as the power of its degree (a sextic continued past rim triangles gave
+        slopes off by up to 76° on an analytic terrain)."""
+        values, grads = self._polynomial(tri, l0, l1, gradients)
+        moved = np.zeros(0, np.int64) if shift is None else np.flatnonzero(shift.any(axis=1))
+        if moved.size:
+            slope = grads[moved] if grads is not None else \
+                self._polynomial(tri[moved], l0[moved], l1[moved], True)[1]
+            values[moved] += slope[:, 0] * shift[moved, 0] + slope[:, 1] * shift[moved, 1]
+        return values, grads
+
+    def _polynomial(self, tri, l0, l1, gradients: bool = True):
+        """Values (m,) and gradients (m, 2) (None unless `gradients`) of the spline at
+        barycentrics (l0, l1, 1 − l0 − l1) in triangles tri (m,)."""
+        it = self.interp
+        if self.K is None:
+            C, G = it.coefficients[tri], it.lambda_gradients[tri]
+            lam = np.column_stack([l0, l1, 1.0 - l0 - l1])
+            return (rsd.values_at(it.scheme, C, lam),
+                    rsd.gradients_at(it.scheme, C, G, lam) if gradients else None)
+        A = self.K.T @ it.coefficients[tri].T                            # (P, m), rows contiguous
+        m, d = tri.size, self.degree
+        power0 = [np.ones(m), l0]
+        power1 = [np.ones(m), l1]
+        for _ in range(2, d + 1):
+            power0.append(power0[-1] * l0)
+            power1.append(power1[-1] * l1)
+        values, d0, d1 = np.zeros(m), np.zeros(m), np.zeros(m)
+        q, r, tmp = np.empty(m), np.empty(m), np.empty(m)
+        for i in range(d + 1):
+            # q = Σ_j a_ij λ1^j, r = ∂q/∂λ1; then F += λ0^i q, ∂F/∂λ0 += i λ0^(i−1) q, ∂F/∂λ1 += λ0^i r
+            q.fill(0.0)
+            r.fill(0.0)
+            for j in range(d + 1 - i):
+                row = A[self._index[i, j]]
+                np.multiply(row, power1[j], out=tmp)
+                q += tmp
+                if j and gradients:
+                    np.multiply(row, power1[j - 1], out=tmp)
+                    tmp *= j
+                    r += tmp
+            np.multiply(q, power0[i], out=tmp)
+            values += tmp
+            if not gradients:
+                continue
+            np.multiply(r, power0[i], out=tmp)
+            d1 += tmp
+            if i:
+                np.multiply(q, power0[i - 1], out=tmp)
+                tmp *= i
+                d0 += tmp
+        if not gradients:
+            return values, None
+        (g0x, g0y, _, _), (g1x, g1y, _, _) = self._bary
+        out = np.empty((m, 2))
+        out[:, 0] = d0 * g0x[tri] + d1 * g1x[tri]
+        out[:, 1] = d0 * g0y[tri] + d1 * g1y[tri]
+        return values, out
+
+
+class _RowSorted:
+    """Plane points (m, 2) sorted by y, to list the grid cells that hold points row band
+    by row band (a block of rows reads only its band)."""
+
+    def __init__(self, xy):
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        order = np.argsort(xy[:, 1], kind="stable")
+        self.x, self.y = xy[order, 0], xy[order, 1]
+
+    def cells(self, x0: float, y0: float, r: float, rows: range, cols: range):
+        """Row and column indices (k,) of the points inside the cells rows × cols of the
+        grid whose west edge is local x0 and north edge local y0, cell size r (a point on
+        a cell's west or north edge belongs to that cell)."""
+        low, high = y0 - rows.stop * r, y0 - rows.start * r
+        band = slice(np.searchsorted(self.y, low, side="right"), np.searchsorted(self.y, high, side="right"))
+        ii = np.floor((y0 - self.y[band]) / r).astype(np.int64)
+        jj = np.floor((self.x[band] - x0) / r).astype(np.int64)
+        inside = (ii >= rows.start) & (ii < rows.stop) & (jj >= cols.start) & (jj < cols.stop)
+        return ii[inside], jj[inside]
+
+
+class NearestTriangles:
+    """The nearest triangle to plane points, within a reach.
+
+    points (n, 2), triangles (T, 3): a triangulation in the plane (local units); reach:
+    the largest distance searched (None: any). A triangle at distance d from p has all
+    three corners within d + L of p, L its longest edge, and the nearest corner's
+    triangles bound d from above: so the triangles of the corners within d_corner + L_max
+    of p are the candidates, and their exact point-triangle distances decide. Ties go to
+    the lowest triangle number, so the answer does not depend on the search order.
+    """
+
+    def __init__(self, points: np.ndarray, triangles: np.ndarray, reach: float | None = None):
+        from scipy.spatial import cKDTree
+
+        self.points, self.triangles = np.asarray(points, dtype=np.float64), np.asarray(triangles)
+        self.reach = np.inf if reach is None else float(reach)
+        corners = self.points[self.triangles]                                   # (T, 3, 2)
+        edges = corners[:, [1, 2, 0]] - corners
+        self.longest = float(np.sqrt((edges ** 2).sum(axis=2)).max()) if len(self.triangles) else 0.0
+        order = np.argsort(self.triangles.ravel(), kind="stable")
+        self._of_vertex = order // 3                                            # triangles by vertex
+        self._start = np.searchsorted(self.triangles.ravel()[order], np.arange(len(self.points) + 1))
+        self._tree = cKDTree(self.points)
+
+    def of(self, query: np.ndarray) -> np.ndarray:
+        """(q,) the nearest triangle to each query point (q, 2) within the reach, -1 if none."""
+        out = np.full(len(query), -1, dtype=np.int64)
+        if not len(self.triangles) or not len(query):
+            return out
+        first, _ = self._tree.query(query)
+        for q, (p, d) in enumerate(zip(query, first)):
+            if d - self.longest > self.reach:                # every triangle is farther than reach
+                continue
+            near = self._tree.query_ball_point(p, d + self.longest)
+            cand = np.unique(np.concatenate([self._of_vertex[self._start[v]:self._start[v + 1]]
+                                             for v in near]))
+            dist = point_triangle_distance(p, self.points[self.triangles[cand]])
+            best = np.flatnonzero(dist == dist.min())
+            if dist[best[0]] <= self.reach:
+                out[q] = cand[best].min()
+        return out
+
+
+def closest_points(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(m, 2) the point of each triangle corners (m, 3, 2) closest to the plane point p
+    (m, 2): p itself inside, else the nearest point of its three edges."""
+    a, b = corners, corners[:, [1, 2, 0]]
+    ab = b - a
+    rel = p[:, None, :] - a
+    t = np.clip((rel * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    foot = a + t[..., None] * ab                                              # (m, 3, 2)
+    nearest = np.argmin(((foot - p[:, None, :]) ** 2).sum(axis=2), axis=1)
+    q = foot[np.arange(len(p)), nearest]
+    cross = ab[..., 0] * rel[..., 1] - ab[..., 1] * rel[..., 0]               # (m, 3)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return np.where(inside[:, None], p, q)
+
+
+def point_triangle_distance(p: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(k,) Euclidean distance from the plane point p (2,) to the triangles corners (k, 3, 2):
+    0 inside, else the distance to the nearest of the three edges."""
+    a, b = corners, corners[:, [1, 2, 0]]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=2), 1e-300), 0.0, 1.0)
+    edge = np.sqrt((((a + t[..., None] * ab) - p) ** 2).sum(axis=2)).min(axis=1)
+    cross = ab[..., 0] * (p[1] - a[..., 1]) - ab[..., 1] * (p[0] - a[..., 0])   # (k, 3)
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return np.where(inside, 0.0, edge)
