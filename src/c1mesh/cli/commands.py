@@ -12,7 +12,8 @@ import click
 from c1mesh import __version__
 from c1mesh.cli.fitting import fit_batch, fit_one, fit_survey, threads_per_process
 from c1mesh.cli.options import (INPUT_FORMAT_HELP, MEMORY_HELP, OUTPUT_HELP, parse_bounds_option, parse_classes,
-                                parse_intrinsics, parse_max_edge, parse_memory_option, plan)
+                                SMOOTH_HELP, parse_intrinsics, parse_max_edge, parse_memory_option, parse_smooth,
+                                plan)
 from c1mesh.cli.outputs_check import check_geo, check_outputs, check_stdin, check_stdout
 from c1mesh.cli.shell import Group, fail, message
 from c1mesh.cli.usage import check_usage
@@ -74,6 +75,10 @@ def main() -> None:
 @click.option("--gradients", type=click.Choice(["auto", "normals", "heights"]), default="auto",
               show_default=True, help="Vertex gradients: heights: a local quadratic fit to the "
                    "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
+@click.option("--smooth", default="off", show_default=True, metavar="off|auto|S", help=SMOOTH_HELP)
+@click.option("--spacing", type=float, default=None,
+              help="With --smooth: one vertex per D x D cell (D in the scan's units), fitted to all "
+                   "points, for a smaller mesh or DEM.  [default: a vertex at every point]")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=parse_memory_option, help=MEMORY_HELP)
 @click.option("--bounds", callback=parse_bounds_option, metavar="XMIN,YMIN,XMAX,YMAX",
@@ -113,11 +118,12 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
         overshoot, gradients, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, z_factor, slope_method, preview, seamless,
-        scheduler, bounds):
+        scheduler, bounds, smooth, spacing):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     check_usage(ctx)       # every usage error at once, before any input is read
     classes, max_edge = parse_classes(classes), parse_max_edge(max_edge)
     intrinsics = parse_intrinsics(intrinsics)
+    smooth_option = "off" if parse_smooth(smooth) is None else parse_smooth(smooth)
     if seamless:
         from c1mesh.pipeline.driver import FitOptions
 
@@ -126,7 +132,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
                              hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
-                             z_factor=z_factor)
+                             z_factor=z_factor, smooth=smooth_option, spacing=spacing)
         if output and not output_dir:
             options = check_geo([(inputs[0], output)], options, debug)
         fit_survey(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
@@ -148,7 +154,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          hillshade=hillshade, slope_method=slope_method, preview=preview,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
                          intrinsics=intrinsics, z_factor=z_factor,
-                         depth_scale=depth_scale, color=color_image, bounds=bounds)
+                         depth_scale=depth_scale, color=color_image, bounds=bounds,
+                         smooth=smooth_option, spacing=spacing)
     options = check_geo(pairs, options, debug)
     options.workers = threads_per_process(threads, min(jobs, len(pairs)))
     if len(pairs) == 1:

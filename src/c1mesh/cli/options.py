@@ -78,6 +78,26 @@ def parse_max_edge(value: str):
     return length
 
 
+SMOOTH_HELP = ("off: the spline through every point; auto: fitted to the points, its strength "
+               "chosen by cross-validation over spatial blocks; or a strength s > 0 (dimensionless: "
+               "λ = s·h², h the mean point spacing; docs/smoothing.md). For noisy heights such as LiDAR ground.")
+
+
+def parse_smooth(value: str):
+    """--smooth: 'off' -> None, 'auto', or a positive finite strength (plain Python)."""
+    word = value.strip().lower()
+    if word in ("off", "auto"):
+        return None if word == "off" else "auto"
+    try:
+        strength = float(word)
+    except ValueError:
+        strength = float("nan")
+    if not (strength > 0 and math.isfinite(strength)):
+        raise click.BadParameter(f"expected off, auto or a positive strength, got {value!r}",
+                                 param_hint="'--smooth'")
+    return strength
+
+
 def parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
     """--intrinsics fx,fy,cx,cy (pixels, fx and fy > 0); plain Python, so usage errors stay fast."""
     if value is None:

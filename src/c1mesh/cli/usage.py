@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from c1mesh.cli.options import (check_axis, extension, output_paths, parse_classes, parse_intrinsics,
-                                parse_max_edge)
+                                parse_max_edge, parse_smooth)
 from c1mesh.core.outputs import DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO
 
 
@@ -29,7 +29,8 @@ def _value_problems(params: dict) -> list[str]:
     for hint, parse, value in (("--classes", parse_classes, params["classes"]),
                                ("--max-edge", parse_max_edge, params["max_edge"]),
                                ("--intrinsics", parse_intrinsics, params["intrinsics"]),
-                               ("--axis", check_axis, params["axis"])):
+                               ("--axis", check_axis, params["axis"]),
+                               ("--smooth", parse_smooth, params["smooth"])):
         try:
             parse(value)
         except click.BadParameter as exc:
@@ -38,10 +39,27 @@ def _value_problems(params: dict) -> list[str]:
     resolution = params["resolution"]
     if resolution is not None and not (resolution > 0 and math.isfinite(resolution)):
         problems.append(f"--resolution must be a positive finite length, got {resolution}")
+    spacing = params["spacing"]
+    if spacing is not None and not (spacing > 0 and math.isfinite(spacing)):
+        problems.append(f"--spacing must be a positive finite length, got {spacing}")
+    problems += _smoothing_problems(params)
     z_factor = params["z_factor"]
     if z_factor is not None and not (z_factor > 0 and math.isfinite(z_factor)):
         problems.append(f"--z-factor must be a positive finite number (x, y units per height unit), got {z_factor}")
     return problems
+
+
+def _smoothing_problems(params: dict) -> list[str]:
+    """--smooth and --spacing against each other and the frame."""
+    try:
+        strength = parse_smooth(params["smooth"])
+    except click.BadParameter:
+        return []                                      # named by _value_problems
+    if params["spacing"] is not None and strength is None:
+        return ["--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength"]
+    if strength is not None and params["frame_kind"] == "perspective":
+        return ["--smooth fits a height field (--frame axis or auto); the perspective frame has no smoothing fit"]
+    return []
 
 
 def _io_problems(params: dict, outputs: list[str]) -> list[str]:

@@ -31,11 +31,14 @@ from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim
 from c1mesh.stages.frame import resolve_axis
+from c1mesh.stages.smoothing import SmoothingError, parse_strength
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.warnings import auto_limit, fit_warnings
+from c1mesh.stages.thinning import check_spacing, thin_to_cells
+from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.pipeline.report import common_report, crs_facts
 from c1mesh.pipeline.steps import (FitResult, StageTimer, compact_vertices, display_name,
-                                   limited_interpolator, mesh_pieces, write_surface)
+                                   limited_interpolator, mesh_pieces, smoothed_interpolator,
+                                   write_surface)
 
 NORMAL_MODES = ("auto", "file", "estimate")
 """The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
@@ -107,6 +110,12 @@ class FitOptions:
     intrinsics: tuple[float, float, float, float] | None = None
     depth_scale: float = 0.001
     color: str | None = None
+    # the smoothing fit (c1mesh.stages.smoothing, docs/smoothing.md): smooth "off" (the
+    # spline through every point), "auto" (strength by cross-validation over spatial
+    # blocks) or a dimensionless strength s > 0; spacing: None (vertices at the points) or
+    # a length D, one vertex per D x D cell (c1mesh.stages.thinning), fitted to all points.
+    smooth: Any = "off"
+    spacing: float | None = None
 
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
@@ -143,6 +152,22 @@ def _check_fit_memory(count: int, memory: int | None) -> None:
                          "fitted in tiles: raise --memory, thin the input, or convert it to LAS/LAZ")
 
 
+def smoothing_strength(options: FitOptions):
+    """options.smooth as c1mesh.stages.smoothing.parse_strength reads it: None (off),
+    "auto" or a strength s > 0; InputError for anything else, and for a --spacing without
+    smoothing (an exact fit has its vertices at the points). Checked before any work."""
+    try:
+        strength = options.smooth if isinstance(options.smooth, (int, float)) else parse_strength(options.smooth)
+        if isinstance(strength, (int, float)):
+            strength = parse_strength(repr(float(strength)))
+    except SmoothingError as exc:
+        raise InputError(f"--smooth: {exc}") from None
+    check_spacing(options.spacing)
+    if options.spacing is not None and strength is None:
+        raise InputError("--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength")
+    return strength
+
+
 def _check_normals_mode(mode: str) -> None:
     if mode not in NORMAL_MODES:
         raise InputError(f"--normals must be one of {', '.join(NORMAL_MODES)}, got {mode!r}")
@@ -175,6 +200,7 @@ class SurfaceModel:
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
     triangles index those n points); overshoot: the limiter's report (c1mesh.stages.limiter);
     gradient_source: "heights" (c1mesh.stages.height_gradients) or "normals".
+    smoothing: the c1mesh.stages.smoothing.SmoothFit of a smoothing fit, else None.
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
     """
@@ -188,6 +214,7 @@ class SurfaceModel:
     overshoot: Any = None
     gradient_source: str = "normals"
     max_slope_not_applied: str | None = None
+    smoothing: Any = None
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -276,6 +303,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     timer = timer or StageTimer(None)
     scheme = get_scheme(options.scheme)
     check_overshoot_mode(options.overshoot)
+    strength = smoothing_strength(options)
     options = height_column_axis(cloud, options)[0]
     heights_first = _fit_heights_first(cloud, options)
     plan_heights = False          # heights in units of their own over the plan (x, y)
@@ -304,19 +332,30 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
             gradient_source = "heights"
     with timer.stage("triangulate"):
-        triangles = delaunay(hf.xy)
-        triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
+        vertices = None if options.spacing is None else thin_to_cells(hf.xy, options.spacing)
+        xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
+            (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
+        triangles = delaunay(xy)
+        triangles, trim_report = trim(xy, triangles, max_edge=options.max_edge)
         if not plan_heights:     # its angles and noise widths compare heights with plane lengths
-            triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report,
+            triangles, trim_report = remove_curtains(xy, z, grads, triangles, trim_report,
                                                      view_rules_apply(options.classes, frame.axes))
         if triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
-        used, triangles = compact_vertices(hf.xy, triangles)
+        used, triangles = compact_vertices(xy, triangles)
+        if vertices is not None:
+            used = vertices[used]
+    smoothing = None
     with timer.stage("interpolate"):
-        interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
-                                                 scheme, options.overshoot, heights=not plan_heights)
+        if strength is None:
+            interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
+                                                     scheme, options.overshoot, heights=not plan_heights)
+        else:
+            data = None if vertices is None else (hf.xy, hf.z)
+            interp, overshoot, smoothing = smoothed_interpolator(hf.xy[used], hf.z[used], triangles, scheme,
+                                                                 options.overshoot, strength, hf.spacing, data)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
-                        max_slope_not_applied)
+                        max_slope_not_applied, smoothing)
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -358,6 +397,10 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
     from c1mesh.stages.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
+        if smoothing_strength(options) is not None:
+            raise InputError(f"{display_name(source)}: an organised scan or depth image is fitted in the "
+                             "perspective frame, which has no smoothing fit; give --frame axis to fit it "
+                             "as a height field, or drop --smooth")
         from c1mesh.pipeline.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
     model = build_surface(cloud, options, timer)
@@ -442,7 +485,17 @@ def _report(source, output, options, cloud, model: SurfaceModel, frame_report: d
         **surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
         z_factor=angles["z_factor"])
     report["overshoot"] = model.overshoot.as_dict()
-    return {**report, **_slope_note(model)}
+    return {**report, **_slope_note(model), **smoothing_facts(model)}
+
+
+def smoothing_facts(model: SurfaceModel) -> dict:
+    """The report's optional sections about smoothing: "smoothing" (the SmoothFit's
+    strength, λ, CV curve, effective degrees of freedom, residuals) for a smoothing fit;
+    else "suggestion" where the limiter found the heights noisy (stages.warnings)."""
+    if model.smoothing is not None:
+        return {"smoothing": model.smoothing.as_dict()}
+    text = smoothing_suggestion(model.overshoot.gradients_limited, int(model.used.size))
+    return {} if text is None else {"suggestion": text}
 
 
 def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, angles: dict,
@@ -457,6 +510,6 @@ def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, a
         **surface_facts(cloud, model, options, pieces_in_warnings=False), crs=crs, seconds=timer.seconds,
         threads=thread_count(), z_factor=angles["z_factor"])
     report["overshoot"] = model.overshoot.as_dict()
-    return {**report, **_slope_note(model)}
+    return {**report, **_slope_note(model), **smoothing_facts(model)}
 
 

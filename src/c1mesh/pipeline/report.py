@@ -72,6 +72,11 @@ OPTIONAL: dict[str, str] = {
     "shared_vertex_keys": "the tiled fit: vertices shared between tiles",
     "shared_vertex_keys_held": "the tiled fit: most shared vertices held at once",
     "output_meshes": "the tiled fit with -O: each output's vertices and faces",
+    "smoothing": "--smooth auto or a strength: strength (s), lam (λ), cv_curve ([s, held-out RMS] pairs), "
+                 "edf, residual_rms, residual_max (heights), solver, seconds, outside (data points "
+                 "outside the triangulation)",
+    "suggestion": "an exact fit whose heights look noisy (the limiter changed over 10% of the "
+                  "gradients): the advice to fit with --smooth auto",
 }
 """Sections present only where they apply: key -> when."""
 

@@ -18,7 +18,8 @@ from c1mesh.core.threads import blas_threads
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.topology import edge_table
 from c1mesh.formats import write_mesh
-from c1mesh.stages.limiter import control_overshoot
+from c1mesh.stages.limiter import LimiterReport, control_overshoot, edge_directions
+from c1mesh.stages.smoothing import smooth_fit
 from c1mesh.stages.surface import surface_stream
 
 
@@ -70,6 +71,29 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
     interp = RSDInterpolator(points, values, limited, triangles=triangles, scheme=scheme,
                              directions=directions, edge_table=table)
     return interp, report
+
+
+def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, strength, spacing: float,
+                          data: tuple | None = None) -> tuple[RSDInterpolator, Any, Any]:
+    """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
+    height field, its limiter report and the SmoothFit.
+
+    points (n, 2) vertices, values (n,) their heights, triangles (T, 3); strength "auto"
+    or s > 0; spacing: the data's mean spacing (the strength's length unit); data: None
+    (the vertices are the data) or (xy (M, 2), z (M,)) of all points (--spacing). The fit's
+    gradients agree with its heights by construction, so of the overshoot remedies only the
+    edge directions apply (overshoot "limit"): they are chosen from the geometry before
+    the fit, which is then the spline of those directions.
+    """
+    table = edge_table(triangles, points.shape[0])
+    directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
+    data_xy, data_z = (None, values) if data is None else data
+    fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=strength, spacing_h=spacing,
+                        directions=directions, scheme=scheme)
+    interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=scheme,
+                             directions=directions, edge_table=table)
+    turned = 0 if changed is None else int(changed.sum())
+    return interp, LimiterReport(directions_changed=turned), fitted
 
 
 def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, output, options,

@@ -16,8 +16,8 @@ from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
 from c1mesh.pipeline.steps import StageTimer
-from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, surface_facts,
-                                    trim_facts)
+from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, smoothing_facts,
+                                    smoothing_strength, surface_facts, trim_facts)
 from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
 from c1mesh.survey.tiled_fit import fit_tiled, survey_needs_tiles
@@ -80,6 +80,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         output_mesh=None, **surface_facts(survey.cloud, model, options, pieces_in_warnings=False),
         crs=crs_facts(crs, crs_source),
         seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options))
+    report.update(smoothing_facts(model))
     report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
                    "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})
     tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)
@@ -95,6 +96,9 @@ def fit_in_tiles(source, output, options, **run) -> dict:
     """The memory-bounded fit (c1mesh.survey.tiled_fit.fit_tiled: source one LAS/LAZ path or
     a list, output a mesh path, run its other keyword arguments: on_stage, jobs, on_tile,
     scheduler, outputs) with its facts made the report of c1mesh.pipeline.report's schema."""
+    if smoothing_strength(options) is not None:
+        raise InputError("--smooth is not yet available for a fit larger than --memory (fitted in "
+                         "tiles, which solve with no halo yet): raise --memory, or fit without --smooth")
     facts = fit_tiled(source, output, options, options.memory, **run)
     return tiled_report(facts, options)
 

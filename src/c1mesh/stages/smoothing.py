@@ -41,6 +41,9 @@ SEARCH_VERTICES = 40_000
 """Above this many vertices the search for s runs on SEARCH_WINDOWS square windows of the
 mesh holding about this many vertices together, then one full solve follows."""
 SEARCH_WINDOWS = 4
+CV_RIDGE = 1e-9
+"""Relative ridge of the cross-validation solves (smoothing_system.solve: a held-out
+block may cover a whole island of the mesh)."""
 GRID = tuple(float(e) for e in range(-3, 5))
 """log10 s of the coarse search; golden-section refinement follows around the best."""
 REFINE_STEPS = 6
@@ -205,6 +208,21 @@ def _directions(points, triangles, directions):
 
 
 # ------------------------------------------------------------------------ the fit
+def weighted_plane(xy: np.ndarray, z: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(a, b, c) of the weighted least-squares plane z ≈ a + b x + c y.
+
+    smooth_fit fits the deviations from it: the energy of a plane is zero and the sextic
+    reproduces planes, so the fit of plane + d is plane + the fit of d in exact arithmetic.
+    In floating point a plane's energy is zero only to rounding times the largest energy
+    block, which a thin triangle makes large; fitting d instead returns a plane exactly
+    (to the rounding of the plane itself) and scales that error by the deviations only.
+    """
+    A = np.column_stack([np.ones_like(z), xy]) * np.sqrt(w)[:, None]
+    if A.shape[0] < 3 or np.linalg.matrix_rank(A) < 3:
+        return np.array([float(np.average(z, weights=w)), 0.0, 0.0])
+    return np.linalg.lstsq(A, z * np.sqrt(w), rcond=None)[0]
+
+
 def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spacing_h: float,
                directions=None, scheme="sextic", weights=None, gradient_data=None,
                gradient_weight: float = 0.0, folds: int = 5, seed: int = 0,
@@ -237,8 +255,9 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
     with limit(threads), timed(seconds, "assemble"):
         h = float(spacing_h)
         centre = pts.mean(axis=0)
-        z_mean = float(np.average(z, weights=w))
-        Z = float(np.sqrt(np.average((z - z_mean) ** 2, weights=w))) or 1.0
+        plane = weighted_plane((xy - centre) / h, z, w)
+        trend = plane[0] + ((xy - centre) / h) @ plane[1:]
+        Z = float(np.sqrt(np.average((z - trend) ** 2, weights=w))) or 1.0
         w_mean = float(w.sum() / w.shape[0])
         npts = (pts - centre) / h
         grad = None
@@ -246,7 +265,7 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
             grad = np.array(gradient_data, dtype=float)
             if grad.shape != pts.shape:
                 raise SmoothingError(f"gradient_data must have shape {pts.shape}, got {grad.shape}")
-            grad = grad * (h / Z)
+            grad = (grad - plane[1:] / h) * (h / Z)     # the deviations from the plane, as z
         dirs = _directions(npts, tri, directions)
         nxy = (xy - centre) / h
         data_tri = data_lam = None
@@ -257,8 +276,8 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
             inside = data_tri >= 0
             outside = int((~inside).sum())
             data_tri, data_lam = data_tri[inside], data_lam[inside]
-            nxy, z, w = nxy[inside], z[inside], w[inside]
-        zn, wn = (z - z_mean) / Z, w / w_mean
+            nxy, z, w, trend = nxy[inside], z[inside], w[inside], trend[inside]
+        zn, wn = (z - trend) / Z, w / w_mean
         if not (wn > 0).any():
             raise SmoothingError("no weighted data point lies inside the triangulation")
         problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad)
@@ -277,7 +296,9 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
         with timed(seconds, "edf"):
             edf = hat_trace(system, factor, wn, EDF_PROBES, seed)
     residual = (zn - system.fitted(u))[wn > 0] * Z
-    return SmoothFit(values=u[0::3] * Z + z_mean, gradients=np.stack([u[1::3], u[2::3]], 1) * (Z / h),
+    values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
+    gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
+    return SmoothFit(values=values, gradients=gradients,
                      strength=s, lam=s * h * h * w_mean, cv_curve=curve, edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
@@ -322,7 +343,7 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
         if not out.any():
             continue
         w = np.where(out, 0.0, problem.w)
-        u, _ = solve(system, s * w.sum() / problem.w.sum(), w, mu, method)
+        u, _ = solve(system, s * w.sum() / problem.w.sum(), w, mu, method, ridge=CV_RIDGE)
         r = (system.fitted(u) - problem.z)[out]
         sq += float(r @ r)
         count += int(out.sum())

@@ -1,0 +1,132 @@
+"""The smoothing fit through the pipeline and the CLI (--smooth, --spacing), against truth
+that does not come from c1mesh: analytic terrains and planes, and the recorded bytes of the
+exact fit."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from c1mesh.core.cloud import PointCloud
+from c1mesh.pipeline.driver import FitOptions, build_surface, fit
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = ROOT / "data_samples"
+CLI = [sys.executable, "-m", "c1mesh.cli"]
+
+
+def terrain(x, y):
+    """A smooth terrain (metres) with features a few point spacings wide."""
+    return 2.0 * np.sin(x / 7.0) * np.cos(y / 9.0) + 0.05 * x
+
+
+def noisy_cloud(n=4000, noise=0.05, seed=1):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 60, (n, 2))
+    z = terrain(xy[:, 0], xy[:, 1]) + rng.normal(0, noise, n)
+    return PointCloud(points=np.column_stack([xy, z]))
+
+
+def held_out_rms(model, xy, z_true):
+    """RMS of the model's heights at world (x, y) against the truth (frame axis z: the
+    frame is the world's up to an origin shift and a sign of the axis)."""
+    frame = model.frame
+    assert np.allclose(np.abs(frame.axes[2]), [0, 0, 1])
+    local = np.column_stack([xy, np.zeros(len(xy))]) - frame.origin
+    uv = local @ frame.axes[:2].T
+    height = model.interp(uv) * frame.axes[2, 2] + frame.origin[2]
+    ok = np.isfinite(height)
+    assert ok.mean() > 0.9
+    return float(np.sqrt(np.mean((height[ok] - z_true[ok]) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def probes():
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(5, 55, (3000, 2))
+    return xy, terrain(xy[:, 0], xy[:, 1])
+
+
+def test_auto_smoothing_is_closer_to_the_terrain_than_the_exact_fit(probes):
+    cloud = noisy_cloud()
+    exact = build_surface(cloud, FitOptions(axis="z"))
+    smooth = build_surface(cloud, FitOptions(axis="z", smooth="auto"))
+    e_exact, e_smooth = held_out_rms(exact, *probes), held_out_rms(smooth, *probes)
+    # the noise is 5 cm: an interpolant carries about all of it, a good smoother well under half
+    assert e_exact > 0.04
+    assert e_smooth < 0.5 * e_exact
+    assert smooth.smoothing.strength > 0 and smooth.smoothing.edf < len(cloud)
+    assert 0.04 < smooth.smoothing.residual_rms < 0.06      # the residuals are the noise
+
+
+def test_spacing_fits_a_thinned_vertex_set_to_all_points(probes):
+    cloud = noisy_cloud(n=6000)
+    model = build_surface(cloud, FitOptions(axis="z", smooth="auto", spacing=2.0))
+    cells = (60 / 2.0) ** 2
+    assert 0.8 * cells <= model.used.size <= cells          # one vertex per occupied 2 x 2 cell
+    assert held_out_rms(model, *probes) < 0.05               # below the 5 cm noise of the points
+
+
+@pytest.mark.parametrize("smooth", ["auto", 30.0])
+def test_a_plane_comes_through_any_strength_unchanged(smooth):
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 40, (1500, 2))
+    z = 3.0 + 0.2 * xy[:, 0] - 0.1 * xy[:, 1]
+    result = fit(PointCloud(points=np.column_stack([xy, z])), None, FitOptions(axis="z", smooth=smooth))
+    v = result.mesh.vertices
+    np.testing.assert_allclose(v[:, 2], 3.0 + 0.2 * v[:, 0] - 0.1 * v[:, 1], atol=1e-8)
+    assert result.report["smoothing"]["residual_max"] < 1e-8
+
+
+def test_smooth_off_is_the_exact_fit_byte_for_byte(tmp_path):
+    recorded = json.loads((ROOT / "tests" / "sample_outputs.sha256").read_text())
+    key = next(k for k in recorded if k.startswith("hill"))
+    out = tmp_path / "hill.ply"
+    subprocess.run(CLI + ["fit", str(SAMPLES / "hill.ply"), "-o", str(out), "--smooth", "off"], check=True,
+                   env={"OPENBLAS_CORETYPE": "Haswell", "PATH": "/usr/bin:/bin"})
+    import hashlib
+    assert hashlib.sha256(out.read_bytes()).hexdigest() == recorded[key]["hill.ply"]
+
+
+def _cli(*args, cwd):
+    return subprocess.run(CLI + list(args), capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--smooth", "maybe"], "--smooth"),
+    (["--smooth", "-1"], "--smooth"),
+    (["--spacing", "2"], "--spacing thins the vertices"),
+    (["--smooth", "auto", "--spacing", "0"], "--spacing must be a positive"),
+    (["--smooth", "auto", "--frame", "perspective"], "perspective frame has no smoothing"),
+])
+def test_bad_smoothing_options_are_one_usage_line(tmp_path, args, words):
+    run = _cli("fit", str(SAMPLES / "hill.ply"), "-o", "out.ply", *args, cwd=tmp_path)
+    assert run.returncode == 2
+    assert words in run.stderr and len(run.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_an_organised_scan_with_smooth_is_refused_without_output(tmp_path):
+    run = _cli("fit", str(SAMPLES / "table_scene_mug_stereo_textured.pcd"), "-o", "mug.ply",
+               "--smooth", "auto", cwd=tmp_path)
+    assert run.returncode == 1 and "no smoothing fit" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and not (tmp_path / "mug.ply").exists()
+
+
+def test_the_report_records_the_fit_and_suggests_smoothing_only_for_noisy_heights(tmp_path):
+    noisy = noisy_cloud(n=3000)
+    exact = fit(noisy, None, FitOptions(axis="z")).report
+    assert "--smooth auto" in exact["suggestion"]
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 60, (3000, 2))
+    clean = fit(PointCloud(points=np.column_stack([xy, terrain(xy[:, 0], xy[:, 1])])), None,
+                FitOptions(axis="z")).report
+    assert "suggestion" not in clean
+    smoothed = fit(noisy, None, FitOptions(axis="z", smooth="auto")).report
+    facts = smoothed["smoothing"]
+    assert {"strength", "lam", "cv_curve", "edf", "residual_rms", "residual_max"} <= set(facts)
+    best = min(facts["cv_curve"], key=lambda pair: pair[1])
+    assert best[0] == facts["strength"]
+    assert "suggestion" not in smoothed
