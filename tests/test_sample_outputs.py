@@ -4,9 +4,10 @@ Each run is a `c1mesh` command line on the bundled samples (the same files as
 ../shared/data/real/), run in a fresh folder; its outputs are hashed and compared with
 tests/sample_outputs.sha256. Meshes and GeoTIFFs are hashed as bytes; a PNG as its decoded
 pixels (its metadata names the matplotlib version). A change of any byte fails the test.
-The runs pin OpenBLAS to its Haswell (AVX2) kernels: OpenBLAS picks its kernels by CPU at
-run time, and an AVX-512 kernel rounds the last bits of a product differently, so without
-the pin the list would hold only on one kind of machine. When a byte changes on purpose,
+The runs pin OpenBLAS to its Haswell (AVX2) kernels and numpy to its AVX2 loops: both pick
+their kernels by CPU at run time, and an AVX-512 kernel rounds the last bits differently
+(a product in OpenBLAS; a sum in numpy, whose reductions accumulate in vector-wide
+partial sums), so without the pins the list would hold only on one kind of machine. When a byte changes on purpose,
 re-record the list and say in the commit which outputs changed and why:
 
     .venv/bin/python tests/test_sample_outputs.py --record
@@ -28,7 +29,11 @@ from terrain_scenes import write_terrain_las
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = ROOT / "data_samples"
 RECORD = Path(__file__).resolve().with_name("sample_outputs.sha256")
-BLAS_KERNELS = {"OPENBLAS_CORETYPE": "Haswell"}    # the same BLAS bits on every x86-64 with AVX2
+BLAS_KERNELS = {"OPENBLAS_CORETYPE": "Haswell",     # the same BLAS bits on every x86-64 with AVX2
+                # and the same numpy loops: its AVX-512 dispatch off (numpy >= 2.4 names the
+                # group X86_V4; the older names are listed too, unknown names are ignored)
+                "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR AVX512F AVX512CD AVX512_SKX "
+                                            "AVX512_CLX AVX512_CNL AVX512_KNL AVX512_KNM"}
 CROP_PARTS = tuple(f"crop{i}.las" for i in range(4))    # 4_6_crop's ground cut into 2 x 2 files
 TERRAIN_PARTS = ("terrain0.las", "terrain1.las")         # 2 x 12,000 synthetic points, west and east
 

@@ -1,0 +1,366 @@
+"""The C1 smoothing fit of the RSD spline: vertex values and gradients from noisy data (issue 24).
+
+The unknowns are u = (f_v, ∇f_v) at every vertex; the spline they define (the same one
+RSDInterpolator builds from them, with the same edge directions and scheme) minimises
+
+    Σ_i w_i (F(x_i) − z_i)²  +  λ ∫ F_xx² + 2 F_xy² + F_yy² dx  [ + μ Σ_v |∇f_v − n_v|² ]
+
+over the data points x_i (by default the vertices themselves). λ comes from a
+dimensionless strength s, λ = s · h² · Σw / M (h the mean point spacing, M data points),
+which makes the fit's shape independent of the units of x, y, z and of the weights'
+scale; `strength="auto"` picks s by cross-validation over spatial blocks. Derivations,
+quadrature, solver measurements: docs/smoothing.md.
+
+    fit = smooth_fit(points, triangles, z, strength="auto", spacing_h=h)
+    interp = RSDInterpolator(points, fit.values, fit.gradients, triangles)
+
+The energy blocks live in smoothing_energy, the sparse system and solvers in
+smoothing_system; this module normalises units, validates input, and chooses s.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from c1mesh.core.threads import limit
+from c1mesh.engine import rsd
+from c1mesh.engine.locate import TriangleLocator
+from c1mesh.engine.schemes import get_scheme
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
+                                            energy_blocks, energy_tensor,
+                                            triangle_directions)
+from c1mesh.stages.smoothing_system import (System, assemble_energy, available_solvers,
+                                            data_rows, hat_trace, solve, timed)
+
+CV_BLOCK = 8.0
+"""Side of a cross-validation block, in mean point spacings h (shrunk on small inputs so
+that there are at least 4 blocks per fold)."""
+SEARCH_VERTICES = 40_000
+"""Above this many vertices the search for s runs on SEARCH_WINDOWS square windows of the
+mesh holding about this many vertices together, then one full solve follows."""
+SEARCH_WINDOWS = 4
+GRID = tuple(float(e) for e in range(-3, 5))
+"""log10 s of the coarse search; golden-section refinement follows around the best."""
+REFINE_STEPS = 6
+EDF_PROBES = 4
+_DEGENERACY = 1e-12
+
+
+@dataclass
+class SmoothFit:
+    """Result of `smooth_fit`, in the caller's units.
+
+    values (N,), gradients (N, 2): vertex data of the fitted spline. strength: s used;
+    lam: λ actually used (length² × weight units, module doc). cv_curve: (s, held-out RMS)
+    pairs in the order tried ([] when s was given). edf: effective degrees of freedom
+    tr(H) (Hutchinson estimate). residual_rms, residual_max: of z − F at the data points
+    with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
+    outside: data points outside the triangulation (ignored).
+    """
+
+    values: np.ndarray
+    gradients: np.ndarray
+    strength: float
+    lam: float
+    cv_curve: list = field(default_factory=list)
+    edf: float | None = None
+    residual_rms: float = 0.0
+    residual_max: float = 0.0
+    solver: str = ""
+    seconds: dict = field(default_factory=dict)
+    outside: int = 0
+
+    def as_dict(self) -> dict:
+        """JSON-ready summary for the fit report (no per-vertex arrays)."""
+        out = asdict(self)
+        del out["values"], out["gradients"]
+        out["cv_curve"] = [[float(s), float(r)] for s, r in self.cv_curve]
+        out["seconds"] = {k: round(float(v), 4) for k, v in self.seconds.items()}
+        for key in ("strength", "lam", "residual_rms", "residual_max"):
+            out[key] = float(out[key])
+        out["edf"] = None if self.edf is None else float(self.edf)
+        return out
+
+
+def parse_strength(text: str) -> "float | str | None":
+    """'off' → None, 'auto' → 'auto', a positive number → float; SmoothingError else."""
+    word = str(text).strip().lower()
+    if word == "off":
+        return None
+    if word == "auto":
+        return "auto"
+    try:
+        value = float(word)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise SmoothingError(f"the smoothing strength must be 'auto', 'off' or a positive "
+                             f"number, got {text!r}")
+    return value
+
+
+# ------------------------------------------------------------------------- the problem
+@dataclass
+class _Problem:
+    """A smoothing problem in normalised units (lengths / h, heights / Z, weights / mean).
+
+    data_tri/data_lam: each data point's triangle and barycentrics, None when the data
+    are the vertices. grad (N, 2) with NaN rows where there is no gradient datum.
+    """
+
+    points: np.ndarray
+    triangles: np.ndarray
+    dirs: np.ndarray
+    scheme: object
+    z: np.ndarray
+    w: np.ndarray
+    data_xy: np.ndarray
+    data_tri: np.ndarray | None
+    data_lam: np.ndarray | None
+    grad: np.ndarray | None
+
+    def system(self) -> System:
+        K = assemble_energy(self.points, self.triangles, self.dirs, self.scheme)
+        A = None
+        if self.data_tri is not None:
+            A = data_rows(self.points, self.triangles, self.dirs, self.scheme,
+                          self.data_tri, self.data_lam)
+        mask = values = None
+        if self.grad is not None:
+            mask = np.isfinite(self.grad).all(axis=1).astype(float)
+            values = np.where(mask[:, None] > 0, self.grad, 0.0)
+        return System(K, A, self.z, mask, values)
+
+    def subset(self, keep_vertex: np.ndarray) -> "_Problem":
+        """The problem on the triangles with all three vertices kept (no re-triangulation)."""
+        tri_keep = keep_vertex[self.triangles].all(axis=1)
+        tris = self.triangles[tri_keep]
+        used = np.zeros(self.points.shape[0], dtype=bool)
+        used[tris.ravel()] = True
+        new = np.cumsum(used) - 1
+        if self.data_tri is None:
+            data = np.flatnonzero(used)
+            tri_map, lam = None, None
+        else:
+            tri_new = np.cumsum(tri_keep) - 1
+            data = np.flatnonzero(tri_keep[self.data_tri])
+            tri_map, lam = tri_new[self.data_tri[data]], self.data_lam[data]
+        return _Problem(self.points[used], new[tris], self.dirs[tri_keep], self.scheme,
+                        self.z[data], self.w[data], self.data_xy[data], tri_map, lam,
+                        None if self.grad is None else self.grad[used])
+
+
+def _check_inputs(points, triangles, values, data_xy, weights, spacing_h):
+    try:
+        pts = np.array(points, dtype=float)
+        z = np.array(values, dtype=float)
+        tri = np.asarray(triangles)
+    except (TypeError, ValueError):
+        raise SmoothingError("points, triangles and values must be numeric arrays") from None
+    if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 3:
+        raise SmoothingError(f"points must have shape (N, 2) with N >= 3, got {pts.shape}")
+    if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0 or not np.issubdtype(tri.dtype, np.integer):
+        raise SmoothingError(f"triangles must be integer vertex indices of shape (T, 3), got {tri.shape}")
+    if tri.min() < 0 or tri.max() >= pts.shape[0]:
+        raise SmoothingError(f"triangle vertex indices must lie in [0, {pts.shape[0] - 1}]")
+    xy = pts if data_xy is None else np.array(data_xy, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise SmoothingError(f"data_xy must have shape (M, 2), got {xy.shape}")
+    if z.shape != (xy.shape[0],):
+        raise SmoothingError(f"values must have shape ({xy.shape[0]},) (one per data point), got {z.shape}")
+    w = np.ones_like(z) if weights is None else np.array(weights, dtype=float)
+    if w.shape != z.shape:
+        raise SmoothingError(f"weights must have shape {z.shape}, got {w.shape}")
+    if not (np.isfinite(pts).all() and np.isfinite(z).all() and np.isfinite(xy).all()):
+        raise SmoothingError("points, data_xy and values must be finite")
+    if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0):
+        raise SmoothingError("weights must be finite, non-negative and not all zero")
+    if not (np.isfinite(spacing_h) and spacing_h > 0):
+        raise SmoothingError(f"spacing_h must be a positive length, got {spacing_h!r}")
+    return pts, tri.astype(np.int64), z, xy, w
+
+
+def _directions(points, triangles, directions):
+    table = edge_table(triangles, points.shape[0])
+    u = None
+    if directions is not None:
+        u = np.array(directions, dtype=float)
+        if u.shape != table.edges.shape or not np.isfinite(u).all():
+            raise SmoothingError(f"directions must be a finite ({table.edges.shape[0]}, 2) "
+                                 f"array, got shape {u.shape}")
+        vec = points[table.edges[:, 1]] - points[table.edges[:, 0]]
+        cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
+        if not (cross**2 > _DEGENERACY**2 * (u**2).sum(1) * (vec**2).sum(1)).all():
+            raise SmoothingError("a direction is zero or parallel to its edge; it must cross the edge")
+    dirs = triangle_directions(points, triangles, table.tri_edge, u, table.edges)
+    corners = points[triangles]
+    _, det = rsd.barycentric_gradients(corners)
+    e1 = np.hypot(*(corners[:, 1] - corners[:, 0]).T)
+    e2 = np.hypot(*(corners[:, 2] - corners[:, 0]).T)
+    if not (np.abs(det) > _DEGENERACY * e1 * e2).all():
+        raise SmoothingError("the mesh has degenerate (zero-area) triangles")
+    return dirs
+
+
+# ------------------------------------------------------------------------ the fit
+def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spacing_h: float,
+               directions=None, scheme="sextic", weights=None, gradient_data=None,
+               gradient_weight: float = 0.0, folds: int = 5, seed: int = 0,
+               threads: int | None = None) -> SmoothFit:
+    """Fit vertex values and gradients of the RSD spline to data (module doc).
+
+    points (N, 2) vertices, triangles (T, 3). values (M,) data heights z at data_xy (M, 2),
+    or at the vertices when data_xy is None (then M == N). strength: s > 0 or "auto".
+    spacing_h: mean spacing of the data points (length units of points). directions:
+    (E, 2) edge directions in RSDInterpolator's edge order or None (unit normals).
+    weights (M,) >= 0 (default 1). gradient_data (N, 2) gradients from normals (NaN rows:
+    none) with dimensionless weight gradient_weight (relative to one data point's, times
+    h², see docs/smoothing.md). folds: cross-validation folds for "auto"; seed: its block
+    assignment and the trace probes. threads: c1mesh.core.threads.limit for the solve.
+    """
+    pts, tri, z, xy, w = _check_inputs(points, triangles, values, data_xy, weights, spacing_h)
+    vertex_data = data_xy is None
+    if vertex_data and z.shape[0] != pts.shape[0]:
+        raise SmoothingError("without data_xy the values are the vertices' (M must equal N)")
+    if not (strength == "auto" or (isinstance(strength, (int, float)) and np.isfinite(strength)
+                                   and strength > 0)):
+        raise SmoothingError(f"strength must be 'auto' or a positive number, got {strength!r}")
+    if int(folds) != folds or folds < 2:
+        raise SmoothingError(f"folds must be a whole number >= 2, got {folds!r}")
+    if not (np.isfinite(gradient_weight) and gradient_weight >= 0):
+        raise SmoothingError(f"gradient_weight must be >= 0, got {gradient_weight!r}")
+    shape = get_scheme(scheme)
+    energy_tensor(shape)                 # SchemeNotPolynomialError before any work
+    seconds: dict = {}
+    with limit(threads), timed(seconds, "assemble"):
+        h = float(spacing_h)
+        centre = pts.mean(axis=0)
+        z_mean = float(np.average(z, weights=w))
+        Z = float(np.sqrt(np.average((z - z_mean) ** 2, weights=w))) or 1.0
+        w_mean = float(w.sum() / w.shape[0])
+        npts = (pts - centre) / h
+        grad = None
+        if gradient_data is not None and gradient_weight > 0:
+            grad = np.array(gradient_data, dtype=float)
+            if grad.shape != pts.shape:
+                raise SmoothingError(f"gradient_data must have shape {pts.shape}, got {grad.shape}")
+            grad = grad * (h / Z)
+        dirs = _directions(npts, tri, directions)
+        nxy = (xy - centre) / h
+        data_tri = data_lam = None
+        outside = 0
+        if not vertex_data:
+            G, _ = rsd.barycentric_gradients(npts[tri])
+            data_tri, data_lam = TriangleLocator(npts, tri, G).find(nxy)
+            inside = data_tri >= 0
+            outside = int((~inside).sum())
+            data_tri, data_lam = data_tri[inside], data_lam[inside]
+            nxy, z, w = nxy[inside], z[inside], w[inside]
+        zn, wn = (z - z_mean) / Z, w / w_mean
+        if not (wn > 0).any():
+            raise SmoothingError("no weighted data point lies inside the triangulation")
+        problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad)
+        system = problem.system()
+    method = available_solvers()[0]
+    mu = float(gradient_weight)
+    curve: list = []
+    with limit(threads):
+        if strength == "auto":
+            with timed(seconds, "search"):
+                s, curve = _search(problem, int(folds), mu, method, seed)
+        else:
+            s = float(strength)
+        with timed(seconds, "solve"):
+            u, factor = solve(system, s, wn, mu, method)
+        with timed(seconds, "edf"):
+            edf = hat_trace(system, factor, wn, EDF_PROBES, seed)
+    residual = (zn - system.fitted(u))[wn > 0] * Z
+    return SmoothFit(values=u[0::3] * Z + z_mean, gradients=np.stack([u[1::3], u[2::3]], 1) * (Z / h),
+                     strength=s, lam=s * h * h * w_mean, cv_curve=curve, edf=edf,
+                     residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
+                     residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
+                     solver=method, seconds=seconds, outside=outside)
+
+
+# ------------------------------------------------------------------- choosing s
+def _search_problem(problem: _Problem, seed: int) -> _Problem:
+    """The whole problem, or SEARCH_WINDOWS random square windows of it holding about
+    SEARCH_VERTICES vertices together (normalised units: one length unit is h)."""
+    n = problem.points.shape[0]
+    if n <= SEARCH_VERTICES:
+        return problem
+    corners = problem.points[problem.triangles]
+    _, det = rsd.barycentric_gradients(corners)
+    area_per_vertex = 0.5 * float(np.abs(det).sum()) / n
+    side = np.sqrt(area_per_vertex * SEARCH_VERTICES / SEARCH_WINDOWS)
+    rng = np.random.default_rng(seed)
+    centres = problem.points[rng.choice(n, SEARCH_WINDOWS, replace=False)]
+    keep = np.zeros(n, dtype=bool)
+    for c in centres:
+        keep |= (np.abs(problem.points - c) <= side / 2).all(axis=1)
+    return problem.subset(keep)
+
+
+def fold_of(xy: np.ndarray, folds: int, block: float, seed: int) -> np.ndarray:
+    """(M,) fold of each point: its block × block cell of the plane, cells dealt to folds
+    at random (seeded) and evenly."""
+    cell = np.floor((xy - xy.min(axis=0)) / block).astype(np.int64)
+    _, key = np.unique(cell[:, 0] * (cell[:, 1].max() + 1) + cell[:, 1], return_inverse=True)
+    n_blocks = int(key.max()) + 1
+    deal = np.random.default_rng(seed).permutation(n_blocks) % folds
+    return deal[key.ravel()]
+
+
+def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, folds: int,
+             mu: float, method: str) -> float:
+    """Held-out RMS of F − z over all folds (each weighted point held out once)."""
+    sq, count = 0.0, 0
+    for k in range(folds):
+        out = (fold == k) & (problem.w > 0)
+        if not out.any():
+            continue
+        w = np.where(out, 0.0, problem.w)
+        u, _ = solve(system, s * w.sum() / problem.w.sum(), w, mu, method)
+        r = (system.fitted(u) - problem.z)[out]
+        sq += float(r @ r)
+        count += int(out.sum())
+    return float(np.sqrt(sq / max(count, 1)))
+
+
+def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int):
+    """(s, curve): log-grid then golden-section search of the spatial-block CV score."""
+    sub = _search_problem(problem, seed)
+    system = sub.system()
+    extent = np.ptp(sub.data_xy, axis=0)
+    block = min(CV_BLOCK, max(float(np.sqrt(extent[0] * extent[1] / (4 * folds))), 1.0))
+    fold = fold_of(sub.data_xy, folds, block, seed)
+    curve: list = []
+    scores: dict = {}
+
+    def score(log_s: float) -> float:
+        if log_s not in scores:
+            scores[log_s] = cv_score(sub, system, 10.0**log_s, fold, folds, mu, method)
+            curve.append((10.0**log_s, scores[log_s]))
+        return scores[log_s]
+
+    values = [score(e) for e in GRID]
+    best = int(np.argmin(values))
+    lo, hi = GRID[max(best - 1, 0)], GRID[min(best + 1, len(GRID) - 1)]
+    ratio = (np.sqrt(5) - 1) / 2
+    a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+    for _ in range(REFINE_STEPS):
+        if score(a) < score(b):
+            hi, b = b, a
+            a = hi - ratio * (hi - lo)
+        else:
+            lo, a = a, b
+            b = lo + ratio * (hi - lo)
+    log_best = min(scores, key=scores.get)
+    return 10.0**log_best, curve
+
+
+__all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothFit", "smooth_fit",
+           "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
+           "SEARCH_VERTICES"]

@@ -1,0 +1,226 @@
+"""The sparse normal equations of the smoothing fit, and their solvers (issue 24).
+
+Everything here works in *normalised* units (c1mesh.stages.smoothing turns the user's
+into them): lengths in mean point spacings h, heights in a scale Z of the data, weights
+divided by their mean. Then λ is the dimensionless strength s itself.
+
+Unknowns are interleaved per vertex, u[3v] = f_v and u[3v + 1 : 3v + 3] = ∇f_v, so that
+a triangle's 9 local data are the rows `local_dofs` names.
+
+    S = A^T W A + s K + μ P,   rhs = A^T W z + μ P n
+
+K is the assembled thin-plate energy (smoothing_energy), A the data rows (the identity on
+f when the data are the vertices, else 9 entries per data point: its triangle's basis at
+the point times that triangle's linear map), P the diagonal that picks the gradient
+unknowns of vertices with gradient data n.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from c1mesh.engine import rsd
+from c1mesh.engine.schemes import ShapeTuple
+from c1mesh.stages.smoothing_energy import (N_LOCAL, SmoothingError, energy_blocks_of,
+                                            linear_maps, local_dofs)
+
+_CHUNK = 1 << 15
+
+
+def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
+                    scheme: ShapeTuple) -> sp.csr_matrix:
+    """K (3N, 3N) CSR, the sum of the triangles' 9 × 9 energy blocks at their unknowns."""
+    n = 3 * points.shape[0]
+    dofs = local_dofs(triangles)
+    index = np.int32 if n < 2**31 else np.int64
+    rows = np.repeat(dofs, N_LOCAL, axis=1).astype(index).ravel()
+    cols = np.tile(dofs, (1, N_LOCAL)).astype(index).ravel()
+    data = energy_blocks_of(points, triangles, dirs, scheme).ravel()
+    K = sp.csr_matrix((data, (rows, cols)), shape=(n, n))
+    K.sum_duplicates()
+    return K
+
+
+def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, scheme: ShapeTuple,
+              tri: np.ndarray, lam: np.ndarray) -> sp.csr_matrix:
+    """A (M, 3N) CSR: row i is F(x_i) as a linear form in the unknowns, for data points in
+    triangles tri (M,) at barycentrics lam (M, 3)."""
+    m, n = tri.shape[0], 3 * points.shape[0]
+    vals = np.empty((m, N_LOCAL))
+    for start in range(0, m, _CHUNK):
+        part = slice(start, start + _CHUNK)
+        t = tri[part]
+        corners = points[triangles[t]]
+        G, _ = rsd.barycentric_gradients(corners)
+        M = linear_maps(corners, dirs[t], G)                          # (m, 21, 9)
+        B = rsd.basis(scheme, lam[part])                             # (21, m)
+        vals[part] = np.einsum("bm,mbj->mj", B, M)
+    cols = local_dofs(triangles)[tri]
+    indptr = np.arange(0, N_LOCAL * m + 1, N_LOCAL)
+    A = sp.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(m, n))
+    A.sum_duplicates()
+    return A
+
+
+@dataclass
+class System:
+    """The pieces of S that do not change with s or the weights (normalised units).
+
+    K: energy (3N, 3N). A: data rows (M, 3N), or None when the data are the vertices
+    (row i is f_i). z (M,) data values. grad_mask (N,) vertices with gradient data,
+    grad_values (N, 2) (rows without data are 0).
+    """
+
+    K: sp.csr_matrix
+    A: sp.csr_matrix | None
+    z: np.ndarray
+    grad_mask: np.ndarray | None = None
+    grad_values: np.ndarray | None = None
+
+    @property
+    def n_unknowns(self) -> int:
+        return self.K.shape[0]
+
+    def fitted(self, u: np.ndarray) -> np.ndarray:
+        """F at the data points (M,)."""
+        return u[0::3].copy() if self.A is None else self.A @ u
+
+    def adjoint(self, r: np.ndarray) -> np.ndarray:
+        """A^T r (3N,) for r (M,)."""
+        if self.A is None:
+            out = np.zeros(self.n_unknowns)
+            out[0::3] = r
+            return out
+        return self.A.T @ r
+
+    def matrix(self, s: float, w: np.ndarray, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
+        """(S, rhs) for strength s, data weights w (M,), gradient weight mu."""
+        n = self.n_unknowns
+        diag = np.zeros(n)
+        rhs = self.adjoint(w * self.z)
+        if self.A is None:
+            diag[0::3] = w
+            S = self.K * s + sp.diags(diag, format="csr")
+        else:
+            AW = sp.diags(w) @ self.A
+            S = (self.A.T @ AW).tocsr() + self.K * s
+        if self.grad_mask is not None and mu > 0:
+            g = np.zeros(n)
+            g[1::3] = g[2::3] = mu * self.grad_mask
+            S = S + sp.diags(g, format="csr")
+            rhs[1::3] += mu * self.grad_values[:, 0]
+            rhs[2::3] += mu * self.grad_values[:, 1]
+        return S.tocsr(), rhs
+
+
+# ------------------------------------------------------------------------------ solvers
+def available_solvers() -> list[str]:
+    """Solvers this environment can run, best first (docs/smoothing.md: measurements)."""
+    names = []
+    try:
+        import sksparse.cholmod  # noqa: F401
+        names.append("cholmod")
+    except ImportError:
+        pass
+    names.append("superlu")
+    try:
+        import pyamg  # noqa: F401
+        names.append("amg-cg")
+    except ImportError:
+        pass
+    return names
+
+
+class Factor:
+    """A solver for one SPD matrix S: ``solve(b)`` for any number of right-hand sides.
+
+    method: "cholmod" (scikit-sparse, AMD/METIS ordering, supernodal Cholesky),
+    "superlu" (scipy's splu with the symmetric MMD ordering of A^T + A and diagonal
+    pivoting, i.e. a Cholesky-like LU), or "amg-cg" (conjugate gradients preconditioned by
+    pyamg's smoothed-aggregation V-cycle, relative residual 1e-10). x0 warm-starts CG.
+    """
+
+    def __init__(self, S: sp.csr_matrix, method: str):
+        self.method = method
+        self.S = S
+        try:
+            if method == "cholmod":
+                from sksparse.cholmod import cholesky
+                self._factor = cholesky(S.tocsc())
+            elif method == "superlu":
+                self._factor = spla.splu(S.tocsc(), permc_spec="MMD_AT_PLUS_A",
+                                         diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+            elif method == "amg-cg":
+                import pyamg
+                B = _near_null_space(S.shape[0])
+                self._ml = pyamg.smoothed_aggregation_solver(S, B=B, symmetry="symmetric")
+                self._M = self._ml.aspreconditioner(cycle="V")
+            else:
+                raise SmoothingError(f"unknown solver {method!r}; choose one of "
+                                     f"{', '.join(available_solvers())}")
+        except (RuntimeError, ValueError, ArithmeticError) as exc:
+            if isinstance(exc, SmoothingError):
+                raise
+            raise SmoothingError("the smoothing system is singular: some part of the mesh has "
+                                 "fewer than 3 weighted data points") from exc
+
+    def solve(self, b: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+        if self.method == "cholmod":
+            return self._factor(b)
+        if self.method == "superlu":
+            return self._factor.solve(b)
+        x, info = spla.cg(self.S, b, x0=x0, rtol=1e-10, maxiter=2000, M=self._M)
+        if info != 0:
+            raise SmoothingError(f"conjugate gradients did not converge ({info} iterations)")
+        return x
+
+
+def _near_null_space(n: int) -> np.ndarray:
+    """Candidate vectors for smoothed aggregation: the three unknowns of a vertex apart."""
+    B = np.zeros((n, 3))
+    for c in range(3):
+        B[c::3, c] = 1.0
+    return B
+
+
+def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
+          x0: np.ndarray | None = None) -> tuple[np.ndarray, Factor]:
+    """u (3N,) minimising the functional, and the factorisation (to reuse for traces)."""
+    S, rhs = system.matrix(s, w, mu)
+    factor = Factor(S, method)
+    return factor.solve(rhs, x0), factor
+
+
+def hat_trace(system: System, factor: Factor, w: np.ndarray, probes: int, seed: int) -> float:
+    """Hutchinson estimate of tr(H), H = A S⁻¹ A^T W: the effective degrees of freedom.
+
+    Rademacher probes v (M,): E[v^T H v] = tr H; its standard deviation is below
+    sqrt(2 tr H / probes) (H's eigenvalues lie in [0, 1]).
+    """
+    rng = np.random.default_rng(seed)
+    total = 0.0
+    for _ in range(probes):
+        v = rng.choice(np.array([-1.0, 1.0]), size=w.shape[0])
+        x = factor.solve(system.adjoint(w * v))
+        total += float(v @ system.fitted(x))
+    return total / probes
+
+
+def timed(seconds: dict, key: str):
+    """Context manager adding the wall time of its block to seconds[key]."""
+    class _Timer:
+        def __enter__(self):
+            self.start = time.perf_counter()
+
+        def __exit__(self, *exc):
+            seconds[key] = seconds.get(key, 0.0) + time.perf_counter() - self.start
+            return False
+    return _Timer()
+
+
+__all__ = ["assemble_energy", "data_rows", "System", "available_solvers", "Factor", "solve",
+           "hat_trace", "timed"]
