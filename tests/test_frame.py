@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from c1mesh.core.errors import InputError, NotAHeightFieldError
-from c1mesh.stages.frame import HeightField, ScanFrame, choose_frame, gradients_to_normals, height_field
+from c1mesh.stages.frame import ScanFrame, choose_frame
+from c1mesh.stages.height_field import HeightField, gradients_to_normals, height_field
 
 REAL = Path(__file__).resolve().parent.parent / "data_samples"  # copies of ../shared/data/real
 LIDAR_OFFSET = np.array([6.4e5, 8.5e5, 420.0])
@@ -337,7 +338,7 @@ def test_lidar_ground_is_a_height_field_and_all_returns_are_not():
 # --- fast paths must give the slow paths' exact bits ----------------------------------------
 
 def test_sort_xy_is_lexsort_with_ties_in_x_and_y():
-    from c1mesh.stages.frame import _sort_xy
+    from c1mesh.stages.height_field import _sort_xy
     rng = np.random.default_rng(5)
     xy = rng.integers(0, 30, size=(5000, 2)).astype(float)   # many ties, exact duplicates
     xy[::7, 0] = -0.0
@@ -352,7 +353,7 @@ def test_sort_xy_is_lexsort_with_ties_in_x_and_y():
 def test_spacing_from_the_plane_tree_is_the_3d_tree_median_bit_for_bit(sparse):
     """A sparse layer over a dense one: its plane neighbours are all in the other layer,
     so the exact fallback (a 3D tree for those rows) is needed."""
-    from c1mesh.stages.frame import _spacing, _tree
+    from c1mesh.stages.height_field import _spacing, kd_tree as _tree
     rng = np.random.default_rng(6)
     xy = rng.random((20000 + sparse, 2))
     z = np.sin(4 * xy[:, 0]) * 0.1
@@ -400,7 +401,7 @@ def test_a_little_endian_body_read_as_big_endian_is_an_input_error():
 
 def test_nearest_via_plane_treats_missing_neighbours_as_unknown():
     """cKDTree returns index n for neighbours it cannot find; the helper must not index with it."""
-    from c1mesh.stages.frame import _nearest_via_plane, _tree
+    from c1mesh.stages.height_field import _nearest_via_plane, kd_tree as _tree
     pts = np.random.default_rng(2).random((100, 3))
     expected = _tree(pts).query(pts, k=2)[0][:, 1]
     np.testing.assert_array_equal(_nearest_via_plane(pts, pts, _tree(pts[:, :2])), expected)

@@ -28,7 +28,8 @@ from click.testing import CliRunner
 
 from c1mesh.cli import main
 from c1mesh.stages.curtains import REASONS, remove_curtains
-from c1mesh.stages.frame import choose_frame, height_field
+from c1mesh.stages.frame import choose_frame
+from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_neighbours, height_normals
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator

@@ -5,7 +5,8 @@ import numpy as np
 
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.formats import read_cloud
-from c1mesh.stages.frame import choose_frame, height_field
+from c1mesh.stages.frame import choose_frame
+from c1mesh.stages.height_field import height_field
 
 
 #: Points the height-field check looks at: a random subsample keeps `info` under a second.
@@ -134,7 +135,7 @@ def _height_field_check(cloud, finite, sample: int) -> dict:
 def _height_column_check(points: np.ndarray, axis: str, reason: str) -> dict:
     """The height-field verdict over the given axis of a header height column, with the
     normals the fit uses there (pipeline.build_surface: fitted to the heights, compared in
-    plan units only, frame.height_field's common_metric=False)."""
+    plan units only, height_field.height_field's common_metric=False)."""
     from c1mesh.stages.height_gradients import height_neighbours, height_normals
     from c1mesh.pipeline.driver import FitOptions
 

@@ -60,7 +60,7 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
     What the pipeline uses instead of PCA normals when the height axis is given (LAS/LAZ:
     z): the frame needs no normals then, and the height field's gradients are the fit's.
     """
-    from c1mesh.stages.frame import gradients_to_normals
+    from c1mesh.stages.height_field import gradients_to_normals
 
     pts = np.asarray(points, dtype=np.float64)
     finite = np.isfinite(pts).all(axis=1)

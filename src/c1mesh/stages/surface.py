@@ -13,7 +13,7 @@ import numpy as np
 from c1mesh.core.cloud import MeshStream
 from c1mesh.core.threads import prefetch, ring
 from c1mesh.engine.refine import Refinement
-from c1mesh.stages.frame import gradients_to_normals
+from c1mesh.stages.height_field import gradients_to_normals
 
 PLANE_LEVEL = 4
 """The refinement level of a height-field (axis-frame) fit when neither --level nor

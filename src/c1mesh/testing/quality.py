@@ -75,7 +75,7 @@ def reduced_hct_folded_faces(xy: np.ndarray, z: np.ndarray, gradients: np.ndarra
     """
     import matplotlib.tri as mtri
 
-    from c1mesh.stages.frame import gradients_to_normals
+    from c1mesh.stages.height_field import gradients_to_normals
 
     t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=triangles)
     interp = mtri.CubicTriInterpolator(t, z, kind="user", dz=(gradients[:, 0], gradients[:, 1]))
