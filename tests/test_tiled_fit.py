@@ -266,6 +266,11 @@ def test_tiled_limiter_gives_the_whole_limiter_bits(tmp_path, seed):
         assert np.array_equal(np.sort(corners[limits.triangles], axis=1), np.sort(own, axis=1))
         seen[corners] = True
     assert seen.all()
+    # each vertex counted by the tile of its cell, each edge by that of its lower end: the
+    # tiles' counts add up to the whole limiter's
+    assert sum(limits.limited for limits, _ in tiles) == report.gradients_limited
+    assert sum(limits.turned for limits, _ in tiles) == report.directions_changed
+    assert sum(limits.lifted for limits, _ in tiles) == report.heights_reconciled
 
 
 def test_cli_fits_in_tiles_beyond_memory(tmp_path):

@@ -15,9 +15,11 @@ spill, hull, the trim's peel and bow-tie rounds, the medians, the join) runs her
 Nothing of the output depends on where the tasks ran.
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.survey.survey_stats,
-tile_spill, tile_normals, buffered_delaunay, tiled_limiter), so the surface equals the
-in-memory fit of the same points with the same reduced options (below), to rounding;
-nothing depends on the grid.
+tile_spill, tile_normals, buffered_delaunay, tiled_trim, tiled_limiter), so the surface
+equals the in-memory fit of the same points with the same reduced options (below), to
+rounding; nothing depends on the grid. The trim and the limiter run the stage functions
+of c1mesh.stages.trim, .curtains and .limiter on each tile's halo; their module
+docstrings say which function each step runs and which steps are survey-wide.
 
 What the tiled path does differently from `pipeline.build_surface` (docs/tiles.md):
 

@@ -1,5 +1,19 @@
 """The overshoot limiter (c1mesh.stages.limiter) on a survey fitted in tiles, with its whole-survey result.
 
+What runs where (control_overshoot's steps, in its order, with its noise floors):
+
+- the first noise floor, control_overshoot's `before` (the median |limiter.
+  trapezoid_residuals| over every edge): survey-wide, `noise_floors_on` (a task per
+  tile, `tile_residuals`, then c1mesh.survey.streamed_median);
+- the second, control_overshoot's `after` (the same median once heights and gradients
+  are reconciled): survey-wide likewise, each tile reconciling its halo (`reconciled`);
+- per tile on its halo, `tile_limits`: limiter.reconcile_heights and
+  limiter.reconcile_gradients with the first floor, limiter.limit_gradients with the
+  second, limiter.edge_directions. control_overshoot runs exactly these with
+  noise_floors=(first, second); the tile calls them one by one only because
+  control_overshoot counts its changes over every vertex it is given, and a tile must
+  count its own vertices alone, so that the survey's counts add up.
+
 The limiter is not tile-local in two ways:
 
 - its noise floors are survey-wide: the median |trapezoid residual| over every edge of the
@@ -124,13 +138,13 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
 def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
     (k, 3) survey numbers, all inside its halo."""
-    from c1mesh.stages.limiter import edge_directions
+    from c1mesh.stages.limiter import edge_directions, limit_gradients
     from c1mesh.engine.topology import edge_table
 
     points = halo.points
     table = edge_table(halo.triangles, len(halo.records))
     values, gradients, lifted, moved = reconciled(halo, table, floors.first)
-    limited, changed = limit(points, values, gradients, table.edges, floors.second)
+    limited, changed = limit_gradients(points, values, gradients, table.edges, noise_floor=floors.second)
     directions, turned = edge_directions(points, halo.triangles, table)
     rows = halo_rows(halo.records["index"], owned)
     if np.any(rows < 0):
@@ -159,13 +173,6 @@ def reconciled(halo: Halo, table, noise: float):
                                        table, noise_floor=noise)
     gradients, moved = reconcile_gradients(points, values, halo.gradients, table.edges, noise_floor=noise)
     return values, gradients, lifted, moved
-
-
-def limit(points, values, gradients, edges, noise: float):
-    """limiter.limit_gradients with the survey's noise floor."""
-    from c1mesh.stages.limiter import limit_gradients
-
-    return limit_gradients(points, values, gradients, edges, noise_floor=noise)
 
 
 class TiledLimiter:

@@ -1,11 +1,37 @@
-"""The trim's sliver peel (trim.trim) on a survey fitted in tiles.
+"""The fit's trim stage on a survey fitted in tiles: c1mesh.stages.trim.trim (long edges,
+sliver peel, bow-ties) then c1mesh.stages.curtains.remove_curtains, as
+pipeline.build_surface runs them, with the same result (tests/test_tiled_fit.py).
 
-After the long-edge rule, `trim` peels thin triangles (circle ratio below
-min_circle_ratio) off the boundary, and then, repeatedly, the thin triangles each removal
-exposes. What it removes is therefore every connected set of thin triangles (joined
-through shared edges) with at least one triangle on the boundary of what the long-edge
-rule kept. Thin triangles are rare in a Delaunay triangulation (219 of 1M on synthetic
-terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memory:
+Each rule runs the stage's own function, per tile on its halo (tiled_halo.Halo: the cell
+grown by 4 longest final edges, which holds the whole star of every vertex within 3 of
+the cell); what has to see the whole survey is orchestrated here, and only that:
+
+- long edges, trim.trim's max_edge: per tile in buffered_delaunay.tile_pass (triangles
+  whose trim.edge_lengths are all <= max_edge); "auto" (trim.AUTO_EDGE_FACTOR x the
+  median edge) is survey-wide: buffered_delaunay.trimmed_delaunay, run by
+  c1mesh.survey.tiled_triangulation before this module;
+- which triangles are thin, trim.trim's sliver test: per tile, `thin_triangles`:
+  trim.circle_ratio(trim.edge_lengths) < trim.MIN_CIRCLE_RATIO, on the boundary by
+  trim.triangle_neighbours;
+- the peel of trim.trim (its `_peel`): survey-wide, `peeled`, over the survey's list
+  of thin triangles (below);
+- bow-ties, trim.remove_bowties: per tile, `bowtie_cuts`, remove_bowties(at= the
+  vertices in the tile's cell);
+- trim.trim's loop (peel, bow-ties, peel again from the cut fans' neighbours, until no
+  bow-tie is left): survey-wide, `_TrimState.settle`;
+- curtains, curtains.curtain_triangles: per tile, `curtain_cuts`, with floor= the
+  survey's curtains.noise_floor, found survey-wide by tiled_halo.edge_floor (the same
+  exact median of limiter.trapezoid_residuals over every edge once);
+- remove_curtains' second trim.trim(max_edge=None) of the holes: survey-wide,
+  `_TrimState.settle` again from the curtains' neighbours.
+
+`trim_tiles` chains these. Why the peel is survey-wide: `trim` peels thin triangles
+(circle ratio below min_circle_ratio) off the boundary, and then, repeatedly, the thin
+triangles each removal exposes. What it removes is therefore every connected set of thin
+triangles (joined through shared edges) with at least one triangle on the boundary of
+what the long-edge rule kept, and such a set may cross any number of tiles. Thin
+triangles are rare in a Delaunay triangulation (219 of 1M on synthetic terrain, 28 of
+50k on Autzen ground), so the survey's list of them fits in memory:
 
 - one pass over the tiles: each tile reads its halo (tiled_halo.HaloCache, cell + 3
   longest edges for the limiter; the peel needs 2, which hold both triangles of every
@@ -17,9 +43,8 @@ terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memor
 
 Bow-tie removal (all but the largest fan at a vertex where fans meet; ties by the fans'
 smallest sorted corner triple, a rule of point numbers) is decided by the tile whose cell
-holds the vertex, as its halo holds the vertex's whole star (`bowtie_cuts`); curtains
-(c1mesh.stages.curtains) are per triangle given the survey's noise floor (`curtain_cuts`).
-tiled_trim.trim_tiles chains these into trim's loop and remove_curtains' clean-up.
+holds the vertex, as its halo holds the vertex's whole star; a curtain is a property of
+one triangle and its data, given the noise floor.
 """
 from __future__ import annotations
 
