@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial import ConvexHull, Delaunay
 
 import c1mesh.survey.buffered_delaunay as bd
+from c1mesh.survey.strip_geometry import circumcircles
 from c1mesh.stages.trim import edge_lengths
 
 
@@ -98,8 +99,8 @@ def test_without_the_circle_test_a_fixed_buffer_gets_it_wrong(monkeypatch):
     """The check is what makes the union right: trusting every triangle of a fixed buffer
     gives triangles that are not Delaunay (or misses some) beside the hole."""
     xy = _survey("hole")
-    monkeypatch.setattr(bd, "_disks_clear", lambda xy, tri, *rest: np.ones(len(tri), dtype=bool))
-    monkeypatch.setattr(bd, "_hull_edges_final", lambda *args: True)
+    monkeypatch.setattr(bd, "disks_clear", lambda xy, tri, *rest: np.ones(len(tri), dtype=bool))
+    monkeypatch.setattr(bd, "hull_edges_final", lambda *args: True)
     union = _union(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy)))
     assert _faces(union) != _faces(Delaunay(xy).simplices)
 
@@ -115,7 +116,7 @@ def test_circumcircles_match_the_equidistance_definition():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-1, 1, (30, 2))
     triangles = Delaunay(xy).simplices
-    centre, radius = bd.circumcircles(xy, triangles)
+    centre, radius = circumcircles(xy, triangles)
     for k in range(3):
         assert np.allclose(np.hypot(*(xy[triangles[:, k]] - centre).T), radius, rtol=1e-9)
 

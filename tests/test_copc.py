@@ -233,7 +233,8 @@ def test_a_fit_by_bounds_is_the_fit_of_the_filtered_points(tmp_path):
 
 def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path):
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.survey.tiled_fit import fit_tiled, needs_tiles
+    from c1mesh.survey.tiled_fit import fit_tiled
+    from c1mesh.survey.tiled_plan import needs_tiles
 
     box = _region(_whole()[0])
     source = _filtered_las(COPC, box, tmp_path / "filtered.las")

@@ -38,9 +38,12 @@ from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.surface import surface_stream
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
-from c1mesh.survey.tiled_fit import HEIGHT, fit_tiled, fits_in_memory, points_per_tile
-from c1mesh.survey.tiled_limiter import halo_reach, noise_floors, read_halo, tile_limits
-from c1mesh.survey.tiled_trim import drop_triangles, peeled
+from c1mesh.survey.tiled_fit import fit_tiled
+from c1mesh.survey.tiled_halo import drop_triangles, halo_reach, read_halo
+from c1mesh.survey.tiled_heights import HEIGHT
+from c1mesh.survey.tiled_limiter import noise_floors, tile_limits
+from c1mesh.survey.tiled_plan import fits_in_memory, points_per_tile
+from c1mesh.survey.tiled_trim import peeled
 from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim
@@ -264,6 +267,11 @@ def test_tiled_limiter_gives_the_whole_limiter_bits(tmp_path, seed):
         assert np.array_equal(np.sort(corners[limits.triangles], axis=1), np.sort(own, axis=1))
         seen[corners] = True
     assert seen.all()
+    # each vertex counted by the tile of its cell, each edge by that of its lower end: the
+    # tiles' counts add up to the whole limiter's
+    assert sum(limits.limited for limits, _ in tiles) == report.gradients_limited
+    assert sum(limits.turned for limits, _ in tiles) == report.directions_changed
+    assert sum(limits.lifted for limits, _ in tiles) == report.heights_reconciled
 
 
 def test_cli_fits_in_tiles_beyond_memory(tmp_path):
@@ -286,7 +294,7 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
 
 
 def test_memory_rule():
-    from c1mesh.survey.tiled_fit import grid_side, tiles_at_once
+    from c1mesh.survey.tiled_plan import grid_side, tiles_at_once
 
     assert grid_side(2_000_000, 10**9) == 4                  # 138,888 points a tile at most
     assert tiles_at_once(2 * 10**9, 8) == 2                   # half the budget to tiles of 1/4 of it
@@ -495,22 +503,23 @@ def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):
 def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     """A tile whose task fails stops the fit with exit 1, one line naming the tile, and
     no output (in this process and on a pool of two)."""
-    import c1mesh.survey.tiled_fit as tiled_fit
+    import c1mesh.survey.tiled_heights as tiled_heights
+    import c1mesh.survey.tiled_refine as tiled_refine
 
     _every_job_at_once(monkeypatch)
     source, args = _big_las(tmp_path)
-    real = tiled_fit._refine_tile
+    real = tiled_refine._refine_tile
 
     def failing(job, t, part):
         if t == 2:
             raise ValueError("no good")
         return real(job, t, part)
-    monkeypatch.setattr(tiled_fit, "_refine_tile", failing)
+    monkeypatch.setattr(tiled_refine, "_refine_tile", failing)
     here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply")])
     assert here.exit_code == 1
     assert here.output.startswith(f"c1mesh: error: {source}: tile 2 (cell ") and here.output.endswith(": no good\n")
     assert here.output.count("\n") == 1
-    monkeypatch.setattr(tiled_fit, "_refine_tile", tiled_fit._tile_heights)   # fails on every worker
+    monkeypatch.setattr(tiled_refine, "_refine_tile", tiled_heights._tile_heights)   # fails on every worker
     pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "2"])
     assert pool.exit_code == 1 and pool.output.startswith(f"c1mesh: error: {source}: tile ")
     assert "_RefineJob" in pool.output and pool.output.count("\n") == 1

@@ -1,6 +1,6 @@
 """The tiled fit's survey-sized state replaced by halo- and band-sized state.
 
-- tiled_limiter.halo_rows (a binary search over one halo) against a dense table over the
+- tiled_halo.halo_rows (a binary search over one halo) against a dense table over the
   survey (the RowMap it replaced: 4 bytes a survey point in every process);
 - tiled_join: the join that forgets a border key once no later tile can meet it must
   number every vertex as the join that keeps every key, on real tile refinements of a
@@ -14,7 +14,7 @@ import pytest
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.survey.tiled_join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
-from c1mesh.survey.tiled_limiter import halo_rows
+from c1mesh.survey.tiled_halo import halo_rows
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim
 

@@ -20,7 +20,8 @@ from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_fa
                                     smoothing_strength, surface_facts, trim_facts)
 from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
-from c1mesh.survey.tiled_fit import fit_tiled, survey_needs_tiles
+from c1mesh.survey.tiled_fit import fit_tiled
+from c1mesh.survey.tiled_plan import survey_needs_tiles
 from c1mesh.survey.tiles import load_survey, plan_tiles, write_tiles
 
 

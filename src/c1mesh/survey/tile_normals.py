@@ -20,7 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from c1mesh.survey.buffered_delaunay import TileGrid, unread_strips, growing_reads
+from c1mesh.survey.buffered_delaunay import TileGrid, growing_reads
+from c1mesh.survey.strip_geometry import unread_strips
 
 
 @dataclass

@@ -1,13 +1,39 @@
-"""The trim's sliver peel (trim.trim) on a survey fitted in tiles.
+"""The fit's trim stage on a survey fitted in tiles: c1mesh.stages.trim.trim (long edges,
+sliver peel, bow-ties) then c1mesh.stages.curtains.remove_curtains, as
+pipeline.build_surface runs them, with the same result (tests/test_tiled_fit.py).
 
-After the long-edge rule, `trim` peels thin triangles (circle ratio below
-min_circle_ratio) off the boundary, and then, repeatedly, the thin triangles each removal
-exposes. What it removes is therefore every connected set of thin triangles (joined
-through shared edges) with at least one triangle on the boundary of what the long-edge
-rule kept. Thin triangles are rare in a Delaunay triangulation (219 of 1M on synthetic
-terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memory:
+Each rule runs the stage's own function, per tile on its halo (tiled_halo.Halo: the cell
+grown by 4 longest final edges, which holds the whole star of every vertex within 3 of
+the cell); what has to see the whole survey is orchestrated here, and only that:
 
-- one pass over the tiles: each tile reads its halo (tiled_limiter.HaloCache, cell + 3
+- long edges, trim.trim's max_edge: per tile in buffered_delaunay.tile_pass (triangles
+  whose trim.edge_lengths are all <= max_edge); "auto" (trim.AUTO_EDGE_FACTOR x the
+  median edge) is survey-wide: buffered_delaunay.trimmed_delaunay, run by
+  c1mesh.survey.tiled_triangulation before this module;
+- which triangles are thin, trim.trim's sliver test: per tile, `thin_triangles`:
+  trim.circle_ratio(trim.edge_lengths) < trim.MIN_CIRCLE_RATIO, on the boundary by
+  trim.triangle_neighbours;
+- the peel of trim.trim (its `_peel`): survey-wide, `peeled`, over the survey's list
+  of thin triangles (below);
+- bow-ties, trim.remove_bowties: per tile, `bowtie_cuts`, remove_bowties(at= the
+  vertices in the tile's cell);
+- trim.trim's loop (peel, bow-ties, peel again from the cut fans' neighbours, until no
+  bow-tie is left): survey-wide, `_TrimState.settle`;
+- curtains, curtains.curtain_triangles: per tile, `curtain_cuts`, with floor= the
+  survey's curtains.noise_floor, found survey-wide by tiled_halo.edge_floor (the same
+  exact median of limiter.trapezoid_residuals over every edge once);
+- remove_curtains' second trim.trim(max_edge=None) of the holes: survey-wide,
+  `_TrimState.settle` again from the curtains' neighbours.
+
+`trim_tiles` chains these. Why the peel is survey-wide: `trim` peels thin triangles
+(circle ratio below min_circle_ratio) off the boundary, and then, repeatedly, the thin
+triangles each removal exposes. What it removes is therefore every connected set of thin
+triangles (joined through shared edges) with at least one triangle on the boundary of
+what the long-edge rule kept, and such a set may cross any number of tiles. Thin
+triangles are rare in a Delaunay triangulation (219 of 1M on synthetic terrain, 28 of
+50k on Autzen ground), so the survey's list of them fits in memory:
+
+- one pass over the tiles: each tile reads its halo (tiled_halo.HaloCache, cell + 3
   longest edges for the limiter; the peel needs 2, which hold both triangles of every
   edge of its own triangles) and lists its own thin triangles, with whether each has an
   edge no other final triangle shares;
@@ -17,18 +43,20 @@ terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memor
 
 Bow-tie removal (all but the largest fan at a vertex where fans meet; ties by the fans'
 smallest sorted corner triple, a rule of point numbers) is decided by the tile whose cell
-holds the vertex, as its halo holds the vertex's whole star (`bowtie_cuts`); curtains
-(c1mesh.stages.curtains) are per triangle given the survey's noise floor (`curtain_cuts`).
-tiled_fit._trim chains these into trim's loop and remove_curtains' clean-up.
+holds the vertex, as its halo holds the vertex's whole star; a curtain is a property of
+one triangle and its data, given the noise floor.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from c1mesh.survey.tiled_halo import drop_triangles, edge_floor
+
+
 def thin_triangles(halo, min_ratio: float, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
     on the boundary, (k, 3) the tile of each corner (grid: the buffered_delaunay.TileGrid).
-    halo: a tiled_limiter.Halo (own triangles: lowest corner in the cell)."""
+    halo: a tiled_halo.Halo (own triangles: lowest corner in the cell)."""
     from c1mesh.stages.trim import edge_lengths, triangle_neighbours, circle_ratio
 
     triangles = halo.triangles
@@ -60,32 +88,10 @@ def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
     return np.isin(label, label[boundary])
 
 
-def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
-    """The rows of triangles (T, >= 3) whose first three entries are not, as a set of
-    corners, a row of removed (R, 3, few): only rows sharing a removed triangle's lowest
-    corner are compared."""
-    if not len(removed) or not len(triangles):
-        return triangles
-    corners = triangles[:, :columns]
-    lowest = corners.min(axis=1)
-    removed_lowest = removed.min(axis=1)
-    candidates = np.flatnonzero(np.isin(lowest, removed_lowest))
-    if not len(candidates):
-        return triangles
-    # Only removed triangles that share a lowest corner with a candidate can match: a
-    # survey's removed list grows with the survey, a halo's share of it does not.
-    near = removed[np.isin(removed_lowest, lowest[candidates])]
-    gone = {tuple(row) for row in np.sort(near, axis=1).tolist()}
-    rows = np.sort(corners[candidates], axis=1).tolist()
-    keep = np.ones(len(triangles), dtype=bool)
-    keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
-    return triangles[keep]
-
-
 def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
     """What trim's bow-tie removal cuts around the tile's own vertices: (k, 3) survey
     numbers of the triangles of every fan but the kept one, and (k, 3) the tile of each
-    corner. halo: a tiled_limiter.Halo, which holds the whole star of every own vertex
+    corner. halo: a tiled_halo.Halo, which holds the whole star of every own vertex
     (its reach is at least one longest edge); the fan tie-break
     (trim.remove_bowties) uses point numbers alone, and the halo's rows follow
     the survey numbers, so the tile decides as the whole survey does."""
@@ -142,3 +148,101 @@ def owner_tiles(triangles: np.ndarray, tiles: np.ndarray) -> np.ndarray:
     """(k,) the tile owning each triangle (k, 3) (survey numbers), the tile of its
     lowest-numbered corner, given the tile of each corner (k, 3)."""
     return tiles[np.arange(len(triangles)), np.argmin(triangles, axis=1)]
+
+
+def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
+    """The in-memory default trim after the long-edge rule, over the tiles
+    (c1mesh.survey.tiled_trim): trim's sliver peel and bow-tie removal, then curtains
+    (c1mesh.stages.curtains) with the survey's noise floor, then the peel and bow-tie removal
+    of the holes they left, as pipeline.build_surface runs them. halos: the
+    tiled_halo.HaloCache, whose `removed` grows as triangles go (each halo drops them
+    as it loads); the removed triangles also leave their tiles' files. Returns the
+    removed counts by reason (as TrimReport.removed). view_rules: curtains.view_rules_apply."""
+    from c1mesh.stages.curtains import REASONS
+    from c1mesh.stages.trim import MIN_CIRCLE_RATIO as min_ratio
+
+    thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty((0, 3), np.int64)]
+    for t in halos.tiles():
+        triangles, on_boundary, corners = thin_triangles(halos.halo(t), min_ratio, grid)
+        thin.append(triangles)
+        boundary.append(on_boundary)
+        tiles.append(corners)
+    state = _TrimState(halos, grid, np.concatenate(thin), np.concatenate(tiles))
+    state.settle(np.concatenate(boundary), set(halos.tiles()))
+    floor = edge_floor(halos.halos, temps, "curtains")
+    cut, corners, counts = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)], {r: 0 for r in REASONS}
+    for t in halos.tiles():
+        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid, view_rules)
+        cut.append(triangles)
+        corners.append(where)
+        for reason, count in reasons.items():
+            counts[reason] += count
+    cut, corners = np.concatenate(cut), np.concatenate(corners)
+    state.remove(cut, corners)
+    state.settle(state.next_to(cut), set(np.unique(corners).tolist()))
+    state.write_files()
+    return {"sliver": state.sliver, "bowtie": state.bowtie, **counts}
+
+
+class _TrimState:
+    """What the tiled trim has removed so far. thin (k, 3): every thin triangle of the
+    survey after the long-edge rule (survey numbers; peeling only ever removes those),
+    tiles (k, 3) the tile of each corner; `alive` marks those still in the mesh."""
+
+    def __init__(self, halos, grid, thin: np.ndarray, tiles: np.ndarray):
+        self.halos, self.grid, self.thin, self.tiles = halos, grid, thin, tiles
+        self.alive = np.ones(len(thin), dtype=bool)
+        self.sliver = self.bowtie = 0
+
+    def remove(self, triangles: np.ndarray, tiles: np.ndarray) -> None:
+        """Remove triangles (k, 3) whose corners lie in tiles (k, 3); a thin one (a
+        bow-tie fan's or a curtain) can then no longer be peeled. The halo cache keeps
+        them by owner tile (HaloCache.removed)."""
+        if len(triangles):                  # compares only rows sharing a lowest corner with a thin one
+            kept = drop_triangles(np.column_stack([self.thin, np.arange(len(self.thin))]), triangles)
+            still = np.zeros(len(self.thin), dtype=bool)
+            still[kept[:, 3]] = True
+            self.alive &= still
+        owners = owner_tiles(triangles, tiles)
+        order = np.argsort(owners, kind="stable")
+        tile_numbers, starts = np.unique(owners[order], return_index=True)
+        for t, group in zip(tile_numbers.tolist(), np.split(triangles[order], starts[1:])):
+            earlier = self.halos.removed.get(t)
+            self.halos.removed[t] = group if earlier is None else np.concatenate([earlier, group])
+
+    def next_to(self, triangles: np.ndarray) -> np.ndarray:
+        """(k,) bool: the thin triangles sharing an edge with one of triangles."""
+        return touching(self.thin, triangles)
+
+    def settle(self, front: np.ndarray, pending: set) -> None:
+        """trim's loop: peel the live thin components that hold a live `front` triangle
+        (k,) bool, then cut bow-ties, peel from the cuts' neighbours, until no bow-tie is
+        left (trim.trim). A bow-tie can only appear at a corner of a removed
+        triangle, so a round looks only at the tiles holding such corners: `pending`
+        (tile numbers) for the first, those of the triangles removed since, later."""
+        while True:
+            live = np.flatnonzero(self.alive)
+            gone = live[peeled(self.thin[live], front[live])]
+            self.alive[gone] = False
+            self.sliver += len(gone)
+            self.remove(self.thin[gone], self.tiles[gone])
+            pending |= set(np.unique(self.tiles[gone]).tolist())
+            cut, corners = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)]
+            for t in sorted(pending & set(self.halos.tiles())):
+                triangles, where = bowtie_cuts(self.halos.halo(t), self.grid)
+                cut.append(triangles)
+                corners.append(where)
+            cut, corners = np.concatenate(cut), np.concatenate(corners)
+            if not len(cut):
+                return
+            self.bowtie += len(cut)
+            self.remove(cut, corners)
+            front, pending = self.next_to(cut), set(np.unique(corners).tolist())
+
+    def write_files(self) -> None:
+        """Drop the removed triangles from their owners' triangle files and the cached halos."""
+        for t, removed in self.halos.removed.items():
+            triangles = np.load(self.halos.files[t])
+            with open(self.halos.files[t], "wb") as file:
+                np.save(file, drop_triangles(triangles, removed))
+        self.halos.prune()

@@ -1,0 +1,103 @@
+"""How the memory-bounded fit sizes itself: when a survey needs tiles, how many points a
+tile holds, how many tiles run at once and with how many threads (c1mesh.survey.tiled_fit).
+
+All of it follows from the --memory budget and the inputs' headers alone, so the grid,
+and with it the output bytes, never depend on where or how many tasks run."""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+from c1mesh.core.errors import InputError
+from c1mesh.survey.tiled_input import survey_name, survey_paths
+
+BYTES_PER_POINT = 1_800
+"""Peak memory of the in-memory fit per input point (bytes). Measured: about 1.1 GB per
+million points at level 4 with file normals, 1.36–1.78 GB at level 1 with estimated
+normals (benchmarks; 1.78 GB: `c1mesh fit` of a 1M-point synthetic LAZ, --overshoot off);
+the rule takes the upper end."""
+TILE_SHARE = 4
+"""A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
+reads its buffer too (about twice its points for the normals and the triangulation) and
+the parent's state (the interpreter, the join's band of border keys, the trim's removed
+triangles) shares the rest."""
+TILE_POINTS_CAP = 1_000_000
+"""Largest tile (points): past this the halo's share of a tile's work is already small, and
+a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
+
+
+def fits_in_memory(point_count: int, memory: int | None) -> bool:
+    """True when the in-memory fit of point_count points stays within memory bytes
+    (None: no budget given, always in memory)."""
+    return memory is None or point_count * BYTES_PER_POINT <= memory
+
+
+def points_per_tile(memory: int) -> int:
+    """The points a tile may hold under a budget of memory bytes: 1 / TILE_SHARE of it at
+    BYTES_PER_POINT, at least 10,000 and at most TILE_POINTS_CAP."""
+    return max(10_000, min(TILE_POINTS_CAP, int(memory // (BYTES_PER_POINT * TILE_SHARE))))
+
+
+def grid_side(count: int, memory: int, per_tile: int | None = None) -> int:
+    """Tiles along each side of the square grid for count points, each holding at most
+    points_per_tile(memory) points (per_tile overrides that, for tests). The grid, and so
+    the output bytes, depend on the budget only, never on how many workers run the tiles."""
+    return max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
+
+
+def tiles_at_once(memory: int, jobs: int) -> int:
+    """How many of `jobs` local processes may each hold a tile at once within memory bytes.
+
+    A tile task's peak is about its tile's points at BYTES_PER_POINT (the in-memory fit's
+    rule; measured: a worker peaked at 207 MB on tiles of 69,444 points, 125 MB by the
+    rule, its interpreter 100 MB of it), so half the budget goes to tasks in flight and
+    the rest to the parent's survey-wide state: two at the default TILE_SHARE, more once
+    a larger budget meets TILE_POINTS_CAP. Asking for more jobs than this runs this many."""
+    task_bytes = points_per_tile(memory) * BYTES_PER_POINT
+    return max(1, min(int(jobs), int(memory // (2 * task_bytes))))
+
+
+def needs_tiles(source, options) -> bool:
+    """True when `source` (a LAS/LAZ path, or a list of them: one survey) holds more points,
+    by the headers, than the in-memory fit can take within options.memory bytes
+    (BYTES_PER_POINT per point); then it is fitted by `fit_tiled`. Streams, other formats
+    and fits without a budget are never tiled. Raises InputError when the input needs
+    tiles but the options ask for something the tiled fit does not do."""
+    from c1mesh.formats.copc import points_to_read
+
+    paths = survey_paths(source)
+    if options.memory is None or paths is None:
+        return False
+    if any(path.suffix.lower() not in (".las", ".laz") for path in paths):
+        return False
+    count = sum(points_to_read(path, getattr(options, "bounds", None)) for path in paths)
+    if fits_in_memory(count, options.memory):
+        return False
+    need = f"{survey_name(paths)}: {count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB in " \
+           f"one piece, more than --memory {options.memory / 1e6:.0f} MB, so they are fitted in tiles"
+    if options.resolution is not None or options.slope or options.aspect or options.hillshade or options.preview:
+        raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "
+                         "(raise --memory)")
+    if options.normals == "file":
+        raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
+    return True
+
+
+def survey_needs_tiles(sources: Sequence[str], options) -> bool:
+    """Whether fit_seamless fits the survey in tiles (c1mesh.survey.tiled_fit): a LAS/LAZ survey
+    larger than options.memory allows in one piece. Reads the inputs' headers only."""
+    from c1mesh.stages.frame import resolve_axis
+
+    options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
+    return needs_tiles(list(sources), options)
+
+def task_threads(options, runner) -> int | None:
+    """Threads each tile task may use: the fit's (options.workers; None: the process's
+    setting) in this process, shared by the local workers, one on a Dask worker."""
+    from c1mesh.core.threads import per_process
+
+    if runner.scheduler is not None:
+        return 1
+    if runner.jobs == 1:
+        return options.workers
+    return per_process(options.workers, runner.jobs)

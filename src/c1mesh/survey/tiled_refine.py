@@ -1,0 +1,234 @@
+"""The memory-bounded fit's last pass (c1mesh.survey.tiled_fit): each tile refines its own
+triangles into part files (a task per tile, `_refine_tile`), the parts are joined in tile
+order with one global vertex numbering (c1mesh.survey.tiled_join), and the mesh is
+written from the joined files, or with -O one mesh per input (c1mesh.survey.tiled_outputs)."""
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from c1mesh.core.errors import InputError
+from c1mesh.survey.tiled_input import Colours
+from c1mesh.survey.tiled_report import TileRows
+from c1mesh.survey.tiles import task_row
+
+WRITE_BLOCK = 1 << 16
+"""Vertices (faces) per block streamed from the joined files to the mesh writer, as the
+PLY writer packs them: the writer holds a few blocks in flight (the block read, its
+packed rows and up to four in its background queue, about 6 × 3.3 MB of coloured
+vertices at this size), so with 1M-vertex (48 MB) blocks the write alone held well over
+100 MB whatever the budget, and still about 40 MB at 256k."""
+
+
+VERTEX = np.dtype([("v", "<f8", 3), ("n", "<f8", 3)])
+VERTEX_RGB = np.dtype([("v", "<f8", 3), ("n", "<f8", 3), ("c", "u1", 3)])
+"""One output vertex in the temporary vertex file: position, normal (world), colour."""
+
+
+class _RefineJob:
+    """What every tile's refinement task shares (picklable; the files it names are read
+    by the task): the height spill, grid, per tile its triangle file and buffer, max_edge,
+    frame, options, limiter (None: --overshoot off), colours, threads per task, owners
+    (tiled_outputs.InputOwners, with -O: each part then records its faces' owner inputs)."""
+
+    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads,
+                 owners=None):
+        from c1mesh.survey.tiled_join import KeyExpiry
+
+        self.heights, self.grid, self.files, self.buffers = heights, grid, triangle_files, buffers
+        self.max_edge, self.frame, self.scheme, self.level = max_edge, frame, options.scheme, options.level
+        self.limiter, self.colours, self.threads, self.owners = limiter, colours, threads, owners
+        self.expiry = KeyExpiry(grid, [self.reach(t) for t in range(len(grid))])
+
+    def reach(self, t: int) -> float:
+        """How far beyond its cell the corners of tile t's own triangles lie (frame units):
+        the trim's max_edge, else its Delaunay buffer, with a relative margin for rounding."""
+        return (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
+
+    def tile_data(self, t: int, triangles: np.ndarray):
+        """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
+        directions or None, limited, turned, lifted) of tile t's own triangles (survey numbers)."""
+        if self.limiter is not None:
+            limits = self.limiter.tile(t, triangles)
+            return (limits.records, limits.triangles, limits.gradients, limits.directions,
+                    limits.limited, limits.turned, limits.lifted)
+        from c1mesh.survey.tiled_halo import halo_rows
+
+        records = self.heights.records(self.grid.grown(t, self.reach(t)))
+        corners, local = np.unique(triangles, return_inverse=True)
+        rows = halo_rows(records["index"], corners)
+        if np.any(rows < 0):
+            raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
+        return records[rows], local.reshape(triangles.shape), None, None, 0, 0, 0
+
+
+class _Part:
+    """The temporary files of one tile's refinement: vertices (all of its refinement's
+    output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
+    (.npz: the border keys of `tiled_join.border_keys`, their points and last tiles),
+    owners (int32 per face, with -O: tiled_outputs.face_owners)."""
+
+    def __init__(self, temps, t: int):
+        self.vertices, self.faces = temps.new(f"part-{t}.vertices"), temps.new(f"part-{t}.faces")
+        self.keys, self.owners = temps.new(f"part-{t}.keys"), temps.new(f"part-{t}.owners")
+
+    def remove(self) -> None:
+        for path in (self.vertices, self.faces, self.keys, self.owners):
+            path.unlink(missing_ok=True)
+
+
+def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
+    """Refine tile t's own triangles into its part files; returns its report row with
+    vertices, corners (input points among them, first), faces, triangles, limited,
+    turned, lifted, or None for a tile without triangles."""
+    from c1mesh.core.threads import limit
+
+    start = time.perf_counter()
+    triangles = np.load(job.files[t])
+    if not len(triangles):
+        return None
+    with limit(job.threads):
+        records, local, gradients, directions, limited, turned, lifted = job.tile_data(t, triangles)
+        colors = None if job.colours is None else job.colours.of(records["index"])
+        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
+                             job.expiry)
+        if job.owners is not None:
+            from c1mesh.survey.tiled_outputs import face_owners
+
+            owner = face_owners(job.owners, triangles, job.level)
+            if len(owner) != counts["faces"]:
+                raise RuntimeError(f"tile {t}: {counts['faces']} faces, {len(owner)} owners")
+            owner.astype("<i4").tofile(part.owners)
+    return {**counts, "triangles": len(triangles), "limited": limited, "turned": turned, "lifted": lifted,
+            **task_row(len(records), start)}
+
+
+def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
+                limiter=None, crs: str | None = None,
+                colours: Colours | None = None, runner=None, rows: TileRows | None = None,
+                split: "Split | None" = None) -> dict:
+    """Refine each tile's owned triangles (a task per tile, `_refine_tile`, writing part
+    files), then join the parts in tile order, numbering shared vertices globally
+    (tiled_fit's docstring), into one vertex and one face file; then write the mesh from
+    them, or with split (-O), each input's part of it (c1mesh.survey.tiled_outputs). limiter: the
+    tiled_limiter.TiledLimiter (None: --overshoot off); rows: the tiled_report.TileRows."""
+    from c1mesh.core.cloud import MeshStream
+    from c1mesh.survey.distributed import TaskRunner
+    from c1mesh.formats import write_mesh
+    from c1mesh.core.threads import blas_threads
+    from c1mesh.survey.tile_spill import file_blocks
+    from c1mesh.survey.tiled_join import PartJoin
+
+    runner = runner or TaskRunner()
+    rows = rows or TileRows(grid, options.workers)
+    coloured = colours is not None and colours.present
+    job = _RefineJob(heights, grid, triangle_files, buffers, max_edge, frame, options, limiter,
+                     colours if coloured else None, rows.threads, None if split is None else split.owners)
+    tiles = [t for t in range(len(grid)) if triangle_files[t] is not None]
+    parts = {t: _Part(temps, t) for t in tiles}
+    vertex_path, face_path, owner_path = temps.new("vertices.bin"), temps.new("faces.bin"), temps.new("owners.bin")
+    join = PartJoin(VERTEX_RGB if coloured else VERTEX)
+    triangles_per_tile, ready, next_tile = {}, {}, 0
+    with open(vertex_path, "wb") as vertex_file, open(face_path, "wb") as face_file, \
+            open(owner_path, "wb") as owner_file:
+        for i, row in runner.map(_refine_tile, len(tiles), lambda i: (job, tiles[i], parts[tiles[i]]),
+                                 lambda i: rows.name(tiles[i])):
+            ready[i] = row
+            while next_tile in ready:                       # join in tile order, as soon as possible
+                t, row = tiles[next_tile], ready.pop(next_tile)
+                if row is not None:
+                    join.add(t, parts[t], row, vertex_file, face_file)
+                    if split is not None:
+                        with open(parts[t].owners, "rb") as owners:
+                            shutil.copyfileobj(owners, owner_file)
+                    triangles_per_tile[t] = row["triangles"]
+                    if limiter is not None:
+                        limiter.limited += row["limited"]
+                        limiter.turned += row["turned"]
+                        limiter.lifted += row["lifted"]
+                    rows.add(t, "refine", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
+                parts[t].remove()
+                join.passed(t)
+                next_tile += 1
+    written, faces = join.written, join.faces
+    if faces == 0:
+        raise InputError("no triangles are left after trimming; try --max-edge none")
+    report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
+              "shared_vertex_keys": join.keys,
+              "shared_vertex_keys_held": join.shared.peak, "triangles_per_tile": triangles_per_tile}
+    if limiter is not None:
+        report["overshoot"] = limiter.report()
+    if split is not None:
+        report["output_meshes"] = split.write(vertex_path, VERTEX_RGB if coloured else VERTEX, face_path, owner_path,
+                                        temps, options, crs)
+        return report
+    block = WRITE_BLOCK
+
+    def vertex_blocks():
+        with open(vertex_path, "rb") as file:
+            for part in file_blocks(file, VERTEX_RGB if coloured else VERTEX, block):
+                yield part["v"], part["n"], part["c"] if coloured else None
+
+    def face_blocks():
+        with open(face_path, "rb") as file:
+            for part in file_blocks(file, "<i8", 3 * block):
+                yield part.reshape(-1, 3)
+    with blas_threads(1):
+        write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
+                   options.output_format, ascii=options.ascii, crs=crs)
+    return report
+
+
+@dataclass
+class Split:
+    """-O: the survey's owner inputs (tiled_outputs.InputOwners), one output path and one
+    name per input."""
+
+    owners: object
+    outputs: Sequence[str]
+    names: Sequence[str]
+
+    def write(self, vertex_path, dtype, face_path, owner_path, temps, options, crs) -> list[dict]:
+        """Split the joined faces by owner and write every input's mesh (all or nothing)."""
+        from c1mesh.survey.tiled_outputs import split_faces, write_outputs
+
+        paths = split_faces(face_path, owner_path, len(self.outputs), temps)
+        return write_outputs(vertex_path, dtype, paths, self.outputs, options, crs, self.names)
+
+
+def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,
+                colors=None, expiry=None) -> dict:
+    """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
+    write all its output points (world position, normal, colour), its faces (tile-local
+    numbers) and its border keys to its part files; returns {vertices, corners, faces}.
+    gradients (n, 2) and directions (E, 2): the limiter's (None: the records' gradients,
+    unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
+    tiled_join.KeyExpiry that gives each border key its last tile."""
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.stages.surface import surface_stream
+    from c1mesh.survey.tiled_join import border_keys
+
+    xy = np.column_stack([records["x"], records["y"]])
+    if gradients is None:
+        gradients = np.column_stack([records["gx"], records["gy"]])
+    interp = RSDInterpolator(xy, records["z"], gradients, triangles=triangles, scheme=scheme,
+                             directions=directions)
+    refinement = interp.refinement(level)
+    with open(part.keys, "wb") as file:
+        np.savez(file, **border_keys(refinement, records["index"], xy, expiry))
+    stream = surface_stream(refinement, frame, colors)
+    with open(part.vertices, "wb") as file:
+        for vertices, normals, blended in stream.vertex_blocks():
+            out = np.empty(len(vertices), VERTEX if colors is None else VERTEX_RGB)
+            out["v"], out["n"] = vertices, normals
+            if colors is not None:
+                out["c"] = blended
+            out.tofile(file)
+    with open(part.faces, "wb") as file:
+        for faces in stream.face_blocks():
+            np.asarray(faces, dtype="<i8").tofile(file)
+    return {"vertices": int(refinement.vertex_count), "corners": len(records), "faces": int(stream.face_count)}

@@ -1,0 +1,92 @@
+"""The memory-bounded fit's Delaunay triangulation with the long-edge trim, a task per tile
+(c1mesh.survey.tiled_fit): each tile writes the triangles it owns to a file
+(c1mesh.survey.buffered_delaunay: tile_triangles without a max_edge, else tile_pass and
+the survey-wide auto max_edge of trimmed_delaunay)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from c1mesh.core.errors import InputError
+from c1mesh.survey.tiled_report import TileRows
+from c1mesh.survey.tiles import task_row
+
+def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
+    """The survey's Delaunay triangulation with the long-edge trim, each tile a task
+    (`_tile_delaunay`, `_tile_trimmed`) that reads the height spill and writes its owned
+    triangles to a file: (max_edge or None, per tile a .npy file of its owned triangles
+    (survey numbers), per tile the buffer its corners lie within, the triangle count of
+    the whole Delaunay triangulation: 2n - 2 - h by Euler's formula, n points and h hull
+    corners, exact unless points lie on the hull between its corners)."""
+    from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing, streamed_hull, trimmed_delaunay
+
+    count = int(heights.counts.sum())
+    if count < 3:
+        raise InputError(f"only {count} points are left for the height field; need at least 3")
+    hull = streamed_hull((r["index"], np.column_stack([r["x"], r["y"]]))
+                         for r in (heights.tile(t) for t in range(len(grid))))
+    files = [temps.new(f"triangles-{t}.npy") for t in range(len(grid))]
+    buffers = np.zeros(len(grid))
+    if max_edge is None:
+        first = INITIAL_SPACINGS * mean_spacing(grid.box, count)
+        for t, (buffer, row) in runner.map(_tile_delaunay, len(grid),
+                                           lambda t: (heights, grid, t, first, hull, files[t], rows.threads),
+                                           rows.name):
+            buffers[t] = buffer
+            rows.add(t, "triangulate", row)
+        return None, files, buffers, 2 * count - 2 - len(hull.index)
+    longest = [temps.new(f"longest-{t}.npy") for t in range(len(grid))]
+    shorts = [temps.new(f"short-{t}.npy") for t in range(len(grid))]
+
+    def passes(bound):
+        for t, (buffer, row) in runner.map(
+                _tile_trimmed, len(grid),
+                lambda t: (heights, grid, t, bound, hull, files[t], longest[t], shorts[t], rows.threads),
+                rows.name):
+            buffers[t] = buffer
+            rows.add(t, "triangulate", row)
+            yield shorts[t], t
+    limit, _ = trimmed_delaunay(heights.read, grid, count, hull, max_edge, passes=passes)
+    for t in range(len(grid)):
+        triangles = np.load(files[t])
+        short = np.load(longest[t]) <= limit
+        if not short.all():
+            _save(files[t], triangles[short])
+    return limit, files, buffers, 2 * count - 2 - len(hull.index)
+
+
+def _save(path, array: np.ndarray) -> None:
+    with open(path, "wb") as file:
+        np.save(file, array)
+
+
+def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) -> tuple[float, dict]:
+    """Tile t's final triangles (buffered_delaunay.tile_triangles) saved to path (.npy);
+    returns (its buffer, its report row)."""
+    from c1mesh.survey.buffered_delaunay import tile_triangles
+    from c1mesh.core.threads import limit
+
+    start = time.perf_counter()
+    with limit(threads):
+        result = tile_triangles(heights.read, grid, t, buffer, hull)
+    _save(path, result.triangles)
+    return result.buffer, task_row(result.read, start)
+
+
+def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path, short_path, threads):
+    """Tile t's triangles with edges up to bound (buffered_delaunay.tile_pass) saved to
+    path, their longest edges to longest_path, its certified short edge lengths to
+    short_path (the survey's would grow the parent by 24 bytes a point:
+    buffered_delaunay.short_median reads them back a tile at a time); returns (its
+    buffer, its report row)."""
+    from c1mesh.survey.buffered_delaunay import tile_pass
+    from c1mesh.core.threads import limit
+
+    start = time.perf_counter()
+    with limit(threads):
+        result = tile_pass(heights.read, grid, t, bound, hull)
+    _save(path, result.triangles)
+    _save(longest_path, result.longest)
+    _save(short_path, result.short)
+    return result.buffer, task_row(result.read, start)
