@@ -48,7 +48,7 @@ def fit_survey(inputs, output, output_dir, suffix, input_format, options, report
     except (C1MeshError, OSError) as exc:
         fail(message(exc), debug)
     from c1mesh.pipeline.survey_fit import fit_seamless
-    from c1mesh.survey.tiled_fit import survey_needs_tiles
+    from c1mesh.survey.tiled_plan import survey_needs_tiles
 
     options.workers = threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
@@ -84,7 +84,7 @@ def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, 
     recorded in the report as not used (the line c1mesh.cli.messages.note prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
     from c1mesh.pipeline.survey_fit import fit_in_tiles
-    from c1mesh.survey.tiled_fit import needs_tiles
+    from c1mesh.survey.tiled_plan import needs_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
     if needs_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit

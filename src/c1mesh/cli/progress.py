@@ -28,7 +28,7 @@ def survey_progress(inputs, options, outputs: int):
     of -O as their tiles are written, or the stages of the one -o fit."""
     from c1mesh.pipeline.driver import STAGES
     from c1mesh.survey.tiled_fit import TILED_STAGES
-    from c1mesh.survey.tiled_fit import survey_needs_tiles
+    from c1mesh.survey.tiled_plan import survey_needs_tiles
 
     if survey_needs_tiles(inputs, options):
         progress = stage_bar(len(TILED_STAGES), "fitting survey")

@@ -19,7 +19,8 @@ from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge,
 from c1mesh.geo.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.core.errors import InputError
 from c1mesh.formats import check_output, read_cloud
-from c1mesh.stages.frame import auto_axis_reason, choose_frame, height_field
+from c1mesh.stages.frame import auto_axis_reason, choose_frame
+from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import (height_gradients, height_neighbours, height_normals,
                                      use_height_gradients)
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -143,9 +144,9 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
 
 def _check_fit_memory(count: int, memory: int | None) -> None:
     """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
-    --memory bytes (tiled_fit.BYTES_PER_POINT per point). LAS/LAZ inputs beyond it never get
+    --memory bytes (tiled_plan.BYTES_PER_POINT per point). LAS/LAZ inputs beyond it never get
     here (they are fitted in tiles); other formats would otherwise run over the budget."""
-    from c1mesh.survey.tiled_fit import BYTES_PER_POINT, fits_in_memory
+    from c1mesh.survey.tiled_plan import BYTES_PER_POINT, fits_in_memory
     if not fits_in_memory(count, memory):
         raise InputError(f"{count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB to fit in "
                          f"memory, more than --memory {memory / 1e6:.0f} MB; only LAS/LAZ inputs are "
@@ -246,7 +247,7 @@ def height_column_axis(cloud: PointCloud, options: FitOptions) -> tuple[FitOptio
 def _plan_heights(cloud: PointCloud, frame) -> bool:
     """Whether the heights are a header's height column over the plan (x, y): the frame's
     axis is ±z and the file names z as a height. Then its units need not be those of x
-    and y, and nothing may treat (x, y, z) as one metric (frame.height_field's
+    and y, and nothing may treat (x, y, z) as one metric (height_field.height_field's
     common_metric, the curtain rules' angles)."""
     return cloud.height_column is not None and bool(np.array_equal(np.abs(frame.axes[2]), [0.0, 0.0, 1.0]))
 
@@ -282,7 +283,7 @@ def check_angles(cloud: PointCloud, options: FitOptions, name) -> None:
 
 def _drop_too_steep(hf, max_slope: float, z_factor: float) -> None:
     """Drop the points of a plan-unit height field (heights in units of their own) whose
-    slope atan(|grad| * z_factor) exceeds max_slope degrees, as frame.height_field does
+    slope atan(|grad| * z_factor) exceeds max_slope degrees, as height_field.height_field does
     for one metric; counted as "too_steep". Changes hf in place."""
     steep = np.hypot(hf.gradients[:, 0], hf.gradients[:, 1]) * z_factor > np.tan(np.radians(max_slope))
     if not steep.any():

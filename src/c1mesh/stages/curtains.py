@@ -78,7 +78,7 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     """(T,) bool masks of the curtain triangles by reason (each triangle under its first reason,
     in the order of REASONS).
 
-    xy (n, 2), z (n,) and gradients (n, 2) of a height field (frame.HeightField: local
+    xy (n, 2), z (n,) and gradients (n, 2) of a height field (height_field.HeightField: local
     coordinates, heights along e3, data gradients ∇z from the normals); triangles (T, 3)
     indices into them. Angles in degrees. Component by component and without square
     roots (squared comparisons), as this runs on every triangle of every fit.

@@ -22,7 +22,6 @@ from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.stages.height_field import as_n3, check_extent, kd_tree
 # Re-exported for the modules that import them from here (pipeline.driver, survey/*);
 # new code imports them from c1mesh.stages.height_field.
-from c1mesh.stages.height_field import gradients_to_normals, height_field, normal_gradients  # noqa: F401
 
 _WORLD_AXES = {"x": 0, "y": 1, "z": 2}
 

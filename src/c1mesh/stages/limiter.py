@@ -80,7 +80,8 @@ class LimiterReport:
 
 def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                       triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
-                      noise_floors: tuple[float, float] | None = None, heights: bool = True
+                      noise_floors: tuple[float, float] | None = None, heights: bool = True,
+                      counted: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
     """Heights, gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
@@ -93,8 +94,12 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     reconciliations, when they come from a larger survey than these edges (a tile of it);
     None measures them here. heights=False skips `reconcile_heights`: its crease test
     compares a slope error with 1 (45°), which needs the plane's and the height's units to
-    agree, as in a height field and not in a depth chart (u, v, w). Returns (values,
-    gradients, directions in the order of table.edges or None, report).
+    agree, as in a height field and not in a depth chart (u, v, w). counted: (n,) bool,
+    the vertices whose changes the report counts, an edge counted by its lower-numbered
+    end (table.edges[:, 0]); None counts all. A tile of a survey passes the vertices in
+    its cell, so that the tiles' counts add up to the survey's
+    (c1mesh.survey.tiled_limiter). Returns (values, gradients, directions in the order
+    of table.edges or None, report).
     """
     if mode == "off":
         return values, gradients, None, LimiterReport()
@@ -118,6 +123,9 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     limited, changed = _limit(reconciled, geometry, (pred_a, pred_b), SECANT_FACTOR,
                               CONSISTENCY, NOISE_FACTOR, after)
     directions, turned = _directions(points, triangles, table, geometry.d, RATIO_LIMIT)
+    if counted is not None:
+        changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
+                                          turned & counted[table.edges[:, 0]])
     return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
                                                       int(lifted.sum()))
 

@@ -88,7 +88,7 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     front = np.flatnonzero(alive & _on_boundary(alive, neighbours))
     front = front[thin[front]]
     while True:
-        sliver += _peel(alive, neighbours, thin, front)
+        sliver += peel(alive, neighbours, thin, front)
         cut = remove_bowties(tri, alive, neighbours)
         if cut.size == 0:
             break
@@ -205,9 +205,14 @@ def _on_boundary(alive: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     return np.any((neighbours < 0) | ~alive[neighbours], axis=1)
 
 
-def _peel(alive: np.ndarray, neighbours: np.ndarray, thin: np.ndarray, front: np.ndarray) -> int:
+def peel(alive: np.ndarray, neighbours: np.ndarray, thin, front: np.ndarray) -> int:
     """Remove live thin triangles starting from `front`, then their thin live neighbours,
-    repeatedly (a removed triangle exposes its neighbours). Returns how many were removed."""
+    repeatedly (a removed triangle exposes its neighbours). Returns how many were removed.
+
+    alive (T,) bool, changed in place; neighbours (T, 3) as triangle_neighbours gives
+    them; thin: thin[idx] (T,) bool for triangle indices idx; front: the triangles to
+    start from (those not live, thin and on the boundary are skipped). The survey fitted
+    in tiles peels the survey's thin triangles with it (c1mesh.survey.tiled_trim.peeled)."""
     removed = 0
     front = np.unique(front[front >= 0])
     front = front[alive[front] & thin[front] & _on_boundary(alive, neighbours[front])] \

@@ -89,7 +89,7 @@ def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buff
     neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
     from scipy.spatial import cKDTree
 
-    from c1mesh.stages.frame import gradients_to_normals
+    from c1mesh.stages.height_field import gradients_to_normals
     from c1mesh.stages.height_gradients import height_gradients
 
     def neighbours_read(xyz, own, read_box):

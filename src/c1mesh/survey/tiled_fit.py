@@ -29,7 +29,7 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   colours and the CRS are carried;
 - the height field drops points with unusable or too steep normals and exact duplicate
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
-  stacking test of frame.height_field are not applied;
+  stacking test of height_field.height_field are not applied;
 - the trim is the in-memory default (long edges, sliver peel, bow-ties, then curtains
   and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.tiled_trim), so it
   is the same, not a reduction;
@@ -72,7 +72,6 @@ from c1mesh.survey.tiled_report import TileRows, describe_crs
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
 from c1mesh.survey.tiled_trim import trim_tiles
 # c1mesh.cli and c1mesh.pipeline.driver still import these from here (their home is tiled_plan)
-from c1mesh.survey.tiled_plan import BYTES_PER_POINT, fits_in_memory, needs_tiles, survey_needs_tiles  # noqa: F401
 
 TILED_STAGES = ("frame", "spill", "normals", "triangulate", "trim", "noise floors", "refine+write")
 """The stages fit_tiled reports (on_stage, the report's seconds), in order; "noise floors"

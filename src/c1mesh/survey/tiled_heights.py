@@ -60,7 +60,7 @@ class _HeightJob:
 def _tile_heights(job: _HeightJob, t: int, path) -> dict:
     """One tile's height-field records (HEIGHT) written to path; returns its report row
     (points written, seconds, worker)."""
-    from c1mesh.stages.frame import normal_gradients
+    from c1mesh.stages.height_field import normal_gradients
     from c1mesh.core.threads import limit
     from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
 

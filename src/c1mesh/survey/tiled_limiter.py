@@ -138,14 +138,13 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
 def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
     (k, 3) survey numbers, all inside its halo."""
-    from c1mesh.stages.limiter import edge_directions, limit_gradients
+    from c1mesh.stages.limiter import control_overshoot
     from c1mesh.engine.topology import edge_table
 
-    points = halo.points
     table = edge_table(halo.triangles, len(halo.records))
-    values, gradients, lifted, moved = reconciled(halo, table, floors.first)
-    limited, changed = limit_gradients(points, values, gradients, table.edges, noise_floor=floors.second)
-    directions, turned = edge_directions(points, halo.triangles, table)
+    values, limited, directions, report = control_overshoot(
+        halo.points, halo.records["z"], halo.gradients, halo.triangles, "limit", table,
+        noise_floors=(floors.first, floors.second), counted=halo.own)
     rows = halo_rows(halo.records["index"], owned)
     if np.any(rows < 0):
         raise RuntimeError("a tile's own triangle has a corner outside its halo")
@@ -156,9 +155,8 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     at = np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
     records = halo.records[corners]
     records["z"] = values[corners]
-    return TileLimits(records, triangles, limited[corners], directions[at],
-                      int(((moved | changed) & halo.own).sum()),
-                      int((turned & halo.own[table.edges[:, 0]]).sum()), int((lifted & halo.own).sum()))
+    return TileLimits(records, triangles, limited[corners], directions[at], report.gradients_limited,
+                      report.directions_changed, report.heights_reconciled)
 
 
 def reconciled(halo: Halo, table, noise: float):

@@ -70,22 +70,22 @@ def thin_triangles(halo, min_ratio: float, grid) -> tuple[np.ndarray, np.ndarray
 
 
 def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
-    """(k,) bool: which of the thin triangles (k, 3) (survey numbers) the peel removes:
-    those in a component, through shared edges, with a boundary triangle (boundary (k,))."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    """(k,) bool: which of the thin triangles (k, 3) (survey numbers) the peel removes,
+    boundary (k,): which lie on the boundary of the mesh. trim.peel over these triangles
+    alone, all thin, starting from the boundary ones: it removes the components, through
+    shared edges, that hold a boundary triangle, as it does in the whole triangulation (a
+    thin triangle's non-thin neighbours are never peeled, so leaving them out changes
+    nothing but the start, which `boundary` gives)."""
+    from c1mesh.stages.trim import peel, triangle_neighbours
 
     k = len(triangles)
     if not k or not boundary.any():
         return np.zeros(k, dtype=bool)
-    ends = np.concatenate([np.sort(triangles[:, [a, b]], axis=1) for a, b in ((1, 2), (2, 0), (0, 1))])
-    owner = np.tile(np.arange(k), 3)
-    order = np.lexsort((ends[:, 1], ends[:, 0]))
-    ends, owner = ends[order], owner[order]
-    same = np.flatnonzero((ends[1:] == ends[:-1]).all(axis=1))
-    graph = coo_matrix((np.ones(same.size, np.int8), (owner[same], owner[same + 1])), shape=(k, k))
-    _, label = connected_components(graph, directed=False)
-    return np.isin(label, label[boundary])
+    corners, local = np.unique(triangles, return_inverse=True)
+    alive = np.ones(k, dtype=bool)
+    peel(alive, triangle_neighbours(local.reshape(-1, 3), len(corners)), np.ones(k, dtype=bool),
+         np.flatnonzero(boundary))
+    return ~alive
 
 
 def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
