@@ -433,7 +433,8 @@ def evaluate(data: Dataset, seeds=(0, 1, 2, 3, 4), peers: str = "all", log=print
             if data.truth is not None:
                 true = true_local_heights(frames[name], local[:, :2], data.truth, local[:, 2])
                 row["rms_true"].append(float(np.sqrt(np.mean((pred[ok] - true) ** 2))) * data.unit)
-        log(f"[heldout] {data.name}: seed {seed} done ({ok.sum():,} of {test.sum():,} held-out points scored)")
+        log(f"[heldout] {data.name}: seed {seed} done "
+            f"({ok.sum():,} of {test.sum():,} held-out points scored)")
     return out
 
 

@@ -53,8 +53,8 @@ def test_held_out_split_is_ten_percent_and_seeded():
 
 
 def test_crs_unit_reads_the_coordinate_unit():
-    assert heldout.crs_unit('PROJCRS[..LENGTHUNIT["metre",1]..LENGTHUNIT["US survey foot",0.304800609601219]]') \
-        == pytest.approx(1200 / 3937)
+    wkt = 'PROJCRS[..LENGTHUNIT["metre",1]..LENGTHUNIT["US survey foot",0.304800609601219]]'
+    assert heldout.crs_unit(wkt) == pytest.approx(1200 / 3937)
     assert heldout.crs_unit(None) == 1.0
 
 
