@@ -13,10 +13,11 @@ import time
 import traceback
 from pathlib import Path
 
-from benchmarks import accuracy, depth, engine, geo, memory, noisy, pipeline, report, tiles, triangulation
+from benchmarks import (accuracy, depth, engine, geo, heldout, memory, noisy, pipeline, report, tiles,
+                        triangulation)
 from benchmarks.common import Config, Section
 
-SECTIONS = (engine, pipeline, triangulation, accuracy, noisy, memory, tiles, geo, depth)
+SECTIONS = (engine, pipeline, triangulation, accuracy, noisy, memory, tiles, geo, depth, heldout)
 
 
 def _output_folder(out: Path | None, quick: bool) -> Path:
