@@ -196,10 +196,14 @@ class Factor:
                                  "fewer than 3 weighted data points") from exc
 
     def solve(self, b: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
-        if self.method == "cholmod":
-            return self._factor(b)
-        if self.method == "superlu":
-            return self._factor.solve(b)
+        """S⁻¹ b. Direct solvers take one step of iterative refinement: the system's
+        condition grows like N² (a fourth-order problem), and at 1M vertices one
+        Cholesky solve left a relative residual of 5e-5 (one more solve costs ~3 % of
+        the factorisation)."""
+        if self.method in ("cholmod", "superlu"):
+            direct = self._factor if self.method == "cholmod" else self._factor.solve
+            x = direct(b)
+            return x + direct(b - self.S @ x)
         x, info = spla.cg(self.S, b, x0=x0, rtol=1e-10, maxiter=2000, M=self._M)
         if info != 0:
             raise SmoothingError(f"conjugate gradients did not converge ({info} iterations)")
