@@ -285,3 +285,24 @@ def test_as_dict_is_json_ready():
     assert isinstance(fit, SmoothFit)
     d = json.loads(json.dumps(fit.as_dict()))
     assert d["strength"] == 1.0 and d["cv_curve"] == [] and "values" not in d
+
+
+def test_data_rows_are_the_interpolator_with_limiter_directions():
+    """With data off the vertices and the limiter's edge directions, the reported
+    residuals are those of RSDInterpolator built from the fit (same directions)."""
+    from scipy.spatial import Delaunay
+    from c1mesh.engine.topology import edge_table
+    from c1mesh.stages.limiter import edge_directions
+    rng = np.random.default_rng(13)
+    pts = rng.uniform(0, 1, (150, 2))
+    tri = Delaunay(pts).simplices
+    u, _ = edge_directions(pts, tri, edge_table(tri, pts.shape[0]))
+    xy = rng.uniform(0.1, 0.9, (600, 2))
+    z = surface(xy) + rng.normal(0, 0.05, xy.shape[0])
+    fit = smooth_fit(pts, tri, z, data_xy=xy, strength=0.5, spacing_h=1 / np.sqrt(600),
+                     directions=u)
+    interp = RSDInterpolator(pts, fit.values, fit.gradients, tri, directions=u)
+    r = z - interp(xy)
+    assert fit.outside == 0
+    assert fit.residual_rms == pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)
+    assert fit.residual_max == pytest.approx(np.abs(r).max(), rel=1e-9)
