@@ -172,14 +172,15 @@ class Factor:
         self.method = method
         self.S = S
         self.analysis = analysis
+        csc = S.T        # S is symmetric: its CSR transposed is its CSC, without a copy
         try:
             if method == "cholmod":
                 from sksparse.cholmod import analyze
                 if self.analysis is None:          # the fill-reducing ordering, kept for reuse
-                    self.analysis = analyze(S.tocsc())
-                self._factor = self.analysis.cholesky(S.tocsc())
+                    self.analysis = analyze(csc)
+                self._factor = self.analysis.cholesky(csc)
             elif method == "superlu":
-                self._factor = spla.splu(S.tocsc(), permc_spec="MMD_AT_PLUS_A",
+                self._factor = spla.splu(csc, permc_spec="MMD_AT_PLUS_A",
                                          diag_pivot_thresh=0.0, options={"SymmetricMode": True})
             elif method == "amg-cg":
                 import pyamg
