@@ -275,6 +275,12 @@ def test_unusable_input_is_refused():
     with pytest.raises(SmoothingError):
         smooth_fit(pts, tri, z, strength=1.0, spacing_h=0.0)
     with pytest.raises(SmoothingError):
+        smooth_fit(pts, tri, z, strength=1.0, spacing_h="wide")
+    with pytest.raises(SmoothingError):
+        smooth_fit(pts, tri, z, strength="lots", spacing_h=h)
+    with pytest.raises(SmoothingError):
+        smooth_fit(pts, tri, z, strength=1.0, spacing_h=h, directions=np.zeros((3, 2)))
+    with pytest.raises(SmoothingError):
         smooth_fit(pts, tri, z, strength=1.0, spacing_h=h, weights=np.zeros_like(z))
 
 

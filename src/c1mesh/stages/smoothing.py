@@ -181,6 +181,10 @@ def _check_inputs(points, triangles, values, data_xy, weights, spacing_h):
         raise SmoothingError("points, data_xy and values must be finite")
     if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0):
         raise SmoothingError("weights must be finite, non-negative and not all zero")
+    try:
+        spacing_h = float(spacing_h)
+    except (TypeError, ValueError):
+        spacing_h = float("nan")
     if not (np.isfinite(spacing_h) and spacing_h > 0):
         raise SmoothingError(f"spacing_h must be a positive length, got {spacing_h!r}")
     return pts, tri.astype(np.int64), z, xy, w
