@@ -44,20 +44,22 @@ def assembled(points, tri, scheme="sextic", directions=None):
 
 
 # ------------------------------------------------------------------ 1. energy blocks
-def _fd_energy(interp, corners, n, step=1e-4):
-    """∫ F_xx² + 2F_xy² + F_yy² over one triangle: centroid rule on n² sub-triangles,
-    Hessian by central differences of interp.gradient."""
+def _fd_energies(interp, triangles, n, step=1e-4):
+    """∫ F_xx² + 2F_xy² + F_yy² over each triangle: centroid rule on n² sub-triangles,
+    Hessian by central differences of interp.gradient (one call per shift)."""
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     up = (i + j) < n
     down = (i + j) < n - 1
     b1 = np.concatenate([(i[up] + 1 / 3) / n, (i[down] + 2 / 3) / n])
     b2 = np.concatenate([(j[up] + 1 / 3) / n, (j[down] + 2 / 3) / n])
-    x = np.stack([1 - b1 - b2, b1, b2], 1) @ corners
+    lam = np.stack([1 - b1 - b2, b1, b2], 1)
+    corners = interp.points[triangles]                                   # (T, 3, 2)
+    x = np.einsum("pk,tkd->tpd", lam, corners).reshape(-1, 2)
     hx = (interp.gradient(x + [step, 0]) - interp.gradient(x - [step, 0])) / (2 * step)
     hy = (interp.gradient(x + [0, step]) - interp.gradient(x - [0, step])) / (2 * step)
-    density = hx[:, 0] ** 2 + hy[:, 1] ** 2 + hx[:, 1] ** 2 + hy[:, 0] ** 2
-    e1, e2 = corners[1] - corners[0], corners[2] - corners[0]
-    return density.mean() * abs(e1[0] * e2[1] - e1[1] * e2[0]) / 2
+    density = (hx[:, 0] ** 2 + hy[:, 1] ** 2 + hx[:, 1] ** 2 + hy[:, 0] ** 2).reshape(len(triangles), -1)
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    return density.mean(axis=1) * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) / 2
 
 
 @pytest.mark.parametrize("scheme", ["sextic", "quintic"])
@@ -72,11 +74,10 @@ def test_energy_blocks_match_finite_difference_quadrature(scheme):
     K = energy_blocks(pts, tri, directions, scheme)
     u = np.zeros(15)
     u[0::3], u[1::3], u[2::3] = f, g[:, 0], g[:, 1]
+    coarse, fine = _fd_energies(interp, tri, 60), _fd_energies(interp, tri, 120)
+    reference = (4 * fine - coarse) / 3                           # Richardson: error ∝ n⁻²
     for t, d in enumerate(local_dofs(tri)):
-        corners = pts[tri[t]]
-        coarse, fine = _fd_energy(interp, corners, 80), _fd_energy(interp, corners, 160)
-        reference = (4 * fine - coarse) / 3                       # Richardson: error ∝ n⁻²
-        assert u[d] @ K[t] @ u[d] == pytest.approx(reference, rel=1e-6)
+        assert u[d] @ K[t] @ u[d] == pytest.approx(reference[t], rel=1e-6)
         assert np.allclose(K[t], K[t].T)
         assert np.linalg.eigvalsh(K[t]).min() > -1e-9 * np.abs(K[t]).max()
 
@@ -274,6 +275,12 @@ def test_unusable_input_is_refused():
     with pytest.raises(SmoothingError):
         smooth_fit(pts, tri, z, strength=1.0, spacing_h=0.0)
     with pytest.raises(SmoothingError):
+        smooth_fit(pts, tri, z, strength=1.0, spacing_h="wide")
+    with pytest.raises(SmoothingError):
+        smooth_fit(pts, tri, z, strength="lots", spacing_h=h)
+    with pytest.raises(SmoothingError):
+        smooth_fit(pts, tri, z, strength=1.0, spacing_h=h, directions=np.zeros((3, 2)))
+    with pytest.raises(SmoothingError):
         smooth_fit(pts, tri, z, strength=1.0, spacing_h=h, weights=np.zeros_like(z))
 
 
@@ -284,3 +291,24 @@ def test_as_dict_is_json_ready():
     assert isinstance(fit, SmoothFit)
     d = json.loads(json.dumps(fit.as_dict()))
     assert d["strength"] == 1.0 and d["cv_curve"] == [] and "values" not in d
+
+
+def test_data_rows_are_the_interpolator_with_limiter_directions():
+    """With data off the vertices and the limiter's edge directions, the reported
+    residuals are those of RSDInterpolator built from the fit (same directions)."""
+    from scipy.spatial import Delaunay
+    from c1mesh.engine.topology import edge_table
+    from c1mesh.stages.limiter import edge_directions
+    rng = np.random.default_rng(13)
+    pts = rng.uniform(0, 1, (150, 2))
+    tri = Delaunay(pts).simplices
+    u, _ = edge_directions(pts, tri, edge_table(tri, pts.shape[0]))
+    xy = rng.uniform(0.1, 0.9, (600, 2))
+    z = surface(xy) + rng.normal(0, 0.05, xy.shape[0])
+    fit = smooth_fit(pts, tri, z, data_xy=xy, strength=0.5, spacing_h=1 / np.sqrt(600),
+                     directions=u)
+    interp = RSDInterpolator(pts, fit.values, fit.gradients, tri, directions=u)
+    r = z - interp(xy)
+    assert fit.outside == 0
+    assert fit.residual_rms == pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)
+    assert fit.residual_max == pytest.approx(np.abs(r).max(), rel=1e-9)

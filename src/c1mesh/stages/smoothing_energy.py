@@ -4,7 +4,9 @@ On a triangle the spline is F = basis(λ) · C with 21 coefficients C that are l
 9 vertex data d = (f0, f1, f2, ∂x f0, ∂y f0, ∂x f1, ∂y f1, ∂x f2, ∂y f2) once the edge
 directions are fixed: C = M d, M (21, 9). `linear_maps` builds M by calling
 c1mesh.engine.rsd.triangle_coefficients with the 9 unit data vectors, so it is exactly the
-code the interpolator evaluates.
+code the interpolator evaluates; `block_energy` (the one used) reads the same numbers off
+three such calls and uses M's structure (see there), `block_energy_dense` is the plain
+M^T E_T M.
 
 The energy ∫_T F_xx² + 2 F_xy² + F_yy² dx = ||H||_F² integrated, H the Hessian in x, is
 d^T K_T d with K_T = M^T E_T M. Since G_0 + G_1 + G_2 = 0 (G_q = ∇λ_q),
@@ -23,7 +25,7 @@ pairs; `energy_tensor`, `mode_weights`).
 Second λ-derivatives: the basis of a polynomial scheme of degree d is a polynomial of
 degree d in the three λ's taken as independent, so its first derivatives
 (rsd.basis_derivatives, the interpolator's own code) are polynomials of degree d − 1.
-`_SecondDerivatives` recovers their monomial coefficients by least squares on random points
+`second_derivatives` recovers their monomial coefficients by least squares on random points
 of [-1, 1]³, checks the fit is exact to round-off (else the scheme is not a polynomial of
 its declared degree and is refused), and differentiates the monomials once more. The
 quadrature is the collapsed (Duffy) Gauss–Legendre product rule with n = d − 1
