@@ -9,6 +9,9 @@ cd "$(dirname "$0")"
 missing=()
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
 command -v cc >/dev/null 2>&1 || missing+=(build-essential)
+# SuiteSparse's headers for scikit-sparse (CHOLMOD, the smoothing fit's fastest solver, built
+# from source against them); without them the fit uses scipy's SuperLU (same results).
+[ -e /usr/include/suitesparse/cholmod.h ] || missing+=(libsuitesparse-dev)
 if [ ${#missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ]; then
         apt-get update -qq
@@ -20,4 +23,8 @@ fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q -e '.[dev]'
+if [ -e /usr/include/suitesparse/cholmod.h ]; then
+    .venv/bin/python -m pip install -q -e '.[dev,cholmod]' ||
+        echo "setup.sh: scikit-sparse did not build; the smoothing fit will use SuperLU" >&2
+fi
 echo "setup.sh: ready (.venv/bin/c1mesh)" >&2
