@@ -29,7 +29,7 @@ from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import trim
+from c1mesh.stages.trim import trim_mesh
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.warnings import auto_limit, fit_warnings
@@ -305,16 +305,18 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             gradient_source = "heights"
     with timer.stage("triangulate"):
         triangles = delaunay(hf.xy)
-        triangles, trim_report = trim(hf.xy, triangles, max_edge=options.max_edge)
+        mesh, trim_report = trim_mesh(hf.xy, triangles, max_edge=options.max_edge)
         if not plan_heights:     # its angles and noise widths compare heights with plane lengths
-            triangles, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, triangles, trim_report,
-                                                     view_rules_apply(options.classes, frame.axes))
-        if triangles.shape[0] == 0:
+            mesh, trim_report = remove_curtains(hf.xy, hf.z, hf.gradients, mesh, trim_report,
+                                                view_rules_apply(options.classes, frame.axes))
+        if mesh.triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
-        used, triangles = compact_vertices(hf.xy, triangles)
+        used, triangles = compact_vertices(hf.xy, mesh.triangles)
     with timer.stage("interpolate"):
+        table, mesh = mesh.edge_table(used), None      # the trim's edge sort serves the interpolator
         interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
-                                                 scheme, options.overshoot, heights=not plan_heights)
+                                                 scheme, options.overshoot, heights=not plan_heights,
+                                                 table=table)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied)
 

@@ -58,13 +58,15 @@ def compact_vertices(xy, triangles):
 
 
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,
-                         heights: bool = True) -> tuple[RSDInterpolator, Any]:
+                         heights: bool = True, table=None) -> tuple[RSDInterpolator, Any]:
     """The RSDInterpolator of a (noisy) height field with its overshoot controlled
     (c1mesh.stages.limiter.control_overshoot in mode `overshoot`: its values are the reconciled
     heights), the edges numbered once for both; and the limiter's report. Shared by the
     plane and the perspective fits (these pass heights=False; control_overshoot says why, and
-    so do plane fits of heights in units of their own, `_plan_heights`)."""
-    table = edge_table(triangles, points.shape[0]) if overshoot != "off" else None
+    so do plane fits of heights in units of their own, `_plan_heights`). table: the
+    topology.EdgeTable of the triangles when already built (trim.TrimmedMesh.edge_table)."""
+    if table is None and overshoot != "off":
+        table = edge_table(triangles, points.shape[0])
     values, limited, directions, report = control_overshoot(points, values, gradients, triangles,
                                                             overshoot, table, heights=heights)
     interp = RSDInterpolator(points, values, limited, triangles=triangles, scheme=scheme,
