@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import c1mesh.pipeline.driver as pipeline
-from c1mesh.stages.curtains import REASONS, _needs_trim, curtain_triangles, noise_floor, remove_curtains
+from c1mesh.stages.curtains import REASONS, curtain_triangles, noise_floor, remove_curtains
 from c1mesh.pipeline.driver import FitOptions, fit
 from c1mesh.testing.quality import folded_faces
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import trim
+from c1mesh.stages.trim import retrim, trim, trim_mesh
 
 SAMPLES = Path(__file__).resolve().parents[1] / "data_samples"
 
@@ -114,23 +114,45 @@ def test_slivers_narrower_than_the_noise_are_dropped_and_only_they():
     np.testing.assert_array_equal(masks["thinner_than_noise"], expected)
 
 
-def test_trim_runs_again_exactly_when_the_holes_need_it():
-    """remove_curtains skips the second trim unless a hole left a bowtie vertex or exposed a
-    sliver: on random holes in random triangulations (some with near-collinear runs, which
-    make slivers), that check agrees with whether trim itself would remove anything."""
+def test_retrim_around_the_holes_is_a_whole_trim_again():
+    """remove_curtains re-trims only around its holes (trim.retrim): on random holes in
+    random trimmed triangulations (some with near-collinear runs, which make slivers and
+    bowties), it keeps exactly the triangles, in the same order, that trim itself keeps
+    when run again on what the holes left, and counts the same slivers and bowties."""
     rng = np.random.default_rng(1)
-    needed = []
+    changed = 0
     for trial in range(120):
         xy = rng.random((300, 2))
         if trial % 3 == 0:
             xy[:40, 1] = 0.5 + 1e-4 * rng.random(40)
-        tri, _ = trim(xy, delaunay(xy))
-        cut = rng.random(len(tri)) < (0.005, 0.02, 0.1)[trial % 3]
-        cut[trial % len(tri)] = True
-        kept = tri[~cut]
-        needed.append(_needs_trim(xy, kept, tri[cut]))
-        assert needed[-1] == (trim(xy, kept, max_edge=None)[0].shape[0] < kept.shape[0])
-    assert any(needed) and not all(needed)
+        mesh, _ = trim_mesh(xy, delaunay(xy))
+        cut = rng.random(len(mesh.triangles)) < (0.005, 0.02, 0.1)[trial % 3]
+        cut[trial % len(mesh.triangles)] = True
+        kept = mesh.triangles[~cut]
+        expected, report = trim(xy, kept, max_edge=None)
+        after, counts = retrim(mesh, np.flatnonzero(mesh.alive)[cut])
+        assert np.array_equal(after.triangles, expected)
+        assert counts == report.removed
+        changed += expected.shape[0] < kept.shape[0]
+    assert 0 < changed < 120
+
+
+def test_a_trimmed_mesh_gives_what_the_triangle_array_gives():
+    """remove_curtains of trim_mesh's TrimmedMesh: the triangles and report of the array
+    path, and a noise floor from the mesh's own edges equal to the one of a fresh sort."""
+    rng = np.random.default_rng(4)
+    xy = rng.random((3000, 2))
+    xy[:300, 1] = 0.5 + 1e-4 * rng.random(300)        # slivers for the re-trim to peel
+    z = np.sin(3 * xy[:, 0]) + 0.02 * rng.standard_normal(len(xy))
+    gradients = np.stack([3 * np.cos(3 * xy[:, 0]), np.zeros(len(xy))], axis=1)
+    tri, report = trim(xy, delaunay(xy))
+    mesh, mesh_report = trim_mesh(xy, delaunay(xy))
+    assert np.array_equal(mesh.triangles, tri) and mesh_report == report
+    assert noise_floor(xy, z, gradients, tri, edges=mesh.edges()) == noise_floor(xy, z, gradients, tri)
+    kept, report = remove_curtains(xy, z, gradients, tri, report)
+    after, mesh_report = remove_curtains(xy, z, gradients, mesh, mesh_report)
+    assert report.removed["thinner_than_noise"] > 0
+    assert np.array_equal(after.triangles, kept) and mesh_report == report
 
 
 def test_exact_smooth_samples_lose_no_triangle_as_a_curtain():

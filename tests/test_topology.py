@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.engine.topology import edge_table, sort_keys
+from c1mesh.engine.topology import edge_table, edge_table_sides, sort_keys, sub_table
 from c1mesh.engine.triangulation import delaunay
 
 
@@ -55,3 +55,49 @@ def test_edge_in_three_triangles_is_refused():
     tri = np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
     with pytest.raises(InputError, match=r"edge \(0, 1\) belongs to 3 triangles"):
         edge_table(tri, 5)
+
+
+FIELDS = ("edges", "tri_edge", "forward", "owner", "owner_slot", "count")
+
+
+def test_edge_table_sides_gives_each_edges_second_slot_and_the_neighbours(shuffled_mesh):
+    """The second slot of every edge and the triangle across every slot, against a loop
+    over the slots holding each unordered vertex pair."""
+    tri, n = shuffled_mesh
+    table, other, neighbours = edge_table_sides(tri, n)
+    plain = edge_table(tri, n)
+    assert all(np.array_equal(getattr(table, f), getattr(plain, f)) for f in FIELDS)
+    slots = {}
+    for t in range(len(tri)):
+        for k in range(3):
+            slots.setdefault(frozenset((tri[t, (k + 1) % 3], tri[t, (k + 2) % 3])), []).append((t, k))
+    expected_nb = np.full((len(tri), 3), -1)
+    for pair in slots.values():
+        if len(pair) == 2:
+            (t1, k1), (t2, k2) = pair
+            expected_nb[t1, k1], expected_nb[t2, k2] = t2, t1
+    assert np.array_equal(neighbours, expected_nb)
+    for e, (i, j) in enumerate(table.edges):
+        pair = slots[frozenset((i, j))]
+        first = (table.owner[e], table.owner_slot[e])
+        rest = [3 * t + k for t, k in pair if (t, k) != first]
+        assert other[e] == (rest[0] if rest else -1)
+
+
+@pytest.mark.parametrize("drop", [0.0, 0.03, 0.5, 1.0])
+def test_sub_table_is_the_edge_table_of_the_kept_triangles(shuffled_mesh, drop):
+    """sub_table(keep) = edge_table(tri[keep]) field for field (dtype too), also with the
+    vertices renumbered as pipeline.steps.compact_vertices does."""
+    tri, n = shuffled_mesh
+    table, other, _ = edge_table_sides(tri, n)
+    keep = np.random.default_rng(5).random(len(tri)) >= drop
+    sub, expected = sub_table(table, keep, other), edge_table(tri[keep], n)
+    for f in FIELDS:
+        assert np.array_equal(getattr(sub, f), getattr(expected, f)), f
+        assert getattr(sub, f).dtype == getattr(expected, f).dtype, f
+    used = np.flatnonzero(np.bincount(tri[keep].ravel(), minlength=n))
+    remap = np.full(n, -1)
+    remap[used] = np.arange(used.size)
+    sub, expected = sub_table(table, keep, other, used), edge_table(remap[tri[keep]], used.size)
+    for f in FIELDS:
+        assert np.array_equal(getattr(sub, f), getattr(expected, f)), f

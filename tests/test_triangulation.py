@@ -404,3 +404,45 @@ def test_trim_of_lidar_ground_does_not_depend_on_triangle_order():
     shuffled, _ = trim(xy, triangles[np.random.default_rng(0).permutation(len(triangles))])
     as_set = lambda t: set(map(tuple, np.sort(t, axis=1).tolist()))      # noqa: E731
     assert as_set(shuffled) == as_set(kept)
+
+
+def test_trim_mesh_keeps_what_trim_keeps_with_the_kept_triangles_edge_table():
+    """trim_mesh (the fit's trim, sharing its edge sort) against trim on Autzen ground (57
+    bowtie triangles, slivers): the same triangles and report, and an edge table equal to
+    edge_table of the kept triangles."""
+    from c1mesh.engine.topology import edge_table
+    from c1mesh.stages.trim import trim_mesh
+
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(Path(__file__).resolve().parent.parent / "data_samples" / "autzen_trim.laz"))
+    xy = np.unique(np.column_stack([las.x, las.y])[np.asarray(las.classification) == 2], axis=0)
+    triangles = delaunay(xy)
+    kept, report = trim(xy, triangles)
+    mesh, mesh_report = trim_mesh(xy, triangles)
+    assert report.removed["bowtie"] > 0 and report.removed["sliver"] > 0
+    assert np.array_equal(mesh.triangles, kept) and mesh_report == report
+    table, expected = mesh.edge_table(), edge_table(kept, len(xy))
+    for field in ("edges", "tri_edge", "forward", "owner", "owner_slot", "count"):
+        assert np.array_equal(getattr(table, field), getattr(expected, field)), field
+
+
+def test_bowtie_search_at_given_vertices_finds_what_the_whole_search_finds():
+    """remove_bowties(at=...) looks only at the triangles around those vertices; where it
+    is given every vertex of a real trim's bowties, it removes what the whole search does."""
+    from c1mesh.stages.trim import remove_bowties, triangle_neighbours
+
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(Path(__file__).resolve().parent.parent / "data_samples" / "autzen_trim.laz"))
+    xy = np.unique(np.column_stack([las.x, las.y])[np.asarray(las.classification) == 2], axis=0)
+    triangles = delaunay(xy)
+    kept, _ = trim(xy, triangles, min_circle_ratio=0.0)
+    rng = np.random.default_rng(2)
+    alive = rng.random(len(kept)) > 0.2                    # holes everywhere: many bowties
+    nb = triangle_neighbours(kept, len(xy))
+    whole = remove_bowties(kept, alive.copy(), nb)
+    at = np.zeros(len(xy), dtype=bool)
+    at[kept[~alive].ravel()] = True                        # every vertex whose star changed
+    local = remove_bowties(kept, alive.copy(), nb, at=at)
+    assert whole.size > 100 and np.array_equal(local, whole)
+    at[kept[whole[0]]] = False                             # not looked at: not cut there
+    assert not np.isin(whole[0], remove_bowties(kept, alive.copy(), nb, at=at))

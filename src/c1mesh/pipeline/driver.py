@@ -30,7 +30,7 @@ from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import trim
+from c1mesh.stages.trim import trim_mesh
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, parse_strength
 from c1mesh.stages.surface import PLANE_LEVEL
@@ -337,24 +337,26 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
             (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
         triangles = delaunay(xy)
-        triangles, trim_report = trim(xy, triangles, max_edge=options.max_edge)
+        mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
         if not plan_heights:     # its angles and noise widths compare heights with plane lengths
-            triangles, trim_report = remove_curtains(xy, z, grads, triangles, trim_report,
-                                                     view_rules_apply(options.classes, frame.axes))
-        if triangles.shape[0] == 0:
+            mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
+                                                view_rules_apply(options.classes, frame.axes))
+        if mesh.triangles.shape[0] == 0:
             raise InputError("no triangles are left after trimming; try --max-edge none")
-        used, triangles = compact_vertices(xy, triangles)
-        if vertices is not None:
-            used = vertices[used]
+        local, triangles = compact_vertices(xy, mesh.triangles)
+        used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None
     with timer.stage("interpolate"):
+        table, mesh = mesh.edge_table(local), None      # the trim's edge sort serves the interpolator
         if strength is None:
             interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
-                                                     scheme, options.overshoot, heights=not plan_heights)
+                                                     scheme, options.overshoot, heights=not plan_heights,
+                                                     table=table)
         else:
             data = None if vertices is None else (hf.xy, hf.z)
             interp, overshoot, smoothing = smoothed_interpolator(hf.xy[used], hf.z[used], triangles, scheme,
-                                                                 options.overshoot, strength, hf.spacing, data)
+                                                                 options.overshoot, strength, hf.spacing, data,
+                                                                 table=table)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied, smoothing)
 

@@ -59,13 +59,15 @@ def compact_vertices(xy, triangles):
 
 
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,
-                         heights: bool = True) -> tuple[RSDInterpolator, Any]:
+                         heights: bool = True, table=None) -> tuple[RSDInterpolator, Any]:
     """The RSDInterpolator of a (noisy) height field with its overshoot controlled
     (c1mesh.stages.limiter.control_overshoot in mode `overshoot`: its values are the reconciled
     heights), the edges numbered once for both; and the limiter's report. Shared by the
     plane and the perspective fits (these pass heights=False; control_overshoot says why, and
-    so do plane fits of heights in units of their own, `_plan_heights`)."""
-    table = edge_table(triangles, points.shape[0]) if overshoot != "off" else None
+    so do plane fits of heights in units of their own, `_plan_heights`). table: the
+    topology.EdgeTable of the triangles when already built (trim.TrimmedMesh.edge_table)."""
+    if table is None and overshoot != "off":
+        table = edge_table(triangles, points.shape[0])
     values, limited, directions, report = control_overshoot(points, values, gradients, triangles,
                                                             overshoot, table, heights=heights)
     interp = RSDInterpolator(points, values, limited, triangles=triangles, scheme=scheme,
@@ -74,7 +76,7 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
 
 
 def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, strength, spacing: float,
-                          data: tuple | None = None) -> tuple[RSDInterpolator, Any, Any]:
+                          data: tuple | None = None, table=None) -> tuple[RSDInterpolator, Any, Any]:
     """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
     height field, its limiter report and the SmoothFit.
 
@@ -83,9 +85,10 @@ def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, str
     (the vertices are the data) or (xy (M, 2), z (M,)) of all points (--spacing). The fit's
     gradients agree with its heights by construction, so of the overshoot remedies only the
     edge directions apply (overshoot "limit"): they are chosen from the geometry before
-    the fit, which is then the spline of those directions.
+    the fit, which is then the spline of those directions. table: the triangles'
+    topology.edge_table when built already (the trim's), else built here.
     """
-    table = edge_table(triangles, points.shape[0])
+    table = edge_table(triangles, points.shape[0]) if table is None else table
     directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
     data_xy, data_z = (None, values) if data is None else data
     fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=strength, spacing_h=spacing,

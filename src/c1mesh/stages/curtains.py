@@ -30,7 +30,7 @@ data of a height field over the plane whose slopes are below tan(90° - GRAZING_
 whose curvature the triangles resolve lose nothing (their noise floor is an O(h³)
 residual, below the width of all but degenerate triangles; tested on the analytic
 samples). Holes are left where curtains were; `remove_curtains` then lets
-trim.trim peel the slivers and bowties the holes expose, so the result keeps
+trim.retrim peel the slivers and bowties the holes expose, so the result keeps
 trim's guarantees (edge-manifold, no bowtie vertex).
 
 The first three rules take e3 as a view ray: they find what a scanner looking along e3
@@ -116,7 +116,8 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     return {"shadow_edge": shadow, "grazing": grazing, "facing_away": away, "thinner_than_noise": thin}
 
 
-def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray) -> float:
+def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
+                edges: np.ndarray | None = None) -> float:
     """Median |trapezoid residual| (height units) over every edge of the triangles, each
     edge once: the height noise the data's gradients cannot explain
     (c1mesh.stages.limiter.trapezoid_residuals; O(h³) for exact smooth data).
@@ -124,12 +125,16 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
     Exact and independent of the triangles' order, so a survey fitted in tiles finds the
     same floor by a streamed median of its tiles' edges (c1mesh.survey.tiled_fit); edges run
     from the lower point number to the higher, as the limiter's edge table has them.
+    edges: the triangles' unique edges (E, 2), lower point first, sorted, when known
+    (trim.TrimmedMesh.edges): then no sort is needed.
     """
-    from c1mesh.stages.limiter import trapezoid_residuals
     from c1mesh.engine.topology import sort_keys
 
     if triangles.shape[0] == 0:
         return 0.0
+    if edges is not None:
+        return float(np.median(np.abs(_residuals(xy, z, gradients, np.ascontiguousarray(edges[:, 0]),
+                                                 np.ascontiguousarray(edges[:, 1])))))
     n = np.int64(xy.shape[0])
     tri = triangles.astype(np.int64, copy=False)
     keys = np.concatenate([np.minimum(tri[:, a], tri[:, b]) * n + np.maximum(tri[:, a], tri[:, b])
@@ -154,73 +159,34 @@ def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarr
     return (z[b] - z[a]) - 0.5 * (pred_a + pred_b)
 
 
-def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
+def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles,
                     trim_report, view_rules: bool = True):
-    """Triangles (T', 3) without curtains, and the trim report (trim.TrimReport)
-    with the curtains counted by reason in its "removed" (and the slivers and bowties the
-    holes exposed added to trim's own counts).
+    """Triangles without curtains, and the trim report (trim.TrimReport) with the curtains
+    counted by reason in its "removed" (and the slivers and bowties the holes exposed added
+    to trim's own counts).
 
-    triangles: the trimmed triangulation (trim.trim), so that a triangle trim
-    removes as too long or thin is counted there, not here. trim runs again only when a
-    hole exposes a sliver or leaves a bowtie vertex (`_needs_trim`), which a few isolated
-    holes in a large survey rarely do.
+    triangles: the trimmed triangulation, as trim.trim's (T, 3) array or trim.trim_mesh's
+    TrimmedMesh (then a TrimmedMesh is returned, and its edges serve the noise floor: no
+    sort), so that a triangle trim removes as too long or thin is counted there, not here.
+    The holes are then re-trimmed where they are (trim.retrim), not the whole mesh again.
     """
-    from c1mesh.stages.trim import trim
+    from c1mesh.stages.trim import TrimmedMesh, retrim
 
-    masks = curtain_triangles(xy, z, gradients, triangles, view_rules=view_rules)
+    mesh = triangles if isinstance(triangles, TrimmedMesh) else None
+    tri = mesh.triangles if mesh is not None else triangles
+    floor = noise_floor(xy, z, gradients, tri, edges=mesh.edges() if mesh is not None else None)
+    masks = curtain_triangles(xy, z, gradients, tri, view_rules=view_rules, floor=floor)
     curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
     removed = dict(trim_report.removed)
     removed.update({reason: int(masks[reason].sum()) for reason in REASONS})
     if not curtain.any():
         return triangles, replace(trim_report, removed=removed)
-    kept = triangles[~curtain]
-    if _needs_trim(xy, kept, triangles[curtain]):
-        kept, cleanup = trim(xy, kept, max_edge=None)
-        for reason, count in cleanup.removed.items():
-            removed[reason] = removed.get(reason, 0) + count
+    whole = TrimmedMesh.of(xy, tri) if mesh is None else mesh
+    whole, cleanup = retrim(whole, np.flatnonzero(whole.alive)[curtain])
+    for reason, count in cleanup.items():
+        removed[reason] = removed.get(reason, 0) + count
+    kept = whole.triangles
     used = np.count_nonzero(np.bincount(kept.ravel(), minlength=xy.shape[0]))
-    return kept, replace(trim_report, triangles_after=int(kept.shape[0]), removed=removed,
-                         unreferenced_points=int(xy.shape[0] - used))
-
-
-def _needs_trim(xy: np.ndarray, kept: np.ndarray, cut: np.ndarray,
-                min_circle_ratio: float = 0.01) -> bool:
-    """Whether removing the triangles `cut` (C, 3) left a bowtie vertex or exposed a boundary
-    triangle thinner than trim's sliver rule, in the remaining triangles `kept` (T', 3).
-
-    Only the corners of cut triangles can become bowties, and only kept triangles that
-    shared an edge with a cut one are newly on the boundary. A vertex's k remaining
-    triangles form one fan exactly when m, the number of its edges shared by two of them,
-    is k (closed fan) or k - 1 (open fan); fewer means several fans.
-    """
-    from c1mesh.stages.trim import circle_ratio
-
-    n = xy.shape[0]
-    touched = np.zeros(n, dtype=bool)
-    touched[cut.ravel()] = True
-    patch = kept[touched[kept].any(axis=1)]
-    if patch.shape[0] == 0:
-        return False
-    keys, owners = [], []
-    for k in range(3):                                 # the two edges at each touched corner
-        v = patch[:, k]
-        at = touched[v]
-        for other in (patch[:, (k + 1) % 3], patch[:, (k + 2) % 3]):
-            keys.append(v[at] * n + other[at])
-        owners.append(v[at])
-    edge_keys, edge_count = np.unique(np.concatenate(keys), return_counts=True)
-    incident = np.bincount(np.concatenate(owners), minlength=n)
-    shared = np.bincount(edge_keys[edge_count == 2] // n, minlength=n)
-    if np.any(touched & (incident > 0) & (shared < incident - 1)):
-        return True
-    cut_edges = np.concatenate([np.sort(cut[:, [i, j]], axis=1) for i, j in ((0, 1), (1, 2), (2, 0))])
-    cut_keys = cut_edges[:, 0] * n + cut_edges[:, 1]
-    exposed = np.zeros(patch.shape[0], dtype=bool)
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        pair = np.sort(patch[:, [i, j]], axis=1)
-        exposed |= np.isin(pair[:, 0] * n + pair[:, 1], cut_keys)
-    if not exposed.any():
-        return False
-    p = xy[patch[exposed]]
-    lengths = np.stack([np.linalg.norm(p[:, (k + 1) % 3] - p[:, k], axis=1) for k in range(3)], axis=1)
-    return bool(np.any(circle_ratio(lengths) < min_circle_ratio))
+    return whole if mesh is not None else kept, replace(
+        trim_report, triangles_after=int(kept.shape[0]), removed=removed,
+        unreferenced_points=int(xy.shape[0] - used))

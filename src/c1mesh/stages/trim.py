@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap
-from c1mesh.engine.topology import sort_keys
+from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sort_keys, sub_table
 from c1mesh.engine.triangulation import as_xy
 
 AUTO_EDGE_FACTOR = 4.0
@@ -69,11 +69,92 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     is) so is the result, and no vertex is a bowtie: the triangles around every vertex
     form one fan (where two fans met at a vertex, the smaller ones are removed).
     Raises InputError for bad shapes, indices, options, or a non-edge-manifold input.
+    `trim_mesh` is the same trim for a fit that goes on with the kept triangles' edges.
     """
     pts = as_xy(xy)
     tri = _as_triangles(triangles, pts.shape[0])
     lengths, neighbours = overlap(lambda: edge_lengths(pts, tri),     # independent
                                   lambda: triangle_neighbours(tri, pts.shape[0]))
+    alive, report = _trim(pts.shape[0], tri, lengths, neighbours, max_edge, min_circle_ratio)
+    return tri[alive], report
+
+
+class TrimmedMesh:
+    """The triangles a trim kept, with the topology of the triangulation they were cut from,
+    so the stages after the trim reuse its one edge sort: curtains.remove_curtains (the
+    noise floor's edges, the re-trim around its holes) and the interpolator (`edge_table`).
+
+    source (T, 3) int64: the triangulation trimmed; alive (T,) bool: the kept triangles;
+    triangles (T', 3): source[alive], in input order and orientation; table, other,
+    neighbours: topology.edge_table_sides(source, n_points); lengths (T, 3): edge_lengths
+    of source. `without(drop)` removes more triangles (sharing the rest).
+    """
+
+    def __init__(self, source: np.ndarray, alive: np.ndarray, table: EdgeTable, other: np.ndarray,
+                 neighbours: np.ndarray, lengths: np.ndarray, n_points: int):
+        self.source, self.alive, self.table, self.other = source, alive, table, other
+        self.neighbours, self.lengths, self.n_points = neighbours, lengths, n_points
+        self.triangles = np.compress(alive, source, axis=0)     # 3x faster than a 2-d mask
+
+    @classmethod
+    def of(cls, xy: np.ndarray, triangles: ArrayLike) -> "TrimmedMesh":
+        """All of ``triangles`` (T, 3) over the points xy (n, 2), nothing removed."""
+        pts = as_xy(xy)
+        tri = _as_triangles(triangles, pts.shape[0])
+        lengths, (table, other, neighbours) = overlap(lambda: edge_lengths(pts, tri),
+                                                      lambda: edge_table_sides(tri, pts.shape[0]))
+        return cls(tri, np.ones(tri.shape[0], dtype=bool), table, other, neighbours, lengths, pts.shape[0])
+
+    def with_alive(self, alive: np.ndarray) -> "TrimmedMesh":
+        """The same source with the triangles ``alive`` (T,) bool kept."""
+        return TrimmedMesh(self.source, alive, self.table, self.other, self.neighbours,
+                           self.lengths, self.n_points)
+
+    def edges(self) -> np.ndarray:
+        """(E', 2) the kept triangles' unique edges, lower vertex first, sorted."""
+        return np.compress(live_edges(self.table, self.alive, self.other)[1] > 0, self.table.edges, axis=0)
+
+    def edge_table(self, used: np.ndarray | None = None) -> EdgeTable:
+        """topology.edge_table of the kept triangles (self.triangles), with the vertices
+        renumbered by ``used`` as pipeline.steps.compact_vertices does (None: not)."""
+        return sub_table(self.table, self.alive, self.other, used)
+
+
+def trim_mesh(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "auto",
+              min_circle_ratio: float = MIN_CIRCLE_RATIO) -> tuple[TrimmedMesh, TrimReport]:
+    """`trim`, with the kept triangles as a TrimmedMesh (mesh.triangles: `trim`'s result).
+
+    Its edge table comes from the same sort as its neighbours, so a fit numbers the edges
+    once (a non-manifold input raises InputError from topology.edge_table instead)."""
+    mesh = TrimmedMesh.of(xy, triangles)
+    alive, report = _trim(mesh.n_points, mesh.source, mesh.lengths, mesh.neighbours, max_edge,
+                          min_circle_ratio)
+    return mesh.with_alive(alive), report
+
+
+def retrim(mesh: TrimmedMesh, drop: np.ndarray, min_circle_ratio: float = MIN_CIRCLE_RATIO
+           ) -> tuple[TrimmedMesh, dict[str, int]]:
+    """The mesh without the live triangles ``drop`` (indices into mesh.source), and without
+    the slivers and bowties their holes expose; and {"long_edge": 0, "sliver", "bowtie"}.
+
+    The same as trim(xy, mesh.triangles minus drop, max_edge=None) for a mesh that trim
+    left (no thin triangle on its boundary, no bowtie vertex): only the triangles beside
+    the holes can be newly on the boundary, and only vertices of removed triangles can
+    become bowties, so peeling starts beside the holes and bowties are looked for there.
+    """
+    alive = mesh.alive.copy()
+    alive[drop] = False
+    at = np.zeros(mesh.n_points, dtype=bool)
+    at[mesh.source[drop].ravel()] = True
+    thin = _Thin(mesh.lengths, min_circle_ratio)
+    sliver, bowtie = _peel_and_cut(mesh.source, alive, mesh.neighbours, thin,
+                                   mesh.neighbours[drop].ravel(), at)
+    return mesh.with_alive(alive), {"long_edge": 0, "sliver": sliver, "bowtie": bowtie}
+
+
+def _trim(n_points: int, tri: np.ndarray, lengths: np.ndarray, neighbours: np.ndarray, max_edge,
+          min_circle_ratio: float) -> tuple[np.ndarray, TrimReport]:
+    """`trim` given the edge lengths and neighbours: (alive (T,) bool, report)."""
     limit = _edge_limit(lengths, neighbours, max_edge)
     if not 0.0 <= min_circle_ratio <= 1.0:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
@@ -84,22 +165,35 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
             alive &= ~(lengths[:, k] > limit)
     long_edge = int((~alive).sum())
     thin = _Thin(lengths, min_circle_ratio)
-    sliver = bowtie = 0
     front = np.flatnonzero(alive & _on_boundary(alive, neighbours))
     front = front[thin[front]]
-    while True:
-        sliver += peel(alive, neighbours, thin, front)
-        cut = remove_bowties(tri, alive, neighbours)
-        if cut.size == 0:
-            break
-        bowtie += cut.size
-        front = neighbours[cut].ravel()
-    out = tri[alive]
-    used = np.count_nonzero(np.bincount(out.ravel(), minlength=pts.shape[0]))
+    sliver, bowtie = _peel_and_cut(tri, alive, neighbours, thin, front)
+    out = np.compress(alive, tri, axis=0)
+    used = np.count_nonzero(np.bincount(out.ravel(), minlength=n_points))
     report = TrimReport(triangles_before=int(tri.shape[0]), triangles_after=int(out.shape[0]),
                         removed={"long_edge": long_edge, "sliver": sliver, "bowtie": bowtie},
-                        max_edge=limit, unreferenced_points=int(pts.shape[0] - used))
-    return out, report
+                        max_edge=limit, unreferenced_points=int(n_points - used))
+    return alive, report
+
+
+def _peel_and_cut(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray, thin: "_Thin",
+                  front: np.ndarray, at: np.ndarray | None = None) -> tuple[int, int]:
+    """Peel thin boundary triangles from `front` and cut bowtie fans until neither is left;
+    returns (slivers, bowtie triangles) removed. at: (n,) bool vertices whose stars may
+    have changed (None: all), grown by the corners of every triangle removed here."""
+    sliver = bowtie = 0
+    while True:
+        peeled = peel(alive, neighbours, thin, front)
+        sliver += peeled.size
+        if at is not None:
+            at[tri[peeled].ravel()] = True
+        cut = remove_bowties(tri, alive, neighbours, at)
+        if cut.size == 0:
+            return sliver, bowtie
+        bowtie += cut.size
+        if at is not None:
+            at[tri[cut].ravel()] = True
+        front = neighbours[cut].ravel()
 
 
 def circle_ratio(lengths: np.ndarray) -> np.ndarray:
@@ -205,25 +299,25 @@ def _on_boundary(alive: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     return np.any((neighbours < 0) | ~alive[neighbours], axis=1)
 
 
-def peel(alive: np.ndarray, neighbours: np.ndarray, thin, front: np.ndarray) -> int:
+def peel(alive: np.ndarray, neighbours: np.ndarray, thin, front: np.ndarray) -> np.ndarray:
     """Remove live thin triangles starting from `front`, then their thin live neighbours,
-    repeatedly (a removed triangle exposes its neighbours). Returns how many were removed.
+    repeatedly (a removed triangle exposes its neighbours). Returns the removed triangles.
 
     alive (T,) bool, changed in place; neighbours (T, 3) as triangle_neighbours gives
     them; thin: thin[idx] (T,) bool for triangle indices idx; front: the triangles to
     start from (those not live, thin and on the boundary are skipped). The survey fitted
     in tiles peels the survey's thin triangles with it (c1mesh.survey.tiled_trim.peeled)."""
-    removed = 0
+    removed = []
     front = np.unique(front[front >= 0])
     front = front[alive[front] & thin[front] & _on_boundary(alive, neighbours[front])] \
         if front.size else front
     while front.size:
         alive[front] = False
-        removed += front.size
+        removed.append(front)
         nxt = np.unique(neighbours[front].ravel())
         nxt = nxt[nxt >= 0]
         front = nxt[alive[nxt] & thin[nxt]]
-    return removed
+    return np.concatenate(removed) if removed else np.zeros(0, dtype=np.int64)
 
 
 def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
@@ -238,15 +332,23 @@ def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
     at: (n,) bool, the vertices to look at (None: all); a tile passes the vertices whose
     whole star it holds.
     """
-    open_t, open_k = np.nonzero(alive[:, None] & ((neighbours < 0) | ~alive[neighbours]))
-    ends = np.concatenate([tri[open_t, (open_k + 1) % 3], tri[open_t, (open_k + 2) % 3]])
     n = tri.max(initial=0) + 1
+    if at is None:
+        live = None
+        open_t, open_k = np.nonzero(alive[:, None] & ((neighbours < 0) | ~alive[neighbours]))
+    else:            # the live triangles at vertices of `at` (all a bowtie there needs), in order
+        at = at[:n]
+        live = np.flatnonzero(alive & (at[tri[:, 0]] | at[tri[:, 1]] | at[tri[:, 2]]))
+        across = neighbours[live]
+        open_r, open_k = np.nonzero((across < 0) | ~alive[across])
+        open_t = live[open_r]
+    ends = np.concatenate([tri[open_t, (open_k + 1) % 3], tri[open_t, (open_k + 2) % 3]])
     bow = np.bincount(ends, minlength=n) > 2
     if at is not None:
-        bow &= at[:n]
+        bow &= at
     if not bow.any():
         return np.zeros(0, dtype=np.int64)
-    live = np.flatnonzero(alive)
+    live = np.flatnonzero(alive) if live is None else live
     t, j = np.nonzero(bow[tri[live]])                          # incidences (triangle, slot)
     t = live[t]
     v = tri[t, j]
