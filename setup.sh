@@ -11,7 +11,8 @@ ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
 command -v cc >/dev/null 2>&1 || missing+=(build-essential)
 # SuiteSparse's headers for scikit-sparse (CHOLMOD, the smoothing fit's fastest solver, built
 # from source against them); without them the fit uses scipy's SuperLU (same results).
-[ -e /usr/include/suitesparse/cholmod.h ] || missing+=(libsuitesparse-dev)
+# libopenblas0-pthread: Debian's reference BLAS would make CHOLMOD's supernodal factor ~2x slower.
+[ -e /usr/include/suitesparse/cholmod.h ] || missing+=(libsuitesparse-dev libopenblas0-pthread)
 if [ ${#missing[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ]; then
         apt-get update -qq
