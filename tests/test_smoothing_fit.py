@@ -130,3 +130,10 @@ def test_the_report_records_the_fit_and_suggests_smoothing_only_for_noisy_height
     best = min(facts["cv_curve"], key=lambda pair: pair[1])
     assert best[0] == facts["strength"]
     assert "suggestion" not in smoothed
+
+
+def test_thinned_vertices_draw_no_unused_points_warning():
+    """With --spacing most points are data, not vertices; they are on the surface all the same."""
+    report = fit(noisy_cloud(n=4000), None, FitOptions(axis="z", smooth=1.0, spacing=3.0)).report
+    assert report["points"]["kept"] < 0.3 * 4000
+    assert report["warnings"] == []

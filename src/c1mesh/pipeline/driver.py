@@ -201,7 +201,8 @@ class SurfaceModel:
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
     triangles index those n points); overshoot: the limiter's report (c1mesh.stages.limiter);
     gradient_source: "heights" (c1mesh.stages.height_gradients) or "normals".
-    smoothing: the c1mesh.stages.smoothing.SmoothFit of a smoothing fit, else None.
+    smoothing: the c1mesh.stages.smoothing.SmoothFit of a smoothing fit, else None;
+    thinned: its vertices are a --spacing thinning, fitted to all of hf's points.
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
     """
@@ -216,6 +217,7 @@ class SurfaceModel:
     gradient_source: str = "normals"
     max_slope_not_applied: str | None = None
     smoothing: Any = None
+    thinned: bool = False
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -358,7 +360,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                                  options.overshoot, strength, hf.spacing, data,
                                                                  table=table)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing)
+                        max_slope_not_applied, smoothing, vertices is not None)
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -466,10 +468,18 @@ def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool 
     pieces = mesh_pieces(interp.points, interp.triangles, interp.edge_table)
     return {"pieces": pieces, "c1_certificate": interp.c1_certificate(),
             "scheme": scheme_properties(interp.scheme).as_dict(),
-            "warnings": fit_warnings(len(cloud), int(model.used.size), trim_report.triangles_before,
+            "warnings": fit_warnings(len(cloud), points_on_surface(model), trim_report.triangles_before,
                                      trim_report.removed.get("long_edge", 0), trim_report.max_edge,
                                      auto_limit(options.max_edge),
                                      pieces["count"] if pieces_in_warnings else None)}
+
+
+def points_on_surface(model: SurfaceModel) -> int:
+    """The points the surface uses: its vertices, or with --spacing the points its
+    triangles cover (the data of the fit), for the unused-points warning."""
+    if model.thinned:
+        return int(model.hf.xy.shape[0] - model.smoothing.outside)
+    return int(model.used.size)
 
 
 def _report(source, output, options, cloud, model: SurfaceModel, frame_report: dict, level_from: str,
