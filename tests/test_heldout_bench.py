@@ -58,6 +58,7 @@ def test_crs_unit_reads_the_coordinate_unit():
     assert heldout.crs_unit(None) == 1.0
 
 
+@pytest.mark.slow
 def test_noise_free_terrain_tin_is_worst_end_to_end():
     """3,000 noise-free points over 20 m (spacing ~0.37 m), one seed, the scipy peers and
     c1mesh through the whole harness (evaluate, table)."""
