@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from c1mesh.core.threads import blas_threads
 from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple
 from c1mesh.stages.smoothing_energy import (N_LOCAL, SmoothingError, energy_blocks_of,
@@ -160,6 +161,13 @@ def available_solvers() -> list[str]:
     return names
 
 
+DIRECT_BLAS_THREADS = 1
+"""BLAS threads of the direct factorisations and solves. CHOLMOD's supernodal kernels give
+other bits on two BLAS threads than on one, so the fit's bytes would depend on the
+machine's cores and on where a tile ran; one thread costs about 5-10 % of the solve
+(200k vertices: 6.8-7.0 s against 6.2-6.7 s on two threads)."""
+
+
 class Factor:
     """A solver for one SPD matrix S: ``solve(b)`` for any number of right-hand sides.
 
@@ -173,7 +181,11 @@ class Factor:
         self.method = method
         self.S = S
         self.analysis = analysis
-        csc = S.T        # S is symmetric: its CSR transposed is its CSC, without a copy
+        with blas_threads(DIRECT_BLAS_THREADS):
+            self._factorise(S.T)  # S is symmetric: its CSR transposed is its CSC, without a copy
+
+    def _factorise(self, csc) -> None:
+        method = self.method
         try:
             if method == "cholmod":
                 from sksparse.cholmod import analyze
@@ -207,8 +219,9 @@ class Factor:
         the factorisation)."""
         if self.method in ("cholmod", "superlu"):
             direct = self._factor if self.method == "cholmod" else self._factor.solve
-            x = direct(b)
-            return x + direct(b - self.S @ x) if refine else x
+            with blas_threads(DIRECT_BLAS_THREADS):
+                x = direct(b)
+                return x + direct(b - self.S @ x) if refine else x
         x, info = spla.cg(self.S, b, x0=x0, rtol=1e-10, maxiter=2000, M=self._M)
         if info != 0:
             raise SmoothingError(f"conjugate gradients did not converge ({info} iterations)")

@@ -73,16 +73,18 @@ from c1mesh.survey.tiled_triangulation import triangulate_tiles
 from c1mesh.survey.tiled_trim import trim_tiles
 # c1mesh.cli and c1mesh.pipeline.driver still import these from here (their home is tiled_plan)
 
-TILED_STAGES = ("frame", "spill", "normals", "triangulate", "trim", "noise floors", "refine+write")
+TILED_STAGES = ("frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
+                "refine+write")
 """The stages fit_tiled reports (on_stage, the report's seconds), in order; "noise floors"
-only with the overshoot limiter (the default)."""
+only with the overshoot limiter (the default) of an exact fit, "smoothing" only with a
+smoothing strength (c1mesh.survey.tiled_smoothing)."""
 
 
 def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
               on_stage: Callable[[str], None] | None = None, directory=None,
               scheduler: str | None = None, jobs: int = 1,
               on_tile: Callable[[str, int, int], None] | None = None,
-              outputs: Sequence[str] | None = None) -> dict:
+              outputs: Sequence[str] | None = None, strength=None) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
     with outputs (one path per input file, output None), each input's owned part of it
     (c1mesh.survey.tiled_outputs: `fit --seamless -O` beyond --memory).
@@ -103,6 +105,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     The tiles are sized by the budget alone, so the output bytes do not depend on where
     the tasks ran or on how many ran at once. on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
+    strength: None (the exact fit) or the smoothing fit's, "auto" or s > 0
+    (c1mesh.survey.tiled_smoothing, which then replaces the limiter but for edge directions).
     """
     from c1mesh.survey.distributed import TaskRunner
     from c1mesh.survey.buffered_delaunay import TileGrid
@@ -168,7 +172,13 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             removed = trim_tiles(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
             done("trim")
             limiter = None
-            if options.overshoot == "limit":
+            if strength is not None:
+                from c1mesh.survey.tiled_smoothing import TiledSmoother
+
+                limiter = TiledSmoother(heights, triangle_files, grid, strength, longest, options.overshoot,
+                                        temps, runner, rows.name)
+                done("smoothing")
+            elif options.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)
                 done("noise floors")
             split = None if outputs is None else Split(InputOwners(file_counts), outputs,
@@ -202,6 +212,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = describe_crs(crs, crs_source)
+    if strength is not None:
+        report["smoothing"] = limiter.smoothing()
     return report
 
 

@@ -99,11 +99,12 @@ class HaloCache:
     a cached one, one file read). Triangles removed after the first read (the peel) are
     dropped as each halo is loaded: `removed` maps a tile to the removed triangles it
     owns, so a halo compares its triangles with those of the tiles it reads, not with
-    the survey's whole list. temps: tiled_input.Temps."""
+    the survey's whole list. temps: tiled_input.Temps; label: names its files (two caches
+    of different reach share one Temps)."""
 
-    def __init__(self, heights, triangle_files, grid, reach: float, temps):
+    def __init__(self, heights, triangle_files, grid, reach: float, temps, label: str = "halo"):
         self.heights, self.files, self.grid, self.reach = heights, triangle_files, grid, reach
-        self.temps, self.paths = temps, {}
+        self.temps, self.paths, self.label = temps, {}, label
         self.removed: dict[int, np.ndarray] = {}
 
     def tiles(self):
@@ -113,7 +114,7 @@ class HaloCache:
     def halo(self, tile: int) -> Halo:
         if tile not in self.paths:
             halo = read_halo(self.heights, self.files, self.grid, tile, self.reach)
-            self.paths[tile] = (self.temps.new(f"halo-{tile}.records"), self.temps.new(f"halo-{tile}.triangles"))
+            self.paths[tile] = self._new_paths(tile)
             halo.records.tofile(self.paths[tile][0])
             halo.triangles.astype("<i8").tofile(self.paths[tile][1])
             return self._drop(tile, halo)
@@ -127,12 +128,15 @@ class HaloCache:
         (distributed.TaskRunner; `cache_halo`), before the passes that use them.
         name(t) names tile t in errors; on_done(t, row) gets each task's report row."""
         tiles = [t for t in self.tiles() if t not in self.paths]
-        paths = {t: (self.temps.new(f"halo-{t}.records"), self.temps.new(f"halo-{t}.triangles")) for t in tiles}
+        paths = {t: self._new_paths(t) for t in tiles}
         for i, row in runner.map(cache_halo, len(tiles), lambda i: (self, tiles[i], paths[tiles[i]]),
                                  lambda i: name(tiles[i])):
             self.paths[tiles[i]] = paths[tiles[i]]
             if on_done:
                 on_done(tiles[i], row)
+
+    def _new_paths(self, tile: int):
+        return (self.temps.new(f"{self.label}-{tile}.records"), self.temps.new(f"{self.label}-{tile}.triangles"))
 
     def prune(self) -> None:
         """Rewrite the cached halos without the removed triangles, once the trim is done

@@ -1,0 +1,278 @@
+"""The smoothing fit (c1mesh.stages.smoothing) on a survey fitted in tiles: one solve per tile
+on its cell grown by a halo (one sweep of restricted overlapping Schwarz), each tile keeping
+the vertex data of the vertices in its own cell.
+
+What runs where, after the trim (c1mesh.survey.tiled_fit):
+
+- the spacing h, the strength's length unit: the median 3D distance from a height-field
+  point to its nearest other one, over every point of the survey (a task per tile on its
+  cell grown by the halo reach, then c1mesh.survey.streamed_median); in memory it is the
+  same median over a sample of at most 20,000 points (height_field), so λ can differ
+  from the in-memory fit's by that sampling;
+- the strength s: given, or with --smooth auto chosen by the in-memory search
+  (smoothing.smooth_fit's block cross-validation) on the halo of the tile holding the most
+  points, then used by every tile;
+- per tile (a task, `tile_solve`): the smoothing fit of the vertices and final triangles
+  within `smoothing_reach` of its cell, with the survey's h and s and the edge directions
+  of limiter.edge_directions on that halo (as smoothed_interpolator takes them in memory);
+  it writes the fitted height and gradient of every vertex in its cell, and the
+  directions of its own triangles' edges;
+- the refinement task of a tile (c1mesh.survey.tiled_refine) reads the fitted data of its
+  triangles' corners from the files of the tiles whose cells hold them.
+
+So every vertex has one value and one gradient, from the one tile whose cell holds it, and
+every edge one direction, whichever tile refines its triangles: the union is the C1 spline
+of those vertex data. It differs from the whole-survey fit only through the halo's cut:
+the fit's influence decays over a few smoothing lengths ℓ = s^(1/4) h (the length at which
+the energy λ ∫|D²F|² and the data term per area h⁻² balance), and the halo reaches
+HALO_LENGTHS of them (docs/smoothing.md shows the difference against the halo width).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, compact, halo_rows
+
+HALO_LENGTHS = 24.0
+"""A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
+than the limiter's halo (HALO_EDGES longest final edges: near holes and borders, where the
+edges are long, the gradients reach further). On a 12,000-point terrain with 2 cm noise the
+tiled fit's largest height difference from the one-tile fit was, relative to the residual
+RMS, 5e-2 at 16 lengths and 7e-4 at 24 for s = 100 (docs/smoothing.md has the table)."""
+FITTED = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("gx", "<f8"), ("gy", "<f8")])
+"""One fitted vertex in a tile's file: the height spill's record (survey number, frame
+position) with the fitted height and gradient."""
+
+
+def smoothing_reach(strength: float, spacing: float, longest_edge: float,
+                    lengths: float = HALO_LENGTHS) -> float:
+    """How far beyond its cell a tile's smoothing solve reads (frame units): `lengths`
+    smoothing lengths s^(1/4) h, and never less than the limiter's halo."""
+    return max(lengths * float(strength) ** 0.25 * spacing, HALO_EDGES * longest_edge) * (1 + 1e-9)
+
+
+def survey_spacing(heights, grid, reach: float, runner, name, temps) -> float:
+    """h: the median 3D nearest-neighbour distance over every height-field point (module
+    docstring), each tile's distances a task (`tile_spacings`) reading its cell grown by
+    reach (a point's nearest neighbour lies within its shortest final edge, at most reach)."""
+    from c1mesh.survey.streamed_median import streamed_median
+    from c1mesh.survey.tiled_halo import residual_blocks
+
+    tiles = [t for t in range(len(grid)) if heights.counts[t]]
+    paths = [temps.new(f"spacings-{t}.bin") for t in tiles]
+    for _ in runner.map(tile_spacings, len(tiles), lambda i: (heights, grid, tiles[i], reach, paths[i]),
+                        lambda i: name(tiles[i])):
+        pass
+
+    def blocks():
+        for path in paths:
+            yield from residual_blocks(path)
+    spacing = streamed_median(blocks)
+    for path in paths:
+        path.unlink()
+    return spacing
+
+
+def tile_spacings(heights, grid, tile: int, reach: float, path) -> None:
+    """Write to path the 3D distance from each height-field point in tile's cell to its
+    nearest other point within its cell grown by reach."""
+    from c1mesh.stages.height_field import kd_tree
+
+    records = heights.records(grid.grown(tile, reach))
+    xyz = np.column_stack([records["x"], records["y"], records["z"]])
+    own = grid.tile_of(xyz[:, :2]) == tile
+    distances = np.empty(0)
+    if len(records) >= 2 and own.any():
+        distances = kd_tree(xyz).query(xyz[own], k=2)[0][:, 1]
+    distances.astype("<f8").tofile(path)
+
+
+@dataclass
+class TileSolve:
+    """What one tile's solve reports: its own vertices, the sum of squares and the largest
+    of their residuals (height units), its halo's vertex count and effective degrees of
+    freedom (Hutchinson), its own edges whose direction is not the unit normal, seconds."""
+
+    own: int
+    squares: float
+    largest: float
+    halo_vertices: int
+    edf: float | None
+    turned: int
+    seconds: dict = field(default_factory=dict)
+
+
+class TiledSmoother:
+    """The smoothing fit over the tiles (module docstring): construct with the trimmed
+    survey's height spill, triangle files and grid, the strength ("auto" or s > 0), the
+    longest final edge, the overshoot mode ("limit": edge directions; "off": unit normals),
+    temps, a runner (distributed.TaskRunner) and name(t); it chooses h and s and runs every
+    tile's solve. A refinement task (tiled_refine) then takes its tile's vertex data
+    through `tile`, as it takes the limiter's."""
+
+    def __init__(self, heights, triangle_files, grid, strength, longest_edge: float, overshoot: str,
+                 temps, runner, name=str, lengths: float | None = None):
+        lengths = HALO_LENGTHS if lengths is None else lengths
+        self.grid, self.files, self.overshoot = grid, triangle_files, overshoot
+        self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
+        self.seconds: dict = {}
+        start = time.perf_counter()
+        self.spacing = survey_spacing(heights, grid, HALO_EDGES * longest_edge * (1 + 1e-9), runner, name, temps)
+        self.seconds["spacing"] = time.perf_counter() - start
+        self.search = None
+        if strength == "auto":
+            start = time.perf_counter()
+            self.search = _search_tile(heights, triangle_files, grid, longest_edge, self.spacing, overshoot,
+                                       temps)
+            strength = self.search["strength"]
+            self.seconds["search"] = time.perf_counter() - start
+        self.strength = float(strength)
+        self.reach = smoothing_reach(self.strength, self.spacing, longest_edge, lengths)
+        self.halos = HaloCache(heights, triangle_files, grid, self.reach, temps, label="smooth-halo")
+        tiles = self.halos.tiles()
+        self.paths = {t: (temps.new(f"fitted-{t}.bin"), temps.new(f"directions-{t}.npy")) for t in tiles}
+        start = time.perf_counter()
+        self.solves: list[TileSolve] = []
+        for i, solved in runner.map(tile_solve, len(tiles), lambda i: (self, tiles[i]), lambda i: name(tiles[i])):
+            self.solves.append(solved)
+        self.seconds["solve"] = time.perf_counter() - start
+
+    def tile(self, tile: int, triangles: np.ndarray):
+        """tiled_limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
+        corners' fitted heights and gradients, from the files of the tiles whose cells
+        hold them, and the directions of their edges (tile_solve's)."""
+        from c1mesh.survey.tiled_limiter import TileLimits
+
+        corners, local = np.unique(triangles, return_inverse=True)
+        fitted = self._fitted_near(tile)
+        rows = halo_rows(fitted["index"], corners)
+        if np.any(rows < 0):
+            raise RuntimeError(f"tile {tile}: a corner of its triangles has no fitted data")
+        records = np.empty(len(corners), self.halos.heights.record)
+        fitted = fitted[rows]
+        for column in FITTED.names:
+            records[column] = fitted[column]
+        directions = None if self.overshoot == "off" else np.load(self.paths[tile][1])
+        gradients = np.column_stack([records["gx"], records["gy"]])
+        return TileLimits(records, local.reshape(triangles.shape), gradients, directions, 0, 0, 0)
+
+    def _fitted_near(self, tile: int) -> np.ndarray:
+        """The fitted vertices of every tile whose cell meets tile's cell grown by its reach,
+        ascending survey numbers."""
+        parts = [np.fromfile(self.paths[t][0], dtype=FITTED)
+                 for t in self.halos.heights.touching(self.grid.grown(tile, self.reach)) if t in self.paths]
+        fitted = np.concatenate(parts) if parts else np.empty(0, FITTED)
+        return fitted[np.argsort(fitted["index"], kind="stable")]
+
+    def report(self) -> dict:
+        """The overshoot section: only edge directions apply to a smoothing fit."""
+        return {"gradients_limited": 0, "directions_changed": sum(s.turned for s in self.solves),
+                "heights_reconciled": 0}
+
+    def smoothing(self) -> dict:
+        """The report's "smoothing" section, of SmoothFit.as_dict's keys, plus the tiled
+        solve's halo: residuals over every vertex, edf the sum of each halo's estimate
+        scaled by its share of own vertices, the CV curve of the search tile."""
+        own = sum(s.own for s in self.solves)
+        squares = sum(s.squares for s in self.solves)
+        edfs = [s.edf * s.own / s.halo_vertices for s in self.solves if s.edf is not None and s.halo_vertices]
+        seconds = dict(self.seconds)
+        if self.search is not None:
+            seconds.update({f"search_{k}": v for k, v in self.search["seconds"].items()})
+        return {"strength": self.strength, "lam": self.strength * self.spacing ** 2,
+                "cv_curve": [] if self.search is None else [[float(s), float(r)] for s, r in self.search["cv_curve"]],
+                "edf": float(sum(edfs)) if edfs else None,
+                "residual_rms": math.sqrt(squares / own) if own else 0.0,
+                "residual_max": max((s.largest for s in self.solves), default=0.0),
+                "solver": self.search["solver"] if self.search is not None else _solver(),
+                "seconds": {k: round(float(v), 4) for k, v in seconds.items()}, "outside": 0,
+                "spacing": self.spacing,
+                "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (
+                    self.strength ** 0.25 * self.spacing),
+                    "search_tile": None if self.search is None else self.search["tile"]}}
+
+
+def _solver() -> str:
+    from c1mesh.stages.smoothing_system import available_solvers
+
+    return available_solvers()[0]
+
+
+def _search_tile(heights, triangle_files, grid, longest_edge, spacing, overshoot, temps) -> dict:
+    """smooth_fit(strength="auto") on the tile holding the most points, with the
+    limiter's halo (its cross-validation windows need no more), its tile number as
+    "tile" (the search's strength serves every tile); the SmoothFit's strength, cv_curve,
+    solver and seconds."""
+    candidates = [t for t in range(len(grid)) if triangle_files[t] is not None]
+    tile = max(candidates, key=lambda t: (int(heights.counts[t]), -t))
+    reach = HALO_EDGES * longest_edge * (1 + 1e-9)
+    halo = HaloCache(heights, triangle_files, grid, reach, temps, label="search-halo").halo(tile)
+    fitted, _ = _fit_halo(halo, "auto", spacing, overshoot)
+    return {"tile": tile, "strength": fitted.strength, "cv_curve": fitted.cv_curve, "solver": fitted.solver,
+            "seconds": fitted.seconds}
+
+
+def _fit_halo(halo, strength, spacing: float, overshoot: str):
+    """(SmoothFit, (directions (E, 2) in edge_table(halo.triangles) order or None, changed
+    (E,) bool or None)) of one halo's vertices and final triangles."""
+    from c1mesh.engine.topology import edge_table
+    from c1mesh.stages.limiter import edge_directions
+    from c1mesh.stages.smoothing import smooth_fit
+
+    table = edge_table(halo.triangles, len(halo.records))
+    directions, changed = (None, None) if overshoot == "off" else edge_directions(halo.points, halo.triangles,
+                                                                                  table)
+    fitted = smooth_fit(halo.points, halo.triangles, halo.records["z"], strength=strength, spacing_h=spacing,
+                        directions=directions)
+    return fitted, (table, directions, changed)
+
+
+def tile_solve(smoother: TiledSmoother, tile: int) -> TileSolve:
+    """Solve tile's halo (module docstring); write its own vertices' fitted data (FITTED)
+    and its own triangles' edge directions (in the order of edge_table of those triangles
+    numbered by ascending corner, as tiled_refine numbers them)."""
+    from c1mesh.engine.topology import edge_table
+
+    start = time.perf_counter()
+    halo = smoother.halos.halo(tile)
+    if not len(halo.triangles):
+        np.empty(0, FITTED).tofile(smoother.paths[tile][0])
+        _save(smoother.paths[tile][1], np.empty((0, 2)))
+        return TileSolve(0, 0.0, 0.0, 0, None, 0, {"tile": time.perf_counter() - start})
+    fitted, (table, directions, changed) = _fit_halo(halo, smoother.strength, smoother.spacing,
+                                                     smoother.overshoot)
+    own = halo.own
+    records = np.empty(int(own.sum()), FITTED)
+    for column in ("index", "x", "y"):
+        records[column] = halo.records[column][own]
+    records["z"] = fitted.values[own]
+    records["gx"], records["gy"] = fitted.gradients[own, 0], fitted.gradients[own, 1]
+    records.tofile(smoother.paths[tile][0])
+    turned = 0
+    if directions is not None:
+        owned = np.load(smoother.files[tile])
+        rows = halo_rows(halo.records["index"], owned)
+        if np.any(rows < 0):
+            raise RuntimeError("a tile's own triangle has a corner outside its smoothing halo")
+        corners, triangles = compact(rows, len(halo.records))
+        n = len(halo.records)
+        keys = table.edges[:, 0] * n + table.edges[:, 1]
+        sub = corners[edge_table(triangles, len(corners)).edges]
+        at = np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
+        _save(smoother.paths[tile][1], directions[at])
+        turned = int(changed[own[table.edges[:, 0]]].sum())
+    residual = halo.records["z"][own] - fitted.values[own]
+    return TileSolve(own=int(own.sum()), squares=float(np.sum(residual ** 2)),
+                     largest=float(np.abs(residual).max()) if residual.size else 0.0,
+                     halo_vertices=len(halo.records), edf=fitted.edf, turned=turned,
+                     seconds={"tile": time.perf_counter() - start})
+
+
+def _save(path, array: np.ndarray) -> None:
+    """np.save to exactly path (np.save given a name would append .npy)."""
+    with open(path, "wb") as file:
+        np.save(file, array)

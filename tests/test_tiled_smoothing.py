@@ -1,0 +1,201 @@
+"""The smoothing fit in tiles (c1mesh.survey.tiled_smoothing) against the whole fit.
+
+Ground truth: the in-memory smoothing fit of the same points (`c1mesh fit --smooth S`,
+pipeline.driver.build_surface → stages.smoothing.smooth_fit on the whole mesh), which
+never cuts the survey. Below 40,000 points both measure the spacing h over every point, so
+both use the same λ and the tiled fit may differ only through its halos' cut. Planes are
+reproduced by every tile's solve whatever its halo (the energy of a plane is zero).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from click.testing import CliRunner
+from scipy.spatial import cKDTree
+
+laspy = pytest.importorskip("laspy")
+
+from c1mesh.cli import main
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.survey import tiled_smoothing
+from c1mesh.survey.tiled_fit import fit_tiled
+
+
+def _terrain_las(path, n, seed=0, noise=0.02, plane=False):
+    """n points over a square of side sqrt(n / 4) (mean spacing 0.5): a smooth terrain with
+    Gaussian noise, or with plane=True the plane z = 100 + 0.3 x − 0.2 y without noise (on
+    the file's grid: x, y in mm, z in 0.1 mm, so the plane's heights are stored exactly)."""
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
+    rng = np.random.default_rng(seed)
+    side = np.sqrt(n / 4.0)
+    x, y = np.round(rng.uniform(0, side, n), 3), np.round(rng.uniform(0, side, n), 3)   # the LAS's grid
+    if plane:
+        z = 100 + 0.3 * x - 0.2 * y
+    else:
+        z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23) + rng.normal(0, noise, n)
+    record = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    record.x, record.y, record.z = x + 500000, y + 4000000, z
+    record.classification = np.full(n, 2, np.uint8)
+    with laspy.open(str(path), mode="w", header=header) as writer:
+        writer.write_points(record)
+
+
+def _heights_at(reference: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """The heights of reference's vertices at vertices' (x, y), which must be among them."""
+    distance, nearest = cKDTree(reference[:, :2]).query(vertices[:, :2])
+    assert distance.max() < 1e-9
+    return reference[nearest, 2]
+
+
+def _in_memory(tmp_path, source, strength) -> tuple[np.ndarray, dict]:
+    out, report = tmp_path / "whole.ply", tmp_path / "whole.json"
+    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "--level", "1", "--smooth",
+                                       str(strength), "-o", str(out), "--report", str(report)])
+    assert result.exit_code == 0, result.output
+    return trimesh.load(out, process=False).vertices, json.loads(report.read_text())
+
+
+@pytest.mark.parametrize("strength", [3.0, 100.0])
+def test_tiled_smoothing_matches_the_whole_fit(tmp_path, strength):
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 12000, seed=2)
+    whole, whole_report = _in_memory(tmp_path, source, strength)
+    report = fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=1), memory=10**9,
+                       per_tile=1500, strength=strength)
+    assert report["tiles"] == 9
+    fitted = report["smoothing"]
+    assert fitted["lam"] == pytest.approx(whole_report["smoothing"]["lam"], rel=1e-12)
+    vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
+    assert len(vertices) == len(whole)
+    difference = np.abs(vertices[:, 2] - _heights_at(whole, vertices))
+    rms = whole_report["smoothing"]["residual_rms"]
+    assert 0.015 < rms < 0.025                                 # the 2 cm noise, mostly removed from the fit
+    assert difference.max() < 0.01 * rms
+    assert fitted["residual_rms"] == pytest.approx(rms, rel=0.01)
+
+
+@pytest.mark.slow
+def test_the_tiled_difference_shrinks_with_the_halo(tmp_path, monkeypatch):
+    """A halo too short to hold the fit's reach shows: the differences fall as it grows."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 12000, seed=2)
+    whole, whole_report = _in_memory(tmp_path, source, 100.0)
+    largest = []
+    for lengths in (8.0, 16.0, 24.0, 32.0):
+        monkeypatch.setattr(tiled_smoothing, "HALO_LENGTHS", lengths)
+        fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=1), memory=10**9,
+                  per_tile=1500, strength=100.0)
+        vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
+        largest.append(np.abs(vertices[:, 2] - _heights_at(whole, vertices)).max())
+    rms = whole_report["smoothing"]["residual_rms"]
+    assert largest[0] > 0.05 * rms                 # the cut is felt at 8 smoothing lengths
+    assert all(a > b for a, b in zip(largest, largest[1:]))
+    assert largest[-1] < 0.001 * rms
+
+
+def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
+    source = tmp_path / "plane.las"
+    _terrain_las(source, 6000, plane=True)
+    monkeypatch.setattr(tiled_smoothing, "HALO_LENGTHS", 0.5)    # the least halo: 4 final edges
+    report = fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=2), memory=10**9,
+                       per_tile=700, strength=1000.0)
+    assert report["tiles"] == 9
+    mesh = trimesh.load(tmp_path / "tiled.ply", process=False)
+    x, y = mesh.vertices[:, 0] - 500000, mesh.vertices[:, 1] - 4000000
+    assert np.abs(mesh.vertices[:, 2] - (100 + 0.3 * x - 0.2 * y)).max() < 1e-9
+    normal = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
+    assert np.abs(mesh.vertex_normals @ normal - 1).max() < 1e-9
+
+
+def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path):
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000, seed=4)
+    args = ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "auto", "--memory", "1M"]
+    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "here.ply"), "--report", str(tmp_path / "r.json")])
+    assert here.exit_code == 0, here.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["tiles"] == 4
+    smoothing = report["smoothing"]
+    assert len(smoothing["cv_curve"]) >= 4 and smoothing["strength"] > 0
+    scores = dict((s, r) for s, r in smoothing["cv_curve"])
+    assert scores[smoothing["strength"]] == min(scores.values())
+    assert smoothing["edf"] < 0.8 * report["points"]["kept"]          # it smooths
+    assert smoothing["residual_rms"] == pytest.approx(0.02, rel=0.25)   # about the noise it removed
+    assert report["overshoot"]["gradients_limited"] == 0
+    assert "noise floors" not in report["seconds"] and "smoothing" in report["seconds"]
+    pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "pool.ply"), "-j", "2"])
+    assert pool.exit_code == 0, pool.output
+    assert (tmp_path / "pool.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+
+
+def test_spacing_in_tiles_is_refused_before_any_output(tmp_path):
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000, seed=4)
+    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "--smooth", "3", "--spacing", "2",
+                                       "--memory", "1M", "-o", str(tmp_path / "out.ply")])
+    assert result.exit_code == 1
+    assert "--spacing" in result.output and "--memory" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+
+
+def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 4000, seed=3)
+    options = FitOptions(classes=[2], level=2)
+    here = fit_tiled(source, tmp_path / "here.ply", options, memory=10**9, per_tile=450, strength=10.0)
+    assert here["tiles"] == 9
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        dask = fit_tiled(source, tmp_path / "dask.ply", options, memory=10**9, per_tile=450, strength=10.0,
+                         scheduler=cluster.scheduler_address)
+    assert (tmp_path / "dask.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+    assert dask["smoothing"] == {**here["smoothing"], "seconds": dask["smoothing"]["seconds"]}
+
+
+def test_seamless_tiles_of_a_smoothing_fit_join_into_its_whole_mesh(tmp_path):
+    """`--seamless -O` with --smooth: each input's part is cut from the one fitted surface,
+    so the parts' vertices are the whole survey fit's, bit for bit."""
+    sources = [tmp_path / f"part{i}.las" for i in range(2)]
+    for i, source in enumerate(sources):
+        _terrain_las(source, 3000, seed=10 + i)
+    with laspy.open(str(sources[1])) as reader:                 # the second file east of the first
+        points = reader.read()
+    points.x = points.x + np.sqrt(3000 / 4.0)
+    points.write(str(sources[1]))
+    args = ["fit", *map(str, sources), "--seamless", "--classes", "2", "--level", "2", "--smooth", "5"]
+    whole = CliRunner().invoke(main, args + ["-o", str(tmp_path / "whole.ply")])
+    assert whole.exit_code == 0, whole.output
+    parts = CliRunner().invoke(main, args + ["-O", str(tmp_path / "out"), "--report", str(tmp_path / "r.json")])
+    assert parts.exit_code == 0, parts.output
+    assert json.loads((tmp_path / "r.json").read_text())["smoothing"]["strength"] == 5.0
+    whole_rows = {row.tobytes() for row in trimesh.load(tmp_path / "whole.ply", process=False).vertices}
+    part_rows = set()
+    for source in sources:
+        part_rows |= {row.tobytes() for row in
+                      trimesh.load(tmp_path / "out" / (source.stem + ".c1.ply"), process=False).vertices}
+    assert part_rows == whole_rows
+
+
+def test_the_smoothing_fit_has_the_same_bits_on_one_blas_thread_and_on_two():
+    """Its bytes must not depend on the machine's cores or where a tile ran (CHOLMOD's
+    supernodal kernels round differently on two BLAS threads)."""
+    from c1mesh.core.threads import blas_threads
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.smoothing import smooth_fit
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 120, (20000, 2))
+    z = np.sin(xy[:, 0] / 20) + rng.normal(0, 0.02, len(xy))
+    triangles = delaunay(xy)
+    fits = []
+    for threads in (1, 2):
+        with blas_threads(threads):
+            fits.append(smooth_fit(xy, triangles, z, strength=3.0, spacing_h=0.5))
+    assert fits[0].values.tobytes() == fits[1].values.tobytes()
+    assert fits[0].gradients.tobytes() == fits[1].gradients.tobytes()
