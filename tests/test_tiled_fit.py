@@ -482,7 +482,7 @@ def _every_job_at_once(monkeypatch):
     own rule, tiles_at_once, is tested in test_memory_rule)."""
     import c1mesh.survey.tiled_fit as tiled_fit
 
-    monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs: jobs)
+    monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
 
 
 def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):

@@ -112,7 +112,10 @@ def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
     assert np.abs(mesh.vertex_normals @ normal - 1).max() < 1e-9
 
 
-def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path):
+def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path, monkeypatch):
+    import c1mesh.survey.tiled_fit as tiled_fit
+
+    monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)  # -j 2 under 1M
     source = tmp_path / "terrain.las"
     _terrain_las(source, 24000, seed=4)
     args = ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "auto", "--memory", "1M"]
@@ -128,8 +131,10 @@ def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path
     assert smoothing["residual_rms"] == pytest.approx(0.02, rel=0.25)   # about the noise it removed
     assert report["overshoot"]["gradients_limited"] == 0
     assert "noise floors" not in report["seconds"] and "smoothing" in report["seconds"]
-    pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "pool.ply"), "-j", "2"])
+    pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "pool.ply"), "-j", "2",
+                                            "--report", str(tmp_path / "pool.json")])
     assert pool.exit_code == 0, pool.output
+    assert json.loads((tmp_path / "pool.json").read_text())["scheduler"] == "2 local processes"
     assert (tmp_path / "pool.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
 
 
@@ -199,3 +204,17 @@ def test_the_smoothing_fit_has_the_same_bits_on_one_blas_thread_and_on_two():
             fits.append(smooth_fit(xy, triangles, z, strength=3.0, spacing_h=0.5))
     assert fits[0].values.tobytes() == fits[1].values.tobytes()
     assert fits[0].gradients.tobytes() == fits[1].gradients.tobytes()
+
+
+def test_a_smoothing_fit_is_sized_by_its_own_memory_per_point():
+    """The Cholesky factor makes a smoothing fit about 4x the exact fit's memory a point
+    (tiled_plan.SMOOTHING_BYTES_PER_POINT): the same budget tiles it sooner, in smaller tiles."""
+    from c1mesh.survey.tiled_plan import (BYTES_PER_POINT, SMOOTHING_BYTES_PER_POINT, fits_in_memory,
+                                          point_bytes, points_per_tile)
+
+    exact, smooth = FitOptions(), FitOptions(smooth="auto")
+    assert point_bytes(exact) == BYTES_PER_POINT and point_bytes(smooth) == SMOOTHING_BYTES_PER_POINT
+    assert point_bytes(FitOptions(smooth=3.0, spacing=2.0)) == BYTES_PER_POINT
+    assert fits_in_memory(1_000_000, 2 * 10**9, point_bytes(exact))
+    assert not fits_in_memory(1_000_000, 2 * 10**9, point_bytes(smooth))
+    assert points_per_tile(2 * 10**9, SMOOTHING_BYTES_PER_POINT) * SMOOTHING_BYTES_PER_POINT * 4 <= 2 * 10**9

@@ -134,7 +134,7 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
             found = np.unique(cloud.classification)[:20].tolist()
             raise InputError(f"no points of class {list(options.classes)}; the file has classes {found}")
         cloud = cloud.subset(keep)
-    _check_fit_memory(len(cloud), options.memory)
+    _check_fit_memory(len(cloud), options)
     if len(cloud) == 0:
         where = f"{getattr(source, 'name', source)}: " if options.bounds else ""
         raise InputError(f"{where}the input has no points" + (f" inside --bounds {','.join(map(str, options.bounds))}"
@@ -142,13 +142,14 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
     return cloud
 
 
-def _check_fit_memory(count: int, memory: int | None) -> None:
+def _check_fit_memory(count: int, options: FitOptions) -> None:
     """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
-    --memory bytes (tiled_plan.BYTES_PER_POINT per point). LAS/LAZ inputs beyond it never get
+    --memory bytes (tiled_plan.point_bytes per point). LAS/LAZ inputs beyond it never get
     here (they are fitted in tiles); other formats would otherwise run over the budget."""
-    from c1mesh.survey.tiled_plan import BYTES_PER_POINT, fits_in_memory
-    if not fits_in_memory(count, memory):
-        raise InputError(f"{count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB to fit in "
+    from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
+    memory, per_point = options.memory, point_bytes(options)
+    if not fits_in_memory(count, memory, per_point):
+        raise InputError(f"{count} points need about {count * per_point / 1e6:.0f} MB to fit in "
                          f"memory, more than --memory {memory / 1e6:.0f} MB; only LAS/LAZ inputs are "
                          "fitted in tiles: raise --memory, thin the input, or convert it to LAS/LAZ")
 

@@ -66,7 +66,8 @@ from c1mesh.survey.tiled_heights import height_spill
 from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
                                        survey_paths)
 from c1mesh.survey.tiled_limiter import TiledLimiter
-from c1mesh.survey.tiled_plan import grid_side, task_threads, tiles_at_once
+from c1mesh.survey.tiled_plan import (BYTES_PER_POINT, SMOOTHING_BYTES_PER_POINT, grid_side, task_threads,
+                                      tiles_at_once)
 from c1mesh.survey.tiled_refine import Split, write_tiles
 from c1mesh.survey.tiled_report import TileRows, describe_crs
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
@@ -151,10 +152,11 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if count < 3:
             raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
-        side = grid_side(count, memory, per_tile)
+        per_point = BYTES_PER_POINT if strength is None else SMOOTHING_BYTES_PER_POINT   # tiles: no --spacing
+        side = grid_side(count, memory, per_tile, per_point)
         grid = TileGrid(box, side, side)
         done("frame")
-        runner = stack.enter_context(TaskRunner(scheduler, jobs if scheduler else tiles_at_once(memory, jobs)))
+        runner = stack.enter_context(TaskRunner(scheduler, jobs if scheduler else tiles_at_once(memory, jobs, per_point)))
         rows = TileRows(grid, task_threads(options, runner), on_tile)
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
             done("spill")

@@ -16,6 +16,24 @@ BYTES_PER_POINT = 1_800
 million points at level 4 with file normals, 1.36–1.78 GB at level 1 with estimated
 normals (benchmarks; 1.78 GB: `c1mesh fit` of a 1M-point synthetic LAZ, --overshoot off);
 the rule takes the upper end."""
+SMOOTHING_BYTES_PER_POINT = 7_000
+"""Peak memory per point of a smoothing fit whose vertices are the points (bytes): the
+exact fit's BYTES_PER_POINT plus the sparse Cholesky factor and system, measured at
+4.9 KB a vertex for smooth_fit at 100k and 300k vertices (peak RSS over the triangulated
+input; the factor's fill grows like N log N) and 7 GB for the in-memory fit of 1M points."""
+
+
+def point_bytes(options) -> int:
+    """Peak bytes per input point of the fit options ask for: SMOOTHING_BYTES_PER_POINT
+    for a smoothing fit with a vertex at every point, else BYTES_PER_POINT (a --spacing
+    fit's solve follows its thinned vertices, not its points)."""
+    smooth = getattr(options, "smooth", "off")
+    smoothing = smooth is not None and str(smooth).strip().lower() != "off"
+    if smoothing and getattr(options, "spacing", None) is None:
+        return SMOOTHING_BYTES_PER_POINT
+    return BYTES_PER_POINT
+
+
 TILE_SHARE = 4
 """A tile's points may use at most 1 / TILE_SHARE of the budget at BYTES_PER_POINT: a tile
 reads its buffer too (about twice its points for the normals and the triangulation) and
@@ -26,26 +44,27 @@ TILE_POINTS_CAP = 1_000_000
 a larger budget is better spent on more tiles in flight (`tiles_at_once`)."""
 
 
-def fits_in_memory(point_count: int, memory: int | None) -> bool:
-    """True when the in-memory fit of point_count points stays within memory bytes
-    (None: no budget given, always in memory)."""
-    return memory is None or point_count * BYTES_PER_POINT <= memory
+def fits_in_memory(point_count: int, memory: int | None, per_point: int = BYTES_PER_POINT) -> bool:
+    """True when the in-memory fit of point_count points at per_point bytes each
+    (point_bytes) stays within memory bytes (None: no budget given, always in memory)."""
+    return memory is None or point_count * per_point <= memory
 
 
-def points_per_tile(memory: int) -> int:
+def points_per_tile(memory: int, per_point: int = BYTES_PER_POINT) -> int:
     """The points a tile may hold under a budget of memory bytes: 1 / TILE_SHARE of it at
-    BYTES_PER_POINT, at least 10,000 and at most TILE_POINTS_CAP."""
-    return max(10_000, min(TILE_POINTS_CAP, int(memory // (BYTES_PER_POINT * TILE_SHARE))))
+    per_point bytes (point_bytes), at least 10,000 and at most TILE_POINTS_CAP. The share
+    also covers a smoothing tile's halo (docs/smoothing.md: 1.1-1.3x its points)."""
+    return max(10_000, min(TILE_POINTS_CAP, int(memory // (per_point * TILE_SHARE))))
 
 
-def grid_side(count: int, memory: int, per_tile: int | None = None) -> int:
+def grid_side(count: int, memory: int, per_tile: int | None = None, per_point: int = BYTES_PER_POINT) -> int:
     """Tiles along each side of the square grid for count points, each holding at most
     points_per_tile(memory) points (per_tile overrides that, for tests). The grid, and so
     the output bytes, depend on the budget only, never on how many workers run the tiles."""
-    return max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory)))))
+    return max(1, math.ceil(math.sqrt(count / (per_tile or points_per_tile(memory, per_point)))))
 
 
-def tiles_at_once(memory: int, jobs: int) -> int:
+def tiles_at_once(memory: int, jobs: int, per_point: int = BYTES_PER_POINT) -> int:
     """How many of `jobs` local processes may each hold a tile at once within memory bytes.
 
     A tile task's peak is about its tile's points at BYTES_PER_POINT (the in-memory fit's
@@ -53,7 +72,7 @@ def tiles_at_once(memory: int, jobs: int) -> int:
     rule, its interpreter 100 MB of it), so half the budget goes to tasks in flight and
     the rest to the parent's survey-wide state: two at the default TILE_SHARE, more once
     a larger budget meets TILE_POINTS_CAP. Asking for more jobs than this runs this many."""
-    task_bytes = points_per_tile(memory) * BYTES_PER_POINT
+    task_bytes = points_per_tile(memory, per_point) * per_point
     return max(1, min(int(jobs), int(memory // (2 * task_bytes))))
 
 
@@ -71,9 +90,10 @@ def needs_tiles(source, options) -> bool:
     if any(path.suffix.lower() not in (".las", ".laz") for path in paths):
         return False
     count = sum(points_to_read(path, getattr(options, "bounds", None)) for path in paths)
-    if fits_in_memory(count, options.memory):
+    per_point = point_bytes(options)
+    if fits_in_memory(count, options.memory, per_point):
         return False
-    need = f"{survey_name(paths)}: {count} points need about {count * BYTES_PER_POINT / 1e6:.0f} MB in " \
+    need = f"{survey_name(paths)}: {count} points need about {count * per_point / 1e6:.0f} MB in " \
            f"one piece, more than --memory {options.memory / 1e6:.0f} MB, so they are fitted in tiles"
     if options.resolution is not None or options.slope or options.aspect or options.hillshade or options.preview:
         raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "

@@ -37,12 +37,13 @@ import numpy as np
 
 from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, compact, halo_rows
 
-HALO_LENGTHS = 24.0
+HALO_LENGTHS = 28.0
 """A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
 than the limiter's halo (HALO_EDGES longest final edges: near holes and borders, where the
-edges are long, the gradients reach further). On a 12,000-point terrain with 2 cm noise the
-tiled fit's largest height difference from the one-tile fit was, relative to the residual
-RMS, 5e-2 at 16 lengths and 7e-4 at 24 for s = 100 (docs/smoothing.md has the table)."""
+edges are long, the gradients reach further). On a 12,000-point terrain with 2 cm noise in
+9 tiles, the largest height difference from the one-tile fit, relative to the residual
+RMS, was 1.6e-2 at 20 lengths and 5.7e-3 at 24 for s = 10, 7.3e-4 at 24 for s = 100, and
+below 1.4e-4 at 32 for both (docs/smoothing.md, "In tiles")."""
 FITTED = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("gx", "<f8"), ("gy", "<f8")])
 """One fitted vertex in a tile's file: the height spill's record (survey number, frame
 position) with the fitted height and gradient."""
