@@ -260,3 +260,22 @@ def residual_blocks(path, block: int = FLOAT_BLOCK):
 
     with open(path, "rb") as file:
         yield from file_blocks(file, "<f8", block)
+
+
+def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -> float:
+    """The exact median of the float64 values that task(*arguments(t, path)) writes to its
+    own file `path` for every tile t of tiles, each a task on runner
+    (distributed.TaskRunner); name(t) names tile t in errors; label names the files."""
+    from c1mesh.survey.streamed_median import streamed_median
+
+    paths = [temps.new(f"{label}-{t}.bin") for t in tiles]
+    for _ in runner.map(task, len(tiles), lambda i: arguments(tiles[i], paths[i]), lambda i: name(tiles[i])):
+        pass
+
+    def blocks():
+        for path in paths:
+            yield from residual_blocks(path)
+    median = streamed_median(blocks)
+    for path in paths:
+        path.unlink()
+    return median

@@ -52,7 +52,8 @@ from typing import Callable
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import Halo, HaloCache, compact, edge_floor, edge_residuals, halo_rows, residual_blocks
+from c1mesh.survey.tiled_halo import (Halo, HaloCache, compact, edge_floor, edge_residuals, halo_rows,
+                                      median_over_tiles)
 
 
 @dataclass(frozen=True)
@@ -100,21 +101,8 @@ def noise_floors_on(cache: HaloCache, temps, runner, name=str) -> NoiseFloors:
 
 
 def _floor_on(cache: HaloCache, temps, runner, name, label: str, reconciled_with: float | None) -> float:
-    from c1mesh.survey.streamed_median import streamed_median
-
-    tiles = cache.tiles()
-    paths = [temps.new(f"residuals-{label}-{t}.bin") for t in tiles]
-    for _ in runner.map(tile_residuals, len(tiles), lambda i: (cache, tiles[i], reconciled_with, paths[i]),
-                        lambda i: name(tiles[i])):
-        pass
-
-    def blocks():
-        for path in paths:
-            yield from residual_blocks(path)
-    median = streamed_median(blocks)
-    for path in paths:
-        path.unlink()
-    return median
+    return median_over_tiles(runner, tile_residuals, cache.tiles(),
+                             lambda t, path: (cache, t, reconciled_with, path), name, temps, f"residuals-{label}")
 
 
 def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, path) -> None:

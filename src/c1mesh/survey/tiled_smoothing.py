@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, compact, halo_rows
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, compact, halo_rows, median_over_tiles
 
 HALO_LENGTHS = 28.0
 """A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
@@ -60,22 +60,9 @@ def survey_spacing(heights, grid, reach: float, runner, name, temps) -> float:
     """h: the median 3D nearest-neighbour distance over every height-field point (module
     docstring), each tile's distances a task (`tile_spacings`) reading its cell grown by
     reach (a point's nearest neighbour lies within its shortest final edge, at most reach)."""
-    from c1mesh.survey.streamed_median import streamed_median
-    from c1mesh.survey.tiled_halo import residual_blocks
-
     tiles = [t for t in range(len(grid)) if heights.counts[t]]
-    paths = [temps.new(f"spacings-{t}.bin") for t in tiles]
-    for _ in runner.map(tile_spacings, len(tiles), lambda i: (heights, grid, tiles[i], reach, paths[i]),
-                        lambda i: name(tiles[i])):
-        pass
-
-    def blocks():
-        for path in paths:
-            yield from residual_blocks(path)
-    spacing = streamed_median(blocks)
-    for path in paths:
-        path.unlink()
-    return spacing
+    return median_over_tiles(runner, tile_spacings, tiles, lambda t, path: (heights, grid, t, reach, path),
+                             name, temps, "spacings")
 
 
 def tile_spacings(heights, grid, tile: int, reach: float, path) -> None:
