@@ -279,3 +279,20 @@ def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -
     for path in paths:
         path.unlink()
     return median
+
+
+def own_triangles_in(halo: Halo, table, owned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tile's own triangles `owned` (k, 3) survey numbers within its halo (whose edges
+    are table, topology.edge_table of halo.triangles): (corners (c,) ascending halo rows,
+    triangles (k, 3) into corners, at (E,) the halo edge of each edge of those triangles in
+    the order of edge_table(triangles, c).edges). RuntimeError when a corner is not in the halo."""
+    from c1mesh.engine.topology import edge_table
+
+    rows = halo_rows(halo.records["index"], owned)
+    if np.any(rows < 0):
+        raise RuntimeError("a tile's own triangle has a corner outside its halo")
+    corners, triangles = compact(rows, len(halo.records))
+    n = len(halo.records)
+    keys = table.edges[:, 0] * n + table.edges[:, 1]
+    sub = corners[edge_table(triangles, len(corners)).edges]
+    return corners, triangles, np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])

@@ -52,8 +52,8 @@ from typing import Callable
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import (Halo, HaloCache, compact, edge_floor, edge_residuals, halo_rows,
-                                      median_over_tiles)
+from c1mesh.survey.tiled_halo import (Halo, HaloCache, edge_floor, edge_residuals, median_over_tiles,
+                                      own_triangles_in)
 
 
 @dataclass(frozen=True)
@@ -133,14 +133,7 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     values, limited, directions, report = control_overshoot(
         halo.points, halo.records["z"], halo.gradients, halo.triangles, "limit", table,
         noise_floors=(floors.first, floors.second), counted=halo.own)
-    rows = halo_rows(halo.records["index"], owned)
-    if np.any(rows < 0):
-        raise RuntimeError("a tile's own triangle has a corner outside its halo")
-    corners, triangles = compact(rows, len(halo.records))
-    n = len(halo.records)
-    keys = table.edges[:, 0] * n + table.edges[:, 1]
-    sub = corners[edge_table(triangles, len(corners)).edges]
-    at = np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
+    corners, triangles, at = own_triangles_in(halo, table, owned)
     records = halo.records[corners]
     records["z"] = values[corners]
     return TileLimits(records, triangles, limited[corners], directions[at], report.gradients_limited,

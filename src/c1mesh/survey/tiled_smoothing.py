@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, compact, halo_rows, median_over_tiles
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, halo_rows, median_over_tiles, own_triangles_in
 
 HALO_LENGTHS = 28.0
 """A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
@@ -223,8 +223,6 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> TileSolve:
     """Solve tile's halo (module docstring); write its own vertices' fitted data (FITTED)
     and its own triangles' edge directions (in the order of edge_table of those triangles
     numbered by ascending corner, as tiled_refine numbers them)."""
-    from c1mesh.engine.topology import edge_table
-
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
     if not len(halo.triangles):
@@ -242,15 +240,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> TileSolve:
     records.tofile(smoother.paths[tile][0])
     turned = 0
     if directions is not None:
-        owned = np.load(smoother.files[tile])
-        rows = halo_rows(halo.records["index"], owned)
-        if np.any(rows < 0):
-            raise RuntimeError("a tile's own triangle has a corner outside its smoothing halo")
-        corners, triangles = compact(rows, len(halo.records))
-        n = len(halo.records)
-        keys = table.edges[:, 0] * n + table.edges[:, 1]
-        sub = corners[edge_table(triangles, len(corners)).edges]
-        at = np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
+        _, _, at = own_triangles_in(halo, table, np.load(smoother.files[tile]))
         _save(smoother.paths[tile][1], directions[at])
         turned = int(changed[own[table.edges[:, 0]]].sum())
     residual = halo.records["z"][own] - fitted.values[own]
