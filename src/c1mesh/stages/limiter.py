@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine.topology import EdgeTable, edge_table
 
 OVERSHOOT_MODES = ("limit", "off")
@@ -182,12 +183,37 @@ def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: n
 
 
 def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray:
-    """(E,) the squared longest edge of the triangles that contain each edge."""
-    per_triangle = length2[table.tri_edge].max(axis=1)
-    out = np.zeros_like(length2)
-    for k in range(3):
-        np.maximum.at(out, table.tri_edge[:, k], per_triangle)
-    return out
+    """(E,) the squared longest edge of the triangles that contain each edge.
+
+    length2 (E,) >= 0. The larger of the values of an edge's owner triangle and its other
+    triangle (`_owner_and_last`): np.maximum of the two is what np.maximum.at from zeros
+    gives for non-negative values (and NaN alike), without ufunc.at's slow indexed loop.
+    """
+    corner = length2[table.tri_edge]
+    per_triangle = np.maximum(np.maximum(corner[:, 0], corner[:, 1]), corner[:, 2])
+    first, last = _owner_and_last(per_triangle, table)
+    return np.maximum(first, last, out=first)
+
+
+def _owner_and_last(values: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:
+    """(first, last), each (E,): the value of each edge at its first and at its last slot
+    in slot-major order (slot k of triangle t at k·T + t), from values (3, T) per slot or
+    (T,) per triangle (the same at its three slots).
+
+    The first is the owner's (EdgeTable.owner, owner_slot: the lowest slot, then the lowest
+    triangle); the last is what a scatter of every slot in that order leaves, so an edge of
+    one triangle has first == last. Gathering the owners' values replaces a second gather
+    over all 3T slots.
+    """
+    per_slot = values.ndim == 2
+    last = np.empty(table.edges.shape[0])
+    for k in range(3):                                   # slot-major: later slots win
+        last[np.ascontiguousarray(table.tri_edge[:, k])] = values[k] if per_slot else values
+    if not per_slot:
+        return values[table.owner], last
+    flat = table.owner_slot * values.shape[1]
+    flat += table.owner
+    return np.ascontiguousarray(values).ravel()[flat], last
 
 
 @dataclass(frozen=True)
@@ -444,10 +470,25 @@ def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable, edge: np
 def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable) -> np.ndarray:
     """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles,
     s = (p_n − p_l)·e / |e|² the foot of the opposite vertex p_n on the edge's line (the
-    ratio does not depend on which end is p_l). Computed per triangle corner, then the
-    larger of an edge's two values is kept. A screen: `_worst_ratio` decides."""
-    x, y = p[:, 0][triangles.T], p[:, 1][triangles.T]        # (3, T): contiguous rows
-    ratio = np.empty(x.shape, dtype=float)
+    ratio does not depend on which end is p_l). Computed per triangle corner, in blocks of
+    triangles in worker threads (c1mesh.core.threads.parallel_blocks), then per edge the
+    value of its first slot where larger than its last slot's, else the last's (as a
+    scatter of all slots in slot-major order followed by the larger ones leaves it, NaN
+    included). A screen: `_worst_ratio` decides."""
+    x, y = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
+    ratio = np.empty((3, triangles.shape[0]))
+
+    def block(part: slice) -> None:
+        corners = triangles[part].T
+        _corner_ratios(x[corners], y[corners], ratio[:, part])
+    parallel_blocks(block, triangles.shape[0])
+    first, last = _owner_and_last(ratio, table)
+    return np.where(first > last, first, last)
+
+
+def _corner_ratios(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
+    """max(|s|, |1 − s|) at each corner k into out (3, c), from corner coordinates x, y
+    (3, c): s the foot of p_k on the line of the opposite edge p_i → p_j (i, j = k+1, k+2)."""
     for k in range(3):
         i, j = (k + 1) % 3, (k + 2) % 3
         ex, ey = x[j] - x[i], y[j] - y[i]
@@ -461,13 +502,7 @@ def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable)
         np.subtract(1.0, foot, out=ey)
         np.abs(ey, out=ey)
         np.abs(foot, out=foot)
-        np.maximum(foot, ey, out=ratio[k])
-    slots, values = table.tri_edge.T.ravel(), ratio.ravel()
-    worst = np.zeros(table.edges.shape[0])
-    worst[slots] = values                                    # one of each edge's values …
-    larger = values > worst[slots]                           # … and the other where larger
-    worst[slots[larger]] = values[larger]
-    return worst
+        np.maximum(foot, ey, out=out[k])
 
 
 def _opposite_vertices(triangles: np.ndarray, table: EdgeTable, idx: np.ndarray
