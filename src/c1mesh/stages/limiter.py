@@ -293,17 +293,35 @@ def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.nda
 def _inconsistent(geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
                   consistency: float, noise_factor: float, noise_floor: float | None
                   ) -> tuple[np.ndarray, dict]:
-    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b)."""
+    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b): the test
+    in blocks of edges in worker threads (`_inconsistent_block`), so that its temporaries
+    stay in cache."""
     pred_a, pred_b = predicted
     delta = geometry.delta
-    residual = delta - 0.5 * (pred_a + pred_b)
-    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
+    residual = None
     if noise_floor is None:
+        residual = delta - 0.5 * (pred_a + pred_b)
         noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
     noise = noise_factor * noise_floor
-    rounding = 64 * np.finfo(float).eps * (geometry.size + np.abs(pred_a) + np.abs(pred_b))
-    bad = np.abs(residual) > consistency * scale + noise + rounding
+    bad = np.empty(delta.shape[0], dtype=bool)
+
+    def block(part: slice) -> None:
+        bad[part] = _inconsistent_block(delta[part], pred_a[part], pred_b[part], geometry.size[part],
+                                        None if residual is None else residual[part], consistency, noise)
+    parallel_blocks(block, delta.shape[0])
     return bad, {"delta": delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
+
+
+def _inconsistent_block(delta: np.ndarray, pred_a: np.ndarray, pred_b: np.ndarray, size: np.ndarray,
+                        residual: np.ndarray | None, consistency: float, noise: float) -> np.ndarray:
+    """|e| > consistency · max(|Δ|, |δ_a|/2, |δ_b|/2) + noise + rounding for a block of edges
+    (residual e = Δ − (δ_a + δ_b)/2, computed when None)."""
+    if residual is None:
+        residual = delta - 0.5 * (pred_a + pred_b)
+    abs_a, abs_b = np.abs(pred_a), np.abs(pred_b)
+    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(abs_a, abs_b))
+    rounding = 64 * np.finfo(float).eps * (size + abs_a + abs_b)
+    return np.abs(residual) > consistency * scale + noise + rounding
 
 
 def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -340,23 +358,44 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
     touched[geometry.a[bad]] = True
     touched[geometry.b[bad]] = True
     near = touched[geometry.a] | touched[geometry.b]      # only these edges reach a touched vertex
-    a, b, d, delta = geometry.a[near], geometry.b[near], geometry.d[near], geometry.delta[near]
-    length = np.linalg.norm(d, axis=1)
+    a, b, dx, dy, delta = (np.compress(near, column) for column in
+                           (geometry.a, geometry.b, geometry.d[:, 0], geometry.d[:, 1], geometry.delta))
+    length = np.sqrt(dx * dx + dy * dy)                   # np.linalg.norm's bits
     keep = length > 0
-    a, b, d, delta, length = a[keep], b[keep], d[keep], delta[keep], length[keep]
-    u = d / length[:, None]
-    slope = delta / length
-    terms = (u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1],
-             u[:, 0] * slope, u[:, 1] * slope, np.ones(a.size))
-    both = np.concatenate([a, b])
-    xx, xy, yy, rx, ry, deg = (np.bincount(both, np.concatenate([t, t]), minlength=n)[touched]
-                               for t in terms)
+    if not keep.all():
+        a, b, dx, dy, delta, length = (np.compress(keep, c) for c in (a, b, dx, dy, delta, length))
+    sums = _vertex_sums(np.concatenate([a, b]), dx / length, dy / length, delta / length, n, touched)
+    xx, xy, yy, rx, ry, deg = sums
     weight = normal_weight * deg
-    M_t = np.stack([np.stack([xx + weight, xy], axis=1), np.stack([xy, yy + weight], axis=1)], axis=1)
-    r_t = np.stack([rx, ry], axis=1) + weight[:, None] * A[touched]
+    M_t = np.empty((deg.size, 2, 2))
+    np.add(xx, weight, out=M_t[:, 0, 0])
+    M_t[:, 0, 1] = M_t[:, 1, 0] = xy
+    np.add(yy, weight, out=M_t[:, 1, 1])
+    A_t = A[touched]
+    r_t = np.empty((deg.size, 2))
+    np.add(rx, weight * A_t[:, 0], out=r_t[:, 0])
+    np.add(ry, weight * A_t[:, 1], out=r_t[:, 1])
     out = A.copy()
     out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
     return out, touched, near
+
+
+def _vertex_sums(both: np.ndarray, ux: np.ndarray, uy: np.ndarray, slope: np.ndarray, n: int,
+                 touched: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Σ ux², Σ ux·uy, Σ uy², Σ ux·slope, Σ uy·slope and the edge count over the edges at
+    each `touched` vertex, each (touched.sum(),): both (2m,) the edges' two ends (a then b),
+    the rest (m,) per edge. np.bincount over both with each term repeated, as before,
+    through one reused weight buffer; the count is the unweighted bincount (exactly the
+    weighted sum of ones, as floats)."""
+    m = ux.size
+    weights = np.empty(2 * m)
+    sums = []
+    for left, right in ((ux, ux), (ux, uy), (uy, uy), (ux, slope), (uy, slope)):
+        np.multiply(left, right, out=weights[:m])
+        weights[m:] = weights[:m]
+        sums.append(np.bincount(both, weights, minlength=n)[touched])
+    sums.append(np.bincount(both, minlength=n)[touched].astype(float))
+    return tuple(sums)
 
 
 def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
