@@ -28,6 +28,7 @@ says.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import queue
 import threading
@@ -262,16 +263,18 @@ def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:
 def parallel_blocks(work: Callable[[slice], None], count: int, block: int = 1 << 16,
                     threads: int | None = None) -> None:
     """work(slice) for the consecutive blocks of `block` items of range(count), in
-    contiguous runs of blocks, one run per thread (`workers(threads)` of them, run_parallel).
-    The blocks are the same for every thread count, so element-wise work writing disjoint
-    slices gives the same bits with any count."""
+    `workers(threads)` threads (run_parallel), each taking the next block not yet taken
+    (so a core busy with other work does not hold up the rest). The blocks are the same
+    for every thread count, so element-wise work writing disjoint slices gives the same
+    bits with any count; the first error raised is re-raised here."""
     blocks = -(-count // block)
     if blocks == 0:
         return
-    runs = max(1, min(workers(threads), blocks))
-    bounds = [blocks * i // runs for i in range(runs + 1)]
+    taken = itertools.count()                 # next() on it is atomic under the GIL
 
-    def run(first: int, last: int) -> None:
-        for b in range(first, last):
+    def run() -> None:
+        for b in iter(taken.__next__, None):
+            if b >= blocks:
+                return
             work(slice(b * block, min(count, (b + 1) * block)))
-    run_parallel(run, list(zip(bounds[:-1], bounds[1:])))
+    run_parallel(run, [()] * max(1, min(workers(threads), blocks)))
