@@ -166,11 +166,20 @@ def test_processes_share_the_threads_without_oversubscribing(total, processes, e
 
 
 class _ThreadCensus:
-    """Records every Python thread started and every ThreadPoolExecutor's size."""
+    """Records every Python thread started, every ThreadPoolExecutor's size and the size of
+    every group of more than one thread that threads.run_parallel runs for
+    threads.parallel_blocks (the coefficient, limiter and interpolator blocks)."""
 
     def __init__(self, monkeypatch):
         self.started, self.pools = 0, []
         start, init = threading.Thread.start, ThreadPoolExecutor.__init__
+        run_parallel = threads.run_parallel
+
+        def recording_run_parallel(work, ranges):
+            if len(ranges) > 1:
+                self.pools.append(len(ranges))
+            return run_parallel(work, ranges)
+        monkeypatch.setattr(threads, "run_parallel", recording_run_parallel)
 
         def counting_start(thread, *a, **k):
             self.started += 1

@@ -8,7 +8,9 @@
   runs in a second thread. Results do not depend on the count: every pool splits work
   into the same blocks and collects them in the same order.
 * `run_parallel`: contiguous ranges of independent work in threads (Refinement.mesh
-  evaluates ranges of triangle blocks into disjoint slices of its outputs).
+  evaluates ranges of triangle blocks into disjoint slices of its outputs);
+  `parallel_blocks`: the same over fixed-size blocks of a range (element-wise passes of
+  the limiter and the interpolator, each block's temporaries small enough for the cache).
 * `prefetch`: a block generator run in a second thread a few blocks ahead of its
   consumer (a streamed fit: spline evaluation in one thread, packing rows for the file
   format in another, the file write in a third).
@@ -26,6 +28,7 @@ says.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import queue
 import threading
@@ -255,3 +258,23 @@ def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:
         thread.join()
     if errors:
         raise errors[0]
+
+
+def parallel_blocks(work: Callable[[slice], None], count: int, block: int = 1 << 16,
+                    threads: int | None = None) -> None:
+    """work(slice) for the consecutive blocks of `block` items of range(count), in
+    `workers(threads)` threads (run_parallel), each taking the next block not yet taken
+    (so a core busy with other work does not hold up the rest). The blocks are the same
+    for every thread count, so element-wise work writing disjoint slices gives the same
+    bits with any count; the first error raised is re-raised here."""
+    blocks = -(-count // block)
+    if blocks == 0:
+        return
+    taken = itertools.count()                 # next() on it is atomic under the GIL
+
+    def run() -> None:
+        for b in iter(taken.__next__, None):
+            if b >= blocks:
+                return
+            work(slice(b * block, min(count, (b + 1) * block)))
+    run_parallel(run, [()] * max(1, min(workers(threads), blocks)))

@@ -17,7 +17,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.refine import RefinedMesh, Refinement
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
-from c1mesh.core.threads import limit, overlap
+from c1mesh.core.threads import limit, overlap, parallel_blocks
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.topology import EdgeTable
 from c1mesh.engine.topology import edge_table as build_edge_table
@@ -221,15 +221,18 @@ def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,
                    block: int = 1 << 16) -> np.ndarray:
     """(E,) bool: direction u is zero, not finite, or within |sin| _DEGENERACY of parallel
     to its edge v = points[j] − points[i], i.e. not (u × v)² > _DEGENERACY² |u|² |v|².
-    In blocks, so the temporaries stay in cache."""
+    In blocks of edges in worker threads (c1mesh.core.threads.parallel_blocks), gathering
+    from contiguous coordinate columns, so the temporaries stay in cache."""
+    x, y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
     bad = np.empty(edges.shape[0], dtype=bool)
-    for start in range(0, edges.shape[0], block):
-        part = slice(start, start + block)
-        vec = points[edges[part, 1]] - points[edges[part, 0]]
-        vx, vy, ux, uy = vec[:, 0], vec[:, 1], u[part, 0], u[part, 1]
+
+    def crosses(part: slice) -> None:
+        i, j = np.ascontiguousarray(edges[part, 0]), np.ascontiguousarray(edges[part, 1])
+        vx, vy, ux, uy = x[j] - x[i], y[j] - y[i], u[part, 0], u[part, 1]
         cross = ux * vy - uy * vx
         bound = (ux * ux + uy * uy) * (vx * vx + vy * vy) * (_DEGENERACY * _DEGENERACY)
         np.logical_not(cross * cross > bound, out=bad[part])
+    parallel_blocks(crosses, edges.shape[0], block)
     return bad
 
 

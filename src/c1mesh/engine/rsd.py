@@ -18,12 +18,10 @@ Layout of the 21 columns (indices local to a triangle, vertices 0, 1, 2):
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from c1mesh.engine.schemes import ShapeTuple
-from c1mesh.core.threads import workers
+from c1mesh.core.threads import parallel_blocks
 
 PAIRS = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))                    # (k, i), i ≠ k
 PERMS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))  # (l, m, n)
@@ -123,18 +121,10 @@ def ratio_coefficients(C: np.ndarray, G: np.ndarray, edge_directions: np.ndarray
 
 def _blocks(work, T: int, chunk: int, threads: int | None) -> None:
     """work(slice) for consecutive blocks of `chunk` triangles, in ``threads`` threads
-    (default: c1mesh.core.threads.workers()): blocks are independent and numpy releases the GIL
-    in their gathers and ufuncs (1.4x on 2 idle cores at 1M points; results do not depend
-    on the count)."""
-    parts = [slice(start, min(start + chunk, T)) for start in range(0, T, chunk)]
-    threads = workers(threads)
-    if threads > 1 and len(parts) > 1:
-        with ThreadPoolExecutor(threads) as pool:
-            for _ in pool.map(work, parts):        # re-raises a block's exception
-                pass
-    else:
-        for part in parts:
-            work(part)
+    (default: c1mesh.core.threads.workers()) by c1mesh.core.threads.parallel_blocks: blocks
+    are independent and numpy releases the GIL in their gathers and ufuncs (results do not
+    depend on the count)."""
+    parallel_blocks(work, T, chunk, threads)
 
 
 def _gather(rows: np.ndarray, index: np.ndarray) -> np.ndarray:

@@ -50,6 +50,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
@@ -81,14 +82,33 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     xy (n, 2), z (n,) and gradients (n, 2) of a height field (height_field.HeightField: local
     coordinates, heights along e3, data gradients ∇z from the normals); triangles (T, 3)
     indices into them. Angles in degrees. Component by component and without square
-    roots (squared comparisons), as this runs on every triangle of every fit.
+    roots (squared comparisons), as this runs on every triangle of every fit; in blocks of
+    triangles in worker threads (c1mesh.core.threads.parallel_blocks), temporaries in cache.
     view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
     x, y, gx, gy = (np.ascontiguousarray(column) for column in (xy[:, 0], xy[:, 1], gradients[:, 0], gradients[:, 1]))
+    if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
+        floor = noise_floor(xy, z, gradients, triangles)
+    masks = {reason: np.zeros(triangles.shape[0], dtype=bool) for reason in REASONS}
+    cos2 = (np.cos(np.radians(shadow_angle)) ** 2, np.cos(np.radians(grazing_angle)) ** 2)
+
+    def block(part: slice) -> None:
+        found = _curtain_block((x, y, z, gx, gy), triangles[part], cos2, floor, view_rules)
+        for reason, mask in zip(REASONS, found):
+            masks[reason][part] = mask
+    parallel_blocks(block, triangles.shape[0])
+    return masks
+
+
+def _curtain_block(columns: tuple, triangles: np.ndarray, cos2: tuple[float, float], floor: float,
+                   view_rules: bool) -> tuple[np.ndarray, ...]:
+    """curtain_triangles' four masks (c,) for a block of triangles (c, 3): columns (x, y, z,
+    gx, gy) per vertex, cos2 the squared cosines of the shadow and grazing angles."""
+    x, y, z, gx, gy = columns
     corner_ids = [np.ascontiguousarray(triangles[:, k]) for k in range(3)]   # gathers by contiguous
     corners = [[x[ids], y[ids], z[ids]] for ids in corner_ids]                # index vectors: ~2x faster
     edges = [[corners[(k + 1) % 3][c] - corners[k][c] for c in range(3)] for k in range(3)]
-    cos2_shadow = np.cos(np.radians(shadow_angle)) ** 2
+    cos2_shadow, cos2_grazing = cos2
     shadow = np.zeros(triangles.shape[0], dtype=bool)
     plane2 = []                                                   # squared lengths in the plane
     for ex, ey, ez in edges:
@@ -99,7 +119,6 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
     flip = np.where(nz < 0, -1.0, 1.0)                            # the normal on the axis side
     nx, ny, nz = nx * flip, ny * flip, nz * flip
-    cos2_grazing = np.cos(np.radians(grazing_angle)) ** 2
     grazing = ~(nz * nz >= cos2_grazing * (nx * nx + ny * ny + nz * nz)) & ~shadow
     # data normals on the axis side: (-g, 1); the plane's normal faces away from one of
     # them when their dot product is negative (the lengths do not change its sign).
@@ -107,13 +126,11 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     for ids in corner_ids:
         away |= nz - nx * gx[ids] - ny * gy[ids] < 0
     away &= ~shadow & ~grazing
-    if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
-        floor = noise_floor(xy, z, gradients, triangles)
     longest2 = np.maximum(np.maximum(plane2[0], plane2[1]), plane2[2])
     if not view_rules:
         shadow, grazing, away = (np.zeros(triangles.shape[0], dtype=bool) for _ in range(3))
     thin = (nz * nz < floor * floor * longest2) & ~shadow & ~grazing & ~away   # 2 area = |n_z|
-    return {"shadow_edge": shadow, "grazing": grazing, "facing_away": away, "thinner_than_noise": thin}
+    return shadow, grazing, away, thin
 
 
 def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,

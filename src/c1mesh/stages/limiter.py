@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine.topology import EdgeTable, edge_table
 
 OVERSHOOT_MODES = ("limit", "off")
@@ -182,12 +183,37 @@ def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: n
 
 
 def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray:
-    """(E,) the squared longest edge of the triangles that contain each edge."""
-    per_triangle = length2[table.tri_edge].max(axis=1)
-    out = np.zeros_like(length2)
-    for k in range(3):
-        np.maximum.at(out, table.tri_edge[:, k], per_triangle)
-    return out
+    """(E,) the squared longest edge of the triangles that contain each edge.
+
+    length2 (E,) >= 0. The larger of the values of an edge's owner triangle and its other
+    triangle (`_owner_and_last`): np.maximum of the two is what np.maximum.at from zeros
+    gives for non-negative values (and NaN alike), without ufunc.at's slow indexed loop.
+    """
+    corner = length2[table.tri_edge]
+    per_triangle = np.maximum(np.maximum(corner[:, 0], corner[:, 1]), corner[:, 2])
+    first, last = _owner_and_last(per_triangle, table)
+    return np.maximum(first, last, out=first)
+
+
+def _owner_and_last(values: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:
+    """(first, last), each (E,): the value of each edge at its first and at its last slot
+    in slot-major order (slot k of triangle t at k·T + t), from values (3, T) per slot or
+    (T,) per triangle (the same at its three slots).
+
+    The first is the owner's (EdgeTable.owner, owner_slot: the lowest slot, then the lowest
+    triangle); the last is what a scatter of every slot in that order leaves, so an edge of
+    one triangle has first == last. Gathering the owners' values replaces a second gather
+    over all 3T slots.
+    """
+    per_slot = values.ndim == 2
+    last = np.empty(table.edges.shape[0])
+    for k in range(3):                                   # slot-major: later slots win
+        last[np.ascontiguousarray(table.tri_edge[:, k])] = values[k] if per_slot else values
+    if not per_slot:
+        return values[table.owner], last
+    flat = table.owner_slot * values.shape[1]
+    flat += table.owner
+    return np.ascontiguousarray(values).ravel()[flat], last
 
 
 @dataclass(frozen=True)
@@ -267,17 +293,35 @@ def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.nda
 def _inconsistent(geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
                   consistency: float, noise_factor: float, noise_floor: float | None
                   ) -> tuple[np.ndarray, dict]:
-    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b)."""
+    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b): the test
+    in blocks of edges in worker threads (`_inconsistent_block`), so that its temporaries
+    stay in cache."""
     pred_a, pred_b = predicted
     delta = geometry.delta
-    residual = delta - 0.5 * (pred_a + pred_b)
-    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(np.abs(pred_a), np.abs(pred_b)))
+    residual = None
     if noise_floor is None:
+        residual = delta - 0.5 * (pred_a + pred_b)
         noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
     noise = noise_factor * noise_floor
-    rounding = 64 * np.finfo(float).eps * (geometry.size + np.abs(pred_a) + np.abs(pred_b))
-    bad = np.abs(residual) > consistency * scale + noise + rounding
+    bad = np.empty(delta.shape[0], dtype=bool)
+
+    def block(part: slice) -> None:
+        bad[part] = _inconsistent_block(delta[part], pred_a[part], pred_b[part], geometry.size[part],
+                                        None if residual is None else residual[part], consistency, noise)
+    parallel_blocks(block, delta.shape[0])
     return bad, {"delta": delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
+
+
+def _inconsistent_block(delta: np.ndarray, pred_a: np.ndarray, pred_b: np.ndarray, size: np.ndarray,
+                        residual: np.ndarray | None, consistency: float, noise: float) -> np.ndarray:
+    """|e| > consistency · max(|Δ|, |δ_a|/2, |δ_b|/2) + noise + rounding for a block of edges
+    (residual e = Δ − (δ_a + δ_b)/2, computed when None)."""
+    if residual is None:
+        residual = delta - 0.5 * (pred_a + pred_b)
+    abs_a, abs_b = np.abs(pred_a), np.abs(pred_b)
+    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(abs_a, abs_b))
+    rounding = 64 * np.finfo(float).eps * (size + abs_a + abs_b)
+    return np.abs(residual) > consistency * scale + noise + rounding
 
 
 def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -314,23 +358,44 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
     touched[geometry.a[bad]] = True
     touched[geometry.b[bad]] = True
     near = touched[geometry.a] | touched[geometry.b]      # only these edges reach a touched vertex
-    a, b, d, delta = geometry.a[near], geometry.b[near], geometry.d[near], geometry.delta[near]
-    length = np.linalg.norm(d, axis=1)
+    a, b, dx, dy, delta = (np.compress(near, column) for column in
+                           (geometry.a, geometry.b, geometry.d[:, 0], geometry.d[:, 1], geometry.delta))
+    length = np.sqrt(dx * dx + dy * dy)                   # np.linalg.norm's bits
     keep = length > 0
-    a, b, d, delta, length = a[keep], b[keep], d[keep], delta[keep], length[keep]
-    u = d / length[:, None]
-    slope = delta / length
-    terms = (u[:, 0] * u[:, 0], u[:, 0] * u[:, 1], u[:, 1] * u[:, 1],
-             u[:, 0] * slope, u[:, 1] * slope, np.ones(a.size))
-    both = np.concatenate([a, b])
-    xx, xy, yy, rx, ry, deg = (np.bincount(both, np.concatenate([t, t]), minlength=n)[touched]
-                               for t in terms)
+    if not keep.all():
+        a, b, dx, dy, delta, length = (np.compress(keep, c) for c in (a, b, dx, dy, delta, length))
+    sums = _vertex_sums(np.concatenate([a, b]), dx / length, dy / length, delta / length, n, touched)
+    xx, xy, yy, rx, ry, deg = sums
     weight = normal_weight * deg
-    M_t = np.stack([np.stack([xx + weight, xy], axis=1), np.stack([xy, yy + weight], axis=1)], axis=1)
-    r_t = np.stack([rx, ry], axis=1) + weight[:, None] * A[touched]
+    M_t = np.empty((deg.size, 2, 2))
+    np.add(xx, weight, out=M_t[:, 0, 0])
+    M_t[:, 0, 1] = M_t[:, 1, 0] = xy
+    np.add(yy, weight, out=M_t[:, 1, 1])
+    A_t = A[touched]
+    r_t = np.empty((deg.size, 2))
+    np.add(rx, weight * A_t[:, 0], out=r_t[:, 0])
+    np.add(ry, weight * A_t[:, 1], out=r_t[:, 1])
     out = A.copy()
     out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
     return out, touched, near
+
+
+def _vertex_sums(both: np.ndarray, ux: np.ndarray, uy: np.ndarray, slope: np.ndarray, n: int,
+                 touched: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Σ ux², Σ ux·uy, Σ uy², Σ ux·slope, Σ uy·slope and the edge count over the edges at
+    each `touched` vertex, each (touched.sum(),): both (2m,) the edges' two ends (a then b),
+    the rest (m,) per edge. np.bincount over both with each term repeated, as before,
+    through one reused weight buffer; the count is the unweighted bincount (exactly the
+    weighted sum of ones, as floats)."""
+    m = ux.size
+    weights = np.empty(2 * m)
+    sums = []
+    for left, right in ((ux, ux), (ux, uy), (uy, uy), (ux, slope), (uy, slope)):
+        np.multiply(left, right, out=weights[:m])
+        weights[m:] = weights[:m]
+        sums.append(np.bincount(both, weights, minlength=n)[touched])
+    sums.append(np.bincount(both, minlength=n)[touched].astype(float))
+    return tuple(sums)
 
 
 def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -444,10 +509,25 @@ def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable, edge: np
 def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable) -> np.ndarray:
     """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles,
     s = (p_n − p_l)·e / |e|² the foot of the opposite vertex p_n on the edge's line (the
-    ratio does not depend on which end is p_l). Computed per triangle corner, then the
-    larger of an edge's two values is kept. A screen: `_worst_ratio` decides."""
-    x, y = p[:, 0][triangles.T], p[:, 1][triangles.T]        # (3, T): contiguous rows
-    ratio = np.empty(x.shape, dtype=float)
+    ratio does not depend on which end is p_l). Computed per triangle corner, in blocks of
+    triangles in worker threads (c1mesh.core.threads.parallel_blocks), then per edge the
+    value of its first slot where larger than its last slot's, else the last's (as a
+    scatter of all slots in slot-major order followed by the larger ones leaves it, NaN
+    included). A screen: `_worst_ratio` decides."""
+    x, y = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
+    ratio = np.empty((3, triangles.shape[0]))
+
+    def block(part: slice) -> None:
+        corners = triangles[part].T
+        _corner_ratios(x[corners], y[corners], ratio[:, part])
+    parallel_blocks(block, triangles.shape[0])
+    first, last = _owner_and_last(ratio, table)
+    return np.where(first > last, first, last)
+
+
+def _corner_ratios(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
+    """max(|s|, |1 − s|) at each corner k into out (3, c), from corner coordinates x, y
+    (3, c): s the foot of p_k on the line of the opposite edge p_i → p_j (i, j = k+1, k+2)."""
     for k in range(3):
         i, j = (k + 1) % 3, (k + 2) % 3
         ex, ey = x[j] - x[i], y[j] - y[i]
@@ -461,13 +541,7 @@ def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable)
         np.subtract(1.0, foot, out=ey)
         np.abs(ey, out=ey)
         np.abs(foot, out=foot)
-        np.maximum(foot, ey, out=ratio[k])
-    slots, values = table.tri_edge.T.ravel(), ratio.ravel()
-    worst = np.zeros(table.edges.shape[0])
-    worst[slots] = values                                    # one of each edge's values …
-    larger = values > worst[slots]                           # … and the other where larger
-    worst[slots[larger]] = values[larger]
-    return worst
+        np.maximum(foot, ey, out=out[k])
 
 
 def _opposite_vertices(triangles: np.ndarray, table: EdgeTable, idx: np.ndarray
