@@ -357,9 +357,11 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                      table=table)
         else:
             data = None if vertices is None else (hf.xy, hf.z)
+            from_file = normal_source == "file" and gradient_source == "normals"   # not from these heights
             interp, overshoot, smoothing = smoothed_interpolator(hf.xy[used], hf.z[used], triangles, scheme,
                                                                  options.overshoot, strength, hf.spacing, data,
-                                                                 table=table)
+                                                                 table=table,
+                                                                 gradients=hf.gradients[used] if from_file else None)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied, smoothing, vertices is not None)
 

@@ -19,7 +19,7 @@ from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.topology import edge_table
 from c1mesh.formats import write_mesh
 from c1mesh.stages.limiter import LimiterReport, control_overshoot, edge_directions
-from c1mesh.stages.smoothing import smooth_fit
+from c1mesh.stages.smoothing import FILE_NORMALS_WEIGHT, smooth_fit
 from c1mesh.stages.surface import surface_stream
 
 
@@ -76,7 +76,8 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
 
 
 def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, strength, spacing: float,
-                          data: tuple | None = None, table=None) -> tuple[RSDInterpolator, Any, Any]:
+                          data: tuple | None = None, table=None,
+                          gradients=None) -> tuple[RSDInterpolator, Any, Any]:
     """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
     height field, its limiter report and the SmoothFit.
 
@@ -86,13 +87,16 @@ def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, str
     gradients agree with its heights by construction, so of the overshoot remedies only the
     edge directions apply (overshoot "limit"): they are chosen from the geometry before
     the fit, which is then the spline of those directions. table: the triangles'
-    topology.edge_table when built already (the trim's), else built here.
+    topology.edge_table when built already (the trim's), else built here. gradients: (n, 2)
+    the vertices' gradients from the file's normals, fitted as data with weight
+    smoothing.FILE_NORMALS_WEIGHT (None: the heights alone).
     """
     table = edge_table(triangles, points.shape[0]) if table is None else table
     directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
     data_xy, data_z = (None, values) if data is None else data
+    weight = 0.0 if gradients is None else FILE_NORMALS_WEIGHT
     fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=strength, spacing_h=spacing,
-                        directions=directions, scheme=scheme)
+                        directions=directions, scheme=scheme, gradient_data=gradients, gradient_weight=weight)
     interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=scheme,
                              directions=directions, edge_table=table)
     turned = 0 if changed is None else int(changed.sum())

@@ -178,6 +178,7 @@ class TiledSmoother:
                 "residual_max": max((s.largest for s in self.solves), default=0.0),
                 "solver": self.search["solver"] if self.search is not None else _solver(),
                 "seconds": {k: round(float(v), 4) for k, v in seconds.items()}, "outside": 0,
+                "gradient_weight": 0.0,                     # the tiled fit estimates its normals
                 "spacing": self.spacing,
                 "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (
                     self.strength ** 0.25 * self.spacing),
