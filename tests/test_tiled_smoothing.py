@@ -218,3 +218,14 @@ def test_a_smoothing_fit_is_sized_by_its_own_memory_per_point():
     assert fits_in_memory(1_000_000, 2 * 10**9, point_bytes(exact))
     assert not fits_in_memory(1_000_000, 2 * 10**9, point_bytes(smooth))
     assert points_per_tile(2 * 10**9, SMOOTHING_BYTES_PER_POINT) * SMOOTHING_BYTES_PER_POINT * 4 <= 2 * 10**9
+
+
+def test_each_tile_reports_its_smoothing_solve(tmp_path):
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 4000, seed=3)
+    passes = []
+    report = fit_tiled(source, tmp_path / "out.ply", FitOptions(classes=[2], level=1), memory=10**9,
+                       per_tile=450, strength=10.0, on_tile=lambda name, done, tiles: passes.append(name))
+    assert passes.count("smoothing") == report["tiles"] == 9
+    for row in report["tile_tasks"]:
+        assert row["passes"]["smoothing"]["seconds"] >= 0 and row["passes"]["smoothing"]["worker"]

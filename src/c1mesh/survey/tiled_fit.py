@@ -178,7 +178,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                 from c1mesh.survey.tiled_smoothing import TiledSmoother
 
                 limiter = TiledSmoother(heights, triangle_files, grid, strength, longest, options.overshoot,
-                                        temps, runner, rows.name)
+                                        temps, runner, rows.name,
+                                        on_done=lambda t, row: rows.add(t, "smoothing", row))
                 done("smoothing")
             elif options.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)

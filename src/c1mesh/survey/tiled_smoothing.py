@@ -100,10 +100,11 @@ class TiledSmoother:
     longest final edge, the overshoot mode ("limit": edge directions; "off": unit normals),
     temps, a runner (distributed.TaskRunner) and name(t); it chooses h and s and runs every
     tile's solve. A refinement task (tiled_refine) then takes its tile's vertex data
-    through `tile`, as it takes the limiter's."""
+    through `tile`, as it takes the limiter's. on_done(t, row) gets each solve's report row
+    (tiles.task_row: points, seconds, worker, its peak) as it finishes (progress)."""
 
     def __init__(self, heights, triangle_files, grid, strength, longest_edge: float, overshoot: str,
-                 temps, runner, name=str, lengths: float | None = None):
+                 temps, runner, name=str, lengths: float | None = None, on_done=None):
         lengths = HALO_LENGTHS if lengths is None else lengths
         self.grid, self.files, self.overshoot = grid, triangle_files, overshoot
         self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
@@ -125,8 +126,11 @@ class TiledSmoother:
         self.paths = {t: (temps.new(f"fitted-{t}.bin"), temps.new(f"directions-{t}.npy")) for t in tiles}
         start = time.perf_counter()
         self.solves: list[TileSolve] = []
-        for i, solved in runner.map(tile_solve, len(tiles), lambda i: (self, tiles[i]), lambda i: name(tiles[i])):
+        for i, (solved, row) in runner.map(tile_solve, len(tiles), lambda i: (self, tiles[i]),
+                                           lambda i: name(tiles[i])):
             self.solves.append(solved)
+            if on_done:
+                on_done(tiles[i], row)
         self.seconds["solve"] = time.perf_counter() - start
 
     def tile(self, tile: int, triangles: np.ndarray):
@@ -220,16 +224,19 @@ def _fit_halo(halo, strength, spacing: float, overshoot: str):
     return fitted, (table, directions, changed)
 
 
-def tile_solve(smoother: TiledSmoother, tile: int) -> TileSolve:
+def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     """Solve tile's halo (module docstring); write its own vertices' fitted data (FITTED)
     and its own triangles' edge directions (in the order of edge_table of those triangles
-    numbered by ascending corner, as tiled_refine numbers them)."""
+    numbered by ascending corner, as tiled_refine numbers them). Returns the TileSolve and
+    the task's report row (tiles.task_row)."""
+    from c1mesh.survey.tiles import task_row
+
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
     if not len(halo.triangles):
         np.empty(0, FITTED).tofile(smoother.paths[tile][0])
         _save(smoother.paths[tile][1], np.empty((0, 2)))
-        return TileSolve(0, 0.0, 0.0, 0, None, 0, {"tile": time.perf_counter() - start})
+        return TileSolve(0, 0.0, 0.0, 0, None, 0, {"tile": time.perf_counter() - start}), task_row(0, start)
     fitted, (table, directions, changed) = _fit_halo(halo, smoother.strength, smoother.spacing,
                                                      smoother.overshoot)
     own = halo.own
@@ -248,7 +255,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> TileSolve:
     return TileSolve(own=int(own.sum()), squares=float(np.sum(residual ** 2)),
                      largest=float(np.abs(residual).max()) if residual.size else 0.0,
                      halo_vertices=len(halo.records), edf=fitted.edf, turned=turned,
-                     seconds={"tile": time.perf_counter() - start})
+                     seconds={"tile": time.perf_counter() - start}), task_row(len(halo.records), start)
 
 
 def _save(path, array: np.ndarray) -> None:
