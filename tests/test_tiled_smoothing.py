@@ -65,8 +65,8 @@ def test_tiled_smoothing_matches_the_whole_fit(tmp_path, strength):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, seed=2)
     whole, whole_report = _in_memory(tmp_path, source, strength)
-    report = fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=1), memory=10**9,
-                       per_tile=1500, strength=strength)
+    report = fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=1, smooth=strength),
+                       memory=10**9, per_tile=1500)
     assert report["tiles"] == 9
     fitted = report["smoothing"]
     assert fitted["lam"] == pytest.approx(whole_report["smoothing"]["lam"], rel=1e-12)
@@ -88,8 +88,8 @@ def test_the_tiled_difference_shrinks_with_the_halo(tmp_path, monkeypatch):
     largest = []
     for lengths in (8.0, 16.0, 24.0, 32.0):
         monkeypatch.setattr(tiled_smoothing, "HALO_LENGTHS", lengths)
-        fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=1), memory=10**9,
-                  per_tile=1500, strength=100.0)
+        fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=1, smooth=100.0), memory=10**9,
+                  per_tile=1500)
         vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
         largest.append(np.abs(vertices[:, 2] - _heights_at(whole, vertices)).max())
     rms = whole_report["smoothing"]["residual_rms"]
@@ -102,8 +102,8 @@ def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
     source = tmp_path / "plane.las"
     _terrain_las(source, 6000, plane=True)
     monkeypatch.setattr(tiled_smoothing, "HALO_LENGTHS", 0.5)    # the least halo: 4 final edges
-    report = fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=2), memory=10**9,
-                       per_tile=700, strength=1000.0)
+    report = fit_tiled(source, tmp_path / "tiled.ply", FitOptions(classes=[2], level=2, smooth=1000.0),
+                       memory=10**9, per_tile=700)
     assert report["tiles"] == 9
     mesh = trimesh.load(tmp_path / "tiled.ply", process=False)
     x, y = mesh.vertices[:, 0] - 500000, mesh.vertices[:, 1] - 4000000
@@ -152,12 +152,12 @@ def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path):
     distributed = pytest.importorskip("distributed")
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
-    options = FitOptions(classes=[2], level=2)
-    here = fit_tiled(source, tmp_path / "here.ply", options, memory=10**9, per_tile=450, strength=10.0)
+    options = FitOptions(classes=[2], level=2, smooth=10.0)
+    here = fit_tiled(source, tmp_path / "here.ply", options, memory=10**9, per_tile=450)
     assert here["tiles"] == 9
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        dask = fit_tiled(source, tmp_path / "dask.ply", options, memory=10**9, per_tile=450, strength=10.0,
+        dask = fit_tiled(source, tmp_path / "dask.ply", options, memory=10**9, per_tile=450,
                          scheduler=cluster.scheduler_address)
     assert (tmp_path / "dask.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
     assert dask["smoothing"] == {**here["smoothing"], "seconds": dask["smoothing"]["seconds"]}
@@ -224,8 +224,8 @@ def test_each_tile_reports_its_smoothing_solve(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
     passes = []
-    report = fit_tiled(source, tmp_path / "out.ply", FitOptions(classes=[2], level=1), memory=10**9,
-                       per_tile=450, strength=10.0, on_tile=lambda name, done, tiles: passes.append(name))
+    report = fit_tiled(source, tmp_path / "out.ply", FitOptions(classes=[2], level=1, smooth=10.0), memory=10**9,
+                       per_tile=450, on_tile=lambda name, done, tiles: passes.append(name))
     assert passes.count("smoothing") == report["tiles"] == 9
     for row in report["tile_tasks"]:
         assert row["passes"]["smoothing"]["seconds"] >= 0 and row["passes"]["smoothing"]["worker"]

@@ -97,11 +97,11 @@ def fit_in_tiles(source, output, options, **run) -> dict:
     """The memory-bounded fit (c1mesh.survey.tiled_fit.fit_tiled: source one LAS/LAZ path or
     a list, output a mesh path, run its other keyword arguments: on_stage, jobs, on_tile,
     scheduler, outputs) with its facts made the report of c1mesh.pipeline.report's schema."""
-    strength = smoothing_strength(options)
+    smoothing_strength(options)                     # InputError for a bad --smooth, before any work
     if getattr(options, "spacing", None) is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
-    facts = fit_tiled(source, output, options, options.memory, strength=strength, **run)
+    facts = fit_tiled(source, output, options, options.memory, **run)
     return tiled_report(facts, options)
 
 

@@ -66,8 +66,7 @@ from c1mesh.survey.tiled_heights import height_spill
 from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
                                        survey_paths)
 from c1mesh.survey.tiled_limiter import TiledLimiter
-from c1mesh.survey.tiled_plan import (BYTES_PER_POINT, SMOOTHING_BYTES_PER_POINT, grid_side, task_threads,
-                                      tiles_at_once)
+from c1mesh.survey.tiled_plan import grid_side, point_bytes, smoothing_of, task_threads, tiles_at_once
 from c1mesh.survey.tiled_refine import Split, write_tiles
 from c1mesh.survey.tiled_report import TileRows, describe_crs
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
@@ -85,7 +84,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
               on_stage: Callable[[str], None] | None = None, directory=None,
               scheduler: str | None = None, jobs: int = 1,
               on_tile: Callable[[str, int, int], None] | None = None,
-              outputs: Sequence[str] | None = None, strength=None) -> dict:
+              outputs: Sequence[str] | None = None) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
     with outputs (one path per input file, output None), each input's owned part of it
     (c1mesh.survey.tiled_outputs: `fit --seamless -O` beyond --memory).
@@ -106,8 +105,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     The tiles are sized by the budget alone, so the output bytes do not depend on where
     the tasks ran or on how many ran at once. on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
-    strength: None (the exact fit) or the smoothing fit's, "auto" or s > 0
-    (c1mesh.survey.tiled_smoothing, which then replaces the limiter but for edge directions).
+    options.smooth other than "off" runs the smoothing fit (c1mesh.survey.tiled_smoothing,
+    which then replaces the limiter but for edge directions; no --spacing in tiles).
     """
     from c1mesh.survey.distributed import TaskRunner
     from c1mesh.survey.buffered_delaunay import TileGrid
@@ -120,6 +119,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
 
     options = with_plane_level(options)
     _check_options(options)
+    strength = smoothing_of(options)
     paths = survey_paths(source)
     name = survey_name(paths)
     crs, crs_source = survey_crs(paths, options.crs)
@@ -152,7 +152,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         if count < 3:
             raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
-        per_point = BYTES_PER_POINT if strength is None else SMOOTHING_BYTES_PER_POINT   # tiles: no --spacing
+        per_point = point_bytes(options)
         side = grid_side(count, memory, per_tile, per_point)
         grid = TileGrid(box, side, side)
         done("frame")

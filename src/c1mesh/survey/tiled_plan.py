@@ -23,13 +23,20 @@ exact fit's BYTES_PER_POINT plus the sparse Cholesky factor and system, measured
 input; the factor's fill grows like N log N) and 7 GB for the in-memory fit of 1M points."""
 
 
+def smoothing_of(options):
+    """options.smooth as stages.smoothing.parse_strength reads it: None (the exact fit),
+    "auto" or a strength s > 0 (SmoothingError for anything else)."""
+    from c1mesh.stages.smoothing import parse_strength
+
+    smooth = getattr(options, "smooth", "off")
+    return None if smooth is None else parse_strength(str(smooth))
+
+
 def point_bytes(options) -> int:
     """Peak bytes per input point of the fit options ask for: SMOOTHING_BYTES_PER_POINT
     for a smoothing fit with a vertex at every point, else BYTES_PER_POINT (a --spacing
     fit's solve follows its thinned vertices, not its points)."""
-    smooth = getattr(options, "smooth", "off")
-    smoothing = smooth is not None and str(smooth).strip().lower() != "off"
-    if smoothing and getattr(options, "spacing", None) is None:
+    if smoothing_of(options) is not None and getattr(options, "spacing", None) is None:
         return SMOOTHING_BYTES_PER_POINT
     return BYTES_PER_POINT
 

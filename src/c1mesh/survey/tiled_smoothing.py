@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -83,7 +83,7 @@ def tile_spacings(heights, grid, tile: int, reach: float, path) -> None:
 class TileSolve:
     """What one tile's solve reports: its own vertices, the sum of squares and the largest
     of their residuals (height units), its halo's vertex count and effective degrees of
-    freedom (Hutchinson), its own edges whose direction is not the unit normal, seconds."""
+    freedom (Hutchinson), its own edges whose direction is not the unit normal."""
 
     own: int
     squares: float
@@ -91,7 +91,6 @@ class TileSolve:
     halo_vertices: int
     edf: float | None
     turned: int
-    seconds: dict = field(default_factory=dict)
 
 
 class TiledSmoother:
@@ -236,7 +235,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     if not len(halo.triangles):
         np.empty(0, FITTED).tofile(smoother.paths[tile][0])
         _save(smoother.paths[tile][1], np.empty((0, 2)))
-        return TileSolve(0, 0.0, 0.0, 0, None, 0, {"tile": time.perf_counter() - start}), task_row(0, start)
+        return TileSolve(0, 0.0, 0.0, 0, None, 0), task_row(0, start)
     fitted, (table, directions, changed) = _fit_halo(halo, smoother.strength, smoother.spacing,
                                                      smoother.overshoot)
     own = halo.own
@@ -254,8 +253,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     residual = halo.records["z"][own] - fitted.values[own]
     return TileSolve(own=int(own.sum()), squares=float(np.sum(residual ** 2)),
                      largest=float(np.abs(residual).max()) if residual.size else 0.0,
-                     halo_vertices=len(halo.records), edf=fitted.edf, turned=turned,
-                     seconds={"tile": time.perf_counter() - start}), task_row(len(halo.records), start)
+                     halo_vertices=len(halo.records), edf=fitted.edf, turned=turned), task_row(len(halo.records), start)
 
 
 def _save(path, array: np.ndarray) -> None:
