@@ -262,6 +262,14 @@ def residual_blocks(path, block: int = FLOAT_BLOCK):
         yield from file_blocks(file, "<f8", block)
 
 
+def corner_rows(index: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tile triangles (k, 3) of survey numbers against `index` (ascending survey numbers of
+    the records a tile read): (rows (c,) of their distinct corners among index, -1 where
+    absent; triangles (k, 3) numbering those corners)."""
+    corners, local = np.unique(triangles, return_inverse=True)
+    return halo_rows(index, corners), local.reshape(triangles.shape)
+
+
 def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -> float:
     """The exact median of the float64 values that task(*arguments(t, path)) writes to its
     own file `path` for every tile t of tiles, each a task on runner

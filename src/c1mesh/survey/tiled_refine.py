@@ -56,14 +56,13 @@ class _RefineJob:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
                     limits.limited, limits.turned, limits.lifted)
-        from c1mesh.survey.tiled_halo import halo_rows
+        from c1mesh.survey.tiled_halo import corner_rows
 
         records = self.heights.records(self.grid.grown(t, self.reach(t)))
-        corners, local = np.unique(triangles, return_inverse=True)
-        rows = halo_rows(records["index"], corners)
+        rows, local = corner_rows(records["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
-        return records[rows], local.reshape(triangles.shape), None, None, 0, 0, 0
+        return records[rows], local, None, None, 0, 0, 0
 
 
 class _Part:

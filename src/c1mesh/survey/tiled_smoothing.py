@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, halo_rows, median_over_tiles, own_triangles_in
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, corner_rows, median_over_tiles, own_triangles_in
 
 HALO_LENGTHS = 28.0
 """A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
@@ -138,18 +138,17 @@ class TiledSmoother:
         hold them, and the directions of their edges (tile_solve's)."""
         from c1mesh.survey.tiled_limiter import TileLimits
 
-        corners, local = np.unique(triangles, return_inverse=True)
         fitted = self._fitted_near(tile)
-        rows = halo_rows(fitted["index"], corners)
+        rows, local = corner_rows(fitted["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {tile}: a corner of its triangles has no fitted data")
-        records = np.empty(len(corners), self.halos.heights.record)
+        records = np.empty(len(rows), self.halos.heights.record)
         fitted = fitted[rows]
         for column in FITTED.names:
             records[column] = fitted[column]
         directions = None if self.overshoot == "off" else np.load(self.paths[tile][1])
         gradients = np.column_stack([records["gx"], records["gy"]])
-        return TileLimits(records, local.reshape(triangles.shape), gradients, directions, 0, 0, 0)
+        return TileLimits(records, local, gradients, directions, 0, 0, 0)
 
     def _fitted_near(self, tile: int) -> np.ndarray:
         """The fitted vertices of every tile whose cell meets tile's cell grown by its reach,
