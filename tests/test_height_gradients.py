@@ -290,28 +290,53 @@ def test_csv_heights_fit_the_same_in_any_unit(tmp_path):
     np.testing.assert_allclose(in_m.gradients, 1e3 * in_km.gradients, rtol=1e-9, atol=0)
 
 
-def test_the_neighbour_search_uses_the_thread_knob_and_gives_the_same_gradients(monkeypatch):
-    """Under `limit(n)` every cKDTree query of height_gradients runs in n threads (it ran in
-    all CPUs, workers=-1, whatever --threads said); the gradients do not depend on n."""
+def test_blocks_run_in_the_thread_knobs_threads_and_give_the_same_gradients(monkeypatch):
+    """Under `limit(n)` the blocks run in at most n threads, each block's cKDTree query in
+    one (no pool inside a pool); the gradients do not depend on n or on the blocking."""
+    import threading
+
     import scipy.spatial
 
+    import c1mesh.stages.height_gradients as hg
     from c1mesh.core.threads import limit
 
-    asked = []
+    asked, ran_in = [], set()
 
     class RecordingTree(scipy.spatial.cKDTree):
         def query(self, *args, **kwargs):
             asked.append(kwargs.get("workers", 1))
+            ran_in.add(threading.get_ident())
             return super().query(*args, **kwargs)
     xy = np.random.default_rng(4).random((3000, 2))
     z = np.sin(3 * xy[:, 0]) + xy[:, 1] ** 2
-    plain = height_gradients(xy, z, k=24)
+    plain = height_gradients(xy, z, k=24)                   # one block of 3000
     monkeypatch.setattr(scipy.spatial, "cKDTree", RecordingTree)
+    monkeypatch.setattr(hg, "BLOCK", 256)                   # 12 blocks
     for threads in (1, 2):
         asked.clear()
+        ran_in.clear()
         with limit(threads):
             np.testing.assert_array_equal(height_gradients(xy, z, k=24), plain)
-        assert asked and set(asked) == {threads}
+        assert asked and set(asked) == {1}
+        assert 1 <= len(ran_in) <= threads
+
+
+def test_gradients_at_some_points_are_those_rows_and_reach_the_kth_neighbour():
+    """gradients_at(at) gives the bits of height_gradients' rows `at`, in at's order, and
+    each point's reach is the plane distance to its k-th nearest other point (a plain
+    cKDTree query, which counts the point itself first)."""
+    from scipy.spatial import cKDTree
+
+    from c1mesh.stages.height_gradients import gradients_at
+
+    rng = np.random.default_rng(8)
+    xy = rng.random((4000, 2))
+    z = np.cos(2 * xy[:, 0]) * xy[:, 1]
+    at = rng.choice(4000, 700, replace=False)
+    gradients, reach = gradients_at(xy, z, at, k=24)
+    np.testing.assert_array_equal(gradients, height_gradients(xy, z, k=24)[at])
+    kth = cKDTree(xy).query(xy[at], k=25)[0][:, -1]
+    np.testing.assert_allclose(reach, kth, rtol=1e-12, atol=0)
 
 
 def test_reused_block_buffers_give_the_bits_of_fresh_ones():

@@ -14,6 +14,8 @@ own height (the spline interpolates it), so the fit is exact for every quadratic
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from c1mesh.core.errors import InputError
@@ -73,6 +75,7 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
 def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2,
                      workers: int | None = None) -> np.ndarray:
     """Gradients (n, 2) of heights z (n,) over plane points xy (n, 2), one per point.
+    (`gradients_at` gives them at some of the points, with each one's neighbour reach.)
 
     For point i with neighbours j (the k nearest other points in the plane), the offsets
     d_j = xy_j − xy_i and height differences Δ_j = z_j − z_i are fitted by
@@ -87,8 +90,9 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     The fit is exact for any quadratic (degree 2) or affine (degree 1) height function
     whenever the neighbours determine it; where they do not (fewer than 5 non-collinear
     neighbours), the ridge RIDGE keeps the solve finite and the quadratic terms small.
-    workers: threads for the neighbour search (scipy cKDTree.query); None: the thread
-    knob's count (c1mesh.core.threads.workers), as every pool of the package.
+    workers: threads, each taking blocks of BLOCK points (its neighbour search and its
+    fit); None: the thread knob's count (c1mesh.core.threads.workers), as every pool of
+    the package.
     Units: xy in one unit (the plan's), z in any unit; the gradients are in z units per
     xy unit. Nothing compares heights with plane distances, so heights in feet over a
     plan in 50 ft cells (R's `topo`) or in metres over kilometres are fitted as well as
@@ -96,8 +100,19 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     Raises InputError for bad shapes, fewer than 3 distinct plane positions (no slope
     can be fitted), or degree not 1 or 2.
     """
+    return gradients_at(xy, z, None, k, degree, workers)[0]
+
+
+def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 16,
+                 degree: int = 2, workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(gradients (m, 2), reach (m,)) of `height_gradients` at the points `at` (m,) indices
+    into xy (None: every point), with the neighbours still taken among all n points;
+    reach is each point's plane distance to its k-th (farthest) neighbour. The same bits
+    as height_gradients' rows `at`: a tile fits its own points only, and its reach says
+    whether the buffer it read held every neighbourhood."""
     from scipy.spatial import cKDTree
 
+    from c1mesh.core.threads import parallel_blocks
     from c1mesh.core.threads import workers as thread_count
 
     workers = thread_count(workers)
@@ -118,14 +133,31 @@ def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2
     order = cKDTree(xy, balanced_tree=False, compact_nodes=False).indices
     xy, z = xy[order], z[order]
     tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)
-    out = np.empty((n, 2))
+    if at is None:
+        centres, slot = np.arange(n), order
+    else:
+        rank = np.empty(n, dtype=np.int64)
+        rank[order] = np.arange(n)
+        where = np.asarray(at, dtype=np.int64)
+        slot = np.argsort(rank[where], kind="stable")        # centres in leaf order too
+        centres = rank[where][slot]
+    m = centres.size
+    out = np.empty((m, 2))
+    reach2 = np.empty(m)
     terms = 2 if degree == 1 else 5
-    work = tuple(np.empty((min(BLOCK, n), k, terms)) for _ in range(2))   # touched once, not per block
-    for start in range(0, n, BLOCK):
-        centre = np.arange(start, min(start + BLOCK, n))
-        neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, workers)
-        out[order[centre]] = _fit_block(z, centre, neighbours, offsets, degree, work)
-    return out
+    buffers = threading.local()                # per thread, touched once, not per block
+
+    def fit(block: slice) -> None:
+        if not hasattr(buffers, "work"):
+            buffers.work = tuple(np.empty((min(BLOCK, m), k, terms)) for _ in range(2))
+        centre = centres[block]
+        neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, workers=1)
+        reach2[slot[block]] = offsets[2].max(axis=1)
+        out[slot[block]] = _fit_block(z, centre, neighbours, offsets, degree, buffers.work)
+    # Each block is a query and a fit of its own (both release the GIL), so blocks run in
+    # the knob's threads: every block gets the same neighbours and sums at any count.
+    parallel_blocks(fit, m, BLOCK, threads=workers)
+    return out, np.sqrt(reach2)
 
 
 def _distinct_positions(xy: np.ndarray, enough: int) -> int:

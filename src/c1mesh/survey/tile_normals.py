@@ -43,26 +43,30 @@ def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: flo
 
     from c1mesh.stages.normals import estimate_normals, unique_positions
 
-    def neighbours_read(xyz, own, read_box):
-        distinct, inverse = unique_positions(xyz)
-        return len(distinct) >= k and _neighbourhoods_inside(
-            cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, grid.box)
+    def attempt(xyz, own, read_box, covers):
+        if not covers:
+            distinct, inverse = unique_positions(xyz)
+            if not (len(distinct) >= k and _neighbourhoods_inside(
+                    cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, grid.box)):
+                return None
+        return estimate_normals(xyz, k=k, towards=towards)[own]
 
-    return _grown(read3, grid, tile, buffer, neighbours_read,
-                  lambda xyz, own: estimate_normals(xyz, k=k, towards=towards)[own])
+    return _grown(read3, grid, tile, buffer, attempt)
 
 
 def _grown(read3: Callable, grid: TileGrid, tile: int, buffer: float,
-           neighbours_read: Callable, normals_of: Callable) -> TileNormals:
+           attempt: Callable) -> TileNormals:
     """A tile's normals from the points within `buffer` of its cell, the buffer doubled until
-    neighbours_read(xyz, own, read_box) says every own point's neighbourhood was read (or the
-    read box covers the survey); normals_of(xyz, own) gives the own points' normals."""
+    attempt(xyz, own, read_box, covers) returns the own points' normals: it returns None
+    when some own point's neighbourhood was not all read, which cannot happen once the
+    read box covers the survey (covers=True)."""
     for reading in growing_reads(read3, grid, tile, buffer):
         index, xyz, own = reading.index, reading.points, reading.own
         if not own.any():
             return TileNormals(tile, index[own], np.empty((0, 3)), reading.buffer, reading.round)
-        if reading.covers or neighbours_read(xyz, own, reading.box):
-            return TileNormals(tile, index[own], normals_of(xyz, own), reading.buffer, reading.round)
+        normals = attempt(xyz, own, reading.box, reading.covers)
+        if normals is not None:
+            return TileNormals(tile, index[own], normals, reading.buffer, reading.round)
 
 
 def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:
@@ -72,12 +76,18 @@ def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> b
 
     distance, _ = tree.query(points, k, workers=workers())
     kth = distance[:, -1] if distance.ndim == 2 else distance
+    return _closer_than_unread(points, kth, read_box, box)
+
+
+def _closer_than_unread(points: np.ndarray, reach: np.ndarray, read_box, box) -> bool:
+    """True when each plane point (m, 2) is closer to its farthest neighbour, reach (m,),
+    than to the unread part of the box (with a relative margin for rounding)."""
     gap = np.full(len(points), np.inf)
     for x0, y0, x1, y1 in unread_strips(read_box, box, np.zeros(2)):
         dx = np.maximum(np.maximum(x0 - points[:, 0], points[:, 0] - x1), 0.0)
         dy = np.maximum(np.maximum(y0 - points[:, 1], points[:, 1] - y1), 0.0)
         gap = np.minimum(gap, np.hypot(dx, dy))
-    return bool((kth * (1 + 1e-9) < gap).all())
+    return bool((reach * (1 + 1e-9) < gap).all())
 
 
 def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float) -> TileNormals:
@@ -87,14 +97,15 @@ def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buff
     `tile_normals` until every own point's k nearest plane neighbours lie in what was read
     (their plane distance is below the unread part's), so each fit sees the survey's
     neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
-    from scipy.spatial import cKDTree
-
     from c1mesh.stages.height_field import gradients_to_normals
-    from c1mesh.stages.height_gradients import height_gradients
+    from c1mesh.stages.height_gradients import gradients_at
 
-    def neighbours_read(xyz, own, read_box):
-        return len(xyz) > k + 1 and _neighbourhoods_inside(
-            cKDTree(xyz[:, :2]), xyz[own, :2], k + 1, read_box, grid.box)
+    def attempt(xyz, own, read_box, covers):
+        if len(xyz) <= k + 1 and not covers:
+            return None
+        gradients, reach = gradients_at(xyz[:, :2], xyz[:, 2], np.flatnonzero(own), k=k)
+        if not (covers or _closer_than_unread(xyz[own, :2], reach, read_box, grid.box)):
+            return None                          # a neighbourhood reaches past what was read
+        return gradients_to_normals(gradients)
 
-    return _grown(read3, grid, tile, buffer, neighbours_read,
-                  lambda xyz, own: gradients_to_normals(height_gradients(xyz[:, :2], xyz[:, 2], k=k)[own]))
+    return _grown(read3, grid, tile, buffer, attempt)
