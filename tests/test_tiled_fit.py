@@ -490,7 +490,7 @@ def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):
     process writes: the tiles come from the budget, not from the number of jobs."""
     _every_job_at_once(monkeypatch)
     source, args = _big_las(tmp_path)
-    one = CliRunner().invoke(main, args + ["-o", str(tmp_path / "one.ply")])
+    one = CliRunner().invoke(main, args + ["-o", str(tmp_path / "one.ply"), "-j", "1"])
     two = CliRunner().invoke(main, args + ["-o", str(tmp_path / "two.ply"), "-j", "2",
                                            "--report", str(tmp_path / "two.json")])
     assert one.exit_code == 0 and two.exit_code == 0, one.output + two.output
@@ -498,6 +498,22 @@ def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):
     report = json.loads((tmp_path / "two.json").read_text())
     assert report["scheduler"] == "2 local processes"
     assert len(_tile_rows_agree(report, 1)) == 2
+
+
+def test_cli_runs_tiles_on_one_process_per_thread_by_default(tmp_path, monkeypatch):
+    """Without -j a fit larger than --memory runs its tiles on one local process per
+    thread of --threads (as many as the budget allows), and in this process at
+    --threads 1; the bytes are those of -j 1."""
+    _every_job_at_once(monkeypatch)
+    source, args = _big_las(tmp_path)
+    runs = {}
+    for threads in ("1", "2"):
+        result = CliRunner().invoke(main, args + ["-o", str(tmp_path / f"t{threads}.ply"), "--threads", threads,
+                                                  "--report", str(tmp_path / f"t{threads}.json")])
+        assert result.exit_code == 0, result.output
+        runs[threads] = json.loads((tmp_path / f"t{threads}.json").read_text())["scheduler"]
+    assert runs == {"1": "in process", "2": "2 local processes"}
+    assert (tmp_path / "t1.ply").read_bytes() == (tmp_path / "t2.ply").read_bytes()
 
 
 def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
@@ -515,7 +531,7 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
             raise ValueError("no good")
         return real(job, t, part)
     monkeypatch.setattr(tiled_refine, "_refine_tile", failing)
-    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply")])
+    here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "1"])
     assert here.exit_code == 1
     assert here.output.startswith(f"c1mesh: error: {source}: tile 2 (cell ") and here.output.endswith(": no good\n")
     assert here.output.count("\n") == 1

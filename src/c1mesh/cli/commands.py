@@ -84,9 +84,10 @@ def main() -> None:
 @click.option("--bounds", callback=parse_bounds_option, metavar="XMIN,YMIN,XMAX,YMAX",
               help="Fit only the points in this x/y box (file units); a COPC file is read by its "
                    "octree, decoding only the nodes that meet the box.")
-@click.option("-j", "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
+@click.option("-j", "--jobs", type=click.IntRange(1, 256), default=None,
               help="Parallel processes for several inputs, or for the tiles of --seamless -O "
-                   "and of a fit larger than --memory (as many tiles at once as --memory allows).")
+                   "and of a fit larger than --memory (as many tiles at once as --memory allows). "
+                   "[default: 1; a fit larger than --memory: one per thread of --threads]")
 @click.option("--threads", type=click.IntRange(1, 1024), default=None,
               help="Threads in all (BLAS included); with --jobs N each process gets "
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")
@@ -157,11 +158,11 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          depth_scale=depth_scale, color=color_image, bounds=bounds,
                          smooth=smooth_option, spacing=spacing)
     options = check_geo(pairs, options, debug)
-    options.workers = threads_per_process(threads, min(jobs, len(pairs)))
+    options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))
     if len(pairs) == 1:
         fit_one(*pairs[0], targets, options, report, quiet, verbose, debug, jobs, scheduler)
         return
-    fit_batch(pairs, targets[-1], options, report, jobs, quiet, verbose, debug, scheduler)
+    fit_batch(pairs, targets[-1], options, report, jobs or 1, quiet, verbose, debug, scheduler)
 
 
 # ---------------------------------------------------------------------------------- info

@@ -77,10 +77,10 @@ _SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one
 """The report's `scheduler` when a --scheduler had no tiles to run; also the note on stderr."""
 
 
-def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, scheduler=None) -> dict:
+def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile=None, scheduler=None) -> dict:
     """Fit one input to one output (a path, or a file object then with options.output_format);
     an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
-    processes. An input that fits in memory is fitted here, and a scheduler given for it is
+    processes (None: tiled_fit's choice, one per thread). An input that fits in memory is fitted here, and a scheduler given for it is
     recorded in the report as not used (the line c1mesh.cli.messages.note prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
     from c1mesh.pipeline.survey_fit import fit_in_tiles
@@ -96,7 +96,7 @@ def _run(src: str, target, options, on_stage=None, jobs: int = 1, on_tile=None, 
     return report
 
 
-def fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int = 1,
+def fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int | None = 1,
             scheduler: str | None = None) -> None:
     """Fit one input; the mesh and the report are committed together, or neither is."""
     from dataclasses import replace

@@ -30,7 +30,7 @@ OWNERSHIP = "lowest-numbered corner point"
 
 
 def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence[str] | None = None,
-                 scheduler: str | None = None, jobs: int = 1,
+                 scheduler: str | None = None, jobs: int | None = 1,
                  on_tile: Callable[[dict], None] | None = None,
                  on_stage: Callable[[str], None] | None = None,
                  on_tile_pass: Callable[[str, int, int], None] | None = None) -> dict:
@@ -39,7 +39,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     output: one path for the whole survey's mesh (the fit of the concatenated cloud,
     written as `c1mesh fit` writes one input); or outputs: one path per input, each
     holding the triangles its input owns (module docstring), tiles run by
-    distributed.run_tiles (scheduler, jobs). Progress: on_tile is called with each
+    distributed.run_tiles (scheduler, jobs; None: 1). Progress: on_tile is called with each
     tile's report row as it is written (in-memory -O); on_stage after each stage
     (in-memory -o: pipeline.STAGES; in tiles: tiled_fit.TILED_STAGES). A LAS/LAZ survey
     larger than options.memory allows in one piece (survey_needs_tiles) goes to the
@@ -82,6 +82,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         crs=crs_facts(crs, crs_source),
         seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options))
     report.update(smoothing_facts(model))
+    jobs = jobs or 1
     report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
                    "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})
     tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)

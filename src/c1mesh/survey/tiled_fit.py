@@ -82,7 +82,7 @@ smoothing strength (c1mesh.survey.tiled_smoothing)."""
 
 def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
               on_stage: Callable[[str], None] | None = None, directory=None,
-              scheduler: str | None = None, jobs: int = 1,
+              scheduler: str | None = None, jobs: int | None = 1,
               on_tile: Callable[[str, int, int], None] | None = None,
               outputs: Sequence[str] | None = None) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
@@ -102,12 +102,17 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     (distributed.TaskRunner): here (jobs 1), on up to `jobs` local processes (as many
     as the budget lets hold a tile at once, `tiles_at_once`), or on the Dask cluster at
     `scheduler` (a tile at a time per worker thread), whose workers must see `directory`.
+    jobs None: one local process per thread of the knob (options.workers), one thread
+    each; `c1mesh fit`'s default. Tiles in two processes beat one process with two
+    threads at every size measured (1.2-1.5x, docs/tiles.md), because most of a tile's
+    stages run in one thread.
     The tiles are sized by the budget alone, so the output bytes do not depend on where
     the tasks ran or on how many ran at once. on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
     options.smooth other than "off" runs the smoothing fit (c1mesh.survey.tiled_smoothing,
     which then replaces the limiter but for edge directions; no --spacing in tiles).
     """
+    from c1mesh.core.threads import workers as thread_count
     from c1mesh.survey.distributed import TaskRunner
     from c1mesh.survey.buffered_delaunay import TileGrid
     from c1mesh.survey.tiled_outputs import InputOwners
@@ -156,6 +161,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         side = grid_side(count, memory, per_tile, per_point)
         grid = TileGrid(box, side, side)
         done("frame")
+        if jobs is None:
+            jobs = thread_count(options.workers) if len(grid) > 1 else 1
         runner = stack.enter_context(TaskRunner(scheduler, jobs if scheduler else tiles_at_once(memory, jobs, per_point)))
         rows = TileRows(grid, task_threads(options, runner), on_tile)
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
