@@ -32,7 +32,7 @@ EXEMPT = {
     "c1mesh fit TILES/*.laz --classes 2 --seamless -o all.ply": "TILES/: the user's survey",
     "c1mesh fit TILES/*.laz --classes 2 --seamless -o dem.tif --resolution 1": "TILES/: the user's survey",
     "c1mesh fit TILES/*.laz --classes 2 --seamless -o all.ply --memory 2G": "TILES/: the user's survey",
-    "c1mesh fit BIG.laz --classes 2 -o big.ply --memory 2G -j 2": "BIG.laz: the user's file",
+    "c1mesh fit BIG.laz --classes 2 -o big.ply --memory 2G": "BIG.laz: the user's file",
     "c1mesh fit BIG.laz --classes 2 -o /shared/big.ply --memory 2G --scheduler tcp://HOST:8786":
         "BIG.laz, HOST: the user's file and cluster",
     "c1mesh fit TILES/*.laz --classes 2 --seamless -O out/ -j 2": "TILES/: the user's survey",

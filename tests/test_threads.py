@@ -98,6 +98,25 @@ def test_run_parallel_covers_every_range_in_threads():
     assert len(set(seen.values())) == 3
 
 
+def test_map_in_threads_keeps_the_items_order_and_uses_the_threads():
+    """Results come back in the items' order however the threads took them (a slow first
+    item lets the other thread take the rest); at 1 thread all run in the caller's."""
+    ran_in = {}
+
+    def slow_square(i):
+        if i == 0:
+            time.sleep(0.2)
+        ran_in[i] = threading.get_ident()
+        return i * i
+    assert threads.map_in_threads(slow_square, list(range(6)), threads=2) == [0, 1, 4, 9, 16, 25]
+    assert len(set(ran_in.values())) == 2
+    ran_in.clear()
+    assert threads.map_in_threads(slow_square, list(range(6)), threads=1) == [0, 1, 4, 9, 16, 25]
+    assert set(ran_in.values()) == {threading.get_ident()}
+    with pytest.raises(ZeroDivisionError):
+        threads.map_in_threads(lambda i: 1 // (i - 3), list(range(6)), threads=2)
+
+
 def test_one_worker_prefetches_in_the_callers_thread():
     seen = []
 

@@ -278,3 +278,16 @@ def parallel_blocks(work: Callable[[slice], None], count: int, block: int = 1 <<
                 return
             work(slice(b * block, min(count, (b + 1) * block)))
     run_parallel(run, [()] * max(1, min(workers(threads), blocks)))
+
+
+def map_in_threads(function: Callable[[Item], object], items: list, threads: int | None = None) -> list:
+    """[function(item) for item in items], the items shared among `workers(threads)`
+    threads (parallel_blocks, one item a block) and the results in the items' order, so
+    the result is the same for every thread count; the first error raised is re-raised."""
+    results: list = [None] * len(items)
+
+    def run(block: slice) -> None:
+        results[block.start] = function(items[block.start])
+    parallel_blocks(run, len(items), 1, threads)
+    return results
+

@@ -25,7 +25,8 @@ the cell); what has to see the whole survey is orchestrated here, and only that:
 - remove_curtains' second trim.trim(max_edge=None) of the holes: survey-wide,
   `_TrimState.settle` again from the curtains' neighbours.
 
-`trim_tiles` chains these. Why the peel is survey-wide: `trim` peels thin triangles
+`trim_tiles` chains these; the per-tile steps run in the thread knob's threads (the
+parent's tile loops, results in tile order). Why the peel is survey-wide: `trim` peels thin triangles
 (circle ratio below min_circle_ratio) off the boundary, and then, repeatedly, the thin
 triangles each removal exposes. What it removes is therefore every connected set of thin
 triangles (joined through shared edges) with at least one triangle on the boundary of
@@ -50,6 +51,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from c1mesh.core.threads import map_in_threads
 from c1mesh.survey.tiled_halo import drop_triangles, edge_floor
 
 
@@ -162,8 +164,8 @@ def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     from c1mesh.stages.trim import MIN_CIRCLE_RATIO as min_ratio
 
     thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty((0, 3), np.int64)]
-    for t in halos.tiles():
-        triangles, on_boundary, corners = thin_triangles(halos.halo(t), min_ratio, grid)
+    for triangles, on_boundary, corners in map_in_threads(
+            lambda t: thin_triangles(halos.halo(t), min_ratio, grid), list(halos.tiles())):
         thin.append(triangles)
         boundary.append(on_boundary)
         tiles.append(corners)
@@ -171,8 +173,8 @@ def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     state.settle(np.concatenate(boundary), set(halos.tiles()))
     floor = edge_floor(halos.halos, temps, "curtains")
     cut, corners, counts = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)], {r: 0 for r in REASONS}
-    for t in halos.tiles():
-        triangles, where, reasons = curtain_cuts(halos.halo(t), floor, grid, view_rules)
+    for triangles, where, reasons in map_in_threads(
+            lambda t: curtain_cuts(halos.halo(t), floor, grid, view_rules), list(halos.tiles())):
         cut.append(triangles)
         corners.append(where)
         for reason, count in reasons.items():
@@ -228,8 +230,8 @@ class _TrimState:
             self.remove(self.thin[gone], self.tiles[gone])
             pending |= set(np.unique(self.tiles[gone]).tolist())
             cut, corners = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)]
-            for t in sorted(pending & set(self.halos.tiles())):
-                triangles, where = bowtie_cuts(self.halos.halo(t), self.grid)
+            for triangles, where in map_in_threads(lambda t: bowtie_cuts(self.halos.halo(t), self.grid),
+                                                   sorted(pending & set(self.halos.tiles()))):
                 cut.append(triangles)
                 corners.append(where)
             cut, corners = np.concatenate(cut), np.concatenate(corners)
