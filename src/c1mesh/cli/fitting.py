@@ -80,8 +80,9 @@ _SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one
 def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile=None, scheduler=None) -> dict:
     """Fit one input to one output (a path, or a file object then with options.output_format);
     an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
-    processes (None: tiled_fit's choice, one per thread). An input that fits in memory is fitted here, and a scheduler given for it is
-    recorded in the report as not used (the line c1mesh.cli.messages.note prints)."""
+    processes (None: tiled_fit's choice, one per thread). An input that fits in memory is
+    fitted here, and a scheduler given for it is recorded in the report as not used (the
+    line c1mesh.cli.messages.note prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
     from c1mesh.pipeline.survey_fit import fit_in_tiles
     from c1mesh.survey.tiled_plan import needs_tiles

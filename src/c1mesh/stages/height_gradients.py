@@ -146,12 +146,13 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     reach2 = np.empty(m)
     terms = 2 if degree == 1 else 5
     buffers = threading.local()                # per thread, touched once, not per block
+    query_threads = workers if m <= BLOCK else 1    # one block: its query has the threads
 
     def fit(block: slice) -> None:
         if not hasattr(buffers, "work"):
             buffers.work = tuple(np.empty((min(BLOCK, m), k, terms)) for _ in range(2))
         centre = centres[block]
-        neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, workers=1)
+        neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, query_threads)
         reach2[slot[block]] = offsets[2].max(axis=1)
         out[slot[block]] = _fit_block(z, centre, neighbours, offsets, degree, buffers.work)
     # Each block is a query and a fit of its own (both release the GIL), so blocks run in

@@ -26,13 +26,13 @@ the cell); what has to see the whole survey is orchestrated here, and only that:
   `_TrimState.settle` again from the curtains' neighbours.
 
 `trim_tiles` chains these; the per-tile steps run in the thread knob's threads (the
-parent's tile loops, results in tile order). Why the peel is survey-wide: `trim` peels thin triangles
-(circle ratio below min_circle_ratio) off the boundary, and then, repeatedly, the thin
-triangles each removal exposes. What it removes is therefore every connected set of thin
-triangles (joined through shared edges) with at least one triangle on the boundary of
-what the long-edge rule kept, and such a set may cross any number of tiles. Thin
-triangles are rare in a Delaunay triangulation (219 of 1M on synthetic terrain, 28 of
-50k on Autzen ground), so the survey's list of them fits in memory:
+parent's tile loops, results in tile order). Why the peel is survey-wide: `trim` peels
+thin triangles (circle ratio below min_circle_ratio) off the boundary, and then,
+repeatedly, the thin triangles each removal exposes. What it removes is therefore every
+connected set of thin triangles (joined through shared edges) with at least one triangle
+on the boundary of what the long-edge rule kept, and such a set may cross any number of
+tiles. Thin triangles are rare in a Delaunay triangulation (219 of 1M on synthetic
+terrain, 28 of 50k on Autzen ground), so the survey's list of them fits in memory:
 
 - one pass over the tiles: each tile reads its halo (tiled_halo.HaloCache, cell + 3
   longest edges for the limiter; the peel needs 2, which hold both triangles of every
