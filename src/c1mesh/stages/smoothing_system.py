@@ -47,9 +47,18 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     pair_a = np.repeat(np.arange(3), 3)
     pair_b = np.tile(np.arange(3), 3)
     keys = (tri[:, pair_a] * n + tri[:, pair_b]).ravel()              # (9 T,) vertex pairs
-    ordered = np.sort(keys)                 # np.unique's hash path is ~20x slower here
-    pattern = ordered[np.concatenate([[True], ordered[1:] != ordered[:-1]])]
-    slot = np.searchsorted(pattern, keys)
+    # Each pair's slot in the sorted distinct pairs, from one argsort (np.unique's hash
+    # path is ~20x slower here; a searchsorted of every key misses the cache at random
+    # vertex numbers: 5-6 s against 1.4-2.9 s for 18M keys).
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    new = np.empty(ordered.size, dtype=bool)
+    new[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+    pattern = ordered[new]
+    slot = np.empty_like(order)
+    slot[order] = np.cumsum(new) - 1
+    del order, ordered, new
     rows, cols = np.divmod(pattern, n)
     data = np.empty((pattern.size, 3, 3))
     for c in range(3):
