@@ -312,3 +312,24 @@ def test_data_rows_are_the_interpolator_with_limiter_directions():
     assert fit.outside == 0
     assert fit.residual_rms == pytest.approx(np.sqrt(np.mean(r ** 2)), rel=1e-9)
     assert fit.residual_max == pytest.approx(np.abs(r).max(), rel=1e-9)
+
+
+def test_large_systems_ordered_by_metis_solve_the_same_fit(monkeypatch):
+    """From METIS_FROM unknowns CHOLMOD is asked for METIS's ordering (skipping its AMD
+    try), and the fit is the default ordering's to rounding."""
+    pytest.importorskip("sksparse.cholmod")
+    import sksparse.cholmod as cholmod
+
+    import c1mesh.stages.smoothing_system as system
+
+    pts, tri, h = grid_mesh(40, seed=3)
+    z = surface(pts) + np.random.default_rng(3).normal(0, 0.05, len(pts))
+    default = smooth_fit(pts, tri, z, strength=0.5, spacing_h=h)
+    asked = []
+    real = cholmod.analyze
+    monkeypatch.setattr(cholmod, "analyze", lambda A, **kw: asked.append(kw) or real(A, **kw))
+    monkeypatch.setattr(system, "METIS_FROM", 0)
+    metis = smooth_fit(pts, tri, z, strength=0.5, spacing_h=h)
+    assert asked and all(kw == {"ordering_method": "metis"} for kw in asked)
+    np.testing.assert_allclose(metis.values, default.values, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(metis.gradients, default.gradients, rtol=0, atol=1e-7)
