@@ -47,9 +47,9 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     pair_a = np.repeat(np.arange(3), 3)
     pair_b = np.tile(np.arange(3), 3)
     keys = (tri[:, pair_a] * n + tri[:, pair_b]).ravel()              # (9 T,) vertex pairs
-    # Each pair's slot in the sorted distinct pairs, from one argsort (np.unique's hash
-    # path is ~20x slower here; a searchsorted of every key misses the cache at random
-    # vertex numbers: 5-6 s against 1.4-2.9 s for 18M keys).
+    # Each pair's slot in the sorted distinct pairs, from one argsort: np.unique's hash
+    # path is far slower, and a searchsorted of every key misses the cache when the
+    # vertices are numbered in file order.
     order = np.argsort(keys, kind="stable")
     ordered = keys[order]
     new = np.empty(ordered.size, dtype=bool)
@@ -180,9 +180,9 @@ machine's cores and on where a tile ran; one thread costs about 5-10 % of the so
 METIS_FROM = 300_000
 """Unknowns from which CHOLMOD is told to order by METIS rather than its default (AMD, then
 METIS as well when AMD's fill is large, keeping the better): on these meshes the default
-chose METIS at every size measured from 200k vertices up, so it is the same ordering
-without AMD's pass (1M vertices: analysis 18.1 s -> 14.5 s, the same nnz(L) 305,285,832);
-smaller systems keep the default, whose choice there may be AMD."""
+chose METIS at every size measured from 200k vertices up, so asking for it gives the same
+ordering without AMD's pass (RESULTS.md, the smoothing fit in tiles); smaller systems
+keep the default, whose choice there may be AMD."""
 
 
 def _analyze(csc):

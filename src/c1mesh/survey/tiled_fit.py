@@ -104,7 +104,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     `scheduler` (a tile at a time per worker thread), whose workers must see `directory`.
     jobs None: one local process per thread of the knob (options.workers), one thread
     each; `c1mesh fit`'s default. Tiles in two processes beat one process with two
-    threads at every size measured (1.2-1.5x, docs/tiles.md), because most of a tile's
+    threads at every size measured (docs/tiles.md), because most of a tile's
     stages run in one thread.
     The tiles are sized by the budget alone, so the output bytes do not depend on where
     the tasks ran or on how many ran at once. on_tile(pass,
