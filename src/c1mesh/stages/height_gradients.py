@@ -138,9 +138,9 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     else:
         rank = np.empty(n, dtype=np.int64)
         rank[order] = np.arange(n)
-        where = np.asarray(at, dtype=np.int64)
-        slot = np.argsort(rank[where], kind="stable")        # centres in leaf order too
-        centres = rank[where][slot]
+        wanted = rank[np.asarray(at, dtype=np.int64)]
+        slot = np.argsort(wanted, kind="stable")             # centres in leaf order too
+        centres = wanted[slot]
     m = centres.size
     out = np.empty((m, 2))
     reach2 = np.empty(m)
