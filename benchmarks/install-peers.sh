@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Installs the optional peers of benchmarks/heldout.py: GMT (the `gmt` binary: blockmedian,
-# surface, grdtrack) from Debian and verde into the project's .venv. CI does not need them:
-# the benchmark skips an absent peer and says so in its table.
+# Installs the optional peers of the benchmarks: GMT (the `gmt` binary: blockmedian, surface,
+# grdtrack) from Debian, and verde (benchmarks/heldout.py) and Shewchuk's Triangle (PyPI
+# `triangle`, non-commercial licence: benchmarks/stages.py's floor job) into the project's
+# .venv. CI does not need them: a benchmark skips an absent peer and says so.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if command -v gmt >/dev/null 2>&1; then
@@ -12,5 +13,5 @@ elif [ "$(id -u)" = 0 ]; then
 else
     echo "install-peers.sh: run as root, or install the Debian package gmt yourself" >&2
 fi
-.venv/bin/python -m pip install -q verde
+.venv/bin/python -m pip install -q verde triangle
 echo "install-peers.sh: ready (gmt: $(command -v gmt || echo absent))" >&2

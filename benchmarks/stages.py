@@ -4,6 +4,7 @@
     python -m benchmarks.stages run FOLDER [REPS]    # the fits and the floors, REPS alternating rounds (3)
     python -m benchmarks.stages read FOLDER [REPS]   # LAZ read seconds at --threads 1 and 2
     python -m benchmarks.stages table RUN.json       # the markdown table of a run's output
+    python -m benchmarks.stages job FOLDER [REPS]    # the LAZ fit against issue 23's floor job (3)
 
 The cases are the two of issue 23: the LAZ without normals at level 1 (`--classes 2`) and the
 PLY with exact normals at level 4. The fits run as child processes (`c1mesh fit ... --report`),
@@ -20,6 +21,13 @@ The floors (a child process too, the same thread count):
 * interpolate: one sort of the 3T edge keys of that triangulation (the limiter's and the
   interpolator's work is a few vectorised passes over the edge table this sort builds);
 * write: the output file's bytes written to a file beside it.
+
+The floor job (`job`, issue 23's target: the LAZ fit within 3x of it) is one child process
+that reads the LAZ with laspy, triangulates the centred x, y with Shewchuk's Triangle (PyPI
+`triangle`, the fastest 2-D Delaunay installable here; its licence forbids commercial use,
+so it is a benchmark peer only, installed by benchmarks/install-peers.sh) and writes the
+vertices and faces as a binary PLY. Its rounds alternate with the fit's; without `triangle`
+the job is skipped and says so.
 """
 from __future__ import annotations
 
@@ -94,6 +102,48 @@ def _floor_child(source: str, output_bytes: int, threads: int) -> None:
         os.fsync(out.fileno())
         seconds["write"] = time.perf_counter() - start
     print(json.dumps(seconds))
+
+
+def _floor_job_child(source: str, output: str) -> None:
+    """Issue 23's floor job (run in a child process): laspy read, Triangle, binary PLY."""
+    import laspy
+    import triangle
+
+    with laspy.open(source, laz_backend=laspy.LazBackend.LazrsParallel) as reader:
+        points = reader.read_points(reader.header.point_count)
+    xyz = np.column_stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)])
+    faces = triangle.triangulate({"vertices": xyz[:, :2] - xyz[:, :2].mean(axis=0)}, "Q")["triangles"]
+    rows = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", 3)])
+    rows["n"], rows["v"] = 3, faces
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(xyz)}\nproperty double x\nproperty double y\nproperty double z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    with open(output, "wb") as out:
+        out.write(header.encode())
+        out.write(xyz.astype("<f8").tobytes())
+        out.write(rows.tobytes())
+
+
+def floor_job(folder: Path, reps: int = 3, threads: int = 2) -> dict:
+    """Alternating rounds of the LAZ case's `c1mesh fit` and the floor job, both child
+    processes: {"fit": [wall s], "job": [wall s], "ratio": median fit / median job}, or
+    {"skipped": why} without PyPI `triangle`."""
+    import importlib.util
+
+    if importlib.util.find_spec("triangle") is None:
+        return {"skipped": "PyPI triangle is not installed (benchmarks/install-peers.sh installs it)"}
+    code = "import sys; from benchmarks.stages import _floor_job_child; _floor_job_child(*sys.argv[1:3])"
+    walls = {"fit": [], "job": []}
+    for _ in range(reps):
+        walls["fit"].append(_fit(folder, "laz", threads)["wall"])
+        child = run_child([sys.executable, "-c", code, str(folder / CASES["laz"][0]),
+                           str(folder / "laz.floor.ply")])
+        if child.returncode:
+            raise RuntimeError(f"the floor job failed: {child.stderr[-500:]}")
+        walls["job"].append(child.seconds)
+        print(json.dumps({name: runs[-1] for name, runs in walls.items()}), file=sys.stderr)
+    walls["ratio"] = statistics.median(walls["fit"]) / statistics.median(walls["job"])
+    return walls
 
 
 def _fit(folder: Path, case: str, threads: int) -> dict:
@@ -190,6 +240,8 @@ def main(argv: list[str]) -> None:
         print(json.dumps(run(folder, reps), indent=1))
     elif command == "table":
         print(table(json.loads(folder.read_text())))
+    elif command == "job":
+        print(json.dumps(floor_job(folder, reps), indent=1))
     elif command == "read":
         print(json.dumps(read_seconds(folder, reps), indent=1))
     else:
