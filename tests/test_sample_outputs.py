@@ -57,11 +57,17 @@ RUNS = {
     "autzen-terrain": (["{S}/autzen_trim.laz", "--classes", "2", "-o", "dem.tif", "--resolution", "3",
                         "--slope", "slope.tif", "--hillshade", "hillshade.tif", "--preview", "dem.png"],
                        ["dem.tif", "slope.tif", "hillshade.tif", "dem.png"]),
+    "crop-smooth": (["{S}/4_6_crop.las", "--classes", "2", "--smooth", "0.1", "-o", "crop_smooth.ply"],
+                    ["crop_smooth.ply"]),
+    "crop-smooth-auto": (["{S}/4_6_crop.las", "--classes", "2", "--smooth", "auto", "-o", "crop_auto.ply"],
+                         ["crop_auto.ply"]),
     "crop-seamless": ([*CROP_PARTS, "--seamless", "-o", "union.ply"], ["union.ply", "union.prj"]),
     "crop-seamless-O": ([*CROP_PARTS, "--seamless", "-O", "tiles"],
                         [f"tiles/crop{i}.c1.{ext}" for i in range(4) for ext in ("ply", "prj")]),
     "terrain-memory": (["terrain.las", "--classes", "2", "--level", "2", "-o", "terrain.ply",
                         "--memory", "1M"], ["terrain.ply"]),                   # 4 tiles
+    "terrain-memory-smooth": (["terrain.las", "--classes", "2", "--level", "2", "-o", "terrain_smooth.ply",
+                               "--memory", "1M", "--smooth", "1"], ["terrain_smooth.ply"]),   # Schwarz sweep
     "terrain-seamless-memory": ([*TERRAIN_PARTS, "--seamless", "-o", "union_mem.ply", "--memory", "1M"],
                                 ["union_mem.ply"]),
     "terrain-seamless-O-memory": ([*TERRAIN_PARTS, "--seamless", "-O", "tiles_mem", "--memory", "1M"],
