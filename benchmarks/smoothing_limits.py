@@ -8,6 +8,8 @@ against the thin-plate RBF peer of the same split, over the points both cover.
     python -m benchmarks.smoothing_limits sweep DATASET SEED S...  # fixed strengths vs auto
     python -m benchmarks.smoothing_limits blocks B... [--seeds 5]  # CV block sides (spacings)
     python -m benchmarks.smoothing_limits gradients DATASET SEED   # auto values, LS gradients
+    python -m benchmarks.smoothing_limits loess DATASET SEED       # local quadratic regression
+    python -m benchmarks.smoothing_limits spacing DATASET SEED F... # --spacing F mean spacings
 
 * ceiling: the RSD spline of the *exact* heights and gradients at the training vertices
   (the pipeline's trimmed triangulation and edge directions), scored against the true
@@ -15,7 +17,11 @@ against the thin-plate RBF peer of the same split, over the points both cover.
 * sweep: `smooth=S` for each S, and auto;
 * blocks: auto with smoothing.CV_BLOCK set to each B, on every heldout dataset;
 * gradients: auto's values with gradients re-fitted to them by
-  c1mesh.stages.height_gradients (k = 16, 24, 40), instead of the fit's own.
+  c1mesh.stages.height_gradients (k = 16, 24, 40), instead of the fit's own;
+* loess: no smoothing fit; each vertex's height and gradient from a weighted local
+  quadratic (with a constant term) over its k nearest vertices' heights, k = 12 ... 100;
+* spacing: auto with --spacing F × the mean spacing (vertices thinned to cells, every
+  training point as data).
 DATASET: "synth" or a LAS/LAZ name in data_samples/.
 """
 from __future__ import annotations
@@ -41,7 +47,7 @@ class Split:
         def capture(points, triangles, values, **kw):
             fit = shipped(points, triangles, values, **kw)
             captured.update(points=np.array(points), triangles=np.array(triangles), fit=fit,
-                            directions=kw.get("directions"))
+                            heights=np.array(values), directions=kw.get("directions"))
             return fit
 
         steps.smooth_fit = capture
@@ -149,9 +155,55 @@ def gradients(name: str, seed: int) -> list[str]:
     return split.table(predictions)
 
 
+def _local_quadratic(xy: np.ndarray, z: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(values (n,), gradients (n, 2)): at each point, the weighted least-squares quadratic
+    with a constant term over its k nearest points (itself included), weights as
+    height_gradients' (1 / (1 + d² / r²), r the median neighbour distance)."""
+    from scipy.spatial import cKDTree
+
+    index = cKDTree(xy).query(xy, k=k, workers=-1)[1]
+    ux, uy = xy[index, 0] - xy[:, 0, None], xy[index, 1] - xy[:, 1, None]
+    d2 = ux * ux + uy * uy
+    r2 = np.median(d2, axis=1)
+    r2[r2 <= 0] = 1.0
+    r = np.sqrt(r2)
+    ux, uy = ux / r[:, None], uy / r[:, None]
+    w = 1.0 / (1.0 + d2 / r2[:, None])
+    design = np.stack([np.ones_like(ux), ux, uy, 0.5 * ux * ux, ux * uy, 0.5 * uy * uy], -1)
+    weighted = (design * w[..., None]).transpose(0, 2, 1)
+    normal = weighted @ design
+    normal[:, range(6), range(6)] += 1e-9 * np.trace(normal, axis1=1, axis2=2)[:, None]
+    coef = np.linalg.solve(normal, weighted @ z[index][..., None])[..., 0]
+    return coef[:, 0], coef[:, 1:3] / r[:, None]
+
+
+def loess(name: str, seed: int) -> list[str]:
+    from c1mesh.engine.interpolator import RSDInterpolator
+
+    split = Split(dataset(name), seed)
+    c = split.captured
+    predictions = {"shipped auto": split.model.interp(split.query)}
+    for k in (12, 24, 40, 64, 100):
+        values, grads = _local_quadratic(c["points"], c["heights"], k)
+        predictions[f"local quadratic k = {k}"] = RSDInterpolator(
+            c["points"], values, grads, c["triangles"], directions=c["directions"])(split.query)
+    return split.table(predictions)
+
+
+def spacing(name: str, seed: int, factors: list[float]) -> list[str]:
+    split = Split(dataset(name), seed)
+    h = H.mean_spacing(split.frame.to_local(split.train)[:, :2])
+    predictions = {"shipped auto": split.model.interp(split.query)}
+    for factor in factors:
+        model = H.c1mesh_model(split.train, smooth="auto", spacing=factor * h)
+        held = split.frame.to_world(np.column_stack([split.query, split.height]))
+        predictions[f"auto, --spacing {factor:g} h"] = model.interp(model.frame.to_local(held)[:, :2])
+    return split.table(predictions)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("study", choices=("ceiling", "sweep", "blocks", "gradients"))
+    parser.add_argument("study", choices=("ceiling", "sweep", "blocks", "gradients", "loess", "spacing"))
     parser.add_argument("args", nargs="*")
     parser.add_argument("--seeds", type=int, default=5)
     args = parser.parse_args()
@@ -161,8 +213,12 @@ def main() -> None:
         lines = sweep(args.args[0], int(args.args[1]), [float(s) for s in args.args[2:]])
     elif args.study == "blocks":
         lines = blocks([float(s) for s in args.args], args.seeds)
-    else:
+    elif args.study == "gradients":
         lines = gradients(args.args[0], int(args.args[1]))
+    elif args.study == "loess":
+        lines = loess(args.args[0], int(args.args[1]))
+    else:
+        lines = spacing(args.args[0], int(args.args[1]), [float(f) for f in args.args[2:]])
     print("\n".join(lines))
 
 
