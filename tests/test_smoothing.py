@@ -333,3 +333,26 @@ def test_large_systems_ordered_by_metis_solve_the_same_fit(monkeypatch):
     assert asked and all(kw == {"ordering_method": "metis"} for kw in asked)
     np.testing.assert_allclose(metis.values, default.values, rtol=0, atol=1e-9)
     np.testing.assert_allclose(metis.gradients, default.gradients, rtol=0, atol=1e-7)
+
+
+def test_a_held_out_vertex_is_held_out_with_its_gradient_datum():
+    """Cross-validation over vertex data leaves a held-out vertex's gradient datum out with
+    its height: gradients fitted to the heights carry the held-out heights, and kept in they
+    made the CV prefer weaker smoothing. So a fold's solution does not change when the
+    gradient data of its held-out vertices do, while the full fit's does."""
+    from c1mesh.stages.smoothing_system import System, solve
+
+    pts, tri, _ = grid_mesh(12, seed=5)
+    K = sp.csr_matrix(assembled(pts, tri))
+    z = surface(pts)
+    held_out = (pts[:, 0] > 0.3) & (pts[:, 0] < 0.6) & (pts[:, 1] > 0.3) & (pts[:, 1] < 0.6)
+    w = np.where(held_out, 0.0, 1.0)
+    gradients = surface_gradient(pts)
+    spoiled = gradients.copy()
+    spoiled[held_out] += 5.0
+    mask = np.ones(len(pts))
+    fold = [solve(System(K, None, z, mask, g), 0.1, w, 1.0, "superlu", held_out=held_out)[0]
+            for g in (gradients, spoiled)]
+    full = [solve(System(K, None, z, mask, g), 0.1, w, 1.0, "superlu")[0] for g in (gradients, spoiled)]
+    assert np.array_equal(fold[0], fold[1])
+    assert np.abs(full[0] - full[1]).max() > 0.1

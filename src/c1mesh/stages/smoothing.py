@@ -364,7 +364,8 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
             continue
         w = np.where(out, 0.0, problem.w)
         u, factor = solve(system, s * w.sum() / problem.w.sum(), w, mu, method,
-                          analysis=cache.get("analysis"), ridge=CV_RIDGE)
+                          analysis=cache.get("analysis"), ridge=CV_RIDGE,
+                          held_out=out if system.A is None else None)
         cache["analysis"] = factor.analysis
         r = (system.fitted(u) - problem.z)[out]
         sq += float(r @ r)

@@ -132,8 +132,12 @@ class System:
             return out
         return self.A.T @ r
 
-    def matrix(self, s: float, w: np.ndarray, mu: float) -> tuple[sp.csr_matrix, np.ndarray]:
-        """(S, rhs) for strength s, data weights w (M,), gradient weight mu."""
+    def matrix(self, s: float, w: np.ndarray, mu: float,
+               held_out: np.ndarray | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
+        """(S, rhs) for strength s, data weights w (M,), gradient weight mu. held_out: (N,)
+        bool vertices whose gradient data are left out too (a cross-validation fold of
+        vertex data: a held-out point is held out with its gradient, which for gradients
+        fitted to the heights carries its height)."""
         n = self.n_unknowns
         diag = np.zeros(n)
         rhs = self.adjoint(w * self.z)
@@ -144,11 +148,15 @@ class System:
             AW = sp.diags(w) @ self.A
             S = (self.A.T @ AW).tocsr() + self.K * s
         if self.grad_mask is not None and mu > 0:
+            mask, values = self.grad_mask, self.grad_values
+            if held_out is not None:
+                mask = mask * ~held_out
+                values = np.where(mask[:, None] > 0, values, 0.0)
             g = np.zeros(n)
-            g[1::3] = g[2::3] = mu * self.grad_mask
+            g[1::3] = g[2::3] = mu * mask
             S = S + sp.diags(g, format="csr")
-            rhs[1::3] += mu * self.grad_values[:, 0]
-            rhs[2::3] += mu * self.grad_values[:, 1]
+            rhs[1::3] += mu * values[:, 0]
+            rhs[2::3] += mu * values[:, 1]
         return S.tocsr(), rhs
 
 
@@ -266,7 +274,8 @@ def _near_null_space(n: int) -> np.ndarray:
 
 
 def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
-          x0: np.ndarray | None = None, analysis=None, ridge: float = 0.0) -> tuple[np.ndarray, Factor]:
+          x0: np.ndarray | None = None, analysis=None, ridge: float = 0.0,
+          held_out: np.ndarray | None = None) -> tuple[np.ndarray, Factor]:
     """u (3N,) minimising the functional, and the factorisation (to reuse for traces and,
     through its ``analysis``, for matrices of the same pattern).
 
@@ -274,9 +283,10 @@ def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
     entry is stored). Cross-validation passes a tiny one: a held-out block can cover a
     whole island of the trimmed mesh, whose unknowns then have no data, and the ridge
     gives them the trend plane's height (0 in normalised units) instead of a singular
-    matrix; elsewhere it moves the fit by about that relative amount.
+    matrix; elsewhere it moves the fit by about that relative amount. held_out: vertices
+    whose gradient data are left out (System.matrix).
     """
-    S, rhs = system.matrix(s, w, mu)
+    S, rhs = system.matrix(s, w, mu, held_out)
     if ridge > 0:
         S = (S + sp.identity(S.shape[0], format="csr") * (ridge * float(S.diagonal().mean()))).tocsr()
     factor = Factor(S, method, analysis)
