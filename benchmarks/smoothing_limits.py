@@ -8,6 +8,8 @@ against the thin-plate RBF peer of the same split, over the points both cover.
     python -m benchmarks.smoothing_limits sweep DATASET SEED S...  # fixed strengths vs auto
     python -m benchmarks.smoothing_limits blocks B... [--seeds 5]  # CV block sides (spacings)
     python -m benchmarks.smoothing_limits gradients DATASET SEED   # auto values, LS gradients
+    python -m benchmarks.smoothing_limits gradient-data DATASET SEED W...  # LS gradients as data
+    python -m benchmarks.smoothing_limits gradient-data all W... [--seeds 5]
     python -m benchmarks.smoothing_limits loess DATASET SEED       # local quadratic regression
     python -m benchmarks.smoothing_limits spacing DATASET SEED F... # --spacing F mean spacings
 
@@ -18,6 +20,9 @@ against the thin-plate RBF peer of the same split, over the points both cover.
 * blocks: auto with smoothing.CV_BLOCK set to each B, on every heldout dataset;
 * gradients: auto's values with gradients re-fitted to them by
   c1mesh.stages.height_gradients (k = 16, 24, 40), instead of the fit's own;
+* gradient-data: auto refitted with the heights' least-squares gradients
+  (height_gradients, the pipeline's 24 neighbours) as gradient data of weight W (the
+  weight file normals get, smoothing.FILE_NORMALS_WEIGHT, is 1);
 * loess: no smoothing fit; each vertex's height and gradient from a weighted local
   quadratic (with a constant term) over its k nearest vertices' heights, k = 12 ... 100;
 * spacing: auto with --spacing F × the mean spacing (vertices thinned to cells, every
@@ -47,7 +52,7 @@ class Split:
         def capture(points, triangles, values, **kw):
             fit = shipped(points, triangles, values, **kw)
             captured.update(points=np.array(points), triangles=np.array(triangles), fit=fit,
-                            heights=np.array(values), directions=kw.get("directions"))
+                            heights=np.array(values), directions=kw.get("directions"), options=kw)
             return fit
 
         steps.smooth_fit = capture
@@ -155,6 +160,56 @@ def gradients(name: str, seed: int) -> list[str]:
     return split.table(predictions)
 
 
+def gradient_data(name: str, seed: int, weights: list[float]) -> list[str]:
+    """auto refitted with the heights' own least-squares gradients as gradient data."""
+    return _gradient_data(_heights_only_split(dataset(name), seed), weights)
+
+
+def _heights_only_split(data, seed: int) -> Split:
+    """The Split of an auto fit without gradient data (HEIGHT_GRADIENTS_WEIGHT 0)."""
+    import c1mesh.stages.smoothing as sm
+
+    shipped, sm.HEIGHT_GRADIENTS_WEIGHT = sm.HEIGHT_GRADIENTS_WEIGHT, 0.0
+    try:
+        return Split(data, seed)
+    finally:
+        sm.HEIGHT_GRADIENTS_WEIGHT = shipped
+
+
+def gradient_data_all(weights: list[float], seeds: int) -> list[str]:
+    """`gradient_data` on every heldout dataset and seeds 0 .. seeds-1, with the mean
+    ratio to the RBF of each weight and of the shipped fit."""
+    lines = []
+    for data in H.datasets():
+        ratios = []
+        for seed in range(seeds):
+            split = _heights_only_split(data, seed)
+            lines += _gradient_data(split, weights)
+            ratios.append(split.ratios)
+        mean = np.mean(ratios, axis=0)
+        lines.append(f"{data.name}: mean ratio to the RBF over {seeds} seeds: heights only {mean[0]:.4f}, "
+                     + ", ".join(f"weight {w:g} {m:.4f}" for w, m in zip(weights, mean[1:])))
+        print(lines[-1], flush=True)
+    return lines
+
+
+def _gradient_data(split: Split, weights: list[float]) -> list[str]:
+    import c1mesh.stages.smoothing as sm
+    from c1mesh.engine.interpolator import RSDInterpolator
+    from c1mesh.stages.height_gradients import height_gradients, height_neighbours
+
+    c = split.captured
+    options = {k: v for k, v in c["options"].items() if k not in ("gradient_data", "gradient_weight")}
+    prior = height_gradients(c["points"], c["heights"], k=height_neighbours(16))
+    predictions = {"auto, heights only": split.model.interp(split.query)}
+    for weight in weights:
+        fit = sm.smooth_fit(c["points"], c["triangles"], c["heights"], gradient_data=prior,
+                            gradient_weight=weight, **options)
+        predictions[f"LS gradients as data, weight {weight:g} (s = {fit.strength:.3g})"] = RSDInterpolator(
+            c["points"], fit.values, fit.gradients, c["triangles"], directions=c["directions"])(split.query)
+    return split.table(predictions)
+
+
 def _local_quadratic(xy: np.ndarray, z: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """(values (n,), gradients (n, 2)): at each point, the weighted least-squares quadratic
     with a constant term over its k nearest points (itself included), weights as
@@ -203,7 +258,8 @@ def spacing(name: str, seed: int, factors: list[float]) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("study", choices=("ceiling", "sweep", "blocks", "gradients", "loess", "spacing"))
+    parser.add_argument("study", choices=("ceiling", "sweep", "blocks", "gradients", "gradient-data", "loess",
+                                          "spacing"))
     parser.add_argument("args", nargs="*")
     parser.add_argument("--seeds", type=int, default=5)
     args = parser.parse_args()
@@ -215,6 +271,10 @@ def main() -> None:
         lines = blocks([float(s) for s in args.args], args.seeds)
     elif args.study == "gradients":
         lines = gradients(args.args[0], int(args.args[1]))
+    elif args.study == "gradient-data" and args.args[0] == "all":
+        lines = gradient_data_all([float(w) for w in args.args[1:]], args.seeds)
+    elif args.study == "gradient-data":
+        lines = gradient_data(args.args[0], int(args.args[1]), [float(w) for w in args.args[2:]])
     elif args.study == "loess":
         lines = loess(args.args[0], int(args.args[1]))
     else:

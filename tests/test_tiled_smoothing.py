@@ -21,6 +21,7 @@ laspy = pytest.importorskip("laspy")
 
 from c1mesh.cli import main
 from c1mesh.pipeline.driver import FitOptions
+from c1mesh.stages.smoothing import HEIGHT_GRADIENTS_WEIGHT
 from c1mesh.survey import tiled_smoothing
 from c1mesh.survey.tiled_fit import fit_tiled
 
@@ -70,6 +71,8 @@ def test_tiled_smoothing_matches_the_whole_fit(tmp_path, strength):
     assert report["tiles"] == 9
     fitted = report["smoothing"]
     assert fitted["lam"] == pytest.approx(whole_report["smoothing"]["lam"], rel=1e-12)
+    # both paths fit the heights' own gradients as data, with the same weight
+    assert whole_report["smoothing"]["gradient_weight"] == fitted["gradient_weight"] == HEIGHT_GRADIENTS_WEIGHT > 0
     vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
     assert len(vertices) == len(whole)
     difference = np.abs(vertices[:, 2] - _heights_at(whole, vertices))

@@ -32,7 +32,7 @@ from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim_mesh
 from c1mesh.stages.frame import resolve_axis
-from c1mesh.stages.smoothing import SmoothingError, parse_strength
+from c1mesh.stages.smoothing import SmoothingError, gradient_data_weight, parse_strength
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import check_spacing, thin_to_cells
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
@@ -357,11 +357,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                      table=table)
         else:
             data = None if vertices is None else (hf.xy, hf.z)
-            from_file = normal_source == "file" and gradient_source == "normals"   # not from these heights
+            weight = gradient_data_weight(normal_source, gradient_source)
             interp, overshoot, smoothing = smoothed_interpolator(hf.xy[used], hf.z[used], triangles, scheme,
                                                                  options.overshoot, strength, hf.spacing, data,
                                                                  table=table,
-                                                                 gradients=hf.gradients[used] if from_file else None)
+                                                                 gradients=hf.gradients[used] if weight else None,
+                                                                 gradient_weight=weight)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied, smoothing, vertices is not None)
 

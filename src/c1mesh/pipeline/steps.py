@@ -76,8 +76,8 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
 
 
 def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, strength, spacing: float,
-                          data: tuple | None = None, table=None,
-                          gradients=None) -> tuple[RSDInterpolator, Any, Any]:
+                          data: tuple | None = None, table=None, gradients=None,
+                          gradient_weight: float = FILE_NORMALS_WEIGHT) -> tuple[RSDInterpolator, Any, Any]:
     """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
     height field, its limiter report and the SmoothFit.
 
@@ -88,13 +88,14 @@ def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, str
     edge directions apply (overshoot "limit"): they are chosen from the geometry before
     the fit, which is then the spline of those directions. table: the triangles'
     topology.edge_table when built already (the trim's), else built here. gradients: (n, 2)
-    the vertices' gradients from the file's normals, fitted as data with weight
-    smoothing.FILE_NORMALS_WEIGHT (None: the heights alone).
+    the vertices' gradients fitted as data with weight gradient_weight (None: the heights
+    alone): the file's normals' at smoothing.FILE_NORMALS_WEIGHT, or the heights' own
+    least-squares gradients at smoothing.HEIGHT_GRADIENTS_WEIGHT (`gradient_data_weight`).
     """
     table = edge_table(triangles, points.shape[0]) if table is None else table
     directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
     data_xy, data_z = (None, values) if data is None else data
-    weight = 0.0 if gradients is None else FILE_NORMALS_WEIGHT
+    weight = 0.0 if gradients is None else gradient_weight
     fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=strength, spacing_h=spacing,
                         directions=directions, scheme=scheme, gradient_data=gradients, gradient_weight=weight)
     interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=scheme,

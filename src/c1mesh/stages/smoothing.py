@@ -53,14 +53,34 @@ golden-section search in log s follow in the two decades around the best."""
 REFINE_STEPS = 4
 EDF_PROBES = 4
 FILE_NORMALS_WEIGHT = 1.0
-"""gradient_weight the pipeline gives the gradients of normals read from the file (none for
-estimated normals, whose gradients come from the same noisy heights). Held-out, synthetic
+"""gradient_weight the pipeline gives the gradients of normals read from the file
+(HEIGHT_GRADIENTS_WEIGHT for gradients fitted to the heights). Held-out, synthetic
 terrain with 2 cm height noise (python -m benchmarks.gradient_weight), RMS against the true
 heights at weights 0 → 1: 0.0103 → 0.0090 m (20k points, 3 seeds) and 0.0121 → 0.0117
 (5k, 1 seed) with normals tilted 3° RMS; 0.0103 → 0.0075 and 0.0121 → 0.0100 with exact
 normals. Weight 1 was better than 0 in all four; 0.1 was worse in one, 10 worse with
 tilted normals."""
+HEIGHT_GRADIENTS_WEIGHT = 0.5
+"""gradient_weight the pipeline gives the heights' own least-squares gradients
+(c1mesh.stages.height_gradients: a LAZ's or a bare xyz's, whose normals are estimated).
+They measure nothing new, but they pull the vertex gradients toward the local quadratic
+slope of the data, which the spline's own energy does not: its energy-optimal gradients
+are biased (the RSD basis has zero second derivatives at the vertices; docs/smoothing.md,
+"Known properties"). Held-out RMS over the thin-plate RBF's, 5 seeds (python -m
+benchmarks.smoothing_limits gradient-data all 0.3 0.5), heights only → 0.5: Autzen 1.024 →
+1.009, 4_6_crop 1.016 → 1.012, synthetic 2 cm terrains 1.18 → 1.09-1.10. Weight 1
+undersmoothed where the CV chooses strong smoothing (docs/smoothing.md)."""
 _DEGENERACY = 1e-12
+
+
+def gradient_data_weight(normal_source: str, gradient_source: str) -> float:
+    """The gradient_weight a fit gives its vertex gradients as smoothing data, by where they
+    come from (c1mesh.pipeline.driver's sources): HEIGHT_GRADIENTS_WEIGHT for gradients
+    fitted to the heights (gradient_source "heights"), FILE_NORMALS_WEIGHT for normals read
+    from the file, 0 for normals estimated by PCA (not measured as data)."""
+    if gradient_source == "heights":
+        return HEIGHT_GRADIENTS_WEIGHT
+    return FILE_NORMALS_WEIGHT if normal_source == "file" else 0.0
 
 
 @dataclass

@@ -184,9 +184,15 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             if strength is not None:
                 from c1mesh.survey.tiled_smoothing import TiledSmoother
 
+                from c1mesh.stages.height_gradients import use_height_gradients
+                from c1mesh.stages.smoothing import gradient_data_weight
+
+                from_heights = use_height_gradients(getattr(options, "gradients", "auto"), "estimated")
                 limiter = TiledSmoother(heights, triangle_files, grid, strength, longest, options.overshoot,
                                         temps, runner, rows.name,
-                                        on_done=lambda t, row: rows.add(t, "smoothing", row))
+                                        on_done=lambda t, row: rows.add(t, "smoothing", row),
+                                        gradient_weight=gradient_data_weight(
+                                            "estimated", "heights" if from_heights else "normals"))
                 done("smoothing")
             elif options.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)

@@ -97,15 +97,18 @@ class TiledSmoother:
     """The smoothing fit over the tiles (module docstring): construct with the trimmed
     survey's height spill, triangle files and grid, the strength ("auto" or s > 0), the
     longest final edge, the overshoot mode ("limit": edge directions; "off": unit normals),
-    temps, a runner (distributed.TaskRunner) and name(t); it chooses h and s and runs every
-    tile's solve. A refinement task (tiled_refine) then takes its tile's vertex data
+    temps, a runner (distributed.TaskRunner) and name(t), and the gradient_weight of the
+    spill's gradients as data (smoothing.gradient_data_weight; 0: none); it chooses h and
+    s and runs every tile's solve. A refinement task (tiled_refine) then takes its tile's vertex data
     through `tile`, as it takes the limiter's. on_done(t, row) gets each solve's report row
     (tiles.task_row: points, seconds, worker, its peak) as it finishes (progress)."""
 
     def __init__(self, heights, triangle_files, grid, strength, longest_edge: float, overshoot: str,
-                 temps, runner, name=str, lengths: float | None = None, on_done=None):
+                 temps, runner, name=str, lengths: float | None = None, on_done=None,
+                 gradient_weight: float = 0.0):
         lengths = HALO_LENGTHS if lengths is None else lengths
         self.grid, self.files, self.overshoot = grid, triangle_files, overshoot
+        self.gradient_weight = float(gradient_weight)
         self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
         self.seconds: dict = {}
         start = time.perf_counter()
@@ -115,7 +118,7 @@ class TiledSmoother:
         if strength == "auto":
             start = time.perf_counter()
             self.search = _search_tile(heights, triangle_files, grid, longest_edge, self.spacing, overshoot,
-                                       temps)
+                                       self.gradient_weight, temps)
             strength = self.search["strength"]
             self.seconds["search"] = time.perf_counter() - start
         self.strength = float(strength)
@@ -180,7 +183,7 @@ class TiledSmoother:
                 "residual_max": max((s.largest for s in self.solves), default=0.0),
                 "solver": self.search["solver"] if self.search is not None else _solver(),
                 "seconds": {k: round(float(v), 4) for k, v in seconds.items()}, "outside": 0,
-                "gradient_weight": 0.0,                     # the tiled fit estimates its normals
+                "gradient_weight": self.gradient_weight,
                 "spacing": self.spacing,
                 "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (
                     self.strength ** 0.25 * self.spacing),
@@ -193,7 +196,8 @@ def _solver() -> str:
     return available_solvers()[0]
 
 
-def _search_tile(heights, triangle_files, grid, longest_edge, spacing, overshoot, temps) -> dict:
+def _search_tile(heights, triangle_files, grid, longest_edge, spacing, overshoot, gradient_weight,
+                 temps) -> dict:
     """smooth_fit(strength="auto") on the tile holding the most points, with the
     limiter's halo (its cross-validation windows need no more), its tile number as
     "tile" (the search's strength serves every tile); the SmoothFit's strength, cv_curve,
@@ -202,14 +206,15 @@ def _search_tile(heights, triangle_files, grid, longest_edge, spacing, overshoot
     tile = max(candidates, key=lambda t: (int(heights.counts[t]), -t))
     reach = HALO_EDGES * longest_edge * (1 + 1e-9)
     halo = HaloCache(heights, triangle_files, grid, reach, temps, label="search-halo").halo(tile)
-    fitted, _ = _fit_halo(halo, "auto", spacing, overshoot)
+    fitted, _ = _fit_halo(halo, "auto", spacing, overshoot, gradient_weight)
     return {"tile": tile, "strength": fitted.strength, "cv_curve": fitted.cv_curve, "solver": fitted.solver,
             "seconds": fitted.seconds}
 
 
-def _fit_halo(halo, strength, spacing: float, overshoot: str):
+def _fit_halo(halo, strength, spacing: float, overshoot: str, gradient_weight: float = 0.0):
     """(SmoothFit, (directions (E, 2) in edge_table(halo.triangles) order or None, changed
-    (E,) bool or None)) of one halo's vertices and final triangles."""
+    (E,) bool or None)) of one halo's vertices and final triangles; their spilled
+    gradients enter as data with gradient_weight (0: not), as in memory."""
     from c1mesh.engine.topology import edge_table
     from c1mesh.stages.limiter import edge_directions
     from c1mesh.stages.smoothing import smooth_fit
@@ -217,8 +222,9 @@ def _fit_halo(halo, strength, spacing: float, overshoot: str):
     table = edge_table(halo.triangles, len(halo.records))
     directions, changed = (None, None) if overshoot == "off" else edge_directions(halo.points, halo.triangles,
                                                                                   table)
+    gradients = np.column_stack([halo.records["gx"], halo.records["gy"]]) if gradient_weight else None
     fitted = smooth_fit(halo.points, halo.triangles, halo.records["z"], strength=strength, spacing_h=spacing,
-                        directions=directions)
+                        directions=directions, gradient_data=gradients, gradient_weight=gradient_weight)
     return fitted, (table, directions, changed)
 
 
@@ -236,7 +242,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
         _save(smoother.paths[tile][1], np.empty((0, 2)))
         return TileSolve(0, 0.0, 0.0, 0, None, 0), task_row(0, start)
     fitted, (table, directions, changed) = _fit_halo(halo, smoother.strength, smoother.spacing,
-                                                     smoother.overshoot)
+                                                     smoother.overshoot, smoother.gradient_weight)
     own = halo.own
     records = np.empty(int(own.sum()), FITTED)
     for column in ("index", "x", "y"):
