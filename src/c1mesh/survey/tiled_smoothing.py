@@ -99,9 +99,10 @@ class TiledSmoother:
     longest final edge, the overshoot mode ("limit": edge directions; "off": unit normals),
     temps, a runner (distributed.TaskRunner) and name(t), and the gradient_weight of the
     spill's gradients as data (smoothing.gradient_data_weight; 0: none); it chooses h and
-    s and runs every tile's solve. A refinement task (tiled_refine) then takes its tile's vertex data
-    through `tile`, as it takes the limiter's. on_done(t, row) gets each solve's report row
-    (tiles.task_row: points, seconds, worker, its peak) as it finishes (progress)."""
+    s and runs every tile's solve. A refinement task (tiled_refine) then takes its tile's
+    vertex data through `tile`, as it takes the limiter's. on_done(t, row) gets each
+    solve's report row (tiles.task_row: points, seconds, worker, its peak) as it finishes
+    (progress)."""
 
     def __init__(self, heights, triangle_files, grid, strength, longest_edge: float, overshoot: str,
                  temps, runner, name=str, lengths: float | None = None, on_done=None,
