@@ -182,6 +182,7 @@ def test_auto_smoothing_leaves_no_folded_face_on_lidar_ground(sample):
     assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) == 0
 
 
+@pytest.mark.slow
 def test_auto_smoothing_of_exact_data_keeps_the_value_convergence_order():
     """Issue 24: on noise-free samples `--smooth auto` chooses a strength so small that the
     convergence orders hold. Franke's function on jittered grids of 40² and 80² points:
