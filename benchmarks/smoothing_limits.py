@@ -27,7 +27,9 @@ against the thin-plate RBF peer of the same split, over the points both cover.
   quadratic (with a constant term) over its k nearest vertices' heights, k = 12 ... 100;
 * spacing: auto with --spacing F × the mean spacing (vertices thinned to cells, every
   training point as data).
-DATASET: "synth" or a LAS/LAZ name in data_samples/.
+DATASET: "synth" or a LAS/LAZ name in data_samples/. The studies fit with the pipeline as
+it is; RESULTS.md's numbers of all but gradient-data are from 90e40b1, before the heights'
+gradients entered the fit as data (gradient-data's baseline turns them off).
 """
 from __future__ import annotations
 
