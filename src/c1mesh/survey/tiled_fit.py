@@ -120,11 +120,15 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.survey.survey_stats import streamed_frame
     from c1mesh.survey.tile_spill import spill
 
+    from c1mesh.stages.height_gradients import use_height_gradients
     from c1mesh.stages.surface import with_plane_level
 
     options = with_plane_level(options)
     _check_options(options)
     strength = smoothing_of(options)
+    # the tiles estimate their normals; their gradients come from the heights by default
+    gradient_source = "heights" if use_height_gradients(getattr(options, "gradients", "auto"),
+                                                        "estimated") else "normals"
     paths = survey_paths(source)
     name = survey_name(paths)
     crs, crs_source = survey_crs(paths, options.crs)
@@ -184,15 +188,12 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             if strength is not None:
                 from c1mesh.survey.tiled_smoothing import TiledSmoother
 
-                from c1mesh.stages.height_gradients import use_height_gradients
                 from c1mesh.stages.smoothing import gradient_data_weight
 
-                from_heights = use_height_gradients(getattr(options, "gradients", "auto"), "estimated")
                 limiter = TiledSmoother(heights, triangle_files, grid, strength, longest, options.overshoot,
                                         temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row),
-                                        gradient_weight=gradient_data_weight(
-                                            "estimated", "heights" if from_heights else "normals"))
+                                        gradient_weight=gradient_data_weight("estimated", gradient_source))
                 done("smoothing")
             elif options.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)
@@ -207,7 +208,6 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     finally:
         stack.close()
         temps.close()
-    from c1mesh.stages.height_gradients import use_height_gradients
     from c1mesh.stages.warnings import auto_limit, fit_warnings
     kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
@@ -221,8 +221,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    "triangles": {"before_trim": delaunay_count,
                                  "after_trim": sum(report["triangles_per_tile"].values()),
                                  "removed": removed, "max_edge": max_edge},
-                   "gradients": "heights" if use_height_gradients(getattr(options, "gradients", "auto"),
-                                                                  "estimated") else "normals",
+                   "gradients": gradient_source,
                    "level": options.level, "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
