@@ -26,6 +26,7 @@ import scipy.sparse.linalg as spla
 from c1mesh.core.threads import blas_threads
 from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple
+from c1mesh.engine.topology import sort_keys
 from c1mesh.stages.smoothing_energy import (N_LOCAL, SmoothingError, energy_blocks_of,
                                             linear_maps, local_dofs)
 
@@ -37,8 +38,8 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     """K (3N, 3N) CSR, the sum of the triangles' 9 × 9 energy blocks at their unknowns.
 
     Assembled as 3 × 3 vertex blocks: the pattern is the vertex adjacency (each vertex and
-    its neighbours), each triangle's 9 vertex pairs are located in it once
-    (searchsorted), and each of the 9 block components is one bincount, rather than a
+    its neighbours), each triangle's 9 vertex pairs are located in it by one sort of
+    their 9 T keys, and each of the 9 block components is one bincount, rather than a
     sort of 81 T coordinate entries.
     """
     n = points.shape[0]
@@ -47,11 +48,11 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     pair_a = np.repeat(np.arange(3), 3)
     pair_b = np.tile(np.arange(3), 3)
     keys = (tri[:, pair_a] * n + tri[:, pair_b]).ravel()              # (9 T,) vertex pairs
-    # Each pair's slot in the sorted distinct pairs, from one argsort: np.unique's hash
-    # path is far slower, and a searchsorted of every key misses the cache when the
+    # Each pair's slot in the sorted distinct pairs, from one sort (topology.sort_keys, the
+    # edge table's: stable, packed with the position where both fit in 64 bits): np.unique's
+    # hash path is far slower, and a searchsorted of every key misses the cache when the
     # vertices are numbered in file order.
-    order = np.argsort(keys, kind="stable")
-    ordered = keys[order]
+    order, ordered = sort_keys(keys, n * n)                            # keys is overwritten
     new = np.empty(ordered.size, dtype=bool)
     new[:1] = True
     np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
