@@ -330,3 +330,18 @@ def test_limits_that_close_out_of_order_give_back_the_setting_before_them():
     assert threads.workers() == 1 and set(_blas()) == {1}      # the newest open block holds
     second.__exit__(None, None, None)
     assert threads.workers() == before and _blas() == blas_before
+
+
+def test_parallel_blocks_start_no_block_after_an_error():
+    """A failed block stops the other threads taking more (the tiled Delaunay relies on
+    it to skip the rest of a failed tiling); the error reaches the caller."""
+    started = []
+
+    def work(block):
+        started.append(block.start)
+        if block.start == 0:
+            raise ValueError("block 0 failed")
+        time.sleep(0.01)
+    with pytest.raises(ValueError, match="block 0 failed"):
+        threads.parallel_blocks(work, 100, 1, threads=2)
+    assert 0 in started and len(started) < 10

@@ -266,28 +266,34 @@ def parallel_blocks(work: Callable[[slice], None], count: int, block: int = 1 <<
     `workers(threads)` threads (run_parallel), each taking the next block not yet taken
     (so a core busy with other work does not hold up the rest). The blocks are the same
     for every thread count, so element-wise work writing disjoint slices gives the same
-    bits with any count; the first error raised is re-raised here."""
+    bits with any count; the first error raised is re-raised here, and once one is
+    raised no thread takes another block."""
     blocks = -(-count // block)
     if blocks == 0:
         return
     taken = itertools.count()                 # next() on it is atomic under the GIL
+    failed = threading.Event()
 
     def run() -> None:
         for b in iter(taken.__next__, None):
-            if b >= blocks:
+            if b >= blocks or failed.is_set():
                 return
-            work(slice(b * block, min(count, (b + 1) * block)))
+            try:
+                work(slice(b * block, min(count, (b + 1) * block)))
+            except BaseException:
+                failed.set()
+                raise
     run_parallel(run, [()] * max(1, min(workers(threads), blocks)))
 
 
 def map_in_threads(function: Callable[[Item], object], items: list, threads: int | None = None) -> list:
     """[function(item) for item in items], the items shared among `workers(threads)`
     threads (parallel_blocks, one item a block) and the results in the items' order, so
-    the result is the same for every thread count; the first error raised is re-raised."""
+    the result is the same for every thread count; the first error raised is re-raised,
+    and no item is started after it."""
     results: list = [None] * len(items)
 
     def run(block: slice) -> None:
         results[block.start] = function(items[block.start])
     parallel_blocks(run, len(items), 1, threads)
     return results
-

@@ -38,8 +38,6 @@ Trimming what should not be meshed is a fit stage: c1mesh.stages.trim.
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.sparse import coo_matrix
@@ -47,7 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.threads import workers
+from c1mesh.core.threads import map_in_threads
 
 TILE_POINTS = 10_000
 """Points per tile: qhull time per point is flat up to ~25k points and grows beyond."""
@@ -125,19 +123,14 @@ def _delaunay_tiled(xy: np.ndarray, per_tile: int = TILE_POINTS) -> np.ndarray:
     scale = float(np.ptp(xy, axis=0).max())
     certified, frontier, band = [], [], np.zeros(n, dtype=bool)
     area = 0.0
-    count = workers()                        # qhull releases the GIL: 2 threads ~halve the time
-    pool = ThreadPoolExecutor(count) if count > 1 else None
-    try:
-        one_tile = lambda tile: _tile_pass(xy, *tile, scale)             # noqa: E731
-        passes = (pool.map if pool else map)(one_tile, _tiles(xy, per_tile))
-        for tri, keys, tile_area, not_final in passes:     # in tile order: same result
-            certified.append(tri)
-            frontier.append(keys)
-            area += tile_area
-            band[not_final] = True
-    finally:
-        if pool:
-            pool.shutdown(cancel_futures=True)             # a failed tile: skip the rest
+    # qhull releases the GIL: 2 threads about halve the time; the passes come back in tile
+    # order (the same result at any thread count), and a failed tile stops the rest
+    passes = map_in_threads(lambda tile: _tile_pass(xy, *tile, scale), list(_tiles(xy, per_tile)))
+    for tri, keys, tile_area, not_final in passes:
+        certified.append(tri)
+        frontier.append(keys)
+        area += tile_area
+        band[not_final] = True
     filled, filled_area, hull_area, hull_edges = _fill_band(
         xy, np.flatnonzero(band), np.concatenate(frontier),
         whole=not any(len(tri) for tri in certified))
