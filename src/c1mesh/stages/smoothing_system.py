@@ -235,8 +235,8 @@ class Factor:
                                          diag_pivot_thresh=0.0, options={"SymmetricMode": True})
             elif method == "amg-cg":
                 import pyamg
-                B = _near_null_space(S.shape[0])
-                self._ml = pyamg.smoothed_aggregation_solver(S, B=B, symmetry="symmetric")
+                B = _near_null_space(self.S.shape[0])
+                self._ml = pyamg.smoothed_aggregation_solver(self.S, B=B, symmetry="symmetric")
                 self._M = self._ml.aspreconditioner(cycle="V")
             else:
                 raise SmoothingError(f"unknown solver {method!r}; choose one of "
