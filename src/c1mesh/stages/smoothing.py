@@ -32,7 +32,7 @@ from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingE
                                             energy_blocks, energy_tensor,
                                             triangle_directions)
 from c1mesh.stages.smoothing_system import (System, assemble_energy, available_solvers,
-                                            data_rows, hat_trace, solve, timed)
+                                            data_rows, hat_trace, solve, timed, vertex_order)
 
 CV_BLOCK = 4.0
 """Side of a cross-validation block, in mean point spacings h (shrunk on small inputs so
@@ -169,6 +169,17 @@ class _Problem:
             mask = np.isfinite(self.grad).all(axis=1).astype(float)
             values = np.where(mask[:, None] > 0, self.grad, 0.0)
         return System(K, A, self.z, mask, values)
+
+    def renumbered(self, order: np.ndarray) -> "_Problem":
+        """The same problem with vertex order[i] as vertex i (order (N,) a permutation);
+        the triangles keep their order and their corners' order."""
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        at_vertices = self.data_tri is None
+        z, w, xy = ((self.z[order], self.w[order], self.data_xy[order]) if at_vertices
+                    else (self.z, self.w, self.data_xy))
+        return _Problem(self.points[order], rank[self.triangles], self.dirs, self.scheme, z, w, xy,
+                        self.data_tri, self.data_lam, None if self.grad is None else self.grad[order])
 
     def subset(self, keep_vertex: np.ndarray) -> "_Problem":
         """The problem on the triangles with all three vertices kept (no re-triangulation)."""
@@ -319,8 +330,8 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
         if not (wn > 0).any():
             raise SmoothingError("no weighted data point lies inside the triangulation")
         problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad)
-        system = problem.system()
     method = available_solvers()[0]
+    solved, order, system = _assembled(problem, method, seconds, threads)
     mu = float(gradient_weight)
     curve: list = []
     with limit(threads):
@@ -330,10 +341,15 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
         else:
             s = float(strength)
         with timed(seconds, "solve"):
-            u, factor = solve(system, s, wn, mu, method)
+            u, factor = solve(system, s, solved.w, mu, method)
         with timed(seconds, "edf"):
-            edf = hat_trace(system, factor, wn, EDF_PROBES, seed)
-    residual = (zn - system.fitted(u))[wn > 0] * Z
+            edf = hat_trace(system, factor, solved.w, EDF_PROBES, seed)
+    fitted = system.fitted(u)                       # at solved's data points
+    if order is not None:
+        u = _in_input_order(u, order)
+        if vertex_data:
+            fitted = u[0::3]
+    residual = (zn - fitted)[wn > 0] * Z
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
     gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
     return SmoothFit(values=values, gradients=gradients,
@@ -341,6 +357,30 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
                      solver=method, seconds=seconds, outside=outside, gradient_weight=mu if grad is not None else 0.0)
+
+
+def _assembled(problem: _Problem, method: str, seconds: dict, threads):
+    """(solved, order, system): the problem with its vertices renumbered by
+    smoothing_system.vertex_order when CHOLMOD factors it and that gives an order (from
+    METIS_FROM unknowns), else the problem itself and order None; and its System. The
+    search for s keeps the input's numbering: its windows are small, and their vertices are
+    chosen by number."""
+    order = None
+    if method == "cholmod":
+        with limit(threads), timed(seconds, "order"):
+            order = vertex_order(problem.triangles, problem.points.shape[0])
+    solved = problem if order is None else problem.renumbered(order)
+    with limit(threads), timed(seconds, "assemble"):
+        system = solved.system()
+    system.vertices_ordered = order is not None
+    return solved, order, system
+
+
+def _in_input_order(u: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """The unknowns (3N,) of a problem renumbered by order, in the input's vertex order."""
+    out = np.empty_like(u)
+    out.reshape(-1, 3)[order] = u.reshape(-1, 3)
+    return out
 
 
 # ------------------------------------------------------------------- choosing s

@@ -116,6 +116,9 @@ class System:
     z: np.ndarray
     grad_mask: np.ndarray | None = None
     grad_values: np.ndarray | None = None
+    vertices_ordered: bool = False
+    """True when the vertices are numbered in a fill-reducing order already (vertex_order):
+    CHOLMOD then factors the matrix as it is, without an ordering of its own."""
 
     @property
     def n_unknowns(self) -> int:
@@ -187,24 +190,41 @@ machine's cores and on where a tile ran; one thread costs about 5-10 % of the so
 
 
 METIS_FROM = 300_000
-"""Unknowns from which CHOLMOD is told to order by METIS rather than its default (AMD, then
-METIS as well when AMD's fill is large, keeping the better): on these meshes the default
-chose METIS at every size measured from 200k vertices up, so asking for it gives the same
-ordering without AMD's pass (RESULTS.md, the smoothing fit in tiles); smaller systems
-keep the default, whose choice there may be AMD."""
+"""Unknowns from which the vertices are renumbered in METIS's nested-dissection order of
+the vertex graph (vertex_order) before the system is assembled, and CHOLMOD factors it in
+that order. Below, CHOLMOD's default chooses (AMD, then METIS as well when AMD's fill is
+large, keeping the better; its choice there may be AMD). From 200k vertices up that default
+had chosen METIS at every size measured, on the graph of the unknowns, 9× the vertex
+graph's entries (RESULTS.md, the smoothing fit in tiles)."""
 
 
-def _analyze(csc):
-    """CHOLMOD's symbolic analysis of csc with the ordering METIS_FROM chooses; the default
-    where this CHOLMOD was built without METIS."""
+def vertex_order(triangles: np.ndarray, n: int) -> np.ndarray | None:
+    """(n,) METIS's nested-dissection order of the n vertices of a mesh with triangles
+    (T, 3); None below METIS_FROM unknowns (3 n) or where this CHOLMOD was built without
+    METIS. Numbering the vertices in it (each vertex's 3 unknowns together) gives the
+    Cholesky factor the fill of METIS's order of the unknowns' graph, without building
+    and ordering that graph."""
     from sksparse.cholmod import CholmodError, analyze
 
-    if csc.shape[0] >= METIS_FROM:
-        try:
-            return analyze(csc, ordering_method="metis")
-        except CholmodError:
-            pass
-    return analyze(csc)
+    if 3 * n < METIS_FROM:
+        return None
+    tri = np.asarray(triangles, dtype=np.int64)
+    rows = np.concatenate([tri[:, [0, 1, 2, 0, 1, 2]].ravel(), np.arange(n)])
+    cols = np.concatenate([tri[:, [1, 2, 0, 0, 1, 2]].ravel(), np.arange(n)])
+    adjacency = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    adjacency = adjacency + adjacency.T        # the pattern is what CHOLMOD reads
+    try:
+        return np.asarray(analyze(adjacency, ordering_method="metis").P(), dtype=np.int64)
+    except CholmodError:
+        return None
+
+
+def _analyze(csc, ordered: bool = False):
+    """CHOLMOD's symbolic analysis of csc: in its own order when `ordered` (the vertices
+    are numbered by vertex_order), else by CHOLMOD's default ordering."""
+    from sksparse.cholmod import analyze
+
+    return analyze(csc, ordering_method="natural") if ordered else analyze(csc)
 
 
 class Factor:
@@ -216,8 +236,9 @@ class Factor:
     pyamg's smoothed-aggregation V-cycle, relative residual 1e-10). x0 warm-starts CG.
     """
 
-    def __init__(self, S: sp.csr_matrix, method: str, analysis=None):
+    def __init__(self, S: sp.csr_matrix, method: str, analysis=None, ordered: bool = False):
         self.method = method
+        self.ordered = ordered
         self.S = S
         self.analysis = analysis
         with blas_threads(DIRECT_BLAS_THREADS):
@@ -228,7 +249,7 @@ class Factor:
         try:
             if method == "cholmod":
                 if self.analysis is None:          # the fill-reducing ordering, kept for reuse
-                    self.analysis = _analyze(csc)
+                    self.analysis = _analyze(csc, self.ordered)
                 self._factor = self.analysis.cholesky(csc)
             elif method == "superlu":
                 self._factor = spla.splu(csc, permc_spec="MMD_AT_PLUS_A",
@@ -290,7 +311,7 @@ def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
     S, rhs = system.matrix(s, w, mu, held_out)
     if ridge > 0:
         S = (S + sp.identity(S.shape[0], format="csr") * (ridge * float(S.diagonal().mean()))).tocsr()
-    factor = Factor(S, method, analysis)
+    factor = Factor(S, method, analysis, system.vertices_ordered)
     return factor.solve(rhs, x0), factor
 
 
