@@ -12,6 +12,7 @@ against the thin-plate RBF peer of the same split, over the points both cover.
     python -m benchmarks.smoothing_limits gradient-data all W... [--seeds 5]
     python -m benchmarks.smoothing_limits loess DATASET SEED       # local quadratic regression
     python -m benchmarks.smoothing_limits spacing DATASET SEED F... # --spacing F mean spacings
+    python -m benchmarks.smoothing_limits grid DATASET LOW [--seeds 5]  # CV grid from 10^LOW
 
 * ceiling: the RSD spline of the *exact* heights and gradients at the training vertices
   (the pipeline's trimmed triangulation and edge directions), scored against the true
@@ -26,7 +27,9 @@ against the thin-plate RBF peer of the same split, over the points both cover.
 * loess: no smoothing fit; each vertex's height and gradient from a weighted local
   quadratic (with a constant term) over its k nearest vertices' heights, k = 12 ... 100;
 * spacing: auto with --spacing F × the mean spacing (vertices thinned to cells, every
-  training point as data).
+  training point as data);
+* grid: auto with the coarse search grid (smoothing.GRID, from 10^-3) started at 10^LOW
+  instead, against the shipped grid: whether the grid's floor cuts off a better strength.
 DATASET: "synth" or a LAS/LAZ name in data_samples/. The studies fit with the pipeline as
 it is; RESULTS.md's numbers of all but gradient-data are from 90e40b1, before the heights'
 gradients entered the fit as data (gradient-data's baseline turns them off).
@@ -258,10 +261,31 @@ def spacing(name: str, seed: int, factors: list[float]) -> list[str]:
     return split.table(predictions)
 
 
+def grid(name: str, low: int, seeds: int) -> list[str]:
+    import c1mesh.stages.smoothing as sm
+
+    shipped, lines, ratios = sm.GRID, [], []
+    data = dataset(name)
+    for seed in range(seeds):
+        split = Split(data, seed)
+        sm.GRID = tuple(float(e) for e in range(low, int(shipped[-1]) + 1))
+        try:
+            model = H.c1mesh_model(split.train, smooth="auto")
+        finally:
+            sm.GRID = shipped
+        lines += split.table({f"shipped grid (s = {split.model.smoothing.strength:.3g})": split.model.interp(split.query),
+                              f"grid from 1e{low} (s = {model.smoothing.strength:.3g})": model.interp(split.query)})
+        ratios.append(split.ratios)
+    mean = np.mean(ratios, axis=0)
+    lines.append(f"{data.name}: mean ratio to the RBF over {seeds} seeds: shipped grid {mean[0]:.4f}, "
+                 f"grid from 1e{low} {mean[1]:.4f}")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("study", choices=("ceiling", "sweep", "blocks", "gradients", "gradient-data", "loess",
-                                          "spacing"))
+                                          "spacing", "grid"))
     parser.add_argument("args", nargs="*")
     parser.add_argument("--seeds", type=int, default=5)
     args = parser.parse_args()
@@ -279,6 +303,8 @@ def main() -> None:
         lines = gradient_data(args.args[0], int(args.args[1]), [float(w) for w in args.args[2:]])
     elif args.study == "loess":
         lines = loess(args.args[0], int(args.args[1]))
+    elif args.study == "grid":
+        lines = grid(args.args[0], int(args.args[1]), args.seeds)
     else:
         lines = spacing(args.args[0], int(args.args[1]), [float(f) for f in args.args[2:]])
     print("\n".join(lines))
