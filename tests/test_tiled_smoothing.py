@@ -232,3 +232,21 @@ def test_each_tile_reports_its_smoothing_solve(tmp_path):
     assert passes.count("smoothing") == report["tiles"] == 9
     for row in report["tile_tasks"]:
         assert row["passes"]["smoothing"]["seconds"] >= 0 and row["passes"]["smoothing"]["worker"]
+
+
+def test_the_smoothing_totals_do_not_depend_on_the_order_the_tiles_finish_in():
+    """A pool or Dask hands the tiles' solves back in completion order; the report's edf and
+    residual RMS must be the same bits in any order (the Dask bytes test once failed on the
+    last bit of a plain sum of edfs)."""
+    from c1mesh.survey.tiled_smoothing import TileSolve, solve_totals
+
+    rng = np.random.default_rng(8)
+    solves = [TileSolve(own=int(n), squares=float(q), largest=1.0, halo_vertices=int(n) + 37,
+                        edf=float(e), turned=0)
+              for n, q, e in zip(rng.integers(100, 900, 40), rng.random(40) * 1e-3, rng.random(40) * 300)]
+    plain = {sum(s.edf * s.own / s.halo_vertices for s in order)
+             for order in (solves, solves[::-1], [solves[i] for i in rng.permutation(40)])}
+    assert len(plain) > 1                      # these data do expose a plain sum's order
+    totals = {solve_totals([solves[i] for i in rng.permutation(40)]) for _ in range(6)}
+    assert len(totals) == 1
+    assert totals.pop()[0] == sum(s.own for s in solves)

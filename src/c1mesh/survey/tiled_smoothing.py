@@ -93,6 +93,15 @@ class TileSolve:
     turned: int
 
 
+def solve_totals(solves: list[TileSolve]) -> tuple[int, float, float | None]:
+    """(own vertices, sum of their squared residuals, edf) over the tiles' solves, the same
+    in any order of the list: the float sums are math.fsum's, exactly rounded. edf sums each
+    halo's estimate scaled by its share of own vertices (None: no solve had one)."""
+    edfs = [s.edf * s.own / s.halo_vertices for s in solves if s.edf is not None and s.halo_vertices]
+    return (sum(s.own for s in solves), math.fsum(s.squares for s in solves),
+            math.fsum(edfs) if edfs else None)
+
+
 class TiledSmoother:
     """The smoothing fit over the tiles (module docstring): construct with the trimmed
     survey's height spill, triangle files and grid, the strength ("auto" or s > 0), the
@@ -170,16 +179,16 @@ class TiledSmoother:
     def smoothing(self) -> dict:
         """The report's "smoothing" section, of SmoothFit.as_dict's keys, plus the tiled
         solve's halo: residuals over every vertex, edf the sum of each halo's estimate
-        scaled by its share of own vertices, the CV curve of the search tile."""
-        own = sum(s.own for s in self.solves)
-        squares = sum(s.squares for s in self.solves)
-        edfs = [s.edf * s.own / s.halo_vertices for s in self.solves if s.edf is not None and s.halo_vertices]
+        scaled by its share of own vertices, the CV curve of the search tile. The solves
+        arrive in completion order on a pool or on Dask, so their totals must not depend on
+        the order (solve_totals)."""
+        own, squares, edf = solve_totals(self.solves)
         seconds = dict(self.seconds)
         if self.search is not None:
             seconds.update({f"search_{k}": v for k, v in self.search["seconds"].items()})
         return {"strength": self.strength, "lam": self.strength * self.spacing ** 2,
                 "cv_curve": [] if self.search is None else [[float(s), float(r)] for s, r in self.search["cv_curve"]],
-                "edf": float(sum(edfs)) if edfs else None,
+                "edf": edf,
                 "residual_rms": math.sqrt(squares / own) if own else 0.0,
                 "residual_max": max((s.largest for s in self.solves), default=0.0),
                 "solver": self.search["solver"] if self.search is not None else _solver(),
