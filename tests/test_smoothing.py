@@ -333,6 +333,7 @@ def test_large_systems_ordered_by_metis_solve_the_same_fit(monkeypatch):
     metis = smooth_fit(pts, tri, z, strength=0.5, spacing_h=h)
     n = len(pts)
     assert asked == [((n, n), {"ordering_method": "metis"}), ((3 * n, 3 * n), {"ordering_method": "natural"})]
+    assert "order" in metis.seconds and "order" not in default.seconds
     np.testing.assert_allclose(metis.values, default.values, rtol=0, atol=1e-9)
     np.testing.assert_allclose(metis.gradients, default.gradients, rtol=0, atol=1e-7)
     assert metis.residual_rms == pytest.approx(default.residual_rms, rel=1e-9)

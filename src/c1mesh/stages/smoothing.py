@@ -369,6 +369,8 @@ def _assembled(problem: _Problem, method: str, seconds: dict, threads):
     if method == "cholmod":
         with limit(threads), timed(seconds, "order"):
             order = vertex_order(problem.triangles, problem.points.shape[0])
+        if order is None:                       # below METIS_FROM: no phase to report
+            del seconds["order"]
     solved = problem if order is None else problem.renumbered(order)
     with limit(threads), timed(seconds, "assemble"):
         system = solved.system()
