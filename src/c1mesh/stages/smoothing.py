@@ -344,12 +344,9 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
             u, factor = solve(system, s, solved.w, mu, method)
         with timed(seconds, "edf"):
             edf = hat_trace(system, factor, solved.w, EDF_PROBES, seed)
-    fitted = system.fitted(u)                       # at solved's data points
+    residual = (solved.z - system.fitted(u))[solved.w > 0] * Z     # in solved's numbering
     if order is not None:
         u = _in_input_order(u, order)
-        if vertex_data:
-            fitted = u[0::3]
-    residual = (zn - fitted)[wn > 0] * Z
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
     gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
     return SmoothFit(values=values, gradients=gradients,
