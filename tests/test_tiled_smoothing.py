@@ -8,7 +8,9 @@ reproduced by every tile's solve whatever its halo (the energy of a plane is zer
 """
 from __future__ import annotations
 
+import io
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -250,3 +252,43 @@ def test_the_smoothing_totals_do_not_depend_on_the_order_the_tiles_finish_in():
     totals = {solve_totals([solves[i] for i in rng.permutation(40)]) for _ in range(6)}
     assert len(totals) == 1
     assert totals.pop()[0] == sum(s.own for s in solves)
+
+
+def _hidden_leftovers(*folders) -> list[str]:
+    """Every `.c1mesh*` entry in the temporary folder and every hidden entry beside the
+    outputs: the spill, halo and fitted files a tiled fit makes start with '.'."""
+    return sorted(str(p) for folder in folders for p in Path(folder).iterdir() if p.name.startswith("."))
+
+
+@pytest.mark.parametrize("runner", ["here", "processes", "dask-threads", "dask-processes"])
+def test_tiled_smoothing_leaves_no_temporary_file(tmp_path, monkeypatch, runner):
+    """Every tile's solve runs where the runner puts it; a worker process must not make
+    temporary files that only it would know to remove (the .smooth-halo files once did)."""
+    import tempfile
+
+    import c1mesh.survey.tiled_fit as tiled_fit
+
+    temporary, out = tmp_path / "tmp", tmp_path / "out"
+    temporary.mkdir(), out.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temporary))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000, seed=4)
+    options = FitOptions(classes=[2], level=1, smooth=10.0)
+    if runner.startswith("dask"):
+        distributed = pytest.importorskip("distributed")
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=runner == "dask-processes",
+                                      dashboard_address=None) as cluster:
+            report = fit_tiled(source, out / "fit.ply", options, memory=10**9, per_tile=6000,
+                               scheduler=cluster.scheduler_address)
+    else:
+        monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
+        args = ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "10", "--memory", "1M",
+                "--report", str(tmp_path / "r.json")] + (["-j", "2"] if runner == "processes" else [])
+        result = CliRunner().invoke(main, args + ["-o", str(out / "fit.ply")])
+        assert result.exit_code == 0, result.output
+        report = json.loads((tmp_path / "r.json").read_text())
+        if runner == "here":                   # a stream, as -o -: the temporary files go to $TMPDIR
+            fit_tiled(source, io.BytesIO(), replace(options, output_format="ply"), memory=10**9, per_tile=6000)
+    assert report["tiles"] > 1 and (out / "fit.ply").stat().st_size > 0
+    assert _hidden_leftovers(temporary, out) == []

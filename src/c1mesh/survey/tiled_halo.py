@@ -112,8 +112,13 @@ class HaloCache:
         return [t for t in range(len(self.grid)) if self.files[t] is not None]
 
     def halo(self, tile: int) -> Halo:
+        """tile's halo, from the cache, else read from the spills: cached by the driver's
+        cache, not by a copy sent with a task (tiled_input.Temps.owned_here: a file a copy
+        made would be removed by nobody)."""
         if tile not in self.paths:
             halo = read_halo(self.heights, self.files, self.grid, tile, self.reach)
+            if not self.temps.owned_here():
+                return self._drop(tile, halo)
             self.paths[tile] = self._new_paths(tile)
             halo.records.tofile(self.paths[tile][0])
             halo.triangles.astype("<i8").tofile(self.paths[tile][1])

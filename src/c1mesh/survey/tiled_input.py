@@ -150,10 +150,27 @@ class Temps:
 
     def __init__(self, directory, stem: str):
         self.directory, self.stem, self.paths = Path(directory), stem, []
+        self.copy = False
+
+    def __setstate__(self, state: dict) -> None:
+        """A Temps unpickled (a task's argument in a worker process, or a Dask worker's
+        thread) is a copy: its close is never called, so it must not make files."""
+        self.__dict__.update(state, copy=True)
+
+    def owned_here(self) -> bool:
+        """Whether this is the Temps that made the files and removes them on close, not a
+        copy sent with a task."""
+        return not self.copy
 
     def new(self, name: str) -> Path:
+        """A new hidden path in the directory, registered for removal. Only the driver's
+        Temps may make one: a copy sent with a task (to a worker process or a Dask worker)
+        would list the file in the copy alone, and nobody would remove it."""
         from c1mesh.core.outputs import register_temp
 
+        if not self.owned_here():
+            raise RuntimeError(f"temporary file '{name}' requested from a copy of the survey's Temps in a "
+                               "task; only the driver's Temps, which removes them, may make them")
         path = self.directory / f".{self.stem}.{name}-{os.getpid()}"
         register_temp(path)
         self.paths.append(path)
