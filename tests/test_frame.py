@@ -360,8 +360,9 @@ def test_spacing_from_the_plane_tree_is_the_3d_tree_median_bit_for_bit(sparse):
     z[:sparse] += 0.3
     pts = np.column_stack([xy, z])
     plain = float(np.median(_tree(pts).query(pts, k=2)[0][:, 1]))
-    assert _spacing(pts, samples=len(pts), plane_tree=_tree(pts[:, :2])) == plain
-    assert _spacing(pts, samples=len(pts)) == plain
+    every = np.ones(len(pts), dtype=bool)
+    assert _spacing(pts, every, plane_tree=_tree(pts[:, :2])) == plain
+    assert _spacing(pts, every) == plain
 
 
 def test_blocked_transforms_equal_one_matrix_product():

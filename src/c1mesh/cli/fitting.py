@@ -64,12 +64,20 @@ def fit_survey(inputs, output, output_dir, suffix, input_format, options, report
         else:
             result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs)
     except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
-        fail(message(exc), debug)
+        fail(_survey_naming(inputs, message(exc)), debug)
     if unused:
         result["scheduler"] = unused
     warn(result, quiet)
     _write_report(report, targets[-1], result, debug)
     note(result, quiet)
+
+
+def _survey_naming(inputs, text: str) -> str:
+    """A survey's error led by the input it is about, as for one input (shell.naming):
+    the one input, or, unless the text names one of them already, the first and a count."""
+    if len(inputs) == 1 or any(str(src) in text for src in inputs):
+        return naming(inputs[0], text) if len(inputs) == 1 else text
+    return f"{inputs[0]} and {len(inputs) - 1} more: {text}"
 
 
 _SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one piece in this process "

@@ -240,9 +240,16 @@ def read_las(data: Buffer, name: str, classes=None,
     cloud = _assemble(parts)
     cloud.crs = crs
     if keep is not None and in_box and not len(cloud):
-        raise InputError(f"no points of class {keep.tolist()}; the file has classes {sorted(found)[:20]}"
-                         + (" inside the bounds" if bounds is not None else ""))
+        raise no_class_error(keep.tolist(), found, bounds is not None)
     return cloud
+
+
+def no_class_error(classes: list[int], found: set[int], bounded: bool) -> InputError:
+    """The error of a read whose points (inside --bounds when bounded) hold none of the
+    classification codes `classes`: it lists the codes `found` instead. The tiled fit's
+    reader (c1mesh.survey.tiled_input.las_chunks) raises the same."""
+    return InputError(f"no points of class {list(classes)}; the file has classes {sorted(found)[:20]}"
+                      + (" inside the bounds" if bounded else ""))
 
 
 def _rows(classification: np.ndarray, keep: np.ndarray | None, box: np.ndarray | None) -> np.ndarray | None:

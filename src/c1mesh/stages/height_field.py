@@ -145,7 +145,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     check_extent(local)
     gradients, flipped = normal_gradients(n_local[index])
 
-    keep, n_stacked, spacing = _stack_and_merge(local, gradients, max_stacked, merge_tol, frame,
+    keep, n_stacked, spacing = _stack_and_merge(local, gradients, index, max_stacked, merge_tol, frame,
                                                 common_metric)
     dropped["duplicate"] = int(index.size - keep.size)
     xy = local[keep, :2]
@@ -223,17 +223,18 @@ def _check_facing_away(up: np.ndarray, cos_max: float, max_facing_away: float | 
             f"surface is seen from below there and is not a height field; " + _AXIS_HINT)
 
 
-def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: float,
+def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, index: np.ndarray, max_stacked: float,
                      merge_tol: float, frame: ScanFrame,
                      common_metric: bool = True) -> tuple[np.ndarray, int, float]:
-    """Stacking test and duplicate merging on local points (n, 3) with their gradients.
+    """Stacking test and duplicate merging on local points (n, 3) with their gradients and
+    input indices (n,) ascending.
 
     Returns (keep, stacked, spacing): ascending indices into `local` of the points kept
     (one per duplicate group, the first), the number of stacked points, and the spacing h.
     Exact duplicates in (x, y) are grouped by sorting; distinct positions go into one KD
-    tree whose pairs within h serve both the stacking test and the near-duplicate merge.
-    Without a common metric (see `height_field`) h is the plane spacing and only exact
-    duplicates with different heights count as stacked.
+    tree whose pairs within h serve both the stacking test (`stacked_positions`) and the
+    near-duplicate merge. Without a common metric (see `height_field`) h is the plane
+    spacing and only exact duplicates with different heights count as stacked.
     """
     xy, z = local[:, :2], local[:, 2]
     order, xs, ys = _sort_xy(xy)
@@ -253,28 +254,15 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: floa
     np.maximum.at(z_max, group, z)
 
     plane_tree = kd_tree(xy[first])
+    sample = spacing_sample(index[first], n_groups)
     if common_metric:
-        spacing = _spacing(local[first], plane_tree=plane_tree)
+        spacing = _spacing(local[first], sample, plane_tree=plane_tree)
     else:
-        spacing = _plane_spacing(xy[first], plane_tree)
-    pairs = plane_tree.query_pairs(spacing, output_type="ndarray")
-    i, j = pairs[:, 0], pairs[:, 1]
-    dist = np.linalg.norm(xy[first[i]] - xy[first[j]], axis=1)
-    if common_metric:
-        slope = np.maximum(np.linalg.norm(gradients[first[i]], axis=1),
-                           np.linalg.norm(gradients[first[j]], axis=1))
-        jump = np.abs(z[first[i]] - z[first[j]]) > STACK_MARGIN * spacing + slope * dist
-        bad = (z_max - z_min) > STACK_MARGIN * spacing
-        bad[i[jump]] = True
-        bad[j[jump]] = True
-    else:
-        bad = z_max > z_min
+        spacing = _plane_spacing(xy[first], sample, plane_tree)
+    bad, (i, j, dist) = stacked_positions(xy[first], z[first], gradients[first], z_max - z_min, spacing,
+                                          plane_tree, common_metric)
     stacked = int(bad[group].sum())
-    if stacked > max_stacked * z.size:
-        raise NotAHeightFieldError(
-            f"{stacked / z.size:.0%} of the points lie above or below other points over the plane "
-            f"with normal {_fmt(frame.axes[2])} (at most {max_stacked:.0%} allowed), as walls, "
-            f"overhangs or several layers do, so this is not a height field; " + _AXIS_HINT)
+    check_stacking(stacked, z.size, max_stacked, frame.axes[2])
 
     near = dist <= merge_tol * spacing
     graph = coo_matrix((np.ones(int(near.sum()), dtype=np.int8), (i[near], j[near])),
@@ -285,6 +273,61 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, max_stacked: floa
     kept = np.zeros(xy.shape[0], dtype=bool)             # ascending without a sort: 10x faster
     kept[keep] = True
     return np.flatnonzero(kept), stacked, spacing
+
+
+def stacked_positions(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, z_range: np.ndarray,
+                      spacing: float, plane_tree: cKDTree,
+                      common_metric: bool = True) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Which distinct plane positions are stacked, and the pairs that decided it.
+
+    xy (m, 2), z (m,), gradients (m, 2): the distinct positions (the first point of each
+    group of exact duplicates) with their height and gradient; z_range (m,) the spread of
+    heights over each group; plane_tree a KD tree of xy. A position is stacked when its
+    group's heights spread more than STACK_MARGIN h, or a position within h in the plane
+    differs in height by more than STACK_MARGIN h + the larger slope times their
+    distance (without a common metric: when its group holds two heights).
+
+    Returns (bad (m,) bool, (i, j, dist): the pairs within h and their plane distances).
+    On a tile of a survey, give the positions within h of its cell: the flags of its own
+    positions are then those of the whole survey (c1mesh.survey.tiled_heights).
+    """
+    pairs = plane_tree.query_pairs(spacing, output_type="ndarray")
+    i, j = pairs[:, 0], pairs[:, 1]
+    dist = np.linalg.norm(xy[i] - xy[j], axis=1)
+    if not common_metric:
+        return z_range > 0, (i, j, dist)
+    slope = np.maximum(np.linalg.norm(gradients[i], axis=1), np.linalg.norm(gradients[j], axis=1))
+    jump = np.abs(z[i] - z[j]) > STACK_MARGIN * spacing + slope * dist
+    bad = z_range > STACK_MARGIN * spacing
+    bad[i[jump]] = True
+    bad[j[jump]] = True
+    return bad, (i, j, dist)
+
+
+def check_stacking(stacked: int, points: int, max_stacked: float, axis: np.ndarray) -> None:
+    """NotAHeightFieldError when more than max_stacked of the points (usable, not too steep,
+    duplicates included) are stacked over the plane with normal axis (3,)."""
+    if stacked > max_stacked * points:
+        raise NotAHeightFieldError(
+            f"{stacked / points:.0%} of the points lie above or below other points over the plane "
+            f"with normal {_fmt(axis)} (at most {max_stacked:.0%} allowed), as walls, "
+            f"overhangs or several layers do, so this is not a height field; " + _AXIS_HINT)
+
+
+SPACING_SAMPLES = 20000
+"""About how many distinct positions measure the spacing h (`spacing_sample`)."""
+
+
+def spacing_sample(index: np.ndarray, positions: int, samples: int = SPACING_SAMPLES) -> np.ndarray:
+    """(m,) bool: which distinct positions, by the input index (m,) of their first point,
+    measure the spacing h: those whose index is a multiple of positions // samples (every
+    one when that is 0 or 1; every one too when no index is a multiple). The rule depends
+    on the input numbering alone, not on the order of a sort, so that a tile of a survey
+    (whose survey numbers are the input's indices) picks the same positions as the
+    whole: c1mesh.survey.tiled_heights measures the same h."""
+    step = max(1, positions // samples)
+    sample = index % step == 0
+    return sample if sample.any() else np.ones(len(index), dtype=bool)
 
 
 def kd_tree(points: np.ndarray) -> cKDTree:
@@ -315,15 +358,16 @@ def _sort_xy(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return order, xs, y[order]
 
 
-def _spacing(points: np.ndarray, samples: int = 20000, plane_tree: cKDTree | None = None) -> float:
-    """Median 3D nearest-neighbour distance of distinct points (n, 3), from <= `samples` queries.
+def _spacing(points: np.ndarray, sample: np.ndarray, plane_tree: cKDTree | None = None) -> float:
+    """Median 3D nearest-neighbour distance of distinct points (n, 3), over the points of
+    `sample` (n,) bool (`spacing_sample`).
 
     3D, not in the plane: where layers overlap, (x, y) neighbours come from the other
     layer and the plane spacing shrinks, which would blunt the stacking test.
     ``plane_tree``, a KD tree of points[:, :2] in the same order, saves building a 3D tree
     where the plane neighbours decide (see `_nearest_via_plane`); the result is the same.
     """
-    query = points[:: max(1, points.shape[0] // samples)]
+    query = points[sample]
     if plane_tree is not None and points.shape[0] > 64:
         nearest = _nearest_via_plane(points, query, plane_tree)
     else:
@@ -331,10 +375,10 @@ def _spacing(points: np.ndarray, samples: int = 20000, plane_tree: cKDTree | Non
     return float(np.median(nearest))
 
 
-def _plane_spacing(xy: np.ndarray, plane_tree: cKDTree, samples: int = 20000) -> float:
+def _plane_spacing(xy: np.ndarray, sample: np.ndarray, plane_tree: cKDTree) -> float:
     """Median plane distance from distinct points xy (n >= 2, 2) to their nearest other
-    point, from <= `samples` queries of their KD tree `plane_tree`."""
-    query = xy[:: max(1, xy.shape[0] // samples)]
+    point, over the points of `sample` (n,) bool, queried in their KD tree `plane_tree`."""
+    query = xy[sample]
     return float(np.median(plane_tree.query(query, k=2)[0][:, 1]))
 
 

@@ -123,10 +123,7 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     if degree not in (1, 2):
         raise InputError(f"height_gradients fits degree 1 or 2, got {degree}")
     n = xy.shape[0]
-    positions = _distinct_positions(xy, 3)
-    if positions < 3:
-        raise InputError(f"fitting slopes to heights needs at least 3 distinct (x, y) positions, "
-                         f"got {n} point{'s' if n != 1 else ''} at {positions}")
+    check_positions(n, _distinct_positions(xy, 3))
     k = int(min(max(k, 2 if degree == 1 else 5), n - 1))
     # Points in a KD tree's leaf order: neighbours then sit close in memory, and the
     # queries and gathers below run about twice as fast as in the input's order.
@@ -161,15 +158,33 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     return out, np.sqrt(reach2)
 
 
+def check_positions(points: int, positions: int) -> None:
+    """InputError when `points` lie at fewer than 3 distinct (x, y) `positions`: no slope
+    can be fitted. The tiled fit counts the positions of the whole survey while it streams
+    it (c1mesh.survey.tiled_fit) and says the same."""
+    if positions < 3:
+        raise InputError(f"fitting slopes to heights needs at least 3 distinct (x, y) positions, "
+                         f"got {points} point{'s' if points != 1 else ''} at {positions}")
+
+
 def _distinct_positions(xy: np.ndarray, enough: int) -> int:
-    """How many distinct rows points xy (n, 2) have, counted up to `enough` (O(n · enough)
-    comparisons, no sort): the count when it is below `enough`, else `enough`."""
-    seen = []
+    """How many distinct rows points xy (n, 2) have, counted up to `enough`."""
+    return len(distinct_rows(xy, enough))
+
+
+def distinct_rows(xy: np.ndarray, enough: int, seen: list | None = None) -> list:
+    """The first distinct rows of points xy (n, 2), up to `enough` of them, after those
+    already `seen` (a list of rows; O(n · enough) comparisons, no sort). A stream of
+    chunks finds a survey's first distinct positions by passing each chunk the list the
+    last one returned."""
+    seen = list(seen or [])
     new = np.ones(xy.shape[0], dtype=bool)
+    for row in seen:
+        new &= (xy != row).any(axis=1)
     while len(seen) < enough and new.any():
         seen.append(xy[int(np.argmax(new))])
         new &= (xy != seen[-1]).any(axis=1)
-    return len(seen)
+    return seen
 
 
 def nearest_neighbours(tree, xy: np.ndarray, z: np.ndarray, centre: np.ndarray, k: int,

@@ -62,7 +62,7 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
-from c1mesh.survey.tiled_heights import height_spill
+from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
                                        survey_paths)
 from c1mesh.survey.tiled_limiter import TiledLimiter
@@ -120,7 +120,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     from c1mesh.survey.survey_stats import streamed_frame
     from c1mesh.survey.tile_spill import spill
 
-    from c1mesh.stages.height_gradients import use_height_gradients
+    from c1mesh.stages.height_gradients import check_positions, use_height_gradients
     from c1mesh.stages.surface import with_plane_level
 
     options = with_plane_level(options)
@@ -157,8 +157,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
         frame = streamed_frame(chunks, axis)
         colours.finish()
-        count, box = _plane_box(chunks, frame)
-        if count < 3:
+        count, box, positions = _plane_box(chunks, frame)
+        if gradient_source == "heights":          # as the in-memory fit's height gradients say it
+            check_positions(count, positions)
+        elif count < 3:
             raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
                                                                  if options.classes else ""))
         per_point = point_bytes(options)
@@ -171,8 +173,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         rows = TileRows(grid, task_threads(options, runner), on_tile)
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
             done("spill")
-            heights = height_spill(raw, grid, count, options, directory, temps.stem, runner, rows)
+            height_pass = height_spill(raw, grid, count, options, directory, temps.stem, runner, rows)
+        heights = height_pass.heights
         try:
+            spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
             done("normals")
             max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(heights, grid, options.max_edge,
                                                                                   temps, runner, rows)
@@ -204,7 +208,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                  output, temps, limiter, crs, colours, runner, rows, split)
             done("refine+write")
         finally:
-            heights.close()
+            height_pass.close()
     finally:
         stack.close()
         temps.close()
@@ -217,7 +221,8 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
                    "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
                                             auto_limit(options.max_edge)),
-                   "points": {"read": count, "kept": kept}, "max_edge": max_edge,
+                   "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
+                   "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,
                                  "after_trim": sum(report["triangles_per_tile"].values()),
                                  "removed": removed, "max_edge": max_edge},
@@ -240,12 +245,17 @@ def _check_options(options) -> None:
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
 
 
-def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float]]:
-    """(point count, (x0, y0, x1, y1) box of the points in the frame's plane)."""
-    count, low, high = 0, np.full(2, np.inf), np.full(2, -np.inf)
+def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float], int]:
+    """(point count, (x0, y0, x1, y1) box of the points in the frame's plane, distinct
+    plane positions counted up to 3)."""
+    from c1mesh.stages.height_gradients import distinct_rows
+
+    count, low, high, seen = 0, np.full(2, np.inf), np.full(2, -np.inf), []
     for points, _ in chunks():
         if len(points):
             xy = frame.to_local(points)[:, :2]
             low, high = np.minimum(low, xy.min(axis=0)), np.maximum(high, xy.max(axis=0))
             count += len(points)
-    return count, (float(low[0]), float(low[1]), float(high[0]), float(high[1]))
+            if len(seen) < 3:
+                seen = distinct_rows(xy, 3, seen)
+    return count, (float(low[0]), float(low[1]), float(high[0]), float(high[1])), len(seen)

@@ -13,33 +13,59 @@ from c1mesh.survey.tiles import task_row
 HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
                    ("gx", "<f8"), ("gy", "<f8")])
 """One height-field point in a spill: survey number, frame position, height, gradient."""
+GROUP = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("size", "<i8"), ("z_range", "<f8")])
+"""A plane position that several usable points share, in a spill beside the heights: the
+survey number of its first point (the HEIGHT record kept), the position, how many points
+share it and the spread of their heights (for the stacking test, `survey_stacking`)."""
+
+
+class HeightSpill:
+    """What the height pass leaves (height_spill): heights, a TileSpill of HEIGHT records
+    (one per distinct usable position); groups, a TileSpill of GROUP records (the positions
+    several points share); usable, the usable points that are not too steep, duplicates
+    included (the stacking test's denominator, as height_field counts them). Close both
+    with close()."""
+
+    def __init__(self, heights, groups, usable: int):
+        self.heights, self.groups, self.usable = heights, groups, usable
+
+    def close(self) -> None:
+        self.heights.close()
+        self.groups.close()
 
 
 def height_spill(raw, grid, count: int, options, directory, stem: str, runner, rows):
     """Per tile: normals of its own points (tile_normals), then its height-field points
     (usable, not too steep, exact duplicate positions dropped), spilled to a new TileSpill
-    of HEIGHT records (entered; the caller closes it). Each tile is a task (`_tile_heights`)
-    that reads the raw spill and writes its own height file, run by runner
+    of HEIGHT records, and the positions several points share to one of GROUP records: a
+    HeightSpill, which the caller closes. Each tile is a task (`_tile_heights`)
+    that reads the raw spill and writes its own height and group files, run by runner
     (distributed.TaskRunner); rows: the tiled_report.TileRows."""
     from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
     from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
     from c1mesh.survey.tile_spill import TileSpill
 
     heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
+    groups = TileSpill(grid, directory, stem + ".groups", record=GROUP).__enter__()
+    usable = 0
     try:
         job = _HeightJob(raw, grid, options.k, height_neighbours(options.k), math.cos(math.radians(options.max_slope)),
                          INITIAL_SPACINGS * mean_spacing(grid.box, count),
                          use_height_gradients(getattr(options, "gradients", "auto"), "estimated"),
                          rows.threads)
         tiles = [t for t in range(len(grid)) if raw.counts[t]]
-        for i, row in runner.map(_tile_heights, len(tiles), lambda i: (job, tiles[i], heights.paths[tiles[i]]),
+        for i, row in runner.map(_tile_heights, len(tiles),
+                                 lambda i: (job, tiles[i], heights.paths[tiles[i]], groups.paths[tiles[i]]),
                                  lambda i: rows.name(tiles[i])):
             heights.counts[tiles[i]] = row.pop("points")
+            groups.counts[tiles[i]] = row.pop("groups")
+            usable += row.pop("usable")
             rows.add(tiles[i], "normals", row)
     except BaseException:
         heights.close()
+        groups.close()
         raise
-    return heights
+    return HeightSpill(heights, groups, usable)
 
 
 class _HeightJob:
@@ -57,9 +83,10 @@ class _HeightJob:
         return records["index"], np.column_stack([records["x"], records["y"], records["z"]])
 
 
-def _tile_heights(job: _HeightJob, t: int, path) -> dict:
-    """One tile's height-field records (HEIGHT) written to path; returns its report row
-    (points written, seconds, worker)."""
+def _tile_heights(job: _HeightJob, t: int, path, group_path) -> dict:
+    """One tile's height-field records (HEIGHT) written to path, its shared positions
+    (GROUP) to group_path; returns its report row (points written, groups written, usable
+    points, seconds, worker)."""
     from c1mesh.stages.height_field import normal_gradients
     from c1mesh.core.threads import limit
     from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
@@ -76,7 +103,15 @@ def _tile_heights(job: _HeightJob, t: int, path) -> dict:
         usable = np.isfinite(length) & (length > 0)
         usable[usable] &= np.abs(normals[usable, 2] / length[usable]) >= job.cos_max
         own, normals = own[usable], normals[usable]
-        first = _first_of_positions(own["x"], own["y"])
+        first, size, z_range = _positions(own["x"], own["y"], own["z"])
+        shared = first[size > 1]
+        groups = np.empty(len(shared), GROUP)
+        for name in ("index", "x", "y"):
+            groups[name] = own[name][shared]
+        groups["size"], groups["z_range"] = size[size > 1], z_range[size > 1]
+        with open(group_path, "wb") as file:
+            groups.tofile(file)
+        usable_count = len(own)
         own, normals = own[first], normals[first]
         gradients, _ = normal_gradients(normals)
         records = np.empty(len(own), HEIGHT)
@@ -85,12 +120,115 @@ def _tile_heights(job: _HeightJob, t: int, path) -> dict:
         records["gx"], records["gy"] = gradients[:, 0], gradients[:, 1]
         with open(path, "wb") as file:
             records.tofile(file)
-    return task_row(len(records), start)
+    return {**task_row(len(records), start), "groups": len(groups), "usable": usable_count}
 
 
-def _first_of_positions(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Ascending indices of the first point (lowest index) at each distinct (x, y)."""
+def _positions(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct (x, y) of points (n,): (first (g,) ascending indices of the first point
+    (lowest index) at each, size (g,) how many points are there, z_range (g,) the spread
+    of their heights)."""
     order = np.lexsort((np.arange(len(x)), y, x))
     new = np.ones(len(x), dtype=bool)
     new[1:] = (x[order][1:] != x[order][:-1]) | (y[order][1:] != y[order][:-1])
-    return np.sort(order[new])
+    starts = np.flatnonzero(new)
+    size = np.diff(np.append(starts, len(x)))
+    zs = z[order]
+    z_range = (np.maximum.reduceat(zs, starts) - np.minimum.reduceat(zs, starts)) if len(x) else np.empty(0)
+    ascending = np.argsort(order[new], kind="stable")
+    return order[new][ascending], size[ascending], z_range[ascending]
+
+
+def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, temps,
+                    max_stacked: float = 0.10) -> tuple[float, int]:
+    """The stacking test of c1mesh.stages.height_field over the survey, tile by tile, with
+    the same numbers as the in-memory fit: the spacing h is the median 3D nearest-neighbour
+    distance over the positions that spacing_sample picks by survey number (a task per
+    tile, `tile_sample_spacings`), then each tile counts the stacked points among its own
+    positions with stacked_positions on the positions within h of its cell
+    (`tile_stacked`), and the sum against spill.usable decides (check_stacking raises
+    NotAHeightFieldError). axis: the frame's height axis (3,). Returns (h, stacked points),
+    the in-memory report's points.spacing and points.stacked."""
+    from c1mesh.stages.height_field import check_stacking
+    from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
+
+    heights = spill.heights
+    positions = int(heights.counts.sum())
+    tiles = [t for t in range(len(grid)) if heights.counts[t]]
+    first_reach = INITIAL_SPACINGS * mean_spacing(grid.box, positions)
+    spacing = _sampled_median(heights, grid, tiles, positions, first_reach, runner, name, temps)
+    stacked = sum(count for _, count in runner.map(tile_stacked, len(tiles),
+                                                     lambda i: (spill, grid, tiles[i], spacing),
+                                                     lambda i: name(tiles[i])))
+    check_stacking(stacked, spill.usable, max_stacked, axis)
+    return spacing, int(stacked)
+
+
+def _sampled_median(heights, grid, tiles, positions: int, first_reach: float, runner, name, temps) -> float:
+    """The median of tile_sample_spacings over every tile (spacing_sample's rule, which
+    takes every position when none is picked)."""
+    from c1mesh.survey.streamed_median import streamed_median
+    from c1mesh.survey.tiled_halo import residual_blocks
+
+    paths = [temps.new(f"spacings-{t}.bin") for t in tiles]
+    for every in (False, True):
+        picked = sum(n for _, n in runner.map(tile_sample_spacings, len(tiles),
+                                              lambda i: (heights, grid, tiles[i], positions, every, first_reach,
+                                                         paths[i]),
+                                              lambda i: name(tiles[i])))
+        if picked:
+            break
+
+    def blocks():
+        for path in paths:
+            yield from residual_blocks(path)
+    median = streamed_median(blocks)
+    for path in paths:
+        path.unlink()
+    return median
+
+
+def tile_sample_spacings(heights, grid, tile: int, positions: int, every: bool, first_reach: float, path) -> int:
+    """Write to path the 3D distance from each of tile's own height-field positions that
+    spacing_sample picks (every one with every=True) to its nearest other position in the
+    survey: read in its cell grown by a reach that doubles until the distance found is
+    within the reach (no position outside can then be nearer). Returns how many."""
+    from c1mesh.stages.height_field import SPACING_SAMPLES, kd_tree
+
+    own = heights.tile(tile)
+    step = 1 if every else max(1, positions // SPACING_SAMPLES)
+    mine = own[own["index"] % step == 0]
+    query = np.column_stack([mine["x"], mine["y"], mine["z"]])
+    distances, todo, reach = np.empty(len(mine)), np.arange(len(mine)), first_reach
+    while todo.size:
+        rect = grid.grown(tile, reach)
+        records = heights.records(rect)
+        xyz = np.column_stack([records["x"], records["y"], records["z"]])
+        nearest = kd_tree(xyz).query(query[todo], k=2)[0][:, 1]
+        x0, y0, x1, y1 = grid.box
+        whole = rect[0] <= x0 and rect[1] <= y0 and rect[2] >= x1 and rect[3] >= y1
+        done = (nearest <= reach) | whole
+        distances[todo[done]] = nearest[done]
+        todo, reach = todo[~done], 2 * reach
+    distances.astype("<f8").tofile(path)
+    return len(mine)
+
+
+def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
+    """How many usable points (duplicates included) at tile's own positions are stacked
+    (stacked_positions on every position within the spacing of tile's cell)."""
+    from c1mesh.stages.height_field import kd_tree, stacked_positions
+    from c1mesh.survey.tiled_halo import halo_rows
+
+    rect = grid.grown(tile, spacing * (1 + 1e-9))
+    records = spill.heights.records(rect)
+    if not len(records):
+        return 0
+    shared = spill.groups.records(rect)
+    size, z_range = np.ones(len(records), np.int64), np.zeros(len(records))
+    rows = halo_rows(records["index"], shared["index"])
+    size[rows[rows >= 0]], z_range[rows[rows >= 0]] = shared["size"][rows >= 0], shared["z_range"][rows >= 0]
+    xy = np.column_stack([records["x"], records["y"]])
+    gradients = np.column_stack([records["gx"], records["gy"]])
+    bad, _ = stacked_positions(xy, records["z"], gradients, z_range, spacing, kd_tree(xy))
+    own = grid.tile_of(xy) == tile
+    return int(size[bad & own].sum())

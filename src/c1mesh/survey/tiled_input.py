@@ -69,6 +69,7 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     import laspy
 
     from c1mesh.formats.copc import region_chunks
+    from c1mesh.formats.las import no_class_error
 
     paths = survey_paths(source)
 
@@ -80,9 +81,12 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     def chunks():
         if file_counts is not None:
             file_counts.clear()
+        found, total = set(), 0
         for path in paths:
             kept = 0
             for part in region_chunks(path, bounds, chunk):
+                if classes:
+                    found.update(np.unique(np.asarray(part.classification)).tolist())
                 keep = np.isin(np.asarray(part.classification), np.asarray(classes)) if classes else None
                 xyz = _kept_columns(part, ("x", "y", "z"), keep, np.float64)
                 if rgb_everywhere:
@@ -92,6 +96,9 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
                 yield xyz, None
             if file_counts is not None:
                 file_counts.append(kept)
+            total += kept
+        if classes and found and not total:          # as the in-memory reader says it
+            raise no_class_error(list(classes), found, bounds is not None)
     return chunks
 
 

@@ -62,18 +62,22 @@ def load_survey(sources: Sequence[str], options) -> Survey:
     """
     from c1mesh.formats import read_cloud
 
-    clouds = []
+    from c1mesh.formats.las import no_class_error
+
+    clouds, found = [], set()
     for source in sources:
         cloud = read_cloud(source, options.input_format, bounds=getattr(options, "bounds", None))
         if options.classes:
             if cloud.classification is None:
                 raise InputError(f"{source}: --classes needs a classification field (LAS/LAZ)")
+            found.update(np.unique(cloud.classification).tolist())
             cloud = cloud.subset(np.isin(cloud.classification, np.asarray(options.classes)))
         clouds.append(cloud)
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
+    if counts.sum() == 0 and found:                  # the words of the one-file reader
+        raise no_class_error(list(options.classes), found, getattr(options, "bounds", None) is not None)
     if counts.sum() == 0:
-        raise InputError("the inputs have no points" + (f" of class {list(options.classes)}"
-                                                        if options.classes else "")
+        raise InputError(("the input has no points" if len(sources) == 1 else "the inputs have no points")
                          + (" inside --bounds" if getattr(options, "bounds", None) else ""))
     if options.normals == "file" and any(c.normals is None for c in clouds):
         missing = next(s for s, c in zip(sources, clouds) if c.normals is None)
