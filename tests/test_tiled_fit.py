@@ -535,7 +535,7 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     assert here.exit_code == 1
     assert here.output.startswith(f"c1mesh: error: {source}: tile 2 (cell ") and here.output.endswith(": no good\n")
     assert here.output.count("\n") == 1
-    monkeypatch.setattr(tiled_refine, "_refine_tile", tiled_heights._tile_heights)   # fails on every worker
+    monkeypatch.setattr(tiled_refine, "_refine_tile", tiled_heights._positions)   # fails on every worker
     pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "2"])
     assert pool.exit_code == 1 and pool.output.startswith(f"c1mesh: error: {source}: tile ")
     assert "_RefineJob" in pool.output and pool.output.count("\n") == 1

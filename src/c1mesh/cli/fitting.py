@@ -73,11 +73,10 @@ def fit_survey(inputs, output, output_dir, suffix, input_format, options, report
 
 
 def _survey_naming(inputs, text: str) -> str:
-    """A survey's error led by the input it is about, as for one input (shell.naming):
-    the one input, or, unless the text names one of them already, the first and a count."""
-    if len(inputs) == 1 or any(str(src) in text for src in inputs):
-        return naming(inputs[0], text) if len(inputs) == 1 else text
-    return f"{inputs[0]} and {len(inputs) - 1} more: {text}"
+    """A survey's error led by its input when it has one, as a single input's fit says it
+    (shell.naming); a survey of several inputs leaves the naming to the error, which
+    names the file it is about."""
+    return naming(inputs[0], text) if len(inputs) == 1 else text
 
 
 _SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one piece in this process "
