@@ -50,6 +50,76 @@ def test_stdin_to_stdout(tmp_path):
     assert len(read_cloud(tmp_path / "piped.ply")) > 2000
 
 
+def run_on_terminal(*args, timeout: float = 120) -> tuple[int, bytes, bytes]:
+    """Run c1mesh with its stdout on a real pseudo-terminal and stderr on a pipe: (exit code,
+    what reached the terminal with its \\r\\n turned back into \\n, stderr). The terminal is
+    read while the process runs, so a large output cannot block it."""
+    import os
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    try:
+        proc = subprocess.Popen(C1MESH + [str(a) for a in args], stdin=subprocess.DEVNULL, stdout=slave,
+                                stderr=subprocess.PIPE)
+        os.close(slave)
+        screen = bytearray()
+        while select.select([master], [], [], timeout)[0]:
+            try:
+                chunk = os.read(master, 1 << 16)
+            except OSError:                  # EIO: the process closed its end of the terminal
+                break
+            if not chunk:
+                break
+            screen += chunk
+        stderr = proc.stderr.read()
+        code = proc.wait(timeout)
+    finally:
+        os.close(master)
+    return code, bytes(screen).replace(b"\r\n", b"\n"), stderr
+
+
+def test_binary_output_to_a_terminal_is_a_usage_error_before_reading(tmp_path):
+    """Issue 35: `fit X -o -` with stdout a terminal would print binary PLY on the screen.
+    Refused like gzip does: exit 2, one line, nothing on the terminal; the input does not
+    exist, so the refusal came before it was looked at. Other problems share the line."""
+    code, screen, stderr = run_on_terminal("fit", tmp_path / "missing.ply", "-o", "-")
+    assert code == 2 and screen == b""
+    assert_one_line_error(stderr)
+    assert "refusing to write binary output to a terminal; redirect it or use -o FILE" in stderr.decode()
+    assert "missing.ply" not in stderr.decode()
+    code, screen, stderr = run_on_terminal("fit", tmp_path / "missing.ply", "-o", "-", "--classes", "2")
+    assert code == 2 and screen == b""
+    assert_one_line_error(stderr)
+    assert "refusing to write binary output" in stderr.decode() and "--classes needs LAS/LAZ" in stderr.decode()
+
+
+def test_text_output_to_a_terminal_is_written(tmp_path):
+    """ASCII PLY is text: `-o - --ascii` on a terminal shows the same bytes as the file."""
+    code, screen, stderr = run_on_terminal("fit", SAMPLES / "hill.ply", "-o", "-", "--ascii", "--level", "1")
+    assert code == 0, stderr
+    proc = run("fit", SAMPLES / "hill.ply", "-o", tmp_path / "hill.ply", "--ascii", "--level", "1")
+    assert proc.returncode == 0, proc.stderr
+    assert screen.startswith(b"ply\nformat ascii 1.0\n") and screen == (tmp_path / "hill.ply").read_bytes()
+
+
+@pytest.mark.parametrize("fmt, ascii_ply", [("ply", False), ("ply", True), ("obj", False), ("stl", False),
+                                            ("off", False), ("glb", False)])
+def test_the_registry_knows_which_outputs_are_binary(tmp_path, fmt, ascii_ply):
+    """c1mesh.core.outputs.is_binary_output, behind the terminal refusal, against what each
+    writer really writes: text is printable ASCII lines, anything else is binary."""
+    from c1mesh.core.cloud import SurfaceMesh
+    from c1mesh.core.outputs import is_binary_output
+    from c1mesh.formats import write_mesh
+
+    mesh = SurfaceMesh(vertices=np.array([[0.0, 0, 0], [1, 0, 0.5], [0, 1, 0.25]]), faces=np.array([[0, 1, 2]]),
+                       vertex_normals=np.array([[0.0, 0, 1]] * 3))
+    write_mesh(mesh, tmp_path / f"m.{fmt}", ascii=ascii_ply)
+    data = (tmp_path / f"m.{fmt}").read_bytes()
+    text = all(32 <= byte < 127 or byte in b"\n\r\t" for byte in data)
+    assert is_binary_output(fmt, ascii_ply) == (not text)
+
+
 def test_report_to_stderr_and_verbose(tmp_path):
     result = CliRunner().invoke(main, ["fit", str(SAMPLES / "hill.ply"), "-o", str(tmp_path / "o.ply"),
                                        "--level", "1", "--report", "-"])

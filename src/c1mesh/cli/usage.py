@@ -1,18 +1,21 @@
 """Usage errors (exit 2): everything wrong with a command line that the command line
-alone shows, all named in one line before any input is read (cli/README.md, Exit codes).
-The file system (missing directories, outputs equal to inputs) is checked later, by
-c1mesh.cli.outputs_check (exit 1).
+alone shows, all named in one line before any input is read (cli/README.md, Exit codes);
+also a binary `-o -` while standard output is a terminal. The file system (missing
+directories, outputs equal to inputs) is checked later, by c1mesh.cli.outputs_check (exit 1).
 """
 from __future__ import annotations
 
 import math
+import os
+import sys
 from pathlib import Path
 
 import click
 
 from c1mesh.cli.options import (check_axis, extension, output_paths, parse_classes, parse_intrinsics,
                                 parse_max_edge, parse_smooth)
-from c1mesh.core.outputs import DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO
+from c1mesh.core.outputs import (DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO,
+                                 is_binary_output)
 
 
 def input_format_problems(input_format: str | None) -> list[str]:
@@ -84,7 +87,24 @@ def _io_problems(params: dict, outputs: list[str]) -> list[str]:
     if clash:
         problems.append(f"several inputs would write the same output {clash[0]}; rename them or run them "
                         "separately")
-    return problems
+    return problems + _terminal_problems(params)
+
+
+def _terminal_problems(params: dict) -> list[str]:
+    """A binary mesh for stdout (-o -) while stdout is a terminal: refused, as gzip and zstd
+    do, since it would only garble the screen; a text format (--ascii PLY) may go there."""
+    binary = is_binary_output(extension(STDIO), params["ascii_ply"])
+    if params["output"] != STDIO or not binary or not _stdout_is_terminal():
+        return []
+    return ["refusing to write binary output to a terminal; redirect it or use -o FILE"]
+
+
+def _stdout_is_terminal() -> bool:
+    """Whether standard output is a terminal (False when it is closed: checked later, exit 1)."""
+    try:
+        return os.isatty(sys.stdout.fileno())
+    except (AttributeError, OSError, ValueError):
+        return False
 
 
 def _format_problems(params: dict, outputs: list[str]) -> list[str]:

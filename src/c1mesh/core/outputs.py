@@ -53,6 +53,18 @@ RASTER_FORMATS = ("tif", "tiff")
 OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
 """Every output extension of `c1mesh fit`: the one list behind its help, errors and docs."""
 
+TEXT_FORMATS = ("obj", "off")
+"""Output formats written as text whatever the options (c1mesh.formats' writers); PLY is
+text with --ascii (ASCII_CHOICE), every other output binary."""
+ASCII_CHOICE = ("ply",)
+"""Output formats that --ascii turns from binary into text."""
+
+
+def is_binary_output(fmt: str, ascii: bool = False) -> bool:
+    """Whether output format `fmt` ('ply', 'tif', ...) is written as bytes a terminal cannot
+    show, so that `fit -o -` refuses to send it to one (cli/README.md, Output paths)."""
+    return fmt not in TEXT_FORMATS and not (ascii and fmt in ASCII_CHOICE)
+
 INPUT_FORMATS = ("ply", "obj", "xyz", "txt", "csv", "pcd", "las", "laz", "copc", "png", "tif", "tiff")
 """Input format names (--input-format, and file extensions; COPC files end in .laz): the
 readers registered in c1mesh.formats, which checks that it reads exactly these."""
