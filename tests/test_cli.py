@@ -424,6 +424,44 @@ def test_help_and_errors_list_exactly_the_registry_formats():
     assert supported(usage_error(["fit", "a.e57", "--input-format", "e57", "-o", "b.ply"])) == INPUT_FORMATS
 
 
+@pytest.mark.parametrize("args, culprit", [
+    (["-o", "OUT"], "No output format (no extension) for 'OUT'"),
+    (["-o", "OUT.las"], "Unsupported output format 'las' for 'OUT.las'"),
+    (["-o", "FILE"], "No output format (no extension) for 'FILE'"),
+    (["--seamless", "-o", "OUT"], "No output format (no extension) for 'OUT'"),
+    (["-O", "DIR", "--suffix", ".las"], "Unsupported output format 'las' for --suffix '.las'"),
+    (["-O", "DIR", "--suffix", "_mesh"], "No output format (no extension) for --suffix '_mesh'"),
+], ids=["-o x", "-o x.las", "-o existing file", "--seamless -o x", "--suffix .las", "--suffix _mesh"])
+def test_an_unknown_or_missing_output_extension_is_a_usage_error(tmp_path, args, culprit):
+    """Issue 35: `-o x` exited 1 with a list of mesh formats only, `-o x.las` 2. Both are
+    usage errors: exit 2, one line, before the inputs (missing here) are looked at, nothing
+    created (not even -O's folder), listing what c1mesh writes: the mesh writers of
+    c1mesh.formats and the GeoTIFF suffixes of c1mesh.geo.raster. With -O the line names
+    the --suffix once, not each input's path."""
+    import re
+
+    from c1mesh import formats
+    from c1mesh.geo import raster
+
+    (tmp_path / "file").write_bytes(b"an existing file without an extension")
+    names = {"OUT": str(tmp_path / "out"), "OUT.las": str(tmp_path / "out.las"), "FILE": str(tmp_path / "file"),
+             "DIR": str(tmp_path / "dir")}
+    argv = ["fit", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), *(names.get(a, a) for a in args)]
+    if "-o" in args and "--seamless" not in args:
+        del argv[2]                                   # -o takes one input
+    proc = run(*argv)
+    assert proc.returncode == 2, proc.stderr
+    assert_one_line_error(proc.stderr)
+    line = proc.stderr.decode()
+    for name, path in names.items():
+        culprit = culprit.replace(f"'{name}'", f"'{path}'")
+    assert line.count("output format") == 1 and culprit in line, line
+    listed = re.search(r"supported: ([a-z, ]+)", line).group(1).split(", ")
+    assert listed == [*formats.SUPPORTED_OUTPUT, *(suffix.lstrip(".") for suffix in raster.RASTER_SUFFIXES)]
+    assert "a.ply" not in line and sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    assert (tmp_path / "file").read_bytes() == b"an existing file without an extension"
+
+
 def test_readmes_list_exactly_the_registry_formats():
     """README.md's 'in'/'out' lists and cli/README.md's --input-format row and output
     paragraph name the registry's formats, no more, no fewer."""

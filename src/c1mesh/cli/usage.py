@@ -15,7 +15,7 @@ import click
 from c1mesh.cli.options import (check_axis, extension, output_paths, parse_classes, parse_intrinsics,
                                 parse_max_edge, parse_smooth)
 from c1mesh.core.outputs import (DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO,
-                                 is_binary_output)
+                                 is_binary_output, is_file_output)
 
 
 def input_format_problems(input_format: str | None) -> list[str]:
@@ -109,8 +109,8 @@ def _stdout_is_terminal() -> bool:
 
 def _format_problems(params: dict, outputs: list[str]) -> list[str]:
     """Output extensions c1mesh does not write, and options the formats cannot take."""
-    problems = [f"Unsupported output format '{extension(dst)}' for '{dst}'; supported: {', '.join(OUTPUT_FORMATS)}"
-                for dst in outputs if extension(dst) and extension(dst) not in OUTPUT_FORMATS]
+    where = f"--suffix '{params['suffix']}'" if params["output_dir"] else None   # -O: one line, not one per input
+    problems = list(dict.fromkeys(problem for dst in outputs if (problem := _extension_problem(dst, where))))
     if params["ascii_ply"]:
         others = sorted({extension(dst) for dst in outputs} - {"ply", ""})
         if others:
@@ -123,6 +123,19 @@ def _format_problems(params: dict, outputs: list[str]) -> list[str]:
             problems.append("--classes needs LAS/LAZ input (a classification field), not "
                             f".{others[0] or '(no extension)'}")
     return problems
+
+
+def _extension_problem(dst: str, where: str | None = None) -> str | None:
+    """Why the output `dst` names no format c1mesh writes, or None: an unknown extension, or
+    none on a file (a device, FIFO or /dev/stdout without one gets binary PLY; a directory is
+    refused later, by name). `where` names the culprit instead of the path (-O's --suffix).
+    The list is the registry's, meshes and GeoTIFF DEMs (c1mesh.core.outputs.OUTPUT_FORMATS)."""
+    ext = extension(dst)
+    if ext in OUTPUT_FORMATS or (not ext and not is_file_output(dst)):
+        return None
+    what = f"Unsupported output format '{ext}'" if ext else "No output format (no extension)"
+    where = where or f"'{dst}'"
+    return f"{what} for {where}; supported: {', '.join(OUTPUT_FORMATS)}"
 
 
 def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> list[str]:
