@@ -6,8 +6,10 @@ warning on its own samples"), but for the advice to fit noisy heights with --smo
 The commands are read from README.md's indented code blocks, so a new one is tested as
 soon as it is written. They run one after another in a temporary copy of `data_samples/`
 (outputs land there, never in the checkout), with the installed `c1mesh` (the venv of
-`./setup.sh`) first on PATH and this checkout's `src/` on PYTHONPATH. Commands that need
-the user's own data or cluster are listed in EXEMPT, each with the reason.
+`./setup.sh`) first on PATH and this checkout's `src/` on PYTHONPATH. Every file a command
+writes there must be one .gitignore ignores in the checkout (issue 35: `git status` stays
+clean after the README). Commands that need the user's own data or cluster are listed in
+EXEMPT, each with the reason.
 """
 from __future__ import annotations
 
@@ -123,11 +125,32 @@ def _complaints(command: str, stderr: str) -> list[str]:
     return found
 
 
+def _files(folder: Path) -> set[str]:
+    """The files under `folder`, as paths relative to it."""
+    return {str(path.relative_to(folder)) for path in folder.rglob("*") if path.is_file()}
+
+
+def _not_ignored(paths: set[str]) -> list[str]:
+    """Those of `paths` (relative to the repository's root) that `git status` would show:
+    not ignored by .gitignore, whether or not such a file exists there now."""
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.fail("the test needs the git checkout")
+    done = subprocess.run(["git", "check-ignore", "--no-index", "--stdin"], cwd=ROOT, input="\n".join(sorted(paths)),
+                          capture_output=True, text=True)
+    assert done.returncode in (0, 1), done.stderr             # 1: none of them is ignored
+    return sorted(paths - set(done.stdout.splitlines()))
+
+
 def _run_as_written(command: str, folder: Path) -> None:
+    """Run `command` in `folder`: exit 0, no complaint on stderr, and every file it writes
+    ignored by git, so `git status` stays clean after the README is followed in a checkout."""
+    before = _files(folder)
     proc = subprocess.run(["bash", "-o", "pipefail", "-c", command], cwd=folder, env=_environment(),
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, f"{command}\n{proc.stderr}"
     assert _complaints(command, proc.stderr) == [], f"{command}\n{proc.stderr}"
+    written = _files(folder) - before
+    assert _not_ignored(written) == [], f"{command}\nwrites files .gitignore does not list"
 
 
 @pytest.mark.slow
