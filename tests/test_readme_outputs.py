@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 # an output option or a shell redirection, then a relative path (not -, not /abs, not a PLACEHOLDER)
-OUTPUT = re.compile(r"(?:-o|-O|--slope|--aspect|--hillshade|--preview|>)\s+([a-z][\w./-]*)")
+OUTPUT = re.compile(r"(?:-o|-O|--slope|--aspect|--hillshade|--preview|--report|>)\s+([a-z][\w./-]*)")
 
 
 def readme_outputs(text: str) -> set[str]:
@@ -30,7 +30,8 @@ def readme_outputs(text: str) -> set[str]:
 
 def test_readme_output_names_are_found():
     names = readme_outputs((ROOT / "README.md").read_text())
-    assert {"surface.ply", "ground.glb", "piped.ply", "meshes/", "dem.tif", "preview.png"} <= names
+    assert {"surface.ply", "ground.glb", "piped.ply", "meshes/", "dem.tif", "preview.png", "smooth.json"} <= names
+    assert {"ground.json", "tiles.json"} <= readme_outputs((ROOT / "cli" / "README.md").read_text())
 
 
 @pytest.mark.parametrize("readme", ["README.md", "cli/README.md"])

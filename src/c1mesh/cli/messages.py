@@ -1,5 +1,6 @@
 """What `fit` prints on stderr about a finished fit: the -v summary line, `c1mesh: note:`
-lines for options that did nothing, and the report's warnings (cli/README.md).
+lines for options that did nothing and the advice to smooth, and the report's warnings
+(cli/README.md).
 """
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ def note(report: dict, quiet: bool) -> None:
     """`c1mesh: note:` lines on stderr (not with -q) for options given that did nothing: a
     --scheduler not used (the user asked for the cluster and should know the work stayed
     here), and a --max-slope given for heights whose slopes are no angles (the report's
-    max_slope_not_applied; its default then goes unmentioned)."""
+    max_slope_not_applied; its default then goes unmentioned); and the report's advice to
+    fit noisy heights with --smooth auto, unless --smooth was given (the user chose)."""
     if quiet:
         return
     used = report.get("scheduler")
@@ -38,6 +40,9 @@ def note(report: dict, quiet: bool) -> None:
     why = report.get("max_slope_not_applied")
     if why and _option_given("max_slope"):
         click.echo(f"c1mesh: note: {_input_name(report)}: --max-slope was not applied: {why}", err=True)
+    advice = report.get("suggestion")
+    if advice and not _option_given("smooth"):
+        click.echo(f"c1mesh: note: {_input_name(report)}: {advice}", err=True)
 
 
 def _option_given(name: str) -> bool:

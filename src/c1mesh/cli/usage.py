@@ -1,18 +1,21 @@
 """Usage errors (exit 2): everything wrong with a command line that the command line
-alone shows, all named in one line before any input is read (cli/README.md, Exit codes).
-The file system (missing directories, outputs equal to inputs) is checked later, by
-c1mesh.cli.outputs_check (exit 1).
+alone shows, all named in one line before any input is read (cli/README.md, Exit codes);
+also a binary `-o -` while standard output is a terminal. The file system (missing
+directories, outputs equal to inputs) is checked later, by c1mesh.cli.outputs_check (exit 1).
 """
 from __future__ import annotations
 
 import math
+import os
+import sys
 from pathlib import Path
 
 import click
 
 from c1mesh.cli.options import (check_axis, extension, output_paths, parse_classes, parse_intrinsics,
                                 parse_max_edge, parse_smooth)
-from c1mesh.core.outputs import DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO
+from c1mesh.core.outputs import (DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO,
+                                 is_binary_output, is_file_output)
 
 
 def input_format_problems(input_format: str | None) -> list[str]:
@@ -84,13 +87,30 @@ def _io_problems(params: dict, outputs: list[str]) -> list[str]:
     if clash:
         problems.append(f"several inputs would write the same output {clash[0]}; rename them or run them "
                         "separately")
-    return problems
+    return problems + _terminal_problems(params)
+
+
+def _terminal_problems(params: dict) -> list[str]:
+    """A binary mesh for stdout (-o -) while stdout is a terminal: refused, as gzip and zstd
+    do, since it would only garble the screen; a text format (--ascii PLY) may go there."""
+    binary = is_binary_output(extension(STDIO), params["ascii_ply"])
+    if params["output"] != STDIO or not binary or not _stdout_is_terminal():
+        return []
+    return ["refusing to write binary output to a terminal; redirect it or use -o FILE"]
+
+
+def _stdout_is_terminal() -> bool:
+    """Whether standard output is a terminal (False when it is closed: checked later, exit 1)."""
+    try:
+        return os.isatty(sys.stdout.fileno())
+    except (AttributeError, OSError, ValueError):
+        return False
 
 
 def _format_problems(params: dict, outputs: list[str]) -> list[str]:
     """Output extensions c1mesh does not write, and options the formats cannot take."""
-    problems = [f"Unsupported output format '{extension(dst)}' for '{dst}'; supported: {', '.join(OUTPUT_FORMATS)}"
-                for dst in outputs if extension(dst) and extension(dst) not in OUTPUT_FORMATS]
+    where = f"--suffix '{params['suffix']}'" if params["output_dir"] else None   # -O: one line, not one per input
+    problems = list(dict.fromkeys(problem for dst in outputs if (problem := _extension_problem(dst, where))))
     if params["ascii_ply"]:
         others = sorted({extension(dst) for dst in outputs} - {"ply", ""})
         if others:
@@ -103,6 +123,19 @@ def _format_problems(params: dict, outputs: list[str]) -> list[str]:
             problems.append("--classes needs LAS/LAZ input (a classification field), not "
                             f".{others[0] or '(no extension)'}")
     return problems
+
+
+def _extension_problem(dst: str, where: str | None = None) -> str | None:
+    """Why the output `dst` names no format c1mesh writes, or None: an unknown extension, or
+    none on a file (a device, FIFO or /dev/stdout without one gets binary PLY; a directory is
+    refused later, by name). `where` names the culprit instead of the path (-O's --suffix).
+    The list is the registry's, meshes and GeoTIFF DEMs (c1mesh.core.outputs.OUTPUT_FORMATS)."""
+    ext = extension(dst)
+    if ext in OUTPUT_FORMATS or (not ext and not is_file_output(dst)):
+        return None
+    what = f"Unsupported output format '{ext}'" if ext else "No output format (no extension)"
+    where = where or f"'{dst}'"
+    return f"{what} for {where}; supported: {', '.join(OUTPUT_FORMATS)}"
 
 
 def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> list[str]:

@@ -53,6 +53,18 @@ RASTER_FORMATS = ("tif", "tiff")
 OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
 """Every output extension of `c1mesh fit`: the one list behind its help, errors and docs."""
 
+TEXT_FORMATS = ("obj", "off")
+"""Output formats written as text whatever the options (c1mesh.formats' writers); PLY is
+text with --ascii (ASCII_CHOICE), every other output binary."""
+ASCII_CHOICE = ("ply",)
+"""Output formats that --ascii turns from binary into text."""
+
+
+def is_binary_output(fmt: str, ascii: bool = False) -> bool:
+    """Whether output format `fmt` ('ply', 'tif', ...) is written as bytes a terminal cannot
+    show, so that `fit -o -` refuses to send it to one (cli/README.md, Output paths)."""
+    return fmt not in TEXT_FORMATS and not (ascii and fmt in ASCII_CHOICE)
+
 INPUT_FORMATS = ("ply", "obj", "xyz", "txt", "csv", "pcd", "las", "laz", "copc", "png", "tif", "tiff")
 """Input format names (--input-format, and file extensions; COPC files end in .laz): the
 readers registered in c1mesh.formats, which checks that it reads exactly these."""
@@ -197,7 +209,7 @@ def _plan_one(label: str, path: str) -> Target:
     if stat.S_ISDIR(mode):
         raise OutputError(f"The {label} path '{path}' is a directory; give a file name.")
     identity = (info.st_dev, info.st_ino) if stat.S_ISREG(mode) else None
-    if stat.S_ISCHR(mode) or stat.S_ISFIFO(mode) or (stat.S_ISREG(mode) and _through_descriptor(path)):
+    if _straight(path, mode):
         return Target(label, path, "straight", real=path, identity=identity)
     if not stat.S_ISREG(mode):
         kind = "block device" if stat.S_ISBLK(mode) else "socket" if stat.S_ISSOCK(mode) else "special file"
@@ -207,6 +219,26 @@ def _plan_one(label: str, path: str) -> Target:
     _probe_directory(label, path, os.path.dirname(real))
     return Target(label, path, "atomic", real=real, identity=identity, mode=stat.S_IMODE(mode),
                   owner=(info.st_uid, info.st_gid))
+
+
+def _straight(path: str, mode: int) -> bool:
+    """Whether an existing `path` of st_mode `mode` is written in place: a character device,
+    a FIFO, or a file reached through a file descriptor."""
+    return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode) or (stat.S_ISREG(mode) and _through_descriptor(path))
+
+
+def is_file_output(path: str) -> bool:
+    """Whether output `path` is or will be a regular file of its own (a new path, or a file
+    not reached through a descriptor): the outputs whose format must come from their
+    extension. A device, FIFO or /dev/stdout without one gets binary PLY (mesh_format);
+    a directory, socket or block device is refused by plan_outputs."""
+    try:
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return True
+    except (OSError, ValueError):
+        return False
+    return stat.S_ISREG(mode) and not _straight(path, mode)
 
 
 def _plan_new(label: str, path: str) -> Target:
