@@ -10,17 +10,27 @@ the code.
 from __future__ import annotations
 
 import io
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from scipy.spatial import Delaunay
 
 from c1mesh import RSDInterpolator
-from c1mesh.core.cloud import MeshStream
+from c1mesh.cli import main
+from c1mesh.core.cloud import MeshStream, PointCloud
 from c1mesh.core.errors import InputError
 from c1mesh.engine.refine import fewest_refined_vertices, refined_counts
 from c1mesh.formats import MeshSize, check_mesh_size, write_mesh
+from c1mesh.pipeline.driver import FitOptions, fit
 
+ROOT = Path(__file__).resolve().parents[1]
 INT32 = 2**31 - 1
 UINT32 = 2**32 - 1
 
@@ -131,3 +141,121 @@ def test_writers_refuse_before_writing_a_byte(fmt, size):
     with pytest.raises(InputError):
         write_mesh(_unwritable(size), target, fmt)
     assert target.getvalue() == b""
+
+
+def _plane(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xy = rng.random((n, 2)) * 1000.0
+    return np.column_stack([xy, 0.01 * xy[:, 0] + 0.02 * xy[:, 1]])
+
+
+def test_fit_refuses_before_interpolating(tmp_path):
+    """The in-memory fit checks once the trimmed triangulation is known: the stages up to
+    triangulate finish, interpolate and refine never do, and no file is written. A GLB of
+    25k points at level 64 needs ~5 GiB, beyond its uint32 length."""
+    stages = []
+    with pytest.raises(InputError, match=r"^GLB stores its length in a uint32"):
+        fit(PointCloud(points=_plane(25_000)), tmp_path / "out.glb", FitOptions(axis="z", level=64),
+            on_stage=stages.append)
+    assert stages == ["read", "normals", "frame", "gradients", "triangulate"]
+    assert os.listdir(tmp_path) == []
+
+
+def _write_plane_ply(path: Path, n: int) -> None:
+    """A binary PLY of n points of a tilted plane with their exact unit normals."""
+    points = _plane(n, seed=1)
+    normal = np.array([-0.01, -0.02, 1.0]) / np.linalg.norm([-0.01, -0.02, 1.0])
+    rows = np.column_stack([points, np.tile(normal, (n, 1))]).astype("<f8")
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\n"
+              + "".join(f"property double {p}\n" for p in ("x", "y", "z", "nx", "ny", "nz")) + "end_header\n")
+    path.write_bytes(header.encode("ascii") + rows.tobytes())
+
+
+def test_cli_refuses_an_off_too_large_for_32_bit_counts_at_once(tmp_path):
+    """`c1mesh fit big.ply -o out.off --level 64` of 270k points: about 540k triangles, so
+    2.2 billion faces, past OFF's 2³¹ − 1. Exit 1 within seconds (the fit itself would run
+    for many minutes), one line naming the input, the format, the count and the limit, and
+    nothing left in the output folder, hidden files included."""
+    (tmp_path / "in").mkdir()
+    (tmp_path / "out").mkdir()
+    source = tmp_path / "in" / "big.ply"
+    _write_plane_ply(source, 270_000)
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    start = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "c1mesh.cli", "fit", str(source), "-o",
+                           str(tmp_path / "out" / "out.off"), "--level", "64"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    seconds = time.monotonic() - start
+    assert done.returncode == 1, done.stderr
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"c1mesh: error: {source}: OFF "), done.stderr
+    count = int(re.search(r"([\d,]+) faces are more than 2,147,483,647", lines[0]).group(1).replace(",", ""))
+    assert count % 64**2 == 0 and INT32 < count < 270_000 * 2 * 64**2   # L² faces per triangle, T < 2n
+    assert os.listdir(tmp_path / "out") == []
+    assert seconds < 30, f"refused after {seconds:.1f} s"
+
+
+laspy = pytest.importorskip("laspy")
+
+
+def _terrain_las(path: Path, n: int, seed: int = 0) -> None:
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [500000, 4000000, 0]
+    rng = np.random.default_rng(seed)
+    side = np.sqrt(n / 4.0)
+    x, y = rng.uniform(0, side, n), rng.uniform(0, side, n)
+    record = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    record.x, record.y = x + 500000, y + 4000000
+    record.z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23)
+    record.classification = np.full(n, 2, np.uint8)
+    with laspy.open(str(path), mode="w", header=header) as writer:
+        writer.write_points(record)
+
+
+def _count_refined_tiles(monkeypatch) -> list:
+    import c1mesh.survey.tiled_refine as tiled_refine
+
+    calls, real = [], tiled_refine._refine_tile
+
+    def counted(job, t, part):
+        calls.append(t)
+        return real(job, t, part)
+    monkeypatch.setattr(tiled_refine, "_refine_tile", counted)
+    return calls
+
+
+def test_tiled_fit_refuses_before_refining_a_tile(tmp_path, monkeypatch):
+    """The fit beyond --memory (4 tiles) checks once its trimmed triangles are counted:
+    ~48k triangles at level 64 need at least ~4.7 GB as GLB. Exit 1, one line, no tile
+    refined, nothing left beside the input."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24_000)
+    calls = _count_refined_tiles(monkeypatch)
+    result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / "out.glb"), "--level", "64",
+                                       "--memory", "1M", "-j", "1"])
+    assert result.exit_code == 1, result.output
+    assert result.output.startswith(f"c1mesh: error: {source}: GLB stores its length in a uint32")
+    assert result.output.count("\n") == 1 and calls == []
+    assert sorted(os.listdir(tmp_path)) == ["terrain.las"]
+
+
+def test_tiled_fit_stops_at_the_first_tile_past_the_limit(tmp_path, monkeypatch):
+    """Where the early bound cannot tell (here: it is switched off), the joined counts are
+    checked tile by tile: with a limit of 1000 vertices the fit stops after its first tile
+    (each holds ~3000 level-1 vertices), exit 1, nothing left."""
+    import c1mesh.formats as formats
+    import c1mesh.survey.tiled_fit as tiled_fit
+
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 12_000, seed=5)
+    monkeypatch.setattr(tiled_fit, "_check_size", lambda *args: None)
+    monkeypatch.setitem(formats._SIZE_LIMITS, "ply",
+                        lambda size: f"PLY test limit: {size.vertex_count:,} vertices" if size.vertex_count > 1000
+                        else None)
+    calls = _count_refined_tiles(monkeypatch)
+    result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / "out.ply"), "--level", "1",
+                                       "--memory", "1M", "-j", "1", "--report", str(tmp_path / "r.json")])
+    assert result.exit_code == 1, result.output
+    assert result.output.startswith(f"c1mesh: error: {source}: PLY test limit: ")
+    assert len(calls) == 1
+    assert sorted(os.listdir(tmp_path)) == ["terrain.las"]
