@@ -180,7 +180,53 @@ def test_auto_smoothing_beats_interpolation_and_raw_data():
     assert auto_rms < 0.8 * sigma and auto_rms < 0.8 * exact_rms
     assert len(auto.cv_curve) > 8 and min(r for _, r in auto.cv_curve) == pytest.approx(
         dict(auto.cv_curve)[auto.strength])
+    assert interior_or_at_limit(auto) == "interior"       # white noise on a smooth surface: a finite best
     assert 3 < auto.edf < pts.shape[0]
+
+
+def interior_or_at_limit(fit) -> str:
+    """'interior' when fit.strength is an interior minimum of its CV curve (a lower score
+    than its neighbours on both sides among the s tried), 'low limit' / 'high limit' when
+    it is the smallest / largest s tried and that s is the documented limit, 1e-6 / 1e7
+    (docs/smoothing.md) and the fit says the limit was reached; AssertionError otherwise."""
+    curve = sorted(fit.cv_curve)
+    s = [pair[0] for pair in curve]
+    i = s.index(fit.strength)
+    if 0 < i < len(s) - 1:
+        assert curve[i - 1][1] > curve[i][1] < curve[i + 1][1], curve
+        assert fit.search_limit_reached is False
+        return "interior"
+    assert fit.search_limit_reached is True, curve
+    assert fit.strength == pytest.approx(1e-6 if i == 0 else 1e7, rel=1e-12), curve
+    return "low limit" if i == 0 else "high limit"
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_exact_data_search_below_the_grid_until_the_curve_turns(seed):
+    """Data sampled exactly from an analytic surface want as little smoothing as the
+    cross-validation can tell: the best s lies below the grid's lowest, 1e-3, so the
+    search must go on down until its curve turns (or say that it reached its limit)."""
+    pts, tri, h = grid_mesh(30, seed=seed)
+    fit = smooth_fit(pts, tri, surface(pts), strength="auto", spacing_h=h)
+    assert fit.strength < 1e-3 and min(s for s, _ in fit.cv_curve) < 1e-3
+    interior_or_at_limit(fit)
+    assert min(s for s, _ in fit.cv_curve) >= 1e-6 * (1 - 1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pure_noise_on_a_plane_searches_up_to_its_limit_and_says_so(seed):
+    """Heavy noise (σ 10 times the plane's rise over the square) on a plane: the truth is
+    the plane, which only s → ∞ gives, beyond the grid's highest s, 1e4. The CV curve
+    falls all the way, so the search goes on up to its limit, 1e7, and reports it; the
+    fit is then the plane, within the error of the least-squares plane of the points."""
+    pts, tri, h = grid_mesh(40, seed=seed)
+    rng = np.random.default_rng(seed + 10)
+    plane = 2.0 + 0.3 * pts[:, 0] - 0.5 * pts[:, 1]
+    fit = smooth_fit(pts, tri, plane + rng.normal(0, 5.0, pts.shape[0]), strength="auto", spacing_h=h)
+    assert interior_or_at_limit(fit) == "high limit"
+    assert max(s for s, _ in fit.cv_curve) == pytest.approx(1e7, rel=1e-12)
+    # the least-squares plane of n points with noise σ is off by about σ sqrt(3 / n) at its points
+    assert np.sqrt(np.mean((fit.values - plane) ** 2)) < 3 * 5.0 * np.sqrt(3 / pts.shape[0])
 
 
 def test_auto_smoothing_with_thinned_vertices():
@@ -291,6 +337,7 @@ def test_as_dict_is_json_ready():
     assert isinstance(fit, SmoothFit)
     d = json.loads(json.dumps(fit.as_dict()))
     assert d["strength"] == 1.0 and d["cv_curve"] == [] and "values" not in d
+    assert d["search_limit_reached"] is None                 # no search: s was given
 
 
 def test_data_rows_are_the_interpolator_with_limiter_directions():

@@ -12,6 +12,7 @@ import io
 import json
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,19 +27,21 @@ from c1mesh.pipeline.driver import FitOptions
 from c1mesh.stages.smoothing import HEIGHT_GRADIENTS_WEIGHT
 from c1mesh.survey import tiled_smoothing
 from c1mesh.survey.tiled_fit import fit_tiled
+from test_smoothing import interior_or_at_limit
 
 
-def _terrain_las(path, n, seed=0, noise=0.02, plane=False):
+def _terrain_las(path, n, seed=0, noise=0.02, plane=False, plane_noise=0.0):
     """n points over a square of side sqrt(n / 4) (mean spacing 0.5): a smooth terrain with
     Gaussian noise, or with plane=True the plane z = 100 + 0.3 x − 0.2 y without noise (on
-    the file's grid: x, y in mm, z in 0.1 mm, so the plane's heights are stored exactly)."""
+    the file's grid: x, y in mm, z in 0.1 mm, so the plane's heights are stored exactly)
+    or with Gaussian noise of σ plane_noise."""
     header = laspy.LasHeader(point_format=1, version="1.2")
     header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
     rng = np.random.default_rng(seed)
     side = np.sqrt(n / 4.0)
     x, y = np.round(rng.uniform(0, side, n), 3), np.round(rng.uniform(0, side, n), 3)   # the LAS's grid
     if plane:
-        z = 100 + 0.3 * x - 0.2 * y
+        z = 100 + 0.3 * x - 0.2 * y + (rng.normal(0, plane_noise, n) if plane_noise else 0.0)
     else:
         z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23) + rng.normal(0, noise, n)
     record = laspy.ScaleAwarePointRecord.zeros(n, header=header)
@@ -132,6 +135,7 @@ def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path
     assert len(smoothing["cv_curve"]) >= 4 and smoothing["strength"] > 0
     scores = dict((s, r) for s, r in smoothing["cv_curve"])
     assert scores[smoothing["strength"]] == min(scores.values())
+    assert interior_or_at_limit(SimpleNamespace(**smoothing)) == "interior"   # 2 cm noise on a terrain
     assert smoothing["edf"] < 0.8 * report["points"]["kept"]          # it smooths
     assert smoothing["residual_rms"] == pytest.approx(0.02, rel=0.25)   # about the noise it removed
     assert report["overshoot"]["gradients_limited"] == 0
@@ -141,6 +145,21 @@ def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path
     assert pool.exit_code == 0, pool.output
     assert json.loads((tmp_path / "pool.json").read_text())["scheduler"] == "2 local processes"
     assert (tmp_path / "pool.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+
+
+def test_tiles_report_a_search_that_reached_its_limit(tmp_path):
+    """Noise alone on a plane (σ 0.3, the points 0.5 apart), fitted in tiles: the truth
+    is the plane, which only s → ∞ gives, so the search tile's CV curve falls up to the
+    search's limit, and the tiled report says so, as the in-memory one does (test_smoothing)."""
+    source = tmp_path / "noisy_plane.las"
+    _terrain_las(source, 24000, seed=2, plane=True, plane_noise=0.3)
+    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "auto",
+                                       "--memory", "1M", "-o", str(tmp_path / "out.ply"),
+                                       "--report", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["tiles"] == 4
+    assert interior_or_at_limit(SimpleNamespace(**report["smoothing"])) == "high limit"
 
 
 def test_spacing_in_tiles_is_refused_before_any_output(tmp_path):

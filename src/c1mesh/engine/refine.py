@@ -145,6 +145,29 @@ def lattice_pattern(level: int) -> LatticePattern:
     return LatticePattern(L, lattice, index_of, interior, tuple(edge_rows), np.array(template))
 
 
+def refined_counts(points: int, edges: int, triangles: int, level: int) -> tuple[int, int]:
+    """(vertices, faces) of the level-L refinement of a triangulation with these counts of
+    points, edges and triangles, without building it: the points themselves, L − 1 inside
+    every edge and (L − 1)(L − 2)/2 inside every triangle (each once: the numbering of
+    the module docstring); L² faces per triangle. Python ints, so the counts of outputs too
+    large for 32-bit indices come out exact (the writers' limits: c1mesh.formats)."""
+    L = int(level)
+    return (int(points) + int(edges) * (L - 1) + int(triangles) * ((L - 1) * (L - 2) // 2),
+            int(triangles) * L * L)
+
+
+def fewest_refined_vertices(triangles: int, level: int) -> int:
+    """The fewest vertices the level-L refinement of any triangulation of T > 0 triangles
+    has (refined_counts of its fewest points and edges: at least 3 points, and at least
+    3T/2 edges, as an edge lies in at most two triangles). With B boundary edges the
+    count is (T·L² + B·L)/2 + (components − holes), so this is short by about B·L/2 + T/2,
+    a small fraction of a large mesh; for a caller that knows T but not the edges (the
+    tiled fit)."""
+    if triangles <= 0:
+        return 0
+    return refined_counts(3, -(-3 * int(triangles) // 2), triangles, level)[0]
+
+
 @dataclass
 class VertexBlock:
     """Refined points [start, stop) in output order; arrays are reused by the next block.
@@ -220,11 +243,10 @@ class Refinement:
         self.points, self.values, self.gradients = points, values, gradients
         self.triangles, self.coefficients, self.G, self.table = triangles, coefficients, G, table
         self.scheme = scheme
-        N, T = points.shape[0], triangles.shape[0]
         self.n_edge, self.n_int = L - 1, pat.interior.size
         self.rows = max(1, CHUNK_ENTRIES // pat.lattice.shape[0])
-        self.vertex_count = N + table.edges.shape[0] * self.n_edge + T * self.n_int
-        self.face_count = T * L * L
+        self.vertex_count, self.face_count = refined_counts(points.shape[0], table.edges.shape[0],
+                                                            triangles.shape[0], L)
         self.index_dtype = np.int32 if self.vertex_count < 2**31 - 1 else np.int64
         self._number_points()
         rows = np.concatenate(list(pat.edge_rows) + [pat.interior])   # per triangle: slots 0, 1, 2, interior

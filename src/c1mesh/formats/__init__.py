@@ -21,15 +21,18 @@ from c1mesh.formats._limits import read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
 from c1mesh.formats.depth import read_depth_registry
 from c1mesh.formats.las import read_las
-from c1mesh.formats.meshes import write_glb, write_off, write_stl
-from c1mesh.formats.obj import read_obj, write_obj
+from c1mesh.formats._blocks import MeshSize, refuse_size
+from c1mesh.formats.meshes import (glb_size_problem, off_size_problem, stl_size_problem, write_glb, write_off,
+                                   write_stl)
+from c1mesh.formats.obj import obj_size_problem, read_obj, write_obj
 from c1mesh.formats.pcd import read_pcd
-from c1mesh.formats.ply import read_ply, write_ply
+from c1mesh.formats.ply import ply_size_problem, read_ply, write_ply
 from c1mesh.formats.xyz import read_xyz
 from c1mesh.formats.reading import head_check, is_stream, limit_of_stream, read_path
 from c1mesh.core.outputs import INPUT_FORMATS, LAS_FORMATS, MESH_FORMATS, Outputs, atomic_output, format_key, mesh_format, plan_outputs
 
-__all__ = ["read_cloud", "write_mesh", "check_output", "atomic_output", "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
+__all__ = ["read_cloud", "write_mesh", "check_output", "check_mesh_size", "MeshSize", "atomic_output",
+           "SUPPORTED_INPUT", "SUPPORTED_OUTPUT"]
 
 Source = Union[str, "os.PathLike[str]", IO[bytes]]
 
@@ -41,6 +44,13 @@ _READERS: dict[str, Callable[[bytes, str], PointCloud]] = {
 _WRITERS: dict[str, Callable[..., None]] = {
     "ply": write_ply, "obj": write_obj, "stl": write_stl, "off": write_off, "glb": write_glb,
 }
+#: Each writer's size limit, defined beside it: why the format cannot hold a mesh of a
+#: MeshSize, or None (the writer refuses by it too; `check_mesh_size` asks before the work).
+_SIZE_LIMITS: dict[str, Callable[[MeshSize], str | None]] = {
+    "ply": ply_size_problem, "obj": obj_size_problem, "stl": stl_size_problem, "off": off_size_problem,
+    "glb": glb_size_problem,
+}
+assert set(_SIZE_LIMITS) == set(_WRITERS), "every writer needs its size limit"
 #: Input file extensions `read_cloud` understands (lower case, no dot).
 SUPPORTED_INPUT: tuple[str, ...] = tuple(_READERS)
 #: Output file extensions `write_mesh` understands (lower case, no dot).
@@ -174,6 +184,17 @@ PRJ_SIDECAR = {"ply", "obj", "stl", "off"}
 def _crs_argument(key: str, crs: str | None) -> dict:
     """The writer's crs keyword where its format stores a CRS itself."""
     return {"crs": crs} if crs and key in ("ply", "glb") else {}
+
+
+def check_mesh_size(target: Source, fmt: str | None, size: MeshSize) -> None:
+    """Raise InputError now if the mesh `write_mesh(..., target, fmt)` would write, of this
+    size, is beyond its format's limit (32-bit counts and indices: each format's
+    `*_size_problem`), so that a fit refuses before it refines. The format is chosen as
+    write_mesh chooses it; the message names it, the count and the limit."""
+    name = str(getattr(target, "name", "<stream>")) if is_stream(target) else str(target)
+    key = fmt or ("" if is_stream(target) else Path(target).suffix)
+    key = format_key(key if key.lstrip(".") else "ply", name, SUPPORTED_OUTPUT, "output")   # as mesh_format
+    refuse_size(_SIZE_LIMITS[key](size))
 
 
 def check_output(target: Source, fmt: str | None = None, inputs: tuple = ()) -> None:

@@ -4,14 +4,21 @@ and writes it block by block, so writing holds a few blocks, never the whole mes
 A MeshStream's blocks are as large as its producer makes them (a refinement block is
 ~2^18 rows); text writers turn each row into Python floats and strings (~100 bytes of
 objects per number), so blocks are cut into chunks of TEXT_ROWS rows before formatting.
+
+Each format's size limit lives beside its writer (`ply_size_problem`, `off_size_problem`,
+...): a function of a MeshSize (or MeshStream) that says why the format cannot hold a mesh
+of that size, or None. The writer refuses by it before writing a byte, and
+c1mesh.formats.check_mesh_size lets a fit refuse before it refines.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
+from c1mesh.core.errors import InputError
 
 STREAM_BLOCK = 1 << 18
 """Rows per block when a SurfaceMesh in memory is written as a stream (views, no copies)."""
@@ -81,3 +88,37 @@ def vertex_table(mesh: SurfaceMesh | MeshStream) -> np.ndarray:
         table[start:start + len(vertices)] = vertices
         start += len(vertices)
     return table
+
+
+# --------------------------------------------------------------------- size limits
+INT32_MOST = 2**31 - 1
+"""The largest signed 32-bit integer: the most elements a count or index read as C int holds."""
+UINT32_MOST = 2**32 - 1
+"""The largest unsigned 32-bit integer."""
+
+
+@dataclass(frozen=True)
+class MeshSize:
+    """What a writer's size limit looks at, known before the mesh is computed: vertex
+    and face counts, whether vertices carry normals, colour channels (a MeshStream has
+    the same attributes, so each format's limit reads either)."""
+
+    vertex_count: int
+    face_count: int
+    has_normals: bool = True
+    color_channels: int = 0
+
+
+def too_many(count: int, what: str, most: int, why: str) -> str | None:
+    """'`why`: `count` `what` are more than `most`', or None when count <= most: one
+    clause of a format's size limit (each writer module defines its own)."""
+    if count <= most:
+        return None
+    return f"{why}: {count:,} {what} are more than {most:,}"
+
+
+def refuse_size(problem: str | None) -> None:
+    """InputError with a format's size problem (None: nothing to refuse) and the remedy.
+    An InputError, not a usage error: whether a level is too high depends on the input."""
+    if problem is not None:
+        raise InputError(f"{problem}; use a lower --level, or split the scan")

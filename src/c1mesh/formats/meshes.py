@@ -15,10 +15,9 @@ from typing import IO, Iterator
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
-from c1mesh.core.errors import InputError
 from c1mesh.formats._background import background_writes
-from c1mesh.formats._blocks import (BINARY_ROWS, TEXT_ROWS, as_stream, face_chunks, text_rows, vertex_bounds,
-                                    vertex_chunks, vertex_table)
+from c1mesh.formats._blocks import (BINARY_ROWS, INT32_MOST, TEXT_ROWS, UINT32_MOST, as_stream, face_chunks,
+                                    refuse_size, text_rows, too_many, vertex_bounds, vertex_chunks, vertex_table)
 
 
 def _facet_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -31,18 +30,24 @@ def _facet_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
 _STL_ROW = np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
 
 
+def stl_size_problem(size) -> str | None:
+    """Why a binary STL cannot hold a mesh of size.face_count triangles (a _blocks.MeshSize
+    or MeshStream), or None: its header counts triangles in a uint32, so at most 2³² − 1.
+    Vertices are not counted or indexed (each facet repeats its corners): no limit."""
+    return too_many(size.face_count, "triangles", UINT32_MOST, "STL counts triangles in a uint32")
+
+
 def write_stl(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False) -> None:
     """Binary STL: 80-byte header, uint32 count, then per triangle normal, 3 corners, attribute.
 
     Written face block by face block. A face may name any vertex, so the vertex positions
     are held as one float64 table (24 bytes a vertex, about a quarter of the file's 50
     bytes a face; nothing else of the mesh's size): facet normals are computed from the
-    doubles, then stored as float32 with the corners.
+    doubles, then stored as float32 with the corners. A mesh beyond `stl_size_problem` is
+    refused (InputError) before a byte is written.
     """
     stream = as_stream(mesh)
-    if stream.face_count > _UINT32_MAX:
-        raise InputError(f"STL stores the triangle count as uint32; {stream.face_count:,} triangles are "
-                         "too many (use a lower --level or split the scan)")
+    refuse_size(stl_size_problem(stream))
     table = vertex_table(mesh)
     with background_writes(f) as write:
         write(b"binary STL written by c1mesh".ljust(80, b" "))
@@ -54,13 +59,28 @@ def write_stl(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False)
             write(memoryview(rows).cast("B"))
 
 
+def off_size_problem(size) -> str | None:
+    """Why an OFF cannot hold a mesh of size.vertex_count vertices and size.face_count
+    faces (a _blocks.MeshSize or MeshStream), or None.
+
+    Geomview's OFF definition has its counts and vertex indices as 32-bit ints: its
+    binary form stores them so, and its reader (like most since) reads the text form's
+    into C ints. So at most 2³¹ − 1 vertices and 2³¹ − 1 faces.
+    """
+    return (too_many(size.vertex_count, "vertices", INT32_MOST,
+                     "OFF counts elements and indexes vertices with 32-bit ints")
+            or too_many(size.face_count, "faces", INT32_MOST, "OFF counts elements with 32-bit ints"))
+
+
 def write_off(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = True) -> None:
     """OFF text: vertex coordinates with round-trip (repr) precision, then '3 a b c' faces.
 
     Plain OFF has no normals; colours are not written (COFF is read inconsistently).
     Written block by block (formats/_blocks.py): memory stays a few blocks of text.
+    A mesh beyond `off_size_problem` is refused (InputError) before a byte is written.
     """
     stream = as_stream(mesh)
+    refuse_size(off_size_problem(stream))
     with background_writes(f) as write:
         write(f"OFF\n{stream.vertex_count} {stream.face_count} 0\n".encode("ascii"))
         for vertices, _, _ in vertex_chunks(stream, TEXT_ROWS):
@@ -132,6 +152,25 @@ def _glb_document(parts: list[_GlbPart], origin: np.ndarray, low: np.ndarray, hi
     return document, offset
 
 
+_GLB_LENGTH = "GLB stores its length in a uint32 (4 GiB; write PLY instead)"
+
+
+def glb_size_problem(size) -> str | None:
+    """Why a GLB cannot hold a mesh of this size (a _blocks.MeshSize or MeshStream), or None.
+
+    glTF 2.0 indexes vertices with uint32 indices (write_glb's choice, the widest), and
+    its specification reserves the largest, 2³² − 1, as the primitive restart value: so
+    at most 2³² − 1 vertices (indices 0 .. 2³² − 2). The file's length and its BIN
+    chunk's are uint32 too: the BIN chunk alone (_glb_parts, from the counts) plus the
+    28 bytes of headers must stay within 2³² − 1 bytes (write_glb checks the exact total,
+    JSON included, once the JSON is written out).
+    """
+    binary = sum(part.count * part.width for part in _glb_parts(size))
+    return (too_many(size.vertex_count, "vertices", UINT32_MOST,
+                     "GLB indexes vertices with uint32s below the reserved 2³² − 1")
+            or too_many(28 + binary, "bytes", UINT32_MOST, _GLB_LENGTH))
+
+
 def write_glb(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
               crs: str | None = None) -> None:
     """glTF 2.0 binary: one mesh, one node whose translation is the local origin.
@@ -147,12 +186,11 @@ def write_glb(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
     first, then the BIN chunk one block at a time. The bounding box takes one pass over
     the vertices before, and each vertex attribute its own pass (they are separate
     bufferViews); float32(x - origin) is monotonic in x, so the float32 bounds of the
-    offsets are the offsets of the float64 bounds.
+    offsets are the offsets of the float64 bounds. A mesh beyond `glb_size_problem` is
+    refused (InputError) before a byte is written.
     """
     stream = as_stream(mesh)
-    if stream.vertex_count > _UINT32_MAX:
-        raise InputError(f"GLB stores vertex indices as uint32; {stream.vertex_count:,} vertices are "
-                         "too many (use a lower --level or split the scan)")
+    refuse_size(glb_size_problem(stream))
     low, high = vertex_bounds(stream)
     origin = 0.5 * (low + high) if stream.vertex_count else np.zeros(3)
     parts = _glb_parts(stream)
@@ -161,9 +199,7 @@ def write_glb(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
     text = json.dumps(document, separators=(",", ":")).encode("utf-8")
     text += b" " * (-len(text) % 4)
     total = 12 + 8 + len(text) + 8 + binary_length
-    if total > _UINT32_MAX:
-        raise InputError(f"a GLB holds at most 4 GiB; this mesh needs {total / 2**30:.1f} GiB "
-                         "(use a lower --level, or PLY)")
+    refuse_size(too_many(total, "bytes", UINT32_MOST, _GLB_LENGTH))
     with background_writes(f) as write:
         write(struct.pack("<4sII", b"glTF", 2, total))
         write(struct.pack("<I4s", len(text), b"JSON") + text)
@@ -190,8 +226,6 @@ def _glb_part_blocks(name: str, stream: MeshStream, origin: np.ndarray) -> Itera
                 colors = np.column_stack([colors, np.full(len(colors), 255, np.uint8)])
             yield colors
 
-
-_UINT32_MAX = 2**32 - 1
 
 
 def read_glb_positions(data: bytes) -> np.ndarray:

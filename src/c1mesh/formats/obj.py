@@ -15,7 +15,8 @@ import numpy as np
 from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.core.errors import FormatError
 from c1mesh.formats._background import background_writes
-from c1mesh.formats._blocks import TEXT_ROWS, as_stream, face_chunks, text_rows, vertex_chunks
+from c1mesh.formats._blocks import (INT32_MOST, TEXT_ROWS, as_stream, face_chunks, refuse_size, text_rows, too_many,
+                                    vertex_chunks)
 from c1mesh.formats._common import colors_to_uint8, decode_text, is_number, loadtxt
 
 _KEYWORD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
@@ -88,14 +89,29 @@ def read_obj(data: bytes, name: str) -> PointCloud:
     return PointCloud(points=np.ascontiguousarray(v[:, :3]), normals=normals, colors=colors)
 
 
+def obj_size_problem(size) -> str | None:
+    """Why an OBJ cannot hold a mesh of size.vertex_count vertices (a _blocks.MeshSize or
+    MeshStream), or None.
+
+    OBJ has no counts, and its specification gives its 1-based vertex references no
+    width; but readers in wide use (tinyobjloader, Assimp) parse them into
+    32-bit ints, so the last vertex must be numbered at most 2³¹ − 1. Faces are not
+    counted or referred to: no limit.
+    """
+    return too_many(size.vertex_count, "vertices", INT32_MOST,
+                    "OBJ face lines refer to vertices by numbers read as 32-bit ints")
+
+
 def write_obj(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = True) -> None:
     """Write `mesh` as OBJ text: `v` with round-trip (repr) precision, `vn`, 1-based faces.
 
     Colours go on the `v` lines as floats 0..1 (a widely read extension; alpha is dropped).
     Written block by block (formats/_blocks.py), so memory stays a few blocks of text; the
     `vn` lines follow all `v` lines, so a mesh with normals takes a second vertex pass.
+    A mesh beyond `obj_size_problem` is refused (InputError) before a byte is written.
     """
     stream = as_stream(mesh)
+    refuse_size(obj_size_problem(stream))
     with background_writes(f) as write:
         write(b"# written by c1mesh\n")
         for vertices, _, colors in vertex_chunks(stream, TEXT_ROWS):

@@ -16,10 +16,11 @@ from typing import IO
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
-from c1mesh.core.errors import FormatError, InputError
+from c1mesh.core.errors import FormatError
 from c1mesh.core.crs import crs_from_ply_header, ply_comment
 from c1mesh.formats._background import background_writes
-from c1mesh.formats._blocks import TEXT_ROWS, face_chunks, text_rows, vertex_chunks
+from c1mesh.formats._blocks import (INT32_MOST, TEXT_ROWS, face_chunks, refuse_size, text_rows, too_many,
+                                    vertex_chunks)
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, find_columns, loadtxt, native
 from c1mesh.formats._limits import check_alloc
 
@@ -401,6 +402,20 @@ def _vertex_rows(dtype: np.dtype, vertices, normals, colors) -> np.ndarray:
     return rows
 
 
+def ply_size_problem(size) -> str | None:
+    """Why a PLY cannot hold a mesh of size.vertex_count vertices and size.face_count
+    faces (a _blocks.MeshSize or MeshStream), or None.
+
+    The header's element counts are text, but the format's reference reader (Turk's
+    ply.c, and the copies of it in VTK and elsewhere) reads them with atoi into a C int,
+    and write_ply's faces index vertices as `int` (int32): so at most 2³¹ − 1 vertices
+    and 2³¹ − 1 faces.
+    """
+    return (too_many(size.vertex_count, "vertices", INT32_MOST,
+                     "PLY counts elements and indexes vertices with 32-bit ints")
+            or too_many(size.face_count, "faces", INT32_MOST, "PLY counts elements with 32-bit ints"))
+
+
 def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
               crs: str | None = None) -> None:
     """Write a mesh (or a MeshStream, block by block) as PLY to binary file object `f`.
@@ -410,11 +425,10 @@ def write_ply(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
     packed in blocks and written by a second thread while the next block is computed
     (formats/_background.py), so writing adds only a few block-sized buffers to memory.
     `crs` (WKT) goes into the header as `comment crs <WKT>`, which read_ply reads back.
+    A mesh beyond `ply_size_problem` is refused (InputError) before a byte is written.
     """
     stream = mesh.stream(_WRITE_BLOCK) if isinstance(mesh, SurfaceMesh) else mesh
-    if stream.vertex_count > np.iinfo(np.int32).max:
-        raise InputError(f"PLY stores vertex indices as int; {stream.vertex_count:,} vertices are too many "
-                         "(use a lower --level or split the scan)")
+    refuse_size(ply_size_problem(stream))
     dtype = _vertex_dtype(stream, "=" if ascii else "<")
     with background_writes(f) as write:
         write(_header(stream, dtype, "ascii" if ascii else "binary_little_endian", crs))

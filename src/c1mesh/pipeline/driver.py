@@ -18,7 +18,7 @@ from c1mesh.stages.curtains import remove_curtains, view_rules_apply
 from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
 from c1mesh.geo.raster import is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.core.errors import InputError
-from c1mesh.formats import check_output, read_cloud
+from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
 from c1mesh.stages.frame import auto_axis_reason, choose_frame
 from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import (height_gradients, height_neighbours, height_normals,
@@ -28,6 +28,7 @@ from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.properties import scheme_properties
+from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim_mesh
@@ -298,11 +299,15 @@ def _drop_too_steep(hf, max_slope: float, z_factor: float) -> None:
         raise InputError(f"only {hf.xy.shape[0]} points have a slope below --max-slope {max_slope:g}°")
 
 
-def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | None" = None) -> SurfaceModel:
+def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | None" = None,
+                  check_triangulation: Callable[[np.ndarray, np.ndarray, Any], None] | None = None) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
     The stages every fit shares, whole-file or tiled (c1mesh.survey.tiles), so a stage added
     here reaches both. timer: a StageTimer that books each stage (None: untimed).
+    check_triangulation(points (n, 2), triangles (T, 3), topology.EdgeTable): called with the
+    interpolator's triangulation once it is known, before the interpolation, so a caller
+    can refuse what it would refine (`_output_size_check`) before the heavy stages.
     """
     timer = timer or StageTimer(None)
     scheme = get_scheme(options.scheme)
@@ -351,6 +356,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     smoothing = None
     with timer.stage("interpolate"):
         table, mesh = mesh.edge_table(local), None      # the trim's edge sort serves the interpolator
+        if check_triangulation is not None:
+            check_triangulation(hf.xy[used], triangles, table)
         if strength is None:
             interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
                                                      scheme, options.overshoot, heights=not plan_heights,
@@ -412,7 +419,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                              "as a height field, or drop --smooth")
         from c1mesh.pipeline.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
-    model = build_surface(cloud, options, timer)
+    model = build_surface(cloud, options, timer,
+                          None if geo.rasters.items() else _output_size_check(output, options, cloud))
     frame, hf, trim_report, used, interp = model.frame, model.hf, model.trim_report, model.used, model.interp
     if geo.rasters.items():
         with timer.stage("raster"):
@@ -423,7 +431,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         report["raster"] = raster_report
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options)
-    level, level_from = plane_level(interp, options)
+    level, level_from = plane_level(interp.points, interp.triangles, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
     mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh)
@@ -441,12 +449,29 @@ def _slope_note(model: SurfaceModel) -> dict:
     return {"max_slope_not_applied": model.max_slope_not_applied}
 
 
-def plane_level(interp: RSDInterpolator, options: FitOptions) -> tuple[int, str]:
-    """The refinement level of a height-field fit and where it came from: "option"
-    (--level), "resolution" (the level whose mean output edge is --resolution, geo.level_for_edge)
-    or "default" (PLANE_LEVEL)."""
+def _output_size_check(output, options: FitOptions, cloud: PointCloud):
+    """build_surface's check_triangulation for a mesh output (None without one): InputError
+    when the refinement of the triangulation at the fit's level (plane_level) would be
+    more than the output format holds (c1mesh.formats.check_mesh_size). The counts are
+    exact (refine.refined_counts: points, edges, triangles and the level), so a fit
+    too large for 32-bit counts or indices stops before interpolating and refining."""
+    if output is None:
+        return None
+    channels = 0 if cloud.colors is None else int(cloud.colors.shape[1])
+
+    def check(points: np.ndarray, triangles: np.ndarray, table) -> None:
+        level = plane_level(points, triangles, options)[0]
+        vertices, faces = refined_counts(points.shape[0], table.edges.shape[0], triangles.shape[0], level)
+        check_mesh_size(output, options.output_format, MeshSize(vertices, faces, True, channels))
+    return check
+
+
+def plane_level(points: np.ndarray, triangles: np.ndarray, options: FitOptions) -> tuple[int, str]:
+    """The refinement level of a height-field fit of the triangulation points (n, 2),
+    triangles (T, 3), and where it came from: "option" (--level), "resolution" (the level
+    whose mean output edge is --resolution, geo.level_for_edge) or "default" (PLANE_LEVEL)."""
     if options.resolution is not None:
-        return level_for_edge(interp.points, interp.triangles, options.resolution), "resolution"
+        return level_for_edge(points, triangles, options.resolution), "resolution"
     if options.level is not None:
         return options.level, "option"
     return PLANE_LEVEL, "default"

@@ -73,8 +73,10 @@ OPTIONAL: dict[str, str] = {
     "shared_vertex_keys_held": "the tiled fit: most shared vertices held at once",
     "output_meshes": "the tiled fit with -O: each output's vertices and faces",
     "smoothing": "--smooth auto or a strength: strength (s), lam (λ), cv_curve ([s, held-out RMS] pairs), "
-                 "edf, residual_rms, residual_max (heights), solver, seconds, outside (data points "
-                 "outside the triangulation), gradient_weight (of the gradient data: 1 file normals, "
+                 "search_limit_reached (--smooth auto: true when s is not an interior minimum of cv_curve "
+                 "but at the search's limit, 1e-6 or 1e7; null for a given strength), edf, residual_rms, "
+                 "residual_max (heights), solver, seconds, outside (data points outside the "
+                 "triangulation), gradient_weight (of the gradient data: 1 file normals, "
                  "0.5 gradients fitted to the heights, 0: none); the tiled fit adds spacing (h) and "
                  "tiled (halo, halo_smoothing_lengths, search_tile)",
     "suggestion": "an exact fit whose heights look noisy (the limiter changed over 10% of the "

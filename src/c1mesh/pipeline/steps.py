@@ -17,7 +17,7 @@ from c1mesh.core.cloud import MeshStream, SurfaceMesh
 from c1mesh.core.threads import blas_threads
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.topology import edge_table
-from c1mesh.formats import write_mesh
+from c1mesh.formats import check_mesh_size, write_mesh
 from c1mesh.stages.limiter import LimiterReport, control_overshoot, edge_directions
 from c1mesh.stages.smoothing import FILE_NORMALS_WEIGHT, smooth_fit
 from c1mesh.stages.surface import surface_stream
@@ -113,13 +113,16 @@ def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, out
     (frame.ScanFrame or perspective.PerspectiveFrame: surface_stream), optionally passes
     the stream through faces_facing (the perspective fit turns its faces to the
     viewpoint), and writes it to output (path, stream or None) in options.output_format
-    with the CRS `crs` (None: none). keep_mesh=False with an output streams block by
-    block (the mesh is then None; the time the writer waited for evaluated blocks is
-    booked to "refine"). Returns (mesh or None, the MeshStream).
+    with the CRS `crs` (None: none); InputError, before anything is evaluated, when the
+    output's format cannot hold the refined mesh (formats.check_mesh_size). keep_mesh=False
+    with an output streams block by block (the mesh is then None; the time the writer
+    waited for evaluated blocks is booked to "refine"). Returns (mesh or None, the MeshStream).
     """
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
         stream = surface_stream(interp.refinement(options.level), frame, colors)
+        if output is not None:      # the counts are known now: refuse before evaluating (formats' limits)
+            check_mesh_size(output, options.output_format, stream)
         if faces_facing is not None:
             stream = faces_facing(stream)
         mesh = None if streaming else stream.materialize()

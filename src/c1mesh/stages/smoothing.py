@@ -48,8 +48,18 @@ CV_RIDGE = 1e-9
 """Relative ridge of the cross-validation solves (smoothing_system.solve: a held-out
 block may cover a whole island of the mesh)."""
 GRID = tuple(float(e) for e in range(-3, 5))
-"""log10 s of the coarse search (stopped two steps past the lowest score); REFINE_STEPS of
-golden-section search in log s follow in the two decades around the best."""
+"""log10 s of the coarse search (stopped two steps past the lowest score); where the
+lowest score is at an end of it, the grid goes on past that end in the same steps
+(SEARCH_LIMITS); REFINE_STEPS of golden-section search in log s follow in the two steps
+around the best."""
+SEARCH_LIMITS = (-6.0, 7.0)
+"""log10 s past which the coarse grid is not extended: beyond them the fit no longer
+changes with s for anything the data can show, so the CV curve is flat and could not
+turn. A feature of wavelength ℓ spacings keeps about 1 / (1 + s (2π/ℓ)⁴) of its height
+(docs/smoothing.md). At s = 1e-6 the shortest wavelength the points resolve (ℓ = 2) keeps
+all but 1e-4 of it: the fit is the interpolant. At s = 1e7 a feature keeps half its
+height only if it is 2π s^¼ ≈ 350 spacings long, over 3 times the side of the largest
+region the search fits (SEARCH_VERTICES, ~100 spacings): the fit is the plane."""
 REFINE_STEPS = 4
 EDF_PROBES = 4
 FILE_NORMALS_WEIGHT = 1.0
@@ -89,7 +99,9 @@ class SmoothFit:
 
     values (N,), gradients (N, 2): vertex data of the fitted spline. strength: s used;
     lam: λ actually used (length² × weight units, module doc). cv_curve: (s, held-out RMS)
-    pairs in the order tried ([] when s was given). edf: effective degrees of freedom
+    pairs in the order tried ([] when s was given). search_limit_reached: the lowest score
+    lay at SEARCH_LIMITS, so s may be better still beyond it (None when s was given; False:
+    s is an interior minimum of the curve). edf: effective degrees of freedom
     tr(H) (Hutchinson estimate). residual_rms, residual_max: of z − F at the data points
     with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
     outside: data points outside the triangulation (ignored). gradient_weight: the
@@ -101,6 +113,7 @@ class SmoothFit:
     strength: float
     lam: float
     cv_curve: list = field(default_factory=list)
+    search_limit_reached: bool | None = None
     edf: float | None = None
     residual_rms: float = 0.0
     residual_max: float = 0.0
@@ -334,10 +347,11 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
     solved, order, system = _assembled(problem, method, seconds, threads)
     mu = float(gradient_weight)
     curve: list = []
+    at_limit = None
     with limit(threads):
         if strength == "auto":
             with timed(seconds, "search"):
-                s, curve = _search(problem, int(folds), mu, method, seed)
+                s, curve, at_limit = _search(problem, int(folds), mu, method, seed)
         else:
             s = float(strength)
         with timed(seconds, "solve"):
@@ -350,7 +364,8 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
     gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
     return SmoothFit(values=values, gradients=gradients,
-                     strength=s, lam=s * h * h * w_mean, cv_curve=curve, edf=edf,
+                     strength=s, lam=s * h * h * w_mean, cv_curve=curve, search_limit_reached=at_limit,
+                     edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
                      solver=method, seconds=seconds, outside=outside, gradient_weight=mu if grad is not None else 0.0)
@@ -433,7 +448,9 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
 
 
 def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int):
-    """(s, curve): log-grid then golden-section search of the spatial-block CV score."""
+    """(s, curve, limit reached): log-grid (`_coarse`) then golden-section search of the
+    spatial-block CV score. The limit is reached when s is the lowest or highest s tried,
+    not an interior minimum of the curve, which happens only at a SEARCH_LIMITS end."""
     sub = _search_problem(problem, seed)
     system = sub.system()
     extent = np.ptp(sub.data_xy, axis=0)
@@ -449,13 +466,8 @@ def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int):
             curve.append((10.0**log_s, scores[log_s]))
         return scores[log_s]
 
-    values = []
-    for e in GRID:                      # the curve is unimodal: stop two steps past its low
-        values.append(score(e))
-        if len(values) - 1 - int(np.argmin(values)) >= 2:
-            break
-    best = int(np.argmin(values))
-    lo, hi = GRID[max(best - 1, 0)], GRID[min(best + 1, len(GRID) - 1)]
+    grid, best = _coarse(score)
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
     ratio = (np.sqrt(5) - 1) / 2
     a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
     for _ in range(REFINE_STEPS):
@@ -466,9 +478,34 @@ def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int):
             lo, a = a, b
             b = lo + ratio * (hi - lo)
     log_best = min(scores, key=scores.get)
-    return 10.0**log_best, curve
+    return 10.0**log_best, curve, log_best in (grid[0], grid[-1])
+
+
+def _coarse(score) -> tuple[list, int]:
+    """(log10 s tried, ascending; index of the lowest score) of the coarse search: GRID,
+    stopped two steps past the lowest score (the curve is unimodal), then, while the
+    lowest score is at an end, one more step past that end, up to SEARCH_LIMITS. So the
+    lowest is an interior point of the curve, with a higher score on each side, unless it
+    lies at a limit."""
+    grid, values = [], []
+    for e in GRID:
+        grid.append(e)
+        values.append(score(e))
+        if len(values) - 1 - int(np.argmin(values)) >= 2:
+            break
+    step = GRID[1] - GRID[0]
+    best = int(np.argmin(values))
+    while best == 0 and grid[0] - step >= SEARCH_LIMITS[0]:
+        grid.insert(0, grid[0] - step)
+        values.insert(0, score(grid[0]))
+        best = int(np.argmin(values))
+    while best == len(grid) - 1 and grid[-1] + step <= SEARCH_LIMITS[1]:
+        grid.append(grid[-1] + step)
+        values.append(score(grid[-1]))
+        best = int(np.argmin(values))
+    return grid, best
 
 
 __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothFit", "smooth_fit",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
-           "SEARCH_VERTICES"]
+           "SEARCH_VERTICES", "SEARCH_LIMITS"]

@@ -12,7 +12,7 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream
 from c1mesh.core.threads import prefetch, ring
-from c1mesh.engine.refine import Refinement
+from c1mesh.engine.refine import Refinement, refined_counts
 from c1mesh.stages.height_field import gradients_to_normals
 
 PLANE_LEVEL = 4
@@ -73,8 +73,6 @@ def with_plane_level(options):
 
 def refined_vertex_count(interp, level: int) -> int:
     """Vertices of the level-`level` refinement of interp's triangulation, without building
-    it: the N points, L − 1 per edge and (L − 1)(L − 2)/2 inside each triangle
-    (refine.Refinement numbers them so)."""
-    edges = interp.edge_table.edges.shape[0]
-    inside = (level - 1) * (level - 2) // 2
-    return int(interp.points.shape[0] + edges * (level - 1) + interp.triangles.shape[0] * inside)
+    it (refine.refined_counts)."""
+    return refined_counts(interp.points.shape[0], interp.edge_table.edges.shape[0], interp.triangles.shape[0],
+                          level)[0]

@@ -106,6 +106,16 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
             **task_row(len(records), start)}
 
 
+def check_output_size(output, options, vertices: int, faces: int, coloured: bool) -> None:
+    """InputError when a mesh of this many vertices and faces (normals, and RGB if
+    coloured) is beyond the limits of the output's format (formats.check_mesh_size); the
+    tiled fit asks with the fewest vertices its triangles can refine to before any tile is
+    refined (tiled_fit), and with the joined counts so far as tiles are joined."""
+    from c1mesh.formats import MeshSize, check_mesh_size
+
+    check_mesh_size(output, options.output_format, MeshSize(vertices, faces, True, 3 if coloured else 0))
+
+
 def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
                 limiter=None, crs: str | None = None,
                 colours: Colours | None = None, runner=None, rows: TileRows | None = None,
@@ -114,7 +124,9 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
     files), then join the parts in tile order, numbering shared vertices globally
     (tiled_fit's docstring), into one vertex and one face file; then write the mesh from
     them, or with split (-O), each input's part of it (c1mesh.survey.tiled_outputs). limiter: the
-    tiled_limiter.TiledLimiter (None: --overshoot off); rows: the tiled_report.TileRows."""
+    tiled_limiter.TiledLimiter (None: --overshoot off); rows: the tiled_report.TileRows.
+    Without split, InputError as soon as the joined counts pass the output format's
+    limits (`check_output_size`), before the remaining tiles are refined."""
     from c1mesh.core.cloud import MeshStream
     from c1mesh.survey.distributed import TaskRunner
     from c1mesh.formats import write_mesh
@@ -141,6 +153,8 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
                 t, row = tiles[next_tile], ready.pop(next_tile)
                 if row is not None:
                     join.add(t, parts[t], row, vertex_file, face_file)
+                    if split is None:      # the counts only grow: stop at the first tile past the format's limit
+                        check_output_size(output, options, join.written, join.faces, coloured)
                     if split is not None:
                         with open(parts[t].owners, "rb") as owners:
                             shutil.copyfileobj(owners, owner_file)

@@ -179,15 +179,16 @@ class TiledSmoother:
     def smoothing(self) -> dict:
         """The report's "smoothing" section, of SmoothFit.as_dict's keys, plus the tiled
         solve's halo: residuals over every vertex, edf the sum of each halo's estimate
-        scaled by its share of own vertices, the CV curve of the search tile. The solves
-        arrive in completion order on a pool or on Dask, so their totals must not depend on
-        the order (solve_totals)."""
+        scaled by its share of own vertices, the CV curve (and search_limit_reached) of the
+        search tile. The solves arrive in completion order on a pool or on Dask, so their
+        totals must not depend on the order (solve_totals)."""
         own, squares, edf = solve_totals(self.solves)
         seconds = dict(self.seconds)
         if self.search is not None:
             seconds.update({f"search_{k}": v for k, v in self.search["seconds"].items()})
         return {"strength": self.strength, "lam": self.strength * self.spacing ** 2,
                 "cv_curve": [] if self.search is None else [[float(s), float(r)] for s, r in self.search["cv_curve"]],
+                "search_limit_reached": None if self.search is None else self.search["search_limit_reached"],
                 "edf": edf,
                 "residual_rms": math.sqrt(squares / own) if own else 0.0,
                 "residual_max": max((s.largest for s in self.solves), default=0.0),
@@ -211,14 +212,14 @@ def _search_tile(heights, triangle_files, grid, longest_edge, spacing, overshoot
     """smooth_fit(strength="auto") on the tile holding the most points, with the
     limiter's halo (its cross-validation windows need no more), its tile number as
     "tile" (the search's strength serves every tile); the SmoothFit's strength, cv_curve,
-    solver and seconds."""
+    search_limit_reached, solver and seconds."""
     candidates = [t for t in range(len(grid)) if triangle_files[t] is not None]
     tile = max(candidates, key=lambda t: (int(heights.counts[t]), -t))
     reach = HALO_EDGES * longest_edge * (1 + 1e-9)
     halo = HaloCache(heights, triangle_files, grid, reach, temps, label="search-halo").halo(tile)
     fitted, _ = _fit_halo(halo, "auto", spacing, overshoot, gradient_weight)
-    return {"tile": tile, "strength": fitted.strength, "cv_curve": fitted.cv_curve, "solver": fitted.solver,
-            "seconds": fitted.seconds}
+    return {"tile": tile, "strength": fitted.strength, "cv_curve": fitted.cv_curve,
+            "search_limit_reached": fitted.search_limit_reached, "solver": fitted.solver, "seconds": fitted.seconds}
 
 
 def _fit_halo(halo, strength, spacing: float, overshoot: str, gradient_weight: float = 0.0):
