@@ -91,6 +91,52 @@ def horn_gradient(dem: np.ndarray, resolution: float) -> np.ndarray:
     return out
 
 
+HORN_WEIGHTS = (1.0, 2.0, 1.0)
+"""Horn's weights of the three rows (for dz/dx) or columns (for dz/dy) of the 3x3 window."""
+
+
+def horn_gradient_at_edges(dem: np.ndarray, resolution: float) -> np.ndarray:
+    """Horn's gradient of a whole north-up DEM, also at cells next to nodata or the border.
+
+    dem (h, w), NaN = nodata → (h, w, 2) = (dz/dx east, dz/dy north), NaN exactly where the
+    DEM is. Horn's dz/dx is the 1-2-1 weighted mean of the central differences of the
+    window's three rows (dz/dy: of its three columns). A row missing a cell gives the
+    one-sided difference of the two it has (a row with one cell or none is left out, the
+    weights of the others renormalised); a cell with no row giving a difference (a strip
+    one cell wide) has 0 there. With all nine cells this is horn_gradient; a plane gives
+    its exact gradient at every cell. gdaldem -compute_edges does the same at the raster's
+    border (it extrapolates a missing row or column linearly), but repeats the centre cell
+    for a nodata neighbour, which flattens the slope at the rim of every gap; the
+    one-sided difference keeps it.
+    """
+    z = np.pad(np.asarray(dem, dtype=np.float64), 1, constant_values=np.nan)
+    h, w = z.shape[0] - 2, z.shape[1] - 2
+    cell = lambda di, dj: z[1 + di:1 + di + h, 1 + dj:1 + dj + w]   # noqa: E731  di > 0 south, dj > 0 east
+    out = np.empty((h, w, 2))
+    out[..., 0] = _weighted_differences([(cell(di, -1), cell(di, 0), cell(di, 1)) for di in (-1, 0, 1)],
+                                        resolution)
+    out[..., 1] = _weighted_differences([(cell(1, dj), cell(0, dj), cell(-1, dj)) for dj in (-1, 0, 1)],
+                                        resolution)
+    out[~np.isfinite(dem)] = np.nan
+    return out
+
+
+def _weighted_differences(lines, resolution: float) -> np.ndarray:
+    """Horn's weighted mean of the differences along three lines (low, middle, high) (h, w)
+    each: central where both ends are data, else one-sided with the middle, else left out;
+    0 where no line has one."""
+    total, weight = 0.0, 0.0
+    for w, (low, middle, high) in zip(HORN_WEIGHTS, lines):
+        d = (high - low) / (2 * resolution)
+        d = np.where(np.isfinite(d), d, (high - middle) / resolution)
+        d = np.where(np.isfinite(d), d, (middle - low) / resolution)
+        have = np.isfinite(d)
+        total = total + np.where(have, w * d, 0.0)
+        weight = weight + np.where(have, w, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(weight > 0, total / weight, 0.0)
+
+
 def slope_degrees(gradient: np.ndarray) -> np.ndarray:
     """Slope from horizontal in degrees, from gradients (..., 2)."""
     return np.degrees(np.arctan(np.hypot(gradient[..., 0], gradient[..., 1])))
