@@ -333,28 +333,35 @@ def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(math.sqrt(area / points.shape[0]))
 
 
-def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None,
-                      data_xy=None, reach: float | None = None) -> dict:
-    """Sample a fitted spline onto the aligned grid covering its triangulation and write
-    the requested rasters; returns the report's "raster" section. data_xy (m, 2): the
+def dem_sampling(interp, frame, resolution: float, data_xy=None,
+                 reach: float | None = None) -> tuple[RasterGrid, SplineSampler]:
+    """The grid of a fit's DEM (aligned at `resolution`, covering the triangulation in
+    world x, y) and the sampler of the spline at its cell centres. data_xy (m, 2): the
     fitted points in the frame's plane (their cells always get a value within `reach`,
-    the trim's max_edge: SplineSampler); None: the triangulation alone decides.
-    options.z_factor (None: 1) scales slope and hillshade; heights in units of their own
-    without one are refused before (pipeline.check_angles)."""
+    the trim's max_edge: SplineSampler); None: the triangulation alone decides. The
+    rasters (write_fit_rasters) and the fit's preview (preview.render_dem_fit) both take
+    their cells from these, so they cover the same cells."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
+    lo = interp.points.min(axis=0) + frame.origin[:2]
+    hi = interp.points.max(axis=0) + frame.origin[:2]
+    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach)
+
+
+def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler, options,
+                      crs: str | None) -> dict:
+    """Write the requested rasters of a fitted spline on its DEM grid (dem_sampling);
+    returns the report's "raster" section. options.z_factor (None: 1) scales slope and
+    hillshade; heights in units of their own without one are refused before
+    (pipeline.check_angles)."""
     if crs and (options.slope or options.aspect or options.hillshade):
         from c1mesh.core.crs import describe
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
                              "geographic (degrees): reproject to a projected CRS first")
-    lo = interp.points.min(axis=0) + frame.origin[:2]
-    hi = interp.points.max(axis=0) + frame.origin[:2]
-    grid = RasterGrid.covering(lo, hi, options.resolution)
-    spacing = mean_spacing(interp.points, interp.triangles)
+    spacing = mean_spacing(sampler.interp.points, sampler.interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
     z_factor = 1.0 if getattr(options, "z_factor", None) is None else float(options.z_factor)
-    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin, data_xy, reach), method, crs,
-                           z_factor=z_factor)
+    report = write_rasters(targets, grid, sampler, method, crs, z_factor=z_factor)
     report["point_spacing"] = float(spacing)
     return report
