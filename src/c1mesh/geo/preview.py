@@ -1,13 +1,16 @@
 """PNG previews: a hillshade coloured by height, with a scale bar and a height colour bar.
 
-Four sources, one picture: a fitted spline in a frame whose chart is a plane
+Five sources, one picture: a fitted spline in a frame whose chart is a plane
 (`render_spline`: heights and exact normals sampled at pixel centres), a surface mesh in
 world coordinates, whatever frame made it (`render_surface`: the topmost face at each
 pixel centre, heights and normals interpolated over it; the perspective fit's preview),
-a GeoTIFF DEM (`render_raster`: Horn's gradient of the DEM, since the spline is not at
-hand), and a mesh file with vertex normals (`render_mesh`: heights and normals of the
-vertices averaged per pixel). Pixels are in the scan frame's plane (x east, y north for
-terrain), north up. matplotlib is imported only here.
+a mesh file with vertex normals (`render_mesh`: heights and normals of the vertices
+averaged per pixel), and a DEM's cells (`render_dem`), both from the fit that writes the
+DEM (`render_dem_fit`: shaded by the spline's gradient at the cell centres) and from the
+GeoTIFF (`render_raster`: Horn's gradient of the cells, since the spline is not at hand;
+one-sided at the edges of the data). The two DEM pictures draw the same cells: only the
+shading differs. Pixels are in the scan frame's plane (x east, y north for terrain),
+north up. matplotlib is imported only here.
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.geo.raster import hillshade, horn_gradient, is_raster_path
+from c1mesh.geo.raster import BLOCK_CELLS, hillshade, horn_gradient_at_edges, is_raster_path
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 
 PIXELS = 700
@@ -52,14 +55,19 @@ pixel of a PIXELS-wide picture, and bounded whatever --level the output has."""
 
 
 def render_fit(interp, frame, path, crs: str | None = None, level: int | None = None,
-               z_factor: float | None = 1.0) -> None:
+               z_factor: float | None = 1.0, dem=None) -> None:
     """The preview of a fit (geo.finish calls this for every fit).
 
-    frame.ScanFrame (the spline is a height over a plane): render_spline. Otherwise (the
-    perspective frame: the chart (u, v) of inverse depth is no map plane) the refined
+    dem: (RasterGrid, SplineSampler) of the DEM the fit wrote, or None. With one, the DEM's
+    cells (render_dem_fit), so that `c1mesh preview` of the DEM draws the same cells.
+    Else frame.ScanFrame (the spline is a height over a plane): render_spline. Otherwise
+    (the perspective frame: the chart (u, v) of inverse depth is no map plane) the refined
     surface in world coordinates, at `level` or the highest lower level with at most
     PREVIEW_VERTICES vertices, drawn by render_surface. z_factor: render_spline's.
     """
+    if dem is not None:
+        render_dem_fit(*dem, path, crs=crs, z_factor=z_factor)
+        return
     if not hasattr(frame, "normals_from_gradients"):
         render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
         return
@@ -186,23 +194,78 @@ def _view_frame(points: np.ndarray, normals: np.ndarray):
     return frame, bool(np.allclose(frame.axes, np.eye(3)))
 
 
+def render_dem_fit(grid: RasterGrid, sampler: SplineSampler, path, crs: str | None = None,
+                   z_factor: float | None = 1.0) -> None:
+    """Preview of the DEM a fit writes: its cells (grid, and the sampler that gave their
+    heights: raster.write_fit_rasters), shaded by the spline's gradient at their centres.
+    z_factor: render_spline's (None: unshaded)."""
+    stride = preview_stride(grid)
+    z, g = _dem_cells(grid, sampler, stride)
+    if z_factor is None:
+        render_dem(z, np.zeros_like(g), grid, stride, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
+        return
+    render_dem(z, g if z_factor == 1.0 else g * z_factor, grid, stride, path, _units(crs),
+               "C1 surface (spline normals)")
+
+
+def _dem_cells(grid: RasterGrid, sampler: SplineSampler, stride: int):
+    """Heights (⌈h/s⌉, ⌈w/s⌉) and the spline's gradients (⌈h/s⌉, ⌈w/s⌉, 2) at the cells
+    (i·s, j·s) of the grid, s = stride (NaN: nodata): the cells the DEM finds
+    (sampler.cells) in blocks of rows (strided: each kept row alone), evaluated only at the
+    kept columns. Heights rounded to float32, as the DEM stores them, so both pictures of
+    a DEM colour the same numbers."""
+    kept = range(0, grid.height, stride)
+    cols = range(grid.width)
+    z = np.full((len(kept), len(cols[::stride])), np.nan)
+    g = np.full(z.shape + (2,), np.nan)
+    per_block = max(1, BLOCK_CELLS // grid.width) if stride == 1 else 1
+    for first in range(0, len(kept), per_block):
+        last = min(first + per_block, len(kept)) - 1
+        cell, tri, l0, l1, shift = sampler.cells(grid, range(kept[first], kept[last] + 1), cols)
+        row, col = np.divmod(cell, grid.width)          # row 0 of the block is kept row `first`
+        mine = col % stride == 0
+        values, grads = sampler.evaluate(tri[mine], l0[mine], l1[mine], True, shift[mine])
+        at = (first + row[mine], col[mine] // stride)
+        z[at] = values + sampler.origin[2]
+        g[at] = grads
+    return z.astype(np.float32).astype(np.float64), g
+
+
 def render_raster(source, path) -> None:
-    """Preview of a GeoTIFF DEM (band 1) with Horn's gradient of its cells."""
+    """Preview of a GeoTIFF DEM (band 1, north up) with Horn's gradient of its cells,
+    one-sided next to nodata and at the border (raster.horn_gradient_at_edges), so every
+    cell with a height is drawn, as in the preview of the fit that wrote it."""
     from c1mesh.geo.raster import rasterio_module
     rasterio = rasterio_module()
     try:
         with rasterio.open(source) as ds:
             z = ds.read(1, masked=True).astype(np.float64).filled(np.nan)
-            res = abs(ds.transform.a)
-            bounds = ds.bounds
+            t = ds.transform
             crs = ds.crs.to_wkt() if ds.crs else None
     except rasterio.errors.RasterioIOError as exc:
         raise InputError(f"cannot read the raster '{source}': {exc}") from exc
-    padded = np.pad(z, 1, constant_values=np.nan)
-    g = horn_gradient(padded, res)
-    z = np.where(np.isfinite(g).all(axis=2), z, np.nan)   # edge cells have no 3x3 gradient
-    render_arrays(z, g, (bounds.left, bounds.right, bounds.bottom, bounds.top), path, _units(crs),
-                  f"{Path(str(source)).name} (Horn gradient)")
+    grid = RasterGrid(t.c, t.f, abs(t.a), z.shape[1], z.shape[0])
+    stride = preview_stride(grid)
+    g = horn_gradient_at_edges(z, grid.resolution)
+    render_dem(z[::stride, ::stride], g[::stride, ::stride], grid, stride, path, _units(crs),
+               f"{Path(str(source)).name} (Horn gradient)")
+
+
+def preview_stride(grid: RasterGrid, pixels: int = PIXELS) -> int:
+    """Every how many cells a DEM's preview draws one: 1 up to `pixels` cells along the
+    longer side, else the smallest stride that brings it to at most that (the picture's
+    memory and time are bounded whatever the resolution)."""
+    return max(1, math.ceil(max(grid.width, grid.height) / pixels))
+
+
+def render_dem(z: np.ndarray, gradient: np.ndarray, grid: RasterGrid, stride: int, path,
+               units: str, title: str) -> None:
+    """The picture of a DEM's cells: z (m, n) the heights of the cells (i·s, j·s) of grid,
+    s = stride (NaN: nodata), gradient (m, n, 2) finite wherever z is. Each drawn cell
+    stands for the s × s block of cells it starts; every cell with a height is drawn."""
+    size = grid.resolution * stride
+    extent = (grid.west, grid.west + z.shape[1] * size, grid.north - z.shape[0] * size, grid.north)
+    render_arrays(z, gradient, extent, path, units, title)
 
 
 def render_mesh(source, path, pixels: int = PIXELS) -> None:

@@ -151,9 +151,10 @@ def dem_frame_error(frame: str, outputs, slope=None, aspect=None, hillshade=None
             "or write a mesh")
 
 
-def finish(result, interp, frame, crs, crs_source, options):
+def finish(result, interp, frame, crs, crs_source, options, dem=None):
     """Add the CRS to the report and render the preview when one was asked for (both
-    frames: preview.render_fit)."""
+    frames: preview.render_fit). dem: (grid, sampler) of the DEM the fit wrote
+    (raster.dem_sampling), whose cells the preview then draws; None: no DEM."""
     facts = crs_module.describe(crs)
     if facts is not None:
         facts["source"] = crs_source
@@ -164,7 +165,7 @@ def finish(result, interp, frame, crs, crs_source, options):
         from c1mesh.geo.preview import render_fit
         start = time.perf_counter()
         render_fit(interp, frame, options.preview, crs=crs, level=result.report.get("level"),
-                   z_factor=result.report.get("z_factor", 1.0))      # None: unknown (pipeline)
+                   z_factor=result.report.get("z_factor", 1.0), dem=dem)      # None: unknown (pipeline)
         result.report["seconds"]["preview"] = round(time.perf_counter() - start, 6)
     return result
 

@@ -91,6 +91,52 @@ def horn_gradient(dem: np.ndarray, resolution: float) -> np.ndarray:
     return out
 
 
+HORN_WEIGHTS = (1.0, 2.0, 1.0)
+"""Horn's weights of the three rows (for dz/dx) or columns (for dz/dy) of the 3x3 window."""
+
+
+def horn_gradient_at_edges(dem: np.ndarray, resolution: float) -> np.ndarray:
+    """Horn's gradient of a whole north-up DEM, also at cells next to nodata or the border.
+
+    dem (h, w), NaN = nodata → (h, w, 2) = (dz/dx east, dz/dy north), NaN exactly where the
+    DEM is. Horn's dz/dx is the 1-2-1 weighted mean of the central differences of the
+    window's three rows (dz/dy: of its three columns). A row missing a cell gives the
+    one-sided difference of the two it has (a row with one cell or none is left out, the
+    weights of the others renormalised); a cell with no row giving a difference (a strip
+    one cell wide) has 0 there. With all nine cells this is horn_gradient; a plane gives
+    its exact gradient at every cell. gdaldem -compute_edges does the same at the raster's
+    border (it extrapolates a missing row or column linearly), but repeats the centre cell
+    for a nodata neighbour, which flattens the slope at the rim of every gap; the
+    one-sided difference keeps it.
+    """
+    z = np.pad(np.asarray(dem, dtype=np.float64), 1, constant_values=np.nan)
+    h, w = z.shape[0] - 2, z.shape[1] - 2
+    cell = lambda di, dj: z[1 + di:1 + di + h, 1 + dj:1 + dj + w]   # noqa: E731  di > 0 south, dj > 0 east
+    out = np.empty((h, w, 2))
+    out[..., 0] = _weighted_differences([(cell(di, -1), cell(di, 0), cell(di, 1)) for di in (-1, 0, 1)],
+                                        resolution)
+    out[..., 1] = _weighted_differences([(cell(1, dj), cell(0, dj), cell(-1, dj)) for dj in (-1, 0, 1)],
+                                        resolution)
+    out[~np.isfinite(dem)] = np.nan
+    return out
+
+
+def _weighted_differences(lines, resolution: float) -> np.ndarray:
+    """Horn's weighted mean of the differences along three lines (low, middle, high) (h, w)
+    each: central where both ends are data, else one-sided with the middle, else left out;
+    0 where no line has one."""
+    total, weight = 0.0, 0.0
+    for w, (low, middle, high) in zip(HORN_WEIGHTS, lines):
+        d = (high - low) / (2 * resolution)
+        d = np.where(np.isfinite(d), d, (high - middle) / resolution)
+        d = np.where(np.isfinite(d), d, (middle - low) / resolution)
+        have = np.isfinite(d)
+        total = total + np.where(have, w * d, 0.0)
+        weight = weight + np.where(have, w, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(weight > 0, total / weight, 0.0)
+
+
 def slope_degrees(gradient: np.ndarray) -> np.ndarray:
     """Slope from horizontal in degrees, from gradients (..., 2)."""
     return np.degrees(np.arctan(np.hypot(gradient[..., 0], gradient[..., 1])))
@@ -287,28 +333,35 @@ def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(math.sqrt(area / points.shape[0]))
 
 
-def write_fit_rasters(targets: RasterTargets, interp, frame, options, crs: str | None,
-                      data_xy=None, reach: float | None = None) -> dict:
-    """Sample a fitted spline onto the aligned grid covering its triangulation and write
-    the requested rasters; returns the report's "raster" section. data_xy (m, 2): the
+def dem_sampling(interp, frame, resolution: float, data_xy=None,
+                 reach: float | None = None) -> tuple[RasterGrid, SplineSampler]:
+    """The grid of a fit's DEM (aligned at `resolution`, covering the triangulation in
+    world x, y) and the sampler of the spline at its cell centres. data_xy (m, 2): the
     fitted points in the frame's plane (their cells always get a value within `reach`,
-    the trim's max_edge: SplineSampler); None: the triangulation alone decides.
-    options.z_factor (None: 1) scales slope and hillshade; heights in units of their own
-    without one are refused before (pipeline.check_angles)."""
+    the trim's max_edge: SplineSampler); None: the triangulation alone decides. The
+    rasters (write_fit_rasters) and the fit's preview (preview.render_dem_fit) both take
+    their cells from these, so they cover the same cells."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
+    lo = interp.points.min(axis=0) + frame.origin[:2]
+    hi = interp.points.max(axis=0) + frame.origin[:2]
+    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach)
+
+
+def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler, options,
+                      crs: str | None) -> dict:
+    """Write the requested rasters of a fitted spline on its DEM grid (dem_sampling);
+    returns the report's "raster" section. options.z_factor (None: 1) scales slope and
+    hillshade; heights in units of their own without one are refused before
+    (pipeline.check_angles)."""
     if crs and (options.slope or options.aspect or options.hillshade):
         from c1mesh.core.crs import describe
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
                              "geographic (degrees): reproject to a projected CRS first")
-    lo = interp.points.min(axis=0) + frame.origin[:2]
-    hi = interp.points.max(axis=0) + frame.origin[:2]
-    grid = RasterGrid.covering(lo, hi, options.resolution)
-    spacing = mean_spacing(interp.points, interp.triangles)
+    spacing = mean_spacing(sampler.interp.points, sampler.interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
     z_factor = 1.0 if getattr(options, "z_factor", None) is None else float(options.z_factor)
-    report = write_rasters(targets, grid, SplineSampler(interp, frame.origin, data_xy, reach), method, crs,
-                           z_factor=z_factor)
+    report = write_rasters(targets, grid, sampler, method, crs, z_factor=z_factor)
     report["point_spacing"] = float(spacing)
     return report

@@ -16,7 +16,7 @@ import numpy as np
 from c1mesh.core.cloud import PointCloud
 from c1mesh.stages.curtains import remove_curtains, view_rules_apply
 from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
-from c1mesh.geo.raster import is_raster_path, raster_axis, write_fit_rasters
+from c1mesh.geo.raster import dem_sampling, is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.core.errors import InputError
 from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
 from c1mesh.stages.frame import auto_axis_reason, choose_frame
@@ -425,12 +425,12 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     if geo.rasters.items():
         with timer.stage("raster"):
             data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
-            raster_report = write_fit_rasters(geo.rasters, interp, frame, options, crs, data_xy,
-                                              trim_report.max_edge)
+            dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge)
+            raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
         report = _raster_report(source, output, options, cloud, model, timer, angles, crs_facts(crs, crs_source))
         report["raster"] = raster_report
         return _finish_geo(FitResult(None, report),
-                           interp, frame, crs, crs_source, options)
+                           interp, frame, crs, crs_source, options, dem=dem)
     level, level_from = plane_level(interp.points, interp.triangles, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
