@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 import c1mesh
-from c1mesh.stages.warnings import smoothing_suggestion
+from stderr_lines import ADVICE
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
@@ -108,10 +108,6 @@ def _environment() -> dict:
     source = str(Path(c1mesh.__file__).resolve().parent.parent)
     return {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '/usr/bin:/bin')}",
             "PYTHONPATH": os.pathsep.join([source, *filter(None, [os.environ.get("PYTHONPATH")])])}
-
-
-ADVICE = re.compile(r"c1mesh: note: [^:]+: " + re.escape(smoothing_suggestion(1, 1)).replace("100%", r"\d+%"))
-"""The note advising --smooth auto for noisy heights (c1mesh.stages.warnings), any share."""
 
 
 def _complaints(command: str, stderr: str) -> list[str]:
