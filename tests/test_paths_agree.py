@@ -41,7 +41,7 @@ def _las(path: Path, x, y, z, classes) -> Path:
 def inputs(tmp_path_factory) -> dict[str, list[str]]:
     """Name -> the input and its options: the 4_6_crop vegetation the issue names, a class
     the file lacks, an empty file, two layers, points at two plane positions, a class with
-    two points, and a ground sample that fits."""
+    two points, a trim that leaves nothing to smooth, and a ground sample that fits."""
     folder = tmp_path_factory.mktemp("inputs")
     rng = np.random.default_rng(0)
     n = 30000
@@ -56,6 +56,8 @@ def inputs(tmp_path_factory) -> dict[str, list[str]]:
         "two layers": [str(_las(folder / "layers.las", x, y, np.where(two == 1, 20.0, 0.0) + 0.01 * x, 2))],
         "two positions": [str(_las(folder / "two.las", 1.0 * two, 2.0 * two, rng.uniform(0, 1, n), 2))],
         "two ground points": [str(_las(folder / "few.las", x, y, np.sin(x / 9), few)), "--classes", "2"],
+        "trimmed away, smoothing": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--max-edge", "0.001",
+                                    "--smooth", "auto"],
         "ground": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--level", "1"],
     }
 
@@ -83,7 +85,7 @@ def _first_line(text: str) -> str:
 
 
 @pytest.mark.parametrize("case", ["vegetation", "missing class", "empty", "two layers", "two positions",
-                                  "two ground points", "ground"])
+                                  "two ground points", "trimmed away, smoothing", "ground"])
 def test_every_path_gives_the_same_answer(tmp_path, inputs, cluster, case):
     answers = {}
     for name, path_args in PATHS.items():

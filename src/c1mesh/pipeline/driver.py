@@ -31,7 +31,7 @@ from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import trim_mesh
+from c1mesh.stages.trim import check_triangles_left, trim_mesh
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, gradient_data_weight, parse_strength
 from c1mesh.stages.surface import PLANE_LEVEL
@@ -349,8 +349,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         if not plan_heights:     # its angles and noise widths compare heights with plane lengths
             mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
                                                 view_rules_apply(options.classes, frame.axes))
-        if mesh.triangles.shape[0] == 0:
-            raise InputError("no triangles are left after trimming; try --max-edge none")
+        check_triangles_left(mesh.triangles.shape[0])
         local, triangles = compact_vertices(xy, mesh.triangles)
         used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None

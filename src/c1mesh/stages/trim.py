@@ -52,6 +52,13 @@ MIN_CIRCLE_RATIO = 0.01
 this is a sliver (the in-memory and the tiled trim use the same value)."""
 
 
+def check_triangles_left(count: int) -> None:
+    """InputError when the trim left no triangle (`count` 0): nothing to fit or refine. Every
+    path says it right after its trim, before the smoothing fit or the refinement."""
+    if count == 0:
+        raise InputError("no triangles are left after trimming; try --max-edge none")
+
+
 def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "auto",
          min_circle_ratio: float = MIN_CIRCLE_RATIO) -> tuple[np.ndarray, TrimReport]:
     """Remove gap-bridging and thin boundary triangles; return (triangles (T', 3), report).

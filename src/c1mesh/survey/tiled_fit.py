@@ -61,6 +61,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.stages.curtains import view_rules_apply
+from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
@@ -187,6 +188,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             removed = trim_tiles(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
+            check_triangles_left(sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None))
             if outputs is None and output is not None:
                 _check_size(triangle_files, options, output, colours.present)
             done("trim")

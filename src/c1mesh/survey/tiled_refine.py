@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from c1mesh.core.errors import InputError
+from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.tiled_input import Colours
 from c1mesh.survey.tiled_report import TileRows
 from c1mesh.survey.tiles import task_row
@@ -168,8 +168,7 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
                 join.passed(t)
                 next_tile += 1
     written, faces = join.written, join.faces
-    if faces == 0:
-        raise InputError("no triangles are left after trimming; try --max-edge none")
+    check_triangles_left(faces)
     report = {"kept": join.kept, "output_mesh": {"vertices": written, "faces": faces},
               "shared_vertex_keys": join.keys,
               "shared_vertex_keys_held": join.shared.peak, "triangles_per_tile": triangles_per_tile}
