@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from c1mesh.cli import main, usage_error
+from stderr_lines import stderr_on_a_terminal
 from c1mesh.formats import read_cloud
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -127,24 +129,29 @@ def test_report_to_stderr_and_verbose(tmp_path):
     assert '"c1_certificate"' in result.stderr
 
 
-def _notes(stderr: bytes) -> list[str]:
-    return [line for line in stderr.decode().splitlines() if line.startswith("c1mesh: note:")]
+def _notes(stderr: str) -> list[str]:
+    """The `c1mesh: note:` lines of stderr (a terminal's: progress may share a line's start)."""
+    return re.findall(r"c1mesh: note: [^\r\n]*", stderr)
 
 
-def test_noisy_heights_draw_the_advice_to_smooth_once_on_stderr(tmp_path):
+def test_noisy_heights_draw_the_advice_to_smooth_once_on_a_terminal(tmp_path):
     """Issue 35: the report's advice to fit noisy heights with --smooth auto is also one
-    `c1mesh: note:` line. Autzen ground is noisy by the rule's own measure (the limiter
-    changed the gradients of over 10% of the kept points), hill.ply's exact heights are not
-    (test_fit_through_a_real_subprocess: nothing on stderr); -q silences the note."""
+    `c1mesh: note:` line on a terminal (issue 38: as progress, never on a pipe). Autzen
+    ground is noisy by the rule's own measure (the limiter changed the gradients of over
+    10% of the kept points), hill.ply's exact heights are not; -q silences the note."""
     sample, report = SAMPLES / "autzen_trim.laz", tmp_path / "r.json"
-    proc = run("fit", sample, "--classes", "2", "-o", tmp_path / "g.ply", "--report", report)
-    assert proc.returncode == 0, proc.stderr
+    shown = stderr_on_a_terminal(["fit", str(sample), "--classes", "2", "-o", str(tmp_path / "g.ply"),
+                                  "--report", str(report)])
     facts = json.loads(report.read_text())
     assert facts["overshoot"]["gradients_limited"] > 0.1 * facts["points"]["kept"]
     assert facts["suggestion"].startswith("the heights look noisy") and "--smooth auto" in facts["suggestion"]
-    assert proc.stderr.decode().splitlines() == [f"c1mesh: note: {sample}: {facts['suggestion']}"]
-    quiet = run("fit", sample, "--classes", "2", "-o", tmp_path / "q.ply", "-q")
-    assert quiet.returncode == 0 and quiet.stderr == b""
+    assert shown.count(f"c1mesh: note: {sample}: {facts['suggestion']}") == 1, shown
+    piped = run("fit", sample, "--classes", "2", "-o", tmp_path / "p.ply")
+    assert piped.returncode == 0 and piped.stderr == b""
+    quiet = stderr_on_a_terminal(["fit", str(sample), "--classes", "2", "-o", str(tmp_path / "q.ply"), "-q"])
+    assert quiet == ""
+    exact = stderr_on_a_terminal(["fit", str(SAMPLES / "hill.ply"), "-o", str(tmp_path / "h.ply"), "-q"])
+    assert "note" not in exact
 
 
 @pytest.mark.parametrize("smooth", ["auto", "off"])
@@ -152,12 +159,11 @@ def test_no_advice_to_smooth_when_smooth_is_given(tmp_path, smooth):
     """topo.csv's exact fit draws the advice (52 noisy-looking heights); with --smooth given,
     auto or off, the user has chosen and no note is printed."""
     sample = SAMPLES / "topo.csv"
-    plain = run("fit", sample, "-o", tmp_path / "p.ply", "--level", "1")
-    assert plain.returncode == 0 and len(_notes(plain.stderr)) == 1 and "--smooth auto" in _notes(plain.stderr)[0]
-    chosen = run("fit", sample, "-o", tmp_path / "s.ply", "--level", "1", "--smooth", smooth,
-                 "--report", tmp_path / "r.json")
-    assert chosen.returncode == 0, chosen.stderr
-    assert _notes(chosen.stderr) == [] and ("smoothing" in json.loads((tmp_path / "r.json").read_text())) == (
+    plain = stderr_on_a_terminal(["fit", str(sample), "-o", str(tmp_path / "p.ply"), "--level", "1"])
+    assert len(_notes(plain)) == 1 and "--smooth auto" in _notes(plain)[0]
+    chosen = stderr_on_a_terminal(["fit", str(sample), "-o", str(tmp_path / "s.ply"), "--level", "1",
+                                   "--smooth", smooth, "--report", str(tmp_path / "r.json")])
+    assert _notes(chosen) == [] and ("smoothing" in json.loads((tmp_path / "r.json").read_text())) == (
         smooth == "auto")
 
 
@@ -521,8 +527,7 @@ def test_readmes_list_exactly_the_registry_formats():
 def test_scheduler_for_a_fit_in_memory_fits_here_with_a_note(tmp_path, survey):
     """README: `fit BIG.laz ... -o big.ply --memory 2G --scheduler ADDR`. When the input fits
     in memory there are no tiles to send: the fit runs here, writes what a run without
-    --scheduler writes, prints one `c1mesh: note:` line about it (then the exact fit's advice
-    to smooth the noisy ground) and says so in the report."""
+    --scheduler writes, prints one `c1mesh: note:` line about it and says so in the report."""
     distributed = pytest.importorskip("distributed")
     args = ["fit", str(SAMPLES / "4_6_crop.las"), "--classes", "2", "--level", "2", "--memory", "2G"]
     args += ["--seamless"] if survey else []
@@ -534,8 +539,7 @@ def test_scheduler_for_a_fit_in_memory_fits_here_with_a_note(tmp_path, survey):
                                                 cluster.scheduler_address, "--report", str(tmp_path / "r.json")])
     assert sent.exit_code == 0, sent.output
     notes = [line for line in sent.stderr.splitlines() if line.startswith("c1mesh: note: ")]
-    assert len(notes) == 2 and "--scheduler not used" in notes[0], sent.stderr
-    assert "the heights look noisy" in notes[1] and "--scheduler" not in notes[1]
+    assert len(notes) == 1 and "--scheduler not used" in notes[0], sent.stderr   # not a terminal: no advice
     assert "c1mesh: error" not in sent.stderr
     assert json.loads((tmp_path / "r.json").read_text())["scheduler"].startswith("not used: ")
     assert (tmp_path / "big.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()

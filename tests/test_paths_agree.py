@@ -1,7 +1,8 @@
 """Every path of `c1mesh fit` gives the same answer to the same bad or odd input: in memory,
 in tiles under --memory, as one part per input with --seamless -O (in memory and in
 tiles), and with the tiles on a Dask cluster. The same exit code, the same first line on
-stderr, and no output left behind when it fails.
+stderr, no output left behind when it fails, and for the input that fits the same advice
+in the report to smooth its noisy heights.
 
 Ground truth is the in-memory fit's check (stages.height_field, stages.height_gradients,
 the LAS reader); the other paths must reach the same verdict with the same numbers, not a
@@ -20,6 +21,7 @@ laspy = pytest.importorskip("laspy")
 distributed = pytest.importorskip("distributed")
 
 from c1mesh.cli import main
+from stderr_lines import ADVICE
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 BUDGET = "8M"
@@ -91,8 +93,10 @@ def test_every_path_gives_the_same_answer(tmp_path, inputs, cluster, case):
     for name, path_args in PATHS.items():
         out = tmp_path / name.replace(" ", "_").strip("-")
         out.mkdir()
-        result = CliRunner().invoke(main, ["fit", *inputs[case], "-q", *path_args(out, cluster)])
-        answers[name] = (result.exit_code, _first_line(result.stderr))
+        report = tmp_path / f"{out.name}.json"
+        result = CliRunner().invoke(main, ["fit", *inputs[case], *path_args(out, cluster), "--report", str(report)])
+        answers[name] = (result.exit_code, _first_line(result.stderr),
+                         json.loads(report.read_text()).get("suggestion") if not result.exit_code else None)
         if result.exit_code:
             assert sorted(p.name for p in out.iterdir()) == [], f"{name} left output behind"
         else:
@@ -100,6 +104,8 @@ def test_every_path_gives_the_same_answer(tmp_path, inputs, cluster, case):
     assert len(set(answers.values())) == 1, json.dumps(answers, indent=1)
     expected_exit = 0 if case == "ground" else 1
     assert answers["in memory"][0] == expected_exit
+    if case == "ground":                  # noisy LiDAR ground: every path's report advises --smooth auto
+        assert ADVICE.fullmatch(f"c1mesh: note: {inputs[case][0]}: {answers['in memory'][2]}")
 
 
 def test_the_budget_really_tiles_the_inputs(tmp_path):

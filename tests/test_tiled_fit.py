@@ -10,12 +10,8 @@ the in-memory limiter's gradients to the bit.
 from __future__ import annotations
 
 import json
-import os
-import pty
-import select
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +23,7 @@ laspy = pytest.importorskip("laspy")
 from click.testing import CliRunner
 
 from c1mesh.cli import main
+from stderr_lines import stderr_on_a_terminal
 from c1mesh.stages.curtains import REASONS, remove_curtains
 from c1mesh.stages.frame import choose_frame
 from c1mesh.stages.height_field import height_field
@@ -583,43 +580,17 @@ def test_real_dask_scheduler_and_two_workers_fit_the_tiles(tmp_path, dask_proces
     assert len(workers) == 2 and all(w.startswith("tcp://127.0.0.1:") for w in workers)
 
 
-def _stderr_on_a_terminal(args: list[str], timeout: float = 300) -> str:
-    """What `c1mesh ARGS` writes to stderr when stderr is a terminal (a pseudo-terminal
-    here), read as it runs; fails on a non-zero exit or after timeout seconds."""
-    leader, follower = pty.openpty()
-    child = subprocess.Popen([sys.executable, "-m", "c1mesh.cli", *args], stdin=subprocess.DEVNULL,
-                             stdout=subprocess.DEVNULL, stderr=follower)
-    os.close(follower)
-    chunks, deadline = [], time.monotonic() + timeout
-    try:
-        while select.select([leader], [], [], max(0.0, deadline - time.monotonic()))[0]:
-            try:
-                chunk = os.read(leader, 4096)
-            except OSError:                 # EIO: the child closed its end
-                break
-            if not chunk:
-                break
-            chunks.append(chunk)
-    finally:
-        os.close(leader)
-    shown = b"".join(chunks).decode(errors="replace")
-    if child.poll() is None and time.monotonic() >= deadline:
-        child.kill()
-    assert child.wait(timeout=10) == 0, shown
-    return shown
-
-
 def test_fits_in_tiles_show_their_tiles_on_a_terminal_and_nothing_on_a_pipe(tmp_path):
     """A fit larger than --memory, of one file or of a `--seamless -O` survey: on a
     terminal the progress bar names each stage and counts each pass's tiles as they
     finish, not only the outputs once everything is done; on a pipe stderr stays empty."""
     whole_file, parts, _, _ = _west_east_survey(tmp_path)
     args = ["fit", *map(str, parts), "--seamless", "--classes", "2", "--level", "2", "--memory", "1M"]
-    shown = _stderr_on_a_terminal([*args, "-O", str(tmp_path / "tty")])
+    shown = stderr_on_a_terminal([*args, "-O", str(tmp_path / "tty")])
     for stage in ("normals: tile 4 of 4", "triangulate: tile 4 of 4", "refine: tile 4 of 4", "refine+write"):
         assert stage in shown, shown
     assert sorted(p.name for p in (tmp_path / "tty").iterdir()) == ["east.c1.ply", "west.c1.ply"]
-    single = _stderr_on_a_terminal(["fit", str(whole_file), "-o", str(tmp_path / "single.ply"), *args[-6:]])
+    single = stderr_on_a_terminal(["fit", str(whole_file), "-o", str(tmp_path / "single.ply"), *args[-6:]])
     assert "normals: tile 4 of 4" in single and "refine: tile 4 of 4" in single, single
     piped = subprocess.run([sys.executable, "-m", "c1mesh.cli", *args, "-O", str(tmp_path / "pipe")],
                            capture_output=True, text=True, timeout=300)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import click
 
+from c1mesh.cli.shell import stderr_is_terminal
+
 
 def summary(report: dict) -> str:
     """The -v line about one fit: points kept of read, what was made, seconds, and the
@@ -31,7 +33,8 @@ def note(report: dict, quiet: bool) -> None:
     --scheduler not used (the user asked for the cluster and should know the work stayed
     here), and a --max-slope given for heights whose slopes are no angles (the report's
     max_slope_not_applied; its default then goes unmentioned); and the report's advice to
-    fit noisy heights with --smooth auto, unless --smooth was given (the user chose)."""
+    fit noisy heights with --smooth auto, unless --smooth was given (the user chose), and
+    only on a terminal, as progress: a pipe or a log stays quiet (the report keeps it)."""
     if quiet:
         return
     used = report.get("scheduler")
@@ -41,7 +44,7 @@ def note(report: dict, quiet: bool) -> None:
     if why and _option_given("max_slope"):
         click.echo(f"c1mesh: note: {_input_name(report)}: --max-slope was not applied: {why}", err=True)
     advice = report.get("suggestion")
-    if advice and not _option_given("smooth"):
+    if advice and not _option_given("smooth") and stderr_is_terminal():
         click.echo(f"c1mesh: note: {_input_name(report)}: {advice}", err=True)
 
 

@@ -12,6 +12,7 @@ from typing import Callable, Sequence
 from c1mesh.core.errors import InputError
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.surface import with_plane_level
+from c1mesh.stages.warnings import smoothing_suggestion
 from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
@@ -119,4 +120,10 @@ def tiled_report(facts: dict, options) -> dict:
         scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor))
-    return {**report, **facts}
+    report.update(facts)
+    overshoot = report.get("overshoot")
+    if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory
+        text = smoothing_suggestion(overshoot["gradients_limited"], int(report["points"]["kept"]))
+        if text is not None:
+            report["suggestion"] = text
+    return report
