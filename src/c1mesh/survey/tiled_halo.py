@@ -279,11 +279,16 @@ def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -
     """The exact median of the float64 values that task(*arguments(t, path)) writes to its
     own file `path` for every tile t of tiles, each a task on runner
     (distributed.TaskRunner); name(t) names tile t in errors; label names the files."""
-    from c1mesh.survey.streamed_median import streamed_median
-
     paths = [temps.new(f"{label}-{t}.bin") for t in tiles]
     for _ in runner.map(task, len(tiles), lambda i: arguments(tiles[i], paths[i]), lambda i: name(tiles[i])):
         pass
+    return median_of_files(paths)
+
+
+def median_of_files(paths) -> float:
+    """The exact median of the float64 values in the files `paths` (streamed_median's,
+    as np.median gives it), which it then removes."""
+    from c1mesh.survey.streamed_median import streamed_median
 
     def blocks():
         for path in paths:

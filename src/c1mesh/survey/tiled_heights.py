@@ -166,8 +166,7 @@ def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, te
 def _sampled_median(heights, grid, tiles, positions: int, first_reach: float, runner, name, temps) -> float:
     """The median of tile_sample_spacings over every tile (spacing_sample's rule, which
     takes every position when none is picked)."""
-    from c1mesh.survey.streamed_median import streamed_median
-    from c1mesh.survey.tiled_halo import residual_blocks
+    from c1mesh.survey.tiled_halo import median_of_files
 
     paths = [temps.new(f"spacings-{t}.bin") for t in tiles]
     for every in (False, True):
@@ -177,14 +176,7 @@ def _sampled_median(heights, grid, tiles, positions: int, first_reach: float, ru
                                               lambda i: name(tiles[i])))
         if picked:
             break
-
-    def blocks():
-        for path in paths:
-            yield from residual_blocks(path)
-    median = streamed_median(blocks)
-    for path in paths:
-        path.unlink()
-    return median
+    return median_of_files(paths)
 
 
 def tile_sample_spacings(heights, grid, tile: int, positions: int, every: bool, first_reach: float, path) -> int:
