@@ -198,7 +198,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
 
                 from c1mesh.stages.smoothing import gradient_data_weight
 
-                limiter = TiledSmoother(heights, triangle_files, grid, strength, longest, options.overshoot,
+                limiter = TiledSmoother(heights, triangle_files, grid, strength, spacing, longest, options.overshoot,
                                         temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row),
                                         gradient_weight=gradient_data_weight("estimated", gradient_source))

@@ -4,11 +4,10 @@ the vertex data of the vertices in its own cell.
 
 What runs where, after the trim (c1mesh.survey.tiled_fit):
 
-- the spacing h, the strength's length unit: the median 3D distance from a height-field
-  point to its nearest other one, over every point of the survey (a task per tile on its
-  cell grown by the halo reach, then c1mesh.survey.streamed_median); in memory it is the
-  same median over a sample of at most 20,000 points (height_field), so λ can differ
-  from the in-memory fit's by that sampling;
+- the spacing h, the strength's length unit: the stacking test's (tiled_heights.survey_stacking),
+  the median 3D distance from a height-field position to its nearest other one over the
+  positions height_field.spacing_sample picks, as the in-memory fit measures it (equal
+  but for the last bit of the frames' local coordinates); so λ is the in-memory fit's;
 - the strength s: given, or with --smooth auto chosen by the in-memory search
   (smoothing.smooth_fit's block cross-validation) on the halo of the tile holding the most
   points, then used by every tile;
@@ -35,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, corner_rows, median_over_tiles, own_triangles_in
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, corner_rows, own_triangles_in
 
 HALO_LENGTHS = 28.0
 """A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
@@ -54,29 +53,6 @@ def smoothing_reach(strength: float, spacing: float, longest_edge: float,
     """How far beyond its cell a tile's smoothing solve reads (frame units): `lengths`
     smoothing lengths s^(1/4) h, and never less than the limiter's halo."""
     return max(lengths * float(strength) ** 0.25 * spacing, HALO_EDGES * longest_edge) * (1 + 1e-9)
-
-
-def survey_spacing(heights, grid, reach: float, runner, name, temps) -> float:
-    """h: the median 3D nearest-neighbour distance over every height-field point (module
-    docstring), each tile's distances a task (`tile_spacings`) reading its cell grown by
-    reach (a point's nearest neighbour lies within its shortest final edge, at most reach)."""
-    tiles = [t for t in range(len(grid)) if heights.counts[t]]
-    return median_over_tiles(runner, tile_spacings, tiles, lambda t, path: (heights, grid, t, reach, path),
-                             name, temps, "spacings")
-
-
-def tile_spacings(heights, grid, tile: int, reach: float, path) -> None:
-    """Write to path the 3D distance from each height-field point in tile's cell to its
-    nearest other point within its cell grown by reach."""
-    from c1mesh.stages.height_field import kd_tree
-
-    records = heights.records(grid.grown(tile, reach))
-    xyz = np.column_stack([records["x"], records["y"], records["z"]])
-    own = grid.tile_of(xyz[:, :2]) == tile
-    distances = np.empty(0)
-    if len(records) >= 2 and own.any():
-        distances = kd_tree(xyz).query(xyz[own], k=2)[0][:, 1]
-    distances.astype("<f8").tofile(path)
 
 
 @dataclass
@@ -105,25 +81,24 @@ def solve_totals(solves: list[TileSolve]) -> tuple[int, float, float | None]:
 class TiledSmoother:
     """The smoothing fit over the tiles (module docstring): construct with the trimmed
     survey's height spill, triangle files and grid, the strength ("auto" or s > 0), the
-    longest final edge, the overshoot mode ("limit": edge directions; "off": unit normals),
-    temps, a runner (distributed.TaskRunner) and name(t), and the gradient_weight of the
-    spill's gradients as data (smoothing.gradient_data_weight; 0: none); it chooses h and
-    s and runs every tile's solve. A refinement task (tiled_refine) then takes its tile's
+    spacing h (the survey's, tiled_heights.survey_stacking), the longest final edge, the
+    overshoot mode ("limit": edge directions; "off": unit normals), temps, a runner
+    (distributed.TaskRunner) and name(t), and the gradient_weight of the spill's gradients
+    as data (smoothing.gradient_data_weight; 0: none); it chooses s and runs every tile's
+    solve. A refinement task (tiled_refine) then takes its tile's
     vertex data through `tile`, as it takes the limiter's. on_done(t, row) gets each
     solve's report row (tiles.task_row: points, seconds, worker, its peak) as it finishes
     (progress)."""
 
-    def __init__(self, heights, triangle_files, grid, strength, longest_edge: float, overshoot: str,
-                 temps, runner, name=str, lengths: float | None = None, on_done=None,
+    def __init__(self, heights, triangle_files, grid, strength, spacing: float, longest_edge: float,
+                 overshoot: str, temps, runner, name=str, lengths: float | None = None, on_done=None,
                  gradient_weight: float = 0.0):
         lengths = HALO_LENGTHS if lengths is None else lengths
         self.grid, self.files, self.overshoot = grid, triangle_files, overshoot
         self.gradient_weight = float(gradient_weight)
         self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
         self.seconds: dict = {}
-        start = time.perf_counter()
-        self.spacing = survey_spacing(heights, grid, HALO_EDGES * longest_edge * (1 + 1e-9), runner, name, temps)
-        self.seconds["spacing"] = time.perf_counter() - start
+        self.spacing = float(spacing)
         self.search = None
         if strength == "auto":
             start = time.perf_counter()
