@@ -1,10 +1,13 @@
 """The memory-bounded fit's height field, a task per tile (c1mesh.survey.tiled_fit): each
 tile's normals from its buffer (c1mesh.survey.tile_normals: fitted to the heights, as in
-memory, or by PCA), then its usable points as HEIGHT records in a new TileSpill."""
+memory, or by PCA), then its usable points as HEIGHT records in a new TileSpill; then the
+in-memory fit's stacking test over the survey (`survey_stacking`: the spacing h and the
+stacked count as c1mesh.stages.height_field measures them, a task per tile and a sum)."""
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,6 +22,7 @@ survey number of its first point (the HEIGHT record kept), the position, how man
 share it and the spread of their heights (for the stacking test, `survey_stacking`)."""
 
 
+@dataclass(frozen=True)
 class HeightSpill:
     """What the height pass leaves (height_spill): heights, a TileSpill of HEIGHT records
     (one per distinct usable position); groups, a TileSpill of GROUP records (the positions
@@ -26,8 +30,9 @@ class HeightSpill:
     included (the stacking test's denominator, as height_field counts them). Close both
     with close()."""
 
-    def __init__(self, heights, groups, usable: int):
-        self.heights, self.groups, self.usable = heights, groups, usable
+    heights: object
+    groups: object
+    usable: int
 
     def close(self) -> None:
         self.heights.close()
