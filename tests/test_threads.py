@@ -212,10 +212,9 @@ class _ThreadCensus:
 
 
 def _big_mesh_inputs(n=60_000, seed=0):
-    """Enough points for the tiled triangulation and several coefficient blocks."""
-    from c1mesh.engine.triangulation import TILED_FROM
+    """Enough points for several coefficient blocks."""
     rng = np.random.default_rng(seed)
-    xy = rng.random((max(n, TILED_FROM + 5_000), 2))
+    xy = rng.random((n, 2))
     return xy, np.sin(3 * xy[:, 0]) * xy[:, 1], np.column_stack([np.cos(xy[:, 1]), xy[:, 0]])
 
 

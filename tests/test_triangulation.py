@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from c1mesh.engine import triangulation as tr
 from c1mesh.stages import trim as trim_stage
 from c1mesh.core.errors import InputError
 from c1mesh.engine.triangulation import delaunay
@@ -79,15 +78,15 @@ def test_small_random_input_equals_plain_qhull_and_is_ccw():
     assert np.all(doubled_areas(xy, tri) > 0)
 
 
-def test_large_random_input_takes_the_tiled_path_and_equals_plain_qhull():
-    xy = np.random.default_rng(1).random((tr.TILED_FROM + 10_000, 2))
+def test_large_random_input_equals_plain_qhull():
+    xy = np.random.default_rng(1).random((60_000, 2))
     tri = delaunay(xy)
     assert as_set(tri) == as_set(Delaunay(xy).simplices)
     assert np.all(doubled_areas(xy, tri) > 0)
 
 
 @pytest.mark.parametrize("kind", ["uniform", "clusters", "annulus", "anisotropic", "strip"])
-def test_tiled_triangulation_equals_plain_qhull_on_the_same_coordinates(kind):
+def test_triangulation_equals_plain_qhull_on_the_same_coordinates(kind):
     rng = np.random.default_rng(2)
     n = 30_000
     xy = {
@@ -98,14 +97,14 @@ def test_tiled_triangulation_equals_plain_qhull_on_the_same_coordinates(kind):
         "strip": lambda: rng.random((n, 2)) * [1000.0, 1.0],
     }[kind]()
     c = centred(xy)
-    tiled = tr._delaunay_tiled(c, per_tile=1000)        # raises if its own check fails
-    assert as_set(tiled) == as_set(Delaunay(c).simplices)
-    assert np.all(doubled_areas(c, tiled) > 0)
+    tri = delaunay(c)
+    assert as_set(tri) == as_set(Delaunay(c).simplices)
+    assert np.all(doubled_areas(c, tri) > 0)
 
 
 def test_grid_ties_give_a_valid_delaunay_triangulation():
     g = np.stack(np.meshgrid(np.arange(150), np.arange(120)), axis=-1).reshape(-1, 2)
-    tri = tr._delaunay_tiled(centred(g.astype(float)), per_tile=800)
+    tri = delaunay(g.astype(float))
     assert_valid_triangulation(g.astype(float), tri)
     inside, ties = exact_violations(g, tri)
     assert inside == 0 and ties > 0                     # every grid square is a tie
@@ -126,16 +125,24 @@ def test_lidar_coordinates_are_triangulated_exactly_delaunay(name):
     tri = delaunay(xy)
     assert exact_violations(q, tri)[0] == 0
     assert_valid_triangulation(xy - xy.mean(axis=0), tri)
-    small_tiles = tr._delaunay_tiled(centred(xy), per_tile=2000)
-    assert exact_violations(q, small_tiles)[0] == 0
 
 
-def test_a_failed_tiling_falls_back_to_plain_qhull(monkeypatch):
-    def broken(xy, per_tile=0):
-        raise tr._TilingFailed("test")
-    monkeypatch.setattr(tr, "_delaunay_tiled", broken)
-    xy = np.random.default_rng(3).random((tr.TILED_FROM, 2))
-    assert as_set(delaunay(xy)) == as_set(Delaunay(xy).simplices)
+def test_exact_duplicates_are_triangulated_once_by_their_first_copy():
+    """The library refuses duplicate points; delaunay triangulates the first (lowest
+    index) of each and leaves the copies in no triangle, so the public interpolator takes
+    scans with repeated points (its own check: the set of triangles of the distinct points)."""
+    from c1mesh.engine.interpolator import RSDInterpolator
+
+    rng = np.random.default_rng(4)
+    distinct = rng.random((500, 2))
+    copies = rng.integers(0, 500, 200)
+    xy = np.concatenate([distinct, distinct[copies]])
+    tri = delaunay(xy)
+    assert tri.max() < 500                                  # no copy is used
+    assert as_set(tri) == as_set(Delaunay(distinct).simplices)
+    z = np.sin(3 * xy[:, 0]) + xy[:, 1]
+    interp = RSDInterpolator(xy, z, np.column_stack([3 * np.cos(3 * xy[:, 0]), np.ones(len(xy))]))
+    assert np.allclose(interp(distinct[:20]), z[:20])
 
 
 @pytest.mark.parametrize("xy, msg", [

@@ -102,7 +102,7 @@ class RSDInterpolator:
     def _triangles(self, triangles) -> np.ndarray:
         n = self.points.shape[0]
         if triangles is None:
-            return delaunay(self.points)   # scipy's Delaunay triangles, tiled when large
+            return delaunay(self.points)   # CDT's Delaunay triangles (engine.triangulation)
         tri = np.asarray(triangles)
         if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] == 0:
             raise InputError(f"triangles must have shape (T, 3) with T >= 1, got {tri.shape}")

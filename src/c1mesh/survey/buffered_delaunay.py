@@ -157,7 +157,8 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
     max_edge: keep only the triangles whose edges are all at most this long (the long-edge
     trim), which needs only those to be safe once the buffer exceeds max_edge (module
     docstring); None keeps every triangle."""
-    from scipy.spatial import Delaunay
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import triangle_neighbours
 
     box, cell = grid.box, grid.cell(tile)
     if max_edge is not None:
@@ -172,8 +173,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
-        tri = Delaunay(local)
-        simplices = tri.simplices.astype(np.int64)
+        simplices = delaunay(local)
         at_own = own[simplices].any(axis=1)
         if max_edge is not None:
             at_own &= _longest_edge(xy, simplices) <= max_edge    # survey coordinates: trim's bits
@@ -184,7 +184,8 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             regions = None if hull is None else clip_to_hull(strips, hull.xy - centre)
             safe = (disks_clear(local, simplices[at_own], strips, regions).all()
                     and (max_edge is not None
-                         or hull_edges_final(local, index, simplices, tri.neighbors, own, strips, hull_edges)))
+                         or hull_edges_final(local, index, simplices, triangle_neighbours(simplices, len(local)),
+                                             own, strips, hull_edges)))
         if safe:
             mine = at_own & (own[simplices] & _lowest_corner(index[simplices])).any(axis=1)
             keep = simplices[mine]
@@ -282,7 +283,8 @@ def edge_length_median(read: Reader, grid: TileGrid, count: int, hull: Hull,
 def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> np.ndarray:
     """Lengths of the survey's Delaunay edges of length <= bound whose lower-numbered end
     is one of the tile's points (edge_length_median)."""
-    from scipy.spatial import Delaunay
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import triangle_neighbours
 
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
@@ -293,9 +295,9 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
-        tri = Delaunay(local)
-        simplices = tri.simplices.astype(np.int64)
-        t, k = np.nonzero((tri.neighbors < 0) | (tri.neighbors > np.arange(len(simplices))[:, None]))
+        simplices = delaunay(local)
+        neighbors = triangle_neighbours(simplices, len(local))
+        t, k = np.nonzero((neighbors < 0) | (neighbors > np.arange(len(simplices))[:, None]))
         a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
         lower = np.where(index[a] < index[b], a, b)
         lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
@@ -304,7 +306,7 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
             return lengths[mine]
         t, k, a, b = t[mine], k[mine], a[mine], b[mine]
         centres, _ = circumcircles(local, simplices)
-        circle_centre = smallest_empty_circle(local, simplices, tri.neighbors, t, k, a, b, centres)
+        circle_centre = smallest_empty_circle(local, simplices, neighbors, t, k, a, b, centres)
         radius = np.hypot(*(local[a] - circle_centre).T)
         strips = unread_strips(read_box, box, centre)
         regions = clip_to_hull(strips, hull.xy - centre)
