@@ -188,9 +188,10 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             removed = trim_tiles(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
-            check_triangles_left(sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None))
+            kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
+            check_triangles_left(kept_triangles)
             if outputs is None and output is not None:
-                _check_size(triangle_files, options, output, colours.present)
+                _check_size(kept_triangles, options, output, colours.present)
             done("trim")
             limiter = None
             if strength is not None:
@@ -241,15 +242,15 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     return report
 
 
-def _check_size(triangle_files, options, output, coloured: bool) -> None:
+def _check_size(triangles: int, options, output, coloured: bool) -> None:
     """InputError, before the smoothing, the limiter and the refinement, when the output's
-    format cannot hold the refined mesh: its faces are exactly L² per kept triangle, its
-    vertices at least refine.fewest_refined_vertices (the survey's edges are not counted
-    here); write_tiles checks the exact counts as the tiles are joined."""
+    format cannot hold the refined mesh of the survey's `triangles` kept triangles: its
+    faces are exactly L² per triangle, its vertices at least refine.fewest_refined_vertices
+    (the survey's edges are not counted here); write_tiles checks the exact counts as the
+    tiles are joined."""
     from c1mesh.engine.refine import fewest_refined_vertices
     from c1mesh.survey.tiled_refine import check_output_size
 
-    triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
     check_output_size(output, options, fewest_refined_vertices(triangles, options.level),
                       triangles * options.level ** 2, coloured)
 

@@ -155,7 +155,7 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
                     join.add(t, parts[t], row, vertex_file, face_file)
                     if split is None:      # the counts only grow: stop at the first tile past the format's limit
                         check_output_size(output, options, join.written, join.faces, coloured)
-                    if split is not None:
+                    else:
                         with open(parts[t].owners, "rb") as owners:
                             shutil.copyfileobj(owners, owner_file)
                     triangles_per_tile[t] = row["triangles"]
