@@ -46,10 +46,10 @@ METHODS = ("c1mesh off", "c1mesh limit", "c1mesh PCA", "rHCT", "rHCT limited", "
 
 def stage_data(path, options: dict):
     """(cloud, frame, xy, z, raw gradients, triangles) as `c1mesh fit` builds them."""
-    from c1mesh.stages.frame import resolve_axis
     from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
+    from c1mesh.pipeline.plan import resolve_options_axis
 
-    opts, _ = resolve_axis(path, FitOptions(**options))
+    opts, _ = resolve_options_axis(path, FitOptions(**options))
     cloud = load_cloud(path, opts)
     model = build_surface(cloud, replace(opts, overshoot="off"))     # the raw gradients
     interp = model.interp

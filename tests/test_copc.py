@@ -232,33 +232,33 @@ def test_a_fit_by_bounds_is_the_fit_of_the_filtered_points(tmp_path):
 
 
 def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path):
+    from c1mesh.core.plan import TiledRun
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.survey.tiled_fit import fit_tiled
-    from c1mesh.survey.tiled_plan import needs_tiles
+    from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
 
     box = _region(_whole()[0])
     source = _filtered_las(COPC, box, tmp_path / "filtered.las")
     options = FitOptions(level=2, memory=10**9)
-    report = fit_tiled(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box),
-                       memory=10**9, per_tile=120)
-    fit_tiled(str(source), tmp_path / "filtered.ply", options, memory=10**9, per_tile=120)
+    report = fit_in_tiles(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box),
+                          TiledRun(per_tile=120))
+    fit_in_tiles(str(source), tmp_path / "filtered.ply", options, TiledRun(per_tile=120))
     assert report["tiles"] >= 4
     assert _ply_body(tmp_path / "bounds.ply") == _ply_body(tmp_path / "filtered.ply")
     # the tiling decision counts the nodes a region read decodes, not the whole header
     budget = 1065 * 1800 - 1
-    assert needs_tiles(str(COPC), FitOptions(memory=budget))
-    assert not needs_tiles(str(COPC), FitOptions(memory=budget, bounds=box))
+    assert in_tiles(str(COPC), FitOptions(memory=budget))
+    assert not in_tiles(str(COPC), FitOptions(memory=budget, bounds=box))
 
 
 def test_a_seamless_survey_by_bounds_reads_each_input_filtered(tmp_path):
-    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.core.plan import PointSelection
     from c1mesh.survey.tiles import load_survey
 
     points, _ = _whole()
     box = _region(points)
     everything = (-1e9, -1e9, 1e9, 1e9)
     plain = _filtered_las(COPC, everything, tmp_path / "plain.las")       # the same points, not COPC
-    survey = load_survey([str(COPC), str(plain)], FitOptions(bounds=box))
+    survey = load_survey([str(COPC), str(plain)], PointSelection(bounds=box))
     inside = points[_in(points, box)]
     np.testing.assert_array_equal(survey.cloud.points, np.concatenate([inside, inside]))
     assert list(np.diff(survey.offsets)) == [len(inside), len(inside)]

@@ -77,13 +77,15 @@ def test_a_wrong_height_axis_warns_and_the_right_one_does_not():
 def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
     """--max-edge 2.5 on the 0.75 m ground tile: one warning, the same rule and numbers in
     the in-memory fit, --seamless -O and the tiled fit (which cannot count pieces)."""
-    from c1mesh.survey.tiled_fit import fit_tiled
-    from c1mesh.pipeline.survey_fit import fit_seamless
+    from dataclasses import replace
+
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline.survey_fit import fit_in_tiles, fit_seamless
 
     options = FitOptions(classes=(2,), level=1, max_edge=2.5)
     whole = fit(TILE, None, options).report["warnings"]
     seamless = fit_seamless([str(TILE)], options, outputs=[str(tmp_path / "o.ply")])["warnings"]
-    tiled = fit_tiled(TILE, tmp_path / "t.ply", options, memory=10**9, per_tile=1000)["warnings"]
+    tiled = fit_in_tiles(TILE, tmp_path / "t.ply", replace(options, memory=10**9), TiledRun(per_tile=1000))["warnings"]
     assert len(whole) == 1 and whole[0].startswith("--max-edge 2.5 removed")
     assert seamless == [w.split(" (the surface fell")[0] for w in whole]
     assert tiled == seamless
@@ -91,8 +93,10 @@ def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
 
 def test_a_fit_in_tiles_of_autzen_ground_warns_nothing(tmp_path):
     """Beyond --memory the same rule: no warning (the tile count is a note, not a warning)."""
-    from c1mesh.survey.tiled_fit import fit_tiled
+    from dataclasses import replace
 
-    report = fit_tiled(AUTZEN, tmp_path / "t.ply", FitOptions(classes=(2,), level=1), memory=10**9,
-                       per_tile=7000)
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline.survey_fit import fit_in_tiles
+
+    report = fit_in_tiles(AUTZEN, tmp_path / "t.ply", replace(FitOptions(classes=(2,), level=1), memory=10**9), TiledRun(per_tile=7000))
     assert report["warnings"] == [] and report["note"].startswith("fitted in 4 tiles")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +36,8 @@ from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.surface import surface_stream
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
-from c1mesh.survey.tiled_fit import fit_tiled
+from c1mesh.core.plan import TiledRun
+from c1mesh.pipeline.survey_fit import fit_in_tiles
 from c1mesh.survey.tiled_halo import drop_triangles, halo_reach, read_halo
 from c1mesh.survey.tiled_heights import HEIGHT
 from c1mesh.survey.tiled_limiter import noise_floors, tile_limits
@@ -140,7 +142,7 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot, gradients)
     whole, max_edge, kept = _in_memory(source, [2], level, overshoot,
                                        gradients="normals" if gradients == "normals" else "heights")
     options = FitOptions(classes=(2,), overshoot=overshoot, level=level, gradients=gradients)
-    report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=700)
+    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(options, memory=10**9), TiledRun(per_tile=700))
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
@@ -160,7 +162,7 @@ def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path, rule):
     source = SAMPLES / "4_6_crop.las"
     whole, max_edge, kept = _in_memory(source, [2], 2, max_edge=rule)
     options = FitOptions(classes=(2,), level=2, max_edge=rule)
-    report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=1000)
+    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(options, memory=10**9), TiledRun(per_tile=1000))
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
     assert report["triangles"]["removed"]["sliver"] == whole.slivers > 0
@@ -183,7 +185,7 @@ def test_tiled_fit_of_autzen_ground_removes_the_bowties_and_curtains_of_the_whol
     assert whole.removed["bowtie"] > 0
     assert sum(whole.removed[r] for r in REASONS) > 0
     options = FitOptions(classes=(2,), level=2)
-    report = fit_tiled(source, tmp_path / "tiled.ply", options, memory=10**9, per_tile=per_tile)
+    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(options, memory=10**9), TiledRun(per_tile=per_tile))
     assert report["tiles"] == (4 if per_tile == 7000 else 16)
     assert report["triangles"]["removed"] == whole.removed
     assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
@@ -449,13 +451,12 @@ def test_tiled_fit_writes_the_same_bytes_wherever_its_tiles_run(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
     options = FitOptions(classes=[2], level=2)
-    here = fit_tiled(source, tmp_path / "here.ply", options, memory=10**9, per_tile=450)
+    here = fit_in_tiles(source, tmp_path / "here.ply", replace(options, memory=10**9), TiledRun(per_tile=450))
     assert here["tiles"] == 9
-    pool = fit_tiled(source, tmp_path / "pool.ply", options, memory=10**9, per_tile=450, jobs=2)
+    pool = fit_in_tiles(source, tmp_path / "pool.ply", replace(options, memory=10**9), TiledRun(per_tile=450, jobs=2))
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        dask = fit_tiled(source, tmp_path / "dask.ply", options, memory=10**9, per_tile=450,
-                         scheduler=cluster.scheduler_address)
+        dask = fit_in_tiles(source, tmp_path / "dask.ply", replace(options, memory=10**9), TiledRun(per_tile=450, scheduler=cluster.scheduler_address))
         dask_workers = set(cluster.scheduler.workers)
     expected = (tmp_path / "here.ply").read_bytes()
     assert (tmp_path / "pool.ply").read_bytes() == expected

@@ -47,14 +47,13 @@ def fit_survey(inputs, output, output_dir, suffix, input_format, options, report
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         fail(message(exc), debug)
-    from c1mesh.pipeline.survey_fit import fit_seamless
-    from c1mesh.survey.tiled_plan import survey_needs_tiles
+    from c1mesh.pipeline.survey_fit import fit_seamless, in_tiles
 
     options.workers = threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
     outputs = [d for _, d in pairs] if output_dir else None
     unused = None
-    if scheduler is not None and not output_dir and not survey_needs_tiles(list(inputs), options):
+    if scheduler is not None and not output_dir and not in_tiles(list(inputs), options):
         scheduler, unused = None, _SCHEDULER_UNUSED.format(what="the survey")   # one fit, in this process
     try:
         if stderr_is_terminal() and not quiet:
@@ -91,13 +90,13 @@ def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile
     fitted here, and a scheduler given for it is recorded in the report as not used (the
     line c1mesh.cli.messages.note prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
-    from c1mesh.pipeline.survey_fit import fit_in_tiles
-    from c1mesh.survey.tiled_plan import needs_tiles
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
-    if needs_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit
-        return fit_in_tiles(source, target, options, on_stage=on_stage, jobs=jobs, on_tile=on_tile,
-                            scheduler=scheduler)
+    if in_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit
+        return fit_in_tiles(source, target, options,
+                            TiledRun(scheduler=scheduler, jobs=jobs, on_stage=on_stage, on_tile=on_tile))
     report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
     if scheduler is not None:
         report["scheduler"] = _SCHEDULER_UNUSED.format(what="the input")

@@ -28,9 +28,9 @@ def survey_progress(inputs, options, outputs: int):
     of -O as their tiles are written, or the stages of the one -o fit."""
     from c1mesh.pipeline.driver import STAGES
     from c1mesh.survey.tiled_fit import TILED_STAGES
-    from c1mesh.survey.tiled_plan import survey_needs_tiles
+    from c1mesh.pipeline.survey_fit import in_tiles
 
-    if survey_needs_tiles(inputs, options):
+    if in_tiles(list(inputs), options):
         progress = stage_bar(len(TILED_STAGES), "fitting survey")
         return progress, {"on_stage": lambda name: progress.update(1, name),
                           "on_tile_pass": lambda name, done, tiles: caption(progress,

@@ -14,11 +14,15 @@ Images are read with Pillow.
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import FormatError, InputError
+from c1mesh.formats._limits import check_alloc, check_expansion, read_bounded, reading_budget
+from c1mesh.formats.reading import limit_of_stream, read_path
 
 DEPTH_FORMATS = ("png", "tif", "tiff")
 DEFAULT_DEPTH_SCALE = 0.001
@@ -79,8 +83,6 @@ def _image(data: bytes, name: str, mode: str | None = None) -> np.ndarray:
     """
     from PIL import Image, UnidentifiedImageError
 
-    from c1mesh.formats._limits import check_alloc, check_expansion
-
     try:
         with Image.open(io.BytesIO(data)) as image:
             pixels = image.width * image.height
@@ -96,21 +98,25 @@ def _image(data: bytes, name: str, mode: str | None = None) -> np.ndarray:
 
 def is_depth_image(source, fmt: str | None) -> bool:
     """Whether `source` (path or stream) is read as a depth image, by `fmt` or its extension."""
-    from pathlib import Path
-
     key = fmt if fmt else (Path(source).suffix if isinstance(source, (str, Path)) else "")
     return key.lower().lstrip(".") in DEPTH_FORMATS
 
 
-def read_depth_source(source, options) -> PointCloud:
-    """read_depth on a path or binary stream with the fit options' intrinsics, scale and
-    colour, within the reading budget of options.memory (formats.read_cloud's rules)."""
-    from pathlib import Path
+@dataclass(frozen=True)
+class DepthCamera:
+    """What reading a depth image needs besides its bytes: intrinsics (fx, fy, cx, cy) in
+    pixels (None: refused by read_depth), depth_scale metres per depth unit, color the
+    path of an RGB image of the same size (None: no colours)."""
 
-    from c1mesh.formats._limits import read_bounded, reading_budget
-    from c1mesh.formats.reading import limit_of_stream, read_path
+    intrinsics: tuple[float, float, float, float] | None = None
+    depth_scale: float = 0.001
+    color: str | None = None
 
-    with reading_budget(getattr(options, "memory", None)):
+
+def read_depth_source(source, camera: DepthCamera, memory: int | None = None) -> PointCloud:
+    """read_depth on a path or binary stream with the camera's intrinsics, scale and
+    colour, within the reading budget of `memory` bytes (formats.read_cloud's rules)."""
+    with reading_budget(memory):
         if isinstance(source, (str, Path)):
             name, data = str(source), read_path(Path(source), Path(source).suffix.lower().lstrip(".") or None)
         else:
@@ -121,6 +127,5 @@ def read_depth_source(source, options) -> PointCloud:
                 raise InputError(f"Cannot read input stream '{name}': {exc.strerror or exc}.") from exc
         if not data:
             raise FormatError(f"Input '{name}' is empty.")
-        color = None if options.color is None else read_path(Path(options.color))
-    return read_depth(data, name, options.intrinsics, options.depth_scale, color,
-                      str(options.color or ""))
+        color = None if camera.color is None else read_path(Path(camera.color))
+    return read_depth(data, name, camera.intrinsics, camera.depth_scale, color, str(camera.color or ""))

@@ -32,12 +32,14 @@ from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import check_triangles_left, trim_mesh
-from c1mesh.stages.frame import resolve_axis
-from c1mesh.stages.smoothing import SmoothingError, gradient_data_weight, parse_strength
+from c1mesh.stages.smoothing import gradient_data_weight
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.thinning import check_spacing, thin_to_cells
+from c1mesh.stages.thinning import thin_to_cells
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
+from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
+from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, smoothing_strength
 from c1mesh.pipeline.report import common_report, crs_facts
+from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
 from c1mesh.pipeline.steps import (FitResult, StageTimer, compact_vertices, display_name,
                                    limited_interpolator, mesh_pieces, smoothed_interpolator,
                                    write_surface)
@@ -122,9 +124,9 @@ class FitOptions:
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
     """Read the input and keep only the requested LAS classes."""
-    from c1mesh.formats.depth import is_depth_image, read_depth_source
     if is_depth_image(source, options.input_format):
-        return read_depth_source(source, options)
+        return read_depth_source(source, DepthCamera(options.intrinsics, options.depth_scale, options.color),
+                                 options.memory)
     cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory,
                        bounds=options.bounds)
     if options.classes:
@@ -147,28 +149,11 @@ def _check_fit_memory(count: int, options: FitOptions) -> None:
     """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
     --memory bytes (tiled_plan.point_bytes per point). LAS/LAZ inputs beyond it never get
     here (they are fitted in tiles); other formats would otherwise run over the budget."""
-    from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
-    memory, per_point = options.memory, point_bytes(options)
+    memory, per_point = options.memory, point_bytes(fit_plan(options).surface)
     if not fits_in_memory(count, memory, per_point):
         raise InputError(f"{count} points need about {count * per_point / 1e6:.0f} MB to fit in "
                          f"memory, more than --memory {memory / 1e6:.0f} MB; only LAS/LAZ inputs are "
                          "fitted in tiles: raise --memory, thin the input, or convert it to LAS/LAZ")
-
-
-def smoothing_strength(options: FitOptions):
-    """options.smooth as c1mesh.stages.smoothing.parse_strength reads it: None (off),
-    "auto" or a strength s > 0; InputError for anything else, and for a --spacing without
-    smoothing (an exact fit has its vertices at the points). Checked before any work."""
-    try:
-        strength = options.smooth if isinstance(options.smooth, (int, float)) else parse_strength(options.smooth)
-        if isinstance(strength, (int, float)):
-            strength = parse_strength(repr(float(strength)))
-    except SmoothingError as exc:
-        raise InputError(f"--smooth: {exc}") from None
-    check_spacing(options.spacing)
-    if options.spacing is not None and strength is None:
-        raise InputError("--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength")
-    return strength
 
 
 def _check_normals_mode(mode: str) -> None:
@@ -401,7 +386,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     geo = geo_plan(output, options)
     if geo.rasters.items():
         options = replace(options, axis=raster_axis(options.axis))
-    options, axis_reason = resolve_axis(source, options)
+    options, axis_reason = resolve_options_axis(source, options)
     timer = StageTimer(on_stage)
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)

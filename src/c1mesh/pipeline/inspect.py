@@ -5,6 +5,7 @@ import numpy as np
 
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.formats import read_cloud
+from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
 from c1mesh.stages.frame import choose_frame
 from c1mesh.stages.height_field import height_field
 
@@ -22,10 +23,8 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
     estimated (Open3D) on the subsample; the output says how many points it used, since
     on the full cloud the answer can differ. `memory` bounds the bytes read (read_cloud).
     """
-    from c1mesh.formats.depth import is_depth_image, read_depth_source
     if is_depth_image(source, fmt):
-        from c1mesh.pipeline.driver import FitOptions
-        cloud = read_depth_source(source, FitOptions(intrinsics=intrinsics, depth_scale=depth_scale))
+        cloud = read_depth_source(source, DepthCamera(intrinsics, depth_scale), memory)
     else:
         cloud = read_cloud(source, fmt, memory=memory)
     finite = np.isfinite(cloud.points).all(axis=1)

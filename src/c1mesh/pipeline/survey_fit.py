@@ -7,22 +7,24 @@ LAS/LAZ survey larger than --memory goes to the memory-bounded fit (survey.tiled
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable, Sequence
 
 from c1mesh.core.errors import InputError
-from c1mesh.stages.frame import resolve_axis
-from c1mesh.stages.surface import with_plane_level
+from c1mesh.core.plan import TiledRun
+from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.warnings import smoothing_suggestion
 from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
 from c1mesh.pipeline.steps import StageTimer
 from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, smoothing_facts,
-                                    smoothing_strength, surface_facts, trim_facts)
+                                    surface_facts, trim_facts)
+from c1mesh.pipeline.plan import fit_plan, resolve_options_axis
 from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
 from c1mesh.survey.tiled_fit import fit_tiled
-from c1mesh.survey.tiled_plan import survey_needs_tiles
+from c1mesh.survey.tiled_plan import needs_tiles
 from c1mesh.survey.tiles import load_survey, plan_tiles, write_tiles
 
 
@@ -43,17 +45,18 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     distributed.run_tiles (scheduler, jobs; None: 1). Progress: on_tile is called with each
     tile's report row as it is written (in-memory -O); on_stage after each stage
     (in-memory -o: pipeline.STAGES; in tiles: tiled_fit.TILED_STAGES). A LAS/LAZ survey
-    larger than options.memory allows in one piece (survey_needs_tiles) goes to the
+    larger than options.memory allows in one piece (in_tiles) goes to the
     memory-bounded fit (c1mesh.survey.tiled_fit; on_tile_pass(pass, tiles done, tiles) as each
     tile task finishes), which writes the one mesh, or splits it into the outputs by the
     same ownership rule (c1mesh.survey.tiled_outputs).
     """
 
-    options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
+    options, _ = resolve_options_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     user_crs = parse_crs(options.crs) if options.crs else None
-    if survey_needs_tiles(sources, options):
-        report = fit_in_tiles(list(sources), output, options, on_stage=on_stage,
-                              scheduler=scheduler, jobs=jobs, outputs=outputs, on_tile=on_tile_pass)
+    if in_tiles(list(sources), options):
+        report = fit_in_tiles(list(sources), output, options,
+                              TiledRun(scheduler=scheduler, jobs=jobs, outputs=outputs, on_stage=on_stage,
+                                       on_tile=on_tile_pass))
         if outputs is not None:
             report["ownership"] = OWNERSHIP
         return report
@@ -63,14 +66,15 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
                          "or use -O DIR")
     timer = StageTimer(None)
     with timer.stage("read"):
-        survey = load_survey(sources, options)
+        survey = load_survey(sources, fit_plan(options).select, options.normals)
     if output is not None:
         report = fit(survey.cloud, output, options, on_stage=on_stage, keep_mesh=False).report
         report["input"] = list(survey.names)
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
         return report
     level_from = "default" if options.level is None else "option"
-    options = with_plane_level(options)         # a height field: PLANE_LEVEL unless --level is given
+    if options.level is None:                   # a height field: PLANE_LEVEL unless --level is given
+        options = replace(options, level=PLANE_LEVEL)
 
     crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
@@ -95,16 +99,22 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     return report
 
 
-def fit_in_tiles(source, output, options, **run) -> dict:
+def in_tiles(source, options) -> bool:
+    """Whether `source` (one LAS/LAZ path, or a list of them: one survey) is fitted by the
+    memory-bounded fit (survey.tiled_plan.needs_tiles): larger than options.memory allows
+    in one piece. Reads the inputs' headers only."""
+    return needs_tiles(source, fit_plan(options))
+
+
+def fit_in_tiles(source, output, options, run: TiledRun = TiledRun()) -> dict:
     """The memory-bounded fit (c1mesh.survey.tiled_fit.fit_tiled: source one LAS/LAZ path or
-    a list, output a mesh path, run its other keyword arguments: on_stage, jobs, on_tile,
-    scheduler, outputs) with its facts made the report of c1mesh.pipeline.report's schema."""
-    smoothing_strength(options)                     # InputError for a bad --smooth, before any work
-    if getattr(options, "spacing", None) is not None:
+    a list, output a mesh path, run where its tiles run) with its facts made the report of
+    c1mesh.pipeline.report's schema."""
+    plan = fit_plan(options)                          # InputError for a bad --smooth, before any work
+    if plan.surface.spacing is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
-    facts = fit_tiled(source, output, options, options.memory, **run)
-    return tiled_report(facts, options)
+    return tiled_report(fit_tiled(source, output, plan, run), options)
 
 
 def tiled_report(facts: dict, options) -> dict:

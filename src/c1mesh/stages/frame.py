@@ -11,7 +11,7 @@ c1mesh.stages.height_field.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -252,12 +252,13 @@ def axes_from_e3(e3: np.ndarray) -> np.ndarray:
     return np.array([e1, np.cross(e3, e1), e3])
 
 
-def resolve_axis(source, options) -> tuple[object, str]:
-    """The options (pipeline.driver.FitOptions) with "auto" resolved for LAS/LAZ (z: elevation by the format's
-    definition), and a phrase saying how the height axis is chosen, for the report."""
-    if not (isinstance(options.axis, str) and options.axis.strip().lower() == "auto"):
-        return options, f"given: {options.axis}"
-    fmt = options.input_format or (Path(source).suffix if isinstance(source, (str, Path)) else "")
+def resolve_axis(source, axis, input_format: str | None = None) -> tuple[object, str]:
+    """The height axis with "auto" resolved for LAS/LAZ (z: elevation by the format's
+    definition), read from `input_format` or the source's extension, and a phrase saying
+    how the height axis is chosen, for the report."""
+    if not (isinstance(axis, str) and axis.strip().lower() == "auto"):
+        return axis, f"given: {axis}"
+    fmt = input_format or (Path(source).suffix if isinstance(source, (str, Path)) else "")
     if str(fmt).lower().lstrip(".") in LAS_FORMATS:
-        return replace(options, axis="z"), "z: LAS/LAZ elevation"
-    return options, "auto"
+        return "z", "z: LAS/LAZ elevation"
+    return axis, "auto"

@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream
+from c1mesh.core.plan import FitPlan
 from c1mesh.core.threads import prefetch, ring
 from c1mesh.engine.refine import Refinement, refined_counts
 from c1mesh.stages.height_field import gradients_to_normals
@@ -64,11 +65,12 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
                       0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
 
-def with_plane_level(options):
-    """The options with level PLANE_LEVEL when none is given: the tiled fits
-    (tiles.fit_seamless, tiled_fit.fit_tiled) are height fields, whose level does not
-    depend on the data."""
-    return options if options.level is not None else replace(options, level=PLANE_LEVEL)
+def with_plane_level(plan: FitPlan) -> FitPlan:
+    """The plan with level PLANE_LEVEL when none is given: the tiled fits are height
+    fields, whose level does not depend on the data."""
+    if plan.surface.level is not None:
+        return plan
+    return replace(plan, surface=replace(plan.surface, level=PLANE_LEVEL))
 
 
 def refined_vertex_count(interp, level: int) -> int:

@@ -55,24 +55,37 @@ import contextlib
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.plan import FitPlan, TiledRun
+from c1mesh.core.platform_memory import release_free_heap
+from c1mesh.core.threads import workers as thread_count
+from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.stages.curtains import view_rules_apply
+from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
+from c1mesh.stages.limiter import check_mode
+from c1mesh.stages.smoothing import gradient_data_weight
+from c1mesh.stages.surface import with_plane_level
 from c1mesh.stages.trim import check_triangles_left
+from c1mesh.stages.warnings import auto_limit, fit_warnings
+from c1mesh.survey.buffered_delaunay import TileGrid
+from c1mesh.survey.distributed import TaskRunner
+from c1mesh.survey.survey_stats import streamed_frame
+from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
                                        survey_paths)
 from c1mesh.survey.tiled_limiter import TiledLimiter
-from c1mesh.survey.tiled_plan import grid_side, point_bytes, smoothing_of, task_threads, tiles_at_once
-from c1mesh.survey.tiled_refine import Split, write_tiles
+from c1mesh.survey.tiled_outputs import InputOwners
+from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles_at_once
+from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.tiled_report import TileRows, describe_crs
+from c1mesh.survey.tiled_smoothing import TiledSmoother
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
 from c1mesh.survey.tiled_trim import trim_tiles
-# c1mesh.cli and c1mesh.pipeline.driver still import these from here (their home is tiled_plan)
 
 TILED_STAGES = ("frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
                 "refine+write")
@@ -81,20 +94,14 @@ only with the overshoot limiter (the default) of an exact fit, "smoothing" only 
 smoothing strength (c1mesh.survey.tiled_smoothing)."""
 
 
-def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
-              on_stage: Callable[[str], None] | None = None, directory=None,
-              scheduler: str | None = None, jobs: int | None = 1,
-              on_tile: Callable[[str, int, int], None] | None = None,
-              outputs: Sequence[str] | None = None) -> dict:
+def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
-    with outputs (one path per input file, output None), each input's owned part of it
-    (c1mesh.survey.tiled_outputs: `fit --seamless -O` beyond --memory).
+    with run.outputs (one path per input file, output None), each input's owned part of
+    it (c1mesh.survey.tiled_outputs: `fit --seamless -O` beyond --memory).
 
-    options: pipeline.FitOptions (classes, axis, k, max_slope, max_edge, scheme, level,
-    overshoot, output_format, ascii; normals not "file"); memory: the
-    budget in bytes, which sizes the tiles; per_tile: points per tile (overrides the
-    budget, for tests); directory: where the temporary spill files go (default: beside a
-    path output, else $TMPDIR). Returns the fit's facts (input, output, points, frame,
+    plan: the fit's core.plan.FitPlan (its memory, the budget in bytes, sizes the tiles;
+    its axis resolved, normals not "file"); run: where the tiles run and whom they tell
+    (core.plan.TiledRun). Returns the fit's facts (input, output, points, frame,
     triangles, gradients, level, output_mesh, warnings, crs, seconds, and the tiles' own:
     tiles, tile_tasks, scheduler, ...), which c1mesh.pipeline.survey_fit.tiled_report makes
     the report of c1mesh.pipeline.report's schema.
@@ -103,36 +110,26 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     (distributed.TaskRunner): here (jobs 1), on up to `jobs` local processes (as many
     as the budget lets hold a tile at once, `tiles_at_once`), or on the Dask cluster at
     `scheduler` (a tile at a time per worker thread), whose workers must see `directory`.
-    jobs None: one local process per thread of the knob (options.workers), one thread
+    jobs None: one local process per thread of the knob (plan.threads), one thread
     each; `c1mesh fit`'s default. Tiles in two processes beat one process with two
     threads at every size measured (docs/tiles.md), because most of a tile's
     stages run in one thread.
     The tiles are sized by the budget alone, so the output bytes do not depend on where
-    the tasks ran or on how many ran at once. on_tile(pass,
+    the tasks ran or on how many ran at once. run.on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
-    options.smooth other than "off" runs the smoothing fit (c1mesh.survey.tiled_smoothing,
+    A smoothing strength runs the smoothing fit (c1mesh.survey.tiled_smoothing,
     which then replaces the limiter but for edge directions; no --spacing in tiles).
     """
-    from c1mesh.core.threads import workers as thread_count
-    from c1mesh.survey.distributed import TaskRunner
-    from c1mesh.survey.buffered_delaunay import TileGrid
-    from c1mesh.survey.tiled_outputs import InputOwners
-    from c1mesh.core.platform_memory import release_free_heap
-    from c1mesh.survey.survey_stats import streamed_frame
-    from c1mesh.survey.tile_spill import spill
-
-    from c1mesh.stages.height_gradients import check_positions, use_height_gradients
-    from c1mesh.stages.surface import with_plane_level
-
-    options = with_plane_level(options)
-    _check_options(options)
-    strength = smoothing_of(options)
+    plan = with_plane_level(plan)
+    _check_plan(plan)
+    surface, select = plan.surface, plan.select
+    strength, memory = surface.strength, plan.memory
     # the tiles estimate their normals; their gradients come from the heights by default
-    gradient_source = "heights" if use_height_gradients(getattr(options, "gradients", "auto"),
-                                                        "estimated") else "normals"
+    gradient_source = "heights" if use_height_gradients(plan.heights.gradients, "estimated") else "normals"
     paths = survey_paths(source)
     name = survey_name(paths)
-    crs, crs_source = survey_crs(paths, options.crs)
+    crs, crs_source = survey_crs(paths, plan.mesh.crs)
+    outputs, jobs, scheduler = run.outputs, run.jobs, run.scheduler
     seconds, start = {}, time.perf_counter()
 
     def done(stage):
@@ -140,12 +137,13 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
         release_free_heap()                 # a stage's freed heap would sit under the next one's peak
         seconds[stage] = round(time.perf_counter() - start, 3)
         start = time.perf_counter()
-        if on_stage:
-            on_stage(stage)
+        if run.on_stage:
+            run.on_stage(stage)
 
     if outputs is not None and len(outputs) != len(paths):
         raise ValueError("outputs must name one path per input file")
     target = outputs[0] if outputs is not None else output
+    directory = run.directory
     if directory is None:
         directory = Path(target).parent if isinstance(target, (str, Path)) else Path(tempfile.gettempdir())
     temps = Temps(directory, Path(str(target)).name if isinstance(target, (str, Path)) else "c1mesh")
@@ -153,33 +151,34 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     stack = contextlib.ExitStack()
     try:
         colours = Colours(temps)
-        chunks = CachedChunks(las_chunks(source, options.classes, colours=colours,
-                                         bounds=getattr(options, "bounds", None), file_counts=file_counts), temps)
-        axis = "z" if isinstance(options.axis, str) and options.axis.strip().lower() == "auto" else options.axis
+        chunks = CachedChunks(las_chunks(source, select.classes, colours=colours,
+                                         bounds=select.bounds, file_counts=file_counts), temps)
+        axis = plan.heights.axis
+        axis = "z" if isinstance(axis, str) and axis.strip().lower() == "auto" else axis
         frame = streamed_frame(chunks, axis)
         colours.finish()
         count, box, positions = _plane_box(chunks, frame)
         if gradient_source == "heights":          # as the in-memory fit's height gradients say it
             check_positions(count, positions)
         elif count < 3:
-            raise InputError(f"{name}: only {count} points" + (f" of class {list(options.classes)}"
-                                                                 if options.classes else ""))
-        per_point = point_bytes(options)
-        side = grid_side(count, memory, per_tile, per_point)
+            raise InputError(f"{name}: only {count} points" + (f" of class {list(select.classes)}"
+                                                                 if select.classes else ""))
+        per_point = point_bytes(surface)
+        side = grid_side(count, memory, run.per_tile, per_point)
         grid = TileGrid(box, side, side)
         done("frame")
         if jobs is None:
-            jobs = thread_count(options.workers) if len(grid) > 1 else 1
+            jobs = thread_count(plan.threads) if len(grid) > 1 else 1
         runner = stack.enter_context(TaskRunner(scheduler, jobs if scheduler else tiles_at_once(memory, jobs, per_point)))
-        rows = TileRows(grid, task_threads(options, runner), on_tile)
+        rows = TileRows(grid, task_threads(plan.threads, runner), run.on_tile)
         with spill((p for p, _ in chunks()), frame, grid, directory, temps.stem + ".raw") as raw:
             done("spill")
-            height_pass = height_spill(raw, grid, count, options, directory, temps.stem, runner, rows)
+            height_pass = height_spill(raw, grid, count, plan.heights, directory, temps.stem, runner, rows)
         heights = height_pass.heights
         try:
             spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
             done("normals")
-            max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(heights, grid, options.max_edge,
+            max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(heights, grid, surface.max_edge,
                                                                                   temps, runner, rows)
             long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files)
             done("triangulate")
@@ -187,37 +186,32 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
-            removed = trim_tiles(halos, grid, temps, view_rules_apply(options.classes, frame.axes))
+            removed = trim_tiles(halos, grid, temps, view_rules_apply(select.classes, frame.axes))
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
             if outputs is None and output is not None:
-                _check_size(kept_triangles, options, output, colours.present)
+                _check_size(kept_triangles, plan, output, colours.present)
             done("trim")
             limiter = None
             if strength is not None:
-                from c1mesh.survey.tiled_smoothing import TiledSmoother
-
-                from c1mesh.stages.smoothing import gradient_data_weight
-
-                limiter = TiledSmoother(heights, triangle_files, grid, strength, spacing, longest, options.overshoot,
+                limiter = TiledSmoother(heights, triangle_files, grid, strength, spacing, longest, surface.overshoot,
                                         temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row),
                                         gradient_weight=gradient_data_weight("estimated", gradient_source))
                 done("smoothing")
-            elif options.overshoot == "limit":
+            elif surface.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)
                 done("noise floors")
             split = None if outputs is None else Split(InputOwners(file_counts), outputs,
                                                        [str(p) for p in paths])
-            report = write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options,
-                                 output, temps, limiter, crs, colours, runner, rows, split)
+            report = write_tiles(TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame), plan, output,
+                                 MeshWriting(temps, limiter, crs, colours, runner, rows, split))
             done("refine+write")
         finally:
             height_pass.close()
     finally:
         stack.close()
         temps.close()
-    from c1mesh.stages.warnings import auto_limit, fit_warnings
     kept = report.pop("kept")
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output) if outputs is None else [str(o) for o in outputs],
@@ -225,14 +219,14 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    # a note, not a warning: the result is the in-memory fit's (docs/tiles.md)
                    "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
                    "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
-                                            auto_limit(options.max_edge)),
+                                            auto_limit(surface.max_edge)),
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,
                                  "after_trim": sum(report["triangles_per_tile"].values()),
                                  "removed": removed, "max_edge": max_edge},
                    "gradients": gradient_source,
-                   "level": options.level, "scheduler": runner.kind,
+                   "level": surface.level, "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
@@ -242,32 +236,26 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     return report
 
 
-def _check_size(triangles: int, options, output, coloured: bool) -> None:
+def _check_size(triangles: int, plan: FitPlan, output, coloured: bool) -> None:
     """InputError, before the smoothing, the limiter and the refinement, when the output's
     format cannot hold the refined mesh of the survey's `triangles` kept triangles: its
     faces are exactly L² per triangle, its vertices at least refine.fewest_refined_vertices
     (the survey's edges are not counted here); write_tiles checks the exact counts as the
     tiles are joined."""
-    from c1mesh.engine.refine import fewest_refined_vertices
-    from c1mesh.survey.tiled_refine import check_output_size
-
-    check_output_size(output, options, fewest_refined_vertices(triangles, options.level),
-                      triangles * options.level ** 2, coloured)
+    level = plan.surface.level
+    check_output_size(output, plan.mesh, fewest_refined_vertices(triangles, level), triangles * level ** 2,
+                      coloured)
 
 
-def _check_options(options) -> None:
-    from c1mesh.stages.limiter import check_mode
-
-    check_mode(options.overshoot)
-    if options.normals == "file":
+def _check_plan(plan: FitPlan) -> None:
+    check_mode(plan.surface.overshoot)
+    if plan.heights.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
 
 
 def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float], int]:
     """(point count, (x0, y0, x1, y1) box of the points in the frame's plane, distinct
     plane positions counted up to 3)."""
-    from c1mesh.stages.height_gradients import distinct_rows
-
     count, low, high, seen = 0, np.full(2, np.inf), np.full(2, -np.inf), []
     for points, _ in chunks():
         if len(points):

@@ -11,6 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.core.plan import HeightSettings
+from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
+from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
+from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.survey.tiles import task_row
 
 HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
@@ -39,24 +43,20 @@ class HeightSpill:
         self.groups.close()
 
 
-def height_spill(raw, grid, count: int, options, directory, stem: str, runner, rows):
+def height_spill(raw, grid, count: int, settings: HeightSettings, directory, stem: str, runner, rows):
     """Per tile: normals of its own points (tile_normals), then its height-field points
     (usable, not too steep, exact duplicate positions dropped), spilled to a new TileSpill
     of HEIGHT records, and the positions several points share to one of GROUP records: a
     HeightSpill, which the caller closes. Each tile is a task (`_tile_heights`)
     that reads the raw spill and writes its own height and group files, run by runner
     (distributed.TaskRunner); rows: the tiled_report.TileRows."""
-    from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
-    from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
-    from c1mesh.survey.tile_spill import TileSpill
-
     heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
     groups = TileSpill(grid, directory, stem + ".groups", record=GROUP).__enter__()
     usable = 0
     try:
-        job = _HeightJob(raw, grid, options.k, height_neighbours(options.k), math.cos(math.radians(options.max_slope)),
+        job = _HeightJob(raw, grid, settings.k, height_neighbours(settings.k), math.cos(math.radians(settings.max_slope)),
                          INITIAL_SPACINGS * mean_spacing(grid.box, count),
-                         use_height_gradients(getattr(options, "gradients", "auto"), "estimated"),
+                         use_height_gradients(settings.gradients, "estimated"),
                          rows.threads)
         tiles = [t for t in range(len(grid)) if raw.counts[t]]
         for i, row in runner.map(_tile_heights, len(tiles),

@@ -15,10 +15,18 @@ rest, so the largest input's vertex count bounds it, not the survey's.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from c1mesh.core.cloud import MeshStream
+from c1mesh.core.plan import MeshTarget
+from c1mesh.core.threads import blas_threads
+from c1mesh.formats import write_mesh
+from c1mesh.survey.tile_spill import file_blocks
+from c1mesh.survey.tiles import staged_outputs
 
 BLOCK = 1 << 16
 """Faces (vertices) per block read, remapped and written."""
@@ -46,7 +54,6 @@ def face_owners(owners: InputOwners, triangles: np.ndarray, level: int) -> np.nd
 def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> list[Path]:
     """Stream the joined faces (int64 triples, global numbers) and their owners (int32) into
     one face file per output; returns their paths."""
-    from c1mesh.survey.tile_spill import file_blocks
 
     paths = [temps.new(f"output-{i}.faces") for i in range(outputs)]
     with open(face_path, "rb") as faces, open(owner_path, "rb") as owner_file:
@@ -62,30 +69,33 @@ def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> list[
     return paths
 
 
+@dataclass(frozen=True)
+class OutputMeshes:
+    """How -O's meshes are written: mesh, the core.plan.MeshTarget (format, ascii); crs,
+    the survey's WKT or None; names, one input name per output (the report's rows)."""
+
+    mesh: MeshTarget
+    crs: str | None
+    names: Sequence[str]
+
+
 def write_outputs(vertex_path: Path, dtype: np.dtype, face_paths: list[Path], outputs: Sequence[str],
-                  options, crs: str | None, names: Sequence[str]) -> list[dict]:
+                  how: OutputMeshes) -> list[dict]:
     """Write each output's mesh from the joined vertex records (`dtype`, global numbers) and
     its face file, all or nothing (c1mesh.survey.tiles.staged_outputs, as write_tiles). Returns
     one report row per input: input, output, vertices, faces."""
-    from c1mesh.survey.tiles import staged_outputs
-
     records = np.memmap(vertex_path, dtype=dtype, mode="r") if os.path.getsize(vertex_path) else \
         np.empty(0, dtype=dtype)
     rows = []
-    with staged_outputs(crs) as stage:
-        for name, output, faces in zip(names, outputs, face_paths):
+    with staged_outputs(how.crs) as stage:
+        for name, output, faces in zip(how.names, outputs, face_paths):
             rows.append({"input": name, "output": str(output),
-                         **_write_one(records, faces, stage(output), options, crs)})
+                         **_write_one(records, faces, stage(output), how)})
     return rows
 
 
-def _write_one(records: np.ndarray, face_path: Path, target: Path, options, crs) -> dict:
+def _write_one(records: np.ndarray, face_path: Path, target: Path, how: OutputMeshes) -> dict:
     """One output's mesh: its faces renumbered over the sorted global numbers they use."""
-    from c1mesh.core.cloud import MeshStream
-    from c1mesh.formats import write_mesh
-    from c1mesh.core.threads import blas_threads
-    from c1mesh.survey.tile_spill import file_blocks
-
     used = _used_vertices(face_path)
     coloured = records.dtype.names is not None and "c" in records.dtype.names
     face_count = os.path.getsize(face_path) // 24 if face_path.exists() else 0
@@ -103,7 +113,7 @@ def _write_one(records: np.ndarray, face_path: Path, target: Path, options, crs)
                 yield np.searchsorted(used, block).reshape(-1, 3)
     with blas_threads(1):
         write_mesh(MeshStream(len(used), face_count, True, 3 if coloured else 0, vertex_blocks, face_blocks),
-                   target, options.output_format, ascii=options.ascii, crs=crs, sidecar=False)
+                   target, how.mesh.format, ascii=how.mesh.ascii, crs=how.crs, sidecar=False)
     return {"vertices": int(len(used)), "faces": int(face_count)}
 
 
@@ -114,7 +124,6 @@ MERGE = 1 << 22
 def _used_vertices(face_path: Path) -> np.ndarray:
     """Sorted unique global numbers of the faces in face_path, merged a batch of blocks at
     a time (a merge per block would sort the growing set once per block)."""
-    from c1mesh.survey.tile_spill import file_blocks
 
     used, pending, size = np.empty(0, dtype=np.int64), [], 0
     if not face_path.exists():

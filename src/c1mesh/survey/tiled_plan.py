@@ -9,6 +9,7 @@ import math
 from typing import Sequence
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.plan import FitPlan, SurfaceSettings
 from c1mesh.survey.tiled_input import survey_name, survey_paths
 
 BYTES_PER_POINT = 1_800
@@ -23,20 +24,11 @@ exact fit's BYTES_PER_POINT plus the sparse Cholesky factor and system, measured
 input; the factor's fill grows like N log N) and 7 GB for the in-memory fit of 1M points."""
 
 
-def smoothing_of(options):
-    """options.smooth as stages.smoothing.parse_strength reads it: None (the exact fit),
-    "auto" or a strength s > 0 (SmoothingError for anything else)."""
-    from c1mesh.stages.smoothing import parse_strength
-
-    smooth = getattr(options, "smooth", "off")
-    return None if smooth is None else parse_strength(str(smooth))
-
-
-def point_bytes(options) -> int:
-    """Peak bytes per input point of the fit options ask for: SMOOTHING_BYTES_PER_POINT
+def point_bytes(surface: SurfaceSettings) -> int:
+    """Peak bytes per input point of the fit `surface` asks for: SMOOTHING_BYTES_PER_POINT
     for a smoothing fit with a vertex at every point, else BYTES_PER_POINT (a --spacing
     fit's solve follows its thinned vertices, not its points)."""
-    if smoothing_of(options) is not None and getattr(options, "spacing", None) is None:
+    if surface.strength is not None and surface.spacing is None:
         return SMOOTHING_BYTES_PER_POINT
     return BYTES_PER_POINT
 
@@ -83,48 +75,40 @@ def tiles_at_once(memory: int, jobs: int, per_point: int = BYTES_PER_POINT) -> i
     return max(1, min(int(jobs), int(memory // (2 * task_bytes))))
 
 
-def needs_tiles(source, options) -> bool:
+def needs_tiles(source, plan: FitPlan) -> bool:
     """True when `source` (a LAS/LAZ path, or a list of them: one survey) holds more points,
-    by the headers, than the in-memory fit can take within options.memory bytes
-    (BYTES_PER_POINT per point); then it is fitted by `fit_tiled`. Streams, other formats
+    by the headers, than the in-memory fit can take within plan.memory bytes
+    (point_bytes per point); then it is fitted by `fit_tiled`. Streams, other formats
     and fits without a budget are never tiled. Raises InputError when the input needs
-    tiles but the options ask for something the tiled fit does not do."""
+    tiles but the plan asks for something the tiled fit does not do."""
     from c1mesh.formats.copc import points_to_read
 
     paths = survey_paths(source)
-    if options.memory is None or paths is None:
+    if plan.memory is None or paths is None:
         return False
     if any(path.suffix.lower() not in (".las", ".laz") for path in paths):
         return False
-    count = sum(points_to_read(path, getattr(options, "bounds", None)) for path in paths)
-    per_point = point_bytes(options)
-    if fits_in_memory(count, options.memory, per_point):
+    count = sum(points_to_read(path, plan.select.bounds) for path in paths)
+    per_point = point_bytes(plan.surface)
+    if fits_in_memory(count, plan.memory, per_point):
         return False
     need = f"{survey_name(paths)}: {count} points need about {count * per_point / 1e6:.0f} MB in " \
-           f"one piece, more than --memory {options.memory / 1e6:.0f} MB, so they are fitted in tiles"
-    if options.resolution is not None or options.slope or options.aspect or options.hillshade or options.preview:
+           f"one piece, more than --memory {plan.memory / 1e6:.0f} MB, so they are fitted in tiles"
+    if plan.rasters:
         raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "
                          "(raise --memory)")
-    if options.normals == "file":
+    if plan.heights.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
 
 
-def survey_needs_tiles(sources: Sequence[str], options) -> bool:
-    """Whether fit_seamless fits the survey in tiles (c1mesh.survey.tiled_fit): a LAS/LAZ survey
-    larger than options.memory allows in one piece. Reads the inputs' headers only."""
-    from c1mesh.stages.frame import resolve_axis
-
-    options, _ = resolve_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
-    return needs_tiles(list(sources), options)
-
-def task_threads(options, runner) -> int | None:
-    """Threads each tile task may use: the fit's (options.workers; None: the process's
+def task_threads(threads: int | None, runner) -> int | None:
+    """Threads each tile task may use: the fit's (`threads`, the knob; None: the process's
     setting) in this process, shared by the local workers, one on a Dask worker."""
     from c1mesh.core.threads import per_process
 
     if runner.scheduler is not None:
         return 1
     if runner.jobs == 1:
-        return options.workers
-    return per_process(options.workers, runner.jobs)
+        return threads
+    return per_process(threads, runner.jobs)

@@ -11,8 +11,19 @@ from typing import Sequence
 
 import numpy as np
 
+from c1mesh.core.cloud import MeshStream
+from c1mesh.core.plan import FitPlan, MeshTarget, SurfaceSettings
+from c1mesh.core.threads import blas_threads, limit
+from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.formats import MeshSize, check_mesh_size, write_mesh
+from c1mesh.stages.surface import surface_stream
 from c1mesh.stages.trim import check_triangles_left
+from c1mesh.survey.distributed import TaskRunner
+from c1mesh.survey.tile_spill import file_blocks
+from c1mesh.survey.tiled_halo import corner_rows
 from c1mesh.survey.tiled_input import Colours
+from c1mesh.survey.tiled_join import KeyExpiry, PartJoin, border_keys
+from c1mesh.survey.tiled_outputs import OutputMeshes, face_owners, split_faces, write_outputs
 from c1mesh.survey.tiled_report import TileRows
 from c1mesh.survey.tiles import task_row
 
@@ -29,20 +40,50 @@ VERTEX_RGB = np.dtype([("v", "<f8", 3), ("n", "<f8", 3), ("c", "u1", 3)])
 """One output vertex in the temporary vertex file: position, normal (world), colour."""
 
 
+@dataclass(frozen=True)
+class TiledMesh:
+    """The survey's trimmed triangulation, tile by tile (tiled_fit): heights, the
+    TileSpill of HEIGHT records; grid, the buffered_delaunay.TileGrid; files, per tile
+    the .npy of its own triangles (survey numbers; None: none); buffers, per tile its
+    Delaunay buffer (frame units); max_edge, the trim's limit (None: none); frame, the
+    survey's stages.frame.ScanFrame."""
+
+    heights: object
+    grid: object
+    files: Sequence
+    buffers: Sequence
+    max_edge: float | None
+    frame: object
+
+
+@dataclass(frozen=True)
+class MeshWriting:
+    """What write_tiles refines and writes with: temps (tiled_input.Temps), limiter (the
+    tiled_limiter.TiledLimiter or tiled_smoothing.TiledSmoother; None: --overshoot off),
+    crs (WKT or None), colours (tiled_input.Colours or None), runner
+    (distributed.TaskRunner), rows (tiled_report.TileRows), split (Split with -O, else None)."""
+
+    temps: object
+    limiter: object = None
+    crs: str | None = None
+    colours: Colours | None = None
+    runner: object = None
+    rows: TileRows | None = None
+    split: "Split | None" = None
+
+
 class _RefineJob:
     """What every tile's refinement task shares (picklable; the files it names are read
-    by the task): the height spill, grid, per tile its triangle file and buffer, max_edge,
-    frame, options, limiter (None: --overshoot off), colours, threads per task, owners
+    by the task): the TiledMesh's heights, grid, files, buffers, max_edge and frame; the
+    scheme and level; limiter (None: --overshoot off), colours, threads per task, owners
     (tiled_outputs.InputOwners, with -O: each part then records its faces' owner inputs)."""
 
-    def __init__(self, heights, grid, triangle_files, buffers, max_edge, frame, options, limiter, colours, threads,
-                 owners=None):
-        from c1mesh.survey.tiled_join import KeyExpiry
-
-        self.heights, self.grid, self.files, self.buffers = heights, grid, triangle_files, buffers
-        self.max_edge, self.frame, self.scheme, self.level = max_edge, frame, options.scheme, options.level
-        self.limiter, self.colours, self.threads, self.owners = limiter, colours, threads, owners
-        self.expiry = KeyExpiry(grid, [self.reach(t) for t in range(len(grid))])
+    def __init__(self, mesh: TiledMesh, surface: SurfaceSettings, writing: MeshWriting, colours, threads):
+        self.heights, self.grid, self.files, self.buffers = mesh.heights, mesh.grid, mesh.files, mesh.buffers
+        self.max_edge, self.frame, self.scheme, self.level = mesh.max_edge, mesh.frame, surface.scheme, surface.level
+        self.limiter, self.colours, self.threads = writing.limiter, colours, threads
+        self.owners = None if writing.split is None else writing.split.owners
+        self.expiry = KeyExpiry(mesh.grid, [self.reach(t) for t in range(len(mesh.grid))])
 
     def reach(self, t: int) -> float:
         """How far beyond its cell the corners of tile t's own triangles lie (frame units):
@@ -56,7 +97,6 @@ class _RefineJob:
             limits = self.limiter.tile(t, triangles)
             return (limits.records, limits.triangles, limits.gradients, limits.directions,
                     limits.limited, limits.turned, limits.lifted)
-        from c1mesh.survey.tiled_halo import corner_rows
 
         records = self.heights.records(self.grid.grown(t, self.reach(t)))
         rows, local = corner_rows(records["index"], triangles)
@@ -84,8 +124,6 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     """Refine tile t's own triangles into its part files; returns its report row with
     vertices, corners (input points among them, first), faces, triangles, limited,
     turned, lifted, or None for a tile without triangles."""
-    from c1mesh.core.threads import limit
-
     start = time.perf_counter()
     triangles = np.load(job.files[t])
     if not len(triangles):
@@ -96,8 +134,6 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
         counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
                              job.expiry)
         if job.owners is not None:
-            from c1mesh.survey.tiled_outputs import face_owners
-
             owner = face_owners(job.owners, triangles, job.level)
             if len(owner) != counts["faces"]:
                 raise RuntimeError(f"tile {t}: {counts['faces']} faces, {len(owner)} owners")
@@ -106,40 +142,27 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
             **task_row(len(records), start)}
 
 
-def check_output_size(output, options, vertices: int, faces: int, coloured: bool) -> None:
+def check_output_size(output, mesh: MeshTarget, vertices: int, faces: int, coloured: bool) -> None:
     """InputError when a mesh of this many vertices and faces (normals, and RGB if
     coloured) is beyond the limits of the output's format (formats.check_mesh_size); the
     tiled fit asks with the fewest vertices its triangles can refine to before any tile is
     refined (tiled_fit), and with the joined counts so far as tiles are joined."""
-    from c1mesh.formats import MeshSize, check_mesh_size
-
-    check_mesh_size(output, options.output_format, MeshSize(vertices, faces, True, 3 if coloured else 0))
+    check_mesh_size(output, mesh.format, MeshSize(vertices, faces, True, 3 if coloured else 0))
 
 
-def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options, output, temps,
-                limiter=None, crs: str | None = None,
-                colours: Colours | None = None, runner=None, rows: TileRows | None = None,
-                split: "Split | None" = None) -> dict:
+def write_tiles(mesh: TiledMesh, plan: FitPlan, output, writing: MeshWriting) -> dict:
     """Refine each tile's owned triangles (a task per tile, `_refine_tile`, writing part
     files), then join the parts in tile order, numbering shared vertices globally
     (tiled_fit's docstring), into one vertex and one face file; then write the mesh from
-    them, or with split (-O), each input's part of it (c1mesh.survey.tiled_outputs). limiter: the
-    tiled_limiter.TiledLimiter (None: --overshoot off); rows: the tiled_report.TileRows.
+    them, or with writing.split (-O), each input's part of it (c1mesh.survey.tiled_outputs).
     Without split, InputError as soon as the joined counts pass the output format's
     limits (`check_output_size`), before the remaining tiles are refined."""
-    from c1mesh.core.cloud import MeshStream
-    from c1mesh.survey.distributed import TaskRunner
-    from c1mesh.formats import write_mesh
-    from c1mesh.core.threads import blas_threads
-    from c1mesh.survey.tile_spill import file_blocks
-    from c1mesh.survey.tiled_join import PartJoin
-
-    runner = runner or TaskRunner()
-    rows = rows or TileRows(grid, options.workers)
-    coloured = colours is not None and colours.present
-    job = _RefineJob(heights, grid, triangle_files, buffers, max_edge, frame, options, limiter,
-                     colours if coloured else None, rows.threads, None if split is None else split.owners)
-    tiles = [t for t in range(len(grid)) if triangle_files[t] is not None]
+    grid, temps, limiter, split = mesh.grid, writing.temps, writing.limiter, writing.split
+    runner = writing.runner or TaskRunner()
+    rows = writing.rows or TileRows(grid, plan.threads)
+    coloured = writing.colours is not None and writing.colours.present
+    job = _RefineJob(mesh, plan.surface, writing, writing.colours if coloured else None, rows.threads)
+    tiles = [t for t in range(len(grid)) if mesh.files[t] is not None]
     parts = {t: _Part(temps, t) for t in tiles}
     vertex_path, face_path, owner_path = temps.new("vertices.bin"), temps.new("faces.bin"), temps.new("owners.bin")
     join = PartJoin(VERTEX_RGB if coloured else VERTEX)
@@ -154,7 +177,7 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
                 if row is not None:
                     join.add(t, parts[t], row, vertex_file, face_file)
                     if split is None:      # the counts only grow: stop at the first tile past the format's limit
-                        check_output_size(output, options, join.written, join.faces, coloured)
+                        check_output_size(output, plan.mesh, join.written, join.faces, coloured)
                     else:
                         with open(parts[t].owners, "rb") as owners:
                             shutil.copyfileobj(owners, owner_file)
@@ -176,7 +199,7 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
         report["overshoot"] = limiter.report()
     if split is not None:
         report["output_meshes"] = split.write(vertex_path, VERTEX_RGB if coloured else VERTEX, face_path, owner_path,
-                                        temps, options, crs)
+                                        temps, plan.mesh, writing.crs)
         return report
     block = WRITE_BLOCK
 
@@ -191,7 +214,7 @@ def write_tiles(heights, grid, triangle_files, buffers, max_edge, frame, options
                 yield part.reshape(-1, 3)
     with blas_threads(1):
         write_mesh(MeshStream(written, faces, True, 3 if coloured else 0, vertex_blocks, face_blocks), output,
-                   options.output_format, ascii=options.ascii, crs=crs)
+                   plan.mesh.format, ascii=plan.mesh.ascii, crs=writing.crs)
     return report
 
 
@@ -204,12 +227,10 @@ class Split:
     outputs: Sequence[str]
     names: Sequence[str]
 
-    def write(self, vertex_path, dtype, face_path, owner_path, temps, options, crs) -> list[dict]:
+    def write(self, vertex_path, dtype, face_path, owner_path, temps, mesh: MeshTarget, crs) -> list[dict]:
         """Split the joined faces by owner and write every input's mesh (all or nothing)."""
-        from c1mesh.survey.tiled_outputs import split_faces, write_outputs
-
         paths = split_faces(face_path, owner_path, len(self.outputs), temps)
-        return write_outputs(vertex_path, dtype, paths, self.outputs, options, crs, self.names)
+        return write_outputs(vertex_path, dtype, paths, self.outputs, OutputMeshes(mesh, crs, self.names))
 
 
 def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,
@@ -220,10 +241,6 @@ def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients
     gradients (n, 2) and directions (E, 2): the limiter's (None: the records' gradients,
     unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
     tiled_join.KeyExpiry that gives each border key its last tile."""
-    from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.stages.surface import surface_stream
-    from c1mesh.survey.tiled_join import border_keys
-
     xy = np.column_stack([records["x"], records["y"]])
     if gradients is None:
         gradients = np.column_stack([records["gx"], records["gy"]])

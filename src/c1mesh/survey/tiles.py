@@ -33,6 +33,9 @@ import numpy as np
 
 from c1mesh.core.cloud import PointCloud, SurfaceMesh
 from c1mesh.core.errors import InputError
+from c1mesh.core.plan import PointSelection
+from c1mesh.formats import read_cloud
+from c1mesh.formats.las import no_class_error
 
 
 @dataclass
@@ -52,34 +55,32 @@ class Survey:
         return np.searchsorted(self.offsets[1:], point_index, side="right")
 
 
-def load_survey(sources: Sequence[str], options) -> Survey:
-    """Read every input (keeping options.classes) and concatenate them in order.
+def load_survey(sources: Sequence[str], select: PointSelection, normals: str = "auto") -> Survey:
+    """Read every input (keeping select's classes, within its bounds) and concatenate them
+    in order.
 
     An input without points of the wanted classes contributes none (a survey may have
     tiles of water); the survey as a whole must have points. Normals are kept only when
-    every input has them (else they are estimated survey-wide); colours only when every
-    input has them with the same channel count.
+    every input has them (else they are estimated survey-wide; normals "file" asks for
+    them: InputError naming an input without); colours only when every input has them
+    with the same channel count.
     """
-    from c1mesh.formats import read_cloud
-
-    from c1mesh.formats.las import no_class_error
-
     clouds, found = [], set()
     for source in sources:
-        cloud = read_cloud(source, options.input_format, bounds=getattr(options, "bounds", None))
-        if options.classes:
+        cloud = read_cloud(source, select.input_format, bounds=select.bounds)
+        if select.classes:
             if cloud.classification is None:
                 raise InputError(f"{source}: --classes needs a classification field (LAS/LAZ)")
             found.update(np.unique(cloud.classification).tolist())
-            cloud = cloud.subset(np.isin(cloud.classification, np.asarray(options.classes)))
+            cloud = cloud.subset(np.isin(cloud.classification, np.asarray(select.classes)))
         clouds.append(cloud)
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
     if counts.sum() == 0 and found:                  # the words of the one-file reader
-        raise no_class_error(list(options.classes), found, getattr(options, "bounds", None) is not None)
+        raise no_class_error(list(select.classes), found, select.bounds is not None)
     if counts.sum() == 0:
         raise InputError(("the input has no points" if len(sources) == 1 else "the inputs have no points")
-                         + (" inside --bounds" if getattr(options, "bounds", None) else ""))
-    if options.normals == "file" and any(c.normals is None for c in clouds):
+                         + (" inside --bounds" if select.bounds else ""))
+    if normals == "file" and any(c.normals is None for c in clouds):
         missing = next(s for s, c in zip(sources, clouds) if c.normals is None)
         raise InputError(f"{missing}: the input has no normals; use --normals estimate (or auto)")
     normals = _concatenate([c.normals for c in clouds])

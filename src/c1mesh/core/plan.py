@@ -1,0 +1,113 @@
+"""The fit's plan: what the layers below pipeline need of the user's options, as small
+frozen values.
+
+`c1mesh.pipeline.plan.fit_plan` resolves them once from the options (pipeline.driver's
+FitOptions, the CLI's and the library's one bag of settings) before any point is read:
+the smoothing strength parsed, the CRS parsed, the budget in bytes. stages/, geo/ and
+survey/ then receive the pieces they use and never read the options bag, so every path
+of a fit (in memory, in tiles, on Dask) is told the same things in the same types.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Sequence, Union
+
+Strength = Union[None, str, float]
+"""A smoothing strength as stages.smoothing.parse_strength reads it: None (the exact fit,
+the spline through every point), "auto" (chosen by cross-validation) or a strength s > 0."""
+
+
+@dataclass(frozen=True)
+class PointSelection:
+    """Which points of the inputs the fit reads.
+
+    input_format: the reader's name for streams (None: the path's extension); classes:
+    LAS classification codes to keep (None: all); bounds: (xmin, ymin, xmax, ymax) world
+    x/y box, closed (None: everything)."""
+
+    input_format: str | None = None
+    classes: tuple[int, ...] | None = None
+    bounds: tuple[float, float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class HeightSettings:
+    """How the scan becomes heights and gradients over its frame (stages.frame,
+    stages.height_field, stages.height_gradients).
+
+    axis: the height axis ("auto", "x", "y", "z" signed, or "X,Y,Z"); normals: "auto" |
+    "file" | "estimate"; k: neighbours of the normal estimate; max_slope: degrees, points
+    whose normal is within this of perpendicular to the axis are dropped; gradients:
+    "auto" | "normals" | "heights" (stages.height_gradients.use_height_gradients)."""
+
+    axis: object = "auto"
+    normals: str = "auto"
+    k: int = 16
+    max_slope: float = 85.0
+    gradients: str = "auto"
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    """The spline: the triangulation's trim, the shape functions, the refinement and the fit.
+
+    max_edge: "auto", None (no limit) or a length in the frame's units; scheme: the
+    shape-function tuple's name (engine.schemes); level: each triangle becomes level²
+    triangles (None: chosen by the fit); overshoot: "limit" | "off" (stages.limiter);
+    strength: the smoothing strength (`Strength`); spacing: None (vertices at the points)
+    or a length D, one vertex per D x D cell of a smoothing fit (stages.thinning)."""
+
+    max_edge: object = "auto"
+    scheme: str = "sextic"
+    level: int | None = None
+    overshoot: str = "limit"
+    strength: Strength = None
+    spacing: float | None = None
+
+
+@dataclass(frozen=True)
+class MeshTarget:
+    """How a mesh output is written: format (formats' registry name; None: the path's
+    extension), ascii (PLY as text), crs (a CRS the user assigned, as given: EPSG code,
+    WKT or a file, c1mesh.core.crs.parse_crs; None: the inputs' own)."""
+
+    format: str | None = None
+    ascii: bool = False
+    crs: str | None = None
+
+
+@dataclass(frozen=True)
+class FitPlan:
+    """Everything the stages, the writers and the tile scheduler are told about one fit.
+
+    memory: the budget in bytes (None: no budget, always one piece in memory); threads:
+    the one thread knob (None: the process's setting, core.threads); rasters: whether
+    any raster output (DEM, slope, aspect, hillshade, preview) is asked for, which only
+    the in-memory fit writes today."""
+
+    select: PointSelection = PointSelection()
+    heights: HeightSettings = HeightSettings()
+    surface: SurfaceSettings = SurfaceSettings()
+    mesh: MeshTarget = MeshTarget()
+    memory: int | None = None
+    threads: int | None = None
+    rasters: bool = False
+
+
+@dataclass(frozen=True)
+class TiledRun:
+    """Where and how the tiles of a memory-bounded fit run, and whom they tell.
+
+    per_tile: points per tile (overrides the budget's choice; for tests); directory:
+    where the spill files go (None: beside a path output, else $TMPDIR); scheduler: a
+    Dask scheduler's address (None: local); jobs: local processes (None: one per thread
+    of the knob); outputs: with `--seamless -O`, one path per input (None: one mesh);
+    on_stage(stage) after each stage; on_tile(pass, tiles done, tiles) as tiles finish."""
+
+    per_tile: int | None = None
+    directory: object = None
+    scheduler: str | None = None
+    jobs: int | None = 1
+    outputs: Sequence[str] | None = None
+    on_stage: Callable[[str], None] | None = None
+    on_tile: Callable[[str, int, int], None] | None = None

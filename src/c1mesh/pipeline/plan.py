@@ -1,0 +1,55 @@
+"""The plan of a fit (c1mesh.core.plan), resolved once from the options before any point
+is read.
+
+FitOptions (pipeline.driver) is what a user sets; a FitPlan is what the stages, the
+writers and the tile scheduler are told: typed, frozen, parsed. Bad values (a --smooth
+that is no strength, a --spacing without smoothing) are InputErrors here, before any work.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+from c1mesh.core.errors import InputError
+from c1mesh.core.plan import FitPlan, HeightSettings, MeshTarget, PointSelection, Strength, SurfaceSettings
+from c1mesh.stages.frame import resolve_axis
+from c1mesh.stages.smoothing import SmoothingError, parse_strength
+from c1mesh.stages.thinning import check_spacing
+
+
+def smoothing_strength(options) -> Strength:
+    """options.smooth as c1mesh.stages.smoothing.parse_strength reads it: None (off),
+    "auto" or a strength s > 0; InputError for anything else, and for a --spacing without
+    smoothing (an exact fit has its vertices at the points). Checked before any work."""
+    try:
+        strength = options.smooth if isinstance(options.smooth, (int, float)) else parse_strength(options.smooth)
+        if isinstance(strength, (int, float)):
+            strength = parse_strength(repr(float(strength)))
+    except SmoothingError as exc:
+        raise InputError(f"--smooth: {exc}") from None
+    check_spacing(options.spacing)
+    if options.spacing is not None and strength is None:
+        raise InputError("--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength")
+    return strength
+
+
+def resolve_options_axis(source, options):
+    """(options with "auto" resolved to z for a LAS/LAZ source, the report's phrase for
+    how the height axis is chosen): stages.frame.resolve_axis."""
+    axis, reason = resolve_axis(source, options.axis, options.input_format)
+    return (options if axis is options.axis else replace(options, axis=axis)), reason
+
+
+def fit_plan(options) -> FitPlan:
+    """The FitPlan of pipeline.driver.FitOptions `options` (their axis as given: resolve
+    "auto" for LAS/LAZ first, resolve_options_axis)."""
+    classes = None if options.classes is None else tuple(options.classes)
+    return FitPlan(
+        select=PointSelection(options.input_format, classes or None,
+                              None if options.bounds is None else tuple(options.bounds)),
+        heights=HeightSettings(options.axis, options.normals, options.k, options.max_slope, options.gradients),
+        surface=SurfaceSettings(options.max_edge, options.scheme, options.level, options.overshoot,
+                                smoothing_strength(options), options.spacing),
+        mesh=MeshTarget(options.output_format, options.ascii, options.crs),
+        memory=options.memory, threads=options.workers,
+        rasters=any(v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
+                                                        options.hillshade, options.preview)))
