@@ -310,7 +310,7 @@ def test_blocks_run_in_the_thread_knobs_threads_and_give_the_same_gradients(monk
     xy = np.random.default_rng(4).random((3000, 2))
     z = np.sin(3 * xy[:, 0]) + xy[:, 1] ** 2
     plain = height_gradients(xy, z, k=24)                   # one block of 3000
-    monkeypatch.setattr(scipy.spatial, "cKDTree", RecordingTree)
+    monkeypatch.setattr(hg, "cKDTree", RecordingTree)
     monkeypatch.setattr(hg, "BLOCK", 256)                   # 12 blocks
     for threads in (1, 2):
         asked.clear()

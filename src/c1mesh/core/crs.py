@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 
 from c1mesh.core.errors import DependencyError, InputError
+from c1mesh.core.outputs import atomic_output
 
 PLY_COMMENT = "crs"
 """PLY header comment keyword: ``comment crs <one-line WKT2>``."""
@@ -127,8 +128,6 @@ def prj_path(mesh_path) -> Path:
 
 def write_prj(mesh_path, wkt: str) -> Path:
     """Write the ESRI-WKT sidecar of `mesh_path` atomically; returns its path."""
-    from c1mesh.core.outputs import atomic_output
-
     target = prj_path(mesh_path)
     with atomic_output(target, "w") as handle:
         handle.write(esri_wkt(wkt) + "\n")

@@ -13,6 +13,7 @@ and every such call has one place to fail soft.
 from __future__ import annotations
 
 import ctypes
+import resource
 import sys
 
 
@@ -57,6 +58,4 @@ def release_free_heap() -> bool:
 
 def peak_rss_mb() -> float:
     """The process's peak resident set size so far, in MB (Linux reports KiB)."""
-    import resource
-
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)

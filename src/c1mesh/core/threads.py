@@ -32,9 +32,11 @@ import itertools
 import os
 import queue
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterator, TypeVar
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from c1mesh.core.errors import InputError
 
@@ -215,7 +217,6 @@ def _controller():
     """threadpoolctl's controller of the BLAS libraries loaded now: made on every call
     (~1.5 ms), so that libraries loaded after the first call (scipy's own OpenBLAS) are
     limited too."""
-    from threadpoolctl import ThreadpoolController
     return ThreadpoolController()
 
 
@@ -233,7 +234,6 @@ def overlap(background: Callable[[], Item], foreground: Callable[[], object]) ->
     one worker is allowed. An error in either is raised here."""
     if workers() == 1:
         return background(), foreground()
-    from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(1, thread_name_prefix="c1mesh-overlap") as pool:
         pending = pool.submit(background)
         here = foreground()

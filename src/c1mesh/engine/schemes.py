@@ -22,7 +22,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.polynomial import Polynomial
 
-from c1mesh.core.errors import C1MeshError
+from c1mesh.core.errors import C1MeshError, DependencyError
 
 Univariate = Callable[[Any], Any]
 Trivariate = Callable[[Any, Any, Any], Any]
@@ -160,7 +160,6 @@ def tuple_from_sympy(psi0, psi1, chi0, chi1, t=None, t123=None, name: str = "cus
     try:
         import sympy as sp
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        from c1mesh.core.errors import DependencyError
         raise DependencyError("custom tuples from expressions need sympy: pip install sympy") from exc
     psi0, psi1, chi0, chi1 = (sp.sympify(e) for e in (psi0, psi1, chi0, chi1))
     if t is None:

@@ -27,6 +27,7 @@ from typing import IO, Callable, Iterator, Sequence
 import numpy as np
 
 from c1mesh.core.errors import FormatError, InputError
+from c1mesh.core.threads import workers
 
 Box = tuple[float, float, float, float]
 """(xmin, ymin, xmax, ymax) in the file's world units; closed on every side."""
@@ -344,8 +345,6 @@ def laz_backend():
     rayon's pool cannot be bounded per call: lazrs does not take a thread count, and its
     global pool is sized once per process, to RAYON_NUM_THREADS or the CPU count. So the
     knob chooses between one thread and that pool."""
-    from c1mesh.core.threads import workers
-
     import laspy
 
     backends = laspy.LazBackend

@@ -28,7 +28,7 @@ from c1mesh.core.crs import las_crs
 from c1mesh.core.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
-from c1mesh.formats.copc import inside, laz_backend
+from c1mesh.formats.copc import Copc, header_meets, inside, is_copc_header, laz_backend
 
 Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
@@ -267,8 +267,6 @@ def _point_chunks(reader, data: Buffer, name: str, open_stream: Callable[[], IO[
     chunk iterator; with bounds, nothing when the header's extent misses the box, only
     the octree nodes meeting the box for a COPC file, else the whole body (filtered by
     the caller)."""
-    from c1mesh.formats.copc import Copc, header_meets, is_copc_header
-
     header = reader.header
     if bounds is None:
         yield reader.chunk_iterator(_CHUNK), header.point_count

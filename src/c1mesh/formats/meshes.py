@@ -15,9 +15,22 @@ from typing import IO, Iterator
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
+from c1mesh.core.errors import FormatError
 from c1mesh.formats._background import background_writes
-from c1mesh.formats._blocks import (BINARY_ROWS, INT32_MOST, TEXT_ROWS, UINT32_MOST, as_stream, face_chunks,
-                                    refuse_size, text_rows, too_many, vertex_bounds, vertex_chunks, vertex_table)
+from c1mesh.formats._blocks import (
+    BINARY_ROWS,
+    INT32_MOST,
+    TEXT_ROWS,
+    UINT32_MOST,
+    as_stream,
+    face_chunks,
+    refuse_size,
+    text_rows,
+    too_many,
+    vertex_bounds,
+    vertex_chunks,
+    vertex_table,
+)
 
 
 def _facet_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -238,7 +251,6 @@ def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
     """(world positions (M, 3) float64, normals (M, 3) or None) of the first mesh of a
     GLB as write_glb writes it: float32 accessors in one buffer, the origin in the node's
     translation. FormatError for anything else."""
-    from c1mesh.core.errors import FormatError
     try:
         length, _ = struct.unpack_from("<I4s", data, 12)
         document = json.loads(data[20:20 + length])

@@ -14,14 +14,22 @@ north up. matplotlib is imported only here.
 """
 from __future__ import annotations
 
+import json
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
 
+from c1mesh.core.cloud import PointCloud
+from c1mesh.core.crs import describe
 from c1mesh.core.errors import InputError
-from c1mesh.geo.raster import BLOCK_CELLS, hillshade, horn_gradient_at_edges, is_raster_path
+from c1mesh.formats import atomic_output, read_cloud
+from c1mesh.formats.meshes import read_glb_vertices
+from c1mesh.geo.raster import BLOCK_CELLS, hillshade, horn_gradient_at_edges, is_raster_path, rasterio_module
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
+from c1mesh.stages.frame import choose_frame
+from c1mesh.stages.surface import refined_vertex_count, surface_stream
 
 PIXELS = 700
 """Cells along the longer side of a preview."""
@@ -71,8 +79,6 @@ def render_fit(interp, frame, path, crs: str | None = None, level: int | None = 
     if not hasattr(frame, "normals_from_gradients"):
         render_spline(interp, frame, path, crs=crs, z_factor=z_factor)
         return
-    from c1mesh.stages.surface import refined_vertex_count
-    from c1mesh.stages.surface import surface_stream
 
     level = max(1, int(level or 1))
     while level > 1 and refined_vertex_count(interp, level) > PREVIEW_VERTICES:
@@ -186,8 +192,6 @@ def _draw(col, row, height, up, corners, pc, pr, width, best, out) -> None:
 def _view_frame(points: np.ndarray, normals: np.ndarray):
     """The frame a surface is seen in (render_surface, render_mesh) and whether its axes
     are the world's: where it is a height field, world z for terrain within 10° of it."""
-    from c1mesh.stages.frame import choose_frame
-
     frame = choose_frame(points, normals)
     if frame.axes[2, 2] > math.cos(math.radians(10)):   # terrain: show world x, y and z
         frame = choose_frame(points, normals, "z")
@@ -235,7 +239,6 @@ def render_raster(source, path) -> None:
     """Preview of a GeoTIFF DEM (band 1, north up) with Horn's gradient of its cells,
     one-sided next to nodata and at the border (raster.horn_gradient_at_edges), so every
     cell with a height is drawn, as in the preview of the fit that wrote it."""
-    from c1mesh.geo.raster import rasterio_module
     rasterio = rasterio_module()
     try:
         with rasterio.open(source) as ds:
@@ -271,11 +274,7 @@ def render_dem(z: np.ndarray, gradient: np.ndarray, grid: RasterGrid, stride: in
 def render_mesh(source, path, pixels: int = PIXELS) -> None:
     """Preview of a mesh or point file with vertex normals: averages per pixel in the
     frame where it is a height field (c1mesh.stages.frame.choose_frame)."""
-    from c1mesh.formats import read_cloud
-
     if Path(str(source)).suffix.lower() == ".glb":
-        from c1mesh.core.cloud import PointCloud
-        from c1mesh.formats.meshes import read_glb_vertices
         points, normals = read_glb_vertices(Path(source).read_bytes())
         document_crs = _glb_crs(Path(source).read_bytes())
         cloud = PointCloud(points=points, normals=normals, crs=document_crs)
@@ -330,8 +329,6 @@ def _fill_gaps(z: np.ndarray, g: np.ndarray, passes: int = 2):
 
 
 def _glb_crs(data: bytes) -> str | None:
-    import json
-    import struct
     length = struct.unpack_from("<I", data, 12)[0]
     return json.loads(data[20:20 + length]).get("asset", {}).get("extras", {}).get("crs")
 
@@ -349,8 +346,6 @@ def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str,
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    from c1mesh.formats import atomic_output
 
     valid = np.isfinite(z) & np.isfinite(gradient).all(axis=-1)
     if not valid.any():
@@ -410,6 +405,5 @@ def _units(crs: str | None) -> str:
     """Short name of the horizontal unit of a CRS ('' when there is none)."""
     if not crs:
         return ""
-    from c1mesh.core.crs import describe
     unit = describe(crs)["units"] or ""
     return _UNIT_NAMES.get(unit, unit)

@@ -10,15 +10,16 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from c1mesh.core import crs as crs_module
-from c1mesh.stages.surface import refined_vertex_count
 from c1mesh.core.errors import InputError
+from c1mesh.geo.preview import render_fit
 from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
+from c1mesh.stages.surface import refined_vertex_count
 
 PREVIEW_SUFFIX = ".png"
 MAX_LEVEL = 64
@@ -68,8 +69,6 @@ def check_before(outputs, options):
     """The georeferenced side of a fit's outputs, checked before the input is read: the
     CRS, raster and preview paths, option conflicts (mesh outputs: c1mesh.core.outputs).
     Returns the options with the CRS parsed to WKT (so it is parsed once)."""
-    from dataclasses import replace
-
     if options.crs:
         options = replace(options, crs=crs_module.parse_crs(options.crs))
     for output in outputs:
@@ -162,7 +161,6 @@ def finish(result, interp, frame, crs, crs_source, options, dem=None):
     if options.resolution is not None and "level" in result.report:
         result.report["resolution"] = options.resolution
     if options.preview:
-        from c1mesh.geo.preview import render_fit
         start = time.perf_counter()
         render_fit(interp, frame, options.preview, crs=crs, level=result.report.get("level"),
                    z_factor=result.report.get("z_factor", 1.0), dem=dem)      # None: unknown (pipeline)

@@ -37,8 +37,10 @@ from typing import Iterator
 
 import numpy as np
 
+from c1mesh.core.crs import describe
 from c1mesh.core.errors import DependencyError, InputError
 from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS
+from c1mesh.formats import atomic_output
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 
 RASTER_SUFFIXES = tuple(f".{fmt}" for fmt in RASTER_FORMATS)
@@ -263,7 +265,6 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     are complete (formats.atomic_output), with overviews (2x, 4x, ... averaged) added.
     """
     rasterio = rasterio_module()
-    from c1mesh.formats import atomic_output
 
     items = targets.items()
     if not items:
@@ -355,7 +356,6 @@ def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineS
     hillshade; heights in units of their own without one are refused before
     (pipeline.check_angles)."""
     if crs and (options.slope or options.aspect or options.hillshade):
-        from c1mesh.core.crs import describe
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
                              "geographic (degrees): reproject to a projected CRS first")

@@ -14,9 +14,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError
 from c1mesh.engine import rsd
+from c1mesh.engine.properties import scheme_properties
 
 
 # ---------------------------------------------------------------------------------- grid
@@ -67,7 +69,6 @@ def polynomial_form(scheme) -> tuple[np.ndarray, np.ndarray, float]:
     """
     degree = scheme.degree
     if degree is None:
-        from c1mesh.engine.properties import scheme_properties
         degree = scheme_properties(scheme).degree
     exponents = np.array([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)])
     lattice = exponents / degree
@@ -314,8 +315,6 @@ class NearestTriangles:
     """
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, reach: float | None = None):
-        from scipy.spatial import cKDTree
-
         self.points, self.triangles = np.asarray(points, dtype=np.float64), np.asarray(triangles)
         self.reach = np.inf if reach is None else float(reach)
         corners = self.points[self.triangles]                                   # (T, 3, 2)

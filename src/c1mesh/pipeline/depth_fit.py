@@ -18,9 +18,24 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import workers as thread_count
+from c1mesh.engine.schemes import get_scheme
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.geo.products import finish, level_for_edge, level_for_vertices
+from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
+from c1mesh.pipeline.steps import (
+    FitResult,
+    compact_vertices,
+    display_name,
+    limited_interpolator,
+    mesh_pieces,
+    write_surface,
+)
 from c1mesh.stages.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
-from c1mesh.stages.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, \
-    parse_viewpoint
+from c1mesh.stages.limiter import check_mode
+from c1mesh.stages.normals import estimate_normals
+from c1mesh.stages.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, parse_viewpoint
+from c1mesh.stages.trim import trim
 
 
 @dataclass
@@ -93,7 +108,6 @@ def camera_normals(cloud: PointCloud, camera: np.ndarray, frame: PerspectiveFram
         estimate = grid_normals(camera.reshape(height, width, 3), valid).reshape(-1, 3)
         source = "grid"
     else:
-        from c1mesh.stages.normals import estimate_normals
         finite = np.isfinite(camera).all(axis=1)
         if finite.sum() < 3:
             raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
@@ -144,7 +158,6 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
         removed = dict(jumps.removed)
         method = "grid"
     else:
-        from c1mesh.engine.triangulation import delaunay
         index = _nearest_per_ray(field)
         tri = index[delaunay(field.uv[index])]
         method = "delaunay"
@@ -154,7 +167,6 @@ def view_triangles(field: ViewField, grid_shape: tuple[int, int] | None, max_edg
         removed = {"zero_area": flat, **jumps.removed}
     limit = None
     if method == "delaunay" and tri.shape[0]:
-        from c1mesh.stages.trim import trim
         used = np.flatnonzero(np.bincount(tri.ravel(), minlength=field.w.size))
         remap = np.full(field.w.size, -1, dtype=np.int64)
         remap[used] = np.arange(used.size)
@@ -194,12 +206,6 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     geo.finish); crs: the CRS to carry (usually none: a depth frame's coordinates are the
     camera's, unless a --crs or the file names one), crs_source where it came from.
     """
-    from c1mesh.geo.products import finish
-    from c1mesh.stages.limiter import check_mode
-    from c1mesh.pipeline.steps import FitResult, compact_vertices, limited_interpolator, write_surface
-    from c1mesh.pipeline.report import crs_facts
-    from c1mesh.engine.schemes import get_scheme
-
     scheme = get_scheme(options.scheme)
     check_mode(options.overshoot)
     frame, viewpoint_source = perspective_frame(cloud, options.viewpoint)
@@ -233,10 +239,6 @@ def perspective_report(source, output, cloud, field_: ViewField, used, interp, o
     """The report of a perspective fit (c1mesh.pipeline.report's schema). Its gradients are
     of the inverse depth, from the normals; its warnings are [] (the warning rules are the
     height axis's); its z_factor is --z-factor's, else 1 (camera x, y, z share one unit)."""
-    from c1mesh.core.threads import workers as thread_count
-    from c1mesh.pipeline.steps import display_name, mesh_pieces
-    from c1mesh.pipeline.report import common_report, scheme_facts
-
     dropped = dict(field_.dropped)
     dropped["unreferenced_after_trim"] = int(field_.usable.sum() - used.size)
     report = common_report(
@@ -273,8 +275,6 @@ def perspective_level(interp, field_: ViewField, used: np.ndarray, options) -> t
     spacing, so finer levels add vertices (level² faces per triangle), not data. On a
     640 x 480 frame that is level 1, not the plane fit's 4 (16x the vertices).
     """
-    from c1mesh.geo.products import level_for_edge, level_for_vertices
-
     if options.resolution is not None:
         return level_for_edge(field_.camera[used], interp.triangles, options.resolution), "resolution"
     if options.level is not None:

@@ -14,35 +14,45 @@ from typing import Any, Callable
 import numpy as np
 
 from c1mesh.core.cloud import PointCloud
-from c1mesh.stages.curtains import remove_curtains, view_rules_apply
-from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
-from c1mesh.geo.raster import dem_sampling, is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.core.errors import InputError
-from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
-from c1mesh.stages.frame import auto_axis_reason, choose_frame
-from c1mesh.stages.height_field import height_field
-from c1mesh.stages.height_gradients import (height_gradients, height_neighbours, height_normals,
-                                     use_height_gradients)
-from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
+from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import check_triangles_left, trim_mesh
+from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
+from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
+from c1mesh.geo.products import finish as _finish_geo
+from c1mesh.geo.products import geo_plan, level_for_edge, resolve_crs
+from c1mesh.geo.raster import dem_sampling, is_raster_path, raster_axis, write_fit_rasters
+from c1mesh.pipeline.depth_fit import fit_perspective
+from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, smoothing_strength
+from c1mesh.pipeline.report import common_report, crs_facts
+from c1mesh.pipeline.steps import (
+    FitResult,
+    StageTimer,
+    compact_vertices,
+    display_name,
+    limited_interpolator,
+    mesh_pieces,
+    smoothed_interpolator,
+    write_surface,
+)
+from c1mesh.stages.curtains import remove_curtains, view_rules_apply
+from c1mesh.stages.frame import auto_axis_reason, choose_frame
+from c1mesh.stages.height_field import height_field
+from c1mesh.stages.height_gradients import height_gradients, height_neighbours, height_normals, use_height_gradients
+from c1mesh.stages.limiter import check_mode as check_overshoot_mode
+from c1mesh.stages.normals import estimate_normals
+from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import gradient_data_weight
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
+from c1mesh.stages.trim import check_triangles_left, trim_mesh
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
-from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
-from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, smoothing_strength
-from c1mesh.pipeline.report import common_report, crs_facts
 from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
-from c1mesh.pipeline.steps import (FitResult, StageTimer, compact_vertices, display_name,
-                                   limited_interpolator, mesh_pieces, smoothed_interpolator,
-                                   write_surface)
 
 NORMAL_MODES = ("auto", "file", "estimate")
 """The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
@@ -168,7 +178,6 @@ def cloud_normals(cloud: PointCloud, options: FitOptions) -> tuple[np.ndarray, s
         raise InputError("the input has no normals; use --normals estimate (or auto)")
     if cloud.normals is not None and options.normals != "estimate":
         return cloud.normals, "file"
-    from c1mesh.stages.normals import estimate_normals
     finite = np.isfinite(cloud.points).all(axis=1)
     if finite.sum() < 3:
         raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
@@ -395,13 +404,11 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     axis_reason = column_reason or axis_reason
     check_angles(cloud, options, display_name(source))
     angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
-    from c1mesh.stages.perspective import frame_kind
     if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
         if smoothing_strength(options) is not None:
             raise InputError(f"{display_name(source)}: an organised scan or depth image is fitted in the "
                              "perspective frame, which has no smoothing fit; give --frame axis to fit it "
                              "as a height field, or drop --smooth")
-        from c1mesh.pipeline.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
     model = build_surface(cloud, options, timer,
                           None if geo.rasters.items() else _output_size_check(output, options, cloud))

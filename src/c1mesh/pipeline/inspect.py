@@ -1,14 +1,22 @@
 """`c1mesh info`: what is in a point file and whether it looks like a height field."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
+from c1mesh.core.crs import describe as describe_crs
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.formats import read_cloud
+from c1mesh.formats.copc import copc_summary
 from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
+from c1mesh.formats.las import laspy_errors
+from c1mesh.pipeline.driver import FitOptions, height_column_axis
 from c1mesh.stages.frame import choose_frame
 from c1mesh.stages.height_field import height_field
-
+from c1mesh.stages.height_gradients import height_neighbours, height_normals
+from c1mesh.stages.normals import estimate_normals
+from c1mesh.stages.perspective import frame_kind
 
 #: Points the height-field check looks at: a random subsample keeps `info` under a second.
 SAMPLE = 20_000
@@ -39,7 +47,6 @@ def describe(source, fmt: str | None = None, sample: int = SAMPLE, memory=None,
     if cloud.classification is not None:
         classes, counts = np.unique(cloud.classification, return_counts=True)
         facts["classes"] = {int(c): int(n) for c, n in zip(classes, counts)}
-    from c1mesh.core.crs import describe as describe_crs
     facts["crs"] = describe_crs(cloud.crs)
     if pts.shape[0]:
         facts["bounds"] = {"min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}
@@ -56,7 +63,6 @@ def _fit_axis(cloud) -> str | None:
     """The axis `c1mesh fit` with default options resolves "auto" to before looking at
     normals, and why (pipeline.height_column_axis, the rule the fit applies: a text
     table's header height column); None when the fit chooses it from the normals."""
-    from c1mesh.pipeline.driver import FitOptions, height_column_axis
     options, reason = height_column_axis(cloud, FitOptions())
     return None if reason is None else (options.axis, reason)
 
@@ -64,12 +70,8 @@ def _fit_axis(cloud) -> str | None:
 def _copc_facts(source, fmt: str | None) -> dict | None:
     """A COPC file's octree (node count, levels, root cube, spacing) from its header and
     hierarchy alone; None for anything else (streams, other formats, plain LAS/LAZ)."""
-    from pathlib import Path
-
     if not isinstance(source, (str, Path)) or (fmt or Path(source).suffix).lower().lstrip(".") not in ("laz", "copc"):
         return None
-    from c1mesh.formats.copc import copc_summary
-    from c1mesh.formats.las import laspy_errors
 
     with laspy_errors(str(source)):
         return copc_summary(source)
@@ -77,7 +79,6 @@ def _copc_facts(source, fmt: str | None) -> dict | None:
 
 def _view_facts(cloud) -> dict:
     """Organised or not, the viewpoint, and the frame `c1mesh fit` would use by default."""
-    from c1mesh.stages.perspective import frame_kind
     kind = frame_kind("auto", cloud.grid_shape is not None)
     facts = {"organised": cloud.grid_shape is not None,
              "viewpoint": None if cloud.viewpoint is None else [float(v) for v in cloud.viewpoint],
@@ -120,7 +121,6 @@ def _height_field_check(cloud, finite, sample: int) -> dict:
         if normals is None:
             if len(rows) < 3:
                 raise InputError(f"only {len(rows)} finite points; need at least 3")
-            from c1mesh.stages.normals import estimate_normals
             normals = estimate_normals(points, towards=choose_frame(points, None, "auto").axes[2])
         frame = choose_frame(points, normals, "auto")
         height_field(points, normals, frame)
@@ -135,9 +135,6 @@ def _height_column_check(points: np.ndarray, axis: str, reason: str) -> dict:
     """The height-field verdict over the given axis of a header height column, with the
     normals the fit uses there (pipeline.build_surface: fitted to the heights, compared in
     plan units only, height_field.height_field's common_metric=False)."""
-    from c1mesh.stages.height_gradients import height_neighbours, height_normals
-    from c1mesh.pipeline.driver import FitOptions
-
     facts = {"axis_choice": reason + " (heights in units of their own: the fit works in "
                                      "plan units and fits the gradients to the heights)",
              "normals_used": "fitted to the heights"}

@@ -12,6 +12,10 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+from c1mesh.core.crs import describe
+from c1mesh.engine.properties import scheme_properties
+from c1mesh.engine.schemes import get_scheme
+
 REQUIRED: dict[str, tuple[str, str, str]] = {
     "input": ("the input path (a list for --seamless)", "path", "never null"),
     "output": ("the output path (a list for -O), null when the mesh only was returned",
@@ -101,8 +105,6 @@ def common_report(*, input, output, points: dict, normals: str, gradients: str, 
 def crs_facts(crs: str | None, source: str | None) -> dict | None:
     """The report's crs: c1mesh.core.crs.describe's facts of WKT `crs` plus where it came
     from ("file" | "option"); None without a CRS."""
-    from c1mesh.core.crs import describe
-
     facts = describe(crs)
     if facts is not None:
         facts["source"] = source
@@ -111,9 +113,6 @@ def crs_facts(crs: str | None, source: str | None) -> dict | None:
 
 def scheme_facts(scheme_name: str) -> dict:
     """The report's scheme: the proven properties of the named shape-function scheme."""
-    from c1mesh.engine.properties import scheme_properties
-    from c1mesh.engine.schemes import get_scheme
-
     return scheme_properties(get_scheme(scheme_name)).as_dict()
 
 

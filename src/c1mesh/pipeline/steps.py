@@ -12,6 +12,9 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull
 
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
 from c1mesh.core.threads import blas_threads
@@ -147,12 +150,6 @@ def mesh_pieces(xy: np.ndarray, triangles: np.ndarray, table=None) -> dict:
     edge names its owner triangle, so the triangle pairs across interior edges come
     without a sort; the hull is taken over the boundary vertices, which hold its corners.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import ConvexHull
-
-    from c1mesh.engine.topology import edge_table
-
     table = edge_table(triangles, xy.shape[0]) if table is None else table
     count_t = triangles.shape[0]
     across = table.owner[table.tri_edge]                      # (T, 3) owner of each slot's edge

@@ -51,7 +51,9 @@ from dataclasses import replace
 import numpy as np
 
 from c1mesh.core.threads import parallel_blocks
+from c1mesh.engine.topology import sort_keys
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
+from c1mesh.stages.trim import TrimmedMesh, retrim
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
@@ -145,8 +147,6 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
     edges: the triangles' unique edges (E, 2), lower point first, sorted, when known
     (trim.TrimmedMesh.edges): then no sort is needed.
     """
-    from c1mesh.engine.topology import sort_keys
-
     if triangles.shape[0] == 0:
         return 0.0
     if edges is not None:
@@ -187,8 +187,6 @@ def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triang
     sort), so that a triangle trim removes as too long or thin is counted there, not here.
     The holes are then re-trimmed where they are (trim.retrim), not the whole mesh again.
     """
-    from c1mesh.stages.trim import TrimmedMesh, retrim
-
     mesh = triangles if isinstance(triangles, TrimmedMesh) else None
     tri = mesh.triangles if mesh is not None else triangles
     floor = noise_floor(xy, z, gradients, tri, edges=mesh.edges() if mesh is not None else None)

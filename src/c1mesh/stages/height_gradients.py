@@ -17,8 +17,12 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import parallel_blocks
+from c1mesh.core.threads import workers as thread_count
+from c1mesh.stages.height_field import gradients_to_normals
 
 GRADIENT_MODES = ("auto", "normals", "heights")
 """Where a fit's vertex gradients come from: "normals" (file or PCA normals), "heights"
@@ -62,8 +66,6 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
     What the pipeline uses instead of PCA normals when the height axis is given (LAS/LAZ:
     z): the frame needs no normals then, and the height field's gradients are the fit's.
     """
-    from c1mesh.stages.height_field import gradients_to_normals
-
     pts = np.asarray(points, dtype=np.float64)
     finite = np.isfinite(pts).all(axis=1)
     local = frame.to_local(pts if finite.all() else pts[finite])
@@ -110,11 +112,6 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     reach is each point's plane distance to its k-th (farthest) neighbour. The same bits
     as height_gradients' rows `at`: a tile fits its own points only, and its reach says
     whether the buffer it read held every neighbourhood."""
-    from scipy.spatial import cKDTree
-
-    from c1mesh.core.threads import parallel_blocks
-    from c1mesh.core.threads import workers as thread_count
-
     workers = thread_count(workers)
     xy = np.asarray(xy, dtype=np.float64)
     z = np.asarray(z, dtype=np.float64)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine.topology import EdgeTable, edge_table
 
@@ -58,8 +59,6 @@ features (a kerb, a wall foot) and keep the rest."""
 
 def check_mode(mode: str) -> None:
     """InputError unless `mode` is one of OVERSHOOT_MODES (checked before a fit's work)."""
-    from c1mesh.core.errors import InputError
-
     if mode not in OVERSHOOT_MODES:
         raise InputError(f"overshoot must be one of {', '.join(OVERSHOOT_MODES)}, got {mode!r}")
 

@@ -39,9 +39,20 @@ from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
-from c1mesh.survey.strip_geometry import (centres_clear, circumcircles, clip_to_hull, disks_clear,
-                                          hull_edges_final, smallest_empty_circle, unread_strips)
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.trim import AUTO_EDGE_FACTOR, edge_lengths, triangle_neighbours
+from c1mesh.survey.streamed_median import order_statistic
+from c1mesh.survey.strip_geometry import (
+    centres_clear,
+    circumcircles,
+    clip_to_hull,
+    disks_clear,
+    hull_edges_final,
+    smallest_empty_circle,
+    unread_strips,
+)
 
 Reader = Callable[[tuple[float, float, float, float]], tuple[np.ndarray, np.ndarray]]
 """read((x0, y0, x1, y1)) -> (index (m,) int64 ascending survey point numbers, xy (m, 2)
@@ -134,8 +145,6 @@ class Hull:
 def streamed_hull(chunks) -> Hull:
     """The convex hull of points given in chunks of (index (m,), xy (m, 2)), holding only
     one chunk and the hull so far: the hull of the union is the hull of the chunks' hulls."""
-    from scipy.spatial import ConvexHull
-
     index, xy = np.empty(0, np.int64), np.empty((0, 2))
     for chunk_index, chunk_xy in chunks:
         index = np.concatenate([index, np.asarray(chunk_index, np.int64)])
@@ -157,9 +166,6 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
     max_edge: keep only the triangles whose edges are all at most this long (the long-edge
     trim), which needs only those to be safe once the buffer exceeds max_edge (module
     docstring); None keeps every triangle."""
-    from c1mesh.engine.triangulation import delaunay
-    from c1mesh.stages.trim import triangle_neighbours
-
     box, cell = grid.box, grid.cell(tile)
     if max_edge is not None:
         buffer = max(buffer, max_edge * (1 + 1e-9))
@@ -194,8 +200,6 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
 
 def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(k,) the longest edge of each triangle, as trim.trim measures edges."""
-    from c1mesh.stages.trim import edge_lengths
-
     return edge_lengths(xy, triangles).max(axis=1)
 
 
@@ -283,9 +287,6 @@ def edge_length_median(read: Reader, grid: TileGrid, count: int, hull: Hull,
 def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> np.ndarray:
     """Lengths of the survey's Delaunay edges of length <= bound whose lower-numbered end
     is one of the tile's points (edge_length_median)."""
-    from c1mesh.engine.triangulation import delaunay
-    from c1mesh.stages.trim import triangle_neighbours
-
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
         read_box, index, xy, own = reading.box, reading.index, reading.points, reading.own
@@ -317,8 +318,6 @@ def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull
 def auto_max_edge(read: Reader, grid: TileGrid, count: int, hull: Hull) -> float:
     """max_edge="auto" for the survey, as trim.trim resolves it from the whole
     triangulation (AUTO_EDGE_FACTOR x the median edge), without holding the survey."""
-    from c1mesh.stages.trim import AUTO_EDGE_FACTOR
-
     return float(AUTO_EDGE_FACTOR * edge_length_median(read, grid, count, hull))
 
 
@@ -342,9 +341,6 @@ class TilePass:
 def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> TilePass:
     """Triangulate one tile once for both the edge statistic and the trimmed triangles up
     to `bound` (frame units), growing its buffer (from bound) until both are certified."""
-    from c1mesh.engine.triangulation import delaunay
-    from c1mesh.stages.trim import edge_lengths, triangle_neighbours
-
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
         read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
@@ -399,8 +395,6 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     in that order (c1mesh.survey.tiled_triangulation runs the tiles as tasks this way); a tile's short
     lengths may be an array or the path of a .npy file holding it (`short_median`).
     """
-    from c1mesh.stages.trim import AUTO_EDGE_FACTOR
-
     edges = 3 * count - 3 - len(hull.index)
     auto = isinstance(max_edge, str)
     bound = 2.0 * AUTO_EDGE_FACTOR * mean_spacing(grid.box, count) if auto else float(max_edge)
@@ -441,8 +435,6 @@ def short_median(shorts: list, edges: int) -> float | None:
     The lengths are never concatenated (about 3 per survey point): the ranks are found
     by streamed_median.order_statistic, holding one tile's lengths and at most
     SHORT_GATHER candidates, so the parent's memory does not grow with the survey."""
-    from c1mesh.survey.streamed_median import order_statistic
-
     def chunks():
         for short in shorts:
             yield np.load(short) if isinstance(short, (str, os.PathLike)) else short

@@ -10,9 +10,12 @@ files, so its workers must see the folder they are in.
 """
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Callable, Iterator, Sequence
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.survey.tiles import TileError, TileResult, TileTask, run_tile, temp_path, tile_failure
 
 CONNECT_SECONDS = 30
@@ -119,9 +122,6 @@ class TaskRunner:
             except (OSError, TimeoutError, ValueError) as exc:
                 raise InputError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from exc
         elif self.jobs > 1 and LOCAL_POOL == "processes":
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
             self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context(self.start_method))
         elif self.jobs > 1:
             from distributed import Client, LocalCluster
@@ -144,8 +144,6 @@ class TaskRunner:
         """Yield (i, function(*arguments(i))) for i in range(count), in completion order.
         A task that raises stops the run: tiles.TileError "tile NAME: ..." (name(i)), the
         tasks not yet finished are cancelled."""
-        from c1mesh.core.platform_memory import release_free_heap
-
         if self.pool is None and self.client is None:
             for i in range(count):
                 try:
@@ -157,8 +155,6 @@ class TaskRunner:
             return
         pending: dict = {}
         if self.pool is not None:
-            from concurrent.futures import FIRST_COMPLETED, wait
-
             submit = lambda i: self.pool.submit(_then_release, function, *arguments(i))  # noqa: E731
             wait_some = lambda: wait(pending, return_when=FIRST_COMPLETED).done  # noqa: E731
             failed = lambda future: future.exception()                          # noqa: E731
@@ -197,8 +193,6 @@ def _then_release(function: Callable, *arguments):
     """function(*arguments) in a pool worker, then the heap it freed given back
     (platform_memory.release_free_heap): tasks of one size then peak at one size, however
     many a worker has run; the same is done after each task run in this process."""
-    from c1mesh.core.platform_memory import release_free_heap
-
     try:
         return function(*arguments)
     finally:

@@ -16,6 +16,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.stages.frame import ScanFrame, axes_from_e3, parse_axis
 
 Chunks = Callable[[], Iterable[tuple[np.ndarray, np.ndarray | None]]]
 
@@ -79,8 +80,6 @@ def streamed_frame(chunks: Chunks, axis="auto"):
     when no chunk has normals, the least-variance direction of the points about the origin.
     The sums run chunk by chunk in survey order, so e3 agrees with choose_frame on the whole
     cloud to rounding (a different summation order), and does not depend on any tiling."""
-    from c1mesh.stages.frame import ScanFrame, axes_from_e3, parse_axis
-
     origin = streamed_median(chunks)
     e3 = parse_axis(axis)
     if e3 is None:

@@ -19,7 +19,12 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from c1mesh.core.threads import workers
+from c1mesh.stages.height_field import gradients_to_normals
+from c1mesh.stages.height_gradients import gradients_at
+from c1mesh.stages.normals import estimate_normals, unique_positions
 from c1mesh.survey.buffered_delaunay import TileGrid, growing_reads
 from c1mesh.survey.strip_geometry import unread_strips
 
@@ -39,10 +44,6 @@ class TileNormals:
 def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float,
                  towards=(0.0, 0.0, 1.0)) -> TileNormals:
     """Normals of one tile's own points (module docstring), oriented to face `towards`."""
-    from scipy.spatial import cKDTree
-
-    from c1mesh.stages.normals import estimate_normals, unique_positions
-
     def attempt(xyz, own, read_box, covers):
         if not covers:
             distinct, inverse = unique_positions(xyz)
@@ -72,8 +73,6 @@ def _grown(read3: Callable, grid: TileGrid, tile: int, buffer: float,
 def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:
     """True when every point's k-th nearest neighbour (itself counted, as Open3D counts it)
     is closer than the unread part of the box (with a relative margin for rounding)."""
-    from c1mesh.core.threads import workers
-
     distance, _ = tree.query(points, k, workers=workers())
     kth = distance[:, -1] if distance.ndim == 2 else distance
     return _closer_than_unread(points, kth, read_box, box)
@@ -97,9 +96,6 @@ def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buff
     `tile_normals` until every own point's k nearest plane neighbours lie in what was read
     (their plane distance is below the unread part's), so each fit sees the survey's
     neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
-    from c1mesh.stages.height_field import gradients_to_normals
-    from c1mesh.stages.height_gradients import gradients_at
-
     def attempt(xyz, own, read_box, covers):
         if len(xyz) <= k + 1 and not covers:
             return None

@@ -20,6 +20,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from c1mesh.core.outputs import register_temp, unregister_temp
 from c1mesh.survey.buffered_delaunay import TileGrid
 
 RECORD = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
@@ -42,8 +43,6 @@ class TileSpill:
 
     def __enter__(self) -> "TileSpill":
         """Create the (empty) spill files, once."""
-        from c1mesh.core.outputs import register_temp
-
         if not self._created:
             self._created = True
             for path in self.paths:
@@ -56,8 +55,6 @@ class TileSpill:
 
     def close(self) -> None:
         """Remove every spill file."""
-        from c1mesh.core.outputs import unregister_temp
-
         for path in self.paths:
             with contextlib.suppress(OSError):
                 path.unlink()

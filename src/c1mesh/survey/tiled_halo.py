@@ -19,6 +19,13 @@ from typing import Callable
 
 import numpy as np
 
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages.limiter import trapezoid_residuals
+from c1mesh.stages.trim import edge_lengths
+from c1mesh.survey.streamed_median import streamed_median
+from c1mesh.survey.tile_spill import file_blocks
+from c1mesh.survey.tiles import task_row
+
 HALO_EDGES = 4
 """A tile's halo, in longest final edges (module docstring)."""
 
@@ -167,8 +174,6 @@ class HaloCache:
 def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
     """Read tile's halo (read_halo) and write it to paths (records, triangles), as
     HaloCache.halo caches it; returns a report row (points, seconds, worker)."""
-    from c1mesh.survey.tiles import task_row
-
     start = time.perf_counter()
     halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach)
     halo.records.tofile(paths[0])
@@ -187,8 +192,6 @@ def compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
 def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
     """The longest edge of the survey's final triangles (as trim.trim measures
     edges), tile by tile: tile t's own triangles have their corners within buffers[t]."""
-    from c1mesh.stages.trim import edge_lengths
-
     longest = 0.0
     for t, path in enumerate(triangle_files):
         if path is None:
@@ -227,8 +230,6 @@ def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3)
 
 def edge_residuals(points, values, gradients, edges) -> np.ndarray:
     """(E,) |trapezoid residual| of each edge, with the limiter's own arithmetic."""
-    from c1mesh.stages.limiter import trapezoid_residuals
-
     return np.abs(trapezoid_residuals(points, values, gradients, edges))
 
 
@@ -237,9 +238,6 @@ def edge_floor(halos: Callable[[], object], temps, name: str, data_of=None) -> f
     edge from the tile holding its lower end). halos: a callable giving a fresh iterator
     of every tile's Halo; data_of(halo, table): the heights (m,) and gradients (m, 2) to
     use (None: the height field's); temps: tiled_input.Temps for the residual file."""
-    from c1mesh.survey.streamed_median import streamed_median
-    from c1mesh.engine.topology import edge_table
-
     path = temps.new(f"residuals-{name}.bin")
     with open(path, "wb") as file:
         for halo in halos():
@@ -261,8 +259,6 @@ per pass (bit patterns, shifted digits, masks), so the block bounds the noise fl
 
 
 def residual_blocks(path, block: int = FLOAT_BLOCK):
-    from c1mesh.survey.tile_spill import file_blocks
-
     with open(path, "rb") as file:
         yield from file_blocks(file, "<f8", block)
 
@@ -288,8 +284,6 @@ def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -
 def median_of_files(paths) -> float:
     """The exact median of the float64 values in the files `paths` (streamed_median's,
     as np.median gives it), which it then removes."""
-    from c1mesh.survey.streamed_median import streamed_median
-
     def blocks():
         for path in paths:
             yield from residual_blocks(path)
@@ -304,8 +298,6 @@ def own_triangles_in(halo: Halo, table, owned: np.ndarray) -> tuple[np.ndarray, 
     are table, topology.edge_table of halo.triangles): (corners (c,) ascending halo rows,
     triangles (k, 3) into corners, at (E,) the halo edge of each edge of those triangles in
     the order of edge_table(triangles, c).edges). RuntimeError when a corner is not in the halo."""
-    from c1mesh.engine.topology import edge_table
-
     rows = halo_rows(halo.records["index"], owned)
     if np.any(rows < 0):
         raise RuntimeError("a tile's own triangle has a corner outside its halo")

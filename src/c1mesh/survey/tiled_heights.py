@@ -12,9 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.plan import HeightSettings
+from c1mesh.core.threads import limit
+from c1mesh.stages.height_field import SPACING_SAMPLES, check_stacking, kd_tree, normal_gradients, stacked_positions
 from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
 from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
+from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
 from c1mesh.survey.tile_spill import TileSpill
+from c1mesh.survey.tiled_halo import halo_rows, median_of_files
 from c1mesh.survey.tiles import task_row
 
 HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
@@ -92,10 +96,6 @@ def _tile_heights(job: _HeightJob, t: int, path, group_path) -> dict:
     """One tile's height-field records (HEIGHT) written to path, its shared positions
     (GROUP) to group_path; returns its report row (points written, groups written, usable
     points, seconds, worker)."""
-    from c1mesh.stages.height_field import normal_gradients
-    from c1mesh.core.threads import limit
-    from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
-
     start = time.perf_counter()
     with limit(job.threads):
         if job.from_heights:
@@ -153,9 +153,6 @@ def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, te
     (`tile_stacked`), and the sum against spill.usable decides (check_stacking raises
     NotAHeightFieldError). axis: the frame's height axis (3,). Returns (h, stacked points),
     the in-memory report's points.spacing and points.stacked."""
-    from c1mesh.stages.height_field import check_stacking
-    from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
-
     heights = spill.heights
     positions = int(heights.counts.sum())
     tiles = [t for t in range(len(grid)) if heights.counts[t]]
@@ -171,8 +168,6 @@ def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, te
 def _sampled_median(heights, grid, tiles, positions: int, first_reach: float, runner, name, temps) -> float:
     """The median of tile_sample_spacings over every tile (spacing_sample's rule, which
     takes every position when none is picked)."""
-    from c1mesh.survey.tiled_halo import median_of_files
-
     paths = [temps.new(f"spacings-{t}.bin") for t in tiles]
     for every in (False, True):
         picked = sum(n for _, n in runner.map(tile_sample_spacings, len(tiles),
@@ -189,8 +184,6 @@ def tile_sample_spacings(heights, grid, tile: int, positions: int, every: bool, 
     spacing_sample picks (every one with every=True) to its nearest other position in the
     survey: read in its cell grown by a reach that doubles until the distance found is
     within the reach (no position outside can then be nearer). Returns how many."""
-    from c1mesh.stages.height_field import SPACING_SAMPLES, kd_tree
-
     own = heights.tile(tile)
     step = 1 if every else max(1, positions // SPACING_SAMPLES)
     mine = own[own["index"] % step == 0]
@@ -213,9 +206,6 @@ def tile_sample_spacings(heights, grid, tile: int, positions: int, every: bool, 
 def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
     """How many usable points (duplicates included) at tile's own positions are stacked
     (stacked_positions on every position within the spacing of tile's cell)."""
-    from c1mesh.stages.height_field import kd_tree, stacked_positions
-    from c1mesh.survey.tiled_halo import halo_rows
-
     rect = grid.grown(tile, spacing * (1 + 1e-9))
     records = spill.heights.records(rect)
     if not len(records):

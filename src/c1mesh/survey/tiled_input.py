@@ -10,6 +10,13 @@ from typing import Callable
 
 import numpy as np
 
+from c1mesh.core.crs import las_crs, parse_crs, resolve
+from c1mesh.core.outputs import register_temp, unregister_temp
+from c1mesh.formats.copc import region_chunks
+from c1mesh.formats.las import no_class_error
+from c1mesh.survey.tile_spill import file_blocks
+from c1mesh.survey.tiles import survey_crs as common_crs
+
 CHUNK = 1_000_000
 """Points per chunk read from a LAS/LAZ file."""
 
@@ -50,8 +57,6 @@ class CachedChunks:
         self.complete = True
 
     def _cached(self):
-        from c1mesh.survey.tile_spill import file_blocks
-
         with open(self.path, "rb") as file:
             for part in file_blocks(file, "<f8", 3 * self.chunk):
                 yield part.reshape(-1, 3), None
@@ -67,9 +72,6 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it.
     file_counts: a list each pass refills with the points it kept from each file."""
     import laspy
-
-    from c1mesh.formats.copc import region_chunks
-    from c1mesh.formats.las import no_class_error
 
     paths = survey_paths(source)
 
@@ -173,8 +175,6 @@ class Temps:
         """A new hidden path in the directory, registered for removal. Only the driver's
         Temps may make one: a copy sent with a task (to a worker process or a Dask worker)
         would list the file in the copy alone, and nobody would remove it."""
-        from c1mesh.core.outputs import register_temp
-
         if not self.owned_here():
             raise RuntimeError(f"temporary file '{name}' requested from a copy of the survey's Temps in a "
                                "task; only the driver's Temps, which removes them, may make them")
@@ -184,8 +184,6 @@ class Temps:
         return path
 
     def close(self) -> None:
-        from c1mesh.core.outputs import unregister_temp
-
         for path in self.paths:
             if path.exists():
                 path.unlink()
@@ -197,9 +195,6 @@ def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
     two differ) and the user's --crs (WKT or any c1mesh.core.crs.parse_crs input) resolved as
     the in-memory fit does (InputError when they differ)."""
     import laspy
-
-    from c1mesh.core.crs import las_crs, parse_crs, resolve
-    from c1mesh.survey.tiles import survey_crs as common_crs
 
     paths = survey_paths(source)
     declared = []

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from c1mesh.survey.tile_spill import file_blocks
+
 CHUNK = 1_000_000
 """Vertices (faces) per block copied from a part file to the joined files."""
 CELLS_PER_BLOCK = 1 << 22
@@ -161,7 +163,6 @@ class PartJoin:
         number = global_numbers(keys, points, last, tile, row["vertices"], self.shared, self.written)
         new = number >= self.written
         self.keys += int(new[np.asarray(points, dtype=np.int64)].sum())
-        from c1mesh.survey.tile_spill import file_blocks
 
         with open(part.vertices, "rb") as file:
             position = 0

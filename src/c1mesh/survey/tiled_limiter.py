@@ -52,8 +52,10 @@ from typing import Callable
 
 import numpy as np
 
-from c1mesh.survey.tiled_halo import (Halo, HaloCache, edge_floor, edge_residuals, median_over_tiles,
-                                      own_triangles_in)
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages.limiter import control_overshoot, reconcile_gradients, reconcile_heights
+from c1mesh.survey.distributed import TaskRunner
+from c1mesh.survey.tiled_halo import Halo, HaloCache, edge_floor, edge_residuals, median_over_tiles, own_triangles_in
 
 
 @dataclass(frozen=True)
@@ -109,8 +111,6 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
     """Write to path the |trapezoid residual| of every final edge whose lower end lies in
     tile's cell (edge_floor's values for that tile): with the height field's heights and
     gradients, or, given the first noise floor, with both reconciled with it."""
-    from c1mesh.engine.topology import edge_table
-
     halo = cache.halo(tile)
     residuals = np.empty(0)
     if len(halo.triangles):
@@ -126,9 +126,6 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
 def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
     (k, 3) survey numbers, all inside its halo."""
-    from c1mesh.stages.limiter import control_overshoot
-    from c1mesh.engine.topology import edge_table
-
     table = edge_table(halo.triangles, len(halo.records))
     values, limited, directions, report = control_overshoot(
         halo.points, halo.records["z"], halo.gradients, halo.triangles, "limit", table,
@@ -145,8 +142,6 @@ def reconciled(halo: Halo, table, noise: float):
     the survey's first noise floor: (values (m,), gradients (m, 2), heights moved (m,) bool,
     gradients changed (m,) bool). Exact for vertices within 3L (heights) and 2L
     (gradients) of the cell (module docstring)."""
-    from c1mesh.stages.limiter import reconcile_gradients, reconcile_heights
-
     points = halo.points
     values, lifted = reconcile_heights(points, halo.records["z"], halo.gradients, halo.triangles,
                                        table, noise_floor=noise)
@@ -160,8 +155,6 @@ class TiledLimiter:
     data from the cached halo (halos, picklable) and these floors."""
 
     def __init__(self, halos, temps, runner=None, name=str):
-        from c1mesh.survey.distributed import TaskRunner
-
         self.halos = halos
         self.floors = noise_floors_on(halos, temps, runner or TaskRunner(), name)
         self.limited = self.turned = self.lifted = 0

@@ -6,10 +6,11 @@ and with it the output bytes, never depend on where or how many tasks run."""
 from __future__ import annotations
 
 import math
-from typing import Sequence
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import FitPlan, SurfaceSettings
+from c1mesh.core.threads import per_process
+from c1mesh.formats.copc import points_to_read
 from c1mesh.survey.tiled_input import survey_name, survey_paths
 
 BYTES_PER_POINT = 1_800
@@ -81,8 +82,6 @@ def needs_tiles(source, plan: FitPlan) -> bool:
     (point_bytes per point); then it is fitted by `fit_tiled`. Streams, other formats
     and fits without a budget are never tiled. Raises InputError when the input needs
     tiles but the plan asks for something the tiled fit does not do."""
-    from c1mesh.formats.copc import points_to_read
-
     paths = survey_paths(source)
     if plan.memory is None or paths is None:
         return False
@@ -105,8 +104,6 @@ def needs_tiles(source, plan: FitPlan) -> bool:
 def task_threads(threads: int | None, runner) -> int | None:
     """Threads each tile task may use: the fit's (`threads`, the knob; None: the process's
     setting) in this process, shared by the local workers, one on a Dask worker."""
-    from c1mesh.core.threads import per_process
-
     if runner.scheduler is not None:
         return 1
     if runner.jobs == 1:

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from c1mesh.core.crs import describe
+
+
 class TileRows:
     """The per-tile report rows of a tiled fit: for each tile, what each pass's task did
     (seconds, worker), its height-field points and its final triangles; threads: the
@@ -43,8 +46,6 @@ class TileRows:
 
 
 def describe_crs(crs, crs_source) -> dict | None:
-    from c1mesh.core.crs import describe
-
     facts = describe(crs)
     if facts is not None:
         facts["source"] = crs_source

@@ -34,7 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages.limiter import edge_directions
+from c1mesh.stages.smoothing import smooth_fit
+from c1mesh.stages.smoothing_system import available_solvers
 from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, corner_rows, own_triangles_in
+from c1mesh.survey.tiled_limiter import TileLimits
+from c1mesh.survey.tiles import task_row
 
 HALO_LENGTHS = 28.0
 """A tile's smoothing halo, in smoothing lengths s^(1/4) h beyond its cell, and never less
@@ -124,8 +130,6 @@ class TiledSmoother:
         """tiled_limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
         corners' fitted heights and gradients, from the files of the tiles whose cells
         hold them, and the directions of their edges (tile_solve's)."""
-        from c1mesh.survey.tiled_limiter import TileLimits
-
         fitted = self._fitted_near(tile)
         rows, local = corner_rows(fitted["index"], triangles)
         if np.any(rows < 0):
@@ -177,8 +181,6 @@ class TiledSmoother:
 
 
 def _solver() -> str:
-    from c1mesh.stages.smoothing_system import available_solvers
-
     return available_solvers()[0]
 
 
@@ -201,10 +203,6 @@ def _fit_halo(halo, strength, spacing: float, overshoot: str, gradient_weight: f
     """(SmoothFit, (directions (E, 2) in edge_table(halo.triangles) order or None, changed
     (E,) bool or None)) of one halo's vertices and final triangles; their spilled
     gradients enter as data with gradient_weight (0: not), as in memory."""
-    from c1mesh.engine.topology import edge_table
-    from c1mesh.stages.limiter import edge_directions
-    from c1mesh.stages.smoothing import smooth_fit
-
     table = edge_table(halo.triangles, len(halo.records))
     directions, changed = (None, None) if overshoot == "off" else edge_directions(halo.points, halo.triangles,
                                                                                   table)
@@ -219,8 +217,6 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     and its own triangles' edge directions (in the order of edge_table of those triangles
     numbered by ascending corner, as tiled_refine numbers them). Returns the TileSolve and
     the task's report row (tiles.task_row)."""
-    from c1mesh.survey.tiles import task_row
-
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
     if not len(halo.triangles):

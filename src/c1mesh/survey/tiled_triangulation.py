@@ -9,8 +9,18 @@ import time
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import limit
+from c1mesh.survey.buffered_delaunay import (
+    INITIAL_SPACINGS,
+    mean_spacing,
+    streamed_hull,
+    tile_pass,
+    tile_triangles,
+    trimmed_delaunay,
+)
 from c1mesh.survey.tiled_report import TileRows
 from c1mesh.survey.tiles import task_row
+
 
 def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
     """The survey's Delaunay triangulation with the long-edge trim, each tile a task
@@ -19,8 +29,6 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
     (survey numbers), per tile the buffer its corners lie within, the triangle count of
     the whole Delaunay triangulation: 2n - 2 - h by Euler's formula, n points and h hull
     corners, exact unless points lie on the hull between its corners)."""
-    from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing, streamed_hull, trimmed_delaunay
-
     count = int(heights.counts.sum())
     if count < 3:
         raise InputError(f"only {count} points are left for the height field; need at least 3")
@@ -64,9 +72,6 @@ def _save(path, array: np.ndarray) -> None:
 def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) -> tuple[float, dict]:
     """Tile t's final triangles (buffered_delaunay.tile_triangles) saved to path (.npy);
     returns (its buffer, its report row)."""
-    from c1mesh.survey.buffered_delaunay import tile_triangles
-    from c1mesh.core.threads import limit
-
     start = time.perf_counter()
     with limit(threads):
         result = tile_triangles(heights.read, grid, t, buffer, hull)
@@ -80,9 +85,6 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path,
     short_path (the survey's would grow the parent by 24 bytes a point:
     buffered_delaunay.short_median reads them back a tile at a time); returns (its
     buffer, its report row)."""
-    from c1mesh.survey.buffered_delaunay import tile_pass
-    from c1mesh.core.threads import limit
-
     start = time.perf_counter()
     with limit(threads):
         result = tile_pass(heights.read, grid, t, bound, hull)

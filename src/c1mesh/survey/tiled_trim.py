@@ -52,6 +52,9 @@ from __future__ import annotations
 import numpy as np
 
 from c1mesh.core.threads import map_in_threads
+from c1mesh.stages.curtains import REASONS, curtain_triangles
+from c1mesh.stages.trim import MIN_CIRCLE_RATIO as min_ratio
+from c1mesh.stages.trim import circle_ratio, edge_lengths, peel, remove_bowties, triangle_neighbours
 from c1mesh.survey.tiled_halo import drop_triangles, edge_floor
 
 
@@ -59,8 +62,6 @@ def thin_triangles(halo, min_ratio: float, grid) -> tuple[np.ndarray, np.ndarray
     """The tile's own thin triangles: (k, 3) survey numbers, (k,) bool whether each lies
     on the boundary, (k, 3) the tile of each corner (grid: the buffered_delaunay.TileGrid).
     halo: a tiled_halo.Halo (own triangles: lowest corner in the cell)."""
-    from c1mesh.stages.trim import edge_lengths, triangle_neighbours, circle_ratio
-
     triangles = halo.triangles
     if not len(triangles):
         return np.empty((0, 3), np.int64), np.empty(0, bool), np.empty((0, 3), np.int64)
@@ -78,8 +79,6 @@ def peeled(triangles: np.ndarray, boundary: np.ndarray) -> np.ndarray:
     shared edges, that hold a boundary triangle, as it does in the whole triangulation (a
     thin triangle's non-thin neighbours are never peeled, so leaving them out changes
     nothing but the start, which `boundary` gives)."""
-    from c1mesh.stages.trim import peel, triangle_neighbours
-
     k = len(triangles)
     if not k or not boundary.any():
         return np.zeros(k, dtype=bool)
@@ -97,8 +96,6 @@ def bowtie_cuts(halo, grid) -> tuple[np.ndarray, np.ndarray]:
     (its reach is at least one longest edge); the fan tie-break
     (trim.remove_bowties) uses point numbers alone, and the halo's rows follow
     the survey numbers, so the tile decides as the whole survey does."""
-    from c1mesh.stages.trim import triangle_neighbours, remove_bowties
-
     triangles = halo.triangles
     if not len(triangles):
         return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64)
@@ -112,8 +109,6 @@ def curtain_cuts(halo, floor: float, grid, view_rules: bool = True
     """The tile's own triangles that curtains.curtain_triangles drops with the survey's
     noise floor `floor` (and view_rules, curtains.view_rules_apply): (k, 3) survey
     numbers, (k, 3) the tile of each corner, and the count by reason."""
-    from c1mesh.stages.curtains import REASONS, curtain_triangles
-
     triangles = halo.triangles
     if not len(triangles):
         return np.empty((0, 3), np.int64), np.empty((0, 3), np.int64), {reason: 0 for reason in REASONS}
@@ -160,9 +155,6 @@ def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     tiled_halo.HaloCache, whose `removed` grows as triangles go (each halo drops them
     as it loads); the removed triangles also leave their tiles' files. Returns the
     removed counts by reason (as TrimReport.removed). view_rules: curtains.view_rules_apply."""
-    from c1mesh.stages.curtains import REASONS
-    from c1mesh.stages.trim import MIN_CIRCLE_RATIO as min_ratio
-
     thin, boundary, tiles = [np.empty((0, 3), np.int64)], [np.empty(0, bool)], [np.empty((0, 3), np.int64)]
     for triangles, on_boundary, corners in map_in_threads(
             lambda t: thin_triangles(halos.halo(t), min_ratio, grid), list(halos.tiles())):

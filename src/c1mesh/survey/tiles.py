@@ -25,17 +25,27 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
+import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
 from c1mesh.core.cloud import PointCloud, SurfaceMesh
+from c1mesh.core.crs import esri_wkt, prj_path, same_crs
 from c1mesh.core.errors import InputError
+from c1mesh.core.outputs import mesh_format, plan_outputs, register_temp, unregister_temp
 from c1mesh.core.plan import PointSelection
-from c1mesh.formats import read_cloud
+from c1mesh.core.platform_memory import peak_rss_mb
+from c1mesh.core.threads import blas_threads
+from c1mesh.engine.refine import Refinement
+from c1mesh.engine.schemes import NAMED_TUPLES, get_scheme
+from c1mesh.engine.topology import edge_table
+from c1mesh.formats import PRJ_SIDECAR, read_cloud, write_mesh
 from c1mesh.formats.las import no_class_error
+from c1mesh.stages.surface import surface_stream
 
 
 @dataclass
@@ -110,8 +120,6 @@ def survey_height_column(sources: Sequence[str], clouds: Sequence[PointCloud]) -
 def survey_crs(sources: Sequence[str], crs_list: Sequence[str | None]) -> str | None:
     """The CRS (WKT) the inputs declare, one for the survey: inputs without one take it;
     InputError naming two inputs that declare different ones (c1mesh does not reproject)."""
-    from c1mesh.core.crs import same_crs
-
     declared = [(source, crs) for source, crs in zip(sources, crs_list) if crs]
     for source, crs in declared[1:]:
         if not same_crs(crs, declared[0][1]):
@@ -235,8 +243,6 @@ def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int, ascii:
 def _scheme_for_task(scheme):
     """A named scheme travels by name (its shape functions hold lambdas, which plain
     pickle refuses); a custom ShapeTuple travels as itself (Dask's cloudpickle takes it)."""
-    from c1mesh.engine.schemes import NAMED_TUPLES
-
     return scheme.name if NAMED_TUPLES.get(scheme.name) is scheme else scheme
 
 
@@ -257,9 +263,6 @@ def run_tile(task: TileTask, target=None) -> TileResult:
     back from a worker). Output vertices are those the kept faces use, in the tile
     refinement's order.
     """
-    from c1mesh.formats import write_mesh
-    from c1mesh.core.threads import blas_threads
-
     start = time.perf_counter()
     stream = tile_stream(task)
     mesh = None
@@ -284,13 +287,6 @@ def tile_stream(task: TileTask):
     vertex pass then evaluates the tile block by block and keeps the marked points, the
     face pass keeps the owned faces, renumbered. Halo triangles are evaluated but few.
     """
-    from dataclasses import replace
-
-    from c1mesh.stages.surface import surface_stream
-    from c1mesh.engine.refine import Refinement
-    from c1mesh.engine.schemes import get_scheme
-    from c1mesh.engine.topology import edge_table
-
     L2 = task.level * task.level
     table = edge_table(task.triangles, task.points.shape[0])
     refinement = Refinement(task.points, task.values, task.gradients, task.triangles,
@@ -332,10 +328,6 @@ def temp_path(output: str):
     there, so an interrupted run (SIGINT, SIGTERM, SIGHUP) removes it; write_tiles
     unregisters it once renamed into place or removed.
     """
-    from pathlib import Path
-
-    from c1mesh.core.outputs import register_temp
-
     target = Path(output)
     temp = target.with_name(f".{target.name}.tile-{os.getpid()}{target.suffix}")
     register_temp(temp)
@@ -344,8 +336,6 @@ def temp_path(output: str):
 
 def worker_address() -> str:
     """The Dask worker running this code, or host:pid outside Dask."""
-    import sys
-
     if "distributed" in sys.modules:            # a Dask worker has imported it; importing costs ~1 s
         try:
             return sys.modules["distributed"].get_worker().address
@@ -358,8 +348,6 @@ def task_row(points: int, start: float) -> dict:
     """A task's report row: its points, seconds since start, the worker that ran it and
     that worker's peak RSS so far (MB; the largest of the tasks it has run, with the
     interpreter's own)."""
-    from c1mesh.core.platform_memory import peak_rss_mb
-
     return {"points": int(points), "seconds": round(time.perf_counter() - start, 3), "worker": worker_address(),
             "worker_peak_mb": peak_rss_mb()}
 
@@ -373,8 +361,6 @@ def write_tiles(results: Iterable[TileResult], outputs: Sequence[str], ascii: bo
     every tile has succeeded; a failure (re-raised as InputError naming the tile) removes
     them, so no output of the run appears. Returns the report rows in input order.
     """
-    from c1mesh.formats import write_mesh
-
     rows: dict[int, dict] = {}
     with staged_outputs(crs) as stage:
         for result in results:
@@ -393,10 +379,6 @@ def staged_outputs(crs: str | None = None):
     file beside `output` to write (`temp_path`; with a crs, the .prj sidecar of formats
     that have one is staged too). When the block ends, every staged file is renamed into
     place; when it raises, every one is removed, so no output of the run appears."""
-    from pathlib import Path
-
-    from c1mesh.core.outputs import unregister_temp
-
     temps: dict[Path, Path] = {}                         # temporary file -> final path
 
     def stage(output) -> Path:
@@ -419,17 +401,11 @@ def staged_outputs(crs: str | None = None):
 
 def _has_sidecar(output: str) -> bool:
     """Whether the mesh format of `output` carries its CRS in a .prj sidecar."""
-    from c1mesh.formats import PRJ_SIDECAR
-    from c1mesh.core.outputs import mesh_format
-
     return mesh_format(output) in PRJ_SIDECAR
 
 
 def _temp_prj(output: str, crs: str) -> dict:
     """{temporary file: final .prj path} of `output`'s CRS sidecar (ESRI WKT), written."""
-    from c1mesh.core.crs import esri_wkt, prj_path
-    from c1mesh.core.outputs import plan_outputs
-
     final = prj_path(output)
     plan_outputs([("CRS sidecar", final)])          # not a device, FIFO or directory
     temp = temp_path(str(final))

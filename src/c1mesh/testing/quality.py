@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from c1mesh.engine.refine import lattice_pattern
+from c1mesh.stages.height_field import gradients_to_normals
 
 OVERSHOOT_EDGE_FRACTION = 0.25
 """A triangle overshoots when its surface leaves its corner heights' range by more than
@@ -74,8 +75,6 @@ def reduced_hct_folded_faces(xy: np.ndarray, z: np.ndarray, gradients: np.ndarra
     the interpolator's own gradients as the written normals.
     """
     import matplotlib.tri as mtri
-
-    from c1mesh.stages.height_field import gradients_to_normals
 
     t = mtri.Triangulation(xy[:, 0], xy[:, 1], triangles=triangles)
     interp = mtri.CubicTriInterpolator(t, z, kind="user", dz=(gradients[:, 0], gradients[:, 1]))
