@@ -4,7 +4,7 @@
     /usr/bin/time -v python -m benchmarks.tiled_delaunay run IN.laz [POINTS_PER_TILE]
     /usr/bin/time -v python -m benchmarks.tiled_delaunay whole IN.laz   # the in-memory peer
 
-`run` streams the LAZ by laspy's chunk iterator: survey_stats.streamed_frame (no
+`run` streams the LAZ by laspy's chunk iterator: stages.frame.frame_of_chunks (no
 normals), buffered_delaunay.streamed_hull, tile_spill.spill, then
 buffered_delaunay.trimmed_delaunay with max_edge "auto", each tile's triangles saved to
 a temporary .npy file; it prints the triangle count, max_edge and the seconds of each
@@ -54,7 +54,7 @@ def _world_chunks(path: str):
 def run(path: str, per_tile: int = 500_000) -> None:
     import c1mesh.survey.buffered_delaunay as bd
     from c1mesh.core.outputs import register_temp, unregister_temp
-    from c1mesh.survey.survey_stats import streamed_frame
+    from c1mesh.stages.frame import frame_of_chunks as streamed_frame
     from c1mesh.survey.tile_spill import spill
 
     t0 = time.perf_counter()

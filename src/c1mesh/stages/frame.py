@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterable
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -20,6 +21,7 @@ from numpy.typing import ArrayLike
 from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.stages.height_field import as_n3, check_extent, kd_tree
+from c1mesh.stages.streamed_median import streamed_medians
 # Re-exported for the modules that import them from here (pipeline.driver, survey/*);
 # new code imports them from c1mesh.stages.height_field.
 
@@ -127,22 +129,107 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     pts = as_n3(points, "points")
     good = np.all(np.isfinite(pts), axis=1)
     if not good.any():
-        raise InputError("there are no points with finite coordinates to choose a frame from")
+        raise InputError(NO_FINITE_POINTS)
     # Without non-finite rows, skip the (N, 3) copies; but keep the C layout that boolean
-    # indexing gives, which the BLAS products in _auto_axis see (their bits depend on it).
+    # indexing gives, which the BLAS products in the axis sums see (their bits depend on it).
     everything = good.all()
     finite = np.ascontiguousarray(pts) if everything else pts[good]
-    origin = np.median(finite, axis=0)
     check_extent(finite)
     e3 = parse_axis(axis)
     if e3 is None and _units_differ(finite):
         e3 = _world_axis_by_layering(finite)
+    if e3 is None and normals is not None:
+        normals = as_n3(normals, "normals", len(pts))
+        normals = np.ascontiguousarray(normals) if everything else normals[good]
+    return _frame(lambda: [(finite, normals)], e3)
+
+
+FrameChunks = Callable[[], Iterable[tuple[np.ndarray, "np.ndarray | None"]]]
+"""A callable giving a fresh iterator of (points (m, 3), normals (m, 3) or None), world
+coordinates, in survey order (input files in the order given, each in its own order)."""
+NO_FINITE_POINTS = "there are no points with finite coordinates to choose a frame from"
+
+
+def frame_of_chunks(chunks: FrameChunks, axis: str | ArrayLike = "auto") -> ScanFrame:
+    """The frame by choose_frame's rules from passes over a survey too big for memory, read
+    in chunks: the exact per-coordinate median (stages.streamed_median) and the axis sums
+    chunk by chunk. choose_frame is this on one chunk, so a survey's frame agrees with
+    choose_frame on the whole cloud to rounding (the sums' order) whatever its chunks.
+    There is no units test here: the surveys read in chunks are LAS/LAZ, whose axis
+    "auto" is z (resolve_axis)."""
+    return _frame(chunks, parse_axis(axis))
+
+
+def _frame(chunks: FrameChunks, e3: np.ndarray | None) -> ScanFrame:
+    """The frame of the finite points of chunks: origin their per-coordinate median; e3 as
+    given, else from the normals (the dominant direction of Σ n nᵀ, the mean of the normals
+    turned to its side, signed by the majority), else the least-variance direction of the
+    points about the origin (signed so that its largest component is positive)."""
+    try:
+        origin = streamed_medians(lambda: (_finite(points) for points, _ in chunks()), 3)
+    except ValueError:
+        raise InputError(NO_FINITE_POINTS) from None
     if e3 is None:
-        if normals is not None:
-            normals = as_n3(normals, "normals", len(pts))
-            normals = np.ascontiguousarray(normals) if everything else normals[good]
-        e3 = _auto_axis(finite, origin, normals)
+        e3 = _normal_axis(chunks)
+    if e3 is None:
+        e3 = _least_variance_axis(chunks, origin)
     return ScanFrame(origin=origin, axes=axes_from_e3(e3))
+
+
+def _finite(points: np.ndarray) -> np.ndarray:
+    """The rows of points (m, 3) with finite coordinates (points itself when all are)."""
+    points = np.asarray(points, dtype=np.float64)
+    good = np.isfinite(points).all(axis=1)
+    return points if good.all() else points[good]
+
+
+def _unit_normals(points, normals) -> np.ndarray:
+    """The chunk's usable normals, unit length: rows of non-finite points dropped, then
+    zero or non-finite normals."""
+    if normals is None:
+        return np.empty((0, 3))
+    normals = np.asarray(normals, dtype=np.float64)
+    finite = np.isfinite(np.asarray(points, dtype=np.float64)).all(axis=1)
+    if not finite.all():
+        normals = normals[finite]
+    length = np.linalg.norm(normals, axis=1)
+    ok = np.isfinite(length) & (length > 0)
+    return normals / length[:, None] if ok.all() else normals[ok] / length[ok, None]
+
+
+def _normal_axis(chunks: FrameChunks) -> np.ndarray | None:
+    """e3 from the chunks' normals (_frame), None when no chunk has a usable one."""
+    scatter, used = np.zeros((3, 3)), 0
+    for points, normals in chunks():
+        unit = _unit_normals(points, normals)
+        scatter += unit.T @ unit
+        used += len(unit)
+    if used == 0:
+        return None
+    dominant = np.linalg.eigh(scatter)[1][:, -1]
+    mean = np.zeros(3)
+    for points, normals in chunks():
+        unit = _unit_normals(points, normals)
+        mean += (unit * np.where(unit @ dominant < 0, -1.0, 1.0)[:, None]).sum(axis=0)
+    e3 = mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 0 else dominant
+    votes = 0.0
+    for points, normals in chunks():
+        votes += np.sign(_unit_normals(points, normals) @ e3).sum()
+    return -e3 if votes < 0 else e3
+
+
+def _least_variance_axis(chunks: FrameChunks, origin: np.ndarray) -> np.ndarray:
+    """e3 by PCA of the chunks' finite points about origin (_frame)."""
+    scatter, count = np.zeros((3, 3)), 0
+    for points, _ in chunks():
+        centred = _finite(points) - origin
+        scatter += centred.T @ centred
+        count += len(centred)
+    if count < 3:
+        raise InputError(f"choosing the height axis needs at least 3 points, got {count}; "
+                         "give --axis x|y|z or X,Y,Z")
+    e3 = np.linalg.eigh(scatter)[1][:, 0]
+    return -e3 if e3[np.argmax(np.abs(e3))] < 0 else e3
 
 
 def parse_axis(axis: str | ArrayLike) -> np.ndarray | None:
@@ -170,28 +257,6 @@ def parse_axis(axis: str | ArrayLike) -> np.ndarray | None:
         raise InputError(f"the axis {axis!r} has no direction (zero, NaN or Inf); give a nonzero X,Y,Z")
     vec = vec / scale
     return vec / np.linalg.norm(vec)
-
-
-def _auto_axis(points: np.ndarray, origin: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
-    """e3 for axis="auto" (see `choose_frame`): from the normals if usable, else PCA of the
-    finite points (n, 3) about origin."""
-    if normals is not None:
-        length = np.linalg.norm(normals, axis=1)
-        ok = np.isfinite(length) & (length > 0)
-        if ok.any():
-            unit = normals / length[:, None] if ok.all() else normals[ok] / length[ok, None]
-            dominant = np.linalg.eigh(unit.T @ unit)[1][:, -1]
-            side = np.where(unit @ dominant < 0, -1.0, 1.0)
-            mean = (unit * side[:, None]).sum(axis=0)
-            e3 = mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 0 else dominant
-            votes = np.sign(unit @ e3).sum()
-            return -e3 if votes < 0 else e3
-    if points.shape[0] < 3:
-        raise InputError(f"choosing the height axis needs at least 3 points, got {points.shape[0]}; "
-                         "give --axis x|y|z or X,Y,Z")
-    centred = points - origin
-    e3 = np.linalg.eigh(centred.T @ centred)[1][:, 0]
-    return -e3 if e3[np.argmax(np.abs(e3))] < 0 else e3
 
 
 UNIT_ANISOTROPY = 100.0

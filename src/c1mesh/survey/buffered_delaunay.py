@@ -43,7 +43,7 @@ from scipy.spatial import ConvexHull
 
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import AUTO_EDGE_FACTOR, edge_lengths, triangle_neighbours
-from c1mesh.survey.streamed_median import order_statistic
+from c1mesh.stages.streamed_median import order_statistic
 from c1mesh.survey.strip_geometry import (
     centres_clear,
     circumcircles,

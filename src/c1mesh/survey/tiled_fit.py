@@ -1,6 +1,6 @@
 """The fit of a LAS/LAZ survey larger than memory: tile by tile, streamed to one PLY.
 
-    survey stats (frame, box) → spill to tiles → per tile: normals → height field
+    frame (stages.frame.frame_of_chunks), box → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
     survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.tiled_trim) → the limiter's two noise floors
     (two passes: c1mesh.survey.tiled_limiter)
@@ -14,7 +14,7 @@ cluster) that read the spill files and write their results to files; the rest (f
 spill, hull, the trim's peel and bow-tie rounds, the medians, the join) runs here.
 Nothing of the output depends on where the tasks ran.
 
-Every stage is the tile-local form of a whole-survey stage (c1mesh.survey.survey_stats,
+Every stage is the tile-local form of a whole-survey stage (c1mesh.stages.frame.frame_of_chunks,
 tile_spill, tile_normals, buffered_delaunay, tiled_trim, tiled_limiter), so the surface
 equals the in-memory fit of the same points with the same reduced options (below), to
 rounding; nothing depends on the grid. The trim and the limiter run the stage functions
@@ -64,6 +64,7 @@ from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.stages.curtains import view_rules_apply
+from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.smoothing import gradient_data_weight
@@ -72,7 +73,6 @@ from c1mesh.stages.trim import check_triangles_left
 from c1mesh.stages.warnings import auto_limit, fit_warnings
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
-from c1mesh.survey.survey_stats import streamed_frame
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
@@ -155,7 +155,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                          bounds=select.bounds, file_counts=file_counts), temps)
         axis = plan.heights.axis
         axis = "z" if isinstance(axis, str) and axis.strip().lower() == "auto" else axis
-        frame = streamed_frame(chunks, axis)
+        frame = frame_of_chunks(chunks, axis)
         colours.finish()
         count, box, positions = _plane_box(chunks, frame)
         if gradient_source == "heights":          # as the in-memory fit's height gradients say it

@@ -22,7 +22,7 @@ import numpy as np
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages.limiter import trapezoid_residuals
 from c1mesh.stages.trim import edge_lengths
-from c1mesh.survey.streamed_median import streamed_median
+from c1mesh.stages.streamed_median import streamed_median
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 

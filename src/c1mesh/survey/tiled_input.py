@@ -37,7 +37,7 @@ def survey_name(paths: list[Path]) -> str:
 
 
 class CachedChunks:
-    """survey_stats.Chunks that decompress a source once: the first pass copies the world
+    """stages.frame.FrameChunks that decompress a source once: the first pass copies the world
     points (float64 x, y, z) to a hidden temporary file, later passes read that file (a
     LAZ decompression costs more than reading 24 bytes a point). Call close() to remove it."""
 
@@ -64,7 +64,7 @@ class CachedChunks:
 
 def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None,
                bounds=None, file_counts: list | None = None) -> Callable:
-    """survey_stats.Chunks over a LAS/LAZ file, or over several read one after another as
+    """stages.frame.FrameChunks over a LAS/LAZ file, or over several read one after another as
     one survey: a callable giving a fresh iterator of (world points (m, 3), None) in file
     order, keeping only `classes` (None: all). colours: where each pass also sends the
     kept points' RGB, when every file has it (a survey has colours only if all its files

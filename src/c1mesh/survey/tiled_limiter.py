@@ -4,7 +4,7 @@ What runs where (control_overshoot's steps, in its order, with its noise floors)
 
 - the first noise floor, control_overshoot's `before` (the median |limiter.
   trapezoid_residuals| over every edge): survey-wide, `noise_floors_on` (a task per
-  tile, `tile_residuals`, then c1mesh.survey.streamed_median);
+  tile, `tile_residuals`, then c1mesh.stages.streamed_median);
 - the second, control_overshoot's `after` (the same median once heights and gradients
   are reconciled): survey-wide likewise, each tile reconciling its halo (`reconciled`);
 - per tile on its halo, `tile_limits`: limiter.reconcile_heights and
@@ -36,7 +36,7 @@ whole survey has them:
   L), each edge of the survey in exactly one tile.
 
 The two noise floors take a pass over the tiles each: every tile appends its edges'
-residuals to a file, and c1mesh.survey.streamed_median finds their median to the bit. The third
+residuals to a file, and c1mesh.stages.streamed_median finds their median to the bit. The third
 pass (the caller's) limits each tile's gradients with the floors passed in. The limiter's
 arithmetic on one vertex or edge does not depend on the rest of the mesh (its sums run
 over the vertex's edges in the same order, its local numbering follows the survey

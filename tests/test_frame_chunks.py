@@ -1,13 +1,14 @@
-"""Survey-wide frame from streamed passes (c1mesh.survey.survey_stats) against frame.choose_frame
-on the whole cloud at once."""
+"""The frame of a survey read in chunks (stages.frame.frame_of_chunks) against
+frame.choose_frame on the whole cloud at once, and the per-coordinate median of chunks
+(stages.streamed_median) against np.median."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from c1mesh.stages.frame import choose_frame
+from c1mesh.stages.frame import _finite, choose_frame, frame_of_chunks
+from c1mesh.stages.streamed_median import streamed_medians
 from c1mesh.testing.samples import sample_surface
-from c1mesh.survey.survey_stats import streamed_frame, streamed_median
 
 
 def _chunked(points, normals, size):
@@ -25,7 +26,8 @@ def test_streamed_median_is_numpys_to_the_bit(n, size):
     points[::50, 1] = points[1, 1]                              # ties
     points[3] = [np.nan, 0, 0]                                  # dropped, as choose_frame drops it
     finite = points[np.isfinite(points).all(axis=1)]
-    assert np.array_equal(streamed_median(_chunked(points, None, size)), np.median(finite, axis=0))
+    medians = streamed_medians(lambda: (_finite(p) for p, _ in _chunked(points, None, size)()), 3, gather=64)
+    assert np.array_equal(medians, np.median(finite, axis=0))
 
 
 @pytest.mark.parametrize("with_normals", [True, False])
@@ -36,7 +38,7 @@ def test_streamed_frame_is_choose_frame(with_normals):
     normals = cloud.normals @ tilt.T if with_normals else None
     whole = choose_frame(points, normals)
     for size in (333, 5000):
-        streamed = streamed_frame(_chunked(points, normals, size))
+        streamed = frame_of_chunks(_chunked(points, normals, size))
         assert np.array_equal(streamed.origin, whole.origin)
         assert np.allclose(streamed.axes, whole.axes, rtol=0, atol=1e-12)
     assert not np.allclose(whole.axes[2], [0, 0, 1], atol=1e-3)      # the axis is a found one
