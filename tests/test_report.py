@@ -15,7 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from c1mesh.cli import main
-from c1mesh.pipeline.report import OPTIONAL, REQUIRED, REQUIRED_PARTS, validate_report
+from c1mesh.pipeline.report import OPTIONAL, REQUIRED, REQUIRED_PARTS, ReportCore, validate_report
 from depth_scenes import tilted_plane, write_organised_pcd
 from terrain_scenes import write_terrain_las
 
@@ -104,6 +104,20 @@ def test_the_paths_say_what_they_are(reports):
     for name in ("plane", "perspective", "seamless -o", "tiled"):      # each triangle became level² faces
         report = reports[name]
         assert report["output_mesh"]["faces"] == report["triangles"]["after_trim"] * report["level"] ** 2, name
+
+
+def test_the_report_core_is_the_required_table_and_refuses_a_missing_key():
+    """ReportCore's fields are REQUIRED's keys in order, with no defaults: a path that
+    forgets one cannot build its report."""
+    from dataclasses import MISSING, fields
+
+    assert [f.name for f in fields(ReportCore)] == list(REQUIRED)
+    assert all(f.default is MISSING for f in fields(ReportCore))
+    values = {key: None for key in REQUIRED}
+    assert list(ReportCore(**values).as_dict()) == list(REQUIRED)
+    del values["pieces"]
+    with pytest.raises(TypeError):
+        ReportCore(**values)
 
 
 def test_validate_report_flags_a_missing_or_undeclared_key(reports):

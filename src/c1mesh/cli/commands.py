@@ -10,7 +10,7 @@ import sys
 import click
 
 from c1mesh import __version__
-from c1mesh.cli.fitting import fit_batch, fit_one, fit_survey, threads_per_process
+from c1mesh.cli.fitting import Console, Destination, Workers, fit_batch, fit_one, fit_survey, threads_per_process
 from c1mesh.cli.options import (INPUT_FORMAT_HELP, MEMORY_HELP, OUTPUT_HELP, parse_bounds_option, parse_classes,
                                 SMOOTH_HELP, parse_intrinsics, parse_max_edge, parse_memory_option, parse_smooth,
                                 plan)
@@ -125,6 +125,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     classes, max_edge = parse_classes(classes), parse_max_edge(max_edge)
     intrinsics = parse_intrinsics(intrinsics)
     smooth_option = "off" if parse_smooth(smooth) is None else parse_smooth(smooth)
+    console = Console(report, quiet, verbose, debug)
     if seamless:
         from c1mesh.pipeline.driver import FitOptions
 
@@ -136,8 +137,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              z_factor=z_factor, smooth=smooth_option, spacing=spacing)
         if output and not output_dir:
             options = check_geo([(inputs[0], output)], options, debug)
-        fit_survey(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
-                   scheduler, quiet, debug)
+        fit_survey(inputs, Destination(output, output_dir, suffix), options, console,
+                   Workers(jobs, threads, scheduler))
         return
     pairs = plan(inputs, output, output_dir, suffix)
     if scheme == "quintic" and not quiet:
@@ -160,9 +161,9 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
     options = check_geo(pairs, options, debug)
     options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))
     if len(pairs) == 1:
-        fit_one(*pairs[0], targets, options, report, quiet, verbose, debug, jobs, scheduler)
+        fit_one(*pairs[0], targets, options, console, Workers(jobs, threads, scheduler))
         return
-    fit_batch(pairs, targets[-1], options, report, jobs or 1, quiet, verbose, debug, scheduler)
+    fit_batch(pairs, targets[-1], options, console, Workers(jobs, threads, scheduler))
 
 
 # ---------------------------------------------------------------------------------- info

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import click
@@ -16,6 +17,7 @@ from c1mesh.cli.progress import caption, stage_bar, survey_progress
 from c1mesh.cli.shell import EXIT_PARTIAL, fail, message, naming, stderr_is_terminal, worker_start
 from c1mesh.core.errors import C1MeshError
 from c1mesh.core.outputs import STDIO, Outputs, mesh_format, plan_outputs
+from c1mesh.core.plan import TiledRun
 
 
 def threads_per_process(threads: int | None, jobs: int) -> int:
@@ -27,14 +29,46 @@ def threads_per_process(threads: int | None, jobs: int) -> int:
     return count
 
 
-def fit_survey(inputs, output, output_dir, suffix, input_format, options, report, jobs, threads,
-               scheduler, quiet, debug) -> None:
+@dataclass(frozen=True)
+class Console:
+    """What `fit` says and where: report (the JSON report's path, - for stderr, None:
+    none), quiet (no warnings, notes or progress), verbose (a summary per input), debug
+    (tracebacks)."""
+
+    report: str | None = None
+    quiet: bool = False
+    verbose: bool = False
+    debug: bool = False
+
+
+@dataclass(frozen=True)
+class Workers:
+    """Where `fit` runs: jobs (--jobs: processes; None: the tiled fit's choice), threads
+    (--threads, the one knob; None: every CPU), scheduler (a Dask scheduler's address)."""
+
+    jobs: int | None = 1
+    threads: int | None = None
+    scheduler: str | None = None
+
+
+@dataclass(frozen=True)
+class Destination:
+    """Where `fit --seamless` writes: output (-o, one mesh or DEM of the survey), or
+    output_dir (-O) with each input's name and suffix."""
+
+    output: str | None
+    output_dir: str | None
+    suffix: str | None
+
+
+def fit_survey(inputs, destination: Destination, options, console: Console, workers: Workers) -> None:
     """`fit --seamless`: the inputs as one survey (c1mesh.survey.tiles), one line on any failure."""
+    output, output_dir, suffix = destination.output, destination.output_dir, destination.suffix
+    report, quiet, debug = console.report, console.quiet, console.debug
+    jobs, threads, scheduler = workers.jobs, workers.threads, workers.scheduler
     pairs = plan(inputs, None, output_dir, suffix) if output_dir else [(inputs[0], output)]
     try:
         if options.crs:
-            from dataclasses import replace
-
             from c1mesh.core.crs import parse_crs
             options = replace(options, crs=parse_crs(options.crs))
         if output_dir and not Path(output_dir).exists():
@@ -90,7 +124,6 @@ def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile
     fitted here, and a scheduler given for it is recorded in the report as not used (the
     line c1mesh.cli.messages.note prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
-    from c1mesh.core.plan import TiledRun
     from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
@@ -103,14 +136,12 @@ def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile
     return report
 
 
-def fit_one(src, dst, targets, options, report, quiet, verbose, debug, jobs: int | None = 1,
-            scheduler: str | None = None) -> None:
+def fit_one(src, dst, targets, options, console: Console, workers: Workers) -> None:
     """Fit one input; the mesh and the report are committed together, or neither is."""
-    from dataclasses import replace
-
-    from c1mesh.pipeline.driver import STAGES
-
+    report, quiet, verbose, debug = console.report, console.quiet, console.verbose, console.debug
+    jobs, scheduler = workers.jobs, workers.scheduler
     from c1mesh.geo.raster import is_raster_path
+    from c1mesh.pipeline.driver import STAGES
 
     mesh_target, report_target = targets
     raster = is_raster_path(dst)
@@ -186,9 +217,11 @@ def _batch_worker(args):
         return src, None, message(exc)
 
 
-def fit_batch(pairs, report_target, options, report, jobs, quiet, verbose, debug, scheduler=None) -> None:
+def fit_batch(pairs, report_target, options, console: Console, workers: Workers) -> None:
     """Fit several inputs, each on its own (in `jobs` processes): a failing input is
     listed on stderr and the others are still written; exit 3 when some failed."""
+    report, quiet, verbose, debug = console.report, console.quiet, console.verbose, console.debug
+    jobs, scheduler = workers.jobs or 1, workers.scheduler
     work = [(src, dst, options, scheduler) for src, dst in pairs]
     results = []
     show = stderr_is_terminal() and not quiet

@@ -5,6 +5,7 @@ lines for options that did nothing and the advice to smooth, and the report's wa
 from __future__ import annotations
 
 import click
+from click.core import ParameterSource
 
 from c1mesh.cli.shell import stderr_is_terminal
 
@@ -50,8 +51,6 @@ def note(report: dict, quiet: bool) -> None:
 
 def _option_given(name: str) -> bool:
     """Whether option `name` of the running command was given on its command line."""
-    from click.core import ParameterSource
-
     ctx = click.get_current_context(silent=True)
     return ctx is not None and ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
 

@@ -11,11 +11,27 @@ import sys
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
-from c1mesh.cli.options import (check_axis, extension, output_paths, parse_classes, parse_intrinsics,
-                                parse_max_edge, parse_smooth)
-from c1mesh.core.outputs import (DEM_AXES, INPUT_FORMATS, LAS_FORMATS, OUTPUT_FORMATS, RASTER_FORMATS, STDIO,
-                                 is_binary_output, is_file_output)
+from c1mesh.cli.options import (
+    check_axis,
+    extension,
+    output_paths,
+    parse_classes,
+    parse_intrinsics,
+    parse_max_edge,
+    parse_smooth,
+)
+from c1mesh.core.outputs import (
+    DEM_AXES,
+    INPUT_FORMATS,
+    LAS_FORMATS,
+    OUTPUT_FORMATS,
+    RASTER_FORMATS,
+    STDIO,
+    is_binary_output,
+    is_file_output,
+)
 
 
 def input_format_problems(input_format: str | None) -> list[str]:
@@ -172,8 +188,6 @@ def _fit_usage_problems(ctx: click.Context) -> list[str]:
     """Everything wrong with a `fit` command line that the command line alone shows, all
     at once, so that one run names the whole fix (exit 2). Reads no input; the file system
     (missing directories, outputs equal to inputs) is checked later (exit 1)."""
-    from click.core import ParameterSource
-
     params = ctx.params
     outputs = output_paths(params)
     level_given = ctx.get_parameter_source("level") != ParameterSource.DEFAULT

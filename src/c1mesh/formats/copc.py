@@ -36,6 +36,21 @@ Box = tuple[float, float, float, float]
 _MAX_NODE_RATIO = 200
 
 
+
+def laspy_module():
+    """laspy, imported on first use: it takes about 0.5 s, which a fit of a PLY file or
+    `c1mesh --help` should not pay. Every LAS/LAZ reader of c1mesh gets it here."""
+    import laspy
+
+    return laspy
+
+
+def lazrs_module():
+    """lazrs (laspy's LAZ codec), imported on first use as laspy is (laspy_module)."""
+    import lazrs
+
+    return lazrs
+
 def parse_box(text: str) -> Box:
     """'XMIN,YMIN,XMAX,YMAX' as a Box; InputError naming what is wrong."""
     parts = [p.strip() for p in str(text).split(",")]
@@ -72,15 +87,12 @@ def header_meets(header, box: Box) -> bool:
 
 def is_copc_header(header) -> bool:
     """Whether a laspy LasHeader is a COPC file's: its first VLR is the COPC info VLR."""
-    from laspy.copc import CopcInfoVlr
-
-    return len(header.vlrs) > 0 and isinstance(header.vlrs[0], CopcInfoVlr)
+    return len(header.vlrs) > 0 and isinstance(header.vlrs[0], laspy_module().copc.CopcInfoVlr)
 
 
 def is_copc(path) -> bool:
     """Whether the file at `path` is COPC (reads the header and VLRs only)."""
-    import laspy
-
+    laspy = laspy_module()
     try:
         with laspy.open(str(path)) as reader:
             return is_copc_header(reader.header)
@@ -122,8 +134,7 @@ class Copc:
     """
 
     def __init__(self, open_stream: Callable[[], IO[bytes]], name: str, size: int):
-        import laspy
-
+        laspy = laspy_module()
         self.name, self.size = name, size
         self.stream = open_stream()
         try:
@@ -190,8 +201,7 @@ class Copc:
             self._entries = _page_entries(self.reader.root_page)
         entry = self._entries.get(key)
         while entry is not None and entry[2] == -1:
-            from laspy.copc import HierarchyPage
-
+            HierarchyPage = laspy_module().copc.HierarchyPage
             offset, size, _ = entry
             if size <= 0 or offset + size > self.size:
                 raise FormatError(f"COPC file '{self.name}' has a corrupt hierarchy: page {key} lies at "
@@ -236,8 +246,7 @@ class Copc:
 
     def _decompress(self, nodes: list[Node], selection):
         """One ScaleAwarePointRecord of these nodes' points, in the order given."""
-        import lazrs
-        from laspy import DecompressionSelection, PackedPointRecord, ScaleAwarePointRecord
+        lazrs, laspy = lazrs_module(), laspy_module()
 
         compressed = bytearray(sum(n.byte_size for n in nodes))
         view, at = memoryview(compressed), 0
@@ -249,12 +258,12 @@ class Copc:
             at += node.byte_size
         fmt = self.header.point_format
         points = np.zeros(sum(n.point_count for n in nodes) * fmt.size, dtype=np.uint8)
-        selection = (selection or DecompressionSelection.all()).to_lazrs()
+        selection = (selection or laspy.DecompressionSelection.all()).to_lazrs()
         lazrs.decompress_points_with_chunk_table(
             compressed, self.reader.laszip_vlr.record_data, points,
             [(n.point_count, n.byte_size) for n in nodes], selection)
-        record = PackedPointRecord.from_buffer(points, fmt)
-        return ScaleAwarePointRecord(record.array, fmt, self.header.scales, self.header.offsets)
+        record = laspy.PackedPointRecord.from_buffer(points, fmt)
+        return laspy.ScaleAwarePointRecord(record.array, fmt, self.header.scales, self.header.offsets)
 
 
 def _page_entries(page) -> dict:
@@ -282,8 +291,7 @@ def region_cost(path, box: Box | None) -> RegionCost:
 def copc_summary(path) -> dict | None:
     """`c1mesh info`'s COPC facts of the file at `path` (None unless it is COPC): node
     count, octree depth, root cube and spacing, from the header and hierarchy only."""
-    import laspy
-
+    laspy = laspy_module()
     with laspy.open(str(path)) as reader:
         if not is_copc_header(reader.header):
             return None
@@ -301,8 +309,7 @@ def region_chunks(path, box: Box | None, chunk: int) -> Iterator:
     file order, about `chunk` points decoded at a time: only the nodes meeting the box
     of a COPC file, nothing of a file whose header extent misses the box, else every
     chunk of the body, filtered (box None: every chunk as it is)."""
-    import laspy
-
+    laspy = laspy_module()
 
     with laspy.open(str(path), laz_backend=laz_backend()) as reader:
         if box is None:
@@ -323,8 +330,7 @@ def region_chunks(path, box: Box | None, chunk: int) -> Iterator:
 def points_to_read(path, box: Box | None) -> int:
     """An upper bound on the points of the LAS/LAZ file at `path` inside the box, from
     the header (and a COPC file's hierarchy): what a region read decodes."""
-    import laspy
-
+    laspy = laspy_module()
     with laspy.open(str(path)) as reader:
         header = reader.header
         if box is None:
@@ -345,7 +351,6 @@ def laz_backend():
     rayon's pool cannot be bounded per call: lazrs does not take a thread count, and its
     global pool is sized once per process, to RAYON_NUM_THREADS or the CPU count. So the
     knob chooses between one thread and that pool."""
-    import laspy
-
+    laspy = laspy_module()
     backends = laspy.LazBackend
     return backends.Lazrs if workers() == 1 else backends.LazrsParallel

@@ -28,7 +28,7 @@ from c1mesh.core.crs import las_crs
 from c1mesh.core.errors import DependencyError, FormatError, InputError
 from c1mesh.formats._common import NORMAL_NAMES, colors_to_uint8, find_columns
 from c1mesh.formats._limits import check_alloc
-from c1mesh.formats.copc import Copc, header_meets, inside, is_copc_header, laz_backend
+from c1mesh.formats.copc import Copc, header_meets, inside, is_copc_header, laspy_module, laz_backend, lazrs_module
 
 Buffer = Union[bytes, "mmap.mmap"]   # anything with len(), slicing and the buffer protocol
 _INSTALL = 'pip install "laspy[lazrs]"'
@@ -38,10 +38,9 @@ _RGB = ("red", "green", "blue")
 def _laspy():
     """Import laspy or raise DependencyError with the install command."""
     try:
-        import laspy
+        return laspy_module()
     except ImportError as exc:
         raise DependencyError(f"Reading LAS/LAZ files needs laspy: {_INSTALL}.") from exc
-    return laspy
 
 
 def _is_compressed(data: bytes) -> bool:
@@ -168,8 +167,7 @@ def _check_laz_chunks(data: Buffer, header, name: str, open_stream: Callable[[],
     corrupt = FormatError(f"LAZ file '{name}' has a corrupt chunk table.")
     if n_chunks > max(header.point_count, 1) or n_chunks > table_at - header.offset_to_point_data:
         raise corrupt  # every chunk holds at least one point and one byte before the table
-    import lazrs
-
+    lazrs = lazrs_module()
     with open_stream() as source:
         source.seek(header.offset_to_point_data)
         try:

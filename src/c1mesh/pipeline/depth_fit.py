@@ -22,9 +22,10 @@ from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.geo.products import finish, level_for_edge, level_for_vertices
-from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
+from c1mesh.pipeline.report import ReportCore, crs_facts, scheme_facts
 from c1mesh.pipeline.steps import (
     FitResult,
+    FitRun,
     compact_vertices,
     display_name,
     limited_interpolator,
@@ -227,35 +228,53 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     colors = None if cloud.colors is None else cloud.colors[used]
     mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh,
                                  faces_facing=facing_viewpoint)
-    report = perspective_report(source, output, cloud, field_, used, interp, overshoot, stream, normal_source,
-                                frame, viewpoint_source, tri_report, level_from, options, timer,
-                                crs_facts(crs, crs_source))
+    run = FitRun(source, output, options, cloud, timer, 1.0 if options.z_factor is None else float(options.z_factor),
+                 crs_facts(crs, crs_source))
+    model = PerspectiveModel(field_, used, interp, overshoot, normal_source, frame, viewpoint_source, tri_report)
+    report = perspective_report(run, model, stream, level_from)
     return finish(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
-def perspective_report(source, output, cloud, field_: ViewField, used, interp, overshoot, stream,
-                       normal_source: str, frame: PerspectiveFrame, viewpoint_source: str, tri_report: dict,
-                       level_from: str, options, timer, crs: dict | None) -> dict:
+@dataclass(frozen=True)
+class PerspectiveModel:
+    """The spline of a perspective fit before refinement: field (the ViewField), used
+    (ascending rows of the field some triangle uses), interp (the RSDInterpolator over
+    them), overshoot (the limiter's report), normal_source, frame (the
+    PerspectiveFrame), viewpoint_source (where the viewpoint came from), triangles (the
+    report's triangles entry: view_triangles')."""
+
+    field: ViewField
+    used: np.ndarray
+    interp: object
+    overshoot: object
+    normal_source: str
+    frame: PerspectiveFrame
+    viewpoint_source: str
+    triangles: dict
+
+
+def perspective_report(run: FitRun, model: PerspectiveModel, stream, level_from: str) -> dict:
     """The report of a perspective fit (c1mesh.pipeline.report's schema). Its gradients are
     of the inverse depth, from the normals; its warnings are [] (the warning rules are the
-    height axis's); its z_factor is --z-factor's, else 1 (camera x, y, z share one unit)."""
+    height axis's); its z_factor is run's (--z-factor's, else 1: camera x, y, z share one
+    unit)."""
+    field_, used, interp, frame, options = model.field, model.used, model.interp, model.frame, run.options
     dropped = dict(field_.dropped)
     dropped["unreferenced_after_trim"] = int(field_.usable.sum() - used.size)
-    report = common_report(
-        input=display_name(source), output=display_name(output),
-        points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
+    report = ReportCore(
+        input=display_name(run.source), output=display_name(run.output),
+        points={"read": len(run.cloud), "dropped": dropped, "kept": int(used.size),
                 "measured": measured_points(field_),
-                "organised": None if cloud.grid_shape is None else list(cloud.grid_shape)},
-        normals=normal_source, gradients="normals",
+                "organised": None if run.cloud.grid_shape is None else list(run.cloud.grid_shape)},
+        normals=model.normal_source, gradients="normals",
         frame={"kind": "perspective", "origin": frame.origin.tolist(), "viewpoint": frame.origin.tolist(),
-               "viewpoint_from": viewpoint_source, "axes": frame.axes.tolist()},
-        triangles=tri_report, level=options.level, level_from=level_from,
+               "viewpoint_from": model.viewpoint_source, "axes": frame.axes.tolist()},
+        triangles=model.triangles, level=options.level, level_from=level_from,
         output_mesh={"vertices": int(stream.vertex_count), "faces": int(stream.face_count)},
         scheme=scheme_facts(options.scheme), c1_certificate=interp.c1_certificate(),
-        pieces=mesh_pieces(interp.points, interp.triangles, interp.edge_table), warnings=[], crs=crs,
-        seconds=timer.seconds, threads=thread_count(),
-        z_factor=1.0 if options.z_factor is None else float(options.z_factor))
-    report["overshoot"] = overshoot.as_dict()
+        pieces=mesh_pieces(interp.points, interp.triangles, interp.edge_table), warnings=[], crs=run.crs,
+        seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
+    report["overshoot"] = model.overshoot.as_dict()
     return report
 
 

@@ -29,9 +29,10 @@ from c1mesh.geo.products import geo_plan, level_for_edge, resolve_crs
 from c1mesh.geo.raster import dem_sampling, is_raster_path, raster_axis, write_fit_rasters
 from c1mesh.pipeline.depth_fit import fit_perspective
 from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, smoothing_strength
-from c1mesh.pipeline.report import common_report, crs_facts
+from c1mesh.pipeline.report import ReportCore, crs_facts
 from c1mesh.pipeline.steps import (
     FitResult,
+    FitRun,
     StageTimer,
     compact_vertices,
     display_name,
@@ -418,7 +419,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
             data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
             dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge)
             raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
-        report = _raster_report(source, output, options, cloud, model, timer, angles, crs_facts(crs, crs_source))
+        report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
+                                       crs_facts(crs, crs_source)), model)
         report["raster"] = raster_report
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options, dem=dem)
@@ -428,8 +430,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh)
     frame_report = frame_facts(frame)
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
-    report = _report(source, output, options, cloud, model, frame_report, level_from, stream, timer, angles,
-                     crs_facts(crs, crs_source))
+    report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
+                     model, frame_report, level_from, stream)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
@@ -502,21 +504,21 @@ def points_on_surface(model: SurfaceModel) -> int:
     return int(model.used.size)
 
 
-def _report(source, output, options, cloud, model: SurfaceModel, frame_report: dict, level_from: str,
-            mesh, timer, angles: dict, crs: dict | None) -> dict:
-    """The report of a plane (axis frame) mesh fit (c1mesh.pipeline.report's schema)."""
-    hf, used = model.hf, model.used
+def _report(run: FitRun, model: SurfaceModel, frame_report: dict, level_from: str, mesh) -> dict:
+    """The report of a plane (axis frame) mesh fit (c1mesh.pipeline.report's schema); mesh:
+    the written MeshStream (its counts)."""
+    hf, used, options = model.hf, model.used, run.options
     dropped = dict(hf.dropped)
     dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - used.size)
-    report = common_report(
-        input=display_name(source), output=display_name(output),
-        points={"read": len(cloud), "dropped": dropped, "kept": int(used.size),
+    report = ReportCore(
+        input=display_name(run.source), output=display_name(run.output),
+        points={"read": len(run.cloud), "dropped": dropped, "kept": int(used.size),
                 "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_report,
         triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
         output_mesh={"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
-        **surface_facts(cloud, model, options), crs=crs, seconds=timer.seconds, threads=thread_count(),
-        z_factor=angles["z_factor"])
+        **surface_facts(run.cloud, model, options), crs=run.crs, seconds=run.timer.seconds, threads=thread_count(),
+        z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
     return {**report, **_slope_note(model), **smoothing_facts(model)}
 
@@ -531,18 +533,15 @@ def smoothing_facts(model: SurfaceModel) -> dict:
     return {} if text is None else {"suggestion": text}
 
 
-def _raster_report(source, output, options, cloud, model: SurfaceModel, timer, angles: dict,
-                   crs: dict | None) -> dict:
+def _raster_report(run: FitRun, model: SurfaceModel) -> dict:
     """The report of a raster (DEM) fit: no refinement, so level, level_from and
     output_mesh are null; the caller adds the raster section."""
-    report = common_report(
-        input=display_name(source), output=display_name(output),
-        points={"read": len(cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
+    report = ReportCore(
+        input=display_name(run.source), output=display_name(run.output),
+        points={"read": len(run.cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
         triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
-        **surface_facts(cloud, model, options, pieces_in_warnings=False), crs=crs, seconds=timer.seconds,
-        threads=thread_count(), z_factor=angles["z_factor"])
+        **surface_facts(run.cloud, model, run.options, pieces_in_warnings=False), crs=run.crs,
+        seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
     return {**report, **_slope_note(model), **smoothing_facts(model)}
-
-

@@ -1,8 +1,8 @@
 """The fit report's schema, declared once, and the one function that builds its common part.
 
 Every fit path (the plane fit, the raster/DEM fit, the perspective fit, `--seamless -o`,
-`--seamless -O`, the memory-bounded tiled fit) builds its report with `common_report`,
-whose keyword-only arguments are exactly `REQUIRED`: a path that forgets a key fails
+`--seamless -O`, the memory-bounded tiled fit) builds its report from a `ReportCore`,
+whose fields are exactly `REQUIRED`: a path that forgets a key fails
 with a TypeError, so the paths cannot drift apart. A value that has no meaning on a
 path is passed as None (JSON null); `REQUIRED` says where. Path-specific facts go in
 the sections of `OPTIONAL`, present only when they apply. `validate_report` lists what
@@ -10,6 +10,7 @@ is wrong with a report (tests; cli/README.md documents the same table).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 from c1mesh.core.crs import describe
@@ -89,17 +90,34 @@ OPTIONAL: dict[str, str] = {
 """Sections present only where they apply: key -> when."""
 
 
-def common_report(*, input, output, points: dict, normals: str, gradients: str, frame: dict,
-                  triangles: dict, level: int | None, level_from: str | None, output_mesh: dict | None,
-                  scheme: dict, c1_certificate: dict | None, pieces: dict | None, warnings: list,
-                  crs: dict | None, seconds: dict, threads: int, z_factor: float | None) -> dict:
-    """The report's required part (REQUIRED, in its order); every path calls this, so a
-    missing key is a TypeError here, not a silent gap in one path's JSON."""
-    return {"input": input, "output": output, "points": points, "normals": normals,
-            "gradients": gradients, "frame": frame, "triangles": triangles, "level": level,
-            "level_from": level_from, "output_mesh": output_mesh, "scheme": scheme,
-            "c1_certificate": c1_certificate, "pieces": pieces, "warnings": warnings, "crs": crs,
-            "seconds": seconds, "threads": threads, "z_factor": z_factor}
+@dataclass(frozen=True)
+class ReportCore:
+    """The report's required part (REQUIRED, whose table says what each field means, its
+    units and where it is null). Every path builds one, and no field has a default, so a
+    path that forgets a key is a TypeError here, not a silent gap in one path's JSON."""
+
+    input: Any
+    output: Any
+    points: dict
+    normals: str
+    gradients: str
+    frame: dict
+    triangles: dict
+    level: int | None
+    level_from: str | None
+    output_mesh: dict | None
+    scheme: dict
+    c1_certificate: dict | None
+    pieces: dict | None
+    warnings: list
+    crs: dict | None
+    seconds: dict
+    threads: int
+    z_factor: float | None
+
+    def as_dict(self) -> dict:
+        """The JSON-ready dict, keys in REQUIRED's order (the fields' shallow values)."""
+        return {name: getattr(self, name) for name in REQUIRED}
 
 
 def crs_facts(crs: str | None, source: str | None) -> dict | None:
@@ -134,5 +152,5 @@ def validate_report(report: Mapping[str, Any]) -> list[str]:
     return problems
 
 
-__all__ = ["REQUIRED", "REQUIRED_PARTS", "OPTIONAL", "common_report", "crs_facts", "scheme_facts",
+__all__ = ["REQUIRED", "REQUIRED_PARTS", "OPTIONAL", "ReportCore", "crs_facts", "scheme_facts",
            "validate_report"]

@@ -32,6 +32,22 @@ class FitResult:
     report: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class FitRun:
+    """What a fit's report says of the run itself, whatever the path: source and output
+    (paths or streams, shown by display_name), the options, the cloud read, the stage
+    timer, z_factor (x, y units per height unit for angles; None: unknown) and the crs
+    facts (pipeline.report.crs_facts; None: no CRS)."""
+
+    source: object
+    output: object
+    options: object
+    cloud: object
+    timer: "StageTimer"
+    z_factor: float | None
+    crs: dict | None
+
+
 class StageTimer:
     """Per-stage wall-clock timings, plus an optional progress callback per finished stage."""
 

@@ -21,7 +21,7 @@ from c1mesh.pipeline.steps import StageTimer
 from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, smoothing_facts,
                                     surface_facts, trim_facts)
 from c1mesh.pipeline.plan import fit_plan, resolve_options_axis
-from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
+from c1mesh.pipeline.report import ReportCore, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
 from c1mesh.survey.tiled_fit import fit_tiled
 from c1mesh.survey.tiled_plan import needs_tiles
@@ -78,14 +78,14 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
 
     crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
-    report = common_report(
+    report = ReportCore(
         input=list(survey.names), output=list(outputs),
         points={"read": len(survey.cloud), "kept": int(model.used.size)},
         normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
         triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
         output_mesh=None, **surface_facts(survey.cloud, model, options, pieces_in_warnings=False),
         crs=crs_facts(crs, crs_source),
-        seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options))
+        seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options)).as_dict()
     report.update(smoothing_facts(model))
     jobs = jobs or 1
     report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
@@ -122,14 +122,14 @@ def tiled_report(facts: dict, options) -> dict:
     one interpolator is held, so c1_certificate and pieces are null; its normals are
     always estimated (it refuses --normals file)."""
     level = facts.pop("level")
-    report = common_report(
+    report = ReportCore(
         input=facts.pop("input"), output=facts.pop("output"), points=facts.pop("points"),
         normals="estimated", gradients=facts.pop("gradients"), frame={"kind": "axis", **facts.pop("frame")},
         triangles=facts.pop("triangles"), level=level,
         level_from="default" if options.level is None else "option", output_mesh=facts.pop("output_mesh"),
         scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
-        z_factor=1.0 if options.z_factor is None else float(options.z_factor))
+        z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
     report.update(facts)
     overshoot = report.get("overshoot")
     if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory

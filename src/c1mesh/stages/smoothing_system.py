@@ -204,8 +204,7 @@ def vertex_order(triangles: np.ndarray, n: int) -> np.ndarray | None:
     METIS. Numbering the vertices in it (each vertex's 3 unknowns together) gives the
     Cholesky factor the fill of METIS's order of the unknowns' graph, without building
     and ordering that graph."""
-    from sksparse.cholmod import CholmodError, analyze
-
+    cholmod = _cholmod()
     if 3 * n < METIS_FROM:
         return None
     tri = np.asarray(triangles, dtype=np.int64)
@@ -214,17 +213,24 @@ def vertex_order(triangles: np.ndarray, n: int) -> np.ndarray | None:
     adjacency = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
     adjacency = adjacency + adjacency.T        # the pattern is what CHOLMOD reads
     try:
-        return np.asarray(analyze(adjacency, ordering_method="metis").P(), dtype=np.int64)
-    except CholmodError:
+        return np.asarray(cholmod.analyze(adjacency, ordering_method="metis").P(), dtype=np.int64)
+    except cholmod.CholmodError:
         return None
 
 
 def _analyze(csc, ordered: bool = False):
     """CHOLMOD's symbolic analysis of csc: in its own order when `ordered` (the vertices
     are numbered by vertex_order), else by CHOLMOD's default ordering."""
-    from sksparse.cholmod import analyze
+    cholmod = _cholmod()
+    return cholmod.analyze(csc, ordering_method="natural") if ordered else cholmod.analyze(csc)
 
-    return analyze(csc, ordering_method="natural") if ordered else analyze(csc)
+
+def _cholmod():
+    """scikit-sparse's CHOLMOD module, imported on first use (0.3 s, and only a smoothing
+    fit needs it); ImportError where it is not installed (available_solvers says so)."""
+    import sksparse.cholmod
+
+    return sksparse.cholmod
 
 
 class Factor:

@@ -12,7 +12,7 @@ import numpy as np
 
 from c1mesh.core.crs import las_crs, parse_crs, resolve
 from c1mesh.core.outputs import register_temp, unregister_temp
-from c1mesh.formats.copc import region_chunks
+from c1mesh.formats.copc import laspy_module, region_chunks
 from c1mesh.formats.las import no_class_error
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import survey_crs as common_crs
@@ -71,8 +71,7 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     do, as in c1mesh.survey.tiles.load_survey). bounds: only the points in this closed x/y box
     (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it.
     file_counts: a list each pass refills with the points it kept from each file."""
-    import laspy
-
+    laspy = laspy_module()
     paths = survey_paths(source)
 
     def dimensions(path):
@@ -194,8 +193,7 @@ def survey_crs(source, user_crs) -> tuple[str | None, str | None]:
     CRS its headers declare (c1mesh.survey.tiles.survey_crs: one for all files, InputError when
     two differ) and the user's --crs (WKT or any c1mesh.core.crs.parse_crs input) resolved as
     the in-memory fit does (InputError when they differ)."""
-    import laspy
-
+    laspy = laspy_module()
     paths = survey_paths(source)
     declared = []
     for path in paths:
