@@ -81,7 +81,7 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         fail(message(exc), debug)
-    from c1mesh.pipeline.survey_fit import fit_seamless, in_tiles
+    from c1mesh.pipeline.survey_fit import SurveyProgress, fit_seamless, in_tiles
 
     options.workers = threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
@@ -93,7 +93,7 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
         if stderr_is_terminal() and not quiet:
             progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
             with progress:
-                result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs, **callbacks)
+                result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs, SurveyProgress(**callbacks))
         else:
             result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs)
     except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left

@@ -18,6 +18,7 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud
 from c1mesh.core.errors import InputError
+from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
@@ -26,6 +27,7 @@ from c1mesh.pipeline.report import ReportCore, crs_facts, scheme_facts
 from c1mesh.pipeline.steps import (
     FitResult,
     FitRun,
+    WorldSurface,
     compact_vertices,
     display_name,
     limited_interpolator,
@@ -226,7 +228,8 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     level, level_from = perspective_level(interp, field_, used, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[used]
-    mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh,
+    mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
+                                 MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh,
                                  faces_facing=facing_viewpoint)
     run = FitRun(source, output, options, cloud, timer, 1.0 if options.z_factor is None else float(options.z_factor),
                  crs_facts(crs, crs_source))

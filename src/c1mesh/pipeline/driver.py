@@ -15,6 +15,7 @@ import numpy as np
 
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import InputError
+from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -33,6 +34,8 @@ from c1mesh.pipeline.report import ReportCore, crs_facts
 from c1mesh.pipeline.steps import (
     FitResult,
     FitRun,
+    SmoothingRequest,
+    WorldSurface,
     StageTimer,
     compact_vertices,
     display_name,
@@ -359,11 +362,9 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         else:
             data = None if vertices is None else (hf.xy, hf.z)
             weight = gradient_data_weight(normal_source, gradient_source)
+            request = SmoothingRequest(strength, hf.spacing, data, hf.gradients[used] if weight else None, weight)
             interp, overshoot, smoothing = smoothed_interpolator(hf.xy[used], hf.z[used], triangles, scheme,
-                                                                 options.overshoot, strength, hf.spacing, data,
-                                                                 table=table,
-                                                                 gradients=hf.gradients[used] if weight else None,
-                                                                 gradient_weight=weight)
+                                                                 options.overshoot, request, table=table)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied, smoothing, vertices is not None)
 
@@ -427,7 +428,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     level, level_from = plane_level(interp.points, interp.triangles, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
-    mesh, stream = write_surface(interp, frame, colors, output, options, crs, timer, keep_mesh)
+    mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
+                                 MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh)
     frame_report = frame_facts(frame)
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),

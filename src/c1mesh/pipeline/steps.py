@@ -16,6 +16,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull
 
+from c1mesh.core.plan import MeshTarget
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
 from c1mesh.core.threads import blas_threads
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -94,54 +95,76 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
     return interp, report
 
 
-def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, strength, spacing: float,
-                          data: tuple | None = None, table=None, gradients=None,
-                          gradient_weight: float = FILE_NORMALS_WEIGHT) -> tuple[RSDInterpolator, Any, Any]:
+@dataclass(frozen=True)
+class SmoothingRequest:
+    """What the smoothing fit is asked for (pipeline.steps.smoothed_interpolator): strength
+    "auto" or s > 0; spacing, the data's mean spacing (the strength's length unit); data,
+    None (the vertices are the data) or (xy (M, 2), z (M,)) of all points (--spacing);
+    gradients, (n, 2) the vertices' gradients fitted as data with weight gradient_weight
+    (None: the heights alone): the file's normals' at smoothing.FILE_NORMALS_WEIGHT, or the
+    heights' own least-squares gradients at smoothing.HEIGHT_GRADIENTS_WEIGHT
+    (`gradient_data_weight`)."""
+
+    strength: Any
+    spacing: float
+    data: tuple | None = None
+    gradients: np.ndarray | None = None
+    gradient_weight: float = FILE_NORMALS_WEIGHT
+
+
+def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, request: SmoothingRequest,
+                          table=None) -> tuple[RSDInterpolator, Any, Any]:
     """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
     height field, its limiter report and the SmoothFit.
 
-    points (n, 2) vertices, values (n,) their heights, triangles (T, 3); strength "auto"
-    or s > 0; spacing: the data's mean spacing (the strength's length unit); data: None
-    (the vertices are the data) or (xy (M, 2), z (M,)) of all points (--spacing). The fit's
-    gradients agree with its heights by construction, so of the overshoot remedies only the
-    edge directions apply (overshoot "limit"): they are chosen from the geometry before
-    the fit, which is then the spline of those directions. table: the triangles'
-    topology.edge_table when built already (the trim's), else built here. gradients: (n, 2)
-    the vertices' gradients fitted as data with weight gradient_weight (None: the heights
-    alone): the file's normals' at smoothing.FILE_NORMALS_WEIGHT, or the heights' own
-    least-squares gradients at smoothing.HEIGHT_GRADIENTS_WEIGHT (`gradient_data_weight`).
+    points (n, 2) vertices, values (n,) their heights, triangles (T, 3); request: the
+    SmoothingRequest. The fit's gradients agree with its heights by construction, so of
+    the overshoot remedies only the edge directions apply (overshoot "limit"): they are
+    chosen from the geometry before the fit, which is then the spline of those
+    directions. table: the triangles' topology.edge_table when built already (the
+    trim's), else built here.
     """
     table = edge_table(triangles, points.shape[0]) if table is None else table
     directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
-    data_xy, data_z = (None, values) if data is None else data
-    weight = 0.0 if gradients is None else gradient_weight
-    fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=strength, spacing_h=spacing,
-                        directions=directions, scheme=scheme, gradient_data=gradients, gradient_weight=weight)
+    data_xy, data_z = (None, values) if request.data is None else request.data
+    weight = 0.0 if request.gradients is None else request.gradient_weight
+    fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=request.strength,
+                        spacing_h=request.spacing, directions=directions, scheme=scheme,
+                        gradient_data=request.gradients, gradient_weight=weight)
     interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=scheme,
                              directions=directions, edge_table=table)
     turned = 0 if changed is None else int(changed.sum())
     return interp, LimiterReport(directions_changed=turned), fitted
 
 
-def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, output, options,
-                  crs: str | None, timer: StageTimer, keep_mesh: bool,
-                  faces_facing: Callable[[MeshStream], MeshStream] | None = None):
+@dataclass(frozen=True)
+class WorldSurface:
+    """A spline ready to refine into world coordinates: interp (the RSDInterpolator),
+    frame (stages.frame.ScanFrame or stages.perspective.PerspectiveFrame: surface_stream),
+    colors ((n, 3) uint8 of interp's vertices, or None)."""
+
+    interp: RSDInterpolator
+    frame: Any
+    colors: np.ndarray | None = None
+
+
+def write_surface(surface: WorldSurface, output, target: MeshTarget, level: int, timer: StageTimer,
+                  keep_mesh: bool, faces_facing: Callable[[MeshStream], MeshStream] | None = None):
     """The refine and write stages of a whole-input fit, the same for every frame.
 
-    Refines interp at options.level (an int; options: pipeline.driver.FitOptions) into world coordinates through `frame`
-    (frame.ScanFrame or perspective.PerspectiveFrame: surface_stream), optionally passes
-    the stream through faces_facing (the perspective fit turns its faces to the
-    viewpoint), and writes it to output (path, stream or None) in options.output_format
-    with the CRS `crs` (None: none); InputError, before anything is evaluated, when the
+    Refines the surface at `level` into world coordinates through its frame, optionally
+    passes the stream through faces_facing (the perspective fit turns its faces to the
+    viewpoint), and writes it to output (path, stream or None) as target says (format,
+    ascii, crs: None for none); InputError, before anything is evaluated, when the
     output's format cannot hold the refined mesh (formats.check_mesh_size). keep_mesh=False
     with an output streams block by block (the mesh is then None; the time the writer
     waited for evaluated blocks is booked to "refine"). Returns (mesh or None, the MeshStream).
     """
     streaming = output is not None and not keep_mesh
     with timer.stage("refine"):
-        stream = surface_stream(interp.refinement(options.level), frame, colors)
+        stream = surface_stream(surface.interp.refinement(level), surface.frame, surface.colors)
         if output is not None:      # the counts are known now: refuse before evaluating (formats' limits)
-            check_mesh_size(output, options.output_format, stream)
+            check_mesh_size(output, target.format, stream)
         if faces_facing is not None:
             stream = faces_facing(stream)
         mesh = None if streaming else stream.materialize()
@@ -149,8 +172,8 @@ def write_surface(interp: RSDInterpolator, frame, colors: np.ndarray | None, out
         if output is not None:
             evaluating = _StopWatch()
             with blas_threads(1 if streaming else None):    # its idle pool spins on the writer's core
-                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, options.output_format,
-                           ascii=options.ascii, crs=crs)
+                write_mesh(evaluating.wrap(stream) if streaming else mesh, output, target.format,
+                           ascii=target.ascii, crs=target.crs)
     if streaming:
         timer.move("write", "refine", evaluating.seconds)
     return mesh, stream

@@ -7,7 +7,7 @@ LAS/LAZ survey larger than --memory goes to the memory-bounded fit (survey.tiled
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
 from c1mesh.core.errors import InputError
@@ -32,31 +32,38 @@ OWNERSHIP = "lowest-numbered corner point"
 """The report's ownership of --seamless -O: the rule that gives each triangle to one output."""
 
 
+@dataclass(frozen=True)
+class SurveyProgress:
+    """Whom a --seamless fit tells how far it is: on_stage(stage) after each stage
+    (in-memory -o: pipeline.STAGES; in tiles: tiled_fit.TILED_STAGES); on_tile(row) with
+    each output's report row as it is written (in-memory -O); on_tile_pass(pass, tiles
+    done, tiles) as each tile task of the memory-bounded fit finishes."""
+
+    on_stage: Callable[[str], None] | None = None
+    on_tile: Callable[[dict], None] | None = None
+    on_tile_pass: Callable[[str, int, int], None] | None = None
+
+
 def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence[str] | None = None,
                  scheduler: str | None = None, jobs: int | None = 1,
-                 on_tile: Callable[[dict], None] | None = None,
-                 on_stage: Callable[[str], None] | None = None,
-                 on_tile_pass: Callable[[str, int, int], None] | None = None) -> dict:
+                 progress: SurveyProgress = SurveyProgress()) -> dict:
     """Fit the inputs as one survey; returns the report.
 
     output: one path for the whole survey's mesh (the fit of the concatenated cloud,
     written as `c1mesh fit` writes one input); or outputs: one path per input, each
     holding the triangles its input owns (module docstring), tiles run by
-    distributed.run_tiles (scheduler, jobs; None: 1). Progress: on_tile is called with each
-    tile's report row as it is written (in-memory -O); on_stage after each stage
-    (in-memory -o: pipeline.STAGES; in tiles: tiled_fit.TILED_STAGES). A LAS/LAZ survey
-    larger than options.memory allows in one piece (in_tiles) goes to the
-    memory-bounded fit (c1mesh.survey.tiled_fit; on_tile_pass(pass, tiles done, tiles) as each
-    tile task finishes), which writes the one mesh, or splits it into the outputs by the
-    same ownership rule (c1mesh.survey.tiled_outputs).
+    distributed.run_tiles (scheduler, jobs; None: 1); progress: SurveyProgress. A LAS/LAZ
+    survey larger than options.memory allows in one piece (in_tiles) goes to the
+    memory-bounded fit (c1mesh.survey.tiled_fit), which writes the one mesh, or splits it
+    into the outputs by the same ownership rule (c1mesh.survey.tiled_outputs).
     """
 
     options, _ = resolve_options_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
     user_crs = parse_crs(options.crs) if options.crs else None
     if in_tiles(list(sources), options):
         report = fit_in_tiles(list(sources), output, options,
-                              TiledRun(scheduler=scheduler, jobs=jobs, outputs=outputs, on_stage=on_stage,
-                                       on_tile=on_tile_pass))
+                              TiledRun(scheduler=scheduler, jobs=jobs, outputs=outputs, on_stage=progress.on_stage,
+                                       on_tile=progress.on_tile_pass))
         if outputs is not None:
             report["ownership"] = OWNERSHIP
         return report
@@ -68,7 +75,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     with timer.stage("read"):
         survey = load_survey(sources, fit_plan(options).select, options.normals)
     if output is not None:
-        report = fit(survey.cloud, output, options, on_stage=on_stage, keep_mesh=False).report
+        report = fit(survey.cloud, output, options, on_stage=progress.on_stage, keep_mesh=False).report
         report["input"] = list(survey.names)
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
         return report
@@ -94,7 +101,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()
     report["tiles"] = write_tiles(run_tiles(tasks, scheduler, jobs), tasks.outputs, ascii=options.ascii,
-                                  on_tile=on_tile, crs=crs)
+                                  on_tile=progress.on_tile, crs=crs)
     timer.seconds["tiles"] = round(time.perf_counter() - start, 6)
     return report
 

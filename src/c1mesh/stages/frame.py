@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.stages.height_field import as_n3, check_extent, kd_tree
-from c1mesh.stages.streamed_median import streamed_medians
+from c1mesh.stages.streamed_median import NoValues, streamed_medians
 # Re-exported for the modules that import them from here (pipeline.driver, survey/*);
 # new code imports them from c1mesh.stages.height_field.
 
@@ -167,7 +167,7 @@ def _frame(chunks: FrameChunks, e3: np.ndarray | None) -> ScanFrame:
     points about the origin (signed so that its largest component is positive)."""
     try:
         origin = streamed_medians(lambda: (_finite(points) for points, _ in chunks()), 3)
-    except ValueError:
+    except NoValues:
         raise InputError(NO_FINITE_POINTS) from None
     if e3 is None:
         e3 = _normal_axis(chunks)

@@ -36,6 +36,10 @@ the collected parts, their concatenation and the partition's copy are held at on
 _SIGN = np.uint64(1 << 63)
 
 
+class NoValues(ValueError):
+    """There were no values (rows) to take a median of."""
+
+
 def order_keys(values: np.ndarray) -> np.ndarray:
     """uint64 keys of float64 values that order as the values do (module docstring)."""
     bits = np.ascontiguousarray(values, dtype=np.float64).view(np.uint64)
@@ -65,17 +69,17 @@ def streamed_median(chunks: Chunks, gather: int = GATHER) -> float:
 
 def streamed_medians(chunks: Chunks, columns: int, gather: int = GATHER) -> np.ndarray:
     """(columns,) np.median(axis=0) of the concatenated (m, columns) chunks, exactly, in the
-    same passes for every column. One chunk is np.median itself. No nan allowed; ValueError
+    same passes for every column. One chunk is np.median itself. No nan allowed; NoValues
     when there are no rows."""
     parts = iter(chunks())
     first = next(parts, None)
     if first is not None and next(parts, None) is None:
         if len(first) == 0:
-            raise ValueError("streamed_medians needs at least one row")
+            raise NoValues("streamed_medians needs at least one row")
         return np.median(np.asarray(first, dtype=np.float64).reshape(-1, columns), axis=0)
     count = sum(len(part) for part in chunks())
     if count == 0:
-        raise ValueError("streamed_medians needs at least one row")
+        raise NoValues("streamed_medians needs at least one row")
     upper = count // 2
     ranks = [upper] if count % 2 else [upper - 1, upper]
     tasks = [_Task(c, r) for c in range(columns) for r in ranks]

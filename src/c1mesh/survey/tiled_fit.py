@@ -83,7 +83,7 @@ from c1mesh.survey.tiled_outputs import InputOwners
 from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles_at_once
 from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.tiled_report import TileRows, describe_crs
-from c1mesh.survey.tiled_smoothing import TiledSmoother
+from c1mesh.survey.tiled_smoothing import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
 from c1mesh.survey.tiled_trim import trim_tiles
 
@@ -192,20 +192,20 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if outputs is None and output is not None:
                 _check_size(kept_triangles, plan, output, colours.present)
             done("trim")
+            mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
             limiter = None
             if strength is not None:
-                limiter = TiledSmoother(heights, triangle_files, grid, strength, spacing, longest, surface.overshoot,
-                                        temps, runner, rows.name,
-                                        on_done=lambda t, row: rows.add(t, "smoothing", row),
-                                        gradient_weight=gradient_data_weight("estimated", gradient_source))
+                fit = TiledSmoothing(strength, spacing, longest, surface.overshoot,
+                                     gradient_data_weight("estimated", gradient_source))
+                limiter = TiledSmoother(mesh, fit, temps, runner, rows.name,
+                                        on_done=lambda t, row: rows.add(t, "smoothing", row))
                 done("smoothing")
             elif surface.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)
                 done("noise floors")
             split = None if outputs is None else Split(InputOwners(file_counts), outputs,
                                                        [str(p) for p in paths])
-            report = write_tiles(TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame), plan, output,
-                                 MeshWriting(temps, limiter, crs, colours, runner, rows, split))
+            report = write_tiles(mesh, plan, output, MeshWriting(temps, limiter, crs, colours, runner, rows, split))
             done("refine+write")
         finally:
             height_pass.close()

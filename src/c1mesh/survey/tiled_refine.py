@@ -131,8 +131,7 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     with limit(job.threads):
         records, local, gradients, directions, limited, turned, lifted = job.tile_data(t, triangles)
         colors = None if job.colours is None else job.colours.of(records["index"])
-        counts = _write_part(records, local, job.frame, job.scheme, job.level, part, gradients, directions, colors,
-                             job.expiry)
+        counts = _write_part(job, records, local, part, gradients, directions, colors)
         if job.owners is not None:
             owner = face_owners(job.owners, triangles, job.level)
             if len(owner) != counts["faces"]:
@@ -233,14 +232,15 @@ class Split:
         return write_outputs(vertex_path, dtype, paths, self.outputs, OutputMeshes(mesh, crs, self.names))
 
 
-def _write_part(records, triangles, frame, scheme, level, part: _Part, gradients=None, directions=None,
-                colors=None, expiry=None) -> dict:
-    """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) and
-    write all its output points (world position, normal, colour), its faces (tile-local
-    numbers) and its border keys to its part files; returns {vertices, corners, faces}.
-    gradients (n, 2) and directions (E, 2): the limiter's (None: the records' gradients,
-    unit-normal directions); colors (n, 3) uint8 of the records, or None; expiry: the
-    tiled_join.KeyExpiry that gives each border key its last tile."""
+def _write_part(job: _RefineJob, records, triangles, part: _Part, gradients=None, directions=None,
+                colors=None) -> dict:
+    """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) with
+    the job's scheme and level, and write all its output points (world position through
+    the job's frame, normal, colour), its faces (tile-local numbers) and its border keys
+    (with the job's tiled_join.KeyExpiry) to its part files; returns {vertices, corners,
+    faces}. gradients (n, 2) and directions (E, 2): the limiter's (None: the records'
+    gradients, unit-normal directions); colors (n, 3) uint8 of the records, or None."""
+    frame, scheme, level, expiry = job.frame, job.scheme, job.level, job.expiry
     xy = np.column_stack([records["x"], records["y"]])
     if gradients is None:
         gradients = np.column_stack([records["gx"], records["gy"]])

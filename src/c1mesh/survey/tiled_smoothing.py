@@ -84,36 +84,49 @@ def solve_totals(solves: list[TileSolve]) -> tuple[int, float, float | None]:
             math.fsum(edfs) if edfs else None)
 
 
+@dataclass(frozen=True)
+class TiledSmoothing:
+    """What the smoothing fit over the tiles is asked for: strength ("auto" or s > 0),
+    spacing h (the survey's, tiled_heights.survey_stacking), longest_edge (the longest
+    final edge, frame units), overshoot ("limit": edge directions; "off": unit normals),
+    gradient_weight (of the spill's gradients as data: smoothing.gradient_data_weight; 0:
+    none), lengths (the halo in smoothing lengths; None: HALO_LENGTHS)."""
+
+    strength: object
+    spacing: float
+    longest_edge: float
+    overshoot: str
+    gradient_weight: float = 0.0
+    lengths: float | None = None
+
+
 class TiledSmoother:
     """The smoothing fit over the tiles (module docstring): construct with the trimmed
-    survey's height spill, triangle files and grid, the strength ("auto" or s > 0), the
-    spacing h (the survey's, tiled_heights.survey_stacking), the longest final edge, the
-    overshoot mode ("limit": edge directions; "off": unit normals), temps, a runner
-    (distributed.TaskRunner) and name(t), and the gradient_weight of the spill's gradients
-    as data (smoothing.gradient_data_weight; 0: none); it chooses s and runs every tile's
-    solve. A refinement task (tiled_refine) then takes its tile's
-    vertex data through `tile`, as it takes the limiter's. on_done(t, row) gets each
+    survey (tiled_refine.TiledMesh: its height spill, triangle files and grid), the
+    TiledSmoothing asked for, temps, a runner (distributed.TaskRunner) and name(t); it
+    chooses s and runs every tile's solve. A refinement task (tiled_refine) then takes its
+    tile's vertex data through `tile`, as it takes the limiter's. on_done(t, row) gets each
     solve's report row (tiles.task_row: points, seconds, worker, its peak) as it finishes
     (progress)."""
 
-    def __init__(self, heights, triangle_files, grid, strength, spacing: float, longest_edge: float,
-                 overshoot: str, temps, runner, name=str, lengths: float | None = None, on_done=None,
-                 gradient_weight: float = 0.0):
-        lengths = HALO_LENGTHS if lengths is None else lengths
-        self.grid, self.files, self.overshoot = grid, triangle_files, overshoot
-        self.gradient_weight = float(gradient_weight)
+    def __init__(self, mesh, fit: TiledSmoothing, temps, runner, name=str, on_done=None):
+        heights, triangle_files, grid = mesh.heights, mesh.files, mesh.grid
+        lengths = HALO_LENGTHS if fit.lengths is None else fit.lengths
+        self.grid, self.files, self.overshoot = grid, triangle_files, fit.overshoot
+        self.gradient_weight = float(fit.gradient_weight)
         self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
         self.seconds: dict = {}
-        self.spacing = float(spacing)
+        self.spacing = float(fit.spacing)
         self.search = None
+        strength = fit.strength
         if strength == "auto":
             start = time.perf_counter()
-            self.search = _search_tile(heights, triangle_files, grid, longest_edge, self.spacing, overshoot,
+            self.search = _search_tile(heights, triangle_files, grid, fit.longest_edge, self.spacing, fit.overshoot,
                                        self.gradient_weight, temps)
             strength = self.search["strength"]
             self.seconds["search"] = time.perf_counter() - start
         self.strength = float(strength)
-        self.reach = smoothing_reach(self.strength, self.spacing, longest_edge, lengths)
+        self.reach = smoothing_reach(self.strength, self.spacing, fit.longest_edge, lengths)
         self.halos = HaloCache(heights, triangle_files, grid, self.reach, temps, label="smooth-halo")
         tiles = self.halos.tiles()
         self.paths = {t: (temps.new(f"fitted-{t}.bin"), temps.new(f"directions-{t}.npy")) for t in tiles}

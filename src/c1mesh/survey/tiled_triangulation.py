@@ -50,7 +50,7 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
     def passes(bound):
         for t, (buffer, row) in runner.map(
                 _tile_trimmed, len(grid),
-                lambda t: (heights, grid, t, bound, hull, files[t], longest[t], shorts[t], rows.threads),
+                lambda t: (heights, grid, t, bound, hull, (files[t], longest[t], shorts[t]), rows.threads),
                 rows.name):
             buffers[t] = buffer
             rows.add(t, "triangulate", row)
@@ -79,12 +79,13 @@ def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) ->
     return result.buffer, task_row(result.read, start)
 
 
-def _tile_trimmed(heights, grid, t: int, bound: float, hull, path, longest_path, short_path, threads):
+def _tile_trimmed(heights, grid, t: int, bound: float, hull, paths, threads):
     """Tile t's triangles with edges up to bound (buffered_delaunay.tile_pass) saved to
-    path, their longest edges to longest_path, its certified short edge lengths to
-    short_path (the survey's would grow the parent by 24 bytes a point:
+    paths[0], their longest edges to paths[1], its certified short edge lengths to
+    paths[2] (the survey's would grow the parent by 24 bytes a point:
     buffered_delaunay.short_median reads them back a tile at a time); returns (its
     buffer, its report row)."""
+    path, longest_path, short_path = paths
     start = time.perf_counter()
     with limit(threads):
         result = tile_pass(heights.read, grid, t, bound, hull)
