@@ -286,6 +286,31 @@ def test_dem_has_overviews_and_is_tiled(tmp_path):
         assert ds.dtypes[0] == "float32" and ds.compression is not None
 
 
+def test_every_raster_is_a_valid_cog_with_overviews_and_a_predictor(tmp_path):
+    """rio-cogeo's validator (a peer of GDAL's own validate_cloud_optimized_geotiff.py)
+    accepts every raster a fit writes; each is deflated with a predictor and has internal
+    overviews; no staging file is left beside them."""
+    cogeo = pytest.importorskip("rio_cogeo.cogeo")
+    src = _terrain_file(tmp_path / "t.ply")
+    out = tmp_path / "out"
+    out.mkdir()
+    names = {"dem": "dem.tif", "slope": "slope.tif", "aspect": "aspect.tif", "hillshade": "hs.tif"}
+    args = ["fit", str(src), "-o", str(out / names["dem"]), "--resolution", "0.01"]
+    for kind in ("slope", "aspect", "hillshade"):
+        args += [f"--{kind}", str(out / names[kind])]
+    done = CliRunner().invoke(main, args)
+    assert done.exit_code == 0, done.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(names.values())
+    for kind, name in names.items():
+        valid, errors, _ = cogeo.cog_validate(str(out / name), strict=True)
+        assert valid and not errors, (kind, errors)
+        with rasterio.open(out / name) as ds:
+            assert ds.overviews(1)[:2] == [2, 4], kind
+            assert ds.compression.name.lower() == "deflate", kind
+            predictor = ds.tags(ns="IMAGE_STRUCTURE").get("PREDICTOR")
+            assert predictor == ("2" if kind == "hillshade" else "3"), (kind, predictor)
+
+
 def test_resolution_picks_the_level_for_a_mean_edge(tmp_path):
     src = _terrain_file(tmp_path / "t.ply", 800)
     mesh_l1 = fit(str(src), None, FitOptions(level=1, axis="z")).mesh

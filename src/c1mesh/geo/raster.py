@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -217,9 +218,11 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
 
 
 def _profile(grid: RasterGrid, dtype: str, nodata, crs: str | None) -> dict:
+    """The staging GeoTIFF's profile (write_rasters): tiled as the COG will be, deflated
+    fast (it is read once, by cog_copy)."""
     profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 1,
                "dtype": dtype, "nodata": nodata, "transform": grid.transform,
-               "compress": "deflate", "tiled": True, "blockxsize": BLOCK_ROWS,
+               "compress": "deflate", "zlevel": 1, "tiled": True, "blockxsize": BLOCK_ROWS,
                "blockysize": BLOCK_ROWS, "BIGTIFF": "IF_SAFER"}
     if dtype.startswith("float"):
         profile["predictor"] = 3   # floating-point predictor: deflate packs DEMs much better
@@ -259,8 +262,11 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
     float32, the default, which rounds heights of 1e4 to ~1e-3).
 
-    Every file is written to a temporary file and renamed into place only when all of them
-    are complete (formats.atomic_output), with overviews (2x, 4x, ... averaged) added.
+    Every file is a Cloud-Optimised GeoTIFF (cog_copy): the blocks are written to a
+    staging GeoTIFF beside the output (GDAL's COG driver writes only by copying a whole
+    dataset), which GDAL then copies into the output's temporary file; the outputs are
+    renamed into place only when all of them are complete (formats.atomic_output), and
+    the staging files are removed on success, error and interrupt.
     """
     rasterio = rasterio_module()
     from c1mesh.formats import atomic_output
@@ -271,8 +277,9 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     cells_inside = 0
     with contextlib.ExitStack() as stack:
         temps = {kind: stack.enter_context(atomic_output(path, "path")) for kind, path in items}
+        staged = {kind: stack.enter_context(staging_path(temps[kind])) for kind, _ in items}
         kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
-        datasets = {kind: stack.enter_context(rasterio.open(temps[kind], "w", **_profile(
+        datasets = {kind: stack.enter_context(rasterio.open(staged[kind], "w", **_profile(
             grid, *kinds[kind], crs))) for kind, _ in items}
         shaded = any(kind != "dem" for kind, _ in items)
         for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
@@ -281,24 +288,48 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
             for kind, ds in datasets.items():
                 ds.write(_layer(kind, z, g, z_factor).astype(kinds[kind][0], copy=False), 1, window=window)
         for kind, ds in datasets.items():
-            _build_overviews(ds, grid, kind)
             ds.close()
+            cog_copy(staged[kind], temps[kind], kind)
     return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
                      "width": grid.width, "height": grid.height},
             "cells": grid.width * grid.height, "cells_with_data": cells_inside,
-            "slope_method": method, "z_factor": z_factor, "files": dict(items)}
+            "slope_method": method, "z_factor": z_factor, "files": dict(items),
+            "format": {key: str(value) for key, value in COG_FORMAT.items()}}
 
 
-def _build_overviews(ds, grid: RasterGrid, kind: str) -> None:
-    """2x, 4x, ... overviews down to about one tile (averaged; nearest for hillshade)."""
-    from rasterio.enums import Resampling
+COG_FORMAT = {"driver": "COG", "compress": "DEFLATE", "predictor": "YES", "blocksize": BLOCK_ROWS,
+              "overviews": "AUTO"}
+"""How every raster is written (the report's raster.format): GDAL's COG driver, deflate
+with its predictor (YES: floating-point for float rasters, horizontal differencing for
+the uint8 hillshade), 256 x 256 tiles, and internal overviews halving the grid until it
+fits one tile (averaged; nearest for the hillshade, whose shades are not heights)."""
 
-    factors, factor = [], 2
-    while max(grid.width, grid.height) / factor >= BLOCK_ROWS / 2 and factor <= 1024:
-        factors.append(factor)
-        factor *= 2
-    if factors:
-        ds.build_overviews(factors, Resampling.nearest if kind == "hillshade" else Resampling.average)
+
+@contextlib.contextmanager
+def staging_path(target: Path):
+    """A path beside `target` for the staging GeoTIFF, listed as a temporary file of the
+    process (removed by the CLI's signal handler on Ctrl-C) and removed when the block
+    ends, whatever happens."""
+    from c1mesh.core.outputs import register_temp, unregister_temp
+
+    path = Path(target).with_name(f".{Path(target).name}.{secrets.token_hex(4)}.stage.tif")
+    register_temp(path)
+    try:
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        unregister_temp(path)
+
+
+def cog_copy(source: Path, target: Path, kind: str) -> None:
+    """Copy the GeoTIFF `source` into a Cloud-Optimised GeoTIFF at `target` with GDAL's
+    COG driver (COG_FORMAT); overviews averaged, nearest for the hillshade."""
+    import rasterio.shutil
+
+    options = {key.upper(): value for key, value in COG_FORMAT.items() if key != "driver"}
+    rasterio.shutil.copy(str(source), str(target), driver="COG", BIGTIFF="IF_SAFER",
+                         OVERVIEW_RESAMPLING="NEAREST" if kind == "hillshade" else "AVERAGE", **options)
 
 
 # ------------------------------------------------------------------------ the fit's side
