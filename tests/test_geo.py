@@ -214,7 +214,8 @@ def test_slope_and_hillshade_from_the_cli_match_the_analytic_terrain(tmp_path):
         done = runner.invoke(main, ["fit", str(src), "-o", str(tmp_path / f"dem_{method}.tif"),
                                     "--resolution", "0.05", "--slope", str(tmp_path / f"s_{method}.tif"),
                                     "--aspect", str(tmp_path / f"a_{method}.tif"), "--slope-method", method,
-                                    "--hillshade", str(tmp_path / f"h_{method}.tif"), "--crs", "EPSG:32633"])
+                                    "--hillshade", str(tmp_path / f"h_{method}.tif"), "--crs", "EPSG:32633",
+                                    "--fill", "off"])   # the trimmed surface; the fill: test_dem_fill.py
         assert done.exit_code == 0, done.output
         slope, x, y, ds = _cells(tmp_path / f"s_{method}.tif")
         assert ds.crs.to_epsg() == 32633
@@ -248,7 +249,8 @@ def test_lidar_ground_dem_slope_hillshade(tmp_path):
     from matplotlib.tri import Triangulation
     dem, slope, shade = tmp_path / "dem.tif", tmp_path / "slope.tif", tmp_path / "hs.tif"
     done = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(dem),
-                                     "--resolution", "3", "--slope", str(slope), "--hillshade", str(shade)])
+                                     "--resolution", "3", "--slope", str(slope), "--hillshade", str(shade),
+                                     "--fill", "off"])       # the trimmed DEM (the fill: test_dem_fill.py)
     assert done.exit_code == 0, done.output
     band, x, y, ds = _cells(dem)
     assert ds.crs == rasterio.crs.CRS.from_epsg(2903)
@@ -294,9 +296,10 @@ def test_every_raster_is_a_valid_cog_with_overviews_and_a_predictor(tmp_path):
     src = _terrain_file(tmp_path / "t.ply")
     out = tmp_path / "out"
     out.mkdir()
-    names = {"dem": "dem.tif", "slope": "slope.tif", "aspect": "aspect.tif", "hillshade": "hs.tif"}
+    names = {"dem": "dem.tif", "slope": "slope.tif", "aspect": "aspect.tif", "hillshade": "hs.tif",
+             "support": "support.tif"}
     args = ["fit", str(src), "-o", str(out / names["dem"]), "--resolution", "0.01"]
-    for kind in ("slope", "aspect", "hillshade"):
+    for kind in ("slope", "aspect", "hillshade", "support"):
         args += [f"--{kind}", str(out / names[kind])]
     done = CliRunner().invoke(main, args)
     assert done.exit_code == 0, done.output

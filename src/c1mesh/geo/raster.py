@@ -40,7 +40,7 @@ import numpy as np
 
 from c1mesh.core.errors import DependencyError, InputError
 from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS
-from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
+from c1mesh.geo.raster_grid import FillRule, RasterGrid, SplineSampler
 
 RASTER_SUFFIXES = tuple(f".{fmt}" for fmt in RASTER_FORMATS)
 DEM_NODATA = -9999.0
@@ -59,6 +59,11 @@ average of the spline's heights is closer to the true slope up to about 4 spacin
 exact normals and 8 spacings with 3° normal noise; beyond that Horn's own truncation
 error (O(R²)) dominates and the spline gradient wins."""
 LIGHT_AZIMUTH, LIGHT_ALTITUDE = 315.0, 45.0
+FILL_WORDS = ("hull", "off")
+DEFAULT_FILL = "hull"
+"""The DEM's default fill (--fill): every cell inside the hull of the points, as a DTM
+user expects (lidR's rasterize_terrain and LAStools' blast2dem interpolate the whole hull);
+the support layer (--support) then tells each cell's distance to the data."""
 
 
 def is_raster_path(path) -> bool:
@@ -180,6 +185,7 @@ class RasterTargets:
     slope: str | None = None
     aspect: str | None = None
     hillshade: str | None = None
+    support: str | None = None
 
     def items(self):
         return [(k, v) for k, v in vars(self).items() if v is not None]
@@ -232,7 +238,8 @@ def _profile(grid: RasterGrid, dtype: str, nodata, crs: str | None) -> dict:
 
 
 _KINDS = {"dem": ("float32", DEM_NODATA), "slope": ("float32", DEM_NODATA),
-          "aspect": ("float32", DEM_NODATA), "hillshade": ("uint8", HILLSHADE_NODATA)}
+          "aspect": ("float32", DEM_NODATA), "hillshade": ("uint8", HILLSHADE_NODATA),
+          "support": ("float32", DEM_NODATA)}
 
 
 def _layer(kind: str, z: np.ndarray, g: np.ndarray, z_factor: float = 1.0) -> np.ndarray:
@@ -249,6 +256,12 @@ def _layer(kind: str, z: np.ndarray, g: np.ndarray, z_factor: float = 1.0) -> np
         shade = np.rint(1.0 + 254.0 * hillshade(np.nan_to_num(g if z_factor == 1.0 else g * z_factor)))
         return np.where(outside, HILLSHADE_NODATA, shade).astype(np.uint8)
     return np.where(outside, DEM_NODATA, out).astype(np.float32)
+
+
+def _support_layer(distance: np.ndarray) -> np.ndarray:
+    """The support raster's values for one block: the distance (n, w) from each cell
+    centre to the nearest point the fit used, nodata where it is NaN (no DEM value)."""
+    return np.where(np.isfinite(distance), distance, DEM_NODATA).astype(np.float32)
 
 
 def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
@@ -281,12 +294,18 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
         kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
         datasets = {kind: stack.enter_context(rasterio.open(staged[kind], "w", **_profile(
             grid, *kinds[kind], crs))) for kind, _ in items}
-        shaded = any(kind != "dem" for kind, _ in items)
+        shaded = any(kind not in ("dem", "support") for kind, _ in items)
+        farthest = 0.0
         for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
             cells_inside += int(np.isfinite(z).sum())
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
-                ds.write(_layer(kind, z, g, z_factor).astype(kinds[kind][0], copy=False), 1, window=window)
+                if kind == "support":
+                    layer = _support_layer(sampler.centre_distances(grid, rows, np.isfinite(z)))
+                    farthest = max(farthest, float(layer.max(initial=0.0)))
+                else:
+                    layer = _layer(kind, z, g, z_factor)
+                ds.write(layer.astype(kinds[kind][0], copy=False), 1, window=window)
         for kind, ds in datasets.items():
             ds.close()
             cog_copy(staged[kind], temps[kind], kind)
@@ -294,6 +313,7 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
                      "width": grid.width, "height": grid.height},
             "cells": grid.width * grid.height, "cells_with_data": cells_inside,
             "slope_method": method, "z_factor": z_factor, "files": dict(items),
+            **({"support_max": farthest} if targets.support else {}),
             "format": {key: str(value) for key, value in COG_FORMAT.items()}}
 
 
@@ -337,11 +357,12 @@ def targets_for(output, options) -> RasterTargets:
     """The rasters a fit writes: the DEM when `output` is a .tif, plus --slope/--aspect/
     --hillshade. InputError when they are asked for without a --resolution."""
     targets = RasterTargets(dem=str(output) if is_raster_path(output) else None,
-                            slope=options.slope, aspect=options.aspect, hillshade=options.hillshade)
+                            slope=options.slope, aspect=options.aspect, hillshade=options.hillshade,
+                            support=getattr(options, "support", None))
     if targets.items() and options.resolution is None:
-        raise InputError("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade) need --resolution")
-    if (options.slope or options.aspect or options.hillshade) and targets.dem is None:
-        raise InputError("--slope, --aspect and --hillshade come with a DEM: give -o DEM.tif")
+        raise InputError("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade, --support) need --resolution")
+    if any(path for kind, path in targets.items() if kind != "dem") and targets.dem is None:
+        raise InputError("--slope, --aspect, --hillshade and --support come with a DEM: give -o DEM.tif")
     for kind, path in targets.items():
         if not is_raster_path(path):
             raise InputError(f"the {kind} raster '{path}' must be a GeoTIFF (.tif or .tiff)")
@@ -364,19 +385,37 @@ def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(math.sqrt(area / points.shape[0]))
 
 
-def dem_sampling(interp, frame, resolution: float, data_xy=None,
-                 reach: float | None = None) -> tuple[RasterGrid, SplineSampler]:
+def fill_distance(value) -> float | None:
+    """The DEM's fill distance D from --fill (FitOptions.fill): None for "off" or 0 (the
+    trim's holes stay nodata), inf for "hull" (every cell inside the hull of the points),
+    else a length D > 0 in the CRS's (the scan's) units. InputError for anything else."""
+    if isinstance(value, str) and value.strip().lower() in FILL_WORDS:
+        return math.inf if value.strip().lower() == "hull" else None
+    try:
+        distance = float(value)
+    except (TypeError, ValueError):
+        distance = math.nan
+    if not (distance >= 0 and not math.isnan(distance)):
+        raise InputError(f"--fill must be hull, off or a distance >= 0, got {value!r}")
+    return None if distance == 0 else distance
+
+
+def dem_sampling(interp, frame, resolution: float, data_xy=None, reach: float | None = None,
+                 fill: FillRule | None = None, fit_xy=None) -> tuple[RasterGrid, SplineSampler]:
     """The grid of a fit's DEM (aligned at `resolution`, covering the triangulation in
     world x, y) and the sampler of the spline at its cell centres. data_xy (m, 2): the
     fitted points in the frame's plane (their cells always get a value within `reach`,
     the trim's max_edge: SplineSampler); None: the triangulation alone decides. The
     rasters (write_fit_rasters) and the fit's preview (preview.render_dem_fit) both take
-    their cells from these, so they cover the same cells."""
+    their cells from these, so they cover the same cells. fill: the FillRule of a DEM that
+    spans the trim's holes (None: none); fit_xy (k, 2): the points the fit used, in the
+    frame's plane (None: the interpolator's vertices), for the fill and the support layer."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     lo = interp.points.min(axis=0) + frame.origin[:2]
     hi = interp.points.max(axis=0) + frame.origin[:2]
-    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach)
+    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach,
+                                                                     fill, fit_xy)
 
 
 def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler, options,
@@ -385,7 +424,7 @@ def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineS
     returns the report's "raster" section. options.z_factor (None: 1) scales slope and
     hillshade; heights in units of their own without one are refused before
     (pipeline.check_angles)."""
-    if crs and (options.slope or options.aspect or options.hillshade):
+    if crs and (options.slope or options.aspect or options.hillshade):  # the support is a distance
         from c1mesh.core.crs import describe
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "

@@ -8,6 +8,7 @@ mesh with a JSON-ready report. Nothing here prints or exits: the CLI does that.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import Any, Callable
 
@@ -16,7 +17,8 @@ import numpy as np
 from c1mesh.core.cloud import PointCloud
 from c1mesh.stages.curtains import remove_curtains, view_rules_apply
 from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
-from c1mesh.geo.raster import dem_sampling, is_raster_path, raster_axis, write_fit_rasters
+from c1mesh.geo.raster import dem_sampling, fill_distance, is_raster_path, raster_axis, write_fit_rasters
+from c1mesh.geo.raster_grid import FillRule
 from c1mesh.core.errors import InputError
 from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
 from c1mesh.stages.frame import auto_axis_reason, choose_frame
@@ -31,7 +33,7 @@ from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import check_triangles_left, trim_mesh
+from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, gradient_data_weight, parse_strength
 from c1mesh.stages.surface import PLANE_LEVEL
@@ -98,6 +100,11 @@ class FitOptions:
     hillshade: str | None = None
     slope_method: str = "auto"
     preview: str | None = None
+    # support: a GeoTIFF path of each DEM cell's distance to the nearest point the fit used;
+    # fill: the DEM's fill of the trim's holes (geo.raster.fill_distance): "hull" (every cell
+    # inside the hull of the points), "off" (or 0: the holes stay nodata) or a distance D.
+    support: str | None = None
+    fill: Any = "hull"
     # z_factor: x, y units per height unit (ArcGIS's z-factor; gdaldem's -s is its inverse),
     # for the angles of slope, hillshade and the preview's shading (atan(|grad z| * z_factor))
     # and, for a header height column fitted in plan units, of max_slope. None: 1 where x, y
@@ -207,6 +214,9 @@ class SurfaceModel:
     thinned: its vertices are a --spacing thinning, fitted to all of hf's points.
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
+    trimmed: for a fit built with fill=True (a DEM that spans its holes), (T,) bool over
+    interp's triangles: those the trim kept (the mesh's); the others span holes the trim
+    opened (long edges, curtains). None: every triangle is the trim's.
     """
 
     normal_source: str
@@ -220,6 +230,7 @@ class SurfaceModel:
     max_slope_not_applied: str | None = None
     smoothing: Any = None
     thinned: bool = False
+    trimmed: np.ndarray | None = None
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -300,7 +311,8 @@ def _drop_too_steep(hf, max_slope: float, z_factor: float) -> None:
 
 
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | None" = None,
-                  check_triangulation: Callable[[np.ndarray, np.ndarray, Any], None] | None = None) -> SurfaceModel:
+                  check_triangulation: Callable[[np.ndarray, np.ndarray, Any], None] | None = None,
+                  fill: bool = False) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
     The stages every fit shares, whole-file or tiled (c1mesh.survey.tiles), so a stage added
@@ -308,6 +320,9 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     check_triangulation(points (n, 2), triangles (T, 3), topology.EdgeTable): called with the
     interpolator's triangulation once it is known, before the interpolation, so a caller
     can refuse what it would refine (`_output_size_check`) before the heavy stages.
+    fill=True (a DEM's fill, geo.raster.FillRule): the spline also spans the holes the trim
+    opened, over the triangles of the Delaunay triangulation that only the long-edge and
+    curtain rules removed (filled_mesh); SurfaceModel.trimmed says which are the trim's.
     """
     timer = timer or StageTimer(None)
     scheme = get_scheme(options.scheme)
@@ -350,6 +365,9 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
                                                 view_rules_apply(options.classes, frame.axes))
         check_triangles_left(mesh.triangles.shape[0])
+        trimmed = None
+        if fill:
+            mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
         local, triangles = compact_vertices(xy, mesh.triangles)
         used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None
@@ -370,7 +388,25 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                                  gradients=hf.gradients[used] if weight else None,
                                                                  gradient_weight=weight)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing, vertices is not None)
+                        max_slope_not_applied, smoothing, vertices is not None, trimmed)
+
+
+def filled_mesh(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh, curtains: bool = True):
+    """The triangles of a DEM that spans the trim's holes, and which of them the trim kept.
+
+    xy (n, 2), z (n,), gradients (n, 2): the triangulated points; mesh: the trimmed
+    TrimmedMesh (trim_mesh, then remove_curtains). Returns (TrimmedMesh, trimmed (T',) bool
+    over its triangles). The filled mesh is the union of the trimmed one and the
+    triangulation trimmed without max_edge and without the view-ray curtain rules (they
+    open the holes under buildings, trees and water): what stays out are the slivers and
+    bowties on the hull's rim and the triangles thinner than the noise, which the spline
+    cannot span (it divides by their width; curtains.py). The union is a subset of one
+    triangulation, so it stays edge-manifold."""
+    whole, report = trim_again(mesh, max_edge=None)
+    if curtains:
+        whole, _ = remove_curtains(xy, z, gradients, whole, report, view_rules=False)
+    alive = whole.alive | mesh.alive
+    return mesh.with_alive(alive), mesh.alive[alive]
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -418,16 +454,20 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                              "as a height field, or drop --smooth")
         from c1mesh.pipeline.depth_fit import fit_perspective
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
+    fill = fill_distance(options.fill) if geo.rasters.items() else None
     model = build_surface(cloud, options, timer,
-                          None if geo.rasters.items() else _output_size_check(output, options, cloud))
+                          None if geo.rasters.items() else _output_size_check(output, options, cloud),
+                          fill=fill is not None)
     frame, hf, trim_report, used, interp = model.frame, model.hf, model.trim_report, model.used, model.interp
     if geo.rasters.items():
         with timer.stage("raster"):
             data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
-            dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge)
+            rule = None if fill is None else FillRule(model.trimmed, fill)
+            dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge, rule,
+                               fit_points(model))
             raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
         report = _raster_report(source, output, options, cloud, model, timer, angles, crs_facts(crs, crs_source))
-        report["raster"] = raster_report
+        report["raster"] = {**raster_report, "fill": fill_facts(options.fill, fill, model)}
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options, dem=dem)
     level, level_from = plane_level(interp.points, interp.triangles, options)
@@ -439,6 +479,22 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report = _report(source, output, options, cloud, model, frame_report, level_from, stream, timer, angles,
                      crs_facts(crs, crs_source))
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+def fit_points(model: SurfaceModel) -> np.ndarray:
+    """(k, 2) the points the fit used, in the frame's plane: the spline's vertices (the
+    points it interpolates), or the data of a smoothing fit thinned by --spacing (its
+    vertices are no points). The support layer measures distances to these."""
+    return model.hf.xy if model.thinned else model.hf.xy[model.used]
+
+
+def fill_facts(option, distance: float | None, model: SurfaceModel) -> dict:
+    """The report's raster.fill: the --fill asked for (its default: geo.raster.DEFAULT_FILL),
+    the distance it resolved to (null: off; "inf": the whole hull) and the triangles that
+    span the trim's holes."""
+    spans = 0 if model.trimmed is None else int((~model.trimmed).sum())
+    shown = None if distance is None else ("inf" if math.isinf(distance) else distance)
+    return {"option": option, "distance": shown, "triangles_spanning_holes": spans}
 
 
 def _slope_note(model: SurfaceModel) -> dict:
