@@ -10,11 +10,16 @@ fit passes its max_edge): the spline's value and gradient at the triangle's poin
 to the centre, continued linearly to the centre (slope rasters take that gradient).
 Nodata is therefore only where there is no data: cells without points outside the
 trimmed triangulation, and cells whose points lie more than `reach` from every kept
-triangle (in a gap wider than --max-edge). Slope, aspect and hillshade come from a
+triangle (in a gap wider than --max-edge). A fill (--fill, FillRule; default: the whole
+hull, DEFAULT_FILL) adds the cells of the holes the trim opened: the fit's spline spans
+them (pipeline.driver.filled_mesh), and a cell there holds it when its centre is within
+the fill distance of a point the fit used. The support raster holds each cell's distance
+to that nearest point (SplineSampler.distances), nodata where the DEM is. Slope, aspect and hillshade come from a
 gradient at each cell centre: the spline's own analytic gradient ("spline"), or Horn's
 3x3 differences of the DEM ("horn", what `gdaldem slope` computes), chosen per resolution
 by "auto" (see AUTO_SPLINE_FROM). The rasters are computed and written in blocks of rows, so
-memory holds a few blocks, not the grid.
+memory holds a few blocks, not the grid, and each becomes a Cloud-Optimised GeoTIFF
+(COG_FORMAT, cog_copy).
 
 Units: slope in degrees from horizontal (0-90); aspect in degrees clockwise from north of
 the downhill direction (0-360, GDAL's convention; 0 where the surface is exactly flat);
