@@ -314,6 +314,29 @@ def test_every_raster_is_a_valid_cog_with_overviews_and_a_predictor(tmp_path):
             assert predictor == ("2" if kind == "hillshade" else "3"), (kind, predictor)
 
 
+def test_a_failing_cog_copy_leaves_no_raster_and_no_staging_file(tmp_path, monkeypatch):
+    """Atomic outputs: when GDAL's copy into the COG fails after the blocks were staged,
+    nothing is left in the output folder (no DEM, no side raster, no staging file)."""
+    import c1mesh.geo.raster as raster
+
+    src = _terrain_file(tmp_path / "t.ply")
+    out = tmp_path / "out"
+    out.mkdir()
+    copies = []
+
+    def failing(source, target, kind):
+        copies.append(kind)
+        if len(copies) == 2:
+            raise OSError("disk full")
+        return original(source, target, kind)
+    original = raster.cog_copy
+    monkeypatch.setattr(raster, "cog_copy", failing)
+    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out / "dem.tif"), "--resolution", "0.05",
+                                     "--slope", str(out / "slope.tif"), "--support", str(out / "support.tif")])
+    assert done.exit_code == 1 and "disk full" in done.output
+    assert len(copies) == 2 and list(out.iterdir()) == []
+
+
 def test_resolution_picks_the_level_for_a_mean_edge(tmp_path):
     src = _terrain_file(tmp_path / "t.ply", 800)
     mesh_l1 = fit(str(src), None, FitOptions(level=1, axis="z")).mesh
