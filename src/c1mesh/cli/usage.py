@@ -148,9 +148,12 @@ def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> lis
     dems = [dst for dst in outputs if extension(dst) in RASTER_FORMATS]
     extras = {kind: params[kind] for kind in SIDE_RASTERS if params[kind]}
     resolution, preview = params["resolution"], params["preview"]
-    if params["seamless"] and params["output_dir"] and (resolution is not None or extras or preview):
-        return ["--resolution, --slope, --aspect, --hillshade, --support and --preview make one survey-wide "
-                "output: use them with --seamless -o, not -O"]
+    if params["seamless"] and params["output_dir"] and (extras or preview):
+        return ["--slope, --aspect, --hillshade, --support and --preview make one survey-wide output: use them "
+                "with --seamless -o, not -O (which writes per-tile DEMs with --suffix .tif)"]
+    if params["seamless"] and params["output_dir"] and resolution is not None and not dems:
+        return ["--resolution with --seamless -O is the cell size of per-tile DEMs: give --suffix .tif "
+                "(meshes per tile take --level)"]
     if len(params["inputs"]) > 1 and not params["seamless"] and (extras or preview):
         return ["--slope, --aspect, --hillshade, --support and --preview name one file: use them with a "
                 "single input"]

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
@@ -355,6 +356,44 @@ def cog_copy(source: Path, target: Path, kind: str) -> None:
     options = {key.upper(): value for key, value in COG_FORMAT.items() if key != "driver"}
     rasterio.shutil.copy(str(source), str(target), driver="COG", BIGTIFF="IF_SAFER",
                          OVERVIEW_RESAMPLING="NEAREST" if kind == "hillshade" else "AVERAGE", **options)
+
+
+# --------------------------------------------------------------------------- mosaics
+VRT_TYPES = {"float32": "Float32", "float64": "Float64", "uint8": "Byte"}
+
+
+def write_vrt(path, grid: RasterGrid, tiles, kind: str = "dem", crs: str | None = None) -> None:
+    """Write a GDAL VRT mosaic at `path` of the rasters `tiles` [(file path, window grid)],
+    each a window (RasterGrid.window) of `grid`, of one raster kind (_KINDS: its type and
+    nodata). The mosaic is `grid` itself; each tile is a ComplexSource placed at its
+    window's row0, col0, its nodata cells transparent; the files are named relative to the
+    VRT (GDAL's VRT format, gdal.org/drivers/raster/vrt.html; written by hand, as GDAL's
+    BuildVRT has no rasterio binding). Atomic, as every output."""
+    from xml.sax.saxutils import escape
+
+    from c1mesh.formats import atomic_output
+
+    dtype, nodata = _KINDS[kind]
+    t = grid.transform
+    lines = [f'<VRTDataset rasterXSize="{grid.width}" rasterYSize="{grid.height}">']
+    if crs:
+        lines.append(f'  <SRS dataAxisToSRSAxisMapping="1,2">{escape(crs)}</SRS>')
+    lines.append(f"  <GeoTransform>{t.c!r}, {t.a!r}, 0.0, {t.f!r}, 0.0, {t.e!r}</GeoTransform>")
+    lines.append(f'  <VRTRasterBand dataType="{VRT_TYPES[dtype]}" band="1">')
+    lines.append(f"    <NoDataValue>{nodata!r}</NoDataValue>")
+    for file, window in tiles:
+        name = os.path.relpath(Path(file).resolve(), Path(path).resolve().parent)
+        size = f'xSize="{window.width}" ySize="{window.height}"'
+        lines += ["    <ComplexSource>",
+                  f'      <SourceFilename relativeToVRT="1">{escape(name)}</SourceFilename>',
+                  "      <SourceBand>1</SourceBand>",
+                  f'      <SrcRect xOff="0" yOff="0" {size}/>',
+                  f'      <DstRect xOff="{window.col0 - grid.col0}" yOff="{window.row0 - grid.row0}" {size}/>',
+                  f"      <NODATA>{nodata!r}</NODATA>",
+                  "    </ComplexSource>"]
+    lines += ["  </VRTRasterBand>", "</VRTDataset>"]
+    with atomic_output(path, "w") as handle:
+        handle.write("\n".join(lines) + "\n")
 
 
 # ------------------------------------------------------------------------ the fit's side

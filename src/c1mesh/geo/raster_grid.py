@@ -25,7 +25,10 @@ class RasterGrid:
     """A north-up grid: column j, row i has its centre at (west + (j + ½)R, north − (i + ½)R).
 
     west and north are multiples of the resolution R (world units), so grids of different
-    tiles at the same R line up cell for cell.
+    tiles at the same R line up cell for cell. A window of a grid (`window`) keeps the
+    grid's west and north and counts its cells from row0, col0: its cell (i, j) is the
+    grid's cell (row0 + i, col0 + j), sampled by the same arithmetic, so a window's cells
+    are bit for bit the grid's (per-tile DEMs of one survey).
     """
 
     west: float
@@ -33,6 +36,13 @@ class RasterGrid:
     resolution: float
     width: int
     height: int
+    row0: int = 0
+    col0: int = 0
+
+    def window(self, rows: range, cols: range) -> "RasterGrid":
+        """The window of this grid's cells rows × cols (indices of this grid)."""
+        return RasterGrid(self.west, self.north, self.resolution, len(cols), len(rows),
+                          self.row0 + rows.start, self.col0 + cols.start)
 
     @classmethod
     def covering(cls, lo, hi, resolution: float) -> "RasterGrid":
@@ -52,7 +62,8 @@ class RasterGrid:
     def transform(self):
         """The rasterio/GDAL affine transform of the grid."""
         from affine import Affine
-        return Affine(self.resolution, 0.0, self.west, 0.0, -self.resolution, self.north)
+        return Affine(self.resolution, 0.0, self.west + self.col0 * self.resolution, 0.0, -self.resolution,
+                      self.north - self.row0 * self.resolution)
 
 
 # ----------------------------------------------------------------------------------- fill
@@ -177,6 +188,7 @@ class SplineSampler:
         callers' assignment), then of the cells holding data points whose centre is in no
         triangle: the point q of the nearest triangle closest to the centre (λ0, λ1 of q)
         and shift = centre − q (local units), for `evaluate`'s linear continuation."""
+        rows, cols = _lattice(grid, rows, cols)
         r = grid.resolution
         x0 = grid.west - self.origin[0]          # local x of the grid's west edge
         y0 = grid.north - self.origin[1]
@@ -230,6 +242,7 @@ class SplineSampler:
         `where` (len(rows), width) bool holds to the nearest point the fit used
         (`distances`), in the grid's units; NaN elsewhere."""
         i, j = np.nonzero(where)
+        i, j = i + grid.row0, j + grid.col0
         x = grid.west - self.origin[0] + (j + 0.5) * grid.resolution
         y = grid.north - self.origin[1] - (rows.start + i + 0.5) * grid.resolution
         out = np.full(where.shape, np.nan)
@@ -331,6 +344,12 @@ class SplineSampler:
         out[:, 0] = d0 * g0x[tri] + d1 * g1x[tri]
         out[:, 1] = d0 * g0y[tri] + d1 * g1y[tri]
         return values, out
+
+
+def _lattice(grid: RasterGrid, rows: range, cols: range) -> tuple[range, range]:
+    """rows and cols of a window (RasterGrid.window) as indices of its whole grid."""
+    return (range(rows.start + grid.row0, rows.stop + grid.row0),
+            range(cols.start + grid.col0, cols.stop + grid.col0))
 
 
 class _RowSorted:

@@ -536,6 +536,84 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
+MOSAIC_NAME = "mosaic.vrt"
+"""The VRT mosaic of --seamless -O's per-tile DEMs, in the output folder."""
+
+
+def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None = None) -> dict:
+    """`--seamless -O DIR --suffix .tif`: the survey (survey.tiles.Survey) fitted once, one
+    DEM per input (outputs[i], a window of the survey's DEM grid: dem_windows) and their
+    VRT mosaic DIR/MOSAIC_NAME; returns the report. Every cell is sampled from the one
+    spline at its index in the survey's grid, so a cell two tiles share is equal in both
+    and the mosaic equals the survey's DEM (`--seamless -o`) cell for cell. An input whose
+    points and triangles are nowhere (no points of --classes) gets no DEM. On failure the
+    DEMs already written are removed."""
+    from pathlib import Path
+
+    from c1mesh.geo.raster import RasterTargets, write_vrt
+
+    timer = timer or StageTimer(None)
+    options = replace(options, axis=raster_axis(options.axis))
+    crs, crs_source = resolve_crs(survey.cloud.crs, geo_plan(outputs[0], options).user_crs, survey.names[0])
+    fill = fill_distance(options.fill)
+    model = build_surface(survey.cloud, options, timer, fill=fill is not None)
+    with timer.stage("raster"):
+        data_xy = (survey.cloud.points - model.frame.origin)[:, :2]
+        grid, sampler = dem_sampling(model.interp, model.frame, options.resolution, data_xy,
+                                     model.trim_report.max_edge,
+                                     None if fill is None else FillRule(model.trimmed, fill), fit_points(model))
+        written, tiles = [], []
+        try:
+            for output, window in zip(outputs, dem_windows(grid, survey, model)):
+                if window is None:
+                    tiles.append({"output": output, "written": False})
+                    continue
+                facts = write_fit_rasters(RasterTargets(dem=output), window, sampler, options, crs)
+                written.append((output, window))
+                tiles.append({"output": output, "written": True, "row0": window.row0, "col0": window.col0,
+                              "width": window.width, "height": window.height,
+                              "cells_with_data": facts["cells_with_data"]})
+            mosaic = str(Path(outputs[0]).parent / MOSAIC_NAME)
+            write_vrt(mosaic, grid, written, "dem", crs)
+        except BaseException:
+            for output, _ in written:
+                Path(output).unlink(missing_ok=True)
+            raise
+    report = _raster_report(survey.names[0], outputs[0], options, survey.cloud, model, timer,
+                            {"z_factor": angle_z_factor(survey.cloud, options)}, crs_facts(crs, crs_source))
+    report.update(input=list(survey.names), output=list(outputs))
+    report["raster"] = {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
+                                 "width": grid.width, "height": grid.height},
+                        "mosaic": mosaic, "tiles": tiles, "fill": fill_facts(options.fill, fill, model)}
+    return report
+
+
+def dem_windows(grid, survey, model: SurfaceModel) -> list:
+    """Per input of the survey, the window of the survey's DEM grid (RasterGrid.window) its
+    DEM covers, or None: every cell holding one of its points and every cell whose centre
+    lies in the bounding box of a triangle it owns (the triangle's lowest-numbered corner
+    point is its: survey.tiles' ownership rule). Every cell the survey's DEM gives a value
+    lies in some window: in a triangle, or holding a point (the nearest-triangle rule)."""
+    interp, origin, r = model.interp, model.frame.origin, grid.resolution
+    corner = model.hf.source_index[model.used]                   # interpolator vertex -> survey point
+    owner = survey.input_of(corner[interp.triangles].min(axis=1))
+    windows = []
+    for tile in range(len(survey.names)):
+        points = survey.cloud.points[survey.offsets[tile]:survey.offsets[tile + 1], :2]
+        owned = interp.points[interp.triangles[owner == tile]].reshape(-1, 2) + origin[:2]
+        xy = np.concatenate([points, owned])
+        if not len(xy):
+            windows.append(None)
+            continue
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        cols = range(max(int(np.floor((lo[0] - grid.west) / r)), 0),
+                     min(int(np.floor((hi[0] - grid.west) / r)) + 1, grid.width))
+        rows = range(max(int(np.floor((grid.north - hi[1]) / r)), 0),
+                     min(int(np.floor((grid.north - lo[1]) / r)) + 1, grid.height))
+        windows.append(grid.window(rows, cols) if len(rows) and len(cols) else None)
+    return windows
+
+
 def fit_points(model: SurfaceModel) -> np.ndarray:
     """(k, 2) the points the fit used, in the frame's plane: the spline's vertices (the
     points it interpolates), or the data of a smoothing fit thinned by --spacing (its

@@ -17,7 +17,8 @@ from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
 from c1mesh.pipeline.steps import StageTimer
-from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, smoothing_facts,
+from c1mesh.geo.raster import is_raster_path
+from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, fit_dem_tiles, frame_facts, smoothing_facts,
                                     smoothing_strength, surface_facts, trim_facts)
 from c1mesh.pipeline.report import common_report, crs_facts, scheme_facts
 from c1mesh.survey.distributed import run_tiles
@@ -68,6 +69,10 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         report = fit(survey.cloud, output, options, on_stage=on_stage, keep_mesh=False).report
         report["input"] = list(survey.names)
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
+        return report
+    if is_raster_path(outputs[0]):             # per-tile DEMs and their VRT mosaic
+        report = fit_dem_tiles(survey, outputs, options, timer)
+        report["ownership"] = OWNERSHIP
         return report
     level_from = "default" if options.level is None else "option"
     options = with_plane_level(options)         # a height field: PLANE_LEVEL unless --level is given
