@@ -93,7 +93,8 @@ def main() -> None:
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")
 @click.option("--seamless", is_flag=True,
               help="Treat the inputs as one survey: -o writes one mesh, -O one mesh per input that "
-                   "joins its neighbours exactly (docs/tiles.md).")
+                   "joins its neighbours exactly (docs/tiles.md), or with --suffix .tif --resolution R "
+                   "one DEM per input and their mosaic DIR/mosaic.vrt.")
 @click.option("--scheduler", help="With --seamless -O, or a fit larger than --memory: run the tiles on this "
                                   "Dask scheduler (tcp://HOST:PORT); for the latter its workers must see "
                                   "the output's folder (the spill files). A fit within --memory runs here, "
