@@ -37,33 +37,47 @@ def quarters(tmp_path_factory):
     return paths
 
 
-def test_the_vrt_of_four_tiles_equals_the_surveys_dem_cell_for_cell(quarters, tmp_path):
-    runner = CliRunner()
-    out = tmp_path / "out"
-    done = runner.invoke(main, ["fit", *quarters, "--seamless", "-O", str(out), "--suffix", ".tif",
-                                "--resolution", "2"])
-    assert done.exit_code == 0, done.output
-    done = runner.invoke(main, ["fit", *quarters, "--seamless", "-o", str(tmp_path / "whole.tif"),
-                                "--resolution", "2"])
-    assert done.exit_code == 0, done.output
-    assert sorted(p.name for p in out.iterdir()) == ["mosaic.vrt", "q0.tif", "q1.tif", "q2.tif", "q3.tif"]
-    with rasterio.open(out / "mosaic.vrt") as mosaic, rasterio.open(tmp_path / "whole.tif") as whole:
-        assert mosaic.transform == whole.transform and mosaic.crs == whole.crs
-        assert mosaic.nodata == whole.nodata
-        assert np.array_equal(mosaic.read(1), whole.read(1))
-        assert (whole.read(1) != whole.nodata).sum() > 0.5 * whole.width * whole.height
-        truth, res, transform = whole.read(1), whole.res[0], whole.transform
+SIDES = ("slope", "hillshade", "support")
+
+
+def test_the_vrts_of_four_tiles_equal_the_surveys_rasters_cell_for_cell(quarters, tmp_path):
+    """The DEM, slope, hillshade and support mosaics of the four quarters equal the rasters
+    of `--seamless -o` cell for cell; each tile's raster is a valid COG holding its window
+    of the survey's cells, named DIR/NAME.tif and DIR/NAME.KIND.tif; the tiles overlap."""
     from rio_cogeo.cogeo import cog_validate
 
-    shared = np.zeros(truth.shape, int)
-    for name in ("q0.tif", "q1.tif", "q2.tif", "q3.tif"):
-        assert cog_validate(str(out / name), strict=True)[0], name
-        with rasterio.open(out / name) as tile:
-            assert tile.res == (res, res) and tile.transform.c % res == 0 and tile.transform.f % res == 0
-            row, col = _offset(transform, tile.transform)
-            window = (slice(row, row + tile.height), slice(col, col + tile.width))
-            assert np.array_equal(tile.read(1), truth[window])          # each tile is the survey's cells
-            shared[window] += 1
+    runner = CliRunner()
+    out = tmp_path / "out"
+    args = ["fit", *quarters, "--seamless", "--resolution", "4"]
+    done = runner.invoke(main, [*args, "-O", str(out), "--suffix", ".tif",
+                                *[a for kind in SIDES for a in (f"--{kind}", str(out / f"{kind}.vrt"))]])
+    assert done.exit_code == 0, done.output
+    done = runner.invoke(main, [*args, "-o", str(tmp_path / "dem.tif"),
+                                *[a for kind in SIDES for a in (f"--{kind}", str(tmp_path / f"{kind}.tif"))]])
+    assert done.exit_code == 0, done.output
+    names = [f"q{i}" for i in range(4)]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["mosaic.vrt", *[f"{kind}.vrt" for kind in SIDES], *[f"{n}.tif" for n in names],
+         *[f"{n}.{kind}.tif" for n in names for kind in SIDES]])
+    shared = None
+    for kind, mosaic_name, whole_name in [("dem", "mosaic.vrt", "dem.tif"),
+                                          *[(kind, f"{kind}.vrt", f"{kind}.tif") for kind in SIDES]]:
+        with rasterio.open(out / mosaic_name) as mosaic, rasterio.open(tmp_path / whole_name) as whole:
+            assert mosaic.transform == whole.transform and mosaic.crs == whole.crs, kind
+            assert mosaic.nodata == whole.nodata and mosaic.dtypes == whole.dtypes, kind
+            truth, transform = whole.read(1), whole.transform
+            assert np.array_equal(mosaic.read(1), truth), kind
+            assert (truth != whole.nodata).sum() > 0.5 * truth.size, kind
+        shared = np.zeros(truth.shape, int)
+        for name in names:
+            path = out / (f"{name}.tif" if kind == "dem" else f"{name}.{kind}.tif")
+            assert cog_validate(str(path), strict=True)[0], path
+            with rasterio.open(path) as tile:
+                assert tile.res == whole.res and tile.transform.c % 4 == 0 and tile.transform.f % 4 == 0
+                row, col = _offset(transform, tile.transform)
+                window = (slice(row, row + tile.height), slice(col, col + tile.width))
+                assert np.array_equal(tile.read(1), truth[window]), path   # the survey's cells
+                shared[window] += 1
     assert (shared > 1).any()                                           # tiles overlap at their borders
 
 
@@ -73,7 +87,8 @@ def _offset(whole, tile):
 
 
 @pytest.mark.parametrize("extra, words", [
-    (["--slope", "s.tif"], "not -O"),
+    (["--slope", "s.tif"], "give a .vrt path"),
+    (["--preview", "p.png"], "not -O"),
     (["--suffix", ".ply", "--resolution", "2"], "--suffix .tif"),
     (["--suffix", ".tif"], "need --resolution"),
 ])

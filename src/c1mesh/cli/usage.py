@@ -143,17 +143,34 @@ SIDE_RASTERS = ("slope", "aspect", "hillshade", "support")
 """The GeoTIFFs on the DEM's grid that come with -o DEM.tif."""
 
 
+def _tile_raster_problems(params: dict, dems: list[str], extras: dict) -> list[str]:
+    """--seamless -O's rasters: per-tile DEMs (--suffix .tif) need --resolution; each side
+    raster option names its mosaic (.vrt), the tiles' files being DIR/NAME.KIND.tif; no preview."""
+    problems = []
+    if params["preview"]:
+        problems.append("--preview draws one output: use it with --seamless -o, not -O")
+    if params["resolution"] is not None and not dems:
+        problems.append("--resolution with --seamless -O is the cell size of per-tile DEMs: give --suffix .tif "
+                        "(meshes per tile take --level)")
+    if dems and params["resolution"] is None:
+        problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade, --support) need --resolution")
+    if extras and not dems:
+        problems.append("--slope, --aspect, --hillshade and --support come with per-tile DEMs: give --suffix .tif")
+    problems += [f"with -O, --{kind} names the mosaic of the tiles' {kind} rasters: give a .vrt path, not "
+                 f"'{path}'" for kind, path in extras.items() if extension(path) != "vrt"]
+    return problems
+
+
 def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> list[str]:
     """GeoTIFF and preview options against the outputs, --resolution, --level and --axis."""
     dems = [dst for dst in outputs if extension(dst) in RASTER_FORMATS]
     extras = {kind: params[kind] for kind in SIDE_RASTERS if params[kind]}
     resolution, preview = params["resolution"], params["preview"]
-    if params["seamless"] and params["output_dir"] and (extras or preview):
-        return ["--slope, --aspect, --hillshade, --support and --preview make one survey-wide output: use them "
-                "with --seamless -o, not -O (which writes per-tile DEMs with --suffix .tif)"]
-    if params["seamless"] and params["output_dir"] and resolution is not None and not dems:
-        return ["--resolution with --seamless -O is the cell size of per-tile DEMs: give --suffix .tif "
-                "(meshes per tile take --level)"]
+    if params["seamless"] and params["output_dir"]:
+        tile_problems = _tile_raster_problems(params, dems, extras)
+        if tile_problems:
+            return tile_problems
+        extras = {}                          # mosaics (.vrt), checked there; the DEMs are checked below
     if len(params["inputs"]) > 1 and not params["seamless"] and (extras or preview):
         return ["--slope, --aspect, --hillshade, --support and --preview name one file: use them with a "
                 "single input"]

@@ -242,9 +242,8 @@ class SplineSampler:
         `where` (len(rows), width) bool holds to the nearest point the fit used
         (`distances`), in the grid's units; NaN elsewhere."""
         i, j = np.nonzero(where)
-        i, j = i + grid.row0, j + grid.col0
-        x = grid.west - self.origin[0] + (j + 0.5) * grid.resolution
-        y = grid.north - self.origin[1] - (rows.start + i + 0.5) * grid.resolution
+        x = grid.west - self.origin[0] + (grid.col0 + j + 0.5) * grid.resolution
+        y = grid.north - self.origin[1] - (grid.row0 + rows.start + i + 0.5) * grid.resolution
         out = np.full(where.shape, np.nan)
         out[i, j] = self.distances(np.column_stack([x, y]))
         return out

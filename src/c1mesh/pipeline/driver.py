@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -542,50 +543,76 @@ MOSAIC_NAME = "mosaic.vrt"
 
 def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None = None) -> dict:
     """`--seamless -O DIR --suffix .tif`: the survey (survey.tiles.Survey) fitted once, one
-    DEM per input (outputs[i], a window of the survey's DEM grid: dem_windows) and their
-    VRT mosaic DIR/MOSAIC_NAME; returns the report. Every cell is sampled from the one
-    spline at its index in the survey's grid, so a cell two tiles share is equal in both
-    and the mosaic equals the survey's DEM (`--seamless -o`) cell for cell. An input whose
-    points and triangles are nowhere (no points of --classes) gets no DEM. On failure the
-    DEMs already written are removed."""
-    from pathlib import Path
-
-    from c1mesh.geo.raster import RasterTargets, write_vrt
+    DEM per input (outputs[i], a window of the survey's DEM grid: dem_windows), with its
+    side rasters DIR/NAME.slope.tif, ... (tile_targets), and their VRT mosaics
+    (mosaic_paths); returns the report. Every cell is sampled from the one spline at its
+    index in the survey's grid (Horn's differences too), so a cell two tiles share is equal
+    in both and each mosaic equals the survey's raster (`--seamless -o`) cell for cell. An
+    input whose points and triangles are nowhere (no points of --classes) gets no DEM. On
+    failure every raster and mosaic already written is removed."""
+    from c1mesh.geo.raster import write_vrt
 
     timer = timer or StageTimer(None)
     options = replace(options, axis=raster_axis(options.axis))
-    crs, crs_source = resolve_crs(survey.cloud.crs, geo_plan(outputs[0], options).user_crs, survey.names[0])
+    plain = replace(options, **{kind: None for kind in SIDE_KINDS})        # their paths are mosaics here
+    crs, crs_source = resolve_crs(survey.cloud.crs, geo_plan(outputs[0], plain).user_crs, survey.names[0])
     fill = fill_distance(options.fill)
     model = build_surface(survey.cloud, options, timer, fill=fill is not None)
+    mosaics = mosaic_paths(outputs, options)
     with timer.stage("raster"):
         data_xy = (survey.cloud.points - model.frame.origin)[:, :2]
         grid, sampler = dem_sampling(model.interp, model.frame, options.resolution, data_xy,
                                      model.trim_report.max_edge,
                                      None if fill is None else FillRule(model.trimmed, fill), fit_points(model))
-        written, tiles = [], []
+        written, tiles, created = [], [], []
         try:
             for output, window in zip(outputs, dem_windows(grid, survey, model)):
                 if window is None:
                     tiles.append({"output": output, "written": False})
                     continue
-                facts = write_fit_rasters(RasterTargets(dem=output), window, sampler, options, crs)
-                written.append((output, window))
-                tiles.append({"output": output, "written": True, "row0": window.row0, "col0": window.col0,
-                              "width": window.width, "height": window.height,
+                targets = tile_targets(output, options)
+                facts = write_fit_rasters(targets, window, sampler, options, crs)
+                created += [path for _, path in targets.items()]
+                written.append((targets, window))
+                tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
+                              "col0": window.col0, "width": window.width, "height": window.height,
                               "cells_with_data": facts["cells_with_data"]})
-            mosaic = str(Path(outputs[0]).parent / MOSAIC_NAME)
-            write_vrt(mosaic, grid, written, "dem", crs)
+            for kind, path in mosaics.items():
+                write_vrt(path, grid, [(getattr(t, kind), w) for t, w in written], kind, crs)
+                created.append(path)
         except BaseException:
-            for output, _ in written:
-                Path(output).unlink(missing_ok=True)
+            for path in created:
+                Path(path).unlink(missing_ok=True)
             raise
     report = _raster_report(survey.names[0], outputs[0], options, survey.cloud, model, timer,
                             {"z_factor": angle_z_factor(survey.cloud, options)}, crs_facts(crs, crs_source))
     report.update(input=list(survey.names), output=list(outputs))
     report["raster"] = {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
                                  "width": grid.width, "height": grid.height},
-                        "mosaic": mosaic, "tiles": tiles, "fill": fill_facts(options.fill, fill, model)}
+                        "mosaics": mosaics, "tiles": tiles, "fill": fill_facts(options.fill, fill, model)}
     return report
+
+
+SIDE_KINDS = ("slope", "aspect", "hillshade", "support")
+"""The rasters on a DEM's grid besides it (FitOptions fields of the same names)."""
+
+
+def tile_targets(output, options: FitOptions):
+    """The rasters of one input's tile under --seamless -O: its DEM `output` (DIR/NAME.tif)
+    and, for each of --slope, --aspect, --hillshade, --support given, DIR/NAME.KIND.tif."""
+    from c1mesh.geo.raster import RasterTargets
+
+    stem = Path(output).with_suffix("")
+    return RasterTargets(dem=str(output), **{kind: f"{stem}.{kind}.tif" for kind in SIDE_KINDS
+                                             if getattr(options, kind, None)})
+
+
+def mosaic_paths(outputs, options: FitOptions) -> dict:
+    """The VRT mosaic of each raster kind under --seamless -O: the DEMs' DIR/MOSAIC_NAME, and
+    for each side raster the .vrt path its option names (--slope out/slope.vrt)."""
+    paths = {"dem": str(Path(outputs[0]).parent / MOSAIC_NAME)}
+    paths.update({kind: str(getattr(options, kind)) for kind in SIDE_KINDS if getattr(options, kind, None)})
+    return paths
 
 
 def dem_windows(grid, survey, model: SurfaceModel) -> list:
