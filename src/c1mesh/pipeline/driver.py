@@ -720,9 +720,13 @@ def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool 
 
 def points_on_surface(model: SurfaceModel) -> int:
     """The points the surface uses: its vertices, or with --spacing the points its
-    triangles cover (the data of the fit), for the unused-points warning."""
+    triangles cover (the data of the fit), for the unused-points warning. A DEM's fill
+    (model.trimmed) counts the trimmed triangles' vertices: the warning is about the trim,
+    and says the same for the mesh and the DEM of one fit."""
     if model.thinned:
         return int(model.hf.xy.shape[0] - model.smoothing.outside)
+    if model.trimmed is not None:
+        return int(np.unique(model.interp.triangles[model.trimmed]).size)
     return int(model.used.size)
 
 
