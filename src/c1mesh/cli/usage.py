@@ -155,7 +155,9 @@ def _tile_raster_problems(params: dict, dems: list[str], extras: dict) -> list[s
     if dems and params["resolution"] is None:
         problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade, --support) need --resolution")
     if extras and not dems:
-        problems.append("--slope, --aspect, --hillshade and --support come with per-tile DEMs: give --suffix .tif")
+        problems.append("--slope, --aspect, --hillshade and --support come with a DEM: use --seamless -o DEM.tif, "
+                        "or -O DIR --suffix .tif --resolution R for per-tile DEMs")
+        return problems
     problems += [f"with -O, --{kind} names the mosaic of the tiles' {kind} rasters: give a .vrt path, not "
                  f"'{path}'" for kind, path in extras.items() if extension(path) != "vrt"]
     return problems
