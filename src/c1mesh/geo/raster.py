@@ -41,6 +41,7 @@ import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
+from xml.sax.saxutils import escape
 
 import numpy as np
 
@@ -369,8 +370,6 @@ def write_vrt(path, grid: RasterGrid, tiles, kind: str = "dem", crs: str | None 
     window's row0, col0, its nodata cells transparent; the files are named relative to the
     VRT (GDAL's VRT format, gdal.org/drivers/raster/vrt.html; written by hand, as GDAL's
     BuildVRT has no rasterio binding). Atomic, as every output."""
-    from xml.sax.saxutils import escape
-
     from c1mesh.formats import atomic_output
 
     dtype, nodata = _KINDS[kind]

@@ -18,7 +18,8 @@ import numpy as np
 from c1mesh.core.cloud import PointCloud
 from c1mesh.stages.curtains import remove_curtains, view_rules_apply
 from c1mesh.geo.products import finish as _finish_geo, geo_plan, level_for_edge, resolve_crs
-from c1mesh.geo.raster import dem_sampling, fill_distance, is_raster_path, raster_axis, write_fit_rasters
+from c1mesh.geo.raster import (RasterTargets, dem_sampling, fill_distance, is_raster_path, raster_axis,
+                               write_fit_rasters, write_vrt)
 from c1mesh.geo.raster_grid import FillRule
 from c1mesh.core.errors import InputError
 from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
@@ -550,8 +551,6 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
     in both and each mosaic equals the survey's raster (`--seamless -o`) cell for cell. An
     input whose points and triangles are nowhere (no points of --classes) gets no DEM. On
     failure every raster and mosaic already written is removed."""
-    from c1mesh.geo.raster import write_vrt
-
     timer = timer or StageTimer(None)
     options = replace(options, axis=raster_axis(options.axis))
     plain = replace(options, **{kind: None for kind in SIDE_KINDS})        # their paths are mosaics here
@@ -600,8 +599,6 @@ SIDE_KINDS = ("slope", "aspect", "hillshade", "support")
 def tile_targets(output, options: FitOptions):
     """The rasters of one input's tile under --seamless -O: its DEM `output` (DIR/NAME.tif)
     and, for each of --slope, --aspect, --hillshade, --support given, DIR/NAME.KIND.tif."""
-    from c1mesh.geo.raster import RasterTargets
-
     stem = Path(output).with_suffix("")
     return RasterTargets(dem=str(output), **{kind: f"{stem}.{kind}.tif" for kind in SIDE_KINDS
                                              if getattr(options, kind, None)})
