@@ -122,7 +122,7 @@ def test_cells_with_points_in_a_trimmed_gap_get_the_nearest_triangles_spline(tmp
     triangles across the gap, over cells that hold the points of its two rims."""
     rows = [*np.arange(10.0), *(np.arange(10.0) + 10.6)]
     cloud = _plane_cloud(rows)
-    options = FitOptions(axis="z", max_edge=1.5, resolution=0.5)
+    options = FitOptions(axis="z", max_edge=1.5, resolution=0.5, fill="off")
     fit(cloud, tmp_path / "dem.tif", options)
     assert _check_dem(cloud, options, tmp_path / "dem.tif") > 0       # the case is there
 
@@ -132,7 +132,7 @@ def test_points_beyond_max_edge_from_every_kept_triangle_stay_nodata(tmp_path):
     cloud = _plane_cloud(np.arange(10.0))
     lone = np.array([[10.0, 15.0, 5.0 + 1.0 + 0.02 * 225]])
     cloud = PointCloud(np.vstack([cloud.points, lone]), np.vstack([cloud.normals, [[0, 0, 1.0]]]))
-    options = FitOptions(axis="z", max_edge=1.5, resolution=0.5)
+    options = FitOptions(axis="z", max_edge=1.5, resolution=0.5, fill="off")
     fit(cloud, tmp_path / "dem.tif", options)
     dem, transform, nodata = _read_dem(tmp_path / "dem.tif")
     row, col = _cells_of(lone, transform)
@@ -141,7 +141,7 @@ def test_points_beyond_max_edge_from_every_kept_triangle_stay_nodata(tmp_path):
 
 
 def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
-    options = FitOptions(classes=(2,), resolution=1.0)
+    options = FitOptions(classes=(2,), resolution=1.0, fill="off")
     fit(TILE, tmp_path / "dem.tif", options)
     cloud = load_cloud(TILE, options)
     assert _check_dem(cloud, options, tmp_path / "dem.tif") > 0
@@ -150,7 +150,7 @@ def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
 def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
     from c1mesh.pipeline.survey_fit import fit_seamless
 
-    options = FitOptions(classes=(2,), resolution=1.0)
+    options = FitOptions(classes=(2,), resolution=1.0)          # the default fill
     fit(TILE, tmp_path / "fit.tif", options)
     fit_seamless([str(TILE)], options, output=str(tmp_path / "seamless.tif"))
     one, two = _read_dem(tmp_path / "fit.tif")[0], _read_dem(tmp_path / "seamless.tif")[0]

@@ -191,7 +191,7 @@ def test_preview_of_a_dem_draws_the_cells_of_the_fit_preview_with_holes(tmp_path
     from c1mesh.geo.raster_grid import RasterGrid
 
     def fitted(dem, png):
-        fit(_terrain_with_holes(), str(dem), FitOptions(resolution=0.25, preview=str(png)))
+        fit(_terrain_with_holes(), str(dem), FitOptions(resolution=0.25, preview=str(png), fill="off"))
 
     dem, fitted_png, alone, drawn = _both_previews(tmp_path, fitted, monkeypatch)
     with rasterio.open(dem) as ds:

@@ -16,8 +16,8 @@ from click.testing import CliRunner
 
 from c1mesh.cli import main
 from c1mesh.core.cloud import PointCloud, SurfaceMesh
-from c1mesh.formats import read_cloud, write_mesh
 from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.formats import read_cloud, write_mesh
 from c1mesh.pipeline.driver import FitOptions, fit
 
 pyproj = pytest.importorskip("pyproj")
@@ -214,7 +214,8 @@ def test_slope_and_hillshade_from_the_cli_match_the_analytic_terrain(tmp_path):
         done = runner.invoke(main, ["fit", str(src), "-o", str(tmp_path / f"dem_{method}.tif"),
                                     "--resolution", "0.05", "--slope", str(tmp_path / f"s_{method}.tif"),
                                     "--aspect", str(tmp_path / f"a_{method}.tif"), "--slope-method", method,
-                                    "--hillshade", str(tmp_path / f"h_{method}.tif"), "--crs", "EPSG:32633"])
+                                    "--hillshade", str(tmp_path / f"h_{method}.tif"), "--crs", "EPSG:32633",
+                                    "--fill", "off"])   # the trimmed surface; the fill: test_dem_fill.py
         assert done.exit_code == 0, done.output
         slope, x, y, ds = _cells(tmp_path / f"s_{method}.tif")
         assert ds.crs.to_epsg() == 32633
@@ -248,7 +249,8 @@ def test_lidar_ground_dem_slope_hillshade(tmp_path):
     from matplotlib.tri import Triangulation
     dem, slope, shade = tmp_path / "dem.tif", tmp_path / "slope.tif", tmp_path / "hs.tif"
     done = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(dem),
-                                     "--resolution", "3", "--slope", str(slope), "--hillshade", str(shade)])
+                                     "--resolution", "3", "--slope", str(slope), "--hillshade", str(shade),
+                                     "--fill", "off"])       # the trimmed DEM (the fill: test_dem_fill.py)
     assert done.exit_code == 0, done.output
     band, x, y, ds = _cells(dem)
     assert ds.crs == rasterio.crs.CRS.from_epsg(2903)
@@ -286,6 +288,55 @@ def test_dem_has_overviews_and_is_tiled(tmp_path):
         assert ds.dtypes[0] == "float32" and ds.compression is not None
 
 
+def test_every_raster_is_a_valid_cog_with_overviews_and_a_predictor(tmp_path):
+    """rio-cogeo's validator (a peer of GDAL's own validate_cloud_optimized_geotiff.py)
+    accepts every raster a fit writes; each is deflated with a predictor and has internal
+    overviews; no staging file is left beside them."""
+    cogeo = pytest.importorskip("rio_cogeo.cogeo")
+    src = _terrain_file(tmp_path / "t.ply")
+    out = tmp_path / "out"
+    out.mkdir()
+    names = {"dem": "dem.tif", "slope": "slope.tif", "aspect": "aspect.tif", "hillshade": "hs.tif",
+             "support": "support.tif"}
+    args = ["fit", str(src), "-o", str(out / names["dem"]), "--resolution", "0.01"]
+    for kind in ("slope", "aspect", "hillshade", "support"):
+        args += [f"--{kind}", str(out / names[kind])]
+    done = CliRunner().invoke(main, args)
+    assert done.exit_code == 0, done.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(names.values())
+    for kind, name in names.items():
+        valid, errors, _ = cogeo.cog_validate(str(out / name), strict=True)
+        assert valid and not errors, (kind, errors)
+        with rasterio.open(out / name) as ds:
+            assert ds.overviews(1)[:2] == [2, 4], kind
+            assert ds.compression.name.lower() == "deflate", kind
+            predictor = ds.tags(ns="IMAGE_STRUCTURE").get("PREDICTOR")
+            assert predictor == ("2" if kind == "hillshade" else "3"), (kind, predictor)
+
+
+def test_a_failing_cog_copy_leaves_no_raster_and_no_staging_file(tmp_path, monkeypatch):
+    """Atomic outputs: when GDAL's copy into the COG fails after the blocks were staged,
+    nothing is left in the output folder (no DEM, no side raster, no staging file)."""
+    import c1mesh.geo.raster as raster
+
+    src = _terrain_file(tmp_path / "t.ply")
+    out = tmp_path / "out"
+    out.mkdir()
+    copies = []
+
+    def failing(source, target, kind):
+        copies.append(kind)
+        if len(copies) == 2:
+            raise OSError("disk full")
+        return original(source, target, kind)
+    original = raster.cog_copy
+    monkeypatch.setattr(raster, "cog_copy", failing)
+    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out / "dem.tif"), "--resolution", "0.05",
+                                     "--slope", str(out / "slope.tif"), "--support", str(out / "support.tif")])
+    assert done.exit_code == 1 and "disk full" in done.output
+    assert len(copies) == 2 and list(out.iterdir()) == []
+
+
 def test_resolution_picks_the_level_for_a_mean_edge(tmp_path):
     src = _terrain_file(tmp_path / "t.ply", 800)
     mesh_l1 = fit(str(src), None, FitOptions(level=1, axis="z")).mesh
@@ -308,7 +359,7 @@ def test_glb_world_positions_match_the_ply_on_a_lidar_tile(tmp_path):
     ply = read_cloud(tmp_path / "g.ply").points
     glb = read_glb_positions((tmp_path / "g.glb").read_bytes())
     assert np.abs(glb - ply).max() <= 1e-4
-    import trimesh                               # a peer reader applies the node translation
+    import trimesh  # a peer reader applies the node translation
     scene = trimesh.load(tmp_path / "g.glb")
     peer = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
     assert np.abs(np.asarray(peer.vertices) - ply).max() <= 1e-4

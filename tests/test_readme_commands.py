@@ -48,7 +48,8 @@ EXEMPT = {
 """README commands not run here (exactly as README.md writes them, comments dropped)."""
 
 AFTER = {"c1mesh fit data_samples/autzen_trim.laz --classes 2 -o dem.tif --resolution 3 "
-         "--slope slope.tif --hillshade hillshade.tif --preview preview.png": ["c1mesh preview dem.tif -o dem.png"]}
+         "--slope slope.tif --hillshade hillshade.tif --support support.tif --preview preview.png":
+         ["c1mesh preview dem.tif -o dem.png"]}
 """Commands the README's prose shows inline, run right after the block command that makes their input."""
 
 

@@ -11,9 +11,20 @@ import click
 
 from c1mesh import __version__
 from c1mesh.cli.fitting import Console, Destination, Workers, fit_batch, fit_one, fit_survey, threads_per_process
-from c1mesh.cli.options import (INPUT_FORMAT_HELP, MEMORY_HELP, OUTPUT_HELP, parse_bounds_option, parse_classes,
-                                SMOOTH_HELP, parse_intrinsics, parse_max_edge, parse_memory_option, parse_smooth,
-                                plan)
+from c1mesh.cli.options import (
+    INPUT_FORMAT_HELP,
+    MEMORY_HELP,
+    OUTPUT_HELP,
+    SMOOTH_HELP,
+    parse_bounds_option,
+    parse_classes,
+    parse_fill,
+    parse_intrinsics,
+    parse_max_edge,
+    parse_memory_option,
+    parse_smooth,
+    plan,
+)
 from c1mesh.cli.outputs_check import check_geo, check_outputs, check_stdin, check_stdout
 from c1mesh.cli.shell import Group, fail, message
 from c1mesh.cli.usage import check_usage
@@ -93,7 +104,8 @@ def main() -> None:
                    "max(1, THREADS // N).  [default: the CPUs this process may use]")
 @click.option("--seamless", is_flag=True,
               help="Treat the inputs as one survey: -o writes one mesh, -O one mesh per input that "
-                   "joins its neighbours exactly (docs/tiles.md).")
+                   "joins its neighbours exactly (docs/tiles.md), or with --suffix .tif --resolution R "
+                   "one DEM per input and their mosaic DIR/mosaic.vrt.")
 @click.option("--scheduler", help="With --seamless -O, or a fit larger than --memory: run the tiles on this "
                                   "Dask scheduler (tcp://HOST:PORT); for the latter its workers must see "
                                   "the output's folder (the spill files). A fit within --memory runs here, "
@@ -107,6 +119,12 @@ def main() -> None:
 @click.option("--slope", help="Also write a slope GeoTIFF (degrees) on the DEM's grid.")
 @click.option("--aspect", help="Also write an aspect GeoTIFF (degrees clockwise from north).")
 @click.option("--hillshade", help="Also write a hillshade GeoTIFF (uint8).")
+@click.option("--support", help="Also write a support GeoTIFF (float32): each DEM cell's distance, in "
+                                "CRS units, from its centre to the nearest point the fit used.")
+@click.option("--fill", default="hull", show_default=True, metavar="hull|off|D",
+              help="DEM cells in holes the trim opened (under buildings, trees, water): hull fills every "
+                   "cell inside the hull of the points, D only cells within D (CRS units) of a point, "
+                   "off (or 0) leaves them nodata. Meshes keep the trim's holes.")
 @click.option("--z-factor", "z_factor", type=float, default=None,
               help="x, y units per height unit (ArcGIS's z-factor, 1/gdaldem -s) for --slope, --hillshade, "
                    "the preview's shading and a height column's --max-slope.  [default: 1; required for "
@@ -119,7 +137,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
         overshoot, gradients, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, z_factor, slope_method, preview, seamless,
-        scheduler, bounds, smooth, spacing):
+        scheduler, bounds, smooth, spacing, support, fill):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     check_usage(ctx)       # every usage error at once, before any input is read
     classes, max_edge = parse_classes(classes), parse_max_edge(max_edge)
@@ -134,7 +152,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
                              hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
-                             z_factor=z_factor, smooth=smooth_option, spacing=spacing)
+                             z_factor=z_factor, smooth=smooth_option, spacing=spacing, support=support,
+                             fill=parse_fill(fill))
         if output and not output_dir:
             options = check_geo([(inputs[0], output)], options, debug)
         fit_survey(inputs, Destination(output, output_dir, suffix), options, console,
@@ -157,7 +176,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
                          intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds,
-                         smooth=smooth_option, spacing=spacing)
+                         smooth=smooth_option, spacing=spacing, support=support, fill=parse_fill(fill))
     options = check_geo(pairs, options, debug)
     options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))
     if len(pairs) == 1:
@@ -198,8 +217,8 @@ def info(path, input_format, memory, intrinsics, depth_scale, debug):
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 def preview(path, output, debug):
     """Render PATH (a GeoTIFF DEM or a mesh with normals) as a shaded PNG."""
-    from c1mesh.geo.products import check_preview_path
     from c1mesh.geo.preview import render_file
+    from c1mesh.geo.products import check_preview_path
 
     check_usage(click.get_current_context())
     try:

@@ -73,7 +73,8 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
             options = replace(options, crs=parse_crs(options.crs))
         if output_dir and not Path(output_dir).exists():
             Path(output_dir).mkdir(parents=True)
-        named = [("output", dst) for _, dst in pairs] + [("report", None if report in (None, STDIO) else report)]
+        named = [("output", dst) for _, dst in pairs] + (_tile_rasters(pairs, options) if output_dir else [])
+        named += [("report", None if report in (None, STDIO) else report)]
         targets = plan_outputs(named, list(inputs))
         from c1mesh.geo.raster import is_raster_path
         for (_, dst), target in zip(pairs, targets):
@@ -103,6 +104,22 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
     warn(result, quiet)
     _write_report(report, targets[-1], result, debug)
     note(result, quiet)
+
+
+def _tile_rasters(pairs, options) -> list[tuple[str, str]]:
+    """The side rasters and mosaics of per-tile DEMs (--seamless -O DIR --suffix .tif), named
+    as c1mesh.pipeline.driver names them, for the check of every output before any input
+    is read; none for meshes."""
+    from c1mesh.geo.raster import is_raster_path
+
+    if not pairs or not is_raster_path(pairs[0][1]):
+        return []
+    from c1mesh.pipeline.driver import mosaic_paths, tile_targets
+
+    named = [(f"{kind} raster", path) for _, dst in pairs for kind, path in tile_targets(dst, options).items()
+             if kind != "dem"]
+    return named + [(f"{kind} mosaic", path) for kind, path in mosaic_paths([dst for _, dst in pairs],
+                                                                            options).items()]
 
 
 def _survey_naming(inputs, text: str) -> str:

@@ -98,6 +98,21 @@ def parse_smooth(value: str):
     return strength
 
 
+def parse_fill(value: str):
+    """--fill: 'hull', 'off' (also 0) or a positive finite distance (plain Python; the
+    library resolves it: c1mesh.geo.raster.fill_distance)."""
+    word = str(value).strip().lower()
+    if word in ("hull", "off"):
+        return word
+    try:
+        distance = float(word)
+    except ValueError:
+        distance = float("nan")
+    if not (distance >= 0 and math.isfinite(distance)):
+        raise click.BadParameter(f"expected hull, off or a distance >= 0, got {value!r}", param_hint="'--fill'")
+    return "off" if distance == 0 else distance
+
+
 def parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
     """--intrinsics fx,fy,cx,cy (pixels, fx and fy > 0); plain Python, so usage errors stay fast."""
     if value is None:

@@ -22,6 +22,7 @@ def check_geo(jobs_list, options, debug):
     extra = [(label, path) for label, path in (("slope raster", options.slope),
                                                ("aspect raster", options.aspect),
                                                ("hillshade raster", options.hillshade),
+                                               ("support raster", options.support),
                                                ("preview", options.preview)) if path]
     try:
         if extra:   # against the inputs, the outputs and each other (c1mesh.core.outputs)

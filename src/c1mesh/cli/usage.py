@@ -18,6 +18,7 @@ from c1mesh.cli.options import (
     extension,
     output_paths,
     parse_classes,
+    parse_fill,
     parse_intrinsics,
     parse_max_edge,
     parse_smooth,
@@ -49,7 +50,8 @@ def _value_problems(params: dict) -> list[str]:
                                ("--max-edge", parse_max_edge, params["max_edge"]),
                                ("--intrinsics", parse_intrinsics, params["intrinsics"]),
                                ("--axis", check_axis, params["axis"]),
-                               ("--smooth", parse_smooth, params["smooth"])):
+                               ("--smooth", parse_smooth, params["smooth"]),
+                               ("--fill", parse_fill, params["fill"])):
         try:
             parse(value)
         except click.BadParameter as exc:
@@ -154,30 +156,57 @@ def _extension_problem(dst: str, where: str | None = None) -> str | None:
     return f"{what} for {where}; supported: {', '.join(OUTPUT_FORMATS)}"
 
 
+SIDE_RASTERS = ("slope", "aspect", "hillshade", "support")
+"""The GeoTIFFs on the DEM's grid that come with -o DEM.tif."""
+
+
+def _tile_raster_problems(params: dict, dems: list[str], extras: dict) -> list[str]:
+    """--seamless -O's rasters: per-tile DEMs (--suffix .tif) need --resolution; each side
+    raster option names its mosaic (.vrt), the tiles' files being DIR/NAME.KIND.tif; no preview."""
+    problems = []
+    if params["preview"]:
+        problems.append("--preview draws one output: use it with --seamless -o, not -O")
+    if params["resolution"] is not None and not dems:
+        problems.append("--resolution with --seamless -O is the cell size of per-tile DEMs: give --suffix .tif "
+                        "(meshes per tile take --level)")
+    if dems and params["resolution"] is None:
+        problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade, --support) need --resolution")
+    if extras and not dems:
+        problems.append("--slope, --aspect, --hillshade and --support come with a DEM: use --seamless -o DEM.tif, "
+                        "or -O DIR --suffix .tif --resolution R for per-tile DEMs")
+        return problems
+    problems += [f"with -O, --{kind} names the mosaic of the tiles' {kind} rasters: give a .vrt path, not "
+                 f"'{path}'" for kind, path in extras.items() if extension(path) != "vrt"]
+    return problems
+
+
 def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> list[str]:
     """GeoTIFF and preview options against the outputs, --resolution, --level and --axis."""
     dems = [dst for dst in outputs if extension(dst) in RASTER_FORMATS]
-    extras = {kind: params[kind] for kind in ("slope", "aspect", "hillshade") if params[kind]}
+    extras = {kind: params[kind] for kind in SIDE_RASTERS if params[kind]}
     resolution, preview = params["resolution"], params["preview"]
-    if params["seamless"] and params["output_dir"] and (resolution is not None or extras or preview):
-        return ["--resolution, --slope, --aspect, --hillshade and --preview make one survey-wide output: "
-                "use them with --seamless -o, not -O"]
+    if params["seamless"] and params["output_dir"]:
+        tile_problems = _tile_raster_problems(params, dems, extras)
+        if tile_problems:
+            return tile_problems
+        extras = {}                          # mosaics (.vrt), checked there; the DEMs are checked below
     if len(params["inputs"]) > 1 and not params["seamless"] and (extras or preview):
-        return ["--slope, --aspect, --hillshade and --preview name one file: use them with a single input"]
+        return ["--slope, --aspect, --hillshade, --support and --preview name one file: use them with a "
+                "single input"]
     problems = []
     if resolution is not None and level_given:
         problems.append("give either --level or --resolution, not both")
     if (dems or extras) and resolution is None:
-        problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade) need --resolution")
+        problems.append("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade, --support) need --resolution")
     if extras and not dems:
-        problems.append("--slope, --aspect and --hillshade come with a DEM: give -o DEM.tif")
+        problems.append("--slope, --aspect, --hillshade and --support come with a DEM: give -o DEM.tif")
     problems += [f"the {kind} raster '{path}' must be a GeoTIFF (.tif or .tiff)"
                  for kind, path in extras.items() if extension(path) not in RASTER_FORMATS]
     if preview and Path(preview).suffix.lower() != ".png":
         problems.append(f"the preview '{preview}' must be a .png file")
     if params["frame_kind"] == "perspective" and (dems or extras):   # geo loads numpy: only here
         from c1mesh.geo.products import dem_frame_error
-        problems.append(dem_frame_error("perspective", dems, *(params[k] for k in ("slope", "aspect", "hillshade"))))
+        problems.append(dem_frame_error("perspective", dems, *(params[k] for k in SIDE_RASTERS)))
     if (dems or extras) and params["axis"].strip().lower() not in DEM_AXES:
         problems.append(f"a DEM is heights over the world XY plane; --axis {params['axis']} cannot be used "
                         "with GeoTIFF outputs (use --axis z or auto)")

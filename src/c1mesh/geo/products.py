@@ -18,7 +18,7 @@ import numpy as np
 from c1mesh.core import crs as crs_module
 from c1mesh.core.errors import InputError
 from c1mesh.geo.preview import render_fit
-from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
+from c1mesh.geo.raster import RasterTargets, fill_distance, is_raster_path, targets_for
 from c1mesh.stages.surface import refined_vertex_count
 
 PREVIEW_SUFFIX = ".png"
@@ -37,10 +37,12 @@ class GeoPlan:
 def geo_plan(output, options) -> GeoPlan:
     """Validate the georeferencing options of a fit before any work (InputError if wrong)."""
     user_crs = crs_module.parse_crs(options.crs) if options.crs else None
-    frame_error = dem_frame_error(options.frame, [output], options.slope, options.aspect, options.hillshade)
+    frame_error = dem_frame_error(options.frame, [output], options.slope, options.aspect, options.hillshade,
+                                  options.support)
     if frame_error:
         raise InputError(frame_error)
     rasters = targets_for(output, options)
+    fill_distance(options.fill)      # InputError for a bad --fill, before any work
     if options.resolution is not None and not options.resolution > 0:
         raise InputError(f"--resolution must be a positive length, got {options.resolution}")
     if options.preview is not None:
@@ -54,7 +56,7 @@ def geo_plan(output, options) -> GeoPlan:
     named = [str(output)] if isinstance(output, (str, Path)) else []
     named += extra
     if len({str(Path(p).resolve()) for p in named}) != len(named):
-        raise InputError("two outputs (-o, --slope, --aspect, --hillshade, --preview) have the same path")
+        raise InputError("two outputs (-o, --slope, --aspect, --hillshade, --support, --preview) have the same path")
     return GeoPlan(rasters, user_crs, options.preview)
 
 
@@ -127,11 +129,11 @@ def level_for_vertices(interp, target: int, most: int = MAX_LEVEL) -> int:
     return best
 
 
-def dem_frame_error(frame: str, outputs, slope=None, aspect=None, hillshade=None) -> str | None:
+def dem_frame_error(frame: str, outputs, slope=None, aspect=None, hillshade=None, support=None) -> str | None:
     """Why the fit cannot write its GeoTIFF outputs, or None.
 
     frame: --frame; outputs: the output paths (None and streams are skipped); slope,
-    aspect, hillshade: the raster paths of those options (or None). A DEM
+    aspect, hillshade, support: the raster paths of those options (or None). A DEM
     (and slope, aspect, hillshade on its grid) is a height over a map plane: it has no
     meaning in the perspective frame (inverse depth over the view rays of a depth frame).
     --frame auto fits an organised input in the axis frame when a DEM is asked for
@@ -142,7 +144,7 @@ def dem_frame_error(frame: str, outputs, slope=None, aspect=None, hillshade=None
         return None
     named = [str(o) for o in outputs if is_raster_path(o)]
     named += [f"--{flag} {path}" for flag, path in (("slope", slope), ("aspect", aspect),
-                                                   ("hillshade", hillshade)) if path]
+                                                   ("hillshade", hillshade), ("support", support)) if path]
     if not named:
         return None
     return (f"GeoTIFF outputs ({', '.join(named)}) are heights over a map plane and have no meaning "

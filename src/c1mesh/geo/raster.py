@@ -10,11 +10,16 @@ fit passes its max_edge): the spline's value and gradient at the triangle's poin
 to the centre, continued linearly to the centre (slope rasters take that gradient).
 Nodata is therefore only where there is no data: cells without points outside the
 trimmed triangulation, and cells whose points lie more than `reach` from every kept
-triangle (in a gap wider than --max-edge). Slope, aspect and hillshade come from a
+triangle (in a gap wider than --max-edge). A fill (--fill, FillRule; default: the whole
+hull, DEFAULT_FILL) adds the cells of the holes the trim opened: the fit's spline spans
+them (pipeline.driver.filled_mesh), and a cell there holds it when its centre is within
+the fill distance of a point the fit used. The support raster holds each cell's distance
+to that nearest point (SplineSampler.distances), nodata where the DEM is. Slope, aspect and hillshade come from a
 gradient at each cell centre: the spline's own analytic gradient ("spline"), or Horn's
 3x3 differences of the DEM ("horn", what `gdaldem slope` computes), chosen per resolution
 by "auto" (see AUTO_SPLINE_FROM). The rasters are computed and written in blocks of rows, so
-memory holds a few blocks, not the grid.
+memory holds a few blocks, not the grid, and each becomes a Cloud-Optimised GeoTIFF
+(COG_FORMAT, cog_copy).
 
 Units: slope in degrees from horizontal (0-90); aspect in degrees clockwise from north of
 the downhill direction (0-360, GDAL's convention; 0 where the surface is exactly flat);
@@ -31,9 +36,12 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
+from xml.sax.saxutils import escape
 
 import numpy as np
 
@@ -41,7 +49,7 @@ from c1mesh.core.crs import describe
 from c1mesh.core.errors import DependencyError, InputError
 from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS
 from c1mesh.formats import atomic_output
-from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
+from c1mesh.geo.raster_grid import FillRule, RasterGrid, SplineSampler
 
 RASTER_SUFFIXES = tuple(f".{fmt}" for fmt in RASTER_FORMATS)
 DEM_NODATA = -9999.0
@@ -60,6 +68,11 @@ average of the spline's heights is closer to the true slope up to about 4 spacin
 exact normals and 8 spacings with 3° normal noise; beyond that Horn's own truncation
 error (O(R²)) dominates and the spline gradient wins."""
 LIGHT_AZIMUTH, LIGHT_ALTITUDE = 315.0, 45.0
+FILL_WORDS = ("hull", "off")
+DEFAULT_FILL = "hull"
+"""The DEM's default fill (--fill): every cell inside the hull of the points, as a DTM
+user expects (lidR's rasterize_terrain and LAStools' blast2dem interpolate the whole hull);
+the support layer (--support) then tells each cell's distance to the data."""
 
 
 def is_raster_path(path) -> bool:
@@ -181,6 +194,7 @@ class RasterTargets:
     slope: str | None = None
     aspect: str | None = None
     hillshade: str | None = None
+    support: str | None = None
 
     def items(self):
         return [(k, v) for k, v in vars(self).items() if v is not None]
@@ -219,9 +233,11 @@ def grid_blocks(grid: RasterGrid, sampler: SplineSampler, method: str | None,
 
 
 def _profile(grid: RasterGrid, dtype: str, nodata, crs: str | None) -> dict:
+    """The staging GeoTIFF's profile (write_rasters): tiled as the COG will be, deflated
+    fast (it is read once, by cog_copy)."""
     profile = {"driver": "GTiff", "width": grid.width, "height": grid.height, "count": 1,
                "dtype": dtype, "nodata": nodata, "transform": grid.transform,
-               "compress": "deflate", "tiled": True, "blockxsize": BLOCK_ROWS,
+               "compress": "deflate", "zlevel": 1, "tiled": True, "blockxsize": BLOCK_ROWS,
                "blockysize": BLOCK_ROWS, "BIGTIFF": "IF_SAFER"}
     if dtype.startswith("float"):
         profile["predictor"] = 3   # floating-point predictor: deflate packs DEMs much better
@@ -231,7 +247,8 @@ def _profile(grid: RasterGrid, dtype: str, nodata, crs: str | None) -> dict:
 
 
 _KINDS = {"dem": ("float32", DEM_NODATA), "slope": ("float32", DEM_NODATA),
-          "aspect": ("float32", DEM_NODATA), "hillshade": ("uint8", HILLSHADE_NODATA)}
+          "aspect": ("float32", DEM_NODATA), "hillshade": ("uint8", HILLSHADE_NODATA),
+          "support": ("float32", DEM_NODATA)}
 
 
 def _layer(kind: str, z: np.ndarray, g: np.ndarray, z_factor: float = 1.0) -> np.ndarray:
@@ -250,6 +267,12 @@ def _layer(kind: str, z: np.ndarray, g: np.ndarray, z_factor: float = 1.0) -> np
     return np.where(outside, DEM_NODATA, out).astype(np.float32)
 
 
+def _support_layer(distance: np.ndarray) -> np.ndarray:
+    """The support raster's values for one block: the distance (n, w) from each cell
+    centre to the nearest point the fit used, nodata where it is NaN (no DEM value)."""
+    return np.where(np.isfinite(distance), distance, DEM_NODATA).astype(np.float32)
+
+
 def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
                   method: str = "spline", crs: str | None = None,
                   block_rows: int | None = None, dem_dtype: str = "float32",
@@ -261,8 +284,11 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
     float32, the default, which rounds heights of 1e4 to ~1e-3).
 
-    Every file is written to a temporary file and renamed into place only when all of them
-    are complete (formats.atomic_output), with overviews (2x, 4x, ... averaged) added.
+    Every file is a Cloud-Optimised GeoTIFF (cog_copy): the blocks are written to a
+    staging GeoTIFF beside the output (GDAL's COG driver writes only by copying a whole
+    dataset), which GDAL then copies into the output's temporary file; the outputs are
+    renamed into place only when all of them are complete (formats.atomic_output), and
+    the staging files are removed on success, error and interrupt.
     """
     rasterio = rasterio_module()
 
@@ -272,34 +298,102 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     cells_inside = 0
     with contextlib.ExitStack() as stack:
         temps = {kind: stack.enter_context(atomic_output(path, "path")) for kind, path in items}
+        staged = {kind: stack.enter_context(staging_path(temps[kind])) for kind, _ in items}
         kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
-        datasets = {kind: stack.enter_context(rasterio.open(temps[kind], "w", **_profile(
+        datasets = {kind: stack.enter_context(rasterio.open(staged[kind], "w", **_profile(
             grid, *kinds[kind], crs))) for kind, _ in items}
-        shaded = any(kind != "dem" for kind, _ in items)
+        shaded = any(kind not in ("dem", "support") for kind, _ in items)
+        farthest = 0.0
         for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
             cells_inside += int(np.isfinite(z).sum())
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
-                ds.write(_layer(kind, z, g, z_factor).astype(kinds[kind][0], copy=False), 1, window=window)
+                if kind == "support":
+                    layer = _support_layer(sampler.centre_distances(grid, rows, np.isfinite(z)))
+                    farthest = max(farthest, float(layer.max(initial=0.0)))
+                else:
+                    layer = _layer(kind, z, g, z_factor)
+                ds.write(layer.astype(kinds[kind][0], copy=False), 1, window=window)
         for kind, ds in datasets.items():
-            _build_overviews(ds, grid, kind)
             ds.close()
+            cog_copy(staged[kind], temps[kind], kind)
     return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
                      "width": grid.width, "height": grid.height},
             "cells": grid.width * grid.height, "cells_with_data": cells_inside,
-            "slope_method": method, "z_factor": z_factor, "files": dict(items)}
+            "slope_method": method, "z_factor": z_factor, "files": dict(items),
+            **({"support_max": farthest} if targets.support else {}),
+            "format": {key: str(value) for key, value in COG_FORMAT.items()}}
 
 
-def _build_overviews(ds, grid: RasterGrid, kind: str) -> None:
-    """2x, 4x, ... overviews down to about one tile (averaged; nearest for hillshade)."""
-    from rasterio.enums import Resampling
+COG_FORMAT = {"driver": "COG", "compress": "DEFLATE", "predictor": "YES", "blocksize": BLOCK_ROWS,
+              "overviews": "AUTO"}
+"""How every raster is written (the report's raster.format): GDAL's COG driver, deflate
+with its predictor (YES: floating-point for float rasters, horizontal differencing for
+the uint8 hillshade), 256 x 256 tiles, and internal overviews halving the grid until it
+fits one tile (averaged; nearest for the hillshade, whose shades are not heights)."""
 
-    factors, factor = [], 2
-    while max(grid.width, grid.height) / factor >= BLOCK_ROWS / 2 and factor <= 1024:
-        factors.append(factor)
-        factor *= 2
-    if factors:
-        ds.build_overviews(factors, Resampling.nearest if kind == "hillshade" else Resampling.average)
+
+@contextlib.contextmanager
+def staging_path(target: Path):
+    """A path beside `target` for the staging GeoTIFF, listed as a temporary file of the
+    process (removed by the CLI's signal handler on Ctrl-C) and removed when the block
+    ends, whatever happens."""
+    from c1mesh.core.outputs import register_temp, unregister_temp
+
+    path = Path(target).with_name(f".{Path(target).name}.{secrets.token_hex(4)}.stage.tif")
+    register_temp(path)
+    try:
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        unregister_temp(path)
+
+
+def cog_copy(source: Path, target: Path, kind: str) -> None:
+    """Copy the GeoTIFF `source` into a Cloud-Optimised GeoTIFF at `target` with GDAL's
+    COG driver (COG_FORMAT); overviews averaged, nearest for the hillshade."""
+    import rasterio.shutil
+
+    options = {key.upper(): value for key, value in COG_FORMAT.items() if key != "driver"}
+    rasterio.shutil.copy(str(source), str(target), driver="COG", BIGTIFF="IF_SAFER",
+                         OVERVIEW_RESAMPLING="NEAREST" if kind == "hillshade" else "AVERAGE", **options)
+
+
+# --------------------------------------------------------------------------- mosaics
+VRT_TYPES = {"float32": "Float32", "float64": "Float64", "uint8": "Byte"}
+
+
+def write_vrt(path, grid: RasterGrid, tiles, kind: str = "dem", crs: str | None = None) -> None:
+    """Write a GDAL VRT mosaic at `path` of the rasters `tiles` [(file path, window grid)],
+    each a window (RasterGrid.window) of `grid`, of one raster kind (_KINDS: its type and
+    nodata). The mosaic is `grid` itself; each tile is a ComplexSource placed at its
+    window's row0, col0, its nodata cells transparent; the files are named relative to the
+    VRT (GDAL's VRT format, gdal.org/drivers/raster/vrt.html; written by hand, as GDAL's
+    BuildVRT has no rasterio binding). Atomic, as every output."""
+    from c1mesh.formats import atomic_output
+
+    dtype, nodata = _KINDS[kind]
+    t = grid.transform
+    lines = [f'<VRTDataset rasterXSize="{grid.width}" rasterYSize="{grid.height}">']
+    if crs:
+        lines.append(f'  <SRS dataAxisToSRSAxisMapping="1,2">{escape(crs)}</SRS>')
+    lines.append(f"  <GeoTransform>{t.c!r}, {t.a!r}, 0.0, {t.f!r}, 0.0, {t.e!r}</GeoTransform>")
+    lines.append(f'  <VRTRasterBand dataType="{VRT_TYPES[dtype]}" band="1">')
+    lines.append(f"    <NoDataValue>{nodata!r}</NoDataValue>")
+    for file, window in tiles:
+        name = os.path.relpath(Path(file).resolve(), Path(path).resolve().parent)
+        size = f'xSize="{window.width}" ySize="{window.height}"'
+        lines += ["    <ComplexSource>",
+                  f'      <SourceFilename relativeToVRT="1">{escape(name)}</SourceFilename>',
+                  "      <SourceBand>1</SourceBand>",
+                  f'      <SrcRect xOff="0" yOff="0" {size}/>',
+                  f'      <DstRect xOff="{window.col0 - grid.col0}" yOff="{window.row0 - grid.row0}" {size}/>',
+                  f"      <NODATA>{nodata!r}</NODATA>",
+                  "    </ComplexSource>"]
+    lines += ["  </VRTRasterBand>", "</VRTDataset>"]
+    with atomic_output(path, "w") as handle:
+        handle.write("\n".join(lines) + "\n")
 
 
 # ------------------------------------------------------------------------ the fit's side
@@ -307,11 +401,12 @@ def targets_for(output, options) -> RasterTargets:
     """The rasters a fit writes: the DEM when `output` is a .tif, plus --slope/--aspect/
     --hillshade. InputError when they are asked for without a --resolution."""
     targets = RasterTargets(dem=str(output) if is_raster_path(output) else None,
-                            slope=options.slope, aspect=options.aspect, hillshade=options.hillshade)
+                            slope=options.slope, aspect=options.aspect, hillshade=options.hillshade,
+                            support=options.support)
     if targets.items() and options.resolution is None:
-        raise InputError("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade) need --resolution")
-    if (options.slope or options.aspect or options.hillshade) and targets.dem is None:
-        raise InputError("--slope, --aspect and --hillshade come with a DEM: give -o DEM.tif")
+        raise InputError("GeoTIFF outputs (-o *.tif, --slope, --aspect, --hillshade, --support) need --resolution")
+    if any(path for kind, path in targets.items() if kind != "dem") and targets.dem is None:
+        raise InputError("--slope, --aspect, --hillshade and --support come with a DEM: give -o DEM.tif")
     for kind, path in targets.items():
         if not is_raster_path(path):
             raise InputError(f"the {kind} raster '{path}' must be a GeoTIFF (.tif or .tiff)")
@@ -334,19 +429,37 @@ def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
     return float(math.sqrt(area / points.shape[0]))
 
 
-def dem_sampling(interp, frame, resolution: float, data_xy=None,
-                 reach: float | None = None) -> tuple[RasterGrid, SplineSampler]:
+def fill_distance(value) -> float | None:
+    """The DEM's fill distance D from --fill (FitOptions.fill): None for "off" or 0 (the
+    trim's holes stay nodata), inf for "hull" (every cell inside the hull of the points),
+    else a length D > 0 in the CRS's (the scan's) units. InputError for anything else."""
+    if isinstance(value, str) and value.strip().lower() in FILL_WORDS:
+        return math.inf if value.strip().lower() == "hull" else None
+    try:
+        distance = float(value)
+    except (TypeError, ValueError):
+        distance = math.nan
+    if not (distance >= 0 and not math.isnan(distance)):
+        raise InputError(f"--fill must be hull, off or a distance >= 0, got {value!r}")
+    return None if distance == 0 else distance
+
+
+def dem_sampling(interp, frame, resolution: float, data_xy=None, reach: float | None = None,
+                 fill: FillRule | None = None, fit_xy=None) -> tuple[RasterGrid, SplineSampler]:
     """The grid of a fit's DEM (aligned at `resolution`, covering the triangulation in
     world x, y) and the sampler of the spline at its cell centres. data_xy (m, 2): the
     fitted points in the frame's plane (their cells always get a value within `reach`,
     the trim's max_edge: SplineSampler); None: the triangulation alone decides. The
     rasters (write_fit_rasters) and the fit's preview (preview.render_dem_fit) both take
-    their cells from these, so they cover the same cells."""
+    their cells from these, so they cover the same cells. fill: the FillRule of a DEM that
+    spans the trim's holes (None: none); fit_xy (k, 2): the points the fit used, in the
+    frame's plane (None: the interpolator's vertices), for the fill and the support layer."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     lo = interp.points.min(axis=0) + frame.origin[:2]
     hi = interp.points.max(axis=0) + frame.origin[:2]
-    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach)
+    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach,
+                                                                     fill, fit_xy)
 
 
 def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler, options,
@@ -355,13 +468,13 @@ def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineS
     returns the report's "raster" section. options.z_factor (None: 1) scales slope and
     hillshade; heights in units of their own without one are refused before
     (pipeline.check_angles)."""
-    if crs and (options.slope or options.aspect or options.hillshade):
+    if crs and (options.slope or options.aspect or options.hillshade):  # the support is a distance
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
                              "geographic (degrees): reproject to a projected CRS first")
     spacing = mean_spacing(sampler.interp.points, sampler.interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing)
-    z_factor = 1.0 if getattr(options, "z_factor", None) is None else float(options.z_factor)
+    z_factor = 1.0 if options.z_factor is None else float(options.z_factor)
     report = write_rasters(targets, grid, sampler, method, crs, z_factor=z_factor)
     report["point_spacing"] = float(spacing)
     return report

@@ -27,7 +27,10 @@ class RasterGrid:
     """A north-up grid: column j, row i has its centre at (west + (j + ½)R, north − (i + ½)R).
 
     west and north are multiples of the resolution R (world units), so grids of different
-    tiles at the same R line up cell for cell.
+    tiles at the same R line up cell for cell. A window of a grid (`window`) keeps the
+    grid's west and north and counts its cells from row0, col0: its cell (i, j) is the
+    grid's cell (row0 + i, col0 + j), sampled by the same arithmetic, so a window's cells
+    are bit for bit the grid's (per-tile DEMs of one survey).
     """
 
     west: float
@@ -35,6 +38,13 @@ class RasterGrid:
     resolution: float
     width: int
     height: int
+    row0: int = 0
+    col0: int = 0
+
+    def window(self, rows: range, cols: range) -> "RasterGrid":
+        """The window of this grid's cells rows × cols (indices of this grid)."""
+        return RasterGrid(self.west, self.north, self.resolution, len(cols), len(rows),
+                          self.row0 + rows.start, self.col0 + cols.start)
 
     @classmethod
     def covering(cls, lo, hi, resolution: float) -> "RasterGrid":
@@ -54,7 +64,23 @@ class RasterGrid:
     def transform(self):
         """The rasterio/GDAL affine transform of the grid."""
         from affine import Affine
-        return Affine(self.resolution, 0.0, self.west, 0.0, -self.resolution, self.north)
+        return Affine(self.resolution, 0.0, self.west + self.col0 * self.resolution, 0.0, -self.resolution,
+                      self.north - self.row0 * self.resolution)
+
+
+# ----------------------------------------------------------------------------------- fill
+@dataclass(frozen=True)
+class FillRule:
+    """Which cells of a DEM that spans the trim's holes hold the spline.
+
+    trimmed (T,) bool over the interpolator's triangles: those the trim kept (a cell whose
+    centre lies in one always holds the spline); the others span the holes the trim opened
+    (pipeline.driver.filled_mesh), and a cell whose centre lies in one holds the spline
+    when the centre is within `distance` (local units, inf: any) of the nearest point the
+    fit used (SplineSampler's fit points)."""
+
+    trimmed: np.ndarray
+    distance: float = math.inf
 
 
 # ------------------------------------------------------------------------------- sampling
@@ -97,15 +123,27 @@ class SplineSampler:
     Cells whose centre lies in no triangle but which hold a point of data_xy (m, 2) (local
     plane coordinates, the fitted points) get the nearest triangle within `reach` (local
     units; None: any distance; NearestTriangles), evaluated at its point closest to the
-    centre and continued linearly from there (`evaluate`).
+    centre and continued linearly from there (`evaluate`); with a fill, the nearest of
+    the triangles the trim kept.
+
+    fill: a FillRule (None: every triangle's cells hold the spline). fit_xy (k, 2): the
+    points the fit used, local plane coordinates (None: the interpolator's vertices), from
+    which `distances` measures each centre's distance (the support layer, the fill rule).
     """
 
     TOLERANCE = 1e-10
 
-    def __init__(self, interp, origin, data_xy=None, reach: float | None = None):
+    def __init__(self, interp, origin, data_xy=None, reach: float | None = None,
+                 fill: FillRule | None = None, fit_xy=None):
         self.interp = interp
         self.origin = np.asarray(origin, dtype=np.float64)
         self._data = None if data_xy is None else _RowSorted(data_xy)
+        self.fill = fill
+        self._fit_xy = interp.points[:, :2] if fit_xy is None else np.asarray(fit_xy, dtype=np.float64)
+        self._tree = None                                  # cKDTree of _fit_xy, built when first needed
+        # the triangles the nearest-triangle rule searches: the trim's (a fill's triangles
+        # span holes and the hull, and their long edges would widen every search)
+        self._searched = np.arange(len(interp.triangles)) if fill is None else np.flatnonzero(fill.trimmed)
         self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed
         K, self.exponents, error = polynomial_form(interp.scheme)
         self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
@@ -151,6 +189,7 @@ class SplineSampler:
         callers' assignment), then of the cells holding data points whose centre is in no
         triangle: the point q of the nearest triangle closest to the centre (λ0, λ1 of q)
         and shift = centre − q (local units), for `evaluate`'s linear continuation."""
+        rows, cols = _lattice(grid, rows, cols)
         r = grid.resolution
         x0 = grid.west - self.origin[0]          # local x of the grid's west edge
         y0 = grid.north - self.origin[1]
@@ -176,14 +215,39 @@ class SplineSampler:
         di, dj = np.divmod(local, np.repeat(nj, count))
         ii = np.repeat(i0, count) + di
         jj = np.repeat(j0, count) + dj
-        l0, l1 = self._barycentric(tri, x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r)
+        cx, cy = x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r
+        l0, l1 = self._barycentric(tri, cx, cy)
         tol = -self.TOLERANCE
         keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
+        if self.fill is not None and math.isfinite(self.fill.distance):
+            spans = np.flatnonzero(keep & ~self.fill.trimmed[tri])       # cells in the holes' triangles
+            far = self.distances(np.column_stack([cx[spans], cy[spans]])) > self.fill.distance
+            keep[spans[far]] = False
         cell = (ii[keep] - rows.start) * nc + (jj[keep] - cols.start)
         found = (cell, tri[keep], l0[keep], l1[keep], np.zeros((cell.size, 2)))
         if self._data is None:
             return found
         return tuple(np.concatenate(pair) for pair in zip(found, self._uncovered(grid, rows, cols, cell)))
+
+    def distances(self, xy: np.ndarray) -> np.ndarray:
+        """(m,) the distance from each local plane point xy (m, 2) to the nearest point the
+        fit used (fit_xy), by a k-d tree."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self._fit_xy)
+        return self._tree.query(xy)[0] if len(xy) else np.zeros(0)
+
+    def centre_distances(self, grid: RasterGrid, rows: range, where: np.ndarray) -> np.ndarray:
+        """(len(rows), width) the distance from each cell centre of the grid's rows where
+        `where` (len(rows), width) bool holds to the nearest point the fit used
+        (`distances`), in the grid's units; NaN elsewhere."""
+        i, j = np.nonzero(where)
+        x = grid.west - self.origin[0] + (grid.col0 + j + 0.5) * grid.resolution
+        y = grid.north - self.origin[1] - (grid.row0 + rows.start + i + 0.5) * grid.resolution
+        out = np.full(where.shape, np.nan)
+        out[i, j] = self.distances(np.column_stack([x, y]))
+        return out
 
     def _uncovered(self, grid: RasterGrid, rows: range, cols: range, covered: np.ndarray):
         """(cell, triangle, λ0, λ1, shift) of the cells of rows × cols that hold data points
@@ -198,9 +262,10 @@ class SplineSampler:
         i, j = np.divmod(cell, nc)
         cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
         if self._nearest is None and cell.size:
-            self._nearest = NearestTriangles(self.interp.points, self.interp.triangles, self._reach)
+            self._nearest = NearestTriangles(self.interp.points, self.interp.triangles[self._searched], self._reach)
         tri = self._nearest.of(np.column_stack([cx, cy])) if cell.size else np.zeros(0, np.int64)
         has = tri >= 0
+        tri = np.where(has, self._searched[np.maximum(tri, 0)], -1)
         centre = np.column_stack([cx[has], cy[has]])
         tri = tri[has]
         q = closest_points(centre, self.interp.points[self.interp.triangles[tri]])
@@ -281,6 +346,12 @@ class SplineSampler:
         return values, out
 
 
+def _lattice(grid: RasterGrid, rows: range, cols: range) -> tuple[range, range]:
+    """rows and cols of a window (RasterGrid.window) as indices of its whole grid."""
+    return (range(rows.start + grid.row0, rows.stop + grid.row0),
+            range(cols.start + grid.col0, cols.stop + grid.col0))
+
+
 class _RowSorted:
     """Plane points (m, 2) sorted by y, to list the grid cells that hold points row band
     by row band (a block of rows reads only its band)."""
@@ -307,9 +378,9 @@ class NearestTriangles:
     """The nearest triangle to plane points, within a reach.
 
     points (n, 2), triangles (T, 3): a triangulation in the plane (local units); reach:
-    the largest distance searched (None: any). A triangle at distance d from p has all
-    three corners within d + L of p, L its longest edge, and the nearest corner's
-    triangles bound d from above: so the triangles of the corners within d_corner + L_max
+    the largest distance searched (None: any); points no triangle uses are not searched. A
+    triangle at distance d from p has all three corners within d + L of p, L its longest
+    edge, and the nearest corner's triangles bound d from above: so the triangles of the corners within d_corner + L_max
     of p are the candidates, and their exact point-triangle distances decide. Ties go to
     the lowest triangle number, so the answer does not depend on the search order.
     """
@@ -323,7 +394,8 @@ class NearestTriangles:
         order = np.argsort(self.triangles.ravel(), kind="stable")
         self._of_vertex = order // 3                                            # triangles by vertex
         self._start = np.searchsorted(self.triangles.ravel()[order], np.arange(len(self.points) + 1))
-        self._tree = cKDTree(self.points)
+        self._corners = np.unique(self.triangles)                               # points some triangle uses
+        self._tree = cKDTree(self.points[self._corners])
 
     def of(self, query: np.ndarray) -> np.ndarray:
         """(q,) the nearest triangle to each query point (q, 2) within the reach, -1 if none."""
@@ -334,7 +406,7 @@ class NearestTriangles:
         for q, (p, d) in enumerate(zip(query, first)):
             if d - self.longest > self.reach:                # every triangle is farther than reach
                 continue
-            near = self._tree.query_ball_point(p, d + self.longest)
+            near = self._corners[self._tree.query_ball_point(p, d + self.longest)]
             cand = np.unique(np.concatenate([self._of_vertex[self._start[v]:self._start[v + 1]]
                                              for v in near]))
             dist = point_triangle_distance(p, self.points[self.triangles[cand]])

@@ -8,7 +8,9 @@ mesh with a JSON-ready report. Nothing here prints or exits: the CLI does that.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -27,7 +29,16 @@ from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
 from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
 from c1mesh.geo.products import finish as _finish_geo
 from c1mesh.geo.products import geo_plan, level_for_edge, resolve_crs
-from c1mesh.geo.raster import dem_sampling, is_raster_path, raster_axis, write_fit_rasters
+from c1mesh.geo.raster import (
+    RasterTargets,
+    dem_sampling,
+    fill_distance,
+    is_raster_path,
+    raster_axis,
+    write_fit_rasters,
+    write_vrt,
+)
+from c1mesh.geo.raster_grid import FillRule
 from c1mesh.pipeline.depth_fit import fit_perspective
 from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, smoothing_strength
 from c1mesh.pipeline.report import ReportCore, crs_facts
@@ -35,8 +46,8 @@ from c1mesh.pipeline.steps import (
     FitResult,
     FitRun,
     SmoothingRequest,
-    WorldSurface,
     StageTimer,
+    WorldSurface,
     compact_vertices,
     display_name,
     limited_interpolator,
@@ -54,7 +65,7 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import gradient_data_weight
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
-from c1mesh.stages.trim import check_triangles_left, trim_mesh
+from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
 
@@ -114,6 +125,11 @@ class FitOptions:
     hillshade: str | None = None
     slope_method: str = "auto"
     preview: str | None = None
+    # support: a GeoTIFF path of each DEM cell's distance to the nearest point the fit used;
+    # fill: the DEM's fill of the trim's holes (geo.raster.fill_distance): "hull" (every cell
+    # inside the hull of the points), "off" (or 0: the holes stay nodata) or a distance D.
+    support: str | None = None
+    fill: Any = "hull"
     # z_factor: x, y units per height unit (ArcGIS's z-factor; gdaldem's -s is its inverse),
     # for the angles of slope, hillshade and the preview's shading (atan(|grad z| * z_factor))
     # and, for a header height column fitted in plan units, of max_slope. None: 1 where x, y
@@ -205,6 +221,9 @@ class SurfaceModel:
     thinned: its vertices are a --spacing thinning, fitted to all of hf's points.
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
+    trimmed: for a fit built with fill=True (a DEM that spans its holes), (T,) bool over
+    interp's triangles: those the trim kept (the mesh's); the others span holes the trim
+    opened (long edges, curtains). None: every triangle is the trim's.
     """
 
     normal_source: str
@@ -218,6 +237,7 @@ class SurfaceModel:
     max_slope_not_applied: str | None = None
     smoothing: Any = None
     thinned: bool = False
+    trimmed: np.ndarray | None = None
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -298,7 +318,8 @@ def _drop_too_steep(hf, max_slope: float, z_factor: float) -> None:
 
 
 def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | None" = None,
-                  check_triangulation: Callable[[np.ndarray, np.ndarray, Any], None] | None = None) -> SurfaceModel:
+                  check_triangulation: Callable[[np.ndarray, np.ndarray, Any], None] | None = None,
+                  fill: bool = False) -> SurfaceModel:
     """normals → frame → height field → triangulate + trim → interpolate, for one cloud.
 
     The stages every fit shares, whole-file or tiled (c1mesh.survey.tiles), so a stage added
@@ -306,6 +327,9 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     check_triangulation(points (n, 2), triangles (T, 3), topology.EdgeTable): called with the
     interpolator's triangulation once it is known, before the interpolation, so a caller
     can refuse what it would refine (`_output_size_check`) before the heavy stages.
+    fill=True (a DEM's fill, geo.raster.FillRule): the spline also spans the holes the trim
+    opened, over the triangles of the Delaunay triangulation that only the long-edge and
+    curtain rules removed (filled_mesh); SurfaceModel.trimmed says which are the trim's.
     """
     timer = timer or StageTimer(None)
     scheme = get_scheme(options.scheme)
@@ -348,6 +372,9 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
                                                 view_rules_apply(options.classes, frame.axes))
         check_triangles_left(mesh.triangles.shape[0])
+        trimmed, trim_only = None, mesh
+        if fill:
+            mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
         local, triangles = compact_vertices(xy, mesh.triangles)
         used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None
@@ -360,13 +387,88 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                      scheme, options.overshoot, heights=not plan_heights,
                                                      table=table)
         else:
-            data = None if vertices is None else (hf.xy, hf.z)
-            weight = gradient_data_weight(normal_source, gradient_source)
-            request = SmoothingRequest(strength, hf.spacing, data, hf.gradients[used] if weight else None, weight)
-            interp, overshoot, smoothing = smoothed_interpolator(hf.xy[used], hf.z[used], triangles, scheme,
-                                                                 options.overshoot, request, table=table)
+            interp, overshoot, smoothing = _smoothed(
+                _FitMesh(hf, vertices, used, triangles, table), _HoleSpan(trim_only, trimmed) if fill else None,
+                strength, options, gradient_data_weight(normal_source, gradient_source), not plan_heights)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing, vertices is not None)
+                        max_slope_not_applied, smoothing, vertices is not None, trimmed)
+
+
+@dataclass(frozen=True)
+class _FitMesh:
+    """What the interpolation stage fits: the height field hf, the --spacing thinning
+    (vertices, indices into hf; None: every point), the used (n,) ascending indices into hf
+    of the triangulation's points, its triangles (T, 3) over them and their edge table."""
+
+    hf: Any
+    vertices: np.ndarray | None
+    used: np.ndarray
+    triangles: np.ndarray
+    table: Any
+
+
+@dataclass(frozen=True)
+class _HoleSpan:
+    """A DEM's fill (filled_mesh): the trimmed TrimmedMesh over the triangulated points and
+    trimmed (T,) bool over the filled triangles, those the trim kept."""
+
+    trim_only: Any
+    trimmed: np.ndarray
+
+
+def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight: float, heights: bool):
+    """The smoothing fit's (interpolator, limiter report, SmoothFit) over mesh; weight: of
+    the gradient data (gradient_data_weight); heights: limit with the heights (not for a
+    plan-unit height column).
+
+    span None: fitted over mesh's triangles. A DEM's fill: the smoothing fits the trimmed
+    triangles, as without a fill, and the holes' triangles are spanned by the spline of its
+    vertex values and gradients (the data's at points only those triangles use), the
+    gradients at their vertices limited as an exact fit's are (steps.limited_interpolator):
+    fitted over the holes' long triangles, the smoothing spline dug pits of up to 9.7 ft
+    into autzen_trim's ground beside a bank (0.36 ft so)."""
+    hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
+    data = None if mesh.vertices is None else (hf.xy, hf.z)
+    if span is None:
+        request = SmoothingRequest(strength, hf.spacing, data, hf.gradients[used] if weight else None, weight)
+        return smoothed_interpolator(hf.xy[used], hf.z[used], mesh.triangles, scheme, options.overshoot, request,
+                                     table=mesh.table)
+    points = hf.xy if mesh.vertices is None else hf.xy[mesh.vertices]
+    local, inner = compact_vertices(points, span.trim_only.triangles)
+    inner_used = local if mesh.vertices is None else mesh.vertices[local]
+    request = SmoothingRequest(strength, hf.spacing, data, hf.gradients[inner_used] if weight else None, weight)
+    fitted, overshoot, smoothing = smoothed_interpolator(hf.xy[inner_used], hf.z[inner_used], inner, scheme,
+                                                         options.overshoot, request,
+                                                         table=span.trim_only.edge_table(local))
+    at = np.searchsorted(used, inner_used)              # the trimmed mesh's vertices are the filled one's
+    values, gradients = hf.z[used].copy(), hf.gradients[used].copy()
+    values[at], gradients[at] = fitted.values, fitted.gradients
+    limited = limited_interpolator(hf.xy[used], values, gradients, mesh.triangles, scheme, options.overshoot,
+                                   heights=heights, table=mesh.table)[0]
+    spanning = np.zeros(used.size, dtype=bool)          # vertices of the holes' triangles: limited there
+    spanning[mesh.triangles[~span.trimmed].ravel()] = True
+    gradients = np.where(spanning[:, None], limited.gradients, gradients)
+    interp = RSDInterpolator(hf.xy[used], values, gradients, triangles=mesh.triangles, scheme=scheme,
+                             directions=limited.directions, edge_table=mesh.table)
+    return interp, overshoot, smoothing
+
+
+def filled_mesh(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh, curtains: bool = True):
+    """The triangles of a DEM that spans the trim's holes, and which of them the trim kept.
+
+    xy (n, 2), z (n,), gradients (n, 2): the triangulated points; mesh: the trimmed
+    TrimmedMesh (trim_mesh, then remove_curtains). Returns (TrimmedMesh, trimmed (T',) bool
+    over its triangles). The filled mesh is the union of the trimmed one and the
+    triangulation trimmed without max_edge and without the view-ray curtain rules (they
+    open the holes under buildings, trees and water): what stays out are the slivers and
+    bowties on the hull's rim and the triangles thinner than the noise, which the spline
+    cannot span (it divides by their width; curtains.py). The union is a subset of one
+    triangulation, so it stays edge-manifold."""
+    whole, report = trim_again(mesh, max_edge=None)
+    if curtains:
+        whole, _ = remove_curtains(xy, z, gradients, whole, report, view_rules=False)
+    alive = whole.alive | mesh.alive
+    return mesh.with_alive(alive), mesh.alive[alive]
 
 
 def fit(source, output=None, options: FitOptions | None = None,
@@ -412,17 +514,21 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                              "perspective frame, which has no smoothing fit; give --frame axis to fit it "
                              "as a height field, or drop --smooth")
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
+    fill = fill_distance(options.fill) if geo.rasters.items() else None
     model = build_surface(cloud, options, timer,
-                          None if geo.rasters.items() else _output_size_check(output, options, cloud))
+                          None if geo.rasters.items() else _output_size_check(output, options, cloud),
+                          fill=fill is not None)
     frame, hf, trim_report, used, interp = model.frame, model.hf, model.trim_report, model.used, model.interp
     if geo.rasters.items():
         with timer.stage("raster"):
             data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
-            dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge)
+            rule = None if fill is None else FillRule(model.trimmed, fill)
+            dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge, rule,
+                               fit_points(model))
             raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
         report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
                                        crs_facts(crs, crs_source)), model)
-        report["raster"] = raster_report
+        report["raster"] = {**raster_report, "fill": fill_facts(options.fill, fill, model)}
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options, dem=dem)
     level, level_from = plane_level(interp.points, interp.triangles, options)
@@ -435,6 +541,129 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
                      model, frame_report, level_from, stream)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+MOSAIC_NAME = "mosaic.vrt"
+"""The VRT mosaic of --seamless -O's per-tile DEMs, in the output folder."""
+
+
+def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None = None) -> dict:
+    """`--seamless -O DIR --suffix .tif`: the survey (survey.tiles.Survey) fitted once, one
+    DEM per input (outputs[i], a window of the survey's DEM grid: dem_windows), with its
+    side rasters DIR/NAME.slope.tif, ... (tile_targets), and their VRT mosaics
+    (mosaic_paths); returns the report. Every cell is sampled from the one spline at its
+    index in the survey's grid (Horn's differences too), so a cell two tiles share is equal
+    in both and each mosaic equals the survey's raster (`--seamless -o`) cell for cell. An
+    input whose points and triangles are nowhere (no points of --classes) gets no DEM. On
+    failure every raster and mosaic already written is removed."""
+    timer = timer or StageTimer(None)
+    options = replace(options, axis=raster_axis(options.axis))
+    plain = replace(options, **{kind: None for kind in SIDE_KINDS})        # their paths are mosaics here
+    crs, crs_source = resolve_crs(survey.cloud.crs, geo_plan(outputs[0], plain).user_crs, survey.names[0])
+    fill = fill_distance(options.fill)
+    model = build_surface(survey.cloud, options, timer, fill=fill is not None)
+    mosaics = mosaic_paths(outputs, options)
+    with timer.stage("raster"):
+        data_xy = (survey.cloud.points - model.frame.origin)[:, :2]
+        grid, sampler = dem_sampling(model.interp, model.frame, options.resolution, data_xy,
+                                     model.trim_report.max_edge,
+                                     None if fill is None else FillRule(model.trimmed, fill), fit_points(model))
+        written, tiles, created = [], [], []
+        try:
+            for output, window in zip(outputs, dem_windows(grid, survey, model)):
+                if window is None:
+                    tiles.append({"output": output, "written": False})
+                    continue
+                targets = tile_targets(output, options)
+                facts = write_fit_rasters(targets, window, sampler, options, crs)
+                created += [path for _, path in targets.items()]
+                written.append((targets, window))
+                tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
+                              "col0": window.col0, "width": window.width, "height": window.height,
+                              "cells_with_data": facts["cells_with_data"]})
+            for kind, path in mosaics.items():
+                write_vrt(path, grid, [(getattr(t, kind), w) for t, w in written], kind, crs)
+                created.append(path)
+        except BaseException:
+            for path in created:
+                Path(path).unlink(missing_ok=True)
+            raise
+    report = _raster_report(FitRun(survey.names[0], outputs[0], options, survey.cloud, timer,
+                                   angle_z_factor(survey.cloud, options), crs_facts(crs, crs_source)), model)
+    report.update(input=list(survey.names), output=list(outputs))
+    report["raster"] = {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
+                                 "width": grid.width, "height": grid.height},
+                        "mosaics": mosaics, "tiles": tiles, "fill": fill_facts(options.fill, fill, model)}
+    return report
+
+
+SIDE_KINDS = ("slope", "aspect", "hillshade", "support")
+"""The rasters on a DEM's grid besides it (FitOptions fields of the same names)."""
+
+
+def tile_targets(output, options: FitOptions):
+    """The rasters of one input's tile under --seamless -O: its DEM `output` (DIR/NAME.tif)
+    and, for each of --slope, --aspect, --hillshade, --support given, DIR/NAME.KIND.tif."""
+    stem = Path(output).with_suffix("")
+    return RasterTargets(dem=str(output), **{kind: f"{stem}.{kind}.tif" for kind, path in side_rasters(options).items()
+                                             if path})
+
+
+def mosaic_paths(outputs, options: FitOptions) -> dict:
+    """The VRT mosaic of each raster kind under --seamless -O: the DEMs' DIR/MOSAIC_NAME, and
+    for each side raster the .vrt path its option names (--slope out/slope.vrt)."""
+    paths = {"dem": str(Path(outputs[0]).parent / MOSAIC_NAME)}
+    paths.update({kind: str(path) for kind, path in side_rasters(options).items() if path})
+    return paths
+
+
+def side_rasters(options: FitOptions) -> dict:
+    """{kind: the path --slope, --aspect, --hillshade, --support give (None: not asked)},
+    in SIDE_KINDS' order."""
+    return {"slope": options.slope, "aspect": options.aspect, "hillshade": options.hillshade,
+            "support": options.support}
+
+
+def dem_windows(grid, survey, model: SurfaceModel) -> list:
+    """Per input of the survey, the window of the survey's DEM grid (RasterGrid.window) its
+    DEM covers, or None: every cell holding one of its points and every cell whose centre
+    lies in the bounding box of a triangle it owns (the triangle's lowest-numbered corner
+    point is its: survey.tiles' ownership rule). Every cell the survey's DEM gives a value
+    lies in some window: in a triangle, or holding a point (the nearest-triangle rule)."""
+    interp, origin, r = model.interp, model.frame.origin, grid.resolution
+    corner = model.hf.source_index[model.used]                   # interpolator vertex -> survey point
+    owner = survey.input_of(corner[interp.triangles].min(axis=1))
+    windows = []
+    for tile in range(len(survey.names)):
+        points = survey.cloud.points[survey.offsets[tile]:survey.offsets[tile + 1], :2]
+        owned = interp.points[interp.triangles[owner == tile]].reshape(-1, 2) + origin[:2]
+        xy = np.concatenate([points, owned])
+        if not len(xy):
+            windows.append(None)
+            continue
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        cols = range(max(int(np.floor((lo[0] - grid.west) / r)), 0),
+                     min(int(np.floor((hi[0] - grid.west) / r)) + 1, grid.width))
+        rows = range(max(int(np.floor((grid.north - hi[1]) / r)), 0),
+                     min(int(np.floor((grid.north - lo[1]) / r)) + 1, grid.height))
+        windows.append(grid.window(rows, cols) if len(rows) and len(cols) else None)
+    return windows
+
+
+def fit_points(model: SurfaceModel) -> np.ndarray:
+    """(k, 2) the points the fit used, in the frame's plane: the spline's vertices (the
+    points it interpolates), or the data of a smoothing fit thinned by --spacing (its
+    vertices are no points). The support layer measures distances to these."""
+    return model.hf.xy if model.thinned else model.hf.xy[model.used]
+
+
+def fill_facts(option, distance: float | None, model: SurfaceModel) -> dict:
+    """The report's raster.fill: the --fill asked for (its default: geo.raster.DEFAULT_FILL),
+    the distance it resolved to (null: off; "inf": the whole hull) and the triangles that
+    span the trim's holes."""
+    spans = 0 if model.trimmed is None else int((~model.trimmed).sum())
+    shown = None if distance is None else ("inf" if math.isinf(distance) else distance)
+    return {"option": option, "distance": shown, "triangles_spanning_holes": spans}
 
 
 def _slope_note(model: SurfaceModel) -> dict:
@@ -500,9 +729,13 @@ def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool 
 
 def points_on_surface(model: SurfaceModel) -> int:
     """The points the surface uses: its vertices, or with --spacing the points its
-    triangles cover (the data of the fit), for the unused-points warning."""
+    triangles cover (the data of the fit), for the unused-points warning. A DEM's fill
+    (model.trimmed) counts the trimmed triangles' vertices: the warning is about the trim,
+    and says the same for the mesh and the DEM of one fit."""
     if model.thinned:
         return int(model.hf.xy.shape[0] - model.smoothing.outside)
+    if model.trimmed is not None:
+        return int(np.unique(model.interp.triangles[model.trimmed]).size)
     return int(model.used.size)
 
 

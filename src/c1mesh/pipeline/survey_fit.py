@@ -10,23 +10,31 @@ import time
 from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
+from c1mesh.core.crs import parse_crs
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import TiledRun
-from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.warnings import smoothing_suggestion
-from c1mesh.core.crs import parse_crs
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.geo.products import resolve_crs
-from c1mesh.pipeline.steps import StageTimer
-from c1mesh.pipeline.driver import (angle_z_factor, build_surface, fit, frame_facts, smoothing_facts,
-                                    surface_facts, trim_facts)
+from c1mesh.geo.raster import is_raster_path
+from c1mesh.pipeline.driver import (
+    angle_z_factor,
+    build_surface,
+    fit,
+    fit_dem_tiles,
+    frame_facts,
+    smoothing_facts,
+    surface_facts,
+    trim_facts,
+)
 from c1mesh.pipeline.plan import fit_plan, resolve_options_axis
 from c1mesh.pipeline.report import ReportCore, crs_facts, scheme_facts
+from c1mesh.pipeline.steps import StageTimer
+from c1mesh.stages.surface import PLANE_LEVEL
+from c1mesh.stages.warnings import smoothing_suggestion
 from c1mesh.survey.distributed import run_tiles
 from c1mesh.survey.tiled_fit import fit_tiled
 from c1mesh.survey.tiled_plan import needs_tiles
 from c1mesh.survey.tiles import load_survey, plan_tiles, write_tiles
-
 
 OWNERSHIP = "lowest-numbered corner point"
 """The report's ownership of --seamless -O: the rule that gives each triangle to one output."""
@@ -78,6 +86,10 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         report = fit(survey.cloud, output, options, on_stage=progress.on_stage, keep_mesh=False).report
         report["input"] = list(survey.names)
         report["seconds"] = {"read": timer.seconds["read"], **report["seconds"]}
+        return report
+    if is_raster_path(outputs[0]):             # per-tile DEMs and their VRT mosaic
+        report = fit_dem_tiles(survey, outputs, options, timer)
+        report["ownership"] = OWNERSHIP
         return report
     level_from = "default" if options.level is None else "option"
     if options.level is None:                   # a height field: PLANE_LEVEL unless --level is given

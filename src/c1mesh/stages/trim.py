@@ -139,6 +139,16 @@ def trim_mesh(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None 
     return mesh.with_alive(alive), report
 
 
+def trim_again(mesh: TrimmedMesh, max_edge: str | float | None,
+               min_circle_ratio: float = MIN_CIRCLE_RATIO) -> tuple[TrimmedMesh, TrimReport]:
+    """trim_mesh of the triangulation `mesh` was cut from (mesh.source) with another
+    max_edge, reusing its edge lengths and neighbours (no second edge sort): a DEM's fill
+    (c1mesh.pipeline.driver.filled_mesh) trims it again without max_edge."""
+    alive, report = _trim(mesh.n_points, mesh.source, mesh.lengths, mesh.neighbours, max_edge,
+                          min_circle_ratio)
+    return mesh.with_alive(alive), report
+
+
 def retrim(mesh: TrimmedMesh, drop: np.ndarray, min_circle_ratio: float = MIN_CIRCLE_RATIO
            ) -> tuple[TrimmedMesh, dict[str, int]]:
     """The mesh without the live triangles ``drop`` (indices into mesh.source), and without
