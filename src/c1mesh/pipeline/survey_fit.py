@@ -7,10 +7,12 @@ LAS/LAZ survey larger than --memory goes to the memory-bounded fit (survey.tiled
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Callable, Sequence
 
 from c1mesh.core.errors import InputError
 from c1mesh.stages.frame import resolve_axis
+from c1mesh.stages.ground import resolved_classes
 from c1mesh.stages.surface import with_plane_level
 from c1mesh.stages.warnings import smoothing_suggestion
 from c1mesh.core.crs import parse_crs
@@ -71,6 +73,8 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         return report
     level_from = "default" if options.level is None else "option"
     options = with_plane_level(options)         # a height field: PLANE_LEVEL unless --level is given
+    if not isinstance(options.classes, tuple):  # the stages see codes: the filter's ground as 2
+        options = replace(options, classes=resolved_classes(survey.cloud.selection))
 
     crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
@@ -83,6 +87,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         crs=crs_facts(crs, crs_source),
         seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options))
     report.update(smoothing_facts(model))
+    report.update({} if survey.cloud.selection is None else {"classes": survey.cloud.selection})
     jobs = jobs or 1
     report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
                    "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})
@@ -103,8 +108,33 @@ def fit_in_tiles(source, output, options, **run) -> dict:
     if getattr(options, "spacing", None) is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
+    options, selection = tiled_classes(source, options)
     facts = fit_tiled(source, output, options, options.memory, **run)
-    return tiled_report(facts, options)
+    report = tiled_report(facts, options)
+    report["classes"] = selection
+    return report
+
+
+def tiled_classes(source, options):
+    """(options with classes resolved to codes or None, the report's "classes") for the
+    tiled fit: the ground class 2 by default when the survey has any (a scan of its
+    classes first), every point for "all", the given codes. The ground filter runs in
+    memory only for now: InputError when it would be needed (no class 2) or is asked for."""
+    from c1mesh.survey.tiled_input import survey_classes, survey_name, survey_paths
+
+    choice, name = options.classes, survey_name(survey_paths(source))
+    if isinstance(choice, tuple):
+        return options, {"selected": list(choice), "source": "option"}
+    if choice in ("all", None):
+        return replace(options, classes=None), {"selected": "all", "source": "option"}
+    refusal = (f"{name}: the ground filter runs in memory only, not in the tiles of a fit larger than "
+               "--memory; give --classes all (every point) or the codes to fit, or raise --memory")
+    if choice == "filter":
+        raise InputError(refusal)
+    has_ground, found = survey_classes(source, getattr(options, "bounds", None))
+    if not has_ground:
+        raise InputError(f"{refusal} (the file has no ground class 2; classes {sorted(found)[:20]})")
+    return replace(options, classes=(2,)), {"selected": [2], "source": "file"}
 
 
 def tiled_report(facts: dict, options) -> dict:

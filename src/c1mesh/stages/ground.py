@@ -53,6 +53,8 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from c1mesh.core.errors import InputError
+
 #: The truncation (in σ) of the Gaussian weights of the DEM's plane fit.
 _FILL_TRUNCATE = 4
 #: The scales of the first pass's DEM, which serves only the ground slope near ground.
@@ -154,6 +156,7 @@ def classify_ground(points: np.ndarray, owned: np.ndarray | None = None,
     if finite.sum() == 0:
         return ground[owned]
     grid, row, col = _grid_of(points[finite], params.cell)
+    check_density(grid.shape, int(finite.sum()), params)
     zmin = _minimum_surface(grid, row, col, points[finite, 2])
     data = np.isfinite(zmin)
     raised = _raised_segments(_median_surface(grid, row, col, points[finite, 2]), data, params)
@@ -166,6 +169,23 @@ def classify_ground(points: np.ndarray, owned: np.ndarray | None = None,
         dem, slope = _provisional_dem(zmin, data & ~objects, grid, params.fill_scales)
     ground[finite] = _near_dem(points[finite], dem, slope, grid, params)
     return ground[owned]
+
+
+#: The most grid cells per point the filter allocates (beyond a floor of MAX_CELLS_FLOOR):
+#: a sparse survey would otherwise make a grid of gigabytes for a few points.
+MAX_CELLS_PER_POINT = 64
+MAX_CELLS_FLOOR = 4_000_000
+
+
+def check_density(shape: tuple[int, int], count: int, params: GroundParameters) -> None:
+    """InputError when a grid of `shape` cells is too large for `count` points: fewer than
+    one point per MAX_CELLS_PER_POINT cells (over MAX_CELLS_FLOOR cells), far too sparse
+    for a ground filter of params.cell-metre cells and a waste of memory."""
+    cells = shape[0] * shape[1]
+    if cells > max(MAX_CELLS_FLOOR, MAX_CELLS_PER_POINT * count):
+        area = cells * params.cell ** 2
+        raise InputError(f"{count} points over {area / 1e6:.3g} km² are too sparse for the ground filter "
+                         f"(under one point per {MAX_CELLS_PER_POINT} m² of its {params.cell:g} m grid)")
 
 
 def _ground_slope(zmin: np.ndarray, data: np.ndarray, raised: np.ndarray, grid: _Grid,
@@ -396,3 +416,62 @@ def _near_dem(points: np.ndarray, dem: np.ndarray, slope: np.ndarray, grid: _Gri
     allowed = params.threshold + params.scalar * slope[own_row, own_col]
     with np.errstate(invalid="ignore"):
         return (total > 0) & (np.abs(points[:, 2] - height) <= allowed)
+
+
+FILTER_NAME = "SMRF, slope-adaptive, with raised segments (c1mesh.stages.ground)"
+"""The filter's name in reports."""
+CLASS_CHOICES = ("auto", "all", "filter")
+"""The word values of the fit's class choice (else a tuple of LAS codes): auto, the file's
+ground class 2 when it has any, else the ground filter's ground; all, every point; filter,
+the filter's ground even when the file has class 2."""
+
+
+def filter_file_points(points: np.ndarray, crs: str | None,
+                       params: GroundParameters = GroundParameters()) -> tuple[np.ndarray, dict]:
+    """((n,) bool ground, the report's facts about the filter) of points in their file's
+    units: converted to metres by the CRS's linear units first (c1mesh.core.crs;
+    metres when there is no CRS), so the filter's metre parameters mean metres."""
+    from c1mesh.core.crs import metres_per_unit
+
+    xy_unit, z_unit, unit = metres_per_unit(crs)
+    metres = np.asarray(points, dtype=np.float64) * np.array([xy_unit, xy_unit, z_unit])
+    ground = classify_ground(metres, None, params)
+    facts = {"name": FILTER_NAME, "parameters": params.as_dict(), "units": unit if crs else "metre (no CRS)",
+             "metres_per_unit": [xy_unit, z_unit], "halo_m": halo_width(params),
+             "points": int(len(ground)), "ground": int(ground.sum())}
+    return ground, facts
+
+
+def choose_points(classification: np.ndarray | None, points: np.ndarray, crs: str | None,
+                  choice) -> tuple[np.ndarray | None, dict | None]:
+    """(which points a fit keeps, (n,) bool or None for all; the report's "classes"
+    facts, None for a file without classes) by the class choice (CLASS_CHOICES, or a
+    tuple of codes, which the reader has applied already: every point is kept).
+
+    facts: selected (the codes kept, [2] for the filter's ground, or "all"), points_read
+    and points_kept (for given codes the reader kept them: both count the kept), source
+    ("option": --classes, "file": the file's class 2, "filter": the ground filter, run
+    because the file has no class 2 or because --classes filter asked), filter (its
+    name, parameters and counts, when it ran)."""
+    if classification is None:
+        return None, None
+    counts = lambda keep: {"points_read": int(len(classification)),  # noqa: E731
+                           "points_kept": int(len(classification) if keep is None else keep.sum())}
+    if isinstance(choice, tuple):
+        return None, {"selected": [int(c) for c in choice], "source": "option", **counts(None)}
+    if choice == "all" or choice is None:
+        return None, {"selected": "all", "source": "option", **counts(None)}
+    if choice == "auto" and np.any(classification == 2):
+        keep = classification == 2
+        return keep, {"selected": [2], "source": "file", **counts(keep)}
+    ground, facts = filter_file_points(points, crs)
+    why = "asked (--classes filter)" if choice == "filter" else "the file has no ground class 2"
+    return ground, {"selected": [2], "source": "filter", "reason": why, **counts(ground), "filter": facts}
+
+
+def resolved_classes(facts: dict | None) -> tuple[int, ...] | None:
+    """The classes a fit's later stages see (tuple of codes, None: all): the filter's
+    ground counts as class 2 (ground), as in the file."""
+    if facts is None or facts["selected"] == "all":
+        return None
+    return tuple(facts["selected"])

@@ -102,6 +102,23 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     return chunks
 
 
+def survey_classes(source, bounds=None, chunk: int = CHUNK) -> tuple[bool, set[int]]:
+    """(whether the survey has a point of the ground class 2, the classes seen) over a
+    LAS/LAZ file or a list read as one survey (inside `bounds`, as las_chunks reads it),
+    stopping at the first chunk with class 2: how the tiled fit resolves its default
+    class choice (the ground class when there is one) before its passes."""
+    from c1mesh.formats.copc import region_chunks
+
+    found: set[int] = set()
+    for path in survey_paths(source):
+        for part in region_chunks(path, bounds, chunk):
+            classes = np.asarray(part.classification)
+            found.update(np.unique(classes).tolist())
+            if 2 in found:
+                return True, found
+    return False, found
+
+
 def _kept_columns(part, names, keep, dtype) -> np.ndarray:
     """(m, len(names)) the named dimensions of a laspy record's rows `keep` (bool, or None:
     all), filled a column at a time: a whole-chunk (n, 3) copy and its filtered copy

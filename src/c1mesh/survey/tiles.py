@@ -52,6 +52,24 @@ class Survey:
         return np.searchsorted(self.offsets[1:], point_index, side="right")
 
 
+def _choose_survey_points(clouds: list, choice) -> tuple[list, dict | None]:
+    """(the clouds restricted to the survey's chosen points, the report's "classes"):
+    c1mesh.stages.ground.choose_points over the whole survey at once, so that "auto" takes
+    class 2 from every file when any file has it, and the ground filter otherwise, run
+    over all files together (it sees across their edges, as in one file)."""
+    from c1mesh.stages.ground import choose_points
+
+    if any(c.classification is None for c in clouds) or not clouds:
+        return clouds, None
+    classification = np.concatenate([c.classification for c in clouds])
+    points = np.concatenate([c.points for c in clouds])
+    keep, selection = choose_points(classification, points, clouds[0].crs, choice)
+    if keep is None:
+        return clouds, selection
+    ends = np.cumsum([len(c) for c in clouds])[:-1]
+    return [c.subset(part) for c, part in zip(clouds, np.split(keep, ends))], selection
+
+
 def load_survey(sources: Sequence[str], options) -> Survey:
     """Read every input (keeping options.classes) and concatenate them in order.
 
@@ -67,12 +85,13 @@ def load_survey(sources: Sequence[str], options) -> Survey:
     clouds, found = [], set()
     for source in sources:
         cloud = read_cloud(source, options.input_format, bounds=getattr(options, "bounds", None))
-        if options.classes:
+        if isinstance(options.classes, tuple):
             if cloud.classification is None:
                 raise InputError(f"{source}: --classes needs a classification field (LAS/LAZ)")
             found.update(np.unique(cloud.classification).tolist())
             cloud = cloud.subset(np.isin(cloud.classification, np.asarray(options.classes)))
         clouds.append(cloud)
+    clouds, selection = _choose_survey_points(clouds, options.classes)
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
     if counts.sum() == 0 and found:                  # the words of the one-file reader
         raise no_class_error(list(options.classes), found, getattr(options, "bounds", None) is not None)
@@ -87,7 +106,7 @@ def load_survey(sources: Sequence[str], options) -> Survey:
     classification = _concatenate([c.classification for c in clouds])
     cloud = PointCloud(np.concatenate([c.points for c in clouds]), normals, colors, classification,
                        crs=survey_crs(sources, [c.crs for c in clouds]),
-                       height_column=survey_height_column(sources, clouds))
+                       height_column=survey_height_column(sources, clouds), selection=selection)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     return Survey(cloud, [str(s) for s in sources], offsets)
 
