@@ -238,8 +238,9 @@ def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path)
 
     box = _region(_whole()[0])
     source = _filtered_las(COPC, box, tmp_path / "filtered.las")
-    options = FitOptions(level=2, memory=10**9)
-    report = fit_tiled(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box),
+    options = FitOptions(level=2, memory=10**9, classes="all")
+    report = fit_tiled(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box,
+                                                                      classes="all"),
                        memory=10**9, per_tile=120)
     fit_tiled(str(source), tmp_path / "filtered.ply", options, memory=10**9, per_tile=120)
     assert report["tiles"] >= 4
@@ -258,7 +259,7 @@ def test_a_seamless_survey_by_bounds_reads_each_input_filtered(tmp_path):
     box = _region(points)
     everything = (-1e9, -1e9, 1e9, 1e9)
     plain = _filtered_las(COPC, everything, tmp_path / "plain.las")       # the same points, not COPC
-    survey = load_survey([str(COPC), str(plain)], FitOptions(bounds=box))
+    survey = load_survey([str(COPC), str(plain)], FitOptions(bounds=box, classes="all"))
     inside = points[_in(points, box)]
     np.testing.assert_array_equal(survey.cloud.points, np.concatenate([inside, inside]))
     assert list(np.diff(survey.offsets)) == [len(inside), len(inside)]

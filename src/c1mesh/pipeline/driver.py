@@ -123,6 +123,11 @@ class FitOptions:
     smooth: Any = "off"
     spacing: float | None = None
 
+    def __post_init__(self) -> None:
+        """classes given as a list (or any iterable of codes) is the tuple of its codes."""
+        if not isinstance(self.classes, (str, tuple)) and self.classes is not None:
+            self.classes = tuple(int(code) for code in self.classes)
+
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
     """Read the input and keep the points options.classes chooses (`choose_classes`)."""

@@ -108,33 +108,8 @@ def fit_in_tiles(source, output, options, **run) -> dict:
     if getattr(options, "spacing", None) is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
-    options, selection = tiled_classes(source, options)
     facts = fit_tiled(source, output, options, options.memory, **run)
-    report = tiled_report(facts, options)
-    report["classes"] = selection
-    return report
-
-
-def tiled_classes(source, options):
-    """(options with classes resolved to codes or None, the report's "classes") for the
-    tiled fit: the ground class 2 by default when the survey has any (a scan of its
-    classes first), every point for "all", the given codes. The ground filter runs in
-    memory only for now: InputError when it would be needed (no class 2) or is asked for."""
-    from c1mesh.survey.tiled_input import survey_classes, survey_name, survey_paths
-
-    choice, name = options.classes, survey_name(survey_paths(source))
-    if isinstance(choice, tuple):
-        return options, {"selected": list(choice), "source": "option"}
-    if choice in ("all", None):
-        return replace(options, classes=None), {"selected": "all", "source": "option"}
-    refusal = (f"{name}: the ground filter runs in memory only, not in the tiles of a fit larger than "
-               "--memory; give --classes all (every point) or the codes to fit, or raise --memory")
-    if choice == "filter":
-        raise InputError(refusal)
-    has_ground, found = survey_classes(source, getattr(options, "bounds", None))
-    if not has_ground:
-        raise InputError(f"{refusal} (the file has no ground class 2; classes {sorted(found)[:20]})")
-    return replace(options, classes=(2,)), {"selected": [2], "source": "file"}
+    return tiled_report(facts, options)
 
 
 def tiled_report(facts: dict, options) -> dict:

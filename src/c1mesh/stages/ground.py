@@ -255,35 +255,40 @@ def _smrf_objects(zmin: np.ndarray, data: np.ndarray, params: GroundParameters, 
 
 
 def _raised_segments(zmid: np.ndarray, data: np.ndarray, params: GroundParameters) -> np.ndarray:
-    """(rows, cols) bool: data cells of segments of the median surface `zmid` (4-neighbour
-    cells whose heights differ by less than `step`, small gaps closed: _close_gaps)
-    smaller than segment_extent that stand `step` or more above their border on at
-    least raised_fraction of it."""
-    zmin = zmid
+    """(rows, cols) bool: the data cells of raised segments of the median surface `zmid`:
+    segments (`_segments`) smaller than segment_extent whose border pairs (neighbour
+    cells in another segment) have the segment `step` or more above the neighbour in at
+    least raised_fraction of them."""
     extent = _cells(params.segment_extent, params.cell)
     if extent <= 0 or not data.any():
-        return np.zeros(zmin.shape, dtype=bool)
-    surface = _close_gaps(zmin)
+        return np.zeros(zmid.shape, dtype=bool)
+    surface = _close_gaps(zmid)
+    labels, count, pairs, joined = _segments(surface, params.step)
+    first, second = labels.flat[pairs[0][~joined]] - 1, labels.flat[pairs[1][~joined]] - 1
+    rise = surface.flat[pairs[0][~joined]] - surface.flat[pairs[1][~joined]]
+    up = (np.bincount(first[rise >= params.step], minlength=count)
+          + np.bincount(second[-rise >= params.step], minlength=count))
+    border = np.bincount(first, minlength=count) + np.bincount(second, minlength=count)
+    raised = _small_segments(labels, count, extent) & (border > 0) & (up >= params.raised_fraction * border)
+    return data & (labels > 0) & raised[np.maximum(labels - 1, 0)]
+
+
+def _segments(surface: np.ndarray, step: float) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """(labels (rows, cols) 1… per segment, 0 for empty cells; the number of segments; the
+    (2, k) flat indices of 4-neighbour pairs of cells; (k,) whether each pair is joined):
+    cells join when they differ by less than `step` and neither is inside a jump."""
     cells = np.isfinite(surface)
-    index = np.full(zmin.shape, -1, dtype=np.int64)
+    index = np.full(surface.shape, -1, dtype=np.int64)
     index[cells] = np.arange(int(cells.sum()))
     pairs, distance = _neighbour_pairs(cells)
-    bridge = _bridges(surface, params.step).ravel()
-    near = (np.abs(surface.flat[pairs[0]] - surface.flat[pairs[1]]) < params.step * distance) \
+    bridge = _bridges(surface, step).ravel()
+    joined = (np.abs(surface.flat[pairs[0]] - surface.flat[pairs[1]]) < step * distance) \
         & ~bridge[pairs[0]] & ~bridge[pairs[1]]
-    a, b = index.flat[pairs[0]], index.flat[pairs[1]]
-    n = int(cells.sum())
-    graph = coo_matrix((np.ones(int(near.sum())), (a[near], b[near])), shape=(n, n))
-    count, label = connected_components(graph, directed=False)
-    labels = np.zeros(zmin.shape, dtype=np.int64)
+    a, b, n = index.flat[pairs[0]][joined], index.flat[pairs[1]][joined], int(cells.sum())
+    count, label = connected_components(coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)), directed=False)
+    labels = np.zeros(surface.shape, dtype=np.int64)
     labels[cells] = label + 1
-    small = _small_segments(labels, count, extent)
-    higher = surface.flat[pairs[0]] > surface.flat[pairs[1]]
-    border_a, border_b = label[a[~near]], label[b[~near]]
-    up = np.bincount(np.where(higher[~near], border_a, border_b), minlength=count)
-    border = np.bincount(border_a, minlength=count) + np.bincount(border_b, minlength=count)
-    raised = small & (border > 0) & (up >= params.raised_fraction * np.maximum(border, 1))
-    return data & raised[np.maximum(labels - 1, 0)]
+    return labels, count, pairs, joined
 
 
 #: The neighbours a segment joins: right and down (each pair once).

@@ -65,7 +65,7 @@ from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
-                                       survey_paths)
+                                       survey_paths, tiled_classes)
 from c1mesh.survey.tiled_limiter import TiledLimiter
 from c1mesh.survey.tiled_plan import grid_side, point_bytes, smoothing_of, task_threads, tiles_at_once
 from c1mesh.survey.tiled_refine import Split, write_tiles
@@ -127,6 +127,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
     options = with_plane_level(options)
     _check_options(options)
     strength = smoothing_of(options)
+    options, selection = tiled_classes(source, options)     # class 2 by default; no filter in tiles
     # the tiles estimate their normals; their gradients come from the heights by default
     gradient_source = "heights" if use_height_gradients(getattr(options, "gradients", "auto"),
                                                         "estimated") else "normals"
@@ -237,6 +238,7 @@ def fit_tiled(source, output, options, memory: int, per_tile: int | None = None,
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = describe_crs(crs, crs_source)
+    report["classes"] = selection
     if strength is not None:
         report["smoothing"] = limiter.smoothing()
     return report

@@ -119,6 +119,31 @@ def survey_classes(source, bounds=None, chunk: int = CHUNK) -> tuple[bool, set[i
     return False, found
 
 
+def tiled_classes(source, options):
+    """(options with classes resolved to codes or None, the report's "classes") for the
+    tiled fit: the ground class 2 by default ("auto") when the survey has any (a scan of
+    its classes first), every point for "all" (or None), the given codes. The ground filter
+    runs in memory only for now: InputError when it would be needed (no class 2) or is
+    asked for ("filter")."""
+    from dataclasses import replace
+
+    from c1mesh.core.errors import InputError
+
+    choice, name = options.classes, survey_name(survey_paths(source))
+    if isinstance(choice, tuple):
+        return options, {"selected": list(choice), "source": "option"}
+    if choice in ("all", None):
+        return replace(options, classes=None), {"selected": "all", "source": "option"}
+    refusal = (f"{name}: the ground filter runs in memory only, not in the tiles of a fit larger than "
+               "--memory; give --classes all (every point) or the codes to fit, or raise --memory")
+    if choice == "filter":
+        raise InputError(refusal)
+    has_ground, found = survey_classes(source, getattr(options, "bounds", None))
+    if not has_ground:
+        raise InputError(f"{refusal} (the file has no ground class 2; classes {sorted(found)[:20]})")
+    return replace(options, classes=(2,)), {"selected": [2], "source": "file"}
+
+
 def _kept_columns(part, names, keep, dtype) -> np.ndarray:
     """(m, len(names)) the named dimensions of a laspy record's rows `keep` (bool, or None:
     all), filled a column at a time: a whole-chunk (n, 3) copy and its filtered copy
