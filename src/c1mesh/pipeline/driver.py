@@ -377,7 +377,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
         if not plan_heights:     # its angles and noise widths compare heights with plane lengths
             mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
-                                                view_rules_apply(options.classes, frame.axes))
+                                                view_rules_apply(_fitted_classes(cloud, options), frame.axes))
         check_triangles_left(mesh.triangles.shape[0])
         local, triangles = compact_vertices(xy, mesh.triangles)
         used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
@@ -400,6 +400,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                                  gradient_weight=weight)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied, smoothing, vertices is not None)
+
+
+def _fitted_classes(cloud: PointCloud, options: FitOptions) -> tuple[int, ...] | None:
+    """The classification codes of the points fitted: options.classes when it names codes,
+    else what the loader chose (cloud.selection: the filter's ground counts as class 2)."""
+    return options.classes if isinstance(options.classes, tuple) else resolved_classes(cloud.selection)
 
 
 def fit(source, output=None, options: FitOptions | None = None,
