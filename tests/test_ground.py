@@ -136,3 +136,11 @@ def test_metres_per_unit_of_feet_crs():
     assert metres_per_unit(parse_crs("EPSG:2227"))[0] == pytest.approx(1200 / 3937)     # CA zone 3, US ft
     assert metres_per_unit(parse_crs("EPSG:32610"))[:2] == (1.0, 1.0)
     assert metres_per_unit(None)[:2] == (1.0, 1.0)
+
+
+def test_a_sparse_survey_is_refused_before_allocating_its_grid():
+    """Two points 10 km apart would make a 10⁸-cell grid: refused in one message."""
+    from c1mesh.core.errors import InputError
+
+    with pytest.raises(InputError, match="too sparse for the ground filter"):
+        classify_ground(np.array([[0.0, 0.0, 1.0], [10_000.0, 10_000.0, 2.0]]))

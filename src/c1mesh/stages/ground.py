@@ -185,7 +185,8 @@ def check_density(shape: tuple[int, int], count: int, params: GroundParameters) 
     if cells > max(MAX_CELLS_FLOOR, MAX_CELLS_PER_POINT * count):
         area = cells * params.cell ** 2
         raise InputError(f"{count} points over {area / 1e6:.3g} km² are too sparse for the ground filter "
-                         f"(under one point per {MAX_CELLS_PER_POINT} m² of its {params.cell:g} m grid)")
+                         f"(under one point per {MAX_CELLS_PER_POINT * params.cell ** 2:g} m², "
+                         f"{MAX_CELLS_PER_POINT} cells of its {params.cell:g} m grid)")
 
 
 def _ground_slope(zmin: np.ndarray, data: np.ndarray, raised: np.ndarray, grid: _Grid,
