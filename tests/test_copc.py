@@ -238,9 +238,9 @@ def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path)
 
     box = _region(_whole()[0])
     source = _filtered_las(COPC, box, tmp_path / "filtered.las")
-    options = FitOptions(level=2, memory=10**9)
-    report = fit_in_tiles(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box),
-                          TiledRun(per_tile=120))
+    options = FitOptions(level=2, memory=10**9, classes="all")
+    report = fit_in_tiles(str(COPC), tmp_path / "bounds.ply",
+                          FitOptions(level=2, memory=10**9, bounds=box, classes="all"), TiledRun(per_tile=120))
     fit_in_tiles(str(source), tmp_path / "filtered.ply", options, TiledRun(per_tile=120))
     assert report["tiles"] >= 4
     assert _ply_body(tmp_path / "bounds.ply") == _ply_body(tmp_path / "filtered.ply")
@@ -258,7 +258,7 @@ def test_a_seamless_survey_by_bounds_reads_each_input_filtered(tmp_path):
     box = _region(points)
     everything = (-1e9, -1e9, 1e9, 1e9)
     plain = _filtered_las(COPC, everything, tmp_path / "plain.las")       # the same points, not COPC
-    survey = load_survey([str(COPC), str(plain)], PointSelection(bounds=box))
+    survey = load_survey([str(COPC), str(plain)], PointSelection(bounds=box, classes="all"))
     inside = points[_in(points, box)]
     np.testing.assert_array_equal(survey.cloud.points, np.concatenate([inside, inside]))
     assert list(np.diff(survey.offsets)) == [len(inside), len(inside)]

@@ -12,6 +12,7 @@ import click
 from c1mesh import __version__
 from c1mesh.cli.fitting import Console, Destination, Workers, fit_batch, fit_one, fit_survey, threads_per_process
 from c1mesh.cli.options import (
+    CLASSES_HELP,
     INPUT_FORMAT_HELP,
     MEMORY_HELP,
     OUTPUT_HELP,
@@ -51,7 +52,7 @@ def main() -> None:
 @click.option("--suffix", default=".c1.ply", show_default=True,
               help="Output name suffix with -O; its extension picks the format, as for -o.")
 @click.option("--input-format", help=INPUT_FORMAT_HELP)
-@click.option("--classes", help="Keep only these LAS classification codes, e.g. 2 or 2,9 (2 = ground).")
+@click.option("--classes", default="auto", show_default=True, help=CLASSES_HELP)
 @click.option("--normals", type=click.Choice(["auto", "file", "estimate"]), default="auto", show_default=True,
               help="auto: the file's normals if present, else estimated (Open3D).")
 @click.option("--k", "k", type=click.IntRange(3, 1000), default=16, show_default=True,
@@ -183,6 +184,21 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
         fit_one(*pairs[0], targets, options, console, Workers(jobs, threads, scheduler))
         return
     fit_batch(pairs, targets[-1], options, console, Workers(jobs, threads, scheduler))
+
+
+# -------------------------------------------------------------------------------- ground
+@main.command()
+@click.argument("input_path", metavar="INPUT")
+@click.option("-o", "--output", required=True, help="The LAS/LAZ file to write (.las or .laz).")
+@click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
+@click.option("-q", "--quiet", is_flag=True, help="No summary line.")
+@click.option("--debug", is_flag=True, help="Show tracebacks.")
+def ground(input_path, output, report, quiet, debug):
+    """Write INPUT's points with the ground filter's classes: 2 ground, 1 the rest (docs/ground.md)."""
+    from c1mesh.cli.fitting import classify_ground_file
+
+    check_usage(click.get_current_context())
+    classify_ground_file(input_path, output, report, quiet, debug)
 
 
 # ---------------------------------------------------------------------------------- info

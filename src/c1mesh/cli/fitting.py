@@ -276,3 +276,25 @@ def _collect(iterator, total, show, verbose):
             if verbose and item[1]:
                 click.echo(summary(item[1]), err=True)
     return results
+
+
+def classify_ground_file(src: str, dst: str, report, quiet: bool, debug: bool) -> None:
+    """`c1mesh ground`: the output and the report checked against the input and each other
+    before anything is read, then written together (atomically) or not at all."""
+    from c1mesh.pipeline.ground_file import classify_file
+
+    try:
+        targets = plan_outputs([("output", dst), ("report", None if report in (None, STDIO) else report)], [src])
+        with Outputs() as outputs:
+            with outputs.open(targets[0]) as handle:
+                result = classify_file(src, handle, dst)
+            if len(targets) > 1:
+                with outputs.open(targets[1], "w") as handle:
+                    handle.write(json.dumps(result, indent=2) + "\n")
+            outputs.commit()
+    except Exception as exc:  # noqa: BLE001 — any failure is one line
+        fail(naming(src, message(exc)), debug)
+    if report == STDIO:
+        click.echo(json.dumps(result, indent=2), err=True)
+    if not quiet and stderr_is_terminal():
+        click.echo(f"c1mesh: {src}: {result['ground']} of {result['points']} points are ground -> {dst}", err=True)

@@ -44,9 +44,22 @@ def note(report: dict, quiet: bool) -> None:
     why = report.get("max_slope_not_applied")
     if why and _option_given("max_slope"):
         click.echo(f"c1mesh: note: {_input_name(report)}: --max-slope was not applied: {why}", err=True)
+    classes = report.get("classes")
+    if classes and classes.get("source") in ("file", "filter") and stderr_is_terminal():
+        click.echo(f"c1mesh: note: {_input_name(report)}: {classes_note(classes)}", err=True)
     advice = report.get("suggestion")
     if advice and not _option_given("smooth") and stderr_is_terminal():
         click.echo(f"c1mesh: note: {_input_name(report)}: {advice}", err=True)
+
+
+def classes_note(classes: dict) -> str:
+    """The note about the points a LAS/LAZ fit chose by default: the file's ground class,
+    or the ground filter's ground (report "classes")."""
+    kept = f"{classes.get('points_kept', '?')} of {classes.get('points_read', '?')} points"
+    if classes["source"] == "file":
+        return f"fitting the ground class 2 ({kept}); --classes all fits every point"
+    return (f"fitting the ground the ground filter found ({kept}; {classes.get('reason')}); "
+            "`c1mesh ground` writes its classes for checking, --classes all fits every point")
 
 
 def _option_given(name: str) -> bool:

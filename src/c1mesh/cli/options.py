@@ -12,15 +12,25 @@ import click
 from c1mesh.core.errors import C1MeshError
 from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, RASTER_FORMATS, STDIO
 
+CLASSES_HELP = ("LAS/LAZ points to fit: auto (the ground class 2 when the file has any, else the ground "
+                "the ground filter finds: docs/ground.md), all (every point, for a top surface), filter "
+                "(the filter's ground even when the file has class 2), or codes such as 2 or 2,9.")
 
-def parse_classes(value: str | None) -> tuple[int, ...] | None:
-    """--classes: comma-separated LAS classification codes (None = every class)."""
-    if not value:
-        return None
+
+def parse_classes(value: str | None):
+    """--classes: "auto" (the default, also for no value), "all", "filter", or a tuple of
+    comma-separated LAS classification codes."""
+    if not value or value.strip().lower() == "auto":
+        return "auto"
+    if value.strip().lower() in ("all", "filter"):
+        return value.strip().lower()
     try:
-        return tuple(int(v) for v in value.split(",") if v.strip())
+        codes = tuple(int(v) for v in value.split(",") if v.strip())
     except ValueError:
-        raise click.BadParameter(f"expected comma-separated integers such as 2,9, got {value!r}")
+        raise click.BadParameter(f"expected auto, all, filter or comma-separated codes such as 2,9, got {value!r}")
+    if not codes or any(not 0 <= c <= 255 for c in codes):
+        raise click.BadParameter(f"expected classification codes 0-255 such as 2,9, got {value!r}")
+    return codes
 
 
 def parse_memory_option(ctx, param, value):

@@ -133,7 +133,7 @@ def _format_problems(params: dict, outputs: list[str]) -> list[str]:
         others = sorted({extension(dst) for dst in outputs} - {"ply", ""})
         if others:
             problems.append(f"--ascii applies to PLY output only, not .{others[0]}")
-    if params["classes"]:
+    if _classes_choice(params["classes"]) != "auto":
         kinds = {(params["input_format"] or Path(src).suffix).lower().lstrip(".") for src in params["inputs"]
                  if src != STDIO or params["input_format"]}
         others = sorted(kinds - set(LAS_FORMATS))
@@ -141,6 +141,14 @@ def _format_problems(params: dict, outputs: list[str]) -> list[str]:
             problems.append("--classes needs LAS/LAZ input (a classification field), not "
                             f".{others[0] or '(no extension)'}")
     return problems
+
+
+def _classes_choice(value):
+    """parse_classes(value), or "auto" for a bad value (named by _value_problems)."""
+    try:
+        return parse_classes(value)
+    except click.BadParameter:
+        return "auto"
 
 
 def _extension_problem(dst: str, where: str | None = None) -> str | None:
@@ -238,7 +246,18 @@ def _preview_usage_problems(ctx: click.Context) -> list[str]:
     return [] if Path(output).suffix.lower() == ".png" else [f"the preview '{output}' must be a .png file"]
 
 
-USAGE_CHECKS = {"fit": _fit_usage_problems, "info": _info_usage_problems, "preview": _preview_usage_problems}
+def _ground_usage_problems(ctx: click.Context) -> list[str]:
+    """What is wrong with a `ground` command line on its own (exit 2): LAS/LAZ in and out."""
+    source, output = ctx.params["input_path"], ctx.params["output"]
+    problems = []
+    if Path(source).suffix.lower().lstrip(".") not in LAS_FORMATS:
+        problems.append(f"ground classifies LAS/LAZ files, not '{source}'")
+    if Path(output).suffix.lower() not in (".las", ".laz"):
+        problems.append(f"the output '{output}' must be a .las or .laz file")
+    return problems
+
+
+USAGE_CHECKS = {"fit": _fit_usage_problems, "ground": _ground_usage_problems, "info": _info_usage_problems, "preview": _preview_usage_problems}
 """Per command: every problem its command line shows on its own, checked before any work."""
 
 

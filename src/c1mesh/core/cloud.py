@@ -26,6 +26,9 @@ class PointCloud:
                     altitude), else None. Such heights need not share the units of x and y
                     (R's `topo`: x, y in 50 ft, z in ft), so the fit takes them as heights
                     over the plan (x, y) instead of angles in one 3-D metric.
+    selection:      how the fit chose these points from a LAS/LAZ file's (the report's
+                    "classes": the codes kept, and whether from the file, an option or
+                    the ground filter: c1mesh.stages.ground.choose_points), else None.
     """
 
     points: np.ndarray
@@ -37,6 +40,7 @@ class PointCloud:
     grid_shape: tuple[int, int] | None = None
     viewpoint: np.ndarray | None = None
     height_column: str | None = None
+    selection: dict | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -53,6 +57,7 @@ class PointCloud:
             crs=self.crs,
             viewpoint=self.viewpoint,        # a subset is no longer a grid
             height_column=self.height_column,
+            selection=self.selection,
         )
 
 

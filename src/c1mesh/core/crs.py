@@ -160,3 +160,22 @@ def crs_from_ply_header(data: bytes) -> str | None:
                 text = text.encode("ascii").decode("unicode_escape")
             return parse_crs(text) if text else None
     return None
+
+
+def metres_per_unit(wkt: str | None) -> tuple[float, float, str]:
+    """(metres per horizontal unit, metres per vertical unit, the horizontal unit's name)
+    of a CRS given as WKT: a US survey foot is 1200/3937 m, an international foot 0.3048 m.
+    The vertical unit is that of the CRS's vertical part (a compound CRS), else the
+    horizontal one, as LAS files without a vertical CRS keep heights in the plan's unit.
+    No CRS, or one without a linear unit (geographic degrees), gives (1, 1, "metre"): the
+    coordinates are taken as metres."""
+    if not wkt:
+        return 1.0, 1.0, "metre"
+    crs = _pyproj().CRS.from_wkt(wkt)
+    horizontal = [axis for axis in crs.axis_info if axis.direction.lower() in ("east", "north", "west", "south")]
+    vertical = [axis for axis in crs.axis_info if axis.direction.lower() == "up"]
+    if not horizontal or "degree" in horizontal[0].unit_name.lower():
+        return 1.0, 1.0, "metre"
+    xy = float(horizontal[0].unit_conversion_factor)
+    z = float(vertical[0].unit_conversion_factor) if vertical else xy
+    return xy, z, horizontal[0].unit_name

@@ -22,11 +22,13 @@ class PointSelection:
     """Which points of the inputs the fit reads.
 
     input_format: the reader's name for streams (None: the path's extension); classes:
-    LAS classification codes to keep (None: all); bounds: (xmin, ymin, xmax, ymax) world
+    LAS classification codes to keep, or a choice stages.ground.choose_points reads
+    ("auto": class 2 where the survey has it, else the ground filter; "all"; "filter";
+    None: all); bounds: (xmin, ymin, xmax, ymax) world
     x/y box, closed (None: everything)."""
 
     input_format: str | None = None
-    classes: tuple[int, ...] | None = None
+    classes: tuple[int, ...] | str | None = None
     bounds: tuple[float, float, float, float] | None = None
 
 

@@ -292,3 +292,32 @@ def _assemble(parts: dict[str, list[np.ndarray]]) -> PointCloud:
     if parts["normals"]:
         cloud.normals = join("normals", (0, 3), np.float64)
     return cloud
+
+
+def read_las_records(path: str) -> "laspy.LasData":
+    """Every point record of the LAS/LAZ file at `path`, with all its dimensions (laspy's
+    LasData), after the same header, length and chunk-table checks as read_las; for
+    rewriting a file with new classes (`c1mesh ground`). Errors name the file."""
+    import mmap
+
+    name = str(path)
+    try:
+        handle = open(path, "rb")
+    except OSError as exc:
+        raise InputError(f"cannot read '{name}': {exc.strerror or exc}") from None
+    with handle, contextlib.ExitStack() as stack:
+        size = handle.seek(0, io.SEEK_END)
+        data = b"" if size == 0 else stack.enter_context(mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ))
+        if not data:
+            raise FormatError(f"'{name}' is empty, not a LAS/LAZ file.")
+        with _open(data, name, lambda: open(path, "rb")) as reader, laspy_errors(name):
+            header = reader.header
+            check_alloc(header.point_count * header.point_format.size, name,
+                        f"the header's {header.point_count} point records")
+            return reader.read()
+
+
+def write_las_records(records, handle: IO[bytes], compress: bool, name: str) -> None:
+    """Write laspy LasData `records` to the binary file `handle`: LAZ when `compress`."""
+    with laspy_errors(name):
+        records.write(handle, do_compress=compress, laz_backend=laz_backend() if compress else None)

@@ -57,6 +57,7 @@ from c1mesh.pipeline.steps import (
 )
 from c1mesh.stages.curtains import remove_curtains, view_rules_apply
 from c1mesh.stages.frame import auto_axis_reason, choose_frame
+from c1mesh.stages.ground import choose_points, resolved_classes
 from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_gradients, height_neighbours, height_normals, use_height_gradients
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
@@ -80,7 +81,10 @@ class FitOptions:
     """Everything `c1mesh fit` can be told, with the CLI's defaults.
 
     axis: "auto", "x", "y", "z" or "X,Y,Z"; normals: "auto" | "file" | "estimate";
-    k: neighbours for normal estimation; classes: LAS classification codes to keep;
+    k: neighbours for normal estimation; classes: which LAS/LAZ points to fit: "auto"
+    (the default: the ground class 2 when the file has any, else the ground that
+    c1mesh.stages.ground's filter finds), "all", "filter" (the filter's ground even when
+    the file has class 2) or a tuple of classification codes (None: all, as before);
     max_slope: degrees — points whose normal is within this of perpendicular to the axis
     are dropped; max_edge: "auto", None (no limit) or a length in the scan's units;
     scheme: shape-function tuple; level: each triangle becomes level² triangles, None =
@@ -100,7 +104,7 @@ class FitOptions:
     axis: Any = "auto"
     normals: str = "auto"
     k: int = 16
-    classes: tuple[int, ...] | None = None
+    classes: Any = "auto"
     max_slope: float = 85.0
     max_edge: Any = "auto"
     scheme: str = "sextic"
@@ -151,15 +155,35 @@ class FitOptions:
     smooth: Any = "off"
     spacing: float | None = None
 
+    def __post_init__(self) -> None:
+        """classes given as a list (or any iterable of codes) is the tuple of its codes."""
+        if not isinstance(self.classes, (str, tuple)) and self.classes is not None:
+            self.classes = tuple(int(code) for code in self.classes)
+
 
 def load_cloud(source, options: FitOptions) -> PointCloud:
-    """Read the input and keep only the requested LAS classes."""
+    """Read the input and keep the points options.classes chooses (`choose_classes`)."""
     if is_depth_image(source, options.input_format):
         return read_depth_source(source, DepthCamera(options.intrinsics, options.depth_scale, options.color),
                                  options.memory)
-    cloud = read_cloud(source, options.input_format, classes=options.classes, memory=options.memory,
+    codes = options.classes if isinstance(options.classes, tuple) else None
+    cloud = read_cloud(source, options.input_format, classes=codes, memory=options.memory,
                        bounds=options.bounds)
-    if options.classes:
+    cloud = choose_classes(cloud, options, display_name(source))
+    _check_fit_memory(len(cloud), options)
+    if len(cloud) == 0:
+        where = f"{getattr(source, 'name', source)}: " if options.bounds else ""
+        raise InputError(f"{where}the input has no points" + (f" inside --bounds {','.join(map(str, options.bounds))}"
+                                                             if options.bounds else ""))
+    return cloud
+
+
+def choose_classes(cloud: PointCloud, options: FitOptions, name: str) -> PointCloud:
+    """The points of `cloud` that options.classes chooses (c1mesh.stages.ground.choose_points:
+    the ground class 2, the ground filter's ground, all, or given codes), with the facts
+    of the choice in cloud.selection (the report's "classes"; None for files without
+    classes)."""
+    if isinstance(options.classes, tuple):
         if cloud.classification is None:
             raise InputError("--classes needs a file with a classification field (LAS/LAZ)")
         keep = np.isin(cloud.classification, np.asarray(options.classes))
@@ -167,11 +191,16 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
             found = np.unique(cloud.classification)[:20].tolist()
             raise InputError(f"no points of class {list(options.classes)}; the file has classes {found}")
         cloud = cloud.subset(keep)
-    _check_fit_memory(len(cloud), options)
+    if cloud.classification is None and options.classes == "filter":
+        raise InputError(f"{name}: --classes filter classifies LAS/LAZ points; this input has no classes")
     if len(cloud) == 0:
-        where = f"{getattr(source, 'name', source)}: " if options.bounds else ""
-        raise InputError(f"{where}the input has no points" + (f" inside --bounds {','.join(map(str, options.bounds))}"
-                                                             if options.bounds else ""))
+        return cloud
+    keep, facts = choose_points(cloud.classification, cloud.points, cloud.crs, options.classes)
+    if keep is not None:
+        cloud = cloud.subset(keep)
+        if not len(cloud):
+            raise InputError(f"{name}: the ground filter found no ground among {len(keep)} points")
+    cloud.selection = facts
     return cloud
 
 
@@ -370,7 +399,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
         if not plan_heights:     # its angles and noise widths compare heights with plane lengths
             mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
-                                                view_rules_apply(options.classes, frame.axes))
+                                                view_rules_apply(_fitted_classes(cloud, options), frame.axes))
         check_triangles_left(mesh.triangles.shape[0])
         trimmed, trim_only = None, mesh
         if fill:
@@ -471,6 +500,12 @@ def filled_mesh(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh, curt
     return mesh.with_alive(alive), mesh.alive[alive]
 
 
+def _fitted_classes(cloud: PointCloud, options: FitOptions) -> tuple[int, ...] | None:
+    """The classification codes of the points fitted: options.classes when it names codes,
+    else what the loader chose (cloud.selection: the filter's ground counts as class 2)."""
+    return options.classes if isinstance(options.classes, tuple) else resolved_classes(cloud.selection)
+
+
 def fit(source, output=None, options: FitOptions | None = None,
         on_stage: Callable[[str], None] | None = None, keep_mesh: bool = True) -> FitResult:
     """Fit a refined C1 surface mesh to a scan.
@@ -504,6 +539,9 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
         crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, display_name(source))
+    selection = cloud.selection
+    if not isinstance(options.classes, tuple):  # later stages see codes: the filter's ground as 2
+        options = replace(options, classes=resolved_classes(selection))
     options, column_reason = height_column_axis(cloud, options)
     axis_reason = column_reason or axis_reason
     check_angles(cloud, options, display_name(source))
@@ -529,6 +567,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
                                        crs_facts(crs, crs_source)), model)
         report["raster"] = {**raster_report, "fill": fill_facts(options.fill, fill, model)}
+        report.update({} if selection is None else {"classes": selection})
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options, dem=dem)
     level, level_from = plane_level(interp.points, interp.triangles, options)
@@ -540,6 +579,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
                      model, frame_report, level_from, stream)
+    report.update({} if selection is None else {"classes": selection})
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 

@@ -42,7 +42,7 @@ def resolve_options_axis(source, options):
 def fit_plan(options) -> FitPlan:
     """The FitPlan of pipeline.driver.FitOptions `options` (their axis as given: resolve
     "auto" for LAS/LAZ first, resolve_options_axis)."""
-    classes = None if options.classes is None else tuple(options.classes)
+    classes = options.classes if isinstance(options.classes, (str, type(None))) else tuple(options.classes)
     return FitPlan(
         select=PointSelection(options.input_format, classes or None,
                               None if options.bounds is None else tuple(options.bounds)),

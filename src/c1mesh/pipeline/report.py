@@ -84,6 +84,11 @@ OPTIONAL: dict[str, str] = {
                  "triangulation), gradient_weight (of the gradient data: 1 file normals, "
                  "0.5 gradients fitted to the heights, 0: none); the tiled fit adds spacing (h) and "
                  "tiled (halo, halo_smoothing_lengths, search_tile)",
+    "classes": "a LAS/LAZ input: which points were fitted: selected (the classification codes kept, "
+               "[2] for the ground filter's ground, or \"all\"), source (option: --classes; file: the "
+               "file's ground class 2, the default; filter: the ground filter, run because the file has "
+               "no class 2 or --classes filter asked, with reason), filter (its name, parameters in "
+               "metres, the file's units and metres per unit, halo_m, points and ground counts)",
     "suggestion": "an exact fit whose heights look noisy (the limiter changed over 10% of the "
                   "gradients): the advice to fit with --smooth auto",
 }

@@ -29,6 +29,7 @@ from c1mesh.pipeline.driver import (
 from c1mesh.pipeline.plan import fit_plan, resolve_options_axis
 from c1mesh.pipeline.report import ReportCore, crs_facts, scheme_facts
 from c1mesh.pipeline.steps import StageTimer
+from c1mesh.stages.ground import resolved_classes
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.warnings import smoothing_suggestion
 from c1mesh.survey.distributed import run_tiles
@@ -94,6 +95,8 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     level_from = "default" if options.level is None else "option"
     if options.level is None:                   # a height field: PLANE_LEVEL unless --level is given
         options = replace(options, level=PLANE_LEVEL)
+    if not isinstance(options.classes, tuple):  # the stages see codes: the filter's ground as 2
+        options = replace(options, classes=resolved_classes(survey.cloud.selection))
 
     crs, crs_source = resolve_crs(survey.cloud.crs, user_crs, survey.names[0])
     model = build_surface(survey.cloud, options, timer)
@@ -106,6 +109,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
         crs=crs_facts(crs, crs_source),
         seconds=timer.seconds, threads=thread_count(), z_factor=angle_z_factor(survey.cloud, options)).as_dict()
     report.update(smoothing_facts(model))
+    report.update({} if survey.cloud.selection is None else {"classes": survey.cloud.selection})
     jobs = jobs or 1
     report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
                    "scheduler": scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})

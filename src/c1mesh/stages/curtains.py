@@ -70,7 +70,7 @@ def view_rules_apply(classes, axes) -> bool:
     tuple, None for all points) and the height axis is world z (axes (3, 3): the frame's
     rows, e3 last). Decided from the options and the frame alone, so the in-memory and the
     tiled fit decide alike."""
-    ground = bool(classes) and all(int(c) in GROUND_CLASSES for c in classes)
+    ground = isinstance(classes, (tuple, list)) and bool(classes) and all(int(c) in GROUND_CLASSES for c in classes)
     world_z = np.allclose(np.asarray(axes, dtype=float)[2], (0.0, 0.0, 1.0))
     return not (ground and world_z)
 

@@ -76,8 +76,16 @@ from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
-from c1mesh.survey.tiled_input import (CachedChunks, Colours, Temps, las_chunks, survey_crs, survey_name,
-                                       survey_paths)
+from c1mesh.survey.tiled_input import (
+    CachedChunks,
+    Colours,
+    Temps,
+    las_chunks,
+    survey_crs,
+    survey_name,
+    survey_paths,
+    tiled_classes,
+)
 from c1mesh.survey.tiled_limiter import TiledLimiter
 from c1mesh.survey.tiled_outputs import InputOwners
 from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles_at_once
@@ -122,8 +130,9 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     """
     plan = with_plane_level(plan)
     _check_plan(plan)
-    surface, select = plan.surface, plan.select
+    surface = plan.surface
     strength, memory = surface.strength, plan.memory
+    select, selection = tiled_classes(source, plan.select)     # class 2 by default; no filter in tiles
     # the tiles estimate their normals; their gradients come from the heights by default
     gradient_source = "heights" if use_height_gradients(plan.heights.gradients, "estimated") else "normals"
     paths = survey_paths(source)
@@ -231,6 +240,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
     report["crs"] = describe_crs(crs, crs_source)
+    report["classes"] = selection
     if strength is not None:
         report["smoothing"] = limiter.smoothing()
     return report

@@ -5,13 +5,16 @@ hidden temporary files every pass registers for removal (`Temps`)."""
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from c1mesh.core.crs import las_crs, parse_crs, resolve
+from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import register_temp, unregister_temp
+from c1mesh.core.plan import PointSelection
 from c1mesh.formats.copc import laspy_module, region_chunks
 from c1mesh.formats.las import no_class_error
 from c1mesh.survey.tile_spill import file_blocks
@@ -101,6 +104,44 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
         if classes and found and not total:          # as the in-memory reader says it
             raise no_class_error(list(classes), found, bounds is not None)
     return chunks
+
+
+def survey_classes(source, bounds=None, chunk: int = CHUNK) -> tuple[bool, set[int]]:
+    """(whether the survey has a point of the ground class 2, the classes seen) over a
+    LAS/LAZ file or a list read as one survey (inside `bounds`, as las_chunks reads it),
+    stopping at the first chunk with class 2: how the tiled fit resolves its default
+    class choice (the ground class when there is one) before its passes."""
+    from c1mesh.formats.copc import region_chunks
+
+    found: set[int] = set()
+    for path in survey_paths(source):
+        for part in region_chunks(path, bounds, chunk):
+            classes = np.asarray(part.classification)
+            found.update(np.unique(classes).tolist())
+            if 2 in found:
+                return True, found
+    return False, found
+
+
+def tiled_classes(source, select: PointSelection) -> tuple[PointSelection, dict]:
+    """(select with classes resolved to codes or None, the report's "classes") for the
+    tiled fit: the ground class 2 by default ("auto") when the survey has any (a scan of
+    its classes first), every point for "all" (or None), the given codes. The ground filter
+    runs in memory only for now: InputError when it would be needed (no class 2) or is
+    asked for ("filter")."""
+    choice, name = select.classes, survey_name(survey_paths(source))
+    if isinstance(choice, tuple):
+        return select, {"selected": list(choice), "source": "option"}
+    if choice in ("all", None):
+        return replace(select, classes=None), {"selected": "all", "source": "option"}
+    refusal = (f"{name}: the ground filter runs in memory only, not in the tiles of a fit larger than "
+               "--memory; give --classes all (every point) or the codes to fit, or raise --memory")
+    if choice == "filter":
+        raise InputError(refusal)
+    has_ground, found = survey_classes(source, select.bounds)
+    if not has_ground:
+        raise InputError(f"{refusal} (the file has no ground class 2; classes {sorted(found)[:20]})")
+    return replace(select, classes=(2,)), {"selected": [2], "source": "file"}
 
 
 def _kept_columns(part, names, keep, dtype) -> np.ndarray:

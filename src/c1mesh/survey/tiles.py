@@ -65,9 +65,28 @@ class Survey:
         return np.searchsorted(self.offsets[1:], point_index, side="right")
 
 
+def _choose_survey_points(clouds: list, choice) -> tuple[list, dict | None]:
+    """(the clouds restricted to the survey's chosen points, the report's "classes"):
+    c1mesh.stages.ground.choose_points over the whole survey at once, so that "auto" takes
+    class 2 from every file when any file has it, and the ground filter otherwise, run
+    over all files together (it sees across their edges, as in one file)."""
+    from c1mesh.stages.ground import choose_points
+
+    if any(c.classification is None for c in clouds) or not clouds:
+        return clouds, None
+    classification = np.concatenate([c.classification for c in clouds])
+    points = np.concatenate([c.points for c in clouds])
+    keep, selection = choose_points(classification, points, clouds[0].crs, choice)
+    if keep is None:
+        return clouds, selection
+    ends = np.cumsum([len(c) for c in clouds])[:-1]
+    return [c.subset(part) for c, part in zip(clouds, np.split(keep, ends))], selection
+
+
 def load_survey(sources: Sequence[str], select: PointSelection, normals: str = "auto") -> Survey:
-    """Read every input (keeping select's classes, within its bounds) and concatenate them
-    in order.
+    """Read every input (keeping the points select.classes chooses: codes, or "auto",
+    "all", "filter" as stages.ground.choose_points reads them; within select.bounds) and
+    concatenate them in order.
 
     An input without points of the wanted classes contributes none (a survey may have
     tiles of water); the survey as a whole must have points. Normals are kept only when
@@ -78,12 +97,13 @@ def load_survey(sources: Sequence[str], select: PointSelection, normals: str = "
     clouds, found = [], set()
     for source in sources:
         cloud = read_cloud(source, select.input_format, bounds=select.bounds)
-        if select.classes:
+        if isinstance(select.classes, tuple):
             if cloud.classification is None:
                 raise InputError(f"{source}: --classes needs a classification field (LAS/LAZ)")
             found.update(np.unique(cloud.classification).tolist())
             cloud = cloud.subset(np.isin(cloud.classification, np.asarray(select.classes)))
         clouds.append(cloud)
+    clouds, selection = _choose_survey_points(clouds, select.classes)
     counts = np.array([len(c) for c in clouds], dtype=np.int64)
     if counts.sum() == 0 and found:                  # the words of the one-file reader
         raise no_class_error(list(select.classes), found, select.bounds is not None)
@@ -98,7 +118,7 @@ def load_survey(sources: Sequence[str], select: PointSelection, normals: str = "
     classification = _concatenate([c.classification for c in clouds])
     cloud = PointCloud(np.concatenate([c.points for c in clouds]), normals, colors, classification,
                        crs=survey_crs(sources, [c.crs for c in clouds]),
-                       height_column=survey_height_column(sources, clouds))
+                       height_column=survey_height_column(sources, clouds), selection=selection)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     return Survey(cloud, [str(s) for s in sources], offsets)
 
