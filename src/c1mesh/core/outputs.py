@@ -50,6 +50,9 @@ MESH_FORMATS = ("ply", "obj", "stl", "off", "glb")
 RASTER_FORMATS = ("tif", "tiff")
 """GeoTIFF DEM extensions c1mesh writes (c1mesh.geo.raster; a fit needs --resolution for them)."""
 
+CONTOUR_FORMATS = ("gpkg", "geojson", "shp")
+"""Contour line extensions c1mesh writes (--contours; c1mesh.geo.contour_file)."""
+
 OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
 """Every output extension of `c1mesh fit`: the one list behind its help, errors and docs."""
 
