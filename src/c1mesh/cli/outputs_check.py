@@ -22,7 +22,8 @@ def check_geo(jobs_list, options, debug):
     extra = [(label, path) for label, path in (("slope raster", options.slope),
                                                ("aspect raster", options.aspect),
                                                ("hillshade raster", options.hillshade),
-                                               ("preview", options.preview)) if path]
+                                               ("preview", options.preview),
+                                               ("contours", options.contours)) if path]
     try:
         if extra:   # against the inputs, the outputs and each other (c1mesh.core.outputs)
             plan_outputs([("output", dst) for _, dst in jobs_list] + extra, [src for src, _ in jobs_list])
