@@ -23,13 +23,13 @@ from c1mesh.cli.options import (
     parse_smooth,
 )
 from c1mesh.core.outputs import (
-    CONTOUR_FORMATS,
     DEM_AXES,
     INPUT_FORMATS,
     LAS_FORMATS,
     OUTPUT_FORMATS,
     RASTER_FORMATS,
     STDIO,
+    contour_path_problem,
     is_binary_output,
     is_file_output,
 )
@@ -195,8 +195,8 @@ def _contour_problems(params: dict) -> list[str]:
         problems.append("--contours needs --interval H, the height between two contour lines")
     elif not (interval > 0 and math.isfinite(interval)):
         problems.append(f"--interval must be a positive height, got {interval}")
-    if Path(path).suffix.lower().lstrip(".") not in CONTOUR_FORMATS:
-        problems.append(f"the contours '{path}' must be a {', '.join('.' + e for e in CONTOUR_FORMATS)} file")
+    if contour_path_problem(path):
+        problems.append(contour_path_problem(path))
     if params["seamless"] and params["output_dir"]:
         problems.append("--contours makes one survey-wide file: use it with --seamless -o, not -O")
     elif len(params["inputs"]) > 1 and not params["seamless"]:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from c1mesh.core.errors import DependencyError, InputError
-from c1mesh.core.outputs import CONTOUR_FORMATS, plan_outputs, register_temp, unregister_temp
+from c1mesh.core.outputs import CONTOUR_FORMATS, contour_path_problem, plan_outputs, register_temp, unregister_temp
 
 DRIVERS = {"gpkg": "GPKG", "geojson": "GeoJSON", "shp": "ESRI Shapefile"}
 """GDAL's driver of each contour extension (c1mesh.core.outputs.CONTOUR_FORMATS)."""
@@ -47,10 +47,10 @@ def pyogrio_module():
 
 def contour_extension(path) -> str:
     """The contour format of `path` ('gpkg', 'geojson' or 'shp'); InputError for another."""
-    ext = Path(path).suffix.lower().lstrip(".")
-    if ext not in DRIVERS:
-        raise InputError(f"the contours '{path}' must be a {', '.join('.' + e for e in CONTOUR_FORMATS)} file")
-    return ext
+    problem = contour_path_problem(str(path))
+    if problem:
+        raise InputError(problem)
+    return Path(path).suffix.lower().lstrip(".")
 
 
 def linestring_wkb(xy: np.ndarray) -> bytes:

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 
 EXACT = 1e-6
 """A vertex is kept when |spline − level| ≤ EXACT × the interval (issue 40's bound)."""
@@ -62,30 +63,37 @@ CLOSEPOLY = 79
 
 @dataclass(frozen=True)
 class ContourGrid:
-    """The nodes the spline is sampled at: node (row i, column j) lies at local
-    (x0 + j·step, y0 − i·step) (rows run south, like a north-up raster's), i < height,
-    j < width. Local = world − the fit's origin; step in world length units."""
+    """The nodes the spline is sampled at: the cell centres of a north-up raster grid
+    (c1mesh.geo.raster_grid.RasterGrid), node (row i, column j) at local
+    (west + (j + ½)R − ox, north − (i + ½)R − oy), rows running south. Local = world − the
+    fit's origin (ox, oy, oz); R in world length units."""
 
-    x0: float
-    y0: float
-    step: float
-    width: int
-    height: int
+    raster: RasterGrid
+    origin: tuple[float, float, float]
 
     @classmethod
-    def of_raster(cls, raster_grid, origin) -> "ContourGrid":
-        """The cell centres of a geo.raster_grid.RasterGrid, in the local frame of `origin` (3,)."""
-        r = raster_grid.resolution
+    def of_raster(cls, raster_grid: RasterGrid, origin) -> "ContourGrid":
+        """The grid of `raster_grid`'s cell centres in the frame of `origin` (3,); InputError
+        when it has more than MAX_GRID_NODES nodes."""
         width, height = raster_grid.width, raster_grid.height
         if width * height > MAX_GRID_NODES:
-            raise InputError(f"contours on a {width} x {height} grid (resolution {r:g}) need too much "
-                             "memory; give a coarser --resolution")
-        return cls(raster_grid.west + 0.5 * r - float(origin[0]), raster_grid.north - 0.5 * r - float(origin[1]),
-                   r, width, height)
+            raise InputError(f"contours on a {width} x {height} grid (resolution {raster_grid.resolution:g}) "
+                             "need too much memory; give a coarser --resolution")
+        return cls(raster_grid, tuple(float(v) for v in origin))
+
+    @property
+    def width(self) -> int:
+        return self.raster.width
+
+    @property
+    def height(self) -> int:
+        return self.raster.height
 
     def local(self, columns: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(M, 2) local x, y of grid positions given as (fractional) column and row indices (M,)."""
-        return np.column_stack([self.x0 + columns * self.step, self.y0 - rows * self.step])
+        r = self.raster.resolution
+        return np.column_stack([self.raster.west - self.origin[0] + (columns + 0.5) * r,
+                                self.raster.north - self.origin[1] - (rows + 0.5) * r])
 
 
 @dataclass(frozen=True)
@@ -135,22 +143,63 @@ def contour_levels(lowest: float, highest: float, interval: float) -> np.ndarray
 
 
 # ---------------------------------------------------------------------------- sampling
-def sample_grid(interp, grid: ContourGrid) -> np.ndarray:
-    """(height, width) spline heights (local) at the grid's nodes, NaN at nodes outside the
-    triangulation (RSDInterpolator's fill value)."""
-    out = np.empty(grid.height * grid.width)
-    columns = np.arange(grid.width, dtype=np.float64)
+def sample_grid(sampler: SplineSampler, grid: ContourGrid) -> tuple[np.ndarray, np.ndarray]:
+    """(heights, triangles), each (height, width): the spline's height (local) at each
+    grid node and the triangle it lies in; NaN and −1 at nodes outside the triangulation.
+    sampler: a SplineSampler of the spline without data points, so that nothing is
+    continued past the triangulation (c1mesh.geo.raster_grid)."""
+    heights = np.full(grid.height * grid.width, np.nan)
+    triangles = np.full(grid.height * grid.width, -1, dtype=np.int64)
     rows_per_block = max(1, _ROW_BLOCK // grid.width)
     for start in range(0, grid.height, rows_per_block):
-        rows = np.arange(start, min(start + rows_per_block, grid.height), dtype=np.float64)
-        cc, rr = np.meshgrid(columns, rows)
-        xy = grid.local(cc.ravel(), rr.ravel())
-        out[start * grid.width:start * grid.width + xy.shape[0]] = _values(interp, xy)
-    return out.reshape(grid.height, grid.width)
+        rows = range(start, min(start + rows_per_block, grid.height))
+        cell, tri, l0, l1, _ = sampler.cells(grid.raster, rows, range(grid.width))
+        heights[start * grid.width + cell] = sampler.evaluate(tri, l0, l1, gradients=False)[0]
+        triangles[start * grid.width + cell] = tri
+    return heights.reshape(grid.height, grid.width), triangles.reshape(grid.height, grid.width)
+
+
+class _Surface:
+    """The spline and its analytic gradient at arbitrary local points, each point's
+    triangle remembered between calls (a vertex moving along its grid edge mostly stays in
+    it), evaluated as the DEM grid is (SplineSampler.evaluate)."""
+
+    def __init__(self, interp, sampler: SplineSampler):
+        self.interp, self.sampler = interp, sampler
+
+    def at(self, xy: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(values (M,), gradients (M, 2), triangles (M,)) at xy (M, 2); tri (M,) the
+        triangles the points were in last time (−1: unknown). NaN and −1 outside."""
+        tri = tri.copy()
+        known = np.flatnonzero(tri >= 0)
+        l0, l1 = self._barycentric(xy[known], tri[known])
+        left = (np.minimum(np.minimum(l0, l1), 1.0 - l0 - l1) < -SplineSampler.TOLERANCE)
+        tri[known[left]] = -1
+        lost = np.flatnonzero(tri < 0)
+        if lost.size:
+            tri[lost] = self.interp.find_simplex(xy[lost])
+        values, gradients = np.full(xy.shape[0], np.nan), np.full(xy.shape, np.nan)
+        inside = np.flatnonzero(tri >= 0)
+        if inside.size:
+            l0, l1 = self._barycentric(xy[inside], tri[inside])
+            values[inside], gradients[inside] = self.sampler.evaluate(tri[inside], l0, l1, gradients=True)
+        return values, gradients, tri
+
+    def _barycentric(self, xy: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """λ0, λ1 of points xy (m, 2) in triangles tri (m,): λ_k = ∇λ_k · (x − vertex k+1),
+        as c1mesh.engine.locate computes them."""
+        corners = self.interp.triangles[tri]
+        G = self.interp.lambda_gradients[tri]
+        out = []
+        for k in range(2):
+            ref = self.interp.points[corners[:, (k + 1) % 3]]
+            out.append(np.einsum("md,md->m", G[:, k], xy - ref))
+        return out[0], out[1]
 
 
 def _values(interp, xy: np.ndarray) -> np.ndarray:
-    """Spline values at xy (M, 2), NaN outside the triangulation whatever its fill value."""
+    """Spline values at xy (M, 2) by the interpolator's own evaluation (rsd's shape
+    functions), NaN outside the triangulation whatever its fill value."""
     if isinstance(interp.fill_value, float) and math.isnan(interp.fill_value):
         return interp(xy)
     return np.where(interp.find_simplex(xy) >= 0, interp(xy), np.nan)
@@ -234,34 +283,35 @@ class _Roots:
     residual: np.ndarray
 
 
-def _solve(interp, start: np.ndarray, step: np.ndarray, level: np.ndarray, t_below: np.ndarray,
-           t_above: np.ndarray, t_guess: np.ndarray, tolerance: float) -> _Roots:
+def _solve(surface: _Surface, start: np.ndarray, step: np.ndarray, level: np.ndarray, t_below: np.ndarray,
+           t_above: np.ndarray, t_guess: np.ndarray, triangle: np.ndarray, tolerance: float) -> _Roots:
     """Roots of f(t) = s(start + t·step) − level bracketed by f(t_below) < 0 < f(t_above)
-    (all (M,) or (M, 2) arrays, local frame): Newton steps with the analytic derivative
-    ∇s·step, bisection when Newton would leave the bracket, until |f| ≤ tolerance or
-    NEWTON_STEPS."""
+    (all (M,) or (M, 2) arrays, local frame), from t_guess (triangle: where it probably
+    lies, −1 unknown): Newton steps with the analytic derivative ∇s·step, bisection when
+    Newton would leave the bracket, until |f| ≤ tolerance or NEWTON_STEPS."""
     t = np.clip(t_guess, np.minimum(t_below, t_above), np.maximum(t_below, t_above))
     t_below, t_above = t_below.copy(), t_above.copy()
     residual = np.full(t.shape, np.nan)
+    triangle = triangle.copy()
     active = np.arange(t.size)
     for _ in range(NEWTON_STEPS):
         if active.size == 0:
             break
-        point = start[active] + t[active, None] * step[active]
-        value = _values(interp, point) - level[active]
+        value, gradient, triangle[active] = surface.at(start[active] + t[active, None] * step[active],
+                                                       triangle[active])
+        value = value - level[active]
         residual[active] = value
         going = np.isfinite(value) & (np.abs(value) > tolerance)
-        active, value, point = active[going], value[going], point[going]
+        active, value, gradient = active[going], value[going], gradient[going]
         below = value < 0
         t_below[active[below]] = t[active[below]]
         t_above[active[~below]] = t[active[~below]]
-        slope = np.einsum("md,md->m", interp.gradient(point), step[active])
+        slope = np.einsum("md,md->m", gradient, step[active])
         with np.errstate(divide="ignore", invalid="ignore"):
             newton = t[active] - value / slope
         ok = np.isfinite(newton) & _between(newton, t_below[active], t_above[active])
         t[active] = np.where(ok, newton, 0.5 * (t_below[active] + t_above[active]))
-        stuck = t_below[active] == t_above[active]
-        active = active[~stuck]
+        active = active[t_below[active] != t_above[active]]
     return _Roots(t, residual)
 
 
@@ -270,15 +320,19 @@ def _between(t: np.ndarray, one: np.ndarray, other: np.ndarray) -> np.ndarray:
     return (t > np.minimum(one, other)) & (t < np.maximum(one, other))
 
 
-def snap(interp, grid: ContourGrid, heights: np.ndarray, edges: _Edges, level: np.ndarray,
-         tolerance: float) -> _Roots:
+def snap(surface: _Surface, grid: ContourGrid, nodes: tuple[np.ndarray, np.ndarray], edges: _Edges,
+         level: np.ndarray, tolerance: float) -> _Roots:
     """Move each vertex along its grid edge onto the spline's level set (module docstring).
 
-    heights: the grid's node heights (local); level (M,) each vertex's level (local).
+    nodes: the grid's node heights (local) and triangles (sample_grid); level (M,) each
+    vertex's level (local).
     On one edge, levels are solved in increasing order, each bracketed by the last root
     found below it and the edge's higher node, so roots keep the order of their levels.
     """
+    heights, node_triangle = nodes
     za, zb = heights[edges.a[:, 0], edges.a[:, 1]], heights[edges.b[:, 0], edges.b[:, 1]]
+    near = np.where((edges.t0 < 0.5)[:, None], edges.a, edges.b)
+    hint = node_triangle[near[:, 0], near[:, 1]]                 # the nearer node's triangle
     t_high = (zb > za).astype(np.float64)                     # the higher node: where s > level
     start = grid.local(edges.a[:, 1].astype(np.float64), edges.a[:, 0].astype(np.float64))
     end = grid.local(edges.b[:, 1].astype(np.float64), edges.b[:, 0].astype(np.float64))
@@ -293,8 +347,8 @@ def snap(interp, grid: ContourGrid, heights: np.ndarray, edges: _Edges, level: n
     residual = np.full(level.size, np.nan)
     for r in range(int(rank.max()) + 1 if rank.size else 0):
         now = order[rank[order] == r]
-        roots = _solve(interp, start[now], end[now] - start[now], level[now], last_root[now],
-                       t_high[now], edges.t0[now], tolerance)
+        roots = _solve(surface, start[now], end[now] - start[now], level[now], last_root[now],
+                       t_high[now], edges.t0[now], hint[now], tolerance)
         t[now], residual[now] = roots.t, roots.residual
         following = _next_in_edge(order, first, now)
         has_next = following >= 0
@@ -315,12 +369,14 @@ def _next_in_edge(order: np.ndarray, first: np.ndarray, members: np.ndarray) -> 
 
 
 # --------------------------------------------------------------------------- assembling
-def contour_surface(interp, origin, grid: ContourGrid, interval: float) -> ContourLines:
-    """Contour lines of the spline `interp` (local frame of `origin` (3,), world axes)
-    every `interval` of world height, traced on `grid` and snapped onto the spline's level
-    sets (module docstring)."""
-    oz = float(origin[2])
-    heights = sample_grid(interp, grid)
+def contour_surface(interp, grid: ContourGrid, interval: float) -> ContourLines:
+    """Contour lines of the spline `interp` (in the local frame of grid.origin, world
+    axes) every `interval` of world height, traced on `grid` and snapped onto the
+    spline's level sets (module docstring)."""
+    oz = grid.origin[2]
+    sampler = SplineSampler(interp, grid.origin)
+    nodes = sample_grid(sampler, grid)
+    heights = nodes[0]
     finite = heights[np.isfinite(heights)]
     if finite.size == 0 or grid.width < 2 or grid.height < 2:
         return _empty(interval)
@@ -328,13 +384,13 @@ def contour_surface(interp, origin, grid: ContourGrid, interval: float) -> Conto
     traced = trace(heights, levels - oz)
     edges = grid_edges(traced.positions, grid.width, grid.height)
     vertex_level = (levels - oz)[traced.line_level[traced.line_of]]
-    roots = snap(interp, grid, heights, edges, vertex_level, NEWTON_TOLERANCE * interval)
+    roots = snap(_Surface(interp, sampler), grid, nodes, edges, vertex_level, NEWTON_TOLERANCE * interval)
     start = grid.local(edges.a[:, 1].astype(np.float64), edges.a[:, 0].astype(np.float64))
     end = grid.local(edges.b[:, 1].astype(np.float64), edges.b[:, 0].astype(np.float64))
     local = start + roots.t[:, None] * (end - start)
     good = edges.valid & np.isfinite(roots.residual) & (np.abs(roots.residual) <= EXACT * interval)
     pieces = _split(interp, local, good, traced)
-    return _assemble(interp, origin, pieces, levels, interval, int((~good).sum()))
+    return _assemble(interp, grid.origin, pieces, levels, interval, int((~good).sum()))
 
 
 @dataclass(frozen=True)

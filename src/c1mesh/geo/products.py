@@ -19,7 +19,7 @@ import numpy as np
 from c1mesh.core import crs as crs_module
 from c1mesh.core.errors import InputError
 from c1mesh.geo.preview import render_fit
-from c1mesh.core.outputs import CONTOUR_FORMATS, DEM_AXES
+from c1mesh.core.outputs import DEM_AXES, contour_path_problem
 from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
 from c1mesh.geo.raster_grid import RasterGrid
 from c1mesh.stages.surface import refined_vertex_count
@@ -92,8 +92,8 @@ def contour_request(options) -> ContourRequest | None:
         raise InputError("--contours needs --interval H, the height between two contour lines")
     if not (interval > 0 and math.isfinite(interval)):
         raise InputError(f"--interval must be a positive height, got {interval}")
-    if Path(path).suffix.lower().lstrip(".") not in CONTOUR_FORMATS:
-        raise InputError(f"the contours '{path}' must be a {', '.join('.' + e for e in CONTOUR_FORMATS)} file")
+    if contour_path_problem(path):
+        raise InputError(contour_path_problem(path))
     if options.frame == "perspective":
         raise InputError(CONTOUR_FRAME_ERROR)
     axis = options.axis
@@ -224,7 +224,7 @@ def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid, crs
     from c1mesh.geo.contours import ContourGrid, contour_surface
 
     start = time.perf_counter()
-    lines = contour_surface(interp, frame.origin, ContourGrid.of_raster(grid, frame.origin), request.interval)
+    lines = contour_surface(interp, ContourGrid.of_raster(grid, frame.origin), request.interval)
     staged = StagedContours(request.path)
     try:
         staged.write(lines.lines, lines.levels, crs)
