@@ -1,7 +1,9 @@
 """Writing contour lines as a vector file (GeoPackage, GeoJSON or ESRI Shapefile) with
 pyogrio, GDAL's vectorised Python binding: one LineString feature per line, its level in a
-float64 attribute `level`, the CRS of the fit (GeoJSON carries it in the 2008 "crs" member,
-which GDAL and QGIS read; RFC 7946 readers assume WGS 84).
+float64 attribute `level`, the CRS of the fit. GeoPackage and shapefile (.prj) hold any
+CRS; GeoJSON only names one by its EPSG code (the 2008 "crs" member, which GDAL and QGIS
+read; RFC 7946 readers assume WGS 84), so a CRS without one is refused for it
+(`vector_crs`) right after the input is read, before the fit.
 
 The file is written beside its target under a temporary name and renamed into place by
 `commit` (a shapefile's .shp, .shx, .dbf, .prj and .cpg one after another), so a failed or
@@ -53,6 +55,24 @@ def contour_extension(path) -> str:
     return Path(path).suffix.lower().lstrip(".")
 
 
+def vector_crs(path, crs: str | None, user_crs: str | None = None) -> str | None:
+    """The CRS to write into the contour file `path`: the fit's (WKT) for a GeoPackage or
+    shapefile; for GeoJSON its EPSG code ("EPSG:n"), taken from the CRS itself or from
+    the user's --crs naming the same CRS. InputError for a GeoJSON whose CRS has no EPSG
+    code (GDAL would write none, and readers would take the lines for WGS 84)."""
+    if crs is None or contour_extension(path) != "geojson":
+        return crs
+    import pyproj
+
+    for candidate in (crs, user_crs):
+        code = pyproj.CRS.from_user_input(candidate).to_epsg() if candidate else None
+        if code is not None:
+            return f"EPSG:{code}"
+    name = pyproj.CRS.from_user_input(crs).name
+    raise InputError(f"the contours '{path}': GeoJSON names its CRS by an EPSG code, and the input's CRS "
+                     f"({name}) has none; write .gpkg or .shp, or give --crs EPSG:XXXX naming the same CRS")
+
+
 def linestring_wkb(xy: np.ndarray) -> bytes:
     """Little-endian WKB of a 2D LineString through the (n, 2) vertices."""
     head = np.array([1], "u1").tobytes() + np.array([2, xy.shape[0]], "<u4").tobytes()
@@ -88,6 +108,7 @@ class StagedContours:
         geometry[:] = [linestring_wkb(line) for line in lines]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)    # GDAL's notes (an empty layer)
+            warnings.simplefilter("ignore", UserWarning)       # pyogrio's "'crs' was not provided"
             pyogrio.raw.write(str(temp), geometry, [np.asarray(levels, dtype=np.float64)], fields=["level"],
                               crs=crs, driver=DRIVERS[self.ext], layer=LAYER, geometry_type="LineString")
         if not temp.exists():

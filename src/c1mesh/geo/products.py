@@ -30,11 +30,21 @@ MAX_LEVEL = 64
 
 @dataclass(frozen=True)
 class ContourRequest:
-    """--contours PATH --interval H: the vector file (.gpkg, .geojson, .shp) and the height
-    between two levels (world height units, > 0)."""
+    """--contours PATH --interval H: the vector file (.gpkg, .geojson, .shp), the height
+    between two levels (world height units, > 0), and the CRS to write (contour_file.
+    vector_crs: the fit's, or for GeoJSON its EPSG code), set once the input's is known."""
 
     path: str
     interval: float
+    crs: str | None = None
+
+    def with_crs(self, crs: str | None, user_crs: str | None) -> "ContourRequest":
+        """This request writing the CRS `crs` (WKT; user_crs: --crs, which may name it by
+        its EPSG code); InputError when the format cannot hold it (vector_crs)."""
+        from dataclasses import replace
+
+        from c1mesh.geo.contour_file import vector_crs
+        return replace(self, crs=vector_crs(self.path, crs, user_crs))
 
 
 @dataclass
@@ -216,10 +226,11 @@ def contour_grid(interp, frame, raster_grid: RasterGrid | None, level: int | Non
     return RasterGrid.covering(lo, hi, step)
 
 
-def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid, crs: str | None) -> tuple[Any, dict]:
+def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid) -> tuple[Any, dict]:
     """Trace the contours of the fit's spline on `grid` (c1mesh.geo.contours) and write
-    them under a temporary name; returns (the StagedContours to commit() once the fit's
-    other files are written, or to discard(); the report's "contours" section)."""
+    them, with request.crs, under a temporary name; returns (the StagedContours to
+    commit() once the fit's other files are written, or to discard(); the report's
+    "contours" section)."""
     from c1mesh.geo.contour_file import StagedContours
     from c1mesh.geo.contours import ContourGrid, contour_surface
 
@@ -227,7 +238,7 @@ def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid, crs
     lines = contour_surface(interp, ContourGrid.of_raster(grid, frame.origin), request.interval)
     staged = StagedContours(request.path)
     try:
-        staged.write(lines.lines, lines.levels, crs)
+        staged.write(lines.lines, lines.levels, request.crs)
     except BaseException:
         staged.discard()
         raise

@@ -405,6 +405,8 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     with timer.stage("read"):
         cloud = source if isinstance(source, PointCloud) else load_cloud(source, options)
         crs, crs_source = resolve_crs(cloud.crs, geo.user_crs, display_name(source))
+    if geo.contours is not None:      # GeoJSON needs an EPSG code: refused now, not after the fit
+        geo = replace(geo, contours=geo.contours.with_crs(crs, geo.user_crs))
     options, column_reason = height_column_axis(cloud, options)
     axis_reason = column_reason or axis_reason
     check_angles(cloud, options, display_name(source))
@@ -421,7 +423,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     if geo.rasters.items():
         data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
         dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge)
-        with _Contours(geo, interp, frame, dem[0], crs, timer) as contours:
+        with _Contours(geo, interp, frame, dem[0], timer) as contours:
             with timer.stage("raster"):
                 raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
         report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
@@ -434,7 +436,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
     grid = contour_grid(interp, frame, None, level, options.resolution) if geo.contours else None
-    with _Contours(geo, interp, frame, grid, crs, timer) as contours:
+    with _Contours(geo, interp, frame, grid, timer) as contours:
         mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
                                      MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh)
     frame_report = frame_facts(frame)
@@ -451,14 +453,14 @@ class _Contours:
     error, removed when it fails, so no contour file outlives a failed fit and no failed
     contouring leaves a mesh or DEM. `report`: {"contours": ...} or {} without --contours."""
 
-    def __init__(self, geo, interp, frame, grid, crs, timer: StageTimer):
-        self.geo, self.interp, self.frame, self.grid, self.crs, self.timer = geo, interp, frame, grid, crs, timer
+    def __init__(self, geo, interp, frame, grid, timer: StageTimer):
+        self.geo, self.interp, self.frame, self.grid, self.timer = geo, interp, frame, grid, timer
         self.staged, self.report = None, {}
 
     def __enter__(self) -> "_Contours":
         if self.geo.contours is not None:
             with self.timer.stage("contours"):
-                self.staged, facts = stage_contours(self.geo.contours, self.interp, self.frame, self.grid, self.crs)
+                self.staged, facts = stage_contours(self.geo.contours, self.interp, self.frame, self.grid)
             self.report = {"contours": facts}
         return self
 
