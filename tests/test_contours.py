@@ -194,13 +194,14 @@ def test_autzen_contours_carry_the_input_crs_in_every_format(tmp_path):
     import pyproj
 
     file_crs = laspy.read(AUTZEN).header.parse_crs()
-    options = FitOptions(classes=(2,), resolution=4.0, contours=str(tmp_path / "autzen.gpkg"), interval=2.0)
+    options = FitOptions(classes=(2,), resolution=3.0, contours=str(tmp_path / "autzen.gpkg"), interval=1.0,
+                         bounds=(636300.0, 849000.0, 636700.0, 849300.0))
     report = fit(str(AUTZEN), str(tmp_path / "dem.tif"), options).report
     lines, levels, closed, info = read_lines(tmp_path / "autzen.gpkg")
     assert pyproj.CRS(info["crs"]).equals(file_crs, ignore_axis_order=True)
-    assert len(lines) == report["contours"]["lines"] > 50 and report["contours"]["grid_resolution"] == 4.0
+    assert len(lines) == report["contours"]["lines"] > 20 and report["contours"]["grid_resolution"] == 3.0
     model = build_surface(load_cloud(str(AUTZEN), options), dataclasses.replace(options, axis="z"), StageTimer(None))
-    assert spline_errors(model, lines, levels).max() <= 1e-6 * 2.0
+    assert spline_errors(model, lines, levels).max() <= 1e-6 * 1.0
     assert crossings(lines, closed).size == 0
     from c1mesh.geo.contour_file import StagedContours, vector_crs
     wkt = report["crs"]["wkt"]
@@ -217,6 +218,17 @@ def test_autzen_contours_carry_the_input_crs_in_every_format(tmp_path):
         assert all(np.allclose(a, b, rtol=0, atol=1e-9) for a, b in zip(again, lines))
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert leftovers == []
+
+
+def test_an_interval_above_the_relief_writes_an_empty_file_and_warns(tmp_path):
+    xy = np.random.default_rng(1).random((500, 2))
+    cloud = PointCloud(np.column_stack([xy, 0.5 + 0.01 * xy[:, 0]]))
+    report = fit(cloud, str(tmp_path / "dem.tif"), FitOptions(axis="z", resolution=0.05, crs="EPSG:32633",
+                                                               contours=str(tmp_path / "c.gpkg"), interval=1.0)).report
+    assert report["contours"]["lines"] == 0 and report["contours"]["levels"]["count"] == 0
+    assert any("gives no contour level" in text for text in report["warnings"])
+    info = pyogrio.read_info(str(tmp_path / "c.gpkg"))
+    assert info["features"] == 0 and info["crs"] == "EPSG:32633"
 
 
 def test_contours_of_a_mesh_fit_are_traced_at_its_resolution(tmp_path):

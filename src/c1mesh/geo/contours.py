@@ -283,16 +283,31 @@ class _Roots:
     residual: np.ndarray
 
 
-def _solve(surface: _Surface, start: np.ndarray, step: np.ndarray, level: np.ndarray, t_below: np.ndarray,
-           t_above: np.ndarray, t_guess: np.ndarray, triangle: np.ndarray, tolerance: float) -> _Roots:
-    """Roots of f(t) = s(start + t·step) − level bracketed by f(t_below) < 0 < f(t_above)
-    (all (M,) or (M, 2) arrays, local frame), from t_guess (triangle: where it probably
-    lies, −1 unknown): Newton steps with the analytic derivative ∇s·step, bisection when
-    Newton would leave the bracket, until |f| ≤ tolerance or NEWTON_STEPS."""
-    t = np.clip(t_guess, np.minimum(t_below, t_above), np.maximum(t_below, t_above))
-    t_below, t_above = t_below.copy(), t_above.copy()
+@dataclass(frozen=True)
+class _Segments:
+    """Where to look for each root (all local frame, M of each): the segment start + t·step
+    (start, step (M, 2)), the level (M,), a bracket f(t_below) < 0 < f(t_above) of
+    f(t) = s(start + t·step) − level (M,) each, the first guess t_guess (M,) and the
+    triangle it probably lies in (M,; −1 unknown)."""
+
+    start: np.ndarray
+    step: np.ndarray
+    level: np.ndarray
+    t_below: np.ndarray
+    t_above: np.ndarray
+    t_guess: np.ndarray
+    triangle: np.ndarray
+
+
+def _solve(surface: _Surface, segments: _Segments, tolerance: float) -> _Roots:
+    """The roots of f on the segments: Newton steps with the analytic derivative
+    ∇s·step, bisection when Newton would leave the bracket, until |f| ≤ tolerance or
+    NEWTON_STEPS."""
+    start, step, level = segments.start, segments.step, segments.level
+    t_below, t_above = segments.t_below.copy(), segments.t_above.copy()
+    t = np.clip(segments.t_guess, np.minimum(t_below, t_above), np.maximum(t_below, t_above))
     residual = np.full(t.shape, np.nan)
-    triangle = triangle.copy()
+    triangle = segments.triangle.copy()
     active = np.arange(t.size)
     for _ in range(NEWTON_STEPS):
         if active.size == 0:
@@ -347,8 +362,8 @@ def snap(surface: _Surface, grid: ContourGrid, nodes: tuple[np.ndarray, np.ndarr
     residual = np.full(level.size, np.nan)
     for r in range(int(rank.max()) + 1 if rank.size else 0):
         now = order[rank[order] == r]
-        roots = _solve(surface, start[now], end[now] - start[now], level[now], last_root[now],
-                       t_high[now], edges.t0[now], hint[now], tolerance)
+        roots = _solve(surface, _Segments(start[now], end[now] - start[now], level[now], last_root[now],
+                                          t_high[now], edges.t0[now], hint[now]), tolerance)
         t[now], residual[now] = roots.t, roots.residual
         following = _next_in_edge(order, first, now)
         has_next = following >= 0
@@ -436,10 +451,12 @@ def _chords_inside(interp, local, line_of, line_closed, starts, stops) -> np.nda
 
 
 def _cut(xy: np.ndarray, keep: np.ndarray, links: np.ndarray, closed: bool, level: int) -> list[_Piece]:
-    """One traced line cut into pieces: a vertex not kept, or a chord not linked, ends a piece."""
+    """One traced line cut into pieces: a vertex not kept, or a chord not linked, ends a
+    piece; repeated vertices (two grid edges snapped to the node they share) count once."""
     n = xy.shape[0]
     if closed and keep.all() and links.all():
-        return [_Piece(xy, level, True)]
+        whole = _distinct(xy, closed=True)
+        return [_Piece(whole, level, True)] if whole.shape[0] >= 3 else []
     if closed:                                  # start right after a break, so no piece wraps
         breaks = np.flatnonzero(~keep | ~links)
         shift = int(breaks[0]) + 1
@@ -449,10 +466,23 @@ def _cut(xy: np.ndarray, keep: np.ndarray, links: np.ndarray, closed: bool, leve
         if keep[k]:
             current.append(k)
         if not keep[k] or not links[k] or k == n - 1:
-            if len(current) >= 2:
-                pieces.append(_Piece(xy[current], level, False))
+            piece = _distinct(xy[current], closed=False)
+            if piece.shape[0] >= 2:
+                pieces.append(_Piece(piece, level, False))
             current = []
     return pieces
+
+
+def _distinct(xy: np.ndarray, closed: bool) -> np.ndarray:
+    """The vertices (n, 2) without those equal to the one before (for a closed line, the
+    last is also compared with the first)."""
+    if xy.shape[0] < 2:
+        return xy
+    before = np.roll(xy, 1, axis=0)
+    repeated = (xy == before).all(axis=1)
+    if not closed:
+        repeated[0] = False
+    return xy[~repeated]
 
 
 def _assemble(interp, origin, pieces: list[_Piece], levels: np.ndarray, interval: float,

@@ -429,7 +429,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
                                        crs_facts(crs, crs_source)), model)
         report["raster"] = raster_report
-        report.update(contours.report)
+        contours.add_to(report)
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options, dem=dem)
     level, level_from = plane_level(interp.points, interp.triangles, options)
@@ -443,7 +443,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
                      model, frame_report, level_from, stream)
-    report.update(contours.report)
+    contours.add_to(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
@@ -463,6 +463,15 @@ class _Contours:
                 self.staged, facts = stage_contours(self.geo.contours, self.interp, self.frame, self.grid)
             self.report = {"contours": facts}
         return self
+
+    def add_to(self, report: dict) -> None:
+        """Put the "contours" section into the fit's report, and a warning when no level
+        lies within the surface's heights (the file is empty)."""
+        report.update(self.report)
+        facts = self.report.get("contours")
+        if facts is not None and facts["levels"]["count"] == 0:
+            report["warnings"].append(f"--interval {facts['interval']:g} gives no contour level within the "
+                                      f"surface's heights: {facts['file']} holds no line")
 
     def __exit__(self, kind, value, tb) -> None:
         if self.staged is None:
