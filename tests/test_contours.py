@@ -332,3 +332,32 @@ def test_report_of_the_cli(tmp_path):
     assert facts["max_level_error"] <= 1e-6 * 0.25 and "contours" in json.loads(report.read_text())["seconds"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.geojson", "dem.tif", "franke.xyz", "r.json"]
     assert os.stat(tmp_path / "c.geojson").st_size > 0
+
+
+def test_a_shapefiles_parts_may_not_overwrite_other_outputs(tmp_path):
+    """m.shp writes m.prj, m.dbf, ...: the mesh m.ply's .prj sidecar or a report m.dbf
+    would be overwritten, so both are refused before the input is read (exit 1)."""
+    src = tmp_path / "flat.xyz"
+    np.savetxt(src, franke_cloud(300).points)
+    for args, clash in ((["-o", str(tmp_path / "m.ply")], "m.prj"),
+                        (["-o", str(tmp_path / "m.tif"), "--resolution", "0.1", "--report", str(tmp_path / "m.dbf")],
+                         "m.dbf")):
+        done = CliRunner().invoke(main, ["fit", str(src), *args, "--contours", str(tmp_path / "m.shp"),
+                                         "--interval", "0.1"])
+        assert done.exit_code == 1
+        assert clash in done.output and len(done.output.strip().splitlines()) == 1
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["flat.xyz"]
+
+
+def test_a_replaced_shapefile_loses_its_stale_parts(tmp_path):
+    """Writing m.shp without a CRS over one that had a .prj and a spatial index removes
+    them (they would describe the old file)."""
+    from c1mesh.geo.contour_file import StagedContours
+
+    for name in ("m.shp", "m.prj", "m.qix"):
+        (tmp_path / name).write_text("old")
+    with StagedContours(tmp_path / "m.shp") as staged:
+        staged.write([np.array([[0.0, 0.0], [1.0, 1.0]])], np.array([1.0]), None)
+        staged.commit()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.cpg", "m.dbf", "m.shp", "m.shx"]
+    assert read_lines(tmp_path / "m.shp")[1].tolist() == [1.0]

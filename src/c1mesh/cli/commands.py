@@ -140,7 +140,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              z_factor=z_factor, smooth=smooth_option, spacing=spacing,
                              contours=contours, interval=interval)
         if output and not output_dir:
-            options = check_geo([(inputs[0], output)], options, debug)
+            options = check_geo([(inputs[0], output)], options, debug, report)
         fit_survey(inputs, Destination(output, output_dir, suffix), options, console,
                    Workers(jobs, threads, scheduler))
         return
@@ -162,7 +162,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds,
                          smooth=smooth_option, spacing=spacing, contours=contours, interval=interval)
-    options = check_geo(pairs, options, debug)
+    options = check_geo(pairs, options, debug, report)
     options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))
     if len(pairs) == 1:
         fit_one(*pairs[0], targets, options, console, Workers(jobs, threads, scheduler))

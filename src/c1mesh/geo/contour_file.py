@@ -32,7 +32,8 @@ LAYER = "contours"
 SHAPEFILE_PARTS = ("shp", "shx", "dbf", "prj", "cpg")
 """The files GDAL writes for one shapefile."""
 SHAPEFILE_INDEXES = ("qix", "sbn", "sbx")
-"""Spatial indexes of a shapefile that a new one makes stale (removed when it replaces it)."""
+"""Spatial indexes of a shapefile that a new one makes stale (removed when it replaces it,
+as is a .prj or .cpg the new one does not have)."""
 SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
 """SQLite's files beside a GeoPackage while it is written."""
 assert set(DRIVERS) == set(CONTOUR_FORMATS)
@@ -139,16 +140,19 @@ class StagedContours:
 
     def commit(self) -> None:
         """Rename the written files into place (an existing target's permission bits kept)."""
+        stale = []
         for final, temp in self._moves.items():
-            if not temp.exists():           # a .cpg GDAL did not write
+            if not temp.exists():           # a part GDAL did not write (.prj without a CRS)
+                stale.append(final)
                 continue
             with contextlib.suppress(OSError):
                 os.chmod(temp, stat.S_IMODE(os.stat(final).st_mode))
             os.replace(temp, final)
-        if self.ext == "shp":
-            for part in SHAPEFILE_INDEXES:
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(self.real.with_suffix("." + part))
+        if self.ext == "shp":               # the replaced shapefile's parts the new one lacks
+            stale += [self.real.with_suffix("." + part) for part in SHAPEFILE_INDEXES]
+        for path in stale:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
         self._moves = {}
         self.discard()                      # whatever is left (none expected) and the listing
 

@@ -86,7 +86,31 @@ def geo_plan(output, options) -> GeoPlan:
     named += extra
     if len({str(Path(p).resolve()) for p in named}) != len(named):
         raise InputError("two outputs (-o, --slope, --aspect, --hillshade, --preview, --contours) have the same path")
+    if contours:
+        check_contour_parts(contours.path, named[:1] + [p for p in named[1:] if p != contours.path], output)
     return GeoPlan(rasters, user_crs, options.preview, contours)
+
+
+def check_contour_parts(path, others, output) -> None:
+    """InputError when the contour file `path` cannot be written in place of what is there
+    (a directory, device or FIFO: GDAL writes regular files only), or when a shapefile's
+    other parts (.shx .dbf .prj .cpg) would overwrite another output or the .prj sidecar of
+    the mesh `output`."""
+    from c1mesh.geo.contour_file import SHAPEFILE_PARTS
+
+    target = Path(path)
+    if target.exists() and not target.is_file():
+        raise InputError(f"the contours '{path}' must be a regular file (GDAL writes it in place)")
+    if target.suffix.lower() != ".shp":
+        return
+    taken = {str(Path(p).resolve()) for p in others}
+    if isinstance(output, (str, Path)) and str(output) != "-" and not is_raster_path(output):
+        taken.add(str(Path(output).with_suffix(".prj").resolve()))
+    for part in SHAPEFILE_PARTS:
+        sibling = target.with_suffix("." + part)
+        if str(sibling.resolve()) in taken:
+            raise InputError(f"the contours '{path}' write '{sibling}' too, which is another output "
+                             "(or the mesh's .prj): give the shapefile another name")
 
 
 def contour_request(options) -> ContourRequest | None:
