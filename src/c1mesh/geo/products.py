@@ -20,6 +20,8 @@ from c1mesh.core import crs as crs_module
 from c1mesh.core.errors import InputError
 from c1mesh.geo.preview import render_fit
 from c1mesh.core.outputs import DEM_AXES, contour_path_problem
+from c1mesh.geo.contour_file import SHAPEFILE_PARTS, StagedContours, vector_crs
+from c1mesh.geo.contours import ContourGrid, contour_surface
 from c1mesh.geo.raster import RasterTargets, is_raster_path, targets_for
 from c1mesh.geo.raster_grid import RasterGrid
 from c1mesh.stages.surface import refined_vertex_count
@@ -41,9 +43,6 @@ class ContourRequest:
     def with_crs(self, crs: str | None, user_crs: str | None) -> "ContourRequest":
         """This request writing the CRS `crs` (WKT; user_crs: --crs, which may name it by
         its EPSG code); InputError when the format cannot hold it (vector_crs)."""
-        from dataclasses import replace
-
-        from c1mesh.geo.contour_file import vector_crs
         return replace(self, crs=vector_crs(self.path, crs, user_crs))
 
 
@@ -96,8 +95,6 @@ def check_contour_parts(path, others, output) -> None:
     (a directory, device or FIFO: GDAL writes regular files only), or when a shapefile's
     other parts (.shx .dbf .prj .cpg) would overwrite another output or the .prj sidecar of
     the mesh `output`."""
-    from c1mesh.geo.contour_file import SHAPEFILE_PARTS
-
     target = Path(path)
     if target.exists() and not target.is_file():
         raise InputError(f"the contours '{path}' must be a regular file (GDAL writes it in place)")
@@ -255,9 +252,6 @@ def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid) -> 
     them, with request.crs, under a temporary name; returns (the StagedContours to
     commit() once the fit's other files are written, or to discard(); the report's
     "contours" section)."""
-    from c1mesh.geo.contour_file import StagedContours
-    from c1mesh.geo.contours import ContourGrid, contour_surface
-
     start = time.perf_counter()
     lines = contour_surface(interp, ContourGrid.of_raster(grid, frame.origin), request.interval)
     staged = StagedContours(request.path)
