@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 # an output option or a shell redirection, then a relative path (not -, not /abs, not a PLACEHOLDER)
-OUTPUT = re.compile(r"(?:-o|-O|--slope|--aspect|--hillshade|--support|--preview|--report|>)\s+([a-z][\w./-]*)")
+OUTPUT = re.compile(r"(?:-o|-O|--slope|--aspect|--hillshade|--support|--preview|--contours|--report|>)\s+([a-z][\w./-]*)")
 
 
 def readme_outputs(text: str) -> set[str]:

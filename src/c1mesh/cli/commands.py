@@ -13,6 +13,7 @@ from c1mesh import __version__
 from c1mesh.cli.fitting import Console, Destination, Workers, fit_batch, fit_one, fit_survey, threads_per_process
 from c1mesh.cli.options import (
     CLASSES_HELP,
+    CONTOURS_HELP,
     INPUT_FORMAT_HELP,
     MEMORY_HELP,
     OUTPUT_HELP,
@@ -133,12 +134,15 @@ def main() -> None:
 @click.option("--slope-method", type=click.Choice(["auto", "spline", "horn"]), default="auto",
               show_default=True, help="Gradient for slope/aspect/hillshade: the spline's, or Horn's of the DEM.")
 @click.option("--preview", help="Also render a PNG preview (hillshade coloured by height).")
+@click.option("--contours", help=CONTOURS_HELP)
+@click.option("--interval", type=float, help="Height between two contour lines (--contours): levels are its "
+              "multiples, in the units of z.")
 @click.pass_context
 def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals, k, axis, max_slope,
         max_edge, scheme, level, ascii_ply, frame_kind, viewpoint, intrinsics, depth_scale, color_image,
         overshoot, gradients, report, memory, jobs, quiet, verbose, debug,
         threads, crs, resolution, slope, aspect, hillshade, z_factor, slope_method, preview, seamless,
-        scheduler, bounds, smooth, spacing, support, fill):
+        scheduler, bounds, smooth, spacing, support, fill, contours, interval):
     """Fit a refined C1 surface mesh to each INPUT scan (- reads stdin)."""
     check_usage(ctx)       # every usage error at once, before any input is read
     classes, max_edge = parse_classes(classes), parse_max_edge(max_edge)
@@ -154,9 +158,9 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
                              hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
                              z_factor=z_factor, smooth=smooth_option, spacing=spacing, support=support,
-                             fill=parse_fill(fill))
+                             fill=parse_fill(fill), contours=contours, interval=interval)
         if output and not output_dir:
-            options = check_geo([(inputs[0], output)], options, debug)
+            options = check_geo([(inputs[0], output)], options, debug, report)
         fit_survey(inputs, Destination(output, output_dir, suffix), options, console,
                    Workers(jobs, threads, scheduler))
         return
@@ -177,8 +181,9 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
                          intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds,
-                         smooth=smooth_option, spacing=spacing, support=support, fill=parse_fill(fill))
-    options = check_geo(pairs, options, debug)
+                         smooth=smooth_option, spacing=spacing, support=support, fill=parse_fill(fill),
+                         contours=contours, interval=interval)
+    options = check_geo(pairs, options, debug, report)
     options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))
     if len(pairs) == 1:
         fit_one(*pairs[0], targets, options, console, Workers(jobs, threads, scheduler))

@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from c1mesh.core.errors import C1MeshError
-from c1mesh.core.outputs import INPUT_FORMATS, MESH_FORMATS, RASTER_FORMATS, STDIO
+from c1mesh.core.outputs import CONTOUR_FORMATS, INPUT_FORMATS, MESH_FORMATS, RASTER_FORMATS, STDIO
 
 CLASSES_HELP = ("LAS/LAZ points to fit: auto (the ground class 2 when the file has any, else the ground "
                 "the ground filter finds: docs/ground.md), all (every point, for a top surface), filter "
@@ -62,6 +62,11 @@ def _extensions(formats) -> str:
 
 OUTPUT_HELP = (f"Output: a mesh ({_extensions(MESH_FORMATS)}) or a GeoTIFF DEM ({_extensions(RASTER_FORMATS)}, "
                 "with --resolution), or - for binary PLY on stdout.")
+
+
+CONTOURS_HELP = (f"Also write contour lines ({_extensions(CONTOUR_FORMATS)}) every --interval of height, with "
+                 "the CRS and a 'level' attribute: traced on the DEM's grid (a mesh: at its resolution), each "
+                 "vertex moved onto the spline's level set; the fit's heights must be over the world XY plane.")
 
 
 INPUT_FORMAT_HELP = (f"Input format ({', '.join(INPUT_FORMATS)}) [default: the file's extension]; "

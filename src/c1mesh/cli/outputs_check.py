@@ -13,17 +13,23 @@ from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.core.outputs import STDIO, mesh_format, plan_outputs
 
 
-def check_geo(jobs_list, options, debug):
+def check_geo(jobs_list, options, debug, report=None):
     """Georeferencing options checked before any input is read (c1mesh.geo.products.check_before;
     their conflicts are usage errors, found by c1mesh.cli.usage.check_usage): a bad CRS or an unwritable
-    path exit 1. Returns the options with the CRS parsed to WKT."""
+    path exit 1. report: the --report path (a shapefile's parts must not be it). Returns the
+    options with the CRS parsed to WKT."""
     from c1mesh.geo.products import check_before
 
     extra = [(label, path) for label, path in (("slope raster", options.slope),
                                                ("aspect raster", options.aspect),
                                                ("hillshade raster", options.hillshade),
                                                ("support raster", options.support),
-                                               ("preview", options.preview)) if path]
+                                               ("preview", options.preview),
+                                               ("contours", options.contours)) if path]
+    if options.contours and Path(options.contours).suffix.lower() == ".shp":    # its .shx .dbf .prj .cpg
+        extra += [("contours part", str(Path(options.contours).with_suffix(part)))
+                  for part in (".shx", ".dbf", ".prj", ".cpg")]
+        extra += [("report", report)] if report not in (None, STDIO) else []
     try:
         if extra:   # against the inputs, the outputs and each other (c1mesh.core.outputs)
             plan_outputs([("output", dst) for _, dst in jobs_list] + extra, [src for src, _ in jobs_list])

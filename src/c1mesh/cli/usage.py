@@ -30,6 +30,7 @@ from c1mesh.core.outputs import (
     OUTPUT_FORMATS,
     RASTER_FORMATS,
     STDIO,
+    contour_path_problem,
     is_binary_output,
     is_file_output,
 )
@@ -221,6 +222,31 @@ def _raster_problems(params: dict, outputs: list[str], level_given: bool) -> lis
     return problems
 
 
+def _contour_problems(params: dict) -> list[str]:
+    """--contours and --interval against each other, the frame, the axis and the outputs."""
+    path, interval = params["contours"], params["interval"]
+    if path is None:
+        return ["--interval is the height between contour lines: give --contours FILE"] if interval is not None else []
+    problems = []
+    if interval is None:
+        problems.append("--contours needs --interval H, the height between two contour lines")
+    elif not (interval > 0 and math.isfinite(interval)):
+        problems.append(f"--interval must be a positive height, got {interval}")
+    if contour_path_problem(path):
+        problems.append(contour_path_problem(path))
+    if params["seamless"] and params["output_dir"]:
+        problems.append("--contours makes one survey-wide file: use it with --seamless -o, not -O")
+    elif len(params["inputs"]) > 1 and not params["seamless"]:
+        problems.append("--contours names one file: use it with a single input")
+    if params["frame_kind"] == "perspective":     # geo loads numpy: only here
+        from c1mesh.geo.products import CONTOUR_FRAME_ERROR
+        problems.append(CONTOUR_FRAME_ERROR)
+    if params["axis"].strip().lower() not in DEM_AXES:
+        problems.append(f"contours are levels of height over the world XY plane; --axis {params['axis']} cannot "
+                        "be used with --contours (use --axis z or auto)")
+    return problems
+
+
 def _fit_usage_problems(ctx: click.Context) -> list[str]:
     """Everything wrong with a `fit` command line that the command line alone shows, all
     at once, so that one run names the whole fix (exit 2). Reads no input; the file system
@@ -229,7 +255,7 @@ def _fit_usage_problems(ctx: click.Context) -> list[str]:
     outputs = output_paths(params)
     level_given = ctx.get_parameter_source("level") != ParameterSource.DEFAULT
     return (_value_problems(params) + _io_problems(params, outputs) + _format_problems(params, outputs)
-            + _raster_problems(params, outputs, level_given))
+            + _raster_problems(params, outputs, level_given) + _contour_problems(params))
 
 
 def _info_usage_problems(ctx: click.Context) -> list[str]:

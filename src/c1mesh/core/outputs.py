@@ -50,6 +50,18 @@ MESH_FORMATS = ("ply", "obj", "stl", "off", "glb")
 RASTER_FORMATS = ("tif", "tiff")
 """GeoTIFF DEM extensions c1mesh writes (c1mesh.geo.raster; a fit needs --resolution for them)."""
 
+CONTOUR_FORMATS = ("gpkg", "geojson", "shp")
+"""Contour line extensions c1mesh writes (--contours; c1mesh.geo.contour_file)."""
+
+
+def contour_path_problem(path: str) -> str | None:
+    """Why `path` names no contour format c1mesh writes, or None (plain Python: the CLI's
+    usage check and the library's both say it this way)."""
+    if Path(path).suffix.lower().lstrip(".") in CONTOUR_FORMATS:
+        return None
+    names = [f".{fmt}" for fmt in CONTOUR_FORMATS]
+    return f"the contours '{path}' must be a {', '.join(names[:-1])} or {names[-1]} file"
+
 OUTPUT_FORMATS = MESH_FORMATS + RASTER_FORMATS
 """Every output extension of `c1mesh fit`: the one list behind its help, errors and docs."""
 

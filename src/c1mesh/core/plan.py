@@ -85,7 +85,8 @@ class FitPlan:
     memory: the budget in bytes (None: no budget, always one piece in memory); threads:
     the one thread knob (None: the process's setting, core.threads); rasters: whether
     any raster output (DEM, slope, aspect, hillshade, preview) is asked for, which only
-    the in-memory fit writes today."""
+    the in-memory fit writes today; contours: whether --contours is asked for (the
+    in-memory fit only, likewise)."""
 
     select: PointSelection = PointSelection()
     heights: HeightSettings = HeightSettings()
@@ -94,6 +95,7 @@ class FitPlan:
     memory: int | None = None
     threads: int | None = None
     rasters: bool = False
+    contours: bool = False
 
 
 @dataclass(frozen=True)

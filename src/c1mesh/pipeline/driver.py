@@ -27,8 +27,8 @@ from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
 from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
+from c1mesh.geo.products import contour_grid, geo_plan, level_for_edge, resolve_crs, stage_contours
 from c1mesh.geo.products import finish as _finish_geo
-from c1mesh.geo.products import geo_plan, level_for_edge, resolve_crs
 from c1mesh.geo.raster import (
     RasterTargets,
     dem_sampling,
@@ -121,7 +121,8 @@ class FitOptions:
     # Georeferencing and rasters (c1mesh.core.crs, c1mesh.geo.raster, c1mesh.geo.preview): crs assigns a
     # CRS (EPSG:XXXX, WKT, or a file) where the input has none; resolution is the GeoTIFF
     # cell size, or for meshes the target mean edge length (chooses the level); slope,
-    # aspect, hillshade are extra GeoTIFF paths; preview a PNG path.
+    # aspect, hillshade are extra GeoTIFF paths; preview a PNG path; contours a vector file
+    # (.gpkg, .geojson, .shp) of contour lines every `interval` of height (c1mesh.geo.contours).
     crs: str | None = None
     resolution: float | None = None
     slope: str | None = None
@@ -134,6 +135,8 @@ class FitOptions:
     # inside the hull of the points), "off" (or 0: the holes stay nodata) or a distance D.
     support: str | None = None
     fill: Any = "hull"
+    contours: str | None = None
+    interval: float | None = None
     # z_factor: x, y units per height unit (ArcGIS's z-factor; gdaldem's -s is its inverse),
     # for the angles of slope, hillshade and the preview's shading (atan(|grad z| * z_factor))
     # and, for a header height column fitted in plan units, of max_slope. None: 1 where x, y
@@ -532,7 +535,7 @@ def fit(source, output=None, options: FitOptions | None = None,
 def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
     """fit() inside its thread limit."""
     geo = geo_plan(output, options)
-    if geo.rasters.items():
+    if geo.height_field:
         options = replace(options, axis=raster_axis(options.axis))
     options, axis_reason = resolve_options_axis(source, options)
     timer = StageTimer(on_stage)
@@ -542,11 +545,13 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     selection = cloud.selection
     if not isinstance(options.classes, tuple):  # later stages see codes: the filter's ground as 2
         options = replace(options, classes=resolved_classes(selection))
+    if geo.contours is not None:      # GeoJSON needs an EPSG code: refused now, not after the fit
+        geo = replace(geo, contours=geo.contours.with_crs(crs, geo.user_crs))
     options, column_reason = height_column_axis(cloud, options)
     axis_reason = column_reason or axis_reason
     check_angles(cloud, options, display_name(source))
     angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
-    if frame_kind(options.frame, cloud.grid_shape is not None, dem=bool(geo.rasters.items())) == "perspective":
+    if frame_kind(options.frame, cloud.grid_shape is not None, dem=geo.height_field) == "perspective":
         if smoothing_strength(options) is not None:
             raise InputError(f"{display_name(source)}: an organised scan or depth image is fitted in the "
                              "perspective frame, which has no smoothing fit; give --frame axis to fit it "
@@ -558,28 +563,32 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
                           fill=fill is not None)
     frame, hf, trim_report, used, interp = model.frame, model.hf, model.trim_report, model.used, model.interp
     if geo.rasters.items():
-        with timer.stage("raster"):
-            data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
-            rule = None if fill is None else FillRule(model.trimmed, fill)
-            dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge, rule,
-                               fit_points(model))
-            raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
+        data_xy = (cloud.points - frame.origin)[:, :2]      # the raster frame's axes are the world's
+        rule = None if fill is None else FillRule(model.trimmed, fill)
+        dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge, rule, fit_points(model))
+        with _Contours(geo, interp, frame, dem[0], timer) as contours:
+            with timer.stage("raster"):
+                raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
         report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
                                        crs_facts(crs, crs_source)), model)
         report["raster"] = {**raster_report, "fill": fill_facts(options.fill, fill, model)}
         report.update({} if selection is None else {"classes": selection})
+        contours.add_to(report)
         return _finish_geo(FitResult(None, report),
                            interp, frame, crs, crs_source, options, dem=dem)
     level, level_from = plane_level(interp.points, interp.triangles, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
-    mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
-                                 MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh)
+    grid = contour_grid(interp, frame, None, level, options.resolution) if geo.contours else None
+    with _Contours(geo, interp, frame, grid, timer) as contours:
+        mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
+                                     MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh)
     frame_report = frame_facts(frame)
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
                      model, frame_report, level_from, stream)
     report.update({} if selection is None else {"classes": selection})
+    contours.add_to(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
@@ -704,6 +713,41 @@ def fill_facts(option, distance: float | None, model: SurfaceModel) -> dict:
     spans = 0 if model.trimmed is None else int((~model.trimmed).sum())
     shown = None if distance is None else ("inf" if math.isinf(distance) else distance)
     return {"option": option, "distance": shown, "triangles_spanning_holes": spans}
+
+
+class _Contours:
+    """The fit's contours around the writing of its other outputs: traced and written to a
+    temporary file on entry (stage "contours"), committed when the block ends without
+    error, removed when it fails, so no contour file outlives a failed fit and no failed
+    contouring leaves a mesh or DEM. `report`: {"contours": ...} or {} without --contours."""
+
+    def __init__(self, geo, interp, frame, grid, timer: StageTimer):
+        self.geo, self.interp, self.frame, self.grid, self.timer = geo, interp, frame, grid, timer
+        self.staged, self.report = None, {}
+
+    def __enter__(self) -> "_Contours":
+        if self.geo.contours is not None:
+            with self.timer.stage("contours"):
+                self.staged, facts = stage_contours(self.geo.contours, self.interp, self.frame, self.grid)
+            self.report = {"contours": facts}
+        return self
+
+    def add_to(self, report: dict) -> None:
+        """Put the "contours" section into the fit's report, and a warning when no level
+        lies within the surface's heights (the file is empty)."""
+        report.update(self.report)
+        facts = self.report.get("contours")
+        if facts is not None and facts["levels"]["count"] == 0:
+            report["warnings"].append(f"--interval {facts['interval']:g} gives no contour level within the "
+                                      f"surface's heights: {facts['file']} holds no line")
+
+    def __exit__(self, kind, value, tb) -> None:
+        if self.staged is None:
+            return
+        if kind is None:
+            self.staged.commit()
+        else:
+            self.staged.discard()
 
 
 def _slope_note(model: SurfaceModel) -> dict:

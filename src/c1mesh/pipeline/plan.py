@@ -52,4 +52,5 @@ def fit_plan(options) -> FitPlan:
         mesh=MeshTarget(options.output_format, options.ascii, options.crs),
         memory=options.memory, threads=options.workers,
         rasters=any(v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
-                                                        options.hillshade, options.preview)))
+                                                        options.hillshade, options.preview)),
+        contours=getattr(options, "contours", None) is not None)

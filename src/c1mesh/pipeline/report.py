@@ -64,6 +64,9 @@ REQUIRED_PARTS: dict[str, tuple[str, ...]] = {
 
 OPTIONAL: dict[str, str] = {
     "raster": "a raster (DEM) output: the GeoTIFFs written, cells, cells_with_data",
+    "contours": "--contours: the file, interval, lines, closed lines, vertices, levels (count, lowest, "
+                "highest), max_level_error (largest |spline − level| over the vertices written, heights), "
+                "dropped_vertices (off the surface: their lines split), grid_resolution, seconds",
     "overshoot": "every in-memory fit (zeros under --overshoot off), the tiled fit under --overshoot "
                  "limit: the vertices and edges the limiter changed",
     "resolution": "--resolution was given (its value: the DEM's cell size, or the mesh's target mean edge)",

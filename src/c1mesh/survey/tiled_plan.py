@@ -96,6 +96,8 @@ def needs_tiles(source, plan: FitPlan) -> bool:
     if plan.rasters:
         raise InputError(f"{need}; rasters, --resolution and --preview need the in-memory fit "
                          "(raise --memory)")
+    if plan.contours:
+        raise InputError(f"{need}; --contours needs the in-memory fit (raise --memory)")
     if plan.heights.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
