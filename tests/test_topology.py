@@ -101,3 +101,20 @@ def test_sub_table_is_the_edge_table_of_the_kept_triangles(shuffled_mesh, drop):
     sub, expected = sub_table(table, keep, other, used), edge_table(remap[tri[keep]], used.size)
     for f in FIELDS:
         assert np.array_equal(getattr(sub, f), getattr(expected, f)), f
+
+
+def test_edge_table_of_a_fan_and_of_no_triangles():
+    """A fan of 200 triangles around vertex 0 (one vertex in every edge of the sort's widest
+    bucket), against the edges listed by hand; and the empty mesh."""
+    m = 200
+    tri = np.array([[0, i + 1, (i + 1) % m + 1] for i in range(m)])      # closed fan
+    table, other, neighbours = edge_table_sides(tri, m + 1)
+    spokes = [(0, i) for i in range(1, m + 1)]
+    rim = sorted(tuple(sorted((i + 1, (i + 1) % m + 1))) for i in range(m))
+    assert table.edges.tolist() == [list(e) for e in sorted(spokes + rim)]
+    assert table.count.tolist() == [2] * m + [1] * m          # spokes shared, rim on the boundary
+    assert neighbours[:, 0].tolist() == [-1] * m               # across the rim: nothing
+    assert neighbours[:, 1].tolist() == [(i + 1) % m for i in range(m)]
+    assert neighbours[:, 2].tolist() == [(i - 1) % m for i in range(m)]
+    empty = edge_table(np.zeros((0, 3), dtype=np.int64), 0)
+    assert all(getattr(empty, f).shape[0] == 0 for f in FIELDS)
