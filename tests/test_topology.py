@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.engine.topology import edge_table, edge_table_sides, sort_keys, sub_table
+from c1mesh.engine.topology import edge_table, edge_table_sides, sort_keys, sub_table, triangle_neighbours
 from c1mesh.engine.triangulation import delaunay
 
 
@@ -55,6 +55,8 @@ def test_edge_in_three_triangles_is_refused():
     tri = np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
     with pytest.raises(InputError, match=r"edge \(0, 1\) belongs to 3 triangles"):
         edge_table(tri, 5)
+    with pytest.raises(InputError, match="not edge-manifold"):
+        triangle_neighbours(tri, 5)
 
 
 FIELDS = ("edges", "tri_edge", "forward", "owner", "owner_slot", "count")
@@ -77,6 +79,7 @@ def test_edge_table_sides_gives_each_edges_second_slot_and_the_neighbours(shuffl
             (t1, k1), (t2, k2) = pair
             expected_nb[t1, k1], expected_nb[t2, k2] = t2, t1
     assert np.array_equal(neighbours, expected_nb)
+    assert np.array_equal(triangle_neighbours(tri, n), expected_nb)      # without the table
     for e, (i, j) in enumerate(table.edges):
         pair = slots[frozenset((i, j))]
         first = (table.owner[e], table.owner_slot[e])

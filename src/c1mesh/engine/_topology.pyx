@@ -122,3 +122,23 @@ def fill_table(const int64_t[:, ::1] tri, const uint64_t[::1] packed, const int6
                     owner[e], owner_slot[e], count[e], other[e] = t1, k1, 1, -1
                     i += 1
                 e += 1
+
+
+def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_t[:, ::1] across):
+    """across (T, 3): the triangle across each slot's edge, or -1, from bucket_slots' packed
+    and start (every edge in at most 2 triangles)."""
+    cdef Py_ssize_t v, i, n = start.shape[0] - 1
+    cdef int64_t s1, s2
+    cdef uint64_t low_mask = 0xFFFFFFFF
+    with nogil:
+        for v in range(n):
+            i = start[v]
+            while i < start[v + 1]:
+                s1 = <int64_t> (packed[i] & low_mask)
+                if i + 1 < start[v + 1] and (packed[i + 1] >> 32) == (packed[i] >> 32):
+                    s2 = <int64_t> (packed[i + 1] & low_mask)
+                    across[s1 // 3, s1 % 3], across[s2 // 3, s2 % 3] = s2 // 3, s1 // 3
+                    i += 2
+                else:
+                    across[s1 // 3, s1 % 3] = -1
+                    i += 1

@@ -49,7 +49,7 @@ def edge_table_sides(triangles: np.ndarray, n_points: int) -> tuple[EdgeTable, n
     other:      (E,) int64 the slot 3t + k where the edge's second triangle t holds it
                 opposite local vertex k (the first is owner, owner_slot), -1 on a boundary edge;
     neighbours: (T, 3) int64 the triangle across the edge opposite local vertex k, or -1
-                (what stages.trim.triangle_neighbours finds with a sort of its own).
+                (what `triangle_neighbours` gives alone).
     """
     return _edge_table(triangles, n_points, True)
 
@@ -59,15 +59,19 @@ LIMIT = 2 ** 31
 vertices and 715 million triangles (far above what fits in memory)."""
 
 
+def _check_size(T: int, n_points: int) -> None:
+    if n_points >= LIMIT or 3 * T >= LIMIT:
+        raise InputError(f"the edge table takes meshes below {LIMIT} vertices and {LIMIT // 3} "
+                         f"triangles, got {n_points} and {T}: fit the survey in tiles (--memory)")
+
+
 def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
     """The EdgeTable of triangles (T, 3) over n_points vertices, with other and neighbours
     (edge_table_sides) or None, None. The kernel (engine/_topology.pyx) buckets the 3T slots
     by their edge's lower vertex, linear in T + n_points; one thread."""
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
     T = tri.shape[0]
-    if n_points >= LIMIT or 3 * T >= LIMIT:
-        raise InputError(f"the edge table takes meshes below {LIMIT} vertices and {LIMIT // 3} "
-                         f"triangles, got {n_points} and {T}: fit the survey in tiles (--memory)")
+    _check_size(T, n_points)
     packed, start, E, most, low, high = _topology.bucket_slots(tri, int(n_points))
     if most > 2:
         raise InputError(f"edge ({low}, {high}) belongs to {most} triangles: the triangles overlap "
@@ -82,6 +86,21 @@ def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
     table = EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
                       owner_slot=owner_slot, count=count)
     return (table, other, across) if sides else (table, None, None)
+
+
+def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
+    """(T, 3) int64 the triangle across the edge opposite local vertex k of each triangle of
+    triangles (T, 3) over n_points vertices, or -1; InputError if an edge is in 3 or more
+    triangles. The edge table's slot buckets, without filling the table."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    _check_size(tri.shape[0], n_points)
+    packed, start, _, most, _, _ = _topology.bucket_slots(tri, int(n_points))
+    if most > 2:
+        raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
+                         "more triangles); pass a triangulation such as delaunay(xy)")
+    across = np.empty(tri.shape, dtype=np.int64)
+    _topology.fill_neighbours(packed, start, across)
+    return across
 
 
 def live_edges(table: EdgeTable, keep: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
