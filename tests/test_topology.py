@@ -121,3 +121,11 @@ def test_edge_table_of_a_fan_and_of_no_triangles():
     assert neighbours[:, 2].tolist() == [(i - 1) % m for i in range(m)]
     empty = edge_table(np.zeros((0, 3), dtype=np.int64), 0)
     assert all(getattr(empty, f).shape[0] == 0 for f in FIELDS)
+
+
+def test_indices_outside_the_points_are_refused_before_the_kernel():
+    for bad in ([[0, 1, 5]], [[0, -1, 2]]):
+        with pytest.raises(InputError, match="indices"):
+            edge_table(np.array(bad), 5)
+        with pytest.raises(InputError, match="indices"):
+            triangle_neighbours(np.array(bad), 5)

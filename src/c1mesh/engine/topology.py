@@ -59,19 +59,26 @@ LIMIT = 2 ** 31
 vertices and 715 million triangles (far above what fits in memory)."""
 
 
-def _check_size(T: int, n_points: int) -> None:
-    if n_points >= LIMIT or 3 * T >= LIMIT:
+def _checked(triangles: np.ndarray, n_points: int) -> np.ndarray:
+    """triangles as the kernel takes them, (T, 3) C-ordered int64, after checking what it
+    does not: the shape, every index in [0, n_points) and the 32-bit packing's LIMIT."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise InputError(f"triangles must have shape (T, 3), got {tri.shape}")
+    if tri.size and (tri.min() < 0 or tri.max() >= n_points):
+        raise InputError(f"triangle indices must lie in [0, {n_points}), got {tri.min()}..{tri.max()}")
+    if n_points >= LIMIT or 3 * tri.shape[0] >= LIMIT:
         raise InputError(f"the edge table takes meshes below {LIMIT} vertices and {LIMIT // 3} "
-                         f"triangles, got {n_points} and {T}: fit the survey in tiles (--memory)")
+                         f"triangles, got {n_points} and {tri.shape[0]}: fit the survey in tiles (--memory)")
+    return tri
 
 
 def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
     """The EdgeTable of triangles (T, 3) over n_points vertices, with other and neighbours
     (edge_table_sides) or None, None. The kernel (engine/_topology.pyx) buckets the 3T slots
     by their edge's lower vertex, linear in T + n_points; one thread."""
-    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    tri = _checked(triangles, n_points)
     T = tri.shape[0]
-    _check_size(T, n_points)
     packed, start, E, most, low, high = _topology.bucket_slots(tri, int(n_points))
     if most > 2:
         raise InputError(f"edge ({low}, {high}) belongs to {most} triangles: the triangles overlap "
@@ -92,8 +99,7 @@ def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
     """(T, 3) int64 the triangle across the edge opposite local vertex k of each triangle of
     triangles (T, 3) over n_points vertices, or -1; InputError if an edge is in 3 or more
     triangles. The edge table's slot buckets, without filling the table."""
-    tri = np.ascontiguousarray(triangles, dtype=np.int64)
-    _check_size(tri.shape[0], n_points)
+    tri = _checked(triangles, n_points)
     packed, start, _, most, _, _ = _topology.bucket_slots(tri, int(n_points))
     if most > 2:
         raise InputError("the triangles are not edge-manifold (an edge is shared by three or "

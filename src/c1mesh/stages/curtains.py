@@ -91,12 +91,19 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
         floor = noise_floor(xy, z, gradients, triangles)
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    _check_indices(tri, xy.shape[0])
     masks = {reason: np.empty(tri.shape[0], dtype=bool) for reason in REASONS}
     cos2 = (np.cos(np.radians(shadow_angle)) ** 2, np.cos(np.radians(grazing_angle)) ** 2)
     kernel.curtain_masks(x, y, np.ascontiguousarray(z, dtype=np.float64), gx, gy, tri, *cos2,
                          float(floor), view_rules, *(masks[r].view(np.uint8) for r in REASONS),
                          thread_count())
     return masks
+
+
+def _check_indices(indices: np.ndarray, n: int) -> None:
+    """ValueError unless every point index lies in [0, n): the kernels do not check."""
+    if indices.size and (indices.min() < 0 or indices.max() >= n):
+        raise ValueError(f"point indices must lie in [0, {n}), got {indices.min()}..{indices.max()}")
 
 
 def _columns(xy: np.ndarray, gradients: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -141,10 +148,11 @@ def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarr
     ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel in the thread knob's
     threads (stages/_curtains.pyx)."""
     x, y, gx, gy = _columns(xy, gradients)
+    a, b = (np.ascontiguousarray(end, dtype=np.int64) for end in (a, b))
+    for end in (a, b):
+        _check_indices(end, xy.shape[0])
     out = np.empty(len(a))
-    kernel.residuals(x, y, np.ascontiguousarray(z, dtype=np.float64), gx, gy,
-                     np.ascontiguousarray(a, dtype=np.int64), np.ascontiguousarray(b, dtype=np.int64),
-                     out, thread_count())
+    kernel.residuals(x, y, np.ascontiguousarray(z, dtype=np.float64), gx, gy, a, b, out, thread_count())
     return out
 
 
