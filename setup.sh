@@ -4,14 +4,14 @@
 # package with its dev extra (tests, matplotlib peer, sympy) installed editable.
 #
 # The build: meson-python (pyproject.toml, meson.build) compiles c1mesh's Cython kernels with the
-# C compiler and OpenMP. The install is meson-python's editable one: it needs its build
+# C compiler. The install is meson-python's editable one: it needs its build
 # requirements in the venv first (--no-build-isolation) and ninja, builds into build/cp3XX/ and
 # rebuilds a changed kernel when c1mesh is imported; the .py files are used from src/ as they
 # are. An editable wheel carries no scripts, so the `c1mesh` launcher (bin/c1mesh) is copied into
 # .venv/bin here (`pip install .` installs it by itself).
 set -euo pipefail
 cd "$(dirname "$0")"
-# Debian packages: libusb-1.0-0 for open3d; a C compiler (with OpenMP: gcc's libgomp) for
+# Debian packages: libusb-1.0-0 for open3d; a C compiler for
 # c1mesh's kernels and for python-lzf, which PyPI has only as source (the PCD reader's LZF decoder).
 missing=()
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)

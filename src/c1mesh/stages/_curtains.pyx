@@ -2,14 +2,10 @@
 """The curtain stage's kernels: c1mesh.stages.curtains wraps them (validation, threads), and
 nothing else imports them. Element by element, in the order of operations the wrapper's
 docstrings give (no contraction into fused multiply-adds: the build's -ffp-contract=off),
-over fixed blocks in OpenMP threads: each output element is written by one block, so the
-bytes do not depend on the thread count."""
-from cython.parallel cimport prange
+over a range [start, stop) without the GIL: the wrapper runs fixed blocks in its threads,
+each output element is written by one block, so the bytes do not depend on the thread count."""
 from libc.math cimport isnan, NAN
 from libc.stdint cimport int64_t, uint8_t
-
-cdef Py_ssize_t BLOCK = 1 << 14
-"""Elements per parallel block."""
 
 
 cdef inline double _maximum(double a, double b) noexcept nogil:
@@ -21,17 +17,15 @@ cdef inline double _maximum(double a, double b) noexcept nogil:
 
 def residuals(const double[::1] x, const double[::1] y, const double[::1] z,
               const double[::1] gx, const double[::1] gy, const int64_t[::1] a,
-              const int64_t[::1] b, double[::1] out, int threads):
+              const int64_t[::1] b, double[::1] out, Py_ssize_t start, Py_ssize_t stop):
     """out (E,): the trapezoid residual of each edge a→b (E,), in height units:
-    (z_b − z_a) − ½ (g_a·d + g_b·d) with d = xy_b − xy_a and g·d = gx·dx + gy·dy."""
-    cdef Py_ssize_t E = a.shape[0], blocks = (E + BLOCK - 1) // BLOCK, blk, e, end
+    (z_b − z_a) − ½ (g_a·d + g_b·d) with d = xy_b − xy_a and g·d = gx·dx + gy·dy, for the
+    edges start <= e < stop."""
+    cdef Py_ssize_t e
     cdef int64_t i, j
     cdef double dx, dy
-    for blk in prange(blocks, nogil=True, num_threads=threads, schedule="static"):
-        end = (blk + 1) * BLOCK
-        if end > E:
-            end = E
-        for e in range(blk * BLOCK, end):
+    with nogil:
+        for e in range(start, stop):
             i = a[e]
             j = b[e]
             dx = x[j] - x[i]
@@ -43,18 +37,16 @@ def curtain_masks(const double[::1] x, const double[::1] y, const double[::1] z,
                   const double[::1] gx, const double[::1] gy, const int64_t[:, ::1] tri,
                   double cos2_shadow, double cos2_grazing, double floor, bint view_rules,
                   uint8_t[::1] shadow, uint8_t[::1] grazing, uint8_t[::1] away,
-                  uint8_t[::1] thin, int threads):
-    """The four (T,) 0/1 masks of curtains.curtain_triangles for the triangles tri (T, 3)."""
-    cdef Py_ssize_t T = tri.shape[0], blocks = (T + BLOCK - 1) // BLOCK, blk, t, end
+                  uint8_t[::1] thin, Py_ssize_t start, Py_ssize_t stop):
+    """The four (T,) 0/1 masks of curtains.curtain_triangles for the triangles start <= t <
+    stop of tri (T, 3)."""
+    cdef Py_ssize_t t
     cdef int k
     cdef int64_t c0, c1, c2, c, nxt
     cdef double ex, ey, ez, flat2, longest2, ux, uy, uz, vx, vy, vz, nx, ny, nz
     cdef bint is_shadow, is_grazing, is_away
-    for blk in prange(blocks, nogil=True, num_threads=threads, schedule="static"):
-        end = (blk + 1) * BLOCK
-        if end > T:
-            end = T
-        for t in range(blk * BLOCK, end):
+    with nogil:
+        for t in range(start, stop):
             c0 = tri[t, 0]
             c1 = tri[t, 1]
             c2 = tri[t, 2]

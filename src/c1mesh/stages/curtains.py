@@ -50,7 +50,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from c1mesh.core.threads import workers as thread_count
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.stages import _curtains as kernel
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
 
@@ -58,6 +58,10 @@ REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
 VIEW_REASONS = ("shadow_edge", "grazing", "facing_away")
 """The rules that take the height axis as a view ray (skipped on aerial ground)."""
+KERNEL_BLOCK = 1 << 14
+"""Triangles or edges per block of the kernels (stages/_curtains.pyx), run in the thread
+knob's threads (core.threads.parallel_blocks; Python threads, not OpenMP, whose thread pool
+does not survive a fork: a forked --jobs worker would hang in it)."""
 GROUND_CLASSES = (2, 8, 9, 11)
 """ASPRS LAS classes of surfaces seen from above: ground, model key-point (a subset of
 ground in LAS 1.0-1.3), water, road surface."""
@@ -84,7 +88,7 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     coordinates, heights along e3, data gradients ∇z from the normals); triangles (T, 3)
     indices into them. Angles in degrees. Component by component and without square
     roots (squared comparisons), as this runs on every triangle of every fit: a kernel
-    (stages/_curtains.pyx) over blocks of triangles in the thread knob's threads.
+    (stages/_curtains.pyx) over blocks of KERNEL_BLOCK triangles in the thread knob's threads.
     view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
     x, y, gx, gy = _columns(xy, gradients)
@@ -94,9 +98,11 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     _check_indices(tri, xy.shape[0])
     masks = {reason: np.empty(tri.shape[0], dtype=bool) for reason in REASONS}
     cos2 = (np.cos(np.radians(shadow_angle)) ** 2, np.cos(np.radians(grazing_angle)) ** 2)
-    kernel.curtain_masks(x, y, np.ascontiguousarray(z, dtype=np.float64), gx, gy, tri, *cos2,
-                         float(floor), view_rules, *(masks[r].view(np.uint8) for r in REASONS),
-                         thread_count())
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    flags = [masks[r].view(np.uint8) for r in REASONS]
+    parallel_blocks(lambda part: kernel.curtain_masks(x, y, z, gx, gy, tri, *cos2, float(floor), view_rules,
+                                                      *flags, part.start, part.stop),
+                    tri.shape[0], KERNEL_BLOCK)
     return masks
 
 
@@ -145,14 +151,16 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
 def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarray,
                b: np.ndarray) -> np.ndarray:
     """limiter.trapezoid_residuals of the edges a→b (E,), bit for bit: (z_b − z_a) −
-    ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel in the thread knob's
-    threads (stages/_curtains.pyx)."""
+    ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel over blocks of
+    KERNEL_BLOCK edges in the thread knob's threads (stages/_curtains.pyx)."""
     x, y, gx, gy = _columns(xy, gradients)
     a, b = (np.ascontiguousarray(end, dtype=np.int64) for end in (a, b))
     for end in (a, b):
         _check_indices(end, xy.shape[0])
+    z = np.ascontiguousarray(z, dtype=np.float64)
     out = np.empty(len(a))
-    kernel.residuals(x, y, np.ascontiguousarray(z, dtype=np.float64), gx, gy, a, b, out, thread_count())
+    parallel_blocks(lambda part: kernel.residuals(x, y, z, gx, gy, a, b, out, part.start, part.stop),
+                    len(a), KERNEL_BLOCK)
     return out
 
 

@@ -49,6 +49,11 @@ class TrimReport:
     unreferenced_points: int = 0
 
 
+KERNEL_BLOCK = 1 << 14
+"""Triangles per block of the edge-length kernel, run in the thread knob's threads
+(core.threads.parallel_blocks; Python threads, not OpenMP, whose thread pool does not
+survive a fork: a forked --jobs worker would hang in it)."""
+
 MIN_CIRCLE_RATIO = 0.01
 """trim's default: a boundary triangle whose inscribed/circumscribed radius ratio is below
 this is a sliver (the in-memory and the tiled trim use the same value)."""
@@ -248,9 +253,10 @@ def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
 
 def edge_lengths(xy: np.ndarray, tri: np.ndarray, workers: int | None = None) -> np.ndarray:
     """(T, 3) length of the edge opposite vertex k of the triangles tri (T, 3), indices into
-    xy (n, 2); lengths in xy's unit. The kernel (stages/_trim.pyx) runs in the thread knob's
-    threads (workers: that many instead); each length is one hypot, the same at any count."""
-    from c1mesh.core.threads import workers as thread_count
+    xy (n, 2); lengths in xy's unit. The kernel (stages/_trim.pyx) runs over fixed blocks of
+    KERNEL_BLOCK triangles in the thread knob's threads (workers: that many instead); each
+    length is one hypot, the same at any count."""
+    from c1mesh.core.threads import parallel_blocks
 
     tri = np.ascontiguousarray(tri, dtype=np.int64)
     if tri.ndim != 2 or tri.shape[1] != 3:
@@ -260,7 +266,8 @@ def edge_lengths(xy: np.ndarray, tri: np.ndarray, workers: int | None = None) ->
     x = np.ascontiguousarray(xy[:, 0], dtype=np.float64)
     y = np.ascontiguousarray(xy[:, 1], dtype=np.float64)
     lengths = np.empty(tri.shape)
-    kernel.edge_lengths(x, y, tri, lengths, thread_count(workers))
+    parallel_blocks(lambda part: kernel.edge_lengths(x, y, tri, lengths, part.start, part.stop),
+                    tri.shape[0], KERNEL_BLOCK, threads=workers)
     return lengths
 
 
