@@ -2,10 +2,17 @@
 # Sets up everything c1mesh needs on a fresh Debian machine, from this repository's own files:
 # the Debian packages it needs (libusb-1.0-0, a C compiler), a virtual environment in .venv, and the
 # package with its dev extra (tests, matplotlib peer, sympy) installed editable.
+#
+# The build: meson-python (pyproject.toml, meson.build) compiles c1mesh's Cython kernels with the
+# C compiler. The install is meson-python's editable one: it needs its build
+# requirements in the venv first (--no-build-isolation) and ninja, builds into build/cp3XX/ and
+# rebuilds a changed kernel when c1mesh is imported; the .py files are used from src/ as they
+# are. An editable wheel carries no scripts, so the `c1mesh` launcher (bin/c1mesh) is copied into
+# .venv/bin here (`pip install .` installs it by itself).
 set -euo pipefail
 cd "$(dirname "$0")"
-# Debian packages: libusb-1.0-0 for open3d; a C compiler for python-lzf, which PyPI has
-# only as source (the PCD reader's LZF decoder).
+# Debian packages: libusb-1.0-0 for open3d; a C compiler for
+# c1mesh's kernels and for python-lzf, which PyPI has only as source (the PCD reader's LZF decoder).
 missing=()
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
 command -v cc >/dev/null 2>&1 || missing+=(build-essential)
@@ -23,9 +30,12 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q -e '.[dev]'
+# the build requirements of pyproject.toml's [build-system], for the build without isolation
+.venv/bin/python -m pip install -q "meson-python>=0.16" "meson>=1.4" ninja "cython>=3.0"
+.venv/bin/python -m pip install -q --no-build-isolation -e '.[dev]'
 if [ -e /usr/include/suitesparse/cholmod.h ]; then
-    .venv/bin/python -m pip install -q -e '.[dev,cholmod]' ||
+    .venv/bin/python -m pip install -q --no-build-isolation -e '.[dev,cholmod]' ||
         echo "setup.sh: scikit-sparse did not build; the smoothing fit will use SuperLU" >&2
 fi
+install -m 755 bin/c1mesh .venv/bin/c1mesh
 echo "setup.sh: ready (.venv/bin/c1mesh)" >&2

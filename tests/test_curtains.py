@@ -226,3 +226,29 @@ def test_curtain_masks_match_the_angles_triangle_by_triangle_on_strided_inputs()
     for reason in REASONS:
         assert masks[reason].sum() > 0
         np.testing.assert_array_equal(masks[reason], truth == reason, err_msg=reason)
+
+
+def test_the_noise_floor_is_the_median_residual_of_a_loop_over_the_edges_at_any_thread_count():
+    """noise_floor against the trapezoid residual written out edge by edge in Python floats
+    (the same operations in the same order: equal to the bit), over a mesh large enough for
+    several of the kernel's blocks; the masks too are the same at 1 and 3 threads."""
+    from c1mesh.core.threads import limit
+
+    rng = np.random.default_rng(12)
+    xy = rng.random((30000, 2))
+    z = np.sin(5 * xy[:, 0]) * xy[:, 1] + rng.normal(scale=0.01, size=len(xy))
+    g = rng.normal(size=(len(xy), 2))
+    triangles = delaunay(xy)
+    edges = sorted({tuple(sorted((int(t[i]), int(t[(i + 1) % 3])))) for t in triangles for i in range(3)})
+    loop = []
+    for a, b in edges:
+        dx, dy = xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]
+        loop.append(abs((z[b] - z[a]) - 0.5 * ((g[a, 0] * dx + g[a, 1] * dy) + (g[b, 0] * dx + g[b, 1] * dy))))
+    masks = {}
+    for threads in (1, 3):
+        with limit(threads):
+            assert noise_floor(xy, z, g, triangles) == float(np.median(loop))
+            assert noise_floor(xy, z, g, triangles, edges=np.array(edges)) == float(np.median(loop))
+            masks[threads] = curtain_triangles(xy, z, g, triangles, floor=0.01)
+    for reason in REASONS:
+        np.testing.assert_array_equal(masks[1][reason], masks[3][reason])

@@ -339,25 +339,30 @@ def test_gradients_at_some_points_are_those_rows_and_reach_the_kth_neighbour():
     np.testing.assert_allclose(reach, kth, rtol=1e-12, atol=0)
 
 
-def test_reused_block_buffers_give_the_bits_of_fresh_ones():
-    """height_gradients reuses one pair of design buffers across its blocks (the last one
-    partial); each block refitted with freshly allocated buffers gives the same bits."""
-    from scipy.spatial import cKDTree
+@pytest.mark.parametrize("degree", [1, 2])
+def test_the_kernel_solves_each_points_weighted_system_as_a_plain_loop_does(degree):
+    """height_gradients against the fit written out point by point: the k nearest other
+    points by brute force, the median scale, the weights, the ridged normal equations solved
+    by numpy (LAPACK). Random points: no distance ties, so the neighbours are unambiguous."""
+    from c1mesh.stages.height_gradients import RIDGE
 
-    from c1mesh.stages.height_gradients import BLOCK, _fit_block, nearest_neighbours
-
-    n, k = BLOCK + 7000, 24
-    xy = np.random.default_rng(9).random((n, 2)) * 200.0
-    z = np.sin(xy[:, 0] / 17) * np.cos(xy[:, 1] / 23) + 0.01 * np.random.default_rng(10).normal(size=n)
-    order = cKDTree(xy, balanced_tree=False, compact_nodes=False).indices
-    sorted_xy, sorted_z = xy[order], z[order]
-    tree = cKDTree(sorted_xy, balanced_tree=False, compact_nodes=False)
-    fresh = np.empty((n, 2))
-    for start in (0, BLOCK):
-        centre = np.arange(start, min(start + BLOCK, n))
-        neighbours, offsets = nearest_neighbours(tree, sorted_xy, sorted_z, centre, k)
-        fresh[order[centre]] = _fit_block(sorted_z, centre, neighbours, offsets, 2)
-    np.testing.assert_array_equal(height_gradients(xy, z, k=k), fresh)
+    rng = np.random.default_rng(11)
+    xy = rng.random((600, 2)) * 50.0
+    z = np.sin(xy[:, 0] / 7) * xy[:, 1] / 9 + rng.normal(scale=0.05, size=600)
+    k = 24
+    fitted = height_gradients(xy, z, k=k, degree=degree)
+    for i in range(0, 600, 7):
+        d = xy - xy[i]
+        dist2 = (d ** 2).sum(axis=1)
+        near = [j for j in np.argsort(dist2) if j != i][:k]
+        r2 = float(np.median(dist2[near]))
+        u, v = d[near, 0] / np.sqrt(r2), d[near, 1] / np.sqrt(r2)
+        a = np.c_[u, v] if degree == 1 else np.c_[u, v, u * u / 2, u * v, v * v / 2]
+        w = 1.0 / (1.0 + dist2[near] / r2)
+        normal = a.T @ (w[:, None] * a)
+        normal += np.eye(len(normal)) * (RIDGE * np.trace(normal) + np.finfo(float).tiny)
+        coef = np.linalg.solve(normal, a.T @ (w * (z[near] - z[i])))
+        np.testing.assert_allclose(fitted[i], coef[:2] / np.sqrt(r2), rtol=1e-9, atol=1e-12)
 
 
 def test_a_clump_of_duplicates_takes_its_neighbours_without_a_quadratic_query():

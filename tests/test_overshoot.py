@@ -449,3 +449,28 @@ def test_reconcile_heights_closes_a_noisy_near_pair_within_the_clip():
     assert stepped[-1] - z[-1] == pytest.approx(-HEIGHT_CLIP * floor, rel=1e-9)
     assert stepped[0] - z[0] == pytest.approx(HEIGHT_CLIP * floor, rel=1e-9)
 
+
+
+def test_longest_adjacent_edge_is_the_longest_edge_of_the_edges_triangles_by_a_loop():
+    """The limiter's reach of each edge (its kernel) against a loop over the triangles that
+    hold the edge; a NaN length makes NaN every edge whose triangles take it in."""
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.limiter import _longest_adjacent_edge2
+
+    rng = np.random.default_rng(21)
+    xy = rng.random((500, 2))
+    tri = delaunay(xy)
+    table = edge_table(tri, len(xy))
+    length2 = ((xy[table.edges[:, 1]] - xy[table.edges[:, 0]]) ** 2).sum(axis=1)
+    holders = {}
+    for t in range(len(tri)):
+        for k in range(3):
+            holders.setdefault(int(table.tri_edge[t, k]), []).append(t)
+    expected = [max(length2[table.tri_edge[t]].max() for t in holders[e]) for e in range(len(length2))]
+    np.testing.assert_array_equal(_longest_adjacent_edge2(length2, table), expected)
+    length2[7] = np.nan
+    reach = _longest_adjacent_edge2(length2, table)
+    touched = {int(e) for t in holders[7] for e in table.tri_edge[t]}
+    tainted = {e for e in range(len(length2)) if any(t2 in holders[7] for t2 in holders[e])}
+    assert touched <= tainted
+    assert set(np.flatnonzero(np.isnan(reach)).tolist()) == tainted

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.engine.topology import edge_table, edge_table_sides, sort_keys, sub_table
+from c1mesh.engine.topology import edge_table, edge_table_sides, sort_keys, sub_table, triangle_neighbours
 from c1mesh.engine.triangulation import delaunay
 
 
@@ -55,6 +55,8 @@ def test_edge_in_three_triangles_is_refused():
     tri = np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]])
     with pytest.raises(InputError, match=r"edge \(0, 1\) belongs to 3 triangles"):
         edge_table(tri, 5)
+    with pytest.raises(InputError, match="not edge-manifold"):
+        triangle_neighbours(tri, 5)
 
 
 FIELDS = ("edges", "tri_edge", "forward", "owner", "owner_slot", "count")
@@ -77,6 +79,7 @@ def test_edge_table_sides_gives_each_edges_second_slot_and_the_neighbours(shuffl
             (t1, k1), (t2, k2) = pair
             expected_nb[t1, k1], expected_nb[t2, k2] = t2, t1
     assert np.array_equal(neighbours, expected_nb)
+    assert np.array_equal(triangle_neighbours(tri, n), expected_nb)      # without the table
     for e, (i, j) in enumerate(table.edges):
         pair = slots[frozenset((i, j))]
         first = (table.owner[e], table.owner_slot[e])
@@ -101,3 +104,28 @@ def test_sub_table_is_the_edge_table_of_the_kept_triangles(shuffled_mesh, drop):
     sub, expected = sub_table(table, keep, other, used), edge_table(remap[tri[keep]], used.size)
     for f in FIELDS:
         assert np.array_equal(getattr(sub, f), getattr(expected, f)), f
+
+
+def test_edge_table_of_a_fan_and_of_no_triangles():
+    """A fan of 200 triangles around vertex 0 (one vertex in every edge of the sort's widest
+    bucket), against the edges listed by hand; and the empty mesh."""
+    m = 200
+    tri = np.array([[0, i + 1, (i + 1) % m + 1] for i in range(m)])      # closed fan
+    table, other, neighbours = edge_table_sides(tri, m + 1)
+    spokes = [(0, i) for i in range(1, m + 1)]
+    rim = sorted(tuple(sorted((i + 1, (i + 1) % m + 1))) for i in range(m))
+    assert table.edges.tolist() == [list(e) for e in sorted(spokes + rim)]
+    assert table.count.tolist() == [2] * m + [1] * m          # spokes shared, rim on the boundary
+    assert neighbours[:, 0].tolist() == [-1] * m               # across the rim: nothing
+    assert neighbours[:, 1].tolist() == [(i + 1) % m for i in range(m)]
+    assert neighbours[:, 2].tolist() == [(i - 1) % m for i in range(m)]
+    empty = edge_table(np.zeros((0, 3), dtype=np.int64), 0)
+    assert all(getattr(empty, f).shape[0] == 0 for f in FIELDS)
+
+
+def test_indices_outside_the_points_are_refused_before_the_kernel():
+    for bad in ([[0, 1, 5]], [[0, -1, 2]]):
+        with pytest.raises(InputError, match="indices"):
+            edge_table(np.array(bad), 5)
+        with pytest.raises(InputError, match="indices"):
+            triangle_neighbours(np.array(bad), 5)

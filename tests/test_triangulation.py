@@ -368,6 +368,24 @@ def test_bowties_left_by_trimming_real_lidar_gaps_are_resolved():
     assert rep.unreferenced_points == len(xy) - np.unique(out).size
 
 
+def test_edge_lengths_of_3_4_5_triangles_and_against_a_loop_at_any_thread_count():
+    """The trim kernel's lengths: exact on a 3-4-5 triangle (each corner rotation), and for
+    a Delaunay mesh equal to the bit to a loop of hypot over every edge, at 1 and 3 threads."""
+    xy = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 3.0]])
+    for tri in ([0, 1, 2], [1, 2, 0], [2, 0, 1], [0, 2, 1]):
+        expected = [np.hypot(*(xy[tri[(k + 2) % 3]] - xy[tri[(k + 1) % 3]])) for k in range(3)]
+        assert trim_stage.edge_lengths(xy, np.array([tri])).tolist() == [expected]
+    assert sorted(trim_stage.edge_lengths(xy, np.array([[0, 1, 2]]))[0]) == [3.0, 4.0, 5.0]
+    rng = np.random.default_rng(4)
+    xy = rng.random((40000, 2)) * 1e3
+    tri = delaunay(xy)                                        # > 4 of the kernel's blocks
+    loop = np.array([[np.hypot(xy[t[(k + 2) % 3], 0] - xy[t[(k + 1) % 3], 0],
+                               xy[t[(k + 2) % 3], 1] - xy[t[(k + 1) % 3], 1]) for k in range(3)]
+                     for t in tri.tolist()])
+    for threads in (1, 3):
+        assert np.array_equal(trim_stage.edge_lengths(xy, tri, workers=threads), loop)
+
+
 def test_neighbours_are_symmetric_and_share_the_edge():
     rng = np.random.default_rng(9)
     xy = rng.random((3000, 2))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.engine import _topology
 
 
 @dataclass(frozen=True)
@@ -48,70 +49,64 @@ def edge_table_sides(triangles: np.ndarray, n_points: int) -> tuple[EdgeTable, n
     other:      (E,) int64 the slot 3t + k where the edge's second triangle t holds it
                 opposite local vertex k (the first is owner, owner_slot), -1 on a boundary edge;
     neighbours: (T, 3) int64 the triangle across the edge opposite local vertex k, or -1
-                (what stages.trim.triangle_neighbours finds with a sort of its own).
+                (what `triangle_neighbours` gives alone).
     """
     return _edge_table(triangles, n_points, True)
 
 
+LIMIT = 2 ** 31
+"""The kernel packs a vertex number and a slot 3t + k into 32 bits each: meshes up to 2**31
+vertices and 715 million triangles (far above what fits in memory)."""
+
+
+def _checked(triangles: np.ndarray, n_points: int) -> np.ndarray:
+    """triangles as the kernel takes them, (T, 3) C-ordered int64, after checking what it
+    does not: the shape, every index in [0, n_points) and the 32-bit packing's LIMIT."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise InputError(f"triangles must have shape (T, 3), got {tri.shape}")
+    if tri.size and (tri.min() < 0 or tri.max() >= n_points):
+        raise InputError(f"triangle indices must lie in [0, {n_points}), got {tri.min()}..{tri.max()}")
+    if n_points >= LIMIT or 3 * tri.shape[0] >= LIMIT:
+        raise InputError(f"the edge table takes meshes below {LIMIT} vertices and {LIMIT // 3} "
+                         f"triangles, got {n_points} and {tri.shape[0]}: fit the survey in tiles (--memory)")
+    return tri
+
+
 def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
-    tri = triangles.astype(np.int64, copy=False)
-    T = triangles.shape[0]
-    keys, forward = _edge_keys(tri, n_points)
-    # One sort gives everything np.unique would (unique keys, first occurrence, inverse, counts).
-    order, sorted_keys = sort_keys(keys, n_points * n_points)     # keys is overwritten
-    new = np.empty(sorted_keys.size, dtype=bool)
-    new[:1] = True
-    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=new[1:])
-    starts = np.flatnonzero(new)
-    unique_keys = sorted_keys[starts]
-    count = np.diff(starts, append=order.size)
-    if count.size and count.max() > 2:
-        bad = int(np.argmax(count))
-        raise InputError(f"edge ({unique_keys[bad] // n_points}, {unique_keys[bad] % n_points}) "
-                         f"belongs to {count[bad]} triangles: the triangles overlap or are not a valid mesh")
-    # Concatenation order is slot-major: position = slot * T + triangle. Ties are sorted by
-    # position, so each edge's owner is its occurrence of lowest slot, then lowest triangle.
-    owner_slot, owner = np.divmod(order[starts], T) if T else (starts, starts)
-    other = across = None
-    if sides:
-        other, across = _second_sides(order, starts, count, T)
-    # Fresh memory is slow to touch, so the dead sorted-key buffer is reused for the rank.
-    rank = np.cumsum(new, dtype=np.int64, out=sorted_keys)
-    rank -= 1
-    del new, starts
+    """The EdgeTable of triangles (T, 3) over n_points vertices, with other and neighbours
+    (edge_table_sides) or None, None. The kernel (engine/_topology.pyx) buckets the 3T slots
+    by their edge's lower vertex, linear in T + n_points; one thread."""
+    tri = _checked(triangles, n_points)
+    T = tri.shape[0]
+    packed, start, E, most, low, high = _topology.bucket_slots(tri, int(n_points))
+    if most > 2:
+        raise InputError(f"edge ({low}, {high}) belongs to {most} triangles: the triangles overlap "
+                         f"or are not a valid mesh")
+    edges = np.empty((E, 2), dtype=np.int64)
     tri_edge = np.empty((T, 3), dtype=np.int64)
-    # slot-major position p = k·T + t goes to tri_edge[t, k], i.e. flat 3t + k (in place)
-    if T:
-        slot = np.floor_divide(order, T)
-        np.remainder(order, T, out=order)
-        order *= 3
-        order += slot
-    tri_edge.ravel()[order] = rank
-    del rank, order, sorted_keys, keys
-    edges = np.empty((unique_keys.size, 2), dtype=np.int64)
-    np.floor_divide(unique_keys, n_points, out=edges[:, 0])
-    np.remainder(unique_keys, n_points, out=edges[:, 1])
-    return EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
-                     owner_slot=owner_slot, count=count), other, across
+    forward = np.empty((T, 3), dtype=bool)
+    owner, owner_slot, count, other = (np.empty(E, dtype=np.int64) for _ in range(4))
+    across = np.empty((T, 3), dtype=np.int64)
+    _topology.fill_table(tri, packed, start, edges, tri_edge, forward.view(np.uint8), owner,
+                         owner_slot, count, other, across)
+    table = EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
+                      owner_slot=owner_slot, count=count)
+    return (table, other, across) if sides else (table, None, None)
 
 
-def _second_sides(order: np.ndarray, starts: np.ndarray, count: np.ndarray, T: int):
-    """edge_table_sides' other (E,) and neighbours (T, 3) from the sorted slot-major
-    positions `order` (an edge's second occurrence follows its first)."""
-    other = np.full(starts.size, -1, dtype=np.int64)
-    across = np.full(3 * T, -1, dtype=np.int64)              # slot 3t + k -> triangle across
-    two = np.flatnonzero(count == 2)
-    first = order[starts[two]]
-    second = order[starts[two] + 1]
-    del two
-    k1, t1 = np.divmod(first, T, out=(np.empty_like(first), first))
-    k2, t2 = np.divmod(second, T, out=(np.empty_like(second), second))
-    k1 += t1 * 3
-    k2 += t2 * 3
-    across[k1] = t2
-    across[k2] = t1
-    other[count == 2] = k2
-    return other, across.reshape(T, 3)
+def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
+    """(T, 3) int64 the triangle across the edge opposite local vertex k of each triangle of
+    triangles (T, 3) over n_points vertices, or -1; InputError if an edge is in 3 or more
+    triangles. The edge table's slot buckets, without filling the table."""
+    tri = _checked(triangles, n_points)
+    packed, start, _, most, _, _ = _topology.bucket_slots(tri, int(n_points))
+    if most > 2:
+        raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
+                         "more triangles); pass a triangulation such as delaunay(xy)")
+    across = np.empty(tri.shape, dtype=np.int64)
+    _topology.fill_neighbours(packed, start, across)
+    return across
 
 
 def live_edges(table: EdgeTable, keep: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,22 +176,6 @@ def sort_keys(key: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
     order = (packed & np.uint64((1 << shift) - 1)).view(np.int64)
     packed >>= np.uint64(shift)
     return order, key
-
-
-def _edge_keys(tri: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Keys min·n + max of the edges opposite each local vertex, slot-major (3T,), and
-    forward (T, 3): whether local edge k runs from the smaller vertex to the larger."""
-    T = tri.shape[0]
-    keys = np.empty(3 * T, dtype=np.int64)
-    forward = np.empty((T, 3), dtype=bool)
-    for k in range(3):
-        a, b = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
-        part = keys[k * T:(k + 1) * T]
-        np.minimum(a, b, out=part)
-        part *= np.int64(n_points)
-        part += np.maximum(a, b)
-        np.less(a, b, out=forward[:, k])
-    return keys, forward
 
 
 def mesh_edges(triangles: np.ndarray, n_points: int | None = None) -> np.ndarray:

@@ -52,6 +52,7 @@ import numpy as np
 
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine.topology import sort_keys
+from c1mesh.stages import _curtains as kernel
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
 from c1mesh.stages.trim import TrimmedMesh, retrim
 
@@ -59,6 +60,10 @@ REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
 VIEW_REASONS = ("shadow_edge", "grazing", "facing_away")
 """The rules that take the height axis as a view ray (skipped on aerial ground)."""
+KERNEL_BLOCK = 1 << 14
+"""Triangles or edges per block of the kernels (stages/_curtains.pyx), run in the thread
+knob's threads (core.threads.parallel_blocks; Python threads, not OpenMP, whose thread pool
+does not survive a fork: a forked --jobs worker would hang in it)."""
 GROUND_CLASSES = (2, 8, 9, 11)
 """ASPRS LAS classes of surfaces seen from above: ground, model key-point (a subset of
 ground in LAS 1.0-1.3), water, road surface."""
@@ -84,55 +89,35 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     xy (n, 2), z (n,) and gradients (n, 2) of a height field (height_field.HeightField: local
     coordinates, heights along e3, data gradients ∇z from the normals); triangles (T, 3)
     indices into them. Angles in degrees. Component by component and without square
-    roots (squared comparisons), as this runs on every triangle of every fit; in blocks of
-    triangles in worker threads (c1mesh.core.threads.parallel_blocks), temporaries in cache.
+    roots (squared comparisons), as this runs on every triangle of every fit: a kernel
+    (stages/_curtains.pyx) over blocks of KERNEL_BLOCK triangles in the thread knob's threads.
     view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
-    x, y, gx, gy = (np.ascontiguousarray(column) for column in (xy[:, 0], xy[:, 1], gradients[:, 0], gradients[:, 1]))
+    x, y, gx, gy = _columns(xy, gradients)
     if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
         floor = noise_floor(xy, z, gradients, triangles)
-    masks = {reason: np.zeros(triangles.shape[0], dtype=bool) for reason in REASONS}
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    _check_indices(tri, xy.shape[0])
+    masks = {reason: np.empty(tri.shape[0], dtype=bool) for reason in REASONS}
     cos2 = (np.cos(np.radians(shadow_angle)) ** 2, np.cos(np.radians(grazing_angle)) ** 2)
-
-    def block(part: slice) -> None:
-        found = _curtain_block((x, y, z, gx, gy), triangles[part], cos2, floor, view_rules)
-        for reason, mask in zip(REASONS, found):
-            masks[reason][part] = mask
-    parallel_blocks(block, triangles.shape[0])
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    flags = [masks[r].view(np.uint8) for r in REASONS]
+    parallel_blocks(lambda part: kernel.curtain_masks(x, y, z, gx, gy, tri, *cos2, float(floor), view_rules,
+                                                      *flags, part.start, part.stop),
+                    tri.shape[0], KERNEL_BLOCK)
     return masks
 
 
-def _curtain_block(columns: tuple, triangles: np.ndarray, cos2: tuple[float, float], floor: float,
-                   view_rules: bool) -> tuple[np.ndarray, ...]:
-    """curtain_triangles' four masks (c,) for a block of triangles (c, 3): columns (x, y, z,
-    gx, gy) per vertex, cos2 the squared cosines of the shadow and grazing angles."""
-    x, y, z, gx, gy = columns
-    corner_ids = [np.ascontiguousarray(triangles[:, k]) for k in range(3)]   # gathers by contiguous
-    corners = [[x[ids], y[ids], z[ids]] for ids in corner_ids]                # index vectors: ~2x faster
-    edges = [[corners[(k + 1) % 3][c] - corners[k][c] for c in range(3)] for k in range(3)]
-    cos2_shadow, cos2_grazing = cos2
-    shadow = np.zeros(triangles.shape[0], dtype=bool)
-    plane2 = []                                                   # squared lengths in the plane
-    for ex, ey, ez in edges:
-        flat2 = ex * ex + ey * ey
-        plane2.append(flat2)
-        shadow |= ez * ez > cos2_shadow * (flat2 + ez * ez)
-    (ux, uy, uz), (vx, vy, vz) = edges[0], [-c for c in edges[2]]  # p1 - p0, p2 - p0
-    nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-    flip = np.where(nz < 0, -1.0, 1.0)                            # the normal on the axis side
-    nx, ny, nz = nx * flip, ny * flip, nz * flip
-    grazing = ~(nz * nz >= cos2_grazing * (nx * nx + ny * ny + nz * nz)) & ~shadow
-    # data normals on the axis side: (-g, 1); the plane's normal faces away from one of
-    # them when their dot product is negative (the lengths do not change its sign).
-    away = np.zeros(triangles.shape[0], dtype=bool)
-    for ids in corner_ids:
-        away |= nz - nx * gx[ids] - ny * gy[ids] < 0
-    away &= ~shadow & ~grazing
-    longest2 = np.maximum(np.maximum(plane2[0], plane2[1]), plane2[2])
-    if not view_rules:
-        shadow, grazing, away = (np.zeros(triangles.shape[0], dtype=bool) for _ in range(3))
-    thin = (nz * nz < floor * floor * longest2) & ~shadow & ~grazing & ~away   # 2 area = |n_z|
-    return shadow, grazing, away, thin
+def _check_indices(indices: np.ndarray, n: int) -> None:
+    """ValueError unless every point index lies in [0, n): the kernels do not check."""
+    if indices.size and (indices.min() < 0 or indices.max() >= n):
+        raise ValueError(f"point indices must lie in [0, {n}), got {indices.min()}..{indices.max()}")
+
+
+def _columns(xy: np.ndarray, gradients: np.ndarray) -> tuple[np.ndarray, ...]:
+    """x, y, gx, gy: contiguous float64 columns of xy (n, 2) and gradients (n, 2)."""
+    return tuple(np.ascontiguousarray(column, dtype=np.float64)
+                 for column in (xy[:, 0], xy[:, 1], gradients[:, 0], gradients[:, 1]))
 
 
 def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
@@ -165,15 +150,18 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
 
 def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarray,
                b: np.ndarray) -> np.ndarray:
-    """limiter.trapezoid_residuals of the edges a→b (E,), bit for bit, from contiguous
-    column gathers (a ascending, as unique sorted keys give it: 3x faster than row gathers
-    of (E, 2) arrays at 3M edges)."""
-    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
-    gx, gy = np.ascontiguousarray(gradients[:, 0]), np.ascontiguousarray(gradients[:, 1])
-    dx, dy = x[b] - x[a], y[b] - y[a]
-    pred_a = gx[a] * dx + gy[a] * dy
-    pred_b = gx[b] * dx + gy[b] * dy
-    return (z[b] - z[a]) - 0.5 * (pred_a + pred_b)
+    """limiter.trapezoid_residuals of the edges a→b (E,), bit for bit: (z_b − z_a) −
+    ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel over blocks of
+    KERNEL_BLOCK edges in the thread knob's threads (stages/_curtains.pyx)."""
+    x, y, gx, gy = _columns(xy, gradients)
+    a, b = (np.ascontiguousarray(end, dtype=np.int64) for end in (a, b))
+    for end in (a, b):
+        _check_indices(end, xy.shape[0])
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    out = np.empty(len(a))
+    parallel_blocks(lambda part: kernel.residuals(x, y, z, gx, gy, a, b, out, part.start, part.stop),
+                    len(a), KERNEL_BLOCK)
+    return out
 
 
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles,

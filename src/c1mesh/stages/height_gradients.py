@@ -14,8 +14,6 @@ own height (the spline interpolates it), so the fit is exact for every quadratic
 """
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -23,6 +21,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.stages.height_field import gradients_to_normals
+from c1mesh.stages import _height_gradients as kernel
 
 GRADIENT_MODES = ("auto", "normals", "heights")
 """Where a fit's vertex gradients come from: "normals" (file or PCA normals), "heights"
@@ -31,7 +30,7 @@ GRADIENT_MODES = ("auto", "normals", "heights")
 NEIGHBOUR_FACTOR = 1.5
 """The quadratic fit uses this many times the k of the PCA normals (5 unknowns, not 3)."""
 BLOCK = 1 << 15
-"""Points per block: the (block, k, terms) design array stays at a few tens of MB."""
+"""Points per block: a block's neighbour indices and offsets (block, k) stay at a few MB."""
 TIE_EXTRA = 8
 """Candidates queried beyond the k + 1 nearest where a distance ties at the k-th: enough
 to see every point tied with the k-th on a 1 cm grid (the query doubles when not)."""
@@ -138,17 +137,13 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     m = centres.size
     out = np.empty((m, 2))
     reach2 = np.empty(m)
-    terms = 2 if degree == 1 else 5
-    buffers = threading.local()                # per thread, touched once, not per block
     query_threads = workers if m <= BLOCK else 1    # one block: its query has the threads
 
     def fit(block: slice) -> None:
-        if not hasattr(buffers, "work"):
-            buffers.work = tuple(np.empty((min(BLOCK, m), k, terms)) for _ in range(2))
         centre = centres[block]
         neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, query_threads)
         reach2[slot[block]] = offsets[2].max(axis=1)
-        out[slot[block]] = _fit_block(z, centre, neighbours, offsets, degree, buffers.work)
+        out[slot[block]] = _fit_block(z, centre, neighbours, offsets, degree)
     # Each block is a query and a fit of its own (both release the GIL), so blocks run in
     # the knob's threads: every block gets the same neighbours and sums at any count.
     parallel_blocks(fit, m, BLOCK, threads=workers)
@@ -263,41 +258,24 @@ def _clump_neighbours(tree, xy, z, centre, k, out, workers) -> np.ndarray:
 
 
 def _offsets(xy, centre, neighbours):
-    """(dx, dy, dx² + dy²), each (b, k): plane offsets of the neighbours from their centre."""
-    ux = xy[neighbours, 0] - xy[centre, 0, None]
-    uy = xy[neighbours, 1] - xy[centre, 1, None]
-    return ux, uy, ux * ux + uy * uy
+    """(dx, dy, dx² + dy²), each (b, k): plane offsets of the neighbours (b, k) from their
+    centre (b,) over the points xy (n, 2): the kernel loops over both, no gathered copies."""
+    neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
+    ux, uy, dist2 = (np.empty(neighbours.shape) for _ in range(3))
+    kernel.offsets(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(centre, dtype=np.int64),
+                   neighbours, ux, uy, dist2)
+    return ux, uy, dist2
 
 
 def _fit_block(z: np.ndarray, centre: np.ndarray, neighbours: np.ndarray, offsets: tuple,
-               degree: int, work: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+               degree: int) -> np.ndarray:
     """Gradients (b, 2) of the weighted local fits at points `centre` (b,) with their
     neighbour indices (b, k) and offsets (dx, dy, dx² + dy²), each (b, k); see
-    `height_gradients`. The sums over neighbours run in the columns' order.
-    work: two C-order buffers of at least (b, k, terms) floats for the design and the
-    weighted design, reused across blocks (fresh pages are slow to touch); None
-    allocates them. Same arrays, same layout, so the same bits either way."""
+    `height_gradients`. The kernel (stages/_height_gradients.pyx) solves each point's
+    system in this thread, without the GIL; the sums over neighbours run in the columns'
+    order."""
     ux, uy, dist2 = offsets
-    scale2 = np.median(dist2, axis=1)
-    scale2 = np.where(scale2 > 0, scale2, 1.0)
-    scale = np.sqrt(scale2)
-    ux /= scale[:, None]                                          # unit-free offsets
-    uy /= scale[:, None]
-    w = 1.0 / (1.0 + dist2 / scale2[:, None])
-    dz = z[neighbours] - z[centre, None]
-    m = 2 if degree == 1 else 5
-    shape = (centre.size, neighbours.shape[1], m)
-    design_buffer, weighted_buffer = work or (np.empty(shape), np.empty(shape))
-    design = design_buffer[:centre.size]
-    design[..., 0], design[..., 1] = ux, uy
-    if degree == 2:
-        np.multiply(0.5 * ux, ux, out=design[..., 2])
-        np.multiply(ux, uy, out=design[..., 3])
-        np.multiply(0.5 * uy, uy, out=design[..., 4])
-    weighted = np.multiply(design, w[..., None], out=weighted_buffer[:centre.size]).transpose(0, 2, 1)  # (b, m, k)
-    normal = np.matmul(weighted, design)                          # batched BLAS: 15x einsum's speed
-    rhs = np.matmul(weighted, dz[..., None])
-    ridge = RIDGE * np.trace(normal, axis1=1, axis2=2) + np.finfo(float).tiny
-    normal[:, np.arange(m), np.arange(m)] += ridge[:, None]
-    coef = np.linalg.solve(normal, rhs)[..., 0]
-    return coef[:, :2] / scale[:, None]
+    out = np.empty((centre.size, 2))
+    kernel.fit_block(z, np.ascontiguousarray(centre, dtype=np.int64), neighbours, ux, uy, dist2,
+                     degree, RIDGE, np.finfo(float).tiny, out)
+    return out

@@ -30,6 +30,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
+from c1mesh.stages import _limiter as kernel
 from c1mesh.engine.topology import EdgeTable, edge_table
 
 OVERSHOOT_MODES = ("limit", "off")
@@ -182,16 +183,17 @@ def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: n
 
 
 def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray:
-    """(E,) the squared longest edge of the triangles that contain each edge.
-
-    length2 (E,) >= 0. The larger of the values of an edge's owner triangle and its other
-    triangle (`_owner_and_last`): np.maximum of the two is what np.maximum.at from zeros
-    gives for non-negative values (and NaN alike), without ufunc.at's slow indexed loop.
-    """
-    corner = length2[table.tri_edge]
-    per_triangle = np.maximum(np.maximum(corner[:, 0], corner[:, 1]), corner[:, 2])
-    first, last = _owner_and_last(per_triangle, table)
-    return np.maximum(first, last, out=first)
+    """(E,) the squared longest edge of the triangles that contain each edge, from the edges'
+    squared lengths length2 (E,) >= 0 (plane units squared); NaN where a NaN takes part, as
+    np.maximum.at from zeros gives it. The kernel (stages/_limiter.pyx), one thread."""
+    if length2.shape != table.count.shape:
+        raise ValueError(f"length2 has shape {length2.shape}, the table {table.count.shape[0]} edges")
+    out = np.empty(length2.shape[0])
+    kernel.longest_adjacent(np.ascontiguousarray(length2, dtype=np.float64),
+                            np.ascontiguousarray(table.tri_edge, dtype=np.int64),
+                            np.ascontiguousarray(table.owner, dtype=np.int64),
+                            np.empty(table.tri_edge.shape[0]), out)
+    return out
 
 
 def _owner_and_last(values: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,9 @@ from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap
-from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sort_keys, sub_table
+from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sub_table
+from c1mesh.engine.topology import triangle_neighbours as topology_neighbours
+from c1mesh.stages import _trim as kernel
 from c1mesh.engine.triangulation import as_xy
 
 AUTO_EDGE_FACTOR = 4.0
@@ -46,6 +48,11 @@ class TrimReport:
     max_edge: float | None = None
     unreferenced_points: int = 0
 
+
+KERNEL_BLOCK = 1 << 14
+"""Triangles per block of the edge-length kernel, run in the thread knob's threads
+(core.threads.parallel_blocks; Python threads, not OpenMP, whose thread pool does not
+survive a fork: a forked --jobs worker would hang in it)."""
 
 MIN_CIRCLE_RATIO = 0.01
 """trim's default: a boundary triangle whose inscribed/circumscribed radius ratio is below
@@ -254,45 +261,30 @@ def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
     return tri.astype(np.int64, copy=False)
 
 
-def edge_lengths(xy: np.ndarray, tri: np.ndarray, block: int = 1 << 15) -> np.ndarray:
-    """(T, 3) length of the edge opposite vertex k.
+def edge_lengths(xy: np.ndarray, tri: np.ndarray, workers: int | None = None) -> np.ndarray:
+    """(T, 3) length of the edge opposite vertex k of the triangles tri (T, 3), indices into
+    xy (n, 2); lengths in xy's unit. The kernel (stages/_trim.pyx) runs over fixed blocks of
+    KERNEL_BLOCK triangles in the thread knob's threads (workers: that many instead); each
+    length is one hypot, the same at any count."""
+    from c1mesh.core.threads import parallel_blocks
 
-    From coordinate components, a block of triangles at a time: the corner gathers stay
-    in cache instead of being two fresh (T, 3) arrays (fresh memory is slow to touch).
-    """
-    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    tri = np.ascontiguousarray(tri, dtype=np.int64)
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise InputError(f"triangles must have shape (T, 3), got {tri.shape}")
+    if tri.size and (tri.min() < 0 or tri.max() >= len(xy)):
+        raise InputError(f"triangle indices must lie in [0, {len(xy)}), got {tri.min()}..{tri.max()}")
+    x = np.ascontiguousarray(xy[:, 0], dtype=np.float64)
+    y = np.ascontiguousarray(xy[:, 1], dtype=np.float64)
     lengths = np.empty(tri.shape)
-    for start in range(0, tri.shape[0], block):
-        corners = tri[start:start + block].T
-        px, py, out = x[corners], y[corners], lengths[start:start + block]
-        for k in range(3):
-            i, j = (k + 2) % 3, (k + 1) % 3
-            np.hypot(px[i] - px[j], py[i] - py[j], out=out[:, k])
+    parallel_blocks(lambda part: kernel.edge_lengths(x, y, tri, lengths, part.start, part.stop),
+                    tri.shape[0], KERNEL_BLOCK, threads=workers)
     return lengths
 
 
 def triangle_neighbours(tri: np.ndarray, n: int) -> np.ndarray:
-    """(T, 3) triangle across the edge opposite vertex k, or -1; InputError if an edge has 3+."""
-    key = np.empty(tri.shape, dtype=np.int64)              # position 3t + k: edge opposite k
-    for k in range(3):
-        a, b = tri[:, (k + 1) % 3], tri[:, (k + 2) % 3]
-        np.minimum(a, b, out=key[:, k])
-        key[:, k] *= n
-        key[:, k] += np.maximum(a, b)
-    order, key = sort_keys(key.ravel(), n * n)
-    same = key[1:] == key[:-1]
-    if np.any(same[1:] & same[:-1]):
-        raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
-                         "more triangles); pass a triangulation such as delaunay(xy)")
-    pair = np.flatnonzero(same)
-    first = order[pair]
-    pair += 1
-    second = order[pair]
-    nb = key                                               # dead sorted keys: fresh memory is slow to touch
-    nb.fill(-1)
-    nb[first] = np.floor_divide(second, 3, out=pair)       # reuse buffers no longer needed
-    nb[second] = np.floor_divide(first, 3, out=first)
-    return nb.reshape(-1, 3)
+    """(T, 3) triangle across the edge opposite vertex k, or -1; InputError if an edge has 3+
+    (topology.triangle_neighbours, the edge table's kernel without the table)."""
+    return topology_neighbours(tri, n)
 
 
 def _edge_limit(lengths: np.ndarray, neighbours: np.ndarray, max_edge) -> float | None:

@@ -1,0 +1,144 @@
+# cython: language_level=3
+"""The edge table's kernel: c1mesh.engine.topology wraps it (validation, the EdgeTable), and
+nothing else imports it.
+
+Every triangle slot s = 3t + k (the edge opposite local vertex k of triangle t) goes, with one
+counting sort, into the bucket of its edge's lower vertex, as the packed value
+high << 32 | s; each bucket is then sorted (a few values: insertion sort; a fan's many:
+qsort), so the buckets read in order list the unique edges sorted lexicographically, each
+edge's occurrences side by side. Linear in T + n plus the buckets' sorts; one thread.
+Vertex numbers and slots must be below 2**31 (the wrapper checks).
+"""
+import numpy as np
+
+from libc.stdint cimport int64_t, uint8_t, uint64_t
+from libc.stdlib cimport qsort
+
+cdef int INSERTION_MAX = 24
+"""Buckets up to this size are insertion-sorted; larger ones (a vertex with many edges to
+higher vertices, such as a fan's centre) go to qsort."""
+
+
+cdef int _compare(const void *a, const void *b) noexcept nogil:
+    cdef uint64_t x = (<const uint64_t *> a)[0], y = (<const uint64_t *> b)[0]
+    return (x > y) - (x < y)
+
+
+cdef void _sort_bucket(uint64_t *values, Py_ssize_t size) noexcept nogil:
+    cdef Py_ssize_t i, j
+    cdef uint64_t v
+    if size > INSERTION_MAX:
+        qsort(values, size, sizeof(uint64_t), _compare)
+        return
+    for i in range(1, size):
+        v = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > v:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = v
+
+
+def bucket_slots(const int64_t[:, ::1] tri, int64_t n_points):
+    """(packed (3T,) uint64, start (n + 1,) int64, E, largest count, its edge's low, high).
+
+    packed[start[v]:start[v + 1]] are the slots whose edge has lower vertex v, as
+    high << 32 | slot, ascending; E the number of unique edges; the largest number of slots
+    one edge has, and the first edge (in sorted order) that has it."""
+    cdef Py_ssize_t T = tri.shape[0], t, i, j
+    cdef int k
+    cdef int64_t a, b, v, total = 0, c, E = 0, most = 0, worst_low = -1, worst_high = -1
+    packed = np.empty(3 * T, dtype=np.uint64)
+    start = np.zeros(n_points + 1, dtype=np.int64)
+    cdef uint64_t[::1] out = packed
+    cdef int64_t[::1] first = start
+    cdef uint64_t high_mask = 0xFFFFFFFF00000000
+    with nogil:
+        for t in range(T):                                   # bucket sizes
+            for k in range(3):
+                a, b = tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
+                first[a if a < b else b] += 1
+        for v in range(n_points + 1):                        # bucket starts (exclusive sum)
+            c = first[v]
+            first[v] = total
+            total += c
+        for t in range(T):                                   # scatter; first[v] moves to its end
+            for k in range(3):
+                a, b = tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
+                v = a if a < b else b
+                out[first[v]] = (<uint64_t> (a if a > b else b) << 32) | <uint64_t> (3 * t + k)
+                first[v] += 1
+        for v in range(n_points, 0, -1):                     # back to the starts
+            first[v] = first[v - 1]
+        first[0] = 0
+        for v in range(n_points):
+            _sort_bucket(&out[first[v]], first[v + 1] - first[v])
+            i = first[v]
+            while i < first[v + 1]:                          # runs of one edge
+                j = i + 1
+                while j < first[v + 1] and (out[j] & high_mask) == (out[i] & high_mask):
+                    j += 1
+                if j - i > most:
+                    most, worst_low, worst_high = j - i, v, <int64_t> (out[i] >> 32)
+                E += 1
+                i = j
+    return packed, start, E, most, worst_low, worst_high
+
+
+def fill_table(const int64_t[:, ::1] tri, const uint64_t[::1] packed, const int64_t[::1] start,
+               int64_t[:, ::1] edges, int64_t[:, ::1] tri_edge, uint8_t[:, ::1] forward,
+               int64_t[::1] owner, int64_t[::1] owner_slot, int64_t[::1] count,
+               int64_t[::1] other, int64_t[:, ::1] across):
+    """Fill the table from bucket_slots' packed and start (every edge in at most 2 triangles):
+    edges (E, 2), tri_edge (T, 3), forward (T, 3) 0/1, owner, owner_slot, count, other (E,)
+    and across (T, 3), as topology.edge_table_sides documents them. An edge's owner is its
+    occurrence of lowest (k, t)."""
+    cdef Py_ssize_t T = tri.shape[0], n = start.shape[0] - 1, t, v, i, e = 0
+    cdef int k
+    cdef int64_t s1, s2, t1, t2, k1, k2
+    cdef uint64_t low_mask = 0xFFFFFFFF
+    with nogil:
+        for t in range(T):
+            for k in range(3):
+                forward[t, k] = tri[t, (k + 1) % 3] < tri[t, (k + 2) % 3]
+                across[t, k] = -1
+        for v in range(n):
+            i = start[v]
+            while i < start[v + 1]:
+                s1 = <int64_t> (packed[i] & low_mask)
+                t1, k1 = s1 // 3, s1 % 3
+                edges[e, 0], edges[e, 1] = v, <int64_t> (packed[i] >> 32)
+                tri_edge[t1, k1] = e
+                if i + 1 < start[v + 1] and (packed[i + 1] >> 32) == (packed[i] >> 32):
+                    s2 = <int64_t> (packed[i + 1] & low_mask)
+                    t2, k2 = s2 // 3, s2 % 3
+                    tri_edge[t2, k2] = e
+                    across[t1, k1], across[t2, k2] = t2, t1
+                    if k2 < k1:                              # slot-major: (k, t) decides
+                        t1, k1, t2, k2 = t2, k2, t1, k1
+                    owner[e], owner_slot[e], count[e], other[e] = t1, k1, 2, 3 * t2 + k2
+                    i += 2
+                else:
+                    owner[e], owner_slot[e], count[e], other[e] = t1, k1, 1, -1
+                    i += 1
+                e += 1
+
+
+def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_t[:, ::1] across):
+    """across (T, 3): the triangle across each slot's edge, or -1, from bucket_slots' packed
+    and start (every edge in at most 2 triangles)."""
+    cdef Py_ssize_t v, i, n = start.shape[0] - 1
+    cdef int64_t s1, s2
+    cdef uint64_t low_mask = 0xFFFFFFFF
+    with nogil:
+        for v in range(n):
+            i = start[v]
+            while i < start[v + 1]:
+                s1 = <int64_t> (packed[i] & low_mask)
+                if i + 1 < start[v + 1] and (packed[i + 1] >> 32) == (packed[i] >> 32):
+                    s2 = <int64_t> (packed[i + 1] & low_mask)
+                    across[s1 // 3, s1 % 3], across[s2 // 3, s2 % 3] = s2 // 3, s1 // 3
+                    i += 2
+                else:
+                    across[s1 // 3, s1 % 3] = -1
+                    i += 1

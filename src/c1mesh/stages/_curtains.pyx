@@ -1,0 +1,91 @@
+# cython: language_level=3
+"""The curtain stage's kernels: c1mesh.stages.curtains wraps them (validation, threads), and
+nothing else imports them. Element by element, in the order of operations the wrapper's
+docstrings give (no contraction into fused multiply-adds: the build's -ffp-contract=off),
+over a range [start, stop) without the GIL: the wrapper runs fixed blocks in its threads,
+each output element is written by one block, so the bytes do not depend on the thread count."""
+from libc.math cimport isnan, NAN
+from libc.stdint cimport int64_t, uint8_t
+
+
+cdef inline double _maximum(double a, double b) noexcept nogil:
+    """numpy's maximum: NaN when either is NaN."""
+    if isnan(a) or isnan(b):
+        return NAN
+    return a if a >= b else b
+
+
+def residuals(const double[::1] x, const double[::1] y, const double[::1] z,
+              const double[::1] gx, const double[::1] gy, const int64_t[::1] a,
+              const int64_t[::1] b, double[::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out (E,): the trapezoid residual of each edge a→b (E,), in height units:
+    (z_b − z_a) − ½ (g_a·d + g_b·d) with d = xy_b − xy_a and g·d = gx·dx + gy·dy, for the
+    edges start <= e < stop."""
+    cdef Py_ssize_t e
+    cdef int64_t i, j
+    cdef double dx, dy
+    with nogil:
+        for e in range(start, stop):
+            i = a[e]
+            j = b[e]
+            dx = x[j] - x[i]
+            dy = y[j] - y[i]
+            out[e] = (z[j] - z[i]) - 0.5 * ((gx[i] * dx + gy[i] * dy) + (gx[j] * dx + gy[j] * dy))
+
+
+def curtain_masks(const double[::1] x, const double[::1] y, const double[::1] z,
+                  const double[::1] gx, const double[::1] gy, const int64_t[:, ::1] tri,
+                  double cos2_shadow, double cos2_grazing, double floor, bint view_rules,
+                  uint8_t[::1] shadow, uint8_t[::1] grazing, uint8_t[::1] away,
+                  uint8_t[::1] thin, Py_ssize_t start, Py_ssize_t stop):
+    """The four (T,) 0/1 masks of curtains.curtain_triangles for the triangles start <= t <
+    stop of tri (T, 3)."""
+    cdef Py_ssize_t t
+    cdef int k
+    cdef int64_t c0, c1, c2, c, nxt
+    cdef double ex, ey, ez, flat2, longest2, ux, uy, uz, vx, vy, vz, nx, ny, nz
+    cdef bint is_shadow, is_grazing, is_away
+    with nogil:
+        for t in range(start, stop):
+            c0 = tri[t, 0]
+            c1 = tri[t, 1]
+            c2 = tri[t, 2]
+            is_shadow = False
+            longest2 = 0.0
+            for k in range(3):              # edge k: corner k + 1 minus corner k
+                c = c0 if k == 0 else (c1 if k == 1 else c2)
+                nxt = c1 if k == 0 else (c2 if k == 1 else c0)
+                ex = x[nxt] - x[c]
+                ey = y[nxt] - y[c]
+                ez = z[nxt] - z[c]
+                flat2 = ex * ex + ey * ey
+                longest2 = flat2 if k == 0 else _maximum(longest2, flat2)
+                if ez * ez > cos2_shadow * (flat2 + ez * ez):
+                    is_shadow = True
+            ux = x[c1] - x[c0]
+            uy = y[c1] - y[c0]
+            uz = z[c1] - z[c0]
+            vx = -(x[c0] - x[c2])
+            vy = -(y[c0] - y[c2])
+            vz = -(z[c0] - z[c2])
+            nx = uy * vz - uz * vy
+            ny = uz * vx - ux * vz
+            nz = ux * vy - uy * vx
+            if nz < 0:                       # the normal on the axis side
+                nx = -nx
+                ny = -ny
+                nz = -nz
+            is_grazing = not (nz * nz >= cos2_grazing * (nx * nx + ny * ny + nz * nz)) and not is_shadow
+            is_away = False
+            for k in range(3):               # a data normal (-g, 1) the plane faces away from
+                c = c0 if k == 0 else (c1 if k == 1 else c2)
+                if nz - nx * gx[c] - ny * gy[c] < 0:
+                    is_away = True
+            is_away = is_away and not is_shadow and not is_grazing
+            if not view_rules:
+                is_shadow = is_grazing = is_away = False
+            shadow[t] = is_shadow
+            grazing[t] = is_grazing
+            away[t] = is_away
+            thin[t] = (nz * nz < floor * floor * longest2) and not is_shadow and not is_grazing \
+                and not is_away
