@@ -47,7 +47,7 @@ import numpy as np
 
 from c1mesh.core.crs import describe
 from c1mesh.core.errors import DependencyError, InputError
-from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS
+from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS, register_temp, unregister_temp
 from c1mesh.formats import atomic_output
 from c1mesh.geo.raster_grid import FillRule, RasterGrid, SplineSampler
 
@@ -338,8 +338,6 @@ def staging_path(target: Path):
     """A path beside `target` for the staging GeoTIFF, listed as a temporary file of the
     process (removed by the CLI's signal handler on Ctrl-C) and removed when the block
     ends, whatever happens."""
-    from c1mesh.core.outputs import register_temp, unregister_temp
-
     path = Path(target).with_name(f".{Path(target).name}.{secrets.token_hex(4)}.stage.tif")
     register_temp(path)
     try:
@@ -371,8 +369,6 @@ def write_vrt(path, grid: RasterGrid, tiles, kind: str = "dem", crs: str | None 
     window's row0, col0, its nodata cells transparent; the files are named relative to the
     VRT (GDAL's VRT format, gdal.org/drivers/raster/vrt.html; written by hand, as GDAL's
     BuildVRT has no rasterio binding). Atomic, as every output."""
-    from c1mesh.formats import atomic_output
-
     dtype, nodata = _KINDS[kind]
     t = grid.transform
     lines = [f'<VRTDataset rasterXSize="{grid.width}" rasterYSize="{grid.height}">']

@@ -232,8 +232,6 @@ class SplineSampler:
     def distances(self, xy: np.ndarray) -> np.ndarray:
         """(m,) the distance from each local plane point xy (m, 2) to the nearest point the
         fit used (fit_xy), by a k-d tree."""
-        from scipy.spatial import cKDTree
-
         if self._tree is None:
             self._tree = cKDTree(self._fit_xy)
         return self._tree.query(xy)[0] if len(xy) else np.zeros(0)

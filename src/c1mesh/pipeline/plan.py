@@ -53,4 +53,4 @@ def fit_plan(options) -> FitPlan:
         memory=options.memory, threads=options.workers,
         rasters=any(v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
                                                         options.hillshade, options.preview)),
-        contours=getattr(options, "contours", None) is not None)
+        contours=options.contours is not None)

@@ -68,7 +68,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     """
 
     options, _ = resolve_options_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
-    if outputs is not None and getattr(options, "contours", None):
+    if outputs is not None and options.contours:
         raise InputError("--contours makes one survey-wide file: use it with --seamless -o, not -O")
     user_crs = parse_crs(options.crs) if options.crs else None
     if in_tiles(list(sources), options):

@@ -53,6 +53,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from c1mesh.core.crs import metres_per_unit
 from c1mesh.core.errors import InputError
 
 #: The truncation (in σ) of the Gaussian weights of the DEM's plane fit.
@@ -437,8 +438,6 @@ def filter_file_points(points: np.ndarray, crs: str | None,
     """((n,) bool ground, the report's facts about the filter) of points in their file's
     units: converted to metres by the CRS's linear units first (c1mesh.core.crs;
     metres when there is no CRS), so the filter's metre parameters mean metres."""
-    from c1mesh.core.crs import metres_per_unit
-
     xy_unit, z_unit, unit = metres_per_unit(crs)
     metres = np.asarray(points, dtype=np.float64) * np.array([xy_unit, xy_unit, z_unit])
     ground = classify_ground(metres, None, params)

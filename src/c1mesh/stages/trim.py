@@ -15,11 +15,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.threads import overlap
+from c1mesh.core.threads import overlap, parallel_blocks
 from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sub_table
 from c1mesh.engine.topology import triangle_neighbours as topology_neighbours
-from c1mesh.stages import _trim as kernel
 from c1mesh.engine.triangulation import as_xy
+from c1mesh.stages import _trim as kernel
 
 AUTO_EDGE_FACTOR = 4.0
 """max_edge="auto" is this times the median edge length. In the Delaunay triangulation of
@@ -266,8 +266,6 @@ def edge_lengths(xy: np.ndarray, tri: np.ndarray, workers: int | None = None) ->
     xy (n, 2); lengths in xy's unit. The kernel (stages/_trim.pyx) runs over fixed blocks of
     KERNEL_BLOCK triangles in the thread knob's threads (workers: that many instead); each
     length is one hypot, the same at any count."""
-    from c1mesh.core.threads import parallel_blocks
-
     tri = np.ascontiguousarray(tri, dtype=np.int64)
     if tri.ndim != 2 or tri.shape[1] != 3:
         raise InputError(f"triangles must have shape (T, 3), got {tri.shape}")

@@ -45,6 +45,7 @@ from c1mesh.engine.schemes import NAMED_TUPLES, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.formats import PRJ_SIDECAR, read_cloud, write_mesh
 from c1mesh.formats.las import no_class_error
+from c1mesh.stages.ground import choose_points
 from c1mesh.stages.surface import surface_stream
 
 
@@ -70,8 +71,6 @@ def _choose_survey_points(clouds: list, choice) -> tuple[list, dict | None]:
     c1mesh.stages.ground.choose_points over the whole survey at once, so that "auto" takes
     class 2 from every file when any file has it, and the ground filter otherwise, run
     over all files together (it sees across their edges, as in one file)."""
-    from c1mesh.stages.ground import choose_points
-
     if any(c.classification is None for c in clouds) or not clouds:
         return clouds, None
     classification = np.concatenate([c.classification for c in clouds])

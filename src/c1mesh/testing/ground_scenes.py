@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -73,8 +74,6 @@ def _trees(rng, size: float, count: int) -> np.ndarray:
 
 def _under_crowns(xy: np.ndarray, trees: np.ndarray) -> np.ndarray:
     """(n,) bool: the points of xy under some tree's crown."""
-    from scipy.spatial import cKDTree
-
     covered = np.zeros(len(xy), bool)
     for point, near in enumerate(cKDTree(trees[:, :2]).query_ball_point(xy, r=float(trees[:, 2].max()))):
         for tree in near:
