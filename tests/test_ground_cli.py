@@ -126,19 +126,36 @@ def test_class_choice_usage_errors():
     assert usage_error(["fit", "hill.ply", "-o", "o.ply"]) is None          # auto: nothing for a PLY
 
 
-def test_tiled_fit_takes_class_2_and_refuses_the_filter(tmp_path):
-    """The memory-bounded fit selects class 2 by default as in memory, and refuses the
-    filter (a file without class 2, or --classes filter) in one line, writing nothing."""
-    classified, unclassified = tmp_path / "two.las", tmp_path / "one.las"
+def test_tiled_fit_takes_class_2_by_default(tmp_path):
+    """The memory-bounded fit selects class 2 by default, as in memory."""
+    classified = tmp_path / "two.las"
     write_terrain_las(classified, 24000, classes=(2, 5))
-    write_terrain_las(unclassified, 24000, classes=(1,))
     report = _fit_report(tmp_path, classified, "--memory", "1M")
     assert report["classes"] == {"selected": [2], "source": "file"} and report["tiles"] > 1
-    for source, extra in ((unclassified, ()), (classified, ("--classes", "filter"))):
-        out = tmp_path / "refused.ply"
-        result = _invoke("fit", source, "-o", out, "--memory", "1M", *extra)
-        assert result.exit_code == 1 and "ground filter runs in memory only" in _one_error_line(result)
-        assert not out.exists()
+
+
+@pytest.mark.parametrize("source,extra", [(UNCLASSIFIED, ()), (CLASSIFIED, ("--classes", "filter"))])
+def test_the_tiled_fit_filters_ground_tile_by_tile_as_the_whole_fit_does(tmp_path, source, extra):
+    """Beyond --memory the filter runs on tiles with its halo (survey.ground_pass): 9 filter
+    tiles and 4 fit tiles give the points, the report's classes and the mesh of the
+    in-memory fit, vertex for vertex (every vertex an input point at level 1)."""
+    import trimesh
+
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.survey_fit import fit_in_tiles
+
+    options = FitOptions(level=1, classes="filter" if extra else "auto")
+    whole = fit(str(source), str(tmp_path / "whole.ply"), options).report
+    tiled = fit_in_tiles(str(source), tmp_path / "tiled.ply", FitOptions(level=1, memory=10**9,
+                         classes=options.classes), TiledRun(per_tile=3000))
+    assert tiled["tiles"] == 4 and tiled["seconds"]["ground"] > 0          # 9 filter tiles: ceil(sqrt(23875/3000))²
+    assert tiled["classes"] == whole["classes"] and whole["classes"]["source"] == "filter"
+    meshes = [trimesh.load(tmp_path / name, process=False, force="mesh") for name in ("whole.ply", "tiled.ply")]
+    keys = [set(map(tuple, np.asarray(m.vertices))) for m in meshes]
+    assert keys[0] == keys[1] and len(keys[0]) == whole["classes"]["points_kept"]
+    faces = [{tuple(sorted(map(tuple, np.asarray(m.vertices)[f]))) for f in np.asarray(m.faces)} for m in meshes]
+    assert faces[0] == faces[1]
 
 
 def test_note_on_a_terminal_only(tmp_path):

@@ -73,6 +73,7 @@ from c1mesh.stages.trim import check_triangles_left
 from c1mesh.stages.warnings import auto_limit, fit_warnings
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
+from c1mesh.survey.ground_pass import GroundPass, ground_mask
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
@@ -95,9 +96,10 @@ from c1mesh.survey.tiled_smoothing import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
 from c1mesh.survey.tiled_trim import trim_tiles
 
-TILED_STAGES = ("frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
+TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
                 "refine+write")
-"""The stages fit_tiled reports (on_stage, the report's seconds), in order; "noise floors"
+"""The stages fit_tiled reports (on_stage, the report's seconds), in order; "ground" only when the
+ground filter chooses the points (survey.ground_pass), "noise floors"
 only with the overshoot limiter (the default) of an exact fit, "smoothing" only with a
 smoothing strength (c1mesh.survey.tiled_smoothing)."""
 
@@ -132,7 +134,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     _check_plan(plan)
     surface = plan.surface
     strength, memory = surface.strength, plan.memory
-    select, selection = tiled_classes(source, plan.select)     # class 2 by default; no filter in tiles
+    select, selection, filtered = tiled_classes(source, plan.select)     # class 2 by default, else the filter
     # the tiles estimate their normals; their gradients come from the heights by default
     gradient_source = "heights" if use_height_gradients(plan.heights.gradients, "estimated") else "normals"
     paths = survey_paths(source)
@@ -159,9 +161,15 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     file_counts: list[int] = []
     stack = contextlib.ExitStack()
     try:
+        keep = None
+        if filtered:                               # the filter's ground, tile by tile (survey.ground_pass)
+            keep, facts = ground_mask(source, select.bounds, crs if crs_source == "file" else None,
+                                      GroundPass(memory, run.per_tile, directory, temps.stem))
+            selection.update({"points_read": int(len(keep)), "points_kept": int(keep.sum()), "filter": facts})
+            done("ground")
         colours = Colours(temps)
         chunks = CachedChunks(las_chunks(source, select.classes, colours=colours,
-                                         bounds=select.bounds, file_counts=file_counts), temps)
+                                         bounds=select.bounds, file_counts=file_counts, keep=keep), temps)
         axis = plan.heights.axis
         axis = "z" if isinstance(axis, str) and axis.strip().lower() == "auto" else axis
         frame = frame_of_chunks(chunks, axis)

@@ -66,14 +66,16 @@ class CachedChunks:
 
 
 def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | None" = None,
-               bounds=None, file_counts: list | None = None) -> Callable:
+               bounds=None, file_counts: list | None = None, keep: np.ndarray | None = None) -> Callable:
     """stages.frame.FrameChunks over a LAS/LAZ file, or over several read one after another as
     one survey: a callable giving a fresh iterator of (world points (m, 3), None) in file
     order, keeping only `classes` (None: all). colours: where each pass also sends the
     kept points' RGB, when every file has it (a survey has colours only if all its files
     do, as in c1mesh.survey.tiles.load_survey). bounds: only the points in this closed x/y box
     (formats.copc.Box), in file order: a COPC file decodes only the nodes meeting it.
-    file_counts: a list each pass refills with the points it kept from each file."""
+    file_counts: a list each pass refills with the points it kept from each file. keep:
+    (N,) bool over the survey's points inside bounds, in this order, before `classes`
+    (the ground filter's ground, survey.ground_pass): only those are kept."""
     laspy = laspy_module()
     paths = survey_paths(source)
 
@@ -85,16 +87,20 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     def chunks():
         if file_counts is not None:
             file_counts.clear()
-        found, total = set(), 0
+        found, total, read = set(), 0, 0
         for path in paths:
             kept = 0
             for part in region_chunks(path, bounds, chunk):
                 if classes:
                     found.update(np.unique(np.asarray(part.classification)).tolist())
-                keep = np.isin(np.asarray(part.classification), np.asarray(classes)) if classes else None
-                xyz = _kept_columns(part, ("x", "y", "z"), keep, np.float64)
+                rows = np.isin(np.asarray(part.classification), np.asarray(classes)) if classes else None
+                if keep is not None:
+                    mine = keep[read:read + len(part)]
+                    rows = mine if rows is None else rows & mine
+                read += len(part)
+                xyz = _kept_columns(part, ("x", "y", "z"), rows, np.float64)
                 if rgb_everywhere:
-                    colours.add(_kept_columns(part, ("red", "green", "blue"), keep, np.uint16))
+                    colours.add(_kept_columns(part, ("red", "green", "blue"), rows, np.uint16))
                 del part                    # not held while the next chunk decodes
                 kept += len(xyz)
                 yield xyz, None
@@ -111,8 +117,6 @@ def survey_classes(source, bounds=None, chunk: int = CHUNK) -> tuple[bool, set[i
     LAS/LAZ file or a list read as one survey (inside `bounds`, as las_chunks reads it),
     stopping at the first chunk with class 2: how the tiled fit resolves its default
     class choice (the ground class when there is one) before its passes."""
-    from c1mesh.formats.copc import region_chunks
-
     found: set[int] = set()
     for path in survey_paths(source):
         for part in region_chunks(path, bounds, chunk):
@@ -123,25 +127,24 @@ def survey_classes(source, bounds=None, chunk: int = CHUNK) -> tuple[bool, set[i
     return False, found
 
 
-def tiled_classes(source, select: PointSelection) -> tuple[PointSelection, dict]:
-    """(select with classes resolved to codes or None, the report's "classes") for the
-    tiled fit: the ground class 2 by default ("auto") when the survey has any (a scan of
-    its classes first), every point for "all" (or None), the given codes. The ground filter
-    runs in memory only for now: InputError when it would be needed (no class 2) or is
-    asked for ("filter")."""
-    choice, name = select.classes, survey_name(survey_paths(source))
+def tiled_classes(source, select: PointSelection) -> tuple[PointSelection, dict, bool]:
+    """(select with classes resolved to codes or None, the report's "classes", whether the
+    ground filter chooses the points) for the tiled fit, as stages.ground.choose_points
+    chooses in memory: the given codes; every point for "all" (or None); the ground class
+    2 for "auto" when the survey has any (a scan of its classes first); else, and for
+    "filter", the filter's ground (survey.ground_pass: the caller runs it and completes
+    the facts with its counts)."""
+    choice = select.classes
     if isinstance(choice, tuple):
-        return select, {"selected": list(choice), "source": "option"}
+        return select, {"selected": list(choice), "source": "option"}, False
     if choice in ("all", None):
-        return replace(select, classes=None), {"selected": "all", "source": "option"}
-    refusal = (f"{name}: the ground filter runs in memory only, not in the tiles of a fit larger than "
-               "--memory; give --classes all (every point) or the codes to fit, or raise --memory")
-    if choice == "filter":
-        raise InputError(refusal)
-    has_ground, found = survey_classes(source, select.bounds)
-    if not has_ground:
-        raise InputError(f"{refusal} (the file has no ground class 2; classes {sorted(found)[:20]})")
-    return replace(select, classes=(2,)), {"selected": [2], "source": "file"}
+        return replace(select, classes=None), {"selected": "all", "source": "option"}, False
+    if choice == "auto":
+        has_ground, _ = survey_classes(source, select.bounds)
+        if has_ground:
+            return replace(select, classes=(2,)), {"selected": [2], "source": "file"}, False
+    why = "asked (--classes filter)" if choice == "filter" else "the file has no ground class 2"
+    return replace(select, classes=None), {"selected": [2], "source": "filter", "reason": why}, True
 
 
 def _kept_columns(part, names, keep, dtype) -> np.ndarray:
