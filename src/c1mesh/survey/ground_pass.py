@@ -53,8 +53,21 @@ def ground_mask(source, bounds, crs: str | None, run: GroundPass) -> tuple[np.nd
     chunks = las_chunks(source, None, bounds=bounds)
     count, box = _extent(chunks)
     ground = np.zeros(count, dtype=bool)
-    grid = TileGrid(box, *(2 * (grid_side(count, run.memory, run.per_tile, BYTES_PER_POINT),)))
-    halo = halo_width(run.params) / xy_unit
+    if count:                                  # none inside --bounds: the fit says so, as in memory
+        _classify_tiles(chunks, count, box, scale, run, ground)
+    facts = {"name": FILTER_NAME, "parameters": run.params.as_dict(), "units": unit if crs else "metre (no CRS)",
+             "metres_per_unit": [xy_unit, z_unit], "halo_m": halo_width(run.params),
+             "points": int(count), "ground": int(ground.sum())}
+    return ground, facts
+
+
+def _classify_tiles(chunks, count: int, box, scale: np.ndarray, run: GroundPass, ground: np.ndarray) -> None:
+    """Set ground[i] for the survey's ground points: a spill of the chunks' count points
+    to a grid over box sized by run, then each tile's own points classified from its cell
+    grown by the halo (in file units: halo_width's metres over scale's x, y factor), the
+    points in metres (times scale)."""
+    side = grid_side(count, run.memory, run.per_tile, BYTES_PER_POINT)
+    grid, halo = TileGrid(box, side, side), halo_width(run.params) / scale[0]
     with spill((points for points, _ in chunks()), WORLD, grid, run.directory, run.stem + ".ground") as raw:
         for t in range(len(grid)):
             own = raw.tile(t)
@@ -64,10 +77,6 @@ def ground_mask(source, bounds, crs: str | None, run: GroundPass) -> tuple[np.nd
             points = np.column_stack([records["x"], records["y"], records["z"]]) * scale
             owned = np.isin(records["index"], own["index"], assume_unique=True)
             ground[records["index"][owned][classify_ground(points, owned, run.params)]] = True
-    facts = {"name": FILTER_NAME, "parameters": run.params.as_dict(), "units": unit if crs else "metre (no CRS)",
-             "metres_per_unit": [xy_unit, z_unit], "halo_m": halo_width(run.params),
-             "points": int(count), "ground": int(ground.sum())}
-    return ground, facts
 
 
 def _extent(chunks) -> tuple[int, tuple[float, float, float, float]]:
