@@ -43,7 +43,8 @@ def _las(path: Path, x, y, z, classes) -> Path:
 def inputs(tmp_path_factory) -> dict[str, list[str]]:
     """Name -> the input and its options: the 4_6_crop vegetation the issue names, a class
     the file lacks, an empty file, two layers, points at two plane positions, a class with
-    two points, a trim that leaves nothing to smooth, and a ground sample that fits."""
+    two points, a trim that leaves nothing to smooth, a ground sample that fits, and an
+    unclassified tile whose ground the filter finds (tile by tile beyond --memory)."""
     folder = tmp_path_factory.mktemp("inputs")
     rng = np.random.default_rng(0)
     n = 30000
@@ -61,6 +62,7 @@ def inputs(tmp_path_factory) -> dict[str, list[str]]:
         "trimmed away, smoothing": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--max-edge", "0.001",
                                     "--smooth", "auto"],
         "ground": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--level", "1"],
+        "unclassified": [str(SAMPLES / "4_6_crop_unclassified.laz"), "--level", "1"],     # the ground filter
     }
 
 
@@ -87,7 +89,7 @@ def _first_line(text: str) -> str:
 
 
 @pytest.mark.parametrize("case", ["vegetation", "missing class", "empty", "two layers", "two positions",
-                                  "two ground points", "trimmed away, smoothing", "ground"])
+                                  "two ground points", "trimmed away, smoothing", "ground", "unclassified"])
 def test_every_path_gives_the_same_answer(tmp_path, inputs, cluster, case):
     answers = {}
     for name, path_args in PATHS.items():
@@ -95,17 +97,21 @@ def test_every_path_gives_the_same_answer(tmp_path, inputs, cluster, case):
         out.mkdir()
         report = tmp_path / f"{out.name}.json"
         result = CliRunner().invoke(main, ["fit", *inputs[case], *path_args(out, cluster), "--report", str(report)])
-        answers[name] = (result.exit_code, _first_line(result.stderr),
-                         json.loads(report.read_text()).get("suggestion") if not result.exit_code else None)
+        facts = {} if result.exit_code else json.loads(report.read_text())
+        chosen = facts.get("classes") or {}
+        answers[name] = (result.exit_code, _first_line(result.stderr), facts.get("suggestion"),
+                         str(chosen.get("selected")), chosen.get("source"))
         if result.exit_code:
             assert sorted(p.name for p in out.iterdir()) == [], f"{name} left output behind"
         else:
             assert any(out.iterdir()), f"{name} wrote nothing"
     assert len(set(answers.values())) == 1, json.dumps(answers, indent=1)
-    expected_exit = 0 if case == "ground" else 1
+    expected_exit = 0 if case in ("ground", "unclassified") else 1
     assert answers["in memory"][0] == expected_exit
     if case == "ground":                  # noisy LiDAR ground: every path's report advises --smooth auto
         assert ADVICE.fullmatch(f"c1mesh: note: {inputs[case][0]}: {answers['in memory'][2]}")
+    if case == "unclassified":            # no class 2: every path fits the ground filter's ground
+        assert answers["in memory"][3:] == ("[2]", "filter")
 
 
 def test_the_budget_really_tiles_the_inputs(tmp_path):
