@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gc
 import json
+import re
 import signal
 import sys
 import time
@@ -297,3 +298,15 @@ MEASURED: dict[tuple[str, int], dict] = {}
 
 #: The `c1mesh` command run through this interpreter (no dependence on an installed script).
 C1MESH = ["-c", "import sys; from c1mesh.cli import main; sys.argv[0] = 'c1mesh'; main()"]
+
+
+def write_section(path: Path, sec: Section) -> None:
+    """Replace the `## TITLE` section of RESULTS.md (up to the next `## `), or append it."""
+    text = path.read_text() if path.exists() else ""
+    block = "\n".join([f"## {sec.title}", "", *sec.body]).rstrip() + "\n"
+    pattern = re.compile(rf"^## {re.escape(sec.title)}\n.*?(?=^## |\Z)", re.M | re.S)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: block + "\n", text, count=1).rstrip() + "\n"
+    else:
+        text = text.rstrip() + "\n\n" + block
+    path.write_text(text)

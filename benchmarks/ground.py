@@ -46,7 +46,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import re
 import sys
 import tempfile
 import time
@@ -56,7 +55,7 @@ from typing import Callable
 
 import numpy as np
 
-from benchmarks.common import ROOT, Section
+from benchmarks.common import ROOT, Section, write_section
 from c1mesh.stages.ground import PDAL_SMRF, GroundParameters, classify_ground
 from c1mesh.testing.ground_scenes import filter_scores, roof_scene, steep_scene
 
@@ -281,18 +280,6 @@ def section(command: str, log=print) -> Section:
             "defaults) of the filter's ground and of the true ground, compared where both have data:", "",
             *dtm_rows(tiles, log), "")
     return sec
-
-
-def write_section(path: Path, sec: Section) -> None:
-    """Replace the `## TITLE` section of RESULTS.md (up to the next `## `), or append it."""
-    text = path.read_text() if path.exists() else ""
-    block = "\n".join([f"## {sec.title}", "", *sec.body]).rstrip() + "\n"
-    pattern = re.compile(rf"^## {re.escape(sec.title)}\n.*?(?=^## |\Z)", re.M | re.S)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: block + "\n", text, count=1).rstrip() + "\n"
-    else:
-        text = text.rstrip() + "\n\n" + block
-    path.write_text(text)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -53,7 +53,7 @@ from typing import Callable
 
 import numpy as np
 
-from benchmarks.common import ROOT, Config, Section
+from benchmarks.common import ROOT, Config, Section, write_section
 
 SAMPLES = ROOT / "data_samples"
 REAL = Path("/work/shared/data/real")
@@ -509,18 +509,6 @@ def run(cfg: Config) -> Section:
                        log=lambda *a: print(*a, file=sys.stderr))
     return section(False, tuple(range(5)), None, "python -m benchmarks",
                    log=lambda *a: print(*a, file=sys.stderr))
-
-
-def write_section(path: Path, sec: Section) -> None:
-    """Replace the `## TITLE` section of RESULTS.md (up to the next `## `), or append it."""
-    text = path.read_text() if path.exists() else ""
-    block = "\n".join([f"## {sec.title}", "", *sec.body]).rstrip() + "\n"
-    pattern = re.compile(rf"^## {re.escape(sec.title)}\n.*?(?=^## |\Z)", re.M | re.S)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: block + "\n", text, count=1).rstrip() + "\n"
-    else:
-        text = text.rstrip() + "\n\n" + block
-    path.write_text(text)
 
 
 def main(argv: list[str] | None = None) -> int:
