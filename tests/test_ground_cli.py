@@ -151,6 +151,7 @@ def test_the_tiled_fit_filters_ground_tile_by_tile_as_the_whole_fit_does(tmp_pat
                          classes=options.classes), TiledRun(per_tile=3000))
     assert tiled["tiles"] == 4 and tiled["seconds"]["ground"] > 0          # 9 filter tiles: ceil(sqrt(23875/3000))²
     assert tiled["classes"] == whole["classes"] and whole["classes"]["source"] == "filter"
+    assert tiled["triangles"]["removed"] == whole["triangles"]["removed"]     # the ground's trim rules, not all points'
     meshes = [trimesh.load(tmp_path / name, process=False, force="mesh") for name in ("whole.ply", "tiled.ply")]
     keys = [set(map(tuple, np.asarray(m.vertices))) for m in meshes]
     assert keys[0] == keys[1] and len(keys[0]) == whole["classes"]["points_kept"]

@@ -86,7 +86,7 @@ def _in_memory(path, classes, level, overshoot="limit", max_edge="auto", gradien
     interp = RSDInterpolator(hf.xy[used], values, gradients, triangles=triangles, directions=directions)
     mesh = surface_stream(interp.refinement(level), frame, None).materialize()
     mesh.limiter, mesh.slivers = limiter.as_dict(), report.removed["sliver"]
-    mesh.removed = {k: v for k, v in report.removed.items() if k != "long_edge"}
+    mesh.removed = dict(report.removed)
     return mesh, report.max_edge, len(used)
 
 

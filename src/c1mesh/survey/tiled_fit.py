@@ -203,7 +203,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                                                                 grid, buffers)
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
-            removed = trim_tiles(halos, grid, temps, view_rules_apply(select.classes, frame.axes))
+            fitted = (2,) if filtered else select.classes        # the filter's ground counts as class 2
+            removed = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes))
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
             if outputs is None and output is not None:
@@ -241,7 +242,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,
                                  "after_trim": sum(report["triangles_per_tile"].values()),
-                                 "removed": removed, "max_edge": max_edge},
+                                 "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
                    "level": surface.level, "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
