@@ -63,8 +63,7 @@ def streamed_median(chunks: Chunks, gather: int = GATHER) -> float:
         nan = nan or bool(np.isnan(part).any())
     if count == 0 or nan:
         return float("nan")
-    return float(streamed_medians(lambda: (np.asarray(p, dtype=np.float64).reshape(-1, 1) for p in chunks()),
-                                  1, gather)[0])
+    return float(_medians(_one_column(chunks), 1, count, gather)[0])
 
 
 def streamed_medians(chunks: Chunks, columns: int, gather: int = GATHER) -> np.ndarray:
@@ -80,6 +79,12 @@ def streamed_medians(chunks: Chunks, columns: int, gather: int = GATHER) -> np.n
     count = sum(len(part) for part in chunks())
     if count == 0:
         raise NoValues("streamed_medians needs at least one row")
+    return _medians(chunks, columns, count, gather)
+
+
+def _medians(chunks: Chunks, columns: int, count: int, gather: int) -> np.ndarray:
+    """(columns,) the exact per-column medians of the count (> 0) rows of chunks, by
+    radix selection of the middle rank(s), every column in the same passes."""
     upper = count // 2
     ranks = [upper] if count % 2 else [upper - 1, upper]
     tasks = [_Task(c, r) for c in range(columns) for r in ranks]
@@ -92,8 +97,13 @@ def order_statistic(chunks: Chunks, rank: int, gather: int = GATHER) -> float:
     """The value of 0-based `rank` in ascending order of the concatenated 1-D chunks
     (float64, no nan), by radix selection on the order keys."""
     task = _Task(0, rank)
-    _select(lambda: (np.asarray(p, dtype=np.float64).reshape(-1, 1) for p in chunks()), [task], gather)
+    _select(_one_column(chunks), [task], gather)
     return task.value
+
+
+def _one_column(chunks: Chunks) -> Chunks:
+    """1-D chunks as chunks of (m, 1) rows."""
+    return lambda: (np.asarray(part, dtype=np.float64).reshape(-1, 1) for part in chunks())
 
 
 @dataclass
