@@ -181,9 +181,7 @@ def fit_one(src, dst, targets, options, console: Console, workers: Workers) -> N
                     result = run(mesh_file)
                 _write_prj(outputs, dst, mesh_target, options.output_format, result)
             result["output"] = dst
-            if report_target is not None:
-                with outputs.open(report_target, "w") as handle:
-                    handle.write(json.dumps(result, indent=2) + "\n")
+            _stage_report(outputs, report_target, result)
             outputs.commit()
     except Exception as exc:  # noqa: BLE001 — any failure is one line
         fail(naming(src, message(exc)), debug)
@@ -209,18 +207,23 @@ def _write_prj(outputs, dst, mesh_target, fmt, result) -> None:
         handle.write(esri_wkt(crs) + "\n")
 
 
+def _stage_report(outputs: Outputs, target, payload: dict) -> None:
+    """The JSON report into the transaction `outputs`, at its checked target (None: no file)."""
+    if target is not None:
+        with outputs.open(target, "w") as handle:
+            handle.write(json.dumps(payload, indent=2) + "\n")
+
+
 def _write_report(report, target, payload, debug) -> None:
     """The batch's JSON report to its checked target (or stderr for -)."""
     if not report:
         return
-    text = json.dumps(payload, indent=2)
     if report == STDIO:
-        click.echo(text, err=True)
+        click.echo(json.dumps(payload, indent=2), err=True)
         return
     try:
         with Outputs() as outputs:
-            with outputs.open(target, "w") as handle:
-                handle.write(text + "\n")
+            _stage_report(outputs, target, payload)
             outputs.commit()
     except (C1MeshError, OSError) as exc:
         fail(f"cannot write report '{report}': {message(exc)}", debug)
@@ -288,9 +291,7 @@ def classify_ground_file(src: str, dst: str, report, quiet: bool, debug: bool) -
         with Outputs() as outputs:
             with outputs.open(targets[0]) as handle:
                 result = classify_file(src, handle, dst)
-            if len(targets) > 1:
-                with outputs.open(targets[1], "w") as handle:
-                    handle.write(json.dumps(result, indent=2) + "\n")
+            _stage_report(outputs, targets[1] if len(targets) > 1 else None, result)
             outputs.commit()
     except Exception as exc:  # noqa: BLE001 — any failure is one line
         fail(naming(src, message(exc)), debug)
