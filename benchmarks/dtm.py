@@ -1,0 +1,189 @@
+"""The whole DTM job against GMT: a 1M-point LAZ to a 1 m DEM (issue 38).
+
+    python -m benchmarks.dtm make FOLDER              # FOLDER/dtm.laz and FOLDER/dtm.bin
+    python -m benchmarks.dtm run FOLDER [--reps 3] [--write]
+
+The survey is issue 38's (and the floor job's kind): 1,000,000 points uniform over a
+1000 × 1000 m square, z = 100 + 30 sin(x/97) cos(y/131) + 2 cm Gaussian noise, all class
+2, stored at millimetre scale. dtm.bin holds the same points, as the LAZ stores them, as
+binary doubles x y z: the GMT side reads those.
+
+Contenders, each a child process timed from start to exit with its own peak RSS (and its
+children's: GMT is two commands under one shell); one round runs each once, back to back,
+and the table shows medians over the rounds:
+- `c1mesh fit dtm.laz -o DIR/smooth.tif --resolution 1 --smooth auto`, the smoothing fit;
+- the same with `--smooth off`, the exact interpolant;
+- GMT: `gmt blockmedian -R0/1000/0/1000 -I1 -bi3d -bo3d dtm.bin > bm.bin` then
+  `gmt surface bm.bin -bi3d -R0/1000/0/1000 -I1 -T0.25 -Gs.nc`, GMT's own recipe for a
+  DEM from scattered points (blockmedian first, as its documentation asks). Skipped and
+  said so when `gmt` is absent (benchmarks/install-peers.sh installs it).
+
+Accuracy: the RMS of each DEM against the true (noise-free) heights at its own cells,
+over the cells whose centre lies in [10, 990]² (GMT extrapolates to the border and c1mesh
+stops at the hull, so the rim is left out of both). GMT's grid is read with
+`gmt grd2xyz` after the clock stops. Thread counts: c1mesh at its default (every core,
+shown in the table's header), GMT as installed (its `surface` is single-threaded).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import C1MESH, ROOT, Section, fmt_bytes, run_child, write_section
+
+N = 1_000_000
+SIDE = 1000.0
+NOISE = 0.02
+REGION = f"-R0/{SIDE:g}/0/{SIDE:g}"
+MARGIN = 10.0
+TITLE = "DTM job: a 1M-point LAZ to a 1 m DEM, c1mesh against GMT (issue 38)"
+
+
+def true_height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Issue 38's terrain (metres): 100 + 30 sin(x/97) cos(y/131)."""
+    return 100.0 + 30.0 * np.sin(x / 97.0) * np.cos(y / 131.0)
+
+
+def make(folder: Path, n: int = N, seed: int = 0) -> None:
+    """FOLDER/dtm.laz (n points, class 2, mm scale) and FOLDER/dtm.bin (the LAZ's
+    coordinates as stored, binary little-endian doubles x y z)."""
+    import laspy
+
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(0, SIDE, n), rng.uniform(0, SIDE, n)
+    z = true_height(x, y) + rng.normal(0, NOISE, n)
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [0, 0, 0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = x, y, z
+    las.classification = np.full(n, 2, np.uint8)
+    folder.mkdir(parents=True, exist_ok=True)
+    las.write(folder / "dtm.laz")
+    stored = laspy.read(folder / "dtm.laz")
+    xyz = np.column_stack([stored.x, stored.y, stored.z]).astype("<f8")
+    (folder / "dtm.bin").write_bytes(xyz.tobytes())
+
+
+def gmt_status() -> str:
+    """'' when the `gmt` binary is on PATH, else why the GMT rows are skipped."""
+    return "" if shutil.which("gmt") else "gmt not found on PATH (benchmarks/install-peers.sh installs it)"
+
+
+def c1mesh_run(folder: Path, smooth: str) -> tuple[float, int, Path]:
+    """(seconds, peak RSS, DEM path) of one `c1mesh fit` to a 1 m DEM."""
+    dem = folder / f"{smooth}.tif"
+    done = run_child([sys.executable, *C1MESH, "fit", str(folder / "dtm.laz"), "-o", str(dem),
+                      "--resolution", "1", "--smooth", smooth])
+    if done.returncode:
+        raise RuntimeError(f"c1mesh fit --smooth {smooth} failed: {done.stderr.strip()[-400:]}")
+    return done.seconds, done.peak_rss, dem
+
+
+def gmt_run(folder: Path) -> tuple[float, int, Path]:
+    """(seconds, peak RSS, grid path) of blockmedian + surface, both under one shell."""
+    grid = folder / "gmt.nc"
+    script = (f"gmt blockmedian {REGION} -I1 -bi3d -bo3d '{folder / 'dtm.bin'}' > '{folder / 'bm.bin'}' && "
+              f"gmt surface '{folder / 'bm.bin'}' -bi3d {REGION} -I1 -T0.25 -G'{grid}'")
+    done = run_child(["sh", "-c", script])
+    if done.returncode:
+        raise RuntimeError(f"GMT failed: {done.stderr.strip()[-400:]}")
+    return done.seconds, done.peak_rss, grid
+
+
+def dem_rms(path: Path) -> float:
+    """RMS (m) of a c1mesh GeoTIFF DEM against true_height at its cell centres in the margin."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        z = src.read(1, masked=True)
+        cols, rows = np.meshgrid(np.arange(src.width), np.arange(src.height))
+        t = src.transform
+        x, y = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e      # north-up: b = d = 0
+    return _rms(np.asarray(x), np.asarray(y), np.ma.filled(z.astype(float), np.nan))
+
+
+def gmt_rms(path: Path) -> float:
+    """RMS (m) of GMT's grid against true_height at its nodes in the margin."""
+    with tempfile.TemporaryDirectory(prefix="c1mesh-dtm-") as tmp:
+        out = Path(tmp) / "grid.bin"
+        subprocess.run(["gmt", "grd2xyz", str(path), "-bo3d"], stdout=out.open("wb"), check=True)
+        xyz = np.fromfile(out, dtype="<f8").reshape(-1, 3)
+    return _rms(xyz[:, 0], xyz[:, 1], xyz[:, 2])
+
+
+def _rms(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
+    inside = (x >= MARGIN) & (x <= SIDE - MARGIN) & (y >= MARGIN) & (y <= SIDE - MARGIN) & np.isfinite(z)
+    error = z[inside] - true_height(x[inside], y[inside])
+    return float(np.sqrt(np.mean(error ** 2)))
+
+
+def run(folder: Path, reps: int) -> Section:
+    """The contenders, reps alternating rounds; the section for RESULTS.md."""
+    runs: dict[str, list[tuple[float, int]]] = {"--smooth auto": [], "--smooth off": [], "GMT": []}
+    outputs: dict[str, Path] = {}
+    skipped = gmt_status()
+    for _ in range(reps):
+        for name, job in (("--smooth auto", lambda: c1mesh_run(folder, "auto")),
+                          ("--smooth off", lambda: c1mesh_run(folder, "off")),
+                          ("GMT", lambda: gmt_run(folder))):
+            if name == "GMT" and skipped:
+                continue
+            seconds, rss, path = job()
+            runs[name].append((seconds, rss))
+            outputs[name] = path
+            print(f"[dtm] {name}: {seconds:.2f} s, {fmt_bytes(rss)}", file=sys.stderr)
+    rms = {name: (gmt_rms(path) if name == "GMT" else dem_rms(path)) for name, path in outputs.items()}
+    return _section(runs, rms, skipped, reps)
+
+
+def _section(runs, rms, skipped: str, reps: int) -> Section:
+    sec = Section(TITLE)
+    gmt_seconds = statistics.median(s for s, _ in runs["GMT"]) if runs["GMT"] else None
+    sec.add(f"`python -m benchmarks.dtm run DIR --reps {reps}`: medians of {reps} alternating rounds, "
+            f"one machine, c1mesh at its default threads ({os.cpu_count()} cores), GMT `surface` "
+            "single-threaded. RMS against the noise-free heights over the cells in [10, 990]² m.", "",
+            "| run | time | × GMT | peak memory | RMS against the true heights |",
+            "|---|---|---|---|---|")
+    for name, samples in runs.items():
+        if not samples:
+            continue
+        seconds = statistics.median(s for s, _ in samples)
+        peak = statistics.median(r for _, r in samples)
+        times = f"{seconds / gmt_seconds:.1f}×" if gmt_seconds else "–"
+        sec.add(f"| {name if name != 'GMT' else 'GMT blockmedian + surface -T0.25'} | {seconds:.2f} s | "
+                f"{times} | {fmt_bytes(peak)} | {rms[name] * 1000:.1f} mm |")
+    if skipped:
+        sec.add("", f"GMT skipped: {skipped}.")
+    sec.add("", "Issue 38's target: the default job within 5× GMT's time, at most 1.5 GB, and an RMS "
+            "at or below GMT's.")
+    return sec
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.dtm", description=__doc__.split("\n\n")[0])
+    parser.add_argument("verb", choices=["make", "run"])
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--reps", type=int, default=3)
+    parser.add_argument("--points", type=int, default=N, help="make: how many points (default 1M)")
+    parser.add_argument("--write", action="store_true", help=f"run: replace the '{TITLE}' section of RESULTS.md")
+    args = parser.parse_args(argv)
+    if args.verb == "make":
+        make(args.folder, args.points)
+        return 0
+    sec = run(args.folder, args.reps)
+    print("\n".join(sec.body))
+    if args.write:
+        write_section(ROOT / "benchmarks" / "RESULTS.md", sec)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
