@@ -200,3 +200,42 @@ def test_preview_of_a_dem_draws_the_cells_of_the_fit_preview_with_holes(tmp_path
     holes = ~_dem_cells(dem)
     assert holes[270:370, 270:370].all()                 # the hole at (80, 80) is nodata
     _assert_same_cells(dem, fitted_png, alone, drawn, stride)
+
+
+def test_fit_preview_hatches_the_cells_the_fill_spans_and_only_those(tmp_path, monkeypatch):
+    """Issue 40: the fit's preview draws hatched the cells that the default fill spans across
+    the trim's holes. On the terrain with three round holes (radii 20, 12, 25) and a notch,
+    the cells well inside a hole are hatched and the cells well away from every hole are
+    not; with --fill off nothing is (the holes are nodata then)."""
+    import c1mesh.geo.preview as preview
+
+    seen = {}
+    draw = preview.render_arrays
+
+    def capture(z, gradient, extent, path, units, title, hatched=None):
+        seen.update(z=z, hatched=hatched, extent=extent)
+        draw(z, gradient, extent, path, units, title, hatched)
+
+    monkeypatch.setattr(preview, "render_arrays", capture)
+    fit(_terrain_with_holes(), str(tmp_path / "dem.tif"), FitOptions(resolution=1.0, preview=str(tmp_path / "p.png")))
+    z, hatched, (left, right, bottom, top) = seen["z"], seen["hatched"], seen["extent"]
+    h, w = z.shape
+    x = left + (np.arange(w) + 0.5) * (right - left) / w
+    y = top - (np.arange(h) + 0.5) * (top - bottom) / h
+    X, Y = np.meshgrid(x, y)
+    holes = ((80, 80, 20), (200, 110, 12), (310, 60, 25))
+    deep = np.zeros(z.shape, bool)
+    away = np.ones(z.shape, bool)
+    for cx, cy, r in holes:
+        d = np.hypot(X - cx, Y - cy)
+        deep |= d < r - 3
+        away &= d > r + 3
+    away &= ~((np.abs(X - 250) < 11) & (Y < 53)) & (X > 3) & (X < 397) & (Y > 3) & (Y < 157)
+    assert np.isfinite(z[deep]).all() and hatched[deep].all()       # filled, and drawn hatched
+    assert not hatched[away].any()
+    assert (tmp_path / "p.png").stat().st_size > 0
+
+    seen.clear()
+    fit(_terrain_with_holes(), str(tmp_path / "off.tif"),
+        FitOptions(resolution=1.0, preview=str(tmp_path / "off.png"), fill="off"))
+    assert not seen["hatched"].any() and np.isnan(seen["z"][deep]).all()

@@ -202,19 +202,22 @@ def render_dem_fit(grid: RasterGrid, sampler: SplineSampler, path, crs: str | No
                    z_factor: float | None = 1.0) -> None:
     """Preview of the DEM a fit writes: its cells (grid, and the sampler that gave their
     heights: raster.write_fit_rasters), shaded by the spline's gradient at their centres.
-    z_factor: render_spline's (None: unshaded)."""
+    The cells a fill spans across the trim's holes (no data near them: the support layer's
+    large distances) are drawn hatched. z_factor: render_spline's (None: unshaded)."""
     stride = preview_stride(grid)
-    z, g = _dem_cells(grid, sampler, stride)
+    z, g, filled = _dem_cells(grid, sampler, stride)
     if z_factor is None:
-        render_dem(z, np.zeros_like(g), grid, stride, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
+        render_dem(z, np.zeros_like(g), grid, stride, path, _units(crs), "C1 surface (unshaded: no --z-factor)",
+                   hatched=filled)
         return
     render_dem(z, g if z_factor == 1.0 else g * z_factor, grid, stride, path, _units(crs),
-               "C1 surface (spline normals)")
+               "C1 surface (spline normals)", hatched=filled)
 
 
 def _dem_cells(grid: RasterGrid, sampler: SplineSampler, stride: int):
-    """Heights (⌈h/s⌉, ⌈w/s⌉) and the spline's gradients (⌈h/s⌉, ⌈w/s⌉, 2) at the cells
-    (i·s, j·s) of the grid, s = stride (NaN: nodata): the cells the DEM finds
+    """Heights (⌈h/s⌉, ⌈w/s⌉), the spline's gradients (⌈h/s⌉, ⌈w/s⌉, 2) and which cells the
+    fill spans ((⌈h/s⌉, ⌈w/s⌉) bool: centre in a triangle the trim removed, raster_grid.FillRule)
+    at the cells (i·s, j·s) of the grid, s = stride (NaN: nodata): the cells the DEM finds
     (sampler.cells) in blocks of rows (strided: each kept row alone), evaluated only at the
     kept columns. Heights rounded to float32, as the DEM stores them, so both pictures of
     a DEM colour the same numbers."""
@@ -222,6 +225,7 @@ def _dem_cells(grid: RasterGrid, sampler: SplineSampler, stride: int):
     cols = range(grid.width)
     z = np.full((len(kept), len(cols[::stride])), np.nan)
     g = np.full(z.shape + (2,), np.nan)
+    filled = np.zeros(z.shape, dtype=bool)
     per_block = max(1, BLOCK_CELLS // grid.width) if stride == 1 else 1
     for first in range(0, len(kept), per_block):
         last = min(first + per_block, len(kept)) - 1
@@ -232,7 +236,9 @@ def _dem_cells(grid: RasterGrid, sampler: SplineSampler, stride: int):
         at = (first + row[mine], col[mine] // stride)
         z[at] = values + sampler.origin[2]
         g[at] = grads
-    return z.astype(np.float32).astype(np.float64), g
+        if sampler.fill is not None:                    # the nearest-triangle cells are the trim's
+            filled[at] = ~sampler.fill.trimmed[tri[mine]] & ~shift[mine].any(axis=1)
+    return z.astype(np.float32).astype(np.float64), g, filled
 
 
 def render_raster(source, path) -> None:
@@ -262,13 +268,14 @@ def preview_stride(grid: RasterGrid, pixels: int = PIXELS) -> int:
 
 
 def render_dem(z: np.ndarray, gradient: np.ndarray, grid: RasterGrid, stride: int, path,
-               units: str, title: str) -> None:
+               units: str, title: str, hatched: np.ndarray | None = None) -> None:
     """The picture of a DEM's cells: z (m, n) the heights of the cells (i·s, j·s) of grid,
     s = stride (NaN: nodata), gradient (m, n, 2) finite wherever z is. Each drawn cell
-    stands for the s × s block of cells it starts; every cell with a height is drawn."""
+    stands for the s × s block of cells it starts; every cell with a height is drawn.
+    hatched (m, n) bool: cells drawn hatched (render_arrays)."""
     size = grid.resolution * stride
     extent = (grid.west, grid.west + z.shape[1] * size, grid.north - z.shape[0] * size, grid.north)
-    render_arrays(z, gradient, extent, path, units, title)
+    render_arrays(z, gradient, extent, path, units, title, hatched)
 
 
 def render_mesh(source, path, pixels: int = PIXELS) -> None:
@@ -340,9 +347,12 @@ def render_file(source, path) -> None:
     (render_raster if is_raster_path(source) else render_mesh)(source, path)
 
 
-def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str, title: str) -> None:
+def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str, title: str,
+                  hatched: np.ndarray | None = None) -> None:
     """Draw heights z (h, w) shaded by gradients (h, w, 2) over extent (left, right, bottom,
-    top) and write the PNG atomically. NaN heights are transparent."""
+    top) and write the PNG atomically. NaN heights are transparent. hatched (h, w) bool:
+    cells drawn under diagonal hatching, with a note under the map (a DTM's cells filled
+    across holes in the data, so a reader sees which heights no point is near)."""
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -358,12 +368,18 @@ def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str,
     rgba[..., 3] = valid
     h, w = z.shape
     plot_w = 5.6                                   # inches of map; margins around it
+    if hatched is not None:
+        _hatch(rgba, hatched & valid, round(plot_w * 100))
     plot_h = plot_w * h / w
     fig = Figure(figsize=(plot_w + 2.3, plot_h + 0.9), dpi=100)
     FigureCanvasAgg(fig)
     W, H = plot_w + 2.3, plot_h + 0.9
     ax = fig.add_axes((1.1 / W, 0.4 / H, plot_w / W, plot_h / H))
     ax.imshow(rgba, extent=extent, origin="upper", interpolation="nearest")
+    if hatched is not None and (hatched & valid).any():
+        ax.annotate("hatched: filled across a hole in the data (see the support layer)", (1.0, 0.0),
+                    xycoords="axes fraction", xytext=(0, -16), textcoords="offset points",
+                    fontsize=7, ha="right", va="top")
     ax.set_title(title, fontsize=10)
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.tick_params(labelsize=7)
@@ -376,6 +392,18 @@ def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str,
     cax.tick_params(labelsize=7)
     with atomic_output(path, "wb") as handle:
         fig.savefig(handle, format="png")
+
+
+def _hatch(rgba: np.ndarray, mask: np.ndarray, map_pixels: int) -> None:
+    """Darken diagonal stripes of the cells of mask (h, w) bool in rgba (h, w, 4), in place:
+    the hatching of the cells a fill spans. The stripes are drawn into the cells, not over
+    them, so they never fall outside the drawn cells; their period is about 8 pixels of a
+    map map_pixels wide (at least 4 cells), so they stay visible at every grid size."""
+    h, w = mask.shape
+    period = max(4, round(8 * w / map_pixels))
+    i, j = np.ogrid[:h, :w]
+    stripe = (i + j) % period < max(1, period // 3)
+    rgba[mask & stripe, :3] *= 0.45
 
 
 def _scale_bar(ax, extent, units: str) -> None:
