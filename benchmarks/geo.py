@@ -97,7 +97,7 @@ NOISE = 0.02
 """Height noise of the noisy-heights slope table (m RMS): LiDAR ground's."""
 
 
-def noisy_heights_slope_table(n: int, tmp: Path, factors=(1.0, 2.0, 4.0)) -> list[dict]:
+def noisy_heights_slope_table(n: int, tmp: Path, factors=(1.0, 2.0, 3.0, 4.0, 8.0)) -> list[dict]:
     """Rows {smooth, factor, resolution, spline, horn} of RMS slope errors (deg) of
     common.terrain_cloud's heights with NOISE Gaussian noise and no normals (an XYZ file:
     gradients fitted to the heights), fitted exactly and with --smooth auto, each to a DEM

@@ -506,3 +506,37 @@ def test_preview_of_a_height_column_shades_with_the_z_factor(tmp_path, monkeypat
     # one level of the 8-bit shading is a gradient change of ~4e-3
     np.testing.assert_allclose(gradient[inside], np.broadcast_to(shading, gradient[inside].shape),
                                rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("smoothed, horn_below", [(False, 8.0), (True, 4.0)])
+def test_auto_slope_method_crossover_is_4_spacings_for_a_smoothing_fit_and_8_for_the_exact(smoothed, horn_below):
+    """Issue 38: the smoothing fit's analytic slope beats Horn's from 4 point spacings on
+    (benchmarks.geo noisy-slope); the exact fit's from 8 (with exact normals)."""
+    from c1mesh.geo.raster import choose_slope_method
+
+    for factor in (1.0, 2.0, 3.0, 3.99, 4.0, 6.0, 7.99, 8.0, 16.0):
+        chosen = choose_slope_method("auto", factor * 1.5, 1.5, smoothed)
+        assert chosen == ("horn" if factor < horn_below else "spline"), factor
+    assert choose_slope_method("horn", 100.0, 1.0, smoothed) == "horn"
+    assert choose_slope_method("spline", 0.1, 1.0, smoothed) == "spline"
+
+
+def test_a_smoothing_fit_at_5_spacings_writes_the_spline_slope_and_the_exact_fit_horns(tmp_path):
+    """End to end: the report's slope method follows the fit (--smooth auto: spline at 5
+    spacings; --smooth off: Horn's there)."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 60, (3600, 2))
+    z = np.sin(xy[:, 0] / 9) * 3 + 0.02 * xy[:, 1] + rng.normal(0, 0.02, len(xy))
+    src = tmp_path / "noisy.xyz"
+    np.savetxt(src, np.column_stack([xy, z]), fmt="%.5f")
+    methods = {}
+    for smooth in ("auto", "off"):
+        report = tmp_path / f"{smooth}.json"
+        done = CliRunner().invoke(main, ["fit", str(src), "-o", str(tmp_path / f"{smooth}.tif"), "--axis", "z",
+                                         "--resolution", "5", "--slope", str(tmp_path / f"s_{smooth}.tif"),
+                                         "--smooth", smooth, "--report", str(report)])
+        assert done.exit_code == 0, done.output
+        raster = json.loads(report.read_text())["raster"]
+        assert 4.0 < 5 / raster["point_spacing"] < 8.0          # 5 m is between the two crossovers
+        methods[smooth] = raster["slope_method"]
+    assert methods == {"auto": "spline", "off": "horn"}

@@ -67,6 +67,12 @@ input normals (it interpolates them) and is only O(h) between points, so Horn's 
 average of the spline's heights is closer to the true slope up to about 4 spacings with
 exact normals and 8 spacings with 3° normal noise; beyond that Horn's own truncation
 error (O(R²)) dominates and the spline gradient wins."""
+AUTO_SPLINE_FROM_SMOOTHED = 4.0
+"""The same crossover for a smoothing fit (--smooth): its spline is fitted to the heights,
+not through their noise, and its analytic slope is the better one from 4 point spacings
+on. Measured with `python -m benchmarks.geo noisy-slope` (benchmarks/RESULTS.md, geo: 2 cm
+height noise, no normals, --smooth auto): slope RMS error spline / Horn 0.366° / 0.254° at
+3 spacings, 0.360° / 0.447° at 4, 0.361° / 1.701° at 8."""
 LIGHT_AZIMUTH, LIGHT_ALTITUDE = 315.0, 45.0
 FILL_WORDS = ("hull", "off")
 DEFAULT_FILL = "hull"
@@ -176,13 +182,15 @@ def hillshade(gradient: np.ndarray, azimuth: float = LIGHT_AZIMUTH,
     return np.clip(shade, 0.0, 1.0)
 
 
-def choose_slope_method(method: str, resolution: float, spacing: float) -> str:
-    """'spline' or 'horn' for a requested method at a resolution and point spacing."""
+def choose_slope_method(method: str, resolution: float, spacing: float, smoothed: bool = False) -> str:
+    """'spline' or 'horn' for a requested method at a resolution and point spacing, for an
+    exact or (smoothed) a smoothing fit: AUTO_SPLINE_FROM and AUTO_SPLINE_FROM_SMOOTHED."""
     if method not in SLOPE_METHODS:
         raise InputError(f"slope method must be one of {', '.join(SLOPE_METHODS)}, got {method!r}")
     if method != "auto":
         return method
-    return "spline" if resolution >= AUTO_SPLINE_FROM * spacing else "horn"
+    crossover = AUTO_SPLINE_FROM_SMOOTHED if smoothed else AUTO_SPLINE_FROM
+    return "spline" if resolution >= crossover * spacing else "horn"
 
 
 # ------------------------------------------------------------------------------- writing
@@ -459,17 +467,18 @@ def dem_sampling(interp, frame, resolution: float, data_xy=None, reach: float | 
 
 
 def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler, options,
-                      crs: str | None) -> dict:
+                      crs: str | None, smoothed: bool = False) -> dict:
     """Write the requested rasters of a fitted spline on its DEM grid (dem_sampling);
     returns the report's "raster" section. options.z_factor (None: 1) scales slope and
     hillshade; heights in units of their own without one are refused before
-    (pipeline.check_angles)."""
+    (pipeline.check_angles). smoothed: the spline is a smoothing fit's (the slope
+    method's crossover, choose_slope_method)."""
     if crs and (options.slope or options.aspect or options.hillshade):  # the support is a distance
         if describe(crs)["geographic"]:
             raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
                              "geographic (degrees): reproject to a projected CRS first")
     spacing = mean_spacing(sampler.interp.points, sampler.interp.triangles)
-    method = choose_slope_method(options.slope_method, grid.resolution, spacing)
+    method = choose_slope_method(options.slope_method, grid.resolution, spacing, smoothed)
     z_factor = 1.0 if options.z_factor is None else float(options.z_factor)
     report = write_rasters(targets, grid, sampler, method, crs, z_factor=z_factor)
     report["point_spacing"] = float(spacing)

@@ -568,7 +568,7 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
         dem = dem_sampling(interp, frame, options.resolution, data_xy, trim_report.max_edge, rule, fit_points(model))
         with _Contours(geo, interp, frame, dem[0], timer) as contours:
             with timer.stage("raster"):
-                raster_report = write_fit_rasters(geo.rasters, *dem, options, crs)
+                raster_report = write_fit_rasters(geo.rasters, *dem, options, crs, model.smoothing is not None)
         report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
                                        crs_facts(crs, crs_source)), model)
         report["raster"] = {**raster_report, "fill": fill_facts(options.fill, fill, model)}
@@ -624,7 +624,7 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
                     tiles.append({"output": output, "written": False})
                     continue
                 targets = tile_targets(output, options)
-                facts = write_fit_rasters(targets, window, sampler, options, crs)
+                facts = write_fit_rasters(targets, window, sampler, options, crs, model.smoothing is not None)
                 created += [path for _, path in targets.items()]
                 written.append((targets, window))
                 tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
