@@ -92,3 +92,27 @@ def test_write_section_replaces_only_its_own_section(tmp_path):
     other.write_text("# r\n\n## A\n\na\n")
     heldout.write_section(other, sec)
     assert other.read_text() == f"# r\n\n## A\n\na\n\n## {heldout.TITLE}\n\nnew\n"
+
+
+def test_gmt_runs_at_the_nearest_neighbour_spacing_not_the_hull_area_one():
+    """Issue 38: GMT gets the nearest-neighbour spacing. On a jittered 0.5 m grid every
+    point's nearest neighbour is within the jitter of 0.5 m, while sqrt(hull area / n) is
+    0.5 m too; on clustered points (pairs 0.1 m apart on a 1 m grid) the two differ: the
+    nearest-neighbour spacing is the pair distance, the hull-area one about 0.7 m."""
+    x, y = np.meshgrid(np.arange(40) * 0.5, np.arange(40) * 0.5)
+    grid = np.column_stack([x.ravel(), y.ravel()])
+    assert heldout.nearest_spacing(grid) == pytest.approx(0.5)
+    x, y = np.meshgrid(np.arange(30.0), np.arange(30.0))
+    base = np.column_stack([x.ravel(), y.ravel()])
+    pairs = np.concatenate([base, base + [0.1, 0.0]])
+    assert heldout.nearest_spacing(pairs) == pytest.approx(0.1)
+    assert heldout.mean_spacing(pairs) == pytest.approx(np.sqrt((29.1 * 29) / len(pairs)))
+
+
+def test_table_gives_every_rms_as_a_ratio_to_the_rbf():
+    data = heldout.Dataset("toy", np.zeros((10, 3)), unit=1.0)
+    rows = {name: {"rms": [value], "rms_true": [], "seconds": [1.0], "notes": [""]}
+            for name, value in (("linear TIN", 0.4), (heldout.RBF, 0.2), ("c1mesh smooth=auto", 0.21))}
+    lines = heldout.table(data, {"rows": rows, "skipped": {}, "scored": [9], "held": [1], "noise": [], "tilt": [0.0]})
+    row = next(line for line in lines if line.startswith("| c1mesh smooth=auto"))
+    assert row.split("|")[2:5] == [" 0.21 ", " 0.525 ", " 1.050 "]
