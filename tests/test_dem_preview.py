@@ -239,3 +239,27 @@ def test_fit_preview_hatches_the_cells_the_fill_spans_and_only_those(tmp_path, m
     fit(_terrain_with_holes(), str(tmp_path / "off.tif"),
         FitOptions(resolution=1.0, preview=str(tmp_path / "off.png"), fill="off"))
     assert not seen["hatched"].any() and np.isnan(seen["z"][deep]).all()
+
+
+@pytest.mark.parametrize("width", [40, 67, 300, 1400])
+def test_hatching_of_one_cell_is_stripes_not_a_dark_speck(width):
+    """A lone filled cell must not read as a pit: whatever the grid's width, its pixels on
+    the map hold both darkened and untouched ones (stripes finer than the cell), and no
+    pixel outside the hatched cells changes."""
+    from c1mesh.geo.preview import _hatched
+
+    rgba = np.full((width, width, 4), 0.8)
+    mask = np.zeros((width, width), bool)
+    block = max(1, width // 100) * 4                     # a hatched patch of a few map pixels
+    mask[10:10 + block, 20:20 + block] = True
+    out = _hatched(rgba.copy(), mask, 560)
+    k = out.shape[0] // width
+    cells = np.repeat(np.repeat(mask, k, axis=0), k, axis=1)
+    darker = out[..., 0] < 0.8
+    assert darker[cells].any() and not darker[cells].all()
+    assert not darker[~cells].any()
+    if width < 280:
+        lone = np.zeros((width, width), bool)
+        lone[5, 7] = True
+        one = _hatched(rgba.copy(), lone, 560)[5 * k:6 * k, 7 * k:8 * k, 0] < 0.8
+        assert one.any() and not one.all()

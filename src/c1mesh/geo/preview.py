@@ -368,8 +368,8 @@ def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str,
     rgba[..., 3] = valid
     h, w = z.shape
     plot_w = 5.6                                   # inches of map; margins around it
-    if hatched is not None:
-        _hatch(rgba, hatched & valid, round(plot_w * 100))
+    if hatched is not None and (hatched & valid).any():
+        rgba = _hatched(rgba, hatched & valid, round(plot_w * 100))
     plot_h = plot_w * h / w
     fig = Figure(figsize=(plot_w + 2.3, plot_h + 0.9), dpi=100)
     FigureCanvasAgg(fig)
@@ -394,16 +394,23 @@ def render_arrays(z: np.ndarray, gradient: np.ndarray, extent, path, units: str,
         fig.savefig(handle, format="png")
 
 
-def _hatch(rgba: np.ndarray, mask: np.ndarray, map_pixels: int) -> None:
-    """Darken diagonal stripes of the cells of mask (h, w) bool in rgba (h, w, 4), in place:
-    the hatching of the cells a fill spans. The stripes are drawn into the cells, not over
-    them, so they never fall outside the drawn cells; their period is about 8 pixels of a
-    map map_pixels wide (at least 4 cells), so they stay visible at every grid size."""
+def _hatched(rgba: np.ndarray, mask: np.ndarray, map_pixels: int) -> np.ndarray:
+    """rgba (h, w, 4) with diagonal stripes darkened over the cells of mask (h, w) bool: the
+    hatching of the cells a fill spans. The stripes are drawn into the cells, not over
+    them, so they never fall outside the drawn cells. They are about 6 pixels apart on a
+    map map_pixels wide whatever the grid: a grid coarser than that is first repeated k×k
+    per cell (nearest, what imshow shows anyway), so even a hole of one cell shows stripes,
+    not a dark speck that would read as a pit."""
     h, w = mask.shape
-    period = max(4, round(8 * w / map_pixels))
-    i, j = np.ogrid[:h, :w]
+    k = max(1, math.ceil(map_pixels / (2 * w)))
+    if k > 1:
+        rgba = np.repeat(np.repeat(rgba, k, axis=0), k, axis=1)
+        mask = np.repeat(np.repeat(mask, k, axis=0), k, axis=1)
+    period = max(3, round(6 * w * k / map_pixels))
+    i, j = np.ogrid[:h * k, :w * k]
     stripe = (i + j) % period < max(1, period // 3)
-    rgba[mask & stripe, :3] *= 0.45
+    rgba[mask & stripe, :3] *= 0.55
+    return rgba
 
 
 def _scale_bar(ax, extent, units: str) -> None:
