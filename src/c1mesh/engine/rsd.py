@@ -47,8 +47,10 @@ def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np
     corners (T, 3, 2), values f (T, 3), gradients A (T, 3, 2), directions u (T, 3, 2) where
     u_k belongs to the edge opposite vertex k, G (T, 3, 2) from barycentric_gradients.
     """
-    C = _coefficients_soa(*_components(corners), np.ascontiguousarray(values.T),
-                          *_components(gradients), *_components(directions), *_components(G))
+    px, py = _components(corners)
+    C = np.empty((N_BASIS, px.shape[1]))
+    _vertex_soa(px, py, np.ascontiguousarray(values.T), *_components(gradients), C[:9])
+    _ratio_soa(C[:9], *_components(directions), *_components(G), C[9:])
     return np.ascontiguousarray(C.T)
 
 
@@ -153,14 +155,6 @@ def _gradients_soa(x: np.ndarray, y: np.ndarray):
         np.multiply(y[a] - y[b], inv, out=gx[k])
         np.multiply(x[b] - x[a], inv, out=gy[k])
     return gx, gy, det
-
-
-def _coefficients_soa(px, py, f, ax, ay, ux, uy, gx, gy) -> np.ndarray:
-    """(21, c) coefficients from component arrays, each (3, c) (f: values at the corners)."""
-    C = np.empty((N_BASIS, px.shape[1]))
-    _vertex_soa(px, py, f, ax, ay, C[:9])
-    _ratio_soa(C[:9], ux, uy, gx, gy, C[9:])
-    return C
 
 
 def _vertex_soa(px, py, f, ax, ay, out) -> None:
