@@ -89,8 +89,8 @@ class RSDInterpolator:
         n = self.points.shape[0]
 
         def coefficients(threads: int):
-            return rsd.vertex_coefficients(self.points, self.values, self.gradients,
-                                           self.triangles, min_sine=_DEGENERACY, threads=threads)
+            return rsd.vertex_coefficients(self._vertex_data(), self.triangles, min_sine=_DEGENERACY,
+                                           threads=threads)
         if table is None:
             return overlap(lambda: build_edge_table(self.triangles, n),
                            lambda: coefficients(max(1, thread_count() - 1)))
@@ -213,8 +213,11 @@ class RSDInterpolator:
 
     def refinement(self, level: int) -> Refinement:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
-        return Refinement(self.points, self.values, self.gradients, self.triangles,
-                          self.coefficients, self.lambda_gradients, self.edge_table, self.scheme, level)
+        return Refinement(self._vertex_data(), self.triangles, self.coefficients, self.lambda_gradients,
+                          self.edge_table, self.scheme, level)
+
+    def _vertex_data(self) -> rsd.VertexData:
+        return rsd.VertexData(self.points, self.values, self.gradients)
 
 
 def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,
