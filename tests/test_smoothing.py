@@ -8,7 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.engine.schemes import tuple_from_callables
+from c1mesh.engine.schemes import ShapeTuple
 from c1mesh.stages.smoothing import (SchemeNotPolynomialError, SmoothFit, SmoothingError,
                                      energy_blocks, parse_strength, smooth_fit)
 from c1mesh.stages.smoothing_energy import local_dofs
@@ -100,8 +100,7 @@ def test_structured_blocks_equal_the_plain_product(scheme):
 def test_non_polynomial_scheme_is_refused():
     import c1mesh.engine.schemes as schemes
     s = schemes.SEXTIC
-    custom = tuple_from_callables(s.psi0, s.dpsi0, s.psi1, s.dpsi1, s.chi0, s.dchi0, s.chi1,
-                                  s.dchi1, name="callables")
+    custom = ShapeTuple("callables", s.psi0, s.dpsi0, s.psi1, s.dpsi1, s.chi0, s.dchi0, s.chi1, s.dchi1)
     pts, tri, h = grid_mesh(4)
     with pytest.raises(SchemeNotPolynomialError, match="polynomial"):
         smooth_fit(pts, tri, pts[:, 0], strength=1.0, spacing_h=h, scheme=custom)
