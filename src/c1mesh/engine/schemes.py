@@ -11,9 +11,10 @@ Named tuples (rsd-math.md, table "Named tuples from the paper"):
 Ex. 3.9a) and ``ex39b`` (Ex. 3.9b). A custom tuple is a :class:`ShapeTuple` of Python
 callables (then check it with :func:`validate_tuple`) or comes from sympy expressions
 (:func:`tuple_from_sympy`, which validates it). :func:`validate_tuple` checks
-admissibility (2.1) and the RSD conditions (3.6), (3.7), and that each derivative matches
-its function, and refuses an invalid tuple naming the condition that failed. What a tuple *reproduces*
-(constants, affine functions) is computed, not declared: see :mod:`c1mesh.engine.properties`.
+admissibility (2.1), the RSD conditions (3.6), (3.7) and that each derivative matches its
+function, and refuses an invalid tuple naming the condition that failed. What a tuple
+*reproduces* (constants, affine functions) is computed, not declared: see
+:mod:`c1mesh.engine.properties`.
 """
 from __future__ import annotations
 
