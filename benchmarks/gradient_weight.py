@@ -39,7 +39,7 @@ def run_seed(n: int, seed: int, normal_noise_deg: float) -> list[dict]:
     from c1mesh.engine.triangulation import delaunay
     from c1mesh.pipeline.steps import compact_vertices
     from c1mesh.stages.limiter import edge_directions
-    from c1mesh.stages.smoothing import smooth_fit
+    from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, smooth_fit
     from c1mesh.stages.trim import trim_mesh
 
     points, normals = terrain_cloud(n, seed=seed)
@@ -59,8 +59,8 @@ def run_seed(n: int, seed: int, normal_noise_deg: float) -> list[dict]:
     true_z, true_g = _truth(points[held, :2])
     rows = []
     for mu in WEIGHTS:
-        fit = smooth_fit(xy, triangles, zt, strength="auto", spacing_h=spacing, directions=directions,
-                         gradient_data=grads, gradient_weight=mu, seed=seed)
+        fit = smooth_fit(xy, triangles, SmoothingData(zt, spacing=spacing), SmoothingControl(strength="auto", seed=seed),
+                         directions=directions, prior=GradientPrior(grads, weight=mu))
         interp = RSDInterpolator(xy, fit.values, fit.gradients, triangles=triangles, directions=directions,
                                  edge_table=table)
         at = points[held, :2]

@@ -77,9 +77,9 @@ def run(name: str, seed: int, configs: list[str]) -> None:
     train, held = data.points[~test], data.points[test]
     captured, shipped = {}, steps.smooth_fit
 
-    def capture(points, triangles, values, **kw):
-        captured.update(p=np.array(points), t=np.array(triangles), z=np.array(values), h=kw["spacing_h"])
-        return shipped(points, triangles, values, **kw)
+    def capture(points, triangles, data, *args, **kw):
+        captured.update(p=np.array(points), t=np.array(triangles), z=np.array(data.values), h=data.spacing)
+        return shipped(points, triangles, data, *args, **kw)
 
     steps.smooth_fit = capture
     model = H.c1mesh_model(train, smooth=0.03)      # only for its frame and trimmed triangulation
@@ -111,8 +111,8 @@ def run(name: str, seed: int, configs: list[str]) -> None:
             extra = pts.shape[0] - P.shape[0]
             z_fit = np.concatenate([captured["z"], np.zeros(extra)])
             w = np.concatenate([np.ones(P.shape[0]), np.zeros(extra)])
-        fit = sm.smooth_fit(pts, tris, z_fit, weights=w, spacing_h=captured["h"],
-                            strength=strength if strength == "auto" else float(strength))
+        fit = sm.smooth_fit(pts, tris, sm.SmoothingData(z_fit, captured["h"], weights=w),
+                            sm.SmoothingControl(strength if strength == "auto" else float(strength)))
         sm.assemble_energy = own_energy
         pred = RSDInterpolator(pts, fit.values, fit.gradients, tris)(q)
         print(f"  {config:28s} s {fit.strength:8.3g}  held-out {rms(pred):.5f} "

@@ -54,10 +54,11 @@ class Split:
         self.train, held = data.points[~test], data.points[test]
         captured, shipped = {}, steps.smooth_fit
 
-        def capture(points, triangles, values, **kw):
-            fit = shipped(points, triangles, values, **kw)
+        def capture(points, triangles, data, control, **kw):
+            fit = shipped(points, triangles, data, control, **kw)
             captured.update(points=np.array(points), triangles=np.array(triangles), fit=fit,
-                            heights=np.array(values), directions=kw.get("directions"), options=kw)
+                            heights=np.array(data.values), directions=kw.get("directions"), data=data,
+                            control=control)
             return fit
 
         steps.smooth_fit = capture
@@ -204,12 +205,11 @@ def _gradient_data(split: Split, weights: list[float]) -> list[str]:
     from c1mesh.stages.height_gradients import height_gradients, height_neighbours
 
     c = split.captured
-    options = {k: v for k, v in c["options"].items() if k not in ("gradient_data", "gradient_weight")}
-    prior = height_gradients(c["points"], c["heights"], k=height_neighbours(16))
+    gradients = height_gradients(c["points"], c["heights"], k=height_neighbours(16))
     predictions = {"auto, heights only": split.model.interp(split.query)}
     for weight in weights:
-        fit = sm.smooth_fit(c["points"], c["triangles"], c["heights"], gradient_data=prior,
-                            gradient_weight=weight, **options)
+        fit = sm.smooth_fit(c["points"], c["triangles"], c["data"], c["control"], directions=c["directions"],
+                            prior=sm.GradientPrior(gradients, weight))
         predictions[f"LS gradients as data, weight {weight:g} (s = {fit.strength:.3g})"] = RSDInterpolator(
             c["points"], fit.values, fit.gradients, c["triangles"], directions=c["directions"])(split.query)
     return split.table(predictions)

@@ -381,7 +381,7 @@ def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
     points, triangles = mesh
     interp = RSDInterpolator(points, smooth(points), smooth_grad(points), triangles=triangles)
     table = edge_table(interp.triangles, len(points))
-    args = (interp.points, interp.values, interp.gradients, interp.triangles,
+    args = (rsd.VertexData(interp.points, interp.values, interp.gradients), interp.triangles,
             interp.directions, table.tri_edge)
     one = rsd.mesh_coefficients(*args, chunk=7, threads=1)
     two = rsd.mesh_coefficients(*args, chunk=7, threads=2)
@@ -449,8 +449,9 @@ def _sub_refinement(interp, first, last, level):
     from c1mesh.engine.topology import edge_table
     part = slice(first, last)
     triangles = interp.triangles[part]
-    return Refinement(interp.points, interp.values, interp.gradients, triangles, interp.coefficients[part],
-                      interp.lambda_gradients[part], edge_table(triangles, len(interp.points)), interp.scheme, level)
+    vertices = rsd.VertexData(interp.points, interp.values, interp.gradients)
+    return Refinement(vertices, triangles, interp.coefficients[part], interp.lambda_gradients[part],
+                      edge_table(triangles, len(interp.points)), interp.scheme, level)
 
 
 @pytest.mark.parametrize("level", [4, 8])

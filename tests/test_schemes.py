@@ -6,8 +6,8 @@ import pytest
 
 from c1mesh import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
-from c1mesh.engine.schemes import (NAMED_TUPLES, SEXTIC, InvalidSchemeError, get_scheme, tuple_from_callables,
-                            tuple_from_sympy, validate_tuple)
+from c1mesh.engine.schemes import (NAMED_TUPLES, SEXTIC, InvalidSchemeError, ShapeTuple, get_scheme,
+                                   tuple_from_sympy, validate_tuple)
 
 
 def test_named_tuples_are_the_table_formulas():
@@ -48,8 +48,9 @@ def _sextic_callables(**overrides):
     return parts
 
 
-def test_custom_tuple_from_callables_gives_the_same_spline():
-    custom = tuple_from_callables(**_sextic_callables(), name="my-sextic")
+def test_custom_tuple_of_callables_gives_the_same_spline():
+    custom = ShapeTuple("my-sextic", **_sextic_callables())
+    validate_tuple(custom)
     rng = np.random.default_rng(1)
     pts = rng.random((60, 2))
     f, A = np.sin(pts[:, 0]), np.stack([np.cos(pts[:, 0]), 0 * pts[:, 1]], 1)
@@ -77,13 +78,13 @@ def test_custom_tuple_from_callables_gives_the_same_spline():
 ])
 def test_broken_custom_tuples_are_refused_naming_the_condition(override, condition):
     with pytest.raises(InvalidSchemeError, match=condition.replace("(", r"\(").replace(")", r"\)")):
-        tuple_from_callables(**_sextic_callables(**override), name="broken")
+        validate_tuple(ShapeTuple("broken", **_sextic_callables(**override)))
 
 
 def test_a_wrong_derivative_is_caught():
     wrong = _sextic_callables(dchi1=lambda a, b, c: (SEXTIC.dchi1(a, b, c)[0] * 1.1,) + SEXTIC.dchi1(a, b, c)[1:])
     with pytest.raises(InvalidSchemeError, match="derivative"):
-        tuple_from_callables(**wrong)
+        validate_tuple(ShapeTuple("custom", **wrong))
 
 
 def test_sympy_tuple_validated_symbolically_and_properties_computed():

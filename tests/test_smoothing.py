@@ -8,9 +8,9 @@ import pytest
 import scipy.sparse as sp
 
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.engine.schemes import tuple_from_callables
-from c1mesh.stages.smoothing import (SchemeNotPolynomialError, SmoothFit, SmoothingError,
-                                     energy_blocks, parse_strength, smooth_fit)
+from c1mesh.engine.schemes import ShapeTuple
+from c1mesh.stages.smoothing import (GradientPrior, SchemeNotPolynomialError, SmoothFit, SmoothingControl,
+                                     SmoothingData, SmoothingError, energy_blocks, parse_strength, smooth_fit)
 from c1mesh.stages.smoothing_energy import local_dofs
 from c1mesh.stages.thinning import thin_to_cells
 
@@ -100,18 +100,18 @@ def test_structured_blocks_equal_the_plain_product(scheme):
 def test_non_polynomial_scheme_is_refused():
     import c1mesh.engine.schemes as schemes
     s = schemes.SEXTIC
-    custom = tuple_from_callables(s.psi0, s.dpsi0, s.psi1, s.dpsi1, s.chi0, s.dchi0, s.chi1,
-                                  s.dchi1, name="callables")
+    custom = ShapeTuple("callables", s.psi0, s.dpsi0, s.psi1, s.dpsi1, s.chi0, s.dchi0, s.chi1, s.dchi1)
     pts, tri, h = grid_mesh(4)
     with pytest.raises(SchemeNotPolynomialError, match="polynomial"):
-        smooth_fit(pts, tri, pts[:, 0], strength=1.0, spacing_h=h, scheme=custom)
+        smooth_fit(pts, tri, SmoothingData(pts[:, 0], spacing=h),
+                   SmoothingControl(strength=1.0, scheme=custom))
 
 
 # ------------------------------------------------- 2. λ → 0 interpolates, min energy
 def test_small_strength_interpolates_with_minimum_energy_gradients():
     pts, tri, h = grid_mesh(12, seed=3)
     z = surface(pts)
-    fit = smooth_fit(pts, tri, z, strength=1e-9, spacing_h=h)
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=1e-9))
     assert np.abs(fit.values - z).max() < 1e-6 * np.abs(z).max()
     # Optimality at fixed f = z: the gradient block solves K_gg g = −K_gf f.
     K = assembled(pts, tri)
@@ -129,7 +129,7 @@ def test_small_strength_interpolates_with_minimum_energy_gradients():
     for m in (12, 20):
         pts, tri, h = grid_mesh(m, seed=3)
         z = surface(pts)
-        ours = smooth_fit(pts, tri, z, strength=1e-9, spacing_h=h).gradients
+        ours = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=1e-9)).gradients
         mpl = CubicTriInterpolator(Triangulation(pts[:, 0], pts[:, 1], tri), z, kind="min_E")
         theirs = np.stack(mpl.gradient(pts[:, 0], pts[:, 1]), 1)
         truth = surface_gradient(pts)
@@ -146,7 +146,7 @@ def test_small_strength_interpolates_with_minimum_energy_gradients():
 def test_affine_data_are_reproduced(strength):
     pts, tri, h = grid_mesh(10, seed=1)
     z = 2.0 + 0.7 * pts[:, 0] - 1.3 * pts[:, 1]
-    fit = smooth_fit(pts, tri, z, strength=strength, spacing_h=h)
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=strength))
     assert np.abs(fit.values - z).max() < 1e-8
     assert np.abs(fit.gradients - [0.7, -1.3]).max() < 1e-6
     assert fit.residual_max < 1e-8
@@ -157,7 +157,7 @@ def test_affine_data_at_points_off_the_vertices():
     pts, tri, h = grid_mesh(8, seed=2)
     xy = rng.uniform(0, 1, (400, 2))
     z = -1.0 + 0.3 * xy[:, 0] + 2.0 * xy[:, 1]
-    fit = smooth_fit(pts, tri, z, data_xy=xy, strength=1.0, spacing_h=h / 2)
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h / 2, xy=xy), SmoothingControl(strength=1.0))
     assert np.abs(fit.values - (-1.0 + 0.3 * pts[:, 0] + 2.0 * pts[:, 1])).max() < 1e-8
     assert np.abs(fit.gradients - [0.3, 2.0]).max() < 1e-6
 
@@ -174,8 +174,8 @@ def test_auto_smoothing_beats_interpolation_and_raw_data():
     rng = np.random.default_rng(5)
     sigma = 0.05
     z = surface(pts) + rng.normal(0, sigma, pts.shape[0])
-    auto = smooth_fit(pts, tri, z, strength="auto", spacing_h=h)
-    exact = smooth_fit(pts, tri, z, strength=1e-9, spacing_h=h)
+    auto = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength="auto"))
+    exact = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=1e-9))
     auto_rms, exact_rms = _held_out_rms(pts, tri, auto, rng), _held_out_rms(pts, tri, exact, rng)
     assert auto_rms < 0.8 * sigma and auto_rms < 0.8 * exact_rms
     assert len(auto.cv_curve) > 8 and min(r for _, r in auto.cv_curve) == pytest.approx(
@@ -207,7 +207,7 @@ def test_exact_data_search_below_the_grid_until_the_curve_turns(seed):
     cross-validation can tell: the best s lies below the grid's lowest, 1e-3, so the
     search must go on down until its curve turns (or say that it reached its limit)."""
     pts, tri, h = grid_mesh(30, seed=seed)
-    fit = smooth_fit(pts, tri, surface(pts), strength="auto", spacing_h=h)
+    fit = smooth_fit(pts, tri, SmoothingData(surface(pts), spacing=h), SmoothingControl(strength="auto"))
     assert fit.strength < 1e-3 and min(s for s, _ in fit.cv_curve) < 1e-3
     interior_or_at_limit(fit)
     assert min(s for s, _ in fit.cv_curve) >= 1e-6 * (1 - 1e-12)
@@ -222,7 +222,8 @@ def test_pure_noise_on_a_plane_searches_up_to_its_limit_and_says_so(seed):
     pts, tri, h = grid_mesh(40, seed=seed)
     rng = np.random.default_rng(seed + 10)
     plane = 2.0 + 0.3 * pts[:, 0] - 0.5 * pts[:, 1]
-    fit = smooth_fit(pts, tri, plane + rng.normal(0, 5.0, pts.shape[0]), strength="auto", spacing_h=h)
+    fit = smooth_fit(pts, tri, SmoothingData(plane + rng.normal(0, 5.0, pts.shape[0]), spacing=h),
+                     SmoothingControl(strength="auto"))
     assert interior_or_at_limit(fit) == "high limit"
     assert max(s for s, _ in fit.cv_curve) == pytest.approx(1e7, rel=1e-12)
     # the least-squares plane of n points with noise σ is off by about σ sqrt(3 / n) at its points
@@ -245,11 +246,12 @@ def test_auto_smoothing_with_thinned_vertices():
         a, b = c[:, (k + 1) % 3] - c[:, k], c[:, (k + 2) % 3] - c[:, k]
         ok &= (a * b).sum(1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1) > -0.85
     tri = tri[ok]
-    fit = smooth_fit(pts, tri, z, data_xy=xy, strength="auto", spacing_h=1 / np.sqrt(4000))
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=1 / np.sqrt(4000), xy=xy),
+                     SmoothingControl(strength="auto"))
     assert fit.outside > 0                                   # the dropped slivers' points
     truth_rms = _held_out_rms(pts, tri, fit, rng)
-    interp = RSDInterpolator(pts, z[keep], smooth_fit(pts, tri, z[keep], strength=1e-9,
-                                                      spacing_h=0.05).gradients, tri)
+    exact = smooth_fit(pts, tri, SmoothingData(z[keep], spacing=0.05), SmoothingControl(strength=1e-9))
+    interp = RSDInterpolator(pts, z[keep], exact.gradients, tri)
     q = rng.uniform(0.05, 0.95, (3000, 2))
     interp_rms = float(np.sqrt(np.nanmean((interp(q) - surface(q)) ** 2)))
     assert truth_rms < 0.6 * sigma and truth_rms < 0.6 * interp_rms
@@ -262,10 +264,11 @@ def test_strength_is_scale_invariant(strength):
     rng = np.random.default_rng(9)
     z = surface(pts) + rng.normal(0, 0.05, pts.shape[0])
     w = rng.uniform(0.5, 2.0, pts.shape[0])
-    base = smooth_fit(pts, tri, z, strength=strength, spacing_h=h, weights=w)
-    wide = smooth_fit(pts * 1000 + [5e5, 4e6], tri, z, strength=strength, spacing_h=h * 1000,
-                      weights=w * 7)
-    tall = smooth_fit(pts, tri, z * 1000 - 30, strength=strength, spacing_h=h, weights=w)
+    base = smooth_fit(pts, tri, SmoothingData(z, spacing=h, weights=w), SmoothingControl(strength=strength))
+    wide = smooth_fit(pts * 1000 + [5e5, 4e6], tri, SmoothingData(z, spacing=h * 1000, weights=w * 7),
+                      SmoothingControl(strength=strength))
+    tall = smooth_fit(pts, tri, SmoothingData(z * 1000 - 30, spacing=h, weights=w),
+                      SmoothingControl(strength=strength))
     for fit, values, gradients in ((wide, base.values, base.gradients / 1000),
                                    (tall, base.values * 1000 - 30, base.gradients * 1000)):
         assert fit.strength == pytest.approx(base.strength, rel=1e-9)
@@ -278,7 +281,7 @@ def test_strength_is_scale_invariant(strength):
 def test_edf_matches_the_exact_hat_matrix_trace():
     pts, tri, h = grid_mesh(9, seed=10)
     s = 0.5
-    fit = smooth_fit(pts, tri, pts[:, 0] ** 2, strength=s, spacing_h=h)
+    fit = smooth_fit(pts, tri, SmoothingData(pts[:, 0] ** 2, spacing=h), SmoothingControl(strength=s))
     # Exact trace in the normalised units the fit uses (lengths / h, unit weights).
     K = assembled((pts - pts.mean(0)) / h, tri)
     n = pts.shape[0]
@@ -294,9 +297,9 @@ def test_gradient_data_pull_the_gradients():
     rng = np.random.default_rng(12)
     z = surface(pts) + rng.normal(0, 0.05, pts.shape[0])
     truth = surface_gradient(pts)
-    plain = smooth_fit(pts, tri, z, strength=1e-6, spacing_h=h)
-    pulled = smooth_fit(pts, tri, z, strength=1e-6, spacing_h=h, gradient_data=truth,
-                        gradient_weight=1e6)
+    plain = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=1e-6))
+    pulled = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=1e-6),
+                        prior=GradientPrior(truth, weight=1e6))
     assert np.abs(pulled.gradients - truth).max() < 1e-3 * np.abs(truth).max()
     assert np.abs(plain.gradients - truth).max() > 10 * np.abs(pulled.gradients - truth).max()
 
@@ -315,25 +318,27 @@ def test_unusable_input_is_refused():
     pts, tri, h = grid_mesh(4)
     z = pts[:, 0]
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z[:-1], strength=1.0, spacing_h=h)
+        smooth_fit(pts, tri, SmoothingData(z[:-1], spacing=h), SmoothingControl(strength=1.0))
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z, strength=-1.0, spacing_h=h)
+        smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=-1.0))
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z, strength=1.0, spacing_h=0.0)
+        smooth_fit(pts, tri, SmoothingData(z, spacing=0.0), SmoothingControl(strength=1.0))
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z, strength=1.0, spacing_h="wide")
+        smooth_fit(pts, tri, SmoothingData(z, spacing="wide"), SmoothingControl(strength=1.0))
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z, strength="lots", spacing_h=h)
+        smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength="lots"))
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z, strength=1.0, spacing_h=h, directions=np.zeros((3, 2)))
+        smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=1.0),
+                   directions=np.zeros((3, 2)))
     with pytest.raises(SmoothingError):
-        smooth_fit(pts, tri, z, strength=1.0, spacing_h=h, weights=np.zeros_like(z))
+        smooth_fit(pts, tri, SmoothingData(z, spacing=h, weights=np.zeros_like(z)),
+                   SmoothingControl(strength=1.0))
 
 
 def test_as_dict_is_json_ready():
     import json
     pts, tri, h = grid_mesh(6)
-    fit = smooth_fit(pts, tri, pts[:, 0] ** 2, strength=1.0, spacing_h=h)
+    fit = smooth_fit(pts, tri, SmoothingData(pts[:, 0] ** 2, spacing=h), SmoothingControl(strength=1.0))
     assert isinstance(fit, SmoothFit)
     d = json.loads(json.dumps(fit.as_dict()))
     assert d["strength"] == 1.0 and d["cv_curve"] == [] and "values" not in d
@@ -352,7 +357,7 @@ def test_data_rows_are_the_interpolator_with_limiter_directions():
     u, _ = edge_directions(pts, tri, edge_table(tri, pts.shape[0]))
     xy = rng.uniform(0.1, 0.9, (600, 2))
     z = surface(xy) + rng.normal(0, 0.05, xy.shape[0])
-    fit = smooth_fit(pts, tri, z, data_xy=xy, strength=0.5, spacing_h=1 / np.sqrt(600),
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=1 / np.sqrt(600), xy=xy), SmoothingControl(strength=0.5),
                      directions=u)
     interp = RSDInterpolator(pts, fit.values, fit.gradients, tri, directions=u)
     r = z - interp(xy)
@@ -372,12 +377,12 @@ def test_large_systems_ordered_by_metis_solve_the_same_fit(monkeypatch):
 
     pts, tri, h = grid_mesh(40, seed=3)
     z = surface(pts) + np.random.default_rng(3).normal(0, 0.05, len(pts))
-    default = smooth_fit(pts, tri, z, strength=0.5, spacing_h=h)
+    default = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=0.5))
     asked = []
     real = cholmod.analyze
     monkeypatch.setattr(cholmod, "analyze", lambda A, **kw: asked.append((A.shape, kw)) or real(A, **kw))
     monkeypatch.setattr(system, "METIS_FROM", 0)
-    metis = smooth_fit(pts, tri, z, strength=0.5, spacing_h=h)
+    metis = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=0.5))
     n = len(pts)
     assert asked == [((n, n), {"ordering_method": "metis"}), ((3 * n, 3 * n), {"ordering_method": "natural"})]
     assert "order" in metis.seconds and "order" not in default.seconds

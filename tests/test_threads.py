@@ -249,7 +249,9 @@ def test_every_pool_stays_within_the_limit(monkeypatch, tmp_path):
     assert census.pools and max(census.pools) == 3          # the tiles and the coefficients
     assert parallel == [3]
     before = len(census.pools)
-    RSDInterpolator(xy, z, g, triangles=tri, workers=2).refine(2)
+    with threads.limit(2):
+        interp = RSDInterpolator(xy, z, g, triangles=tri)
+    interp.refine(2, workers=2)
     assert parallel[-1] == 2 and max(census.pools[before:]) == 2
 
 

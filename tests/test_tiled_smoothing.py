@@ -218,7 +218,7 @@ def test_the_smoothing_fit_has_the_same_bits_on_one_blas_thread_and_on_two():
     supernodal kernels round differently on two BLAS threads)."""
     from c1mesh.core.threads import blas_threads
     from c1mesh.engine.triangulation import delaunay
-    from c1mesh.stages.smoothing import smooth_fit
+    from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
 
     rng = np.random.default_rng(0)
     xy = rng.uniform(0, 120, (20000, 2))
@@ -227,7 +227,7 @@ def test_the_smoothing_fit_has_the_same_bits_on_one_blas_thread_and_on_two():
     fits = []
     for threads in (1, 2):
         with blas_threads(threads):
-            fits.append(smooth_fit(xy, triangles, z, strength=3.0, spacing_h=0.5))
+            fits.append(smooth_fit(xy, triangles, SmoothingData(z, spacing=0.5), SmoothingControl(strength=3.0)))
     assert fits[0].values.tobytes() == fits[1].values.tobytes()
     assert fits[0].gradients.tobytes() == fits[1].gradients.tobytes()
 

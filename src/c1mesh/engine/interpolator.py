@@ -17,7 +17,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.refine import RefinedMesh, Refinement
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
-from c1mesh.core.threads import limit, overlap, parallel_blocks
+from c1mesh.core.threads import overlap, parallel_blocks
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.topology import EdgeTable
 from c1mesh.engine.topology import edge_table as build_edge_table
@@ -47,14 +47,15 @@ class RSDInterpolator:
         triangles containing the edge, which makes the spline C1; its sign is irrelevant.
     fill_value : value returned at points outside the triangulation (default nan), as in
         scipy.interpolate.
-    workers : threads for building the coefficients and for ``refine`` (None: the
-        process-wide setting of c1mesh.core.threads, by default the CPUs this process may use).
-        Results are the same for every count.
     edge_table : c1mesh.engine.topology.edge_table(triangles, N) when the caller has built it
         already (the fit pipeline's overshoot control does), so the edges are numbered once.
 
+    Threads: building uses the process-wide setting of c1mesh.core.threads (by default the
+    CPUs this process may use; ``with c1mesh.core.threads.limit(n):`` around the call for
+    fewer), ``refine`` takes its own ``workers``. Results are the same for every count.
+
     Attributes: points, values, gradients, triangles, edges (E, 2), directions (E, 2),
-    scheme (ShapeTuple), coefficients (T, 21), workers, edge_table (the
+    scheme (ShapeTuple), coefficients (T, 21), edge_table (the
     c1mesh.engine.topology.EdgeTable of the triangles: edges, each triangle's edges and
     their neighbours), lambda_gradients (T, 3, 2): the gradient of each triangle's three
     barycentric coordinates (rsd.gradients_at turns spline derivatives into ∇F with it).
@@ -62,8 +63,7 @@ class RSDInterpolator:
 
     def __init__(self, points, values, gradients, triangles=None,
                  scheme: "str | ShapeTuple" = DEFAULT_SCHEME, directions=None,
-                 fill_value: float = np.nan, workers: int | None = None,
-                 edge_table: EdgeTable | None = None):
+                 fill_value: float = np.nan, edge_table: EdgeTable | None = None):
         self.points = _float_array(points, "points", (None, 2))
         n = self.points.shape[0]
         self.values = _float_array(values, "values", (n,))
@@ -71,12 +71,10 @@ class RSDInterpolator:
         self.scheme = get_scheme(scheme)
         self.fill_value = fill_value
         self.triangles = self._triangles(triangles)
-        self.workers = workers
-        with limit(workers):
-            self.edge_table, (C, self.lambda_gradients, _, degenerate) = self._coefficients_and_edges(edge_table)
-            self.edges = self.edge_table.edges
-            self.directions = self._directions(directions)
-            rsd.ratio_coefficients(C, self.lambda_gradients, self.directions, self.edge_table.tri_edge)
+        self.edge_table, (C, self.lambda_gradients, _, degenerate) = self._coefficients_and_edges(edge_table)
+        self.edges = self.edge_table.edges
+        self.directions = self._directions(directions)
+        rsd.ratio_coefficients(C, self.lambda_gradients, self.directions, self.edge_table.tri_edge)
         self.coefficients = C
         self._check_degenerate(degenerate)
         self._locator: TriangleLocator | None = None
@@ -89,8 +87,8 @@ class RSDInterpolator:
         n = self.points.shape[0]
 
         def coefficients(threads: int):
-            return rsd.vertex_coefficients(self.points, self.values, self.gradients,
-                                           self.triangles, min_sine=_DEGENERACY, threads=threads)
+            return rsd.vertex_coefficients(self._vertex_data(), self.triangles, min_sine=_DEGENERACY,
+                                           threads=threads)
         if table is None:
             return overlap(lambda: build_edge_table(self.triangles, n),
                            lambda: coefficients(max(1, thread_count() - 1)))
@@ -207,14 +205,16 @@ class RSDInterpolator:
 
     def refine(self, level: int, workers: int | None = None) -> RefinedMesh:
         """Uniform refinement: each triangle split into level² sub-triangles (refine.py),
-        computed by `workers` threads (default: the interpolator's `workers`, else the
-        process-wide setting; Refinement.mesh)."""
-        return self.refinement(level).mesh(workers if workers is not None else self.workers)
+        computed by `workers` threads (default: the process-wide setting; Refinement.mesh)."""
+        return self.refinement(level).mesh(workers)
 
     def refinement(self, level: int) -> Refinement:
         """The level-``level`` refinement, to evaluate block by block (streaming) or whole."""
-        return Refinement(self.points, self.values, self.gradients, self.triangles,
-                          self.coefficients, self.lambda_gradients, self.edge_table, self.scheme, level)
+        return Refinement(self._vertex_data(), self.triangles, self.coefficients, self.lambda_gradients,
+                          self.edge_table, self.scheme, level)
+
+    def _vertex_data(self) -> rsd.VertexData:
+        return rsd.VertexData(self.points, self.values, self.gradients)
 
 
 def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,

@@ -231,16 +231,21 @@ class Refinement:
     Holds the output numbering (which triangle owns which edge, where each edge's points
     go) and the per-level basis matrices; `vertex_blocks` and `face_blocks` evaluate and
     number one block of triangles at a time, `mesh` assembles everything in memory.
+
+    vertices: the spline's rsd.VertexData (N vertices, output points [0, N)); triangles
+    (T, 3); coefficients (T, 21) and G (T, 3, 2): each triangle's rsd coefficients and
+    barycentric gradients (RSDInterpolator.coefficients, .lambda_gradients); table: the
+    triangles' EdgeTable; scheme: the ShapeTuple; level L >= 1.
     """
 
-    def __init__(self, points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-                 triangles: np.ndarray, coefficients: np.ndarray, G: np.ndarray,
-                 table: EdgeTable, scheme: ShapeTuple, level: int):
+    def __init__(self, vertices: rsd.VertexData, triangles: np.ndarray, coefficients: np.ndarray,
+                 G: np.ndarray, table: EdgeTable, scheme: ShapeTuple, level: int):
         if int(level) != level or level < 1:
             raise ValueError(f"level must be a positive integer, got {level!r}")
         self.level = L = int(level)
         self.pattern = pat = lattice_pattern(L)
-        self.points, self.values, self.gradients = points, values, gradients
+        points = vertices.points
+        self.points, self.values, self.gradients = points, vertices.values, vertices.gradients
         self.triangles, self.coefficients, self.G, self.table = triangles, coefficients, G, table
         self.scheme = scheme
         self.n_edge, self.n_int = L - 1, pat.interior.size

@@ -18,6 +18,8 @@ Layout of the 21 columns (indices local to a triangle, vertices 0, 1, 2):
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from c1mesh.engine.schemes import ShapeTuple
@@ -47,31 +49,42 @@ def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np
     corners (T, 3, 2), values f (T, 3), gradients A (T, 3, 2), directions u (T, 3, 2) where
     u_k belongs to the edge opposite vertex k, G (T, 3, 2) from barycentric_gradients.
     """
-    C = _coefficients_soa(*_components(corners), np.ascontiguousarray(values.T),
-                          *_components(gradients), *_components(directions), *_components(G))
+    px, py = _components(corners)
+    C = np.empty((N_BASIS, px.shape[1]))
+    _vertex_soa(px, py, np.ascontiguousarray(values.T), *_components(gradients), C[:9])
+    _ratio_soa(C[:9], *_components(directions), *_components(G), C[9:])
     return np.ascontiguousarray(C.T)
 
 
-def mesh_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-                      triangles: np.ndarray, edge_directions: np.ndarray, tri_edge: np.ndarray,
-                      chunk: int = 1 << 13, min_sine: float | None = None,
+@dataclass(frozen=True)
+class VertexData:
+    """The first-order data a spline is built from, one row per vertex: points (N, 2)
+    the vertices' coordinates, values (N,) f at them, gradients (N, 2) ∇f at them (in
+    units of values per unit of the coordinates). The arrays are held, not copied."""
+
+    points: np.ndarray
+    values: np.ndarray
+    gradients: np.ndarray
+
+
+def mesh_coefficients(vertices: VertexData, triangles: np.ndarray, edge_directions: np.ndarray,
+                      tri_edge: np.ndarray, chunk: int = 1 << 13, min_sine: float | None = None,
                       threads: int | None = None) -> tuple:
     """Coefficients (T, 21), G (T, 3, 2) and det (T,) of a whole mesh, from per-vertex data.
 
-    points (N, 2), values (N,), gradients (N, 2), triangles (T, 3), edge_directions (E, 2)
+    vertices: the VertexData (N vertices), triangles (T, 3), edge_directions (E, 2)
     and tri_edge (T, 3) (the edge opposite each local vertex). With ``min_sine`` also
     returns degenerate (T,) bool: ~(|det| > min_sine·|p1 − p0|·|p2 − p0|), i.e. the
     |sin| of the angle at vertex 0 is not above min_sine (NaN counts as degenerate).
     Two passes, `vertex_coefficients` (all that needs no edge directions) then
     `ratio_coefficients`; RSDInterpolator runs the first while it builds the edge table.
     """
-    out = vertex_coefficients(points, values, gradients, triangles, chunk, min_sine, threads)
+    out = vertex_coefficients(vertices, triangles, chunk, min_sine, threads)
     ratio_coefficients(out[0], out[1], edge_directions, tri_edge, chunk, threads)
     return out
 
 
-def vertex_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-                        triangles: np.ndarray, chunk: int = 1 << 13,
+def vertex_coefficients(vertices: VertexData, triangles: np.ndarray, chunk: int = 1 << 13,
                         min_sine: float | None = None, threads: int | None = None) -> tuple:
     """First pass of `mesh_coefficients`: C (T, 21) with columns 0..8 filled (9..20 are
     left for `ratio_coefficients`), G, det and, with min_sine, degenerate.
@@ -83,8 +96,8 @@ def vertex_coefficients(points: np.ndarray, values: np.ndarray, gradients: np.nd
     T = triangles.shape[0]
     C, G, det = np.empty((T, N_BASIS)), np.empty((T, 3, 2)), np.empty(T)
     degenerate = None if min_sine is None else np.empty(T, dtype=bool)
-    vertex = np.empty((points.shape[0], 5))                       # x, y, f, fx, fy
-    vertex[:, :2], vertex[:, 2], vertex[:, 3:] = points, values, gradients
+    vertex = np.empty((vertices.points.shape[0], 5))              # x, y, f, fx, fy
+    vertex[:, :2], vertex[:, 2], vertex[:, 3:] = vertices.points, vertices.values, vertices.gradients
 
     def block(part: slice) -> None:
         px, py, f, ax, ay = _gather(vertex, triangles[part])
@@ -153,14 +166,6 @@ def _gradients_soa(x: np.ndarray, y: np.ndarray):
         np.multiply(y[a] - y[b], inv, out=gx[k])
         np.multiply(x[b] - x[a], inv, out=gy[k])
     return gx, gy, det
-
-
-def _coefficients_soa(px, py, f, ax, ay, ux, uy, gx, gy) -> np.ndarray:
-    """(21, c) coefficients from component arrays, each (3, c) (f: values at the corners)."""
-    C = np.empty((N_BASIS, px.shape[1]))
-    _vertex_soa(px, py, f, ax, ay, C[:9])
-    _ratio_soa(C[:9], ux, uy, gx, gy, C[9:])
-    return C
 
 
 def _vertex_soa(px, py, f, ax, ay, out) -> None:

@@ -8,11 +8,13 @@ A tuple is four functions with their first derivatives, vectorised over numpy ar
 
 Named tuples (rsd-math.md, table "Named tuples from the paper"):
 ``sextic`` (Ex. 5.8, affine invariant, the default), ``quintic`` (the 2022 procedure,
-Ex. 3.9a) and ``ex39b`` (Ex. 3.9b). Custom tuples come from Python callables
-(:func:`tuple_from_callables`) or from sympy expressions (:func:`tuple_from_sympy`).
-:func:`validate_tuple` checks admissibility (2.1) and the RSD conditions (3.6), (3.7) and
-refuses an invalid tuple naming the condition that failed. What a tuple *reproduces*
-(constants, affine functions) is computed, not declared: see :mod:`c1mesh.engine.properties`.
+Ex. 3.9a) and ``ex39b`` (Ex. 3.9b). A custom tuple is a :class:`ShapeTuple` of Python
+callables (then check it with :func:`validate_tuple`) or comes from sympy expressions
+(:func:`tuple_from_sympy`, which validates it). :func:`validate_tuple` checks
+admissibility (2.1), the RSD conditions (3.6), (3.7) and that each derivative matches its
+function, and refuses an invalid tuple naming the condition that failed. What a tuple
+*reproduces* (constants, affine functions) is computed, not declared: see
+:mod:`c1mesh.engine.properties`.
 """
 from __future__ import annotations
 
@@ -38,9 +40,16 @@ class ShapeTuple:
     """An RSD shape-function tuple with first derivatives.
 
     Every function accepts numpy arrays (broadcasting) and returns arrays of the same shape;
+    ``psi0``, ``psi1`` (Ψ0, Ψ1) take t in [0, 1] and ``dpsi0``, ``dpsi1`` are their
+    derivatives; ``chi0``, ``chi1`` (χ0, χ1) take (t1, t2, t3) and
     ``dchi0``/``dchi1`` return the triple (∂χ/∂t1, ∂χ/∂t2, ∂χ/∂t3). ``exact`` optionally
     holds the same eight functions accepting sympy objects (used for symbolic validation).
     ``degree`` is the polynomial degree when known, else None.
+
+    A tuple of your own callables is built directly and checked before use::
+
+        mine = ShapeTuple("mine", psi0, dpsi0, psi1, dpsi1, chi0, dchi0, chi1, dchi1)
+        validate_tuple(mine)           # InvalidSchemeError naming the failed condition
     """
 
     name: str
@@ -133,22 +142,6 @@ def get_scheme(scheme: "str | ShapeTuple") -> ShapeTuple:
 # --------------------------------------------------------------------------------------
 # Custom tuples
 # --------------------------------------------------------------------------------------
-def tuple_from_callables(psi0: Univariate, dpsi0: Univariate, psi1: Univariate,
-                         dpsi1: Univariate, chi0: Trivariate, dchi0: TrivariateGrad,
-                         chi1: Trivariate, dchi1: TrivariateGrad, name: str = "custom",
-                         validate: bool = True) -> ShapeTuple:
-    """A tuple from numpy-vectorised callables and their derivatives.
-
-    ``dchi0``/``dchi1`` return (∂/∂t1, ∂/∂t2, ∂/∂t3). With ``validate`` (default) the tuple
-    is checked by :func:`validate_tuple`, including that each derivative matches its
-    function by finite differences, and refused with InvalidSchemeError when it fails.
-    """
-    tup = ShapeTuple(name, psi0, dpsi0, psi1, dpsi1, chi0, dchi0, chi1, dchi1)
-    if validate:
-        validate_tuple(tup)
-    return tup
-
-
 def tuple_from_sympy(psi0, psi1, chi0, chi1, t=None, t123=None, name: str = "custom",
                      validate: bool = True) -> ShapeTuple:
     """A tuple from sympy expressions: Ψ0, Ψ1 in the symbol ``t``; χ0, χ1 in ``t123``.

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -122,6 +123,29 @@ _RASTER_CHUNK = 1 << 19
 """Candidate (face, pixel) pairs per step of _rasterize (bounds its temporaries)."""
 
 
+@dataclass(frozen=True)
+class _PixelVertices:
+    """A mesh's vertices as _rasterize draws them: col, row (N,) their position in pixels
+    of the grid (pixel centres at integers, row 0 at the north edge); height (N,) their z
+    in the view frame; up (N, 3) their normals in that frame, z >= 0."""
+
+    col: np.ndarray
+    row: np.ndarray
+    height: np.ndarray
+    up: np.ndarray
+
+
+@dataclass(frozen=True)
+class _ZBuffer:
+    """The picture _rasterize fills, pixels numbered row by row (width per row): best
+    (h*w,) the height of the face drawn at each pixel (-inf: none yet); out (h*w, 3) its
+    height and gradient x, y there (NaN: none). The arrays are written in place."""
+
+    width: int
+    best: np.ndarray
+    out: np.ndarray
+
+
 def _rasterize(local: np.ndarray, up: np.ndarray, faces: np.ndarray, grid: RasterGrid):
     """Heights (h, w) and gradients (h, w, 2) at the pixel centres of `grid` from the topmost
     face over each (NaN where none): local (N, 3) vertices in the view frame (x, y over the
@@ -137,8 +161,8 @@ def _rasterize(local: np.ndarray, up: np.ndarray, faces: np.ndarray, grid: Raste
     cols = np.where(finite, np.maximum(last_col - first_col + 1, 0), 0)
     rows = np.where(finite, np.maximum(last_row - first_row + 1, 0), 0)
     candidates = cols * rows
-    best = np.full(h * w, -np.inf)
-    out = np.full((h * w, 3), np.nan)                               # z, gradient x, gradient y
+    vertices = _PixelVertices(col, row, local[:, 2], up)
+    buffer = _ZBuffer(w, np.full(h * w, -np.inf), np.full((h * w, 3), np.nan))
     ends = np.cumsum(candidates)
     start = 0
     while start < faces.shape[0]:
@@ -150,16 +174,19 @@ def _rasterize(local: np.ndarray, up: np.ndarray, faces: np.ndarray, grid: Raste
                                                 candidates[part])
         pc = first_col[face] + step % cols[face]
         pr = first_row[face] + step // np.maximum(cols[face], 1)
-        _draw(col, row, local[:, 2], up, faces[face], pc, pr, w, best, out)
+        _draw(vertices, faces[face], pc, pr, buffer)
         start = stop
+    out = buffer.out
     return out[:, 0].reshape(h, w), out[:, 1:].reshape(h, w, 2)
 
 
-def _draw(col, row, height, up, corners, pc, pr, width, best, out) -> None:
-    """Rasterise candidate pixels (pc, pr) of faces `corners` (K, 3) into the z-buffer
-    best (h*w,) and out (h*w, 3): a pixel inside a face (barycentric weights >= 0, with
-    a tolerance so shared edges leave no gap) takes it when it is higher than what the
-    pixel holds."""
+def _draw(vertices: _PixelVertices, corners: np.ndarray, pc: np.ndarray, pr: np.ndarray,
+          buffer: _ZBuffer) -> None:
+    """Rasterise candidate pixels (pc, pr) (K,) of faces `corners` (K, 3) into the
+    z-buffer: a pixel inside a face (barycentric weights >= 0, with a tolerance so shared
+    edges leave no gap) takes it when it is higher than what the pixel holds."""
+    col, row, height, up = vertices.col, vertices.row, vertices.height, vertices.up
+    best, out = buffer.best, buffer.out
     a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     bx, by = col[b] - col[a], row[b] - row[a]
     cx, cy = col[c] - col[a], row[c] - row[a]
@@ -173,7 +200,7 @@ def _draw(col, row, height, up, corners, pc, pr, width, best, out) -> None:
     if not inside.any():
         return
     wa, wb, wc, a, b, c = wa[inside], wb[inside], wc[inside], a[inside], b[inside], c[inside]
-    pixel = pr[inside] * width + pc[inside]
+    pixel = pr[inside] * buffer.width + pc[inside]
     z = wa * height[a] + wb * height[b] + wc * height[c]
     order = np.lexsort((z, pixel))                         # by pixel, highest last
     last = np.r_[pixel[order][1:] != pixel[order][:-1], True]

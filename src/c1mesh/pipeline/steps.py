@@ -23,7 +23,8 @@ from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.topology import edge_table
 from c1mesh.formats import check_mesh_size, write_mesh
 from c1mesh.stages.limiter import LimiterReport, control_overshoot, edge_directions
-from c1mesh.stages.smoothing import FILE_NORMALS_WEIGHT, smooth_fit
+from c1mesh.stages.smoothing import (FILE_NORMALS_WEIGHT, GradientPrior, SmoothingControl, SmoothingData,
+                                     smooth_fit)
 from c1mesh.stages.surface import surface_stream
 
 
@@ -127,10 +128,9 @@ def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, req
     table = edge_table(triangles, points.shape[0]) if table is None else table
     directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
     data_xy, data_z = (None, values) if request.data is None else request.data
-    weight = 0.0 if request.gradients is None else request.gradient_weight
-    fitted = smooth_fit(points, triangles, data_z, data_xy=data_xy, strength=request.strength,
-                        spacing_h=request.spacing, directions=directions, scheme=scheme,
-                        gradient_data=request.gradients, gradient_weight=weight)
+    prior = None if request.gradients is None else GradientPrior(request.gradients, request.gradient_weight)
+    fitted = smooth_fit(points, triangles, SmoothingData(data_z, request.spacing, data_xy),
+                        SmoothingControl(request.strength, scheme), directions=directions, prior=prior)
     interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=scheme,
                              directions=directions, edge_table=table)
     turned = 0 if changed is None else int(changed.sum())

@@ -11,8 +11,12 @@ which makes the fit's shape independent of the units of x, y, z and of the weigh
 scale; `strength="auto"` picks s by cross-validation over spatial blocks. Derivations,
 quadrature, solver measurements: docs/smoothing.md.
 
-    fit = smooth_fit(points, triangles, z, strength="auto", spacing_h=h)
+    fit = smooth_fit(points, triangles, SmoothingData(z, spacing=h), SmoothingControl(strength="auto"))
     interp = RSDInterpolator(points, fit.values, fit.gradients, triangles)
+
+What the fit matches is a SmoothingData (values, where and how much they weigh, their
+spacing), how it runs a SmoothingControl (strength, scheme, folds, seed, threads), and
+gradients it may be pulled toward a GradientPrior.
 
 The energy blocks live in smoothing_energy, the sparse system and solvers in
 smoothing_system; this module normalises units, validates input, and chooses s.
@@ -26,7 +30,7 @@ import numpy as np
 from c1mesh.core.threads import limit
 from c1mesh.engine import rsd
 from c1mesh.engine.locate import TriangleLocator
-from c1mesh.engine.schemes import get_scheme
+from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
                                             energy_blocks, energy_tensor,
@@ -91,6 +95,53 @@ def gradient_data_weight(normal_source: str, gradient_source: str) -> float:
     if gradient_source == "heights":
         return HEIGHT_GRADIENTS_WEIGHT
     return FILE_NORMALS_WEIGHT if normal_source == "file" else 0.0
+
+
+@dataclass(frozen=True)
+class SmoothingData:
+    """The data a smoothing fit matches, in the caller's units.
+
+    values (M,): the measured heights z. spacing: the mean spacing h of the data points,
+    in the length units of the vertices (the strength's length unit, module doc). xy
+    (M, 2): where the values were measured, in the vertices' coordinates; None: at the
+    vertices themselves (then M = N, values[i] at vertex i). weights (M,) >= 0: each
+    value's weight, any scale (None: all 1)."""
+
+    values: np.ndarray
+    spacing: float
+    xy: np.ndarray | None = None
+    weights: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class GradientPrior:
+    """Gradients the fit's vertex gradients are pulled toward: the μ term of the module doc.
+
+    gradients (N, 2): one (∂z/∂x, ∂z/∂y) per vertex, in height units per length unit
+    (from normals, or fitted to the heights); NaN rows: no datum at that vertex. weight
+    >= 0: dimensionless, one vertex's gradient weighs like `weight` data points' values
+    over one spacing (μ = weight · h² · Σw / M; docs/smoothing.md); 0: ignored."""
+
+    gradients: np.ndarray
+    weight: float
+
+
+@dataclass(frozen=True)
+class SmoothingControl:
+    """How a smoothing fit runs.
+
+    strength: the dimensionless s > 0, or "auto" (chosen by spatial-block
+    cross-validation). scheme: the shape-function tuple, a name or a ShapeTuple
+    (engine.schemes; it must be polynomial). folds: cross-validation folds of "auto"
+    (a whole number >= 2). seed: the folds' block assignment, the search windows and the
+    trace probes. threads: c1mesh.core.threads.limit of the solve (None: the process's
+    setting)."""
+
+    strength: "float | str" = "auto"
+    scheme: "str | ShapeTuple" = DEFAULT_SCHEME
+    folds: int = 5
+    seed: int = 0
+    threads: int | None = None
 
 
 @dataclass
@@ -213,10 +264,10 @@ class _Problem:
                         None if self.grad is None else self.grad[used])
 
 
-def _check_inputs(points, triangles, values, data_xy, weights, spacing_h):
+def _check_inputs(points, triangles, data: SmoothingData):
     try:
         pts = np.array(points, dtype=float)
-        z = np.array(values, dtype=float)
+        z = np.array(data.values, dtype=float)
         tri = np.asarray(triangles)
     except (TypeError, ValueError):
         raise SmoothingError("points, triangles and values must be numeric arrays") from None
@@ -226,25 +277,25 @@ def _check_inputs(points, triangles, values, data_xy, weights, spacing_h):
         raise SmoothingError(f"triangles must be integer vertex indices of shape (T, 3), got {tri.shape}")
     if tri.min() < 0 or tri.max() >= pts.shape[0]:
         raise SmoothingError(f"triangle vertex indices must lie in [0, {pts.shape[0] - 1}]")
-    xy = pts if data_xy is None else np.array(data_xy, dtype=float)
+    xy = pts if data.xy is None else np.array(data.xy, dtype=float)
     if xy.ndim != 2 or xy.shape[1] != 2:
-        raise SmoothingError(f"data_xy must have shape (M, 2), got {xy.shape}")
+        raise SmoothingError(f"the data's xy must have shape (M, 2), got {xy.shape}")
     if z.shape != (xy.shape[0],):
         raise SmoothingError(f"values must have shape ({xy.shape[0]},) (one per data point), got {z.shape}")
-    w = np.ones_like(z) if weights is None else np.array(weights, dtype=float)
+    w = np.ones_like(z) if data.weights is None else np.array(data.weights, dtype=float)
     if w.shape != z.shape:
         raise SmoothingError(f"weights must have shape {z.shape}, got {w.shape}")
     if not (np.isfinite(pts).all() and np.isfinite(z).all() and np.isfinite(xy).all()):
-        raise SmoothingError("points, data_xy and values must be finite")
+        raise SmoothingError("points, the data's xy and values must be finite")
     if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0):
         raise SmoothingError("weights must be finite, non-negative and not all zero")
     try:
-        spacing_h = float(spacing_h)
+        spacing = float(data.spacing)
     except (TypeError, ValueError):
-        spacing_h = float("nan")
-    if not (np.isfinite(spacing_h) and spacing_h > 0):
-        raise SmoothingError(f"spacing_h must be a positive length, got {spacing_h!r}")
-    return pts, tri.astype(np.int64), z, xy, w
+        spacing = float("nan")
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise SmoothingError(f"the data's spacing must be a positive length, got {data.spacing!r}")
+    return pts, tri.astype(np.int64), z, xy, w, spacing
 
 
 def _directions(points, triangles, directions):
@@ -285,37 +336,33 @@ def weighted_plane(xy: np.ndarray, z: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(A, z * np.sqrt(w), rcond=None)[0]
 
 
-def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spacing_h: float,
-               directions=None, scheme="sextic", weights=None, gradient_data=None,
-               gradient_weight: float = 0.0, folds: int = 5, seed: int = 0,
-               threads: int | None = None) -> SmoothFit:
+def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl = SmoothingControl(), *,
+               directions=None, prior: GradientPrior | None = None) -> SmoothFit:
     """Fit vertex values and gradients of the RSD spline to data (module doc).
 
-    points (N, 2) vertices, triangles (T, 3). values (M,) data heights z at data_xy (M, 2),
-    or at the vertices when data_xy is None (then M == N). strength: s > 0 or "auto".
-    spacing_h: mean spacing of the data points (length units of points). directions:
-    (E, 2) edge directions in RSDInterpolator's edge order or None (unit normals).
-    weights (M,) >= 0 (default 1). gradient_data (N, 2) gradients from normals (NaN rows:
-    none) with dimensionless weight gradient_weight (relative to one data point's, times
-    h², see docs/smoothing.md). folds: cross-validation folds for "auto"; seed: its block
-    assignment and the trace probes. threads: c1mesh.core.threads.limit for the solve.
+    points (N, 2) vertices, triangles (T, 3). data: the SmoothingData (values, where,
+    their weights and spacing); control: the SmoothingControl (strength, scheme, folds,
+    seed, threads). directions: (E, 2) edge directions in RSDInterpolator's edge order or
+    None (unit normals). prior: a GradientPrior the vertex gradients are pulled toward, or
+    None.
     """
-    pts, tri, z, xy, w = _check_inputs(points, triangles, values, data_xy, weights, spacing_h)
-    vertex_data = data_xy is None
+    pts, tri, z, xy, w, h = _check_inputs(points, triangles, data)
+    vertex_data = data.xy is None
     if vertex_data and z.shape[0] != pts.shape[0]:
-        raise SmoothingError("without data_xy the values are the vertices' (M must equal N)")
+        raise SmoothingError("without the data's xy the values are the vertices' (M must equal N)")
+    strength, folds, seed, threads = control.strength, control.folds, control.seed, control.threads
     if not (strength == "auto" or (isinstance(strength, (int, float)) and np.isfinite(strength)
                                    and strength > 0)):
         raise SmoothingError(f"strength must be 'auto' or a positive number, got {strength!r}")
     if int(folds) != folds or folds < 2:
         raise SmoothingError(f"folds must be a whole number >= 2, got {folds!r}")
+    gradient_weight = 0.0 if prior is None else prior.weight
     if not (np.isfinite(gradient_weight) and gradient_weight >= 0):
-        raise SmoothingError(f"gradient_weight must be >= 0, got {gradient_weight!r}")
-    shape = get_scheme(scheme)
+        raise SmoothingError(f"the gradient prior's weight must be >= 0, got {gradient_weight!r}")
+    shape = get_scheme(control.scheme)
     energy_tensor(shape)                 # SchemeNotPolynomialError before any work
     seconds: dict = {}
     with limit(threads), timed(seconds, "assemble"):
-        h = float(spacing_h)
         centre = pts.mean(axis=0)
         plane = weighted_plane((xy - centre) / h, z, w)
         trend = plane[0] + ((xy - centre) / h) @ plane[1:]
@@ -323,10 +370,10 @@ def smooth_fit(points, triangles, values, *, data_xy=None, strength="auto", spac
         w_mean = float(w.sum() / w.shape[0])
         npts = (pts - centre) / h
         grad = None
-        if gradient_data is not None and gradient_weight > 0:
-            grad = np.array(gradient_data, dtype=float)
+        if prior is not None and gradient_weight > 0:
+            grad = np.array(prior.gradients, dtype=float)
             if grad.shape != pts.shape:
-                raise SmoothingError(f"gradient_data must have shape {pts.shape}, got {grad.shape}")
+                raise SmoothingError(f"the gradient prior must have shape {pts.shape}, got {grad.shape}")
             grad = (grad - plane[1:] / h) * (h / Z)     # the deviations from the plane, as z
         dirs = _directions(npts, tri, directions)
         nxy = (xy - centre) / h
@@ -506,6 +553,7 @@ def _coarse(score) -> tuple[list, int]:
     return grid, best
 
 
-__all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothFit", "smooth_fit",
+__all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "SmoothingControl",
+           "GradientPrior", "SmoothFit", "smooth_fit",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
            "SEARCH_VERTICES", "SEARCH_LIMITS"]

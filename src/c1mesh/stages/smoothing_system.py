@@ -239,7 +239,7 @@ class Factor:
     method: "cholmod" (scikit-sparse, AMD/METIS ordering, supernodal Cholesky),
     "superlu" (scipy's splu with the symmetric MMD ordering of A^T + A and diagonal
     pivoting, i.e. a Cholesky-like LU), or "amg-cg" (conjugate gradients preconditioned by
-    pyamg's smoothed-aggregation V-cycle, relative residual 1e-10). x0 warm-starts CG.
+    pyamg's smoothed-aggregation V-cycle, relative residual 1e-10).
     """
 
     def __init__(self, S: sp.csr_matrix, method: str, analysis=None, ordered: bool = False):
@@ -277,7 +277,7 @@ class Factor:
             raise SmoothingError("the smoothing system is singular: some part of the mesh has "
                                  "fewer than 3 weighted data points") from exc
 
-    def solve(self, b: np.ndarray, x0: np.ndarray | None = None, refine: bool = True) -> np.ndarray:
+    def solve(self, b: np.ndarray, refine: bool = True) -> np.ndarray:
         """S⁻¹ b. Direct solvers take one step of iterative refinement: the system's
         condition grows like N² (a fourth-order problem), and at 1M vertices one
         Cholesky solve left a relative residual of 5e-5 (one more solve costs ~3 % of
@@ -287,7 +287,7 @@ class Factor:
             with blas_threads(DIRECT_BLAS_THREADS):
                 x = direct(b)
                 return x + direct(b - self.S @ x) if refine else x
-        x, info = spla.cg(self.S, b, x0=x0, rtol=1e-10, maxiter=2000, M=self._M)
+        x, info = spla.cg(self.S, b, rtol=1e-10, maxiter=2000, M=self._M)
         if info != 0:
             raise SmoothingError(f"conjugate gradients did not converge ({info} iterations)")
         return x
@@ -302,7 +302,7 @@ def _near_null_space(n: int) -> np.ndarray:
 
 
 def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
-          x0: np.ndarray | None = None, analysis=None, ridge: float = 0.0,
+          analysis=None, ridge: float = 0.0,
           held_out: np.ndarray | None = None) -> tuple[np.ndarray, Factor]:
     """u (3N,) minimising the functional, and the factorisation (to reuse for traces and,
     through its ``analysis``, for matrices of the same pattern).
@@ -318,7 +318,7 @@ def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
     if ridge > 0:
         S = (S + sp.identity(S.shape[0], format="csr") * (ridge * float(S.diagonal().mean()))).tocsr()
     factor = Factor(S, method, analysis, system.vertices_ordered)
-    return factor.solve(rhs, x0), factor
+    return factor.solve(rhs), factor
 
 
 def hat_trace(system: System, factor: Factor, w: np.ndarray, probes: int, seed: int) -> float:

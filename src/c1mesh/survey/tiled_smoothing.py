@@ -36,7 +36,7 @@ import numpy as np
 
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages.limiter import edge_directions
-from c1mesh.stages.smoothing import smooth_fit
+from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.smoothing_system import available_solvers
 from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, corner_rows, own_triangles_in
 from c1mesh.survey.tiled_limiter import TileLimits
@@ -219,9 +219,10 @@ def _fit_halo(halo, strength, spacing: float, overshoot: str, gradient_weight: f
     table = edge_table(halo.triangles, len(halo.records))
     directions, changed = (None, None) if overshoot == "off" else edge_directions(halo.points, halo.triangles,
                                                                                   table)
-    gradients = np.column_stack([halo.records["gx"], halo.records["gy"]]) if gradient_weight else None
-    fitted = smooth_fit(halo.points, halo.triangles, halo.records["z"], strength=strength, spacing_h=spacing,
-                        directions=directions, gradient_data=gradients, gradient_weight=gradient_weight)
+    prior = (GradientPrior(np.column_stack([halo.records["gx"], halo.records["gy"]]), gradient_weight)
+             if gradient_weight else None)
+    fitted = smooth_fit(halo.points, halo.triangles, SmoothingData(halo.records["z"], spacing),
+                        SmoothingControl(strength), directions=directions, prior=prior)
     return fitted, (table, directions, changed)
 
 

@@ -41,6 +41,7 @@ from c1mesh.core.plan import PointSelection
 from c1mesh.core.platform_memory import peak_rss_mb
 from c1mesh.core.threads import blas_threads
 from c1mesh.engine.refine import Refinement
+from c1mesh.engine.rsd import VertexData
 from c1mesh.engine.schemes import NAMED_TUPLES, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.formats import PRJ_SIDECAR, read_cloud, write_mesh
@@ -308,7 +309,7 @@ def tile_stream(task: TileTask):
     """
     L2 = task.level * task.level
     table = edge_table(task.triangles, task.points.shape[0])
-    refinement = Refinement(task.points, task.values, task.gradients, task.triangles,
+    refinement = Refinement(VertexData(task.points, task.values, task.gradients), task.triangles,
                             task.coefficients, task.G, table, get_scheme(task.scheme), task.level)
     whole = surface_stream(refinement, task.frame, task.colors)
     owned_faces = np.repeat(task.owned, L2)
