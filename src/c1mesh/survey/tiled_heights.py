@@ -216,6 +216,6 @@ def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
     size[rows[rows >= 0]], z_range[rows[rows >= 0]] = shared["size"][rows >= 0], shared["z_range"][rows >= 0]
     xy = np.column_stack([records["x"], records["y"]])
     gradients = np.column_stack([records["gx"], records["gy"]])
-    bad, _ = stacked_positions(xy, records["z"], gradients, z_range, spacing, kd_tree(xy))
+    bad, _ = stacked_positions(xy, records["z"], gradients, z_range, spacing)
     own = grid.tile_of(xy) == tile
     return int(size[bad & own].sum())
