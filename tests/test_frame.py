@@ -353,7 +353,10 @@ def test_position_groups_match_a_dictionary_of_positions():
     x, y = rng.integers(0, 12, size=(2, 600)).astype(float)
     x[::5] = -0.0                                              # the same position as 0.0
     z = rng.normal(size=600)
-    group, first, z_range = position_groups(x, y, z)
+    gradients = rng.normal(size=(600, 2))
+    groups = position_groups(np.column_stack([x, y, z]), gradients)
+    group, first, z_range = groups.group, groups.first, groups.z_range
+    assert np.array_equal(groups.columns, np.vstack([x[first], y[first], z[first], gradients[first].T]))
     members = {}
     for i in range(600):
         members.setdefault((x[i] + 0.0, y[i]), []).append(i)
@@ -425,7 +428,7 @@ def test_stacked_positions_match_a_loop_over_every_pair(seed):
     z_range = np.where(rng.random(m) < 0.05, 2.0, 0.0)
     rank = rng.permutation(m)
     h = 0.25
-    bad, root = stacked_positions(xy, z, gradients, z_range, h, merge_radius=1.5e-3, rank=rank)
+    bad, root = stacked_positions(*xy.T, z, *gradients.T, z_range, h, merge_radius=1.5e-3, rank=rank)
     want_bad, want_root = _brute_stacked(xy, z, gradients, z_range, h, 1.5e-3, rank)
     assert np.array_equal(bad, want_bad) and bad.sum() > 20
     assert np.array_equal(root, want_root) and root[-3] == root[-4] and root[-2] == root[-4]
@@ -443,7 +446,7 @@ def test_stacked_positions_flag_pairs_that_cKDTree_finds():
     want = np.zeros(len(xy), dtype=bool)
     jump = z[pairs[:, 0]] != z[pairs[:, 1]]
     want[pairs[jump].ravel()] = True
-    bad, _ = stacked_positions(xy, z, np.zeros((len(xy), 2)), np.zeros(len(xy)), h)
+    bad, _ = stacked_positions(*xy.T, z, *np.zeros((2, len(xy))), np.zeros(len(xy)), h)
     assert np.array_equal(bad, want) and want.sum() > 100
 
 

@@ -61,6 +61,59 @@ cdef void _radix_sort(uint64_t *key, int64_t *order, uint64_t *key_tmp, int64_t 
         memcpy(order, src_order, n * sizeof(int64_t))
 
 
+cdef void _insertion_sort(uint64_t *key, int64_t *order, Py_ssize_t n) noexcept nogil:
+    """Sort the pairs (key[i], order[i]) stably by key: for the few points of a run."""
+    cdef Py_ssize_t i, j
+    cdef uint64_t k
+    cdef int64_t o
+    for i in range(1, n):
+        k = key[i]
+        o = order[i]
+        j = i
+        while j > 0 and key[j - 1] > k:
+            key[j] = key[j - 1]
+            order[j] = order[j - 1]
+            j -= 1
+        key[j] = k
+        order[j] = o
+
+
+cdef enum:
+    SMALL_RUN = 32       # runs of tied x up to this long are insertion-sorted by y
+
+
+def sort_xy(const double[::1] x, const double[::1] y, int64_t[::1] order, uint64_t[::1] key,
+            uint64_t[::1] key_tmp, int64_t[::1] order_tmp):
+    """order (n,): the permutation sorting the points (x, y) (n,) by x, then y, then index
+    (np.lexsort((y, x)), -0.0 equal to 0.0). A stable radix sort by x, then each run of tied
+    x sorted stably by y (LiDAR's quantised x ties in runs of tens). key, key_tmp (n,),
+    order_tmp (n,) scratch."""
+    cdef Py_ssize_t n = order.shape[0], i, start, stop
+    cdef uint64_t run_key
+    if n == 0:
+        return
+    with nogil:
+        for i in range(n):
+            order[i] = i
+            key[i] = _float_key(x[i])
+        _radix_sort(&key[0], &order[0], &key_tmp[0], &order_tmp[0], n)
+        start = 0
+        while start < n:
+            run_key = key[start]
+            stop = start + 1
+            while stop < n and key[stop] == run_key:
+                stop += 1
+            if stop - start > 1:
+                for i in range(start, stop):
+                    key[i] = _float_key(y[order[i]])
+                if stop - start <= SMALL_RUN:
+                    _insertion_sort(&key[start], &order[start], stop - start)
+                else:
+                    _radix_sort(&key[start], &order[start], &key_tmp[start], &order_tmp[start],
+                                stop - start)
+            start = stop
+
+
 def sort_by_float(const double[::1] values, int64_t[::1] order, uint64_t[::1] key,
                   uint64_t[::1] key_tmp, int64_t[::1] order_tmp):
     """Reorder the permutation order (n,) stably by values[order] (values (N,) finite):
@@ -82,29 +135,35 @@ def sort_by_int(const int64_t[::1] values, int64_t[::1] order, uint64_t[::1] key
         _radix_sort(&key[0], &order[0], &key_tmp[0], &order_tmp[0], n)
 
 
-def position_groups(const double[::1] x, const double[::1] y, const double[::1] z,
+def position_groups(const double[:, ::1] local, const double[:, ::1] gradients,
                     const int64_t[::1] order, int64_t[::1] group, int64_t[::1] first,
-                    double[::1] z_range):
-    """Group the points (n,) that share an exact position (x, y), given order (n,) sorting
-    them by (x, y, index). group (n,): each point's group, numbered in that order; first
-    (n,): of the groups' first (lowest-index) points, the first m set; z_range (n,): the
-    first m set to each group's largest minus smallest z. Returns m, the number of groups."""
+                    double[:, ::1] columns, double[::1] z_range):
+    """Group the points of local (n, 3) that share an exact position (x, y), given order
+    (n,) sorting them by (x, y, index). group (n,): each point's group, numbered in that
+    order; of the first m rows (m: the number of groups, returned): first (n,) each
+    group's first (lowest-index) point, columns (5, n) its x, y, z and gradient (from
+    gradients (n, 2)) as rows, z_range (n,) the group's largest minus smallest z."""
     cdef Py_ssize_t n = order.shape[0], i
     cdef int64_t p, g = -1
-    cdef double x_prev = 0.0, y_prev = 0.0, low = 0.0, high = 0.0
+    cdef double z, low = 0.0, high = 0.0
     with nogil:
         for i in range(n):
             p = order[i]
-            if g < 0 or x[p] != x_prev or y[p] != y_prev:
+            z = local[p, 2]
+            if g < 0 or local[p, 0] != columns[0, g] or local[p, 1] != columns[1, g]:
                 if g >= 0:
                     z_range[g] = high - low
                 g += 1
                 first[g] = p
-                x_prev, y_prev = x[p], y[p]
-                low = high = z[p]
+                columns[0, g] = local[p, 0]
+                columns[1, g] = local[p, 1]
+                columns[2, g] = z
+                columns[3, g] = gradients[p, 0]
+                columns[4, g] = gradients[p, 1]
+                low = high = z
             else:
-                low = z[p] if z[p] < low else low
-                high = z[p] if z[p] > high else high
+                low = z if z < low else low
+                high = z if z > high else high
             group[p] = g
         if g >= 0:
             z_range[g] = high - low
