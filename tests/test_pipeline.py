@@ -306,6 +306,19 @@ def test_mesh_pieces_counts_edge_connected_parts_and_the_area_they_cover():
     assert pieces["area_fraction"] == pytest.approx(2.5 / 38.5)
 
 
+def test_compact_vertices_numbers_the_used_points_as_np_unique_does():
+    from c1mesh.pipeline.steps import compact_vertices
+
+    rng = np.random.default_rng(4)
+    triangles = rng.choice(np.arange(0, 90, 3), size=(40, 3))       # every third point at most
+    used, local = compact_vertices(np.zeros((95, 2)), triangles)
+    want = np.unique(triangles)
+    assert np.array_equal(used, want) and np.array_equal(used[local], triangles)
+    assert np.array_equal(local, np.searchsorted(want, triangles))
+    with pytest.raises(ValueError):
+        compact_vertices(np.zeros((10, 2)), np.array([[0, 1, 10]]))
+
+
 def _pieces_by_search(triangles):
     """(count, largest) of the triangles joined through shared edges, by a search over a
     dict of edges: the reference for the union-find kernel."""

@@ -62,3 +62,27 @@ def doubled_areas(const double[::1] x, const double[::1] y, const int64_t[:, ::1
             vx = x[tri[t, 2]] - x0
             vy = y[tri[t, 2]] - y0
             out[t] = fabs(ux * vy - uy * vx)
+
+
+def renumber(const int64_t[:, ::1] tri, int64_t[::1] remap, int64_t[:, ::1] out):
+    """Number the points (n,) that the triangles tri (T, 3) use in ascending order:
+    remap (n,), which must start at -1, gets each used point's new number (unused: -1),
+    out (T, 3) the triangles in those numbers. Returns how many points are used. One
+    thread."""
+    cdef Py_ssize_t T = tri.shape[0], n = remap.shape[0], t, v
+    cdef int k
+    cdef int64_t count = 0
+    with nogil:
+        for t in range(T):
+            for k in range(3):
+                remap[tri[t, k]] = 0
+        for v in range(n):
+            if remap[v] == 0:
+                remap[v] = count
+                count += 1
+            else:
+                remap[v] = -1
+        for t in range(T):
+            for k in range(3):
+                out[t, k] = remap[tri[t, k]]
+    return count

@@ -70,11 +70,16 @@ class StageTimer:
 
 
 def compact_vertices(xy, triangles):
-    """Drop points no triangle uses; returns (used point indices, re-indexed triangles)."""
-    used = np.flatnonzero(np.bincount(triangles.ravel(), minlength=xy.shape[0]))   # sorted, as np.unique
+    """Drop points no triangle uses; returns (used point indices (n',) ascending, as
+    np.unique gives them, and the triangles (T, 3) re-indexed into them). One kernel pass
+    marks, numbers and re-indexes (pipeline/_steps.pyx)."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    if tri.size and (tri.min() < 0 or tri.max() >= xy.shape[0]):
+        raise ValueError(f"triangle indices must lie in [0, {xy.shape[0]}), got {tri.min()}..{tri.max()}")
     remap = np.full(xy.shape[0], -1, dtype=np.int64)
-    remap[used] = np.arange(used.size)
-    return used, remap[triangles]
+    local = np.empty(tri.shape, dtype=np.int64)
+    kernel.renumber(tri.reshape(-1, 3), remap, local.reshape(-1, 3))
+    return np.flatnonzero(remap >= 0), local
 
 
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,
