@@ -365,19 +365,23 @@ def test_position_groups_match_a_dictionary_of_positions():
         rows = members[(x[f] + 0.0, y[f])]
         assert np.flatnonzero(group == g).tolist() == rows
         assert z_range[g] == max(z[rows]) - min(z[rows])
-    assert np.all(np.diff(x[first]) >= 0)                     # groups in x order, as _spacing needs
+    assert np.all(np.diff(x[first]) >= 0)                     # groups in (x, y) order
 
 
-@pytest.mark.parametrize("sparse", [0, 2000])
-def test_spacing_is_the_3d_tree_median_bit_for_bit(sparse):
-    """A sparse layer over a dense one: its plane neighbours are all in the other layer."""
+@pytest.mark.parametrize("sparse, shape", [(0, "square"), (2000, "square"), (0, "corridor"), (0, "columns")])
+def test_spacing_is_the_3d_tree_median_bit_for_bit(sparse, shape):
+    """A sparse layer over a dense one (its plane neighbours are all in the other layer), a
+    corridor along y and a grid of tied x columns (the strips' awkward shapes)."""
     from c1mesh.stages.height_field import _spacing, kd_tree as _tree
     rng = np.random.default_rng(6)
     xy = rng.random((20000 + sparse, 2))
-    z = np.sin(4 * xy[:, 0]) * 0.1
+    if shape == "corridor":
+        xy[:, 0] *= 0.01
+    if shape == "columns":
+        xy = np.stack(np.meshgrid(np.arange(8.0), np.linspace(0, 1, 2500)), -1).reshape(-1, 2)
+    z = np.sin(4 * xy[:, 0]) * 0.1 + np.cos(3 * xy[:, 1]) * 0.05
     z[:sparse] += 0.3
     pts = np.column_stack([xy, z])
-    pts = pts[np.argsort(pts[:, 0], kind="stable")]
     every = np.ones(len(pts), dtype=bool)
     some = np.arange(len(pts)) % 7 == 3
     for sample in (every, some):

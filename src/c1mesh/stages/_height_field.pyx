@@ -170,40 +170,84 @@ def position_groups(const double[:, ::1] local, const double[:, ::1] gradients,
     return g + 1
 
 
+cdef double _search_run(const double *x, const double *y, const double *z, const int64_t *order,
+                        Py_ssize_t start, Py_ssize_t stop, int64_t p, double best) noexcept nogil:
+    """The least of best and the squared 3D distances (dx·dx + dy·dy + dz·dz) from point p to
+    the points order[start:stop] (one strip, sorted by y) other than p: binary search for
+    y[p], then walk up and down while dy·dy alone does not exceed the best (every point
+    farther along is farther)."""
+    cdef Py_ssize_t lo = start, hi = stop, mid, j
+    cdef int64_t q
+    cdef double dx, dy, dz, d2
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if y[order[mid]] < y[p]:
+            lo = mid + 1
+        else:
+            hi = mid
+    j = lo
+    while j < stop:
+        q = order[j]
+        dy = y[q] - y[p]
+        if dy * dy > best:
+            break
+        if q != p:
+            dx = x[q] - x[p]
+            dz = z[q] - z[p]
+            d2 = dx * dx + dy * dy + dz * dz
+            best = d2 if d2 < best else best
+        j += 1
+    j = lo - 1
+    while j >= start:
+        q = order[j]
+        dy = y[q] - y[p]
+        if dy * dy > best:
+            break
+        if q != p:
+            dx = x[q] - x[p]
+            dz = z[q] - z[p]
+            d2 = dx * dx + dy * dy + dz * dz
+            best = d2 if d2 < best else best
+        j -= 1
+    return best
+
+
 def nearest_distances(const double[::1] x, const double[::1] y, const double[::1] z,
-                      const int64_t[::1] query, double[::1] out):
+                      const int64_t[::1] order, const int64_t[::1] starts, const double[::1] low,
+                      const double[::1] high, const int64_t[::1] query, const int64_t[::1] query_run,
+                      double[::1] out):
     """out (q,): the 3D distance from each point query[k] (q,) to its nearest other point of
-    x, y, z (m,), which must be sorted by x: sqrt of the least dx·dx + dy·dy + dz·dz, summed
-    in that order as cKDTree does (sqrt is monotone: the least root is the root of the
-    least sum). The search walks outwards in x and stops where dx·dx alone exceeds the best
-    sum (every later point is farther). inf when there is no other point."""
-    cdef Py_ssize_t q = query.shape[0], m = x.shape[0], k
-    cdef int64_t p, j
-    cdef double best, dx, dy, dz, d2
+    x, y, z (m,): sqrt of the least dx·dx + dy·dy + dz·dz, summed in that order as cKDTree
+    does (sqrt is monotone: the least root is the root of the least sum); inf when there is
+    no other point. The points come in strips of x: order (m,) sorts them by (strip, y),
+    starts (R + 1,) bounds each strip's run of order, low and high (R,) its least and
+    largest x; query_run (q,) is the run of each query point. The search visits the runs
+    outwards from the query's own and stops on a side where the next run's x bound alone
+    is farther than the best (`_search_run` within a run)."""
+    cdef Py_ssize_t q = query.shape[0], R = low.shape[0], k, r
+    cdef int64_t p
+    cdef double best, dx
+    if x.shape[0] == 0:
+        return
     with nogil:
         for k in range(q):
             p = query[k]
-            best = INFINITY
-            j = p + 1
-            while j < m:
-                dx = x[j] - x[p]
+            best = _search_run(&x[0], &y[0], &z[0], &order[0], starts[query_run[k]],
+                               starts[query_run[k] + 1], p, INFINITY)
+            r = query_run[k] - 1
+            while r >= 0:
+                dx = x[p] - high[r]
                 if dx * dx > best:
                     break
-                dy = y[j] - y[p]
-                dz = z[j] - z[p]
-                d2 = dx * dx + dy * dy + dz * dz
-                best = d2 if d2 < best else best
-                j += 1
-            j = p - 1
-            while j >= 0:
-                dx = x[j] - x[p]
+                best = _search_run(&x[0], &y[0], &z[0], &order[0], starts[r], starts[r + 1], p, best)
+                r -= 1
+            r = query_run[k] + 1
+            while r < R:
+                dx = low[r] - x[p]
                 if dx * dx > best:
                     break
-                dy = y[j] - y[p]
-                dz = z[j] - z[p]
-                d2 = dx * dx + dy * dy + dz * dz
-                best = d2 if d2 < best else best
-                j -= 1
+                best = _search_run(&x[0], &y[0], &z[0], &order[0], starts[r], starts[r + 1], p, best)
+                r += 1
             out[k] = sqrt(best)
 
 

@@ -241,9 +241,10 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, index: np.ndarray
         raise InputError(f"the points occupy only {first.size} distinct positions in the plane; "
                          "a height field needs at least 3")
     sample = spacing_sample(index[first], first.size)
-    spacing = _spacing(x, y, z if common_metric else np.zeros(first.size), sample)
+    strips = strip_index(x, y, _mean_spacing(x, y))
+    spacing = _spacing(x, y, z if common_metric else np.zeros(first.size), sample, strips)
     bad, root = stacked_positions(x, y, z, gx, gy, groups.z_range, spacing, common_metric,
-                                  merge_radius=merge_tol * spacing, rank=first)
+                                  merge_radius=merge_tol * spacing, rank=first, strips=strips)
     stacked = int(np.count_nonzero(bad[groups.group]))
     check_stacking(stacked, local.shape[0], max_stacked, frame.axes[2])
     kept = np.zeros(local.shape[0], dtype=bool)          # ascending without a sort
@@ -291,9 +292,8 @@ def _row_norms(a: np.ndarray) -> np.ndarray:
 
 def position_groups(local: np.ndarray, gradients: np.ndarray) -> PositionGroups:
     """The groups of points local (n, 3) with gradients (n, 2) that share an exact plane
-    position (x, y) (-0.0 equals 0.0), numbered in (x, y) order, so that the groups' x
-    ascends, which `_spacing` needs. The kernel (stages/_height_field.pyx) sorts by
-    (x, y, index) (`sort_xy`) and walks the runs."""
+    position (x, y) (-0.0 equals 0.0), numbered in (x, y) order. The kernel
+    (stages/_height_field.pyx) sorts by (x, y, index) (`sort_xy`) and walks the runs."""
     local = np.ascontiguousarray(local, dtype=np.float64)
     gradients = np.ascontiguousarray(gradients, dtype=np.float64)
     n = local.shape[0]
@@ -334,8 +334,8 @@ rounding would approach the margin (a far outlier widens the strips, it does not
 
 def stacked_positions(x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarray, gy: np.ndarray,
                       z_range: np.ndarray, spacing: float, common_metric: bool = True,
-                      merge_radius: float = -1.0, rank: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      merge_radius: float = -1.0, rank: np.ndarray | None = None,
+                      strips: Strips | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Which distinct plane positions are stacked, and which merge.
 
     x, y, z, gx, gy (m,): the distinct positions (the first point of each group of exact
@@ -348,10 +348,10 @@ def stacked_positions(x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarra
 
     Returns (bad (m,) bool, root (m,) int64: for each position, the position of least
     rank (m,) (default: index) among those it merges with; itself when it merges with
-    none). The kernel (stages/_height_field.pyx) finds the pairs in strips of x about h
-    wide, sorted by y. On a tile of a survey, give the positions within h of its cell:
-    the flags of its own positions are then those of the whole survey
-    (c1mesh.survey.tiled_heights).
+    none). The kernel (stages/_height_field.pyx) finds the pairs in strips of x at least
+    h wide (`strips` when they are, and at most twice that; else made here), sorted by y.
+    On a tile of a survey, give the positions within h of its cell: the flags of its own
+    positions are then those of the whole survey (c1mesh.survey.tiled_heights).
     """
     x, y, z, gx, gy = (np.ascontiguousarray(c, dtype=np.float64) for c in (x, y, z, gx, gy))
     m = x.size
@@ -360,24 +360,57 @@ def stacked_positions(x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarra
     if m == 0:
         return bad, root
     window = spacing * (1 + STRIP_MARGIN)
-    strip = _strips(x, window)
-    order = np.arange(m, dtype=np.int64)
-    _stable_sort(order, y, kernel.sort_by_float)
-    _stable_sort(order, strip, kernel.sort_by_int)
+    if strips is None or not window <= strips.width <= 2 * window:
+        strips = strip_index(x, y, window)
     slope = np.sqrt(gx * gx + gy * gy)                  # np.linalg.norm of the (gx, gy) rows, bit for bit
     rank = np.arange(m, dtype=np.int64) if rank is None else np.ascontiguousarray(rank, dtype=np.int64)
-    kernel.close_pairs(x, y, z, slope, strip, order, spacing * spacing, window, STACK_MARGIN * spacing,
-                       merge_radius, common_metric, rank, bad.view(np.uint8), root)
+    kernel.close_pairs(x, y, z, slope, strips.strip, strips.order, spacing * spacing, window,
+                       STACK_MARGIN * spacing, merge_radius, common_metric, rank, bad.view(np.uint8), root)
     return bad, root
 
 
-def _strips(x: np.ndarray, width: float) -> np.ndarray:
-    """(m,) int64 numbers of strips of x at least `width` wide (STRIPS_MAX at most)."""
+@dataclass
+class Strips:
+    """Points (m,) in strips of x, sorted by (strip, y): near points are in the same or
+    the next strips and near in y (the kernels' index; `strip_index`).
+
+    width:  the strips' width (x's unit).
+    strip:  (m,) int64 each point's strip number (ascending with x).
+    order:  (m,) int64 the points by (strip, y, index).
+    starts: (R + 1,) int64 where each of the R occupied strips begins in order, and m.
+    """
+
+    width: float
+    strip: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+
+
+def strip_index(x: np.ndarray, y: np.ndarray, width: float) -> Strips:
+    """Strips of points x, y (m >= 1,) at least `width` wide (wider where STRIPS_MAX
+    strips would not span x), by two stable radix sorts (y, then strip number)."""
     low = x.min()
-    width = max(width, float(x.max() - low) / STRIPS_MAX)
-    if not width > 0:
-        return np.zeros(x.size, dtype=np.int64)
-    return np.floor((x - low) / width).astype(np.int64)
+    width = max(float(width), float(x.max() - low) / STRIPS_MAX)
+    if width > 0:
+        strip = np.floor((x - low) / width).astype(np.int64)
+    else:                                                 # one point, or all on one x
+        strip = np.zeros(x.size, dtype=np.int64)
+    order = np.arange(x.size, dtype=np.int64)
+    _stable_sort(order, y, kernel.sort_by_float)
+    _stable_sort(order, strip, kernel.sort_by_int)
+    sorted_strip = strip[order]
+    starts = np.concatenate([[0], np.flatnonzero(sorted_strip[1:] != sorted_strip[:-1]) + 1, [x.size]])
+    return Strips(width, strip, order, starts.astype(np.int64))
+
+
+def _mean_spacing(x: np.ndarray, y: np.ndarray) -> float:
+    """sqrt(bounding box area / points) of x, y (m,): the spacing of points spread evenly
+    over their box, the strips' width for the nearest-neighbour search (a corridor along
+    y gets strips as narrow as its spacing, where one slab of x would hold most points)."""
+    dx, dy = float(np.ptp(x)), float(np.ptp(y))
+    if dx > 0 and dy > 0:
+        return float(np.sqrt(dx * dy / x.size))
+    return max(dx, dy) / x.size
 
 
 def check_stacking(stacked: int, points: int, max_stacked: float, axis: np.ndarray) -> None:
@@ -411,19 +444,26 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
-def _spacing(x: np.ndarray, y: np.ndarray, z: np.ndarray, sample: np.ndarray) -> float:
-    """Median 3D nearest-neighbour distance of distinct points x, y, z (n,) each, sorted by
-    x, over the points of `sample` (n,) bool (`spacing_sample`); with z all 0, the plane
-    distance. Each distance is cKDTree's bits (stages/_height_field.pyx).
+def _spacing(x: np.ndarray, y: np.ndarray, z: np.ndarray, sample: np.ndarray,
+             strips: Strips | None = None) -> float:
+    """Median 3D nearest-neighbour distance of distinct points x, y, z (n,) each, over the
+    points of `sample` (n,) bool (`spacing_sample`); with z all 0, the plane distance.
+    strips: a strip_index of x, y (made here when None). Each distance is cKDTree's bits
+    (stages/_height_field.pyx).
 
     3D, not in the plane: where layers overlap, (x, y) neighbours come from the other
     layer and the plane spacing shrinks, which would blunt the stacking test.
     """
-    query = np.flatnonzero(sample)
-    nearest = np.empty(query.size)
     x, y, z = (np.ascontiguousarray(c, dtype=np.float64) for c in (x, y, z))
-    kernel.nearest_distances(x, y, z, query, nearest)
-    return float(np.median(nearest))
+    strips = strip_index(x, y, _mean_spacing(x, y)) if strips is None else strips
+    run_x = x[strips.order]
+    low = np.minimum.reduceat(run_x, strips.starts[:-1])
+    high = np.maximum.reduceat(run_x, strips.starts[:-1])
+    query = np.flatnonzero(sample)
+    query_run = np.searchsorted(strips.strip[strips.order][strips.starts[:-1]], strips.strip[query])
+    nearest = np.empty(query.size)
+    kernel.nearest_distances(x, y, z, strips.order, strips.starts, low, high, query, query_run, nearest)
+    return float(np.median(nearest, overwrite_input=True))          # a temporary
 
 
 def _check_spread(xy: np.ndarray) -> None:
