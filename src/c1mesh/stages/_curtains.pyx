@@ -35,12 +35,12 @@ def residuals(const double[:, ::1] p, const int64_t[:] a, const int64_t[:] b, do
             out[e] = (p[j, 2] - p[i, 2]) - 0.5 * ((p[i, 3] * dx + p[i, 4] * dy) + (p[j, 3] * dx + p[j, 4] * dy))
 
 
-def curtain_masks(const double[:, ::1] p, const int64_t[:, ::1] tri,
+def curtain_masks(const double[:, ::1] p, const int64_t[:, ::1] tri, const uint8_t[::1] alive,
                   double cos2_shadow, double cos2_grazing, double floor, bint view_rules,
                   uint8_t[::1] shadow, uint8_t[::1] grazing, uint8_t[::1] away,
                   uint8_t[::1] thin, Py_ssize_t start, Py_ssize_t stop):
     """The four (T,) 0/1 masks of curtains.curtain_triangles for the triangles start <= t <
-    stop of tri (T, 3) over the point rows p (n, 5)."""
+    stop of tri (T, 3) over the point rows p (n, 5); all 0 for a triangle not alive (T,)."""
     cdef Py_ssize_t t
     cdef int k
     cdef int64_t c0, c1, c2, c, nxt
@@ -48,6 +48,9 @@ def curtain_masks(const double[:, ::1] p, const int64_t[:, ::1] tri,
     cdef bint is_shadow, is_grazing, is_away
     with nogil:
         for t in range(start, stop):
+            if not alive[t]:
+                shadow[t] = grazing[t] = away[t] = thin[t] = 0
+                continue
             c0 = tri[t, 0]
             c1 = tri[t, 1]
             c2 = tri[t, 2]

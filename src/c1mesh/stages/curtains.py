@@ -100,14 +100,17 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
 
 
 def _curtain_masks(rows: np.ndarray, triangles: np.ndarray, shadow_angle: float, grazing_angle: float,
-                   floor: float, view_rules: bool) -> dict[str, np.ndarray]:
-    """curtain_triangles over the point rows (n, 5) (`point_rows`)."""
+                   floor: float, view_rules: bool, alive: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """curtain_triangles over the point rows (n, 5) (`point_rows`); alive (T,) bool: only
+    those triangles can be curtains (None: all), so a TrimmedMesh's source needs no copy
+    of its kept triangles."""
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
     _check_indices(tri, rows.shape[0])
+    live = np.ones(tri.shape[0], dtype=np.uint8) if alive is None else np.ascontiguousarray(alive).view(np.uint8)
     masks = {reason: np.empty(tri.shape[0], dtype=bool) for reason in REASONS}
     cos2 = (np.cos(np.radians(shadow_angle)) ** 2, np.cos(np.radians(grazing_angle)) ** 2)
     flags = [masks[r].view(np.uint8) for r in REASONS]
-    parallel_blocks(lambda part: kernel.curtain_masks(rows, tri, *cos2, float(floor), view_rules,
+    parallel_blocks(lambda part: kernel.curtain_masks(rows, tri, live, *cos2, float(floor), view_rules,
                                                       *flags, part.start, part.stop),
                     tri.shape[0], KERNEL_BLOCK)
     return masks
@@ -168,6 +171,17 @@ def _median_size(values: np.ndarray) -> float:
     return float(np.median(values, overwrite_input=True))
 
 
+def _live_noise_floor(rows: np.ndarray, mesh: TrimmedMesh) -> float:
+    """noise_floor of a TrimmedMesh's kept triangles over the point rows (n, 5): the
+    residuals of every edge of its edge table, then those of the kept edges (the same
+    values in the same order as over mesh.edges(), without copying the (E, 2) edges)."""
+    live = mesh.live_edge_mask()
+    if not live.any():
+        return 0.0
+    edges = mesh.table.edges
+    return _median_size(np.compress(live, _residuals(rows, edges[:, 0], edges[:, 1])))
+
+
 def _residuals(rows: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """limiter.trapezoid_residuals of the edges a→b (E,) over the point rows (n, 5), bit
     for bit: (z_b − z_a) − ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel
@@ -194,17 +208,20 @@ def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triang
     The holes are then re-trimmed where they are (trim.retrim), not the whole mesh again.
     """
     mesh = triangles if isinstance(triangles, TrimmedMesh) else None
-    tri = mesh.triangles if mesh is not None else triangles
     rows = point_rows(xy, z, gradients)
-    floor = _noise_floor(rows, tri, edges=mesh.edges() if mesh is not None else None)
-    masks = _curtain_masks(rows, tri, SHADOW_ANGLE, GRAZING_ANGLE, floor, view_rules)
+    if mesh is None:
+        masks = _curtain_masks(rows, triangles, SHADOW_ANGLE, GRAZING_ANGLE, _noise_floor(rows, triangles),
+                               view_rules)
+    else:              # over the trimmed triangulation, its removed triangles skipped: no copies
+        masks = _curtain_masks(rows, mesh.source, SHADOW_ANGLE, GRAZING_ANGLE, _live_noise_floor(rows, mesh),
+                               view_rules, alive=mesh.alive)
     curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
     removed = dict(trim_report.removed)
     removed.update({reason: int(masks[reason].sum()) for reason in REASONS})
     if not curtain.any():
         return triangles, replace(trim_report, removed=removed)
-    whole = TrimmedMesh.of(xy, tri) if mesh is None else mesh
-    whole, cleanup = retrim(whole, np.flatnonzero(whole.alive)[curtain])
+    whole = TrimmedMesh.of(xy, triangles) if mesh is None else mesh
+    whole, cleanup = retrim(whole, np.flatnonzero(curtain))     # indices into whole.source
     for reason, count in cleanup.items():
         removed[reason] = removed.get(reason, 0) + count
     used = used_points(whole.source, whole.alive, xy.shape[0])

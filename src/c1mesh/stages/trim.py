@@ -130,9 +130,13 @@ class TrimmedMesh:
         return TrimmedMesh(self.source, alive, self.table, self.other, self.neighbours,
                            self.lengths, self.n_points)
 
+    def live_edge_mask(self) -> np.ndarray:
+        """(E,) bool over table.edges: the edges of the kept triangles."""
+        return live_edges(self.table, self.alive, self.other)[1] > 0
+
     def edges(self) -> np.ndarray:
         """(E', 2) the kept triangles' unique edges, lower vertex first, sorted."""
-        return np.compress(live_edges(self.table, self.alive, self.other)[1] > 0, self.table.edges, axis=0)
+        return np.compress(self.live_edge_mask(), self.table.edges, axis=0)
 
     def edge_table(self, used: np.ndarray | None = None) -> EdgeTable:
         """topology.edge_table of the kept triangles (self.triangles), with the vertices
