@@ -149,6 +149,15 @@ def test_a_trimmed_mesh_gives_what_the_triangle_array_gives():
     mesh, mesh_report = trim_mesh(xy, delaunay(xy))
     assert np.array_equal(mesh.triangles, tri) and mesh_report == report
     assert noise_floor(xy, z, gradients, tri, edges=mesh.edges()) == noise_floor(xy, z, gradients, tri)
+    from c1mesh.stages.curtains import _curtain_masks, _live_noise_floor, point_rows
+    rows = point_rows(xy, z, gradients)
+    floor = _live_noise_floor(rows, mesh)
+    assert floor == noise_floor(xy, z, gradients, tri)
+    over_kept = _curtain_masks(rows, tri, 60.0, 60.0, floor, True)   # wide angles: rules fire
+    over_source = _curtain_masks(rows, mesh.source, 60.0, 60.0, floor, True, alive=mesh.alive)
+    for reason, mask in over_kept.items():
+        assert np.array_equal(over_source[reason][mesh.alive], mask) and not over_source[reason][~mesh.alive].any()
+    assert sum(int(mask.sum()) for mask in over_kept.values()) > 100
     kept, report = remove_curtains(xy, z, gradients, tri, report)
     after, mesh_report = remove_curtains(xy, z, gradients, mesh, mesh_report)
     assert report.removed["thinner_than_noise"] > 0

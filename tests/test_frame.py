@@ -338,31 +338,120 @@ def test_lidar_ground_is_a_height_field_and_all_returns_are_not():
 # --- fast paths must give the slow paths' exact bits ----------------------------------------
 
 def test_sort_xy_is_lexsort_with_ties_in_x_and_y():
-    from c1mesh.stages.height_field import _sort_xy
+    from c1mesh.stages.height_field import sort_xy
     rng = np.random.default_rng(5)
-    xy = rng.integers(0, 30, size=(5000, 2)).astype(float)   # many ties, exact duplicates
+    xy = rng.integers(-30, 30, size=(5000, 2)).astype(float)   # many ties, exact duplicates
     xy[::7, 0] = -0.0
     xy[1::7, 0] = 0.0
-    order, xs, ys = _sort_xy(xy)
-    want = np.lexsort((xy[:, 1], xy[:, 0]))
-    assert np.array_equal(order, want)
-    assert np.array_equal(xs, xy[want, 0]) and np.array_equal(ys, xy[want, 1])
+    xy[2::11, 1] = rng.normal(size=xy[2::11].shape[0]) * 1e300    # keys over every exponent
+    assert np.array_equal(sort_xy(xy[:, 0], xy[:, 1]), np.lexsort((xy[:, 1], xy[:, 0])))
 
 
-@pytest.mark.parametrize("sparse", [0, 2000])
-def test_spacing_from_the_plane_tree_is_the_3d_tree_median_bit_for_bit(sparse):
-    """A sparse layer over a dense one: its plane neighbours are all in the other layer,
-    so the exact fallback (a 3D tree for those rows) is needed."""
+def test_position_groups_match_a_dictionary_of_positions():
+    from c1mesh.stages.height_field import position_groups
+    rng = np.random.default_rng(8)
+    x, y = rng.integers(0, 12, size=(2, 600)).astype(float)
+    x[::5] = -0.0                                              # the same position as 0.0
+    z = rng.normal(size=600)
+    gradients = rng.normal(size=(600, 2))
+    groups = position_groups(np.column_stack([x, y, z]), gradients)
+    group, first, z_range = groups.group, groups.first, groups.z_range
+    assert np.array_equal(groups.columns, np.vstack([x[first], y[first], z[first], gradients[first].T]))
+    members = {}
+    for i in range(600):
+        members.setdefault((x[i] + 0.0, y[i]), []).append(i)
+    assert sorted(first.tolist()) == sorted(m[0] for m in members.values())
+    for g, f in enumerate(first):
+        rows = members[(x[f] + 0.0, y[f])]
+        assert np.flatnonzero(group == g).tolist() == rows
+        assert z_range[g] == max(z[rows]) - min(z[rows])
+    assert np.all(np.diff(x[first]) >= 0)                     # groups in (x, y) order
+
+
+@pytest.mark.parametrize("sparse, shape", [(0, "square"), (2000, "square"), (0, "corridor"), (0, "columns")])
+def test_spacing_is_the_3d_tree_median_bit_for_bit(sparse, shape):
+    """A sparse layer over a dense one (its plane neighbours are all in the other layer), a
+    corridor along y and a grid of tied x columns (the strips' awkward shapes)."""
     from c1mesh.stages.height_field import _spacing, kd_tree as _tree
     rng = np.random.default_rng(6)
     xy = rng.random((20000 + sparse, 2))
-    z = np.sin(4 * xy[:, 0]) * 0.1
+    if shape == "corridor":
+        xy[:, 0] *= 0.01
+    if shape == "columns":
+        xy = np.stack(np.meshgrid(np.arange(8.0), np.linspace(0, 1, 2500)), -1).reshape(-1, 2)
+    z = np.sin(4 * xy[:, 0]) * 0.1 + np.cos(3 * xy[:, 1]) * 0.05
     z[:sparse] += 0.3
     pts = np.column_stack([xy, z])
-    plain = float(np.median(_tree(pts).query(pts, k=2)[0][:, 1]))
     every = np.ones(len(pts), dtype=bool)
-    assert _spacing(pts, every, plane_tree=_tree(pts[:, :2])) == plain
-    assert _spacing(pts, every) == plain
+    some = np.arange(len(pts)) % 7 == 3
+    for sample in (every, some):
+        want = float(np.median(_tree(pts).query(pts[sample], k=2)[0][:, 1]))
+        assert _spacing(pts[:, 0], pts[:, 1], pts[:, 2], sample) == want
+    plane = float(np.median(_tree(pts[:, :2]).query(pts[:, :2], k=2)[0][:, 1]))
+    assert _spacing(pts[:, 0], pts[:, 1], np.zeros(len(pts)), every) == plane
+
+
+def _brute_stacked(xy, z, gradients, z_range, h, merge_radius, rank):
+    """stacked_positions by a loop over every pair, with numpy's arithmetic."""
+    m = len(z)
+    bad = z_range > 3.0 * h
+    parent = list(range(m))
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+    for i in range(m):
+        for j in range(i + 1, m):
+            d2 = (xy[i, 0] - xy[j, 0]) ** 2 + (xy[i, 1] - xy[j, 1]) ** 2
+            if d2 > h * h:
+                continue
+            dist = np.sqrt(d2)
+            slope = max(np.hypot(*gradients[i]), np.hypot(*gradients[j]))
+            if abs(z[i] - z[j]) > 3.0 * h + slope * dist:
+                bad[i] = bad[j] = True
+            if dist <= merge_radius:
+                a, b = sorted((root(i), root(j)), key=lambda r: rank[r])
+                parent[b] = a
+    return bad, np.array([root(i) for i in range(m)])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stacked_positions_match_a_loop_over_every_pair(seed):
+    """Clusters closer than the merge radius (chains too), jumps, a far outlier (wide
+    strips), a lattice with distances exactly h (the squared test decides as cKDTree's)."""
+    from c1mesh.stages.height_field import stacked_positions
+    rng = np.random.default_rng(seed)
+    lattice = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2) * 0.25
+    xy = np.concatenate([rng.random((300, 2)) * 3, lattice + 4,
+                         [[1.0, 1.0], [1.0 + 1e-3, 1.0], [1.0 + 2e-3, 1.0], [50.0, -7.0]]])
+    m = len(xy)
+    z = rng.normal(size=m) * 0.2
+    z[:20] += 5.0                                             # a second layer: jumps
+    gradients = rng.normal(size=(m, 2)) * 0.5
+    z_range = np.where(rng.random(m) < 0.05, 2.0, 0.0)
+    rank = rng.permutation(m)
+    h = 0.25
+    bad, root = stacked_positions(*xy.T, z, *gradients.T, z_range, h, merge_radius=1.5e-3, rank=rank)
+    want_bad, want_root = _brute_stacked(xy, z, gradients, z_range, h, 1.5e-3, rank)
+    assert np.array_equal(bad, want_bad) and bad.sum() > 20
+    assert np.array_equal(root, want_root) and root[-3] == root[-4] and root[-2] == root[-4]
+
+
+def test_stacked_positions_flag_pairs_that_cKDTree_finds():
+    """On quantised LiDAR-like positions the pairs within h are query_pairs' pairs."""
+    from c1mesh.stages.height_field import kd_tree as _tree, stacked_positions
+    rng = np.random.default_rng(9)
+    xy = np.unique(np.round(rng.random((4000, 2)) * 20, 2), axis=0)
+    h = float(np.hypot(0.3, 0.4))
+    pairs = _tree(xy).query_pairs(h, output_type="ndarray")
+    z = np.zeros(len(xy))
+    z[pairs[:, 0]] = 10.0 * (pairs[:, 0] % 2)               # a jump across some pairs
+    want = np.zeros(len(xy), dtype=bool)
+    jump = z[pairs[:, 0]] != z[pairs[:, 1]]
+    want[pairs[jump].ravel()] = True
+    bad, _ = stacked_positions(*xy.T, z, *np.zeros((2, len(xy))), np.zeros(len(xy)), h)
+    assert np.array_equal(bad, want) and want.sum() > 100
 
 
 def test_blocked_transforms_equal_one_matrix_product():
@@ -398,14 +487,6 @@ def test_a_little_endian_body_read_as_big_endian_is_an_input_error():
     with pytest.raises(InputError, match="byte order"):
         frame = choose_frame(swapped[finite], None, "z")
         height_field(swapped[finite], np.tile([0.0, 0.0, 1.0], (int(finite.sum()), 1)), frame)
-
-
-def test_nearest_via_plane_treats_missing_neighbours_as_unknown():
-    """cKDTree returns index n for neighbours it cannot find; the helper must not index with it."""
-    from c1mesh.stages.height_field import _nearest_via_plane, kd_tree as _tree
-    pts = np.random.default_rng(2).random((100, 3))
-    expected = _tree(pts).query(pts, k=2)[0][:, 1]
-    np.testing.assert_array_equal(_nearest_via_plane(pts, pts, _tree(pts[:, :2])), expected)
 
 
 # ---- auto axis with coordinates in different units (issue 10) ------------------------------

@@ -306,6 +306,69 @@ def test_mesh_pieces_counts_edge_connected_parts_and_the_area_they_cover():
     assert pieces["area_fraction"] == pytest.approx(2.5 / 38.5)
 
 
+def test_compact_vertices_numbers_the_used_points_as_np_unique_does():
+    from c1mesh.pipeline.steps import compact_vertices
+
+    rng = np.random.default_rng(4)
+    triangles = rng.choice(np.arange(0, 90, 3), size=(40, 3))       # every third point at most
+    used, local = compact_vertices(np.zeros((95, 2)), triangles)
+    want = np.unique(triangles)
+    assert np.array_equal(used, want) and np.array_equal(used[local], triangles)
+    assert np.array_equal(local, np.searchsorted(want, triangles))
+    with pytest.raises(ValueError):
+        compact_vertices(np.zeros((10, 2)), np.array([[0, 1, 10]]))
+
+
+def _pieces_by_search(triangles):
+    """(count, largest) of the triangles joined through shared edges, by a search over a
+    dict of edges: the reference for the union-find kernel."""
+    by_edge = {}
+    for t, tri in enumerate(triangles.tolist()):
+        for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+            by_edge.setdefault((min(a, b), max(a, b)), []).append(t)
+    label = [-1] * len(triangles)
+    sizes = []
+    for start in range(len(triangles)):
+        if label[start] >= 0:
+            continue
+        label[start], stack, size = len(sizes), [start], 0
+        while stack:
+            t = stack.pop()
+            size += 1
+            tri = triangles[t].tolist()
+            for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+                for u in by_edge[(min(a, b), max(a, b))]:
+                    if label[u] < 0:
+                        label[u] = len(sizes)
+                        stack.append(u)
+        sizes.append(size)
+    return len(sizes), max(sizes)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mesh_pieces_kernel_agrees_with_a_search_and_the_shoelace_area(seed):
+    """A Delaunay triangulation of integer points with random triangles removed: many
+    pieces, some touching at a vertex only (separate pieces); areas of integer triangles
+    are exact halves, so the sum is exact."""
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.pipeline.steps import compact_vertices, mesh_pieces
+
+    rng = np.random.default_rng(seed)
+    xy = np.unique(rng.integers(0, 40, size=(400, 2)), axis=0).astype(float)
+    triangles = delaunay(xy)
+    triangles = triangles[rng.random(len(triangles)) < 0.55]
+    used, local = compact_vertices(xy, triangles)
+    pieces = mesh_pieces(xy[used], local)
+    count, largest = _pieces_by_search(local)
+    assert count > 5 and pieces["count"] == count
+    assert pieces["largest_fraction"] == largest / len(local)
+    p = xy[used][local]
+    doubled = np.abs((p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1])
+                     - (p[:, 1, 1] - p[:, 0, 1]) * (p[:, 2, 0] - p[:, 0, 0]))
+    from scipy.spatial import ConvexHull
+    assert pieces["area_fraction"] == pytest.approx(0.5 * doubled.sum() / ConvexHull(xy[used]).volume, rel=1e-12)
+
+
 def test_a_survey_of_height_column_tables_is_fitted_like_the_whole_table(tmp_path):
     """topo.csv cut into a west and an east file: --seamless -o fits them in plan units like
     the one table (the union equals the whole fit, docs/tiles.md), and a survey where only

@@ -471,3 +471,41 @@ def test_bowtie_search_at_given_vertices_finds_what_the_whole_search_finds():
     assert whole.size > 100 and np.array_equal(local, whole)
     at[kept[whole[0]]] = False                             # not looked at: not cut there
     assert not np.isin(whole[0], remove_bowties(kept, alive.copy(), nb, at=at))
+
+
+# ---- the trim's kernels against the numpy expressions they replace -------------------------
+def _random_mesh(seed, keep=0.8):
+    """A Delaunay triangulation of 300 random points, its neighbours and a random alive mask."""
+    rng = np.random.default_rng(seed)
+    xy = rng.random((300, 2))
+    tri = delaunay(xy)
+    return rng, xy, tri, trim_stage.triangle_neighbours(tri, len(xy)), rng.random(len(tri)) < keep
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_each_edge_once_is_the_lengths_where_the_neighbour_is_none_or_later(seed):
+    _, xy, tri, nb, _ = _random_mesh(seed)
+    lengths = trim_stage.edge_lengths(xy, tri)
+    once = trim_stage._each_edge_once(lengths, nb)
+    want = lengths[(nb < 0) | (nb > np.arange(len(nb))[:, None])]
+    assert np.array_equal(once, want)
+    assert once.size == len({tuple(sorted(e)) for t in tri.tolist() for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))})
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_used_points_counts_the_corners_of_live_triangles(seed):
+    _, xy, tri, _, alive = _random_mesh(seed, keep=0.3)
+    want = len(set(tri[alive].ravel().tolist()))
+    assert trim_stage.used_points(tri, alive, len(xy)) == want < len(xy)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_live_rows_and_corner_slots_are_numpys_masks_and_nonzero(seed):
+    rng, xy, tri, _, alive = _random_mesh(seed)
+    at = rng.random(len(xy)) < 0.2
+    assert np.array_equal(trim_stage._live_rows(tri, alive, None), np.flatnonzero(alive))
+    rows = trim_stage._live_rows(tri, alive, at)
+    assert np.array_equal(rows, np.flatnonzero(alive & at[tri].any(axis=1)))
+    t, slot = trim_stage._corner_slots(tri, rows, at)
+    r, want_slot = np.nonzero(at[tri[rows]])
+    assert np.array_equal(t, rows[r]) and np.array_equal(slot, want_slot) and t.size > 10

@@ -3,7 +3,10 @@
 nothing else imports them. Element by element, in the order of operations the wrapper's
 docstrings give (no contraction into fused multiply-adds: the build's -ffp-contract=off),
 over a range [start, stop) without the GIL: the wrapper runs fixed blocks in its threads,
-each output element is written by one block, so the bytes do not depend on the thread count."""
+each output element is written by one block, so the bytes do not depend on the thread count.
+The points come as rows p (n, 5) = (x, y, z, gx, gy): the triangles and edges of a Delaunay
+triangulation reach their points in no order, and a row is one cache line where five
+columns are five."""
 from libc.math cimport isnan, NAN
 from libc.stdint cimport int64_t, uint8_t
 
@@ -15,9 +18,8 @@ cdef inline double _maximum(double a, double b) noexcept nogil:
     return a if a >= b else b
 
 
-def residuals(const double[::1] x, const double[::1] y, const double[::1] z,
-              const double[::1] gx, const double[::1] gy, const int64_t[::1] a,
-              const int64_t[::1] b, double[::1] out, Py_ssize_t start, Py_ssize_t stop):
+def residuals(const double[:, ::1] p, const int64_t[:] a, const int64_t[:] b, double[::1] out,
+              Py_ssize_t start, Py_ssize_t stop):
     """out (E,): the trapezoid residual of each edge a→b (E,), in height units:
     (z_b − z_a) − ½ (g_a·d + g_b·d) with d = xy_b − xy_a and g·d = gx·dx + gy·dy, for the
     edges start <= e < stop."""
@@ -28,18 +30,17 @@ def residuals(const double[::1] x, const double[::1] y, const double[::1] z,
         for e in range(start, stop):
             i = a[e]
             j = b[e]
-            dx = x[j] - x[i]
-            dy = y[j] - y[i]
-            out[e] = (z[j] - z[i]) - 0.5 * ((gx[i] * dx + gy[i] * dy) + (gx[j] * dx + gy[j] * dy))
+            dx = p[j, 0] - p[i, 0]
+            dy = p[j, 1] - p[i, 1]
+            out[e] = (p[j, 2] - p[i, 2]) - 0.5 * ((p[i, 3] * dx + p[i, 4] * dy) + (p[j, 3] * dx + p[j, 4] * dy))
 
 
-def curtain_masks(const double[::1] x, const double[::1] y, const double[::1] z,
-                  const double[::1] gx, const double[::1] gy, const int64_t[:, ::1] tri,
+def curtain_masks(const double[:, ::1] p, const int64_t[:, ::1] tri, const uint8_t[::1] alive,
                   double cos2_shadow, double cos2_grazing, double floor, bint view_rules,
                   uint8_t[::1] shadow, uint8_t[::1] grazing, uint8_t[::1] away,
                   uint8_t[::1] thin, Py_ssize_t start, Py_ssize_t stop):
     """The four (T,) 0/1 masks of curtains.curtain_triangles for the triangles start <= t <
-    stop of tri (T, 3)."""
+    stop of tri (T, 3) over the point rows p (n, 5); all 0 for a triangle not alive (T,)."""
     cdef Py_ssize_t t
     cdef int k
     cdef int64_t c0, c1, c2, c, nxt
@@ -47,6 +48,9 @@ def curtain_masks(const double[::1] x, const double[::1] y, const double[::1] z,
     cdef bint is_shadow, is_grazing, is_away
     with nogil:
         for t in range(start, stop):
+            if not alive[t]:
+                shadow[t] = grazing[t] = away[t] = thin[t] = 0
+                continue
             c0 = tri[t, 0]
             c1 = tri[t, 1]
             c2 = tri[t, 2]
@@ -55,19 +59,19 @@ def curtain_masks(const double[::1] x, const double[::1] y, const double[::1] z,
             for k in range(3):              # edge k: corner k + 1 minus corner k
                 c = c0 if k == 0 else (c1 if k == 1 else c2)
                 nxt = c1 if k == 0 else (c2 if k == 1 else c0)
-                ex = x[nxt] - x[c]
-                ey = y[nxt] - y[c]
-                ez = z[nxt] - z[c]
+                ex = p[nxt, 0] - p[c, 0]
+                ey = p[nxt, 1] - p[c, 1]
+                ez = p[nxt, 2] - p[c, 2]
                 flat2 = ex * ex + ey * ey
                 longest2 = flat2 if k == 0 else _maximum(longest2, flat2)
                 if ez * ez > cos2_shadow * (flat2 + ez * ez):
                     is_shadow = True
-            ux = x[c1] - x[c0]
-            uy = y[c1] - y[c0]
-            uz = z[c1] - z[c0]
-            vx = -(x[c0] - x[c2])
-            vy = -(y[c0] - y[c2])
-            vz = -(z[c0] - z[c2])
+            ux = p[c1, 0] - p[c0, 0]
+            uy = p[c1, 1] - p[c0, 1]
+            uz = p[c1, 2] - p[c0, 2]
+            vx = -(p[c0, 0] - p[c2, 0])
+            vy = -(p[c0, 1] - p[c2, 1])
+            vz = -(p[c0, 2] - p[c2, 2])
             nx = uy * vz - uz * vy
             ny = uz * vx - ux * vz
             nz = ux * vy - uy * vx
@@ -79,7 +83,7 @@ def curtain_masks(const double[::1] x, const double[::1] y, const double[::1] z,
             is_away = False
             for k in range(3):               # a data normal (-g, 1) the plane faces away from
                 c = c0 if k == 0 else (c1 if k == 1 else c2)
-                if nz - nx * gx[c] - ny * gy[c] < 0:
+                if nz - nx * p[c, 3] - ny * p[c, 4] < 0:
                     is_away = True
             is_away = is_away and not is_shadow and not is_grazing
             if not view_rules:

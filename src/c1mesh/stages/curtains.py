@@ -54,7 +54,7 @@ from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine.topology import sort_keys
 from c1mesh.stages import _curtains as kernel
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
-from c1mesh.stages.trim import TrimmedMesh, retrim
+from c1mesh.stages.trim import TrimmedMesh, retrim, used_points
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
@@ -93,16 +93,24 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     (stages/_curtains.pyx) over blocks of KERNEL_BLOCK triangles in the thread knob's threads.
     view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
-    x, y, gx, gy = _columns(xy, gradients)
+    rows = point_rows(xy, z, gradients)
     if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
-        floor = noise_floor(xy, z, gradients, triangles)
+        floor = _noise_floor(rows, triangles)
+    return _curtain_masks(rows, triangles, shadow_angle, grazing_angle, floor, view_rules)
+
+
+def _curtain_masks(rows: np.ndarray, triangles: np.ndarray, shadow_angle: float, grazing_angle: float,
+                   floor: float, view_rules: bool, alive: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """curtain_triangles over the point rows (n, 5) (`point_rows`); alive (T,) bool: only
+    those triangles can be curtains (None: all), so a TrimmedMesh's source needs no copy
+    of its kept triangles."""
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
-    _check_indices(tri, xy.shape[0])
+    _check_indices(tri, rows.shape[0])
+    live = np.ones(tri.shape[0], dtype=np.uint8) if alive is None else np.ascontiguousarray(alive).view(np.uint8)
     masks = {reason: np.empty(tri.shape[0], dtype=bool) for reason in REASONS}
     cos2 = (np.cos(np.radians(shadow_angle)) ** 2, np.cos(np.radians(grazing_angle)) ** 2)
-    z = np.ascontiguousarray(z, dtype=np.float64)
     flags = [masks[r].view(np.uint8) for r in REASONS]
-    parallel_blocks(lambda part: kernel.curtain_masks(x, y, z, gx, gy, tri, *cos2, float(floor), view_rules,
+    parallel_blocks(lambda part: kernel.curtain_masks(rows, tri, live, *cos2, float(floor), view_rules,
                                                       *flags, part.start, part.stop),
                     tri.shape[0], KERNEL_BLOCK)
     return masks
@@ -114,10 +122,14 @@ def _check_indices(indices: np.ndarray, n: int) -> None:
         raise ValueError(f"point indices must lie in [0, {n}), got {indices.min()}..{indices.max()}")
 
 
-def _columns(xy: np.ndarray, gradients: np.ndarray) -> tuple[np.ndarray, ...]:
-    """x, y, gx, gy: contiguous float64 columns of xy (n, 2) and gradients (n, 2)."""
-    return tuple(np.ascontiguousarray(column, dtype=np.float64)
-                 for column in (xy[:, 0], xy[:, 1], gradients[:, 0], gradients[:, 1]))
+def point_rows(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray) -> np.ndarray:
+    """(n, 5) float64 rows (x, y, z, gx, gy) of xy (n, 2), z (n,) and gradients (n, 2): the
+    kernels' view of the points, one cache line each (they reach them in no order)."""
+    rows = np.empty((xy.shape[0], 5))
+    rows[:, :2] = xy
+    rows[:, 2] = z
+    rows[:, 3:] = gradients
+    return rows
 
 
 def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
@@ -132,12 +144,16 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
     edges: the triangles' unique edges (E, 2), lower point first, sorted, when known
     (trim.TrimmedMesh.edges): then no sort is needed.
     """
+    return _noise_floor(point_rows(xy, z, gradients), triangles, edges)
+
+
+def _noise_floor(rows: np.ndarray, triangles: np.ndarray, edges: np.ndarray | None = None) -> float:
+    """noise_floor over the point rows (n, 5) (`point_rows`)."""
     if triangles.shape[0] == 0:
         return 0.0
     if edges is not None:
-        return float(np.median(np.abs(_residuals(xy, z, gradients, np.ascontiguousarray(edges[:, 0]),
-                                                 np.ascontiguousarray(edges[:, 1])))))
-    n = np.int64(xy.shape[0])
+        return _median_size(_residuals(rows, edges[:, 0], edges[:, 1]))
+    n = np.int64(rows.shape[0])
     tri = triangles.astype(np.int64, copy=False)
     keys = np.concatenate([np.minimum(tri[:, a], tri[:, b]) * n + np.maximum(tri[:, a], tri[:, b])
                            for a, b in ((0, 1), (1, 2), (2, 0))])
@@ -145,21 +161,37 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
     first = np.ones(keys.size, dtype=bool)
     np.not_equal(keys[1:], keys[:-1], out=first[1:])
     keys = keys[first]
-    return float(np.median(np.abs(_residuals(xy, z, gradients, keys // n, keys % n))))
+    return _median_size(_residuals(rows, keys // n, keys % n))
 
 
-def _residuals(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, a: np.ndarray,
-               b: np.ndarray) -> np.ndarray:
-    """limiter.trapezoid_residuals of the edges a→b (E,), bit for bit: (z_b − z_a) −
-    ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel over blocks of
-    KERNEL_BLOCK edges in the thread knob's threads (stages/_curtains.pyx)."""
-    x, y, gx, gy = _columns(xy, gradients)
-    a, b = (np.ascontiguousarray(end, dtype=np.int64) for end in (a, b))
+def _median_size(values: np.ndarray) -> float:
+    """Median |values| of a temporary array, selected in place (np.median copies its input
+    otherwise; the selection, hence the value, is the same)."""
+    np.abs(values, out=values)
+    return float(np.median(values, overwrite_input=True))
+
+
+def _live_noise_floor(rows: np.ndarray, mesh: TrimmedMesh) -> float:
+    """noise_floor of a TrimmedMesh's kept triangles over the point rows (n, 5): the
+    residuals of every edge of its edge table, then those of the kept edges (the same
+    values in the same order as over mesh.edges(), without copying the (E, 2) edges)."""
+    live = mesh.live_edge_mask()
+    if not live.any():
+        return 0.0
+    edges = mesh.table.edges
+    return _median_size(np.compress(live, _residuals(rows, edges[:, 0], edges[:, 1])))
+
+
+def _residuals(rows: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """limiter.trapezoid_residuals of the edges a→b (E,) over the point rows (n, 5), bit
+    for bit: (z_b − z_a) − ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel
+    over blocks of KERNEL_BLOCK edges in the thread knob's threads (stages/_curtains.pyx);
+    a and b may be columns of an (E, 2) array (no copies)."""
+    a, b = (end if end.dtype == np.int64 else end.astype(np.int64) for end in (a, b))
     for end in (a, b):
-        _check_indices(end, xy.shape[0])
-    z = np.ascontiguousarray(z, dtype=np.float64)
+        _check_indices(end, rows.shape[0])
     out = np.empty(len(a))
-    parallel_blocks(lambda part: kernel.residuals(x, y, z, gx, gy, a, b, out, part.start, part.stop),
+    parallel_blocks(lambda part: kernel.residuals(rows, a, b, out, part.start, part.stop),
                     len(a), KERNEL_BLOCK)
     return out
 
@@ -176,20 +208,23 @@ def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triang
     The holes are then re-trimmed where they are (trim.retrim), not the whole mesh again.
     """
     mesh = triangles if isinstance(triangles, TrimmedMesh) else None
-    tri = mesh.triangles if mesh is not None else triangles
-    floor = noise_floor(xy, z, gradients, tri, edges=mesh.edges() if mesh is not None else None)
-    masks = curtain_triangles(xy, z, gradients, tri, view_rules=view_rules, floor=floor)
+    rows = point_rows(xy, z, gradients)
+    if mesh is None:
+        masks = _curtain_masks(rows, triangles, SHADOW_ANGLE, GRAZING_ANGLE, _noise_floor(rows, triangles),
+                               view_rules)
+    else:              # over the trimmed triangulation, its removed triangles skipped: no copies
+        masks = _curtain_masks(rows, mesh.source, SHADOW_ANGLE, GRAZING_ANGLE, _live_noise_floor(rows, mesh),
+                               view_rules, alive=mesh.alive)
     curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
     removed = dict(trim_report.removed)
     removed.update({reason: int(masks[reason].sum()) for reason in REASONS})
     if not curtain.any():
         return triangles, replace(trim_report, removed=removed)
-    whole = TrimmedMesh.of(xy, tri) if mesh is None else mesh
-    whole, cleanup = retrim(whole, np.flatnonzero(whole.alive)[curtain])
+    whole = TrimmedMesh.of(xy, triangles) if mesh is None else mesh
+    whole, cleanup = retrim(whole, np.flatnonzero(curtain))     # indices into whole.source
     for reason, count in cleanup.items():
         removed[reason] = removed.get(reason, 0) + count
-    kept = whole.triangles
-    used = np.count_nonzero(np.bincount(kept.ravel(), minlength=xy.shape[0]))
-    return whole if mesh is not None else kept, replace(
-        trim_report, triangles_after=int(kept.shape[0]), removed=removed,
+    used = used_points(whole.source, whole.alive, xy.shape[0])
+    return whole if mesh is not None else whole.triangles, replace(
+        trim_report, triangles_after=int(np.count_nonzero(whole.alive)), removed=removed,
         unreferenced_points=int(xy.shape[0] - used))

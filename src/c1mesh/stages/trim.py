@@ -8,6 +8,7 @@ The memory-bounded survey fit runs the same rules per tile (c1mesh.survey.tiled_
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -108,7 +109,12 @@ class TrimmedMesh:
                  neighbours: np.ndarray, lengths: np.ndarray, n_points: int):
         self.source, self.alive, self.table, self.other = source, alive, table, other
         self.neighbours, self.lengths, self.n_points = neighbours, lengths, n_points
-        self.triangles = np.compress(alive, source, axis=0)     # 3x faster than a 2-d mask
+
+    @cached_property
+    def triangles(self) -> np.ndarray:
+        """source[alive] (T', 3), made when first asked: a trim, its curtains and their
+        re-trim each make a TrimmedMesh, and only the last one's triangles are needed."""
+        return np.compress(self.alive, self.source, axis=0)     # 3x faster than a 2-d mask
 
     @classmethod
     def of(cls, xy: np.ndarray, triangles: ArrayLike) -> "TrimmedMesh":
@@ -124,9 +130,13 @@ class TrimmedMesh:
         return TrimmedMesh(self.source, alive, self.table, self.other, self.neighbours,
                            self.lengths, self.n_points)
 
+    def live_edge_mask(self) -> np.ndarray:
+        """(E,) bool over table.edges: the edges of the kept triangles."""
+        return live_edges(self.table, self.alive, self.other)[1] > 0
+
     def edges(self) -> np.ndarray:
         """(E', 2) the kept triangles' unique edges, lower vertex first, sorted."""
-        return np.compress(live_edges(self.table, self.alive, self.other)[1] > 0, self.table.edges, axis=0)
+        return np.compress(self.live_edge_mask(), self.table.edges, axis=0)
 
     def edge_table(self, used: np.ndarray | None = None) -> EdgeTable:
         """topology.edge_table of the kept triangles (self.triangles), with the vertices
@@ -192,11 +202,9 @@ def _trim(n_points: int, tri: np.ndarray, lengths: np.ndarray, neighbours: np.nd
     front = np.flatnonzero(alive & _on_boundary(alive, neighbours))
     front = front[thin[front]]
     sliver, bowtie = _peel_and_cut(tri, alive, neighbours, thin, front)
-    out = np.compress(alive, tri, axis=0)
-    used = np.count_nonzero(np.bincount(out.ravel(), minlength=n_points))
-    report = TrimReport(triangles_before=int(tri.shape[0]), triangles_after=int(out.shape[0]),
+    report = TrimReport(triangles_before=int(tri.shape[0]), triangles_after=int(np.count_nonzero(alive)),
                         removed={"long_edge": long_edge, "sliver": sliver, "bowtie": bowtie},
-                        max_edge=limit, unreferenced_points=int(n_points - used))
+                        max_edge=limit, unreferenced_points=n_points - used_points(tri, alive, n_points))
     return alive, report
 
 
@@ -271,10 +279,9 @@ def edge_lengths(xy: np.ndarray, tri: np.ndarray, workers: int | None = None) ->
         raise InputError(f"triangles must have shape (T, 3), got {tri.shape}")
     if tri.size and (tri.min() < 0 or tri.max() >= len(xy)):
         raise InputError(f"triangle indices must lie in [0, {len(xy)}), got {tri.min()}..{tri.max()}")
-    x = np.ascontiguousarray(xy[:, 0], dtype=np.float64)
-    y = np.ascontiguousarray(xy[:, 1], dtype=np.float64)
+    rows = np.ascontiguousarray(xy, dtype=np.float64)
     lengths = np.empty(tri.shape)
-    parallel_blocks(lambda part: kernel.edge_lengths(x, y, tri, lengths, part.start, part.stop),
+    parallel_blocks(lambda part: kernel.edge_lengths(rows, tri, lengths, part.start, part.stop),
                     tri.shape[0], KERNEL_BLOCK, threads=workers)
     return lengths
 
@@ -290,8 +297,8 @@ def _edge_limit(lengths: np.ndarray, neighbours: np.ndarray, max_edge) -> float 
     if max_edge is None or (isinstance(max_edge, str) and max_edge.strip().lower() == "none"):
         return None
     if isinstance(max_edge, str) and max_edge.strip().lower() == "auto":
-        once = (neighbours < 0) | (neighbours > np.arange(len(neighbours))[:, None])
-        return float(AUTO_EDGE_FACTOR * np.median(lengths[once])) if once.any() else None
+        once = _each_edge_once(lengths, neighbours)
+        return float(AUTO_EDGE_FACTOR * np.median(once, overwrite_input=True)) if once.size else None  # a temporary
     try:
         limit = float(max_edge)
     except (TypeError, ValueError):
@@ -299,6 +306,43 @@ def _edge_limit(lengths: np.ndarray, neighbours: np.ndarray, max_edge) -> float 
     if not np.isfinite(limit) or limit <= 0:
         raise InputError(f"max_edge must be 'auto', None or a positive length, got {max_edge!r}")
     return limit
+
+
+def _each_edge_once(lengths: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """The lengths (T, 3) of every edge once, from the triangle whose neighbour across it
+    (neighbours (T, 3)) is none or later, in row order: the edges of the triangulation,
+    each once (kernel: stages/_trim.pyx; one pass, no (T, 3) masks)."""
+    once = np.empty(lengths.size)
+    count = kernel.once_lengths(np.ascontiguousarray(lengths, dtype=np.float64),
+                                np.ascontiguousarray(neighbours, dtype=np.int64), once)
+    return once[:count]
+
+
+def used_points(tri: np.ndarray, alive: np.ndarray, n_points: int) -> int:
+    """How many of n_points points the triangles tri (T, 3) that are alive (T,) bool use
+    (kernel: stages/_trim.pyx; no copy of the live triangles)."""
+    used = np.zeros(n_points, dtype=np.uint8)
+    kernel.mark_used(np.ascontiguousarray(tri, dtype=np.int64), np.ascontiguousarray(alive).view(np.uint8),
+                     used)
+    return int(np.count_nonzero(used))
+
+
+def _live_rows(tri: np.ndarray, alive: np.ndarray, at: np.ndarray | None) -> np.ndarray:
+    """Ascending indices of the live triangles of tri (T, 3) (alive (T,) bool) with a
+    corner in at (n,) bool (None: every live one); kernel: stages/_trim.pyx."""
+    rows = np.empty(tri.shape[0], dtype=np.int64)
+    everywhere = at is None
+    marks = np.zeros(1, dtype=np.uint8) if everywhere else np.ascontiguousarray(at).view(np.uint8)
+    return rows[:kernel.live_rows(tri, alive.view(np.uint8), marks, everywhere, rows)]
+
+
+def _corner_slots(tri: np.ndarray, rows: np.ndarray, marked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t, slot): the corners at marked (n,) bool vertices of the triangles rows (R,) of
+    tri (T, 3), by row then slot: np.nonzero(marked[tri[rows]]) with t = rows[r], without
+    the (R, 3) gathers (kernel: stages/_trim.pyx)."""
+    t, slot = np.empty(3 * rows.size, dtype=np.int64), np.empty(3 * rows.size, dtype=np.int64)
+    count = kernel.corner_slots(tri, rows, np.ascontiguousarray(marked).view(np.uint8), t, slot)
+    return t[:count], slot[:count]
 
 
 def _on_boundary(alive: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
@@ -339,25 +383,18 @@ def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
     at: (n,) bool, the vertices to look at (None: all); a tile passes the vertices whose
     whole star it holds.
     """
+    tri = np.ascontiguousarray(tri, dtype=np.int64)
+    neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
     n = tri.max(initial=0) + 1
-    if at is None:
-        live = None
-        open_t, open_k = np.nonzero(alive[:, None] & ((neighbours < 0) | ~alive[neighbours]))
-    else:            # the live triangles at vertices of `at` (all a bowtie there needs), in order
-        at = at[:n]
-        live = np.flatnonzero(alive & (at[tri[:, 0]] | at[tri[:, 1]] | at[tri[:, 2]]))
-        across = neighbours[live]
-        open_r, open_k = np.nonzero((across < 0) | ~alive[across])
-        open_t = live[open_r]
-    ends = np.concatenate([tri[open_t, (open_k + 1) % 3], tri[open_t, (open_k + 2) % 3]])
-    bow = np.bincount(ends, minlength=n) > 2
+    live = _live_rows(tri, alive, None if at is None else at[:n])
+    ends = np.zeros(n, dtype=np.int64)
+    kernel.open_ends(tri, alive.view(np.uint8), neighbours, live, ends)
+    bow = ends > 2
     if at is not None:
-        bow &= at
+        bow &= at[:n]
     if not bow.any():
         return np.zeros(0, dtype=np.int64)
-    live = np.flatnonzero(alive) if live is None else live
-    t, j = np.nonzero(bow[tri[live]])                          # incidences (triangle, slot)
-    t = live[t]
+    t, j = _corner_slots(tri, live, bow)                      # incidences (triangle, slot)
     v = tri[t, j]
     key = v * len(tri) + t
     order = np.argsort(key)

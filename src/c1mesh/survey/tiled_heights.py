@@ -214,8 +214,7 @@ def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
     size, z_range = np.ones(len(records), np.int64), np.zeros(len(records))
     rows = halo_rows(records["index"], shared["index"])
     size[rows[rows >= 0]], z_range[rows[rows >= 0]] = shared["size"][rows >= 0], shared["z_range"][rows >= 0]
-    xy = np.column_stack([records["x"], records["y"]])
-    gradients = np.column_stack([records["gx"], records["gy"]])
-    bad, _ = stacked_positions(xy, records["z"], gradients, z_range, spacing, kd_tree(xy))
-    own = grid.tile_of(xy) == tile
+    bad, _ = stacked_positions(records["x"], records["y"], records["z"], records["gx"], records["gy"],
+                               z_range, spacing)
+    own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
     return int(size[bad & own].sum())

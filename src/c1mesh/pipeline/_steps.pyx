@@ -1,0 +1,88 @@
+# cython: language_level=3
+"""The report's mesh kernels: c1mesh.pipeline.steps wraps them (mesh_pieces), and nothing
+else imports them."""
+from libc.math cimport fabs
+from libc.stdint cimport int64_t
+
+
+cdef inline int64_t _root(int64_t[::1] parent, int64_t t) noexcept nogil:
+    """The root of t's piece, halving the path on the way."""
+    while parent[t] != t:
+        parent[t] = parent[parent[t]]
+        t = parent[t]
+    return t
+
+
+def pieces(const int64_t[:, ::1] tri_edge, const int64_t[::1] owner, int64_t[::1] parent,
+           int64_t[::1] size):
+    """(count, largest): the pieces of the triangles (T,) joined through shared edges, and
+    the triangles in the largest. tri_edge (T, 3): each triangle's edges; owner (E,): one
+    triangle holding each edge, so a triangle that is not its edge's owner is joined to the
+    owner (union-find). parent, size (T,) scratch. One thread."""
+    cdef Py_ssize_t T = tri_edge.shape[0], t
+    cdef int k
+    cdef int64_t a, b, count = 0, largest = 0
+    with nogil:
+        for t in range(T):
+            parent[t] = t
+            size[t] = 0
+        for t in range(T):
+            a = _root(parent, t)
+            for k in range(3):
+                b = owner[tri_edge[t, k]]
+                if b != t:
+                    b = _root(parent, b)
+                    if a != b:                  # join at the lower root
+                        if b < a:
+                            a, b = b, a
+                        parent[b] = a
+        for t in range(T):
+            a = _root(parent, t)
+            if size[a] == 0:
+                count += 1
+            size[a] += 1
+            if size[a] > largest:
+                largest = size[a]
+    return count, largest
+
+
+def doubled_areas(const double[::1] x, const double[::1] y, const int64_t[:, ::1] tri,
+                  double[::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out[t] = |(x1 − x0)(y2 − y0) − (y1 − y0)(x2 − x0)|, twice the area of triangle t of
+    tri (T, 3) over x, y (n,) (corners 0, 1, 2), for start <= t < stop; in the square of
+    xy's unit."""
+    cdef Py_ssize_t t
+    cdef double x0, y0, ux, uy, vx, vy
+    with nogil:
+        for t in range(start, stop):
+            x0 = x[tri[t, 0]]
+            y0 = y[tri[t, 0]]
+            ux = x[tri[t, 1]] - x0
+            uy = y[tri[t, 1]] - y0
+            vx = x[tri[t, 2]] - x0
+            vy = y[tri[t, 2]] - y0
+            out[t] = fabs(ux * vy - uy * vx)
+
+
+def renumber(const int64_t[:, ::1] tri, int64_t[::1] remap, int64_t[:, ::1] out):
+    """Number the points (n,) that the triangles tri (T, 3) use in ascending order:
+    remap (n,), which must start at -1, gets each used point's new number (unused: -1),
+    out (T, 3) the triangles in those numbers. Returns how many points are used. One
+    thread."""
+    cdef Py_ssize_t T = tri.shape[0], n = remap.shape[0], t, v
+    cdef int k
+    cdef int64_t count = 0
+    with nogil:
+        for t in range(T):
+            for k in range(3):
+                remap[tri[t, k]] = 0
+        for v in range(n):
+            if remap[v] == 0:
+                remap[v] = count
+                count += 1
+            else:
+                remap[v] = -1
+        for t in range(T):
+            for k in range(3):
+                out[t, k] = remap[tri[t, k]]
+    return count
