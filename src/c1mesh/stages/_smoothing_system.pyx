@@ -9,7 +9,11 @@ entry is the sum of its triangles' contributions in triangle order, from 0: the 
 which numpy's bincount over the triangles' vertex pairs summed them before. A row block
 writes only its own rows, so the bits do not depend on the blocks' threads.
 """
-from libc.stdint cimport int64_t
+from libc.stdint cimport int32_t, int64_t
+
+ctypedef fused index_t:
+    int32_t
+    int64_t
 
 
 def incidence(const int64_t[:, ::1] triangles, int64_t[::1] start, int64_t[::1] corner):
@@ -81,8 +85,9 @@ def neighbours(const int64_t[:, ::1] triangles, const int64_t[::1] start, const 
 
 
 def csr_indices(const int64_t[::1] row_start, const int64_t[::1] cols, Py_ssize_t first,
-                Py_ssize_t stop, int64_t[::1] out):
-    """The CSR column indices of rows 3v, 3v + 1, 3v + 2 for v in [first, stop) into out:
+                Py_ssize_t stop, index_t[::1] out):
+    """The CSR column indices of rows 3v, 3v + 1, 3v + 2 for v in [first, stop) into out
+    (int32 or int64, the matrix's index type):
     each row lists 3w, 3w + 1, 3w + 2 for v's neighbours w (cols[row_start[v]:row_start[v + 1]])."""
     cdef Py_ssize_t v, i, p
     cdef int c, d
@@ -92,7 +97,7 @@ def csr_indices(const int64_t[::1] row_start, const int64_t[::1] cols, Py_ssize_
             for c in range(3):
                 for i in range(row_start[v], row_start[v + 1]):
                     for d in range(3):
-                        out[p] = 3 * cols[i] + d
+                        out[p] = <index_t> (3 * cols[i] + d)
                         p += 1
 
 

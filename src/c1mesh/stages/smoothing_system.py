@@ -90,8 +90,9 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     pattern = vertex_pattern(tri, n)
     row_start, cols = pattern.row_start, pattern.cols
     nnz = 9 * cols.size
+    index = np.int32 if max(nnz, 3 * n) < 2**31 else np.int64
     data = np.zeros(nnz)
-    indices = np.empty(nnz, dtype=np.int64)
+    indices = np.empty(nnz, dtype=index)                              # written as the matrix keeps it
 
     def rows(part: slice) -> None:
         kernel.scatter(tri, pattern.start, pattern.corner, row_start, cols, blocks,
@@ -101,8 +102,7 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     indptr = np.empty(3 * n + 1, dtype=np.int64)
     indptr[:-1].reshape(n, 3)[...] = 9 * row_start[:-1, None] + 3 * np.arange(3) * np.diff(row_start)[:, None]
     indptr[-1] = nnz
-    index = np.int32 if max(nnz, 3 * n) < 2**31 else np.int64
-    return sp.csr_matrix((data, indices.astype(index), indptr.astype(index)), shape=(3 * n, 3 * n))
+    return sp.csr_matrix((data, indices, indptr.astype(index)), shape=(3 * n, 3 * n))
 
 
 def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, scheme: ShapeTuple,
