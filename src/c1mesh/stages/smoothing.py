@@ -260,13 +260,20 @@ def _directions(points, triangles, directions):
         if not (cross**2 > _DEGENERACY**2 * (u**2).sum(1) * (vec**2).sum(1)).all():
             raise SmoothingError("a direction is zero or parallel to its edge; it must cross the edge")
     dirs = triangle_directions(points, triangles, table.tri_edge, u, table.edges)
-    corners = points[triangles]
-    _, det = rsd.barycentric_gradients(corners)
-    e1 = np.hypot(*(corners[:, 1] - corners[:, 0]).T)
-    e2 = np.hypot(*(corners[:, 2] - corners[:, 0]).T)
-    if not (np.abs(det) > _DEGENERACY * e1 * e2).all():
+    if not _nondegenerate(points, triangles):
         raise SmoothingError("the mesh has degenerate (zero-area) triangles")
     return dirs
+
+
+def _nondegenerate(points: np.ndarray, triangles: np.ndarray) -> bool:
+    """Whether every triangle's |sin| at its vertex 0 exceeds _DEGENERACY: |det| (twice
+    the area, rsd.barycentric_gradients' formula) against the product of the two edge
+    lengths there; G itself is not needed."""
+    x0, y0 = points[triangles[:, 0], 0], points[triangles[:, 0], 1]
+    ax, ay = points[triangles[:, 1], 0] - x0, points[triangles[:, 1], 1] - y0
+    bx, by = points[triangles[:, 2], 0] - x0, points[triangles[:, 2], 1] - y0
+    det = ax * by - ay * bx
+    return bool((np.abs(det) > _DEGENERACY * np.hypot(ax, ay) * np.hypot(bx, by)).all())
 
 
 # ------------------------------------------------------------------------ the fit
