@@ -148,3 +148,45 @@ def test_vertex_order_is_cholmods_metis_order_of_the_adjacency(monkeypatch):
     got = vertex_order(tri, n)
     assert np.array_equal(got, want)
     assert np.array_equal(np.sort(got), np.arange(n))
+
+
+# ------------------------------------------------------------------ input checks
+def _python_checks(points, triangles, edges, u, degeneracy=1e-12):
+    """The checks as plain Python loops: every direction crosses its edge, every
+    triangle's |sin| at vertex 0 exceeds degeneracy."""
+    import math
+    crosses = True
+    for (a, b), (ux, uy) in zip(edges, u):
+        vx, vy = points[b] - points[a]
+        cross = ux * vy - uy * vx
+        crosses &= bool(cross * cross > degeneracy**2 * (ux * ux + uy * uy) * (vx * vx + vy * vy))
+    fine = True
+    for t in triangles:
+        ax, ay = points[t[1]] - points[t[0]]
+        bx, by = points[t[2]] - points[t[0]]
+        fine &= bool(abs(ax * by - ay * bx) > degeneracy * math.hypot(ax, ay) * math.hypot(bx, by))
+    return crosses, fine
+
+
+@pytest.mark.parametrize("case", ["good", "parallel", "zero", "sliver", "nan"])
+def test_input_checks_agree_with_python_loops(case, monkeypatch):
+    from c1mesh.stages import smoothing
+    pts, tri, _ = shuffled_mesh(6, seed=7)
+    table = edge_table(tri, pts.shape[0])
+    u = np.random.default_rng(7).normal(size=table.edges.shape)
+    if case == "parallel":
+        u[5] = pts[table.edges[5, 1]] - pts[table.edges[5, 0]]
+    elif case == "zero":
+        u[-1] = 0.0
+    elif case == "sliver":
+        a, b, c = tri[3]
+        pts = pts.copy()
+        pts[c] = pts[a] + 0.5 * (pts[b] - pts[a])             # collinear: zero area
+    elif case == "nan":
+        pts = pts.copy()
+        pts[tri[-1, 0], 0] = np.nan
+    monkeypatch.setattr(smoothing, "CHECK_BLOCK", 4)          # many blocks, the bad one among them
+    crosses, fine = _python_checks(pts, tri, table.edges, u)
+    assert smoothing._nondegenerate(pts, tri) == fine
+    assert smoothing._all_blocks(smoothing.kernel.directions_cross, pts, table.edges, u) == crosses
+    assert (crosses and fine) == (case == "good")
