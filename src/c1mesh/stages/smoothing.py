@@ -27,11 +27,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from c1mesh.core.threads import limit
+from c1mesh.core.threads import limit, parallel_blocks
 from c1mesh.engine import rsd
 from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table
+from c1mesh.stages import _smoothing as kernel
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
                                             energy_blocks, energy_tensor,
                                             triangle_directions)
@@ -85,6 +86,8 @@ benchmarks.smoothing_limits gradient-data all 0.3 0.5), heights only → 0.5: Au
 1.009, 4_6_crop 1.016 → 1.012, synthetic 2 cm terrains 1.18 → 1.09-1.10. Weight 1
 undersmoothed where the CV chooses strong smoothing (docs/smoothing.md)."""
 _DEGENERACY = 1e-12
+CHECK_BLOCK = 1 << 16
+"""Edges or triangles per block of the input checks (_directions)."""
 
 
 def gradient_data_weight(normal_source: str, gradient_source: str) -> float:
@@ -306,18 +309,34 @@ def _directions(points, triangles, directions):
         if u.shape != table.edges.shape or not np.isfinite(u).all():
             raise SmoothingError(f"directions must be a finite ({table.edges.shape[0]}, 2) "
                                  f"array, got shape {u.shape}")
-        vec = points[table.edges[:, 1]] - points[table.edges[:, 0]]
-        cross = u[:, 0] * vec[:, 1] - u[:, 1] * vec[:, 0]
-        if not (cross**2 > _DEGENERACY**2 * (u**2).sum(1) * (vec**2).sum(1)).all():
+        if not _all_blocks(kernel.directions_cross, points, table.edges, u):
             raise SmoothingError("a direction is zero or parallel to its edge; it must cross the edge")
     dirs = triangle_directions(points, triangles, table.tri_edge, u, table.edges)
-    corners = points[triangles]
-    _, det = rsd.barycentric_gradients(corners)
-    e1 = np.hypot(*(corners[:, 1] - corners[:, 0]).T)
-    e2 = np.hypot(*(corners[:, 2] - corners[:, 0]).T)
-    if not (np.abs(det) > _DEGENERACY * e1 * e2).all():
+    if not _nondegenerate(points, triangles):
         raise SmoothingError("the mesh has degenerate (zero-area) triangles")
     return dirs
+
+
+def _nondegenerate(points: np.ndarray, triangles: np.ndarray) -> bool:
+    """Whether every triangle's |sin| at its vertex 0 exceeds _DEGENERACY: |det| (twice
+    the area, rsd.barycentric_gradients' formula) against the product of the two edge
+    lengths there (kernel: _smoothing.nondegenerate)."""
+    return _all_blocks(kernel.nondegenerate, points, triangles)
+
+
+def _all_blocks(check, points: np.ndarray, rows: np.ndarray, *arrays: np.ndarray) -> bool:
+    """Whether check(points (N, 2), rows (R, k) int64, *arrays, _DEGENERACY, first, stop)
+    holds on every block of CHECK_BLOCK rows, the blocks in the thread knob's threads."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    arrays = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in arrays)
+    passed = np.zeros(-(-rows.shape[0] // CHECK_BLOCK), dtype=bool)
+
+    def block(part: slice) -> None:
+        passed[part.start // CHECK_BLOCK] = check(points, rows, *arrays, _DEGENERACY,
+                                                  part.start, part.stop)
+    parallel_blocks(block, rows.shape[0], CHECK_BLOCK)
+    return bool(passed.all())
 
 
 # ------------------------------------------------------------------------ the fit

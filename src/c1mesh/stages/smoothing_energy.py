@@ -4,8 +4,9 @@ On a triangle the spline is F = basis(λ) · C with 21 coefficients C that are l
 9 vertex data d = (f0, f1, f2, ∂x f0, ∂y f0, ∂x f1, ∂y f1, ∂x f2, ∂y f2) once the edge
 directions are fixed: C = M d, M (21, 9). `linear_maps` builds M by calling
 c1mesh.engine.rsd.triangle_coefficients with the 9 unit data vectors, so it is exactly the
-code the interpolator evaluates; `block_energy` (the one used) reads the same numbers off
-three such calls and uses M's structure (see there), `block_energy_dense` is the plain
+code the interpolator evaluates; `block_energy` (the one used) computes the same numbers
+(the ratios r_ln and the edge vectors p_i − p_k) in the kernel _smoothing_energy.pyx, a
+triangle at a time, and uses M's structure (see there); `block_energy_dense` is the plain
 M^T E_T M.
 
 The energy ∫_T F_xx² + 2 F_xy² + F_yy² dx = ||H||_F² integrated, H the Hessian in x, is
@@ -41,9 +42,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from c1mesh.core.errors import C1MeshError
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table
+from c1mesh.stages import _smoothing_energy as kernel
 
 N_LOCAL = 9
 """Local unknowns of a triangle: f0, f1, f2, then (∂x f_k, ∂y f_k) for k = 0, 1, 2."""
@@ -239,83 +242,60 @@ def _collected(Q: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix(Z)
 
 
-def _structure(corners: np.ndarray, directions: np.ndarray, G: np.ndarray):
-    """The ratios ρ (T, 6) and g (T, 6, 2) with C = diag(ρ) P c, c = V d: read off three
-    calls of rsd.triangle_coefficients, with unit values (columns 9..14 are then r_ln) and
-    unit x and y gradients (columns 3..8 are then the components of p_i − p_k, the
-    entries of V besides the identity on f: g_ki = A_k·(p_i − p_k))."""
-    T = corners.shape[0]
-    zero_f, zero_g = np.zeros((T, 3)), np.zeros((T, 3, 2))
-    ratios = rsd.triangle_coefficients(corners, np.ones((T, 3)), zero_g, directions, G)[:, 9:15]
-    g = np.empty((T, 6, 2))
-    for c in range(2):
-        unit = np.zeros((T, 3, 2))
-        unit[:, :, c] = 1.0
-        g[:, :, c] = rsd.triangle_coefficients(corners, zero_f, unit, directions, G)[:, 3:9]
-    return ratios, g
+def _z_terms(Z: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Z's nonzeros as the kernel takes them: rows and columns (int64) and values, ordered
+    by their place within their row, then by row (every row's first, every row's second,
+    ...). Each row's terms stay in CSR order, so its sum is rounded as scipy's Z @ x
+    rounds it, while consecutive terms belong to different rows and their sums can run
+    side by side rather than one long chain of dependent additions."""
+    counts = np.diff(Z.indptr)
+    rows = np.repeat(np.arange(Z.shape[0]), counts)
+    place = np.arange(Z.nnz) - np.repeat(Z.indptr[:-1], counts)
+    order = np.argsort(place, kind="stable")
+    return (rows[order].astype(np.int64), Z.indices[order].astype(np.int64),
+            np.ascontiguousarray(Z.data[order], dtype=np.float64))
 
 
-class _Workspace:
-    """Buffers of `block_energy` for chunks of up to T triangles, reused chunk after chunk:
-    touching fresh memory costs more here than the arithmetic on it."""
+def _kernel_blocks(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
+                   Z: sp.csr_matrix) -> np.ndarray:
+    """(T, 9, 9) energy blocks by the kernel (_smoothing_energy.energy_blocks) over blocks
+    of _CHUNK triangles in the thread knob's threads; each triangle's arithmetic is its
+    own, so the bits do not depend on the thread count."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    dirs = np.ascontiguousarray(dirs, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2 or triangles.ndim != 2 or triangles.shape[1] != 3 \
+            or dirs.shape != (triangles.shape[0], 3, 2):
+        raise ValueError("points (N, 2), triangles (T, 3) and dirs (T, 3, 2) expected")
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= points.shape[0]):
+        raise ValueError("triangle vertex indices out of range")
+    if Z.shape != (45, 6 * len(_MONOMIALS)) or not Z.has_canonical_format:
+        raise ValueError("Z must be _collected's canonical (45, 168) CSR matrix")
+    rows, cols, values = _z_terms(Z)
+    out = np.empty((triangles.shape[0], N_LOCAL, N_LOCAL))
 
-    def __init__(self, T: int):
-        self.T = T
-        self.r = np.ones((7, T))
-        self.mono = np.empty((len(_MONOMIALS), T))
-        self.features = np.empty((6, len(_MONOMIALS), T))
-        self.Ep = np.empty((9, 9, T))
-        self.right = np.empty((9, 9, T))
-        self.K = np.empty((9, 9, T))
-        self.tmp = np.empty((9, T))
+    def work(part: slice) -> None:
+        kernel.energy_blocks(points, triangles, dirs, rows, cols, values,
+                             part.start, part.stop, out)
+    parallel_blocks(work, triangles.shape[0], _CHUNK)
+    return out
 
 
 def block_energy(corners: np.ndarray, directions: np.ndarray, Q: np.ndarray,
-                 Z: np.ndarray | None = None, out: np.ndarray | None = None,
-                 work: _Workspace | None = None) -> np.ndarray:
+                 Z: sp.csr_matrix | None = None) -> np.ndarray:
     """(T, 9, 9) energy blocks for triangles corners (T, 3, 2), directions (T, 3, 2).
 
     K_T = M^T E_T M with M = diag(ρ) P V taken apart: E'_T = P^T diag(ρ) E_T diag(ρ) P is
-    one sparse product Z (45, 168) @ features (168, T) (`_collected`), then V (the
-    identity on f and the components of p_i − p_k on each vertex's gradient) is applied
-    by row operations. Same result as `block_energy_dense` to round-off. Arrays are
-    component-major (k, T) so every operation runs on contiguous rows; out (T, 9, 9) and
-    work let a caller reuse memory across chunks.
+    one sparse product Z (45, 168) @ features (168,) per triangle (`_collected`), then V
+    (the identity on f and the components of p_i − p_k on each vertex's gradient) is
+    applied by row operations; the kernel _smoothing_energy does it triangle by triangle.
+    Same result as `block_energy_dense` to round-off.
     """
+    corners = np.asarray(corners, dtype=np.float64)
     T = corners.shape[0]
-    work = work if work is not None and work.T == T else _Workspace(T)
-    G, det = rsd.barycentric_gradients(corners)
-    rho, g = _structure(corners, directions, G)
-    r, mono, features = work.r, work.mono, work.features
-    r[1:] = rho.T
-    for i, (a, b) in enumerate(_MONOMIALS):
-        np.multiply(r[a], r[b], out=mono[i])
-    weights = mode_weights(G, det).T
-    for k in range(6):
-        np.multiply(mono, weights[k], out=features[k])
-    upper = (_collected(Q) if Z is None else Z) @ features.reshape(-1, T)   # (45, T)
-    Ep = work.Ep
-    Ep[_UPPER] = upper
-    Ep[_UPPER[1], _UPPER[0]] = upper
-    gx = np.ascontiguousarray(g.transpose(1, 2, 0))                     # (6, 2, T)
-    # c_(3+j) = g_ki = Σ_c g[j, c] A_k,c: apply V on the right, then on the left.
-    right, K, tmp = work.right, work.K, work.tmp
-    right[:, :3] = Ep[:, :3]
-    right[:, 3:] = 0.0
-    for j, (k, _) in enumerate(rsd.PAIRS):
-        for c in range(2):
-            np.multiply(Ep[:, 3 + j], gx[j, c], out=tmp)
-            right[:, 3 + 2 * k + c] += tmp
-    K[:3] = right[:3]
-    K[3:] = 0.0
-    for j, (k, _) in enumerate(rsd.PAIRS):
-        for c in range(2):
-            np.multiply(right[3 + j], gx[j, c], out=tmp)
-            K[3 + 2 * k + c] += tmp
-    if out is None:
-        out = np.empty((T, 9, 9))
-    out[...] = K.transpose(2, 0, 1)
-    return out
+    triangles = np.arange(3 * T, dtype=np.int64).reshape(T, 3)
+    return _kernel_blocks(corners.reshape(-1, 2), triangles, directions,
+                          _collected(Q) if Z is None else Z)
 
 
 def block_energy_dense(corners: np.ndarray, directions: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -345,17 +325,10 @@ def energy_blocks(points, triangles, directions=None, scheme="sextic") -> np.nda
 
 def energy_blocks_of(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
                      scheme: ShapeTuple) -> np.ndarray:
-    """`energy_blocks` from per-triangle directions dirs (T, 3, 2), in chunks."""
-    Q = energy_tensor(scheme)
+    """`energy_blocks` from per-triangle directions dirs (T, 3, 2): (T, 9, 9)."""
     named = scheme.name in ("sextic", "quintic", "ex39b") and get_scheme(scheme.name) is scheme
-    Z = _collected_cached(scheme.name) if named else _collected(Q)
-    T = triangles.shape[0]
-    out = np.empty((T, N_LOCAL, N_LOCAL))
-    work = _Workspace(min(T, _CHUNK))
-    for start in range(0, T, _CHUNK):
-        part = slice(start, start + _CHUNK)
-        block_energy(points[triangles[part]], dirs[part], Q, Z, out=out[part], work=work)
-    return out
+    Z = _collected_cached(scheme.name) if named else _collected(energy_tensor(scheme))
+    return _kernel_blocks(points, triangles, dirs, Z)
 
 
 def local_dofs(triangles: np.ndarray) -> np.ndarray:

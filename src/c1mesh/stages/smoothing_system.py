@@ -23,62 +23,86 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from c1mesh.core.threads import blas_threads
+from c1mesh.core.threads import blas_threads, parallel_blocks
 from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple
-from c1mesh.engine.topology import sort_keys
 from c1mesh.stages.smoothing_energy import (N_LOCAL, SmoothingError, energy_blocks_of,
                                             linear_maps, local_dofs)
+from c1mesh.stages import _smoothing_system as kernel
 
 _CHUNK = 1 << 15
+
+
+ROW_BLOCK = 1 << 14
+"""Vertices per block of the assembly's rows (the blocks run in the thread knob's threads)."""
+
+
+@dataclass
+class VertexPattern:
+    """The vertex adjacency of a mesh, each vertex with itself and its neighbours (N, N CSR
+    pattern): v's are cols[row_start[v]:row_start[v + 1]], increasing. Also the corners at
+    each vertex, corner[start[v]:start[v + 1]] (3 t + k, increasing), from which it is made."""
+
+    start: np.ndarray
+    corner: np.ndarray
+    row_start: np.ndarray
+    cols: np.ndarray
+
+
+def vertex_pattern(triangles: np.ndarray, n: int) -> VertexPattern:
+    """The VertexPattern of n vertices and triangles (T, 3) int64 (kernel: the corners by
+    one counting sort, then each block of rows sorts its vertices' neighbours twice, to
+    count them and to write them)."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    if tri.size and (tri.min() < 0 or tri.max() >= n):
+        raise ValueError("triangle vertex indices out of range")
+    start = np.zeros(n + 1, dtype=np.int64)
+    corner = np.empty(tri.size, dtype=np.int64)
+    kernel.incidence(tri, start, corner)
+    room = 3 * int(np.diff(start).max(initial=0)) + 1
+    degree = np.empty(n, dtype=np.int64)
+    parallel_blocks(lambda part: kernel.degrees(tri, start, corner, part.start, part.stop,
+                                                np.empty(room, dtype=np.int64), degree),
+                    n, ROW_BLOCK)
+    row_start = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(degree, out=row_start[1:])
+    cols = np.empty(int(row_start[-1]), dtype=np.int64)
+    parallel_blocks(lambda part: kernel.neighbours(tri, start, corner, row_start, part.start,
+                                                   part.stop, cols), n, ROW_BLOCK)
+    return VertexPattern(start, corner, row_start, cols)
 
 
 def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
                     scheme: ShapeTuple) -> sp.csr_matrix:
     """K (3N, 3N) CSR, the sum of the triangles' 9 × 9 energy blocks at their unknowns.
 
-    Assembled as 3 × 3 vertex blocks: the pattern is the vertex adjacency (each vertex and
-    its neighbours), each triangle's 9 vertex pairs are located in it by one sort of
-    their 9 T keys, and each of the 9 block components is one bincount, rather than a
-    sort of 81 T coordinate entries.
+    Assembled as 3 × 3 vertex blocks on the pattern of the vertex adjacency
+    (`vertex_pattern`), written straight into CSR by the kernel (_smoothing_system.scatter):
+    row 3v + c lists, for each neighbour w of v in increasing order, the columns 3w,
+    3w + 1, 3w + 2. Each entry is the sum of its triangles' contributions in increasing
+    triangle order from 0, as a bincount over the triangles' vertex pairs sums them; the
+    rows are written in blocks of ROW_BLOCK vertices, each block its own rows, so the bits
+    do not depend on the thread count.
     """
     n = points.shape[0]
-    tri = np.asarray(triangles, dtype=np.int64)
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
     blocks = energy_blocks_of(points, tri, dirs, scheme)              # (T, 9, 9)
-    pair_a = np.repeat(np.arange(3), 3)
-    pair_b = np.tile(np.arange(3), 3)
-    keys = (tri[:, pair_a] * n + tri[:, pair_b]).ravel()              # (9 T,) vertex pairs
-    # Each pair's slot in the sorted distinct pairs, from one sort (topology.sort_keys, the
-    # edge table's: stable, packed with the position where both fit in 64 bits): np.unique's
-    # hash path is far slower, and a searchsorted of every key misses the cache when the
-    # vertices are numbered in file order.
-    order, ordered = sort_keys(keys, n * n)                            # keys is overwritten
-    new = np.empty(ordered.size, dtype=bool)
-    new[:1] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
-    pattern = ordered[new]
-    slot = np.empty_like(order)
-    slot[order] = np.cumsum(new) - 1
-    del order, ordered, new
-    rows, cols = np.divmod(pattern, n)
-    data = np.empty((pattern.size, 3, 3))
-    for c in range(3):
-        local_a = _local(pair_a, c)
-        for d in range(3):
-            local_b = _local(pair_b, d)
-            data[:, c, d] = np.bincount(slot, weights=blocks[:, local_a, local_b].ravel(),
-                                        minlength=pattern.size)
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
-    index = np.int32 if 3 * n < 2**31 else np.int64
-    K = sp.bsr_matrix((data, cols.astype(index), indptr.astype(index)), shape=(3 * n, 3 * n))
-    return K.tocsr()
+    pattern = vertex_pattern(tri, n)
+    row_start, cols = pattern.row_start, pattern.cols
+    nnz = 9 * cols.size
+    index = np.int32 if max(nnz, 3 * n) < 2**31 else np.int64
+    data = np.zeros(nnz)
+    indices = np.empty(nnz, dtype=index)                              # written as the matrix keeps it
 
-
-def _local(vertex: np.ndarray, component: int) -> np.ndarray:
-    """Local datum of (local vertex, component 0 = f, 1 = ∂x, 2 = ∂y), smoothing_energy's
-    order (f0, f1, f2, ∂x f0, ∂y f0, ...)."""
-    return vertex if component == 0 else 3 + 2 * vertex + component - 1
+    def rows(part: slice) -> None:
+        kernel.scatter(tri, pattern.start, pattern.corner, row_start, cols, blocks,
+                       part.start, part.stop, data)
+        kernel.csr_indices(row_start, cols, part.start, part.stop, indices)
+    parallel_blocks(rows, n, ROW_BLOCK)
+    indptr = np.empty(3 * n + 1, dtype=np.int64)
+    indptr[:-1].reshape(n, 3)[...] = 9 * row_start[:-1, None] + 3 * np.arange(3) * np.diff(row_start)[:, None]
+    indptr[-1] = nnz
+    return sp.csr_matrix((data, indices, indptr.astype(index)), shape=(3 * n, 3 * n))
 
 
 def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, scheme: ShapeTuple,
@@ -207,11 +231,10 @@ def vertex_order(triangles: np.ndarray, n: int) -> np.ndarray | None:
     cholmod = _cholmod()
     if 3 * n < METIS_FROM:
         return None
-    tri = np.asarray(triangles, dtype=np.int64)
-    rows = np.concatenate([tri[:, [0, 1, 2, 0, 1, 2]].ravel(), np.arange(n)])
-    cols = np.concatenate([tri[:, [1, 2, 0, 0, 1, 2]].ravel(), np.arange(n)])
-    adjacency = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
-    adjacency = adjacency + adjacency.T        # the pattern is what CHOLMOD reads
+    pattern = vertex_pattern(triangles, n)        # symmetric: its CSR is its CSC
+    index = np.int32 if pattern.cols.size < 2**31 else np.int64
+    adjacency = sp.csc_matrix((np.ones(pattern.cols.size), pattern.cols.astype(index),
+                               pattern.row_start.astype(index)), shape=(n, n))
     try:
         return np.asarray(cholmod.analyze(adjacency, ordering_method="metis").P(), dtype=np.int64)
     except cholmod.CholmodError:

@@ -1,0 +1,147 @@
+# cython: language_level=3
+"""The assembly of the smoothing system's energy matrix: c1mesh.stages.smoothing_system wraps
+it (validation, the rows in blocks in the thread knob's threads), and nothing else imports it.
+
+The matrix is 3 × 3 vertex blocks on the pattern of the vertex adjacency (each vertex and
+its neighbours in the triangles, in increasing order). Every row of vertices is built from
+the triangles holding the vertex, listed in increasing triangle order (`incidence`), so an
+entry is the sum of its triangles' contributions in triangle order, from 0: the order in
+which numpy's bincount over the triangles' vertex pairs summed them before. A row block
+writes only its own rows, so the bits do not depend on the blocks' threads.
+"""
+from libc.stdint cimport int32_t, int64_t
+
+ctypedef fused index_t:
+    int32_t
+    int64_t
+
+
+def incidence(const int64_t[:, ::1] triangles, int64_t[::1] start, int64_t[::1] corner):
+    """start (N + 1,) and corner (3T,): the corners 3 t + k (triangle t, local vertex k) at
+    vertex v are corner[start[v]:start[v + 1]], in increasing order (a counting sort of the
+    triangles' vertices; start zeroed by the caller). One thread: O(T)."""
+    cdef Py_ssize_t T = triangles.shape[0], n = start.shape[0] - 1, t, v
+    cdef int k
+    cdef int64_t total = 0, count
+    with nogil:
+        for t in range(T):
+            for k in range(3):
+                start[triangles[t, k] + 1] += 1
+        for v in range(n):
+            total += start[v + 1]
+            start[v + 1] = total
+        for t in range(T):                      # start[v] is v's next free slot meanwhile
+            for k in range(3):
+                v = triangles[t, k]
+                corner[start[v]] = 3 * t + k
+                start[v] += 1
+        for v in range(n, 0, -1):               # and back to each vertex's first slot
+            start[v] = start[v - 1]
+        start[0] = 0
+
+
+cdef Py_ssize_t _neighbours(const int64_t[:, ::1] triangles, const int64_t[::1] start,
+                            const int64_t[::1] corner, Py_ssize_t v, int64_t *out) noexcept nogil:
+    """The distinct vertices of the triangles at v (v among them), increasing, into out
+    (room for 3 × the corners at v); returns their count. Insertion sort: a few dozen."""
+    cdef Py_ssize_t count = 0, i, j, i2
+    cdef int64_t t, w
+    cdef int k
+    for i in range(start[v], start[v + 1]):
+        t = corner[i] // 3
+        for k in range(3):
+            w = triangles[t, k]
+            j = count - 1
+            while j >= 0 and out[j] > w:
+                j -= 1
+            if j >= 0 and out[j] == w:
+                continue
+            j += 1
+            for i2 in range(count, j, -1):
+                out[i2] = out[i2 - 1]
+            out[j] = w
+            count += 1
+    return count
+
+
+def degrees(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int64_t[::1] corner,
+            Py_ssize_t first, Py_ssize_t stop, int64_t[::1] scratch, int64_t[::1] out):
+    """out[v] for v in [first, stop): the number of v's neighbours, itself included.
+    scratch: room for 3 × the most corners at a vertex."""
+    cdef Py_ssize_t v
+    with nogil:
+        for v in range(first, stop):
+            out[v] = _neighbours(triangles, start, corner, v, &scratch[0])
+
+
+def neighbours(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int64_t[::1] corner,
+               const int64_t[::1] row_start, Py_ssize_t first, Py_ssize_t stop, int64_t[::1] out):
+    """out[row_start[v]:row_start[v + 1]] for v in [first, stop): v's neighbours (itself
+    included), increasing; row_start (N + 1,) from `degrees`' counts."""
+    cdef Py_ssize_t v
+    with nogil:
+        for v in range(first, stop):
+            _neighbours(triangles, start, corner, v, &out[row_start[v]])
+
+
+def csr_indices(const int64_t[::1] row_start, const int64_t[::1] cols, Py_ssize_t first,
+                Py_ssize_t stop, index_t[::1] out):
+    """The CSR column indices of rows 3v, 3v + 1, 3v + 2 for v in [first, stop) into out
+    (int32 or int64, the matrix's index type):
+    each row lists 3w, 3w + 1, 3w + 2 for v's neighbours w (cols[row_start[v]:row_start[v + 1]])."""
+    cdef Py_ssize_t v, i, p
+    cdef int c, d
+    with nogil:
+        for v in range(first, stop):
+            p = 9 * row_start[v]
+            for c in range(3):
+                for i in range(row_start[v], row_start[v + 1]):
+                    for d in range(3):
+                        out[p] = <index_t> (3 * cols[i] + d)
+                        p += 1
+
+
+cdef inline int _local(int vertex, int component) noexcept nogil:
+    """Local datum of (local vertex, component 0 = f, 1 = ∂x, 2 = ∂y): smoothing_energy's
+    order f0, f1, f2, ∂x f0, ∂y f0, ..."""
+    return vertex if component == 0 else 3 + 2 * vertex + component - 1
+
+
+cdef inline Py_ssize_t _slot(const int64_t[::1] cols, Py_ssize_t lo, Py_ssize_t hi,
+                             int64_t w) noexcept nogil:
+    """The position of w in the increasing cols[lo:hi] (w is there): bisection."""
+    cdef Py_ssize_t mid
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if cols[mid] <= w:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def scatter(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int64_t[::1] corner,
+            const int64_t[::1] row_start, const int64_t[::1] cols, const double[:, :, ::1] blocks,
+            Py_ssize_t first, Py_ssize_t stop, double[::1] data):
+    """The CSR values of rows 3v, 3v + 1, 3v + 2 for v in [first, stop) into data (zeroed
+    by the caller): the sum of blocks (T, 9, 9) over the triangles at v, in increasing
+    triangle order. Vertex v's neighbours are cols[row_start[v]:row_start[v + 1]] (`neighbours`),
+    and its row 3v + c holds 3 values per neighbour w (∂ components 0, 1, 2 of w), so it
+    begins at 9 row_start[v] + 3 c deg(v)."""
+    cdef Py_ssize_t v, i, s, lo, hi, deg, row
+    cdef int64_t t
+    cdef int a, b, c, d
+    with nogil:
+        for v in range(first, stop):
+            lo = row_start[v]
+            hi = row_start[v + 1]
+            deg = hi - lo
+            for i in range(start[v], start[v + 1]):
+                t = corner[i] // 3
+                a = corner[i] % 3
+                for b in range(3):
+                    s = _slot(cols, lo, hi, triangles[t, b]) - lo
+                    for c in range(3):
+                        row = 9 * lo + 3 * c * deg + 3 * s
+                        for d in range(3):
+                            data[row + d] += blocks[t, _local(a, c), _local(b, d)]

@@ -1,0 +1,192 @@
+"""The smoothing system's kernels (stages/_smoothing_energy.pyx, stages/_smoothing_system.pyx)
+against references written here: a plain Python loop over the triangles for the assembled
+matrix and the vertex adjacency, CHOLMOD on an adjacency built here for the vertex order,
+and documented properties of the energy (planes have none; blocks symmetric, PSD)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from c1mesh.core.threads import limit
+from c1mesh.engine.schemes import get_scheme
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages import smoothing_energy, smoothing_system
+from c1mesh.stages.smoothing_energy import energy_blocks_of, local_dofs, triangle_directions
+from c1mesh.stages.smoothing_system import assemble_energy, vertex_order, vertex_pattern
+
+
+def shuffled_mesh(m: int, seed: int = 0):
+    """A jittered m × m grid, two triangles per cell, with its vertices and triangles in
+    random order (so a vertex's triangles are far apart in the list) and random edge
+    directions: points (N, 2), triangles (T, 3), per-triangle directions (T, 3, 2)."""
+    rng = np.random.default_rng(seed)
+    i, j = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+    xy = np.stack([i.ravel(), j.ravel()], 1) + rng.uniform(-0.3, 0.3, (m * m, 2))
+    v = (i[:-1, :-1] * m + j[:-1, :-1]).ravel()
+    tri = np.concatenate([np.stack([v, v + m, v + m + 1], 1), np.stack([v, v + m + 1, v + 1], 1)])
+    tri = tri[rng.permutation(tri.shape[0])]
+    perm = rng.permutation(m * m)
+    rank = np.empty_like(perm)
+    rank[perm] = np.arange(m * m)
+    pts, tri = xy[perm], rank[tri]
+    table = edge_table(tri, pts.shape[0])
+    dirs = triangle_directions(pts, tri, table.tri_edge, rng.normal(size=table.edges.shape),
+                               table.edges)
+    return pts, tri, dirs
+
+
+# ------------------------------------------------------------------ energy blocks
+def test_planes_have_no_energy():
+    rng = np.random.default_rng(5)
+    pts, tri, dirs = shuffled_mesh(9, seed=5)
+    K = energy_blocks_of(pts, tri, dirs, get_scheme("sextic"))
+    a, b, c = rng.normal(size=3)
+    u = np.zeros(3 * pts.shape[0])
+    u[0::3], u[1::3], u[2::3] = a + b * pts[:, 0] + c * pts[:, 1], b, c
+    for t, d in enumerate(local_dofs(tri)):
+        scale = np.abs(K[t]).max() * (u[d] @ u[d])
+        assert abs(u[d] @ K[t] @ u[d]) <= 1e-12 * scale
+        assert np.abs(K[t] - K[t].T).max() <= 1e-13 * np.abs(K[t]).max()
+        assert np.linalg.eigvalsh(K[t]).min() > -1e-10 * np.abs(K[t]).max()
+
+
+def test_a_triangles_block_is_its_own(monkeypatch):
+    """A block depends on its triangle only: the same bits alone, in a mesh, in blocks of
+    any size and in any number of threads (the kernel's triangles are taken 8 at a time)."""
+    pts, tri, dirs = shuffled_mesh(8, seed=2)
+    scheme = get_scheme("quintic")
+    whole = energy_blocks_of(pts, tri, dirs, scheme)
+    for t in (0, 7, 8, tri.shape[0] - 1):
+        alone = energy_blocks_of(pts, tri[t:t + 1], dirs[t:t + 1], scheme)
+        assert np.array_equal(alone[0], whole[t])
+    monkeypatch.setattr(smoothing_energy, "_CHUNK", 5)
+    for threads in (1, 2):
+        with limit(threads):
+            assert energy_blocks_of(pts, tri, dirs, scheme).tobytes() == whole.tobytes()
+
+
+# ------------------------------------------------------------------ vertex pattern
+def test_vertex_pattern_is_the_adjacency_with_the_corners_in_triangle_order():
+    pts, tri, _ = shuffled_mesh(7, seed=1)
+    n = pts.shape[0]
+    pattern = vertex_pattern(tri, n)
+    for v in range(n):
+        corners = [3 * t + k for t in range(tri.shape[0]) for k in range(3) if tri[t, k] == v]
+        assert list(pattern.corner[pattern.start[v]:pattern.start[v + 1]]) == corners
+        near = sorted({int(w) for t in range(tri.shape[0]) if v in tri[t] for w in tri[t]})
+        assert list(pattern.cols[pattern.row_start[v]:pattern.row_start[v + 1]]) == near
+
+
+def test_vertex_pattern_keeps_a_vertex_without_triangles():
+    pattern = vertex_pattern(np.array([[0, 1, 3]]), 5)
+    assert list(pattern.row_start) == [0, 3, 6, 6, 9, 9]
+    assert list(pattern.cols) == [0, 1, 3] * 3
+
+
+# ------------------------------------------------------------------ assembly
+def dense_loop(blocks: np.ndarray, tri: np.ndarray, n: int) -> np.ndarray:
+    """The plain assembly: each triangle's 9 × 9 block added at its unknowns, triangle
+    after triangle, into a dense (3n, 3n) matrix."""
+    K = np.zeros((3 * n, 3 * n))
+    for t, dofs in enumerate(local_dofs(tri)):
+        for i in range(9):
+            for j in range(9):
+                K[dofs[i], dofs[j]] += blocks[t, i, j]
+    return K
+
+
+@pytest.mark.parametrize("scheme", ["sextic", "ex39b"])
+def test_assembly_equals_the_loop_over_triangles(scheme):
+    """Every entry is the sum of its triangles' contributions in triangle order, so the
+    loop gives the same bits; the stored entries are the 3 × 3 blocks of adjacent vertices."""
+    pts, tri, dirs = shuffled_mesh(8, seed=3)
+    n = pts.shape[0]
+    shape = get_scheme(scheme)
+    K = assemble_energy(pts, tri, dirs, shape)
+    want = dense_loop(energy_blocks_of(pts, tri, dirs, shape), tri, n)
+    assert K.has_sorted_indices and K.shape == (3 * n, 3 * n)
+    assert np.array_equal(K.toarray(), want)
+    adjacent = np.zeros((n, n), dtype=bool)
+    for a in range(3):
+        for b in range(3):
+            adjacent[tri[:, a], tri[:, b]] = True
+    stored = sp.csr_matrix((np.ones(K.nnz), K.indices, K.indptr), shape=K.shape).toarray() > 0
+    assert np.array_equal(stored, np.kron(adjacent, np.ones((3, 3), dtype=bool)))
+
+
+def test_assembly_bytes_do_not_depend_on_threads_or_row_blocks(monkeypatch):
+    pts, tri, dirs = shuffled_mesh(12, seed=4)
+    scheme = get_scheme("sextic")
+    with limit(1):
+        want = assemble_energy(pts, tri, dirs, scheme)
+    monkeypatch.setattr(smoothing_system, "ROW_BLOCK", 7)
+    for threads in (1, 2):
+        with limit(threads):
+            got = assemble_energy(pts, tri, dirs, scheme)
+        for name in ("data", "indices", "indptr"):
+            assert getattr(got, name).tobytes() == getattr(want, name).tobytes()
+
+
+# ------------------------------------------------------------------ vertex order
+def test_vertex_order_is_cholmods_metis_order_of_the_adjacency(monkeypatch):
+    cholmod = pytest.importorskip("sksparse.cholmod")
+    pts, tri, _ = shuffled_mesh(20, seed=6)
+    n = pts.shape[0]
+    monkeypatch.setattr(smoothing_system, "METIS_FROM", 3)
+    rows, cols = [], []
+    for t in tri:
+        for a in t:
+            for b in t:
+                rows.append(a)
+                cols.append(b)
+    adjacency = sp.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    try:
+        want = cholmod.analyze(adjacency, ordering_method="metis").P()
+    except cholmod.CholmodError:
+        pytest.skip("this CHOLMOD has no METIS")
+    got = vertex_order(tri, n)
+    assert np.array_equal(got, want)
+    assert np.array_equal(np.sort(got), np.arange(n))
+
+
+# ------------------------------------------------------------------ input checks
+def _python_checks(points, triangles, edges, u, degeneracy=1e-12):
+    """The checks as plain Python loops: every direction crosses its edge, every
+    triangle's |sin| at vertex 0 exceeds degeneracy."""
+    import math
+    crosses = True
+    for (a, b), (ux, uy) in zip(edges, u):
+        vx, vy = points[b] - points[a]
+        cross = ux * vy - uy * vx
+        crosses &= bool(cross * cross > degeneracy**2 * (ux * ux + uy * uy) * (vx * vx + vy * vy))
+    fine = True
+    for t in triangles:
+        ax, ay = points[t[1]] - points[t[0]]
+        bx, by = points[t[2]] - points[t[0]]
+        fine &= bool(abs(ax * by - ay * bx) > degeneracy * math.hypot(ax, ay) * math.hypot(bx, by))
+    return crosses, fine
+
+
+@pytest.mark.parametrize("case", ["good", "parallel", "zero", "sliver", "nan"])
+def test_input_checks_agree_with_python_loops(case, monkeypatch):
+    from c1mesh.stages import smoothing
+    pts, tri, _ = shuffled_mesh(6, seed=7)
+    table = edge_table(tri, pts.shape[0])
+    u = np.random.default_rng(7).normal(size=table.edges.shape)
+    if case == "parallel":
+        u[5] = pts[table.edges[5, 1]] - pts[table.edges[5, 0]]
+    elif case == "zero":
+        u[-1] = 0.0
+    elif case == "sliver":
+        a, b, c = tri[3]
+        pts = pts.copy()
+        pts[c] = pts[a] + 0.5 * (pts[b] - pts[a])             # collinear: zero area
+    elif case == "nan":
+        pts = pts.copy()
+        pts[tri[-1, 0], 0] = np.nan
+    monkeypatch.setattr(smoothing, "CHECK_BLOCK", 4)          # many blocks, the bad one among them
+    crosses, fine = _python_checks(pts, tri, table.edges, u)
+    assert smoothing._nondegenerate(pts, tri) == fine
+    assert smoothing._all_blocks(smoothing.kernel.directions_cross, pts, table.edges, u) == crosses
+    assert (crosses and fine) == (case == "good")
