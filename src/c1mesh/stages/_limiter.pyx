@@ -1,15 +1,49 @@
 # cython: language_level=3
-"""The limiter's kernels: c1mesh.stages.limiter wraps them (validation), and nothing else
-imports them."""
-from libc.math cimport isnan, NAN
-from libc.stdint cimport int64_t
+"""The limiter's kernels: c1mesh.stages.limiter wraps them (validation, the blocks in the
+thread knob's threads), and nothing else imports them.
+
+Two kinds. Per-edge or per-triangle passes take a range start <= i < stop and write only
+their own rows, so the wrapper runs fixed blocks in threads and the bits do not depend on
+the count. Scatters into vertices (a vertex's sums, its smallest factor) run in one
+thread, in the order numpy's bincount and ufunc.at took the edges: every a-end in edge
+order, then every b-end, so each vertex adds its terms in the same order as before.
+
+The arithmetic is numpy's, operation for operation (the build sets -ffp-contract=off);
+`_np_maximum`, `_np_minimum` and `_np_clip` pick as numpy's maximum, minimum and clip do,
+NaN and signed zeros included.
+"""
+from libc.math cimport fabs, isnan, sqrt, NAN
+from libc.stdint cimport int64_t, uint8_t
 
 
 cdef inline double _maximum(double a, double b) noexcept nogil:
-    """numpy's maximum: NaN when either is NaN, else the larger."""
+    """NaN when either is NaN, else the larger (the first when equal)."""
     if isnan(a) or isnan(b):
         return NAN
     return a if a >= b else b
+
+
+cdef inline double _np_maximum(double a, double b) noexcept nogil:
+    """numpy's maximum(a, b): a NaN operand wins, else the larger, b when equal."""
+    if isnan(a):
+        return a
+    return a if a > b else b
+
+
+cdef inline double _np_minimum(double a, double b) noexcept nogil:
+    """numpy's minimum(a, b): a NaN operand wins, else the smaller, b when equal."""
+    if isnan(a):
+        return a
+    return a if a < b else b
+
+
+cdef inline double _np_clip(double x, double low, double high) noexcept nogil:
+    """numpy's clip(x, low, high) for low <= high: NaN stays NaN, -0.0 stays -0.0."""
+    if x < low:
+        return low
+    if x > high:
+        return high
+    return x
 
 
 def longest_adjacent(const double[::1] length2, const int64_t[:, ::1] tri_edge,
@@ -30,3 +64,261 @@ def longest_adjacent(const double[::1] length2, const int64_t[:, ::1] tri_edge,
             for k in range(3):
                 e = tri_edge[t, k]
                 out[e] = _maximum(out[e], per_triangle[t])
+
+
+# ------------------------------------------------------------------ per-edge passes
+
+def edge_vectors(const double[::1] x, const double[::1] y, const int64_t[::1] a, const int64_t[::1] b,
+                 double[::1] dx, double[::1] dy, Py_ssize_t start, Py_ssize_t stop):
+    """dx, dy (E,): p_b − p_a of the edges a→b (E,), x and y (n,) in plane units."""
+    cdef Py_ssize_t e
+    with nogil:
+        for e in range(start, stop):
+            dx[e] = x[b[e]] - x[a[e]]
+            dy[e] = y[b[e]] - y[a[e]]
+
+
+def edge_values(const double[::1] f, const int64_t[::1] a, const int64_t[::1] b,
+                double[::1] delta, double[::1] size, Py_ssize_t start, Py_ssize_t stop):
+    """delta (E,) = f_b − f_a and size (E,) = |f_a| + |f_b| of the edges a→b, heights f (n,)."""
+    cdef Py_ssize_t e
+    cdef double fa, fb
+    with nogil:
+        for e in range(start, stop):
+            fa = f[a[e]]
+            fb = f[b[e]]
+            delta[e] = fb - fa
+            size[e] = fabs(fa) + fabs(fb)
+
+
+def predict(const double[::1] gx, const double[::1] gy, const int64_t[::1] a, const int64_t[::1] b,
+            const double[::1] dx, const double[::1] dy, const uint8_t[::1] rows,
+            double[::1] pred_a, double[::1] pred_b, Py_ssize_t start, Py_ssize_t stop):
+    """pred_a, pred_b (E,): the height changes A_a·d and A_b·d that the end gradients (gx,
+    gy (n,)) predict along each edge a→b with d = (dx, dy); only the edges with rows[e]
+    set when rows (E,) is given, every edge when it is empty."""
+    cdef Py_ssize_t e
+    cdef bint every = rows.shape[0] == 0
+    with nogil:
+        for e in range(start, stop):
+            if every or rows[e]:
+                pred_a[e] = gx[a[e]] * dx[e] + gy[a[e]] * dy[e]
+                pred_b[e] = gx[b[e]] * dx[e] + gy[b[e]] * dy[e]
+
+
+def residuals(const double[::1] delta, const double[::1] pred_a, const double[::1] pred_b,
+              double[::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out (E,): the trapezoid residual Δ − (δ_a + δ_b)/2 of each edge, in height units."""
+    cdef Py_ssize_t e
+    with nogil:
+        for e in range(start, stop):
+            out[e] = delta[e] - 0.5 * (pred_a[e] + pred_b[e])
+
+
+def inconsistent(const double[::1] delta, const double[::1] pred_a, const double[::1] pred_b,
+                 const double[::1] size, double consistency, double noise, double rounding,
+                 uint8_t[::1] bad, Py_ssize_t start, Py_ssize_t stop):
+    """bad (E,) 0/1: |e| > consistency · max(|Δ|, max(|δ_a|, |δ_b|)/2) + noise +
+    rounding · (size + |δ_a| + |δ_b|), e the trapezoid residual (limiter.inconsistent_edges);
+    a NaN anywhere makes an edge consistent, as numpy's comparison does."""
+    cdef Py_ssize_t e
+    cdef double residual, abs_a, abs_b, scale
+    with nogil:
+        for e in range(start, stop):
+            residual = delta[e] - 0.5 * (pred_a[e] + pred_b[e])
+            abs_a = fabs(pred_a[e])
+            abs_b = fabs(pred_b[e])
+            scale = _np_maximum(fabs(delta[e]), 0.5 * _np_maximum(abs_a, abs_b))
+            bad[e] = fabs(residual) > consistency * scale + noise + rounding * (size[e] + abs_a + abs_b)
+
+
+def unit_normals(const double[::1] dx, const double[::1] dy, double[:, ::1] out,
+                 Py_ssize_t start, Py_ssize_t stop):
+    """out (E, 2): the unit normal (−dy, dx) / |d| of each edge vector (dx, dy) (E,)."""
+    cdef Py_ssize_t e
+    cdef double length
+    with nogil:
+        for e in range(start, stop):
+            length = sqrt(dx[e] * dx[e] + dy[e] * dy[e])
+            out[e, 0] = -dy[e] / length
+            out[e, 1] = dx[e] / length
+
+
+# ------------------------------------------------------------------ per-triangle passes
+
+def corner_ratios(const double[::1] x, const double[::1] y, const int64_t[:, ::1] tri,
+                  double[:, ::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out (T, 3): max(|s|, |1 − s|) at each corner k of the triangles tri (T, 3), s the
+    foot of p_k on the line of the opposite edge p_i → p_j (i, j = k + 1, k + 2):
+    s = (p_k − p_i)·e / |e|², e = p_j − p_i (NaN for a zero-length edge)."""
+    cdef Py_ssize_t t
+    cdef int k
+    cdef int64_t i, j, c
+    cdef double ex, ey, foot
+    with nogil:
+        for t in range(start, stop):
+            for k in range(3):
+                c, i, j = tri[t, k], tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
+                ex = x[j] - x[i]
+                ey = y[j] - y[i]
+                foot = (x[c] - x[i]) * ex + (y[c] - y[i]) * ey
+                foot = foot / (ex * ex + ey * ey)
+                out[t, k] = _np_maximum(fabs(foot), fabs(1.0 - foot))
+
+
+def edge_screen(const int64_t[:, ::1] tri_edge, const int64_t[::1] owner, const int64_t[::1] owner_slot,
+                const int64_t[::1] count, const double[:, ::1] ratio, double[::1] out,
+                Py_ssize_t start, Py_ssize_t stop):
+    """out (E,): each edge's worst corner ratio (T, 3) over its one or two triangles, written
+    from the triangles start <= t < stop: an edge of one triangle by its owner, an edge of
+    two by its other slot, as first if first > last else last (first the owner's ratio;
+    NaN-aware as the scatter it replaces: a NaN last wins, a NaN first loses)."""
+    cdef Py_ssize_t t
+    cdef int k
+    cdef int64_t e
+    cdef double first, last
+    with nogil:
+        for t in range(start, stop):
+            for k in range(3):
+                e = tri_edge[t, k]
+                last = ratio[t, k]
+                if owner[e] == t and owner_slot[e] == k:
+                    if count[e] == 1:
+                        out[e] = last
+                    continue
+                first = ratio[owner[e], owner_slot[e]]
+                out[e] = first if first > last else last
+
+
+# ------------------------------------------------------------------ scatters, one thread
+
+def opposite_vertices(const int64_t[:, ::1] tri, const int64_t[:, ::1] tri_edge,
+                      const int64_t[::1] position, const int64_t[::1] first, int64_t[::1] second):
+    """second (m,): for the m edges with position[e] >= 0 (E,), the vertex opposite the edge
+    in a triangle that holds it other than first[position[e]] (the owner's), left as it is
+    (-1) on a boundary edge; the last such slot in triangle order."""
+    cdef Py_ssize_t T = tri.shape[0], t
+    cdef int k
+    cdef int64_t p
+    with nogil:
+        for t in range(T):
+            for k in range(3):
+                p = position[tri_edge[t, k]]
+                if p >= 0 and tri[t, k] != first[p]:
+                    second[p] = tri[t, k]
+
+
+def crease_moves(const double[::1] f, const int64_t[::1] a, const int64_t[::1] b,
+                 const double[::1] residual, const double[::1] length2, const double[::1] reach2,
+                 double crease_level, double clip, double[::1] total, int64_t[::1] count,
+                 double[::1] out):
+    """limiter.reconcile_heights' moves: every edge a→b with 6|e|·√reach2 > crease_level ·
+    length2 (e the residual, length2 its squared length, reach2 the squared longest edge
+    of its triangles) moves a by m = clip(e/2, ±clip) and b by −m; out (n,) = f plus
+    each moved vertex's mean move (total (n,) zeroed and count (n,) zeroed: its sum and
+    number of moves). Returns the number of such edges."""
+    cdef Py_ssize_t E = a.shape[0], n = f.shape[0], e, v
+    cdef int64_t moved = 0
+    cdef double move
+    with nogil:
+        for e in range(E):                   # a-ends, then b-ends: numpy's bincount order
+            if 6.0 * fabs(residual[e]) * sqrt(reach2[e]) > crease_level * length2[e]:
+                total[a[e]] += _np_clip(0.5 * residual[e], -clip, clip)
+                count[a[e]] += 1
+                moved += 1
+        for e in range(E):
+            if 6.0 * fabs(residual[e]) * sqrt(reach2[e]) > crease_level * length2[e]:
+                move = _np_clip(0.5 * residual[e], -clip, clip)
+                total[b[e]] += -move
+                count[b[e]] += 1
+        for v in range(n):
+            out[v] = f[v] + total[v] / count[v] if count[v] > 0 else f[v]
+    return moved
+
+
+def touch(const int64_t[::1] a, const int64_t[::1] b, const uint8_t[::1] bad,
+          uint8_t[::1] touched, uint8_t[::1] near):
+    """touched (n,) zeroed: set at both ends of every bad (E,) edge; near (E,): the edges
+    with a touched end."""
+    cdef Py_ssize_t E = a.shape[0], e
+    with nogil:
+        for e in range(E):
+            if bad[e]:
+                touched[a[e]] = 1
+                touched[b[e]] = 1
+        for e in range(E):
+            near[e] = touched[a[e]] | touched[b[e]]
+
+
+cdef inline void _add_terms(double *row, double ux, double uy, double slope) noexcept nogil:
+    row[0] += ux * ux
+    row[1] += ux * uy
+    row[2] += uy * uy
+    row[3] += ux * slope
+    row[4] += uy * slope
+    row[5] += 1.0
+
+
+def normal_equations(const int64_t[::1] a, const int64_t[::1] b, const double[::1] dx,
+                     const double[::1] dy, const double[::1] delta, const uint8_t[::1] near,
+                     const int64_t[::1] position, const int64_t[::1] vertices,
+                     const double[::1] gx, const double[::1] gy, double normal_weight,
+                     double[:, ::1] sums, double[:, :, ::1] M, double[:, ::1] r):
+    """limiter.reconcile_gradients' least-squares systems M (m, 2, 2), r (m, 2) of the m
+    vertices (m,) (position (n,): their row, else -1): over the near (E,) edges of
+    nonzero length at each, with û = d/|d| and the secant slope Δ/|d|, the sums (m, 6)
+    (zeroed) of ûx², ûx·ûy, ûy², ûx·slope, ûy·slope and 1 (the degree), then
+    M = [[Σûx², Σûxûy], [Σûxûy, Σûy²]] + w·I and r = Σû·slope + w·A, w = normal_weight ·
+    degree and A = (gx, gy) the vertex's gradient."""
+    cdef Py_ssize_t E = a.shape[0], m = vertices.shape[0], e, p
+    cdef int end
+    cdef int64_t v
+    cdef double length, weight
+    with nogil:
+        for end in range(2):                 # a-ends, then b-ends: numpy's bincount order
+            for e in range(E):
+                if not near[e]:
+                    continue
+                length = sqrt(dx[e] * dx[e] + dy[e] * dy[e])
+                if not length > 0:
+                    continue
+                p = position[a[e] if end == 0 else b[e]]
+                if p >= 0:
+                    _add_terms(&sums[p, 0], dx[e] / length, dy[e] / length, delta[e] / length)
+        for p in range(m):
+            v = vertices[p]
+            weight = normal_weight * sums[p, 5]
+            M[p, 0, 0] = sums[p, 0] + weight
+            M[p, 0, 1] = sums[p, 1]
+            M[p, 1, 0] = sums[p, 1]
+            M[p, 1, 1] = sums[p, 2] + weight
+            r[p, 0] = sums[p, 3] + weight * gx[v]
+            r[p, 1] = sums[p, 4] + weight * gy[v]
+
+
+def limit_factors(const int64_t[::1] a, const int64_t[::1] b, const double[::1] delta,
+                  const double[::1] pred_a, const double[::1] pred_b, const uint8_t[::1] bad,
+                  double secant_factor, double slack, double[::1] factor):
+    """factor (n,), from ones: at each end of every bad (E,) edge, the smaller of itself and
+    the largest t in [0, 1] with t·pred in [min(0, c·Δ) − slack, max(0, c·Δ) + slack]
+    (limiter.limit_gradients; c = secant_factor), as numpy's minimum.at took them."""
+    cdef Py_ssize_t E = a.shape[0], e
+    with nogil:
+        for e in range(E):
+            if bad[e]:
+                factor[a[e]] = _np_minimum(factor[a[e]], _allowed(pred_a[e], delta[e], secant_factor, slack))
+        for e in range(E):
+            if bad[e]:
+                factor[b[e]] = _np_minimum(factor[b[e]], _allowed(pred_b[e], delta[e], secant_factor, slack))
+
+
+cdef inline double _allowed(double pred, double delta, double secant_factor, double slack) noexcept nogil:
+    """The largest t in [0, 1] with t·pred within the secant band (limit_factors)."""
+    cdef double bound = secant_factor * delta, t
+    if pred > 0:
+        t = (_np_maximum(bound, 0.0) + slack) / pred
+    elif pred < 0:
+        t = (_np_minimum(bound, 0.0) - slack) / pred
+    else:
+        t = 1.0
+    return _np_clip(t, 0.0, 1.0)
