@@ -210,3 +210,53 @@ def test_edge_directions_screen_and_opposite_vertices_are_the_loops(noisy):
     normal = np.column_stack([-d[:, 1], d[:, 0]]) / np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])[:, None]
     np.testing.assert_array_equal(directions[~changed], normal[~changed])
     assert changed.any() and not (changed & (worst <= limiter.RATIO_LIMIT * (1 - 1e-9))).any()
+
+
+def _worst(u, l, e, pa, pb):
+    """The loop's worst max(|s|, |1 − s|) of direction u over the opposite vertices pa, pb
+    (pb None on the boundary), inf when u is not finite or nearly parallel to the edge."""
+    cross = e[0] * u[1] - e[1] * u[0]
+    worst = 0.0
+    for pn in (pa, pb):
+        if pn is None:
+            continue
+        with np.errstate(all="ignore"):
+            s = np.float64((pn[0] - l[0]) * u[1] - (pn[1] - l[1]) * u[0]) / cross
+        ratio = max(abs(s), abs(1 - s))
+        worst = max(worst, ratio if math.isfinite(ratio) else math.inf)
+    if not all(map(math.isfinite, u)) or abs(cross) <= 1e-9 * math.sqrt(e[0] ** 2 + e[1] ** 2) * math.sqrt(u[0] ** 2 + u[1] ** 2):
+        return math.inf
+    return worst
+
+
+@pytest.mark.parametrize("ratio_limit", [limiter.RATIO_LIMIT, 0.6])    # 0.6: boundary edges too
+def test_edge_directions_pick_the_candidate_of_smallest_worst_ratio_by_a_loop(noisy, ratio_limit):
+    """Every edge the screen flags, against a loop over its four candidates (the unit
+    normal, the line between the opposite vertices, and from each to the edge's midpoint)."""
+    xy, z, g, tri, table = noisy
+    screen = limiter._normal_ratio_screen(xy, tri.astype(np.int64), table)
+    flagged = np.flatnonzero(screen > ratio_limit * (1 - 1e-9))
+    first, second = limiter._opposite_vertices(tri.astype(np.int64), table, flagged)
+    directions, changed = edge_directions(xy, tri, table, ratio_limit)
+    turned = 0
+    for e, f, s in zip(flagged, first, second):
+        l, m = xy[table.edges[e, 0]].tolist(), xy[table.edges[e, 1]].tolist()
+        d = (m[0] - l[0], m[1] - l[1])
+        length = math.sqrt(d[0] * d[0] + d[1] * d[1])
+        pa, pb = xy[f].tolist(), (xy[s].tolist() if s >= 0 else None)
+        mid = (0.5 * (l[0] + m[0]), 0.5 * (l[1] + m[1]))
+        nan = (math.nan, math.nan)
+        candidates = [(-d[1] / length, d[0] / length),
+                      (pb[0] - pa[0], pb[1] - pa[1]) if pb else nan,
+                      (mid[0] - pa[0], mid[1] - pa[1]),
+                      (mid[0] - pb[0], mid[1] - pb[1]) if pb else nan]
+        costs = [_worst(u, l, d, pa, pb) for u in candidates]
+        best = costs.index(min(costs))
+        if costs[0] > ratio_limit and best > 0:
+            u = candidates[best]
+            norm = math.sqrt(u[0] * u[0] + u[1] * u[1])
+            assert changed[e] and directions[e].tolist() == [u[0] / norm, u[1] / norm]
+            turned += 1
+        else:
+            assert not changed[e] and directions[e].tolist() == list(candidates[0])
+    assert turned > 0 and (ratio_limit > 1.5 or (second < 0).any())

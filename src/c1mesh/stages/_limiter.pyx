@@ -12,7 +12,7 @@ The arithmetic is numpy's, operation for operation (the build sets -ffp-contract
 `_np_maximum`, `_np_minimum` and `_np_clip` pick as numpy's maximum, minimum and clip do,
 NaN and signed zeros included.
 """
-from libc.math cimport fabs, isnan, sqrt, NAN
+from libc.math cimport fabs, isfinite, isnan, sqrt, INFINITY, NAN
 from libc.stdint cimport int64_t, uint8_t
 
 
@@ -142,6 +142,74 @@ def unit_normals(const double[::1] dx, const double[::1] dy, double[:, ::1] out,
             length = sqrt(dx[e] * dx[e] + dy[e] * dy[e])
             out[e, 0] = -dy[e] / length
             out[e, 1] = dx[e] / length
+
+
+cdef inline double _corner_ratio(double ux, double uy, double lx, double ly, double pnx, double pny,
+                                 double cross) noexcept nogil:
+    """max(|s|, |1 − s|) for the opposite vertex p_n (0 when absent: not finite, inf when
+    the ratio is not finite); cross = e × u."""
+    cdef double s = ((pnx - lx) * uy - (pny - ly) * ux) / cross
+    cdef double ratio = _np_maximum(fabs(s), fabs(1.0 - s))
+    if not (isfinite(pnx) and isfinite(pny)):
+        return 0.0
+    return ratio if isfinite(ratio) else INFINITY
+
+
+cdef double _worst_ratio(double ux, double uy, double lx, double ly, double ex, double ey,
+                         double pax, double pay, double pbx, double pby) noexcept nogil:
+    """The worst max(|s|, |1 − s|) of direction u over the edge's triangles (opposite
+    vertices pa, pb; pb NaN on the boundary), s where the line through p_n along u meets
+    the edge l + s·e; inf when u is not finite or (nearly) parallel to the edge."""
+    cdef double cross = ex * uy - ey * ux, worst
+    worst = _np_maximum(0.0, _corner_ratio(ux, uy, lx, ly, pax, pay, cross))
+    worst = _np_maximum(worst, _corner_ratio(ux, uy, lx, ly, pbx, pby, cross))
+    if not (isfinite(ux) and isfinite(uy)):
+        return INFINITY
+    if fabs(cross) <= 1e-9 * sqrt(ex * ex + ey * ey) * sqrt(ux * ux + uy * uy):
+        return INFINITY
+    return worst
+
+
+def choose_directions(const double[::1] x, const double[::1] y, const int64_t[::1] a,
+                      const int64_t[::1] b, const double[::1] dx, const double[::1] dy,
+                      const int64_t[::1] idx, const int64_t[::1] first, const int64_t[::1] second,
+                      double ratio_limit, double[:, ::1] out, uint8_t[::1] change,
+                      Py_ssize_t start, Py_ssize_t stop):
+    """For the flagged edges idx[i], start <= i < stop (opposite vertices first[i] and
+    second[i], -1 on the boundary): the candidate of smallest worst ratio (`_worst_ratio`)
+    among out's unit normal, pb − pa, mid − pa and mid − pb (the first of equal ones); when
+    the normal's exceeds ratio_limit and another wins, out[e] becomes that candidate over
+    its length, else change[e] is cleared (limiter.edge_directions)."""
+    cdef Py_ssize_t i
+    cdef int64_t e
+    cdef int c, best
+    cdef double lx, ly, midx, midy, pax, pay, pbx, pby, length
+    cdef double ux[4]
+    cdef double uy[4]
+    cdef double cost[4]
+    with nogil:
+        for i in range(start, stop):
+            e = idx[i]
+            lx, ly = x[a[e]], y[a[e]]
+            midx, midy = 0.5 * (lx + x[b[e]]), 0.5 * (ly + y[b[e]])
+            pax, pay = x[first[i]], y[first[i]]
+            pbx, pby = NAN, NAN
+            if second[i] >= 0:
+                pbx, pby = x[second[i]], y[second[i]]
+            ux[0], uy[0] = out[e, 0], out[e, 1]
+            ux[1], uy[1] = pbx - pax, pby - pay
+            ux[2], uy[2] = midx - pax, midy - pay
+            ux[3], uy[3] = midx - pbx, midy - pby
+            best = 0
+            for c in range(4):
+                cost[c] = _worst_ratio(ux[c], uy[c], lx, ly, dx[e], dy[e], pax, pay, pbx, pby)
+                if cost[c] < cost[best]:
+                    best = c
+            if cost[0] > ratio_limit and best > 0:
+                length = sqrt(ux[best] * ux[best] + uy[best] * uy[best])
+                out[e, 0], out[e, 1] = ux[best] / length, uy[best] / length
+            else:
+                change[e] = 0
 
 
 # ------------------------------------------------------------------ per-triangle passes

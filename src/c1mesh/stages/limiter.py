@@ -447,24 +447,18 @@ def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable,
     _edge_blocks(lambda start, stop: kernel.unit_normals(dx, dy, out, start, stop), dx.size)
     # The unit normal's foot is the projection of the opposite vertex onto the edge's line,
     # so its worst ratio needs no cross products. Only the edges the screen flags (a few
-    # percent on real scans) weigh the other candidates, and `_worst_ratio` decides there.
+    # percent on real scans) weigh the other candidates, and the kernel decides there
+    # (choose_directions, in blocks of flagged edges).
     change = _normal_ratio_screen(p, tri, table) > ratio_limit * (1 - 1e-9)
     if not change.any():
         return out, change
     idx = np.flatnonzero(change)
     first, second = _opposite_vertices(tri, table, idx)
-    l_c, edge_c = p[table.edges[idx, 0]], np.column_stack([dx[idx], dy[idx]])
-    pa_c = p[first]
-    pb_c = np.where((second >= 0)[:, None], p[np.maximum(second, 0)], np.nan)
-    mid = 0.5 * (l_c + p[table.edges[idx, 1]])
-    candidates = [out[idx], pb_c - pa_c, mid - pa_c, mid - pb_c]
-    costs = np.stack([_worst_ratio(u, l_c, edge_c, pa_c, pb_c) for u in candidates])
-    best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
-    turn = (costs[0] > ratio_limit) & (best > 0)
-    change[idx[~turn]] = False
-    for c in range(1, len(candidates)):
-        pick = turn & (best == c)
-        out[idx[pick]] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
+    x, y = _columns(p)
+    a, b = _columns(table.edges, np.int64)
+    parallel_blocks(lambda part: kernel.choose_directions(x, y, a, b, dx, dy, idx, first, second,
+                                                          float(ratio_limit), out, change.view(np.uint8),
+                                                          part.start, part.stop), idx.size, KERNEL_BLOCK >> 4)
     return out, change
 
 
@@ -486,7 +480,7 @@ def _normal_ratio_screen(p: np.ndarray, tri: np.ndarray, table: EdgeTable) -> np
     blocks of triangles: each corner's ratio (corner_ratios), then per edge the value of
     its owner's corner where larger than its other corner's, else the other's (NaN
     included, as a scatter of every slot in slot-major order followed by the larger ones
-    left it; edge_screen). A screen: `_worst_ratio` decides."""
+    left it; edge_screen). A screen: choose_directions decides."""
     x, y = _columns(p)
     ratio = np.empty(tri.shape)
     screen = np.empty(table.edges.shape[0])
@@ -506,21 +500,3 @@ def _opposite_vertices(tri: np.ndarray, table: EdgeTable, idx: np.ndarray
     second = np.full(idx.size, -1, dtype=np.int64)
     kernel.opposite_vertices(tri, table.tri_edge, position, first, second)
     return first, second
-
-
-def _worst_ratio(u: np.ndarray, l: np.ndarray, edge: np.ndarray, pa: np.ndarray,
-                 pb: np.ndarray) -> np.ndarray:
-    """max over the edge's triangles of max(|s|, |1 − s|) for direction u (nan rows: inf)."""
-    cross_eu = edge[:, 0] * u[:, 1] - edge[:, 1] * u[:, 0]
-    worst = np.zeros(u.shape[0])
-    for pn in (pa, pb):
-        rel = pn - l
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0]) / cross_eu
-        ratio = np.maximum(np.abs(s), np.abs(1.0 - s))
-        present = np.isfinite(pn).all(axis=1)
-        ratio = np.where(present, ratio, 0.0)
-        worst = np.maximum(worst, np.where(np.isfinite(ratio), ratio, np.inf))
-    bad = ~np.isfinite(u).all(axis=1) | (np.abs(cross_eu) <= 1e-9 * np.linalg.norm(edge, axis=1)
-                                          * np.linalg.norm(np.nan_to_num(u), axis=1))
-    return np.where(bad, np.inf, worst)
