@@ -220,16 +220,20 @@ def corner_ratios(const double[::1] x, const double[::1] y, const int64_t[:, ::1
     foot of p_k on the line of the opposite edge p_i → p_j (i, j = k + 1, k + 2):
     s = (p_k − p_i)·e / |e|², e = p_j − p_i (NaN for a zero-length edge)."""
     cdef Py_ssize_t t
-    cdef int k
-    cdef int64_t i, j, c
+    cdef int k, i, j
     cdef double ex, ey, foot
+    cdef double px[3]
+    cdef double py[3]
     with nogil:
         for t in range(start, stop):
+            for k in range(3):                   # each corner's coordinates read once
+                px[k] = x[tri[t, k]]
+                py[k] = y[tri[t, k]]
             for k in range(3):
-                c, i, j = tri[t, k], tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
-                ex = x[j] - x[i]
-                ey = y[j] - y[i]
-                foot = (x[c] - x[i]) * ex + (y[c] - y[i]) * ey
+                i, j = (k + 1) % 3, (k + 2) % 3
+                ex = px[j] - px[i]
+                ey = py[j] - py[i]
+                foot = (px[k] - px[i]) * ex + (py[k] - py[i]) * ey
                 foot = foot / (ex * ex + ey * ey)
                 out[t, k] = _np_maximum(fabs(foot), fabs(1.0 - foot))
 

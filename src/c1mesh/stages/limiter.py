@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.threads import parallel_blocks
+from c1mesh.core.threads import overlap, parallel_blocks
 from c1mesh.stages import _limiter as kernel
 from c1mesh.engine.topology import EdgeTable, edge_table
 
@@ -109,8 +109,24 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     if mode == "off":
         return values, gradients, None, LimiterReport()
     table = edge_table(triangles, points.shape[0]) if table is None else table
-    before, after = noise_floors if noise_floors is not None else (None, None)
     geometry = EdgeGeometry.of(points, values, table.edges)
+    # The directions need only the positions: they run in one thread beside the heights'
+    # and gradients' remedies (core.threads.overlap; one after the other with one worker).
+    (directions, turned), (values, limited, lifted, moved, changed) = overlap(
+        lambda: _directions(points, triangles, table, (geometry.dx, geometry.dy), RATIO_LIMIT, threads=1),
+        lambda: _remedies(values, gradients, geometry, table, noise_floors, heights))
+    if counted is not None:
+        changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
+                                          turned & counted[table.edges[:, 0]])
+    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
+                                                      int(lifted.sum()))
+
+
+def _remedies(values: np.ndarray, gradients: np.ndarray, geometry: "EdgeGeometry", table: EdgeTable,
+              noise_floors: tuple[float, float] | None, heights: bool) -> tuple[np.ndarray, ...]:
+    """`control_overshoot`'s heights and gradients: (values (n,), gradients (n, 2), and the
+    (n,) bool vertices whose height moved, gradient was reconciled, gradient was limited)."""
+    before, after = noise_floors if noise_floors is not None else (None, None)
     predicted = geometry.predictions(gradients)             # heights do not change these
     residual = geometry.residuals(predicted)
     if before is None:
@@ -126,12 +142,7 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     predicted = geometry.predictions(reconciled, near, into=predicted)
     limited, changed = _limit(reconciled, geometry, predicted, SECANT_FACTOR,
                               CONSISTENCY, NOISE_FACTOR, after)
-    directions, turned = _directions(points, triangles, table, (geometry.dx, geometry.dy), RATIO_LIMIT)
-    if counted is not None:
-        changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
-                                          turned & counted[table.edges[:, 0]])
-    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
-                                                      int(lifted.sum()))
+    return values, limited, lifted, moved, changed
 
 
 def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -204,10 +215,11 @@ def _median_abs(values: np.ndarray) -> float:
     return float(np.median(np.abs(values))) if values.size else 0.0
 
 
-def _edge_blocks(work, count: int) -> None:
+def _edge_blocks(work, count: int, threads: int | None = None) -> None:
     """work(start, stop) over the fixed blocks of KERNEL_BLOCK of range(count), in the
-    thread knob's threads (each block writes its own rows: the same bits at any count)."""
-    parallel_blocks(lambda part: work(part.start, part.stop), count, KERNEL_BLOCK)
+    thread knob's threads or ``threads`` (each block writes its own rows: the same bits
+    at any count)."""
+    parallel_blocks(lambda part: work(part.start, part.stop), count, KERNEL_BLOCK, threads)
 
 
 def _columns(array: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
@@ -438,18 +450,20 @@ def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
 
 
 def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable,
-                edge: tuple[np.ndarray, np.ndarray], ratio_limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """`edge_directions` given the edge vectors (dx, dy) (E,) each = p_b − p_a."""
+                edge: tuple[np.ndarray, np.ndarray], ratio_limit: float,
+                threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`edge_directions` given the edge vectors (dx, dy) (E,) each = p_b − p_a, in the
+    thread knob's threads or ``threads``."""
     p = np.asarray(p, dtype=float)
     tri = _checked_triangles(triangles, table, p.shape[0])
     dx, dy = edge
     out = np.empty((dx.size, 2))
-    _edge_blocks(lambda start, stop: kernel.unit_normals(dx, dy, out, start, stop), dx.size)
+    _edge_blocks(lambda start, stop: kernel.unit_normals(dx, dy, out, start, stop), dx.size, threads)
     # The unit normal's foot is the projection of the opposite vertex onto the edge's line,
     # so its worst ratio needs no cross products. Only the edges the screen flags (a few
     # percent on real scans) weigh the other candidates, and the kernel decides there
     # (choose_directions, in blocks of flagged edges).
-    change = _normal_ratio_screen(p, tri, table) > ratio_limit * (1 - 1e-9)
+    change = _normal_ratio_screen(p, tri, table, threads) > ratio_limit * (1 - 1e-9)
     if not change.any():
         return out, change
     idx = np.flatnonzero(change)
@@ -458,7 +472,8 @@ def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable,
     a, b = _columns(table.edges, np.int64)
     parallel_blocks(lambda part: kernel.choose_directions(x, y, a, b, dx, dy, idx, first, second,
                                                           float(ratio_limit), out, change.view(np.uint8),
-                                                          part.start, part.stop), idx.size, KERNEL_BLOCK >> 4)
+                                                          part.start, part.stop), idx.size, KERNEL_BLOCK >> 4,
+                    threads)
     return out, change
 
 
@@ -473,7 +488,8 @@ def _checked_triangles(triangles: np.ndarray, table: EdgeTable, n: int) -> np.nd
     return tri
 
 
-def _normal_ratio_screen(p: np.ndarray, tri: np.ndarray, table: EdgeTable) -> np.ndarray:
+def _normal_ratio_screen(p: np.ndarray, tri: np.ndarray, table: EdgeTable,
+                         threads: int | None = None) -> np.ndarray:
     """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles,
     s = (p_n − p_l)·e / |e|² the foot of the opposite vertex p_n on the edge's line (the
     ratio does not depend on which end is p_l). The kernels (stages/_limiter.pyx) in
@@ -484,9 +500,10 @@ def _normal_ratio_screen(p: np.ndarray, tri: np.ndarray, table: EdgeTable) -> np
     x, y = _columns(p)
     ratio = np.empty(tri.shape)
     screen = np.empty(table.edges.shape[0])
-    _edge_blocks(lambda start, stop: kernel.corner_ratios(x, y, tri, ratio, start, stop), tri.shape[0])
+    _edge_blocks(lambda start, stop: kernel.corner_ratios(x, y, tri, ratio, start, stop), tri.shape[0], threads)
     _edge_blocks(lambda start, stop: kernel.edge_screen(table.tri_edge, table.owner, table.owner_slot,
-                                                        table.count, ratio, screen, start, stop), tri.shape[0])
+                                                        table.count, ratio, screen, start, stop),
+                 tri.shape[0], threads)
     return screen
 
 
