@@ -46,36 +46,37 @@ cdef inline double _np_clip(double x, double low, double high) noexcept nogil:
     return x
 
 
-def longest_adjacent(const double[::1] length2, const int64_t[:, ::1] tri_edge,
-                     const int64_t[::1] owner, double[::1] per_triangle, double[::1] out):
+def longest_adjacent(const double[::1] length2, const int64_t[:, ::1] tri_edge, double[::1] out):
     """out (E,): the largest length2 (E,) over the edges of the one or two triangles holding
-    each edge (tri_edge (T, 3) the triangles' edges, owner (E,) one triangle of each edge);
-    per_triangle (T,) scratch: each triangle's largest. NaN wherever a NaN takes part, as
-    numpy's maximum gives it. Only picks among the values: no rounding. One thread."""
+    each edge (tri_edge (T, 3) the triangles' edges; every edge in at least one). NaN
+    wherever a NaN takes part, as numpy's maximum gives it; the largest does not depend
+    on the order the triangles come in. Only picks among the values: no rounding. One
+    pass over the triangles, one thread."""
     cdef Py_ssize_t T = tri_edge.shape[0], E = out.shape[0], t, e
     cdef int k
+    cdef double longest
     with nogil:
-        for t in range(T):
-            per_triangle[t] = _maximum(_maximum(length2[tri_edge[t, 0]], length2[tri_edge[t, 1]]),
-                                       length2[tri_edge[t, 2]])
         for e in range(E):
-            out[e] = per_triangle[owner[e]]
+            out[e] = -INFINITY
         for t in range(T):
+            longest = _maximum(_maximum(length2[tri_edge[t, 0]], length2[tri_edge[t, 1]]),
+                               length2[tri_edge[t, 2]])
             for k in range(3):
                 e = tri_edge[t, k]
-                out[e] = _maximum(out[e], per_triangle[t])
+                out[e] = _maximum(out[e], longest)
 
 
 # ------------------------------------------------------------------ per-edge passes
 
-def edge_vectors(const double[::1] x, const double[::1] y, const int64_t[::1] a, const int64_t[::1] b,
+def edge_vectors(const double[:, ::1] xy, const int64_t[::1] a, const int64_t[::1] b,
                  double[::1] dx, double[::1] dy, Py_ssize_t start, Py_ssize_t stop):
-    """dx, dy (E,): p_b − p_a of the edges a→b (E,), x and y (n,) in plane units."""
+    """dx, dy (E,): p_b − p_a of the edges a→b (E,), points xy (n, 2) in plane units (a
+    point's x and y in one row: one cache line per end)."""
     cdef Py_ssize_t e
     with nogil:
         for e in range(start, stop):
-            dx[e] = x[b[e]] - x[a[e]]
-            dy[e] = y[b[e]] - y[a[e]]
+            dx[e] = xy[b[e], 0] - xy[a[e], 0]
+            dy[e] = xy[b[e], 1] - xy[a[e], 1]
 
 
 def edge_values(const double[::1] f, const int64_t[::1] a, const int64_t[::1] b,
@@ -91,19 +92,19 @@ def edge_values(const double[::1] f, const int64_t[::1] a, const int64_t[::1] b,
             size[e] = fabs(fa) + fabs(fb)
 
 
-def predict(const double[::1] gx, const double[::1] gy, const int64_t[::1] a, const int64_t[::1] b,
+def predict(const double[:, ::1] g, const int64_t[::1] a, const int64_t[::1] b,
             const double[::1] dx, const double[::1] dy, const uint8_t[::1] rows,
             double[::1] pred_a, double[::1] pred_b, Py_ssize_t start, Py_ssize_t stop):
-    """pred_a, pred_b (E,): the height changes A_a·d and A_b·d that the end gradients (gx,
-    gy (n,)) predict along each edge a→b with d = (dx, dy); only the edges with rows[e]
+    """pred_a, pred_b (E,): the height changes A_a·d and A_b·d that the end gradients g
+    (n, 2) predict along each edge a→b with d = (dx, dy); only the edges with rows[e]
     set when rows (E,) is given, every edge when it is empty."""
     cdef Py_ssize_t e
     cdef bint every = rows.shape[0] == 0
     with nogil:
         for e in range(start, stop):
             if every or rows[e]:
-                pred_a[e] = gx[a[e]] * dx[e] + gy[a[e]] * dy[e]
-                pred_b[e] = gx[b[e]] * dx[e] + gy[b[e]] * dy[e]
+                pred_a[e] = g[a[e], 0] * dx[e] + g[a[e], 1] * dy[e]
+                pred_b[e] = g[b[e], 0] * dx[e] + g[b[e], 1] * dy[e]
 
 
 def residuals(const double[::1] delta, const double[::1] pred_a, const double[::1] pred_b,
@@ -170,7 +171,7 @@ cdef double _worst_ratio(double ux, double uy, double lx, double ly, double ex, 
     return worst
 
 
-def choose_directions(const double[::1] x, const double[::1] y, const int64_t[::1] a,
+def choose_directions(const double[:, ::1] xy, const int64_t[::1] a,
                       const int64_t[::1] b, const double[::1] dx, const double[::1] dy,
                       const int64_t[::1] idx, const int64_t[::1] first, const int64_t[::1] second,
                       double ratio_limit, double[:, ::1] out, uint8_t[::1] change,
@@ -190,12 +191,12 @@ def choose_directions(const double[::1] x, const double[::1] y, const int64_t[::
     with nogil:
         for i in range(start, stop):
             e = idx[i]
-            lx, ly = x[a[e]], y[a[e]]
-            midx, midy = 0.5 * (lx + x[b[e]]), 0.5 * (ly + y[b[e]])
-            pax, pay = x[first[i]], y[first[i]]
+            lx, ly = xy[a[e], 0], xy[a[e], 1]
+            midx, midy = 0.5 * (lx + xy[b[e], 0]), 0.5 * (ly + xy[b[e], 1])
+            pax, pay = xy[first[i], 0], xy[first[i], 1]
             pbx, pby = NAN, NAN
             if second[i] >= 0:
-                pbx, pby = x[second[i]], y[second[i]]
+                pbx, pby = xy[second[i], 0], xy[second[i], 1]
             ux[0], uy[0] = out[e, 0], out[e, 1]
             ux[1], uy[1] = pbx - pax, pby - pay
             ux[2], uy[2] = midx - pax, midy - pay
@@ -214,7 +215,7 @@ def choose_directions(const double[::1] x, const double[::1] y, const int64_t[::
 
 # ------------------------------------------------------------------ per-triangle passes
 
-def corner_ratios(const double[::1] x, const double[::1] y, const int64_t[:, ::1] tri,
+def corner_ratios(const double[:, ::1] xy, const int64_t[:, ::1] tri,
                   double[:, ::1] out, Py_ssize_t start, Py_ssize_t stop):
     """out (T, 3): max(|s|, |1 − s|) at each corner k of the triangles tri (T, 3), s the
     foot of p_k on the line of the opposite edge p_i → p_j (i, j = k + 1, k + 2):
@@ -227,8 +228,8 @@ def corner_ratios(const double[::1] x, const double[::1] y, const int64_t[:, ::1
     with nogil:
         for t in range(start, stop):
             for k in range(3):                   # each corner's coordinates read once
-                px[k] = x[tri[t, k]]
-                py[k] = y[tri[t, k]]
+                px[k] = xy[tri[t, k], 0]
+                py[k] = xy[tri[t, k], 1]
             for k in range(3):
                 i, j = (k + 1) % 3, (k + 2) % 3
                 ex = px[j] - px[i]
@@ -334,38 +335,43 @@ cdef inline void _add_terms(double *row, double ux, double uy, double slope) noe
 def normal_equations(const int64_t[::1] a, const int64_t[::1] b, const double[::1] dx,
                      const double[::1] dy, const double[::1] delta, const uint8_t[::1] near,
                      const int64_t[::1] position, const int64_t[::1] vertices,
-                     const double[::1] gx, const double[::1] gy, double normal_weight,
-                     double[:, ::1] sums, double[:, :, ::1] M, double[:, ::1] r):
-    """limiter.reconcile_gradients' least-squares systems M (m, 2, 2), r (m, 2) of the m
-    vertices (m,) (position (n,): their row, else -1): over the near (E,) edges of
-    nonzero length at each, with û = d/|d| and the secant slope Δ/|d|, the sums (m, 6)
-    (zeroed) of ûx², ûx·ûy, ûy², ûx·slope, ûy·slope and 1 (the degree), then
-    M = [[Σûx², Σûxûy], [Σûxûy, Σûy²]] + w·I and r = Σû·slope + w·A, w = normal_weight ·
-    degree and A = (gx, gy) the vertex's gradient."""
-    cdef Py_ssize_t E = a.shape[0], m = vertices.shape[0], e, p
+                     const double[:, ::1] g, double normal_weight,
+                     double[:, ::1] sums, double[:, :, ::1] M, double[:, ::1] r,
+                     Py_ssize_t start, Py_ssize_t stop):
+    """limiter.reconcile_gradients' least-squares systems M (m, 2, 2), r (m, 2) of the
+    vertices[p] (m,), start <= p < stop (position (n,): each vertex's p, else -1): over the
+    near (E,) edges of nonzero length at each, with û = d/|d| and the secant slope Δ/|d|,
+    the sums (m, 6) (zeroed) of ûx², ûx·ûy, ûy², ûx·slope, ûy·slope and 1 (the degree),
+    then M = [[Σûx², Σûxûy], [Σûxûy, Σûy²]] + w·I and r = Σû·slope + w·A, w = normal_weight
+    · degree and A = g[v] (n, 2) the vertex's gradient.
+
+    Each vertex adds its a-ends in edge order, then its b-ends (numpy's bincount order), so
+    its sums do not depend on how the vertices are split into ranges: the wrapper runs one
+    range per thread, each scanning every edge for its own vertices."""
+    cdef Py_ssize_t E = a.shape[0], e, p
     cdef int end
     cdef int64_t v
     cdef double length, weight
     with nogil:
-        for end in range(2):                 # a-ends, then b-ends: numpy's bincount order
+        for end in range(2):
             for e in range(E):
                 if not near[e]:
                     continue
-                length = sqrt(dx[e] * dx[e] + dy[e] * dy[e])
-                if not length > 0:
-                    continue
                 p = position[a[e] if end == 0 else b[e]]
-                if p >= 0:
+                if p < start or p >= stop:
+                    continue
+                length = sqrt(dx[e] * dx[e] + dy[e] * dy[e])
+                if length > 0:
                     _add_terms(&sums[p, 0], dx[e] / length, dy[e] / length, delta[e] / length)
-        for p in range(m):
+        for p in range(start, stop):
             v = vertices[p]
             weight = normal_weight * sums[p, 5]
             M[p, 0, 0] = sums[p, 0] + weight
             M[p, 0, 1] = sums[p, 1]
             M[p, 1, 0] = sums[p, 1]
             M[p, 1, 1] = sums[p, 2] + weight
-            r[p, 0] = sums[p, 3] + weight * gx[v]
-            r[p, 1] = sums[p, 4] + weight * gy[v]
+            r[p, 0] = sums[p, 3] + weight * g[v, 0]
+            r[p, 1] = sums[p, 4] + weight * g[v, 1]
 
 
 def limit_factors(const int64_t[::1] a, const int64_t[::1] b, const double[::1] delta,

@@ -30,6 +30,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap, parallel_blocks
+from c1mesh.core.threads import workers as thread_count
 from c1mesh.stages import _limiter as kernel
 from c1mesh.engine.topology import EdgeTable, edge_table
 
@@ -204,9 +205,7 @@ def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray
         raise ValueError(f"length2 has shape {length2.shape}, the table {table.count.shape[0]} edges")
     out = np.empty(length2.shape[0])
     kernel.longest_adjacent(np.ascontiguousarray(length2, dtype=np.float64),
-                            np.ascontiguousarray(table.tri_edge, dtype=np.int64),
-                            np.ascontiguousarray(table.owner, dtype=np.int64),
-                            np.empty(table.tri_edge.shape[0]), out)
+                            np.ascontiguousarray(table.tri_edge, dtype=np.int64), out)
     return out
 
 
@@ -222,10 +221,19 @@ def _edge_blocks(work, count: int, threads: int | None = None) -> None:
     parallel_blocks(lambda part: work(part.start, part.stop), count, KERNEL_BLOCK, threads)
 
 
-def _columns(array: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
-    """The two columns of an (m, 2) array, each contiguous, for the kernels."""
-    array = np.asarray(array, dtype=dtype)
-    return np.ascontiguousarray(array[:, 0]), np.ascontiguousarray(array[:, 1])
+def _rows(array: np.ndarray) -> np.ndarray:
+    """An (m, 2) float array as the kernels take it, C-ordered float64 (a copy only when it
+    is not): a point's or a gradient's two components in one row, one cache line."""
+    array = np.ascontiguousarray(array, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 2:
+        raise InputError(f"expected an (m, 2) array, got shape {array.shape}")
+    return array
+
+
+def _edge_ends(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) (E,) each: the two ends of edges (E, 2), contiguous int64, for the kernels."""
+    edges = np.asarray(edges, dtype=np.int64)
+    return np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
 
 
 @dataclass(frozen=True)
@@ -248,7 +256,7 @@ class EdgeGeometry:
     def of(cls, points: np.ndarray, values: np.ndarray, edges: np.ndarray) -> "EdgeGeometry":
         """The geometry of edges (E, 2) over points (n, 2) and heights values (n,); the
         kernels (edge_vectors, edge_values) in blocks of edges."""
-        a, b = _columns(edges, np.int64)
+        a, b = _edge_ends(edges)
         return cls(a, b, *_edge_vectors(points, a, b), *_edge_values(values, a, b))
 
     def with_values(self, values: np.ndarray) -> "EdgeGeometry":
@@ -260,12 +268,12 @@ class EdgeGeometry:
         """(A_a·d, A_b·d) (E,) each: the height changes the end gradients (n, 2) predict.
         rows (E,) bool: only those edges are computed, written into ``into`` (pred_a,
         pred_b), which keeps the others; None: every edge, into ``into`` or new arrays."""
-        gx, gy = _columns(gradients)
+        g = _rows(gradients)
         if rows is not None and into is None:
             raise ValueError("predictions of some rows need the arrays to write them into")
         pred_a, pred_b = (np.empty(self.a.size), np.empty(self.a.size)) if into is None else into
         mask = np.empty(0, dtype=np.uint8) if rows is None else np.ascontiguousarray(rows, dtype=bool).view(np.uint8)
-        _edge_blocks(lambda start, stop: kernel.predict(gx, gy, self.a, self.b, self.dx, self.dy, mask,
+        _edge_blocks(lambda start, stop: kernel.predict(g, self.a, self.b, self.dx, self.dy, mask,
                                                         pred_a, pred_b, start, stop), self.a.size)
         return pred_a, pred_b
 
@@ -279,12 +287,13 @@ class EdgeGeometry:
 def _edge_vectors(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(dx, dy) (E,): p_b − p_a of the edges a→b (E,) over the points (n, 2); InputError for
     an index outside the points."""
-    x, y = _columns(points)
-    if a.size and (min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= x.size):
-        raise InputError(f"edge indices must lie in [0, {x.size}), got "
+    xy = _rows(points)
+    n = xy.shape[0]
+    if a.size and (min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= n):
+        raise InputError(f"edge indices must lie in [0, {n}), got "
                          f"{min(a.min(), b.min())}..{max(a.max(), b.max())}")
     dx, dy = np.empty(a.size), np.empty(a.size)
-    _edge_blocks(lambda start, stop: kernel.edge_vectors(x, y, a, b, dx, dy, start, stop), a.size)
+    _edge_blocks(lambda start, stop: kernel.edge_vectors(xy, a, b, dx, dy, start, stop), a.size)
     return dx, dy
 
 
@@ -365,9 +374,9 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
                noise_floor: float | None, normal_weight: float = NORMAL_WEIGHT
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`reconcile_gradients` on gathered edge data; also returns the (E,) bool edges that
-    reach a changed vertex. The kernels mark the touched vertices and build their 2×2
-    systems (stages/_limiter.pyx touch, normal_equations; one thread, the sums in
-    numpy's bincount order); numpy's solve (LAPACK) solves them."""
+    reach a changed vertex. The kernels mark the touched vertices (touch, one thread) and
+    build their 2×2 systems (normal_equations, a range of vertices per thread, the sums
+    in numpy's bincount order); numpy's solve (LAPACK) solves them."""
     A = np.asarray(gradients, dtype=float)
     n = A.shape[0]
     bad, _ = _inconsistent(geometry, predicted, CONSISTENCY, NOISE_FACTOR, noise_floor)
@@ -376,10 +385,15 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
     vertices = np.flatnonzero(touched)
     position = np.full(n, -1, dtype=np.int64)
     position[vertices] = np.arange(vertices.size)
-    M_t, r_t = np.empty((vertices.size, 2, 2)), np.empty((vertices.size, 2))
-    kernel.normal_equations(geometry.a, geometry.b, geometry.dx, geometry.dy, geometry.delta,
-                            near.view(np.uint8), position, vertices, *_columns(A), float(normal_weight),
-                            np.zeros((vertices.size, 6)), M_t, r_t)
+    M_t, r_t, sums = np.empty((vertices.size, 2, 2)), np.empty((vertices.size, 2)), np.zeros((vertices.size, 6))
+    g = _rows(A)
+    # One range of vertices per thread: a vertex's sums are the same in any range (the
+    # kernel's docstring says why), so the ranges need not be fixed blocks.
+    parallel_blocks(lambda part: kernel.normal_equations(geometry.a, geometry.b, geometry.dx, geometry.dy,
+                                                         geometry.delta, near.view(np.uint8), position,
+                                                         vertices, g, float(normal_weight), sums,
+                                                         M_t, r_t, part.start, part.stop),
+                    vertices.size, max(1, -(-vertices.size // thread_count())))
     out = A.copy()
     out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
     return out, touched, near
@@ -446,7 +460,7 @@ def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
     spline stays C1 (Thm 3.4).
     """
     p = np.asarray(points, dtype=float)
-    return _directions(p, triangles, table, _edge_vectors(p, *_columns(table.edges, np.int64)), ratio_limit)
+    return _directions(p, triangles, table, _edge_vectors(p, *_edge_ends(table.edges)), ratio_limit)
 
 
 def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable,
@@ -468,9 +482,9 @@ def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable,
         return out, change
     idx = np.flatnonzero(change)
     first, second = _opposite_vertices(tri, table, idx)
-    x, y = _columns(p)
-    a, b = _columns(table.edges, np.int64)
-    parallel_blocks(lambda part: kernel.choose_directions(x, y, a, b, dx, dy, idx, first, second,
+    xy = _rows(p)
+    a, b = _edge_ends(table.edges)
+    parallel_blocks(lambda part: kernel.choose_directions(xy, a, b, dx, dy, idx, first, second,
                                                           float(ratio_limit), out, change.view(np.uint8),
                                                           part.start, part.stop), idx.size, KERNEL_BLOCK >> 4,
                     threads)
@@ -497,10 +511,10 @@ def _normal_ratio_screen(p: np.ndarray, tri: np.ndarray, table: EdgeTable,
     its owner's corner where larger than its other corner's, else the other's (NaN
     included, as a scatter of every slot in slot-major order followed by the larger ones
     left it; edge_screen). A screen: choose_directions decides."""
-    x, y = _columns(p)
+    xy = _rows(p)
     ratio = np.empty(tri.shape)
     screen = np.empty(table.edges.shape[0])
-    _edge_blocks(lambda start, stop: kernel.corner_ratios(x, y, tri, ratio, start, stop), tri.shape[0], threads)
+    _edge_blocks(lambda start, stop: kernel.corner_ratios(xy, tri, ratio, start, stop), tri.shape[0], threads)
     _edge_blocks(lambda start, stop: kernel.edge_screen(table.tri_edge, table.owner, table.owner_slot,
                                                         table.count, ratio, screen, start, stop),
                  tri.shape[0], threads)
