@@ -4,9 +4,11 @@ thread knob's threads), and nothing else imports them.
 
 Two kinds. Per-edge or per-triangle passes take a range start <= i < stop and write only
 their own rows, so the wrapper runs fixed blocks in threads and the bits do not depend on
-the count. Scatters into vertices (a vertex's sums, its smallest factor) run in one
-thread, in the order numpy's bincount and ufunc.at took the edges: every a-end in edge
-order, then every b-end, so each vertex adds its terms in the same order as before.
+the count. Scatters into vertices (a vertex's sums, its smallest factor) take the edges
+in the order numpy's bincount and ufunc.at took them: every a-end in edge order, then
+every b-end, so each vertex adds its terms in the same order as before. They run in one
+thread, except normal_equations, which takes a range of vertices and scans every edge
+for them (a vertex's order is the same in any range).
 
 The arithmetic is numpy's, operation for operation (the build sets -ffp-contract=off);
 `_np_maximum`, `_np_minimum` and `_np_clip` pick as numpy's maximum, minimum and clip do,
