@@ -286,29 +286,32 @@ def opposite_vertices(const int64_t[:, ::1] tri, const int64_t[:, ::1] tri_edge,
 def crease_moves(const double[::1] f, const int64_t[::1] a, const int64_t[::1] b,
                  const double[::1] residual, const double[::1] length2, const double[::1] reach2,
                  double crease_level, double clip, double[::1] total, int64_t[::1] count,
-                 double[::1] out):
+                 int64_t[::1] creasing, double[::1] out):
     """limiter.reconcile_heights' moves: every edge a→b with 6|e|·√reach2 > crease_level ·
     length2 (e the residual, length2 its squared length, reach2 the squared longest edge
     of its triangles) moves a by m = clip(e/2, ±clip) and b by −m; out (n,) = f plus
     each moved vertex's mean move (total (n,) zeroed and count (n,) zeroed: its sum and
-    number of moves). Returns the number of such edges."""
-    cdef Py_ssize_t E = a.shape[0], n = f.shape[0], e, v
-    cdef int64_t moved = 0
+    number of moves; creasing (E,) scratch: the creasing edges, listed by the one test).
+    Returns the number of such edges."""
+    cdef Py_ssize_t E = a.shape[0], n = f.shape[0], e, i, m = 0, v
     cdef double move
     with nogil:
-        for e in range(E):                   # a-ends, then b-ends: numpy's bincount order
-            if 6.0 * fabs(residual[e]) * sqrt(reach2[e]) > crease_level * length2[e]:
-                total[a[e]] += _np_clip(0.5 * residual[e], -clip, clip)
-                count[a[e]] += 1
-                moved += 1
         for e in range(E):
             if 6.0 * fabs(residual[e]) * sqrt(reach2[e]) > crease_level * length2[e]:
-                move = _np_clip(0.5 * residual[e], -clip, clip)
-                total[b[e]] += -move
-                count[b[e]] += 1
+                creasing[m] = e
+                m += 1
+        for i in range(m):                   # a-ends, then b-ends: numpy's bincount order
+            e = creasing[i]
+            total[a[e]] += _np_clip(0.5 * residual[e], -clip, clip)
+            count[a[e]] += 1
+        for i in range(m):
+            e = creasing[i]
+            move = _np_clip(0.5 * residual[e], -clip, clip)
+            total[b[e]] += -move
+            count[b[e]] += 1
         for v in range(n):
             out[v] = f[v] + total[v] / count[v] if count[v] > 0 else f[v]
-    return moved
+    return m
 
 
 def touch(const int64_t[::1] a, const int64_t[::1] b, const uint8_t[::1] bad,

@@ -191,7 +191,8 @@ def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: n
     out, count = np.empty(n), np.zeros(n, dtype=np.int64)
     moved = kernel.crease_moves(np.ascontiguousarray(f), geometry.a, geometry.b,
                                 np.ascontiguousarray(residual, dtype=np.float64), length2, reach2,
-                                float(CREASE_LEVEL), HEIGHT_CLIP * noise_floor, np.zeros(n), count, out)
+                                float(CREASE_LEVEL), HEIGHT_CLIP * noise_floor, np.zeros(n), count,
+                                np.empty(length2.size, dtype=np.int64), out)
     if moved == 0:
         return f, np.zeros(n, dtype=bool)
     return out, count > 0
@@ -210,8 +211,10 @@ def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray
 
 
 def _median_abs(values: np.ndarray) -> float:
-    """median |values| (0 for none): the noise floor of trapezoid residuals (E,)."""
-    return float(np.median(np.abs(values))) if values.size else 0.0
+    """median |values| (0 for none): the noise floor of trapezoid residuals (E,). The
+    selection runs in the |values| copy (overwrite_input: no second copy; a median depends
+    only on the values, not on their order)."""
+    return float(np.median(np.abs(values), overwrite_input=True)) if values.size else 0.0
 
 
 def _edge_blocks(work, count: int, threads: int | None = None) -> None:
@@ -395,8 +398,20 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
                                                          M_t, r_t, part.start, part.stop),
                     vertices.size, max(1, -(-vertices.size // thread_count())))
     out = A.copy()
-    out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
+    out[touched] = _solve_2x2(M_t, r_t)
     return out, touched, near
+
+
+def _solve_2x2(M: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The solutions (m, 2) of the systems M (m, 2, 2) x = r (m, 2) by numpy's solve
+    (LAPACK's gesv, which releases the GIL), in fixed blocks of systems in the thread
+    knob's threads: each system is solved alone, so the bits do not depend on the count."""
+    x = np.empty_like(r)
+
+    def block(part: slice) -> None:
+        x[part] = np.linalg.solve(M[part], r[part, :, None])[:, :, 0]
+    parallel_blocks(block, r.shape[0], KERNEL_BLOCK)
+    return x
 
 
 def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
