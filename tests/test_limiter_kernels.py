@@ -160,29 +160,29 @@ def test_limit_gradients_scales_by_the_smallest_allowed_fraction(noisy):
     np.testing.assert_array_equal(limited, g * factor[:, None])
 
 
-def test_limit_factors_pick_zeros_and_nans_as_numpys_minimum_at():
-    """A zero noise floor, Δ = 0 and a negative prediction give t = −0.0 (low/pred with
-    low = 0.0), a NaN Δ gives t = NaN: numpy's minimum.at keeps the later of equal values
-    and any NaN, and so must the kernel, since the sign of a zero gradient reaches the
-    output's bytes."""
-    from c1mesh.stages import _limiter as kernel
-
-    a, b = np.array([0, 0, 1], dtype=np.int64), np.array([1, 2, 2], dtype=np.int64)
-    delta = np.array([0.0, 0.0, np.nan])
-    pred_a, pred_b = np.array([-1.0, 1.0, 1.0]), np.array([1.0, -1.0, 0.0])
-    bad = np.ones(3, dtype=np.uint8)
+def test_limit_gradients_sign_zeros_as_numpys_minimum_at():
+    """With a zero noise floor, Δ = 0 and a negative prediction give t = −0.0 (low/pred with
+    low = 0.0): numpy's minimum.at keeps the later of equal values, and so must the kernel,
+    since the sign of a zero gradient reaches the output's bytes. Vertex 1 meets t = 0.0
+    as an a-end (edge 1→2), then t = −0.0 as a b-end (edge 0→1): −0.0 wins."""
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    z = np.zeros(3)
+    g = np.array([[-1.0, 0.0], [-1.0, 0.0], [0.0, 0.0]])
+    edges = np.array([[0, 1], [0, 2], [1, 2]])
+    limited, changed = limit_gradients(xy, z, g, edges, noise_floor=0.0)
+    bad, parts = inconsistent_edges(xy, z, g, edges, noise_floor=0.0)
+    assert bad.tolist() == [True, False, True] and parts["noise"] == 0.0
     factor = np.ones(3)
-    kernel.limit_factors(a, b, delta, pred_a, pred_b, bad, SECANT_FACTOR, 0.0, factor)
-    expected = np.ones(3)
-    for vertex, pred in ((a, pred_a), (b, pred_b)):
-        with np.errstate(all="ignore"):
-            bound = SECANT_FACTOR * delta
-            t = np.where(pred > 0, (np.maximum(bound, 0.0) + 0.0) / pred,
-                         np.where(pred < 0, (np.minimum(bound, 0.0) - 0.0) / pred, 1.0))
-            np.minimum.at(expected, vertex, np.clip(t, 0.0, 1.0))
-    np.testing.assert_array_equal(factor, expected)
-    np.testing.assert_array_equal(np.signbit(factor), np.signbit(expected))
-    assert np.isnan(factor[1]) and factor[0] == 0 and not np.signbit(factor[0]) and np.signbit(factor[2])
+    with np.errstate(all="ignore"):
+        for vertex, pred in ((edges[bad, 0], parts["pred_a"][bad]), (edges[bad, 1], parts["pred_b"][bad])):
+            bound = SECANT_FACTOR * parts["delta"][bad]
+            t = np.where(pred > 0, np.maximum(bound, 0.0) / pred, np.where(pred < 0, np.minimum(bound, 0.0) / pred, 1.0))
+            np.minimum.at(factor, vertex, np.clip(t, 0.0, 1.0))
+    assert changed.tolist() == [True, True, False]
+    np.testing.assert_array_equal(limited, g * factor[:, None])
+    np.testing.assert_array_equal(np.signbit(limited), np.signbit(g * factor[:, None]))
+    assert np.signbit(factor).tolist() == [True, True, False]
+    assert np.signbit(limited).tolist() == [[False, True], [False, True], [False, False]]
 
 
 def test_edge_directions_screen_and_opposite_vertices_are_the_loops(noisy):
