@@ -328,27 +328,17 @@ def touch(const int64_t[::1] a, const int64_t[::1] b, const uint8_t[::1] bad,
             near[e] = touched[a[e]] | touched[b[e]]
 
 
-cdef inline void _add_terms(double *row, double ux, double uy, double slope) noexcept nogil:
-    row[0] += ux * ux
-    row[1] += ux * uy
-    row[2] += uy * uy
-    row[3] += ux * slope
-    row[4] += uy * slope
-    row[5] += 1.0
-
-
 def normal_equations(const int64_t[::1] a, const int64_t[::1] b, const double[::1] dx,
                      const double[::1] dy, const double[::1] delta, const uint8_t[::1] near,
                      const int64_t[::1] position, const int64_t[::1] vertices,
-                     const double[:, ::1] g, double normal_weight,
-                     double[:, ::1] sums, double[:, :, ::1] M, double[:, ::1] r,
-                     Py_ssize_t start, Py_ssize_t stop):
+                     const double[:, ::1] g, double normal_weight, double[::1] degree,
+                     double[:, :, ::1] M, double[:, ::1] r, Py_ssize_t start, Py_ssize_t stop):
     """limiter.reconcile_gradients' least-squares systems M (m, 2, 2), r (m, 2) of the
-    vertices[p] (m,), start <= p < stop (position (n,): each vertex's p, else -1): over the
-    near (E,) edges of nonzero length at each, with û = d/|d| and the secant slope Δ/|d|,
-    the sums (m, 6) (zeroed) of ûx², ûx·ûy, ûy², ûx·slope, ûy·slope and 1 (the degree),
-    then M = [[Σûx², Σûxûy], [Σûxûy, Σûy²]] + w·I and r = Σû·slope + w·A, w = normal_weight
-    · degree and A = g[v] (n, 2) the vertex's gradient.
+    vertices[p] (m,), start <= p < stop (position (n,): each vertex's p, else -1), M, r and
+    degree (m,) zeroed: over the near (E,) edges of nonzero length at each, with û = d/|d|
+    and the secant slope Δ/|d|, M = [[Σûx², Σûxûy], [Σûxûy, Σûy²]] + w·I and
+    r = Σû·slope + w·A, w = normal_weight · degree (the number of such edges) and A = g[v]
+    (n, 2) the vertex's gradient; each sum is complete before w is added.
 
     Each vertex adds its a-ends in edge order, then its b-ends (numpy's bincount order), so
     its sums do not depend on how the vertices are split into ranges: the wrapper runs one
@@ -356,7 +346,7 @@ def normal_equations(const int64_t[::1] a, const int64_t[::1] b, const double[::
     cdef Py_ssize_t E = a.shape[0], e, p
     cdef int end
     cdef int64_t v
-    cdef double length, weight
+    cdef double length, ux, uy, slope, weight
     with nogil:
         for end in range(2):
             for e in range(E):
@@ -366,17 +356,23 @@ def normal_equations(const int64_t[::1] a, const int64_t[::1] b, const double[::
                 if p < start or p >= stop:
                     continue
                 length = sqrt(dx[e] * dx[e] + dy[e] * dy[e])
-                if length > 0:
-                    _add_terms(&sums[p, 0], dx[e] / length, dy[e] / length, delta[e] / length)
+                if not length > 0:
+                    continue
+                ux, uy, slope = dx[e] / length, dy[e] / length, delta[e] / length
+                M[p, 0, 0] += ux * ux
+                M[p, 0, 1] += ux * uy
+                M[p, 1, 1] += uy * uy
+                r[p, 0] += ux * slope
+                r[p, 1] += uy * slope
+                degree[p] += 1.0
         for p in range(start, stop):
             v = vertices[p]
-            weight = normal_weight * sums[p, 5]
-            M[p, 0, 0] = sums[p, 0] + weight
-            M[p, 0, 1] = sums[p, 1]
-            M[p, 1, 0] = sums[p, 1]
-            M[p, 1, 1] = sums[p, 2] + weight
-            r[p, 0] = sums[p, 3] + weight * g[v, 0]
-            r[p, 1] = sums[p, 4] + weight * g[v, 1]
+            weight = normal_weight * degree[p]
+            M[p, 1, 0] = M[p, 0, 1]
+            M[p, 0, 0] += weight
+            M[p, 1, 1] += weight
+            r[p, 0] += weight * g[v, 0]
+            r[p, 1] += weight * g[v, 1]
 
 
 def limit_factors(const int64_t[::1] a, const int64_t[::1] b, const double[::1] delta,

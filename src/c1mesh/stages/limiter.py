@@ -388,13 +388,13 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
     vertices = np.flatnonzero(touched)
     position = np.full(n, -1, dtype=np.int64)
     position[vertices] = np.arange(vertices.size)
-    M_t, r_t, sums = np.empty((vertices.size, 2, 2)), np.empty((vertices.size, 2)), np.zeros((vertices.size, 6))
+    M_t, r_t, degree = np.zeros((vertices.size, 2, 2)), np.zeros((vertices.size, 2)), np.zeros(vertices.size)
     g = _rows(A)
     # One range of vertices per thread: a vertex's sums are the same in any range (the
     # kernel's docstring says why), so the ranges need not be fixed blocks.
     parallel_blocks(lambda part: kernel.normal_equations(geometry.a, geometry.b, geometry.dx, geometry.dy,
                                                          geometry.delta, near.view(np.uint8), position,
-                                                         vertices, g, float(normal_weight), sums,
+                                                         vertices, g, float(normal_weight), degree,
                                                          M_t, r_t, part.start, part.stop),
                     vertices.size, max(1, -(-vertices.size // thread_count())))
     out = A.copy()
