@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.engine.topology import edge_table, edge_table_sides, sort_keys, sub_table, triangle_neighbours
+from c1mesh.engine.topology import (edge_table, edge_table_sides, live_edges, sort_keys, sub_table,
+                                    triangle_neighbours)
 from c1mesh.engine.triangulation import delaunay
 
 
@@ -104,6 +105,23 @@ def test_sub_table_is_the_edge_table_of_the_kept_triangles(shuffled_mesh, drop):
     sub, expected = sub_table(table, keep, other, used), edge_table(remap[tri[keep]], used.size)
     for f in FIELDS:
         assert np.array_equal(getattr(sub, f), getattr(expected, f)), f
+
+
+def test_live_edges_counts_the_kept_triangles_of_each_edge_by_a_loop(shuffled_mesh):
+    """live_edges' kernel against a loop over every kept triangle's three edges."""
+    tri, n = shuffled_mesh
+    table, other, _ = edge_table_sides(tri, n)
+    keep = np.random.default_rng(9).random(len(tri)) < 0.6
+    owner_kept, count = live_edges(table, keep, other)
+    expected = np.zeros(len(table.edges), dtype=np.int64)
+    for t in np.flatnonzero(keep):
+        for k in range(3):
+            expected[table.tri_edge[t, k]] += 1
+    assert count.dtype == np.int8 and np.array_equal(count, expected)
+    assert owner_kept.dtype == bool and np.array_equal(owner_kept, keep[table.owner])
+    assert 0 < (count == 1).sum() and 0 < (count == 2).sum() and 0 < (count == 0).sum()
+    with pytest.raises(InputError, match="keep must have shape"):
+        live_edges(table, keep[1:], other)
 
 
 def test_edge_table_of_a_fan_and_of_no_triangles():

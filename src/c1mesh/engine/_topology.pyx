@@ -8,10 +8,14 @@ high << 32 | s; each bucket is then sorted (a few values: insertion sort; a fan'
 qsort), so the buckets read in order list the unique edges sorted lexicographically, each
 edge's occurrences side by side. Linear in T + n plus the buckets' sorts; one thread.
 Vertex numbers and slots must be below 2**31 (the wrapper checks).
+
+The sub-table of kept triangles (topology.sub_table, live_edges) is two linear passes over
+the whole table: the kept triangles per edge, then the live edges and kept triangles
+renumbered in order.
 """
 import numpy as np
 
-from libc.stdint cimport int64_t, uint8_t, uint64_t
+from libc.stdint cimport int8_t, int64_t, uint8_t, uint64_t
 from libc.stdlib cimport qsort
 
 cdef int INSERTION_MAX = 24
@@ -142,3 +146,58 @@ def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_
                 else:
                     across[s1 // 3, s1 % 3] = -1
                     i += 1
+
+
+def edge_counts(const uint8_t[::1] keep, const int64_t[::1] owner, const int64_t[::1] other,
+                uint8_t[::1] owner_kept, int8_t[::1] count):
+    """For the triangles keep (T,) 0/1: owner_kept (E,) 0/1 whether each edge's owner
+    (E,) is kept, and count (E,) how many of its one or two triangles are (the owner, and
+    the slot other (E,) = 3t + k of its second triangle, -1 on a boundary edge)."""
+    cdef Py_ssize_t E = owner.shape[0], e
+    with nogil:
+        for e in range(E):
+            owner_kept[e] = keep[owner[e]]
+            count[e] = owner_kept[e]
+            if other[e] >= 0:
+                count[e] += keep[other[e] // 3]
+
+
+def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const int64_t[:, ::1] tri_edge,
+                   const uint8_t[:, ::1] forward, const int64_t[::1] owner, const int64_t[::1] owner_slot,
+                   const int64_t[::1] other, const uint8_t[::1] owner_kept, const int8_t[::1] count,
+                   const int64_t[::1] remap, int64_t[::1] rank, int64_t[::1] new_triangle,
+                   int64_t[:, ::1] sub_edges, int64_t[:, ::1] sub_tri_edge, uint8_t[:, ::1] sub_forward,
+                   int64_t[::1] sub_owner, int64_t[::1] sub_owner_slot, int64_t[::1] sub_count):
+    """The edge table of the kept triangles keep (T,) 0/1, from the whole mesh's (edges,
+    tri_edge, forward, owner, owner_slot; other: each edge's second slot or -1) and
+    edge_counts' owner_kept and count (E,): the live edges (count > 0) keep their order,
+    the kept triangles theirs. remap (n,): new vertex numbers (increasing; empty: keep
+    them). Scratch: rank (E,) an edge's new number, new_triangle (T,) a triangle's.
+    Outputs sized (E', ...) and (T', ...) by the wrapper. An edge whose owner is dropped
+    is owned by its other slot (topology.sub_table says why that is edge_table's owner)."""
+    cdef Py_ssize_t T = keep.shape[0], E = owner.shape[0], t, e
+    cdef int k
+    cdef int64_t kept = 0, live = 0, slot
+    cdef bint renumber = remap.shape[0] > 0
+    with nogil:
+        for t in range(T):
+            new_triangle[t] = kept
+            kept += keep[t]
+        for e in range(E):
+            rank[e] = live
+            if count[e] == 0:
+                continue
+            slot = owner[e] * 3 + owner_slot[e] if owner_kept[e] else other[e]
+            sub_owner[live] = new_triangle[slot // 3]
+            sub_owner_slot[live] = slot % 3
+            sub_count[live] = count[e]
+            if renumber:
+                sub_edges[live, 0], sub_edges[live, 1] = remap[edges[e, 0]], remap[edges[e, 1]]
+            else:
+                sub_edges[live, 0], sub_edges[live, 1] = edges[e, 0], edges[e, 1]
+            live += 1
+        for t in range(T):
+            if keep[t]:
+                for k in range(3):
+                    sub_tri_edge[new_triangle[t], k] = rank[tri_edge[t, k]]
+                    sub_forward[new_triangle[t], k] = forward[t, k]

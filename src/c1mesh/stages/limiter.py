@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.threads import parallel_blocks
+from c1mesh.core.threads import overlap, parallel_blocks
+from c1mesh.core.threads import workers as thread_count
 from c1mesh.stages import _limiter as kernel
 from c1mesh.engine.topology import EdgeTable, edge_table
 
@@ -52,6 +53,10 @@ RATIO_LIMIT = 2.0
 CREASE_LEVEL = 4
 """The refinement level (sub-faces per triangle edge) whose sampling `reconcile_heights`
 protects: the default level. A fixed constant, so --level changes the sampling only."""
+KERNEL_BLOCK = 1 << 16
+"""Edges or triangles per block of the per-edge and per-triangle kernels (stages/_limiter.pyx),
+run in the thread knob's threads (core.threads.parallel_blocks; fixed blocks, so the bits
+do not depend on the count)."""
 HEIGHT_CLIP = 2.0
 """`reconcile_heights` moves a height by at most this multiple of the noise floor: half of
 an edge's residual up to twice the floor, what noise alone explains; larger misfits are
@@ -105,12 +110,28 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     if mode == "off":
         return values, gradients, None, LimiterReport()
     table = edge_table(triangles, points.shape[0]) if table is None else table
-    before, after = noise_floors if noise_floors is not None else (None, None)
     geometry = EdgeGeometry.of(points, values, table.edges)
+    # The directions need only the positions: they run in one thread beside the heights'
+    # and gradients' remedies (core.threads.overlap; one after the other with one worker).
+    (directions, turned), (values, limited, lifted, moved, changed) = overlap(
+        lambda: _directions(points, triangles, table, (geometry.dx, geometry.dy), RATIO_LIMIT, threads=1),
+        lambda: _remedies(values, gradients, geometry, table, noise_floors, heights))
+    if counted is not None:
+        changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
+                                          turned & counted[table.edges[:, 0]])
+    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
+                                                      int(lifted.sum()))
+
+
+def _remedies(values: np.ndarray, gradients: np.ndarray, geometry: "EdgeGeometry", table: EdgeTable,
+              noise_floors: tuple[float, float] | None, heights: bool) -> tuple[np.ndarray, ...]:
+    """`control_overshoot`'s heights and gradients: (values (n,), gradients (n, 2), and the
+    (n,) bool vertices whose height moved, gradient was reconciled, gradient was limited)."""
+    before, after = noise_floors if noise_floors is not None else (None, None)
     predicted = geometry.predictions(gradients)             # heights do not change these
-    residual = geometry.delta - 0.5 * (predicted[0] + predicted[1])
+    residual = geometry.residuals(predicted)
     if before is None:
-        before = float(np.median(np.abs(residual))) if residual.size else 0.0
+        before = _median_abs(residual)
     lifted = np.zeros(values.shape[0], dtype=bool)
     if heights:
         values, lifted = _reconcile_heights(values, geometry, residual, table, before)
@@ -119,16 +140,10 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
     # Reconciliation changes the gradients of touched vertices only, so only the edges
     # that reach one ("near") predict anything new.
-    pred_a, pred_b = (pred.copy() for pred in predicted)
-    pred_a[near], pred_b[near] = geometry.predictions(reconciled, near)
-    limited, changed = _limit(reconciled, geometry, (pred_a, pred_b), SECANT_FACTOR,
+    predicted = geometry.predictions(reconciled, near, into=predicted)
+    limited, changed = _limit(reconciled, geometry, predicted, SECANT_FACTOR,
                               CONSISTENCY, NOISE_FACTOR, after)
-    directions, turned = _directions(points, triangles, table, geometry.d, RATIO_LIMIT)
-    if counted is not None:
-        changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
-                                          turned & counted[table.edges[:, 0]])
-    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
-                                                      int(lifted.sum()))
+    return values, limited, lifted, moved, changed
 
 
 def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -155,31 +170,32 @@ def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     """
     table = edge_table(triangles, points.shape[0]) if table is None else table
     geometry = EdgeGeometry.of(points, values, table.edges)
-    pred_a, pred_b = geometry.predictions(gradients)
-    residual = geometry.delta - 0.5 * (pred_a + pred_b)
+    residual = geometry.residuals(geometry.predictions(gradients))
     if noise_floor is None:
-        noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
+        noise_floor = _median_abs(residual)
     return _reconcile_heights(values, geometry, residual, table, noise_floor)
 
 
 def _reconcile_heights(values: np.ndarray, geometry: "EdgeGeometry", residual: np.ndarray,
                        table: EdgeTable, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
-    """`reconcile_heights` on gathered edge data and residuals (E,)."""
+    """`reconcile_heights` on gathered edge data and residuals (E,): the squared lengths and
+    their triangles' longest (`_longest_adjacent_edge2`), then the kernel's moves
+    (stages/_limiter.pyx crease_moves), one thread."""
     f = np.asarray(values, dtype=float)
     n = f.shape[0]
-    length2 = geometry.d[:, 0] ** 2 + geometry.d[:, 1] ** 2
-    reach2 = _longest_adjacent_edge2(length2, table)
-    creasing = 6.0 * np.abs(residual) * np.sqrt(reach2) > CREASE_LEVEL * length2
-    if noise_floor <= 0 or not creasing.any():
+    if noise_floor <= 0:
         return f, np.zeros(n, dtype=bool)
-    move = np.clip(0.5 * residual[creasing], -HEIGHT_CLIP * noise_floor, HEIGHT_CLIP * noise_floor)
-    ends = np.concatenate([geometry.a[creasing], geometry.b[creasing]])
-    total = np.bincount(ends, np.concatenate([move, -move]), minlength=n)
-    count = np.bincount(ends, minlength=n)
-    changed = count > 0
-    out = f.copy()
-    out[changed] += total[changed] / count[changed]
-    return out, changed
+    length2 = geometry.dx * geometry.dx
+    length2 += geometry.dy * geometry.dy
+    reach2 = _longest_adjacent_edge2(length2, table)
+    out, count = np.empty(n), np.zeros(n, dtype=np.int64)
+    moved = kernel.crease_moves(np.ascontiguousarray(f), geometry.a, geometry.b,
+                                np.ascontiguousarray(residual, dtype=np.float64), length2, reach2,
+                                float(CREASE_LEVEL), HEIGHT_CLIP * noise_floor, np.zeros(n), count,
+                                np.empty(length2.size, dtype=np.int64), out)
+    if moved == 0:
+        return f, np.zeros(n, dtype=bool)
+    return out, count > 0
 
 
 def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray:
@@ -190,78 +206,106 @@ def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray
         raise ValueError(f"length2 has shape {length2.shape}, the table {table.count.shape[0]} edges")
     out = np.empty(length2.shape[0])
     kernel.longest_adjacent(np.ascontiguousarray(length2, dtype=np.float64),
-                            np.ascontiguousarray(table.tri_edge, dtype=np.int64),
-                            np.ascontiguousarray(table.owner, dtype=np.int64),
-                            np.empty(table.tri_edge.shape[0]), out)
+                            np.ascontiguousarray(table.tri_edge, dtype=np.int64), out)
     return out
 
 
-def _owner_and_last(values: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:
-    """(first, last), each (E,): the value of each edge at its first and at its last slot
-    in slot-major order (slot k of triangle t at k·T + t), from values (3, T) per slot or
-    (T,) per triangle (the same at its three slots).
+def _median_abs(values: np.ndarray) -> float:
+    """median |values| (0 for none): the noise floor of trapezoid residuals (E,). The
+    selection runs in the |values| copy (overwrite_input: no second copy; a median depends
+    only on the values, not on their order)."""
+    return float(np.median(np.abs(values), overwrite_input=True)) if values.size else 0.0
 
-    The first is the owner's (EdgeTable.owner, owner_slot: the lowest slot, then the lowest
-    triangle); the last is what a scatter of every slot in that order leaves, so an edge of
-    one triangle has first == last. Gathering the owners' values replaces a second gather
-    over all 3T slots.
-    """
-    per_slot = values.ndim == 2
-    last = np.empty(table.edges.shape[0])
-    for k in range(3):                                   # slot-major: later slots win
-        last[np.ascontiguousarray(table.tri_edge[:, k])] = values[k] if per_slot else values
-    if not per_slot:
-        return values[table.owner], last
-    flat = table.owner_slot * values.shape[1]
-    flat += table.owner
-    return np.ascontiguousarray(values).ravel()[flat], last
+
+def _edge_blocks(work, count: int, threads: int | None = None) -> None:
+    """work(start, stop) over the fixed blocks of KERNEL_BLOCK of range(count), in the
+    thread knob's threads or ``threads`` (each block writes its own rows: the same bits
+    at any count)."""
+    parallel_blocks(lambda part: work(part.start, part.stop), count, KERNEL_BLOCK, threads)
+
+
+def _rows(array: np.ndarray) -> np.ndarray:
+    """An (m, 2) float array as the kernels take it, C-ordered float64 (a copy only when it
+    is not): a point's or a gradient's two components in one row, one cache line."""
+    array = np.ascontiguousarray(array, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 2:
+        raise InputError(f"expected an (m, 2) array, got shape {array.shape}")
+    return array
+
+
+def _edge_ends(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) (E,) each: the two ends of edges (E, 2), contiguous int64, for the kernels."""
+    edges = np.asarray(edges, dtype=np.int64)
+    return np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
 
 
 @dataclass(frozen=True)
 class EdgeGeometry:
     """What the consistency test needs of each edge a→b that no gradient changes.
 
-    a, b (E,) vertex indices; d (E, 2) = p_b − p_a; delta (E,) = f_b − f_a; size (E,) =
-    |f_a| + |f_b| (for the rounding allowance). Gathered once and shared by the
-    reconciliation, the limiter and the edge directions.
+    a, b (E,) int64 vertex indices; dx, dy (E,) = p_b − p_a (plane units); delta (E,) =
+    f_b − f_a; size (E,) = |f_a| + |f_b| (for the rounding allowance), all contiguous.
+    Gathered once and shared by the reconciliation, the limiter and the edge directions.
     """
 
     a: np.ndarray
     b: np.ndarray
-    d: np.ndarray
+    dx: np.ndarray
+    dy: np.ndarray
     delta: np.ndarray
     size: np.ndarray
 
     @classmethod
     def of(cls, points: np.ndarray, values: np.ndarray, edges: np.ndarray) -> "EdgeGeometry":
-        p = np.asarray(points, dtype=float)
-        f = np.asarray(values, dtype=float)
-        a, b = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
-        d = np.empty((a.size, 2))
-        for c in range(2):                        # column gathers: contiguous, cache-friendly
-            column = np.ascontiguousarray(p[:, c])
-            np.subtract(column[b], column[a], out=d[:, c])
-        fa, fb = f[a], f[b]
-        return cls(a, b, d, fb - fa, np.abs(fa) + np.abs(fb))
+        """The geometry of edges (E, 2) over points (n, 2) and heights values (n,); the
+        kernels (edge_vectors, edge_values) in blocks of edges."""
+        a, b = _edge_ends(edges)
+        return cls(a, b, *_edge_vectors(points, a, b), *_edge_values(values, a, b))
 
     def with_values(self, values: np.ndarray) -> "EdgeGeometry":
-        """The same edges over new heights (the positions' differences d are kept)."""
-        f = np.asarray(values, dtype=float)
-        fa, fb = f[self.a], f[self.b]
-        return EdgeGeometry(self.a, self.b, self.d, fb - fa, np.abs(fa) + np.abs(fb))
+        """The same edges over new heights (the positions' differences are kept)."""
+        return EdgeGeometry(self.a, self.b, self.dx, self.dy, *_edge_values(values, self.a, self.b))
 
-    def predictions(self, gradients: np.ndarray, rows: np.ndarray | slice = slice(None)
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """(A_a·d, A_b·d) for the edges ``rows``: the height changes the end gradients predict."""
-        A = np.asarray(gradients, dtype=float)
-        gx, gy = np.ascontiguousarray(A[:, 0]), np.ascontiguousarray(A[:, 1])
-        dx, dy = np.ascontiguousarray(self.d[rows, 0]), np.ascontiguousarray(self.d[rows, 1])
-        out = []
-        for end in (self.a[rows], self.b[rows]):
-            pred = gx[end] * dx
-            pred += gy[end] * dy
-            out.append(pred)
-        return out[0], out[1]
+    def predictions(self, gradients: np.ndarray, rows: np.ndarray | None = None,
+                    into: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(A_a·d, A_b·d) (E,) each: the height changes the end gradients (n, 2) predict.
+        rows (E,) bool: only those edges are computed, written into ``into`` (pred_a,
+        pred_b), which keeps the others; None: every edge, into ``into`` or new arrays."""
+        g = _rows(gradients)
+        if rows is not None and into is None:
+            raise ValueError("predictions of some rows need the arrays to write them into")
+        pred_a, pred_b = (np.empty(self.a.size), np.empty(self.a.size)) if into is None else into
+        mask = np.empty(0, dtype=np.uint8) if rows is None else np.ascontiguousarray(rows, dtype=bool).view(np.uint8)
+        _edge_blocks(lambda start, stop: kernel.predict(g, self.a, self.b, self.dx, self.dy, mask,
+                                                        pred_a, pred_b, start, stop), self.a.size)
+        return pred_a, pred_b
+
+    def residuals(self, predicted: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """e = Δ − (δ_a + δ_b)/2 (E,), height units, from the predictions (pred_a, pred_b)."""
+        out = np.empty(self.a.size)
+        _edge_blocks(lambda start, stop: kernel.residuals(self.delta, *predicted, out, start, stop), out.size)
+        return out
+
+
+def _edge_vectors(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dx, dy) (E,): p_b − p_a of the edges a→b (E,) over the points (n, 2); InputError for
+    an index outside the points."""
+    xy = _rows(points)
+    n = xy.shape[0]
+    if a.size and (min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= n):
+        raise InputError(f"edge indices must lie in [0, {n}), got "
+                         f"{min(a.min(), b.min())}..{max(a.max(), b.max())}")
+    dx, dy = np.empty(a.size), np.empty(a.size)
+    _edge_blocks(lambda start, stop: kernel.edge_vectors(xy, a, b, dx, dy, start, stop), a.size)
+    return dx, dy
+
+
+def _edge_values(values: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(delta, size) (E,) of the edges a→b over the heights values (n,)."""
+    f = np.ascontiguousarray(values, dtype=np.float64)
+    delta, size = np.empty(a.size), np.empty(a.size)
+    _edge_blocks(lambda start, stop: kernel.edge_values(f, a, b, delta, size, start, stop), a.size)
+    return delta, size
 
 
 def trapezoid_residuals(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -269,8 +313,7 @@ def trapezoid_residuals(points: np.ndarray, values: np.ndarray, gradients: np.nd
     """e = Δ − (δ_a + δ_b)/2 per edge (E,): zero for every quadratic, O(|d|³) for smooth
     data. The median of |e| over a survey's edges is its noise floor (`inconsistent_edges`)."""
     geometry = EdgeGeometry.of(points, values, edges)
-    pred_a, pred_b = geometry.predictions(gradients)
-    return geometry.delta - 0.5 * (pred_a + pred_b)
+    return geometry.residuals(geometry.predictions(gradients))
 
 
 def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -294,35 +337,18 @@ def inconsistent_edges(points: np.ndarray, values: np.ndarray, gradients: np.nda
 def _inconsistent(geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarray],
                   consistency: float, noise_factor: float, noise_floor: float | None
                   ) -> tuple[np.ndarray, dict]:
-    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b): the test
-    in blocks of edges in worker threads (`_inconsistent_block`), so that its temporaries
-    stay in cache."""
+    """`inconsistent_edges` on gathered edge data and predictions (pred_a, pred_b): the
+    kernel's test (stages/_limiter.pyx inconsistent) in blocks of edges."""
     pred_a, pred_b = predicted
-    delta = geometry.delta
-    residual = None
     if noise_floor is None:
-        residual = delta - 0.5 * (pred_a + pred_b)
-        noise_floor = float(np.median(np.abs(residual))) if residual.size else 0.0
+        noise_floor = _median_abs(geometry.residuals(predicted))
     noise = noise_factor * noise_floor
-    bad = np.empty(delta.shape[0], dtype=bool)
-
-    def block(part: slice) -> None:
-        bad[part] = _inconsistent_block(delta[part], pred_a[part], pred_b[part], geometry.size[part],
-                                        None if residual is None else residual[part], consistency, noise)
-    parallel_blocks(block, delta.shape[0])
-    return bad, {"delta": delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
-
-
-def _inconsistent_block(delta: np.ndarray, pred_a: np.ndarray, pred_b: np.ndarray, size: np.ndarray,
-                        residual: np.ndarray | None, consistency: float, noise: float) -> np.ndarray:
-    """|e| > consistency · max(|Δ|, |δ_a|/2, |δ_b|/2) + noise + rounding for a block of edges
-    (residual e = Δ − (δ_a + δ_b)/2, computed when None)."""
-    if residual is None:
-        residual = delta - 0.5 * (pred_a + pred_b)
-    abs_a, abs_b = np.abs(pred_a), np.abs(pred_b)
-    scale = np.maximum(np.abs(delta), 0.5 * np.maximum(abs_a, abs_b))
-    rounding = 64 * np.finfo(float).eps * (size + abs_a + abs_b)
-    return np.abs(residual) > consistency * scale + noise + rounding
+    bad = np.empty(geometry.a.size, dtype=bool)
+    rounding = 64 * np.finfo(float).eps
+    _edge_blocks(lambda start, stop: kernel.inconsistent(geometry.delta, pred_a, pred_b, geometry.size,
+                                                         consistency, noise, rounding, bad.view(np.uint8),
+                                                         start, stop), bad.size)
+    return bad, {"delta": geometry.delta, "pred_a": pred_a, "pred_b": pred_b, "noise": noise}
 
 
 def reconcile_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -351,52 +377,41 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
                noise_floor: float | None, normal_weight: float = NORMAL_WEIGHT
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`reconcile_gradients` on gathered edge data; also returns the (E,) bool edges that
-    reach a changed vertex."""
+    reach a changed vertex. The kernels mark the touched vertices (touch, one thread) and
+    build their 2×2 systems (normal_equations, a range of vertices per thread, the sums
+    in numpy's bincount order); numpy's solve (LAPACK) solves them."""
     A = np.asarray(gradients, dtype=float)
     n = A.shape[0]
     bad, _ = _inconsistent(geometry, predicted, CONSISTENCY, NOISE_FACTOR, noise_floor)
-    touched = np.zeros(n, dtype=bool)
-    touched[geometry.a[bad]] = True
-    touched[geometry.b[bad]] = True
-    near = touched[geometry.a] | touched[geometry.b]      # only these edges reach a touched vertex
-    a, b, dx, dy, delta = (np.compress(near, column) for column in
-                           (geometry.a, geometry.b, geometry.d[:, 0], geometry.d[:, 1], geometry.delta))
-    length = np.sqrt(dx * dx + dy * dy)                   # np.linalg.norm's bits
-    keep = length > 0
-    if not keep.all():
-        a, b, dx, dy, delta, length = (np.compress(keep, c) for c in (a, b, dx, dy, delta, length))
-    sums = _vertex_sums(np.concatenate([a, b]), dx / length, dy / length, delta / length, n, touched)
-    xx, xy, yy, rx, ry, deg = sums
-    weight = normal_weight * deg
-    M_t = np.empty((deg.size, 2, 2))
-    np.add(xx, weight, out=M_t[:, 0, 0])
-    M_t[:, 0, 1] = M_t[:, 1, 0] = xy
-    np.add(yy, weight, out=M_t[:, 1, 1])
-    A_t = A[touched]
-    r_t = np.empty((deg.size, 2))
-    np.add(rx, weight * A_t[:, 0], out=r_t[:, 0])
-    np.add(ry, weight * A_t[:, 1], out=r_t[:, 1])
+    touched, near = np.zeros(n, dtype=bool), np.empty(bad.size, dtype=bool)
+    kernel.touch(geometry.a, geometry.b, bad.view(np.uint8), touched.view(np.uint8), near.view(np.uint8))
+    vertices = np.flatnonzero(touched)
+    position = np.full(n, -1, dtype=np.int64)
+    position[vertices] = np.arange(vertices.size)
+    M_t, r_t, degree = np.zeros((vertices.size, 2, 2)), np.zeros((vertices.size, 2)), np.zeros(vertices.size)
+    g = _rows(A)
+    # One range of vertices per thread: a vertex's sums are the same in any range (the
+    # kernel's docstring says why), so the ranges need not be fixed blocks.
+    parallel_blocks(lambda part: kernel.normal_equations(geometry.a, geometry.b, geometry.dx, geometry.dy,
+                                                         geometry.delta, near.view(np.uint8), position,
+                                                         vertices, g, float(normal_weight), degree,
+                                                         M_t, r_t, part.start, part.stop),
+                    vertices.size, max(1, -(-vertices.size // thread_count())))
     out = A.copy()
-    out[touched] = np.linalg.solve(M_t, r_t[:, :, None])[:, :, 0]
+    out[touched] = _solve_2x2(M_t, r_t)
     return out, touched, near
 
 
-def _vertex_sums(both: np.ndarray, ux: np.ndarray, uy: np.ndarray, slope: np.ndarray, n: int,
-                 touched: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Σ ux², Σ ux·uy, Σ uy², Σ ux·slope, Σ uy·slope and the edge count over the edges at
-    each `touched` vertex, each (touched.sum(),): both (2m,) the edges' two ends (a then b),
-    the rest (m,) per edge. np.bincount over both with each term repeated, as before,
-    through one reused weight buffer; the count is the unweighted bincount (exactly the
-    weighted sum of ones, as floats)."""
-    m = ux.size
-    weights = np.empty(2 * m)
-    sums = []
-    for left, right in ((ux, ux), (ux, uy), (uy, uy), (ux, slope), (uy, slope)):
-        np.multiply(left, right, out=weights[:m])
-        weights[m:] = weights[:m]
-        sums.append(np.bincount(both, weights, minlength=n)[touched])
-    sums.append(np.bincount(both, minlength=n)[touched].astype(float))
-    return tuple(sums)
+def _solve_2x2(M: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The solutions (m, 2) of the systems M (m, 2, 2) x = r (m, 2) by numpy's solve
+    (LAPACK's gesv, which releases the GIL), in fixed blocks of systems in the thread
+    knob's threads: each system is solved alone, so the bits do not depend on the count."""
+    x = np.empty_like(r)
+
+    def block(part: slice) -> None:
+        x[part] = np.linalg.solve(M[part], r[part, :, None])[:, :, 0]
+    parallel_blocks(block, r.shape[0], KERNEL_BLOCK)
+    return x
 
 
 def limit_gradients(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -430,30 +445,17 @@ def _limit(gradients: np.ndarray, geometry: EdgeGeometry,
            predicted: tuple[np.ndarray, np.ndarray], secant_factor: float,
            consistency: float, noise_factor: float, noise_floor: float | None
            ) -> tuple[np.ndarray, np.ndarray]:
-    """`limit_gradients` on gathered edge data and the gradients' predictions."""
+    """`limit_gradients` on gathered edge data and the gradients' predictions: each vertex's
+    factor by the kernel (stages/_limiter.pyx limit_factors, one thread)."""
     A = np.asarray(gradients, dtype=float)
     bad, parts = _inconsistent(geometry, predicted, consistency, noise_factor, noise_floor)
-    a, b = geometry.a, geometry.b
-    delta, pred_a, pred_b, noise = parts["delta"], parts["pred_a"], parts["pred_b"], parts["noise"]
     factor = np.ones(A.shape[0])
-    for vertex, pred in ((a, pred_a), (b, pred_b)):
-        t = _allowed_fraction(pred[bad], delta[bad], secant_factor, noise)
-        np.minimum.at(factor, vertex[bad], t)
+    kernel.limit_factors(geometry.a, geometry.b, geometry.delta, *predicted, bad.view(np.uint8),
+                         float(secant_factor), parts["noise"], factor)
     changed = factor < 1.0
     limited = A.copy()
     limited[changed] *= factor[changed, None]
     return limited, changed
-
-
-def _allowed_fraction(pred: np.ndarray, delta: np.ndarray, secant_factor: float,
-                      slack: float) -> np.ndarray:
-    """Largest t in [0, 1] with t·pred in [min(0, c·delta) − slack, max(0, c·delta) + slack]."""
-    bound = secant_factor * delta
-    high = np.maximum(bound, 0.0) + slack
-    low = np.minimum(bound, 0.0) - slack
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(pred > 0, high / pred, np.where(pred < 0, low / pred, 1.0))
-    return np.clip(t, 0.0, 1.0)
 
 
 def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
@@ -473,108 +475,74 @@ def edge_directions(points: np.ndarray, triangles: np.ndarray, table: EdgeTable,
     spline stays C1 (Thm 3.4).
     """
     p = np.asarray(points, dtype=float)
-    edges = table.edges
-    return _directions(p, triangles, table, p[edges[:, 1]] - p[edges[:, 0]], ratio_limit)
+    return _directions(p, triangles, table, _edge_vectors(p, *_edge_ends(table.edges)), ratio_limit)
 
 
-def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable, edge: np.ndarray,
-                ratio_limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """`edge_directions` given the edge vectors (E, 2) = p[edges[:, 1]] − p[edges[:, 0]]."""
-    length = np.sqrt(edge[:, 0] * edge[:, 0] + edge[:, 1] * edge[:, 1])
-    out = np.empty_like(edge)
-    np.divide(-edge[:, 1], length, out=out[:, 0])
-    np.divide(edge[:, 0], length, out=out[:, 1])
+def _directions(p: np.ndarray, triangles: np.ndarray, table: EdgeTable,
+                edge: tuple[np.ndarray, np.ndarray], ratio_limit: float,
+                threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`edge_directions` given the edge vectors (dx, dy) (E,) each = p_b − p_a, in the
+    thread knob's threads or ``threads``."""
+    p = np.asarray(p, dtype=float)
+    tri = _checked_triangles(triangles, table, p.shape[0])
+    dx, dy = edge
+    out = np.empty((dx.size, 2))
+    _edge_blocks(lambda start, stop: kernel.unit_normals(dx, dy, out, start, stop), dx.size, threads)
     # The unit normal's foot is the projection of the opposite vertex onto the edge's line,
     # so its worst ratio needs no cross products. Only the edges the screen flags (a few
-    # percent on real scans) weigh the other candidates, and `_worst_ratio` decides there.
-    change = _normal_ratio_screen(p, triangles, table) > ratio_limit * (1 - 1e-9)
+    # percent on real scans) weigh the other candidates, and the kernel decides there
+    # (choose_directions, in blocks of flagged edges).
+    change = _normal_ratio_screen(p, tri, table, threads) > ratio_limit * (1 - 1e-9)
     if not change.any():
         return out, change
     idx = np.flatnonzero(change)
-    first, second = _opposite_vertices(triangles, table, idx)
-    l_c, edge_c = p[table.edges[idx, 0]], edge[idx]
-    pa_c = p[first]
-    pb_c = np.where((second >= 0)[:, None], p[np.maximum(second, 0)], np.nan)
-    mid = 0.5 * (l_c + p[table.edges[idx, 1]])
-    candidates = [out[idx], pb_c - pa_c, mid - pa_c, mid - pb_c]
-    costs = np.stack([_worst_ratio(u, l_c, edge_c, pa_c, pb_c) for u in candidates])
-    best = np.argmin(np.where(np.isfinite(costs), costs, np.inf), axis=0)
-    turn = (costs[0] > ratio_limit) & (best > 0)
-    change[idx[~turn]] = False
-    for c in range(1, len(candidates)):
-        pick = turn & (best == c)
-        out[idx[pick]] = candidates[c][pick] / np.linalg.norm(candidates[c][pick], axis=1)[:, None]
+    first, second = _opposite_vertices(tri, table, idx)
+    xy = _rows(p)
+    a, b = _edge_ends(table.edges)
+    parallel_blocks(lambda part: kernel.choose_directions(xy, a, b, dx, dy, idx, first, second,
+                                                          float(ratio_limit), out, change.view(np.uint8),
+                                                          part.start, part.stop), idx.size, KERNEL_BLOCK >> 4,
+                    threads)
     return out, change
 
 
-def _normal_ratio_screen(p: np.ndarray, triangles: np.ndarray, table: EdgeTable) -> np.ndarray:
+def _checked_triangles(triangles: np.ndarray, table: EdgeTable, n: int) -> np.ndarray:
+    """triangles (T, 3) as the kernels take them (C-ordered int64), after checking that
+    they are the table's and index the n points."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    if tri.shape != table.tri_edge.shape:
+        raise InputError(f"triangles have shape {tri.shape}, the edge table {table.tri_edge.shape}")
+    if tri.size and (tri.min() < 0 or tri.max() >= n):
+        raise InputError(f"triangle indices must lie in [0, {n}), got {tri.min()}..{tri.max()}")
+    return tri
+
+
+def _normal_ratio_screen(p: np.ndarray, tri: np.ndarray, table: EdgeTable,
+                         threads: int | None = None) -> np.ndarray:
     """Worst max(|s|, |1 − s|) of the unit normal over each edge's one or two triangles,
     s = (p_n − p_l)·e / |e|² the foot of the opposite vertex p_n on the edge's line (the
-    ratio does not depend on which end is p_l). Computed per triangle corner, in blocks of
-    triangles in worker threads (c1mesh.core.threads.parallel_blocks), then per edge the
-    value of its first slot where larger than its last slot's, else the last's (as a
-    scatter of all slots in slot-major order followed by the larger ones leaves it, NaN
-    included). A screen: `_worst_ratio` decides."""
-    x, y = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
-    ratio = np.empty((3, triangles.shape[0]))
-
-    def block(part: slice) -> None:
-        corners = triangles[part].T
-        _corner_ratios(x[corners], y[corners], ratio[:, part])
-    parallel_blocks(block, triangles.shape[0])
-    first, last = _owner_and_last(ratio, table)
-    return np.where(first > last, first, last)
-
-
-def _corner_ratios(x: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
-    """max(|s|, |1 − s|) at each corner k into out (3, c), from corner coordinates x, y
-    (3, c): s the foot of p_k on the line of the opposite edge p_i → p_j (i, j = k+1, k+2)."""
-    for k in range(3):
-        i, j = (k + 1) % 3, (k + 2) % 3
-        ex, ey = x[j] - x[i], y[j] - y[i]
-        foot = (x[k] - x[i]) * ex
-        foot += (y[k] - y[i]) * ey
-        ex *= ex
-        ey *= ey
-        ex += ey
-        with np.errstate(invalid="ignore", divide="ignore"):
-            foot /= ex
-        np.subtract(1.0, foot, out=ey)
-        np.abs(ey, out=ey)
-        np.abs(foot, out=foot)
-        np.maximum(foot, ey, out=out[k])
+    ratio does not depend on which end is p_l). The kernels (stages/_limiter.pyx) in
+    blocks of triangles: each corner's ratio (corner_ratios), then per edge the value of
+    its owner's corner where larger than its other corner's, else the other's (NaN
+    included, as a scatter of every slot in slot-major order followed by the larger ones
+    left it; edge_screen). A screen: choose_directions decides."""
+    xy = _rows(p)
+    ratio = np.empty(tri.shape)
+    screen = np.empty(table.edges.shape[0])
+    _edge_blocks(lambda start, stop: kernel.corner_ratios(xy, tri, ratio, start, stop), tri.shape[0], threads)
+    _edge_blocks(lambda start, stop: kernel.edge_screen(table.tri_edge, table.owner, table.owner_slot,
+                                                        table.count, ratio, screen, start, stop),
+                 tri.shape[0], threads)
+    return screen
 
 
-def _opposite_vertices(triangles: np.ndarray, table: EdgeTable, idx: np.ndarray
+def _opposite_vertices(tri: np.ndarray, table: EdgeTable, idx: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """For the edges ``idx`` the vertex opposite each in its owner triangle, and in the
-    other triangle (-1 on the boundary)."""
-    first = triangles[table.owner[idx], table.owner_slot[idx]]
+    other triangle (-1 on the boundary); the kernel (opposite_vertices), one thread."""
+    first = tri[table.owner[idx], table.owner_slot[idx]]
     position = np.full(table.edges.shape[0], -1, dtype=np.int64)
     position[idx] = np.arange(idx.size)
-    slots = table.tri_edge.ravel()
-    at = position[slots]
-    mine = np.flatnonzero(at >= 0)
-    opposite = triangles.ravel()[mine]
-    other = opposite != first[at[mine]]
     second = np.full(idx.size, -1, dtype=np.int64)
-    second[at[mine][other]] = opposite[other]
+    kernel.opposite_vertices(tri, table.tri_edge, position, first, second)
     return first, second
-
-
-def _worst_ratio(u: np.ndarray, l: np.ndarray, edge: np.ndarray, pa: np.ndarray,
-                 pb: np.ndarray) -> np.ndarray:
-    """max over the edge's triangles of max(|s|, |1 − s|) for direction u (nan rows: inf)."""
-    cross_eu = edge[:, 0] * u[:, 1] - edge[:, 1] * u[:, 0]
-    worst = np.zeros(u.shape[0])
-    for pn in (pa, pb):
-        rel = pn - l
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (rel[:, 0] * u[:, 1] - rel[:, 1] * u[:, 0]) / cross_eu
-        ratio = np.maximum(np.abs(s), np.abs(1.0 - s))
-        present = np.isfinite(pn).all(axis=1)
-        ratio = np.where(present, ratio, 0.0)
-        worst = np.maximum(worst, np.where(np.isfinite(ratio), ratio, np.inf))
-    bad = ~np.isfinite(u).all(axis=1) | (np.abs(cross_eu) <= 1e-9 * np.linalg.norm(edge, axis=1)
-                                          * np.linalg.norm(np.nan_to_num(u), axis=1))
-    return np.where(bad, np.inf, worst)
