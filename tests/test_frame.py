@@ -420,7 +420,7 @@ def _brute_stacked(xy, z, gradients, z_range, h, merge_radius, rank):
 def test_stacked_positions_match_a_loop_over_every_pair(seed):
     """Clusters closer than the merge radius (chains too), jumps, a far outlier (wide
     strips), a lattice with distances exactly h (the squared test decides as cKDTree's)."""
-    from c1mesh.stages.height_field import stacked_positions
+    from c1mesh.stages.height_field import Positions, stacked_positions
     rng = np.random.default_rng(seed)
     lattice = np.stack(np.meshgrid(np.arange(8.0), np.arange(8.0)), -1).reshape(-1, 2) * 0.25
     xy = np.concatenate([rng.random((300, 2)) * 3, lattice + 4,
@@ -432,7 +432,7 @@ def test_stacked_positions_match_a_loop_over_every_pair(seed):
     z_range = np.where(rng.random(m) < 0.05, 2.0, 0.0)
     rank = rng.permutation(m)
     h = 0.25
-    bad, root = stacked_positions(*xy.T, z, *gradients.T, z_range, h, merge_radius=1.5e-3, rank=rank)
+    bad, root = stacked_positions(Positions(*xy.T, z, *gradients.T, z_range), h, merge_radius=1.5e-3, rank=rank)
     want_bad, want_root = _brute_stacked(xy, z, gradients, z_range, h, 1.5e-3, rank)
     assert np.array_equal(bad, want_bad) and bad.sum() > 20
     assert np.array_equal(root, want_root) and root[-3] == root[-4] and root[-2] == root[-4]
@@ -440,7 +440,7 @@ def test_stacked_positions_match_a_loop_over_every_pair(seed):
 
 def test_stacked_positions_flag_pairs_that_cKDTree_finds():
     """On quantised LiDAR-like positions the pairs within h are query_pairs' pairs."""
-    from c1mesh.stages.height_field import kd_tree as _tree, stacked_positions
+    from c1mesh.stages.height_field import Positions, kd_tree as _tree, stacked_positions
     rng = np.random.default_rng(9)
     xy = np.unique(np.round(rng.random((4000, 2)) * 20, 2), axis=0)
     h = float(np.hypot(0.3, 0.4))
@@ -450,7 +450,7 @@ def test_stacked_positions_flag_pairs_that_cKDTree_finds():
     want = np.zeros(len(xy), dtype=bool)
     jump = z[pairs[:, 0]] != z[pairs[:, 1]]
     want[pairs[jump].ravel()] = True
-    bad, _ = stacked_positions(*xy.T, z, *np.zeros((2, len(xy))), np.zeros(len(xy)), h)
+    bad, _ = stacked_positions(Positions(*xy.T, z, *np.zeros((2, len(xy))), np.zeros(len(xy))), h)
     assert np.array_equal(bad, want) and want.sum() > 100
 
 

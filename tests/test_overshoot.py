@@ -318,7 +318,7 @@ def test_given_noise_floors_and_edge_table_reproduce_the_measured_ones():
     the floors this data set itself measures (independently: the medians of the trapezoid
     residuals of the input, and after the heights and gradients are reconciled), the result
     is the same; floors ten times larger tolerate more and limit fewer vertices."""
-    from c1mesh.stages.limiter import reconcile_heights, trapezoid_residuals
+    from c1mesh.stages.limiter import SurveyShare, reconcile_heights, trapezoid_residuals
     xy, z, g, tri = height_data(GROUND["4_6_crop"][0])
     table = edge_table(tri, xy.shape[0])
     before = float(np.median(np.abs(trapezoid_residuals(xy, z, g, table.edges))))
@@ -326,10 +326,10 @@ def test_given_noise_floors_and_edge_table_reproduce_the_measured_ones():
     reconciled, _ = reconcile_gradients(xy, heights, g, table.edges, noise_floor=before)
     after = float(np.median(np.abs(trapezoid_residuals(xy, heights, reconciled, table.edges))))
     measured = control_overshoot(xy, z, g, tri)
-    given = control_overshoot(xy, z, g, tri, table=table, noise_floors=(before, after))
+    given = control_overshoot(xy, z, g, tri, table=table, share=SurveyShare((before, after)))
     for ours, theirs in zip(given[:3], measured[:3]):
         np.testing.assert_array_equal(ours, theirs)
-    looser = control_overshoot(xy, z, g, tri, noise_floors=(10 * before, 10 * after))
+    looser = control_overshoot(xy, z, g, tri, share=SurveyShare((10 * before, 10 * after)))
     assert 0 < looser[3].gradients_limited < measured[3].gradients_limited
     plain = RSDInterpolator(xy, given[0], given[1], triangles=tri, directions=given[2])
     shared = RSDInterpolator(xy, given[0], given[1], triangles=tri, directions=given[2], edge_table=table)

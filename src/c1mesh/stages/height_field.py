@@ -243,7 +243,7 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, index: np.ndarray
     sample = spacing_sample(index[first], first.size)
     strips = strip_index(x, y, _mean_spacing(x, y))
     spacing = _spacing(x, y, z if common_metric else np.zeros(first.size), sample, strips)
-    bad, root = stacked_positions(x, y, z, gx, gy, groups.z_range, spacing, common_metric,
+    bad, root = stacked_positions(Positions(x, y, z, gx, gy, groups.z_range), spacing, common_metric,
                                   merge_radius=merge_tol * spacing, rank=first, strips=strips)
     stacked = int(np.count_nonzero(bad[groups.group]))
     check_stacking(stacked, local.shape[0], max_stacked, frame.axes[2])
@@ -332,15 +332,26 @@ STRIPS_MAX = 2.0 ** 20
 rounding would approach the margin (a far outlier widens the strips, it does not break them)."""
 
 
-def stacked_positions(x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarray, gy: np.ndarray,
-                      z_range: np.ndarray, spacing: float, common_metric: bool = True,
+@dataclass(frozen=True)
+class Positions:
+    """The distinct plane positions of a height field (the first point of each group of
+    exact duplicates), in any order, each (m,): x, y in the plane, the height z and the
+    gradient ∇f = (gx, gy) there, and z_range, the spread of heights over the group."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+    z_range: np.ndarray
+
+
+def stacked_positions(positions: Positions, spacing: float, common_metric: bool = True,
                       merge_radius: float = -1.0, rank: np.ndarray | None = None,
                       strips: Strips | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Which distinct plane positions are stacked, and which merge.
 
-    x, y, z, gx, gy (m,): the distinct positions (the first point of each group of exact
-    duplicates) with their height and gradient ∇f = (gx, gy), in any order; z_range (m,)
-    the spread of heights over each group. A position is stacked when its group's heights
+    positions: the Positions (m of them). A position is stacked when its group's heights
     spread more than STACK_MARGIN h, or a position within h in the plane (dx² + dy² <= h²,
     cKDTree.query_pairs' test) differs in height by more than STACK_MARGIN h + the larger
     slope |∇f| times their distance (without a common metric: when its group holds two
@@ -353,9 +364,10 @@ def stacked_positions(x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarra
     On a tile of a survey, give the positions within h of its cell: the flags of its own
     positions are then those of the whole survey (c1mesh.survey.tiled_heights).
     """
-    x, y, z, gx, gy = (np.ascontiguousarray(c, dtype=np.float64) for c in (x, y, z, gx, gy))
+    x, y, z, gx, gy = (np.ascontiguousarray(c, dtype=np.float64)
+                       for c in (positions.x, positions.y, positions.z, positions.gx, positions.gy))
     m = x.size
-    bad = np.asarray(z_range > (STACK_MARGIN * spacing if common_metric else 0.0))
+    bad = np.asarray(positions.z_range > (STACK_MARGIN * spacing if common_metric else 0.0))
     root = np.empty(m, dtype=np.int64)
     if m == 0:
         return bad, root

@@ -84,10 +84,22 @@ class LimiterReport:
                 "heights_reconciled": self.heights_reconciled}
 
 
+@dataclass(frozen=True)
+class SurveyShare:
+    """What a tile of a survey brings to `control_overshoot` (c1mesh.survey.tiled_limiter):
+    noise_floors, the survey's median |trapezoid residual| (height units) of the input data
+    and after both reconciliations, measured over every edge of the survey, not the tile's;
+    counted, (n,) bool over the tile's vertices, those whose changes the tile reports (an
+    edge by its lower-numbered end), so that the tiles' counts add up to the survey's
+    (None: all)."""
+
+    noise_floors: tuple[float, float]
+    counted: np.ndarray | None = None
+
+
 def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                       triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
-                      noise_floors: tuple[float, float] | None = None, heights: bool = True,
-                      counted: np.ndarray | None = None
+                      heights: bool = True, share: SurveyShare | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
     """Heights, gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
@@ -96,15 +108,11 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     `edge_directions`; "off" returns the values and gradients unchanged and None (the
     interpolator's unit normals). table: the c1mesh.engine.topology.edge_table of the triangles if
     already built (pass the same table to the RSDInterpolator so the edges are numbered
-    once). noise_floors: the median |trapezoid residual| of the input data and after both
-    reconciliations, when they come from a larger survey than these edges (a tile of it);
-    None measures them here. heights=False skips `reconcile_heights`: its crease test
-    compares a slope error with 1 (45°), which needs the plane's and the height's units to
-    agree, as in a height field and not in a depth chart (u, v, w). counted: (n,) bool,
-    the vertices whose changes the report counts, an edge counted by its lower-numbered
-    end (table.edges[:, 0]); None counts all. A tile of a survey passes the vertices in
-    its cell, so that the tiles' counts add up to the survey's
-    (c1mesh.survey.tiled_limiter). Returns (values, gradients, directions in the order
+    once). heights=False skips `reconcile_heights`: its crease test compares a slope
+    error with 1 (45°), which needs the plane's and the height's units to agree, as in a
+    height field and not in a depth chart (u, v, w). share: a tile's SurveyShare (the
+    survey's noise floors, the vertices it counts); None measures the floors over these
+    edges and counts every vertex. Returns (values, gradients, directions in the order
     of table.edges or None, report).
     """
     if mode == "off":
@@ -115,7 +123,9 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     # and gradients' remedies (core.threads.overlap; one after the other with one worker).
     (directions, turned), (values, limited, lifted, moved, changed) = overlap(
         lambda: _directions(points, triangles, table, (geometry.dx, geometry.dy), RATIO_LIMIT, threads=1),
-        lambda: _remedies(values, gradients, geometry, table, noise_floors, heights))
+        lambda: _remedies(values, gradients, geometry, table, None if share is None else share.noise_floors,
+                          heights))
+    counted = None if share is None else share.counted
     if counted is not None:
         changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
                                           turned & counted[table.edges[:, 0]])

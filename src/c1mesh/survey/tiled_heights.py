@@ -13,7 +13,7 @@ import numpy as np
 
 from c1mesh.core.plan import HeightSettings
 from c1mesh.core.threads import limit
-from c1mesh.stages.height_field import SPACING_SAMPLES, check_stacking, kd_tree, normal_gradients, stacked_positions
+from c1mesh.stages.height_field import SPACING_SAMPLES, Positions, check_stacking, kd_tree, normal_gradients, stacked_positions
 from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
 from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
 from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
@@ -214,7 +214,7 @@ def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
     size, z_range = np.ones(len(records), np.int64), np.zeros(len(records))
     rows = halo_rows(records["index"], shared["index"])
     size[rows[rows >= 0]], z_range[rows[rows >= 0]] = shared["size"][rows >= 0], shared["z_range"][rows >= 0]
-    bad, _ = stacked_positions(records["x"], records["y"], records["z"], records["gx"], records["gy"],
-                               z_range, spacing)
+    bad, _ = stacked_positions(Positions(records["x"], records["y"], records["z"], records["gx"], records["gy"],
+                                         z_range), spacing)
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
     return int(size[bad & own].sum())

@@ -10,7 +10,7 @@ What runs where (control_overshoot's steps, in its order, with its noise floors)
 - per tile on its halo, `tile_limits`: limiter.reconcile_heights and
   limiter.reconcile_gradients with the first floor, limiter.limit_gradients with the
   second, limiter.edge_directions. control_overshoot runs exactly these with
-  noise_floors=(first, second); the tile calls them one by one only because
+  the survey's floors (a SurveyShare); the tile calls them one by one only because
   control_overshoot counts its changes over every vertex it is given, and a tile must
   count its own vertices alone, so that the survey's counts add up.
 
@@ -53,7 +53,7 @@ from typing import Callable
 import numpy as np
 
 from c1mesh.engine.topology import edge_table
-from c1mesh.stages.limiter import control_overshoot, reconcile_gradients, reconcile_heights
+from c1mesh.stages.limiter import SurveyShare, control_overshoot, reconcile_gradients, reconcile_heights
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tiled_halo import Halo, HaloCache, edge_floor, edge_residuals, median_over_tiles, own_triangles_in
 
@@ -129,7 +129,7 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     table = edge_table(halo.triangles, len(halo.records))
     values, limited, directions, report = control_overshoot(
         halo.points, halo.records["z"], halo.gradients, halo.triangles, "limit", table,
-        noise_floors=(floors.first, floors.second), counted=halo.own)
+        share=SurveyShare((floors.first, floors.second), halo.own))
     corners, triangles, at = own_triangles_in(halo, table, owned)
     records = halo.records[corners]
     records["z"] = values[corners]
