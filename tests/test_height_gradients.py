@@ -85,22 +85,30 @@ def _grid_with_ties(seed):
     return xy, np.random.default_rng(seed).normal(size=len(xy))
 
 
+def _search(xy, z, centres, k):
+    """nearest_neighbours of the points centres (indices into xy) as height_gradients runs
+    it (points in the grid's order), as indices into xy."""
+    from c1mesh.stages.height_gradients import nearest_neighbours, plane_grid
+
+    grid, order = plane_grid(xy)
+    rank = np.empty(len(xy), dtype=np.int64)
+    rank[order] = np.arange(len(xy))
+    index, _ = nearest_neighbours(grid, np.ascontiguousarray(xy[order]), np.ascontiguousarray(z[order]),
+                                  rank[np.asarray(centres)], k)
+    return order[index]
+
+
 def test_a_distance_tie_is_broken_by_the_offsets():
     """From the origin the 4 nearest points are 1 away, the next 4 (plus a duplicate of
     (1, -1)) sqrt 2 away: with k = 6, the two nearest of those by the stated rule (dx,
     then dy, then the height) are (-1, -1) and (-1, 1); then k = 10 takes all five at
     sqrt 2, the duplicate after (1, -1) by height, and (-2, 0) as the first of the
     ring at 2."""
-    from scipy.spatial import cKDTree
-
-    from c1mesh.stages.height_gradients import nearest_neighbours
-
     xy, z = _grid_with_ties(0)
     centre = np.flatnonzero((xy == 0).all(axis=1))
-    tree = cKDTree(xy)
-    got = xy[nearest_neighbours(tree, xy, z, centre, 6)[0][0]]
+    got = xy[_search(xy, z, centre, 6)[0]]
     np.testing.assert_array_equal(got, [[-1, 0], [0, -1], [0, 1], [1, 0], [-1, -1], [-1, 1]])
-    index = nearest_neighbours(tree, xy, z, centre, 10)[0][0]
+    index = _search(xy, z, centre, 10)[0]
     want = [[-1, 0], [0, -1], [0, 1], [1, 0], [-1, -1], [-1, 1], [1, -1], [1, -1], [1, 1], [-2, 0]]
     np.testing.assert_array_equal(xy[index], want)
     duplicate = index[6:8]
@@ -127,21 +135,19 @@ def test_gradients_do_not_depend_on_point_numbering_or_far_points(k):
 
 
 def test_a_stack_larger_than_the_first_query_is_still_order_free():
-    """40 points at one plane position (a vertical stack; more than the k + 1 + TIE_EXTRA
-    candidates the first query returns, so the query must grow): each stacked point's
+    """40 points at one plane position (a vertical stack; more than three grid cells hold
+    on average, all in one cell): each stacked point's
     neighbours are the other 39, by height, and its gradient does not depend on the
     numbering; the grid points' gradients neither."""
-    from scipy.spatial import cKDTree
-
-    from c1mesh.stages.height_gradients import TIE_EXTRA, nearest_neighbours
+    from c1mesh.stages.height_gradients import PER_CELL
 
     xy, z = _grid_with_ties(2)
     stack = 40
-    assert stack > 6 + 1 + TIE_EXTRA
+    assert stack > 3 * PER_CELL
     xy = np.concatenate([xy, np.tile([[0.5, 0.5]], (stack, 1))])
     z = np.concatenate([z, np.random.default_rng(3).normal(size=stack)])
     first = len(xy) - stack
-    index, _ = nearest_neighbours(cKDTree(xy), xy, z, np.array([first]), 6)
+    index = _search(xy, z, np.array([first]), 6)
     others = np.arange(first + 1, len(xy))
     np.testing.assert_array_equal(index[0], others[np.argsort(z[others])][:6])
     reference = height_gradients(xy, z, k=6)
@@ -291,33 +297,31 @@ def test_csv_heights_fit_the_same_in_any_unit(tmp_path):
 
 
 def test_blocks_run_in_the_thread_knobs_threads_and_give_the_same_gradients(monkeypatch):
-    """Under `limit(n)` the blocks run in at most n threads, each block's cKDTree query in
-    one (no pool inside a pool); the gradients do not depend on n or on the blocking."""
+    """Under `limit(n)` the blocks (each a neighbour search and a fit) run in at most n
+    threads; the gradients do not depend on n or on the blocking."""
     import threading
-
-    import scipy.spatial
 
     import c1mesh.stages.height_gradients as hg
     from c1mesh.core.threads import limit
 
-    asked, ran_in = [], set()
+    searched, ran_in = [], set()
+    search = hg.nearest_neighbours
 
-    class RecordingTree(scipy.spatial.cKDTree):
-        def query(self, *args, **kwargs):
-            asked.append(kwargs.get("workers", 1))
-            ran_in.add(threading.get_ident())
-            return super().query(*args, **kwargs)
+    def recording(*args, **kwargs):
+        searched.append(len(args[3]))
+        ran_in.add(threading.get_ident())
+        return search(*args, **kwargs)
     xy = np.random.default_rng(4).random((3000, 2))
     z = np.sin(3 * xy[:, 0]) + xy[:, 1] ** 2
     plain = height_gradients(xy, z, k=24)                   # one block of 3000
-    monkeypatch.setattr(hg, "cKDTree", RecordingTree)
+    monkeypatch.setattr(hg, "nearest_neighbours", recording)
     monkeypatch.setattr(hg, "BLOCK", 256)                   # 12 blocks
     for threads in (1, 2):
-        asked.clear()
+        searched.clear()
         ran_in.clear()
         with limit(threads):
             np.testing.assert_array_equal(height_gradients(xy, z, k=24), plain)
-        assert asked and set(asked) == {1}
+        assert sorted(searched) == sorted([256] * 11 + [3000 - 11 * 256])
         assert 1 <= len(ran_in) <= threads
 
 
@@ -335,7 +339,7 @@ def test_gradients_at_some_points_are_those_rows_and_reach_the_kth_neighbour():
     at = rng.choice(4000, 700, replace=False)
     gradients, reach = gradients_at(xy, z, at, k=24)
     np.testing.assert_array_equal(gradients, height_gradients(xy, z, k=24)[at])
-    kth = cKDTree(xy).query(xy[at], k=25)[0][:, -1]
+    kth = cKDTree(xy).query(xy[at], k=25)[0][:, -1]        # an independent search
     np.testing.assert_allclose(reach, kth, rtol=1e-12, atol=0)
 
 
@@ -373,10 +377,6 @@ def test_a_clump_of_duplicates_takes_its_neighbours_without_a_quadratic_query():
     far below the 20,000 × 20,000 query's 3.2 GB per array, which once exhausted memory)."""
     import tracemalloc
 
-    from scipy.spatial import cKDTree
-
-    from c1mesh.stages.height_gradients import nearest_neighbours
-
     xy, z = _grid_with_ties(2)
     copies = 20_000
     xy = np.concatenate([xy, np.tile([[0.5, 0.5]], (copies, 1))])
@@ -384,7 +384,7 @@ def test_a_clump_of_duplicates_takes_its_neighbours_without_a_quadratic_query():
     first = len(xy) - copies
     centres = np.array([first, first + 1, first + 2, len(xy) - 1, 0])
     tracemalloc.start()
-    index, _ = nearest_neighbours(cKDTree(xy), xy, z, centres, 6)
+    index = _search(xy, z, centres, 6)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert peak < 50e6
@@ -397,3 +397,30 @@ def test_a_clump_of_duplicates_takes_its_neighbours_without_a_quadratic_query():
                                       np.column_stack([xy[brute], z[brute]]))
     gradients = height_gradients(xy, z, k=6)
     assert np.isfinite(gradients).all()
+
+
+@pytest.mark.parametrize("case", ["uniform", "integer grid with duplicates", "strip and far outlier", "clumps"])
+def test_the_grid_search_finds_what_a_brute_force_sort_finds(case):
+    """Every point's k nearest other points, in order, against a brute-force sort of all
+    points by (squared distance, dx, dy, height, number): on uniform points, on an integer
+    grid full of distance ties and exact duplicates, on a thin diagonal strip with one
+    point 10^4 away (the grid must size its cells to the strip, not to the box), and on
+    clumps of 30 points at one position."""
+    rng = np.random.default_rng(11)
+    if case == "uniform":
+        xy = rng.random((700, 2)) * 50
+    elif case == "integer grid with duplicates":
+        xy = rng.integers(0, 12, (700, 2)).astype(float)
+    elif case == "strip and far outlier":
+        t = rng.random(699) * 100
+        xy = np.concatenate([np.column_stack([t, t + rng.random(699) * 0.5]), [[1e4, -1e4]]])
+    else:
+        xy = np.repeat(rng.random((20, 2)) * 10, 30, axis=0) + np.repeat(rng.integers(0, 2, (20, 1)), 30, axis=0)
+    z = rng.integers(0, 3, len(xy)).astype(float)
+    for k in (1, 6, 24):
+        index = _search(xy, z, np.arange(len(xy)), k)
+        for c in range(len(xy)):
+            others = np.delete(np.arange(len(xy)), c)
+            d = xy[others] - xy[c]
+            brute = others[np.lexsort((others, z[others], d[:, 1], d[:, 0], d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]))][:k]
+            np.testing.assert_array_equal(index[c], brute, err_msg=f"{case}, k {k}, point {c}")

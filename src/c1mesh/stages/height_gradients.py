@@ -14,8 +14,9 @@ own height (the spline interpolates it), so the fit is exact for every quadratic
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
@@ -31,13 +32,9 @@ NEIGHBOUR_FACTOR = 1.5
 """The quadratic fit uses this many times the k of the PCA normals (5 unknowns, not 3)."""
 BLOCK = 1 << 15
 """Points per block: a block's neighbour indices and offsets (block, k) stay at a few MB."""
-TIE_EXTRA = 8
-"""Candidates queried beyond the k + 1 nearest where a distance ties at the k-th: enough
-to see every point tied with the k-th on a 1 cm grid (the query doubles when not)."""
-TIE_MARGIN = 1e-12
-"""Relative margin between our squared distances and the KD tree's (which sums the same
-squares, possibly rounded differently): a k-th distance closer than this to the first
-unqueried one counts as a tie."""
+PER_CELL = 12
+"""Points per occupied cell of the neighbour search's grid (PlaneGrid), on average: for the
+24 neighbours of the default fit, the 3 × 3 cells around a point usually hold them all."""
 RIDGE = 1e-9
 """Relative ridge on the normal equations: a neighbourhood whose offsets lie on one line
 (a scan line) leaves the slope and curvature across it undetermined; the ridge sets them
@@ -121,30 +118,27 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     n = xy.shape[0]
     check_positions(n, _distinct_positions(xy, 3))
     k = int(min(max(k, 2 if degree == 1 else 5), n - 1))
-    # Points in a KD tree's leaf order: neighbours then sit close in memory, and the
-    # queries and gathers below run about twice as fast as in the input's order.
-    order = cKDTree(xy, balanced_tree=False, compact_nodes=False).indices
-    xy, z = xy[order], z[order]
-    tree = cKDTree(xy, balanced_tree=False, compact_nodes=False)
+    # Points in the search grid's cell order: neighbours then sit close in memory.
+    grid, order = plane_grid(xy)
+    xy, z = np.ascontiguousarray(xy[order]), np.ascontiguousarray(z[order])
     if at is None:
         centres, slot = np.arange(n), order
     else:
         rank = np.empty(n, dtype=np.int64)
         rank[order] = np.arange(n)
         wanted = rank[np.asarray(at, dtype=np.int64)]
-        slot = np.argsort(wanted, kind="stable")             # centres in leaf order too
+        slot = np.argsort(wanted, kind="stable")             # centres in cell order too
         centres = wanted[slot]
     m = centres.size
     out = np.empty((m, 2))
     reach2 = np.empty(m)
-    query_threads = workers if m <= BLOCK else 1    # one block: its query has the threads
 
     def fit(block: slice) -> None:
         centre = centres[block]
-        neighbours, offsets = nearest_neighbours(tree, xy, z, centre, k, query_threads)
-        reach2[slot[block]] = offsets[2].max(axis=1)
+        neighbours, offsets = nearest_neighbours(grid, xy, z, centre, k)
+        reach2[slot[block]] = offsets[2][:, -1]
         out[slot[block]] = _fit_block(z, centre, neighbours, offsets, degree)
-    # Each block is a query and a fit of its own (both release the GIL), so blocks run in
+    # Each block is a search and a fit of its own (both release the GIL), so blocks run in
     # the knob's threads: every block gets the same neighbours and sums at any count.
     parallel_blocks(fit, m, BLOCK, threads=workers)
     return out, np.sqrt(reach2)
@@ -179,92 +173,76 @@ def distinct_rows(xy: np.ndarray, enough: int, seen: list | None = None) -> list
     return seen
 
 
-def nearest_neighbours(tree, xy: np.ndarray, z: np.ndarray, centre: np.ndarray, k: int,
-                       workers: int = -1) -> tuple[np.ndarray, tuple]:
+@dataclass(frozen=True)
+class PlaneGrid:
+    """The cells of the neighbour search over plane points sorted by cell (plane_grid):
+    cell (i, j), of side `size` from the corner (x0, y0), is number j·nx + i; `cells` (c,)
+    the occupied numbers ascending, whose points are the rows starts[c] ... starts[c+1] − 1;
+    cell_x, cell_y (n,) each point's i and j. Plane units."""
+
+    x0: float
+    y0: float
+    size: float
+    nx: int
+    ny: int
+    cells: np.ndarray
+    starts: np.ndarray
+    cell_x: np.ndarray
+    cell_y: np.ndarray
+
+
+def plane_grid(xy: np.ndarray, per_cell: int = PER_CELL) -> tuple[PlaneGrid, np.ndarray]:
+    """(the grid of points xy (n, 2), order (n,)): the PlaneGrid of the points xy[order],
+    which order sorts by cell. The side starts from the bounding box's area over n/per_cell
+    cells and halves while the occupied cells hold more than 2·per_cell points on average,
+    so a survey with a far outlier, or a strip across its box, gets cells sized to where
+    its points are; only occupied cells are stored (memory O(n) whatever the box)."""
+    n = len(xy)
+    low, high = xy.min(axis=0), xy.max(axis=0)
+    extent = high - low
+    area = float(extent[0] * extent[1])
+    size = float(np.sqrt(area * per_cell / n)) if area > 0 else float(extent.max() * per_cell / n)
+    if not size > 0:
+        size = 1.0                                    # every point at one position
+    while True:
+        cell_x = np.floor((xy[:, 0] - low[0]) / size).astype(np.int64)
+        cell_y = np.floor((xy[:, 1] - low[1]) / size).astype(np.int64)
+        nx, ny = int(cell_x.max()) + 1, int(cell_y.max()) + 1
+        number = cell_y * nx + cell_x
+        order = np.argsort(number, kind="stable")
+        number = number[order]
+        first = np.flatnonzero(np.r_[True, number[1:] != number[:-1]])
+        crowded = n > 2 * per_cell * len(first) and size > extent.max() * 1e-9
+        if not crowded or nx * ny > (1 << 60) // 4:
+            break
+        size /= 2
+    grid = PlaneGrid(float(low[0]), float(low[1]), size, nx, ny, number[first],
+                     np.append(first, n).astype(np.int64), cell_x[order], cell_y[order])
+    return grid, order
+
+
+def nearest_neighbours(grid: PlaneGrid, xy: np.ndarray, z: np.ndarray, centre: np.ndarray,
+                       k: int) -> tuple[np.ndarray, tuple]:
     """(indices (b, k), their offsets (dx, dy, dx² + dy²) each (b, k)) of the k nearest
     other points of the points `centre` (b,), by a rule that depends only on the
     coordinates: nearest by squared plane distance, ties broken by the offset (dx, then
-    dy, then the height), each row in that order.
+    dy, then the height), each row in that order (points equal in all of these are the
+    same datum twice, taken in index order).
 
-    Why: a KD tree breaks distance ties by its own point numbering, so on a grid (LiDAR's
-    1 cm) a point whose k-th and (k+1)-th neighbours are equally far got a different
-    neighbour set in a tile than in the whole survey; and the least-squares sums, added
-    in row order, must be added in the same order to agree to the bit.
-    tree: cKDTree of xy (n, 2); z (n,) the heights; k < n.
+    Why: a search structure breaks distance ties by its own numbering, so on a grid
+    (LiDAR's 1 cm) a point whose k-th and (k+1)-th neighbours are equally far would get a
+    different neighbour set in a tile than in the whole survey; and the least-squares
+    sums, added in row order, must be added in the same order to agree to the bit.
+    grid, xy (n, 2), z (n,): plane_grid's grid and the points and heights in its order
+    (contiguous); k < n. The search is the kernel's ring search over the grid's cells
+    (stages/_height_gradients.pyx, grid_neighbours).
     """
-    n = len(xy)
-    if n < k + 2:
-        neighbours = _sorted_neighbours(tree, xy, z, centre, k, workers)
-        return neighbours, _offsets(xy, centre, neighbours)
-    _, index = tree.query(xy[centre], k=k + 2, workers=workers)
-    ux, uy, dist2 = _offsets(xy, centre, index)
-    # The tree's order is the canonical one when the point itself comes first, the
-    # distances then strictly increase, and the (k+1)-th is clearly farther than the k-th.
-    plain = ((index[:, 0] == centre) & (dist2[:, 1] > 0)
-             & (dist2[:, 2:k + 1] > dist2[:, 1:k]).all(axis=1)
-             & (dist2[:, k] < dist2[:, k + 1] * (1 - TIE_MARGIN)))
-    neighbours = index[:, 1:k + 1]
-    offsets = ux[:, 1:k + 1], uy[:, 1:k + 1], dist2[:, 1:k + 1]
-    tied = np.flatnonzero(~plain)
-    if tied.size:
-        neighbours[tied] = _sorted_neighbours(tree, xy, z, centre[tied], k, workers)
-        for array, fixed in zip(offsets, _offsets(xy, centre[tied], neighbours[tied])):
-            array[tied] = fixed
-    return neighbours, offsets
-
-
-def _sorted_neighbours(tree, xy, z, centre, k, workers):
-    """`nearest_neighbours` the slow way: query k + 1 + TIE_EXTRA candidates, sort them by
-    (distance², dx, dy, z), and keep the first k when the k-th is clearly closer than the
-    last candidate (so no unqueried point ties with it); double the query where not."""
-    n = len(xy)
-    out = np.empty((centre.size, k), np.int64)
-    todo = _clump_neighbours(tree, xy, z, centre, k, out, workers)
-    count = k + 1 + TIE_EXTRA
-    while todo.size:
-        count = min(count, n)
-        _, index = tree.query(xy[centre[todo]], k=count, workers=workers)
-        ux, uy, dist2 = _offsets(xy, centre[todo], index)
-        dist2[index == centre[todo, None]] = -1.0                 # the point itself sorts first
-        rank = np.lexsort((z[index], uy, ux, dist2), axis=-1)
-        index, dist2 = np.take_along_axis(index, rank, 1), np.take_along_axis(dist2, rank, 1)
-        done = (count == n) | (dist2[:, k] < dist2[:, -1] * (1 - TIE_MARGIN))
-        out[todo[done]] = index[done, 1:k + 1]
-        todo = todo[~done]
-        count *= 2
-    return out
-
-
-def _clump_neighbours(tree, xy, z, centre, k, out, workers) -> np.ndarray:
-    """Fill out's rows of the centres that share their exact position with at least k other
-    points (a clump of duplicates): their k neighbours are then k of those others, the
-    lowest heights first, as `_sorted_neighbours`' order puts them (distance 0, offset 0,
-    then height); points with the same height there are the same datum, interchangeable
-    in every sum, and are taken in index order. Returns the rows (into centre) still to do.
-
-    Why: the doubling query cannot see past a clump's ties, and a clump of m points made
-    m queries of m neighbours each (15,000 duplicates asked for 1 GB per array)."""
-    at = tree.query_ball_point(xy[centre], r=0.0, return_length=True, workers=workers)
-    clumped = np.flatnonzero(at > k)
-    if not clumped.size:
-        return np.arange(centre.size)
-    positions, which = np.unique(xy[centre[clumped]], axis=0, return_inverse=True)
-    for p, position in enumerate(positions):
-        members = np.sort(np.asarray(tree.query_ball_point(position, r=0.0), dtype=np.int64))
-        head = members[np.argsort(z[members], kind="stable")][:k + 1]
-        for row in clumped[which.ravel() == p]:
-            out[row] = head[head != centre[row]][:k]          # without the centre itself
-    return np.setdiff1d(np.arange(centre.size), clumped)
-
-
-def _offsets(xy, centre, neighbours):
-    """(dx, dy, dx² + dy²), each (b, k): plane offsets of the neighbours (b, k) from their
-    centre (b,) over the points xy (n, 2): the kernel loops over both, no gathered copies."""
-    neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
-    ux, uy, dist2 = (np.empty(neighbours.shape) for _ in range(3))
-    kernel.offsets(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(centre, dtype=np.int64),
-                   neighbours, ux, uy, dist2)
-    return ux, uy, dist2
+    centre = np.ascontiguousarray(centre, dtype=np.int64)
+    neighbours = np.empty((centre.size, k), np.int64)
+    ux, uy, dist2 = (np.empty((centre.size, k)) for _ in range(3))
+    kernel.grid_neighbours(xy, z, centre, grid.cell_x, grid.cell_y, grid.cells, grid.starts,
+                           grid.nx, grid.ny, grid.x0, grid.y0, grid.size, neighbours, ux, uy, dist2)
+    return neighbours, (ux, uy, dist2)
 
 
 def _fit_block(z: np.ndarray, centre: np.ndarray, neighbours: np.ndarray, offsets: tuple,
