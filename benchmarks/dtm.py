@@ -90,8 +90,9 @@ def c1mesh_run(folder: Path, smooth: str) -> tuple[float, int, Path]:
 def gmt_run(folder: Path) -> tuple[float, int, Path]:
     """(seconds, peak RSS, grid path) of blockmedian + surface, both under one shell."""
     grid = folder / "gmt.nc"
-    script = (f"gmt blockmedian {REGION} -I1 -bi3d -bo3d '{folder / 'dtm.bin'}' > '{folder / 'bm.bin'}' && "
-              f"gmt surface '{folder / 'bm.bin'}' -bi3d {REGION} -I1 -T0.25 -G'{grid}'")
+    script = (f"cd '{folder}' && "                  # GMT leaves a gmt.history where it runs
+              f"gmt blockmedian {REGION} -I1 -bi3d -bo3d dtm.bin > bm.bin && "
+              f"gmt surface bm.bin -bi3d {REGION} -I1 -T0.25 -G'{grid.name}'")
     done = run_child(["sh", "-c", script])
     if done.returncode:
         raise RuntimeError(f"GMT failed: {done.stderr.strip()[-400:]}")
@@ -114,7 +115,8 @@ def gmt_rms(path: Path) -> float:
     """RMS (m) of GMT's grid against true_height at its nodes in the margin."""
     with tempfile.TemporaryDirectory(prefix="c1mesh-dtm-") as tmp:
         out = Path(tmp) / "grid.bin"
-        subprocess.run(["gmt", "grd2xyz", str(path), "-bo3d"], stdout=out.open("wb"), check=True)
+        with out.open("wb") as handle:
+            subprocess.run(["gmt", "grd2xyz", str(path), "-bo3d"], stdout=handle, check=True, cwd=tmp)
         xyz = np.fromfile(out, dtype="<f8").reshape(-1, 3)
     return _rms(xyz[:, 0], xyz[:, 1], xyz[:, 2])
 
