@@ -229,8 +229,8 @@ def render_dem_fit(grid: RasterGrid, sampler: SplineSampler, path, crs: str | No
                    z_factor: float | None = 1.0) -> None:
     """Preview of the DEM a fit writes: its cells (grid, and the sampler that gave their
     heights: raster.write_fit_rasters), shaded by the spline's gradient at their centres.
-    The cells a fill spans across the trim's holes (no data near them: the support layer's
-    large distances) are drawn hatched. z_factor: render_spline's (None: unshaded)."""
+    The cells a fill spans across the trim's holes are drawn hatched (the support layer
+    gives their distance to the data). z_factor: render_spline's (None: unshaded)."""
     stride = preview_stride(grid)
     z, g, filled = _dem_cells(grid, sampler, stride)
     if z_factor is None:
