@@ -297,7 +297,7 @@ def report_from_stderr(stderr: str) -> dict:
 MEASURED: dict[tuple[str, int], dict] = {}
 
 #: The `c1mesh` command run through this interpreter (no dependence on an installed script).
-C1MESH = ["-c", "import sys; from c1mesh.cli import main; sys.argv[0] = 'c1mesh'; main()"]
+C1MESH = ["-c", "from c1mesh.cli import run; run()"]
 
 
 def write_section(path: Path, sec: Section) -> None:

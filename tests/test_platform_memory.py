@@ -34,3 +34,22 @@ def test_peak_rss_is_at_least_what_is_resident_now():
 
 def test_madvise_is_callable_here():
     assert madvise is not None
+
+
+@pytest.mark.parametrize("user, expected", [(None, "False"), ("1", "True")])
+def test_the_command_turns_numpys_huge_pages_off_unless_the_user_chose(user, expected):
+    """prefer_small_pages, called before numpy's import (as cli.run does), leaves numpy
+    allocating without MADV_HUGEPAGE; a user's own NUMPY_MADVISE_HUGEPAGE wins. Read back
+    through numpy's setter, which returns the setting it replaces."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    if user is not None:
+        env["NUMPY_MADVISE_HUGEPAGE"] = user
+    code = ("from c1mesh.core.platform_memory import prefer_small_pages; prefer_small_pages(); "
+            "import numpy; from numpy._core.multiarray import _set_madvise_hugepage; "
+            "print(_set_madvise_hugepage(False))")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == expected
