@@ -375,8 +375,10 @@ def check_run(case: Case, command: str, result: dict, workdir: Path, input_size:
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert result["code"] in (0, 1), where
     leftovers = sorted(p.name for p in workdir.iterdir())
-    expected = [p for p in (case.name, "out.ply") if (workdir / p).exists() and (p != case.name or not case.path)]
+    # out.prj: the CRS sidecar of a mesh whose input carries a CRS (never without the mesh)
+    expected = [p for p in (case.name, "out.ply", "out.prj") if (workdir / p).exists() and (p != case.name or not case.path)]
     assert leftovers == sorted(expected), f"{where}: files left {leftovers}"
+    assert "out.prj" not in expected or "out.ply" in expected, f"{where}: a CRS sidecar without its mesh"
     if result["code"] == 0:
         assert not [ln for ln in lines if not ln.startswith("c1mesh: warning:")], where
         if command == "fit":
@@ -418,6 +420,7 @@ def run_case(server: ForkServer, case: Case, tmp_path: Path) -> None:
         result = server.run(args, workdir, logs)
         check_run(case, command, result, workdir, size, server.baseline)
         (workdir / "out.ply").unlink(missing_ok=True)
+        (workdir / "out.prj").unlink(missing_ok=True)          # the mesh's CRS sidecar goes with it
 
 
 def test_corpus_is_large_enough():
