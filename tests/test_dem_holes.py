@@ -193,3 +193,45 @@ def test_ground_class_keeps_the_steep_triangles_the_view_rules_remove():
     ground = fit(cloud, None, FitOptions(axis="z", classes=(2,), level=1)).report["triangles"]
     assert all(ground["removed"][r] == 0 for r in view)
     assert ground["after_trim"] > scan["after_trim"]
+
+
+def test_nearest_triangle_among_the_rim_triangles_is_the_nearest_among_all():
+    """geo.raster_grid.rim_triangles: for points outside a triangulated region with holes,
+    the nearest triangle (ties to the lowest number) searched among the triangles with a
+    corner on the region's boundary is the one a search of every triangle finds; on a
+    jittered grid, where many distances tie, and with a reach."""
+    from c1mesh.engine.topology import edge_table
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.geo.raster_grid import NearestTriangles, rim_triangles
+
+    rng = np.random.default_rng(5)
+    x, y = np.meshgrid(np.arange(30.0), np.arange(30.0))
+    points = np.column_stack([x.ravel(), y.ravel()]) + rng.uniform(-0.1, 0.1, (900, 2)) * (rng.random((900, 1)) < 0.5)
+    triangles = delaunay(points)
+    centre = points[triangles].mean(axis=1)
+    holes = (np.hypot(*(centre - [10, 10]).T) < 4) | (np.hypot(*(centre - [20, 18]).T) < 3)
+    searched = np.flatnonzero(~holes)
+    table = edge_table(triangles, len(points))
+    rim = rim_triangles(table, searched)
+    assert 0 < len(rim) < len(searched) / 2
+    query = np.concatenate([rng.uniform(-5, 35, (400, 2)), rng.uniform(6, 14, (200, 2)),
+                            np.array([[10.0, 10.0], [20.0, 18.0], [-3.0, 15.0]])])
+    outside = ~_in_any(query, points[triangles[searched]])
+    assert outside.sum() > 150
+    for reach in (None, 2.0):
+        every = NearestTriangles(points, triangles[searched], reach).of(query)
+        among_rim = NearestTriangles(points, triangles[rim], reach).of(query)
+        expected = np.where(every >= 0, searched[np.maximum(every, 0)], -1)
+        got = np.where(among_rim >= 0, rim[np.maximum(among_rim, 0)], -1)
+        np.testing.assert_array_equal(got[outside], expected[outside])
+
+
+def _in_any(query, corners, tol=1e-12):
+    """(q,) whether each point lies in (or on) any of the triangles corners (T, 3, 2)."""
+    p = query[:, None, :]
+    a, b, c = (corners[None, :, k, :] for k in range(3))
+    d1 = (b[..., 0] - a[..., 0]) * (p[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (p[..., 0] - a[..., 0])
+    d2 = (c[..., 0] - b[..., 0]) * (p[..., 1] - b[..., 1]) - (c[..., 1] - b[..., 1]) * (p[..., 0] - b[..., 0])
+    d3 = (a[..., 0] - c[..., 0]) * (p[..., 1] - c[..., 1]) - (a[..., 1] - c[..., 1]) * (p[..., 0] - c[..., 0])
+    inside = ((d1 >= -tol) & (d2 >= -tol) & (d3 >= -tol)) | ((d1 <= tol) & (d2 <= tol) & (d3 <= tol))
+    return inside.any(axis=1)

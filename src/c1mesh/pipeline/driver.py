@@ -818,8 +818,10 @@ def points_on_surface(model: SurfaceModel) -> int:
     and says the same for the mesh and the DEM of one fit."""
     if model.thinned:
         return int(model.hf.xy.shape[0] - model.smoothing.outside)
-    if model.trimmed is not None:
-        return int(np.unique(model.interp.triangles[model.trimmed]).size)
+    if model.trimmed is not None:                      # a mark, not np.unique: 1 s at 1M points
+        used = np.zeros(model.interp.points.shape[0], dtype=bool)
+        used[model.interp.triangles[model.trimmed].ravel()] = True
+        return int(used.sum())
     return int(model.used.size)
 
 
