@@ -176,17 +176,24 @@ cdef double _search_run(const double *x, const double *y, const double *z, const
     the points order[start:stop] (one strip, sorted by y) other than p: binary search for
     y[p], then walk up and down while dy·dy alone does not exceed the best (every point
     farther along is farther)."""
-    cdef Py_ssize_t lo = start, hi = stop, mid, j
-    cdef int64_t q
-    cdef double dx, dy, dz, d2
+    cdef Py_ssize_t lo = start, hi = stop, mid
     while lo < hi:
         mid = (lo + hi) // 2
         if y[order[mid]] < y[p]:
             lo = mid + 1
         else:
             hi = mid
-    j = lo
-    while j < stop:
+    best = _walk(x, y, z, order, lo, stop, 1, p, best)
+    return _walk(x, y, z, order, lo - 1, start - 1, -1, p, best)
+
+
+cdef double _walk(const double *x, const double *y, const double *z, const int64_t *order,
+                  Py_ssize_t j, Py_ssize_t end, Py_ssize_t step, int64_t p, double best) noexcept nogil:
+    """_search_run's walk from order[j] by step until end (excluded), or until dy·dy alone
+    exceeds best: the least of best and the squared distances met."""
+    cdef int64_t q
+    cdef double dx, dy, dz, d2
+    while j != end:
         q = order[j]
         dy = y[q] - y[p]
         if dy * dy > best:
@@ -196,19 +203,7 @@ cdef double _search_run(const double *x, const double *y, const double *z, const
             dz = z[q] - z[p]
             d2 = dx * dx + dy * dy + dz * dz
             best = d2 if d2 < best else best
-        j += 1
-    j = lo - 1
-    while j >= start:
-        q = order[j]
-        dy = y[q] - y[p]
-        if dy * dy > best:
-            break
-        if q != p:
-            dx = x[q] - x[p]
-            dz = z[q] - z[p]
-            d2 = dx * dx + dy * dy + dz * dz
-            best = d2 if d2 < best else best
-        j -= 1
+        j += step
     return best
 
 
