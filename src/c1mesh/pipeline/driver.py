@@ -45,7 +45,6 @@ from c1mesh.pipeline.report import ReportCore, crs_facts
 from c1mesh.pipeline.steps import (
     FitResult,
     FitRun,
-    SmoothingRequest,
     StageTimer,
     WorldSurface,
     compact_vertices,
@@ -63,7 +62,7 @@ from c1mesh.stages.height_gradients import height_gradients, height_neighbours, 
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.perspective import frame_kind
-from c1mesh.stages.smoothing import gradient_data_weight
+from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, gradient_data_weight
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
 from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh
@@ -460,17 +459,23 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     fitted over the holes' long triangles, the smoothing spline dug pits of up to 9.7 ft
     into autzen_trim's ground beside a bank (0.36 ft so)."""
     hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
-    data = None if mesh.vertices is None else (hf.xy, hf.z)
+    control = SmoothingControl(strength, scheme)
+
+    def data(vertices):                     # the heights fitted: the vertices', or every point's (--spacing)
+        if mesh.vertices is None:
+            return SmoothingData(hf.z[vertices], hf.spacing)
+        return SmoothingData(hf.z, hf.spacing, hf.xy)
+
+    def prior(vertices):
+        return GradientPrior(hf.gradients[vertices], weight) if weight else None
     if span is None:
-        request = SmoothingRequest(strength, hf.spacing, data, hf.gradients[used] if weight else None, weight)
-        return smoothed_interpolator(hf.xy[used], hf.z[used], mesh.triangles, scheme, options.overshoot, request,
-                                     table=mesh.table)
+        return smoothed_interpolator(hf.xy[used], mesh.triangles, data(used), control, options.overshoot,
+                                     prior(used), table=mesh.table)
     points = hf.xy if mesh.vertices is None else hf.xy[mesh.vertices]
     local, inner = compact_vertices(points, span.trim_only.triangles)
     inner_used = local if mesh.vertices is None else mesh.vertices[local]
-    request = SmoothingRequest(strength, hf.spacing, data, hf.gradients[inner_used] if weight else None, weight)
-    fitted, overshoot, smoothing = smoothed_interpolator(hf.xy[inner_used], hf.z[inner_used], inner, scheme,
-                                                         options.overshoot, request,
+    fitted, overshoot, smoothing = smoothed_interpolator(hf.xy[inner_used], inner, data(inner_used), control,
+                                                         options.overshoot, prior(inner_used),
                                                          table=span.trim_only.edge_table(local))
     at = np.searchsorted(used, inner_used)              # the trimmed mesh's vertices are the filled one's
     values, gradients = hf.z[used].copy(), hf.gradients[used].copy()

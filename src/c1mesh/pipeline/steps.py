@@ -22,8 +22,7 @@ from c1mesh.engine.topology import edge_table
 from c1mesh.formats import check_mesh_size, write_mesh
 from c1mesh.pipeline import _steps as kernel
 from c1mesh.stages.limiter import LimiterReport, control_overshoot, edge_directions
-from c1mesh.stages.smoothing import (FILE_NORMALS_WEIGHT, GradientPrior, SmoothingControl, SmoothingData,
-                                     smooth_fit)
+from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.surface import surface_stream
 
 
@@ -100,42 +99,25 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
     return interp, report
 
 
-@dataclass(frozen=True)
-class SmoothingRequest:
-    """What the smoothing fit is asked for (pipeline.steps.smoothed_interpolator): strength
-    "auto" or s > 0; spacing, the data's mean spacing (the strength's length unit); data,
-    None (the vertices are the data) or (xy (M, 2), z (M,)) of all points (--spacing);
-    gradients, (n, 2) the vertices' gradients fitted as data with weight gradient_weight
-    (None: the heights alone): the file's normals' at smoothing.FILE_NORMALS_WEIGHT, or the
-    heights' own least-squares gradients at smoothing.HEIGHT_GRADIENTS_WEIGHT
-    (`gradient_data_weight`)."""
-
-    strength: Any
-    spacing: float
-    data: tuple | None = None
-    gradients: np.ndarray | None = None
-    gradient_weight: float = FILE_NORMALS_WEIGHT
-
-
-def smoothed_interpolator(points, values, triangles, scheme, overshoot: str, request: SmoothingRequest,
-                          table=None) -> tuple[RSDInterpolator, Any, Any]:
+def smoothed_interpolator(points, triangles, data: SmoothingData, control: SmoothingControl, overshoot: str,
+                          prior: GradientPrior | None = None, table=None) -> tuple[RSDInterpolator, Any, Any]:
     """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
     height field, its limiter report and the SmoothFit.
 
-    points (n, 2) vertices, values (n,) their heights, triangles (T, 3); request: the
-    SmoothingRequest. The fit's gradients agree with its heights by construction, so of
-    the overshoot remedies only the edge directions apply (overshoot "limit"): they are
-    chosen from the geometry before the fit, which is then the spline of those
-    directions. table: the triangles' topology.edge_table when built already (the
-    trim's), else built here.
+    points (n, 2) vertices, triangles (T, 3); data: the heights fitted (at the vertices,
+    or with xy every point's: --spacing); control: its strength and scheme; prior: the
+    vertices' gradients fitted as data (the file's normals' at
+    smoothing.FILE_NORMALS_WEIGHT, or the heights' own least-squares gradients at
+    smoothing.HEIGHT_GRADIENTS_WEIGHT: `gradient_data_weight`), None: the heights alone.
+    The fit's gradients agree with its heights by construction, so of the overshoot
+    remedies only the edge directions apply (overshoot "limit"): they are chosen from the
+    geometry before the fit, which is then the spline of those directions. table: the
+    triangles' topology.edge_table when built already (the trim's), else built here.
     """
     table = edge_table(triangles, points.shape[0]) if table is None else table
     directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
-    data_xy, data_z = (None, values) if request.data is None else request.data
-    prior = None if request.gradients is None else GradientPrior(request.gradients, request.gradient_weight)
-    fitted = smooth_fit(points, triangles, SmoothingData(data_z, request.spacing, data_xy),
-                        SmoothingControl(request.strength, scheme), directions=directions, prior=prior)
-    interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=scheme,
+    fitted = smooth_fit(points, triangles, data, control, directions=directions, prior=prior)
+    interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=control.scheme,
                              directions=directions, edge_table=table)
     turned = 0 if changed is None else int(changed.sum())
     return interp, LimiterReport(directions_changed=turned), fitted
