@@ -65,7 +65,7 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, gradient_data_weight
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
-from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh
+from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
 
@@ -823,10 +823,8 @@ def points_on_surface(model: SurfaceModel) -> int:
     and says the same for the mesh and the DEM of one fit."""
     if model.thinned:
         return int(model.hf.xy.shape[0] - model.smoothing.outside)
-    if model.trimmed is not None:                      # a mark, not np.unique: 1 s at 1M points
-        used = np.zeros(model.interp.points.shape[0], dtype=bool)
-        used[model.interp.triangles[model.trimmed].ravel()] = True
-        return int(used.sum())
+    if model.trimmed is not None:
+        return used_points(model.interp.triangles, model.trimmed, model.interp.points.shape[0])
     return int(model.used.size)
 
 
