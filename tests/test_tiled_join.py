@@ -1,6 +1,6 @@
 """The tiled fit's survey-sized state replaced by halo- and band-sized state.
 
-- tiled_halo.halo_rows (a binary search over one halo) against a dense table over the
+- core.tile.tile_rows (a binary search over one halo) against a dense table over the
   survey (the RowMap it replaced: 4 bytes a survey point in every process);
 - tiled_join: the join that forgets a border key once no later tile can meet it must
   number every vertex as the join that keeps every key, on real tile refinements of a
@@ -14,12 +14,12 @@ import pytest
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.survey.tiled_join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
-from c1mesh.survey.tiled_halo import halo_rows
+from c1mesh.core.tile import tile_rows
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim
 
 
-def test_halo_rows_equal_a_dense_table_over_the_survey():
+def test_tile_rows_equal_a_dense_table_over_the_survey():
     rng = np.random.default_rng(3)
     survey = 50_000
     index = np.sort(rng.choice(survey, 4_000, replace=False))
@@ -29,11 +29,11 @@ def test_halo_rows_equal_a_dense_table_over_the_survey():
     queries[:500] = index[rng.integers(0, len(index), (500, 3))]       # many present
     queries[500, 0], queries[501, 0] = survey - 1, 0                    # beyond either end
     queries[502, 0] = index[-1] + 1 if index[-1] + 1 < survey else 0
-    rows = halo_rows(index, queries)
+    rows = tile_rows(index, queries)
     assert rows.shape == queries.shape
     assert np.array_equal(rows, dense[queries])
     assert (rows >= 0).sum() > 1_500 and (rows < 0).sum() > 10_000
-    assert np.array_equal(halo_rows(index[:0], queries[:4]), np.full((4, 3), -1))
+    assert np.array_equal(tile_rows(index[:0], queries[:4]), np.full((4, 3), -1))
 
 
 def _survey(seed: int):

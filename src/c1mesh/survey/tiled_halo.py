@@ -14,11 +14,11 @@ cell, each edge of the survey in exactly one tile.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
+from c1mesh.core.tile import Tile, compact, tile_rows
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages.limiter import trapezoid_residuals
 from c1mesh.stages.trim import edge_lengths
@@ -30,51 +30,13 @@ HALO_EDGES = 4
 """A tile's halo, in longest final edges (module docstring)."""
 
 
-@dataclass
-class Halo:
-    """What one tile reads for the limiter: records (m,) height-field records (fields index,
-    x, y, z, gx, gy; ascending survey numbers) that are corners of `triangles`; triangles
-    (k, 3) the final triangles with all corners read, into records; own (m,) bool: the
-    records in the tile's cell."""
-
-    records: np.ndarray
-    triangles: np.ndarray
-    own: np.ndarray
-
-    @property
-    def points(self) -> np.ndarray:
-        return np.column_stack([self.records["x"], self.records["y"]])
-
-    @property
-    def gradients(self) -> np.ndarray:
-        return np.column_stack([self.records["gx"], self.records["gy"]])
-
-
 def halo_reach(longest_edge: float) -> float:
     """How far beyond its cell a tile reads (frame units), for final edges at most
     longest_edge long; a relative margin keeps rounding on the safe side."""
     return HALO_EDGES * float(longest_edge) * (1 + 1e-9)
 
 
-def halo_rows(index: np.ndarray, numbers: np.ndarray) -> np.ndarray:
-    """The row of each of `numbers` (survey numbers, any shape) among `index` (a halo's
-    survey numbers, ascending and distinct), -1 where absent. A binary search over the
-    halo: its memory is the halo's and the query's, whatever the survey's size (a dense
-    table over the survey cost 4 bytes a survey point in every process). The distinct
-    numbers are searched in ascending order: a triangle list repeats each corner about six
-    times, and a sorted query walks the halo instead of jumping through it, which made
-    the halo reads 2.5x faster than a search per number."""
-    numbers = np.asarray(numbers, dtype=np.int64)
-    if not len(index):
-        return np.full(numbers.shape, -1, dtype=np.int64)
-    distinct, where = np.unique(numbers.ravel(), return_inverse=True)
-    rows = np.searchsorted(index, distinct)
-    np.minimum(rows, len(index) - 1, out=rows)
-    rows[index[rows] != distinct] = -1
-    return rows[where.ravel()].reshape(numbers.shape)
-
-
-def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
+def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Tile:
     """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
     records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
     or None."""
@@ -88,15 +50,15 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Halo:
     used, triangles = compact(np.concatenate(parts), len(records))
     records = records[used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
-    return Halo(records, triangles, own)
+    return Tile(records, triangles, own)
 
 
 def _rows_inside(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """The triangles (k, 3) (survey numbers) whose three corners are among `index` (a
     halo's survey numbers, ascending), as rows of index. A neighbour tile shares only a
     band of its triangles with the halo, so the lowest corners sift them first."""
-    inside = halo_rows(index, triangles.min(axis=1)) >= 0
-    rows = halo_rows(index, triangles[inside])
+    inside = tile_rows(index, triangles.min(axis=1)) >= 0
+    rows = tile_rows(index, triangles[inside])
     return rows[(rows >= 0).all(axis=1)]
 
 
@@ -118,7 +80,7 @@ class HaloCache:
         """The tiles that own triangles."""
         return [t for t in range(len(self.grid)) if self.files[t] is not None]
 
-    def halo(self, tile: int) -> Halo:
+    def halo(self, tile: int) -> Tile:
         """tile's halo, from the cache, else read from the spills: cached by the driver's
         cache, not by a copy sent with a task (tiled_input.Temps.owned_here: a file a copy
         made would be removed by nobody)."""
@@ -133,7 +95,7 @@ class HaloCache:
         records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
         triangles = np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3)
         own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
-        return self._drop(tile, Halo(records, triangles, own))
+        return self._drop(tile, Tile(records, triangles, own))
 
     def prefetch(self, runner, name=str, on_done=None) -> None:
         """Read every tile's halo and cache it, each tile a task on runner
@@ -161,14 +123,14 @@ class HaloCache:
         """A fresh iterator over the halos of all tiles that own triangles."""
         return (self.halo(t) for t in self.tiles())
 
-    def _drop(self, tile: int, halo: Halo) -> Halo:
+    def _drop(self, tile: int, halo: Tile) -> Tile:
         near = [self.removed[t] for t in self.heights.touching(self.grid.grown(tile, self.reach))
                 if t in self.removed]
         if not near or not len(halo.triangles):
             return halo
         survey = halo.records["index"][halo.triangles]
         kept = drop_triangles(np.column_stack([survey, np.arange(len(survey))]), np.concatenate(near), columns=3)
-        return Halo(halo.records, halo.triangles[kept[:, 3]], halo.own)
+        return Tile(halo.records, halo.triangles[kept[:, 3]], halo.own)
 
 
 def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
@@ -179,14 +141,6 @@ def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
     halo.records.tofile(paths[0])
     halo.triangles.astype("<i8").tofile(paths[1])
     return task_row(len(halo.records), start)
-
-
-def compact(triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """(used (u,) ascending rows that triangles use, triangles renumbered into used)."""
-    mark = np.zeros(count, dtype=bool)
-    mark[triangles] = True
-    new = np.cumsum(mark) - 1
-    return np.flatnonzero(mark), new[triangles]
 
 
 def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
@@ -200,7 +154,7 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
         if not len(triangles):
             continue
         records = heights.records(grid.grown(t, buffers[t] * (1 + 1e-9)))
-        rows = halo_rows(records["index"], triangles)
+        rows = tile_rows(records["index"], triangles)
         xy = np.column_stack([records["x"], records["y"]])
         longest = max(longest, float(edge_lengths(xy, rows).max()))
     return longest
@@ -236,7 +190,7 @@ def edge_residuals(points, values, gradients, edges) -> np.ndarray:
 def edge_floor(halos: Callable[[], object], temps, name: str, data_of=None) -> float:
     """The median |trapezoid residual| over every final edge of the survey, exactly (each
     edge from the tile holding its lower end). halos: a callable giving a fresh iterator
-    of every tile's Halo; data_of(halo, table): the heights (m,) and gradients (m, 2) to
+    of every tile's Tile; data_of(halo, table): the heights (m,) and gradients (m, 2) to
     use (None: the height field's); temps: tiled_input.Temps for the residual file."""
     path = temps.new(f"residuals-{name}.bin")
     with open(path, "wb") as file:
@@ -263,14 +217,6 @@ def residual_blocks(path, block: int = FLOAT_BLOCK):
         yield from file_blocks(file, "<f8", block)
 
 
-def corner_rows(index: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tile triangles (k, 3) of survey numbers against `index` (ascending survey numbers of
-    the records a tile read): (rows (c,) of their distinct corners among index, -1 where
-    absent; triangles (k, 3) numbering those corners)."""
-    corners, local = np.unique(triangles, return_inverse=True)
-    return halo_rows(index, corners), local.reshape(triangles.shape)
-
-
 def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -> float:
     """The exact median of the float64 values that task(*arguments(t, path)) writes to its
     own file `path` for every tile t of tiles, each a task on runner
@@ -291,18 +237,3 @@ def median_of_files(paths) -> float:
     for path in paths:
         path.unlink()
     return median
-
-
-def own_triangles_in(halo: Halo, table, owned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A tile's own triangles `owned` (k, 3) survey numbers within its halo (whose edges
-    are table, topology.edge_table of halo.triangles): (corners (c,) ascending halo rows,
-    triangles (k, 3) into corners, at (E,) the halo edge of each edge of those triangles in
-    the order of edge_table(triangles, c).edges). RuntimeError when a corner is not in the halo."""
-    rows = halo_rows(halo.records["index"], owned)
-    if np.any(rows < 0):
-        raise RuntimeError("a tile's own triangle has a corner outside its halo")
-    corners, triangles = compact(rows, len(halo.records))
-    n = len(halo.records)
-    keys = table.edges[:, 0] * n + table.edges[:, 1]
-    sub = corners[edge_table(triangles, len(corners)).edges]
-    return corners, triangles, np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])

@@ -18,12 +18,12 @@ from c1mesh.stages.height_gradients import height_neighbours, use_height_gradien
 from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
 from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
 from c1mesh.survey.tile_spill import TileSpill
-from c1mesh.survey.tiled_halo import halo_rows, median_of_files
+from c1mesh.core.tile import VERTEX, tile_rows
+from c1mesh.survey.tiled_halo import median_of_files
 from c1mesh.survey.tiles import task_row
 
-HEIGHT = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
-                   ("gx", "<f8"), ("gy", "<f8")])
-"""One height-field point in a spill: survey number, frame position, height, gradient."""
+HEIGHT = VERTEX
+"""One height-field point in a spill: a core.tile VERTEX record."""
 GROUP = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("size", "<i8"), ("z_range", "<f8")])
 """A plane position that several usable points share, in a spill beside the heights: the
 survey number of its first point (the HEIGHT record kept), the position, how many points
@@ -212,7 +212,7 @@ def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
         return 0
     shared = spill.groups.records(rect)
     size, z_range = np.ones(len(records), np.int64), np.zeros(len(records))
-    rows = halo_rows(records["index"], shared["index"])
+    rows = tile_rows(records["index"], shared["index"])
     size[rows[rows >= 0]], z_range[rows[rows >= 0]] = shared["size"][rows >= 0], shared["z_range"][rows >= 0]
     bad, _ = stacked_positions(Positions(records["x"], records["y"], records["z"], records["gx"], records["gy"],
                                          z_range), spacing)

@@ -55,7 +55,9 @@ import numpy as np
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages.limiter import SurveyShare, control_overshoot, reconcile_gradients, reconcile_heights
 from c1mesh.survey.distributed import TaskRunner
-from c1mesh.survey.tiled_halo import Halo, HaloCache, edge_floor, edge_residuals, median_over_tiles, own_triangles_in
+from c1mesh.core.tile import Tile
+from c1mesh.engine.topology import own_triangles_in
+from c1mesh.survey.tiled_halo import HaloCache, edge_floor, edge_residuals, median_over_tiles
 
 
 @dataclass(frozen=True)
@@ -123,7 +125,7 @@ def tile_residuals(cache: HaloCache, tile: int, reconciled_with: float | None, p
     residuals.astype("<f8").tofile(path)
 
 
-def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
+def tile_limits(halo: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
     """The limited gradients and edge directions of one tile's own triangles, `owned`
     (k, 3) survey numbers, all inside its halo."""
     table = edge_table(halo.triangles, len(halo.records))
@@ -137,7 +139,7 @@ def tile_limits(halo: Halo, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
                       report.directions_changed, report.heights_reconciled)
 
 
-def reconciled(halo: Halo, table, noise: float):
+def reconciled(halo: Tile, table, noise: float):
     """The halo's heights and gradients reconciled as limiter.control_overshoot does, with
     the survey's first noise floor: (values (m,), gradients (m, 2), heights moved (m,) bool,
     gradients changed (m,) bool). Exact for vertices within 3L (heights) and 2L

@@ -20,7 +20,7 @@ from c1mesh.stages.surface import surface_stream
 from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
-from c1mesh.survey.tiled_halo import corner_rows
+from c1mesh.core.tile import corner_rows
 from c1mesh.survey.tiled_input import Colours
 from c1mesh.survey.tiled_join import KeyExpiry, PartJoin, border_keys
 from c1mesh.survey.tiled_outputs import OutputMeshes, face_owners, split_faces, write_outputs

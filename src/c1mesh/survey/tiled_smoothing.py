@@ -38,7 +38,9 @@ from c1mesh.engine.topology import edge_table
 from c1mesh.stages.limiter import edge_directions
 from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.smoothing_system import available_solvers
-from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, corner_rows, own_triangles_in
+from c1mesh.core.tile import corner_rows
+from c1mesh.engine.topology import own_triangles_in
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache
 from c1mesh.survey.tiled_limiter import TileLimits
 from c1mesh.survey.tiles import task_row
 
