@@ -1,4 +1,4 @@
-"""The smoothing fit in tiles (c1mesh.survey.tiled_smoothing) against the whole fit.
+"""The smoothing fit in tiles (c1mesh.survey.smoothing_runs) against the whole fit.
 
 Ground truth: the in-memory smoothing fit of the same points (`c1mesh fit --smooth S`,
 pipeline.driver.build_surface → stages.smoothing.smooth_fit on the whole mesh), which
@@ -25,8 +25,8 @@ laspy = pytest.importorskip("laspy")
 
 from c1mesh.cli import main
 from c1mesh.pipeline.driver import FitOptions
+from c1mesh.stages import smoothing
 from c1mesh.stages.smoothing import HEIGHT_GRADIENTS_WEIGHT
-from c1mesh.survey import tiled_smoothing
 from c1mesh.core.plan import TiledRun
 from c1mesh.pipeline.survey_fit import fit_in_tiles
 from test_smoothing import interior_or_at_limit
@@ -100,7 +100,7 @@ def test_the_tiled_difference_shrinks_with_the_halo(tmp_path, monkeypatch):
     whole, whole_report = _in_memory(tmp_path, source, 100.0)
     largest = []
     for lengths in (8.0, 16.0, 24.0, 32.0):
-        monkeypatch.setattr(tiled_smoothing, "HALO_LENGTHS", lengths)
+        monkeypatch.setattr(smoothing, "HALO_LENGTHS", lengths)
         fit_in_tiles(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=1, smooth=100.0), memory=10**9), TiledRun(per_tile=1500))
         vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
         largest.append(np.abs(vertices[:, 2] - _heights_at(whole, vertices)).max())
@@ -113,7 +113,7 @@ def test_the_tiled_difference_shrinks_with_the_halo(tmp_path, monkeypatch):
 def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
     source = tmp_path / "plane.las"
     _terrain_las(source, 6000, plane=True)
-    monkeypatch.setattr(tiled_smoothing, "HALO_LENGTHS", 0.5)    # the least halo: 4 final edges
+    monkeypatch.setattr(smoothing, "HALO_LENGTHS", 0.5)    # the least halo: 4 final edges
     report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=2, smooth=1000.0), memory=10**9), TiledRun(per_tile=700))
     assert report["tiles"] == 9
     mesh = trimesh.load(tmp_path / "tiled.ply", process=False)
@@ -261,7 +261,7 @@ def test_the_smoothing_totals_do_not_depend_on_the_order_the_tiles_finish_in():
     """A pool or Dask hands the tiles' solves back in completion order; the report's edf and
     residual RMS must be the same bits in any order (the Dask bytes test once failed on the
     last bit of a plain sum of edfs)."""
-    from c1mesh.survey.tiled_smoothing import TileSolve, solve_totals
+    from c1mesh.stages.smoothing import TileSolve, solve_totals
 
     rng = np.random.default_rng(8)
     solves = [TileSolve(own=int(n), squares=float(q), largest=1.0, halo_vertices=int(n) + 37,

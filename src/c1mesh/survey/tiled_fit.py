@@ -67,13 +67,14 @@ from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
 from c1mesh.stages.limiter import check_mode
-from c1mesh.stages.smoothing import gradient_data_weight
+from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import with_plane_level
 from c1mesh.stages.trim import check_triangles_left
 from c1mesh.stages.warnings import auto_limit, fit_warnings
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
+from c1mesh.survey.smoothing_runs import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
@@ -92,7 +93,6 @@ from c1mesh.survey.tiled_outputs import InputOwners
 from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles_at_once
 from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.tiled_report import TileRows, describe_crs
-from c1mesh.survey.tiled_smoothing import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
 from c1mesh.survey.tiled_trim import trim_tiles
 
@@ -101,7 +101,7 @@ TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "n
 """The stages fit_tiled reports (on_stage, the report's seconds), in order; "ground" only when the
 ground filter chooses the points (survey.ground_pass), "noise floors"
 only with the overshoot limiter (the default) of an exact fit, "smoothing" only with a
-smoothing strength (c1mesh.survey.tiled_smoothing)."""
+smoothing strength (c1mesh.survey.smoothing_runs)."""
 
 
 def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict:
@@ -127,7 +127,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     The tiles are sized by the budget alone, so the output bytes do not depend on where
     the tasks ran or on how many ran at once. run.on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
-    A smoothing strength runs the smoothing fit (c1mesh.survey.tiled_smoothing,
+    A smoothing strength runs the smoothing fit (c1mesh.survey.smoothing_runs,
     which then replaces the limiter but for edge directions; no --spacing in tiles).
     """
     plan = with_plane_level(plan)
@@ -213,8 +213,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
             limiter = None
             if strength is not None:
-                fit = TiledSmoothing(strength, spacing, longest, surface.overshoot,
-                                     gradient_data_weight("estimated", gradient_source))
+                fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength), spacing, surface.overshoot,
+                                                  gradient_data_weight("estimated", gradient_source)), longest)
                 limiter = TiledSmoother(mesh, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
                 done("smoothing")

@@ -1,0 +1,152 @@
+"""The smoothing stage (c1mesh.stages.smoothing: `smooth_tile` on every tile, the strength
+and the report's totals) scheduled over a survey fitted in tiles: which tile the strength
+search runs on, the halos the tiles read, the files each tile's run writes, and the reads
+of its neighbours' files by each tile's refinement.
+
+What runs where, after the trim (c1mesh.survey.tiled_fit):
+
+- the spacing h, the strength's length unit: the stacking test's (tiled_heights.survey_stacking),
+  the median 3D distance from a height-field position to its nearest other one over the
+  positions height_field.spacing_sample picks, as the in-memory fit measures it (equal
+  but for the last bit of the frames' local coordinates); so λ is the in-memory fit's;
+- the strength s: given, or with --smooth auto the stage's search (smoothing.search_strength)
+  on the tile holding the most points, with the limiter's halo, then used by every tile;
+- per tile (a task, `tile_solve`): smoothing.smooth_tile on its cell grown by the reach
+  (smoothing.smoothing_reach, and never less than the limiter's halo, HALO_EDGES longest
+  final edges); it writes the fitted height and gradient of every vertex in its cell,
+  and the directions of its own triangles' edges;
+- the refinement task of a tile (c1mesh.survey.tiled_refine) reads the fitted data of its
+  triangles' corners from the files of the tiles whose cells hold them (`TiledSmoother.tile`).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from c1mesh.core.tile import VERTEX, corner_rows
+from c1mesh.stages.smoothing import (SmoothingRun, StrengthSearch, TileSolve, combined_fit, search_strength,
+                                     smooth_tile, smoothing_reach)
+from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, halo_reach
+from c1mesh.survey.tiled_limiter import TileLimits
+from c1mesh.survey.tiles import task_row
+
+
+@dataclass(frozen=True)
+class TiledSmoothing:
+    """What the smoothing fit over the tiles is asked for: run (the stage's
+    smoothing.SmoothingRun: strength "auto" or s > 0, scheme, the survey's spacing h
+    (tiled_heights.survey_stacking), overshoot, the weight of the spill's gradients as
+    data), longest_edge (the longest final edge, frame units: the least halo)."""
+
+    run: SmoothingRun
+    longest_edge: float
+
+
+class TiledSmoother:
+    """The smoothing fit over the tiles (module docstring): construct with the trimmed
+    survey (tiled_refine.TiledMesh: its height spill, triangle files and grid), the
+    TiledSmoothing asked for, temps, a runner (distributed.TaskRunner) and name(t); it
+    chooses s and runs every tile's solve. A refinement task (tiled_refine) then takes its
+    tile's vertex data through `tile`, as it takes the limiter's. on_done(t, row) gets each
+    solve's report row (tiles.task_row: points, seconds, worker, its peak) as it finishes
+    (progress)."""
+
+    def __init__(self, mesh, fit: TiledSmoothing, temps, runner, name=str, on_done=None):
+        heights, triangle_files, grid = mesh.heights, mesh.files, mesh.grid
+        self.grid, self.files, self.overshoot = grid, triangle_files, fit.run.overshoot
+        self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
+        self.seconds: dict = {}
+        self.search: StrengthSearch | None = None
+        self.search_tile: int | None = None
+        self.run = fit.run
+        if self.run.control.strength == "auto":
+            start = time.perf_counter()
+            self.search_tile = _search_tile(heights, triangle_files)
+            halo = HaloCache(heights, triangle_files, grid, halo_reach(fit.longest_edge), temps,
+                             label="search-halo").halo(self.search_tile)
+            self.search = search_strength(halo, self.run)
+            self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
+            self.seconds["search"] = time.perf_counter() - start
+        self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
+                         HALO_EDGES * fit.longest_edge) * (1 + 1e-9)
+        self.halos = HaloCache(heights, triangle_files, grid, self.reach, temps, label="smooth-halo")
+        tiles = self.halos.tiles()
+        self.paths = {t: (temps.new(f"fitted-{t}.bin"), temps.new(f"directions-{t}.npy")) for t in tiles}
+        start = time.perf_counter()
+        self.solves: list[TileSolve] = []
+        for i, (solved, row) in runner.map(tile_solve, len(tiles), lambda i: (self, tiles[i]),
+                                           lambda i: name(tiles[i])):
+            self.solves.append(solved)
+            if on_done:
+                on_done(tiles[i], row)
+        self.seconds["solve"] = time.perf_counter() - start
+
+    def tile(self, tile: int, triangles: np.ndarray):
+        """tiled_limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
+        corners' fitted heights and gradients, from the files of the tiles whose cells
+        hold them, and the directions of their edges (tile_solve's)."""
+        fitted = self._fitted_near(tile)
+        rows, local = corner_rows(fitted["index"], triangles)
+        if np.any(rows < 0):
+            raise RuntimeError(f"tile {tile}: a corner of its triangles has no fitted data")
+        records = fitted[rows]
+        directions = None if self.overshoot == "off" else np.load(self.paths[tile][1])
+        gradients = np.column_stack([records["gx"], records["gy"]])
+        return TileLimits(records, local, gradients, directions, 0, 0, 0)
+
+    def _fitted_near(self, tile: int) -> np.ndarray:
+        """The fitted vertices of every tile whose cell meets tile's cell grown by its reach,
+        ascending survey numbers."""
+        parts = [np.fromfile(self.paths[t][0], dtype=VERTEX)
+                 for t in self.halos.heights.touching(self.grid.grown(tile, self.reach)) if t in self.paths]
+        fitted = np.concatenate(parts) if parts else np.empty(0, VERTEX)
+        return fitted[np.argsort(fitted["index"], kind="stable")]
+
+    def report(self) -> dict:
+        """The overshoot section: only edge directions apply to a smoothing fit."""
+        return {"gradients_limited": 0, "directions_changed": sum(s.turned for s in self.solves),
+                "heights_reconciled": 0}
+
+    def smoothing(self) -> dict:
+        """The report's "smoothing" section: the stage's reduce of the tiles' solves
+        (smoothing.combined_fit, in any order: they arrive in completion order on a pool or
+        on Dask), with the search tile's CV curve, plus the spacing and the tiled solve's
+        halo and search tile."""
+        seconds = dict(self.seconds)
+        if self.search is not None:
+            seconds.update({f"search_{k}": v for k, v in self.search.seconds.items()})
+        strength, spacing = float(self.run.control.strength), self.run.spacing
+        return {**combined_fit(self.solves, self.run, self.search, seconds).as_dict(), "spacing": spacing,
+                "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing),
+                          "search_tile": self.search_tile}}
+
+
+def _search_tile(heights, triangle_files) -> int:
+    """The tile the strength search runs on: the one holding the most points, of those
+    owning triangles (the lowest number among equals)."""
+    candidates = [t for t, path in enumerate(triangle_files) if path is not None]
+    return max(candidates, key=lambda t: (int(heights.counts[t]), -t))
+
+
+def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
+    """smoothing.smooth_tile on tile's halo; writes its own vertices' fitted data (core.tile
+    VERTEX records, fitted z, gx, gy) and its own triangles' edge directions (.npy, as
+    smooth_tile orders them). Returns the TileSolve and the task's report row (tiles.task_row)."""
+    start = time.perf_counter()
+    halo = smoother.halos.halo(tile)
+    smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]))
+    records = halo.records[halo.own]
+    records["z"] = smoothed.values
+    records["gx"], records["gy"] = smoothed.gradients[:, 0], smoothed.gradients[:, 1]
+    records.tofile(smoother.paths[tile][0])
+    if smoothed.directions is not None:
+        _save(smoother.paths[tile][1], smoothed.directions)
+    return smoothed.solve, task_row(len(halo.records), start)
+
+
+def _save(path, array: np.ndarray) -> None:
+    """np.save to exactly path (np.save given a name would append .npy)."""
+    with open(path, "wb") as file:
+        np.save(file, array)
