@@ -68,22 +68,21 @@ def midpoint_refine(points: np.ndarray, triangles: np.ndarray):
 
 
 def run(name: str, seed: int, configs: list[str]) -> None:
-    import c1mesh.pipeline.steps as steps
     import c1mesh.stages.smoothing as sm
     from c1mesh.engine.interpolator import RSDInterpolator
 
     data = H.synthetic() if name == "synth" else H.lidar_ground(H.SAMPLES / name, name)
     test = H.held_out(len(data.points), seed)
     train, held = data.points[~test], data.points[test]
-    captured, shipped = {}, steps.smooth_fit
+    captured, shipped = {}, sm.smooth_fit
 
     def capture(points, triangles, data, *args, **kw):
         captured.update(p=np.array(points), t=np.array(triangles), z=np.array(data.values), h=data.spacing)
         return shipped(points, triangles, data, *args, **kw)
 
-    steps.smooth_fit = capture
+    sm.smooth_fit = capture
     model = H.c1mesh_model(train, smooth=0.03)      # only for its frame and trimmed triangulation
-    steps.smooth_fit = shipped
+    sm.smooth_fit = shipped
     local = model.frame.to_local(held)
     q, z = local[:, :2], local[:, 2]
     rbf, note = H.rbf_tps(model.frame.to_local(train), q, np.random.default_rng(1000 + seed))

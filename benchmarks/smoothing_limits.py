@@ -47,12 +47,12 @@ class Split:
     """One seed's split of a dataset, the shipped auto model's frame and the RBF peer."""
 
     def __init__(self, data: "H.Dataset", seed: int, **options):
-        import c1mesh.pipeline.steps as steps
+        import c1mesh.stages.smoothing as sm
 
         self.data, self.seed = data, seed
         test = H.held_out(len(data.points), seed)
         self.train, held = data.points[~test], data.points[test]
-        captured, shipped = {}, steps.smooth_fit
+        captured, shipped = {}, sm.smooth_fit
 
         def capture(points, triangles, data, control, **kw):
             fit = shipped(points, triangles, data, control, **kw)
@@ -61,11 +61,11 @@ class Split:
                             control=control)
             return fit
 
-        steps.smooth_fit = capture
+        sm.smooth_fit = capture
         try:
             self.model = H.c1mesh_model(self.train, smooth="auto", **options)
         finally:
-            steps.smooth_fit = shipped
+            sm.smooth_fit = shipped
         self.captured = captured
         self.frame = self.model.frame
         local = self.frame.to_local(held)

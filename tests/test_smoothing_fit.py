@@ -150,8 +150,9 @@ def test_file_normals_enter_the_smoothing_fit_as_gradient_data():
     true heights and slopes than the heights alone, at the same strength."""
     from c1mesh.engine.topology import edge_table
     from c1mesh.engine.triangulation import delaunay
+    from c1mesh.core.tile import Tile
     from c1mesh.pipeline.steps import compact_vertices, smoothed_interpolator
-    from c1mesh.stages.smoothing import FILE_NORMALS_WEIGHT, GradientPrior, SmoothingControl, SmoothingData
+    from c1mesh.stages.smoothing import FILE_NORMALS_WEIGHT, SmoothingControl, SmoothingRun
     from c1mesh.stages.trim import trim_mesh
 
     rng = np.random.default_rng(4)
@@ -165,9 +166,10 @@ def test_file_normals_enter_the_smoothing_fit_as_gradient_data():
     z = truth + rng.normal(0, 0.02, len(xy))
     errors = {}
     for label, gradients in (("heights", None), ("normals", slope)):
-        prior = None if gradients is None else GradientPrior(gradients, FILE_NORMALS_WEIGHT)
-        interp, _, fitted = smoothed_interpolator(xy, triangles, SmoothingData(z, 0.77), SmoothingControl(1.0, "sextic"),
-                                                  "limit", prior, table=edge_table(triangles, len(xy)))
+        weight = 0.0 if gradients is None else FILE_NORMALS_WEIGHT
+        tile = Tile.whole(xy, z, np.zeros_like(xy) if gradients is None else gradients, triangles)
+        interp, _, fitted = smoothed_interpolator(tile, SmoothingRun(SmoothingControl(1.0, "sextic"), 0.77, "limit", weight),
+                                                  table=edge_table(triangles, len(xy)))
         assert fitted.gradient_weight == (0.0 if gradients is None else FILE_NORMALS_WEIGHT)
         errors[label] = (np.sqrt(np.mean((fitted.values - truth) ** 2)),
                          np.sqrt(np.mean(np.sum((fitted.gradients - slope) ** 2, axis=1))))

@@ -20,6 +20,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
+from c1mesh.core.tile import Tile
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
@@ -62,7 +63,7 @@ from c1mesh.stages.height_gradients import height_gradients, height_neighbours, 
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.perspective import frame_kind
-from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, gradient_data_weight
+from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
 from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh, used_points
@@ -459,24 +460,19 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     fitted over the holes' long triangles, the smoothing spline dug pits of up to 9.7 ft
     into autzen_trim's ground beside a bank (0.36 ft so)."""
     hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
-    control = SmoothingControl(strength, scheme)
+    run = SmoothingRun(SmoothingControl(strength, scheme), hf.spacing, options.overshoot, weight)
+    # the heights fitted: the tile's vertices', or with --spacing every point's
+    data = None if mesh.vertices is None else SmoothingData(hf.z, hf.spacing, hf.xy)
 
-    def data(vertices):                     # the heights fitted: the vertices', or every point's (--spacing)
-        if mesh.vertices is None:
-            return SmoothingData(hf.z[vertices], hf.spacing)
-        return SmoothingData(hf.z, hf.spacing, hf.xy)
-
-    def prior(vertices):
-        return GradientPrior(hf.gradients[vertices], weight) if weight else None
+    def tile(vertices, triangles):          # the in-memory fit's one tile (core.tile)
+        return Tile.whole(hf.xy[vertices], hf.z[vertices], hf.gradients[vertices], triangles)
     if span is None:
-        return smoothed_interpolator(hf.xy[used], mesh.triangles, data(used), control, options.overshoot,
-                                     prior(used), table=mesh.table)
+        return smoothed_interpolator(tile(used, mesh.triangles), run, data, mesh.table)
     points = hf.xy if mesh.vertices is None else hf.xy[mesh.vertices]
     local, inner = compact_vertices(points, span.trim_only.triangles)
     inner_used = local if mesh.vertices is None else mesh.vertices[local]
-    fitted, overshoot, smoothing = smoothed_interpolator(hf.xy[inner_used], inner, data(inner_used), control,
-                                                         options.overshoot, prior(inner_used),
-                                                         table=span.trim_only.edge_table(local))
+    fitted, overshoot, smoothing = smoothed_interpolator(tile(inner_used, inner), run, data,
+                                                         span.trim_only.edge_table(local))
     at = np.searchsorted(used, inner_used)              # the trimmed mesh's vertices are the filled one's
     values, gradients = hf.z[used].copy(), hf.gradients[used].copy()
     values[at], gradients[at] = fitted.values, fitted.gradients

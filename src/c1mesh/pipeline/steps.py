@@ -17,12 +17,13 @@ from scipy.spatial import ConvexHull
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
 from c1mesh.core.threads import blas_threads, parallel_blocks
+from c1mesh.core.tile import Tile
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.topology import edge_table
 from c1mesh.formats import check_mesh_size, write_mesh
 from c1mesh.pipeline import _steps as kernel
-from c1mesh.stages.limiter import LimiterReport, control_overshoot, edge_directions
-from c1mesh.stages.smoothing import GradientPrior, SmoothingControl, SmoothingData, smooth_fit
+from c1mesh.stages.limiter import LimiterReport, control_overshoot
+from c1mesh.stages.smoothing import SmoothingData, SmoothingRun, smooth_tile
 from c1mesh.stages.surface import surface_stream
 
 
@@ -99,28 +100,25 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
     return interp, report
 
 
-def smoothed_interpolator(points, triangles, data: SmoothingData, control: SmoothingControl, overshoot: str,
-                          prior: GradientPrior | None = None, table=None) -> tuple[RSDInterpolator, Any, Any]:
-    """The RSDInterpolator of the smoothing fit (c1mesh.stages.smoothing.smooth_fit) of a
-    height field, its limiter report and the SmoothFit.
+def smoothed_interpolator(tile: Tile, run: SmoothingRun, data: SmoothingData | None = None,
+                          table=None) -> tuple[RSDInterpolator, Any, Any]:
+    """The RSDInterpolator of the smoothing fit of a height field, its limiter report and
+    the SmoothFit: the smoothing stage's run (c1mesh.stages.smoothing.smooth_tile) on the
+    in-memory fit's one tile, as a survey fitted in tiles runs it on each of its tiles.
 
-    points (n, 2) vertices, triangles (T, 3); data: the heights fitted (at the vertices,
-    or with xy every point's: --spacing); control: its strength and scheme; prior: the
-    vertices' gradients fitted as data (the file's normals' at
-    smoothing.FILE_NORMALS_WEIGHT, or the heights' own least-squares gradients at
-    smoothing.HEIGHT_GRADIENTS_WEIGHT: `gradient_data_weight`), None: the heights alone.
-    The fit's gradients agree with its heights by construction, so of the overshoot
-    remedies only the edge directions apply (overshoot "limit"): they are chosen from the
-    geometry before the fit, which is then the spline of those directions. table: the
-    triangles' topology.edge_table when built already (the trim's), else built here.
+    tile: core.tile.Tile.whole of the vertices (n, 2), their heights and gradients and
+    the triangles (T, 3) over them, every vertex a corner; run: the stage's SmoothingRun
+    (strength, scheme, spacing, overshoot: of its remedies only the edge directions apply,
+    and the weight of the vertices' gradients as data, smoothing.gradient_data_weight);
+    data: None, the vertices' heights, else what the in-memory fit alone may fit
+    (--spacing: every point's height at its position). table: the triangles'
+    topology.edge_table when built already (the trim's), else built here.
     """
-    table = edge_table(triangles, points.shape[0]) if table is None else table
-    directions, changed = (None, None) if overshoot == "off" else edge_directions(points, triangles, table)
-    fitted = smooth_fit(points, triangles, data, control, directions=directions, prior=prior)
-    interp = RSDInterpolator(points, fitted.values, fitted.gradients, triangles=triangles, scheme=control.scheme,
-                             directions=directions, edge_table=table)
-    turned = 0 if changed is None else int(changed.sum())
-    return interp, LimiterReport(directions_changed=turned), fitted
+    table = edge_table(tile.triangles, len(tile.records)) if table is None else table
+    smoothed = smooth_tile(tile, run, table=table, data=data)
+    interp = RSDInterpolator(tile.points, smoothed.values, smoothed.gradients, triangles=tile.triangles,
+                             scheme=run.control.scheme, directions=smoothed.directions, edge_table=table)
+    return interp, LimiterReport(directions_changed=smoothed.solve.turned), smoothed.fit
 
 
 @dataclass(frozen=True)
