@@ -213,7 +213,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
             limiter = None
             if strength is not None:
-                fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength), spacing, surface.overshoot,
+                fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
                                                   gradient_data_weight("estimated", gradient_source)), longest)
                 limiter = TiledSmoother(mesh, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
