@@ -41,7 +41,7 @@ from c1mesh.stages.smoothing_system import available_solvers
 from c1mesh.core.tile import corner_rows
 from c1mesh.engine.topology import own_triangles_in
 from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache
-from c1mesh.survey.tiled_limiter import TileLimits
+from c1mesh.stages.limiter import TileLimits
 from c1mesh.survey.tiles import task_row
 
 HALO_LENGTHS = 28.0
@@ -142,7 +142,7 @@ class TiledSmoother:
         self.seconds["solve"] = time.perf_counter() - start
 
     def tile(self, tile: int, triangles: np.ndarray):
-        """tiled_limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
+        """limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
         corners' fitted heights and gradients, from the files of the tiles whose cells
         hold them, and the directions of their edges (tile_solve's)."""
         fitted = self._fitted_near(tile)
