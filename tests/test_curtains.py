@@ -148,10 +148,9 @@ def test_a_trimmed_mesh_gives_what_the_triangle_array_gives():
     tri, report = trim(xy, delaunay(xy))
     mesh, mesh_report = trim_mesh(xy, delaunay(xy))
     assert np.array_equal(mesh.triangles, tri) and mesh_report == report
-    assert noise_floor(xy, z, gradients, tri, edges=mesh.edges()) == noise_floor(xy, z, gradients, tri)
     from c1mesh.stages.curtains import _curtain_masks, _live_noise_floor, point_rows
     rows = point_rows(xy, z, gradients)
-    floor = _live_noise_floor(rows, mesh)
+    floor = _live_noise_floor(xy, z, gradients, mesh)
     assert floor == noise_floor(xy, z, gradients, tri)
     over_kept = _curtain_masks(rows, tri, 60.0, 60.0, floor, True)   # wide angles: rules fire
     over_source = _curtain_masks(rows, mesh.source, 60.0, 60.0, floor, True, alive=mesh.alive)
@@ -257,7 +256,6 @@ def test_the_noise_floor_is_the_median_residual_of_a_loop_over_the_edges_at_any_
     for threads in (1, 3):
         with limit(threads):
             assert noise_floor(xy, z, g, triangles) == float(np.median(loop))
-            assert noise_floor(xy, z, g, triangles, edges=np.array(edges)) == float(np.median(loop))
             masks[threads] = curtain_triangles(xy, z, g, triangles, floor=0.01)
     for reason in REASONS:
         np.testing.assert_array_equal(masks[1][reason], masks[3][reason])

@@ -314,11 +314,14 @@ def test_a_surface_in_many_pieces_draws_a_warning():
 
 
 def test_given_noise_floors_and_edge_table_reproduce_the_measured_ones():
-    """A tile of a survey passes the survey's noise floors and a prebuilt edge table; given
-    the floors this data set itself measures (independently: the medians of the trapezoid
-    residuals of the input, and after the heights and gradients are reconciled), the result
-    is the same; floors ten times larger tolerate more and limit fewer vertices."""
-    from c1mesh.stages.limiter import SurveyShare, reconcile_heights, trapezoid_residuals
+    """A tile of a survey is limited with the survey's noise floors (limiter.tile_limits);
+    on the in-memory fit's one tile, given the floors this data set itself measures
+    (independently: the medians of the trapezoid residuals of the input, and after the
+    heights and gradients are reconciled), the result is the in-memory one, and so is the
+    one of a prebuilt edge table; floors ten times larger tolerate more and limit fewer
+    vertices."""
+    from c1mesh.core.tile import Tile
+    from c1mesh.stages.limiter import NoiseFloors, reconcile_heights, tile_limits, trapezoid_residuals
     xy, z, g, tri = height_data(GROUND["4_6_crop"][0])
     table = edge_table(tri, xy.shape[0])
     before = float(np.median(np.abs(trapezoid_residuals(xy, z, g, table.edges))))
@@ -326,11 +329,20 @@ def test_given_noise_floors_and_edge_table_reproduce_the_measured_ones():
     reconciled, _ = reconcile_gradients(xy, heights, g, table.edges, noise_floor=before)
     after = float(np.median(np.abs(trapezoid_residuals(xy, heights, reconciled, table.edges))))
     measured = control_overshoot(xy, z, g, tri)
-    given = control_overshoot(xy, z, g, tri, table=table, share=SurveyShare((before, after)))
+    given = control_overshoot(xy, z, g, tri, table=table)
     for ours, theirs in zip(given[:3], measured[:3]):
         np.testing.assert_array_equal(ours, theirs)
-    looser = control_overshoot(xy, z, g, tri, share=SurveyShare((10 * before, 10 * after)))
-    assert 0 < looser[3].gradients_limited < measured[3].gradients_limited
+    tile = tile_limits(Tile.whole(xy, z, g, tri), tri, NoiseFloors(before, after))
+    corners = tile.records["index"]
+    np.testing.assert_array_equal(corners[tile.triangles], tri)
+    np.testing.assert_array_equal(tile.records["z"], measured[0][corners])
+    np.testing.assert_array_equal(tile.gradients, measured[1][corners])
+    np.testing.assert_array_equal(tile.directions, measured[2])       # every edge, in the table's order
+    assert (tile.limited, tile.turned, tile.lifted) == (measured[3].gradients_limited,
+                                                       measured[3].directions_changed,
+                                                       measured[3].heights_reconciled)
+    looser = tile_limits(Tile.whole(xy, z, g, tri), tri, NoiseFloors(10 * before, 10 * after))
+    assert 0 < looser.limited < measured[3].gradients_limited
     plain = RSDInterpolator(xy, given[0], given[1], triangles=tri, directions=given[2])
     shared = RSDInterpolator(xy, given[0], given[1], triangles=tri, directions=given[2], edge_table=table)
     np.testing.assert_array_equal(shared.coefficients, plain.coefficients)

@@ -31,16 +31,15 @@ from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_neighbours, height_normals
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.stages.limiter import control_overshoot
+from c1mesh.stages.limiter import control_overshoot, tile_limits
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.surface import surface_stream
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.core.plan import TiledRun
 from c1mesh.pipeline.survey_fit import fit_in_tiles
-from c1mesh.survey.tiled_halo import drop_triangles, halo_reach, read_halo
+from c1mesh.survey.tiled_halo import drop_triangles, halo_reach, noise_floors, read_halo
 from c1mesh.survey.tiled_heights import HEIGHT
-from c1mesh.survey.tiled_limiter import noise_floors, tile_limits
 from c1mesh.survey.tiled_plan import fits_in_memory, points_per_tile
 from c1mesh.survey.tiled_trim import peeled
 from c1mesh.engine.topology import edge_table
@@ -200,6 +199,19 @@ class _Temps:
         return self.directory / name
 
 
+class _Halos:
+    """Every tile's halo, read from the spills when asked (HaloCache's tiles and halo)."""
+
+    def __init__(self, spill, files, grid, reach):
+        self.spill, self.files, self.grid, self.reach = spill, files, grid, reach
+
+    def tiles(self):
+        return list(range(len(self.grid)))
+
+    def halo(self, tile):
+        return read_halo(self.spill, self.files, self.grid, tile, self.reach)
+
+
 def _tiled_limiter(xy, z, gradients, triangles, side, directory):
     """The tiled limiter on a height field held in memory, cut into side x side tiles:
     (noise floors, per tile its TileLimits and its own triangles)."""
@@ -220,8 +232,7 @@ def _tiled_limiter(xy, z, gradients, triangles, side, directory):
         np.save(files[-1], triangles[owner == t])
     longest = max(np.hypot(*(xy[triangles[:, i]] - xy[triangles[:, (i + 1) % 3]]).T).max() for i in range(3))
     reach = halo_reach(longest)
-    floors = noise_floors(lambda: (read_halo(spill, files, grid, t, reach) for t in range(len(grid))),
-                          _Temps(directory))
+    floors = noise_floors(_Halos(spill, files, grid, reach), _Temps(directory))
     tiles = [(tile_limits(read_halo(spill, files, grid, t, reach), triangles[owner == t], floors),
               triangles[owner == t]) for t in range(len(grid)) if (owner == t).any()]
     spill.close()

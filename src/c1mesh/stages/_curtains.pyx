@@ -4,7 +4,7 @@ nothing else imports them. Element by element, in the order of operations the wr
 docstrings give (no contraction into fused multiply-adds: the build's -ffp-contract=off),
 over a range [start, stop) without the GIL: the wrapper runs fixed blocks in its threads,
 each output element is written by one block, so the bytes do not depend on the thread count.
-The points come as rows p (n, 5) = (x, y, z, gx, gy): the triangles and edges of a Delaunay
+The points come as rows p (n, 5) = (x, y, z, gx, gy): the triangles of a Delaunay
 triangulation reach their points in no order, and a row is one cache line where five
 columns are five."""
 from libc.math cimport isnan, NAN
@@ -16,23 +16,6 @@ cdef inline double _maximum(double a, double b) noexcept nogil:
     if isnan(a) or isnan(b):
         return NAN
     return a if a >= b else b
-
-
-def residuals(const double[:, ::1] p, const int64_t[:] a, const int64_t[:] b, double[::1] out,
-              Py_ssize_t start, Py_ssize_t stop):
-    """out (E,): the trapezoid residual of each edge a→b (E,), in height units:
-    (z_b − z_a) − ½ (g_a·d + g_b·d) with d = xy_b − xy_a and g·d = gx·dx + gy·dy, for the
-    edges start <= e < stop."""
-    cdef Py_ssize_t e
-    cdef int64_t i, j
-    cdef double dx, dy
-    with nogil:
-        for e in range(start, stop):
-            i = a[e]
-            j = b[e]
-            dx = p[j, 0] - p[i, 0]
-            dy = p[j, 1] - p[i, 1]
-            out[e] = (p[j, 2] - p[i, 2]) - 0.5 * ((p[i, 3] * dx + p[i, 4] * dy) + (p[j, 3] * dx + p[j, 4] * dy))
 
 
 def curtain_masks(const double[:, ::1] p, const int64_t[:, ::1] tri, const uint8_t[::1] alive,

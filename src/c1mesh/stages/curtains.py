@@ -51,9 +51,10 @@ from dataclasses import replace
 import numpy as np
 
 from c1mesh.core.threads import parallel_blocks
-from c1mesh.engine.topology import sort_keys
+from c1mesh.core.tile import Tile
 from c1mesh.stages import _curtains as kernel
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
+from c1mesh.stages.limiter import floor_summary, reduce_floor, residual_sizes, trapezoid_residuals
 from c1mesh.stages.trim import TrimmedMesh, retrim, used_points
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
@@ -61,7 +62,7 @@ REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 VIEW_REASONS = ("shadow_edge", "grazing", "facing_away")
 """The rules that take the height axis as a view ray (skipped on aerial ground)."""
 KERNEL_BLOCK = 1 << 14
-"""Triangles or edges per block of the kernels (stages/_curtains.pyx), run in the thread
+"""Triangles per block of the kernels (stages/_curtains.pyx), run in the thread
 knob's threads (core.threads.parallel_blocks; Python threads, not OpenMP, whose thread pool
 does not survive a fork: a forked --jobs worker would hang in it)."""
 GROUND_CLASSES = (2, 8, 9, 11)
@@ -93,10 +94,9 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     (stages/_curtains.pyx) over blocks of KERNEL_BLOCK triangles in the thread knob's threads.
     view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
-    rows = point_rows(xy, z, gradients)
     if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
-        floor = _noise_floor(rows, triangles)
-    return _curtain_masks(rows, triangles, shadow_angle, grazing_angle, floor, view_rules)
+        floor = noise_floor(xy, z, gradients, triangles)
+    return _curtain_masks(point_rows(xy, z, gradients), triangles, shadow_angle, grazing_angle, floor, view_rules)
 
 
 def _curtain_masks(rows: np.ndarray, triangles: np.ndarray, shadow_angle: float, grazing_angle: float,
@@ -132,68 +132,27 @@ def point_rows(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray) -> np.ndarr
     return rows
 
 
-def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
-                edges: np.ndarray | None = None) -> float:
+def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray) -> float:
     """Median |trapezoid residual| (height units) over every edge of the triangles, each
     edge once: the height noise the data's gradients cannot explain
     (c1mesh.stages.limiter.trapezoid_residuals; O(h³) for exact smooth data).
 
-    Exact and independent of the triangles' order, so a survey fitted in tiles finds the
-    same floor by a streamed median of its tiles' edges (c1mesh.survey.tiled_fit); edges run
-    from the lower point number to the higher, as the limiter's edge table has them.
-    edges: the triangles' unique edges (E, 2), lower point first, sorted, when known
-    (trim.TrimmedMesh.edges): then no sort is needed.
+    The limiter's first noise floor: its floor_summary of the in-memory fit's one tile
+    and reduce_floor, so a survey fitted in tiles finds the same floor from its tiles'
+    summaries (c1mesh.survey.tiled_halo.edge_floor). A TrimmedMesh's floor takes its
+    edge table's kept edges instead (`_live_noise_floor`: the same values).
     """
-    return _noise_floor(point_rows(xy, z, gradients), triangles, edges)
+    sizes = floor_summary(Tile.whole(xy, z, gradients, triangles))
+    return reduce_floor(lambda: (sizes,))
 
 
-def _noise_floor(rows: np.ndarray, triangles: np.ndarray, edges: np.ndarray | None = None) -> float:
-    """noise_floor over the point rows (n, 5) (`point_rows`)."""
-    if triangles.shape[0] == 0:
-        return 0.0
-    if edges is not None:
-        return _median_size(_residuals(rows, edges[:, 0], edges[:, 1]))
-    n = np.int64(rows.shape[0])
-    tri = triangles.astype(np.int64, copy=False)
-    keys = np.concatenate([np.minimum(tri[:, a], tri[:, b]) * n + np.maximum(tri[:, a], tri[:, b])
-                           for a, b in ((0, 1), (1, 2), (2, 0))])
-    _, keys = sort_keys(keys, int(n) * int(n))
-    first = np.ones(keys.size, dtype=bool)
-    np.not_equal(keys[1:], keys[:-1], out=first[1:])
-    keys = keys[first]
-    return _median_size(_residuals(rows, keys // n, keys % n))
-
-
-def _median_size(values: np.ndarray) -> float:
-    """Median |values| of a temporary array, selected in place (np.median copies its input
-    otherwise; the selection, hence the value, is the same)."""
-    np.abs(values, out=values)
-    return float(np.median(values, overwrite_input=True))
-
-
-def _live_noise_floor(rows: np.ndarray, mesh: TrimmedMesh) -> float:
-    """noise_floor of a TrimmedMesh's kept triangles over the point rows (n, 5): the
-    residuals of every edge of its edge table, then those of the kept edges (the same
-    values in the same order as over mesh.edges(), without copying the (E, 2) edges)."""
-    live = mesh.live_edge_mask()
-    if not live.any():
-        return 0.0
+def _live_noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh: TrimmedMesh) -> float:
+    """noise_floor of a TrimmedMesh's kept triangles: the residuals of every edge of its
+    edge table, the kept edges' counted (limiter.residual_sizes; without copying the
+    (E, 2) edges or building the kept triangles' table)."""
     edges = mesh.table.edges
-    return _median_size(np.compress(live, _residuals(rows, edges[:, 0], edges[:, 1])))
-
-
-def _residuals(rows: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """limiter.trapezoid_residuals of the edges a→b (E,) over the point rows (n, 5), bit
-    for bit: (z_b − z_a) − ½ (g_a·d + g_b·d), d = xy_b − xy_a, in height units. The kernel
-    over blocks of KERNEL_BLOCK edges in the thread knob's threads (stages/_curtains.pyx);
-    a and b may be columns of an (E, 2) array (no copies)."""
-    a, b = (end if end.dtype == np.int64 else end.astype(np.int64) for end in (a, b))
-    for end in (a, b):
-        _check_indices(end, rows.shape[0])
-    out = np.empty(len(a))
-    parallel_blocks(lambda part: kernel.residuals(rows, a, b, out, part.start, part.stop),
-                    len(a), KERNEL_BLOCK)
-    return out
+    return reduce_floor(lambda: (residual_sizes(trapezoid_residuals(xy, z, gradients, edges),
+                                                mesh.live_edge_mask()),))
 
 
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles,
@@ -210,11 +169,11 @@ def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triang
     mesh = triangles if isinstance(triangles, TrimmedMesh) else None
     rows = point_rows(xy, z, gradients)
     if mesh is None:
-        masks = _curtain_masks(rows, triangles, SHADOW_ANGLE, GRAZING_ANGLE, _noise_floor(rows, triangles),
-                               view_rules)
+        masks = _curtain_masks(rows, triangles, SHADOW_ANGLE, GRAZING_ANGLE,
+                               noise_floor(xy, z, gradients, triangles), view_rules)
     else:              # over the trimmed triangulation, its removed triangles skipped: no copies
-        masks = _curtain_masks(rows, mesh.source, SHADOW_ANGLE, GRAZING_ANGLE, _live_noise_floor(rows, mesh),
-                               view_rules, alive=mesh.alive)
+        masks = _curtain_masks(rows, mesh.source, SHADOW_ANGLE, GRAZING_ANGLE,
+                               _live_noise_floor(xy, z, gradients, mesh), view_rules, alive=mesh.alive)
     curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
     removed = dict(trim_report.removed)
     removed.update({reason: int(masks[reason].sum()) for reason in REASONS})

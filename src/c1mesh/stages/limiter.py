@@ -21,6 +21,13 @@ Both change nothing on well-behaved data: the limiter only acts on edges whose d
 the trapezoid test (below), which exact data of any quadratic passes and smooth data
 passes up to O(h³); the directions change only edges whose unit-normal ratio exceeds
 `RATIO_LIMIT`.
+
+As a stage of tiles (core.tile.Tile): the noise floors are survey-wide, a summary per tile
+(`floor_summary`: the |trapezoid residuals| of the edges the tile owns) and one reduce
+(`reduce_floor`: their exact median), once with the input data and once with the data
+reconciled with the first floor (`NoiseFloors`); the run on a tile is `tile_limits`. The
+in-memory fit is one tile (`control_overshoot`), whose floors are the same summary over
+every edge, reduced; c1mesh.survey schedules the tiles.
 """
 from __future__ import annotations
 
@@ -31,8 +38,10 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap, parallel_blocks
 from c1mesh.core.threads import workers as thread_count
+from c1mesh.core.tile import Tile
+from c1mesh.engine.topology import EdgeTable, edge_table, own_triangles_in
 from c1mesh.stages import _limiter as kernel
-from c1mesh.engine.topology import EdgeTable, edge_table
+from c1mesh.stages.streamed_median import Chunks, streamed_median
 
 OVERSHOOT_MODES = ("limit", "off")
 
@@ -85,22 +94,80 @@ class LimiterReport:
 
 
 @dataclass(frozen=True)
-class SurveyShare:
-    """What a tile of a survey brings to `control_overshoot` (c1mesh.survey.tiled_limiter):
-    noise_floors, the survey's median |trapezoid residual| (height units) of the input data
-    and after both reconciliations, measured over every edge of the survey, not the tile's;
-    counted, (n,) bool over the tile's vertices, those whose changes the tile reports (an
-    edge by its lower-numbered end), so that the tiles' counts add up to the survey's
-    (None: all)."""
+class NoiseFloors:
+    """The survey's median |trapezoid residual| (height units) over every edge of its final
+    triangles, with the input heights and gradients (first: reconcile_heights,
+    reconcile_gradients) and with both reconciled with the first (second: limit_gradients)."""
 
-    noise_floors: tuple[float, float]
-    counted: np.ndarray | None = None
+    first: float
+    second: float
+
+
+@dataclass
+class TileLimits:
+    """The limiter's result for the corners of one tile's triangles: records (c,) the
+    corners (ascending survey numbers; their z reconciled), triangles (k, 3) into them,
+    gradients (c, 2) limited, directions (E, 2) in the order of
+    topology.edge_table(triangles, c).edges; limited: own vertices whose gradient changed,
+    turned: own edges whose direction is not the unit normal, lifted: own vertices whose
+    height moved (own: in the tile's cell; lower end, for an edge)."""
+
+    records: np.ndarray
+    triangles: np.ndarray
+    gradients: np.ndarray
+    directions: np.ndarray
+    limited: int
+    turned: int
+    lifted: int = 0
+
+
+def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
+    """The noise floors' summary of one tile: (e,) |trapezoid residual| (height units) of
+    the tile's own edges, those of its triangles whose lower-numbered end it owns (each
+    edge of a survey in exactly one tile; every edge, for the in-memory fit's one tile).
+    With the tile's heights and gradients (first None: the first floor, and the curtains'
+    floor, c1mesh.stages.curtains), or with both reconciled with the survey's first floor
+    (the second floor). The halo must hold the star of every vertex within 3 longest
+    edges of the cell, so that the reconciled data of the own edges' ends are the whole
+    survey's (c1mesh.survey.tiled_halo). `reduce_floor` of every tile's summary is the
+    floor."""
+    table = edge_table(tile.triangles, len(tile.records))
+    counted = tile.own[table.edges[:, 0]]
+    if first is None:
+        return residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, table.edges), counted)
+    geometry = EdgeGeometry.of(tile.points, tile.values, table.edges)
+    reconciled, _ = _reconciled(tile.values, tile.gradients, geometry, table, True, first)
+    return residual_sizes(reconciled.residuals(), counted)
+
+
+def residual_sizes(residuals: np.ndarray, counted: np.ndarray | None = None) -> np.ndarray:
+    """(e,) |residuals| of the edges counted (E,) bool marks (None: all), a new array: the
+    values a noise floor is the median of (`floor_summary`)."""
+    return np.abs(residuals if counted is None else np.compress(counted, residuals))
+
+
+def reduce_floor(summaries: Chunks) -> float:
+    """The noise floor: the exact median of the summaries' values (`floor_summary` or
+    `residual_sizes` arrays; summaries() a fresh iterator of them, as
+    c1mesh.stages.streamed_median takes them). One summary (the in-memory fit's one tile)
+    is selected in place by np.median (it is consumed; 0 when empty); several by
+    streamed_median, which gives np.median's bits. So a survey cut into any tiles has the
+    one tile's floor."""
+    parts = iter(summaries())
+    first = next(parts, None)
+    if first is not None and next(parts, None) is None:
+        return float(np.median(first, overwrite_input=True)) if first.size else 0.0
+    return streamed_median(summaries)
+
+
+def _measured_floor(residuals: np.ndarray) -> float:
+    """The noise floor of residuals (E,) over every edge: the one tile's summary, reduced."""
+    return reduce_floor(lambda: (residual_sizes(residuals),))
 
 
 def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
                       triangles: np.ndarray, mode: str = "limit", table: EdgeTable | None = None,
-                      heights: bool = True, share: SurveyShare | None = None
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
+                      heights: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, LimiterReport]:
     """Heights, gradients and edge directions for an RSDInterpolator on a (noisy) height field.
 
     points (n, 2), values (n,), gradients (n, 2), triangles (T, 3). mode "limit" applies
@@ -110,50 +177,122 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     already built (pass the same table to the RSDInterpolator so the edges are numbered
     once). heights=False skips `reconcile_heights`: its crease test compares a slope
     error with 1 (45°), which needs the plane's and the height's units to agree, as in a
-    height field and not in a depth chart (u, v, w). share: a tile's SurveyShare (the
-    survey's noise floors, the vertices it counts); None measures the floors over these
-    edges and counts every vertex. Returns (values, gradients, directions in the order
+    height field and not in a depth chart (u, v, w). The in-memory fit's one tile: its
+    noise floors are `floor_summary`'s values over every edge, reduced (`reduce_floor`),
+    taken from the remedies' own residuals; `tile_limits` is the same on a tile of a
+    survey with the survey's floors. Returns (values, gradients, directions in the order
     of table.edges or None, report).
     """
     if mode == "off":
         return values, gradients, None, LimiterReport()
     table = edge_table(triangles, points.shape[0]) if table is None else table
+    limits = _limits(points, values, gradients, triangles, table, heights, None)
+    return limits.values, limits.gradients, limits.directions, limits.report(table)
+
+
+def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
+    """The limiter's run on one tile of a survey: the reconciled heights, limited gradients
+    and edge directions of the tile's own triangles `owned` (k, 3) survey numbers, all
+    inside the tile, with the survey's noise floors; changes counted over the vertices
+    (and edges by their lower end) the tile owns, so the tiles' counts add up to the
+    survey's. The halo must hold the star of every vertex within 3 longest edges of the
+    cell (c1mesh.survey.tiled_halo): then the corners' results are the whole survey's."""
+    table = edge_table(tile.triangles, len(tile.records))
+    limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors)
+    report = limits.report(table, tile.own)
+    corners, triangles, at = own_triangles_in(tile, table, owned)
+    records = tile.records[corners]
+    records["z"] = limits.values[corners]
+    return TileLimits(records, triangles, limits.gradients[corners], limits.directions[at],
+                      report.gradients_limited, report.directions_changed, report.heights_reconciled)
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """The remedies over one tile: values (n,), gradients (n, 2), directions (E, 2); which
+    vertices' heights moved (lifted), gradients were reconciled (moved) or limited
+    (changed), (n,) bool each, and which edges turned (E,) bool."""
+
+    values: np.ndarray
+    gradients: np.ndarray
+    directions: np.ndarray
+    lifted: np.ndarray
+    moved: np.ndarray
+    changed: np.ndarray
+    turned: np.ndarray
+
+    def report(self, table: EdgeTable, counted: np.ndarray | None = None) -> LimiterReport:
+        """The changes of the vertices counted (n,) bool marks and of the edges whose lower
+        end it marks (None: all)."""
+        changed, moved, lifted, turned = self.changed, self.moved, self.lifted, self.turned
+        if counted is not None:
+            changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
+                                              turned & counted[table.edges[:, 0]])
+        return LimiterReport(int((changed | moved).sum()), int(turned.sum()), int(lifted.sum()))
+
+
+def _limits(points: np.ndarray, values: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
+            table: EdgeTable, heights: bool, floors: NoiseFloors | None) -> _Limits:
+    """`control_overshoot`'s remedies on a tile's arrays with its edge table; floors: the
+    survey's (None: the one tile's own, measured)."""
     geometry = EdgeGeometry.of(points, values, table.edges)
     # The directions need only the positions: they run in one thread beside the heights'
     # and gradients' remedies (core.threads.overlap; one after the other with one worker).
     (directions, turned), (values, limited, lifted, moved, changed) = overlap(
         lambda: _directions(points, triangles, table, (geometry.dx, geometry.dy), RATIO_LIMIT, threads=1),
-        lambda: _remedies(values, gradients, geometry, table, None if share is None else share.noise_floors,
-                          heights))
-    counted = None if share is None else share.counted
-    if counted is not None:
-        changed, moved, lifted, turned = (changed & counted, moved & counted, lifted & counted,
-                                          turned & counted[table.edges[:, 0]])
-    return values, limited, directions, LimiterReport(int((changed | moved).sum()), int(turned.sum()),
-                                                      int(lifted.sum()))
+        lambda: _remedies(values, gradients, geometry, table, floors, heights))
+    return _Limits(values, limited, directions, lifted, moved, changed, turned)
 
 
 def _remedies(values: np.ndarray, gradients: np.ndarray, geometry: "EdgeGeometry", table: EdgeTable,
-              noise_floors: tuple[float, float] | None, heights: bool) -> tuple[np.ndarray, ...]:
+              floors: NoiseFloors | None, heights: bool) -> tuple[np.ndarray, ...]:
     """`control_overshoot`'s heights and gradients: (values (n,), gradients (n, 2), and the
     (n,) bool vertices whose height moved, gradient was reconciled, gradient was limited)."""
-    before, after = noise_floors if noise_floors is not None else (None, None)
+    reconciled, first = _reconciled(values, gradients, geometry, table, heights,
+                                    None if floors is None else floors.first)
+    second = _measured_floor(reconciled.residuals()) if floors is None else floors.second
+    limited, changed = _limit(reconciled.gradients, reconciled.geometry, reconciled.predicted, SECANT_FACTOR,
+                              CONSISTENCY, NOISE_FACTOR, second)
+    return reconciled.values, limited, reconciled.lifted, reconciled.moved, changed
+
+
+@dataclass(frozen=True)
+class _Reconciled:
+    """A tile's data after `reconcile_heights` (when asked) and `reconcile_gradients`:
+    values (n,), gradients (n, 2), their geometry and predictions over the table's edges,
+    and which vertices' heights (lifted) and gradients (moved) changed, (n,) bool."""
+
+    values: np.ndarray
+    gradients: np.ndarray
+    geometry: "EdgeGeometry"
+    predicted: tuple[np.ndarray, np.ndarray]
+    lifted: np.ndarray
+    moved: np.ndarray
+
+    def residuals(self) -> np.ndarray:
+        """(E,) the trapezoid residuals of the reconciled data."""
+        return self.geometry.residuals(self.predicted)
+
+
+def _reconciled(values: np.ndarray, gradients: np.ndarray, geometry: "EdgeGeometry", table: EdgeTable,
+                heights: bool, first: float | None) -> tuple[_Reconciled, float]:
+    """values (n,) and gradients (n, 2) over geometry (the table's edges) reconciled with
+    the first noise floor (None: measured over these edges, the one tile's); returns them
+    and that floor."""
     predicted = geometry.predictions(gradients)             # heights do not change these
     residual = geometry.residuals(predicted)
-    if before is None:
-        before = _median_abs(residual)
+    if first is None:
+        first = _measured_floor(residual)
     lifted = np.zeros(values.shape[0], dtype=bool)
     if heights:
-        values, lifted = _reconcile_heights(values, geometry, residual, table, before)
+        values, lifted = _reconcile_heights(values, geometry, residual, table, first)
     if lifted.any():
         geometry = geometry.with_values(values)
-    reconciled, moved, near = _reconcile(gradients, geometry, predicted, before)
+    reconciled, moved, near = _reconcile(gradients, geometry, predicted, first)
     # Reconciliation changes the gradients of touched vertices only, so only the edges
     # that reach one ("near") predict anything new.
     predicted = geometry.predictions(reconciled, near, into=predicted)
-    limited, changed = _limit(reconciled, geometry, predicted, SECANT_FACTOR,
-                              CONSISTENCY, NOISE_FACTOR, after)
-    return values, limited, lifted, moved, changed
+    return _Reconciled(values, reconciled, geometry, predicted, lifted, moved), first
 
 
 def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -182,7 +321,7 @@ def reconcile_heights(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     geometry = EdgeGeometry.of(points, values, table.edges)
     residual = geometry.residuals(geometry.predictions(gradients))
     if noise_floor is None:
-        noise_floor = _median_abs(residual)
+        noise_floor = _measured_floor(residual)
     return _reconcile_heights(values, geometry, residual, table, noise_floor)
 
 
@@ -218,13 +357,6 @@ def _longest_adjacent_edge2(length2: np.ndarray, table: EdgeTable) -> np.ndarray
     kernel.longest_adjacent(np.ascontiguousarray(length2, dtype=np.float64),
                             np.ascontiguousarray(table.tri_edge, dtype=np.int64), out)
     return out
-
-
-def _median_abs(values: np.ndarray) -> float:
-    """median |values| (0 for none): the noise floor of trapezoid residuals (E,). The
-    selection runs in the |values| copy (overwrite_input: no second copy; a median depends
-    only on the values, not on their order)."""
-    return float(np.median(np.abs(values), overwrite_input=True)) if values.size else 0.0
 
 
 def _edge_blocks(work, count: int, threads: int | None = None) -> None:
@@ -351,7 +483,7 @@ def _inconsistent(geometry: EdgeGeometry, predicted: tuple[np.ndarray, np.ndarra
     kernel's test (stages/_limiter.pyx inconsistent) in blocks of edges."""
     pred_a, pred_b = predicted
     if noise_floor is None:
-        noise_floor = _median_abs(geometry.residuals(predicted))
+        noise_floor = _measured_floor(geometry.residuals(predicted))
     noise = noise_factor * noise_floor
     bad = np.empty(geometry.a.size, dtype=bool)
     rounding = 64 * np.finfo(float).eps

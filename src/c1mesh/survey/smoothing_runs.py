@@ -26,10 +26,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from c1mesh.core.tile import VERTEX, corner_rows
+from c1mesh.stages.limiter import TileLimits
 from c1mesh.stages.smoothing import (SmoothingRun, StrengthSearch, TileSolve, combined_fit, search_strength,
                                      smooth_tile, smoothing_reach)
 from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, halo_reach
-from c1mesh.survey.tiled_limiter import TileLimits
 from c1mesh.survey.tiles import task_row
 
 
@@ -84,7 +84,7 @@ class TiledSmoother:
         self.seconds["solve"] = time.perf_counter() - start
 
     def tile(self, tile: int, triangles: np.ndarray):
-        """tiled_limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
+        """limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
         corners' fitted heights and gradients, from the files of the tiles whose cells
         hold them, and the directions of their edges (tile_solve's)."""
         fitted = self._fitted_near(tile)

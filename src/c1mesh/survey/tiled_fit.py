@@ -3,7 +3,7 @@
     frame (stages.frame.frame_of_chunks), box → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
     survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.tiled_trim) → the limiter's two noise floors
-    (two passes: c1mesh.survey.tiled_limiter)
+    (two passes: c1mesh.survey.tiled_halo.noise_floors)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → a part file → the parts joined in tile order into one
     vertex file and one face file → one mesh file
@@ -15,7 +15,7 @@ spill, hull, the trim's peel and bow-tie rounds, the medians, the join) runs her
 Nothing of the output depends on where the tasks ran.
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.stages.frame.frame_of_chunks,
-tile_spill, tile_normals, buffered_delaunay, tiled_trim, tiled_limiter), so the surface
+tile_spill, tile_normals, buffered_delaunay, tiled_trim, tiled_halo), so the surface
 equals the in-memory fit of the same points with the same reduced options (below), to
 rounding; nothing depends on the grid. The trim and the limiter run the stage functions
 of c1mesh.stages.trim, .curtains and .limiter on each tile's halo; their module
@@ -34,7 +34,7 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.tiled_trim), so it
   is the same, not a reduction;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
-  tile by tile with the survey's noise floors (c1mesh.survey.tiled_limiter).
+  tile by tile with the survey's noise floors (limiter.tile_limits; tiled_halo.TiledLimiter).
 
 The rule for the one output: a base triangle belongs to the tile holding its
 lowest-numbered corner point (buffered_delaunay); each tile refines only its own
@@ -76,7 +76,7 @@ from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
 from c1mesh.survey.smoothing_runs import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tile_spill import spill
-from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
+from c1mesh.survey.tiled_halo import HaloCache, TiledLimiter, halo_reach, longest_final_edge
 from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (
     CachedChunks,
@@ -88,7 +88,6 @@ from c1mesh.survey.tiled_input import (
     survey_paths,
     tiled_classes,
 )
-from c1mesh.survey.tiled_limiter import TiledLimiter
 from c1mesh.survey.tiled_outputs import InputOwners
 from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles_at_once
 from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_output_size, write_tiles

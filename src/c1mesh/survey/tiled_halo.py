@@ -1,28 +1,40 @@
 """A tile's halo: the height-field points and final triangles around its cell that the
-survey-wide passes of the memory-bounded fit read (c1mesh.survey.tiled_trim,
-c1mesh.survey.tiled_limiter), cached once in temporary files (`HaloCache`), and the
-survey's median |trapezoid residual| over them (`edge_floor`).
+survey-wide passes of the memory-bounded fit read (c1mesh.survey.tiled_trim, the
+limiter), cached once in temporary files (`HaloCache`); the scheduling of the survey's
+noise floors over them (`edge_floor`, `noise_floors`: c1mesh.stages.limiter's summary per
+tile and reduce) and of the limiter's run per tile (`TiledLimiter`).
 
 The halo rule. Every final triangle has edges at most L long (the long-edge trim's
 max_edge, or the longest edge of the untrimmed triangulation). A tile reads the height
 field in its cell grown by 4L (its halo) and the final triangles of every tile that cell
 meets, and keeps the triangles whose three corners it read. Then it holds the whole star
-of every vertex within 3L of its cell (what the limiter needs, c1mesh.survey.tiled_limiter;
+of every vertex within 3L of its cell (what the limiter needs, `TiledLimiter`;
 the trim's peel and bow-ties need 2L), and every edge whose lower-numbered end lies in its
 cell, each edge of the survey in exactly one tile.
+
+The limiter on such halos: a vertex's reconciled height needs its star, its reconciled
+gradient the reconciled heights of its neighbours, its limited gradient their reconciled
+gradients, an edge's direction both its triangles. A halo therefore has, as the whole
+survey has them, the reconciled heights within 3L of the cell, the reconciled gradients
+within 2L, and the limited gradients, heights and directions of every corner of its own
+triangles; and the residuals (input or reconciled) of the edges whose lower end it owns,
+which its floor_summary holds. The limiter's arithmetic at a vertex runs over its edges
+in survey-number order whatever else the tile holds, so the tiles give the whole
+survey's bits (directions up to the sign of a line through two opposite vertices, which
+the spline does not see). Three passes: the first floor, the second, then the run per
+tile in the refinement task.
 """
 from __future__ import annotations
 
 import time
-from typing import Callable
 
 import numpy as np
 
 from c1mesh.core.tile import Tile, compact, tile_rows
-from c1mesh.engine.topology import edge_table
-from c1mesh.stages.limiter import trapezoid_residuals
-from c1mesh.stages.trim import edge_lengths
+from c1mesh.stages.limiter import NoiseFloors, TileLimits, floor_summary, reduce_floor, tile_limits
 from c1mesh.stages.streamed_median import streamed_median
+from c1mesh.stages.trim import edge_lengths
+from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 
@@ -182,29 +194,55 @@ def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3)
     return triangles[keep]
 
 
-def edge_residuals(points, values, gradients, edges) -> np.ndarray:
-    """(E,) |trapezoid residual| of each edge, with the limiter's own arithmetic."""
-    return np.abs(trapezoid_residuals(points, values, gradients, edges))
+def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
+               name=str) -> float:
+    """A noise floor of the survey, exactly (c1mesh.stages.limiter: its floor_summary of
+    every tile's halo, then reduce_floor): with the height field's data (first None), or
+    with the data reconciled with the first floor. Each tile's summary is a task on runner
+    (distributed.TaskRunner; None: in this process, `write_floor_summary`) writing its own
+    file, so the median does not depend on where or in which order they ran. halos: the
+    HaloCache (after prune); name(t) names tile t in errors; label names the files."""
+    tiles = halos.tiles()
+    paths = [temps.new(f"{label}-{t}.bin") for t in tiles]
+    for _ in (runner or TaskRunner()).map(write_floor_summary, len(tiles),
+                                          lambda i: (halos, tiles[i], first, paths[i]), lambda i: name(tiles[i])):
+        pass
+    floor = reduce_floor(lambda: (block for path in paths for block in residual_blocks(path)))
+    for path in paths:
+        path.unlink()
+    return floor
 
 
-def edge_floor(halos: Callable[[], object], temps, name: str, data_of=None) -> float:
-    """The median |trapezoid residual| over every final edge of the survey, exactly (each
-    edge from the tile holding its lower end). halos: a callable giving a fresh iterator
-    of every tile's Tile; data_of(halo, table): the heights (m,) and gradients (m, 2) to
-    use (None: the height field's); temps: tiled_input.Temps for the residual file."""
-    path = temps.new(f"residuals-{name}.bin")
-    with open(path, "wb") as file:
-        for halo in halos():
-            if not len(halo.triangles):
-                continue
-            table = edge_table(halo.triangles, len(halo.records))
-            mine = table.edges[halo.own[table.edges[:, 0]]]  # lower end in the cell
-            values, gradients = (halo.records["z"], halo.gradients) if data_of is None else data_of(halo, table)
-            residuals = edge_residuals(halo.points, values, gradients, mine)
-            residuals.astype("<f8").tofile(file)
-    median = streamed_median(lambda: residual_blocks(path))
-    path.unlink()
-    return median
+def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) -> None:
+    """Write tile's limiter.floor_summary (float64) to path."""
+    floor_summary(halos.halo(tile), first).astype("<f8").tofile(path)
+
+
+def noise_floors(halos: HaloCache, temps, runner=None, name=str) -> NoiseFloors:
+    """The limiter's two noise floors of the survey (edge_floor twice: the second with
+    the data reconciled with the first)."""
+    first = edge_floor(halos, temps, "residuals-first", None, runner, name)
+    return NoiseFloors(first, edge_floor(halos, temps, "residuals-second", first, runner, name))
+
+
+class TiledLimiter:
+    """The overshoot limiter over the tiles: the survey's noise floors, found on
+    construction; a refinement task (tiled_refine, through `tile`) limits its tile's
+    data from the cached halo (halos, picklable) and these floors (limiter.tile_limits)."""
+
+    def __init__(self, halos: HaloCache, temps, runner=None, name=str):
+        self.halos = halos
+        self.floors = noise_floors(halos, temps, runner, name)
+        self.limited = self.turned = self.lifted = 0
+
+    def tile(self, tile: int, triangles: np.ndarray) -> TileLimits:
+        """limiter.TileLimits of the tile's own triangles (survey numbers)."""
+        return tile_limits(self.halos.halo(tile), triangles, self.floors)
+
+    def report(self) -> dict:
+        return {"gradients_limited": self.limited, "directions_changed": self.turned,
+                "heights_reconciled": self.lifted,
+                "noise_floors": [self.floors.first, self.floors.second]}
 
 
 FLOAT_BLOCK = 1 << 20
@@ -215,16 +253,6 @@ per pass (bit patterns, shifted digits, masks), so the block bounds the noise fl
 def residual_blocks(path, block: int = FLOAT_BLOCK):
     with open(path, "rb") as file:
         yield from file_blocks(file, "<f8", block)
-
-
-def median_over_tiles(runner, task, tiles, arguments, name, temps, label: str) -> float:
-    """The exact median of the float64 values that task(*arguments(t, path)) writes to its
-    own file `path` for every tile t of tiles, each a task on runner
-    (distributed.TaskRunner); name(t) names tile t in errors; label names the files."""
-    paths = [temps.new(f"{label}-{t}.bin") for t in tiles]
-    for _ in runner.map(task, len(tiles), lambda i: arguments(tiles[i], paths[i]), lambda i: name(tiles[i])):
-        pass
-    return median_of_files(paths)
 
 
 def median_of_files(paths) -> float:

@@ -59,7 +59,7 @@ class TiledMesh:
 @dataclass(frozen=True)
 class MeshWriting:
     """What write_tiles refines and writes with: temps (tiled_input.Temps), limiter (the
-    tiled_limiter.TiledLimiter or smoothing_runs.TiledSmoother; None: --overshoot off),
+    tiled_halo.TiledLimiter or smoothing_runs.TiledSmoother; None: --overshoot off),
     crs (WKT or None), colours (tiled_input.Colours or None), runner
     (distributed.TaskRunner), rows (tiled_report.TileRows), split (Split with -O, else None)."""
 

@@ -20,8 +20,8 @@ the cell); what has to see the whole survey is orchestrated here, and only that:
 - trim.trim's loop (peel, bow-ties, peel again from the cut fans' neighbours, until no
   bow-tie is left): survey-wide, `_TrimState.settle`;
 - curtains, curtains.curtain_triangles: per tile, `curtain_cuts`, with floor= the
-  survey's curtains.noise_floor, found survey-wide by tiled_halo.edge_floor (the same
-  exact median of limiter.trapezoid_residuals over every edge once);
+  survey's curtains.noise_floor, found survey-wide by tiled_halo.edge_floor (the
+  limiter's floor_summary per tile and reduce_floor, as curtains.noise_floor in memory);
 - remove_curtains' second trim.trim(max_edge=None) of the holes: survey-wide,
   `_TrimState.settle` again from the curtains' neighbours.
 
@@ -163,7 +163,7 @@ def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
         tiles.append(corners)
     state = _TrimState(halos, grid, np.concatenate(thin), np.concatenate(tiles))
     state.settle(np.concatenate(boundary), set(halos.tiles()))
-    floor = edge_floor(halos.halos, temps, "curtains")
+    floor = edge_floor(halos, temps, "residuals-curtains")
     cut, corners, counts = [np.empty((0, 3), np.int64)], [np.empty((0, 3), np.int64)], {r: 0 for r in REASONS}
     for triangles, where, reasons in map_in_threads(
             lambda t: curtain_cuts(halos.halo(t), floor, grid, view_rules), list(halos.tiles())):

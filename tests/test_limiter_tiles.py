@@ -1,0 +1,122 @@
+"""The limiter as a stage of tiles (c1mesh.stages.limiter: floor_summary, reduce_floor,
+tile_limits) on a small noisy mesh cut into 2 to 4 tiles by hand, against the one tile
+of the in-memory fit and against a plain Python loop over the edges.
+
+A tile here is built from the mesh's graph, not by the survey's machinery: its own
+vertices (a strip of x), and every vertex within HALO_RINGS edges of them with the
+triangles whose corners all are among those, which holds the star of every vertex within
+3 rings of the own ones (what the limiter's reconciliations read).
+"""
+import numpy as np
+import pytest
+
+from c1mesh.core.tile import VERTEX, Tile
+from c1mesh.engine.topology import edge_table
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.curtains import noise_floor
+from c1mesh.stages.limiter import (NoiseFloors, control_overshoot, floor_summary, reconcile_gradients,
+                                   reconcile_heights, reduce_floor, tile_limits)
+
+HALO_RINGS = 4
+
+
+@pytest.fixture(params=[0, 1])
+def noisy(request):
+    """(xy, z, gradients, triangles): 400 random points with noisy heights and gradients,
+    plus near-coincident pairs whose heights reconcile_heights moves."""
+    rng = np.random.default_rng(70 + request.param)
+    xy = rng.random((400, 2))
+    xy = np.vstack([xy, xy[:5] + [1e-3, 0.0]])
+    z = np.sin(3 * xy[:, 0]) * xy[:, 1] + 0.02 * rng.standard_normal(len(xy))
+    g = np.column_stack([3 * np.cos(3 * xy[:, 0]) * xy[:, 1], np.sin(3 * xy[:, 0])])
+    g += 0.3 * rng.standard_normal(g.shape)
+    return xy, z, g, delaunay(xy)
+
+
+def _loop_median(xy, z, g, triangles) -> float:
+    """The median |trapezoid residual| over every edge once, in Python floats: each edge
+    a→b from its lower number, e = (z_b − z_a) − ½ (g_a·d + g_b·d), d = xy_b − xy_a;
+    the middle value of the sorted list, or the mean of the two middle ones."""
+    edges = sorted({tuple(sorted((int(t[i]), int(t[(i + 1) % 3])))) for t in triangles.tolist() for i in range(3)})
+    sizes = []
+    for a, b in edges:
+        dx, dy = xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1]
+        sizes.append(abs((z[b] - z[a]) - 0.5 * ((g[a, 0] * dx + g[a, 1] * dy) + (g[b, 0] * dx + g[b, 1] * dy))))
+    sizes.sort()
+    half = len(sizes) // 2
+    return sizes[half] if len(sizes) % 2 else (sizes[half - 1] + sizes[half]) / 2
+
+
+def _tiles(xy, z, g, triangles, count):
+    """count (Tile, owned triangles (k, 3) survey numbers): strips of x own the vertices
+    (each vertex in one); each tile holds the vertices within HALO_RINGS edges of its own
+    ones and the triangles among those, and owns those whose lowest corner it owns."""
+    n = len(xy)
+    strip = np.minimum((xy[:, 0] * count).astype(int), count - 1)
+    edges = edge_table(triangles, n).edges
+    tiles = []
+    for k in range(count):
+        held = strip == k
+        for _ in range(HALO_RINGS):
+            grown = held.copy()
+            grown[edges[held[edges[:, 0]], 1]] = True
+            grown[edges[held[edges[:, 1]], 0]] = True
+            held = grown
+        rows = np.flatnonzero(held)                      # ascending survey numbers
+        local = np.full(n, -1)
+        local[rows] = np.arange(len(rows))
+        inside = held[triangles].all(axis=1)
+        records = np.empty(len(rows), VERTEX)
+        records["index"], records["x"], records["y"], records["z"] = rows, xy[rows, 0], xy[rows, 1], z[rows]
+        records["gx"], records["gy"] = g[rows, 0], g[rows, 1]
+        owned = triangles[inside & (strip[triangles.min(axis=1)] == k)]      # lowest corner own
+        tiles.append((Tile(records, local[triangles[inside]], strip[rows] == k), owned))
+    return tiles
+
+
+@pytest.mark.parametrize("count", [2, 3, 4])
+def test_floors_over_tiles_are_the_one_tiles_and_the_loops(noisy, count):
+    xy, z, g, triangles = noisy
+    one = Tile.whole(xy, z, g, triangles)
+    first = reduce_floor(lambda: (floor_summary(one),))
+    assert first == _loop_median(xy, z, g, triangles)                     # bits
+    assert noise_floor(xy, z, g, triangles) == first                      # the curtains' floor
+    table = edge_table(triangles, len(xy))
+    heights, lifted = reconcile_heights(xy, z, g, triangles, table, noise_floor=first)
+    reconciled, moved = reconcile_gradients(xy, heights, g, table.edges, noise_floor=first)
+    assert lifted.any() and moved.any()
+    second = reduce_floor(lambda: (floor_summary(one, first),))
+    assert second == _loop_median(xy, heights, reconciled, triangles)
+
+    tiles = _tiles(xy, z, g, triangles, count)
+    owners = np.zeros(len(xy), dtype=int)
+    for tile, _ in tiles:
+        owners[tile.records["index"][tile.own]] += 1
+    assert (owners == 1).all()                                            # the own masks partition
+    summaries = [floor_summary(tile) for tile, _ in tiles]
+    assert sum(len(s) for s in summaries) == len(table.edges)             # each edge in one tile
+    assert reduce_floor(lambda: iter(summaries)) == first
+    summaries = [floor_summary(tile, first) for tile, _ in tiles]
+    assert reduce_floor(lambda: iter(summaries)) == second
+
+
+@pytest.mark.parametrize("count", [2, 4])
+def test_the_run_on_tiles_is_the_in_memory_limiter(noisy, count):
+    """tile_limits of each tile, with the floors of the one tile, gives the in-memory
+    limiter's heights and gradients at its triangles' corners to the bit, and the tiles'
+    counts add up to the in-memory report's."""
+    xy, z, g, triangles = noisy
+    values, gradients, directions, report = control_overshoot(xy, z, g, triangles)
+    one = Tile.whole(xy, z, g, triangles)
+    first = reduce_floor(lambda: (floor_summary(one),))
+    floors = NoiseFloors(first, reduce_floor(lambda: (floor_summary(one, first),)))
+    counts = np.zeros(3, dtype=int)
+    for tile, owned in _tiles(xy, z, g, triangles, count):
+        limits = tile_limits(tile, owned, floors)
+        corners = limits.records["index"]
+        assert np.array_equal(corners[limits.triangles], owned)
+        assert np.array_equal(limits.records["z"], values[corners])
+        assert np.array_equal(limits.gradients, gradients[corners])
+        counts += (limits.limited, limits.turned, limits.lifted)
+    assert counts.tolist() == [report.gradients_limited, report.directions_changed, report.heights_reconciled]
+    assert report.heights_reconciled > 0 and report.gradients_limited > 0
