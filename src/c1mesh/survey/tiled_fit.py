@@ -74,9 +74,9 @@ from c1mesh.stages.warnings import auto_limit, fit_warnings
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
+from c1mesh.survey.height_runs import height_spill, survey_stacking
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, halo_reach, longest_final_edge
-from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (
     CachedChunks,
     Colours,
