@@ -153,7 +153,7 @@ def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, te
     positions = int(heights.counts.sum())
     tiles = [t for t in range(len(grid)) if heights.counts[t]]
     first_reach = INITIAL_SPACINGS * mean_spacing(grid.box, positions)
-    spacing = _sampled_median(spill, grid, tiles, positions, first_reach, runner, name, temps)
+    spacing = _sampled_median(heights, grid, tiles, positions, first_reach, runner, name, temps)
     stacked = sum(count for _, count in runner.map(tile_stacked, len(tiles),
                                                      lambda i: (spill, grid, tiles[i], spacing),
                                                      lambda i: name(tiles[i])))
@@ -161,15 +161,13 @@ def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, te
     return spacing, int(stacked)
 
 
-def _sampled_median(spill: HeightSpill, grid, tiles, positions: int, first_reach: float, runner, name,
-                    temps) -> float:
+def _sampled_median(heights, grid, tiles, positions: int, first_reach: float, runner, name, temps) -> float:
     """The median of every tile's tile_sample_spacings at the first of spacing_steps that
     picks a position in some tile, streamed from one file per tile (median_of_files)."""
     paths = [temps.new(f"spacings-{t}.bin") for t in tiles]
     for step in spacing_steps(positions):
         picked = sum(n for _, n in runner.map(tile_sample_spacings, len(tiles),
-                                              lambda i: (spill.heights, grid, tiles[i], step, first_reach,
-                                                         paths[i]),
+                                              lambda i: (heights, grid, tiles[i], step, first_reach, paths[i]),
                                               lambda i: name(tiles[i])))
         if picked:
             break
