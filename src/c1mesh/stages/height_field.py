@@ -197,11 +197,8 @@ def tile_heights(points: np.ndarray, normals: np.ndarray, cos_max: float) -> Til
     y, z in the frame (ascending survey numbers), normals (n, 3) theirs in the frame. The
     points whose normal is usable and not too steep (`slope_test`) are grouped by exact
     plane position (`position_groups`); each position keeps its first point, with the
-    gradient of that point's normal (`normal_gradients`).
-
-    What the in-memory `height_field` does besides, on its one tile: it drops points with
-    non-finite coordinates (a spill holds none), counts the drops, may trust the normals'
-    signs (max_facing_away) and merges near-duplicate positions; a tiled fit does not."""
+    gradient of that point's normal (`normal_gradients`). `height_field` does more on its
+    one tile (module docstring)."""
     usable, _, steep = slope_test(normals, cos_max)
     keep = np.flatnonzero(usable & ~steep)
     local = np.column_stack([points["x"][keep], points["y"][keep], points["z"][keep]])
@@ -295,12 +292,10 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, index: np.ndarray
 
     Returns (keep, stacked, spacing): ascending indices into `local` of the points kept
     (one per duplicate group, the first), the number of stacked points, and the spacing h.
-    Exact duplicates in (x, y) are grouped by sorting (`position_groups`). The positions
-    are the in-memory fit's one PositionTile, which owns them all: the spacing h and the
-    stacked count are its summaries (`sample_spacings`, `stacked_points`) reduced as a
-    tiled fit reduces its tiles' (c1mesh.survey.height_runs). The near-duplicate merge is
-    the in-memory fit's own: the pass over the pairs of positions within h that flags the
-    stacked ones also merges those within merge_tol × h. Without a common metric (see
+    Exact duplicates in (x, y) are grouped by sorting (`position_groups`); the distinct
+    positions are one PositionTile, whose summaries give h and the stacked count; the pass
+    over the pairs within h that flags the stacked ones also merges those within
+    merge_tol × h (the in-memory fit's own step). Without a common metric (see
     `height_field`) h is the plane spacing and only exact duplicates with different
     heights count as stacked.
     """
