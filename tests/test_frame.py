@@ -372,7 +372,12 @@ def test_position_groups_match_a_dictionary_of_positions():
 def test_spacing_is_the_3d_tree_median_bit_for_bit(sparse, shape):
     """A sparse layer over a dense one (its plane neighbours are all in the other layer), a
     corridor along y and a grid of tied x columns (the strips' awkward shapes)."""
-    from c1mesh.stages.height_field import _spacing, kd_tree as _tree
+    from c1mesh.stages.height_field import Positions, PositionTile, kd_tree as _tree, sample_spacings
+
+    def _spacing(x, y, z, sample):
+        zero = np.zeros(len(x))
+        tile = PositionTile(Positions(x, y, z, zero, zero, zero), np.arange(len(x)), np.ones(len(x), np.int64), sample)
+        return float(np.median(sample_spacings(tile, 1)))
     rng = np.random.default_rng(6)
     xy = rng.random((20000 + sparse, 2))
     if shape == "corridor":

@@ -38,8 +38,8 @@ from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.core.plan import TiledRun
 from c1mesh.pipeline.survey_fit import fit_in_tiles
+from c1mesh.survey.height_runs import HEIGHT
 from c1mesh.survey.tiled_halo import drop_triangles, halo_reach, noise_floors, read_halo
-from c1mesh.survey.tiled_heights import HEIGHT
 from c1mesh.survey.tiled_plan import fits_in_memory, points_per_tile
 from c1mesh.survey.tiled_trim import peeled
 from c1mesh.engine.topology import edge_table
@@ -528,7 +528,7 @@ def test_cli_runs_tiles_on_one_process_per_thread_by_default(tmp_path, monkeypat
 def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     """A tile whose task fails stops the fit with exit 1, one line naming the tile, and
     no output (in this process and on a pool of two)."""
-    import c1mesh.survey.tiled_heights as tiled_heights
+    import c1mesh.survey.height_runs as height_runs
     import c1mesh.survey.tiled_refine as tiled_refine
 
     _every_job_at_once(monkeypatch)
@@ -544,7 +544,7 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     assert here.exit_code == 1
     assert here.output.startswith(f"c1mesh: error: {source}: tile 2 (cell ") and here.output.endswith(": no good\n")
     assert here.output.count("\n") == 1
-    monkeypatch.setattr(tiled_refine, "_refine_tile", tiled_heights._positions)   # fails on every worker
+    monkeypatch.setattr(tiled_refine, "_refine_tile", height_runs._position_tile)   # fails on every worker
     pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "2"])
     assert pool.exit_code == 1 and pool.output.startswith(f"c1mesh: error: {source}: tile ")
     assert "_RefineJob" in pool.output and pool.output.count("\n") == 1

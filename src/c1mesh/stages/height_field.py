@@ -19,6 +19,17 @@ overhangs, tree canopy over ground, several layers), the cloud is rejected. Call
 know their signs are right may pass `max_facing_away` to also reject clouds where that
 fraction of normals clearly faces away from e3.
 
+In tiles. The stage is written once for a tile; the in-memory fit is one tile that owns
+every point. A tile's vertices come from its own points (`tile_heights`: `slope_test`,
+`normal_gradients`, `position_groups`). The stacking test has two summaries per tile,
+on a PositionTile (its own positions and those around them): `sample_spacings`, whose
+median over the tiles is the spacing h (`spacing_steps` says which positions measure
+it), then `stacked_points` with that h, whose sum `check_stacking` tests against the
+usable points. `height_field` runs these on its one tile and does besides what a tiled
+fit (c1mesh.survey.height_runs, which schedules the tiles) does not: it drops points with
+non-finite coordinates, counts every drop, may trust file normals' signs, merges
+near-duplicate positions and takes heights without a common metric.
+
 This module does not import c1mesh.stages.frame (which re-exports `height_field`,
 `normal_gradients` and `gradients_to_normals` for its older importers): a frame is used
 through its methods only.
@@ -32,6 +43,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError, NotAHeightFieldError
+from c1mesh.core.tile import VERTEX
 from c1mesh.stages import _height_field as kernel
 
 _AXIS_HINT = "try --axis x|y|z or X,Y,Z, or --classes 2 for LiDAR ground"
@@ -121,15 +133,14 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     finite = np.isfinite(pts[:, 0]) & np.isfinite(pts[:, 1]) & np.isfinite(pts[:, 2])
     dropped["non_finite"] = int((~finite).sum())
     n_local = frame.vectors_to_local(nrm)
-    length = _row_norms(n_local)
-    usable = finite & np.isfinite(length) & (length > 0)
+    cos_max = np.cos(np.radians(max_slope_deg)) if common_metric else 0.0
+    usable, up, steep = slope_test(n_local, cos_max)
+    usable &= finite
     dropped["bad_normal"] = int((finite & ~usable).sum())
     index = np.flatnonzero(usable)
-    up = n_local[index, 2] / length[index]
-    cos_max = np.cos(np.radians(max_slope_deg)) if common_metric else 0.0
-    _check_facing_away(up, cos_max, max_facing_away if common_metric else None, max_slope_deg, frame)
+    _check_facing_away(up[index], cos_max, max_facing_away if common_metric else None, max_slope_deg, frame)
 
-    steep = np.abs(up) < cos_max
+    steep = steep[index]
     dropped["too_steep"] = int(steep.sum())
     index = index[~steep]
     if index.size < 3 and dropped["too_steep"]:
@@ -152,6 +163,57 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     return HeightField(xy=xy, z=local[:, 2][keep], gradients=_gather_rows(gradients, keep, ascending=True),
                        source_index=index[keep].astype(np.int64), frame=frame, dropped=dropped,
                        flipped=flipped, stacked=n_stacked, spacing=spacing)
+
+
+def slope_test(normals: np.ndarray, cos_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The height field's test of normals (n, 3) in the frame: (usable (n,) bool, finite
+    and nonzero; up (n,) n·e3 / |n|, the cosine of each usable one's angle with the height
+    axis, NaN elsewhere; steep (n,) bool, usable with |up| < cos_max: the surface there
+    is steeper than the height field keeps). The in-memory fit (`height_field`, which also
+    counts the drops and may test the signs) and each tile (`tile_heights`) test so."""
+    length = _row_norms(normals)
+    usable = np.isfinite(length) & (length > 0)
+    up = np.full(len(normals), np.nan)
+    np.divide(normals[:, 2], length, out=up, where=usable)
+    return usable, up, usable & (np.abs(up) < cos_max)
+
+
+@dataclass(frozen=True)
+class TileHeights:
+    """A tile's height-field vertices (`tile_heights`): records (g,) core.tile VERTEX
+    records, one per distinct plane position of its usable points (the first point there),
+    ascending survey numbers; size (g,) int64 how many usable points share each position,
+    z_range (g,) the spread of their heights; usable, how many usable points the tile
+    has, duplicates included (its part of the stacking test's denominator)."""
+
+    records: np.ndarray
+    size: np.ndarray
+    z_range: np.ndarray
+    usable: int
+
+
+def tile_heights(points: np.ndarray, normals: np.ndarray, cos_max: float) -> TileHeights:
+    """The height-field vertices of a tile's own points: points (n,) records with index, x,
+    y, z in the frame (ascending survey numbers), normals (n, 3) theirs in the frame. The
+    points whose normal is usable and not too steep (`slope_test`) are grouped by exact
+    plane position (`position_groups`); each position keeps its first point, with the
+    gradient of that point's normal (`normal_gradients`). `height_field` does more on its
+    one tile (module docstring)."""
+    usable, _, steep = slope_test(normals, cos_max)
+    keep = np.flatnonzero(usable & ~steep)
+    local = np.column_stack([points["x"][keep], points["y"][keep], points["z"][keep]])
+    gradients, _ = normal_gradients(_gather_rows(normals, keep))
+    groups = position_groups(local, gradients)
+    slot = np.full(len(keep), -1, dtype=np.int64)         # the groups by first point, without a sort
+    slot[groups.first] = np.arange(len(groups.first))
+    order = slot[slot >= 0]
+    first = groups.first[order]
+    records = np.empty(len(first), VERTEX)
+    records["index"] = points["index"][keep[first]]
+    for k, name in enumerate(("x", "y", "z", "gx", "gy")):
+        records[name] = groups.columns[k][order]
+    size = np.bincount(groups.group, minlength=len(first))[order]
+    return TileHeights(records, size, groups.z_range[order], len(keep))
 
 
 def normal_gradients(n: np.ndarray) -> tuple[np.ndarray, int]:
@@ -230,22 +292,27 @@ def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, index: np.ndarray
 
     Returns (keep, stacked, spacing): ascending indices into `local` of the points kept
     (one per duplicate group, the first), the number of stacked points, and the spacing h.
-    Exact duplicates in (x, y) are grouped by sorting (`position_groups`); the pairs of
-    distinct positions within h serve both the stacking test and the near-duplicate merge
-    (`stacked_positions`). Without a common metric (see `height_field`) h is the plane
-    spacing and only exact duplicates with different heights count as stacked.
+    Exact duplicates in (x, y) are grouped by sorting (`position_groups`); the distinct
+    positions are one PositionTile, whose summaries give h and the stacked count; the pass
+    over the pairs within h that flags the stacked ones also merges those within
+    merge_tol × h (the in-memory fit's own step). Without a common metric (see
+    `height_field`) h is the plane spacing and only exact duplicates with different
+    heights count as stacked.
     """
     groups = position_groups(local, gradients)
     first, (x, y, z, gx, gy) = groups.first, groups.columns
     if first.size < 3:
         raise InputError(f"the points occupy only {first.size} distinct positions in the plane; "
                          "a height field needs at least 3")
-    sample = spacing_sample(index[first], first.size)
+    tile = PositionTile.whole(Positions(x, y, z, gx, gy, groups.z_range), index[first],
+                              np.bincount(groups.group, minlength=first.size))
     strips = strip_index(x, y, _mean_spacing(x, y))
-    spacing = _spacing(x, y, z if common_metric else np.zeros(first.size), sample, strips)
-    bad, root = stacked_positions(Positions(x, y, z, gx, gy, groups.z_range), spacing, common_metric,
-                                  merge_radius=merge_tol * spacing, rank=first, strips=strips)
-    stacked = int(np.count_nonzero(bad[groups.group]))
+    for step in spacing_steps(first.size):
+        spacings = sample_spacings(tile, step, common_metric, strips)
+        if spacings.size:
+            break
+    spacing = float(np.median(spacings, overwrite_input=True))          # a temporary
+    stacked, root = stacked_points(tile, spacing, common_metric, merge_tol * spacing, strips)
     check_stacking(stacked, local.shape[0], max_stacked, frame.axes[2])
     kept = np.zeros(local.shape[0], dtype=bool)          # ascending without a sort
     kept[first[root == np.arange(first.size)]] = True
@@ -362,7 +429,7 @@ def stacked_positions(positions: Positions, spacing: float, common_metric: bool 
     none). The kernel (stages/_height_field.pyx) finds the pairs in strips of x at least
     h wide (`strips` when they are, and at most twice that; else made here), sorted by y.
     On a tile of a survey, give the positions within h of its cell: the flags of its own
-    positions are then those of the whole survey (c1mesh.survey.tiled_heights).
+    positions are then those of the whole survey (`stacked_points`).
     """
     x, y, z, gx, gy = (np.ascontiguousarray(c, dtype=np.float64)
                        for c in (positions.x, positions.y, positions.z, positions.gx, positions.gy))
@@ -435,47 +502,93 @@ def check_stacking(stacked: int, points: int, max_stacked: float, axis: np.ndarr
             f"overhangs or several layers do, so this is not a height field; " + _AXIS_HINT)
 
 
+@dataclass(frozen=True)
+class PositionTile:
+    """What a tile's stacking test reads: the distinct plane positions (Positions, m of
+    them, any order) of its own usable points and of those around it within reach;
+    index (m,) int64 the survey number of each one's first point; size (m,) int64 how many
+    usable points share each; own (m,) bool those in the tile's cell. The in-memory fit
+    is one PositionTile that owns every position (`whole`)."""
+
+    positions: Positions
+    index: np.ndarray
+    size: np.ndarray
+    own: np.ndarray
+
+    @classmethod
+    def whole(cls, positions: Positions, index: np.ndarray, size: np.ndarray) -> "PositionTile":
+        """The in-memory fit's one tile: every position owned."""
+        return cls(positions, index, size, np.ones(len(index), dtype=bool))
+
+
 SPACING_SAMPLES = 20000
-"""About how many distinct positions measure the spacing h (`spacing_sample`)."""
+"""About how many distinct positions measure the spacing h (`spacing_steps`)."""
 
 
-def spacing_sample(index: np.ndarray, positions: int, samples: int = SPACING_SAMPLES) -> np.ndarray:
-    """(m,) bool: which distinct positions, by the input index (m,) of their first point,
-    measure the spacing h: those whose index is a multiple of positions // samples (every
-    one when that is 0 or 1; every one too when no index is a multiple). The rule depends
-    on the input numbering alone, not on the order of a sort, so that a tile of a survey
-    (whose survey numbers are the input's indices) picks the same positions as the
-    whole: c1mesh.survey.tiled_heights measures the same h."""
+def spacing_steps(positions: int, samples: int = SPACING_SAMPLES) -> tuple[int, ...]:
+    """The steps of `spacing_sample` for a survey of `positions` distinct positions, in the
+    order to try them: positions // samples (at least 1), then 1 (every position) if no
+    position's survey number anywhere is a multiple of the first. The spacing h is the
+    median, over every tile, of the `sample_spacings` at the first step that picks a
+    position in some tile."""
     step = max(1, positions // samples)
-    sample = index % step == 0
-    return sample if sample.any() else np.ones(len(index), dtype=bool)
+    return (step,) if step == 1 else (step, 1)
+
+
+def spacing_sample(index: np.ndarray, step: int) -> np.ndarray:
+    """(m,) bool: which positions, by the survey number index (m,) of their first point,
+    measure the spacing h: the multiples of step (`spacing_steps`). The rule depends on
+    the survey numbering alone, not on the order of a sort or on the tiles, so every
+    tile of a survey picks the positions the whole survey picks."""
+    return index % step == 0
+
+
+def sample_spacings(tile: PositionTile, step: int, common_metric: bool = True,
+                    strips: Strips | None = None) -> np.ndarray:
+    """The spacing's summary of one tile: (s,) the 3D distance from each own position that
+    spacing_sample picks to its nearest other position of the tile (own or not; inf when
+    there is none), in the tile's order; without a common metric (see `height_field`)
+    the plane distance. The spacing h is the median over every tile's (the reduce).
+    strips: a strip_index of the positions (made here when None). Each distance is
+    cKDTree's bits (stages/_height_field.pyx). A tile's distance is the survey's when
+    its positions hold every one nearer than it (c1mesh.survey.height_runs reads so).
+
+    3D, not in the plane: where layers overlap, (x, y) neighbours come from the other
+    layer and the plane spacing shrinks, which would blunt the stacking test.
+    """
+    query = np.flatnonzero(tile.own & spacing_sample(tile.index, step))
+    if not query.size:
+        return np.empty(0)
+    p = tile.positions
+    x, y = (np.ascontiguousarray(c, dtype=np.float64) for c in (p.x, p.y))
+    z = np.ascontiguousarray(p.z, dtype=np.float64) if common_metric else np.zeros(x.size)
+    strips = strip_index(x, y, _mean_spacing(x, y)) if strips is None else strips
+    run_x = x[strips.order]
+    low = np.minimum.reduceat(run_x, strips.starts[:-1])
+    high = np.maximum.reduceat(run_x, strips.starts[:-1])
+    query_run = np.searchsorted(strips.strip[strips.order][strips.starts[:-1]], strips.strip[query])
+    nearest = np.empty(query.size)
+    kernel.nearest_distances(x, y, z, strips.order, strips.starts, low, high, query, query_run, nearest)
+    return nearest
+
+
+def stacked_points(tile: PositionTile, spacing: float, common_metric: bool = True,
+                   merge_radius: float = -1.0, strips: Strips | None = None) -> tuple[int, np.ndarray]:
+    """The stacking test's summary of one tile: (how many usable points, duplicates
+    included, lie at its own positions that stacked_positions flags with the survey's
+    spacing h; root (m,), stacked_positions' merge roots, the least survey number first).
+    Its own positions' flags are the survey's when the tile holds every position within
+    h of them. The reduce sums the counts of every tile and tests the sum against the
+    usable points (`check_stacking`). merge_radius: the in-memory fit's near-duplicate
+    merge (`height_field`'s merge_tol × h), which the pass that flags the pairs within h
+    also does; a tiled fit does not merge (-1). strips: as stacked_positions takes them."""
+    bad, root = stacked_positions(tile.positions, spacing, common_metric, merge_radius, tile.index, strips)
+    return int(tile.size[bad & tile.own].sum()), root
 
 
 def kd_tree(points: np.ndarray) -> cKDTree:
     """KD tree built the fast way (sliding midpoint, no node compaction): half the build time."""
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
-
-
-def _spacing(x: np.ndarray, y: np.ndarray, z: np.ndarray, sample: np.ndarray,
-             strips: Strips | None = None) -> float:
-    """Median 3D nearest-neighbour distance of distinct points x, y, z (n,) each, over the
-    points of `sample` (n,) bool (`spacing_sample`); with z all 0, the plane distance.
-    strips: a strip_index of x, y (made here when None). Each distance is cKDTree's bits
-    (stages/_height_field.pyx).
-
-    3D, not in the plane: where layers overlap, (x, y) neighbours come from the other
-    layer and the plane spacing shrinks, which would blunt the stacking test.
-    """
-    x, y, z = (np.ascontiguousarray(c, dtype=np.float64) for c in (x, y, z))
-    strips = strip_index(x, y, _mean_spacing(x, y)) if strips is None else strips
-    run_x = x[strips.order]
-    low = np.minimum.reduceat(run_x, strips.starts[:-1])
-    high = np.maximum.reduceat(run_x, strips.starts[:-1])
-    query = np.flatnonzero(sample)
-    query_run = np.searchsorted(strips.strip[strips.order][strips.starts[:-1]], strips.strip[query])
-    nearest = np.empty(query.size)
-    kernel.nearest_distances(x, y, z, strips.order, strips.starts, low, high, query, query_run, nearest)
-    return float(np.median(nearest, overwrite_input=True))          # a temporary
 
 
 def _check_spread(xy: np.ndarray) -> None:

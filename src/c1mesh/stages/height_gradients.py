@@ -66,8 +66,19 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
     finite = np.isfinite(pts).all(axis=1)
     local = frame.to_local(pts if finite.all() else pts[finite])
     normals = np.full(pts.shape, np.nan)
-    normals[finite] = frame.vectors_to_world(gradients_to_normals(height_gradients(local[:, :2], local[:, 2], k=k)))
+    normals[finite] = frame.vectors_to_world(fitted_normals(local, None, k)[0])
     return normals
+
+
+def fitted_normals(local: np.ndarray, at: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (m, 3), reach (m,)): upward unit normals, in the frame, of the height fit
+    (`gradients_at`) at the points `at` (m,) rows of local (n, 3) frame coordinates (None:
+    every point), each one's k nearest plane neighbours taken among all n; reach, each
+    one's plane distance to its k-th neighbour. The in-memory fit's normals (`height_normals`,
+    at every point) and a tile's (c1mesh.survey.tile_normals: at its own points, whose
+    reach says whether what the tile read held their neighbourhoods)."""
+    gradients, reach = gradients_at(local[:, :2], local[:, 2], at, k=k)
+    return gradients_to_normals(gradients), reach
 
 
 def height_gradients(xy: np.ndarray, z: np.ndarray, k: int = 16, degree: int = 2,

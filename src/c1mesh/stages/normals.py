@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import DependencyError, InputError
+from c1mesh.core.threads import workers
 
 
 def estimate_normals(points: ArrayLike, k: int = 16,
@@ -50,6 +52,23 @@ def estimate_normals(points: ArrayLike, k: int = 16,
     normals[finite] = orient_normals(np.asarray(cloud.normals)[inverse],
                                      towards[finite] if towards.ndim == 2 else towards)
     return normals
+
+
+def neighbourhood_reach(points: np.ndarray, at: np.ndarray, k: int) -> np.ndarray:
+    """(m,) the 3-D distance from each point points[at] (at: (m,) rows or an (N,) mask) to
+    its k-th nearest distinct position among points (N, 3), itself counted as Open3D's KNN
+    counts it: the radius of the neighbourhood `estimate_normals` fits a plane to there;
+    inf everywhere when the points hold fewer than k distinct positions. A tile whose read
+    points hold every own point's neighbourhood gets the whole survey's normals
+    (c1mesh.survey.tile_normals compares this reach with what it did not read)."""
+    distinct, inverse = unique_positions(points)
+    mine = inverse[at]
+    if len(distinct) < k:
+        return np.full(len(mine), np.inf)
+    rows, back = np.unique(mine, return_inverse=True)
+    distance, _ = cKDTree(distinct).query(distinct[rows], k, workers=workers())
+    kth = distance[:, -1] if distance.ndim == 2 else distance
+    return kth[back.ravel()]
 
 
 def unique_positions(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@ of its neighbours' files by each tile's refinement.
 
 What runs where, after the trim (c1mesh.survey.tiled_fit):
 
-- the spacing h, the strength's length unit: the stacking test's (tiled_heights.survey_stacking),
+- the spacing h, the strength's length unit: the stacking test's (height_runs.survey_stacking),
   the median 3D distance from a height-field position to its nearest other one over the
   positions height_field.spacing_sample picks, as the in-memory fit measures it (equal
   but for the last bit of the frames' local coordinates); so λ is the in-memory fit's;
@@ -37,7 +37,7 @@ from c1mesh.survey.tiles import task_row
 class TiledSmoothing:
     """What the smoothing fit over the tiles is asked for: run (the stage's
     smoothing.SmoothingRun: strength "auto" or s > 0, scheme, the survey's spacing h
-    (tiled_heights.survey_stacking), overshoot, the weight of the spill's gradients as
+    (height_runs.survey_stacking), overshoot, the weight of the spill's gradients as
     data), longest_edge (the longest final edge, frame units: the least halo)."""
 
     run: SmoothingRun

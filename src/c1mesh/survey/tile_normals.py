@@ -1,14 +1,17 @@
-"""Estimated normals of a survey cut into tiles, with buffers sized by the data.
+"""Estimated normals of a survey cut into tiles: how much each tile reads.
 
-normals.estimate_normals fits a plane to each point's k nearest distinct neighbours (3-D).
-A tile of a buffered_delaunay.TileGrid reads its cell grown by a buffer and estimates the
-normals of its own points from what it read. An own point's k nearest neighbours among
-the points read are its k nearest in the survey when the k-th of them is closer than
-every point not read: those lie outside the read rectangle, at a plane distance (hence a
-3-D distance) at least the point's distance to the unread part of the survey's box. When
-that holds for every own point the tile is done; otherwise its buffer doubles. The
-normals then agree with the whole survey's to rounding (the neighbourhoods are the same;
-only the centring of the coordinates differs).
+The normals are the stage's, run on what a tile read: the PCA of each point's k nearest
+distinct neighbours in 3-D (c1mesh.stages.normals.estimate_normals) or the height fit over
+its k nearest plane neighbours (c1mesh.stages.height_gradients.fitted_normals); beside
+each, the stage gives every own point's reach, its distance to its k-th neighbour
+(normals.neighbourhood_reach; fitted_normals). A tile of a buffered_delaunay.TileGrid reads
+its cell grown by a buffer. An own point's k nearest neighbours among the points read are
+its k nearest in the survey when its reach is shorter than the way to every point not
+read: those lie outside the read rectangle, at a plane distance (hence a 3-D distance) at
+least the point's distance to the unread part of the survey's box. When that holds for
+every own point the tile is done; otherwise its buffer doubles. The normals then agree
+with the whole survey's to rounding (the neighbourhoods are the same; only the centring
+of the coordinates differs).
 
 read3(rect) -> (index (m,) ascending survey numbers, xyz (m, 3)) gives the points in the
 closed rectangle of the plane, in the frame's coordinates (tile_spill.TileSpill.records).
@@ -19,12 +22,9 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from c1mesh.core.threads import workers
-from c1mesh.stages.height_field import gradients_to_normals
-from c1mesh.stages.height_gradients import gradients_at
-from c1mesh.stages.normals import estimate_normals, unique_positions
+from c1mesh.stages.height_gradients import fitted_normals
+from c1mesh.stages.normals import estimate_normals, neighbourhood_reach
 from c1mesh.survey.buffered_delaunay import TileGrid, growing_reads
 from c1mesh.survey.strip_geometry import unread_strips
 
@@ -45,11 +45,8 @@ def tile_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: flo
                  towards=(0.0, 0.0, 1.0)) -> TileNormals:
     """Normals of one tile's own points (module docstring), oriented to face `towards`."""
     def attempt(xyz, own, read_box, covers):
-        if not covers:
-            distinct, inverse = unique_positions(xyz)
-            if not (len(distinct) >= k and _neighbourhoods_inside(
-                    cKDTree(distinct), distinct[np.unique(inverse[own])], k, read_box, grid.box)):
-                return None
+        if not (covers or _neighbourhoods_inside(xyz, own, k, read_box, grid.box)):
+            return None                          # before Open3D's fit: it costs more
         return estimate_normals(xyz, k=k, towards=towards)[own]
 
     return _grown(read3, grid, tile, buffer, attempt)
@@ -70,12 +67,10 @@ def _grown(read3: Callable, grid: TileGrid, tile: int, buffer: float,
             return TileNormals(tile, index[own], normals, reading.buffer, reading.round)
 
 
-def _neighbourhoods_inside(tree, points: np.ndarray, k: int, read_box, box) -> bool:
-    """True when every point's k-th nearest neighbour (itself counted, as Open3D counts it)
-    is closer than the unread part of the box (with a relative margin for rounding)."""
-    distance, _ = tree.query(points, k, workers=workers())
-    kth = distance[:, -1] if distance.ndim == 2 else distance
-    return _closer_than_unread(points, kth, read_box, box)
+def _neighbourhoods_inside(xyz: np.ndarray, own: np.ndarray, k: int, read_box, box) -> bool:
+    """True when every own point's PCA neighbourhood among the points read, xyz (m, 3)
+    (stages.normals.neighbourhood_reach), is closer than the unread part of the box."""
+    return _closer_than_unread(xyz[own], neighbourhood_reach(xyz, own, k), read_box, box)
 
 
 def _closer_than_unread(points: np.ndarray, reach: np.ndarray, read_box, box) -> bool:
@@ -99,9 +94,9 @@ def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buff
     def attempt(xyz, own, read_box, covers):
         if len(xyz) <= k + 1 and not covers:
             return None
-        gradients, reach = gradients_at(xyz[:, :2], xyz[:, 2], np.flatnonzero(own), k=k)
+        normals, reach = fitted_normals(xyz, np.flatnonzero(own), k)
         if not (covers or _closer_than_unread(xyz[own, :2], reach, read_box, grid.box)):
             return None                          # a neighbourhood reaches past what was read
-        return gradients_to_normals(gradients)
+        return normals
 
     return _grown(read3, grid, tile, buffer, attempt)

@@ -28,8 +28,9 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   tile_normals.tile_height_normals), with --gradients normals by PCA (tile_normals);
   colours and the CRS are carried;
 - the height field drops points with unusable or too steep normals and exact duplicate
-  positions (keeping the lowest-numbered point); the near-duplicate merge and the
-  stacking test of height_field.height_field are not applied;
+  positions (keeping the lowest-numbered point), and runs the stacking test of
+  height_field.height_field survey-wide (height_runs.survey_stacking); the near-duplicate
+  merge is not applied;
 - the trim is the in-memory default (long edges, sliver peel, bow-ties, then curtains
   and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.tiled_trim), so it
   is the same, not a reduction;
@@ -74,10 +75,10 @@ from c1mesh.stages.warnings import auto_limit, fit_warnings
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
+from c1mesh.survey.height_runs import height_spill, survey_stacking
 from c1mesh.survey.smoothing_runs import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.tiled_halo import HaloCache, TiledLimiter, halo_reach, longest_final_edge
-from c1mesh.survey.tiled_heights import height_spill, survey_stacking
 from c1mesh.survey.tiled_input import (
     CachedChunks,
     Colours,
