@@ -31,7 +31,7 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   positions (keeping the lowest-numbered point); the near-duplicate merge and the
   stacking test of height_field.height_field are not applied;
 - the trim is the in-memory default (long edges, sliver peel, bow-ties, then curtains
-  and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.tiled_trim), so it
+  and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.trim_runs), so it
   is the same, not a reduction;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
   tile by tile with the survey's noise floors (c1mesh.survey.tiled_limiter).
@@ -94,7 +94,7 @@ from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_outp
 from c1mesh.survey.tiled_report import TileRows, describe_crs
 from c1mesh.survey.tiled_smoothing import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
-from c1mesh.survey.tiled_trim import trim_tiles
+from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
                 "refine+write")
