@@ -258,6 +258,14 @@ class Cuts:
         """The triangles index (k',) of these."""
         return Cuts(self.corners[index], self.tiles[index], self.rows[index])
 
+    def distinct(self) -> "Cuts":
+        """These without repeats (two tiles may cut one triangle, at two of its corners),
+        in the order of their first rows."""
+        if len(self) < 2:
+            return self
+        _, first = np.unique(np.sort(self.corners, axis=1), axis=0, return_index=True)
+        return self.take(np.sort(first))
+
     def tile_set(self) -> set[int]:
         """The tiles holding a corner of these triangles."""
         return set(np.unique(self.tiles).tolist())
@@ -444,7 +452,8 @@ def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tu
         run.remove(gone)
         if near is not None:
             near = Cuts.join([near, gone])
-        cut = Cuts.join(run.map(partial(bowtie_cuts, near=near), None if near is None else near.tile_set()))
+        cut = Cuts.join(run.map(partial(bowtie_cuts, near=near),
+                                None if near is None else near.tile_set())).distinct()
         if not len(cut):
             return sliver, bowtie
         bowtie += len(cut)
