@@ -10,8 +10,8 @@ import pytest
 
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages import trim as trim_stage
-from c1mesh.stages.trim import (MIN_CIRCLE_RATIO, Cuts, Place, TrimTile, circle_ratio, retrim, retrim_run,
-                                trim, trim_mesh, trim_run)
+from c1mesh.stages.trim import (Cuts, Place, TrimTile, circle_ratio, retrim, retrim_run, trim, trim_mesh,
+                                trim_run)
 
 
 def _ratio(xy, t):
