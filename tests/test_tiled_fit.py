@@ -39,12 +39,11 @@ from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.core.plan import TiledRun
 from c1mesh.pipeline.survey_fit import fit_in_tiles
 from c1mesh.survey.height_runs import HEIGHT
-from c1mesh.survey.tiled_halo import drop_triangles, halo_reach, noise_floors, read_halo
+from c1mesh.survey.tiled_halo import halo_reach, noise_floors, read_halo
 from c1mesh.survey.tiled_plan import fits_in_memory, points_per_tile
-from c1mesh.survey.tiled_trim import peeled
+from c1mesh.stages.trim import drop_triangles, peeled, trim
 from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import trim
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 

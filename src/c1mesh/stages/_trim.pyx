@@ -98,3 +98,37 @@ def corner_slots(const int64_t[:, ::1] tri, const int64_t[::1] rows, const uint8
                     slot_out[count] = k
                     count += 1
     return count
+
+
+cdef inline double _circle_ratio(double a, double b, double c) noexcept nogil:
+    """2 r_in / R_circ of a triangle with edge lengths a, b, c: (p-2a)(p-2b)(p-2c) / (abc),
+    p = a + b + c, evaluated left to right; clipped to [0, 1], NaN (0/0, a point-like
+    triangle) as 0."""
+    cdef double p = a + b + c
+    cdef double ratio = (p - 2 * a) * (p - 2 * b) * (p - 2 * c) / (a * b * c)
+    if ratio != ratio or ratio < 0:
+        return 0.0
+    if ratio > 1:
+        return 1.0
+    return ratio
+
+
+def circle_ratios(const double[:, ::1] lengths, double[::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out[t] = the circle ratio of triangle t's edge lengths (T, 3), for start <= t < stop.
+    Without the GIL: the wrapper runs blocks of triangles in its threads."""
+    cdef Py_ssize_t t
+    with nogil:
+        for t in range(start, stop):
+            out[t] = _circle_ratio(lengths[t, 0], lengths[t, 1], lengths[t, 2])
+
+
+def thin_rows(const double[:, ::1] lengths, const uint8_t[::1] alive, double min_ratio, int64_t[::1] out):
+    """The live triangles (alive (T,)) whose circle ratio of edge lengths (T, 3) is below
+    min_ratio, ascending into out (T,). Returns how many. One thread."""
+    cdef Py_ssize_t T = lengths.shape[0], t, count = 0
+    with nogil:
+        for t in range(T):
+            if alive[t] and _circle_ratio(lengths[t, 0], lengths[t, 1], lengths[t, 2]) < min_ratio:
+                out[count] = t
+                count += 1
+    return count

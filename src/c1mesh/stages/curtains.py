@@ -29,9 +29,13 @@ All four are properties of the input triangle and its data, not of the spline, s
 data of a height field over the plane whose slopes are below tan(90° - GRAZING_ANGLE) and
 whose curvature the triangles resolve lose nothing (their noise floor is an O(h³)
 residual, below the width of all but degenerate triangles; tested on the analytic
-samples). Holes are left where curtains were; `remove_curtains` then lets
-trim.retrim peel the slivers and bowties the holes expose, so the result keeps
-trim's guarantees (edge-manifold, no bowtie vertex).
+samples). Holes are left where curtains were; the trim then peels the slivers and bowties
+the holes expose (trim.retrim_run), so the result keeps trim's guarantees (edge-manifold,
+no bowtie vertex).
+
+Like the trim, the rule is a function of a tile (`curtain_cuts`, trim.TrimTile) given the
+noise floor, and `remove_curtain_run` runs it and the re-trim over a trim.TrimRun's tiles:
+the in-memory fit's one (`remove_curtains`) or a survey's (c1mesh.survey.trim_runs).
 
 The first three rules take e3 as a view ray: they find what a scanner looking along e3
 cannot have seen as a graph. Aerial LiDAR ground (LAS/LAZ points of the bare-earth classes
@@ -47,6 +51,7 @@ long_edge, sliver and bowtie rules.
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -55,7 +60,8 @@ from c1mesh.core.tile import Tile
 from c1mesh.stages import _curtains as kernel
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
 from c1mesh.stages.limiter import floor_summary, reduce_floor, residual_sizes, trapezoid_residuals
-from c1mesh.stages.trim import TrimmedMesh, retrim, used_points
+from c1mesh.stages.trim import (MIN_CIRCLE_RATIO, Cuts, OneTile, Thin, TrimmedMesh, TrimRun, TrimTile,
+                                retrim_run, used_points)
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
@@ -94,7 +100,7 @@ def curtain_triangles(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, tria
     (stages/_curtains.pyx) over blocks of KERNEL_BLOCK triangles in the thread knob's threads.
     view_rules=False: the masks of VIEW_REASONS are all False (view_rules_apply).
     """
-    if floor is None:                  # a tile passes the survey's (c1mesh.survey.tiled_trim)
+    if floor is None:                  # a tile passes the survey's (c1mesh.survey.trim_runs)
         floor = noise_floor(xy, z, gradients, triangles)
     return _curtain_masks(point_rows(xy, z, gradients), triangles, shadow_angle, grazing_angle, floor, view_rules)
 
@@ -155,35 +161,54 @@ def _live_noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh
                                                 mesh.live_edge_mask()),))
 
 
+def curtain_cuts(tile: TrimTile, floor: float, view_rules: bool = True) -> tuple[Cuts, dict[str, int]]:
+    """The tile's own live triangles that are curtains (curtain_triangles with the noise
+    floor `floor`, the survey's; view_rules: view_rules_apply), tile.points the rows of
+    `point_rows`: (trim.Cuts, the count by reason)."""
+    masks = _curtain_masks(tile.points, tile.source, SHADOW_ANGLE, GRAZING_ANGLE, floor, view_rules,
+                           alive=tile.own_live())
+    cut = np.logical_or.reduce([masks[reason] for reason in REASONS])
+    return tile.cuts(np.flatnonzero(cut)), {reason: int(masks[reason].sum()) for reason in REASONS}
+
+
+def remove_curtain_run(run: TrimRun, floor: float, view_rules: bool = True, thin: Thin | None = None,
+                       min_ratio: float = MIN_CIRCLE_RATIO) -> tuple[dict[str, int], dict[str, int]]:
+    """The curtains of the run's tiles (curtain_cuts, noise floor `floor`) and the slivers
+    and bowties their holes expose (trim.retrim_run; thin: the run's trim.Thin, None: taken
+    after the curtains) removed: (curtains by reason, {"sliver", "bowtie"})."""
+    found = run.map(partial(curtain_cuts, floor=floor, view_rules=view_rules))
+    counts = {reason: sum(count[reason] for _, count in found) for reason in REASONS}
+    return counts, retrim_run(run, Cuts.join([cuts for cuts, _ in found]), min_ratio, thin)
+
+
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles,
                     trim_report, view_rules: bool = True):
     """Triangles without curtains, and the trim report (trim.TrimReport) with the curtains
     counted by reason in its "removed" (and the slivers and bowties the holes exposed added
-    to trim's own counts).
+    to trim's own counts): remove_curtain_run on the in-memory fit's one tile.
 
     triangles: the trimmed triangulation, as trim.trim's (T, 3) array or trim.trim_mesh's
     TrimmedMesh (then a TrimmedMesh is returned, and its edges serve the noise floor: no
     sort), so that a triangle trim removes as too long or thin is counted there, not here.
-    The holes are then re-trimmed where they are (trim.retrim), not the whole mesh again.
+    The holes are then re-trimmed where they are (trim.retrim_run), not the whole mesh again.
     """
     mesh = triangles if isinstance(triangles, TrimmedMesh) else None
     rows = point_rows(xy, z, gradients)
     if mesh is None:
-        masks = _curtain_masks(rows, triangles, SHADOW_ANGLE, GRAZING_ANGLE,
-                               noise_floor(xy, z, gradients, triangles), view_rules)
+        tri = np.ascontiguousarray(triangles, dtype=np.int64)
+        floor = noise_floor(xy, z, gradients, triangles)
+        tile = TrimTile(tri, np.ones(tri.shape[0], dtype=bool), xy.shape[0], rows)
     else:              # over the trimmed triangulation, its removed triangles skipped: no copies
-        masks = _curtain_masks(rows, mesh.source, SHADOW_ANGLE, GRAZING_ANGLE,
-                               _live_noise_floor(xy, z, gradients, mesh), view_rules, alive=mesh.alive)
-    curtain = np.logical_or.reduce([masks[reason] for reason in REASONS])
+        floor = _live_noise_floor(xy, z, gradients, mesh)
+        tile = mesh.tile(rows)
+    curtains, cleanup = remove_curtain_run(OneTile(tile), floor, view_rules)
     removed = dict(trim_report.removed)
-    removed.update({reason: int(masks[reason].sum()) for reason in REASONS})
-    if not curtain.any():
+    removed.update(curtains)
+    if not any(curtains.values()):
         return triangles, replace(trim_report, removed=removed)
-    whole = TrimmedMesh.of(xy, triangles) if mesh is None else mesh
-    whole, cleanup = retrim(whole, np.flatnonzero(curtain))     # indices into whole.source
     for reason, count in cleanup.items():
         removed[reason] = removed.get(reason, 0) + count
-    used = used_points(whole.source, whole.alive, xy.shape[0])
-    return whole if mesh is not None else whole.triangles, replace(
-        trim_report, triangles_after=int(np.count_nonzero(whole.alive)), removed=removed,
-        unreferenced_points=int(xy.shape[0] - used))
+    used = used_points(tile.source, tile.alive, xy.shape[0])
+    kept = mesh.with_alive(tile.alive) if mesh is not None else np.compress(tile.alive, tile.source, axis=0)
+    return kept, replace(trim_report, triangles_after=int(np.count_nonzero(tile.alive)), removed=removed,
+                         unreferenced_points=int(xy.shape[0] - used))

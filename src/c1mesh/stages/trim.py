@@ -3,12 +3,37 @@
 `trim` removes triangles that bridge gaps (any edge longer than `max_edge`) and then peels
 thin triangles ("slivers") off the boundary, because the spline divides by quantities that
 vanish as triangles flatten; fans that touch the rest at one vertex ("bowties") go too.
-The memory-bounded survey fit runs the same rules per tile (c1mesh.survey.tiled_trim).
+
+The sliver and bow-tie rules are written once, as functions of a tile (`TrimTile`: the
+triangles a tile holds, its vertices' survey numbers and which lie in its cell), and run
+over the tiles of a `TrimRun`: the in-memory fit's one tile (`OneTile`, every vertex its
+own) or a survey's (c1mesh.survey.trim_runs), so both remove the same triangles.
+
+- which triangles are thin: per tile, `thin_triangles`, its own thin triangles (lowest
+  corner in its cell) with whether each lies on the boundary: the summary;
+- the peel: it removes every connected set of live thin triangles (joined through shared
+  edges) that holds a triangle on the boundary (at first) or beside one removed since
+  (later). Such a set may cross any number of tiles, so it is decided over the joined
+  summaries (`peeled`, the reduce). Thin triangles are rare in a Delaunay triangulation
+  (219 of 1M on synthetic terrain, 28 of 50k on Autzen ground), so their list fits in
+  memory (`Thin`);
+- bow-ties: per tile, `bowtie_cuts` at the vertices in its cell, whose whole star the
+  tile holds; the fan kept is chosen by point numbers alone, so a tile decides as the
+  whole triangulation does;
+- the loop, `settle`: peel, cut the bow-ties, peel again from the cut fans' neighbours,
+  until no bow-tie is left. A bow-tie can only appear at a corner of a triangle removed
+  since the last look, so later rounds look there only, in the tiles holding them.
+  `trim_run` starts it from the boundary, `retrim_run` from the holes a later rule cut
+  (the curtains: curtains.remove_curtain_run).
+
+Long edges are per tile too, in the triangulation (buffered_delaunay.tile_pass); the
+"auto" max_edge is survey-wide (buffered_delaunay.trimmed_delaunay).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, partial
+from typing import Any, Callable, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -88,10 +113,11 @@ def trim(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None = "au
     """
     pts = as_xy(xy)
     tri = _as_triangles(triangles, pts.shape[0])
-    lengths, neighbours = overlap(lambda: edge_lengths(pts, tri),     # independent
-                                  lambda: triangle_neighbours(tri, pts.shape[0]))
-    alive, report = _trim(pts.shape[0], tri, lengths, neighbours, max_edge, min_circle_ratio)
-    return tri[alive], report
+    topology = overlap(lambda: triangle_neighbours(tri, pts.shape[0]),     # independent
+                       lambda: edge_lengths(pts, tri))
+    tile = TrimTile(tri, np.ones(tri.shape[0], dtype=bool), pts.shape[0], topology=topology)
+    report = _trim(tile, max_edge, min_circle_ratio)
+    return tri[tile.alive], report
 
 
 class TrimmedMesh:
@@ -102,7 +128,7 @@ class TrimmedMesh:
     source (T, 3) int64: the triangulation trimmed; alive (T,) bool: the kept triangles;
     triangles (T', 3): source[alive], in input order and orientation; table, other,
     neighbours: topology.edge_table_sides(source, n_points); lengths (T, 3): edge_lengths
-    of source. `without(drop)` removes more triangles (sharing the rest).
+    of source. `retrim(mesh, drop)` removes more triangles (sharing the rest).
     """
 
     def __init__(self, source: np.ndarray, alive: np.ndarray, table: EdgeTable, other: np.ndarray,
@@ -130,6 +156,12 @@ class TrimmedMesh:
         return TrimmedMesh(self.source, alive, self.table, self.other, self.neighbours,
                            self.lengths, self.n_points)
 
+    def tile(self, points: np.ndarray | None = None) -> "TrimTile":
+        """The in-memory fit's one TrimTile of this mesh: its source, a copy of its alive
+        mask (the rules clear it), its topology; points as TrimTile takes them."""
+        return TrimTile(self.source, self.alive.copy(), self.n_points, points,
+                        topology=(self.neighbours, self.lengths))
+
     def live_edge_mask(self) -> np.ndarray:
         """(E,) bool over table.edges: the edges of the kept triangles."""
         return live_edges(self.table, self.alive, self.other)[1] > 0
@@ -151,9 +183,9 @@ def trim_mesh(xy: ArrayLike, triangles: ArrayLike, max_edge: str | float | None 
     Its edge table comes from the same sort as its neighbours, so a fit numbers the edges
     once (a non-manifold input raises InputError from topology.edge_table instead)."""
     mesh = TrimmedMesh.of(xy, triangles)
-    alive, report = _trim(mesh.n_points, mesh.source, mesh.lengths, mesh.neighbours, max_edge,
-                          min_circle_ratio)
-    return mesh.with_alive(alive), report
+    tile = mesh.tile()
+    report = _trim(tile, max_edge, min_circle_ratio)
+    return mesh.with_alive(tile.alive), report
 
 
 def trim_again(mesh: TrimmedMesh, max_edge: str | float | None,
@@ -161,100 +193,358 @@ def trim_again(mesh: TrimmedMesh, max_edge: str | float | None,
     """trim_mesh of the triangulation `mesh` was cut from (mesh.source) with another
     max_edge, reusing its edge lengths and neighbours (no second edge sort): a DEM's fill
     (c1mesh.pipeline.driver.filled_mesh) trims it again without max_edge."""
-    alive, report = _trim(mesh.n_points, mesh.source, mesh.lengths, mesh.neighbours, max_edge,
-                          min_circle_ratio)
-    return mesh.with_alive(alive), report
+    tile = mesh.with_alive(np.ones(mesh.source.shape[0], dtype=bool)).tile()
+    report = _trim(tile, max_edge, min_circle_ratio)
+    return mesh.with_alive(tile.alive), report
 
 
 def retrim(mesh: TrimmedMesh, drop: np.ndarray, min_circle_ratio: float = MIN_CIRCLE_RATIO
            ) -> tuple[TrimmedMesh, dict[str, int]]:
     """The mesh without the live triangles ``drop`` (indices into mesh.source), and without
-    the slivers and bowties their holes expose; and {"long_edge": 0, "sliver", "bowtie"}.
+    the slivers and bowties their holes expose (`retrim_run` on its one tile); and
+    {"long_edge": 0, "sliver", "bowtie"}.
 
     The same as trim(xy, mesh.triangles minus drop, max_edge=None) for a mesh that trim
-    left (no thin triangle on its boundary, no bowtie vertex): only the triangles beside
-    the holes can be newly on the boundary, and only vertices of removed triangles can
-    become bowties, so peeling starts beside the holes and bowties are looked for there.
+    left (no thin triangle on its boundary, no bowtie vertex).
     """
-    alive = mesh.alive.copy()
-    alive[drop] = False
-    at = np.zeros(mesh.n_points, dtype=bool)
-    at[mesh.source[drop].ravel()] = True
-    thin = _Thin(mesh.lengths, min_circle_ratio)
-    sliver, bowtie = _peel_and_cut(mesh.source, alive, mesh.neighbours, thin,
-                                   mesh.neighbours[drop].ravel(), at)
-    return mesh.with_alive(alive), {"long_edge": 0, "sliver": sliver, "bowtie": bowtie}
+    run = OneTile(mesh.tile())
+    counts = retrim_run(run, run.tile.cuts(np.asarray(drop, dtype=np.int64)), min_circle_ratio)
+    return mesh.with_alive(run.tile.alive), {"long_edge": 0, **counts}
 
 
-def _trim(n_points: int, tri: np.ndarray, lengths: np.ndarray, neighbours: np.ndarray, max_edge,
-          min_circle_ratio: float) -> tuple[np.ndarray, TrimReport]:
-    """`trim` given the edge lengths and neighbours: (alive (T,) bool, report)."""
-    limit = _edge_limit(lengths, neighbours, max_edge)
+def _trim(tile: "TrimTile", max_edge, min_circle_ratio: float) -> TrimReport:
+    """`trim` of the in-memory fit's one tile, all of whose triangles are alive: the long
+    edges cleared from tile.alive, then `trim_run`; the report."""
+    limit = _edge_limit(tile.lengths, tile.neighbours, max_edge)
     if not 0.0 <= min_circle_ratio <= 1.0:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
-
-    alive = np.ones(tri.shape[0], dtype=bool)
+    alive = tile.alive
     if limit is not None:
         for k in range(3):
-            alive &= ~(lengths[:, k] > limit)
+            alive &= ~(tile.lengths[:, k] > limit)
     long_edge = int((~alive).sum())
-    thin = _Thin(lengths, min_circle_ratio)
-    front = np.flatnonzero(alive & _on_boundary(alive, neighbours))
-    front = front[thin[front]]
-    sliver, bowtie = _peel_and_cut(tri, alive, neighbours, thin, front)
-    report = TrimReport(triangles_before=int(tri.shape[0]), triangles_after=int(np.count_nonzero(alive)),
-                        removed={"long_edge": long_edge, "sliver": sliver, "bowtie": bowtie},
-                        max_edge=limit, unreferenced_points=n_points - used_points(tri, alive, n_points))
-    return alive, report
+    _, counts = trim_run(OneTile(tile), min_circle_ratio)
+    return TrimReport(triangles_before=int(alive.shape[0]), triangles_after=int(np.count_nonzero(alive)),
+                      removed={"long_edge": long_edge, **counts}, max_edge=limit,
+                      unreferenced_points=tile.size - used_points(tile.source, alive, tile.size))
 
 
-def _peel_and_cut(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray, thin: "_Thin",
-                  front: np.ndarray, at: np.ndarray | None = None) -> tuple[int, int]:
-    """Peel thin boundary triangles from `front` and cut bowtie fans until neither is left;
-    returns (slivers, bowtie triangles) removed. at: (n,) bool vertices whose stars may
-    have changed (None: all), grown by the corners of every triangle removed here."""
+# ---- the rules as functions of a tile, and their loop over a run's tiles -----------------
+
+@dataclass
+class Cuts:
+    """Triangles the trim's tiles found (to remove, or thin): corners (k, 3) int64 survey
+    numbers; tiles (k, 3) int64 the tile whose cell holds each corner; rows (k,) int64 each
+    one's row in the TrimTile that found it (what OneTile removes by: its tile persists;
+    a survey's halos are read again without the removed triangles, so its runs go by
+    corners)."""
+
+    corners: np.ndarray
+    tiles: np.ndarray
+    rows: np.ndarray
+
+    def __len__(self) -> int:
+        return self.rows.shape[0]
+
+    @classmethod
+    def join(cls, parts: list["Cuts"]) -> "Cuts":
+        """The parts, one after the other."""
+        none = np.empty((0, 3), dtype=np.int64)
+        return cls(np.concatenate([none] + [p.corners for p in parts]),
+                   np.concatenate([none] + [p.tiles for p in parts]),
+                   np.concatenate([none[:, 0]] + [p.rows for p in parts]))
+
+    def take(self, index: np.ndarray) -> "Cuts":
+        """The triangles index (k',) of these."""
+        return Cuts(self.corners[index], self.tiles[index], self.rows[index])
+
+    def distinct(self) -> "Cuts":
+        """These without repeats (two tiles may cut one triangle, at two of its corners),
+        in the order of their first rows."""
+        if len(self) < 2:
+            return self
+        _, first = np.unique(np.sort(self.corners, axis=1), axis=0, return_index=True)
+        return self.take(np.sort(first))
+
+    def tile_set(self) -> set[int]:
+        """The tiles holding a corner of these triangles."""
+        return set(np.unique(self.tiles).tolist())
+
+
+@dataclass(frozen=True)
+class Place:
+    """Where a survey's tile lies: numbers (m,) int64 its vertices' survey numbers,
+    ascending; home (m,) int64 the tile whose cell holds each vertex; number: the tile's."""
+
+    numbers: np.ndarray
+    home: np.ndarray
+    number: int
+
+
+class TrimTile:
+    """One tile as the trim's rules see it.
+
+    source (T, 3) int64: the triangles the tile holds, rows into its `size` vertices (a
+    survey's tile: its halo's final triangles, core.tile.Tile.triangles, which hold the
+    whole star of every vertex in its cell); alive (T,) bool: those still in the mesh (a
+    run whose tile persists removes by clearing it, OneTile; a survey's tiles are read
+    without the removed ones). points: (size, 2) x, y, or (size, 5) the rows of
+    curtains.point_rows (x, y, z, gx, gy), which the curtain rule needs; None where
+    neither is needed. place: the tile's Place in a survey (None: the in-memory fit's one
+    tile, tile 0, the rows are the survey numbers and every vertex is its own).
+    topology: (neighbours (T, 3), lengths (T, 3)) as triangle_neighbours and
+    edge_lengths give them, when known (a TrimmedMesh's); else made when first asked.
+    """
+
+    def __init__(self, source: np.ndarray, alive: np.ndarray, size: int, points: np.ndarray | None = None,
+                 place: Place | None = None, topology: tuple[np.ndarray, np.ndarray] | None = None):
+        self.source, self.alive, self.size, self.points, self.place = source, alive, size, points, place
+        if topology is not None:            # instance attributes: the cached properties are not run
+            self.neighbours, self.lengths = topology
+
+    @cached_property
+    def neighbours(self) -> np.ndarray:
+        """(T, 3) the triangle across the edge opposite corner k, or -1."""
+        return triangle_neighbours(self.source, self.size)
+
+    @cached_property
+    def lengths(self) -> np.ndarray:
+        """(T, 3) edge_lengths of source."""
+        return edge_lengths(self.points[:, :2], self.source)
+
+    @property
+    def number(self) -> int:
+        """The tile's number (0: the in-memory fit's one tile)."""
+        return 0 if self.place is None else self.place.number
+
+    def own_live(self) -> np.ndarray:
+        """(T,) bool the live triangles the tile decides: those whose lowest corner lies in
+        its cell (its rows ascend with the survey numbers), each triangle in one tile."""
+        if self.place is None:
+            return self.alive
+        return self.alive & (self.place.home[self.source.min(axis=1)] == self.place.number)
+
+    def at(self, near: Cuts | None) -> np.ndarray | None:
+        """(size,) bool the vertices in the tile's cell that are corners of `near`; near
+        None: every vertex in its cell (None back where that is every vertex)."""
+        if self.place is None:
+            if near is None:
+                return None
+            at = np.zeros(self.size, dtype=bool)
+            at[near.corners.ravel()] = True
+            return at
+        own = self.place.home == self.place.number
+        return own if near is None else own & np.isin(self.place.numbers, near.corners)
+
+    def cuts(self, rows: np.ndarray) -> Cuts:
+        """The triangles rows (k,) of source as Cuts."""
+        corners = self.source[rows]
+        if self.place is None:
+            return Cuts(corners, np.zeros_like(corners), rows)
+        return Cuts(self.place.numbers[corners], self.place.home[corners], rows)
+
+
+class TrimRun(Protocol):
+    """The tiles the trim's loop runs over: OneTile in memory; a survey's
+    (c1mesh.survey.trim_runs.TrimRuns)."""
+
+    def map(self, step: Callable[[TrimTile], Any], tiles: set[int] | None = None) -> list:
+        """[step(tile)] for the tiles (numbers; None: all), in tile order."""
+
+    def remove(self, cuts: Cuts) -> None:
+        """The triangles cuts leave the mesh: later steps do not see them."""
+
+
+class OneTile:
+    """The in-memory fit's TrimRun: one tile, which persists; removing clears its alive."""
+
+    def __init__(self, tile: TrimTile):
+        self.tile = tile
+
+    def map(self, step: Callable[[TrimTile], Any], tiles: set[int] | None = None) -> list:
+        return [step(self.tile)] if tiles is None or self.tile.number in tiles else []
+
+    def remove(self, cuts: Cuts) -> None:
+        self.tile.alive[cuts.rows] = False
+
+
+def thin_triangles(tile: TrimTile, min_ratio: float) -> tuple[Cuts, np.ndarray]:
+    """The summary: the tile's own live thin triangles (circle_ratio below min_ratio) as
+    Cuts, and (k,) bool whether each lies on the boundary (an edge without a live triangle
+    across)."""
+    rows = _thin_rows(tile.lengths, tile.alive, min_ratio)
+    rows = rows[tile.own_live()[rows]]
+    across = tile.neighbours[rows]
+    boundary = ((across < 0) | ~tile.alive[across]).any(axis=1)
+    return tile.cuts(rows), boundary
+
+
+def peeled(triangles: np.ndarray, front: np.ndarray) -> np.ndarray:
+    """The reduce: (k,) bool which of the thin triangles (k, 3) (survey numbers) the peel
+    removes, front (k,) bool those it starts from: the connected sets of them, through
+    shared edges, that hold a front triangle. Over the thin triangles alone, as a thin
+    triangle's other neighbours are never peeled."""
+    k = len(triangles)
+    if not k or not front.any():
+        return np.zeros(k, dtype=bool)
+    corners, local = np.unique(triangles, return_inverse=True)
+    across = triangle_neighbours(local.reshape(-1, 3), len(corners))
+    t, side = np.nonzero(across >= 0)
+    graph = coo_matrix((np.ones(t.size, dtype=np.int8), (t, across[t, side])), shape=(k, k))
+    component = connected_components(graph, directed=False)[1]
+    reached = np.zeros(component.max() + 1, dtype=bool)
+    reached[component[front]] = True
+    return reached[component]
+
+
+def bowtie_cuts(tile: TrimTile, near: Cuts | None = None) -> Cuts:
+    """What remove_bowties cuts at the tile's own vertices that are corners of `near`
+    (None: at all of them), without removing it: every fan but the kept one."""
+    return tile.cuts(remove_bowties(tile.source, tile.alive.copy(), tile.neighbours, tile.at(near)))
+
+
+class Thin:
+    """The thin triangles of a run's tiles, thin_triangles of each joined in tile order
+    (the peel only ever removes those): triangles (Cuts), boundary (k,) bool, and alive
+    (k,) bool those still in the mesh."""
+
+    def __init__(self, triangles: Cuts, boundary: np.ndarray):
+        self.triangles, self.boundary = triangles, boundary
+        self.alive = np.ones(len(triangles), dtype=bool)
+
+    @classmethod
+    def of(cls, run: TrimRun, min_ratio: float) -> "Thin":
+        parts = run.map(partial(thin_triangles, min_ratio=min_ratio))
+        return cls(Cuts.join([part for part, _ in parts]),
+                   np.concatenate([np.zeros(0, dtype=bool)] + [boundary for _, boundary in parts]))
+
+    def peel(self, front: np.ndarray) -> Cuts:
+        """Mark dead and return the live ones `peeled` removes from front (k,) bool."""
+        live = np.flatnonzero(self.alive)
+        gone = live[peeled(self.triangles.corners[live], front[live])]
+        self.alive[gone] = False
+        return self.triangles.take(gone)
+
+    def remove(self, cuts: Cuts) -> None:
+        """Another rule removed cuts: a thin one among them can no longer be peeled."""
+        if len(cuts) and len(self.alive):       # compares only rows sharing a lowest corner with a cut
+            kept = drop_triangles(np.column_stack([self.triangles.corners, np.arange(len(self.alive))]),
+                                  cuts.corners)
+            still = np.zeros(len(self.alive), dtype=bool)
+            still[kept[:, 3]] = True
+            self.alive &= still
+
+    def next_to(self, cuts: Cuts) -> np.ndarray:
+        """(k,) bool the thin triangles sharing an edge with one of cuts."""
+        return touching(self.triangles.corners, cuts.corners)
+
+
+def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tuple[int, int]:
+    """trim's loop over the run's tiles: peel the live thin components that hold a `front`
+    (k,) bool triangle, cut the bow-ties, peel again from the cut fans' neighbours, until
+    no bow-tie is left; returns (slivers, bow-tie triangles) removed. near: the triangles
+    removed since the tiles were last looked at for bow-ties, whose corners are the only
+    places one can appear (None: look everywhere)."""
     sliver = bowtie = 0
     while True:
-        peeled = peel(alive, neighbours, thin, front)
-        sliver += peeled.size
-        if at is not None:
-            at[tri[peeled].ravel()] = True
-        cut = remove_bowties(tri, alive, neighbours, at)
-        if cut.size == 0:
+        gone = thin.peel(front)
+        sliver += len(gone)
+        run.remove(gone)
+        if near is not None:
+            near = Cuts.join([near, gone])
+        cut = Cuts.join(run.map(partial(bowtie_cuts, near=near),
+                                None if near is None else near.tile_set())).distinct()
+        if not len(cut):
             return sliver, bowtie
-        bowtie += cut.size
-        if at is not None:
-            at[tri[cut].ravel()] = True
-        front = neighbours[cut].ravel()
+        bowtie += len(cut)
+        run.remove(cut)
+        thin.remove(cut)
+        front, near = thin.next_to(cut), cut
+
+
+def trim_run(run: TrimRun, min_ratio: float) -> tuple[Thin, dict[str, int]]:
+    """The sliver peel and bow-tie removal over the run's tiles, after the long-edge rule:
+    (the run's Thin, {"sliver", "bowtie"} removed)."""
+    thin = Thin.of(run, min_ratio)
+    sliver, bowtie = settle(run, thin, thin.boundary, None)
+    return thin, {"sliver": sliver, "bowtie": bowtie}
+
+
+def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = None) -> dict[str, int]:
+    """Remove the live triangles cuts (another rule's, found by the run's tiles) and the
+    slivers and bow-ties their holes expose: only the thin triangles beside the holes can
+    be newly on the boundary, and only the holes' corners can become bow-ties. thin: the
+    run's Thin from trim_run (None: taken now). Returns {"sliver", "bowtie"} removed."""
+    run.remove(cuts)
+    if not len(cuts):
+        return {"sliver": 0, "bowtie": 0}
+    if thin is None:
+        thin = Thin.of(run, min_ratio)
+    else:
+        thin.remove(cuts)
+    sliver, bowtie = settle(run, thin, thin.next_to(cuts), cuts)
+    return {"sliver": sliver, "bowtie": bowtie}
+
+
+def touching(triangles: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(k,) bool: which of triangles (k, 3) share an edge with one of others (m, 3)
+    (survey numbers)."""
+    if not len(triangles) or not len(others):
+        return np.zeros(len(triangles), dtype=bool)
+    n = int(max(triangles.max(), others.max())) + 1
+
+    def keys(t):
+        return [np.minimum(t[:, a], t[:, b]) * n + np.maximum(t[:, a], t[:, b]) for a, b in ((0, 1), (1, 2), (2, 0))]
+    theirs = np.concatenate(keys(others))
+    return np.logical_or.reduce([np.isin(k, theirs) for k in keys(triangles)])
+
+
+def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
+    """The rows of triangles (T, >= 3) whose first three entries are not, as a set of
+    corners, a row of removed (R, 3, few): only rows sharing a removed triangle's lowest
+    corner are compared."""
+    if not len(removed) or not len(triangles):
+        return triangles
+    corners = triangles[:, :columns]
+    lowest = corners.min(axis=1)
+    removed_lowest = removed.min(axis=1)
+    candidates = np.flatnonzero(np.isin(lowest, removed_lowest))
+    if not len(candidates):
+        return triangles
+    # Only removed triangles that share a lowest corner with a candidate can match: a
+    # survey's removed list grows with the survey, a halo's share of it does not.
+    near = removed[np.isin(removed_lowest, lowest[candidates])]
+    gone = {tuple(row) for row in np.sort(near, axis=1).tolist()}
+    rows = np.sort(corners[candidates], axis=1).tolist()
+    keep = np.ones(len(triangles), dtype=bool)
+    keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
+    return triangles[keep]
 
 
 def circle_ratio(lengths: np.ndarray) -> np.ndarray:
     """2 r_in / R_circ of triangles with edge lengths (T, 3): 1 for equilateral, 0 if flat.
 
     From Heron: 16 A^2 = P (P-2a)(P-2b)(P-2c) with r = 2A/P, R = abc/4A, so
-    2r/R = (P-2a)(P-2b)(P-2c) / (abc).
+    2r/R = (P-2a)(P-2b)(P-2c) / (abc), clipped to [0, 1] (a point-like triangle, 0/0, is
+    0). The kernel (stages/_trim.pyx) over blocks of KERNEL_BLOCK triangles in the thread
+    knob's threads; `thin_triangles` compares the same arithmetic with min_ratio.
     """
-    a, b, c = lengths[:, 0], lengths[:, 1], lengths[:, 2]
-    p = a + b + c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = (p - 2 * a) * (p - 2 * b) * (p - 2 * c) / (a * b * c)
-    return np.nan_to_num(np.clip(ratio, 0.0, 1.0), nan=0.0)
+    lengths = np.ascontiguousarray(lengths, dtype=np.float64)
+    if lengths.ndim != 2 or lengths.shape[1] != 3:
+        raise InputError(f"edge lengths must have shape (T, 3), got {lengths.shape}")
+    out = np.empty(lengths.shape[0])
+    parallel_blocks(lambda part: kernel.circle_ratios(lengths, out, part.start, part.stop),
+                    lengths.shape[0], KERNEL_BLOCK)
+    return out
 
 
-class _Thin:
-    """thin[idx]: circle_ratio < min_ratio for triangles idx, computed only where asked
-    (peeling looks at boundary triangles only) and remembered."""
-
-    def __init__(self, lengths: np.ndarray, min_ratio: float):
-        self.lengths, self.min_ratio = lengths, min_ratio
-        self.known = np.zeros(lengths.shape[0], dtype=bool)
-        self.value = np.zeros(lengths.shape[0], dtype=bool)
-
-    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
-        new = idx[~self.known[idx]]
-        self.value[new] = circle_ratio(self.lengths[new]) < self.min_ratio
-        self.known[new] = True
-        return self.value[idx]
+def _thin_rows(lengths: np.ndarray, alive: np.ndarray, min_ratio: float) -> np.ndarray:
+    """Ascending indices of the live triangles (alive (T,) bool) whose circle_ratio of
+    edge lengths (T, 3) is below min_ratio (kernel: stages/_trim.pyx; no (T,) ratios)."""
+    rows = np.empty(lengths.shape[0], dtype=np.int64)
+    count = kernel.thin_rows(np.ascontiguousarray(lengths, dtype=np.float64),
+                             np.ascontiguousarray(alive).view(np.uint8), float(min_ratio), rows)
+    return rows[:count].copy()
 
 
 def _as_triangles(triangles: ArrayLike, n: int) -> np.ndarray:
@@ -345,32 +635,6 @@ def _corner_slots(tri: np.ndarray, rows: np.ndarray, marked: np.ndarray) -> tupl
     return t[:count], slot[:count]
 
 
-def _on_boundary(alive: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-    """(T,) True for triangles with an edge that has no live triangle across it."""
-    return np.any((neighbours < 0) | ~alive[neighbours], axis=1)
-
-
-def peel(alive: np.ndarray, neighbours: np.ndarray, thin, front: np.ndarray) -> np.ndarray:
-    """Remove live thin triangles starting from `front`, then their thin live neighbours,
-    repeatedly (a removed triangle exposes its neighbours). Returns the removed triangles.
-
-    alive (T,) bool, changed in place; neighbours (T, 3) as triangle_neighbours gives
-    them; thin: thin[idx] (T,) bool for triangle indices idx; front: the triangles to
-    start from (those not live, thin and on the boundary are skipped). The survey fitted
-    in tiles peels the survey's thin triangles with it (c1mesh.survey.tiled_trim.peeled)."""
-    removed = []
-    front = np.unique(front[front >= 0])
-    front = front[alive[front] & thin[front] & _on_boundary(alive, neighbours[front])] \
-        if front.size else front
-    while front.size:
-        alive[front] = False
-        removed.append(front)
-        nxt = np.unique(neighbours[front].ravel())
-        nxt = nxt[nxt >= 0]
-        front = nxt[alive[nxt] & thin[nxt]]
-    return np.concatenate(removed) if removed else np.zeros(0, dtype=np.int64)
-
-
 def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
                     at: np.ndarray | None = None) -> np.ndarray:
     """Remove all but the largest fan at every bowtie vertex; return the removed triangles.
@@ -379,13 +643,15 @@ def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
     A fan is a set of live triangles around the vertex joined through edges at it. Among
     fans of equal size the one whose smallest triangle (corners sorted, then compared
     lexicographically) comes first is kept: a rule of point numbers alone, so a tile that
-    holds the vertex's star decides as the whole triangulation does (c1mesh.survey.tiled_trim).
+    holds the vertex's star decides as the whole triangulation does (bowtie_cuts).
     at: (n,) bool, the vertices to look at (None: all); a tile passes the vertices whose
     whole star it holds.
     """
     tri = np.ascontiguousarray(tri, dtype=np.int64)
+    if not len(tri):
+        return np.zeros(0, dtype=np.int64)
     neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
-    n = tri.max(initial=0) + 1
+    n = tri.max() + 1
     live = _live_rows(tri, alive, None if at is None else at[:n])
     ends = np.zeros(n, dtype=np.int64)
     kernel.open_ends(tri, alive.view(np.uint8), neighbours, live, ends)

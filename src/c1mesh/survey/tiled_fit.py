@@ -2,7 +2,7 @@
 
     frame (stages.frame.frame_of_chunks), box → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
-    survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.tiled_trim) → the limiter's two noise floors
+    survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.trim_runs) → the limiter's two noise floors
     (two passes: c1mesh.survey.tiled_halo.noise_floors)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → a part file → the parts joined in tile order into one
@@ -15,7 +15,7 @@ spill, hull, the trim's peel and bow-tie rounds, the medians, the join) runs her
 Nothing of the output depends on where the tasks ran.
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.stages.frame.frame_of_chunks,
-tile_spill, tile_normals, buffered_delaunay, tiled_trim, tiled_halo), so the surface
+tile_spill, tile_normals, buffered_delaunay, trim_runs, tiled_halo), so the surface
 equals the in-memory fit of the same points with the same reduced options (below), to
 rounding; nothing depends on the grid. The trim and the limiter run the stage functions
 of c1mesh.stages.trim, .curtains and .limiter on each tile's halo; their module
@@ -32,7 +32,7 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   height_field.height_field survey-wide (height_runs.survey_stacking); the near-duplicate
   merge is not applied;
 - the trim is the in-memory default (long edges, sliver peel, bow-ties, then curtains
-  and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.tiled_trim), so it
+  and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.trim_runs), so it
   is the same, not a reduction;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
   tile by tile with the survey's noise floors (limiter.tile_limits; tiled_halo.TiledLimiter).
@@ -94,7 +94,7 @@ from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles
 from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.tiled_report import TileRows, describe_crs
 from c1mesh.survey.tiled_triangulation import triangulate_tiles
-from c1mesh.survey.tiled_trim import trim_tiles
+from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
                 "refine+write")

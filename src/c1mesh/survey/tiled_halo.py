@@ -1,5 +1,5 @@
 """A tile's halo: the height-field points and final triangles around its cell that the
-survey-wide passes of the memory-bounded fit read (c1mesh.survey.tiled_trim, the
+survey-wide passes of the memory-bounded fit read (c1mesh.survey.trim_runs, the
 limiter), cached once in temporary files (`HaloCache`); the scheduling of the survey's
 noise floors over them (`edge_floor`, `noise_floors`: c1mesh.stages.limiter's summary per
 tile and reduce) and of the limiter's run per tile (`TiledLimiter`).
@@ -33,7 +33,7 @@ import numpy as np
 from c1mesh.core.tile import Tile, compact, tile_rows
 from c1mesh.stages.limiter import NoiseFloors, TileLimits, floor_summary, reduce_floor, tile_limits
 from c1mesh.stages.streamed_median import streamed_median
-from c1mesh.stages.trim import edge_lengths
+from c1mesh.stages.trim import drop_triangles, edge_lengths
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
@@ -170,28 +170,6 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
         xy = np.column_stack([records["x"], records["y"]])
         longest = max(longest, float(edge_lengths(xy, rows).max()))
     return longest
-
-
-def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
-    """The rows of triangles (T, >= 3) whose first three entries are not, as a set of
-    corners, a row of removed (R, 3, few): only rows sharing a removed triangle's lowest
-    corner are compared."""
-    if not len(removed) or not len(triangles):
-        return triangles
-    corners = triangles[:, :columns]
-    lowest = corners.min(axis=1)
-    removed_lowest = removed.min(axis=1)
-    candidates = np.flatnonzero(np.isin(lowest, removed_lowest))
-    if not len(candidates):
-        return triangles
-    # Only removed triangles that share a lowest corner with a candidate can match: a
-    # survey's removed list grows with the survey, a halo's share of it does not.
-    near = removed[np.isin(removed_lowest, lowest[candidates])]
-    gone = {tuple(row) for row in np.sort(near, axis=1).tolist()}
-    rows = np.sort(corners[candidates], axis=1).tolist()
-    keep = np.ones(len(triangles), dtype=bool)
-    keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
-    return triangles[keep]
 
 
 def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,

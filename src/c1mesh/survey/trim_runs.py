@@ -1,0 +1,79 @@
+"""The fit's trim stage on a survey fitted in tiles: the scheduling of the rules of
+c1mesh.stages.trim (sliver peel, bow-ties) and c1mesh.stages.curtains over the survey's
+halos, as pipeline.build_surface runs them on its one tile, with the same result
+(tests/test_tiled_fit.py). The rules, the peel's reduce and the loop are the stages';
+what is here is which halo a tile step reads, where the removed triangles go, and the
+tiles' triangle files rewritten without them.
+
+A tile's halo (tiled_halo.HaloCache: its cell grown by 4 longest final edges) holds both
+triangles of every edge of its own triangles and the whole star of every vertex in its
+cell, which is what its steps read: its thin triangles with their boundary flags, its
+bow-tie fans, its curtains. The long edges are gone already (buffered_delaunay.tile_pass;
+an "auto" max_edge is survey-wide, c1mesh.survey.tiled_triangulation), and the curtains'
+noise floor is found survey-wide by tiled_halo.edge_floor.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from c1mesh.core.threads import map_in_threads
+from c1mesh.stages.curtains import point_rows, remove_curtain_run
+from c1mesh.stages.trim import MIN_CIRCLE_RATIO, Cuts, Place, TrimTile, drop_triangles, trim_run
+from c1mesh.survey.tiled_halo import edge_floor
+
+
+class TrimRuns:
+    """A survey's tiles as the trim's TrimRun: each step reads its tile's halo from the
+    cache (halos: tiled_halo.HaloCache, which drops the removed triangles as it loads a
+    halo), in the thread knob's threads, results in tile order; removed triangles are kept
+    by the tile that owns them (the tile of their lowest-numbered corner) in halos.removed.
+    grid: the buffered_delaunay.TileGrid."""
+
+    def __init__(self, halos, grid):
+        self.halos, self.grid = halos, grid
+
+    def map(self, step: Callable[[TrimTile], Any], tiles: set[int] | None = None) -> list:
+        chosen = self.halos.tiles() if tiles is None else sorted(set(tiles) & set(self.halos.tiles()))
+        return map_in_threads(lambda t: step(self.tile(t)), chosen)
+
+    def tile(self, t: int) -> TrimTile:
+        """Tile t's halo as a TrimTile, every triangle alive, with its point rows."""
+        halo = self.halos.halo(t)
+        points = halo.points
+        place = Place(halo.records["index"], self.grid.tile_of(points), t)
+        return TrimTile(halo.triangles, np.ones(len(halo.triangles), dtype=bool), len(halo.records),
+                        point_rows(points, halo.values, halo.gradients), place)
+
+    def remove(self, cuts: Cuts) -> None:
+        owners = cuts.tiles[np.arange(len(cuts)), np.argmin(cuts.corners, axis=1)]
+        order = np.argsort(owners, kind="stable")
+        tile_numbers, starts = np.unique(owners[order], return_index=True)
+        for t, group in zip(tile_numbers.tolist(), np.split(cuts.corners[order], starts[1:])):
+            earlier = self.halos.removed.get(t)
+            self.halos.removed[t] = group if earlier is None else np.concatenate([earlier, group])
+
+    def write_files(self) -> None:
+        """Drop the removed triangles from their owners' triangle files and the cached halos."""
+        for t, removed in self.halos.removed.items():
+            triangles = np.load(self.halos.files[t])
+            with open(self.halos.files[t], "wb") as file:
+                np.save(file, drop_triangles(triangles, removed))
+        self.halos.prune()
+
+
+def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
+    """The in-memory default trim after the long-edge rule, over the tiles: trim.trim_run
+    (slivers, bow-ties), then curtains.remove_curtain_run with the survey's noise floor,
+    as pipeline.build_surface runs them. halos: the tiled_halo.HaloCache; grid: the
+    buffered_delaunay.TileGrid; temps: tiled_input.Temps; view_rules:
+    curtains.view_rules_apply. The removed triangles leave their tiles' files. Returns the
+    removed counts by reason (as TrimReport.removed)."""
+    run = TrimRuns(halos, grid)
+    thin, counts = trim_run(run, MIN_CIRCLE_RATIO)
+    floor = edge_floor(halos, temps, "residuals-curtains")
+    curtains, cleanup = remove_curtain_run(run, floor, view_rules, thin)
+    run.write_files()
+    return {"sliver": counts["sliver"] + cleanup["sliver"], "bowtie": counts["bowtie"] + cleanup["bowtie"],
+            **curtains}

@@ -1,0 +1,226 @@
+"""The trim's rules (slivers, bow-ties) as tile functions and their loop (c1mesh.stages.trim),
+against a brute-force trim written from the rules' definitions in plain Python: on one tile
+(the in-memory trim, trim_mesh, retrim) and on many (a TrimRun over a grid of cells)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages import trim as trim_stage
+from c1mesh.stages.trim import (Cuts, Place, TrimTile, circle_ratio, retrim, retrim_run, trim, trim_mesh,
+                                trim_run)
+
+
+def _ratio(xy, t):
+    """2 r_in / R_circ of triangle t, from its area (a cross product): 16 A^2 / (P abc)."""
+    (ax, ay), (bx, by), (cx, cy) = (xy[v] for v in t)
+    sides = [math.hypot(bx - cx, by - cy), math.hypot(cx - ax, cy - ay), math.hypot(ax - bx, ay - by)]
+    area = abs((bx - ax) * (cy - ay) - (by - ay) * (cx - ax)) / 2
+    product = sides[0] * sides[1] * sides[2]
+    return 0.0 if product == 0 else 16 * area ** 2 / (sum(sides) * product)
+
+
+def _edges(t):
+    return [frozenset((t[0], t[1])), frozenset((t[1], t[2])), frozenset((t[2], t[0]))]
+
+
+def _brute_settle(tri, alive, thin):
+    """trim's definition, round by round on sets: peel live thin triangles with an edge no
+    other live triangle has until none is left; then at every vertex where the live
+    triangles form more than one fan (joined through edges at the vertex), keep the
+    largest (ties: the fan holding the least sorted corner triple), all vertices decided
+    on the same mesh; repeat until no fan is cut. alive: set of triangle indices, changed
+    in place. Returns (slivers, bow-tie triangles) removed, and the slivers peeled after a
+    bow-tie cut."""
+    sliver = bowtie = 0
+    later = None
+    while True:
+        while True:
+            count = {}
+            for t in alive:
+                for e in _edges(tri[t]):
+                    count[e] = count.get(e, 0) + 1
+            gone = {t for t in alive if thin[t] and any(count[e] == 1 for e in _edges(tri[t]))}
+            if not gone:
+                break
+            alive -= gone
+            sliver += len(gone)
+        around = {}
+        for t in alive:
+            for v in tri[t]:
+                around.setdefault(v, []).append(t)
+        cut = set()
+        for v, ts in around.items():
+            fans, left = [], set(ts)
+            while left:
+                fan, stack = set(), [left.pop()]
+                while stack:
+                    t = stack.pop()
+                    fan.add(t)
+                    for u in list(left):
+                        if len(set(tri[t]) & set(tri[u])) == 2:        # an edge, and v is on it
+                            left.discard(u)
+                            stack.append(u)
+                fans.append(fan)
+            if len(fans) > 1:
+                best = min(fans, key=lambda f: (-len(f), min(tuple(sorted(tri[t])) for t in f)))
+                cut |= set().union(*(f for f in fans if f is not best))
+        if not cut:
+            return sliver, bowtie, 0 if later is None else sliver - later
+        later = sliver if later is None else later
+        alive -= cut
+        bowtie += len(cut)
+
+
+def _brute_trim(xy, tri, max_edge, min_ratio):
+    """(kept (T,) bool, removed counts) of trim by its definition."""
+    tri = [tuple(t) for t in tri.tolist()]
+    pts = [tuple(p) for p in xy.tolist()]
+    longest = [max(math.hypot(pts[a][0] - pts[b][0], pts[a][1] - pts[b][1]) for a, b in ((t[0], t[1]), (t[1], t[2]),
+                                                                                      (t[2], t[0]))) for t in tri]
+    alive = {t for t in range(len(tri)) if max_edge is None or longest[t] <= max_edge}
+    thin = [_ratio(pts, t) < min_ratio for t in tri]
+    ambiguous = [abs(_ratio(pts, t) - min_ratio) < 1e-9 * min_ratio for t in tri]
+    assert not any(ambiguous)                  # rounding cannot decide a sliver here
+    long_edge = len(tri) - len(alive)
+    sliver, bowtie, later = _brute_settle(tri, alive, thin)
+    kept = np.zeros(len(tri), dtype=bool)
+    kept[list(alive)] = True
+    return kept, {"long_edge": long_edge, "sliver": sliver, "bowtie": bowtie}, later
+
+
+def _mesh(seed):
+    """Random points with near-collinear runs (hull slivers), a max_edge that cuts holes
+    (bow-ties where holes meet) and a min_circle_ratio up to 0.55, at which many
+    triangles are thin (the rules do not rely on thin triangles being rare):
+    (xy, triangles, max_edge, min_ratio)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.random((200, 2))
+    xy[:25, 1] = 0.3 + 1e-4 * rng.random(25)
+    xy[25:40, 0] = 0.97 + 2e-4 * rng.random(15)
+    tri = delaunay(xy)
+    lengths = trim_stage.edge_lengths(xy, tri).max(axis=1)
+    return xy, tri, float(np.quantile(lengths, (0.6, 0.7, 0.8, 0.9, 0.97)[seed % 5])), (0.01, 0.3, 0.45, 0.55)[seed % 4]
+
+
+SEEDS = range(20)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_trim_is_the_brute_force_trim(seed):
+    xy, tri, max_edge, min_ratio = _mesh(seed)
+    kept, removed, _ = _brute_trim(xy, tri, max_edge, min_ratio)
+    ours, report = trim(xy, tri, max_edge=max_edge, min_circle_ratio=min_ratio)
+    assert np.array_equal(ours, tri[kept]) and report.removed == removed
+    mesh, mesh_report = trim_mesh(xy, tri, max_edge=max_edge, min_circle_ratio=min_ratio)
+    assert np.array_equal(mesh.alive, kept) and mesh_report == report
+
+
+def test_the_brute_force_cases_exercise_every_rule():
+    """Hundreds of long-edge, sliver and bow-tie triangles, and slivers that only a bow-tie
+    cut exposes (a second round of the loop)."""
+    totals = {"long_edge": 0, "sliver": 0, "bowtie": 0}
+    again = 0
+    for seed in SEEDS:
+        _, removed, later = _brute_trim(*_mesh(seed))
+        totals = {k: totals[k] + removed[k] for k in totals}
+        again += later > 0
+    assert min(totals.values()) > 100 and again >= 3
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_retrim_is_the_brute_force_trim_of_what_the_holes_left(seed):
+    xy, tri, max_edge, min_ratio = _mesh(seed)
+    mesh, _ = trim_mesh(xy, tri, max_edge=max_edge, min_circle_ratio=min_ratio)
+    rng = np.random.default_rng(100 + seed)
+    drop = np.flatnonzero(mesh.alive)[rng.random(int(mesh.alive.sum())) < 0.1]
+    after, counts = retrim(mesh, drop, min_ratio)
+    alive = set(np.flatnonzero(mesh.alive).tolist()) - set(drop.tolist())
+    triangles = [tuple(t) for t in tri.tolist()]
+    sliver, bowtie, _ = _brute_settle(triangles, alive, [_ratio(xy.tolist(), t) < min_ratio for t in triangles])
+    assert set(np.flatnonzero(after.alive).tolist()) == alive
+    assert counts == {"long_edge": 0, "sliver": sliver, "bowtie": bowtie}
+
+
+class _Cells:
+    """A TrimRun over side x side cells of a mesh held in memory: each step reads its
+    tile afresh (the live triangles over the vertices they use, renumbered in ascending
+    order, as a halo's rows are), owning the vertices in its cell; removed triangles are
+    found by their corners."""
+
+    def __init__(self, xy, tri, alive, side):
+        self.xy, self.tri, self.alive, self.side = xy, tri, alive, side
+        cell = np.minimum((xy * side).astype(np.int64), side - 1)
+        self.home = cell[:, 0] + side * cell[:, 1]
+        self.row = {tuple(sorted(t)): i for i, t in enumerate(tri.tolist())}
+        self.steps = []
+
+    def map(self, step, tiles=None):
+        chosen = range(self.side ** 2) if tiles is None else sorted(tiles)
+        self.steps.append(len(chosen))
+        return [step(self.tile(t)) for t in chosen]
+
+    def tile(self, t):
+        live = self.tri[self.alive]
+        used = np.unique(live)
+        local = np.searchsorted(used, live)
+        return TrimTile(local, np.ones(len(local), dtype=bool), len(used), self.xy[used],
+                        Place(used, self.home[used], t))
+
+    def remove(self, cuts):
+        for corners in cuts.corners.tolist():
+            self.alive[self.row[tuple(sorted(corners))]] = False
+
+
+@pytest.mark.parametrize("side", [1, 3, 5])
+def test_the_trim_over_tiles_is_the_brute_force_trim(side):
+    """trim_run and retrim_run over a grid of cells (each thin triangle listed by the
+    cell of its lowest corner, each bow-tie decided by its vertex's cell) remove what the
+    brute force does; later bow-tie rounds look at the cells of the removed corners only."""
+    fewer = 0
+    for seed in SEEDS:
+        xy, tri, max_edge, min_ratio = _mesh(seed)
+        kept, removed, _ = _brute_trim(xy, tri, max_edge, min_ratio)
+        alive = trim_stage.edge_lengths(xy, tri).max(axis=1) <= max_edge
+        run = _Cells(xy, tri, alive, side)
+        thin, counts = trim_run(run, min_ratio)
+        assert np.array_equal(run.alive, kept) and counts == {k: removed[k] for k in ("sliver", "bowtie")}
+        assert len(np.unique(np.sort(thin.triangles.corners, axis=1), axis=0)) == len(thin.alive)
+        fewer += min(run.steps) < side ** 2
+        cut = np.flatnonzero(run.alive)[np.random.default_rng(seed).random(int(run.alive.sum())) < 0.1]
+        triangles = [tuple(t) for t in tri.tolist()]
+        expected = set(np.flatnonzero(run.alive).tolist()) - set(cut.tolist())
+        sliver, bowtie, _ = _brute_settle(triangles, expected, [_ratio(xy.tolist(), t) < min_ratio
+                                                                for t in triangles])
+        cuts = Cuts(tri[cut], run.home[tri[cut]], cut)
+        assert retrim_run(run, cuts, min_ratio, thin) == {"sliver": sliver, "bowtie": bowtie}
+        assert set(np.flatnonzero(run.alive).tolist()) == expected
+    assert side == 1 or fewer > 10
+
+
+def _numpy_circle_ratio(lengths):
+    """circle_ratio as numpy expressions: (p-2a)(p-2b)(p-2c) / (abc), clipped, NaN as 0."""
+    a, b, c = lengths[:, 0], lengths[:, 1], lengths[:, 2]
+    p = a + b + c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (p - 2 * a) * (p - 2 * b) * (p - 2 * c) / (a * b * c)
+    return np.nan_to_num(np.clip(ratio, 0.0, 1.0), nan=0.0)
+
+
+def test_circle_ratio_and_thin_rows_are_the_numpy_expression_to_the_bit():
+    rng = np.random.default_rng(3)
+    xy = rng.random((3000, 2))
+    xy[:500, 1] = 0.5 + 1e-6 * rng.random(500)
+    tri = delaunay(xy)
+    lengths = np.vstack([trim_stage.edge_lengths(xy, tri),
+                         [[0, 0, 0], [0, 1, 1], [1, 1, 2], [1, 1, 3], [np.inf, 1, 1], [1e-300, 1e-300, 1e-300]]])
+    want = _numpy_circle_ratio(lengths)
+    assert np.array_equal(circle_ratio(lengths), want)
+    alive = rng.random(len(lengths)) < 0.7
+    for min_ratio in (0.0, 0.01, 0.3, 1.0):
+        rows = trim_stage._thin_rows(lengths, alive, min_ratio)
+        assert np.array_equal(rows, np.flatnonzero(alive & (want < min_ratio)))
+    assert 50 < len(trim_stage._thin_rows(lengths, alive, 0.01)) < len(lengths) // 10
