@@ -213,14 +213,14 @@ def _terrain_las(path: Path, n: int, seed: int = 0) -> None:
 
 
 def _count_refined_tiles(monkeypatch) -> list:
-    import c1mesh.survey.tiled_refine as tiled_refine
+    import c1mesh.survey.refine_runs as refine_runs
 
-    calls, real = [], tiled_refine._refine_tile
+    calls, real = [], refine_runs._refine_tile
 
     def counted(job, t, part):
         calls.append(t)
         return real(job, t, part)
-    monkeypatch.setattr(tiled_refine, "_refine_tile", counted)
+    monkeypatch.setattr(refine_runs, "_refine_tile", counted)
     return calls
 
 
@@ -244,11 +244,11 @@ def test_tiled_fit_stops_at_the_first_tile_past_the_limit(tmp_path, monkeypatch)
     checked tile by tile: with a limit of 1000 vertices the fit stops after its first tile
     (each holds ~3000 level-1 vertices), exit 1, nothing left."""
     import c1mesh.formats as formats
-    import c1mesh.survey.tiled_fit as tiled_fit
+    import c1mesh.pipeline.bounded_fit as bounded_fit
 
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12_000, seed=5)
-    monkeypatch.setattr(tiled_fit, "_check_size", lambda *args: None)
+    monkeypatch.setattr(bounded_fit, "_check_size", lambda *args: None)
     monkeypatch.setitem(formats._SIZE_LIMITS, "ply",
                         lambda size: f"PLY test limit: {size.vertex_count:,} vertices" if size.vertex_count > 1000
                         else None)

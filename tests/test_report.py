@@ -61,7 +61,7 @@ def _seamless_split(tmp_path):
 
 def _tiled(tmp_path):
     source = tmp_path / "terrain.las"
-    write_terrain_las(source, 24000)      # 4 tiles of >= 10000 points (tiled_fit)
+    write_terrain_las(source, 24000)      # 4 tiles of >= 10000 points (bounded_fit)
     return _report(tmp_path, [source, "--classes", "2", "-o", tmp_path / "tiled.ply", "--level", "2",
                               "--memory", "1M"], "tiled")
 

@@ -1,4 +1,4 @@
-"""The tiled fit (c1mesh.survey.tiled_fit) against the in-memory fit of the same points.
+"""The tiled fit (c1mesh.pipeline.bounded_fit) against the in-memory fit of the same points.
 
 Ground truth: the in-memory stages on the whole cloud (estimate_normals, choose_frame,
 height_field, delaunay, the long-edge trim, limiter.control_overshoot or unit-normal
@@ -39,8 +39,8 @@ from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.core.plan import TiledRun
 from c1mesh.pipeline.survey_fit import fit_in_tiles
 from c1mesh.survey.height_runs import HEIGHT
-from c1mesh.survey.tiled_halo import halo_reach, noise_floors, read_halo
-from c1mesh.survey.tiled_plan import fits_in_memory, points_per_tile
+from c1mesh.survey.halos import halo_reach, noise_floors, read_halo
+from c1mesh.survey.sizing import fits_in_memory, points_per_tile
 from c1mesh.stages.trim import drop_triangles, peeled, trim
 from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
@@ -303,7 +303,7 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
 
 
 def test_memory_rule():
-    from c1mesh.survey.tiled_plan import grid_side, tiles_at_once
+    from c1mesh.survey.sizing import grid_side, tiles_at_once
 
     assert grid_side(2_000_000, 10**9) == 4                  # 138,888 points a tile at most
     assert tiles_at_once(2 * 10**9, 8) == 2                   # half the budget to tiles of 1/4 of it
@@ -488,9 +488,9 @@ def _big_las(tmp_path):
 def _every_job_at_once(monkeypatch):
     """Let -j N run N tile tasks at once under the tiny budgets of these tests (the budget's
     own rule, tiles_at_once, is tested in test_memory_rule)."""
-    import c1mesh.survey.tiled_fit as tiled_fit
+    import c1mesh.pipeline.bounded_fit as bounded_fit
 
-    monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
+    monkeypatch.setattr(bounded_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
 
 
 def test_cli_runs_tiles_on_jobs(tmp_path, monkeypatch):
@@ -528,22 +528,22 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     """A tile whose task fails stops the fit with exit 1, one line naming the tile, and
     no output (in this process and on a pool of two)."""
     import c1mesh.survey.height_runs as height_runs
-    import c1mesh.survey.tiled_refine as tiled_refine
+    import c1mesh.survey.refine_runs as refine_runs
 
     _every_job_at_once(monkeypatch)
     source, args = _big_las(tmp_path)
-    real = tiled_refine._refine_tile
+    real = refine_runs._refine_tile
 
     def failing(job, t, part):
         if t == 2:
             raise ValueError("no good")
         return real(job, t, part)
-    monkeypatch.setattr(tiled_refine, "_refine_tile", failing)
+    monkeypatch.setattr(refine_runs, "_refine_tile", failing)
     here = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "1"])
     assert here.exit_code == 1
     assert here.output.startswith(f"c1mesh: error: {source}: tile 2 (cell ") and here.output.endswith(": no good\n")
     assert here.output.count("\n") == 1
-    monkeypatch.setattr(tiled_refine, "_refine_tile", height_runs._position_tile)   # fails on every worker
+    monkeypatch.setattr(refine_runs, "_refine_tile", height_runs._position_tile)   # fails on every worker
     pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "2"])
     assert pool.exit_code == 1 and pool.output.startswith(f"c1mesh: error: {source}: tile ")
     assert "_RefineJob" in pool.output and pool.output.count("\n") == 1

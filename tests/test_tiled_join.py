@@ -2,7 +2,7 @@
 
 - core.tile.tile_rows (a binary search over one halo) against a dense table over the
   survey (the RowMap it replaced: 4 bytes a survey point in every process);
-- tiled_join: the join that forgets a border key once no later tile can meet it must
+- join: the join that forgets a border key once no later tile can meet it must
   number every vertex as the join that keeps every key, on real tile refinements of a
   triangulation with a hole (border keys inside the survey) at levels with edge keys.
 """
@@ -13,7 +13,7 @@ import pytest
 
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.survey.tiled_join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
+from c1mesh.survey.join import KeyExpiry, SharedKeys, border_keys, global_numbers, stored_keys
 from c1mesh.core.tile import tile_rows
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import trim

@@ -143,9 +143,9 @@ def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
 
 
 def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path, monkeypatch):
-    import c1mesh.survey.tiled_fit as tiled_fit
+    import c1mesh.pipeline.bounded_fit as bounded_fit
 
-    monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)  # -j 2 under 1M
+    monkeypatch.setattr(bounded_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)  # -j 2 under 1M
     source = tmp_path / "terrain.las"
     _terrain_las(source, 24000, seed=4)
     args = ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "auto", "--memory", "1M"]
@@ -253,9 +253,9 @@ def test_the_smoothing_fit_has_the_same_bits_on_one_blas_thread_and_on_two():
 
 def test_a_smoothing_fit_is_sized_by_its_own_memory_per_point():
     """The Cholesky factor makes a smoothing fit about 4x the exact fit's memory a point
-    (tiled_plan.SMOOTHING_BYTES_PER_POINT): the same budget tiles it sooner, in smaller tiles."""
+    (sizing.SMOOTHING_BYTES_PER_POINT): the same budget tiles it sooner, in smaller tiles."""
     from c1mesh.core.plan import SurfaceSettings
-    from c1mesh.survey.tiled_plan import (BYTES_PER_POINT, SMOOTHING_BYTES_PER_POINT, fits_in_memory,
+    from c1mesh.survey.sizing import (BYTES_PER_POINT, SMOOTHING_BYTES_PER_POINT, fits_in_memory,
                                           point_bytes, points_per_tile)
 
     exact, smooth = SurfaceSettings(), SurfaceSettings(strength="auto")
@@ -306,7 +306,7 @@ def test_tiled_smoothing_leaves_no_temporary_file(tmp_path, monkeypatch, runner)
     temporary files that only it would know to remove (the .smooth-halo files once did)."""
     import tempfile
 
-    import c1mesh.survey.tiled_fit as tiled_fit
+    import c1mesh.pipeline.bounded_fit as bounded_fit
 
     temporary, out = tmp_path / "tmp", tmp_path / "out"
     temporary.mkdir(), out.mkdir()
@@ -321,7 +321,7 @@ def test_tiled_smoothing_leaves_no_temporary_file(tmp_path, monkeypatch, runner)
                                       dashboard_address=None) as cluster:
             report = fit_in_tiles(source, out / "fit.ply", replace(options, memory=10**9), TiledRun(per_tile=6000, scheduler=cluster.scheduler_address))
     else:
-        monkeypatch.setattr(tiled_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
+        monkeypatch.setattr(bounded_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
         args = ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "10", "--memory", "1M",
                 "--report", str(tmp_path / "r.json")] + (["-j", "2"] if runner == "processes" else [])
         result = CliRunner().invoke(main, args + ["-o", str(out / "fit.ply")])

@@ -137,14 +137,14 @@ _SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one
 def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile=None, scheduler=None) -> dict:
     """Fit one input to one output (a path, or a file object then with options.output_format);
     an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
-    processes (None: tiled_fit's choice, one per thread). An input that fits in memory is
+    processes (None: bounded_fit's choice, one per thread). An input that fits in memory is
     fitted here, and a scheduler given for it is recorded in the report as not used (the
     line c1mesh.cli.messages.note prints)."""
     from c1mesh.pipeline.driver import fit as fit_pipeline
     from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
-    if in_tiles(source, options):          # larger than --memory allows: c1mesh.survey.tiled_fit
+    if in_tiles(source, options):          # larger than --memory allows: c1mesh.pipeline.bounded_fit
         return fit_in_tiles(source, target, options,
                             TiledRun(scheduler=scheduler, jobs=jobs, on_stage=on_stage, on_tile=on_tile))
     report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report

@@ -23,11 +23,11 @@ def caption(bar, text: str) -> None:
 
 def survey_progress(inputs, options, outputs: int):
     """A --seamless fit's progress bar on stderr and the fit_seamless callbacks that move
-    it: for a survey fitted in tiles beyond --memory (c1mesh.survey.tiled_fit), its stages with
+    it: for a survey fitted in tiles beyond --memory (c1mesh.pipeline.bounded_fit), its stages with
     each pass's tile count, as a single large input shows them; in memory, the outputs
     of -O as their tiles are written, or the stages of the one -o fit."""
     from c1mesh.pipeline.driver import STAGES
-    from c1mesh.survey.tiled_fit import TILED_STAGES
+    from c1mesh.pipeline.bounded_fit import TILED_STAGES
     from c1mesh.pipeline.survey_fit import in_tiles
 
     if in_tiles(list(inputs), options):

@@ -245,7 +245,7 @@ def read_las(data: Buffer, name: str, classes=None,
 def no_class_error(classes: list[int], found: set[int], bounded: bool) -> InputError:
     """The error of a read whose points (inside --bounds when bounded) hold none of the
     classification codes `classes`: it lists the codes `found` instead. The tiled fit's
-    reader (c1mesh.survey.tiled_input.las_chunks) raises the same."""
+    reader (c1mesh.survey.inputs.las_chunks) raises the same."""
     return InputError(f"no points of class {list(classes)}; the file has classes {sorted(found)[:20]}"
                       + (" inside the bounds" if bounded else ""))
 

@@ -68,7 +68,7 @@ from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
 from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
-from c1mesh.survey.tiled_plan import fits_in_memory, point_bytes
+from c1mesh.survey.sizing import fits_in_memory, point_bytes
 
 NORMAL_MODES = ("auto", "file", "estimate")
 """The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
@@ -209,7 +209,7 @@ def choose_classes(cloud: PointCloud, options: FitOptions, name: str) -> PointCl
 
 def _check_fit_memory(count: int, options: FitOptions) -> None:
     """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
-    --memory bytes (tiled_plan.point_bytes per point). LAS/LAZ inputs beyond it never get
+    --memory bytes (sizing.point_bytes per point). LAS/LAZ inputs beyond it never get
     here (they are fitted in tiles); other formats would otherwise run over the budget."""
     memory, per_point = options.memory, point_bytes(fit_plan(options).surface)
     if not fits_in_memory(count, memory, per_point):

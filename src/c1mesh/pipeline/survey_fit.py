@@ -2,7 +2,7 @@
 
 -o writes the fit of the concatenated cloud (pipeline.driver.fit); -O fits the survey once
 and writes each input's own triangles as tile tasks (survey.tiles, survey.distributed); a
-LAS/LAZ survey larger than --memory goes to the memory-bounded fit (survey.tiled_fit).
+LAS/LAZ survey larger than --memory goes to the memory-bounded fit (survey.bounded_fit).
 """
 from __future__ import annotations
 
@@ -33,8 +33,8 @@ from c1mesh.stages.ground import resolved_classes
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.warnings import smoothing_suggestion
 from c1mesh.survey.distributed import run_tiles
-from c1mesh.survey.tiled_fit import fit_tiled
-from c1mesh.survey.tiled_plan import needs_tiles
+from c1mesh.pipeline.bounded_fit import fit_tiled
+from c1mesh.survey.sizing import needs_tiles
 from c1mesh.survey.tiles import load_survey, plan_tiles, write_tiles
 
 OWNERSHIP = "lowest-numbered corner point"
@@ -44,7 +44,7 @@ OWNERSHIP = "lowest-numbered corner point"
 @dataclass(frozen=True)
 class SurveyProgress:
     """Whom a --seamless fit tells how far it is: on_stage(stage) after each stage
-    (in-memory -o: pipeline.STAGES; in tiles: tiled_fit.TILED_STAGES); on_tile(row) with
+    (in-memory -o: pipeline.STAGES; in tiles: bounded_fit.TILED_STAGES); on_tile(row) with
     each output's report row as it is written (in-memory -O); on_tile_pass(pass, tiles
     done, tiles) as each tile task of the memory-bounded fit finishes."""
 
@@ -63,8 +63,8 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     holding the triangles its input owns (module docstring), tiles run by
     distributed.run_tiles (scheduler, jobs; None: 1); progress: SurveyProgress. A LAS/LAZ
     survey larger than options.memory allows in one piece (in_tiles) goes to the
-    memory-bounded fit (c1mesh.survey.tiled_fit), which writes the one mesh, or splits it
-    into the outputs by the same ownership rule (c1mesh.survey.tiled_outputs).
+    memory-bounded fit (c1mesh.pipeline.bounded_fit), which writes the one mesh, or splits it
+    into the outputs by the same ownership rule (c1mesh.survey.split_outputs).
     """
 
     options, _ = resolve_options_axis(sources[0], options)     # LAS/LAZ surveys: z, as for one file
@@ -126,23 +126,23 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
 
 def in_tiles(source, options) -> bool:
     """Whether `source` (one LAS/LAZ path, or a list of them: one survey) is fitted by the
-    memory-bounded fit (survey.tiled_plan.needs_tiles): larger than options.memory allows
+    memory-bounded fit (survey.sizing.needs_tiles): larger than options.memory allows
     in one piece. Reads the inputs' headers only."""
     return needs_tiles(source, fit_plan(options))
 
 
 def fit_in_tiles(source, output, options, run: TiledRun = TiledRun()) -> dict:
-    """The memory-bounded fit (c1mesh.survey.tiled_fit.fit_tiled: source one LAS/LAZ path or
+    """The memory-bounded fit (c1mesh.pipeline.bounded_fit.fit_tiled: source one LAS/LAZ path or
     a list, output a mesh path, run where its tiles run) with its facts made the report of
     c1mesh.pipeline.report's schema."""
     plan = fit_plan(options)                          # InputError for a bad --smooth, before any work
     if plan.surface.spacing is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
-    return tiled_report(fit_tiled(source, output, plan, run), options)
+    return tiles_report(fit_tiled(source, output, plan, run), options)
 
 
-def tiled_report(facts: dict, options) -> dict:
+def tiles_report(facts: dict, options) -> dict:
     """The report of a memory-bounded fit from the facts fit_tiled returns (consumed). No
     one interpolator is held, so c1_certificate and pieces are null; its normals are
     always estimated (it refuses --normals file)."""

@@ -145,7 +145,7 @@ def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles:
 
     The limiter's first noise floor: its floor_summary of the in-memory fit's one tile
     and reduce_floor, so a survey fitted in tiles finds the same floor from its tiles'
-    summaries (c1mesh.survey.tiled_halo.edge_floor). A TrimmedMesh's floor takes its
+    summaries (c1mesh.survey.halos.edge_floor). A TrimmedMesh's floor takes its
     edge table's kept edges instead (`_live_noise_floor`: the same values).
     """
     sizes = floor_summary(Tile.whole(xy, z, gradients, triangles))

@@ -158,7 +158,7 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
 def check_positions(points: int, positions: int) -> None:
     """InputError when `points` lie at fewer than 3 distinct (x, y) `positions`: no slope
     can be fitted. The tiled fit counts the positions of the whole survey while it streams
-    it (c1mesh.survey.tiled_fit) and says the same."""
+    it (c1mesh.pipeline.bounded_fit) and says the same."""
     if positions < 3:
         raise InputError(f"fitting slopes to heights needs at least 3 distinct (x, y) positions, "
                          f"got {points} point{'s' if points != 1 else ''} at {positions}")

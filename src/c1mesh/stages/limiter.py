@@ -129,7 +129,7 @@ def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
     floor, c1mesh.stages.curtains), or with both reconciled with the survey's first floor
     (the second floor). The halo must hold the star of every vertex within 3 longest
     edges of the cell, so that the reconciled data of the own edges' ends are the whole
-    survey's (c1mesh.survey.tiled_halo). `reduce_floor` of every tile's summary is the
+    survey's (c1mesh.survey.halos). `reduce_floor` of every tile's summary is the
     floor."""
     table = edge_table(tile.triangles, len(tile.records))
     counted = tile.own[table.edges[:, 0]]
@@ -196,7 +196,7 @@ def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     inside the tile, with the survey's noise floors; changes counted over the vertices
     (and edges by their lower end) the tile owns, so the tiles' counts add up to the
     survey's. The halo must hold the star of every vertex within 3 longest edges of the
-    cell (c1mesh.survey.tiled_halo): then the corners' results are the whole survey's."""
+    cell (c1mesh.survey.halos): then the corners' results are the whole survey's."""
     table = edge_table(tile.triangles, len(tile.records))
     limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors)
     report = limits.report(table, tile.own)

@@ -676,7 +676,7 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
 
     owned (k, 3): the survey numbers of the tile's own triangles, whose edges' directions
     it returns, in the order of topology.edge_table of those triangles numbered by
-    ascending corner (as survey.tiled_refine numbers them); None: the tile owns all of
+    ascending corner (as survey.refine_runs numbers them); None: the tile owns all of
     its triangles and every record is a corner of one (the in-memory fit's one tile,
     after pipeline.steps.compact_vertices), the directions then in the order of
     edge_table(tile.triangles), which is that order. A tile without triangles fits

@@ -392,7 +392,7 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     (the default keeps the pass; a caller short of memory writes it to disk and keeps a path).
     passes(bound): instead of the tile loop here, the (short lengths, kept) of every tile's
     tile_pass up to bound, in any order (the median does not depend on it), the kept list
-    in that order (c1mesh.survey.tiled_triangulation runs the tiles as tasks this way); a tile's short
+    in that order (c1mesh.survey.delaunay_runs runs the tiles as tasks this way); a tile's short
     lengths may be an array or the path of a .npy file holding it (`short_median`).
     """
     edges = 3 * count - 3 - len(hull.index)

@@ -1,6 +1,6 @@
 """Running tile tasks in this process, on a local pool, or on Dask (TaskRunner, the one
 executor choice): the seamless fit's (c1mesh.survey.tiles.TileTask, run_tiles) and the
-memory-bounded fit's passes (c1mesh.survey.tiled_fit).
+memory-bounded fit's passes (c1mesh.pipeline.bounded_fit).
 
 Each tile is one task; its result depends only on the task, never on where or in which
 order it ran, so the written bytes do not depend on the scheduler or the worker count.
@@ -83,7 +83,7 @@ class TaskRunner:
     """Where tile tasks run: in this process (jobs 1), on a local pool of `jobs`
     processes or a LocalCluster (LOCAL_POOL), or on the Dask cluster at `scheduler`. Use
     as a context manager; the pool or cluster is started once and serves every `map`
-    (a memory-bounded fit, c1mesh.survey.tiled_fit, maps each of its passes over the tiles).
+    (a memory-bounded fit, c1mesh.pipeline.bounded_fit, maps each of its passes over the tiles).
 
     start_method: how the pool starts its processes (multiprocessing; None: the
     platform's default). The memory-bounded fit uses "forkserver", so a worker holds only

@@ -9,7 +9,7 @@ survey around its cell. This module only schedules it:
     grown by the halo, in metres as filter_file_points converts them, classified with its
     own points marked → the survey numbers of the ground points → one bool per point.
 
-The fit then reads the inputs again keeping those points (tiled_input.las_chunks' keep),
+The fit then reads the inputs again keeping those points (inputs.las_chunks' keep),
 so everything after the filter sees exactly the points the in-memory fit keeps.
 """
 from __future__ import annotations
@@ -23,8 +23,8 @@ from c1mesh.stages.frame import ScanFrame
 from c1mesh.stages.ground import FILTER_NAME, GroundParameters, classify_ground, halo_width
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.tile_spill import spill
-from c1mesh.survey.tiled_input import las_chunks
-from c1mesh.survey.tiled_plan import BYTES_PER_POINT, grid_side
+from c1mesh.survey.inputs import las_chunks
+from c1mesh.survey.sizing import BYTES_PER_POINT, grid_side
 
 WORLD = ScanFrame(origin=np.zeros(3), axes=np.eye(3))
 """The spill's frame: world coordinates as they are (an identity product is exact)."""
@@ -33,7 +33,7 @@ WORLD = ScanFrame(origin=np.zeros(3), axes=np.eye(3))
 @dataclass(frozen=True)
 class GroundPass:
     """Where and how the filter's tiles run: memory, the budget in bytes that sizes them
-    (tiled_plan.grid_side); per_tile, points per tile (overrides the budget; tests);
+    (sizing.grid_side); per_tile, points per tile (overrides the budget; tests);
     directory, where the spill files go; stem, their name's start; params, the filter's."""
 
     memory: int

@@ -1,4 +1,4 @@
-"""The memory-bounded fit's height field, scheduled tile by tile (c1mesh.survey.tiled_fit).
+"""The memory-bounded fit's height field, scheduled tile by tile (c1mesh.pipeline.bounded_fit).
 The algorithms are c1mesh.stages.height_field's; here is what each tile reads and where
 its results go:
 
@@ -37,7 +37,7 @@ from c1mesh.stages.height_gradients import height_neighbours, use_height_gradien
 from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
 from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
 from c1mesh.survey.tile_spill import TileSpill
-from c1mesh.survey.tiled_halo import median_of_files
+from c1mesh.survey.halos import median_of_files
 from c1mesh.survey.tiles import task_row
 
 HEIGHT = VERTEX
@@ -71,7 +71,7 @@ def height_spill(raw, grid, count: int, settings: HeightSettings, directory, ste
     of HEIGHT records, and the positions several points share to one of GROUP records: a
     HeightSpill, which the caller closes. Each tile is a task (`_tile_heights`)
     that reads the raw spill and writes its own height and group files, run by runner
-    (distributed.TaskRunner); rows: the tiled_report.TileRows."""
+    (distributed.TaskRunner); rows: the task_rows.TileRows."""
     heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
     groups = TileSpill(grid, directory, stem + ".groups", record=GROUP).__enter__()
     usable = 0

@@ -3,7 +3,7 @@ and the report's totals) scheduled over a survey fitted in tiles: which tile the
 search runs on, the halos the tiles read, the files each tile's run writes, and the reads
 of its neighbours' files by each tile's refinement.
 
-What runs where, after the trim (c1mesh.survey.tiled_fit):
+What runs where, after the trim (c1mesh.pipeline.bounded_fit):
 
 - the spacing h, the strength's length unit: the stacking test's (height_runs.survey_stacking),
   the median 3D distance from a height-field position to its nearest other one over the
@@ -15,7 +15,7 @@ What runs where, after the trim (c1mesh.survey.tiled_fit):
   (smoothing.smoothing_reach, and never less than the limiter's halo, HALO_EDGES longest
   final edges); it writes the fitted height and gradient of every vertex in its cell,
   and the directions of its own triangles' edges;
-- the refinement task of a tile (c1mesh.survey.tiled_refine) reads the fitted data of its
+- the refinement task of a tile (c1mesh.survey.refine_runs) reads the fitted data of its
   triangles' corners from the files of the tiles whose cells hold them (`TiledSmoother.tile`).
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from c1mesh.core.tile import VERTEX, corner_rows
 from c1mesh.stages.limiter import TileLimits
 from c1mesh.stages.smoothing import (SmoothingRun, StrengthSearch, TileSolve, combined_fit, search_strength,
                                      smooth_tile, smoothing_reach)
-from c1mesh.survey.tiled_halo import HALO_EDGES, HaloCache, halo_reach
+from c1mesh.survey.halos import HALO_EDGES, HaloCache, halo_reach
 from c1mesh.survey.tiles import task_row
 
 
@@ -46,9 +46,9 @@ class TiledSmoothing:
 
 class TiledSmoother:
     """The smoothing fit over the tiles (module docstring): construct with the trimmed
-    survey (tiled_refine.TiledMesh: its height spill, triangle files and grid), the
+    survey (refine_runs.TiledMesh: its height spill, triangle files and grid), the
     TiledSmoothing asked for, temps, a runner (distributed.TaskRunner) and name(t); it
-    chooses s and runs every tile's solve. A refinement task (tiled_refine) then takes its
+    chooses s and runs every tile's solve. A refinement task (refine_runs) then takes its
     tile's vertex data through `tile`, as it takes the limiter's. on_done(t, row) gets each
     solve's report row (tiles.task_row: points, seconds, worker, its peak) as it finishes
     (progress)."""
@@ -56,7 +56,7 @@ class TiledSmoother:
     def __init__(self, mesh, fit: TiledSmoothing, temps, runner, name=str, on_done=None):
         heights, triangle_files, grid = mesh.heights, mesh.files, mesh.grid
         self.grid, self.files, self.overshoot = grid, triangle_files, fit.run.overshoot
-        self.limited = self.turned = self.lifted = 0         # tiled_refine adds its rows' counts
+        self.limited = self.turned = self.lifted = 0         # refine_runs adds its rows' counts
         self.seconds: dict = {}
         self.search: StrengthSearch | None = None
         self.search_tile: int | None = None

@@ -5,12 +5,12 @@ halos, as pipeline.build_surface runs them on its one tile, with the same result
 what is here is which halo a tile step reads, where the removed triangles go, and the
 tiles' triangle files rewritten without them.
 
-A tile's halo (tiled_halo.HaloCache: its cell grown by 4 longest final edges) holds both
+A tile's halo (halos.HaloCache: its cell grown by 4 longest final edges) holds both
 triangles of every edge of its own triangles and the whole star of every vertex in its
 cell, which is what its steps read: its thin triangles with their boundary flags, its
 bow-tie fans, its curtains. The long edges are gone already (buffered_delaunay.tile_pass;
-an "auto" max_edge is survey-wide, c1mesh.survey.tiled_triangulation), and the curtains'
-noise floor is found survey-wide by tiled_halo.edge_floor.
+an "auto" max_edge is survey-wide, c1mesh.survey.delaunay_runs), and the curtains'
+noise floor is found survey-wide by halos.edge_floor.
 """
 from __future__ import annotations
 
@@ -21,12 +21,12 @@ import numpy as np
 from c1mesh.core.threads import map_in_threads
 from c1mesh.stages.curtains import point_rows, remove_curtain_run
 from c1mesh.stages.trim import MIN_CIRCLE_RATIO, Cuts, Place, TrimTile, drop_triangles, trim_run
-from c1mesh.survey.tiled_halo import edge_floor
+from c1mesh.survey.halos import edge_floor
 
 
 class TrimRuns:
     """A survey's tiles as the trim's TrimRun: each step reads its tile's halo from the
-    cache (halos: tiled_halo.HaloCache, which drops the removed triangles as it loads a
+    cache (halos: halos.HaloCache, which drops the removed triangles as it loads a
     halo), in the thread knob's threads, results in tile order; removed triangles are kept
     by the tile that owns them (the tile of their lowest-numbered corner) in halos.removed.
     grid: the buffered_delaunay.TileGrid."""
@@ -66,8 +66,8 @@ class TrimRuns:
 def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
     """The in-memory default trim after the long-edge rule, over the tiles: trim.trim_run
     (slivers, bow-ties), then curtains.remove_curtain_run with the survey's noise floor,
-    as pipeline.build_surface runs them. halos: the tiled_halo.HaloCache; grid: the
-    buffered_delaunay.TileGrid; temps: tiled_input.Temps; view_rules:
+    as pipeline.build_surface runs them. halos: the halos.HaloCache; grid: the
+    buffered_delaunay.TileGrid; temps: inputs.Temps; view_rules:
     curtains.view_rules_apply. The removed triangles leave their tiles' files. Returns the
     removed counts by reason (as TrimReport.removed)."""
     run = TrimRuns(halos, grid)

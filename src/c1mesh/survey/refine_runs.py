@@ -1,7 +1,7 @@
-"""The memory-bounded fit's last pass (c1mesh.survey.tiled_fit): each tile refines its own
+"""The memory-bounded fit's last pass (c1mesh.pipeline.bounded_fit): each tile refines its own
 triangles into part files (a task per tile, `_refine_tile`), the parts are joined in tile
-order with one global vertex numbering (c1mesh.survey.tiled_join), and the mesh is
-written from the joined files, or with -O one mesh per input (c1mesh.survey.tiled_outputs)."""
+order with one global vertex numbering (c1mesh.survey.join), and the mesh is
+written from the joined files, or with -O one mesh per input (c1mesh.survey.split_outputs)."""
 from __future__ import annotations
 
 import shutil
@@ -21,10 +21,10 @@ from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.core.tile import corner_rows
-from c1mesh.survey.tiled_input import Colours
-from c1mesh.survey.tiled_join import KeyExpiry, PartJoin, border_keys
-from c1mesh.survey.tiled_outputs import OutputMeshes, face_owners, split_faces, write_outputs
-from c1mesh.survey.tiled_report import TileRows
+from c1mesh.survey.inputs import Colours
+from c1mesh.survey.join import KeyExpiry, PartJoin, border_keys
+from c1mesh.survey.split_outputs import OutputMeshes, face_owners, split_faces, write_outputs
+from c1mesh.survey.task_rows import TileRows
 from c1mesh.survey.tiles import task_row
 
 WRITE_BLOCK = 1 << 16
@@ -42,7 +42,7 @@ VERTEX_RGB = np.dtype([("v", "<f8", 3), ("n", "<f8", 3), ("c", "u1", 3)])
 
 @dataclass(frozen=True)
 class TiledMesh:
-    """The survey's trimmed triangulation, tile by tile (tiled_fit): heights, the
+    """The survey's trimmed triangulation, tile by tile (bounded_fit): heights, the
     TileSpill of HEIGHT records; grid, the buffered_delaunay.TileGrid; files, per tile
     the .npy of its own triangles (survey numbers; None: none); buffers, per tile its
     Delaunay buffer (frame units); max_edge, the trim's limit (None: none); frame, the
@@ -58,10 +58,10 @@ class TiledMesh:
 
 @dataclass(frozen=True)
 class MeshWriting:
-    """What write_tiles refines and writes with: temps (tiled_input.Temps), limiter (the
-    tiled_halo.TiledLimiter or smoothing_runs.TiledSmoother; None: --overshoot off),
-    crs (WKT or None), colours (tiled_input.Colours or None), runner
-    (distributed.TaskRunner), rows (tiled_report.TileRows), split (Split with -O, else None)."""
+    """What write_tiles refines and writes with: temps (inputs.Temps), limiter (the
+    halos.TiledLimiter or smoothing_runs.TiledSmoother; None: --overshoot off),
+    crs (WKT or None), colours (inputs.Colours or None), runner
+    (distributed.TaskRunner), rows (task_rows.TileRows), split (Split with -O, else None)."""
 
     temps: object
     limiter: object = None
@@ -76,7 +76,7 @@ class _RefineJob:
     """What every tile's refinement task shares (picklable; the files it names are read
     by the task): the TiledMesh's heights, grid, files, buffers, max_edge and frame; the
     scheme and level; limiter (None: --overshoot off), colours, threads per task, owners
-    (tiled_outputs.InputOwners, with -O: each part then records its faces' owner inputs)."""
+    (split_outputs.InputOwners, with -O: each part then records its faces' owner inputs)."""
 
     def __init__(self, mesh: TiledMesh, surface: SurfaceSettings, writing: MeshWriting, colours, threads):
         self.heights, self.grid, self.files, self.buffers = mesh.heights, mesh.grid, mesh.files, mesh.buffers
@@ -108,8 +108,8 @@ class _RefineJob:
 class _Part:
     """The temporary files of one tile's refinement: vertices (all of its refinement's
     output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
-    (.npz: the border keys of `tiled_join.border_keys`, their points and last tiles),
-    owners (int32 per face, with -O: tiled_outputs.face_owners)."""
+    (.npz: the border keys of `join.border_keys`, their points and last tiles),
+    owners (int32 per face, with -O: split_outputs.face_owners)."""
 
     def __init__(self, temps, t: int):
         self.vertices, self.faces = temps.new(f"part-{t}.vertices"), temps.new(f"part-{t}.faces")
@@ -145,15 +145,15 @@ def check_output_size(output, mesh: MeshTarget, vertices: int, faces: int, colou
     """InputError when a mesh of this many vertices and faces (normals, and RGB if
     coloured) is beyond the limits of the output's format (formats.check_mesh_size); the
     tiled fit asks with the fewest vertices its triangles can refine to before any tile is
-    refined (tiled_fit), and with the joined counts so far as tiles are joined."""
+    refined (bounded_fit), and with the joined counts so far as tiles are joined."""
     check_mesh_size(output, mesh.format, MeshSize(vertices, faces, True, 3 if coloured else 0))
 
 
 def write_tiles(mesh: TiledMesh, plan: FitPlan, output, writing: MeshWriting) -> dict:
     """Refine each tile's owned triangles (a task per tile, `_refine_tile`, writing part
     files), then join the parts in tile order, numbering shared vertices globally
-    (tiled_fit's docstring), into one vertex and one face file; then write the mesh from
-    them, or with writing.split (-O), each input's part of it (c1mesh.survey.tiled_outputs).
+    (bounded_fit's docstring), into one vertex and one face file; then write the mesh from
+    them, or with writing.split (-O), each input's part of it (c1mesh.survey.split_outputs).
     Without split, InputError as soon as the joined counts pass the output format's
     limits (`check_output_size`), before the remaining tiles are refined."""
     grid, temps, limiter, split = mesh.grid, writing.temps, writing.limiter, writing.split
@@ -219,7 +219,7 @@ def write_tiles(mesh: TiledMesh, plan: FitPlan, output, writing: MeshWriting) ->
 
 @dataclass
 class Split:
-    """-O: the survey's owner inputs (tiled_outputs.InputOwners), one output path and one
+    """-O: the survey's owner inputs (split_outputs.InputOwners), one output path and one
     name per input."""
 
     owners: object
@@ -237,7 +237,7 @@ def _write_part(job: _RefineJob, records, triangles, part: _Part, gradients=None
     """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) with
     the job's scheme and level, and write all its output points (world position through
     the job's frame, normal, colour), its faces (tile-local numbers) and its border keys
-    (with the job's tiled_join.KeyExpiry) to its part files; returns {vertices, corners,
+    (with the job's join.KeyExpiry) to its part files; returns {vertices, corners,
     faces}. gradients (n, 2) and directions (E, 2): the limiter's (None: the records'
     gradients, unit-normal directions); colors (n, 3) uint8 of the records, or None."""
     frame, scheme, level, expiry = job.frame, job.scheme, job.level, job.expiry

@@ -3,7 +3,7 @@
     frame (stages.frame.frame_of_chunks), box → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
     survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.trim_runs) → the limiter's two noise floors
-    (two passes: c1mesh.survey.tiled_halo.noise_floors)
+    (two passes: c1mesh.survey.halos.noise_floors)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → a part file → the parts joined in tile order into one
     vertex file and one face file → one mesh file
@@ -15,7 +15,7 @@ spill, hull, the trim's peel and bow-tie rounds, the medians, the join) runs her
 Nothing of the output depends on where the tasks ran.
 
 Every stage is the tile-local form of a whole-survey stage (c1mesh.stages.frame.frame_of_chunks,
-tile_spill, tile_normals, buffered_delaunay, trim_runs, tiled_halo), so the surface
+tile_spill, tile_normals, buffered_delaunay, trim_runs, halos), so the surface
 equals the in-memory fit of the same points with the same reduced options (below), to
 rounding; nothing depends on the grid. The trim and the limiter run the stage functions
 of c1mesh.stages.trim, .curtains and .limiter on each tile's halo; their module
@@ -35,7 +35,7 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.trim_runs), so it
   is the same, not a reduction;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
-  tile by tile with the survey's noise floors (limiter.tile_limits; tiled_halo.TiledLimiter).
+  tile by tile with the survey's noise floors (limiter.tile_limits; halos.TiledLimiter).
 
 The rule for the one output: a base triangle belongs to the tile holding its
 lowest-numbered corner point (buffered_delaunay); each tile refines only its own
@@ -44,7 +44,7 @@ both tiles' owned regions: a corner point, or a point on a base edge that only o
 triangle of the tile has. Such vertices are numbered globally by a key that does not
 depend on the tile — the survey number of a corner, (lower end, higher end, position from
 the lower end) of an edge point — and written once, by the first tile that reaches them;
-later tiles refer to that number (c1mesh.survey.tiled_join, which forgets a key once no later
+later tiles refer to that number (c1mesh.survey.join, which forgets a key once no later
 tile can meet it). All other vertices are written by their only tile.
 Edge points on a tile border are thus evaluated from the first tile's triangle, where
 the whole-survey refinement uses the edge's owner triangle: the two agree to rounding
@@ -78,8 +78,8 @@ from c1mesh.survey.ground_pass import GroundPass, ground_mask
 from c1mesh.survey.height_runs import height_spill, survey_stacking
 from c1mesh.survey.smoothing_runs import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tile_spill import spill
-from c1mesh.survey.tiled_halo import HaloCache, TiledLimiter, halo_reach, longest_final_edge
-from c1mesh.survey.tiled_input import (
+from c1mesh.survey.halos import HaloCache, TiledLimiter, halo_reach, longest_final_edge
+from c1mesh.survey.inputs import (
     CachedChunks,
     Colours,
     Temps,
@@ -89,11 +89,11 @@ from c1mesh.survey.tiled_input import (
     survey_paths,
     tiled_classes,
 )
-from c1mesh.survey.tiled_outputs import InputOwners
-from c1mesh.survey.tiled_plan import grid_side, point_bytes, task_threads, tiles_at_once
-from c1mesh.survey.tiled_refine import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
-from c1mesh.survey.tiled_report import TileRows, describe_crs
-from c1mesh.survey.tiled_triangulation import triangulate_tiles
+from c1mesh.survey.split_outputs import InputOwners
+from c1mesh.survey.sizing import grid_side, point_bytes, task_threads, tiles_at_once
+from c1mesh.survey.refine_runs import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
+from c1mesh.survey.task_rows import TileRows, describe_crs
+from c1mesh.survey.delaunay_runs import triangulate_tiles
 from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
@@ -107,13 +107,13 @@ smoothing strength (c1mesh.survey.smoothing_runs)."""
 def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict:
     """Fit a LAS/LAZ file tile by tile (module docstring) and write one mesh to output, or,
     with run.outputs (one path per input file, output None), each input's owned part of
-    it (c1mesh.survey.tiled_outputs: `fit --seamless -O` beyond --memory).
+    it (c1mesh.survey.split_outputs: `fit --seamless -O` beyond --memory).
 
     plan: the fit's core.plan.FitPlan (its memory, the budget in bytes, sizes the tiles;
     its axis resolved, normals not "file"); run: where the tiles run and whom they tell
     (core.plan.TiledRun). Returns the fit's facts (input, output, points, frame,
     triangles, gradients, level, output_mesh, warnings, crs, seconds, and the tiles' own:
-    tiles, tile_tasks, scheduler, ...), which c1mesh.pipeline.survey_fit.tiled_report makes
+    tiles, tile_tasks, scheduler, ...), which c1mesh.pipeline.survey_fit.tiles_report makes
     the report of c1mesh.pipeline.report's schema.
 
     The per-tile passes (normals, triangulation, refinement) run as tasks

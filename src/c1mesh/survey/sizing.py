@@ -1,5 +1,5 @@
 """How the memory-bounded fit sizes itself: when a survey needs tiles, how many points a
-tile holds, how many tiles run at once and with how many threads (c1mesh.survey.tiled_fit).
+tile holds, how many tiles run at once and with how many threads (c1mesh.pipeline.bounded_fit).
 
 All of it follows from the --memory budget and the inputs' headers alone, so the grid,
 and with it the output bytes, never depend on where or how many tasks run."""
@@ -11,7 +11,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.plan import FitPlan, SurfaceSettings
 from c1mesh.core.threads import per_process
 from c1mesh.formats.copc import points_to_read
-from c1mesh.survey.tiled_input import survey_name, survey_paths
+from c1mesh.survey.inputs import survey_name, survey_paths
 
 BYTES_PER_POINT = 1_800
 """Peak memory of the in-memory fit per input point (bytes). Measured: about 1.1 GB per

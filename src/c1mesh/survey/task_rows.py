@@ -1,4 +1,4 @@
-"""The memory-bounded fit's report pieces (c1mesh.survey.tiled_fit): the per-tile rows of
+"""The memory-bounded fit's report pieces (c1mesh.pipeline.bounded_fit): the per-tile rows of
 what each pass's task did (`TileRows`) and the CRS facts; c1mesh.pipeline.survey_fit
 makes the report of c1mesh.pipeline.report's schema from them."""
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The memory-bounded fit's Delaunay triangulation with the long-edge trim, a task per tile
-(c1mesh.survey.tiled_fit): each tile writes the triangles it owns to a file
+(c1mesh.pipeline.bounded_fit): each tile writes the triangles it owns to a file
 (c1mesh.survey.buffered_delaunay: tile_triangles without a max_edge, else tile_pass and
 the survey-wide auto max_edge of trimmed_delaunay)."""
 from __future__ import annotations
@@ -18,7 +18,7 @@ from c1mesh.survey.buffered_delaunay import (
     tile_triangles,
     trimmed_delaunay,
 )
-from c1mesh.survey.tiled_report import TileRows
+from c1mesh.survey.task_rows import TileRows
 from c1mesh.survey.tiles import task_row
 
 

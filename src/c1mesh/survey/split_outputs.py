@@ -1,5 +1,5 @@
 """`fit --seamless -O` for a survey larger than --memory: the tiled fit's joined mesh split
-into one mesh per input (c1mesh.survey.tiled_fit).
+into one mesh per input (c1mesh.pipeline.bounded_fit).
 
 The ownership rule is c1mesh.survey.tiles': a base triangle, and every face refined from it,
 belongs to the input that holds its lowest-numbered corner point (survey numbers run over

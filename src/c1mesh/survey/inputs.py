@@ -1,4 +1,4 @@
-"""What the memory-bounded fit reads and keeps on disk (c1mesh.survey.tiled_fit): the survey's
+"""What the memory-bounded fit reads and keeps on disk (c1mesh.pipeline.bounded_fit): the survey's
 files and how messages name them, its LAS/LAZ points a chunk at a time (decompressed
 once, `CachedChunks`), its colours by survey number (`Colours`), its CRS, and the
 hidden temporary files every pass registers for removal (`Temps`)."""

@@ -1,5 +1,5 @@
 """The tiled fit's join: the tiles' refined parts, taken in tile order, become one vertex
-file and one face file with one global vertex numbering (c1mesh.survey.tiled_fit).
+file and one face file with one global vertex numbering (c1mesh.pipeline.bounded_fit).
 
 A refined vertex that can lie in two tiles' outputs lies on the boundary of both tiles'
 owned regions: a corner point, or a point on a base edge that only one owned triangle of
@@ -11,7 +11,7 @@ later tiles refer to that number.
 Which keys the join must remember. A tile can meet a key only if it owns a base triangle
 with that corner (an edge point: with both ends of that edge), and every corner of tile
 t's own triangles lies in its cell grown by its reach (the trim's max_edge, or its
-Delaunay buffer; tiled_refine._RefineJob.reach). So no tile after the highest-numbered one
+Delaunay buffer; refine_runs._RefineJob.reach). So no tile after the highest-numbered one
 whose grown cell holds the point (for an edge point: the lower of its two ends' tiles)
 can meet the key: that tile is the key's last tile (`KeyExpiry`). The join goes through
 the tiles in ascending order and forgets a key once it has joined the key's last tile,
@@ -156,7 +156,7 @@ class PartJoin:
         self.keys = 0
 
     def add(self, tile: int, part, row: dict, vertex_file, face_file) -> None:
-        """Append tile's part (tiled_refine._Part; row: its refinement's report row with
+        """Append tile's part (refine_runs._Part; row: its refinement's report row with
         vertices, corners, faces) to the open vertex and face files."""
         with open(part.keys, "rb") as file:
             keys, points, last = stored_keys(np.load(file))

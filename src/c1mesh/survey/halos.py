@@ -80,7 +80,7 @@ class HaloCache:
     a cached one, one file read). Triangles removed after the first read (the peel) are
     dropped as each halo is loaded: `removed` maps a tile to the removed triangles it
     owns, so a halo compares its triangles with those of the tiles it reads, not with
-    the survey's whole list. temps: tiled_input.Temps; label: names its files (two caches
+    the survey's whole list. temps: inputs.Temps; label: names its files (two caches
     of different reach share one Temps)."""
 
     def __init__(self, heights, triangle_files, grid, reach: float, temps, label: str = "halo"):
@@ -94,7 +94,7 @@ class HaloCache:
 
     def halo(self, tile: int) -> Tile:
         """tile's halo, from the cache, else read from the spills: cached by the driver's
-        cache, not by a copy sent with a task (tiled_input.Temps.owned_here: a file a copy
+        cache, not by a copy sent with a task (inputs.Temps.owned_here: a file a copy
         made would be removed by nobody)."""
         if tile not in self.paths:
             halo = read_halo(self.heights, self.files, self.grid, tile, self.reach)
@@ -205,7 +205,7 @@ def noise_floors(halos: HaloCache, temps, runner=None, name=str) -> NoiseFloors:
 
 class TiledLimiter:
     """The overshoot limiter over the tiles: the survey's noise floors, found on
-    construction; a refinement task (tiled_refine, through `tile`) limits its tile's
+    construction; a refinement task (refine_runs, through `tile`) limits its tile's
     data from the cached halo (halos, picklable) and these floors (limiter.tile_limits)."""
 
     def __init__(self, halos: HaloCache, temps, runner=None, name=str):
