@@ -204,7 +204,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             fitted = (2,) if filtered else select.classes        # the filter's ground counts as class 2
-            removed = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes))
+            removed = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
             if outputs is None and output is not None:

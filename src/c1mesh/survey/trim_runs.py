@@ -63,16 +63,18 @@ class TrimRuns:
         self.halos.prune()
 
 
-def trim_tiles(halos, grid, temps, view_rules: bool = True) -> dict[str, int]:
+def trim_tiles(halos, grid, temps, view_rules: bool = True, runner=None, name=str) -> dict[str, int]:
     """The in-memory default trim after the long-edge rule, over the tiles: trim.trim_run
     (slivers, bow-ties), then curtains.remove_curtain_run with the survey's noise floor,
     as pipeline.build_surface runs them. halos: the halos.HaloCache; grid: the
     buffered_delaunay.TileGrid; temps: inputs.Temps; view_rules:
-    curtains.view_rules_apply. The removed triangles leave their tiles' files. Returns the
-    removed counts by reason (as TrimReport.removed)."""
+    curtains.view_rules_apply; runner (distributed.TaskRunner; None: this process) runs
+    the noise floor's summary per tile, name(t) names tile t in its errors. The removed
+    triangles leave their tiles' files. Returns the removed counts by reason (as
+    TrimReport.removed)."""
     run = TrimRuns(halos, grid)
     thin, counts = trim_run(run, MIN_CIRCLE_RATIO)
-    floor = edge_floor(halos, temps, "residuals-curtains")
+    floor = edge_floor(halos, temps, "residuals-curtains", runner=runner, name=name)
     curtains, cleanup = remove_curtain_run(run, floor, view_rules, thin)
     run.write_files()
     return {"sliver": counts["sliver"] + cleanup["sliver"], "bowtie": counts["bowtie"] + cleanup["bowtie"],
