@@ -244,6 +244,42 @@ def test_mug_frame_folds_at_most_one_face_in_ten_thousand(mug_mesh):
     assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) <= 1e-4 * len(mesh.faces)
 
 
+def _disparity_quantised_cylinder(tmp_path, n: int = 60, step: float = 0.004):
+    """The cylinder wall seen from inside, its depth quantised as a stereo camera's is: the
+    inverse depth w = 1/z rounded to multiples of `step` along each pixel's ray, without
+    normals (estimated from the grid)."""
+    points, _ = cylinder_from_inside(n)
+    w = 1.0 / points[:, 2]
+    quantised = points * (w / (np.round(w / step) * step))[:, None]
+    return write_organised_pcd(tmp_path / "stereo.pcd", quantised, np.full_like(quantised, np.nan), (n, n))
+
+
+def test_smoothing_in_the_chart_removes_most_of_a_stereo_frames_quantisation(tmp_path):
+    """--smooth in the perspective frame fits w over the chart (the plane fit's smoothing
+    stage on the chart's one tile) instead of interpolating the quantised steps: its
+    vertices lie nearer the true wall (the unit cylinder, not the data) than the exact
+    interpolant's, by more than half of the exact fit's RMS error; the exact fit reports no
+    smoothing, the smoothed one its strength."""
+    path = _disparity_quantised_cylinder(tmp_path)
+    exact = fit(path, None, FitOptions(level=1, normals="estimate"))
+    smoothed = fit(path, None, FitOptions(level=1, normals="estimate", smooth="auto"))
+    assert smoothed.report["frame"]["kind"] == "perspective"
+    assert "smoothing" not in exact.report and smoothed.report["smoothing"]["strength"] > 0
+
+    def rms(result):
+        return float(np.sqrt(np.mean(_radial_error(result.mesh.vertices) ** 2)))
+    assert rms(smoothed) < 0.5 * rms(exact)
+
+
+def test_spacing_is_refused_in_the_perspective_frame(tmp_path):
+    """The chart's smoothing fit keeps every point as a vertex; --spacing (a height field's
+    thinning) is an InputError there, before any output is written."""
+    path = _disparity_quantised_cylinder(tmp_path, n=20)
+    with pytest.raises(InputError, match="perspective frame's smoothing fit keeps every point"):
+        fit(path, tmp_path / "out.ply", FitOptions(level=1, normals="estimate", smooth="auto", spacing=0.01))
+    assert not (tmp_path / "out.ply").exists()
+
+
 # ------------------------------------------------------------------------ the command
 def _depth_png(tmp_path, depth_mm: np.ndarray):
     from PIL import Image

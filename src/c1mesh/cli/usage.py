@@ -79,8 +79,9 @@ def _smoothing_problems(params: dict) -> list[str]:
         return []                                      # named by _value_problems
     if params["spacing"] is not None and strength is None:
         return ["--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength"]
-    if strength is not None and params["frame_kind"] == "perspective":
-        return ["--smooth fits a height field (--frame axis or auto); the perspective frame has no smoothing fit"]
+    if params["spacing"] is not None and params["frame_kind"] == "perspective":
+        return ["--spacing thins a height field's vertices (--frame axis or auto); the perspective frame's "
+                "smoothing fit keeps every point as a vertex"]
     return []
 
 

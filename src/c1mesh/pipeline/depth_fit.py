@@ -1,8 +1,14 @@
 """The fit pipeline in the perspective frame: a scan seen from one viewpoint.
 
     normals → inverse depth over the rays → triangulate (pixel grid, or Delaunay in (u, v))
-    → drop depth jumps → limit overshoot → interpolate w(u, v) → refine in (u, v) → map back
-    → write
+    → drop depth jumps → limit overshoot, or with --smooth the smoothing fit of w over the
+    chart → interpolate w(u, v) → refine in (u, v) → map back → write
+
+The smoothing fit is the plane fit's stage (c1mesh.stages.smoothing.smooth_tile) on the
+chart's one tile: the vertices' (u, v), their inverse depths w and gradients ∇w, with the
+chart's spacing (`chart_spacing`) as its length unit. Stereo and time-of-flight depth is
+noisy and quantised in depth; fitting w rather than interpolating it removes the stair
+steps without moving the vertices off their rays.
 
 pipeline.fit reads the input and branches here when the frame is perspective
 (--frame perspective, or auto with an organised scan and no GeoTIFF output); the stages
@@ -20,6 +26,7 @@ from c1mesh.core.cloud import MeshStream, PointCloud
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import workers as thread_count
+from c1mesh.core.tile import Tile
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.geo.products import finish, level_for_edge, level_for_vertices
@@ -32,12 +39,16 @@ from c1mesh.pipeline.steps import (
     display_name,
     limited_interpolator,
     mesh_pieces,
+    smoothed_interpolator,
     write_surface,
 )
+from c1mesh.pipeline.plan import smoothing_strength
 from c1mesh.stages.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.normals import estimate_normals
+from c1mesh.stages.height_field import kd_tree
 from c1mesh.stages.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, parse_viewpoint
+from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.trim import trim
 
 
@@ -223,8 +234,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
             raise InputError("no triangles are left after removing depth jumps")
         used, triangles = compact_vertices(field_.uv, triangles)
     with timer.stage("interpolate"):
-        interp, overshoot = limited_interpolator(field_.uv[used], field_.w[used], field_.gradients[used],
-                                                 triangles, scheme, options.overshoot, heights=False)
+        interp, overshoot, smoothing = chart_interpolator(field_, used, triangles, options, normal_source)
     level, level_from = perspective_level(interp, field_, used, options)
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[used]
@@ -233,9 +243,42 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
                                  faces_facing=facing_viewpoint)
     run = FitRun(source, output, options, cloud, timer, 1.0 if options.z_factor is None else float(options.z_factor),
                  crs_facts(crs, crs_source))
-    model = PerspectiveModel(field_, used, interp, overshoot, normal_source, frame, viewpoint_source, tri_report)
+    model = PerspectiveModel(field_, used, interp, overshoot, normal_source, frame, viewpoint_source, tri_report,
+                             smoothing)
     report = perspective_report(run, model, stream, level_from)
     return finish(FitResult(mesh, report), interp, frame, crs, crs_source, options)
+
+
+def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarray, options, normal_source: str):
+    """(RSDInterpolator of w over the chart, the overshoot report, the SmoothFit or None).
+
+    used: the field's rows the triangles (T, 3) number. Without --smooth: the exact
+    interpolant of w with the limiter (its height reconciliation off: the chart's u, v
+    and w do not share a unit). With --smooth: the smoothing stage on the chart's one tile
+    (`chart_spacing` its length unit; the normals' ∇w enter as data by where the normals
+    came from, smoothing.gradient_data_weight), of whose remedies only the edge
+    directions apply."""
+    scheme = get_scheme(options.scheme)
+    uv, w, gradients = field_.uv[used], field_.w[used], field_.gradients[used]
+    strength = smoothing_strength(options)
+    if strength is None:
+        interp, overshoot = limited_interpolator(uv, w, gradients, triangles, scheme, options.overshoot,
+                                                 heights=False)
+        return interp, overshoot, None
+    if options.spacing is not None:
+        raise InputError("--spacing thins a height field's vertices (--frame axis or auto); the perspective "
+                         "frame's smoothing fit keeps every point as a vertex")
+    run = SmoothingRun(SmoothingControl(strength, scheme), chart_spacing(uv), options.overshoot,
+                       gradient_data_weight(normal_source, "normals"))
+    return smoothed_interpolator(Tile.whole(uv, w, gradients, triangles), run)
+
+
+def chart_spacing(uv: np.ndarray) -> float:
+    """The chart's spacing h (u, v units): the median distance from a vertex (n, 2) to its
+    nearest other one, the smoothing strength's length unit as the plane fit's spacing is
+    (there in 3D; here the chart's w is not a length)."""
+    distances, _ = kd_tree(uv).query(uv, k=2)
+    return float(np.median(distances[:, 1]))
 
 
 @dataclass(frozen=True)
@@ -244,7 +287,8 @@ class PerspectiveModel:
     (ascending rows of the field some triangle uses), interp (the RSDInterpolator over
     them), overshoot (the limiter's report), normal_source, frame (the
     PerspectiveFrame), viewpoint_source (where the viewpoint came from), triangles (the
-    report's triangles entry: view_triangles')."""
+    report's triangles entry: view_triangles'), smoothing (the SmoothFit of --smooth, or
+    None)."""
 
     field: ViewField
     used: np.ndarray
@@ -254,6 +298,7 @@ class PerspectiveModel:
     frame: PerspectiveFrame
     viewpoint_source: str
     triangles: dict
+    smoothing: object = None
 
 
 def perspective_report(run: FitRun, model: PerspectiveModel, stream, level_from: str) -> dict:
@@ -278,6 +323,8 @@ def perspective_report(run: FitRun, model: PerspectiveModel, stream, level_from:
         pieces=mesh_pieces(interp.points, interp.triangles, interp.edge_table), warnings=[], crs=run.crs,
         seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
+    if model.smoothing is not None:
+        report["smoothing"] = model.smoothing.as_dict()
     return report
 
 

@@ -553,10 +553,6 @@ def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitR
     check_angles(cloud, options, display_name(source))
     angles = {"z_factor": angle_z_factor(cloud, options)}   # None: unknown (geo.finish: unshaded preview)
     if frame_kind(options.frame, cloud.grid_shape is not None, dem=geo.height_field) == "perspective":
-        if smoothing_strength(options) is not None:
-            raise InputError(f"{display_name(source)}: an organised scan or depth image is fitted in the "
-                             "perspective frame, which has no smoothing fit; give --frame axis to fit it "
-                             "as a height field, or drop --smooth")
         return fit_perspective(cloud, source, output, options, timer, keep_mesh, crs, crs_source)
     fill = fill_distance(options.fill) if geo.rasters.items() else None
     model = build_surface(cloud, options, timer,
