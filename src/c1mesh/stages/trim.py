@@ -427,12 +427,7 @@ class Thin:
 
     def remove(self, cuts: Cuts) -> None:
         """Another rule removed cuts: a thin one among them can no longer be peeled."""
-        if len(cuts) and len(self.alive):       # compares only rows sharing a lowest corner with a cut
-            kept = drop_triangles(np.column_stack([self.triangles.corners, np.arange(len(self.alive))]),
-                                  cuts.corners)
-            still = np.zeros(len(self.alive), dtype=bool)
-            still[kept[:, 3]] = True
-            self.alive &= still
+        self.alive &= kept_triangles(self.triangles.corners, cuts.corners)
 
     def next_to(self, cuts: Cuts) -> np.ndarray:
         """(k,) bool the thin triangles sharing an edge with one of cuts."""
@@ -499,26 +494,43 @@ def touching(triangles: np.ndarray, others: np.ndarray) -> np.ndarray:
     return np.logical_or.reduce([np.isin(k, theirs) for k in keys(triangles)])
 
 
-def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
-    """The rows of triangles (T, >= 3) whose first three entries are not, as a set of
-    corners, a row of removed (R, 3, few): only rows sharing a removed triangle's lowest
-    corner are compared."""
-    if not len(removed) or not len(triangles):
-        return triangles
-    corners = triangles[:, :columns]
-    lowest = corners.min(axis=1)
-    removed_lowest = removed.min(axis=1)
-    candidates = np.flatnonzero(np.isin(lowest, removed_lowest))
-    if not len(candidates):
-        return triangles
-    # Only removed triangles that share a lowest corner with a candidate can match: a
-    # survey's removed list grows with the survey, a halo's share of it does not.
-    near = removed[np.isin(removed_lowest, lowest[candidates])]
-    gone = {tuple(row) for row in np.sort(near, axis=1).tolist()}
-    rows = np.sort(corners[candidates], axis=1).tolist()
+def drop_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """The rows of triangles (T, 3) that are not, as a set of corners, a row of removed
+    (R, 3) (survey numbers): triangles[kept_triangles(triangles, removed)]."""
+    return triangles[kept_triangles(triangles, removed)]
+
+
+def kept_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """(T,) bool which triangles (T, 3) are not, as a set of corners, a row of removed
+    (R, 3) (survey numbers): a hash of the removed rows and one pass over the triangles
+    (kernel: stages/_trim.pyx), so a halo's load costs one pass whatever the survey has
+    removed."""
     keep = np.ones(len(triangles), dtype=bool)
-    keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
-    return triangles[keep]
+    if not len(removed) or not len(triangles):
+        return keep
+    table = np.full(_table_size(len(removed)), -1, dtype=np.int64)
+    kernel.kept_triangles(np.ascontiguousarray(triangles, dtype=np.int64),
+                          np.ascontiguousarray(removed, dtype=np.int64), table, keep.view(np.uint8))
+    return keep
+
+
+def triangles_among(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The triangles (k, 3) (survey numbers) whose three corners are among `index` (a
+    halo's survey numbers, distinct), as rows of index, in their order: a hash of index
+    and one pass over the triangles (kernel: stages/_trim.pyx; no sort of them, which cost
+    a halo read most of its time when it sifted nine tiles' triangles)."""
+    out = np.empty((len(triangles), 3), dtype=np.int64)
+    if not len(index) or not len(triangles):
+        return out[:0]
+    table = np.full(_table_size(len(index)), -1, dtype=np.int64)
+    count = kernel.triangles_among(np.ascontiguousarray(index, dtype=np.int64),
+                                   np.ascontiguousarray(triangles, dtype=np.int64), table, out)
+    return out[:count]
+
+
+def _table_size(keys: int) -> int:
+    """A kernel hash table's slots for `keys` keys: the power of two at least twice as many."""
+    return 1 << max(1, int(2 * keys - 1).bit_length())
 
 
 def circle_ratio(lengths: np.ndarray) -> np.ndarray:

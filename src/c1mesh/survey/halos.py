@@ -33,7 +33,7 @@ import numpy as np
 from c1mesh.core.tile import Tile, compact, tile_rows
 from c1mesh.stages.limiter import NoiseFloors, TileLimits, floor_summary, reduce_floor, tile_limits
 from c1mesh.stages.streamed_median import streamed_median
-from c1mesh.stages.trim import drop_triangles, edge_lengths
+from c1mesh.stages.trim import edge_lengths, kept_triangles, triangles_among
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
@@ -58,20 +58,11 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Tile:
     for other in heights.touching(rect):
         if triangle_files[other] is None or not len(records):
             continue
-        parts.append(_rows_inside(records["index"], np.load(triangle_files[other])))
+        parts.append(triangles_among(records["index"], np.load(triangle_files[other])))
     used, triangles = compact(np.concatenate(parts), len(records))
     records = records[used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
     return Tile(records, triangles, own)
-
-
-def _rows_inside(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """The triangles (k, 3) (survey numbers) whose three corners are among `index` (a
-    halo's survey numbers, ascending), as rows of index. A neighbour tile shares only a
-    band of its triangles with the halo, so the lowest corners sift them first."""
-    inside = tile_rows(index, triangles.min(axis=1)) >= 0
-    rows = tile_rows(index, triangles[inside])
-    return rows[(rows >= 0).all(axis=1)]
 
 
 class HaloCache:
@@ -140,9 +131,8 @@ class HaloCache:
                 if t in self.removed]
         if not near or not len(halo.triangles):
             return halo
-        survey = halo.records["index"][halo.triangles]
-        kept = drop_triangles(np.column_stack([survey, np.arange(len(survey))]), np.concatenate(near), columns=3)
-        return Tile(halo.records, halo.triangles[kept[:, 3]], halo.own)
+        kept = kept_triangles(halo.records["index"][halo.triangles], np.concatenate(near))
+        return Tile(halo.records, halo.triangles[kept], halo.own)
 
 
 def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
