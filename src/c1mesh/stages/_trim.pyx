@@ -162,11 +162,12 @@ cdef inline void _sort3(int64_t *a, int64_t *b, int64_t *c) noexcept nogil:
         s = a[0]; a[0] = b[0]; b[0] = s
 
 
-def kept_triangles(const int64_t[:, ::1] corners, const int64_t[:, ::1] removed, int64_t[::1] table,
-                   uint8_t[::1] keep):
+def kept_triangles(const int64_t[:, ::1] corners, const int64_t[::1] numbers, bint mapped,
+                   const int64_t[:, ::1] removed, int64_t[::1] table, uint8_t[::1] keep):
     """keep[t] = 0 where triangle t of corners (T, 3) is, as a set of corners, a row of
-    removed (R, 3), else 1. table: (S,) filled with -1, S a power of two >= 2R (the
-    removed rows' slots). Returns how many are kept. One thread."""
+    removed (R, 3), else 1; mapped: corners are rows into numbers (m,), and compared as
+    numbers[corner]. table: (S,) filled with -1, S a power of two >= 2R (the removed
+    rows' slots). Returns how many are kept. Without the GIL: one thread each."""
     cdef Py_ssize_t T = corners.shape[0], R = removed.shape[0], t, r, count = 0
     cdef uint64_t mask = <uint64_t>table.shape[0] - 1, slot
     cdef int64_t a, b, c, x, y, z, found
@@ -184,6 +185,10 @@ def kept_triangles(const int64_t[:, ::1] corners, const int64_t[:, ::1] removed,
             a = corners[t, 0]
             b = corners[t, 1]
             c = corners[t, 2]
+            if mapped:
+                a = numbers[a]
+                b = numbers[b]
+                c = numbers[c]
             _sort3(&a, &b, &c)
             slot = _triple_hash(a, b, c) & mask
             keep[t] = 1

@@ -500,16 +500,19 @@ def drop_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
     return triangles[kept_triangles(triangles, removed)]
 
 
-def kept_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
+def kept_triangles(triangles: np.ndarray, removed: np.ndarray, numbers: np.ndarray | None = None) -> np.ndarray:
     """(T,) bool which triangles (T, 3) are not, as a set of corners, a row of removed
-    (R, 3) (survey numbers): a hash of the removed rows and one pass over the triangles
-    (kernel: stages/_trim.pyx), so a halo's load costs one pass whatever the survey has
-    removed."""
+    (R, 3) (survey numbers); numbers: (m,) the survey numbers of the rows the triangles
+    hold instead (a halo's), None: the triangles are survey numbers. A hash of the
+    removed rows and one pass over the triangles (kernel: stages/_trim.pyx), so a halo's
+    load costs one pass whatever the survey has removed."""
     keep = np.ones(len(triangles), dtype=bool)
     if not len(removed) or not len(triangles):
         return keep
     table = np.full(_table_size(len(removed)), -1, dtype=np.int64)
+    mapped = numbers is not None
     kernel.kept_triangles(np.ascontiguousarray(triangles, dtype=np.int64),
+                          np.ascontiguousarray(numbers if mapped else np.empty(0), dtype=np.int64), mapped,
                           np.ascontiguousarray(removed, dtype=np.int64), table, keep.view(np.uint8))
     return keep
 
