@@ -42,6 +42,7 @@ from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap, parallel_blocks
+from c1mesh.core.tile import tile_rows
 from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sub_table
 from c1mesh.engine.topology import triangle_neighbours as topology_neighbours
 from c1mesh.engine.triangulation import as_xy
@@ -334,7 +335,12 @@ class TrimTile:
             at[near.corners.ravel()] = True
             return at
         own = self.place.home == self.place.number
-        return own if near is None else own & np.isin(self.place.numbers, near.corners)
+        if near is None:
+            return own
+        rows = tile_rows(self.place.numbers, near.corners)      # a search of the few corners, no sort of the tile
+        at = np.zeros(self.size, dtype=bool)
+        at[rows[rows >= 0]] = True
+        return own & at
 
     def cuts(self, rows: np.ndarray) -> Cuts:
         """The triangles rows (k,) of source as Cuts."""
@@ -399,8 +405,19 @@ def peeled(triangles: np.ndarray, front: np.ndarray) -> np.ndarray:
 
 def bowtie_cuts(tile: TrimTile, near: Cuts | None = None) -> Cuts:
     """What remove_bowties cuts at the tile's own vertices that are corners of `near`
-    (None: at all of them), without removing it: every fan but the kept one."""
-    return tile.cuts(remove_bowties(tile.source, tile.alive.copy(), tile.neighbours, tile.at(near)))
+    (None: at all of them), without removing it: every fan but the kept one.
+
+    With near, over the stars of those vertices alone (the live triangles with a corner
+    there, and their neighbours among themselves): a fan at a vertex and the open edges
+    at it are all in its star, so the cuts are the whole tile's, without the tile's
+    neighbours (an edge sort of the whole halo for a few thousand vertices)."""
+    at = tile.at(near)
+    if near is None:
+        return tile.cuts(remove_bowties(tile.source, tile.alive.copy(), tile.neighbours, at))
+    rows = _live_rows(tile.source, tile.alive, at)
+    star = tile.source[rows]
+    cut = remove_bowties(star, np.ones(len(rows), dtype=bool), triangle_neighbours(star, tile.size), at)
+    return tile.cuts(rows[cut])
 
 
 class Thin:
