@@ -451,12 +451,20 @@ class Thin:
         return touching(self.triangles.corners, cuts.corners)
 
 
-def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tuple[int, int]:
+def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None,
+           early: Cuts | None = None) -> tuple[int, int]:
     """trim's loop over the run's tiles: peel the live thin components that hold a `front`
     (k,) bool triangle, cut the bow-ties, peel again from the cut fans' neighbours, until
     no bow-tie is left; returns (slivers, bow-tie triangles) removed. near: the triangles
     removed since the tiles were last looked at for bow-ties, whose corners are the only
-    places one can appear (None: look everywhere)."""
+    places one can appear (None: look everywhere). early: the first round's bow-tie cuts
+    (at those places) if the tiles found them before the first peel, in the pass that
+    read them for another rule (None: the round looks after the peel).
+
+    Why early serves: a vertex's bow-tie decision depends on its star alone, and the
+    peel changes only the stars of its triangles' corners. So the early cuts with no
+    corner among the peeled triangles' stand; those with one are looked at again, with
+    the peeled triangles' corners, after the peel."""
     sliver = bowtie = 0
     while True:
         gone = thin.peel(front)
@@ -464,8 +472,15 @@ def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tu
         run.remove(gone)
         if near is not None:
             near = Cuts.join([near, gone])
-        cut = Cuts.join(run.map(partial(bowtie_cuts, near=near),
-                                None if near is None else near.tile_set())).distinct()
+        if early is None:
+            cut = Cuts.join(run.map(partial(bowtie_cuts, near=near),
+                                    None if near is None else near.tile_set())).distinct()
+        else:
+            stale = np.isin(early.corners, gone.corners).any(axis=1)
+            again = Cuts.join([gone, early.take(stale)])
+            cut = Cuts.join([early.take(~stale)] + run.map(partial(bowtie_cuts, near=again),
+                                                           again.tile_set())).distinct()
+            early = None
         if not len(cut):
             return sliver, bowtie
         bowtie += len(cut)
@@ -476,17 +491,30 @@ def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tu
 
 def trim_run(run: TrimRun, min_ratio: float) -> tuple[Thin, dict[str, int]]:
     """The sliver peel and bow-tie removal over the run's tiles, after the long-edge rule:
-    (the run's Thin, {"sliver", "bowtie"} removed)."""
-    thin = Thin.of(run, min_ratio)
-    sliver, bowtie = settle(run, thin, thin.boundary, None)
+    (the run's Thin, {"sliver", "bowtie"} removed). One pass over the tiles finds their
+    thin triangles and, before the peel, their bow-ties (settle's early)."""
+    parts = run.map(partial(thin_and_bowties, min_ratio=min_ratio))
+    thin = Thin(Cuts.join([part for part, _, _ in parts]),
+                np.concatenate([np.zeros(0, dtype=bool)] + [boundary for _, boundary, _ in parts]))
+    sliver, bowtie = settle(run, thin, thin.boundary, None, Cuts.join([cuts for _, _, cuts in parts]))
     return thin, {"sliver": sliver, "bowtie": bowtie}
 
 
-def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = None) -> dict[str, int]:
+def thin_and_bowties(tile: TrimTile, min_ratio: float) -> tuple[Cuts, np.ndarray, Cuts]:
+    """trim_run's first pass over a tile: its thin_triangles (the Cuts, the boundary flags)
+    and its bowtie_cuts at every vertex in its cell, from one read of the tile."""
+    thin, boundary = thin_triangles(tile, min_ratio)
+    return thin, boundary, bowtie_cuts(tile)
+
+
+def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = None,
+               early: Cuts | None = None) -> dict[str, int]:
     """Remove the live triangles cuts (another rule's, found by the run's tiles) and the
     slivers and bow-ties their holes expose: only the thin triangles beside the holes can
     be newly on the boundary, and only the holes' corners can become bow-ties. thin: the
-    run's Thin from trim_run (None: taken now). Returns {"sliver", "bowtie"} removed."""
+    run's Thin from trim_run (None: taken now); early: the bow-ties at the holes' corners
+    once the holes are cut, if the tiles found them as they found the cuts (settle's
+    early; None: looked for after the peel). Returns {"sliver", "bowtie"} removed."""
     run.remove(cuts)
     if not len(cuts):
         return {"sliver": 0, "bowtie": 0}
@@ -494,7 +522,7 @@ def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = N
         thin = Thin.of(run, min_ratio)
     else:
         thin.remove(cuts)
-    sliver, bowtie = settle(run, thin, thin.next_to(cuts), cuts)
+    sliver, bowtie = settle(run, thin, thin.next_to(cuts), cuts, early)
     return {"sliver": sliver, "bowtie": bowtie}
 
 
