@@ -41,7 +41,7 @@ from c1mesh.pipeline.survey_fit import fit_in_tiles
 from c1mesh.survey.height_runs import HEIGHT
 from c1mesh.survey.halos import halo_reach, noise_floors, read_halo
 from c1mesh.survey.sizing import fits_in_memory, points_per_tile
-from c1mesh.stages.trim import drop_triangles, peeled, trim
+from c1mesh.stages.trim import drop_triangles, kept_triangles, peeled, triangles_among, trim
 from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
 
@@ -327,6 +327,25 @@ def test_peel_takes_thin_components_that_reach_the_boundary():
     assert not peeled(chain, np.zeros(5, bool)).any()
     kept = drop_triangles(np.array([[9, 8, 7], [3, 1, 2], [1, 2, 10]]), np.array([[2, 3, 1]]))
     assert kept.tolist() == [[9, 8, 7], [1, 2, 10]]
+
+
+def test_halo_lookups_equal_sets_of_corners():
+    """kept_triangles (a hash of the removed triangles) and triangles_among (a hash of a
+    halo's survey numbers) against Python sets and dicts on random small triangle lists,
+    removed rows given in any corner order."""
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        n, count = int(rng.integers(5, 60)), int(rng.integers(0, 80))
+        tri = np.array([rng.choice(n, 3, replace=False) for _ in range(count)], dtype=np.int64).reshape(-1, 3)
+        removed = np.array([rng.permutation(tri[rng.integers(count)]) if count and rng.random() < 0.6
+                            else rng.choice(n, 3, replace=False) for _ in range(rng.integers(0, 30))],
+                           dtype=np.int64).reshape(-1, 3)
+        gone = {tuple(sorted(row)) for row in removed.tolist()}
+        assert kept_triangles(tri, removed).tolist() == [tuple(sorted(row)) not in gone for row in tri.tolist()]
+        index = np.sort(rng.choice(n, rng.integers(0, n), replace=False)).astype(np.int64)
+        row_of = {v: i for i, v in enumerate(index.tolist())}
+        inside = [[row_of[v] for v in row] for row in tri.tolist() if all(v in row_of for v in row)]
+        assert triangles_among(index, tri).tolist() == inside
 
 
 def test_tiled_fit_carries_crs_and_colours(tmp_path):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from c1mesh.engine.triangulation import delaunay
+from c1mesh.stages.curtains import curtain_triangles, point_rows, remove_curtain_run
 from c1mesh.stages import trim as trim_stage
 from c1mesh.stages.trim import (Cuts, Place, TrimTile, circle_ratio, retrim, retrim_run, trim, trim_mesh,
                                 trim_run)
@@ -199,6 +200,49 @@ def test_the_trim_over_tiles_is_the_brute_force_trim(side):
         assert retrim_run(run, cuts, min_ratio, thin) == {"sliver": sliver, "bowtie": bowtie}
         assert set(np.flatnonzero(run.alive).tolist()) == expected
     assert side == 1 or fewer > 10
+
+
+class _RowCells(_Cells):
+    """_Cells whose tiles carry the point rows (x, y, z, gx, gy) the curtain rule reads."""
+
+    def __init__(self, rows, tri, alive, side):
+        super().__init__(rows[:, :2], tri, alive, side)
+        self.rows = rows
+
+    def tile(self, t):
+        tile = super().tile(t)
+        return TrimTile(tile.source, tile.alive, tile.size, self.rows[tile.place.numbers], tile.place)
+
+
+@pytest.mark.parametrize("side", [1, 3])
+def test_the_curtains_over_tiles_and_their_retrim_are_the_brute_force_trim(side):
+    """remove_curtain_run over a grid of cells (each cell finds the curtains it holds, and
+    the bow-ties their cut leaves before the peel) removes the trimmed mesh's triangles
+    that curtain_triangles marks, then what the brute-force loop removes from the holes."""
+    exercised = 0
+    for seed in SEEDS:
+        xy, tri, max_edge, min_ratio = _mesh(seed)
+        kept, _, _ = _brute_trim(xy, tri, max_edge, min_ratio)
+        rng = np.random.default_rng(300 + seed)
+        z, gradients = 0.02 * rng.random(len(xy)), 0.1 * rng.normal(size=(len(xy), 2))
+        lengths = trim_stage.edge_lengths(xy, tri)
+        a, b, c = (xy[tri[:, k]] for k in range(3))
+        u, v = b - a, c - a
+        widths = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]) / lengths.max(axis=1)
+        floor = float(np.quantile(widths[kept], 0.1))
+        masks = curtain_triangles(xy, z, gradients, tri, floor=floor)
+        curtains = kept & np.logical_or.reduce(list(masks.values()))
+        expected = set(np.flatnonzero(kept & ~curtains).tolist())
+        triangles = [tuple(t) for t in tri.tolist()]
+        thin = [_ratio(xy.tolist(), t) < min_ratio for t in triangles]
+        sliver, bowtie, _ = _brute_settle(triangles, expected, thin)
+        run = _RowCells(point_rows(xy, z, gradients), tri, kept.copy(), side)
+        counts, cleanup = remove_curtain_run(run, floor, True, None, min_ratio)
+        assert sum(counts.values()) == int(curtains.sum())
+        assert cleanup == {"sliver": sliver, "bowtie": bowtie}
+        assert set(np.flatnonzero(run.alive).tolist()) == expected
+        exercised += bowtie > 0
+    assert exercised >= 3
 
 
 def _numpy_circle_ratio(lengths):

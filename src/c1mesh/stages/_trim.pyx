@@ -3,7 +3,7 @@
 imports them. The triangles of a Delaunay triangulation come in no particular order of
 their points, so every kernel reads its points as rows (x, y together: one cache line)."""
 from libc.math cimport hypot
-from libc.stdint cimport int64_t, uint8_t
+from libc.stdint cimport int64_t, uint8_t, uint64_t
 
 
 def edge_lengths(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, ::1] out,
@@ -131,4 +131,121 @@ def thin_rows(const double[:, ::1] lengths, const uint8_t[::1] alive, double min
             if alive[t] and _circle_ratio(lengths[t, 0], lengths[t, 1], lengths[t, 2]) < min_ratio:
                 out[count] = t
                 count += 1
+    return count
+
+
+# ---- survey-number lookups of a survey's halos (c1mesh.survey.halos, .trim_runs) --------
+# Open-addressing hash tables (linear probing, a power-of-two size at least twice the
+# keys): one pass over the triangles, no sort of them, memory of the keys' size.
+
+cdef inline uint64_t _spread(uint64_t h) noexcept nogil:
+    """A 64-bit finaliser (splitmix64's): every input bit moves every output bit."""
+    h ^= h >> 30
+    h *= 0xBF58476D1CE4E5B9ULL
+    h ^= h >> 27
+    h *= 0x94D049BB133111EBULL
+    h ^= h >> 31
+    return h
+
+
+cdef inline uint64_t _triple_hash(int64_t a, int64_t b, int64_t c) noexcept nogil:
+    return _spread(_spread(_spread(<uint64_t>a) ^ <uint64_t>b) ^ <uint64_t>c)
+
+
+cdef inline void _sort3(int64_t *a, int64_t *b, int64_t *c) noexcept nogil:
+    cdef int64_t s
+    if a[0] > b[0]:
+        s = a[0]; a[0] = b[0]; b[0] = s
+    if b[0] > c[0]:
+        s = b[0]; b[0] = c[0]; c[0] = s
+    if a[0] > b[0]:
+        s = a[0]; a[0] = b[0]; b[0] = s
+
+
+def kept_triangles(const int64_t[:, ::1] corners, const int64_t[::1] numbers, bint mapped,
+                   const int64_t[:, ::1] removed, int64_t[::1] table, uint8_t[::1] keep):
+    """keep[t] = 0 where triangle t of corners (T, 3) is, as a set of corners, a row of
+    removed (R, 3), else 1; mapped: corners are rows into numbers (m,), and compared as
+    numbers[corner]. table: (S,) filled with -1, S a power of two >= 2R (the removed
+    rows' slots). Returns how many are kept. Without the GIL: one thread each."""
+    cdef Py_ssize_t T = corners.shape[0], R = removed.shape[0], t, r, count = 0
+    cdef uint64_t mask = <uint64_t>table.shape[0] - 1, slot
+    cdef int64_t a, b, c, x, y, z, found
+    with nogil:
+        for r in range(R):
+            a = removed[r, 0]
+            b = removed[r, 1]
+            c = removed[r, 2]
+            _sort3(&a, &b, &c)
+            slot = _triple_hash(a, b, c) & mask
+            while table[slot] >= 0:
+                slot = (slot + 1) & mask
+            table[slot] = r
+        for t in range(T):
+            a = corners[t, 0]
+            b = corners[t, 1]
+            c = corners[t, 2]
+            if mapped:
+                a = numbers[a]
+                b = numbers[b]
+                c = numbers[c]
+            _sort3(&a, &b, &c)
+            slot = _triple_hash(a, b, c) & mask
+            keep[t] = 1
+            while True:
+                found = table[slot]
+                if found < 0:
+                    break
+                x = removed[found, 0]
+                y = removed[found, 1]
+                z = removed[found, 2]
+                _sort3(&x, &y, &z)
+                if x == a and y == b and z == c:
+                    keep[t] = 0
+                    break
+                slot = (slot + 1) & mask
+            count += keep[t]
+    return count
+
+
+cdef inline int64_t _row_of(const int64_t[::1] index, const int64_t[::1] table, uint64_t mask,
+                            int64_t number) noexcept nogil:
+    """The row of number in index through table (triangles_among's hash), or -1."""
+    cdef uint64_t slot = _spread(<uint64_t>number) & mask
+    cdef int64_t row
+    while True:
+        row = table[slot]
+        if row < 0 or index[row] == number:
+            return row
+        slot = (slot + 1) & mask
+
+
+def triangles_among(const int64_t[::1] index, const int64_t[:, ::1] triangles, int64_t[::1] table,
+                    int64_t[:, ::1] out):
+    """The triangles (T, 3) of survey numbers whose three corners are among index (m,)
+    (distinct), as rows of index, in their order into out (T, 3). table: (S,) filled with
+    -1, S a power of two >= 2m. Returns how many. One thread."""
+    cdef Py_ssize_t m = index.shape[0], T = triangles.shape[0], i, t, count = 0
+    cdef uint64_t mask = <uint64_t>table.shape[0] - 1, slot
+    cdef int64_t a, b, c
+    with nogil:
+        for i in range(m):
+            slot = _spread(<uint64_t>index[i]) & mask
+            while table[slot] >= 0:
+                slot = (slot + 1) & mask
+            table[slot] = i
+        for t in range(T):
+            a = _row_of(index, table, mask, triangles[t, 0])
+            if a < 0:
+                continue
+            b = _row_of(index, table, mask, triangles[t, 1])
+            if b < 0:
+                continue
+            c = _row_of(index, table, mask, triangles[t, 2])
+            if c < 0:
+                continue
+            out[count, 0] = a
+            out[count, 1] = b
+            out[count, 2] = c
+            count += 1
     return count

@@ -33,7 +33,7 @@ samples). Holes are left where curtains were; the trim then peels the slivers an
 the holes expose (trim.retrim_run), so the result keeps trim's guarantees (edge-manifold,
 no bowtie vertex).
 
-Like the trim, the rule is a function of a tile (`curtain_cuts`, trim.TrimTile) given the
+Like the trim, the rule is a function of a tile (`curtains_and_bowties`, trim.TrimTile) given the
 noise floor, and `remove_curtain_run` runs it and the re-trim over a trim.TrimRun's tiles:
 the in-memory fit's one (`remove_curtains`) or a survey's (c1mesh.survey.trim_runs).
 
@@ -61,7 +61,7 @@ from c1mesh.stages import _curtains as kernel
 from c1mesh.stages.grid import GRAZING_ANGLE, SHADOW_ANGLE
 from c1mesh.stages.limiter import floor_summary, reduce_floor, residual_sizes, trapezoid_residuals
 from c1mesh.stages.trim import (MIN_CIRCLE_RATIO, Cuts, OneTile, Thin, TrimmedMesh, TrimRun, TrimTile,
-                                retrim_run, used_points)
+                                bowtie_cuts, retrim_run, used_points)
 
 REASONS = ("shadow_edge", "grazing", "facing_away", "thinner_than_noise")
 """Why a triangle is a curtain, in the order the rules are applied (a triangle counts once)."""
@@ -161,24 +161,34 @@ def _live_noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh
                                                 mesh.live_edge_mask()),))
 
 
-def curtain_cuts(tile: TrimTile, floor: float, view_rules: bool = True) -> tuple[Cuts, dict[str, int]]:
+def curtains_and_bowties(tile: TrimTile, floor: float, view_rules: bool = True) -> tuple[Cuts, dict[str, int], Cuts]:
     """The tile's own live triangles that are curtains (curtain_triangles with the noise
     floor `floor`, the survey's; view_rules: view_rules_apply), tile.points the rows of
-    `point_rows`: (trim.Cuts, the count by reason)."""
+    `point_rows`, as trim.Cuts with their count by reason; and the bowtie_cuts its own
+    vertices have once every curtain it holds is cut (trim.retrim_run's early). The
+    curtain rule is a function of one triangle and the floor, so the tile finds the
+    curtains of its neighbours' cells that it holds as they do, and with them the whole
+    star of each of its vertices after the cut."""
     masks = _curtain_masks(tile.points, tile.source, SHADOW_ANGLE, GRAZING_ANGLE, floor, view_rules,
-                           alive=tile.own_live())
+                           alive=tile.alive)
     cut = np.logical_or.reduce([masks[reason] for reason in REASONS])
-    return tile.cuts(np.flatnonzero(cut)), {reason: int(masks[reason].sum()) for reason in REASONS}
+    own = tile.own_live()
+    after = TrimTile(tile.source, tile.alive & ~cut, tile.size, tile.points, tile.place)
+    return (tile.cuts(np.flatnonzero(cut & own)),
+            {reason: int(np.count_nonzero(masks[reason] & own)) for reason in REASONS},
+            bowtie_cuts(after, tile.cuts(np.flatnonzero(cut))))
 
 
 def remove_curtain_run(run: TrimRun, floor: float, view_rules: bool = True, thin: Thin | None = None,
                        min_ratio: float = MIN_CIRCLE_RATIO) -> tuple[dict[str, int], dict[str, int]]:
-    """The curtains of the run's tiles (curtain_cuts, noise floor `floor`) and the slivers
-    and bowties their holes expose (trim.retrim_run; thin: the run's trim.Thin, None: taken
-    after the curtains) removed: (curtains by reason, {"sliver", "bowtie"})."""
-    found = run.map(partial(curtain_cuts, floor=floor, view_rules=view_rules))
-    counts = {reason: sum(count[reason] for _, count in found) for reason in REASONS}
-    return counts, retrim_run(run, Cuts.join([cuts for cuts, _ in found]), min_ratio, thin)
+    """The curtains of the run's tiles (noise floor `floor`) and the slivers and bowties
+    their holes expose (trim.retrim_run; thin: the run's trim.Thin, None: taken after the
+    curtains) removed: (curtains by reason, {"sliver", "bowtie"}). One pass over the tiles
+    finds the curtains and the bow-ties their cut leaves (`curtains_and_bowties`)."""
+    found = run.map(partial(curtains_and_bowties, floor=floor, view_rules=view_rules))
+    counts = {reason: sum(count[reason] for _, count, _ in found) for reason in REASONS}
+    return counts, retrim_run(run, Cuts.join([cuts for cuts, _, _ in found]), min_ratio, thin,
+                              Cuts.join([early for _, _, early in found]))
 
 
 def remove_curtains(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles,

@@ -42,6 +42,7 @@ from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap, parallel_blocks
+from c1mesh.core.tile import tile_rows
 from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sub_table
 from c1mesh.engine.topology import triangle_neighbours as topology_neighbours
 from c1mesh.engine.triangulation import as_xy
@@ -334,7 +335,12 @@ class TrimTile:
             at[near.corners.ravel()] = True
             return at
         own = self.place.home == self.place.number
-        return own if near is None else own & np.isin(self.place.numbers, near.corners)
+        if near is None:
+            return own
+        rows = tile_rows(self.place.numbers, near.corners)      # a search of the few corners, no sort of the tile
+        at = np.zeros(self.size, dtype=bool)
+        at[rows[rows >= 0]] = True
+        return own & at
 
     def cuts(self, rows: np.ndarray) -> Cuts:
         """The triangles rows (k,) of source as Cuts."""
@@ -399,8 +405,19 @@ def peeled(triangles: np.ndarray, front: np.ndarray) -> np.ndarray:
 
 def bowtie_cuts(tile: TrimTile, near: Cuts | None = None) -> Cuts:
     """What remove_bowties cuts at the tile's own vertices that are corners of `near`
-    (None: at all of them), without removing it: every fan but the kept one."""
-    return tile.cuts(remove_bowties(tile.source, tile.alive.copy(), tile.neighbours, tile.at(near)))
+    (None: at all of them), without removing it: every fan but the kept one.
+
+    With near, over the stars of those vertices alone (the live triangles with a corner
+    there, and their neighbours among themselves): a fan at a vertex and the open edges
+    at it are all in its star, so the cuts are the whole tile's, without the tile's
+    neighbours (an edge sort of the whole halo for a few thousand vertices)."""
+    at = tile.at(near)
+    if near is None:
+        return tile.cuts(remove_bowties(tile.source, tile.alive.copy(), tile.neighbours, at))
+    rows = _live_rows(tile.source, tile.alive, at)
+    star = tile.source[rows]
+    cut = remove_bowties(star, np.ones(len(rows), dtype=bool), triangle_neighbours(star, tile.size), at)
+    return tile.cuts(rows[cut])
 
 
 class Thin:
@@ -427,24 +444,27 @@ class Thin:
 
     def remove(self, cuts: Cuts) -> None:
         """Another rule removed cuts: a thin one among them can no longer be peeled."""
-        if len(cuts) and len(self.alive):       # compares only rows sharing a lowest corner with a cut
-            kept = drop_triangles(np.column_stack([self.triangles.corners, np.arange(len(self.alive))]),
-                                  cuts.corners)
-            still = np.zeros(len(self.alive), dtype=bool)
-            still[kept[:, 3]] = True
-            self.alive &= still
+        self.alive &= kept_triangles(self.triangles.corners, cuts.corners)
 
     def next_to(self, cuts: Cuts) -> np.ndarray:
         """(k,) bool the thin triangles sharing an edge with one of cuts."""
         return touching(self.triangles.corners, cuts.corners)
 
 
-def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tuple[int, int]:
+def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None,
+           early: Cuts | None = None) -> tuple[int, int]:
     """trim's loop over the run's tiles: peel the live thin components that hold a `front`
     (k,) bool triangle, cut the bow-ties, peel again from the cut fans' neighbours, until
     no bow-tie is left; returns (slivers, bow-tie triangles) removed. near: the triangles
     removed since the tiles were last looked at for bow-ties, whose corners are the only
-    places one can appear (None: look everywhere)."""
+    places one can appear (None: look everywhere). early: the first round's bow-tie cuts
+    (at those places) if the tiles found them before the first peel, in the pass that
+    read them for another rule (None: the round looks after the peel).
+
+    Why early serves: a vertex's bow-tie decision depends on its star alone, and the
+    peel changes only the stars of its triangles' corners. So the early cuts with no
+    corner among the peeled triangles' stand; those with one are looked at again, with
+    the peeled triangles' corners, after the peel."""
     sliver = bowtie = 0
     while True:
         gone = thin.peel(front)
@@ -452,8 +472,15 @@ def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tu
         run.remove(gone)
         if near is not None:
             near = Cuts.join([near, gone])
-        cut = Cuts.join(run.map(partial(bowtie_cuts, near=near),
-                                None if near is None else near.tile_set())).distinct()
+        if early is None:
+            cut = Cuts.join(run.map(partial(bowtie_cuts, near=near),
+                                    None if near is None else near.tile_set())).distinct()
+        else:
+            stale = np.isin(early.corners, gone.corners).any(axis=1)
+            again = Cuts.join([gone, early.take(stale)])
+            cut = Cuts.join([early.take(~stale)] + run.map(partial(bowtie_cuts, near=again),
+                                                           again.tile_set())).distinct()
+            early = None
         if not len(cut):
             return sliver, bowtie
         bowtie += len(cut)
@@ -464,17 +491,30 @@ def settle(run: TrimRun, thin: Thin, front: np.ndarray, near: Cuts | None) -> tu
 
 def trim_run(run: TrimRun, min_ratio: float) -> tuple[Thin, dict[str, int]]:
     """The sliver peel and bow-tie removal over the run's tiles, after the long-edge rule:
-    (the run's Thin, {"sliver", "bowtie"} removed)."""
-    thin = Thin.of(run, min_ratio)
-    sliver, bowtie = settle(run, thin, thin.boundary, None)
+    (the run's Thin, {"sliver", "bowtie"} removed). One pass over the tiles finds their
+    thin triangles and, before the peel, their bow-ties (settle's early)."""
+    parts = run.map(partial(thin_and_bowties, min_ratio=min_ratio))
+    thin = Thin(Cuts.join([part for part, _, _ in parts]),
+                np.concatenate([np.zeros(0, dtype=bool)] + [boundary for _, boundary, _ in parts]))
+    sliver, bowtie = settle(run, thin, thin.boundary, None, Cuts.join([cuts for _, _, cuts in parts]))
     return thin, {"sliver": sliver, "bowtie": bowtie}
 
 
-def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = None) -> dict[str, int]:
+def thin_and_bowties(tile: TrimTile, min_ratio: float) -> tuple[Cuts, np.ndarray, Cuts]:
+    """trim_run's first pass over a tile: its thin_triangles (the Cuts, the boundary flags)
+    and its bowtie_cuts at every vertex in its cell, from one read of the tile."""
+    thin, boundary = thin_triangles(tile, min_ratio)
+    return thin, boundary, bowtie_cuts(tile)
+
+
+def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = None,
+               early: Cuts | None = None) -> dict[str, int]:
     """Remove the live triangles cuts (another rule's, found by the run's tiles) and the
     slivers and bow-ties their holes expose: only the thin triangles beside the holes can
     be newly on the boundary, and only the holes' corners can become bow-ties. thin: the
-    run's Thin from trim_run (None: taken now). Returns {"sliver", "bowtie"} removed."""
+    run's Thin from trim_run (None: taken now); early: the bow-ties at the holes' corners
+    once the holes are cut, if the tiles found them as they found the cuts (settle's
+    early; None: looked for after the peel). Returns {"sliver", "bowtie"} removed."""
     run.remove(cuts)
     if not len(cuts):
         return {"sliver": 0, "bowtie": 0}
@@ -482,7 +522,7 @@ def retrim_run(run: TrimRun, cuts: Cuts, min_ratio: float, thin: Thin | None = N
         thin = Thin.of(run, min_ratio)
     else:
         thin.remove(cuts)
-    sliver, bowtie = settle(run, thin, thin.next_to(cuts), cuts)
+    sliver, bowtie = settle(run, thin, thin.next_to(cuts), cuts, early)
     return {"sliver": sliver, "bowtie": bowtie}
 
 
@@ -499,26 +539,46 @@ def touching(triangles: np.ndarray, others: np.ndarray) -> np.ndarray:
     return np.logical_or.reduce([np.isin(k, theirs) for k in keys(triangles)])
 
 
-def drop_triangles(triangles: np.ndarray, removed: np.ndarray, columns: int = 3) -> np.ndarray:
-    """The rows of triangles (T, >= 3) whose first three entries are not, as a set of
-    corners, a row of removed (R, 3, few): only rows sharing a removed triangle's lowest
-    corner are compared."""
-    if not len(removed) or not len(triangles):
-        return triangles
-    corners = triangles[:, :columns]
-    lowest = corners.min(axis=1)
-    removed_lowest = removed.min(axis=1)
-    candidates = np.flatnonzero(np.isin(lowest, removed_lowest))
-    if not len(candidates):
-        return triangles
-    # Only removed triangles that share a lowest corner with a candidate can match: a
-    # survey's removed list grows with the survey, a halo's share of it does not.
-    near = removed[np.isin(removed_lowest, lowest[candidates])]
-    gone = {tuple(row) for row in np.sort(near, axis=1).tolist()}
-    rows = np.sort(corners[candidates], axis=1).tolist()
+def drop_triangles(triangles: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """The rows of triangles (T, 3) that are not, as a set of corners, a row of removed
+    (R, 3) (survey numbers): triangles[kept_triangles(triangles, removed)]."""
+    return triangles[kept_triangles(triangles, removed)]
+
+
+def kept_triangles(triangles: np.ndarray, removed: np.ndarray, numbers: np.ndarray | None = None) -> np.ndarray:
+    """(T,) bool which triangles (T, 3) are not, as a set of corners, a row of removed
+    (R, 3) (survey numbers); numbers: (m,) the survey numbers of the rows the triangles
+    hold instead (a halo's), None: the triangles are survey numbers. A hash of the
+    removed rows and one pass over the triangles (kernel: stages/_trim.pyx), so a halo's
+    load costs one pass whatever the survey has removed."""
     keep = np.ones(len(triangles), dtype=bool)
-    keep[[c for c, row in zip(candidates.tolist(), rows) if tuple(row) in gone]] = False
-    return triangles[keep]
+    if not len(removed) or not len(triangles):
+        return keep
+    table = np.full(_table_size(len(removed)), -1, dtype=np.int64)
+    mapped = numbers is not None
+    kernel.kept_triangles(np.ascontiguousarray(triangles, dtype=np.int64),
+                          np.ascontiguousarray(numbers if mapped else np.empty(0), dtype=np.int64), mapped,
+                          np.ascontiguousarray(removed, dtype=np.int64), table, keep.view(np.uint8))
+    return keep
+
+
+def triangles_among(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The triangles (k, 3) (survey numbers) whose three corners are among `index` (a
+    halo's survey numbers, distinct), as rows of index, in their order: a hash of index
+    and one pass over the triangles (kernel: stages/_trim.pyx; no sort of them, which cost
+    a halo read most of its time when it sifted nine tiles' triangles)."""
+    out = np.empty((len(triangles), 3), dtype=np.int64)
+    if not len(index) or not len(triangles):
+        return out[:0]
+    table = np.full(_table_size(len(index)), -1, dtype=np.int64)
+    count = kernel.triangles_among(np.ascontiguousarray(index, dtype=np.int64),
+                                   np.ascontiguousarray(triangles, dtype=np.int64), table, out)
+    return out[:count]
+
+
+def _table_size(keys: int) -> int:
+    """A kernel hash table's slots for `keys` keys: the power of two at least twice as many."""
+    return 1 << max(1, int(2 * keys - 1).bit_length())
 
 
 def circle_ratio(lengths: np.ndarray) -> np.ndarray:

@@ -30,10 +30,11 @@ import time
 
 import numpy as np
 
+from c1mesh.core.threads import map_in_threads
 from c1mesh.core.tile import Tile, compact, tile_rows
 from c1mesh.stages.limiter import NoiseFloors, TileLimits, floor_summary, reduce_floor, tile_limits
 from c1mesh.stages.streamed_median import streamed_median
-from c1mesh.stages.trim import drop_triangles, edge_lengths
+from c1mesh.stages.trim import edge_lengths, kept_triangles, triangles_among
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
@@ -58,20 +59,11 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Tile:
     for other in heights.touching(rect):
         if triangle_files[other] is None or not len(records):
             continue
-        parts.append(_rows_inside(records["index"], np.load(triangle_files[other])))
+        parts.append(triangles_among(records["index"], np.load(triangle_files[other])))
     used, triangles = compact(np.concatenate(parts), len(records))
     records = records[used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
     return Tile(records, triangles, own)
-
-
-def _rows_inside(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """The triangles (k, 3) (survey numbers) whose three corners are among `index` (a
-    halo's survey numbers, ascending), as rows of index. A neighbour tile shares only a
-    band of its triangles with the halo, so the lowest corners sift them first."""
-    inside = tile_rows(index, triangles.min(axis=1)) >= 0
-    rows = tile_rows(index, triangles[inside])
-    return rows[(rows >= 0).all(axis=1)]
 
 
 class HaloCache:
@@ -79,14 +71,18 @@ class HaloCache:
     later passes (a halo read costs a filter of up to nine tiles' points and triangles;
     a cached one, one file read). Triangles removed after the first read (the peel) are
     dropped as each halo is loaded: `removed` maps a tile to the removed triangles it
-    owns, so a halo compares its triangles with those of the tiles it reads, not with
-    the survey's whole list. temps: inputs.Temps; label: names its files (two caches
-    of different reach share one Temps)."""
+    owns (appended to, never reordered), so a halo compares its triangles with those of
+    the tiles it reads, not with the survey's whole list; and the driver's cache writes
+    the halo back without them, noting in `applied` (tile -> {owner: rows of
+    removed[owner]}) which it is without, so a later load drops only what was removed
+    since. temps: inputs.Temps; label: names its files (two caches of different reach
+    share one Temps)."""
 
     def __init__(self, heights, triangle_files, grid, reach: float, temps, label: str = "halo"):
         self.heights, self.files, self.grid, self.reach = heights, triangle_files, grid, reach
         self.temps, self.paths, self.label = temps, {}, label
         self.removed: dict[int, np.ndarray] = {}
+        self.applied: dict[int, dict[int, int]] = {}
 
     def tiles(self):
         """The tiles that own triangles."""
@@ -98,16 +94,16 @@ class HaloCache:
         made would be removed by nobody)."""
         if tile not in self.paths:
             halo = read_halo(self.heights, self.files, self.grid, tile, self.reach)
-            if not self.temps.owned_here():
-                return self._drop(tile, halo)
-            self.paths[tile] = self._new_paths(tile)
-            halo.records.tofile(self.paths[tile][0])
-            halo.triangles.astype("<i8").tofile(self.paths[tile][1])
-            return self._drop(tile, halo)
-        records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
-        triangles = np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3)
-        own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
-        return self._drop(tile, Tile(records, triangles, own))
+            if self.temps.owned_here():
+                self.paths[tile] = self._new_paths(tile)
+                halo.records.tofile(self.paths[tile][0])
+                halo.triangles.astype("<i8").tofile(self.paths[tile][1])
+        else:
+            records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
+            triangles = np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3)
+            own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
+            halo = Tile(records, triangles, own)
+        return Tile(halo.records, self._drop(tile, halo.records["index"], halo.triangles), halo.own)
 
     def prefetch(self, runner, name=str, on_done=None) -> None:
         """Read every tile's halo and cache it, each tile a task on runner
@@ -125,24 +121,42 @@ class HaloCache:
         return (self.temps.new(f"{self.label}-{tile}.records"), self.temps.new(f"{self.label}-{tile}.triangles"))
 
     def prune(self) -> None:
-        """Rewrite the cached halos without the removed triangles, once the trim is done
-        (and the tiles' triangle files without them), so later passes need not drop them."""
-        for tile, (_, triangles_path) in self.paths.items():
-            self.halo(tile).triangles.astype("<i8").tofile(triangles_path)
-        self.removed = {}
+        """Write the cached halos without the removed triangles they still hold, once the
+        trim is done (and the tiles' triangle files without them), so later passes (and
+        the copies sent with their tasks) need not drop them; in the thread knob's threads."""
+        def prune_one(tile: int) -> None:
+            if self._pending(tile):
+                records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
+                self._drop(tile, records["index"], np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3))
+        map_in_threads(prune_one, list(self.paths))
+        self.removed, self.applied = {}, {}
 
     def halos(self):
         """A fresh iterator over the halos of all tiles that own triangles."""
         return (self.halo(t) for t in self.tiles())
 
-    def _drop(self, tile: int, halo: Tile) -> Tile:
-        near = [self.removed[t] for t in self.heights.touching(self.grid.grown(tile, self.reach))
-                if t in self.removed]
-        if not near or not len(halo.triangles):
-            return halo
-        survey = halo.records["index"][halo.triangles]
-        kept = drop_triangles(np.column_stack([survey, np.arange(len(survey))]), np.concatenate(near), columns=3)
-        return Tile(halo.records, halo.triangles[kept[:, 3]], halo.own)
+    def _pending(self, tile: int) -> dict[int, int]:
+        """{owner: rows of removed[owner] already dropped} for the tiles near `tile`
+        (those its halo reads) that removed triangles since its cached file was written."""
+        applied = self.applied.get(tile, {})
+        return {t: applied.get(t, 0) for t in self.heights.touching(self.grid.grown(tile, self.reach))
+                if len(self.removed.get(t, ())) > applied.get(t, 0)}
+
+    def _drop(self, tile: int, numbers: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+        """triangles (k, 3) (rows of the halo's survey numbers `numbers`) without the
+        removed ones not yet dropped from tile's cached file, which the driver's cache
+        then rewrites without them."""
+        pending = self._pending(tile)
+        if not pending or not len(triangles):
+            return triangles
+        kept = kept_triangles(triangles, np.concatenate([self.removed[t][done:] for t, done in pending.items()]),
+                              numbers)
+        triangles = triangles[kept]
+        if tile in self.paths and self.temps.owned_here():
+            if not kept.all():
+                triangles.astype("<i8").tofile(self.paths[tile][1])
+            self.applied[tile] = {**self.applied.get(tile, {}), **{t: len(self.removed[t]) for t in pending}}
+        return triangles
 
 
 def cache_halo(cache: HaloCache, tile: int, paths) -> dict:

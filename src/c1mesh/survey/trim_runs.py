@@ -55,11 +55,13 @@ class TrimRuns:
             self.halos.removed[t] = group if earlier is None else np.concatenate([earlier, group])
 
     def write_files(self) -> None:
-        """Drop the removed triangles from their owners' triangle files and the cached halos."""
-        for t, removed in self.halos.removed.items():
+        """Drop the removed triangles from their owners' triangle files and the cached
+        halos, in the thread knob's threads (each tile its own file)."""
+        def write(t: int) -> None:
             triangles = np.load(self.halos.files[t])
             with open(self.halos.files[t], "wb") as file:
-                np.save(file, drop_triangles(triangles, removed))
+                np.save(file, drop_triangles(triangles, self.halos.removed[t]))
+        map_in_threads(write, list(self.halos.removed))
         self.halos.prune()
 
 
