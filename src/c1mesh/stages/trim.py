@@ -167,10 +167,6 @@ class TrimmedMesh:
         """(E,) bool over table.edges: the edges of the kept triangles."""
         return live_edges(self.table, self.alive, self.other)[1] > 0
 
-    def edges(self) -> np.ndarray:
-        """(E', 2) the kept triangles' unique edges, lower vertex first, sorted."""
-        return np.compress(self.live_edge_mask(), self.table.edges, axis=0)
-
     def edge_table(self, used: np.ndarray | None = None) -> EdgeTable:
         """topology.edge_table of the kept triangles (self.triangles), with the vertices
         renumbered by ``used`` as pipeline.steps.compact_vertices does (None: not)."""

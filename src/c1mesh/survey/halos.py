@@ -199,10 +199,7 @@ def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, 
     for _ in (runner or TaskRunner()).map(write_floor_summary, len(tiles),
                                           lambda i: (halos, tiles[i], first, paths[i]), lambda i: name(tiles[i])):
         pass
-    floor = reduce_floor(lambda: (block for path in paths for block in residual_blocks(path)))
-    for path in paths:
-        path.unlink()
-    return floor
+    return median_of_files(paths, reduce_floor)
 
 
 def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) -> None:
@@ -247,13 +244,14 @@ def residual_blocks(path, block: int = FLOAT_BLOCK):
         yield from file_blocks(file, "<f8", block)
 
 
-def median_of_files(paths) -> float:
-    """The exact median of the float64 values in the files `paths` (streamed_median's,
-    as np.median gives it), which it then removes."""
+def median_of_files(paths, reduce=streamed_median) -> float:
+    """The exact median of the float64 values in the files `paths` (reduce's of their
+    blocks: streamed_median's, as np.median gives it; edge_floor passes the limiter's
+    reduce_floor), which it then removes."""
     def blocks():
         for path in paths:
             yield from residual_blocks(path)
-    median = streamed_median(blocks)
+    median = reduce(blocks)
     for path in paths:
         path.unlink()
     return median
