@@ -129,7 +129,7 @@ def test_auto_max_edge_is_trims_to_the_bit(kind, n):
 
     xy = _survey(kind, n=n)
     _, report = trim(xy, Delaunay(xy).simplices, max_edge="auto", min_circle_ratio=0.0)
-    tiled = bd.auto_max_edge(bd.ArrayReader(xy), _grid(xy), len(xy), bd.streamed_hull(_chunks(xy)))
+    tiled, _ = bd.trimmed_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy), bd.streamed_hull(_chunks(xy)))
     assert tiled == report.max_edge
 
 
@@ -137,7 +137,7 @@ def test_certified_short_edges_are_the_global_short_edges():
     xy = _survey("hole")
     grid, hull = _grid(xy), bd.streamed_hull(_chunks(xy))
     bound = 2.0 * bd.mean_spacing(grid.box, len(xy))
-    tiled = np.sort(np.concatenate([bd._certified_edges(bd.ArrayReader(xy), grid, t, bound, hull)
+    tiled = np.sort(np.concatenate([bd.tile_pass(bd.ArrayReader(xy), grid, t, bound, hull).short
                                     for t in range(len(grid))]))
     whole = Delaunay(xy)
     pairs = {tuple(sorted(e)) for s in whole.simplices.tolist() for e in ((s[0], s[1]), (s[1], s[2]), (s[0], s[2]))}
@@ -164,7 +164,7 @@ def test_real_lidar_ground_tiles_give_the_pipelines_triangulation():
     whole = delaunay(xy)
     _, report = trim(xy, whole, max_edge="auto", min_circle_ratio=0.0)
     grid, hull = bd.TileGrid((*xy.min(axis=0), *xy.max(axis=0)), 3, 3), bd.streamed_hull(_chunks(xy))
-    assert bd.auto_max_edge(bd.ArrayReader(xy), grid, len(xy), hull) == report.max_edge
+    assert bd.trimmed_delaunay(bd.ArrayReader(xy), grid, len(xy), hull)[0] == report.max_edge
     tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), grid, len(xy), hull=hull, max_edge=report.max_edge))
     union = _union(tiles)
     assert len(_faces(union)) == len(union)
@@ -223,3 +223,60 @@ def test_short_median_holds_no_survey_sized_array():
         tracemalloc.stop()
     assert median == float(np.partition(np.concatenate(tiles), 3_999_999)[3_999_999])
     assert peak < survey_bytes / 2
+
+
+def test_smallest_empty_circle_passes_both_ends_and_holds_no_point():
+    """Brute force over every point: each edge's circle goes through both ends, no point of
+    the triangulation lies strictly inside it, and it is no larger than either of the
+    edge's circumcircles nor smaller than the diametral circle."""
+    from c1mesh.engine.triangulation import delaunay
+    from c1mesh.stages.trim import triangle_neighbours
+    from c1mesh.survey.strip_geometry import smallest_empty_circle
+
+    xy = np.random.default_rng(5).uniform(-1, 1, (300, 2))
+    simplices = delaunay(xy)
+    neighbors = triangle_neighbours(simplices, len(xy))
+    t, k = np.nonzero(np.ones_like(simplices, dtype=bool))
+    a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
+    centres, radii = circumcircles(xy, simplices)
+    circle, radius = smallest_empty_circle(xy, simplices, neighbors, t, k, a, b, centres)
+    assert np.allclose(np.hypot(*(xy[a] - circle).T), radius, rtol=0, atol=1e-12)
+    assert np.allclose(np.hypot(*(xy[b] - circle).T), radius, rtol=1e-9)
+    for i in range(len(t)):
+        inside = np.hypot(*(xy - circle[i]).T) < radius[i] * (1 - 1e-9)
+        assert not inside.any()
+    half = np.hypot(*(xy[a] - xy[b]).T) / 2
+    assert np.all(radius >= half * (1 - 1e-12)) and np.all(radius <= radii[t] * (1 + 1e-12))
+    inner = neighbors[t, k] >= 0
+    assert np.all(radius[inner] <= radii[neighbors[t, k][inner]] * (1 + 1e-12))
+
+
+def test_clear_disks_match_a_loop_over_strips_and_corners():
+    """centres_clear against a plain loop: a disk is clear unless its grown radius reaches
+    a strip's rectangle and its hull-clipped region (a polygon the loop samples densely)."""
+    from c1mesh.survey.strip_geometry import centres_clear, clip_to_hull
+
+    rng = np.random.default_rng(8)
+    centre, radius = rng.uniform(-3, 3, (400, 2)), rng.uniform(0.05, 2.0, 400)
+    strips = np.array([[-4.0, -4.0, -2.0, 4.0], [2.0, -4.0, 4.0, 4.0], [-2.0, 2.5, 2.0, 4.0]])
+    hull = np.array([[-4.0, -3.0], [4.0, -3.0], [0.0, 4.0]])
+    regions = clip_to_hull(strips, hull)
+    clear = centres_clear(centre, radius, strips, regions, 4.0)
+    assert 50 < clear.sum() < 350                 # both outcomes are exercised
+    for i in range(len(centre)):
+        reach = radius[i] * (1 + 1e-9) + 4e-12
+        meets = False
+        for polygon in regions:
+            edges = np.linspace(0, 1, 2001)[:, None]
+            ring = np.concatenate([p + edges * (q - p) for p, q in zip(polygon, np.roll(polygon, -1, axis=0))])
+            x, y = centre[i]
+            inside = all((q[0] - p[0]) * (y - p[1]) - (q[1] - p[1]) * (x - p[0]) >= 0
+                         for p, q in zip(polygon, np.roll(polygon, -1, axis=0)))
+            near = np.hypot(*(ring - centre[i]).T).min()
+            if inside or near <= reach - 1e-3:
+                meets = True
+            elif near <= reach + 1e-3:
+                meets = None                  # within the sampling's error: not judged
+                break
+        if meets is not None:
+            assert clear[i] == (not meets), i

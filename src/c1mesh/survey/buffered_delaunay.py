@@ -42,15 +42,17 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import AUTO_EDGE_FACTOR, edge_lengths, triangle_neighbours
+from c1mesh.stages.trim import AUTO_EDGE_FACTOR, triangle_neighbours
 from c1mesh.stages.streamed_median import order_statistic
 from c1mesh.survey.strip_geometry import (
     centres_clear,
     circumcircles,
     clip_to_hull,
     disks_clear,
+    edges_once,
     hull_edges_final,
     smallest_empty_circle,
+    triangle_flags,
     unread_strips,
 )
 
@@ -180,9 +182,8 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
         simplices = delaunay(local)
-        at_own = own[simplices].any(axis=1)
-        if max_edge is not None:
-            at_own &= _longest_edge(xy, simplices) <= max_edge    # survey coordinates: trim's bits
+        # survey coordinates for the lengths: trim's bits
+        _, at_own, mine = triangle_flags(xy, simplices, own, index, np.inf if max_edge is None else max_edge)
         if covers:
             safe = True
         else:
@@ -193,19 +194,8 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
                          or hull_edges_final(local, index, simplices, triangle_neighbours(simplices, len(local)),
                                              own, strips, hull_edges)))
         if safe:
-            mine = at_own & (own[simplices] & _lowest_corner(index[simplices])).any(axis=1)
             keep = simplices[mine]
             return TileTriangles(tile, index[keep], buffer, len(index), rounds)
-
-
-def _longest_edge(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(k,) the longest edge of each triangle, as trim.trim measures edges."""
-    return edge_lengths(xy, triangles).max(axis=1)
-
-
-def _lowest_corner(corners: np.ndarray) -> np.ndarray:
-    """(k, 3) bool: which corner holds the lowest survey number of its triangle."""
-    return corners == corners.min(axis=1, keepdims=True)
 
 
 @dataclass
@@ -252,80 +242,12 @@ def buffered_delaunay(read: Reader, grid: TileGrid, count: int, buffer: float | 
         yield tile_triangles(read, grid, tile, first, hull, max_edge)
 
 
-# ------------------------------------------------------------- the survey's edge statistic
-def edge_length_median(read: Reader, grid: TileGrid, count: int, hull: Hull,
-                       bound: float | None = None) -> float:
-    """The median edge length of the survey's Delaunay triangulation (each edge once), as
-    trim.trim computes it for max_edge="auto" from the whole triangulation: the
-    same value to the bit, found tile by tile.
-
-    The triangulation of n points in general position with h hull corners has
-    E = 3n - 3 - h edges, so the median's ranks are known from the first pass (count,
-    hull). Each tile certifies the edges of length at most `bound` at its own points (an
-    edge belongs to the tile of its lower-numbered end): an edge of the tile's
-    triangulation is an edge of the survey's when one circle through its two ends is
-    empty of what was read and clear of what was not — the smallest circle of the pencil
-    between the circumcircles of its two triangles (for a short edge usually its
-    diametral circle, which a buffer above `bound` always holds). Uncertified edges grow
-    the tile's buffer; when fewer than half the survey's edges are that short, `bound`
-    doubles (default: 4 mean spacings).
-    """
-    edges = 3 * count - 3 - len(hull.index)
-    if edges < 1:
-        raise ValueError("the survey has no edges")
-    bound = bound or 4.0 * mean_spacing(grid.box, count)
-    while True:
-        short = np.concatenate([_certified_edges(read, grid, tile, bound, hull) for tile in range(len(grid))])
-        if short.size > edges // 2:
-            break
-        bound *= 2.0
-    upper = edges // 2
-    ranked = np.partition(short, [upper - 1, upper] if edges % 2 == 0 else [upper])
-    return float(ranked[upper] if edges % 2 else np.mean(ranked[upper - 1:upper + 1]))
-
-
-def _certified_edges(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> np.ndarray:
-    """Lengths of the survey's Delaunay edges of length <= bound whose lower-numbered end
-    is one of the tile's points (edge_length_median)."""
-    box, cell = grid.box, grid.cell(tile)
-    for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
-        read_box, index, xy, own = reading.box, reading.index, reading.points, reading.own
-        if not own.any() or index.size < 3:
-            if not own.any() or reading.covers:
-                return np.empty(0)
-            continue
-        centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
-        local = xy - centre
-        simplices = delaunay(local)
-        neighbors = triangle_neighbours(simplices, len(local))
-        t, k = np.nonzero((neighbors < 0) | (neighbors > np.arange(len(simplices))[:, None]))
-        a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
-        lower = np.where(index[a] < index[b], a, b)
-        lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
-        mine = own[lower] & (lengths <= bound)
-        if reading.covers:
-            return lengths[mine]
-        t, k, a, b = t[mine], k[mine], a[mine], b[mine]
-        centres, _ = circumcircles(local, simplices)
-        circle_centre = smallest_empty_circle(local, simplices, neighbors, t, k, a, b, centres)
-        radius = np.hypot(*(local[a] - circle_centre).T)
-        strips = unread_strips(read_box, box, centre)
-        regions = clip_to_hull(strips, hull.xy - centre)
-        if centres_clear(circle_centre, radius, strips, regions, np.abs(local).max()).all():
-            return lengths[mine]
-
-
-def auto_max_edge(read: Reader, grid: TileGrid, count: int, hull: Hull) -> float:
-    """max_edge="auto" for the survey, as trim.trim resolves it from the whole
-    triangulation (AUTO_EDGE_FACTOR x the median edge), without holding the survey."""
-    return float(AUTO_EDGE_FACTOR * edge_length_median(read, grid, count, hull))
-
-
 # ------------------------------------------------- one pass: the trimmed triangulation
 @dataclass
 class TilePass:
     """What one triangulation of a tile certifies for a bound B: short (e,) lengths of the
-    survey's Delaunay edges of length <= B at its own points (edge_length_median);
+    survey's Delaunay edges of length <= B at its own points (an edge belongs to the tile
+    of its lower-numbered end; trimmed_delaunay's median);
     triangles (k, 3) survey numbers of the survey's Delaunay triangles it owns whose edges
     are all <= B, longest (k,) their longest edge; buffer, read, rounds as TileTriangles."""
 
@@ -340,7 +262,13 @@ class TilePass:
 
 def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull) -> TilePass:
     """Triangulate one tile once for both the edge statistic and the trimmed triangles up
-    to `bound` (frame units), growing its buffer (from bound) until both are certified."""
+    to `bound` (frame units), growing its buffer (from bound) until both are certified.
+
+    A triangle is certified by its circumdisk (the module docstring's buffer rule); an
+    edge of the tile's triangulation is an edge of the survey's when one circle through
+    its two ends is empty of what was read and clear of what was not: the smallest circle
+    of the pencil between the circumcircles of its two triangles (for a short edge
+    usually its diametral circle, which a buffer above `bound` always holds)."""
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
         read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
@@ -354,26 +282,19 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
         local = xy - centre
         simplices = delaunay(local)
         neighbors = triangle_neighbours(simplices, len(local))
-        # edges, each once: on the hull or towards a higher-numbered triangle
-        t, k = np.nonzero((neighbors < 0) | (neighbors > np.arange(len(simplices))[:, None]))
-        a, b = simplices[t, (k + 1) % 3], simplices[t, (k + 2) % 3]
-        lengths = np.hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])      # trim's bits
-        edge_mine = own[np.where(index[a] < index[b], a, b)] & (lengths <= bound)
-        longest = edge_lengths(xy, simplices).max(axis=1)
-        triangle_mine = (own[simplices] & _lowest_corner(index[simplices])).any(axis=1) & (longest <= bound)
+        edges, lengths = edges_once(xy, simplices, neighbors, own, index, bound)
+        longest, at_own, triangle_mine = triangle_flags(xy, simplices, own, index, bound)
         if not covers:
             strips = unread_strips(read_box, box, centre)
             regions = clip_to_hull(strips, hull.xy - centre)
-            at_own = own[simplices].any(axis=1) & (longest <= bound)
-            centres, _ = circumcircles(local, simplices)
-            te, ke, ae, be = t[edge_mine], k[edge_mine], a[edge_mine], b[edge_mine]
-            circle = smallest_empty_circle(local, simplices, neighbors, te, ke, ae, be, centres)
-            certified = (disks_clear(local, simplices[at_own], strips, regions).all()
-                         and centres_clear(circle, np.hypot(*(local[ae] - circle).T), strips, regions,
-                                            np.abs(local).max()).all())
+            centres, radius = circumcircles(local, simplices)
+            scale = np.abs(local).max()
+            circle, circle_radius = smallest_empty_circle(local, simplices, neighbors, *edges.T, centres)
+            certified = (centres_clear(centres[at_own], radius[at_own], strips, regions, scale).all()
+                         and centres_clear(circle, circle_radius, strips, regions, scale).all())
             if not certified:
                 continue
-        return TilePass(tile, lengths[edge_mine], index[simplices[triangle_mine]], longest[triangle_mine],
+        return TilePass(tile, lengths, index[simplices[triangle_mine]], longest[triangle_mine],
                         buffer, len(index), rounds)
 
 
@@ -384,8 +305,11 @@ def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_e
     """The survey's Delaunay triangulation after the long-edge trim, tile by tile, with one
     triangulation per tile: (max_edge, [keep(pass) per tile]).
 
-    max_edge: a length, or "auto" (trim's rule: AUTO_EDGE_FACTOR x the median edge,
-    edge_length_median's method). Each tile certifies up to a bound B (max_edge, or for
+    max_edge: a length, or "auto" (trim's rule: AUTO_EDGE_FACTOR x the median edge of the
+    whole triangulation, equal to trim's to the bit: n points in general position with h
+    hull corners have E = 3n - 3 - h edges, so the median's ranks are known from the
+    first pass, and it is selected among the short edges the tiles certify, `short_median`,
+    once more than half of the E edges are that short). Each tile certifies up to a bound B (max_edge, or for
     "auto" 2 x AUTO_EDGE_FACTOR mean spacings, raised and the pass repeated in the rare
     case the median comes out above it); its TilePass holds triangles up to B, of which
     those with longest <= max_edge are the result. keep(pass) is what is kept per tile

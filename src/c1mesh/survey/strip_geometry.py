@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from c1mesh.survey import _strip_geometry as kernel
+
 
 def unread_strips(read_box, box, centre) -> np.ndarray:
     """(s, 4) the parts of B outside the read rectangle E, as rectangles (x0, y0, x1, y1)
@@ -33,17 +35,7 @@ def disks_clear(xy: np.ndarray, triangles: np.ndarray, strips: np.ndarray,
     one). regions: each strip clipped to the survey's hull (convex polygons, (m, 2)), or
     None: a disk that reaches a strip's rectangle must then also reach its polygon."""
     centre, radius = circumcircles(xy, triangles)
-    reach = radius * (1 + 1e-9) + 1e-12 * np.abs(xy).max()
-    clear = np.ones(len(triangles), dtype=bool)
-    for s, (x0, y0, x1, y1) in enumerate(strips):
-        dx = np.maximum(np.maximum(x0 - centre[:, 0], centre[:, 0] - x1), 0.0)
-        dy = np.maximum(np.maximum(y0 - centre[:, 1], centre[:, 1] - y1), 0.0)
-        hits = np.hypot(dx, dy) <= reach
-        if regions is not None and hits.any():
-            candidates = np.flatnonzero(hits)
-            hits[candidates] = disks_meet_polygon(centre[candidates], reach[candidates], regions[s])
-        clear &= ~hits
-    return clear
+    return _clear(centre, radius, strips, regions, float(np.abs(xy).max()))
 
 
 def disks_meet_polygon(centre: np.ndarray, reach: np.ndarray, polygon: np.ndarray) -> np.ndarray:
@@ -96,18 +88,14 @@ def _clip_half(polygon: np.ndarray, axis: int, bound: float, keep_below: bool) -
 
 
 def circumcircles(xy: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Circumcentres (k, 2) and radii (k,) of triangles (k, 3) into xy (n, 2); a degenerate
-    (collinear) triangle gets an infinite radius."""
-    a, b, c = xy[triangles[:, 0]], xy[triangles[:, 1]], xy[triangles[:, 2]]
-    b, c = b - a, c - a
-    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
-    bb, cc = (b * b).sum(axis=1), (c * c).sum(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ux = (c[:, 1] * bb - b[:, 1] * cc) / d
-        uy = (b[:, 0] * cc - c[:, 0] * bb) / d
-    radius = np.hypot(ux, uy)
-    radius[~np.isfinite(radius)] = np.inf
-    return a + np.column_stack([ux, uy]), radius
+    """Circumcentres (k, 2) and radii (k,) of triangles (k, 3) into xy (n, 2): the first
+    corner a plus u, where 2 (b − a)·u = |b − a|² and 2 (c − a)·u = |c − a|² (solved by
+    Cramer's rule); a degenerate (collinear) triangle gets an infinite radius. One pass of
+    the kernel (survey/_strip_geometry.pyx)."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
+    centre, radius = np.empty((len(tri), 2)), np.empty(len(tri))
+    kernel.circumcircles(np.ascontiguousarray(xy, dtype=np.float64), tri, centre, radius)
+    return centre, radius
 
 
 def hull_edges_final(xy, index, simplices, neighbors, own, strips, hull_edges) -> bool:
@@ -143,45 +131,71 @@ def hull_edges_final(xy, index, simplices, neighbors, own, strips, hull_edges) -
     return True
 
 
-def smallest_empty_circle(xy, simplices, neighbors, t, k, a, b, centres) -> np.ndarray:
-    """(e, 2) centres of the smallest circle through each edge's ends (a, b) that is empty
-    of the triangulated points: on the edge's bisector, between the circumcentres of its
-    two triangles (or from triangle t's circumcentre outwards, for a hull edge), the point
-    nearest the edge's midpoint."""
-    mid = (xy[a] + xy[b]) / 2
-    c1 = centres[t]
-    other = neighbors[t, k]
-    hull_edge = other < 0
-    c2 = np.where(hull_edge[:, None], c1, centres[np.maximum(other, 0)])
-    span = c2 - c1
-    length2 = (span * span).sum(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.clip(((mid - c1) * span).sum(axis=1) / length2, 0.0, 1.0)
-    s[length2 == 0] = 0.0
-    best = c1 + s[:, None] * span
-    if hull_edge.any():                          # the pencil runs from c1 away from the third corner
-        h = np.flatnonzero(hull_edge)
-        apex = xy[simplices[t[h], k[h]]]
-        edge = xy[b[h]] - xy[a[h]]
-        outward = np.column_stack([edge[:, 1], -edge[:, 0]])
-        flip = ((apex - xy[a[h]]) * outward).sum(axis=1) > 0
-        outward[flip] *= -1.0
-        beyond = ((mid[h] - c1[h]) * outward).sum(axis=1) > 0
-        best[h] = np.where(beyond[:, None], mid[h], c1[h])
-    return best
+def smallest_empty_circle(xy, simplices, neighbors, t, k, a, b, centres) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (e, 2), radii (e,)) of the smallest circle through each edge's ends (a, b)
+    that is empty of the triangulated points: on the edge's bisector, between the
+    circumcentres of its two triangles (or from triangle t's circumcentre outwards, for a
+    hull edge: t's edge opposite its corner k), the point nearest the edge's midpoint.
+    xy (n, 2); simplices, neighbors (T, 3); t, k, a, b (e,); centres (T, 2) the
+    triangles' circumcentres. One pass of the kernel (survey/_strip_geometry.pyx)."""
+    best, radius = np.empty((len(t), 2)), np.empty(len(t))
+    ints = (np.ascontiguousarray(x, dtype=np.int64) for x in (simplices, neighbors, t, k, a, b))
+    kernel.smallest_empty_circles(np.ascontiguousarray(xy, dtype=np.float64), *ints,
+                                  np.ascontiguousarray(centres, dtype=np.float64), best, radius)
+    return best, radius
+
+
+def triangle_flags(xy: np.ndarray, simplices: np.ndarray, own: np.ndarray, index: np.ndarray,
+                   bound: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(longest (T,), at_own (T,) bool, mine (T,) bool) of a tile's triangles simplices
+    (T, 3) into its points xy (n, 2) (survey coordinates: trim's bits), own (n,) bool and
+    survey numbers index (n,): each triangle's longest edge; whether a corner is own and
+    longest <= bound (its disk must be certified); whether its lowest-numbered corner is
+    own and longest <= bound (the tile keeps it). One pass of the kernel."""
+    T = len(simplices)
+    longest, at_own, mine = np.empty(T), np.empty(T, dtype=np.uint8), np.empty(T, dtype=np.uint8)
+    kernel.triangle_flags(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(simplices, dtype=np.int64),
+                          np.ascontiguousarray(own, dtype=bool).view(np.uint8),
+                          np.ascontiguousarray(index, dtype=np.int64), float(bound), longest, at_own, mine)
+    return longest, at_own.view(bool), mine.view(bool)
+
+
+def edges_once(xy: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray, own: np.ndarray, index: np.ndarray,
+               bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (E, 4) int64 rows (t, k, a, b), lengths (E,)): each edge of a tile's
+    triangulation once (on the hull, or towards a higher-numbered triangle: neighbors
+    (T, 3)), at most `bound` long, whose lower-numbered end (survey numbers index (n,)) is
+    own (n,) bool; t, k the triangle and the corner it is opposite, a, b its ends (corners
+    k + 1, k + 2), lengths hypot(a − b) in xy's (n, 2) unit. One pass of the kernel."""
+    edges, lengths = np.empty((3 * len(simplices), 4), dtype=np.int64), np.empty(3 * len(simplices))
+    count = kernel.edges_once(np.ascontiguousarray(xy, dtype=np.float64),
+                              np.ascontiguousarray(simplices, dtype=np.int64),
+                              np.ascontiguousarray(neighbors, dtype=np.int64),
+                              np.ascontiguousarray(own, dtype=bool).view(np.uint8),
+                              np.ascontiguousarray(index, dtype=np.int64), float(bound), edges, lengths)
+    return edges[:count], lengths[:count].copy()
 
 
 def centres_clear(centre, radius, strips, regions, scale) -> np.ndarray:
     """(e,) True where the disk (centre, radius) stays clear of every unread strip clipped
-    to the survey's hull (conservative, as disks_clear)."""
-    reach = radius * (1 + 1e-9) + 1e-12 * scale
+    to the survey's hull (conservative, as disks_clear); scale: the largest coordinate
+    magnitude of the tile's points, whose 1e-12 is added to every radius."""
+    return _clear(np.ascontiguousarray(centre, dtype=np.float64), np.ascontiguousarray(radius, dtype=np.float64),
+                  strips, regions, float(scale))
+
+
+def _clear(centre: np.ndarray, radius: np.ndarray, strips: np.ndarray, regions, scale: float) -> np.ndarray:
+    """(k,) True where the disk (centre (k, 2), radius (k,)) grown by 1e-9 of its radius
+    and 1e-12 of scale reaches no strip rectangle (k, 4) (the kernel's test), or, given
+    regions (the strips clipped to the hull), no region of a rectangle it reaches."""
+    strips = np.ascontiguousarray(strips, dtype=np.float64).reshape(-1, 4)
+    hits = np.empty((len(centre), len(strips)), dtype=np.uint8)
+    kernel.strip_hits(centre, radius, scale, strips, hits)
     clear = np.ones(len(centre), dtype=bool)
-    for s, (x0, y0, x1, y1) in enumerate(strips):
-        dx = np.maximum(np.maximum(x0 - centre[:, 0], centre[:, 0] - x1), 0.0)
-        dy = np.maximum(np.maximum(y0 - centre[:, 1], centre[:, 1] - y1), 0.0)
-        hits = np.hypot(dx, dy) <= reach
-        if hits.any():
-            candidates = np.flatnonzero(hits)
-            hits[candidates] = disks_meet_polygon(centre[candidates], reach[candidates], regions[s])
-        clear &= ~hits
+    for s in range(len(strips)):
+        candidates = np.flatnonzero(hits[:, s])
+        if regions is not None and candidates.size:
+            reach = radius[candidates] * (1 + 1e-9) + 1e-12 * scale
+            candidates = candidates[disks_meet_polygon(centre[candidates], reach, regions[s])]
+        clear[candidates] = False
     return clear
