@@ -71,7 +71,8 @@ def _linear(dem_path, interp, origin, levels):
 def franke_table(seed: int = 40) -> str:
     """The markdown table of the franke command."""
     from c1mesh.core.cloud import PointCloud
-    from c1mesh.pipeline.driver import FitOptions, build_surface, fit
+    from c1mesh.pipeline.driver import FitOptions, build_surface
+    from c1mesh.pipeline.run import fit
     from c1mesh.pipeline.steps import StageTimer
 
     xy = np.random.default_rng(seed).random((10_000, 2))
@@ -102,7 +103,8 @@ def figure(out: Path) -> None:
     import matplotlib.pyplot as plt
     import rasterio
 
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     with tempfile.TemporaryDirectory() as folder:
         dem, shade, gpkg = (Path(folder) / name for name in ("dem.tif", "hillshade.tif", "contours.gpkg"))

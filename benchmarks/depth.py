@@ -149,7 +149,8 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
     from scipy.spatial import cKDTree
 
     from c1mesh.formats import read_cloud
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     points = read_cloud(MUG).points
     points = points[np.isfinite(points).all(axis=1)]
@@ -245,7 +246,8 @@ def _plot(views, path: Path) -> None:
 def _geometry(cfg: Config, sec: Section) -> None:
     from c1mesh.core.cloud import SurfaceMesh
     from c1mesh.formats import write_mesh
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     from c1mesh.testing.samples import cylinder_from_inside, tilted_plane, write_organised_pcd
 
     sizes = (25, 50, 100) if cfg.quick else (25, 50, 100, 200)

@@ -51,7 +51,8 @@ def _noisy(normals: np.ndarray, degrees: float, seed: int = 5) -> np.ndarray:
 
 
 def _fit(src: Path, dem: Path, resolution: float, method: str, slope: Path) -> None:
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     fit(str(src), str(dem), FitOptions(axis="z", normals="file", resolution=resolution,
                                        slope=str(slope), slope_method=method), keep_mesh=False)
 
@@ -102,7 +103,8 @@ def noisy_heights_slope_table(n: int, tmp: Path, factors=(1.0, 2.0, 3.0, 4.0, 8.
     common.terrain_cloud's heights with NOISE Gaussian noise and no normals (an XYZ file:
     gradients fitted to the heights), fitted exactly and with --smooth auto, each to a DEM
     and its slope by the spline's gradient and by Horn's differences of that DEM."""
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     points, _ = terrain_cloud(n)
     points = points + np.random.default_rng(11).normal(0.0, NOISE, points.shape) * [0, 0, 1]
@@ -168,7 +170,8 @@ def glb_vs_ply(tmp: Path, source: Path, level: int = 2) -> float:
     """Largest |world position difference| between the GLB and the PLY of one fit."""
     from c1mesh.formats import read_cloud
     from c1mesh.formats.meshes import read_glb_positions
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     options = FitOptions(classes=(2,), level=level)
     fit(str(source), str(tmp / "tile.ply"), options, keep_mesh=False)
     fit(str(source), str(tmp / "tile.glb"), options, keep_mesh=False)
@@ -182,7 +185,8 @@ def lidar_rasters(tmp: Path, source: Path, resolution: float) -> dict:
     import rasterio
 
     from c1mesh.formats import read_cloud
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     files = {k: tmp / f"lidar_{k}.tif" for k in ("dem", "slope", "hillshade")}
     report = fit(str(source), str(files["dem"]), FitOptions(classes=(2,), resolution=resolution,
                                                             slope=str(files["slope"]),

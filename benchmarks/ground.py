@@ -247,7 +247,8 @@ def _dem(points: np.ndarray, path: Path) -> tuple[np.ma.MaskedArray, int, int]:
     import rasterio
 
     from c1mesh.core.cloud import PointCloud
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     fit(PointCloud(points=points), path, FitOptions(resolution=1.0, axis="z"))
     with rasterio.open(path) as raster:

@@ -6,7 +6,7 @@ writing a binary PLY to stdout, which goes to /dev/null (so no file of gigabytes
 written; the mesh is streamed block by block either way, ``fit(..., keep_mesh=False)``,
 so the process never holds the output arrays). A child that only imports the same
 modules gives the interpreter + imports baseline; "above baseline" subtracts it. One more
-child running ``c1mesh.pipeline.driver.fit`` at level 4 records the peak reached by the end of
+child running ``c1mesh.pipeline.run.fit`` at level 4 records the peak reached by the end of
 each stage.
 
 While ``c1mesh.pipeline.driver`` cannot be imported, the child instead builds
@@ -63,7 +63,7 @@ def run(cfg: Config) -> Section:
                               "(none set)", "—"))
     sec.add("")
     if stages:
-        sec.add(f"Peak RSS reached by the end of each stage (one `c1mesh.pipeline.driver.fit` run at "
+        sec.add(f"Peak RSS reached by the end of each stage (one `c1mesh.pipeline.run.fit` run at "
                 f"level {STAGE_LEVEL} in a child, writing a file):", "",
                 "| stage | peak so far | per input point |", "|---|---:|---:|",
                 *[f"| {name} | {fmt_bytes(rss)} | {rss / n:,.0f} B |" for name, rss in stages], "")
@@ -89,8 +89,9 @@ def _peak() -> int:
 
 
 def _stages_child(src: str, dst: str, level: int) -> dict:
-    """c1mesh.pipeline.driver.fit as the CLI runs it (streaming), recording the peak RSS per stage."""
-    from c1mesh.pipeline.driver import FitOptions, fit
+    """c1mesh.pipeline.run.fit as the CLI runs it (streaming), recording the peak RSS per stage."""
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     stages = [("interpreter + imports", _peak())]
     fit(src, dst, FitOptions(level=level), on_stage=lambda name: stages.append((name, _peak())),

@@ -96,7 +96,8 @@ def surfaces(xy, z, g, tri, lam, pca=None) -> dict:
 
 def folds(path, options: dict, xy, z, g, tri) -> dict:
     """Folded faces of c1mesh's output (off / limit) and of rHCT refined at level 4."""
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     from c1mesh.testing.quality import folded_faces, reduced_hct_folded_faces
 
     out = {}

@@ -11,7 +11,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 
 here = Path(__file__).resolve().parent.parent
 source = Path(sys.argv[1] if len(sys.argv) > 1 else here / "data_samples" / "hill.ply")

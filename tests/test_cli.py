@@ -588,7 +588,8 @@ def test_max_slope_of_a_height_column_applies_with_the_z_factor(tmp_path):
     """Issue 21 leftover: with a header height column --max-slope was silently not applied.
     With --z-factor the slope is an angle, and the points steeper than 45° (x > 1) are the
     ones dropped, counted as too_steep."""
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     src, xy = _paraboloid_csv(tmp_path / "bowl.csv")
     report = fit(src, None, FitOptions(level=1, max_slope=45.0, z_factor=0.001)).report

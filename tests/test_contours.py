@@ -20,7 +20,8 @@ from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import InputError
 from c1mesh.geo.contours import EXACT, MAX_LEVELS, contour_levels
 from c1mesh.pipeline import driver
-from c1mesh.pipeline.driver import FitOptions, build_surface, fit, load_cloud
+from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
+from c1mesh.pipeline.run import fit
 from c1mesh.pipeline.steps import StageTimer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

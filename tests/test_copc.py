@@ -234,14 +234,13 @@ def test_a_fit_by_bounds_is_the_fit_of_the_filtered_points(tmp_path):
 def test_a_tiled_fit_by_bounds_is_the_tiled_fit_of_the_filtered_points(tmp_path):
     from c1mesh.core.plan import TiledRun
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
+    from c1mesh.pipeline.run import fit, in_tiles
 
     box = _region(_whole()[0])
     source = _filtered_las(COPC, box, tmp_path / "filtered.las")
     options = FitOptions(level=2, memory=10**9, classes="all")
-    report = fit_in_tiles(str(COPC), tmp_path / "bounds.ply",
-                          FitOptions(level=2, memory=10**9, bounds=box, classes="all"), TiledRun(per_tile=120))
-    fit_in_tiles(str(source), tmp_path / "filtered.ply", options, TiledRun(per_tile=120))
+    report = fit(str(COPC), tmp_path / "bounds.ply", FitOptions(level=2, memory=10**9, bounds=box, classes="all"), tiles=TiledRun(per_tile=120)).report
+    fit(str(source), tmp_path / "filtered.ply", options, tiles=TiledRun(per_tile=120)).report
     assert report["tiles"] >= 4
     assert _ply_body(tmp_path / "bounds.ply") == _ply_body(tmp_path / "filtered.ply")
     # the tiling decision counts the nodes a region read decodes, not the whole header

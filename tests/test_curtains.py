@@ -9,7 +9,8 @@ import pytest
 
 import c1mesh.pipeline.driver as pipeline
 from c1mesh.stages.curtains import REASONS, curtain_triangles, noise_floor, remove_curtains
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 from c1mesh.testing.quality import folded_faces
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.trim import retrim, trim, trim_mesh

@@ -16,7 +16,8 @@ from scipy.spatial import ConvexHull, cKDTree
 
 from c1mesh.cli import main
 from c1mesh.core.cloud import PointCloud
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 
 rasterio = pytest.importorskip("rasterio")
 laspy = pytest.importorskip("laspy")

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from c1mesh.core.cloud import PointCloud
-from c1mesh.pipeline.driver import FitOptions, build_surface, fit, load_cloud
+from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
+from c1mesh.pipeline.run import fit
 
 rasterio = pytest.importorskip("rasterio")
 
@@ -148,11 +149,11 @@ def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
 
 
 def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
-    from c1mesh.pipeline.survey_fit import fit_seamless
+    from c1mesh.pipeline.run import fit
 
     options = FitOptions(classes=(2,), resolution=1.0)          # the default fill
     fit(TILE, tmp_path / "fit.tif", options)
-    fit_seamless([str(TILE)], options, output=str(tmp_path / "seamless.tif"))
+    fit([str(TILE)], str(tmp_path / "seamless.tif"), options).report
     one, two = _read_dem(tmp_path / "fit.tif")[0], _read_dem(tmp_path / "seamless.tif")[0]
     assert np.array_equal(one, two)
 

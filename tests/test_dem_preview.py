@@ -18,7 +18,8 @@ from click.testing import CliRunner
 from c1mesh.cli import main
 from c1mesh.core.cloud import PointCloud
 from c1mesh.geo.raster import horn_gradient, horn_gradient_at_edges
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 
 rasterio = pytest.importorskip("rasterio")
 

@@ -8,7 +8,8 @@ from c1mesh.core.errors import InputError
 from c1mesh.formats import read_cloud
 from c1mesh.stages.grid import depth_jumps, grid_mesh, grid_normals
 from c1mesh.stages.perspective import PerspectiveFrame, inverse_depth_gradients, quaternion_matrix
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 from depth_scenes import (cylinder_from_inside, tilted_plane, write_organised_pcd,
                           write_unorganised_ply)
 

@@ -14,7 +14,8 @@ from click.testing import CliRunner
 
 from c1mesh.cli import main
 from c1mesh.core.cloud import PointCloud
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 
 DATA = Path(__file__).resolve().parent.parent / "data_samples"
 AUTZEN = DATA / "autzen_trim.laz"
@@ -80,12 +81,12 @@ def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
     from dataclasses import replace
 
     from c1mesh.core.plan import TiledRun
-    from c1mesh.pipeline.survey_fit import fit_in_tiles, fit_seamless
+    from c1mesh.pipeline.run import fit
 
     options = FitOptions(classes=(2,), level=1, max_edge=2.5)
     whole = fit(TILE, None, options).report["warnings"]
-    seamless = fit_seamless([str(TILE)], options, outputs=[str(tmp_path / "o.ply")])["warnings"]
-    tiled = fit_in_tiles(TILE, tmp_path / "t.ply", replace(options, memory=10**9), TiledRun(per_tile=1000))["warnings"]
+    seamless = fit([str(TILE)], None, options, outputs=[str(tmp_path / "o.ply")]).report["warnings"]
+    tiled = fit(TILE, tmp_path / "t.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=1000)).report["warnings"]
     assert len(whole) == 1 and whole[0].startswith("--max-edge 2.5 removed")
     assert seamless == [w.split(" (the surface fell")[0] for w in whole]
     assert tiled == seamless
@@ -96,7 +97,7 @@ def test_a_fit_in_tiles_of_autzen_ground_warns_nothing(tmp_path):
     from dataclasses import replace
 
     from c1mesh.core.plan import TiledRun
-    from c1mesh.pipeline.survey_fit import fit_in_tiles
+    from c1mesh.pipeline.run import fit
 
-    report = fit_in_tiles(AUTZEN, tmp_path / "t.ply", replace(FitOptions(classes=(2,), level=1), memory=10**9), TiledRun(per_tile=7000))
+    report = fit(AUTZEN, tmp_path / "t.ply", replace(FitOptions(classes=(2,), level=1), memory=10**9), tiles=TiledRun(per_tile=7000)).report
     assert report["warnings"] == [] and report["note"].startswith("fitted in 4 tiles")

@@ -1074,7 +1074,8 @@ def test_info_on_a_height_column_says_what_fit_does():
     here is the fit itself: info's suggested axis is the fit's height axis, and both name
     the height column as the reason."""
     from c1mesh.pipeline.inspect import describe
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     facts = describe(REAL / "topo.csv")
     frame = fit(REAL / "topo.csv", None, FitOptions(level=1)).report["frame"]
@@ -1088,7 +1089,8 @@ def test_info_on_a_height_column_refuses_what_fit_refuses(tmp_path):
     """Five heights at two plan positions: the fit refuses them as no height field over the
     header's z, and info says so with the fit's reason instead of suggesting another axis."""
     from c1mesh.pipeline.inspect import describe
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     path = tmp_path / "two.csv"
     path.write_text("x,y,z\n0,0,1\n0,0,2\n1,1,3\n1,1,4\n1,1,5\n")

@@ -18,7 +18,8 @@ from c1mesh.cli import main
 from c1mesh.core.cloud import PointCloud, SurfaceMesh
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.formats import read_cloud, write_mesh
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 
 pyproj = pytest.importorskip("pyproj")
 rasterio = pytest.importorskip("rasterio")

@@ -142,13 +142,13 @@ def test_the_tiled_fit_filters_ground_tile_by_tile_as_the_whole_fit_does(tmp_pat
     import trimesh
 
     from c1mesh.core.plan import TiledRun
-    from c1mesh.pipeline.driver import FitOptions, fit
-    from c1mesh.pipeline.survey_fit import fit_in_tiles
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
 
     options = FitOptions(level=1, classes="filter" if extra else "auto")
     whole = fit(str(source), str(tmp_path / "whole.ply"), options).report
-    tiled = fit_in_tiles(str(source), tmp_path / "tiled.ply", FitOptions(level=1, memory=10**9,
-                         classes=options.classes), TiledRun(per_tile=3000))
+    tiled = fit(str(source), tmp_path / "tiled.ply", FitOptions(level=1, memory=10**9, classes=options.classes),
+                tiles=TiledRun(per_tile=3000)).report
     assert tiled["tiles"] == 4 and tiled["seconds"]["ground"] > 0          # 9 filter tiles: ceil(sqrt(23875/3000))²
     assert tiled["classes"] == whole["classes"] and whole["classes"]["source"] == "filter"
     assert tiled["triangles"]["removed"] == whole["triangles"]["removed"]     # the ground's trim rules, not all points'

@@ -28,7 +28,8 @@ from c1mesh.core.cloud import MeshStream, PointCloud
 from c1mesh.core.errors import InputError
 from c1mesh.engine.refine import fewest_refined_vertices, refined_counts
 from c1mesh.formats import MeshSize, check_mesh_size, write_mesh
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 
 ROOT = Path(__file__).resolve().parents[1]
 INT32 = 2**31 - 1

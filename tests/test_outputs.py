@@ -229,6 +229,7 @@ def test_a_huge_but_valid_axis_is_a_direction(tmp_path):
 
 def test_library_fit_checks_its_output_before_reading(monkeypatch, tmp_path):
     import c1mesh.pipeline.driver as pipeline
+    from c1mesh.pipeline.run import fit
 
     def must_not_read(*args, **kwargs):
         raise AssertionError("the input was read before the output was checked")
@@ -237,7 +238,7 @@ def test_library_fit_checks_its_output_before_reading(monkeypatch, tmp_path):
                             (tmp_path / "nodir" / "o.ply", "does not exist"),
                             (HILL, "is the input")):
         with pytest.raises(InputError, match=message):
-            pipeline.fit(HILL, target)
+            fit(HILL, target)
 
 
 # ------------------------------------------------------------- environments that are broken

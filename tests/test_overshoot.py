@@ -19,7 +19,8 @@ from c1mesh.core.cloud import PointCloud
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.stages.limiter import (RATIO_LIMIT, control_overshoot, edge_directions, limit_gradients,
                              reconcile_gradients)
-from c1mesh.pipeline.driver import FitOptions, build_surface, fit, load_cloud
+from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
+from c1mesh.pipeline.run import fit
 from c1mesh.testing.quality import (folded_faces, interior_lattice, lattice_points, overshoot,
                             reduced_hct_folded_faces)
 from c1mesh.engine.topology import edge_table

@@ -10,7 +10,8 @@ from scipy.spatial import cKDTree
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import C1MeshError, InputError, NotAHeightFieldError
 from c1mesh.formats import read_cloud
-from c1mesh.pipeline.driver import FitOptions, fit
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
 from c1mesh.testing.samples import SURFACES, exact_normals, rotation_about, sample_surface, write_points_ply
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from c1mesh.core.cloud import PointCloud
-from c1mesh.pipeline.driver import FitOptions, build_surface, fit
+from c1mesh.pipeline.driver import FitOptions, build_surface
+from c1mesh.pipeline.run import fit
 from test_smoothing import interior_or_at_limit
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -220,7 +220,8 @@ def _big_mesh_inputs(n=60_000, seed=0):
 
 def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
     from c1mesh.engine.interpolator import RSDInterpolator
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     from c1mesh.engine.triangulation import delaunay
     from c1mesh.stages.trim import trim
     xy, z, g = _big_mesh_inputs()
@@ -274,7 +275,8 @@ def test_results_are_bit_identical_for_every_thread_count():
 
 
 def test_the_fit_writes_the_same_bytes_with_one_thread_or_several(tmp_path):
-    from c1mesh.pipeline.driver import FitOptions, fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
     written = []
     for count in (1, 2, 4):
         out = tmp_path / f"t{count}.ply"

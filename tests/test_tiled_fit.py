@@ -37,7 +37,7 @@ from c1mesh.stages.surface import surface_stream
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.survey.tile_spill import TileSpill
 from c1mesh.core.plan import TiledRun
-from c1mesh.pipeline.survey_fit import fit_in_tiles
+from c1mesh.pipeline.run import fit
 from c1mesh.survey.height_runs import HEIGHT
 from c1mesh.survey.halos import halo_reach, noise_floors, read_halo
 from c1mesh.survey.sizing import fits_in_memory, points_per_tile
@@ -140,7 +140,7 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot, gradients)
     whole, max_edge, kept = _in_memory(source, [2], level, overshoot,
                                        gradients="normals" if gradients == "normals" else "heights")
     options = FitOptions(classes=(2,), overshoot=overshoot, level=level, gradients=gradients)
-    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(options, memory=10**9), TiledRun(per_tile=700))
+    report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=700)).report
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
     _assert_same_mesh(tmp_path / "tiled.ply", whole)
@@ -160,7 +160,7 @@ def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path, rule):
     source = SAMPLES / "4_6_crop.las"
     whole, max_edge, kept = _in_memory(source, [2], 2, max_edge=rule)
     options = FitOptions(classes=(2,), level=2, max_edge=rule)
-    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(options, memory=10**9), TiledRun(per_tile=1000))
+    report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=1000)).report
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
     assert report["triangles"]["removed"]["sliver"] == whole.slivers > 0
@@ -183,7 +183,7 @@ def test_tiled_fit_of_autzen_ground_removes_the_bowties_and_curtains_of_the_whol
     assert whole.removed["bowtie"] > 0
     assert sum(whole.removed[r] for r in REASONS) > 0
     options = FitOptions(classes=(2,), level=2)
-    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(options, memory=10**9), TiledRun(per_tile=per_tile))
+    report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=per_tile)).report
     assert report["tiles"] == (4 if per_tile == 7000 else 16)
     assert report["triangles"]["removed"] == whole.removed
     assert {k: report["overshoot"][k] for k in whole.limiter} == whole.limiter
@@ -300,6 +300,21 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     assert report["tiles"] == 4      # 24000 points, >= 10000 a tile
     assert report["overshoot"]["gradients_limited"] == whole.limiter["gradients_limited"] > 0
     _assert_same_mesh(tmp_path / "out.ply", whole)
+
+
+def test_the_library_fit_runs_in_tiles_beyond_its_memory_as_the_cli_does(tmp_path):
+    """c1mesh.fit is the CLI's one driver: a LAS beyond FitOptions(memory="1M") (a size, as
+    --memory takes it) is fitted in tiles, not refused, and writes the CLI's bytes."""
+    import c1mesh
+
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000)
+    result = c1mesh.fit(str(source), tmp_path / "api.ply", FitOptions(classes=(2,), level=2, memory="1M"))
+    assert result.mesh is None and result.report["tiles"] == 4
+    cli = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "cli.ply"),
+                                    "--level", "2", "--memory", "1M"])
+    assert cli.exit_code == 0, cli.output
+    assert (tmp_path / "api.ply").read_bytes() == (tmp_path / "cli.ply").read_bytes()
 
 
 def test_memory_rule():
@@ -480,12 +495,12 @@ def test_tiled_fit_writes_the_same_bytes_wherever_its_tiles_run(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
     options = FitOptions(classes=[2], level=2)
-    here = fit_in_tiles(source, tmp_path / "here.ply", replace(options, memory=10**9), TiledRun(per_tile=450))
+    here = fit(source, tmp_path / "here.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450)).report
     assert here["tiles"] == 9
-    pool = fit_in_tiles(source, tmp_path / "pool.ply", replace(options, memory=10**9), TiledRun(per_tile=450, jobs=2))
+    pool = fit(source, tmp_path / "pool.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450, jobs=2)).report
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        dask = fit_in_tiles(source, tmp_path / "dask.ply", replace(options, memory=10**9), TiledRun(per_tile=450, scheduler=cluster.scheduler_address))
+        dask = fit(source, tmp_path / "dask.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450, scheduler=cluster.scheduler_address)).report
         dask_workers = set(cluster.scheduler.workers)
     expected = (tmp_path / "here.ply").read_bytes()
     assert (tmp_path / "pool.ply").read_bytes() == expected

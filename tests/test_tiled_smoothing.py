@@ -28,7 +28,7 @@ from c1mesh.pipeline.driver import FitOptions
 from c1mesh.stages import smoothing
 from c1mesh.stages.smoothing import HEIGHT_GRADIENTS_WEIGHT
 from c1mesh.core.plan import TiledRun
-from c1mesh.pipeline.survey_fit import fit_in_tiles
+from c1mesh.pipeline.run import fit
 from test_smoothing import interior_or_at_limit
 
 
@@ -73,7 +73,7 @@ def test_tiled_smoothing_matches_the_whole_fit(tmp_path, strength):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, seed=2)
     whole, whole_report = _in_memory(tmp_path, source, strength)
-    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=1, smooth=strength), memory=10**9), TiledRun(per_tile=1500))
+    report = fit(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=1, smooth=strength), memory=10**9), tiles=TiledRun(per_tile=1500)).report
     assert report["tiles"] == 9
     fitted = report["smoothing"]
     # one h: the stacking test's, measured alike in tiles and in memory (the frames' local
@@ -102,9 +102,7 @@ def test_tiles_fit_the_plans_scheme(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
     whole, whole_report = _in_memory(tmp_path, source, 3.0, "--scheme", "quintic")
-    report = fit_in_tiles(source, tmp_path / "tiled.ply",
-                          replace(FitOptions(classes=[2], level=1, smooth=3.0, scheme="quintic"), memory=10**9),
-                          TiledRun(per_tile=4000))
+    report = fit(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=1, smooth=3.0, scheme="quintic"), memory=10**9), tiles=TiledRun(per_tile=4000)).report
     assert report["tiles"] == 1
     vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
     difference = np.abs(vertices[:, 2] - _heights_at(whole, vertices))
@@ -120,7 +118,7 @@ def test_the_tiled_difference_shrinks_with_the_halo(tmp_path, monkeypatch):
     largest = []
     for lengths in (8.0, 16.0, 24.0, 32.0):
         monkeypatch.setattr(smoothing, "HALO_LENGTHS", lengths)
-        fit_in_tiles(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=1, smooth=100.0), memory=10**9), TiledRun(per_tile=1500))
+        fit(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=1, smooth=100.0), memory=10**9), tiles=TiledRun(per_tile=1500)).report
         vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
         largest.append(np.abs(vertices[:, 2] - _heights_at(whole, vertices)).max())
     rms = whole_report["smoothing"]["residual_rms"]
@@ -133,7 +131,7 @@ def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
     source = tmp_path / "plane.las"
     _terrain_las(source, 6000, plane=True)
     monkeypatch.setattr(smoothing, "HALO_LENGTHS", 0.5)    # the least halo: 4 final edges
-    report = fit_in_tiles(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=2, smooth=1000.0), memory=10**9), TiledRun(per_tile=700))
+    report = fit(source, tmp_path / "tiled.ply", replace(FitOptions(classes=[2], level=2, smooth=1000.0), memory=10**9), tiles=TiledRun(per_tile=700)).report
     assert report["tiles"] == 9
     mesh = trimesh.load(tmp_path / "tiled.ply", process=False)
     x, y = mesh.vertices[:, 0] - 500000, mesh.vertices[:, 1] - 4000000
@@ -199,11 +197,11 @@ def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
     options = FitOptions(classes=[2], level=2, smooth=10.0)
-    here = fit_in_tiles(source, tmp_path / "here.ply", replace(options, memory=10**9), TiledRun(per_tile=450))
+    here = fit(source, tmp_path / "here.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450)).report
     assert here["tiles"] == 9
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        dask = fit_in_tiles(source, tmp_path / "dask.ply", replace(options, memory=10**9), TiledRun(per_tile=450, scheduler=cluster.scheduler_address))
+        dask = fit(source, tmp_path / "dask.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450, scheduler=cluster.scheduler_address)).report
     assert (tmp_path / "dask.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
     assert dask["smoothing"] == {**here["smoothing"], "seconds": dask["smoothing"]["seconds"]}
 
@@ -270,7 +268,7 @@ def test_each_tile_reports_its_smoothing_solve(tmp_path):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
     passes = []
-    report = fit_in_tiles(source, tmp_path / "out.ply", replace(FitOptions(classes=[2], level=1, smooth=10.0), memory=10**9), TiledRun(per_tile=450, on_tile=lambda name, done, tiles: passes.append(name)))
+    report = fit(source, tmp_path / "out.ply", replace(FitOptions(classes=[2], level=1, smooth=10.0), memory=10**9), tiles=TiledRun(per_tile=450, on_tile=lambda name, done, tiles: passes.append(name))).report
     assert passes.count("smoothing") == report["tiles"] == 9
     for row in report["tile_tasks"]:
         assert row["passes"]["smoothing"]["seconds"] >= 0 and row["passes"]["smoothing"]["worker"]
@@ -319,7 +317,7 @@ def test_tiled_smoothing_leaves_no_temporary_file(tmp_path, monkeypatch, runner)
         distributed = pytest.importorskip("distributed")
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=runner == "dask-processes",
                                       dashboard_address=None) as cluster:
-            report = fit_in_tiles(source, out / "fit.ply", replace(options, memory=10**9), TiledRun(per_tile=6000, scheduler=cluster.scheduler_address))
+            report = fit(source, out / "fit.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=6000, scheduler=cluster.scheduler_address)).report
     else:
         monkeypatch.setattr(bounded_fit, "tiles_at_once", lambda memory, jobs, per_point=None: jobs)
         args = ["fit", str(source), "--classes", "2", "--level", "1", "--smooth", "10", "--memory", "1M",
@@ -328,7 +326,7 @@ def test_tiled_smoothing_leaves_no_temporary_file(tmp_path, monkeypatch, runner)
         assert result.exit_code == 0, result.output
         report = json.loads((tmp_path / "r.json").read_text())
         if runner == "here":                   # a stream, as -o -: the temporary files go to $TMPDIR
-            fit_in_tiles(source, io.BytesIO(), replace(options, output_format="ply", memory=10**9), TiledRun(per_tile=6000))
+            fit(source, io.BytesIO(), replace(options, output_format="ply", memory=10**9), tiles=TiledRun(per_tile=6000)).report
     assert report["tiles"] > 1 and (out / "fit.ply").stat().st_size > 0
     assert _hidden_leftovers(temporary, out) == []
 

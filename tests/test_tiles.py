@@ -187,17 +187,18 @@ def test_dask_local_cluster_writes_the_same_bytes(hill_tiles, tmp_path):
     """Tiles sent to a dask.distributed LocalCluster of two workers (threads, to start fast)."""
     distributed = pytest.importorskip("distributed")
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.pipeline.survey_fit import fit_seamless
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline.run import fit
 
     folder, paths, _ = hill_tiles
     options = FitOptions(level=2)
     outputs = {name: [str(tmp_path / name / (Path(p).stem + ".ply")) for p in paths] for name in ("here", "dask")}
     for dst in outputs.values():
         Path(dst[0]).parent.mkdir()
-    here = fit_seamless(paths, options, outputs=outputs["here"])
+    here = fit(paths, None, options, outputs=outputs["here"]).report
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        report = fit_seamless(paths, options, outputs=outputs["dask"], scheduler=cluster.scheduler_address)
+        report = fit(paths, None, options, outputs=outputs["dask"], tiles=TiledRun(scheduler=cluster.scheduler_address)).report
         workers = set(cluster.scheduler.workers)
     for a, b in zip(outputs["here"], outputs["dask"]):
         assert Path(a).read_bytes() == Path(b).read_bytes()
@@ -388,11 +389,12 @@ def test_tiles_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path,
 def test_tiles_on_a_dask_cluster_share_every_border_vertex_to_the_bit(large_hill_survey, tmp_path):
     distributed = pytest.importorskip("distributed")
     from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.pipeline.survey_fit import fit_seamless
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline.run import fit
 
     paths, whole = large_hill_survey
     outputs = [str(tmp_path / (Path(p).stem + ".ply")) for p in paths]
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        fit_seamless(paths, FitOptions(level=2), outputs=outputs, scheduler=cluster.scheduler_address)
+        fit(paths, None, FitOptions(level=2), outputs=outputs, tiles=TiledRun(scheduler=cluster.scheduler_address))
     _assert_tiles_share_border_bits(whole, outputs)

@@ -7,7 +7,8 @@ A few verbs and types, like laspy's:
     result.report["points"]            # what the CLI's --report writes
     cloud = c1mesh.read_cloud("scan.laz", classes=(2,))
 
-`fit` runs the whole pipeline on one input (`fit_seamless` on several, as one survey);
+`fit` runs the whole pipeline on one input, or on a list of inputs as one survey (in
+memory, or in tiles beyond options.memory, as the CLI does);
 `read_cloud` / `write_mesh` are the format registry; `RSDInterpolator` is Stacho's
 reduced-side-derivative C1 spline built from points, values and gradients like scipy's
 interpolators, and `Refinement` evaluates it on a uniform subdivision of every triangle
@@ -24,10 +25,9 @@ from c1mesh.core.errors import (C1MeshError, DependencyError, FormatError, Input
                                 NotAHeightFieldError)
 
 _LAZY = {
-    "fit": "c1mesh.pipeline.driver",
+    "fit": "c1mesh.pipeline.run",
     "FitOptions": "c1mesh.pipeline.driver",
     "FitResult": "c1mesh.pipeline.driver",
-    "fit_seamless": "c1mesh.pipeline.survey_fit",
     "read_cloud": "c1mesh.formats",
     "write_mesh": "c1mesh.formats",
     "PointCloud": "c1mesh.core.cloud",

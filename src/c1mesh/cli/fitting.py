@@ -82,25 +82,22 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         fail(message(exc), debug)
-    from c1mesh.pipeline.survey_fit import SurveyProgress, fit_seamless, in_tiles
+    from c1mesh.pipeline.run import fit
 
     options.workers = threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
     outputs = [d for _, d in pairs] if output_dir else None
-    unused = None
-    if scheduler is not None and not output_dir and not in_tiles(list(inputs), options):
-        scheduler, unused = None, _SCHEDULER_UNUSED.format(what="the survey")   # one fit, in this process
+    tiles = TiledRun(scheduler=scheduler, jobs=jobs)
     try:
         if stderr_is_terminal() and not quiet:
             progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
             with progress:
-                result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs, SurveyProgress(**callbacks))
+                result = fit(list(inputs), mesh, options, keep_mesh=False, outputs=outputs,
+                             tiles=replace(tiles, **callbacks)).report
         else:
-            result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs)
+            result = fit(list(inputs), mesh, options, keep_mesh=False, outputs=outputs, tiles=tiles).report
     except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
         fail(_survey_naming(inputs, message(exc)), debug)
-    if unused:
-        result["scheduler"] = unused
     warn(result, quiet)
     _write_report(report, targets[-1], result, debug)
     note(result, quiet)
@@ -129,30 +126,6 @@ def _survey_naming(inputs, text: str) -> str:
     return naming(inputs[0], text) if len(inputs) == 1 else text
 
 
-_SCHEDULER_UNUSED = ("not used: {what} fits in --memory, so it was fitted in one piece in this process "
-                     "(the scheduler runs the tiles of a larger fit, or of --seamless -O)")
-"""The report's `scheduler` when a --scheduler had no tiles to run; also the note on stderr."""
-
-
-def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile=None, scheduler=None) -> dict:
-    """Fit one input to one output (a path, or a file object then with options.output_format);
-    an input fitted in tiles runs them on the Dask `scheduler` if given, else on `jobs` local
-    processes (None: bounded_fit's choice, one per thread). An input that fits in memory is
-    fitted here, and a scheduler given for it is recorded in the report as not used (the
-    line c1mesh.cli.messages.note prints)."""
-    from c1mesh.pipeline.driver import fit as fit_pipeline
-    from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
-
-    source = sys.stdin.buffer if src == STDIO else src
-    if in_tiles(source, options):          # larger than --memory allows: c1mesh.pipeline.bounded_fit
-        return fit_in_tiles(source, target, options,
-                            TiledRun(scheduler=scheduler, jobs=jobs, on_stage=on_stage, on_tile=on_tile))
-    report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report
-    if scheduler is not None:
-        report["scheduler"] = _SCHEDULER_UNUSED.format(what="the input")
-    return report
-
-
 def fit_one(src, dst, targets, options, console: Console, workers: Workers) -> None:
     """Fit one input; the mesh and the report are committed together, or neither is."""
     report, quiet, verbose, debug = console.report, console.quiet, console.verbose, console.debug
@@ -166,12 +139,15 @@ def fit_one(src, dst, targets, options, console: Console, workers: Workers) -> N
     show = stderr_is_terminal() and not quiet
 
     def run(target):
+        from c1mesh.pipeline.run import fit
+
+        tiles = TiledRun(scheduler=scheduler, jobs=jobs)
+        source = sys.stdin.buffer if src == STDIO else src
         if not show:
-            return _run(src, target, options, jobs=jobs, scheduler=scheduler)
+            return fit(source, target, options, keep_mesh=False, tiles=tiles).report
         with stage_bar(len(STAGES), f"fitting {src}") as bar:
-            return _run(src, target, options, on_stage=lambda name: bar.update(1, name), jobs=jobs,
-                        on_tile=lambda name, done, tiles: caption(bar, f"{name}: tile {done} of {tiles}"),
-                        scheduler=scheduler)
+            tiles = replace(tiles, on_tile=lambda name, done, tiles: caption(bar, f"{name}: tile {done} of {tiles}"))
+            return fit(source, target, options, lambda name: bar.update(1, name), False, tiles=tiles).report
     try:
         with Outputs() as outputs:
             if raster:      # c1mesh.geo.raster writes the GeoTIFFs, each atomically
@@ -230,9 +206,11 @@ def _write_report(report, target, payload, debug) -> None:
 
 
 def _batch_worker(args):
+    from c1mesh.pipeline.run import fit
+
     src, dst, options, scheduler = args
     try:
-        return src, _run(src, dst, options, scheduler=scheduler), None
+        return src, fit(src, dst, options, keep_mesh=False, tiles=TiledRun(scheduler=scheduler)).report, None
     except Exception as exc:  # noqa: BLE001 — reported per file, the batch goes on
         return src, None, message(exc)
 

@@ -22,21 +22,20 @@ def caption(bar, text: str) -> None:
 
 
 def survey_progress(inputs, options, outputs: int):
-    """A --seamless fit's progress bar on stderr and the fit_seamless callbacks that move
-    it: for a survey fitted in tiles beyond --memory (c1mesh.pipeline.bounded_fit), its stages with
-    each pass's tile count, as a single large input shows them; in memory, the outputs
-    of -O as their tiles are written, or the stages of the one -o fit."""
+    """A --seamless fit's progress bar on stderr and the core.plan.TiledRun callbacks that
+    move it: for a survey fitted in tiles beyond --memory (c1mesh.pipeline.bounded_fit), its
+    stages with each pass's tile count, as a single large input shows them; in memory, the
+    outputs of -O as their tiles are written, or the stages of the one -o fit."""
     from c1mesh.pipeline.driver import STAGES
     from c1mesh.pipeline.bounded_fit import TILED_STAGES
-    from c1mesh.pipeline.survey_fit import in_tiles
+    from c1mesh.pipeline.run import in_tiles
 
     if in_tiles(list(inputs), options):
         progress = stage_bar(len(TILED_STAGES), "fitting survey")
         return progress, {"on_stage": lambda name: progress.update(1, name),
-                          "on_tile_pass": lambda name, done, tiles: caption(progress,
-                                                                            f"{name}: tile {done} of {tiles}")}
+                          "on_tile": lambda name, done, tiles: caption(progress, f"{name}: tile {done} of {tiles}")}
     if outputs:
         progress = stage_bar(outputs, "tiles")
-        return progress, {"on_tile": lambda row: progress.update(1, row["tile"])}
+        return progress, {"on_output": lambda row: progress.update(1, row["tile"])}
     progress = stage_bar(len(STAGES), "fitting survey")
     return progress, {"on_stage": lambda name: progress.update(1, name)}

@@ -106,7 +106,9 @@ class TiledRun:
     where the spill files go (None: beside a path output, else $TMPDIR); scheduler: a
     Dask scheduler's address (None: local); jobs: local processes (None: one per thread
     of the knob); outputs: with `--seamless -O`, one path per input (None: one mesh);
-    on_stage(stage) after each stage; on_tile(pass, tiles done, tiles) as tiles finish."""
+    on_stage(stage) after each stage; on_tile(pass, tiles done, tiles) as tiles finish;
+    on_output(row) with each output's report row as it is written (`--seamless -O` in
+    memory, whose tiles are the inputs)."""
 
     per_tile: int | None = None
     directory: object = None
@@ -115,3 +117,4 @@ class TiledRun:
     outputs: Sequence[str] | None = None
     on_stage: Callable[[str], None] | None = None
     on_tile: Callable[[str, int, int], None] | None = None
+    on_output: Callable[[dict], None] | None = None

@@ -64,6 +64,7 @@ from c1mesh.core.plan import FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.refine import fewest_refined_vertices
+from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
@@ -71,7 +72,7 @@ from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import with_plane_level
 from c1mesh.stages.trim import check_triangles_left
-from c1mesh.stages.warnings import auto_limit, fit_warnings
+from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
@@ -113,7 +114,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     its axis resolved, normals not "file"); run: where the tiles run and whom they tell
     (core.plan.TiledRun). Returns the fit's facts (input, output, points, frame,
     triangles, gradients, level, output_mesh, warnings, crs, seconds, and the tiles' own:
-    tiles, tile_tasks, scheduler, ...), which c1mesh.pipeline.survey_fit.tiles_report makes
+    tiles, tile_tasks, scheduler, ...), which `tiles_report` makes
     the report of c1mesh.pipeline.report's schema.
 
     The per-tile passes (normals, triangulation, refinement) run as tasks
@@ -284,3 +285,25 @@ def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float], i
             if len(seen) < 3:
                 seen = distinct_rows(xy, 3, seen)
     return count, (float(low[0]), float(low[1]), float(high[0]), float(high[1])), len(seen)
+
+
+def tiles_report(facts: dict, options) -> dict:
+    """The report of a memory-bounded fit from the facts fit_tiled returns (consumed), in
+    c1mesh.pipeline.report's schema. No one interpolator is held, so c1_certificate and
+    pieces are null; its normals are always estimated (it refuses --normals file)."""
+    level = facts.pop("level")
+    report = ReportCore(
+        input=facts.pop("input"), output=facts.pop("output"), points=facts.pop("points"),
+        normals="estimated", gradients=facts.pop("gradients"), frame={"kind": "axis", **facts.pop("frame")},
+        triangles=facts.pop("triangles"), level=level,
+        level_from="default" if options.level is None else "option", output_mesh=facts.pop("output_mesh"),
+        scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
+        crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
+        z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
+    report.update(facts)
+    overshoot = report.get("overshoot")
+    if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory
+        text = smoothing_suggestion(overshoot["gradients_limited"], int(report["points"]["kept"]))
+        if text is not None:
+            report["suggestion"] = text
+    return report

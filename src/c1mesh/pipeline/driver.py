@@ -18,7 +18,6 @@ import numpy as np
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import MeshTarget
-from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import Tile
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -26,7 +25,7 @@ from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
-from c1mesh.formats import MeshSize, check_mesh_size, check_output, read_cloud
+from c1mesh.formats import MeshSize, check_mesh_size, read_cloud
 from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
 from c1mesh.geo.products import contour_grid, geo_plan, level_for_edge, resolve_crs, stage_contours
 from c1mesh.geo.products import finish as _finish_geo
@@ -34,7 +33,6 @@ from c1mesh.geo.raster import (
     RasterTargets,
     dem_sampling,
     fill_distance,
-    is_raster_path,
     raster_axis,
     write_fit_rasters,
     write_vrt,
@@ -211,7 +209,8 @@ def _check_fit_memory(count: int, options: FitOptions) -> None:
     """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
     --memory bytes (sizing.point_bytes per point). LAS/LAZ inputs beyond it never get
     here (they are fitted in tiles); other formats would otherwise run over the budget."""
-    memory, per_point = options.memory, point_bytes(fit_plan(options).surface)
+    plan = fit_plan(options)
+    memory, per_point = plan.memory, point_bytes(plan.surface)
     if not fits_in_memory(count, memory, per_point):
         raise InputError(f"{count} points need about {count * per_point / 1e6:.0f} MB to fit in "
                          f"memory, more than --memory {memory / 1e6:.0f} MB; only LAS/LAZ inputs are "
@@ -510,31 +509,24 @@ def _fitted_classes(cloud: PointCloud, options: FitOptions) -> tuple[int, ...] |
     return options.classes if isinstance(options.classes, tuple) else resolved_classes(cloud.selection)
 
 
-def fit(source, output=None, options: FitOptions | None = None,
-        on_stage: Callable[[str], None] | None = None, keep_mesh: bool = True) -> FitResult:
-    """Fit a refined C1 surface mesh to a scan.
+def fit_in_memory(source, output, options: FitOptions, on_stage: Callable[[str], None] | None,
+                  keep_mesh: bool) -> FitResult:
+    """Fit one input in memory, as one tile: c1mesh.pipeline.run.fit's execution for every
+    fit that is not run in tiles (its caller checked the output and set the threads).
 
     source: path, binary stream (then options.input_format is required) or a PointCloud
-    already loaded (classes already selected: c1mesh.survey.tiles does this); output: path,
-    binary stream, or None to only return the mesh. Returns the mesh (world coordinates,
-    unit vertex normals on the axis side, colours when the input has them) and a report
-    dict (counts, frame, trimming, scheme properties, C1 certificate, timings; the schema
-    of c1mesh.pipeline.report, the same on every path).
+    already loaded (classes already selected: a survey's cloud, c1mesh.survey.tiles);
+    output: path, binary stream, or None to only return the mesh. Returns the mesh (world
+    coordinates, unit vertex normals on the axis side, colours when the input has them)
+    and a report dict (counts, frame, trimming, scheme properties, C1 certificate,
+    timings; the schema of c1mesh.pipeline.report). The perspective frame branches to
+    c1mesh.pipeline.depth_fit; a raster output is a DEM sampled from the spline.
     keep_mesh=False (with an output) streams the mesh to the output block by block
     instead of assembling it: the result's mesh is then None, and memory and time drop
     (the CLI does this). The spline is then evaluated by a second thread ahead of the
     writer: "refine" reports the time the writer waited for evaluated blocks and
-    "write" the rest of the writing. Every stage uses at most options.workers threads.
+    "write" the rest of the writing.
     """
-    options = options or FitOptions()
-    if output is not None and not is_raster_path(output):   # fails now, not after the work
-        check_output(output, options.output_format, inputs=(source,))
-    with thread_limit(options.workers):
-        return _fit(source, output, options, on_stage, keep_mesh)
-
-
-def _fit(source, output, options: FitOptions, on_stage, keep_mesh: bool) -> FitResult:
-    """fit() inside its thread limit."""
     geo = geo_plan(output, options)
     if geo.height_field:
         options = replace(options, axis=raster_axis(options.axis))

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import FitPlan, HeightSettings, MeshTarget, PointSelection, Strength, SurfaceSettings
+from c1mesh.formats._limits import parse_memory
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, parse_strength
 from c1mesh.stages.thinning import check_spacing
@@ -50,7 +51,7 @@ def fit_plan(options) -> FitPlan:
         surface=SurfaceSettings(options.max_edge, options.scheme, options.level, options.overshoot,
                                 smoothing_strength(options), options.spacing),
         mesh=MeshTarget(options.output_format, options.ascii, options.crs),
-        memory=options.memory, threads=options.workers,
+        memory=None if options.memory is None else parse_memory(options.memory), threads=options.workers,
         rasters=any(v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
                                                         options.hillshade, options.preview)),
         contours=options.contours is not None)

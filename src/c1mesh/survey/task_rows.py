@@ -1,5 +1,5 @@
 """The memory-bounded fit's report pieces (c1mesh.pipeline.bounded_fit): the per-tile rows of
-what each pass's task did (`TileRows`) and the CRS facts; c1mesh.pipeline.survey_fit
+what each pass's task did (`TileRows`) and the CRS facts; c1mesh.pipeline.run
 makes the report of c1mesh.pipeline.report's schema from them."""
 from __future__ import annotations
 
