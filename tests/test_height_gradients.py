@@ -399,18 +399,23 @@ def test_a_clump_of_duplicates_takes_its_neighbours_without_a_quadratic_query():
     assert np.isfinite(gradients).all()
 
 
-@pytest.mark.parametrize("case", ["uniform", "integer grid with duplicates", "strip and far outlier", "clumps"])
+@pytest.mark.parametrize("case", ["uniform", "integer grid with duplicates", "decimal lattice far from 0",
+                                  "strip and far outlier", "clumps"])
 def test_the_grid_search_finds_what_a_brute_force_sort_finds(case):
     """Every point's k nearest other points, in order, against a brute-force sort of all
     points by (squared distance, dx, dy, height, number): on uniform points, on an integer
-    grid full of distance ties and exact duplicates, on a thin diagonal strip with one
-    point 10^4 away (the grid must size its cells to the strip, not to the box), and on
-    clumps of 30 points at one position."""
+    grid full of distance ties and exact duplicates, on a 0.1 lattice at 1000 (offsets
+    rounded, so some distances that tie on paper differ in the last bit and some do not),
+    on a thin diagonal strip with one point 10^4 away (the grid must size its cells to
+    the strip, not to the box), and on clumps of 30 points at one position. Heights take
+    3 values: exact data ties down to the point number."""
     rng = np.random.default_rng(11)
     if case == "uniform":
         xy = rng.random((700, 2)) * 50
     elif case == "integer grid with duplicates":
         xy = rng.integers(0, 12, (700, 2)).astype(float)
+    elif case == "decimal lattice far from 0":
+        xy = 1000.3 + rng.integers(0, 26, (700, 2)) * 0.1
     elif case == "strip and far outlier":
         t = rng.random(699) * 100
         xy = np.concatenate([np.column_stack([t, t + rng.random(699) * 0.5]), [[1e4, -1e4]]])

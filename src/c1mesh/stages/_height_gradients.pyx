@@ -129,20 +129,25 @@ def fit_block(const double[::1] z, const int64_t[::1] centre, const int64_t[:, :
         free(scratch)
 
 
-cdef inline bint _before(double d2, double dx, double dy, double h, int64_t q,
-                         double d2b, double dxb, double dyb, double hb, int64_t qb) noexcept nogil:
-    """Whether candidate (d2, dx, dy, h, q) comes before (d2b, ...): nearer first, ties by the
-    offset dx, then dy, then the height, then the point number (equal up to the number: the
-    same datum twice, interchangeable in every sum)."""
-    if d2 != d2b:
-        return d2 < d2b
-    if dx != dxb:
-        return dx < dxb
-    if dy != dyb:
-        return dy < dyb
-    if h != hb:
-        return h < hb
-    return q < qb
+cdef struct Candidate:
+    double d2             # squared plane distance to the centre
+    double dx, dy         # offset from the centre
+    int64_t q             # point number
+
+
+cdef inline bint _before(const Candidate *a, const Candidate *b, const double *z) noexcept nogil:
+    """Whether candidate a comes before b: nearer first, ties by the offset dx, then dy, then
+    the height, then the point number (equal up to the number: the same datum twice,
+    interchangeable in every sum). The heights are read only on an exact tie of the rest."""
+    if a.d2 != b.d2:
+        return a.d2 < b.d2
+    if a.dx != b.dx:
+        return a.dx < b.dx
+    if a.dy != b.dy:
+        return a.dy < b.dy
+    if z[a.q] != z[b.q]:
+        return z[a.q] < z[b.q]
+    return a.q < b.q
 
 
 cdef Py_ssize_t _lower(const int64_t *cells, Py_ssize_t count, int64_t key) noexcept nogil:
@@ -157,10 +162,24 @@ cdef Py_ssize_t _lower(const int64_t *cells, Py_ssize_t count, int64_t key) noex
     return lo
 
 
+cdef inline void _row(const int64_t *cells, const int64_t *starts, Py_ssize_t ncells, int64_t first,
+                      int64_t last, int64_t *lo, int64_t *hi) noexcept nogil:
+    """The points of the occupied cells numbered first ... last (one row of the grid): the
+    rows lo ... hi − 1 of the points, which are sorted by cell."""
+    cdef Py_ssize_t pos = _lower(cells, ncells, first), end = pos
+    while end < ncells and cells[end] <= last:
+        end += 1
+    lo[0] = starts[pos]
+    hi[0] = starts[end]
+
+
 cdef struct Candidates:
-    int64_t *index        # candidate point numbers
-    double *dist2         # their squared distances
-    double *work          # scratch for the selection
+    Candidate *seen       # every candidate of the square searched so far (seen[:count])
+    Candidate *near       # those nearer than a bound
+    Py_ssize_t *slot      # near's positions, counting-sorted by distance
+    Candidate *top        # the first k in `_before`'s order
+    Py_ssize_t *bucket    # each near one's distance bucket
+    Py_ssize_t *start     # where each bucket starts in order
     Py_ssize_t count, capacity
 
 
@@ -171,11 +190,14 @@ cdef bint _grow(Candidates *c, Py_ssize_t need) noexcept nogil:
         return True
     while capacity < need:
         capacity *= 2
-    c.index = <int64_t *> realloc(c.index, capacity * sizeof(int64_t))
-    c.dist2 = <double *> realloc(c.dist2, capacity * sizeof(double))
-    c.work = <double *> realloc(c.work, capacity * sizeof(double))
+    c.seen = <Candidate *> realloc(c.seen, capacity * sizeof(Candidate))
+    c.near = <Candidate *> realloc(c.near, capacity * sizeof(Candidate))
+    c.slot = <Py_ssize_t *> realloc(c.slot, capacity * sizeof(Py_ssize_t))
+    c.bucket = <Py_ssize_t *> realloc(c.bucket, capacity * sizeof(Py_ssize_t))
+    c.start = <Py_ssize_t *> realloc(c.start, (capacity + 1) * sizeof(Py_ssize_t))
     c.capacity = capacity
-    return c.index != NULL and c.dist2 != NULL and c.work != NULL
+    return (c.seen != NULL and c.near != NULL and c.slot != NULL and c.bucket != NULL
+            and c.start != NULL)
 
 
 cdef bint _add_cells(Candidates *c, const double *xy, const int64_t *cells, const int64_t *starts,
@@ -183,83 +205,84 @@ cdef bint _add_cells(Candidates *c, const double *xy, const int64_t *cells, cons
                      double px, double py) noexcept nogil:
     """Append the points of the occupied cells numbered first ... last (one row of the
     grid) to the candidates, all but the centre itself."""
-    cdef Py_ssize_t pos = _lower(cells, ncells, first)
-    cdef int64_t q
+    cdef int64_t lo, hi, q
     cdef double dx, dy
-    while pos < ncells and cells[pos] <= last:
-        if not _grow(c, c.count + starts[pos + 1] - starts[pos]):
-            return False
-        for q in range(starts[pos], starts[pos + 1]):
-            if q != centre:
-                dx = xy[2 * q] - px
-                dy = xy[2 * q + 1] - py
-                c.index[c.count] = q
-                c.dist2[c.count] = dx * dx + dy * dy
-                c.count += 1
-        pos += 1
+    cdef Candidate *record
+    _row(cells, starts, ncells, first, last, &lo, &hi)
+    if not _grow(c, c.count + hi - lo):
+        return False
+    for q in range(lo, hi):
+        if q != centre:
+            dx = xy[2 * q] - px
+            dy = xy[2 * q + 1] - py
+            record = &c.seen[c.count]
+            record.d2 = dx * dx + dy * dy
+            record.dx = dx
+            record.dy = dy
+            record.q = q
+            c.count += 1
     return True
 
 
-cdef double _kth(double *values, Py_ssize_t count, Py_ssize_t k) noexcept nogil:
-    """The k-th smallest (1-based) of values[:count], which it reorders (quickselect)."""
-    cdef Py_ssize_t lo = 0, hi = count - 1, i, j, want = k - 1
-    cdef double pivot, t
-    while lo < hi:
-        pivot = values[(lo + hi) >> 1]
-        i = lo
-        j = hi
-        while i <= j:
-            while values[i] < pivot:
-                i += 1
-            while values[j] > pivot:
-                j -= 1
-            if i <= j:
-                t = values[i]
-                values[i] = values[j]
-                values[j] = t
-                i += 1
-                j -= 1
-        if want <= j:
-            hi = j
-        elif want >= i:
-            lo = i
-        else:
-            break
-    return values[want]
-
-
-cdef void _take_nearest(Candidates *c, const double *xy, const double *z, double px, double py,
-                        double threshold, Py_ssize_t k, int64_t *index, double *ux, double *uy,
-                        double *dist2) noexcept nogil:
-    """The first k, in `_before`'s order, of the candidates no farther than threshold (the
-    k-th smallest squared distance: at least k of them) into one row of the output."""
-    cdef Py_ssize_t j, slot, count = 0
-    cdef int64_t q
-    cdef double dx, dy, d2
+cdef Py_ssize_t _near(Candidates *c, double bound) noexcept nogil:
+    """Copy the candidates nearer than bound (squared) to c.near; how many."""
+    cdef Py_ssize_t j, m = 0
     for j in range(c.count):
-        d2 = c.dist2[j]
-        if d2 > threshold:
-            continue
-        q = c.index[j]
-        dx = xy[2 * q] - px
-        dy = xy[2 * q + 1] - py
-        if count == k and not _before(d2, dx, dy, z[q], q, dist2[k - 1], ux[k - 1], uy[k - 1],
-                                      z[index[k - 1]], index[k - 1]):
-            continue
-        slot = count if count < k else k - 1
-        while slot > 0 and _before(d2, dx, dy, z[q], q, dist2[slot - 1], ux[slot - 1], uy[slot - 1],
-                                   z[index[slot - 1]], index[slot - 1]):
-            index[slot] = index[slot - 1]
-            ux[slot] = ux[slot - 1]
-            uy[slot] = uy[slot - 1]
-            dist2[slot] = dist2[slot - 1]
+        c.near[m] = c.seen[j]
+        m += c.seen[j].d2 < bound
+    return m
+
+
+cdef void _select(Candidates *c, Py_ssize_t m, double low, double high, Py_ssize_t k,
+                  const double *z, int64_t *index, double *ux, double *uy, double *dist2) noexcept nogil:
+    """The first k, in `_before`'s order, of c.near[:m] (k ≤ m, squared distances in low ...
+    high) into one row of the output. A counting sort into m buckets of equal distance²
+    span puts them nearly in order (a bucket holds one on average: the points are spread
+    over the plane), and only the buckets up to the one holding the k-th can hold any of
+    the first k; a bounded insertion of those then finds the order (O(k) moves when they
+    come in order, O(m·k) at worst: a clump of copies at one position)."""
+    cdef double scale = m / (high - low)
+    cdef Py_ssize_t j, b, slot, end, filled = 0
+    cdef Candidate *near = c.near
+    cdef Candidate *top = c.top
+    cdef Candidate *record
+    if not scale <= 1e300:               # all at one distance: one bucket
+        scale = 0.0
+    for b in range(m + 1):
+        c.start[b] = 0
+    for j in range(m):
+        b = <Py_ssize_t> ((near[j].d2 - low) * scale)
+        if b > m - 1:
+            b = m - 1
+        c.bucket[j] = b
+        c.start[b + 1] += 1
+    end = -1
+    for b in range(m):
+        c.start[b + 1] += c.start[b]
+        if end < 0 and c.start[b + 1] >= k:
+            end = c.start[b + 1]
+    for j in range(m):
+        b = c.bucket[j]
+        c.slot[c.start[b]] = j
+        c.start[b] += 1
+    for j in range(end):
+        record = &near[c.slot[j]]
+        if filled == k:
+            if not _before(record, &top[k - 1], z):
+                continue
+            slot = k - 1
+        else:
+            slot = filled
+            filled += 1
+        while slot > 0 and _before(record, &top[slot - 1], z):
+            top[slot] = top[slot - 1]
             slot -= 1
-        index[slot] = q
-        ux[slot] = dx
-        uy[slot] = dy
-        dist2[slot] = d2
-        if count < k:
-            count += 1
+        top[slot] = record[0]
+    for j in range(k):
+        index[j] = top[j].q
+        ux[j] = top[j].dx
+        uy[j] = top[j].dy
+        dist2[j] = top[j].d2
 
 
 def grid_neighbours(const double[:, ::1] xy, const double[::1] z, const int64_t[::1] centre,
@@ -275,52 +298,95 @@ def grid_neighbours(const double[:, ::1] xy, const double[::1] z, const int64_t[
     number j·nx + i, `cells` are the occupied numbers ascending and the points of cells[c]
     are rows starts[c] ... starts[c+1] − 1; cell_x, cell_y (n,) are each point's i, j.
     The square of cells within R of the centre's cell (R = 1, 2, ...) is searched until
-    its k-th nearest candidate is nearer than anything outside the square can be (with a
-    relative margin, so rounding cannot hide a tie), or the square covers the grid; once a
-    ring would have more cells than are occupied (a point far from the rest), every point
-    not yet seen is taken instead, so a lone point costs O(cells), not O(R²). The k nearest
-    (a quickselect of the squared distances) are then put in order."""
-    cdef Py_ssize_t b = centre.shape[0], k = out.shape[1], ncells = cells.shape[0], i, pos
-    cdef int64_t c, ix, iy, R, gy, lo, hi, side
-    cdef double px, py, reach, threshold, slack = size * 1e-6
+    at least k of its candidates are nearer than anything outside the square can be (with
+    a relative margin, so rounding cannot hide a tie), or the square covers the grid; once
+    a ring would have more cells than are occupied (a point far from the rest), every
+    point not yet seen is taken instead, so a lone point costs O(cells), not O(R²). The
+    first k of the candidates within that bound (all of them when there is none) are then
+    put in order (`_select`).
+
+    The common case, R = 1, takes a short way: the 3 × 3 cells are three runs of points
+    (one per row of cells, looked up once for all the points of a cell) and only the
+    candidates within the bound are kept; when fewer than k are, the general search
+    starts over."""
+    cdef Py_ssize_t b = centre.shape[0], k = out.shape[1], ncells = cells.shape[0], i, pos, m, r
+    cdef Py_ssize_t rows = 0
+    cdef int64_t c, ix, iy, R, gy, lo, hi, side, q, total = 0
+    cdef int64_t cached_x = -1, cached_y = -1
+    cdef int64_t row_lo[3]
+    cdef int64_t row_hi[3]
+    cdef double px, py, dx, dy, d2, reach, bound, low, high, slack = size * 1e-6
     cdef const double *points = &xy[0, 0]
     cdef const double *heights = &z[0]
     cdef const int64_t *occupied = &cells[0]
     cdef const int64_t *first = &starts[0]
     cdef Candidates found
-    cdef bint done, ok = True
+    cdef Candidate *record
+    cdef bint done, bounded, ok = True
     if b == 0 or k == 0:
         return
     found.capacity = 256
     found.count = 0
-    found.index = <int64_t *> malloc(found.capacity * sizeof(int64_t))
-    found.dist2 = <double *> malloc(found.capacity * sizeof(double))
-    found.work = <double *> malloc(found.capacity * sizeof(double))
-    if found.index == NULL or found.dist2 == NULL or found.work == NULL:
-        free(found.index)
-        free(found.dist2)
-        free(found.work)
-        raise MemoryError()
+    found.seen = <Candidate *> malloc(found.capacity * sizeof(Candidate))
+    found.near = <Candidate *> malloc(found.capacity * sizeof(Candidate))
+    found.slot = <Py_ssize_t *> malloc(found.capacity * sizeof(Py_ssize_t))
+    found.top = <Candidate *> malloc(k * sizeof(Candidate))
+    found.bucket = <Py_ssize_t *> malloc(found.capacity * sizeof(Py_ssize_t))
+    found.start = <Py_ssize_t *> malloc((found.capacity + 1) * sizeof(Py_ssize_t))
     with nogil:
-        for i in range(b):
+        ok = (found.seen != NULL and found.near != NULL and found.slot != NULL and found.top != NULL
+              and found.bucket != NULL and found.start != NULL)
+        for i in range(b if ok else 0):
             c = centre[i]
             px = points[2 * c]
             py = points[2 * c + 1]
             ix = cell_x[c]
             iy = cell_y[c]
-            found.count = 0
             R = 1
+            reach = min(min(px - (x0 + (ix - R) * size), x0 + (ix + R + 1) * size - px),
+                        min(py - (y0 + (iy - R) * size), y0 + (iy + R + 1) * size - py)) - slack
+            bound = reach * reach * (1.0 - 1e-12)
+            if reach > 0:                                 # the short way
+                if ix != cached_x or iy != cached_y:
+                    cached_x, cached_y = ix, iy
+                    rows = 0
+                    total = 0
+                    for gy in range(max(iy - 1, 0), min(iy + 1, ny - 1) + 1):
+                        _row(occupied, first, ncells, gy * nx + max(ix - 1, 0), gy * nx + min(ix + 1, nx - 1),
+                             &row_lo[rows], &row_hi[rows])
+                        total += row_hi[rows] - row_lo[rows]
+                        rows += 1
+                    if not _grow(&found, total):
+                        ok = False
+                        break
+                m = 0
+                for r in range(rows):
+                    for q in range(row_lo[r], row_hi[r]):
+                        dx = points[2 * q] - px
+                        dy = points[2 * q + 1] - py
+                        d2 = dx * dx + dy * dy
+                        record = &found.near[m]
+                        record.d2 = d2
+                        record.dx = dx
+                        record.dy = dy
+                        record.q = q
+                        m += (d2 < bound) & (q != c)
+                if m >= k:
+                    _select(&found, m, 0.0, bound, k, heights, &out[i, 0], &ux[i, 0], &uy[i, 0], &dist2[i, 0])
+                    continue
+            found.count = 0                               # the general search
             for gy in range(max(iy - 1, 0), min(iy + 1, ny - 1) + 1):
                 ok = ok and _add_cells(&found, points, occupied, first, ncells,
                                        gy * nx + max(ix - 1, 0), gy * nx + min(ix + 1, nx - 1), c, px, py)
+            bounded = False
             while True:
                 done = ix - R <= 0 and iy - R <= 0 and ix + R >= nx - 1 and iy + R >= ny - 1
                 if not done and found.count >= k:
-                    memcpy(found.work, found.dist2, found.count * sizeof(double))
-                    threshold = _kth(found.work, found.count, k)
                     reach = min(min(px - (x0 + (ix - R) * size), x0 + (ix + R + 1) * size - px),
                                 min(py - (y0 + (iy - R) * size), y0 + (iy + R + 1) * size - py)) - slack
-                    done = reach > 0 and threshold < reach * reach * (1.0 - 1e-12)
+                    bound = reach * reach * (1.0 - 1e-12)
+                    m = _near(&found, bound)
+                    done = bounded = reach > 0 and m >= k
                 if done or not ok:
                     break
                 R += 1
@@ -347,12 +413,21 @@ def grid_neighbours(const double[:, ::1] xy, const double[::1] z, const int64_t[
                                                gy * nx + ix + R, c, px, py)
             if not ok:
                 break
-            memcpy(found.work, found.dist2, found.count * sizeof(double))
-            threshold = _kth(found.work, found.count, k)
-            _take_nearest(&found, points, heights, px, py, threshold, k, &out[i, 0], &ux[i, 0], &uy[i, 0],
-                          &dist2[i, 0])
-    free(found.index)
-    free(found.dist2)
-    free(found.work)
+            if bounded:
+                low, high = 0.0, bound
+            else:                                        # all of them: every point but the centre
+                m = found.count
+                low = high = found.seen[0].d2
+                for pos in range(m):
+                    found.near[pos] = found.seen[pos]
+                    low = min(low, found.seen[pos].d2)
+                    high = max(high, found.seen[pos].d2)
+            _select(&found, m, low, high, k, heights, &out[i, 0], &ux[i, 0], &uy[i, 0], &dist2[i, 0])
+    free(found.seen)
+    free(found.near)
+    free(found.slot)
+    free(found.top)
+    free(found.bucket)
+    free(found.start)
     if not ok:
         raise MemoryError()
