@@ -88,11 +88,11 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
     mesh = sys.stdout.buffer if output == STDIO else output
     outputs = [d for _, d in pairs] if output_dir else None
     unused = None
-    if scheduler is not None and not output_dir and not in_tiles(list(inputs), options):
+    if scheduler is not None and not output_dir and not in_tiles(list(inputs), options, mesh):
         scheduler, unused = None, _SCHEDULER_UNUSED.format(what="the survey")   # one fit, in this process
     try:
         if stderr_is_terminal() and not quiet:
-            progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
+            progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0, mesh)
             with progress:
                 result = fit_seamless(inputs, options, mesh, outputs, scheduler, jobs, SurveyProgress(**callbacks))
         else:
@@ -144,7 +144,7 @@ def _run(src: str, target, options, on_stage=None, jobs: int | None = 1, on_tile
     from c1mesh.pipeline.survey_fit import fit_in_tiles, in_tiles
 
     source = sys.stdin.buffer if src == STDIO else src
-    if in_tiles(source, options):          # larger than --memory allows: c1mesh.pipeline.bounded_fit
+    if in_tiles(source, options, target):  # larger than --memory allows: c1mesh.pipeline.bounded_fit
         return fit_in_tiles(source, target, options,
                             TiledRun(scheduler=scheduler, jobs=jobs, on_stage=on_stage, on_tile=on_tile))
     report = fit_pipeline(source, target, options, on_stage=on_stage, keep_mesh=False).report

@@ -14,7 +14,7 @@ from c1mesh.core.crs import parse_crs
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import TiledRun
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.geo.products import resolve_crs
+from c1mesh.geo.products import geo_plan, resolve_crs
 from c1mesh.geo.raster import is_raster_path
 from c1mesh.pipeline.driver import (
     angle_z_factor,
@@ -71,7 +71,7 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     if outputs is not None and options.contours:
         raise InputError("--contours makes one survey-wide file: use it with --seamless -o, not -O")
     user_crs = parse_crs(options.crs) if options.crs else None
-    if in_tiles(list(sources), options):
+    if in_tiles(list(sources), options, output):
         report = fit_in_tiles(list(sources), output, options,
                               TiledRun(scheduler=scheduler, jobs=jobs, outputs=outputs, on_stage=progress.on_stage,
                                        on_tile=progress.on_tile_pass))
@@ -124,18 +124,20 @@ def fit_seamless(sources: Sequence[str], options, output=None, outputs: Sequence
     return report
 
 
-def in_tiles(source, options) -> bool:
+def in_tiles(source, options, output=None) -> bool:
     """Whether `source` (one LAS/LAZ path, or a list of them: one survey) is fitted by the
-    memory-bounded fit (survey.sizing.needs_tiles): larger than options.memory allows
-    in one piece. Reads the inputs' headers only."""
-    return needs_tiles(source, fit_plan(options))
+    memory-bounded fit (survey.sizing.needs_tiles) into output (a mesh, or a DEM .tif):
+    larger than options.memory allows in one piece. Reads the inputs' headers only."""
+    return needs_tiles(source, fit_plan(options, output))
 
 
 def fit_in_tiles(source, output, options, run: TiledRun = TiledRun()) -> dict:
     """The memory-bounded fit (c1mesh.pipeline.bounded_fit.fit_tiled: source one LAS/LAZ path or
     a list, output a mesh path, run where its tiles run) with its facts made the report of
     c1mesh.pipeline.report's schema."""
-    plan = fit_plan(options)                          # InputError for a bad --smooth, before any work
+    plan = fit_plan(options, output)                  # InputError for a bad --smooth, before any work
+    if plan.dem is not None:
+        geo_plan(output, options)                     # the rasters' paths and options, before any work
     if plan.surface.spacing is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
@@ -151,11 +153,14 @@ def tiles_report(facts: dict, options) -> dict:
         input=facts.pop("input"), output=facts.pop("output"), points=facts.pop("points"),
         normals="estimated", gradients=facts.pop("gradients"), frame={"kind": "axis", **facts.pop("frame")},
         triangles=facts.pop("triangles"), level=level,
-        level_from="default" if options.level is None else "option", output_mesh=facts.pop("output_mesh"),
+        level_from=None if level is None else "default" if options.level is None else "option",
+        output_mesh=facts.pop("output_mesh"),
         scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
     report.update(facts)
+    if "raster" in report:        # a DEM (pipeline.tiled_dem): --fill off, the one fill done in tiles
+        report["raster"]["fill"] = {"option": options.fill, "distance": None, "triangles_spanning_holes": 0}
     overshoot = report.get("overshoot")
     if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory
         text = smoothing_suggestion(overshoot["gradients_limited"], int(report["points"]["kept"]))
