@@ -580,7 +580,7 @@ def test_cli_stops_at_a_failing_tile(tmp_path, monkeypatch):
     monkeypatch.setattr(refine_runs, "_refine_tile", height_runs._position_tile)   # fails on every worker
     pool = CliRunner().invoke(main, args + ["-o", str(tmp_path / "failed.ply"), "-j", "2"])
     assert pool.exit_code == 1 and pool.output.startswith(f"c1mesh: error: {source}: tile ")
-    assert "_RefineJob" in pool.output and pool.output.count("\n") == 1
+    assert "RefineJob" in pool.output and pool.output.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
 
 

@@ -90,7 +90,7 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
     tiles = TiledRun(scheduler=scheduler, jobs=jobs)
     try:
         if stderr_is_terminal() and not quiet:
-            progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0)
+            progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0, mesh)
             with progress:
                 result = fit(list(inputs), mesh, options, keep_mesh=False, outputs=outputs,
                              tiles=replace(tiles, **callbacks)).report

@@ -21,16 +21,17 @@ def caption(bar, text: str) -> None:
     bar.render_progress()
 
 
-def survey_progress(inputs, options, outputs: int):
+def survey_progress(inputs, options, outputs: int, output=None):
     """A --seamless fit's progress bar on stderr and the core.plan.TiledRun callbacks that
     move it: for a survey fitted in tiles beyond --memory (c1mesh.pipeline.bounded_fit), its
     stages with each pass's tile count, as a single large input shows them; in memory, the
-    outputs of -O as their tiles are written, or the stages of the one -o fit."""
+    outputs of -O as their tiles are written, or the stages of the one -o fit (output: its
+    path or stream)."""
     from c1mesh.pipeline.driver import STAGES
     from c1mesh.pipeline.bounded_fit import TILED_STAGES
     from c1mesh.pipeline.run import in_tiles
 
-    if in_tiles(list(inputs), options):
+    if in_tiles(list(inputs), options, output):
         progress = stage_bar(len(TILED_STAGES), "fitting survey")
         return progress, {"on_stage": lambda name: progress.update(1, name),
                           "on_tile": lambda name, done, tiles: caption(progress, f"{name}: tile {done} of {tiles}")}

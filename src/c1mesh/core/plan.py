@@ -79,14 +79,34 @@ class MeshTarget:
 
 
 @dataclass(frozen=True)
+class DemPlan:
+    """A DEM output and its side rasters (c1mesh.geo.raster), as the tiled DEM writer
+    (c1mesh.pipeline.tiled_dem) is told them: dem, slope, aspect, hillshade, support: the
+    GeoTIFF paths (None: not written); resolution: the cell size (world units);
+    slope_method: "auto" | "spline" | "horn"; z_factor: x, y units per height unit
+    (None: 1); fill: the fill distance (geo.raster.fill_distance: None off, inf the hull)."""
+
+    dem: str
+    resolution: float
+    slope: str | None = None
+    aspect: str | None = None
+    hillshade: str | None = None
+    support: str | None = None
+    slope_method: str = "auto"
+    z_factor: float | None = None
+    fill: float | None = None
+
+
+@dataclass(frozen=True)
 class FitPlan:
     """Everything the stages, the writers and the tile scheduler are told about one fit.
 
     memory: the budget in bytes (None: no budget, always one piece in memory); threads:
-    the one thread knob (None: the process's setting, core.threads); rasters: whether
-    any raster output (DEM, slope, aspect, hillshade, preview) is asked for, which only
-    the in-memory fit writes today; contours: whether --contours is asked for (the
-    in-memory fit only, likewise)."""
+    the one thread knob (None: the process's setting, core.threads); dem: the DEM
+    output (DemPlan; None: the output is a mesh); rasters: whether a raster option only
+    the in-memory fit takes is asked for (--preview; --resolution of a mesh, which picks
+    its level from the whole triangulation); contours: whether --contours is asked for
+    (the in-memory fit only)."""
 
     select: PointSelection = PointSelection()
     heights: HeightSettings = HeightSettings()
@@ -94,6 +114,7 @@ class FitPlan:
     mesh: MeshTarget = MeshTarget()
     memory: int | None = None
     threads: int | None = None
+    dem: DemPlan | None = None
     rasters: bool = False
     contours: bool = False
 

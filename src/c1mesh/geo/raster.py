@@ -285,12 +285,44 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
                   method: str = "spline", crs: str | None = None,
                   block_rows: int | None = None, dem_dtype: str = "float32",
                   z_factor: float = 1.0) -> dict:
-    """Write the requested rasters in one pass over the grid; returns a report dict.
+    """Write the requested rasters of the spline `sampler` samples in one pass over the
+    grid (grid_blocks, with the support layer's distances where asked); returns a report
+    dict (write_blocks).
 
     z_factor: x, y units per height unit, for slope and hillshade (module docstring).
 
     dem_dtype "float64" keeps every digit of the spline's heights (GIS tools expect
     float32, the default, which rounds heights of 1e4 to ~1e-3).
+    """
+    shaded = any(kind not in ("dem", "support") for kind, _ in targets.items())
+
+    def blocks():
+        for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
+            support = sampler.centre_distances(grid, rows, np.isfinite(z)) if targets.support else None
+            yield rows, z, g, support
+    return write_blocks(targets, grid, blocks(), RasterStyle(method, crs, dem_dtype, z_factor))
+
+
+@dataclass(frozen=True)
+class RasterStyle:
+    """How write_blocks writes: method, the slope method the gradients came from (the
+    report's); crs (WKT or None); dem_dtype "float32" or "float64"; z_factor (x, y units
+    per height unit, for slope and hillshade)."""
+
+    method: str | None = "spline"
+    crs: str | None = None
+    dem_dtype: str = "float32"
+    z_factor: float = 1.0
+
+
+def write_blocks(targets: RasterTargets, grid: RasterGrid, blocks, style: RasterStyle = RasterStyle()) -> dict:
+    """Write the requested rasters from blocks of grid rows; returns a report dict.
+
+    blocks: (rows (range of grid rows, in order, covering the grid), heights (n, w) world z,
+    NaN = nodata, gradients (n, w, 2) or None when no slope, aspect or hillshade is asked,
+    support (n, w) distances, NaN where the DEM is nodata, or None without --support):
+    from a sampled spline (write_rasters) or from grids the tiles filled
+    (pipeline.tiled_dem).
 
     Every file is a Cloud-Optimised GeoTIFF (cog_copy): the blocks are written to a
     staging GeoTIFF beside the output (GDAL's COG driver writes only by copying a whole
@@ -307,20 +339,19 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     with contextlib.ExitStack() as stack:
         temps = {kind: stack.enter_context(atomic_output(path, "path")) for kind, path in items}
         staged = {kind: stack.enter_context(staging_path(temps[kind])) for kind, _ in items}
-        kinds = dict(_KINDS, dem=(dem_dtype, DEM_NODATA))
+        kinds = dict(_KINDS, dem=(style.dem_dtype, DEM_NODATA))
         datasets = {kind: stack.enter_context(rasterio.open(staged[kind], "w", **_profile(
-            grid, *kinds[kind], crs))) for kind, _ in items}
-        shaded = any(kind not in ("dem", "support") for kind, _ in items)
+            grid, *kinds[kind], style.crs))) for kind, _ in items}
         farthest = 0.0
-        for rows, z, g in grid_blocks(grid, sampler, method if shaded else None, block_rows):
+        for rows, z, g, support in blocks:
             cells_inside += int(np.isfinite(z).sum())
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
                 if kind == "support":
-                    layer = _support_layer(sampler.centre_distances(grid, rows, np.isfinite(z)))
+                    layer = _support_layer(support)
                     farthest = max(farthest, float(layer.max(initial=0.0)))
                 else:
-                    layer = _layer(kind, z, g, z_factor)
+                    layer = _layer(kind, z, g, style.z_factor)
                 ds.write(layer.astype(kinds[kind][0], copy=False), 1, window=window)
         for kind, ds in datasets.items():
             ds.close()
@@ -328,7 +359,7 @@ def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampl
     return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
                      "width": grid.width, "height": grid.height},
             "cells": grid.width * grid.height, "cells_with_data": cells_inside,
-            "slope_method": method, "z_factor": z_factor, "files": dict(items),
+            "slope_method": style.method, "z_factor": style.z_factor, "files": dict(items),
             **({"support_max": farthest} if targets.support else {}),
             "format": {key: str(value) for key, value in COG_FORMAT.items()}}
 
@@ -473,13 +504,20 @@ def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineS
     hillshade; heights in units of their own without one are refused before
     (pipeline.check_angles). smoothed: the spline is a smoothing fit's (the slope
     method's crossover, choose_slope_method)."""
-    if crs and (options.slope or options.aspect or options.hillshade):  # the support is a distance
-        if describe(crs)["geographic"]:
-            raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
-                             "geographic (degrees): reproject to a projected CRS first")
+    check_angle_crs(crs, options)
     spacing = mean_spacing(sampler.interp.points, sampler.interp.triangles)
     method = choose_slope_method(options.slope_method, grid.resolution, spacing, smoothed)
     z_factor = 1.0 if options.z_factor is None else float(options.z_factor)
     report = write_rasters(targets, grid, sampler, method, crs, z_factor=z_factor)
     report["point_spacing"] = float(spacing)
     return report
+
+
+def check_angle_crs(crs: str | None, options) -> None:
+    """InputError for slope, aspect or hillshade rasters (options.slope, .aspect,
+    .hillshade) of a geographic CRS: x, y in degrees are not in the units of z. The support
+    is a distance, and needs no check."""
+    if crs and (options.slope or options.aspect or options.hillshade):
+        if describe(crs)["geographic"]:
+            raise InputError("slope, aspect and hillshade need x, y in the units of z; the CRS is "
+                             "geographic (degrees): reproject to a projected CRS first")

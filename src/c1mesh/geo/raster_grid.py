@@ -260,17 +260,26 @@ class SplineSampler:
         cell = cell[~np.isin(cell, covered)]
         i, j = np.divmod(cell, nc)
         cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
-        if self._nearest is None and cell.size:
+        has, tri, l0, l1, shift = self.continued(np.column_stack([cx, cy]))
+        return cell[has], tri, l0, l1, shift
+
+    def continued(self, centre: np.ndarray):
+        """(has (m,) bool, then for the centres that have one: triangle, λ0, λ1, shift) of
+        the nearest searched triangle within the reach to each local plane point centre
+        (m, 2), at its point q closest to the centre, shift = centre − q: the nearest-
+        triangle rule of the cells outside the triangles (`_uncovered`; a tiled DEM asks
+        each tile's own triangles and keeps the nearest: |shift| is the distance)."""
+        if self._nearest is None and len(centre):
             self._rim = rim_triangles(self.interp.edge_table, self._searched)
             self._nearest = NearestTriangles(self.interp.points, self.interp.triangles[self._rim], self._reach)
-        tri = self._nearest.of(np.column_stack([cx, cy])) if cell.size else np.zeros(0, np.int64)
+        tri = self._nearest.of(centre) if len(centre) else np.zeros(0, np.int64)
         has = tri >= 0
         tri = np.where(has, self._rim[np.maximum(tri, 0)], -1)
-        centre = np.column_stack([cx[has], cy[has]])
+        centre = centre[has]
         tri = tri[has]
         q = closest_points(centre, self.interp.points[self.interp.triangles[tri]])
         l0, l1 = self._barycentric(tri, q[:, 0], q[:, 1])
-        return cell[has], tri, l0, l1, centre - q
+        return has, tri, l0, l1, centre - q
 
     def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
         """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as

@@ -60,10 +60,12 @@ from pathlib import Path
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.plan import FitPlan, TiledRun
+from c1mesh.core.plan import DemPlan, FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.refine import fewest_refined_vertices
+from c1mesh.geo.raster import check_angle_crs
+from c1mesh.pipeline.tiled_dem import DemJob, TiledDem, dem_grid
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
@@ -92,7 +94,7 @@ from c1mesh.survey.inputs import (
 )
 from c1mesh.survey.split_outputs import InputOwners
 from c1mesh.survey.sizing import grid_side, point_bytes, task_threads, tiles_at_once
-from c1mesh.survey.refine_runs import MeshWriting, Split, TiledMesh, check_output_size, write_tiles
+from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
 from c1mesh.survey.trim_runs import trim_tiles
@@ -102,7 +104,8 @@ TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "n
 """The stages fit_tiled reports (on_stage, the report's seconds), in order; "ground" only when the
 ground filter chooses the points (survey.ground_pass), "noise floors"
 only with the overshoot limiter (the default) of an exact fit, "smoothing" only with a
-smoothing strength (c1mesh.survey.smoothing_runs)."""
+smoothing strength (c1mesh.survey.smoothing_runs); a DEM output (-o DEM.tif) has "raster"
+(c1mesh.pipeline.tiled_dem) in place of "refine+write"."""
 
 
 def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict:
@@ -141,6 +144,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     paths = survey_paths(source)
     name = survey_name(paths)
     crs, crs_source = survey_crs(paths, plan.mesh.crs)
+    if plan.dem is not None:
+        check_angle_crs(crs, plan.dem)
     outputs, jobs, scheduler = run.outputs, run.jobs, run.scheduler
     seconds, start = {}, time.perf_counter()
 
@@ -208,7 +213,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             removed = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
-            if outputs is None and output is not None:
+            if outputs is None and output is not None and plan.dem is None:
                 _check_size(kept_triangles, plan, output, colours.present)
             done("trim")
             mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
@@ -222,10 +227,18 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             elif surface.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name)
                 done("noise floors")
-            split = None if outputs is None else Split(InputOwners(file_counts), outputs,
-                                                       [str(p) for p in paths])
-            report = write_tiles(mesh, plan, output, MeshWriting(temps, limiter, crs, colours, runner, rows, split))
-            done("refine+write")
+            if plan.dem is not None:
+                report = _write_dem(DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads),
+                                           halos, dem_grid(mesh, plan.dem.resolution), max_edge, longest,
+                                           _shaded(plan.dem), rows.threads),
+                                    (temps, runner, rows), plan.dem, chunks, crs, limiter)
+                done("raster")
+            else:
+                split = None if outputs is None else Split(InputOwners(file_counts), outputs,
+                                                           [str(p) for p in paths])
+                report = write_tiles(mesh, plan, output, MeshWriting(temps, limiter, crs, colours, runner, rows,
+                                                                     split))
+                done("refine+write")
         finally:
             height_pass.close()
     finally:
@@ -245,7 +258,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                  "after_trim": sum(report["triangles_per_tile"].values()),
                                  "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
-                   "level": surface.level, "scheduler": runner.kind,
+                   "level": None if plan.dem is not None else surface.level, "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
@@ -253,6 +266,26 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     report["classes"] = selection
     if strength is not None:
         report["smoothing"] = limiter.smoothing()
+    return report
+
+
+def _shaded(dem: DemPlan) -> bool:
+    """Whether the DEM's side rasters need the spline's gradients (slope, aspect, hillshade)."""
+    return bool(dem.slope or dem.aspect or dem.hillshade)
+
+
+def _write_dem(job: DemJob, where, dem: DemPlan, chunks, crs, limiter) -> dict:
+    """The tiled DEM (c1mesh.pipeline.tiled_dem) of the trimmed survey, in place of the
+    mesh's refinement: the facts write_tiles gives a mesh (kept, output_mesh null,
+    triangles_per_tile, overshoot) and the raster section. where: (temps, runner, rows)."""
+    facts = TiledDem(job, *where).write(dem, chunks, crs, isinstance(limiter, TiledSmoother))
+    report = {"kept": facts["kept"], "output_mesh": None, "triangles_per_tile": facts["triangles_per_tile"],
+              "raster": facts["raster"]}
+    if limiter is not None:
+        limiter.limited += facts["limited"]
+        limiter.turned += facts["turned"]
+        limiter.lifted += facts["lifted"]
+        report["overshoot"] = limiter.report()
     return report
 
 
@@ -296,11 +329,14 @@ def tiles_report(facts: dict, options) -> dict:
         input=facts.pop("input"), output=facts.pop("output"), points=facts.pop("points"),
         normals="estimated", gradients=facts.pop("gradients"), frame={"kind": "axis", **facts.pop("frame")},
         triangles=facts.pop("triangles"), level=level,
-        level_from="default" if options.level is None else "option", output_mesh=facts.pop("output_mesh"),
+        level_from=None if level is None else "default" if options.level is None else "option",
+        output_mesh=facts.pop("output_mesh"),
         scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
     report.update(facts)
+    if "raster" in report:        # a DEM (pipeline.tiled_dem): --fill off, the one fill done in tiles
+        report["raster"]["fill"] = {"option": options.fill, "distance": None, "triangles_spanning_holes": 0}
     overshoot = report.get("overshoot")
     if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory
         text = smoothing_suggestion(overshoot["gradients_limited"], int(report["points"]["kept"]))

@@ -10,8 +10,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.plan import FitPlan, HeightSettings, MeshTarget, PointSelection, Strength, SurfaceSettings
+from c1mesh.core.plan import DemPlan, FitPlan, HeightSettings, MeshTarget, PointSelection, Strength, SurfaceSettings
 from c1mesh.formats._limits import parse_memory
+from c1mesh.geo.raster import fill_distance, is_raster_path
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, parse_strength
 from c1mesh.stages.thinning import check_spacing
@@ -40,9 +41,14 @@ def resolve_options_axis(source, options):
     return (options if axis is options.axis else replace(options, axis=axis)), reason
 
 
-def fit_plan(options) -> FitPlan:
+def fit_plan(options, output=None) -> FitPlan:
     """The FitPlan of pipeline.driver.FitOptions `options` (their axis as given: resolve
-    "auto" for LAS/LAZ first, resolve_options_axis)."""
+    "auto" for LAS/LAZ first, resolve_options_axis) for a fit writing `output` (a
+    GeoTIFF path: the plan's dem; None or a mesh: none)."""
+    dem = None
+    if is_raster_path(output) and options.resolution is not None:
+        dem = DemPlan(str(output), float(options.resolution), options.slope, options.aspect, options.hillshade,
+                      options.support, options.slope_method, options.z_factor, fill_distance(options.fill))
     classes = options.classes if isinstance(options.classes, (str, type(None))) else tuple(options.classes)
     return FitPlan(
         select=PointSelection(options.input_format, classes or None,
@@ -51,7 +57,8 @@ def fit_plan(options) -> FitPlan:
         surface=SurfaceSettings(options.max_edge, options.scheme, options.level, options.overshoot,
                                 smoothing_strength(options), options.spacing),
         mesh=MeshTarget(options.output_format, options.ascii, options.crs),
-        memory=None if options.memory is None else parse_memory(options.memory), threads=options.workers,
-        rasters=any(v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
-                                                        options.hillshade, options.preview)),
+        memory=None if options.memory is None else parse_memory(options.memory), threads=options.workers, dem=dem,
+        rasters=bool(options.preview) or (dem is None and any(
+            v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
+                                                options.hillshade, options.support))),
         contours=options.contours is not None)

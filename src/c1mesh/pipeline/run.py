@@ -27,7 +27,7 @@ from c1mesh.core.plan import TiledRun
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.formats import check_output
-from c1mesh.geo.products import resolve_crs
+from c1mesh.geo.products import geo_plan, resolve_crs
 from c1mesh.geo.raster import is_raster_path
 from c1mesh.pipeline.bounded_fit import fit_tiled, tiles_report
 from c1mesh.pipeline.driver import (
@@ -88,7 +88,7 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
             options, _ = resolve_options_axis(source[0], options)
         if outputs is not None and options.contours:
             raise InputError("--contours makes one survey-wide file: use it with --seamless -o, not -O")
-        if tiles.per_tile is not None or needs_tiles(list(source) if survey else source, fit_plan(options)):
+        if tiles.per_tile is not None or needs_tiles(list(source) if survey else source, fit_plan(options, output)):
             return FitResult(None, _fit_in_tiles(source, output, options, replace(tiles, outputs=outputs)))
         if outputs is not None:
             return FitResult(None, _fit_survey_outputs(source, outputs, options, tiles))
@@ -99,8 +99,11 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
 
 
 def _fit_in_tiles(source, output, options: FitOptions, tiles: TiledRun) -> dict:
-    """The memory-bounded fit (bounded_fit.fit_tiled) and its report."""
-    plan = fit_plan(options)                          # InputError for a bad --smooth, before any work
+    """The memory-bounded fit (bounded_fit.fit_tiled: a mesh, or a DEM when output is a
+    GeoTIFF, pipeline.tiled_dem) and its report."""
+    plan = fit_plan(options, output)                  # InputError for a bad --smooth, before any work
+    if plan.dem is not None:
+        geo_plan(output, options)                     # the rasters' paths and options, before any work
     if plan.surface.spacing is not None:
         raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
                          "whose vertices are the points): raise --memory, or fit without --spacing")
@@ -164,8 +167,9 @@ def _fit_survey_outputs(sources, outputs, options: FitOptions, tiles: TiledRun) 
     return report
 
 
-def in_tiles(source, options: FitOptions) -> bool:
+def in_tiles(source, options: FitOptions, output=None) -> bool:
     """Whether `fit` runs `source` (one LAS/LAZ path, or a list of them: one survey) in
-    tiles: larger than options.memory allows in one piece (survey.sizing.needs_tiles).
-    Reads the inputs' headers only (the CLI's progress asks, to show the tiles' stages)."""
-    return needs_tiles(source, fit_plan(options))
+    tiles into output (a mesh, or a DEM .tif): larger than options.memory allows in one
+    piece (survey.sizing.needs_tiles). Reads the inputs' headers only (the CLI's progress
+    asks, to show the tiles' stages)."""
+    return needs_tiles(source, fit_plan(options, output))

@@ -11,7 +11,7 @@ later tiles refer to that number.
 Which keys the join must remember. A tile can meet a key only if it owns a base triangle
 with that corner (an edge point: with both ends of that edge), and every corner of tile
 t's own triangles lies in its cell grown by its reach (the trim's max_edge, or its
-Delaunay buffer; refine_runs._RefineJob.reach). So no tile after the highest-numbered one
+Delaunay buffer; refine_runs.RefineJob.reach). So no tile after the highest-numbered one
 whose grown cell holds the point (for an edge point: the lower of its two ends' tiles)
 can meet the key: that tile is the key's last tile (`KeyExpiry`). The join goes through
 the tiles in ascending order and forgets a key once it has joined the key's last tile,

@@ -72,7 +72,7 @@ class MeshWriting:
     split: "Split | None" = None
 
 
-class _RefineJob:
+class RefineJob:
     """What every tile's refinement task shares (picklable; the files it names are read
     by the task): the TiledMesh's heights, grid, files, buffers, max_edge and frame; the
     scheme and level; limiter (None: --overshoot off), colours, threads per task, owners
@@ -89,6 +89,19 @@ class _RefineJob:
         """How far beyond its cell the corners of tile t's own triangles lie (frame units):
         the trim's max_edge, else its Delaunay buffer, with a relative margin for rounding."""
         return (self.max_edge if self.max_edge is not None else self.buffers[t]) * (1 + 1e-9)
+
+    def spline(self, t: int, triangles: np.ndarray):
+        """(RSDInterpolator over tile t's own triangles (survey numbers; its points the
+        corners' local x, y), the corners' records (c,), (limited, turned, lifted)): the
+        spline the tile refines (with the limiter's or the smoothing's data; the records'
+        own without), as the tiled DEM samples it too (pipeline.tiled_dem)."""
+        records, local, gradients, directions, limited, turned, lifted = self.tile_data(t, triangles)
+        xy = np.column_stack([records["x"], records["y"]])
+        if gradients is None:
+            gradients = np.column_stack([records["gx"], records["gy"]])
+        interp = RSDInterpolator(xy, records["z"], gradients, triangles=local, scheme=self.scheme,
+                                 directions=directions)
+        return interp, records, (limited, turned, lifted)
 
     def tile_data(self, t: int, triangles: np.ndarray):
         """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
@@ -120,7 +133,7 @@ class _Part:
             path.unlink(missing_ok=True)
 
 
-def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
+def _refine_tile(job: RefineJob, t: int, part: _Part) -> dict | None:
     """Refine tile t's own triangles into its part files; returns its report row with
     vertices, corners (input points among them, first), faces, triangles, limited,
     turned, lifted, or None for a tile without triangles."""
@@ -129,9 +142,9 @@ def _refine_tile(job: _RefineJob, t: int, part: _Part) -> dict | None:
     if not len(triangles):
         return None
     with limit(job.threads):
-        records, local, gradients, directions, limited, turned, lifted = job.tile_data(t, triangles)
+        interp, records, (limited, turned, lifted) = job.spline(t, triangles)
         colors = None if job.colours is None else job.colours.of(records["index"])
-        counts = _write_part(job, records, local, part, gradients, directions, colors)
+        counts = _write_part(job, interp, records, part, colors)
         if job.owners is not None:
             owner = face_owners(job.owners, triangles, job.level)
             if len(owner) != counts["faces"]:
@@ -160,7 +173,7 @@ def write_tiles(mesh: TiledMesh, plan: FitPlan, output, writing: MeshWriting) ->
     runner = writing.runner or TaskRunner()
     rows = writing.rows or TileRows(grid, plan.threads)
     coloured = writing.colours is not None and writing.colours.present
-    job = _RefineJob(mesh, plan.surface, writing, writing.colours if coloured else None, rows.threads)
+    job = RefineJob(mesh, plan.surface, writing, writing.colours if coloured else None, rows.threads)
     tiles = [t for t in range(len(grid)) if mesh.files[t] is not None]
     parts = {t: _Part(temps, t) for t in tiles}
     vertex_path, face_path, owner_path = temps.new("vertices.bin"), temps.new("faces.bin"), temps.new("owners.bin")
@@ -232,20 +245,14 @@ class Split:
         return write_outputs(vertex_path, dtype, paths, self.outputs, OutputMeshes(mesh, crs, self.names))
 
 
-def _write_part(job: _RefineJob, records, triangles, part: _Part, gradients=None, directions=None,
-                colors=None) -> dict:
-    """Refine one tile's owned triangles (triangles (T, 3) into records, survey order) with
-    the job's scheme and level, and write all its output points (world position through
-    the job's frame, normal, colour), its faces (tile-local numbers) and its border keys
-    (with the job's join.KeyExpiry) to its part files; returns {vertices, corners,
-    faces}. gradients (n, 2) and directions (E, 2): the limiter's (None: the records'
-    gradients, unit-normal directions); colors (n, 3) uint8 of the records, or None."""
-    frame, scheme, level, expiry = job.frame, job.scheme, job.level, job.expiry
-    xy = np.column_stack([records["x"], records["y"]])
-    if gradients is None:
-        gradients = np.column_stack([records["gx"], records["gy"]])
-    interp = RSDInterpolator(xy, records["z"], gradients, triangles=triangles, scheme=scheme,
-                             directions=directions)
+def _write_part(job: RefineJob, interp: RSDInterpolator, records, part: _Part, colors=None) -> dict:
+    """Refine one tile's spline (RefineJob.spline: interp over its owned triangles, whose
+    points are the records', survey order) at the job's level, and write all its output
+    points (world position through the job's frame, normal, colour), its faces
+    (tile-local numbers) and its border keys (with the job's join.KeyExpiry) to its part
+    files; returns {vertices, corners, faces}. colors (n, 3) uint8 of the records, or None."""
+    frame, level, expiry = job.frame, job.level, job.expiry
+    xy = interp.points
     refinement = interp.refinement(level)
     with open(part.keys, "wb") as file:
         np.savez(file, **border_keys(refinement, records["index"], xy, expiry))

@@ -1,0 +1,171 @@
+"""The DEM of a survey fitted in tiles (c1mesh.pipeline.tiled_dem, `fit BIG.laz -o dem.tif
+--resolution R --memory M`) against the in-memory fit's DEM of the same input.
+
+Ground truth: the in-memory fit (pipeline.driver, geo.raster), which samples one spline
+over the whole survey. The tiled DEM must be the same raster: the same grid (transform,
+shape, CRS), the same cells with data, the same values (float32, to the last bit: each
+tile's spline is the in-memory spline on its triangles, evaluated at the same centres by
+the same arithmetic; _assert_same_raster says where a last bit may turn), the same
+support distances, and a valid Cloud-Optimised GeoTIFF by rio-cogeo's validator.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+rasterio = pytest.importorskip("rasterio")
+laspy = pytest.importorskip("laspy")
+
+from c1mesh.cli import main
+from c1mesh.core.plan import TiledRun
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
+
+SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
+KINDS = ("dem", "slope", "aspect", "hillshade", "support")
+
+
+def _paths(directory: Path, tag: str) -> dict:
+    return {kind: str(directory / f"{tag}.{kind}.tif") for kind in KINDS}
+
+
+def _options(paths: dict, resolution: float, **more) -> FitOptions:
+    return FitOptions(classes=(2,), resolution=resolution, fill="off", slope=paths["slope"],
+                      aspect=paths["aspect"], hillshade=paths["hillshade"], support=paths["support"], **more)
+
+
+def _assert_same_raster(tiled: str, whole: str) -> None:
+    """The two GeoTIFFs have one grid, CRS and nodata mask, and equal cells to the last
+    bit of float32 (hillshade: of its uint8 shade). A cell whose centre lies on an edge
+    of two triangles, or equally near two, takes either triangle's spline, which the
+    tiles and the whole sampler may order differently: the two agree to float64 rounding
+    (C1 continuity), which can turn a float32 value's last bit."""
+    with rasterio.open(tiled) as a, rasterio.open(whole) as b:
+        assert a.transform == b.transform and a.shape == b.shape and a.crs == b.crs
+        assert a.nodata == b.nodata and a.dtypes == b.dtypes
+        x, y = a.read(1), b.read(1)
+    assert np.array_equal(x == a.nodata, y == b.nodata)
+    assert (x != a.nodata).sum() > 100
+    if x.dtype == np.uint8:
+        assert np.abs(x.astype(int) - y).max() <= 1
+    else:
+        np.testing.assert_array_max_ulp(x, y, maxulp=1)
+
+
+def _assert_cog(path: str) -> None:
+    from rio_cogeo.cogeo import cog_validate
+    valid, errors, _ = cog_validate(path, strict=True)
+    assert valid, (path, errors)
+
+
+@pytest.mark.parametrize("source,resolution,per_tile,tiles", [("autzen_trim.laz", 2.0, 7000, 4),
+                                                               ("4_6_crop.las", 1.0, 1000, 16)])
+def test_tiled_dem_equals_the_in_memory_dem(tmp_path, source, resolution, per_tile, tiles):
+    """Autzen ground (26k points, 4 tiles: bow-ties, curtains, cells holding ground points
+    outside the trimmed triangles) and 4_6_crop ground: DEM, slope, aspect, hillshade and
+    support equal the in-memory fit's cell for cell, and every raster is a valid COG."""
+    whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
+    report = fit(str(SAMPLES / source), whole["dem"], _options(whole, resolution)).report
+    facts = fit(str(SAMPLES / source), tiled["dem"], replace(_options(tiled, resolution), memory=10**9), tiles=TiledRun(per_tile=per_tile)).report
+    assert facts["tiles"] == tiles
+    for kind in KINDS:
+        _assert_same_raster(tiled[kind], whole[kind])
+        _assert_cog(tiled[kind])
+    for key in ("grid", "cells", "cells_with_data", "slope_method", "support_max", "fill"):
+        assert facts["raster"][key] == report["raster"][key], key
+    assert facts["raster"]["point_spacing"] == pytest.approx(report["raster"]["point_spacing"], rel=1e-12)
+    assert facts["points"]["kept"] == report["points"]["kept"]
+    assert facts["output_mesh"] is None and facts["level"] is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(Path(p).name for p in [*whole.values(),
+                                                                                         *tiled.values()])
+
+
+def test_tiled_dem_without_max_edge_continues_into_the_peeled_rim(tmp_path):
+    """--max-edge none: the cells holding points past the peeled hull slivers take the
+    nearest triangle at any distance, found over every tile's triangles; --overshoot off
+    and the spline's own slope (--slope-method spline)."""
+    whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
+    options = _options(whole, 0.5, max_edge=None, overshoot="off", slope_method="spline")
+    report = fit(str(SAMPLES / "4_6_crop.las"), whole["dem"], options).report
+    options = replace(_options(tiled, 0.5, max_edge=None, overshoot="off", slope_method="spline"), memory=10**9)
+    facts = fit(str(SAMPLES / "4_6_crop.las"), tiled["dem"], options, tiles=TiledRun(per_tile=1000)).report
+    assert report["triangles"]["removed"]["sliver"] > 0
+    assert facts["raster"]["slope_method"] == report["raster"]["slope_method"] == "spline"
+    for kind in KINDS:
+        _assert_same_raster(tiled[kind], whole[kind])
+
+
+def _terrain_las(path, n, seed=0):
+    """A LAS of n points on a smooth terrain with 2 cm noise, classes 2 and 5."""
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [500000, 4000000, 0]
+    rng = np.random.default_rng(seed)
+    side = np.sqrt(n / 4.0)
+    x, y = rng.uniform(0, side, n), rng.uniform(0, side, n)
+    z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23) + rng.normal(0, 0.02, n)
+    record = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    record.x, record.y, record.z = x + 500000, y + 4000000, z
+    record.classification = rng.choice(np.asarray([2, 5], np.uint8), n)
+    with laspy.open(str(path), mode="w", header=header) as writer:
+        writer.write_points(record)
+
+
+def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
+    """`fit BIG.las -o dem.tif --resolution R --fill off --memory 1M` with side rasters: the
+    tiled fit (4 tiles) writes the in-memory fit's rasters and reports them; no temporary
+    file is left."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 48000)
+    whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
+
+    def args(paths):
+        return ["fit", str(source), "--classes", "2", "-o", paths["dem"], "--resolution", "0.5", "--fill", "off",
+                "--slope", paths["slope"], "--aspect", paths["aspect"], "--hillshade", paths["hillshade"],
+                "--support", paths["support"]]
+    result = CliRunner().invoke(main, args(whole))
+    assert result.exit_code == 0, result.output
+    result = CliRunner().invoke(main, args(tiled) + ["--memory", "1M", "--report", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["tiles"] == 4 and report["output"] == tiled["dem"]
+    assert report["raster"]["files"] == {kind: path for kind, path in tiled.items()}
+    assert report["overshoot"]["gradients_limited"] > 0
+    for kind in KINDS:
+        _assert_same_raster(tiled[kind], whole[kind])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["terrain.las", "r.json", *(Path(p).name for p in [*whole.values(), *tiled.values()])])
+
+
+@pytest.mark.parametrize("extra,words", [
+    ([], "--fill"),                                              # the default fill: the hull
+    (["--fill", "hull"], "--fill"),
+    (["--fill", "off", "--preview", "PREVIEW"], "--preview"),
+    (["--fill", "off", "--contours", "CONTOURS", "--interval", "1"], "--contours"),
+])
+def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
+    """Beyond --memory the DEM's fill, its preview and contours are refused in one line
+    naming the input and the option, before any output is written."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000)
+    extra = [str(tmp_path / "p.png") if e == "PREVIEW" else str(tmp_path / "c.gpkg") if e == "CONTOURS" else e
+             for e in extra]
+    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "dem.tif"),
+                                       "--resolution", "1", "--memory", "1M", *extra])
+    assert result.exit_code == 1
+    assert result.output.count("\n") == 1 and words in result.output and "terrain.las" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+
+
+def test_cli_still_refuses_a_mesh_level_from_resolution_beyond_memory(tmp_path):
+    """--resolution of a mesh picks its level from the whole triangulation: refused in tiles."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 24000)
+    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "m.ply"),
+                                       "--resolution", "1", "--memory", "1M"])
+    assert result.exit_code == 1 and "--resolution" in result.output and result.output.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
