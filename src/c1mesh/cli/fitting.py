@@ -20,6 +20,14 @@ from c1mesh.core.outputs import STDIO, Outputs, mesh_format, plan_outputs
 from c1mesh.core.plan import TiledRun
 
 
+def _fit(source, output, options, on_stage=None, keep_mesh: bool = False, *, outputs=None,
+        tiles: TiledRun | None = None):
+    """c1mesh.pipeline.run.fit, the one driver, imported when a fit runs (not for --help);
+    the CLI streams the mesh to its output (keep_mesh False)."""
+    from c1mesh.pipeline.run import fit as run_fit
+    return run_fit(source, output, options, on_stage, keep_mesh, outputs=outputs, tiles=tiles)
+
+
 def threads_per_process(threads: int | None, jobs: int) -> int:
     """--threads shared by the --jobs processes, so together they do not oversubscribe
     (Open3D's OpenMP threads included)."""
@@ -82,8 +90,6 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
                 mesh_format(dst, target=target)
     except (C1MeshError, OSError) as exc:
         fail(message(exc), debug)
-    from c1mesh.pipeline.run import fit
-
     options.workers = threads_per_process(threads, 1)
     mesh = sys.stdout.buffer if output == STDIO else output
     outputs = [d for _, d in pairs] if output_dir else None
@@ -92,10 +98,9 @@ def fit_survey(inputs, destination: Destination, options, console: Console, work
         if stderr_is_terminal() and not quiet:
             progress, callbacks = survey_progress(list(inputs), options, len(pairs) if output_dir else 0, mesh)
             with progress:
-                result = fit(list(inputs), mesh, options, keep_mesh=False, outputs=outputs,
-                             tiles=replace(tiles, **callbacks)).report
+                result = _fit(list(inputs), mesh, options, outputs=outputs, tiles=replace(tiles, **callbacks)).report
         else:
-            result = fit(list(inputs), mesh, options, keep_mesh=False, outputs=outputs, tiles=tiles).report
+            result = _fit(list(inputs), mesh, options, outputs=outputs, tiles=tiles).report
     except Exception as exc:  # noqa: BLE001 — a failed tile names itself; no output is left
         fail(_survey_naming(inputs, message(exc)), debug)
     warn(result, quiet)
@@ -139,15 +144,13 @@ def fit_one(src, dst, targets, options, console: Console, workers: Workers) -> N
     show = stderr_is_terminal() and not quiet
 
     def run(target):
-        from c1mesh.pipeline.run import fit
-
         tiles = TiledRun(scheduler=scheduler, jobs=jobs)
         source = sys.stdin.buffer if src == STDIO else src
         if not show:
-            return fit(source, target, options, keep_mesh=False, tiles=tiles).report
+            return _fit(source, target, options, tiles=tiles).report
         with stage_bar(len(STAGES), f"fitting {src}") as bar:
             tiles = replace(tiles, on_tile=lambda name, done, tiles: caption(bar, f"{name}: tile {done} of {tiles}"))
-            return fit(source, target, options, lambda name: bar.update(1, name), False, tiles=tiles).report
+            return _fit(source, target, options, lambda name: bar.update(1, name), tiles=tiles).report
     try:
         with Outputs() as outputs:
             if raster:      # c1mesh.geo.raster writes the GeoTIFFs, each atomically
@@ -206,11 +209,9 @@ def _write_report(report, target, payload, debug) -> None:
 
 
 def _batch_worker(args):
-    from c1mesh.pipeline.run import fit
-
     src, dst, options, scheduler = args
     try:
-        return src, fit(src, dst, options, keep_mesh=False, tiles=TiledRun(scheduler=scheduler)).report, None
+        return src, _fit(src, dst, options, tiles=TiledRun(scheduler=scheduler)).report, None
     except Exception as exc:  # noqa: BLE001 — reported per file, the batch goes on
         return src, None, message(exc)
 
