@@ -25,6 +25,7 @@ from c1mesh.cli import main
 from c1mesh.core.plan import TiledRun
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.pipeline.run import fit
+from terrain_scenes import write_terrain_las
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 KINDS = ("dem", "slope", "aspect", "hillshade", "support")
@@ -100,27 +101,12 @@ def test_tiled_dem_without_max_edge_continues_into_the_peeled_rim(tmp_path):
         _assert_same_raster(tiled[kind], whole[kind])
 
 
-def _terrain_las(path, n, seed=0):
-    """A LAS of n points on a smooth terrain with 2 cm noise, classes 2 and 5."""
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales, header.offsets = [0.001] * 3, [500000, 4000000, 0]
-    rng = np.random.default_rng(seed)
-    side = np.sqrt(n / 4.0)
-    x, y = rng.uniform(0, side, n), rng.uniform(0, side, n)
-    z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23) + rng.normal(0, 0.02, n)
-    record = laspy.ScaleAwarePointRecord.zeros(n, header=header)
-    record.x, record.y, record.z = x + 500000, y + 4000000, z
-    record.classification = rng.choice(np.asarray([2, 5], np.uint8), n)
-    with laspy.open(str(path), mode="w", header=header) as writer:
-        writer.write_points(record)
-
-
 def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
     """`fit BIG.las -o dem.tif --resolution R --fill off --memory 1M` with side rasters: the
     tiled fit (4 tiles) writes the in-memory fit's rasters and reports them; no temporary
     file is left."""
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 48000)
+    write_terrain_las(source, 48000, classes=(2, 5))
     whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
 
     def args(paths):
@@ -151,7 +137,7 @@ def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
     """Beyond --memory the DEM's fill, its preview and contours are refused in one line
     naming the input and the option, before any output is written."""
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 24000)
+    write_terrain_las(source, 24000, classes=(2, 5))
     extra = [str(tmp_path / "p.png") if e == "PREVIEW" else str(tmp_path / "c.gpkg") if e == "CONTOURS" else e
              for e in extra]
     result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "dem.tif"),
@@ -164,7 +150,7 @@ def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
 def test_cli_still_refuses_a_mesh_level_from_resolution_beyond_memory(tmp_path):
     """--resolution of a mesh picks its level from the whole triangulation: refused in tiles."""
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 24000)
+    write_terrain_las(source, 24000, classes=(2, 5))
     result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "m.ply"),
                                        "--resolution", "1", "--memory", "1M"])
     assert result.exit_code == 1 and "--resolution" in result.output and result.output.count("\n") == 1

@@ -44,22 +44,9 @@ from c1mesh.survey.sizing import fits_in_memory, points_per_tile
 from c1mesh.stages.trim import drop_triangles, kept_triangles, peeled, triangles_among, trim
 from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
+from terrain_scenes import write_terrain_las
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
-
-
-def _terrain_las(path, n, seed=0, classes=(2,)):
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales, header.offsets = [0.001] * 3, [500000, 4000000, 0]
-    rng = np.random.default_rng(seed)
-    side = np.sqrt(n / 4.0)
-    x, y = rng.uniform(0, side, n), rng.uniform(0, side, n)
-    z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23) + rng.normal(0, 0.02, n)
-    record = laspy.ScaleAwarePointRecord.zeros(n, header=header)
-    record.x, record.y, record.z = x + 500000, y + 4000000, z
-    record.classification = rng.choice(np.asarray(classes, np.uint8), n)
-    with laspy.open(str(path), mode="w", header=header) as writer:
-        writer.write_points(record)
 
 
 def _in_memory(path, classes, level, overshoot="limit", max_edge="auto", gradients="heights"):
@@ -136,7 +123,7 @@ def _assert_same_mesh(path, whole):
                                                        (2, "off", "normals"), (2, "limit", "normals")])
 def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot, gradients):
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 12000, classes=(2, 5))
+    write_terrain_las(source, 12000, classes=(2, 5))
     whole, max_edge, kept = _in_memory(source, [2], level, overshoot,
                                        gradients="normals" if gradients == "normals" else "heights")
     options = FitOptions(classes=(2,), overshoot=overshoot, level=level, gradients=gradients)
@@ -285,7 +272,7 @@ def test_tiled_limiter_gives_the_whole_limiter_bits(tmp_path, seed):
 
 def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 24000)
+    write_terrain_las(source, 24000)
     whole, _, _ = _in_memory(source, [2], 2)
     args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
             "--memory", "1M"]
@@ -308,7 +295,7 @@ def test_the_library_fit_runs_in_tiles_beyond_its_memory_as_the_cli_does(tmp_pat
     import c1mesh
 
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 24000)
+    write_terrain_las(source, 24000)
     result = c1mesh.fit(str(source), tmp_path / "api.ply", FitOptions(classes=(2,), level=2, memory="1M"))
     assert result.mesh is None and result.report["tiles"] == 4
     cli = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "cli.ply"),
@@ -406,7 +393,7 @@ def _west_east_survey(tmp_path):
     """A synthetic LAS of 24,000 points (terrain.las) and its west and east halves (at the
     median x) as two LAS files: (whole path, [west path, east path], the LasData, west mask)."""
     whole_file = tmp_path / "terrain.las"
-    _terrain_las(whole_file, 24000)
+    write_terrain_las(whole_file, 24000)
     las = laspy.read(str(whole_file))
     west = np.asarray(las.x) < np.median(np.asarray(las.x))
     parts = []
@@ -493,7 +480,7 @@ def test_tiled_fit_writes_the_same_bytes_wherever_its_tiles_run(tmp_path):
     the same file, byte for byte; the report names the workers that ran each tile."""
     distributed = pytest.importorskip("distributed")
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 4000, seed=3)
+    write_terrain_las(source, 4000, seed=3)
     options = FitOptions(classes=[2], level=2)
     here = fit(source, tmp_path / "here.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450)).report
     assert here["tiles"] == 9
@@ -515,7 +502,7 @@ def test_tiled_fit_writes_the_same_bytes_wherever_its_tiles_run(tmp_path):
 def _big_las(tmp_path):
     """A LAS the CLI fits in 4 tiles under --memory 1M, and the arguments that do so."""
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 12000, seed=5)
+    write_terrain_las(source, 12000, seed=5)
     return source, ["fit", str(source), "--classes", "2", "--level", "1", "--memory", "1M"]
 
 
