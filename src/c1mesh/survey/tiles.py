@@ -182,8 +182,8 @@ def neighbours(table) -> np.ndarray:
 class TileTask:
     """Everything one tile's refinement needs (picklable: it travels to Dask workers).
 
-    points (n, 2), values (n,), gradients (n, 2): local-frame data of the tile's corner
-    points (owned and halo triangles), in survey order; colors (n, c) uint8 or None;
+    vertices: the rsd.VertexData (local frame) of the tile's n corner points (owned and
+    halo triangles), in survey order; colors (n, c) uint8 or None;
     triangles (t, 3) into those points, in survey order; coefficients (t, 21) and
     G (t, 3, 2): the survey interpolator's rows for them; owned (t,) bool: the triangles
     whose refinement this tile outputs (the rest is the halo); frame: the survey's
@@ -194,9 +194,7 @@ class TileTask:
     index: int
     name: str
     output: str
-    points: np.ndarray
-    values: np.ndarray
-    gradients: np.ndarray
+    vertices: VertexData
     colors: np.ndarray | None
     triangles: np.ndarray
     coefficients: np.ndarray
@@ -247,8 +245,9 @@ class TilePlan:
         corners = interp.triangles[keep]
         points = np.unique(corners)
         return TileTask(
-            i, self.names[i], self.outputs[i], interp.points[points], interp.values[points],
-            interp.gradients[points], None if self.colors is None else self.colors[points],
+            i, self.names[i], self.outputs[i],
+            VertexData(interp.points[points], interp.values[points], interp.gradients[points]),
+            None if self.colors is None else self.colors[points],
             np.searchsorted(points, corners), interp.coefficients[keep], interp.lambda_gradients[keep],
             owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]), self.ascii,
             self.crs)
@@ -308,8 +307,8 @@ def tile_stream(task: TileTask):
     face pass keeps the owned faces, renumbered. Halo triangles are evaluated but few.
     """
     L2 = task.level * task.level
-    table = edge_table(task.triangles, task.points.shape[0])
-    refinement = Refinement(VertexData(task.points, task.values, task.gradients), task.triangles,
+    table = edge_table(task.triangles, task.vertices.points.shape[0])
+    refinement = Refinement(task.vertices, task.triangles,
                             task.coefficients, task.G, table, get_scheme(task.scheme), task.level)
     whole = surface_stream(refinement, task.frame, task.colors)
     owned_faces = np.repeat(task.owned, L2)
