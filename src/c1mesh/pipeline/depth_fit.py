@@ -10,7 +10,7 @@ chart's spacing (`chart_spacing`) as its length unit. Stereo and time-of-flight 
 noisy and quantised in depth; fitting w rather than interpolating it removes the stair
 steps without moving the vertices off their rays.
 
-pipeline.fit reads the input and branches here when the frame is perspective
+pipeline.driver.fit_in_memory reads the input and branches here when the frame is perspective
 (--frame perspective, or auto with an organised scan and no GeoTIFF output); the stages
 after that reuse the pipeline's interpolator, and its refine, write and preview code
 (pipeline.write_surface, geo.finish). Without --level the level is chosen from the data
@@ -214,7 +214,7 @@ def _nearest_per_ray(field: ViewField) -> np.ndarray:
 
 def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh: bool,
                     crs: str | None = None, crs_source: str | None = None):
-    """pipeline.fit after the read stage, in the perspective frame; returns a FitResult.
+    """driver.fit_in_memory after the read stage, in the perspective frame; returns a FitResult.
 
     The refine, write and preview stages are the plane fit's (pipeline.write_surface,
     geo.finish); crs: the CRS to carry (usually none: a depth frame's coordinates are the

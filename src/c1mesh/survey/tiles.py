@@ -288,7 +288,7 @@ def run_tile(task: TileTask, target=None) -> TileResult:
     if target is None:
         mesh = stream.materialize()
     else:
-        with blas_threads(1):        # as pipeline.fit: an idle BLAS pool spins on the writer's core
+        with blas_threads(1):        # as the in-memory fit: an idle BLAS pool spins on the writer's core
             write_mesh(stream, target, ascii=task.ascii, crs=task.crs, sidecar=False)
     owned = int(task.owned.sum())
     report = {"tile": task.name, "output": task.output, "worker": worker_address(),
