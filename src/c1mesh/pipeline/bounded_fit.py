@@ -3,7 +3,9 @@
     frame (stages.frame.frame_of_chunks), box → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
     survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.trim_runs) → the limiter's two noise floors
-    (two passes: c1mesh.survey.halos.noise_floors)
+    (two passes: c1mesh.survey.halos.noise_floors; a DEM's fill first triangulates again
+    without max_edge and trims that without the view rules, and the limiter runs over the
+    union's halos: c1mesh.survey.fill_runs, booked under "trim")
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → a part file → the parts joined in tile order into one
     vertex file and one face file → one mesh file
