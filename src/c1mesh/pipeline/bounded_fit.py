@@ -3,9 +3,7 @@
     frame (stages.frame.frame_of_chunks), box → spill to tiles → per tile: normals → height field
     → buffered Delaunay + long-edge trim (one pass over all tiles: the auto max_edge is
     survey-wide) → sliver peel, bow-ties, curtains (c1mesh.survey.trim_runs) → the limiter's two noise floors
-    (two passes: c1mesh.survey.halos.noise_floors; a DEM's fill first triangulates again
-    without max_edge and trims that without the view rules, and the limiter runs over the
-    union's halos: c1mesh.survey.fill_runs, booked under "trim")
+    (two passes: c1mesh.survey.halos.noise_floors)
     → per tile: limited gradients and edge directions from its halo, RSD interpolator on
     its owned triangles → refine → a part file → the parts joined in tile order into one
     vertex file and one face file → one mesh file
@@ -55,7 +53,6 @@ the whole-survey refinement uses the edge's owner triangle: the two agree to rou
 from __future__ import annotations
 
 import contextlib
-import math
 import tempfile
 import time
 from pathlib import Path
@@ -67,8 +64,8 @@ from c1mesh.core.plan import DemPlan, FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.refine import fewest_refined_vertices
-from c1mesh.geo.raster import check_angle_crs, fill_distance
-from c1mesh.pipeline.tiled_dem import DemJob, TiledDem, TileFill, dem_grid, own_vertices
+from c1mesh.geo.raster import check_angle_crs
+from c1mesh.pipeline.tiled_dem import DemJob, TiledDem, dem_grid
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
@@ -101,7 +98,6 @@ from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, 
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
 from c1mesh.survey.trim_runs import trim_tiles
-from c1mesh.survey.fill_runs import fill_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
                 "refine+write")
@@ -219,17 +215,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             check_triangles_left(kept_triangles)
             if outputs is None and output is not None and plan.dem is None:
                 _check_size(kept_triangles, plan, output, colours.present)
-            trimmed_kept = None            # with a fill: the trimmed triangulation's vertices (warnings)
-            fill = None
-            if plan.dem is not None and plan.dem.fill is not None:     # the DEM spans the holes
-                trimmed_kept = sum(own_vertices(halos.halo(t)) for t in halos.tiles())
-                filled = fill_tiles(heights, grid, triangle_files, temps, runner, rows)
-                fill = TileFill(plan.dem.fill, filled.trimmed)
-                triangle_files, buffers, longest = filled.files, filled.buffers, filled.longest
-                halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps, label="filled-halo")
-                halos.prefetch(runner, rows.name)
             done("trim")
-            mesh = TiledMesh(heights, grid, triangle_files, buffers, None if fill else max_edge, frame)
+            mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
             limiter = None
             if strength is not None:
                 fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
@@ -243,7 +230,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if plan.dem is not None:
                 report = _write_dem(DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads),
                                            halos, dem_grid(mesh, plan.dem.resolution), max_edge, longest,
-                                           _shaded(plan.dem), rows.threads, fill),
+                                           _shaded(plan.dem), rows.threads),
                                     (temps, runner, rows), plan.dem, chunks, crs, limiter)
                 done("raster")
             else:
@@ -252,8 +239,6 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 report = write_tiles(mesh, plan, output, MeshWriting(temps, limiter, crs, colours, runner, rows,
                                                                      split))
                 done("refine+write")
-            if fill is not None:
-                report["raster"]["spanning"] = filled.spanning
         finally:
             height_pass.close()
     finally:
@@ -265,12 +250,12 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "tiles": len(grid),
                    # a note, not a warning: the result is the in-memory fit's (docs/tiles.md)
                    "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
-                   "warnings": fit_warnings(count, kept if trimmed_kept is None else trimmed_kept, delaunay_count,
-                                            long_edge, max_edge, auto_limit(surface.max_edge)),
+                   "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
+                                            auto_limit(surface.max_edge)),
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,
-                                 "after_trim": kept_triangles,
+                                 "after_trim": sum(report["triangles_per_tile"].values()),
                                  "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
                    "level": None if plan.dem is not None else surface.level, "scheduler": runner.kind,
@@ -350,12 +335,8 @@ def tiles_report(facts: dict, options) -> dict:
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
     report.update(facts)
-    if "raster" in report:        # a DEM (pipeline.tiled_dem): its fill, as pipeline.driver.fill_facts says it
-        distance = fill_distance(options.fill)
-        report["raster"]["fill"] = {"option": options.fill,
-                                    "distance": None if distance is None else "inf" if math.isinf(distance)
-                                    else distance,
-                                    "triangles_spanning_holes": report["raster"].pop("spanning", 0)}
+    if "raster" in report:        # a DEM (pipeline.tiled_dem): --fill off, the one fill done in tiles
+        report["raster"]["fill"] = {"option": options.fill, "distance": None, "triangles_spanning_holes": 0}
     overshoot = report.get("overshoot")
     if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory
         text = smoothing_suggestion(overshoot["gradients_limited"], int(report["points"]["kept"]))

@@ -33,14 +33,9 @@ The grids live in temporary files (memory maps) over the grid and its ring: heig
 (float32, only with --support) and the point marks (uint8): 1 to 33 bytes a cell on
 disk. Memory holds a tile's spline and a block of cells at a time.
 
-The fill (--fill, by default the hull; geo.raster_grid.FillRule): the tiles' triangles
-are then the filled triangulation's (survey.fill_runs), the limiter's halos and floors
-its (bounded_fit), and `TileFill` says which triangles the trim kept: a cell whose
-centre lies in one of the others (they span holes) holds the spline when the centre is
-within the fill distance of the nearest vertex of the spline, measured by a k-d tree of
-the tile's halo (it holds every vertex within 2 longest edges of the cell, and a centre
-in an own triangle has a corner within 1 of its corner in the cell); the nearest-
-triangle rule searches only the trimmed triangles, as SplineSampler does in memory.
+Only --fill off is done in tiles (survey.sizing.needs_tiles refuses the fill): the
+in-memory fill spans the holes with the triangles the trim removed, limited over the
+filled triangulation, which the tiles do not keep.
 """
 from __future__ import annotations
 
@@ -62,7 +57,7 @@ from c1mesh.geo.raster import (
     horn_gradient,
     write_blocks,
 )
-from c1mesh.geo.raster_grid import FillRule, RasterGrid, SplineSampler
+from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 from c1mesh.survey.tiles import task_row
 
 CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2)])
@@ -151,16 +146,6 @@ def mark_points(chunks, dem: DemGrid, path) -> np.memmap:
 
 
 @dataclass(frozen=True)
-class TileFill:
-    """A tiled DEM's fill: distance, the fill distance (frame units; inf: the hull);
-    trimmed, per tile the .npy (bool) over its own triangles' rows: those the trim kept
-    (survey.fill_runs.FilledTiles.trimmed)."""
-
-    distance: float
-    trimmed: list
-
-
-@dataclass(frozen=True)
 class _TileFiles:
     """A tile's temporary files: cells (CELL records of its triangles' cells) and spline
     (.npz of its interpolator's data, for the nearest-triangle pass)."""
@@ -175,37 +160,22 @@ class DemJob:
     of the trim, pruned), dem (DemGrid), reach (the nearest-triangle rule's, the trim's
     max_edge; None: any distance), longest (the longest final edge, frame units), gradients
     (whether slope, aspect or hillshade need the spline's gradients), threads per task,
-    fill (TileFill; None: --fill off), heights_path (the grid of heights, for the support
-    pass)."""
+    heights_path (the grid of heights, for the support pass)."""
 
     def __init__(self, surfaces, halos, dem: DemGrid, reach: float | None, longest: float, gradients: bool,
-                 threads=None, fill: TileFill | None = None):
+                 threads=None):
         self.surfaces, self.halos, self.dem, self.reach, self.longest = surfaces, halos, dem, reach, longest
-        self.gradients, self.threads, self.fill = gradients, threads, fill
+        self.gradients, self.threads = gradients, threads
         self.heights_path = None
 
     def sampler(self, spline_path) -> SplineSampler:
         """The SplineSampler of a tile's spline saved by _sample_tile (no data points: the
-        nearest-triangle rule is asked through SplineSampler.continued; with a fill, over
-        the trimmed triangles only)."""
+        nearest-triangle rule is asked through SplineSampler.continued)."""
         with np.load(spline_path) as saved:
             interp = RSDInterpolator(saved["points"], saved["values"], saved["gradients"],
                                      triangles=saved["triangles"], scheme=self.surfaces.scheme,
                                      directions=saved["directions"])
-            fill = None if self.fill is None else FillRule(saved["trimmed"], self.fill.distance)
-        return SplineSampler(interp, self.dem.origin, reach=self.reach, fill=fill)
-
-    def fill_rule(self, t: int) -> tuple[FillRule | None, np.ndarray | None]:
-        """(FillRule of tile t's own triangles, the local x, y (k, 2) of the spline's
-        vertices in its halo, from which a finite fill distance is measured (None: the
-        hull, no distance needed)), or (None, None) without a fill."""
-        if self.fill is None:
-            return None, None
-        rule = FillRule(np.load(self.fill.trimmed[t]), self.fill.distance)
-        if math.isinf(rule.distance):
-            return rule, None
-        vertices = halo_vertices(self.halos.halo(t))
-        return rule, np.column_stack([vertices["x"], vertices["y"]])
+        return SplineSampler(interp, self.dem.origin, reach=self.reach)
 
 
 def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
@@ -219,12 +189,10 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
         return None
     with limit(job.threads):
         interp, records, (limited, turned, lifted) = job.surfaces.spline(t, triangles)
-        fill, fit_xy = job.fill_rule(t)
         with open(files.spline, "wb") as out:
             np.savez(out, points=interp.points, values=interp.values, gradients=interp.gradients,
-                     triangles=interp.triangles, directions=interp.directions,
-                     trimmed=np.ones(len(triangles), bool) if fill is None else fill.trimmed)
-        sampler = SplineSampler(interp, job.dem.origin, fill=fill, fit_xy=fit_xy)
+                     triangles=interp.triangles, directions=interp.directions)
+        sampler = SplineSampler(interp, job.dem.origin)
         lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
         rows, cols = job.dem.span(lo, hi, 0.0)
         count = 0
@@ -254,9 +222,6 @@ def _continue_tile(job: DemJob, t: int, spline_path, cells: np.ndarray):
     that have one."""
     with limit(job.threads):
         sampler = job.sampler(spline_path)
-        if sampler.fill is not None and not sampler.fill.trimmed.any():    # only triangles across holes
-            none = np.zeros(0)
-            return cells[:0], none, none, np.zeros((0, 2))
         has, tri, l0, l1, shift = sampler.continued(job.dem.centres(cells))
         values, grads = sampler.evaluate(tri, l0, l1, True, shift)
     return cells[has], np.hypot(shift[:, 0], shift[:, 1]), values + sampler.origin[2], grads
@@ -341,7 +306,7 @@ class TiledDem:
         heights.flush()
         support = self._support(tiles, heights_path, shape) if plan.support else None
         area = sum(row["area"] for row in sampled.values())
-        kept = sum(own_vertices(self.job.halos.halo(t)) for t in tiles)
+        kept = sum(_own_vertices(self.job.halos.halo(t)) for t in tiles)
         spacing = float(math.sqrt(area / kept))
         method = choose_slope_method(plan.slope_method, plan.resolution, spacing, smoothed)
         targets = RasterTargets(plan.dem, plan.slope, plan.aspect, plan.hillshade, plan.support)
@@ -428,7 +393,7 @@ class TiledDem:
         return support
 
 
-def own_vertices(halo) -> int:
+def _own_vertices(halo) -> int:
     """How many of the spline's vertices lie in the halo's tile's cell (each vertex is
     counted by one tile: the survey's count is their sum)."""
     used = np.unique(halo.triangles)

@@ -22,20 +22,19 @@ from c1mesh.survey.task_rows import TileRows
 from c1mesh.survey.tiles import task_row
 
 
-def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows, label: str = "triangles"):
+def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
     """The survey's Delaunay triangulation with the long-edge trim, each tile a task
     (`_tile_delaunay`, `_tile_trimmed`) that reads the height spill and writes its owned
     triangles to a file: (max_edge or None, per tile a .npy file of its owned triangles
     (survey numbers), per tile the buffer its corners lie within, the triangle count of
     the whole Delaunay triangulation: 2n - 2 - h by Euler's formula, n points and h hull
-    corners, exact unless points lie on the hull between its corners). label names the
-    files (a DEM's fill triangulates a second time, survey.fill_runs)."""
+    corners, exact unless points lie on the hull between its corners)."""
     count = int(heights.counts.sum())
     if count < 3:
         raise InputError(f"only {count} points are left for the height field; need at least 3")
     hull = streamed_hull((r["index"], np.column_stack([r["x"], r["y"]]))
                          for r in (heights.tile(t) for t in range(len(grid))))
-    files = [temps.new(f"{label}-{t}.npy") for t in range(len(grid))]
+    files = [temps.new(f"triangles-{t}.npy") for t in range(len(grid))]
     buffers = np.zeros(len(grid))
     if max_edge is None:
         first = INITIAL_SPACINGS * mean_spacing(grid.box, count)

@@ -96,9 +96,9 @@ def needs_tiles(source, plan: FitPlan) -> bool:
     if plan.rasters:
         raise InputError(f"{need}; --preview, and --resolution or rasters without a DEM output (-o DEM.tif), "
                          "need the in-memory fit (raise --memory)")
-    if plan.dem is not None and plan.dem.fill is not None and plan.surface.strength is not None:
-        raise InputError(f"{need}; a smoothing fit's DEM fill of the trim's holes (--fill, by default the "
-                         "hull) is not yet done in tiles: give --fill off, or raise --memory")
+    if plan.dem is not None and plan.dem.fill is not None:
+        raise InputError(f"{need}; the DEM's fill of the trim's holes (--fill, by default the hull) is not "
+                         "yet done in tiles: give --fill off, or raise --memory")
     if plan.contours:
         raise InputError(f"{need}; --contours needs the in-memory fit (raise --memory)")
     if plan.heights.normals == "file":
