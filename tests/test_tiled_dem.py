@@ -130,21 +130,35 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
 @pytest.mark.parametrize("extra,words", [
     ([], "--fill"),                                              # the default fill: the hull
     (["--fill", "hull"], "--fill"),
-    (["--fill", "off", "--preview", "PREVIEW"], "--preview"),
     (["--fill", "off", "--contours", "CONTOURS", "--interval", "1"], "--contours"),
 ])
 def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
-    """Beyond --memory the DEM's fill, its preview and contours are refused in one line
+    """Beyond --memory the DEM's fill and contours are refused in one line
     naming the input and the option, before any output is written."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2, 5))
-    extra = [str(tmp_path / "p.png") if e == "PREVIEW" else str(tmp_path / "c.gpkg") if e == "CONTOURS" else e
-             for e in extra]
+    extra = [str(tmp_path / "c.gpkg") if e == "CONTOURS" else e for e in extra]
     result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "dem.tif"),
                                        "--resolution", "1", "--memory", "1M", *extra])
     assert result.exit_code == 1
     assert result.output.count("\n") == 1 and words in result.output and "terrain.las" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+
+
+def test_the_preview_of_a_dem_in_tiles_is_the_in_memory_fits_picture(tmp_path):
+    """--preview of a DEM fitted in 4 tiles draws the cells the tiles sampled, shaded by the
+    spline's gradient there: the same PNG, byte for byte, as the in-memory fit's, whose
+    cells come from one spline (geo.preview.render_dem_fit)."""
+    pngs = {}
+    for name, extra in (("whole", []), ("tiled", ["--memory", "1M"])):
+        pngs[name] = tmp_path / f"{name}.png"
+        result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.tif"),
+                                           "--resolution", "2", "--fill", "off", "--preview", str(pngs[name]),
+                                           "--report", str(tmp_path / f"{name}.json"), *extra])
+        assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "tiled.json").read_text())["tiles"] == 4
+    assert "tiles" not in json.loads((tmp_path / "whole.json").read_text())
+    assert pngs["whole"].read_bytes() == pngs["tiled"].read_bytes()
 
 
 def test_cli_still_refuses_a_mesh_level_from_resolution_beyond_memory(tmp_path):

@@ -84,7 +84,8 @@ class DemPlan:
     (c1mesh.pipeline.tiled_dem) is told them: dem, slope, aspect, hillshade, support: the
     GeoTIFF paths (None: not written); resolution: the cell size (world units);
     slope_method: "auto" | "spline" | "horn"; z_factor: x, y units per height unit
-    (None: 1); fill: the fill distance (geo.raster.fill_distance: None off, inf the hull)."""
+    (None: 1); fill: the fill distance (geo.raster.fill_distance: None off, inf the hull);
+    preview: the PNG path of the DEM's preview (None: none)."""
 
     dem: str
     resolution: float
@@ -95,6 +96,7 @@ class DemPlan:
     slope_method: str = "auto"
     z_factor: float | None = None
     fill: float | None = None
+    preview: str | None = None
 
 
 @dataclass(frozen=True)

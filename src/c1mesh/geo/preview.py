@@ -233,12 +233,33 @@ def render_dem_fit(grid: RasterGrid, sampler: SplineSampler, path, crs: str | No
     gives their distance to the data). z_factor: render_spline's (None: unshaded)."""
     stride = preview_stride(grid)
     z, g, filled = _dem_cells(grid, sampler, stride)
+    render_dem_cells(DemCells(z, g, filled), grid, stride, path, crs, z_factor)
+
+
+@dataclass(frozen=True)
+class DemCells:
+    """A DEM preview's cells (i·s, j·s) of its grid, s the stride: z (m, n) heights rounded
+    to float32 as the DEM stores them (NaN: nodata), g (m, n, 2) the spline's gradient
+    there, hatched (m, n) bool: spanning a hole the trim opened (or None: none)."""
+
+    z: np.ndarray
+    g: np.ndarray
+    hatched: np.ndarray | None = None
+
+
+def render_dem_cells(cells: DemCells, grid: RasterGrid, stride: int, path, crs: str | None = None,
+                     z_factor: float | None = 1.0) -> None:
+    """The picture of a fit's DEM from its cells (DemCells) shaded by the spline's
+    gradient: the in-memory fit's (render_dem_fit) and the tiled DEM writer's
+    (pipeline.tiled_dem), which gather the same cells each its own way. z_factor: x, y
+    units per height unit (None: unknown, unshaded)."""
+    z, g = cells.z, cells.g
     if z_factor is None:
         render_dem(z, np.zeros_like(g), grid, stride, path, _units(crs), "C1 surface (unshaded: no --z-factor)",
-                   hatched=filled)
+                   hatched=cells.hatched)
         return
     render_dem(z, g if z_factor == 1.0 else g * z_factor, grid, stride, path, _units(crs),
-               "C1 surface (spline normals)", hatched=filled)
+               "C1 surface (spline normals)", hatched=cells.hatched)
 
 
 def _dem_cells(grid: RasterGrid, sampler: SplineSampler, stride: int):

@@ -270,8 +270,9 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
 
 
 def _shaded(dem: DemPlan) -> bool:
-    """Whether the DEM's side rasters need the spline's gradients (slope, aspect, hillshade)."""
-    return bool(dem.slope or dem.aspect or dem.hillshade)
+    """Whether the DEM's outputs need the spline's gradients (slope, aspect, hillshade, and
+    the preview, which shades the cells by it as the in-memory fit's does)."""
+    return bool(dem.slope or dem.aspect or dem.hillshade or dem.preview)
 
 
 def _write_dem(job: DemJob, where, dem: DemPlan, chunks, crs, limiter) -> dict:

@@ -48,7 +48,8 @@ def fit_plan(options, output=None) -> FitPlan:
     dem = None
     if is_raster_path(output) and options.resolution is not None:
         dem = DemPlan(str(output), float(options.resolution), options.slope, options.aspect, options.hillshade,
-                      options.support, options.slope_method, options.z_factor, fill_distance(options.fill))
+                      options.support, options.slope_method, options.z_factor, fill_distance(options.fill),
+                      None if not options.preview else str(options.preview))
     classes = options.classes if isinstance(options.classes, (str, type(None))) else tuple(options.classes)
     return FitPlan(
         select=PointSelection(options.input_format, classes or None,
@@ -58,7 +59,7 @@ def fit_plan(options, output=None) -> FitPlan:
                                 smoothing_strength(options), options.spacing),
         mesh=MeshTarget(options.output_format, options.ascii, options.crs),
         memory=None if options.memory is None else parse_memory(options.memory), threads=options.workers, dem=dem,
-        rasters=bool(options.preview) or (dem is None and any(
-            v is not None and v != "" for v in (options.resolution, options.slope, options.aspect,
-                                                options.hillshade, options.support))),
+        rasters=dem is None and any(v is not None and v != "" for v in (options.resolution, options.slope,
+                                                                        options.aspect, options.hillshade,
+                                                                        options.support, options.preview)),
         contours=options.contours is not None)

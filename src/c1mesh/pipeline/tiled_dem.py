@@ -57,6 +57,7 @@ from c1mesh.geo.raster import (
     horn_gradient,
     write_blocks,
 )
+from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 from c1mesh.survey.tiles import task_row
 
@@ -313,6 +314,8 @@ class TiledDem:
         z_factor = 1.0 if plan.z_factor is None else float(plan.z_factor)
         blocks = grid_blocks(dem, heights, gradients, support, method if job.gradients else None)
         raster = write_blocks(targets, dem.grid, blocks, RasterStyle(method, crs, "float32", z_factor))
+        if plan.preview:
+            render_preview(dem, heights, gradients, plan, crs)
         raster["point_spacing"] = spacing
         return {"kept": kept, "raster": raster,
                 "triangles_per_tile": {t: row["triangles"] for t, row in sampled.items()},
@@ -391,6 +394,21 @@ class TiledDem:
             flat[pairs["cell"]] = pairs["d"]
             paths[tiles[i]].unlink()
         return support
+
+
+def render_preview(dem: DemGrid, heights, gradients, plan: DemPlan, crs: str | None) -> None:
+    """The DEM's --preview (plan.preview) from the cells the tiles sampled: every stride-th
+    cell of the grid (geo.preview.preview_stride; not the ring), heights rounded to float32
+    as the DEM stores them, shaded by the spline's gradient there, so the picture is the
+    in-memory fit's (geo.preview.render_dem_cells); at most PIXELS² cells are read from the
+    memory maps. --fill off: no cell spans a hole, none is hatched."""
+    grid = dem.grid
+    stride = preview_stride(grid)
+    rows, cols = slice(1, grid.height + 1, stride), slice(1, grid.width + 1, stride)
+    z = np.asarray(heights[rows, cols]).astype(np.float32).astype(np.float64)
+    g = np.array(gradients[rows, cols])
+    g[np.isnan(z)] = np.nan
+    render_dem_cells(DemCells(z, g), grid, stride, plan.preview, crs, 1.0 if plan.z_factor is None else plan.z_factor)
 
 
 def _own_vertices(halo) -> int:
