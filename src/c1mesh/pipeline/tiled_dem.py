@@ -26,10 +26,12 @@ The in-memory DEM's rules (geo.raster_grid.SplineSampler), and how the tiles kee
   being max_edge);
 - slope, aspect and hillshade from the spline's gradients (kept per cell) or Horn's
   differences of the heights (with the grid's one-cell ring, as the in-memory blocks
-  sample it), written in blocks of rows by geo.raster.write_blocks, the in-memory writer.
+  sample it), written in blocks of rows by geo.raster.write_blocks, the in-memory writer;
+- --preview from every s-th cell's height and spline gradient (`render_preview`), as the
+  in-memory preview draws them (geo.preview.render_dem_cells).
 
 The grids live in temporary files (memory maps) over the grid and its ring: heights
-(float64), gradients (2 x float64, only for slope, aspect or hillshade), support
+(float64), gradients (2 x float64, only for slope, aspect, hillshade or the preview), support
 (float32, only with --support) and the point marks (uint8): 1 to 33 bytes a cell on
 disk. Memory holds a tile's spline and a block of cells at a time.
 
