@@ -128,6 +128,51 @@ def test_assembly_bytes_do_not_depend_on_threads_or_row_blocks(monkeypatch):
             assert getattr(got, name).tobytes() == getattr(want, name).tobytes()
 
 
+def test_the_data_term_equals_the_loop_over_data_points():
+    """System.matrix adds Aᵀ W A by the kernel (_smoothing_system.data_scatter) into the
+    energy's pattern: the same matrix as a dense loop over the data points adding
+    w_i a_i a_iᵀ at their triangles' unknowns (to rounding: the kernel forms each product
+    once), exactly symmetric, with weight-0 points leaving no trace, and the values of A
+    (which scipy sorts in place when it builds the CSR) still in local order afterwards."""
+    from c1mesh.engine import rsd
+    from c1mesh.stages.smoothing_system import System, data_rows
+
+    rng = np.random.default_rng(8)
+    pts, tri, dirs = shuffled_mesh(7, seed=8)
+    n, scheme = pts.shape[0], get_scheme("sextic")
+    t = rng.integers(0, tri.shape[0], 300)
+    lam = rng.dirichlet(np.ones(3), 300)
+    rows = data_rows(pts, tri, dirs, scheme, t, lam)
+    # each row is F at its point: the interpolant's basis times the triangle's linear map
+    corners = pts[tri[t]]
+    G, _ = rsd.barycentric_gradients(corners)
+    maps = smoothing_energy.linear_maps(corners, dirs[t], G)
+    basis = rsd.basis(scheme, lam)
+    assert np.allclose(rows.values, np.einsum("bm,mbj->mj", basis, maps), rtol=0, atol=1e-12)
+    before = rows.values.copy()
+    K = assemble_energy(pts, tri, dirs, scheme)
+    system = System(K, rows, rng.normal(size=300))
+    w = rng.uniform(0.5, 2.0, 300)
+    w[::7] = 0.0
+    system.A                                        # built first: it must not reorder values
+    S, _ = system.matrix(0.0, w, 0.0)
+    want = np.zeros((3 * n, 3 * n))
+    dofs = local_dofs(tri)
+    for i in range(300):
+        d = dofs[t[i]]
+        want[np.ix_(d, d)] += w[i] * np.outer(before[i], before[i])
+    got = S.toarray()
+    assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
+    assert np.array_equal(got, got.T)
+    assert np.array_equal(rows.values, before)
+    A = system.A.toarray()
+    assert np.allclose(got, A.T @ (w[:, None] * A), rtol=0, atol=1e-13 * np.abs(want).max())
+    # s K is added on the same pattern, and the diagonal's positions are K's
+    S2, _ = system.matrix(2.5, w, 0.0)
+    assert np.array_equal(S2.indices, K.indices) and np.allclose(S2.toarray(), got + 2.5 * K.toarray(),
+                                                                rtol=0, atol=1e-12 * np.abs(S2.data).max())
+
+
 # ------------------------------------------------------------------ vertex order
 def test_vertex_order_is_cholmods_metis_order_of_the_adjacency(monkeypatch):
     cholmod = pytest.importorskip("sksparse.cholmod")

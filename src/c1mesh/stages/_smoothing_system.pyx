@@ -145,3 +145,54 @@ def scatter(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int
                         row = 9 * lo + 3 * c * deg + 3 * s
                         for d in range(3):
                             data[row + d] += blocks[t, _local(a, c), _local(b, d)]
+
+
+
+def data_scatter(const int64_t[:, ::1] triangles, const int64_t[::1] tri, const double[:, ::1] rows,
+                 const double[::1] w, const int64_t[::1] row_start, const int64_t[::1] cols,
+                 double[::1] data):
+    """Adds Aᵀ W A into the CSR values data of `scatter`'s pattern (each vertex's rows list
+    3 values per neighbour): data point i lies in triangle tri[i], its row of A is rows[i]
+    (9,) over that triangle's local data (smoothing_energy's order), its weight w[i]. The
+    points are taken in increasing order, points of weight 0 skipped; each product
+    w_i a_j a_k is formed once for j <= k and added to both (j, k) and (k, j), so the
+    matrix stays exactly symmetric. One thread: O(81 M) additions, 9 bisections a point."""
+    cdef Py_ssize_t m = tri.shape[0], i, lo, v, deg
+    cdef Py_ssize_t base[3]
+    cdef Py_ssize_t width[3]
+    cdef Py_ssize_t slot[3][3]
+    cdef int64_t t
+    cdef int j, k, a, b, c, d
+    cdef double wa, term
+    with nogil:
+        for i in range(m):
+            if w[i] == 0.0:
+                continue
+            t = tri[i]
+            for a in range(3):
+                v = triangles[t, a]
+                lo = row_start[v]
+                deg = row_start[v + 1] - lo
+                base[a] = 9 * lo
+                width[a] = 3 * deg
+                for b in range(3):
+                    slot[a][b] = 3 * (_slot(cols, lo, lo + deg, triangles[t, b]) - lo)
+            for j in range(9):
+                a, c = _vertex_of(j), _component_of(j)
+                wa = w[i] * rows[i, j]
+                for k in range(j, 9):
+                    b, d = _vertex_of(k), _component_of(k)
+                    term = wa * rows[i, k]
+                    data[base[a] + c * width[a] + slot[a][b] + d] += term
+                    if k != j:
+                        data[base[b] + d * width[b] + slot[b][a] + c] += term
+
+
+cdef inline int _vertex_of(int local) noexcept nogil:
+    """The local vertex of local datum `local` (the inverse of _local)."""
+    return local if local < 3 else (local - 3) // 2
+
+
+cdef inline int _component_of(int local) noexcept nogil:
+    """The component (0 = f, 1 = ∂x, 2 = ∂y) of local datum `local` (the inverse of _local)."""
+    return 0 if local < 3 else 1 + (local - 3) % 2

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -106,10 +107,10 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
 
 
 def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, scheme: ShapeTuple,
-              tri: np.ndarray, lam: np.ndarray) -> sp.csr_matrix:
-    """A (M, 3N) CSR: row i is F(x_i) as a linear form in the unknowns, for data points in
-    triangles tri (M,) at barycentrics lam (M, 3)."""
-    m, n = tri.shape[0], 3 * points.shape[0]
+              tri: np.ndarray, lam: np.ndarray) -> "DataRows":
+    """The DataRows of data points in triangles tri (M,) at barycentrics lam (M, 3): row i
+    of A is F(x_i) as a linear form in the unknowns."""
+    m = tri.shape[0]
     vals = np.empty((m, N_LOCAL))
     for start in range(0, m, _CHUNK):
         part = slice(start, start + _CHUNK)
@@ -119,24 +120,57 @@ def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, schem
         M = linear_maps(corners, dirs[t], G)                          # (m, 21, 9)
         B = rsd.basis(scheme, lam[part])                             # (21, m)
         vals[part] = np.einsum("bm,mbj->mj", B, M)
-    cols = local_dofs(triangles)[tri]
-    indptr = np.arange(0, N_LOCAL * m + 1, N_LOCAL)
-    A = sp.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(m, n))
-    A.sum_duplicates()
-    return A
+    return DataRows(np.ascontiguousarray(triangles, dtype=np.int64),
+                    np.ascontiguousarray(tri, dtype=np.int64), vals, 3 * points.shape[0])
+
+
+@dataclass
+class DataRows:
+    """The data term's rows: data point i lies in triangle tri[i] of triangles (T, 3) and
+    F(x_i) = values[i] · u[local_dofs(triangles)[tri[i]]] (values (M, 9), smoothing_energy's
+    local order); unknowns: the length of u (3N). A is the same as an (M, 3N) CSR matrix."""
+
+    triangles: np.ndarray
+    tri: np.ndarray
+    values: np.ndarray
+    unknowns: int
+
+    @cached_property
+    def A(self) -> sp.csr_matrix:
+        m = self.tri.shape[0]
+        cols = local_dofs(self.triangles)[self.tri]
+        indptr = np.arange(0, N_LOCAL * m + 1, N_LOCAL)
+        A = sp.csr_matrix((self.values.ravel().copy(), cols.ravel(), indptr), shape=(m, self.unknowns))
+        A.sum_duplicates()            # sorts the data in place: a copy, so that values keep their order
+        return A
+
+    def normal_values(self, pattern: "VertexPattern", w: np.ndarray) -> np.ndarray:
+        """Aᵀ W A for data weights w (M,) as the CSR values of the energy's pattern
+        (assemble_energy's, from `pattern`): each data point's 9 × 9 term added at its
+        triangle's unknowns by the kernel (_smoothing_system.data_scatter), in increasing
+        point order, without forming A or a sparse product."""
+        data = np.zeros(9 * pattern.cols.size)
+        kernel.data_scatter(self.triangles, self.tri, np.ascontiguousarray(self.values, dtype=np.float64),
+                            np.ascontiguousarray(w, dtype=np.float64), pattern.row_start, pattern.cols, data)
+        return data
 
 
 @dataclass
 class System:
     """The pieces of S that do not change with s or the weights (normalised units).
 
-    K: energy (3N, 3N). A: data rows (M, 3N), or None when the data are the vertices
-    (row i is f_i). z (M,) data values. grad_mask (N,) vertices with gradient data,
-    grad_values (N, 2) (rows without data are 0).
+    K: energy (3N, 3N) on assemble_energy's pattern (any CSR with sorted indices and every
+    diagonal entry stored, when data is None). data: the data rows (DataRows), or None
+    when the data are the vertices (row i is f_i). z (M,) data values. grad_mask (N,)
+    vertices with gradient data, grad_values (N, 2) (rows without data are 0).
+
+    S is built on K's pattern: its values are s K's plus the data and gradient terms,
+    added in place (the diagonal's positions, and with DataRows their kernel), so no
+    sparse sum or product is formed; the indices are K's own arrays.
     """
 
     K: sp.csr_matrix
-    A: sp.csr_matrix | None
+    data: DataRows | None
     z: np.ndarray
     grad_mask: np.ndarray | None = None
     grad_values: np.ndarray | None = None
@@ -148,44 +182,73 @@ class System:
     def n_unknowns(self) -> int:
         return self.K.shape[0]
 
+    @property
+    def A(self) -> sp.csr_matrix | None:
+        """The data rows (M, 3N) CSR, or None for vertex data."""
+        return None if self.data is None else self.data.A
+
+    @cached_property
+    def diagonal(self) -> np.ndarray:
+        """(3N,) the position of each diagonal entry in K.data."""
+        K = self.K
+        rows = np.repeat(np.arange(K.shape[0], dtype=K.indices.dtype), np.diff(K.indptr))
+        where = np.flatnonzero(K.indices == rows)
+        if where.size != K.shape[0]:
+            raise ValueError("the energy matrix must store every diagonal entry")
+        return where
+
+    @cached_property
+    def pattern(self) -> VertexPattern:
+        """The vertex pattern K is assembled on (assemble_energy), for the data term."""
+        pattern = vertex_pattern(self.data.triangles, self.n_unknowns // 3)
+        if 9 * pattern.cols.size != self.K.nnz:
+            raise ValueError("the energy matrix is not on the mesh's vertex pattern")
+        return pattern
+
     def fitted(self, u: np.ndarray) -> np.ndarray:
         """F at the data points (M,)."""
-        return u[0::3].copy() if self.A is None else self.A @ u
+        return u[0::3].copy() if self.data is None else self.A @ u
 
     def adjoint(self, r: np.ndarray) -> np.ndarray:
         """A^T r (3N,) for r (M,)."""
-        if self.A is None:
+        if self.data is None:
             out = np.zeros(self.n_unknowns)
             out[0::3] = r
             return out
         return self.A.T @ r
 
-    def matrix(self, s: float, w: np.ndarray, mu: float,
-               held_out: np.ndarray | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
+    def normal_values(self, w: np.ndarray) -> np.ndarray:
+        """Aᵀ W A's values on K's pattern (DataRows.normal_values), for data rows only."""
+        return self.data.normal_values(self.pattern, w)
+
+    def matrix(self, s: float, w: np.ndarray, mu: float, held_out: np.ndarray | None = None,
+               ridge: float = 0.0, normal: np.ndarray | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
         """(S, rhs) for strength s, data weights w (M,), gradient weight mu. held_out: (N,)
         bool vertices whose gradient data are left out too (a cross-validation fold of
         vertex data: a held-out point is held out with its gradient, which for gradients
-        fitted to the heights carries its height)."""
+        fitted to the heights carries its height). ridge: adds ridge × (mean diagonal of
+        S) × I (`solve`). normal: `normal_values(w)` when the caller has them (a
+        cross-validation fold reuses its own for every s)."""
         n = self.n_unknowns
-        diag = np.zeros(n)
+        diag = self.diagonal
         rhs = self.adjoint(w * self.z)
-        if self.A is None:
-            diag[0::3] = w
-            S = self.K * s + sp.diags(diag, format="csr")
+        values = self.K.data * s
+        if self.data is None:
+            values[diag[0::3]] += w
         else:
-            AW = sp.diags(w) @ self.A
-            S = (self.A.T @ AW).tocsr() + self.K * s
+            values += self.normal_values(w) if normal is None else normal
         if self.grad_mask is not None and mu > 0:
-            mask, values = self.grad_mask, self.grad_values
+            mask, grads = self.grad_mask, self.grad_values
             if held_out is not None:
                 mask = mask * ~held_out
-                values = np.where(mask[:, None] > 0, values, 0.0)
-            g = np.zeros(n)
-            g[1::3] = g[2::3] = mu * mask
-            S = S + sp.diags(g, format="csr")
-            rhs[1::3] += mu * values[:, 0]
-            rhs[2::3] += mu * values[:, 1]
-        return S.tocsr(), rhs
+                grads = np.where(mask[:, None] > 0, grads, 0.0)
+            values[diag[1::3]] += mu * mask
+            values[diag[2::3]] += mu * mask
+            rhs[1::3] += mu * grads[:, 0]
+            rhs[2::3] += mu * grads[:, 1]
+        if ridge > 0:
+            values[diag] += ridge * float(values[diag].mean())
+        return sp.csr_matrix((values, self.K.indices, self.K.indptr), shape=(n, n)), rhs
 
 
 # ------------------------------------------------------------------------------ solvers
@@ -337,9 +400,7 @@ def solve(system: System, s: float, w: np.ndarray, mu: float, method: str,
     matrix; elsewhere it moves the fit by about that relative amount. held_out: vertices
     whose gradient data are left out (System.matrix).
     """
-    S, rhs = system.matrix(s, w, mu, held_out)
-    if ridge > 0:
-        S = (S + sp.identity(S.shape[0], format="csr") * (ridge * float(S.diagonal().mean()))).tocsr()
+    S, rhs = system.matrix(s, w, mu, held_out, ridge)
     factor = Factor(S, method, analysis, system.vertices_ordered)
     return factor.solve(rhs), factor
 
@@ -371,5 +432,5 @@ def timed(seconds: dict, key: str):
     return _Timer()
 
 
-__all__ = ["assemble_energy", "data_rows", "System", "available_solvers", "Factor", "solve",
+__all__ = ["assemble_energy", "data_rows", "DataRows", "System", "available_solvers", "Factor", "solve",
            "hat_trace", "timed"]
