@@ -115,12 +115,13 @@ def test_assembly_equals_the_loop_over_triangles(scheme):
     assert np.array_equal(stored, np.kron(adjacent, np.ones((3, 3), dtype=bool)))
 
 
-def test_assembly_bytes_do_not_depend_on_threads_or_row_blocks(monkeypatch):
+def test_assembly_bytes_do_not_depend_on_threads_row_blocks_or_chunks(monkeypatch):
     pts, tri, dirs = shuffled_mesh(12, seed=4)
     scheme = get_scheme("sextic")
     with limit(1):
         want = assemble_energy(pts, tri, dirs, scheme)
     monkeypatch.setattr(smoothing_system, "ROW_BLOCK", 7)
+    monkeypatch.setattr(smoothing_system, "ASSEMBLY_CHUNK", 5)
     for threads in (1, 2):
         with limit(threads):
             got = assemble_energy(pts, tri, dirs, scheme)

@@ -35,7 +35,11 @@ _CHUNK = 1 << 15
 
 
 ROW_BLOCK = 1 << 14
-"""Vertices per block of the assembly's rows (the blocks run in the thread knob's threads)."""
+"""Vertices per block of the pattern's and the indices' rows (the blocks run in the thread
+knob's threads)."""
+ASSEMBLY_CHUNK = 1 << 17
+"""Triangles whose energy blocks are computed and added at a time (assemble_energy): 85 MB
+of blocks."""
 
 
 @dataclass
@@ -78,28 +82,30 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     """K (3N, 3N) CSR, the sum of the triangles' 9 × 9 energy blocks at their unknowns.
 
     Assembled as 3 × 3 vertex blocks on the pattern of the vertex adjacency
-    (`vertex_pattern`), written straight into CSR by the kernel (_smoothing_system.scatter):
-    row 3v + c lists, for each neighbour w of v in increasing order, the columns 3w,
-    3w + 1, 3w + 2. Each entry is the sum of its triangles' contributions in increasing
-    triangle order from 0, as a bincount over the triangles' vertex pairs sums them; the
-    rows are written in blocks of ROW_BLOCK vertices, each block its own rows, so the bits
-    do not depend on the thread count.
+    (`vertex_pattern`), written straight into CSR: row 3v + c lists, for each neighbour w
+    of v in increasing order, the columns 3w, 3w + 1, 3w + 2. The blocks are computed
+    ASSEMBLY_CHUNK triangles at a time (in the thread knob's threads) and each chunk added
+    by the kernel (_smoothing_system.add_blocks) before the next, so only one chunk's
+    blocks are held (all of them were 1.3 GB at 2M triangles). Each entry is the sum of
+    its triangles' contributions in increasing triangle order from 0, as a bincount over
+    the triangles' vertex pairs sums them, so the bits do not depend on the thread count
+    or the chunk.
     """
     n = points.shape[0]
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
-    blocks = energy_blocks_of(points, tri, dirs, scheme)              # (T, 9, 9)
+    dirs = np.ascontiguousarray(dirs, dtype=np.float64)
     pattern = vertex_pattern(tri, n)
     row_start, cols = pattern.row_start, pattern.cols
     nnz = 9 * cols.size
     index = np.int32 if max(nnz, 3 * n) < 2**31 else np.int64
     data = np.zeros(nnz)
+    for first in range(0, tri.shape[0], ASSEMBLY_CHUNK):
+        part = slice(first, first + ASSEMBLY_CHUNK)
+        blocks = energy_blocks_of(points, tri[part], dirs[part], scheme)      # (chunk, 9, 9)
+        kernel.add_blocks(tri, first, blocks, row_start, cols, data)
     indices = np.empty(nnz, dtype=index)                              # written as the matrix keeps it
-
-    def rows(part: slice) -> None:
-        kernel.scatter(tri, pattern.start, pattern.corner, row_start, cols, blocks,
-                       part.start, part.stop, data)
-        kernel.csr_indices(row_start, cols, part.start, part.stop, indices)
-    parallel_blocks(rows, n, ROW_BLOCK)
+    parallel_blocks(lambda part: kernel.csr_indices(row_start, cols, part.start, part.stop, indices),
+                    n, ROW_BLOCK)
     indptr = np.empty(3 * n + 1, dtype=np.int64)
     indptr[:-1].reshape(n, 3)[...] = 9 * row_start[:-1, None] + 3 * np.arange(3) * np.diff(row_start)[:, None]
     indptr[-1] = nnz
@@ -147,12 +153,21 @@ class DataRows:
     def normal_values(self, pattern: "VertexPattern", w: np.ndarray) -> np.ndarray:
         """Aᵀ W A for data weights w (M,) as the CSR values of the energy's pattern
         (assemble_energy's, from `pattern`): each data point's 9 × 9 term added at its
-        triangle's unknowns by the kernel (_smoothing_system.data_scatter), in increasing
-        point order, without forming A or a sparse product."""
+        triangle's unknowns by the kernel (_smoothing_system.data_scatter), in the order
+        by_triangle, without forming A or a sparse product."""
         data = np.zeros(9 * pattern.cols.size)
         kernel.data_scatter(self.triangles, self.tri, np.ascontiguousarray(self.values, dtype=np.float64),
-                            np.ascontiguousarray(w, dtype=np.float64), pattern.row_start, pattern.cols, data)
+                            np.ascontiguousarray(w, dtype=np.float64), self.by_triangle,
+                            pattern.row_start, pattern.cols, data)
         return data
+
+    @cached_property
+    def by_triangle(self) -> np.ndarray:
+        """(M,) the data points by triangle, ties in point order: the order normal_values
+        adds them in (each entry then sums its points in this order), so that one
+        triangle's points write to the same rows one after another (1M random points
+        on a 250k-vertex mesh: 1.08 s in point order, 0.59 s so)."""
+        return np.argsort(self.tri, kind="stable")
 
 
 @dataclass
