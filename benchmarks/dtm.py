@@ -157,12 +157,15 @@ def run(folder: Path, reps: int, spacings: tuple[float, ...] = ()) -> Section:
             print(f"[dtm] GMT: {gmt_seconds:.2f} s, {fmt_bytes(gmt_rss)} ({seconds / gmt_seconds:.1f}×)",
                   file=sys.stderr)
     rms = {name: (gmt_rms(path) if name == "GMT" else dem_rms(path)) for name, path in outputs.items()}
-    return _section(runs, ratios, rms, skipped, reps)
+    command = f"python -m benchmarks.dtm run DIR --reps {reps}" + \
+        (" --spacings " + " ".join(f"{d:g}" for d in spacings) if spacings else "")
+    return _section(runs, ratios, rms, skipped, command)
 
 
-def _section(runs, ratios, rms, skipped: str, reps: int) -> Section:
+def _section(runs, ratios, rms, skipped: str, command: str) -> Section:
     sec = Section(TITLE)
-    sec.add(f"`python -m benchmarks.dtm run DIR --reps {reps}`: medians of {reps} rounds, one machine, "
+    reps = max(len(samples) for samples in runs.values())
+    sec.add(f"`{command}`: medians of {reps} rounds, one machine, "
             f"c1mesh at its default threads ({os.cpu_count()} cores), GMT `surface` single-threaded; "
             "every c1mesh run is followed by a GMT run, and × GMT is the median of the pairs' ratios. "
             "RMS against the noise-free heights over the cells in [10, 990]² m.", "",
