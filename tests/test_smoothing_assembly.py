@@ -79,9 +79,12 @@ def test_vertex_pattern_is_the_adjacency_with_the_corners_in_triangle_order():
 
 
 def test_vertex_pattern_keeps_a_vertex_without_triangles():
+    """A vertex no triangle uses is its own one neighbour: K stores its (zero) diagonal
+    block, where S's data and gradient terms go."""
     pattern = vertex_pattern(np.array([[0, 1, 3]]), 5)
-    assert list(pattern.row_start) == [0, 3, 6, 6, 9, 9]
-    assert list(pattern.cols) == [0, 1, 3] * 3
+    assert list(pattern.row_start) == [0, 3, 6, 7, 10, 11]
+    assert list(pattern.cols) == [0, 1, 3, 0, 1, 3, 2, 0, 1, 3, 4]
+    assert list(pattern.start) == [0, 1, 2, 2, 3, 3]            # its corners: none
 
 
 # ------------------------------------------------------------------ assembly
@@ -172,6 +175,28 @@ def test_the_data_term_equals_the_loop_over_data_points():
     S2, _ = system.matrix(2.5, w, 0.0)
     assert np.array_equal(S2.indices, K.indices) and np.allclose(S2.toarray(), got + 2.5 * K.toarray(),
                                                                 rtol=0, atol=1e-12 * np.abs(S2.data).max())
+
+
+def test_vertex_data_terms_go_on_the_diagonal_also_of_a_vertex_without_triangles():
+    """System.matrix for vertex data: s K plus the weights on the f diagonal and μ × mask
+    on the gradient diagonal, written on K's pattern: the dense sum, also at a vertex no
+    triangle uses (a tile's record outside its triangles), whose block K stores as zero."""
+    from c1mesh.stages.smoothing_system import System
+
+    rng = np.random.default_rng(9)
+    pts, tri, dirs = shuffled_mesh(5, seed=9)
+    pts = np.vstack([pts, [[9.0, 9.0]]])                  # vertex n - 1: in no triangle
+    n = pts.shape[0]
+    K = assemble_energy(pts, tri, dirs, get_scheme("sextic"))
+    w, mask, grads = rng.uniform(0.5, 2, n), (rng.uniform(size=n) > 0.3).astype(float), rng.normal(size=(n, 2))
+    S, rhs = System(K, None, rng.normal(size=n), mask, grads * mask[:, None]).matrix(3.0, w, 0.7)
+    want = 3.0 * K.toarray()
+    want[np.arange(0, 3 * n, 3), np.arange(0, 3 * n, 3)] += w
+    for c in (1, 2):
+        want[np.arange(c, 3 * n, 3), np.arange(c, 3 * n, 3)] += 0.7 * mask
+    assert np.array_equal(S.toarray(), want)
+    assert S.toarray()[3 * n - 3, 3 * n - 3] == w[-1] and np.array_equal(S.indices, K.indices)
+    assert np.allclose(rhs[1::3], 0.7 * grads[:, 0] * mask) and np.allclose(rhs[2::3], 0.7 * grads[:, 1] * mask)
 
 
 # ------------------------------------------------------------------ vertex order

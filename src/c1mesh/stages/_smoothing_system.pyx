@@ -42,11 +42,14 @@ def incidence(const int64_t[:, ::1] triangles, int64_t[::1] start, int64_t[::1] 
 
 cdef Py_ssize_t _neighbours(const int64_t[:, ::1] triangles, const int64_t[::1] start,
                             const int64_t[::1] corner, Py_ssize_t v, int64_t *out) noexcept nogil:
-    """The distinct vertices of the triangles at v (v among them), increasing, into out
-    (room for 3 × the corners at v); returns their count. Insertion sort: a few dozen."""
-    cdef Py_ssize_t count = 0, i, j, i2
+    """v and the distinct vertices of the triangles at v, increasing, into out (room for
+    3 × the corners at v, and 1); returns their count, 1 for a vertex without triangles
+    (its diagonal block is stored: the data and gradient terms add to it). Insertion
+    sort: a few dozen."""
+    cdef Py_ssize_t count = 1, i, j, i2
     cdef int64_t t, w
     cdef int k
+    out[0] = v
     for i in range(start[v], start[v + 1]):
         t = corner[i] // 3
         for k in range(3):

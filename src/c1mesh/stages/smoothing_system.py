@@ -57,7 +57,9 @@ class VertexPattern:
 def vertex_pattern(triangles: np.ndarray, n: int) -> VertexPattern:
     """The VertexPattern of n vertices and triangles (T, 3) int64 (kernel: the corners by
     one counting sort, then each block of rows sorts its vertices' neighbours twice, to
-    count them and to write them)."""
+    count them and to write them). A vertex no triangle uses (a tile's record outside its
+    triangles) has itself as its one neighbour: its 3 × 3 block of K is stored, zero, so
+    that S's data and gradient terms have their diagonal entries there (System.matrix)."""
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
     if tri.size and (tri.min() < 0 or tri.max() >= n):
         raise ValueError("triangle vertex indices out of range")
