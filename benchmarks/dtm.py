@@ -1,7 +1,7 @@
 """The whole DTM job against GMT: a 1M-point LAZ to a 1 m DEM (issue 38).
 
     python -m benchmarks.dtm make FOLDER              # FOLDER/dtm.laz and FOLDER/dtm.bin
-    python -m benchmarks.dtm run FOLDER [--reps 3] [--write]
+    python -m benchmarks.dtm run FOLDER [--reps 3] [--spacings 1 2] [--write]
 
 The survey is issue 38's (and the floor job's kind): 1,000,000 points uniform over a
 1000 × 1000 m square, z = 100 + 30 sin(x/97) cos(y/131) + 2 cm Gaussian noise, all class
@@ -13,6 +13,9 @@ children's: GMT is two commands under one shell); one round runs each once, back
 and the table shows medians over the rounds:
 - `c1mesh fit dtm.laz -o DIR/smooth.tif --resolution 1 --smooth auto`, the smoothing fit;
 - the same with `--smooth off`, the exact interpolant;
+- with `--spacing D` (run's --spacings, none by default): `--smooth auto` on vertices thinned
+  to one per D × D cell, fitted to every point (the route of issue 38's "vertices no denser
+  than the output grid needs");
 - GMT: `gmt blockmedian -R0/1000/0/1000 -I1 -bi3d -bo3d dtm.bin > bm.bin` then
   `gmt surface bm.bin -bi3d -R0/1000/0/1000 -I1 -T0.25 -Gs.nc`, GMT's own recipe for a
   DEM from scattered points (blockmedian first, as its documentation asks). Skipped and
@@ -77,13 +80,15 @@ def gmt_status() -> str:
     return "" if shutil.which("gmt") else "gmt not found on PATH (benchmarks/install-peers.sh installs it)"
 
 
-def c1mesh_run(folder: Path, smooth: str) -> tuple[float, int, Path]:
-    """(seconds, peak RSS, DEM path) of one `c1mesh fit` to a 1 m DEM."""
-    dem = folder / f"{smooth}.tif"
+def c1mesh_run(folder: Path, smooth: str, spacing: float | None = None) -> tuple[float, int, Path]:
+    """(seconds, peak RSS, DEM path) of one `c1mesh fit` to a 1 m DEM (with --spacing
+    when spacing is given)."""
+    dem = folder / (f"{smooth}.tif" if spacing is None else f"{smooth}-spacing{spacing:g}.tif")
+    thin = [] if spacing is None else ["--spacing", f"{spacing:g}"]
     done = run_child([sys.executable, *C1MESH, "fit", str(folder / "dtm.laz"), "-o", str(dem),
-                      "--resolution", "1", "--smooth", smooth])
+                      "--resolution", "1", "--smooth", smooth, *thin])
     if done.returncode:
-        raise RuntimeError(f"c1mesh fit --smooth {smooth} failed: {done.stderr.strip()[-400:]}")
+        raise RuntimeError(f"c1mesh fit --smooth {smooth} {' '.join(thin)} failed: {done.stderr.strip()[-400:]}")
     return done.seconds, done.peak_rss, dem
 
 
@@ -127,31 +132,43 @@ def _rms(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
     return float(np.sqrt(np.mean(error ** 2)))
 
 
-def run(folder: Path, reps: int) -> Section:
-    """The contenders, reps alternating rounds; the section for RESULTS.md."""
-    runs: dict[str, list[tuple[float, int]]] = {"--smooth auto": [], "--smooth off": [], "GMT": []}
+def run(folder: Path, reps: int, spacings: tuple[float, ...] = ()) -> Section:
+    """The contenders, reps rounds; in a round every c1mesh run is followed by a GMT run,
+    and its × GMT is its time over that run's (the machine may be shared: the pair ran
+    under the same load); the table shows medians. The section for RESULTS.md."""
+    jobs = [("--smooth auto", lambda: c1mesh_run(folder, "auto")),
+            ("--smooth off", lambda: c1mesh_run(folder, "off"))]
+    jobs += [(f"--smooth auto --spacing {d:g}", lambda d=d: c1mesh_run(folder, "auto", d)) for d in spacings]
+    runs: dict[str, list[tuple[float, int]]] = {name: [] for name, _ in jobs}
+    runs["GMT"] = []
+    ratios: dict[str, list[float]] = {name: [] for name, _ in jobs}
     outputs: dict[str, Path] = {}
     skipped = gmt_status()
     for _ in range(reps):
-        for name, job in (("--smooth auto", lambda: c1mesh_run(folder, "auto")),
-                          ("--smooth off", lambda: c1mesh_run(folder, "off")),
-                          ("GMT", lambda: gmt_run(folder))):
-            if name == "GMT" and skipped:
-                continue
-            seconds, rss, path = job()
+        for name, job in jobs:
+            seconds, rss, outputs[name] = job()
             runs[name].append((seconds, rss))
-            outputs[name] = path
             print(f"[dtm] {name}: {seconds:.2f} s, {fmt_bytes(rss)}", file=sys.stderr)
+            if skipped:
+                continue
+            gmt_seconds, gmt_rss, outputs["GMT"] = gmt_run(folder)
+            runs["GMT"].append((gmt_seconds, gmt_rss))
+            ratios[name].append(seconds / gmt_seconds)
+            print(f"[dtm] GMT: {gmt_seconds:.2f} s, {fmt_bytes(gmt_rss)} ({seconds / gmt_seconds:.1f}×)",
+                  file=sys.stderr)
     rms = {name: (gmt_rms(path) if name == "GMT" else dem_rms(path)) for name, path in outputs.items()}
-    return _section(runs, rms, skipped, reps)
+    command = f"python -m benchmarks.dtm run DIR --reps {reps}" + \
+        (" --spacings " + " ".join(f"{d:g}" for d in spacings) if spacings else "")
+    return _section(runs, ratios, rms, skipped, command)
 
 
-def _section(runs, rms, skipped: str, reps: int) -> Section:
+def _section(runs, ratios, rms, skipped: str, command: str) -> Section:
     sec = Section(TITLE)
-    gmt_seconds = statistics.median(s for s, _ in runs["GMT"]) if runs["GMT"] else None
-    sec.add(f"`python -m benchmarks.dtm run DIR --reps {reps}`: medians of {reps} alternating rounds, "
-            f"one machine, c1mesh at its default threads ({os.cpu_count()} cores), GMT `surface` "
-            "single-threaded. RMS against the noise-free heights over the cells in [10, 990]² m.", "",
+    reps = max(len(samples) for samples in runs.values())
+    sec.add(f"`{command}`: medians of {reps} rounds, one machine, "
+            f"c1mesh at its default threads ({os.cpu_count()} cores), GMT `surface` single-threaded; "
+            "every c1mesh run is followed by a GMT run, and × GMT is the median of the pairs' ratios. "
+            "RMS against the noise-free heights over the cells in [10, 990]² m.", "",
             "| run | time | × GMT | peak memory | RMS against the true heights |",
             "|---|---|---|---|---|")
     for name, samples in runs.items():
@@ -159,7 +176,7 @@ def _section(runs, rms, skipped: str, reps: int) -> Section:
             continue
         seconds = statistics.median(s for s, _ in samples)
         peak = statistics.median(r for _, r in samples)
-        times = f"{seconds / gmt_seconds:.1f}×" if gmt_seconds else "–"
+        times = "1.0×" if name == "GMT" else (f"{statistics.median(ratios[name]):.1f}×" if ratios[name] else "–")
         sec.add(f"| {name if name != 'GMT' else 'GMT blockmedian + surface -T0.25'} | {seconds:.2f} s | "
                 f"{times} | {fmt_bytes(peak)} | {rms[name] * 1000:.1f} mm |")
     if skipped:
@@ -175,12 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("folder", type=Path)
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--points", type=int, default=N, help="make: how many points (default 1M)")
+    parser.add_argument("--spacings", type=float, nargs="*", default=[],
+                        help="run: also --smooth auto with each of these --spacing values")
     parser.add_argument("--write", action="store_true", help=f"run: replace the '{TITLE}' section of RESULTS.md")
     args = parser.parse_args(argv)
     if args.verb == "make":
         make(args.folder, args.points)
         return 0
-    sec = run(args.folder, args.reps)
+    sec = run(args.folder, args.reps, tuple(args.spacings))
     print("\n".join(sec.body))
     if args.write:
         write_section(ROOT / "benchmarks" / "RESULTS.md", sec)

@@ -250,6 +250,39 @@ def test_point_location_in_a_non_delaunay_triangulation():
             assert all(ref.barycentric(pts[tri], x)[0].min() < 1e-9 for tri in tris)
 
 
+def test_the_locator_is_the_best_barycentric_of_a_loop_over_every_triangle(monkeypatch):
+    """TriangleLocator.find (a kernel over the bucket grid, queries in blocks and threads)
+    against a plain loop over all triangles: the triangle whose smallest barycentric
+    coordinate is largest (at least -tolerance; ties to the lowest index), with those
+    barycentrics, -1 and NaN elsewhere: outside the mesh, non-finite, at vertices and on
+    edges (ties), in blocks of any size and any number of threads."""
+    from c1mesh.core.threads import limit
+    from c1mesh.engine import locate, rsd
+
+    rng = np.random.default_rng(12)
+    pts, tris = random_mesh(60)
+    tris = np.asarray(tris, dtype=np.int64)
+    G, _ = rsd.barycentric_gradients(pts[tris])
+    q = np.concatenate([rng.uniform(-0.2, 1.2, (1500, 2)), pts, (pts[tris[:, 0]] + pts[tris[:, 1]]) / 2,
+                        [[np.nan, 0.5], [0.5, np.inf]]])
+    want_tri = np.full(len(q), -1)
+    want_lam = np.full((len(q), 3), np.nan)
+    for i, x in enumerate(q):
+        best = -np.inf
+        for t, (a, b, c) in enumerate(tris):       # λ_k = G_k · (x − p_{k+1}), unfused (BLAS's dot fuses)
+            lam0 = G[t, 0, 0] * (x[0] - pts[b, 0]) + G[t, 0, 1] * (x[1] - pts[b, 1])
+            lam1 = G[t, 1, 0] * (x[0] - pts[c, 0]) + G[t, 1, 1] * (x[1] - pts[c, 1])
+            lam = np.array([lam0, lam1, 1.0 - lam0 - lam1])
+            if lam.min() >= -1e-10 and lam.min() > best:
+                best, want_tri[i], want_lam[i] = lam.min(), t, lam
+    monkeypatch.setattr(locate, "_QUERY_BLOCK", 37)
+    for threads in (1, 2):
+        with limit(threads):
+            tri, lam = locate.TriangleLocator(pts, tris, G).find(q)
+        assert np.array_equal(tri, want_tri)
+        assert np.allclose(lam, want_lam, rtol=0, atol=1e-12, equal_nan=True)
+
+
 def test_errors_are_clear():
     pts, tris = random_mesh(20)
     f, A = smooth(pts), smooth_grad(pts)

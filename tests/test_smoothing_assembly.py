@@ -79,9 +79,12 @@ def test_vertex_pattern_is_the_adjacency_with_the_corners_in_triangle_order():
 
 
 def test_vertex_pattern_keeps_a_vertex_without_triangles():
+    """A vertex no triangle uses is its own one neighbour: K stores its (zero) diagonal
+    block, where S's data and gradient terms go."""
     pattern = vertex_pattern(np.array([[0, 1, 3]]), 5)
-    assert list(pattern.row_start) == [0, 3, 6, 6, 9, 9]
-    assert list(pattern.cols) == [0, 1, 3] * 3
+    assert list(pattern.row_start) == [0, 3, 6, 7, 10, 11]
+    assert list(pattern.cols) == [0, 1, 3, 0, 1, 3, 2, 0, 1, 3, 4]
+    assert list(pattern.start) == [0, 1, 2, 2, 3, 3]            # its corners: none
 
 
 # ------------------------------------------------------------------ assembly
@@ -115,17 +118,85 @@ def test_assembly_equals_the_loop_over_triangles(scheme):
     assert np.array_equal(stored, np.kron(adjacent, np.ones((3, 3), dtype=bool)))
 
 
-def test_assembly_bytes_do_not_depend_on_threads_or_row_blocks(monkeypatch):
+def test_assembly_bytes_do_not_depend_on_threads_row_blocks_or_chunks(monkeypatch):
     pts, tri, dirs = shuffled_mesh(12, seed=4)
     scheme = get_scheme("sextic")
     with limit(1):
         want = assemble_energy(pts, tri, dirs, scheme)
     monkeypatch.setattr(smoothing_system, "ROW_BLOCK", 7)
+    monkeypatch.setattr(smoothing_system, "ASSEMBLY_CHUNK", 5)
     for threads in (1, 2):
         with limit(threads):
             got = assemble_energy(pts, tri, dirs, scheme)
         for name in ("data", "indices", "indptr"):
             assert getattr(got, name).tobytes() == getattr(want, name).tobytes()
+
+
+def test_the_data_term_equals_the_loop_over_data_points():
+    """System.matrix adds Aᵀ W A by the kernel (_smoothing_system.data_scatter) into the
+    energy's pattern: the same matrix as a dense loop over the data points adding
+    w_i a_i a_iᵀ at their triangles' unknowns (to rounding: the kernel forms each product
+    once), exactly symmetric, with weight-0 points leaving no trace, and the values of A
+    (which scipy sorts in place when it builds the CSR) still in local order afterwards."""
+    from c1mesh.engine import rsd
+    from c1mesh.stages.smoothing_system import System, data_rows
+
+    rng = np.random.default_rng(8)
+    pts, tri, dirs = shuffled_mesh(7, seed=8)
+    n, scheme = pts.shape[0], get_scheme("sextic")
+    t = rng.integers(0, tri.shape[0], 300)
+    lam = rng.dirichlet(np.ones(3), 300)
+    rows = data_rows(pts, tri, dirs, scheme, t, lam)
+    # each row is F at its point: the interpolant's basis times the triangle's linear map
+    corners = pts[tri[t]]
+    G, _ = rsd.barycentric_gradients(corners)
+    maps = smoothing_energy.linear_maps(corners, dirs[t], G)
+    basis = rsd.basis(scheme, lam)
+    assert np.allclose(rows.values, np.einsum("bm,mbj->mj", basis, maps), rtol=0, atol=1e-12)
+    before = rows.values.copy()
+    K = assemble_energy(pts, tri, dirs, scheme)
+    system = System(K, rows, rng.normal(size=300))
+    w = rng.uniform(0.5, 2.0, 300)
+    w[::7] = 0.0
+    system.A                                        # built first: it must not reorder values
+    S, _ = system.matrix(0.0, w, 0.0)
+    want = np.zeros((3 * n, 3 * n))
+    dofs = local_dofs(tri)
+    for i in range(300):
+        d = dofs[t[i]]
+        want[np.ix_(d, d)] += w[i] * np.outer(before[i], before[i])
+    got = S.toarray()
+    assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
+    assert np.array_equal(got, got.T)
+    assert np.array_equal(rows.values, before)
+    A = system.A.toarray()
+    assert np.allclose(got, A.T @ (w[:, None] * A), rtol=0, atol=1e-13 * np.abs(want).max())
+    # s K is added on the same pattern, and the diagonal's positions are K's
+    S2, _ = system.matrix(2.5, w, 0.0)
+    assert np.array_equal(S2.indices, K.indices) and np.allclose(S2.toarray(), got + 2.5 * K.toarray(),
+                                                                rtol=0, atol=1e-12 * np.abs(S2.data).max())
+
+
+def test_vertex_data_terms_go_on_the_diagonal_also_of_a_vertex_without_triangles():
+    """System.matrix for vertex data: s K plus the weights on the f diagonal and μ × mask
+    on the gradient diagonal, written on K's pattern: the dense sum, also at a vertex no
+    triangle uses (a tile's record outside its triangles), whose block K stores as zero."""
+    from c1mesh.stages.smoothing_system import System
+
+    rng = np.random.default_rng(9)
+    pts, tri, dirs = shuffled_mesh(5, seed=9)
+    pts = np.vstack([pts, [[9.0, 9.0]]])                  # vertex n - 1: in no triangle
+    n = pts.shape[0]
+    K = assemble_energy(pts, tri, dirs, get_scheme("sextic"))
+    w, mask, grads = rng.uniform(0.5, 2, n), (rng.uniform(size=n) > 0.3).astype(float), rng.normal(size=(n, 2))
+    S, rhs = System(K, None, rng.normal(size=n), mask, grads * mask[:, None]).matrix(3.0, w, 0.7)
+    want = 3.0 * K.toarray()
+    want[np.arange(0, 3 * n, 3), np.arange(0, 3 * n, 3)] += w
+    for c in (1, 2):
+        want[np.arange(c, 3 * n, 3), np.arange(c, 3 * n, 3)] += 0.7 * mask
+    assert np.array_equal(S.toarray(), want)
+    assert S.toarray()[3 * n - 3, 3 * n - 3] == w[-1] and np.array_equal(S.indices, K.indices)
+    assert np.allclose(rhs[1::3], 0.7 * grads[:, 0] * mask) and np.allclose(rhs[2::3], 0.7 * grads[:, 1] * mask)
 
 
 # ------------------------------------------------------------------ vertex order

@@ -3,14 +3,19 @@
 A uniform grid of buckets over the mesh's bounding box lists, for each cell, the triangles
 whose bounding boxes overlap it. A query point is tested against the candidates of its cell
 with exact barycentric coordinates; it belongs to the candidate whose smallest barycentric
-coordinate is largest (so points on shared edges resolve deterministically). Works for any
+coordinate is largest, the first of the cell's list on a tie (so points on shared edges
+resolve deterministically). The search is a kernel (_locate.pyx), query by query. Works for any
 set of non-overlapping triangles: no walking, no Delaunay property assumed.
 """
 from __future__ import annotations
 
 import numpy as np
 
-_QUERY_CHUNK = 1 << 19
+from c1mesh.core.threads import parallel_blocks
+from c1mesh.engine import _locate as kernel
+
+_QUERY_BLOCK = 1 << 16
+"""Queries per block of the kernel (the blocks run in the thread knob's threads)."""
 
 
 class TriangleLocator:
@@ -58,49 +63,20 @@ class TriangleLocator:
         self.bucket_start = np.concatenate([[0], np.cumsum(counts)])
 
     def find(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Triangle index (M,) of each query (−1 outside) and barycentrics (M, 3)."""
+        """Triangle index (M,) of each query (−1 outside) and barycentrics (M, 3) (NaN
+        outside). The kernel (_locate.find) takes the queries in blocks of _QUERY_BLOCK in
+        the thread knob's threads, each query on its own."""
+        xy = np.ascontiguousarray(xy, dtype=np.float64)
         tri = np.full(xy.shape[0], -1, dtype=np.int64)
         lam = np.full((xy.shape[0], 3), np.nan)
-        for s in range(0, xy.shape[0], _QUERY_CHUNK):
-            part = slice(s, s + _QUERY_CHUNK)
-            tri[part], lam[part] = self._find_chunk(xy[part])
-        return tri, lam
+        points = np.ascontiguousarray(self.points, dtype=np.float64)
+        triangles = np.ascontiguousarray(self.triangles, dtype=np.int64)
+        G = np.ascontiguousarray(self.G, dtype=np.float64)
+        origin = self.origin.astype(np.float64)
 
-    def barycentric(self, xy: np.ndarray, tri: np.ndarray) -> np.ndarray:
-        """Barycentric coordinates (M, 3) of points xy (M, 2) in triangles tri (M,)."""
-        lam = np.empty((xy.shape[0], 3))
-        corners = self.triangles[tri]
-        for k in range(2):
-            # λ_k vanishes at vertex k+1, so λ_k(x) = G_k·(x − p_{k+1}) is exact near that edge.
-            ref = self.points[corners[:, (k + 1) % 3]]
-            lam[:, k] = np.einsum("md,md->m", self.G[tri, k], xy - ref)
-        lam[:, 2] = 1.0 - lam[:, 0] - lam[:, 1]
-        return lam
-
-    def _find_chunk(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        m = xy.shape[0]
-        tri = np.full(m, -1, dtype=np.int64)
-        lam = np.full((m, 3), np.nan)
-        finite = np.isfinite(xy).all(axis=1)
-        inside_box = finite & np.all(xy >= self.origin - 0.5 * self.cell, axis=1)
-        inside_box &= np.all(xy <= self.origin + self.shape * self.cell + 0.5 * self.cell, axis=1)
-        query = np.flatnonzero(inside_box)
-        ci, cj = self._cell_of(xy[query])
-        cell_id = ci * self.shape[1] + cj
-        n_cand = self.bucket_start[cell_id + 1] - self.bucket_start[cell_id]
-        pair_query = np.repeat(query, n_cand)
-        first = np.repeat(self.bucket_start[cell_id] - (np.cumsum(n_cand) - n_cand), n_cand)
-        pair_tri = self.bucket_tris[first + np.arange(pair_query.size)]
-        pair_lam = self.barycentric(xy[pair_query], pair_tri)
-        score = pair_lam.min(axis=1)
-        ok = score >= -self.tolerance
-        pair_query, pair_tri, pair_lam, score = pair_query[ok], pair_tri[ok], pair_lam[ok], score[ok]
-        # Best candidate per query: sort by (query, -score) and take the first of each query.
-        order = np.lexsort((-score, pair_query))
-        pair_query = pair_query[order]
-        keep = np.ones(pair_query.size, dtype=bool)
-        keep[1:] = pair_query[1:] != pair_query[:-1]
-        best = order[keep]
-        tri[pair_query[keep]] = pair_tri[best]
-        lam[pair_query[keep]] = pair_lam[best]
+        def block(part: slice) -> None:
+            kernel.find(points, triangles, G, self.bucket_start, self.bucket_tris, float(origin[0]),
+                        float(origin[1]), float(self.cell), int(self.shape[0]), int(self.shape[1]),
+                        float(self.tolerance), xy, part.start, part.stop, tri, lam)
+        parallel_blocks(block, xy.shape[0], _QUERY_BLOCK)
         return tri, lam

@@ -3,11 +3,11 @@
 it (validation, the rows in blocks in the thread knob's threads), and nothing else imports it.
 
 The matrix is 3 × 3 vertex blocks on the pattern of the vertex adjacency (each vertex and
-its neighbours in the triangles, in increasing order). Every row of vertices is built from
-the triangles holding the vertex, listed in increasing triangle order (`incidence`), so an
+its neighbours in the triangles, in increasing order). The triangles' blocks are added one
+triangle after another in increasing order (`add_blocks`, on consecutive chunks), so an
 entry is the sum of its triangles' contributions in triangle order, from 0: the order in
-which numpy's bincount over the triangles' vertex pairs summed them before. A row block
-writes only its own rows, so the bits do not depend on the blocks' threads.
+which numpy's bincount over the triangles' vertex pairs summed them before, whatever the
+chunks and the threads that computed the blocks.
 """
 from libc.stdint cimport int32_t, int64_t
 
@@ -42,11 +42,14 @@ def incidence(const int64_t[:, ::1] triangles, int64_t[::1] start, int64_t[::1] 
 
 cdef Py_ssize_t _neighbours(const int64_t[:, ::1] triangles, const int64_t[::1] start,
                             const int64_t[::1] corner, Py_ssize_t v, int64_t *out) noexcept nogil:
-    """The distinct vertices of the triangles at v (v among them), increasing, into out
-    (room for 3 × the corners at v); returns their count. Insertion sort: a few dozen."""
-    cdef Py_ssize_t count = 0, i, j, i2
+    """v and the distinct vertices of the triangles at v, increasing, into out (room for
+    3 × the corners at v, and 1); returns their count, 1 for a vertex without triangles
+    (its diagonal block is stored: the data and gradient terms add to it). Insertion
+    sort: a few dozen."""
+    cdef Py_ssize_t count = 1, i, j, i2
     cdef int64_t t, w
     cdef int k
+    out[0] = v
     for i in range(start[v], start[v + 1]):
         t = corner[i] // 3
         for k in range(3):
@@ -120,28 +123,84 @@ cdef inline Py_ssize_t _slot(const int64_t[::1] cols, Py_ssize_t lo, Py_ssize_t 
     return lo
 
 
-def scatter(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int64_t[::1] corner,
-            const int64_t[::1] row_start, const int64_t[::1] cols, const double[:, :, ::1] blocks,
-            Py_ssize_t first, Py_ssize_t stop, double[::1] data):
-    """The CSR values of rows 3v, 3v + 1, 3v + 2 for v in [first, stop) into data (zeroed
-    by the caller): the sum of blocks (T, 9, 9) over the triangles at v, in increasing
-    triangle order. Vertex v's neighbours are cols[row_start[v]:row_start[v + 1]] (`neighbours`),
-    and its row 3v + c holds 3 values per neighbour w (∂ components 0, 1, 2 of w), so it
-    begins at 9 row_start[v] + 3 c deg(v)."""
-    cdef Py_ssize_t v, i, s, lo, hi, deg, row
-    cdef int64_t t
+def add_blocks(const int64_t[:, ::1] triangles, Py_ssize_t first, const double[:, :, ::1] blocks,
+               const int64_t[::1] row_start, const int64_t[::1] cols, double[::1] data):
+    """Adds the 9 × 9 blocks (B, 9, 9) of triangles first, ..., first + B − 1 into the CSR
+    values data of the vertex pattern (each vertex's rows list 3 values per neighbour w,
+    components 0, 1, 2 of w, in increasing w; `neighbours`), one triangle after another.
+    Called on consecutive chunks of the triangles from 0, every entry is the sum of its
+    triangles' contributions in increasing triangle order from 0 (data zeroed first). One
+    thread: 9 bisections and 81 additions a triangle."""
+    cdef Py_ssize_t B = blocks.shape[0], i, lo, deg, row
+    cdef Py_ssize_t base[3]
+    cdef Py_ssize_t width[3]
+    cdef Py_ssize_t slot[3][3]
+    cdef int64_t t, v
     cdef int a, b, c, d
     with nogil:
-        for v in range(first, stop):
-            lo = row_start[v]
-            hi = row_start[v + 1]
-            deg = hi - lo
-            for i in range(start[v], start[v + 1]):
-                t = corner[i] // 3
-                a = corner[i] % 3
+        for i in range(B):
+            t = first + i
+            for a in range(3):
+                v = triangles[t, a]
+                lo = row_start[v]
+                deg = row_start[v + 1] - lo
+                base[a] = 9 * lo
+                width[a] = 3 * deg
                 for b in range(3):
-                    s = _slot(cols, lo, hi, triangles[t, b]) - lo
-                    for c in range(3):
-                        row = 9 * lo + 3 * c * deg + 3 * s
+                    slot[a][b] = 3 * (_slot(cols, lo, lo + deg, triangles[t, b]) - lo)
+            for a in range(3):
+                for c in range(3):
+                    row = base[a] + c * width[a]
+                    for b in range(3):
                         for d in range(3):
-                            data[row + d] += blocks[t, _local(a, c), _local(b, d)]
+                            data[row + slot[a][b] + d] += blocks[i, _local(a, c), _local(b, d)]
+
+
+def data_scatter(const int64_t[:, ::1] triangles, const int64_t[::1] tri, const double[:, ::1] rows,
+                 const double[::1] w, const int64_t[::1] order, const int64_t[::1] row_start,
+                 const int64_t[::1] cols, double[::1] data):
+    """Adds Aᵀ W A into the CSR values data of the vertex pattern (`add_blocks`): data point i lies in triangle tri[i], its row of A is rows[i]
+    (9,) over that triangle's local data (smoothing_energy's order), its weight w[i]. The
+    points are taken in increasing order, points of weight 0 skipped; each product
+    w_i a_j a_k is formed once for j <= k and added to both (j, k) and (k, j), so the
+    matrix stays exactly symmetric. One thread: O(81 M) additions, 9 bisections a point."""
+    cdef Py_ssize_t m = order.shape[0], p, i, lo, v, deg
+    cdef Py_ssize_t base[3]
+    cdef Py_ssize_t width[3]
+    cdef Py_ssize_t slot[3][3]
+    cdef int64_t t
+    cdef int j, k, a, b, c, d
+    cdef double wa, term
+    with nogil:
+        for p in range(m):
+            i = order[p]
+            if w[i] == 0.0:
+                continue
+            t = tri[i]
+            for a in range(3):
+                v = triangles[t, a]
+                lo = row_start[v]
+                deg = row_start[v + 1] - lo
+                base[a] = 9 * lo
+                width[a] = 3 * deg
+                for b in range(3):
+                    slot[a][b] = 3 * (_slot(cols, lo, lo + deg, triangles[t, b]) - lo)
+            for j in range(9):
+                a, c = _vertex_of(j), _component_of(j)
+                wa = w[i] * rows[i, j]
+                for k in range(j, 9):
+                    b, d = _vertex_of(k), _component_of(k)
+                    term = wa * rows[i, k]
+                    data[base[a] + c * width[a] + slot[a][b] + d] += term
+                    if k != j:
+                        data[base[b] + d * width[b] + slot[b][a] + c] += term
+
+
+cdef inline int _vertex_of(int local) noexcept nogil:
+    """The local vertex of local datum `local` (the inverse of _local)."""
+    return local if local < 3 else (local - 3) // 2
+
+
+cdef inline int _component_of(int local) noexcept nogil:
+    """The component (0 = f, 1 = ∂x, 2 = ∂y) of local datum `local` (the inverse of _local)."""
+    return 0 if local < 3 else 1 + (local - 3) % 2

@@ -55,7 +55,7 @@ from c1mesh.stages.limiter import edge_directions
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
                                             energy_blocks, energy_tensor,
                                             triangle_directions)
-from c1mesh.stages.smoothing_system import (System, assemble_energy, available_solvers,
+from c1mesh.stages.smoothing_system import (Factor, System, assemble_energy, available_solvers,
                                             data_rows, hat_trace, solve, timed, vertex_order)
 
 CV_BLOCK = 4.0
@@ -246,15 +246,15 @@ class _Problem:
 
     def system(self) -> System:
         K = assemble_energy(self.points, self.triangles, self.dirs, self.scheme)
-        A = None
+        rows = None
         if self.data_tri is not None:
-            A = data_rows(self.points, self.triangles, self.dirs, self.scheme,
-                          self.data_tri, self.data_lam)
+            rows = data_rows(self.points, self.triangles, self.dirs, self.scheme,
+                             self.data_tri, self.data_lam)
         mask = values = None
         if self.grad is not None:
             mask = np.isfinite(self.grad).all(axis=1).astype(float)
             values = np.where(mask[:, None] > 0, self.grad, 0.0)
-        return System(K, A, self.z, mask, values)
+        return System(K, rows, self.z, mask, values)
 
     def renumbered(self, order: np.ndarray) -> "_Problem":
         """The same problem with vertex order[i] as vertex i (order (N,) a permutation);
@@ -514,7 +514,9 @@ def fold_of(xy: np.ndarray, folds: int, block: float, seed: int) -> np.ndarray:
 def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, folds: int,
              mu: float, method: str, cache: dict | None = None) -> float:
     """Held-out RMS of F − z over all folds (each weighted point held out once). cache
-    keeps the symbolic factorisation between calls (the pattern never changes)."""
+    keeps what does not change with s between calls: the symbolic factorisation (the
+    pattern never changes) and, for data off the vertices, each fold's data term
+    (System.normal_values)."""
     cache = {} if cache is None else cache
     sq, count = 0.0, 0
     for k in range(folds):
@@ -522,11 +524,16 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
         if not out.any():
             continue
         w = np.where(out, 0.0, problem.w)
-        u, factor = solve(system, s * w.sum() / problem.w.sum(), w, mu, method,
-                          analysis=cache.get("analysis"), ridge=CV_RIDGE,
-                          held_out=out if system.A is None else None)
+        normal = None
+        if system.data is not None:
+            normal = cache.get(("normal", k))
+            if normal is None:
+                normal = cache[("normal", k)] = system.normal_values(w)
+        S, rhs = system.matrix(s * w.sum() / problem.w.sum(), w, mu,
+                               held_out=out if system.data is None else None, ridge=CV_RIDGE, normal=normal)
+        factor = Factor(S, method, cache.get("analysis"), system.vertices_ordered)
         cache["analysis"] = factor.analysis
-        r = (system.fitted(u) - problem.z)[out]
+        r = (system.fitted(factor.solve(rhs)) - problem.z)[out]
         sq += float(r @ r)
         count += int(out.sum())
     return float(np.sqrt(sq / max(count, 1)))
