@@ -165,7 +165,7 @@ def _plan_child(task_file: str, paths: list[str]) -> dict:
     tasks = plan_tiles(build_surface(survey.cloud, options), survey, [p + ".out" for p in paths], LEVEL)
     task = tasks[len(tasks) // 2]
     Path(task_file).write_bytes(pickle.dumps(task))
-    return {"points": int(task.points.shape[0])}
+    return {"points": int(task.vertices.points.shape[0])}
 
 
 def _task_child(task_file: str) -> dict:
