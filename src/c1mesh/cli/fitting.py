@@ -149,7 +149,7 @@ def fit_one(src, dst, targets, options, console: Console, workers: Workers) -> N
         if not show:
             return _fit(source, target, options, tiles=tiles).report
         with stage_bar(len(STAGES), f"fitting {src}") as bar:
-            tiles = replace(tiles, on_tile=lambda name, done, tiles: caption(bar, f"{name}: tile {done} of {tiles}"))
+            tiles = replace(tiles, on_tile=lambda name, done, count: caption(bar, f"{name}: tile {done} of {count}"))
             return _fit(source, target, options, lambda name: bar.update(1, name), tiles=tiles).report
     try:
         with Outputs() as outputs:
