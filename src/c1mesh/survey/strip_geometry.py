@@ -186,7 +186,7 @@ def centres_clear(centre, radius, strips, regions, scale) -> np.ndarray:
 
 def _clear(centre: np.ndarray, radius: np.ndarray, strips: np.ndarray, regions, scale: float) -> np.ndarray:
     """(k,) True where the disk (centre (k, 2), radius (k,)) grown by 1e-9 of its radius
-    and 1e-12 of scale reaches no strip rectangle (k, 4) (the kernel's test), or, given
+    and 1e-12 of scale reaches no strip rectangle, strips (s, 4) (the kernel's test), or, given
     regions (the strips clipped to the hull), no region of a rectangle it reaches."""
     strips = np.ascontiguousarray(strips, dtype=np.float64).reshape(-1, 4)
     hits = np.empty((len(centre), len(strips)), dtype=np.uint8)
