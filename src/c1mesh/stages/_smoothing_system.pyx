@@ -123,6 +123,24 @@ cdef inline Py_ssize_t _slot(const int64_t[::1] cols, Py_ssize_t lo, Py_ssize_t 
     return lo
 
 
+cdef inline void _triangle_places(const int64_t[:, ::1] triangles, int64_t t, const int64_t[::1] row_start,
+                                   const int64_t[::1] cols, Py_ssize_t *base, Py_ssize_t *width,
+                                   Py_ssize_t slot[3][3]) noexcept nogil:
+    """Where triangle t's 9 x 9 block goes in the CSR values of the vertex pattern
+    (`add_blocks`): for each corner a, base[a] = 9 · its row's first pattern entry,
+    width[a] = 3 · its row's length (the stride between its 3 component rows), and
+    slot[a][b] = 3 · the position of corner b among that row's columns (9 bisections)."""
+    cdef int a, b
+    cdef Py_ssize_t lo, deg
+    for a in range(3):
+        lo = row_start[triangles[t, a]]
+        deg = row_start[triangles[t, a] + 1] - lo
+        base[a] = 9 * lo
+        width[a] = 3 * deg
+        for b in range(3):
+            slot[a][b] = 3 * (_slot(cols, lo, lo + deg, triangles[t, b]) - lo)
+
+
 def add_blocks(const int64_t[:, ::1] triangles, Py_ssize_t first, const double[:, :, ::1] blocks,
                const int64_t[::1] row_start, const int64_t[::1] cols, double[::1] data):
     """Adds the 9 × 9 blocks (B, 9, 9) of triangles first, ..., first + B − 1 into the CSR
@@ -131,23 +149,16 @@ def add_blocks(const int64_t[:, ::1] triangles, Py_ssize_t first, const double[:
     Called on consecutive chunks of the triangles from 0, every entry is the sum of its
     triangles' contributions in increasing triangle order from 0 (data zeroed first). One
     thread: 9 bisections and 81 additions a triangle."""
-    cdef Py_ssize_t B = blocks.shape[0], i, lo, deg, row
+    cdef Py_ssize_t B = blocks.shape[0], i, row
     cdef Py_ssize_t base[3]
     cdef Py_ssize_t width[3]
     cdef Py_ssize_t slot[3][3]
-    cdef int64_t t, v
+    cdef int64_t t
     cdef int a, b, c, d
     with nogil:
         for i in range(B):
             t = first + i
-            for a in range(3):
-                v = triangles[t, a]
-                lo = row_start[v]
-                deg = row_start[v + 1] - lo
-                base[a] = 9 * lo
-                width[a] = 3 * deg
-                for b in range(3):
-                    slot[a][b] = 3 * (_slot(cols, lo, lo + deg, triangles[t, b]) - lo)
+            _triangle_places(triangles, t, row_start, cols, base, width, slot)
             for a in range(3):
                 for c in range(3):
                     row = base[a] + c * width[a]
@@ -164,7 +175,7 @@ def data_scatter(const int64_t[:, ::1] triangles, const int64_t[::1] tri, const 
     points are taken in increasing order, points of weight 0 skipped; each product
     w_i a_j a_k is formed once for j <= k and added to both (j, k) and (k, j), so the
     matrix stays exactly symmetric. One thread: O(81 M) additions, 9 bisections a point."""
-    cdef Py_ssize_t m = order.shape[0], p, i, lo, v, deg
+    cdef Py_ssize_t m = order.shape[0], p, i
     cdef Py_ssize_t base[3]
     cdef Py_ssize_t width[3]
     cdef Py_ssize_t slot[3][3]
@@ -177,14 +188,7 @@ def data_scatter(const int64_t[:, ::1] triangles, const int64_t[::1] tri, const 
             if w[i] == 0.0:
                 continue
             t = tri[i]
-            for a in range(3):
-                v = triangles[t, a]
-                lo = row_start[v]
-                deg = row_start[v + 1] - lo
-                base[a] = 9 * lo
-                width[a] = 3 * deg
-                for b in range(3):
-                    slot[a][b] = 3 * (_slot(cols, lo, lo + deg, triangles[t, b]) - lo)
+            _triangle_places(triangles, t, row_start, cols, base, width, slot)
             for j in range(9):
                 a, c = _vertex_of(j), _component_of(j)
                 wa = w[i] * rows[i, j]
