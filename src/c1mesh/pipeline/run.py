@@ -88,8 +88,9 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
             options, _ = resolve_options_axis(source[0], options)
         if outputs is not None and options.contours:
             raise InputError("--contours makes one survey-wide file: use it with --seamless -o, not -O")
-        if tiles.per_tile is not None or needs_tiles(list(source) if survey else source, fit_plan(options, output)):
-            return FitResult(None, _fit_in_tiles(source, output, options, replace(tiles, outputs=outputs)))
+        plan = fit_plan(options, output)              # InputError for a bad --smooth, before any work
+        if tiles.per_tile is not None or needs_tiles(list(source) if survey else source, plan):
+            return FitResult(None, _fit_in_tiles(source, output, plan, replace(tiles, outputs=outputs), options))
         if outputs is not None:
             return FitResult(None, _fit_survey_outputs(source, outputs, options, tiles))
         result = _fit_whole(source, output, options, tiles, keep_mesh)
@@ -98,10 +99,10 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
     return result
 
 
-def _fit_in_tiles(source, output, options: FitOptions, tiles: TiledRun) -> dict:
+def _fit_in_tiles(source, output, plan, tiles: TiledRun, options: FitOptions) -> dict:
     """The memory-bounded fit (bounded_fit.fit_tiled: a mesh, or a DEM when output is a
-    GeoTIFF, pipeline.tiled_dem) and its report."""
-    plan = fit_plan(options, output)                  # InputError for a bad --smooth, before any work
+    GeoTIFF, pipeline.tiled_dem) and its report; plan: the options' core.plan.FitPlan for
+    that output, resolved once by `fit`."""
     if plan.dem is not None:
         geo_plan(output, options)                     # the rasters' paths and options, before any work
     if plan.surface.spacing is not None:
