@@ -252,7 +252,8 @@ def _support_tile(job: DemJob, t: int, path) -> int:
             flat = dem.flat(block.start + ii, cols.start + jj)
             flat = flat[np.isfinite(heights[flat])]
             centre = dem.centres(flat)
-            flat, centre = flat[grid.tile_of(centre) == t], centre[grid.tile_of(centre) == t]
+            mine = grid.tile_of(centre) == t
+            flat, centre = flat[mine], centre[mine]
             if not flat.size:
                 continue
             if tree is None:
