@@ -81,7 +81,7 @@ class MeshTarget:
 @dataclass(frozen=True)
 class DemPlan:
     """A DEM output and its side rasters (c1mesh.geo.raster), as the tiled DEM writer
-    (c1mesh.pipeline.tiled_dem) is told them: dem, slope, aspect, hillshade, support: the
+    (c1mesh.pipeline.bounded_dem) is told them: dem, slope, aspect, hillshade, support: the
     GeoTIFF paths (None: not written); resolution: the cell size (world units);
     slope_method: "auto" | "spline" | "horn"; z_factor: x, y units per height unit
     (None: 1); fill: the fill distance (geo.raster.fill_distance: None off, inf the hull);

@@ -251,7 +251,7 @@ def render_dem_cells(cells: DemCells, grid: RasterGrid, stride: int, path, crs: 
                      z_factor: float | None = 1.0) -> None:
     """The picture of a fit's DEM from its cells (DemCells) shaded by the spline's
     gradient: the in-memory fit's (render_dem_fit) and the tiled DEM writer's
-    (pipeline.tiled_dem), which gather the same cells each its own way. z_factor: x, y
+    (pipeline.bounded_dem), which gather the same cells each its own way. z_factor: x, y
     units per height unit (None: unknown, unshaded)."""
     z, g = cells.z, cells.g
     if z_factor is None:

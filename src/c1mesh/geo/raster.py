@@ -322,7 +322,7 @@ def write_blocks(targets: RasterTargets, grid: RasterGrid, blocks, style: Raster
     NaN = nodata, gradients (n, w, 2) or None when no slope, aspect or hillshade is asked,
     support (n, w) distances, NaN where the DEM is nodata, or None without --support):
     from a sampled spline (write_rasters) or from grids the tiles filled
-    (pipeline.tiled_dem).
+    (pipeline.bounded_dem).
 
     Every file is a Cloud-Optimised GeoTIFF (cog_copy): the blocks are written to a
     staging GeoTIFF beside the output (GDAL's COG driver writes only by copying a whole

@@ -65,7 +65,7 @@ from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.geo.raster import check_angle_crs
-from c1mesh.pipeline.tiled_dem import DemJob, TiledDem, dem_grid
+from c1mesh.pipeline.bounded_dem import DemJob, TiledDem, dem_grid
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
@@ -105,7 +105,7 @@ TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "n
 ground filter chooses the points (survey.ground_pass), "noise floors"
 only with the overshoot limiter (the default) of an exact fit, "smoothing" only with a
 smoothing strength (c1mesh.survey.smoothing_runs); a DEM output (-o DEM.tif) has "raster"
-(c1mesh.pipeline.tiled_dem) in place of "refine+write"."""
+(c1mesh.pipeline.bounded_dem) in place of "refine+write"."""
 
 
 def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict:
@@ -276,7 +276,7 @@ def _shaded(dem: DemPlan) -> bool:
 
 
 def _write_dem(job: DemJob, where, dem: DemPlan, chunks, crs, limiter) -> dict:
-    """The tiled DEM (c1mesh.pipeline.tiled_dem) of the trimmed survey, in place of the
+    """The tiled DEM (c1mesh.pipeline.bounded_dem) of the trimmed survey, in place of the
     mesh's refinement: the facts write_tiles gives a mesh (kept, output_mesh null,
     triangles_per_tile, overshoot) and the raster section. where: (temps, runner, rows)."""
     facts = TiledDem(job, *where).write(dem, chunks, crs, isinstance(limiter, TiledSmoother))
@@ -336,7 +336,7 @@ def tiles_report(facts: dict, options) -> dict:
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
     report.update(facts)
-    if "raster" in report:        # a DEM (pipeline.tiled_dem): --fill off, the one fill done in tiles
+    if "raster" in report:        # a DEM (pipeline.bounded_dem): --fill off, the one fill done in tiles
         report["raster"]["fill"] = {"option": options.fill, "distance": None, "triangles_spanning_holes": 0}
     overshoot = report.get("overshoot")
     if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory

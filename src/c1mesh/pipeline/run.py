@@ -101,7 +101,7 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
 
 def _fit_in_tiles(source, output, plan, tiles: TiledRun, options: FitOptions) -> dict:
     """The memory-bounded fit (bounded_fit.fit_tiled: a mesh, or a DEM when output is a
-    GeoTIFF, pipeline.tiled_dem) and its report; plan: the options' core.plan.FitPlan for
+    GeoTIFF, pipeline.bounded_dem) and its report; plan: the options' core.plan.FitPlan for
     that output, resolved once by `fit`."""
     if plan.dem is not None:
         geo_plan(output, options)                     # the rasters' paths and options, before any work

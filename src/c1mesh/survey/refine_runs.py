@@ -94,7 +94,7 @@ class RefineJob:
         """(RSDInterpolator over tile t's own triangles (survey numbers; its points the
         corners' local x, y), the corners' records (c,), (limited, turned, lifted)): the
         spline the tile refines (with the limiter's or the smoothing's data; the records'
-        own without), as the tiled DEM samples it too (pipeline.tiled_dem)."""
+        own without), as the tiled DEM samples it too (pipeline.bounded_dem)."""
         records, local, gradients, directions, limited, turned, lifted = self.tile_data(t, triangles)
         xy = np.column_stack([records["x"], records["y"]])
         if gradients is None:

@@ -1,4 +1,4 @@
-"""The DEM of a survey fitted in tiles (c1mesh.pipeline.tiled_dem, `fit BIG.laz -o dem.tif
+"""The DEM of a survey fitted in tiles (c1mesh.pipeline.bounded_dem, `fit BIG.laz -o dem.tif
 --resolution R --memory M`) against the in-memory fit's DEM of the same input.
 
 Ground truth: the in-memory fit (pipeline.driver, geo.raster), which samples one spline
@@ -66,7 +66,7 @@ def _assert_cog(path: str) -> None:
 
 @pytest.mark.parametrize("source,resolution,per_tile,tiles", [("autzen_trim.laz", 2.0, 7000, 4),
                                                                ("4_6_crop.las", 1.0, 1000, 16)])
-def test_tiled_dem_equals_the_in_memory_dem(tmp_path, source, resolution, per_tile, tiles):
+def test_bounded_dem_equals_the_in_memory_dem(tmp_path, source, resolution, per_tile, tiles):
     """Autzen ground (26k points, 4 tiles: bow-ties, curtains, cells holding ground points
     outside the trimmed triangles) and 4_6_crop ground: DEM, slope, aspect, hillshade and
     support equal the in-memory fit's cell for cell, and every raster is a valid COG."""
@@ -86,7 +86,7 @@ def test_tiled_dem_equals_the_in_memory_dem(tmp_path, source, resolution, per_ti
                                                                                          *tiled.values()])
 
 
-def test_tiled_dem_without_max_edge_continues_into_the_peeled_rim(tmp_path):
+def test_bounded_dem_without_max_edge_continues_into_the_peeled_rim(tmp_path):
     """--max-edge none: the cells holding points past the peeled hull slivers take the
     nearest triangle at any distance, found over every tile's triangles; --overshoot off
     and the spline's own slope (--slope-method spline)."""
