@@ -130,19 +130,61 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
 @pytest.mark.parametrize("extra,words", [
     ([], "--fill"),                                              # the default fill: the hull
     (["--fill", "hull"], "--fill"),
-    (["--fill", "off", "--contours", "CONTOURS", "--interval", "1"], "--contours"),
+    (["--contours", "CONTOURS", "--interval", "1"], "--contours"),      # of a mesh (-o m.ply)
 ])
 def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
-    """Beyond --memory the DEM's fill and contours are refused in one line
+    """Beyond --memory the DEM's fill and a mesh's contours are refused in one line
     naming the input and the option, before any output is written."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2, 5))
-    extra = [str(tmp_path / "c.gpkg") if e == "CONTOURS" else e for e in extra]
-    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "dem.tif"),
-                                       "--resolution", "1", "--memory", "1M", *extra])
+    target = ["-o", str(tmp_path / "dem.tif"), "--resolution", "1"]
+    if "--contours" in extra:
+        extra, target = [str(tmp_path / "c.gpkg") if e == "CONTOURS" else e for e in extra], ["-o", str(tmp_path / "m.ply")]
+    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", *target, "--memory", "1M", *extra])
     assert result.exit_code == 1
     assert result.output.count("\n") == 1 and words in result.output and "terrain.las" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+
+
+def _contour_lines(path) -> tuple[list, np.ndarray]:
+    """The LineStrings' vertices ((n, 2) each) and levels of a contour file, read by
+    pyogrio (GDAL), in file order."""
+    import pyogrio.raw
+
+    _, _, geometry, fields = pyogrio.raw.read(path)
+    lines = []
+    for wkb in geometry:
+        wkb = bytes(wkb)
+        count = int(np.frombuffer(wkb[5:9], "<u4")[0])
+        lines.append(np.frombuffer(wkb[9:9 + 16 * count], "<f8").reshape(-1, 2))
+    return lines, np.asarray(fields[0])
+
+
+@pytest.mark.parametrize("source,resolution,interval,per_tile,tiles", [("autzen_trim.laz", 2.0, 2.0, 7000, 4),
+                                                                         ("4_6_crop.las", 1.0, 0.5, 1000, 16)])
+def test_contours_in_tiles_are_the_in_memory_fits(tmp_path, source, resolution, interval, per_tile, tiles):
+    """--contours with a DEM fitted in tiles: the tiles' splines snap the lines traced on
+    the tiles' DEM nodes. Truth: the in-memory fit's contours of one spline. The same
+    lines in the same order, with the same levels and vertex counts; each vertex is the
+    root of the same spline on the same grid edge, and the tiles' splines equal the whole
+    one to float64 rounding, so vertices may differ by the snapping's tolerance only
+    (NEWTON_TOLERANCE x the interval in height: far below 1e-6 of a cell in position)."""
+    runs = {}
+    for name, memory, run in (("whole", None, None), ("tiled", 10**9, TiledRun(per_tile=per_tile))):
+        paths = _paths(tmp_path, name)
+        options = replace(_options(paths, resolution, memory=memory), contours=str(tmp_path / f"{name}.gpkg"),
+                          interval=interval)
+        runs[name] = fit(str(SAMPLES / source), paths["dem"], options, tiles=run).report
+    assert runs["tiled"]["tiles"] == tiles and "tiles" not in runs["whole"]
+    whole, tiled = runs["whole"]["contours"], runs["tiled"]["contours"]
+    for key in ("interval", "lines", "closed", "vertices", "levels", "dropped_vertices", "grid_resolution"):
+        assert tiled[key] == whole[key], key
+    assert tiled["lines"] > 50 and tiled["max_level_error"] <= 1e-6 * interval
+    (a, a_levels), (b, b_levels) = _contour_lines(tmp_path / "whole.gpkg"), _contour_lines(tmp_path / "tiled.gpkg")
+    assert np.array_equal(a_levels, b_levels) and [x.shape for x in a] == [y.shape for y in b]
+    assert max(np.abs(x - y).max() for x, y in zip(a, b)) <= 1e-6 * resolution
+    rasters = [Path(p).name for name in ("whole", "tiled") for p in _paths(tmp_path, name).values()]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(rasters + ["tiled.gpkg", "whole.gpkg"])
 
 
 def test_the_preview_of_a_dem_in_tiles_is_the_in_memory_fits_picture(tmp_path):

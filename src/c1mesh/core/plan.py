@@ -85,7 +85,8 @@ class DemPlan:
     GeoTIFF paths (None: not written); resolution: the cell size (world units);
     slope_method: "auto" | "spline" | "horn"; z_factor: x, y units per height unit
     (None: 1); fill: the fill distance (geo.raster.fill_distance: None off, inf the hull);
-    preview: the PNG path of the DEM's preview (None: none)."""
+    preview: the PNG path of the DEM's preview (None: none); contours: the vector file of
+    contour lines traced on the DEM's grid every `interval` of height (None: none)."""
 
     dem: str
     resolution: float
@@ -97,6 +98,8 @@ class DemPlan:
     z_factor: float | None = None
     fill: float | None = None
     preview: str | None = None
+    contours: str | None = None
+    interval: float | None = None
 
 
 @dataclass(frozen=True)
@@ -108,7 +111,8 @@ class FitPlan:
     output (DemPlan; None: the output is a mesh); rasters: whether a raster option only
     the in-memory fit takes is asked for (--preview; --resolution of a mesh, which picks
     its level from the whole triangulation); contours: whether --contours is asked for
-    (the in-memory fit only)."""
+    (with a DEM output also in its DemPlan, which the tiles trace them on; with a mesh
+    output the in-memory fit only)."""
 
     select: PointSelection = PointSelection()
     heights: HeightSettings = HeightSettings()

@@ -159,7 +159,7 @@ def sample_grid(sampler: SplineSampler, grid: ContourGrid) -> tuple[np.ndarray, 
     return heights.reshape(grid.height, grid.width), triangles.reshape(grid.height, grid.width)
 
 
-class _Surface:
+class SplineSurface:
     """The spline and its analytic gradient at arbitrary local points, each point's
     triangle remembered between calls (a vertex moving along its grid edge mostly stays in
     it), evaluated as the DEM grid is (SplineSampler.evaluate)."""
@@ -197,7 +197,40 @@ class _Surface:
         return out[0], out[1]
 
 
-def _values(interp, xy: np.ndarray) -> np.ndarray:
+class JoinedSurface:
+    """Several splines' SplineSurfaces as one (the tiles of a survey fitted in tiles, each
+    holding its own triangles, c1mesh.pipeline.bounded_dem): a triangle number names a
+    part's triangle offset by the triangles of the parts before it; a point lost from its
+    triangle is searched for in the parts in their order, the first that holds it wins."""
+
+    def __init__(self, parts: list):
+        self.parts = parts
+        self.offsets = np.cumsum([0] + [part.interp.triangles.shape[0] for part in parts])
+
+    def at(self, xy: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """SplineSurface.at over the parts: (values (M,), gradients (M, 2), triangles (M,))."""
+        values, gradients, found = np.full(xy.shape[0], np.nan), np.full(xy.shape, np.nan), tri.copy()
+        part_of = np.searchsorted(self.offsets, tri, side="right") - 1
+        for k, part in enumerate(self.parts):          # first where each point was
+            here = np.flatnonzero((tri >= 0) & (part_of == k))
+            self._take(k, here, part.at(xy[here], tri[here] - self.offsets[k]), (values, gradients, found))
+        found[(tri < 0) | np.isnan(values)] = -1
+        for k, part in enumerate(self.parts):          # then the lost points, part by part
+            lost = np.flatnonzero(found < 0)
+            if not lost.size:
+                break
+            self._take(k, lost, part.at(xy[lost], np.full(lost.size, -1)), (values, gradients, found))
+        return values, gradients, found
+
+    def _take(self, k: int, where: np.ndarray, result, into) -> None:
+        """Write part k's (values, gradients, triangles) at `where` into `into` where it found a triangle."""
+        value, gradient, tri = result
+        inside = tri >= 0
+        into[0][where[inside]], into[1][where[inside]] = value[inside], gradient[inside]
+        into[2][where[inside]] = tri[inside] + self.offsets[k]
+
+
+def spline_values(interp, xy: np.ndarray) -> np.ndarray:
     """Spline values at xy (M, 2) by the interpolator's own evaluation (rsd's shape
     functions), NaN outside the triangulation whatever its fill value."""
     if isinstance(interp.fill_value, float) and math.isnan(interp.fill_value):
@@ -254,6 +287,10 @@ class _Edges:
     key: np.ndarray
     valid: np.ndarray
 
+    def take(self, rows: np.ndarray) -> "_Edges":
+        """The edges of the vertices `rows` (indices)."""
+        return _Edges(self.a[rows], self.b[rows], self.t0[rows], self.key[rows], self.valid[rows])
+
 
 def grid_edges(positions: np.ndarray, width: int, height: int) -> _Edges:
     """The grid edge each vertex (column, row) lies on: the coordinate that is a whole
@@ -299,7 +336,7 @@ class _Segments:
     triangle: np.ndarray
 
 
-def _solve(surface: _Surface, segments: _Segments, tolerance: float) -> _Roots:
+def _solve(surface, segments: _Segments, tolerance: float) -> _Roots:
     """The roots of f on the segments: Newton steps with the analytic derivative
     ∇s·step, bisection when Newton would leave the bracket, until |f| ≤ tolerance or
     NEWTON_STEPS."""
@@ -335,19 +372,18 @@ def _between(t: np.ndarray, one: np.ndarray, other: np.ndarray) -> np.ndarray:
     return (t > np.minimum(one, other)) & (t < np.maximum(one, other))
 
 
-def snap(surface: _Surface, grid: ContourGrid, nodes: tuple[np.ndarray, np.ndarray], edges: _Edges,
-         level: np.ndarray, tolerance: float) -> _Roots:
+def snap(surface, grid: ContourGrid, heights: np.ndarray, edges: _Edges, level: np.ndarray,
+         tolerance: float, hint: np.ndarray) -> _Roots:
     """Move each vertex along its grid edge onto the spline's level set (module docstring).
 
-    nodes: the grid's node heights (local) and triangles (sample_grid); level (M,) each
-    vertex's level (local).
+    surface: a SplineSurface (or JoinedSurface) holding every point of the edges;
+    heights: the grid's node heights (local, sample_grid); level (M,) each vertex's level
+    (local); hint (M,): the triangle of the surface each vertex's search starts in (−1:
+    unknown).
     On one edge, levels are solved in increasing order, each bracketed by the last root
     found below it and the edge's higher node, so roots keep the order of their levels.
     """
-    heights, node_triangle = nodes
     za, zb = heights[edges.a[:, 0], edges.a[:, 1]], heights[edges.b[:, 0], edges.b[:, 1]]
-    near = np.where((edges.t0 < 0.5)[:, None], edges.a, edges.b)
-    hint = node_triangle[near[:, 0], near[:, 1]]                 # the nearer node's triangle
     t_high = (zb > za).astype(np.float64)                     # the higher node: where s > level
     start = grid.local(edges.a[:, 1].astype(np.float64), edges.a[:, 0].astype(np.float64))
     end = grid.local(edges.b[:, 1].astype(np.float64), edges.b[:, 0].astype(np.float64))
@@ -387,11 +423,38 @@ def _next_in_edge(order: np.ndarray, first: np.ndarray, members: np.ndarray) -> 
 def contour_surface(interp, grid: ContourGrid, interval: float) -> ContourLines:
     """Contour lines of the spline `interp` (in the local frame of grid.origin, world
     axes) every `interval` of world height, traced on `grid` and snapped onto the
-    spline's level sets (module docstring)."""
-    oz = grid.origin[2]
+    spline's level sets (module docstring): contour_heights with the one spline."""
     sampler = SplineSampler(interp, grid.origin)
-    nodes = sample_grid(sampler, grid)
-    heights = nodes[0]
+    heights, node_triangle = sample_grid(sampler, grid)
+    return contour_heights(heights, grid, interval, OneSpline(interp, sampler, node_triangle))
+
+
+class OneSpline:
+    """The splines contour_heights snaps onto, when one interpolator holds the whole
+    surface (the in-memory fit): `values` at local points (NaN outside) and `patches`,
+    here one, of every vertex with its SplineSurface and the triangle of the grid node
+    nearer to it (node_triangle (height, width): sample_grid's) to start from."""
+
+    def __init__(self, interp, sampler: SplineSampler, node_triangle: np.ndarray):
+        self.interp, self.surface, self.node_triangle = interp, SplineSurface(interp, sampler), node_triangle
+
+    def values(self, xy: np.ndarray) -> np.ndarray:
+        return spline_values(self.interp, xy)
+
+    def patches(self, grid: ContourGrid, edges: "_Edges"):
+        """[(vertices (M,), surface, hint (M,))]: every vertex, in one patch."""
+        near = np.where((edges.t0 < 0.5)[:, None], edges.a, edges.b)
+        hint = self.node_triangle[near[:, 0], near[:, 1]]
+        return [(np.arange(edges.a.shape[0]), self.surface, hint)]
+
+
+def contour_heights(heights: np.ndarray, grid: ContourGrid, interval: float, splines) -> ContourLines:
+    """Contour lines every `interval` of world height through the grid nodes' spline
+    heights (heights (height, width), local, NaN outside the triangulation: sample_grid's),
+    snapped onto the level sets of `splines` (OneSpline, or the tiles' splines of a survey
+    fitted in tiles: c1mesh.pipeline.bounded_dem), which give every vertex's grid edge a
+    surface holding it (`patches`) and evaluate the spline anywhere (`values`)."""
+    oz = grid.origin[2]
     finite = heights[np.isfinite(heights)]
     if finite.size == 0 or grid.width < 2 or grid.height < 2:
         return _empty(interval)
@@ -399,13 +462,17 @@ def contour_surface(interp, grid: ContourGrid, interval: float) -> ContourLines:
     traced = trace(heights, levels - oz)
     edges = grid_edges(traced.positions, grid.width, grid.height)
     vertex_level = (levels - oz)[traced.line_level[traced.line_of]]
-    roots = snap(_Surface(interp, sampler), grid, nodes, edges, vertex_level, NEWTON_TOLERANCE * interval)
+    t, residual = np.zeros(vertex_level.size), np.full(vertex_level.size, np.nan)
+    for members, surface, hint in splines.patches(grid, edges):
+        roots = snap(surface, grid, heights, edges.take(members), vertex_level[members],
+                     NEWTON_TOLERANCE * interval, hint)
+        t[members], residual[members] = roots.t, roots.residual
     start = grid.local(edges.a[:, 1].astype(np.float64), edges.a[:, 0].astype(np.float64))
     end = grid.local(edges.b[:, 1].astype(np.float64), edges.b[:, 0].astype(np.float64))
-    local = start + roots.t[:, None] * (end - start)
-    good = edges.valid & np.isfinite(roots.residual) & (np.abs(roots.residual) <= EXACT * interval)
-    pieces = _split(interp, local, good, traced)
-    return _assemble(interp, grid.origin, pieces, levels, interval, int((~good).sum()))
+    local = start + t[:, None] * (end - start)
+    good = edges.valid & np.isfinite(residual) & (np.abs(residual) <= EXACT * interval)
+    pieces = _split(splines.values, local, good, traced)
+    return _assemble(splines.values, grid.origin, pieces, levels, interval, int((~good).sum()))
 
 
 @dataclass(frozen=True)
@@ -417,13 +484,13 @@ class _Piece:
     closed: bool
 
 
-def _split(interp, local: np.ndarray, good: np.ndarray, traced: _Traced) -> list[_Piece]:
+def _split(values, local: np.ndarray, good: np.ndarray, traced: _Traced) -> list[_Piece]:
     """The traced lines cut at dropped vertices and at chords whose midpoint lies outside
     the triangulation; pieces of fewer than two vertices are left out."""
     bounds = np.flatnonzero(np.diff(traced.line_of)) + 1
     starts = np.concatenate([[0], bounds]) if traced.line_of.size else np.empty(0, np.int64)
     stops = np.concatenate([bounds, [traced.line_of.size]]) if traced.line_of.size else np.empty(0, np.int64)
-    chord_ok = _chords_inside(interp, local, traced.line_of, traced.line_closed, starts, stops)
+    chord_ok = _chords_inside(values, local, traced.line_of, traced.line_closed, starts, stops)
     pieces = []
     for line, (lo, hi) in enumerate(zip(starts, stops)):
         closed = bool(traced.line_closed[traced.line_of[lo]])
@@ -432,7 +499,7 @@ def _split(interp, local: np.ndarray, good: np.ndarray, traced: _Traced) -> list
     return pieces
 
 
-def _chords_inside(interp, local, line_of, line_closed, starts, stops) -> np.ndarray:
+def _chords_inside(values, local, line_of, line_closed, starts, stops) -> np.ndarray:
     """(M,) bool: the chord from vertex k to the next one of its line (the first, for the
     last vertex of a closed line) has its midpoint inside the triangulation; False for the
     last vertex of an open line (no chord)."""
@@ -446,7 +513,7 @@ def _chords_inside(interp, local, line_of, line_closed, starts, stops) -> np.nda
     which = np.flatnonzero(has_chord)
     if which.size:
         middle = 0.5 * (local[which] + local[following[which]])
-        ok[which] = np.isfinite(_values(interp, middle))
+        ok[which] = np.isfinite(values(middle))
     return ok
 
 
@@ -485,7 +552,7 @@ def _distinct(xy: np.ndarray, closed: bool) -> np.ndarray:
     return xy[~repeated]
 
 
-def _assemble(interp, origin, pieces: list[_Piece], levels: np.ndarray, interval: float,
+def _assemble(values, origin, pieces: list[_Piece], levels: np.ndarray, interval: float,
               dropped: int) -> ContourLines:
     """The pieces in world coordinates (a closed one repeating its first vertex), and the
     largest |spline − level| over their vertices, evaluated afresh at the world
@@ -497,7 +564,7 @@ def _assemble(interp, origin, pieces: list[_Piece], levels: np.ndarray, interval
     if lines:
         every = np.concatenate(lines)
         wanted = np.repeat(line_levels, [line.shape[0] for line in lines])
-        worst = float(np.max(np.abs(_values(interp, every - shift) + float(origin[2]) - wanted)))
+        worst = float(np.max(np.abs(values(every - shift) + float(origin[2]) - wanted)))
     return ContourLines(lines, line_levels, np.array([p.closed for p in pieces], dtype=bool),
                         float(interval), levels, worst, dropped)
 

@@ -257,6 +257,12 @@ def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid) -> 
     "contours" section)."""
     start = time.perf_counter()
     lines = contour_surface(interp, ContourGrid.of_raster(grid, frame.origin), request.interval)
+    return stage_lines(request, lines, grid, start)
+
+
+def stage_lines(request: ContourRequest, lines, grid: RasterGrid, start: float) -> tuple[Any, dict]:
+    """Write the traced ContourLines `lines` as stage_contours does: (StagedContours, the
+    report's "contours" section); start: the perf_counter at which the tracing began."""
     staged = StagedContours(request.path)
     try:
         staged.write(lines.lines, lines.levels, request.crs)
@@ -266,6 +272,17 @@ def stage_contours(request: ContourRequest, interp, frame, grid: RasterGrid) -> 
     facts = {"file": request.path, **lines.facts(), "grid_resolution": grid.resolution,
              "seconds": round(time.perf_counter() - start, 6)}
     return staged, facts
+
+
+def add_contour_facts(report: dict, facts: dict | None) -> None:
+    """Put the "contours" section (facts; None: no --contours) into a fit's report, and a
+    warning when no level lies within the surface's heights (the file is empty)."""
+    if facts is None:
+        return
+    report["contours"] = facts
+    if facts["levels"]["count"] == 0:
+        report["warnings"].append(f"--interval {facts['interval']:g} gives no contour level within the "
+                                  f"surface's heights: {facts['file']} holds no line")
 
 
 def finish(result, interp, frame, crs, crs_source, options, dem=None):

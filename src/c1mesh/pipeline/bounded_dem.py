@@ -28,7 +28,11 @@ The in-memory DEM's rules (geo.raster_grid.SplineSampler), and how the tiles kee
   differences of the heights (with the grid's one-cell ring, as the in-memory blocks
   sample it), written in blocks of rows by geo.raster.write_blocks, the in-memory writer;
 - --preview from every s-th cell's height and spline gradient (`render_preview`), as the
-  in-memory preview draws them (geo.preview.render_dem_cells).
+  in-memory preview draws them (geo.preview.render_dem_cells);
+- --contours traced on the nodes' local heights as the tiles sampled them (before the
+  nearest-triangle rule, as the in-memory contours sample the spline without data
+  points: `ContourNodes`) and snapped onto the tiles' splines (`TileSplines`), the
+  same geo.contours.contour_heights the in-memory fit runs with its one spline.
 
 The grids live in temporary files (memory maps) over the grid and its ring: heights
 (float64), gradients (2 x float64, only for slope, aspect, hillshade or the preview), support
@@ -51,6 +55,7 @@ from scipy.spatial import cKDTree
 from c1mesh.core.plan import DemPlan
 from c1mesh.core.threads import limit
 from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.engine.topology import edge_table
 from c1mesh.geo.raster import (
     BLOCK_CELLS,
     RasterStyle,
@@ -59,13 +64,18 @@ from c1mesh.geo.raster import (
     horn_gradient,
     write_blocks,
 )
+from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, contour_heights, spline_values
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
+from c1mesh.geo.products import ContourRequest, stage_lines
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
 from c1mesh.survey.tiles import task_row
 
-CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2)])
+CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4")])
 """A sampled cell in a tile's part file: its flat index in the grid with its ring
-(DemGrid.flat), height (world z) and the spline's gradient (dz/dx, dz/dy)."""
+(DemGrid.flat), height (local: world z − the frame's origin z, which the parent adds, so
+the contours trace the local heights the in-memory fit traces), the spline's gradient
+(dz/dx, dz/dy) and the tile's triangle holding the centre (where the contours' search
+starts, as the in-memory one starts from the node's triangle)."""
 
 
 @dataclass(frozen=True)
@@ -174,11 +184,35 @@ class DemJob:
     def sampler(self, spline_path) -> SplineSampler:
         """The SplineSampler of a tile's spline saved by _sample_tile (no data points: the
         nearest-triangle rule is asked through SplineSampler.continued)."""
+        return SplineSampler(self.spline(spline_path), self.dem.origin, reach=self.reach)
+
+    def spline(self, spline_path) -> RSDInterpolator:
+        """The interpolator of a tile's own triangles saved by _sample_tile (local frame)."""
         with np.load(spline_path) as saved:
-            interp = RSDInterpolator(saved["points"], saved["values"], saved["gradients"],
-                                     triangles=saved["triangles"], scheme=self.surfaces.scheme,
-                                     directions=saved["directions"])
-        return SplineSampler(interp, self.dem.origin, reach=self.reach)
+            return RSDInterpolator(saved["points"], saved["values"], saved["gradients"],
+                                   triangles=saved["triangles"], scheme=self.surfaces.scheme,
+                                   directions=saved["directions"])
+
+    def spline_part(self, spline_path, box) -> tuple[RSDInterpolator | None, np.ndarray]:
+        """(the interpolator of those of a tile's own triangles whose corners' box meets
+        `box` (lo, hi; local; None: none does), rows: their numbers in the tile's spline
+        (ascending)). Each
+        side keeps its saved edge direction, so they evaluate as the whole tile's do."""
+        with np.load(spline_path) as saved:
+            points, triangles = saved["points"], saved["triangles"]
+            meets = np.ones(triangles.shape[0], dtype=bool)
+            for axis in range(2):
+                a, b, c = (points[triangles[:, k], axis] for k in range(3))
+                meets &= (np.minimum(np.minimum(a, b), c) <= box[1][axis]) & (np.maximum(np.maximum(a, b), c) >= box[0][axis])
+            rows = np.flatnonzero(meets)
+            if not rows.size:
+                return None, rows
+            triangles = triangles[rows]
+            table = edge_table(triangles, points.shape[0])
+            directions = np.zeros((table.edges.shape[0], 2))
+            directions[table.tri_edge] = saved["sides"][rows]
+            return RSDInterpolator(points, saved["values"], saved["gradients"], triangles=triangles,
+                                   scheme=self.surfaces.scheme, directions=directions, edge_table=table), rows
 
 
 def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
@@ -194,7 +228,8 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
         interp, records, (limited, turned, lifted) = job.surfaces.spline(t, triangles)
         with open(files.spline, "wb") as out:
             np.savez(out, points=interp.points, values=interp.values, gradients=interp.gradients,
-                     triangles=interp.triangles, directions=interp.directions)
+                     triangles=interp.triangles, directions=interp.directions,
+                     sides=interp.directions[interp.edge_table.tri_edge])
         sampler = SplineSampler(interp, job.dem.origin)
         lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
         rows, cols = job.dem.span(lo, hi, 0.0)
@@ -206,7 +241,7 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
                 i, j = np.divmod(cell, len(cols))
                 part = np.zeros(cell.size, CELL)
                 part["cell"] = job.dem.flat(block.start + i, cols.start + j)
-                part["z"] = values + sampler.origin[2]
+                part["z"], part["tri"] = values, tri
                 if grads is not None:
                     part["g"] = grads
                 part.tofile(out)
@@ -284,10 +319,21 @@ class TiledDem:
     def __init__(self, job: DemJob, temps, runner, rows):
         self.job, self.temps, self.runner, self.rows = job, temps, runner, rows
 
-    def write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool) -> dict:
-        """Sample every tile, continue the spline into the marked cells, measure the
-        support, and write plan's rasters (geo.raster.write_blocks); returns {"kept",
-        "triangles_per_tile", "raster", counts of the limiter}."""
+    def write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool,
+              contours: ContourRequest | None = None) -> dict:
+        """Sample every tile, continue the spline into the marked cells, trace the contours
+        (contours: the request, its CRS resolved; None: none), measure the support, and
+        write plan's rasters (geo.raster.write_blocks); the contour file is committed once
+        the rasters are written. Returns {"kept", "triangles_per_tile", "raster",
+        "contours" (the report's section or None), counts of the limiter}."""
+        facts = self._write(plan, chunks, crs, smoothed, contours)
+        staged = facts.pop("staged")
+        if staged is not None:
+            staged.commit()
+        return facts
+
+    def _write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool, contours) -> dict:
+        """write's passes; the contours staged (geo.contour_file.StagedContours) in "staged"."""
         job, dem = self.job, self.job.dem
         shape = dem.shape
         heights_path = self.temps.new("dem-heights.npy")
@@ -302,11 +348,36 @@ class TiledDem:
         tiles = [t for t in range(len(job.surfaces.grid)) if job.surfaces.files[t] is not None]
         files = {t: _TileFiles(self.temps.new(f"dem-cells-{t}.bin"), self.temps.new(f"dem-spline-{t}.npz"))
                  for t in tiles}
-        sampled = self._sample(tiles, files, heights, gradients)
+        nodes = None if contours is None else ContourNodes.empty(shape)
+        sampled = self._sample(tiles, files, (heights, gradients, nodes))
         self._continue(sampled, files, heights, gradients, marks)
-        for t in tiles:
-            files[t].cells.unlink(missing_ok=True)
-            files[t].spline.unlink(missing_ok=True)
+        staged, contour_facts = None, None
+        try:
+            if contours is not None:
+                start = time.perf_counter()
+                splines = TileSplines(job, {t: files[t].spline for t in sampled},
+                                      {t: row["box"] for t, row in sampled.items()}, nodes)
+                lines = contour_heights(nodes.heights[1:-1, 1:-1], ContourGrid.of_raster(dem.grid, dem.origin),
+                                        contours.interval, splines)
+                del nodes, splines
+                staged, contour_facts = stage_lines(contours, lines, dem.grid, start)
+            for t in tiles:
+                files[t].cells.unlink(missing_ok=True)
+                files[t].spline.unlink(missing_ok=True)
+            return self._finish(plan, (heights_path, heights, gradients), tiles, sampled, crs, smoothed) | \
+                {"staged": staged, "contours": contour_facts}
+        except BaseException:
+            if staged is not None:
+                staged.discard()
+            raise
+
+    def _finish(self, plan: DemPlan, grids, tiles: list, sampled: dict, crs: str | None, smoothed: bool) -> dict:
+        """The support pass and the rasters' writing, from the grids (heights path, heights
+        and gradients memory maps) the tiles filled; write's facts. tiles: those with a
+        triangle file; sampled: _sample's rows of those with triangles."""
+        job, dem = self.job, self.job.dem
+        heights_path, heights, gradients = grids
+        shape = dem.shape
         heights.flush()
         support = self._support(tiles, heights_path, shape) if plan.support else None
         area = sum(row["area"] for row in sampled.values())
@@ -324,10 +395,13 @@ class TiledDem:
                 "triangles_per_tile": {t: row["triangles"] for t, row in sampled.items()},
                 **{k: sum(row[k] for row in sampled.values()) for k in ("limited", "turned", "lifted")}}
 
-    def _sample(self, tiles, files, heights, gradients) -> dict:
-        """Every tile's _sample_tile, its cells written into the grids in tile order."""
+    def _sample(self, tiles, files, grids) -> dict:
+        """Every tile's _sample_tile, its cells written into the grids in tile order: grids
+        (heights (world z), gradients or None, local heights for the contours or None),
+        each over the grid with its ring."""
         rows, ready, sampled, next_tile = self.rows, {}, {}, 0
-        flat_heights = heights.reshape(-1)
+        heights, gradients, nodes = grids
+        flat_heights, oz = heights.reshape(-1), self.job.dem.origin[2]
         flat_gradients = None if gradients is None else gradients.reshape(-1, 2)
         for i, row in self.runner.map(_sample_tile, len(tiles), lambda i: (self.job, tiles[i], files[tiles[i]]),
                                       lambda i: rows.name(tiles[i])):
@@ -339,7 +413,9 @@ class TiledDem:
                     continue
                 sampled[t] = row
                 for part in _cell_blocks(files[t].cells):
-                    flat_heights[part["cell"]] = part["z"]
+                    flat_heights[part["cell"]] = part["z"] + oz
+                    if nodes is not None:
+                        nodes.add(t, part)
                     if flat_gradients is not None:
                         flat_gradients[part["cell"]] = part["g"]
                 rows.add(t, "dem", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
@@ -397,6 +473,120 @@ class TiledDem:
             flat[pairs["cell"]] = pairs["d"]
             paths[tiles[i]].unlink()
         return support
+
+
+@dataclass(frozen=True)
+class ContourNodes:
+    """The contours' grid nodes as the tiles sampled them, over the grid with its ring
+    (in memory: 16 bytes a cell): heights (local, NaN outside every triangle), tile and
+    triangle (the tile's own triangle holding the node, −1 none)."""
+
+    heights: np.ndarray
+    tile: np.ndarray
+    triangle: np.ndarray
+
+    @classmethod
+    def empty(cls, shape: tuple[int, int]) -> "ContourNodes":
+        return cls(np.full(shape, np.nan), np.full(shape, -1, np.int32), np.full(shape, -1, np.int32))
+
+    def add(self, t: int, part: np.ndarray) -> None:
+        """Tile t's sampled CELL records."""
+        self.heights.reshape(-1)[part["cell"]] = part["z"]
+        self.tile.reshape(-1)[part["cell"]] = t
+        self.triangle.reshape(-1)[part["cell"]] = part["tri"]
+
+
+class TileSplines:
+    """The splines the contours snap onto (geo.contours.contour_heights; OneSpline's
+    interface) when a survey is fitted in tiles: each tile's own triangles' interpolator,
+    saved by _sample_tile (splines: tile → .npz; boxes: tile → the (lo, hi) box of its
+    spline's vertices, local frame).
+
+    `values` asks the tiles whose box holds a point, in tile order, the first that has a
+    triangle there giving the value. `patches` groups the traced vertices by the tile
+    holding their grid edge's first node, and gives each group the JoinedSurface of the
+    tiles whose boxes meet its edges' box: the tile's own spline and, of its neighbours',
+    the triangles that meet the box. Each tile's spline is built three times (its patch
+    and the two `values` passes); memory holds a tile's spline and the neighbours' parts."""
+
+    MARGIN = 1e-9
+    """Relative growth of the boxes' tests (a point on a triangle's side, to rounding)."""
+
+    def __init__(self, job: DemJob, splines: dict, boxes: dict, nodes: ContourNodes):
+        self.job, self.splines, self.boxes, self.nodes = job, splines, boxes, nodes
+        self.tiles = sorted(splines)
+
+    def _meeting(self, lo: np.ndarray, hi: np.ndarray) -> list:
+        """The tiles whose boxes meet the box lo..hi (local)."""
+        return [t for t in self.tiles if (self.boxes[t][0] <= hi).all() and (self.boxes[t][1] >= lo).all()]
+
+    def _grown(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The box of the points xy (m, 2), grown by MARGIN of its coordinates' size."""
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        grow = self.MARGIN * max(1.0, float(np.abs(np.concatenate([lo, hi])).max()))
+        return lo - grow, hi + grow
+
+    def _groups(self, xy: np.ndarray):
+        """(tile, members) per tile of the tile grid holding some of the points xy (m, 2),
+        in tile order: the tile and the points' indices."""
+        owner = self.job.surfaces.grid.tile_of(xy)
+        for t in np.unique(owner):
+            yield int(t), np.flatnonzero(owner == t)
+
+    def _parts(self, t: int, box) -> list:
+        """(tile, interpolator, rows) of the tiles whose boxes meet `box`: tile t's whole
+        spline (rows: all of its triangles), the others' on the box (DemJob.spline_part)."""
+        parts = []
+        for u in self._meeting(*box):
+            if u == t:
+                interp = self.job.spline(self.splines[u])
+                parts.append((u, interp, np.arange(interp.triangles.shape[0])))
+                continue
+            interp, rows = self.job.spline_part(self.splines[u], box)
+            if interp is not None:
+                parts.append((u, interp, rows))
+        return parts
+
+    def values(self, xy: np.ndarray) -> np.ndarray:
+        """The spline at local points xy (M, 2), NaN outside every tile's triangles: by the
+        first tile, in tile order, that has a triangle there (each tile's spline built once)."""
+        out = np.full(xy.shape[0], np.nan)
+        if not xy.shape[0]:
+            return out
+        for t in self._meeting(*self._grown(xy)):
+            lo, hi = self.boxes[t]
+            ask = np.flatnonzero(np.isnan(out) & (xy >= lo).all(axis=1) & (xy <= hi).all(axis=1))
+            if ask.size:
+                out[ask] = spline_values(self.job.spline(self.splines[t]), xy[ask])
+        return out
+
+    def patches(self, grid: ContourGrid, edges):
+        """(vertices, JoinedSurface, hints) per tile holding vertices' first nodes: the
+        parts are the splines of the tiles meeting the box of those vertices' edges."""
+        start = grid.local(edges.a[:, 1].astype(np.float64), edges.a[:, 0].astype(np.float64))
+        end = grid.local(edges.b[:, 1].astype(np.float64), edges.b[:, 0].astype(np.float64))
+        near = np.where((edges.t0 < 0.5)[:, None], edges.a, edges.b) + 1      # the nearer node, in the ring
+        near_tile = self.nodes.tile[near[:, 0], near[:, 1]]
+        near_triangle = self.nodes.triangle[near[:, 0], near[:, 1]].astype(np.int64)
+        for t, members in self._groups(start):
+            parts = self._parts(t, self._grown(np.concatenate([start[members], end[members]])))
+            surface = JoinedSurface([SplineSurface(interp, SplineSampler(interp, self.job.dem.origin))
+                                     for _, interp, _ in parts])
+            yield members, surface, self._hints(parts, surface, near_tile[members], near_triangle[members])
+
+    @staticmethod
+    def _hints(parts: list, surface: JoinedSurface, tile: np.ndarray, triangle: np.ndarray) -> np.ndarray:
+        """The JoinedSurface's numbers of the nodes' triangles (tile, triangle: the tile's
+        own numbering; −1 where the node has none, or its tile or triangle is not a part's)."""
+        hint = np.full(tile.size, -1, np.int64)
+        for k, (u, _, rows) in enumerate(parts):
+            mine = np.flatnonzero((tile == u) & (triangle >= 0))
+            if not rows.size:
+                continue
+            at = np.minimum(np.searchsorted(rows, triangle[mine]), rows.size - 1)
+            held = rows[at] == triangle[mine]
+            hint[mine[held]] = surface.offsets[k] + at[held]
+        return hint
 
 
 def render_preview(dem: DemGrid, heights, gradients, plan: DemPlan, crs: str | None) -> None:

@@ -64,6 +64,7 @@ from c1mesh.core.plan import DemPlan, FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.engine.refine import fewest_refined_vertices
+from c1mesh.geo.products import ContourRequest, add_contour_facts
 from c1mesh.geo.raster import check_angle_crs
 from c1mesh.pipeline.bounded_dem import DemJob, TiledDem, dem_grid
 from c1mesh.pipeline.report import ReportCore, scheme_facts
@@ -144,8 +145,11 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     paths = survey_paths(source)
     name = survey_name(paths)
     crs, crs_source = survey_crs(paths, plan.mesh.crs)
+    contours = None
     if plan.dem is not None:
         check_angle_crs(crs, plan.dem)
+        if plan.dem.contours is not None:     # GeoJSON needs an EPSG code: refused now, not after the fit
+            contours = ContourRequest(plan.dem.contours, plan.dem.interval).with_crs(crs, plan.mesh.crs)
     outputs, jobs, scheduler = run.outputs, run.jobs, run.scheduler
     seconds, start = {}, time.perf_counter()
 
@@ -231,7 +235,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 report = _write_dem(DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads),
                                            halos, dem_grid(mesh, plan.dem.resolution), max_edge, longest,
                                            _shaded(plan.dem), rows.threads),
-                                    (temps, runner, rows), plan.dem, chunks, crs, limiter)
+                                    (temps, runner, rows), plan.dem, (chunks, crs, contours), limiter)
                 done("raster")
             else:
                 split = None if outputs is None else Split(InputOwners(file_counts), outputs,
@@ -245,6 +249,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         stack.close()
         temps.close()
     kept = report.pop("kept")
+    contour_facts = report.pop("contours", None)
     report.update({"input": str(paths[0]) if len(paths) == 1 else [str(p) for p in paths],
                    "output": str(output) if outputs is None else [str(o) for o in outputs],
                    "tiles": len(grid),
@@ -262,6 +267,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
+    add_contour_facts(report, contour_facts)
     report["crs"] = describe_crs(crs, crs_source)
     report["classes"] = selection
     if strength is not None:
@@ -275,13 +281,16 @@ def _shaded(dem: DemPlan) -> bool:
     return bool(dem.slope or dem.aspect or dem.hillshade or dem.preview)
 
 
-def _write_dem(job: DemJob, where, dem: DemPlan, chunks, crs, limiter) -> dict:
+def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
     """The tiled DEM (c1mesh.pipeline.bounded_dem) of the trimmed survey, in place of the
     mesh's refinement: the facts write_tiles gives a mesh (kept, output_mesh null,
-    triangles_per_tile, overshoot) and the raster section. where: (temps, runner, rows)."""
-    facts = TiledDem(job, *where).write(dem, chunks, crs, isinstance(limiter, TiledSmoother))
+    triangles_per_tile, overshoot), the raster section and the contours' (None: none).
+    where: (temps, runner, rows); inputs: (the points' chunks, the CRS, the
+    geo.products.ContourRequest or None)."""
+    chunks, crs, contours = inputs
+    facts = TiledDem(job, *where).write(dem, chunks, crs, isinstance(limiter, TiledSmoother), contours)
     report = {"kept": facts["kept"], "output_mesh": None, "triangles_per_tile": facts["triangles_per_tile"],
-              "raster": facts["raster"]}
+              "raster": facts["raster"], "contours": facts["contours"]}
     if limiter is not None:
         limiter.limited += facts["limited"]
         limiter.turned += facts["turned"]

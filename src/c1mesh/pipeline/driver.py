@@ -27,7 +27,14 @@ from c1mesh.engine.schemes import get_scheme
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.formats import MeshSize, check_mesh_size, read_cloud
 from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
-from c1mesh.geo.products import contour_grid, geo_plan, level_for_edge, resolve_crs, stage_contours
+from c1mesh.geo.products import (
+    add_contour_facts,
+    contour_grid,
+    geo_plan,
+    level_for_edge,
+    resolve_crs,
+    stage_contours,
+)
 from c1mesh.geo.products import finish as _finish_geo
 from c1mesh.geo.raster import (
     RasterTargets,
@@ -722,13 +729,8 @@ class _Contours:
         return self
 
     def add_to(self, report: dict) -> None:
-        """Put the "contours" section into the fit's report, and a warning when no level
-        lies within the surface's heights (the file is empty)."""
-        report.update(self.report)
-        facts = self.report.get("contours")
-        if facts is not None and facts["levels"]["count"] == 0:
-            report["warnings"].append(f"--interval {facts['interval']:g} gives no contour level within the "
-                                      f"surface's heights: {facts['file']} holds no line")
+        """Put the "contours" section into the fit's report (geo.products.add_contour_facts)."""
+        add_contour_facts(report, self.report.get("contours"))
 
     def __exit__(self, kind, value, tb) -> None:
         if self.staged is None:

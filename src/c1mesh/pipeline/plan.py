@@ -49,7 +49,9 @@ def fit_plan(options, output=None) -> FitPlan:
     if is_raster_path(output) and options.resolution is not None:
         dem = DemPlan(str(output), float(options.resolution), options.slope, options.aspect, options.hillshade,
                       options.support, options.slope_method, options.z_factor, fill_distance(options.fill),
-                      None if not options.preview else str(options.preview))
+                      None if not options.preview else str(options.preview),
+                      None if options.contours is None else str(options.contours),
+                      None if options.contours is None or options.interval is None else float(options.interval))
     classes = options.classes if isinstance(options.classes, (str, type(None))) else tuple(options.classes)
     return FitPlan(
         select=PointSelection(options.input_format, classes or None,

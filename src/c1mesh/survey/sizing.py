@@ -99,8 +99,9 @@ def needs_tiles(source, plan: FitPlan) -> bool:
     if plan.dem is not None and plan.dem.fill is not None:
         raise InputError(f"{need}; the DEM's fill of the trim's holes (--fill, by default the hull) is not "
                          "yet done in tiles: give --fill off, or raise --memory")
-    if plan.contours:
-        raise InputError(f"{need}; --contours needs the in-memory fit (raise --memory)")
+    if plan.contours and plan.dem is None:
+        raise InputError(f"{need}; --contours of a mesh needs the in-memory fit: write a DEM "
+                         "(-o DEM.tif --resolution R), or raise --memory")
     if plan.heights.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
