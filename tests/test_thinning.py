@@ -3,26 +3,42 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.stages.thinning import check_spacing, thin_to_cells
+from c1mesh.stages.thinning import check_spacing, thin_cells, thin_to_cells
 
 
-def _brute_force(xy, spacing):
-    """One point per cell by a plain loop: the nearest to the cell centre, lowest index on ties."""
-    low = xy.min(axis=0)
+def _brute_force(xy, spacing, low=None, tie=None):
+    """One point per cell by a plain loop: the nearest to the cell centre, the lowest tie
+    (index) among equals; cells aligned at low (the points' lower-left corner)."""
+    low = xy.min(axis=0) if low is None else low
+    tie = np.arange(len(xy)) if tie is None else tie
     best = {}
     for i, p in enumerate(xy):
         cell = tuple(np.floor((p - low) / spacing).astype(int))
         centre = low + (np.array(cell) + 0.5) * spacing
         d = float(((p - centre) ** 2).sum())
-        if cell not in best or d < best[cell][0]:
-            best[cell] = (d, i)
-    return np.sort([i for _, i in best.values()])
+        if cell not in best or (d, tie[i]) < best[cell][:2]:
+            best[cell] = (d, tie[i], i)
+    return np.sort([i for _, _, i in best.values()])
 
 
 def test_matches_a_plain_loop_on_random_points():
     rng = np.random.default_rng(3)
     xy = rng.uniform(0, 10, (2000, 2))
     np.testing.assert_array_equal(thin_to_cells(xy, 0.7), _brute_force(xy, 0.7))
+
+
+def test_cells_aligned_at_a_given_corner_with_ties_by_a_given_number():
+    """thin_cells (the tiles' form): cells aligned at any corner, ties by survey number;
+    on a grid whose points tie in distance, the numbers decide."""
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 10, (1500, 2))
+    tie = rng.permutation(1500) * 7
+    low = np.array([-0.3, -1.1])
+    np.testing.assert_array_equal(thin_cells(xy, 0.9, low, tie), _brute_force(xy, 0.9, low, tie))
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)   # 4 per 2 x 2 cell, tied
+    tie = np.arange(16)[::-1]
+    np.testing.assert_array_equal(thin_cells(grid, 2.0, np.array([-0.5, -0.5]), tie),
+                                  _brute_force(grid, 2.0, np.array([-0.5, -0.5]), tie))
 
 
 def test_a_regular_grid_thinned_by_its_own_step_keeps_every_point():

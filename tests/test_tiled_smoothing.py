@@ -182,14 +182,26 @@ def test_tiles_report_a_search_that_reached_its_limit(tmp_path):
     assert interior_or_at_limit(SimpleNamespace(**report["smoothing"])) == "high limit"
 
 
-def test_spacing_in_tiles_is_refused_before_any_output(tmp_path):
+def test_thinned_vertices_in_tiles_are_the_whole_fits(tmp_path):
+    """--spacing beyond --memory (survey.thinning_runs): each tile thins the heights of its
+    cell grown by the spacing, so the vertices are the in-memory fit's, point for point
+    (9 tiles; thinning cells straddle the tiles' borders), and each tile fits every height
+    in its halo, so the surface is the whole fit's within the tiled solve's difference
+    (as test_tiled_smoothing_matches_the_whole_fit bounds it)."""
     source = tmp_path / "terrain.las"
-    _terrain_las(source, 24000, seed=4)
-    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "--smooth", "3", "--spacing", "2",
-                                       "--memory", "1M", "-o", str(tmp_path / "out.ply")])
-    assert result.exit_code == 1
-    assert "--spacing" in result.output and "--memory" in result.output
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+    _terrain_las(source, 12000, seed=2)
+    whole, whole_report = _in_memory(tmp_path, source, 3.0, "--spacing", "1")
+    options = FitOptions(classes=[2], level=1, smooth=3.0, spacing=1.0, memory=10**9)
+    report = fit(source, tmp_path / "tiled.ply", options, tiles=TiledRun(per_tile=1500)).report
+    assert report["tiles"] == 9
+    vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
+    assert len(vertices) == len(whole) == whole_report["points"]["kept"] == report["points"]["kept"]
+    assert len(whole) < 12000 / 3                  # thinned: about one point in four at 0.5 spacing
+    difference = np.abs(vertices[:, 2] - _heights_at(whole, vertices))     # the same positions
+    rms = whole_report["smoothing"]["residual_rms"]
+    assert difference.max() < 0.01 * rms
+    assert report["smoothing"]["lam"] == pytest.approx(whole_report["smoothing"]["lam"], rel=1e-12)
+    assert whole_report["smoothing"]["outside"] > 0 and report["smoothing"]["outside"] is None
 
 
 def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path):

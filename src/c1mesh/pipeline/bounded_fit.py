@@ -98,6 +98,7 @@ from c1mesh.survey.sizing import grid_side, point_bytes, task_threads, tiles_at_
 from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
+from c1mesh.survey.thinning_runs import thinned_spill
 from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
@@ -133,7 +134,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     the tasks ran or on how many ran at once. run.on_tile(pass,
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
     A smoothing strength runs the smoothing fit (c1mesh.survey.smoothing_runs,
-    which then replaces the limiter but for edge directions; no --spacing in tiles).
+    which then replaces the limiter but for edge directions; with --spacing its vertices
+    thinned, c1mesh.survey.thinning_runs, and every height fitted).
     """
     plan = with_plane_level(plan)
     _check_plan(plan)
@@ -204,6 +206,10 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         heights = height_pass.heights
         try:
             spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
+            data = None
+            if surface.spacing is not None:    # --spacing: the smoothing's vertices thinned, every height fitted
+                data, heights = heights, stack.enter_context(
+                    contextlib.closing(thinned_spill(heights, surface.spacing, directory, temps.stem)))
             done("normals")
             max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(heights, grid, surface.max_edge,
                                                                                   temps, runner, rows)
@@ -224,7 +230,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             limiter = None
             if strength is not None:
                 fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
-                                                  gradient_data_weight("estimated", gradient_source)), longest)
+                                                  gradient_data_weight("estimated", gradient_source)), longest, data)
                 limiter = TiledSmoother(mesh, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
                 done("smoothing")

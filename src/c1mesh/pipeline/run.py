@@ -105,9 +105,6 @@ def _fit_in_tiles(source, output, plan, tiles: TiledRun, options: FitOptions) ->
     that output, resolved once by `fit`."""
     if plan.dem is not None:
         geo_plan(output, options)                     # the rasters' paths and options, before any work
-    if plan.surface.spacing is not None:
-        raise InputError("--spacing is not yet available for a fit larger than --memory (fitted in tiles, "
-                         "whose vertices are the points): raise --memory, or fit without --spacing")
     report = tiles_report(fit_tiled(source, output, plan, tiles), options)
     if tiles.outputs is not None:
         report["ownership"] = OWNERSHIP

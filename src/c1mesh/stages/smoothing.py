@@ -694,11 +694,11 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     the s it found, in one smooth_fit: the in-memory fit's one tile is both the tile the
     search runs on and the only tile run.
 
-    data: None, the tile's heights at its vertices with run.spacing, which is what a
-    tile of a survey fits. The in-memory fit alone may fit other data (stages.thinning's
-    --spacing: every point's height at its position, the vertices thinned; points outside
-    the triangles are then ignored and counted in SmoothFit.outside); the tile's heights
-    then serve only its TileSolve's residuals."""
+    data: None, the tile's heights at its vertices with run.spacing. With --spacing
+    (stages.thinning: the vertices thinned) every point's height at its position: the
+    whole survey's in memory, a tile's those of the heights in its halo
+    (survey.smoothing_runs); points outside the triangles are then ignored and counted in
+    SmoothFit.outside, and the tile's heights serve only its TileSolve's residuals."""
     if not len(tile.triangles):              # nothing to fit: no triangle uses its vertices
         return SmoothedTile(tile.values[tile.own], tile.gradients[tile.own],
                             None if run.overshoot == "off" else np.empty((0, 2)),
@@ -720,14 +720,15 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     return SmoothedTile(values, gradients, directions, solve, fit)
 
 
-def search_strength(tile: Tile, run: SmoothingRun) -> StrengthSearch:
+def search_strength(tile: Tile, run: SmoothingRun, data: SmoothingData | None = None) -> StrengthSearch:
     """The survey's strength s for strength "auto": smooth_fit's block cross-validation on
     one tile (which one, and with how much halo, is the scheduler's: survey.smoothing_runs
     takes the tile holding the most points with the limiter's halo, all its
     cross-validation windows need), then used by every tile. The in-memory fit's one tile
-    runs it inside `smooth_tile`."""
+    runs it inside `smooth_tile`. data: as smooth_tile's (None: the tile's heights at its
+    vertices)."""
     auto = replace(run, control=replace(run.control, strength="auto"))
-    fit = _fit_tile(tile, auto, edge_table(tile.triangles, len(tile.records)), None)[0]
+    fit = _fit_tile(tile, auto, edge_table(tile.triangles, len(tile.records)), data)[0]
     return StrengthSearch(fit.strength, fit.cv_curve, fit.search_limit_reached, fit.solver, fit.seconds)
 
 

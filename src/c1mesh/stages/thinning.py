@@ -28,7 +28,7 @@ def thin_to_cells(xy: np.ndarray, spacing: float) -> np.ndarray:
     xy (N, 2) in the plane's length units; the cells are aligned at the points' lower-left
     corner. In each cell the point nearest the cell's centre is kept (ties: the lower
     index), so the choice does not depend on the order of the other points. NaN rows are
-    never kept.
+    never kept. `thin_cells` with the points' corner and indices.
     """
     check_spacing(spacing)
     xy = np.asarray(xy, dtype=float)
@@ -36,15 +36,23 @@ def thin_to_cells(xy: np.ndarray, spacing: float) -> np.ndarray:
     if finite.size == 0:
         return finite
     p = xy[finite]
-    cell = np.floor((p - p.min(axis=0)) / spacing)
-    offset = p - (cell + 0.5) * spacing - p.min(axis=0)
+    return finite[thin_cells(p, spacing, p.min(axis=0), finite)]
+
+
+def thin_cells(xy: np.ndarray, spacing: float, origin: np.ndarray, tie: np.ndarray) -> np.ndarray:
+    """Positions (ascending) into xy (m, 2, finite) of the point nearest the centre of each
+    spacing × spacing cell they occupy, the cells aligned at origin (2,); ties: the lower
+    `tie` (m,) (distinct numbers, e.g. survey numbers). A point's cell and distance depend
+    only on it, the spacing and the origin, so a tile that holds every point of a cell
+    (its own cell grown by one spacing: survey.thinning_runs) keeps the same point as
+    the whole survey does."""
+    cell = np.floor((xy - origin) / spacing)
+    offset = xy - (cell + 0.5) * spacing - origin
     distance2 = offset[:, 0] ** 2 + offset[:, 1] ** 2
-    columns = cell[:, 0].max() + 1
-    key = cell[:, 1] * columns + cell[:, 0]           # exact in float64 below 2**53 cells
-    order = np.lexsort((finite, distance2, key))       # by cell, then nearest, then index
+    order = np.lexsort((tie, distance2, cell[:, 0], cell[:, 1]))    # by cell, then nearest, then tie
     first = np.ones(order.size, dtype=bool)
-    first[1:] = key[order[1:]] != key[order[:-1]]
-    return np.sort(finite[order[first]])
+    first[1:] = (cell[order[1:]] != cell[order[:-1]]).any(axis=1)
+    return np.sort(order[first])
 
 
-__all__ = ["check_spacing", "thin_to_cells"]
+__all__ = ["check_spacing", "thin_cells", "thin_to_cells"]

@@ -27,8 +27,8 @@ import numpy as np
 
 from c1mesh.core.tile import VERTEX, corner_rows
 from c1mesh.stages.limiter import TileLimits
-from c1mesh.stages.smoothing import (SmoothingRun, StrengthSearch, TileSolve, combined_fit, search_strength,
-                                     smooth_tile, smoothing_reach)
+from c1mesh.stages.smoothing import (SmoothingData, SmoothingRun, StrengthSearch, TileSolve, combined_fit,
+                                     search_strength, smooth_tile, smoothing_reach)
 from c1mesh.survey.halos import HALO_EDGES, HaloCache, halo_reach
 from c1mesh.survey.tiles import task_row
 
@@ -38,10 +38,13 @@ class TiledSmoothing:
     """What the smoothing fit over the tiles is asked for: run (the stage's
     smoothing.SmoothingRun: strength "auto" or s > 0, scheme, the survey's spacing h
     (height_runs.survey_stacking), overshoot, the weight of the spill's gradients as
-    data), longest_edge (the longest final edge, frame units: the least halo)."""
+    data), longest_edge (the longest final edge, frame units: the least halo); data: the
+    height spill whose every height is fitted when the vertices are thinned (--spacing:
+    survey.thinning_runs; None: the vertices' own heights)."""
 
     run: SmoothingRun
     longest_edge: float
+    data: object = None
 
 
 class TiledSmoother:
@@ -60,13 +63,13 @@ class TiledSmoother:
         self.seconds: dict = {}
         self.search: StrengthSearch | None = None
         self.search_tile: int | None = None
-        self.run = fit.run
+        self.run, self.data = fit.run, fit.data
         if self.run.control.strength == "auto":
             start = time.perf_counter()
             self.search_tile = _search_tile(heights, triangle_files)
-            halo = HaloCache(heights, triangle_files, grid, halo_reach(fit.longest_edge), temps,
-                             label="search-halo").halo(self.search_tile)
-            self.search = search_strength(halo, self.run)
+            reach = halo_reach(fit.longest_edge)
+            halo = HaloCache(heights, triangle_files, grid, reach, temps, label="search-halo").halo(self.search_tile)
+            self.search = search_strength(halo, self.run, self.data_near(self.search_tile, reach))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
             self.seconds["search"] = time.perf_counter() - start
         self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
@@ -82,6 +85,14 @@ class TiledSmoother:
             if on_done:
                 on_done(tiles[i], row)
         self.seconds["solve"] = time.perf_counter() - start
+
+    def data_near(self, tile: int, reach: float) -> SmoothingData | None:
+        """The heights fitted on tile's cell grown by reach: those of the data spill there
+        (at their own positions), or None (the vertices' own heights)."""
+        if self.data is None:
+            return None
+        records = self.data.records(self.grid.grown(tile, reach))
+        return SmoothingData(records["z"], self.run.spacing, np.column_stack([records["x"], records["y"]]))
 
     def tile(self, tile: int, triangles: np.ndarray):
         """limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
@@ -113,12 +124,17 @@ class TiledSmoother:
         """The report's "smoothing" section: the stage's reduce of the tiles' solves
         (smoothing.combined_fit, in any order: they arrive in completion order on a pool or
         on Dask), with the search tile's CV curve, plus the spacing and the tiled solve's
-        halo and search tile."""
+        halo and search tile. Its residuals are the own vertices' (with --spacing the
+        thinned vertices', where the in-memory fit's are every data point's), and with
+        --spacing the data points outside the triangles are not counted (outside null)."""
         seconds = dict(self.seconds)
         if self.search is not None:
             seconds.update({f"search_{k}": v for k, v in self.search.seconds.items()})
         strength, spacing = float(self.run.control.strength), self.run.spacing
-        return {**combined_fit(self.solves, self.run, self.search, seconds).as_dict(), "spacing": spacing,
+        facts = combined_fit(self.solves, self.run, self.search, seconds).as_dict()
+        if self.data is not None:         # thinned vertices: the data outside the triangles are not counted
+            facts["outside"] = None
+        return {**facts, "spacing": spacing,
                 "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing),
                           "search_tile": self.search_tile}}
 
@@ -136,7 +152,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     smooth_tile orders them). Returns the TileSolve and the task's report row (tiles.task_row)."""
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
-    smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]))
+    smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]), data=smoother.data_near(tile, smoother.reach))
     records = halo.records[halo.own]
     records["z"] = smoothed.values
     records["gx"], records["gy"] = smoothed.gradients[:, 0], smoothed.gradients[:, 1]
