@@ -203,11 +203,13 @@ def test_the_preview_of_a_dem_in_tiles_is_the_in_memory_fits_picture(tmp_path):
     assert pngs["whole"].read_bytes() == pngs["tiled"].read_bytes()
 
 
-def test_cli_still_refuses_a_mesh_level_from_resolution_beyond_memory(tmp_path):
-    """--resolution of a mesh picks its level from the whole triangulation: refused in tiles."""
+def test_cli_still_refuses_a_mesh_preview_beyond_memory(tmp_path):
+    """--preview of a mesh draws the whole spline on a grid of pixels: refused in tiles,
+    in one line, before any output (--resolution of a mesh is fitted in tiles:
+    test_tiled_fit.test_a_mesh_level_from_resolution_in_tiles_is_the_whole_fits)."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2, 5))
     result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "m.ply"),
-                                       "--resolution", "1", "--memory", "1M"])
-    assert result.exit_code == 1 and "--resolution" in result.output and result.output.count("\n") == 1
+                                       "--preview", str(tmp_path / "m.png"), "--memory", "1M"])
+    assert result.exit_code == 1 and "--preview" in result.output and result.output.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]

@@ -627,3 +627,27 @@ def test_fits_in_tiles_show_their_tiles_on_a_terminal_and_nothing_on_a_pipe(tmp_
     piped = subprocess.run([sys.executable, "-m", "c1mesh.cli", *args, "-O", str(tmp_path / "pipe")],
                            capture_output=True, text=True, timeout=300)
     assert piped.returncode == 0 and piped.stderr == "", piped.stderr
+
+
+def test_a_mesh_level_from_resolution_in_tiles_is_the_whole_fits(tmp_path):
+    """--resolution of a mesh beyond --memory: the level whose mean output edge is nearest
+    R (geo.products.level_for_edge), from the tiles' own triangles' side lengths added up.
+    Truth: the mean side of the whole fit's triangulation (its level-1 mesh), by a plain
+    loop over its faces, rounded; and the tiled mesh is the whole fit's at that level."""
+    source = SAMPLES / "4_6_crop.las"
+    triangulation, _, _ = _in_memory(source, [2], 1)
+    sides = [np.linalg.norm(triangulation.vertices[face[k], :2] - triangulation.vertices[face[(k + 1) % 3], :2])
+             for face in triangulation.faces for k in range(3)]
+    resolution = float(np.mean(sides)) / 2.6           # between levels 2 and 3: level 3
+    expected = int(round(np.mean(sides) / resolution))
+    assert expected == 3
+    whole, _, _ = _in_memory(source, [2], expected)
+    options = FitOptions(classes=(2,), resolution=resolution, memory=10**9)
+    report = fit(source, tmp_path / "tiled.ply", options, tiles=TiledRun(per_tile=1000)).report
+    assert report["tiles"] == 16
+    assert report["level"] == expected and report["level_from"] == "resolution"
+    assert report["resolution"] == resolution
+    _assert_same_mesh(tmp_path / "tiled.ply", whole)
+    memory = fit(source, tmp_path / "whole.ply", replace(options, memory=None)).report
+    assert memory["level"] == expected and memory["level_from"] == "resolution"
+    assert memory["resolution"] == resolution

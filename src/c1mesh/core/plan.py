@@ -71,11 +71,14 @@ class SurfaceSettings:
 class MeshTarget:
     """How a mesh output is written: format (formats' registry name; None: the path's
     extension), ascii (PLY as text), crs (a CRS the user assigned, as given: EPSG code,
-    WKT or a file, c1mesh.core.crs.parse_crs; None: the inputs' own)."""
+    WKT or a file, c1mesh.core.crs.parse_crs; None: the inputs' own); resolution (--resolution
+    of a mesh: its level is the one whose mean output edge is nearest it,
+    geo.products.level_for_edge; None: the level as given)."""
 
     format: str | None = None
     ascii: bool = False
     crs: str | None = None
+    resolution: float | None = None
 
 
 @dataclass(frozen=True)
@@ -109,8 +112,7 @@ class FitPlan:
     memory: the budget in bytes (None: no budget, always one piece in memory); threads:
     the one thread knob (None: the process's setting, core.threads); dem: the DEM
     output (DemPlan; None: the output is a mesh); rasters: whether a raster option only
-    the in-memory fit takes is asked for (--preview; --resolution of a mesh, which picks
-    its level from the whole triangulation); contours: whether --contours is asked for
+    the in-memory fit takes is asked for (--preview of a mesh); contours: whether --contours is asked for
     (with a DEM output also in its DemPlan, which the tiles trace them on; with a mesh
     output the in-memory fit only)."""
 

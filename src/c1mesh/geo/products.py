@@ -185,19 +185,30 @@ def resolve_crs(file_crs, user_crs, name):
     return crs_module.resolve(file_crs, user_crs, name)
 
 
-def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
-    """Mean length of the triangles' edges (each shared edge counted from both sides)."""
+def side_length_sum(points: np.ndarray, triangles: np.ndarray) -> float:
+    """The sum of the lengths of the triangles' sides (T, 3) over points (n, 2): a tile's
+    summary of the mean edge, which the tiles of a survey add up (pipeline.bounded_fit)."""
     total = 0.0
     for a, b in ((0, 1), (1, 2), (2, 0)):
         d = points[triangles[:, a]] - points[triangles[:, b]]
         total += float(np.sqrt((d * d).sum(axis=1)).sum())
-    return total / (3 * triangles.shape[0])
+    return total
+
+
+def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Mean length of the triangles' edges (each shared edge counted from both sides)."""
+    return side_length_sum(points, triangles) / (3 * triangles.shape[0])
 
 
 def level_for_edge(points: np.ndarray, triangles: np.ndarray, resolution: float) -> int:
     """The refinement level whose output edges are closest to `resolution` on average:
     level L splits every edge into L, so the mean edge becomes mean_input_edge / L."""
-    level = round(mean_edge_length(points, triangles) / resolution)
+    return level_for_mean_edge(mean_edge_length(points, triangles), resolution)
+
+
+def level_for_mean_edge(mean_edge: float, resolution: float) -> int:
+    """level_for_edge of a triangulation whose mean edge is mean_edge (length units)."""
+    level = round(mean_edge / resolution)
     return int(min(max(level, 1), MAX_LEVEL))
 
 

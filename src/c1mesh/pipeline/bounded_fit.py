@@ -53,8 +53,10 @@ the whole-survey refinement uses the edge's owner triangle: the two agree to rou
 from __future__ import annotations
 
 import contextlib
+import math
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +65,9 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.plan import DemPlan, FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
+from c1mesh.core.tile import corner_rows
 from c1mesh.engine.refine import fewest_refined_vertices
-from c1mesh.geo.products import ContourRequest, add_contour_facts
+from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
 from c1mesh.geo.raster import check_angle_crs
 from c1mesh.pipeline.bounded_dem import DemJob, TiledDem, dem_grid
 from c1mesh.pipeline.report import ReportCore, scheme_facts
@@ -137,6 +140,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     which then replaces the limiter but for edge directions; with --spacing its vertices
     thinned, c1mesh.survey.thinning_runs, and every height fitted).
     """
+    level_from = "default" if plan.surface.level is None else "option"
     plan = with_plane_level(plan)
     _check_plan(plan)
     surface = plan.surface
@@ -223,6 +227,10 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             removed = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
+            if plan.dem is None and plan.mesh.resolution is not None:     # --resolution of a mesh: its level
+                level = level_for_mean_edge(_mean_edge(halos, triangle_files), plan.mesh.resolution)
+                plan = replace(plan, surface=replace(surface, level=level))
+                surface, level_from = plan.surface, "resolution"
             if outputs is None and output is not None and plan.dem is None:
                 _check_size(kept_triangles, plan, output, colours.present)
             done("trim")
@@ -269,7 +277,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                  "after_trim": sum(report["triangles_per_tile"].values()),
                                  "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
-                   "level": None if plan.dem is not None else surface.level, "scheduler": runner.kind,
+                   "level": None if plan.dem is not None else surface.level,
+                   "level_from": None if plan.dem is not None else level_from, "scheduler": runner.kind,
                    "tile_tasks": rows.table(heights.counts, report.pop("triangles_per_tile")),
                    "seconds": seconds, "frame": {"origin": frame.origin.tolist(),
                                                  "axes": frame.axes.tolist()}})
@@ -303,6 +312,25 @@ def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
         limiter.lifted += facts["lifted"]
         report["overshoot"] = limiter.report()
     return report
+
+
+def _mean_edge(halos: HaloCache, triangle_files) -> float:
+    """The mean side length of the survey's kept triangles (geo.products.mean_edge_length):
+    each tile's own triangles' sum (side_length_sum, from its halo, which holds their
+    corners), added exactly (math.fsum), over three sides a triangle. The in-memory sum
+    rounds in another order, so the two means may differ in a last bit, and the level
+    they round to only when the mean lies within that of a half-integer multiple of
+    --resolution."""
+    totals, sides = [], 0
+    for t in halos.tiles():
+        own = np.load(triangle_files[t]) if triangle_files[t] is not None else np.empty((0, 3), np.int64)
+        if not len(own):
+            continue
+        halo = halos.halo(t)
+        rows, local = corner_rows(halo.records["index"], own)
+        totals.append(side_length_sum(np.column_stack([halo.records["x"][rows], halo.records["y"][rows]]), local))
+        sides += 3 * len(own)
+    return math.fsum(totals) / sides
 
 
 def _check_size(triangles: int, plan: FitPlan, output, coloured: bool) -> None:
@@ -340,17 +368,19 @@ def tiles_report(facts: dict, options) -> dict:
     """The report of a memory-bounded fit from the facts fit_tiled returns (consumed), in
     c1mesh.pipeline.report's schema. No one interpolator is held, so c1_certificate and
     pieces are null; its normals are always estimated (it refuses --normals file)."""
-    level = facts.pop("level")
+    level, level_from = facts.pop("level"), facts.pop("level_from")
     report = ReportCore(
         input=facts.pop("input"), output=facts.pop("output"), points=facts.pop("points"),
         normals="estimated", gradients=facts.pop("gradients"), frame={"kind": "axis", **facts.pop("frame")},
         triangles=facts.pop("triangles"), level=level,
-        level_from=None if level is None else "default" if options.level is None else "option",
+        level_from=level_from,
         output_mesh=facts.pop("output_mesh"),
         scheme=scheme_facts(options.scheme), c1_certificate=None, pieces=None, warnings=facts.pop("warnings"),
         crs=facts.pop("crs"), seconds=facts.pop("seconds"), threads=thread_count(),
         z_factor=1.0 if options.z_factor is None else float(options.z_factor)).as_dict()
     report.update(facts)
+    if options.resolution is not None:         # as geo.products.finish says it in memory
+        report["resolution"] = options.resolution
     if "raster" in report:        # a DEM (pipeline.bounded_dem): --fill off, the one fill done in tiles
         report["raster"]["fill"] = {"option": options.fill, "distance": None, "triangles_spanning_holes": 0}
     overshoot = report.get("overshoot")
