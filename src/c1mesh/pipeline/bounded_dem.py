@@ -195,15 +195,16 @@ class DemJob:
 
     def spline_part(self, spline_path, box) -> tuple[RSDInterpolator | None, np.ndarray]:
         """(the interpolator of those of a tile's own triangles whose corners' box meets
-        `box` (lo, hi; local; None: none does), rows: their numbers in the tile's spline
-        (ascending)). Each
-        side keeps its saved edge direction, so they evaluate as the whole tile's do."""
+        `box` (lo, hi; local), None when none does; rows: their numbers in the tile's
+        spline, ascending). Each side keeps its saved edge direction, so they evaluate as
+        the whole tile's do."""
         with np.load(spline_path) as saved:
             points, triangles = saved["points"], saved["triangles"]
             meets = np.ones(triangles.shape[0], dtype=bool)
             for axis in range(2):
                 a, b, c = (points[triangles[:, k], axis] for k in range(3))
-                meets &= (np.minimum(np.minimum(a, b), c) <= box[1][axis]) & (np.maximum(np.maximum(a, b), c) >= box[0][axis])
+                meets &= np.minimum(np.minimum(a, b), c) <= box[1][axis]
+                meets &= np.maximum(np.maximum(a, b), c) >= box[0][axis]
             rows = np.flatnonzero(meets)
             if not rows.size:
                 return None, rows
