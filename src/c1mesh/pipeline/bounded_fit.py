@@ -269,8 +269,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "tiles": len(grid),
                    # a note, not a warning: the result is the in-memory fit's (docs/tiles.md)
                    "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
-                   "warnings": fit_warnings(count, kept, delaunay_count, long_edge, max_edge,
-                                            auto_limit(surface.max_edge)),
+                   "warnings": fit_warnings(count, _on_surface(kept, data, limiter), delaunay_count, long_edge,
+                                            max_edge, auto_limit(surface.max_edge)),
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,
@@ -312,6 +312,13 @@ def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
         limiter.lifted += facts["lifted"]
         report["overshoot"] = limiter.report()
     return report
+
+
+def _on_surface(kept: int, data, smoother) -> int:
+    """The points the surface uses, for the unused-points warning: its vertices, or with
+    --spacing (data: the height spill) the heights its triangles cover, as
+    pipeline.driver.points_on_surface counts them in memory."""
+    return kept if data is None else int(data.counts.sum()) - smoother.outside()
 
 
 def _mean_edge(halos: HaloCache, triangle_files) -> float:

@@ -127,12 +127,14 @@ class SmoothingData:
     in the length units of the vertices (the strength's length unit, module doc). xy
     (M, 2): where the values were measured, in the vertices' coordinates; None: at the
     vertices themselves (then M = N, values[i] at vertex i). weights (M,) >= 0: each
-    value's weight, any scale (None: all 1)."""
+    value's weight, any scale (None: all 1). own (M,) bool: the points a tile of a survey
+    answers for (its cell's), the only ones SmoothFit.outside counts (None: all)."""
 
     values: np.ndarray
     spacing: float
     xy: np.ndarray | None = None
     weights: np.ndarray | None = None
+    own: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -307,6 +309,8 @@ def _check_inputs(points, triangles, data: SmoothingData):
     w = np.ones_like(z) if data.weights is None else np.array(data.weights, dtype=float)
     if w.shape != z.shape:
         raise SmoothingError(f"weights must have shape {z.shape}, got {w.shape}")
+    if data.own is not None and np.shape(data.own) != z.shape:
+        raise SmoothingError(f"the data's own mask must have shape {z.shape}, got {np.shape(data.own)}")
     if not (np.isfinite(pts).all() and np.isfinite(z).all() and np.isfinite(xy).all()):
         raise SmoothingError("points, the data's xy and values must be finite")
     if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0):
@@ -421,7 +425,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             G, _ = rsd.barycentric_gradients(npts[tri])
             data_tri, data_lam = TriangleLocator(npts, tri, G).find(nxy)
             inside = data_tri >= 0
-            outside = int((~inside).sum())
+            outside = int((~inside).sum() if data.own is None else (~inside[data.own]).sum())
             data_tri, data_lam = data_tri[inside], data_lam[inside]
             nxy, z, w, trend = nxy[inside], z[inside], w[inside], trend[inside]
         zn, wn = (z - trend) / Z, w / w_mean
@@ -638,7 +642,8 @@ class TileSolve:
     """What one tile's solve reports: its own vertices, the sum of squares and the largest
     of their residuals (height units), its vertex count with its halo and their effective
     degrees of freedom (Hutchinson), its own edges (lower end own) whose direction is not
-    the unit normal."""
+    the unit normal, and its own data points outside the triangles (with thinned
+    vertices: SmoothingData.own; else 0)."""
 
     own: int
     squares: float
@@ -646,6 +651,7 @@ class TileSolve:
     halo_vertices: int
     edf: float | None
     turned: int
+    outside: int = 0
 
 
 @dataclass
@@ -716,7 +722,7 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     residual = tile.records["z"][own] - values
     solve = TileSolve(own=int(own.sum()), squares=float(np.sum(residual ** 2)),
                       largest=float(np.abs(residual).max()) if residual.size else 0.0,
-                      halo_vertices=len(tile.records), edf=fit.edf, turned=turned)
+                      halo_vertices=len(tile.records), edf=fit.edf, turned=turned, outside=fit.outside)
     return SmoothedTile(values, gradients, directions, solve, fit)
 
 
@@ -767,7 +773,7 @@ def combined_fit(solves: list[TileSolve], run: SmoothingRun, search: StrengthSea
                      residual_rms=math.sqrt(squares / own) if own else 0.0,
                      residual_max=max((s.largest for s in solves), default=0.0),
                      solver=available_solvers()[0] if search is None else search.solver, seconds=seconds,
-                     outside=0, gradient_weight=float(run.gradient_weight))
+                     outside=sum(s.outside for s in solves), gradient_weight=float(run.gradient_weight))
 
 
 __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "SmoothingControl",

@@ -69,7 +69,7 @@ class TiledSmoother:
             self.search_tile = _search_tile(heights, triangle_files)
             reach = halo_reach(fit.longest_edge)
             halo = HaloCache(heights, triangle_files, grid, reach, temps, label="search-halo").halo(self.search_tile)
-            self.search = search_strength(halo, self.run, self.data_near(self.search_tile, reach))
+            self.search = search_strength(halo, self.run, self.data_near(self.search_tile, reach, own=False))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
             self.seconds["search"] = time.perf_counter() - start
         self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
@@ -86,13 +86,20 @@ class TiledSmoother:
                 on_done(tiles[i], row)
         self.seconds["solve"] = time.perf_counter() - start
 
-    def data_near(self, tile: int, reach: float) -> SmoothingData | None:
+    def data_near(self, tile: int, reach: float, own: bool = True) -> SmoothingData | None:
         """The heights fitted on tile's cell grown by reach: those of the data spill there
-        (at their own positions), or None (the vertices' own heights)."""
+        (at their own positions), those in its cell marked its own (own=True: the solve
+        counts which of them lie outside the triangles), or None (the vertices' own
+        heights)."""
         if self.data is None:
             return None
         records = self.data.records(self.grid.grown(tile, reach))
-        return SmoothingData(records["z"], self.run.spacing, np.column_stack([records["x"], records["y"]]))
+        xy = np.column_stack([records["x"], records["y"]])
+        return SmoothingData(records["z"], self.run.spacing, xy, own=self.grid.tile_of(xy) == tile if own else None)
+
+    def outside(self) -> int:
+        """The data points outside the triangles, each counted by the tile whose cell holds it."""
+        return sum(s.outside for s in self.solves)
 
     def tile(self, tile: int, triangles: np.ndarray):
         """limiter.TileLimits of tile's own triangles (k, 3) survey numbers: their
@@ -125,15 +132,12 @@ class TiledSmoother:
         (smoothing.combined_fit, in any order: they arrive in completion order on a pool or
         on Dask), with the search tile's CV curve, plus the spacing and the tiled solve's
         halo and search tile. Its residuals are the own vertices' (with --spacing the
-        thinned vertices', where the in-memory fit's are every data point's), and with
-        --spacing the data points outside the triangles are not counted (outside null)."""
+        thinned vertices', where the in-memory fit's are every data point's)."""
         seconds = dict(self.seconds)
         if self.search is not None:
             seconds.update({f"search_{k}": v for k, v in self.search.seconds.items()})
         strength, spacing = float(self.run.control.strength), self.run.spacing
         facts = combined_fit(self.solves, self.run, self.search, seconds).as_dict()
-        if self.data is not None:         # thinned vertices: the data outside the triangles are not counted
-            facts["outside"] = None
         return {**facts, "spacing": spacing,
                 "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing),
                           "search_tile": self.search_tile}}
