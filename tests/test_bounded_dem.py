@@ -130,16 +130,13 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
 @pytest.mark.parametrize("extra,words", [
     ([], "--fill"),                                              # the default fill: the hull
     (["--fill", "hull"], "--fill"),
-    (["--contours", "CONTOURS", "--interval", "1"], "--contours"),      # of a mesh (-o m.ply)
 ])
 def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
-    """Beyond --memory the DEM's fill and a mesh's contours are refused in one line
-    naming the input and the option, before any output is written."""
+    """Beyond --memory the DEM's fill is refused in one line naming the input and the
+    option, before any output is written."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2, 5))
     target = ["-o", str(tmp_path / "dem.tif"), "--resolution", "1"]
-    if "--contours" in extra:
-        extra, target = [str(tmp_path / "c.gpkg") if e == "CONTOURS" else e for e in extra], ["-o", str(tmp_path / "m.ply")]
     result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", *target, "--memory", "1M", *extra])
     assert result.exit_code == 1
     assert result.output.count("\n") == 1 and words in result.output and "terrain.las" in result.output
@@ -203,13 +200,28 @@ def test_the_preview_of_a_dem_in_tiles_is_the_in_memory_fits_picture(tmp_path):
     assert pngs["whole"].read_bytes() == pngs["tiled"].read_bytes()
 
 
-def test_cli_still_refuses_a_mesh_preview_beyond_memory(tmp_path):
-    """--preview of a mesh draws the whole spline on a grid of pixels: refused in tiles,
-    in one line, before any output (--resolution of a mesh is fitted in tiles:
-    test_tiled_fit.test_a_mesh_level_from_resolution_in_tiles_is_the_whole_fits)."""
-    source = tmp_path / "terrain.las"
-    write_terrain_las(source, 24000, classes=(2, 5))
-    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "m.ply"),
-                                       "--preview", str(tmp_path / "m.png"), "--memory", "1M"])
-    assert result.exit_code == 1 and "--preview" in result.output and result.output.count("\n") == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+def test_a_mesh_preview_and_contours_in_tiles_are_the_in_memory_fits(tmp_path):
+    """A mesh output's --preview and --contours beyond --memory: the tiles sample the
+    preview's pixels and the contours' grid (at the mean output edge) as they sample a
+    DEM's cells. Truth: the in-memory fit's, which samples its one spline: the same PNG,
+    byte for byte, and the same contour lines (vertices within the snapping's tolerance,
+    as test_contours_in_tiles_are_the_in_memory_fits says why)."""
+    runs = {}
+    for name, extra in (("whole", []), ("tiled", ["--memory", "1M"])):
+        result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.ply"),
+                                           "--preview", str(tmp_path / f"{name}.png"),
+                                           "--contours", str(tmp_path / f"{name}.gpkg"), "--interval", "2",
+                                           "--report", str(tmp_path / f"{name}.json"), *extra])
+        assert result.exit_code == 0, result.output
+        runs[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    assert runs["tiled"]["tiles"] == 4 and "tiles" not in runs["whole"]
+    assert (tmp_path / "whole.png").read_bytes() == (tmp_path / "tiled.png").read_bytes()
+    whole, tiled = runs["whole"]["contours"], runs["tiled"]["contours"]
+    assert whole["grid_resolution"] == pytest.approx(tiled["grid_resolution"], rel=1e-12)
+    for key in ("lines", "closed", "vertices", "levels", "dropped_vertices"):
+        assert tiled[key] == whole[key], key
+    (a, a_levels), (b, b_levels) = _contour_lines(tmp_path / "whole.gpkg"), _contour_lines(tmp_path / "tiled.gpkg")
+    assert np.array_equal(a_levels, b_levels) and [x.shape for x in a] == [y.shape for y in b]
+    assert max(np.abs(x - y).max() for x, y in zip(a, b)) <= 1e-6 * whole["grid_resolution"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        f"{name}.{suffix}" for name in ("whole", "tiled") for suffix in ("ply", "prj", "png", "gpkg", "json"))

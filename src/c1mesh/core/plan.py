@@ -106,15 +106,28 @@ class DemPlan:
 
 
 @dataclass(frozen=True)
+class MeshProducts:
+    """What a mesh output draws beside it from the whole spline, each on a grid of its
+    own: preview (the PNG path; None: none; c1mesh.geo.preview.SplineView), contours (the
+    vector file of contour lines every `interval` of height; None: none; traced on the
+    grid at the mesh's --resolution, else its mean output edge), z_factor (x, y units
+    per height unit for the preview's shading; None: 1)."""
+
+    preview: str | None = None
+    contours: str | None = None
+    interval: float | None = None
+    z_factor: float | None = None
+
+
+@dataclass(frozen=True)
 class FitPlan:
     """Everything the stages, the writers and the tile scheduler are told about one fit.
 
     memory: the budget in bytes (None: no budget, always one piece in memory); threads:
     the one thread knob (None: the process's setting, core.threads); dem: the DEM
-    output (DemPlan; None: the output is a mesh); rasters: whether a raster option only
-    the in-memory fit takes is asked for (--preview of a mesh); contours: whether --contours is asked for
-    (with a DEM output also in its DemPlan, which the tiles trace them on; with a mesh
-    output the in-memory fit only)."""
+    output (DemPlan; None: the output is a mesh); products: a mesh output's preview and
+    contours (MeshProducts; None: neither, or the output is a DEM, whose DemPlan has
+    them)."""
 
     select: PointSelection = PointSelection()
     heights: HeightSettings = HeightSettings()
@@ -123,8 +136,7 @@ class FitPlan:
     memory: int | None = None
     threads: int | None = None
     dem: DemPlan | None = None
-    rasters: bool = False
-    contours: bool = False
+    products: MeshProducts | None = None
 
 
 @dataclass(frozen=True)

@@ -42,19 +42,43 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
     frame (heights in world z when the frame's axes are the world's). z_factor: x, y units
     per height unit for the shading (raster.py); None (heights in units of their own, the
     factor unknown): coloured by height, unshaded, since any light would fake the slopes."""
-    lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
-    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
-    world = np.allclose(frame.axes, np.eye(3))
-    sampler = SplineSampler(interp, (0.0, 0.0, frame.origin[2] if world else 0.0))
-    z, g = sampler.window(grid, range(grid.height), range(grid.width))
-    offset = frame.origin[:2] if world else np.zeros(2)
-    extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
-              grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
-    if z_factor is None:
-        render_arrays(z, np.zeros_like(g), extent, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
-        return
-    render_arrays(z, g if z_factor == 1.0 else g * z_factor, extent, path, _units(crs),
-                  "C1 surface (spline normals)")
+    view = SplineView.of(interp.points.min(axis=0), interp.points.max(axis=0), frame, pixels)
+    z, g = SplineSampler(interp, view.origin).window(view.grid, range(view.grid.height), range(view.grid.width))
+    view.render(z, g, path, crs, z_factor)
+
+
+@dataclass(frozen=True)
+class SplineView:
+    """Where render_spline samples the spline and where it draws it: grid, the pixels'
+    cells in local x, y (pixels across the longer side of the vertices' box); origin, the
+    sampler's (the frame's height origin when its axes are the world's, heights drawn in
+    world z; else 0); offset, the world x, y of local (0, 0) (0 unless the axes are the
+    world's). A survey fitted in tiles samples the same cells (pipeline.bounded_dem)."""
+
+    grid: RasterGrid
+    origin: tuple
+    offset: np.ndarray
+
+    @classmethod
+    def of(cls, lo, hi, frame, pixels: int = PIXELS) -> "SplineView":
+        """The view of a spline whose vertices span lo..hi (local x, y) in `frame`."""
+        world = np.allclose(frame.axes, np.eye(3))
+        return cls(RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels)),
+                   (0.0, 0.0, frame.origin[2] if world else 0.0),
+                   np.asarray(frame.origin[:2], dtype=float) if world else np.zeros(2))
+
+    def render(self, z: np.ndarray, g: np.ndarray, path, crs: str | None, z_factor: float | None) -> None:
+        """Draw the heights z (h, w, world z) and spline gradients g (h, w, 2) sampled at
+        the grid's centres (NaN outside the triangulation). z_factor: x, y units per
+        height unit for the shading (None: unshaded, coloured by height)."""
+        grid, offset = self.grid, self.offset
+        extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
+                  grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
+        if z_factor is None:
+            render_arrays(z, np.zeros_like(g), extent, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
+            return
+        render_arrays(z, g if z_factor == 1.0 else g * z_factor, extent, path, _units(crs),
+                      "C1 surface (spline normals)")
 
 
 PREVIEW_VERTICES = 1_000_000

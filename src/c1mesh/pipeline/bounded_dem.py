@@ -123,8 +123,16 @@ def row_blocks(rows: range, width: int) -> list[range]:
 def dem_grid(mesh, resolution: float) -> DemGrid:
     """The DemGrid of the survey's spline at `resolution`: the aligned grid covering the
     bounding box of its vertices (world x, y), as geo.raster.dem_sampling covers the
-    in-memory interpolator's points. mesh: the survey's refine_runs.TiledMesh; each tile's
-    own triangles' corners are read from the height spill (a tile at a time)."""
+    in-memory interpolator's points. mesh: the survey's refine_runs.TiledMesh."""
+    lo, hi = vertex_box(mesh)
+    origin = np.asarray(mesh.frame.origin, dtype=np.float64)
+    return DemGrid(RasterGrid.covering(lo + origin[:2], hi + origin[:2], resolution), origin)
+
+
+def vertex_box(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (2,) each: the box of the survey spline's vertices (local x, y). mesh: the
+    survey's refine_runs.TiledMesh; each tile's own triangles' corners are read from the
+    height spill (a tile at a time)."""
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for t, path in enumerate(mesh.files):
         if path is None:
@@ -136,8 +144,7 @@ def dem_grid(mesh, resolution: float) -> DemGrid:
         corners = records[np.isin(records["index"], triangles)]
         xy = np.column_stack([corners["x"], corners["y"]])
         lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
-    origin = np.asarray(mesh.frame.origin, dtype=np.float64)
-    return DemGrid(RasterGrid.covering(lo + origin[:2], hi + origin[:2], resolution), origin)
+    return lo, hi
 
 
 def mark_points(chunks, dem: DemGrid, path) -> np.memmap:
@@ -314,11 +321,13 @@ def halo_vertices(halo) -> np.ndarray:
 
 class TiledDem:
     """The schedule of a tiled DEM (module docstring): construct with the DemJob, temps
-    (inputs.Temps), runner (distributed.TaskRunner), rows (task_rows.TileRows); `write`
-    runs the passes and writes the rasters."""
+    (inputs.Temps), runner (distributed.TaskRunner), rows (task_rows.TileRows) and the
+    stage its tasks are booked under; `write` runs the passes and writes the rasters, and
+    a mesh's preview and contours (pipeline.bounded_fit) sample their grids by `cells` and
+    `contours`."""
 
-    def __init__(self, job: DemJob, temps, runner, rows):
-        self.job, self.temps, self.runner, self.rows = job, temps, runner, rows
+    def __init__(self, job: DemJob, temps, runner, rows, stage: str = "dem"):
+        self.job, self.temps, self.runner, self.rows, self.stage = job, temps, runner, rows, stage
 
     def write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool,
               contours: ContourRequest | None = None) -> dict:
@@ -335,42 +344,65 @@ class TiledDem:
 
     def _write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool, contours) -> dict:
         """write's passes; the contours staged (geo.contour_file.StagedContours) in "staged"."""
-        job, dem = self.job, self.job.dem
-        shape = dem.shape
-        heights_path = self.temps.new("dem-heights.npy")
-        heights = np.lib.format.open_memmap(heights_path, mode="w+", dtype=np.float64, shape=shape)
+        grids = self._sampled(contours is not None)
+        marks = mark_points(chunks, self.job.dem, self.temps.new("dem-marks.npy"))
+        self._continue(grids.sampled, grids.files, grids.heights, grids.gradients, marks)
+        staged, contour_facts = None, None
+        try:
+            if contours is not None:
+                staged, contour_facts = self._trace(grids, contours)
+            grids.drop_tile_files()
+            return self._finish(plan, (grids.path, grids.heights, grids.gradients), grids.tiles, grids.sampled,
+                                crs, smoothed) | {"staged": staged, "contours": contour_facts}
+        except BaseException:
+            if staged is not None:
+                staged.discard()
+            raise
+
+    def contours(self, request: ContourRequest):
+        """A mesh's contours (its grid: the job's DemGrid) traced on the cells the tiles
+        sample, as `write` traces a DEM's: (the StagedContours, the report's section)."""
+        grids = self._sampled(True)
+        try:
+            return self._trace(grids, request)
+        finally:
+            grids.drop_tile_files()
+
+    def cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """(heights (h, w) world z, gradients (h, w, 2)) at the centres of the job's grid
+        inside the tiles' triangles, NaN elsewhere: a mesh's preview (geo.preview.SplineView)."""
+        grids = self._sampled(False)
+        grids.drop_tile_files()
+        return np.array(grids.heights[1:-1, 1:-1]), np.array(grids.gradients[1:-1, 1:-1])
+
+    def _sampled(self, nodes: bool) -> "_Grids":
+        """Every tile's cells sampled into the grids on disk (_sample): heights, gradients
+        when the job asks for them, the contours' nodes when `nodes`."""
+        job, shape = self.job, self.job.dem.shape
+        path = self.temps.new("dem-heights.npy")
+        heights = np.lib.format.open_memmap(path, mode="w+", dtype=np.float64, shape=shape)
         for block in row_blocks(range(shape[0]), shape[1]):
             heights[block.start:block.stop] = np.nan
         gradients = None
         if job.gradients:
             gradients = np.lib.format.open_memmap(self.temps.new("dem-gradients.npy"), mode="w+",
                                                   dtype=np.float64, shape=shape + (2,))
-        marks = mark_points(chunks, dem, self.temps.new("dem-marks.npy"))
         tiles = [t for t in range(len(job.surfaces.grid)) if job.surfaces.files[t] is not None]
         files = {t: _TileFiles(self.temps.new(f"dem-cells-{t}.bin"), self.temps.new(f"dem-spline-{t}.npz"))
                  for t in tiles}
-        nodes = None if contours is None else ContourNodes.empty(shape)
-        sampled = self._sample(tiles, files, (heights, gradients, nodes))
-        self._continue(sampled, files, heights, gradients, marks)
-        staged, contour_facts = None, None
-        try:
-            if contours is not None:
-                start = time.perf_counter()
-                splines = TileSplines(job, {t: files[t].spline for t in sampled},
-                                      {t: row["box"] for t, row in sampled.items()}, nodes)
-                lines = contour_heights(nodes.heights[1:-1, 1:-1], ContourGrid.of_raster(dem.grid, dem.origin),
-                                        contours.interval, splines)
-                del nodes, splines
-                staged, contour_facts = stage_lines(contours, lines, dem.grid, start)
-            for t in tiles:
-                files[t].cells.unlink(missing_ok=True)
-                files[t].spline.unlink(missing_ok=True)
-            return self._finish(plan, (heights_path, heights, gradients), tiles, sampled, crs, smoothed) | \
-                {"staged": staged, "contours": contour_facts}
-        except BaseException:
-            if staged is not None:
-                staged.discard()
-            raise
+        contour_nodes = ContourNodes.empty(shape) if nodes else None
+        sampled = self._sample(tiles, files, (heights, gradients, contour_nodes))
+        return _Grids(path, heights, gradients, contour_nodes, tiles, files, sampled)
+
+    def _trace(self, grids: "_Grids", request: ContourRequest):
+        """(StagedContours, report section) of the contours through grids' nodes, snapped
+        onto the tiles' splines (TileSplines)."""
+        job, dem, start = self.job, self.job.dem, time.perf_counter()
+        splines = TileSplines(job, {t: grids.files[t].spline for t in grids.sampled},
+                              {t: row["box"] for t, row in grids.sampled.items()}, grids.nodes)
+        lines = contour_heights(grids.nodes.heights[1:-1, 1:-1], ContourGrid.of_raster(dem.grid, dem.origin),
+                                request.interval, splines)
+        return stage_lines(request, lines, dem.grid, start)
 
     def _finish(self, plan: DemPlan, grids, tiles: list, sampled: dict, crs: str | None, smoothed: bool) -> dict:
         """The support pass and the rasters' writing, from the grids (heights path, heights
@@ -419,7 +451,7 @@ class TiledDem:
                         nodes.add(t, part)
                     if flat_gradients is not None:
                         flat_gradients[part["cell"]] = part["g"]
-                rows.add(t, "dem", {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
+                rows.add(t, self.stage, {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
         return sampled
 
     def _continue(self, sampled: dict, files, heights, gradients, marks) -> None:
@@ -474,6 +506,27 @@ class TiledDem:
             flat[pairs["cell"]] = pairs["d"]
             paths[tiles[i]].unlink()
         return support
+
+
+@dataclass(frozen=True)
+class _Grids:
+    """What TiledDem._sampled leaves: the heights' file path and memory map, the gradients'
+    (or None), the contours' nodes (or None), the tiles with a triangle file, their
+    temporary files and the sampled tiles' rows (_sample_tile's)."""
+
+    path: object
+    heights: np.ndarray
+    gradients: np.ndarray | None
+    nodes: "ContourNodes | None"
+    tiles: list
+    files: dict
+    sampled: dict
+
+    def drop_tile_files(self) -> None:
+        """Remove the tiles' cells and spline files (the grids stay)."""
+        for t in self.tiles:
+            self.files[t].cells.unlink(missing_ok=True)
+            self.files[t].spline.unlink(missing_ok=True)
 
 
 @dataclass(frozen=True)

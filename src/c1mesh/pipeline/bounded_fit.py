@@ -69,7 +69,8 @@ from c1mesh.core.tile import corner_rows
 from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
 from c1mesh.geo.raster import check_angle_crs
-from c1mesh.pipeline.bounded_dem import DemJob, TiledDem, dem_grid
+from c1mesh.geo.preview import SplineView
+from c1mesh.pipeline.bounded_dem import DemGrid, DemJob, TiledDem, dem_grid, vertex_box
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
@@ -151,11 +152,9 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     paths = survey_paths(source)
     name = survey_name(paths)
     crs, crs_source = survey_crs(paths, plan.mesh.crs)
-    contours = None
     if plan.dem is not None:
         check_angle_crs(crs, plan.dem)
-        if plan.dem.contours is not None:     # GeoJSON needs an EPSG code: refused now, not after the fit
-            contours = ContourRequest(plan.dem.contours, plan.dem.interval).with_crs(crs, plan.mesh.crs)
+    contours = _contour_request(plan, crs)    # GeoJSON needs an EPSG code: refused now, not after the fit
     outputs, jobs, scheduler = run.outputs, run.jobs, run.scheduler
     seconds, start = {}, time.perf_counter()
 
@@ -254,9 +253,16 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             else:
                 split = None if outputs is None else Split(InputOwners(file_counts), outputs,
                                                            [str(p) for p in paths])
-                report = write_tiles(mesh, plan, output, MeshWriting(temps, limiter, crs, colours, runner, rows,
-                                                                     split))
+                drawn = _MeshDrawings.sample(plan, (mesh, halos, longest, limiter), contours,
+                                             (temps, runner, rows))
+                try:
+                    report = write_tiles(mesh, plan, output, MeshWriting(temps, limiter, crs, colours, runner,
+                                                                         rows, split))
+                except BaseException:
+                    drawn.discard()
+                    raise
                 done("refine+write")
+                drawn.finish(report, crs, seconds)
         finally:
             height_pass.close()
     finally:
@@ -312,6 +318,77 @@ def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
         limiter.lifted += facts["lifted"]
         report["overshoot"] = limiter.report()
     return report
+
+
+def _contour_request(plan: FitPlan, crs: str | None) -> ContourRequest | None:
+    """The contours the plan asks for (a DEM's, or a mesh's), writing the fit's CRS
+    (ContourRequest.with_crs: InputError for a GeoJSON whose CRS has no EPSG code)."""
+    asked = plan.dem if plan.dem is not None else plan.products
+    if asked is None or asked.contours is None:
+        return None
+    return ContourRequest(asked.contours, asked.interval).with_crs(crs, plan.mesh.crs)
+
+
+class _MeshDrawings:
+    """A mesh output's preview and contours in tiles (core.plan.MeshProducts): the tiles
+    sample each one's grid before the mesh is written (pipeline.bounded_dem.TiledDem, as a
+    DEM's cells), the contours are staged then and committed after the mesh, and the
+    preview is drawn after it, as the in-memory fit orders them.
+
+    The contours' grid is the in-memory one (geo.products.contour_grid): the aligned grid
+    over the spline's vertices at --resolution, else at the mean output edge (the mean
+    side of the kept triangles over the level: _mean_edge, whose last bit may differ from
+    the in-memory sum's). The preview's is geo.preview.SplineView's."""
+
+    def __init__(self, products, staged, facts: dict | None, preview):
+        self.products, self.staged, self.facts, self.preview = products, staged, facts, preview
+
+    @classmethod
+    def sample(cls, plan: FitPlan, fitted, contours: ContourRequest | None, where) -> "_MeshDrawings":
+        """Sample the grids: fitted (the TiledMesh, its HaloCache, the longest final edge,
+        the limiter or smoother), where (temps, runner, rows)."""
+        products = plan.products
+        if products is None:
+            return cls(None, None, None, None)
+        mesh, halos, longest, limiter = fitted
+        surfaces = RefineJob(mesh, plan.surface, MeshWriting(where[0], limiter), None, where[2].threads)
+
+        def tiles(dem: DemGrid, gradients: bool, stage: str) -> TiledDem:
+            return TiledDem(DemJob(surfaces, halos, dem, None, longest, gradients, where[2].threads), *where,
+                            stage=stage)
+        staged, facts, preview = None, None, None
+        lo, hi = vertex_box(mesh)
+        if contours is not None:
+            step = plan.mesh.resolution or _mean_edge(halos, mesh.files) / plan.surface.level
+            staged, facts = tiles(dem_grid(mesh, step), False, "contours").contours(contours)
+        if products.preview is not None:
+            try:
+                view = SplineView.of(lo, hi, mesh.frame)
+                grid = DemGrid(view.grid, np.asarray(view.origin, dtype=np.float64))
+                preview = (view, *tiles(grid, True, "preview").cells())
+            except BaseException:
+                if staged is not None:
+                    staged.discard()
+                raise
+        return cls(products, staged, facts, preview)
+
+    def discard(self) -> None:
+        """Remove the staged contours (the mesh failed)."""
+        if self.staged is not None:
+            self.staged.discard()
+
+    def finish(self, report: dict, crs: str | None, seconds: dict) -> None:
+        """Commit the contours (their facts into report["contours"]) and draw the preview
+        (its seconds into `seconds`)."""
+        if self.staged is not None:
+            self.staged.commit()
+            report["contours"] = self.facts
+        if self.preview is not None:
+            start = time.perf_counter()
+            view, z, g = self.preview
+            view.render(z, g, self.products.preview, crs, 1.0 if self.products.z_factor is None
+                        else self.products.z_factor)
+            seconds["preview"] = round(time.perf_counter() - start, 6)
 
 
 def _on_surface(kept: int, data, smoother) -> int:

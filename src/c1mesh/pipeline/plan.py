@@ -10,7 +10,16 @@ from __future__ import annotations
 from dataclasses import replace
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.plan import DemPlan, FitPlan, HeightSettings, MeshTarget, PointSelection, Strength, SurfaceSettings
+from c1mesh.core.plan import (
+    DemPlan,
+    FitPlan,
+    HeightSettings,
+    MeshProducts,
+    MeshTarget,
+    PointSelection,
+    Strength,
+    SurfaceSettings,
+)
 from c1mesh.formats._limits import parse_memory
 from c1mesh.geo.raster import fill_distance, is_raster_path
 from c1mesh.stages.frame import resolve_axis
@@ -62,7 +71,14 @@ def fit_plan(options, output=None) -> FitPlan:
         mesh=MeshTarget(options.output_format, options.ascii, options.crs,
                         None if dem is not None or options.resolution is None else float(options.resolution)),
         memory=None if options.memory is None else parse_memory(options.memory), threads=options.workers, dem=dem,
-        rasters=dem is None and any(v is not None and v != "" for v in (options.slope, options.aspect,
-                                                                        options.hillshade, options.support,
-                                                                        options.preview)),
-        contours=options.contours is not None)
+        products=mesh_products(options) if dem is None else None)
+
+
+def mesh_products(options) -> MeshProducts | None:
+    """The preview and contours a mesh output draws beside it (None: neither)."""
+    if not options.preview and options.contours is None:
+        return None
+    return MeshProducts(str(options.preview) if options.preview else None,
+                        None if options.contours is None else str(options.contours),
+                        None if options.contours is None or options.interval is None else float(options.interval),
+                        None if options.z_factor is None else float(options.z_factor))

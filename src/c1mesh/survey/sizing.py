@@ -93,15 +93,9 @@ def needs_tiles(source, plan: FitPlan) -> bool:
         return False
     need = f"{survey_name(paths)}: {count} points need about {count * per_point / 1e6:.0f} MB in " \
            f"one piece, more than --memory {plan.memory / 1e6:.0f} MB, so they are fitted in tiles"
-    if plan.rasters:
-        raise InputError(f"{need}; rasters and --preview without a DEM output (-o DEM.tif) "
-                         "need the in-memory fit (raise --memory)")
     if plan.dem is not None and plan.dem.fill is not None:
         raise InputError(f"{need}; the DEM's fill of the trim's holes (--fill, by default the hull) is not "
                          "yet done in tiles: give --fill off, or raise --memory")
-    if plan.contours and plan.dem is None:
-        raise InputError(f"{need}; --contours of a mesh needs the in-memory fit: write a DEM "
-                         "(-o DEM.tif --resolution R), or raise --memory")
     if plan.heights.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
