@@ -211,7 +211,7 @@ def test_a_mesh_preview_and_contours_in_tiles_are_the_in_memory_fits(tmp_path):
         result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.ply"),
                                            "--preview", str(tmp_path / f"{name}.png"),
                                            "--contours", str(tmp_path / f"{name}.gpkg"), "--interval", "2",
-                                           "--report", str(tmp_path / f"{name}.json"), *extra])
+                                           "--level", "1", "--report", str(tmp_path / f"{name}.json"), *extra])
         assert result.exit_code == 0, result.output
         runs[name] = json.loads((tmp_path / f"{name}.json").read_text())
     assert runs["tiled"]["tiles"] == 4 and "tiles" not in runs["whole"]
