@@ -357,13 +357,12 @@ class _MeshDrawings:
             return TiledDem(DemJob(surfaces, halos, dem, None, longest, gradients, where[2].threads), *where,
                             stage=stage)
         staged, facts, preview = None, None, None
-        lo, hi = vertex_box(mesh)
         if contours is not None:
             step = plan.mesh.resolution or _mean_edge(halos, mesh.files) / plan.surface.level
             staged, facts = tiles(dem_grid(mesh, step), False, "contours").contours(contours)
         if products.preview is not None:
             try:
-                view = SplineView.of(lo, hi, mesh.frame)
+                view = SplineView.of(*vertex_box(mesh), mesh.frame)
                 grid = DemGrid(view.grid, np.asarray(view.origin, dtype=np.float64))
                 preview = (view, *tiles(grid, True, "preview").cells())
             except BaseException:
