@@ -225,3 +225,28 @@ def test_a_mesh_preview_and_contours_in_tiles_are_the_in_memory_fits(tmp_path):
     assert max(np.abs(x - y).max() for x, y in zip(a, b)) <= 1e-6 * whole["grid_resolution"]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         f"{name}.{suffix}" for name in ("whole", "tiled") for suffix in ("ply", "prj", "png", "gpkg", "json"))
+
+
+@pytest.mark.slow
+def test_contours_and_previews_in_tiles_on_a_dask_cluster_are_the_local_tiles(tmp_path):
+    """The tiles' sampling tasks for a DEM's contours and a mesh's preview and contours run
+    on a Dask cluster (LocalCluster) as on local processes: the same PNG and the same
+    contour features, to the bit (the tasks write the same cells; the parent traces and
+    snaps them)."""
+    distributed = pytest.importorskip("distributed")
+    import pyogrio.raw
+
+    def features(path):
+        return [bytes(g) for g in pyogrio.raw.read(path)[2]]
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        for output, extra in (("dem.tif", ["--resolution", "2", "--fill", "off"]), ("mesh.ply", ["--level", "1"])):
+            for name, where in (("local", []), ("dask", ["--scheduler", cluster.scheduler_address])):
+                stem = tmp_path / f"{name}-{output}"
+                result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(stem), *extra,
+                                                   "--preview", f"{stem}.png", "--contours", f"{stem}.gpkg",
+                                                   "--interval", "2", "--memory", "1M", *where])
+                assert result.exit_code == 0, result.output
+            local, dask = tmp_path / f"local-{output}", tmp_path / f"dask-{output}"
+            assert Path(f"{local}.png").read_bytes() == Path(f"{dask}.png").read_bytes()
+            assert features(f"{local}.gpkg") == features(f"{dask}.gpkg") != []
