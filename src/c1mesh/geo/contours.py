@@ -52,6 +52,11 @@ MAX_LEVELS = 100_000
 """Most contour levels one fit may draw (a tiny --interval is refused, not drawn for hours)."""
 MAX_GRID_NODES = 200_000_000
 """Most grid nodes the tracing grid may have (8 bytes of height each, plus contourpy's)."""
+BYTES_PER_NODE = 60
+"""Peak memory of the tracing per grid node (bytes): the node's height and triangle (16;
+in tiles its height, tile and triangle, 16) and `trace`'s masked copy and contourpy's
+own arrays, measured at 36 bytes a node on a 3000 x 3000 grid; rounded up. A fit in
+tiles checks its budget against it (pipeline.bounded_fit)."""
 _ROW_BLOCK = 1 << 20
 """Grid nodes evaluated at a time (bounds the temporaries of the evaluation)."""
 ON_EDGE = 1e-9

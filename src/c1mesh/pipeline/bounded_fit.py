@@ -67,6 +67,7 @@ from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import corner_rows
 from c1mesh.engine.refine import fewest_refined_vertices
+from c1mesh.geo.contours import BYTES_PER_NODE
 from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
 from c1mesh.geo.raster import check_angle_crs
 from c1mesh.geo.preview import SplineView
@@ -190,6 +191,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         frame = frame_of_chunks(chunks, axis)
         colours.finish()
         count, box, positions = _plane_box(chunks, frame)
+        _check_contour_grid(plan, box, name)
         if gradient_source == "heights":          # as the in-memory fit's height gradients say it
             check_positions(count, positions)
         elif count < 3:
@@ -359,7 +361,10 @@ class _MeshDrawings:
         staged, facts, preview = None, None, None
         if contours is not None:
             step = plan.mesh.resolution or _mean_edge(halos, mesh.files) / plan.surface.level
-            staged, facts = tiles(dem_grid(mesh, step), False, "contours").contours(contours)
+            grid = dem_grid(mesh, step)
+            _check_contour_grid(plan, (0.0, 0.0, grid.grid.width * step, grid.grid.height * step),
+                                str(contours.path), step)
+            staged, facts = tiles(grid, False, "contours").contours(contours)
         if products.preview is not None:
             try:
                 view = SplineView.of(*vertex_box(mesh), mesh.frame)
@@ -388,6 +393,26 @@ class _MeshDrawings:
             view.render(z, g, self.products.preview, crs, 1.0 if self.products.z_factor is None
                         else self.products.z_factor)
             seconds["preview"] = round(time.perf_counter() - start, 6)
+
+
+def _check_contour_grid(plan: FitPlan, box, name: str, step: float | None = None) -> None:
+    """InputError when the contours' grid, on the box (x0, y0, x1, y1) of the points (frame
+    units, the grid covers at most that and a cell around it) at its resolution (the DEM's
+    or the mesh's --resolution; step: the mesh's grid step once known), needs more than
+    the --memory budget for its tracing in one piece (geo.contours.BYTES_PER_NODE). No
+    check while the step is not known yet."""
+    asked = plan.dem if plan.dem is not None else plan.products
+    if asked is None or asked.contours is None:
+        return
+    step = plan.dem.resolution if plan.dem is not None else plan.mesh.resolution if step is None else step
+    if step is None:
+        return
+    x0, y0, x1, y1 = box
+    nodes = ((x1 - x0) / step + 2) * ((y1 - y0) / step + 2)
+    if nodes * BYTES_PER_NODE > plan.memory:
+        raise InputError(f"{name}: contours traced on a grid of about {nodes / 1e6:.3g}M nodes at {step:g} need "
+                         f"about {nodes * BYTES_PER_NODE / 1e6:.0f} MB, more than --memory "
+                         f"{plan.memory / 1e6:.0f} MB; give a coarser --resolution, or raise --memory")
 
 
 def _on_surface(kept: int, data, smoother) -> int:
