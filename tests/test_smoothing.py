@@ -8,10 +8,12 @@ import pytest
 import scipy.sparse as sp
 
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.engine.schemes import ShapeTuple
+from c1mesh.engine.schemes import ShapeTuple, get_scheme
 from c1mesh.stages.smoothing import (GradientPrior, SchemeNotPolynomialError, SmoothFit, SmoothingControl,
                                      SmoothingData, SmoothingError, energy_blocks, parse_strength, smooth_fit)
-from c1mesh.stages.smoothing_energy import local_dofs
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages.smoothing_energy import local_dofs, triangle_directions
+from c1mesh.stages.smoothing_system import Factor, System, assemble_energy, available_solvers, hat_trace
 from c1mesh.stages.thinning import thin_to_cells
 
 
@@ -290,6 +292,35 @@ def test_edf_matches_the_exact_hat_matrix_trace():
     Sinv = np.linalg.inv(S)
     exact = float(np.trace(Sinv[0::3, 0::3]))
     assert fit.edf == pytest.approx(exact, rel=3 * np.sqrt(2 / (4 * exact)))
+
+
+@pytest.mark.parametrize("method", available_solvers())
+def test_a_factor_solves_several_right_hand_sides_as_numpy_does(method):
+    """Factor.solve of k columns at once is numpy's dense solve of each, and hat_trace (its
+    probes solved together) is the mean of vᵀ H v over the same Rademacher probes v, with
+    H = A S⁻¹ Aᵀ W formed densely."""
+    pts, tri, h = grid_mesh(8, seed=21)
+    npts = (pts - pts.mean(0)) / h
+    n = len(pts)
+    table = edge_table(tri, n)
+    K = assemble_energy(npts, tri, triangle_directions(npts, tri, table.tri_edge, None, table.edges),
+                        get_scheme("sextic"))
+    w = np.random.default_rng(22).uniform(0.5, 1.5, n)
+    system = System(K, None, np.zeros(n))
+    S, _ = system.matrix(0.7, w, 0.0)
+    B = np.random.default_rng(23).normal(size=(3 * n, 4))
+    factor = Factor(S, method)
+    dense = np.linalg.solve(S.toarray(), B)
+    X = factor.solve(B)
+    assert X.shape == B.shape
+    np.testing.assert_allclose(X, dense, rtol=0, atol=1e-8 * np.abs(dense).max())
+    for k in range(B.shape[1]):
+        np.testing.assert_allclose(factor.solve(B[:, k]), dense[:, k], rtol=0, atol=1e-8 * np.abs(dense).max())
+    H = np.linalg.inv(S.toarray())[0::3, 0::3] * w[None, :]
+    rng = np.random.default_rng(5)
+    V = [rng.choice(np.array([-1.0, 1.0]), size=n) for _ in range(3)]
+    exact = np.mean([v @ H @ v for v in V])
+    assert hat_trace(system, factor, w, 3, 5) == pytest.approx(exact, rel=1e-8)
 
 
 def test_gradient_data_pull_the_gradients():
