@@ -450,7 +450,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         else:
             s = float(strength)
         with timed(seconds, "solve"):
-            u, factor = solve(system, s, solved.w, mu, method)
+            u, factor = solve(system, s, solved.w, mu, method, keep_energy=False)     # the last matrix
         with timed(seconds, "edf"):
             edf = hat_trace(system, factor, solved.w, EDF_PROBES, seed)
     residual = (solved.z - system.fitted(u))[solved.w > 0] * Z     # in solved's numbering
