@@ -8,10 +8,12 @@ import pytest
 import scipy.sparse as sp
 
 from c1mesh.engine.interpolator import RSDInterpolator
-from c1mesh.engine.schemes import ShapeTuple
+from c1mesh.engine.schemes import ShapeTuple, get_scheme
 from c1mesh.stages.smoothing import (GradientPrior, SchemeNotPolynomialError, SmoothFit, SmoothingControl,
                                      SmoothingData, SmoothingError, energy_blocks, parse_strength, smooth_fit)
-from c1mesh.stages.smoothing_energy import local_dofs
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages.smoothing_energy import local_dofs, triangle_directions
+from c1mesh.stages.smoothing_system import Factor, System, assemble_energy, available_solvers, hat_trace
 from c1mesh.stages.thinning import thin_to_cells
 
 
@@ -184,6 +186,30 @@ def test_auto_smoothing_beats_interpolation_and_raw_data():
     assert 3 < auto.edf < pts.shape[0]
 
 
+def test_the_search_chooses_a_strength_within_1_percent_of_the_curves_lowest(monkeypatch):
+    """The coarse grid and its REFINE_STEPS golden-section steps choose an s whose
+    cross-validation score is within 1 % of the lowest of the same score (the same folds
+    and system) on a scan of 36 strengths from 1e-3 to 1e4, brute force."""
+    import c1mesh.stages.smoothing as sm
+
+    pts, tri, h = grid_mesh(24, seed=7)
+    z = surface(pts) + np.random.default_rng(7).normal(0, 0.05, len(pts))
+    searched = []
+    real = sm._search
+    monkeypatch.setattr(sm, "_search", lambda *args: searched.append(args) or real(*args))
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength="auto"))
+    problem, folds, mu, method, seed = searched[0]
+    assert problem.points.shape[0] <= sm.SEARCH_VERTICES           # the search ran on the whole problem
+    extent = np.ptp(problem.data_xy, axis=0)
+    block = min(sm.CV_BLOCK, max(float(np.sqrt(extent[0] * extent[1] / (4 * folds))), 1.0))
+    fold = sm.fold_of(problem.data_xy, folds, block, seed)
+    system = problem.system()
+    scan = [sm.cv_score(problem, system, 10.0 ** e, fold, folds, mu, method) for e in np.linspace(-3, 4, 36)]
+    chosen = dict(fit.cv_curve)[fit.strength]
+    assert chosen == pytest.approx(sm.cv_score(problem, system, fit.strength, fold, folds, mu, method), rel=1e-12)
+    assert chosen <= 1.01 * min(scan)
+
+
 def interior_or_at_limit(fit) -> str:
     """'interior' when fit.strength is an interior minimum of its CV curve (a lower score
     than its neighbours on both sides among the s tried), 'low limit' / 'high limit' when
@@ -290,6 +316,35 @@ def test_edf_matches_the_exact_hat_matrix_trace():
     Sinv = np.linalg.inv(S)
     exact = float(np.trace(Sinv[0::3, 0::3]))
     assert fit.edf == pytest.approx(exact, rel=3 * np.sqrt(2 / (4 * exact)))
+
+
+@pytest.mark.parametrize("method", available_solvers())
+def test_a_factor_solves_several_right_hand_sides_as_numpy_does(method):
+    """Factor.solve of k columns at once is numpy's dense solve of each, and hat_trace (its
+    probes solved together) is the mean of vᵀ H v over the same Rademacher probes v, with
+    H = A S⁻¹ Aᵀ W formed densely."""
+    pts, tri, h = grid_mesh(8, seed=21)
+    npts = (pts - pts.mean(0)) / h
+    n = len(pts)
+    table = edge_table(tri, n)
+    K = assemble_energy(npts, tri, triangle_directions(npts, tri, table.tri_edge, None, table.edges),
+                        get_scheme("sextic"))
+    w = np.random.default_rng(22).uniform(0.5, 1.5, n)
+    system = System(K, None, np.zeros(n))
+    S, _ = system.matrix(0.7, w, 0.0)
+    B = np.random.default_rng(23).normal(size=(3 * n, 4))
+    factor = Factor(S, method)
+    dense = np.linalg.solve(S.toarray(), B)
+    X = factor.solve(B)
+    assert X.shape == B.shape
+    np.testing.assert_allclose(X, dense, rtol=0, atol=1e-8 * np.abs(dense).max())
+    for k in range(B.shape[1]):
+        np.testing.assert_allclose(factor.solve(B[:, k]), dense[:, k], rtol=0, atol=1e-8 * np.abs(dense).max())
+    H = np.linalg.inv(S.toarray())[0::3, 0::3] * w[None, :]
+    rng = np.random.default_rng(5)
+    V = [rng.choice(np.array([-1.0, 1.0]), size=n) for _ in range(3)]
+    exact = np.mean([v @ H @ v for v in V])
+    assert hat_trace(system, factor, w, 3, 5) == pytest.approx(exact, rel=1e-8)
 
 
 def test_gradient_data_pull_the_gradients():

@@ -189,7 +189,8 @@ def test_vertex_data_terms_go_on_the_diagonal_also_of_a_vertex_without_triangles
     n = pts.shape[0]
     K = assemble_energy(pts, tri, dirs, get_scheme("sextic"))
     w, mask, grads = rng.uniform(0.5, 2, n), (rng.uniform(size=n) > 0.3).astype(float), rng.normal(size=(n, 2))
-    S, rhs = System(K, None, rng.normal(size=n), mask, grads * mask[:, None]).matrix(3.0, w, 0.7)
+    z = rng.normal(size=n)
+    S, rhs = System(K, None, z, mask, grads * mask[:, None]).matrix(3.0, w, 0.7)
     want = 3.0 * K.toarray()
     want[np.arange(0, 3 * n, 3), np.arange(0, 3 * n, 3)] += w
     for c in (1, 2):
@@ -197,6 +198,28 @@ def test_vertex_data_terms_go_on_the_diagonal_also_of_a_vertex_without_triangles
     assert np.array_equal(S.toarray(), want)
     assert S.toarray()[3 * n - 3, 3 * n - 3] == w[-1] and np.array_equal(S.indices, K.indices)
     assert np.allclose(rhs[1::3], 0.7 * grads[:, 0] * mask) and np.allclose(rhs[2::3], 0.7 * grads[:, 1] * mask)
+    # written over K's values (the last matrix of a fit): the same matrix, then no other
+    spent = System(K.copy(), None, z, mask, grads * mask[:, None])
+    S_over, rhs_over = spent.matrix(3.0, w, 0.7, keep_energy=False)
+    assert np.array_equal(S_over.toarray(), want) and np.array_equal(rhs_over, rhs)
+    assert np.shares_memory(S_over.data, spent.K.data)
+    with pytest.raises(ValueError):
+        spent.matrix(3.0, w, 0.7)
+    # solve's last matrix: u is numpy's dense solve, and then the factor and the system let go
+    # of S (gradient data at every vertex: the one in no triangle has no energy to fix them)
+    every = want + 0.7 * np.diag(np.tile([0.0, 1.0, 1.0], n) * np.repeat(1 - mask, 3))
+    b = np.zeros(3 * n)
+    b[0::3], b[1::3], b[2::3] = w * z, 0.7 * grads[:, 0], 0.7 * grads[:, 1]
+    dense = np.linalg.solve(every, b)
+    for method in smoothing_system.available_solvers():
+        last = System(K.copy(), None, z, np.ones(n), grads)
+        u, factor = smoothing_system.solve(last, 3.0, w, 0.7, method, keep_energy=False)
+        assert np.abs(u - dense).max() <= 1e-9 * np.abs(dense).max()
+        if method in ("cholmod", "superlu"):
+            assert factor.S is None and last.K.shape == K.shape and last.K.nnz == 0
+            assert np.abs(factor.solve(b, refine=False) - dense).max() <= 1e-6 * np.abs(dense).max()
+            with pytest.raises(ValueError):
+                factor.solve(b)
 
 
 # ------------------------------------------------------------------ vertex order
