@@ -84,13 +84,7 @@ turn. A feature of wavelength ℓ spacings keeps about 1 / (1 + s (2π/ℓ)⁴) 
 all but 1e-4 of it: the fit is the interpolant. At s = 1e7 a feature keeps half its
 height only if it is 2π s^¼ ≈ 350 spacings long, over 3 times the side of the largest
 region the search fits (SEARCH_VERTICES, ~100 spacings): the fit is the plane."""
-REFINE_STEPS = 2
-"""Golden-section steps after the coarse grid: the first evaluates two strengths, each later
-one one more (3 scores, 5 folds each). The CV curve is flat near its minimum: over the
-reports' curves of 10 fits (autzen_trim and 4_6_crop ground, with 4_6_crop at --spacing 3;
-hill.ply, topo.csv, wave_tilted_offset.xyz; the DTM job's 1M points with vertices at the
-points and at --spacing 1 and 2), the score at the s chosen after 2 steps was at most 0.14 %
-(topo.csv) above the best of 4 steps', after 1 step 0.44 %, with none 2.5 %."""
+REFINE_STEPS = 4
 EDF_PROBES = 4
 FILE_NORMALS_WEIGHT = 1.0
 """gradient_weight the pipeline gives the gradients of normals read from the file
