@@ -186,6 +186,30 @@ def test_auto_smoothing_beats_interpolation_and_raw_data():
     assert 3 < auto.edf < pts.shape[0]
 
 
+def test_the_search_chooses_a_strength_within_1_percent_of_the_curves_lowest(monkeypatch):
+    """The coarse grid and its REFINE_STEPS golden-section steps choose an s whose
+    cross-validation score is within 1 % of the lowest of the same score (the same folds
+    and system) on a scan of 36 strengths from 1e-3 to 1e4, brute force."""
+    import c1mesh.stages.smoothing as sm
+
+    pts, tri, h = grid_mesh(24, seed=7)
+    z = surface(pts) + np.random.default_rng(7).normal(0, 0.05, len(pts))
+    searched = []
+    real = sm._search
+    monkeypatch.setattr(sm, "_search", lambda *args: searched.append(args) or real(*args))
+    fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength="auto"))
+    problem, folds, mu, method, seed = searched[0]
+    assert problem.points.shape[0] <= sm.SEARCH_VERTICES           # the search ran on the whole problem
+    extent = np.ptp(problem.data_xy, axis=0)
+    block = min(sm.CV_BLOCK, max(float(np.sqrt(extent[0] * extent[1] / (4 * folds))), 1.0))
+    fold = sm.fold_of(problem.data_xy, folds, block, seed)
+    system = problem.system()
+    scan = [sm.cv_score(problem, system, 10.0 ** e, fold, folds, mu, method) for e in np.linspace(-3, 4, 36)]
+    chosen = dict(fit.cv_curve)[fit.strength]
+    assert chosen == pytest.approx(sm.cv_score(problem, system, fit.strength, fold, folds, mu, method), rel=1e-12)
+    assert chosen <= 1.01 * min(scan)
+
+
 def interior_or_at_limit(fit) -> str:
     """'interior' when fit.strength is an interior minimum of its CV curve (a lower score
     than its neighbours on both sides among the s tried), 'low limit' / 'high limit' when
