@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.tile import Tile, compact, tile_rows
 from c1mesh.engine import _topology
 
 
@@ -190,18 +189,3 @@ def mesh_edges(triangles: np.ndarray, n_points: int | None = None) -> np.ndarray
     triangles = np.asarray(triangles)
     n = int(triangles.max()) + 1 if n_points is None else n_points
     return edge_table(triangles, n).edges
-
-
-def own_triangles_in(tile: Tile, table, owned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A tile's own triangles `owned` (k, 3) survey numbers within it (whose edges are
-    table, edge_table of tile.triangles): (corners (c,) ascending halo rows,
-    triangles (k, 3) into corners, at (E,) the halo edge of each edge of those triangles in
-    the order of edge_table(triangles, c).edges). RuntimeError when a corner is not in the halo."""
-    rows = tile_rows(tile.records["index"], owned)
-    if np.any(rows < 0):
-        raise RuntimeError("a tile's own triangle has a corner outside its halo")
-    corners, triangles = compact(rows, len(tile.records))
-    n = len(tile.records)
-    keys = table.edges[:, 0] * n + table.edges[:, 1]
-    sub = corners[edge_table(triangles, len(corners)).edges]
-    return corners, triangles, np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])
