@@ -205,7 +205,7 @@ def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors)
     report = limits.report(table, tile.own)
     corners, triangles, at, own_table = own_triangles_in(tile, table, other, owned)
-    records = tile.records[corners]
+    records = tile.records.take(corners)                 # structured rows: take, not [corners]
     records["z"] = limits.values[corners]
     return TileLimits(records, triangles, limits.gradients[corners], limits.directions[at],
                       report.gradients_limited, report.directions_changed, report.heights_reconciled, own_table)

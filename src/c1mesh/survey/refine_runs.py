@@ -116,7 +116,7 @@ class RefineJob:
         rows, local = corner_rows(records["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
-        return TileLimits(records[rows], local, None, None, 0, 0, 0)
+        return TileLimits(records.take(rows), local, None, None, 0, 0, 0)
 
 
 class _Part:
