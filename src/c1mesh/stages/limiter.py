@@ -39,7 +39,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap, parallel_blocks
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import Tile, compact
-from c1mesh.engine.topology import EdgeTable, edge_table, edge_table_sides, live_edges, sub_table
+from c1mesh.engine.topology import EdgeTable, edge_table, edge_table_sides, live_edges, sub_table, unique_edges
 from c1mesh.stages import _limiter as kernel
 from c1mesh.stages.streamed_median import Chunks, streamed_median
 from c1mesh.stages.trim import kept_triangles
@@ -135,10 +135,11 @@ def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
     edges of the cell, so that the reconciled data of the own edges' ends are the whole
     survey's (c1mesh.survey.halos). `reduce_floor` of every tile's summary is the
     floor."""
+    if first is None:            # the own edges alone: their residuals are the first floor's values
+        edges = unique_edges(tile.triangles, len(tile.records), tile.own)
+        return residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, edges))
     table = edge_table(tile.triangles, len(tile.records))
     counted = tile.own[table.edges[:, 0]]
-    if first is None:
-        return residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, table.edges), counted)
     geometry = EdgeGeometry.of(tile.points, tile.values, table.edges)
     reconciled, _ = _reconciled(tile.values, tile.gradients, geometry, table, True, first)
     return residual_sizes(reconciled.residuals(), counted)
