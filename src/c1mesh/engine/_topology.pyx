@@ -12,6 +12,10 @@ Vertex numbers and slots must be below 2**31 (the wrapper checks).
 The sub-table of kept triangles (topology.sub_table, live_edges) is two linear passes over
 the whole table: the kept triangles per edge, then the live edges and kept triangles
 renumbered in order.
+
+The edges alone (topology.unique_edges: bucket_highs, fill_edges) bucket the higher ends
+(32 bits) by lower vertex the same way, without the slots, and sort and deduplicate each
+bucket in place.
 """
 import numpy as np
 
