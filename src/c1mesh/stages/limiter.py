@@ -202,7 +202,7 @@ def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     (and edges by their lower end) the tile owns, so the tiles' counts add up to the
     survey's. The halo must hold the star of every vertex within 3 longest edges of the
     cell (c1mesh.survey.halos): then the corners' results are the whole survey's."""
-    table, other, _ = edge_table_sides(tile.triangles, len(tile.records))
+    table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
     limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors)
     report = limits.report(table, tile.own)
     corners, triangles, at, own_table = own_triangles_in(tile, table, other, owned)

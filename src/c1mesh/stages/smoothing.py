@@ -705,7 +705,7 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
                             TileSolve(0, 0.0, 0.0, 0, None, 0), None)
     other = None
     if table is None:
-        table, other, _ = edge_table_sides(tile.triangles, len(tile.records))
+        table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
     elif owned is not None:
         raise ValueError("smooth_tile numbers the edges itself when given the own triangles")
     fit, directions, changed = _fit_tile(tile, run, table, data)
