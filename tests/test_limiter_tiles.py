@@ -120,3 +120,32 @@ def test_the_run_on_tiles_is_the_in_memory_limiter(noisy, count):
         counts += (limits.limited, limits.turned, limits.lifted)
     assert counts.tolist() == [report.gradients_limited, report.directions_changed, report.heights_reconciled]
     assert report.heights_reconciled > 0 and report.gradients_limited > 0
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_own_triangles_in_a_tile_are_their_corners_edges_and_table(noisy, count):
+    """own_triangles_in against a Python loop: the corners are the halo rows the owned
+    triangles use, ascending; the triangles number them; every edge of those triangles,
+    sorted, is the halo edge `at` names; the table is edge_table of the renumbered
+    triangles, field for field. Owned triangles out of the halo's order are refused."""
+    from c1mesh.engine.topology import edge_table_sides
+    from c1mesh.stages.limiter import own_triangles_in
+
+    xy, z, g, triangles = noisy
+    for tile, owned in _tiles(xy, z, g, triangles, count):
+        table, other, _ = edge_table_sides(tile.triangles, len(tile.records))
+        corners, local, at, sub = own_triangles_in(tile, table, other, owned)
+        index = tile.records["index"].tolist()
+        expected_corners = sorted({index.index(v) for v in owned.ravel().tolist()})
+        assert corners.tolist() == expected_corners
+        assert [[index[corners[v]] for v in row] for row in local.tolist()] == owned.tolist()
+        pairs = sorted({tuple(sorted((row[i], row[(i + 1) % 3]))) for row in local.tolist() for i in range(3)})
+        assert sub.edges.tolist() == [list(p) for p in pairs]
+        halo_edges = table.edges.tolist()
+        assert [halo_edges[e] for e in at.tolist()] == [[corners[a], corners[b]] for a, b in pairs]
+        expected = edge_table(local, len(corners))
+        for name in ("edges", "tri_edge", "forward", "owner", "owner_slot", "count"):
+            assert np.array_equal(getattr(sub, name), getattr(expected, name)), name
+        if len(owned) > 1:
+            with pytest.raises(RuntimeError, match="in order"):
+                own_triangles_in(tile, table, other, owned[::-1])

@@ -53,3 +53,38 @@ def test_the_command_turns_numpys_huge_pages_off_unless_the_user_chose(user, exp
             "print(_set_madvise_hugepage(False))")
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert done.stdout.strip() == expected
+
+
+def test_a_held_heap_keeps_a_freed_array_until_released():
+    """hold_freed_heap (the command's): a freed 16 MB array stays resident for the next
+    ones (glibc's default maps it alone and unmaps it on free), release_free_heap gives it
+    back; the settings reach the processes it starts (GLIBC_TUNABLES), which then keep
+    their tasks' heap (release_task_heap does nothing). Resident pages from
+    /proc/self/statm, in a child so this process's allocator is left as it was."""
+    import subprocess
+
+    code = """if True:
+        import os
+        from c1mesh.core.platform_memory import (HELD_HEAP, heap_held, hold_freed_heap, release_free_heap,
+                                                 release_task_heap)
+        def resident():
+            with open("/proc/self/statm") as file:
+                return int(file.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        def freed_block_kept():
+            block = bytearray(16 << 20)          # zero-filled: every page resident
+            before = resident()
+            del block
+            return resident() > before - 8e6
+        assert not heap_held() and not freed_block_kept()
+        assert release_task_heap()
+        hold_freed_heap()
+        assert heap_held() and os.environ["GLIBC_TUNABLES"] == HELD_HEAP
+        assert freed_block_kept()
+        assert not release_task_heap()
+        held = resident()
+        assert release_free_heap() and resident() < held - 8e6
+        print("ok")
+    """
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr

@@ -4,7 +4,7 @@ import pytest
 
 from c1mesh.core.errors import InputError
 from c1mesh.engine.topology import (edge_table, edge_table_sides, live_edges, sort_keys, sub_table,
-                                    triangle_neighbours)
+                                    triangle_neighbours, unique_edges)
 from c1mesh.engine.triangulation import delaunay
 
 
@@ -147,3 +147,23 @@ def test_indices_outside_the_points_are_refused_before_the_kernel():
             edge_table(np.array(bad), 5)
         with pytest.raises(InputError, match="indices"):
             triangle_neighbours(np.array(bad), 5)
+
+
+@pytest.mark.parametrize("mark", ["all", "some", "none"])
+def test_unique_edges_are_a_loops_set_of_pairs_with_a_counted_lower_end(shuffled_mesh, mark):
+    """unique_edges against a Python set of every triangle's three corner pairs, lower end
+    first, sorted; with counted, those whose lower end it marks. A fan's centre (a bucket
+    past the insertion sort's size, qsorted) and an unused vertex are among them."""
+    tri, n = shuffled_mesh
+    fan = np.array([[0, k + 1, k + 2] for k in range(40)])      # vertex 0: 41 higher neighbours
+    tri = np.concatenate([tri + 42, fan])
+    n = n + 43                                                   # the last vertex unused
+    rng = np.random.default_rng(4)
+    counted = {"all": None, "some": rng.random(n) < 0.5, "none": np.zeros(n, dtype=bool)}[mark]
+    pairs = {tuple(sorted((a, b))) for t in tri.tolist() for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+    expected = sorted(p for p in pairs if counted is None or counted[p[0]])
+    edges = unique_edges(tri, n, counted)
+    assert edges.dtype == np.int64 and edges.shape == (len(expected), 2)
+    assert edges.tolist() == [list(p) for p in expected]
+    with pytest.raises(InputError):
+        unique_edges(tri, n, np.ones(n - 1, dtype=bool))

@@ -12,10 +12,14 @@ Vertex numbers and slots must be below 2**31 (the wrapper checks).
 The sub-table of kept triangles (topology.sub_table, live_edges) is two linear passes over
 the whole table: the kept triangles per edge, then the live edges and kept triangles
 renumbered in order.
+
+The edges alone (topology.unique_edges: bucket_highs, fill_edges) bucket the higher ends
+(32 bits) by lower vertex the same way, without the slots, and sort and deduplicate each
+bucket in place.
 """
 import numpy as np
 
-from libc.stdint cimport int8_t, int64_t, uint8_t, uint64_t
+from libc.stdint cimport int8_t, int64_t, uint8_t, uint32_t, uint64_t
 from libc.stdlib cimport qsort
 
 cdef int INSERTION_MAX = 24
@@ -201,3 +205,88 @@ def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const i
                 for k in range(3):
                     sub_tri_edge[new_triangle[t], k] = rank[tri_edge[t, k]]
                     sub_forward[new_triangle[t], k] = forward[t, k]
+
+
+cdef int _compare32(const void *a, const void *b) noexcept nogil:
+    cdef uint32_t x = (<const uint32_t *> a)[0], y = (<const uint32_t *> b)[0]
+    return (x > y) - (x < y)
+
+
+cdef Py_ssize_t _sorted_distinct(uint32_t *values, Py_ssize_t size) noexcept nogil:
+    """Sort values[:size] (insertion sort, qsort past INSERTION_MAX) and move the distinct
+    ones to the front, ascending; returns how many."""
+    cdef Py_ssize_t i, j, kept
+    cdef uint32_t v
+    if size > INSERTION_MAX:
+        qsort(values, size, sizeof(uint32_t), _compare32)
+    else:
+        for i in range(1, size):
+            v = values[i]
+            j = i - 1
+            while j >= 0 and values[j] > v:
+                values[j + 1] = values[j]
+                j -= 1
+            values[j + 1] = v
+    if size == 0:
+        return 0
+    kept = 1
+    for i in range(1, size):
+        if values[i] != values[kept - 1]:
+            values[kept] = values[i]
+            kept += 1
+    return kept
+
+
+def bucket_highs(const int64_t[:, ::1] tri, const uint8_t[::1] counted, int64_t n_points):
+    """(highs (3T,) uint32, start (n + 1,) int64, size (n,) int64, E): the unique edges of
+    the triangles tri (T, 3) whose lower vertex v has counted[v] (counted empty: every
+    edge), as highs[start[v]:start[v] + size[v]], the higher ends of v's edges, ascending
+    and distinct; E their total. One counting sort of the slots by lower vertex, then each
+    bucket sorted and deduplicated (edge_table's buckets, without the slots)."""
+    cdef Py_ssize_t T = tri.shape[0], t, v
+    cdef int k
+    cdef int64_t a, b, low, total = 0, c, E = 0
+    cdef bint every = counted.shape[0] == 0
+    highs = np.empty(3 * T, dtype=np.uint32)
+    start = np.zeros(n_points + 1, dtype=np.int64)
+    size = np.empty(n_points, dtype=np.int64)
+    cdef uint32_t[::1] out = highs
+    cdef int64_t[::1] first = start
+    cdef int64_t[::1] kept = size
+    with nogil:
+        for t in range(T):                                   # bucket sizes
+            for k in range(3):
+                a, b = tri[t, k], tri[t, (k + 1) % 3]
+                low = a if a < b else b
+                if every or counted[low]:
+                    first[low] += 1
+        for v in range(n_points + 1):                        # bucket starts (exclusive sum)
+            c = first[v]
+            first[v] = total
+            total += c
+        for t in range(T):                                   # scatter; first[v] moves to its end
+            for k in range(3):
+                a, b = tri[t, k], tri[t, (k + 1) % 3]
+                low = a if a < b else b
+                if every or counted[low]:
+                    out[first[low]] = <uint32_t> (a if a > b else b)
+                    first[low] += 1
+        for v in range(n_points, 0, -1):                     # back to the starts
+            first[v] = first[v - 1]
+        first[0] = 0
+        for v in range(n_points):
+            kept[v] = _sorted_distinct(&out[first[v]], first[v + 1] - first[v])
+            E += kept[v]
+    return highs, start, size, E
+
+
+def fill_edges(const uint32_t[::1] highs, const int64_t[::1] start, const int64_t[::1] size,
+               int64_t[:, ::1] edges):
+    """edges (E, 2): bucket_highs' edges, lower vertex ascending, then higher."""
+    cdef Py_ssize_t n = size.shape[0], v, i, e = 0
+    with nogil:
+        for v in range(n):
+            for i in range(start[v], start[v] + size[v]):
+                edges[e, 0] = v
+                edges[e, 1] = highs[i]
+                e += 1

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.tile import Tile, compact, tile_rows
 from c1mesh.engine import _topology
 
 
@@ -94,6 +93,25 @@ def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
     table = EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
                       owner_slot=owner_slot, count=count)
     return (table, other, across) if sides else (table, None, None)
+
+
+def unique_edges(triangles: np.ndarray, n_points: int, counted: np.ndarray | None = None) -> np.ndarray:
+    """(E, 2) int64 the unique edges of triangles (T, 3) over n_points vertices, lower end
+    first, sorted lexicographically: edge_table's edges (without its check that an edge
+    has at most two triangles); counted (n,) bool: only the edges whose lower end it
+    marks. The kernel (engine/_topology.pyx) buckets the higher ends by lower vertex as
+    edge_table does, without the slots, so it writes a quarter of the table's bytes."""
+    tri = _checked(triangles, n_points)
+    if counted is None:
+        mask = np.empty(0, dtype=np.uint8)
+    else:
+        mask = np.ascontiguousarray(counted, dtype=bool).view(np.uint8)
+        if mask.shape != (n_points,):
+            raise InputError(f"counted must have shape ({n_points},), got {mask.shape}")
+    highs, start, size, E = _topology.bucket_highs(tri, mask, int(n_points))
+    edges = np.empty((E, 2), dtype=np.int64)
+    _topology.fill_edges(highs, start, size, edges)
+    return edges
 
 
 def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
@@ -190,18 +208,3 @@ def mesh_edges(triangles: np.ndarray, n_points: int | None = None) -> np.ndarray
     triangles = np.asarray(triangles)
     n = int(triangles.max()) + 1 if n_points is None else n_points
     return edge_table(triangles, n).edges
-
-
-def own_triangles_in(tile: Tile, table, owned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A tile's own triangles `owned` (k, 3) survey numbers within it (whose edges are
-    table, edge_table of tile.triangles): (corners (c,) ascending halo rows,
-    triangles (k, 3) into corners, at (E,) the halo edge of each edge of those triangles in
-    the order of edge_table(triangles, c).edges). RuntimeError when a corner is not in the halo."""
-    rows = tile_rows(tile.records["index"], owned)
-    if np.any(rows < 0):
-        raise RuntimeError("a tile's own triangle has a corner outside its halo")
-    corners, triangles = compact(rows, len(tile.records))
-    n = len(tile.records)
-    keys = table.edges[:, 0] * n + table.edges[:, 1]
-    sub = corners[edge_table(triangles, len(corners)).edges]
-    return corners, triangles, np.searchsorted(keys, sub[:, 0] * n + sub[:, 1])

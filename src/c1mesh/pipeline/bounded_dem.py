@@ -141,7 +141,7 @@ def vertex_box(mesh) -> tuple[np.ndarray, np.ndarray]:
         if not len(triangles):
             continue
         records = mesh.heights.records(mesh.grid.grown(t, mesh.buffers[t] * (1 + 1e-9)))
-        corners = records[np.isin(records["index"], triangles)]
+        corners = np.compress(np.isin(records["index"], triangles), records)
         xy = np.column_stack([corners["x"], corners["y"]])
         lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
     return lo, hi
@@ -316,7 +316,7 @@ def halo_vertices(halo) -> np.ndarray:
     """The records of a halo (core.tile.Tile) that its triangles use: the spline's
     vertices (the cached halo keeps the points of triangles the trim removed since it was
     read)."""
-    return halo.records[np.unique(halo.triangles)] if len(halo.triangles) else halo.records[:0]
+    return halo.records.take(np.unique(halo.triangles)) if len(halo.triangles) else halo.records[:0]
 
 
 class TiledDem:

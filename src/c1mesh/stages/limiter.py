@@ -38,10 +38,11 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import overlap, parallel_blocks
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.core.tile import Tile
-from c1mesh.engine.topology import EdgeTable, edge_table, own_triangles_in
+from c1mesh.core.tile import Tile, compact
+from c1mesh.engine.topology import EdgeTable, edge_table, edge_table_sides, live_edges, sub_table, unique_edges
 from c1mesh.stages import _limiter as kernel
 from c1mesh.stages.streamed_median import Chunks, streamed_median
+from c1mesh.stages.trim import kept_triangles
 
 OVERSHOOT_MODES = ("limit", "off")
 
@@ -107,10 +108,12 @@ class NoiseFloors:
 class TileLimits:
     """The limiter's result for the corners of one tile's triangles: records (c,) the
     corners (ascending survey numbers; their z reconciled), triangles (k, 3) into them,
-    gradients (c, 2) limited, directions (E, 2) in the order of
+    gradients (c, 2) limited (None: the records' own), directions (E, 2) (None: the unit
+    normals) in the order of
     topology.edge_table(triangles, c).edges; limited: own vertices whose gradient changed,
     turned: own edges whose direction is not the unit normal, lifted: own vertices whose
-    height moved (own: in the tile's cell; lower end, for an edge)."""
+    height moved (own: in the tile's cell; lower end, for an edge); table: that
+    topology.EdgeTable when known (the RSDInterpolator then numbers no edges), else None."""
 
     records: np.ndarray
     triangles: np.ndarray
@@ -119,6 +122,7 @@ class TileLimits:
     limited: int
     turned: int
     lifted: int = 0
+    table: EdgeTable | None = None
 
 
 def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
@@ -131,10 +135,11 @@ def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
     edges of the cell, so that the reconciled data of the own edges' ends are the whole
     survey's (c1mesh.survey.halos). `reduce_floor` of every tile's summary is the
     floor."""
+    if first is None:            # the own edges alone: their residuals are the first floor's values
+        edges = unique_edges(tile.triangles, len(tile.records), tile.own)
+        return residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, edges))
     table = edge_table(tile.triangles, len(tile.records))
     counted = tile.own[table.edges[:, 0]]
-    if first is None:
-        return residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, table.edges), counted)
     geometry = EdgeGeometry.of(tile.points, tile.values, table.edges)
     reconciled, _ = _reconciled(tile.values, tile.gradients, geometry, table, True, first)
     return residual_sizes(reconciled.residuals(), counted)
@@ -197,14 +202,37 @@ def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimit
     (and edges by their lower end) the tile owns, so the tiles' counts add up to the
     survey's. The halo must hold the star of every vertex within 3 longest edges of the
     cell (c1mesh.survey.halos): then the corners' results are the whole survey's."""
-    table = edge_table(tile.triangles, len(tile.records))
+    table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
     limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors)
     report = limits.report(table, tile.own)
-    corners, triangles, at = own_triangles_in(tile, table, owned)
-    records = tile.records[corners]
+    corners, triangles, at, own_table = own_triangles_in(tile, table, other, owned)
+    records = tile.records.take(corners)                 # structured rows: take, not [corners]
     records["z"] = limits.values[corners]
     return TileLimits(records, triangles, limits.gradients[corners], limits.directions[at],
-                      report.gradients_limited, report.directions_changed, report.heights_reconciled)
+                      report.gradients_limited, report.directions_changed, report.heights_reconciled, own_table)
+
+
+def own_triangles_in(tile: Tile, table: EdgeTable, other: np.ndarray,
+                     owned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, EdgeTable]:
+    """A tile's own triangles `owned` (k, 3) survey numbers, some of its halo's triangles in
+    their order there (c1mesh.survey.halos reads the tile's file in order), whose edges are
+    table, and other its second slots (topology.edge_table_sides of tile.triangles):
+    (corners (c,) ascending halo rows, triangles (k, 3) into corners, at (E',) the halo
+    edge of each edge of those triangles, and their EdgeTable (E' edges), equal to
+    edge_table(triangles, c)).
+
+    The halo's triangles that are owned are found by trim.kept_triangles' hash, one pass;
+    their table is the halo table's sub_table, which keeps the halo edges' order (`at`),
+    without another sort. RuntimeError when they are not, in order, the rows of `owned`."""
+    tri = tile.triangles
+    keep = ~kept_triangles(tri, owned, tile.records["index"])
+    mine = tri[keep]
+    owned = np.asarray(owned, dtype=np.int64)
+    if mine.shape != owned.shape or not np.array_equal(tile.records["index"][mine], owned):
+        raise RuntimeError("a tile's own triangles are not, in order, some of its halo's triangles")
+    corners, triangles = compact(mine, len(tile.records))
+    at = np.flatnonzero(live_edges(table, keep, other)[1])
+    return corners, triangles, at, sub_table(table, keep, other, corners)
 
 
 @dataclass(frozen=True)

@@ -49,9 +49,9 @@ from c1mesh.core.tile import Tile
 from c1mesh.engine import rsd
 from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
-from c1mesh.engine.topology import edge_table, own_triangles_in
+from c1mesh.engine.topology import edge_table, edge_table_sides
 from c1mesh.stages import _smoothing as kernel
-from c1mesh.stages.limiter import edge_directions
+from c1mesh.stages.limiter import edge_directions, own_triangles_in
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
                                             energy_blocks, energy_tensor,
                                             triangle_directions)
@@ -694,7 +694,7 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     after pipeline.steps.compact_vertices), the directions then in the order of
     edge_table(tile.triangles), which is that order. A tile without triangles fits
     nothing: its own vertices, which no triangle uses, keep their data. table:
-    edge_table(tile.triangles) when built already (the trim's, in memory).
+    edge_table(tile.triangles) when built already (the trim's, in memory; not with owned).
 
     With strength "auto" the run searches s on the tile (`search_strength`) and solves at
     the s it found, in one smooth_fit: the in-memory fit's one tile is both the tile the
@@ -709,7 +709,11 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
         return SmoothedTile(tile.values[tile.own], tile.gradients[tile.own],
                             None if run.overshoot == "off" else np.empty((0, 2)),
                             TileSolve(0, 0.0, 0.0, 0, None, 0), None)
-    table = edge_table(tile.triangles, len(tile.records)) if table is None else table
+    other = None
+    if table is None:
+        table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
+    elif owned is not None:
+        raise ValueError("smooth_tile numbers the edges itself when given the own triangles")
     fit, directions, changed = _fit_tile(tile, run, table, data)
     own = tile.own
     every = bool(own.all())
@@ -717,7 +721,7 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     turned = 0
     if directions is not None:
         if owned is not None:
-            directions = directions[own_triangles_in(tile, table, owned)[2]]
+            directions = directions[own_triangles_in(tile, table, other, owned)[2]]
         turned = int(changed[own[table.edges[:, 0]]].sum())
     residual = tile.records["z"][own] - values
     solve = TileSolve(own=int(own.sum()), squares=float(np.sum(residual ** 2)),

@@ -15,7 +15,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Callable, Iterator, Sequence
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.platform_memory import release_free_heap
+from c1mesh.core.platform_memory import release_task_heap
 from c1mesh.survey.tiles import TileError, TileResult, TileTask, run_tile, temp_path, tile_failure
 
 CONNECT_SECONDS = 30
@@ -150,7 +150,7 @@ class TaskRunner:
                     result = function(*arguments(i))
                 except Exception as exc:  # noqa: BLE001 — any failure of a tile is named by its tile
                     raise _failure(name(i), exc) from exc
-                release_free_heap()
+                release_task_heap()
                 yield i, result
             return
         pending: dict = {}
@@ -191,12 +191,13 @@ class TaskRunner:
 
 def _then_release(function: Callable, *arguments):
     """function(*arguments) in a pool worker, then the heap it freed given back
-    (platform_memory.release_free_heap): tasks of one size then peak at one size, however
-    many a worker has run; the same is done after each task run in this process."""
+    (platform_memory.release_task_heap; the command holds it for the next task instead):
+    tasks of one size then peak at one size, however many a worker has run; the same is
+    done after each task run in this process."""
     try:
         return function(*arguments)
     finally:
-        release_free_heap()
+        release_task_heap()
 
 
 def _failure(name: str, exc: BaseException) -> TileError:

@@ -61,7 +61,7 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Tile:
             continue
         parts.append(triangles_among(records["index"], np.load(triangle_files[other])))
     used, triangles = compact(np.concatenate(parts), len(records))
-    records = records[used]
+    records = records.take(used)                         # structured rows: take, not [used]
     own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
     return Tile(records, triangles, own)
 

@@ -16,6 +16,7 @@ from c1mesh.core.plan import FitPlan, MeshTarget, SurfaceSettings
 from c1mesh.core.threads import blas_threads, limit
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.formats import MeshSize, check_mesh_size, write_mesh
+from c1mesh.stages.limiter import TileLimits
 from c1mesh.stages.surface import surface_stream
 from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.distributed import TaskRunner
@@ -94,28 +95,33 @@ class RefineJob:
         """(RSDInterpolator over tile t's own triangles (survey numbers; its points the
         corners' local x, y), the corners' records (c,), (limited, turned, lifted)): the
         spline the tile refines (with the limiter's or the smoothing's data; the records'
+<<<<<<< HEAD
         own without), as the tiled DEM samples it too (pipeline.bounded_dem)."""
         records, local, gradients, directions, limited, turned, lifted = self.tile_data(t, triangles)
+=======
+        own without), as the tiled DEM samples it too (pipeline.tiled_dem)."""
+        data = self.tile_data(t, triangles)
+        records = data.records
+>>>>>>> speed6
         xy = np.column_stack([records["x"], records["y"]])
+        gradients = data.gradients
         if gradients is None:
             gradients = np.column_stack([records["gx"], records["gy"]])
-        interp = RSDInterpolator(xy, records["z"], gradients, triangles=local, scheme=self.scheme,
-                                 directions=directions)
-        return interp, records, (limited, turned, lifted)
+        interp = RSDInterpolator(xy, records["z"], gradients, triangles=data.triangles, scheme=self.scheme,
+                                 directions=data.directions, edge_table=data.table)
+        return interp, records, (data.limited, data.turned, data.lifted)
 
-    def tile_data(self, t: int, triangles: np.ndarray):
-        """(records (c,) of the corners, triangles (k, 3) into them, gradients or None,
-        directions or None, limited, turned, lifted) of tile t's own triangles (survey numbers)."""
+    def tile_data(self, t: int, triangles: np.ndarray) -> TileLimits:
+        """The limiter.TileLimits of tile t's own triangles (survey numbers): the limiter's
+        (or the smoothing's), or without one the corners' own records (gradients,
+        directions and table None, no changes)."""
         if self.limiter is not None:
-            limits = self.limiter.tile(t, triangles)
-            return (limits.records, limits.triangles, limits.gradients, limits.directions,
-                    limits.limited, limits.turned, limits.lifted)
-
+            return self.limiter.tile(t, triangles)
         records = self.heights.records(self.grid.grown(t, self.reach(t)))
         rows, local = corner_rows(records["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")
-        return records[rows], local, None, None, 0, 0, 0
+        return TileLimits(records.take(rows), local, None, None, 0, 0, 0)
 
 
 class _Part:

@@ -109,7 +109,7 @@ class TiledSmoother:
         rows, local = corner_rows(fitted["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {tile}: a corner of its triangles has no fitted data")
-        records = fitted[rows]
+        records = fitted.take(rows)
         directions = None if self.overshoot == "off" else np.load(self.paths[tile][1])
         gradients = np.column_stack([records["gx"], records["gy"]])
         return TileLimits(records, local, gradients, directions, 0, 0, 0)
@@ -120,7 +120,7 @@ class TiledSmoother:
         parts = [np.fromfile(self.paths[t][0], dtype=VERTEX)
                  for t in self.halos.heights.touching(self.grid.grown(tile, self.reach)) if t in self.paths]
         fitted = np.concatenate(parts) if parts else np.empty(0, VERTEX)
-        return fitted[np.argsort(fitted["index"], kind="stable")]
+        return fitted.take(np.argsort(fitted["index"], kind="stable"))
 
     def report(self) -> dict:
         """The overshoot section: only edge directions apply to a smoothing fit."""
@@ -157,7 +157,7 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
     smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]), data=smoother.data_near(tile, smoother.reach))
-    records = halo.records[halo.own]
+    records = np.compress(halo.own, halo.records)
     records["z"] = smoothed.values
     records["gx"], records["gy"] = smoothed.gradients[:, 0], smoothed.gradients[:, 1]
     records.tofile(smoother.paths[tile][0])
