@@ -95,14 +95,9 @@ class RefineJob:
         """(RSDInterpolator over tile t's own triangles (survey numbers; its points the
         corners' local x, y), the corners' records (c,), (limited, turned, lifted)): the
         spline the tile refines (with the limiter's or the smoothing's data; the records'
-<<<<<<< HEAD
         own without), as the tiled DEM samples it too (pipeline.bounded_dem)."""
-        records, local, gradients, directions, limited, turned, lifted = self.tile_data(t, triangles)
-=======
-        own without), as the tiled DEM samples it too (pipeline.tiled_dem)."""
         data = self.tile_data(t, triangles)
         records = data.records
->>>>>>> speed6
         xy = np.column_stack([records["x"], records["y"]])
         gradients = data.gradients
         if gradients is None:
