@@ -27,16 +27,31 @@ cdef int INSERTION_MAX = 24
 higher vertices, such as a fan's centre) go to qsort."""
 
 
+ctypedef fused bucket_key:
+    uint32_t
+    uint64_t
+
+
 cdef int _compare(const void *a, const void *b) noexcept nogil:
     cdef uint64_t x = (<const uint64_t *> a)[0], y = (<const uint64_t *> b)[0]
     return (x > y) - (x < y)
 
 
-cdef void _sort_bucket(uint64_t *values, Py_ssize_t size) noexcept nogil:
+cdef int _compare32(const void *a, const void *b) noexcept nogil:
+    cdef uint32_t x = (<const uint32_t *> a)[0], y = (<const uint32_t *> b)[0]
+    return (x > y) - (x < y)
+
+
+cdef void _sort_bucket(bucket_key *values, Py_ssize_t size) noexcept nogil:
+    """Sort values[:size] ascending: insertion sort, qsort past INSERTION_MAX. The slots'
+    packed keys (uint64) and the edges-only buckets' higher ends (uint32) share it."""
     cdef Py_ssize_t i, j
-    cdef uint64_t v
+    cdef bucket_key v
     if size > INSERTION_MAX:
-        qsort(values, size, sizeof(uint64_t), _compare)
+        if bucket_key is uint64_t:
+            qsort(values, size, sizeof(uint64_t), _compare)
+        else:
+            qsort(values, size, sizeof(uint32_t), _compare32)
         return
     for i in range(1, size):
         v = values[i]
@@ -47,6 +62,23 @@ cdef void _sort_bucket(uint64_t *values, Py_ssize_t size) noexcept nogil:
         values[j + 1] = v
 
 
+cdef void _bucket_starts(int64_t[::1] first, int64_t n_points) noexcept nogil:
+    """first[v] (n + 1) bucket sizes -> their starts (an exclusive sum) in place."""
+    cdef int64_t v, c, total = 0
+    for v in range(n_points + 1):
+        c = first[v]
+        first[v] = total
+        total += c
+
+
+cdef void _starts_back(int64_t[::1] first, int64_t n_points) noexcept nogil:
+    """After a scatter that moved each first[v] to its bucket's end: the starts again."""
+    cdef int64_t v
+    for v in range(n_points, 0, -1):
+        first[v] = first[v - 1]
+    first[0] = 0
+
+
 def bucket_slots(const int64_t[:, ::1] tri, int64_t n_points):
     """(packed (3T,) uint64, start (n + 1,) int64, E, largest count, its edge's low, high).
 
@@ -55,7 +87,7 @@ def bucket_slots(const int64_t[:, ::1] tri, int64_t n_points):
     one edge has, and the first edge (in sorted order) that has it."""
     cdef Py_ssize_t T = tri.shape[0], t, i, j
     cdef int k
-    cdef int64_t a, b, v, total = 0, c, E = 0, most = 0, worst_low = -1, worst_high = -1
+    cdef int64_t a, b, v, E = 0, most = 0, worst_low = -1, worst_high = -1
     packed = np.empty(3 * T, dtype=np.uint64)
     start = np.zeros(n_points + 1, dtype=np.int64)
     cdef uint64_t[::1] out = packed
@@ -66,19 +98,14 @@ def bucket_slots(const int64_t[:, ::1] tri, int64_t n_points):
             for k in range(3):
                 a, b = tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
                 first[a if a < b else b] += 1
-        for v in range(n_points + 1):                        # bucket starts (exclusive sum)
-            c = first[v]
-            first[v] = total
-            total += c
+        _bucket_starts(first, n_points)
         for t in range(T):                                   # scatter; first[v] moves to its end
             for k in range(3):
                 a, b = tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
                 v = a if a < b else b
                 out[first[v]] = (<uint64_t> (a if a > b else b) << 32) | <uint64_t> (3 * t + k)
                 first[v] += 1
-        for v in range(n_points, 0, -1):                     # back to the starts
-            first[v] = first[v - 1]
-        first[0] = 0
+        _starts_back(first, n_points)
         for v in range(n_points):
             _sort_bucket(&out[first[v]], first[v + 1] - first[v])
             i = first[v]
@@ -207,26 +234,11 @@ def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const i
                     sub_forward[new_triangle[t], k] = forward[t, k]
 
 
-cdef int _compare32(const void *a, const void *b) noexcept nogil:
-    cdef uint32_t x = (<const uint32_t *> a)[0], y = (<const uint32_t *> b)[0]
-    return (x > y) - (x < y)
-
-
 cdef Py_ssize_t _sorted_distinct(uint32_t *values, Py_ssize_t size) noexcept nogil:
-    """Sort values[:size] (insertion sort, qsort past INSERTION_MAX) and move the distinct
-    ones to the front, ascending; returns how many."""
-    cdef Py_ssize_t i, j, kept
-    cdef uint32_t v
-    if size > INSERTION_MAX:
-        qsort(values, size, sizeof(uint32_t), _compare32)
-    else:
-        for i in range(1, size):
-            v = values[i]
-            j = i - 1
-            while j >= 0 and values[j] > v:
-                values[j + 1] = values[j]
-                j -= 1
-            values[j + 1] = v
+    """Sort values[:size] (_sort_bucket) and move the distinct ones to the front,
+    ascending; returns how many."""
+    cdef Py_ssize_t i, kept
+    _sort_bucket(values, size)
     if size == 0:
         return 0
     kept = 1
@@ -245,7 +257,7 @@ def bucket_highs(const int64_t[:, ::1] tri, const uint8_t[::1] counted, int64_t 
     bucket sorted and deduplicated (edge_table's buckets, without the slots)."""
     cdef Py_ssize_t T = tri.shape[0], t, v
     cdef int k
-    cdef int64_t a, b, low, total = 0, c, E = 0
+    cdef int64_t a, b, low, E = 0
     cdef bint every = counted.shape[0] == 0
     highs = np.empty(3 * T, dtype=np.uint32)
     start = np.zeros(n_points + 1, dtype=np.int64)
@@ -260,10 +272,7 @@ def bucket_highs(const int64_t[:, ::1] tri, const uint8_t[::1] counted, int64_t 
                 low = a if a < b else b
                 if every or counted[low]:
                     first[low] += 1
-        for v in range(n_points + 1):                        # bucket starts (exclusive sum)
-            c = first[v]
-            first[v] = total
-            total += c
+        _bucket_starts(first, n_points)
         for t in range(T):                                   # scatter; first[v] moves to its end
             for k in range(3):
                 a, b = tri[t, k], tri[t, (k + 1) % 3]
@@ -271,9 +280,7 @@ def bucket_highs(const int64_t[:, ::1] tri, const uint8_t[::1] counted, int64_t 
                 if every or counted[low]:
                     out[first[low]] = <uint32_t> (a if a > b else b)
                     first[low] += 1
-        for v in range(n_points, 0, -1):                     # back to the starts
-            first[v] = first[v - 1]
-        first[0] = 0
+        _starts_back(first, n_points)
         for v in range(n_points):
             kept[v] = _sorted_distinct(&out[first[v]], first[v + 1] - first[v])
             E += kept[v]
