@@ -8,6 +8,8 @@ the numpy expressions they replace, operation for operation, so the same meshes 
 from libc.math cimport fabs, hypot
 from libc.stdint cimport int64_t
 
+from c1mesh.core._triangles cimport corner_offsets
+
 
 def directions_cross(const double[:, ::1] points, const int64_t[:, ::1] edges,
                      const double[:, ::1] u, double threshold, Py_ssize_t first,
@@ -35,18 +37,14 @@ def nondegenerate(const double[:, ::1] points, const int64_t[:, ::1] triangles, 
     """Whether every triangle t in [first, stop) has |det| > threshold · |p1 − p0| · |p2 − p0|,
     det = cross(p1 − p0, p2 − p0) (twice the signed area; NaN fails)."""
     cdef Py_ssize_t t
-    cdef double x0, y0, ax, ay, bx, by, det
+    cdef double det
+    cdef double c[6]           # x0, y0, ax, ay, bx, by
     cdef bint ok = True
     with nogil:
         for t in range(first, stop):
-            x0 = points[triangles[t, 0], 0]
-            y0 = points[triangles[t, 0], 1]
-            ax = points[triangles[t, 1], 0] - x0
-            ay = points[triangles[t, 1], 1] - y0
-            bx = points[triangles[t, 2], 0] - x0
-            by = points[triangles[t, 2], 1] - y0
-            det = ax * by - ay * bx
-            if not (fabs(det) > threshold * hypot(ax, ay) * hypot(bx, by)):
+            corner_offsets(points, triangles, t, c)
+            det = c[2] * c[5] - c[3] * c[4]
+            if not (fabs(det) > threshold * hypot(c[2], c[3]) * hypot(c[4], c[5])):
                 ok = False
                 break
     return ok

@@ -12,6 +12,8 @@ degenerate triangles' NaN centres as numpy did: they reach nothing.
 from libc.math cimport hypot, INFINITY, isfinite
 from libc.stdint cimport int64_t, uint8_t
 
+from c1mesh.core._triangles cimport corner_offsets
+
 
 cdef inline double _nan_max(double a, double b) noexcept nogil:
     """np.maximum(a, b): the NaN of either, else the larger."""
@@ -37,14 +39,11 @@ def circumcircles(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, 
     documents; a degenerate triangle's radius is infinite."""
     cdef Py_ssize_t t, k = tri.shape[0]
     cdef double ax, ay, bx, by, cx, cy, d, bb, cc, ux, uy, r
+    cdef double c[6]           # corner a, then b - a and c - a
     with nogil:
         for t in range(k):
-            ax = xy[tri[t, 0], 0]
-            ay = xy[tri[t, 0], 1]
-            bx = xy[tri[t, 1], 0] - ax
-            by = xy[tri[t, 1], 1] - ay
-            cx = xy[tri[t, 2], 0] - ax
-            cy = xy[tri[t, 2], 1] - ay
+            corner_offsets(xy, tri, t, c)
+            ax, ay, bx, by, cx, cy = c[0], c[1], c[2], c[3], c[4], c[5]
             d = 2.0 * (bx * cy - by * cx)
             bb = bx * bx + by * by
             cc = cx * cx + cy * cy
