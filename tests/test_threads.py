@@ -386,3 +386,29 @@ def test_the_guessed_triangulation_is_used_only_when_it_is_the_height_fields(mon
     assert one.hf.xy.tobytes() == two.hf.xy.tobytes()
     assert one.interp.triangles.tobytes() == two.interp.triangles.tobytes()
     assert one.interp.coefficients.tobytes() == two.interp.coefficients.tobytes()
+
+
+def test_background_runs_beside_the_block_and_one_worker_runs_it_when_asked():
+    """threads.background: with two workers the work runs in another thread while the block
+    goes on (it waits for an event the block sets), its error is raised by result; with one
+    worker it runs in the caller's thread, when its result is first asked for, once."""
+    started = threading.Event()
+    seen = []
+
+    def work():
+        seen.append(threading.get_ident())
+        started.set()
+        return 42
+    with threads.limit(2):
+        with threads.background(work) as result:
+            assert started.wait(5)
+            assert result() == 42 and seen[0] != threading.get_ident()
+        with pytest.raises(ZeroDivisionError):
+            with threads.background(lambda: 1 / 0) as result:
+                result()
+    seen.clear()
+    with threads.limit(1):
+        with threads.background(work) as result:
+            assert seen == []
+            assert result() == 42 and result() == 42
+    assert seen == [threading.get_ident()]

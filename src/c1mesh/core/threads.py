@@ -240,6 +240,27 @@ def overlap(background: Callable[[], Item], foreground: Callable[[], object]) ->
         return pending.result(), here
 
 
+@contextlib.contextmanager
+def background(work: Callable[[], Item]) -> Iterator[Callable[[], Item]]:
+    """Run work() in a second thread while the block runs; yields `result`, which waits for
+    it and returns its value (an error in it is raised there). Leaving the block waits for
+    the thread, so none outlives it. With one worker (`workers`) nothing runs in a thread:
+    work() runs in the caller when result is first called (not at all if never). Unlike
+    `overlap`, the caller's side may be several steps, the result asked for between them."""
+    if workers() == 1:
+        done: list = []
+
+        def result_here() -> Item:
+            if not done:
+                done.append(work())
+            return done[0]
+        yield result_here
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="c1mesh-background") as pool:
+        pending = pool.submit(work)
+        yield pending.result
+
+
 def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:
     """work(*r) for every r in ranges: the first in this thread, the rest in threads;
     the first error raised by any of them is re-raised here."""

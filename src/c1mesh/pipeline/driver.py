@@ -8,6 +8,7 @@ mesh with a JSON-ready report. Nothing here prints or exits: the CLI does that.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -18,7 +19,7 @@ import numpy as np
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.core.plan import MeshTarget
-from c1mesh.core.threads import overlap
+from c1mesh.core.threads import background
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import Tile
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -377,55 +378,56 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     options = height_column_axis(cloud, options)[0]
     heights_first = _fit_heights_first(cloud, options)
     plan_heights = False          # heights in units of their own over the plan (x, y)
-    guess = None                  # (xy, triangles) of _guessed_triangles
-    with timer.stage("normals"):
-        if heights_first:        # the frame needs no normals: the fit's serve the height field
-            frame = choose_frame(cloud.points, None, options.axis)
-            plan_heights = _plan_heights(cloud, frame)
-
-            def fitted_normals() -> np.ndarray:
-                return height_normals(cloud.points, frame, k=height_neighbours(options.k))
-            if thread_count() > 1 and options.spacing is None:   # one thread: no guess to waste
-                guess, normals = overlap(lambda: _guessed_triangles(cloud.points, frame, options, plan_heights),
-                                         fitted_normals)
+    with contextlib.ExitStack() as stages:
+        with timer.stage("normals"):
+            guess = None             # () -> (xy, triangles) of _guessed_triangles, or None
+            if heights_first:        # the frame needs no normals: the fit's serve the height field
+                frame = choose_frame(cloud.points, None, options.axis)
+                plan_heights = _plan_heights(cloud, frame)
+                threads = thread_count()
+                if threads > 1 and options.spacing is None:   # one thread: no guess to waste
+                    # the guess's Delaunay is the longer of the two: a core of its own
+                    guess = stages.enter_context(background(
+                        lambda: _guessed_triangles(cloud.points, frame, options, plan_heights)))
+                    threads -= 1
+                normals = height_normals(cloud.points, frame, k=height_neighbours(options.k), workers=threads)
+                normal_source = "estimated"
             else:
-                normals = fitted_normals()
-            normal_source = "estimated"
-        else:
-            normals, normal_source = cloud_normals(cloud, options)
-    with timer.stage("frame"):
-        if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
-            frame = choose_frame(cloud.points, normals, options.axis)
-        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
-                          common_metric=not plan_heights)
-        max_slope_not_applied = None
-        if plan_heights and options.z_factor is not None:
-            _drop_too_steep(hf, options.max_slope, float(options.z_factor))
-        elif plan_heights:
-            max_slope_not_applied = (f"the header's height column '{cloud.height_column}' may be in "
-                                     "other units than x and y, so slopes are no angles; give --z-factor")
-    with timer.stage("gradients"):
-        gradient_source = "heights" if heights_first else "normals"
-        if not heights_first and use_height_gradients(options.gradients, normal_source):
-            hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
-            gradient_source = "heights"
-    with timer.stage("triangulate"):
-        vertices = None if options.spacing is None else thin_to_cells(hf.xy, options.spacing)
-        xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
-            (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
-        guessed = guess is not None and np.array_equal(guess[0], xy)
-        triangles = guess[1] if guessed else delaunay(xy)
-        guess = None
-        mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
-        if not plan_heights:     # its angles and noise widths compare heights with plane lengths
-            mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
-                                                view_rules_apply(_fitted_classes(cloud, options), frame.axes))
-        check_triangles_left(mesh.triangles.shape[0])
-        trimmed, trim_only = None, mesh
-        if fill:
-            mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
-        local, triangles = compact_vertices(xy, mesh.triangles)
-        used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
+                normals, normal_source = cloud_normals(cloud, options)
+        with timer.stage("frame"):
+            if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
+                frame = choose_frame(cloud.points, normals, options.axis)
+            hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
+                              common_metric=not plan_heights)
+            max_slope_not_applied = None
+            if plan_heights and options.z_factor is not None:
+                _drop_too_steep(hf, options.max_slope, float(options.z_factor))
+            elif plan_heights:
+                max_slope_not_applied = (f"the header's height column '{cloud.height_column}' may be in "
+                                         "other units than x and y, so slopes are no angles; give --z-factor")
+        with timer.stage("gradients"):
+            gradient_source = "heights" if heights_first else "normals"
+            if not heights_first and use_height_gradients(options.gradients, normal_source):
+                hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
+                gradient_source = "heights"
+        with timer.stage("triangulate"):
+            vertices = None if options.spacing is None else thin_to_cells(hf.xy, options.spacing)
+            xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
+                (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
+            guessed = None if guess is None else guess()
+            triangles = guessed[1] if guessed is not None and np.array_equal(guessed[0], xy) else delaunay(xy)
+            guess = guessed = None
+            stages.close()           # the guess's thread is done: its arrays are freed now
+            mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
+            if not plan_heights:     # its angles and noise widths compare heights with plane lengths
+                mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
+                                                    view_rules_apply(_fitted_classes(cloud, options), frame.axes))
+            check_triangles_left(mesh.triangles.shape[0])
+            trimmed, trim_only = None, mesh
+            if fill:
+                mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
+            local, triangles = compact_vertices(xy, mesh.triangles)
+            used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None
     with timer.stage("interpolate"):
         table, mesh = mesh.edge_table(local), None      # the trim's edge sort serves the interpolator
