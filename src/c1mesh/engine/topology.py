@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine import _topology
 
 
@@ -76,23 +77,55 @@ def _checked(triangles: np.ndarray, n_points: int) -> np.ndarray:
 def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
     """The EdgeTable of triangles (T, 3) over n_points vertices, with other and neighbours
     (edge_table_sides) or None, None. The kernel (engine/_topology.pyx) buckets the 3T slots
-    by their edge's lower vertex, linear in T + n_points; one thread."""
+    by their edge's lower vertex (one thread, linear in T + n_points), then sorts the
+    buckets and fills the table over fixed blocks of vertices in the thread knob's
+    threads (`_sorted_buckets`)."""
     tri = _checked(triangles, n_points)
     T = tri.shape[0]
-    packed, start, E, most, low, high = _topology.bucket_slots(tri, int(n_points))
+    packed, start, blocks = _sorted_buckets(tri, int(n_points))
+    most, low, high = _most_shared(blocks)
     if most > 2:
         raise InputError(f"edge ({low}, {high}) belongs to {most} triangles: the triangles overlap "
                          f"or are not a valid mesh")
+    E = int(blocks[:, 0].sum())
     edges = np.empty((E, 2), dtype=np.int64)
     tri_edge = np.empty((T, 3), dtype=np.int64)
     forward = np.empty((T, 3), dtype=bool)
     owner, owner_slot, count, other = (np.empty(E, dtype=np.int64) for _ in range(4))
     across = np.empty((T, 3), dtype=np.int64)
-    _topology.fill_table(tri, packed, start, edges, tri_edge, forward.view(np.uint8), owner,
-                         owner_slot, count, other, across)
+    flags = forward.view(np.uint8)
+    parallel_blocks(lambda part: _topology.clear_sides(tri, flags, across, part.start, part.stop), T, BLOCK)
+    first = np.concatenate([[0], np.cumsum(blocks[:, 0])])        # each block's first edge number
+    parallel_blocks(lambda part: _topology.fill_table(
+        packed, start, edges, tri_edge, owner, owner_slot, count, other, across,
+        part.start, part.stop, int(first[part.start // BLOCK])), n_points, BLOCK)
     table = EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
                       owner_slot=owner_slot, count=count)
     return (table, other, across) if sides else (table, None, None)
+
+
+BLOCK = 1 << 15
+"""Vertices (and triangles) per block of the edge table's parallel passes."""
+
+
+def _sorted_buckets(tri: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(packed, start, blocks (b, 4)): the kernel's slot buckets of tri (T, 3), sorted, and
+    each block of BLOCK vertices' facts (its unique edges, the most slots one of its edges
+    has, the first such edge's low and high end)."""
+    packed, start = _topology.bucket_slots(tri, n_points)
+    blocks = np.zeros((-(-n_points // BLOCK), 4), dtype=np.int64)
+    parallel_blocks(lambda part: _topology.sort_buckets(packed, start, part.start, part.stop,
+                                                        blocks[part.start // BLOCK]), n_points, BLOCK)
+    return packed, start, blocks
+
+
+def _most_shared(blocks: np.ndarray) -> tuple[int, int, int]:
+    """(the most triangles one edge has, that edge's low and high end: the first in sorted
+    order) from _sorted_buckets' blocks; (0, -1, -1) without edges."""
+    if not blocks.size or blocks[:, 1].max() == 0:
+        return 0, -1, -1
+    first = int(np.argmax(blocks[:, 1] == blocks[:, 1].max()))
+    return int(blocks[first, 1]), int(blocks[first, 2]), int(blocks[first, 3])
 
 
 def unique_edges(triangles: np.ndarray, n_points: int, counted: np.ndarray | None = None) -> np.ndarray:
@@ -117,14 +150,16 @@ def unique_edges(triangles: np.ndarray, n_points: int, counted: np.ndarray | Non
 def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
     """(T, 3) int64 the triangle across the edge opposite local vertex k of each triangle of
     triangles (T, 3) over n_points vertices, or -1; InputError if an edge is in 3 or more
-    triangles. The edge table's slot buckets, without filling the table."""
+    triangles. The edge table's slot buckets, without filling the table (blocks of
+    vertices in the thread knob's threads, as `_edge_table`)."""
     tri = _checked(triangles, n_points)
-    packed, start, _, most, _, _ = _topology.bucket_slots(tri, int(n_points))
-    if most > 2:
+    packed, start, blocks = _sorted_buckets(tri, int(n_points))
+    if _most_shared(blocks)[0] > 2:
         raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
                          "more triangles); pass a triangulation such as delaunay(xy)")
     across = np.empty(tri.shape, dtype=np.int64)
-    _topology.fill_neighbours(packed, start, across)
+    parallel_blocks(lambda part: _topology.fill_neighbours(packed, start, across, part.start, part.stop),
+                    int(n_points), BLOCK)
     return across
 
 
