@@ -172,14 +172,18 @@ def test_unique_edges_are_a_loops_set_of_pairs_with_a_counted_lower_end(shuffled
 @pytest.mark.parametrize("workers", [1, 2])
 def test_the_edge_tables_blocks_of_vertices_give_the_one_block_table(shuffled_mesh, monkeypatch, workers):
     """The bucket sorts and the fill run over blocks of vertices in threads, each block
-    numbering its edges from the blocks before it: with blocks of 7 vertices (57 blocks)
-    the table and the neighbours are still those of the loops above."""
+    numbering its edges from the blocks before it, and the sub-table's passes over blocks
+    of edges and triangles the same way: with blocks of 7 rows (57 blocks of vertices)
+    the tables and the neighbours are still those of the loops above."""
     from c1mesh.core import threads
     from c1mesh.engine import topology
     monkeypatch.setattr(topology, "BLOCK", 7)
     with threads.limit(workers):
         test_edge_table_matches_a_unique_of_sorted_pairs(shuffled_mesh)
         test_edge_table_sides_gives_each_edges_second_slot_and_the_neighbours(shuffled_mesh)
+        test_live_edges_counts_the_kept_triangles_of_each_edge_by_a_loop(shuffled_mesh)
+        for drop in (0.0, 0.03, 0.5, 1.0):
+            test_sub_table_is_the_edge_table_of_the_kept_triangles(shuffled_mesh, drop)
 
 
 def test_the_edge_named_is_the_first_of_the_most_shared_in_any_block(monkeypatch):

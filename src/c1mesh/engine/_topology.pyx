@@ -12,9 +12,10 @@ sort runs in one thread; the buckets' sorts and the table's fill over ranges of 
 from the count of the ranges before it: the same table at any thread count.
 Vertex numbers and slots must be below 2**31 (the wrapper checks).
 
-The sub-table of kept triangles (topology.sub_table, live_edges) is two linear passes over
-the whole table: the kept triangles per edge, then the live edges and kept triangles
-renumbered in order.
+The sub-table of kept triangles (topology.sub_table, live_edges) is linear passes over
+the whole table: the kept triangles per edge, then the kept triangles, the live edges and
+the kept triangles' rows renumbered in order, each pass over ranges of rows numbered from
+the rows kept before the range (the wrapper counts them).
 
 The edges alone (topology.unique_edges: bucket_highs, fill_edges) bucket the higher ends
 (32 bits) by lower vertex the same way, without the slots, and sort and deduplicate each
@@ -206,41 +207,47 @@ def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_
 
 
 def edge_counts(const uint8_t[::1] keep, const int64_t[::1] owner, const int64_t[::1] other,
-                uint8_t[::1] owner_kept, int8_t[::1] count):
-    """For the triangles keep (T,) 0/1: owner_kept (E,) 0/1 whether each edge's owner
-    (E,) is kept, and count (E,) how many of its one or two triangles are (the owner, and
-    the slot other (E,) = 3t + k of its second triangle, -1 on a boundary edge)."""
-    cdef Py_ssize_t E = owner.shape[0], e
+                uint8_t[::1] owner_kept, int8_t[::1] count, Py_ssize_t e0, Py_ssize_t e1):
+    """For the triangles keep (T,) 0/1 and the edges e0 <= e < e1: owner_kept (E,) 0/1
+    whether each edge's owner (E,) is kept, and count (E,) how many of its one or two
+    triangles are (the owner, and the slot other (E,) = 3t + k of its second triangle,
+    -1 on a boundary edge). Each edge writes its own entries: ranges in any thread."""
+    cdef Py_ssize_t e
     with nogil:
-        for e in range(E):
+        for e in range(e0, e1):
             owner_kept[e] = keep[owner[e]]
             count[e] = owner_kept[e]
             if other[e] >= 0:
                 count[e] += keep[other[e] // 3]
 
 
-def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const int64_t[:, ::1] tri_edge,
-                   const uint8_t[:, ::1] forward, const int64_t[::1] owner, const int64_t[::1] owner_slot,
+def number_kept(const uint8_t[::1] keep, int64_t[::1] number, Py_ssize_t t0, Py_ssize_t t1,
+                int64_t first):
+    """number[t] = first + how many of keep[t0:t] (0/1) are set, for t0 <= t < t1: the new
+    numbers of kept rows, a block's numbering starting from the rows kept before it."""
+    cdef Py_ssize_t t
+    with nogil:
+        for t in range(t0, t1):
+            number[t] = first
+            first += keep[t]
+
+
+def fill_sub_edges(const int64_t[:, ::1] edges, const int64_t[::1] owner, const int64_t[::1] owner_slot,
                    const int64_t[::1] other, const uint8_t[::1] owner_kept, const int8_t[::1] count,
-                   const int64_t[::1] remap, int64_t[::1] rank, int64_t[::1] new_triangle,
-                   int64_t[:, ::1] sub_edges, int64_t[:, ::1] sub_tri_edge, uint8_t[:, ::1] sub_forward,
-                   int64_t[::1] sub_owner, int64_t[::1] sub_owner_slot, int64_t[::1] sub_count):
-    """The edge table of the kept triangles keep (T,) 0/1, from the whole mesh's (edges,
-    tri_edge, forward, owner, owner_slot; other: each edge's second slot or -1) and
-    edge_counts' owner_kept and count (E,): the live edges (count > 0) keep their order,
-    the kept triangles theirs. remap (n,): new vertex numbers (increasing; empty: keep
-    them). Scratch: rank (E,) an edge's new number, new_triangle (T,) a triangle's.
-    Outputs sized (E', ...) and (T', ...) by the wrapper. An edge whose owner is dropped
-    is owned by its other slot (topology.sub_table says why that is edge_table's owner)."""
-    cdef Py_ssize_t T = keep.shape[0], E = owner.shape[0], t, e
-    cdef int k
-    cdef int64_t kept = 0, live = 0, slot
+                   const int64_t[::1] remap, const int64_t[::1] new_triangle, int64_t[::1] rank,
+                   int64_t[:, ::1] sub_edges, int64_t[::1] sub_owner, int64_t[::1] sub_owner_slot,
+                   int64_t[::1] sub_count, Py_ssize_t e0, Py_ssize_t e1, int64_t live):
+    """The sub-table's rows of the live edges (count > 0) among e0 <= e < e1, numbered from
+    live (the live edges before e0), in their order: rank (E,) each edge's new number (a
+    dead edge the next live one's), sub_edges (renumbered by remap (n,) when it is not
+    empty; increasing, so the order holds), sub_owner (new_triangle (T,): the kept
+    triangles' new numbers), sub_owner_slot, sub_count. An edge whose owner is dropped is
+    owned by its other slot (topology.sub_table says why that is edge_table's owner)."""
+    cdef Py_ssize_t e
+    cdef int64_t slot
     cdef bint renumber = remap.shape[0] > 0
     with nogil:
-        for t in range(T):
-            new_triangle[t] = kept
-            kept += keep[t]
-        for e in range(E):
+        for e in range(e0, e1):
             rank[e] = live
             if count[e] == 0:
                 continue
@@ -253,7 +260,17 @@ def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const i
             else:
                 sub_edges[live, 0], sub_edges[live, 1] = edges[e, 0], edges[e, 1]
             live += 1
-        for t in range(T):
+
+
+def fill_sub_triangles(const uint8_t[::1] keep, const int64_t[:, ::1] tri_edge, const uint8_t[:, ::1] forward,
+                       const int64_t[::1] rank, const int64_t[::1] new_triangle,
+                       int64_t[:, ::1] sub_tri_edge, uint8_t[:, ::1] sub_forward, Py_ssize_t t0, Py_ssize_t t1):
+    """The sub-table's rows of the kept triangles among t0 <= t < t1: their edges' new
+    numbers (rank, from fill_sub_edges) and orientations, at their new numbers."""
+    cdef Py_ssize_t t
+    cdef int k
+    with nogil:
+        for t in range(t0, t1):
             if keep[t]:
                 for k in range(3):
                     sub_tri_edge[new_triangle[t], k] = rank[tri_edge[t, k]]

@@ -166,12 +166,14 @@ def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
 def live_edges(table: EdgeTable, keep: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For the triangles ``keep`` (T,) bool: (owner kept (E,) bool, triangles kept per edge
     (E,) int8); the kept triangles' edges are those with a count above 0. other: the
-    second slots of `edge_table_sides`. The kernel (engine/_topology.pyx), one pass."""
+    second slots of `edge_table_sides`. The kernel (engine/_topology.pyx), one pass over
+    blocks of edges in the thread knob's threads."""
     keep = _checked_keep(keep, table)
     owner_kept = np.empty(table.owner.shape[0], dtype=bool)
     count = np.empty(table.owner.shape[0], dtype=np.int8)
-    _topology.edge_counts(keep.view(np.uint8), table.owner, np.ascontiguousarray(other, dtype=np.int64),
-                          owner_kept.view(np.uint8), count)
+    flags, other = keep.view(np.uint8), np.ascontiguousarray(other, dtype=np.int64)
+    parallel_blocks(lambda part: _topology.edge_counts(flags, table.owner, other, owner_kept.view(np.uint8),
+                                                       count, part.start, part.stop), count.shape[0], BLOCK)
     return owner_kept, count
 
 
@@ -195,25 +197,42 @@ def sub_table(table: EdgeTable, keep: np.ndarray, other: np.ndarray,
     to renumber the edges to 0..n'-1 (pipeline.steps.compact_vertices' `used`; an
     increasing renumbering keeps the edges' order and orientation). other: the second
     slots of `edge_table_sides`. The kernel (engine/_topology.pyx) fills the table in
-    three linear passes, one thread.
+    linear passes over fixed blocks of rows in the thread knob's threads, each block
+    numbering its rows from the counts of the blocks before it (`_kept_before`): the same
+    table at any count.
     """
     keep = _checked_keep(keep, table)
     other = np.ascontiguousarray(other, dtype=np.int64)
     owner_kept, count = live_edges(table, keep, other)
-    E, T = int(np.count_nonzero(count)), int(np.count_nonzero(keep))
+    flags, T = keep.view(np.uint8), keep.shape[0]
+    live = count.view(np.uint8).astype(bool)
+    E, kept = _kept_before(live), _kept_before(flags)
     remap = np.empty(0, dtype=np.int64)
     if used is not None:
         remap = np.full(int(used[-1]) + 1 if used.size else 0, -1, dtype=np.int64)
         remap[used] = np.arange(used.size, dtype=np.int64)
-    sub = EdgeTable(edges=np.empty((E, 2), dtype=np.int64), tri_edge=np.empty((T, 3), dtype=np.int64),
-                    forward=np.empty((T, 3), dtype=bool), owner=np.empty(E, dtype=np.int64),
-                    owner_slot=np.empty(E, dtype=np.int64), count=np.empty(E, dtype=np.int64))
-    _topology.fill_sub_table(keep.view(np.uint8), table.edges, table.tri_edge, table.forward.view(np.uint8),
-                             table.owner, table.owner_slot, other, owner_kept.view(np.uint8), count, remap,
-                             np.empty(table.owner.shape[0], dtype=np.int64),
-                             np.empty(keep.shape[0], dtype=np.int64), sub.edges, sub.tri_edge,
-                             sub.forward.view(np.uint8), sub.owner, sub.owner_slot, sub.count)
+    sub = EdgeTable(edges=np.empty((E[-1], 2), dtype=np.int64), tri_edge=np.empty((kept[-1], 3), dtype=np.int64),
+                    forward=np.empty((kept[-1], 3), dtype=bool), owner=np.empty(E[-1], dtype=np.int64),
+                    owner_slot=np.empty(E[-1], dtype=np.int64), count=np.empty(E[-1], dtype=np.int64))
+    new_triangle, rank = np.empty(T, dtype=np.int64), np.empty(count.shape[0], dtype=np.int64)
+    parallel_blocks(lambda part: _topology.number_kept(flags, new_triangle, part.start, part.stop,
+                                                       int(kept[part.start // BLOCK])), T, BLOCK)
+    parallel_blocks(lambda part: _topology.fill_sub_edges(
+        table.edges, table.owner, table.owner_slot, other, owner_kept.view(np.uint8), count, remap,
+        new_triangle, rank, sub.edges, sub.owner, sub.owner_slot, sub.count, part.start, part.stop,
+        int(E[part.start // BLOCK])), count.shape[0], BLOCK)
+    parallel_blocks(lambda part: _topology.fill_sub_triangles(
+        flags, table.tri_edge, table.forward.view(np.uint8), rank, new_triangle, sub.tri_edge,
+        sub.forward.view(np.uint8), part.start, part.stop), T, BLOCK)
     return sub
+
+
+def _kept_before(flags: np.ndarray) -> np.ndarray:
+    """(b + 1,) int64: how many of flags (m,) 0/1 lie before each of its b blocks of BLOCK
+    rows, then the total."""
+    counts = np.add.reduceat(flags, np.arange(0, flags.shape[0], BLOCK), dtype=np.int64) if flags.size \
+        else np.zeros(0, dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
 
 def sort_keys(key: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
