@@ -11,6 +11,9 @@
   evaluates ranges of triangle blocks into disjoint slices of its outputs);
   `parallel_blocks`: the same over fixed-size blocks of a range (element-wise passes of
   the limiter and the interpolator, each block's temporaries small enough for the cache).
+* `overlap` and `background`: one piece of work in a second thread beside the caller's
+  (the in-memory fit triangulates a guess of its plane points beside the height normals
+  and the height field);
 * `prefetch`: a block generator run in a second thread a few blocks ahead of its
   consumer (a streamed fit: spline evaluation in one thread, packing rows for the file
   format in another, the file write in a third).
