@@ -41,8 +41,8 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import AUTO_EDGE_FACTOR, triangle_neighbours
+from c1mesh.engine.triangulation import delaunay_with_neighbours
+from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
 from c1mesh.survey.strip_geometry import (
     centres_clear,
@@ -181,7 +181,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
-        simplices = delaunay(local)
+        simplices, neighbours = delaunay_with_neighbours(local)
         # survey coordinates for the lengths: trim's bits
         _, at_own, mine = triangle_flags(xy, simplices, own, index, np.inf if max_edge is None else max_edge)
         if covers:
@@ -191,7 +191,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             regions = None if hull is None else clip_to_hull(strips, hull.xy - centre)
             safe = (disks_clear(local, simplices[at_own], strips, regions).all()
                     and (max_edge is not None
-                         or hull_edges_final(local, index, simplices, triangle_neighbours(simplices, len(local)),
+                         or hull_edges_final(local, index, simplices, neighbours,
                                              own, strips, hull_edges)))
         if safe:
             keep = simplices[mine]
@@ -281,8 +281,7 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
-        simplices = delaunay(local)
-        neighbors = triangle_neighbours(simplices, len(local))
+        simplices, neighbors = delaunay_with_neighbours(local)
         edges, lengths = edges_once(xy, simplices, neighbors, own, index, bound)
         longest, at_own, triangle_mine = triangle_flags(xy, simplices, own, index, bound)
         if not covers:
