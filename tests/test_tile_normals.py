@@ -65,3 +65,27 @@ def test_a_buffer_too_small_without_the_check_gives_other_normals(monkeypatch):
         result = tile_normals(_Reader3(xyz), grid, tile, 16, buffer=0.3)
         found[result.index] = result.normals
     assert not np.allclose(found, estimate_normals(xyz, k=16), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("gap", [False, True])
+def test_tile_height_normals_are_the_whole_surveys_to_the_bit(gap):
+    """The height fit's normals per tile (what a LAS tile fit uses), with a first buffer too
+    small for some points, so later reads refit only those: every point's normal equals
+    the whole survey's fit, bit for bit (a fit depends on its neighbourhood only)."""
+    from c1mesh.stages.height_gradients import fitted_normals
+    from c1mesh.survey.tile_normals import tile_height_normals
+
+    xyz = _terrain(gap=gap)
+    grid = bd.TileGrid((*xyz[:, :2].min(axis=0), *xyz[:, :2].max(axis=0)), 3, 4)
+    whole, _ = fitted_normals(xyz, None, 24)
+    found = np.full(xyz.shape, np.nan)
+    seen = np.zeros(len(xyz), dtype=int)
+    rounds = []
+    for tile in range(len(grid)):
+        result = tile_height_normals(_Reader3(xyz), grid, tile, 24, buffer=0.5)
+        found[result.index] = result.normals
+        seen[result.index] += 1
+        rounds.append(result.rounds)
+    assert (seen == 1).all()
+    assert np.array_equal(found, whole)
+    assert max(rounds) > 1
