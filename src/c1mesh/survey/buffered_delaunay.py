@@ -49,7 +49,7 @@ from c1mesh.survey.strip_geometry import (
     circumcircles,
     clip_to_hull,
     disks_clear,
-    edges_once,
+    flags_and_edges,
     hull_edges_final,
     smallest_empty_circle,
     triangle_flags,
@@ -282,8 +282,8 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
         simplices, neighbors = delaunay_with_neighbours(local)
-        edges, lengths = edges_once(xy, simplices, neighbors, own, index, bound)
-        longest, at_own, triangle_mine = triangle_flags(xy, simplices, own, index, bound)
+        longest, at_own, triangle_mine, edges, lengths = flags_and_edges(xy, simplices, neighbors, own, index,
+                                                                          bound)
         if not covers:
             strips = unread_strips(read_box, box, centre)
             regions = clip_to_hull(strips, hull.xy - centre)
