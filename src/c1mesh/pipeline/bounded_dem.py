@@ -68,6 +68,7 @@ from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, conto
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
 from c1mesh.geo.products import ContourRequest, stage_lines
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
+from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 
 CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4")])
@@ -445,12 +446,13 @@ class TiledDem:
                 if row is None:
                     continue
                 sampled[t] = row
-                for part in _cell_blocks(files[t].cells):
-                    flat_heights[part["cell"]] = part["z"] + oz
-                    if nodes is not None:
-                        nodes.add(t, part)
-                    if flat_gradients is not None:
-                        flat_gradients[part["cell"]] = part["g"]
+                with open(files[t].cells, "rb") as file:        # the tile's CELL records, in blocks
+                    for part in file_blocks(file, CELL, 1 << 16):
+                        flat_heights[part["cell"]] = part["z"] + oz
+                        if nodes is not None:
+                            nodes.add(t, part)
+                        if flat_gradients is not None:
+                            flat_gradients[part["cell"]] = part["g"]
                 rows.add(t, self.stage, {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
         return sampled
 
@@ -663,16 +665,6 @@ def _own_vertices(halo) -> int:
     counted by one tile: the survey's count is their sum)."""
     used = np.unique(halo.triangles)
     return int(halo.own[used].sum()) if used.size else 0
-
-
-def _cell_blocks(path, block: int = 1 << 16):
-    """The CELL records of a tile's cells file, in blocks."""
-    with open(path, "rb") as file:
-        while True:
-            part = np.fromfile(file, dtype=CELL, count=block)
-            if not part.size:
-                return
-            yield part
 
 
 def grid_blocks(dem: DemGrid, heights, gradients, support, method: str | None):
