@@ -241,16 +241,11 @@ def _glb_part_blocks(name: str, stream: MeshStream, origin: np.ndarray) -> Itera
 
 
 
-def read_glb_positions(data: bytes) -> np.ndarray:
-    """World positions (M, 3) float64 of the first mesh of a GLB written by write_glb:
-    float32 POSITION plus the node's translation (used to check precision)."""
-    return read_glb_vertices(data)[0]
-
-
-def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
-    """(world positions (M, 3) float64, normals (M, 3) or None) of the first mesh of a
-    GLB as write_glb writes it: float32 accessors in one buffer, the origin in the node's
-    translation. FormatError for anything else."""
+def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """(world positions (M, 3) float64, normals (M, 3) or None, CRS WKT or None) of the
+    first mesh of a GLB as write_glb writes it: float32 accessors in one buffer, the origin
+    in the node's translation (the positions are float32 POSITION plus it), the CRS in
+    asset.extras. FormatError for anything else."""
     try:
         length, _ = struct.unpack_from("<I4s", data, 12)
         document = json.loads(data[20:20 + length])
@@ -267,4 +262,4 @@ def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
         normals = column("NORMAL").astype(np.float64) if "NORMAL" in attributes else None
     except (struct.error, ValueError, KeyError, IndexError, StopIteration) as exc:
         raise FormatError(f"cannot read the GLB: {exc}") from exc
-    return positions, normals
+    return positions, normals, document.get("asset", {}).get("extras", {}).get("crs")

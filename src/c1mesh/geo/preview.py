@@ -14,9 +14,7 @@ north up. matplotlib is imported only here.
 """
 from __future__ import annotations
 
-import json
 import math
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -354,8 +352,7 @@ def render_mesh(source, path, pixels: int = PIXELS) -> None:
     """Preview of a mesh or point file with vertex normals: averages per pixel in the
     frame where it is a height field (c1mesh.stages.frame.choose_frame)."""
     if Path(str(source)).suffix.lower() == ".glb":
-        points, normals = read_glb_vertices(Path(source).read_bytes())
-        document_crs = _glb_crs(Path(source).read_bytes())
+        points, normals, document_crs = read_glb_vertices(Path(source).read_bytes())
         cloud = PointCloud(points=points, normals=normals, crs=document_crs)
     else:
         cloud = read_cloud(source)
@@ -405,11 +402,6 @@ def _fill_gaps(z: np.ndarray, g: np.ndarray, passes: int = 2):
         z[fill] = total[fill, 0] / count[fill]
         g[fill] = total[fill, 1:] / count[fill, None]
     return z, g
-
-
-def _glb_crs(data: bytes) -> str | None:
-    length = struct.unpack_from("<I", data, 12)[0]
-    return json.loads(data[20:20 + length]).get("asset", {}).get("extras", {}).get("crs")
 
 
 def render_file(source, path) -> None:

@@ -741,13 +741,6 @@ class _Contours:
             self.staged.discard()
 
 
-def _slope_note(model: SurfaceModel) -> dict:
-    """The report's optional max_slope_not_applied: why max_slope dropped nothing, when it did not apply."""
-    if model.max_slope_not_applied is None:
-        return {}
-    return {"max_slope_not_applied": model.max_slope_not_applied}
-
-
 def _output_size_check(output, options: FitOptions, cloud: PointCloud):
     """build_surface's check_triangulation for a mesh output (None without one): InputError
     when the refinement of the triangulation at the fit's level (plane_level) would be
@@ -837,7 +830,9 @@ def _report(run: FitRun, model: SurfaceModel, mesh=None, frame_report: dict | No
         **surface_facts(run.cloud, model, options, pieces_in_warnings=mesh is not None), crs=run.crs,
         seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
-    return {**report, **_slope_note(model), **smoothing_facts(model)}
+    if model.max_slope_not_applied is not None:          # why max_slope dropped nothing
+        report["max_slope_not_applied"] = model.max_slope_not_applied
+    return {**report, **smoothing_facts(model)}
 
 
 def smoothing_facts(model: SurfaceModel) -> dict:

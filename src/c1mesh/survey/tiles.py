@@ -386,7 +386,7 @@ def staged_outputs(crs: str | None = None):
     def stage(output) -> Path:
         temp = temp_path(output)
         temps[temp] = Path(output)
-        if crs and _has_sidecar(output):
+        if crs and mesh_format(output) in PRJ_SIDECAR:      # the format carries its CRS in a .prj
             temps.update(_temp_prj(output, crs))
         return temp
     try:
@@ -399,11 +399,6 @@ def staged_outputs(crs: str | None = None):
             temp.unlink(missing_ok=True)
             unregister_temp(temp)
         raise
-
-
-def _has_sidecar(output: str) -> bool:
-    """Whether the mesh format of `output` carries its CRS in a .prj sidecar."""
-    return mesh_format(output) in PRJ_SIDECAR
 
 
 def _temp_prj(output: str, crs: str) -> dict:
