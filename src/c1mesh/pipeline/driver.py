@@ -16,6 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from c1mesh.core.cloud import PointCloud
+from c1mesh.core.crs import resolve as resolve_crs
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import workers as thread_count
@@ -32,7 +33,6 @@ from c1mesh.geo.products import (
     contour_grid,
     geo_plan,
     level_for_edge,
-    resolve_crs,
     stage_contours,
 )
 from c1mesh.geo.products import finish as _finish_geo

@@ -22,12 +22,13 @@ from dataclasses import replace
 from typing import Callable
 
 from c1mesh.core.crs import parse_crs
+from c1mesh.core.crs import resolve as resolve_crs
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import TiledRun
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.formats import check_output
-from c1mesh.geo.products import geo_plan, resolve_crs
+from c1mesh.geo.products import geo_plan
 from c1mesh.geo.raster import is_raster_path
 from c1mesh.pipeline.bounded_fit import fit_tiled, tiles_report
 from c1mesh.pipeline.driver import (
