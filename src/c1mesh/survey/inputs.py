@@ -12,7 +12,6 @@ from typing import Callable
 import numpy as np
 
 from c1mesh.core.crs import las_crs, parse_crs, resolve
-from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import register_temp, unregister_temp
 from c1mesh.core.plan import PointSelection
 from c1mesh.formats.copc import laspy_module, region_chunks
