@@ -262,10 +262,10 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
             "lifted": lifted, "cells": count, **task_row(len(records), start)}
 
 
-def _continue_tile(job: DemJob, t: int, spline_path, cells: np.ndarray):
-    """For the cells (flat) that hold points but lie in no triangle: the nearest of tile
-    t's own triangles within the reach, the spline continued from it (SplineSampler.continued,
-    .evaluate). Returns (cells (k,), distance (k,), height (k,), gradient (k, 2)) of those
+def _continue_tile(job: DemJob, spline_path, cells: np.ndarray):
+    """For the cells (flat) that hold points but lie in no triangle: the nearest of a tile's
+    own triangles (its spline at spline_path) within the reach, the spline continued from
+    it (SplineSampler.continued, .evaluate). Returns (cells (k,), distance (k,), height (k,), gradient (k, 2)) of those
     that have one."""
     with limit(job.threads):
         sampler = job.sampler(spline_path)
@@ -477,7 +477,7 @@ class TiledDem:
             lo, hi = sampled[t]["box"]
             asked.append(cells[((centres >= lo - reach) & (centres <= hi + reach)).all(axis=1)])
         found = [part for _, part in sorted(self.runner.map(
-            _continue_tile, len(tiles), lambda i: (self.job, tiles[i], files[tiles[i]].spline, asked[i]),
+            _continue_tile, len(tiles), lambda i: (self.job, files[tiles[i]].spline, asked[i]),
             lambda i: self.rows.name(tiles[i])), key=lambda item: item[0])]
         cell = np.concatenate([f[0] for f in found])
         if not cell.size:
