@@ -102,14 +102,6 @@ def write_off(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = True) 
             write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
 
 
-def glb_origin(vertices: np.ndarray) -> np.ndarray:
-    """The local origin of a GLB: the centre of the bounding box (3,) float64, so float32
-    offsets from it lose at most half an ulp of half the mesh's extent."""
-    if len(vertices) == 0:
-        return np.zeros(3)
-    return 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-
-
 @dataclass(frozen=True)
 class _GlbPart:
     """One bufferView + accessor of the GLB: `count` elements of `width` bytes each."""
@@ -188,7 +180,7 @@ def write_glb(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
               crs: str | None = None) -> None:
     """glTF 2.0 binary: one mesh, one node whose translation is the local origin.
 
-    Positions are float32 offsets from the bounding-box centre (glb_origin), and the
+    Positions are float32 offsets from the bounding-box centre (float64; 0 for no vertex), and the
     origin sits in the node's translation as a JSON double, so world positions keep
     ~7 significant digits of the mesh's half extent instead of of its world coordinates
     (LiDAR at 1e6 ft would lose 0.06 ft). Normals are float32, colours normalised
