@@ -597,17 +597,15 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_output(path: PathLike, mode: str = "wb", label: str = "output") -> Iterator[IO | Path]:
+def atomic_output(path: PathLike, mode: str = "wb") -> Iterator[IO | Path]:
     """Write one output path by the rules above, committed when the block ends without error.
 
     mode "wb" yields a binary file object, "w" a UTF-8 text file object, "path" the
-    temporary file's Path. Raises OutputError (an InputError) when the path cannot be
-    written.
+    temporary file's Path (Outputs.open: ValueError for any other). Raises OutputError
+    (an InputError) when the path cannot be written.
     """
-    if mode not in ("wb", "w", "path"):
-        raise ValueError(f"atomic_output mode must be 'wb', 'w' or 'path', not {mode!r}")
-    (target,) = plan_outputs([(label, path)])
+    (target,) = plan_outputs([("output", path)])
     if target.kind == "stdio":
-        target = Target(label, os.path.abspath(path), "atomic", real=os.path.realpath(path))
+        target = Target("output", os.path.abspath(path), "atomic", real=os.path.realpath(path))
     with Outputs(deferred=False).open(target, mode) as handle:
         yield handle
