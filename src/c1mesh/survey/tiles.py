@@ -414,9 +414,9 @@ class TileError(InputError):
     """A tile failed; the message names it."""
 
 
-def tile_failure(task: TileTask, exc: BaseException) -> TileError:
-    """The error to report for a tile whose task raised exc."""
+def tile_failure(name: str, exc: BaseException) -> TileError:
+    """The error to report for the tile `name` whose task raised exc."""
     text = " ".join(str(exc).split()) or type(exc).__name__
-    return TileError(f"tile {task.name}: {text}")
+    return TileError(f"tile {name}: {text}")
 
 
