@@ -76,8 +76,6 @@ from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestio
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
 
 NORMAL_MODES = ("auto", "file", "estimate")
-"""The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
---level nor --resolution is given."""
 STAGES = ("read", "normals", "frame", "gradients", "triangulate", "interpolate", "refine", "write")
 
 
