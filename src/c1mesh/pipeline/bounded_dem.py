@@ -68,6 +68,7 @@ from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, conto
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
 from c1mesh.geo.products import ContourRequest, stage_lines
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
+from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 
 CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4")])
@@ -267,10 +268,10 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
             "lifted": lifted, "cells": count, **task_row(len(records), start)}
 
 
-def _continue_tile(job: DemJob, t: int, spline_path, cells: np.ndarray):
-    """For the cells (flat) that hold points but lie in no triangle: the nearest of tile
-    t's own triangles within the reach, the spline continued from it (SplineSampler.continued,
-    .evaluate). Returns (cells (k,), distance (k,), height (k,), gradient (k, 2)) of those
+def _continue_tile(job: DemJob, spline_path, cells: np.ndarray):
+    """For the cells (flat) that hold points but lie in no triangle: the nearest of a tile's
+    own triangles (its spline at spline_path) within the reach, the spline continued from
+    it (SplineSampler.continued, .evaluate). Returns (cells (k,), distance (k,), height (k,), gradient (k, 2)) of those
     that have one."""
     with limit(job.threads):
         sampler = SplineSampler(job.rim_part(spline_path), job.dem.origin, reach=job.reach)
@@ -451,12 +452,13 @@ class TiledDem:
                 if row is None:
                     continue
                 sampled[t] = row
-                for part in _cell_blocks(files[t].cells):
-                    flat_heights[part["cell"]] = part["z"] + oz
-                    if nodes is not None:
-                        nodes.add(t, part)
-                    if flat_gradients is not None:
-                        flat_gradients[part["cell"]] = part["g"]
+                with open(files[t].cells, "rb") as file:        # the tile's CELL records, in blocks
+                    for part in file_blocks(file, CELL, 1 << 16):
+                        flat_heights[part["cell"]] = part["z"] + oz
+                        if nodes is not None:
+                            nodes.add(t, part)
+                        if flat_gradients is not None:
+                            flat_gradients[part["cell"]] = part["g"]
                 rows.add(t, self.stage, {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
         return sampled
 
@@ -481,7 +483,7 @@ class TiledDem:
             lo, hi = sampled[t]["box"]
             asked.append(cells[((centres >= lo - reach) & (centres <= hi + reach)).all(axis=1)])
         found = [part for _, part in sorted(self.runner.map(
-            _continue_tile, len(tiles), lambda i: (self.job, tiles[i], files[tiles[i]].spline, asked[i]),
+            _continue_tile, len(tiles), lambda i: (self.job, files[tiles[i]].spline, asked[i]),
             lambda i: self.rows.name(tiles[i])), key=lambda item: item[0])]
         cell = np.concatenate([f[0] for f in found])
         if not cell.size:
@@ -670,16 +672,6 @@ def _own_vertices(halo) -> int:
     used = np.zeros(len(halo.own), dtype=bool)           # a mask, not a sort of 3T corners
     used[halo.triangles.ravel()] = True
     return int(np.count_nonzero(used & halo.own))
-
-
-def _cell_blocks(path, block: int = 1 << 16):
-    """The CELL records of a tile's cells file, in blocks."""
-    with open(path, "rb") as file:
-        while True:
-            part = np.fromfile(file, dtype=CELL, count=block)
-            if not part.size:
-                return
-            yield part
 
 
 def grid_blocks(dem: DemGrid, heights, gradients, support, method: str | None):

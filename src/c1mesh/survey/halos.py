@@ -265,18 +265,14 @@ FLOAT_BLOCK = 1 << 20
 per pass (bit patterns, shifted digits, masks), so the block bounds the noise floors' peak."""
 
 
-def residual_blocks(path, block: int = FLOAT_BLOCK):
-    with open(path, "rb") as file:
-        yield from file_blocks(file, "<f8", block)
-
-
 def median_of_files(paths, reduce=streamed_median, remove: bool = True) -> float:
     """The exact median of the float64 values in the files `paths` (reduce's of their
     blocks: streamed_median's, as np.median gives it; edge_floor passes the limiter's
     reduce_floor), which it then removes (remove=False: keeps, for another floor)."""
     def blocks():
         for path in paths:
-            yield from residual_blocks(path)
+            with open(path, "rb") as file:
+                yield from file_blocks(file, "<f8", FLOAT_BLOCK)
     median = reduce(blocks)
     for path in paths if remove else ():
         path.unlink()

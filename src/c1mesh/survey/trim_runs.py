@@ -24,6 +24,7 @@ from c1mesh.stages.curtains import point_rows, remove_curtain_run
 from c1mesh.stages.trim import MIN_CIRCLE_RATIO, Cuts, Place, TrimTile, drop_triangles, trim_run
 from c1mesh.stages.limiter import reduce_floor
 from c1mesh.survey.halos import KeptSummaries, floor_files, median_of_files
+from c1mesh.survey.tile_spill import save_array
 
 
 class TrimRuns:
@@ -63,8 +64,7 @@ class TrimRuns:
         halos, in the thread knob's threads (each tile its own file)."""
         def write(t: int) -> None:
             triangles = np.load(self.halos.files[t])
-            with open(self.halos.files[t], "wb") as file:
-                np.save(file, drop_triangles(triangles, self.halos.removed[t]))
+            save_array(self.halos.files[t], drop_triangles(triangles, self.halos.removed[t]))
         map_in_threads(write, list(self.halos.removed))
         self.halos.prune()
 
