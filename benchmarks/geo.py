@@ -169,14 +169,14 @@ def _speed(cfg: Config, tmp: Path, n: int) -> dict:
 def glb_vs_ply(tmp: Path, source: Path, level: int = 2) -> float:
     """Largest |world position difference| between the GLB and the PLY of one fit."""
     from c1mesh.formats import read_cloud
-    from c1mesh.formats.meshes import read_glb_positions
+    from c1mesh.formats.meshes import read_glb_vertices
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
     options = FitOptions(classes=(2,), level=level)
     fit(str(source), str(tmp / "tile.ply"), options, keep_mesh=False)
     fit(str(source), str(tmp / "tile.glb"), options, keep_mesh=False)
     ply = read_cloud(str(tmp / "tile.ply")).points
-    glb = read_glb_positions((tmp / "tile.glb").read_bytes())
+    glb = read_glb_vertices((tmp / "tile.glb").read_bytes())[0]
     return float(np.abs(glb - ply).max())
 
 

@@ -158,11 +158,11 @@ def _plot(rows: list[dict], path: Path) -> None:
 def _plan_child(task_file: str, paths: list[str]) -> dict:
     """Build the survey model and pickle the middle input's tile task to task_file."""
     from c1mesh.pipeline.driver import FitOptions, build_surface
-    from c1mesh.survey.tiles import load_survey, plan_tiles
+    from c1mesh.survey.tiles import TilePlan, load_survey
 
     options = FitOptions(level=LEVEL)
     survey = load_survey(paths, options)
-    tasks = plan_tiles(build_surface(survey.cloud, options), survey, [p + ".out" for p in paths], LEVEL)
+    tasks = TilePlan(build_surface(survey.cloud, options), survey, [p + ".out" for p in paths], LEVEL)
     task = tasks[len(tasks) // 2]
     Path(task_file).write_bytes(pickle.dumps(task))
     return {"points": int(task.vertices.points.shape[0])}

@@ -17,7 +17,7 @@ laspy = pytest.importorskip("laspy")
 
 from c1mesh.core.errors import FormatError, InputError  # noqa: E402
 from c1mesh.formats import read_cloud  # noqa: E402
-from c1mesh.formats.copc import copc_summary, is_copc, parse_box, points_to_read, region_cost  # noqa: E402
+from c1mesh.formats.copc import copc_summary, is_copc_header, parse_box, points_to_read, region_cost  # noqa: E402
 from c1mesh.formats.las import read_las  # noqa: E402
 
 DATA = Path(__file__).resolve().parent.parent / "data_samples"
@@ -51,7 +51,8 @@ def _in(points, box):
 
 
 def test_sample_is_copc_and_a_plain_read_is_the_laz_read():
-    assert is_copc(COPC) and not is_copc(PLAIN_LAZ)
+    with laspy.open(str(COPC)) as copc, laspy.open(str(PLAIN_LAZ)) as plain:
+        assert is_copc_header(copc.header) and not is_copc_header(plain.header)
     cloud = read_cloud(COPC)
     points, classification = _whole()
     assert len(cloud) == 1065

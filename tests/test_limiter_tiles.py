@@ -122,17 +122,24 @@ def test_the_run_on_tiles_is_the_in_memory_limiter(noisy, count):
     assert report.heights_reconciled > 0 and report.gradients_limited > 0
 
 
+@pytest.mark.parametrize("grouped", [False, True])
 @pytest.mark.parametrize("count", [2, 3])
-def test_own_triangles_in_a_tile_are_their_corners_edges_and_table(noisy, count):
+def test_own_triangles_in_a_tile_are_their_corners_edges_and_table(noisy, count, grouped):
     """own_triangles_in against a Python loop: the corners are the halo rows the owned
     triangles use, ascending; the triangles number them; every edge of those triangles,
     sorted, is the halo edge `at` names; the table is edge_table of the renumbered
-    triangles, field for field. Owned triangles out of the halo's order are refused."""
+    triangles, field for field. Owned triangles out of the halo's order are refused.
+    The halo's triangles in survey order (the owned ones interleaved: found by hash) and
+    grouped by owning tile (as survey.halos reads them, the owned ones one run)."""
     from c1mesh.engine.topology import edge_table_sides
     from c1mesh.stages.limiter import own_triangles_in
 
     xy, z, g, triangles = noisy
     for tile, owned in _tiles(xy, z, g, triangles, count):
+        if grouped:
+            strip = np.minimum((xy[:, 0] * count).astype(int), count - 1)
+            owner = strip[tile.records["index"][tile.triangles].min(axis=1)]
+            tile = Tile(tile.records, tile.triangles[np.argsort(owner, kind="stable")], tile.own)
         table, other, _ = edge_table_sides(tile.triangles, len(tile.records))
         corners, local, at, sub = own_triangles_in(tile, table, other, owned)
         index = tile.records["index"].tolist()

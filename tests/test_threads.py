@@ -161,16 +161,6 @@ def test_the_default_is_the_cpus_this_process_may_use_and_limit_nests():
     assert threads.workers() == threads.available_cpus()
 
 
-def test_set_workers_holds_for_the_process_until_reset():
-    before = _blas()
-    try:
-        threads.set_workers(1)
-        assert threads.workers() == 1 and set(_blas()) == {1}
-    finally:
-        threads.set_workers(None)
-    assert threads.workers() == threads.available_cpus() and _blas() == before
-
-
 @pytest.mark.parametrize("bad", [0, -2, 1.5, "2", True])
 def test_a_bad_thread_count_is_an_input_error(bad):
     with pytest.raises(InputError, match="threads"):

@@ -3,21 +3,9 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.engine.topology import (edge_table, edge_table_sides, live_edges, sort_keys, sub_table,
+from c1mesh.engine.topology import (edge_table, edge_table_sides, live_edges, sub_table,
                                     triangle_neighbours, unique_edges)
 from c1mesh.engine.triangulation import delaunay
-
-
-@pytest.mark.parametrize("bound", [1000 * 1000, 2 ** 62])      # packed sort; no room: argsort
-def test_sort_keys_is_a_stable_argsort(bound):
-    rng = np.random.default_rng(8)
-    key = rng.integers(0, 1000 * 1000, size=30000)
-    key[::3] = key[1::3]                                   # pairs of equal keys
-    key[:50] = key[50]                                     # and a long run of them
-    order, sorted_key = sort_keys(key.copy(), bound)
-    expected = np.argsort(key, kind="stable")
-    assert np.array_equal(order, expected)
-    assert np.array_equal(sorted_key, key[expected])
 
 
 @pytest.fixture

@@ -509,3 +509,30 @@ def test_live_rows_and_corner_slots_are_numpys_masks_and_nonzero(seed):
     t, slot = trim_stage._corner_slots(tri, rows, at)
     r, want_slot = np.nonzero(at[tri[rows]])
     assert np.array_equal(t, rows[r]) and np.array_equal(slot, want_slot) and t.size > 10
+
+
+@pytest.mark.parametrize("kind", ["random", "grid", "duplicates"])
+def test_cdts_neighbours_are_a_plain_loop_over_the_triangles_edges(kind):
+    """delaunay_with_neighbours' (T, 3) neighbours (CDT's, reordered) against a dictionary of
+    every triangle's edges: slot k holds the other triangle with the edge opposite corner
+    k, -1 where none has it, on random points, a grid (cocircular ties) and with exact
+    duplicates (the triangles of the first copies)."""
+    from c1mesh.engine.triangulation import delaunay_with_neighbours
+    rng = np.random.default_rng(5)
+    if kind == "grid":
+        xy = np.stack(np.meshgrid(np.arange(12.0), np.arange(9.0)), -1).reshape(-1, 2)
+    else:
+        xy = rng.random((300, 2))
+    if kind == "duplicates":
+        xy = np.vstack([xy, xy[:40]])
+    triangles, neighbours = delaunay_with_neighbours(xy)
+    assert np.array_equal(triangles, delaunay(xy))
+    having: dict = {}
+    for t, corners in enumerate(triangles.tolist()):
+        for k in range(3):
+            having.setdefault(frozenset((corners[(k + 1) % 3], corners[(k + 2) % 3])), []).append(t)
+    for t, corners in enumerate(triangles.tolist()):
+        for k in range(3):
+            others = [u for u in having[frozenset((corners[(k + 1) % 3], corners[(k + 2) % 3]))] if u != t]
+            assert neighbours[t, k] == (others[0] if others else -1)
+    assert (neighbours == -1).sum() > 0

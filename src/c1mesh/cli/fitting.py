@@ -222,14 +222,12 @@ def fit_batch(pairs, report_target, options, console: Console, workers: Workers)
     report, quiet, verbose, debug = console.report, console.quiet, console.verbose, console.debug
     jobs, scheduler = workers.jobs or 1, workers.scheduler
     work = [(src, dst, options, scheduler) for src, dst in pairs]
-    results = []
     show = stderr_is_terminal() and not quiet
     if jobs > 1:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(max_workers=jobs, initializer=worker_start) as pool:
-            iterator = pool.map(_batch_worker, work)
-            results = _collect(iterator, len(work), show, verbose and not quiet)
+            results = _collect(pool.map(_batch_worker, work), len(work), show, verbose and not quiet)
     else:
         results = _collect(map(_batch_worker, work), len(work), show, verbose and not quiet)
     for _, rep, _ in results:
@@ -247,16 +245,14 @@ def fit_batch(pairs, report_target, options, console: Console, workers: Workers)
 
 
 def _collect(iterator, total, show, verbose):
-    results = []
     if show:
         with click.progressbar(iterator, length=total, label="fitting", file=sys.stderr) as bar:
-            for item in bar:
-                results.append(item)
-    else:
-        for item in iterator:
-            results.append(item)
-            if verbose and item[1]:
-                click.echo(summary(item[1]), err=True)
+            return list(bar)
+    results = []
+    for item in iterator:
+        results.append(item)
+        if verbose and item[1]:
+            click.echo(summary(item[1]), err=True)
     return results
 
 

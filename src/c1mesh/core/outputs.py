@@ -216,7 +216,7 @@ def _plan_one(label: str, path: str) -> Target:
     except (FileNotFoundError, NotADirectoryError):
         return _plan_new(label, path)
     except OSError as exc:
-        raise OutputError(f"Cannot write the {label} '{path}': {_reason(exc, path)}.") from exc
+        raise OutputError(f"Cannot write the {label} '{path}': {_reason(exc)}.") from exc
     mode = info.st_mode
     if stat.S_ISDIR(mode):
         raise OutputError(f"The {label} path '{path}' is a directory; give a file name.")
@@ -265,16 +265,16 @@ def _plan_new(label: str, path: str) -> Target:
     except NotADirectoryError:
         parent_info = None
     except OSError as exc:
-        raise OutputError(f"Cannot write the {label} '{path}': {_reason(exc, path)}.") from exc
+        raise OutputError(f"Cannot write the {label} '{path}': {_reason(exc)}.") from exc
     if parent_info is None or not stat.S_ISDIR(parent_info.st_mode):
         raise OutputError(f"The {label} '{path}' is inside '{os.path.dirname(path) or parent}', "
                           "which is not a directory.")
-    _check_name_length(label, path, real)
+    _check_name_length(label, real)
     _probe_directory(label, path, parent)
     return Target(label, path, "atomic", real=real)
 
 
-def _check_name_length(label: str, path: str, real: str) -> None:
+def _check_name_length(label: str, real: str) -> None:
     name = os.path.basename(real).encode("utf-8", "surrogateescape")
     try:
         limit = os.pathconf(os.path.dirname(real), "PC_NAME_MAX")
@@ -291,7 +291,7 @@ def _probe_directory(label: str, path: str, directory: str) -> None:
     try:
         fd, probe = tempfile.mkstemp(dir=directory, prefix=".c1mesh-probe.", suffix=".tmp")
     except OSError as exc:
-        raise OutputError(f"Cannot write the {label} '{path}': {_reason(exc, directory)}.") from exc
+        raise OutputError(f"Cannot write the {label} '{path}': {_reason(exc)}.") from exc
     os.close(fd)
     with contextlib.suppress(OSError):
         os.unlink(probe)
@@ -310,7 +310,7 @@ def _through_descriptor(path: str) -> bool:
     return False
 
 
-def _reason(exc: OSError, path: str) -> str:
+def _reason(exc: OSError) -> str:
     """A short reason for an OSError, without repeating the path."""
     return exc.strerror or str(exc) or type(exc).__name__
 
@@ -334,7 +334,7 @@ class _Raw(io.FileIO):
         try:
             written = super().write(data)
         except OSError as exc:
-            raise OutputError(f"Cannot write '{self.target_name}': {_reason(exc, self.target_name)}.") from exc
+            raise OutputError(f"Cannot write '{self.target_name}': {_reason(exc)}.") from exc
         if self.write_behind:
             self._since += written or 0
             if self._since >= WRITE_BEHIND:
@@ -420,7 +420,7 @@ def _finish(handle: IO, name: str, sync: bool) -> None:
         if sync:
             os.fsync(handle.fileno())
     except OSError as exc:
-        raise OutputError(f"Cannot write '{name}': {_reason(exc, name)}.") from exc
+        raise OutputError(f"Cannot write '{name}': {_reason(exc)}.") from exc
 
 
 class Outputs:
@@ -469,7 +469,7 @@ class Outputs:
             raw = _Raw(target.path, "wb")
         except OSError as exc:
             raise OutputError(f"Cannot write the {target.label} '{target.path}': "
-                              f"{_reason(exc, target.path)}.") from exc
+                              f"{_reason(exc)}.") from exc
         raw.target_name = target.path
         handle = _wrap(raw, mode)
         try:
@@ -525,7 +525,7 @@ class Outputs:
             _remove_temp(tmp)
             self.discard()
             raise OutputError(f"Cannot write the {target.label} '{target.path}': "
-                              f"{_reason(exc, target.path)}.") from exc
+                              f"{_reason(exc)}.") from exc
         _LIVE_TEMPS.discard(tmp)
 
 
@@ -540,7 +540,7 @@ def _make_temp(target: Target) -> tuple[int, str]:
         fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{name[:_TEMP_STEM]}.", suffix=".tmp")
         _LIVE_TEMPS.add(tmp)
     except OSError as exc:
-        raise OutputError(f"Cannot write '{target.path}': {_reason(exc, target.path)}.") from exc
+        raise OutputError(f"Cannot write '{target.path}': {_reason(exc)}.") from exc
     finally:
         if blocked:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
@@ -597,17 +597,15 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_output(path: PathLike, mode: str = "wb", label: str = "output") -> Iterator[IO | Path]:
+def atomic_output(path: PathLike, mode: str = "wb") -> Iterator[IO | Path]:
     """Write one output path by the rules above, committed when the block ends without error.
 
     mode "wb" yields a binary file object, "w" a UTF-8 text file object, "path" the
-    temporary file's Path. Raises OutputError (an InputError) when the path cannot be
-    written.
+    temporary file's Path (Outputs.open: ValueError for any other). Raises OutputError
+    (an InputError) when the path cannot be written.
     """
-    if mode not in ("wb", "w", "path"):
-        raise ValueError(f"atomic_output mode must be 'wb', 'w' or 'path', not {mode!r}")
-    (target,) = plan_outputs([(label, path)])
+    (target,) = plan_outputs([("output", path)])
     if target.kind == "stdio":
-        target = Target(label, os.path.abspath(path), "atomic", real=os.path.realpath(path))
+        target = Target("output", os.path.abspath(path), "atomic", real=os.path.realpath(path))
     with Outputs(deferred=False).open(target, mode) as handle:
         yield handle

@@ -44,21 +44,9 @@ def _libc_function(name: str, argtypes: list, restype):
     return function
 
 
-def _load_madvise():
-    return _libc_function("madvise", [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int)
-
-
-def _load_malloc_trim():
-    return _libc_function("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
-
-
-def _load_mallopt():
-    return _libc_function("mallopt", [ctypes.c_int, ctypes.c_int], ctypes.c_int)
-
-
-madvise = _load_madvise()
-_malloc_trim = _load_malloc_trim()
-_mallopt = _load_mallopt()
+madvise = _libc_function("madvise", [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int], ctypes.c_int)
+_malloc_trim = _libc_function("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
+_mallopt = _libc_function("mallopt", [ctypes.c_int, ctypes.c_int], ctypes.c_int)
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 """glibc's mallopt parameters (malloc.h)."""

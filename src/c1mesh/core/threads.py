@@ -3,8 +3,8 @@
 * `workers()`: how many threads c1mesh may use at once. Every pool in the package
   (spline coefficients, tiled triangulation, trimming, refinement, prefetching, the
   background writer) asks it, and so does BLAS inside `limit`. Default: the CPUs this
-  process may use (`available_cpus`); `set_workers(n)` changes it for the process,
-  `limit(n)` for a block (FitOptions.workers, the CLI's --threads). With 1 worker nothing
+  process may use (`available_cpus`); `limit(n)` changes it for a block
+  (FitOptions.workers, the CLI's --threads). With 1 worker nothing
   runs in a second thread. Results do not depend on the count: every pool splits work
   into the same blocks and collects them in the same order.
 * `run_parallel`: contiguous ranges of independent work in threads (Refinement.mesh
@@ -48,9 +48,6 @@ Item = TypeVar("Item")
 _DONE = object()
 
 
-_WORKERS: int | None = None
-"""The process-wide thread count set by set_workers; None: available_cpus()."""
-
 _OPEN_LIMITS: list[tuple[object, int]] = []
 """(token, count) of every `limit` block open now, oldest first: the newest one is in force.
 A list, not a saved previous value, because blocks opened in two threads (tiles fitted in
@@ -64,34 +61,18 @@ setting when the last one ends."""
 
 def workers(requested: int | None = None) -> int:
     """Threads a c1mesh stage may use: `requested` when given (a per-call `workers=`
-    argument), else the newest open `limit` block's, else set_workers', else the CPUs
-    this process may use."""
+    argument), else the newest open `limit` block's, else the CPUs this process may use."""
     if requested is not None:
         return _checked(requested)
     if _OPEN_LIMITS:
         return _OPEN_LIMITS[-1][1]
-    return _WORKERS if _WORKERS is not None else available_cpus()
+    return available_cpus()
 
 
 def _checked(count) -> int:
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
         raise InputError(f"the number of threads must be a whole number >= 1, got {count!r}")
     return int(count)
-
-
-_PROCESS_BLAS = None
-
-def set_workers(count: int | None) -> None:
-    """Set the process-wide thread count (None: back to the CPUs this process may use).
-
-    BLAS's pools are limited to the same count until the next call."""
-    global _WORKERS, _PROCESS_BLAS
-    _WORKERS = None if count is None else _checked(count)
-    if _PROCESS_BLAS is not None:
-        _PROCESS_BLAS.restore_original_limits()
-        _PROCESS_BLAS = None
-    if count is not None:
-        _PROCESS_BLAS = _controller().limit(limits=_WORKERS, user_api="blas")
 
 
 @contextlib.contextmanager

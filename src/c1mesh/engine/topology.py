@@ -235,28 +235,6 @@ def _kept_before(flags: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
 
-def sort_keys(key: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
-    """(order, key[order]) for non-negative int64 keys < bound; ``key`` may be overwritten.
-
-    Equal keys come out in order of position (as a stable sort would). When key and
-    position fit in 64 bits together (bound · len(key) ≤ 2**64: up to ~1.3M points for
-    edge keys of ~6M triangle slots), sorts the packed values key << bits | position, which
-    numpy sorts in place without an argsort's indirection (1.8x faster at 6M keys here);
-    otherwise a stable argsort.
-    """
-    shift = max(1, (key.size - 1).bit_length())
-    if (int(bound) - 1).bit_length() + shift > 64:
-        order = np.argsort(key, kind="stable")
-        return order, key[order]
-    packed = key.view(np.uint64)
-    packed <<= np.uint64(shift)
-    packed |= np.arange(key.size, dtype=np.uint64)
-    packed.sort()
-    order = (packed & np.uint64((1 << shift) - 1)).view(np.int64)
-    packed >>= np.uint64(shift)
-    return order, key
-
-
 def mesh_edges(triangles: np.ndarray, n_points: int | None = None) -> np.ndarray:
     """The (E, 2) unique edges of a mesh in the order ``RSDInterpolator(directions=...)`` expects."""
     triangles = np.asarray(triangles)

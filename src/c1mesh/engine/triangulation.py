@@ -28,33 +28,46 @@ def delaunay(xy: ArrayLike) -> np.ndarray:
     """Delaunay triangles (T, 3) int64 of plane points xy (n, 2), counter-clockwise, indices
     into xy (module docstring: centring, duplicates, ties). Raises InputError for
     non-finite or fewer than 3 points, or when all points lie on one line."""
+    return delaunay_with_neighbours(xy)[0]
+
+
+def delaunay_with_neighbours(xy: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """`delaunay`'s triangles (T, 3) and the neighbours CDT keeps for them: (T, 3) int64 the
+    triangle across the edge opposite corner k, or -1 on the hull (topology.triangle_neighbours'
+    layout, without its edge sort)."""
     pts = as_xy(xy)
     if pts.shape[0] < 3:
         raise InputError(f"a triangulation needs at least 3 points, got {pts.shape[0]}")
     pts = pts - (pts.min(axis=0) + pts.max(axis=0)) / 2
     try:
-        triangles = _cdt(pts)
+        triangles, neighbours = _cdt(pts)
     except RuntimeError as exc:
         if "uplicate" not in str(exc):
             raise
         first = first_of_duplicates(pts)
-        triangles = first[_cdt(pts[first])]
+        triangles, neighbours = _cdt(pts[first])
+        triangles = first[triangles]
     if not len(triangles):
         raise InputError("the points cannot be triangulated: they all lie on one line (or "
                          "coincide); a surface needs points spread over an area")
-    return triangles
+    return triangles, neighbours
 
 
-def _cdt(xy: np.ndarray) -> np.ndarray:
-    """CDT's Delaunay triangles (T, 3) int64 of distinct points xy (n, 2), counter-clockwise;
-    (0, 3) when the points are collinear."""
+def _cdt(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CDT's Delaunay triangles (T, 3) int64 of distinct points xy (n, 2), counter-clockwise,
+    and their neighbours (T, 3) int64 ((0, 3) each when the points are collinear). CDT
+    keeps the triangle across edge (v_i, v_i+1) at slot i, and "none" as the largest
+    uint32; slot k here is across the edge opposite corner k, -1 for none."""
     import pythoncdt
 
     triangulation = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
                                             pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
     triangulation.insert_vertices(np.ascontiguousarray(xy, dtype=np.float64))
     triangulation.erase_super_triangle()
-    return triangulation.triangles_array(copy=False)["vertices"].astype(np.int64)
+    rows = triangulation.triangles_array(copy=False)
+    across = rows["neighbors"][:, [1, 2, 0]].astype(np.int64)
+    across[across == np.iinfo(np.uint32).max] = -1
+    return rows["vertices"].astype(np.int64), across
 
 
 def first_of_duplicates(xy: np.ndarray) -> np.ndarray:

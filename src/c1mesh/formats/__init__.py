@@ -19,7 +19,7 @@ from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
 from c1mesh.core.errors import FormatError, InputError
 from c1mesh.formats._limits import read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
-from c1mesh.formats.depth import read_depth_registry
+from c1mesh.formats.depth import read_depth
 from c1mesh.formats.las import read_las
 from c1mesh.formats._blocks import MeshSize, refuse_size
 from c1mesh.formats.meshes import (glb_size_problem, off_size_problem, stl_size_problem, write_glb, write_off,
@@ -39,7 +39,7 @@ Source = Union[str, "os.PathLike[str]", IO[bytes]]
 _READERS: dict[str, Callable[[bytes, str], PointCloud]] = {
     "ply": read_ply, "obj": read_obj, "xyz": read_xyz, "txt": read_xyz, "csv": read_xyz,
     "pcd": read_pcd, "las": read_las, "laz": read_las, "copc": read_las,
-    "png": read_depth_registry, "tif": read_depth_registry, "tiff": read_depth_registry,
+    "png": read_depth, "tif": read_depth, "tiff": read_depth,     # without intrinsics: an InputError asking for them
 }
 _WRITERS: dict[str, Callable[..., None]] = {
     "ply": write_ply, "obj": write_obj, "stl": write_stl, "off": write_off, "glb": write_glb,

@@ -90,16 +90,6 @@ def is_copc_header(header) -> bool:
     return len(header.vlrs) > 0 and isinstance(header.vlrs[0], laspy_module().copc.CopcInfoVlr)
 
 
-def is_copc(path) -> bool:
-    """Whether the file at `path` is COPC (reads the header and VLRs only)."""
-    laspy = laspy_module()
-    try:
-        with laspy.open(str(path)) as reader:
-            return is_copc_header(reader.header)
-    except Exception:           # not a LAS file at all, or unreadable: not COPC
-        return False
-
-
 @dataclass
 class Node:
     """One octree node with points: its voxel key (level, x, y, z), the byte range of its

@@ -62,11 +62,6 @@ def read_depth(data: bytes, name: str, intrinsics=None, depth_scale: float = DEF
     return cloud
 
 
-def read_depth_registry(data: bytes, name: str) -> PointCloud:
-    """The format registry's reader: a depth image needs intrinsics, which only options carry."""
-    return read_depth(data, name)
-
-
 #: Bytes per pixel a depth frame takes once decoded: the pixel, z, the pixel grid and the
 #: (N, 3) float64 points with their temporaries.
 _BYTES_PER_PIXEL = 96

@@ -102,14 +102,6 @@ def write_off(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = True) 
             write("".join(f"3 {a} {b} {c}\n" for a, b, c in faces.tolist()).encode("ascii"))
 
 
-def glb_origin(vertices: np.ndarray) -> np.ndarray:
-    """The local origin of a GLB: the centre of the bounding box (3,) float64, so float32
-    offsets from it lose at most half an ulp of half the mesh's extent."""
-    if len(vertices) == 0:
-        return np.zeros(3)
-    return 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-
-
 @dataclass(frozen=True)
 class _GlbPart:
     """One bufferView + accessor of the GLB: `count` elements of `width` bytes each."""
@@ -188,7 +180,7 @@ def write_glb(mesh: SurfaceMesh | MeshStream, f: IO[bytes], ascii: bool = False,
               crs: str | None = None) -> None:
     """glTF 2.0 binary: one mesh, one node whose translation is the local origin.
 
-    Positions are float32 offsets from the bounding-box centre (glb_origin), and the
+    Positions are float32 offsets from the bounding-box centre (float64; 0 for no vertex), and the
     origin sits in the node's translation as a JSON double, so world positions keep
     ~7 significant digits of the mesh's half extent instead of of its world coordinates
     (LiDAR at 1e6 ft would lose 0.06 ft). Normals are float32, colours normalised
@@ -241,16 +233,11 @@ def _glb_part_blocks(name: str, stream: MeshStream, origin: np.ndarray) -> Itera
 
 
 
-def read_glb_positions(data: bytes) -> np.ndarray:
-    """World positions (M, 3) float64 of the first mesh of a GLB written by write_glb:
-    float32 POSITION plus the node's translation (used to check precision)."""
-    return read_glb_vertices(data)[0]
-
-
-def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
-    """(world positions (M, 3) float64, normals (M, 3) or None) of the first mesh of a
-    GLB as write_glb writes it: float32 accessors in one buffer, the origin in the node's
-    translation. FormatError for anything else."""
+def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """(world positions (M, 3) float64, normals (M, 3) or None, CRS WKT or None) of the
+    first mesh of a GLB as write_glb writes it: float32 accessors in one buffer, the origin
+    in the node's translation (the positions are float32 POSITION plus it), the CRS in
+    asset.extras. FormatError for anything else."""
     try:
         length, _ = struct.unpack_from("<I4s", data, 12)
         document = json.loads(data[20:20 + length])
@@ -267,4 +254,4 @@ def read_glb_vertices(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
         normals = column("NORMAL").astype(np.float64) if "NORMAL" in attributes else None
     except (struct.error, ValueError, KeyError, IndexError, StopIteration) as exc:
         raise FormatError(f"cannot read the GLB: {exc}") from exc
-    return positions, normals
+    return positions, normals, document.get("asset", {}).get("extras", {}).get("crs")

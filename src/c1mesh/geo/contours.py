@@ -177,7 +177,7 @@ class SplineSurface:
         triangles the points were in last time (−1: unknown). NaN and −1 outside."""
         tri = tri.copy()
         known = np.flatnonzero(tri >= 0)
-        l0, l1 = self._barycentric(xy[known], tri[known])
+        l0, l1 = self.sampler.barycentric(tri[known], xy[known, 0], xy[known, 1])
         left = (np.minimum(np.minimum(l0, l1), 1.0 - l0 - l1) < -SplineSampler.TOLERANCE)
         tri[known[left]] = -1
         lost = np.flatnonzero(tri < 0)
@@ -186,20 +186,9 @@ class SplineSurface:
         values, gradients = np.full(xy.shape[0], np.nan), np.full(xy.shape, np.nan)
         inside = np.flatnonzero(tri >= 0)
         if inside.size:
-            l0, l1 = self._barycentric(xy[inside], tri[inside])
+            l0, l1 = self.sampler.barycentric(tri[inside], xy[inside, 0], xy[inside, 1])
             values[inside], gradients[inside] = self.sampler.evaluate(tri[inside], l0, l1, gradients=True)
         return values, gradients, tri
-
-    def _barycentric(self, xy: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """λ0, λ1 of points xy (m, 2) in triangles tri (m,): λ_k = ∇λ_k · (x − vertex k+1),
-        as c1mesh.engine.locate computes them."""
-        corners = self.interp.triangles[tri]
-        G = self.interp.lambda_gradients[tri]
-        out = []
-        for k in range(2):
-            ref = self.interp.points[corners[:, (k + 1) % 3]]
-            out.append(np.einsum("md,md->m", G[:, k], xy - ref))
-        return out[0], out[1]
 
 
 class JoinedSurface:

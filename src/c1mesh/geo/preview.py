@@ -14,9 +14,7 @@ north up. matplotlib is imported only here.
 """
 from __future__ import annotations
 
-import json
 import math
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,13 +34,12 @@ PIXELS = 700
 """Cells along the longer side of a preview."""
 
 
-def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIXELS,
-                  z_factor: float | None = 1.0) -> None:
+def render_spline(interp, frame, path, crs: str | None = None, z_factor: float | None = 1.0) -> None:
     """Preview of a fitted spline: sampled on a grid over its triangulation in the scan
     frame (heights in world z when the frame's axes are the world's). z_factor: x, y units
     per height unit for the shading (raster.py); None (heights in units of their own, the
     factor unknown): coloured by height, unshaded, since any light would fake the slopes."""
-    view = SplineView.of(interp.points.min(axis=0), interp.points.max(axis=0), frame, pixels)
+    view = SplineView.of(interp.points.min(axis=0), interp.points.max(axis=0), frame)
     z, g = SplineSampler(interp, view.origin).window(view.grid, range(view.grid.height), range(view.grid.width))
     view.render(z, g, path, crs, z_factor)
 
@@ -50,7 +47,7 @@ def render_spline(interp, frame, path, crs: str | None = None, pixels: int = PIX
 @dataclass(frozen=True)
 class SplineView:
     """Where render_spline samples the spline and where it draws it: grid, the pixels'
-    cells in local x, y (pixels across the longer side of the vertices' box); origin, the
+    cells in local x, y (PIXELS across the longer side of the vertices' box); origin, the
     sampler's (the frame's height origin when its axes are the world's, heights drawn in
     world z; else 0); offset, the world x, y of local (0, 0) (0 unless the axes are the
     world's). A survey fitted in tiles samples the same cells (pipeline.bounded_dem)."""
@@ -60,10 +57,10 @@ class SplineView:
     offset: np.ndarray
 
     @classmethod
-    def of(cls, lo, hi, frame, pixels: int = PIXELS) -> "SplineView":
+    def of(cls, lo, hi, frame) -> "SplineView":
         """The view of a spline whose vertices span lo..hi (local x, y) in `frame`."""
         world = np.allclose(frame.axes, np.eye(3))
-        return cls(RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels)),
+        return cls(RasterGrid.covering(lo, hi, _pixel_size(lo, hi)),
                    (0.0, 0.0, frame.origin[2] if world else 0.0),
                    np.asarray(frame.origin[:2], dtype=float) if world else np.zeros(2))
 
@@ -74,11 +71,17 @@ class SplineView:
         grid, offset = self.grid, self.offset
         extent = (grid.west + offset[0], grid.west + offset[0] + grid.width * grid.resolution,
                   grid.north + offset[1] - grid.height * grid.resolution, grid.north + offset[1])
-        if z_factor is None:
-            render_arrays(z, np.zeros_like(g), extent, path, _units(crs), "C1 surface (unshaded: no --z-factor)")
-            return
-        render_arrays(z, g if z_factor == 1.0 else g * z_factor, extent, path, _units(crs),
-                      "C1 surface (spline normals)")
+        shade, title = _shading(g, z_factor)
+        render_arrays(z, shade, extent, path, _units(crs), title)
+
+
+def _shading(g: np.ndarray, z_factor: float | None) -> tuple[np.ndarray, str]:
+    """(the gradients a fit's preview shades by, its title): the spline's gradients g
+    (..., 2) times z_factor, x, y units per height unit; zero for z_factor None (unknown:
+    coloured by height, unshaded, since any light would fake the slopes)."""
+    if z_factor is None:
+        return np.zeros_like(g), "C1 surface (unshaded: no --z-factor)"
+    return (g if z_factor == 1.0 else g * z_factor), "C1 surface (spline normals)"
 
 
 PREVIEW_VERTICES = 1_000_000
@@ -114,7 +117,7 @@ def render_fit(interp, frame, path, crs: str | None = None, level: int | None = 
 
 
 def render_surface(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, path,
-                   crs: str | None = None, title: str = "C1 surface", pixels: int = PIXELS) -> None:
+                   crs: str | None = None, title: str = "C1 surface") -> None:
     """Preview of a surface mesh: vertices (N, 3) world coordinates, faces (F, 3) vertex
     indices, normals (N, 3) unit vertex normals (any sign).
 
@@ -132,7 +135,7 @@ def render_surface(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
     if not finite.any():
         raise InputError("nothing to preview: the surface has no finite vertex")
     lo, hi = local[finite, :2].min(axis=0), local[finite, :2].max(axis=0)
-    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi, pixels))
+    grid = RasterGrid.covering(lo, hi, _pixel_size(lo, hi))
     with np.errstate(invalid="ignore"):
         z, g = _rasterize(local, up, np.asarray(faces), grid)
     z += frame.origin[2] if world else 0.0
@@ -277,13 +280,8 @@ def render_dem_cells(cells: DemCells, grid: RasterGrid, stride: int, path, crs: 
     gradient: the in-memory fit's (render_dem_fit) and the tiled DEM writer's
     (pipeline.bounded_dem), which gather the same cells each its own way. z_factor: x, y
     units per height unit (None: unknown, unshaded)."""
-    z, g = cells.z, cells.g
-    if z_factor is None:
-        render_dem(z, np.zeros_like(g), grid, stride, path, _units(crs), "C1 surface (unshaded: no --z-factor)",
-                   hatched=cells.hatched)
-        return
-    render_dem(z, g if z_factor == 1.0 else g * z_factor, grid, stride, path, _units(crs),
-               "C1 surface (spline normals)", hatched=cells.hatched)
+    shade, title = _shading(cells.g, z_factor)
+    render_dem(cells.z, shade, grid, stride, path, _units(crs), title, hatched=cells.hatched)
 
 
 def _dem_cells(grid: RasterGrid, sampler: SplineSampler, stride: int):
@@ -332,11 +330,11 @@ def render_raster(source, path) -> None:
                f"{Path(str(source)).name} (Horn gradient)")
 
 
-def preview_stride(grid: RasterGrid, pixels: int = PIXELS) -> int:
-    """Every how many cells a DEM's preview draws one: 1 up to `pixels` cells along the
+def preview_stride(grid: RasterGrid) -> int:
+    """Every how many cells a DEM's preview draws one: 1 up to PIXELS cells along the
     longer side, else the smallest stride that brings it to at most that (the picture's
     memory and time are bounded whatever the resolution)."""
-    return max(1, math.ceil(max(grid.width, grid.height) / pixels))
+    return max(1, math.ceil(max(grid.width, grid.height) / PIXELS))
 
 
 def render_dem(z: np.ndarray, gradient: np.ndarray, grid: RasterGrid, stride: int, path,
@@ -350,12 +348,11 @@ def render_dem(z: np.ndarray, gradient: np.ndarray, grid: RasterGrid, stride: in
     render_arrays(z, gradient, extent, path, units, title, hatched)
 
 
-def render_mesh(source, path, pixels: int = PIXELS) -> None:
+def render_mesh(source, path) -> None:
     """Preview of a mesh or point file with vertex normals: averages per pixel in the
     frame where it is a height field (c1mesh.stages.frame.choose_frame)."""
     if Path(str(source)).suffix.lower() == ".glb":
-        points, normals = read_glb_vertices(Path(source).read_bytes())
-        document_crs = _glb_crs(Path(source).read_bytes())
+        points, normals, document_crs = read_glb_vertices(Path(source).read_bytes())
         cloud = PointCloud(points=points, normals=normals, crs=document_crs)
     else:
         cloud = read_cloud(source)
@@ -367,7 +364,7 @@ def render_mesh(source, path, pixels: int = PIXELS) -> None:
     normals *= np.where(normals[:, 2:] < 0, -1.0, 1.0)
     lo, hi = local[:, :2].min(axis=0), local[:, :2].max(axis=0)
     area = max(float(np.prod(hi - lo)), 1e-300)
-    size = max(_pixel_size(lo, hi, pixels), 1.5 * math.sqrt(area / len(local)))
+    size = max(_pixel_size(lo, hi), 1.5 * math.sqrt(area / len(local)))
     grid = RasterGrid.covering(lo, hi, size)
     col = np.clip(((local[:, 0] - grid.west) / size).astype(np.int64), 0, grid.width - 1)
     row = np.clip(((grid.north - local[:, 1]) / size).astype(np.int64), 0, grid.height - 1)
@@ -405,11 +402,6 @@ def _fill_gaps(z: np.ndarray, g: np.ndarray, passes: int = 2):
         z[fill] = total[fill, 0] / count[fill]
         g[fill] = total[fill, 1:] / count[fill, None]
     return z, g
-
-
-def _glb_crs(data: bytes) -> str | None:
-    length = struct.unpack_from("<I", data, 12)[0]
-    return json.loads(data[20:20 + length]).get("asset", {}).get("extras", {}).get("crs")
 
 
 def render_file(source, path) -> None:
@@ -500,9 +492,9 @@ def _scale_bar(ax, extent, units: str) -> None:
             bbox={"facecolor": "white", "alpha": 0.7, "edgecolor": "none", "pad": 1})
 
 
-def _pixel_size(lo, hi, pixels: int) -> float:
+def _pixel_size(lo, hi) -> float:
     span = float(max(hi[0] - lo[0], hi[1] - lo[1]))
-    return span / pixels if span > 0 else 1.0
+    return span / PIXELS if span > 0 else 1.0
 
 
 _UNIT_NAMES = {"metre": "m", "meter": "m", "US survey foot": "ft (US)", "foot": "ft", "degree": "°"}

@@ -180,11 +180,6 @@ def check_writable(path) -> None:
         raise InputError(f"Output directory '{parent}' is not writable.")
 
 
-def resolve_crs(file_crs, user_crs, name):
-    """The CRS to carry and where it came from (crs.resolve)."""
-    return crs_module.resolve(file_crs, user_crs, name)
-
-
 def side_length_sum(points: np.ndarray, triangles: np.ndarray) -> float:
     """The sum of the lengths of the triangles' sides (T, 3) over points (n, 2): a tile's
     summary of the mean edge, which the tiles of a survey add up (pipeline.bounded_fit)."""
@@ -314,5 +309,5 @@ def finish(result, interp, frame, crs, crs_source, options, dem=None):
     return result
 
 
-__all__ = ["GeoPlan", "ContourRequest", "contour_request", "contour_grid", "stage_contours", "geo_plan", "check_writable", "resolve_crs", "level_for_edge", "finish",
-           "is_raster_path", "dem_frame_error", "level_for_vertices", "refined_vertex_count"]
+__all__ = ["GeoPlan", "ContourRequest", "contour_request", "contour_grid", "stage_contours", "geo_plan", "check_writable",
+           "level_for_edge", "finish", "dem_frame_error", "level_for_vertices"]

@@ -275,12 +275,6 @@ def _layer(kind: str, z: np.ndarray, g: np.ndarray, z_factor: float = 1.0) -> np
     return np.where(outside, DEM_NODATA, out).astype(np.float32)
 
 
-def _support_layer(distance: np.ndarray) -> np.ndarray:
-    """The support raster's values for one block: the distance (n, w) from each cell
-    centre to the nearest point the fit used, nodata where it is NaN (no DEM value)."""
-    return np.where(np.isfinite(distance), distance, DEM_NODATA).astype(np.float32)
-
-
 def write_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler,
                   method: str = "spline", crs: str | None = None,
                   block_rows: int | None = None, dem_dtype: str = "float32",
@@ -348,7 +342,8 @@ def write_blocks(targets: RasterTargets, grid: RasterGrid, blocks, style: Raster
             window = rasterio.windows.Window(0, rows.start, grid.width, len(rows))
             for kind, ds in datasets.items():
                 if kind == "support":
-                    layer = _support_layer(support)
+                    # each cell centre's distance to the nearest point the fit used; nodata: no DEM value
+                    layer = np.where(np.isfinite(support), support, DEM_NODATA).astype(np.float32)
                     farthest = max(farthest, float(layer.max(initial=0.0)))
                 else:
                     layer = _layer(kind, z, g, style.z_factor)

@@ -217,7 +217,7 @@ class SplineSampler:
         ii = np.repeat(i0, count) + di
         jj = np.repeat(j0, count) + dj
         cx, cy = x0 + (jj + 0.5) * r, y0 - (ii + 0.5) * r
-        l0, l1 = self._barycentric(tri, cx, cy)
+        l0, l1 = self.barycentric(tri, cx, cy)
         tol = -self.TOLERANCE
         keep = (l0 >= tol) & (l1 >= tol) & (1.0 - l0 - l1 >= tol)
         if self.fill is not None and math.isfinite(self.fill.distance):
@@ -278,10 +278,10 @@ class SplineSampler:
         centre = centre[has]
         tri = tri[has]
         q = closest_points(centre, self.interp.points[self.interp.triangles[tri]])
-        l0, l1 = self._barycentric(tri, q[:, 0], q[:, 1])
+        l0, l1 = self.barycentric(tri, q[:, 0], q[:, 1])
         return has, tri, l0, l1, centre - q
 
-    def _barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
+    def barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
         """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
         c1mesh.engine.locate computes them (exact near the edge opposite vertex k)."""
         out = []

@@ -67,7 +67,8 @@ from c1mesh.geo.raster import (
 from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, contour_heights, spline_values
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
 from c1mesh.geo.products import ContourRequest, stage_lines
-from c1mesh.geo.raster_grid import RasterGrid, SplineSampler
+from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
+from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 
 CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4")])
@@ -188,11 +189,6 @@ class DemJob:
         self.gradients, self.threads = gradients, threads
         self.heights_path = None
 
-    def sampler(self, spline_path) -> SplineSampler:
-        """The SplineSampler of a tile's spline saved by _sample_tile (no data points: the
-        nearest-triangle rule is asked through SplineSampler.continued)."""
-        return SplineSampler(self.spline(spline_path), self.dem.origin, reach=self.reach)
-
     def spline(self, spline_path) -> RSDInterpolator:
         """The interpolator of a tile's own triangles saved by _sample_tile (local frame)."""
         with np.load(spline_path) as saved:
@@ -203,8 +199,7 @@ class DemJob:
     def spline_part(self, spline_path, box) -> tuple[RSDInterpolator | None, np.ndarray]:
         """(the interpolator of those of a tile's own triangles whose corners' box meets
         `box` (lo, hi; local), None when none does; rows: their numbers in the tile's
-        spline, ascending). Each side keeps its saved edge direction, so they evaluate as
-        the whole tile's do."""
+        spline, ascending)."""
         with np.load(spline_path) as saved:
             points, triangles = saved["points"], saved["triangles"]
             meets = np.ones(triangles.shape[0], dtype=bool)
@@ -213,14 +208,26 @@ class DemJob:
                 meets &= np.minimum(np.minimum(a, b), c) <= box[1][axis]
                 meets &= np.maximum(np.maximum(a, b), c) >= box[0][axis]
             rows = np.flatnonzero(meets)
-            if not rows.size:
-                return None, rows
-            triangles = triangles[rows]
-            table = edge_table(triangles, points.shape[0])
-            directions = np.zeros((table.edges.shape[0], 2))
-            directions[table.tri_edge] = saved["sides"][rows]
-            return RSDInterpolator(points, saved["values"], saved["gradients"], triangles=triangles,
-                                   scheme=self.surfaces.scheme, directions=directions, edge_table=table), rows
+            return (self._rows(saved, points, triangles[rows], rows) if rows.size else None), rows
+
+    def rim_part(self, spline_path) -> RSDInterpolator:
+        """The interpolator of a tile's own triangles with a corner on their boundary
+        (geo.raster_grid.rim_triangles), the only ones the nearest-triangle rule can
+        choose: the continued cells need no spline of the tile's interior."""
+        with np.load(spline_path) as saved:
+            points, triangles = saved["points"], saved["triangles"]
+            rows = rim_triangles(edge_table(triangles, points.shape[0]), np.arange(triangles.shape[0]))
+            return self._rows(saved, points, triangles[rows], rows)
+
+    def _rows(self, saved, points: np.ndarray, triangles: np.ndarray, rows: np.ndarray) -> RSDInterpolator:
+        """The interpolator of the saved spline's (points, its triangles) triangles `rows`
+        (ascending; triangles: those rows). Each side keeps its saved edge direction, so
+        they evaluate as the whole tile's do."""
+        table = edge_table(triangles, points.shape[0])
+        directions = np.zeros((table.edges.shape[0], 2))
+        directions[table.tri_edge] = saved["sides"][rows]
+        return RSDInterpolator(points, saved["values"], saved["gradients"], triangles=triangles,
+                               scheme=self.surfaces.scheme, directions=directions, edge_table=table)
 
 
 def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
@@ -261,13 +268,13 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
             "lifted": lifted, "cells": count, **task_row(len(records), start)}
 
 
-def _continue_tile(job: DemJob, t: int, spline_path, cells: np.ndarray):
-    """For the cells (flat) that hold points but lie in no triangle: the nearest of tile
-    t's own triangles within the reach, the spline continued from it (SplineSampler.continued,
-    .evaluate). Returns (cells (k,), distance (k,), height (k,), gradient (k, 2)) of those
+def _continue_tile(job: DemJob, spline_path, cells: np.ndarray):
+    """For the cells (flat) that hold points but lie in no triangle: the nearest of a tile's
+    own triangles (its spline at spline_path) within the reach, the spline continued from
+    it (SplineSampler.continued, .evaluate). Returns (cells (k,), distance (k,), height (k,), gradient (k, 2)) of those
     that have one."""
     with limit(job.threads):
-        sampler = job.sampler(spline_path)
+        sampler = SplineSampler(job.rim_part(spline_path), job.dem.origin, reach=job.reach)
         has, tri, l0, l1, shift = sampler.continued(job.dem.centres(cells))
         values, grads = sampler.evaluate(tri, l0, l1, True, shift)
     return cells[has], np.hypot(shift[:, 0], shift[:, 1]), values + sampler.origin[2], grads
@@ -445,12 +452,13 @@ class TiledDem:
                 if row is None:
                     continue
                 sampled[t] = row
-                for part in _cell_blocks(files[t].cells):
-                    flat_heights[part["cell"]] = part["z"] + oz
-                    if nodes is not None:
-                        nodes.add(t, part)
-                    if flat_gradients is not None:
-                        flat_gradients[part["cell"]] = part["g"]
+                with open(files[t].cells, "rb") as file:        # the tile's CELL records, in blocks
+                    for part in file_blocks(file, CELL, 1 << 16):
+                        flat_heights[part["cell"]] = part["z"] + oz
+                        if nodes is not None:
+                            nodes.add(t, part)
+                        if flat_gradients is not None:
+                            flat_gradients[part["cell"]] = part["g"]
                 rows.add(t, self.stage, {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
         return sampled
 
@@ -475,7 +483,7 @@ class TiledDem:
             lo, hi = sampled[t]["box"]
             asked.append(cells[((centres >= lo - reach) & (centres <= hi + reach)).all(axis=1)])
         found = [part for _, part in sorted(self.runner.map(
-            _continue_tile, len(tiles), lambda i: (self.job, tiles[i], files[tiles[i]].spline, asked[i]),
+            _continue_tile, len(tiles), lambda i: (self.job, files[tiles[i]].spline, asked[i]),
             lambda i: self.rows.name(tiles[i])), key=lambda item: item[0])]
         cell = np.concatenate([f[0] for f in found])
         if not cell.size:
@@ -661,18 +669,9 @@ def render_preview(dem: DemGrid, heights, gradients, plan: DemPlan, crs: str | N
 def _own_vertices(halo) -> int:
     """How many of the spline's vertices lie in the halo's tile's cell (each vertex is
     counted by one tile: the survey's count is their sum)."""
-    used = np.unique(halo.triangles)
-    return int(halo.own[used].sum()) if used.size else 0
-
-
-def _cell_blocks(path, block: int = 1 << 16):
-    """The CELL records of a tile's cells file, in blocks."""
-    with open(path, "rb") as file:
-        while True:
-            part = np.fromfile(file, dtype=CELL, count=block)
-            if not part.size:
-                return
-            yield part
+    used = np.zeros(len(halo.own), dtype=bool)           # a mask, not a sort of 3T corners
+    used[halo.triangles.ravel()] = True
+    return int(np.count_nonzero(used & halo.own))
 
 
 def grid_blocks(dem: DemGrid, heights, gradients, support, method: str | None):

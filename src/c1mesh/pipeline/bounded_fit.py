@@ -225,7 +225,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             fitted = (2,) if filtered else select.classes        # the filter's ground counts as class 2
-            removed = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
+            removed, kept = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
             if plan.dem is None and plan.mesh.resolution is not None:     # --resolution of a mesh: its level
@@ -244,7 +244,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
                 done("smoothing")
             elif surface.overshoot == "limit":
-                limiter = TiledLimiter(halos, temps, runner, rows.name)
+                limiter = TiledLimiter(halos, temps, runner, rows.name, kept)
                 done("noise floors")
             if plan.dem is not None:
                 report = _write_dem(DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads),

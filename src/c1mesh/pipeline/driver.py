@@ -17,6 +17,7 @@ from typing import Any, Callable
 import numpy as np
 
 from c1mesh.core.cloud import PointCloud
+from c1mesh.core.crs import resolve as resolve_crs
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import background
@@ -34,7 +35,6 @@ from c1mesh.geo.products import (
     contour_grid,
     geo_plan,
     level_for_edge,
-    resolve_crs,
     stage_contours,
 )
 from c1mesh.geo.products import finish as _finish_geo
@@ -78,8 +78,6 @@ from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestio
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
 
 NORMAL_MODES = ("auto", "file", "estimate")
-"""The refinement level of a height-field (axis frame) fit, whole or tiled, when neither
---level nor --resolution is given."""
 STAGES = ("read", "normals", "frame", "gradients", "triangulate", "interpolate", "refine", "write")
 
 
@@ -597,8 +595,8 @@ def fit_in_memory(source, output, options: FitOptions, on_stage: Callable[[str],
         with _Contours(geo, interp, frame, dem[0], timer) as contours:
             with timer.stage("raster"):
                 raster_report = write_fit_rasters(geo.rasters, *dem, options, crs, model.smoothing is not None)
-        report = _raster_report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
-                                       crs_facts(crs, crs_source)), model)
+        report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"],
+                                crs_facts(crs, crs_source)), model)
         report["raster"] = {**raster_report, "fill": fill_facts(options.fill, fill, model)}
         report.update({} if selection is None else {"classes": selection})
         contours.add_to(report)
@@ -614,7 +612,7 @@ def fit_in_memory(source, output, options: FitOptions, on_stage: Callable[[str],
     frame_report = frame_facts(frame)
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
-                     model, frame_report, level_from, stream)
+                     model, stream, frame_report, level_from)
     report.update({} if selection is None else {"classes": selection})
     contours.add_to(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
@@ -665,8 +663,8 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
             for path in created:
                 Path(path).unlink(missing_ok=True)
             raise
-    report = _raster_report(FitRun(survey.names[0], outputs[0], options, survey.cloud, timer,
-                                   angle_z_factor(survey.cloud, options), crs_facts(crs, crs_source)), model)
+    report = _report(FitRun(survey.names[0], outputs[0], options, survey.cloud, timer,
+                            angle_z_factor(survey.cloud, options), crs_facts(crs, crs_source)), model)
     report.update(input=list(survey.names), output=list(outputs))
     report["raster"] = {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
                                  "width": grid.width, "height": grid.height},
@@ -773,13 +771,6 @@ class _Contours:
             self.staged.discard()
 
 
-def _slope_note(model: SurfaceModel) -> dict:
-    """The report's optional max_slope_not_applied: why max_slope dropped nothing, when it did not apply."""
-    if model.max_slope_not_applied is None:
-        return {}
-    return {"max_slope_not_applied": model.max_slope_not_applied}
-
-
 def _output_size_check(output, options: FitOptions, cloud: PointCloud):
     """build_surface's check_triangulation for a mesh output (None without one): InputError
     when the refinement of the triangulation at the fit's level (plane_level) would be
@@ -846,23 +837,32 @@ def points_on_surface(model: SurfaceModel) -> int:
     return int(model.used.size)
 
 
-def _report(run: FitRun, model: SurfaceModel, frame_report: dict, level_from: str, mesh) -> dict:
-    """The report of a plane (axis frame) mesh fit (c1mesh.pipeline.report's schema); mesh:
-    the written MeshStream (its counts)."""
+def _report(run: FitRun, model: SurfaceModel, mesh=None, frame_report: dict | None = None,
+            level_from: str | None = None) -> dict:
+    """The report of an in-memory axis-frame fit (c1mesh.pipeline.report's schema). mesh:
+    the written MeshStream of a plane mesh fit (its counts), with its frame_report and
+    level_from; None for a raster (DEM) fit: no refinement, so level, level_from and
+    output_mesh are null, and the caller adds the raster section."""
     hf, used, options = model.hf, model.used, run.options
-    dropped = dict(hf.dropped)
-    dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - used.size)
+    points = {"read": len(run.cloud), "kept": int(used.size), "spacing": float(hf.spacing)}
+    if mesh is not None:
+        dropped = dict(hf.dropped)
+        dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - used.size)
+        points = {"read": len(run.cloud), "dropped": dropped, "kept": int(used.size),
+                  "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)}
     report = ReportCore(
-        input=display_name(run.source), output=display_name(run.output),
-        points={"read": len(run.cloud), "dropped": dropped, "kept": int(used.size),
-                "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)},
-        normals=model.normal_source, gradients=model.gradient_source, frame=frame_report,
-        triangles=trim_facts(model.trim_report), level=options.level, level_from=level_from,
-        output_mesh={"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
-        **surface_facts(run.cloud, model, options), crs=run.crs, seconds=run.timer.seconds, threads=thread_count(),
-        z_factor=run.z_factor).as_dict()
+        input=display_name(run.source), output=display_name(run.output), points=points,
+        normals=model.normal_source, gradients=model.gradient_source,
+        frame=frame_facts(model.frame) if frame_report is None else frame_report,
+        triangles=trim_facts(model.trim_report), level=None if mesh is None else options.level,
+        level_from=level_from,
+        output_mesh=None if mesh is None else {"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
+        **surface_facts(run.cloud, model, options, pieces_in_warnings=mesh is not None), crs=run.crs,
+        seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
-    return {**report, **_slope_note(model), **smoothing_facts(model)}
+    if model.max_slope_not_applied is not None:          # why max_slope dropped nothing
+        report["max_slope_not_applied"] = model.max_slope_not_applied
+    return {**report, **smoothing_facts(model)}
 
 
 def smoothing_facts(model: SurfaceModel) -> dict:
@@ -873,17 +873,3 @@ def smoothing_facts(model: SurfaceModel) -> dict:
         return {"smoothing": model.smoothing.as_dict()}
     text = smoothing_suggestion(model.overshoot.gradients_limited, int(model.used.size))
     return {} if text is None else {"suggestion": text}
-
-
-def _raster_report(run: FitRun, model: SurfaceModel) -> dict:
-    """The report of a raster (DEM) fit: no refinement, so level, level_from and
-    output_mesh are null; the caller adds the raster section."""
-    report = ReportCore(
-        input=display_name(run.source), output=display_name(run.output),
-        points={"read": len(run.cloud), "kept": int(model.used.size), "spacing": float(model.hf.spacing)},
-        normals=model.normal_source, gradients=model.gradient_source, frame=frame_facts(model.frame),
-        triangles=trim_facts(model.trim_report), level=None, level_from=None, output_mesh=None,
-        **surface_facts(run.cloud, model, run.options, pieces_in_warnings=False), crs=run.crs,
-        seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
-    report["overshoot"] = model.overshoot.as_dict()
-    return {**report, **_slope_note(model), **smoothing_facts(model)}

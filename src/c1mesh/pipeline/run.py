@@ -22,12 +22,13 @@ from dataclasses import replace
 from typing import Callable
 
 from c1mesh.core.crs import parse_crs
+from c1mesh.core.crs import resolve as resolve_crs
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import TiledRun
 from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.formats import check_output
-from c1mesh.geo.products import geo_plan, resolve_crs
+from c1mesh.geo.products import geo_plan
 from c1mesh.geo.raster import is_raster_path
 from c1mesh.pipeline.bounded_fit import fit_tiled, tiles_report
 from c1mesh.pipeline.driver import (
@@ -48,7 +49,7 @@ from c1mesh.stages.ground import resolved_classes
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.survey.distributed import run_tiles
 from c1mesh.survey.sizing import needs_tiles
-from c1mesh.survey.tiles import load_survey, plan_tiles, write_tiles
+from c1mesh.survey.tiles import TilePlan, load_survey, write_tiles
 
 OWNERSHIP = "lowest-numbered corner point"
 """The report's ownership of per-input outputs: the rule that gives each triangle to one output."""
@@ -156,7 +157,7 @@ def _fit_survey_outputs(sources, outputs, options: FitOptions, tiles: TiledRun) 
     jobs = tiles.jobs or 1
     report.update({"overshoot": model.overshoot.as_dict(), "ownership": OWNERSHIP,
                    "scheduler": tiles.scheduler or (f"{jobs} local processes" if jobs > 1 else "in process")})
-    tasks = plan_tiles(model, survey, outputs, options.level, options.ascii, crs)
+    tasks = TilePlan(model, survey, outputs, options.level, options.ascii, crs)
     del model, survey               # the cloud and height field: the plan keeps what tiles need
     start = time.perf_counter()
     report["tiles"] = write_tiles(run_tiles(tasks, tiles.scheduler, jobs), tasks.outputs, ascii=options.ascii,

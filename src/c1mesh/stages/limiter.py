@@ -221,18 +221,36 @@ def own_triangles_in(tile: Tile, table: EdgeTable, other: np.ndarray,
     edge of each edge of those triangles, and their EdgeTable (E' edges), equal to
     edge_table(triangles, c)).
 
-    The halo's triangles that are owned are found by trim.kept_triangles' hash, one pass;
-    their table is the halo table's sub_table, which keeps the halo edges' order (`at`),
-    without another sort. RuntimeError when they are not, in order, the rows of `owned`."""
+    The halo reads each tile's file in turn, so the owned triangles are one run of its
+    rows (`_owned_run`, checked row for row), else they are found by trim.kept_triangles'
+    hash, one pass; their table is the halo table's sub_table, which keeps the halo
+    edges' order (`at`), without another sort. RuntimeError when they are not, in order,
+    the rows of `owned`."""
     tri = tile.triangles
-    keep = ~kept_triangles(tri, owned, tile.records["index"])
-    mine = tri[keep]
     owned = np.asarray(owned, dtype=np.int64)
+    keep = _owned_run(tile, owned)
+    if keep is None:
+        keep = ~kept_triangles(tri, owned, tile.records["index"])
+    mine = tri[keep]
     if mine.shape != owned.shape or not np.array_equal(tile.records["index"][mine], owned):
         raise RuntimeError("a tile's own triangles are not, in order, some of its halo's triangles")
     corners, triangles = compact(mine, len(tile.records))
     at = np.flatnonzero(live_edges(table, keep, other)[1])
     return corners, triangles, at, sub_table(table, keep, other, corners)
+
+
+def _owned_run(tile: Tile, owned: np.ndarray) -> np.ndarray | None:
+    """(T,) bool marking the run of tile.triangles whose survey numbers are owned (k, 3)
+    row for row, or None when no run starting at a row that begins as owned[0] is."""
+    tri, numbers = tile.triangles, tile.records["index"]
+    if not len(owned) or len(owned) > len(tri):
+        return None
+    for start in np.flatnonzero(numbers[tri[: len(tri) - len(owned) + 1, 0]] == owned[0, 0]).tolist():
+        if np.array_equal(numbers[tri[start:start + len(owned)]], owned):
+            keep = np.zeros(len(tri), dtype=bool)
+            keep[start:start + len(owned)] = True
+            return keep
+    return None
 
 
 @dataclass(frozen=True)

@@ -117,29 +117,38 @@ def smallest_empty_circles(const double[:, ::1] xy, const int64_t[:, ::1] simpli
             radius[i] = hypot(xy[a[i], 0] - best[i, 0], xy[a[i], 1] - best[i, 1])
 
 
-def triangle_flags(const double[:, ::1] xy, const int64_t[:, ::1] simplices, const uint8_t[::1] own,
-                   const int64_t[::1] index, double bound, double[::1] longest, uint8_t[::1] at_own,
-                   uint8_t[::1] mine):
+def triangle_flags(const double[:, ::1] xy, const int64_t[:, ::1] simplices, const int64_t[:, ::1] neighbors,
+                   const uint8_t[::1] own, const int64_t[::1] index, double bound, double[::1] longest,
+                   uint8_t[::1] at_own, uint8_t[::1] mine, int64_t[:, ::1] edges, double[::1] lengths):
     """Per triangle of simplices (T, 3) into the tile's points xy (n, 2), own (n,) and
     survey numbers index (n,): longest (T,) its longest edge (libm's hypot, as
     stages.trim.edge_lengths measures it); at_own (T,) a corner is own and longest <= bound
     (its circumdisk must be certified); mine (T,) its lowest-numbered corner is own and
-    longest <= bound (the tile writes it)."""
-    cdef Py_ssize_t t, T = simplices.shape[0]
-    cdef int64_t p, q, r, low
-    cdef double e0, e1, e2, m
+    longest <= bound (the tile writes it).
+
+    With room for them (edges (3T, 4), lengths (3T,); neighbors (T, 3)), in the same pass
+    each edge of the triangulation once (on the hull, or towards a higher-numbered
+    triangle), in row order of (triangle t, corner k), that is at most `bound` long and
+    whose lower-numbered end is own: rows (t, k, a, b) with a, b the ends (corners k + 1,
+    k + 2) and its length. Returns their count (0 without room)."""
+    cdef Py_ssize_t t, T = simplices.shape[0], count = 0
+    cdef int k
+    cdef bint with_edges = edges.shape[0] > 0
+    cdef int64_t p, q, r, low, a, b, other
+    cdef double m
+    cdef double e[3]
     with nogil:
         for t in range(T):
             p = simplices[t, 0]
             q = simplices[t, 1]
             r = simplices[t, 2]
-            e0 = hypot(xy[r, 0] - xy[q, 0], xy[r, 1] - xy[q, 1])
-            e1 = hypot(xy[p, 0] - xy[r, 0], xy[p, 1] - xy[r, 1])
-            e2 = hypot(xy[q, 0] - xy[p, 0], xy[q, 1] - xy[p, 1])
-            m = e0 if e0 >= e1 else e1
-            m = m if m >= e2 else e2
-            if e0 != e0 or e1 != e1 or e2 != e2:       # numpy's max: a NaN wins
-                m = e0 + e1 + e2
+            e[0] = hypot(xy[r, 0] - xy[q, 0], xy[r, 1] - xy[q, 1])      # the edge opposite corner k
+            e[1] = hypot(xy[p, 0] - xy[r, 0], xy[p, 1] - xy[r, 1])
+            e[2] = hypot(xy[q, 0] - xy[p, 0], xy[q, 1] - xy[p, 1])
+            m = e[0] if e[0] >= e[1] else e[1]
+            m = m if m >= e[2] else e[2]
+            if e[0] != e[0] or e[1] != e[1] or e[2] != e[2]:       # numpy's max: a NaN wins
+                m = e[0] + e[1] + e[2]
             longest[t] = m
             low = index[p]
             if index[q] < low:
@@ -149,35 +158,20 @@ def triangle_flags(const double[:, ::1] xy, const int64_t[:, ::1] simplices, con
             at_own[t] = (own[p] or own[q] or own[r]) and m <= bound
             mine[t] = ((own[p] and index[p] == low) or (own[q] and index[q] == low)
                        or (own[r] and index[r] == low)) and m <= bound
-
-
-def edges_once(const double[:, ::1] xy, const int64_t[:, ::1] simplices, const int64_t[:, ::1] neighbors,
-               const uint8_t[::1] own, const int64_t[::1] index, double bound, int64_t[:, ::1] edges,
-               double[::1] lengths):
-    """Each edge of the triangulation once (on the hull, or towards a higher-numbered
-    triangle), in row order of (triangle t, corner k), that is at most `bound` long and
-    whose lower-numbered end is own: edges (E, 4) rows (t, k, a, b) with a, b the ends
-    (corners k + 1, k + 2) and lengths (E,) hypot(a − b). Returns E (edges, lengths: room
-    for 3T)."""
-    cdef Py_ssize_t t, T = simplices.shape[0], count = 0
-    cdef int k
-    cdef int64_t a, b, other
-    cdef double length
-    with nogil:
-        for t in range(T):
+            if not with_edges:
+                continue
             for k in range(3):
                 other = neighbors[t, k]
                 if other >= 0 and other <= t:
                     continue
                 a = simplices[t, (k + 1) % 3]
                 b = simplices[t, (k + 2) % 3]
-                length = hypot(xy[a, 0] - xy[b, 0], xy[a, 1] - xy[b, 1])
-                if not (length <= bound and own[a if index[a] < index[b] else b]):
+                if not (e[k] <= bound and own[a if index[a] < index[b] else b]):
                     continue
                 edges[count, 0] = t
                 edges[count, 1] = k
                 edges[count, 2] = a
                 edges[count, 3] = b
-                lengths[count] = length
+                lengths[count] = e[k]
                 count += 1
     return count

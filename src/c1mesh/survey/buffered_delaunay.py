@@ -41,15 +41,15 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from c1mesh.engine.triangulation import delaunay
-from c1mesh.stages.trim import AUTO_EDGE_FACTOR, triangle_neighbours
+from c1mesh.engine.triangulation import delaunay_with_neighbours
+from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
 from c1mesh.survey.strip_geometry import (
     centres_clear,
     circumcircles,
     clip_to_hull,
     disks_clear,
-    edges_once,
+    flags_and_edges,
     hull_edges_final,
     smallest_empty_circle,
     triangle_flags,
@@ -181,7 +181,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
-        simplices = delaunay(local)
+        simplices, neighbours = delaunay_with_neighbours(local)
         # survey coordinates for the lengths: trim's bits
         _, at_own, mine = triangle_flags(xy, simplices, own, index, np.inf if max_edge is None else max_edge)
         if covers:
@@ -191,7 +191,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             regions = None if hull is None else clip_to_hull(strips, hull.xy - centre)
             safe = (disks_clear(local, simplices[at_own], strips, regions).all()
                     and (max_edge is not None
-                         or hull_edges_final(local, index, simplices, triangle_neighbours(simplices, len(local)),
+                         or hull_edges_final(local, index, simplices, neighbours,
                                              own, strips, hull_edges)))
         if safe:
             keep = simplices[mine]
@@ -265,10 +265,11 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
     to `bound` (frame units), growing its buffer (from bound) until both are certified.
 
     A triangle is certified by its circumdisk (the module docstring's buffer rule); an
-    edge of the tile's triangulation is an edge of the survey's when one circle through
-    its two ends is empty of what was read and clear of what was not: the smallest circle
-    of the pencil between the circumcircles of its two triangles (for a short edge
-    usually its diametral circle, which a buffer above `bound` always holds)."""
+    edge of the tile's triangulation is an edge of the survey's when one of its triangles
+    is certified, or else when one circle through its two ends is empty of what was read
+    and clear of what was not: the smallest circle of the pencil between the
+    circumcircles of its two triangles (for a short edge usually its diametral circle,
+    which a buffer above `bound` always holds)."""
     box, cell = grid.box, grid.cell(tile)
     for reading in growing_reads(read, grid, tile, bound * (1 + 1e-9)):
         read_box, index, xy, own, covers = reading.box, reading.index, reading.points, reading.own, reading.covers
@@ -280,22 +281,34 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
-        simplices = delaunay(local)
-        neighbors = triangle_neighbours(simplices, len(local))
-        edges, lengths = edges_once(xy, simplices, neighbors, own, index, bound)
-        longest, at_own, triangle_mine = triangle_flags(xy, simplices, own, index, bound)
+        simplices, neighbors = delaunay_with_neighbours(local)
+        longest, at_own, triangle_mine, edges, lengths = flags_and_edges(xy, simplices, neighbors, own, index,
+                                                                          bound)
         if not covers:
             strips = unread_strips(read_box, box, centre)
             regions = clip_to_hull(strips, hull.xy - centre)
             centres, radius = circumcircles(local, simplices)
             scale = np.abs(local).max()
-            circle, circle_radius = smallest_empty_circle(local, simplices, neighbors, *edges.T, centres)
-            certified = (centres_clear(centres[at_own], radius[at_own], strips, regions, scale).all()
-                         and centres_clear(circle, circle_radius, strips, regions, scale).all())
-            if not certified:
+            if not centres_clear(centres[at_own], radius[at_own], strips, regions, scale).all():
+                continue
+            # an edge of a triangle certified above is an edge of the survey's triangulation;
+            # the others (both triangles longer than the bound, or a hull edge beside one)
+            # are certified by their own smallest empty circle
+            alone = _edges_without(at_own, neighbors, edges)
+            circle, circle_radius = smallest_empty_circle(local, simplices, neighbors, *edges[alone].T, centres)
+            if not centres_clear(circle, circle_radius, strips, regions, scale).all():
                 continue
         return TilePass(tile, lengths, index[simplices[triangle_mine]], longest[triangle_mine],
                         buffer, len(index), rounds)
+
+
+def _edges_without(certified: np.ndarray, neighbors: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(e,) bool: the edges (e, 4) rows (t, k, a, b) of which neither triangle (t, and its
+    neighbour across corner k's opposite edge, neighbors (T, 3), -1 on the hull) is
+    certified (T,) bool."""
+    t, k = edges[:, 0], edges[:, 1]
+    other = neighbors[t, k]
+    return ~certified[t] & ~(certified[np.maximum(other, 0)] & (other >= 0))
 
 
 def trimmed_delaunay(read: Reader, grid: TileGrid, count: int, hull: Hull, max_edge="auto",

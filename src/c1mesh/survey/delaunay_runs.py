@@ -19,6 +19,7 @@ from c1mesh.survey.buffered_delaunay import (
     trimmed_delaunay,
 )
 from c1mesh.survey.task_rows import TileRows
+from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.tiles import task_row
 
 
@@ -60,13 +61,8 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
         triangles = np.load(files[t])
         short = np.load(longest[t]) <= limit
         if not short.all():
-            _save(files[t], triangles[short])
+            save_array(files[t], triangles[short])
     return limit, files, buffers, 2 * count - 2 - len(hull.index)
-
-
-def _save(path, array: np.ndarray) -> None:
-    with open(path, "wb") as file:
-        np.save(file, array)
 
 
 def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) -> tuple[float, dict]:
@@ -75,7 +71,7 @@ def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) ->
     start = time.perf_counter()
     with limit(threads):
         result = tile_triangles(heights.read, grid, t, buffer, hull)
-    _save(path, result.triangles)
+    save_array(path, result.triangles)
     return result.buffer, task_row(result.read, start)
 
 
@@ -89,7 +85,7 @@ def _tile_trimmed(heights, grid, t: int, bound: float, hull, paths, threads):
     start = time.perf_counter()
     with limit(threads):
         result = tile_pass(heights.read, grid, t, bound, hull)
-    _save(path, result.triangles)
-    _save(longest_path, result.longest)
-    _save(short_path, result.short)
+    save_array(path, result.triangles)
+    save_array(longest_path, result.longest)
+    save_array(short_path, result.short)
     return result.buffer, task_row(result.read, start)

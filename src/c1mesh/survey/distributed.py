@@ -16,20 +16,10 @@ from typing import Callable, Iterator, Sequence
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.platform_memory import release_task_heap
-from c1mesh.survey.tiles import TileError, TileResult, TileTask, run_tile, temp_path, tile_failure
+from c1mesh.survey.tiles import TileResult, TileTask, run_tile, temp_path, tile_failure
 
 CONNECT_SECONDS = 30
 """How long to try reaching a --scheduler before giving up."""
-
-
-LOCAL_POOL = "processes"
-"""What `jobs > 1` without a scheduler starts: "processes" (a ProcessPoolExecutor) or
-"dask" (a LocalCluster of single-thread worker processes). Measured on 9 tiles of a
-200k-point survey at level 4 (2 cores, heavily shared), time of the tile stage: in the
-process 8.7 s, a pool of 2 processes 14.4 s, a LocalCluster of 2 workers 31.2 s (about
-10 s of it starting the cluster): the pool starts in well under a second and needs no
-scheduler round trips, so it is the local choice; a cluster is worth its start-up only
-across machines (--scheduler)."""
 
 
 def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
@@ -39,7 +29,7 @@ def run_tiles(tasks: Sequence[TileTask], scheduler: str | None = None,
     tasks: a sequence (tiles.TilePlan builds each task when indexed); at most _IN_FLIGHT
     tasks per worker are built and pending at a time, so memory holds those, not all.
     scheduler: address of a running dask.distributed scheduler ("tcp://host:port") to
-    send the tasks to; else jobs > 1 runs them on `jobs` local processes (LOCAL_POOL);
+    send the tasks to; else jobs > 1 runs them on `jobs` local processes (TaskRunner);
     else the tasks run here, one after the other.
     A task that fails raises tiles.TileError naming its tile (the rest are cancelled).
     """
@@ -57,7 +47,7 @@ def _run_here(task: TileTask) -> TileResult:
     try:
         return run_tile(task, target=temp_path(task.output))
     except Exception as exc:  # noqa: BLE001 — any failure of a tile is named by its tile
-        raise tile_failure(task, exc) from exc
+        raise tile_failure(task.name, exc) from exc
 
 
 _IN_FLIGHT = 2
@@ -81,9 +71,16 @@ def _windowed(count: int, window: int, pending: dict, submit, wait_some) -> Iter
 
 class TaskRunner:
     """Where tile tasks run: in this process (jobs 1), on a local pool of `jobs`
-    processes or a LocalCluster (LOCAL_POOL), or on the Dask cluster at `scheduler`. Use
-    as a context manager; the pool or cluster is started once and serves every `map`
-    (a memory-bounded fit, c1mesh.pipeline.bounded_fit, maps each of its passes over the tiles).
+    processes (a ProcessPoolExecutor), or on the Dask cluster at `scheduler`. Use as a
+    context manager; the pool or client is started once and serves every `map` (a
+    memory-bounded fit, c1mesh.pipeline.bounded_fit, maps each of its passes over the tiles).
+
+    Why a pool and not a Dask LocalCluster locally: measured on 9 tiles of a 200k-point
+    survey at level 4 (2 cores, heavily shared), time of the tile stage: in the process
+    8.7 s, a pool of 2 processes 14.4 s, a LocalCluster of 2 workers 31.2 s (about 10 s
+    of it starting the cluster): the pool starts in well under a second and needs no
+    scheduler round trips; a cluster is worth its start-up only across machines
+    (--scheduler).
 
     start_method: how the pool starts its processes (multiprocessing; None: the
     platform's default). The memory-bounded fit uses "forkserver", so a worker holds only
@@ -95,7 +92,7 @@ class TaskRunner:
                  scatter: bool = False):
         self.scheduler, self.jobs = scheduler, max(1, int(jobs))
         self.start_method, self.scatter = start_method, scatter
-        self.pool = self.client = self.cluster = None
+        self.pool = self.client = None
 
     @property
     def kind(self) -> str:
@@ -104,7 +101,7 @@ class TaskRunner:
             return self.scheduler
         if self.jobs == 1:
             return "in process"
-        return f"{self.jobs} local processes" if LOCAL_POOL == "processes" else f"LocalCluster of {self.jobs} workers"
+        return f"{self.jobs} local processes"
 
     @property
     def workers(self) -> int:
@@ -121,23 +118,16 @@ class TaskRunner:
                 self.client = Client(self.scheduler, timeout=CONNECT_SECONDS)
             except (OSError, TimeoutError, ValueError) as exc:
                 raise InputError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from exc
-        elif self.jobs > 1 and LOCAL_POOL == "processes":
-            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context(self.start_method))
         elif self.jobs > 1:
-            from distributed import Client, LocalCluster
-
-            self.cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
-                                        dashboard_address=None)
-            self.client = Client(self.cluster)
+            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context(self.start_method))
         return self
 
     def __exit__(self, *exc) -> None:
-        for part in (self.client, self.cluster):
-            if part is not None:
-                part.close()
+        if self.client is not None:
+            self.client.close()
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
-        self.pool = self.client = self.cluster = None
+        self.pool = self.client = None
 
     def map(self, function: Callable, count: int, arguments: Callable[[int], tuple],
             name: Callable[[int], str]) -> Iterator[tuple[int, object]]:
@@ -149,7 +139,7 @@ class TaskRunner:
                 try:
                     result = function(*arguments(i))
                 except Exception as exc:  # noqa: BLE001 — any failure of a tile is named by its tile
-                    raise _failure(name(i), exc) from exc
+                    raise tile_failure(name(i), exc) from exc
                 release_task_heap()
                 yield i, result
             return
@@ -176,7 +166,7 @@ class TaskRunner:
             for future, i in _windowed(count, _IN_FLIGHT * self.workers, pending, submit, wait_some):
                 exc = failed(future)
                 if exc is not None:
-                    raise _failure(name(i), exc)
+                    raise tile_failure(name(i), exc)
                 result = future.result()
                 if self.client is not None:
                     future.release()
@@ -198,8 +188,3 @@ def _then_release(function: Callable, *arguments):
         return function(*arguments)
     finally:
         release_task_heap()
-
-
-def _failure(name: str, exc: BaseException) -> TileError:
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return TileError(f"tile {name}: {text}")

@@ -27,6 +27,7 @@ tile in the refinement task.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -186,20 +187,44 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
     return longest
 
 
+@dataclass(frozen=True)
+class KeptSummaries:
+    """The curtains' noise floor summaries (trim_runs.trim_tiles), kept for the limiter's
+    first floor: both are floor_summary with the data as read, of each tile's own edges,
+    so a tile's file serves again unless the curtains' rules removed a triangle with a
+    corner in its cell since (an own edge ends there). paths: tile -> its file; changed:
+    those tiles."""
+
+    paths: dict
+    changed: frozenset
+
+
+def floor_files(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
+                name=str, kept: KeptSummaries | None = None) -> dict:
+    """{tile: the file of its floor_summary} for every tile of the halos (the summaries of
+    a noise floor, c1mesh.stages.limiter: with the height field's data, first None, or
+    with the data reconciled with the first floor). Each tile's summary is a task on
+    runner (distributed.TaskRunner; None: in this process, `write_floor_summary`) writing
+    its own file, so the floor does not depend on where or in which order they ran;
+    kept: files that hold a tile's summary already (KeptSummaries, first None only).
+    halos: the HaloCache (after prune); name(t) names tile t in errors; label names the
+    files."""
+    paths = {}
+    if kept is not None:
+        paths = {t: path for t, path in kept.paths.items() if t not in kept.changed}
+    tiles = [t for t in halos.tiles() if t not in paths]
+    new = {t: temps.new(f"{label}-{t}.bin") for t in tiles}
+    for _ in (runner or TaskRunner()).map(write_floor_summary, len(tiles),
+                                          lambda i: (halos, tiles[i], first, new[tiles[i]]), lambda i: name(tiles[i])):
+        pass
+    return {**paths, **new}
+
+
 def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
                name=str) -> float:
-    """A noise floor of the survey, exactly (c1mesh.stages.limiter: its floor_summary of
-    every tile's halo, then reduce_floor): with the height field's data (first None), or
-    with the data reconciled with the first floor. Each tile's summary is a task on runner
-    (distributed.TaskRunner; None: in this process, `write_floor_summary`) writing its own
-    file, so the median does not depend on where or in which order they ran. halos: the
-    HaloCache (after prune); name(t) names tile t in errors; label names the files."""
-    tiles = halos.tiles()
-    paths = [temps.new(f"{label}-{t}.bin") for t in tiles]
-    for _ in (runner or TaskRunner()).map(write_floor_summary, len(tiles),
-                                          lambda i: (halos, tiles[i], first, paths[i]), lambda i: name(tiles[i])):
-        pass
-    return median_of_files(paths, reduce_floor)
+    """A noise floor of the survey, exactly: reduce_floor over floor_files' summaries,
+    whose files it then removes."""
+    return median_of_files(list(floor_files(halos, temps, label, first, runner, name).values()), reduce_floor)
 
 
 def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) -> None:
@@ -207,10 +232,11 @@ def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) 
     floor_summary(halos.halo(tile), first).astype("<f8").tofile(path)
 
 
-def noise_floors(halos: HaloCache, temps, runner=None, name=str) -> NoiseFloors:
+def noise_floors(halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None) -> NoiseFloors:
     """The limiter's two noise floors of the survey (edge_floor twice: the second with
-    the data reconciled with the first)."""
-    first = edge_floor(halos, temps, "residuals-first", None, runner, name)
+    the data reconciled with the first); kept: the curtains' summaries (floor_files)."""
+    paths = floor_files(halos, temps, "residuals-first", None, runner, name, kept)
+    first = median_of_files(list(paths.values()), reduce_floor)
     return NoiseFloors(first, edge_floor(halos, temps, "residuals-second", first, runner, name))
 
 
@@ -219,9 +245,9 @@ class TiledLimiter:
     construction; a refinement task (refine_runs, through `tile`) limits its tile's
     data from the cached halo (halos, picklable) and these floors (limiter.tile_limits)."""
 
-    def __init__(self, halos: HaloCache, temps, runner=None, name=str):
+    def __init__(self, halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None):
         self.halos = halos
-        self.floors = noise_floors(halos, temps, runner, name)
+        self.floors = noise_floors(halos, temps, runner, name, kept)
         self.limited = self.turned = self.lifted = 0
 
     def tile(self, tile: int, triangles: np.ndarray) -> TileLimits:
@@ -239,19 +265,15 @@ FLOAT_BLOCK = 1 << 20
 per pass (bit patterns, shifted digits, masks), so the block bounds the noise floors' peak."""
 
 
-def residual_blocks(path, block: int = FLOAT_BLOCK):
-    with open(path, "rb") as file:
-        yield from file_blocks(file, "<f8", block)
-
-
-def median_of_files(paths, reduce=streamed_median) -> float:
+def median_of_files(paths, reduce=streamed_median, remove: bool = True) -> float:
     """The exact median of the float64 values in the files `paths` (reduce's of their
     blocks: streamed_median's, as np.median gives it; edge_floor passes the limiter's
-    reduce_floor), which it then removes."""
+    reduce_floor), which it then removes (remove=False: keeps, for another floor)."""
     def blocks():
         for path in paths:
-            yield from residual_blocks(path)
+            with open(path, "rb") as file:
+                yield from file_blocks(file, "<f8", FLOAT_BLOCK)
     median = reduce(blocks)
-    for path in paths:
+    for path in paths if remove else ():
         path.unlink()
     return median

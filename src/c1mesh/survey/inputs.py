@@ -12,7 +12,6 @@ from typing import Callable
 import numpy as np
 
 from c1mesh.core.crs import las_crs, parse_crs, resolve
-from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import register_temp, unregister_temp
 from c1mesh.core.plan import PointSelection
 from c1mesh.formats.copc import laspy_module, region_chunks
@@ -112,19 +111,16 @@ def las_chunks(source, classes=None, chunk: int = CHUNK, colours: "Colours | Non
     return chunks
 
 
-def survey_classes(source, bounds=None, chunk: int = CHUNK) -> tuple[bool, set[int]]:
-    """(whether the survey has a point of the ground class 2, the classes seen) over a
-    LAS/LAZ file or a list read as one survey (inside `bounds`, as las_chunks reads it),
-    stopping at the first chunk with class 2: how the tiled fit resolves its default
-    class choice (the ground class when there is one) before its passes."""
-    found: set[int] = set()
+def has_ground_class(source, bounds=None) -> bool:
+    """Whether the survey has a point of the ground class 2, over a LAS/LAZ file or a list
+    read as one survey (inside `bounds`, as las_chunks reads it), stopping at the first
+    chunk with one: how the tiled fit resolves its default class choice (the ground class
+    when there is one) before its passes."""
     for path in survey_paths(source):
-        for part in region_chunks(path, bounds, chunk):
-            classes = np.asarray(part.classification)
-            found.update(np.unique(classes).tolist())
-            if 2 in found:
-                return True, found
-    return False, found
+        for part in region_chunks(path, bounds, CHUNK):
+            if (np.asarray(part.classification) == 2).any():
+                return True
+    return False
 
 
 def tiled_classes(source, select: PointSelection) -> tuple[PointSelection, dict, bool]:
@@ -140,8 +136,7 @@ def tiled_classes(source, select: PointSelection) -> tuple[PointSelection, dict,
     if choice in ("all", None):
         return replace(select, classes=None), {"selected": "all", "source": "option"}, False
     if choice == "auto":
-        has_ground, _ = survey_classes(source, select.bounds)
-        if has_ground:
+        if has_ground_class(source, select.bounds):
             return replace(select, classes=(2,)), {"selected": [2], "source": "file"}, False
     why = "asked (--classes filter)" if choice == "filter" else "the file has no ground class 2"
     return replace(select, classes=None), {"selected": [2], "source": "filter", "reason": why}, True

@@ -30,6 +30,7 @@ from c1mesh.stages.limiter import TileLimits
 from c1mesh.stages.smoothing import (SmoothingData, SmoothingRun, StrengthSearch, TileSolve, combined_fit,
                                      search_strength, smooth_tile, smoothing_reach)
 from c1mesh.survey.halos import HALO_EDGES, HaloCache, halo_reach
+from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.tiles import task_row
 
 
@@ -162,11 +163,5 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     records["gx"], records["gy"] = smoothed.gradients[:, 0], smoothed.gradients[:, 1]
     records.tofile(smoother.paths[tile][0])
     if smoothed.directions is not None:
-        _save(smoother.paths[tile][1], smoothed.directions)
+        save_array(smoother.paths[tile][1], smoothed.directions)
     return smoothed.solve, task_row(len(halo.records), start)
-
-
-def _save(path, array: np.ndarray) -> None:
-    """np.save to exactly path (np.save given a name would append .npy)."""
-    with open(path, "wb") as file:
-        np.save(file, array)

@@ -152,28 +152,32 @@ def triangle_flags(xy: np.ndarray, simplices: np.ndarray, own: np.ndarray, index
     survey numbers index (n,): each triangle's longest edge; whether a corner is own and
     longest <= bound (its disk must be certified); whether its lowest-numbered corner is
     own and longest <= bound (the tile keeps it). One pass of the kernel."""
+    return _flags(xy, simplices, None, own, index, bound)[:3]
+
+
+def flags_and_edges(xy: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray, own: np.ndarray,
+                    index: np.ndarray, bound: float):
+    """triangle_flags' three arrays, and from the same pass (edges (E, 4) int64 rows
+    (t, k, a, b), lengths (E,)): each edge of the triangulation once (on the hull, or
+    towards a higher-numbered triangle: neighbors (T, 3)), at most `bound` long, whose
+    lower-numbered end is own; t, k the triangle and the corner it is opposite, a, b its
+    ends (corners k + 1, k + 2), lengths hypot(a − b) in xy's unit."""
+    return _flags(xy, simplices, neighbors, own, index, bound)
+
+
+def _flags(xy, simplices, neighbors, own, index, bound):
     T = len(simplices)
     longest, at_own, mine = np.empty(T), np.empty(T, dtype=np.uint8), np.empty(T, dtype=np.uint8)
-    kernel.triangle_flags(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(simplices, dtype=np.int64),
-                          np.ascontiguousarray(own, dtype=bool).view(np.uint8),
-                          np.ascontiguousarray(index, dtype=np.int64), float(bound), longest, at_own, mine)
-    return longest, at_own.view(bool), mine.view(bool)
-
-
-def edges_once(xy: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray, own: np.ndarray, index: np.ndarray,
-               bound: float) -> tuple[np.ndarray, np.ndarray]:
-    """(edges (E, 4) int64 rows (t, k, a, b), lengths (E,)): each edge of a tile's
-    triangulation once (on the hull, or towards a higher-numbered triangle: neighbors
-    (T, 3)), at most `bound` long, whose lower-numbered end (survey numbers index (n,)) is
-    own (n,) bool; t, k the triangle and the corner it is opposite, a, b its ends (corners
-    k + 1, k + 2), lengths hypot(a − b) in xy's (n, 2) unit. One pass of the kernel."""
-    edges, lengths = np.empty((3 * len(simplices), 4), dtype=np.int64), np.empty(3 * len(simplices))
-    count = kernel.edges_once(np.ascontiguousarray(xy, dtype=np.float64),
-                              np.ascontiguousarray(simplices, dtype=np.int64),
-                              np.ascontiguousarray(neighbors, dtype=np.int64),
-                              np.ascontiguousarray(own, dtype=bool).view(np.uint8),
-                              np.ascontiguousarray(index, dtype=np.int64), float(bound), edges, lengths)
-    return edges[:count], lengths[:count].copy()
+    rows = 0 if neighbors is None else 3 * T
+    edges, lengths = np.empty((rows, 4), dtype=np.int64), np.empty(rows)
+    count = kernel.triangle_flags(np.ascontiguousarray(xy, dtype=np.float64),
+                                  np.ascontiguousarray(simplices, dtype=np.int64),
+                                  np.ascontiguousarray(np.empty((0, 3)) if neighbors is None else neighbors,
+                                                       dtype=np.int64),
+                                  np.ascontiguousarray(own, dtype=bool).view(np.uint8),
+                                  np.ascontiguousarray(index, dtype=np.int64), float(bound), longest, at_own,
+                                  mine, edges, lengths)
+    return longest, at_own.view(bool), mine.view(bool), edges[:count], lengths[:count].copy()
 
 
 def centres_clear(centre, radius, strips, regions, scale) -> np.ndarray:

@@ -76,12 +76,17 @@ def _neighbourhoods_inside(xyz: np.ndarray, own: np.ndarray, k: int, read_box, b
 def _closer_than_unread(points: np.ndarray, reach: np.ndarray, read_box, box) -> bool:
     """True when each plane point (m, 2) is closer to its farthest neighbour, reach (m,),
     than to the unread part of the box (with a relative margin for rounding)."""
+    return bool(_closer_than_unread_each(points, reach, read_box, box).all())
+
+
+def _closer_than_unread_each(points: np.ndarray, reach: np.ndarray, read_box, box) -> np.ndarray:
+    """(m,) bool: `_closer_than_unread` point by point."""
     gap = np.full(len(points), np.inf)
     for x0, y0, x1, y1 in unread_strips(read_box, box, np.zeros(2)):
         dx = np.maximum(np.maximum(x0 - points[:, 0], points[:, 0] - x1), 0.0)
         dy = np.maximum(np.maximum(y0 - points[:, 1], points[:, 1] - y1), 0.0)
         gap = np.minimum(gap, np.hypot(dx, dy))
-    return bool((reach * (1 + 1e-9) < gap).all())
+    return reach * (1 + 1e-9) < gap
 
 
 def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buffer: float) -> TileNormals:
@@ -90,13 +95,24 @@ def tile_height_normals(read3: Callable, grid: TileGrid, tile: int, k: int, buff
     what the in-memory fit uses for LAS/LAZ (`height_normals`). The buffer grows as for
     `tile_normals` until every own point's k nearest plane neighbours lie in what was read
     (their plane distance is below the unread part's), so each fit sees the survey's
-    neighbourhood. k: the fit's neighbours (height_gradients.height_neighbours)."""
-    def attempt(xyz, own, read_box, covers):
-        if len(xyz) <= k + 1 and not covers:
-            return None
-        normals, reach = fitted_normals(xyz, np.flatnonzero(own), k)
-        if not (covers or _closer_than_unread(xyz[own, :2], reach, read_box, grid.box)):
-            return None                          # a neighbourhood reaches past what was read
-        return normals
-
-    return _grown(read3, grid, tile, buffer, attempt)
+    neighbourhood. A fit does not depend on which other points were read (its neighbours
+    and sums are fixed by the coordinates), so a larger read refits only the points whose
+    neighbourhood the last one did not hold. k: the fit's neighbours
+    (height_gradients.height_neighbours)."""
+    normals, pending = None, None
+    for reading in growing_reads(read3, grid, tile, buffer):
+        index, xyz, own = reading.index, reading.points, reading.own
+        if not own.any():
+            return TileNormals(tile, index[own], np.empty((0, 3)), reading.buffer, reading.round)
+        if len(xyz) <= k + 1 and not reading.covers:
+            continue
+        rows = np.flatnonzero(own)                       # the own points, ascending survey numbers
+        if normals is None:
+            normals, pending = np.empty((rows.size, 3)), np.arange(rows.size)
+        fitted, reach = fitted_normals(xyz, rows[pending], k)
+        held = np.ones(pending.size, dtype=bool) if reading.covers else \
+            _closer_than_unread_each(xyz[rows[pending], :2], reach, reading.box, grid.box)
+        normals[pending[held]] = fitted[held]
+        pending = pending[~held]
+        if not pending.size:
+            return TileNormals(tile, index[own], normals, reading.buffer, reading.round)

@@ -27,6 +27,12 @@ RECORD = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 """One spilled point: survey number and frame coordinates (x, y in the plane, z height)."""
 
 
+def save_array(path, array: np.ndarray) -> None:
+    """np.save to exactly path (np.save given a name would append .npy)."""
+    with open(path, "wb") as file:
+        np.save(file, array)
+
+
 class TileSpill:
     """Per-tile spill files of a survey; use as a context manager (files removed on exit).
 

@@ -43,7 +43,7 @@ from c1mesh.core.threads import blas_threads
 from c1mesh.engine.refine import Refinement
 from c1mesh.engine.rsd import VertexData
 from c1mesh.engine.schemes import NAMED_TUPLES, get_scheme
-from c1mesh.engine.topology import edge_table
+from c1mesh.engine.topology import edge_table, triangle_neighbours
 from c1mesh.formats import PRJ_SIDECAR, read_cloud, write_mesh
 from c1mesh.formats.las import no_class_error
 from c1mesh.stages.ground import choose_points
@@ -166,18 +166,6 @@ def triangle_owners(model, survey: Survey) -> np.ndarray:
     return survey.input_of(cloud_index[triangles.min(axis=1)])
 
 
-def neighbours(table) -> np.ndarray:
-    """(T, 3) the triangle across each triangle's slot-k edge, -1 on the boundary."""
-    flat = table.tri_edge.ravel()
-    order = np.argsort(flat, kind="stable")              # the two slots of an edge side by side
-    pairs = flat[order]
-    same = np.flatnonzero(pairs[1:] == pairs[:-1])
-    across = np.full(flat.size, -1, dtype=np.int64)
-    across[order[same]] = order[same + 1] // 3
-    across[order[same + 1]] = order[same] // 3
-    return across.reshape(-1, 3)
-
-
 @dataclass
 class TileTask:
     """Everything one tile's refinement needs (picklable: it travels to Dask workers).
@@ -209,7 +197,8 @@ class TileTask:
 
 
 class TilePlan:
-    """The tiles of a survey, one per input, each TileTask built only when asked for.
+    """The tiles of a survey's base surface (model: pipeline.SurfaceModel), one per input,
+    each TileTask built only when asked for.
 
     plan[i] is input i's task: its owned triangles plus the halo across its border edges.
     Tasks are built on demand so that a run holds the survey's base surface and only the
@@ -225,7 +214,7 @@ class TilePlan:
         self.names, self.outputs = list(survey.names), [str(o) for o in outputs]
         self.counts = np.diff(survey.offsets)
         self.owners = triangle_owners(model, survey)
-        self.across = neighbours(interp.edge_table)
+        self.across = triangle_neighbours(interp.triangles, interp.points.shape[0])
         colors = survey.cloud.colors
         self.colors = None if colors is None else colors[model.hf.source_index[model.used]]
         self.scheme = _scheme_for_task(interp.scheme)
@@ -251,12 +240,6 @@ class TilePlan:
             np.searchsorted(points, corners), interp.coefficients[keep], interp.lambda_gradients[keep],
             owned[keep], self.frame, self.scheme, self.level, int(self.counts[i]), self.ascii,
             self.crs)
-
-
-def plan_tiles(model, survey: Survey, outputs: Sequence[str], level: int, ascii: bool = False,
-               crs: str | None = None) -> TilePlan:
-    """The TilePlan of a survey's base surface (model: pipeline.SurfaceModel)."""
-    return TilePlan(model, survey, outputs, level, ascii, crs)
 
 
 def _scheme_for_task(scheme):
@@ -403,7 +386,7 @@ def staged_outputs(crs: str | None = None):
     def stage(output) -> Path:
         temp = temp_path(output)
         temps[temp] = Path(output)
-        if crs and _has_sidecar(output):
+        if crs and mesh_format(output) in PRJ_SIDECAR:      # the format carries its CRS in a .prj
             temps.update(_temp_prj(output, crs))
         return temp
     try:
@@ -416,11 +399,6 @@ def staged_outputs(crs: str | None = None):
             temp.unlink(missing_ok=True)
             unregister_temp(temp)
         raise
-
-
-def _has_sidecar(output: str) -> bool:
-    """Whether the mesh format of `output` carries its CRS in a .prj sidecar."""
-    return mesh_format(output) in PRJ_SIDECAR
 
 
 def _temp_prj(output: str, crs: str) -> dict:
@@ -436,9 +414,9 @@ class TileError(InputError):
     """A tile failed; the message names it."""
 
 
-def tile_failure(task: TileTask, exc: BaseException) -> TileError:
-    """The error to report for a tile whose task raised exc."""
+def tile_failure(name: str, exc: BaseException) -> TileError:
+    """The error to report for the tile `name` whose task raised exc."""
     text = " ".join(str(exc).split()) or type(exc).__name__
-    return TileError(f"tile {task.name}: {text}")
+    return TileError(f"tile {name}: {text}")
 
 

@@ -10,7 +10,8 @@ triangles of every edge of its own triangles and the whole star of every vertex 
 cell, which is what its steps read: its thin triangles with their boundary flags, its
 bow-tie fans, its curtains. The long edges are gone already (buffered_delaunay.tile_pass;
 an "auto" max_edge is survey-wide, c1mesh.survey.delaunay_runs), and the curtains'
-noise floor is found survey-wide by halos.edge_floor.
+noise floor is found survey-wide from every tile's summary (halos.floor_files), whose files the
+limiter's first floor reuses where the curtains changed nothing (halos.KeptSummaries).
 """
 from __future__ import annotations
 
@@ -21,7 +22,9 @@ import numpy as np
 from c1mesh.core.threads import map_in_threads
 from c1mesh.stages.curtains import point_rows, remove_curtain_run
 from c1mesh.stages.trim import MIN_CIRCLE_RATIO, Cuts, Place, TrimTile, drop_triangles, trim_run
-from c1mesh.survey.halos import edge_floor
+from c1mesh.stages.limiter import reduce_floor
+from c1mesh.survey.halos import KeptSummaries, floor_files, median_of_files
+from c1mesh.survey.tile_spill import save_array
 
 
 class TrimRuns:
@@ -33,6 +36,7 @@ class TrimRuns:
 
     def __init__(self, halos, grid):
         self.halos, self.grid = halos, grid
+        self.touched: set[int] = set()            # tiles holding a corner of a removed triangle
 
     def map(self, step: Callable[[TrimTile], Any], tiles: set[int] | None = None) -> list:
         chosen = self.halos.tiles() if tiles is None else sorted(set(tiles) & set(self.halos.tiles()))
@@ -47,6 +51,7 @@ class TrimRuns:
                         point_rows(points, halo.values, halo.gradients), place)
 
     def remove(self, cuts: Cuts) -> None:
+        self.touched |= cuts.tile_set()
         owners = cuts.tiles[np.arange(len(cuts)), np.argmin(cuts.corners, axis=1)]
         order = np.argsort(owners, kind="stable")
         tile_numbers, starts = np.unique(owners[order], return_index=True)
@@ -59,13 +64,13 @@ class TrimRuns:
         halos, in the thread knob's threads (each tile its own file)."""
         def write(t: int) -> None:
             triangles = np.load(self.halos.files[t])
-            with open(self.halos.files[t], "wb") as file:
-                np.save(file, drop_triangles(triangles, self.halos.removed[t]))
+            save_array(self.halos.files[t], drop_triangles(triangles, self.halos.removed[t]))
         map_in_threads(write, list(self.halos.removed))
         self.halos.prune()
 
 
-def trim_tiles(halos, grid, temps, view_rules: bool = True, runner=None, name=str) -> dict[str, int]:
+def trim_tiles(halos, grid, temps, view_rules: bool = True, runner=None,
+               name=str) -> tuple[dict[str, int], KeptSummaries]:
     """The in-memory default trim after the long-edge rule, over the tiles: trim.trim_run
     (slivers, bow-ties), then curtains.remove_curtain_run with the survey's noise floor,
     as pipeline.build_surface runs them. halos: the halos.HaloCache; grid: the
@@ -73,11 +78,14 @@ def trim_tiles(halos, grid, temps, view_rules: bool = True, runner=None, name=st
     curtains.view_rules_apply; runner (distributed.TaskRunner; None: this process) runs
     the noise floor's summary per tile, name(t) names tile t in its errors. The removed
     triangles leave their tiles' files. Returns the removed counts by reason (as
-    TrimReport.removed)."""
+    TrimReport.removed) and the curtains' floor summaries, kept for the limiter's first
+    floor (halos.KeptSummaries)."""
     run = TrimRuns(halos, grid)
     thin, counts = trim_run(run, MIN_CIRCLE_RATIO)
-    floor = edge_floor(halos, temps, "residuals-curtains", runner=runner, name=name)
+    paths = floor_files(halos, temps, "residuals-curtains", runner=runner, name=name)
+    floor = median_of_files(list(paths.values()), reduce_floor, remove=False)
+    run.touched = set()
     curtains, cleanup = remove_curtain_run(run, floor, view_rules, thin)
     run.write_files()
-    return {"sliver": counts["sliver"] + cleanup["sliver"], "bowtie": counts["bowtie"] + cleanup["bowtie"],
-            **curtains}
+    return ({"sliver": counts["sliver"] + cleanup["sliver"], "bowtie": counts["bowtie"] + cleanup["bowtie"],
+             **curtains}, KeptSummaries(paths, frozenset(run.touched)))
