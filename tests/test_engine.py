@@ -429,6 +429,41 @@ def test_mesh_coefficients_threads_and_passes_give_the_same_bits(mesh):
     assert np.array_equal(C, one[0]) and np.array_equal(G, one[1]) and np.array_equal(det, one[2])
 
 
+def test_mesh_coefficients_are_the_formulas_of_a_loop_over_triangles(mesh):
+    """The coefficient kernel (engine/_rsd.pyx) against the module docstring's formulas in
+    a plain Python loop over the triangles, float by float in the same order (so equal to
+    the bit); a degenerate triangle (a corner repeated) flagged and its G zero."""
+    from c1mesh.engine.topology import edge_table
+    points, triangles = mesh
+    triangles = np.vstack([triangles, [[0, 1, 1]]])           # zero area: det 0
+    f, A = smooth(points), smooth_grad(points)
+    u = np.random.default_rng(4).normal(size=(3 * len(triangles), 2))
+    tri_edge = np.arange(3 * len(triangles)).reshape(-1, 3)   # each triangle's own edges
+    C, G, det, bad = rsd.mesh_coefficients(rsd.VertexData(points, f, A), triangles, u, tri_edge,
+                                           chunk=5, min_sine=1e-3, threads=2)
+    for t, corners in enumerate(triangles.tolist()):
+        x = [float(points[v, 0]) for v in corners]
+        y = [float(points[v, 1]) for v in corners]
+        d = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0])
+        inv = 0.0 if d == 0 else 1.0 / d
+        g = [((y[(k + 1) % 3] - y[(k + 2) % 3]) * inv, (x[(k + 2) % 3] - x[(k + 1) % 3]) * inv) for k in range(3)]
+        want = [float(f[v]) for v in corners]
+        for k, i in rsd.PAIRS:
+            want.append(float(A[corners[k], 0]) * (x[i] - x[k]) + float(A[corners[k], 1]) * (y[i] - y[k]))
+        ratios = []
+        with np.errstate(all="ignore"):                       # 0 / 0 of the degenerate one: NaN
+            for l, m, n in rsd.PERMS:
+                ux, uy = (float(c) for c in u[tri_edge[t, n]])
+                ratios.append(np.float64(g[l][0] * ux + g[l][1] * uy) / np.float64(g[n][0] * ux + g[n][1] * uy))
+            want += [r * want[l] for r, (l, m, n) in zip(ratios, rsd.PERMS)]
+            want += [r * want[3 + rsd.PAIRS.index((l, m))] for r, (l, m, n) in zip(ratios, rsd.PERMS)]
+        assert det[t] == d and G[t].tolist() == [list(gk) for gk in g]
+        np.testing.assert_array_equal(C[t], want)
+        e1, e2 = np.hypot(x[1] - x[0], y[1] - y[0]), np.hypot(x[2] - x[0], y[2] - y[0])
+        assert bad[t] == (not abs(d) > 1e-3 * e1 * e2)
+    assert bad[-1] and not bad[:-1].any() and not G[-1].any()
+
+
 @pytest.mark.parametrize("workers", [2, 3])
 def test_workers_and_prefaulting_change_no_byte(mesh, monkeypatch, workers):
     """Worker threads (each a range of blocks) and page pre-faulting must never alter

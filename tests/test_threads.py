@@ -338,3 +338,67 @@ def test_parallel_blocks_start_no_block_after_an_error():
     with pytest.raises(ValueError, match="block 0 failed"):
         threads.parallel_blocks(work, 100, 1, threads=2)
     assert 0 in started and len(started) < 10
+
+
+@pytest.mark.parametrize("cliff", [False, True])
+def test_the_guessed_triangulation_is_used_only_when_it_is_the_height_fields(monkeypatch, cliff):
+    """With two threads the in-memory fit triangulates a guess of the height field's plane
+    points beside the height normals (driver._guessed_triangles); its triangles serve only
+    when the true xy equal the guess, bit for bit. Here a terrain with a duplicate point, and
+    with a vertical cliff whose steep points the normals drop (the guess keeps them): the
+    fit's triangles are those of one thread, which triangulates only the true xy, and the
+    number of triangulations says whether the guess was taken."""
+    from c1mesh.core.cloud import PointCloud
+    from c1mesh.pipeline import driver
+    from c1mesh.pipeline.driver import FitOptions, build_surface
+
+    rng = np.random.default_rng(5)
+    xy = rng.random((3000, 2)) * 10
+    z = np.sin(xy[:, 0]) + 0.5 * xy[:, 1]
+    points = np.column_stack([xy, z])
+    points[7] = points[3]                                    # a duplicate: merged in either xy
+    if cliff:                                                # a wall at x = 5: steep normals
+        wall = np.column_stack([np.full(60, 5.0) + rng.random(60) * 1e-3, rng.random(60) * 10,
+                                rng.random(60) * 20])
+        points = np.vstack([points, wall])
+    calls = []
+    real = driver.delaunay
+    monkeypatch.setattr(driver, "delaunay", lambda xy: calls.append(len(xy)) or real(xy))
+    options = FitOptions(axis="z", normals="estimate", level=1)
+    models = {}
+    for count in (1, 2):
+        calls.clear()
+        with threads.limit(count):
+            models[count] = build_surface(PointCloud(points.copy()), options)
+        assert len(calls) == (2 if count == 2 and cliff else 1)
+    one, two = models[1], models[2]
+    assert (one.hf.dropped["too_steep"] > 0) == cliff
+    assert one.hf.xy.tobytes() == two.hf.xy.tobytes()
+    assert one.interp.triangles.tobytes() == two.interp.triangles.tobytes()
+    assert one.interp.coefficients.tobytes() == two.interp.coefficients.tobytes()
+
+
+def test_background_runs_beside_the_block_and_one_worker_runs_it_when_asked():
+    """threads.background: with two workers the work runs in another thread while the block
+    goes on (it waits for an event the block sets), its error is raised by result; with one
+    worker it runs in the caller's thread, when its result is first asked for, once."""
+    started = threading.Event()
+    seen = []
+
+    def work():
+        seen.append(threading.get_ident())
+        started.set()
+        return 42
+    with threads.limit(2):
+        with threads.background(work) as result:
+            assert started.wait(5)
+            assert result() == 42 and seen[0] != threading.get_ident()
+        with pytest.raises(ZeroDivisionError):
+            with threads.background(lambda: 1 / 0) as result:
+                result()
+    seen.clear()
+    with threads.limit(1):
+        with threads.background(work) as result:
+            assert seen == []
+            assert result() == 42 and result() == 42
+    assert seen == [threading.get_ident()]

@@ -155,3 +155,31 @@ def test_unique_edges_are_a_loops_set_of_pairs_with_a_counted_lower_end(shuffled
     assert edges.tolist() == [list(p) for p in expected]
     with pytest.raises(InputError):
         unique_edges(tri, n, np.ones(n - 1, dtype=bool))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_edge_tables_blocks_of_vertices_give_the_one_block_table(shuffled_mesh, monkeypatch, workers):
+    """The bucket sorts and the fill run over blocks of vertices in threads, each block
+    numbering its edges from the blocks before it, and the sub-table's passes over blocks
+    of edges and triangles the same way: with blocks of 7 rows (57 blocks of vertices)
+    the tables and the neighbours are still those of the loops above."""
+    from c1mesh.core import threads
+    from c1mesh.engine import topology
+    monkeypatch.setattr(topology, "BLOCK", 7)
+    with threads.limit(workers):
+        test_edge_table_matches_a_unique_of_sorted_pairs(shuffled_mesh)
+        test_edge_table_sides_gives_each_edges_second_slot_and_the_neighbours(shuffled_mesh)
+        test_live_edges_counts_the_kept_triangles_of_each_edge_by_a_loop(shuffled_mesh)
+        for drop in (0.0, 0.03, 0.5, 1.0):
+            test_sub_table_is_the_edge_table_of_the_kept_triangles(shuffled_mesh, drop)
+
+
+def test_the_edge_named_is_the_first_of_the_most_shared_in_any_block(monkeypatch):
+    """Edge (0, 1) in 3 triangles (the first block), (20, 21) in 4 (a later one) and
+    (30, 31) in 4 (later still): the message names the first edge of the largest count."""
+    from c1mesh.engine import topology
+    monkeypatch.setattr(topology, "BLOCK", 7)
+    tri = np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]] + [[20, 21, 22 + i] for i in range(4)]
+                   + [[30, 31, 32 + i] for i in range(4)])
+    with pytest.raises(InputError, match=r"edge \(20, 21\) belongs to 4 triangles"):
+        edge_table(tri, 40)

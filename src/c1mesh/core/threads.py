@@ -11,6 +11,9 @@
   evaluates ranges of triangle blocks into disjoint slices of its outputs);
   `parallel_blocks`: the same over fixed-size blocks of a range (element-wise passes of
   the limiter and the interpolator, each block's temporaries small enough for the cache).
+* `overlap` and `background`: one piece of work in a second thread beside the caller's
+  (the in-memory fit triangulates a guess of its plane points beside the height normals
+  and the height field);
 * `prefetch`: a block generator run in a second thread a few blocks ahead of its
   consumer (a streamed fit: spline evaluation in one thread, packing rows for the file
   format in another, the file write in a third).
@@ -219,6 +222,27 @@ def overlap(background: Callable[[], Item], foreground: Callable[[], object]) ->
         pending = pool.submit(background)
         here = foreground()
         return pending.result(), here
+
+
+@contextlib.contextmanager
+def background(work: Callable[[], Item]) -> Iterator[Callable[[], Item]]:
+    """Run work() in a second thread while the block runs; yields `result`, which waits for
+    it and returns its value (an error in it is raised there). Leaving the block waits for
+    the thread, so none outlives it. With one worker (`workers`) nothing runs in a thread:
+    work() runs in the caller when result is first called (not at all if never). Unlike
+    `overlap`, the caller's side may be several steps, the result asked for between them."""
+    if workers() == 1:
+        done: list = []
+
+        def result_here() -> Item:
+            if not done:
+                done.append(work())
+            return done[0]
+        yield result_here
+        return
+    with ThreadPoolExecutor(1, thread_name_prefix="c1mesh-background") as pool:
+        pending = pool.submit(work)
+        yield pending.result
 
 
 def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:

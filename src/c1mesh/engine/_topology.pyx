@@ -6,12 +6,16 @@ Every triangle slot s = 3t + k (the edge opposite local vertex k of triangle t) 
 counting sort, into the bucket of its edge's lower vertex, as the packed value
 high << 32 | s; each bucket is then sorted (a few values: insertion sort; a fan's many:
 qsort), so the buckets read in order list the unique edges sorted lexicographically, each
-edge's occurrences side by side. Linear in T + n plus the buckets' sorts; one thread.
+edge's occurrences side by side. Linear in T + n plus the buckets' sorts. The counting
+sort runs in one thread; the buckets' sorts and the table's fill over ranges of vertices
+(their buckets are disjoint), in the wrapper's threads, each range numbering its edges
+from the count of the ranges before it: the same table at any thread count.
 Vertex numbers and slots must be below 2**31 (the wrapper checks).
 
-The sub-table of kept triangles (topology.sub_table, live_edges) is two linear passes over
-the whole table: the kept triangles per edge, then the live edges and kept triangles
-renumbered in order.
+The sub-table of kept triangles (topology.sub_table, live_edges) is linear passes over
+the whole table: the kept triangles per edge, then the kept triangles, the live edges and
+the kept triangles' rows renumbered in order, each pass over ranges of rows numbered from
+the rows kept before the range (the wrapper counts them).
 
 The edges alone (topology.unique_edges: bucket_highs, fill_edges) bucket the higher ends
 (32 bits) by lower vertex the same way, without the slots, and sort and deduplicate each
@@ -80,19 +84,16 @@ cdef void _starts_back(int64_t[::1] first, int64_t n_points) noexcept nogil:
 
 
 def bucket_slots(const int64_t[:, ::1] tri, int64_t n_points):
-    """(packed (3T,) uint64, start (n + 1,) int64, E, largest count, its edge's low, high).
-
-    packed[start[v]:start[v + 1]] are the slots whose edge has lower vertex v, as
-    high << 32 | slot, ascending; E the number of unique edges; the largest number of slots
-    one edge has, and the first edge (in sorted order) that has it."""
-    cdef Py_ssize_t T = tri.shape[0], t, i, j
+    """(packed (3T,) uint64, start (n + 1,) int64): packed[start[v]:start[v + 1]] are the
+    slots whose edge has lower vertex v, as high << 32 | slot, in slot order (sort_buckets
+    sorts them). One counting sort: two passes over the triangles, one thread."""
+    cdef Py_ssize_t T = tri.shape[0], t
     cdef int k
-    cdef int64_t a, b, v, E = 0, most = 0, worst_low = -1, worst_high = -1
+    cdef int64_t a, b, v
     packed = np.empty(3 * T, dtype=np.uint64)
     start = np.zeros(n_points + 1, dtype=np.int64)
     cdef uint64_t[::1] out = packed
     cdef int64_t[::1] first = start
-    cdef uint64_t high_mask = 0xFFFFFFFF00000000
     with nogil:
         for t in range(T):                                   # bucket sizes
             for k in range(3):
@@ -106,38 +107,62 @@ def bucket_slots(const int64_t[:, ::1] tri, int64_t n_points):
                 out[first[v]] = (<uint64_t> (a if a > b else b) << 32) | <uint64_t> (3 * t + k)
                 first[v] += 1
         _starts_back(first, n_points)
-        for v in range(n_points):
-            _sort_bucket(&out[first[v]], first[v + 1] - first[v])
-            i = first[v]
-            while i < first[v + 1]:                          # runs of one edge
+    return packed, start
+
+
+def sort_buckets(uint64_t[::1] packed, const int64_t[::1] start, Py_ssize_t v0, Py_ssize_t v1,
+                 int64_t[::1] facts):
+    """Sort the buckets of the vertices v0 <= v < v1 of bucket_slots' packed (each bucket's
+    slots of one edge then side by side, the edges ascending) and write facts (4,): the
+    number of unique edges among them, the largest number of slots one edge has, and the
+    first edge (in sorted order) that has it, low and high. Buckets are disjoint: ranges
+    of vertices run in any thread."""
+    cdef Py_ssize_t v, i, j
+    cdef int64_t E = 0, most = 0, worst_low = -1, worst_high = -1
+    cdef uint64_t high_mask = 0xFFFFFFFF00000000
+    with nogil:
+        for v in range(v0, v1):
+            _sort_bucket(&packed[start[v]], start[v + 1] - start[v])
+            i = start[v]
+            while i < start[v + 1]:                          # runs of one edge
                 j = i + 1
-                while j < first[v + 1] and (out[j] & high_mask) == (out[i] & high_mask):
+                while j < start[v + 1] and (packed[j] & high_mask) == (packed[i] & high_mask):
                     j += 1
                 if j - i > most:
-                    most, worst_low, worst_high = j - i, v, <int64_t> (out[i] >> 32)
+                    most, worst_low, worst_high = j - i, v, <int64_t> (packed[i] >> 32)
                 E += 1
                 i = j
-    return packed, start, E, most, worst_low, worst_high
+    facts[0], facts[1], facts[2], facts[3] = E, most, worst_low, worst_high
 
 
-def fill_table(const int64_t[:, ::1] tri, const uint64_t[::1] packed, const int64_t[::1] start,
-               int64_t[:, ::1] edges, int64_t[:, ::1] tri_edge, uint8_t[:, ::1] forward,
-               int64_t[::1] owner, int64_t[::1] owner_slot, int64_t[::1] count,
-               int64_t[::1] other, int64_t[:, ::1] across):
-    """Fill the table from bucket_slots' packed and start (every edge in at most 2 triangles):
-    edges (E, 2), tri_edge (T, 3), forward (T, 3) 0/1, owner, owner_slot, count, other (E,)
-    and across (T, 3), as topology.edge_table_sides documents them. An edge's owner is its
-    occurrence of lowest (k, t)."""
-    cdef Py_ssize_t T = tri.shape[0], n = start.shape[0] - 1, t, v, i, e = 0
+def clear_sides(const int64_t[:, ::1] tri, uint8_t[:, ::1] forward, int64_t[:, ::1] across,
+                Py_ssize_t t0, Py_ssize_t t1):
+    """forward[t, k] (whether the edge opposite corner k runs from its lower end) and
+    across[t, k] = -1, for the triangles t0 <= t < t1: what fill_table expects before it
+    fills across."""
+    cdef Py_ssize_t t
     cdef int k
-    cdef int64_t s1, s2, t1, t2, k1, k2
-    cdef uint64_t low_mask = 0xFFFFFFFF
     with nogil:
-        for t in range(T):
+        for t in range(t0, t1):
             for k in range(3):
                 forward[t, k] = tri[t, (k + 1) % 3] < tri[t, (k + 2) % 3]
                 across[t, k] = -1
-        for v in range(n):
+
+
+def fill_table(const uint64_t[::1] packed, const int64_t[::1] start, int64_t[:, ::1] edges,
+               int64_t[:, ::1] tri_edge, int64_t[::1] owner, int64_t[::1] owner_slot, int64_t[::1] count,
+               int64_t[::1] other, int64_t[:, ::1] across, Py_ssize_t v0, Py_ssize_t v1, int64_t e):
+    """Fill the table's rows of the edges whose lower end is v0 <= v < v1, numbered from e
+    (the edges of the lower vertices before them), from the sorted buckets (every edge in
+    at most 2 triangles): edges (E, 2), owner, owner_slot, count, other (E,), and tri_edge
+    and across (T, 3) at their slots, as topology.edge_table_sides documents them. An
+    edge's owner is its occurrence of lowest (k, t). Each slot is in one bucket, so ranges
+    of vertices write disjoint entries and run in any thread."""
+    cdef Py_ssize_t v, i
+    cdef int64_t s1, s2, t1, t2, k1, k2
+    cdef uint64_t low_mask = 0xFFFFFFFF
+    with nogil:
+        for v in range(v0, v1):
             i = start[v]
             while i < start[v + 1]:
                 s1 = <int64_t> (packed[i] & low_mask)
@@ -159,14 +184,16 @@ def fill_table(const int64_t[:, ::1] tri, const uint64_t[::1] packed, const int6
                 e += 1
 
 
-def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_t[:, ::1] across):
-    """across (T, 3): the triangle across each slot's edge, or -1, from bucket_slots' packed
-    and start (every edge in at most 2 triangles)."""
-    cdef Py_ssize_t v, i, n = start.shape[0] - 1
+def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_t[:, ::1] across,
+                    Py_ssize_t v0, Py_ssize_t v1):
+    """across (T, 3): the triangle across each slot's edge, or -1, for the slots in the
+    buckets of the vertices v0 <= v < v1 of the sorted buckets (every edge in at most 2
+    triangles). Every slot is in one bucket: ranges of vertices run in any thread."""
+    cdef Py_ssize_t v, i
     cdef int64_t s1, s2
     cdef uint64_t low_mask = 0xFFFFFFFF
     with nogil:
-        for v in range(n):
+        for v in range(v0, v1):
             i = start[v]
             while i < start[v + 1]:
                 s1 = <int64_t> (packed[i] & low_mask)
@@ -180,41 +207,47 @@ def fill_neighbours(const uint64_t[::1] packed, const int64_t[::1] start, int64_
 
 
 def edge_counts(const uint8_t[::1] keep, const int64_t[::1] owner, const int64_t[::1] other,
-                uint8_t[::1] owner_kept, int8_t[::1] count):
-    """For the triangles keep (T,) 0/1: owner_kept (E,) 0/1 whether each edge's owner
-    (E,) is kept, and count (E,) how many of its one or two triangles are (the owner, and
-    the slot other (E,) = 3t + k of its second triangle, -1 on a boundary edge)."""
-    cdef Py_ssize_t E = owner.shape[0], e
+                uint8_t[::1] owner_kept, int8_t[::1] count, Py_ssize_t e0, Py_ssize_t e1):
+    """For the triangles keep (T,) 0/1 and the edges e0 <= e < e1: owner_kept (E,) 0/1
+    whether each edge's owner (E,) is kept, and count (E,) how many of its one or two
+    triangles are (the owner, and the slot other (E,) = 3t + k of its second triangle,
+    -1 on a boundary edge). Each edge writes its own entries: ranges in any thread."""
+    cdef Py_ssize_t e
     with nogil:
-        for e in range(E):
+        for e in range(e0, e1):
             owner_kept[e] = keep[owner[e]]
             count[e] = owner_kept[e]
             if other[e] >= 0:
                 count[e] += keep[other[e] // 3]
 
 
-def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const int64_t[:, ::1] tri_edge,
-                   const uint8_t[:, ::1] forward, const int64_t[::1] owner, const int64_t[::1] owner_slot,
+def number_kept(const uint8_t[::1] keep, int64_t[::1] number, Py_ssize_t t0, Py_ssize_t t1,
+                int64_t first):
+    """number[t] = first + how many of keep[t0:t] (0/1) are set, for t0 <= t < t1: the new
+    numbers of kept rows, a block's numbering starting from the rows kept before it."""
+    cdef Py_ssize_t t
+    with nogil:
+        for t in range(t0, t1):
+            number[t] = first
+            first += keep[t]
+
+
+def fill_sub_edges(const int64_t[:, ::1] edges, const int64_t[::1] owner, const int64_t[::1] owner_slot,
                    const int64_t[::1] other, const uint8_t[::1] owner_kept, const int8_t[::1] count,
-                   const int64_t[::1] remap, int64_t[::1] rank, int64_t[::1] new_triangle,
-                   int64_t[:, ::1] sub_edges, int64_t[:, ::1] sub_tri_edge, uint8_t[:, ::1] sub_forward,
-                   int64_t[::1] sub_owner, int64_t[::1] sub_owner_slot, int64_t[::1] sub_count):
-    """The edge table of the kept triangles keep (T,) 0/1, from the whole mesh's (edges,
-    tri_edge, forward, owner, owner_slot; other: each edge's second slot or -1) and
-    edge_counts' owner_kept and count (E,): the live edges (count > 0) keep their order,
-    the kept triangles theirs. remap (n,): new vertex numbers (increasing; empty: keep
-    them). Scratch: rank (E,) an edge's new number, new_triangle (T,) a triangle's.
-    Outputs sized (E', ...) and (T', ...) by the wrapper. An edge whose owner is dropped
-    is owned by its other slot (topology.sub_table says why that is edge_table's owner)."""
-    cdef Py_ssize_t T = keep.shape[0], E = owner.shape[0], t, e
-    cdef int k
-    cdef int64_t kept = 0, live = 0, slot
+                   const int64_t[::1] remap, const int64_t[::1] new_triangle, int64_t[::1] rank,
+                   int64_t[:, ::1] sub_edges, int64_t[::1] sub_owner, int64_t[::1] sub_owner_slot,
+                   int64_t[::1] sub_count, Py_ssize_t e0, Py_ssize_t e1, int64_t live):
+    """The sub-table's rows of the live edges (count > 0) among e0 <= e < e1, numbered from
+    live (the live edges before e0), in their order: rank (E,) each edge's new number (a
+    dead edge the next live one's), sub_edges (renumbered by remap (n,) when it is not
+    empty; increasing, so the order holds), sub_owner (new_triangle (T,): the kept
+    triangles' new numbers), sub_owner_slot, sub_count. An edge whose owner is dropped is
+    owned by its other slot (topology.sub_table says why that is edge_table's owner)."""
+    cdef Py_ssize_t e
+    cdef int64_t slot
     cdef bint renumber = remap.shape[0] > 0
     with nogil:
-        for t in range(T):
-            new_triangle[t] = kept
-            kept += keep[t]
-        for e in range(E):
+        for e in range(e0, e1):
             rank[e] = live
             if count[e] == 0:
                 continue
@@ -227,7 +260,17 @@ def fill_sub_table(const uint8_t[::1] keep, const int64_t[:, ::1] edges, const i
             else:
                 sub_edges[live, 0], sub_edges[live, 1] = edges[e, 0], edges[e, 1]
             live += 1
-        for t in range(T):
+
+
+def fill_sub_triangles(const uint8_t[::1] keep, const int64_t[:, ::1] tri_edge, const uint8_t[:, ::1] forward,
+                       const int64_t[::1] rank, const int64_t[::1] new_triangle,
+                       int64_t[:, ::1] sub_tri_edge, uint8_t[:, ::1] sub_forward, Py_ssize_t t0, Py_ssize_t t1):
+    """The sub-table's rows of the kept triangles among t0 <= t < t1: their edges' new
+    numbers (rank, from fill_sub_edges) and orientations, at their new numbers."""
+    cdef Py_ssize_t t
+    cdef int k
+    with nogil:
+        for t in range(t0, t1):
             if keep[t]:
                 for k in range(3):
                     sub_tri_edge[new_triangle[t], k] = rank[tri_edge[t, k]]

@@ -24,6 +24,7 @@ import numpy as np
 
 from c1mesh.engine.schemes import ShapeTuple
 from c1mesh.core.threads import parallel_blocks
+from c1mesh.engine import _rsd as kernel
 
 PAIRS = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))                    # (k, i), i ≠ k
 PERMS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))  # (l, m, n)
@@ -36,10 +37,14 @@ def barycentric_gradients(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     corners: (T, 3, 2) vertex coordinates. Returns G (T, 3, 2) and det (T,), where
     det = cross(p1 − p0, p2 − p0) (> 0 for counter-clockwise triangles) and
     G_k = perp(p_{k+1} − p_{k+2}) / det, so that G_k·(p_k − p_j) = 1 for j ≠ k.
-    Degenerate triangles (det = 0) get G = 0; callers reject them.
+    Degenerate triangles (det = 0) get G = 0; callers reject them. (The kernel's
+    triangle_gradients, its corners numbered 3t, 3t + 1, 3t + 2.)
     """
-    gx, gy, det = _gradients_soa(*_components(corners))
-    return _interleave(gx, gy), det
+    T = corners.shape[0]
+    G, det = np.empty((T, 3, 2)), np.empty(T)
+    kernel.triangle_gradients(np.ascontiguousarray(corners, dtype=np.float64).reshape(3 * T, 2),
+                              _own_corners(T), G, det, 0, T)
+    return G, det
 
 
 def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np.ndarray,
@@ -48,12 +53,24 @@ def triangle_coefficients(corners: np.ndarray, values: np.ndarray, gradients: np
 
     corners (T, 3, 2), values f (T, 3), gradients A (T, 3, 2), directions u (T, 3, 2) where
     u_k belongs to the edge opposite vertex k, G (T, 3, 2) from barycentric_gradients.
+    `mesh_coefficients` with each triangle's corners and edges its own.
     """
-    px, py = _components(corners)
-    C = np.empty((N_BASIS, px.shape[1]))
-    _vertex_soa(px, py, np.ascontiguousarray(values.T), *_components(gradients), C[:9])
-    _ratio_soa(C[:9], *_components(directions), *_components(G), C[9:])
-    return np.ascontiguousarray(C.T)
+    T = corners.shape[0]
+    rows = np.empty((3 * T, 5))                                   # x, y, f, fx, fy
+    rows[:, :2] = np.reshape(corners, (3 * T, 2))
+    rows[:, 2] = np.reshape(values, 3 * T)
+    rows[:, 3:] = np.reshape(gradients, (3 * T, 2))
+    own = _own_corners(T)
+    C = np.empty((T, N_BASIS))
+    kernel.vertex_coefficients(rows, own, 0.0, C, np.empty((T, 3, 2)), np.empty(T), np.empty(0, np.uint8), 0, T)
+    kernel.ratio_coefficients(C, np.ascontiguousarray(G, dtype=np.float64),
+                              np.ascontiguousarray(directions, dtype=np.float64).reshape(3 * T, 2), own, 0, T)
+    return C
+
+
+def _own_corners(T: int) -> np.ndarray:
+    """(T, 3) int64: triangle t's corners (and edges) are rows 3t, 3t + 1, 3t + 2."""
+    return np.arange(3 * T, dtype=np.int64).reshape(T, 3)
 
 
 @dataclass(frozen=True)
@@ -89,101 +106,34 @@ def vertex_coefficients(vertices: VertexData, triangles: np.ndarray, chunk: int 
     """First pass of `mesh_coefficients`: C (T, 21) with columns 0..8 filled (9..20 are
     left for `ratio_coefficients`), G, det and, with min_sine, degenerate.
 
-    Works on blocks of triangles: per-vertex data packed in rows, so a block is one row
-    gather per corner (not five scattered ones), then turned into contiguous component
-    arrays; every temporary stays in cache and no full-size (T, 3, 2) gathers are made.
+    The kernel (engine/_rsd.pyx) over blocks of `chunk` triangles in the thread knob's
+    threads (or ``threads``), the per-vertex data packed in rows (one cache line per
+    corner); each triangle's arithmetic is its own, so the bits do not depend on the count.
     """
     T = triangles.shape[0]
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
     C, G, det = np.empty((T, N_BASIS)), np.empty((T, 3, 2)), np.empty(T)
-    degenerate = None if min_sine is None else np.empty(T, dtype=bool)
+    degenerate = np.empty(T if min_sine is not None else 0, dtype=bool)
     vertex = np.empty((vertices.points.shape[0], 5))              # x, y, f, fx, fy
     vertex[:, :2], vertex[:, 2], vertex[:, 3:] = vertices.points, vertices.values, vertices.gradients
-
-    def block(part: slice) -> None:
-        px, py, f, ax, ay = _gather(vertex, triangles[part])
-        gx, gy, det[part] = _gradients_soa(px, py)
-        G[part, :, 0], G[part, :, 1] = gx.T, gy.T
-        rows = np.empty((9, px.shape[1]))
-        _vertex_soa(px, py, f, ax, ay, rows)
-        C[part, :9] = rows.T
-        if degenerate is not None:
-            e1 = np.hypot(px[1] - px[0], py[1] - py[0])
-            e2 = np.hypot(px[2] - px[0], py[2] - py[0])
-            np.logical_not(np.abs(det[part]) > min_sine * e1 * e2, out=degenerate[part])
-
-    _blocks(block, T, chunk, threads)
-    return (C, G, det) if degenerate is None else (C, G, det, degenerate)
+    flags = degenerate.view(np.uint8)
+    sine = 0.0 if min_sine is None else float(min_sine)
+    parallel_blocks(lambda part: kernel.vertex_coefficients(vertex, tri, sine, C, G, det, flags,
+                                                            part.start, part.stop),
+                    T, chunk, threads)
+    return (C, G, det) if min_sine is None else (C, G, det, degenerate)
 
 
 def ratio_coefficients(C: np.ndarray, G: np.ndarray, edge_directions: np.ndarray,
                        tri_edge: np.ndarray, chunk: int = 1 << 13,
                        threads: int | None = None) -> None:
     """Second pass of `mesh_coefficients`: columns 9..20 of C (T, 21), in place, from its
-    columns 0..8, G (T, 3, 2), edge_directions (E, 2) and tri_edge (T, 3)."""
+    columns 0..8, G (T, 3, 2), edge_directions (E, 2) and tri_edge (T, 3); the kernel over
+    blocks of `chunk` triangles, as `vertex_coefficients`."""
     directions = np.ascontiguousarray(edge_directions, dtype=np.float64)
-
-    def block(part: slice) -> None:
-        ux, uy = _gather(directions, tri_edge[part])
-        gx, gy = np.ascontiguousarray(G[part].transpose(2, 1, 0))
-        rows = np.empty((12, ux.shape[1]))
-        _ratio_soa(np.ascontiguousarray(C[part, :9].T), ux, uy, gx, gy, rows)
-        C[part, 9:] = rows.T
-
-    _blocks(block, C.shape[0], chunk, threads)
-
-
-def _blocks(work, T: int, chunk: int, threads: int | None) -> None:
-    """work(slice) for consecutive blocks of `chunk` triangles, in ``threads`` threads
-    (default: c1mesh.core.threads.workers()) by c1mesh.core.threads.parallel_blocks: blocks
-    are independent and numpy releases the GIL in their gathers and ufuncs (results do not
-    depend on the count)."""
-    parallel_blocks(work, T, chunk, threads)
-
-
-def _gather(rows: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """rows (N, m) gathered at index (c, 3) -> (m, 3, c) contiguous: component, corner, triangle."""
-    return np.ascontiguousarray(np.take(rows, index.T, axis=0).transpose(2, 0, 1))
-
-
-def _components(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3, 2) -> x (3, T), y (3, T): one transposing copy, then contiguous arithmetic."""
-    soa = np.ascontiguousarray(vectors.transpose(2, 1, 0))
-    return soa[0], soa[1]
-
-
-def _interleave(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """x, y (3, T) -> (T, 3, 2) contiguous."""
-    return np.ascontiguousarray(np.stack([x, y]).transpose(2, 1, 0))
-
-
-def _gradients_soa(x: np.ndarray, y: np.ndarray):
-    """gx, gy (3, c) and det (c,) from corner components x, y (3, c)."""
-    det = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0])
-    inv = 1.0 / np.where(det == 0, np.inf, det)
-    gx, gy = np.empty_like(x), np.empty_like(y)
-    for k in range(3):
-        a, b = (k + 1) % 3, (k + 2) % 3
-        np.multiply(y[a] - y[b], inv, out=gx[k])
-        np.multiply(x[b] - x[a], inv, out=gy[k])
-    return gx, gy, det
-
-
-def _vertex_soa(px, py, f, ax, ay, out) -> None:
-    """Rows 0..8 of the coefficients into out (9, c): f_k, then g_ki for (k, i) in PAIRS."""
-    out[0:3] = f
-    for j, (k, i) in enumerate(PAIRS):
-        out[3 + j] = ax[k] * (px[i] - px[k]) + ay[k] * (py[i] - py[k])
-
-
-def _ratio_soa(vertex, ux, uy, gx, gy, out) -> None:
-    """Rows 9..20 into out (12, c) from rows 0..8 (vertex), directions and G components:
-    r_ln f_l and r_ln g_lm for (l, m, n) in PERMS."""
-    g = {pair: vertex[3 + j] for j, pair in enumerate(PAIRS)}
-    for j, (l, m, n) in enumerate(PERMS):
-        with np.errstate(divide="ignore", invalid="ignore"):   # degenerate: rejected by callers
-            ratio = (gx[l] * ux[n] + gy[l] * uy[n]) / (gx[n] * ux[n] + gy[n] * uy[n])
-        np.multiply(ratio, vertex[l], out=out[j])
-        np.multiply(ratio, g[l, m], out=out[6 + j])
+    edges = np.ascontiguousarray(tri_edge, dtype=np.int64)
+    parallel_blocks(lambda part: kernel.ratio_coefficients(C, G, directions, edges, part.start, part.stop),
+                    C.shape[0], chunk, threads)
 
 
 def basis(scheme: ShapeTuple, lam: np.ndarray) -> np.ndarray:

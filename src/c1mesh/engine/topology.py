@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine import _topology
 
 
@@ -76,23 +77,55 @@ def _checked(triangles: np.ndarray, n_points: int) -> np.ndarray:
 def _edge_table(triangles: np.ndarray, n_points: int, sides: bool):
     """The EdgeTable of triangles (T, 3) over n_points vertices, with other and neighbours
     (edge_table_sides) or None, None. The kernel (engine/_topology.pyx) buckets the 3T slots
-    by their edge's lower vertex, linear in T + n_points; one thread."""
+    by their edge's lower vertex (one thread, linear in T + n_points), then sorts the
+    buckets and fills the table over fixed blocks of vertices in the thread knob's
+    threads (`_sorted_buckets`)."""
     tri = _checked(triangles, n_points)
     T = tri.shape[0]
-    packed, start, E, most, low, high = _topology.bucket_slots(tri, int(n_points))
+    packed, start, blocks = _sorted_buckets(tri, int(n_points))
+    most, low, high = _most_shared(blocks)
     if most > 2:
         raise InputError(f"edge ({low}, {high}) belongs to {most} triangles: the triangles overlap "
                          f"or are not a valid mesh")
+    E = int(blocks[:, 0].sum())
     edges = np.empty((E, 2), dtype=np.int64)
     tri_edge = np.empty((T, 3), dtype=np.int64)
     forward = np.empty((T, 3), dtype=bool)
     owner, owner_slot, count, other = (np.empty(E, dtype=np.int64) for _ in range(4))
     across = np.empty((T, 3), dtype=np.int64)
-    _topology.fill_table(tri, packed, start, edges, tri_edge, forward.view(np.uint8), owner,
-                         owner_slot, count, other, across)
+    flags = forward.view(np.uint8)
+    parallel_blocks(lambda part: _topology.clear_sides(tri, flags, across, part.start, part.stop), T, BLOCK)
+    first = np.concatenate([[0], np.cumsum(blocks[:, 0])])        # each block's first edge number
+    parallel_blocks(lambda part: _topology.fill_table(
+        packed, start, edges, tri_edge, owner, owner_slot, count, other, across,
+        part.start, part.stop, int(first[part.start // BLOCK])), n_points, BLOCK)
     table = EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner,
                       owner_slot=owner_slot, count=count)
     return (table, other, across) if sides else (table, None, None)
+
+
+BLOCK = 1 << 15
+"""Vertices (and triangles) per block of the edge table's parallel passes."""
+
+
+def _sorted_buckets(tri: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(packed, start, blocks (b, 4)): the kernel's slot buckets of tri (T, 3), sorted, and
+    each block of BLOCK vertices' facts (its unique edges, the most slots one of its edges
+    has, the first such edge's low and high end)."""
+    packed, start = _topology.bucket_slots(tri, n_points)
+    blocks = np.zeros((-(-n_points // BLOCK), 4), dtype=np.int64)
+    parallel_blocks(lambda part: _topology.sort_buckets(packed, start, part.start, part.stop,
+                                                        blocks[part.start // BLOCK]), n_points, BLOCK)
+    return packed, start, blocks
+
+
+def _most_shared(blocks: np.ndarray) -> tuple[int, int, int]:
+    """(the most triangles one edge has, that edge's low and high end: the first in sorted
+    order) from _sorted_buckets' blocks; (0, -1, -1) without edges."""
+    if not blocks.size or blocks[:, 1].max() == 0:
+        return 0, -1, -1
+    first = int(np.argmax(blocks[:, 1] == blocks[:, 1].max()))
+    return int(blocks[first, 1]), int(blocks[first, 2]), int(blocks[first, 3])
 
 
 def unique_edges(triangles: np.ndarray, n_points: int, counted: np.ndarray | None = None) -> np.ndarray:
@@ -117,26 +150,30 @@ def unique_edges(triangles: np.ndarray, n_points: int, counted: np.ndarray | Non
 def triangle_neighbours(triangles: np.ndarray, n_points: int) -> np.ndarray:
     """(T, 3) int64 the triangle across the edge opposite local vertex k of each triangle of
     triangles (T, 3) over n_points vertices, or -1; InputError if an edge is in 3 or more
-    triangles. The edge table's slot buckets, without filling the table."""
+    triangles. The edge table's slot buckets, without filling the table (blocks of
+    vertices in the thread knob's threads, as `_edge_table`)."""
     tri = _checked(triangles, n_points)
-    packed, start, _, most, _, _ = _topology.bucket_slots(tri, int(n_points))
-    if most > 2:
+    packed, start, blocks = _sorted_buckets(tri, int(n_points))
+    if _most_shared(blocks)[0] > 2:
         raise InputError("the triangles are not edge-manifold (an edge is shared by three or "
                          "more triangles); pass a triangulation such as delaunay(xy)")
     across = np.empty(tri.shape, dtype=np.int64)
-    _topology.fill_neighbours(packed, start, across)
+    parallel_blocks(lambda part: _topology.fill_neighbours(packed, start, across, part.start, part.stop),
+                    int(n_points), BLOCK)
     return across
 
 
 def live_edges(table: EdgeTable, keep: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For the triangles ``keep`` (T,) bool: (owner kept (E,) bool, triangles kept per edge
     (E,) int8); the kept triangles' edges are those with a count above 0. other: the
-    second slots of `edge_table_sides`. The kernel (engine/_topology.pyx), one pass."""
+    second slots of `edge_table_sides`. The kernel (engine/_topology.pyx), one pass over
+    blocks of edges in the thread knob's threads."""
     keep = _checked_keep(keep, table)
     owner_kept = np.empty(table.owner.shape[0], dtype=bool)
     count = np.empty(table.owner.shape[0], dtype=np.int8)
-    _topology.edge_counts(keep.view(np.uint8), table.owner, np.ascontiguousarray(other, dtype=np.int64),
-                          owner_kept.view(np.uint8), count)
+    flags, other = keep.view(np.uint8), np.ascontiguousarray(other, dtype=np.int64)
+    parallel_blocks(lambda part: _topology.edge_counts(flags, table.owner, other, owner_kept.view(np.uint8),
+                                                       count, part.start, part.stop), count.shape[0], BLOCK)
     return owner_kept, count
 
 
@@ -160,25 +197,42 @@ def sub_table(table: EdgeTable, keep: np.ndarray, other: np.ndarray,
     to renumber the edges to 0..n'-1 (pipeline.steps.compact_vertices' `used`; an
     increasing renumbering keeps the edges' order and orientation). other: the second
     slots of `edge_table_sides`. The kernel (engine/_topology.pyx) fills the table in
-    three linear passes, one thread.
+    linear passes over fixed blocks of rows in the thread knob's threads, each block
+    numbering its rows from the counts of the blocks before it (`_kept_before`): the same
+    table at any count.
     """
     keep = _checked_keep(keep, table)
     other = np.ascontiguousarray(other, dtype=np.int64)
     owner_kept, count = live_edges(table, keep, other)
-    E, T = int(np.count_nonzero(count)), int(np.count_nonzero(keep))
+    flags, T = keep.view(np.uint8), keep.shape[0]
+    live = count.view(np.uint8).astype(bool)
+    E, kept = _kept_before(live), _kept_before(flags)
     remap = np.empty(0, dtype=np.int64)
     if used is not None:
         remap = np.full(int(used[-1]) + 1 if used.size else 0, -1, dtype=np.int64)
         remap[used] = np.arange(used.size, dtype=np.int64)
-    sub = EdgeTable(edges=np.empty((E, 2), dtype=np.int64), tri_edge=np.empty((T, 3), dtype=np.int64),
-                    forward=np.empty((T, 3), dtype=bool), owner=np.empty(E, dtype=np.int64),
-                    owner_slot=np.empty(E, dtype=np.int64), count=np.empty(E, dtype=np.int64))
-    _topology.fill_sub_table(keep.view(np.uint8), table.edges, table.tri_edge, table.forward.view(np.uint8),
-                             table.owner, table.owner_slot, other, owner_kept.view(np.uint8), count, remap,
-                             np.empty(table.owner.shape[0], dtype=np.int64),
-                             np.empty(keep.shape[0], dtype=np.int64), sub.edges, sub.tri_edge,
-                             sub.forward.view(np.uint8), sub.owner, sub.owner_slot, sub.count)
+    sub = EdgeTable(edges=np.empty((E[-1], 2), dtype=np.int64), tri_edge=np.empty((kept[-1], 3), dtype=np.int64),
+                    forward=np.empty((kept[-1], 3), dtype=bool), owner=np.empty(E[-1], dtype=np.int64),
+                    owner_slot=np.empty(E[-1], dtype=np.int64), count=np.empty(E[-1], dtype=np.int64))
+    new_triangle, rank = np.empty(T, dtype=np.int64), np.empty(count.shape[0], dtype=np.int64)
+    parallel_blocks(lambda part: _topology.number_kept(flags, new_triangle, part.start, part.stop,
+                                                       int(kept[part.start // BLOCK])), T, BLOCK)
+    parallel_blocks(lambda part: _topology.fill_sub_edges(
+        table.edges, table.owner, table.owner_slot, other, owner_kept.view(np.uint8), count, remap,
+        new_triangle, rank, sub.edges, sub.owner, sub.owner_slot, sub.count, part.start, part.stop,
+        int(E[part.start // BLOCK])), count.shape[0], BLOCK)
+    parallel_blocks(lambda part: _topology.fill_sub_triangles(
+        flags, table.tri_edge, table.forward.view(np.uint8), rank, new_triangle, sub.tri_edge,
+        sub.forward.view(np.uint8), part.start, part.stop), T, BLOCK)
     return sub
+
+
+def _kept_before(flags: np.ndarray) -> np.ndarray:
+    """(b + 1,) int64: how many of flags (m,) 0/1 lie before each of its b blocks of BLOCK
+    rows, then the total."""
+    counts = np.add.reduceat(flags, np.arange(0, flags.shape[0], BLOCK), dtype=np.int64) if flags.size \
+        else np.zeros(0, dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
 
 
 def mesh_edges(triangles: np.ndarray, n_points: int | None = None) -> np.ndarray:

@@ -8,6 +8,7 @@ mesh with a JSON-ready report. Nothing here prints or exits: the CLI does that.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -17,8 +18,9 @@ import numpy as np
 
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.crs import resolve as resolve_crs
-from c1mesh.core.errors import InputError
+from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.core.plan import MeshTarget
+from c1mesh.core.threads import background
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import Tile
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -374,45 +376,56 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     options = height_column_axis(cloud, options)[0]
     heights_first = _fit_heights_first(cloud, options)
     plan_heights = False          # heights in units of their own over the plan (x, y)
-    with timer.stage("normals"):
-        if heights_first:        # the frame needs no normals: the fit's serve the height field
-            frame = choose_frame(cloud.points, None, options.axis)
-            normals = height_normals(cloud.points, frame, k=height_neighbours(options.k))
-            normal_source = "estimated"
-            plan_heights = _plan_heights(cloud, frame)
-        else:
-            normals, normal_source = cloud_normals(cloud, options)
-    with timer.stage("frame"):
-        if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
-            frame = choose_frame(cloud.points, normals, options.axis)
-        hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
-                          common_metric=not plan_heights)
-        max_slope_not_applied = None
-        if plan_heights and options.z_factor is not None:
-            _drop_too_steep(hf, options.max_slope, float(options.z_factor))
-        elif plan_heights:
-            max_slope_not_applied = (f"the header's height column '{cloud.height_column}' may be in "
-                                     "other units than x and y, so slopes are no angles; give --z-factor")
-    with timer.stage("gradients"):
-        gradient_source = "heights" if heights_first else "normals"
-        if not heights_first and use_height_gradients(options.gradients, normal_source):
-            hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
-            gradient_source = "heights"
-    with timer.stage("triangulate"):
-        vertices = None if options.spacing is None else thin_to_cells(hf.xy, options.spacing)
-        xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
-            (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
-        triangles = delaunay(xy)
-        mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
-        if not plan_heights:     # its angles and noise widths compare heights with plane lengths
-            mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
-                                                view_rules_apply(_fitted_classes(cloud, options), frame.axes))
-        check_triangles_left(mesh.triangles.shape[0])
-        trimmed, trim_only = None, mesh
-        if fill:
-            mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
-        local, triangles = compact_vertices(xy, mesh.triangles)
-        used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
+    with contextlib.ExitStack() as stages:
+        with timer.stage("normals"):
+            guess = None             # () -> (xy, triangles) of _guessed_triangles, or None
+            if heights_first:        # the frame needs no normals: the fit's serve the height field
+                frame = choose_frame(cloud.points, None, options.axis)
+                plan_heights = _plan_heights(cloud, frame)
+                threads = thread_count()
+                if threads > 1 and options.spacing is None:   # one thread: no guess to waste
+                    # the guess's Delaunay is the longer of the two: a core of its own
+                    guess = stages.enter_context(background(
+                        lambda: _guessed_triangles(cloud.points, frame, options, plan_heights)))
+                    threads -= 1
+                normals = height_normals(cloud.points, frame, k=height_neighbours(options.k), workers=threads)
+                normal_source = "estimated"
+            else:
+                normals, normal_source = cloud_normals(cloud, options)
+        with timer.stage("frame"):
+            if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
+                frame = choose_frame(cloud.points, normals, options.axis)
+            hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
+                              common_metric=not plan_heights)
+            max_slope_not_applied = None
+            if plan_heights and options.z_factor is not None:
+                _drop_too_steep(hf, options.max_slope, float(options.z_factor))
+            elif plan_heights:
+                max_slope_not_applied = (f"the header's height column '{cloud.height_column}' may be in "
+                                         "other units than x and y, so slopes are no angles; give --z-factor")
+        with timer.stage("gradients"):
+            gradient_source = "heights" if heights_first else "normals"
+            if not heights_first and use_height_gradients(options.gradients, normal_source):
+                hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
+                gradient_source = "heights"
+        with timer.stage("triangulate"):
+            vertices = None if options.spacing is None else thin_to_cells(hf.xy, options.spacing)
+            xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
+                (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
+            guessed = None if guess is None else guess()
+            triangles = guessed[1] if guessed is not None and np.array_equal(guessed[0], xy) else delaunay(xy)
+            guess = guessed = None
+            stages.close()           # the guess's thread is done: its arrays are freed now
+            mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
+            if not plan_heights:     # its angles and noise widths compare heights with plane lengths
+                mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
+                                                    view_rules_apply(_fitted_classes(cloud, options), frame.axes))
+            check_triangles_left(mesh.triangles.shape[0])
+            trimmed, trim_only = None, mesh
+            if fill:
+                mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
+            local, triangles = compact_vertices(xy, mesh.triangles)
+            used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None
     with timer.stage("interpolate"):
         table, mesh = mesh.edge_table(local), None      # the trim's edge sort serves the interpolator
@@ -428,6 +441,25 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 strength, options, gradient_data_weight(normal_source, gradient_source), not plan_heights)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
                         max_slope_not_applied, smoothing, vertices is not None, trimmed)
+
+
+def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
+                       plan_heights: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """(xy (n, 2), their Delaunay triangles (T, 3)) of the height field the points would
+    give if no normal dropped any of them (every normal along the frame's height axis):
+    the Delaunay, one thread of a library for 1.5 s at 1M points, then runs beside the
+    height normals (a second core's work) instead of after them. The positions, the
+    duplicate merge and the spacing depend on the points alone, so the guess is the height
+    field's xy whenever the normals drop no point (too steep, unusable); build_surface
+    uses the triangles only when the two xy are equal, bit for bit, and triangulates the
+    true xy otherwise, so the output does not depend on the guess. None when the guessed
+    height field or its triangulation fails (the true one says why, if it fails too)."""
+    up = np.broadcast_to(frame.vectors_to_world(np.array([[0.0, 0.0, 1.0]])), points.shape)
+    try:
+        xy = height_field(points, up, frame, max_slope_deg=options.max_slope, common_metric=not plan_heights).xy
+        return xy, delaunay(xy)
+    except C1MeshError:
+        return None
 
 
 @dataclass(frozen=True)

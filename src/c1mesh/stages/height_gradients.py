@@ -54,10 +54,11 @@ def height_neighbours(k: int) -> int:
     return int(np.ceil(NEIGHBOUR_FACTOR * k))
 
 
-def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
+def height_normals(points: np.ndarray, frame, k: int, workers: int | None = None) -> np.ndarray:
     """World unit normals (N, 3) of the height field fitted to world points (N, 3) in a
     given frame (c1mesh.stages.frame.ScanFrame): `height_gradients` of the local heights turned
-    into upward normals. NaN rows for points with a non-finite coordinate.
+    into upward normals. NaN rows for points with a non-finite coordinate. workers: the
+    fit's threads (None: the thread knob's count; the result is the same for any).
 
     What the pipeline uses instead of PCA normals when the height axis is given (LAS/LAZ:
     z): the frame needs no normals then, and the height field's gradients are the fit's.
@@ -66,18 +67,20 @@ def height_normals(points: np.ndarray, frame, k: int) -> np.ndarray:
     finite = np.isfinite(pts).all(axis=1)
     local = frame.to_local(pts if finite.all() else pts[finite])
     normals = np.full(pts.shape, np.nan)
-    normals[finite] = frame.vectors_to_world(fitted_normals(local, None, k)[0])
+    normals[finite] = frame.vectors_to_world(fitted_normals(local, None, k, workers)[0])
     return normals
 
 
-def fitted_normals(local: np.ndarray, at: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray]:
+def fitted_normals(local: np.ndarray, at: np.ndarray | None, k: int,
+                   workers: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(normals (m, 3), reach (m,)): upward unit normals, in the frame, of the height fit
     (`gradients_at`) at the points `at` (m,) rows of local (n, 3) frame coordinates (None:
     every point), each one's k nearest plane neighbours taken among all n; reach, each
     one's plane distance to its k-th neighbour. The in-memory fit's normals (`height_normals`,
     at every point) and a tile's (c1mesh.survey.tile_normals: at its own points, whose
-    reach says whether what the tile read held their neighbourhoods)."""
-    gradients, reach = gradients_at(local[:, :2], local[:, 2], at, k=k)
+    reach says whether what the tile read held their neighbourhoods). workers: as
+    `height_gradients` takes them."""
+    gradients, reach = gradients_at(local[:, :2], local[:, 2], at, k=k, workers=workers)
     return gradients_to_normals(gradients), reach
 
 
