@@ -11,19 +11,13 @@ writes its own rows of the outputs.
 from libc.math cimport fabs, hypot
 from libc.stdint cimport int64_t, uint8_t
 
-# (k, i), i != k: the columns 3..8 of the coefficients, g_ki = A_k · (p_i − p_k)
-cdef int PAIR_K[6]
-cdef int PAIR_I[6]
-PAIR_K[:] = [0, 0, 1, 1, 2, 2]
-PAIR_I[:] = [1, 2, 0, 2, 0, 1]
+from c1mesh.engine._rsd_orders cimport rsd_orders
+
+# (k, i), i != k: the columns 3..8 of the coefficients, g_ki = A_k · (p_i − p_k);
 # (l, m, n): the columns 9..14 (r_ln f_l) and 15..20 (r_ln g_lm) (_pair(l, m): the
 # column 3 + j of g_lm)
-cdef int PERM_L[6]
-cdef int PERM_M[6]
-cdef int PERM_N[6]
-PERM_L[:] = [0, 0, 1, 1, 2, 2]
-PERM_M[:] = [1, 2, 0, 2, 0, 1]
-PERM_N[:] = [2, 1, 2, 0, 1, 0]
+cdef int PAIR_K[6], PAIR_I[6], PERM_L[6], PERM_M[6], PERM_N[6]
+rsd_orders(PAIR_K, PAIR_I, PERM_L, PERM_M, PERM_N)
 
 
 cdef inline int _pair(int k, int i) noexcept nogil:

@@ -13,6 +13,8 @@ the row operations of V (the identity on f, the g's on the gradients).
 """
 from libc.stdint cimport int64_t
 
+from c1mesh.engine._rsd_orders cimport rsd_orders
+
 cdef enum:
     N_LOCAL = 9
     N_UPPER = 45         # entries of a 9 × 9 upper triangle
@@ -21,14 +23,8 @@ cdef enum:
     LANES = 8            # triangles taken together through Z's terms
 
 # rsd.PAIRS (k, i) and rsd.PERMS (l, m, n), the rsd module's orders.
-cdef int PAIR_K[6]
-cdef int PAIR_I[6]
-cdef int PERM_L[6]
-cdef int PERM_N[6]
-PAIR_K[:] = [0, 0, 1, 1, 2, 2]
-PAIR_I[:] = [1, 2, 0, 2, 0, 1]
-PERM_L[:] = [0, 0, 1, 1, 2, 2]
-PERM_N[:] = [2, 1, 2, 0, 1, 0]
+cdef int PAIR_K[6], PAIR_I[6], PERM_L[6], PERM_M[6], PERM_N[6]
+rsd_orders(PAIR_K, PAIR_I, PERM_L, PERM_M, PERM_N)
 
 
 cdef void _geometry(const double *px, const double *py, const double *ux, const double *uy,
