@@ -140,6 +140,7 @@ def test_tiles_reproduce_a_plane_whatever_their_halo(tmp_path, monkeypatch):
     assert np.abs(mesh.vertex_normals @ normal - 1).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path, monkeypatch):
     import c1mesh.pipeline.bounded_fit as bounded_fit
 
