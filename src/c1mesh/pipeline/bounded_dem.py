@@ -192,9 +192,8 @@ class DemJob:
     def spline(self, spline_path) -> RSDInterpolator:
         """The interpolator of a tile's own triangles saved by _sample_tile (local frame)."""
         with np.load(spline_path) as saved:
-            return RSDInterpolator(saved["points"], saved["values"], saved["gradients"],
-                                   triangles=saved["triangles"], scheme=self.surfaces.scheme,
-                                   directions=saved["directions"])
+            points, triangles = saved["points"], saved["triangles"]
+            return self._rows(saved, points, triangles, np.arange(triangles.shape[0]))
 
     def spline_part(self, spline_path, box) -> tuple[RSDInterpolator | None, np.ndarray]:
         """(the interpolator of those of a tile's own triangles whose corners' box meets
@@ -221,8 +220,9 @@ class DemJob:
 
     def _rows(self, saved, points: np.ndarray, triangles: np.ndarray, rows: np.ndarray) -> RSDInterpolator:
         """The interpolator of the saved spline's (points, its triangles) triangles `rows`
-        (ascending; triangles: those rows). Each side keeps its saved edge direction, so
-        they evaluate as the whole tile's do."""
+        (ascending; triangles: those rows). Each side keeps its saved edge direction (the
+        file keeps each triangle's three, `sides`, so any subset gets its edges' without
+        the whole tile's edge table), so they evaluate as the whole tile's do."""
         table = edge_table(triangles, points.shape[0])
         directions = np.zeros((table.edges.shape[0], 2))
         directions[table.tri_edge] = saved["sides"][rows]
@@ -243,8 +243,7 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
         interp, records, (limited, turned, lifted) = job.surfaces.spline(t, triangles)
         with open(files.spline, "wb") as out:
             np.savez(out, points=interp.points, values=interp.values, gradients=interp.gradients,
-                     triangles=interp.triangles, directions=interp.directions,
-                     sides=interp.directions[interp.edge_table.tri_edge])
+                     triangles=interp.triangles, sides=interp.directions[interp.edge_table.tri_edge])
         sampler = SplineSampler(interp, job.dem.origin)
         lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
         rows, cols = job.dem.span(lo, hi, 0.0)
