@@ -221,10 +221,11 @@ def floor_files(halos: HaloCache, temps, label: str, first: float | None = None,
 
 
 def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
-               name=str) -> float:
+               name=str, kept: KeptSummaries | None = None) -> float:
     """A noise floor of the survey, exactly: reduce_floor over floor_files' summaries,
     whose files it then removes."""
-    return median_of_files(list(floor_files(halos, temps, label, first, runner, name).values()), reduce_floor)
+    return median_of_files(list(floor_files(halos, temps, label, first, runner, name, kept).values()),
+                           reduce_floor)
 
 
 def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) -> None:
@@ -235,8 +236,7 @@ def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) 
 def noise_floors(halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None) -> NoiseFloors:
     """The limiter's two noise floors of the survey (edge_floor twice: the second with
     the data reconciled with the first); kept: the curtains' summaries (floor_files)."""
-    paths = floor_files(halos, temps, "residuals-first", None, runner, name, kept)
-    first = median_of_files(list(paths.values()), reduce_floor)
+    first = edge_floor(halos, temps, "residuals-first", None, runner, name, kept)
     return NoiseFloors(first, edge_floor(halos, temps, "residuals-second", first, runner, name))
 
 

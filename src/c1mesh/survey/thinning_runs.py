@@ -39,7 +39,7 @@ def thinned_spill(heights, spacing: float, directory, stem: str) -> TileSpill:
             records = heights.records(grid.grown(t, spacing * (1 + 1e-9)))
             xy = np.column_stack([records["x"], records["y"]])
             kept = thin_cells(xy, spacing, corner, records["index"])
-            thinned.append(t, records[kept[grid.tile_of(xy[kept]) == t]])
+            thinned.append(t, records.take(kept[grid.tile_of(xy[kept]) == t]))    # structured rows: take
     except BaseException:
         thinned.close()
         raise
