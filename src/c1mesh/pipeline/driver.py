@@ -67,6 +67,7 @@ from c1mesh.stages.frame import auto_axis_reason, choose_frame
 from c1mesh.stages.ground import choose_points, resolved_classes
 from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_gradients, height_neighbours, height_normals, use_height_gradients
+from c1mesh.stages.holes import with_spanning_triangles
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.perspective import frame_kind
@@ -423,7 +424,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             check_triangles_left(mesh.triangles.shape[0])
             trimmed, trim_only = None, mesh
             if fill:
-                mesh, trimmed = filled_mesh(xy, z, grads, mesh, curtains=not plan_heights)
+                mesh, trimmed = filled_mesh(xy, z, grads, mesh, trim_report.max_edge, curtains=not plan_heights)
             local, triangles = compact_vertices(xy, mesh.triangles)
             used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
     smoothing = None
@@ -522,17 +523,20 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     return interp, overshoot, smoothing
 
 
-def filled_mesh(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh, curtains: bool = True):
+def filled_mesh(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, mesh, max_edge: float | None,
+                curtains: bool = True):
     """The triangles of a DEM that spans the trim's holes, and which of them the trim kept.
 
     xy (n, 2), z (n,), gradients (n, 2): the triangulated points; mesh: the trimmed
-    TrimmedMesh (trim_mesh, then remove_curtains). Returns (TrimmedMesh, trimmed (T',) bool
+    TrimmedMesh (trim_mesh, then remove_curtains), max_edge its long-edge limit. Returns (TrimmedMesh, trimmed (T',) bool
     over its triangles). The filled mesh is the union of the trimmed one and the
     triangulation trimmed without max_edge and without the view-ray curtain rules (they
     open the holes under buildings, trees and water): what stays out are the slivers and
     bowties on the hull's rim and the triangles thinner than the noise, which the spline
     cannot span (it divides by their width; curtains.py). The union is a subset of one
-    triangulation, so it stays edge-manifold."""
+    triangulation, so it stays edge-manifold. Its long triangles are stages.holes'
+    (with_spanning_triangles), as a survey fitted in tiles finds them."""
+    mesh = with_spanning_triangles(xy, mesh, max_edge)
     whole, report = trim_again(mesh, max_edge=None)
     if curtains:
         whole, _ = remove_curtains(xy, z, gradients, whole, report, view_rules=False)
