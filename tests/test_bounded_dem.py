@@ -35,8 +35,8 @@ def _paths(directory: Path, tag: str) -> dict:
     return {kind: str(directory / f"{tag}.{kind}.tif") for kind in KINDS}
 
 
-def _options(paths: dict, resolution: float, **more) -> FitOptions:
-    return FitOptions(classes=(2,), resolution=resolution, fill="off", slope=paths["slope"],
+def _options(paths: dict, resolution: float, fill: str = "off", **more) -> FitOptions:
+    return FitOptions(classes=(2,), resolution=resolution, fill=fill, slope=paths["slope"],
                       aspect=paths["aspect"], hillshade=paths["hillshade"], support=paths["support"], **more)
 
 
@@ -64,16 +64,21 @@ def _assert_cog(path: str) -> None:
     assert valid, (path, errors)
 
 
-@pytest.mark.parametrize("source,resolution,per_tile,tiles", [("autzen_trim.laz", 2.0, 7000, 4),
-                                                               ("4_6_crop.las", 1.0, 1000, 16)])
-def test_bounded_dem_equals_the_in_memory_dem(tmp_path, source, resolution, per_tile, tiles):
-    """Autzen ground (26k points, 4 tiles: bow-ties, curtains, cells holding ground points
-    outside the trimmed triangles) and 4_6_crop ground: DEM, slope, aspect, hillshade and
-    support equal the in-memory fit's cell for cell, and every raster is a valid COG."""
+@pytest.mark.parametrize("source,resolution,fill,per_tile,tiles", [("autzen_trim.laz", 2.0, "off", 7000, 4),
+                                                                    ("autzen_trim.laz", 2.0, "hull", 1800, 16),
+                                                                    ("4_6_crop.las", 1.0, "hull", 1000, 16)])
+def test_bounded_dem_equals_the_in_memory_dem(tmp_path, source, resolution, fill, per_tile, tiles):
+    """Autzen ground (26k points: bow-ties, curtains, cells holding ground points outside
+    the trimmed triangles; with the default fill, 34% of its hull in holes under
+    buildings and trees, spanned by 1,547 long triangles across tiles) and 4_6_crop
+    ground: DEM, slope, aspect, hillshade and support equal the in-memory fit's cell for
+    cell, and every raster is a valid COG."""
     whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
-    report = fit(str(SAMPLES / source), whole["dem"], _options(whole, resolution)).report
-    facts = fit(str(SAMPLES / source), tiled["dem"], replace(_options(tiled, resolution), memory=10**9), tiles=TiledRun(per_tile=per_tile)).report
+    report = fit(str(SAMPLES / source), whole["dem"], _options(whole, resolution, fill)).report
+    facts = fit(str(SAMPLES / source), tiled["dem"], replace(_options(tiled, resolution, fill), memory=10**9),
+                tiles=TiledRun(per_tile=per_tile)).report
     assert facts["tiles"] == tiles
+    assert (facts["raster"]["fill"]["triangles_spanning_holes"] > 100) == (fill == "hull")
     for kind in KINDS:
         _assert_same_raster(tiled[kind], whole[kind])
         _assert_cog(tiled[kind])
@@ -81,6 +86,7 @@ def test_bounded_dem_equals_the_in_memory_dem(tmp_path, source, resolution, per_
         assert facts["raster"][key] == report["raster"][key], key
     assert facts["raster"]["point_spacing"] == pytest.approx(report["raster"]["point_spacing"], rel=1e-12)
     assert facts["points"]["kept"] == report["points"]["kept"]
+    assert facts["triangles"]["after_trim"] == report["triangles"]["after_trim"]
     assert facts["output_mesh"] is None and facts["level"] is None
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(Path(p).name for p in [*whole.values(),
                                                                                          *tiled.values()])
@@ -128,12 +134,12 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
 
 
 @pytest.mark.parametrize("extra,words", [
-    ([], "--fill"),                                              # the default fill: the hull
-    (["--fill", "hull"], "--fill"),
+    (["--fill", "5"], "--fill D"),
+    (["--smooth", "auto"], "--smooth off"),                     # with the default fill, the hull
 ])
 def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
-    """Beyond --memory the DEM's fill is refused in one line naming the input and the
-    option, before any output is written."""
+    """Beyond --memory a fill within a distance, and the smoothing fit's fill, are refused
+    in one line naming the input and the option, before any output is written."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2, 5))
     target = ["-o", str(tmp_path / "dem.tif"), "--resolution", "1"]
@@ -141,6 +147,43 @@ def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
     assert result.exit_code == 1
     assert result.output.count("\n") == 1 and words in result.output and "terrain.las" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+
+
+def _lake_las(path, seed: int = 3) -> None:
+    """A LAS 1.2 ground survey of 40,000 uniform points over 100 x 100 m less a round lake
+    56 m wide and a bay 20 m wide on the east side: z = 100 + 3 sin(x/17) cos(y/23) with
+    2 cm noise, millimetre scales, class 2."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(0, 100, 40000), rng.uniform(0, 100, 40000)
+    keep = ~((np.hypot(x - 45, y - 50) < 28) | ((x > 80) & (y > 55) & (y < 85)))
+    x, y = x[keep], y[keep]
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [500000, 4000000, 0]
+    record = laspy.ScaleAwarePointRecord.zeros(len(x), header=header)
+    record.x, record.y = x + 500000, y + 4000000
+    record.z = 100 + 3 * np.sin(x / 17) * np.cos(y / 23) + rng.normal(0, 0.02, len(x))
+    record.classification = np.full(len(x), 2, np.uint8)
+    with laspy.open(str(path), mode="w", header=header) as writer:
+        writer.write_points(record)
+
+
+def test_a_lake_wider_than_a_tile_is_filled_as_in_memory(tmp_path):
+    """The default fill over a lake that spans three of 16 tiles (25 m cells, the lake
+    56 m wide) and a bay: its long triangles are found from the tiles' short ones and
+    every tile's halo reaches across them, so the DEM and its support equal the in-memory
+    fit's bit for bit, the lake has no nodata cell, and its support reaches half the lake."""
+    source = tmp_path / "lake.las"
+    _lake_las(source)
+    whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
+    report = fit(str(source), whole["dem"], _options(whole, 0.5, "hull")).report
+    facts = fit(str(source), tiled["dem"], replace(_options(tiled, 0.5, "hull"), memory=10**9),
+                tiles=TiledRun(per_tile=2000)).report
+    assert facts["tiles"] == 16 and facts["raster"]["fill"] == report["raster"]["fill"]
+    for kind in ("dem", "support"):
+        assert Path(tiled[kind]).read_bytes() == Path(whole[kind]).read_bytes()
+    with rasterio.open(tiled["dem"]) as dem, rasterio.open(tiled["support"]) as support:
+        row, col = dem.index(500045.0, 4000050.0)                     # the lake's centre
+        assert dem.read(1)[row, col] != dem.nodata and support.read(1)[row, col] > 25
 
 
 def _contour_lines(path) -> tuple[list, np.ndarray]:
@@ -186,13 +229,14 @@ def test_contours_in_tiles_are_the_in_memory_fits(tmp_path, source, resolution, 
 
 def test_the_preview_of_a_dem_in_tiles_is_the_in_memory_fits_picture(tmp_path):
     """--preview of a DEM fitted in 4 tiles draws the cells the tiles sampled, shaded by the
-    spline's gradient there: the same PNG, byte for byte, as the in-memory fit's, whose
-    cells come from one spline (geo.preview.render_dem_fit)."""
+    spline's gradient there, the default fill's cells hatched: the same PNG, byte for
+    byte, as the in-memory fit's, whose cells come from one spline
+    (geo.preview.render_dem_fit)."""
     pngs = {}
     for name, extra in (("whole", []), ("tiled", ["--memory", "1M"])):
         pngs[name] = tmp_path / f"{name}.png"
         result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.tif"),
-                                           "--resolution", "2", "--fill", "off", "--preview", str(pngs[name]),
+                                           "--resolution", "2", "--preview", str(pngs[name]),
                                            "--report", str(tmp_path / f"{name}.json"), *extra])
         assert result.exit_code == 0, result.output
     assert json.loads((tmp_path / "tiled.json").read_text())["tiles"] == 4
@@ -240,7 +284,7 @@ def test_contours_and_previews_in_tiles_on_a_dask_cluster_are_the_local_tiles(tm
         return [bytes(g) for g in pyogrio.raw.read(path)[2]]
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
-        for output, extra in (("dem.tif", ["--resolution", "2", "--fill", "off"]), ("mesh.ply", ["--level", "1"])):
+        for output, extra in (("dem.tif", ["--resolution", "2"]), ("mesh.ply", ["--level", "1"])):
             for name, where in (("local", []), ("dask", ["--scheduler", cluster.scheduler_address])):
                 stem = tmp_path / f"{name}-{output}"
                 result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(stem), *extra,

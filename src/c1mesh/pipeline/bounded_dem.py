@@ -39,9 +39,15 @@ The grids live in temporary files (memory maps) over the grid and its ring: heig
 (float32, only with --support) and the point marks (uint8): 1 to 33 bytes a cell on
 disk. Memory holds a tile's spline and a block of cells at a time.
 
-Only --fill off is done in tiles (survey.sizing.needs_tiles refuses the fill): the
-in-memory fill spans the holes with the triangles the trim removed, limited over the
-filled triangulation, which the tiles do not keep.
+The default fill (--fill hull) is the in-memory one: the tiles' triangles are the filled
+triangulation (survey.hole_runs.TiledFill: the trimmed triangles first in each tile's
+file, then those spanning the holes, DemJob.trimmed counts the first), limited over it,
+and its halos read across the long triangles (far reads); the nearest-triangle rule
+searches the trimmed triangles only, as SplineSampler's fill does; the preview hatches
+the cells of the spanning triangles; a cell deep in a hole has its nearest vertex beyond
+the halo, asked of the tiles within that distance (`_nearer_vertices`). A fill within a
+distance (--fill D) and the smoothing fit's fill are refused in tiles
+(survey.sizing.needs_tiles).
 """
 from __future__ import annotations
 
@@ -71,12 +77,13 @@ from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 
-CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4")])
+CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4"), ("span", "u1")])
 """A sampled cell in a tile's part file: its flat index in the grid with its ring
 (DemGrid.flat), height (local: world z − the frame's origin z, which the parent adds, so
 the contours trace the local heights the in-memory fit traces), the spline's gradient
 (dz/dx, dz/dy) and the tile's triangle holding the centre (where the contours' search
-starts, as the in-memory one starts from the node's triangle)."""
+starts, as the in-memory one starts from the node's triangle) and whether that triangle spans a hole (a fill's; the
+preview hatches the cell)."""
 
 
 @dataclass(frozen=True)
@@ -133,7 +140,7 @@ def dem_grid(mesh, resolution: float) -> DemGrid:
 def vertex_box(mesh) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) (2,) each: the box of the survey spline's vertices (local x, y). mesh: the
     survey's refine_runs.TiledMesh; each tile's own triangles' corners are read from the
-    height spill (a tile at a time)."""
+    height spill (a tile at a time; a fill's long triangles' far corners too, mesh.far)."""
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for t, path in enumerate(mesh.files):
         if path is None:
@@ -141,7 +148,8 @@ def vertex_box(mesh) -> tuple[np.ndarray, np.ndarray]:
         triangles = np.load(path)
         if not len(triangles):
             continue
-        records = mesh.heights.records(mesh.grid.grown(t, mesh.buffers[t] * (1 + 1e-9)))
+        reach = mesh.buffers[t] * (1 + 1e-9)
+        records, _ = mesh.heights.records_near(mesh.grid.grown(t, reach), mesh.far.get(t), reach)
         corners = np.compress(np.isin(records["index"], triangles), records)
         xy = np.column_stack([corners["x"], corners["y"]])
         lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
@@ -181,13 +189,20 @@ class DemJob:
     of the trim, pruned), dem (DemGrid), reach (the nearest-triangle rule's, the trim's
     max_edge; None: any distance), longest (the longest final edge, frame units), gradients
     (whether slope, aspect or hillshade need the spline's gradients), threads per task,
+    trimmed (a fill: per tile how many of its own triangles, the first rows of its file,
+    the trim kept; the rest span its holes, survey.hole_runs.TiledFill; None: no fill),
     heights_path (the grid of heights, for the support pass)."""
 
     def __init__(self, surfaces, halos, dem: DemGrid, reach: float | None, longest: float, gradients: bool,
-                 threads=None):
+                 threads=None, trimmed: tuple | None = None):
         self.surfaces, self.halos, self.dem, self.reach, self.longest = surfaces, halos, dem, reach, longest
-        self.gradients, self.threads = gradients, threads
+        self.gradients, self.threads, self.trimmed = gradients, threads, trimmed
         self.heights_path = None
+
+    def trimmed_rows(self, t: int, count: int) -> np.ndarray:
+        """(count,) bool over tile t's own triangles: those the trim kept (every one
+        without a fill)."""
+        return np.arange(count) < (count if self.trimmed is None else self.trimmed[t])
 
     def spline(self, spline_path) -> RSDInterpolator:
         """The interpolator of a tile's own triangles saved by _sample_tile (local frame)."""
@@ -212,10 +227,11 @@ class DemJob:
     def rim_part(self, spline_path) -> RSDInterpolator:
         """The interpolator of a tile's own triangles with a corner on their boundary
         (geo.raster_grid.rim_triangles), the only ones the nearest-triangle rule can
-        choose: the continued cells need no spline of the tile's interior."""
+        choose: the continued cells need no spline of the tile's interior. With a fill,
+        of the triangles the trim kept, which that rule searches (SplineSampler)."""
         with np.load(spline_path) as saved:
             points, triangles = saved["points"], saved["triangles"]
-            rows = rim_triangles(edge_table(triangles, points.shape[0]), np.arange(triangles.shape[0]))
+            rows = rim_triangles(edge_table(triangles, points.shape[0]), np.flatnonzero(saved["trimmed"]))
             return self._rows(saved, points, triangles[rows], rows)
 
     def _rows(self, saved, points: np.ndarray, triangles: np.ndarray, rows: np.ndarray) -> RSDInterpolator:
@@ -243,8 +259,10 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
         interp, records, (limited, turned, lifted) = job.surfaces.spline(t, triangles)
         with open(files.spline, "wb") as out:
             np.savez(out, points=interp.points, values=interp.values, gradients=interp.gradients,
-                     triangles=interp.triangles, sides=interp.directions[interp.edge_table.tri_edge])
+                     triangles=interp.triangles, sides=interp.directions[interp.edge_table.tri_edge],
+                     trimmed=job.trimmed_rows(t, len(triangles)))
         sampler = SplineSampler(interp, job.dem.origin)
+        spans = ~job.trimmed_rows(t, len(triangles))
         lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
         rows, cols = job.dem.span(lo, hi, 0.0)
         count = 0
@@ -255,7 +273,7 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
                 i, j = np.divmod(cell, len(cols))
                 part = np.zeros(cell.size, CELL)
                 part["cell"] = job.dem.flat(block.start + i, cols.start + j)
-                part["z"], part["tri"] = values, tri
+                part["z"], part["tri"], part["span"] = values, tri, spans[tri]
                 if grads is not None:
                     part["g"] = grads
                 part.tofile(out)
@@ -282,7 +300,9 @@ def _continue_tile(job: DemJob, spline_path, cells: np.ndarray):
 def _support_tile(job: DemJob, t: int, path) -> int:
     """The support of the cells with a height whose centres lie in tile t's cell (the
     tile grid's tile_of): the distance to the nearest vertex of the spline, by a k-d tree
-    of the tile's halo (module docstring), as SplineSampler.distances measures it. Writes
+    of the tile's halo (module docstring), as SplineSampler.distances measures it; a cell
+    whose nearest vertex there lies beyond 3 longest edges (in a fill's long triangle)
+    asks the tiles within that distance (_nearer_vertices). Writes
     (flat cell int64, distance float32) pairs to path; returns how many."""
     dem, grid = job.dem, job.surfaces.grid
     heights = np.load(job.heights_path, mmap_mode="r").reshape(-1)
@@ -308,14 +328,37 @@ def _support_tile(job: DemJob, t: int, path) -> int:
             if tree is None:
                 raise RuntimeError(f"tile {t}: DEM cells with heights but no vertex in its halo")
             distance = tree.query(centre)[0]
-            if distance.max() > bound:
-                raise RuntimeError(f"tile {t}: a DEM cell's nearest vertex lies {distance.max():g} from it, "
-                                   "beyond the halo (3 longest edges); give --max-edge")
+            beyond = np.flatnonzero(distance > bound)      # in a fill's long triangles: search wider
+            if beyond.size:
+                distance[beyond] = _nearer_vertices(job, centre[beyond], distance[beyond])
             pairs = np.zeros(flat.size, [("cell", "<i8"), ("d", "<f4")])
             pairs["cell"], pairs["d"] = flat, distance
             pairs.tofile(out)
             count += flat.size
     return count
+
+
+def _nearer_vertices(job: DemJob, centres: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """The distances (m,) from local plane points centres (m, 2) to the nearest vertex of
+    the spline, given a vertex at `found` (m,) from each: the vertices of every tile
+    whose cell meets a centre's square of that half-side, each tile's own from its halo
+    (a vertex's triangles are all in its tile's halo)."""
+    grid, best = job.surfaces.grid, found.copy()
+    for u in range(len(grid)):
+        x0, y0, x1, y1 = grid.cell(u)
+        near = np.flatnonzero((centres[:, 0] + found >= x0) & (centres[:, 0] - found <= x1)
+                              & (centres[:, 1] + found >= y0) & (centres[:, 1] - found <= y1))
+        if not near.size or job.surfaces.files[u] is None:
+            continue
+        halo = job.halos.halo(u)
+        vertices = halo_vertices(halo)
+        vertices = vertices[grid.tile_of(np.column_stack([vertices["x"], vertices["y"]])) == u]
+        if not len(vertices):
+            continue
+        tree = cKDTree(np.column_stack([vertices["x"], vertices["y"]]))
+        distance = tree.query(centres[near], distance_upper_bound=float(found[near].max()) * (1 + 1e-9))[0]
+        best[near] = np.minimum(best[near], distance)
+    return best
 
 
 def halo_vertices(halo) -> np.ndarray:
@@ -358,8 +401,7 @@ class TiledDem:
             if contours is not None:
                 staged, contour_facts = self._trace(grids, contours)
             grids.drop_tile_files()
-            return self._finish(plan, (grids.path, grids.heights, grids.gradients), grids.tiles, grids.sampled,
-                                crs, smoothed) | {"staged": staged, "contours": contour_facts}
+            return self._finish(plan, grids, crs, smoothed) | {"staged": staged, "contours": contour_facts}
         except BaseException:
             if staged is not None:
                 staged.discard()
@@ -397,8 +439,12 @@ class TiledDem:
         files = {t: _TileFiles(self.temps.new(f"dem-cells-{t}.bin"), self.temps.new(f"dem-spline-{t}.npz"))
                  for t in tiles}
         contour_nodes = ContourNodes.empty(shape) if nodes else None
-        sampled = self._sample(tiles, files, (heights, gradients, contour_nodes))
-        return _Grids(path, heights, gradients, contour_nodes, tiles, files, sampled)
+        spans = None                    # a fill: the cells in triangles that span holes (hatched)
+        if job.trimmed is not None:
+            spans = np.lib.format.open_memmap(self.temps.new("dem-spans.npy"), mode="w+", dtype=np.uint8,
+                                              shape=shape)
+        sampled = self._sample(tiles, files, (heights, gradients, contour_nodes, spans))
+        return _Grids(path, heights, gradients, contour_nodes, tiles, files, sampled, spans)
 
     def _trace(self, grids: "_Grids", request: ContourRequest):
         """(StagedContours, report section) of the contours through grids' nodes, snapped
@@ -410,12 +456,12 @@ class TiledDem:
                                 request.interval, splines)
         return stage_lines(request, lines, dem.grid, start)
 
-    def _finish(self, plan: DemPlan, grids, tiles: list, sampled: dict, crs: str | None, smoothed: bool) -> dict:
-        """The support pass and the rasters' writing, from the grids (heights path, heights
-        and gradients memory maps) the tiles filled; write's facts. tiles: those with a
-        triangle file; sampled: _sample's rows of those with triangles."""
+    def _finish(self, plan: DemPlan, grids: "_Grids", crs: str | None, smoothed: bool) -> dict:
+        """The support pass and the rasters' writing, from the grids the tiles filled;
+        write's facts."""
         job, dem = self.job, self.job.dem
-        heights_path, heights, gradients = grids
+        heights_path, heights, gradients = grids.path, grids.heights, grids.gradients
+        tiles, sampled = grids.tiles, grids.sampled
         shape = dem.shape
         heights.flush()
         support = self._support(tiles, heights_path, shape) if plan.support else None
@@ -428,8 +474,11 @@ class TiledDem:
         blocks = grid_blocks(dem, heights, gradients, support, method if job.gradients else None)
         raster = write_blocks(targets, dem.grid, blocks, RasterStyle(method, crs, "float32", z_factor))
         if plan.preview:
-            render_preview(dem, heights, gradients, plan, crs)
+            render_preview(dem, (heights, gradients, grids.spans), plan, crs)
         raster["point_spacing"] = spacing
+        if job.trimmed is not None:         # the report's fill facts (pipeline.bounded_fit.tiles_report)
+            raster["fill"] = {"triangles_spanning_holes": sum(row["triangles"] - job.trimmed[t]
+                                                              for t, row in sampled.items())}
         return {"kept": kept, "raster": raster,
                 "triangles_per_tile": {t: row["triangles"] for t, row in sampled.items()},
                 **{k: sum(row[k] for row in sampled.values()) for k in ("limited", "turned", "lifted")}}
@@ -439,7 +488,7 @@ class TiledDem:
         (heights (world z), gradients or None, local heights for the contours or None),
         each over the grid with its ring."""
         rows, ready, sampled, next_tile = self.rows, {}, {}, 0
-        heights, gradients, nodes = grids
+        heights, gradients, nodes, spans = grids
         flat_heights, oz = heights.reshape(-1), self.job.dem.origin[2]
         flat_gradients = None if gradients is None else gradients.reshape(-1, 2)
         for i, row in self.runner.map(_sample_tile, len(tiles), lambda i: (self.job, tiles[i], files[tiles[i]]),
@@ -458,6 +507,8 @@ class TiledDem:
                             nodes.add(t, part)
                         if flat_gradients is not None:
                             flat_gradients[part["cell"]] = part["g"]
+                        if spans is not None:
+                            spans.reshape(-1)[part["cell"]] = part["span"]
                 rows.add(t, self.stage, {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
         return sampled
 
@@ -519,7 +570,8 @@ class TiledDem:
 class _Grids:
     """What TiledDem._sampled leaves: the heights' file path and memory map, the gradients'
     (or None), the contours' nodes (or None), the tiles with a triangle file, their
-    temporary files and the sampled tiles' rows (_sample_tile's)."""
+    temporary files, the sampled tiles' rows (_sample_tile's) and, with a fill, which
+    cells span a hole (uint8 memory map over the grid with its ring; else None)."""
 
     path: object
     heights: np.ndarray
@@ -528,6 +580,7 @@ class _Grids:
     tiles: list
     files: dict
     sampled: dict
+    spans: np.ndarray | None = None
 
     def drop_tile_files(self) -> None:
         """Remove the tiles' cells and spline files (the grids stay)."""
@@ -650,19 +703,22 @@ class TileSplines:
         return hint
 
 
-def render_preview(dem: DemGrid, heights, gradients, plan: DemPlan, crs: str | None) -> None:
+def render_preview(dem: DemGrid, grids, plan: DemPlan, crs: str | None) -> None:
     """The DEM's --preview (plan.preview) from the cells the tiles sampled: every stride-th
     cell of the grid (geo.preview.preview_stride; not the ring), heights rounded to float32
     as the DEM stores them, shaded by the spline's gradient there, so the picture is the
     in-memory fit's (geo.preview.render_dem_cells); at most PIXELS² cells are read from the
-    memory maps. --fill off: no cell spans a hole, none is hatched."""
+    memory maps. grids: (heights, gradients, spans: the fill's cells in triangles that
+    span holes, hatched, or None: no fill, none is)."""
+    heights, gradients, spans = grids
     grid = dem.grid
     stride = preview_stride(grid)
     rows, cols = slice(1, grid.height + 1, stride), slice(1, grid.width + 1, stride)
     z = np.asarray(heights[rows, cols]).astype(np.float32).astype(np.float64)
     g = np.array(gradients[rows, cols])
     g[np.isnan(z)] = np.nan
-    render_dem_cells(DemCells(z, g), grid, stride, plan.preview, crs, 1.0 if plan.z_factor is None else plan.z_factor)
+    hatched = None if spans is None else np.asarray(spans[rows, cols]).astype(bool) & np.isfinite(z)
+    render_dem_cells(DemCells(z, g, hatched), grid, stride, plan.preview, crs, 1.0 if plan.z_factor is None else plan.z_factor)
 
 
 def _own_vertices(halo) -> int:

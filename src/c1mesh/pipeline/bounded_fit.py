@@ -35,7 +35,10 @@ What the tiled path does differently from `pipeline.build_surface` (docs/tiles.m
   and what their holes expose), run over the tiles (`trim_tiles`, c1mesh.survey.trim_runs), so it
   is the same, not a reduction;
 - the overshoot limiter (default; --overshoot off skips it) is the in-memory one, run
-  tile by tile with the survey's noise floors (limiter.tile_limits; halos.TiledLimiter).
+  tile by tile with the survey's noise floors (limiter.tile_limits; halos.TiledLimiter);
+- a DEM's default fill spans the trim's holes as the in-memory fill does, with the long
+  triangles found from the tiles' short ones (c1mesh.survey.hole_runs), its halos
+  reading across them.
 
 The rule for the one output: a base triangle belongs to the tile holding its
 lowest-numbered corner point (buffered_delaunay); each tile refines only its own
@@ -69,7 +72,7 @@ from c1mesh.core.tile import corner_rows
 from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.geo.contours import BYTES_PER_NODE
 from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
-from c1mesh.geo.raster import check_angle_crs
+from c1mesh.geo.raster import check_angle_crs, fill_distance
 from c1mesh.geo.preview import SplineView
 from c1mesh.pipeline.bounded_dem import DemGrid, DemJob, TiledDem, dem_grid, vertex_box
 from c1mesh.pipeline.report import ReportCore, scheme_facts
@@ -88,6 +91,7 @@ from c1mesh.survey.height_runs import height_spill, survey_stacking
 from c1mesh.survey.smoothing_runs import TiledSmoother, TiledSmoothing
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.halos import HaloCache, TiledLimiter, halo_reach, longest_final_edge
+from c1mesh.survey.hole_runs import TiledFill
 from c1mesh.survey.inputs import (
     CachedChunks,
     Colours,
@@ -225,9 +229,19 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             fitted = (2,) if filtered else select.classes        # the filter's ground counts as class 2
+            fill = None                    # a DEM's fill: the whole triangulation, copied before the trim
+            if plan.dem is not None and plan.dem.fill is not None:
+                fill = TiledFill.prepare(halos, max_edge, memory, name, temps)
             removed, kept = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
+            trimmed = None
+            if fill is not None:           # the filled triangulation's halos in place of the trim's
+                triangle_files, trimmed, far = fill.filled(triangle_files, heights, halos.reach, temps,
+                                                           (runner, rows.name))
+                halos = HaloCache(heights, triangle_files, grid, halos.reach, temps, "filled", far=far)
+                halos.prefetch(runner, rows.name)
+                kept = None
             if plan.dem is None and plan.mesh.resolution is not None:     # --resolution of a mesh: its level
                 level = level_for_mean_edge(_mean_edge(halos, triangle_files), plan.mesh.resolution)
                 plan = replace(plan, surface=replace(surface, level=level))
@@ -235,7 +249,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if outputs is None and output is not None and plan.dem is None:
                 _check_size(kept_triangles, plan, output, colours.present)
             done("trim")
-            mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
+            mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame, {} if fill is None else far)
             limiter = None
             if strength is not None:
                 fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
@@ -248,8 +262,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 done("noise floors")
             if plan.dem is not None:
                 report = _write_dem(DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads),
-                                           halos, dem_grid(mesh, plan.dem.resolution), max_edge, longest,
-                                           _shaded(plan.dem), rows.threads),
+                                           halos, dem_grid(mesh, plan.dem.resolution), max_edge,
+                                           longest, _shaded(plan.dem), rows.threads, trimmed),
                                     (temps, runner, rows), plan.dem, (chunks, crs, contours), limiter)
                 done("raster")
             else:
@@ -281,8 +295,9 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                             max_edge, auto_limit(surface.max_edge)),
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
-                   "triangles": {"before_trim": delaunay_count,
-                                 "after_trim": sum(report["triangles_per_tile"].values()),
+                   "triangles": {"before_trim": delaunay_count,     # a fill's spanning triangles are no trim's
+                                 "after_trim": sum(report["triangles_per_tile"].values()) if trimmed is None
+                                 else sum(trimmed),
                                  "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
                    "level": None if plan.dem is not None else surface.level,
@@ -489,8 +504,11 @@ def tiles_report(facts: dict, options) -> dict:
     report.update(facts)
     if options.resolution is not None:         # as geo.products.finish says it in memory
         report["resolution"] = options.resolution
-    if "raster" in report:        # a DEM (pipeline.bounded_dem): --fill off, the one fill done in tiles
-        report["raster"]["fill"] = {"option": options.fill, "distance": None, "triangles_spanning_holes": 0}
+    if "raster" in report:        # a DEM (pipeline.bounded_dem), as pipeline.driver.fill_facts says it
+        distance = fill_distance(options.fill)
+        spans = report["raster"].pop("fill", {}).get("triangles_spanning_holes", 0)
+        report["raster"]["fill"] = {"option": options.fill, "triangles_spanning_holes": spans,
+                                    "distance": None if distance is None else "inf" if math.isinf(distance) else distance}
     overshoot = report.get("overshoot")
     if "smoothing" not in report and overshoot:     # the advice of an exact fit, as in memory
         text = smoothing_suggestion(overshoot["gradients_limited"], int(report["points"]["kept"]))

@@ -23,6 +23,10 @@ in survey-number order whatever else the tile holds, so the tiles give the whole
 survey's bits (directions up to the sign of a line through two opposite vertices, which
 the spline does not see). Three passes: the first floor, the second, then the run per
 tile in the refinement task.
+
+A DEM's fill adds the long triangles that span the trim's holes (survey.hole_runs): a
+halo then also reads the neighbourhood (within the same reach) of the far corners of the
+long triangles its three rings reach (`far`), so the rule above holds across them.
 """
 from __future__ import annotations
 
@@ -50,14 +54,14 @@ def halo_reach(longest_edge: float) -> float:
     return HALO_EDGES * float(longest_edge) * (1 + 1e-9)
 
 
-def read_halo(heights, triangle_files, grid, tile: int, reach: float) -> Tile:
+def read_halo(heights, triangle_files, grid, tile: int, reach: float, far: np.ndarray | None = None) -> Tile:
     """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
     records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
-    or None."""
-    rect = grid.grown(tile, reach)
-    records = heights.records(rect)
+    or None; far (m, 2): points whose neighbourhood within reach it reads too, a DEM's
+    fill's long triangles' far corners (survey.hole_runs.far_centres; None: none)."""
+    records, tiles = heights.records_near(grid.grown(tile, reach), far, reach)
     parts = [np.empty((0, 3), np.int64)]
-    for other in heights.touching(rect):
+    for other in tiles:
         if triangle_files[other] is None or not len(records):
             continue
         parts.append(triangles_among(records["index"], np.load(triangle_files[other])))
@@ -77,11 +81,14 @@ class HaloCache:
     the halo back without them, noting in `applied` (tile -> {owner: rows of
     removed[owner]}) which it is without, so a later load drops only what was removed
     since. temps: inputs.Temps; label: names its files (two caches of different reach
-    share one Temps)."""
+    share one Temps); far: {tile: (m, 2) points} its halo also reads around (read_halo;
+    a DEM's fill, survey.hole_runs.far_centres)."""
 
-    def __init__(self, heights, triangle_files, grid, reach: float, temps, label: str = "halo"):
+    def __init__(self, heights, triangle_files, grid, reach: float, temps, label: str = "halo",
+                 far: dict | None = None):
         self.heights, self.files, self.grid, self.reach = heights, triangle_files, grid, reach
-        self.temps, self.paths, self.label = temps, {}, label
+        self.temps, self.paths, self.label, self.far = temps, {}, label, far or {}
+        self._reads: dict[int, list] = {}          # tile -> the spill tiles its halo reads
         self.removed: dict[int, np.ndarray] = {}
         self.applied: dict[int, dict[int, int]] = {}
 
@@ -94,7 +101,7 @@ class HaloCache:
         cache, not by a copy sent with a task (inputs.Temps.owned_here: a file a copy
         made would be removed by nobody)."""
         if tile not in self.paths:
-            halo = read_halo(self.heights, self.files, self.grid, tile, self.reach)
+            halo = read_halo(self.heights, self.files, self.grid, tile, self.reach, self.far.get(tile))
             if self.temps.owned_here():
                 self.paths[tile] = self._new_paths(tile)
                 halo.records.tofile(self.paths[tile][0])
@@ -140,8 +147,9 @@ class HaloCache:
         """{owner: rows of removed[owner] already dropped} for the tiles near `tile`
         (those its halo reads) that removed triangles since its cached file was written."""
         applied = self.applied.get(tile, {})
-        return {t: applied.get(t, 0) for t in self.heights.touching(self.grid.grown(tile, self.reach))
-                if len(self.removed.get(t, ())) > applied.get(t, 0)}
+        if tile not in self._reads:
+            self._reads[tile] = self.heights.reading(self.grid.grown(tile, self.reach), self.far.get(tile), self.reach)
+        return {t: applied.get(t, 0) for t in self._reads[tile] if len(self.removed.get(t, ())) > applied.get(t, 0)}
 
     def _drop(self, tile: int, numbers: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         """triangles (k, 3) (rows of the halo's survey numbers `numbers`) without the
@@ -164,7 +172,7 @@ def cache_halo(cache: HaloCache, tile: int, paths) -> dict:
     """Read tile's halo (read_halo) and write it to paths (records, triangles), as
     HaloCache.halo caches it; returns a report row (points, seconds, worker)."""
     start = time.perf_counter()
-    halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach)
+    halo = read_halo(cache.heights, cache.files, cache.grid, tile, cache.reach, cache.far.get(tile))
     halo.records.tofile(paths[0])
     halo.triangles.astype("<i8").tofile(paths[1])
     return task_row(len(halo.records), start)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -47,7 +47,8 @@ class TiledMesh:
     TileSpill of HEIGHT records; grid, the buffered_delaunay.TileGrid; files, per tile
     the .npy of its own triangles (survey numbers; None: none); buffers, per tile its
     Delaunay buffer (frame units); max_edge, the trim's limit (None: none); frame, the
-    survey's stages.frame.ScanFrame."""
+    survey's stages.frame.ScanFrame; far, a DEM's fill: {tile: (m, 2) the far corners of
+    its long triangles and beyond} (survey.hole_runs.far_centres; empty: none)."""
 
     heights: object
     grid: object
@@ -55,6 +56,7 @@ class TiledMesh:
     buffers: Sequence
     max_edge: float | None
     frame: object
+    far: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,7 @@ class RefineJob:
     def __init__(self, mesh: TiledMesh, surface: SurfaceSettings, writing: MeshWriting, colours, threads):
         self.heights, self.grid, self.files, self.buffers = mesh.heights, mesh.grid, mesh.files, mesh.buffers
         self.max_edge, self.frame, self.scheme, self.level = mesh.max_edge, mesh.frame, surface.scheme, surface.level
+        self.far = mesh.far
         self.limiter, self.colours, self.threads = writing.limiter, colours, threads
         self.owners = None if writing.split is None else writing.split.owners
         self.expiry = KeyExpiry(mesh.grid, [self.reach(t) for t in range(len(mesh.grid))])
@@ -112,7 +115,7 @@ class RefineJob:
         directions and table None, no changes)."""
         if self.limiter is not None:
             return self.limiter.tile(t, triangles)
-        records = self.heights.records(self.grid.grown(t, self.reach(t)))
+        records, _ = self.heights.records_near(self.grid.grown(t, self.reach(t)), self.far.get(t), self.reach(t))
         rows, local = corner_rows(records["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")

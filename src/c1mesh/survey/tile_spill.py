@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from c1mesh.core.outputs import register_temp, unregister_temp
 from c1mesh.survey.buffered_delaunay import TileGrid
@@ -108,6 +109,47 @@ class TileSpill:
             parts.append(np.compress((r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1), r))
         records = np.concatenate(parts) if parts else np.empty(0, self.record)
         return records.take(np.argsort(records["index"], kind="stable"))
+
+    def records_near(self, rect, centres: np.ndarray | None, reach: float) -> tuple[np.ndarray, list[int]]:
+        """(the records in the closed rectangle or within `reach` of one of centres (m, 2)
+        in the max norm, ascending survey numbers; the tiles read): `records` with a halo's
+        far reads (survey.hole_runs.far_centres; None: none)."""
+        tiles = self.reading(rect, centres, reach)
+        if centres is None or not len(centres):
+            return self.records(rect), tiles
+        x0, y0, x1, y1 = rect
+        parts = []
+        for t in tiles:
+            r = self.tile(t)
+            keep = (r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1)
+            cx0, cy0, cx1, cy1 = self.grid.cell(t)           # the centres whose squares meet the cell
+            mine = centres[(centres[:, 0] + reach >= cx0) & (centres[:, 0] - reach <= cx1)
+                           & (centres[:, 1] + reach >= cy0) & (centres[:, 1] - reach <= cy1)]
+            if len(mine):                                     # then only the records in their box
+                lo, hi = mine.min(axis=0) - reach, mine.max(axis=0) + reach
+                ask = np.flatnonzero(~keep & (r["x"] >= lo[0]) & (r["x"] <= hi[0])
+                                     & (r["y"] >= lo[1]) & (r["y"] <= hi[1]))
+                if ask.size:
+                    distance = cKDTree(mine).query(np.column_stack([r["x"][ask], r["y"][ask]]), p=np.inf,
+                                                   distance_upper_bound=reach * (1 + 1e-12))[0]
+                    keep[ask[distance <= reach]] = True
+            parts.append(np.compress(keep, r))
+        records = np.concatenate(parts) if parts else np.empty(0, self.record)
+        return records.take(np.argsort(records["index"], kind="stable")), tiles
+
+    def reading(self, rect, centres: np.ndarray | None, reach: float) -> list[int]:
+        """The tiles records_near reads: those meeting the rectangle or a centre's square."""
+        tiles = set(self.touching(rect))
+        if centres is not None and len(centres):
+            cells = np.array([self.grid.cell(t) for t in range(len(self.grid))])      # (tiles, 4)
+            meets = np.zeros(len(cells), dtype=bool)
+            for block in range(0, len(centres), 4096):
+                c = centres[block:block + 4096, None, :]
+                meets |= ((cells[None, :, 0] <= c[..., 0] + reach) & (c[..., 0] - reach <= cells[None, :, 2])
+                          & (cells[None, :, 1] <= c[..., 1] + reach) & (c[..., 1] - reach <= cells[None, :, 3])
+                          ).any(axis=0)
+            tiles.update(t for t in np.flatnonzero(meets & (self.counts > 0)).tolist())
+        return sorted(tiles)
 
     def touching(self, rect) -> Iterator[int]:
         """The tiles whose cells meet the closed rectangle."""
