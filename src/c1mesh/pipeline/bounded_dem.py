@@ -149,7 +149,7 @@ def vertex_box(mesh) -> tuple[np.ndarray, np.ndarray]:
         if not len(triangles):
             continue
         reach = mesh.buffers[t] * (1 + 1e-9)
-        records, _ = mesh.heights.records_near(mesh.grid.grown(t, reach), mesh.far.get(t), reach)
+        records, _ = mesh.heights.records_near(mesh.grid.grown(t, reach), mesh.far.get(t))
         corners = np.compress(np.isin(records["index"], triangles), records)
         xy = np.column_stack([corners["x"], corners["y"]])
         lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))

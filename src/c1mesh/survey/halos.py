@@ -57,9 +57,9 @@ def halo_reach(longest_edge: float) -> float:
 def read_halo(heights, triangle_files, grid, tile: int, reach: float, far: np.ndarray | None = None) -> Tile:
     """The halo of `tile` (module docstring). heights: a tile_spill.TileSpill of height
     records; triangle_files: per tile a .npy of its owned final triangles (survey numbers)
-    or None; far (m, 2): points whose neighbourhood within reach it reads too, a DEM's
-    fill's long triangles' far corners (survey.hole_runs.far_centres; None: none)."""
-    records, tiles = heights.records_near(grid.grown(tile, reach), far, reach)
+    or None; far (m, 3): x, y and radius of the neighbourhoods it reads too, around a
+    DEM's fill's long triangles' far corners (survey.hole_runs.far_centres; None: none)."""
+    records, tiles = heights.records_near(grid.grown(tile, reach), far)
     parts = [np.empty((0, 3), np.int64)]
     for other in tiles:
         if triangle_files[other] is None or not len(records):
@@ -81,7 +81,7 @@ class HaloCache:
     the halo back without them, noting in `applied` (tile -> {owner: rows of
     removed[owner]}) which it is without, so a later load drops only what was removed
     since. temps: inputs.Temps; label: names its files (two caches of different reach
-    share one Temps); far: {tile: (m, 2) points} its halo also reads around (read_halo;
+    share one Temps); far: {tile: (m, 3) far reads} its halo also reads (read_halo;
     a DEM's fill, survey.hole_runs.far_centres)."""
 
     def __init__(self, heights, triangle_files, grid, reach: float, temps, label: str = "halo",
@@ -148,7 +148,7 @@ class HaloCache:
         (those its halo reads) that removed triangles since its cached file was written."""
         applied = self.applied.get(tile, {})
         if tile not in self._reads:
-            self._reads[tile] = self.heights.reading(self.grid.grown(tile, self.reach), self.far.get(tile), self.reach)
+            self._reads[tile] = self.heights.reading(self.grid.grown(tile, self.reach), self.far.get(tile))
         return {t: applied.get(t, 0) for t in self._reads[tile] if len(self.removed.get(t, ())) > applied.get(t, 0)}
 
     def _drop(self, tile: int, numbers: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -11,8 +11,8 @@ has its corners within one longest edge of it: that halo holds it).
 A long triangle is as wide as its hole, so a halo of 4 longest short edges (halos) does
 not hold the stars of its far corners. `far_centres` lists, per tile, the points whose
 neighbourhood its halo must read besides its cell's: the corners of the long triangles
-reached from the cell, up to three long hops (the limiter's three rings, halos'
-docstring); halos.HaloCache reads the records within its reach of each.
+reached from the cell, up to four long hops (the limiter's rings, halos' docstring),
+each with the radius the rings left need; halos.HaloCache reads the records within it.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.threads import map_in_threads
 from c1mesh.stages.holes import rim_points, short_cover, spanning_triangles
 from c1mesh.stages.trim import kept_triangles
-from c1mesh.survey.halos import HaloCache
+from c1mesh.survey.halos import HALO_EDGES, HaloCache
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.trim_runs import trim_tiles
 
@@ -51,7 +51,7 @@ class TiledFill:
         if max_edge is not None:
             triangles, rims = long_triangles(halos, max_edge, memory, name)
         return cls(add_long_triangles(halos.files, halos.grid, triangles, rims, temps, "whole"),
-                   far_centres(triangles, rims, halos.grid, halos.reach), triangles, rims)
+                   far_centres(triangles, rims, halos.grid, halos.reach / HALO_EDGES), triangles, rims)
 
     def filled(self, trimmed: list, heights, reach: float, temps, where) -> tuple[list, tuple, dict]:
         """(per tile the filled triangulation's own triangles, .npy or None: the trimmed
@@ -79,7 +79,7 @@ class TiledFill:
             files.append(path)
         added = np.concatenate(spanning) if spanning else np.empty((0, 3), np.int64)
         long = self.triangles[~kept_triangles(self.triangles, added)] if len(added) else self.triangles[:0]
-        return files, tuple(counts), far_centres(long, self.rims, heights.grid, reach)
+        return files, tuple(counts), far_centres(long, self.rims, heights.grid, reach / HALO_EDGES)
 
 
 RIM = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8")])
@@ -87,9 +87,6 @@ RIM = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8")])
 
 RIM_POINT_BYTES = 200
 """Memory per rim point of the Del(rim points) and its candidates' tests (bytes)."""
-
-LONG_HOPS = 3
-"""The long edges a halo's reads may cross: the limiter's three rings."""
 
 
 def rim_records(halos) -> np.ndarray:
@@ -159,13 +156,19 @@ def add_long_triangles(files, grid, triangles: np.ndarray, rims: np.ndarray, tem
     return copies
 
 
-def far_centres(triangles: np.ndarray, rims: np.ndarray, grid, reach: float) -> dict:
-    """{tile: (m, 2) the far corners its halo also reads around} (module docstring): the
-    corners of the long triangles (k, 3) with a corner within its cell grown by reach (all
-    of them: a tile's own long triangles' corners are read around when its rectangle is
-    narrower than the halo's, refine_runs.RefineJob.tile_data),
-    then, LONG_HOPS times, of those with a corner within reach of a corner found (the
-    max norm, as a halo's rectangle). rims: RIM records holding every corner."""
+def far_centres(triangles: np.ndarray, rims: np.ndarray, grid, edge: float) -> dict:
+    """{tile: (m, 3) x, y and radius of the far reads of its halo} (module docstring).
+
+    A halo holds the points within HALO_EDGES (4) longest short edges (edge) of its cell,
+    for the limiter: the stars of the points within 3 rings of its own, and their points
+    (halos' docstring). A long triangle's corner within 3 edges of the cell may be at ring
+    3, its other corners at ring 4: the k-th long hop of a path lands at ring k or more,
+    whose points within 4 − k rings it needs, and no point lies beyond 4 edges of a
+    path's last landing. So: the corners of the long triangles (k, 3) with a corner
+    within 3 edges of the cell are read around within 3 edges; then, for k = 2, 3, 4,
+    the corners of those with a corner within the last hop's radius of its corners are
+    read around within 4 − k edges (the fourth's only the point). The max norm, as a
+    halo's rectangle. rims: RIM records holding every corner."""
     if not len(triangles):
         return {}
     corners = np.unique(triangles)
@@ -174,22 +177,22 @@ def far_centres(triangles: np.ndarray, rims: np.ndarray, grid, reach: float) -> 
     rows = np.searchsorted(corners, triangles)                        # (k, 3) rows of corners
     tree = cKDTree(xy)
     by_corner = _triangles_of_corners(rows, len(corners))
+    slack = 1 + 1e-9
     centres = {}
     for t in range(len(grid)):
-        x0, y0, x1, y1 = grid.grown(t, reach)
-        inside = (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
-        reached = np.zeros(len(corners), dtype=bool)
-        front = np.flatnonzero(inside)
-        for _ in range(LONG_HOPS):
+        x0, y0, x1, y1 = grid.grown(t, (HALO_EDGES - 1) * edge * slack)
+        front = np.flatnonzero((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1))
+        radius = np.full(len(corners), -1.0)
+        for hop in range(1, HALO_EDGES + 1):
             far = np.unique(rows[by_corner(front)])
-            far = far[~reached[far]]
+            far = far[radius[far] < 0]
             if not far.size:
                 break
-            reached[far] = True
-            near = np.unique(np.concatenate(tree.query_ball_point(xy[far], reach, p=np.inf)))
-            front = near.astype(np.int64)
-        if reached.any():
-            centres[t] = xy[reached]
+            radius[far] = reach = (HALO_EDGES - hop) * edge * slack
+            front = np.unique(np.concatenate(tree.query_ball_point(xy[far], reach, p=np.inf))).astype(np.int64)
+        read = radius >= 0
+        if read.any():
+            centres[t] = np.column_stack([xy[read], radius[read]])
     return centres
 
 

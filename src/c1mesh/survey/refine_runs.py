@@ -115,7 +115,7 @@ class RefineJob:
         directions and table None, no changes)."""
         if self.limiter is not None:
             return self.limiter.tile(t, triangles)
-        records, _ = self.heights.records_near(self.grid.grown(t, self.reach(t)), self.far.get(t), self.reach(t))
+        records, _ = self.heights.records_near(self.grid.grown(t, self.reach(t)), self.far.get(t))
         rows, local = corner_rows(records["index"], triangles)
         if np.any(rows < 0):
             raise RuntimeError(f"tile {t}: a corner point lies outside the rectangle it read")

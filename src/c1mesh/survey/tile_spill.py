@@ -110,45 +110,39 @@ class TileSpill:
         records = np.concatenate(parts) if parts else np.empty(0, self.record)
         return records.take(np.argsort(records["index"], kind="stable"))
 
-    def records_near(self, rect, centres: np.ndarray | None, reach: float) -> tuple[np.ndarray, list[int]]:
-        """(the records in the closed rectangle or within `reach` of one of centres (m, 2)
-        in the max norm, ascending survey numbers; the tiles read): `records` with a halo's
-        far reads (survey.hole_runs.far_centres; None: none)."""
-        tiles = self.reading(rect, centres, reach)
-        if centres is None or not len(centres):
+    def records_near(self, rect, far: np.ndarray | None) -> tuple[np.ndarray, list[int]]:
+        """(the records in the closed rectangle or within a far read's radius of its point,
+        in the max norm, ascending survey numbers; the tiles read): `records` with a
+        halo's far reads (far (m, 3): x, y, radius; survey.hole_runs.far_centres; None:
+        none)."""
+        tiles = self.reading(rect, far)
+        if far is None or not len(far):
             return self.records(rect), tiles
         x0, y0, x1, y1 = rect
         parts = []
         for t in tiles:
             r = self.tile(t)
             keep = (r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1)
-            cx0, cy0, cx1, cy1 = self.grid.cell(t)           # the centres whose squares meet the cell
-            mine = centres[(centres[:, 0] + reach >= cx0) & (centres[:, 0] - reach <= cx1)
-                           & (centres[:, 1] + reach >= cy0) & (centres[:, 1] - reach <= cy1)]
-            if len(mine):                                     # then only the records in their box
-                lo, hi = mine.min(axis=0) - reach, mine.max(axis=0) + reach
+            for radius in np.unique(far[_meeting(far, self.grid.cell(t)), 2]).tolist():
+                mine = far[(far[:, 2] == radius) & _meeting(far, self.grid.cell(t))][:, :2]
+                lo, hi = mine.min(axis=0) - radius, mine.max(axis=0) + radius    # only the records in their box
                 ask = np.flatnonzero(~keep & (r["x"] >= lo[0]) & (r["x"] <= hi[0])
                                      & (r["y"] >= lo[1]) & (r["y"] <= hi[1]))
                 if ask.size:
                     distance = cKDTree(mine).query(np.column_stack([r["x"][ask], r["y"][ask]]), p=np.inf,
-                                                   distance_upper_bound=reach * (1 + 1e-12))[0]
-                    keep[ask[distance <= reach]] = True
+                                                   distance_upper_bound=radius * (1 + 1e-12) + 1e-300)[0]
+                    keep[ask[distance <= radius]] = True
             parts.append(np.compress(keep, r))
         records = np.concatenate(parts) if parts else np.empty(0, self.record)
         return records.take(np.argsort(records["index"], kind="stable")), tiles
 
-    def reading(self, rect, centres: np.ndarray | None, reach: float) -> list[int]:
-        """The tiles records_near reads: those meeting the rectangle or a centre's square."""
+    def reading(self, rect, far: np.ndarray | None) -> list[int]:
+        """The tiles records_near reads: those meeting the rectangle or a far read's square."""
         tiles = set(self.touching(rect))
-        if centres is not None and len(centres):
-            cells = np.array([self.grid.cell(t) for t in range(len(self.grid))])      # (tiles, 4)
-            meets = np.zeros(len(cells), dtype=bool)
-            for block in range(0, len(centres), 4096):
-                c = centres[block:block + 4096, None, :]
-                meets |= ((cells[None, :, 0] <= c[..., 0] + reach) & (c[..., 0] - reach <= cells[None, :, 2])
-                          & (cells[None, :, 1] <= c[..., 1] + reach) & (c[..., 1] - reach <= cells[None, :, 3])
-                          ).any(axis=0)
-            tiles.update(t for t in np.flatnonzero(meets & (self.counts > 0)).tolist())
+        if far is not None and len(far):
+            meets = [bool(_meeting(far, self.grid.cell(t)).any()) and self.counts[t] > 0
+                     for t in range(len(self.grid))]
+            tiles.update(t for t, met in enumerate(meets) if met)
         return sorted(tiles)
 
     def touching(self, rect) -> Iterator[int]:
@@ -158,6 +152,13 @@ class TileSpill:
             cx0, cy0, cx1, cy1 = self.grid.cell(t)
             if cx0 <= x1 and x0 <= cx1 and cy0 <= y1 and y0 <= cy1 and self.counts[t]:
                 yield t
+
+
+def _meeting(far: np.ndarray, cell) -> np.ndarray:
+    """(m,) bool: the far reads (m, 3: x, y, radius) whose squares meet the closed cell."""
+    x0, y0, x1, y1 = cell
+    return ((far[:, 0] + far[:, 2] >= x0) & (far[:, 0] - far[:, 2] <= x1)
+            & (far[:, 1] + far[:, 2] >= y0) & (far[:, 1] - far[:, 2] <= y1))
 
 
 def spill(chunks: Iterable[np.ndarray], frame, grid: TileGrid, directory=None, stem: str = "c1mesh") -> TileSpill:
