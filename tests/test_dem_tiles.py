@@ -5,6 +5,7 @@ reads the VRT), and rio-cogeo's validator.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -40,18 +41,24 @@ def quarters(tmp_path_factory):
 SIDES = ("slope", "hillshade", "support")
 
 
-def test_the_vrts_of_four_tiles_equal_the_surveys_rasters_cell_for_cell(quarters, tmp_path):
+@pytest.mark.parametrize("memory", [None, "1M"])
+def test_the_vrts_of_four_tiles_equal_the_surveys_rasters_cell_for_cell(quarters, tmp_path, memory):
     """The DEM, slope, hillshade and support mosaics of the four quarters equal the rasters
-    of `--seamless -o` cell for cell; each tile's raster is a valid COG holding its window
-    of the survey's cells, named DIR/NAME.tif and DIR/NAME.KIND.tif; the tiles overlap."""
+    of `--seamless -o` (in memory) cell for cell; each tile's raster is a valid COG holding
+    its window of the survey's cells, named DIR/NAME.tif and DIR/NAME.KIND.tif; the tiles
+    overlap. Also beyond --memory, the survey then fitted in tiles of its own grid."""
     from rio_cogeo.cogeo import cog_validate
 
     runner = CliRunner()
     out = tmp_path / "out"
     args = ["fit", *quarters, "--seamless", "--resolution", "4"]
-    done = runner.invoke(main, [*args, "-O", str(out), "--suffix", ".tif",
+    budget = [] if memory is None else ["--memory", memory]
+    done = runner.invoke(main, [*args, "-O", str(out), "--suffix", ".tif", *budget,
+                                "--report", str(tmp_path / "tiles.json"),
                                 *[a for kind in SIDES for a in (f"--{kind}", str(out / f"{kind}.vrt"))]])
     assert done.exit_code == 0, done.output
+    report = json.loads((tmp_path / "tiles.json").read_text())
+    assert report.get("tiles", 1) > (1 if memory else 0) and len(report["raster"]["tiles"]) == 4
     done = runner.invoke(main, [*args, "-o", str(tmp_path / "dem.tif"),
                                 *[a for kind in SIDES for a in (f"--{kind}", str(tmp_path / f"{kind}.tif"))]])
     assert done.exit_code == 0, done.output

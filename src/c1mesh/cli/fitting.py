@@ -112,16 +112,17 @@ def _tile_rasters(pairs, options) -> list[tuple[str, str]]:
     """The side rasters and mosaics of per-tile DEMs (--seamless -O DIR --suffix .tif), named
     as c1mesh.pipeline.driver names them, for the check of every output before any input
     is read; none for meshes."""
-    from c1mesh.geo.raster import is_raster_path
+    from c1mesh.geo.raster import is_raster_path, mosaic_paths, tile_targets
 
     if not pairs or not is_raster_path(pairs[0][1]):
         return []
-    from c1mesh.pipeline.driver import mosaic_paths, tile_targets
+    from c1mesh.pipeline.driver import side_rasters
 
-    named = [(f"{kind} raster", path) for _, dst in pairs for kind, path in tile_targets(dst, options).items()
+    sides = side_rasters(options)
+    named = [(f"{kind} raster", path) for _, dst in pairs for kind, path in tile_targets(dst, sides).items()
              if kind != "dem"]
     return named + [(f"{kind} mosaic", path) for kind, path in mosaic_paths([dst for _, dst in pairs],
-                                                                            options).items()]
+                                                                            sides).items()]
 
 
 def _survey_naming(inputs, text: str) -> str:

@@ -426,6 +426,29 @@ def write_vrt(path, grid: RasterGrid, tiles, kind: str = "dem", crs: str | None 
         handle.write("\n".join(lines) + "\n")
 
 
+MOSAIC_NAME = "mosaic.vrt"
+"""The VRT mosaic of --seamless -O's per-tile DEMs, in the output folder."""
+
+SIDE_KINDS = ("slope", "aspect", "hillshade", "support")
+"""The rasters on a DEM's grid besides it."""
+
+
+def tile_targets(output, sides: dict) -> RasterTargets:
+    """The rasters of one input's tile under --seamless -O: its DEM `output` (DIR/NAME.tif)
+    and, for each side raster asked (sides: {kind: the option's path or None}),
+    DIR/NAME.KIND.tif."""
+    stem = Path(output).with_suffix("")
+    return RasterTargets(dem=str(output), **{kind: f"{stem}.{kind}.tif" for kind, path in sides.items() if path})
+
+
+def mosaic_paths(outputs, sides: dict) -> dict:
+    """The VRT mosaic of each raster kind under --seamless -O: the DEMs' DIR/MOSAIC_NAME, and
+    for each side raster asked the .vrt path its option names (--slope out/slope.vrt)."""
+    paths = {"dem": str(Path(outputs[0]).parent / MOSAIC_NAME)}
+    paths.update({kind: str(path) for kind, path in sides.items() if path})
+    return paths
+
+
 # ------------------------------------------------------------------------ the fit's side
 def targets_for(output, options) -> RasterTargets:
     """The rasters a fit writes: the DEM when `output` is a .tif, plus --slope/--aspect/

@@ -46,6 +46,16 @@ class RasterGrid:
         return RasterGrid(self.west, self.north, self.resolution, len(cols), len(rows),
                           self.row0 + rows.start, self.col0 + cols.start)
 
+    def window_over(self, lo, hi) -> "RasterGrid | None":
+        """The window of this grid's cells that meet the box lo..hi (world x, y): the
+        cells holding its corners and those between, clipped to the grid (None: no cell)."""
+        r = self.resolution
+        cols = range(max(int(np.floor((lo[0] - self.west) / r)), 0),
+                     min(int(np.floor((hi[0] - self.west) / r)) + 1, self.width))
+        rows = range(max(int(np.floor((self.north - hi[1]) / r)), 0),
+                     min(int(np.floor((self.north - lo[1]) / r)) + 1, self.height))
+        return self.window(rows, cols) if len(rows) and len(cols) else None
+
     @classmethod
     def covering(cls, lo, hi, resolution: float) -> "RasterGrid":
         """The aligned grid that covers the box lo..hi (world x, y)."""

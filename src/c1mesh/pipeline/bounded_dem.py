@@ -48,18 +48,24 @@ the cells of the spanning triangles; a cell deep in a hole has its nearest verte
 the halo, asked of the tiles within that distance (`_nearer_vertices`). A fill within a
 distance (--fill D) and the smoothing fit's fill are refused in tiles
 (survey.sizing.needs_tiles).
+
+--seamless -O DIR --suffix .tif writes one DEM per input from the same grids
+(`InputWindows`): its window of the grid (`input_windows`, pipeline.driver.dem_windows'
+rule) and the VRT mosaics, as pipeline.driver.fit_dem_tiles writes them in memory.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from c1mesh.core.plan import DemPlan
 from c1mesh.core.threads import limit
+from c1mesh.core.tile import tile_rows
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.topology import edge_table
 from c1mesh.geo.raster import (
@@ -69,6 +75,7 @@ from c1mesh.geo.raster import (
     choose_slope_method,
     horn_gradient,
     write_blocks,
+    write_vrt,
 )
 from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, contour_heights, spline_values
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
@@ -373,10 +380,12 @@ class TiledDem:
     (inputs.Temps), runner (distributed.TaskRunner), rows (task_rows.TileRows) and the
     stage its tasks are booked under; `write` runs the passes and writes the rasters, and
     a mesh's preview and contours (pipeline.bounded_fit) sample their grids by `cells` and
-    `contours`."""
+    `contours`. windows: --seamless -O's DEMs, one per input (InputWindows; None: one DEM,
+    the plan's)."""
 
-    def __init__(self, job: DemJob, temps, runner, rows, stage: str = "dem"):
+    def __init__(self, job: DemJob, temps, runner, rows, stage: str = "dem", windows: "InputWindows | None" = None):
         self.job, self.temps, self.runner, self.rows, self.stage = job, temps, runner, rows, stage
+        self.windows = windows
 
     def write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool,
               contours: ContourRequest | None = None) -> dict:
@@ -460,22 +469,24 @@ class TiledDem:
         """The support pass and the rasters' writing, from the grids the tiles filled;
         write's facts."""
         job, dem = self.job, self.job.dem
-        heights_path, heights, gradients = grids.path, grids.heights, grids.gradients
+        heights, gradients = grids.heights, grids.gradients
         tiles, sampled = grids.tiles, grids.sampled
-        shape = dem.shape
         heights.flush()
-        support = self._support(tiles, heights_path, shape) if plan.support else None
+        support = self._support(tiles, grids.path, dem.shape) if plan.support else None
         area = sum(row["area"] for row in sampled.values())
         kept = sum(_own_vertices(self.job.halos.halo(t)) for t in tiles)
         spacing = float(math.sqrt(area / kept))
         method = choose_slope_method(plan.slope_method, plan.resolution, spacing, smoothed)
-        targets = RasterTargets(plan.dem, plan.slope, plan.aspect, plan.hillshade, plan.support)
-        z_factor = 1.0 if plan.z_factor is None else float(plan.z_factor)
-        blocks = grid_blocks(dem, heights, gradients, support, method if job.gradients else None)
-        raster = write_blocks(targets, dem.grid, blocks, RasterStyle(method, crs, "float32", z_factor))
+        style = RasterStyle(method, crs, "float32", 1.0 if plan.z_factor is None else float(plan.z_factor))
+        method = method if job.gradients else None
+        if self.windows is not None:       # --seamless -O: a DEM per input, and the mosaics
+            raster = self.windows.write(dem, (heights, gradients, support), method, style)
+        else:
+            targets = RasterTargets(plan.dem, plan.slope, plan.aspect, plan.hillshade, plan.support)
+            raster = write_blocks(targets, dem.grid, grid_blocks(dem, heights, gradients, support, method), style)
+            raster["point_spacing"] = spacing
         if plan.preview:
             render_preview(dem, (heights, gradients, grids.spans), plan, crs)
-        raster["point_spacing"] = spacing
         if job.trimmed is not None:         # the report's fill facts (pipeline.bounded_fit.tiles_report)
             raster["fill"] = {"triangles_spanning_holes": sum(row["triangles"] - job.trimmed[t]
                                                               for t, row in sampled.items())}
@@ -703,6 +714,76 @@ class TileSplines:
         return hint
 
 
+@dataclass(frozen=True)
+class InputWindows:
+    """--seamless -O DIR --suffix .tif beyond --memory: one DEM per input, a window of the
+    survey's grid, as pipeline.driver.fit_dem_tiles writes them in memory. outputs: the
+    inputs' DEM paths; targets: each input's geo.raster.RasterTargets (tile_targets);
+    windows: each input's window of the grid (None: no cell, no DEM; input_windows);
+    mosaics: {kind: the VRT mosaic path} (geo.raster.mosaic_paths)."""
+
+    outputs: list
+    targets: list
+    windows: list
+    mosaics: dict
+
+    def write(self, dem: DemGrid, grids, method: str | None, style: RasterStyle) -> dict:
+        """Write each input's rasters from the grids on disk (heights, gradients, support,
+        each with the ring) and the mosaics; the report's raster section (grid, mosaics,
+        tiles). On failure every file already written is removed."""
+        heights, gradients, support = grids
+        written, tiles, created = [], [], []
+        try:
+            for output, targets, window in zip(self.outputs, self.targets, self.windows):
+                if window is None:
+                    tiles.append({"output": output, "written": False})
+                    continue
+                facts = write_blocks(targets, window, grid_blocks(dem, heights, gradients, support, method, window),
+                                     style)
+                created += [path for _, path in targets.items()]
+                written.append((targets, window))
+                tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
+                              "col0": window.col0, "width": window.width, "height": window.height,
+                              "cells_with_data": facts["cells_with_data"]})
+            for kind, path in self.mosaics.items():
+                write_vrt(path, dem.grid, [(getattr(t, kind), w) for t, w in written], kind, style.crs)
+                created.append(path)
+        except BaseException:
+            for path in created:
+                Path(path).unlink(missing_ok=True)
+            raise
+        grid = dem.grid
+        return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
+                         "width": grid.width, "height": grid.height}, "mosaics": self.mosaics, "tiles": tiles}
+
+
+def input_windows(job: DemJob, chunks, owners, inputs: int) -> list:
+    """Per input, the window of the DEM grid its DEM covers (pipeline.driver.dem_windows'
+    rule: the cells holding its points, chunks() giving the survey's world points in
+    blocks, and those of the boxes of the triangles it owns, the input of their
+    lowest-numbered corner by owners, split_outputs.InputOwners), or None."""
+    lo, hi = np.full((inputs, 2), np.inf), np.full((inputs, 2), -np.inf)
+
+    def extend(which: np.ndarray, xy: np.ndarray) -> None:
+        for i in np.unique(which).tolist():
+            mine = xy[which == i]
+            lo[i], hi[i] = np.minimum(lo[i], mine.min(axis=0)), np.maximum(hi[i], mine.max(axis=0))
+    start = 0
+    for points, _ in chunks():
+        extend(owners.of(np.arange(start, start + len(points))), points[:, :2])
+        start += len(points)
+    origin = job.dem.origin[:2]
+    for t, path in enumerate(job.surfaces.files):
+        triangles = np.load(path) if path is not None else np.empty((0, 3), np.int64)
+        if not len(triangles):
+            continue
+        records = job.halos.halo(t).records
+        rows = tile_rows(records["index"], triangles)
+        xy = np.column_stack([records["x"], records["y"]])[rows] + origin      # (k, 3, 2) world
+        extend(np.repeat(owners.of(triangles.min(axis=1)), 3), xy.reshape(-1, 2))
+    return [job.dem.grid.window_over(lo[i], hi[i]) if np.isfinite(lo[i]).all() else None for i in range(inputs)]
+
+
 def render_preview(dem: DemGrid, grids, plan: DemPlan, crs: str | None) -> None:
     """The DEM's --preview (plan.preview) from the cells the tiles sampled: every stride-th
     cell of the grid (geo.preview.preview_stride; not the ring), heights rounded to float32
@@ -729,22 +810,28 @@ def _own_vertices(halo) -> int:
     return int(np.count_nonzero(used & halo.own))
 
 
-def grid_blocks(dem: DemGrid, heights, gradients, support, method: str | None):
+def grid_blocks(dem: DemGrid, heights, gradients, support, method: str | None, window: RasterGrid | None = None):
     """geo.raster.write_blocks' blocks of the grid's rows from the grids on disk (each with
     the ring): heights; gradients (Horn's differences of the heights with the ring, the
     spline's gradient where a neighbour is nodata, as geo.raster.grid_blocks does; or the
-    spline's, method "spline"; None: heights only); support distances (None: none)."""
-    grid = dem.grid
+    spline's, method "spline"; None: heights only); support distances (None: none).
+    window: a window of the grid (RasterGrid.window; None: the whole grid), its rows
+    counted from its first, Horn's differences taken with the grid's cells around it."""
+    grid = dem.grid if window is None else window
+    row0, col0 = (0, 0) if window is None else (window.row0, window.col0)
+    cols = slice(col0 + 1, col0 + grid.width + 1)
     step = max(1, min(256, BLOCK_CELLS // grid.width))
     for start in range(0, grid.height, step):
         rows = range(start, min(start + step, grid.height))
-        z = np.asarray(heights[rows.start + 1:rows.stop + 1, 1:-1])
+        inner = slice(row0 + rows.start + 1, row0 + rows.stop + 1)
+        z = np.asarray(heights[inner, cols])
         g = None
         if method == "spline":
-            g = np.asarray(gradients[rows.start + 1:rows.stop + 1, 1:-1])
+            g = np.asarray(gradients[inner, cols])
         elif method == "horn":
-            g = horn_gradient(np.asarray(heights[rows.start:rows.stop + 2]), grid.resolution)
+            g = horn_gradient(np.asarray(heights[row0 + rows.start:row0 + rows.stop + 2,
+                                                 col0:col0 + grid.width + 2]), grid.resolution)
             edge = np.isfinite(z) & ~np.isfinite(g).all(axis=2)
-            g[edge] = np.asarray(gradients[rows.start + 1:rows.stop + 1, 1:-1])[edge]
-        d = None if support is None else np.asarray(support[rows.start + 1:rows.stop + 1, 1:-1], dtype=np.float64)
+            g[edge] = np.asarray(gradients[inner, cols])[edge]
+        d = None if support is None else np.asarray(support[inner, cols], dtype=np.float64)
         yield rows, z, g, d

@@ -72,9 +72,9 @@ from c1mesh.core.tile import corner_rows
 from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.geo.contours import BYTES_PER_NODE
 from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
-from c1mesh.geo.raster import check_angle_crs, fill_distance
+from c1mesh.geo.raster import check_angle_crs, fill_distance, mosaic_paths, tile_targets
 from c1mesh.geo.preview import SplineView
-from c1mesh.pipeline.bounded_dem import DemGrid, DemJob, TiledDem, dem_grid, vertex_box
+from c1mesh.pipeline.bounded_dem import DemGrid, DemJob, InputWindows, TiledDem, dem_grid, input_windows, vertex_box
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
@@ -261,10 +261,11 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 limiter = TiledLimiter(halos, temps, runner, rows.name, kept)
                 done("noise floors")
             if plan.dem is not None:
-                report = _write_dem(DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads),
-                                           halos, dem_grid(mesh, plan.dem.resolution), max_edge,
-                                           longest, _shaded(plan.dem), rows.threads, trimmed),
-                                    (temps, runner, rows), plan.dem, (chunks, crs, contours), limiter)
+                job = DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads), halos,
+                             dem_grid(mesh, plan.dem.resolution), max_edge, longest, _shaded(plan.dem), rows.threads,
+                             trimmed)
+                windows = None if outputs is None else _windows(job, chunks, file_counts, outputs, plan.dem)
+                report = _write_dem(job, (temps, runner, rows, windows), plan.dem, (chunks, crs, contours), limiter)
                 done("raster")
             else:
                 split = None if outputs is None else Split(InputOwners(file_counts), outputs,
@@ -319,14 +320,26 @@ def _shaded(dem: DemPlan) -> bool:
     return bool(dem.slope or dem.aspect or dem.hillshade or dem.preview)
 
 
+def _windows(job: DemJob, chunks, counts, outputs, dem: DemPlan) -> InputWindows:
+    """--seamless -O DIR --suffix .tif: each input's DEM (outputs, one per input; counts:
+    the points each holds) and side rasters DIR/NAME.KIND.tif on its window of the
+    survey's grid, and the mosaics (the DEMs' DIR/mosaic.vrt; a side raster's its
+    option's .vrt path), as pipeline.driver.fit_dem_tiles names them."""
+    sides = {"slope": dem.slope, "aspect": dem.aspect, "hillshade": dem.hillshade, "support": dem.support}
+    return InputWindows(list(outputs), [tile_targets(output, sides) for output in outputs],
+                        input_windows(job, chunks, InputOwners(counts), len(outputs)), mosaic_paths(outputs, sides))
+
+
 def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
     """The tiled DEM (c1mesh.pipeline.bounded_dem) of the trimmed survey, in place of the
     mesh's refinement: the facts write_tiles gives a mesh (kept, output_mesh null,
     triangles_per_tile, overshoot), the raster section and the contours' (None: none).
-    where: (temps, runner, rows); inputs: (the points' chunks, the CRS, the
-    geo.products.ContourRequest or None)."""
+    where: (temps, runner, rows, the per-input DEMs' InputWindows or None); inputs: (the
+    points' chunks, the CRS, the geo.products.ContourRequest or None)."""
     chunks, crs, contours = inputs
-    facts = TiledDem(job, *where).write(dem, chunks, crs, isinstance(limiter, TiledSmoother), contours)
+    temps, runner, rows, windows = where
+    facts = TiledDem(job, temps, runner, rows, windows=windows).write(dem, chunks, crs,
+                                                                     isinstance(limiter, TiledSmoother), contours)
     report = {"kept": facts["kept"], "output_mesh": None, "triangles_per_tile": facts["triangles_per_tile"],
               "raster": facts["raster"], "contours": facts["contours"]}
     if limiter is not None:

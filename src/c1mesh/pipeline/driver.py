@@ -39,10 +39,12 @@ from c1mesh.geo.products import (
 )
 from c1mesh.geo.products import finish as _finish_geo
 from c1mesh.geo.raster import (
-    RasterTargets,
+    SIDE_KINDS,
     dem_sampling,
     fill_distance,
+    mosaic_paths,
     raster_axis,
+    tile_targets,
     write_fit_rasters,
     write_vrt,
 )
@@ -622,10 +624,6 @@ def fit_in_memory(source, output, options: FitOptions, on_stage: Callable[[str],
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
 
 
-MOSAIC_NAME = "mosaic.vrt"
-"""The VRT mosaic of --seamless -O's per-tile DEMs, in the output folder."""
-
-
 def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None = None) -> dict:
     """`--seamless -O DIR --suffix .tif`: the survey (survey.tiles.Survey) fitted once, one
     DEM per input (outputs[i], a window of the survey's DEM grid: dem_windows), with its
@@ -638,10 +636,11 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
     timer = timer or StageTimer(None)
     options = replace(options, axis=raster_axis(options.axis))
     plain = replace(options, **{kind: None for kind in SIDE_KINDS})        # their paths are mosaics here
+    sides = side_rasters(options)
     crs, crs_source = resolve_crs(survey.cloud.crs, geo_plan(outputs[0], plain).user_crs, survey.names[0])
     fill = fill_distance(options.fill)
     model = build_surface(survey.cloud, options, timer, fill=fill is not None)
-    mosaics = mosaic_paths(outputs, options)
+    mosaics = mosaic_paths(outputs, sides)
     with timer.stage("raster"):
         data_xy = (survey.cloud.points - model.frame.origin)[:, :2]
         grid, sampler = dem_sampling(model.interp, model.frame, options.resolution, data_xy,
@@ -653,7 +652,7 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
                 if window is None:
                     tiles.append({"output": output, "written": False})
                     continue
-                targets = tile_targets(output, options)
+                targets = tile_targets(output, sides)
                 facts = write_fit_rasters(targets, window, sampler, options, crs, model.smoothing is not None)
                 created += [path for _, path in targets.items()]
                 written.append((targets, window))
@@ -676,26 +675,6 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
     return report
 
 
-SIDE_KINDS = ("slope", "aspect", "hillshade", "support")
-"""The rasters on a DEM's grid besides it (FitOptions fields of the same names)."""
-
-
-def tile_targets(output, options: FitOptions):
-    """The rasters of one input's tile under --seamless -O: its DEM `output` (DIR/NAME.tif)
-    and, for each of --slope, --aspect, --hillshade, --support given, DIR/NAME.KIND.tif."""
-    stem = Path(output).with_suffix("")
-    return RasterTargets(dem=str(output), **{kind: f"{stem}.{kind}.tif" for kind, path in side_rasters(options).items()
-                                             if path})
-
-
-def mosaic_paths(outputs, options: FitOptions) -> dict:
-    """The VRT mosaic of each raster kind under --seamless -O: the DEMs' DIR/MOSAIC_NAME, and
-    for each side raster the .vrt path its option names (--slope out/slope.vrt)."""
-    paths = {"dem": str(Path(outputs[0]).parent / MOSAIC_NAME)}
-    paths.update({kind: str(path) for kind, path in side_rasters(options).items() if path})
-    return paths
-
-
 def side_rasters(options: FitOptions) -> dict:
     """{kind: the path --slope, --aspect, --hillshade, --support give (None: not asked)},
     in SIDE_KINDS' order."""
@@ -709,7 +688,7 @@ def dem_windows(grid, survey, model: SurfaceModel) -> list:
     lies in the bounding box of a triangle it owns (the triangle's lowest-numbered corner
     point is its: survey.tiles' ownership rule). Every cell the survey's DEM gives a value
     lies in some window: in a triangle, or holding a point (the nearest-triangle rule)."""
-    interp, origin, r = model.interp, model.frame.origin, grid.resolution
+    interp, origin = model.interp, model.frame.origin
     corner = model.hf.source_index[model.used]                   # interpolator vertex -> survey point
     owner = survey.input_of(corner[interp.triangles].min(axis=1))
     windows = []
@@ -720,12 +699,7 @@ def dem_windows(grid, survey, model: SurfaceModel) -> list:
         if not len(xy):
             windows.append(None)
             continue
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
-        cols = range(max(int(np.floor((lo[0] - grid.west) / r)), 0),
-                     min(int(np.floor((hi[0] - grid.west) / r)) + 1, grid.width))
-        rows = range(max(int(np.floor((grid.north - hi[1]) / r)), 0),
-                     min(int(np.floor((grid.north - lo[1]) / r)) + 1, grid.height))
-        windows.append(grid.window(rows, cols) if len(rows) and len(cols) else None)
+        windows.append(grid.window_over(xy.min(axis=0), xy.max(axis=0)))
     return windows
 
 

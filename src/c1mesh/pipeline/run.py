@@ -29,7 +29,7 @@ from c1mesh.core.threads import limit as thread_limit
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.formats import check_output
 from c1mesh.geo.products import geo_plan
-from c1mesh.geo.raster import is_raster_path
+from c1mesh.geo.raster import SIDE_KINDS, is_raster_path
 from c1mesh.pipeline.bounded_fit import fit_tiled, tiles_report
 from c1mesh.pipeline.driver import (
     FitOptions,
@@ -89,7 +89,7 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
             options, _ = resolve_options_axis(source[0], options)
         if outputs is not None and options.contours:
             raise InputError("--contours makes one survey-wide file: use it with --seamless -o, not -O")
-        plan = fit_plan(options, output)              # InputError for a bad --smooth, before any work
+        plan = fit_plan(options, output if outputs is None else outputs[0])   # a bad --smooth fails before any work
         if tiles.per_tile is not None or needs_tiles(list(source) if survey else source, plan):
             return FitResult(None, _fit_in_tiles(source, output, plan, replace(tiles, outputs=outputs), options))
         if outputs is not None:
@@ -104,8 +104,10 @@ def _fit_in_tiles(source, output, plan, tiles: TiledRun, options: FitOptions) ->
     """The memory-bounded fit (bounded_fit.fit_tiled: a mesh, or a DEM when output is a
     GeoTIFF, pipeline.bounded_dem) and its report; plan: the options' core.plan.FitPlan for
     that output, resolved once by `fit`."""
-    if plan.dem is not None:
+    if plan.dem is not None and tiles.outputs is None:
         geo_plan(output, options)                     # the rasters' paths and options, before any work
+    elif plan.dem is not None:                        # -O's DEMs: the side rasters' options name mosaics
+        geo_plan(tiles.outputs[0], replace(options, **{kind: None for kind in SIDE_KINDS}))
     report = tiles_report(fit_tiled(source, output, plan, tiles), options)
     if tiles.outputs is not None:
         report["ownership"] = OWNERSHIP
