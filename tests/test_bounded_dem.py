@@ -66,19 +66,19 @@ def _assert_cog(path: str) -> None:
 
 @pytest.mark.parametrize("source,resolution,fill,per_tile,tiles", [("autzen_trim.laz", 2.0, "off", 7000, 4),
                                                                     ("autzen_trim.laz", 2.0, "hull", 1800, 16),
-                                                                    ("4_6_crop.las", 1.0, "hull", 1000, 16)])
+                                                                    ("4_6_crop.las", 1.0, "3", 1000, 16)])
 def test_bounded_dem_equals_the_in_memory_dem(tmp_path, source, resolution, fill, per_tile, tiles):
     """Autzen ground (26k points: bow-ties, curtains, cells holding ground points outside
     the trimmed triangles; with the default fill, 34% of its hull in holes under
     buildings and trees, spanned by 1,547 long triangles across tiles) and 4_6_crop
-    ground: DEM, slope, aspect, hillshade and support equal the in-memory fit's cell for
-    cell, and every raster is a valid COG."""
+    ground, its fill within 3 m of a point (--fill 3): DEM, slope, aspect, hillshade and
+    support equal the in-memory fit's cell for cell, and every raster is a valid COG."""
     whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
     report = fit(str(SAMPLES / source), whole["dem"], _options(whole, resolution, fill)).report
     facts = fit(str(SAMPLES / source), tiled["dem"], replace(_options(tiled, resolution, fill), memory=10**9),
                 tiles=TiledRun(per_tile=per_tile)).report
     assert facts["tiles"] == tiles
-    assert (facts["raster"]["fill"]["triangles_spanning_holes"] > 100) == (fill == "hull")
+    assert (facts["raster"]["fill"]["triangles_spanning_holes"] > 100) == (fill != "off")
     for kind in KINDS:
         _assert_same_raster(tiled[kind], whole[kind])
         _assert_cog(tiled[kind])
@@ -134,12 +134,11 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
 
 
 @pytest.mark.parametrize("extra,words", [
-    (["--fill", "5"], "--fill D"),
     (["--smooth", "auto"], "--smooth off"),                     # with the default fill, the hull
 ])
 def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
-    """Beyond --memory a fill within a distance, and the smoothing fit's fill, are refused
-    in one line naming the input and the option, before any output is written."""
+    """Beyond --memory the smoothing fit's fill is refused in one line naming the input and
+    the option, before any output is written."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2, 5))
     target = ["-o", str(tmp_path / "dem.tif"), "--resolution", "1"]

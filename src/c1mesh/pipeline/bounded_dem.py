@@ -45,9 +45,9 @@ file, then those spanning the holes, DemJob.trimmed counts the first), limited o
 and its halos read across the long triangles (far reads); the nearest-triangle rule
 searches the trimmed triangles only, as SplineSampler's fill does; the preview hatches
 the cells of the spanning triangles; a cell deep in a hole has its nearest vertex beyond
-the halo, asked of the tiles within that distance (`_nearer_vertices`). A fill within a
-distance (--fill D) and the smoothing fit's fill are refused in tiles
-(survey.sizing.needs_tiles).
+the halo, asked of the tiles within that distance (`_nearer_vertices`); --fill D drops
+the spanning cells farther than D from every vertex (`TiledDem._fill_within`). The
+smoothing fit's fill is refused in tiles (survey.sizing.needs_tiles).
 
 --seamless -O DIR --suffix .tif writes one DEM per input from the same grids
 (`InputWindows`): its window of the grid (`input_windows`, pipeline.driver.dem_windows'
@@ -91,6 +91,10 @@ the contours trace the local heights the in-memory fit traces), the spline's gra
 (dz/dx, dz/dy) and the tile's triangle holding the centre (where the contours' search
 starts, as the in-memory one starts from the node's triangle) and whether that triangle spans a hole (a fill's; the
 preview hatches the cell)."""
+
+
+DISTANCE = np.dtype([("cell", "<i8"), ("d", "<f8")])
+"""A cell's distance to the nearest vertex of the spline, in a support task's file."""
 
 
 @dataclass(frozen=True)
@@ -198,13 +202,14 @@ class DemJob:
     (whether slope, aspect or hillshade need the spline's gradients), threads per task,
     trimmed (a fill: per tile how many of its own triangles, the first rows of its file,
     the trim kept; the rest span its holes, survey.hole_runs.TiledFill; None: no fill),
-    heights_path (the grid of heights, for the support pass)."""
+    heights_path, spans_path (the grids of heights and of the cells in triangles that span
+    holes, for the support pass and --fill D's)."""
 
     def __init__(self, surfaces, halos, dem: DemGrid, reach: float | None, longest: float, gradients: bool,
                  threads=None, trimmed: tuple | None = None):
         self.surfaces, self.halos, self.dem, self.reach, self.longest = surfaces, halos, dem, reach, longest
         self.gradients, self.threads, self.trimmed = gradients, threads, trimmed
-        self.heights_path = None
+        self.heights_path = self.spans_path = None
 
     def trimmed_rows(self, t: int, count: int) -> np.ndarray:
         """(count,) bool over tile t's own triangles: those the trim kept (every one
@@ -304,15 +309,17 @@ def _continue_tile(job: DemJob, spline_path, cells: np.ndarray):
     return cells[has], np.hypot(shift[:, 0], shift[:, 1]), values + sampler.origin[2], grads
 
 
-def _support_tile(job: DemJob, t: int, path) -> int:
+def _support_tile(job: DemJob, t: int, path, spanning: bool = False) -> int:
     """The support of the cells with a height whose centres lie in tile t's cell (the
     tile grid's tile_of): the distance to the nearest vertex of the spline, by a k-d tree
     of the tile's halo (module docstring), as SplineSampler.distances measures it; a cell
     whose nearest vertex there lies beyond 3 longest edges (in a fill's long triangle)
-    asks the tiles within that distance (_nearer_vertices). Writes
-    (flat cell int64, distance float32) pairs to path; returns how many."""
+    asks the tiles within that distance (_nearer_vertices). spanning: of the cells in
+    triangles that span holes only (job.spans_path; --fill D). Writes (flat cell int64,
+    distance float64) pairs to path; returns how many."""
     dem, grid = job.dem, job.surfaces.grid
     heights = np.load(job.heights_path, mmap_mode="r").reshape(-1)
+    spans = np.load(job.spans_path, mmap_mode="r").reshape(-1) if spanning else None
     vertices = halo_vertices(job.halos.halo(t))
     tree = cKDTree(np.column_stack([vertices["x"], vertices["y"]])) if len(vertices) else None
     nx, ny = grid.nx, grid.ny
@@ -326,7 +333,7 @@ def _support_tile(job: DemJob, t: int, path) -> int:
         for block in row_blocks(rows, len(cols)):
             ii, jj = np.divmod(np.arange(len(block) * len(cols)), len(cols))
             flat = dem.flat(block.start + ii, cols.start + jj)
-            flat = flat[np.isfinite(heights[flat])]
+            flat = flat[np.isfinite(heights[flat]) if spans is None else np.isfinite(heights[flat]) & (spans[flat] == 1)]
             centre = dem.centres(flat)
             mine = grid.tile_of(centre) == t
             flat, centre = flat[mine], centre[mine]
@@ -338,7 +345,7 @@ def _support_tile(job: DemJob, t: int, path) -> int:
             beyond = np.flatnonzero(distance > bound)      # in a fill's long triangles: search wider
             if beyond.size:
                 distance[beyond] = _nearer_vertices(job, centre[beyond], distance[beyond])
-            pairs = np.zeros(flat.size, [("cell", "<i8"), ("d", "<f4")])
+            pairs = np.zeros(flat.size, DISTANCE)
             pairs["cell"], pairs["d"] = flat, distance
             pairs.tofile(out)
             count += flat.size
@@ -403,6 +410,8 @@ class TiledDem:
     def _write(self, plan: DemPlan, chunks, crs: str | None, smoothed: bool, contours) -> dict:
         """write's passes; the contours staged (geo.contour_file.StagedContours) in "staged"."""
         grids = self._sampled(contours is not None)
+        if plan.fill is not None and math.isfinite(plan.fill):
+            self._fill_within(grids, plan.fill)
         marks = mark_points(chunks, self.job.dem, self.temps.new("dem-marks.npy"))
         self._continue(grids.sampled, grids.files, grids.heights, grids.gradients, marks)
         staged, contour_facts = None, None
@@ -448,12 +457,12 @@ class TiledDem:
         files = {t: _TileFiles(self.temps.new(f"dem-cells-{t}.bin"), self.temps.new(f"dem-spline-{t}.npz"))
                  for t in tiles}
         contour_nodes = ContourNodes.empty(shape) if nodes else None
-        spans = None                    # a fill: the cells in triangles that span holes (hatched)
+        spans, spans_path = None, None  # a fill: the cells in triangles that span holes (hatched)
         if job.trimmed is not None:
-            spans = np.lib.format.open_memmap(self.temps.new("dem-spans.npy"), mode="w+", dtype=np.uint8,
-                                              shape=shape)
+            spans_path = self.temps.new("dem-spans.npy")
+            spans = np.lib.format.open_memmap(spans_path, mode="w+", dtype=np.uint8, shape=shape)
         sampled = self._sample(tiles, files, (heights, gradients, contour_nodes, spans))
-        return _Grids(path, heights, gradients, contour_nodes, tiles, files, sampled, spans)
+        return _Grids(path, heights, gradients, contour_nodes, tiles, files, sampled, spans, spans_path)
 
     def _trace(self, grids: "_Grids", request: ContourRequest):
         """(StagedContours, report section) of the contours through grids' nodes, snapped
@@ -558,6 +567,26 @@ class TiledDem:
         if gradients is not None:
             gradients.reshape(-1, 2)[cell[best]] = np.concatenate([f[3] for f in found])[best]
 
+    def _fill_within(self, grids: "_Grids", distance: float) -> None:
+        """--fill D: the cells in triangles that span holes whose centres lie farther than
+        D (local units) from every vertex of the spline lose their heights, as the
+        in-memory sampler's FillRule drops them (before the nearest-triangle rule; the
+        contours' nodes keep them, as the in-memory contours do)."""
+        grids.heights.flush()
+        grids.spans.flush()
+        self.job.heights_path, self.job.spans_path = grids.path, grids.spans_path
+        tiles = grids.tiles
+        paths = {t: self.temps.new(f"dem-fill-{t}.bin") for t in tiles}
+        flat_heights, flat_spans = grids.heights.reshape(-1), grids.spans.reshape(-1)
+        for i, _ in self.runner.map(_support_tile, len(tiles), lambda i: (self.job, tiles[i], paths[tiles[i]], True),
+                                    lambda i: self.rows.name(tiles[i])):
+            pairs = np.fromfile(paths[tiles[i]], dtype=DISTANCE)
+            far = pairs["cell"][pairs["d"] > distance]
+            flat_heights[far], flat_spans[far] = np.nan, 0
+            if grids.gradients is not None:
+                grids.gradients.reshape(-1, 2)[far] = np.nan
+            paths[tiles[i]].unlink()
+
     def _support(self, tiles, heights_path, shape) -> np.memmap:
         """The support grid (float32 memory map, NaN where no height), from every tile's
         _support_tile."""
@@ -571,7 +600,7 @@ class TiledDem:
         for i, _ in self.runner.map(_support_tile, len(tiles), lambda i: (self.job, tiles[i], paths[tiles[i]]),
                                     lambda i: self.rows.name(tiles[i])):
             with open(paths[tiles[i]], "rb") as file:
-                pairs = np.fromfile(file, dtype=[("cell", "<i8"), ("d", "<f4")])
+                pairs = np.fromfile(file, dtype=DISTANCE)
             flat[pairs["cell"]] = pairs["d"]
             paths[tiles[i]].unlink()
         return support
@@ -592,6 +621,7 @@ class _Grids:
     files: dict
     sampled: dict
     spans: np.ndarray | None = None
+    spans_path: object = None
 
     def drop_tile_files(self) -> None:
         """Remove the tiles' cells and spline files (the grids stay)."""

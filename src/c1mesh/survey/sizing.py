@@ -96,9 +96,6 @@ def needs_tiles(source, plan: FitPlan) -> bool:
     if plan.dem is not None and plan.dem.fill is not None and plan.surface.strength is not None:
         raise InputError(f"{need}; the smoothing fit's DEM fill of the trim's holes (--fill, by default the "
                          "hull) is not yet done in tiles: give --fill off or --smooth off, or raise --memory")
-    if plan.dem is not None and plan.dem.fill is not None and math.isfinite(plan.dem.fill):
-        raise InputError(f"{need}; a DEM fill within a distance (--fill D) is not yet done in tiles: give "
-                         "--fill hull or --fill off, or raise --memory")
     if plan.heights.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True
