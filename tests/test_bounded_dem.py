@@ -133,19 +133,29 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
         ["terrain.las", "r.json", *(Path(p).name for p in [*whole.values(), *tiled.values()])])
 
 
-@pytest.mark.parametrize("extra,words", [
-    (["--smooth", "auto"], "--smooth off"),                     # with the default fill, the hull
-])
-def test_cli_refuses_what_the_tiled_dem_does_not_do(tmp_path, extra, words):
-    """Beyond --memory the smoothing fit's fill is refused in one line naming the input and
-    the option, before any output is written."""
-    source = tmp_path / "terrain.las"
-    write_terrain_las(source, 24000, classes=(2, 5))
-    target = ["-o", str(tmp_path / "dem.tif"), "--resolution", "1"]
-    result = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", *target, "--memory", "1M", *extra])
-    assert result.exit_code == 1
-    assert result.output.count("\n") == 1 and words in result.output and "terrain.las" in result.output
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["terrain.las"]
+@pytest.mark.parametrize("per_tile,tiles", [(7000, 4), pytest.param(10**6, 1, marks=pytest.mark.slow)])
+def test_the_smoothing_fits_fill_in_tiles_is_the_in_memory_fill(tmp_path, per_tile, tiles):
+    """--smooth 3 with the default fill: the smoothing fits the trimmed triangles, and the
+    limiter, over the filled triangulation with the fitted data, gives the gradients at
+    the corners of the triangles that span holes (pipeline.driver._smoothed). In one tile
+    the tiled fit is the in-memory one, byte for byte; in 4 each tile solves on its halo,
+    so the heights differ by the tiled solve's tolerance (within 1% of the fit's residual
+    RMS, tests/test_tiled_smoothing.py), on the same cells, with the same support."""
+    whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
+    report = fit(str(SAMPLES / "autzen_trim.laz"), whole["dem"], _options(whole, 2.0, "hull", smooth=3.0)).report
+    facts = fit(str(SAMPLES / "autzen_trim.laz"), tiled["dem"], replace(_options(tiled, 2.0, "hull", smooth=3.0),
+                memory=10**9), tiles=TiledRun(per_tile=per_tile)).report
+    assert facts["tiles"] == tiles and facts["raster"]["fill"] == report["raster"]["fill"]
+    assert facts["raster"]["fill"]["triangles_spanning_holes"] > 1000
+    assert Path(tiled["support"]).read_bytes() == Path(whole["support"]).read_bytes()
+    with rasterio.open(tiled["dem"]) as a, rasterio.open(whole["dem"]) as b:
+        x, y, nodata = a.read(1).astype(float), b.read(1).astype(float), a.nodata
+    assert np.array_equal(x == nodata, y == nodata)
+    difference = np.abs(x - y)[x != nodata]
+    if tiles == 1:
+        assert difference.max() == 0
+    else:
+        assert difference.max() < 0.01 * report["smoothing"]["residual_rms"]
 
 
 def _lake_las(path, seed: int = 3) -> None:

@@ -46,8 +46,8 @@ and its halos read across the long triangles (far reads); the nearest-triangle r
 searches the trimmed triangles only, as SplineSampler's fill does; the preview hatches
 the cells of the spanning triangles; a cell deep in a hole has its nearest vertex beyond
 the halo, asked of the tiles within that distance (`_nearer_vertices`); --fill D drops
-the spanning cells farther than D from every vertex (`TiledDem._fill_within`). The
-smoothing fit's fill is refused in tiles (survey.sizing.needs_tiles).
+the spanning cells farther than D from every vertex (`TiledDem._fill_within`); a
+smoothing fit's fill takes its data from survey.smoothing_runs.SmoothedFill.
 
 --seamless -O DIR --suffix .tif writes one DEM per input from the same grids
 (`InputWindows`): its window of the grid (`input_windows`, pipeline.driver.dem_windows'

@@ -88,7 +88,7 @@ from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
 from c1mesh.survey.height_runs import height_spill, survey_stacking
-from c1mesh.survey.smoothing_runs import TiledSmoother, TiledSmoothing
+from c1mesh.survey.smoothing_runs import SmoothedFill, TiledSmoother, TiledSmoothing
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.halos import HaloCache, TiledLimiter, halo_reach, longest_final_edge
 from c1mesh.survey.hole_runs import TiledFill
@@ -235,11 +235,11 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             removed, kept = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
-            trimmed = None
+            trimmed_mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
+            filled = None
             if fill is not None:           # the filled triangulation's halos in place of the trim's
-                triangle_files, trimmed, far = fill.filled(triangle_files, heights, halos.reach, temps,
-                                                           (runner, rows.name))
-                halos = HaloCache(heights, triangle_files, grid, halos.reach, temps, "filled", far=far)
+                filled = fill.filled(triangle_files, heights, halos.reach, temps, (runner, rows.name))
+                halos = HaloCache(heights, filled.files, grid, halos.reach, temps, "filled", far=filled.far)
                 halos.prefetch(runner, rows.name)
                 kept = None
             if plan.dem is None and plan.mesh.resolution is not None:     # --resolution of a mesh: its level
@@ -249,13 +249,15 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if outputs is None and output is not None and plan.dem is None:
                 _check_size(kept_triangles, plan, output, colours.present)
             done("trim")
-            mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame, {} if fill is None else far)
+            mesh = trimmed_mesh if filled is None else replace(trimmed_mesh, files=filled.files, far=filled.far)
             limiter = None
-            if strength is not None:
+            if strength is not None:       # fitted over the trimmed triangles; a fill spans the holes
                 fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
                                                   gradient_data_weight("estimated", gradient_source)), longest, data)
-                limiter = TiledSmoother(mesh, fit, temps, runner, rows.name,
+                limiter = TiledSmoother(trimmed_mesh, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
+                if filled is not None:
+                    limiter = SmoothedFill(limiter, halos, filled.spanning, temps, runner, rows.name)
                 done("smoothing")
             elif surface.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name, kept)
@@ -263,7 +265,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if plan.dem is not None:
                 job = DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads), halos,
                              dem_grid(mesh, plan.dem.resolution), max_edge, longest, _shaded(plan.dem), rows.threads,
-                             trimmed)
+                             None if filled is None else filled.trimmed)
                 windows = None if outputs is None else _windows(job, chunks, file_counts, outputs, plan.dem)
                 report = _write_dem(job, (temps, runner, rows, windows), plan.dem, (chunks, crs, contours), limiter)
                 done("raster")
@@ -297,8 +299,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,     # a fill's spanning triangles are no trim's
-                                 "after_trim": sum(report["triangles_per_tile"].values()) if trimmed is None
-                                 else sum(trimmed),
+                                 "after_trim": sum(report["triangles_per_tile"].values()) if filled is None
+                                 else sum(filled.trimmed),
                                  "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
                    "level": None if plan.dem is not None else surface.level,
@@ -339,7 +341,8 @@ def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
     chunks, crs, contours = inputs
     temps, runner, rows, windows = where
     facts = TiledDem(job, temps, runner, rows, windows=windows).write(dem, chunks, crs,
-                                                                     isinstance(limiter, TiledSmoother), contours)
+                                                                     isinstance(limiter, (TiledSmoother, SmoothedFill)),
+                                                                     contours)
     report = {"kept": facts["kept"], "output_mesh": None, "triangles_per_tile": facts["triangles_per_tile"],
               "raster": facts["raster"], "contours": facts["contours"]}
     if limiter is not None:

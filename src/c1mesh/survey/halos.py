@@ -143,13 +143,17 @@ class HaloCache:
         """A fresh iterator over the halos of all tiles that own triangles."""
         return (self.halo(t) for t in self.tiles())
 
+    def reads(self, tile: int) -> list[int]:
+        """The spill tiles tile's halo reads (its rectangle's and its far reads')."""
+        if tile not in self._reads:
+            self._reads[tile] = self.heights.reading(self.grid.grown(tile, self.reach), self.far.get(tile))
+        return self._reads[tile]
+
     def _pending(self, tile: int) -> dict[int, int]:
         """{owner: rows of removed[owner] already dropped} for the tiles near `tile`
         (those its halo reads) that removed triangles since its cached file was written."""
         applied = self.applied.get(tile, {})
-        if tile not in self._reads:
-            self._reads[tile] = self.heights.reading(self.grid.grown(tile, self.reach), self.far.get(tile))
-        return {t: applied.get(t, 0) for t in self._reads[tile] if len(self.removed.get(t, ())) > applied.get(t, 0)}
+        return {t: applied.get(t, 0) for t in self.reads(tile) if len(self.removed.get(t, ())) > applied.get(t, 0)}
 
     def _drop(self, tile: int, numbers: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         """triangles (k, 3) (rows of the halo's survey numbers `numbers`) without the

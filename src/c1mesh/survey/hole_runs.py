@@ -53,12 +53,10 @@ class TiledFill:
         return cls(add_long_triangles(halos.files, halos.grid, triangles, rims, temps, "whole"),
                    far_centres(triangles, rims, halos.grid, halos.reach / HALO_EDGES), triangles, rims)
 
-    def filled(self, trimmed: list, heights, reach: float, temps, where) -> tuple[list, tuple, dict]:
-        """(per tile the filled triangulation's own triangles, .npy or None: the trimmed
-        ones (trimmed: the tiles' files after the trim) first; per tile how many of its
-        rows those are; the far reads of its halos: far_centres of the long triangles it
-        kept). The whole triangulation is trimmed here (trim_runs.trim_tiles, without the
-        view rules); where: (runner, name)."""
+    def filled(self, trimmed: list, heights, reach: float, temps, where) -> "Filled":
+        """The filled triangulation (Filled) from the tiles' files after the trim (trimmed).
+        The whole triangulation is trimmed here (trim_runs.trim_tiles, without the view
+        rules); where: (runner, name)."""
         runner, name = where
         whole = HaloCache(heights, self.files, heights.grid, reach, temps, "whole", far=self.far)
         whole.prefetch(runner, name)
@@ -79,7 +77,21 @@ class TiledFill:
             files.append(path)
         added = np.concatenate(spanning) if spanning else np.empty((0, 3), np.int64)
         long = self.triangles[~kept_triangles(self.triangles, added)] if len(added) else self.triangles[:0]
-        return files, tuple(counts), far_centres(long, self.rims, heights.grid, reach / HALO_EDGES)
+        return Filled(files, tuple(counts), far_centres(long, self.rims, heights.grid, reach / HALO_EDGES),
+                      np.unique(added))
+
+
+@dataclass(frozen=True)
+class Filled:
+    """A DEM's filled triangulation over the tiles: files, per tile the .npy of its own
+    triangles (or None), the trimmed ones first; trimmed, per tile how many those are;
+    far, its halos' far reads (far_centres of the long triangles it kept); spanning, the
+    survey numbers of the corners of the triangles that span holes, ascending."""
+
+    files: list
+    trimmed: tuple
+    far: dict
+    spanning: np.ndarray
 
 
 RIM = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8")])

@@ -93,9 +93,6 @@ def needs_tiles(source, plan: FitPlan) -> bool:
         return False
     need = f"{survey_name(paths)}: {count} points need about {count * per_point / 1e6:.0f} MB in " \
            f"one piece, more than --memory {plan.memory / 1e6:.0f} MB, so they are fitted in tiles"
-    if plan.dem is not None and plan.dem.fill is not None and plan.surface.strength is not None:
-        raise InputError(f"{need}; the smoothing fit's DEM fill of the trim's holes (--fill, by default the "
-                         "hull) is not yet done in tiles: give --fill off or --smooth off, or raise --memory")
     if plan.heights.normals == "file":
         raise InputError(f"{need}; the tiled fit estimates normals: drop --normals file, or raise --memory")
     return True

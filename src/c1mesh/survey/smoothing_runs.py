@@ -25,11 +25,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from c1mesh.core.tile import VERTEX, corner_rows
-from c1mesh.stages.limiter import TileLimits
+from c1mesh.core.tile import VERTEX, Tile, corner_rows, tile_rows
+from c1mesh.stages.limiter import TileLimits, tile_limits
 from c1mesh.stages.smoothing import (SmoothingData, SmoothingRun, StrengthSearch, TileSolve, combined_fit,
                                      search_strength, smooth_tile, smoothing_reach)
-from c1mesh.survey.halos import HALO_EDGES, HaloCache, halo_reach
+from c1mesh.survey.halos import HALO_EDGES, HaloCache, halo_reach, noise_floors
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.tiles import task_row
 
@@ -142,6 +142,73 @@ class TiledSmoother:
         return {**facts, "spacing": spacing,
                 "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing),
                           "search_tile": self.search_tile}}
+
+
+class SmoothedFill:
+    """A DEM's fill of a smoothing fit over the tiles, as pipeline.driver._smoothed spans
+    the holes in memory: the smoothing fits the trimmed triangles (smoother, a
+    TiledSmoother of the trimmed survey); the filled triangulation (halos: its
+    halos.HaloCache, survey.hole_runs.TiledFill's files) takes the fitted heights and
+    gradients where the smoothing has them and the data's elsewhere, and the limiter runs
+    over it with noise floors of its own (overshoot "limit"); a vertex of a triangle that
+    spans a hole (spanning: their survey numbers, ascending) takes the limited gradient,
+    the others keep the fitted one, and every edge the limiter's direction. A refinement
+    or DEM task takes its tile's data through `tile`, as from a TiledSmoother."""
+
+    def __init__(self, smoother: TiledSmoother, halos: HaloCache, spanning: np.ndarray, temps, runner=None,
+                 name=str):
+        self.smoother, self.spanning = smoother, spanning
+        self.halos = FittedHalos(halos, {t: paths[0] for t, paths in smoother.paths.items()})
+        self.floors = None
+        if smoother.overshoot == "limit":
+            self.floors = noise_floors(self.halos, temps, runner, name)
+        self.limited = self.turned = self.lifted = 0
+
+    def tile(self, tile: int, triangles: np.ndarray) -> TileLimits:
+        """limiter.TileLimits of tile's own triangles (k, 3) survey numbers (class docstring)."""
+        halo = self.halos.halo(tile)
+        if self.floors is None:                      # --overshoot off: the data as fitted
+            rows, local = corner_rows(halo.records["index"], triangles)
+            records = halo.records.take(rows)
+            return TileLimits(records, local, np.column_stack([records["gx"], records["gy"]]), None, 0, 0, 0)
+        limits = tile_limits(halo, triangles, self.floors)
+        records = halo.records.take(tile_rows(halo.records["index"], limits.records["index"]))
+        spans = np.isin(records["index"], self.spanning)[:, None]
+        gradients = np.where(spans, limits.gradients, np.column_stack([records["gx"], records["gy"]]))
+        return TileLimits(records, limits.triangles, gradients, limits.directions, 0, 0, 0, limits.table)
+
+    def outside(self) -> int:
+        return self.smoother.outside()
+
+    def report(self) -> dict:
+        return self.smoother.report()
+
+    def smoothing(self) -> dict:
+        return self.smoother.smoothing()
+
+
+class FittedHalos:
+    """The halos (halos.HaloCache) of a filled triangulation with the smoothing's fitted
+    heights and gradients (fitted: tile -> the file of its own vertices', VERTEX records,
+    tile_solve's) in place of the data's at the vertices it fitted. Picklable."""
+
+    def __init__(self, halos: HaloCache, fitted: dict):
+        self.cache, self.fitted = halos, fitted
+
+    def tiles(self):
+        return self.cache.tiles()
+
+    def halo(self, tile: int) -> Tile:
+        halo = self.cache.halo(tile)
+        parts = [np.fromfile(self.fitted[t], dtype=VERTEX) for t in self.cache.reads(tile) if t in self.fitted]
+        fitted = np.concatenate(parts) if parts else np.empty(0, VERTEX)
+        fitted = fitted.take(np.argsort(fitted["index"], kind="stable"))
+        rows = tile_rows(fitted["index"], halo.records["index"])
+        has = rows >= 0
+        records = halo.records.copy()
+        for name in ("z", "gx", "gy"):
+            records[name][has] = fitted[name][rows[has]]
+        return Tile(records, halo.triangles, halo.own)
 
 
 def _search_tile(heights, triangle_files) -> int:
