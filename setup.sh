@@ -30,8 +30,10 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-# the build requirements of pyproject.toml's [build-system], for the build without isolation
-.venv/bin/python -m pip install -q "meson-python>=0.16" "meson>=1.4" ninja "cython>=3.0"
+# the build requirements of pyproject.toml's [build-system], for the build without isolation;
+# setuptools >= 70.1 (its own bdist_wheel) for python-lzf's sdist, which the venv's bundled
+# setuptools cannot turn into a wheel without isolation
+.venv/bin/python -m pip install -q "meson-python>=0.16" "meson>=1.4" ninja "cython>=3.0" "setuptools>=70.1"
 .venv/bin/python -m pip install -q --no-build-isolation -e '.[dev]'
 if [ -e /usr/include/suitesparse/cholmod.h ]; then
     .venv/bin/python -m pip install -q --no-build-isolation -e '.[dev,cholmod]' ||
