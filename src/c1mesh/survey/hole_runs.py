@@ -29,13 +29,16 @@ from c1mesh.survey.halos import HALO_EDGES, HaloCache
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.trim_runs import trim_tiles
 
+
 @dataclass(frozen=True)
 class TiledFill:
     """A DEM's fill over the tiles (module docstring), as pipeline.driver.filled_mesh makes
     it in memory: the union of the trimmed triangles and the whole triangulation (short
     and long triangles) trimmed without max_edge and without the view-ray curtain rules.
     files: per tile the whole triangulation's own triangles (.npy, or None), copied from
-    the short ones before the trim; far: the halos' far reads (far_centres)."""
+    the short ones before the trim; far: the halos' far reads (far_centres); triangles:
+    (k, 3) global point indices of the long triangles (stages.holes.spanning_triangles of
+    the rim points); rims: the rim points (RIM: survey index, x, y in the plane)."""
 
     files: list
     far: dict
