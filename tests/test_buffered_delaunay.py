@@ -58,6 +58,36 @@ def test_union_of_tiles_is_the_global_delaunay(kind, with_hull):
             assert (grid.tile_of(xy[tile.triangles.min(axis=1)]) == tile.tile).all()
 
 
+def _ties(kind: str) -> np.ndarray:
+    """Points with ties, in a shuffled order: a 0.1 grid with a hole (every square's
+    corners exactly cocircular), or 100 copies of the 12 lattice points on a circle, off
+    the binary fractions (nearly cocircular: floating point cannot decide them)."""
+    rng = np.random.default_rng(5)
+    if kind == "grid":
+        g = np.stack(np.meshgrid(np.arange(90), np.arange(70)), axis=-1).reshape(-1, 2) * 0.1
+        xy = g[np.hypot(g[:, 0] - 4.0, g[:, 1] - 3.0) > 1.2]
+    else:
+        circle = np.array([(5, 0), (4, 3), (3, 4), (0, 5), (-3, 4), (-4, 3), (-5, 0), (-4, -3), (-3, -4),
+                           (0, -5), (3, -4), (4, -3)]) / 16
+        centres = np.stack(np.meshgrid(np.arange(10), np.arange(10)), axis=-1).reshape(-1, 2) * 1.5 + 0.1
+        xy = (centres[:, None, :] + circle[None]).reshape(-1, 2)
+    return xy[rng.permutation(len(xy))]
+
+
+@pytest.mark.parametrize("kind", ["grid", "circles"])
+def test_tiles_cut_ties_as_the_whole_triangulation_does(kind):
+    """Tiles centre their points on their own cells, so floating point rounds them
+    differently from the whole survey's; the exact tie rule (engine.triangulation) makes
+    their union the whole triangulation all the same, each triangle once."""
+    from c1mesh.engine.triangulation import delaunay
+    xy = _ties(kind)
+    tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy, 4, 3), len(xy),
+                                      hull=bd.streamed_hull(_chunks(xy))))
+    union = _union(tiles)
+    assert len(_faces(union)) == len(union)
+    assert _faces(union) == _faces(delaunay(xy))
+
+
 @pytest.mark.parametrize("kind", ["uniform", "hole", "clusters"])
 def test_union_with_the_long_edge_trim_is_the_trimmed_global_delaunay(kind):
     xy = _survey(kind)

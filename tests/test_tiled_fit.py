@@ -680,3 +680,26 @@ def test_the_first_noise_floor_reuses_the_curtains_summaries_only_where_nothing_
     fresh = fit(source, tmp_path / "b.ply", options, tiles=TiledRun(per_tile=1700)).report["overshoot"]
     assert reused["noise_floors"] == fresh["noise_floors"]
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
+def test_a_gridded_las_in_tiles_is_the_in_memory_fit(tmp_path):
+    """A 0.5 m grid (an exported DEM; every square's corners are cocircular) with a hole
+    and millimetre coordinates near the origin: the tiles' Delaunay ties are cut as the
+    whole fit cuts them, so the tiled mesh is the in-memory one (it used to be refused as
+    "not edge-manifold")."""
+    x, y = (v.ravel() for v in np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 45, 0.5)))
+    keep = np.hypot(x - 25, y - 20) > 6
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [0, 0, 0]
+    record = laspy.ScaleAwarePointRecord.zeros(int(keep.sum()), header=header)
+    record.x, record.y = x[keep], y[keep]
+    record.z = 10 + 3 * np.sin(x[keep] / 17) * np.cos(y[keep] / 23)
+    record.classification = np.full(int(keep.sum()), 2, np.uint8)
+    source = tmp_path / "grid.las"
+    with laspy.open(str(source), mode="w", header=header) as writer:
+        writer.write_points(record)
+    options = FitOptions(level=2, smooth="off")
+    report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=1500)).report
+    assert report["tiles"] >= 4
+    fit(source, tmp_path / "whole.ply", options)
+    _assert_same_mesh(tmp_path / "tiled.ply", trimesh.load(tmp_path / "whole.ply", process=False, force="mesh"))

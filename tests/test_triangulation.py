@@ -110,6 +110,96 @@ def test_grid_ties_give_a_valid_delaunay_triangulation():
     assert inside == 0 and ties > 0                     # every grid square is a tie
 
 
+def _square_diagonals(g: np.ndarray, order: np.ndarray, tri: np.ndarray, width: int, height: int) -> tuple:
+    """Brute force over the grid squares: (squares whose diagonal in tri passes through
+    their lowest-numbered corner, squares). g: the grid points in row-major position,
+    order: each position's point number."""
+    edges = {tuple(sorted(e)) for t in tri.tolist() for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+    good = 0
+    for j in range(height - 1):
+        for i in range(width - 1):
+            p, q, r, s = (order[j * width + i], order[j * width + i + 1],
+                          order[(j + 1) * width + i + 1], order[(j + 1) * width + i])
+            diagonal = (p, r) if min(p, r) < min(q, s) else (q, s)
+            good += tuple(sorted(diagonal)) in edges
+    return good, (width - 1) * (height - 1)
+
+
+def test_grid_ties_are_cut_through_each_squares_lowest_numbered_corner():
+    """Whatever the points' order, every grid square is cut by the diagonal through its
+    lowest-numbered corner (the fan rule), and the result is still Delaunay (exact)."""
+    width, height = 40, 30
+    g = np.stack(np.meshgrid(np.arange(width), np.arange(height)), axis=-1).reshape(-1, 2)
+    for seed in range(3):
+        order = np.random.default_rng(seed).permutation(len(g))     # position -> point number
+        xy = np.empty((len(g), 2))
+        xy[order] = g * 0.5 + [6.4e5, 8.5e5]                        # state-plane-like, exact
+        tri = delaunay(xy)
+        assert_valid_triangulation(xy - xy.mean(axis=0), tri)
+        q = np.empty_like(g)
+        q[order] = g
+        assert exact_violations(q, tri)[0] == 0
+        good, squares = _square_diagonals(g, order, tri, width, height)
+        assert good == squares
+
+
+def test_points_on_one_circle_are_the_fan_from_the_lowest_numbered_one():
+    """The 12 lattice points on the circle of radius 5 (no rectangle among the 4 corners of
+    most quads, so the exact in-circle test decides), inside a ring of far points: their
+    polygon is one Delaunay face, 10 triangles, each through the lowest-numbered of them."""
+    circle = np.array([(5, 0), (4, 3), (3, 4), (0, 5), (-3, 4), (-4, 3), (-5, 0), (-4, -3), (-3, -4),
+                       (0, -5), (3, -4), (4, -3)], dtype=float)
+    ring = 40 * np.array([(np.cos(a), np.sin(a)) for a in np.linspace(0, 2 * np.pi, 9)[:-1]])
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        xy = np.concatenate([circle, ring])[rng.permutation(len(circle) + len(ring))]
+        on_circle = np.flatnonzero(np.isclose(np.hypot(*xy.T), 5))
+        tri = delaunay(xy + 0.25)                                 # off the origin: not symmetric
+        assert_valid_triangulation(xy, tri)
+        inner = tri[np.isin(tri, on_circle).all(axis=1)]
+        assert len(inner) == 10
+        assert (inner == on_circle.min()).any(axis=1).all()
+
+
+def _inside_counts(xy: np.ndarray, tri: np.ndarray) -> tuple[int, int]:
+    """(interior edges whose far corner is strictly inside the other triangle's circle,
+    exactly on it), with fractions.Fraction on the float coordinates as they are."""
+    from fractions import Fraction
+    nb = trim_stage.triangle_neighbours(tri, len(xy))
+    inside = on = 0
+    for t, k in zip(*np.nonzero(nb > np.arange(len(tri))[:, None])):
+        u = nb[t, k]
+        far = [v for v in tri[u] if v not in (tri[t, (k + 1) % 3], tri[t, (k + 2) % 3])][0]
+        a, b, c, d = ([Fraction(v) for v in xy[i]] for i in (tri[t, k], tri[t, (k + 1) % 3], tri[t, (k + 2) % 3], far))
+        rows = [(p[0] - d[0], p[1] - d[1]) for p in (a, b, c)]
+        lift = [x * x + y * y for x, y in rows]
+        det = (lift[0] * (rows[1][0] * rows[2][1] - rows[2][0] * rows[1][1])
+               - lift[1] * (rows[0][0] * rows[2][1] - rows[2][0] * rows[0][1])
+               + lift[2] * (rows[0][0] * rows[1][1] - rows[1][0] * rows[0][1]))
+        inside, on = inside + (det > 0), on + (det == 0)
+    return inside, on
+
+
+def test_ties_are_decided_on_the_survey_coordinates_not_a_tiles_shifted_ones():
+    """A tile triangulates its points shifted to its own centre, which rounds them, but
+    decides the near ties on the survey's coordinates, exactly: the same triangles
+    wherever it is centred, and exactly Delaunay. 64 copies of the 12-point circle, off
+    the binary fractions (so nearly, not exactly, cocircular), near the origin where a
+    shift rounds (without survey_xy 300-430 triangles differ)."""
+    from c1mesh.engine.triangulation import delaunay_with_neighbours
+    circle = np.array([(5, 0), (4, 3), (3, 4), (0, 5), (-3, 4), (-4, 3), (-5, 0), (-4, -3), (-3, -4),
+                       (0, -5), (3, -4), (4, -3)], dtype=float) / 16
+    centres = np.stack(np.meshgrid(np.arange(8), np.arange(8)), axis=-1).reshape(-1, 2) * 1.5 + 0.1
+    xy = (centres[:, None, :] + circle[None]).reshape(-1, 2)
+    xy = xy[np.random.default_rng(4).permutation(len(xy))]
+    whole = delaunay(xy)
+    assert _inside_counts(xy, whole)[0] == 0
+    for shift in ([33.3, 37.1], [77.7, 50.1], [0.3, 0.7]):
+        tri, nb = delaunay_with_neighbours(xy - shift, survey_xy=xy)
+        assert as_set(tri) == as_set(whole)
+        assert np.array_equal(nb, trim_stage.triangle_neighbours(tri, len(xy)))
+
+
 @pytest.mark.parametrize("name", [
     "4_6_crop.las",
     pytest.param("autzen_trim.laz", marks=pytest.mark.slow),

@@ -11,8 +11,17 @@ also returns every triangle's neighbours.
 * Exact duplicate points: the first (lowest index) of each is triangulated, the others
   are in no triangle (CDT refuses duplicates; the fit merges them before anyway, this is
   for other callers, such as c1mesh.RSDInterpolator).
-* For cocircular points (grids) the Delaunay triangulation is not unique; CDT chooses one
-  of the valid ones.
+* Exact arithmetic on the survey's coordinates decides what floating point cannot.
+  CDT works on the centred points, and a tile centres on its own cell, so the rounding
+  differs; where four points are (nearly) cocircular two tiles could then cut a quad with
+  different diagonals, and their join would not be a mesh. `canonical_ties` therefore
+  checks every edge whose in-circle test is within rounding of zero exactly, on the
+  coordinates as the survey gives them, flips those that are not Delaunay, and cuts every
+  polygon of exactly cocircular points (a grid square, points on one circle: a face of
+  the Delaunay subdivision) as the fan from its lowest-numbered point. The triangulation
+  is then a function of the points and their numbers alone; in a tile, whose points keep
+  the survey's order, a triangle whose circle no unread point reaches is one of the whole
+  survey's.
 
 Trimming what should not be meshed is a fit stage: c1mesh.stages.trim.
 """
@@ -22,6 +31,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import parallel_blocks
+from c1mesh.engine import _ties
+from c1mesh.engine.topology import triangle_neighbours
 
 
 def delaunay(xy: ArrayLike) -> np.ndarray:
@@ -31,11 +43,13 @@ def delaunay(xy: ArrayLike) -> np.ndarray:
     return delaunay_with_neighbours(xy)[0]
 
 
-def delaunay_with_neighbours(xy: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """`delaunay`'s triangles (T, 3) and the neighbours CDT keeps for them: (T, 3) int64 the
-    triangle across the edge opposite corner k, or -1 on the hull (topology.triangle_neighbours'
-    layout, without its edge sort)."""
+def delaunay_with_neighbours(xy: ArrayLike, survey_xy: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`delaunay`'s triangles (T, 3) and their neighbours: (T, 3) int64 the triangle across
+    the edge opposite corner k, or -1 on the hull (topology.triangle_neighbours' layout).
+    survey_xy: the same points in the survey's coordinates when xy was shifted (a tile's
+    local frame), for the exact cocircularity test of the ties (module docstring)."""
     pts = as_xy(xy)
+    exact = pts if survey_xy is None else as_xy(survey_xy)
     if pts.shape[0] < 3:
         raise InputError(f"a triangulation needs at least 3 points, got {pts.shape[0]}")
     pts = pts - (pts.min(axis=0) + pts.max(axis=0)) / 2
@@ -50,7 +64,135 @@ def delaunay_with_neighbours(xy: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     if not len(triangles):
         raise InputError("the points cannot be triangulated: they all lie on one line (or "
                          "coincide); a surface needs points spread over an area")
-    return triangles, neighbours
+    return canonical_ties(exact, triangles, neighbours)
+
+
+SCREEN_BOUND = 1e-6
+"""The in-circle screen's bound, relative to the determinant's permanent: quads below it
+are decided exactly. Far above the rounding of the determinant (~1e-15) and of the
+differences of survey coordinates (state-plane feet at centimetre spacings: ~1e-9)."""
+
+
+def canonical_ties(xy: np.ndarray, triangles: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The exact Delaunay triangles (T, 3) and neighbours of xy (n, 2), the points as the
+    survey gives them, from a triangulation that is Delaunay up to rounding (CDT's, of
+    shifted points): edges are flipped (Lawson) until every in-circle test holds in exact
+    arithmetic, in rounds of flips that share no triangle; then every face of cocircular
+    points is the fan from its lowest-numbered point (module docstring). Triangles keep
+    their slots where the Delaunay triangulation is unique; all counter-clockwise."""
+    xy = np.ascontiguousarray(xy, dtype=np.float64)
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    across = np.ascontiguousarray(neighbours, dtype=np.int64)
+    changed, decided = False, {}
+    while True:
+        t, u, quads, det = _screened_edges(xy, tri, across, decided)
+        illegal = det > 0
+        if not illegal.any():
+            break
+        tri = tri if changed else tri.copy()
+        _flip(tri, *_independent(t[illegal], u[illegal], quads[illegal], len(tri)))
+        across, changed = triangle_neighbours(tri, len(xy)), True
+    tied = det == 0
+    if tied.any():
+        tri = tri if changed else tri.copy()
+        _fan_faces(xy, tri, t[tied], u[tied], quads[tied])
+        across, changed = triangle_neighbours(tri, len(xy)), True
+    return (tri, across) if changed else (triangles, neighbours)
+
+
+def _screened_edges(xy: np.ndarray, tri: np.ndarray, across: np.ndarray, decided: dict) -> tuple:
+    """The interior edges the screen (_ties.screen) flags, each once: triangles t and u
+    across it (m,), quads (m, 4) (t's corner across the edge, the edge's two ends, u's far
+    corner: a, b, d, c counter-clockwise) and the sign of the in-circle determinant
+    (m,) int64: 1 when u's far corner is inside t's circle, 0 on it (exact for rectangles
+    and near ties, the screen's own sign for the clearly illegal). decided: the exact
+    signs of the quads already tested (a round of flips leaves most of them as they were)."""
+    flag = np.zeros(tri.shape, dtype=np.int8)
+    parallel_blocks(lambda part: _ties.screen(xy, tri, across, SCREEN_BOUND, part.start, part.stop, flag),
+                    len(tri), 1 << 15)
+    t, k = np.nonzero(flag)
+    u = across[t, k]
+    far = tri[u].sum(axis=1) - tri[t, (k + 1) % 3] - tri[t, (k + 2) % 3]       # u's corner off the edge
+    quads = np.column_stack([tri[t, k], tri[t, (k + 1) % 3], tri[t, (k + 2) % 3], far])
+    kind = flag[t, k]
+    det = np.where(kind == _ties.ILLEGAL, 1, 0).astype(np.int64)
+    near = np.flatnonzero(kind == _ties.NEAR)
+    for i, quad in zip(near.tolist(), map(tuple, quads[near].tolist())):
+        if quad not in decided:
+            decided[quad] = int(np.sign(_incircle_exact(xy[list(quad)])))
+        det[i] = decided[quad]
+    return t, u, quads, det
+
+
+def _independent(t: np.ndarray, u: np.ndarray, quads: np.ndarray, size: int) -> tuple:
+    """The edges (t, u, quads) that are the first listed edge of both their triangles: no
+    two share a triangle, and the first edge is always among them."""
+    first = np.full(size, len(t), dtype=np.int64)
+    np.minimum.at(first, t, np.arange(len(t)))
+    np.minimum.at(first, u, np.arange(len(t)))
+    chosen = (first[t] == np.arange(len(t))) & (first[u] == np.arange(len(t)))
+    return t[chosen], u[chosen], quads[chosen]
+
+
+def _flip(tri: np.ndarray, t: np.ndarray, u: np.ndarray, quads: np.ndarray) -> None:
+    """Replace edge b-c of each quad (a, b, c, d) by a-d, in triangles t and u of tri."""
+    a, b, c, d = quads.T
+    tri[t] = np.column_stack([a, b, d])             # quad a, b, d, c counter-clockwise
+    tri[u] = np.column_stack([a, d, c])
+
+
+def _incircle_exact(quad: np.ndarray) -> int:
+    """The in-circle determinant of points quad (4, 2) (a, b, c, d), in exact integers: its
+    sign says where d lies against the circle through a, b, c (0: on it)."""
+    ratios = [value.as_integer_ratio() for value in quad.ravel().tolist()]
+    scale = max(den for _, den in ratios)                  # a power of two: all exact
+    ax, ay, bx, by, cx, cy, dx, dy = (num * (scale // den) for num, den in ratios)
+    adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
+    return ((adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
+            + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
+            + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady))
+
+
+def _fan_faces(xy: np.ndarray, tri: np.ndarray, t: np.ndarray, u: np.ndarray, quads: np.ndarray) -> None:
+    """Rewrite tri (T, 3) in place: the faces joined by the cocircular edges between
+    triangles t and u (quads (m, 4): t's corner across the edge, the edge's two ends, u's
+    far corner) as fans from their lowest-numbered points. Faces of two triangles (grid
+    squares) at once; larger ones (points on a circle) one by one."""
+    count = np.bincount(np.concatenate([t, u]), minlength=len(tri))
+    square = (count[t] == 1) & (count[u] == 1)
+    a, b, c, d = quads[square].T
+    flip = np.minimum(a, d) < np.minimum(b, c)      # the diagonal b-c misses the lowest point
+    _flip(tri, t[square][flip], u[square][flip], quads[square][flip])
+    for slots in _faces(t[~square], u[~square]):
+        _fan(xy, tri, slots)
+
+
+def _faces(t: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
+    """The triangles (ascending) of each face joined by edges t[i]-u[i] (union-find)."""
+    parent: dict[int, int] = {}
+
+    def root(x: int) -> int:
+        while parent.setdefault(x, x) != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for x, y in zip(t.tolist(), u.tolist()):
+        parent[root(x)] = root(y)
+    faces: dict[int, list[int]] = {}
+    for x in sorted(parent):
+        faces.setdefault(root(x), []).append(x)
+    return [np.array(f, dtype=np.int64) for f in faces.values()]
+
+
+def _fan(xy: np.ndarray, tri: np.ndarray, slots: np.ndarray) -> None:
+    """The triangles tri[slots] (one convex face, its points on one circle) rewritten as the
+    fan from the face's lowest-numbered point, counter-clockwise, in slot order."""
+    corners = np.unique(tri[slots])
+    offsets = xy[corners] - xy[corners].mean(axis=0)
+    ring = corners[np.argsort(np.arctan2(offsets[:, 1], offsets[:, 0]), kind="stable")]
+    ring = np.roll(ring, -int(np.argmin(ring)))
+    tri[slots] = np.column_stack([np.full(len(ring) - 2, ring[0]), ring[1:-1], ring[2:]])
 
 
 def _cdt(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

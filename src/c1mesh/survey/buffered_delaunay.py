@@ -23,8 +23,9 @@ hull, the whole angle between its two safe hull edges, beyond which P has no poi
 Del(P)'s triangles at p cannot overlap them, so they are the same.) Otherwise the buffer
 is doubled and the tile triangulated again; at worst E covers B, Q = P and every triangle
 is safe, so the loop ends. The union over tiles of the triangles each tile owns is
-therefore Del(P), every triangle exactly once, for points in general position (no four
-cocircular), whatever the grid: dense tiles end with the first buffer, sparse ones
+therefore Del(P), every triangle exactly once, whatever the grid; cocircular points too,
+as engine.triangulation cuts ties by the survey's coordinates and numbers alone (a tile
+passes both, `survey_xy`): dense tiles end with the first buffer, sparse ones
 (ground under trees, water) grow theirs.
 
 A tile needs its points only through `read(rectangle)`, so points may come from memory
@@ -181,7 +182,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
-        simplices, neighbours = delaunay_with_neighbours(local)
+        simplices, neighbours = delaunay_with_neighbours(local, survey_xy=xy)
         # survey coordinates for the lengths: trim's bits
         _, at_own, mine = triangle_flags(xy, simplices, own, index, np.inf if max_edge is None else max_edge)
         if covers:
@@ -281,7 +282,7 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
-        simplices, neighbors = delaunay_with_neighbours(local)
+        simplices, neighbors = delaunay_with_neighbours(local, survey_xy=xy)
         longest, at_own, triangle_mine, edges, lengths = flags_and_edges(xy, simplices, neighbors, own, index,
                                                                           bound)
         if not covers:
