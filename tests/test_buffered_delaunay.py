@@ -60,10 +60,15 @@ def test_union_of_tiles_is_the_global_delaunay(kind, with_hull):
 
 def _ties(kind: str) -> np.ndarray:
     """Points with ties, in a shuffled order: a 0.1 grid with a hole (every square's
-    corners exactly cocircular), or 100 copies of the 12 lattice points on a circle, off
-    the binary fractions (nearly cocircular: floating point cannot decide them)."""
+    corners exactly cocircular), the same grid rotated by 30 degrees and rounded to 1e-3
+    (nearly cocircular squares, nearly straight borders), or 100 copies of the 12 lattice
+    points on a circle, off the binary fractions (nearly cocircular)."""
     rng = np.random.default_rng(5)
-    if kind == "grid":
+    if kind == "rotated":
+        g = np.stack(np.meshgrid(np.arange(90), np.arange(70)), axis=-1).reshape(-1, 2) * 0.1
+        c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+        xy = np.round(g @ np.array([[c, s], [-s, c]]) * 1000) / 1000
+    elif kind == "grid":
         g = np.stack(np.meshgrid(np.arange(90), np.arange(70)), axis=-1).reshape(-1, 2) * 0.1
         xy = g[np.hypot(g[:, 0] - 4.0, g[:, 1] - 3.0) > 1.2]
     else:
@@ -74,11 +79,11 @@ def _ties(kind: str) -> np.ndarray:
     return xy[rng.permutation(len(xy))]
 
 
-@pytest.mark.parametrize("kind", ["grid", "circles"])
+@pytest.mark.parametrize("kind", ["grid", "rotated", "circles"])
 def test_tiles_cut_ties_as_the_whole_triangulation_does(kind):
-    """Tiles centre their points on their own cells, so floating point rounds them
-    differently from the whole survey's; the exact tie rule (engine.triangulation) makes
-    their union the whole triangulation all the same, each triangle once."""
+    """Each tile triangulates the points it read, a subset; the triangulation's exact
+    predicates on the coordinates as given and its tie rule (engine.triangulation) make
+    their union the whole triangulation, each triangle once."""
     from c1mesh.engine.triangulation import delaunay
     xy = _ties(kind)
     tiles = list(bd.buffered_delaunay(bd.ArrayReader(xy), _grid(xy, 4, 3), len(xy),
@@ -310,3 +315,17 @@ def test_clear_disks_match_a_loop_over_strips_and_corners():
                 break
         if meets is not None:
             assert clear[i] == (not meets), i
+
+
+def test_a_collinear_triangles_disk_is_never_clear():
+    """A collinear (or nearly) triangle's circumcircle has no finite centre or radius: the
+    safety test cannot measure it, so it must not certify it (it once did: NaN compares
+    False), whatever strip it is tested against."""
+    from c1mesh.survey.strip_geometry import centres_clear, circumcircles, clip_to_hull
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [0.0, 1.0]])
+    centre, radius = circumcircles(xy, np.array([[0, 1, 2], [0, 1, 3]]))
+    assert not np.isfinite(radius[0]) and np.isfinite(radius[1])
+    strips = np.array([[5.0, 5.0, 6.0, 6.0]])                 # far from both triangles
+    hull = np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]])
+    clear = centres_clear(centre, radius, strips, clip_to_hull(strips, hull), 10.0)
+    assert clear.tolist() == [False, True]

@@ -682,13 +682,17 @@ def test_the_first_noise_floor_reuses_the_curtains_summaries_only_where_nothing_
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
 
 
-def test_a_gridded_las_in_tiles_is_the_in_memory_fit(tmp_path):
-    """A 0.5 m grid (an exported DEM; every square's corners are cocircular) with a hole
-    and millimetre coordinates near the origin: the tiles' Delaunay ties are cut as the
-    whole fit cuts them, so the tiled mesh is the in-memory one (it used to be refused as
-    "not edge-manifold")."""
-    x, y = (v.ravel() for v in np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 45, 0.5)))
-    keep = np.hypot(x - 25, y - 20) > 6
+@pytest.mark.parametrize("turn", [0, 30])
+def test_a_gridded_las_in_tiles_is_the_in_memory_fit(tmp_path, turn):
+    """A 0.5 m grid (an exported DEM) with a hole and millimetre coordinates near the
+    origin, along the axes (every square's corners cocircular) or turned by 30 degrees
+    (nearly cocircular, borders nearly straight): the tiles triangulate and cut ties as
+    the whole fit does, so the tiled mesh is the in-memory one (both grids used to be
+    refused as "not edge-manifold")."""
+    u, v = (w.ravel() for w in np.meshgrid(np.arange(0, 60, 0.5), np.arange(0, 45, 0.5)))
+    c, s = np.cos(np.radians(turn)), np.sin(np.radians(turn))
+    x, y = c * u - s * v, s * u + c * v
+    keep = np.hypot(u - 25, v - 20) > 6
     header = laspy.LasHeader(point_format=1, version="1.2")
     header.scales, header.offsets = [0.001] * 3, [0, 0, 0]
     record = laspy.ScaleAwarePointRecord.zeros(int(keep.sum()), header=header)

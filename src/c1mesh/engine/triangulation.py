@@ -6,21 +6,25 @@ Why this library: on this project's 2-core machine it triangulates 1M uniform po
 threaded qhull tiles this module used to join; its output does not depend on timing; it
 also returns every triangle's neighbours.
 
-* The points are centred on their bounding box first (as LiDAR state-plane coordinates
-  lose the digits the in-circle test needs otherwise).
+* The points are triangulated as they are given, not shifted: CDT's predicates are exact
+  (robust) on any floating-point input, so the triangulation is the exact Delaunay
+  triangulation of those coordinates, the same whatever subset (a tile) holds them.
+  Shifting (to a tile's centre, say) would round the coordinates, and then the shifted
+  triangulation's orientations and in-circle decisions need not hold for the survey's:
+  a mm-quantised grid rotated by 30 degrees gave 18-37 triangles inverted in the survey's
+  coordinates, and tiles that did not join.
 * Exact duplicate points: the first (lowest index) of each is triangulated, the others
   are in no triangle (CDT refuses duplicates; the fit merges them before anyway, this is
   for other callers, such as c1mesh.RSDInterpolator).
-* Exact arithmetic on the survey's coordinates decides what floating point cannot.
-  CDT works on the centred points, and a tile centres on its own cell, so the rounding
-  differs; where four points are (nearly) cocircular two tiles could then cut a quad with
-  different diagonals, and their join would not be a mesh. `canonical_ties` therefore
-  checks every edge whose in-circle test is within rounding of zero exactly, on the
-  coordinates as the survey gives them, flips those that are not Delaunay, and cuts every
-  polygon of exactly cocircular points (a grid square, points on one circle: a face of
-  the Delaunay subdivision) as the fan from its lowest-numbered point. The triangulation
-  is then a function of the points and their numbers alone; in a tile, whose points keep
-  the survey's order, a triangle whose circle no unread point reaches is one of the whole
+* Ties. Where four or more points are exactly cocircular (grids, quantised coordinates)
+  the Delaunay triangulation is not unique, and CDT's choice depends on the order and
+  the set of points it is given, so two tiles could cut one grid square with different
+  diagonals and their join would not be a mesh. `canonical_ties` cuts every polygon of
+  cocircular points (a face of the Delaunay subdivision) as the fan from its
+  lowest-numbered point, deciding cocircularity in exact arithmetic (and, as a safety
+  net, flipping any edge exact arithmetic finds not Delaunay). The triangulation is then
+  a function of the points and their numbers alone; in a tile, whose points keep the
+  survey's order, a triangle whose circle no unread point reaches is one of the whole
   survey's.
 
 Trimming what should not be meshed is a fit stage: c1mesh.stages.trim.
@@ -38,21 +42,17 @@ from c1mesh.engine.topology import triangle_neighbours
 
 def delaunay(xy: ArrayLike) -> np.ndarray:
     """Delaunay triangles (T, 3) int64 of plane points xy (n, 2), counter-clockwise, indices
-    into xy (module docstring: centring, duplicates, ties). Raises InputError for
+    into xy (module docstring: exactness, duplicates, ties). Raises InputError for
     non-finite or fewer than 3 points, or when all points lie on one line."""
     return delaunay_with_neighbours(xy)[0]
 
 
-def delaunay_with_neighbours(xy: ArrayLike, survey_xy: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray]:
+def delaunay_with_neighbours(xy: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """`delaunay`'s triangles (T, 3) and their neighbours: (T, 3) int64 the triangle across
-    the edge opposite corner k, or -1 on the hull (topology.triangle_neighbours' layout).
-    survey_xy: the same points in the survey's coordinates when xy was shifted (a tile's
-    local frame), for the exact cocircularity test of the ties (module docstring)."""
+    the edge opposite corner k, or -1 on the hull (topology.triangle_neighbours' layout)."""
     pts = as_xy(xy)
-    exact = pts if survey_xy is None else as_xy(survey_xy)
     if pts.shape[0] < 3:
         raise InputError(f"a triangulation needs at least 3 points, got {pts.shape[0]}")
-    pts = pts - (pts.min(axis=0) + pts.max(axis=0)) / 2
     try:
         triangles, neighbours = _cdt(pts)
     except RuntimeError as exc:
@@ -64,22 +64,22 @@ def delaunay_with_neighbours(xy: ArrayLike, survey_xy: ArrayLike | None = None) 
     if not len(triangles):
         raise InputError("the points cannot be triangulated: they all lie on one line (or "
                          "coincide); a surface needs points spread over an area")
-    return canonical_ties(exact, triangles, neighbours)
+    return canonical_ties(pts, triangles, neighbours)
 
 
 SCREEN_BOUND = 1e-6
 """The in-circle screen's bound, relative to the determinant's permanent: quads below it
 are decided exactly. Far above the rounding of the determinant (~1e-15) and of the
-differences of survey coordinates (state-plane feet at centimetre spacings: ~1e-9)."""
+differences of the coordinates (state-plane feet at centimetre spacings: ~1e-9)."""
 
 
 def canonical_ties(xy: np.ndarray, triangles: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The exact Delaunay triangles (T, 3) and neighbours of xy (n, 2), the points as the
-    survey gives them, from a triangulation that is Delaunay up to rounding (CDT's, of
-    shifted points): edges are flipped (Lawson) until every in-circle test holds in exact
-    arithmetic, in rounds of flips that share no triangle; then every face of cocircular
-    points is the fan from its lowest-numbered point (module docstring). Triangles keep
-    their slots where the Delaunay triangulation is unique; all counter-clockwise."""
+    """The Delaunay triangles (T, 3) and neighbours of xy (n, 2) with every face of
+    cocircular points the fan from its lowest-numbered point (module docstring), from a
+    Delaunay triangulation of xy (CDT's): any edge exact arithmetic finds not Delaunay is
+    flipped first (Lawson, in rounds of flips that share no triangle; CDT's exact
+    predicates leave none). Triangles keep their slots where the Delaunay triangulation is
+    unique; all counter-clockwise."""
     xy = np.ascontiguousarray(xy, dtype=np.float64)
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
     across = np.ascontiguousarray(neighbours, dtype=np.int64)

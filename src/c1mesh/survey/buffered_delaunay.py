@@ -182,7 +182,7 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
-        simplices, neighbours = delaunay_with_neighbours(local, survey_xy=xy)
+        simplices, neighbours = delaunay_with_neighbours(xy)
         # survey coordinates for the lengths: trim's bits
         _, at_own, mine = triangle_flags(xy, simplices, own, index, np.inf if max_edge is None else max_edge)
         if covers:
@@ -282,7 +282,7 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
             continue
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre
-        simplices, neighbors = delaunay_with_neighbours(local, survey_xy=xy)
+        simplices, neighbors = delaunay_with_neighbours(xy)
         longest, at_own, triangle_mine, edges, lengths = flags_and_edges(xy, simplices, neighbors, own, index,
                                                                           bound)
         if not covers:

@@ -40,9 +40,13 @@ def disks_clear(xy: np.ndarray, triangles: np.ndarray, strips: np.ndarray,
 
 def disks_meet_polygon(centre: np.ndarray, reach: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """(k,) True where the closed disk (centre, reach) meets the convex polygon (m, 2)
-    (counter-clockwise; empty: meets nothing): its centre is inside, or an edge is within reach."""
+    (counter-clockwise; empty: meets nothing): its centre is inside, or an edge is within
+    reach. A disk with a non-finite centre or reach (a collinear triangle's, a half-plane)
+    counts as meeting it: the test must never clear what it cannot measure."""
     if len(polygon) == 0:
         return np.zeros(len(centre), dtype=bool)
+    unmeasured = ~(np.isfinite(centre).all(axis=1) & np.isfinite(reach))
+    centre = np.where(unmeasured[:, None], 0.0, centre)
     if len(polygon) < 3:
         polygon = np.concatenate([polygon, polygon[:1]])
     a, b = polygon, np.roll(polygon, -1, axis=0)
@@ -54,7 +58,7 @@ def disks_meet_polygon(centre: np.ndarray, reach: np.ndarray, polygon: np.ndarra
         inside &= ex * py - ey * px >= 0.0
         t = np.clip((px * ex + py * ey) / max(ex * ex + ey * ey, 1e-300), 0.0, 1.0)
         meets |= np.hypot(px - t * ex, py - t * ey) <= reach
-    return meets | inside
+    return meets | inside | unmeasured
 
 
 def clip_to_hull(strips: np.ndarray, hull: np.ndarray) -> list[np.ndarray]:
