@@ -456,7 +456,7 @@ def test_a_vertex_order_is_a_permutation_that_keeps_the_fill_low():
 
     import c1mesh.stages.smoothing_system as system
 
-    pts, tri, _ = grid_mesh(60, seed=4)
+    pts, tri, _ = grid_mesh(40, seed=4)
     shuffle = np.random.default_rng(4).permutation(len(pts))
     rank = np.argsort(shuffle)
     pts, tri = pts[shuffle], rank[tri]
