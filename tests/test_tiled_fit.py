@@ -707,3 +707,18 @@ def test_a_gridded_las_in_tiles_is_the_in_memory_fit(tmp_path, turn):
     assert report["tiles"] >= 4
     fit(source, tmp_path / "whole.ply", options)
     _assert_same_mesh(tmp_path / "tiled.ply", trimesh.load(tmp_path / "whole.ply", process=False, force="mesh"))
+
+
+def test_without_max_edge_a_tile_that_must_read_past_the_budget_is_refused(tmp_path):
+    """--max-edge none keeps the survey's hull slivers until the peel, and certifying them
+    makes a border tile read most of the border (60k uniform points: 44k). Past what
+    --memory allows a read (TILE_SHARE tiles' points) that is one line naming the file
+    and the option, exit 1, nothing written, instead of a read the budget cannot hold."""
+    source = tmp_path / "t.las"
+    write_terrain_las(source, 60000)
+    result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / "x.ply"), "--max-edge", "none",
+                                       "--memory", "40M", "--level", "1", "--smooth", "off"])
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(source) in lines[0] and "--max-edge" in lines[0] and "--memory" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.las"]

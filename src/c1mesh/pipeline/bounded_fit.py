@@ -103,7 +103,7 @@ from c1mesh.survey.inputs import (
     tiled_classes,
 )
 from c1mesh.survey.split_outputs import InputOwners
-from c1mesh.survey.sizing import grid_side, point_bytes, task_threads, tiles_at_once
+from c1mesh.survey.sizing import TILE_SHARE, grid_side, point_bytes, points_per_tile, task_threads, tiles_at_once
 from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
@@ -220,8 +220,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 data, heights = heights, stack.enter_context(
                     contextlib.closing(thinned_spill(heights, surface.spacing, directory, temps.stem)))
             done("normals")
-            max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(heights, grid, surface.max_edge,
-                                                                                  temps, runner, rows)
+            max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(
+                heights, grid, surface.max_edge, temps, runner, rows, most=TILE_SHARE * points_per_tile(memory))
             long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files)
             done("triangulate")
             longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,

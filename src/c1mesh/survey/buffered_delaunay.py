@@ -42,6 +42,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from c1mesh.core.errors import InputError
 from c1mesh.engine.triangulation import delaunay_with_neighbours
 from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
@@ -159,7 +160,8 @@ def streamed_hull(chunks) -> Hull:
 
 
 def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
-                   hull: Hull | None = None, max_edge: float | None = None) -> TileTriangles:
+                   hull: Hull | None = None, max_edge: float | None = None,
+                   most: int | None = None) -> TileTriangles:
     """Triangulate one tile, growing its buffer until its own triangles are final (module
     docstring); buffer: the first one, frame units (> 0). hull: the survey's convex hull
     from a first pass, or None. With it, points not read are known to lie in the hull as
@@ -168,7 +170,10 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
     (without it, their hull triangles' wide circles make them read most of the survey).
     max_edge: keep only the triangles whose edges are all at most this long (the long-edge
     trim), which needs only those to be safe once the buffer exceeds max_edge (module
-    docstring); None keeps every triangle."""
+    docstring); None keeps every triangle. most: the most points a read may hold (the
+    memory budget's share; None: no limit). Without max_edge a border tile's hull
+    slivers can need most of the survey's border read; past `most` that is an
+    InputError instead of a read the budget cannot hold."""
     box, cell = grid.box, grid.cell(tile)
     if max_edge is not None:
         buffer = max(buffer, max_edge * (1 + 1e-9))
@@ -180,6 +185,10 @@ def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,
             return TileTriangles(tile, np.empty((0, 3), np.int64), buffer, len(index), rounds)
         if index.size < 3:
             continue
+        if most is not None and index.size > most:
+            raise InputError(f"without a --max-edge the triangles along the survey's border reach so "
+                             f"far that this tile must read {index.size:,} points, more than --memory "
+                             f"allows a tile ({most:,}); keep --max-edge auto (the default) or raise --memory")
         centre = np.array([(cell[0] + cell[2]) / 2, (cell[1] + cell[3]) / 2])
         local = xy - centre                          # small coordinates: circumcentres round less
         simplices, neighbours = delaunay_with_neighbours(xy)

@@ -23,13 +23,14 @@ from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.tiles import task_row
 
 
-def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
+def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows, most: int | None = None):
     """The survey's Delaunay triangulation with the long-edge trim, each tile a task
     (`_tile_delaunay`, `_tile_trimmed`) that reads the height spill and writes its owned
     triangles to a file: (max_edge or None, per tile a .npy file of its owned triangles
     (survey numbers), per tile the buffer its corners lie within, the triangle count of
     the whole Delaunay triangulation: 2n - 2 - h by Euler's formula, n points and h hull
-    corners, exact unless points lie on the hull between its corners)."""
+    corners, exact unless points lie on the hull between its corners). most: the most
+    points a tile's read may hold without a max_edge (buffered_delaunay.tile_triangles)."""
     count = int(heights.counts.sum())
     if count < 3:
         raise InputError(f"only {count} points are left for the height field; need at least 3")
@@ -40,7 +41,7 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
     if max_edge is None:
         first = INITIAL_SPACINGS * mean_spacing(grid.box, count)
         for t, (buffer, row) in runner.map(_tile_delaunay, len(grid),
-                                           lambda t: (heights, grid, t, first, hull, files[t], rows.threads),
+                                           lambda t: (heights, grid, t, first, (hull, most), files[t], rows.threads),
                                            rows.name):
             buffers[t] = buffer
             rows.add(t, "triangulate", row)
@@ -65,12 +66,14 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows):
     return limit, files, buffers, 2 * count - 2 - len(hull.index)
 
 
-def _tile_delaunay(heights, grid, t: int, buffer: float, hull, path, threads) -> tuple[float, dict]:
+def _tile_delaunay(heights, grid, t: int, buffer: float, bounds, path, threads) -> tuple[float, dict]:
     """Tile t's final triangles (buffered_delaunay.tile_triangles) saved to path (.npy);
-    returns (its buffer, its report row)."""
+    bounds: (the survey's hull, the most points a read may hold); returns (its buffer,
+    its report row)."""
+    hull, most = bounds
     start = time.perf_counter()
     with limit(threads):
-        result = tile_triangles(heights.read, grid, t, buffer, hull)
+        result = tile_triangles(heights.read, grid, t, buffer, hull, most=most)
     save_array(path, result.triangles)
     return result.buffer, task_row(result.read, start)
 
