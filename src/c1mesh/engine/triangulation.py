@@ -102,8 +102,8 @@ def canonical_ties(xy: np.ndarray, triangles: np.ndarray, neighbours: np.ndarray
 
 def _screened_edges(xy: np.ndarray, tri: np.ndarray, across: np.ndarray, decided: dict) -> tuple:
     """The interior edges the screen (_ties.screen) flags, each once: triangles t and u
-    across it (m,), quads (m, 4) (t's corner across the edge, the edge's two ends, u's far
-    corner: a, b, d, c counter-clockwise) and the sign of the in-circle determinant
+    across it (m,), quads (m, 4) (a: t's corner across the edge, b and c: the edge's ends
+    in t's order, d: u's far corner; the quad runs a, b, d, c counter-clockwise) and the sign of the in-circle determinant
     (m,) int64: 1 when u's far corner is inside t's circle, 0 on it (exact for rectangles
     and near ties, the screen's own sign for the clearly illegal). decided: the exact
     signs of the quads already tested (a round of flips leaves most of them as they were)."""

@@ -24,8 +24,9 @@ Del(P)'s triangles at p cannot overlap them, so they are the same.) Otherwise th
 is doubled and the tile triangulated again; at worst E covers B, Q = P and every triangle
 is safe, so the loop ends. The union over tiles of the triangles each tile owns is
 therefore Del(P), every triangle exactly once, whatever the grid; cocircular points too,
-as engine.triangulation cuts ties by the survey's coordinates and numbers alone (a tile
-passes both, `survey_xy`): dense tiles end with the first buffer, sparse ones
+as engine.triangulation is exact on the survey's coordinates (a tile triangulates them
+unshifted) and cuts ties by them and the point numbers alone: dense tiles end with the
+first buffer, sparse ones
 (ground under trees, water) grow theirs.
 
 A tile needs its points only through `read(rectangle)`, so points may come from memory
