@@ -220,7 +220,7 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
     geo.finish); crs: the CRS to carry (usually none: a depth frame's coordinates are the
     camera's, unless a --crs or the file names one), crs_source where it came from.
     """
-    scheme = get_scheme(options.scheme)
+    get_scheme(options.scheme)              # an unknown --scheme fails here, before any stage
     check_mode(options.overshoot)
     frame, viewpoint_source = perspective_frame(cloud, options.viewpoint)
     camera = frame.to_camera(cloud.points)
