@@ -117,10 +117,11 @@ def _screened_edges(xy: np.ndarray, tri: np.ndarray, across: np.ndarray, decided
     kind = flag[t, k]
     det = np.where(kind == _ties.ILLEGAL, 1, 0).astype(np.int64)
     near = np.flatnonzero(kind == _ties.NEAR)
-    for i, quad in zip(near.tolist(), map(tuple, quads[near].tolist())):
-        if quad not in decided:
-            decided[quad] = int(np.sign(_incircle_exact(xy[list(quad)])))
-        det[i] = decided[quad]
+    keys = list(map(tuple, quads[near].tolist()))
+    new = [i for i, key in enumerate(keys) if key not in decided]
+    for i, sign in zip(new, _incircle_signs(xy, quads[near[new]]).tolist()):
+        decided[keys[i]] = sign
+    det[near] = [decided[key] for key in keys]
     return t, u, quads, det
 
 
@@ -141,16 +142,27 @@ def _flip(tri: np.ndarray, t: np.ndarray, u: np.ndarray, quads: np.ndarray) -> N
     tri[u] = np.column_stack([a, d, c])
 
 
-def _incircle_exact(quad: np.ndarray) -> int:
-    """The in-circle determinant of points quad (4, 2) (a, b, c, d), in exact integers: its
-    sign says where d lies against the circle through a, b, c (0: on it)."""
-    ratios = [value.as_integer_ratio() for value in quad.ravel().tolist()]
-    scale = max(den for _, den in ratios)                  # a power of two: all exact
-    ax, ay, bx, by, cx, cy, dx, dy = (num * (scale // den) for num, den in ratios)
-    adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
-    return ((adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
-            + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
-            + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady))
+def _incircle_signs(xy: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(m,) int64 the sign of the in-circle determinant of each quad (m, 4) (a, b, c, d),
+    in exact integers: 1 when d lies inside the circle through a, b, c (counter-clockwise),
+    0 on it, -1 outside. Every coordinate of the points involved is a float, so an integer
+    multiple of one power of two; the determinant of those integers (Python's, in numpy
+    object arrays: one vectorised pass) has the sign of the true one."""
+    if not len(quads):
+        return np.zeros(0, dtype=np.int64)
+    points, local = np.unique(quads, return_inverse=True)
+    ratios = [value.as_integer_ratio() for value in xy[points].ravel().tolist()]
+    scale = max(den for _, den in ratios)
+    whole = np.empty(len(ratios), dtype=object)
+    whole[:] = [num * (scale // den) for num, den in ratios]
+    whole = whole.reshape(-1, 2)[local.reshape(quads.shape)]          # (m, 4, 2) integers
+    diff = whole[:, :3] - whole[:, 3:4]                                 # a - d, b - d, c - d
+    x, y = diff[..., 0], diff[..., 1]
+    lift = x * x + y * y
+    det = (lift[:, 0] * (x[:, 1] * y[:, 2] - x[:, 2] * y[:, 1])
+           + lift[:, 1] * (x[:, 2] * y[:, 0] - x[:, 0] * y[:, 2])
+           + lift[:, 2] * (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]))
+    return np.array([(value > 0) - (value < 0) for value in det], dtype=np.int64)
 
 
 def _fan_faces(xy: np.ndarray, tri: np.ndarray, t: np.ndarray, u: np.ndarray, quads: np.ndarray) -> None:
