@@ -194,7 +194,7 @@ def test_near_ties_and_straight_borders_are_exact_in_the_given_coordinates():
     are nearly (not exactly) cocircular and its borders nearly straight. The triangulation
     holds in exact arithmetic on the coordinates as given: every triangle counter-clockwise,
     no point inside another triangle's circle. (Triangulating the points centred on their
-    box, which rounds coordinates this small, fails both.)"""
+    box, which rounds coordinates this small, fails this test.)"""
     g = np.stack(np.meshgrid(np.arange(40), np.arange(30)), axis=-1).reshape(-1, 2) * 0.5
     c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
     xy = np.round(g @ np.array([[c, s], [-s, c]]) * 1000) / 1000 + [3.0, 1.0]   # near the origin
