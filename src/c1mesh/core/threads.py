@@ -212,16 +212,13 @@ def available_cpus() -> int:
         return os.cpu_count() or 1
 
 
-def overlap(background: Callable[[], Item], foreground: Callable[[], object]) -> tuple:
-    """(background(), foreground()): the first run in a second thread while the second
-    runs in this one (numpy releases the GIL in both), or one after the other when only
-    one worker is allowed. An error in either is raised here."""
-    if workers() == 1:
-        return background(), foreground()
-    with ThreadPoolExecutor(1, thread_name_prefix="c1mesh-overlap") as pool:
-        pending = pool.submit(background)
+def overlap(second: Callable[[], Item], foreground: Callable[[], object]) -> tuple:
+    """(second(), foreground()): the first run in a second thread while the second runs
+    in this one (numpy releases the GIL in both), or one after the other when only one
+    worker is allowed (`background`). An error in either is raised here."""
+    with background(second) as result:
         here = foreground()
-        return pending.result(), here
+        return result(), here
 
 
 @contextlib.contextmanager
