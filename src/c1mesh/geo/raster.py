@@ -351,12 +351,17 @@ def write_blocks(targets: RasterTargets, grid: RasterGrid, blocks, style: Raster
         for kind, ds in datasets.items():
             ds.close()
             cog_copy(staged[kind], temps[kind], kind)
-    return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
-                     "width": grid.width, "height": grid.height},
+    return {"grid": grid_facts(grid),
             "cells": grid.width * grid.height, "cells_with_data": cells_inside,
             "slope_method": style.method, "z_factor": style.z_factor, "files": dict(items),
             **({"support_max": farthest} if targets.support else {}),
             "format": {key: str(value) for key, value in COG_FORMAT.items()}}
+
+
+def grid_facts(grid: RasterGrid) -> dict:
+    """The report's raster.grid: west, north (CRS units), resolution, width, height (cells)."""
+    return {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
+            "width": grid.width, "height": grid.height}
 
 
 COG_FORMAT = {"driver": "COG", "compress": "DEFLATE", "predictor": "YES", "blocksize": BLOCK_ROWS,
@@ -439,6 +444,36 @@ def tile_targets(output, sides: dict) -> RasterTargets:
     DIR/NAME.KIND.tif."""
     stem = Path(output).with_suffix("")
     return RasterTargets(dem=str(output), **{kind: f"{stem}.{kind}.tif" for kind, path in sides.items() if path})
+
+
+def write_input_rasters(outputs, targets, windows, write, grid: RasterGrid, mosaics: dict,
+                        crs: str | None) -> list[dict]:
+    """--seamless -O's rasters, in memory and in tiles alike: for each input's DEM path in
+    outputs, its RasterTargets (tile_targets) and its window of `grid` (None: no cell, no
+    file), write(targets, window) -> that window's facts (write_blocks' or
+    write_fit_rasters'); then the VRT mosaics (mosaics: {kind: path}, mosaic_paths).
+    Returns the report's raster.tiles rows. On failure every file already written is
+    removed."""
+    written, tiles, created = [], [], []
+    try:
+        for output, target, window in zip(outputs, targets, windows):
+            if window is None:
+                tiles.append({"output": output, "written": False})
+                continue
+            facts = write(target, window)
+            created += [path for _, path in target.items()]
+            written.append((target, window))
+            tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
+                          "col0": window.col0, "width": window.width, "height": window.height,
+                          "cells_with_data": facts["cells_with_data"]})
+        for kind, path in mosaics.items():
+            write_vrt(path, grid, [(getattr(t, kind), w) for t, w in written], kind, crs)
+            created.append(path)
+    except BaseException:
+        for path in created:
+            Path(path).unlink(missing_ok=True)
+        raise
+    return tiles
 
 
 def mosaic_paths(outputs, sides: dict) -> dict:

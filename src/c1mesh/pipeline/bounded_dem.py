@@ -58,7 +58,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -73,9 +72,10 @@ from c1mesh.geo.raster import (
     RasterStyle,
     RasterTargets,
     choose_slope_method,
+    grid_facts,
     horn_gradient,
     write_blocks,
-    write_vrt,
+    write_input_rasters,
 )
 from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, contour_heights, spline_values
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
@@ -762,29 +762,12 @@ class InputWindows:
         each with the ring) and the mosaics; the report's raster section (grid, mosaics,
         tiles). On failure every file already written is removed."""
         heights, gradients, support = grids
-        written, tiles, created = [], [], []
-        try:
-            for output, targets, window in zip(self.outputs, self.targets, self.windows):
-                if window is None:
-                    tiles.append({"output": output, "written": False})
-                    continue
-                facts = write_blocks(targets, window, grid_blocks(dem, heights, gradients, support, method, window),
-                                     style)
-                created += [path for _, path in targets.items()]
-                written.append((targets, window))
-                tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
-                              "col0": window.col0, "width": window.width, "height": window.height,
-                              "cells_with_data": facts["cells_with_data"]})
-            for kind, path in self.mosaics.items():
-                write_vrt(path, dem.grid, [(getattr(t, kind), w) for t, w in written], kind, style.crs)
-                created.append(path)
-        except BaseException:
-            for path in created:
-                Path(path).unlink(missing_ok=True)
-            raise
-        grid = dem.grid
-        return {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
-                         "width": grid.width, "height": grid.height}, "mosaics": self.mosaics, "tiles": tiles}
+        tiles = write_input_rasters(
+            self.outputs, self.targets, self.windows,
+            lambda targets, window: write_blocks(targets, window, grid_blocks(dem, heights, gradients, support,
+                                                                               method, window), style),
+            dem.grid, self.mosaics, style.crs)
+        return {"grid": grid_facts(dem.grid), "mosaics": self.mosaics, "tiles": tiles}
 
 
 def input_windows(job: DemJob, chunks, owners, inputs: int) -> list:

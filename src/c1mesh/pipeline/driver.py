@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -42,11 +41,12 @@ from c1mesh.geo.raster import (
     SIDE_KINDS,
     dem_sampling,
     fill_distance,
+    grid_facts,
     mosaic_paths,
     raster_axis,
     tile_targets,
     write_fit_rasters,
-    write_vrt,
+    write_input_rasters,
 )
 from c1mesh.geo.raster_grid import FillRule
 from c1mesh.pipeline.depth_fit import fit_perspective
@@ -646,32 +646,15 @@ def fit_dem_tiles(survey, outputs, options: FitOptions, timer: StageTimer | None
         grid, sampler = dem_sampling(model.interp, model.frame, options.resolution, data_xy,
                                      model.trim_report.max_edge,
                                      None if fill is None else FillRule(model.trimmed, fill), fit_points(model))
-        written, tiles, created = [], [], []
-        try:
-            for output, window in zip(outputs, dem_windows(grid, survey, model)):
-                if window is None:
-                    tiles.append({"output": output, "written": False})
-                    continue
-                targets = tile_targets(output, sides)
-                facts = write_fit_rasters(targets, window, sampler, options, crs, model.smoothing is not None)
-                created += [path for _, path in targets.items()]
-                written.append((targets, window))
-                tiles.append({"output": output, "written": True, "files": facts["files"], "row0": window.row0,
-                              "col0": window.col0, "width": window.width, "height": window.height,
-                              "cells_with_data": facts["cells_with_data"]})
-            for kind, path in mosaics.items():
-                write_vrt(path, grid, [(getattr(t, kind), w) for t, w in written], kind, crs)
-                created.append(path)
-        except BaseException:
-            for path in created:
-                Path(path).unlink(missing_ok=True)
-            raise
+        tiles = write_input_rasters(
+            outputs, [tile_targets(output, sides) for output in outputs], dem_windows(grid, survey, model),
+            lambda targets, window: write_fit_rasters(targets, window, sampler, options, crs,
+                                                      model.smoothing is not None),
+            grid, mosaics, crs)
     report = _report(FitRun(survey.names[0], outputs[0], options, survey.cloud, timer,
                             angle_z_factor(survey.cloud, options), crs_facts(crs, crs_source)), model)
     report.update(input=list(survey.names), output=list(outputs))
-    report["raster"] = {"grid": {"west": grid.west, "north": grid.north, "resolution": grid.resolution,
-                                 "width": grid.width, "height": grid.height},
-                        "mosaics": mosaics, "tiles": tiles, "fill": fill_facts(options.fill, fill, model)}
+    report["raster"] = {"grid": grid_facts(grid), "mosaics": mosaics, "tiles": tiles, "fill": fill_facts(options.fill, fill, model)}
     return report
 
 
