@@ -123,8 +123,9 @@ class TileSpill:
         for t in tiles:
             r = self.tile(t)
             keep = (r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1)
-            for radius in np.unique(far[_meeting(far, self.grid.cell(t)), 2]).tolist():
-                mine = far[(far[:, 2] == radius) & _meeting(far, self.grid.cell(t))][:, :2]
+            meeting = _meeting(far, self.grid.cell(t))
+            for radius in np.unique(far[meeting, 2]).tolist():
+                mine = far[(far[:, 2] == radius) & meeting][:, :2]
                 lo, hi = mine.min(axis=0) - radius, mine.max(axis=0) + radius    # only the records in their box
                 ask = np.flatnonzero(~keep & (r["x"] >= lo[0]) & (r["x"] <= hi[0])
                                      & (r["y"] >= lo[1]) & (r["y"] <= hi[1]))
