@@ -630,3 +630,43 @@ def test_cdts_neighbours_are_a_plain_loop_over_the_triangles_edges(kind):
             others = [u for u in having[frozenset((corners[(k + 1) % 3], corners[(k + 2) % 3]))] if u != t]
             assert neighbours[t, k] == (others[0] if others else -1)
     assert (neighbours == -1).sum() > 0
+
+
+@pytest.mark.parametrize("kind", ["random", "grid", "circle", "collinear"])
+def test_dropping_cdts_super_triangle_leaves_what_cdts_own_erase_leaves(kind):
+    """_ties.drop_super_triangle on CDT's rows before erase_super_triangle gives the rows
+    CDT's own erase gives (the same triangles in the same order, the same neighbours, none
+    as -1), on random points, a shuffled grid (ties), points on a circle and points on a
+    line (no triangle); a row with a number out of range is refused (None)."""
+    import pythoncdt
+
+    from c1mesh.engine import _ties
+    rng = np.random.default_rng(3)
+    xy = {"random": rng.random((2000, 2)),
+          "grid": np.stack(np.meshgrid(np.arange(30.0), np.arange(20.0)), -1).reshape(-1, 2)[rng.permutation(600)],
+          "circle": np.c_[np.cos(np.arange(50.0)), np.sin(np.arange(50.0))],
+          "collinear": np.c_[np.arange(8.0), 3 * np.arange(8.0)]}[kind]
+
+    def inserted():
+        cdt = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
+                                      pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
+        cdt.insert_vertices(np.ascontiguousarray(xy))
+        return cdt
+
+    rows = inserted().triangles_array(copy=True)
+    vertices, neighbours = np.ascontiguousarray(rows["vertices"]), np.ascontiguousarray(rows["neighbors"])
+    tri, across = _ties.drop_super_triangle(vertices, neighbours, len(xy))
+    erased = inserted()
+    erased.erase_super_triangle()
+    want = erased.triangles_array(copy=True)
+    want_across = want["neighbors"].astype(np.int64)[:, [1, 2, 0]]
+    want_across[want_across == np.iinfo(np.uint32).max] = -1
+    assert np.array_equal(tri, want["vertices"].astype(np.int64))
+    assert np.array_equal(across, want_across)
+    if kind == "collinear":
+        assert len(tri) == 0
+        return
+    assert np.array_equal(np.unique(tri), np.arange(len(xy)))    # every point a corner
+    bad = vertices.copy()
+    bad[np.flatnonzero((bad >= 3).all(axis=1))[0], 1] = len(xy) + 3
+    assert _ties.drop_super_triangle(bad, neighbours, len(xy)) is None

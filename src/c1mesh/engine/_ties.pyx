@@ -1,10 +1,17 @@
 # cython: language_level=3
-"""The in-circle screen of c1mesh.engine.triangulation.canonical_ties: for every interior
-edge of a Delaunay triangulation, whether the four points of its two triangles may lie on
-one circle. Each triangle writes only its own row: any block of triangles in any thread.
+"""The kernels of c1mesh.engine.triangulation (which wraps them; nothing else imports them).
+
+* `screen`, the in-circle screen of canonical_ties: for every interior edge of a Delaunay
+  triangulation, whether the four points of its two triangles may lie on one circle. Each
+  triangle writes only its own row: any block of triangles in any thread.
+* `drop_super_triangle`: CDT's triangles and neighbours as its erase_super_triangle leaves
+  them, from the rows before it, in two linear passes (CDT's own erase looks every
+  triangle up in hash sets: 0.35 s at 1M points).
 """
+import numpy as np
+
 from libc.math cimport fabs
-from libc.stdint cimport int8_t, int64_t
+from libc.stdint cimport int8_t, int64_t, uint32_t
 
 cdef enum:
     _RECTANGLE = 1
@@ -71,3 +78,45 @@ def screen(const double[:, ::1] xy, const int64_t[:, ::1] tri, const int64_t[:, 
                         flag[t, k] = _NEAR
                 elif det > 0:
                     flag[t, k] = _ILLEGAL
+
+
+
+def drop_super_triangle(const uint32_t[:, ::1] vertices, const uint32_t[:, ::1] neighbours,
+                        int64_t n_points):
+    """CDT's triangulation of n_points points as its erase_super_triangle leaves it, from
+    its rows before it: vertices (T, 3) (0, 1, 2 the super triangle's corners, the points
+    3 ... n_points + 2) and neighbours (T, 3) (the triangle across the edge from corner k
+    to corner k + 1, none as 2**32 - 1). Returns (tri, across) (m, 3) int64: as CDT
+    leaves them, the rows with no super-triangle corner in their order, the points
+    numbered from 0, a dropped neighbour none; and, as canonical_ties wants them, slot k
+    the triangle across the edge opposite corner k, none as -1. None when a row holds a
+    number out of range (the caller then lets CDT erase)."""
+    cdef Py_ssize_t T = vertices.shape[0], t, k, m = 0
+    cdef uint32_t none = 0xFFFFFFFF, v, n
+    cdef uint32_t top = <uint32_t> (n_points + 3)
+    cdef int64_t[::1] number = np.empty(T, dtype=np.int64)
+    cdef bint bad = False
+    with nogil:
+        for t in range(T):
+            number[t] = -1
+            if vertices[t, 0] >= 3 and vertices[t, 1] >= 3 and vertices[t, 2] >= 3:
+                number[t] = m
+                m += 1
+    tri_ = np.empty((m, 3), dtype=np.int64)
+    across_ = np.empty((m, 3), dtype=np.int64)
+    cdef int64_t[:, ::1] tri = tri_, across = across_
+    with nogil:
+        for t in range(T):
+            if number[t] < 0:
+                continue
+            for k in range(3):
+                v = vertices[t, k]
+                n = neighbours[t, (k + 1) % 3]
+                if v >= top or (n != none and n >= T):
+                    bad = True
+                    break
+                tri[number[t], k] = v - 3
+                across[number[t], k] = -1 if n == none else number[n]
+            if bad:
+                break
+    return None if bad else (tri_, across_)

