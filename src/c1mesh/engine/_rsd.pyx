@@ -11,6 +11,7 @@ writes its own rows of the outputs.
 from libc.math cimport fabs, hypot
 from libc.stdint cimport int64_t, uint8_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch, prefetch_corners
 from c1mesh.engine._rsd_orders cimport rsd_orders
 
 # (k, i), i != k: the columns 3..8 of the coefficients, g_ki = A_k · (p_i − p_k);
@@ -58,6 +59,7 @@ def triangle_gradients(const double[:, ::1] rows, const int64_t[:, ::1] tri, dou
     cdef double gy[3]
     with nogil:
         for t in range(start, stop):
+            prefetch_corners(rows, tri, t + AHEAD, stop)
             det[t] = _gradients(rows, tri, t, x, y, gx, gy)
             for k in range(3):
                 G[t, k, 0] = gx[k]
@@ -81,6 +83,7 @@ def vertex_coefficients(const double[:, ::1] rows, const int64_t[:, ::1] tri, do
     cdef bint check = degenerate.shape[0] == C.shape[0]
     with nogil:
         for t in range(start, stop):
+            prefetch_corners(rows, tri, t + AHEAD, stop)
             d = _gradients(rows, tri, t, x, y, gx, gy)
             det[t] = d
             for k in range(3):
@@ -107,6 +110,9 @@ def ratio_coefficients(double[:, ::1] C, const double[:, :, ::1] G, const double
     cdef double ratio, ux, uy
     with nogil:
         for t in range(start, stop):
+            if t + AHEAD < stop:
+                for j in range(3):
+                    prefetch(&directions[tri_edge[t + AHEAD, j], 0])
             for j in range(6):
                 l = PERM_L[j]
                 m = PERM_M[j]

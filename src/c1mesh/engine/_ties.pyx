@@ -13,6 +13,8 @@ import numpy as np
 from libc.math cimport fabs
 from libc.stdint cimport int8_t, int64_t, uint32_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch, prefetch_corners
+
 cdef enum:
     _RECTANGLE = 1
     _NEAR = 2
@@ -47,6 +49,17 @@ def screen(const double[:, ::1] xy, const int64_t[:, ::1] tri, const int64_t[:, 
     cdef double adx, ady, bdx, bdy, cdx, cdy, alift, blift, clift, det, permanent
     with nogil:
         for t in range(first, stop):
+            prefetch_corners(xy, tri, t + 2 * AHEAD, stop)    # a later triangle's corners,
+            if t + 2 * AHEAD < stop:                         # the triangles across it,
+                for k in range(3):
+                    if across[t + 2 * AHEAD, k] > t + 2 * AHEAD:
+                        prefetch(&tri[across[t + 2 * AHEAD, k], 0])
+            if t + AHEAD < stop:                             # then their far corners
+                for k in range(3):
+                    u = across[t + AHEAD, k]
+                    if u > t + AHEAD:
+                        prefetch(&xy[tri[u, 0] + tri[u, 1] + tri[u, 2] - tri[t + AHEAD, (k + 1) % 3]
+                                     - tri[t + AHEAD, (k + 2) % 3], 0])
             for k in range(3):
                 u = across[t, k]
                 if u <= t:

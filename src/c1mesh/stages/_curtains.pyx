@@ -10,6 +10,8 @@ columns are five."""
 from libc.math cimport isnan, NAN
 from libc.stdint cimport int64_t, uint8_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch_corners
+
 
 cdef inline double _maximum(double a, double b) noexcept nogil:
     """numpy's maximum: NaN when either is NaN."""
@@ -31,6 +33,7 @@ def curtain_masks(const double[:, ::1] p, const int64_t[:, ::1] tri, const uint8
     cdef bint is_shadow, is_grazing, is_away
     with nogil:
         for t in range(start, stop):
+            prefetch_corners(p, tri, t + AHEAD, stop)
             if not alive[t]:
                 shadow[t] = grazing[t] = away[t] = thin[t] = 0
                 continue

@@ -17,6 +17,8 @@ NaN and signed zeros included.
 from libc.math cimport fabs, isfinite, isnan, sqrt, INFINITY, NAN
 from libc.stdint cimport int64_t, uint8_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch_corners
+
 
 cdef inline double _maximum(double a, double b) noexcept nogil:
     """NaN when either is NaN, else the larger (the first when equal)."""
@@ -229,6 +231,7 @@ def corner_ratios(const double[:, ::1] xy, const int64_t[:, ::1] tri,
     cdef double py[3]
     with nogil:
         for t in range(start, stop):
+            prefetch_corners(xy, tri, t + AHEAD, stop)
             for k in range(3):                   # each corner's coordinates read once
                 px[k] = xy[tri[t, k], 0]
                 py[k] = xy[tri[t, k], 1]

@@ -5,6 +5,8 @@ their points, so every kernel reads its points as rows (x, y together: one cache
 from libc.math cimport hypot
 from libc.stdint cimport int64_t, uint8_t, uint64_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch_corners
+
 
 def edge_lengths(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, ::1] out,
                  Py_ssize_t start, Py_ssize_t stop):
@@ -16,6 +18,7 @@ def edge_lengths(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, :
     cdef int64_t a, b, c
     with nogil:
         for t in range(start, stop):
+            prefetch_corners(xy, tri, t + AHEAD, stop)
             a = tri[t, 0]
             b = tri[t, 1]
             c = tri[t, 2]
