@@ -195,6 +195,18 @@ def test_usage_errors_exit_2(tmp_path, args):
     assert not (tmp_path / "out.ply").exists()
 
 
+@pytest.mark.parametrize("viewpoint", ["1,2", "a,b,c", "1,2,3,4,5", "1,2,nan", "1,2,3,0,0,0,0"])
+def test_a_malformed_viewpoint_is_a_usage_error_before_reading(tmp_path, viewpoint):
+    """--viewpoint was parsed only by the perspective fit, after the input was read: exit 1
+    naming the input there, and silently ignored in the axis frame (exit 0)."""
+    for frame in ("auto", "perspective"):
+        result = CliRunner().invoke(main, ["fit", str(tmp_path / "missing.xyz"), "-o", str(tmp_path / "out.ply"),
+                                           "--frame", frame, "--viewpoint", viewpoint])
+        assert result.exit_code == 2, result.stderr
+        assert result.stderr.count("\n") == 1 and "'--viewpoint'" in result.stderr
+        assert not (tmp_path / "out.ply").exists()
+
+
 def _malformed(tmp_path: Path) -> dict[str, Path]:
     files = {
         "missing": tmp_path / "missing.ply",

@@ -142,6 +142,25 @@ def parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
     return parts
 
 
+def parse_viewpoint_option(value: str | None) -> tuple[float, ...] | None:
+    """--viewpoint x,y,z[,qw,qx,qy,qz]: three or seven finite numbers, the quaternion (when
+    given) not zero; plain Python, so usage errors stay fast (parsed again, into the frame,
+    by c1mesh.stages.perspective.parse_viewpoint)."""
+    if value is None:
+        return None
+    try:
+        parts = tuple(float(p) for p in value.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) not in (3, 7) or not all(math.isfinite(p) for p in parts):
+        raise click.BadParameter(f"expected x,y,z or x,y,z,qw,qx,qy,qz (finite numbers), got {value!r}",
+                                 param_hint="'--viewpoint'")
+    if len(parts) == 7 and not any(parts[3:]):
+        raise click.BadParameter(f"the orientation qw,qx,qy,qz of {value!r} is zero, not a rotation",
+                                 param_hint="'--viewpoint'")
+    return parts
+
+
 def check_axis(value: str) -> None:
     """Usage error for an --axis that can never be a direction (checked again, and
     normalised, by c1mesh.stages.frame)."""

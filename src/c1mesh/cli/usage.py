@@ -22,6 +22,7 @@ from c1mesh.cli.options import (
     parse_intrinsics,
     parse_max_edge,
     parse_smooth,
+    parse_viewpoint_option,
 )
 from c1mesh.core.outputs import (
     DEM_AXES,
@@ -50,6 +51,7 @@ def _value_problems(params: dict) -> list[str]:
     for hint, parse, value in (("--classes", parse_classes, params["classes"]),
                                ("--max-edge", parse_max_edge, params["max_edge"]),
                                ("--intrinsics", parse_intrinsics, params["intrinsics"]),
+                               ("--viewpoint", parse_viewpoint_option, params["viewpoint"]),
                                ("--axis", check_axis, params["axis"]),
                                ("--smooth", parse_smooth, params["smooth"]),
                                ("--fill", parse_fill, params["fill"])):
