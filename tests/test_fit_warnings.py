@@ -101,3 +101,30 @@ def test_a_fit_in_tiles_of_autzen_ground_warns_nothing(tmp_path):
 
     report = fit(AUTZEN, tmp_path / "t.ply", replace(FitOptions(classes=(2,), level=1), memory=10**9), tiles=TiledRun(per_tile=7000)).report
     assert report["warnings"] == [] and report["note"].startswith("fitted in 4 tiles")
+
+
+def test_duplicated_points_draw_no_wrong_axis_warning(tmp_path):
+    """A scan holding every point twice (overlapping tiles merged, an export run twice): the
+    height field merges the copies into one vertex, and the fit is right, so no "check
+    --axis" warning, in memory and in tiles. Counted as points in no triangle, the copies
+    made half the points look folded over others."""
+    import laspy
+    from dataclasses import replace
+
+    from c1mesh.core.plan import TiledRun
+
+    source = laspy.read(TILE)
+    ground = source.points[source.classification == 2]
+    doubled = laspy.LasData(source.header)
+    doubled.points = ground[np.r_[np.arange(len(ground)), np.arange(len(ground))]]
+    path = tmp_path / "doubled.las"
+    doubled.write(path)
+    options = FitOptions(level=1)
+    whole = fit(path, None, options).report
+    assert whole["points"]["dropped"]["duplicate"] == len(ground)      # the case is there
+    assert whole["warnings"] == []
+    tiled = fit(path, tmp_path / "t.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=3000)).report
+    assert tiled["tiles"] > 1 and tiled["warnings"] == []
+    cloud = _terrain(1500, 40.0)
+    twice = PointCloud(np.r_[cloud.points, cloud.points], np.r_[cloud.normals, cloud.normals])
+    assert fit(twice, None, FitOptions(axis="z", level=1)).report["warnings"] == []

@@ -213,6 +213,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             done("spill")
             height_pass = height_spill(raw, grid, count, plan.heights, directory, temps.stem, runner, rows)
         heights = height_pass.heights
+        merged = height_pass.usable - int(heights.counts.sum())      # exact duplicates, one record kept
         try:
             spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
             data = None
@@ -295,7 +296,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    # a note, not a warning: the result is the in-memory fit's (docs/tiles.md)
                    "note": f"fitted in {len(grid)} tiles to stay within the memory budget (docs/tiles.md)",
                    "warnings": fit_warnings(count, _on_surface(kept, data, limiter), delaunay_count, long_edge,
-                                            max_edge, auto_limit(surface.max_edge)),
+                                            max_edge, auto_limit(surface.max_edge), merged=merged),
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,     # a fill's spanning triangles are no trim's

@@ -783,7 +783,8 @@ def surface_facts(cloud, model: SurfaceModel, options, pieces_in_warnings: bool 
             "warnings": fit_warnings(len(cloud), points_on_surface(model), trim_report.triangles_before,
                                      trim_report.removed.get("long_edge", 0), trim_report.max_edge,
                                      auto_limit(options.max_edge),
-                                     pieces["count"] if pieces_in_warnings else None)}
+                                     pieces["count"] if pieces_in_warnings else None,
+                                     model.hf.dropped.get("duplicate", 0))}
 
 
 def points_on_surface(model: SurfaceModel) -> int:

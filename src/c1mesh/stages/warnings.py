@@ -16,7 +16,7 @@ triangles inside dense data (uniform points at 1.6x their spacing: 38%)."""
 
 
 def fit_warnings(points: int, used: int, triangles: int, long_edge: int, max_edge,
-                 auto_limit: bool = False, pieces: int | None = None) -> list[str]:
+                 auto_limit: bool = False, pieces: int | None = None, merged: int = 0) -> list[str]:
     """Plain-language warnings about a fit whose result is probably wrong (the CLI prints
     them on stderr), the same for the in-memory and the tiled fit.
 
@@ -24,7 +24,10 @@ def fit_warnings(points: int, used: int, triangles: int, long_edge: int, max_edg
     are vertices of the trimmed surface; triangles: the triangles of the whole Delaunay
     triangulation before the trim; long_edge: how many of them the --max-edge rule removed
     (limit max_edge, length units or None; auto_limit: it is --max-edge auto's);
-    pieces: connected pieces of the result, when known (named in the message).
+    pieces: connected pieces of the result, when known (named in the message); merged:
+    the points merged into another point at the same plane position (the height field's
+    duplicates), which lie on the surface at that point's vertex, so they count as used:
+    a scan that holds every point twice is no sign of a wrong axis.
 
     Holes the trim leaves over gaps in the data (courtyards, building footprints under
     LiDAR ground) remove few triangles and leave few points out, so they draw no warning.
@@ -34,6 +37,7 @@ def fit_warnings(points: int, used: int, triangles: int, long_edge: int, max_edg
     leaves many points folded over others and off the surface, is the likely cause. At
     most one warning: the first that applies of these.
     """
+    used = min(points, used + merged)
     unused = f"{points - used} of the {points} points are in no triangle"
     dense = bool(triangles) and max_edge is not None and long_edge / triangles > LONG_EDGE_WARN
     if dense and not auto_limit:
