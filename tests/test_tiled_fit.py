@@ -304,6 +304,32 @@ def test_the_library_fit_runs_in_tiles_beyond_its_memory_as_the_cli_does(tmp_pat
     assert (tmp_path / "api.ply").read_bytes() == (tmp_path / "cli.ply").read_bytes()
 
 
+def test_a_las_file_named_otherwise_is_fitted_in_tiles_and_a_las_stream_is_refused_with_the_reason(tmp_path):
+    """read_cloud reads a LAS/LAZ file by --input-format, or a COPC file by its .copc name;
+    the tiled fit took only .las/.laz names, so these were read whole and refused beyond
+    --memory with 'only LAS/LAZ inputs are fitted in tiles ... convert it to LAS/LAZ'.
+    Now they are fitted in tiles as the .las is; a LAS stream (stdin), which the tiled fit
+    cannot reread, is refused with that reason instead."""
+    source = tmp_path / "terrain.las"
+    write_terrain_las(source, 8000)
+    args = ["--classes", "2", "--level", "1", "--memory", "5M"]
+    expected = tmp_path / "las.ply"
+    assert CliRunner().invoke(main, ["fit", str(source), "-o", str(expected), *args]).exit_code == 0
+    for name, fmt in (("terrain.dat", ["--input-format", "las"]), ("terrain.copc", [])):
+        renamed = tmp_path / name
+        renamed.write_bytes(source.read_bytes())
+        out = tmp_path / (name + ".ply")
+        result = CliRunner().invoke(main, ["fit", str(renamed), "-o", str(out), *fmt, *args])
+        assert result.exit_code == 0, result.output
+        assert out.read_bytes() == expected.read_bytes()
+    streamed = subprocess.run([sys.executable, "-m", "c1mesh.cli", "fit", "-", "--input-format", "las", "-o",
+                               str(tmp_path / "s.ply"), *args], input=source.read_bytes(), capture_output=True,
+                              timeout=120)
+    assert streamed.returncode == 1 and not (tmp_path / "s.ply").exists()
+    message = streamed.stderr.decode()
+    assert "not from a stream" in message and "convert it to LAS/LAZ" not in message, message
+
+
 def test_memory_rule():
     from c1mesh.survey.sizing import grid_side, tiles_at_once
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -18,6 +19,7 @@ import numpy as np
 from c1mesh.core.cloud import PointCloud
 from c1mesh.core.crs import resolve as resolve_crs
 from c1mesh.core.errors import C1MeshError, InputError
+from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import background
 from c1mesh.core.threads import workers as thread_count
@@ -181,7 +183,7 @@ def load_cloud(source, options: FitOptions) -> PointCloud:
     cloud = read_cloud(source, options.input_format, classes=codes, memory=options.memory,
                        bounds=options.bounds)
     cloud = choose_classes(cloud, options, display_name(source))
-    _check_fit_memory(len(cloud), options)
+    _check_fit_memory(len(cloud), options, source)
     if len(cloud) == 0:
         where = f"{getattr(source, 'name', source)}: " if options.bounds else ""
         raise InputError(f"{where}the input has no points" + (f" inside --bounds {','.join(map(str, options.bounds))}"
@@ -215,16 +217,27 @@ def choose_classes(cloud: PointCloud, options: FitOptions, name: str) -> PointCl
     return cloud
 
 
-def _check_fit_memory(count: int, options: FitOptions) -> None:
+def _check_fit_memory(count: int, options: FitOptions, source=None) -> None:
     """Refuse, before any stage runs, a cloud whose in-memory fit needs more than the
-    --memory bytes (sizing.point_bytes per point). LAS/LAZ inputs beyond it never get
-    here (they are fitted in tiles); other formats would otherwise run over the budget."""
+    --memory bytes (sizing.point_bytes per point). LAS/LAZ files beyond it never get
+    here (they are fitted in tiles); other formats would otherwise run over the budget,
+    and so would LAS/LAZ data the tiled fit cannot reread (`_tiles_advice`)."""
     plan = fit_plan(options)
     memory, per_point = plan.memory, point_bytes(plan.surface)
     if not fits_in_memory(count, memory, per_point):
         raise InputError(f"{count} points need about {count * per_point / 1e6:.0f} MB to fit in "
-                         f"memory, more than --memory {memory / 1e6:.0f} MB; only LAS/LAZ inputs are "
-                         "fitted in tiles: raise --memory, thin the input, or convert it to LAS/LAZ")
+                         f"memory, more than --memory {memory / 1e6:.0f} MB; {_tiles_advice(source, options)}")
+
+
+def _tiles_advice(source, options: FitOptions) -> str:
+    """What to do about an input too large for the in-memory fit that was not fitted in
+    tiles (survey.sizing.needs_tiles): LAS/LAZ files are, but not LAS/LAZ data on a
+    stream, which the tiled fit cannot read more than once; other formats never are."""
+    stream = source is None or not isinstance(source, (str, Path))
+    if stream and (options.input_format or "").lower().lstrip(".") in LAS_FORMATS:
+        return ("a LAS/LAZ input is fitted in tiles only from a file, which is read more than once, not from "
+                "a stream: save it as a .las or .laz file, or raise --memory")
+    return "only LAS/LAZ inputs are fitted in tiles: raise --memory, thin the input, or convert it to LAS/LAZ"
 
 
 def _check_normals_mode(mode: str) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.plan import FitPlan, SurfaceSettings
 from c1mesh.core.threads import per_process
 from c1mesh.formats.copc import points_to_read
@@ -77,7 +78,8 @@ def tiles_at_once(memory: int, jobs: int, per_point: int = BYTES_PER_POINT) -> i
 
 
 def needs_tiles(source, plan: FitPlan) -> bool:
-    """True when `source` (a LAS/LAZ path, or a list of them: one survey) holds more points,
+    """True when `source` (a LAS/LAZ/COPC path, by --input-format or else by its extension,
+    as c1mesh.formats.read_cloud decides; or a list of them: one survey) holds more points,
     by the headers, than the in-memory fit can take within plan.memory bytes
     (point_bytes per point); then it is fitted by `fit_tiled`. Streams, other formats
     and fits without a budget are never tiled. Raises InputError when the input needs
@@ -85,7 +87,8 @@ def needs_tiles(source, plan: FitPlan) -> bool:
     paths = survey_paths(source)
     if plan.memory is None or paths is None:
         return False
-    if any(path.suffix.lower() not in (".las", ".laz") for path in paths):
+    fmt = plan.select.input_format          # as read_cloud: the given format, else the extension
+    if any((fmt or path.suffix).lower().lstrip(".") not in LAS_FORMATS for path in paths):
         return False
     count = sum(points_to_read(path, plan.select.bounds) for path in paths)
     per_point = point_bytes(plan.surface)
