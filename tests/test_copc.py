@@ -213,6 +213,25 @@ def _filtered_las(path: Path, box, target: Path) -> Path:
     return target
 
 
+@pytest.mark.parametrize("extra", [[], ["--memory", "20M"], ["-o-tif"]])
+def test_bounds_outside_the_file_with_classes_say_so(tmp_path, extra):
+    """--classes 2 with --bounds that hold no point said 'no points of class [2]; the file
+    has classes []', of a file with classes 1 and 2: the empty read's (nothing in the box)
+    class check ran before the check that names --bounds."""
+    from click.testing import CliRunner
+
+    from c1mesh.cli import main
+
+    out = ["-o", str(tmp_path / "dem.tif"), "--resolution", "3"] if extra == ["-o-tif"] else \
+        ["-o", str(tmp_path / "out.ply"), *extra]
+    result = CliRunner().invoke(main, ["fit", str(DATA / "autzen_trim.laz"), "--classes", "2",
+                                       "--bounds", "0,0,1,1", *out])
+    assert result.exit_code == 1
+    assert result.output.count("\n") == 1 and "no points inside --bounds 0.0,0.0,1.0,1.0" in result.output, \
+        result.output
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_fit_by_bounds_is_the_fit_of_the_filtered_points(tmp_path):
     from click.testing import CliRunner
 

@@ -200,7 +200,7 @@ def choose_classes(cloud: PointCloud, options: FitOptions, name: str) -> PointCl
         if cloud.classification is None:
             raise InputError("--classes needs a file with a classification field (LAS/LAZ)")
         keep = np.isin(cloud.classification, np.asarray(options.classes))
-        if not keep.any():
+        if len(cloud) and not keep.any():             # none at all: "no points" below names --bounds
             found = np.unique(cloud.classification)[:20].tolist()
             raise InputError(f"no points of class {list(options.classes)}; the file has classes {found}")
         cloud = cloud.subset(keep)
