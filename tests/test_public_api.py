@@ -42,3 +42,20 @@ def test_fit_is_the_pipeline_verb_even_after_the_stage_package_is_imported():
     # every input point is a vertex of the interpolating surface, at its own height
     rows = {tuple(p) for p in np.round(result.mesh.vertices, 12)}
     assert sum(tuple(p) in rows for p in np.round(cloud.points, 12)) == len(cloud)
+
+
+@pytest.mark.parametrize("level", ["a", 2.5, 0, 65, True])
+def test_a_level_that_is_no_whole_number_in_range_is_an_input_error_before_reading(tmp_path, level):
+    """FitOptions.level, as a library caller may set it: anything but None or a whole number
+    1..64 is an InputError naming --level, raised before the input is read (the input does
+    not exist) and before any output is written."""
+    from c1mesh.pipeline.driver import FitOptions
+    with pytest.raises(c1mesh.InputError, match="--level must be a whole number from 1 to 64"):
+        c1mesh.fit(tmp_path / "missing.ply", tmp_path / "out.ply", FitOptions(level=level))
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_an_empty_survey_is_an_input_error(tmp_path):
+    """c1mesh.fit of an empty list of inputs says there is none (it was an IndexError)."""
+    with pytest.raises(c1mesh.InputError, match="at least one input"):
+        c1mesh.fit([], tmp_path / "out.ply")

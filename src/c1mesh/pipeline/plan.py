@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import (
     DemPlan,
@@ -21,6 +23,7 @@ from c1mesh.core.plan import (
     SurfaceSettings,
 )
 from c1mesh.formats._limits import parse_memory
+from c1mesh.geo.products import MAX_LEVEL
 from c1mesh.geo.raster import fill_distance, is_raster_path
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, parse_strength
@@ -41,6 +44,17 @@ def smoothing_strength(options) -> Strength:
     if options.spacing is not None and strength is None:
         raise InputError("--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength")
     return strength
+
+
+def refinement_level(level) -> int | None:
+    """options.level: None (the fit chooses) or a whole number 1 ... MAX_LEVEL, as the
+    CLI's --level takes it; InputError for anything else (a library caller's "a" or 2.5)
+    before any work, not a ValueError from deep in the refinement."""
+    if level is None:
+        return None
+    if isinstance(level, bool) or not isinstance(level, (int, np.integer)) or not 1 <= level <= MAX_LEVEL:
+        raise InputError(f"--level must be a whole number from 1 to {MAX_LEVEL}, got {level!r}")
+    return int(level)
 
 
 def resolve_options_axis(source, options):
@@ -66,7 +80,7 @@ def fit_plan(options, output=None) -> FitPlan:
         select=PointSelection(options.input_format, classes or None,
                               None if options.bounds is None else tuple(options.bounds)),
         heights=HeightSettings(options.axis, options.normals, options.k, options.max_slope, options.gradients),
-        surface=SurfaceSettings(options.max_edge, options.scheme, options.level, options.overshoot,
+        surface=SurfaceSettings(options.max_edge, options.scheme, refinement_level(options.level), options.overshoot,
                                 smoothing_strength(options), options.spacing),
         mesh=MeshTarget(options.output_format, options.ascii, options.crs,
                         None if dem is not None or options.resolution is None else float(options.resolution)),

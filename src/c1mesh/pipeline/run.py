@@ -80,6 +80,8 @@ def fit(source, output=None, options: FitOptions | None = None, on_stage: Callab
     tiles = tiles or TiledRun()
     tiles = tiles if on_stage is None else replace(tiles, on_stage=on_stage)
     survey = isinstance(source, (list, tuple))
+    if survey and not source:
+        raise InputError("a survey needs at least one input file")
     if outputs is not None and (not survey or output is not None):
         raise ValueError("outputs (one per input) go with a list of inputs and no single output")
     if output is not None and not is_raster_path(output):   # fails now, not after the work
