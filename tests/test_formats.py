@@ -225,6 +225,17 @@ def test_csv_from_r_and_pandas(tmp_path, text):
     assert cloud.normals is None and cloud.colors is None
 
 
+@pytest.mark.parametrize("text, line", [("6,370;2,698;0,026\n0,410;0,165;0,120\n8,133;9,128;0,288\n", 1),
+                                        ("X;Y;Z\n6,370;2,698;0,026\n0,410;0,165;0,120\n8,133;9,128;0,288\n", 2)],
+                         ids=["no header", "header"])
+def test_semicolon_values_with_decimal_commas_are_named_as_such(tmp_path, text, line):
+    """Excel's CSV in many locales: semicolons between values, decimal commas in them. One
+    line names the line and the decimal commas (it said "3 values, expected 6")."""
+    (tmp_path / "excel.csv").write_text(text)
+    with pytest.raises(FormatError, match=f"line {line} writes decimal commas .*decimal points"):
+        read_cloud(tmp_path / "excel.csv")
+
+
 def test_csv_named_columns_in_any_order(tmp_path):
     (tmp_path / "geo.csv").write_text("elev,Lat,LON,red,green,blue\n" + table_text(PTS[:, ::-1], RGB, sep=","))
     cloud = read_cloud(tmp_path / "geo.csv")

@@ -36,6 +36,9 @@ from c1mesh.core.errors import FormatError
 from c1mesh.formats._common import COLOR_NAMES, NORMAL_NAMES, colors_to_uint8, decode_text, find_columns, is_number, loadtxt
 
 _SPLIT = re.compile(r"[\s,;]+")
+_DECIMAL_COMMA = re.compile(r"(^|;)\s*-?[0-9]+,[0-9]+\s*(;|$)")
+"""A semicolon-separated value written with a decimal comma ('6,370'): Excel's export in
+many locales, reported rather than misread (a comma could also group thousands)."""
 #: Header names of the coordinate columns, lower-case, per axis.
 XYZ_NAMES = (
     ("x", "lon", "long", "longitude", "easting", "east"),
@@ -87,7 +90,10 @@ def _parse_table(lines: list[tuple[int, str]], name: str) -> np.ndarray:
         return loadtxt([ln for _, ln in lines], delimiter=delimiter, comments="#")
     except ValueError:
         pass
-    width = len(_SPLIT.split(lines[0][1].strip()))
+    if delimiter == ";" and _DECIMAL_COMMA.search(first) and "." not in first:
+        raise FormatError(f"Point file '{name}' line {lines[0][0]} writes decimal commas "
+                          f"({first.strip()!r}): write the values with decimal points.")
+    width = len(first.split("#")[0].split(delimiter))
     for number, line in lines:
         values = line.split("#")[0]
         words = values.split(delimiter)
