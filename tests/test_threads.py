@@ -402,3 +402,21 @@ def test_background_runs_beside_the_block_and_one_worker_runs_it_when_asked():
             assert seen == []
             assert result() == 42 and result() == 42
     assert seen == [threading.get_ident()]
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_compress_and_take_rows_are_numpys_at_any_thread_count(threads):
+    """core.threads.compress_rows against np.compress on rows (n, 3) with blocks of 7: a
+    mask keeping most rows, none, all, and fewer rows than a block; take_rows against
+    fancy indexing of rows (n, 3) and of a column (n,), with repeats and no index."""
+    from c1mesh.core.threads import compress_rows, limit, take_rows
+    rng = np.random.default_rng(threads)
+    rows = rng.integers(0, 1000, (100, 3))
+    with limit(threads):
+        for keep in (rng.random(100) > 0.2, np.zeros(100, bool), np.ones(100, bool)):
+            assert np.array_equal(compress_rows(keep, rows, block=7), np.compress(keep, rows, axis=0))
+        assert np.array_equal(compress_rows(keep[:5], rows[:5], block=7), rows[:5])
+        index = rng.integers(0, 100, 60)
+        for table in (rows, rows[:, 1].copy(), rows.astype(float)):
+            assert np.array_equal(take_rows(table, index, block=7), table[index])
+            assert take_rows(table, index[:0], block=7).shape == table[:0].shape

@@ -576,8 +576,11 @@ def _random_mesh(seed, keep=0.8):
     return rng, xy, tri, trim_stage.triangle_neighbours(tri, len(xy)), rng.random(len(tri)) < keep
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_each_edge_once_is_the_lengths_where_the_neighbour_is_none_or_later(seed):
+@pytest.mark.parametrize("seed, block", [(0, 1 << 14), (1, 1 << 14), (0, 7), (1, 64)])
+def test_each_edge_once_is_the_lengths_where_the_neighbour_is_none_or_later(seed, block, monkeypatch):
+    """In row order, also when the triangles are split into blocks of 7 or 64 (each block
+    into its own part, joined)."""
+    monkeypatch.setattr(trim_stage, "KERNEL_BLOCK", block)
     _, xy, tri, nb, _ = _random_mesh(seed)
     lengths = trim_stage.edge_lengths(xy, tri)
     once = trim_stage._each_edge_once(lengths, nb)

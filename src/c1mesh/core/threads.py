@@ -288,6 +288,32 @@ def parallel_blocks(work: Callable[[slice], None], count: int, block: int = 1 <<
     run_parallel(run, [()] * max(1, min(workers(threads), blocks)))
 
 
+def take_rows(rows: np.ndarray, index: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+    """rows[index] (m, ...) for index (m,) into rows (n, ...), the blocks of index gathered
+    by parallel_blocks in the thread knob's threads (numpy's take releases the GIL), so
+    the new array's pages fault in on every core. The same array at any thread count."""
+    out = np.empty((index.shape[0],) + rows.shape[1:], dtype=rows.dtype)
+    parallel_blocks(lambda part: np.take(rows, index[part], axis=0, out=out[part]), index.shape[0], block)
+    return out
+
+
+def compress_rows(keep: np.ndarray, rows: np.ndarray, block: int = 1 << 16) -> np.ndarray:
+    """np.compress(keep, rows, axis=0): the rows (n, ...) where keep (n,) bool is set, in
+    their order, each block's rows copied by parallel_blocks in the thread knob's threads
+    into its place (the kept rows before it counted first), so the new array's pages
+    fault in on every core. The same array at any thread count."""
+    count = keep.shape[0]
+    starts = np.zeros(-(-count // block) + 1, dtype=np.int64)
+    starts[1:] = np.cumsum([np.count_nonzero(keep[b:b + block]) for b in range(0, count, block)])
+    out = np.empty((int(starts[-1]),) + rows.shape[1:], dtype=rows.dtype)
+
+    def copy(part: slice) -> None:
+        b = part.start // block
+        np.compress(keep[part], rows[part], axis=0, out=out[starts[b]:starts[b + 1]])
+    parallel_blocks(copy, count, block)
+    return out
+
+
 def map_in_threads(function: Callable[[Item], object], items: list, threads: int | None = None) -> list:
     """[function(item) for item in items], the items shared among `workers(threads)`
     threads (parallel_blocks, one item a block) and the results in the items' order, so

@@ -4,6 +4,8 @@ else imports them."""
 from libc.math cimport fabs
 from libc.stdint cimport int64_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch
+
 
 cdef inline int64_t _root(int64_t[::1] parent, int64_t t) noexcept nogil:
     """The root of t's piece, halving the path on the way."""
@@ -64,16 +66,19 @@ def doubled_areas(const double[::1] x, const double[::1] y, const int64_t[:, ::1
             out[t] = fabs(ux * vy - uy * vx)
 
 
-def renumber(const int64_t[:, ::1] tri, int64_t[::1] remap, int64_t[:, ::1] out):
-    """Number the points (n,) that the triangles tri (T, 3) use in ascending order:
-    remap (n,), which must start at -1, gets each used point's new number (unused: -1),
-    out (T, 3) the triangles in those numbers. Returns how many points are used. One
-    thread."""
+def number_used(const int64_t[:, ::1] tri, int64_t[::1] remap):
+    """Number the points (n,) that the triangles tri (T, 3) use in ascending order: remap
+    (n,), which must start at -1, gets each used point's new number (unused: -1). Returns
+    how many points are used. One thread: a mark pass over the triangles (their corners'
+    entries asked for ahead) and a numbering pass over the points."""
     cdef Py_ssize_t T = tri.shape[0], n = remap.shape[0], t, v
     cdef int k
     cdef int64_t count = 0
     with nogil:
         for t in range(T):
+            if t + AHEAD < T:
+                for k in range(3):
+                    prefetch(&remap[tri[t + AHEAD, k]])
             for k in range(3):
                 remap[tri[t, k]] = 0
         for v in range(n):
@@ -82,7 +87,19 @@ def renumber(const int64_t[:, ::1] tri, int64_t[::1] remap, int64_t[:, ::1] out)
                 count += 1
             else:
                 remap[v] = -1
-        for t in range(T):
+    return count
+
+
+def renumber_rows(const int64_t[:, ::1] tri, const int64_t[::1] remap, int64_t[:, ::1] out,
+                  Py_ssize_t start, Py_ssize_t stop):
+    """out[t] = remap[tri[t]] (T, 3) for the triangles start <= t < stop (number_used's
+    numbers): each block writes its own rows, in any thread."""
+    cdef Py_ssize_t t
+    cdef int k
+    with nogil:
+        for t in range(start, stop):
+            if t + AHEAD < stop:
+                for k in range(3):
+                    prefetch(&remap[tri[t + AHEAD, k]])
             for k in range(3):
                 out[t, k] = remap[tri[t, k]]
-    return count

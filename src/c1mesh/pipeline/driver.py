@@ -21,7 +21,7 @@ from c1mesh.core.crs import resolve as resolve_crs
 from c1mesh.core.errors import C1MeshError, InputError
 from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.plan import MeshTarget
-from c1mesh.core.threads import background
+from c1mesh.core.threads import background, take_rows
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import Tile
 from c1mesh.engine.interpolator import RSDInterpolator
@@ -445,11 +445,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     smoothing = None
     with timer.stage("interpolate"):
         table, mesh = mesh.edge_table(local), None      # the trim's edge sort serves the interpolator
+        points = take_rows(hf.xy, used)
         if check_triangulation is not None:
-            check_triangulation(hf.xy[used], triangles, table)
+            check_triangulation(points, triangles, table)
         if strength is None:
-            interp, overshoot = limited_interpolator(hf.xy[used], hf.z[used], hf.gradients[used], triangles,
-                                                     scheme, options.overshoot, heights=not plan_heights,
+            interp, overshoot = limited_interpolator(points, take_rows(hf.z, used), take_rows(hf.gradients, used),
+                                                     triangles, scheme, options.overshoot, heights=not plan_heights,
                                                      table=table)
         else:
             interp, overshoot, smoothing = _smoothed(

@@ -72,15 +72,22 @@ class StageTimer:
 
 def compact_vertices(xy, triangles):
     """Drop points no triangle uses; returns (used point indices (n',) ascending, as
-    np.unique gives them, and the triangles (T, 3) re-indexed into them). One kernel pass
-    marks, numbers and re-indexes (pipeline/_steps.pyx)."""
-    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    np.unique gives them, and the triangles (T, 3) re-indexed into them). The kernel
+    (pipeline/_steps.pyx) marks and numbers in one thread, then re-indexes blocks of
+    triangles in the thread knob's threads."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
     if tri.size and (tri.min() < 0 or tri.max() >= xy.shape[0]):
         raise ValueError(f"triangle indices must lie in [0, {xy.shape[0]}), got {tri.min()}..{tri.max()}")
     remap = np.full(xy.shape[0], -1, dtype=np.int64)
     local = np.empty(tri.shape, dtype=np.int64)
-    kernel.renumber(tri.reshape(-1, 3), remap, local.reshape(-1, 3))
-    return np.flatnonzero(remap >= 0), local
+    kernel.number_used(tri, remap)
+    parallel_blocks(lambda part: kernel.renumber_rows(tri, remap, local, part.start, part.stop),
+                    tri.shape[0], RENUMBER_BLOCK)
+    return np.flatnonzero(remap >= 0), local.reshape(np.shape(triangles))
+
+
+RENUMBER_BLOCK = 1 << 16
+"""Triangles per block of compact_vertices' re-indexing."""
 
 
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,

@@ -27,14 +27,15 @@ def edge_lengths(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, :
             out[t, 2] = hypot(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1])
 
 
-def once_lengths(const double[:, ::1] lengths, const int64_t[:, ::1] neighbours, double[::1] out):
+def once_lengths(const double[:, ::1] lengths, const int64_t[:, ::1] neighbours, double[::1] out,
+                 Py_ssize_t start, Py_ssize_t stop):
     """Each edge's length once: lengths[t, k] (T, 3) where the triangle across, neighbours
-    [t, k] (T, 3), is none (-1) or comes later (> t), in row order into out (3T,). Returns
-    how many."""
-    cdef Py_ssize_t T = lengths.shape[0], t, count = 0
+    [t, k] (T, 3), is none (-1) or comes later (> t), for the triangles start <= t < stop
+    in row order into out (from its start: 3 (stop - start) at most). Returns how many."""
+    cdef Py_ssize_t t, count = 0
     cdef int k
     with nogil:
-        for t in range(T):
+        for t in range(start, stop):
             for k in range(3):
                 if neighbours[t, k] < 0 or neighbours[t, k] > t:
                     out[count] = lengths[t, k]

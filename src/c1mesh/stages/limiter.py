@@ -422,9 +422,16 @@ def _rows(array: np.ndarray) -> np.ndarray:
 
 
 def _edge_ends(edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(a, b) (E,) each: the two ends of edges (E, 2), contiguous int64, for the kernels."""
+    """(a, b) (E,) each: the two ends of edges (E, 2), contiguous int64, for the kernels;
+    copied over blocks of edges in the thread knob's threads (numpy's copies release the
+    GIL), so the new arrays' pages fault in on both cores."""
     edges = np.asarray(edges, dtype=np.int64)
-    return np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
+    a, b = np.empty(edges.shape[0], dtype=np.int64), np.empty(edges.shape[0], dtype=np.int64)
+
+    def copy(part: slice) -> None:
+        a[part], b[part] = edges[part, 0], edges[part, 1]
+    parallel_blocks(copy, edges.shape[0], KERNEL_BLOCK)
+    return a, b
 
 
 @dataclass(frozen=True)
