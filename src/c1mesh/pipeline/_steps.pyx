@@ -29,6 +29,12 @@ def pieces(const int64_t[:, ::1] tri_edge, const int64_t[::1] owner, int64_t[::1
             parent[t] = t
             size[t] = 0
         for t in range(T):
+            if t + 2 * AHEAD < T:               # a later triangle's edges' owners, then
+                for k in range(3):              # the owners' parents, asked for ahead
+                    prefetch(&owner[tri_edge[t + 2 * AHEAD, k]])
+            if t + AHEAD < T:
+                for k in range(3):
+                    prefetch(&parent[owner[tri_edge[t + AHEAD, k]]])
             a = _root(parent, t)
             for k in range(3):
                 b = owner[tri_edge[t, k]]

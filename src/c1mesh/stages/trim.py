@@ -216,9 +216,9 @@ def _trim(tile: "TrimTile", max_edge, min_circle_ratio: float) -> TrimReport:
     if not 0.0 <= min_circle_ratio <= 1.0:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
     alive = tile.alive
-    if limit is not None:
-        for k in range(3):
-            alive &= ~(tile.lengths[:, k] > limit)
+    if limit is not None:                      # NaN lengths are not above it: kept, as before
+        parallel_blocks(lambda part: np.logical_and(alive[part], ~(tile.lengths[part] > limit).any(axis=1),
+                                                    out=alive[part]), alive.shape[0], KERNEL_BLOCK << 2)
     long_edge = int((~alive).sum())
     _, counts = trim_run(OneTile(tile), min_circle_ratio)
     return TrimReport(triangles_before=int(alive.shape[0]), triangles_after=int(np.count_nonzero(alive)),
@@ -657,20 +657,22 @@ def _edge_limit(lengths: np.ndarray, neighbours: np.ndarray, max_edge) -> float 
 def _each_edge_once(lengths: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """The lengths (T, 3) of every edge once, from the triangle whose neighbour across it
     (neighbours (T, 3)) is none or later, in row order: the edges of the triangulation,
-    each once (kernel: stages/_trim.pyx, one pass, no (T, 3) masks, over blocks of
-    triangles in the thread knob's threads, each into its own part, joined in order)."""
+    each once (kernel: stages/_trim.pyx, no (T, 3) masks: each block of triangles counts
+    its edges, then writes them after the blocks before it, both passes in the thread
+    knob's threads)."""
     lengths = np.ascontiguousarray(lengths, dtype=np.float64)
     neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
-    once = np.empty(lengths.size)
-    counts = np.zeros(-(-lengths.shape[0] // KERNEL_BLOCK), dtype=np.int64)
+    T = lengths.shape[0]
+    first = np.zeros(-(-T // KERNEL_BLOCK) + 1, dtype=np.int64)
 
-    def block(part: slice) -> None:
-        counts[part.start // KERNEL_BLOCK] = kernel.once_lengths(lengths, neighbours, once[3 * part.start:],
-                                                                 part.start, part.stop)
-    parallel_blocks(block, lengths.shape[0], KERNEL_BLOCK)
-    if counts.size <= 1:
-        return once[:int(counts.sum())]
-    return np.concatenate([once[3 * b * KERNEL_BLOCK:3 * b * KERNEL_BLOCK + c] for b, c in enumerate(counts)])
+    def count(part: slice) -> None:
+        first[part.start // KERNEL_BLOCK + 1] = kernel.once_count(neighbours, part.start, part.stop)
+    parallel_blocks(count, T, KERNEL_BLOCK)
+    np.cumsum(first, out=first)
+    once = np.empty(int(first[-1]))
+    parallel_blocks(lambda part: kernel.once_lengths(lengths, neighbours, once[first[part.start // KERNEL_BLOCK]:],
+                                                     part.start, part.stop), T, KERNEL_BLOCK)
+    return once
 
 
 def used_points(tri: np.ndarray, alive: np.ndarray, n_points: int) -> int:
