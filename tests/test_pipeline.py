@@ -398,3 +398,24 @@ def test_a_survey_of_height_column_tables_is_fitted_like_the_whole_table(tmp_pat
                                   "-o", str(tmp_path / "mixed.ply")], capture_output=True, text=True)
     assert mixed.returncode == 1 and "names a height column" in mixed.stderr
     assert not (tmp_path / "mixed.ply").exists()
+
+
+@pytest.mark.parametrize("kind", ["random", "circle", "square grid", "three", "line", "repeats"])
+def test_hull_area_is_scipys_convex_hull_volume(kind):
+    """pipeline.steps.hull_area (Andrew's monotone chain) against scipy's ConvexHull
+    (qhull) volume, to rounding, also 1e5 from the origin; 0 for points on one line
+    (qhull refuses them)."""
+    from scipy.spatial import ConvexHull
+
+    from c1mesh.pipeline.steps import hull_area
+    rng = np.random.default_rng(7)
+    xy = {"random": rng.normal(size=(500, 2)) * [3.0, 1.0] + [1e5, 2e5],
+          "circle": np.c_[np.cos(np.arange(64) / 10.19), np.sin(np.arange(64) / 10.19)],
+          "square grid": np.stack(np.meshgrid(np.arange(6.0), np.arange(4.0)), -1).reshape(-1, 2),
+          "three": np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0]]),
+          "line": np.c_[np.arange(9.0), 2 * np.arange(9.0) + 1],
+          "repeats": np.repeat(rng.random((40, 2)), 3, axis=0)}[kind]
+    # qhull on centred points: on the raw state-plane-like coordinates its own volume
+    # moves by ~1e-12 relative; hull_area sums a fan from a hull corner, which loses nothing
+    want = 0.0 if kind == "line" else ConvexHull(xy - xy.mean(axis=0)).volume
+    assert hull_area(xy) == pytest.approx(want, rel=1e-12, abs=1e-12)

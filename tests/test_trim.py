@@ -268,3 +268,17 @@ def test_circle_ratio_and_thin_rows_are_the_numpy_expression_to_the_bit():
         rows = trim_stage._thin_rows(lengths, alive, min_ratio)
         assert np.array_equal(rows, np.flatnonzero(alive & (want < min_ratio)))
     assert 50 < len(trim_stage._thin_rows(lengths, alive, 0.01)) < len(lengths) // 10
+
+
+@pytest.mark.parametrize("n, m", [(1, 0), (7, 0), (50, 30), (400, 380), (1000, 3000)])
+def test_connected_sets_number_the_sets_as_scipys_connected_components(n, m):
+    """trim.connected_sets (a union-find kernel) against scipy's connected_components of
+    the same undirected pairs, labels and all: isolated items, chains, self-pairs, repeats."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from c1mesh.stages.trim import connected_sets
+    rng = np.random.default_rng(n + m)
+    a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+    graph = coo_matrix((np.ones(m, dtype=np.int8), (a, b)), shape=(n, n))
+    assert np.array_equal(connected_sets(n, a, b), connected_components(graph, directed=False)[1])

@@ -14,11 +14,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError
 from c1mesh.engine import rsd
 from c1mesh.engine.properties import scheme_properties
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 
 # ---------------------------------------------------------------------------------- grid
@@ -244,7 +246,7 @@ class SplineSampler:
         """(m,) the distance from each local plane point xy (m, 2) to the nearest point the
         fit used (fit_xy), by a k-d tree."""
         if self._tree is None:
-            self._tree = cKDTree(self._fit_xy)
+            self._tree = spatial.cKDTree(self._fit_xy)
         return self._tree.query(xy)[0] if len(xy) else np.zeros(0)
 
     def centre_distances(self, grid: RasterGrid, rows: range, where: np.ndarray) -> np.ndarray:
@@ -433,7 +435,7 @@ class NearestTriangles:
         self._of_vertex = order // 3                                            # triangles by vertex
         self._start = np.searchsorted(self.triangles.ravel()[order], np.arange(len(self.points) + 1))
         self._corners = np.unique(self.triangles)                               # points some triangle uses
-        self._tree = cKDTree(self.points[self._corners])
+        self._tree = spatial.cKDTree(self.points[self._corners])
 
     def of(self, query: np.ndarray) -> np.ndarray:
         """(q,) the nearest triangle to each query point (q, 2) within the reach, -1 if none."""

@@ -5,14 +5,7 @@ from libc.math cimport fabs
 from libc.stdint cimport int64_t
 
 from c1mesh.core._prefetch cimport AHEAD, prefetch
-
-
-cdef inline int64_t _root(int64_t[::1] parent, int64_t t) noexcept nogil:
-    """The root of t's piece, halving the path on the way."""
-    while parent[t] != t:
-        parent[t] = parent[parent[t]]
-        t = parent[t]
-    return t
+from c1mesh.core._union_find cimport root
 
 
 def pieces(const int64_t[:, ::1] tri_edge, const int64_t[::1] owner, int64_t[::1] parent,
@@ -35,17 +28,17 @@ def pieces(const int64_t[:, ::1] tri_edge, const int64_t[::1] owner, int64_t[::1
             if t + AHEAD < T:
                 for k in range(3):
                     prefetch(&parent[owner[tri_edge[t + AHEAD, k]]])
-            a = _root(parent, t)
+            a = root(&parent[0], t)
             for k in range(3):
                 b = owner[tri_edge[t, k]]
                 if b != t:
-                    b = _root(parent, b)
+                    b = root(&parent[0], b)
                     if a != b:                  # join at the lower root
                         if b < a:
                             a, b = b, a
                         parent[b] = a
         for t in range(T):
-            a = _root(parent, t)
+            a = root(&parent[0], t)
             if size[a] == 0:
                 count += 1
             size[a] += 1
@@ -109,3 +102,35 @@ def renumber_rows(const int64_t[:, ::1] tri, const int64_t[::1] remap, int64_t[:
                     prefetch(&remap[tri[t + AHEAD, k]])
             for k in range(3):
                 out[t, k] = remap[tri[t, k]]
+
+
+cdef inline double _cross(const double[::1] x, const double[::1] y, int64_t o, int64_t a,
+                          int64_t b) noexcept nogil:
+    return (x[a] - x[o]) * (y[b] - y[o]) - (y[a] - y[o]) * (x[b] - x[o])
+
+
+def hull_area(const double[::1] x, const double[::1] y, int64_t[::1] chain) -> float:
+    """The area of the convex hull of the points (x, y) (n,), sorted by x then y (Andrew's
+    monotone chain: the lower hull left to right, then the upper right to left, dropping
+    every turn that is not strictly to the left; the area as a fan of triangles from its
+    first corner, so large coordinates (state plane) lose no digits). chain (2n + 1,)
+    scratch. 0 for fewer than 3 points or points on one line."""
+    cdef Py_ssize_t n = x.shape[0], i, k = 0, lower
+    cdef double twice = 0.0
+    if n < 3:
+        return 0.0
+    with nogil:
+        for i in range(n):
+            while k >= 2 and _cross(x, y, chain[k - 2], chain[k - 1], i) <= 0:
+                k -= 1
+            chain[k] = i
+            k += 1
+        lower = k + 1
+        for i in range(n - 2, -1, -1):
+            while k >= lower and _cross(x, y, chain[k - 2], chain[k - 1], i) <= 0:
+                k -= 1
+            chain[k] = i
+            k += 1
+        for i in range(1, k - 2):               # the fan from chain[0] (chain[k - 1] is it again):
+            twice += _cross(x, y, chain[0], chain[i], chain[i + 1])     # no far-off coordinates
+    return 0.5 * twice

@@ -60,7 +60,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from c1mesh.core.plan import DemPlan
 from c1mesh.core.threads import limit
@@ -83,6 +82,9 @@ from c1mesh.geo.products import ContourRequest, stage_lines
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 CELL = np.dtype([("cell", "<i8"), ("z", "<f8"), ("g", "<f8", 2), ("tri", "<i4"), ("span", "u1")])
 """A sampled cell in a tile's part file: its flat index in the grid with its ring
@@ -321,7 +323,7 @@ def _support_tile(job: DemJob, t: int, path, spanning: bool = False) -> int:
     heights = np.load(job.heights_path, mmap_mode="r").reshape(-1)
     spans = np.load(job.spans_path, mmap_mode="r").reshape(-1) if spanning else None
     vertices = halo_vertices(job.halos.halo(t))
-    tree = cKDTree(np.column_stack([vertices["x"], vertices["y"]])) if len(vertices) else None
+    tree = spatial.cKDTree(np.column_stack([vertices["x"], vertices["y"]])) if len(vertices) else None
     nx, ny = grid.nx, grid.ny
     i, j = t % nx, t // nx
     x0, y0, x1, y1 = grid.cell(t)
@@ -369,7 +371,7 @@ def _nearer_vertices(job: DemJob, centres: np.ndarray, found: np.ndarray) -> np.
         vertices = vertices[grid.tile_of(np.column_stack([vertices["x"], vertices["y"]])) == u]
         if not len(vertices):
             continue
-        tree = cKDTree(np.column_stack([vertices["x"], vertices["y"]]))
+        tree = spatial.cKDTree(np.column_stack([vertices["x"], vertices["y"]]))
         distance = tree.query(centres[near], distance_upper_bound=float(found[near].max()) * (1 + 1e-9))[0]
         best[near] = np.minimum(best[near], distance)
     return best

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
@@ -188,13 +187,19 @@ def mesh_pieces(xy: np.ndarray, triangles: np.ndarray, table=None) -> dict:
                                    np.ascontiguousarray(table.owner, dtype=np.int64), *scratch)
     area = _triangulated_area(xy, triangles)
     rim = np.unique(table.edges[table.count == 1])            # the hull's corners are among these
-    try:
-        hull = ConvexHull(xy[rim]).volume
-    except Exception:  # noqa: BLE001 - degenerate hull: report no loss
-        hull = area
+    hull = hull_area(xy[rim])
     return {"count": int(count),
             "largest_fraction": float(largest / count_t),
             "area_fraction": float(area / hull) if hull > 0 else 1.0}
+
+
+def hull_area(xy: np.ndarray) -> float:
+    """The area of the convex hull of points xy (n, 2) (kernel: pipeline/_steps.pyx,
+    Andrew's monotone chain over the points sorted by x, then y; 0 for fewer than 3
+    points or points on one line). Our own so that a plain fit imports no scipy."""
+    order = np.lexsort((xy[:, 1], xy[:, 0]))
+    x, y = np.ascontiguousarray(xy[order, 0], dtype=np.float64), np.ascontiguousarray(xy[order, 1], dtype=np.float64)
+    return float(kernel.hull_area(x, y, np.empty(2 * len(order) + 1, dtype=np.int64)))
 
 
 AREA_BLOCK = 1 << 16

@@ -9,6 +9,8 @@ from libc.math cimport fabs, isnan, sqrt, INFINITY, NAN
 from libc.stdint cimport int64_t, uint8_t, uint64_t
 from libc.string cimport memcpy
 
+from c1mesh.core._union_find cimport root
+
 
 cdef inline uint64_t _float_key(double value) noexcept nogil:
     """An unsigned key that orders as the double does (-0.0 and 0.0 equal; no NaN)."""
@@ -253,14 +255,6 @@ cdef inline double _maximum(double a, double b) noexcept nogil:
     return a if a >= b else b
 
 
-cdef inline int64_t _root(int64_t *parent, int64_t i) noexcept nogil:
-    """The root of i's set, halving the path on the way."""
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
-
-
 cdef struct _Pairs:
     # what close_pairs tests each pair with (one struct, not a dozen arguments)
     const double *x
@@ -288,8 +282,8 @@ cdef void _test_pair(_Pairs *s, int64_t i, int64_t j) noexcept nogil:
         s.bad[i] = 1
         s.bad[j] = 1
     if dist <= s.merge_radius:
-        a = _root(s.parent, i)
-        b = _root(s.parent, j)
+        a = root(s.parent, i)
+        b = root(s.parent, j)
         if s.rank[b] < s.rank[a]:
             a, b = b, a
         s.parent[b] = a
@@ -338,4 +332,4 @@ def close_pairs(const double[::1] x, const double[::1] y, const double[::1] z,
                 _test_pair(&s, i, order[b])
                 b += 1
         for a in range(m):
-            parent[a] = _root(&parent[0], a)
+            parent[a] = root(&parent[0], a)

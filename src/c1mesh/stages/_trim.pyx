@@ -2,10 +2,13 @@
 """The trim's kernels: c1mesh.stages.trim wraps them (validation, threads), and nothing else
 imports them. The triangles of a Delaunay triangulation come in no particular order of
 their points, so every kernel reads its points as rows (x, y together: one cache line)."""
+import numpy as np
+
 from libc.math cimport hypot
 from libc.stdint cimport int64_t, uint8_t, uint64_t
 
 from c1mesh.core._prefetch cimport AHEAD, prefetch_corners
+from c1mesh.core._union_find cimport root
 
 
 def edge_lengths(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, ::1] out,
@@ -264,4 +267,31 @@ def triangles_among(const int64_t[::1] index, const int64_t[:, ::1] triangles, i
             out[count, 1] = b
             out[count, 2] = c
             count += 1
+    return count
+
+
+def component_labels(const int64_t[::1] a, const int64_t[::1] b, int64_t[::1] labels):
+    """labels (n,): the connected set of each of n items that the pairs (a[i], b[i]) (m,)
+    join, the sets numbered 0, 1, ... in the order of their lowest item (as scipy's
+    connected_components numbers an undirected graph's components). Returns how many
+    sets. Union-find, one thread."""
+    cdef Py_ssize_t n = labels.shape[0], m = a.shape[0], i
+    cdef int64_t x, y, count = 0
+    parent_ = np.arange(n, dtype=np.int64)
+    cdef int64_t[::1] parent = parent_
+    with nogil:
+        for i in range(m):
+            x = root(&parent[0], a[i])
+            y = root(&parent[0], b[i])
+            if x != y:                              # join at the lower root
+                if y < x:
+                    x, y = y, x
+                parent[y] = x
+        for i in range(n):                          # a set's lowest item is its root
+            x = root(&parent[0], i)
+            if x == i:
+                labels[i] = count
+                count += 1
+            else:
+                labels[i] = labels[x]
     return count

@@ -49,12 +49,13 @@ import math
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
-from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.crs import metres_per_unit
 from c1mesh.core.errors import InputError
+from c1mesh.core.lazy import LazyModule
+from c1mesh.stages.trim import connected_sets
+
+ndimage = LazyModule("scipy.ndimage")
 
 #: The truncation (in σ) of the Gaussian weights of the DEM's plane fit.
 _FILL_TRUNCATE = 4
@@ -287,7 +288,8 @@ def _segments(surface: np.ndarray, step: float) -> tuple[np.ndarray, int, np.nda
     joined = (np.abs(surface.flat[pairs[0]] - surface.flat[pairs[1]]) < step * distance) \
         & ~bridge[pairs[0]] & ~bridge[pairs[1]]
     a, b, n = index.flat[pairs[0]][joined], index.flat[pairs[1]][joined], int(cells.sum())
-    count, label = connected_components(coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)), directed=False)
+    label = connected_sets(n, a, b)
+    count = int(label.max()) + 1 if n else 0
     labels = np.zeros(surface.shape, dtype=np.int64)
     labels[cells] = label + 1
     return labels, count, pairs, joined

@@ -40,11 +40,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError, NotAHeightFieldError
 from c1mesh.core.tile import VERTEX
 from c1mesh.stages import _height_field as kernel
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 _AXIS_HINT = "try --axis x|y|z or X,Y,Z, or --classes 2 for LiDAR ground"
 STACK_MARGIN = 3.0
@@ -586,9 +588,9 @@ def stacked_points(tile: PositionTile, spacing: float, common_metric: bool = Tru
     return int(tile.size[bad & tile.own].sum()), root
 
 
-def kd_tree(points: np.ndarray) -> cKDTree:
+def kd_tree(points: np.ndarray) -> "scipy.spatial.cKDTree":
     """KD tree built the fast way (sliding midpoint, no node compaction): half the build time."""
-    return cKDTree(points, balanced_tree=False, compact_nodes=False)
+    return spatial.cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
 def _check_spread(xy: np.ndarray) -> None:

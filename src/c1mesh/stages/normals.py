@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import DependencyError, InputError
 from c1mesh.core.threads import workers
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 
 def estimate_normals(points: ArrayLike, k: int = 16,
@@ -66,7 +68,7 @@ def neighbourhood_reach(points: np.ndarray, at: np.ndarray, k: int) -> np.ndarra
     if len(distinct) < k:
         return np.full(len(mine), np.inf)
     rows, back = np.unique(mine, return_inverse=True)
-    distance, _ = cKDTree(distinct).query(distinct[rows], k, workers=workers())
+    distance, _ = spatial.cKDTree(distinct).query(distinct[rows], k, workers=workers())
     kth = distance[:, -1] if distance.ndim == 2 else distance
     return kth[back.ravel()]
 

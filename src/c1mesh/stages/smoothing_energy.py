@@ -39,7 +39,6 @@ from functools import lru_cache
 from itertools import product
 
 import numpy as np
-import scipy.sparse as sp
 
 from c1mesh.core.errors import C1MeshError
 from c1mesh.core.threads import parallel_blocks
@@ -47,6 +46,9 @@ from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import _smoothing_energy as kernel
+from c1mesh.core.lazy import LazyModule
+
+sp = LazyModule("scipy.sparse")
 
 N_LOCAL = 9
 """Local unknowns of a triangle: f0, f1, f2, then (∂x f_k, ∂y f_k) for k = 0, 1, 2."""

@@ -21,8 +21,6 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from c1mesh.core.threads import blas_threads, parallel_blocks
 from c1mesh.engine import rsd
@@ -30,6 +28,10 @@ from c1mesh.engine.schemes import ShapeTuple
 from c1mesh.stages.smoothing_energy import (N_LOCAL, SmoothingError, energy_blocks_of,
                                             linear_maps, local_dofs)
 from c1mesh.stages import _smoothing_system as kernel
+from c1mesh.core.lazy import LazyModule
+
+sp = LazyModule("scipy.sparse")
+spla = LazyModule("scipy.sparse.linalg")
 
 _CHUNK = 1 << 15
 

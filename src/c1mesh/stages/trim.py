@@ -37,8 +37,6 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import compress_rows, overlap, parallel_blocks
@@ -392,8 +390,7 @@ def peeled(triangles: np.ndarray, front: np.ndarray) -> np.ndarray:
     corners, local = np.unique(triangles, return_inverse=True)
     across = triangle_neighbours(local.reshape(-1, 3), len(corners))
     t, side = np.nonzero(across >= 0)
-    graph = coo_matrix((np.ones(t.size, dtype=np.int8), (t, across[t, side])), shape=(k, k))
-    component = connected_components(graph, directed=False)[1]
+    component = connected_sets(k, t, across[t, side])
     reached = np.zeros(component.max() + 1, dtype=bool)
     reached[component[front]] = True
     return reached[component]
@@ -572,6 +569,16 @@ def triangles_among(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return out[:count]
 
 
+def connected_sets(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) int64 the connected set of each of n items that the pairs (a[i], b[i]) join,
+    numbered in the order of each set's lowest item, as scipy's connected_components
+    numbers an undirected graph (kernel: stages/_trim.pyx, a union-find; no sparse graph
+    is built, and the plain fit does not import scipy for it)."""
+    labels = np.empty(n, dtype=np.int64)
+    kernel.component_labels(np.ascontiguousarray(a, dtype=np.int64), np.ascontiguousarray(b, dtype=np.int64), labels)
+    return labels
+
+
 def _table_size(keys: int) -> int:
     """A kernel hash table's slots for `keys` keys: the power of two at least twice as many."""
     return 1 << max(1, int(2 * keys - 1).bit_length())
@@ -739,8 +746,7 @@ def remove_bowties(tri: np.ndarray, alive: np.ndarray, neighbours: np.ndarray,
         pos = order[np.searchsorted(key[order], v[ok] * len(tri) + other[ok])]
         links.append(np.stack([np.flatnonzero(ok), pos]))
     links = np.concatenate(links, axis=1)
-    graph = coo_matrix((np.ones(links.shape[1], dtype=np.int8), tuple(links)), shape=(t.size,) * 2)
-    fan = connected_components(graph, directed=False)[1]
+    fan = connected_sets(t.size, links[0], links[1])
     size = np.bincount(fan)
     # per vertex keep the fan with most triangles; ties: the fan holding the smallest
     # triangle as a sorted corner triple (order-free: the same in any triangle order)

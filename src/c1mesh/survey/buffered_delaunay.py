@@ -41,7 +41,6 @@ from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from c1mesh.core.errors import InputError
 from c1mesh.engine.triangulation import delaunay_with_neighbours
@@ -58,6 +57,9 @@ from c1mesh.survey.strip_geometry import (
     triangle_flags,
     unread_strips,
 )
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 Reader = Callable[[tuple[float, float, float, float]], tuple[np.ndarray, np.ndarray]]
 """read((x0, y0, x1, y1)) -> (index (m,) int64 ascending survey point numbers, xy (m, 2)
@@ -155,7 +157,7 @@ def streamed_hull(chunks) -> Hull:
         index = np.concatenate([index, np.asarray(chunk_index, np.int64)])
         xy = np.concatenate([xy, np.asarray(chunk_xy, np.float64)])
         if len(index) >= 3:
-            corners = ConvexHull(xy).vertices                 # counter-clockwise in 2-D
+            corners = spatial.ConvexHull(xy).vertices                 # counter-clockwise in 2-D
             index, xy = index[corners], xy[corners]
     return Hull(index, xy)
 

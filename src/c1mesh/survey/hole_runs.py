@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import map_in_threads
@@ -28,6 +27,9 @@ from c1mesh.stages.trim import kept_triangles
 from c1mesh.survey.halos import HALO_EDGES, HaloCache
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.trim_runs import trim_tiles
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,7 @@ def long_triangles(halos, max_edge: float, memory: int, name: str) -> tuple[np.n
             members = np.flatnonzero(owner == t)
             halo = halos.halo(t)
             points = halo.points               # a triangle holding a centroid has its corners within max_edge
-            near = cKDTree(centroids[members]).query(points, distance_upper_bound=max_edge * (1 + 1e-9))[0]
+            near = spatial.cKDTree(centroids[members]).query(points, distance_upper_bound=max_edge * (1 + 1e-9))[0]
             triangles = halo.triangles[np.isfinite(near)[halo.triangles[:, 0]]]
             held[members] = short_cover(points, triangles)(centroids[members])
         map_in_threads(ask, np.unique(owner).tolist())
@@ -190,7 +192,7 @@ def far_centres(triangles: np.ndarray, rims: np.ndarray, grid, edge: float) -> d
     at = np.searchsorted(rims["index"], corners)
     xy = np.column_stack([rims["x"][at], rims["y"][at]])
     rows = np.searchsorted(corners, triangles)                        # (k, 3) rows of corners
-    tree = cKDTree(xy)
+    tree = spatial.cKDTree(xy)
     by_corner = _triangles_of_corners(rows, len(corners))
     slack = 1 + 1e-9
     centres = {}

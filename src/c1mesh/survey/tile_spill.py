@@ -19,10 +19,12 @@ from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from c1mesh.core.outputs import register_temp, unregister_temp
 from c1mesh.survey.buffered_delaunay import TileGrid
+from c1mesh.core.lazy import LazyModule
+
+spatial = LazyModule("scipy.spatial")
 
 RECORD = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 """One spilled point: survey number and frame coordinates (x, y in the plane, z height)."""
@@ -130,7 +132,7 @@ class TileSpill:
                 ask = np.flatnonzero(~keep & (r["x"] >= lo[0]) & (r["x"] <= hi[0])
                                      & (r["y"] >= lo[1]) & (r["y"] <= hi[1]))
                 if ask.size:
-                    distance = cKDTree(mine).query(np.column_stack([r["x"][ask], r["y"][ask]]), p=np.inf,
+                    distance = spatial.cKDTree(mine).query(np.column_stack([r["x"][ask], r["y"][ask]]), p=np.inf,
                                                    distance_upper_bound=radius * (1 + 1e-12) + 1e-300)[0]
                     keep[ask[distance <= radius]] = True
             parts.append(np.compress(keep, r))
