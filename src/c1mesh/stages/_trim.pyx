@@ -7,7 +7,7 @@ import numpy as np
 from libc.math cimport hypot
 from libc.stdint cimport int64_t, uint8_t, uint64_t
 
-from c1mesh.core._prefetch cimport AHEAD, prefetch_corners
+from c1mesh.core._prefetch cimport AHEAD, prefetch, prefetch_corners
 from c1mesh.core._union_find cimport root
 
 
@@ -201,6 +201,9 @@ def kept_triangles(const int64_t[:, ::1] corners, const int64_t[::1] numbers, bi
                 slot = (slot + 1) & mask
             table[slot] = r
         for t in range(T):
+            if mapped and t + AHEAD < T:        # a later triangle's corners' numbers
+                for r in range(3):
+                    prefetch(&numbers[corners[t + AHEAD, r]])
             a = corners[t, 0]
             b = corners[t, 1]
             c = corners[t, 2]

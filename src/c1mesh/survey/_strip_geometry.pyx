@@ -12,6 +12,7 @@ degenerate triangles' NaN centres as numpy did: they reach nothing.
 from libc.math cimport hypot, INFINITY, isfinite
 from libc.stdint cimport int64_t, uint8_t
 
+from c1mesh.core._prefetch cimport AHEAD, prefetch, prefetch_corners
 from c1mesh.core._triangles cimport corner_offsets
 
 
@@ -42,6 +43,7 @@ def circumcircles(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, 
     cdef double c[6]           # corner a, then b - a and c - a
     with nogil:
         for t in range(k):
+            prefetch_corners(xy, tri, t + AHEAD, k)
             corner_offsets(xy, tri, t, c)
             ax, ay, bx, by, cx, cy = c[0], c[1], c[2], c[3], c[4], c[5]
             d = 2.0 * (bx * cy - by * cx)
@@ -139,6 +141,10 @@ def triangle_flags(const double[:, ::1] xy, const int64_t[:, ::1] simplices, con
     cdef double e[3]
     with nogil:
         for t in range(T):
+            if t + AHEAD < T:                      # a later triangle's corners' rows
+                prefetch_corners(xy, simplices, t + AHEAD, T)
+                for k in range(3):
+                    prefetch(&index[simplices[t + AHEAD, k]])
             p = simplices[t, 0]
             q = simplices[t, 1]
             r = simplices[t, 2]
