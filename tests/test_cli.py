@@ -623,3 +623,24 @@ def test_max_slope_given_without_z_factor_is_a_note(tmp_path):
     assert read_cloud(tmp_path / "a.ply").points.shape[0] > 0
     default = run("fit", src, "-o", tmp_path / "b.ply", "--level", "1")
     assert default.returncode == 0 and "--max-slope" not in default.stderr.decode()
+
+
+def test_a_ctrl_c_during_the_commands_imports_is_one_line_and_exit_130(tmp_path):
+    """c1mesh.command (the console script's entry) answers SIGINT before the command has
+    imported click and installed its own handler: one line, exit 130, no traceback (it
+    was Python's KeyboardInterrupt traceback). The signal arrives while the command's
+    modules are being imported (a sleep stands in for the 0.2 s of imports)."""
+    code = ("import os, signal, sys, time; import c1mesh.command as c; c.install_early_handler(); "
+            "os.kill(os.getpid(), signal.SIGINT); time.sleep(5); print('not interrupted')")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130
+    assert proc.stderr.splitlines() == ["c1mesh: error: interrupted (SIGINT)"]
+    assert proc.stdout == ""
+
+
+def test_the_installed_console_script_runs_the_command_through_its_early_handler():
+    """The installed c1mesh-python entry point (what bin/c1mesh runs) is c1mesh.command:run,
+    so the early handler is in place before click is imported."""
+    from importlib.metadata import entry_points
+    (script,) = entry_points(group="console_scripts", name="c1mesh-python")
+    assert script.value == "c1mesh.command:run"
