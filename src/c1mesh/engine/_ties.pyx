@@ -93,7 +93,6 @@ def screen(const double[:, ::1] xy, const int64_t[:, ::1] tri, const int64_t[:, 
                     flag[t, k] = _ILLEGAL
 
 
-
 def drop_super_triangle(const uint32_t[:, ::1] vertices, const uint32_t[:, ::1] neighbours,
                         int64_t n_points):
     """CDT's triangulation of n_points points as its erase_super_triangle leaves it, from
