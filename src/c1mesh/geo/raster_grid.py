@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.lazy import LazyModule
 from c1mesh.engine import rsd
 from c1mesh.engine.properties import scheme_properties
-from c1mesh.core.lazy import LazyModule
 
 spatial = LazyModule("scipy.spatial")
 

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.core.lazy import LazyModule
 from c1mesh.core.plan import DemPlan
 from c1mesh.core.threads import limit
 from c1mesh.core.tile import tile_rows
@@ -82,7 +83,6 @@ from c1mesh.geo.products import ContourRequest, stage_lines
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
-from c1mesh.core.lazy import LazyModule
 
 spatial = LazyModule("scipy.spatial")
 

@@ -42,9 +42,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from c1mesh.core.errors import InputError, NotAHeightFieldError
+from c1mesh.core.lazy import LazyModule
 from c1mesh.core.tile import VERTEX
 from c1mesh.stages import _height_field as kernel
-from c1mesh.core.lazy import LazyModule
 
 spatial = LazyModule("scipy.spatial")
 

@@ -10,8 +10,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from c1mesh.core.errors import DependencyError, InputError
-from c1mesh.core.threads import workers
 from c1mesh.core.lazy import LazyModule
+from c1mesh.core.threads import workers
 
 spatial = LazyModule("scipy.spatial")
 

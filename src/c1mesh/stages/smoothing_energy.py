@@ -41,12 +41,12 @@ from itertools import product
 import numpy as np
 
 from c1mesh.core.errors import C1MeshError
+from c1mesh.core.lazy import LazyModule
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import _smoothing_energy as kernel
-from c1mesh.core.lazy import LazyModule
 
 sp = LazyModule("scipy.sparse")
 

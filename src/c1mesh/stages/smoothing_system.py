@@ -22,13 +22,13 @@ from functools import cached_property
 
 import numpy as np
 
+from c1mesh.core.lazy import LazyModule
 from c1mesh.core.threads import blas_threads, parallel_blocks
 from c1mesh.engine import rsd
 from c1mesh.engine.schemes import ShapeTuple
 from c1mesh.stages.smoothing_energy import (N_LOCAL, SmoothingError, energy_blocks_of,
                                             linear_maps, local_dofs)
 from c1mesh.stages import _smoothing_system as kernel
-from c1mesh.core.lazy import LazyModule
 
 sp = LazyModule("scipy.sparse")
 spla = LazyModule("scipy.sparse.linalg")

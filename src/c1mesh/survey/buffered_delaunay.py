@@ -43,6 +43,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.lazy import LazyModule
 from c1mesh.engine.triangulation import delaunay_with_neighbours
 from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
@@ -57,7 +58,6 @@ from c1mesh.survey.strip_geometry import (
     triangle_flags,
     unread_strips,
 )
-from c1mesh.core.lazy import LazyModule
 
 spatial = LazyModule("scipy.spatial")
 

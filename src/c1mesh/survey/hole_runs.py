@@ -21,13 +21,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.lazy import LazyModule
 from c1mesh.core.threads import map_in_threads
 from c1mesh.stages.holes import rim_points, short_cover, spanning_triangles
 from c1mesh.stages.trim import kept_triangles
 from c1mesh.survey.halos import HALO_EDGES, HaloCache
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.trim_runs import trim_tiles
-from c1mesh.core.lazy import LazyModule
 
 spatial = LazyModule("scipy.spatial")
 

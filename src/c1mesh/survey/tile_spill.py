@@ -20,9 +20,9 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from c1mesh.core.lazy import LazyModule
 from c1mesh.core.outputs import register_temp, unregister_temp
 from c1mesh.survey.buffered_delaunay import TileGrid
-from c1mesh.core.lazy import LazyModule
 
 spatial = LazyModule("scipy.spatial")
 
