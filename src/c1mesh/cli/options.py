@@ -128,14 +128,20 @@ def parse_fill(value: str):
     return "off" if distance == 0 else distance
 
 
+def _numbers(value: str) -> tuple[float, ...]:
+    """The comma-separated numbers of an option's value; () when one of them is no number
+    (the caller's length check then refuses it)."""
+    try:
+        return tuple(float(p) for p in value.split(","))
+    except ValueError:
+        return ()
+
+
 def parse_intrinsics(value: str | None) -> tuple[float, ...] | None:
     """--intrinsics fx,fy,cx,cy (pixels, fx and fy > 0); plain Python, so usage errors stay fast."""
     if value is None:
         return None
-    try:
-        parts = tuple(float(p) for p in value.split(","))
-    except ValueError:
-        parts = ()
+    parts = _numbers(value)
     if len(parts) != 4 or not all(math.isfinite(p) for p in parts) or parts[0] <= 0 or parts[1] <= 0:
         raise click.BadParameter(f"expected fx,fy,cx,cy in pixels with fx, fy > 0, got {value!r}",
                                  param_hint="'--intrinsics'")
@@ -148,10 +154,7 @@ def parse_viewpoint_option(value: str | None) -> tuple[float, ...] | None:
     by c1mesh.stages.perspective.parse_viewpoint)."""
     if value is None:
         return None
-    try:
-        parts = tuple(float(p) for p in value.split(","))
-    except ValueError:
-        parts = ()
+    parts = _numbers(value)
     if len(parts) not in (3, 7) or not all(math.isfinite(p) for p in parts):
         raise click.BadParameter(f"expected x,y,z or x,y,z,qw,qx,qy,qz (finite numbers), got {value!r}",
                                  param_hint="'--viewpoint'")

@@ -80,13 +80,8 @@ def compact_vertices(xy, triangles):
     remap = np.full(xy.shape[0], -1, dtype=np.int64)
     local = np.empty(tri.shape, dtype=np.int64)
     kernel.number_used(tri, remap)
-    parallel_blocks(lambda part: kernel.renumber_rows(tri, remap, local, part.start, part.stop),
-                    tri.shape[0], RENUMBER_BLOCK)
+    parallel_blocks(lambda part: kernel.renumber_rows(tri, remap, local, part.start, part.stop), tri.shape[0])
     return np.flatnonzero(remap >= 0), local.reshape(np.shape(triangles))
-
-
-RENUMBER_BLOCK = 1 << 16
-"""Triangles per block of compact_vertices' re-indexing."""
 
 
 def limited_interpolator(points, values, gradients, triangles, scheme, overshoot: str,

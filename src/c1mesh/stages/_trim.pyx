@@ -30,6 +30,12 @@ def edge_lengths(const double[:, ::1] xy, const int64_t[:, ::1] tri, double[:, :
             out[t, 2] = hypot(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1])
 
 
+cdef inline bint _counts_edge(const int64_t[:, ::1] neighbours, Py_ssize_t t, int k) noexcept nogil:
+    """Whether triangle t holds its edge opposite corner k once for the whole triangulation:
+    the triangle across it is none (-1) or comes later."""
+    return neighbours[t, k] < 0 or neighbours[t, k] > t
+
+
 def once_count(const int64_t[:, ::1] neighbours, Py_ssize_t start, Py_ssize_t stop):
     """How many lengths once_lengths writes for the triangles start <= t < stop."""
     cdef Py_ssize_t t, count = 0
@@ -37,8 +43,7 @@ def once_count(const int64_t[:, ::1] neighbours, Py_ssize_t start, Py_ssize_t st
     with nogil:
         for t in range(start, stop):
             for k in range(3):
-                if neighbours[t, k] < 0 or neighbours[t, k] > t:
-                    count += 1
+                count += _counts_edge(neighbours, t, k)
     return count
 
 
@@ -46,13 +51,13 @@ def once_lengths(const double[:, ::1] lengths, const int64_t[:, ::1] neighbours,
                  Py_ssize_t start, Py_ssize_t stop):
     """Each edge's length once: lengths[t, k] (T, 3) where the triangle across, neighbours
     [t, k] (T, 3), is none (-1) or comes later (> t), for the triangles start <= t < stop
-    in row order into out (from its start: once_count of them). Returns how many.""" 
+    in row order into out (from its start: once_count of them). Returns how many."""
     cdef Py_ssize_t t, count = 0
     cdef int k
     with nogil:
         for t in range(start, stop):
             for k in range(3):
-                if neighbours[t, k] < 0 or neighbours[t, k] > t:
+                if _counts_edge(neighbours, t, k):
                     out[count] = lengths[t, k]
                     count += 1
     return count
