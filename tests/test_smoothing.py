@@ -198,8 +198,8 @@ def test_the_search_chooses_a_strength_within_1_percent_of_the_curves_lowest(mon
     real = sm._search
     monkeypatch.setattr(sm, "_search", lambda *args: searched.append(args) or real(*args))
     fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength="auto"))
-    problem, folds, mu, method, seed = searched[0]
-    assert problem.points.shape[0] <= sm.SEARCH_VERTICES           # the search ran on the whole problem
+    problem, folds, mu, method, seed, keep = searched[0]
+    assert keep is None and problem.points.shape[0] <= sm.SEARCH_VERTICES     # the search ran on the whole problem
     extent = np.ptp(problem.data_xy, axis=0)
     block = min(sm.CV_BLOCK, max(float(np.sqrt(extent[0] * extent[1] / (4 * folds))), 1.0))
     fold = sm.fold_of(problem.data_xy, folds, block, seed)
@@ -500,3 +500,35 @@ def test_a_held_out_vertex_is_held_out_with_its_gradient_datum():
     full = [solve(System(K, None, z, mask, g), 0.1, w, 1.0, "superlu")[0] for g in (gradients, spoiled)]
     assert np.array_equal(fold[0], fold[1])
     assert np.abs(full[0] - full[1]).max() > 0.1
+
+
+def test_the_search_windows_depend_only_on_the_survey_points():
+    """SearchWindows: the whole mesh up to SEARCH_VERTICES points; beyond, one square of
+    WINDOW_SIDE spacings on the point nearest each anchor of the bounding box (brute force
+    here), whatever the points' order, and the reduce of any split of the points into
+    parts (the tiles of a survey) gives the same centres."""
+    import c1mesh.stages.smoothing as sm
+
+    rng = np.random.default_rng(3)
+    assert sm.search_windows(rng.uniform(0, 10, (sm.SEARCH_VERTICES, 2)), 0.1).whole
+    xy = rng.uniform([100, -50], [400, 250], (sm.SEARCH_VERTICES + 500, 2))
+    windows = sm.search_windows(xy, 0.5)
+    assert windows.side == sm.WINDOW_SIDE * 0.5
+    lower, upper = xy.min(axis=0), xy.max(axis=0)
+    expected = []
+    for fx, fy in sm.WINDOW_ANCHORS:
+        anchor = lower + np.array([fx, fy]) * (upper - lower)
+        best = min(range(len(xy)), key=lambda i: (xy[i, 0] - anchor[0]) ** 2 + (xy[i, 1] - anchor[1]) ** 2)
+        expected.append((xy[best, 0], xy[best, 1]))
+    assert windows.centres == tuple(expected)
+    shuffled = xy[rng.permutation(len(xy))]
+    assert sm.search_windows(shuffled, 0.5) == windows
+    anchors = sm.window_anchors(lower, upper)
+    parts = np.array_split(shuffled, 7) + [np.empty((0, 2))]
+    summaries = [sm.nearest_to_anchors(part, anchors) for part in parts[::-1]]
+    assert sm.windows_at(sm.reduce_nearest(summaries), 0.5) == windows
+    inside = windows.holding(xy)
+    for x, y in windows.centres:
+        near = (np.abs(xy[:, 0] - x) <= windows.side / 2) & (np.abs(xy[:, 1] - y) <= windows.side / 2)
+        assert inside[near].all()
+    assert not inside.all() and inside.any()

@@ -166,6 +166,13 @@ def test_cli_smooths_auto_in_tiles_and_the_workers_do_not_change_a_byte(tmp_path
     assert pool.exit_code == 0, pool.output
     assert json.loads((tmp_path / "pool.json").read_text())["scheduler"] == "2 local processes"
     assert (tmp_path / "pool.ply").read_bytes() == (tmp_path / "here.ply").read_bytes()
+    whole = CliRunner().invoke(main, args[:-2] + ["-o", str(tmp_path / "whole.ply"),
+                                                  "--report", str(tmp_path / "whole.json")])
+    assert whole.exit_code == 0, whole.output
+    in_memory = json.loads((tmp_path / "whole.json").read_text())["smoothing"]
+    # the search ran on the same windows of the survey: the same strengths tried, the same choice
+    assert [s for s, _ in in_memory["cv_curve"]] == [s for s, _ in smoothing["cv_curve"]]
+    assert in_memory["strength"] == smoothing["strength"]
 
 
 def test_tiles_report_a_search_that_reached_its_limit(tmp_path):

@@ -75,7 +75,8 @@ from c1mesh.stages.holes import with_spanning_triangles
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.perspective import frame_kind
-from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight
+from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
+                                     search_windows)
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.thinning import thin_to_cells
 from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh, used_points
@@ -513,7 +514,8 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     fitted over the holes' long triangles, the smoothing spline dug pits of up to 9.7 ft
     into autzen_trim's ground beside a bank (0.36 ft so)."""
     hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
-    run = SmoothingRun(SmoothingControl(strength, scheme), hf.spacing, options.overshoot, weight)
+    windows = search_windows(hf.xy, hf.spacing) if strength == "auto" else None    # the survey's
+    run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, options.overshoot, weight)
     # the heights fitted: the tile's vertices', or with --spacing every point's
     data = None if mesh.vertices is None else SmoothingData(hf.z, hf.spacing, hf.xy)
 

@@ -65,9 +65,15 @@ correlated errors but turn held-out blocks into holes the fit must bridge, which
 the choice toward less smoothing (docs/smoothing.md: 8 h chose s 3x too small on white
 noise, 1 h and 4 h within 30 % of the best)."""
 SEARCH_VERTICES = 10_000
-"""Above this many vertices the search for s runs on SEARCH_WINDOWS square windows of the
-mesh holding about this many vertices together, then one full solve follows."""
-SEARCH_WINDOWS = 4
+"""Above this many points the search for s runs on square windows of the mesh (SearchWindows,
+`search_windows`) holding about this many vertices together, then one full solve follows."""
+WINDOW_ANCHORS = ((0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75))
+"""Where the search windows go, as fractions of the points' bounding box: each window is
+centred on the point nearest one of these anchors (`search_windows`)."""
+WINDOW_SIDE = 100.0
+"""Side of a search window, in spacings h. The samples' meshes have 3.7 (autzen_trim
+ground), 4.1 (uniform random points) and 7.6 (4_6_crop ground, scan lines) h² of area per
+vertex, so the 4 windows hold about 1,300-2,700 vertices each: SEARCH_VERTICES together."""
 CV_RIDGE = 1e-9
 """Relative ridge of the cross-validation solves (smoothing_system.solve: a held-out
 block may cover a whole island of the mesh)."""
@@ -151,21 +157,121 @@ class GradientPrior:
 
 
 @dataclass(frozen=True)
+class SearchWindows:
+    """Where the search for s runs: the mesh's triangles with all three corners in squares
+    of side `side` centred at `centres` ((x, y) pairs, the vertices' coordinates); no
+    centres: the whole mesh.
+
+    Why squares at fixed places of the survey: the strength is one number for the whole
+    survey, and a fit in memory, in tiles or on Dask must find the same one. So the
+    windows depend only on the survey's points (their bounding box, the points nearest
+    its anchors, the spacing h), which every path can find (`search_windows` in memory; a
+    reduce of `nearest_to_anchors` over the tiles), never on a vertex numbering or on
+    the tile a search runs in."""
+
+    centres: tuple = ()
+    side: float = 0.0
+
+    @property
+    def whole(self) -> bool:
+        return not self.centres
+
+    def rects(self, grow: float = 0.0) -> list:
+        """The windows as closed rectangles (x0, y0, x1, y1), each grown by `grow`."""
+        half = self.side / 2 + grow
+        return [(x - half, y - half, x + half, y + half) for x, y in self.centres]
+
+    def as_dict(self) -> dict:
+        """The report's form: side and centres (frame units); no centres: the whole mesh."""
+        return {"side": float(self.side), "centres": [[float(x), float(y)] for x, y in self.centres]}
+
+    def holding(self, xy: np.ndarray) -> np.ndarray:
+        """(n,) bool: the points xy (n, 2) in some window (all of them when whole)."""
+        if self.whole:
+            return np.ones(xy.shape[0], dtype=bool)
+        inside = np.zeros(xy.shape[0], dtype=bool)
+        for x0, y0, x1, y1 in self.rects():
+            inside |= (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
+        return inside
+
+
+def window_anchors(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """(k, 2) the WINDOW_ANCHORS of the bounding box lower (2,) .. upper (2,)."""
+    fractions = np.array(WINDOW_ANCHORS, dtype=float)
+    return np.asarray(lower, float) + fractions * (np.asarray(upper, float) - np.asarray(lower, float))
+
+
+def nearest_to_anchors(xy: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """A part's summary for the windows' centres: (k, 3) rows (squared distance, x, y) of
+    the point of xy (n, 2) nearest each anchor (k, 2) (ties: the lower x, then y; rows of
+    inf where xy is empty). `reduce_nearest` of the parts' summaries is the whole's."""
+    rows = np.full((anchors.shape[0], 3), np.inf)
+    if xy.shape[0]:
+        for a, anchor in enumerate(anchors):
+            d2 = (xy[:, 0] - anchor[0]) ** 2 + (xy[:, 1] - anchor[1]) ** 2
+            best = np.lexsort((xy[:, 1], xy[:, 0], d2))[0]
+            rows[a] = d2[best], xy[best, 0], xy[best, 1]
+    return rows
+
+
+def reduce_nearest(summaries: list) -> np.ndarray:
+    """(k, 3): per anchor the least (squared distance, x, y) of the parts' summaries
+    (`nearest_to_anchors`), which is the whole's, in any order of the parts."""
+    stacked = np.stack(summaries)                          # (parts, k, 3)
+    out = np.empty(stacked.shape[1:])
+    for a in range(stacked.shape[1]):
+        rows = stacked[:, a]
+        out[a] = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))[0]]
+    return out
+
+
+def window_side(spacing: float) -> float:
+    """WINDOW_SIDE spacings, h rounded to 9 significant digits first: the in-memory and the
+    tiled fit measure h alike but for its last bits (survey.smoothing_runs)."""
+    return WINDOW_SIDE * float(f"{float(spacing):.9g}")
+
+
+def windows_at(nearest: np.ndarray, spacing: float) -> SearchWindows:
+    """The SearchWindows centred at the points `nearest` (k, 3) of reduce_nearest (rows of
+    inf: no point, no window; the same centre twice: one window)."""
+    centres = []
+    for d2, x, y in nearest:
+        if np.isfinite(d2) and (float(x), float(y)) not in centres:
+            centres.append((float(x), float(y)))
+    return SearchWindows(tuple(centres), window_side(spacing))
+
+
+def search_windows(xy: np.ndarray, spacing: float) -> SearchWindows:
+    """The survey's SearchWindows from all its points xy (n, 2) (those of the height field,
+    fitted or not) and its spacing h: the whole mesh for at most SEARCH_VERTICES points,
+    else squares of WINDOW_SIDE spacings centred on the points nearest the anchors of their
+    bounding box."""
+    xy = np.asarray(xy, dtype=float)
+    if xy.shape[0] <= SEARCH_VERTICES:
+        return SearchWindows()
+    anchors = window_anchors(xy.min(axis=0), xy.max(axis=0))
+    return windows_at(nearest_to_anchors(xy, anchors), spacing)
+
+
+@dataclass(frozen=True)
 class SmoothingControl:
     """How a smoothing fit runs.
 
     strength: the dimensionless s > 0, or "auto" (chosen by spatial-block
     cross-validation). scheme: the shape-function tuple, a name or a ShapeTuple
     (engine.schemes; it must be polynomial). folds: cross-validation folds of "auto"
-    (a whole number >= 2). seed: the folds' block assignment, the search windows and the
-    trace probes. threads: c1mesh.core.threads.limit of the solve (None: the process's
-    setting)."""
+    (a whole number >= 2). seed: the folds' block assignment and the trace probes.
+    threads: c1mesh.core.threads.limit of the solve (None: the process's setting).
+    windows: where "auto" searches (SearchWindows: the survey's, which a survey fitted in
+    tiles and the in-memory fit choose alike, `search_windows`); None: chosen from the
+    fit's own vertices by the same rule."""
 
     strength: "float | str" = "auto"
     scheme: "str | ShapeTuple" = DEFAULT_SCHEME
     folds: int = 5
     seed: int = 0
     threads: int | None = None
+    windows: "SearchWindows | None" = None
 
 
 @dataclass
@@ -196,6 +302,8 @@ class SmoothFit:
     seconds: dict = field(default_factory=dict)
     outside: int = 0
     gradient_weight: float = 0.0
+    search_windows: dict | None = None
+    """Where "auto" searched (SearchWindows.as_dict); None when s was given."""
 
     def as_dict(self) -> dict:
         """JSON-ready summary for the fit report (no per-vertex arrays)."""
@@ -436,11 +544,13 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     solved, order, system = _assembled(problem, method, seconds, threads)
     mu = float(gradient_weight)
     curve: list = []
-    at_limit = None
+    at_limit = windows = None
     with limit(threads):
         if strength == "auto":
             with timed(seconds, "search"):
-                s, curve, at_limit = _search(problem, int(folds), mu, method, seed)
+                windows = search_windows(pts, h) if control.windows is None else control.windows
+                s, curve, at_limit = _search(problem, int(folds), mu, method, seed,
+                                             None if windows.whole else windows.holding(pts))
         else:
             s = float(strength)
         with timed(seconds, "solve"):
@@ -457,7 +567,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                      edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
-                     solver=method, seconds=seconds, outside=outside, gradient_weight=mu if grad is not None else 0.0)
+                     solver=method, seconds=seconds, outside=outside, gradient_weight=mu if grad is not None else 0.0,
+                     search_windows=None if windows is None else windows.as_dict())
 
 
 def _assembled(problem: _Problem, method: str, seconds: dict, threads):
@@ -487,22 +598,10 @@ def _in_input_order(u: np.ndarray, order: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------- choosing s
-def _search_problem(problem: _Problem, seed: int) -> _Problem:
-    """The whole problem, or SEARCH_WINDOWS random square windows of it holding about
-    SEARCH_VERTICES vertices together (normalised units: one length unit is h)."""
-    n = problem.points.shape[0]
-    if n <= SEARCH_VERTICES:
-        return problem
-    corners = problem.points[problem.triangles]
-    _, det = rsd.barycentric_gradients(corners)
-    area_per_vertex = 0.5 * float(np.abs(det).sum()) / n
-    side = np.sqrt(area_per_vertex * SEARCH_VERTICES / SEARCH_WINDOWS)
-    rng = np.random.default_rng(seed)
-    centres = problem.points[rng.choice(n, SEARCH_WINDOWS, replace=False)]
-    keep = np.zeros(n, dtype=bool)
-    for c in centres:
-        keep |= (np.abs(problem.points - c) <= side / 2).all(axis=1)
-    return problem.subset(keep)
+def _search_problem(problem: _Problem, keep: np.ndarray | None) -> _Problem:
+    """The problem on the triangles with every corner kept (keep (N,) bool: the vertices
+    in the search windows), or the whole problem (keep None)."""
+    return problem if keep is None else problem.subset(keep)
 
 
 def fold_of(xy: np.ndarray, folds: int, block: float, seed: int) -> np.ndarray:
@@ -543,11 +642,13 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
     return float(np.sqrt(sq / max(count, 1)))
 
 
-def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int):
+def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int, keep: np.ndarray | None):
     """(s, curve, limit reached): log-grid (`_coarse`) then golden-section search of the
     spatial-block CV score. The limit is reached when s is the lowest or highest s tried,
     not an interior minimum of the curve, which happens only at a SEARCH_LIMITS end."""
-    sub = _search_problem(problem, seed)
+    sub = _search_problem(problem, keep)
+    if not (sub.w > 0).any():              # no fitted triangle in the windows: search on the whole
+        sub = problem
     system = sub.system()
     extent = np.ptp(sub.data_xy, axis=0)
     block = min(CV_BLOCK, max(float(np.sqrt(extent[0] * extent[1] / (4 * folds))), 1.0))
@@ -679,6 +780,7 @@ class StrengthSearch:
     search_limit_reached: bool | None
     solver: str
     seconds: dict
+    windows: dict | None = None
 
 
 def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, table=None,
@@ -739,7 +841,8 @@ def search_strength(tile: Tile, run: SmoothingRun, data: SmoothingData | None = 
     vertices)."""
     auto = replace(run, control=replace(run.control, strength="auto"))
     fit = _fit_tile(tile, auto, edge_table(tile.triangles, len(tile.records)), data)[0]
-    return StrengthSearch(fit.strength, fit.cv_curve, fit.search_limit_reached, fit.solver, fit.seconds)
+    return StrengthSearch(fit.strength, fit.cv_curve, fit.search_limit_reached, fit.solver, fit.seconds,
+                          fit.search_windows)
 
 
 def _fit_tile(tile: Tile, run: SmoothingRun, table, data: SmoothingData | None):
@@ -777,7 +880,8 @@ def combined_fit(solves: list[TileSolve], run: SmoothingRun, search: StrengthSea
                      residual_rms=math.sqrt(squares / own) if own else 0.0,
                      residual_max=max((s.largest for s in solves), default=0.0),
                      solver=available_solvers()[0] if search is None else search.solver, seconds=seconds,
-                     outside=sum(s.outside for s in solves), gradient_weight=float(run.gradient_weight))
+                     outside=sum(s.outside for s in solves), gradient_weight=float(run.gradient_weight),
+                     search_windows=None if search is None else search.windows)
 
 
 __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "SmoothingControl",
@@ -785,4 +889,5 @@ __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "Smoot
            "StrengthSearch", "smooth_tile", "search_strength", "smoothing_reach", "solve_totals",
            "combined_fit", "HALO_LENGTHS",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
-           "SEARCH_VERTICES", "SEARCH_LIMITS"]
+           "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors",
+           "nearest_to_anchors", "reduce_nearest", "windows_at"]

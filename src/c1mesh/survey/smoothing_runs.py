@@ -25,11 +25,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from c1mesh.core.tile import VERTEX, Tile, corner_rows, tile_rows
+from c1mesh.core.tile import VERTEX, Tile, compact, corner_rows, tile_rows
 from c1mesh.stages.limiter import TileLimits, tile_limits
-from c1mesh.stages.smoothing import (SmoothingData, SmoothingRun, StrengthSearch, TileSolve, combined_fit,
-                                     search_strength, smooth_tile, smoothing_reach)
-from c1mesh.survey.halos import HALO_EDGES, HaloCache, halo_reach, noise_floors
+from c1mesh.stages.smoothing import (SEARCH_VERTICES, SearchWindows, SmoothingData, SmoothingRun,
+                                     StrengthSearch, TileSolve, combined_fit, nearest_to_anchors,
+                                     reduce_nearest, search_strength, smooth_tile, smoothing_reach,
+                                     window_anchors, windows_at)
+from c1mesh.stages.trim import triangles_among
+from c1mesh.survey.halos import HALO_EDGES, HaloCache, noise_floors
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.tiles import task_row
 
@@ -63,15 +66,16 @@ class TiledSmoother:
         self.limited = self.turned = self.lifted = 0         # refine_runs adds its rows' counts
         self.seconds: dict = {}
         self.search: StrengthSearch | None = None
-        self.search_tile: int | None = None
+        self.search_windows: SearchWindows | None = None
         self.run, self.data = fit.run, fit.data
         if self.run.control.strength == "auto":
             start = time.perf_counter()
-            self.search_tile = _search_tile(heights, triangle_files)
-            reach = halo_reach(fit.longest_edge)
-            halo = HaloCache(heights, triangle_files, grid, reach, temps, label="search-halo").halo(self.search_tile)
-            self.search = search_strength(halo, self.run, self.data_near(self.search_tile, reach, own=False))
+            windows = survey_windows(heights if self.data is None else self.data, self.run.spacing)
+            searched = replace(self.run, control=replace(self.run.control, windows=windows))
+            self.search = search_strength(window_tile(heights, triangle_files, grid, windows), searched,
+                                          self.data_in(windows, fit.longest_edge))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
+            self.search_windows = windows
             self.seconds["search"] = time.perf_counter() - start
         self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
                          HALO_EDGES * fit.longest_edge) * (1 + 1e-9)
@@ -97,6 +101,15 @@ class TiledSmoother:
         records = self.data.records(self.grid.grown(tile, reach))
         xy = np.column_stack([records["x"], records["y"]])
         return SmoothingData(records["z"], self.run.spacing, xy, own=self.grid.tile_of(xy) == tile if own else None)
+
+    def data_in(self, windows: SearchWindows, reach: float) -> SmoothingData | None:
+        """The heights fitted in the search windows, each grown by reach (the longest final
+        edge: every data point in a triangle with its corners in a window), or None (the
+        vertices' own heights)."""
+        if self.data is None:
+            return None
+        records = _records_in(self.data, windows, reach)
+        return SmoothingData(records["z"], self.run.spacing, np.column_stack([records["x"], records["y"]]))
 
     def outside(self) -> int:
         """The data points outside the triangles, each counted by the tile whose cell holds it."""
@@ -140,8 +153,7 @@ class TiledSmoother:
         strength, spacing = float(self.run.control.strength), self.run.spacing
         facts = combined_fit(self.solves, self.run, self.search, seconds).as_dict()
         return {**facts, "spacing": spacing,
-                "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing),
-                          "search_tile": self.search_tile}}
+                "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing)}}
 
 
 class SmoothedFill:
@@ -211,11 +223,56 @@ class FittedHalos:
         return Tile(records, halo.triangles, halo.own)
 
 
-def _search_tile(heights, triangle_files) -> int:
-    """The tile the strength search runs on: the one holding the most points, of those
-    owning triangles (the lowest number among equals)."""
-    candidates = [t for t, path in enumerate(triangle_files) if path is not None]
-    return max(candidates, key=lambda t: (int(heights.counts[t]), -t))
+def survey_windows(points, spacing: float) -> SearchWindows:
+    """The survey's SearchWindows (smoothing.search_windows) from its points' spill
+    (tile_spill.TileSpill: every height fitted): the whole survey for at most
+    SEARCH_VERTICES points, else the windows around the points nearest the anchors of
+    their bounding box, found by two reduces over the spill's tiles (the bounds, then
+    each tile's `nearest_to_anchors`), which give the in-memory fit's numbers."""
+    if int(points.counts.sum()) <= SEARCH_VERTICES:
+        return SearchWindows()
+    tiles = [t for t in range(len(points.grid)) if points.counts[t]]
+    lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
+    for t in tiles:
+        records = points.tile(t)
+        lower = np.minimum(lower, [records["x"].min(), records["y"].min()])
+        upper = np.maximum(upper, [records["x"].max(), records["y"].max()])
+    anchors = window_anchors(lower, upper)
+    summaries = []
+    for t in tiles:
+        records = points.tile(t)
+        summaries.append(nearest_to_anchors(np.column_stack([records["x"], records["y"]]), anchors))
+    return windows_at(reduce_nearest(summaries), spacing)
+
+
+def window_tile(heights, triangle_files, grid, windows: SearchWindows) -> Tile:
+    """The search's tile: the vertices in the windows (every vertex when whole) and the
+    final triangles with all three corners among them, as the in-memory fit's search
+    takes them (smoothing._search_problem); every record its own."""
+    records = _records_in(heights, windows, 0.0)
+    tiles = sorted({t for rect in _rects(heights, windows, 0.0) for t in heights.touching(rect)})
+    parts = [np.empty((0, 3), np.int64)]
+    for t in tiles:
+        if triangle_files[t] is not None and len(records):
+            parts.append(triangles_among(records["index"], np.load(triangle_files[t])))
+    used, triangles = compact(np.concatenate(parts), len(records))
+    records = records.take(used)
+    return Tile(records, triangles, np.ones(len(records), dtype=bool))
+
+
+def _rects(spill, windows: SearchWindows, grow: float) -> list:
+    """The windows' rectangles grown by grow, or the whole spill's one when whole."""
+    if windows.whole:
+        return [(-np.inf, -np.inf, np.inf, np.inf)]
+    return windows.rects(grow)
+
+
+def _records_in(spill, windows: SearchWindows, grow: float) -> np.ndarray:
+    """The spill's records in the windows grown by grow, each once, ascending survey numbers."""
+    parts = [spill.records(rect) for rect in _rects(spill, windows, grow)]
+    records = np.concatenate(parts) if parts else np.empty(0, spill.record)
+    _, first = np.unique(records["index"], return_index=True)
+    return records.take(first)
 
 
 def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
