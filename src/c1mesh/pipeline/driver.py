@@ -514,7 +514,7 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     fitted over the holes' long triangles, the smoothing spline dug pits of up to 9.7 ft
     into autzen_trim's ground beside a bank (0.36 ft so)."""
     hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
-    windows = search_windows(hf.xy, hf.spacing) if strength == "auto" else None    # the survey's
+    windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, options.overshoot, weight)
     # the heights fitted: the tile's vertices', or with --spacing every point's
     data = None if mesh.vertices is None else SmoothingData(hf.z, hf.spacing, hf.xy)

@@ -70,10 +70,10 @@ SEARCH_VERTICES = 10_000
 WINDOW_ANCHORS = ((0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75))
 """Where the search windows go, as fractions of the points' bounding box: each window is
 centred on the point nearest one of these anchors (`search_windows`)."""
-WINDOW_SIDE = 100.0
-"""Side of a search window, in spacings h. The samples' meshes have 3.7 (autzen_trim
-ground), 4.1 (uniform random points) and 7.6 (4_6_crop ground, scan lines) h² of area per
-vertex, so the 4 windows hold about 1,300-2,700 vertices each: SEARCH_VERTICES together."""
+WINDOW_POINTS = SEARCH_VERTICES // len(WINDOW_ANCHORS)
+"""Points a search window would hold if the points filled their bounding box evenly: its
+side is sqrt(WINDOW_POINTS × box area / points) (`window_side`). Where they fill it
+unevenly (holes, a ragged border) a window holds fewer; a pixel grid holds this many."""
 CV_RIDGE = 1e-9
 """Relative ridge of the cross-validation solves (smoothing_system.solve: a held-out
 block may cover a whole island of the mesh)."""
@@ -164,8 +164,8 @@ class SearchWindows:
 
     Why squares at fixed places of the survey: the strength is one number for the whole
     survey, and a fit in memory, in tiles or on Dask must find the same one. So the
-    windows depend only on the survey's points (their bounding box, the points nearest
-    its anchors, the spacing h), which every path can find (`search_windows` in memory; a
+    windows depend only on the survey's points (their count, their bounding box, the
+    points nearest its anchors), which every path can find (`search_windows` in memory; a
     reduce of `nearest_to_anchors` over the tiles), never on a vertex numbering or on
     the tile a search runs in."""
 
@@ -225,32 +225,35 @@ def reduce_nearest(summaries: list) -> np.ndarray:
     return out
 
 
-def window_side(spacing: float) -> float:
-    """WINDOW_SIDE spacings, h rounded to 9 significant digits first: the in-memory and the
-    tiled fit measure h alike but for its last bits (survey.smoothing_runs)."""
-    return WINDOW_SIDE * float(f"{float(spacing):.9g}")
+def window_side(lower: np.ndarray, upper: np.ndarray, count: int) -> float:
+    """The side of the search windows of `count` points in the bounding box lower (2,) ..
+    upper (2,) (WINDOW_POINTS), rounded to 2 significant digits: the in-memory and the
+    tiled fit find the same box but for the last bits of the frames' local coordinates,
+    and may count a few points apart (the in-memory height field merges near-duplicate
+    positions, the tiled spill exact ones)."""
+    extent = np.asarray(upper, float) - np.asarray(lower, float)
+    return float(f"{math.sqrt(WINDOW_POINTS * float(extent[0] * extent[1]) / count):.2g}")
 
 
-def windows_at(nearest: np.ndarray, spacing: float) -> SearchWindows:
-    """The SearchWindows centred at the points `nearest` (k, 3) of reduce_nearest (rows of
-    inf: no point, no window; the same centre twice: one window)."""
+def windows_at(nearest: np.ndarray, side: float) -> SearchWindows:
+    """The SearchWindows of that side centred at the points `nearest` (k, 3) of
+    reduce_nearest (rows of inf: no point, no window; the same centre twice: one window)."""
     centres = []
     for d2, x, y in nearest:
         if np.isfinite(d2) and (float(x), float(y)) not in centres:
             centres.append((float(x), float(y)))
-    return SearchWindows(tuple(centres), window_side(spacing))
+    return SearchWindows(tuple(centres), side)
 
 
-def search_windows(xy: np.ndarray, spacing: float) -> SearchWindows:
+def search_windows(xy: np.ndarray) -> SearchWindows:
     """The survey's SearchWindows from all its points xy (n, 2) (those of the height field,
-    fitted or not) and its spacing h: the whole mesh for at most SEARCH_VERTICES points,
-    else squares of WINDOW_SIDE spacings centred on the points nearest the anchors of their
-    bounding box."""
+    fitted or not): the whole mesh for at most SEARCH_VERTICES points, else squares of
+    `window_side` centred on the points nearest the anchors of their bounding box."""
     xy = np.asarray(xy, dtype=float)
     if xy.shape[0] <= SEARCH_VERTICES:
         return SearchWindows()
-    anchors = window_anchors(xy.min(axis=0), xy.max(axis=0))
-    return windows_at(nearest_to_anchors(xy, anchors), spacing)
+    lower, upper = xy.min(axis=0), xy.max(axis=0)
+    return windows_at(nearest_to_anchors(xy, window_anchors(lower, upper)), window_side(lower, upper, xy.shape[0]))
 
 
 @dataclass(frozen=True)
@@ -548,7 +551,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     with limit(threads):
         if strength == "auto":
             with timed(seconds, "search"):
-                windows = search_windows(pts, h) if control.windows is None else control.windows
+                windows = search_windows(pts) if control.windows is None else control.windows
                 s, curve, at_limit = _search(problem, int(folds), mu, method, seed,
                                              None if windows.whole else windows.holding(pts))
         else:
@@ -890,4 +893,4 @@ __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "Smoot
            "combined_fit", "HALO_LENGTHS",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
            "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors",
-           "nearest_to_anchors", "reduce_nearest", "windows_at"]
+           "nearest_to_anchors", "reduce_nearest", "window_side", "windows_at"]

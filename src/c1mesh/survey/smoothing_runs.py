@@ -30,7 +30,7 @@ from c1mesh.stages.limiter import TileLimits, tile_limits
 from c1mesh.stages.smoothing import (SEARCH_VERTICES, SearchWindows, SmoothingData, SmoothingRun,
                                      StrengthSearch, TileSolve, combined_fit, nearest_to_anchors,
                                      reduce_nearest, search_strength, smooth_tile, smoothing_reach,
-                                     window_anchors, windows_at)
+                                     window_anchors, window_side, windows_at)
 from c1mesh.stages.trim import triangles_among
 from c1mesh.survey.halos import HALO_EDGES, HaloCache, noise_floors
 from c1mesh.survey.tile_spill import save_array
@@ -70,7 +70,7 @@ class TiledSmoother:
         self.run, self.data = fit.run, fit.data
         if self.run.control.strength == "auto":
             start = time.perf_counter()
-            windows = survey_windows(heights if self.data is None else self.data, self.run.spacing)
+            windows = survey_windows(heights if self.data is None else self.data)
             searched = replace(self.run, control=replace(self.run.control, windows=windows))
             self.search = search_strength(window_tile(heights, triangle_files, grid, windows), searched,
                                           self.data_in(windows, fit.longest_edge))
@@ -223,7 +223,7 @@ class FittedHalos:
         return Tile(records, halo.triangles, halo.own)
 
 
-def survey_windows(points, spacing: float) -> SearchWindows:
+def survey_windows(points) -> SearchWindows:
     """The survey's SearchWindows (smoothing.search_windows) from its points' spill
     (tile_spill.TileSpill: every height fitted): the whole survey for at most
     SEARCH_VERTICES points, else the windows around the points nearest the anchors of
@@ -242,7 +242,7 @@ def survey_windows(points, spacing: float) -> SearchWindows:
     for t in tiles:
         records = points.tile(t)
         summaries.append(nearest_to_anchors(np.column_stack([records["x"], records["y"]]), anchors))
-    return windows_at(reduce_nearest(summaries), spacing)
+    return windows_at(reduce_nearest(summaries), window_side(lower, upper, int(points.counts.sum())))
 
 
 def window_tile(heights, triangle_files, grid, windows: SearchWindows) -> Tile:
