@@ -111,6 +111,23 @@ def test_bad_smoothing_options_are_one_usage_line(tmp_path, args, words):
     assert not (tmp_path / "out.ply").exists()
 
 
+def test_the_chosen_strength_is_a_note_on_a_terminal_only(tmp_path):
+    """--smooth auto's choice goes in the report (strength, the strengths tried, where it
+    searched) and, on a terminal only, in one `c1mesh: note:` line that says the same."""
+    from stderr_lines import stderr_on_a_terminal
+
+    args = ["fit", str(SAMPLES / "hill.ply"), "--smooth", "auto", "--level", "1"]
+    shown = stderr_on_a_terminal(args + ["-o", str(tmp_path / "t.ply"), "--report", str(tmp_path / "r.json")])
+    facts = json.loads((tmp_path / "r.json").read_text())["smoothing"]
+    notes = [line for line in shown.splitlines() if "--smooth auto chose strength" in line]
+    assert len(notes) == 1 and notes[0].startswith("c1mesh: note: ")
+    assert f"strength {facts['strength']:.3g}:" in notes[0]
+    assert f"of {len(facts['cv_curve'])} tried, on the whole mesh" in notes[0]     # hill.ply: 3,000 points
+    assert facts["search_windows"] == {"side": 0.0, "centres": []}
+    piped = _cli(*args, "-o", "p.ply", cwd=tmp_path)
+    assert piped.returncode == 0 and "note:" not in piped.stderr
+
+
 def test_the_report_records_the_fit_and_suggests_smoothing_only_for_noisy_heights(tmp_path):
     noisy = noisy_cloud(n=3000)
     exact = fit(noisy, None, FitOptions(axis="z")).report

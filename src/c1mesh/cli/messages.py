@@ -33,9 +33,10 @@ def note(report: dict, quiet: bool) -> None:
     """`c1mesh: note:` lines on stderr (not with -q) for options given that did nothing: a
     --scheduler not used (the user asked for the cluster and should know the work stayed
     here), and a --max-slope given for heights whose slopes are no angles (the report's
-    max_slope_not_applied; its default then goes unmentioned); and the report's advice to
-    fit noisy heights with --smooth auto, unless --smooth was given (the user chose), and
-    only on a terminal, as progress: a pipe or a log stays quiet (the report keeps it)."""
+    max_slope_not_applied; its default then goes unmentioned); and, only on a terminal, as
+    progress (a pipe or a log stays quiet: the report keeps them), the report's advice to
+    fit noisy heights with --smooth auto unless --smooth was given (the user chose), and
+    the strength --smooth auto chose and how."""
     if quiet:
         return
     used = report.get("scheduler")
@@ -50,6 +51,20 @@ def note(report: dict, quiet: bool) -> None:
     advice = report.get("suggestion")
     if advice and not _option_given("smooth") and stderr_is_terminal():
         click.echo(f"c1mesh: note: {_input_name(report)}: {advice}", err=True)
+    smoothing = report.get("smoothing")
+    if smoothing and smoothing.get("cv_curve") and stderr_is_terminal():
+        click.echo(f"c1mesh: note: {_input_name(report)}: {strength_note(smoothing)}", err=True)
+
+
+def strength_note(smoothing: dict) -> str:
+    """The note about the strength a --smooth auto fit chose, and how (report "smoothing")."""
+    windows = smoothing.get("search_windows") or {}
+    count = len(windows.get("centres", []))
+    where = (f"on {count} window{'s' if count > 1 else ''} of side {windows['side']:.4g}" if count
+             else "on the whole mesh")
+    limit = "; the lowest score lay at the search's limit" if smoothing.get("search_limit_reached") else ""
+    return (f"--smooth auto chose strength {smoothing['strength']:.3g}: the lowest spatial-block "
+            f"cross-validation score of {len(smoothing['cv_curve'])} tried, {where}{limit}")
 
 
 def classes_note(classes: dict) -> str:

@@ -843,11 +843,10 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
 
 def search_strength(tile: Tile, run: SmoothingRun, data: SmoothingData | None = None) -> StrengthSearch:
     """The survey's strength s for strength "auto": smooth_fit's block cross-validation on
-    one tile (which one, and with how much halo, is the scheduler's: survey.smoothing_runs
-    takes the tile holding the most points with the limiter's halo, all its
-    cross-validation windows need), then used by every tile. The in-memory fit's one tile
-    runs it inside `smooth_tile`. data: as smooth_tile's (None: the tile's heights at its
-    vertices)."""
+    the tile of the survey's search windows (run.control.windows; survey.smoothing_runs
+    reads the vertices in them and the final triangles among those), then used by every
+    tile. The in-memory fit's one tile runs it inside `smooth_tile`, on the same windows.
+    data: as smooth_tile's (None: the tile's heights at its vertices)."""
     auto = replace(run, control=replace(run.control, strength="auto"))
     fit = _fit_tile(tile, auto, edge_table(tile.triangles, len(tile.records)), data)[0]
     return StrengthSearch(fit.strength, fit.cv_curve, fit.search_limit_reached, fit.solver, fit.seconds,

@@ -10,7 +10,9 @@ What runs where, after the trim (c1mesh.pipeline.bounded_fit):
   positions height_field.spacing_sample picks, as the in-memory fit measures it (equal
   but for the last bit of the frames' local coordinates); so λ is the in-memory fit's;
 - the strength s: given, or with --smooth auto the stage's search (smoothing.search_strength)
-  on the tile holding the most points, with the limiter's halo, then used by every tile;
+  on the survey's search windows (smoothing.SearchWindows: two reduces over the spill's
+  tiles find them, `survey_windows`; `window_tile` reads the vertices in them and the
+  final triangles among those), the in-memory fit's windows, then used by every tile;
 - per tile (a task, `tile_solve`): smoothing.smooth_tile on its cell grown by the reach
   (smoothing.smoothing_reach, and never less than the limiter's halo, HALO_EDGES longest
   final edges); it writes the fitted height and gradient of every vertex in its cell,
