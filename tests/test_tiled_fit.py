@@ -748,3 +748,23 @@ def test_without_max_edge_a_tile_that_must_read_past_the_budget_is_refused(tmp_p
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and str(source) in lines[0] and "--max-edge" in lines[0] and "--memory" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.las"]
+
+
+def test_a_local_pool_starts_under_a_deep_temporary_folder(tmp_path, monkeypatch):
+    """The forkserver's Unix socket lives in the temporary folder, and a socket's path has
+    at most 104 bytes: under a deep $TMPDIR (a CI job's scratch folder) the pool starts its
+    workers by "spawn" instead of failing with "AF_UNIX path too long"."""
+    import tempfile
+
+    from c1mesh.survey.distributed import TaskRunner, pool_start_method
+
+    deep = tmp_path / ("d" * 60) / ("e" * 40)
+    deep.mkdir(parents=True)
+    monkeypatch.setenv("TMPDIR", str(deep))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    assert pool_start_method("forkserver") == "spawn" and pool_start_method(None) is None
+    with TaskRunner(jobs=2) as runner:
+        assert sorted(runner.map(abs, 4, lambda i: (-i,), str)) == [(0, 0), (1, 1), (2, 2), (3, 3)]
+    monkeypatch.setenv("TMPDIR", "/tmp")
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    assert pool_start_method("forkserver") == "forkserver"

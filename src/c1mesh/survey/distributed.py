@@ -11,6 +11,8 @@ files, so its workers must see the folder they are in.
 from __future__ import annotations
 
 import multiprocessing
+import os
+import tempfile
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Callable, Iterator, Sequence
 
@@ -69,6 +71,26 @@ def _windowed(count: int, window: int, pending: dict, submit, wait_some) -> Iter
             yield future, pending.pop(future)
 
 
+SOCKET_PATH_LIMIT = 104
+"""Bytes of a Unix socket's path, less its terminating zero, that every platform takes
+(sun_path: 108 on Linux, 104 on macOS)."""
+FORKSERVER_SOCKET_EXTRA = 40
+"""What multiprocessing's forkserver adds to the temporary folder for its socket:
+/pymp-XXXXXXXX/listener-XXXXXXXX and a margin."""
+
+
+def pool_start_method(asked: str | None) -> str | None:
+    """The start method a local pool uses: the one asked for, except "forkserver" under a
+    temporary folder (tempfile.gettempdir(), $TMPDIR) too deep for the forkserver's Unix
+    socket, which would fail with "AF_UNIX path too long" (a long $TMPDIR: a CI job's or a
+    batch system's scratch folder); "spawn" then, which needs no socket and also starts
+    each worker without a copy of this process's pages."""
+    if asked != "forkserver":
+        return asked
+    folder = os.fsencode(tempfile.gettempdir())
+    return asked if len(folder) + FORKSERVER_SOCKET_EXTRA < SOCKET_PATH_LIMIT else "spawn"
+
+
 class TaskRunner:
     """Where tile tasks run: in this process (jobs 1), on a local pool of `jobs`
     processes (a ProcessPoolExecutor), or on the Dask cluster at `scheduler`. Use as a
@@ -119,7 +141,8 @@ class TaskRunner:
             except (OSError, TimeoutError, ValueError) as exc:
                 raise InputError(f"cannot reach the Dask scheduler {self.scheduler}: {exc}") from exc
         elif self.jobs > 1:
-            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context(self.start_method))
+            method = pool_start_method(self.start_method)
+            self.pool = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context(method))
         return self
 
     def __exit__(self, *exc) -> None:
