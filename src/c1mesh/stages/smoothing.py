@@ -57,6 +57,7 @@ from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingE
                                             triangle_directions)
 from c1mesh.stages.smoothing_system import (Factor, System, assemble_energy, available_solvers,
                                             data_rows, hat_trace, solve, timed, vertex_order)
+from c1mesh.stages.trim import connected_sets
 
 CV_BLOCK = 4.0
 """Side of a cross-validation block, in mean point spacings h (shrunk on small inputs so
@@ -64,15 +65,15 @@ that there are at least 4 blocks per fold). Larger blocks guard against spatiall
 correlated errors but turn held-out blocks into holes the fit must bridge, which biases
 the choice toward less smoothing (docs/smoothing.md: 8 h chose s 3x too small on white
 noise, 1 h and 4 h within 30 % of the best)."""
-SEARCH_VERTICES = 10_000
+SEARCH_VERTICES = 5_000
 """Above this many points the search for s runs on square windows of the mesh (SearchWindows,
 `search_windows`) holding about this many vertices together, then one full solve follows.
 Held-out RMS, benchmarks.heldout's splits, seeds 0-4, against the search on the whole mesh
-(autzen_trim ground / 4_6_crop ground / synthetic 100 m terrain): +0.33 %, 0 (whole mesh),
--0.18 %, searching in 3.4-3.9 s. 5,000 gave -0.10 %, -0.10 %, -0.22 % in 1.5-2.0 s, but on
-the mug depth frame its 1,250-pixel windows made the CV curve erratic (scores 0.0045-0.09
-where 10,000 gives a flat 0.0356 ± 0.0001) and chose s = 0.00017: 1,422 folded faces
-against 10 (docs/smoothing.md, "Speed")."""
+(autzen_trim ground / 4_6_crop ground / synthetic 100 m terrain): -0.10 %, -0.10 %,
+-0.22 %, searching in 1.3-1.6 s; 10,000 gave +0.33 %, 0 (whole mesh), -0.18 % in 2.9-4.1 s;
+2,500 +1.5 % on autzen (its strengths scattered over a decade). On the mug depth frame,
+5,000 chooses s = 0.17 (5 folded faces), 10,000 s = 0.1 (10), once the pieces a window
+cuts off are not scored (MIN_PIECE_DATA; docs/smoothing.md, "Speed")."""
 WINDOW_ANCHORS = ((0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75))
 """Where the search windows go, as fractions of the points' bounding box: each window is
 centred on the point nearest one of these anchors (`search_windows`)."""
@@ -625,9 +626,11 @@ def fold_of(xy: np.ndarray, folds: int, block: float, seed: int) -> np.ndarray:
 
 def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, folds: int,
              mu: float, method: str, cache: dict | None = None) -> float:
-    """Held-out RMS of F − z over all folds (each weighted point held out once). cache
-    keeps what does not change with s between calls: the symbolic factorisation (the
-    pattern never changes) and, for data off the vertices, each fold's data term
+    """Held-out RMS of F − z over all folds (each weighted point held out once), scoring
+    only the held-out points whose connected piece of the mesh keeps at least
+    MIN_PIECE_DATA weighted points of its own (`scored`). cache keeps what does not change
+    with s between calls: the symbolic factorisation (the pattern never changes), each
+    fold's scored points and, for data off the vertices, its data term
     (System.normal_values)."""
     cache = {} if cache is None else cache
     sq, count = 0.0, 0
@@ -636,6 +639,9 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
         if not out.any():
             continue
         w = np.where(out, 0.0, problem.w)
+        scored = cache.get(("scored", k))
+        if scored is None:
+            scored = cache[("scored", k)] = out & _supported(problem, w, cache)
         normal = None
         if system.data is not None:
             normal = cache.get(("normal", k))
@@ -645,10 +651,35 @@ def cv_score(problem: _Problem, system: System, s: float, fold: np.ndarray, fold
                                held_out=out if system.data is None else None, ridge=CV_RIDGE, normal=normal)
         factor = Factor(S, method, cache.get("analysis"), system.vertices_ordered)
         cache["analysis"] = factor.analysis
-        r = (system.fitted(factor.solve(rhs)) - problem.z)[out]
+        r = (system.fitted(factor.solve(rhs)) - problem.z)[scored]
         sq += float(r @ r)
-        count += int(out.sum())
+        count += int(scored.sum())
     return float(np.sqrt(sq / max(count, 1)))
+
+
+MIN_PIECE_DATA = 10
+"""Weighted data points a connected piece of the mesh must keep in a fold for its held-out
+points to be scored. A piece with fewer (a fragment a search window cut off, or a small
+island, nearly all inside one held-out block) has no fit of its own: its heights are the
+ridge's and the energy's null space (a plane through a few, often nearly collinear,
+points), and their error, which jumps with s, measures no smoothing. On the mug frame's
+5,000-point windows a 7-vertex fragment with 3 points left took one fold's RMS from 0.0048
+to 0.21 as s went from 1.7e-4 to 1e-2 (the other folds: 0.004 throughout) and the search
+chose s = 0.00017 (1,422 folded faces); with 10,000-point windows such points held the
+whole curve at 0.0356, 9× the 0.0040 of the points it can predict."""
+
+
+def _supported(problem: _Problem, w: np.ndarray, cache: dict) -> np.ndarray:
+    """(M,) bool: the data points whose connected piece of the mesh holds at least
+    MIN_PIECE_DATA points of weight w > 0."""
+    piece = cache.get("piece")
+    if piece is None:
+        tri = problem.triangles
+        vertex_piece = connected_sets(problem.points.shape[0], np.concatenate([tri[:, 0], tri[:, 1]]),
+                                      np.concatenate([tri[:, 1], tri[:, 2]]))
+        piece = cache["piece"] = vertex_piece if problem.data_tri is None else vertex_piece[tri[problem.data_tri, 0]]
+    kept = np.bincount(piece[w > 0], minlength=int(piece.max(initial=-1)) + 1)
+    return kept[piece] >= MIN_PIECE_DATA
 
 
 def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int, keep: np.ndarray | None):
