@@ -83,18 +83,38 @@ class Lattice:
     was built in, since its gradient unknowns are per those units); nodes (N,) int64:
     vertex k of the system is grid node nodes[k] = j nx + i, at origin + (i hx, j hy).
     Nodes absent from the mesh are not listed. The mesh's triangles split each cell
-    (i, j)-(i+1, j+1) by the diagonal from (i, j) to (i+1, j+1); cells may be missing."""
+    (i, j)-(i+1, j+1) by the diagonal from (i, j) to (i+1, j+1); cells may be missing.
+    Made with anything else (not two whole positive sizes, spacings > 0, a finite
+    origin, 1-D integer nodes): SmoothingError."""
 
     shape: tuple
     spacing: tuple
     origin: tuple
     nodes: np.ndarray
 
+    def __post_init__(self):
+        try:
+            ny, nx = (int(v) for v in self.shape)
+            hx, hy = (float(v) for v in self.spacing)
+            x0, y0 = (float(v) for v in self.origin)
+        except (TypeError, ValueError):
+            raise SmoothingError("a lattice's shape must be (ny, nx), its spacing (hx, hy) and its origin "
+                                 "(x0, y0)") from None
+        if ny < 1 or nx < 1 or not all(np.isfinite(v) for v in (hx, hy, x0, y0)) or hx <= 0 or hy <= 0:
+            raise SmoothingError(f"a lattice needs a positive shape and spacing and a finite origin, got "
+                                 f"{self.shape}, {self.spacing}, {self.origin}")
+        nodes = np.asarray(self.nodes)
+        if nodes.ndim != 1 or not np.issubdtype(nodes.dtype, np.integer):
+            raise SmoothingError(f"a lattice's nodes must be a 1-D integer array, got {nodes.dtype} {nodes.shape}")
+        object.__setattr__(self, "shape", (ny, nx))
+        object.__setattr__(self, "spacing", (hx, hy))
+        object.__setattr__(self, "origin", (x0, y0))
+        object.__setattr__(self, "nodes", nodes.astype(np.int64, copy=False))
+
     def positions(self) -> np.ndarray:
         """(N, 2) the vertices' positions, origin + (i hx, j hy)."""
-        j, i = np.divmod(np.asarray(self.nodes, dtype=np.int64), int(self.shape[1]))
-        return np.stack([self.origin[0] + i * float(self.spacing[0]),
-                         self.origin[1] + j * float(self.spacing[1])], axis=1)
+        j, i = np.divmod(self.nodes, self.shape[1])
+        return np.stack([self.origin[0] + i * self.spacing[0], self.origin[1] + j * self.spacing[1]], axis=1)
 
     def scaled(self, centre, length: float) -> "Lattice":
         """The same lattice in the units (x − centre) / length (smooth_fit's normalised units)."""
@@ -103,18 +123,11 @@ class Lattice:
 
 
 def _checked_nodes(lattice: Lattice, n: int) -> tuple[np.ndarray, int, int]:
-    """(nodes int64, nx, ny), or SmoothingError where the lattice cannot describe n vertices."""
-    try:
-        ny, nx = (int(v) for v in lattice.shape)
-        hx, hy = (float(v) for v in lattice.spacing)
-    except (TypeError, ValueError):
-        raise SmoothingError("a lattice's shape must be (ny, nx) and its spacing (hx, hy)") from None
-    if ny < 1 or nx < 1 or not (np.isfinite(hx) and np.isfinite(hy) and hx > 0 and hy > 0):
-        raise SmoothingError(f"a lattice needs a positive shape and spacing, got {lattice.shape}, {lattice.spacing}")
-    nodes = np.asarray(lattice.nodes)
-    if nodes.shape != (n,) or not np.issubdtype(nodes.dtype, np.integer):
-        raise SmoothingError(f"the lattice's nodes must be ({n},) integers, one per vertex, got {nodes.shape}")
-    nodes = nodes.astype(np.int64)
+    """(nodes, nx, ny), or SmoothingError where the lattice cannot describe n vertices."""
+    ny, nx = lattice.shape
+    nodes = lattice.nodes
+    if nodes.shape != (n,):
+        raise SmoothingError(f"the lattice's nodes must be ({n},), one per vertex, got {nodes.shape}")
     if n and (nodes.min() < 0 or nodes.max() >= nx * ny):
         raise SmoothingError(f"the lattice's nodes must lie in [0, {nx * ny - 1}]")
     if np.unique(nodes).size != n:
@@ -229,9 +242,10 @@ class LatticeSolver:
     right-hand sides: `start` (the full-multigrid guess), `pcg` (CG from it), `cycle` (one
     V-cycle, the preconditioner). S (3N, 3N) CSR, symmetric positive definite, vertex k's
     unknowns 3k..3k+2 on node lattice.nodes[k], lattice in the lengths S was built in.
-    coarsest: coarsen while a level has more vertices. seconds: the set-up's wall time."""
+    coarsest: coarsen while a level has more vertices (None: COARSEST, read when called).
+    seconds: the set-up's wall time."""
 
-    def __init__(self, S, lattice: Lattice, coarsest: int = COARSEST):
+    def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
         import time
 
         t0 = time.perf_counter()
@@ -239,6 +253,7 @@ class LatticeSolver:
             raise SmoothingError(f"the system must be square with 3 unknowns per vertex, got {S.shape}")
         nodes, nx, ny = _checked_nodes(lattice, S.shape[0] // 3)
         hx, hy = float(lattice.spacing[0]), float(lattice.spacing[1])
+        coarsest = COARSEST if coarsest is None else int(coarsest)
         fine = _Level(S, nodes, nx, ny)
         if fine.couplings:
             raise SmoothingError(f"the system is not on the lattice's stencil: {fine.couplings} entries couple "
@@ -331,7 +346,7 @@ class LatticeFactor:
 
 
 def lattice_solve(S, rhs: np.ndarray, lattice: Lattice, step_tol: float, x0: np.ndarray | None = None,
-                  coarsest: int = COARSEST) -> tuple[np.ndarray, int]:
+                  coarsest: int | None = None) -> tuple[np.ndarray, int]:
     """(x, iterations): S x = rhs by CG preconditioned by the multigrid V(1,1) cycle of S on
     `lattice` (module doc; LatticeSolver), from the full-multigrid guess (x0 None) or x0,
     stopped when a step moves no value unknown (every third) by more than step_tol, in
