@@ -205,25 +205,52 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.add.reduce(a * b))
 
 
+def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
+    """(N,) int8: the colour (i + j) mod 3 of each node j nx + i."""
+    j, i = np.divmod(np.asarray(nodes, dtype=np.int64), nx)
+    return ((i + j) % 3).astype(np.int8)
+
+
+def colour_order(lattice: Lattice) -> np.ndarray:
+    """(N,) the vertices in the order the solver's levels number them: colour by colour
+    ((i + j) mod 3), by node within a colour. A system assembled with its vertices
+    numbered so (smooth_fit does) is solved in place; any other order costs the solver
+    a permuted copy of S."""
+    return np.lexsort((lattice.nodes, colours(lattice.nodes, lattice.shape[1])))
+
+
+def _permuted(S, order: np.ndarray):
+    """S with vertex order[k] as vertex k (rows and columns, 3 unknowns a vertex): a copy."""
+    unknowns = (3 * order[:, None] + np.arange(3)).ravel()
+    rank = np.empty_like(unknowns)
+    rank[unknowns] = np.arange(unknowns.size)
+    rows = S[unknowns]
+    rows.indices = rank[rows.indices].astype(rows.indices.dtype)
+    rows.has_sorted_indices = False
+    return rows
+
+
 class _Level:
-    """One grid: S (CSR, sorted), its vertices' nodes, each colour's vertices, the inverses
-    of S's diagonal blocks, and P, Pᵀ to the next coarser grid (None on the coarsest)."""
+    """One grid: S (CSR) with its vertices numbered colour by colour (colour_order), their
+    nodes, each colour's first vertex (bounds (4,)), the inverses of S's diagonal blocks,
+    and P, Pᵀ to the next coarser grid (None on the coarsest)."""
 
     def __init__(self, S, nodes: np.ndarray, nx: int, ny: int):
         S = S.tocsr()
-        S.sort_indices()
         if S.indptr.dtype != S.indices.dtype:
             S.indptr = S.indptr.astype(S.indices.dtype)
         self.S, self.nodes, self.nx, self.ny = S, nodes, nx, ny
-        colour = ((nodes % nx + nodes // nx) % 3).astype(np.int8)
-        self.colours = [np.flatnonzero(colour == c).astype(np.int64) for c in range(3)]
+        colour = colours(nodes, nx)
+        if (np.diff(colour) < 0).any():
+            raise ValueError("a level's vertices must be numbered colour by colour")
+        self.bounds = np.searchsorted(colour, np.arange(4, dtype=np.int8))
         self.dinv = np.empty((nodes.size, 3, 3))
         counts = []
         parallel_blocks(lambda part: counts.append(kernel.block_inverses(
             S.indptr, S.indices, S.data, colour, self.dinv, part.start, part.stop)), nodes.size, SWEEP_BLOCK)
         self.couplings = sum(c for c, _ in counts)
         singular = sum(s for _, s in counts)
-        if singular:
+        if singular and not self.couplings:
             raise SmoothingError(f"{singular} diagonal 3 × 3 blocks of the lattice system are not positive "
                                  "definite: a vertex lacks data and energy")
         self.P = self.PT = None
@@ -232,9 +259,10 @@ class _Level:
         """Block Gauss–Seidel over the colours in `order`, in place."""
         S = self.S
         for c in order:
-            vertices = self.colours[c]
-            parallel_blocks(lambda part: kernel.sweep(S.indptr, S.indices, S.data, b, x, vertices, self.dinv,
-                                                      part.start, part.stop), vertices.size, SWEEP_BLOCK)
+            first = int(self.bounds[c])
+            parallel_blocks(lambda part: kernel.sweep(S.indptr, S.indices, S.data, b, x, self.dinv,
+                                                      first + part.start, first + part.stop),
+                            int(self.bounds[c + 1]) - first, SWEEP_BLOCK)
 
 
 class LatticeSolver:
@@ -242,8 +270,9 @@ class LatticeSolver:
     right-hand sides: `start` (the full-multigrid guess), `pcg` (CG from it), `cycle` (one
     V-cycle, the preconditioner). S (3N, 3N) CSR, symmetric positive definite, vertex k's
     unknowns 3k..3k+2 on node lattice.nodes[k], lattice in the lengths S was built in.
-    coarsest: coarsen while a level has more vertices (None: COARSEST, read when called).
-    seconds: the set-up's wall time."""
+    Vertices numbered colour by colour (colour_order) are solved in S itself, others in
+    a permuted copy. coarsest: coarsen while a level has more vertices (None: COARSEST,
+    read when called). seconds: the set-up's wall time."""
 
     def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
         import time
@@ -252,29 +281,36 @@ class LatticeSolver:
         if S.shape[0] != S.shape[1] or S.shape[0] % 3:
             raise SmoothingError(f"the system must be square with 3 unknowns per vertex, got {S.shape}")
         nodes, nx, ny = _checked_nodes(lattice, S.shape[0] // 3)
-        hx, hy = float(lattice.spacing[0]), float(lattice.spacing[1])
         coarsest = COARSEST if coarsest is None else int(coarsest)
+        order = colour_order(lattice)
+        self.order = None if (order == np.arange(order.size)).all() else order
+        if self.order is not None:
+            S, nodes = _permuted(S.tocsr(), order), nodes[order]
         fine = _Level(S, nodes, nx, ny)
         if fine.couplings:
             raise SmoothingError(f"the system is not on the lattice's stencil: {fine.couplings} entries couple "
                                  "vertices of one colour (i + j) mod 3 (cells split by the other diagonal, or "
                                  "nodes that are not the vertices' own?)")
+        hx, hy = lattice.spacing
         self.levels = [fine]
         while self.levels[-1].nodes.size > coarsest:
             level = self.levels[-1]
             P, coarse, nxc, nyc = prolongation(level.nodes, level.nx, level.ny, (hx, hy))
             if coarse.size >= level.nodes.size:
                 break
+            corder = np.lexsort((coarse, colours(coarse, nxc)))
+            P = P[:, (3 * corder[:, None] + np.arange(3)).ravel()].tocsr()
             PT = P.T.tocsr()
             level.P, level.PT = P, PT
-            self.levels.append(_Level(PT @ (level.S @ P), coarse, nxc, nyc))
+            self.levels.append(_Level(PT @ (level.S @ P), coarse[corder], nxc, nyc))
             hx, hy = 2 * hx, 2 * hy
         method = available_solvers()[0]
         self.coarse = Factor(self.levels[-1].S, "superlu" if method == "amg-cg" else method)
         self.seconds = time.perf_counter() - t0
 
     def cycle(self, b: np.ndarray, k: int = 0) -> np.ndarray:
-        """One symmetric V(1,1) cycle from zero on level k for right-hand side b."""
+        """One symmetric V(1,1) cycle from zero on level k for right-hand side b (in the
+        levels' numbering: colour by colour)."""
         if k == len(self.levels) - 1:
             return self.coarse.solve(b, refine=False)
         level = self.levels[k]
@@ -287,7 +323,8 @@ class LatticeSolver:
 
     def start(self, rhs: np.ndarray) -> np.ndarray:
         """The full-multigrid guess: rhs restricted by Pᵀ to every level, the coarsest
-        solved, then on each finer level P and one V-cycle on its residual."""
+        solved, then on each finer level P and one V-cycle on its residual (in the levels'
+        numbering)."""
         bs = [rhs]
         for level in self.levels[:-1]:
             bs.append(level.PT @ bs[-1])
@@ -306,7 +343,18 @@ class LatticeSolver:
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.shape != (S.shape[0],):
             raise SmoothingError(f"the right-hand side must have shape ({S.shape[0]},), got {rhs.shape}")
-        x = self.start(rhs) if x0 is None else np.array(x0, dtype=np.float64)
+        if self.order is not None:
+            x, iterations = self._pcg(rhs.reshape(-1, 3)[self.order].ravel(), step_tol,
+                                      None if x0 is None else np.asarray(x0, float).reshape(-1, 3)[self.order].ravel())
+            out = np.empty_like(x)
+            out.reshape(-1, 3)[self.order] = x.reshape(-1, 3)
+            return out, iterations
+        return self._pcg(rhs, step_tol, None if x0 is None else np.array(x0, dtype=np.float64))
+
+    def _pcg(self, rhs: np.ndarray, step_tol: float, x0: np.ndarray | None) -> tuple[np.ndarray, int]:
+        """pcg in the levels' numbering."""
+        S = self.levels[0].S
+        x = self.start(rhs) if x0 is None else x0
         r = rhs - S @ x
         z = self.cycle(r)
         p = z.copy()
@@ -357,4 +405,5 @@ def lattice_solve(S, rhs: np.ndarray, lattice: Lattice, step_tol: float, x0: np.
 
 
 __all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve", "prolongation", "hermite_weights",
+           "colour_order",
            "COARSEST", "MAX_ITERATIONS"]

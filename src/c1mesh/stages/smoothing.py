@@ -51,7 +51,7 @@ from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table, edge_table_sides
 from c1mesh.stages import _smoothing as kernel
-from c1mesh.stages.lattice_solver import Lattice, LatticeFactor, LatticeSolver
+from c1mesh.stages.lattice_solver import Lattice, LatticeFactor, LatticeSolver, colour_order
 from c1mesh.stages.limiter import edge_directions, own_triangles_in
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
                                             energy_blocks, energy_tensor,
@@ -576,7 +576,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad)
         grid = None if lattice is None else _lattice_of(lattice, pts, npts, centre, h)
     method = available_solvers()[0]
-    solved, order, system = _assembled(problem, method, seconds, threads, reorder=grid is None)
+    solved, order, system = _assembled(problem, method, seconds, threads,
+                                       None if grid is None else colour_order(grid))
     mu = float(gradient_weight)
     curve: list = []
     at_limit = windows = None
@@ -595,7 +596,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             with timed(seconds, "solve"):
                 S, rhs = system.matrix(s, solved.w, mu, keep_energy=False)
             with timed(seconds, "lattice_setup"):
-                solver = LatticeSolver(S, grid)
+                solver = LatticeSolver(S, replace(grid, nodes=grid.nodes[order]))
             with timed(seconds, "solve"):
                 u = solver.pcg(rhs, LATTICE_STEP)[0]
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
@@ -630,15 +631,16 @@ def _lattice_of(lattice: Lattice, pts: np.ndarray, npts: np.ndarray, centre: np.
     return grid
 
 
-def _assembled(problem: _Problem, method: str, seconds: dict, threads, reorder: bool = True):
+def _assembled(problem: _Problem, method: str, seconds: dict, threads, lattice_order: np.ndarray | None = None):
     """(solved, order, system): the problem with its vertices renumbered by
-    smoothing_system.vertex_order when CHOLMOD factors it, `reorder` asks for it (not for
-    the lattice solver, which needs no fill-reducing order) and that gives an order (from
-    METIS_FROM unknowns), else the problem itself and order None; and its System. The
-    search for s keeps the input's numbering: its windows are small, and their vertices are
-    chosen by number."""
-    order = None
-    if method == "cholmod" and reorder:
+    smoothing_system.vertex_order when CHOLMOD factors it and that gives an order (from
+    METIS_FROM unknowns), else the problem itself and order None; and its System. With
+    lattice_order (lattice_solver.colour_order: the lattice solver needs no fill-reducing
+    order, and solves a system numbered colour by colour without a copy) the vertices are
+    renumbered by it instead. The search for s keeps the input's numbering: its windows
+    are small, and their vertices are chosen by number."""
+    order = lattice_order
+    if method == "cholmod" and order is None:
         with limit(threads), timed(seconds, "order"):
             order = vertex_order(problem.triangles, problem.points.shape[0])
         if order is None:                       # below METIS_FROM: no phase to report
@@ -646,7 +648,7 @@ def _assembled(problem: _Problem, method: str, seconds: dict, threads, reorder: 
     solved = problem if order is None else problem.renumbered(order)
     with limit(threads), timed(seconds, "assemble"):
         system = solved.system()
-    system.vertices_ordered = order is not None
+    system.vertices_ordered = order is not None and lattice_order is None     # a fill-reducing order
     return solved, order, system
 
 
