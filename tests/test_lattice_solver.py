@@ -1,0 +1,168 @@
+"""The lattice solver (stages/lattice_solver.py, its kernel stages/_lattice_solver.pyx) against
+independent truth: CHOLMOD's solution of the same system, quadratics the Hermite
+prolongation must reproduce (computed here from their formulas), the same bytes at one
+and two threads, and smooth_fit with a lattice against smooth_fit without one."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from c1mesh.core.threads import limit
+from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
+from c1mesh.engine.topology import edge_table
+from c1mesh.stages import lattice_solver
+from c1mesh.stages.lattice_solver import Lattice, LatticeSolver, lattice_solve, prolongation
+from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
+from c1mesh.stages.smoothing_energy import SmoothingError, triangle_directions
+from c1mesh.stages.smoothing_system import System, assemble_energy, data_rows
+
+NOISE = 0.02
+NX, NY, HX, HY = 60, 50, 1.0, 0.7
+
+
+def lattice_mesh(nx=NX, ny=NY, hx=HX, hy=HY, hole=True, seed=0, other_diagonal=False):
+    """A lattice mesh with missing cells (a 15 × 15 hole and a cut corner, so some nodes are
+    absent) and its vertices in random order: points (N, 2), triangles (T, 3), the
+    Lattice, and a function locating points in the present cells (xy, triangle, barycentrics)."""
+    rng = np.random.default_rng(seed)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    cells = np.ones((ny - 1, nx - 1), bool)
+    if hole:
+        cells[15:30, 20:35] = False
+        cells[:5, :7] = False
+    a, b, c, d = (idx[:-1, :-1][cells], idx[:-1, 1:][cells], idx[1:, :-1][cells], idx[1:, 1:][cells])
+    if other_diagonal:
+        T = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
+    else:
+        T = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    nodes = rng.permutation(np.unique(T))
+    rank = np.full(nx * ny, -1)
+    rank[nodes] = np.arange(nodes.size)
+    T = rank[T]
+    lattice = Lattice((ny, nx), (hx, hy), (10.0, -5.0), nodes.astype(np.int64))
+    points = lattice.positions()
+    present = np.cumsum(cells.ravel()) - 1
+
+    def data(m):
+        ci, cj = rng.integers(0, nx - 1, 4 * m), rng.integers(0, ny - 1, 4 * m)
+        ok = cells[cj, ci]
+        ci, cj = ci[ok][:m], cj[ok][:m]
+        fx, fy = rng.uniform(0, 1, ci.size), rng.uniform(0, 1, ci.size)
+        cell = present[cj * (nx - 1) + ci]
+        upper = fy > fx
+        tri = np.where(upper, cell + cells.sum(), cell)
+        lam = np.where(upper[:, None], np.stack([1 - fy, fx, fy - fx], 1), np.stack([1 - fx, fx - fy, fy], 1))
+        xy = np.stack([10.0 + (ci + fx) * hx, -5.0 + (cj + fy) * hy], 1)
+        z = np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 7) + rng.normal(0, NOISE, xy.shape[0])
+        return xy, z, tri, lam
+    return points, T, lattice, data
+
+
+def lattice_system(s, **kw):
+    """(S, rhs, lattice): the smoothing system of 3 points per vertex off the vertices (the
+    package's assemble_energy and data_rows, unit normals, lengths as given)."""
+    points, T, lattice, data = lattice_mesh(**kw)
+    xy, z, tri, lam = data(3 * points.shape[0])
+    table = edge_table(T, points.shape[0])
+    dirs = triangle_directions(points, T, table.tri_edge, None, table.edges)
+    scheme = get_scheme(DEFAULT_SCHEME)
+    system = System(assemble_energy(points, T, dirs, scheme), data_rows(points, T, dirs, scheme, tri, lam), z)
+    S, rhs = system.matrix(s, np.ones(z.size), 0.0)
+    return S, rhs, lattice
+
+
+@pytest.mark.parametrize("s", [0.003, 1.0, 30.0])
+def test_lattice_solve_reaches_cholmods_heights(s):
+    cholmod = pytest.importorskip("sksparse.cholmod")
+    S, rhs, lattice = lattice_system(s)
+    factor = cholmod.cholesky(S.tocsc())
+    truth = factor(rhs)
+    truth = truth + factor(rhs - S @ truth)
+    x, iterations = lattice_solve(S, rhs, lattice, 1e-3 * NOISE, coarsest=150)
+    assert 1 <= iterations <= 30
+    assert np.abs(x[0::3] - truth[0::3]).max() < 5e-3 * NOISE
+    assert np.abs(x - truth).max() < 2e-2 * NOISE           # gradients too (per unit length)
+
+
+def test_the_hierarchy_drops_absent_nodes_level_by_level():
+    S, rhs, lattice = lattice_system(1.0)
+    solver = LatticeSolver(S, lattice, coarsest=150)
+    sizes = [level.nodes.size for level in solver.levels]
+    assert len(sizes) >= 3 and sizes[-1] <= 150 < sizes[-2]
+    assert all(n < NX * NY for n in sizes)                 # the hole's inner nodes are on no level
+    for level in solver.levels:
+        assert level.S.shape == (3 * level.nodes.size,) * 2
+
+
+def test_the_same_bytes_at_one_and_two_threads(monkeypatch):
+    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)           # many blocks per colour
+    S, rhs, lattice = lattice_system(0.1)
+    runs = []
+    for threads in (1, 2, 1):
+        with limit(threads):
+            runs.append(lattice_solve(S, rhs, lattice, 1e-6, coarsest=150))
+    assert runs[0][1] == runs[1][1] == runs[2][1]
+    assert runs[0][0].tobytes() == runs[1][0].tobytes() == runs[2][0].tobytes()
+
+
+def _quadratic(x, y):
+    return (0.3 + 0.7 * x - 1.1 * y + 0.45 * x * x - 0.8 * x * y + 0.35 * y * y,
+            0.7 + 0.9 * x - 0.8 * y, -1.1 - 0.8 * x + 0.7 * y)
+
+
+@pytest.mark.parametrize("hole", [False, True])
+def test_the_hermite_prolongation_reproduces_quadratics(hole):
+    """Coarse data (value, gradient) of a quadratic → P → the quadratic's data at every fine
+    node whose coarse ends (a node on a coarse node: that one; an edge midpoint: the edge's
+    two ends) are all kept; with no node absent, at every fine node."""
+    nx, ny, hx, hy = 21, 17, 0.8, 1.3
+    _, _, lattice, _ = lattice_mesh(nx, ny, hx, hy, hole=hole)
+    nodes = lattice.nodes
+    P, coarse, nxc, nyc = prolongation(nodes, nx, ny, (hx, hy))
+    J, I = np.divmod(coarse, nxc)
+    f, fx, fy = _quadratic(I * 2 * hx, J * 2 * hy)
+    u = np.stack([f, fx, fy], 1).ravel()
+    fine = (P @ u).reshape(-1, 3)
+    j, i = np.divmod(nodes, nx)
+    want = np.stack(_quadratic(i * hx, j * hy), 1)
+    kept = np.zeros(nxc * nyc, bool)
+    kept[coarse] = True
+    ends = [(i // 2, j // 2), ((i + 1) // 2, (j + 1) // 2)]             # the same node twice on a coarse node
+    exact = kept[ends[0][1] * nxc + ends[0][0]] & kept[ends[1][1] * nxc + ends[1][0]]
+    assert exact.mean() > (0.9 if hole else 0.999)
+    assert np.abs(fine[exact] - want[exact]).max() < 1e-12
+
+
+def test_smooth_fit_with_the_lattice_is_smooth_fit_without(monkeypatch):
+    monkeypatch.setattr(lattice_solver, "COARSEST", 150)
+    points, T, lattice, data = lattice_mesh()
+    xy, z, _, _ = data(3 * points.shape[0])
+    h = float(np.sqrt(HX * HY / 3))
+    fits = {}
+    for s in (0.01, 10.0):
+        given = SmoothingData(z, spacing=h, xy=xy)
+        direct = smooth_fit(points, T, given, SmoothingControl(strength=s))
+        fit = smooth_fit(points, T, given, SmoothingControl(strength=s), lattice=lattice)
+        fits[s] = fit
+        assert fit.solver == "lattice-pcg" and "lattice_setup" in fit.seconds
+        assert np.abs(fit.values - direct.values).max() < 1e-4 * NOISE
+        assert np.abs(fit.gradients - direct.gradients).max() < 1e-4 * NOISE
+        assert abs(fit.edf - direct.edf) < 1e-3 * direct.edf
+        assert fit.residual_rms == pytest.approx(direct.residual_rms, rel=1e-6)
+
+
+def test_a_mesh_that_is_not_the_lattice_is_refused():
+    points, T, lattice, data = lattice_mesh(hole=False)
+    xy, z, _, _ = data(points.shape[0])
+    given = SmoothingData(z, spacing=0.5, xy=xy)
+    moved = Lattice(lattice.shape, lattice.spacing, (10.5, -5.0), lattice.nodes)
+    with pytest.raises(SmoothingError, match="not the lattice's nodes"):
+        smooth_fit(points, T, given, SmoothingControl(strength=1.0), lattice=moved)
+    S, rhs, lattice = lattice_system(1.0, hole=False, other_diagonal=True)
+    with pytest.raises(SmoothingError, match="stencil"):
+        lattice_solve(S, rhs, lattice, 1e-6)
+    with pytest.raises(SmoothingError, match="distinct"):
+        lattice_solve(S, rhs, Lattice(lattice.shape, lattice.spacing, lattice.origin,
+                                      np.zeros_like(lattice.nodes)), 1e-6)
+    with pytest.raises(SmoothingError, match="spacing"):
+        Lattice((NY, NX), (1.0, 0.0), (0.0, 0.0), lattice.nodes)
