@@ -166,3 +166,35 @@ def test_a_mesh_that_is_not_the_lattice_is_refused():
                                       np.zeros_like(lattice.nodes)), 1e-6)
     with pytest.raises(SmoothingError, match="spacing"):
         Lattice((NY, NX), (1.0, 0.0), (0.0, 0.0), lattice.nodes)
+
+
+def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
+    """On a lattice mesh (holes, vertices in random order, each triangle's corners rotated
+    at random) the system built from each triangle shape's energy block and data map equals
+    the one built triangle by triangle, and lattice_locate finds every data point's
+    triangle and barycentrics (as the lattice_mesh fixture placed it) by arithmetic."""
+    from c1mesh.stages.smoothing import _directions, lattice_locate, lattice_shapes
+    from c1mesh.stages.smoothing_system import TriangleShapes
+
+    points, T, lattice, data = lattice_mesh(seed=3)
+    rng = np.random.default_rng(4)
+    turn = rng.integers(0, 3, T.shape[0])
+    T = np.stack([np.roll(row, k) for row, k in zip(T, turn)])       # the same triangles, corners rotated
+    xy, z, tri, lam = data(3000)
+    lam = np.stack([np.roll(row, k) for row, k in zip(lam, turn[tri])])
+    shapes = lattice_shapes(lattice, T)
+    assert isinstance(shapes, TriangleShapes) and shapes.reps.size == 6     # 2 triangles × 3 rotations
+    found, barycentric = lattice_locate(lattice, points, T, xy)
+    assert np.array_equal(found, tri)
+    assert np.abs(barycentric - lam).max() < 1e-12
+    scheme = get_scheme(DEFAULT_SCHEME)
+    dirs = _directions(points, T, None)
+    one_by_one = assemble_energy(points, T, dirs, scheme)
+    shared = assemble_energy(points, T, dirs, scheme, shapes)
+    assert np.array_equal(one_by_one.indices, shared.indices)
+    assert np.abs(shared.data - one_by_one.data).max() < 1e-9 * np.abs(one_by_one.data).max()
+    rows = data_rows(points, T, dirs, scheme, tri, lam)
+    shared_rows = data_rows(points, T, dirs, scheme, tri, lam, shapes)
+    assert np.abs(shared_rows.values - rows.values).max() < 1e-11
+    outside = lattice_locate(lattice, points, T, np.array([[10.0 + 25 * HX, -5.0 + 20 * HY], [0.0, 0.0]]))[0]
+    assert list(outside) == [-1, -1]                                  # in the hole; beyond the lattice

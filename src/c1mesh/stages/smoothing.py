@@ -56,8 +56,9 @@ from c1mesh.stages.limiter import edge_directions, own_triangles_in
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
                                             energy_blocks, energy_tensor,
                                             triangle_directions)
-from c1mesh.stages.smoothing_system import (Factor, System, assemble_energy, available_solvers,
-                                            data_rows, hat_trace, solve, timed, vertex_order)
+from c1mesh.stages.smoothing_system import (Factor, System, TriangleShapes, assemble_energy,
+                                            available_solvers, data_rows, hat_trace, solve, timed,
+                                            vertex_order)
 from c1mesh.stages.trim import connected_sets
 
 CV_BLOCK = 4.0
@@ -378,13 +379,15 @@ class _Problem:
     data_tri: np.ndarray | None
     data_lam: np.ndarray | None
     grad: np.ndarray | None
+    shapes: TriangleShapes | None = None
+    """The triangles are translates of a few (a lattice's): smoothing_system.TriangleShapes."""
 
     def system(self) -> System:
-        K = assemble_energy(self.points, self.triangles, self.dirs, self.scheme)
+        K = assemble_energy(self.points, self.triangles, self.dirs, self.scheme, self.shapes)
         rows = None
         if self.data_tri is not None:
             rows = data_rows(self.points, self.triangles, self.dirs, self.scheme,
-                             self.data_tri, self.data_lam)
+                             self.data_tri, self.data_lam, self.shapes)
         mask = values = None
         if self.grad is not None:
             mask = np.isfinite(self.grad).all(axis=1).astype(float)
@@ -400,7 +403,8 @@ class _Problem:
         z, w, xy = ((self.z[order], self.w[order], self.data_xy[order]) if at_vertices
                     else (self.z, self.w, self.data_xy))
         return _Problem(self.points[order], rank[self.triangles], self.dirs, self.scheme, z, w, xy,
-                        self.data_tri, self.data_lam, None if self.grad is None else self.grad[order])
+                        self.data_tri, self.data_lam, None if self.grad is None else self.grad[order],
+                        self.shapes)
 
     def subset(self, keep_vertex: np.ndarray) -> "_Problem":
         """The problem on the triangles with all three vertices kept (no re-triangulation)."""
@@ -418,7 +422,8 @@ class _Problem:
             tri_map, lam = tri_new[self.data_tri[data]], self.data_lam[data]
         return _Problem(self.points[used], new[tris], self.dirs[tri_keep], self.scheme,
                         self.z[data], self.w[data], self.data_xy[data], tri_map, lam,
-                        None if self.grad is None else self.grad[used])
+                        None if self.grad is None else self.grad[used],
+                        None if self.shapes is None else self.shapes.subset(tri_keep))
 
 
 def _check_inputs(points, triangles, data: SmoothingData):
@@ -560,13 +565,18 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             if grad.shape != pts.shape:
                 raise SmoothingError(f"the gradient prior must have shape {pts.shape}, got {grad.shape}")
             grad = (grad - plane[1:] / h) * (h / Z)     # the deviations from the plane, as z
-        dirs = _directions(npts, tri, directions)
+        grid = None if lattice is None else _lattice_of(lattice, pts, npts, centre, h)
+        shapes = None if grid is None or directions is not None else lattice_shapes(grid, tri)
+        dirs = _directions(npts, tri, directions) if shapes is None else _shared_directions(npts, tri, shapes)
         nxy = (xy - centre) / h
         data_tri = data_lam = None
         outside = 0
         if not vertex_data:
-            G, _ = rsd.barycentric_gradients(npts[tri])
-            data_tri, data_lam = TriangleLocator(npts, tri, G).find(nxy)
+            if shapes is None:
+                G, _ = rsd.barycentric_gradients(npts[tri])
+                data_tri, data_lam = TriangleLocator(npts, tri, G).find(nxy)
+            else:
+                data_tri, data_lam = lattice_locate(grid, npts, tri, nxy)
             inside = data_tri >= 0
             outside = int((~inside).sum() if data.own is None else (~inside[data.own]).sum())
             data_tri, data_lam = data_tri[inside], data_lam[inside]
@@ -574,8 +584,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         zn, wn = (z - trend) / Z, w / w_mean
         if not (wn > 0).any():
             raise SmoothingError("no weighted data point lies inside the triangulation")
-        problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad)
-        grid = None if lattice is None else _lattice_of(lattice, pts, npts, centre, h)
+        problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad, shapes)
     method = available_solvers()[0]
     solved, order, system = _assembled(problem, method, seconds, threads,
                                        None if grid is None else colour_order(grid))
@@ -630,6 +639,55 @@ def _lattice_of(lattice: Lattice, pts: np.ndarray, npts: np.ndarray, centre: np.
     if not off <= 1e-6 * min(grid.spacing):
         raise SmoothingError(f"the vertices are not the lattice's nodes (up to {off * h:g} away)")
     return grid
+
+
+def lattice_shapes(grid: Lattice, triangles: np.ndarray) -> TriangleShapes:
+    """The TriangleShapes of a lattice mesh's triangles (T, 3): two triangles have one shape
+    when their corners, in their order, lie at the same node offsets from their first."""
+    j, i = np.divmod(grid.nodes[triangles], grid.shape[1])            # (T, 3) each
+    offsets = np.concatenate([i[:, 1:] - i[:, :1], j[:, 1:] - j[:, :1]], axis=1)
+    _, reps, key = np.unique(offsets, axis=0, return_index=True, return_inverse=True)
+    return TriangleShapes(key.ravel().astype(np.int64), reps.astype(np.int64))
+
+
+def _shared_directions(npts: np.ndarray, triangles: np.ndarray, shapes: TriangleShapes) -> np.ndarray:
+    """(T, 3, 2) the unit normal directions of lattice triangles: each shape's, from its
+    representative (the spline does not see a direction's sign, which the edge's numbering
+    sets)."""
+    reps = triangles[shapes.reps]
+    used, local = np.unique(reps, return_inverse=True)
+    shared = _directions(npts[used], local.reshape(-1, 3), None)          # (k, 3, 2)
+    return shared[shapes.key]
+
+
+def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
+                   xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(triangle (M,) of each point xy (M, 2), −1 outside; barycentrics (M, 3) in its
+    corners' order, NaN outside) on a lattice mesh (grid in the units of npts and xy): the
+    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal."""
+    ny, nx = grid.shape
+    hx, hy = grid.spacing
+    u = (xy[:, 0] - grid.origin[0]) / hx
+    v = (xy[:, 1] - grid.origin[1]) / hy
+    i = np.clip(np.floor(u), 0, nx - 2).astype(np.int64)
+    j = np.clip(np.floor(v), 0, ny - 2).astype(np.int64)
+    upper = (v - j) > (u - i)
+    slot = 2 * (j * (nx - 1) + i) + upper
+    corner = grid.nodes[triangles]
+    cj, ci = np.divmod(corner.min(axis=1), nx)                         # the cell's (i, j) corner
+    is_upper = (corner == (cj + 1)[:, None] * nx + ci[:, None]).any(axis=1)     # holds (i, j+1)
+    where = np.full(2 * max(nx - 1, 1) * max(ny - 1, 1), -1, dtype=np.int64)
+    where[2 * (cj * (nx - 1) + ci) + is_upper] = np.arange(triangles.shape[0])
+    box = (u >= 0) & (v >= 0) & (u <= nx - 1) & (v <= ny - 1)
+    tri = np.where(box, where[slot], -1)
+    lam = np.full((xy.shape[0], 3), np.nan)
+    found = tri >= 0
+    corners = npts[triangles[tri[found]]]                              # (m, 3, 2)
+    G, _ = rsd.barycentric_gradients(corners)
+    offset = xy[found] - corners[:, 0]
+    rest = np.einsum("mkd,md->mk", G[:, 1:], offset)
+    lam[found] = np.column_stack([1.0 - rest.sum(axis=1), rest])
+    return tri, lam
 
 
 def _assembled(problem: _Problem, method: str, seconds: dict, threads, lattice_order: np.ndarray | None = None):

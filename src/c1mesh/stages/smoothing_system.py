@@ -81,8 +81,27 @@ def vertex_pattern(triangles: np.ndarray, n: int) -> VertexPattern:
     return VertexPattern(start, corner, row_start, cols)
 
 
+@dataclass(frozen=True)
+class TriangleShapes:
+    """Triangles that are translates of a few (a lattice's: stages.lattice_solver): key (T,)
+    the shape of each triangle, a row of reps (k,), the first triangle of each shape. Their
+    energy blocks and data maps are the representatives' (translation changes neither),
+    computed k times instead of T times."""
+
+    key: np.ndarray
+    reps: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> "TriangleShapes":
+        """The shapes of the triangles keep (T,) bool selects, representatives renumbered."""
+        key = self.key[keep]
+        used, local = np.unique(key, return_inverse=True)
+        first = np.full(self.reps.size, -1, dtype=np.int64)
+        first[key[::-1]] = np.arange(key.size - 1, -1, -1)
+        return TriangleShapes(local.astype(np.int64), first[used])
+
+
 def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
-                    scheme: ShapeTuple) -> sp.csr_matrix:
+                    scheme: ShapeTuple, shapes: TriangleShapes | None = None) -> sp.csr_matrix:
     """K (3N, 3N) CSR, the sum of the triangles' 9 × 9 energy blocks at their unknowns.
 
     Assembled as 3 × 3 vertex blocks on the pattern of the vertex adjacency
@@ -93,7 +112,8 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     blocks are held (all of them were 1.3 GB at 2M triangles). Each entry is the sum of
     its triangles' contributions in increasing triangle order from 0, as a bincount over
     the triangles' vertex pairs sums them, so the bits do not depend on the thread count
-    or the chunk.
+    or the chunk. shapes: the triangles are translates of shapes.reps' (a lattice's), whose
+    blocks serve them all.
     """
     n = points.shape[0]
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
@@ -103,9 +123,11 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
     nnz = 9 * cols.size
     index = np.int32 if max(nnz, 3 * n) < 2**31 else np.int64
     data = np.zeros(nnz)
+    shared = None if shapes is None else energy_blocks_of(points, tri[shapes.reps], dirs[shapes.reps], scheme)
     for first in range(0, tri.shape[0], ASSEMBLY_CHUNK):
         part = slice(first, first + ASSEMBLY_CHUNK)
-        blocks = energy_blocks_of(points, tri[part], dirs[part], scheme)      # (chunk, 9, 9)
+        blocks = (energy_blocks_of(points, tri[part], dirs[part], scheme) if shared is None
+                  else np.ascontiguousarray(shared[shapes.key[part]]))      # (chunk, 9, 9)
         kernel.add_blocks(tri, first, blocks, row_start, cols, data)
     indices = np.empty(nnz, dtype=index)                              # written as the matrix keeps it
     parallel_blocks(lambda part: kernel.csr_indices(row_start, cols, part.start, part.stop, indices),
@@ -117,10 +139,13 @@ def assemble_energy(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray,
 
 
 def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, scheme: ShapeTuple,
-              tri: np.ndarray, lam: np.ndarray) -> "DataRows":
+              tri: np.ndarray, lam: np.ndarray, shapes: TriangleShapes | None = None) -> "DataRows":
     """The DataRows of data points in triangles tri (M,) at barycentrics lam (M, 3): row i
-    of A is F(x_i) as a linear form in the unknowns."""
+    of A is F(x_i) as a linear form in the unknowns. shapes: as assemble_energy's (each
+    shape's linear map once, its points' rows one product)."""
     m = tri.shape[0]
+    if shapes is not None:
+        return _shared_rows(points, triangles, dirs, scheme, tri, lam, shapes)
     vals = np.empty((m, N_LOCAL))
     for start in range(0, m, _CHUNK):
         part = slice(start, start + _CHUNK)
@@ -130,6 +155,22 @@ def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, schem
         M = linear_maps(corners, dirs[t], G)                          # (m, 21, 9)
         B = rsd.basis(scheme, lam[part])                             # (21, m)
         vals[part] = np.einsum("bm,mbj->mj", B, M)
+    return DataRows(np.ascontiguousarray(triangles, dtype=np.int64),
+                    np.ascontiguousarray(tri, dtype=np.int64), vals, 3 * points.shape[0])
+
+
+def _shared_rows(points, triangles, dirs, scheme, tri, lam, shapes: TriangleShapes) -> "DataRows":
+    """data_rows of triangles that are translates of shapes.reps'."""
+    corners = points[triangles[shapes.reps]]
+    G, _ = rsd.barycentric_gradients(corners)
+    maps = linear_maps(corners, dirs[shapes.reps], G)                 # (k, 21, 9)
+    key = shapes.key[tri]
+    vals = np.empty((tri.shape[0], N_LOCAL))
+    for k in range(shapes.reps.size):
+        rows = np.flatnonzero(key == k)
+        for start in range(0, rows.size, _CHUNK):
+            part = rows[start:start + _CHUNK]
+            vals[part] = rsd.basis(scheme, lam[part]).T @ maps[k]
     return DataRows(np.ascontiguousarray(triangles, dtype=np.int64),
                     np.ascontiguousarray(tri, dtype=np.int64), vals, 3 * points.shape[0])
 
