@@ -68,7 +68,6 @@ class TiledSmoother:
         self.limited = self.turned = self.lifted = 0         # refine_runs adds its rows' counts
         self.seconds: dict = {}
         self.search: StrengthSearch | None = None
-        self.search_windows: SearchWindows | None = None
         self.run, self.data = fit.run, fit.data
         if self.run.control.strength == "auto":
             start = time.perf_counter()
@@ -77,7 +76,6 @@ class TiledSmoother:
             self.search = search_strength(window_tile(heights, triangle_files, grid, windows), searched,
                                           self.data_in(windows, fit.longest_edge))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
-            self.search_windows = windows
             self.seconds["search"] = time.perf_counter() - start
         self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
                          HALO_EDGES * fit.longest_edge) * (1 + 1e-9)
@@ -252,7 +250,7 @@ def window_tile(heights, triangle_files, grid, windows: SearchWindows) -> Tile:
     final triangles with all three corners among them, as the in-memory fit's search
     takes them (smoothing._search_problem); every record its own."""
     records = _records_in(heights, windows, 0.0)
-    tiles = sorted({t for rect in _rects(heights, windows, 0.0) for t in heights.touching(rect)})
+    tiles = sorted({t for rect in _rects(windows, 0.0) for t in heights.touching(rect)})
     parts = [np.empty((0, 3), np.int64)]
     for t in tiles:
         if triangle_files[t] is not None and len(records):
@@ -262,8 +260,8 @@ def window_tile(heights, triangle_files, grid, windows: SearchWindows) -> Tile:
     return Tile(records, triangles, np.ones(len(records), dtype=bool))
 
 
-def _rects(spill, windows: SearchWindows, grow: float) -> list:
-    """The windows' rectangles grown by grow, or the whole spill's one when whole."""
+def _rects(windows: SearchWindows, grow: float) -> list:
+    """The windows' rectangles grown by grow, or the whole plane's one when whole."""
     if windows.whole:
         return [(-np.inf, -np.inf, np.inf, np.inf)]
     return windows.rects(grow)
@@ -271,7 +269,7 @@ def _rects(spill, windows: SearchWindows, grow: float) -> list:
 
 def _records_in(spill, windows: SearchWindows, grow: float) -> np.ndarray:
     """The spill's records in the windows grown by grow, each once, ascending survey numbers."""
-    parts = [spill.records(rect) for rect in _rects(spill, windows, grow)]
+    parts = [spill.records(rect) for rect in _rects(windows, grow)]
     records = np.concatenate(parts) if parts else np.empty(0, spill.record)
     _, first = np.unique(records["index"], return_index=True)
     return records.take(first)
