@@ -306,8 +306,8 @@ class SmoothFit:
     """Result of `smooth_fit`, in the caller's units.
 
     values (N,), gradients (N, 2): vertex data of the fitted spline. strength: s used;
-    lam: λ actually used (length² × weight units, module doc). cv_curve: (s, held-out RMS)
-    pairs in the order tried ([] when s was given). search_limit_reached: the lowest score
+    lam: λ actually used (length² × weight units, module doc). cv_curve: (s, held-out RMS
+    in height units) pairs in the order tried ([] when s was given). search_limit_reached: the lowest score
     lay at SEARCH_LIMITS, so s may be better still beyond it (None when s was given; False:
     s is an interior minimum of the curve). edf: effective degrees of freedom
     tr(H) (Hutchinson estimate). residual_rms, residual_max: of z − F at the data points
@@ -619,7 +619,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
     gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
     return SmoothFit(values=values, gradients=gradients,
-                     strength=s, lam=s * h * h * w_mean, cv_curve=curve, search_limit_reached=at_limit,
+                     strength=s, lam=s * h * h * w_mean, cv_curve=[(strength_, score * Z) for strength_, score in curve],
+                     search_limit_reached=at_limit,
                      edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,

@@ -73,8 +73,8 @@ class TiledSmoother:
             start = time.perf_counter()
             windows = survey_windows(heights if self.data is None else self.data)
             searched = replace(self.run, control=replace(self.run.control, windows=windows))
-            self.search = search_strength(window_tile(heights, triangle_files, grid, windows), searched,
-                                          self.data_in(windows, fit.longest_edge))
+            self.search = search_strength(window_tile(heights, triangle_files, windows, fit.longest_edge),
+                                          searched, self.data_in(windows, fit.longest_edge))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
             self.seconds["search"] = time.perf_counter() - start
         self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
@@ -245,12 +245,16 @@ def survey_windows(points) -> SearchWindows:
     return windows_at(reduce_nearest(summaries), window_side(lower, upper, int(points.counts.sum())))
 
 
-def window_tile(heights, triangle_files, grid, windows: SearchWindows) -> Tile:
-    """The search's tile: the vertices in the windows (every vertex when whole) and the
-    final triangles with all three corners among them, as the in-memory fit's search
-    takes them (smoothing._search_problem); every record its own."""
-    records = _records_in(heights, windows, 0.0)
-    tiles = sorted({t for rect in _rects(windows, 0.0) for t in heights.touching(rect)})
+def window_tile(heights, triangle_files, windows: SearchWindows, longest_edge: float) -> Tile:
+    """The search's tile: the vertices in the windows grown by the longest final edge
+    (every vertex when whole) and the final triangles with all three corners among them;
+    every record its own. The search (smoothing._search_problem) keeps the triangles in
+    the windows, as the in-memory fit's does; the ring around them gives each of their
+    edges both its triangles, so the edge directions (limiter.edge_directions) are the
+    whole survey's there too."""
+    grow = longest_edge * (1 + 1e-9)
+    records = _records_in(heights, windows, grow)
+    tiles = sorted({t for rect in _rects(windows, grow) for t in heights.touching(rect)})
     parts = [np.empty((0, 3), np.int64)]
     for t in tiles:
         if triangle_files[t] is not None and len(records):
