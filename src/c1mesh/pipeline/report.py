@@ -80,7 +80,8 @@ OPTIONAL: dict[str, str] = {
     "shared_vertex_keys": "the tiled fit: vertices shared between tiles",
     "shared_vertex_keys_held": "the tiled fit: most shared vertices held at once",
     "output_meshes": "the tiled fit with -O: each output's vertices and faces",
-    "smoothing": "--smooth auto or a strength: strength (s), lam (λ), cv_curve ([s, held-out RMS in height units] pairs), "
+    "smoothing": "--smooth auto or a strength: strength (s), lam (λ), cv_curve ([s, held-out RMS in height "
+                 "units] pairs), "
                  "search_limit_reached (--smooth auto: true when s is not an interior minimum of cv_curve "
                  "but at the search's limit, 1e-6 or 1e7; null for a given strength), edf, residual_rms, "
                  "residual_max (heights), solver, seconds, outside (data points outside the "

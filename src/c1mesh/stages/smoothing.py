@@ -307,9 +307,9 @@ class SmoothFit:
 
     values (N,), gradients (N, 2): vertex data of the fitted spline. strength: s used;
     lam: λ actually used (length² × weight units, module doc). cv_curve: (s, held-out RMS
-    in height units) pairs in the order tried ([] when s was given). search_limit_reached: the lowest score
-    lay at SEARCH_LIMITS, so s may be better still beyond it (None when s was given; False:
-    s is an interior minimum of the curve). edf: effective degrees of freedom
+    in height units) pairs in the order tried ([] when s was given). search_limit_reached:
+    the lowest score lay at SEARCH_LIMITS, so s may be better still beyond it (None when s
+    was given; False: s is an interior minimum of the curve). edf: effective degrees of freedom
     tr(H) (Hutchinson estimate). residual_rms, residual_max: of z − F at the data points
     with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
     outside: data points outside the triangulation (ignored). gradient_weight: the
@@ -618,13 +618,13 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         u = _in_input_order(u, order)
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
     gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
-    return SmoothFit(values=values, gradients=gradients,
-                     strength=s, lam=s * h * h * w_mean, cv_curve=[(strength_, score * Z) for strength_, score in curve],
-                     search_limit_reached=at_limit,
-                     edf=edf,
+    return SmoothFit(values=values, gradients=gradients, strength=s, lam=s * h * h * w_mean,
+                     cv_curve=[(tried, score * Z) for tried, score in curve],       # in height units
+                     search_limit_reached=at_limit, edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
-                     solver=method if grid is None else "lattice-pcg", seconds=seconds, outside=outside, gradient_weight=mu if grad is not None else 0.0,
+                     solver=method if grid is None else "lattice-pcg", seconds=seconds, outside=outside,
+                     gradient_weight=mu if grad is not None else 0.0,
                      search_windows=None if windows is None else windows.as_dict())
 
 
