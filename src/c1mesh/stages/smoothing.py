@@ -271,13 +271,27 @@ def windows_at(nearest: np.ndarray, side: float) -> SearchWindows:
 
 def search_windows(xy: np.ndarray) -> SearchWindows:
     """The survey's SearchWindows from all its points xy (n, 2) (those of the height field,
-    fitted or not): the whole mesh for at most SEARCH_VERTICES points, else squares of
-    `window_side` centred on the points nearest the anchors of their bounding box."""
+    fitted or not): `windows_of_parts` with one part."""
     xy = np.asarray(xy, dtype=float)
-    if xy.shape[0] <= SEARCH_VERTICES:
+    return windows_of_parts(lambda: iter((xy,)), xy.shape[0])
+
+
+def windows_of_parts(parts, count: int) -> SearchWindows:
+    """The SearchWindows of a survey of `count` points given in parts: parts() a fresh
+    iterator of (m, 2) xy arrays (the in-memory fit's one, or a tiled survey's tiles).
+    The whole mesh for at most SEARCH_VERTICES points; else two reduces over the parts,
+    the bounding box and then each part's `nearest_to_anchors`, give squares of
+    `window_side` centred on the points nearest the box's anchors. Any split of the same
+    points gives the same windows."""
+    if count <= SEARCH_VERTICES:
         return SearchWindows()
-    lower, upper = xy.min(axis=0), xy.max(axis=0)
-    return windows_at(nearest_to_anchors(xy, window_anchors(lower, upper)), window_side(lower, upper, xy.shape[0]))
+    lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
+    for xy in parts():
+        if xy.shape[0]:
+            lower, upper = np.minimum(lower, xy.min(axis=0)), np.maximum(upper, xy.max(axis=0))
+    anchors = window_anchors(lower, upper)
+    nearest = reduce_nearest([nearest_to_anchors(xy, anchors) for xy in parts()])
+    return windows_at(nearest, window_side(lower, upper, count))
 
 
 @dataclass(frozen=True)
@@ -1042,4 +1056,4 @@ __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "Smoot
            "combined_fit", "HALO_LENGTHS",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
            "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors",
-           "nearest_to_anchors", "reduce_nearest", "window_side", "windows_at"]
+           "nearest_to_anchors", "reduce_nearest", "window_side", "windows_at", "windows_of_parts"]

@@ -29,10 +29,9 @@ import numpy as np
 
 from c1mesh.core.tile import VERTEX, Tile, compact, corner_rows, tile_rows
 from c1mesh.stages.limiter import TileLimits, tile_limits
-from c1mesh.stages.smoothing import (SEARCH_VERTICES, SearchWindows, SmoothingData, SmoothingRun,
-                                     StrengthSearch, TileSolve, combined_fit, nearest_to_anchors,
-                                     reduce_nearest, search_strength, smooth_tile, smoothing_reach,
-                                     window_anchors, window_side, windows_at)
+from c1mesh.stages.smoothing import (SearchWindows, SmoothingData, SmoothingRun, StrengthSearch,
+                                     TileSolve, combined_fit, search_strength, smooth_tile,
+                                     smoothing_reach, windows_of_parts)
 from c1mesh.stages.trim import triangles_among
 from c1mesh.survey.halos import HALO_EDGES, HaloCache, noise_floors
 from c1mesh.survey.tile_spill import save_array
@@ -224,25 +223,16 @@ class FittedHalos:
 
 
 def survey_windows(points) -> SearchWindows:
-    """The survey's SearchWindows (smoothing.search_windows) from its points' spill
-    (tile_spill.TileSpill: every height fitted): the whole survey for at most
-    SEARCH_VERTICES points, else the windows around the points nearest the anchors of
-    their bounding box, found by two reduces over the spill's tiles (the bounds, then
-    each tile's `nearest_to_anchors`), which give the in-memory fit's numbers."""
-    if int(points.counts.sum()) <= SEARCH_VERTICES:
-        return SearchWindows()
+    """The survey's SearchWindows (smoothing.windows_of_parts) from its points' spill
+    (tile_spill.TileSpill: every height fitted), its tiles the parts: the in-memory fit's
+    windows."""
     tiles = [t for t in range(len(points.grid)) if points.counts[t]]
-    lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
-    for t in tiles:
-        records = points.tile(t)
-        lower = np.minimum(lower, [records["x"].min(), records["y"].min()])
-        upper = np.maximum(upper, [records["x"].max(), records["y"].max()])
-    anchors = window_anchors(lower, upper)
-    summaries = []
-    for t in tiles:
-        records = points.tile(t)
-        summaries.append(nearest_to_anchors(np.column_stack([records["x"], records["y"]]), anchors))
-    return windows_at(reduce_nearest(summaries), window_side(lower, upper, int(points.counts.sum())))
+
+    def parts():
+        for t in tiles:
+            records = points.tile(t)
+            yield np.column_stack([records["x"], records["y"]])
+    return windows_of_parts(parts, int(points.counts.sum()))
 
 
 def window_tile(heights, triangle_files, windows: SearchWindows, longest_edge: float) -> Tile:
