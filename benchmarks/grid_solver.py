@@ -55,6 +55,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from c1mesh.stages.lattice_solver import OFFSETS, hermite_weights, stencil_matrix
+
 NOISE = 0.02
 TARGET_MM = 0.1
 """The accuracy asked for: max |f − f_CHOLMOD| in mm."""
@@ -131,9 +133,6 @@ def build_problem(side: float, spacing: float, strength: float, hole: bool, seed
 
 
 # ------------------------------------------------------------------------ prolongation
-OFFSETS = [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1)]
-"""The fine vertices a coarse vertex's data reach (the coarse vertex and the midpoints of
-its 6 coarse edges), as fine-grid offsets (di, dj)."""
 
 
 def prolongation_stencil(H: float, scheme=None) -> dict:
@@ -167,50 +166,23 @@ def prolongation_stencil(H: float, scheme=None) -> dict:
 
 
 def hermite_stencil(H: float) -> dict:
-    """The same stencil from the formula: on an edge p0 → p1 (e = p1 − p0, unit tangent t
-    and normal m) the spline is the cubic Hermite of the end values and tangential
-    derivatives, and its derivative along m is linear: at the midpoint
-    f = (f0 + f1)/2 + (g0 − g1)·e/8, ∂t f = (3/2)(f1 − f0)/|e| − (g0 + g1)·e/(4|e|),
-    ∂m f = (g0 + g1)·m/2."""
-    W = {(0, 0): np.eye(3)}
-    for (di, dj) in OFFSETS[1:]:
-        e = H * np.array([di, dj], float)
-        le = np.hypot(*e)
-        t = e / le
-        m = np.array([-t[1], t[0]])
-        w = np.zeros((3, 3))
-        # contribution of p0's data (f0, g0) only
-        w[0, 0] = 0.5
-        w[0, 1:] = e / 8
-        dt_f, dt_g = -1.5 / le, -e / (4 * le)           # ∂t f per f0, per g0
-        dm_g = m / 2
-        w[1:, 0] = t * dt_f
-        w[1:, 1:] = np.outer(t, dt_g) + np.outer(m, dm_g)
-        W[(di, dj)] = w
-    return W
+    """The same stencil from the formula (c1mesh.stages.lattice_solver.hermite_weights):
+    on an edge p0 → p1 the spline's value is the cubic Hermite of the end values and
+    tangential derivatives, and its derivative across the edge is linear."""
+    return hermite_weights(H, H)
 
 
 def prolongation(nxf: int, nyf: int, nxc: int, nyc: int, W: dict) -> sp.csr_matrix:
     """P (3 nxf nyf, 3 nxc nyc): fine vertex (2I + di, 2J + dj) gets W[(di, dj)] times coarse
-    vertex (I, J)'s data; fine vertices beyond the fine grid (a coarse grid of n/2 + 1
-    vertices over an even n) are dropped."""
-    J, I = np.meshgrid(np.arange(nyc), np.arange(nxc), indexing="ij")
-    I, J = I.ravel(), J.ravel()
-    rows, cols, vals = [], [], []
-    for (di, dj), w in W.items():
+    vertex (I, J)'s data, every coarse vertex kept (the study's full grids); fine vertices
+    beyond the fine grid (a coarse grid of n/2 + 1 vertices over an even n) are dropped.
+    The matrix is lattice_solver.stencil_matrix, the package's own."""
+    J, I = np.divmod(np.arange(nxc * nyc, dtype=np.int64), nxc)
+    hits = []
+    for di, dj in OFFSETS:
         fi, fj = 2 * I + di, 2 * J + dj
-        ok = (fi >= 0) & (fi < nxf) & (fj >= 0) & (fj < nyf)
-        fv, cv = (fj * nxf + fi)[ok], (J * nxc + I)[ok]
-        for p in range(3):
-            for q in range(3):
-                if w[p, q] != 0.0:
-                    rows.append(3 * fv + p)
-                    cols.append(3 * cv + q)
-                    vals.append(np.full(fv.size, w[p, q]))
-    P = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * nxf * nyf, 3 * nxc * nyc)).tocsr()
-    P.sum_duplicates()
-    return P
+        hits.append(np.where((fi >= 0) & (fi < nxf) & (fj >= 0) & (fj < nyf), fj * nxf + fi, -1))
+    return stencil_matrix(hits, np.arange(nxc * nyc, dtype=np.int64), W, nxf * nyf, nxc * nyc)
 
 
 # ------------------------------------------------------------------------ multigrid

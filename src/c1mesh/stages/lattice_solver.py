@@ -48,6 +48,7 @@ with DIRECT_BLAS_THREADS; the sweeps write disjoint vertices in fixed blocks.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -182,11 +183,19 @@ def prolongation(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
     coarse = np.flatnonzero(keep)
     column = np.full(nxc * nyc, -1, dtype=np.int64)
     column[coarse] = np.arange(coarse.size)
+    return stencil_matrix(hits, column, W, nodes.size, coarse.size), coarse, nxc, nyc
+
+
+def stencil_matrix(hits: list, column: np.ndarray, weights: dict, fine: int, coarse: int):
+    """P (3 fine, 3 coarse) CSR of a prolongation stencil: hits[k] (C,) the fine vertex at
+    OFFSETS[k] from each of C coarse grid nodes (−1: none), column (C,) each node's coarse
+    vertex (−1: dropped), weights {(di, dj): W (3, 3)} the fine datum per unit coarse datum
+    at each offset (hermite_weights; benchmarks.grid_solver measures others)."""
     rows, cols, vals = [], [], []
-    for (di, dj), fine in zip(OFFSETS, hits):
-        ok = (fine >= 0) & keep
-        fv, cv = fine[ok], column[ok]
-        w = W[(di, dj)]
+    for (di, dj), hit in zip(OFFSETS, hits):
+        ok = (hit >= 0) & (column >= 0)
+        fv, cv = hit[ok], column[ok]
+        w = weights[(di, dj)]
         for p in range(3):
             for q in range(3):
                 if w[p, q] != 0.0:
@@ -194,9 +203,9 @@ def prolongation(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
                     cols.append(3 * cv + q)
                     vals.append(np.full(fv.size, w[p, q]))
     P = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * nodes.size, 3 * coarse.size))
+                      shape=(3 * fine, 3 * coarse))
     P.sum_duplicates()
-    return P, coarse, nxc, nyc
+    return P
 
 
 # ------------------------------------------------------------------------ multigrid
@@ -275,8 +284,6 @@ class LatticeSolver:
     read when called). seconds: the set-up's wall time."""
 
     def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
-        import time
-
         t0 = time.perf_counter()
         if S.shape[0] != S.shape[1] or S.shape[0] % 3:
             raise SmoothingError(f"the system must be square with 3 unknowns per vertex, got {S.shape}")
@@ -405,5 +412,6 @@ def lattice_solve(S, rhs: np.ndarray, lattice: Lattice, step_tol: float, x0: np.
 
 
 __all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve", "prolongation", "hermite_weights",
+           "stencil_matrix", "OFFSETS",
            "colour_order",
            "COARSEST", "MAX_ITERATIONS"]
