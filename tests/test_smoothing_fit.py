@@ -64,11 +64,29 @@ def test_auto_smoothing_is_closer_to_the_terrain_than_the_exact_fit(probes):
     assert 0.04 < smooth.smoothing.residual_rms < 0.06      # the residuals are the noise
 
 
-def test_spacing_fits_a_thinned_vertex_set_to_all_points(probes):
+def test_spacing_fits_a_lattice_to_all_points(probes, monkeypatch):
+    """--spacing 2: the vertices are the nodes of the 2 x 2 lattice (multiples of 2 in the
+    frame's plane), its cells the 30 x 30 the 60 x 60 survey occupies and the support's
+    reach more on every side, each split into two triangles of area 2; the spline of all 6,000 points.
+    Solved by multigrid (MULTIGRID_FROM lowered to 0), the same heights as CHOLMOD's within
+    the multigrid's stopping step."""
+    from c1mesh.stages import lattice_mesh
     cloud = noisy_cloud(n=6000)
-    model = build_surface(cloud, FitOptions(axis="z", smooth="auto", spacing=2.0))
-    cells = (60 / 2.0) ** 2
-    assert 0.8 * cells <= model.used.size <= cells          # one vertex per occupied 2 x 2 cell
+    direct = build_surface(cloud, FitOptions(axis="z", smooth=1.0, spacing=2.0))
+    monkeypatch.setattr(lattice_mesh, "MULTIGRID_FROM", 0)
+    model = build_surface(cloud, FitOptions(axis="z", smooth=1.0, spacing=2.0))
+    assert (direct.smoothing.solver, model.smoothing.solver) == ("cholmod", "lattice-pcg")
+    np.testing.assert_array_equal(direct.interp.points, model.interp.points)
+    assert np.abs(direct.interp.values - model.interp.values).max() < 1e-3 * model.smoothing.residual_rms
+    points, triangles = model.interp.points, model.interp.triangles
+    np.testing.assert_array_equal(points / 2.0, np.round(points / 2.0))
+    side = 30 + 2 * lattice_mesh.support_reach(2.0, model.hf.spacing)
+    assert side ** 2 <= len(triangles) // 2 <= (side + 1) ** 2
+    corners = points[triangles]
+    a, b = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    area = (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]) / 2
+    np.testing.assert_allclose(area, 2.0, rtol=1e-12)         # counter-clockwise halves of 2 x 2 cells
+    assert model.smoothing.outside == 0
     assert held_out_rms(model, *probes) < 0.05               # below the 5 cm noise of the points
 
 

@@ -193,12 +193,12 @@ def test_tiles_report_a_search_that_reached_its_limit(tmp_path):
     assert interior_or_at_limit(SimpleNamespace(**report["smoothing"])) == "high limit"
 
 
-def test_thinned_vertices_in_tiles_are_the_whole_fits(tmp_path):
-    """--spacing beyond --memory (survey.thinning_runs): each tile thins the heights of its
-    cell grown by the spacing, so the vertices are the in-memory fit's, point for point
-    (9 tiles; thinning cells straddle the tiles' borders), and each tile fits every height
-    in its halo, so the surface is the whole fit's within the tiled solve's difference
-    (as test_tiled_smoothing_matches_the_whole_fit bounds it). The thinned vertices are no
+def test_lattice_vertices_in_tiles_are_the_whole_fits(tmp_path):
+    """--spacing beyond --memory (survey.lattice_runs): each tile decides the lattice cells
+    and nodes of its cell from the heights around it, so the vertices are the in-memory
+    fit's, node for node (9 tiles; cells straddle the tiles' borders), and each tile fits
+    every height in its halo, so the surface is the whole fit's within the tiled solve's
+    difference (as test_tiled_smoothing_matches_the_whole_fit bounds it). The nodes are no
     unused points: the warning counts the data the triangles cover, as in memory."""
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, seed=2)
@@ -208,21 +208,25 @@ def test_thinned_vertices_in_tiles_are_the_whole_fits(tmp_path):
     assert report["tiles"] == 9
     vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
     assert len(vertices) == len(whole) == whole_report["points"]["kept"] == report["points"]["kept"]
-    assert len(whole) < 12000 / 3                  # thinned: about one point in four at 0.5 spacing
+    assert len(whole) < 12000 / 3                  # about one node per four points at 0.5 spacing
     difference = np.abs(vertices[:, 2] - _heights_at(whole, vertices))     # the same positions
     rms = whole_report["smoothing"]["residual_rms"]
     assert difference.max() < 0.01 * rms
     assert report["smoothing"]["lam"] == pytest.approx(whole_report["smoothing"]["lam"], rel=1e-12)
-    # the data points outside the trimmed triangles (the rim), each counted by the tile holding it
-    assert report["smoothing"]["outside"] == whole_report["smoothing"]["outside"] > 0
+    # the lattice reaches the support's reach beyond the data: none is outside
+    assert report["smoothing"]["outside"] == whole_report["smoothing"]["outside"] == 0
+    assert report["smoothing"]["residual_rms"] == pytest.approx(rms, rel=1e-3)      # over the data points
     assert report["warnings"] == whole_report["warnings"] == []
 
 
-def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path):
+@pytest.mark.parametrize("spacing", [None, 1.0])
+def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path, spacing):
+    """The tiled smoothing fit on Dask writes the bytes the local processes write: vertices
+    at the points, and on the --spacing lattice (survey.lattice_runs)."""
     distributed = pytest.importorskip("distributed")
     source = tmp_path / "terrain.las"
     _terrain_las(source, 4000, seed=3)
-    options = FitOptions(classes=[2], level=2, smooth=10.0)
+    options = FitOptions(classes=[2], level=2, smooth=10.0, spacing=spacing)
     here = fit(source, tmp_path / "here.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450)).report
     assert here["tiles"] == 9
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
@@ -232,9 +236,12 @@ def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path):
     assert dask["smoothing"] == {**here["smoothing"], "seconds": dask["smoothing"]["seconds"]}
 
 
-def test_seamless_tiles_of_a_smoothing_fit_join_into_its_whole_mesh(tmp_path):
+@pytest.mark.parametrize("spacing", [[], ["--spacing", "1"]])
+def test_seamless_tiles_of_a_smoothing_fit_join_into_its_whole_mesh(tmp_path, spacing):
     """`--seamless -O` with --smooth: each input's part is cut from the one fitted surface,
-    so the parts' vertices are the whole survey fit's, bit for bit."""
+    so the parts' vertices are the whole survey fit's, bit for bit; with --spacing (lattice
+    nodes, each owned by the input of its nearest point) too, and beyond --memory each
+    input gets the same triangles (as many faces) as in memory."""
     sources = [tmp_path / f"part{i}.las" for i in range(2)]
     for i, source in enumerate(sources):
         _terrain_las(source, 3000, seed=10 + i)
@@ -242,7 +249,7 @@ def test_seamless_tiles_of_a_smoothing_fit_join_into_its_whole_mesh(tmp_path):
         points = reader.read()
     points.x = points.x + np.sqrt(3000 / 4.0)
     points.write(str(sources[1]))
-    args = ["fit", *map(str, sources), "--seamless", "--classes", "2", "--level", "2", "--smooth", "5"]
+    args = ["fit", *map(str, sources), "--seamless", "--classes", "2", "--level", "2", "--smooth", "5", *spacing]
     whole = CliRunner().invoke(main, args + ["-o", str(tmp_path / "whole.ply")])
     assert whole.exit_code == 0, whole.output
     parts = CliRunner().invoke(main, args + ["-O", str(tmp_path / "out"), "--report", str(tmp_path / "r.json")])
@@ -254,6 +261,16 @@ def test_seamless_tiles_of_a_smoothing_fit_join_into_its_whole_mesh(tmp_path):
         part_rows |= {row.tobytes() for row in
                       trimesh.load(tmp_path / "out" / (source.stem + ".c1.ply"), process=False).vertices}
     assert part_rows == whole_rows
+    if spacing:
+        (tmp_path / "tiled").mkdir()
+        outputs = [tmp_path / "tiled" / (source.stem + ".c1.ply") for source in sources]
+        options = FitOptions(classes=[2], level=2, smooth=5.0, spacing=1.0, memory=10**9)
+        report = fit([str(s) for s in sources], None, options, outputs=outputs, tiles=TiledRun(per_tile=1500)).report
+        assert report["tiles"] > 1
+        for source in sources:
+            name = source.stem + ".c1.ply"
+            faces = [len(trimesh.load(tmp_path / d / name, process=False).faces) for d in ("out", "tiled")]
+            assert faces[0] == faces[1] > 0
 
 
 def test_the_smoothing_fit_has_the_same_bits_on_one_blas_thread_and_on_two():

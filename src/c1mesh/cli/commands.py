@@ -90,8 +90,8 @@ def main() -> None:
                    "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
 @click.option("--smooth", default="off", show_default=True, metavar="off|auto|S", help=SMOOTH_HELP)
 @click.option("--spacing", type=float, default=None,
-              help="With --smooth: one vertex per D x D cell (D in the scan's units), fitted to all "
-                   "points, for a smaller mesh or DEM.  [default: a vertex at every point]")
+              help="With --smooth: the vertices on a D x D lattice (D in the scan's units) over the "
+                   "points, fitted to all of them; solved by multigrid.  [default: a vertex at every point]")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=parse_memory_option, help=MEMORY_HELP)
 @click.option("--bounds", callback=parse_bounds_option, metavar="XMIN,YMIN,XMAX,YMAX",

@@ -57,7 +57,7 @@ class SurfaceSettings:
     shape-function tuple's name (engine.schemes); level: each triangle becomes level²
     triangles (None: chosen by the fit); overshoot: "limit" | "off" (stages.limiter);
     strength: the smoothing strength (`Strength`); spacing: None (vertices at the points)
-    or a length D, one vertex per D x D cell of a smoothing fit (stages.thinning)."""
+    or a length D, the vertices of a smoothing fit on a D x D lattice (stages.lattice_mesh)."""
 
     max_edge: object = "auto"
     scheme: str = "sextic"

@@ -107,7 +107,7 @@ from c1mesh.survey.sizing import TILE_SHARE, grid_side, point_bytes, points_per_
 from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
-from c1mesh.survey.thinning_runs import thinned_spill
+from c1mesh.survey.lattice_runs import LATTICE_MARGIN, lattice_tiles
 from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
@@ -144,7 +144,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     tiles done, tiles) is called as each tile's task of a pass finishes (progress).
     A smoothing strength runs the smoothing fit (c1mesh.survey.smoothing_runs,
     which then replaces the limiter but for edge directions; with --spacing its vertices
-    thinned, c1mesh.survey.thinning_runs, and every height fitted).
+    on a lattice, c1mesh.survey.lattice_runs, and every height fitted).
     """
     level_from = "default" if plan.surface.level is None else "option"
     plan = with_plane_level(plan)
@@ -195,6 +195,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         frame = frame_of_chunks(chunks, axis)
         colours.finish()
         count, box, positions = _plane_box(chunks, frame)
+        if surface.spacing is not None:            # every lattice node inside the tiles' box
+            box = _grown_box(box, LATTICE_MARGIN * surface.spacing)
         _check_contour_grid(plan, box, name)
         if gradient_source == "heights":          # as the in-memory fit's height gradients say it
             check_positions(count, positions)
@@ -216,24 +218,30 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         merged = height_pass.usable - int(heights.counts.sum())      # exact duplicates, one record kept
         try:
             spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
-            data = None
-            if surface.spacing is not None:    # --spacing: the smoothing's vertices thinned, every height fitted
-                data, heights = heights, stack.enter_context(
-                    contextlib.closing(thinned_spill(heights, surface.spacing, directory, temps.stem)))
+            data = lattice = None
+            if surface.spacing is not None:    # --spacing: the smoothing's vertices on a lattice, every height fitted
+                lattice = lattice_tiles(heights, surface.spacing, spacing, temps, temps.stem)
+                data, heights = heights, stack.enter_context(contextlib.closing(lattice.nodes))
             done("normals")
-            max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(
-                heights, grid, surface.max_edge, temps, runner, rows, most=TILE_SHARE * points_per_tile(memory))
-            long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files)
+            if lattice is None:
+                max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(
+                    heights, grid, surface.max_edge, temps, runner, rows, most=TILE_SHARE * points_per_tile(memory))
+            else:                              # the lattice's cells: no Delaunay, no trim
+                max_edge, triangle_files, buffers = None, lattice.files, lattice.buffers
+                delaunay_count = lattice.triangles
+            long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             done("triangulate")
-            longest = max_edge if max_edge is not None else longest_final_edge(heights, triangle_files,
-                                                                                grid, buffers)
+            longest = max_edge if max_edge is not None else (
+                math.sqrt(2.0) * surface.spacing if lattice is not None
+                else longest_final_edge(heights, triangle_files, grid, buffers))
             halos = HaloCache(heights, triangle_files, grid, halo_reach(longest), temps)
             halos.prefetch(runner, rows.name, lambda t, row: rows.add(t, "halo", row))
             fitted = (2,) if filtered else select.classes        # the filter's ground counts as class 2
             fill = None                    # a DEM's fill: the whole triangulation, copied before the trim
-            if plan.dem is not None and plan.dem.fill is not None:
+            if plan.dem is not None and plan.dem.fill is not None and lattice is None:
                 fill = TiledFill.prepare(halos, max_edge, memory, name, temps)
-            removed, kept = trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
+            removed, kept = ({}, None) if lattice is not None else \
+                trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             check_triangles_left(kept_triangles)
             trimmed_mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
@@ -253,8 +261,11 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             mesh = trimmed_mesh if filled is None else replace(trimmed_mesh, files=filled.files, far=filled.far)
             limiter = None
             if strength is not None:       # fitted over the trimmed triangles; a fill spans the holes
-                fit = TiledSmoothing(SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
-                                                  gradient_data_weight("estimated", gradient_source)), longest, data)
+                run_ = SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
+                                    gradient_data_weight("estimated", gradient_source))
+                if lattice is not None:        # unit normal directions, no gradient data: as in memory
+                    run_ = replace(run_, overshoot="off", gradient_weight=0.0)
+                fit = TiledSmoothing(run_, longest, data)
                 limiter = TiledSmoother(trimmed_mesh, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
                 if filled is not None:
@@ -488,6 +499,11 @@ def _check_plan(plan: FitPlan) -> None:
     check_mode(plan.surface.overshoot)
     if plan.heights.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
+
+
+def _grown_box(box: tuple, by: float) -> tuple[float, float, float, float]:
+    """box (x0, y0, x1, y1) grown by `by` on every side."""
+    return (box[0] - by, box[1] - by, box[2] + by, box[3] + by)
 
 
 def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float], int]:

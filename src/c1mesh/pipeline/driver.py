@@ -28,6 +28,7 @@ from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
 from c1mesh.engine.schemes import get_scheme
+from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.formats import MeshSize, check_mesh_size, read_cloud
 from c1mesh.formats.depth import DepthCamera, is_depth_image, read_depth_source
@@ -78,8 +79,8 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
                                      search_windows)
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.thinning import thin_to_cells
-from c1mesh.stages.trim import check_triangles_left, trim_again, trim_mesh, used_points
+from c1mesh.stages.lattice_mesh import lattice_mesh
+from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
 
@@ -165,7 +166,7 @@ class FitOptions:
     # the smoothing fit (c1mesh.stages.smoothing, docs/smoothing.md): smooth "off" (the
     # spline through every point), "auto" (strength by cross-validation over spatial
     # blocks) or a dimensionless strength s > 0; spacing: None (vertices at the points) or
-    # a length D, one vertex per D x D cell (c1mesh.stages.thinning), fitted to all points.
+    # a length D, the vertices on a D x D lattice (c1mesh.stages.lattice_mesh), fitted to all points.
     smooth: Any = "off"
     spacing: float | None = None
 
@@ -273,7 +274,9 @@ class SurfaceModel:
     triangles index those n points); overshoot: the limiter's report (c1mesh.stages.limiter);
     gradient_source: "heights" (c1mesh.stages.height_gradients) or "normals".
     smoothing: the c1mesh.stages.smoothing.SmoothFit of a smoothing fit, else None;
-    thinned: its vertices are a --spacing thinning, fitted to all of hf's points.
+    on_lattice: its vertices are the nodes of the --spacing lattice, fitted to all of hf's
+    points (stages.lattice_mesh); `used` then holds the point nearest each node (not
+    ascending, not distinct) and trim_report counts the lattice's triangles.
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
     trimmed: for a fit built with fill=True (a DEM that spans its holes), (T,) bool over
@@ -291,7 +294,7 @@ class SurfaceModel:
     gradient_source: str = "normals"
     max_slope_not_applied: str | None = None
     smoothing: Any = None
-    thinned: bool = False
+    on_lattice: bool = False
     trimmed: np.ndarray | None = None
 
 
@@ -425,10 +428,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             if not heights_first and use_height_gradients(options.gradients, normal_source):
                 hf.gradients = height_gradients(hf.xy, hf.z, k=height_neighbours(options.k))
                 gradient_source = "heights"
+        if options.spacing is not None:       # the smoothing's vertices on a lattice (stages.lattice_mesh)
+            stages.close()
+            return _lattice_model(hf, strength, options, (check_triangulation, fill), timer,
+                                  (normal_source, frame, gradient_source, max_slope_not_applied))
         with timer.stage("triangulate"):
-            vertices = None if options.spacing is None else thin_to_cells(hf.xy, options.spacing)
-            xy, z, grads = (hf.xy, hf.z, hf.gradients) if vertices is None else \
-                (hf.xy[vertices], hf.z[vertices], hf.gradients[vertices])
+            xy, z, grads = hf.xy, hf.z, hf.gradients
             guessed = None if guess is None else guess()
             triangles = guessed[1] if guessed is not None and np.array_equal(guessed[0], xy) else delaunay(xy)
             guess = guessed = None
@@ -442,7 +447,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             if fill:
                 mesh, trimmed = filled_mesh(xy, z, grads, mesh, trim_report.max_edge, curtains=not plan_heights)
             local, triangles = compact_vertices(xy, mesh.triangles)
-            used = local if vertices is None else vertices[local]   # ascending, as compact_vertices numbers
+            used = local                      # ascending, as compact_vertices numbers
     smoothing = None
     with timer.stage("interpolate"):
         table, mesh = mesh.edge_table(local), None      # the trim's edge sort serves the interpolator
@@ -455,10 +460,42 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                                                      table=table)
         else:
             interp, overshoot, smoothing = _smoothed(
-                _FitMesh(hf, vertices, used, triangles, table), _HoleSpan(trim_only, trimmed) if fill else None,
+                _FitMesh(hf, used, triangles, table), _HoleSpan(trim_only, trimmed) if fill else None,
                 strength, options, gradient_data_weight(normal_source, gradient_source), not plan_heights)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing, vertices is not None, trimmed)
+                        max_slope_not_applied, smoothing, False, trimmed)
+
+
+def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "StageTimer",
+                   facts: tuple) -> SurfaceModel:
+    """The SurfaceModel of a smoothing fit on the lattice of --spacing (stages.lattice_mesh):
+    every point of the height field hf fitted, the spline's vertices the lattice's nodes,
+    solved by multigrid from MULTIGRID_FROM nodes (smooth_fit with the lattice). No
+    Delaunay and no trim: the mesh is the lattice's cells near the data. Its `used` are the
+    points nearest the nodes (their colours, and their inputs' ownership); no gradient data
+    (the nodes are no points), unit normal edge directions (the cells are all one shape).
+    checks: build_surface's check_triangulation and fill; a DEM's fill spans no triangle
+    (the lattice closes gaps of a few cells and leaves larger holes open)."""
+    normal_source, frame, gradient_source, max_slope_not_applied = facts
+    check_triangulation, fill = checks
+    with timer.stage("triangulate"):
+        mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing)
+        check_triangles_left(mesh.triangles.shape[0])
+        count = mesh.points.shape[0]
+        table = edge_table(mesh.triangles, count)
+        if check_triangulation is not None:
+            check_triangulation(mesh.points, mesh.triangles, table)
+    report = TrimReport(mesh.triangles.shape[0], mesh.triangles.shape[0])
+    scheme = get_scheme(options.scheme)
+    windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
+    run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, "off", 0.0)
+    with timer.stage("interpolate"):
+        tile = Tile.whole(mesh.points, np.zeros(count), np.zeros((count, 2)), mesh.triangles)
+        interp, overshoot, smoothing = smoothed_interpolator(tile, run, SmoothingData(hf.z, hf.spacing, hf.xy),
+                                                             table, lattice=mesh.solver_lattice())
+    trimmed = np.ones(mesh.triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
+    return SurfaceModel(normal_source, frame, hf, report, mesh.sources, interp, overshoot, gradient_source,
+                        max_slope_not_applied, smoothing, True, trimmed)
 
 
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
@@ -482,12 +519,11 @@ def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
 
 @dataclass(frozen=True)
 class _FitMesh:
-    """What the interpolation stage fits: the height field hf, the --spacing thinning
-    (vertices, indices into hf; None: every point), the used (n,) ascending indices into hf
-    of the triangulation's points, its triangles (T, 3) over them and their edge table."""
+    """What the interpolation stage fits: the height field hf, the used (n,) ascending
+    indices into hf of the triangulation's points, its triangles (T, 3) over them and their
+    edge table."""
 
     hf: Any
-    vertices: np.ndarray | None
     used: np.ndarray
     triangles: np.ndarray
     table: Any
@@ -516,18 +552,14 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, options.overshoot, weight)
-    # the heights fitted: the tile's vertices', or with --spacing every point's
-    data = None if mesh.vertices is None else SmoothingData(hf.z, hf.spacing, hf.xy)
 
     def tile(vertices, triangles):          # the in-memory fit's one tile (core.tile)
         return Tile.whole(hf.xy[vertices], hf.z[vertices], hf.gradients[vertices], triangles)
     if span is None:
-        return smoothed_interpolator(tile(used, mesh.triangles), run, data, mesh.table)
-    points = hf.xy if mesh.vertices is None else hf.xy[mesh.vertices]
-    local, inner = compact_vertices(points, span.trim_only.triangles)
-    inner_used = local if mesh.vertices is None else mesh.vertices[local]
-    fitted, overshoot, smoothing = smoothed_interpolator(tile(inner_used, inner), run, data,
-                                                         span.trim_only.edge_table(local))
+        return smoothed_interpolator(tile(used, mesh.triangles), run, None, mesh.table)
+    inner_used, inner = compact_vertices(hf.xy, span.trim_only.triangles)
+    fitted, overshoot, smoothing = smoothed_interpolator(tile(inner_used, inner), run, None,
+                                                         span.trim_only.edge_table(inner_used))
     at = np.searchsorted(used, inner_used)              # the trimmed mesh's vertices are the filled one's
     values, gradients = hf.z[used].copy(), hf.gradients[used].copy()
     values[at], gradients[at] = fitted.values, fitted.gradients
@@ -704,9 +736,9 @@ def dem_windows(grid, survey, model: SurfaceModel) -> list:
 
 def fit_points(model: SurfaceModel) -> np.ndarray:
     """(k, 2) the points the fit used, in the frame's plane: the spline's vertices (the
-    points it interpolates), or the data of a smoothing fit thinned by --spacing (its
+    points it interpolates), or the data of a smoothing fit on the --spacing lattice (its
     vertices are no points). The support layer measures distances to these."""
-    return model.hf.xy if model.thinned else model.hf.xy[model.used]
+    return model.hf.xy if model.on_lattice else model.hf.xy[model.used]
 
 
 def fill_facts(option, distance: float | None, model: SurfaceModel) -> dict:
@@ -808,7 +840,7 @@ def points_on_surface(model: SurfaceModel) -> int:
     triangles cover (the data of the fit), for the unused-points warning. A DEM's fill
     (model.trimmed) counts the trimmed triangles' vertices: the warning is about the trim,
     and says the same for the mesh and the DEM of one fit."""
-    if model.thinned:
+    if model.on_lattice:
         return int(model.hf.xy.shape[0] - model.smoothing.outside)
     if model.trimmed is not None:
         return used_points(model.interp.triangles, model.trimmed, model.interp.points.shape[0])
@@ -825,7 +857,7 @@ def _report(run: FitRun, model: SurfaceModel, mesh=None, frame_report: dict | No
     points = {"read": len(run.cloud), "kept": int(used.size), "spacing": float(hf.spacing)}
     if mesh is not None:
         dropped = dict(hf.dropped)
-        dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - used.size)
+        dropped["unreferenced_after_trim"] = int(hf.xy.shape[0] - points_on_surface(model))
         points = {"read": len(run.cloud), "dropped": dropped, "kept": int(used.size),
                   "normals_flipped": int(hf.flipped), "stacked": int(hf.stacked), "spacing": float(hf.spacing)}
     report = ReportCore(

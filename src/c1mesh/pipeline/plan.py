@@ -27,7 +27,7 @@ from c1mesh.geo.products import MAX_LEVEL
 from c1mesh.geo.raster import fill_distance, is_raster_path
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, parse_strength
-from c1mesh.stages.thinning import check_spacing
+from c1mesh.stages.lattice_mesh import check_spacing
 
 
 def smoothing_strength(options) -> Strength:

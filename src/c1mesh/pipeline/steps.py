@@ -102,7 +102,7 @@ def limited_interpolator(points, values, gradients, triangles, scheme, overshoot
 
 
 def smoothed_interpolator(tile: Tile, run: SmoothingRun, data: SmoothingData | None = None,
-                          table=None) -> tuple[RSDInterpolator, Any, Any]:
+                          table=None, lattice=None) -> tuple[RSDInterpolator, Any, Any]:
     """The RSDInterpolator of the smoothing fit of a height field, its limiter report and
     the SmoothFit: the smoothing stage's run (c1mesh.stages.smoothing.smooth_tile) on the
     in-memory fit's one tile, as a survey fitted in tiles runs it on each of its tiles.
@@ -113,10 +113,11 @@ def smoothed_interpolator(tile: Tile, run: SmoothingRun, data: SmoothingData | N
     and the weight of the vertices' gradients as data, smoothing.gradient_data_weight);
     data: None, the vertices' heights, else what the in-memory fit alone may fit
     (--spacing: every point's height at its position). table: the triangles'
-    topology.edge_table when built already (the trim's), else built here.
+    topology.edge_table when built already (the trim's), else built here. lattice: where the
+    vertices are lattice nodes (stages.lattice_solver.Lattice: solved by multigrid), else None.
     """
     table = edge_table(tile.triangles, len(tile.records)) if table is None else table
-    smoothed = smooth_tile(tile, run, table=table, data=data)
+    smoothed = smooth_tile(tile, run, table=table, data=data, lattice=lattice)
     interp = RSDInterpolator(tile.points, smoothed.values, smoothed.gradients, triangles=tile.triangles,
                              scheme=run.control.scheme, directions=smoothed.directions, edge_table=table)
     return interp, LimiterReport(directions_changed=smoothed.solve.turned), smoothed.fit

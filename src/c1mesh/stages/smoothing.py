@@ -327,7 +327,9 @@ class SmoothFit:
     tr(H) (Hutchinson estimate). residual_rms, residual_max: of z − F at the data points
     with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
     outside: data points outside the triangulation (ignored). gradient_weight: the
-    weight the gradient data had (0: none).
+    weight the gradient data had (0: none). own_residuals: with data at points marked own
+    (SmoothingData.own), (count, sum of squares, largest) of those points' residuals, for
+    a tile's TileSolve; else None.
     """
 
     values: np.ndarray
@@ -343,13 +345,14 @@ class SmoothFit:
     seconds: dict = field(default_factory=dict)
     outside: int = 0
     gradient_weight: float = 0.0
+    own_residuals: tuple | None = None
     search_windows: dict | None = None
     """Where "auto" searched (SearchWindows.as_dict); None when s was given."""
 
     def as_dict(self) -> dict:
         """JSON-ready summary for the fit report (no per-vertex arrays)."""
         out = asdict(self)
-        del out["values"], out["gradients"]
+        del out["values"], out["gradients"], out["own_residuals"]
         out["cv_curve"] = [[float(s), float(r)] for s, r in self.cv_curve]
         out["seconds"] = {k: round(float(v), 4) for k, v in self.seconds.items()}
         for key in ("strength", "lam", "residual_rms", "residual_max"):
@@ -533,7 +536,7 @@ def weighted_plane(xy: np.ndarray, z: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl = SmoothingControl(), *,
                directions=None, prior: GradientPrior | None = None,
-               lattice: Lattice | None = None) -> SmoothFit:
+               lattice: Lattice | None = None, search_only: bool = False) -> SmoothFit:
     """Fit vertex values and gradients of the RSD spline to data (module doc).
 
     points (N, 2) vertices, triangles (T, 3). data: the SmoothingData (values, where,
@@ -550,6 +553,10 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     order). The strength search keeps its direct solves on small windows. edf is then
     Hutchinson's estimate with the probes solved by the same CG (LATTICE_EDF_STEP).
     solver: "lattice-pcg"; seconds: "lattice_setup" (the hierarchy) apart from "solve".
+
+    search_only (with strength "auto"): return once the search has chosen s, with no values,
+    gradients or edf (a survey's search tile: its fit at s is thrown away, and its ring of
+    lattice nodes beyond the windows may hold pieces too poor in data to solve).
     """
     pts, tri, z, xy, w, h = _check_inputs(points, triangles, data)
     vertex_data = data.xy is None
@@ -584,7 +591,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         shapes = None if grid is None or directions is not None else lattice_shapes(grid, tri)
         dirs = _directions(npts, tri, directions) if shapes is None else _shared_directions(npts, tri, shapes)
         nxy = (xy - centre) / h
-        data_tri = data_lam = None
+        data_tri = data_lam = own_inside = None
         outside = 0
         if not vertex_data:
             if shapes is None:
@@ -594,6 +601,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                 data_tri, data_lam = lattice_locate(grid, npts, tri, nxy)
             inside = data_tri >= 0
             outside = int((~inside).sum() if data.own is None else (~inside[data.own]).sum())
+            own_inside = None if data.own is None else np.asarray(data.own, dtype=bool)[inside]
             data_tri, data_lam = data_tri[inside], data_lam[inside]
             nxy, z, w, trend = nxy[inside], z[inside], w[inside], trend[inside]
         zn, wn = (z - trend) / Z, w / w_mean
@@ -614,6 +622,12 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                                              None if windows.whole else windows.holding(pts))
         else:
             s = float(strength)
+        if search_only:
+            return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), strength=s, lam=s * h * h * w_mean,
+                             cv_curve=[(tried, score * Z) for tried, score in curve], search_limit_reached=at_limit,
+                             solver=method, seconds=seconds, outside=outside,
+                             gradient_weight=mu if grad is not None else 0.0,
+                             search_windows=None if windows is None else windows.as_dict())
         if grid is None:
             with timed(seconds, "solve"):
                 u, factor = solve(system, s, solved.w, mu, method, keep_energy=False)     # the last matrix
@@ -627,7 +641,12 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
         with timed(seconds, "edf"):
             edf = hat_trace(system, factor, solved.w, EDF_PROBES, seed)
-    residual = (solved.z - system.fitted(u))[solved.w > 0] * Z     # in solved's numbering
+    residual = (solved.z - system.fitted(u)) * Z     # in solved's numbering (data points: theirs)
+    own_residuals = None
+    if not vertex_data and own_inside is not None:
+        mine = residual[own_inside & (solved.w > 0)]
+        own_residuals = (int(mine.size), float(np.sum(mine ** 2)), float(np.abs(mine).max()) if mine.size else 0.0)
+    residual = residual[solved.w > 0]
     if order is not None:
         u = _in_input_order(u, order)
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
@@ -639,7 +658,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
                      solver=method if grid is None else "lattice-pcg", seconds=seconds, outside=outside,
                      gradient_weight=mu if grad is not None else 0.0,
-                     search_windows=None if windows is None else windows.as_dict())
+                     search_windows=None if windows is None else windows.as_dict(), own_residuals=own_residuals)
 
 
 def _lattice_of(lattice: Lattice, pts: np.ndarray, npts: np.ndarray, centre: np.ndarray, h: float) -> Lattice:
@@ -877,6 +896,20 @@ On a 12,000-point terrain with 2 cm noise in 9 tiles, the largest height differe
 the one-tile fit, relative to the residual RMS, was 1.6e-2 at 20 lengths and 5.7e-3 at 24
 for s = 10, 7.3e-4 at 24 for s = 100, and below 1.4e-4 at 32 for both (docs/smoothing.md,
 "In tiles")."""
+LATTICE_HALO_LENGTHS = 112.0
+LATTICE_HALO_SPACINGS = 64.0
+"""The halo with the vertices on a lattice (--spacing, stages.lattice_mesh): the larger of
+LATTICE_HALO_LENGTHS smoothing lengths and LATTICE_HALO_SPACINGS point spacings h. Its
+nodes carry no data, and where the data are sparse a node's value reaches further than
+HALO_LENGTHS, the more so the smaller s. autzen_trim ground in 4 tiles, the largest height
+difference from the in-memory fit (residual RMS in brackets):
+- --spacing 3 --smooth 0.01 (0.034 ft): 0.64 ft at 28 lengths (17 ft), 0.012 at 56, 4.2e-4
+  at 84, 1.4e-5 at 112 (69 ft = 35 h) and 1.2e-5 at 140 (the in-memory multigrid's own
+  tolerance: 1.3e-5 from CHOLMOD);
+- --spacing 2 --smooth auto, s = 0.0022 (0.0136 ft): 6.7e-3 ft at 112 lengths (47 ft =
+  24 h), 4.5e-5 at 52 h, 5.5e-6 at 64 h (125 ft), 3.0e-7 at 104 h."""
+
+
 
 
 def smoothing_reach(strength: float, spacing: float, lengths: float | None = None) -> float:
@@ -910,7 +943,7 @@ class TileSolve:
     """What one tile's solve reports: its own vertices, the sum of squares and the largest
     of their residuals (height units), its vertex count with its halo and their effective
     degrees of freedom (Hutchinson), its own edges (lower end own) whose direction is not
-    the unit normal, and its own data points outside the triangles (with thinned
+    the unit normal, and its own data points outside the triangles (with lattice
     vertices: SmoothingData.own; else 0)."""
 
     own: int
@@ -920,6 +953,13 @@ class TileSolve:
     edf: float | None
     turned: int
     outside: int = 0
+    residuals: int | None = None
+    """How many residuals squares and largest are over: the own data points inside the
+    triangles with --spacing (the vertices are lattice nodes), else None (the own vertices)."""
+
+    @property
+    def residual_count(self) -> int:
+        return self.own if self.residuals is None else self.residuals
 
 
 @dataclass
@@ -951,7 +991,7 @@ class StrengthSearch:
 
 
 def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, table=None,
-                data: SmoothingData | None = None) -> SmoothedTile:
+                data: SmoothingData | None = None, lattice: Lattice | None = None) -> SmoothedTile:
     """The smoothing stage's run on one tile: smooth_fit of its vertices and final
     triangles with run's strength, spacing and scheme, its vertex gradients as data with
     run.gradient_weight, and the edge directions run.overshoot asks for.
@@ -970,10 +1010,12 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     search runs on and the only tile run.
 
     data: None, the tile's heights at its vertices with run.spacing. With --spacing
-    (stages.thinning: the vertices thinned) every point's height at its position: the
+    (stages.lattice_mesh: the vertices on a lattice) every point's height at its position: the
     whole survey's in memory, a tile's those of the heights in its halo
     (survey.smoothing_runs); points outside the triangles are then ignored and counted in
-    SmoothFit.outside, and the tile's heights serve only its TileSolve's residuals."""
+    SmoothFit.outside, and the tile's heights serve only its TileSolve's residuals.
+    lattice: where the tile's vertices are lattice nodes (--spacing, stages.lattice_mesh),
+    their Lattice, for smooth_fit's multigrid solve; None: any mesh."""
     if not len(tile.triangles):              # nothing to fit: no triangle uses its vertices
         return SmoothedTile(tile.values[tile.own], tile.gradients[tile.own],
                             None if run.overshoot == "off" else np.empty((0, 2)),
@@ -983,7 +1025,7 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
         table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
     elif owned is not None:
         raise ValueError("smooth_tile numbers the edges itself when given the own triangles")
-    fit, directions, changed = _fit_tile(tile, run, table, data)
+    fit, directions, changed = _fit_tile(tile, run, table, data, lattice)
     own = tile.own
     every = bool(own.all())
     values, gradients = (fit.values, fit.gradients) if every else (fit.values[own], fit.gradients[own])
@@ -992,10 +1034,14 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
         if owned is not None:
             directions = directions[own_triangles_in(tile, table, other, owned)[2]]
         turned = int(changed[own[table.edges[:, 0]]].sum())
-    residual = tile.records["z"][own] - values
-    solve = TileSolve(own=int(own.sum()), squares=float(np.sum(residual ** 2)),
-                      largest=float(np.abs(residual).max()) if residual.size else 0.0,
-                      halo_vertices=len(tile.records), edf=fit.edf, turned=turned, outside=fit.outside)
+    if fit.own_residuals is None:
+        residual = tile.records["z"][own] - values
+        count, squares = None, float(np.sum(residual ** 2))
+        largest = float(np.abs(residual).max()) if residual.size else 0.0
+    else:                                   # the data's own points: the nodes have no heights
+        count, squares, largest = fit.own_residuals
+    solve = TileSolve(own=int(own.sum()), squares=squares, largest=largest, halo_vertices=len(tile.records),
+                      edf=fit.edf, turned=turned, outside=fit.outside, residuals=count)
     return SmoothedTile(values, gradients, directions, solve, fit)
 
 
@@ -1006,19 +1052,21 @@ def search_strength(tile: Tile, run: SmoothingRun, data: SmoothingData | None = 
     tile. The in-memory fit's one tile runs it inside `smooth_tile`, on the same windows.
     data: as smooth_tile's (None: the tile's heights at its vertices)."""
     auto = replace(run, control=replace(run.control, strength="auto"))
-    fit = _fit_tile(tile, auto, edge_table(tile.triangles, len(tile.records)), data)[0]
+    fit = _fit_tile(tile, auto, edge_table(tile.triangles, len(tile.records)), data, search_only=True)[0]
     return StrengthSearch(fit.strength, fit.cv_curve, fit.search_limit_reached, fit.solver, fit.seconds,
                           fit.search_windows)
 
 
-def _fit_tile(tile: Tile, run: SmoothingRun, table, data: SmoothingData | None):
+def _fit_tile(tile: Tile, run: SmoothingRun, table, data: SmoothingData | None, lattice: Lattice | None = None,
+              search_only: bool = False):
     """(SmoothFit of every vertex of tile, directions (E, 2) in table's order or None,
     changed (E,) bool or None): smooth_tile's fit."""
     points = tile.points
     directions, changed = (None, None) if run.overshoot == "off" else edge_directions(points, tile.triangles, table)
     prior = GradientPrior(tile.gradients, run.gradient_weight) if run.gradient_weight else None
     data = SmoothingData(tile.values, run.spacing) if data is None else data
-    fit = smooth_fit(points, tile.triangles, data, run.control, directions=directions, prior=prior)
+    fit = smooth_fit(points, tile.triangles, data, run.control, directions=directions, prior=prior, lattice=lattice,
+                     search_only=search_only)
     return fit, directions, changed
 
 
@@ -1027,7 +1075,7 @@ def solve_totals(solves: list[TileSolve]) -> tuple[int, float, float | None]:
     in any order of the list: the float sums are math.fsum's, exactly rounded. edf sums each
     halo's estimate scaled by its share of own vertices (None: no solve had one)."""
     edfs = [s.edf * s.own / s.halo_vertices for s in solves if s.edf is not None and s.halo_vertices]
-    return (sum(s.own for s in solves), math.fsum(s.squares for s in solves),
+    return (sum(s.residual_count for s in solves), math.fsum(s.squares for s in solves),
             math.fsum(edfs) if edfs else None)
 
 
@@ -1053,7 +1101,7 @@ def combined_fit(solves: list[TileSolve], run: SmoothingRun, search: StrengthSea
 __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "SmoothingControl",
            "GradientPrior", "SmoothFit", "smooth_fit", "SmoothingRun", "SmoothedTile", "TileSolve",
            "StrengthSearch", "smooth_tile", "search_strength", "smoothing_reach", "solve_totals",
-           "combined_fit", "HALO_LENGTHS",
+           "combined_fit", "HALO_LENGTHS", "LATTICE_HALO_LENGTHS", "LATTICE_HALO_SPACINGS",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
            "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors",
            "nearest_to_anchors", "reduce_nearest", "window_side", "windows_at", "windows_of_parts"]

@@ -21,7 +21,7 @@ from c1mesh.stages.surface import surface_stream
 from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
-from c1mesh.core.tile import corner_rows
+from c1mesh.core.tile import corner_rows, tile_rows
 from c1mesh.survey.inputs import Colours
 from c1mesh.survey.join import KeyExpiry, PartJoin, border_keys
 from c1mesh.survey.split_outputs import OutputMeshes, face_owners, split_faces, write_outputs
@@ -122,6 +122,21 @@ class RefineJob:
         return TileLimits(records.take(rows), local, None, None, 0, 0, 0)
 
 
+def point_numbers(records: np.ndarray) -> np.ndarray:
+    """(m,) the survey number of the point each vertex record stands for: its own, or a
+    lattice node's nearest point (survey.lattice_runs.NODE's source)."""
+    return records["source"] if "source" in records.dtype.names else records["index"]
+
+
+def lowest_points(records: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(k, 1) the point (point_numbers) of each triangle's lowest-numbered corner, the
+    corner whose input owns it with -O; triangles (k, 3) in the records' numbers."""
+    lowest = triangles.min(axis=1)
+    if "source" not in records.dtype.names:
+        return lowest[:, None]
+    return records["source"][tile_rows(records["index"], lowest)][:, None]
+
+
 class _Part:
     """The temporary files of one tile's refinement: vertices (all of its refinement's
     output points, VERTEX or VERTEX_RGB), faces (int64 triples, tile-local numbers), keys
@@ -147,10 +162,10 @@ def _refine_tile(job: RefineJob, t: int, part: _Part) -> dict | None:
         return None
     with limit(job.threads):
         interp, records, (limited, turned, lifted) = job.spline(t, triangles)
-        colors = None if job.colours is None else job.colours.of(records["index"])
+        colors = None if job.colours is None else job.colours.of(point_numbers(records))
         counts = _write_part(job, interp, records, part, colors)
         if job.owners is not None:
-            owner = face_owners(job.owners, triangles, job.level)
+            owner = face_owners(job.owners, lowest_points(records, triangles), job.level)
             if len(owner) != counts["faces"]:
                 raise RuntimeError(f"tile {t}: {counts['faces']} faces, {len(owner)} owners")
             owner.astype("<i4").tofile(part.owners)

@@ -29,7 +29,7 @@ input; the factor's fill grows like N log N) and 7 GB for the in-memory fit of 1
 def point_bytes(surface: SurfaceSettings) -> int:
     """Peak bytes per input point of the fit `surface` asks for: SMOOTHING_BYTES_PER_POINT
     for a smoothing fit with a vertex at every point, else BYTES_PER_POINT (a --spacing
-    fit's solve follows its thinned vertices, not its points)."""
+    fit's solve follows its lattice's nodes, not its points)."""
     if surface.strength is not None and surface.spacing is None:
         return SMOOTHING_BYTES_PER_POINT
     return BYTES_PER_POINT

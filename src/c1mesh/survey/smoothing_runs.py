@@ -29,10 +29,11 @@ import numpy as np
 
 from c1mesh.core.tile import VERTEX, Tile, compact, corner_rows, tile_rows
 from c1mesh.stages.limiter import TileLimits, tile_limits
-from c1mesh.stages.smoothing import (SearchWindows, SmoothingData, SmoothingRun, StrengthSearch,
+from c1mesh.stages.smoothing import (LATTICE_HALO_LENGTHS, LATTICE_HALO_SPACINGS, SearchWindows, SmoothingData,
+                                     SmoothingRun, StrengthSearch,
                                      TileSolve, combined_fit, search_strength, smooth_tile,
                                      smoothing_reach, windows_of_parts)
-from c1mesh.stages.trim import triangles_among
+from c1mesh.stages.trim import connected_sets, triangles_among
 from c1mesh.survey.halos import HALO_EDGES, HaloCache, noise_floors
 from c1mesh.survey.tile_spill import save_array
 from c1mesh.survey.tiles import task_row
@@ -44,8 +45,8 @@ class TiledSmoothing:
     smoothing.SmoothingRun: strength "auto" or s > 0, scheme, the survey's spacing h
     (height_runs.survey_stacking), overshoot, the weight of the spill's gradients as
     data), longest_edge (the longest final edge, frame units: the least halo); data: the
-    height spill whose every height is fitted when the vertices are thinned (--spacing:
-    survey.thinning_runs; None: the vertices' own heights)."""
+    height spill whose every height is fitted when the vertices are lattice nodes
+    (--spacing: survey.lattice_runs; None: the vertices' own heights)."""
 
     run: SmoothingRun
     longest_edge: float
@@ -76,8 +77,7 @@ class TiledSmoother:
                                           searched, self.data_in(windows, fit.longest_edge))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
             self.seconds["search"] = time.perf_counter() - start
-        self.reach = max(smoothing_reach(self.run.control.strength, self.run.spacing),
-                         HALO_EDGES * fit.longest_edge) * (1 + 1e-9)
+        self.reach = max(self._smoothing_reach(), HALO_EDGES * fit.longest_edge) * (1 + 1e-9)
         self.halos = HaloCache(heights, triangle_files, grid, self.reach, temps, label="smooth-halo")
         tiles = self.halos.tiles()
         self.paths = {t: (temps.new(f"fitted-{t}.bin"), temps.new(f"directions-{t}.npy")) for t in tiles}
@@ -89,6 +89,14 @@ class TiledSmoother:
             if on_done:
                 on_done(tiles[i], row)
         self.seconds["solve"] = time.perf_counter() - start
+
+    def _smoothing_reach(self) -> float:
+        """The halo the strength asks for: smoothing_reach, or with --spacing's lattice nodes
+        (self.data: every height fitted) the larger LATTICE_HALO_LENGTHS, LATTICE_HALO_SPACINGS."""
+        strength, spacing = self.run.control.strength, self.run.spacing
+        if self.data is None:
+            return smoothing_reach(strength, spacing)
+        return max(smoothing_reach(strength, spacing, LATTICE_HALO_LENGTHS), LATTICE_HALO_SPACINGS * spacing)
 
     def data_near(self, tile: int, reach: float, own: bool = True) -> SmoothingData | None:
         """The heights fitted on tile's cell grown by reach: those of the data spill there
@@ -130,9 +138,10 @@ class TiledSmoother:
     def _fitted_near(self, tile: int) -> np.ndarray:
         """The fitted vertices of every tile whose cell meets tile's cell grown by its reach,
         ascending survey numbers."""
-        parts = [np.fromfile(self.paths[t][0], dtype=VERTEX)
+        record = self.halos.heights.record                 # tile_solve writes the halo's records
+        parts = [np.fromfile(self.paths[t][0], dtype=record)
                  for t in self.halos.heights.touching(self.grid.grown(tile, self.reach)) if t in self.paths]
-        fitted = np.concatenate(parts) if parts else np.empty(0, VERTEX)
+        fitted = np.concatenate(parts) if parts else np.empty(0, record)
         return fitted.take(np.argsort(fitted["index"], kind="stable"))
 
     def report(self) -> dict:
@@ -145,7 +154,7 @@ class TiledSmoother:
         (smoothing.combined_fit, in any order: they arrive in completion order on a pool or
         on Dask), with the search tile's CV curve, plus the spacing and the tiled solve's
         halo and search tile. Its residuals are the own vertices' (with --spacing the
-        thinned vertices', where the in-memory fit's are every data point's)."""
+        own data points', as the in-memory fit's are every data point's)."""
         seconds = dict(self.seconds)
         if self.search is not None:
             seconds.update({f"search_{k}": v for k, v in self.search.seconds.items()})
@@ -269,12 +278,34 @@ def _records_in(spill, windows: SearchWindows, grow: float) -> np.ndarray:
     return records.take(first)
 
 
+def pieces_with_own(halo: Tile) -> Tile:
+    """halo with only the triangles of its connected pieces that hold an own record, and
+    only the records those triangles use (in their order).
+
+    A lattice mesh's nodes carry no data (--spacing: the data spill's heights are fitted):
+    a node on the halo's rim whose triangles reach beyond it is a corner of none, and a
+    piece of the halo cut off at the rim may hold fewer than 3 data points; either leaves
+    the tile's system singular. Neither shares a vertex with the own ones, so their values
+    cannot reach them: dropping them changes none of the tile's own values."""
+    triangles = halo.triangles
+    if not len(triangles):
+        return halo
+    piece = connected_sets(len(halo.records), np.concatenate([triangles[:, 0], triangles[:, 1]]),
+                           np.concatenate([triangles[:, 1], triangles[:, 2]]))
+    with_own = np.zeros(len(halo.records), dtype=bool)
+    with_own[piece[halo.own]] = True
+    used, triangles = compact(triangles[with_own[piece[triangles[:, 0]]]], len(halo.records))
+    return Tile(halo.records.take(used), triangles, halo.own[used])
+
+
 def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     """smoothing.smooth_tile on tile's halo; writes its own vertices' fitted data (core.tile
     VERTEX records, fitted z, gx, gy) and its own triangles' edge directions (.npy, as
     smooth_tile orders them). Returns the TileSolve and the task's report row (tiles.task_row)."""
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
+    if smoother.data is not None:        # lattice nodes: a piece the halo cuts off may hold no data
+        halo = pieces_with_own(halo)
     smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]), data=smoother.data_near(tile, smoother.reach))
     records = np.compress(halo.own, halo.records)
     records["z"] = smoothed.values

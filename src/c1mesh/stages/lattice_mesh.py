@@ -1,0 +1,208 @@
+"""The smoothing fit's vertices on a lattice (`--smooth` with `--spacing D`; issue 38,
+docs/smoothing.md "The lattice route").
+
+A smoothing fit needs no vertex at every data point: its spline is fitted to all of them.
+With its vertices at the nodes of a regular lattice and every cell split by the same
+diagonal, its system is a stencil that multigrid solves in a few iterations
+(stages.lattice_solver), where the Delaunay system of the points needs a direct
+factorisation (41-48 s and 6.7 GB at 1M vertices). Held out, the lattice spline at the
+mean spacing is as good as the Delaunay one (docs/smoothing.md).
+
+Where the surface is (`kept_cells`): a cell of the lattice is *supported* when it holds a
+data point and its (2R + 1)² block of cells holds at least MIN_BLOCK_POINTS; the mesh is
+every cell within R cells of a supported cell. R (`support_reach`) is SUPPORT_SPACINGS
+point spacings h in cells, so the rule asks the same of the data at any D: about the reach
+of the exact fit's trimmed Delaunay triangles (autzen_trim ground: R = 4 cells of 2 ft,
+against triangles whose edges the trim holds to 15 ft). So the mesh reaches R cells beyond
+the data (a spline cut at the data's border is poorly held there: 1.048× GMT's held-out RMS
+on autzen ground, against 0.969× grown by 1-2 cells), closes gaps narrower than about 2R
+cells, and leaves larger holes open; and each connected piece holds a whole block of at
+least MIN_BLOCK_POINTS points, so its system is not singular. No Delaunay triangulation is
+needed, and the rule is local: a tile decides its own cells from the points within 2R + 1
+cells of them.
+
+The lattice is the survey's: node (i, j) sits at ((i0 + i) D, (j0 + j) D) in the frame's
+plane, for integers i0, j0 fixed by the data's bounding box, and is number j nx + i; cell
+(i, j) has corners (i, j) .. (i + 1, j + 1) and is number j (nx − 1) + i. Every tile of a
+survey and the survey in memory make the same node at the same bits with the same number.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from c1mesh.core.errors import InputError
+from c1mesh.stages.height_field import kd_tree
+from c1mesh.stages.lattice_solver import Lattice
+
+MULTIGRID_FROM = 200_000
+"""Nodes from which the lattice's system is solved by multigrid (stages.lattice_solver)
+rather than factored: below, CHOLMOD is as fast or faster (a 201² lattice of random data,
+s = 0.1, 2 threads: 1.05 against 1.15 s; autzen_trim ground at --spacing 3, 51k nodes with
+sparse patches and s = 0.01: 28-69 CG iterations a solve, 4.5 s against about 1.5 s); at
+401² it takes half CHOLMOD's time (2.7 against 5.4 s), at 1M nodes under a third."""
+SUPPORT_SPACINGS = 4.0
+"""R, the support's reach, in point spacings h (rounded up to whole cells)."""
+REACH_CELLS = (2, 8)
+"""The least and the most cells R may be: 2 (a spline cut at the data is poorly held
+there), 8 (a tiled survey grows its tile grid's box by REACH_CELLS[1] + 2 cells before h
+is known: survey.lattice_runs)."""
+MIN_BLOCK_POINTS = 3
+"""The points a supported cell's (2R + 1)² block must hold (a plane needs 3)."""
+
+
+@dataclass(frozen=True)
+class NodeGrid:
+    """The survey's lattice: spacing D (frame units), first (i0, j0) the integer multiples of D
+    of node (0, 0), shape (ny, nx) its nodes, reach R the support's (cells)."""
+
+    spacing: float
+    first: tuple
+    shape: tuple
+    reach: int
+
+    @property
+    def cells(self) -> tuple:
+        """(ny − 1, nx − 1): the cells' rows and columns."""
+        return self.shape[0] - 1, self.shape[1] - 1
+
+    def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(i, j) int64 (m,) each: the cell holding each point of xy (m, 2)."""
+        i = np.floor(xy[:, 0] / self.spacing).astype(np.int64) - self.first[0]
+        j = np.floor(xy[:, 1] / self.spacing).astype(np.int64) - self.first[1]
+        return i, j
+
+    def positions(self, nodes: np.ndarray) -> np.ndarray:
+        """(n, 2) the plane positions of node numbers (n,): (i0 + i) D, (j0 + j) D."""
+        j, i = np.divmod(np.asarray(nodes, dtype=np.int64), self.shape[1])
+        return np.column_stack([(self.first[0] + i) * self.spacing, (self.first[1] + j) * self.spacing])
+
+    def solver_lattice(self, nodes: np.ndarray) -> Lattice:
+        """The stages.lattice_solver.Lattice of vertices at these node numbers (n,)."""
+        return Lattice(self.shape, (self.spacing, self.spacing),
+                       (self.first[0] * self.spacing, self.first[1] * self.spacing), nodes)
+
+
+def check_spacing(spacing: float | None) -> None:
+    """InputError unless spacing is None or a finite positive length (checked before any work)."""
+    if spacing is None:
+        return
+    if not (isinstance(spacing, (int, float)) and math.isfinite(spacing) and spacing > 0):
+        raise InputError(f"--spacing must be a positive length, got {spacing!r}")
+
+
+def support_reach(spacing: float, point_spacing: float) -> int:
+    """R in cells of `spacing`: SUPPORT_SPACINGS point spacings h, rounded up, within REACH_CELLS."""
+    reach = math.ceil(SUPPORT_SPACINGS * point_spacing / spacing) if point_spacing > 0 else REACH_CELLS[0]
+    return int(min(max(reach, REACH_CELLS[0]), REACH_CELLS[1]))
+
+
+def node_grid(lower, upper, spacing: float, point_spacing: float) -> NodeGrid:
+    """The lattice of `spacing` for data within lower (2,) .. upper (2,) (frame units) whose
+    point spacing is h = point_spacing: its cells cover the data's cells and R
+    (support_reach) more on every side."""
+    check_spacing(spacing)
+    R = support_reach(spacing, point_spacing)
+    low = np.floor(np.asarray(lower, dtype=float) / spacing).astype(np.int64) - R
+    high = np.floor(np.asarray(upper, dtype=float) / spacing).astype(np.int64) + R + 1
+    nx, ny = int(high[0] - low[0]) + 1, int(high[1] - low[1]) + 1
+    if nx * ny > 2 ** 62 // 4:
+        raise InputError(f"--spacing {spacing:g} makes a lattice of {nx} × {ny} nodes; give a larger spacing")
+    return NodeGrid(float(spacing), (int(low[0]), int(low[1])), (ny, nx), R)
+
+
+def _box_sum(counts: np.ndarray, reach: int) -> np.ndarray:
+    """The sum of counts (h, w) over each (2 reach + 1)² box, for the cells at least reach
+    from the border: shape (h − 2 reach, w − 2 reach); exact in int64 (summed-area table)."""
+    table = np.zeros((counts.shape[0] + 1, counts.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(counts, axis=0, dtype=np.int64), axis=1, out=table[1:, 1:])
+    k = 2 * reach + 1
+    return table[k:, k:] - table[:-k, k:] - table[k:, :-k] + table[:-k, :-k]
+
+
+def kept_cells(grid: NodeGrid, xy: np.ndarray, window: tuple | None = None) -> np.ndarray:
+    """(k,) ascending numbers of the mesh's cells (module doc) in window (i0, i1, j0, j1),
+    the cells i0 <= i < i1, j0 <= j < j1 (None: all of the grid's).
+
+    xy (m, 2), frame units: the data points, at least every one within 2R cells of the
+    window (grid.reach; a tile passes those of its halo); others are ignored."""
+    R = grid.reach
+    rows, cols = grid.cells
+    i0, i1, j0, j1 = (0, cols, 0, rows) if window is None else window
+    e = 2 * R                                             # the counts' margin around the window
+    w, h = i1 - i0 + 2 * e, j1 - j0 + 2 * e
+    if w <= 2 * e or h <= 2 * e:
+        return np.empty(0, dtype=np.int64)
+    i, j = grid.cell_of(xy)
+    i, j = i - (i0 - e), j - (j0 - e)
+    inside = (i >= 0) & (i < w) & (j >= 0) & (j < h)
+    counts = np.bincount(j[inside] * w + i[inside], minlength=w * h).reshape(h, w)
+    blocks = _box_sum(counts, R)                          # cells from the window's corner − R
+    supported = (counts[R:h - R, R:w - R] > 0) & (blocks >= MIN_BLOCK_POINTS)
+    near = _box_sum(supported.astype(np.int64), R) > 0    # cells of the window
+    cj, ci = np.nonzero(near)
+    cj, ci = cj + j0, ci + i0
+    on_grid = (ci >= 0) & (ci < cols) & (cj >= 0) & (cj < rows)
+    return cj[on_grid] * cols + ci[on_grid]
+
+
+def cell_triangles(grid: NodeGrid, cells: np.ndarray) -> np.ndarray:
+    """(2k, 3) node numbers of the cells' two triangles each, counter-clockwise, split along
+    the diagonal from node (i, j) to (i + 1, j + 1): (a, b, d) then (a, d, c) for a = (i, j),
+    b = (i + 1, j), c = (i, j + 1), d = (i + 1, j + 1), in the cells' order."""
+    nx = grid.shape[1]
+    j, i = np.divmod(np.asarray(cells, dtype=np.int64), nx - 1)
+    a = j * nx + i
+    b, c, d = a + 1, a + nx, a + nx + 1
+    return np.stack([np.stack([a, b, d], axis=1), np.stack([a, d, c], axis=1)], axis=1).reshape(-1, 3)
+
+
+def nearest_points(positions: np.ndarray, xy: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(n,) the `index` (m,) of the point of xy (m, 2) nearest each position (n, 2), ties to
+    the lower index, so that the answer depends on no order (a tile's candidates are a
+    subset of the survey's holding the nearest)."""
+    if not len(positions):
+        return np.empty(0, dtype=np.int64)
+    k = min(4, xy.shape[0])
+    distance, rows = kd_tree(xy).query(positions, k=k)
+    distance, rows = distance.reshape(len(positions), k), rows.reshape(len(positions), k)
+    candidates = np.where(distance == distance[:, :1], np.asarray(index)[rows], np.iinfo(np.int64).max)
+    return candidates.min(axis=1).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class LatticeMesh:
+    """A smoothing fit's vertices and triangles on the lattice: grid (NodeGrid); nodes (n,)
+    ascending node numbers, points (n, 2) their positions (frame units), triangles (T, 3)
+    into them (cell_triangles' order); sources (n,) the data point nearest each node (its
+    index: colours, and the input that owns it with -O)."""
+
+    grid: NodeGrid
+    nodes: np.ndarray
+    points: np.ndarray
+    triangles: np.ndarray
+    sources: np.ndarray
+
+    def solver_lattice(self) -> Lattice | None:
+        """smooth_fit's `lattice` for these vertices (its multigrid solve), or None below
+        MULTIGRID_FROM nodes (a direct solve)."""
+        return self.grid.solver_lattice(self.nodes) if self.nodes.size >= MULTIGRID_FROM else None
+
+
+def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> LatticeMesh:
+    """The in-memory fit's one tile of the lattice route: the mesh (module doc) of data
+    points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing,
+    sources numbering xy's rows."""
+    grid = node_grid(xy.min(axis=0), xy.max(axis=0), spacing, point_spacing)
+    corners = cell_triangles(grid, kept_cells(grid, xy))
+    nodes, local = np.unique(corners, return_inverse=True)
+    points = grid.positions(nodes)
+    return LatticeMesh(grid, nodes, points, local.reshape(-1, 3).astype(np.int64),
+                       nearest_points(points, xy, np.arange(xy.shape[0])))
+
+
+__all__ = ["LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS",
+           "cell_triangles", "check_spacing", "kept_cells", "lattice_mesh", "nearest_points", "node_grid",
+           "support_reach"]

@@ -1,0 +1,124 @@
+"""The lattice route's mesh (c1mesh.stages.lattice_mesh) against brute-force loops: the
+kept cells of the support rule, the cells' triangles, the nearest points, and a tile's
+window deciding its cells as the whole survey does."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from c1mesh.core.errors import InputError
+from c1mesh.stages.lattice_mesh import (MIN_BLOCK_POINTS, REACH_CELLS, SUPPORT_SPACINGS, cell_triangles, kept_cells,
+                                        lattice_mesh, nearest_points, node_grid, support_reach)
+
+
+def _clustered(seed: int, n: int = 400) -> np.ndarray:
+    """Points in a few clusters and a sprinkle of lone points over 40 x 30 units: sparse
+    cells, lone points (unsupported) and holes wider than the support's reach."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform([0, 0], [40, 30], (5, 2))
+    clusters = centres[rng.integers(0, 5, n)] + rng.normal(0, 2.5, (n, 2))
+    return np.concatenate([clusters, rng.uniform([0, 0], [40, 30], (12, 2))])
+
+
+def _brute_kept(grid, xy) -> set:
+    """The support rule cell by cell: supported = holds a point and its (2R+1)² block holds
+    MIN_BLOCK_POINTS; kept = within R cells (Chebyshev) of a supported cell."""
+    rows, cols = grid.cells
+    i, j = grid.cell_of(xy)
+    counts = {}
+    for a, b in zip(i.tolist(), j.tolist()):
+        counts[(a, b)] = counts.get((a, b), 0) + 1
+    R = grid.reach
+    supported = [c for c in counts if sum(counts.get((c[0] + di, c[1] + dj), 0)
+                                          for di in range(-R, R + 1) for dj in range(-R, R + 1)) >= MIN_BLOCK_POINTS]
+    kept = set()
+    for a, b in supported:
+        for di, dj in itertools.product(range(-R, R + 1), repeat=2):
+            if 0 <= a + di < cols and 0 <= b + dj < rows:
+                kept.add((b + dj) * cols + a + di)
+    return kept
+
+
+@pytest.mark.parametrize("seed, h", [(0, 0.6), (1, 0.6), (2, 1.2)])
+def test_kept_cells_are_the_support_rule(seed, h):
+    xy = _clustered(seed)
+    grid = node_grid(xy.min(axis=0), xy.max(axis=0), 1.3, h)
+    assert grid.reach == max(2, int(np.ceil(SUPPORT_SPACINGS * h / 1.3)))
+    kept = kept_cells(grid, xy)
+    assert kept.tolist() == sorted(_brute_kept(grid, xy))
+    assert len(kept) and (np.diff(kept) > 0).all()
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_window_decides_its_cells_as_the_whole_grid_does(seed):
+    """A tile's window, with only the points within 2R cells of it, keeps exactly the cells
+    of the window that the whole survey keeps."""
+    xy = _clustered(seed)
+    grid = node_grid(xy.min(axis=0), xy.max(axis=0), 1.0, 0.7)
+    R = grid.reach
+    whole = set(kept_cells(grid, xy).tolist())
+    rows, cols = grid.cells
+    for i0, j0 in [(0, 0), (7, 5), (cols - 9, rows - 6), (13, 11)]:
+        window = (i0, i0 + 9, j0, j0 + 6)
+        i, j = grid.cell_of(xy)
+        near = (i >= i0 - 2 * R) & (i < i0 + 9 + 2 * R) & (j >= j0 - 2 * R) & (j < j0 + 6 + 2 * R)
+        mine = {c for c in whole if i0 <= c % cols < i0 + 9 and j0 <= c // cols < j0 + 6}
+        assert set(kept_cells(grid, xy[near], window).tolist()) == mine
+
+
+def test_every_data_point_of_a_supported_cell_lies_in_the_mesh_and_nodes_sit_on_the_lattice():
+    xy = _clustered(4)
+    mesh = lattice_mesh(xy, 1.5, 0.5)
+    D = 1.5
+    np.testing.assert_array_equal(mesh.points / D, np.round(mesh.points / D))
+    corners = mesh.points[mesh.triangles]
+    a, b = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    np.testing.assert_allclose((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]) / 2, D * D / 2)      # counter-clockwise
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    inside = np.zeros(len(xy), bool)
+    for k, p in enumerate(xy):
+        inside[k] = ((lo <= p) & (p <= hi)).all(axis=1).any()
+    grid = mesh.grid
+    i, j = grid.cell_of(xy)
+    held = np.isin(j * grid.cells[1] + i, kept_cells(grid, xy))
+    np.testing.assert_array_equal(inside, held)           # a point is in the mesh iff its cell is kept
+    assert (~held).sum() > 0                                # lone points stay out
+
+
+def test_cell_triangles_split_every_cell_by_the_same_diagonal():
+    grid = node_grid([0.0, 0.0], [2.5, 1.5], 1.0, 0.5)
+    nx = grid.shape[1]
+    tri = cell_triangles(grid, np.array([0, 4]))
+    a = 0
+    assert tri[:2].tolist() == [[a, a + 1, a + nx + 1], [a, a + nx + 1, a + nx]]
+    j, i = divmod(4, nx - 1)
+    a = j * nx + i
+    assert tri[2:].tolist() == [[a, a + 1, a + nx + 1], [a, a + nx + 1, a + nx]]
+
+
+def test_nearest_points_take_the_lowest_index_on_ties():
+    xy = np.array([[0.0, 0.0], [2.0, 0.0], [1.0, 1.0], [1.0, -1.0]])
+    index = np.array([40, 7, 9, 30])
+    positions = np.array([[1.0, 0.0], [0.1, 0.0], [5.0, 5.0]])
+    # (1, 0) is 1 from all four: the lowest index, 7; (0.1, 0) is nearest (0, 0); (5, 5) nearest (1, 1)
+    assert nearest_points(positions, xy, index).tolist() == [7, 40, 9]
+    rng = np.random.default_rng(5)
+    xy, q = rng.uniform(0, 10, (300, 2)), rng.uniform(0, 10, (50, 2))
+    index = rng.permutation(1000)[:300]
+    d = np.linalg.norm(q[:, None] - xy[None], axis=2)
+    np.testing.assert_array_equal(nearest_points(q, xy, index), index[d.argmin(axis=1)])
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+def test_a_bad_spacing_is_an_input_error(bad):
+    with pytest.raises(InputError, match="--spacing"):
+        node_grid([0, 0], [1, 1], bad, 1.0)
+
+
+def test_the_reach_is_whole_cells_of_the_point_spacing_within_its_bounds():
+    assert support_reach(1.0, 1.0) == int(np.ceil(SUPPORT_SPACINGS))
+    assert support_reach(2.0, 1.9) == int(np.ceil(SUPPORT_SPACINGS * 1.9 / 2.0))
+    assert support_reach(100.0, 1.0) == REACH_CELLS[0]          # a coarse lattice: at least 2 cells
+    assert support_reach(0.01, 1.0) == REACH_CELLS[1]           # a fine one: at most 8
