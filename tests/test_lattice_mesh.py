@@ -122,3 +122,32 @@ def test_the_reach_is_whole_cells_of_the_point_spacing_within_its_bounds():
     assert support_reach(2.0, 1.9) == int(np.ceil(SUPPORT_SPACINGS * 1.9 / 2.0))
     assert support_reach(100.0, 1.0) == REACH_CELLS[0]          # a coarse lattice: at least 2 cells
     assert support_reach(0.01, 1.0) == REACH_CELLS[1]           # a fine one: at most 8
+
+
+@pytest.mark.parametrize("marked", [True, False])
+def test_numbered_triangles_are_the_sorted_corners(monkeypatch, marked):
+    """Both ways of numbering the nodes (a table over their span, or a sort beyond
+    MARKED_NODES) give np.unique's numbers."""
+    from c1mesh.stages import lattice_mesh
+    if not marked:
+        monkeypatch.setattr(lattice_mesh, "MARKED_NODES", 0)
+    xy = _clustered(6)
+    grid = node_grid(xy.min(axis=0), xy.max(axis=0), 1.1, 0.6)
+    cells = kept_cells(grid, xy)
+    nodes, triangles = lattice_mesh.numbered_triangles(grid, cells)
+    want, local = np.unique(cell_triangles(grid, cells), return_inverse=True)
+    np.testing.assert_array_equal(nodes, want)
+    np.testing.assert_array_equal(triangles, local.reshape(-1, 3))
+
+
+def test_nearest_points_on_a_grid_of_ties_take_the_lowest_index():
+    """Nodes halfway between grid points are equally near 2 or 4 of them: the lowest index
+    wins, whatever the points' order."""
+    i, j = np.meshgrid(np.arange(6.0), np.arange(5.0))
+    xy = np.column_stack([i.ravel(), j.ravel()])
+    rng = np.random.default_rng(7)
+    index = rng.permutation(xy.shape[0]) + 100
+    q = np.column_stack([rng.integers(0, 10, 40) / 2, rng.integers(0, 8, 40) / 2])
+    d = np.round(np.linalg.norm(q[:, None] - xy[None], axis=2), 12)
+    want = [index[d[k] == d[k].min()].min() for k in range(len(q))]
+    assert nearest_points(q, xy, index).tolist() == want

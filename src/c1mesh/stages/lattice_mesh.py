@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.errors import InputError
+from c1mesh.core.threads import workers
 from c1mesh.stages.height_field import kd_tree
 from c1mesh.stages.lattice_solver import Lattice
 
@@ -162,14 +163,26 @@ def cell_triangles(grid: NodeGrid, cells: np.ndarray) -> np.ndarray:
 def nearest_points(positions: np.ndarray, xy: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(n,) the `index` (m,) of the point of xy (m, 2) nearest each position (n, 2), ties to
     the lower index, so that the answer depends on no order (a tile's candidates are a
-    subset of the survey's holding the nearest)."""
+    subset of the survey's holding the nearest). Two neighbours a query; the few positions
+    whose two are equally near ask again for more (a lattice node is often equidistant from
+    points on a regular grid)."""
+    index = np.asarray(index)
     if not len(positions):
         return np.empty(0, dtype=np.int64)
-    k = min(4, xy.shape[0])
-    distance, rows = kd_tree(xy).query(positions, k=k)
+    tree, threads = kd_tree(xy), workers()
+    k = min(2, xy.shape[0])
+    distance, rows = tree.query(positions, k=k, workers=threads)
     distance, rows = distance.reshape(len(positions), k), rows.reshape(len(positions), k)
-    candidates = np.where(distance == distance[:, :1], np.asarray(index)[rows], np.iinfo(np.int64).max)
-    return candidates.min(axis=1).astype(np.int64)
+    nearest = index[rows[:, 0]].astype(np.int64)
+    tied = np.flatnonzero(distance[:, -1] == distance[:, 0]) if k > 1 else np.empty(0, np.int64)
+    while tied.size:
+        k = min(2 * k, xy.shape[0])
+        distance, rows = tree.query(positions[tied], k=k, workers=threads)
+        distance, rows = distance.reshape(len(tied), k), rows.reshape(len(tied), k)
+        at_least = distance == distance[:, :1]
+        nearest[tied] = np.where(at_least, index[rows], np.iinfo(np.int64).max).min(axis=1)
+        tied = tied[at_least[:, -1] & (k < xy.shape[0])]      # all k tied: there may be more
+    return nearest
 
 
 @dataclass(frozen=True)
@@ -196,13 +209,34 @@ def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> Lattic
     points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing,
     sources numbering xy's rows."""
     grid = node_grid(xy.min(axis=0), xy.max(axis=0), spacing, point_spacing)
-    corners = cell_triangles(grid, kept_cells(grid, xy))
-    nodes, local = np.unique(corners, return_inverse=True)
+    nodes, triangles = numbered_triangles(grid, kept_cells(grid, xy))
     points = grid.positions(nodes)
-    return LatticeMesh(grid, nodes, points, local.reshape(-1, 3).astype(np.int64),
-                       nearest_points(points, xy, np.arange(xy.shape[0])))
+    return LatticeMesh(grid, nodes, points, triangles, nearest_points(points, xy, np.arange(xy.shape[0])))
+
+
+MARKED_NODES = 1 << 26
+"""Node number spans up to which numbered_triangles marks the nodes in a table (one byte a
+node) instead of sorting the corners."""
+
+
+def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes (n,) ascending node numbers of the cells' corners, triangles (2k, 3) into
+    them: cell_triangles' order) of cells (k,) ascending cell numbers."""
+    corners = cell_triangles(grid, cells)
+    if not len(corners):
+        return np.empty(0, dtype=np.int64), corners
+    first, last = int(corners.min()), int(corners.max())
+    if last - first >= MARKED_NODES:
+        nodes, local = np.unique(corners, return_inverse=True)
+        return nodes, local.reshape(-1, 3).astype(np.int64)
+    number = np.zeros(last - first + 1, dtype=np.int64)
+    number[corners.ravel() - first] = 1
+    nodes = np.flatnonzero(number) + first
+    np.cumsum(number, out=number)
+    return nodes, number[corners - first] - 1
 
 
 __all__ = ["LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS",
            "cell_triangles", "check_spacing", "kept_cells", "lattice_mesh", "nearest_points", "node_grid",
+           "numbered_triangles",
            "support_reach"]
