@@ -151,3 +151,14 @@ def test_nearest_points_on_a_grid_of_ties_take_the_lowest_index():
     d = np.round(np.linalg.norm(q[:, None] - xy[None], axis=2), 12)
     want = [index[d[k] == d[k].min()].min() for k in range(len(q))]
     assert nearest_points(q, xy, index).tolist() == want
+
+
+def test_a_survey_decided_in_bands_of_rows_keeps_the_whole_grids_cells(monkeypatch):
+    """lattice_mesh decides a box of more than BAND_CELLS cells band by band: the same mesh."""
+    from c1mesh.stages import lattice_mesh as module
+    xy = _clustered(8)
+    whole = lattice_mesh(xy, 0.9, 0.5)
+    monkeypatch.setattr(module, "BAND_CELLS", 200)          # bands of a few rows
+    banded = lattice_mesh(xy, 0.9, 0.5)
+    np.testing.assert_array_equal(banded.nodes, whole.nodes)
+    np.testing.assert_array_equal(banded.triangles, whole.triangles)

@@ -209,9 +209,34 @@ def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> Lattic
     points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing,
     sources numbering xy's rows."""
     grid = node_grid(xy.min(axis=0), xy.max(axis=0), spacing, point_spacing)
-    nodes, triangles = numbered_triangles(grid, kept_cells(grid, xy))
+    nodes, triangles = numbered_triangles(grid, _kept_in_bands(grid, xy))
     points = grid.positions(nodes)
     return LatticeMesh(grid, nodes, points, triangles, nearest_points(points, xy, np.arange(xy.shape[0])))
+
+
+BAND_CELLS = 1 << 24
+"""Cells of the lattice kept_cells counts at once in memory (int64 counts and two summed-
+area tables: 24 bytes a cell): a survey whose box holds more, such as distant inputs of one
+--seamless survey, is decided in bands of rows."""
+
+
+def _kept_in_bands(grid: NodeGrid, xy: np.ndarray) -> np.ndarray:
+    """kept_cells over the whole grid, BAND_CELLS at a time: each band of rows with the
+    points within 2R rows of it."""
+    rows, cols = grid.cells
+    band = max(1, BAND_CELLS // (cols + 4 * grid.reach))
+    if band >= rows:
+        return kept_cells(grid, xy)
+    j = grid.cell_of(xy)[1]
+    order = np.argsort(j, kind="stable")
+    j = j[order]
+    parts = []
+    for j0 in range(0, rows, band):
+        j1 = min(rows, j0 + band)
+        lo, hi = np.searchsorted(j, [j0 - 2 * grid.reach, j1 + 2 * grid.reach])
+        if hi > lo:
+            parts.append(kept_cells(grid, xy[order[lo:hi]], (0, cols, j0, j1)))
+    return np.concatenate(parts) if parts else np.empty(0, dtype=np.int64)
 
 
 MARKED_NODES = 1 << 26
