@@ -218,10 +218,11 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         merged = height_pass.usable - int(heights.counts.sum())      # exact duplicates, one record kept
         try:
             spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
-            data = lattice = None
+            data = lattice = lattice_facts = None
             if surface.spacing is not None:    # --spacing: the smoothing's vertices on a lattice, every height fitted
                 lattice = lattice_tiles(heights, surface.spacing, spacing, temps, temps.stem)
                 data, heights = heights, stack.enter_context(contextlib.closing(lattice.nodes))
+                lattice_facts = lattice.facts()
             done("normals")
             if lattice is None:
                 max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(
@@ -324,7 +325,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     report["crs"] = describe_crs(crs, crs_source)
     report["classes"] = selection
     if strength is not None:
-        report["smoothing"] = limiter.smoothing()
+        report["smoothing"] = {**limiter.smoothing(), "lattice": lattice_facts}
     return report
 
 

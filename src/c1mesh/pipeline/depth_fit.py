@@ -324,7 +324,7 @@ def perspective_report(run: FitRun, model: PerspectiveModel, stream, level_from:
         seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
     if model.smoothing is not None:
-        report["smoothing"] = model.smoothing.as_dict()
+        report["smoothing"] = {**model.smoothing.as_dict(), "lattice": None}     # no --spacing in the chart
     return report
 
 

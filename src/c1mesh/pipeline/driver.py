@@ -282,6 +282,7 @@ class SurfaceModel:
     trimmed: for a fit built with fill=True (a DEM that spans its holes), (T,) bool over
     interp's triangles: those the trim kept (the mesh's); the others span holes the trim
     opened (long edges, curtains). None: every triangle is the trim's.
+    lattice: on a lattice, its report facts (stages.lattice_mesh.lattice_facts), else None.
     """
 
     normal_source: str
@@ -296,6 +297,7 @@ class SurfaceModel:
     smoothing: Any = None
     on_lattice: bool = False
     trimmed: np.ndarray | None = None
+    lattice: dict | None = None
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -495,7 +497,7 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
                                                              table, lattice=mesh.solver_lattice())
     trimmed = np.ones(mesh.triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
     return SurfaceModel(normal_source, frame, hf, report, mesh.sources, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing, True, trimmed)
+                        max_slope_not_applied, smoothing, True, trimmed, mesh.facts())
 
 
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
@@ -880,6 +882,6 @@ def smoothing_facts(model: SurfaceModel) -> dict:
     strength, λ, CV curve, effective degrees of freedom, residuals) for a smoothing fit;
     else "suggestion" where the limiter found the heights noisy (stages.warnings)."""
     if model.smoothing is not None:
-        return {"smoothing": model.smoothing.as_dict()}
+        return {"smoothing": {**model.smoothing.as_dict(), "lattice": model.lattice}}
     text = smoothing_suggestion(model.overshoot.gradients_limited, int(model.used.size))
     return {} if text is None else {"suggestion": text}

@@ -198,10 +198,19 @@ class LatticeMesh:
     triangles: np.ndarray
     sources: np.ndarray
 
+    def facts(self) -> dict:
+        """The report's smoothing.lattice: spacing D, reach R (cells), nodes."""
+        return lattice_facts(self.grid, int(self.nodes.size))
+
     def solver_lattice(self) -> Lattice | None:
         """smooth_fit's `lattice` for these vertices (its multigrid solve), or None below
         MULTIGRID_FROM nodes (a direct solve)."""
         return self.grid.solver_lattice(self.nodes) if self.nodes.size >= MULTIGRID_FROM else None
+
+
+def lattice_facts(grid: NodeGrid, nodes: int) -> dict:
+    """The report's smoothing.lattice of a fit on grid with this many nodes (every path)."""
+    return {"spacing": grid.spacing, "reach_cells": grid.reach, "nodes": nodes}
 
 
 def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> LatticeMesh:
@@ -262,6 +271,6 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
 
 
 __all__ = ["LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS",
-           "cell_triangles", "check_spacing", "kept_cells", "lattice_mesh", "nearest_points", "node_grid",
+           "cell_triangles", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "nearest_points", "node_grid",
            "numbered_triangles",
            "support_reach"]

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from c1mesh.stages.lattice_mesh import REACH_CELLS, NodeGrid, cell_triangles, kept_cells, nearest_points, node_grid
+from c1mesh.stages.lattice_mesh import (REACH_CELLS, NodeGrid, cell_triangles, kept_cells, lattice_facts, nearest_points,
+                                        node_grid)
 from c1mesh.survey.tile_spill import TileSpill, save_array
 
 NODE = np.dtype([("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("gx", "<f8"), ("gy", "<f8"),
@@ -66,6 +67,10 @@ class LatticeTiles:
     buffers: np.ndarray
     triangles: int
     grid: NodeGrid
+
+    def facts(self) -> dict:
+        """The report's smoothing.lattice, as the in-memory fit's (lattice_facts)."""
+        return lattice_facts(self.grid, int(self.nodes.counts.sum()))
 
 
 def _window(lattice: NodeGrid, rect) -> tuple[int, int, int, int]:
