@@ -13,9 +13,9 @@ children's: GMT is two commands under one shell); one round runs each once, back
 and the table shows medians over the rounds:
 - `c1mesh fit dtm.laz -o DIR/smooth.tif --resolution 1 --smooth auto`, the smoothing fit;
 - the same with `--smooth off`, the exact interpolant;
-- with `--spacing D` (run's --spacings, none by default): `--smooth auto` on vertices thinned
-  to one per D × D cell, fitted to every point (the route of issue 38's "vertices no denser
-  than the output grid needs");
+- with `--spacing D` (run's --spacings, none by default): `--smooth auto` on the nodes of a
+  D × D lattice over the points, fitted to every point and solved by multigrid (the lattice
+  route of issue 38, docs/smoothing.md);
 - GMT: `gmt blockmedian -R0/1000/0/1000 -I1 -bi3d -bo3d dtm.bin > bm.bin` then
   `gmt surface bm.bin -bi3d -R0/1000/0/1000 -I1 -T0.25 -Gs.nc`, GMT's own recipe for a
   DEM from scattered points (blockmedian first, as its documentation asks). Skipped and
