@@ -198,3 +198,51 @@ def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
     assert np.abs(shared_rows.values - rows.values).max() < 1e-11
     outside = lattice_locate(lattice, points, T, np.array([[10.0 + 25 * HX, -5.0 + 20 * HY], [0.0, 0.0]]))[0]
     assert list(outside) == [-1, -1]                                  # in the hole; beyond the lattice
+
+
+@pytest.mark.parametrize("nx, ny", [(41, 33), (40, 34), (41, 34)])
+def test_the_galerkin_kernel_is_scipys_triple_product(nx, ny):
+    """Every coarse operator equals Pᵀ S P as scipy multiplies it here, entry by entry to
+    rounding, on lattices with holes and odd and even sizes (coarse nodes standing in for
+    missing ones beyond ragged borders)."""
+    S, _, lattice = lattice_system(0.3, nx=nx, ny=ny)
+    solver = LatticeSolver(S, lattice, coarsest=40)
+    assert len(solver.levels) >= 3
+    for fine, coarse in zip(solver.levels, solver.levels[1:]):
+        want = (fine.P.T @ fine.S @ fine.P).tocsr()
+        got = coarse.S
+        assert got.shape == want.shape
+        scale = np.abs(want.data).max()
+        assert abs(got - want).max() <= 1e-12 * scale
+        assert (abs(want) > 1e-9 * scale).nnz > 0.5 * got.nnz          # the pattern is no padding
+
+
+def test_the_product_kernels_are_scipys_products_column_by_column():
+    """_Rows' product, product-and-add and residual against scipy's S @ X with k = 1, 3
+    and 6 columns (LANES and what is left), and each column's bits the same whatever k."""
+    S, rhs, _ = lattice_system(1.0)
+    rows = lattice_solver._Rows(S, S.indices.dtype)
+    X = np.random.default_rng(5).normal(size=(S.shape[0], 6))
+    for k in (1, 3, 6):
+        want = S @ X[:, :k]
+        got = rows @ np.ascontiguousarray(X[:, :k])
+        assert np.allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+        assert got[:, 0].tobytes() == (rows @ np.ascontiguousarray(X[:, :1]))[:, 0].tobytes()
+        B = np.ascontiguousarray(np.repeat(rhs[:, None], k, axis=1))
+        assert np.allclose(rows.residual(B, np.ascontiguousarray(X[:, :k])), B - want, rtol=1e-13,
+                           atol=1e-12 * np.abs(want).max())
+        Y = np.ones((S.shape[0], k))
+        rows.product(np.ascontiguousarray(X[:, :k]), Y, add=True)
+        assert np.allclose(Y, 1.0 + want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+
+
+def test_right_hand_sides_solved_together_are_each_solved_alone():
+    """pcg on (3N, k): each column's CG is its own, so its bits are those of the column
+    solved alone (and the columns stop at their own iterations)."""
+    S, rhs, lattice = lattice_system(0.1)
+    solver = LatticeSolver(S, lattice, coarsest=150)
+    B = np.stack([rhs, 1e-3 * rhs[::-1], np.random.default_rng(2).choice([-1.0, 1.0], rhs.size)], axis=1)
+    together, _ = solver.pcg(B, 1e-5)
+    for c in range(B.shape[1]):
+        alone, _ = solver.pcg(np.ascontiguousarray(B[:, c]), 1e-5)
+        assert together[:, c].tobytes() == alone.tobytes()
