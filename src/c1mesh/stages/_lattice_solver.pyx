@@ -290,6 +290,8 @@ def galerkin(const index_t[::1] s_indptr, const index_t[::1] s_indices, const do
                             continue
                         row_sp[last_slot][c - 3 * J] = row_sp[last_slot][c - 3 * J] + s * p_data[g]
                 for p in range(3):
+                    if child_w[ch][p] == 0.0:       # adds nothing (most Hermite weights are 0)
+                        continue
                     for slot in range(nn):
                         for q in range(3):
                             acc[p][slot][q] = acc[p][slot][q] + child_w[ch][p] * row_sp[slot][q]

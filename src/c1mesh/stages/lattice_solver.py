@@ -310,11 +310,14 @@ class _Rows:
                         self.shape[0], ROW_BLOCK)
         return out
 
-    def residual(self, b: np.ndarray, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """b − A x (m, k) in one pass, into out (None: a new array)."""
+    def residual(self, b: np.ndarray, x: np.ndarray, out: np.ndarray | None = None,
+                 rows: int | None = None) -> np.ndarray:
+        """b − A x (m, k) in one pass, into out (None: a new array); with `rows`, only the
+        first `rows` rows are computed and the others set to 0 (the caller knows them)."""
         r = np.empty_like(b) if out is None else out
-        parallel_blocks(lambda part: kernel.residual(*self.arrays(), b, x, r, part.start, part.stop),
-                        self.shape[0], ROW_BLOCK)
+        rows = self.shape[0] if rows is None else rows
+        parallel_blocks(lambda part: kernel.residual(*self.arrays(), b, x, r, part.start, part.stop), rows, ROW_BLOCK)
+        r[rows:] = 0.0
         return r
 
 
@@ -476,7 +479,9 @@ class LatticeSolver:
         level = self.levels[k]
         x = np.zeros(b.shape)
         level.sweep(x, b, (0, 1, 2), from_zero=True)
-        r = level.A.residual(b, x, level.scratch("residual", b.shape))
+        # the last colour swept has no residual left (its block equations were just solved
+        # with its neighbours as they are): only colours 0 and 1 are computed
+        r = level.A.residual(b, x, level.scratch("residual", b.shape), rows=3 * int(level.bounds[2]))
         coarse = level.PT_rows.product(r, self.levels[k + 1].scratch("restricted", (level.PT_rows.shape[0], b.shape[1])))
         level.P_rows.product(self.cycle(coarse, k + 1), x, add=True)
         level.sweep(x, b, (2, 1, 0))
