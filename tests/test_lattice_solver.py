@@ -11,7 +11,7 @@ from c1mesh.core.threads import limit
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import lattice_solver
-from c1mesh.stages.lattice_solver import Lattice, LatticeSolver, lattice_solve, prolongation
+from c1mesh.stages.lattice_solver import Lattice, LatticeSolver, colour_order, lattice_solve, prolongation
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.smoothing_energy import SmoothingError, triangle_directions
 from c1mesh.stages.smoothing_system import System, assemble_energy, data_rows
@@ -218,22 +218,31 @@ def test_the_galerkin_kernel_is_scipys_triple_product(nx, ny):
 
 
 def test_the_product_kernels_are_scipys_products_column_by_column():
-    """_Rows' product, product-and-add and residual against scipy's S @ X with k = 1, 3
-    and 6 columns (LANES and what is left), and each column's bits the same whatever k."""
-    S, rhs, _ = lattice_system(1.0)
-    rows = lattice_solver._Rows(S, S.indices.dtype)
+    """The stencil form's product and residual, and the CSR product(-and-add) of P,
+    against scipy's with k = 1, 3 and 6 columns (LANES and what is left), each column's
+    bits the same whatever k; the stencil form back as CSR is S."""
+    S, rhs, lattice = lattice_system(1.0)
+    order = colour_order(lattice)
+    solver = LatticeSolver(S, lattice, coarsest=150)
+    fine = solver.levels[0]
+    S = S[(3 * order[:, None] + np.arange(3)).ravel()][:, (3 * order[:, None] + np.arange(3)).ravel()]
+    rhs = rhs.reshape(-1, 3)[order].ravel()
+    assert abs(fine.S - S).max() == 0.0
     X = np.random.default_rng(5).normal(size=(S.shape[0], 6))
+    P = lattice_solver._Rows(fine.P, np.int32)
     for k in (1, 3, 6):
-        want = S @ X[:, :k]
-        got = rows @ np.ascontiguousarray(X[:, :k])
+        x = np.ascontiguousarray(X[:, :k])
+        want = S @ x
+        got = fine.op @ x
         assert np.allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
-        assert got[:, 0].tobytes() == (rows @ np.ascontiguousarray(X[:, :1]))[:, 0].tobytes()
+        assert got[:, 0].tobytes() == (fine.op @ np.ascontiguousarray(X[:, :1]))[:, 0].tobytes()
         B = np.ascontiguousarray(np.repeat(rhs[:, None], k, axis=1))
-        assert np.allclose(rows.residual(B, np.ascontiguousarray(X[:, :k])), B - want, rtol=1e-13,
-                           atol=1e-12 * np.abs(want).max())
-        Y = np.ones((S.shape[0], k))
-        rows.product(np.ascontiguousarray(X[:, :k]), Y, add=True)
-        assert np.allclose(Y, 1.0 + want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+        assert np.allclose(fine.op.residual(B, x), B - want, rtol=1e-13, atol=1e-12 * np.abs(want).max())
+        xc = np.ascontiguousarray(X[:fine.P.shape[1], :k])
+        assert np.allclose(P @ xc, fine.P @ xc, rtol=1e-13, atol=1e-14)
+        Y = np.ones((fine.P.shape[0], k))
+        P.product(xc, Y, add=True)
+        assert np.allclose(Y, 1.0 + fine.P @ xc, rtol=1e-13, atol=1e-14)
 
 
 def test_right_hand_sides_solved_together_are_each_solved_alone():
