@@ -310,96 +310,113 @@ def dots(const double[:, ::1] a, const double[:, ::1] b, double[::1] out, Py_ssi
                 out[c0 + c] = acc[c]
 
 
-cdef enum:
-    MAX_CHILD_ROWS = 64     # distinct fine rows restricting to one coarse vertex (Hermite P: 21)
-
-
-def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks,
+def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const int64_t[::1] nodes,
+             Py_ssize_t nx, const int32_t[:, ::1] offsets,
              const index_t[::1] p_indptr, const index_t[::1] p_indices, const double[::1] p_data,
              const index_t[::1] t_indptr, const index_t[::1] t_indices, const double[::1] t_data,
-             const int32_t[:, ::1] coarse_nbr, double[:, :, :, ::1] coarse_blocks,
-             Py_ssize_t start, Py_ssize_t stop):
+             const int64_t[::1] coarse_nodes, Py_ssize_t nxc, const int32_t[:, ::1] coarse_nbr,
+             double[:, :, :, ::1] coarse_blocks, Py_ssize_t start, Py_ssize_t stop):
     """coarse_blocks[I] (7, 3, 3): the coarse operator Pᵀ S P's blocks for the coarse
     vertices start <= I < stop, in the slots of coarse_nbr[I] (its own vertex and its 6
     stencil neighbours, OFFSETS' order, −1 absent: zeros there).
 
-    S in stencil form (nbr, blocks: the fine level's), P (3n, 3m) and T = Pᵀ (3m, 3n) CSR.
-    A 7-point block stencil stays one under the Hermite P (a coarse entry needs fine
-    offsets a + b − c = 2 (J − I) from three stencil offsets, which no J beyond the 7
-    allows), so the slots have room for every entry; an entry of P's rows whose vertex is
-    not among them is counted and skipped (returned: 0 when the pattern holds).
+    S in stencil form (nbr, blocks) on the fine vertices, on nodes (n,) of a grid nx wide;
+    offsets (7, 2) OFFSETS; P (3n, 3m) and T = Pᵀ (3m, 3n) CSR; coarse_nodes (m,) on the
+    coarse grid nxc wide, coarse node (I, J) on fine node (2I, 2J).
 
-    For each fine row a in I's rows of T (its children, with weights w[p] = T[3I+p, a]),
-    the row (S P)[a] over I's slots is summed (S's slots in order, P's rows in order),
-    then added w[p] times to row p of I's blocks, children in the order T lists them. A
-    row of S P is so computed once for each coarse vertex it restricts to (at most two),
-    and none is stored."""
-    cdef Py_ssize_t I, e, g, a, f, b, c, J, slot, fslot, last_j, last_slot, nchild, ch
-    cdef int p, q, pa
+    For each coarse vertex: R_f = T's 3 × 3 block at each child f (the fine vertices its
+    rows reach, at most 7), then U = Σ_f R_f S_f,g over the children's stencils, g on the
+    5 × 5 fine nodes around the coarse node (children in T's order, their slots in order,
+    R's zero weights skipped: most Hermite weights are 0), then the coarse row
+    Σ_g U_g P_g over those nodes in grid order, P's rows in order. A 7-point block stencil
+    stays one under the Hermite P (a coarse entry needs fine offsets a + b − c = 2 (J − I)
+    from three stencil offsets, which no J beyond the 7 allows), so the slots have room
+    for every entry; anything beyond them (a child off the 3 × 3 fine nodes around the
+    coarse node, an entry of P for a vertex not in the slots) is counted and skipped
+    (returned: 0 when the pattern holds)."""
+    cdef Py_ssize_t I, e, g, f, b, c, J, slot, fslot, last_j, last_slot, nchild, ch, u, ci, cj, gx, gy
+    cdef int p, q, r
     cdef int64_t missing = 0
-    cdef index_t child_row[MAX_CHILD_ROWS]
-    cdef double child_w[MAX_CHILD_ROWS][3]
-    cdef double acc[3][7][3]
-    cdef double row_sp[7][3]
-    cdef double s
+    cdef Py_ssize_t child[SLOTS]
+    cdef double R[SLOTS][3][3]
+    cdef Py_ssize_t uvert[25]
+    cdef double U[25][3][3]
+    cdef double acc[3][SLOTS][3]
+    cdef double rw, uw
     with nogil:
         for I in range(start, stop):
+            ci = coarse_nodes[I] % nxc
+            cj = coarse_nodes[I] // nxc
             nchild = 0
             for p in range(3):
                 for e in range(t_indptr[3 * I + p], t_indptr[3 * I + p + 1]):
-                    a = t_indices[e]
+                    f = t_indices[e] // 3
                     ch = 0
-                    while ch < nchild and child_row[ch] != a:
+                    while ch < nchild and child[ch] != f:
                         ch += 1
                     if ch == nchild:
-                        if nchild == MAX_CHILD_ROWS:
+                        if nchild == SLOTS:
                             missing += 1
                             continue
-                        child_row[ch] = <index_t> a
-                        child_w[ch][0] = 0.0
-                        child_w[ch][1] = 0.0
-                        child_w[ch][2] = 0.0
+                        child[ch] = f
+                        for q in range(3):
+                            for r in range(3):
+                                R[ch][q][r] = 0.0
                         nchild += 1
-                    child_w[ch][p] = t_data[e]
+                    R[ch][p][t_indices[e] - 3 * f] = t_data[e]
+            for u in range(25):
+                uvert[u] = -1
+                for p in range(3):
+                    for q in range(3):
+                        U[u][p][q] = 0.0
+            for ch in range(nchild):
+                f = child[ch]
+                gx = nodes[f] % nx - 2 * ci
+                gy = nodes[f] // nx - 2 * cj
+                if gx < -1 or gx > 1 or gy < -1 or gy > 1:
+                    missing += 1
+                    continue
+                for fslot in range(SLOTS):
+                    g = nbr[f, fslot]
+                    if g < 0:
+                        continue
+                    u = (gy + offsets[fslot, 1] + 2) * 5 + gx + offsets[fslot, 0] + 2
+                    uvert[u] = g
+                    for p in range(3):
+                        for r in range(3):
+                            rw = R[ch][p][r]
+                            if rw == 0.0:
+                                continue
+                            for q in range(3):
+                                U[u][p][q] = U[u][p][q] + rw * blocks[f, fslot, r, q]
             for p in range(3):
-                for slot in range(7):
+                for slot in range(SLOTS):
                     for q in range(3):
                         acc[p][slot][q] = 0.0
-            for ch in range(nchild):
-                a = child_row[ch]
-                f = a // 3
-                pa = <int> (a - 3 * f)
-                for slot in range(7):
-                    for q in range(3):
-                        row_sp[slot][q] = 0.0
-                last_j = -1
-                last_slot = -1
-                for fslot in range(7):
-                    if nbr[f, fslot] < 0:
-                        continue
-                    for q in range(3):
-                        b = 3 * <Py_ssize_t> nbr[f, fslot] + q
-                        s = blocks[f, fslot, pa, q]
-                        for g in range(p_indptr[b], p_indptr[b + 1]):
-                            c = p_indices[g]
-                            J = c // 3
-                            if J != last_j:
-                                slot = 0
-                                while slot < 7 and coarse_nbr[I, slot] != J:
-                                    slot += 1
-                                last_j = J
-                                last_slot = slot
-                            if last_slot == 7:
-                                missing += 1
-                                continue
-                            row_sp[last_slot][c - 3 * J] = row_sp[last_slot][c - 3 * J] + s * p_data[g]
-                for p in range(3):
-                    if child_w[ch][p] == 0.0:       # adds nothing (most Hermite weights are 0)
-                        continue
-                    for slot in range(7):
-                        for q in range(3):
-                            acc[p][slot][q] = acc[p][slot][q] + child_w[ch][p] * row_sp[slot][q]
-            for slot in range(7):
+            last_j = -1
+            last_slot = SLOTS
+            for u in range(25):
+                g = uvert[u]
+                if g < 0:
+                    continue
+                for q in range(3):
+                    b = 3 * g + q
+                    for e in range(p_indptr[b], p_indptr[b + 1]):
+                        c = p_indices[e]
+                        J = c // 3
+                        if J != last_j:
+                            slot = 0
+                            while slot < SLOTS and coarse_nbr[I, slot] != J:
+                                slot += 1
+                            last_j = J
+                            last_slot = slot
+                        if last_slot == SLOTS:
+                            missing += 1
+                            continue
+                        uw = p_data[e]
+                        for p in range(3):
+                            acc[p][last_slot][c - 3 * J] = acc[p][last_slot][c - 3 * J] + U[u][p][q] * uw
+            for slot in range(SLOTS):
                 for p in range(3):
                     for q in range(3):
                         coarse_blocks[I, slot, p, q] = acc[p][slot][q]

@@ -396,19 +396,23 @@ class Stencil:
         return r
 
 
-def galerkin(S: Stencil, P, PT, neighbours: np.ndarray) -> Stencil:
-    """Pᵀ S P in stencil form on the coarse slots `neighbours` (stencil_neighbours of the
-    coarse level), by the kernel `galerkin`, the coarse vertices in fixed blocks of
-    GALERKIN_BLOCK in the thread knob's threads: S the fine level's, P (3n, 3m) and
-    PT = Pᵀ CSR. SmoothingError when an entry falls outside the coarse stencil (P not a
-    lattice prolongation)."""
+def galerkin(fine: "_Level", P, PT, coarse: np.ndarray, nxc: int, nyc: int) -> Stencil:
+    """Pᵀ S P in stencil form for the level below `fine` (its S, nodes, grid), by the
+    kernel `galerkin`, the coarse vertices in fixed blocks of GALERKIN_BLOCK in the thread
+    knob's threads: P (3n, 3m) and PT = Pᵀ CSR, coarse (m,) the coarse level's nodes on
+    its nxc × nyc grid. SmoothingError when an entry falls outside the coarse stencil (P
+    not a lattice prolongation)."""
     dtype = _index_dtype(P, PT)
     args = [a for M in (P, PT) for a in _Rows(M, dtype).arrays()]
+    neighbours = stencil_neighbours(coarse, nxc, nyc)
+    offsets = np.array(OFFSETS, dtype=np.int32)
     blocks = np.empty(neighbours.shape + (3, 3))
+    S, nodes = fine.op, np.ascontiguousarray(fine.nodes, dtype=np.int64)
+    coarse = np.ascontiguousarray(coarse, dtype=np.int64)
     missing = []
-    parallel_blocks(lambda part: missing.append(kernel.galerkin(S.nbr, S.blocks, *args, neighbours, blocks,
-                                                                part.start, part.stop)),
-                    neighbours.shape[0], GALERKIN_BLOCK)
+    parallel_blocks(lambda part: missing.append(kernel.galerkin(
+        S.nbr, S.blocks, nodes, fine.nx, offsets, *args, coarse, nxc, neighbours, blocks, part.start, part.stop)),
+        neighbours.shape[0], GALERKIN_BLOCK)
     if sum(missing):
         raise SmoothingError(f"{sum(missing)} entries of the Galerkin product fall outside the lattice's stencil")
     return Stencil(neighbours, blocks)
@@ -497,8 +501,7 @@ class LatticeSolver:
                 break
             P = PT.T.tocsr()
             level.link(P, PT)
-            self.levels.append(_Level(galerkin(level.op, P, PT, stencil_neighbours(coarse, nxc, nyc)),
-                                      coarse, nxc, nyc))
+            self.levels.append(_Level(galerkin(level, P, PT, coarse, nxc, nyc), coarse, nxc, nyc))
             hx, hy = 2 * hx, 2 * hy
         method = available_solvers()[0]
         self.coarse = Factor(self.levels[-1].S, "superlu" if method == "amg-cg" else method)
