@@ -95,14 +95,21 @@ def test_the_hierarchy_drops_absent_nodes_level_by_level():
 
 
 def test_the_same_bytes_at_one_and_two_threads(monkeypatch):
-    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)           # many blocks per colour
+    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)           # many blocks per colour,
+    monkeypatch.setattr(lattice_solver, "ROW_BLOCK", 301)            # per product of P, Pᵀ and dot,
+    monkeypatch.setattr(lattice_solver, "GALERKIN_BLOCK", 23)        # and per coarse operator
     S, rhs, lattice = lattice_system(0.1)
     runs = []
+    probes = np.random.default_rng(1).choice([-1.0, 1.0], (rhs.size, 5))
     for threads in (1, 2, 1):
         with limit(threads):
-            runs.append(lattice_solve(S, rhs, lattice, 1e-6, coarsest=150))
-    assert runs[0][1] == runs[1][1] == runs[2][1]
-    assert runs[0][0].tobytes() == runs[1][0].tobytes() == runs[2][0].tobytes()
+            solver = LatticeSolver(S, lattice, coarsest=150)
+            runs.append((solver.pcg(rhs, 1e-6), solver.pcg(probes, 1e-3), solver.levels[1].op.blocks))
+    for run in runs[1:]:
+        assert run[0][1] == runs[0][0][1] and run[1][1] == runs[0][1][1]
+        assert run[0][0].tobytes() == runs[0][0][0].tobytes()
+        assert run[1][0].tobytes() == runs[0][1][0].tobytes()
+        assert run[2].tobytes() == runs[0][2].tobytes()
 
 
 def _quadratic(x, y):

@@ -20,9 +20,12 @@ is what that study recommends:
   ∂m f = (g0 + g1)·m/2: exact for quadratics (what a fourth-order operator needs; the
   coarse RSD spline's own values reproduce only linears and took twice the iterations).
   It depends on the coarse grid's spacings (hx, hy) only;
-* coarse operators Galerkin, Pᵀ S P (they keep the 7-point block pattern), each row
-  summed by the kernel `galerkin` straight into that pattern (scipy's two sparse products
-  took 2.4 s of the 4 s set-up at 1M vertices);
+* coarse operators Galerkin, Pᵀ S P (they keep the 7-point block pattern), each coarse
+  vertex's blocks summed by the kernel `galerkin` straight into that pattern (scipy's
+  two sparse products took 2.4 s of the 4 s set-up at 1M vertices);
+* every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
+  blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
+  product) is bound by reading it, and CSR read 45 % more;
 * the smoother block (3 × 3 per vertex) Gauss–Seidel in the 3 colours (i + j) mod 3, which
   no stencil offset keeps: 0, 1, 2 before the coarse correction and 2, 1, 0 after it, so
   the cycle is symmetric (stages/_lattice_solver.pyx; the vertices of a colour in fixed
@@ -269,8 +272,8 @@ def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
 def colour_order(lattice: Lattice) -> np.ndarray:
     """(N,) the vertices in the order the solver's levels number them: colour by colour
     ((i + j) mod 3), by node within a colour. A system assembled with its vertices
-    numbered so (smooth_fit does) is solved in place; any other order costs the solver
-    a permuted copy of S."""
+    numbered so (smooth_fit does) is read as it is; any other order costs the solver a
+    permuted copy of S."""
     return np.lexsort((lattice.nodes, colours(lattice.nodes, lattice.shape[1])))
 
 
@@ -477,8 +480,8 @@ class LatticeSolver:
     right-hand sides: `start` (the full-multigrid guess), `pcg` (CG from it), `cycle` (one
     V-cycle, the preconditioner). S (3N, 3N) CSR, symmetric positive definite, vertex k's
     unknowns 3k..3k+2 on node lattice.nodes[k], lattice in the lengths S was built in.
-    Vertices numbered colour by colour (colour_order) are solved in S itself, others in
-    a permuted copy. coarsest: coarsen while a level has more vertices (None: COARSEST,
+    S is read into the fine level's stencil form (Stencil.from_csr); vertices not numbered
+    colour by colour (colour_order) cost a permuted copy of S first. coarsest: coarsen while a level has more vertices (None: COARSEST,
     read when called). seconds: the set-up's wall time."""
 
     def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
