@@ -191,6 +191,13 @@ def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
     lam = np.stack([np.roll(row, k) for row, k in zip(lam, turn[tri])])
     shapes = lattice_shapes(lattice, T)
     assert isinstance(shapes, TriangleShapes) and shapes.reps.size == 6     # 2 triangles × 3 rotations
+    j, i = np.divmod(lattice.nodes[T], NX)
+    offsets = np.concatenate([i[:, 1:] - i[:, :1], j[:, 1:] - j[:, :1]], axis=1)
+    _, reps, key = np.unique(offsets, axis=0, return_index=True, return_inverse=True)
+    assert np.array_equal(shapes.reps, reps) and np.array_equal(shapes.key, key.ravel())
+    far = np.array([[np.argmin(lattice.nodes), np.argmax(lattice.nodes), np.argmax(lattice.nodes) - 1]])
+    with pytest.raises(SmoothingError, match="one cell's nodes"):                # corners across the grid
+        lattice_shapes(lattice, far)
     found, barycentric = lattice_locate(lattice, points, T, xy)
     assert np.array_equal(found, tri)
     assert np.abs(barycentric - lam).max() < 1e-12
