@@ -269,3 +269,20 @@ def test_right_hand_sides_solved_together_are_each_solved_alone():
     for c in range(B.shape[1]):
         alone, _ = solver.pcg(np.ascontiguousarray(B[:, c]), 1e-5)
         assert together[:, c].tobytes() == alone.tobytes()
+
+
+def test_smooth_fit_on_the_lattice_gives_the_same_bytes_at_one_and_two_threads(monkeypatch):
+    """Values, gradients and the edf (Hutchinson's vᵀF over 40k data: long enough for a
+    BLAS dot to split across threads) are the same bytes at 1 and 2 threads."""
+    monkeypatch.setattr(lattice_solver, "COARSEST", 150)
+    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)
+    points, T, lattice, data = lattice_mesh()
+    xy, z, _, _ = data(40_000)
+    given = SmoothingData(z, spacing=float(np.sqrt(HX * HY / 3)), xy=xy)
+    fits = []
+    for threads in (1, 2):
+        with limit(threads):
+            fits.append(smooth_fit(points, T, given, SmoothingControl(strength=1.0), lattice=lattice))
+    assert fits[0].values.tobytes() == fits[1].values.tobytes()
+    assert fits[0].gradients.tobytes() == fits[1].gradients.tobytes()
+    assert np.float64(fits[0].edf).tobytes() == np.float64(fits[1].edf).tobytes()
