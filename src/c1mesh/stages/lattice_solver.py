@@ -481,8 +481,9 @@ class LatticeSolver:
     V-cycle, the preconditioner). S (3N, 3N) CSR, symmetric positive definite, vertex k's
     unknowns 3k..3k+2 on node lattice.nodes[k], lattice in the lengths S was built in.
     S is read into the fine level's stencil form (Stencil.from_csr); vertices not numbered
-    colour by colour (colour_order) cost a permuted copy of S first. coarsest: coarsen while a level has more vertices (None: COARSEST,
-    read when called). seconds: the set-up's wall time."""
+    colour by colour (colour_order) cost a permuted copy of S first. coarsest: coarsen
+    while a level has more vertices (None: COARSEST, read when called). seconds: the
+    set-up's wall time."""
 
     def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
         t0 = time.perf_counter()
@@ -526,7 +527,8 @@ class LatticeSolver:
         # the last colour swept has no residual left (its block equations were just solved
         # with its neighbours as they are): only colours 0 and 1 are computed
         r = level.op.residual(b, x, level.scratch("residual", b.shape), vertices=int(level.bounds[2]))
-        coarse = level.PT_rows.product(r, self.levels[k + 1].scratch("restricted", (level.PT_rows.shape[0], b.shape[1])))
+        below = self.levels[k + 1]
+        coarse = level.PT_rows.product(r, below.scratch("restricted", (level.PT_rows.shape[0], b.shape[1])))
         level.P_rows.product(self.cycle(coarse, k + 1), x, add=True)
         level.sweep(x, b, (2, 1, 0))
         return x
@@ -583,15 +585,17 @@ class LatticeSolver:
         rz = _dots(r, z)
         for k in range(1, MAX_ITERATIONS + 1):
             done = rz == 0.0                          # r = 0: x solves it
-            if not done.all():
-                Ap = A @ p
-                pAp = _dots(p, Ap)
-                if not (pAp[~done] > 0.0).all() or not np.isfinite(pAp).all():
-                    raise SmoothingError("the smoothing system is not positive definite on the lattice")
-                alpha = np.where(done, 0.0, rz / np.where(done, 1.0, pAp))
-                _blockwise(lambda part: (np.add(x[part], alpha * p[part], out=x[part]),
-                                         np.subtract(r[part], alpha * Ap[part], out=r[part])), n)
-                done |= np.abs(alpha) * np.abs(p[0::3]).max(axis=0) <= step_tol
+            if done.all():
+                out[:, live] = x
+                return out, k - 1
+            Ap = A @ p
+            pAp = _dots(p, Ap)
+            if not (pAp[~done] > 0.0).all() or not np.isfinite(pAp).all():
+                raise SmoothingError("the smoothing system is not positive definite on the lattice")
+            alpha = np.where(done, 0.0, rz / np.where(done, 1.0, pAp))     # a column with r = 0 stays
+            _blockwise(lambda part: (np.add(x[part], alpha * p[part], out=x[part]),
+                                     np.subtract(r[part], alpha * Ap[part], out=r[part])), n)
+            done |= np.abs(alpha) * np.abs(p[0::3]).max(axis=0) <= step_tol
             if done.any():
                 out[:, live[done]] = x[:, done]
                 if done.all():
