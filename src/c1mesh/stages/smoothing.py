@@ -688,11 +688,17 @@ def _shared_directions(npts: np.ndarray, triangles: np.ndarray, shapes: Triangle
     return shared[shapes.key]
 
 
+LOCATE_BLOCK = 1 << 16
+"""Points per block of lattice_locate's barycentrics (in the thread knob's threads)."""
+
+
 def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
                    xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(triangle (M,) of each point xy (M, 2), −1 outside; barycentrics (M, 3) in its
     corners' order, NaN outside) on a lattice mesh (grid in the units of npts and xy): the
-    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal."""
+    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal;
+    the barycentrics point by point in fixed blocks in the thread knob's threads (the
+    same bits at any count)."""
     ny, nx = grid.shape
     hx, hy = grid.spacing
     u = (xy[:, 0] - grid.origin[0]) / hx
@@ -709,12 +715,15 @@ def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
     box = (u >= 0) & (v >= 0) & (u <= nx - 1) & (v <= ny - 1)
     tri = np.where(box, where[slot], -1)
     lam = np.full((xy.shape[0], 3), np.nan)
-    found = tri >= 0
-    corners = npts[triangles[tri[found]]]                              # (m, 3, 2)
-    G, _ = rsd.barycentric_gradients(corners)
-    offset = xy[found] - corners[:, 0]
-    rest = np.einsum("mkd,md->mk", G[:, 1:], offset)
-    lam[found] = np.column_stack([1.0 - rest.sum(axis=1), rest])
+
+    def barycentrics(part: slice) -> None:             # the found points of a block (element-wise)
+        found = np.flatnonzero(tri[part] >= 0) + part.start
+        corners = npts[triangles[tri[found]]]                          # (m, 3, 2)
+        G, _ = rsd.barycentric_gradients(corners)
+        rest = np.einsum("mkd,md->mk", G[:, 1:], xy[found] - corners[:, 0])
+        lam[found, 0] = 1.0 - rest.sum(axis=1)
+        lam[found, 1:] = rest
+    parallel_blocks(barycentrics, xy.shape[0], LOCATE_BLOCK)
     return tri, lam
 
 
