@@ -11,7 +11,7 @@ from c1mesh.core.threads import limit
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import lattice_solver
-from c1mesh.stages.lattice_solver import Lattice, LatticeSolver, lattice_solve, prolongation
+from c1mesh.stages.lattice_solver import Lattice, LatticeSolver, colour_order, lattice_solve, prolongation
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.smoothing_energy import SmoothingError, triangle_directions
 from c1mesh.stages.smoothing_system import System, assemble_energy, data_rows
@@ -95,14 +95,21 @@ def test_the_hierarchy_drops_absent_nodes_level_by_level():
 
 
 def test_the_same_bytes_at_one_and_two_threads(monkeypatch):
-    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)           # many blocks per colour
+    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)           # many blocks per colour,
+    monkeypatch.setattr(lattice_solver, "ROW_BLOCK", 301)            # per product of P, Pᵀ and dot,
+    monkeypatch.setattr(lattice_solver, "GALERKIN_BLOCK", 23)        # and per coarse operator
     S, rhs, lattice = lattice_system(0.1)
     runs = []
+    probes = np.random.default_rng(1).choice([-1.0, 1.0], (rhs.size, 5))
     for threads in (1, 2, 1):
         with limit(threads):
-            runs.append(lattice_solve(S, rhs, lattice, 1e-6, coarsest=150))
-    assert runs[0][1] == runs[1][1] == runs[2][1]
-    assert runs[0][0].tobytes() == runs[1][0].tobytes() == runs[2][0].tobytes()
+            solver = LatticeSolver(S, lattice, coarsest=150)
+            runs.append((solver.pcg(rhs, 1e-6), solver.pcg(probes, 1e-3), solver.levels[1].op.blocks))
+    for run in runs[1:]:
+        assert run[0][1] == runs[0][0][1] and run[1][1] == runs[0][1][1]
+        assert run[0][0].tobytes() == runs[0][0][0].tobytes()
+        assert run[1][0].tobytes() == runs[0][1][0].tobytes()
+        assert run[2].tobytes() == runs[0][2].tobytes()
 
 
 def _quadratic(x, y):
@@ -184,6 +191,13 @@ def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
     lam = np.stack([np.roll(row, k) for row, k in zip(lam, turn[tri])])
     shapes = lattice_shapes(lattice, T)
     assert isinstance(shapes, TriangleShapes) and shapes.reps.size == 6     # 2 triangles × 3 rotations
+    j, i = np.divmod(lattice.nodes[T], NX)
+    offsets = np.concatenate([i[:, 1:] - i[:, :1], j[:, 1:] - j[:, :1]], axis=1)
+    _, reps, key = np.unique(offsets, axis=0, return_index=True, return_inverse=True)
+    assert np.array_equal(shapes.reps, reps) and np.array_equal(shapes.key, key.ravel())
+    far = np.array([[np.argmin(lattice.nodes), np.argmax(lattice.nodes), np.argmax(lattice.nodes) - 1]])
+    with pytest.raises(SmoothingError, match="one cell's nodes"):                # corners across the grid
+        lattice_shapes(lattice, far)
     found, barycentric = lattice_locate(lattice, points, T, xy)
     assert np.array_equal(found, tri)
     assert np.abs(barycentric - lam).max() < 1e-12
@@ -198,3 +212,77 @@ def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
     assert np.abs(shared_rows.values - rows.values).max() < 1e-11
     outside = lattice_locate(lattice, points, T, np.array([[10.0 + 25 * HX, -5.0 + 20 * HY], [0.0, 0.0]]))[0]
     assert list(outside) == [-1, -1]                                  # in the hole; beyond the lattice
+
+
+@pytest.mark.parametrize("nx, ny", [(41, 33), (40, 34), (41, 34)])
+def test_the_galerkin_kernel_is_scipys_triple_product(nx, ny):
+    """Every coarse operator equals Pᵀ S P as scipy multiplies it here, entry by entry to
+    rounding, on lattices with holes and odd and even sizes (coarse nodes standing in for
+    missing ones beyond ragged borders)."""
+    S, _, lattice = lattice_system(0.3, nx=nx, ny=ny)
+    solver = LatticeSolver(S, lattice, coarsest=40)
+    assert len(solver.levels) >= 3
+    for fine, coarse in zip(solver.levels, solver.levels[1:]):
+        want = (fine.P.T @ fine.S @ fine.P).tocsr()
+        got = coarse.S
+        assert got.shape == want.shape
+        scale = np.abs(want.data).max()
+        assert abs(got - want).max() <= 1e-12 * scale
+        assert (abs(want) > 1e-9 * scale).nnz > 0.5 * got.nnz          # the pattern is no padding
+
+
+def test_the_product_kernels_are_scipys_products_column_by_column():
+    """The stencil form's product and residual, and the CSR product(-and-add) of P,
+    against scipy's with k = 1, 3 and 6 columns (LANES and what is left), each column's
+    bits the same whatever k; the stencil form back as CSR is S."""
+    S, rhs, lattice = lattice_system(1.0)
+    order = colour_order(lattice)
+    solver = LatticeSolver(S, lattice, coarsest=150)
+    fine = solver.levels[0]
+    S = S[(3 * order[:, None] + np.arange(3)).ravel()][:, (3 * order[:, None] + np.arange(3)).ravel()]
+    rhs = rhs.reshape(-1, 3)[order].ravel()
+    assert abs(fine.S - S).max() == 0.0
+    X = np.random.default_rng(5).normal(size=(S.shape[0], 6))
+    P = lattice_solver._Rows(fine.P, np.int32)
+    for k in (1, 3, 6):
+        x = np.ascontiguousarray(X[:, :k])
+        want = S @ x
+        got = fine.op @ x
+        assert np.allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+        assert got[:, 0].tobytes() == (fine.op @ np.ascontiguousarray(X[:, :1]))[:, 0].tobytes()
+        B = np.ascontiguousarray(np.repeat(rhs[:, None], k, axis=1))
+        assert np.allclose(fine.op.residual(B, x), B - want, rtol=1e-13, atol=1e-12 * np.abs(want).max())
+        xc = np.ascontiguousarray(X[:fine.P.shape[1], :k])
+        assert np.allclose(P @ xc, fine.P @ xc, rtol=1e-13, atol=1e-14)
+        Y = np.ones((fine.P.shape[0], k))
+        P.product(xc, Y, add=True)
+        assert np.allclose(Y, 1.0 + fine.P @ xc, rtol=1e-13, atol=1e-14)
+
+
+def test_right_hand_sides_solved_together_are_each_solved_alone():
+    """pcg on (3N, k): each column's CG is its own, so its bits are those of the column
+    solved alone (and the columns stop at their own iterations)."""
+    S, rhs, lattice = lattice_system(0.1)
+    solver = LatticeSolver(S, lattice, coarsest=150)
+    B = np.stack([rhs, 1e-3 * rhs[::-1], np.random.default_rng(2).choice([-1.0, 1.0], rhs.size)], axis=1)
+    together, _ = solver.pcg(B, 1e-5)
+    for c in range(B.shape[1]):
+        alone, _ = solver.pcg(np.ascontiguousarray(B[:, c]), 1e-5)
+        assert together[:, c].tobytes() == alone.tobytes()
+
+
+def test_smooth_fit_on_the_lattice_gives_the_same_bytes_at_one_and_two_threads(monkeypatch):
+    """Values, gradients and the edf (Hutchinson's vᵀF over 40k data: long enough for a
+    BLAS dot to split across threads) are the same bytes at 1 and 2 threads."""
+    monkeypatch.setattr(lattice_solver, "COARSEST", 150)
+    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 97)
+    points, T, lattice, data = lattice_mesh()
+    xy, z, _, _ = data(40_000)
+    given = SmoothingData(z, spacing=float(np.sqrt(HX * HY / 3)), xy=xy)
+    fits = []
+    for threads in (1, 2):
+        with limit(threads):
+            fits.append(smooth_fit(points, T, given, SmoothingControl(strength=1.0), lattice=lattice))
+    assert fits[0].values.tobytes() == fits[1].values.tobytes()
+    assert fits[0].gradients.tobytes() == fits[1].gradients.tobytes()
+    assert np.float64(fits[0].edf).tobytes() == np.float64(fits[1].edf).tobytes()

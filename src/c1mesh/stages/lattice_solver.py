@@ -20,7 +20,12 @@ is what that study recommends:
   ∂m f = (g0 + g1)·m/2: exact for quadratics (what a fourth-order operator needs; the
   coarse RSD spline's own values reproduce only linears and took twice the iterations).
   It depends on the coarse grid's spacings (hx, hy) only;
-* coarse operators Galerkin, Pᵀ S P (they keep the 7-point block pattern);
+* coarse operators Galerkin, Pᵀ S P (they keep the 7-point block pattern), each coarse
+  vertex's blocks summed by the kernel `galerkin` straight into that pattern (scipy's
+  two sparse products took 2.4 s of the 4 s set-up at 1M vertices);
+* every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
+  blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
+  product) is bound by reading it, and CSR read 45 % more;
 * the smoother block (3 × 3 per vertex) Gauss–Seidel in the 3 colours (i + j) mod 3, which
   no stencil offset keeps: 0, 1, 2 before the coarse correction and 2, 1, 0 after it, so
   the cycle is symmetric (stages/_lattice_solver.pyx; the vertices of a colour in fixed
@@ -41,10 +46,15 @@ preconditioner each step contracts the error by 0.3-0.6, so the last step bounds
 mm stopped every run of the study within 0.007-0.074 mm of CHOLMOD). MAX_ITERATIONS is a
 hard cap: reaching it raises SmoothingError.
 
-Determinism: the bits do not depend on the thread count. CG's inner products are numpy's
-pairwise sums (np.add.reduce), not BLAS dot products (OpenBLAS may split those across
-threads); scipy's sparse products run in one thread; the coarsest solve is Factor's,
-with DIRECT_BLAS_THREADS; the sweeps write disjoint vertices in fixed blocks.
+Several right-hand sides (the edf's probes) are solved side by side as the columns of
+(3N, k) arrays: every kernel's pass over S serves all k (a pass is bound by reading S),
+while each column keeps its own CG and its bits are those it would have alone.
+
+Determinism: the bits do not depend on the thread count. Every kernel (products with S,
+P and Pᵀ, residuals, sweeps, Galerkin rows, inner products) works on fixed blocks of
+rows or vertices in the thread knob's threads, each sum in a fixed order; the inner
+products' block sums are added in block order; the coarsest solve is Factor's, with
+DIRECT_BLAS_THREADS.
 """
 from __future__ import annotations
 
@@ -70,6 +80,10 @@ MAX_ITERATIONS = 200
 SWEEP_BLOCK = 1 << 14
 """Vertices per block of the Gauss–Seidel kernels (one colour's vertices in blocks in the
 thread knob's threads)."""
+ROW_BLOCK = 3 << 14
+"""CSR rows per block of the product and residual kernels (S, P and Pᵀ)."""
+GALERKIN_BLOCK = 1 << 12
+"""Coarse vertices per block of the Galerkin kernel."""
 OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1))
 """The fine nodes a coarse node's data reach: the node itself and the midpoints of its 6
 coarse edges, as fine-grid offsets (di, dj) from its fine node."""
@@ -131,7 +145,9 @@ def _checked_nodes(lattice: Lattice, n: int) -> tuple[np.ndarray, int, int]:
         raise SmoothingError(f"the lattice's nodes must be ({n},), one per vertex, got {nodes.shape}")
     if n and (nodes.min() < 0 or nodes.max() >= nx * ny):
         raise SmoothingError(f"the lattice's nodes must lie in [0, {nx * ny - 1}]")
-    if np.unique(nodes).size != n:
+    seen = np.zeros(nx * ny, dtype=bool)
+    seen[nodes] = True
+    if np.count_nonzero(seen) != n:
         raise SmoothingError("the lattice's nodes must be distinct")
     return nodes, nx, ny
 
@@ -162,8 +178,16 @@ def prolongation(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
     ascending or not; vertex k is nodes[k]) on an nx × ny grid of spacing (hx, hy) to the
     coarse grid of (nx // 2 + 1) × (ny // 2 + 1) nodes, coarse node (I, J) on fine node
     (2I, 2J). P (3 len(nodes), 3 len(coarse nodes)) CSR: Hermite weights (hermite_weights
-    at 2 hx, 2 hy); coarse nodes (ascending flat indices) those kept by the module doc's
-    rule: own fine node present, or at least two fine nodes of its support."""
+    at 2 hx, 2 hy); coarse nodes those kept by the module doc's rule (own fine node
+    present, or at least two fine nodes of its support), numbered colour by colour
+    (colour_order's numbering, the coarse level's own)."""
+    PT, coarse, nxc, nyc = restriction(nodes, nx, ny, spacing)
+    return PT.T.tocsr(), coarse, nxc, nyc
+
+
+def restriction(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
+    """(Pᵀ CSR, coarse nodes, nxc, nyc): `prolongation` with its matrix transposed (the
+    form stencil_rows builds; the solver needs both)."""
     nodes = np.asarray(nodes, dtype=np.int64)
     nxc, nyc = nx // 2 + 1, ny // 2 + 1
     where = np.full(nx * ny, -1, dtype=np.int64)
@@ -179,11 +203,11 @@ def prolongation(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
         fine[inside] = where[fj[inside] * nx + fi[inside]]
         hits.append(fine)
         reach += fine >= 0
-    keep = (hits[0] >= 0) | (reach >= 2)
-    coarse = np.flatnonzero(keep)
+    coarse = np.flatnonzero((hits[0] >= 0) | (reach >= 2))
+    coarse = coarse[np.lexsort((coarse, colours(coarse, nxc)))]
     column = np.full(nxc * nyc, -1, dtype=np.int64)
     column[coarse] = np.arange(coarse.size)
-    return stencil_matrix(hits, column, W, nodes.size, coarse.size), coarse, nxc, nyc
+    return stencil_rows(hits, column, W, nodes.size, coarse.size), coarse, nxc, nyc
 
 
 def stencil_matrix(hits: list, column: np.ndarray, weights: dict, fine: int, coarse: int):
@@ -191,27 +215,52 @@ def stencil_matrix(hits: list, column: np.ndarray, weights: dict, fine: int, coa
     OFFSETS[k] from each of C coarse grid nodes (−1: none), column (C,) each node's coarse
     vertex (−1: dropped), weights {(di, dj): W (3, 3)} the fine datum per unit coarse datum
     at each offset (hermite_weights; benchmarks.grid_solver measures others)."""
-    rows, cols, vals = [], [], []
-    for (di, dj), hit in zip(OFFSETS, hits):
-        ok = (hit >= 0) & (column >= 0)
-        fv, cv = hit[ok], column[ok]
-        w = weights[(di, dj)]
-        for p in range(3):
-            for q in range(3):
-                if w[p, q] != 0.0:
-                    rows.append(3 * fv + p)
-                    cols.append(3 * cv + q)
-                    vals.append(np.full(fv.size, w[p, q]))
-    P = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(3 * fine, 3 * coarse))
-    P.sum_duplicates()
-    return P
+    return stencil_rows(hits, column, weights, fine, coarse).T.tocsr()
+
+
+def stencil_rows(hits: list, column: np.ndarray, weights: dict, fine: int, coarse: int):
+    """Pᵀ (3 coarse, 3 fine) CSR of stencil_matrix's P, built row by row without sorting:
+    row 3c + q of coarse vertex c holds, offset by offset in OFFSETS' order, W[p, q] at
+    column 3 f + p for the fine vertex f there and each nonzero weight (scipy's COO
+    assembly of P took 1.2 s of the 1M set-up)."""
+    node = np.empty(coarse, dtype=np.int64)
+    node[column[column >= 0]] = np.flatnonzero(column >= 0)         # each coarse vertex's grid node
+    found = [np.asarray(hit)[node] for hit in hits]                # (coarse,) fine vertex per offset
+    terms = [[(k, p, weights[off][p, q]) for k, off in enumerate(OFFSETS) for p in range(3)
+              if weights[off][p, q] != 0.0] for q in range(3)]
+    width = max(len(t) for t in terms)
+    dtype = np.int32 if 3 * fine < np.iinfo(np.int32).max else np.int64
+    cols = np.full((coarse, 3, width), -1, dtype=dtype)
+    table = np.zeros((3, width))                                   # the weight of each (q, e) slot
+    for q, row_terms in enumerate(terms):
+        for e, (k, p, w) in enumerate(row_terms):
+            f = found[k]
+            np.copyto(cols[:, q, e], 3 * f + p, where=f >= 0)
+            table[q, e] = w
+    present = cols >= 0
+    indptr = np.zeros(3 * coarse + 1, dtype=np.int64)
+    np.cumsum(np.count_nonzero(present, axis=2).ravel(), out=indptr[1:])
+    return sp.csr_matrix((np.broadcast_to(table, cols.shape)[present], cols[present], indptr),
+                         shape=(3 * coarse, 3 * fine))
 
 
 # ------------------------------------------------------------------------ multigrid
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """a · b by numpy's pairwise sum in one thread (the same bits at any thread count)."""
-    return float(np.add.reduce(a * b))
+def _dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(k,) the column-wise inner products of a, b (n, k): kernel.dots' sums over fixed
+    blocks of ROW_BLOCK rows in the thread knob's threads, then the blocks' sums added in
+    block order (numpy's pairwise sum): the same bits at any thread count, and for a
+    column whatever k is."""
+    n, k = a.shape
+    partial = np.empty((-(-n // ROW_BLOCK), k))
+    parallel_blocks(lambda part: kernel.dots(a, b, partial[part.start // ROW_BLOCK], part.start, part.stop),
+                    n, ROW_BLOCK)
+    return np.array([np.add.reduce(partial[:, c]) for c in range(k)])
+
+
+def _blockwise(work, n: int) -> None:
+    """work(slice) over fixed blocks of ROW_BLOCK of range(n) in the thread knob's threads
+    (numpy's element-wise kernels release the GIL; the bits do not depend on the threads)."""
+    parallel_blocks(work, n, ROW_BLOCK)
 
 
 def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
@@ -223,8 +272,8 @@ def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
 def colour_order(lattice: Lattice) -> np.ndarray:
     """(N,) the vertices in the order the solver's levels number them: colour by colour
     ((i + j) mod 3), by node within a colour. A system assembled with its vertices
-    numbered so (smooth_fit does) is solved in place; any other order costs the solver
-    a permuted copy of S."""
+    numbered so (smooth_fit does) is read as it is; any other order costs the solver a
+    permuted copy of S."""
     return np.lexsort((lattice.nodes, colours(lattice.nodes, lattice.shape[1])))
 
 
@@ -239,39 +288,191 @@ def _permuted(S, order: np.ndarray):
     return rows
 
 
-class _Level:
-    """One grid: S (CSR) with its vertices numbered colour by colour (colour_order), their
-    nodes, each colour's first vertex (bounds (4,)), the inverses of S's diagonal blocks,
-    and P, Pᵀ to the next coarser grid (None on the coarsest)."""
+class _Rows:
+    """A CSR matrix (m, n) as the kernels take it (indptr and indices of one integer type;
+    P and Pᵀ): products with (n, k) blocks of vectors, its rows in fixed blocks of
+    ROW_BLOCK in the thread knob's threads (each row summed in its stored order, so the
+    bits do not depend on the threads)."""
 
-    def __init__(self, S, nodes: np.ndarray, nx: int, ny: int):
+    def __init__(self, M, index_dtype):
+        self.indptr = np.ascontiguousarray(M.indptr, dtype=index_dtype)
+        self.indices = np.ascontiguousarray(M.indices, dtype=index_dtype)
+        self.data = np.ascontiguousarray(M.data, dtype=np.float64)
+        self.shape = M.shape
+
+    def arrays(self) -> tuple:
+        return self.indptr, self.indices, self.data
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        """A x (m, k) for x (n, k)."""
+        return self.product(x, np.empty((self.shape[0], x.shape[1])))
+
+    def product(self, x: np.ndarray, out: np.ndarray, add: bool = False) -> np.ndarray:
+        """out = A x, or out += A x when add (one pass, no temporary); returns out."""
+        parallel_blocks(lambda part: kernel.csr_product(*self.arrays(), x, out, add, part.start, part.stop),
+                        self.shape[0], ROW_BLOCK)
+        return out
+
+
+def _index_dtype(*matrices) -> type:
+    """int32 when every index of the matrices fits in it, else int64."""
+    big = max(max(M.shape[0], M.shape[1], M.nnz) for M in matrices)
+    return np.int32 if big < np.iinfo(np.int32).max else np.int64
+
+
+def stencil_neighbours(nodes: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """(N, 7) int32: for each vertex of a level (vertex k on node nodes[k] of an nx × ny
+    grid), the vertex at each of OFFSETS' offsets from it (slot 0 itself), −1 where
+    there is none: the slots of its blocks in stencil form (Stencil)."""
+    if nodes.size >= np.iinfo(np.int32).max:
+        raise SmoothingError(f"the lattice solver takes fewer than 2^31 vertices, got {nodes.size}")
+    where = np.full(nx * ny, -1, dtype=np.int32)
+    where[nodes] = np.arange(nodes.size, dtype=np.int32)
+    j, i = np.divmod(np.asarray(nodes, dtype=np.int64), nx)
+    out = np.full((nodes.size, len(OFFSETS)), -1, dtype=np.int32)
+    for k, (di, dj) in enumerate(OFFSETS):
+        ni, nj = i + di, j + dj
+        inside = (ni >= 0) & (ni < nx) & (nj >= 0) & (nj < ny)
+        out[inside, k] = where[nj[inside] * nx + ni[inside]]
+    return out
+
+
+class Stencil:
+    """A level's S in stencil form: nbr (N, 7) int32 (stencil_neighbours) and blocks
+    (N, 7, 3, 3), blocks[v, k] the 3 × 3 block of S coupling vertex v to vertex nbr[v, k]
+    (zeros where it is −1). One index per 9 values: a pass over S reads 0.53 kB a vertex
+    where CSR read 0.77, and every pass of the solver is bound by that read. Products
+    and residuals with (3N, k) blocks of vectors, the vertices in fixed blocks of
+    SWEEP_BLOCK in the thread knob's threads (each row's sum in a fixed order: the bits
+    do not depend on the threads)."""
+
+    def __init__(self, nbr: np.ndarray, blocks: np.ndarray):
+        self.nbr, self.blocks = nbr, blocks
+        self.shape = (3 * nbr.shape[0],) * 2
+
+    @classmethod
+    def from_csr(cls, S, nbr: np.ndarray) -> "Stencil":
+        """S (3N, 3N) CSR in stencil form on the slots nbr; SmoothingError when S has a
+        nonzero entry between vertices that are not stencil neighbours."""
         S = S.tocsr()
-        if S.indptr.dtype != S.indices.dtype:
-            S.indptr = S.indptr.astype(S.indices.dtype)
-        self.S, self.nodes, self.nx, self.ny = S, nodes, nx, ny
+        dtype = _index_dtype(S)
+        arrays = _Rows(S, dtype).arrays()
+        blocks = np.empty(nbr.shape + (3, 3))
+        outside = []
+        parallel_blocks(lambda part: outside.append(kernel.from_csr(*arrays, nbr, blocks, part.start, part.stop)),
+                        nbr.shape[0], SWEEP_BLOCK)
+        if sum(outside):
+            raise SmoothingError(f"the system is not on the lattice's stencil: {sum(outside)} entries couple "
+                                 "vertices that are not neighbours on it (cells split by the other diagonal, "
+                                 "or nodes that are not the vertices' own?)")
+        return cls(nbr, blocks)
+
+    def csr(self):
+        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too)."""
+        n = self.nbr.shape[0]
+        present = np.broadcast_to((self.nbr >= 0)[:, None, :, None], (n, 3, len(OFFSETS), 3))
+        cols = 3 * self.nbr.astype(np.int64)[:, None, :, None] + np.arange(3)
+        cols = np.broadcast_to(cols, present.shape)
+        indptr = np.zeros(3 * n + 1, dtype=np.int64)
+        np.cumsum(np.repeat(3 * (self.nbr >= 0).sum(axis=1), 3), out=indptr[1:])
+        S = sp.csr_matrix((self.blocks.transpose(0, 2, 1, 3)[present], cols[present], indptr), shape=self.shape)
+        S.sort_indices()
+        return S
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        """S x (3N, k) for x (3N, k)."""
+        y = np.empty((self.shape[0], x.shape[1]))
+        parallel_blocks(lambda part: kernel.stencil_product(self.nbr, self.blocks, x, y, part.start, part.stop),
+                        self.nbr.shape[0], SWEEP_BLOCK)
+        return y
+
+    def residual(self, b: np.ndarray, x: np.ndarray, out: np.ndarray | None = None,
+                 vertices: int | None = None) -> np.ndarray:
+        """b − S x (3N, k) in one pass, into out (None: a new array); with `vertices`, only
+        the rows of the first `vertices` vertices are computed and the others set to 0
+        (the caller knows them)."""
+        r = np.empty_like(b) if out is None else out
+        vertices = self.nbr.shape[0] if vertices is None else vertices
+        parallel_blocks(lambda part: kernel.stencil_residual(self.nbr, self.blocks, b, x, r, part.start, part.stop),
+                        vertices, SWEEP_BLOCK)
+        r[3 * vertices:] = 0.0
+        return r
+
+
+def galerkin(fine: "_Level", P, PT, coarse: np.ndarray, nxc: int, nyc: int) -> Stencil:
+    """Pᵀ S P in stencil form for the level below `fine` (its S, nodes, grid), by the
+    kernel `galerkin`, the coarse vertices in fixed blocks of GALERKIN_BLOCK in the thread
+    knob's threads: P (3n, 3m) and PT = Pᵀ CSR, coarse (m,) the coarse level's nodes on
+    its nxc × nyc grid. SmoothingError when an entry falls outside the coarse stencil (P
+    not a lattice prolongation)."""
+    dtype = _index_dtype(P, PT)
+    args = [a for M in (P, PT) for a in _Rows(M, dtype).arrays()]
+    neighbours = stencil_neighbours(coarse, nxc, nyc)
+    offsets = np.array(OFFSETS, dtype=np.int32)
+    blocks = np.empty(neighbours.shape + (3, 3))
+    S, nodes = fine.op, np.ascontiguousarray(fine.nodes, dtype=np.int64)
+    coarse = np.ascontiguousarray(coarse, dtype=np.int64)
+    missing = []
+    parallel_blocks(lambda part: missing.append(kernel.galerkin(
+        S.nbr, S.blocks, nodes, fine.nx, offsets, *args, coarse, nxc, neighbours, blocks, part.start, part.stop)),
+        neighbours.shape[0], GALERKIN_BLOCK)
+    if sum(missing):
+        raise SmoothingError(f"{sum(missing)} entries of the Galerkin product fall outside the lattice's stencil")
+    return Stencil(neighbours, blocks)
+
+
+class _Level:
+    """One grid: S in stencil form (op) with its vertices numbered colour by colour
+    (colour_order), their nodes, each colour's first vertex (bounds (4,)), the inverses
+    of S's diagonal blocks, and P, Pᵀ to the next coarser grid (None on the coarsest),
+    also as the kernels' _Rows (P_rows, PT_rows). S: op as CSR, made when asked."""
+
+    def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int):
+        self.op, self.nodes, self.nx, self.ny = op, nodes, nx, ny
         colour = colours(nodes, nx)
         if (np.diff(colour) < 0).any():
             raise ValueError("a level's vertices must be numbered colour by colour")
         self.bounds = np.searchsorted(colour, np.arange(4, dtype=np.int8))
         self.dinv = np.empty((nodes.size, 3, 3))
         counts = []
-        parallel_blocks(lambda part: counts.append(kernel.block_inverses(
-            S.indptr, S.indices, S.data, colour, self.dinv, part.start, part.stop)), nodes.size, SWEEP_BLOCK)
-        self.couplings = sum(c for c, _ in counts)
-        singular = sum(s for _, s in counts)
-        if singular and not self.couplings:
-            raise SmoothingError(f"{singular} diagonal 3 × 3 blocks of the lattice system are not positive "
+        parallel_blocks(lambda part: counts.append(kernel.block_inverses(op.blocks, self.dinv, part.start,
+                                                                         part.stop)), nodes.size, SWEEP_BLOCK)
+        if sum(counts):
+            raise SmoothingError(f"{sum(counts)} diagonal 3 × 3 blocks of the lattice system are not positive "
                                  "definite: a vertex lacks data and energy")
-        self.P = self.PT = None
+        self.P = self.PT = self.P_rows = self.PT_rows = None
+        self._scratch = {}
 
-    def sweep(self, x: np.ndarray, b: np.ndarray, order) -> None:
-        """Block Gauss–Seidel over the colours in `order`, in place."""
-        S = self.S
-        for c in order:
+    @property
+    def S(self):
+        return self.op.csr()
+
+    def scratch(self, name: str, shape: tuple) -> np.ndarray:
+        """A work array of this level kept between cycles (fresh arrays of 3N × k doubles
+        cost their page faults again every time): its contents are the caller's to set."""
+        array = self._scratch.get(name)
+        if array is None or array.shape != shape:
+            array = self._scratch[name] = np.empty(shape)
+        return array
+
+    def link(self, P, PT) -> None:
+        """Set the prolongation P to the next coarser level and its transpose PT (CSR)."""
+        self.P, self.PT = P, PT
+        dtype = _index_dtype(P, PT)
+        self.P_rows, self.PT_rows = _Rows(P, dtype), _Rows(PT, dtype)
+
+    def sweep(self, x: np.ndarray, b: np.ndarray, order, from_zero: bool = False) -> None:
+        """Block Gauss–Seidel over the colours in `order`, in place, on x, b (3N, k);
+        from_zero: x is zero on entry (the first colour reads no S: kernel.first_sweep)."""
+        op = self.op
+        for n, c in enumerate(order):
             first = int(self.bounds[c])
-            parallel_blocks(lambda part: kernel.sweep(S.indptr, S.indices, S.data, b, x, self.dinv,
-                                                      first + part.start, first + part.stop),
-                            int(self.bounds[c + 1]) - first, SWEEP_BLOCK)
+            if from_zero and n == 0:
+                work = lambda part: kernel.first_sweep(b, x, self.dinv, first + part.start, first + part.stop)
+            else:
+                work = lambda part: kernel.sweep(op.nbr, op.blocks, b, x, self.dinv, first + part.start,
+                                                 first + part.stop)
+            parallel_blocks(work, int(self.bounds[c + 1]) - first, SWEEP_BLOCK)
 
 
 class LatticeSolver:
@@ -279,9 +480,10 @@ class LatticeSolver:
     right-hand sides: `start` (the full-multigrid guess), `pcg` (CG from it), `cycle` (one
     V-cycle, the preconditioner). S (3N, 3N) CSR, symmetric positive definite, vertex k's
     unknowns 3k..3k+2 on node lattice.nodes[k], lattice in the lengths S was built in.
-    Vertices numbered colour by colour (colour_order) are solved in S itself, others in
-    a permuted copy. coarsest: coarsen while a level has more vertices (None: COARSEST,
-    read when called). seconds: the set-up's wall time."""
+    S is read into the fine level's stencil form (Stencil.from_csr); vertices not numbered
+    colour by colour (colour_order) cost a permuted copy of S first. coarsest: coarsen
+    while a level has more vertices (None: COARSEST, read when called). seconds: the
+    set-up's wall time."""
 
     def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
         t0 = time.perf_counter()
@@ -293,95 +495,116 @@ class LatticeSolver:
         self.order = None if (order == np.arange(order.size)).all() else order
         if self.order is not None:
             S, nodes = _permuted(S.tocsr(), order), nodes[order]
-        fine = _Level(S, nodes, nx, ny)
-        if fine.couplings:
-            raise SmoothingError(f"the system is not on the lattice's stencil: {fine.couplings} entries couple "
-                                 "vertices of one colour (i + j) mod 3 (cells split by the other diagonal, or "
-                                 "nodes that are not the vertices' own?)")
+        fine = _Level(Stencil.from_csr(S, stencil_neighbours(nodes, nx, ny)), nodes, nx, ny)
         hx, hy = lattice.spacing
         self.levels = [fine]
         while self.levels[-1].nodes.size > coarsest:
             level = self.levels[-1]
-            P, coarse, nxc, nyc = prolongation(level.nodes, level.nx, level.ny, (hx, hy))
+            PT, coarse, nxc, nyc = restriction(level.nodes, level.nx, level.ny, (hx, hy))
             if coarse.size >= level.nodes.size:
                 break
-            corder = np.lexsort((coarse, colours(coarse, nxc)))
-            P = P[:, (3 * corder[:, None] + np.arange(3)).ravel()].tocsr()
-            PT = P.T.tocsr()
-            level.P, level.PT = P, PT
-            self.levels.append(_Level(PT @ (level.S @ P), coarse[corder], nxc, nyc))
+            P = PT.T.tocsr()
+            level.link(P, PT)
+            self.levels.append(_Level(galerkin(level, P, PT, coarse, nxc, nyc), coarse, nxc, nyc))
             hx, hy = 2 * hx, 2 * hy
         method = available_solvers()[0]
         self.coarse = Factor(self.levels[-1].S, "superlu" if method == "amg-cg" else method)
         self.seconds = time.perf_counter() - t0
 
+    def _coarsest(self, b: np.ndarray) -> np.ndarray:
+        """The coarsest level's direct solve of b (n, k), as (n, k) C-contiguous."""
+        x = self.coarse.solve(b[:, 0] if b.shape[1] == 1 else b, refine=False)
+        return np.ascontiguousarray(x, dtype=np.float64).reshape(b.shape)
+
     def cycle(self, b: np.ndarray, k: int = 0) -> np.ndarray:
-        """One symmetric V(1,1) cycle from zero on level k for right-hand side b (in the
-        levels' numbering: colour by colour)."""
+        """One symmetric V(1,1) cycle from zero on level k for right-hand sides b (3N, c)
+        (in the levels' numbering: colour by colour)."""
         if k == len(self.levels) - 1:
-            return self.coarse.solve(b, refine=False)
+            return self._coarsest(b)
         level = self.levels[k]
-        x = np.zeros_like(b)
-        level.sweep(x, b, (0, 1, 2))
-        r = b - level.S @ x
-        x += level.P @ self.cycle(level.PT @ r, k + 1)
+        x = np.zeros(b.shape)
+        level.sweep(x, b, (0, 1, 2), from_zero=True)
+        # the last colour swept has no residual left (its block equations were just solved
+        # with its neighbours as they are): only colours 0 and 1 are computed
+        r = level.op.residual(b, x, level.scratch("residual", b.shape), vertices=int(level.bounds[2]))
+        below = self.levels[k + 1]
+        coarse = level.PT_rows.product(r, below.scratch("restricted", (level.PT_rows.shape[0], b.shape[1])))
+        level.P_rows.product(self.cycle(coarse, k + 1), x, add=True)
         level.sweep(x, b, (2, 1, 0))
         return x
 
     def start(self, rhs: np.ndarray) -> np.ndarray:
-        """The full-multigrid guess: rhs restricted by Pᵀ to every level, the coarsest
-        solved, then on each finer level P and one V-cycle on its residual (in the levels'
-        numbering)."""
+        """The full-multigrid guess for rhs (3N, c): rhs restricted by Pᵀ to every level,
+        the coarsest solved, then on each finer level P and one V-cycle on its residual
+        (in the levels' numbering)."""
         bs = [rhs]
         for level in self.levels[:-1]:
-            bs.append(level.PT @ bs[-1])
-        x = self.coarse.solve(bs[-1], refine=False)
+            bs.append(level.PT_rows @ bs[-1])
+        x = self._coarsest(bs[-1])
         for k in range(len(self.levels) - 2, -1, -1):
             level = self.levels[k]
-            x = level.P @ x
-            x += self.cycle(bs[k] - level.S @ x, k)
+            x = level.P_rows @ x
+            x += self.cycle(level.op.residual(bs[k], x), k)
         return x
 
     def pcg(self, rhs: np.ndarray, step_tol: float, x0: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """(x, iterations): CG on S x = rhs preconditioned by `cycle`, from x0 (None: `start`),
         stopped when a step moves no value unknown (x[0::3]) by more than step_tol;
-        SmoothingError after MAX_ITERATIONS steps."""
-        S = self.levels[0].S
+        SmoothingError after MAX_ITERATIONS steps. rhs (3N,), or (3N, k): k systems solved
+        side by side, each column's CG its own (the column's bits as if solved alone), the
+        kernels' passes over S shared; iterations then the most any column took."""
+        S = self.levels[0].op
         rhs = np.asarray(rhs, dtype=np.float64)
-        if rhs.shape != (S.shape[0],):
-            raise SmoothingError(f"the right-hand side must have shape ({S.shape[0]},), got {rhs.shape}")
+        if rhs.shape[:1] != (S.shape[0],) or rhs.ndim not in (1, 2):
+            raise SmoothingError(f"the right-hand side must have shape ({S.shape[0]},) or ({S.shape[0]}, k), "
+                                 f"got {rhs.shape}")
+        shape = rhs.shape
+        columns = rhs.reshape(S.shape[0], -1)
+        x0 = None if x0 is None else np.asarray(x0, dtype=np.float64).reshape(columns.shape)
         if self.order is not None:
-            x, iterations = self._pcg(rhs.reshape(-1, 3)[self.order].ravel(), step_tol,
-                                      None if x0 is None else np.asarray(x0, float).reshape(-1, 3)[self.order].ravel())
+            columns = columns.reshape(-1, 3, columns.shape[1])[self.order].reshape(columns.shape)
+            x0 = None if x0 is None else x0.reshape(-1, 3, x0.shape[1])[self.order].reshape(x0.shape)
+        x, iterations = self._pcg(np.ascontiguousarray(columns), step_tol, None if x0 is None else np.array(x0))
+        if self.order is not None:
             out = np.empty_like(x)
-            out.reshape(-1, 3)[self.order] = x.reshape(-1, 3)
-            return out, iterations
-        return self._pcg(rhs, step_tol, None if x0 is None else np.array(x0, dtype=np.float64))
+            out.reshape(-1, 3, x.shape[1])[self.order] = x.reshape(-1, 3, x.shape[1])
+            x = out
+        return x.reshape(shape), iterations
 
     def _pcg(self, rhs: np.ndarray, step_tol: float, x0: np.ndarray | None) -> tuple[np.ndarray, int]:
-        """pcg in the levels' numbering."""
-        S = self.levels[0].S
+        """pcg in the levels' numbering, on rhs (3N, k) C-contiguous: the columns still
+        moving (`live`) iterate together, a column leaves the block when its CG stops."""
+        A = self.levels[0].op
+        n = rhs.shape[0]
         x = self.start(rhs) if x0 is None else x0
-        r = rhs - S @ x
+        out = np.empty_like(x)
+        live = np.arange(rhs.shape[1])
+        r = A.residual(rhs, x)
         z = self.cycle(r)
         p = z.copy()
-        rz = _dot(r, z)
+        rz = _dots(r, z)
         for k in range(1, MAX_ITERATIONS + 1):
-            if rz == 0.0:                             # r = 0: x solves it
-                return x, k - 1
-            Ap = S @ p
-            pAp = _dot(p, Ap)
-            if not (pAp > 0.0 and np.isfinite(pAp)):
+            done = rz == 0.0                          # r = 0: x solves it
+            if done.all():
+                out[:, live] = x
+                return out, k - 1
+            Ap = A @ p
+            pAp = _dots(p, Ap)
+            if not (pAp[~done] > 0.0).all() or not np.isfinite(pAp).all():
                 raise SmoothingError("the smoothing system is not positive definite on the lattice")
-            alpha = rz / pAp
-            x += alpha * p
-            r -= alpha * Ap
-            if abs(alpha) * float(np.abs(p[0::3]).max()) <= step_tol:
-                return x, k
+            alpha = np.where(done, 0.0, rz / np.where(done, 1.0, pAp))     # a column with r = 0 stays
+            _blockwise(lambda part: (np.add(x[part], alpha * p[part], out=x[part]),
+                                     np.subtract(r[part], alpha * Ap[part], out=r[part])), n)
+            done |= np.abs(alpha) * np.abs(p[0::3]).max(axis=0) <= step_tol
+            if done.any():
+                out[:, live[done]] = x[:, done]
+                if done.all():
+                    return out, k
+                live, x, r, p, rz = live[~done], *(np.ascontiguousarray(v[:, ~done]) for v in (x, r, p)), rz[~done]
             z = self.cycle(r)
-            rz_next = _dot(r, z)
-            p *= rz_next / rz
-            p += z
+            rz_next = _dots(r, z)
+            beta = rz_next / rz
+            _blockwise(lambda part: np.add(z[part], beta * p[part], out=p[part]), n)
             rz = rz_next
         raise SmoothingError(f"the lattice solver did not converge in {MAX_ITERATIONS} iterations "
                              f"(steps still above {step_tol:g})")
@@ -389,14 +612,13 @@ class LatticeSolver:
 
 class LatticeFactor:
     """A LatticeSolver in smoothing_system.Factor's place where only its `solve` is used
-    (hat_trace's probes): each column solved by `pcg` to step_tol (refine is ignored)."""
+    (hat_trace's probes): the columns solved side by side by `pcg` to step_tol, each its
+    own CG (refine is ignored)."""
 
     def __init__(self, solver: LatticeSolver, step_tol: float):
         self.solver, self.step_tol = solver, step_tol
 
     def solve(self, b: np.ndarray, refine: bool = False) -> np.ndarray:
-        if b.ndim == 2:
-            return np.stack([self.solver.pcg(np.ascontiguousarray(c), self.step_tol)[0] for c in b.T], axis=1)
         return self.solver.pcg(b, self.step_tol)[0]
 
 
@@ -411,7 +633,7 @@ def lattice_solve(S, rhs: np.ndarray, lattice: Lattice, step_tol: float, x0: np.
     return LatticeSolver(S, lattice, coarsest).pcg(rhs, step_tol, x0)
 
 
-__all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve", "prolongation", "hermite_weights",
-           "stencil_matrix", "OFFSETS",
+__all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve", "prolongation", "restriction",
+           "hermite_weights", "stencil_matrix", "stencil_rows", "galerkin", "stencil_neighbours", "Stencil", "OFFSETS",
            "colour_order",
            "COARSEST", "MAX_ITERATIONS"]

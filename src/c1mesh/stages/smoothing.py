@@ -111,11 +111,14 @@ relief. The grid-solver study stopped at 0.05 mm on a survey of Z ≈ 15 m with 
 constant keeps that, and where Z is near the noise (flat ground) it asks more than needed,
 which costs a few CG iterations (each contracts the error by 0.3-0.6), not accuracy.
 Where the relief is 100 m, 3e-6 Z is 0.3 mm, 1.5 % of a 2 cm noise."""
-LATTICE_EDF_STEP = 1e-2
+LATTICE_EDF_STEP = 3e-2
 """The lattice's step rule for the Hutchinson probes of the edf (in the probes' own unit:
-they are ±1 data, as large as Z is to the heights): an error of 1e-2 per fitted value moves
-vᵀF by about 1e-2 √M, far below the estimate's own spread √(2 tr H / EDF_PROBES). At 360k
-nodes 1e-3 gave edf 23,702 in 2.7 s and 1e-2 gave 23,699 in 1.9 s."""
+they are ±1 data, as large as Z is to the heights): an error of 3e-2 per fitted value moves
+vᵀF by at most about 3e-2 √M (30 at 1M data), well below the estimate's own spread
+√(2 tr H / EDF_PROBES) (181 at edf 65,500). Measured at 1M nodes and data (4 probes solved
+side by side; their estimate against the same probes solved to 1e-4, 8 iterations): 1e-2
+took 4 iterations and was 5.8 off, 3e-2 took 2 and was 5.0 off, 0.3 took 1 and was 78 off.
+At 360k nodes 1e-3 gave edf 23,702 and 1e-2 gave 23,699."""
 FILE_NORMALS_WEIGHT = 1.0
 """gradient_weight the pipeline gives the gradients of normals read from the file
 (HEIGHT_GRADIENTS_WEIGHT for gradients fitted to the heights). Held-out, synthetic
@@ -678,11 +681,20 @@ def _lattice_of(lattice: Lattice, pts: np.ndarray, npts: np.ndarray, centre: np.
 
 def lattice_shapes(grid: Lattice, triangles: np.ndarray) -> TriangleShapes:
     """The TriangleShapes of a lattice mesh's triangles (T, 3): two triangles have one shape
-    when their corners, in their order, lie at the same node offsets from their first."""
-    j, i = np.divmod(grid.nodes[triangles], grid.shape[1])            # (T, 3) each
+    when their corners, in their order, lie at the same node offsets from their first.
+    A half cell's offsets are −1, 0 or 1, so a triangle's 4 of them are one base-3 key
+    whose order is theirs (np.unique of the keys: the shapes, numbered as the offsets'
+    rows sort; np.unique of the (T, 4) rows took 5 times as long at 2M triangles);
+    SmoothingError for a triangle whose corners are not one cell's."""
+    j, i = np.divmod(grid.nodes, grid.shape[1])                       # (N,) each
+    i, j = i[triangles], j[triangles]                                 # (T, 3) each
     offsets = np.concatenate([i[:, 1:] - i[:, :1], j[:, 1:] - j[:, :1]], axis=1)
-    _, reps, key = np.unique(offsets, axis=0, return_index=True, return_inverse=True)
-    return TriangleShapes(key.ravel().astype(np.int64), reps.astype(np.int64))
+    if offsets.size and np.abs(offsets).max() > 1:
+        raise SmoothingError("the triangles are not the lattice's cells split in two: a triangle's corners "
+                             "are not one cell's nodes")
+    key = (offsets + 1) @ 3 ** np.arange(offsets.shape[1] - 1, -1, -1)
+    _, reps, shape = np.unique(key, return_index=True, return_inverse=True)
+    return TriangleShapes(shape.ravel().astype(np.int64), reps.astype(np.int64))
 
 
 def _shared_directions(npts: np.ndarray, triangles: np.ndarray, shapes: TriangleShapes) -> np.ndarray:
@@ -695,11 +707,17 @@ def _shared_directions(npts: np.ndarray, triangles: np.ndarray, shapes: Triangle
     return shared[shapes.key]
 
 
+LOCATE_BLOCK = 1 << 16
+"""Points per block of lattice_locate's barycentrics (in the thread knob's threads)."""
+
+
 def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
                    xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(triangle (M,) of each point xy (M, 2), −1 outside; barycentrics (M, 3) in its
     corners' order, NaN outside) on a lattice mesh (grid in the units of npts and xy): the
-    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal."""
+    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal;
+    the barycentrics point by point in fixed blocks in the thread knob's threads (the
+    same bits at any count)."""
     ny, nx = grid.shape
     hx, hy = grid.spacing
     u = (xy[:, 0] - grid.origin[0]) / hx
@@ -716,12 +734,15 @@ def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
     box = (u >= 0) & (v >= 0) & (u <= nx - 1) & (v <= ny - 1)
     tri = np.where(box, where[slot], -1)
     lam = np.full((xy.shape[0], 3), np.nan)
-    found = tri >= 0
-    corners = npts[triangles[tri[found]]]                              # (m, 3, 2)
-    G, _ = rsd.barycentric_gradients(corners)
-    offset = xy[found] - corners[:, 0]
-    rest = np.einsum("mkd,md->mk", G[:, 1:], offset)
-    lam[found] = np.column_stack([1.0 - rest.sum(axis=1), rest])
+
+    def barycentrics(part: slice) -> None:             # the found points of a block (element-wise)
+        found = np.flatnonzero(tri[part] >= 0) + part.start
+        corners = npts[triangles[tri[found]]]                          # (m, 3, 2)
+        G, _ = rsd.barycentric_gradients(corners)
+        rest = np.einsum("mkd,md->mk", G[:, 1:], xy[found] - corners[:, 0])
+        lam[found, 0] = 1.0 - rest.sum(axis=1)
+        lam[found, 1:] = rest
+    parallel_blocks(barycentrics, xy.shape[0], LOCATE_BLOCK)
     return tri, lam
 
 
