@@ -159,12 +159,11 @@ def run(folder: Path, reps: int, spacings: tuple[float, ...] = ()) -> Section:
     rms = {name: (gmt_rms(path) if name == "GMT" else dem_rms(path)) for name, path in outputs.items()}
     command = f"python -m benchmarks.dtm run DIR --reps {reps}" + \
         (" --spacings " + " ".join(f"{d:g}" for d in spacings) if spacings else "")
-    return _section(runs, ratios, rms, skipped, command)
+    return _section(runs, ratios, rms, skipped, command, reps)
 
 
-def _section(runs, ratios, rms, skipped: str, command: str) -> Section:
+def _section(runs, ratios, rms, skipped: str, command: str, reps: int) -> Section:
     sec = Section(TITLE)
-    reps = max(len(samples) for samples in runs.values())
     sec.add(f"`{command}`: medians of {reps} rounds, one machine, "
             f"c1mesh at its default threads ({os.cpu_count()} cores), GMT `surface` single-threaded; "
             "every c1mesh run is followed by a GMT run, and × GMT is the median of the pairs' ratios. "
