@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.stages.lattice_mesh import (MIN_BLOCK_POINTS, REACH_CELLS, SUPPORT_SPACINGS, cell_triangles, kept_cells,
-                                        lattice_mesh, nearest_points, node_grid, support_reach)
+from c1mesh.stages.lattice_mesh import (KEPT_BLOCK, MIN_BLOCK_POINTS, REACH_CELLS, SUPPORT_SPACINGS, cell_triangles,
+                                        kept_cells, lattice_mesh, nearest_points, node_grid, support_reach)
 
 
 def _clustered(seed: int, n: int = 400) -> np.ndarray:
@@ -73,7 +73,7 @@ def test_every_data_point_of_a_supported_cell_lies_in_the_mesh_and_nodes_sit_on_
     mesh = lattice_mesh(xy, 1.5, 0.5)
     D = 1.5
     np.testing.assert_array_equal(mesh.points / D, np.round(mesh.points / D))
-    corners = mesh.points[mesh.triangles]
+    corners = mesh.points[mesh.triangles[mesh.shown]]
     a, b = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
     np.testing.assert_allclose((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]) / 2, D * D / 2)      # counter-clockwise
     lo, hi = corners.min(axis=1), corners.max(axis=1)
@@ -162,3 +162,26 @@ def test_a_survey_decided_in_bands_of_rows_keeps_the_whole_grids_cells(monkeypat
     banded = lattice_mesh(xy, 0.9, 0.5)
     np.testing.assert_array_equal(banded.nodes, whole.nodes)
     np.testing.assert_array_equal(banded.triangles, whole.triangles)
+
+
+@pytest.mark.parametrize("seed", [0, 9])
+def test_the_solve_keeps_every_aligned_block_that_holds_a_support_cell(seed):
+    """kept_cells(blocks=True): the KEPT_BLOCK x KEPT_BLOCK blocks of cells aligned at node
+    (0, 0) that hold a cell of the support, each whole (brute force over the support's
+    cells); a window decides its blocks as the whole grid does; lattice_mesh solves on them
+    and shows the support's triangles."""
+    xy = _clustered(seed)
+    grid = node_grid(xy.min(axis=0), xy.max(axis=0), 0.8, 0.5)
+    rows, cols = grid.cells
+    support = kept_cells(grid, xy)
+    blocks = {(c % cols // KEPT_BLOCK, c // cols // KEPT_BLOCK) for c in support.tolist()}
+    want = sorted(j * cols + i for bi, bj in blocks
+                  for j in range(bj * KEPT_BLOCK, (bj + 1) * KEPT_BLOCK)
+                  for i in range(bi * KEPT_BLOCK, (bi + 1) * KEPT_BLOCK) if i < cols and j < rows)
+    solve = kept_cells(grid, xy, blocks=True)
+    assert solve.tolist() == want and len(solve) > len(support)
+    window = (5, 31, 3, 20)
+    mine = [c for c in want if 5 <= c % cols < 31 and 3 <= c // cols < 20]
+    assert kept_cells(grid, xy, window, blocks=True).tolist() == mine
+    mesh = lattice_mesh(xy, 0.8, 0.5)
+    np.testing.assert_array_equal(mesh.shown, np.repeat(np.isin(solve, support), 2))

@@ -217,7 +217,7 @@ def test_lattice_vertices_in_tiles_are_the_whole_fits(tmp_path):
     assert report["smoothing"]["outside"] == whole_report["smoothing"]["outside"] == 0
     assert report["smoothing"]["residual_rms"] == pytest.approx(rms, rel=1e-3)      # over the data points
     assert report["smoothing"]["lattice"] == whole_report["smoothing"]["lattice"]
-    assert report["smoothing"]["lattice"]["spacing"] == 1.0 and report["smoothing"]["lattice"]["nodes"] == len(whole)
+    assert report["smoothing"]["lattice"]["spacing"] == 1.0 and report["smoothing"]["lattice"]["nodes"] >= len(whole)
     assert report["warnings"] == whole_report["warnings"] == []
 
 

@@ -107,7 +107,7 @@ from c1mesh.survey.sizing import TILE_SHARE, grid_side, point_bytes, points_per_
 from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
-from c1mesh.survey.lattice_runs import LATTICE_MARGIN, lattice_tiles
+from c1mesh.survey.lattice_runs import LATTICE_MARGIN, lattice_halo, lattice_tiles
 from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
@@ -228,7 +228,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 max_edge, triangle_files, buffers, delaunay_count = triangulate_tiles(
                     heights, grid, surface.max_edge, temps, runner, rows, most=TILE_SHARE * points_per_tile(memory))
             else:                              # the lattice's cells: no Delaunay, no trim
-                max_edge, triangle_files, buffers = None, lattice.files, lattice.buffers
+                max_edge, triangle_files, buffers = None, lattice.shown_files, lattice.buffers
                 delaunay_count = lattice.triangles
             long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
             done("triangulate")
@@ -266,8 +266,9 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                     gradient_data_weight("estimated", gradient_source))
                 if lattice is not None:        # unit normal directions, no gradient data: as in memory
                     run_ = replace(run_, overshoot="off", gradient_weight=0.0)
-                fit = TiledSmoothing(run_, longest, data)
-                limiter = TiledSmoother(trimmed_mesh, fit, temps, runner, rows.name,
+                fit = TiledSmoothing(run_, longest, data, 0.0 if lattice is None else lattice_halo(lattice.grid))
+                solved = trimmed_mesh if lattice is None else replace(trimmed_mesh, files=lattice.files)
+                limiter = TiledSmoother(solved, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
                 if filled is not None:
                     limiter = SmoothedFill(limiter, halos, filled.spanning, temps, runner, rows.name)

@@ -472,7 +472,8 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
                    facts: tuple) -> SurfaceModel:
     """The SurfaceModel of a smoothing fit on the lattice of --spacing (stages.lattice_mesh):
     every point of the height field hf fitted, the spline's vertices the lattice's nodes,
-    solved by multigrid from MULTIGRID_FROM nodes (smooth_fit with the lattice). No
+    solved by multigrid from MULTIGRID_FROM nodes (smooth_fit with the lattice) on the
+    support's cells grown to whole blocks, and kept on the support's (the same spline). No
     Delaunay and no trim: the mesh is the lattice's cells near the data. Its `used` are the
     points nearest the nodes (their colours, and their inputs' ownership); no gradient data
     (the nodes are no points), unit normal edge directions (the cells are all one shape).
@@ -482,22 +483,25 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     check_triangulation, fill = checks
     with timer.stage("triangulate"):
         mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing)
-        check_triangles_left(mesh.triangles.shape[0])
-        count = mesh.points.shape[0]
-        table = edge_table(mesh.triangles, count)
+        shown, triangles = mesh.shown_mesh()
+        check_triangles_left(triangles.shape[0])
+        table = edge_table(triangles, shown.size)
         if check_triangulation is not None:
-            check_triangulation(mesh.points, mesh.triangles, table)
-    report = TrimReport(mesh.triangles.shape[0], mesh.triangles.shape[0])
+            check_triangulation(mesh.points[shown], triangles, table)
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, "off", 0.0)
+    count = mesh.points.shape[0]
     with timer.stage("interpolate"):
         tile = Tile.whole(mesh.points, np.zeros(count), np.zeros((count, 2)), mesh.triangles)
-        interp, overshoot, smoothing = smoothed_interpolator(tile, run, SmoothingData(hf.z, hf.spacing, hf.xy),
-                                                             table, lattice=mesh.solver_lattice())
-    trimmed = np.ones(mesh.triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
-    return SurfaceModel(normal_source, frame, hf, report, mesh.sources, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing, True, trimmed, mesh.facts())
+        solved, overshoot, smoothing = smoothed_interpolator(tile, run, SmoothingData(hf.z, hf.spacing, hf.xy),
+                                                             lattice=mesh.solver_lattice())
+        interp = RSDInterpolator(mesh.points[shown], solved.values[shown], solved.gradients[shown],
+                                 triangles=triangles, scheme=scheme, edge_table=table)
+    trimmed = np.ones(triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
+    return SurfaceModel(normal_source, frame, hf, TrimReport(triangles.shape[0], triangles.shape[0]),
+                        mesh.sources[shown], interp, overshoot, gradient_source, max_slope_not_applied,
+                        smoothing, True, trimmed, mesh.facts())
 
 
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,

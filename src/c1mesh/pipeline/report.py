@@ -89,8 +89,9 @@ OPTIONAL: dict[str, str] = {
                  "0.5 gradients fitted to the heights, 0: none), search_windows (--smooth auto: side "
                  "and centres, frame units, of the squares the search ran on, the same on every path; "
                  "no centres: the whole mesh; null for a given strength), lattice (--spacing: the "
-                 "vertices' lattice: spacing D, reach_cells R of its support, nodes; null: vertices at the "
-                 "points); the tiled fit adds spacing (h) and tiled (halo, halo_smoothing_lengths)",
+                 "vertices' lattice: spacing D, reach_cells R of its support, nodes of the solve; null: "
+                 "vertices at the points); the tiled fit adds spacing (h) and tiled (halo, "
+                 "halo_smoothing_lengths)",
     "classes": "a LAS/LAZ input: which points were fitted: selected (the classification codes kept, "
                "[2] for the ground filter's ground, or \"all\"), source (option: --classes; file: the "
                "file's ground class 2, the default; filter: the ground filter, run because the file has "

@@ -50,6 +50,14 @@ REACH_CELLS = (2, 8)
 """The least and the most cells R may be: 2 (a spline cut at the data is poorly held
 there), 8 (a tiled survey grows its tile grid's box by REACH_CELLS[1] + 2 cells before h
 is known: survey.lattice_runs)."""
+KEPT_BLOCK = 8
+"""The smoothing solves on a union of KEPT_BLOCK × KEPT_BLOCK blocks of cells, aligned at
+the lattice's node (0, 0), each block kept whole when the support rule keeps one of its
+cells; the output keeps the support's cells (the spline on them is the same). So the
+solve's borders fall on nodes that the multigrid's first three coarse grids share
+(stages.lattice_solver coarsens (2I, 2J) -> (I, J)); at a border on odd nodes its coarse
+grids stand in with partial nodes and CG needed 3-5 times the iterations (the DTM job's 1M
+nodes at s = 11.4: 34 instead of 7, and 13 instead of 3 for the edf's probes)."""
 MIN_BLOCK_POINTS = 3
 """The points a supported cell's (2R + 1)² block must hold (a plane needs 3)."""
 
@@ -106,8 +114,8 @@ def node_grid(lower, upper, spacing: float, point_spacing: float) -> NodeGrid:
     (support_reach) more on every side."""
     check_spacing(spacing)
     R = support_reach(spacing, point_spacing)
-    low = np.floor(np.asarray(lower, dtype=float) / spacing).astype(np.int64) - R
-    high = np.floor(np.asarray(upper, dtype=float) / spacing).astype(np.int64) + R + 1
+    low = np.floor(np.asarray(lower, dtype=float) / spacing).astype(np.int64) - R - KEPT_BLOCK
+    high = np.floor(np.asarray(upper, dtype=float) / spacing).astype(np.int64) + R + KEPT_BLOCK + 1
     nx, ny = int(high[0] - low[0]) + 1, int(high[1] - low[1]) + 1
     if nx * ny > 2 ** 62 // 4:
         raise InputError(f"--spacing {spacing:g} makes a lattice of {nx} × {ny} nodes; give a larger spacing")
@@ -123,30 +131,46 @@ def _box_sum(counts: np.ndarray, reach: int) -> np.ndarray:
     return table[k:, k:] - table[:-k, k:] - table[k:, :-k] + table[:-k, :-k]
 
 
-def kept_cells(grid: NodeGrid, xy: np.ndarray, window: tuple | None = None) -> np.ndarray:
+def kept_cells(grid: NodeGrid, xy: np.ndarray, window: tuple | None = None,
+               blocks: bool = False) -> np.ndarray:
     """(k,) ascending numbers of the mesh's cells (module doc) in window (i0, i1, j0, j1),
-    the cells i0 <= i < i1, j0 <= j < j1 (None: all of the grid's).
+    the cells i0 <= i < i1, j0 <= j < j1 (None: all of the grid's). blocks: the solve's
+    cells instead, every KEPT_BLOCK × KEPT_BLOCK block that holds a mesh cell.
 
-    xy (m, 2), frame units: the data points, at least every one within 2R cells of the
-    window (grid.reach; a tile passes those of its halo); others are ignored."""
-    R = grid.reach
+    xy (m, 2), frame units: the data points, at least every one within 2R + KEPT_BLOCK
+    cells of the window (grid.reach; a tile passes those of its halo); others are ignored."""
     rows, cols = grid.cells
     i0, i1, j0, j1 = (0, cols, 0, rows) if window is None else window
+    if i1 <= i0 or j1 <= j0:
+        return np.empty(0, dtype=np.int64)
+    if blocks:                                            # the window widened to whole blocks
+        B = KEPT_BLOCK
+        a0, b0, a1, b1 = (i0 // B) * B, (j0 // B) * B, -(-i1 // B) * B, -(-j1 // B) * B
+        near = _near_supported(grid, xy, (a0, a1, b0, b1))
+        whole = near.reshape((b1 - b0) // B, B, (a1 - a0) // B, B).any(axis=(1, 3))
+        kept = np.repeat(np.repeat(whole, B, axis=0), B, axis=1)[j0 - b0:j1 - b0, i0 - a0:i1 - a0]
+    else:
+        kept = _near_supported(grid, xy, (i0, i1, j0, j1))
+    cj, ci = np.nonzero(kept)
+    cj, ci = cj + j0, ci + i0
+    on_grid = (ci >= 0) & (ci < cols) & (cj >= 0) & (cj < rows)
+    return cj[on_grid] * cols + ci[on_grid]
+
+
+def _near_supported(grid: NodeGrid, xy: np.ndarray, window: tuple) -> np.ndarray:
+    """(h, w) bool over the window's cells (i0, i1, j0, j1): within R cells of a supported
+    cell (module doc), from the points xy within 2R cells of the window."""
+    R = grid.reach
+    i0, i1, j0, j1 = window
     e = 2 * R                                             # the counts' margin around the window
     w, h = i1 - i0 + 2 * e, j1 - j0 + 2 * e
-    if w <= 2 * e or h <= 2 * e:
-        return np.empty(0, dtype=np.int64)
     i, j = grid.cell_of(xy)
     i, j = i - (i0 - e), j - (j0 - e)
     inside = (i >= 0) & (i < w) & (j >= 0) & (j < h)
     counts = np.bincount(j[inside] * w + i[inside], minlength=w * h).reshape(h, w)
     blocks = _box_sum(counts, R)                          # cells from the window's corner − R
     supported = (counts[R:h - R, R:w - R] > 0) & (blocks >= MIN_BLOCK_POINTS)
-    near = _box_sum(supported.astype(np.int64), R) > 0    # cells of the window
-    cj, ci = np.nonzero(near)
-    cj, ci = cj + j0, ci + i0
-    on_grid = (ci >= 0) & (ci < cols) & (cj >= 0) & (cj < rows)
-    return cj[on_grid] * cols + ci[on_grid]
+    return _box_sum(supported.astype(np.int64), R) > 0
 
 
 def cell_triangles(grid: NodeGrid, cells: np.ndarray) -> np.ndarray:
@@ -189,14 +213,24 @@ def nearest_points(positions: np.ndarray, xy: np.ndarray, index: np.ndarray) -> 
 class LatticeMesh:
     """A smoothing fit's vertices and triangles on the lattice: grid (NodeGrid); nodes (n,)
     ascending node numbers, points (n, 2) their positions (frame units), triangles (T, 3)
-    into them (cell_triangles' order); sources (n,) the data point nearest each node (its
-    index: colours, and the input that owns it with -O)."""
+    into them (cell_triangles' order of the solve's cells, kept_cells with blocks); sources
+    (n,) the data point nearest each node (its index: colours, and the input that owns it
+    with -O); shown (T,) bool: the triangles of the support's cells, the output's."""
 
     grid: NodeGrid
     nodes: np.ndarray
     points: np.ndarray
     triangles: np.ndarray
     sources: np.ndarray
+    shown: np.ndarray
+
+    def shown_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """(used (u,) ascending rows of the nodes the shown triangles use, their triangles
+        (S, 3) into those rows): the output's mesh."""
+        used = np.unique(self.triangles[self.shown])
+        local = np.full(self.nodes.size, -1, dtype=np.int64)
+        local[used] = np.arange(used.size)
+        return used, local[self.triangles[self.shown]]
 
     def facts(self) -> dict:
         """The report's smoothing.lattice: spacing D, reach R (cells), nodes."""
@@ -218,9 +252,11 @@ def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> Lattic
     points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing,
     sources numbering xy's rows."""
     grid = node_grid(xy.min(axis=0), xy.max(axis=0), spacing, point_spacing)
-    nodes, triangles = numbered_triangles(grid, _kept_in_bands(grid, xy))
+    solve = _kept_in_bands(grid, xy, blocks=True)
+    nodes, triangles = numbered_triangles(grid, solve)
     points = grid.positions(nodes)
-    return LatticeMesh(grid, nodes, points, triangles, nearest_points(points, xy, np.arange(xy.shape[0])))
+    shown = np.repeat(np.isin(solve, _kept_in_bands(grid, xy), assume_unique=True), 2)
+    return LatticeMesh(grid, nodes, points, triangles, nearest_points(points, xy, np.arange(xy.shape[0])), shown)
 
 
 BAND_CELLS = 1 << 24
@@ -229,22 +265,23 @@ area tables: 24 bytes a cell): a survey whose box holds more, such as distant in
 --seamless survey, is decided in bands of rows."""
 
 
-def _kept_in_bands(grid: NodeGrid, xy: np.ndarray) -> np.ndarray:
-    """kept_cells over the whole grid, BAND_CELLS at a time: each band of rows with the
-    points within 2R rows of it."""
+def _kept_in_bands(grid: NodeGrid, xy: np.ndarray, blocks: bool = False) -> np.ndarray:
+    """kept_cells over the whole grid, BAND_CELLS at a time: each band of rows (whole
+    blocks) with the points within 2R + KEPT_BLOCK rows of it."""
     rows, cols = grid.cells
-    band = max(1, BAND_CELLS // (cols + 4 * grid.reach))
+    band = max(1, BAND_CELLS // (cols + 4 * grid.reach + 2 * KEPT_BLOCK) // KEPT_BLOCK) * KEPT_BLOCK
     if band >= rows:
-        return kept_cells(grid, xy)
+        return kept_cells(grid, xy, blocks=blocks)
     j = grid.cell_of(xy)[1]
     order = np.argsort(j, kind="stable")
     j = j[order]
     parts = []
     for j0 in range(0, rows, band):
         j1 = min(rows, j0 + band)
-        lo, hi = np.searchsorted(j, [j0 - 2 * grid.reach, j1 + 2 * grid.reach])
+        reach = 2 * grid.reach + KEPT_BLOCK
+        lo, hi = np.searchsorted(j, [j0 - reach, j1 + reach])
         if hi > lo:
-            parts.append(kept_cells(grid, xy[order[lo:hi]], (0, cols, j0, j1)))
+            parts.append(kept_cells(grid, xy[order[lo:hi]], (0, cols, j0, j1), blocks=blocks))
     return np.concatenate(parts) if parts else np.empty(0, dtype=np.int64)
 
 
@@ -271,6 +308,7 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
 
 
 __all__ = ["LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS",
-           "cell_triangles", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "nearest_points", "node_grid",
+           "KEPT_BLOCK", "cell_triangles", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh",
+           "nearest_points", "node_grid",
            "numbered_triangles",
            "support_reach"]

@@ -918,7 +918,7 @@ the one-tile fit, relative to the residual RMS, was 1.6e-2 at 20 lengths and 5.7
 for s = 10, 7.3e-4 at 24 for s = 100, and below 1.4e-4 at 32 for both (docs/smoothing.md,
 "In tiles")."""
 LATTICE_HALO_LENGTHS = 112.0
-LATTICE_HALO_SPACINGS = 64.0
+LATTICE_HALO_SPACINGS = 96.0
 """The halo with the vertices on a lattice (--spacing, stages.lattice_mesh): the larger of
 LATTICE_HALO_LENGTHS smoothing lengths and LATTICE_HALO_SPACINGS point spacings h. Its
 nodes carry no data, and where the data are sparse a node's value reaches further than
@@ -928,7 +928,10 @@ difference from the in-memory fit (residual RMS in brackets):
   at 84, 1.4e-5 at 112 (69 ft = 35 h) and 1.2e-5 at 140 (the in-memory multigrid's own
   tolerance: 1.3e-5 from CHOLMOD);
 - --spacing 2 --smooth auto, s = 0.0022 (0.0136 ft): 6.7e-3 ft at 112 lengths (47 ft =
-  24 h), 4.5e-5 at 52 h, 5.5e-6 at 64 h (125 ft), 3.0e-7 at 104 h."""
+  24 h), 4.5e-5 at 52 h, 5.5e-6 at 64 h (125 ft), 3.0e-7 at 104 h.
+With the solve's cells grown to whole blocks (lattice_mesh.KEPT_BLOCK: data-free margins
+of up to 7 more cells), --spacing 2 --smooth 0.01 (0.034 ft): 7.9e-4 ft at 64 h, 1.0e-5
+at 96 h (187 ft), 8.1e-7 at 128 h."""
 
 
 

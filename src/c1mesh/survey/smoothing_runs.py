@@ -46,11 +46,13 @@ class TiledSmoothing:
     (height_runs.survey_stacking), overshoot, the weight of the spill's gradients as
     data), longest_edge (the longest final edge, frame units: the least halo); data: the
     height spill whose every height is fitted when the vertices are lattice nodes
-    (--spacing: survey.lattice_runs; None: the vertices' own heights)."""
+    (--spacing: survey.lattice_runs; None: the vertices' own heights); least_halo (frame
+    units): the halo the mesh asks for besides (the lattice's: lattice_runs.lattice_halo)."""
 
     run: SmoothingRun
     longest_edge: float
     data: object = None
+    least_halo: float = 0.0
 
 
 class TiledSmoother:
@@ -77,7 +79,7 @@ class TiledSmoother:
                                           searched, self.data_in(windows, fit.longest_edge))
             self.run = replace(self.run, control=replace(self.run.control, strength=self.search.strength))
             self.seconds["search"] = time.perf_counter() - start
-        self.reach = max(self._smoothing_reach(), HALO_EDGES * fit.longest_edge) * (1 + 1e-9)
+        self.reach = max(self._smoothing_reach(), HALO_EDGES * fit.longest_edge, fit.least_halo) * (1 + 1e-9)
         self.halos = HaloCache(heights, triangle_files, grid, self.reach, temps, label="smooth-halo")
         tiles = self.halos.tiles()
         self.paths = {t: (temps.new(f"fitted-{t}.bin"), temps.new(f"directions-{t}.npy")) for t in tiles}
