@@ -221,6 +221,38 @@ def test_lattice_vertices_in_tiles_are_the_whole_fits(tmp_path):
     assert report["warnings"] == whole_report["warnings"] == []
 
 
+def _pairs_las(path, seed: int) -> None:
+    """Class-2 points in pairs 0.1 m apart, the pairs 10 m apart: the points' spacing h is
+    about 0.1, and no 0.9 m square holds 3 of them."""
+    rng = np.random.default_rng(seed)
+    i, j = np.meshgrid(np.arange(12) * 10.0, np.arange(12) * 10.0)
+    first = np.column_stack([i.ravel(), j.ravel()]) + rng.uniform(0, 1, (144, 2))
+    xy = np.concatenate([first, first + [0.1, 0.0]])
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = np.array([0.001] * 3), np.array([500000.0, 4000000.0, 0.0])
+    las = laspy.LasData(header)
+    las.x, las.y = xy[:, 0] + 500000.0, xy[:, 1] + 4000000.0
+    las.z = 100.0 + 0.05 * xy[:, 0] + rng.normal(0, 0.01, len(xy))
+    las.classification = np.full(len(xy), 2, dtype=np.uint8)
+    las.write(str(path))
+
+
+@pytest.mark.parametrize("memory", [[], ["--memory", "1M"]])
+@pytest.mark.parametrize("spacing, words", [
+    ("0.1", "no cell of the --spacing 0.1 lattice has 3 points"),
+    ("0.001", "--spacing 0.001 is finer than a quarter of the points' spacing")])
+def test_a_lattice_too_fine_for_the_points_is_one_line_and_no_output(tmp_path, memory, spacing, words):
+    """--spacing finer than h/4, or a lattice where no cell has 3 points within its
+    (2R + 1)^2 cells: one line that says so, in memory and beyond --memory, no output."""
+    source = tmp_path / "pairs.las"
+    _pairs_las(source, 4)
+    out = tmp_path / "out.ply"
+    run = CliRunner().invoke(main, ["fit", str(source), "-o", str(out), "--smooth", "1", "--spacing", spacing, *memory])
+    assert run.exit_code == 1, run.output
+    assert words in run.output
+    assert len(run.output.strip().splitlines()) == 1 and not out.exists()
+
+
 @pytest.mark.parametrize("spacing", [None, 1.0])
 def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path, spacing):
     """The tiled smoothing fit on Dask writes the bytes the local processes write: vertices

@@ -79,6 +79,7 @@ from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
+from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import with_plane_level
@@ -220,6 +221,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             spacing, stacked = survey_stacking(height_pass, grid, frame.axes[2], runner, rows.name, temps)
             data = lattice = lattice_facts = None
             if surface.spacing is not None:    # --spacing: the smoothing's vertices on a lattice, every height fitted
+                check_lattice_spacing(surface.spacing, spacing)
                 lattice = lattice_tiles(heights, surface.spacing, spacing, temps, temps.stem)
                 data, heights = heights, stack.enter_context(contextlib.closing(lattice.nodes))
                 lattice_facts = lattice.facts()
@@ -244,7 +246,10 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             removed, kept = ({}, None) if lattice is not None else \
                 trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
             kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
-            check_triangles_left(kept_triangles)
+            if lattice is None:
+                check_triangles_left(kept_triangles)
+            else:
+                check_cells_left(kept_triangles, lattice.grid)
             trimmed_mesh = TiledMesh(heights, grid, triangle_files, buffers, max_edge, frame)
             filled = None
             if fill is not None:           # the filled triangulation's halos in place of the trim's

@@ -79,7 +79,7 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
                                      search_windows)
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.lattice_mesh import lattice_mesh
+from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
@@ -482,9 +482,10 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     normal_source, frame, gradient_source, max_slope_not_applied = facts
     check_triangulation, fill = checks
     with timer.stage("triangulate"):
+        check_lattice_spacing(options.spacing, hf.spacing)
         mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing)
         shown, triangles = mesh.shown_mesh()
-        check_triangles_left(triangles.shape[0])
+        check_cells_left(triangles.shape[0], mesh.grid)
         table = edge_table(triangles, shown.size)
         if check_triangulation is not None:
             check_triangulation(mesh.points[shown], triangles, table)

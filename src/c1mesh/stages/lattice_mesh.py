@@ -102,6 +102,29 @@ def check_spacing(spacing: float | None) -> None:
         raise InputError(f"--spacing must be a positive length, got {spacing!r}")
 
 
+FINEST_SPACINGS = 0.25
+"""The finest lattice, in point spacings h: below h/4 it would hold over 16 nodes a point,
+which no data can steer (and the support's reach, capped at REACH_CELLS[1] cells, would
+need more points in a cell's block than it can hold)."""
+
+
+def check_lattice_spacing(spacing: float, point_spacing: float) -> None:
+    """InputError when spacing D is finer than FINEST_SPACINGS point spacings h (frame units)."""
+    if point_spacing > 0 and spacing < FINEST_SPACINGS * point_spacing:
+        raise InputError(f"--spacing {spacing:g} is finer than a quarter of the points' spacing "
+                         f"({point_spacing:.3g}): the lattice would hold over 16 nodes a point; give at least "
+                         f"{FINEST_SPACINGS * point_spacing:.3g}")
+
+
+def check_cells_left(count: int, grid: NodeGrid) -> None:
+    """InputError when the lattice keeps no cell (`count` triangles 0): no cell holds a point
+    whose block of (2R + 1)² cells holds MIN_BLOCK_POINTS. Every path says it before the fit."""
+    if count == 0:
+        side = (2 * grid.reach + 1) * grid.spacing
+        raise InputError(f"no cell of the --spacing {grid.spacing:g} lattice has {MIN_BLOCK_POINTS} points within "
+                         f"a {side:g} x {side:g} square around it; give a larger --spacing")
+
+
 def support_reach(spacing: float, point_spacing: float) -> int:
     """R in cells of `spacing`: SUPPORT_SPACINGS point spacings h, rounded up, within REACH_CELLS."""
     reach = math.ceil(SUPPORT_SPACINGS * point_spacing / spacing) if point_spacing > 0 else REACH_CELLS[0]
@@ -307,8 +330,7 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
     return nodes, number[corners - first] - 1
 
 
-__all__ = ["LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS",
-           "KEPT_BLOCK", "cell_triangles", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh",
-           "nearest_points", "node_grid",
-           "numbered_triangles",
-           "support_reach"]
+__all__ = ["FINEST_SPACINGS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid",
+           "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left", "check_lattice_spacing",
+           "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "nearest_points", "node_grid",
+           "numbered_triangles", "support_reach"]
