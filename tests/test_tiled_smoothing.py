@@ -491,3 +491,34 @@ def test_tiles_with_a_generous_halo_give_the_one_tile_solve(strength):
     assert report["residual_max"] == np.abs(z - values).max()
     assert report["residual_rms"] == pytest.approx(np.sqrt(np.mean((z - whole.values) ** 2)), rel=1e-6)
     assert report["edf"] == pytest.approx(whole.fit.edf, rel=0.1)
+
+
+def test_seamless_dems_of_a_lattice_fit_in_tiles_are_the_in_memory_ones(tmp_path):
+    """`--seamless -O DIR --suffix .tif` with --spacing: each input's DEM window is set by the
+    triangles it owns, those whose lowest-numbered node's nearest point is its, in memory
+    and in tiles (the tiles' records number nodes, not points: their `source` decides), so
+    both write the same windows and cells."""
+    rasterio = pytest.importorskip("rasterio")
+    sources = [tmp_path / f"part{i}.las" for i in range(2)]
+    for i, source in enumerate(sources):
+        _terrain_las(source, 3000, seed=10 + i)
+    with laspy.open(str(sources[1])) as reader:                 # the second file east of the first
+        points = reader.read()
+    points.x = points.x + np.sqrt(3000 / 4.0)
+    points.write(str(sources[1]))
+    run = CliRunner().invoke(main, ["fit", *map(str, sources), "--seamless", "--classes", "2", "--smooth", "5",
+                                    "--spacing", "1", "--suffix", ".tif", "--resolution", "1",
+                                    "-O", str(tmp_path / "memory")])
+    assert run.exit_code == 0, run.output
+    (tmp_path / "tiled").mkdir()
+    outputs = [tmp_path / "tiled" / (source.stem + ".tif") for source in sources]
+    options = FitOptions(classes=[2], smooth=5.0, spacing=1.0, resolution=1.0, memory=10**9)
+    assert fit([str(s) for s in sources], None, options, outputs=outputs,
+               tiles=TiledRun(per_tile=1500)).report["tiles"] > 1
+    for source in sources:
+        with rasterio.open(tmp_path / "memory" / (source.stem + ".tif")) as a, \
+                rasterio.open(tmp_path / "tiled" / (source.stem + ".tif")) as b:
+            assert a.transform == b.transform and a.shape == b.shape
+            here, there = a.read(1, masked=True), b.read(1, masked=True)
+            np.testing.assert_array_equal(here.mask, there.mask)
+            assert np.abs(here - there).max() < 1e-3

@@ -81,6 +81,7 @@ from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, conto
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
 from c1mesh.geo.products import ContourRequest, stage_lines
 from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
+from c1mesh.survey.refine_runs import lowest_points
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
 
@@ -795,7 +796,7 @@ def input_windows(job: DemJob, chunks, owners, inputs: int) -> list:
         records = job.halos.halo(t).records
         rows = tile_rows(records["index"], triangles)
         xy = np.column_stack([records["x"], records["y"]])[rows] + origin      # (k, 3, 2) world
-        extend(np.repeat(owners.of(triangles.min(axis=1)), 3), xy.reshape(-1, 2))
+        extend(np.repeat(owners.of(lowest_points(records, triangles)[:, 0]), 3), xy.reshape(-1, 2))
     return [job.dem.grid.window_over(lo[i], hi[i]) if np.isfinite(lo[i]).all() else None for i in range(inputs)]
 
 
