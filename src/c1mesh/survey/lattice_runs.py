@@ -72,9 +72,8 @@ class LatticeTiles:
     files (per tile the .npy of its solve cells' triangles, node numbers; None: no cells and
     no nodes; a tile with nodes and no cells has an empty one, so that the smoothing solves
     its nodes in its halo), shown_files (those of its support cells: the output's; None:
-    none), triangles (the shown count),
-    buffers (per tile how far beyond its cell its triangles' corners lie), triangles (the
-    count), grid (the NodeGrid)."""
+    none), buffers (per tile how far beyond its cell its triangles' corners lie), triangles
+    (the shown triangles' count), grid (the NodeGrid)."""
 
     nodes: TileSpill
     files: list
