@@ -273,16 +273,16 @@ class SurfaceModel:
     the points some triangle uses; interp: the RSDInterpolator over hf.xy[used] (its
     triangles index those n points); overshoot: the limiter's report (c1mesh.stages.limiter);
     gradient_source: "heights" (c1mesh.stages.height_gradients) or "normals".
-    smoothing: the c1mesh.stages.smoothing.SmoothFit of a smoothing fit, else None;
-    on_lattice: its vertices are the nodes of the --spacing lattice, fitted to all of hf's
-    points (stages.lattice_mesh); `used` then holds the point nearest each node (not
-    ascending, not distinct) and trim_report counts the lattice's triangles.
+    smoothing: the c1mesh.stages.smoothing.SmoothFit of a smoothing fit, else None.
     max_slope_not_applied: why max_slope dropped nothing (heights in units of their own
     and no z_factor: slopes are no angles), else None.
     trimmed: for a fit built with fill=True (a DEM that spans its holes), (T,) bool over
     interp's triangles: those the trim kept (the mesh's); the others span holes the trim
     opened (long edges, curtains). None: every triangle is the trim's.
-    lattice: on a lattice, its report facts (stages.lattice_mesh.lattice_facts), else None.
+    lattice: the report facts (stages.lattice_mesh.lattice_facts) of a fit whose vertices
+    are the nodes of the --spacing lattice, fitted to all of hf's points (`on_lattice`);
+    `used` then holds the point nearest each node (not ascending, not distinct) and
+    trim_report counts the lattice's triangles. None: the vertices are points.
     """
 
     normal_source: str
@@ -295,9 +295,13 @@ class SurfaceModel:
     gradient_source: str = "normals"
     max_slope_not_applied: str | None = None
     smoothing: Any = None
-    on_lattice: bool = False
     trimmed: np.ndarray | None = None
     lattice: dict | None = None
+
+    @property
+    def on_lattice(self) -> bool:
+        """Whether the vertices are lattice nodes (not points): `lattice` holds its facts."""
+        return self.lattice is not None
 
 
 def _fit_heights_first(cloud: PointCloud, options: FitOptions) -> bool:
@@ -465,7 +469,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 _FitMesh(hf, used, triangles, table), _HoleSpan(trim_only, trimmed) if fill else None,
                 strength, options, gradient_data_weight(normal_source, gradient_source), not plan_heights)
     return SurfaceModel(normal_source, frame, hf, trim_report, used, interp, overshoot, gradient_source,
-                        max_slope_not_applied, smoothing, False, trimmed)
+                        max_slope_not_applied, smoothing, trimmed)
 
 
 def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "StageTimer",
@@ -502,7 +506,7 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     trimmed = np.ones(triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
     return SurfaceModel(normal_source, frame, hf, TrimReport(triangles.shape[0], triangles.shape[0]),
                         mesh.sources[shown], interp, overshoot, gradient_source, max_slope_not_applied,
-                        smoothing, True, trimmed, mesh.facts())
+                        smoothing, trimmed, mesh.facts())
 
 
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
