@@ -625,12 +625,12 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                                              None if windows.whole else windows.holding(pts))
         else:
             s = float(strength)
+        chosen = dict(strength=s, lam=s * h * h * w_mean, search_limit_reached=at_limit, seconds=seconds,
+                      cv_curve=[(tried, score * Z) for tried, score in curve],       # in height units
+                      outside=outside, gradient_weight=mu if grad is not None else 0.0,
+                      search_windows=None if windows is None else windows.as_dict())
         if search_only:
-            return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), strength=s, lam=s * h * h * w_mean,
-                             cv_curve=[(tried, score * Z) for tried, score in curve], search_limit_reached=at_limit,
-                             solver=method, seconds=seconds, outside=outside,
-                             gradient_weight=mu if grad is not None else 0.0,
-                             search_windows=None if windows is None else windows.as_dict())
+            return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), solver=method, **chosen)
         if grid is None:
             with timed(seconds, "solve"):
                 u, factor = solve(system, s, solved.w, mu, method, keep_energy=False)     # the last matrix
@@ -654,14 +654,10 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         u = _in_input_order(u, order)
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
     gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
-    return SmoothFit(values=values, gradients=gradients, strength=s, lam=s * h * h * w_mean,
-                     cv_curve=[(tried, score * Z) for tried, score in curve],       # in height units
-                     search_limit_reached=at_limit, edf=edf,
+    return SmoothFit(values=values, gradients=gradients, edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
-                     solver=method if grid is None else "lattice-pcg", seconds=seconds, outside=outside,
-                     gradient_weight=mu if grad is not None else 0.0,
-                     search_windows=None if windows is None else windows.as_dict(), own_residuals=own_residuals)
+                     solver=method if grid is None else "lattice-pcg", own_residuals=own_residuals, **chosen)
 
 
 def _lattice_of(lattice: Lattice, pts: np.ndarray, npts: np.ndarray, centre: np.ndarray, h: float) -> Lattice:
