@@ -93,3 +93,14 @@ def corner_rows(index: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     absent; triangles (k, 3) numbering those corners)."""
     corners, local = np.unique(triangles, return_inverse=True)
     return tile_rows(index, corners), local.reshape(triangles.shape)
+
+
+def plane_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
+    """((2,), (2,)): the least and the largest x and y over the parts (an iterable of (m, 2)
+    plane positions: a survey's tiles, or the in-memory fit's one part), the reduce a
+    survey-wide box needs; (inf, inf), (-inf, -inf) when every part is empty."""
+    lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
+    for xy in parts:
+        if xy.shape[0]:
+            lower, upper = np.minimum(lower, xy.min(axis=0)), np.maximum(upper, xy.max(axis=0))
+    return lower, upper

@@ -45,7 +45,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from c1mesh.core.threads import limit, parallel_blocks
-from c1mesh.core.tile import Tile
+from c1mesh.core.tile import Tile, plane_bounds
 from c1mesh.engine import rsd
 from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
@@ -288,10 +288,7 @@ def windows_of_parts(parts, count: int) -> SearchWindows:
     points gives the same windows."""
     if count <= SEARCH_VERTICES:
         return SearchWindows()
-    lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
-    for xy in parts():
-        if xy.shape[0]:
-            lower, upper = np.minimum(lower, xy.min(axis=0)), np.maximum(upper, xy.max(axis=0))
+    lower, upper = plane_bounds(parts())
     anchors = window_anchors(lower, upper)
     nearest = reduce_nearest([nearest_to_anchors(xy, anchors) for xy in parts()])
     return windows_at(nearest, window_side(lower, upper, count))

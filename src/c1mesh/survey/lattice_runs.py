@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from c1mesh.core.tile import plane_bounds
 from c1mesh.stages.lattice_mesh import (KEPT_BLOCK, REACH_CELLS, NodeGrid, cell_triangles, kept_cells, lattice_facts,
                                         nearest_points, node_grid)
 from c1mesh.survey.tile_spill import TileSpill, save_array
@@ -57,13 +58,12 @@ def lattice_read(lattice: NodeGrid) -> int:
 
 def survey_bounds(heights) -> tuple[np.ndarray, np.ndarray]:
     """((2,), (2,)): the least and the largest x and y of the height spill's records."""
-    lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
-    for t in range(len(heights.grid)):
-        if heights.counts[t]:
-            records = heights.tile(t)
-            xy = np.column_stack([records["x"], records["y"]])
-            lower, upper = np.minimum(lower, xy.min(axis=0)), np.maximum(upper, xy.max(axis=0))
-    return lower, upper
+    def parts():
+        for t in range(len(heights.grid)):
+            if heights.counts[t]:
+                records = heights.tile(t)
+                yield np.column_stack([records["x"], records["y"]])
+    return plane_bounds(parts())
 
 
 @dataclass(frozen=True)

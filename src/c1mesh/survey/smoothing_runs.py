@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from c1mesh.core.tile import VERTEX, Tile, compact, corner_rows, tile_rows
+from c1mesh.core.tile import Tile, compact, corner_rows, tile_rows
 from c1mesh.stages.limiter import TileLimits, tile_limits
 from c1mesh.stages.smoothing import (LATTICE_HALO_LENGTHS, LATTICE_HALO_SPACINGS, SearchWindows, SmoothingData,
                                      SmoothingRun, StrengthSearch,
@@ -211,8 +211,9 @@ class SmoothedFill:
 
 class FittedHalos:
     """The halos (halos.HaloCache) of a filled triangulation with the smoothing's fitted
-    heights and gradients (fitted: tile -> the file of its own vertices', VERTEX records,
-    tile_solve's) in place of the data's at the vertices it fitted. Picklable."""
+    heights and gradients (fitted: tile -> the file of its own vertices', records of the
+    height spill's dtype, tile_solve's) in place of the data's at the vertices it fitted.
+    Picklable."""
 
     def __init__(self, halos: HaloCache, fitted: dict):
         self.cache, self.fitted = halos, fitted
@@ -222,8 +223,9 @@ class FittedHalos:
 
     def halo(self, tile: int) -> Tile:
         halo = self.cache.halo(tile)
-        parts = [np.fromfile(self.fitted[t], dtype=VERTEX) for t in self.cache.reads(tile) if t in self.fitted]
-        fitted = np.concatenate(parts) if parts else np.empty(0, VERTEX)
+        record = self.cache.heights.record                 # tile_solve writes the halo's records
+        parts = [np.fromfile(self.fitted[t], dtype=record) for t in self.cache.reads(tile) if t in self.fitted]
+        fitted = np.concatenate(parts) if parts else np.empty(0, record)
         fitted = fitted.take(np.argsort(fitted["index"], kind="stable"))
         rows = tile_rows(fitted["index"], halo.records["index"])
         has = rows >= 0
@@ -301,8 +303,8 @@ def pieces_with_own(halo: Tile) -> Tile:
 
 
 def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
-    """smoothing.smooth_tile on tile's halo; writes its own vertices' fitted data (core.tile
-    VERTEX records, fitted z, gx, gy) and its own triangles' edge directions (.npy, as
+    """smoothing.smooth_tile on tile's halo; writes its own vertices' fitted data (records
+    of the height spill's dtype, fitted z, gx, gy) and its own triangles' edge directions (.npy, as
     smooth_tile orders them). Returns the TileSolve and the task's report row (tiles.task_row)."""
     start = time.perf_counter()
     halo = smoother.halos.halo(tile)
