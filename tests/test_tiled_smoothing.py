@@ -270,19 +270,25 @@ def test_tiled_smoothing_on_a_dask_cluster_writes_the_same_bytes(tmp_path, spaci
     assert dask["smoothing"] == {**here["smoothing"], "seconds": dask["smoothing"]["seconds"]}
 
 
+def _two_inputs(tmp_path) -> list:
+    """Two terrain LAS files of 3,000 points each, the second east of the first."""
+    sources = [tmp_path / f"part{i}.las" for i in range(2)]
+    for i, source in enumerate(sources):
+        _terrain_las(source, 3000, seed=10 + i)
+    with laspy.open(str(sources[1])) as reader:
+        points = reader.read()
+    points.x = points.x + np.sqrt(3000 / 4.0)
+    points.write(str(sources[1]))
+    return sources
+
+
 @pytest.mark.parametrize("spacing", [[], ["--spacing", "1"]])
 def test_seamless_tiles_of_a_smoothing_fit_join_into_its_whole_mesh(tmp_path, spacing):
     """`--seamless -O` with --smooth: each input's part is cut from the one fitted surface,
     so the parts' vertices are the whole survey fit's, bit for bit; with --spacing (lattice
     nodes, each owned by the input of its nearest point) too, and beyond --memory each
     input gets the same triangles (as many faces) as in memory."""
-    sources = [tmp_path / f"part{i}.las" for i in range(2)]
-    for i, source in enumerate(sources):
-        _terrain_las(source, 3000, seed=10 + i)
-    with laspy.open(str(sources[1])) as reader:                 # the second file east of the first
-        points = reader.read()
-    points.x = points.x + np.sqrt(3000 / 4.0)
-    points.write(str(sources[1]))
+    sources = _two_inputs(tmp_path)
     args = ["fit", *map(str, sources), "--seamless", "--classes", "2", "--level", "2", "--smooth", "5", *spacing]
     whole = CliRunner().invoke(main, args + ["-o", str(tmp_path / "whole.ply")])
     assert whole.exit_code == 0, whole.output
@@ -499,13 +505,7 @@ def test_seamless_dems_of_a_lattice_fit_in_tiles_are_the_in_memory_ones(tmp_path
     and in tiles (the tiles' records number nodes, not points: their `source` decides), so
     both write the same windows and cells."""
     rasterio = pytest.importorskip("rasterio")
-    sources = [tmp_path / f"part{i}.las" for i in range(2)]
-    for i, source in enumerate(sources):
-        _terrain_las(source, 3000, seed=10 + i)
-    with laspy.open(str(sources[1])) as reader:                 # the second file east of the first
-        points = reader.read()
-    points.x = points.x + np.sqrt(3000 / 4.0)
-    points.write(str(sources[1]))
+    sources = _two_inputs(tmp_path)
     run = CliRunner().invoke(main, ["fit", *map(str, sources), "--seamless", "--classes", "2", "--smooth", "5",
                                     "--spacing", "1", "--suffix", ".tif", "--resolution", "1",
                                     "-O", str(tmp_path / "memory")])
