@@ -10,7 +10,7 @@ import pytest
 from c1mesh.core.threads import limit
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.engine.topology import edge_table
-from c1mesh.stages import lattice_solver
+from c1mesh.stages import lattice_solver, smoothing
 from c1mesh.stages.lattice_solver import Lattice, LatticeSolver, colour_order, lattice_solve, prolongation
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.smoothing_energy import SmoothingError, triangle_directions
@@ -142,6 +142,7 @@ def test_the_hermite_prolongation_reproduces_quadratics(hole):
 
 def test_smooth_fit_with_the_lattice_is_smooth_fit_without(monkeypatch):
     monkeypatch.setattr(lattice_solver, "COARSEST", 150)
+    monkeypatch.setattr(smoothing, "EDF_PROBES", smoothing.LATTICE_EDF_PROBES)    # the same probes both ways
     points, T, lattice, data = lattice_mesh()
     xy, z, _, _ = data(3 * points.shape[0])
     h = float(np.sqrt(HX * HY / 3))

@@ -507,6 +507,24 @@ def test_a_held_out_vertex_is_held_out_with_its_gradient_datum():
     assert np.abs(full[0] - full[1]).max() > 0.1
 
 
+def test_the_window_centre_breaks_distance_ties_by_the_lower_x_then_y():
+    """On a lattice an anchor is often equally near several nodes: nearest_to_anchors
+    takes the lowest x, then the lowest y, among them (checked by brute force), in any
+    order of the points."""
+    import c1mesh.stages.smoothing as sm
+
+    i, j = np.meshgrid(np.arange(6.0), np.arange(5.0), indexing="ij")
+    nodes = np.stack([i.ravel(), j.ravel()], 1)
+    anchors = np.array([[2.5, 2.5], [3.0, 1.5], [0.5, 4.0], [10.0, 10.0]])
+    for order in (np.arange(len(nodes)), np.random.default_rng(1).permutation(len(nodes))):
+        rows = sm.nearest_to_anchors(nodes[order], anchors)
+        for anchor, row in zip(anchors, rows):
+            d2 = ((nodes - anchor) ** 2).sum(axis=1)
+            best = min(range(len(nodes)), key=lambda k: (d2[k], nodes[k, 0], nodes[k, 1]))
+            assert tuple(row) == (d2[best], nodes[best, 0], nodes[best, 1])
+    assert tuple(sm.nearest_to_anchors(nodes, anchors)[0, 1:]) == (2.0, 2.0)
+
+
 def test_the_search_windows_depend_only_on_the_survey_points():
     """SearchWindows: the whole mesh up to SEARCH_VERTICES points; beyond, one square on the
     point nearest each anchor of the bounding box (brute force here), of the side that

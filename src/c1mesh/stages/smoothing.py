@@ -101,6 +101,12 @@ height only if it is 2π s^¼ ≈ 350 spacings long, over 3 times the side of th
 region the search fits (SEARCH_VERTICES, ~100 spacings): the fit is the plane."""
 REFINE_STEPS = 4
 EDF_PROBES = 4
+LATTICE_EDF_PROBES = 1
+"""Hutchinson probes of the edf on the lattice, where each probe is a multigrid CG solve over
+the whole survey (about 1 s at 1M nodes) rather than a back substitution: one probe's
+standard deviation is below √(2 edf) (hat_trace), 0.7 % at edf 40,000. Measured on the DTM
+job (1M nodes, edf 40,048): eight probes gave 39,745-40,281, standard deviation 209 (0.5 %).
+The edf is only reported, so a 0.5 % spread is worth the 3 s that three more probes cost."""
 LATTICE_STEP = 3e-6
 """With `smooth_fit(..., lattice=)`, the final solve's CG stops once a step moves no vertex
 height by more than this many Z (the RMS of the data about their weighted plane, the
@@ -115,7 +121,7 @@ LATTICE_EDF_STEP = 3e-2
 """The lattice's step rule for the Hutchinson probes of the edf (in the probes' own unit:
 they are ±1 data, as large as Z is to the heights): an error of 3e-2 per fitted value moves
 vᵀF by at most about 3e-2 √M (30 at 1M data), well below the estimate's own spread
-√(2 tr H / EDF_PROBES) (181 at edf 65,500). Measured at 1M nodes and data (4 probes solved
+√(2 tr H / probes) (181 at edf 65,500 and 4 probes; LATTICE_EDF_PROBES is 1). Measured at 1M nodes and data (4 probes solved
 side by side; their estimate against the same probes solved to 1e-4, 8 iterations): 1e-2
 took 4 iterations and was 5.8 off, 3e-2 took 2 and was 5.0 off, 0.3 took 1 and was 78 off.
 At 360k nodes 1e-3 gave edf 23,702 and 1e-2 gave 23,699."""
@@ -236,7 +242,8 @@ def nearest_to_anchors(xy: np.ndarray, anchors: np.ndarray) -> np.ndarray:
     if xy.shape[0]:
         for a, anchor in enumerate(anchors):
             d2 = (xy[:, 0] - anchor[0]) ** 2 + (xy[:, 1] - anchor[1]) ** 2
-            best = np.lexsort((xy[:, 1], xy[:, 0], d2))[0]
+            tied = np.flatnonzero(d2 == d2.min())        # one pass; the tie rule sorts only the ties
+            best = tied[np.lexsort((xy[tied, 1], xy[tied, 0]))[0]]
             rows[a] = d2[best], xy[best, 0], xy[best, 1]
     return rows
 
@@ -640,7 +647,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                 u = solver.pcg(rhs, LATTICE_STEP)[0]
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
         with timed(seconds, "edf"):
-            edf = hat_trace(system, factor, solved.w, EDF_PROBES, seed)
+            edf = hat_trace(system, factor, solved.w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
     residual = (solved.z - system.fitted(u)) * Z     # in solved's numbering (data points: theirs)
     own_residuals = None
     if not vertex_data and own_inside is not None:
