@@ -87,6 +87,17 @@ def test_every_data_point_of_a_supported_cell_lies_in_the_mesh_and_nodes_sit_on_
     assert (~held).sum() > 0                                # lone points stay out
 
 
+def test_the_shown_mesh_is_the_shown_triangles_on_the_nodes_they_use():
+    """shown_mesh: ascending rows of the nodes some shown triangle uses, and the shown
+    triangles renumbered into them (the same corners, checked by position)."""
+    mesh = lattice_mesh(_clustered(5), 1.5, 0.5)
+    used, triangles = mesh.shown_mesh()
+    shown = mesh.triangles[mesh.shown]
+    assert 0 < mesh.shown.sum() < mesh.shown.size                          # the blocks add hidden cells
+    assert used.tolist() == sorted({int(v) for v in shown.ravel()})
+    np.testing.assert_array_equal(mesh.points[used][triangles], mesh.points[shown])
+
+
 def test_cell_triangles_split_every_cell_by_the_same_diagonal():
     grid = node_grid([0.0, 0.0], [2.5, 1.5], 1.0, 0.5)
     nx = grid.shape[1]

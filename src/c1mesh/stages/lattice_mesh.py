@@ -250,10 +250,13 @@ class LatticeMesh:
     def shown_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """(used (u,) ascending rows of the nodes the shown triangles use, their triangles
         (S, 3) into those rows): the output's mesh."""
-        used = np.unique(self.triangles[self.shown])
+        corners = self.triangles[self.shown]
+        marked = np.zeros(self.nodes.size, dtype=bool)          # a table, not a sort of the corners
+        marked[corners.ravel()] = True
+        used = np.flatnonzero(marked)
         local = np.full(self.nodes.size, -1, dtype=np.int64)
         local[used] = np.arange(used.size)
-        return used, local[self.triangles[self.shown]]
+        return used, local[corners]
 
     def facts(self) -> dict:
         """The report's smoothing.lattice: spacing D, reach R (cells), nodes."""
