@@ -193,19 +193,32 @@ def test_tiles_report_a_search_that_reached_its_limit(tmp_path):
     assert interior_or_at_limit(SimpleNamespace(**report["smoothing"])) == "high limit"
 
 
-def test_lattice_vertices_in_tiles_are_the_whole_fits(tmp_path):
+@pytest.mark.parametrize("multigrid", [False, True])
+def test_lattice_vertices_in_tiles_are_the_whole_fits(tmp_path, monkeypatch, multigrid):
     """--spacing beyond --memory (survey.lattice_runs): each tile decides the lattice cells
     and nodes of its cell from the heights around it, so the vertices are the in-memory
     fit's, node for node (9 tiles; cells straddle the tiles' borders), and each tile fits
     every height in its halo, so the surface is the whole fit's within the tiled solve's
     difference (as test_tiled_smoothing_matches_the_whole_fit bounds it). The nodes are no
-    unused points: the warning counts the data the triangles cover, as in memory."""
+    unused points: the warning counts the data the triangles cover, as in memory.
+    multigrid: the tiles solve by the lattice's multigrid (MULTIGRID_FROM lowered to 0 for
+    the tiled fit), as the in-memory fit does from MULTIGRID_FROM nodes."""
+    from c1mesh.stages import lattice_mesh
+    from c1mesh.survey import smoothing_runs
+
     source = tmp_path / "terrain.las"
     _terrain_las(source, 12000, seed=2)
     whole, whole_report = _in_memory(tmp_path, source, 3.0, "--spacing", "1")
     options = FitOptions(classes=[2], level=1, smooth=3.0, spacing=1.0, memory=10**9)
+    solvers = []
+    solve = smoothing_runs.smooth_tile
+    monkeypatch.setattr(smoothing_runs, "smooth_tile",
+                        lambda *a, **k: solvers.append(k["lattice"] is not None) or solve(*a, **k))
+    if multigrid:
+        monkeypatch.setattr(lattice_mesh, "MULTIGRID_FROM", 0)
     report = fit(source, tmp_path / "tiled.ply", options, tiles=TiledRun(per_tile=1500)).report
     assert report["tiles"] == 9
+    assert solvers == [multigrid] * 9
     vertices = trimesh.load(tmp_path / "tiled.ply", process=False).vertices
     assert len(vertices) == len(whole) == whole_report["points"]["kept"] == report["points"]["kept"]
     assert len(whole) < 12000 / 3                  # about one node per four points at 0.5 spacing

@@ -271,7 +271,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                     gradient_data_weight("estimated", gradient_source))
                 if lattice is not None:        # unit normal directions, no gradient data: as in memory
                     run_ = replace(run_, overshoot="off", gradient_weight=0.0)
-                fit = TiledSmoothing(run_, longest, data, 0.0 if lattice is None else lattice_halo(lattice.grid))
+                fit = TiledSmoothing(run_, longest, data, 0.0 if lattice is None else lattice_halo(lattice.grid),
+                                     None if lattice is None else lattice.grid)
                 solved = trimmed_mesh if lattice is None else replace(trimmed_mesh, files=lattice.files)
                 limiter = TiledSmoother(solved, fit, temps, runner, rows.name,
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))

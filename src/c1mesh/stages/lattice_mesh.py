@@ -38,12 +38,15 @@ from c1mesh.core.threads import workers
 from c1mesh.stages.height_field import kd_tree
 from c1mesh.stages.lattice_solver import Lattice
 
-MULTIGRID_FROM = 200_000
+MULTIGRID_FROM = 20_000
 """Nodes from which the lattice's system is solved by multigrid (stages.lattice_solver)
-rather than factored: below, CHOLMOD is as fast or faster (a 201² lattice of random data,
-s = 0.1, 2 threads: 1.05 against 1.15 s; autzen_trim ground at --spacing 3, 51k nodes with
-sparse patches and s = 0.01: 28-69 CG iterations a solve, 4.5 s against about 1.5 s); at
-401² it takes half CHOLMOD's time (2.7 against 5.4 s), at 1M nodes under a third."""
+rather than factored by CHOLMOD. Measured since the solve keeps whole KEPT_BLOCK blocks
+(2026-12-05, a loaded 2-core machine, whole smoothing fit, CHOLMOD / multigrid, two runs
+each): 4_6_crop ground at --spacing 2.5 (7.9k nodes) 0.31-0.70 / 0.35-0.42 s, at 1.5 (21k)
+0.72-1.11 / 0.60-0.62 s, at 1 (43k) 1.35-2.27 / 0.96-1.10 s; autzen_trim ground at --spacing
+3, s = 0.01 (64k nodes, sparse patches) 2.52-4.29 / 1.60-3.04 s, at 2 (133k) 4.45-7.6 /
+1.8-2.9 s; a uniform survey's 209k nodes 10.8 / 2.8 s. Before the blocks (borders on odd
+nodes, 3-5 times the CG iterations) CHOLMOD was the faster up to about 200k nodes."""
 SUPPORT_SPACINGS = 4.0
 """R, the support's reach, in point spacings h (rounded up to whole cells)."""
 REACH_CELLS = (2, 8)
@@ -263,9 +266,15 @@ class LatticeMesh:
         return lattice_facts(self.grid, int(self.nodes.size))
 
     def solver_lattice(self) -> Lattice | None:
-        """smooth_fit's `lattice` for these vertices (its multigrid solve), or None below
-        MULTIGRID_FROM nodes (a direct solve)."""
-        return self.grid.solver_lattice(self.nodes) if self.nodes.size >= MULTIGRID_FROM else None
+        """smooth_fit's `lattice` for these vertices (multigrid_lattice)."""
+        return multigrid_lattice(self.grid, self.nodes)
+
+
+def multigrid_lattice(grid: NodeGrid, nodes: np.ndarray) -> Lattice | None:
+    """smooth_fit's `lattice` for vertices at these node numbers (n,) of grid, in their
+    order (its multigrid solve), or None below MULTIGRID_FROM nodes (a direct solve): the
+    in-memory fit's one rule and every tile's of a tiled one."""
+    return grid.solver_lattice(nodes) if len(nodes) >= MULTIGRID_FROM else None
 
 
 def lattice_facts(grid: NodeGrid, nodes: int) -> dict:
@@ -335,5 +344,5 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
 
 __all__ = ["FINEST_SPACINGS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid",
            "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left", "check_lattice_spacing",
-           "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "nearest_points", "node_grid",
+           "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "multigrid_lattice", "nearest_points", "node_grid",
            "numbered_triangles", "support_reach"]

@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from c1mesh.core.tile import Tile, compact, corner_rows, tile_rows
+from c1mesh.stages.lattice_mesh import NodeGrid, multigrid_lattice
 from c1mesh.stages.limiter import TileLimits, tile_limits
 from c1mesh.stages.smoothing import (LATTICE_HALO_LENGTHS, LATTICE_HALO_SPACINGS, SearchWindows, SmoothingData,
                                      SmoothingRun, StrengthSearch,
@@ -47,12 +48,16 @@ class TiledSmoothing:
     data), longest_edge (the longest final edge, frame units: the least halo); data: the
     height spill whose every height is fitted when the vertices are lattice nodes
     (--spacing: survey.lattice_runs; None: the vertices' own heights); least_halo (frame
-    units): the halo the mesh asks for besides (the lattice's: lattice_runs.lattice_halo)."""
+    units): the halo the mesh asks for besides (the lattice's: lattice_runs.lattice_halo);
+    nodes: the NodeGrid the vertices are nodes of (their records' `index` its node
+    numbers), whose tiles of MULTIGRID_FROM nodes or more solve by its multigrid as the
+    in-memory fit does (lattice_mesh.multigrid_lattice); None: any mesh."""
 
     run: SmoothingRun
     longest_edge: float
     data: object = None
     least_halo: float = 0.0
+    nodes: NodeGrid | None = None
 
 
 class TiledSmoother:
@@ -70,7 +75,7 @@ class TiledSmoother:
         self.limited = self.turned = self.lifted = 0         # refine_runs adds its rows' counts
         self.seconds: dict = {}
         self.search: StrengthSearch | None = None
-        self.run, self.data = fit.run, fit.data
+        self.run, self.data, self.nodes = fit.run, fit.data, fit.nodes
         if self.run.control.strength == "auto":
             start = time.perf_counter()
             windows = survey_windows(heights if self.data is None else self.data)
@@ -310,7 +315,9 @@ def tile_solve(smoother: TiledSmoother, tile: int) -> tuple[TileSolve, dict]:
     halo = smoother.halos.halo(tile)
     if smoother.data is not None:        # lattice nodes: a piece the halo cuts off may hold no data
         halo = pieces_with_own(halo)
-    smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]), data=smoother.data_near(tile, smoother.reach))
+    lattice = None if smoother.nodes is None else multigrid_lattice(smoother.nodes, halo.records["index"])
+    smoothed = smooth_tile(halo, smoother.run, np.load(smoother.files[tile]),
+                           data=smoother.data_near(tile, smoother.reach), lattice=lattice)
     records = np.compress(halo.own, halo.records)
     records["z"] = smoothed.values
     records["gx"], records["gy"] = smoothed.gradients[:, 0], smoothed.gradients[:, 1]
