@@ -118,7 +118,7 @@ within 0.02 % from s = 1e-6 to 1e-5). Measured on 10 samples of issue 38's banks
 (2 cm noise, one point a 1.3 m square, jittered grid or random; docs/smoothing.md, "Folds at
 steps"), the lattice of 1.3 m folded no face from a smoothing length of 0.15-0.25 D on, each
 sample its own (the last, a jittered one, folded one face at 0.23 D). On a lattice of 0.65 m,
-finer than that detail, no s down to 1e-6 folded these samples."""
+finer than that detail, the five of them tried folded no face even at s = 1e-6."""
 
 
 def least_strength(spacing: float, point_spacing: float, area_per_point: float) -> float:
