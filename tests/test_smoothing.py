@@ -197,8 +197,9 @@ def test_the_search_chooses_a_strength_within_1_percent_of_the_curves_lowest(mon
     real = sm._search
     monkeypatch.setattr(sm, "_search", lambda *args: searched.append(args) or real(*args))
     fit = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength="auto"))
-    problem, folds, mu, method, seed, keep = searched[0]
+    problem, folds, mu, method, seed, keep, lowest = searched[0]
     assert keep is None and problem.points.shape[0] <= sm.SEARCH_VERTICES     # the search ran on the whole problem
+    assert lowest == sm.SEARCH_LIMITS[0]                  # no least strength: the vertices are the points
     extent = np.ptp(problem.data_xy, axis=0)
     block = min(sm.CV_BLOCK, max(float(np.sqrt(extent[0] * extent[1] / (4 * folds))), 1.0))
     fold = sm.fold_of(problem.data_xy, folds, block, seed)

@@ -193,6 +193,21 @@ def test_tiles_report_a_search_that_reached_its_limit(tmp_path):
     assert interior_or_at_limit(SimpleNamespace(**report["smoothing"])) == "high limit"
 
 
+def test_lattice_search_in_tiles_keeps_the_whole_fits_least_strength(tmp_path):
+    """--smooth auto --spacing beyond --memory: the tiled search starts at the same least
+    strength as the in-memory one (stages.lattice_mesh.least_strength, from the support's
+    cells and the survey's points) and chooses the same s."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 12000, seed=2)
+    _, whole_report = _in_memory(tmp_path, source, "auto", "--spacing", "1")
+    options = FitOptions(classes=[2], level=1, smooth="auto", spacing=1.0, memory=10**9)
+    report = fit(source, tmp_path / "tiled.ply", options, tiles=TiledRun(per_tile=1500)).report
+    assert report["tiles"] == 9
+    least = [min(s for s, _ in r["smoothing"]["cv_curve"]) for r in (report, whole_report)]
+    assert least[0] == least[1] > 1e-6
+    assert report["smoothing"]["strength"] == whole_report["smoothing"]["strength"]
+
+
 @pytest.mark.parametrize("multigrid", [False, True])
 def test_lattice_vertices_in_tiles_are_the_whole_fits(tmp_path, monkeypatch, multigrid):
     """--spacing beyond --memory (survey.lattice_runs): each tile decides the lattice cells

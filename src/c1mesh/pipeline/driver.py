@@ -79,7 +79,7 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
                                      search_windows)
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh
+from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh, least_strength
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
@@ -480,7 +480,8 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     support's cells grown to whole blocks, and kept on the support's (the same spline). No
     Delaunay and no trim: the mesh is the lattice's cells near the data. Its `used` are the
     points nearest the nodes (their colours, and their inputs' ownership); no gradient data
-    (the nodes are no points), unit normal edge directions (the cells are all one shape).
+    (the nodes are no points), unit normal edge directions (the cells are all one shape);
+    "auto" searches no lower than the lattice's least_strength (its cells ring below it).
     checks: build_surface's check_triangulation and fill; a DEM's fill spans no triangle
     (the lattice closes gaps of a few cells and leaves larger holes open)."""
     normal_source, frame, gradient_source, max_slope_not_applied = facts
@@ -495,7 +496,10 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
             check_triangulation(mesh.points[shown], triangles, table)
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
-    run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, "off", 0.0)
+    cells = int(mesh.shown.sum()) // 2                                   # the support's, two triangles each
+    least = least_strength(options.spacing, hf.spacing, cells * options.spacing ** 2 / hf.xy.shape[0])
+    control = SmoothingControl(strength, scheme, windows=windows, least_strength=least)
+    run = SmoothingRun(control, hf.spacing, "off", 0.0)
     count = mesh.points.shape[0]
     with timer.stage("interpolate"):
         tile = Tile.whole(mesh.points, np.zeros(count), np.zeros((count, 2)), mesh.triangles)

@@ -111,6 +111,39 @@ which no data can steer (and the support's reach, capped at REACH_CELLS[1] cells
 need more points in a cell's block than it can hold)."""
 
 
+BENDING_CELLS = 0.25
+"""The least smoothing length of a fit on the lattice, in lattice spacings D (`least_strength`).
+Below it the fit follows detail the points show but the cells cannot carry (a bank 1 m wide
+in cells of 1.3 m), and the cells ring around it: folded faces beside steep steps (issue 38),
+which the cross-validation does not see, as it scores heights at points, not slopes between
+them, and its score there is held by the points on the banks, which no s predicts (flat
+within 0.02 % from s = 1e-6 to 1e-5). Measured on 10 samples of issue 38's banks and ditches
+(2 cm noise, one point a 1.3 m square, jittered grid or random; docs/smoothing.md, "Folds at
+steps"), the lattice of 1.3 m folded no face from a smoothing length of 0.15-0.25 D on, each
+sample its own (the last, a jittered one, folded one face at 0.23 D). On a lattice of 0.65 m,
+finer than that detail, the five of them tried folded no face even at s = 1e-6."""
+
+
+def least_strength(spacing: float, point_spacing: float, area_per_point: float) -> float:
+    """The least strength s the search may choose on the lattice of `spacing` D, for points
+    of spacing h = point_spacing (the strength's length unit: smoothing module doc) that
+    cover area_per_point a² each (frame units): the s whose smoothing length ℓ is
+    BENDING_CELLS D, rounded to 2 significant digits (the in-memory and the tiled fit count
+    their points a few apart: the same rule as the search windows' side).
+
+    ℓ is the smoothing module's length s^¼ h with the points' own density: the data weigh
+    Σw/M a point, 1/a² points an area, against λ = s h² Σw/M times the energy, which
+    balance at ℓ⁴ = s h² a² (the module takes a = h); so s = (BENDING_CELLS D)⁴ / (h a)².
+    The area a² is the caller's: the support's cells over the points. 0 where h or a² is
+    not positive. (A wave 2π ℓ long keeps about 1/5 of its height, where the module's
+    1 / (1 + (2π ℓ / L)⁴) says 1/2: the RSD spline of a smooth function bends more than the
+    function; tests/test_lattice_steps.py.)"""
+    if point_spacing <= 0 or area_per_point <= 0:
+        return 0.0
+    least = (BENDING_CELLS * spacing) ** 4 / (point_spacing ** 2 * area_per_point)
+    return float(f"{least:.2g}")
+
+
 def check_lattice_spacing(spacing: float, point_spacing: float) -> None:
     """InputError when spacing D is finer than FINEST_SPACINGS point spacings h (frame units)."""
     if point_spacing > 0 and spacing < FINEST_SPACINGS * point_spacing:
@@ -342,7 +375,7 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
     return nodes, number[corners - first] - 1
 
 
-__all__ = ["FINEST_SPACINGS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM", "NodeGrid",
-           "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left", "check_lattice_spacing",
-           "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "multigrid_lattice", "nearest_points", "node_grid",
-           "numbered_triangles", "support_reach"]
+__all__ = ["FINEST_SPACINGS", "BENDING_CELLS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM",
+           "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left",
+           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "least_strength",
+           "multigrid_lattice", "nearest_points", "node_grid", "numbered_triangles", "support_reach"]

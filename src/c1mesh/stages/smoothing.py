@@ -312,7 +312,9 @@ class SmoothingControl:
     threads: c1mesh.core.threads.limit of the solve (None: the process's setting).
     windows: where "auto" searches (SearchWindows: the survey's, which a survey fitted in
     tiles and the in-memory fit choose alike, `search_windows`); None: chosen from the
-    fit's own vertices by the same rule."""
+    fit's own vertices by the same rule. least_strength: the least s "auto" may choose
+    (0: SEARCH_LIMITS' lower end); the lattice route's is lattice_mesh.least_strength,
+    the least smoothing its cells can carry without ringing."""
 
     strength: "float | str" = "auto"
     scheme: "str | ShapeTuple" = DEFAULT_SCHEME
@@ -320,6 +322,7 @@ class SmoothingControl:
     seed: int = 0
     threads: int | None = None
     windows: "SearchWindows | None" = None
+    least_strength: float = 0.0
 
 
 @dataclass
@@ -575,6 +578,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         raise SmoothingError(f"strength must be 'auto' or a positive number, got {strength!r}")
     if int(folds) != folds or folds < 2:
         raise SmoothingError(f"folds must be a whole number >= 2, got {folds!r}")
+    if not (np.isfinite(control.least_strength) and control.least_strength >= 0):
+        raise SmoothingError(f"the least strength must be >= 0, got {control.least_strength!r}")
     gradient_weight = 0.0 if prior is None else prior.weight
     if not (np.isfinite(gradient_weight) and gradient_weight >= 0):
         raise SmoothingError(f"the gradient prior's weight must be >= 0, got {gradient_weight!r}")
@@ -626,7 +631,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             with timed(seconds, "search"):
                 windows = search_windows(pts) if control.windows is None else control.windows
                 s, curve, at_limit = _search(problem, int(folds), mu, method, seed,
-                                             None if windows.whole else windows.holding(pts))
+                                             None if windows.whole else windows.holding(pts),
+                                             _lowest_exponent(control.least_strength))
         else:
             s = float(strength)
         chosen = dict(strength=s, lam=s * h * h * w_mean, search_limit_reached=at_limit, seconds=seconds,
@@ -849,10 +855,18 @@ def _supported(problem: _Problem, w: np.ndarray, cache: dict) -> np.ndarray:
     return kept[piece] >= MIN_PIECE_DATA
 
 
-def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int, keep: np.ndarray | None):
-    """(s, curve, limit reached): log-grid (`_coarse`) then golden-section search of the
-    spatial-block CV score. The limit is reached when s is the lowest or highest s tried,
-    not an interior minimum of the curve, which happens only at a SEARCH_LIMITS end."""
+def _lowest_exponent(least_strength: float) -> float:
+    """log10 of the least s the search tries: SEARCH_LIMITS' lower end, or least_strength
+    (SmoothingControl) when that is larger."""
+    return max(SEARCH_LIMITS[0], math.log10(least_strength)) if least_strength > 0 else SEARCH_LIMITS[0]
+
+
+def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int, keep: np.ndarray | None,
+            lowest: float = SEARCH_LIMITS[0]):
+    """(s, curve, limit reached): log-grid (`_coarse`, from log10 s = lowest up) then
+    golden-section search of the spatial-block CV score. The limit is reached when s is
+    the lowest or highest s tried, not an interior minimum of the curve, which happens
+    only at `lowest` or at SEARCH_LIMITS' upper end."""
     sub = _search_problem(problem, keep)
     if not (sub.w > 0).any():              # no fitted triangle in the windows: search on the whole
         sub = problem
@@ -870,7 +884,7 @@ def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int, ke
             curve.append((10.0**log_s, scores[log_s]))
         return scores[log_s]
 
-    grid, best = _coarse(score)
+    grid, best = _coarse(score, lowest)
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
     ratio = (np.sqrt(5) - 1) / 2
     a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
@@ -885,22 +899,23 @@ def _search(problem: _Problem, folds: int, mu: float, method: str, seed: int, ke
     return 10.0**log_best, curve, log_best in (grid[0], grid[-1])
 
 
-def _coarse(score) -> tuple[list, int]:
-    """(log10 s tried, ascending; index of the lowest score) of the coarse search: GRID,
-    stopped two steps past the lowest score (the curve is unimodal), then, while the
-    lowest score is at an end, one more step past that end, up to SEARCH_LIMITS. So the
-    lowest is an interior point of the curve, with a higher score on each side, unless it
-    lies at a limit."""
+def _coarse(score, lowest: float = SEARCH_LIMITS[0]) -> tuple[list, int]:
+    """(log10 s tried, ascending; index of the lowest score) of the coarse search: GRID
+    (its steps below `lowest` replaced by `lowest` itself), stopped two steps past the
+    lowest score (the curve is unimodal), then, while the lowest score is at an end, one
+    more step past that end, down to `lowest` (log10 s, at least SEARCH_LIMITS[0]) and up
+    to SEARCH_LIMITS[1]. So the lowest is an interior point of the curve, with a higher
+    score on each side, unless it lies at a limit."""
     grid, values = [], []
-    for e in GRID:
+    for e in sorted({max(e, lowest) for e in GRID}):
         grid.append(e)
         values.append(score(e))
         if len(values) - 1 - int(np.argmin(values)) >= 2:
             break
     step = GRID[1] - GRID[0]
     best = int(np.argmin(values))
-    while best == 0 and grid[0] - step >= SEARCH_LIMITS[0]:
-        grid.insert(0, grid[0] - step)
+    while best == 0 and grid[0] > lowest:
+        grid.insert(0, max(grid[0] - step, lowest))
         values.insert(0, score(grid[0]))
         best = int(np.argmin(values))
     while best == len(grid) - 1 and grid[-1] + step <= SEARCH_LIMITS[1]:

@@ -1,0 +1,126 @@
+"""The lattice route at steep steps (issue 38): the search's least strength on the lattice
+(stages.lattice_mesh.least_strength) keeps the fit from folding its faces beside banks and
+ditches narrower than a cell, and the smoothing length it is built on is the fit's own."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import c1mesh.pipeline.driver as driver
+from c1mesh.core.cloud import PointCloud
+from c1mesh.engine.interpolator import RSDInterpolator
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
+from c1mesh.stages.lattice_mesh import BENDING_CELLS, least_strength, lattice_mesh
+from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingError, smooth_fit
+from c1mesh.testing.quality import folded_faces
+
+SPACING = 1.3
+"""The samples' point spacing and the lattice's (m): one point a 1.3 m square."""
+
+
+def _ramp(t: np.ndarray) -> np.ndarray:
+    """0 → 1 as t goes 0 → 1, smoothly (smoothstep), flat outside."""
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _banks(seed: int, side: float = 36.0) -> np.ndarray:
+    """(n, 3) issue 38's terrain, small: a 2 % / 1 % tilt, a 4 m bank over 1 m across x = 12,
+    a 3 m ditch with 1 m walls across y = 24..26 and a 7 m bank over 1.4 m along x + y = 44,
+    sampled on a SPACING grid jittered by ±45 % with 2 cm noise (784 points)."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(0.0, side, SPACING)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    x = x + rng.uniform(-0.45, 0.45, x.size) * SPACING
+    y = y + rng.uniform(-0.45, 0.45, y.size) * SPACING
+    z = (0.02 * x + 0.01 * y + 4.0 * _ramp(x - 12.0) - 3.0 * (_ramp(y - 24.0) - _ramp(y - 26.0))
+         + 7.0 * _ramp((x + y - 44.0) / 1.4))
+    return np.column_stack([x, y, z + rng.normal(0.0, 0.02, x.size)])
+
+
+def _lattice_folds(points: np.ndarray) -> tuple[int, float]:
+    """(folded faces by quality.folded_faces, strength) of `c1mesh fit --smooth auto
+    --spacing SPACING` of the points at the default level."""
+    result = fit(PointCloud(points=points), None, FitOptions(smooth="auto", spacing=SPACING))
+    mesh = result.mesh
+    return folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), result.report["smoothing"]["strength"]
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_the_lattice_does_not_fold_beside_steep_banks(seed):
+    """With the least strength the search keeps to, no face of the fit folds; these samples
+    each fold one without it (the search then chooses s = 1e-6, its old limit: the
+    cross-validation is nearly flat there, its score held by the points on the banks)."""
+    folds, strength = _lattice_folds(_banks(seed))
+    assert folds == 0
+    assert strength >= 0.0049                 # the least strength here, 0.005-0.0055 (10^log10: a last bit)
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_without_the_least_strength_the_same_banks_fold(monkeypatch, seed):
+    """The failure the least strength mends, on the same samples: searched down to 1e-6 the
+    lattice fit folds faces beside the banks (so the test above can fail)."""
+    monkeypatch.setattr(driver, "least_strength", lambda *args: 0.0)
+    folds, strength = _lattice_folds(_banks(seed))
+    assert folds >= 1 and strength == pytest.approx(1e-6)
+
+
+def test_the_least_strength_is_the_smoothing_length_of_a_quarter_cell():
+    """least_strength's s is the one whose smoothing length ℓ = (s h² a²)^¼ is BENDING_CELLS
+    lattice spacings, for any point spacing h and area per point a², to 2 digits."""
+    for D, h, area in ((1.3, 0.9, 1.69), (4.87, 2.0, 25.0), (0.65, 0.61, 1.69)):
+        s = least_strength(D, h, area)
+        assert (s * h * h * area) ** 0.25 == pytest.approx(BENDING_CELLS * D, rel=0.02)
+    assert least_strength(1.0, 0.0, 1.0) == 0.0 and least_strength(1.0, 1.0, 0.0) == 0.0
+
+
+def _kept_height(h: float, area: float, length: float, seed: int = 3) -> float:
+    """The height a sine wave 2π `length` long (unit amplitude, along x) keeps in the lattice
+    fit (D = 0.5) at least_strength's s for smoothing length `length`, strength unit h, to
+    random points covering `area` each over 40 × 40; measured in the middle 20 × 20."""
+    rng = np.random.default_rng(seed)
+    side, D = 40.0, 0.5
+    xy = rng.uniform(0.0, side, (int(side * side / area), 2))
+    wave = 2 * np.pi * length
+    s = least_strength(length / BENDING_CELLS, h, area)
+    mesh = lattice_mesh(xy, D, 2 * D)
+    fitted = smooth_fit(mesh.points, mesh.triangles, SmoothingData(np.sin(2 * np.pi * xy[:, 0] / wave), spacing=h,
+                                                                   xy=xy), SmoothingControl(strength=s))
+    spline = RSDInterpolator(mesh.points, fitted.values, fitted.gradients, mesh.triangles)
+    probe = rng.uniform(10.0, 30.0, (4000, 2))
+    basis = np.column_stack([np.sin(2 * np.pi * probe[:, 0] / wave), np.cos(2 * np.pi * probe[:, 0] / wave)])
+    return float(np.hypot(*np.linalg.lstsq(basis, spline(probe), rcond=None)[0]))
+
+
+def test_the_smoothing_length_holds_at_any_strength_unit_and_density():
+    """The rule's premise against an analytic truth: at least_strength's s the fit smooths a
+    sine wave alike whatever the strength's length unit h and the points' density 1/a², as
+    its data weigh 1/a² an area (h = 0.37 a and h = a here; taking ℓ⁴ = s h⁴, as if a = h
+    always, the first would keep 0.04 of the wave where the second keeps 0.2). A wave 2π ℓ long keeps about 1/5 of its
+    height, not the 1/2 of 1 / (1 + (2π ℓ / L)⁴): the RSD spline of a smooth function bends
+    more than the function (4.6 times the energy of x²/2 on this lattice, with its exact
+    values and gradients at the nodes), so its energy weighs about 4 times the integral's."""
+    sparse = _kept_height(h=0.37, area=1.0, length=1.0)
+    dense = _kept_height(h=0.5, area=0.25, length=1.0)
+    assert sparse == pytest.approx(dense, abs=0.03)
+    assert sparse == pytest.approx(0.2, abs=0.04)
+
+
+def test_the_search_goes_no_lower_than_the_least_strength():
+    """Exact data want as little smoothing as the search may give: with a least strength
+    the search tries nothing below it, stops there and says it reached its limit; a bad
+    least strength is refused before any work."""
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0.0, 20.0, (600, 2))
+    z = np.sin(xy[:, 0] / 3.0) + 0.1 * xy[:, 1]
+    mesh = lattice_mesh(xy, 1.0, 1.0)
+    data = SmoothingData(z, spacing=0.8, xy=xy)
+    fitted = smooth_fit(mesh.points, mesh.triangles, data, SmoothingControl(strength="auto", least_strength=0.03))
+    assert min(s for s, _ in fitted.cv_curve) == pytest.approx(0.03)
+    assert fitted.strength == pytest.approx(0.03) and fitted.search_limit_reached is True
+    free = smooth_fit(mesh.points, mesh.triangles, data, SmoothingControl(strength="auto"))
+    assert free.strength < 0.003                          # below it when free to go there
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(SmoothingError, match="least strength"):
+            smooth_fit(mesh.points, mesh.triangles, data, SmoothingControl(strength="auto", least_strength=bad))
