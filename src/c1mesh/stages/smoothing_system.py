@@ -63,11 +63,7 @@ def vertex_pattern(triangles: np.ndarray, n: int) -> VertexPattern:
     triangles) has itself as its one neighbour: its 3 × 3 block of K is stored, zero, so
     that S's data and gradient terms have their diagonal entries there (System.matrix)."""
     tri = np.ascontiguousarray(triangles, dtype=np.int64)
-    if tri.size and (tri.min() < 0 or tri.max() >= n):
-        raise ValueError("triangle vertex indices out of range")
-    start = np.zeros(n + 1, dtype=np.int64)
-    corner = np.empty(tri.size, dtype=np.int64)
-    kernel.incidence(tri, start, corner)
+    start, corner = incidence(tri, n)
     room = 3 * int(np.diff(start).max(initial=0)) + 1
     degree = np.empty(n, dtype=np.int64)
     parallel_blocks(lambda part: kernel.degrees(tri, start, corner, part.start, part.stop,
@@ -79,6 +75,20 @@ def vertex_pattern(triangles: np.ndarray, n: int) -> VertexPattern:
     parallel_blocks(lambda part: kernel.neighbours(tri, start, corner, row_start, part.start,
                                                    part.stop, cols), n, ROW_BLOCK)
     return VertexPattern(start, corner, row_start, cols)
+
+
+def incidence(triangles: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(start (n + 1,), corner (3T,)) int64: the corners 3 t + k (triangle t, its corner k)
+    at vertex v are corner[start[v]:start[v + 1]], increasing, for n vertices and
+    triangles (T, 3) (the kernel's counting sort, one thread); ValueError for a vertex
+    index outside [0, n)."""
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    if tri.size and (tri.min() < 0 or tri.max() >= n):
+        raise ValueError("triangle vertex indices out of range")
+    start = np.zeros(n + 1, dtype=np.int64)
+    corner = np.empty(tri.size, dtype=np.int64)
+    kernel.incidence(tri, start, corner)
+    return start, corner
 
 
 @dataclass(frozen=True)
@@ -274,15 +284,11 @@ class System:
 
     def fitted(self, u: np.ndarray) -> np.ndarray:
         """F at the data points (M,) for unknowns u (3N,); (M, k) for k columns u (3N, k)."""
-        return u[0::3].copy() if self.data is None else self.A @ u
+        return data_fitted(self.data, u)
 
     def adjoint(self, r: np.ndarray) -> np.ndarray:
         """A^T r (3N,) for r (M,); (3N, k) for k columns r (M, k)."""
-        if self.data is None:
-            out = np.zeros((self.n_unknowns,) + r.shape[1:])
-            out[0::3] = r
-            return out
-        return self.A.T @ r
+        return data_adjoint(self.data, r, self.n_unknowns)
 
     def normal_values(self, w: np.ndarray) -> np.ndarray:
         """Aᵀ W A's values on K's pattern (DataRows.normal_values), for data rows only."""
@@ -304,6 +310,7 @@ class System:
             raise ValueError("the energy's values were overwritten by a matrix made with keep_energy=False")
         n = self.n_unknowns
         rhs = self.adjoint(w * self.z)
+        gradients = gradient_terms(self.grad_mask, self.grad_values, mu, held_out)
         if keep_energy:
             values = self.K.data * s
         else:
@@ -314,19 +321,48 @@ class System:
             values[self.diagonal[0::3]] += w
         else:
             values += self.normal_values(w) if normal is None else normal
-        if self.grad_mask is not None and mu > 0:
-            mask, grads = self.grad_mask, self.grad_values
-            if held_out is not None:
-                mask = mask * ~held_out
-                grads = np.where(mask[:, None] > 0, grads, 0.0)
-            values[self.diagonal[1::3]] += mu * mask
-            values[self.diagonal[2::3]] += mu * mask
-            rhs[1::3] += mu * grads[:, 0]
-            rhs[2::3] += mu * grads[:, 1]
+        if gradients is not None:
+            weight, pull = gradients
+            values[self.diagonal[1::3]] += weight
+            values[self.diagonal[2::3]] += weight
+            rhs[1::3] += pull[:, 0]
+            rhs[2::3] += pull[:, 1]
         if ridge > 0:
             diag = self.diagonal
             values[diag] += ridge * float(values[diag].mean())
         return sp.csr_matrix((values, self.K.indices, self.K.indptr), shape=(n, n)), rhs
+
+
+def data_fitted(data: DataRows | None, u: np.ndarray) -> np.ndarray:
+    """F at the data points (M,) for unknowns u (3N,), (M, k) for u (3N, k): A u, or the
+    vertex values u[0::3] when data is None (the data are the vertices)."""
+    return u[0::3].copy() if data is None else data.A @ u
+
+
+def data_adjoint(data: DataRows | None, r: np.ndarray, unknowns: int) -> np.ndarray:
+    """Aᵀ r (unknowns,) for r (M,), (unknowns, k) for r (M, k); data None: r on the vertex
+    values (the data are the vertices)."""
+    if data is None:
+        out = np.zeros((unknowns,) + r.shape[1:])
+        out[0::3] = r
+        return out
+    return data.A.T @ r
+
+
+def gradient_terms(grad_mask: np.ndarray | None, grad_values: np.ndarray | None, mu: float,
+                   held_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The gradient data's terms of S and rhs for weight mu: (weight (N,), the diagonal
+    entries of each vertex's two gradient unknowns; pull (N, 2), their rhs), or None when
+    there are no gradient data or mu is 0. grad_mask (N,) 1.0 where a vertex has gradient
+    data grad_values (N, 2); held_out (N,) bool: vertices whose gradient data are left out
+    (System.matrix)."""
+    if grad_mask is None or not mu > 0:
+        return None
+    mask, grads = grad_mask, grad_values
+    if held_out is not None:
+        mask = mask * ~held_out
+        grads = np.where(mask[:, None] > 0, grads, 0.0)
+    return mu * mask, mu * grads
 
 
 # ------------------------------------------------------------------------------ solvers
@@ -526,5 +562,6 @@ def timed(seconds: dict, key: str):
     return _Timer()
 
 
-__all__ = ["assemble_energy", "data_rows", "DataRows", "System", "available_solvers", "Factor", "solve",
+__all__ = ["assemble_energy", "data_rows", "DataRows", "System", "incidence", "data_fitted",
+           "data_adjoint", "gradient_terms", "available_solvers", "Factor", "solve",
            "hat_trace", "timed"]
