@@ -353,10 +353,13 @@ class Stencil:
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         """S x (3N, k) for x (3N, k)."""
-        y = np.empty((self.shape[0], x.shape[1]))
-        parallel_blocks(lambda part: kernel.stencil_product(self.nbr, self.blocks, x, y, part.start, part.stop),
+        return self.product(x, np.empty((self.shape[0], x.shape[1])))
+
+    def product(self, x: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """out = S x (3N, k) for x (3N, k), in place (out is not x); returns out."""
+        parallel_blocks(lambda part: kernel.stencil_product(self.nbr, self.blocks, x, out, part.start, part.stop),
                         self.nbr.shape[0], SWEEP_BLOCK)
-        return y
+        return out
 
     def residual(self, b: np.ndarray, x: np.ndarray, out: np.ndarray | None = None,
                  vertices: int | None = None) -> np.ndarray:
@@ -535,22 +538,24 @@ class LatticeSolver:
 
     def _pcg(self, rhs: np.ndarray, step_tol: float, x0: np.ndarray | None) -> tuple[np.ndarray, int]:
         """pcg on rhs (3N, k) C-contiguous: the columns still moving (`live`) iterate
-        together, a column leaves the block when its CG stops."""
+        together, a column leaves the block when its CG stops. Each (3N, k) array is held
+        once: p starts as the first z (each cycle makes a new z), S p goes into one buffer,
+        z is let go once p has it, and the answer is x itself when the columns stop
+        together (the edf's 4 probes: 98 MB an array at 1M vertices)."""
         A = self.levels[0].op
-        n = rhs.shape[0]
+        n, columns = rhs.shape
         x = self.start(rhs) if x0 is None else x0
-        out = np.empty_like(x)
-        live = np.arange(rhs.shape[1])
+        out = None                                    # the columns stopped while others go on
+        live = np.arange(columns)
         r = A.residual(rhs, x)
-        z = self.cycle(r)
-        p = z.copy()
-        rz = _dots(r, z)
+        p = self.cycle(r)
+        rz = _dots(r, p)
+        Ap = np.empty_like(p)
         for k in range(1, MAX_ITERATIONS + 1):
             done = rz == 0.0                          # r = 0: x solves it
             if done.all():
-                out[:, live] = x
-                return out, k - 1
-            Ap = A @ p
+                return _stopped(out, live, x, columns), k - 1
+            A.product(p, Ap)
             pAp = _dots(p, Ap)
             if not (pAp[~done] > 0.0).all() or not np.isfinite(pAp).all():
                 raise SmoothingError("the smoothing system is not positive definite on the lattice")
@@ -558,18 +563,32 @@ class LatticeSolver:
             _blockwise(lambda part: (np.add(x[part], alpha * p[part], out=x[part]),
                                      np.subtract(r[part], alpha * Ap[part], out=r[part])), n)
             done |= np.abs(alpha) * np.abs(p[0::3]).max(axis=0) <= step_tol
+            if done.all():
+                return _stopped(out, live, x, columns), k
             if done.any():
-                out[:, live[done]] = x[:, done]
-                if done.all():
-                    return out, k
+                out = _stopped(out, live[done], x[:, done], columns)
                 live, x, r, p, rz = live[~done], *(np.ascontiguousarray(v[:, ~done]) for v in (x, r, p)), rz[~done]
+                Ap = np.empty_like(p)
             z = self.cycle(r)
             rz_next = _dots(r, z)
             beta = rz_next / rz
             _blockwise(lambda part: np.add(z[part], beta * p[part], out=p[part]), n)
+            z = None                                  # p holds it: not alive beside the next cycle's
             rz = rz_next
         raise SmoothingError(f"the lattice solver did not converge in {MAX_ITERATIONS} iterations "
                              f"(steps still above {step_tol:g})")
+
+
+def _stopped(out: np.ndarray | None, live: np.ndarray, x: np.ndarray, columns: int) -> np.ndarray:
+    """The answer (3N, columns) with the stopped columns x (3N, c) put at their places live
+    (c,) in out (None: none stopped before; made here). When x is every column in order,
+    x itself (no copy)."""
+    if out is None and live.size == columns:       # no column left before: live is range(columns)
+        return x
+    if out is None:
+        out = np.empty((x.shape[0], columns))
+    out[:, live] = x
+    return out
 
 
 class LatticeFactor:
