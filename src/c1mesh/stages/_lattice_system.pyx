@@ -47,7 +47,8 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
     cdef int64_t outside = 0
     cdef double K[SLOTS][3][3]
     cdef double D[SLOTS][3][3]
-    cdef double wa
+    cdef double row[9]
+    cdef double weighted[9]
     cdef const double *element
     with nogil:
         for v in range(first, stop):
@@ -78,17 +79,15 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
                     i = points[p]
                     if w[i] == 0.0:
                         continue
+                    for j in range(9):
+                        row[j] = rows[i, j]
+                        weighted[j] = w[i] * row[j]
                     for c in range(3):
                         j = _local(a, c)
                         for b in range(3):
                             for d in range(3):
                                 k = _local(b, d)
-                                if j <= k:
-                                    wa = w[i] * rows[i, j]
-                                    D[slots[b]][c][d] += wa * rows[i, k]
-                                else:
-                                    wa = w[i] * rows[i, k]
-                                    D[slots[b]][c][d] += wa * rows[i, j]
+                                D[slots[b]][c][d] += (weighted[j] * row[k] if j <= k else weighted[k] * row[j])
             for slot in range(SLOTS):
                 for c in range(3):
                     for d in range(3):
