@@ -16,8 +16,8 @@ is summed in the order the CSR assembly summed it (K over the triangles in incre
 order, then s K plus the data term over the triangles' points in order), so S has the
 bits System.matrix gave, and they do not depend on the thread count.
 
-The data rows stay smoothing_system.DataRows (A u and Aᵀ r for the rhs, the residuals
-and the edf's probes).
+The data rows are smoothing_system.DataRows (A u and Aᵀ r by its kernels, for the rhs,
+the residuals and the edf's probes).
 """
 from __future__ import annotations
 
@@ -60,17 +60,6 @@ class LatticeSystem:
     def n_unknowns(self) -> int:
         return 3 * self.nbr.shape[0]
 
-    def _points_by_triangle(self) -> tuple[np.ndarray, np.ndarray]:
-        """(first (T + 1,), points (M,)) int64: triangle t's data points are
-        points[first[t]:first[t + 1]], in increasing order (DataRows.by_triangle); no
-        points when the data are the vertices."""
-        count = self.triangles.shape[0]
-        first = np.zeros(count + 1, dtype=np.int64)
-        if self.data is None:
-            return first, np.empty(0, dtype=np.int64)
-        np.cumsum(np.bincount(self.data.tri, minlength=count), out=first[1:])
-        return first, self.data.by_triangle
-
     def fitted(self, u: np.ndarray) -> np.ndarray:
         """F at the data points (M,) for unknowns u (3N,); (M, k) for k columns u (3N, k)."""
         return data_fitted(self.data, u)
@@ -102,10 +91,12 @@ class LatticeSystem:
         corners at each vertex and the points by triangle are made for it and let go
         (0.1 GB at 1M vertices: S is assembled once)."""
         start, corner = incidence(self.triangles, self.nbr.shape[0])
-        first, points = self._points_by_triangle()
-        rows = (np.empty((0, N_LOCAL)) if self.data is None
-                else np.ascontiguousarray(self.data.values, dtype=np.float64))
-        weights = w if self.data is not None else np.empty(0)
+        if self.data is None:                          # the data are the vertices: on diag
+            first, points = np.zeros(self.triangles.shape[0] + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
+            rows, weights = np.empty((0, N_LOCAL)), np.empty(0)
+        else:
+            first, points = self.data.points_by_triangle()
+            rows, weights = np.ascontiguousarray(self.data.values, dtype=np.float64), w
         elements = np.ascontiguousarray(self.elements, dtype=np.float64)
         blocks = np.empty(self.nbr.shape + (3, 3))
         outside = []
