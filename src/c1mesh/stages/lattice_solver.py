@@ -489,13 +489,18 @@ class LatticeSolver:
         x = self.coarse.solve(b[:, 0] if b.shape[1] == 1 else b, refine=False)
         return np.ascontiguousarray(x, dtype=np.float64).reshape(b.shape)
 
-    def cycle(self, b: np.ndarray, k: int = 0) -> np.ndarray:
+    def cycle(self, b: np.ndarray, k: int = 0, out: np.ndarray | None = None) -> np.ndarray:
         """One symmetric V(1,1) cycle from zero on level k for right-hand sides b (3N, c)
-        (in the levels' numbering: colour by colour)."""
+        (in the levels' numbering: colour by colour), into out (C-contiguous, b's shape,
+        not b; None: a new array) on a level above the coarsest; returns it."""
         if k == len(self.levels) - 1:
             return self._coarsest(b)
         level = self.levels[k]
-        x = np.zeros(b.shape)
+        if out is None:
+            x = np.zeros(b.shape)
+        else:
+            x = out
+            x.fill(0.0)
         level.sweep(x, b, (0, 1, 2), from_zero=True)
         # the last colour swept has no residual left (its block equations were just solved
         # with its neighbours as they are): only colours 0 and 1 are computed
@@ -539,8 +544,8 @@ class LatticeSolver:
     def _pcg(self, rhs: np.ndarray, step_tol: float, x0: np.ndarray | None) -> tuple[np.ndarray, int]:
         """pcg on rhs (3N, k) C-contiguous: the columns still moving (`live`) iterate
         together, a column leaves the block when its CG stops. Each (3N, k) array is held
-        once: p starts as the first z (each cycle makes a new z), S p goes into one buffer,
-        z is let go once p has it, and the answer is x itself when the columns stop
+        once: p starts as the first z, S p and the next z share one buffer (S p is spent
+        once r has it, z once p has it), and the answer is x itself when the columns stop
         together (the edf's 4 probes: 98 MB an array at 1M vertices)."""
         A = self.levels[0].op
         n, columns = rhs.shape
@@ -550,7 +555,7 @@ class LatticeSolver:
         r = A.residual(rhs, x)
         p = self.cycle(r)
         rz = _dots(r, p)
-        Ap = np.empty_like(p)
+        Ap = np.empty_like(p)                         # S p, then the next z
         for k in range(1, MAX_ITERATIONS + 1):
             done = rz == 0.0                          # r = 0: x solves it
             if done.all():
@@ -569,11 +574,10 @@ class LatticeSolver:
                 out = _stopped(out, live[done], x[:, done], columns)
                 live, x, r, p, rz = live[~done], *(np.ascontiguousarray(v[:, ~done]) for v in (x, r, p)), rz[~done]
                 Ap = np.empty_like(p)
-            z = self.cycle(r)
+            z = self.cycle(r, out=Ap)
             rz_next = _dots(r, z)
             beta = rz_next / rz
             _blockwise(lambda part: np.add(z[part], beta * p[part], out=p[part]), n)
-            z = None                                  # p holds it: not alive beside the next cycle's
             rz = rz_next
         raise SmoothingError(f"the lattice solver did not converge in {MAX_ITERATIONS} iterations "
                              f"(steps still above {step_tol:g})")
