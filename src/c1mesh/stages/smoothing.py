@@ -507,7 +507,7 @@ def _check_inputs(points, triangles, data: SmoothingData):
         spacing = float("nan")
     if not (np.isfinite(spacing) and spacing > 0):
         raise SmoothingError(f"the data's spacing must be a positive length, got {data.spacing!r}")
-    return pts, tri.astype(np.int64), z, xy, w, spacing
+    return pts, np.ascontiguousarray(tri, dtype=np.int64), z, xy, w, spacing     # no copy of int64 triangles
 
 
 def _directions(points, triangles, directions):
@@ -644,6 +644,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad, shapes)
     method = available_solvers()[0]
     solved, order, system = _assembled(problem, method, seconds, threads, grid)
+    solved_w = solved.w                          # the weights in the system's numbering (its z: system.z)
+    del solved
     mu = float(gradient_weight)
     curve: list = []
     at_limit = windows = None
@@ -662,12 +664,13 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                       search_windows=None if windows is None else windows.as_dict())
         if search_only:
             return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), solver=method, **chosen)
+        del problem, dirs             # the search's: the final solve needs neither (dirs: 93 MB at 2M triangles)
         if grid is None:
             with timed(seconds, "solve"):
-                u, factor = solve(system, s, solved.w, mu, method, keep_energy=False)     # the last matrix
+                u, factor = solve(system, s, solved_w, mu, method, keep_energy=False)     # the last matrix
         else:
             with timed(seconds, "assemble"):
-                S, rhs = system.stencil(s, solved.w, mu)
+                S, rhs = system.stencil(s, solved_w, mu)
             with timed(seconds, "lattice_setup"):
                 solver = LatticeSolver(S, replace(grid, nodes=grid.nodes[order]))
             del S                                      # the solver's fine level holds it
@@ -675,13 +678,13 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                 u = solver.pcg(rhs, LATTICE_STEP)[0]
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
         with timed(seconds, "edf"):
-            edf = hat_trace(system, factor, solved.w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
-    residual = (solved.z - system.fitted(u)) * Z     # in solved's numbering (data points: theirs)
+            edf = hat_trace(system, factor, solved_w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
+    residual = (system.z - system.fitted(u)) * Z     # in the system's numbering (data points: theirs)
     own_residuals = None
     if not vertex_data and own_inside is not None:
-        mine = residual[own_inside & (solved.w > 0)]
+        mine = residual[own_inside & (solved_w > 0)]
         own_residuals = (int(mine.size), float(np.sum(mine ** 2)), float(np.abs(mine).max()) if mine.size else 0.0)
-    residual = residual[solved.w > 0]
+    residual = residual[solved_w > 0]
     if order is not None:
         u = _in_input_order(u, order)
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
