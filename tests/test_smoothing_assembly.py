@@ -158,7 +158,7 @@ def test_the_data_term_equals_the_loop_over_data_points():
     system = System(K, rows, rng.normal(size=300))
     w = rng.uniform(0.5, 2.0, 300)
     w[::7] = 0.0
-    system.A                                        # built first: it must not reorder values
+    system.fitted(rng.normal(size=3 * n))           # applied first: it must not reorder values
     S, _ = system.matrix(0.0, w, 0.0)
     want = np.zeros((3 * n, 3 * n))
     dofs = local_dofs(tri)
@@ -169,12 +169,42 @@ def test_the_data_term_equals_the_loop_over_data_points():
     assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
     assert np.array_equal(got, got.T)
     assert np.array_equal(rows.values, before)
-    A = system.A.toarray()
+    A = np.zeros((300, 3 * n))
+    for i in range(300):
+        A[i, dofs[t[i]]] += before[i]
     assert np.allclose(got, A.T @ (w[:, None] * A), rtol=0, atol=1e-13 * np.abs(want).max())
     # s K is added on the same pattern, and the diagonal's positions are K's
     S2, _ = system.matrix(2.5, w, 0.0)
     assert np.array_equal(S2.indices, K.indices) and np.allclose(S2.toarray(), got + 2.5 * K.toarray(),
                                                                 rtol=0, atol=1e-12 * np.abs(S2.data).max())
+
+
+def test_the_data_rows_products_are_scipys_csr_products(monkeypatch):
+    """DataRows.fitted (A u) and adjoint (Aᵀ r), by the kernels without forming A, against
+    scipy's products with A as CSR (its columns sorted, as scipy's COO assembly leaves
+    them): the same bits, for one column and for k columns, at 1 and 2 threads over many
+    blocks of points and vertices; A itself is the dense loop over the points."""
+    from c1mesh.stages.smoothing_system import data_rows
+
+    rng = np.random.default_rng(10)
+    pts, tri, dirs = shuffled_mesh(9, seed=10)
+    n, m = pts.shape[0], 700
+    t = rng.integers(0, tri.shape[0], m)
+    rows = data_rows(pts, tri, dirs, get_scheme("sextic"), t, rng.dirichlet(np.ones(3), m))
+    dofs = local_dofs(tri)[t]
+    A = sp.coo_matrix((rows.values.ravel(), (np.repeat(np.arange(m), 9), dofs.ravel())), shape=(m, 3 * n)).tocsr()
+    dense = np.zeros((m, 3 * n))
+    for i in range(m):
+        dense[i, dofs[i]] += rows.values[i]
+    assert np.array_equal(A.toarray(), dense)
+    u, r = rng.normal(size=(3 * n, 5)), rng.normal(size=(m, 5))
+    monkeypatch.setattr(smoothing_system, "ROW_BLOCK", 13)
+    for threads in (1, 2):
+        with limit(threads):
+            assert rows.fitted(u).tobytes() == (A @ u).tobytes()
+            assert rows.adjoint(r).tobytes() == (A.T @ r).tobytes()
+            assert rows.fitted(u[:, 0]).tobytes() == (A @ u[:, 0]).tobytes()
+            assert rows.adjoint(r[:, 2]).tobytes() == (A.T @ r[:, 2]).tobytes()
 
 
 def test_vertex_data_terms_go_on_the_diagonal_also_of_a_vertex_without_triangles():

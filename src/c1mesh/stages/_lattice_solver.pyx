@@ -31,34 +31,6 @@ cdef enum:
     SLOTS = 7       # a vertex and its 6 stencil neighbours
 
 
-def from_csr(const index_t[::1] indptr, const index_t[::1] indices, const double[::1] data,
-             const int32_t[:, ::1] nbr, double[:, :, :, ::1] blocks, Py_ssize_t start, Py_ssize_t stop):
-    """blocks[v] (7, 3, 3) from S's CSR rows 3v..3v+2 for start <= v < stop: each entry
-    into the slot of its column's vertex (zeros elsewhere). Returns the nonzero entries
-    whose vertex is none of nbr[v]'s (none when S is on the lattice's stencil)."""
-    cdef Py_ssize_t v, e, w, slot
-    cdef int p, q
-    cdef int64_t outside = 0
-    with nogil:
-        for v in range(start, stop):
-            for slot in range(SLOTS):
-                for p in range(3):
-                    for q in range(3):
-                        blocks[v, slot, p, q] = 0.0
-            for p in range(3):
-                for e in range(indptr[3 * v + p], indptr[3 * v + p + 1]):
-                    w = indices[e] // 3
-                    slot = 0
-                    while slot < SLOTS and nbr[v, slot] != w:
-                        slot += 1
-                    if slot == SLOTS:
-                        if data[e] != 0.0:
-                            outside += 1
-                    else:
-                        blocks[v, slot, p, indices[e] - 3 * w] = data[e]
-    return outside
-
-
 def block_inverses(const double[:, :, :, ::1] blocks, double[:, :, ::1] dinv, Py_ssize_t start, Py_ssize_t stop):
     """dinv[v] (3, 3): the inverse of S's diagonal block blocks[v, 0] for start <= v < stop
     (the adjugate over the determinant). Returns the blocks whose determinant is not

@@ -208,3 +208,66 @@ cdef inline int _vertex_of(int local) noexcept nogil:
 cdef inline int _component_of(int local) noexcept nogil:
     """The component (0 = f, 1 = ∂x, 2 = ∂y) of local datum `local` (the inverse of _local)."""
     return 0 if local < 3 else 1 + (local - 3) % 2
+
+
+def rows_product(const int64_t[:, ::1] triangles, const int64_t[::1] tri, const double[:, ::1] values,
+                 const double[:, ::1] u, double[:, ::1] out, Py_ssize_t first, Py_ssize_t stop):
+    """out[i] = A[i] u for the data points first <= i < stop, column by column of u (3N, k):
+    point i lies in triangle tri[i], its row of A is values[i] (9,) over that triangle's
+    local data (smoothing_energy's order). Each sum runs from 0 over the row's unknowns in
+    increasing order (the triangle's vertices by number, components 0, 1, 2): the order
+    in which scipy's product summed the CSR row of A, whose columns are sorted."""
+    cdef Py_ssize_t i, col, k = u.shape[1]
+    cdef int64_t t, v
+    cdef int m, a, c
+    cdef int order[3]
+    cdef double s
+    with nogil:
+        for i in range(first, stop):
+            t = tri[i]
+            _by_vertex(triangles, t, order)
+            for col in range(k):
+                s = 0.0
+                for m in range(3):
+                    a = order[m]
+                    v = triangles[t, a]
+                    for c in range(3):
+                        s = s + values[i, _local(a, c)] * u[3 * v + c, col]
+                out[i, col] = s
+
+
+cdef inline void _by_vertex(const int64_t[:, ::1] triangles, int64_t t, int order[3]) noexcept nogil:
+    """order: triangle t's corners 0, 1, 2 by increasing vertex number."""
+    cdef int m, swap
+    order[0], order[1], order[2] = 0, 1, 2
+    for m in range(2):
+        if triangles[t, order[1]] < triangles[t, order[0]]:
+            swap = order[0]
+            order[0] = order[1]
+            order[1] = swap
+        if triangles[t, order[2]] < triangles[t, order[1]]:
+            swap = order[1]
+            order[1] = order[2]
+            order[2] = swap
+
+
+def rows_adjoint(const int64_t[:, ::1] triangles, const int64_t[::1] tri, const double[:, ::1] values,
+                 const double[:, ::1] r, double[:, ::1] out):
+    """out = Aᵀ r (3N, k) for r (M, k), out zeroed by the caller: each data point's row
+    values[i] (9,) times r[i] added at its triangle's unknowns, the points in increasing
+    order, so that each entry is its sum over the points in that order from 0 (the order
+    of scipy's Aᵀ r over A's rows). One thread: a point's entries go to its triangle's
+    vertices, which other points share (0.15 s for 1M points and 4 columns)."""
+    cdef Py_ssize_t i, col, row, m = r.shape[0], k = r.shape[1]
+    cdef int64_t t
+    cdef int a, c
+    cdef double value
+    with nogil:
+        for i in range(m):
+            t = tri[i]
+            for a in range(3):
+                for c in range(3):
+                    value = values[i, _local(a, c)]
+                    row = 3 * triangles[t, a] + c
+                    for col in range(k):
+                        out[row, col] = out[row, col] + value * r[i, col]

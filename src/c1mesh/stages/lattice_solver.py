@@ -25,7 +25,8 @@ is what that study recommends:
   two sparse products took 2.4 s of the 4 s set-up at 1M vertices);
 * every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
   blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
-  product) is bound by reading it, and CSR read 45 % more;
+  product) is bound by reading it, and CSR read 45 % more; the fine level's is assembled
+  in that form (stages.lattice_system), never as CSR;
 * the smoother block (3 × 3 per vertex) Gauss–Seidel in the 3 colours (i + j) mod 3, which
   no stencil offset keeps: 0, 1, 2 before the coarse correction and 2, 1, 0 after it, so
   the cycle is symmetric (stages/_lattice_solver.pyx; the vertices of a colour in fixed
@@ -271,21 +272,9 @@ def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
 
 def colour_order(lattice: Lattice) -> np.ndarray:
     """(N,) the vertices in the order the solver's levels number them: colour by colour
-    ((i + j) mod 3), by node within a colour. A system assembled with its vertices
-    numbered so (smooth_fit does) is read as it is; any other order costs the solver a
-    permuted copy of S."""
+    ((i + j) mod 3), by node within a colour. LatticeSolver takes a system assembled with
+    its vertices numbered so (smooth_fit renumbers them)."""
     return np.lexsort((lattice.nodes, colours(lattice.nodes, lattice.shape[1])))
-
-
-def _permuted(S, order: np.ndarray):
-    """S with vertex order[k] as vertex k (rows and columns, 3 unknowns a vertex): a copy."""
-    unknowns = (3 * order[:, None] + np.arange(3)).ravel()
-    rank = np.empty_like(unknowns)
-    rank[unknowns] = np.arange(unknowns.size)
-    rows = S[unknowns]
-    rows.indices = rank[rows.indices].astype(rows.indices.dtype)
-    rows.has_sorted_indices = False
-    return rows
 
 
 class _Rows:
@@ -350,23 +339,6 @@ class Stencil:
         self.nbr, self.blocks = nbr, blocks
         self.shape = (3 * nbr.shape[0],) * 2
 
-    @classmethod
-    def from_csr(cls, S, nbr: np.ndarray) -> "Stencil":
-        """S (3N, 3N) CSR in stencil form on the slots nbr; SmoothingError when S has a
-        nonzero entry between vertices that are not stencil neighbours."""
-        S = S.tocsr()
-        dtype = _index_dtype(S)
-        arrays = _Rows(S, dtype).arrays()
-        blocks = np.empty(nbr.shape + (3, 3))
-        outside = []
-        parallel_blocks(lambda part: outside.append(kernel.from_csr(*arrays, nbr, blocks, part.start, part.stop)),
-                        nbr.shape[0], SWEEP_BLOCK)
-        if sum(outside):
-            raise SmoothingError(f"the system is not on the lattice's stencil: {sum(outside)} entries couple "
-                                 "vertices that are not neighbours on it (cells split by the other diagonal, "
-                                 "or nodes that are not the vertices' own?)")
-        return cls(nbr, blocks)
-
     def csr(self):
         """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too)."""
         n = self.nbr.shape[0]
@@ -381,10 +353,13 @@ class Stencil:
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         """S x (3N, k) for x (3N, k)."""
-        y = np.empty((self.shape[0], x.shape[1]))
-        parallel_blocks(lambda part: kernel.stencil_product(self.nbr, self.blocks, x, y, part.start, part.stop),
+        return self.product(x, np.empty((self.shape[0], x.shape[1])))
+
+    def product(self, x: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """out = S x (3N, k) for x (3N, k), in place (out is not x); returns out."""
+        parallel_blocks(lambda part: kernel.stencil_product(self.nbr, self.blocks, x, out, part.start, part.stop),
                         self.nbr.shape[0], SWEEP_BLOCK)
-        return y
+        return out
 
     def residual(self, b: np.ndarray, x: np.ndarray, out: np.ndarray | None = None,
                  vertices: int | None = None) -> np.ndarray:
@@ -478,24 +453,22 @@ class _Level:
 class LatticeSolver:
     """The multigrid hierarchy of S on `lattice` (module doc), built once for any number of
     right-hand sides: `start` (the full-multigrid guess), `pcg` (CG from it), `cycle` (one
-    V-cycle, the preconditioner). S (3N, 3N) CSR, symmetric positive definite, vertex k's
-    unknowns 3k..3k+2 on node lattice.nodes[k], lattice in the lengths S was built in.
-    S is read into the fine level's stencil form (Stencil.from_csr); vertices not numbered
-    colour by colour (colour_order) cost a permuted copy of S first. coarsest: coarsen
-    while a level has more vertices (None: COARSEST, read when called). seconds: the
-    set-up's wall time."""
+    V-cycle, the preconditioner). S: the fine level's Stencil (lattice_system.LatticeSystem
+    assembles it), symmetric positive definite, vertex k's unknowns 3k..3k+2 on node
+    lattice.nodes[k], the vertices numbered colour by colour (colour_order; SmoothingError
+    else), its slots stencil_neighbours(lattice.nodes, ...); lattice in the lengths S was
+    built in. coarsest: coarsen while a level has more vertices (None: COARSEST, read when
+    called). seconds: the set-up's wall time."""
 
-    def __init__(self, S, lattice: Lattice, coarsest: int | None = None):
+    def __init__(self, S: Stencil, lattice: Lattice, coarsest: int | None = None):
         t0 = time.perf_counter()
-        if S.shape[0] != S.shape[1] or S.shape[0] % 3:
-            raise SmoothingError(f"the system must be square with 3 unknowns per vertex, got {S.shape}")
-        nodes, nx, ny = _checked_nodes(lattice, S.shape[0] // 3)
+        nodes, nx, ny = _checked_nodes(lattice, S.nbr.shape[0])
         coarsest = COARSEST if coarsest is None else int(coarsest)
-        order = colour_order(lattice)
-        self.order = None if (order == np.arange(order.size)).all() else order
-        if self.order is not None:
-            S, nodes = _permuted(S.tocsr(), order), nodes[order]
-        fine = _Level(Stencil.from_csr(S, stencil_neighbours(nodes, nx, ny)), nodes, nx, ny)
+        if (np.diff(colours(nodes, nx)) < 0).any():
+            raise SmoothingError("the lattice solver takes its vertices numbered colour by colour (colour_order)")
+        if not np.array_equal(S.nbr, stencil_neighbours(nodes, nx, ny)):
+            raise SmoothingError("the stencil's slots are not the lattice's neighbours (stencil_neighbours)")
+        fine = _Level(S, nodes, nx, ny)
         hx, hy = lattice.spacing
         self.levels = [fine]
         while self.levels[-1].nodes.size > coarsest:
@@ -516,13 +489,18 @@ class LatticeSolver:
         x = self.coarse.solve(b[:, 0] if b.shape[1] == 1 else b, refine=False)
         return np.ascontiguousarray(x, dtype=np.float64).reshape(b.shape)
 
-    def cycle(self, b: np.ndarray, k: int = 0) -> np.ndarray:
+    def cycle(self, b: np.ndarray, k: int = 0, out: np.ndarray | None = None) -> np.ndarray:
         """One symmetric V(1,1) cycle from zero on level k for right-hand sides b (3N, c)
-        (in the levels' numbering: colour by colour)."""
+        (in the levels' numbering: colour by colour), into out (C-contiguous, b's shape,
+        not b; None: a new array) on a level above the coarsest; returns it."""
         if k == len(self.levels) - 1:
             return self._coarsest(b)
         level = self.levels[k]
-        x = np.zeros(b.shape)
+        if out is None:
+            x = np.zeros(b.shape)
+        else:
+            x = out
+            x.fill(0.0)
         level.sweep(x, b, (0, 1, 2), from_zero=True)
         # the last colour swept has no residual left (its block equations were just solved
         # with its neighbours as they are): only colours 0 and 1 are computed
@@ -558,37 +536,31 @@ class LatticeSolver:
         if rhs.shape[:1] != (S.shape[0],) or rhs.ndim not in (1, 2):
             raise SmoothingError(f"the right-hand side must have shape ({S.shape[0]},) or ({S.shape[0]}, k), "
                                  f"got {rhs.shape}")
-        shape = rhs.shape
-        columns = rhs.reshape(S.shape[0], -1)
-        x0 = None if x0 is None else np.asarray(x0, dtype=np.float64).reshape(columns.shape)
-        if self.order is not None:
-            columns = columns.reshape(-1, 3, columns.shape[1])[self.order].reshape(columns.shape)
-            x0 = None if x0 is None else x0.reshape(-1, 3, x0.shape[1])[self.order].reshape(x0.shape)
-        x, iterations = self._pcg(np.ascontiguousarray(columns), step_tol, None if x0 is None else np.array(x0))
-        if self.order is not None:
-            out = np.empty_like(x)
-            out.reshape(-1, 3, x.shape[1])[self.order] = x.reshape(-1, 3, x.shape[1])
-            x = out
-        return x.reshape(shape), iterations
+        columns = np.ascontiguousarray(rhs.reshape(S.shape[0], -1))
+        x0 = None if x0 is None else np.array(x0, dtype=np.float64).reshape(columns.shape)
+        x, iterations = self._pcg(columns, step_tol, x0)
+        return x.reshape(rhs.shape), iterations
 
     def _pcg(self, rhs: np.ndarray, step_tol: float, x0: np.ndarray | None) -> tuple[np.ndarray, int]:
-        """pcg in the levels' numbering, on rhs (3N, k) C-contiguous: the columns still
-        moving (`live`) iterate together, a column leaves the block when its CG stops."""
+        """pcg on rhs (3N, k) C-contiguous: the columns still moving (`live`) iterate
+        together, a column leaves the block when its CG stops. Each (3N, k) array is held
+        once: p starts as the first z, S p and the next z share one buffer (S p is spent
+        once r has it, z once p has it), and the answer is x itself when the columns stop
+        together (the edf's 4 probes: 98 MB an array at 1M vertices)."""
         A = self.levels[0].op
-        n = rhs.shape[0]
+        n, columns = rhs.shape
         x = self.start(rhs) if x0 is None else x0
-        out = np.empty_like(x)
-        live = np.arange(rhs.shape[1])
+        out = None                                    # the columns stopped while others go on
+        live = np.arange(columns)
         r = A.residual(rhs, x)
-        z = self.cycle(r)
-        p = z.copy()
-        rz = _dots(r, z)
+        p = self.cycle(r)
+        rz = _dots(r, p)
+        Ap = np.empty_like(p)                         # S p, then the next z
         for k in range(1, MAX_ITERATIONS + 1):
             done = rz == 0.0                          # r = 0: x solves it
             if done.all():
-                out[:, live] = x
-                return out, k - 1
-            Ap = A @ p
+                return _stopped(out, live, x, columns), k - 1
+            A.product(p, Ap)
             pAp = _dots(p, Ap)
             if not (pAp[~done] > 0.0).all() or not np.isfinite(pAp).all():
                 raise SmoothingError("the smoothing system is not positive definite on the lattice")
@@ -596,18 +568,31 @@ class LatticeSolver:
             _blockwise(lambda part: (np.add(x[part], alpha * p[part], out=x[part]),
                                      np.subtract(r[part], alpha * Ap[part], out=r[part])), n)
             done |= np.abs(alpha) * np.abs(p[0::3]).max(axis=0) <= step_tol
+            if done.all():
+                return _stopped(out, live, x, columns), k
             if done.any():
-                out[:, live[done]] = x[:, done]
-                if done.all():
-                    return out, k
+                out = _stopped(out, live[done], x[:, done], columns)
                 live, x, r, p, rz = live[~done], *(np.ascontiguousarray(v[:, ~done]) for v in (x, r, p)), rz[~done]
-            z = self.cycle(r)
+                Ap = np.empty_like(p)
+            z = self.cycle(r, out=Ap)
             rz_next = _dots(r, z)
             beta = rz_next / rz
             _blockwise(lambda part: np.add(z[part], beta * p[part], out=p[part]), n)
             rz = rz_next
         raise SmoothingError(f"the lattice solver did not converge in {MAX_ITERATIONS} iterations "
                              f"(steps still above {step_tol:g})")
+
+
+def _stopped(out: np.ndarray | None, live: np.ndarray, x: np.ndarray, columns: int) -> np.ndarray:
+    """The answer (3N, columns) with the stopped columns x (3N, c) put at their places live
+    (c,) in out (None: none stopped before; made here). When x is every column in order,
+    x itself (no copy)."""
+    if out is None and live.size == columns:       # no column left before: live is range(columns)
+        return x
+    if out is None:
+        out = np.empty((x.shape[0], columns))
+    out[:, live] = x
+    return out
 
 
 class LatticeFactor:
@@ -622,14 +607,14 @@ class LatticeFactor:
         return self.solver.pcg(b, self.step_tol)[0]
 
 
-def lattice_solve(S, rhs: np.ndarray, lattice: Lattice, step_tol: float, x0: np.ndarray | None = None,
+def lattice_solve(S: Stencil, rhs: np.ndarray, lattice: Lattice, step_tol: float, x0: np.ndarray | None = None,
                   coarsest: int | None = None) -> tuple[np.ndarray, int]:
     """(x, iterations): S x = rhs by CG preconditioned by the multigrid V(1,1) cycle of S on
     `lattice` (module doc; LatticeSolver), from the full-multigrid guess (x0 None) or x0,
     stopped when a step moves no value unknown (every third) by more than step_tol, in
-    S's height units. S (3N, 3N) CSR, vertex k's unknowns 3k..3k+2 on node lattice.nodes[k];
-    the lattice in the lengths S was built in. SmoothingError when the system is not on the
-    lattice's stencil, or after MAX_ITERATIONS."""
+    S's height units. S: the fine level's Stencil, vertex k's unknowns 3k..3k+2 on node
+    lattice.nodes[k], numbered colour by colour; the lattice in the lengths S was built in.
+    SmoothingError when S is not the lattice's, or after MAX_ITERATIONS."""
     return LatticeSolver(S, lattice, coarsest).pcg(rhs, step_tol, x0)
 
 

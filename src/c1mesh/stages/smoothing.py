@@ -51,10 +51,11 @@ from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table, edge_table_sides
 from c1mesh.stages import _smoothing as kernel
-from c1mesh.stages.lattice_solver import Lattice, LatticeFactor, LatticeSolver, colour_order
+from c1mesh.stages.lattice_solver import Lattice, LatticeFactor, LatticeSolver, colour_order, stencil_neighbours
+from c1mesh.stages.lattice_system import LatticeSystem
 from c1mesh.stages.limiter import edge_directions, own_triangles_in
 from c1mesh.stages.smoothing_energy import (SchemeNotPolynomialError, SmoothingError,
-                                            energy_blocks, energy_tensor,
+                                            energy_blocks, energy_blocks_of, energy_tensor,
                                             triangle_directions)
 from c1mesh.stages.smoothing_system import (Factor, System, TriangleShapes, assemble_energy,
                                             available_solvers, data_rows, hat_trace, solve, timed,
@@ -411,16 +412,35 @@ class _Problem:
     """The triangles are translates of a few (a lattice's): smoothing_system.TriangleShapes."""
 
     def system(self) -> System:
+        """The System: the energy K as CSR (assemble_energy), the data rows, the gradient data."""
         K = assemble_energy(self.points, self.triangles, self.dirs, self.scheme, self.shapes)
-        rows = None
-        if self.data_tri is not None:
-            rows = data_rows(self.points, self.triangles, self.dirs, self.scheme,
-                             self.data_tri, self.data_lam, self.shapes)
-        mask = values = None
-        if self.grad is not None:
-            mask = np.isfinite(self.grad).all(axis=1).astype(float)
-            values = np.where(mask[:, None] > 0, self.grad, 0.0)
-        return System(K, rows, self.z, mask, values)
+        return System(K, self._rows(), self.z, *self._gradient_data())
+
+    def lattice_system(self, nbr: np.ndarray) -> LatticeSystem:
+        """The LatticeSystem (S in stencil form, no CSR) of a problem on a lattice whose
+        vertices have the stencil neighbours nbr (N, 7): each triangle shape's energy block
+        once (shapes None: one per triangle), the data rows, the gradient data."""
+        if self.shapes is None:
+            shape_of, reps = np.arange(self.triangles.shape[0], dtype=np.int64), slice(None)
+        else:
+            shape_of, reps = self.shapes.key, self.shapes.reps
+        elements = energy_blocks_of(self.points, self.triangles[reps], self.dirs[reps], self.scheme)
+        return LatticeSystem(self.triangles, shape_of, elements, nbr, self._rows(), self.z, *self._gradient_data())
+
+    def _rows(self):
+        """The data rows (smoothing_system.data_rows), None when the data are the vertices."""
+        if self.data_tri is None:
+            return None
+        return data_rows(self.points, self.triangles, self.dirs, self.scheme, self.data_tri, self.data_lam,
+                         self.shapes)
+
+    def _gradient_data(self) -> tuple:
+        """(mask (N,) 1.0 where a vertex has a gradient datum, values (N, 2), 0 elsewhere), or
+        (None, None) without gradient data."""
+        if self.grad is None:
+            return None, None
+        mask = np.isfinite(self.grad).all(axis=1).astype(float)
+        return mask, np.where(mask[:, None] > 0, self.grad, 0.0)
 
     def renumbered(self, order: np.ndarray) -> "_Problem":
         """The same problem with vertex order[i] as vertex i (order (N,) a permutation);
@@ -487,7 +507,7 @@ def _check_inputs(points, triangles, data: SmoothingData):
         spacing = float("nan")
     if not (np.isfinite(spacing) and spacing > 0):
         raise SmoothingError(f"the data's spacing must be a positive length, got {data.spacing!r}")
-    return pts, tri.astype(np.int64), z, xy, w, spacing
+    return pts, np.ascontiguousarray(tri, dtype=np.int64), z, xy, w, spacing     # no copy of int64 triangles
 
 
 def _directions(points, triangles, directions):
@@ -562,7 +582,9 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     the direct factorisation, and the vertices are not renumbered for one (no METIS
     order). The strength search keeps its direct solves on small windows. edf is then
     Hutchinson's estimate with the probes solved by the same CG (LATTICE_EDF_STEP).
-    solver: "lattice-pcg"; seconds: "lattice_setup" (the hierarchy) apart from "solve".
+    The final system is assembled in the solver's stencil form (stages.lattice_system),
+    never as CSR. solver: "lattice-pcg"; seconds: "lattice_setup" (the hierarchy) apart
+    from "solve", the stencil's assembly in "assemble".
 
     search_only (with strength "auto"): return once the search has chosen s, with no values,
     gradients or edf (a survey's search tile: its fit at s is thrown away, and its ring of
@@ -621,8 +643,9 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             raise SmoothingError("no weighted data point lies inside the triangulation")
         problem = _Problem(npts, tri, dirs, shape, zn, wn, nxy, data_tri, data_lam, grad, shapes)
     method = available_solvers()[0]
-    solved, order, system = _assembled(problem, method, seconds, threads,
-                                       None if grid is None else colour_order(grid))
+    solved, order, system = _assembled(problem, method, seconds, threads, grid)
+    solved_w = solved.w                          # the weights in the system's numbering (its z: system.z)
+    del solved
     mu = float(gradient_weight)
     curve: list = []
     at_limit = windows = None
@@ -641,25 +664,27 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                       search_windows=None if windows is None else windows.as_dict())
         if search_only:
             return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), solver=method, **chosen)
+        del problem, dirs             # the search's: the final solve needs neither (dirs: 93 MB at 2M triangles)
         if grid is None:
             with timed(seconds, "solve"):
-                u, factor = solve(system, s, solved.w, mu, method, keep_energy=False)     # the last matrix
+                u, factor = solve(system, s, solved_w, mu, method, keep_energy=False)     # the last matrix
         else:
-            with timed(seconds, "solve"):
-                S, rhs = system.matrix(s, solved.w, mu, keep_energy=False)
+            with timed(seconds, "assemble"):
+                S, rhs = system.stencil(s, solved_w, mu)
             with timed(seconds, "lattice_setup"):
                 solver = LatticeSolver(S, replace(grid, nodes=grid.nodes[order]))
+            del S                                      # the solver's fine level holds it
             with timed(seconds, "solve"):
                 u = solver.pcg(rhs, LATTICE_STEP)[0]
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
         with timed(seconds, "edf"):
-            edf = hat_trace(system, factor, solved.w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
-    residual = (solved.z - system.fitted(u)) * Z     # in solved's numbering (data points: theirs)
+            edf = hat_trace(system, factor, solved_w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
+    residual = (system.z - system.fitted(u)) * Z     # in the system's numbering (data points: theirs)
     own_residuals = None
     if not vertex_data and own_inside is not None:
-        mine = residual[own_inside & (solved.w > 0)]
+        mine = residual[own_inside & (solved_w > 0)]
         own_residuals = (int(mine.size), float(np.sum(mine ** 2)), float(np.abs(mine).max()) if mine.size else 0.0)
-    residual = residual[solved.w > 0]
+    residual = residual[solved_w > 0]
     if order is not None:
         u = _in_input_order(u, order)
     values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
@@ -752,24 +777,30 @@ def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
     return tri, lam
 
 
-def _assembled(problem: _Problem, method: str, seconds: dict, threads, lattice_order: np.ndarray | None = None):
+def _assembled(problem: _Problem, method: str, seconds: dict, threads, grid: Lattice | None = None):
     """(solved, order, system): the problem with its vertices renumbered by
     smoothing_system.vertex_order when CHOLMOD factors it and that gives an order (from
     METIS_FROM unknowns), else the problem itself and order None; and its System. With
-    lattice_order (lattice_solver.colour_order: the lattice solver needs no fill-reducing
-    order, and solves a system numbered colour by colour without a copy) the vertices are
-    renumbered by it instead. The search for s keeps the input's numbering: its windows
-    are small, and their vertices are chosen by number."""
-    order = lattice_order
-    if method == "cholmod" and order is None:
+    grid (the Lattice of the problem's vertices, normalised units) the vertices are
+    renumbered by lattice_solver.colour_order instead (the lattice solver needs no
+    fill-reducing order, and takes its vertices colour by colour), and the system is a
+    LatticeSystem: S is assembled in the solver's stencil form once s is known, never as
+    CSR. The search for s keeps the input's numbering and its own CSR systems: its
+    windows are small, and their vertices are chosen by number."""
+    order = None if grid is None else colour_order(grid)
+    if method == "cholmod" and grid is None:
         with limit(threads), timed(seconds, "order"):
             order = vertex_order(problem.triangles, problem.points.shape[0])
         if order is None:                       # below METIS_FROM: no phase to report
             del seconds["order"]
     solved = problem if order is None else problem.renumbered(order)
     with limit(threads), timed(seconds, "assemble"):
-        system = solved.system()
-    system.vertices_ordered = order is not None and lattice_order is None     # a fill-reducing order
+        if grid is None:
+            system = solved.system()
+            system.vertices_ordered = order is not None          # a fill-reducing order
+        else:
+            ny, nx = grid.shape
+            system = solved.lattice_system(stencil_neighbours(grid.nodes[order], nx, ny))
     return solved, order, system
 
 

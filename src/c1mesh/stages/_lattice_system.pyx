@@ -1,0 +1,97 @@
+# cython: language_level=3
+"""The assembly of a lattice mesh's smoothing system in stencil form: c1mesh.stages.lattice_system
+wraps it (validation, the vertices in fixed blocks in the thread knob's threads), and
+nothing else imports it.
+
+S = s K + Aᵀ W A + diag is written vertex by vertex: vertex v's 3 rows are its blocks
+(7, 3, 3) against the vertices nbr[v] (its stencil neighbours, slot 0 itself, −1 absent).
+Only v's own rows are written, from the triangles at v, so a block of vertices needs no
+other block's work and the bits do not depend on the threads. Each entry sums in a fixed
+order: K's over the triangles at v in increasing triangle order from 0, the data term's
+over those triangles' points (each triangle's in the order given) from 0, each product
+w_i a_ij a_ik formed as (w_i a_i,min(j,k)) a_i,max(j,k); then (K s + data) + diag. Those
+are the sums and products the CSR assembly of the energy (_smoothing_system.add_blocks)
+and of the data term (_smoothing_system.data_scatter) formed, added as System.matrix
+added them: the same bits. -ffp-contract=off: no fused multiply-add.
+"""
+from libc.stdint cimport int32_t, int64_t
+
+cdef enum:
+    SLOTS = 7       # a vertex and its 6 stencil neighbours
+
+
+cdef inline int _local(int vertex, int component) noexcept nogil:
+    """Local datum of (local vertex, component 0 = f, 1 = ∂x, 2 = ∂y): smoothing_energy's
+    order f0, f1, f2, ∂x f0, ∂y f0, ..."""
+    return vertex if component == 0 else 3 + 2 * vertex + component - 1
+
+
+def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int64_t[::1] corner,
+             const int64_t[::1] shape_of, const double[:, :, ::1] elements,
+             const int64_t[::1] first_point, const int64_t[::1] points, const double[:, ::1] rows,
+             const double[::1] w, const int32_t[:, ::1] nbr, double s, const double[:, ::1] diag,
+             double[:, :, :, ::1] blocks, Py_ssize_t first, Py_ssize_t stop):
+    """blocks[v] (7, 3, 3) of S for first <= v < stop; returns the triangle corners at those
+    vertices that are none of nbr[v]'s (0 when the mesh is the lattice's).
+
+    triangles (T, 3); the corners 3 t + k at vertex v are corner[start[v]:start[v + 1]],
+    increasing (_smoothing_system.incidence); triangle t's 9 × 9 energy block is
+    elements[shape_of[t]] (smoothing_energy's local order). The data points of triangle t
+    are points[first_point[t]:first_point[t + 1]], point i's row of A rows[i] (9,) in that
+    order, its weight w[i] (weight 0: skipped); with no data rows (the data are the
+    vertices) first_point is all zeros. diag (N, 3): added to the diagonal of v's own
+    block after the rest (vertex data weights, gradient weights)."""
+    cdef Py_ssize_t v, e, p, i, t
+    cdef int a, b, c, d, j, k, slot
+    cdef int slots[3]
+    cdef int64_t outside = 0
+    cdef double K[SLOTS][3][3]
+    cdef double D[SLOTS][3][3]
+    cdef double row[9]
+    cdef double weighted[9]
+    cdef const double *element
+    with nogil:
+        for v in range(first, stop):
+            for slot in range(SLOTS):
+                for c in range(3):
+                    for d in range(3):
+                        K[slot][c][d] = 0.0
+                        D[slot][c][d] = 0.0
+            for e in range(start[v], start[v + 1]):
+                t = corner[e] // 3
+                a = corner[e] % 3
+                for b in range(3):
+                    slot = 0
+                    while slot < SLOTS and nbr[v, slot] != triangles[t, b]:
+                        slot += 1
+                    slots[b] = slot
+                    if slot == SLOTS:
+                        outside += 1
+                if slots[0] == SLOTS or slots[1] == SLOTS or slots[2] == SLOTS:
+                    continue
+                element = &elements[shape_of[t], 0, 0]
+                for c in range(3):
+                    j = _local(a, c)
+                    for b in range(3):
+                        for d in range(3):
+                            K[slots[b]][c][d] += element[9 * j + _local(b, d)]
+                for p in range(first_point[t], first_point[t + 1]):
+                    i = points[p]
+                    if w[i] == 0.0:
+                        continue
+                    for j in range(9):
+                        row[j] = rows[i, j]
+                        weighted[j] = w[i] * row[j]
+                    for c in range(3):
+                        j = _local(a, c)
+                        for b in range(3):
+                            for d in range(3):
+                                k = _local(b, d)
+                                D[slots[b]][c][d] += (weighted[j] * row[k] if j <= k else weighted[k] * row[j])
+            for slot in range(SLOTS):
+                for c in range(3):
+                    for d in range(3):
+                        blocks[v, slot, c, d] = K[slot][c][d] * s + D[slot][c][d]
+            for c in range(3):
+                blocks[v, 0, c, c] = blocks[v, 0, c, c] + diag[v, c]
+    return outside

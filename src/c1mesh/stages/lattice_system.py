@@ -1,0 +1,113 @@
+"""The smoothing system of a lattice mesh, assembled straight into the lattice solver's stencil form (issue 38).
+
+On a lattice mesh (stages.lattice_solver: the vertices on grid nodes, every cell split by
+its (i, j)-(i+1, j+1) diagonal) every triangle is a translate of a few shapes
+(smoothing_system.TriangleShapes), whose 9 × 9 energy blocks serve them all, and every
+entry of
+
+    S = A^T W A + s K + μ P      (smoothing_system's notation, normalised units)
+
+couples a vertex to one of its 7 stencil neighbours. `LatticeSystem.stencil` writes S
+for a strength s straight into the solver's Stencil (N, 7, 3, 3): no whole-survey K or S
+as CSR (0.75 GB each at 1M vertices, beside the stencil's 0.55 GB). The kernel
+(_lattice_system.assemble) writes each vertex's own rows from the triangles at it and
+their data points, the vertices in fixed blocks in the thread knob's threads; each entry
+is summed in the order the CSR assembly summed it (K over the triangles in increasing
+order, then s K plus the data term over the triangles' points in order), so S has the
+bits System.matrix gave, and they do not depend on the thread count.
+
+The data rows are smoothing_system.DataRows (A u and Aᵀ r by its kernels, for the rhs,
+the residuals and the edf's probes).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from c1mesh.core.threads import parallel_blocks
+from c1mesh.stages import _lattice_system as kernel
+from c1mesh.stages.lattice_solver import Stencil
+from c1mesh.stages.smoothing_energy import N_LOCAL, SmoothingError
+from c1mesh.stages.smoothing_system import (DataRows, data_adjoint, data_fitted, gradient_terms,
+                                            incidence)
+
+ASSEMBLY_BLOCK = 1 << 14
+"""Vertices per block of the stencil assembly (in the thread knob's threads)."""
+
+
+@dataclass
+class LatticeSystem:
+    """The pieces of S on a lattice mesh that do not change with s or the weights.
+
+    triangles (T, 3) int64 over the N vertices; shape_of (T,) int64 each triangle's shape,
+    elements (k, 9, 9) each shape's energy block (smoothing_energy's local order); nbr
+    (N, 7) int32 each vertex's stencil neighbours (lattice_solver.stencil_neighbours, the
+    vertices numbered as the solver's fine level numbers them). data: the data rows
+    (DataRows), or None when the data are the vertices; z (M,) the data values; grad_mask
+    (N,) 1.0 at vertices with gradient data grad_values (N, 2), or None."""
+
+    triangles: np.ndarray
+    shape_of: np.ndarray
+    elements: np.ndarray
+    nbr: np.ndarray
+    data: DataRows | None
+    z: np.ndarray
+    grad_mask: np.ndarray | None = None
+    grad_values: np.ndarray | None = None
+
+    @property
+    def n_unknowns(self) -> int:
+        return 3 * self.nbr.shape[0]
+
+    def fitted(self, u: np.ndarray) -> np.ndarray:
+        """F at the data points (M,) for unknowns u (3N,); (M, k) for k columns u (3N, k)."""
+        return data_fitted(self.data, u)
+
+    def adjoint(self, r: np.ndarray) -> np.ndarray:
+        """A^T r (3N,) for r (M,); (3N, k) for k columns r (M, k)."""
+        return data_adjoint(self.data, r, self.n_unknowns)
+
+    def stencil(self, s: float, w: np.ndarray, mu: float) -> tuple[Stencil, np.ndarray]:
+        """(S in stencil form, rhs (3N,)) for strength s, data weights w (M,) and gradient
+        weight mu (System.matrix's S and rhs, the same bits). SmoothingError when a
+        triangle's corners are not stencil neighbours (cells split by the other diagonal,
+        or nbr not the triangles' lattice)."""
+        w = np.ascontiguousarray(w, dtype=np.float64)
+        rhs = self.adjoint(w * self.z)
+        diag = np.zeros((self.nbr.shape[0], 3))
+        if self.data is None:
+            diag[:, 0] = w
+        gradients = gradient_terms(self.grad_mask, self.grad_values, mu)
+        if gradients is not None:
+            weight, pull = gradients
+            diag[:, 1] = diag[:, 2] = weight
+            rhs[1::3] += pull[:, 0]
+            rhs[2::3] += pull[:, 1]
+        return self._blocks(float(s), w, diag), rhs
+
+    def _blocks(self, s: float, w: np.ndarray, diag: np.ndarray) -> Stencil:
+        """S's Stencil from the kernel, the vertices in fixed blocks of ASSEMBLY_BLOCK. The
+        corners at each vertex and the points by triangle are made for it and let go
+        (0.1 GB at 1M vertices: S is assembled once)."""
+        start, corner = incidence(self.triangles, self.nbr.shape[0])
+        if self.data is None:                          # the data are the vertices: on diag
+            first, points = np.zeros(self.triangles.shape[0] + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
+            rows, weights = np.empty((0, N_LOCAL)), np.empty(0)
+        else:
+            first, points = self.data.points_by_triangle()
+            rows, weights = np.ascontiguousarray(self.data.values, dtype=np.float64), w
+        elements = np.ascontiguousarray(self.elements, dtype=np.float64)
+        blocks = np.empty(self.nbr.shape + (3, 3))
+        outside = []
+        parallel_blocks(lambda part: outside.append(kernel.assemble(
+            self.triangles, start, corner, self.shape_of, elements, first, points, rows, weights, self.nbr,
+            s, diag, blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
+        if sum(outside):
+            raise SmoothingError(f"the system is not on the lattice's stencil: {sum(outside)} triangle corners "
+                                 "are not stencil neighbours of another corner (cells split by the other "
+                                 "diagonal, or nodes that are not the vertices' own?)")
+        return Stencil(self.nbr, blocks)
+
+
+__all__ = ["LatticeSystem", "ASSEMBLY_BLOCK"]
