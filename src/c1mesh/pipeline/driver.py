@@ -487,18 +487,18 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     (the lattice closes gaps of a few cells and leaves larger holes open). Memory: the fit
     runs smooth_tile on the whole mesh and keeps only its values on the support (no edge
     table and no interpolator of the whole mesh: the run asks for no edge directions), and
-    the support's edge table is built after the fit unless the check needs it first."""
+    the support's mesh and edge table are built after the fit unless the check needs them
+    first."""
     normal_source, frame, gradient_source, max_slope_not_applied = facts
     check_triangulation, fill = checks
     with timer.stage("triangulate"):
         check_lattice_spacing(options.spacing, hf.spacing)
         mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing)
-        shown, triangles = mesh.shown_mesh()
-        check_cells_left(triangles.shape[0], mesh.grid)
-        table = None                    # built after the fit unless the check needs it now (0.15 GiB at 1M nodes)
+        check_cells_left(int(mesh.shown.sum()), mesh.grid)
+        support = None                  # made after the fit unless the check needs it now (0.2 GiB at 1M nodes)
         if check_triangulation is not None:
-            table = edge_table(triangles, shown.size)
-            check_triangulation(mesh.points[shown], triangles, table)
+            support = _support_mesh(mesh)
+            check_triangulation(mesh.points[support[0]], *support[1:])
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     cells = int(mesh.shown.sum()) // 2                                   # the support's, two triangles each
@@ -510,13 +510,20 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
         tile = Tile.whole(mesh.points, np.zeros(count), np.zeros((count, 2)), mesh.triangles)
         solved = smooth_tile(tile, run, data=SmoothingData(hf.z, hf.spacing, hf.xy), lattice=mesh.solver_lattice())
         overshoot, smoothing = LimiterReport(directions_changed=solved.solve.turned), solved.fit
-        table = edge_table(triangles, shown.size) if table is None else table
+        shown, triangles, table = _support_mesh(mesh) if support is None else support
         interp = RSDInterpolator(mesh.points[shown], solved.values[shown], solved.gradients[shown],
                                  triangles=triangles, scheme=scheme, edge_table=table)
     trimmed = np.ones(triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
     return SurfaceModel(normal_source, frame, hf, TrimReport(triangles.shape[0], triangles.shape[0]),
                         mesh.sources[shown], interp, overshoot, gradient_source, max_slope_not_applied,
                         smoothing, trimmed, mesh.facts())
+
+
+def _support_mesh(mesh) -> tuple:
+    """(shown, triangles, table): a LatticeMesh's support (shown_mesh: the output's node
+    rows (u,) and triangles (S, 3) into them) and its topology.edge_table."""
+    shown, triangles = mesh.shown_mesh()
+    return shown, triangles, edge_table(triangles, shown.size)
 
 
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
