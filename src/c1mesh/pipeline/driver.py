@@ -73,11 +73,12 @@ from c1mesh.stages.ground import choose_points, resolved_classes
 from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_gradients, height_neighbours, height_normals, use_height_gradients
 from c1mesh.stages.holes import with_spanning_triangles
+from c1mesh.stages.limiter import LimiterReport
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
-                                     search_windows)
+                                     search_windows, smooth_tile)
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh, least_strength
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
@@ -483,17 +484,21 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     (the nodes are no points), unit normal edge directions (the cells are all one shape);
     "auto" searches no lower than the lattice's least_strength (its cells ring below it).
     checks: build_surface's check_triangulation and fill; a DEM's fill spans no triangle
-    (the lattice closes gaps of a few cells and leaves larger holes open)."""
+    (the lattice closes gaps of a few cells and leaves larger holes open). Memory: the fit
+    runs smooth_tile on the whole mesh and keeps only its values on the support (no edge
+    table and no interpolator of the whole mesh: the run asks for no edge directions), and
+    the support's mesh and edge table are built after the fit unless the check needs them
+    first."""
     normal_source, frame, gradient_source, max_slope_not_applied = facts
     check_triangulation, fill = checks
     with timer.stage("triangulate"):
         check_lattice_spacing(options.spacing, hf.spacing)
         mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing)
-        shown, triangles = mesh.shown_mesh()
-        check_cells_left(triangles.shape[0], mesh.grid)
-        table = edge_table(triangles, shown.size)
+        check_cells_left(int(mesh.shown.sum()), mesh.grid)
+        support = None                  # made after the fit unless the check needs it now (0.2 GiB at 1M nodes)
         if check_triangulation is not None:
-            check_triangulation(mesh.points[shown], triangles, table)
+            support = _support_mesh(mesh)
+            check_triangulation(mesh.points[support[0]], *support[1:])
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     cells = int(mesh.shown.sum()) // 2                                   # the support's, two triangles each
@@ -503,14 +508,22 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     count = mesh.points.shape[0]
     with timer.stage("interpolate"):
         tile = Tile.whole(mesh.points, np.zeros(count), np.zeros((count, 2)), mesh.triangles)
-        solved, overshoot, smoothing = smoothed_interpolator(tile, run, SmoothingData(hf.z, hf.spacing, hf.xy),
-                                                             lattice=mesh.solver_lattice())
+        solved = smooth_tile(tile, run, data=SmoothingData(hf.z, hf.spacing, hf.xy), lattice=mesh.solver_lattice())
+        overshoot, smoothing = LimiterReport(directions_changed=solved.solve.turned), solved.fit
+        shown, triangles, table = _support_mesh(mesh) if support is None else support
         interp = RSDInterpolator(mesh.points[shown], solved.values[shown], solved.gradients[shown],
                                  triangles=triangles, scheme=scheme, edge_table=table)
     trimmed = np.ones(triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
     return SurfaceModel(normal_source, frame, hf, TrimReport(triangles.shape[0], triangles.shape[0]),
                         mesh.sources[shown], interp, overshoot, gradient_source, max_slope_not_applied,
                         smoothing, trimmed, mesh.facts())
+
+
+def _support_mesh(mesh) -> tuple:
+    """(shown, triangles, table): a LatticeMesh's support (shown_mesh: the output's node
+    rows (u,) and triangles (S, 3) into them) and its topology.edge_table."""
+    shown, triangles = mesh.shown_mesh()
+    return shown, triangles, edge_table(triangles, shown.size)
 
 
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,

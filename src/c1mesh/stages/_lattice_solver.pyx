@@ -19,7 +19,7 @@ kernel works on a range of rows or vertices and writes only those: the wrapper h
 fixed blocks in the thread knob's threads.
 """
 from libc.math cimport isfinite
-from libc.stdint cimport int32_t, int64_t
+from libc.stdint cimport int8_t, int32_t, int64_t
 
 ctypedef fused index_t:
     int32_t
@@ -199,55 +199,65 @@ def stencil_residual(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] block
                         r[3 * v + p, c0 + c] = b[3 * v + p, c0 + c] - acc[p * LANES + c]
 
 
-cdef inline void _row_sums(const index_t *indices, const double *data, Py_ssize_t lo, Py_ssize_t hi,
-                           const double *x, Py_ssize_t k, Py_ssize_t c0, Py_ssize_t w,
-                           double *acc) noexcept nogil:
-    """acc[c] = Σ data[e] x[indices[e], c0 + c] over lo <= e < hi, for c < w <= LANES, x (n, k)
-    row-major: each column's sum from 0 in the entries' order (what it would be alone).
-    The sums run in local variables (a store per entry to acc cost 4 times the time)."""
-    cdef Py_ssize_t e, c
-    cdef double a, s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0
-    cdef const double *xe
-    if w == LANES:
-        for e in range(lo, hi):
-            a = data[e]
-            xe = x + indices[e] * k + c0
-            s0 = s0 + a * xe[0]
-            s1 = s1 + a * xe[1]
-            s2 = s2 + a * xe[2]
-            s3 = s3 + a * xe[3]
-        acc[0] = s0
-        acc[1] = s1
-        acc[2] = s2
-        acc[3] = s3
-    else:
-        for c in range(w):
-            s0 = 0.0
-            for e in range(lo, hi):
-                s0 = s0 + data[e] * x[indices[e] * k + c0 + c]
-            acc[c] = s0
-
-
-def csr_product(const index_t[::1] indptr, const index_t[::1] indices, const double[::1] data,
+def prolong(const int32_t[:, ::1] parents, const int8_t[:, ::1] parent_slot, const double[:, :, ::1] weights,
             const double[:, ::1] x, double[:, ::1] y, bint add, Py_ssize_t start, Py_ssize_t stop):
-    """y[row] = (A x)[row], or y[row] + (A x)[row] when add, for the CSR rows
-    start <= row < stop of A, column by column of x (n, k): each sum over the row's stored
-    entries in their order, from 0."""
-    cdef Py_ssize_t row, c, c0, w, chunk, k = x.shape[1], lanes = LANES
-    cdef double acc[LANES]
-    if stop <= start:
-        return
+    """y[3f:3f+3] = (P x)[3f:3f+3], or y[3f:3f+3] + (P x)[3f:3f+3] when add, for the fine
+    vertices start <= f < stop, column by column of the coarse x (3m, k).
+
+    P is applied from the lattice's structure: parents (n, 2) the coarse vertices whose
+    Hermite stencil reaches fine vertex f, ascending (−1: none), parent_slot (n, 2) the
+    offset (OFFSETS' index) of f from each, weights (7, 3, 3) the fine datum per unit
+    coarse datum at each offset (hermite_weights). Row 3f + p sums weights[slot, p, q]
+    x[3c + q] over the parents in order and q in order, zero weights skipped, from 0:
+    the order of a CSR row of P with its columns sorted (what lattice_solver.prolongation
+    stores), so the bits are those of that CSR product."""
+    cdef Py_ssize_t f, c, e, col, k = x.shape[1]
+    cdef int p, q, slot
+    cdef double s, w
     with nogil:
-        for row in range(start, stop):
-            for chunk in range((k + lanes - 1) // lanes):
-                c0 = chunk * lanes
-                w = min(LANES, k - c0)
-                _row_sums(&indices[0], &data[0], indptr[row], indptr[row + 1], &x[0, 0], k, c0, w, acc)
-                for c in range(w):
+        for f in range(start, stop):
+            for p in range(3):
+                for col in range(k):
+                    s = 0.0
+                    for e in range(2):
+                        c = parents[f, e]
+                        if c < 0:
+                            continue
+                        slot = parent_slot[f, e]
+                        for q in range(3):
+                            w = weights[slot, p, q]
+                            if w != 0.0:
+                                s = s + w * x[3 * c + q, col]
                     if add:
-                        y[row, c0 + c] = y[row, c0 + c] + acc[c]
+                        y[3 * f + p, col] = y[3 * f + p, col] + s
                     else:
-                        y[row, c0 + c] = acc[c]
+                        y[3 * f + p, col] = s
+
+
+def restrict(const int32_t[:, ::1] children, const double[:, :, ::1] weights, const double[:, ::1] x,
+             double[:, ::1] y, Py_ssize_t start, Py_ssize_t stop):
+    """y[3c:3c+3] = (Pᵀ x)[3c:3c+3] for the coarse vertices start <= c < stop, column by
+    column of the fine x (3n, k): children (m, 7) the fine vertex at each of OFFSETS'
+    offsets from coarse vertex c (−1: none), weights (7, 3, 3) as `prolong`'s. Row 3c + q
+    sums weights[slot, p, q] x[3 f + p] over the slots in order and p in order, zero
+    weights skipped, from 0: the order of lattice_solver.stencil_rows' CSR row."""
+    cdef Py_ssize_t c, f, col, k = x.shape[1]
+    cdef int p, q, slot
+    cdef double s, w
+    with nogil:
+        for c in range(start, stop):
+            for q in range(3):
+                for col in range(k):
+                    s = 0.0
+                    for slot in range(SLOTS):
+                        f = children[c, slot]
+                        if f < 0:
+                            continue
+                        for p in range(3):
+                            w = weights[slot, p, q]
+                            if w != 0.0:
+                                s = s + w * x[3 * f + p, col]
+                    y[3 * c + q, col] = s
 
 
 def first_sweep(const double[:, ::1] b, double[:, ::1] x, const double[:, :, ::1] dinv,

@@ -19,7 +19,10 @@ is what that study recommends:
   f = (f0 + f1)/2 + (g0 − g1)·e/8, ∂t f = (3/2)(f1 − f0)/|e| − (g0 + g1)·e/(4|e|),
   ∂m f = (g0 + g1)·m/2: exact for quadratics (what a fourth-order operator needs; the
   coarse RSD spline's own values reproduce only linears and took twice the iterations).
-  It depends on the coarse grid's spacings (hx, hy) only;
+  It depends on the coarse grid's spacings (hx, hy) only. The cycles apply P and Pᵀ from
+  the node structure (`Transfer`: each coarse vertex's fine vertices, each fine vertex's
+  one or two coarse ones, and the 7 weight blocks), in CSR's summation order; P as CSR
+  exists only while the Galerkin kernel builds the level below (0.31 GiB at 1M vertices);
 * coarse operators Galerkin, Pᵀ S P (they keep the 7-point block pattern), each coarse
   vertex's blocks summed by the kernel `galerkin` straight into that pattern (scipy's
   two sparse products took 2.4 s of the 4 s set-up at 1M vertices);
@@ -79,10 +82,10 @@ MAX_ITERATIONS = 200
 """CG iterations after which `pcg` gives up (SmoothingError). The study needed at most 34
 (V-cycles without the full-multigrid start, s = 0.003, 1M vertices with holes)."""
 SWEEP_BLOCK = 1 << 14
-"""Vertices per block of the Gauss–Seidel kernels (one colour's vertices in blocks in the
-thread knob's threads)."""
+"""Vertices per block of the Gauss–Seidel, stencil and transfer kernels (one colour's
+vertices in blocks in the thread knob's threads)."""
 ROW_BLOCK = 3 << 14
-"""CSR rows per block of the product and residual kernels (S, P and Pᵀ)."""
+"""Rows per block of the inner products and CG's vector updates."""
 GALERKIN_BLOCK = 1 << 12
 """Coarse vertices per block of the Galerkin kernel."""
 OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1))
@@ -188,12 +191,23 @@ def prolongation(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
 
 def restriction(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
     """(Pᵀ CSR, coarse nodes, nxc, nyc): `prolongation` with its matrix transposed (the
-    form stencil_rows builds; the solver needs both)."""
+    form stencil_rows builds; the Galerkin kernel reads both)."""
+    hits, column, coarse, nxc, nyc = coarse_grid(nodes, nx, ny)
+    W = hermite_weights(2 * float(spacing[0]), 2 * float(spacing[1]))
+    return stencil_rows(hits, column, W, np.asarray(nodes).size, coarse.size), coarse, nxc, nyc
+
+
+def coarse_grid(nodes: np.ndarray, nx: int, ny: int) -> tuple:
+    """(hits, column, coarse, nxc, nyc): the coarse level below the fine level of `nodes`
+    (flat indices j nx + i on an nx × ny grid; vertex k is nodes[k]). The coarse grid has
+    nxc × nyc = (nx // 2 + 1) × (ny // 2 + 1) nodes, node (I, J) on fine node (2I, 2J);
+    hits[k] (nxc nyc,) the fine vertex at OFFSETS[k] from each coarse node (−1: none);
+    coarse the nodes kept by the module doc's rule, numbered colour by colour
+    (colour_order's numbering), column (nxc nyc,) each node's coarse vertex (−1: dropped)."""
     nodes = np.asarray(nodes, dtype=np.int64)
     nxc, nyc = nx // 2 + 1, ny // 2 + 1
     where = np.full(nx * ny, -1, dtype=np.int64)
     where[nodes] = np.arange(nodes.size)
-    W = hermite_weights(2 * float(spacing[0]), 2 * float(spacing[1]))
     J, I = np.divmod(np.arange(nxc * nyc, dtype=np.int64), nxc)
     hits = []
     reach = np.zeros(nxc * nyc, dtype=np.int64)
@@ -208,7 +222,7 @@ def restriction(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
     coarse = coarse[np.lexsort((coarse, colours(coarse, nxc)))]
     column = np.full(nxc * nyc, -1, dtype=np.int64)
     column[coarse] = np.arange(coarse.size)
-    return stencil_rows(hits, column, W, nodes.size, coarse.size), coarse, nxc, nyc
+    return hits, column, coarse, nxc, nyc
 
 
 def stencil_matrix(hits: list, column: np.ndarray, weights: dict, fine: int, coarse: int):
@@ -277,30 +291,56 @@ def colour_order(lattice: Lattice) -> np.ndarray:
     return np.lexsort((lattice.nodes, colours(lattice.nodes, lattice.shape[1])))
 
 
-class _Rows:
-    """A CSR matrix (m, n) as the kernels take it (indptr and indices of one integer type;
-    P and Pᵀ): products with (n, k) blocks of vectors, its rows in fixed blocks of
-    ROW_BLOCK in the thread knob's threads (each row summed in its stored order, so the
-    bits do not depend on the threads)."""
+class Transfer:
+    """P and Pᵀ between a level and the next coarser one, applied from the lattice's node
+    structure instead of stored as CSR (at 1M vertices P and Pᵀ as CSR held 0.31 GiB; these
+    tables hold 22 MB). children (m, 7) int32: the fine vertex at each of OFFSETS' offsets
+    from each coarse vertex (−1: none); parents (n, 2) int32: the coarse vertices whose
+    stencil reaches each fine vertex, ascending (−1: none), parent_slot (n, 2) int8 the
+    offset of the fine vertex from each; weights (7, 3, 3) hermite_weights in OFFSETS'
+    order. Each product row is summed in the order of the CSR row (prolongation's P,
+    restriction's Pᵀ), so the bits are those of the CSR products; rows in fixed blocks of
+    ROW_BLOCK in the thread knob's threads."""
 
-    def __init__(self, M, index_dtype):
-        self.indptr = np.ascontiguousarray(M.indptr, dtype=index_dtype)
-        self.indices = np.ascontiguousarray(M.indices, dtype=index_dtype)
-        self.data = np.ascontiguousarray(M.data, dtype=np.float64)
-        self.shape = M.shape
+    def __init__(self, hits: list, column: np.ndarray, coarse: np.ndarray, weights: dict, fine: int):
+        self.children = np.stack([np.asarray(hit)[coarse] for hit in hits], axis=1).astype(np.int32)
+        self.weights = np.ascontiguousarray([weights[off] for off in OFFSETS], dtype=np.float64)
+        self.parents, self.parent_slot = _parents(self.children, fine)
+        self.shape = (3 * fine, 3 * coarse.size)      # P's
 
-    def arrays(self) -> tuple:
-        return self.indptr, self.indices, self.data
-
-    def __matmul__(self, x: np.ndarray) -> np.ndarray:
-        """A x (m, k) for x (n, k)."""
-        return self.product(x, np.empty((self.shape[0], x.shape[1])))
-
-    def product(self, x: np.ndarray, out: np.ndarray, add: bool = False) -> np.ndarray:
-        """out = A x, or out += A x when add (one pass, no temporary); returns out."""
-        parallel_blocks(lambda part: kernel.csr_product(*self.arrays(), x, out, add, part.start, part.stop),
-                        self.shape[0], ROW_BLOCK)
+    def prolong(self, x: np.ndarray, out: np.ndarray | None = None, add: bool = False) -> np.ndarray:
+        """P x (3n, k) for the coarse x (3m, k), into out (None: a new array), or out += P x
+        when add (one pass, no temporary); returns out."""
+        out = np.empty((self.shape[0], x.shape[1])) if out is None else out
+        parallel_blocks(lambda part: kernel.prolong(self.parents, self.parent_slot, self.weights, x, out, add,
+                                                    part.start, part.stop), self.parents.shape[0], SWEEP_BLOCK)
         return out
+
+    def restrict(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Pᵀ x (3m, k) for the fine x (3n, k), into out (None: a new array); returns out."""
+        out = np.empty((self.shape[1], x.shape[1])) if out is None else out
+        parallel_blocks(lambda part: kernel.restrict(self.children, self.weights, x, out, part.start, part.stop),
+                        self.children.shape[0], SWEEP_BLOCK)
+        return out
+
+
+def _parents(children: np.ndarray, fine: int) -> tuple[np.ndarray, np.ndarray]:
+    """(parents (fine, 2) int32, parent_slot (fine, 2) int8): Transfer's inverse of
+    children (m, 7): each fine vertex's coarse vertices (at most 2: a fine node is a
+    coarse node or the midpoint of one coarse edge), ascending, −1 where fewer."""
+    c, slot = np.nonzero(children >= 0)                  # by coarse vertex, then slot
+    f = children[c, slot].astype(np.int64)
+    order = np.argsort(f, kind="stable")                 # by fine vertex, then coarse vertex
+    f, c, slot = f[order], c[order], slot[order]
+    first = np.searchsorted(f, f)                        # each fine vertex's first entry
+    rank = np.arange(f.size) - first
+    if rank.size and rank.max() > 1:
+        raise SmoothingError("a fine vertex reached by more than two coarse vertices: not a lattice prolongation")
+    parents = np.full((fine, 2), -1, dtype=np.int32)
+    parent_slot = np.zeros((fine, 2), dtype=np.int8)
+    parents[f, rank] = c
+    parent_slot[f, rank] = slot
+    return parents, parent_slot
 
 
 def _index_dtype(*matrices) -> type:
@@ -381,7 +421,8 @@ def galerkin(fine: "_Level", P, PT, coarse: np.ndarray, nxc: int, nyc: int) -> S
     its nxc × nyc grid. SmoothingError when an entry falls outside the coarse stencil (P
     not a lattice prolongation)."""
     dtype = _index_dtype(P, PT)
-    args = [a for M in (P, PT) for a in _Rows(M, dtype).arrays()]
+    args = [np.ascontiguousarray(a, dtype=kind) for M in (P, PT)
+            for a, kind in ((M.indptr, dtype), (M.indices, dtype), (M.data, np.float64))]
     neighbours = stencil_neighbours(coarse, nxc, nyc)
     offsets = np.array(OFFSETS, dtype=np.int32)
     blocks = np.empty(neighbours.shape + (3, 3))
@@ -399,11 +440,11 @@ def galerkin(fine: "_Level", P, PT, coarse: np.ndarray, nxc: int, nyc: int) -> S
 class _Level:
     """One grid: S in stencil form (op) with its vertices numbered colour by colour
     (colour_order), their nodes, each colour's first vertex (bounds (4,)), the inverses
-    of S's diagonal blocks, and P, Pᵀ to the next coarser grid (None on the coarsest),
-    also as the kernels' _Rows (P_rows, PT_rows). S: op as CSR, made when asked."""
+    of S's diagonal blocks, its grid spacing (hx, hy), and the Transfer to the next coarser
+    grid (None on the coarsest). S: op as CSR, made when asked."""
 
-    def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int):
-        self.op, self.nodes, self.nx, self.ny = op, nodes, nx, ny
+    def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int, spacing: tuple):
+        self.op, self.nodes, self.nx, self.ny, self.spacing = op, nodes, nx, ny, spacing
         colour = colours(nodes, nx)
         if (np.diff(colour) < 0).any():
             raise ValueError("a level's vertices must be numbered colour by colour")
@@ -415,7 +456,7 @@ class _Level:
         if sum(counts):
             raise SmoothingError(f"{sum(counts)} diagonal 3 × 3 blocks of the lattice system are not positive "
                                  "definite: a vertex lacks data and energy")
-        self.P = self.PT = self.P_rows = self.PT_rows = None
+        self.transfer = None
         self._scratch = {}
 
     @property
@@ -429,12 +470,6 @@ class _Level:
         if array is None or array.shape != shape:
             array = self._scratch[name] = np.empty(shape)
         return array
-
-    def link(self, P, PT) -> None:
-        """Set the prolongation P to the next coarser level and its transpose PT (CSR)."""
-        self.P, self.PT = P, PT
-        dtype = _index_dtype(P, PT)
-        self.P_rows, self.PT_rows = _Rows(P, dtype), _Rows(PT, dtype)
 
     def sweep(self, x: np.ndarray, b: np.ndarray, order, from_zero: bool = False) -> None:
         """Block Gauss–Seidel over the colours in `order`, in place, on x, b (3N, k);
@@ -468,21 +503,31 @@ class LatticeSolver:
             raise SmoothingError("the lattice solver takes its vertices numbered colour by colour (colour_order)")
         if not np.array_equal(S.nbr, stencil_neighbours(nodes, nx, ny)):
             raise SmoothingError("the stencil's slots are not the lattice's neighbours (stencil_neighbours)")
-        fine = _Level(S, nodes, nx, ny)
-        hx, hy = lattice.spacing
-        self.levels = [fine]
+        self.levels = [_Level(S, nodes, nx, ny, lattice.spacing)]
         while self.levels[-1].nodes.size > coarsest:
-            level = self.levels[-1]
-            PT, coarse, nxc, nyc = restriction(level.nodes, level.nx, level.ny, (hx, hy))
-            if coarse.size >= level.nodes.size:
+            below = self._coarsen(self.levels[-1])
+            if below is None:
                 break
-            P = PT.T.tocsr()
-            level.link(P, PT)
-            self.levels.append(_Level(galerkin(level, P, PT, coarse, nxc, nyc), coarse, nxc, nyc))
-            hx, hy = 2 * hx, 2 * hy
+            self.levels.append(below)
         method = available_solvers()[0]
         self.coarse = Factor(self.levels[-1].S, "superlu" if method == "amg-cg" else method)
         self.seconds = time.perf_counter() - t0
+
+    @staticmethod
+    def _coarsen(level: _Level) -> "_Level | None":
+        """The level below `level` (None when coarsening keeps every vertex), with
+        level.transfer set: its operator by the Galerkin kernel from P and Pᵀ as CSR, which
+        are let go once it is built (the cycles apply them by the Transfer)."""
+        hits, column, coarse, nxc, nyc = coarse_grid(level.nodes, level.nx, level.ny)
+        if coarse.size >= level.nodes.size:
+            return None
+        hx, hy = level.spacing
+        W = hermite_weights(2 * hx, 2 * hy)
+        PT = stencil_rows(hits, column, W, level.nodes.size, coarse.size)
+        op = galerkin(level, PT.T.tocsr(), PT, coarse, nxc, nyc)
+        del PT
+        level.transfer = Transfer(hits, column, coarse, W, level.nodes.size)
+        return _Level(op, coarse, nxc, nyc, (2 * hx, 2 * hy))
 
     def _coarsest(self, b: np.ndarray) -> np.ndarray:
         """The coarsest level's direct solve of b (n, k), as (n, k) C-contiguous."""
@@ -506,8 +551,8 @@ class LatticeSolver:
         # with its neighbours as they are): only colours 0 and 1 are computed
         r = level.op.residual(b, x, level.scratch("residual", b.shape), vertices=int(level.bounds[2]))
         below = self.levels[k + 1]
-        coarse = level.PT_rows.product(r, below.scratch("restricted", (level.PT_rows.shape[0], b.shape[1])))
-        level.P_rows.product(self.cycle(coarse, k + 1), x, add=True)
+        coarse = level.transfer.restrict(r, below.scratch("restricted", (3 * below.nodes.size, b.shape[1])))
+        level.transfer.prolong(self.cycle(coarse, k + 1), x, add=True)
         level.sweep(x, b, (2, 1, 0))
         return x
 
@@ -517,11 +562,11 @@ class LatticeSolver:
         (in the levels' numbering)."""
         bs = [rhs]
         for level in self.levels[:-1]:
-            bs.append(level.PT_rows @ bs[-1])
+            bs.append(level.transfer.restrict(bs[-1]))
         x = self._coarsest(bs[-1])
         for k in range(len(self.levels) - 2, -1, -1):
             level = self.levels[k]
-            x = level.P_rows @ x
+            x = level.transfer.prolong(x)
             x += self.cycle(level.op.residual(bs[k], x), k)
         return x
 
@@ -619,6 +664,6 @@ def lattice_solve(S: Stencil, rhs: np.ndarray, lattice: Lattice, step_tol: float
 
 
 __all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve", "prolongation", "restriction",
-           "hermite_weights", "stencil_matrix", "stencil_rows", "galerkin", "stencil_neighbours", "Stencil", "OFFSETS",
+           "coarse_grid", "Transfer", "hermite_weights", "stencil_matrix", "stencil_rows", "galerkin", "stencil_neighbours", "Stencil", "OFFSETS",
            "colour_order",
            "COARSEST", "MAX_ITERATIONS"]

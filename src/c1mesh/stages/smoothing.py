@@ -664,7 +664,9 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                       search_windows=None if windows is None else windows.as_dict())
         if search_only:
             return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), solver=method, **chosen)
-        del problem, dirs             # the search's: the final solve needs neither (dirs: 93 MB at 2M triangles)
+        # the search's: the final solve needs none of them (dirs: 93 MB at 2M triangles; the
+        # data's located copies about 70 MB at 1M points; the system holds its own)
+        del problem, dirs, nxy, z, w, trend, zn, wn, data_tri, data_lam
         if grid is None:
             with timed(seconds, "solve"):
                 u, factor = solve(system, s, solved_w, mu, method, keep_energy=False)     # the last matrix
@@ -1073,7 +1075,8 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     after pipeline.steps.compact_vertices), the directions then in the order of
     edge_table(tile.triangles), which is that order. A tile without triangles fits
     nothing: its own vertices, which no triangle uses, keep their data. table:
-    edge_table(tile.triangles) when built already (the trim's, in memory; not with owned).
+    edge_table(tile.triangles) when built already (the trim's, in memory; not with owned);
+    None: built here when run.overshoot asks for edge directions (nothing else needs it).
 
     With strength "auto" the run searches s on the tile (`search_strength`) and solves at
     the s it found, in one smooth_fit: the in-memory fit's one tile is both the tile the
@@ -1091,10 +1094,10 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
                             None if run.overshoot == "off" else np.empty((0, 2)),
                             TileSolve(0, 0.0, 0.0, 0, None, 0), None)
     other = None
-    if table is None:
-        table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
-    elif owned is not None:
+    if table is not None and owned is not None:
         raise ValueError("smooth_tile numbers the edges itself when given the own triangles")
+    if table is None and run.overshoot != "off":     # only the edge directions need the edges
+        table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
     fit, directions, changed = _fit_tile(tile, run, table, data, lattice)
     own = tile.own
     every = bool(own.all())
