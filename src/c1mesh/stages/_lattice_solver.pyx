@@ -160,43 +160,46 @@ def sweep(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const do
                             dinv[v, p, 0] * r[c] + dinv[v, p, 1] * r[LANES + c] + dinv[v, p, 2] * r[2 * LANES + c])
 
 
-def stencil_product(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double[:, ::1] x,
-                    double[:, ::1] y, Py_ssize_t start, Py_ssize_t stop):
-    """y[3v:3v+3] = (S x)[3v:3v+3] for start <= v < stop, column by column of x (n, k)."""
+cdef void _stencil_rows(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double* b,
+                        const double[:, ::1] x, double[:, ::1] out, Py_ssize_t start, Py_ssize_t stop) noexcept nogil:
+    """out[3v:3v+3] = (S x)[3v:3v+3] for start <= v < stop, column by column of x (n, k);
+    where b is not NULL (the first entry of an (n, k) C-contiguous array), b[3v:3v+3] minus
+    that instead. The one loop of stencil_product and stencil_residual."""
     cdef Py_ssize_t v, c, c0, w, chunk, k = x.shape[1], lanes = LANES
     cdef int p
     cdef double acc[3 * LANES]
+    for v in range(start, stop):
+        for chunk in range((k + lanes - 1) // lanes):
+            c0 = chunk * lanes
+            w = min(lanes, k - c0)
+            _vertex_sums(&nbr[v, 0], &blocks[v, 0, 0, 0], &x[0, 0], k, c0, w, acc)
+            for p in range(3):
+                for c in range(w):
+                    if b == NULL:
+                        out[3 * v + p, c0 + c] = acc[p * LANES + c]
+                    else:
+                        out[3 * v + p, c0 + c] = b[(3 * v + p) * k + c0 + c] - acc[p * LANES + c]
+
+
+def stencil_product(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double[:, ::1] x,
+                    double[:, ::1] y, Py_ssize_t start, Py_ssize_t stop):
+    """y[3v:3v+3] = (S x)[3v:3v+3] for start <= v < stop, column by column of x (n, k)."""
     if stop <= start:
         return
     with nogil:
-        for v in range(start, stop):
-            for chunk in range((k + lanes - 1) // lanes):
-                c0 = chunk * lanes
-                w = min(lanes, k - c0)
-                _vertex_sums(&nbr[v, 0], &blocks[v, 0, 0, 0], &x[0, 0], k, c0, w, acc)
-                for p in range(3):
-                    for c in range(w):
-                        y[3 * v + p, c0 + c] = acc[p * LANES + c]
+        _stencil_rows(nbr, blocks, NULL, x, y, start, stop)
 
 
 def stencil_residual(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double[:, ::1] b,
                      const double[:, ::1] x, double[:, ::1] r, Py_ssize_t start, Py_ssize_t stop):
     """r[3v:3v+3] = b[3v:3v+3] − (S x)[3v:3v+3] for start <= v < stop (S x summed as
-    `stencil_product` does), column by column of x (n, k)."""
-    cdef Py_ssize_t v, c, c0, w, chunk, k = x.shape[1], lanes = LANES
-    cdef int p
-    cdef double acc[3 * LANES]
-    if stop <= start:
+    `stencil_product` does), column by column of x (n, k); b has x's shape."""
+    if stop <= start or x.shape[1] == 0:
         return
+    if b.shape[0] != x.shape[0] or b.shape[1] != x.shape[1]:
+        raise ValueError(f"b must have x's shape {(x.shape[0], x.shape[1])}, got {(b.shape[0], b.shape[1])}")
     with nogil:
-        for v in range(start, stop):
-            for chunk in range((k + lanes - 1) // lanes):
-                c0 = chunk * lanes
-                w = min(lanes, k - c0)
-                _vertex_sums(&nbr[v, 0], &blocks[v, 0, 0, 0], &x[0, 0], k, c0, w, acc)
-                for p in range(3):
-                    for c in range(w):
-                        r[3 * v + p, c0 + c] = b[3 * v + p, c0 + c] - acc[p * LANES + c]
+        _stencil_rows(nbr, blocks, &b[0, 0], x, r, start, stop)
 
 
 def prolong(const int32_t[:, ::1] parents, const int8_t[:, ::1] parent_slot, const double[:, :, ::1] weights,
