@@ -35,6 +35,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import workers
+from c1mesh.core.tile import compact
 from c1mesh.stages.height_field import kd_tree
 from c1mesh.stages.lattice_solver import Lattice
 
@@ -286,13 +287,7 @@ class LatticeMesh:
     def shown_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """(used (u,) ascending rows of the nodes the shown triangles use, their triangles
         (S, 3) into those rows): the output's mesh."""
-        corners = self.triangles[self.shown]
-        marked = np.zeros(self.nodes.size, dtype=bool)          # a table, not a sort of the corners
-        marked[corners.ravel()] = True
-        used = np.flatnonzero(marked)
-        local = np.full(self.nodes.size, -1, dtype=np.int64)
-        local[used] = np.arange(used.size)
-        return used, local[corners]
+        return compact(self.triangles[self.shown], self.nodes.size)
 
     def facts(self) -> dict:
         """The report's smoothing.lattice: spacing D, reach R (cells), nodes."""
@@ -354,8 +349,8 @@ def _kept_in_bands(grid: NodeGrid, xy: np.ndarray, blocks: bool = False) -> np.n
 
 
 MARKED_NODES = 1 << 26
-"""Node number spans up to which numbered_triangles marks the nodes in a table (one byte a
-node) instead of sorting the corners."""
+"""Node number spans up to which numbered_triangles marks the nodes in a table
+(core.tile.compact: a byte and an int64 a node of the span) instead of sorting the corners."""
 
 
 def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -368,11 +363,8 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
     if last - first >= MARKED_NODES:
         nodes, local = np.unique(corners, return_inverse=True)
         return nodes, local.reshape(-1, 3).astype(np.int64)
-    number = np.zeros(last - first + 1, dtype=np.int64)
-    number[corners.ravel() - first] = 1
-    nodes = np.flatnonzero(number) + first
-    np.cumsum(number, out=number)
-    return nodes, number[corners - first] - 1
+    used, local = compact(corners - first, last - first + 1)
+    return used + first, local
 
 
 __all__ = ["FINEST_SPACINGS", "BENDING_CELLS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM",
