@@ -122,6 +122,37 @@ def test_nearest_points_take_the_lowest_index_on_ties():
     np.testing.assert_array_equal(nearest_points(q, xy, index), index[d.argmin(axis=1)])
 
 
+def _clusters_and_strips(kind: str, rng) -> np.ndarray:
+    """Points whose buckets are mostly empty or degenerate: two far clusters, a line, one
+    repeated point, a thin strip."""
+    if kind == "clusters":
+        return np.concatenate([rng.normal(0, 0.5, (150, 2)), rng.normal(60, 0.5, (150, 2))])
+    if kind == "line":
+        return np.column_stack([rng.uniform(0, 50, 200), np.full(200, 3.0)])
+    if kind == "one":
+        return np.tile([[2.0, -1.0]], (20, 1))
+    return np.column_stack([rng.uniform(0, 1000, 400), rng.uniform(0, 0.01, 400)])
+
+
+@pytest.mark.parametrize("kind", ["clusters", "line", "one", "strip"])
+def test_nearest_points_by_buckets_are_the_brute_force_nearest(monkeypatch, kind):
+    """The bucket search finds the brute-force nearest (lowest index on ties) for positions
+    inside, between and far outside the points, block by block in any thread count."""
+    from c1mesh.core.threads import limit
+    from c1mesh.stages import lattice_mesh as module
+    monkeypatch.setattr(module, "NEAREST_BLOCK", 7)
+    rng = np.random.default_rng(11)
+    xy = _clusters_and_strips(kind, rng)
+    lo, hi = xy.min(axis=0) - 200, xy.max(axis=0) + 200
+    q = np.concatenate([rng.uniform(lo, hi, (60, 2)), xy[:10] + 1e-3, [[1e6, -1e6], [-3e5, 40.0]]])
+    index = rng.permutation(5 * xy.shape[0])[:xy.shape[0]]
+    d2 = ((q[:, None] - xy[None]) ** 2).sum(axis=2)
+    want = [index[d2[k] == d2[k].min()].min() for k in range(len(q))]
+    for threads in (1, 2):
+        with limit(threads):
+            assert nearest_points(q, xy, index).tolist() == want
+
+
 @pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
 def test_a_bad_spacing_is_an_input_error(bad):
     with pytest.raises(InputError, match="--spacing"):
