@@ -424,6 +424,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 frame = choose_frame(cloud.points, normals, options.axis)
             hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
                               common_metric=not plan_heights)
+            del normals              # hf holds the gradients: 24 bytes a point less from here on
             max_slope_not_applied = None
             if plan_heights and options.z_factor is not None:
                 _drop_too_steep(hf, options.max_slope, float(options.z_factor))
