@@ -21,11 +21,6 @@ fixed blocks in the thread knob's threads.
 from libc.math cimport isfinite
 from libc.stdint cimport int8_t, int32_t, int64_t
 
-ctypedef fused index_t:
-    int32_t
-    int64_t
-
-
 cdef enum:
     LANES = 4       # columns summed side by side: independent chains for the CPU, one pass over a row
     SLOTS = 7       # a vertex and its 6 stencil neighbours
@@ -212,8 +207,8 @@ def prolong(const int32_t[:, ::1] parents, const int8_t[:, ::1] parent_slot, con
     offset (OFFSETS' index) of f from each, weights (7, 3, 3) the fine datum per unit
     coarse datum at each offset (hermite_weights). Row 3f + p sums weights[slot, p, q]
     x[3c + q] over the parents in order and q in order, zero weights skipped, from 0:
-    the order of a CSR row of P with its columns sorted (what lattice_solver.prolongation
-    stores), so the bits are those of that CSR product."""
+    the order of a CSR row of P with its columns sorted, so the bits are those of that
+    CSR product (tests/test_lattice_solver.py builds P explicitly)."""
     cdef Py_ssize_t f, c, e, col, k = x.shape[1]
     cdef int p, q, slot
     cdef double s, w
@@ -243,7 +238,7 @@ def restrict(const int32_t[:, ::1] children, const double[:, :, ::1] weights, co
     column of the fine x (3n, k): children (m, 7) the fine vertex at each of OFFSETS'
     offsets from coarse vertex c (−1: none), weights (7, 3, 3) as `prolong`'s. Row 3c + q
     sums weights[slot, p, q] x[3 f + p] over the slots in order and p in order, zero
-    weights skipped, from 0: the order of lattice_solver.stencil_rows' CSR row."""
+    weights skipped, from 0: the order of a CSR row of Pᵀ stored slot by slot, p by p."""
     cdef Py_ssize_t c, f, col, k = x.shape[1]
     cdef int p, q, slot
     cdef double s, w
@@ -295,72 +290,54 @@ def dots(const double[:, ::1] a, const double[:, ::1] b, double[::1] out, Py_ssi
                 out[c0 + c] = acc[c]
 
 
-def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const int64_t[::1] nodes,
-             Py_ssize_t nx, const int32_t[:, ::1] offsets,
-             const index_t[::1] p_indptr, const index_t[::1] p_indices, const double[::1] p_data,
-             const index_t[::1] t_indptr, const index_t[::1] t_indices, const double[::1] t_data,
-             const int64_t[::1] coarse_nodes, Py_ssize_t nxc, const int32_t[:, ::1] coarse_nbr,
+def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const int32_t[:, ::1] offsets,
+             const int32_t[:, ::1] children, const int32_t[::1] order, const int32_t[:, ::1] parents,
+             const int8_t[:, ::1] parent_slot, const double[:, :, ::1] weights, const int32_t[:, ::1] coarse_nbr,
              double[:, :, :, ::1] coarse_blocks, Py_ssize_t start, Py_ssize_t stop):
     """coarse_blocks[I] (7, 3, 3): the coarse operator Pᵀ S P's blocks for the coarse
     vertices start <= I < stop, in the slots of coarse_nbr[I] (its own vertex and its 6
     stencil neighbours, OFFSETS' order, −1 absent: zeros there).
 
-    S in stencil form (nbr, blocks) on the fine vertices, on nodes (n,) of a grid nx wide;
-    offsets (7, 2) OFFSETS; P (3n, 3m) and T = Pᵀ (3m, 3n) CSR; coarse_nodes (m,) on the
-    coarse grid nxc wide, coarse node (I, J) on fine node (2I, 2J).
+    S in stencil form (nbr, blocks) on the fine vertices; offsets (7, 2) OFFSETS; P from
+    the Transfer's node structure (`prolong`, `restrict`): children (m, 7) the fine vertex
+    at each offset from a coarse vertex (−1: none), parents (n, 2) / parent_slot (n, 2)
+    each fine vertex's coarse vertices ascending and its offset from each, weights
+    (7, 3, 3) the fine datum per unit coarse datum at each offset; order (k,) the slots in
+    the order of their first entry in a CSR row block of Pᵀ (rows q, then slots, then p:
+    lattice_solver.child_order), the order its children are summed in.
 
-    For each coarse vertex: R_f = T's 3 × 3 block at each child f (the fine vertices its
-    rows reach, at most 7), then U = Σ_f R_f S_f,g over the children's stencils, g on the
-    5 × 5 fine nodes around the coarse node (children in T's order, their slots in order,
-    R's zero weights skipped: most Hermite weights are 0), then the coarse row
-    Σ_g U_g P_g over those nodes in grid order, P's rows in order. A 7-point block stencil
-    stays one under the Hermite P (a coarse entry needs fine offsets a + b − c = 2 (J − I)
-    from three stencil offsets, which no J beyond the 7 allows), so the slots have room
-    for every entry; anything beyond them (a child off the 3 × 3 fine nodes around the
-    coarse node, an entry of P for a vertex not in the slots) is counted and skipped
-    (returned: 0 when the pattern holds)."""
-    cdef Py_ssize_t I, e, g, f, b, c, J, slot, fslot, last_j, last_slot, nchild, ch, u, ci, cj, gx, gy
-    cdef int p, q, r
+    For each coarse vertex: R_f = weights[slot]ᵀ at each child f (at most 7), then
+    U = Σ_f R_f S_f,g over the children's stencils, g on the 5 × 5 fine nodes around the
+    coarse node (children in `order`, their slots in order, R's zero weights skipped: most
+    Hermite weights are 0), then the coarse row Σ_g U_g P_g over those nodes in grid
+    order, each P row 3g + q over g's parents ascending and q' in order, zero weights
+    skipped: the summation order of the CSR products it replaces (Pᵀ's rows, P's rows
+    with sorted columns), so the bits are theirs. A 7-point block stencil stays one under
+    the Hermite P (a coarse entry needs fine offsets a + b − c = 2 (J − I) from three
+    stencil offsets, which no J beyond the 7 allows), so the slots have room for every
+    entry; an entry of P for a vertex not in the slots is counted and skipped (returned:
+    0 when the pattern holds)."""
+    cdef Py_ssize_t I, e, g, f, J, slot, fslot, last_j, last_slot, n, u, gx, gy, pslot, k = order.shape[0]
+    cdef int p, q, r, qq
     cdef int64_t missing = 0
-    cdef Py_ssize_t child[SLOTS]
-    cdef double R[SLOTS][3][3]
     cdef Py_ssize_t uvert[25]
     cdef double U[25][3][3]
     cdef double acc[3][SLOTS][3]
     cdef double rw, uw
     with nogil:
         for I in range(start, stop):
-            ci = coarse_nodes[I] % nxc
-            cj = coarse_nodes[I] // nxc
-            nchild = 0
-            for p in range(3):
-                for e in range(t_indptr[3 * I + p], t_indptr[3 * I + p + 1]):
-                    f = t_indices[e] // 3
-                    ch = 0
-                    while ch < nchild and child[ch] != f:
-                        ch += 1
-                    if ch == nchild:
-                        if nchild == SLOTS:
-                            missing += 1
-                            continue
-                        child[ch] = f
-                        for q in range(3):
-                            for r in range(3):
-                                R[ch][q][r] = 0.0
-                        nchild += 1
-                    R[ch][p][t_indices[e] - 3 * f] = t_data[e]
             for u in range(25):
                 uvert[u] = -1
                 for p in range(3):
                     for q in range(3):
                         U[u][p][q] = 0.0
-            for ch in range(nchild):
-                f = child[ch]
-                gx = nodes[f] % nx - 2 * ci
-                gy = nodes[f] // nx - 2 * cj
-                if gx < -1 or gx > 1 or gy < -1 or gy > 1:
-                    missing += 1
+            for n in range(k):
+                slot = order[n]
+                f = children[I, slot]
+                if f < 0:
                     continue
+                gx = offsets[slot, 0]
+                gy = offsets[slot, 1]
                 for fslot in range(SLOTS):
                     g = nbr[f, fslot]
                     if g < 0:
@@ -369,7 +346,7 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                     uvert[u] = g
                     for p in range(3):
                         for r in range(3):
-                            rw = R[ch][p][r]
+                            rw = weights[slot, r, p]
                             if rw == 0.0:
                                 continue
                             for q in range(3):
@@ -385,24 +362,149 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                 if g < 0:
                     continue
                 for q in range(3):
-                    b = 3 * g + q
-                    for e in range(p_indptr[b], p_indptr[b + 1]):
-                        c = p_indices[e]
-                        J = c // 3
+                    for e in range(2):
+                        J = parents[g, e]
+                        if J < 0:
+                            continue
                         if J != last_j:
                             slot = 0
                             while slot < SLOTS and coarse_nbr[I, slot] != J:
                                 slot += 1
                             last_j = J
                             last_slot = slot
-                        if last_slot == SLOTS:
-                            missing += 1
-                            continue
-                        uw = p_data[e]
-                        for p in range(3):
-                            acc[p][last_slot][c - 3 * J] = acc[p][last_slot][c - 3 * J] + U[u][p][q] * uw
+                        pslot = parent_slot[g, e]
+                        for qq in range(3):
+                            uw = weights[pslot, q, qq]
+                            if uw == 0.0:
+                                continue
+                            if last_slot == SLOTS:
+                                missing += 1
+                                continue
+                            for p in range(3):
+                                acc[p][last_slot][qq] = acc[p][last_slot][qq] + U[u][p][q] * uw
             for slot in range(SLOTS):
                 for p in range(3):
                     for q in range(3):
                         coarse_blocks[I, slot, p, q] = acc[p][slot][q]
     return missing
+
+
+cdef inline int32_t _vertex_at(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, Py_ssize_t i,
+                               Py_ssize_t j) noexcept nogil:
+    """The vertex on grid node (i, j) of an nx × ny grid (where (nx ny,)), −1 when the node
+    is absent or beyond the grid."""
+    if i < 0 or i >= nx or j < 0 or j >= ny:
+        return -1
+    return where[j * nx + i]
+
+
+def neighbours(const int64_t[::1] nodes, const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny,
+               const int32_t[:, ::1] offsets, int32_t[:, ::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out[v, k] (7,): the vertex at offsets[k] from vertex v's node nodes[v] = j nx + i
+    (where (nx ny,) each node's vertex, −1 none), −1 where there is none, for
+    start <= v < stop."""
+    cdef Py_ssize_t v, i, j, k
+    with nogil:
+        for v in range(start, stop):
+            i = nodes[v] % nx
+            j = nodes[v] // nx
+            for k in range(SLOTS):
+                out[v, k] = _vertex_at(where, nx, ny, i + offsets[k, 0], j + offsets[k, 1])
+
+
+cdef inline bint _kept(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, const int32_t[:, ::1] offsets,
+                       Py_ssize_t I, Py_ssize_t J) noexcept nogil:
+    """Whether coarse node (I, J) is kept: its own fine node (2I, 2J) is a vertex, or at
+    least two fine nodes at offsets from it are."""
+    cdef Py_ssize_t k
+    cdef int reach = 0
+    if _vertex_at(where, nx, ny, 2 * I, 2 * J) >= 0:
+        return True
+    for k in range(1, SLOTS):
+        if _vertex_at(where, nx, ny, 2 * I + offsets[k, 0], 2 * J + offsets[k, 1]) >= 0:
+            reach += 1
+    return reach >= 2
+
+
+def coarse_keep(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, const int32_t[:, ::1] offsets,
+                int32_t[::1] column):
+    """The first pass over the coarse grid below the fine grid nx × ny whose node
+    j nx + i holds vertex where[j nx + i] (−1: none): the coarse grid has
+    (nx // 2 + 1) × (ny // 2 + 1) nodes, node (I, J) on fine node (2I, 2J); column
+    (nxc nyc,) gets −2 − (I + J) mod 3 on the nodes kept (`_kept`, the module doc's rule)
+    and −1 on the others. Returns how many are kept. Serial: a few lookups a node."""
+    cdef Py_ssize_t nxc = nx // 2 + 1, nyc = ny // 2 + 1, I, J, m = 0
+    with nogil:
+        for J in range(nyc):
+            for I in range(nxc):
+                if _kept(where, nx, ny, offsets, I, J):
+                    column[J * nxc + I] = -2 - <int32_t> ((I + J) % 3)
+                    m += 1
+                else:
+                    column[J * nxc + I] = -1
+    return m
+
+
+def coarse_number(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, const int32_t[:, ::1] offsets,
+                  int32_t[::1] column, int64_t[::1] coarse, int32_t[:, ::1] children):
+    """The second pass (after `coarse_keep` marked column): the kept coarse nodes numbered
+    colour by colour ((I + J) mod 3), by node within a colour (lattice_solver.colour_order's
+    numbering): column[node] becomes its coarse vertex (−1: dropped), coarse[c] (m,) the
+    node of coarse vertex c, children[c, k] (m, 7) the fine vertex at offsets[k] from it
+    (−1: none). Serial: a few lookups a node."""
+    cdef Py_ssize_t nxc = nx // 2 + 1, nyc = ny // 2 + 1, node, I, J, k, m = 0
+    cdef int colour
+    with nogil:
+        for colour in range(3):
+            for J in range(nyc):
+                for I in range(nxc):
+                    node = J * nxc + I
+                    if column[node] != -2 - colour:
+                        continue
+                    column[node] = <int32_t> m
+                    coarse[m] = node
+                    for k in range(SLOTS):
+                        children[m, k] = _vertex_at(where, nx, ny, 2 * I + offsets[k, 0], 2 * J + offsets[k, 1])
+                    m += 1
+
+
+def parent_tables(const int64_t[::1] nodes, Py_ssize_t nx, const int32_t[::1] column, Py_ssize_t nxc,
+                  int32_t[:, ::1] parents, int8_t[:, ::1] parent_slot, Py_ssize_t start, Py_ssize_t stop):
+    """parents[f] (2,): the coarse vertices whose Hermite stencil reaches fine vertex f
+    (on node nodes[f] = j nx + i), ascending, −1 where fewer, and parent_slot[f] the
+    offset (OFFSETS' index) of f from each, for start <= f < stop; column (nxc nyc,) each
+    coarse node's vertex (−1: dropped). Node (i, j) with i, j even is coarse node
+    (i/2, j/2) itself (slot 0); otherwise it is the midpoint of the coarse edge from
+    ((i − di)/2, (j − dj)/2) (offset (di, dj), di = i mod 2, dj = j mod 2: slot 1, 3 or 5)
+    to ((i + di)/2, (j + dj)/2) (offset (−di, −dj): slot 2, 4 or 6), both on the coarse
+    grid."""
+    cdef Py_ssize_t f, i, j, di, dj
+    cdef int32_t a, b, t
+    cdef int8_t sa, sb, st
+    with nogil:
+        for f in range(start, stop):
+            i = nodes[f] % nx
+            j = nodes[f] // nx
+            di = i & 1
+            dj = j & 1
+            if di == 0 and dj == 0:
+                parents[f, 0] = column[(j // 2) * nxc + i // 2]
+                parents[f, 1] = -1
+                parent_slot[f, 0] = 0
+                parent_slot[f, 1] = 0
+                continue
+            sa = 1 if dj == 0 else (3 if di == 0 else 5)
+            sb = sa + 1
+            a = column[((j - dj) // 2) * nxc + (i - di) // 2]
+            b = column[((j + dj) // 2) * nxc + (i + di) // 2]
+            if a < 0 or (b >= 0 and b < a):
+                t = a
+                a = b
+                b = t
+                st = sa
+                sa = sb
+                sb = st
+            parents[f, 0] = a
+            parent_slot[f, 0] = sa if a >= 0 else 0
+            parents[f, 1] = b
+            parent_slot[f, 1] = sb if b >= 0 else 0
