@@ -490,3 +490,30 @@ def test_the_galerkin_kernel_has_the_bits_of_the_csr_loops(nx, ny):
         PT = _slot_ordered_transpose(P, fine.transfer.children)
         want = _galerkin_by_loops(fine.op, P, PT, fine.nodes, fine.nx, nodes, nxc, coarse.op.nbr)
         assert coarse.op.blocks.tobytes() == want.tobytes()
+
+
+def test_a_stencil_whose_slots_are_not_the_lattices_is_refused():
+    """LatticeSolver checks every slot of the fine stencil against the lattice (one slot
+    moved, or a neighbour dropped, is refused) and the numbering colour by colour."""
+    S, _, lattice = lattice_system(1.0, nx=23, ny=19)
+    LatticeSolver(S, lattice, coarsest=40)
+    for v, k, value in ((5, 3, -1), (S.nbr.shape[0] - 1, 0, 0)):
+        nbr = S.nbr.copy()
+        nbr[v, k] = value if nbr[v, k] != value else 1
+        with pytest.raises(SmoothingError, match="slots"):
+            LatticeSolver(lattice_solver.Stencil(nbr, S.blocks), lattice, coarsest=40)
+
+
+def test_the_colour_bounds_are_numpys():
+    """_colour_bounds (one pass) is searchsorted over the colours for nodes numbered colour
+    by colour (some colours empty, none at all), and None when they are not so numbered."""
+    rng = np.random.default_rng(0)
+    for nx in (5, 7, 40):
+        for n in (0, 1, 2, 3, 50):
+            nodes = rng.choice(nx * nx, size=min(n, nx * nx), replace=False)
+            colour = lattice_solver.colours(nodes, nx)
+            nodes = nodes[np.lexsort((nodes, colour))]
+            want = np.searchsorted(lattice_solver.colours(nodes, nx), np.arange(4))
+            assert np.array_equal(lattice_solver._colour_bounds(nodes, nx), want)
+            mixed = len(set(colour.tolist())) > 1
+            assert (lattice_solver._colour_bounds(nodes[::-1].copy(), nx) is None) == mixed

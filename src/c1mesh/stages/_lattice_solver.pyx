@@ -317,44 +317,68 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
     stencil offsets, which no J beyond the 7 allows), so the slots have room for every
     entry; an entry of P for a vertex not in the slots is counted and skipped (returned:
     0 when the pattern holds)."""
-    cdef Py_ssize_t I, e, g, f, J, slot, fslot, last_j, last_slot, n, u, gx, gy, pslot, k = order.shape[0]
+    cdef Py_ssize_t I, e, g, f, J, slot, fslot, last_j, last_slot, n, u, base, pslot, t, k = order.shape[0]
     cdef int p, q, r, qq
     cdef int64_t missing = 0
     cdef Py_ssize_t uvert[25]
-    cdef double U[25][3][3]
-    cdef double acc[3][SLOTS][3]
-    cdef double rw, uw
+    cdef double U[25][9]
+    cdef double acc[SLOTS][9]
+    cdef double rw, uw, u0, u1, u2
+    cdef const double *blk
+    cdef double *Ug
+    # each slot's nonzero weights, in the order the sums take them: for Pᵀ (R = Wᵀ) by
+    # p then r, for P by q then q'
+    cdef int rn[SLOTS][3]
+    cdef int rr[SLOTS][3][3]
+    cdef double rv[SLOTS][3][3]
+    cdef int pn[SLOTS][3]
+    cdef int pq[SLOTS][3][3]
+    cdef double pv[SLOTS][3][3]
+    cdef int ushift[SLOTS]
+    for slot in range(SLOTS):
+        ushift[slot] = offsets[slot, 1] * 5 + offsets[slot, 0]
+        for p in range(3):
+            rn[slot][p] = 0
+            pn[slot][p] = 0
+            for r in range(3):
+                if weights[slot, r, p] != 0.0:
+                    rr[slot][p][rn[slot][p]] = r
+                    rv[slot][p][rn[slot][p]] = weights[slot, r, p]
+                    rn[slot][p] += 1
+                if weights[slot, p, r] != 0.0:
+                    pq[slot][p][pn[slot][p]] = r
+                    pv[slot][p][pn[slot][p]] = weights[slot, p, r]
+                    pn[slot][p] += 1
     with nogil:
         for I in range(start, stop):
             for u in range(25):
                 uvert[u] = -1
-                for p in range(3):
-                    for q in range(3):
-                        U[u][p][q] = 0.0
+                for t in range(9):
+                    U[u][t] = 0.0
             for n in range(k):
                 slot = order[n]
                 f = children[I, slot]
                 if f < 0:
                     continue
-                gx = offsets[slot, 0]
-                gy = offsets[slot, 1]
+                base = 12 + ushift[slot]                  # (2, 2) is the coarse node's own fine node
                 for fslot in range(SLOTS):
                     g = nbr[f, fslot]
                     if g < 0:
                         continue
-                    u = (gy + offsets[fslot, 1] + 2) * 5 + gx + offsets[fslot, 0] + 2
+                    u = base + ushift[fslot]
                     uvert[u] = g
+                    blk = &blocks[f, fslot, 0, 0]
+                    Ug = &U[u][0]
                     for p in range(3):
-                        for r in range(3):
-                            rw = weights[slot, r, p]
-                            if rw == 0.0:
-                                continue
-                            for q in range(3):
-                                U[u][p][q] = U[u][p][q] + rw * blocks[f, fslot, r, q]
-            for p in range(3):
-                for slot in range(SLOTS):
-                    for q in range(3):
-                        acc[p][slot][q] = 0.0
+                        for t in range(rn[slot][p]):
+                            rw = rv[slot][p][t]
+                            r = rr[slot][p][t]
+                            Ug[3 * p] = Ug[3 * p] + rw * blk[3 * r]
+                            Ug[3 * p + 1] = Ug[3 * p + 1] + rw * blk[3 * r + 1]
+                            Ug[3 * p + 2] = Ug[3 * p + 2] + rw * blk[3 * r + 2]
+            for slot in range(SLOTS):
+                for t in range(9):
+                    acc[slot][t] = 0.0
             last_j = -1
             last_slot = SLOTS
             for u in range(25):
@@ -362,6 +386,9 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                 if g < 0:
                     continue
                 for q in range(3):
+                    u0 = U[u][q]
+                    u1 = U[u][3 + q]
+                    u2 = U[u][6 + q]
                     for e in range(2):
                         J = parents[g, e]
                         if J < 0:
@@ -373,19 +400,18 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                             last_j = J
                             last_slot = slot
                         pslot = parent_slot[g, e]
-                        for qq in range(3):
-                            uw = weights[pslot, q, qq]
-                            if uw == 0.0:
-                                continue
-                            if last_slot == SLOTS:
-                                missing += 1
-                                continue
-                            for p in range(3):
-                                acc[p][last_slot][qq] = acc[p][last_slot][qq] + U[u][p][q] * uw
+                        if last_slot == SLOTS:
+                            missing += pn[pslot][q]
+                            continue
+                        for t in range(pn[pslot][q]):
+                            uw = pv[pslot][q][t]
+                            qq = pq[pslot][q][t]
+                            acc[last_slot][qq] = acc[last_slot][qq] + u0 * uw
+                            acc[last_slot][3 + qq] = acc[last_slot][3 + qq] + u1 * uw
+                            acc[last_slot][6 + qq] = acc[last_slot][6 + qq] + u2 * uw
             for slot in range(SLOTS):
-                for p in range(3):
-                    for q in range(3):
-                        coarse_blocks[I, slot, p, q] = acc[p][slot][q]
+                for t in range(9):
+                    coarse_blocks[I, slot, t // 3, t % 3] = acc[slot][t]
     return missing
 
 
@@ -508,3 +534,45 @@ def parent_tables(const int64_t[::1] nodes, Py_ssize_t nx, const int32_t[::1] co
             parent_slot[f, 0] = sa if a >= 0 else 0
             parents[f, 1] = b
             parent_slot[f, 1] = sb if b >= 0 else 0
+
+
+def colour_bounds(const int64_t[::1] nodes, Py_ssize_t nx, int64_t[::1] bounds):
+    """bounds (4,): each colour's first vertex and the count, bounds[c] <= v < bounds[c + 1]
+    the vertices of colour c = (i + j) mod 3 of node nodes[v] = j nx + i, when the vertices
+    are numbered colour by colour (returns True); False (bounds unset) when a vertex's
+    colour is below the one before it. One pass."""
+    cdef Py_ssize_t v, n = nodes.shape[0]
+    cdef int colour, last = 0, c
+    cdef bint ordered = True
+    with nogil:
+        bounds[0] = 0
+        for v in range(n):
+            colour = <int> ((nodes[v] % nx + nodes[v] // nx) % 3)
+            if colour < last:
+                ordered = False
+                break
+            for c in range(last + 1, colour + 1):
+                bounds[c] = v
+            last = colour
+        if ordered:
+            for c in range(last + 1, 4):
+                bounds[c] = n
+    return ordered
+
+
+def neighbour_mismatches(const int64_t[::1] nodes, const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny,
+                         const int32_t[:, ::1] offsets, const int32_t[:, ::1] nbr, Py_ssize_t start,
+                         Py_ssize_t stop):
+    """How many of nbr[v, k] for start <= v < stop differ from what `neighbours` writes
+    there (the vertex at offsets[k] from node nodes[v], −1 none): a stencil's slots
+    checked against the lattice without a second (N, 7) table."""
+    cdef Py_ssize_t v, i, j, k
+    cdef int64_t wrong = 0
+    with nogil:
+        for v in range(start, stop):
+            i = nodes[v] % nx
+            j = nodes[v] // nx
+            for k in range(SLOTS):
+                if nbr[v, k] != _vertex_at(where, nx, ny, i + offsets[k, 0], j + offsets[k, 1]):
+                    wrong += 1
+    return wrong

@@ -262,6 +262,14 @@ def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
     return ((i + j) % 3).astype(np.int8)
 
 
+def _colour_bounds(nodes: np.ndarray, nx: int) -> np.ndarray | None:
+    """(4,) int64: each colour's first vertex and the count (vertices bounds[c] to
+    bounds[c + 1] have colour c), for nodes (N,) of a grid nx wide numbered colour by
+    colour; None when they are not (the kernel colour_bounds: one pass)."""
+    bounds = np.empty(4, dtype=np.int64)
+    return bounds if kernel.colour_bounds(np.ascontiguousarray(nodes, dtype=np.int64), nx, bounds) else None
+
+
 def colour_order(lattice: Lattice) -> np.ndarray:
     """(N,) the vertices in the order the solver's levels number them: colour by colour
     ((i + j) mod 3), by node within a colour. LatticeSolver takes a system assembled with
@@ -315,6 +323,21 @@ def stencil_neighbours(nodes: np.ndarray, nx: int, ny: int, where: np.ndarray | 
     parallel_blocks(lambda part: kernel.neighbours(nodes, where, nx, ny, offsets, out, part.start, part.stop),
                     nodes.size, SWEEP_BLOCK)
     return out
+
+
+def _slots_match(nbr: np.ndarray, nodes: np.ndarray, nx: int, ny: int, where: np.ndarray) -> bool:
+    """Whether nbr (N, 7) is stencil_neighbours(nodes, nx, ny) (where: grid_vertices),
+    checked by the kernel neighbour_mismatches without making that table (vertices in
+    blocks of SWEEP_BLOCK in the thread knob's threads)."""
+    if nbr.shape != (nodes.size, len(OFFSETS)) or nbr.dtype != np.int32 or not nbr.flags.c_contiguous:
+        return False
+    nodes = np.ascontiguousarray(nodes, dtype=np.int64)
+    offsets = np.array(OFFSETS, dtype=np.int32)
+    wrong = []
+    parallel_blocks(lambda part: wrong.append(kernel.neighbour_mismatches(nodes, where, nx, ny, offsets, nbr,
+                                                                          part.start, part.stop)),
+                    nodes.size, SWEEP_BLOCK)
+    return sum(wrong) == 0
 
 
 class Stencil:
@@ -393,10 +416,9 @@ class _Level:
 
     def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int, spacing: tuple, where: np.ndarray):
         self.op, self.nodes, self.nx, self.ny, self.spacing, self.where = op, nodes, nx, ny, spacing, where
-        colour = colours(nodes, nx)
-        if (np.diff(colour) < 0).any():
+        self.bounds = _colour_bounds(nodes, nx)
+        if self.bounds is None:
             raise ValueError("a level's vertices must be numbered colour by colour")
-        self.bounds = np.searchsorted(colour, np.arange(4, dtype=np.int8))
         self.dinv = np.empty((nodes.size, 3, 3))
         counts = []
         parallel_blocks(lambda part: counts.append(kernel.block_inverses(op.blocks, self.dinv, part.start,
@@ -447,9 +469,9 @@ class LatticeSolver:
         t0 = time.perf_counter()
         nodes, nx, ny, where = _checked_nodes(lattice, S.nbr.shape[0])
         coarsest = COARSEST if coarsest is None else int(coarsest)
-        if (np.diff(colours(nodes, nx)) < 0).any():
+        if _colour_bounds(nodes, nx) is None:
             raise SmoothingError("the lattice solver takes its vertices numbered colour by colour (colour_order)")
-        if not np.array_equal(S.nbr, stencil_neighbours(nodes, nx, ny, where)):
+        if not _slots_match(S.nbr, nodes, nx, ny, where):
             raise SmoothingError("the stencil's slots are not the lattice's neighbours (stencil_neighbours)")
         self.levels = [_Level(S, nodes, nx, ny, lattice.spacing, where)]
         while self.levels[-1].nodes.size > coarsest:
