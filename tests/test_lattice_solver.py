@@ -517,3 +517,24 @@ def test_the_colour_bounds_are_numpys():
             assert np.array_equal(lattice_solver._colour_bounds(nodes, nx), want)
             mixed = len(set(colour.tolist())) > 1
             assert (lattice_solver._colour_bounds(nodes[::-1].copy(), nx) is None) == mixed
+
+
+def test_the_stencil_as_csr_is_its_blocks_by_loops():
+    """Stencil.csr (kernel stencil_csr) stores, row 3v + p, every present slot's 3 entries
+    (zeros too) with the columns ascending: the same arrays as Python loops over the slots
+    sorted by vertex, on a lattice with holes and on its coarsest Galerkin level."""
+    S, _, lattice = lattice_system(0.7, nx=23, ny=19)
+    for op in (S, LatticeSolver(S, lattice, coarsest=40).levels[-1].op):
+        indptr, indices, data = [0], [], []
+        for v in range(op.nbr.shape[0]):
+            slots = sorted((int(g), k) for k, g in enumerate(op.nbr[v]) if g >= 0)
+            for p in range(3):
+                for g, k in slots:
+                    for q in range(3):
+                        indices.append(3 * g + q)
+                        data.append(op.blocks[v, k, p, q])
+                indptr.append(len(indices))
+        got = op.csr()
+        assert got.shape == op.shape and got.has_sorted_indices
+        assert np.array_equal(got.indptr, indptr) and np.array_equal(got.indices, indices)
+        assert got.data.tobytes() == np.array(data).tobytes()

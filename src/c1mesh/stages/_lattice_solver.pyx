@@ -576,3 +576,37 @@ def neighbour_mismatches(const int64_t[::1] nodes, const int32_t[::1] where, Py_
                 if nbr[v, k] != _vertex_at(where, nx, ny, i + offsets[k, 0], j + offsets[k, 1]):
                     wrong += 1
     return wrong
+
+
+def stencil_csr(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, int64_t[::1] indptr,
+                int64_t[::1] indices, double[::1] data):
+    """S (3N, 3N) as CSR from its stencil form, rows 3v + p in order, each row's columns
+    ascending: vertex v's present slots sorted by their vertex (at most 7: an insertion
+    sort), each slot's 3 unknowns in order, blocks[v, slot, p, q] stored whether zero or
+    not. indptr (3N + 1,), indices and data (9 × present slots,). Serial (the coarsest
+    level's few thousand vertices, for its direct factorisation)."""
+    cdef Py_ssize_t v, n = nbr.shape[0], e = 0, a, b
+    cdef int p, q, count
+    cdef int32_t order[SLOTS]
+    cdef int32_t t
+    with nogil:
+        indptr[0] = 0
+        for v in range(n):
+            count = 0
+            for a in range(SLOTS):
+                if nbr[v, a] < 0:
+                    continue
+                b = count
+                while b > 0 and nbr[v, order[b - 1]] > nbr[v, a]:
+                    order[b] = order[b - 1]
+                    b -= 1
+                order[b] = <int32_t> a
+                count += 1
+            for p in range(3):
+                for a in range(count):
+                    t = order[a]
+                    for q in range(3):
+                        indices[e] = 3 * <int64_t> nbr[v, t] + q
+                        data[e] = blocks[v, t, p, q]
+                        e += 1
+                indptr[3 * v + p + 1] = e

@@ -354,16 +354,14 @@ class Stencil:
         self.shape = (3 * nbr.shape[0],) * 2
 
     def csr(self):
-        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too)."""
+        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too),
+        by the kernel stencil_csr (one serial pass: the coarsest level's factorisation
+        and the tests ask for it)."""
         n = self.nbr.shape[0]
-        present = np.broadcast_to((self.nbr >= 0)[:, None, :, None], (n, 3, len(OFFSETS), 3))
-        cols = 3 * self.nbr.astype(np.int64)[:, None, :, None] + np.arange(3)
-        cols = np.broadcast_to(cols, present.shape)
-        indptr = np.zeros(3 * n + 1, dtype=np.int64)
-        np.cumsum(np.repeat(3 * (self.nbr >= 0).sum(axis=1), 3), out=indptr[1:])
-        S = sp.csr_matrix((self.blocks.transpose(0, 2, 1, 3)[present], cols[present], indptr), shape=self.shape)
-        S.sort_indices()
-        return S
+        nnz = 9 * int(np.count_nonzero(self.nbr >= 0))
+        indptr, indices, data = np.empty(3 * n + 1, dtype=np.int64), np.empty(nnz, dtype=np.int64), np.empty(nnz)
+        kernel.stencil_csr(self.nbr, self.blocks, indptr, indices, data)
+        return sp.csr_matrix((data, indices, indptr), shape=self.shape)
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         """S x (3N, k) for x (3N, k)."""
