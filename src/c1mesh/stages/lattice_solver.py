@@ -29,10 +29,12 @@ is what that study recommends:
   products took 2.4 s of the 4 s set-up at 1M vertices; the kernel from CSR P and Pᵀ,
   1.1 s with their assembly);
 * the set-up's node passes (`coarsen`: the coarse node list by the rule below, each
-  coarse vertex's children and each fine vertex's parents; stencil_neighbours) are
-  kernels too, over the level's grid_vertices table (one int32 per grid node), so the
-  1M hierarchy is set up in about 0.5 s, most of it the Galerkin kernel and the
-  coarsest factorisation;
+  coarse vertex's children and each fine vertex's parents; stencil_neighbours, the
+  colour bounds, the check of S's slots, the coarsest level's CSR) are kernels too, over
+  each level's grid_vertices table (one int32 per grid node): on the 1M DTM stencil the
+  set-up costs about 1.05 s of CPU (2.4 s before; cProfile at one thread: Galerkin
+  kernels 0.57 s, the coarsest CHOLMOD factorisation 0.30 s, which holds the GIL, the
+  diagonal inverses 0.10 s);
 * every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
   blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
   product) is bound by reading it, and CSR read 45 % more; the fine level's is assembled
