@@ -213,10 +213,10 @@ def grid_vertices(nodes: np.ndarray, nx: int, ny: int) -> np.ndarray:
 
 def coarsen(nodes: np.ndarray, where: np.ndarray, nx: int, ny: int, spacing) -> tuple:
     """(transfer, coarse, column, nxc, nyc): the coarse level below the fine level of
-    `nodes` (m,) (flat indices j nx + i on an nx × ny grid of spacing (hx, hy); vertex k is
+    `nodes` (n,) (flat indices j nx + i on an nx × ny grid of spacing (hx, hy); vertex k is
     nodes[k], where (nx ny,) int32 = grid_vertices(nodes, nx, ny)). The coarse grid has
     nxc × nyc = (nx // 2 + 1) × (ny // 2 + 1) nodes, node (I, J) on fine node (2I, 2J);
-    coarse (int64) the nodes kept by the module doc's rule, numbered colour by colour
+    coarse (m,) int64 the nodes kept by the module doc's rule, numbered colour by colour
     (colour_order's numbering), column (nxc nyc,) int32 each node's coarse vertex (−1:
     dropped: the coarse level's own grid_vertices); transfer the Transfer of the Hermite
     P (hermite_weights at 2 hx, 2 hy). Kernels: coarse_keep and coarse_number (serial, a
