@@ -55,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from c1mesh.stages.lattice_solver import OFFSETS, hermite_weights, stencil_matrix
+from c1mesh.stages.lattice_solver import OFFSETS, hermite_weights
 
 NOISE = 0.02
 TARGET_MM = 0.1
@@ -176,13 +176,22 @@ def prolongation(nxf: int, nyf: int, nxc: int, nyc: int, W: dict) -> sp.csr_matr
     """P (3 nxf nyf, 3 nxc nyc): fine vertex (2I + di, 2J + dj) gets W[(di, dj)] times coarse
     vertex (I, J)'s data, every coarse vertex kept (the study's full grids); fine vertices
     beyond the fine grid (a coarse grid of n/2 + 1 vertices over an even n) are dropped.
-    The matrix is lattice_solver.stencil_matrix, the package's own."""
+    (The package applies P from its node structure, lattice_solver.Transfer; this is
+    the same stencil as a matrix, the study's full grids only.)"""
     J, I = np.divmod(np.arange(nxc * nyc, dtype=np.int64), nxc)
-    hits = []
+    rows, cols, vals = [], [], []
     for di, dj in OFFSETS:
         fi, fj = 2 * I + di, 2 * J + dj
-        hits.append(np.where((fi >= 0) & (fi < nxf) & (fj >= 0) & (fj < nyf), fj * nxf + fi, -1))
-    return stencil_matrix(hits, np.arange(nxc * nyc, dtype=np.int64), W, nxf * nyf, nxc * nyc)
+        inside = (fi >= 0) & (fi < nxf) & (fj >= 0) & (fj < nyf)
+        fine, coarse = (fj * nxf + fi)[inside], np.flatnonzero(inside)
+        for p in range(3):
+            for q in range(3):
+                if W[(di, dj)][p, q] != 0.0:
+                    rows.append(3 * fine + p)
+                    cols.append(3 * coarse + q)
+                    vals.append(np.full(fine.size, W[(di, dj)][p, q]))
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(3 * nxf * nyf, 3 * nxc * nyc))
 
 
 # ------------------------------------------------------------------------ multigrid

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from c1mesh.core.threads import limit
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import lattice_solver, smoothing
-from c1mesh.stages.lattice_solver import (Lattice, LatticeSolver, colour_order, lattice_solve, prolongation,
-                                          stencil_neighbours)
+from c1mesh.stages.lattice_solver import (OFFSETS, Lattice, LatticeSolver, colour_order, coarsen, grid_vertices,
+                                          hermite_weights, lattice_solve, stencil_neighbours)
 from c1mesh.stages.lattice_system import LatticeSystem
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
 from c1mesh.stages.smoothing_energy import SmoothingError, energy_blocks_of, triangle_directions
@@ -58,6 +59,38 @@ def lattice_mesh(nx=NX, ny=NY, hx=HX, hy=HY, hole=True, seed=0, other_diagonal=F
         z = np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 7) + rng.normal(0, NOISE, xy.shape[0])
         return xy, z, tri, lam
     return points, T, lattice, data
+
+
+def brute_coarsening(nodes, nx, ny, spacing):
+    """(P CSR with sorted columns, coarse nodes, nxc, nyc) by Python loops over the grid,
+    from the module doc's rule: coarse node (I, J) on fine node (2I, 2J) kept when that
+    node is a vertex or at least two fine nodes at OFFSETS from it are; the kept ones
+    numbered by (colour (I + J) mod 3, node); P's entry (3f + p, 3c + q) the Hermite
+    weight W[offset][p, q] (nonzero ones) for fine vertex f at offset from coarse vertex c."""
+    vertex = {int(node): k for k, node in enumerate(nodes)}
+    nxc, nyc = nx // 2 + 1, ny // 2 + 1
+
+    def fine(I, J, di, dj):
+        i, j = 2 * I + di, 2 * J + dj
+        return vertex.get(j * nx + i, -1) if 0 <= i < nx and 0 <= j < ny else -1
+    kept = [J * nxc + I for J in range(nyc) for I in range(nxc)
+            if fine(I, J, 0, 0) >= 0 or sum(fine(I, J, di, dj) >= 0 for di, dj in OFFSETS[1:]) >= 2]
+    coarse = sorted(kept, key=lambda node: ((node % nxc + node // nxc) % 3, node))
+    W = hermite_weights(2 * spacing[0], 2 * spacing[1])
+    rows, cols, vals = [], [], []
+    for c, node in enumerate(coarse):
+        J, I = divmod(node, nxc)
+        for off in OFFSETS:
+            f = fine(I, J, *off)
+            for p in range(3):
+                for q in range(3):
+                    if f >= 0 and W[off][p, q] != 0.0:
+                        rows.append(3 * f + p)
+                        cols.append(3 * c + q)
+                        vals.append(W[off][p, q])
+    P = sp.csr_matrix((vals, (rows, cols)), shape=(3 * len(nodes), 3 * len(coarse)))
+    P.sort_indices()
+    return P, np.array(coarse, dtype=np.int64), nxc, nyc
 
 
 def lattice_system(s, **kw):
@@ -131,17 +164,17 @@ def _quadratic(x, y):
 
 @pytest.mark.parametrize("hole", [False, True])
 def test_the_hermite_prolongation_reproduces_quadratics(hole):
-    """Coarse data (value, gradient) of a quadratic → P → the quadratic's data at every fine
+    """Coarse data (value, gradient) of a quadratic → P (Transfer.prolong) → the quadratic's data at every fine
     node whose coarse ends (a node on a coarse node: that one; an edge midpoint: the edge's
     two ends) are all kept; with no node absent, at every fine node."""
     nx, ny, hx, hy = 21, 17, 0.8, 1.3
     _, _, lattice, _ = lattice_mesh(nx, ny, hx, hy, hole=hole)
     nodes = lattice.nodes
-    P, coarse, nxc, nyc = prolongation(nodes, nx, ny, (hx, hy))
+    transfer, coarse, _, nxc, nyc = coarsen(nodes, grid_vertices(nodes, nx, ny), nx, ny, (hx, hy))
     J, I = np.divmod(coarse, nxc)
     f, fx, fy = _quadratic(I * 2 * hx, J * 2 * hy)
-    u = np.stack([f, fx, fy], 1).ravel()
-    fine = (P @ u).reshape(-1, 3)
+    u = np.stack([f, fx, fy], 1).reshape(-1, 1)
+    fine = transfer.prolong(u).reshape(-1, 3)
     j, i = np.divmod(nodes, nx)
     want = np.stack(_quadratic(i * hx, j * hy), 1)
     kept = np.zeros(nxc * nyc, bool)
@@ -231,14 +264,15 @@ def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
 
 @pytest.mark.parametrize("nx, ny", [(41, 33), (40, 34), (41, 34)])
 def test_the_galerkin_kernel_is_scipys_triple_product(nx, ny):
-    """Every coarse operator equals Pᵀ S P as scipy multiplies it here, entry by entry to
-    rounding, on lattices with holes and odd and even sizes (coarse nodes standing in for
-    missing ones beyond ragged borders)."""
+    """Every coarse operator equals Pᵀ S P as scipy multiplies it here (P built explicitly,
+    brute_coarsening), entry by entry to rounding, on lattices with holes and odd and even
+    sizes (coarse nodes standing in for missing ones beyond ragged borders)."""
     S, _, lattice = lattice_system(0.3, nx=nx, ny=ny)
     solver = LatticeSolver(S, lattice, coarsest=40)
     assert len(solver.levels) >= 3
     for fine, coarse in zip(solver.levels, solver.levels[1:]):
-        P = prolongation(fine.nodes, fine.nx, fine.ny, fine.spacing)[0]
+        P, nodes, _, _ = brute_coarsening(fine.nodes, fine.nx, fine.ny, fine.spacing)
+        assert np.array_equal(coarse.nodes, nodes)
         want = (P.T @ fine.S @ P).tocsr()
         got = coarse.S
         assert got.shape == want.shape
@@ -266,6 +300,24 @@ def test_the_product_kernels_are_scipys_products_column_by_column():
         assert np.allclose(fine.op.residual(B, x), B - want, rtol=1e-13, atol=1e-12 * np.abs(want).max())
 
 
+def _slot_ordered_transpose(P, children: np.ndarray):
+    """Pᵀ CSR with each coarse row block's entries by offset slot (the fine vertex at
+    children[c, slot]), then fine unknown p: the order restrict and the Galerkin kernel
+    sum Pᵀ's rows in (the fine vertices of a row are not ascending by slot)."""
+    PT = P.T.tocsr()
+    indptr, indices, data = [0], [], []
+    for row in range(PT.shape[0]):
+        entries = dict(zip(PT.indices[PT.indptr[row]:PT.indptr[row + 1]], PT.data[PT.indptr[row]:PT.indptr[row + 1]]))
+        for f in children[row // 3]:
+            for p in range(3):
+                if f >= 0 and 3 * f + p in entries:
+                    indices.append(3 * f + p)
+                    data.append(entries.pop(3 * f + p))
+        assert not entries                                  # every entry is a child's
+        indptr.append(len(indices))
+    return sp.csr_matrix((data, indices, indptr), shape=PT.shape)
+
+
 def _csr_rows(M, x: np.ndarray) -> np.ndarray:
     """M x (m, k) by brute-force loops over M's stored entries, each row summed in the
     stored order from 0 (the order the transfer kernels must keep)."""
@@ -281,15 +333,15 @@ def _csr_rows(M, x: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("nx, ny", [(41, 33), (40, 34), (41, 34)])
 def test_the_transfer_kernels_are_the_csr_products_bit_for_bit(nx, ny):
-    """Transfer's P x, P x added and Pᵀ x have the bits of a loop over prolongation's P
-    and restriction's Pᵀ as CSR (each row in its stored order), on lattices with holes,
-    odd and even sizes (every level down to a few dozen vertices), with 1, 3 and 6
-    columns, at one and two threads; and P's scipy transpose is Pᵀ."""
+    """Transfer's P x, P x added and Pᵀ x have the bits of a loop over the explicit P
+    (brute_coarsening, columns sorted) and its transpose as CSR (each row in its stored
+    order: Pᵀ's row by fine vertex, i.e. by offset slot for the Hermite stencil), on
+    lattices with holes, odd and even sizes (every level down to a few dozen vertices),
+    with 1, 3 and 6 columns, at one and two threads."""
     S, _, lattice = lattice_system(0.5, nx=nx, ny=ny)
     for level in LatticeSolver(S, lattice, coarsest=20).levels[:-1]:
-        P = prolongation(level.nodes, level.nx, level.ny, level.spacing)[0]
-        PT = lattice_solver.restriction(level.nodes, level.nx, level.ny, level.spacing)[0]
-        assert abs(P.T - PT).max() == 0.0
+        P = brute_coarsening(level.nodes, level.nx, level.ny, level.spacing)[0]
+        PT = _slot_ordered_transpose(P, level.transfer.children)
         rng = np.random.default_rng(level.nodes.size)
         for k in (1, 3, 6):
             xc = rng.normal(size=(P.shape[1], k))
@@ -331,3 +383,158 @@ def test_smooth_fit_on_the_lattice_gives_the_same_bytes_at_one_and_two_threads(m
     assert fits[0].values.tobytes() == fits[1].values.tobytes()
     assert fits[0].gradients.tobytes() == fits[1].gradients.tobytes()
     assert np.float64(fits[0].edf).tobytes() == np.float64(fits[1].edf).tobytes()
+
+
+@pytest.mark.parametrize("nx, ny", [(41, 33), (40, 34), (41, 34)])
+def test_coarsen_is_the_rule_by_brute_force(nx, ny, monkeypatch):
+    """coarsen's coarse nodes (numbered colour by colour), their grid_vertices (column),
+    children and the parents with their slots are those of Python loops over the grid
+    (brute_coarsening's P: a coarse vertex's children are its P columns' fine vertices,
+    a fine vertex's parents its P row's coarse vertices, ascending), on every level of
+    lattices with holes and odd and even sizes, at one and two threads."""
+    monkeypatch.setattr(lattice_solver, "SWEEP_BLOCK", 37)
+    S, _, lattice = lattice_system(0.5, nx=nx, ny=ny)
+    for level in LatticeSolver(S, lattice, coarsest=20).levels[:-1]:
+        P, coarse, nxc, nyc = brute_coarsening(level.nodes, level.nx, level.ny, level.spacing)
+        for threads in (1, 2):
+            with limit(threads):
+                where = grid_vertices(level.nodes, level.nx, level.ny)
+                transfer, got, column, gxc, gyc = coarsen(level.nodes, where, level.nx, level.ny, level.spacing)
+            assert (gxc, gyc) == (nxc, nyc) and np.array_equal(got, coarse)
+            want_column = np.full(nxc * nyc, -1)
+            want_column[coarse] = np.arange(coarse.size)
+            assert np.array_equal(column, want_column)
+            j, i = np.divmod(level.nodes, level.nx)
+            for c, node in enumerate(coarse):
+                J, I = divmod(int(node), nxc)
+                for slot, (di, dj) in enumerate(OFFSETS):
+                    f = transfer.children[c, slot]
+                    if f < 0:
+                        assert not ((i == 2 * I + di) & (j == 2 * J + dj)).any()
+                    else:
+                        assert (i[f], j[f]) == (2 * I + di, 2 * J + dj)
+            P = P.tocsr()
+            for f in range(level.nodes.size):
+                parents = sorted({int(col) // 3 for col in P.indices[P.indptr[3 * f]:P.indptr[3 * f + 3]]})
+                got_parents = [int(c) for c in transfer.parents[f] if c >= 0]
+                assert got_parents == parents and np.all(transfer.parents[f, len(parents):] == -1)
+                for c, slot in zip(transfer.parents[f, :len(parents)], transfer.parent_slot[f]):
+                    assert transfer.children[c, slot] == f
+
+
+def test_stencil_neighbours_by_brute_force():
+    """Each vertex's 7 stencil neighbours are the vertices at OFFSETS from its node (Python
+    loops over a lattice with holes whose vertices are in random order), −1 where none."""
+    _, _, lattice, _ = lattice_mesh(23, 19, seed=2)
+    ny, nx = lattice.shape
+    vertex = {int(node): k for k, node in enumerate(lattice.nodes)}
+    got = stencil_neighbours(lattice.nodes, nx, ny)
+    for k, node in enumerate(lattice.nodes):
+        j, i = divmod(int(node), nx)
+        want = [vertex.get((j + dj) * nx + i + di, -1) if 0 <= i + di < nx and 0 <= j + dj < ny else -1
+                for di, dj in OFFSETS]
+        assert list(got[k]) == want
+
+
+def _galerkin_by_loops(S, P, PT, fine_nodes, nx, coarse_nodes, nxc, coarse_nbr):
+    """Pᵀ S P's coarse blocks (m, 7, 3, 3) by Python loops over the CSR P (columns sorted)
+    and PT (rows by slot: _slot_ordered_transpose), in the summation order the Galerkin
+    kernel keeps: U_g = Σ_f R_f S_f,g over the children f in the order PT's rows first
+    reach them, each child's stencil slots in order, R's unknowns in order (zeros
+    skipped); then each coarse block Σ_g U_g P_g over the fine nodes g in grid order
+    around the coarse node, P's rows in order."""
+    m = coarse_nodes.size
+    out = np.zeros((m, 7, 3, 3))
+    for I in range(m):
+        ci, cj = coarse_nodes[I] % nxc, coarse_nodes[I] // nxc
+        children, R = [], {}
+        for p in range(3):
+            for e in range(PT.indptr[3 * I + p], PT.indptr[3 * I + p + 1]):
+                f = PT.indices[e] // 3
+                if f not in R:
+                    children.append(f)
+                    R[f] = np.zeros((3, 3))
+                R[f][p, PT.indices[e] - 3 * f] = PT.data[e]
+        U = {}
+        for f in children:
+            for fslot in range(7):
+                g = S.nbr[f, fslot]
+                if g < 0:
+                    continue
+                u = ((fine_nodes[g] // nx - 2 * cj + 2) * 5 + fine_nodes[g] % nx - 2 * ci + 2, g)
+                Ug = U.setdefault(u, [[0.0] * 3 for _ in range(3)])
+                for p in range(3):
+                    for r in range(3):
+                        if R[f][p, r] != 0.0:
+                            for q in range(3):
+                                Ug[p][q] = Ug[p][q] + R[f][p, r] * S.blocks[f, fslot, r, q]
+        for (_, g), Ug in sorted(U.items()):
+            for q in range(3):
+                for e in range(P.indptr[3 * g + q], P.indptr[3 * g + q + 1]):
+                    J, qq = divmod(int(P.indices[e]), 3)
+                    slot = list(coarse_nbr[I]).index(J)
+                    for p in range(3):
+                        out[I, slot, p, qq] = out[I, slot, p, qq] + Ug[p][q] * P.data[e]
+    return out
+
+
+@pytest.mark.parametrize("nx, ny", [(25, 21), (26, 20)])
+def test_the_galerkin_kernel_has_the_bits_of_the_csr_loops(nx, ny):
+    """Every coarse operator's blocks have the bits of _galerkin_by_loops over the explicit
+    P (brute_coarsening), on lattices with holes, odd and even sizes."""
+    S, _, lattice = lattice_system(0.3, nx=nx, ny=ny)
+    solver = LatticeSolver(S, lattice, coarsest=20)
+    assert len(solver.levels) >= 3
+    for fine, coarse in zip(solver.levels, solver.levels[1:]):
+        P, nodes, nxc, _ = brute_coarsening(fine.nodes, fine.nx, fine.ny, fine.spacing)
+        PT = _slot_ordered_transpose(P, fine.transfer.children)
+        want = _galerkin_by_loops(fine.op, P, PT, fine.nodes, fine.nx, nodes, nxc, coarse.op.nbr)
+        assert coarse.op.blocks.tobytes() == want.tobytes()
+
+
+def test_a_stencil_whose_slots_are_not_the_lattices_is_refused():
+    """LatticeSolver checks every slot of the fine stencil against the lattice (one slot
+    moved, or a neighbour dropped, is refused) and the numbering colour by colour."""
+    S, _, lattice = lattice_system(1.0, nx=23, ny=19)
+    LatticeSolver(S, lattice, coarsest=40)
+    for v, k, value in ((5, 3, -1), (S.nbr.shape[0] - 1, 0, 0)):
+        nbr = S.nbr.copy()
+        nbr[v, k] = value if nbr[v, k] != value else 1
+        with pytest.raises(SmoothingError, match="slots"):
+            LatticeSolver(lattice_solver.Stencil(nbr, S.blocks), lattice, coarsest=40)
+
+
+def test_the_colour_bounds_are_numpys():
+    """_colour_bounds (one pass) is searchsorted over the colours for nodes numbered colour
+    by colour (some colours empty, none at all), and None when they are not so numbered."""
+    rng = np.random.default_rng(0)
+    for nx in (5, 7, 40):
+        for n in (0, 1, 2, 3, 50):
+            nodes = rng.choice(nx * nx, size=min(n, nx * nx), replace=False)
+            colour = lattice_solver.colours(nodes, nx)
+            nodes = nodes[np.lexsort((nodes, colour))]
+            want = np.searchsorted(lattice_solver.colours(nodes, nx), np.arange(4))
+            assert np.array_equal(lattice_solver._colour_bounds(nodes, nx), want)
+            mixed = len(set(colour.tolist())) > 1
+            assert (lattice_solver._colour_bounds(nodes[::-1].copy(), nx) is None) == mixed
+
+
+def test_the_stencil_as_csr_is_its_blocks_by_loops():
+    """Stencil.csr (kernel stencil_csr) stores, row 3v + p, every present slot's 3 entries
+    (zeros too) with the columns ascending: the same arrays as Python loops over the slots
+    sorted by vertex, on a lattice with holes and on its coarsest Galerkin level."""
+    S, _, lattice = lattice_system(0.7, nx=23, ny=19)
+    for op in (S, LatticeSolver(S, lattice, coarsest=40).levels[-1].op):
+        indptr, indices, data = [0], [], []
+        for v in range(op.nbr.shape[0]):
+            slots = sorted((int(g), k) for k, g in enumerate(op.nbr[v]) if g >= 0)
+            for p in range(3):
+                for g, k in slots:
+                    for q in range(3):
+                        indices.append(3 * g + q)
+                        data.append(op.blocks[v, k, p, q])
+                indptr.append(len(indices))
+        got = op.csr()
+        assert got.shape == op.shape and got.has_sorted_indices
+        assert np.array_equal(got.indptr, indptr) and np.array_equal(got.indices, indices)
+        assert got.data.tobytes() == np.array(data).tobytes()

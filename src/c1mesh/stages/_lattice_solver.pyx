@@ -21,11 +21,6 @@ fixed blocks in the thread knob's threads.
 from libc.math cimport isfinite
 from libc.stdint cimport int8_t, int32_t, int64_t
 
-ctypedef fused index_t:
-    int32_t
-    int64_t
-
-
 cdef enum:
     LANES = 4       # columns summed side by side: independent chains for the CPU, one pass over a row
     SLOTS = 7       # a vertex and its 6 stencil neighbours
@@ -212,8 +207,8 @@ def prolong(const int32_t[:, ::1] parents, const int8_t[:, ::1] parent_slot, con
     offset (OFFSETS' index) of f from each, weights (7, 3, 3) the fine datum per unit
     coarse datum at each offset (hermite_weights). Row 3f + p sums weights[slot, p, q]
     x[3c + q] over the parents in order and q in order, zero weights skipped, from 0:
-    the order of a CSR row of P with its columns sorted (what lattice_solver.prolongation
-    stores), so the bits are those of that CSR product."""
+    the order of a CSR row of P with its columns sorted, so the bits are those of that
+    CSR product (tests/test_lattice_solver.py builds P explicitly)."""
     cdef Py_ssize_t f, c, e, col, k = x.shape[1]
     cdef int p, q, slot
     cdef double s, w
@@ -243,7 +238,7 @@ def restrict(const int32_t[:, ::1] children, const double[:, :, ::1] weights, co
     column of the fine x (3n, k): children (m, 7) the fine vertex at each of OFFSETS'
     offsets from coarse vertex c (−1: none), weights (7, 3, 3) as `prolong`'s. Row 3c + q
     sums weights[slot, p, q] x[3 f + p] over the slots in order and p in order, zero
-    weights skipped, from 0: the order of lattice_solver.stencil_rows' CSR row."""
+    weights skipped, from 0: the order of a CSR row of Pᵀ stored slot by slot, p by p."""
     cdef Py_ssize_t c, f, col, k = x.shape[1]
     cdef int p, q, slot
     cdef double s, w
@@ -295,89 +290,95 @@ def dots(const double[:, ::1] a, const double[:, ::1] b, double[::1] out, Py_ssi
                 out[c0 + c] = acc[c]
 
 
-def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const int64_t[::1] nodes,
-             Py_ssize_t nx, const int32_t[:, ::1] offsets,
-             const index_t[::1] p_indptr, const index_t[::1] p_indices, const double[::1] p_data,
-             const index_t[::1] t_indptr, const index_t[::1] t_indices, const double[::1] t_data,
-             const int64_t[::1] coarse_nodes, Py_ssize_t nxc, const int32_t[:, ::1] coarse_nbr,
+def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const int32_t[:, ::1] offsets,
+             const int32_t[:, ::1] children, const int32_t[::1] order, const int32_t[:, ::1] parents,
+             const int8_t[:, ::1] parent_slot, const double[:, :, ::1] weights, const int32_t[:, ::1] coarse_nbr,
              double[:, :, :, ::1] coarse_blocks, Py_ssize_t start, Py_ssize_t stop):
     """coarse_blocks[I] (7, 3, 3): the coarse operator Pᵀ S P's blocks for the coarse
     vertices start <= I < stop, in the slots of coarse_nbr[I] (its own vertex and its 6
     stencil neighbours, OFFSETS' order, −1 absent: zeros there).
 
-    S in stencil form (nbr, blocks) on the fine vertices, on nodes (n,) of a grid nx wide;
-    offsets (7, 2) OFFSETS; P (3n, 3m) and T = Pᵀ (3m, 3n) CSR; coarse_nodes (m,) on the
-    coarse grid nxc wide, coarse node (I, J) on fine node (2I, 2J).
+    S in stencil form (nbr, blocks) on the fine vertices; offsets (7, 2) OFFSETS; P from
+    the Transfer's node structure (`prolong`, `restrict`): children (m, 7) the fine vertex
+    at each offset from a coarse vertex (−1: none), parents (n, 2) / parent_slot (n, 2)
+    each fine vertex's coarse vertices ascending and its offset from each, weights
+    (7, 3, 3) the fine datum per unit coarse datum at each offset; order (k,) the slots in
+    the order of their first entry in a CSR row block of Pᵀ (rows q, then slots, then p:
+    lattice_solver.child_order), the order its children are summed in.
 
-    For each coarse vertex: R_f = T's 3 × 3 block at each child f (the fine vertices its
-    rows reach, at most 7), then U = Σ_f R_f S_f,g over the children's stencils, g on the
-    5 × 5 fine nodes around the coarse node (children in T's order, their slots in order,
-    R's zero weights skipped: most Hermite weights are 0), then the coarse row
-    Σ_g U_g P_g over those nodes in grid order, P's rows in order. A 7-point block stencil
-    stays one under the Hermite P (a coarse entry needs fine offsets a + b − c = 2 (J − I)
-    from three stencil offsets, which no J beyond the 7 allows), so the slots have room
-    for every entry; anything beyond them (a child off the 3 × 3 fine nodes around the
-    coarse node, an entry of P for a vertex not in the slots) is counted and skipped
-    (returned: 0 when the pattern holds)."""
-    cdef Py_ssize_t I, e, g, f, b, c, J, slot, fslot, last_j, last_slot, nchild, ch, u, ci, cj, gx, gy
-    cdef int p, q, r
+    For each coarse vertex: R_f = weights[slot]ᵀ at each child f (at most 7), then
+    U = Σ_f R_f S_f,g over the children's stencils, g on the 5 × 5 fine nodes around the
+    coarse node (children in `order`, their slots in order, R's zero weights skipped: most
+    Hermite weights are 0), then the coarse row Σ_g U_g P_g over those nodes in grid
+    order, each P row 3g + q over g's parents ascending and q' in order, zero weights
+    skipped: the summation order of the CSR products it replaces (Pᵀ's rows, P's rows
+    with sorted columns), so the bits are theirs. A 7-point block stencil stays one under
+    the Hermite P (a coarse entry needs fine offsets a + b − c = 2 (J − I) from three
+    stencil offsets, which no J beyond the 7 allows), so the slots have room for every
+    entry; an entry of P for a vertex not in the slots is counted and skipped (returned:
+    0 when the pattern holds)."""
+    cdef Py_ssize_t I, e, g, f, J, slot, fslot, last_j, last_slot, n, u, base, pslot, t, k = order.shape[0]
+    cdef int p, q, r, qq
     cdef int64_t missing = 0
-    cdef Py_ssize_t child[SLOTS]
-    cdef double R[SLOTS][3][3]
     cdef Py_ssize_t uvert[25]
-    cdef double U[25][3][3]
-    cdef double acc[3][SLOTS][3]
-    cdef double rw, uw
+    cdef double U[25][9]
+    cdef double acc[SLOTS][9]
+    cdef double rw, uw, u0, u1, u2
+    cdef const double *blk
+    cdef double *Ug
+    # each slot's nonzero weights, in the order the sums take them: for Pᵀ (R = Wᵀ) by
+    # p then r, for P by q then q'
+    cdef int rn[SLOTS][3]
+    cdef int rr[SLOTS][3][3]
+    cdef double rv[SLOTS][3][3]
+    cdef int pn[SLOTS][3]
+    cdef int pq[SLOTS][3][3]
+    cdef double pv[SLOTS][3][3]
+    cdef int ushift[SLOTS]
+    for slot in range(SLOTS):
+        ushift[slot] = offsets[slot, 1] * 5 + offsets[slot, 0]
+        for p in range(3):
+            rn[slot][p] = 0
+            pn[slot][p] = 0
+            for r in range(3):
+                if weights[slot, r, p] != 0.0:
+                    rr[slot][p][rn[slot][p]] = r
+                    rv[slot][p][rn[slot][p]] = weights[slot, r, p]
+                    rn[slot][p] += 1
+                if weights[slot, p, r] != 0.0:
+                    pq[slot][p][pn[slot][p]] = r
+                    pv[slot][p][pn[slot][p]] = weights[slot, p, r]
+                    pn[slot][p] += 1
     with nogil:
         for I in range(start, stop):
-            ci = coarse_nodes[I] % nxc
-            cj = coarse_nodes[I] // nxc
-            nchild = 0
-            for p in range(3):
-                for e in range(t_indptr[3 * I + p], t_indptr[3 * I + p + 1]):
-                    f = t_indices[e] // 3
-                    ch = 0
-                    while ch < nchild and child[ch] != f:
-                        ch += 1
-                    if ch == nchild:
-                        if nchild == SLOTS:
-                            missing += 1
-                            continue
-                        child[ch] = f
-                        for q in range(3):
-                            for r in range(3):
-                                R[ch][q][r] = 0.0
-                        nchild += 1
-                    R[ch][p][t_indices[e] - 3 * f] = t_data[e]
             for u in range(25):
                 uvert[u] = -1
-                for p in range(3):
-                    for q in range(3):
-                        U[u][p][q] = 0.0
-            for ch in range(nchild):
-                f = child[ch]
-                gx = nodes[f] % nx - 2 * ci
-                gy = nodes[f] // nx - 2 * cj
-                if gx < -1 or gx > 1 or gy < -1 or gy > 1:
-                    missing += 1
+                for t in range(9):
+                    U[u][t] = 0.0
+            for n in range(k):
+                slot = order[n]
+                f = children[I, slot]
+                if f < 0:
                     continue
+                base = 12 + ushift[slot]                  # (2, 2) is the coarse node's own fine node
                 for fslot in range(SLOTS):
                     g = nbr[f, fslot]
                     if g < 0:
                         continue
-                    u = (gy + offsets[fslot, 1] + 2) * 5 + gx + offsets[fslot, 0] + 2
+                    u = base + ushift[fslot]
                     uvert[u] = g
+                    blk = &blocks[f, fslot, 0, 0]
+                    Ug = &U[u][0]
                     for p in range(3):
-                        for r in range(3):
-                            rw = R[ch][p][r]
-                            if rw == 0.0:
-                                continue
-                            for q in range(3):
-                                U[u][p][q] = U[u][p][q] + rw * blocks[f, fslot, r, q]
-            for p in range(3):
-                for slot in range(SLOTS):
-                    for q in range(3):
-                        acc[p][slot][q] = 0.0
+                        for t in range(rn[slot][p]):
+                            rw = rv[slot][p][t]
+                            r = rr[slot][p][t]
+                            Ug[3 * p] = Ug[3 * p] + rw * blk[3 * r]
+                            Ug[3 * p + 1] = Ug[3 * p + 1] + rw * blk[3 * r + 1]
+                            Ug[3 * p + 2] = Ug[3 * p + 2] + rw * blk[3 * r + 2]
+            for slot in range(SLOTS):
+                for t in range(9):
+                    acc[slot][t] = 0.0
             last_j = -1
             last_slot = SLOTS
             for u in range(25):
@@ -385,24 +386,227 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                 if g < 0:
                     continue
                 for q in range(3):
-                    b = 3 * g + q
-                    for e in range(p_indptr[b], p_indptr[b + 1]):
-                        c = p_indices[e]
-                        J = c // 3
+                    u0 = U[u][q]
+                    u1 = U[u][3 + q]
+                    u2 = U[u][6 + q]
+                    for e in range(2):
+                        J = parents[g, e]
+                        if J < 0:
+                            continue
                         if J != last_j:
                             slot = 0
                             while slot < SLOTS and coarse_nbr[I, slot] != J:
                                 slot += 1
                             last_j = J
                             last_slot = slot
+                        pslot = parent_slot[g, e]
                         if last_slot == SLOTS:
-                            missing += 1
+                            missing += pn[pslot][q]
                             continue
-                        uw = p_data[e]
-                        for p in range(3):
-                            acc[p][last_slot][c - 3 * J] = acc[p][last_slot][c - 3 * J] + U[u][p][q] * uw
+                        for t in range(pn[pslot][q]):
+                            uw = pv[pslot][q][t]
+                            qq = pq[pslot][q][t]
+                            acc[last_slot][qq] = acc[last_slot][qq] + u0 * uw
+                            acc[last_slot][3 + qq] = acc[last_slot][3 + qq] + u1 * uw
+                            acc[last_slot][6 + qq] = acc[last_slot][6 + qq] + u2 * uw
             for slot in range(SLOTS):
-                for p in range(3):
-                    for q in range(3):
-                        coarse_blocks[I, slot, p, q] = acc[p][slot][q]
+                for t in range(9):
+                    coarse_blocks[I, slot, t // 3, t % 3] = acc[slot][t]
     return missing
+
+
+cdef inline int32_t _vertex_at(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, Py_ssize_t i,
+                               Py_ssize_t j) noexcept nogil:
+    """The vertex on grid node (i, j) of an nx × ny grid (where (nx ny,)), −1 when the node
+    is absent or beyond the grid."""
+    if i < 0 or i >= nx or j < 0 or j >= ny:
+        return -1
+    return where[j * nx + i]
+
+
+def neighbours(const int64_t[::1] nodes, const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny,
+               const int32_t[:, ::1] offsets, int32_t[:, ::1] out, Py_ssize_t start, Py_ssize_t stop):
+    """out[v, k] (7,): the vertex at offsets[k] from vertex v's node nodes[v] = j nx + i
+    (where (nx ny,) each node's vertex, −1 none), −1 where there is none, for
+    start <= v < stop."""
+    cdef Py_ssize_t v, i, j, k
+    with nogil:
+        for v in range(start, stop):
+            i = nodes[v] % nx
+            j = nodes[v] // nx
+            for k in range(SLOTS):
+                out[v, k] = _vertex_at(where, nx, ny, i + offsets[k, 0], j + offsets[k, 1])
+
+
+cdef inline bint _kept(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, const int32_t[:, ::1] offsets,
+                       Py_ssize_t I, Py_ssize_t J) noexcept nogil:
+    """Whether coarse node (I, J) is kept: its own fine node (2I, 2J) is a vertex, or at
+    least two fine nodes at offsets from it are."""
+    cdef Py_ssize_t k
+    cdef int reach = 0
+    if _vertex_at(where, nx, ny, 2 * I, 2 * J) >= 0:
+        return True
+    for k in range(1, SLOTS):
+        if _vertex_at(where, nx, ny, 2 * I + offsets[k, 0], 2 * J + offsets[k, 1]) >= 0:
+            reach += 1
+    return reach >= 2
+
+
+def coarse_keep(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, const int32_t[:, ::1] offsets,
+                int32_t[::1] column):
+    """The first pass over the coarse grid below the fine grid nx × ny whose node
+    j nx + i holds vertex where[j nx + i] (−1: none): the coarse grid has
+    (nx // 2 + 1) × (ny // 2 + 1) nodes, node (I, J) on fine node (2I, 2J); column
+    (nxc nyc,) gets −2 − (I + J) mod 3 on the nodes kept (`_kept`, the module doc's rule)
+    and −1 on the others. Returns how many are kept. Serial: a few lookups a node."""
+    cdef Py_ssize_t nxc = nx // 2 + 1, nyc = ny // 2 + 1, I, J, m = 0
+    with nogil:
+        for J in range(nyc):
+            for I in range(nxc):
+                if _kept(where, nx, ny, offsets, I, J):
+                    column[J * nxc + I] = -2 - <int32_t> ((I + J) % 3)
+                    m += 1
+                else:
+                    column[J * nxc + I] = -1
+    return m
+
+
+def coarse_number(const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny, const int32_t[:, ::1] offsets,
+                  int32_t[::1] column, int64_t[::1] coarse, int32_t[:, ::1] children):
+    """The second pass (after `coarse_keep` marked column): the kept coarse nodes numbered
+    colour by colour ((I + J) mod 3), by node within a colour (lattice_solver.colour_order's
+    numbering): column[node] becomes its coarse vertex (−1: dropped), coarse[c] (m,) the
+    node of coarse vertex c, children[c, k] (m, 7) the fine vertex at offsets[k] from it
+    (−1: none). Serial: a few lookups a node."""
+    cdef Py_ssize_t nxc = nx // 2 + 1, nyc = ny // 2 + 1, node, I, J, k, m = 0
+    cdef int colour
+    with nogil:
+        for colour in range(3):
+            for J in range(nyc):
+                for I in range(nxc):
+                    node = J * nxc + I
+                    if column[node] != -2 - colour:
+                        continue
+                    column[node] = <int32_t> m
+                    coarse[m] = node
+                    for k in range(SLOTS):
+                        children[m, k] = _vertex_at(where, nx, ny, 2 * I + offsets[k, 0], 2 * J + offsets[k, 1])
+                    m += 1
+
+
+def parent_tables(const int64_t[::1] nodes, Py_ssize_t nx, const int32_t[::1] column, Py_ssize_t nxc,
+                  int32_t[:, ::1] parents, int8_t[:, ::1] parent_slot, Py_ssize_t start, Py_ssize_t stop):
+    """parents[f] (2,): the coarse vertices whose Hermite stencil reaches fine vertex f
+    (on node nodes[f] = j nx + i), ascending, −1 where fewer, and parent_slot[f] the
+    offset (OFFSETS' index) of f from each, for start <= f < stop; column (nxc nyc,) each
+    coarse node's vertex (−1: dropped). Node (i, j) with i, j even is coarse node
+    (i/2, j/2) itself (slot 0); otherwise it is the midpoint of the coarse edge from
+    ((i − di)/2, (j − dj)/2) (offset (di, dj), di = i mod 2, dj = j mod 2: slot 1, 3 or 5)
+    to ((i + di)/2, (j + dj)/2) (offset (−di, −dj): slot 2, 4 or 6), both on the coarse
+    grid."""
+    cdef Py_ssize_t f, i, j, di, dj
+    cdef int32_t a, b, t
+    cdef int8_t sa, sb, st
+    with nogil:
+        for f in range(start, stop):
+            i = nodes[f] % nx
+            j = nodes[f] // nx
+            di = i & 1
+            dj = j & 1
+            if di == 0 and dj == 0:
+                parents[f, 0] = column[(j // 2) * nxc + i // 2]
+                parents[f, 1] = -1
+                parent_slot[f, 0] = 0
+                parent_slot[f, 1] = 0
+                continue
+            sa = 1 if dj == 0 else (3 if di == 0 else 5)
+            sb = sa + 1
+            a = column[((j - dj) // 2) * nxc + (i - di) // 2]
+            b = column[((j + dj) // 2) * nxc + (i + di) // 2]
+            if a < 0 or (b >= 0 and b < a):
+                t = a
+                a = b
+                b = t
+                st = sa
+                sa = sb
+                sb = st
+            parents[f, 0] = a
+            parent_slot[f, 0] = sa if a >= 0 else 0
+            parents[f, 1] = b
+            parent_slot[f, 1] = sb if b >= 0 else 0
+
+
+def colour_bounds(const int64_t[::1] nodes, Py_ssize_t nx, int64_t[::1] bounds):
+    """bounds (4,): each colour's first vertex and the count, bounds[c] <= v < bounds[c + 1]
+    the vertices of colour c = (i + j) mod 3 of node nodes[v] = j nx + i, when the vertices
+    are numbered colour by colour (returns True); False (bounds unset) when a vertex's
+    colour is below the one before it. One pass."""
+    cdef Py_ssize_t v, n = nodes.shape[0]
+    cdef int colour, last = 0, c
+    cdef bint ordered = True
+    with nogil:
+        bounds[0] = 0
+        for v in range(n):
+            colour = <int> ((nodes[v] % nx + nodes[v] // nx) % 3)
+            if colour < last:
+                ordered = False
+                break
+            for c in range(last + 1, colour + 1):
+                bounds[c] = v
+            last = colour
+        if ordered:
+            for c in range(last + 1, 4):
+                bounds[c] = n
+    return ordered
+
+
+def neighbour_mismatches(const int64_t[::1] nodes, const int32_t[::1] where, Py_ssize_t nx, Py_ssize_t ny,
+                         const int32_t[:, ::1] offsets, const int32_t[:, ::1] nbr, Py_ssize_t start,
+                         Py_ssize_t stop):
+    """How many of nbr[v, k] for start <= v < stop differ from what `neighbours` writes
+    there (the vertex at offsets[k] from node nodes[v], −1 none): a stencil's slots
+    checked against the lattice without a second (N, 7) table."""
+    cdef Py_ssize_t v, i, j, k
+    cdef int64_t wrong = 0
+    with nogil:
+        for v in range(start, stop):
+            i = nodes[v] % nx
+            j = nodes[v] // nx
+            for k in range(SLOTS):
+                if nbr[v, k] != _vertex_at(where, nx, ny, i + offsets[k, 0], j + offsets[k, 1]):
+                    wrong += 1
+    return wrong
+
+
+def stencil_csr(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, int64_t[::1] indptr,
+                int64_t[::1] indices, double[::1] data):
+    """S (3N, 3N) as CSR from its stencil form, rows 3v + p in order, each row's columns
+    ascending: vertex v's present slots sorted by their vertex (at most 7: an insertion
+    sort), each slot's 3 unknowns in order, blocks[v, slot, p, q] stored whether zero or
+    not. indptr (3N + 1,), indices and data (9 × present slots,). Serial (the coarsest
+    level's few thousand vertices, for its direct factorisation)."""
+    cdef Py_ssize_t v, n = nbr.shape[0], e = 0, a, b
+    cdef int p, q, count
+    cdef int32_t order[SLOTS]
+    cdef int32_t t
+    with nogil:
+        indptr[0] = 0
+        for v in range(n):
+            count = 0
+            for a in range(SLOTS):
+                if nbr[v, a] < 0:
+                    continue
+                b = count
+                while b > 0 and nbr[v, order[b - 1]] > nbr[v, a]:
+                    order[b] = order[b - 1]
+                    b -= 1
+                order[b] = <int32_t> a
+                count += 1
+            for p in range(3):
+                for a in range(count):
+                    t = order[a]
+                    for q in range(3):
+                        indices[e] = 3 * <int64_t> nbr[v, t] + q
+                        data[e] = blocks[v, t, p, q]
+                        e += 1
+                indptr[3 * v + p + 1] = e

@@ -21,11 +21,20 @@ is what that study recommends:
   coarse RSD spline's own values reproduce only linears and took twice the iterations).
   It depends on the coarse grid's spacings (hx, hy) only. The cycles apply P and Pᵀ from
   the node structure (`Transfer`: each coarse vertex's fine vertices, each fine vertex's
-  one or two coarse ones, and the 7 weight blocks), in CSR's summation order; P as CSR
-  exists only while the Galerkin kernel builds the level below (0.31 GiB at 1M vertices);
+  one or two coarse ones, and the 7 weight blocks), in CSR's summation order; P is never
+  stored as a matrix (as CSR it held 0.31 GiB at 1M vertices);
 * coarse operators Galerkin, Pᵀ S P (they keep the 7-point block pattern), each coarse
-  vertex's blocks summed by the kernel `galerkin` straight into that pattern (scipy's
-  two sparse products took 2.4 s of the 4 s set-up at 1M vertices);
+  vertex's blocks summed by the kernel `galerkin` straight into that pattern from the
+  Transfer's tables, in the summation order of the CSR products (scipy's two sparse
+  products took 2.4 s of the 4 s set-up at 1M vertices; the kernel from CSR P and Pᵀ,
+  1.1 s with their assembly);
+* the set-up's node passes (`coarsen`: the coarse node list by the rule below, each
+  coarse vertex's children and each fine vertex's parents; stencil_neighbours, the
+  colour bounds, the check of S's slots, the coarsest level's CSR) are kernels too, over
+  each level's grid_vertices table (one int32 per grid node): on the 1M DTM stencil the
+  set-up costs about 1.05 s of CPU (2.4 s before; cProfile at one thread: Galerkin
+  kernels 0.57 s, the coarsest CHOLMOD factorisation 0.30 s, which holds the GIL, the
+  diagonal inverses 0.10 s);
 * every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
   blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
   product) is bound by reading it, and CSR read 45 % more; the fine level's is assembled
@@ -141,19 +150,19 @@ class Lattice:
                        origin=((self.origin[0] - centre[0]) / length, (self.origin[1] - centre[1]) / length))
 
 
-def _checked_nodes(lattice: Lattice, n: int) -> tuple[np.ndarray, int, int]:
-    """(nodes, nx, ny), or SmoothingError where the lattice cannot describe n vertices."""
+def _checked_nodes(lattice: Lattice, n: int) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """(nodes, nx, ny, where: grid_vertices), or SmoothingError where the lattice cannot
+    describe n vertices."""
     ny, nx = lattice.shape
     nodes = lattice.nodes
     if nodes.shape != (n,):
         raise SmoothingError(f"the lattice's nodes must be ({n},), one per vertex, got {nodes.shape}")
     if n and (nodes.min() < 0 or nodes.max() >= nx * ny):
         raise SmoothingError(f"the lattice's nodes must lie in [0, {nx * ny - 1}]")
-    seen = np.zeros(nx * ny, dtype=bool)
-    seen[nodes] = True
-    if np.count_nonzero(seen) != n:
+    where = grid_vertices(nodes, nx, ny)
+    if np.count_nonzero(where >= 0) != n:
         raise SmoothingError("the lattice's nodes must be distinct")
-    return nodes, nx, ny
+    return nodes, nx, ny, where
 
 
 # ------------------------------------------------------------------------ prolongation
@@ -177,86 +186,57 @@ def hermite_weights(Hx: float, Hy: float) -> dict:
     return W
 
 
-def prolongation(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
-    """(P, coarse nodes, nxc, nyc) from the fine level of `nodes` (flat indices j nx + i,
-    ascending or not; vertex k is nodes[k]) on an nx × ny grid of spacing (hx, hy) to the
-    coarse grid of (nx // 2 + 1) × (ny // 2 + 1) nodes, coarse node (I, J) on fine node
-    (2I, 2J). P (3 len(nodes), 3 len(coarse nodes)) CSR: Hermite weights (hermite_weights
-    at 2 hx, 2 hy); coarse nodes those kept by the module doc's rule (own fine node
-    present, or at least two fine nodes of its support), numbered colour by colour
-    (colour_order's numbering, the coarse level's own)."""
-    PT, coarse, nxc, nyc = restriction(nodes, nx, ny, spacing)
-    return PT.T.tocsr(), coarse, nxc, nyc
+def child_order(weights: np.ndarray) -> np.ndarray:
+    """(k,) int32: the slots (OFFSETS' indices) in the order a CSR row block of Pᵀ first
+    reaches them, for weights (7, 3, 3) in OFFSETS' order: rows q in order, each over the
+    slots in order and p in order, a slot counted at its first nonzero weights[slot, p, q]
+    (slots with no nonzero weight are not listed). The Galerkin kernel sums a coarse
+    vertex's children in this order, the one of the CSR Pᵀ it replaced (for the Hermite
+    weights: 0, 1, ..., 6)."""
+    order = []
+    for q in range(3):
+        for slot in range(len(OFFSETS)):
+            if slot not in order and (weights[slot, :, q] != 0.0).any():
+                order.append(slot)
+    return np.array(order, dtype=np.int32)
 
 
-def restriction(nodes: np.ndarray, nx: int, ny: int, spacing) -> tuple:
-    """(Pᵀ CSR, coarse nodes, nxc, nyc): `prolongation` with its matrix transposed (the
-    form stencil_rows builds; the Galerkin kernel reads both)."""
-    hits, column, coarse, nxc, nyc = coarse_grid(nodes, nx, ny)
-    W = hermite_weights(2 * float(spacing[0]), 2 * float(spacing[1]))
-    return stencil_rows(hits, column, W, np.asarray(nodes).size, coarse.size), coarse, nxc, nyc
+def grid_vertices(nodes: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """(nx ny,) int32: the vertex on each node of an nx × ny grid whose vertex k is node
+    nodes[k] (−1: none). Fewer than 2^31 vertices (SmoothingError else)."""
+    if nodes.size >= np.iinfo(np.int32).max:
+        raise SmoothingError(f"the lattice solver takes fewer than 2^31 vertices, got {nodes.size}")
+    where = np.full(nx * ny, -1, dtype=np.int32)
+    where[nodes] = np.arange(nodes.size, dtype=np.int32)
+    return where
 
 
-def coarse_grid(nodes: np.ndarray, nx: int, ny: int) -> tuple:
-    """(hits, column, coarse, nxc, nyc): the coarse level below the fine level of `nodes`
-    (flat indices j nx + i on an nx × ny grid; vertex k is nodes[k]). The coarse grid has
+def coarsen(nodes: np.ndarray, where: np.ndarray, nx: int, ny: int, spacing) -> tuple:
+    """(transfer, coarse, column, nxc, nyc): the coarse level below the fine level of
+    `nodes` (n,) (flat indices j nx + i on an nx × ny grid of spacing (hx, hy); vertex k is
+    nodes[k], where (nx ny,) int32 = grid_vertices(nodes, nx, ny)). The coarse grid has
     nxc × nyc = (nx // 2 + 1) × (ny // 2 + 1) nodes, node (I, J) on fine node (2I, 2J);
-    hits[k] (nxc nyc,) the fine vertex at OFFSETS[k] from each coarse node (−1: none);
-    coarse the nodes kept by the module doc's rule, numbered colour by colour
-    (colour_order's numbering), column (nxc nyc,) each node's coarse vertex (−1: dropped)."""
-    nodes = np.asarray(nodes, dtype=np.int64)
+    coarse (m,) int64 the nodes kept by the module doc's rule, numbered colour by colour
+    (colour_order's numbering), column (nxc nyc,) int32 each node's coarse vertex (−1:
+    dropped: the coarse level's own grid_vertices); transfer the Transfer of the Hermite
+    P (hermite_weights at 2 hx, 2 hy). Kernels: coarse_keep and coarse_number (serial, a
+    few lookups a coarse node), parent_tables (fine vertices in blocks of SWEEP_BLOCK in
+    the thread knob's threads)."""
+    nodes = np.ascontiguousarray(nodes, dtype=np.int64)
     nxc, nyc = nx // 2 + 1, ny // 2 + 1
-    where = np.full(nx * ny, -1, dtype=np.int64)
-    where[nodes] = np.arange(nodes.size)
-    J, I = np.divmod(np.arange(nxc * nyc, dtype=np.int64), nxc)
-    hits = []
-    reach = np.zeros(nxc * nyc, dtype=np.int64)
-    for di, dj in OFFSETS:
-        fi, fj = 2 * I + di, 2 * J + dj
-        inside = (fi >= 0) & (fi < nx) & (fj >= 0) & (fj < ny)
-        fine = np.full(I.size, -1, dtype=np.int64)
-        fine[inside] = where[fj[inside] * nx + fi[inside]]
-        hits.append(fine)
-        reach += fine >= 0
-    coarse = np.flatnonzero((hits[0] >= 0) | (reach >= 2))
-    coarse = coarse[np.lexsort((coarse, colours(coarse, nxc)))]
-    column = np.full(nxc * nyc, -1, dtype=np.int64)
-    column[coarse] = np.arange(coarse.size)
-    return hits, column, coarse, nxc, nyc
-
-
-def stencil_matrix(hits: list, column: np.ndarray, weights: dict, fine: int, coarse: int):
-    """P (3 fine, 3 coarse) CSR of a prolongation stencil: hits[k] (C,) the fine vertex at
-    OFFSETS[k] from each of C coarse grid nodes (−1: none), column (C,) each node's coarse
-    vertex (−1: dropped), weights {(di, dj): W (3, 3)} the fine datum per unit coarse datum
-    at each offset (hermite_weights; benchmarks.grid_solver measures others)."""
-    return stencil_rows(hits, column, weights, fine, coarse).T.tocsr()
-
-
-def stencil_rows(hits: list, column: np.ndarray, weights: dict, fine: int, coarse: int):
-    """Pᵀ (3 coarse, 3 fine) CSR of stencil_matrix's P, built row by row without sorting:
-    row 3c + q of coarse vertex c holds, offset by offset in OFFSETS' order, W[p, q] at
-    column 3 f + p for the fine vertex f there and each nonzero weight (scipy's COO
-    assembly of P took 1.2 s of the 1M set-up)."""
-    node = np.empty(coarse, dtype=np.int64)
-    node[column[column >= 0]] = np.flatnonzero(column >= 0)         # each coarse vertex's grid node
-    found = [np.asarray(hit)[node] for hit in hits]                # (coarse,) fine vertex per offset
-    terms = [[(k, p, weights[off][p, q]) for k, off in enumerate(OFFSETS) for p in range(3)
-              if weights[off][p, q] != 0.0] for q in range(3)]
-    width = max(len(t) for t in terms)
-    dtype = np.int32 if 3 * fine < np.iinfo(np.int32).max else np.int64
-    cols = np.full((coarse, 3, width), -1, dtype=dtype)
-    table = np.zeros((3, width))                                   # the weight of each (q, e) slot
-    for q, row_terms in enumerate(terms):
-        for e, (k, p, w) in enumerate(row_terms):
-            f = found[k]
-            np.copyto(cols[:, q, e], 3 * f + p, where=f >= 0)
-            table[q, e] = w
-    present = cols >= 0
-    indptr = np.zeros(3 * coarse + 1, dtype=np.int64)
-    np.cumsum(np.count_nonzero(present, axis=2).ravel(), out=indptr[1:])
-    return sp.csr_matrix((np.broadcast_to(table, cols.shape)[present], cols[present], indptr),
-                         shape=(3 * coarse, 3 * fine))
+    offsets = np.array(OFFSETS, dtype=np.int32)
+    column = np.empty(nxc * nyc, dtype=np.int32)
+    m = kernel.coarse_keep(where, nx, ny, offsets, column)
+    coarse = np.empty(m, dtype=np.int64)
+    children = np.empty((m, len(OFFSETS)), dtype=np.int32)
+    kernel.coarse_number(where, nx, ny, offsets, column, coarse, children)
+    parents = np.empty((nodes.size, 2), dtype=np.int32)
+    parent_slot = np.empty((nodes.size, 2), dtype=np.int8)
+    parallel_blocks(lambda part: kernel.parent_tables(nodes, nx, column, nxc, parents, parent_slot, part.start,
+                                                      part.stop), nodes.size, SWEEP_BLOCK)
+    W = hermite_weights(2 * float(spacing[0]), 2 * float(spacing[1]))
+    weights = np.ascontiguousarray([W[off] for off in OFFSETS], dtype=np.float64)
+    return Transfer(children, parents, parent_slot, weights), coarse, column, nxc, nyc
 
 
 # ------------------------------------------------------------------------ multigrid
@@ -284,6 +264,14 @@ def colours(nodes: np.ndarray, nx: int) -> np.ndarray:
     return ((i + j) % 3).astype(np.int8)
 
 
+def _colour_bounds(nodes: np.ndarray, nx: int) -> np.ndarray | None:
+    """(4,) int64: each colour's first vertex and the count (vertices bounds[c] to
+    bounds[c + 1] have colour c), for nodes (N,) of a grid nx wide numbered colour by
+    colour; None when they are not (the kernel colour_bounds: one pass)."""
+    bounds = np.empty(4, dtype=np.int64)
+    return bounds if kernel.colour_bounds(np.ascontiguousarray(nodes, dtype=np.int64), nx, bounds) else None
+
+
 def colour_order(lattice: Lattice) -> np.ndarray:
     """(N,) the vertices in the order the solver's levels number them: colour by colour
     ((i + j) mod 3), by node within a colour. LatticeSolver takes a system assembled with
@@ -294,19 +282,19 @@ def colour_order(lattice: Lattice) -> np.ndarray:
 class Transfer:
     """P and Pᵀ between a level and the next coarser one, applied from the lattice's node
     structure instead of stored as CSR (at 1M vertices P and Pᵀ as CSR held 0.31 GiB; these
-    tables hold 22 MB). children (m, 7) int32: the fine vertex at each of OFFSETS' offsets
-    from each coarse vertex (−1: none); parents (n, 2) int32: the coarse vertices whose
-    stencil reaches each fine vertex, ascending (−1: none), parent_slot (n, 2) int8 the
-    offset of the fine vertex from each; weights (7, 3, 3) hermite_weights in OFFSETS'
-    order. Each product row is summed in the order of the CSR row (prolongation's P,
-    restriction's Pᵀ), so the bits are those of the CSR products; rows in fixed blocks of
-    ROW_BLOCK in the thread knob's threads."""
+    tables hold 22 MB; `coarsen` makes them). children (m, 7) int32: the fine vertex at
+    each of OFFSETS' offsets from each coarse vertex (−1: none); parents (n, 2) int32: the
+    coarse vertices whose stencil reaches each fine vertex, ascending (−1: none),
+    parent_slot (n, 2) int8 the offset of the fine vertex from each; weights (7, 3, 3)
+    hermite_weights in OFFSETS' order. P's row 3f + p is Σ weights[slot, p, q] over f's
+    parents and q, Pᵀ's row 3c + q Σ weights[slot, p, q] over c's children and p (zero
+    weights left out). Each product row is summed in the order of the CSR row (P's
+    columns sorted; Pᵀ's entries slot by slot, p by p), so the bits are those of the CSR
+    products; rows in fixed blocks of SWEEP_BLOCK in the thread knob's threads."""
 
-    def __init__(self, hits: list, column: np.ndarray, coarse: np.ndarray, weights: dict, fine: int):
-        self.children = np.stack([np.asarray(hit)[coarse] for hit in hits], axis=1).astype(np.int32)
-        self.weights = np.ascontiguousarray([weights[off] for off in OFFSETS], dtype=np.float64)
-        self.parents, self.parent_slot = _parents(self.children, fine)
-        self.shape = (3 * fine, 3 * coarse.size)      # P's
+    def __init__(self, children: np.ndarray, parents: np.ndarray, parent_slot: np.ndarray, weights: np.ndarray):
+        self.children, self.parents, self.parent_slot, self.weights = children, parents, parent_slot, weights
+        self.shape = (3 * parents.shape[0], 3 * children.shape[0])      # P's
 
     def prolong(self, x: np.ndarray, out: np.ndarray | None = None, add: bool = False) -> np.ndarray:
         """P x (3n, k) for the coarse x (3m, k), into out (None: a new array), or out += P x
@@ -324,46 +312,34 @@ class Transfer:
         return out
 
 
-def _parents(children: np.ndarray, fine: int) -> tuple[np.ndarray, np.ndarray]:
-    """(parents (fine, 2) int32, parent_slot (fine, 2) int8): Transfer's inverse of
-    children (m, 7): each fine vertex's coarse vertices (at most 2: a fine node is a
-    coarse node or the midpoint of one coarse edge), ascending, −1 where fewer."""
-    c, slot = np.nonzero(children >= 0)                  # by coarse vertex, then slot
-    f = children[c, slot].astype(np.int64)
-    order = np.argsort(f, kind="stable")                 # by fine vertex, then coarse vertex
-    f, c, slot = f[order], c[order], slot[order]
-    first = np.searchsorted(f, f)                        # each fine vertex's first entry
-    rank = np.arange(f.size) - first
-    if rank.size and rank.max() > 1:
-        raise SmoothingError("a fine vertex reached by more than two coarse vertices: not a lattice prolongation")
-    parents = np.full((fine, 2), -1, dtype=np.int32)
-    parent_slot = np.zeros((fine, 2), dtype=np.int8)
-    parents[f, rank] = c
-    parent_slot[f, rank] = slot
-    return parents, parent_slot
-
-
-def _index_dtype(*matrices) -> type:
-    """int32 when every index of the matrices fits in it, else int64."""
-    big = max(max(M.shape[0], M.shape[1], M.nnz) for M in matrices)
-    return np.int32 if big < np.iinfo(np.int32).max else np.int64
-
-
-def stencil_neighbours(nodes: np.ndarray, nx: int, ny: int) -> np.ndarray:
+def stencil_neighbours(nodes: np.ndarray, nx: int, ny: int, where: np.ndarray | None = None) -> np.ndarray:
     """(N, 7) int32: for each vertex of a level (vertex k on node nodes[k] of an nx × ny
     grid), the vertex at each of OFFSETS' offsets from it (slot 0 itself), −1 where
-    there is none: the slots of its blocks in stencil form (Stencil)."""
-    if nodes.size >= np.iinfo(np.int32).max:
-        raise SmoothingError(f"the lattice solver takes fewer than 2^31 vertices, got {nodes.size}")
-    where = np.full(nx * ny, -1, dtype=np.int32)
-    where[nodes] = np.arange(nodes.size, dtype=np.int32)
-    j, i = np.divmod(np.asarray(nodes, dtype=np.int64), nx)
-    out = np.full((nodes.size, len(OFFSETS)), -1, dtype=np.int32)
-    for k, (di, dj) in enumerate(OFFSETS):
-        ni, nj = i + di, j + dj
-        inside = (ni >= 0) & (ni < nx) & (nj >= 0) & (nj < ny)
-        out[inside, k] = where[nj[inside] * nx + ni[inside]]
+    there is none: the slots of its blocks in stencil form (Stencil). where: the level's
+    grid_vertices (None: made here). The kernel `neighbours`, the vertices in blocks of
+    SWEEP_BLOCK in the thread knob's threads."""
+    nodes = np.ascontiguousarray(nodes, dtype=np.int64)
+    where = grid_vertices(nodes, nx, ny) if where is None else where
+    offsets = np.array(OFFSETS, dtype=np.int32)
+    out = np.empty((nodes.size, len(OFFSETS)), dtype=np.int32)
+    parallel_blocks(lambda part: kernel.neighbours(nodes, where, nx, ny, offsets, out, part.start, part.stop),
+                    nodes.size, SWEEP_BLOCK)
     return out
+
+
+def _slots_match(nbr: np.ndarray, nodes: np.ndarray, nx: int, ny: int, where: np.ndarray) -> bool:
+    """Whether nbr (N, 7) is stencil_neighbours(nodes, nx, ny) (where: grid_vertices),
+    checked by the kernel neighbour_mismatches without making that table (vertices in
+    blocks of SWEEP_BLOCK in the thread knob's threads)."""
+    if nbr.shape != (nodes.size, len(OFFSETS)) or nbr.dtype != np.int32 or not nbr.flags.c_contiguous:
+        return False
+    nodes = np.ascontiguousarray(nodes, dtype=np.int64)
+    offsets = np.array(OFFSETS, dtype=np.int32)
+    wrong = []
+    parallel_blocks(lambda part: wrong.append(kernel.neighbour_mismatches(nodes, where, nx, ny, offsets, nbr,
+                                                                          part.start, part.stop)),
+                    nodes.size, SWEEP_BLOCK)
+    return sum(wrong) == 0
 
 
 class Stencil:
@@ -380,16 +356,14 @@ class Stencil:
         self.shape = (3 * nbr.shape[0],) * 2
 
     def csr(self):
-        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too)."""
+        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too),
+        by the kernel stencil_csr (one serial pass: the coarsest level's factorisation
+        and the tests ask for it)."""
         n = self.nbr.shape[0]
-        present = np.broadcast_to((self.nbr >= 0)[:, None, :, None], (n, 3, len(OFFSETS), 3))
-        cols = 3 * self.nbr.astype(np.int64)[:, None, :, None] + np.arange(3)
-        cols = np.broadcast_to(cols, present.shape)
-        indptr = np.zeros(3 * n + 1, dtype=np.int64)
-        np.cumsum(np.repeat(3 * (self.nbr >= 0).sum(axis=1), 3), out=indptr[1:])
-        S = sp.csr_matrix((self.blocks.transpose(0, 2, 1, 3)[present], cols[present], indptr), shape=self.shape)
-        S.sort_indices()
-        return S
+        nnz = 9 * int(np.count_nonzero(self.nbr >= 0))
+        indptr, indices, data = np.empty(3 * n + 1, dtype=np.int64), np.empty(nnz, dtype=np.int64), np.empty(nnz)
+        kernel.stencil_csr(self.nbr, self.blocks, indptr, indices, data)
+        return sp.csr_matrix((data, indices, indptr), shape=self.shape)
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         """S x (3N, k) for x (3N, k)."""
@@ -414,24 +388,20 @@ class Stencil:
         return r
 
 
-def galerkin(fine: "_Level", P, PT, coarse: np.ndarray, nxc: int, nyc: int) -> Stencil:
-    """Pᵀ S P in stencil form for the level below `fine` (its S, nodes, grid), by the
-    kernel `galerkin`, the coarse vertices in fixed blocks of GALERKIN_BLOCK in the thread
-    knob's threads: P (3n, 3m) and PT = Pᵀ CSR, coarse (m,) the coarse level's nodes on
-    its nxc × nyc grid. SmoothingError when an entry falls outside the coarse stencil (P
-    not a lattice prolongation)."""
-    dtype = _index_dtype(P, PT)
-    args = [np.ascontiguousarray(a, dtype=kind) for M in (P, PT)
-            for a, kind in ((M.indptr, dtype), (M.indices, dtype), (M.data, np.float64))]
-    neighbours = stencil_neighbours(coarse, nxc, nyc)
+def galerkin(fine: "_Level", transfer: Transfer, neighbours: np.ndarray) -> Stencil:
+    """Pᵀ S P in stencil form for the level below `fine` (its S), P the `transfer`'s,
+    neighbours (m, 7) the coarse level's stencil_neighbours, by the kernel `galerkin`
+    straight from the Transfer's node structure (no P as CSR), the coarse vertices in
+    fixed blocks of GALERKIN_BLOCK in the thread knob's threads. SmoothingError when an
+    entry falls outside the coarse stencil (not a lattice prolongation)."""
     offsets = np.array(OFFSETS, dtype=np.int32)
+    order = child_order(transfer.weights)
     blocks = np.empty(neighbours.shape + (3, 3))
-    S, nodes = fine.op, np.ascontiguousarray(fine.nodes, dtype=np.int64)
-    coarse = np.ascontiguousarray(coarse, dtype=np.int64)
+    S, t = fine.op, transfer
     missing = []
     parallel_blocks(lambda part: missing.append(kernel.galerkin(
-        S.nbr, S.blocks, nodes, fine.nx, offsets, *args, coarse, nxc, neighbours, blocks, part.start, part.stop)),
-        neighbours.shape[0], GALERKIN_BLOCK)
+        S.nbr, S.blocks, offsets, t.children, order, t.parents, t.parent_slot, t.weights, neighbours, blocks,
+        part.start, part.stop)), neighbours.shape[0], GALERKIN_BLOCK)
     if sum(missing):
         raise SmoothingError(f"{sum(missing)} entries of the Galerkin product fall outside the lattice's stencil")
     return Stencil(neighbours, blocks)
@@ -441,14 +411,14 @@ class _Level:
     """One grid: S in stencil form (op) with its vertices numbered colour by colour
     (colour_order), their nodes, each colour's first vertex (bounds (4,)), the inverses
     of S's diagonal blocks, its grid spacing (hx, hy), and the Transfer to the next coarser
-    grid (None on the coarsest). S: op as CSR, made when asked."""
+    grid (None on the coarsest). where: its grid_vertices while the level below is made
+    (then None). S: op as CSR, made when asked."""
 
-    def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int, spacing: tuple):
-        self.op, self.nodes, self.nx, self.ny, self.spacing = op, nodes, nx, ny, spacing
-        colour = colours(nodes, nx)
-        if (np.diff(colour) < 0).any():
+    def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int, spacing: tuple, where: np.ndarray):
+        self.op, self.nodes, self.nx, self.ny, self.spacing, self.where = op, nodes, nx, ny, spacing, where
+        self.bounds = _colour_bounds(nodes, nx)
+        if self.bounds is None:
             raise ValueError("a level's vertices must be numbered colour by colour")
-        self.bounds = np.searchsorted(colour, np.arange(4, dtype=np.int8))
         self.dinv = np.empty((nodes.size, 3, 3))
         counts = []
         parallel_blocks(lambda part: counts.append(kernel.block_inverses(op.blocks, self.dinv, part.start,
@@ -497,13 +467,13 @@ class LatticeSolver:
 
     def __init__(self, S: Stencil, lattice: Lattice, coarsest: int | None = None):
         t0 = time.perf_counter()
-        nodes, nx, ny = _checked_nodes(lattice, S.nbr.shape[0])
+        nodes, nx, ny, where = _checked_nodes(lattice, S.nbr.shape[0])
         coarsest = COARSEST if coarsest is None else int(coarsest)
-        if (np.diff(colours(nodes, nx)) < 0).any():
+        if _colour_bounds(nodes, nx) is None:
             raise SmoothingError("the lattice solver takes its vertices numbered colour by colour (colour_order)")
-        if not np.array_equal(S.nbr, stencil_neighbours(nodes, nx, ny)):
+        if not _slots_match(S.nbr, nodes, nx, ny, where):
             raise SmoothingError("the stencil's slots are not the lattice's neighbours (stencil_neighbours)")
-        self.levels = [_Level(S, nodes, nx, ny, lattice.spacing)]
+        self.levels = [_Level(S, nodes, nx, ny, lattice.spacing, where)]
         while self.levels[-1].nodes.size > coarsest:
             below = self._coarsen(self.levels[-1])
             if below is None:
@@ -516,18 +486,15 @@ class LatticeSolver:
     @staticmethod
     def _coarsen(level: _Level) -> "_Level | None":
         """The level below `level` (None when coarsening keeps every vertex), with
-        level.transfer set: its operator by the Galerkin kernel from P and Pᵀ as CSR, which
-        are let go once it is built (the cycles apply them by the Transfer)."""
-        hits, column, coarse, nxc, nyc = coarse_grid(level.nodes, level.nx, level.ny)
+        level.transfer set (`coarsen`) and its operator by the Galerkin kernel from it."""
+        transfer, coarse, column, nxc, nyc = coarsen(level.nodes, level.where, level.nx, level.ny, level.spacing)
+        level.where = None
         if coarse.size >= level.nodes.size:
             return None
+        level.transfer = transfer
+        op = galerkin(level, transfer, stencil_neighbours(coarse, nxc, nyc, column))
         hx, hy = level.spacing
-        W = hermite_weights(2 * hx, 2 * hy)
-        PT = stencil_rows(hits, column, W, level.nodes.size, coarse.size)
-        op = galerkin(level, PT.T.tocsr(), PT, coarse, nxc, nyc)
-        del PT
-        level.transfer = Transfer(hits, column, coarse, W, level.nodes.size)
-        return _Level(op, coarse, nxc, nyc, (2 * hx, 2 * hy))
+        return _Level(op, coarse, nxc, nyc, (2 * hx, 2 * hy), column)
 
     def _coarsest(self, b: np.ndarray) -> np.ndarray:
         """The coarsest level's direct solve of b (n, k), as (n, k) C-contiguous."""
@@ -663,7 +630,8 @@ def lattice_solve(S: Stencil, rhs: np.ndarray, lattice: Lattice, step_tol: float
     return LatticeSolver(S, lattice, coarsest).pcg(rhs, step_tol, x0)
 
 
-__all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve", "prolongation", "restriction",
-           "coarse_grid", "Transfer", "hermite_weights", "stencil_matrix", "stencil_rows", "galerkin", "stencil_neighbours", "Stencil", "OFFSETS",
+__all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve",
+           "coarsen", "grid_vertices", "child_order", "Transfer", "hermite_weights", "galerkin", "stencil_neighbours",
+           "Stencil", "OFFSETS",
            "colour_order",
            "COARSEST", "MAX_ITERATIONS"]
