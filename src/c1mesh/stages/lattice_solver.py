@@ -35,10 +35,13 @@ is what that study recommends:
   set-up costs about 1.05 s of CPU (2.4 s before; cProfile at one thread: Galerkin
   kernels 0.57 s, the coarsest CHOLMOD factorisation 0.30 s, which holds the GIL, the
   diagonal inverses 0.10 s);
-* every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
-  blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
-  product) is bound by reading it, and CSR read 45 % more; the fine level's is assembled
-  in that form (stages.lattice_system), never as CSR;
+* every level's S in stencil form by halves (`Stencil`: each vertex's 7 neighbours and
+  its 4 blocks of 3 × 3, itself and its 3 forward neighbours; a backward neighbour's
+  block is read as the transpose of that neighbour's forward block, S being symmetric),
+  one index per 36 values: every pass over S (sweeps, residuals, CG's product) is bound
+  by reading it, and CSR read 45 % more than all 7 blocks; the halves hold 4/7 of those
+  (1M DTM job: fine stencil 489 → 288 MiB, coarse levels 184 → 106 MiB); the fine
+  level's is assembled in that form (stages.lattice_system), never as CSR nor whole;
 * the smoother block (3 × 3 per vertex) Gauss–Seidel in the 3 colours (i + j) mod 3, which
   no stencil offset keeps: 0, 1, 2 before the coarse correction and 2, 1, 0 after it, so
   the cycle is symmetric (stages/_lattice_solver.pyx; the vertices of a colour in fixed
@@ -99,7 +102,12 @@ GALERKIN_BLOCK = 1 << 12
 """Coarse vertices per block of the Galerkin kernel."""
 OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1))
 """The fine nodes a coarse node's data reach: the node itself and the midpoints of its 6
-coarse edges, as fine-grid offsets (di, dj) from its fine node."""
+coarse edges, as fine-grid offsets (di, dj) from its fine node. Also a stencil's 7 slots:
+slot 0 the vertex itself, the odd slots forward, each even slot the backward offset of
+the slot before it."""
+HALF = (0, 1, 3, 5)
+"""The slots (OFFSETS' indices) whose blocks a Stencil stores: self and the forward
+offsets (1, 0), (0, 1), (1, 1)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,20 +351,26 @@ def _slots_match(nbr: np.ndarray, nodes: np.ndarray, nx: int, ny: int, where: np
 
 
 class Stencil:
-    """A level's S in stencil form: nbr (N, 7) int32 (stencil_neighbours) and blocks
-    (N, 7, 3, 3), blocks[v, k] the 3 × 3 block of S coupling vertex v to vertex nbr[v, k]
-    (zeros where it is −1). One index per 9 values: a pass over S reads 0.53 kB a vertex
-    where CSR read 0.77, and every pass of the solver is bound by that read. Products
+    """A level's S in stencil form by halves: nbr (N, 7) int32 (stencil_neighbours) and
+    blocks (N, 4, 3, 3), blocks[v, h] the 3 × 3 block of S coupling vertex v to vertex
+    nbr[v, HALF[h]] (itself, then its forward neighbours at slots 1, 3, 5; zeros where
+    it is −1). S is symmetric: v's block at a backward slot 2, 4, 6 (the vertex u there)
+    is the transpose of u's block at the forward slot 1, 3, 5 (where v is), and every
+    kernel reads it so. A pass over S reads 0.29 kB a vertex where all 7 blocks were
+    0.53 and CSR 0.77, and every pass of the solver is bound by that read. Products
     and residuals with (3N, k) blocks of vectors, the vertices in fixed blocks of
     SWEEP_BLOCK in the thread knob's threads (each row's sum in a fixed order: the bits
     do not depend on the threads)."""
 
     def __init__(self, nbr: np.ndarray, blocks: np.ndarray):
+        if blocks.shape != (nbr.shape[0], len(HALF), 3, 3):
+            raise ValueError(f"a stencil's blocks must be ({nbr.shape[0]}, {len(HALF)}, 3, 3), got {blocks.shape}")
         self.nbr, self.blocks = nbr, blocks
         self.shape = (3 * nbr.shape[0],) * 2
 
     def csr(self):
-        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too),
+        """S (3N, 3N) CSR with sorted indices, both halves (every slot present stored whole,
+        zeros too, a backward one as the transpose of the neighbour's forward block),
         by the kernel stencil_csr (one serial pass: the coarsest level's factorisation
         and the tests ask for it)."""
         n = self.nbr.shape[0]
@@ -389,14 +403,15 @@ class Stencil:
 
 
 def galerkin(fine: "_Level", transfer: Transfer, neighbours: np.ndarray) -> Stencil:
-    """Pᵀ S P in stencil form for the level below `fine` (its S), P the `transfer`'s,
+    """Pᵀ S P in stencil form (by halves: only its HALF slots summed) for the level below
+    `fine` (its S), P the `transfer`'s,
     neighbours (m, 7) the coarse level's stencil_neighbours, by the kernel `galerkin`
     straight from the Transfer's node structure (no P as CSR), the coarse vertices in
     fixed blocks of GALERKIN_BLOCK in the thread knob's threads. SmoothingError when an
     entry falls outside the coarse stencil (not a lattice prolongation)."""
     offsets = np.array(OFFSETS, dtype=np.int32)
     order = child_order(transfer.weights)
-    blocks = np.empty(neighbours.shape + (3, 3))
+    blocks = np.empty((neighbours.shape[0], len(HALF), 3, 3))
     S, t = fine.op, transfer
     missing = []
     parallel_blocks(lambda part: missing.append(kernel.galerkin(
@@ -632,6 +647,6 @@ def lattice_solve(S: Stencil, rhs: np.ndarray, lattice: Lattice, step_tol: float
 
 __all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve",
            "coarsen", "grid_vertices", "child_order", "Transfer", "hermite_weights", "galerkin", "stencil_neighbours",
-           "Stencil", "OFFSETS",
+           "Stencil", "OFFSETS", "HALF",
            "colour_order",
            "COARSEST", "MAX_ITERATIONS"]
