@@ -30,40 +30,44 @@ cdef enum:
     SLOTS = 7       # a vertex and its 6 stencil neighbours
 
 
-def block_inverses(const double[:, :, :, ::1] blocks, double[:, :, ::1] dinv, Py_ssize_t start, Py_ssize_t stop):
-    """dinv[v] (3, 3): the inverse of S's diagonal block blocks[v, 0] (blocks the half
-    stencil (N, 4, 3, 3)) for start <= v < stop
-    (the adjugate over the determinant). Returns the blocks whose determinant is not
-    positive and finite (their dinv is zero: the sweep leaves those vertices alone)."""
-    cdef Py_ssize_t v
-    cdef int p, q
-    cdef double d[3][3]
+cdef inline bint _inverse(const double *d, double *inv) noexcept nogil:
+    """inv (9,) row-major: the inverse of the 3 × 3 block d (9,) row-major (the adjugate
+    over the determinant, each entry divided); False (inv zero) when the determinant is
+    not positive and finite. The one formula of `sweep`, `first_sweep` and
+    `singular_blocks`: the diagonal inverses are formed where they are used, not stored
+    ((N, 3, 3) at every level: 72 MB at 1M vertices)."""
+    cdef int t
     cdef double det
+    inv[0] = d[4] * d[8] - d[5] * d[7]
+    inv[1] = d[2] * d[7] - d[1] * d[8]
+    inv[2] = d[1] * d[5] - d[2] * d[4]
+    inv[3] = d[5] * d[6] - d[3] * d[8]
+    inv[4] = d[0] * d[8] - d[2] * d[6]
+    inv[5] = d[2] * d[3] - d[0] * d[5]
+    inv[6] = d[3] * d[7] - d[4] * d[6]
+    inv[7] = d[1] * d[6] - d[0] * d[7]
+    inv[8] = d[0] * d[4] - d[1] * d[3]
+    det = d[0] * inv[0] + d[1] * inv[3] + d[2] * inv[6]
+    if det > 0.0 and isfinite(det):
+        for t in range(9):
+            inv[t] = inv[t] / det
+        return True
+    for t in range(9):
+        inv[t] = 0.0
+    return False
+
+
+def singular_blocks(const double[:, :, :, ::1] blocks, Py_ssize_t start, Py_ssize_t stop):
+    """How many of S's diagonal blocks blocks[v, 0] (blocks the half stencil
+    (N, 4, 3, 3)), start <= v < stop, have a determinant that is not positive and finite
+    (`_inverse`: the sweeps leave those vertices alone)."""
+    cdef Py_ssize_t v
+    cdef double inv[9]
     cdef int64_t singular = 0
     with nogil:
         for v in range(start, stop):
-            for p in range(3):
-                for q in range(3):
-                    d[p][q] = blocks[v, 0, p, q]
-            dinv[v, 0, 0] = d[1][1] * d[2][2] - d[1][2] * d[2][1]
-            dinv[v, 0, 1] = d[0][2] * d[2][1] - d[0][1] * d[2][2]
-            dinv[v, 0, 2] = d[0][1] * d[1][2] - d[0][2] * d[1][1]
-            dinv[v, 1, 0] = d[1][2] * d[2][0] - d[1][0] * d[2][2]
-            dinv[v, 1, 1] = d[0][0] * d[2][2] - d[0][2] * d[2][0]
-            dinv[v, 1, 2] = d[0][2] * d[1][0] - d[0][0] * d[1][2]
-            dinv[v, 2, 0] = d[1][0] * d[2][1] - d[1][1] * d[2][0]
-            dinv[v, 2, 1] = d[0][1] * d[2][0] - d[0][0] * d[2][1]
-            dinv[v, 2, 2] = d[0][0] * d[1][1] - d[0][1] * d[1][0]
-            det = d[0][0] * dinv[v, 0, 0] + d[0][1] * dinv[v, 1, 0] + d[0][2] * dinv[v, 2, 0]
-            if det > 0.0 and isfinite(det):
-                for p in range(3):
-                    for q in range(3):
-                        dinv[v, p, q] = dinv[v, p, q] / det
-            else:
+            if not _inverse(&blocks[v, 0, 0, 0], inv):
                 singular += 1
-                for p in range(3):
-                    for q in range(3):
-                        dinv[v, p, q] = 0.0
     return singular
 
 
@@ -151,19 +155,22 @@ cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, Py_ssize
 
 
 def sweep(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double[:, ::1] b,
-          double[:, ::1] x, const double[:, :, ::1] dinv, Py_ssize_t start, Py_ssize_t stop):
+          double[:, ::1] x, Py_ssize_t start, Py_ssize_t stop):
     """One block Gauss–Seidel step on the vertices start <= v < stop (all of one colour):
-    for each, r = b[3v:3v+3] − (S x)[3v:3v+3], then x[3v:3v+3] += dinv[v] r, column by
-    column of x (n, k). In place. The level numbers its vertices colour by colour, so a
+    for each, r = b[3v:3v+3] − (S x)[3v:3v+3], then x[3v:3v+3] += D⁻¹ r, D⁻¹ the
+    inverse of its diagonal block (`_inverse`, formed here: zero where singular), column
+    by column of x (n, k). In place. The level numbers its vertices colour by colour, so a
     colour's blocks are read in one stream (every third vertex of the grid's order took
     6 times as long per vertex)."""
     cdef Py_ssize_t v, c, c0, w, chunk, k = x.shape[1], lanes = LANES
     cdef int p
     cdef double r[3 * LANES]
+    cdef double dinv[9]
     if stop <= start:
         return
     with nogil:
         for v in range(start, stop):
+            _inverse(&blocks[v, 0, 0, 0], dinv)
             for chunk in range((k + lanes - 1) // lanes):
                 c0 = chunk * lanes
                 w = min(lanes, k - c0)
@@ -174,7 +181,7 @@ def sweep(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const do
                 for p in range(3):
                     for c in range(w):
                         x[3 * v + p, c0 + c] = x[3 * v + p, c0 + c] + (
-                            dinv[v, p, 0] * r[c] + dinv[v, p, 1] * r[LANES + c] + dinv[v, p, 2] * r[2 * LANES + c])
+                            dinv[3 * p] * r[c] + dinv[3 * p + 1] * r[LANES + c] + dinv[3 * p + 2] * r[2 * LANES + c])
 
 
 cdef void _stencil_rows(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double* b,
@@ -280,19 +287,22 @@ def restrict(const int32_t[:, ::1] children, const double[:, :, ::1] weights, co
                     y[3 * c + q, col] = s
 
 
-def first_sweep(const double[:, ::1] b, double[:, ::1] x, const double[:, :, ::1] dinv,
+def first_sweep(const double[:, :, :, ::1] blocks, const double[:, ::1] b, double[:, ::1] x,
                 Py_ssize_t start, Py_ssize_t stop):
     """`sweep` where x is zero on every vertex its rows reach (a V-cycle's first colour,
-    from x = 0): x[3v:3v+3] = dinv[v] b[3v:3v+3] for start <= v < stop, the bits `sweep`
-    gives there (b − 0 is b), without reading S."""
+    from x = 0): x[3v:3v+3] = D⁻¹ b[3v:3v+3] for start <= v < stop (D⁻¹ as `sweep`
+    forms it), the bits `sweep` gives there (b − 0 is b), reading only the diagonal
+    blocks of S (blocks the half stencil (N, 4, 3, 3))."""
     cdef Py_ssize_t v, c, k = x.shape[1]
     cdef int p
+    cdef double dinv[9]
     with nogil:
         for v in range(start, stop):
+            _inverse(&blocks[v, 0, 0, 0], dinv)
             for p in range(3):
                 for c in range(k):
-                    x[3 * v + p, c] = 0.0 + (dinv[v, p, 0] * b[3 * v, c] + dinv[v, p, 1] * b[3 * v + 1, c]
-                                             + dinv[v, p, 2] * b[3 * v + 2, c])
+                    x[3 * v + p, c] = 0.0 + (dinv[3 * p] * b[3 * v, c] + dinv[3 * p + 1] * b[3 * v + 1, c]
+                                             + dinv[3 * p + 2] * b[3 * v + 2, c])
 
 
 def dots(const double[:, ::1] a, const double[:, ::1] b, double[::1] out, Py_ssize_t start, Py_ssize_t stop):

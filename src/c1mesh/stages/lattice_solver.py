@@ -424,9 +424,10 @@ def galerkin(fine: "_Level", transfer: Transfer, neighbours: np.ndarray) -> Sten
 
 class _Level:
     """One grid: S in stencil form (op) with its vertices numbered colour by colour
-    (colour_order), their nodes, each colour's first vertex (bounds (4,)), the inverses
-    of S's diagonal blocks, its grid spacing (hx, hy), and the Transfer to the next coarser
-    grid (None on the coarsest). where: its grid_vertices while the level below is made
+    (colour_order), their nodes, each colour's first vertex (bounds (4,)), its grid
+    spacing (hx, hy), and the Transfer to the next coarser grid (None on the coarsest).
+    The inverses of S's diagonal blocks are formed by the sweeps where they use them (not
+    stored: 72 MB at the 1M fine level); made here only to check that none is singular. where: its grid_vertices while the level below is made
     (then None). S: op as CSR, made when asked."""
 
     def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int, spacing: tuple, where: np.ndarray):
@@ -434,10 +435,9 @@ class _Level:
         self.bounds = _colour_bounds(nodes, nx)
         if self.bounds is None:
             raise ValueError("a level's vertices must be numbered colour by colour")
-        self.dinv = np.empty((nodes.size, 3, 3))
         counts = []
-        parallel_blocks(lambda part: counts.append(kernel.block_inverses(op.blocks, self.dinv, part.start,
-                                                                         part.stop)), nodes.size, SWEEP_BLOCK)
+        parallel_blocks(lambda part: counts.append(kernel.singular_blocks(op.blocks, part.start, part.stop)),
+                        nodes.size, SWEEP_BLOCK)
         if sum(counts):
             raise SmoothingError(f"{sum(counts)} diagonal 3 × 3 blocks of the lattice system are not positive "
                                  "definite: a vertex lacks data and energy")
@@ -463,10 +463,9 @@ class _Level:
         for n, c in enumerate(order):
             first = int(self.bounds[c])
             if from_zero and n == 0:
-                work = lambda part: kernel.first_sweep(b, x, self.dinv, first + part.start, first + part.stop)
+                work = lambda part: kernel.first_sweep(op.blocks, b, x, first + part.start, first + part.stop)
             else:
-                work = lambda part: kernel.sweep(op.nbr, op.blocks, b, x, self.dinv, first + part.start,
-                                                 first + part.stop)
+                work = lambda part: kernel.sweep(op.nbr, op.blocks, b, x, first + part.start, first + part.stop)
             parallel_blocks(work, int(self.bounds[c + 1]) - first, SWEEP_BLOCK)
 
 
