@@ -10,7 +10,8 @@ forward neighbours, slots 1, 3, 5 (offsets (1, 0), (0, 1), (1, 1)), at half slot
 (zero where absent). S is symmetric, so the block of v at a backward slot 2, 4 or 6 (the
 neighbour u at the opposite offset) is the transpose of u's block at forward slot 1, 3
 or 5: every kernel reads it so (`_slot_block`), and S takes 4/7 of the memory of all 7
-blocks (0.29 kB a vertex, against 0.77 as CSR; every pass is bound by reading S).
+blocks (0.32 kB a vertex with nbr, against 0.53 and 0.77 as CSR; every pass is bound
+by reading S).
 Vertices of one colour (i + j) mod 3 never touch each other: a block of them reads only
 other colours' unknowns and writes only its own (S is only read), and the bits do not
 depend on the blocks' threads. A row's sum runs over the slots in order, the 3

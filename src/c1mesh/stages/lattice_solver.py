@@ -34,13 +34,13 @@ is what that study recommends:
   each level's grid_vertices table (one int32 per grid node): on the 1M DTM stencil the
   set-up costs about 1.05 s of CPU (2.4 s before; cProfile at one thread: Galerkin
   kernels 0.57 s, the coarsest CHOLMOD factorisation 0.30 s, which holds the GIL, the
-  diagonal inverses 0.10 s);
+  diagonal inverses 0.10 s, before they were formed in the sweeps instead of stored);
 * every level's S in stencil form by halves (`Stencil`: each vertex's 7 neighbours and
   its 4 blocks of 3 × 3, itself and its 3 forward neighbours; a backward neighbour's
   block is read as the transpose of that neighbour's forward block, S being symmetric),
   one index per 36 values: every pass over S (sweeps, residuals, CG's product) is bound
   by reading it, and CSR read 45 % more than all 7 blocks; the halves hold 4/7 of those
-  (1M DTM job: fine stencil 489 → 288 MiB, coarse levels 184 → 106 MiB); the fine
+  (1M DTM job: fine blocks 489 → 279 MiB, coarse levels 184 → 105 MiB); the fine
   level's is assembled in that form (stages.lattice_system), never as CSR nor whole;
 * the smoother block (3 × 3 per vertex) Gauss–Seidel in the 3 colours (i + j) mod 3, which
   no stencil offset keeps: 0, 1, 2 before the coarse correction and 2, 1, 0 after it, so
@@ -356,7 +356,7 @@ class Stencil:
     nbr[v, HALF[h]] (itself, then its forward neighbours at slots 1, 3, 5; zeros where
     it is −1). S is symmetric: v's block at a backward slot 2, 4, 6 (the vertex u there)
     is the transpose of u's block at the forward slot 1, 3, 5 (where v is), and every
-    kernel reads it so. A pass over S reads 0.29 kB a vertex where all 7 blocks were
+    kernel reads it so. A pass over S reads 0.32 kB a vertex where all 7 blocks were
     0.53 and CSR 0.77, and every pass of the solver is bound by that read. Products
     and residuals with (3N, k) blocks of vectors, the vertices in fixed blocks of
     SWEEP_BLOCK in the thread knob's threads (each row's sum in a fixed order: the bits
