@@ -122,8 +122,8 @@ def test_the_stencil_is_the_brute_force_sum(nx, ny, seed, kind):
     want = brute_force(system, s, problem.w, mu)
     got = S.csr().toarray()
     assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
-    np.testing.assert_array_equal(S.blocks[S.nbr[:, list(HALF)] < 0], 0.0)   # absent neighbours: zero blocks
-    assert S.blocks.shape == (S.nbr.shape[0], 4, 3, 3)                        # the halves only
+    np.testing.assert_array_equal(S.blocks[S.nbr[:, list(HALF)].T < 0], 0.0)   # absent neighbours: zero blocks
+    assert S.blocks.shape == (4, S.nbr.shape[0], 3, 3)                          # the halves only
     A = np.zeros((problem.w.size, 3 * lattice.nodes.size))
     if system.data is None:
         A[np.arange(problem.w.size), 3 * np.arange(problem.w.size)] = 1.0

@@ -5,9 +5,12 @@ or vertices in fixed blocks in the thread knob's threads), and nothing else impo
 S is the smoothing system on lattice nodes, 3 unknowns per vertex, coupled only along the
 7-point stencil of the split cells. A level holds it in stencil form by halves: nbr
 (N, 7) int32 the vertex at each of OFFSETS' 7 offsets from vertex v (slot 0 v itself; −1
-absent) and blocks (N, 4, 3, 3) the 3 × 3 blocks of S coupling v to itself and to its 3
-forward neighbours, slots 1, 3, 5 (offsets (1, 0), (0, 1), (1, 1)), at half slots 1, 2, 3
-(zero where absent). S is symmetric, so the block of v at a backward slot 2, 4 or 6 (the
+absent) and blocks (4, N, 3, 3), blocks[h, v] the 3 × 3 block of S coupling v to itself
+(h = 0) and to its 3 forward neighbours, slots 1, 3, 5 (offsets (1, 0), (0, 1), (1, 1)),
+at h = 1, 2, 3 (zero where absent): one array of blocks per half slot, so that the
+backward reads (below) stream through whole blocks of consecutive vertices (with each
+vertex's 4 blocks together, (N, 4, 3, 3), they read 72 B of every 288 and a pass over
+S took 3.2 times as long at 420k vertices). S is symmetric, so the block of v at a backward slot 2, 4 or 6 (the
 neighbour u at the opposite offset) is the transpose of u's block at forward slot 1, 3
 or 5: every kernel reads it so (`_slot_block`), and S takes 4/7 of the memory of all 7
 blocks (0.32 kB a vertex with nbr, against 0.53 and 0.77 as CSR; every pass is bound
@@ -59,46 +62,76 @@ cdef inline bint _inverse(const double *d, double *inv) noexcept nogil:
 
 
 def singular_blocks(const double[:, :, :, ::1] blocks, Py_ssize_t start, Py_ssize_t stop):
-    """How many of S's diagonal blocks blocks[v, 0] (blocks the half stencil
-    (N, 4, 3, 3)), start <= v < stop, have a determinant that is not positive and finite
+    """How many of S's diagonal blocks blocks[0, v] (blocks the half stencil
+    (4, N, 3, 3)), start <= v < stop, have a determinant that is not positive and finite
     (`_inverse`: the sweeps leave those vertices alone)."""
     cdef Py_ssize_t v
     cdef double inv[9]
     cdef int64_t singular = 0
     with nogil:
         for v in range(start, stop):
-            if not _inverse(&blocks[v, 0, 0, 0], inv):
+            if not _inverse(&blocks[0, v, 0, 0], inv):
                 singular += 1
     return singular
 
 
-cdef inline const double *_slot_block(const int32_t *nbr, const double *blocks, Py_ssize_t v, Py_ssize_t slot,
+cdef inline const double *_slot_block(const int32_t *nbr, const double *blocks, Py_ssize_t n, Py_ssize_t v, Py_ssize_t slot,
                                       int *sp, int *sq) noexcept nogil:
     """The block of S coupling vertex v to nbr[slot] (nbr v's row (7,), the slot present),
-    blocks the (N, 4, 3, 3) half stencil's first entry: its entry (p, q) is
+    blocks the (4, n, 3, 3) half stencil's first entry: its entry (p, q) is
     blk[p sp + q sq]. Slot 0 and the forward slots 1, 3, 5 are v's own half slots 0, 1,
     2, 3 (sp, sq = 3, 1); a backward slot 2, 4, 6 is the transpose of the neighbour's
     block at the forward slot before it (sp, sq = 1, 3)."""
     if slot == 0 or slot & 1:
         sp[0] = 3
         sq[0] = 1
-        return blocks + 9 * (4 * v + (slot + 1) // 2)
+        return blocks + 9 * ((slot + 1) // 2 * n + v)
     sp[0] = 1
     sq[0] = 3
-    return blocks + 9 * (4 * <Py_ssize_t> nbr[slot] + slot // 2)
+    return blocks + 9 * (slot // 2 * n + <Py_ssize_t> nbr[slot])
 
 
-cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, Py_ssize_t v, const double *x,
+cdef inline void _load_block(const int32_t *nbr, const double *blocks, Py_ssize_t n, Py_ssize_t v, Py_ssize_t slot,
+                             double *m) noexcept nogil:
+    """m (9,) row-major: the block of S coupling vertex v to nbr[slot] (`_slot_block`),
+    copied with constant offsets (a backward block transposed as it is copied): the sums
+    then index it by constants."""
+    cdef const double *blk
+    if slot == 0 or slot & 1:
+        blk = blocks + 9 * ((slot + 1) // 2 * n + v)
+        m[0] = blk[0]
+        m[1] = blk[1]
+        m[2] = blk[2]
+        m[3] = blk[3]
+        m[4] = blk[4]
+        m[5] = blk[5]
+        m[6] = blk[6]
+        m[7] = blk[7]
+        m[8] = blk[8]
+    else:
+        blk = blocks + 9 * (slot // 2 * n + <Py_ssize_t> nbr[slot])
+        m[0] = blk[0]
+        m[1] = blk[3]
+        m[2] = blk[6]
+        m[3] = blk[1]
+        m[4] = blk[4]
+        m[5] = blk[7]
+        m[6] = blk[2]
+        m[7] = blk[5]
+        m[8] = blk[8]
+
+
+cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, Py_ssize_t n, Py_ssize_t v, const double *x,
                               Py_ssize_t k, Py_ssize_t c0, Py_ssize_t w, double *out) noexcept nogil:
     """out[p LANES + c] = (S x)[3v + p, c0 + c] for p < 3, c < w <= LANES, from vertex v's
-    nbr row (7,) and the half stencil blocks (N, 4, 3, 3) (its first entry; backward
-    blocks read transposed: `_slot_block`), x (n, k) row-major: each sum over the slots in
+    nbr row (7,) and the half stencil blocks (4, n, 3, 3) (its first entry; backward
+    blocks read transposed: `_load_block`), x (n, k) row-major: each sum over the slots in
     order, the 3 unknowns of each in order, from 0, in local variables."""
     cdef Py_ssize_t slot, c
-    cdef int p, q, sp, sq
+    cdef int q
     cdef double a
     cdef const double *xg
-    cdef const double *blk
+    cdef double blk[9]
     cdef double s00 = 0.0, s01 = 0.0, s02 = 0.0, s03 = 0.0
     cdef double s10 = 0.0, s11 = 0.0, s12 = 0.0, s13 = 0.0
     cdef double s20 = 0.0, s21 = 0.0, s22 = 0.0, s23 = 0.0
@@ -106,20 +139,20 @@ cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, Py_ssize
         for slot in range(SLOTS):
             if nbr[slot] < 0:
                 continue
-            blk = _slot_block(nbr, blocks, v, slot, &sp, &sq)
+            _load_block(nbr, blocks, n, v, slot, blk)
             for q in range(3):
                 xg = x + (3 * <Py_ssize_t> nbr[slot] + q) * k + c0
-                a = blk[q * sq]
+                a = blk[q]
                 s00 = s00 + a * xg[0]
                 s01 = s01 + a * xg[1]
                 s02 = s02 + a * xg[2]
                 s03 = s03 + a * xg[3]
-                a = blk[sp + q * sq]
+                a = blk[3 + q]
                 s10 = s10 + a * xg[0]
                 s11 = s11 + a * xg[1]
                 s12 = s12 + a * xg[2]
                 s13 = s13 + a * xg[3]
-                a = blk[2 * sp + q * sq]
+                a = blk[6 + q]
                 s20 = s20 + a * xg[0]
                 s21 = s21 + a * xg[1]
                 s22 = s22 + a * xg[2]
@@ -144,12 +177,12 @@ cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, Py_ssize
             for slot in range(SLOTS):
                 if nbr[slot] < 0:
                     continue
-                blk = _slot_block(nbr, blocks, v, slot, &sp, &sq)
+                _load_block(nbr, blocks, n, v, slot, blk)
                 for q in range(3):
                     a = x[(3 * <Py_ssize_t> nbr[slot] + q) * k + c0 + c]
-                    s00 = s00 + blk[q * sq] * a
-                    s10 = s10 + blk[sp + q * sq] * a
-                    s20 = s20 + blk[2 * sp + q * sq] * a
+                    s00 = s00 + blk[q] * a
+                    s10 = s10 + blk[3 + q] * a
+                    s20 = s20 + blk[6 + q] * a
             out[c] = s00
             out[LANES + c] = s10
             out[2 * LANES + c] = s20
@@ -171,11 +204,11 @@ def sweep(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const do
         return
     with nogil:
         for v in range(start, stop):
-            _inverse(&blocks[v, 0, 0, 0], dinv)
+            _inverse(&blocks[0, v, 0, 0], dinv)
             for chunk in range((k + lanes - 1) // lanes):
                 c0 = chunk * lanes
                 w = min(lanes, k - c0)
-                _vertex_sums(&nbr[v, 0], &blocks[0, 0, 0, 0], v, &x[0, 0], k, c0, w, r)
+                _vertex_sums(&nbr[v, 0], &blocks[0, 0, 0, 0], blocks.shape[1], v, &x[0, 0], k, c0, w, r)
                 for p in range(3):
                     for c in range(w):
                         r[p * LANES + c] = b[3 * v + p, c0 + c] - r[p * LANES + c]
@@ -197,7 +230,7 @@ cdef void _stencil_rows(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] bl
         for chunk in range((k + lanes - 1) // lanes):
             c0 = chunk * lanes
             w = min(lanes, k - c0)
-            _vertex_sums(&nbr[v, 0], &blocks[0, 0, 0, 0], v, &x[0, 0], k, c0, w, acc)
+            _vertex_sums(&nbr[v, 0], &blocks[0, 0, 0, 0], blocks.shape[1], v, &x[0, 0], k, c0, w, acc)
             for p in range(3):
                 for c in range(w):
                     if b == NULL:
@@ -293,13 +326,13 @@ def first_sweep(const double[:, :, :, ::1] blocks, const double[:, ::1] b, doubl
     """`sweep` where x is zero on every vertex its rows reach (a V-cycle's first colour,
     from x = 0): x[3v:3v+3] = D⁻¹ b[3v:3v+3] for start <= v < stop (D⁻¹ as `sweep`
     forms it), the bits `sweep` gives there (b − 0 is b), reading only the diagonal
-    blocks of S (blocks the half stencil (N, 4, 3, 3))."""
+    blocks of S (blocks the half stencil (4, N, 3, 3))."""
     cdef Py_ssize_t v, c, k = x.shape[1]
     cdef int p
     cdef double dinv[9]
     with nogil:
         for v in range(start, stop):
-            _inverse(&blocks[v, 0, 0, 0], dinv)
+            _inverse(&blocks[0, v, 0, 0], dinv)
             for p in range(3):
                 for c in range(k):
                     x[3 * v + p, c] = 0.0 + (dinv[3 * p] * b[3 * v, c] + dinv[3 * p + 1] * b[3 * v + 1, c]
@@ -327,13 +360,13 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
              const int32_t[:, ::1] children, const int32_t[::1] order, const int32_t[:, ::1] parents,
              const int8_t[:, ::1] parent_slot, const double[:, :, ::1] weights, const int32_t[:, ::1] coarse_nbr,
              double[:, :, :, ::1] coarse_blocks, Py_ssize_t start, Py_ssize_t stop):
-    """coarse_blocks[I] (4, 3, 3): the coarse operator Pᵀ S P's half stencil for the coarse
+    """coarse_blocks[:, I] (4, 3, 3): the coarse operator Pᵀ S P's half stencil for the coarse
     vertices start <= I < stop: its blocks at slots 0, 1, 3, 5 of coarse_nbr[I] (its own
     vertex and its 6 stencil neighbours, OFFSETS' order, −1 absent: zeros there), the
     backward slots 2, 4, 6 neither summed nor stored (they are the transposes of the
     neighbours' forward blocks).
 
-    S in stencil form by halves (nbr (n, 7), blocks (n, 4, 3, 3): a backward block read as
+    S in stencil form by halves (nbr (n, 7), blocks (4, n, 3, 3): a backward block read as
     the transpose of the neighbour's forward one) on the fine vertices; offsets (7, 2) OFFSETS; P from
     the Transfer's node structure (`prolong`, `restrict`): children (m, 7) the fine vertex
     at each offset from a coarse vertex (−1: none), parents (n, 2) / parent_slot (n, 2)
@@ -404,7 +437,7 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                         continue
                     u = base + ushift[fslot]
                     uvert[u] = g
-                    blk = _slot_block(&nbr[f, 0], &blocks[0, 0, 0, 0], f, fslot, &sp, &sq)
+                    blk = _slot_block(&nbr[f, 0], &blocks[0, 0, 0, 0], blocks.shape[1], f, fslot, &sp, &sq)
                     if sp != 3:                           # a backward block: its transpose, row-major
                         for t in range(9):
                             back[t] = blk[(t // 3) * sp + (t % 3) * sq]
@@ -454,7 +487,7 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                             acc[last_slot][6 + qq] = acc[last_slot][6 + qq] + u2 * uw
             for slot in range(4):
                 for t in range(9):
-                    coarse_blocks[I, slot, t // 3, t % 3] = acc[0 if slot == 0 else 2 * slot - 1][t]
+                    coarse_blocks[slot, I, t // 3, t % 3] = acc[0 if slot == 0 else 2 * slot - 1][t]
     return missing
 
 
@@ -623,7 +656,7 @@ def neighbour_mismatches(const int64_t[::1] nodes, const int32_t[::1] where, Py_
 
 def stencil_csr(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, int64_t[::1] indptr,
                 int64_t[::1] indices, double[::1] data):
-    """S (3N, 3N) as CSR from its stencil form by halves (blocks (N, 4, 3, 3)), both
+    """S (3N, 3N) as CSR from its stencil form by halves (blocks (4, N, 3, 3)), both
     halves written out: rows 3v + p in order, each row's columns ascending: vertex v's
     present slots sorted by their vertex (at most 7: an insertion sort), each slot's 3
     unknowns in order, the block's entry (p, q) (`_slot_block`: a backward slot's the
@@ -650,7 +683,7 @@ def stencil_csr(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, in
             for p in range(3):
                 for a in range(count):
                     t = order[a]
-                    blk = _slot_block(&nbr[v, 0], &blocks[0, 0, 0, 0], v, t, &sp, &sq)
+                    blk = _slot_block(&nbr[v, 0], &blocks[0, 0, 0, 0], blocks.shape[1], v, t, &sp, &sq)
                     for q in range(3):
                         indices[e] = 3 * <int64_t> nbr[v, t] + q
                         data[e] = blk[p * sp + q * sq]

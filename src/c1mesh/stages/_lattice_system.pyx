@@ -5,7 +5,8 @@ nothing else imports it.
 
 S = s K + Aᵀ W A + diag is written vertex by vertex, by halves (the solver's stencil
 form, stages/_lattice_solver.pyx): vertex v's 3 rows against itself and its forward
-neighbours nbr[v, 1], nbr[v, 3], nbr[v, 5] (slot 0 itself, −1 absent), blocks (4, 3, 3);
+neighbours nbr[v, 1], nbr[v, 3], nbr[v, 5] (slot 0 itself, −1 absent), blocks[:, v]
+(4, 3, 3) of blocks (4, N, 3, 3);
 its blocks at the backward slots 2, 4, 6 are the transposes of those neighbours' forward
 blocks at v, so they are neither summed nor stored. Only v's own rows are written, from
 the triangles at v, so a block of vertices needs no
@@ -37,7 +38,7 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
              const int64_t[::1] first_point, const int64_t[::1] points, const double[:, ::1] rows,
              const double[::1] w, const int32_t[:, ::1] nbr, double s, const double[:, ::1] diag,
              double[:, :, :, ::1] blocks, Py_ssize_t first, Py_ssize_t stop):
-    """blocks[v] (4, 3, 3) of S for first <= v < stop: its blocks at slots 0, 1, 3, 5 of
+    """blocks[:, v] (4, 3, 3) of S for first <= v < stop: its blocks at slots 0, 1, 3, 5 of
     nbr[v] (self and the forward neighbours; zeros where absent); returns the triangle
     corners at those vertices that are none of nbr[v]'s (0 when the mesh is the
     lattice's).
@@ -104,7 +105,7 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
                 slot = 0 if h == 0 else 2 * h - 1
                 for c in range(3):
                     for d in range(3):
-                        blocks[v, h, c, d] = K[slot][c][d] * s + D[slot][c][d]
+                        blocks[h, v, c, d] = K[slot][c][d] * s + D[slot][c][d]
             for c in range(3):
-                blocks[v, 0, c, c] = blocks[v, 0, c, c] + diag[v, c]
+                blocks[0, v, c, c] = blocks[0, v, c, c] + diag[v, c]
     return outside

@@ -352,19 +352,21 @@ def _slots_match(nbr: np.ndarray, nodes: np.ndarray, nx: int, ny: int, where: np
 
 class Stencil:
     """A level's S in stencil form by halves: nbr (N, 7) int32 (stencil_neighbours) and
-    blocks (N, 4, 3, 3), blocks[v, h] the 3 × 3 block of S coupling vertex v to vertex
+    blocks (4, N, 3, 3), blocks[h, v] the 3 × 3 block of S coupling vertex v to vertex
     nbr[v, HALF[h]] (itself, then its forward neighbours at slots 1, 3, 5; zeros where
     it is −1). S is symmetric: v's block at a backward slot 2, 4, 6 (the vertex u there)
     is the transpose of u's block at the forward slot 1, 3, 5 (where v is), and every
     kernel reads it so. A pass over S reads 0.32 kB a vertex where all 7 blocks were
-    0.53 and CSR 0.77, and every pass of the solver is bound by that read. Products
+    0.53 and CSR 0.77, and every pass of the solver is bound by that read. One array of
+    blocks per half slot (h first): the backward reads then stream through consecutive
+    vertices' whole blocks (vertex-major, they took a pass 3.2 times as long). Products
     and residuals with (3N, k) blocks of vectors, the vertices in fixed blocks of
     SWEEP_BLOCK in the thread knob's threads (each row's sum in a fixed order: the bits
     do not depend on the threads)."""
 
     def __init__(self, nbr: np.ndarray, blocks: np.ndarray):
-        if blocks.shape != (nbr.shape[0], len(HALF), 3, 3):
-            raise ValueError(f"a stencil's blocks must be ({nbr.shape[0]}, {len(HALF)}, 3, 3), got {blocks.shape}")
+        if blocks.shape != (len(HALF), nbr.shape[0], 3, 3):
+            raise ValueError(f"a stencil's blocks must be ({len(HALF)}, {nbr.shape[0]}, 3, 3), got {blocks.shape}")
         self.nbr, self.blocks = nbr, blocks
         self.shape = (3 * nbr.shape[0],) * 2
 
@@ -411,7 +413,7 @@ def galerkin(fine: "_Level", transfer: Transfer, neighbours: np.ndarray) -> Sten
     entry falls outside the coarse stencil (not a lattice prolongation)."""
     offsets = np.array(OFFSETS, dtype=np.int32)
     order = child_order(transfer.weights)
-    blocks = np.empty((neighbours.shape[0], len(HALF), 3, 3))
+    blocks = np.empty((len(HALF), neighbours.shape[0], 3, 3))
     S, t = fine.op, transfer
     missing = []
     parallel_blocks(lambda part: missing.append(kernel.galerkin(

@@ -8,7 +8,7 @@ entry of
     S = A^T W A + s K + μ P      (smoothing_system's notation, normalised units)
 
 couples a vertex to one of its 7 stencil neighbours. `LatticeSystem.stencil` writes S
-for a strength s straight into the solver's Stencil by halves (N, 4, 3, 3: each vertex's
+for a strength s straight into the solver's Stencil by halves (4, N, 3, 3: each vertex's
 blocks at itself and its 3 forward neighbours; the backward ones are their transposes):
 no whole-survey K or S as CSR (0.75 GB each at 1M vertices), nor all 7 blocks (0.51 GB;
 the halves 0.29). The kernel (_lattice_system.assemble) writes each vertex's own rows
@@ -105,7 +105,7 @@ class LatticeSystem:
             first, points = self.data.points_by_triangle()
             rows, weights = np.ascontiguousarray(self.data.values, dtype=np.float64), w
         elements = np.ascontiguousarray(self.elements, dtype=np.float64)
-        blocks = np.empty((self.nbr.shape[0], len(HALF), 3, 3))
+        blocks = np.empty((len(HALF), self.nbr.shape[0], 3, 3))
         outside = []
         parallel_blocks(lambda part: outside.append(kernel.assemble(
             self.triangles, start, corner, self.shape_of, elements, first, points, rows, weights, self.nbr,
