@@ -541,3 +541,19 @@ def test_a_smoothing_fit_at_5_spacings_writes_the_spline_slope_and_the_exact_fit
         assert 4.0 < 5 / raster["point_spacing"] < 8.0          # 5 m is between the two crossovers
         methods[smooth] = raster["slope_method"]
     assert methods == {"auto": "spline", "off": "horn"}
+
+
+def test_mean_spacing_in_blocks_has_the_one_pass_bits(monkeypatch):
+    """raster.mean_spacing forms the twice-areas in blocks (a memory bound) but sums them
+    whole: the bits of the one-pass numpy expression, for blocks that do and do not
+    divide the triangles."""
+    from c1mesh.geo import raster
+    rng = np.random.default_rng(3)
+    points = rng.random((5000, 3)) * 100.0
+    triangles = rng.integers(0, 5000, (12345, 3))
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    u, v = b - a, c - a
+    want = math.sqrt(0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum() / points.shape[0])
+    for block in (1000, 12345, 1 << 16):
+        monkeypatch.setattr(raster, "SPACING_BLOCK", block)
+        assert raster.mean_spacing(points, triangles) == want

@@ -12,7 +12,7 @@ from c1mesh.core.threads import limit
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import lattice_solver, smoothing
-from c1mesh.stages.lattice_solver import (OFFSETS, Lattice, LatticeSolver, colour_order, coarsen, grid_vertices,
+from c1mesh.stages.lattice_solver import (HALF, OFFSETS, Lattice, LatticeSolver, colour_order, coarsen, grid_vertices,
                                           hermite_weights, lattice_solve, stencil_neighbours)
 from c1mesh.stages.lattice_system import LatticeSystem
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, smooth_fit
@@ -21,6 +21,28 @@ from c1mesh.stages.smoothing_system import assemble_energy, data_rows
 
 NOISE = 0.02
 NX, NY, HX, HY = 60, 50, 1.0, 0.7
+
+
+def full_blocks(op) -> np.ndarray:
+    """(N, 7, 3, 3): a Stencil's blocks at all 7 slots, written out here by numpy from its
+    halves: slots 0, 1, 3, 5 as stored, each backward slot 2, 4, 6 (the vertex u there)
+    u's block at the slot before it, transposed (zeros where absent)."""
+    n = op.nbr.shape[0]
+    out = np.zeros((n, 7, 3, 3))
+    out[:, 0] = op.blocks[0]
+    for h, slot in enumerate((1, 3, 5), start=1):
+        out[:, slot] = op.blocks[h]
+        v = np.nonzero(op.nbr[:, slot + 1] >= 0)[0]
+        out[v, slot + 1] = op.blocks[h, op.nbr[v, slot + 1]].transpose(0, 2, 1)
+    return out
+
+
+def full_csr(op):
+    """A Stencil's S (3N, 3N) as CSR built here from full_blocks by scipy (BSR of its
+    present slots), independent of the kernel stencil_csr."""
+    full, present = full_blocks(op), op.nbr >= 0
+    indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
+    return sp.bsr_matrix((full[present], op.nbr[present], indptr), shape=op.shape).tocsr()
 
 
 def lattice_mesh(nx=NX, ny=NY, hx=HX, hy=HY, hole=True, seed=0, other_diagonal=False):
@@ -282,13 +304,16 @@ def test_the_galerkin_kernel_is_scipys_triple_product(nx, ny):
 
 
 def test_the_product_kernels_are_scipys_products_column_by_column():
-    """The stencil form's product and residual against scipy's (on the stencil form as CSR)
-    with k = 1, 3 and 6 columns (LANES and what is left), each column's bits the same
-    whatever k."""
+    """The half stencil's product and residual against scipy's product with the full
+    symmetric matrix built here from the halves (full_csr: each backward block the
+    neighbour's forward one transposed), with k = 1, 3 and 6 columns (LANES and what is
+    left), each column's bits the same whatever k."""
     S, rhs, lattice = lattice_system(1.0)
     solver = LatticeSolver(S, lattice, coarsest=150)
     fine = solver.levels[0]
-    S = S.csr()
+    S = full_csr(S)
+    off = S - sp.block_diag([full_blocks(solver.levels[0].op)[v, 0] for v in range(S.shape[0] // 3)], "csr")
+    assert abs(off - off.T).max() == 0.0 and (S.diagonal() > 0).all()      # mirrored off the diagonal blocks
     X = np.random.default_rng(5).normal(size=(S.shape[0], 6))
     for k in (1, 3, 6):
         x = np.ascontiguousarray(X[:, :k])
@@ -444,6 +469,7 @@ def _galerkin_by_loops(S, P, PT, fine_nodes, nx, coarse_nodes, nxc, coarse_nbr):
     skipped); then each coarse block Σ_g U_g P_g over the fine nodes g in grid order
     around the coarse node, P's rows in order."""
     m = coarse_nodes.size
+    blocks = full_blocks(S)
     out = np.zeros((m, 7, 3, 3))
     for I in range(m):
         ci, cj = coarse_nodes[I] % nxc, coarse_nodes[I] // nxc
@@ -467,7 +493,7 @@ def _galerkin_by_loops(S, P, PT, fine_nodes, nx, coarse_nodes, nxc, coarse_nbr):
                     for r in range(3):
                         if R[f][p, r] != 0.0:
                             for q in range(3):
-                                Ug[p][q] = Ug[p][q] + R[f][p, r] * S.blocks[f, fslot, r, q]
+                                Ug[p][q] = Ug[p][q] + R[f][p, r] * blocks[f, fslot, r, q]
         for (_, g), Ug in sorted(U.items()):
             for q in range(3):
                 for e in range(P.indptr[3 * g + q], P.indptr[3 * g + q + 1]):
@@ -480,8 +506,10 @@ def _galerkin_by_loops(S, P, PT, fine_nodes, nx, coarse_nodes, nxc, coarse_nbr):
 
 @pytest.mark.parametrize("nx, ny", [(25, 21), (26, 20)])
 def test_the_galerkin_kernel_has_the_bits_of_the_csr_loops(nx, ny):
-    """Every coarse operator's blocks have the bits of _galerkin_by_loops over the explicit
-    P (brute_coarsening), on lattices with holes, odd and even sizes."""
+    """Every coarse operator's stored half (slots 0, 1, 3, 5) has the bits of
+    _galerkin_by_loops over the explicit P (brute_coarsening) and the fine level's
+    blocks written out whole (full_blocks), on lattices with holes, odd and even sizes;
+    the slots not stored are, to rounding, the transposes the kernels read there."""
     S, _, lattice = lattice_system(0.3, nx=nx, ny=ny)
     solver = LatticeSolver(S, lattice, coarsest=20)
     assert len(solver.levels) >= 3
@@ -489,7 +517,9 @@ def test_the_galerkin_kernel_has_the_bits_of_the_csr_loops(nx, ny):
         P, nodes, nxc, _ = brute_coarsening(fine.nodes, fine.nx, fine.ny, fine.spacing)
         PT = _slot_ordered_transpose(P, fine.transfer.children)
         want = _galerkin_by_loops(fine.op, P, PT, fine.nodes, fine.nx, nodes, nxc, coarse.op.nbr)
-        assert coarse.op.blocks.tobytes() == want.tobytes()
+        assert coarse.op.blocks.tobytes() == np.ascontiguousarray(want[:, list(HALF)].transpose(1, 0, 2, 3)).tobytes()
+        full = full_blocks(coarse.op)
+        assert np.abs(full - want).max() <= 1e-13 * np.abs(want).max()
 
 
 def test_a_stencil_whose_slots_are_not_the_lattices_is_refused():
@@ -521,10 +551,12 @@ def test_the_colour_bounds_are_numpys():
 
 def test_the_stencil_as_csr_is_its_blocks_by_loops():
     """Stencil.csr (kernel stencil_csr) stores, row 3v + p, every present slot's 3 entries
-    (zeros too) with the columns ascending: the same arrays as Python loops over the slots
-    sorted by vertex, on a lattice with holes and on its coarsest Galerkin level."""
+    (zeros too) with the columns ascending, a backward slot's as its neighbour's forward
+    block transposed: the same arrays as Python loops over the slots sorted by vertex on
+    full_blocks, on a lattice with holes and on its coarsest Galerkin level."""
     S, _, lattice = lattice_system(0.7, nx=23, ny=19)
     for op in (S, LatticeSolver(S, lattice, coarsest=40).levels[-1].op):
+        blocks = full_blocks(op)
         indptr, indices, data = [0], [], []
         for v in range(op.nbr.shape[0]):
             slots = sorted((int(g), k) for k, g in enumerate(op.nbr[v]) if g >= 0)
@@ -532,7 +564,7 @@ def test_the_stencil_as_csr_is_its_blocks_by_loops():
                 for g, k in slots:
                     for q in range(3):
                         indices.append(3 * g + q)
-                        data.append(op.blocks[v, k, p, q])
+                        data.append(blocks[v, k, p, q])
                 indptr.append(len(indices))
         got = op.csr()
         assert got.shape == op.shape and got.has_sorted_indices

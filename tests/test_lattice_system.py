@@ -3,7 +3,8 @@ stages/_lattice_system.pyx) against a brute-force sum written here: every triang
 energy block and every data point's 9 × 9 outer product added into a dense S at their
 unknowns, one by one, on small lattices with holes, odd and even sizes and corners in
 any order; the same bytes at one and two threads; and the bits of the CSR system the
-search for s builds on the same vertices."""
+search for s builds on the same vertices in the stored half (the other half: to
+rounding)."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from c1mesh.core.threads import limit
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.stages import lattice_system
-from c1mesh.stages.lattice_solver import Lattice, colour_order, stencil_neighbours
+from c1mesh.stages.lattice_solver import HALF, Lattice, colour_order, stencil_neighbours
 from c1mesh.stages.smoothing import _directions, _Problem, lattice_locate, lattice_shapes
 from c1mesh.stages.smoothing_energy import SmoothingError
 
@@ -121,7 +122,8 @@ def test_the_stencil_is_the_brute_force_sum(nx, ny, seed, kind):
     want = brute_force(system, s, problem.w, mu)
     got = S.csr().toarray()
     assert np.abs(got - want).max() <= 1e-13 * np.abs(want).max()
-    np.testing.assert_array_equal(S.blocks[S.nbr < 0], 0.0)   # absent neighbours: zero blocks
+    np.testing.assert_array_equal(S.blocks[S.nbr[:, list(HALF)].T < 0], 0.0)   # absent neighbours: zero blocks
+    assert S.blocks.shape == (4, S.nbr.shape[0], 3, 3)                          # the halves only
     A = np.zeros((problem.w.size, 3 * lattice.nodes.size))
     if system.data is None:
         A[np.arange(problem.w.size), 3 * np.arange(problem.w.size)] = 1.0
@@ -139,13 +141,30 @@ def test_the_stencil_is_the_brute_force_sum(nx, ny, seed, kind):
 
 
 @pytest.mark.parametrize("kind", ["points", "vertices", "gradients"])
-def test_the_stencil_has_the_bits_of_the_searchs_csr_system(kind):
-    """The stencil holds, entry by entry, the bits of System.matrix's CSR on the same
-    vertices (the sums in the same order), so the lattice route's output did not move."""
+def test_the_stencil_has_the_bits_of_the_searchs_csr_system_in_its_half(kind):
+    """The stencil's stored half (each vertex's rows against itself and its forward
+    neighbours) holds, entry by entry, the bits of System.matrix's CSR on the same
+    vertices (the sums in the same order). The other half cannot: System.matrix sums a
+    backward block at its own vertex (its triangles in that vertex's order, products
+    (w a_v) a_u against (w a_u) a_v), so it is not bitwise the transpose the stencil
+    reads there. So S off its diagonal blocks is exactly symmetric (the self blocks are
+    System.matrix's), and S is System.matrix's to rounding; System.matrix is not exactly
+    symmetric (else the half would have changed no bit)."""
     problem, lattice = lattice_problem(14, 13, 5, vertex_data=kind == "vertices", gradients=kind == "gradients")
     S, rhs = built(problem, lattice).stencil(2.5, problem.w, 0.3)
     want, want_rhs = problem.system().matrix(2.5, problem.w, 0.3)
-    assert np.array_equal(S.csr().toarray(), want.toarray())
+    got, want = S.csr().toarray(), want.toarray()
+    n = S.nbr.shape[0]
+    stored = np.zeros((n, n), bool)                          # (v, u): u at slot 0, 1, 3 or 5 of v
+    for slot in HALF:
+        v = np.nonzero(S.nbr[:, slot] >= 0)[0]
+        stored[v, S.nbr[v, slot]] = True
+    stored = np.kron(stored, np.ones((3, 3), bool))
+    assert np.array_equal(got[stored], want[stored])
+    off = got * ~np.kron(np.eye(n, dtype=bool), np.ones((3, 3), bool))   # the self blocks as assembled
+    assert np.array_equal(off, off.T)
+    assert np.abs(got - want).max() <= 1e-14 * np.abs(want).max()
+    assert not np.array_equal(want, want.T)
     assert rhs.tobytes() == want_rhs.tobytes()
 
 

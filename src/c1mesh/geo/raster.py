@@ -509,11 +509,22 @@ def raster_axis(axis):
                      "with GeoTIFF outputs (use --axis z or auto)")
 
 
+SPACING_BLOCK = 1 << 16
+"""Triangles per block of mean_spacing's twice-areas."""
+
+
 def mean_spacing(points: np.ndarray, triangles: np.ndarray) -> float:
-    """√(area of the triangulation / number of points): the mean point spacing."""
-    a, b, c = (points[triangles[:, k]] for k in range(3))
-    u, v = b - a, c - a
-    area = 0.5 * np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]).sum()
+    """√(area of the triangulation / number of points): the mean point spacing. Each
+    triangle's twice-area |u × v| (u, v its edges from its first corner) is formed in
+    blocks of SPACING_BLOCK triangles into one (T,) array, then summed whole (numpy's
+    pairwise sum): the bits of the one-pass expression, without its (T, 2) corner and
+    edge copies (0.2 GB at 2M triangles, the DTM job's peak)."""
+    twice = np.empty(triangles.shape[0])
+    for start in range(0, triangles.shape[0], SPACING_BLOCK):
+        a, b, c = (points[triangles[start:start + SPACING_BLOCK, k]] for k in range(3))
+        u, v = b - a, c - a
+        twice[start:start + SPACING_BLOCK] = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
+    area = 0.5 * twice.sum()
     return float(math.sqrt(area / points.shape[0]))
 
 

@@ -3,13 +3,21 @@
 or vertices in fixed blocks in the thread knob's threads), and nothing else imports them.
 
 S is the smoothing system on lattice nodes, 3 unknowns per vertex, coupled only along the
-7-point stencil of the split cells. A level holds it in stencil form: nbr (N, 7) int32 the
-vertex at each of OFFSETS' 7 offsets from vertex v (slot 0 v itself; −1 absent) and
-blocks (N, 7, 3, 3) the 3 × 3 block of S coupling v to it (zero where absent): one index
-per 9 values, so a pass over S reads 0.53 kB a vertex where CSR read 0.77 (every pass is
-bound by that read). Vertices of one colour (i + j) mod 3 never touch each other: a
-block of them reads only other colours' unknowns and writes only its own, and the bits
-do not depend on the blocks' threads. A row's sum runs over the slots in order, the 3
+7-point stencil of the split cells. A level holds it in stencil form by halves: nbr
+(N, 7) int32 the vertex at each of OFFSETS' 7 offsets from vertex v (slot 0 v itself; −1
+absent) and blocks (4, N, 3, 3), blocks[h, v] the 3 × 3 block of S coupling v to itself
+(h = 0) and to its 3 forward neighbours, slots 1, 3, 5 (offsets (1, 0), (0, 1), (1, 1)),
+at h = 1, 2, 3 (zero where absent): one array of blocks per half slot, so that the
+backward reads (below) stream through whole blocks of consecutive vertices (with each
+vertex's 4 blocks together, (N, 4, 3, 3), they read 72 B of every 288 and a pass over
+S took 3.2 times as long at 420k vertices). S is symmetric, so the block of v at a backward slot 2, 4 or 6 (the
+neighbour u at the opposite offset) is the transpose of u's block at forward slot 1, 3
+or 5: every kernel reads it so (`_slot_block`), and S takes 4/7 of the memory of all 7
+blocks (0.32 kB a vertex with nbr, against 0.53 and 0.77 as CSR; every pass is bound
+by reading S).
+Vertices of one colour (i + j) mod 3 never touch each other: a block of them reads only
+other colours' unknowns and writes only its own (S is only read), and the bits do not
+depend on the blocks' threads. A row's sum runs over the slots in order, the 3
 unknowns of each in order (-ffp-contract=off: no fused multiply-add).
 
 Vectors are (n, k) C-contiguous arrays: k right-hand sides solved together (the edf's
@@ -26,52 +34,104 @@ cdef enum:
     SLOTS = 7       # a vertex and its 6 stencil neighbours
 
 
-def block_inverses(const double[:, :, :, ::1] blocks, double[:, :, ::1] dinv, Py_ssize_t start, Py_ssize_t stop):
-    """dinv[v] (3, 3): the inverse of S's diagonal block blocks[v, 0] for start <= v < stop
-    (the adjugate over the determinant). Returns the blocks whose determinant is not
-    positive and finite (their dinv is zero: the sweep leaves those vertices alone)."""
-    cdef Py_ssize_t v
-    cdef int p, q
-    cdef double d[3][3]
+cdef inline bint _inverse(const double *d, double *inv) noexcept nogil:
+    """inv (9,) row-major: the inverse of the 3 × 3 block d (9,) row-major (the adjugate
+    over the determinant, each entry divided); False (inv zero) when the determinant is
+    not positive and finite. The one formula of `sweep`, `first_sweep` and
+    `singular_blocks`: the diagonal inverses are formed where they are used, not stored
+    ((N, 3, 3) at every level: 72 MB at 1M vertices)."""
+    cdef int t
     cdef double det
+    inv[0] = d[4] * d[8] - d[5] * d[7]
+    inv[1] = d[2] * d[7] - d[1] * d[8]
+    inv[2] = d[1] * d[5] - d[2] * d[4]
+    inv[3] = d[5] * d[6] - d[3] * d[8]
+    inv[4] = d[0] * d[8] - d[2] * d[6]
+    inv[5] = d[2] * d[3] - d[0] * d[5]
+    inv[6] = d[3] * d[7] - d[4] * d[6]
+    inv[7] = d[1] * d[6] - d[0] * d[7]
+    inv[8] = d[0] * d[4] - d[1] * d[3]
+    det = d[0] * inv[0] + d[1] * inv[3] + d[2] * inv[6]
+    if det > 0.0 and isfinite(det):
+        for t in range(9):
+            inv[t] = inv[t] / det
+        return True
+    for t in range(9):
+        inv[t] = 0.0
+    return False
+
+
+def singular_blocks(const double[:, :, :, ::1] blocks, Py_ssize_t start, Py_ssize_t stop):
+    """How many of S's diagonal blocks blocks[0, v] (blocks the half stencil
+    (4, N, 3, 3)), start <= v < stop, have a determinant that is not positive and finite
+    (`_inverse`: the sweeps leave those vertices alone)."""
+    cdef Py_ssize_t v
+    cdef double inv[9]
     cdef int64_t singular = 0
     with nogil:
         for v in range(start, stop):
-            for p in range(3):
-                for q in range(3):
-                    d[p][q] = blocks[v, 0, p, q]
-            dinv[v, 0, 0] = d[1][1] * d[2][2] - d[1][2] * d[2][1]
-            dinv[v, 0, 1] = d[0][2] * d[2][1] - d[0][1] * d[2][2]
-            dinv[v, 0, 2] = d[0][1] * d[1][2] - d[0][2] * d[1][1]
-            dinv[v, 1, 0] = d[1][2] * d[2][0] - d[1][0] * d[2][2]
-            dinv[v, 1, 1] = d[0][0] * d[2][2] - d[0][2] * d[2][0]
-            dinv[v, 1, 2] = d[0][2] * d[1][0] - d[0][0] * d[1][2]
-            dinv[v, 2, 0] = d[1][0] * d[2][1] - d[1][1] * d[2][0]
-            dinv[v, 2, 1] = d[0][1] * d[2][0] - d[0][0] * d[2][1]
-            dinv[v, 2, 2] = d[0][0] * d[1][1] - d[0][1] * d[1][0]
-            det = d[0][0] * dinv[v, 0, 0] + d[0][1] * dinv[v, 1, 0] + d[0][2] * dinv[v, 2, 0]
-            if det > 0.0 and isfinite(det):
-                for p in range(3):
-                    for q in range(3):
-                        dinv[v, p, q] = dinv[v, p, q] / det
-            else:
+            if not _inverse(&blocks[0, v, 0, 0], inv):
                 singular += 1
-                for p in range(3):
-                    for q in range(3):
-                        dinv[v, p, q] = 0.0
     return singular
 
 
-cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, const double *x, Py_ssize_t k,
-                              Py_ssize_t c0, Py_ssize_t w, double *out) noexcept nogil:
+cdef inline const double *_slot_block(const int32_t *nbr, const double *blocks, Py_ssize_t n, Py_ssize_t v, Py_ssize_t slot,
+                                      int *sp, int *sq) noexcept nogil:
+    """The block of S coupling vertex v to nbr[slot] (nbr v's row (7,), the slot present),
+    blocks the (4, n, 3, 3) half stencil's first entry: its entry (p, q) is
+    blk[p sp + q sq]. Slot 0 and the forward slots 1, 3, 5 are v's own half slots 0, 1,
+    2, 3 (sp, sq = 3, 1); a backward slot 2, 4, 6 is the transpose of the neighbour's
+    block at the forward slot before it (sp, sq = 1, 3)."""
+    if slot == 0 or slot & 1:
+        sp[0] = 3
+        sq[0] = 1
+        return blocks + 9 * ((slot + 1) // 2 * n + v)
+    sp[0] = 1
+    sq[0] = 3
+    return blocks + 9 * (slot // 2 * n + <Py_ssize_t> nbr[slot])
+
+
+cdef inline void _load_block(const int32_t *nbr, const double *blocks, Py_ssize_t n, Py_ssize_t v, Py_ssize_t slot,
+                             double *m) noexcept nogil:
+    """m (9,) row-major: the block of S coupling vertex v to nbr[slot] (`_slot_block`),
+    copied with constant offsets (a backward block transposed as it is copied): the sums
+    then index it by constants."""
+    cdef const double *blk
+    if slot == 0 or slot & 1:
+        blk = blocks + 9 * ((slot + 1) // 2 * n + v)
+        m[0] = blk[0]
+        m[1] = blk[1]
+        m[2] = blk[2]
+        m[3] = blk[3]
+        m[4] = blk[4]
+        m[5] = blk[5]
+        m[6] = blk[6]
+        m[7] = blk[7]
+        m[8] = blk[8]
+    else:
+        blk = blocks + 9 * (slot // 2 * n + <Py_ssize_t> nbr[slot])
+        m[0] = blk[0]
+        m[1] = blk[3]
+        m[2] = blk[6]
+        m[3] = blk[1]
+        m[4] = blk[4]
+        m[5] = blk[7]
+        m[6] = blk[2]
+        m[7] = blk[5]
+        m[8] = blk[8]
+
+
+cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, Py_ssize_t n, Py_ssize_t v, const double *x,
+                              Py_ssize_t k, Py_ssize_t c0, Py_ssize_t w, double *out) noexcept nogil:
     """out[p LANES + c] = (S x)[3v + p, c0 + c] for p < 3, c < w <= LANES, from vertex v's
-    nbr row (7,) and blocks (7, 3, 3), x (n, k) row-major: each sum over the slots in
+    nbr row (7,) and the half stencil blocks (4, n, 3, 3) (its first entry; backward
+    blocks read transposed: `_load_block`), x (n, k) row-major: each sum over the slots in
     order, the 3 unknowns of each in order, from 0, in local variables."""
     cdef Py_ssize_t slot, c
-    cdef int p, q
+    cdef int q
     cdef double a
     cdef const double *xg
-    cdef const double *blk
+    cdef double blk[9]
     cdef double s00 = 0.0, s01 = 0.0, s02 = 0.0, s03 = 0.0
     cdef double s10 = 0.0, s11 = 0.0, s12 = 0.0, s13 = 0.0
     cdef double s20 = 0.0, s21 = 0.0, s22 = 0.0, s23 = 0.0
@@ -79,7 +139,7 @@ cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, const do
         for slot in range(SLOTS):
             if nbr[slot] < 0:
                 continue
-            blk = blocks + 9 * slot
+            _load_block(nbr, blocks, n, v, slot, blk)
             for q in range(3):
                 xg = x + (3 * <Py_ssize_t> nbr[slot] + q) * k + c0
                 a = blk[q]
@@ -117,7 +177,7 @@ cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, const do
             for slot in range(SLOTS):
                 if nbr[slot] < 0:
                     continue
-                blk = blocks + 9 * slot
+                _load_block(nbr, blocks, n, v, slot, blk)
                 for q in range(3):
                     a = x[(3 * <Py_ssize_t> nbr[slot] + q) * k + c0 + c]
                     s00 = s00 + blk[q] * a
@@ -129,30 +189,33 @@ cdef inline void _vertex_sums(const int32_t *nbr, const double *blocks, const do
 
 
 def sweep(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double[:, ::1] b,
-          double[:, ::1] x, const double[:, :, ::1] dinv, Py_ssize_t start, Py_ssize_t stop):
+          double[:, ::1] x, Py_ssize_t start, Py_ssize_t stop):
     """One block Gauss–Seidel step on the vertices start <= v < stop (all of one colour):
-    for each, r = b[3v:3v+3] − (S x)[3v:3v+3], then x[3v:3v+3] += dinv[v] r, column by
-    column of x (n, k). In place. The level numbers its vertices colour by colour, so a
+    for each, r = b[3v:3v+3] − (S x)[3v:3v+3], then x[3v:3v+3] += D⁻¹ r, D⁻¹ the
+    inverse of its diagonal block (`_inverse`, formed here: zero where singular), column
+    by column of x (n, k). In place. The level numbers its vertices colour by colour, so a
     colour's blocks are read in one stream (every third vertex of the grid's order took
     6 times as long per vertex)."""
     cdef Py_ssize_t v, c, c0, w, chunk, k = x.shape[1], lanes = LANES
     cdef int p
     cdef double r[3 * LANES]
+    cdef double dinv[9]
     if stop <= start:
         return
     with nogil:
         for v in range(start, stop):
+            _inverse(&blocks[0, v, 0, 0], dinv)
             for chunk in range((k + lanes - 1) // lanes):
                 c0 = chunk * lanes
                 w = min(lanes, k - c0)
-                _vertex_sums(&nbr[v, 0], &blocks[v, 0, 0, 0], &x[0, 0], k, c0, w, r)
+                _vertex_sums(&nbr[v, 0], &blocks[0, 0, 0, 0], blocks.shape[1], v, &x[0, 0], k, c0, w, r)
                 for p in range(3):
                     for c in range(w):
                         r[p * LANES + c] = b[3 * v + p, c0 + c] - r[p * LANES + c]
                 for p in range(3):
                     for c in range(w):
                         x[3 * v + p, c0 + c] = x[3 * v + p, c0 + c] + (
-                            dinv[v, p, 0] * r[c] + dinv[v, p, 1] * r[LANES + c] + dinv[v, p, 2] * r[2 * LANES + c])
+                            dinv[3 * p] * r[c] + dinv[3 * p + 1] * r[LANES + c] + dinv[3 * p + 2] * r[2 * LANES + c])
 
 
 cdef void _stencil_rows(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const double* b,
@@ -167,7 +230,7 @@ cdef void _stencil_rows(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] bl
         for chunk in range((k + lanes - 1) // lanes):
             c0 = chunk * lanes
             w = min(lanes, k - c0)
-            _vertex_sums(&nbr[v, 0], &blocks[v, 0, 0, 0], &x[0, 0], k, c0, w, acc)
+            _vertex_sums(&nbr[v, 0], &blocks[0, 0, 0, 0], blocks.shape[1], v, &x[0, 0], k, c0, w, acc)
             for p in range(3):
                 for c in range(w):
                     if b == NULL:
@@ -258,19 +321,22 @@ def restrict(const int32_t[:, ::1] children, const double[:, :, ::1] weights, co
                     y[3 * c + q, col] = s
 
 
-def first_sweep(const double[:, ::1] b, double[:, ::1] x, const double[:, :, ::1] dinv,
+def first_sweep(const double[:, :, :, ::1] blocks, const double[:, ::1] b, double[:, ::1] x,
                 Py_ssize_t start, Py_ssize_t stop):
     """`sweep` where x is zero on every vertex its rows reach (a V-cycle's first colour,
-    from x = 0): x[3v:3v+3] = dinv[v] b[3v:3v+3] for start <= v < stop, the bits `sweep`
-    gives there (b − 0 is b), without reading S."""
+    from x = 0): x[3v:3v+3] = D⁻¹ b[3v:3v+3] for start <= v < stop (D⁻¹ as `sweep`
+    forms it), the bits `sweep` gives there (b − 0 is b), reading only the diagonal
+    blocks of S (blocks the half stencil (4, N, 3, 3))."""
     cdef Py_ssize_t v, c, k = x.shape[1]
     cdef int p
+    cdef double dinv[9]
     with nogil:
         for v in range(start, stop):
+            _inverse(&blocks[0, v, 0, 0], dinv)
             for p in range(3):
                 for c in range(k):
-                    x[3 * v + p, c] = 0.0 + (dinv[v, p, 0] * b[3 * v, c] + dinv[v, p, 1] * b[3 * v + 1, c]
-                                             + dinv[v, p, 2] * b[3 * v + 2, c])
+                    x[3 * v + p, c] = 0.0 + (dinv[3 * p] * b[3 * v, c] + dinv[3 * p + 1] * b[3 * v + 1, c]
+                                             + dinv[3 * p + 2] * b[3 * v + 2, c])
 
 
 def dots(const double[:, ::1] a, const double[:, ::1] b, double[::1] out, Py_ssize_t start, Py_ssize_t stop):
@@ -294,11 +360,14 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
              const int32_t[:, ::1] children, const int32_t[::1] order, const int32_t[:, ::1] parents,
              const int8_t[:, ::1] parent_slot, const double[:, :, ::1] weights, const int32_t[:, ::1] coarse_nbr,
              double[:, :, :, ::1] coarse_blocks, Py_ssize_t start, Py_ssize_t stop):
-    """coarse_blocks[I] (7, 3, 3): the coarse operator Pᵀ S P's blocks for the coarse
-    vertices start <= I < stop, in the slots of coarse_nbr[I] (its own vertex and its 6
-    stencil neighbours, OFFSETS' order, −1 absent: zeros there).
+    """coarse_blocks[:, I] (4, 3, 3): the coarse operator Pᵀ S P's half stencil for the coarse
+    vertices start <= I < stop: its blocks at slots 0, 1, 3, 5 of coarse_nbr[I] (its own
+    vertex and its 6 stencil neighbours, OFFSETS' order, −1 absent: zeros there), the
+    backward slots 2, 4, 6 neither summed nor stored (they are the transposes of the
+    neighbours' forward blocks).
 
-    S in stencil form (nbr, blocks) on the fine vertices; offsets (7, 2) OFFSETS; P from
+    S in stencil form by halves (nbr (n, 7), blocks (4, n, 3, 3): a backward block read as
+    the transpose of the neighbour's forward one) on the fine vertices; offsets (7, 2) OFFSETS; P from
     the Transfer's node structure (`prolong`, `restrict`): children (m, 7) the fine vertex
     at each offset from a coarse vertex (−1: none), parents (n, 2) / parent_slot (n, 2)
     each fine vertex's coarse vertices ascending and its offset from each, weights
@@ -318,8 +387,9 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
     entry; an entry of P for a vertex not in the slots is counted and skipped (returned:
     0 when the pattern holds)."""
     cdef Py_ssize_t I, e, g, f, J, slot, fslot, last_j, last_slot, n, u, base, pslot, t, k = order.shape[0]
-    cdef int p, q, r, qq
+    cdef int p, q, r, qq, sp, sq
     cdef int64_t missing = 0
+    cdef double back[9]
     cdef Py_ssize_t uvert[25]
     cdef double U[25][9]
     cdef double acc[SLOTS][9]
@@ -367,7 +437,11 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                         continue
                     u = base + ushift[fslot]
                     uvert[u] = g
-                    blk = &blocks[f, fslot, 0, 0]
+                    blk = _slot_block(&nbr[f, 0], &blocks[0, 0, 0, 0], blocks.shape[1], f, fslot, &sp, &sq)
+                    if sp != 3:                           # a backward block: its transpose, row-major
+                        for t in range(9):
+                            back[t] = blk[(t // 3) * sp + (t % 3) * sq]
+                        blk = &back[0]
                     Ug = &U[u][0]
                     for p in range(3):
                         for t in range(rn[slot][p]):
@@ -403,15 +477,17 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                         if last_slot == SLOTS:
                             missing += pn[pslot][q]
                             continue
+                        if last_slot != 0 and not last_slot & 1:
+                            continue                      # a backward block: not stored
                         for t in range(pn[pslot][q]):
                             uw = pv[pslot][q][t]
                             qq = pq[pslot][q][t]
                             acc[last_slot][qq] = acc[last_slot][qq] + u0 * uw
                             acc[last_slot][3 + qq] = acc[last_slot][3 + qq] + u1 * uw
                             acc[last_slot][6 + qq] = acc[last_slot][6 + qq] + u2 * uw
-            for slot in range(SLOTS):
+            for slot in range(4):
                 for t in range(9):
-                    coarse_blocks[I, slot, t // 3, t % 3] = acc[slot][t]
+                    coarse_blocks[slot, I, t // 3, t % 3] = acc[0 if slot == 0 else 2 * slot - 1][t]
     return missing
 
 
@@ -580,13 +656,15 @@ def neighbour_mismatches(const int64_t[::1] nodes, const int32_t[::1] where, Py_
 
 def stencil_csr(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, int64_t[::1] indptr,
                 int64_t[::1] indices, double[::1] data):
-    """S (3N, 3N) as CSR from its stencil form, rows 3v + p in order, each row's columns
-    ascending: vertex v's present slots sorted by their vertex (at most 7: an insertion
-    sort), each slot's 3 unknowns in order, blocks[v, slot, p, q] stored whether zero or
-    not. indptr (3N + 1,), indices and data (9 × present slots,). Serial (the coarsest
+    """S (3N, 3N) as CSR from its stencil form by halves (blocks (4, N, 3, 3)), both
+    halves written out: rows 3v + p in order, each row's columns ascending: vertex v's
+    present slots sorted by their vertex (at most 7: an insertion sort), each slot's 3
+    unknowns in order, the block's entry (p, q) (`_slot_block`: a backward slot's the
+    neighbour's forward block's (q, p)) stored whether zero or not. indptr (3N + 1,), indices and data (9 × present slots,). Serial (the coarsest
     level's few thousand vertices, for its direct factorisation)."""
     cdef Py_ssize_t v, n = nbr.shape[0], e = 0, a, b
-    cdef int p, q, count
+    cdef int p, q, count, sp, sq
+    cdef const double *blk
     cdef int32_t order[SLOTS]
     cdef int32_t t
     with nogil:
@@ -605,8 +683,9 @@ def stencil_csr(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, in
             for p in range(3):
                 for a in range(count):
                     t = order[a]
+                    blk = _slot_block(&nbr[v, 0], &blocks[0, 0, 0, 0], blocks.shape[1], v, t, &sp, &sq)
                     for q in range(3):
                         indices[e] = 3 * <int64_t> nbr[v, t] + q
-                        data[e] = blocks[v, t, p, q]
+                        data[e] = blk[p * sp + q * sq]
                         e += 1
                 indptr[3 * v + p + 1] = e

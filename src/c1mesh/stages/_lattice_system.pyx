@@ -3,16 +3,23 @@
 wraps it (validation, the vertices in fixed blocks in the thread knob's threads), and
 nothing else imports it.
 
-S = s K + Aᵀ W A + diag is written vertex by vertex: vertex v's 3 rows are its blocks
-(7, 3, 3) against the vertices nbr[v] (its stencil neighbours, slot 0 itself, −1 absent).
-Only v's own rows are written, from the triangles at v, so a block of vertices needs no
+S = s K + Aᵀ W A + diag is written vertex by vertex, by halves (the solver's stencil
+form, stages/_lattice_solver.pyx): vertex v's 3 rows against itself and its forward
+neighbours nbr[v, 1], nbr[v, 3], nbr[v, 5] (slot 0 itself, −1 absent), blocks[:, v]
+(4, 3, 3) of blocks (4, N, 3, 3);
+its blocks at the backward slots 2, 4, 6 are the transposes of those neighbours' forward
+blocks at v, so they are neither summed nor stored. Only v's own rows are written, from
+the triangles at v, so a block of vertices needs no
 other block's work and the bits do not depend on the threads. Each entry sums in a fixed
 order: K's over the triangles at v in increasing triangle order from 0, the data term's
 over those triangles' points (each triangle's in the order given) from 0, each product
 w_i a_ij a_ik formed as (w_i a_i,min(j,k)) a_i,max(j,k); then (K s + data) + diag. Those
 are the sums and products the CSR assembly of the energy (_smoothing_system.add_blocks)
 and of the data term (_smoothing_system.data_scatter) formed, added as System.matrix
-added them: the same bits. -ffp-contract=off: no fused multiply-add.
+added them: the stored rows have its bits. Its other half (the backward blocks, which
+System.matrix summed at the other vertex, in that vertex's triangle order and with its
+products (w a_v) a_u against (w a_u) a_v) differs from the transposes read here in the
+last bits only. -ffp-contract=off: no fused multiply-add.
 """
 from libc.stdint cimport int32_t, int64_t
 
@@ -31,8 +38,10 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
              const int64_t[::1] first_point, const int64_t[::1] points, const double[:, ::1] rows,
              const double[::1] w, const int32_t[:, ::1] nbr, double s, const double[:, ::1] diag,
              double[:, :, :, ::1] blocks, Py_ssize_t first, Py_ssize_t stop):
-    """blocks[v] (7, 3, 3) of S for first <= v < stop; returns the triangle corners at those
-    vertices that are none of nbr[v]'s (0 when the mesh is the lattice's).
+    """blocks[:, v] (4, 3, 3) of S for first <= v < stop: its blocks at slots 0, 1, 3, 5 of
+    nbr[v] (self and the forward neighbours; zeros where absent); returns the triangle
+    corners at those vertices that are none of nbr[v]'s (0 when the mesh is the
+    lattice's).
 
     triangles (T, 3); the corners 3 t + k at vertex v are corner[start[v]:start[v + 1]],
     increasing (_smoothing_system.incidence); triangle t's 9 × 9 energy block is
@@ -42,7 +51,7 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
     vertices) first_point is all zeros. diag (N, 3): added to the diagonal of v's own
     block after the rest (vertex data weights, gradient weights)."""
     cdef Py_ssize_t v, e, p, i, t
-    cdef int a, b, c, d, j, k, slot
+    cdef int a, b, c, d, j, k, slot, h
     cdef int slots[3]
     cdef int64_t outside = 0
     cdef double K[SLOTS][3][3]
@@ -73,6 +82,8 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
                 for c in range(3):
                     j = _local(a, c)
                     for b in range(3):
+                        if slots[b] != 0 and not slots[b] & 1:
+                            continue                  # a backward block: not stored
                         for d in range(3):
                             K[slots[b]][c][d] += element[9 * j + _local(b, d)]
                 for p in range(first_point[t], first_point[t + 1]):
@@ -85,13 +96,16 @@ def assemble(const int64_t[:, ::1] triangles, const int64_t[::1] start, const in
                     for c in range(3):
                         j = _local(a, c)
                         for b in range(3):
+                            if slots[b] != 0 and not slots[b] & 1:
+                                continue
                             for d in range(3):
                                 k = _local(b, d)
                                 D[slots[b]][c][d] += (weighted[j] * row[k] if j <= k else weighted[k] * row[j])
-            for slot in range(SLOTS):
+            for h in range(4):
+                slot = 0 if h == 0 else 2 * h - 1
                 for c in range(3):
                     for d in range(3):
-                        blocks[v, slot, c, d] = K[slot][c][d] * s + D[slot][c][d]
+                        blocks[h, v, c, d] = K[slot][c][d] * s + D[slot][c][d]
             for c in range(3):
-                blocks[v, 0, c, c] = blocks[v, 0, c, c] + diag[v, c]
+                blocks[0, v, c, c] = blocks[0, v, c, c] + diag[v, c]
     return outside

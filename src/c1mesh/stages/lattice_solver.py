@@ -34,11 +34,14 @@ is what that study recommends:
   each level's grid_vertices table (one int32 per grid node): on the 1M DTM stencil the
   set-up costs about 1.05 s of CPU (2.4 s before; cProfile at one thread: Galerkin
   kernels 0.57 s, the coarsest CHOLMOD factorisation 0.30 s, which holds the GIL, the
-  diagonal inverses 0.10 s);
-* every level's S in stencil form (`Stencil`: each vertex's 7 neighbours and its 7
-  blocks of 3 × 3), one index per 9 values: every pass over S (sweeps, residuals, CG's
-  product) is bound by reading it, and CSR read 45 % more; the fine level's is assembled
-  in that form (stages.lattice_system), never as CSR;
+  diagonal inverses 0.10 s, before they were formed in the sweeps instead of stored);
+* every level's S in stencil form by halves (`Stencil`: each vertex's 7 neighbours and
+  its 4 blocks of 3 × 3, itself and its 3 forward neighbours; a backward neighbour's
+  block is read as the transpose of that neighbour's forward block, S being symmetric),
+  one index per 36 values: every pass over S (sweeps, residuals, CG's product) is bound
+  by reading it, and CSR read 45 % more than all 7 blocks; the halves hold 4/7 of those
+  (1M DTM job: fine blocks 489 → 279 MiB, coarse levels 184 → 105 MiB); the fine
+  level's is assembled in that form (stages.lattice_system), never as CSR nor whole;
 * the smoother block (3 × 3 per vertex) Gauss–Seidel in the 3 colours (i + j) mod 3, which
   no stencil offset keeps: 0, 1, 2 before the coarse correction and 2, 1, 0 after it, so
   the cycle is symmetric (stages/_lattice_solver.pyx; the vertices of a colour in fixed
@@ -99,7 +102,12 @@ GALERKIN_BLOCK = 1 << 12
 """Coarse vertices per block of the Galerkin kernel."""
 OFFSETS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1))
 """The fine nodes a coarse node's data reach: the node itself and the midpoints of its 6
-coarse edges, as fine-grid offsets (di, dj) from its fine node."""
+coarse edges, as fine-grid offsets (di, dj) from its fine node. Also a stencil's 7 slots:
+slot 0 the vertex itself, the odd slots forward, each even slot the backward offset of
+the slot before it."""
+HALF = (0, 1, 3, 5)
+"""The slots (OFFSETS' indices) whose blocks a Stencil stores: self and the forward
+offsets (1, 0), (0, 1), (1, 1)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,20 +351,28 @@ def _slots_match(nbr: np.ndarray, nodes: np.ndarray, nx: int, ny: int, where: np
 
 
 class Stencil:
-    """A level's S in stencil form: nbr (N, 7) int32 (stencil_neighbours) and blocks
-    (N, 7, 3, 3), blocks[v, k] the 3 × 3 block of S coupling vertex v to vertex nbr[v, k]
-    (zeros where it is −1). One index per 9 values: a pass over S reads 0.53 kB a vertex
-    where CSR read 0.77, and every pass of the solver is bound by that read. Products
+    """A level's S in stencil form by halves: nbr (N, 7) int32 (stencil_neighbours) and
+    blocks (4, N, 3, 3), blocks[h, v] the 3 × 3 block of S coupling vertex v to vertex
+    nbr[v, HALF[h]] (itself, then its forward neighbours at slots 1, 3, 5; zeros where
+    it is −1). S is symmetric: v's block at a backward slot 2, 4, 6 (the vertex u there)
+    is the transpose of u's block at the forward slot 1, 3, 5 (where v is), and every
+    kernel reads it so. A pass over S reads 0.32 kB a vertex where all 7 blocks were
+    0.53 and CSR 0.77, and every pass of the solver is bound by that read. One array of
+    blocks per half slot (h first): the backward reads then stream through consecutive
+    vertices' whole blocks (vertex-major, they took a pass 3.2 times as long). Products
     and residuals with (3N, k) blocks of vectors, the vertices in fixed blocks of
     SWEEP_BLOCK in the thread knob's threads (each row's sum in a fixed order: the bits
     do not depend on the threads)."""
 
     def __init__(self, nbr: np.ndarray, blocks: np.ndarray):
+        if blocks.shape != (len(HALF), nbr.shape[0], 3, 3):
+            raise ValueError(f"a stencil's blocks must be ({len(HALF)}, {nbr.shape[0]}, 3, 3), got {blocks.shape}")
         self.nbr, self.blocks = nbr, blocks
         self.shape = (3 * nbr.shape[0],) * 2
 
     def csr(self):
-        """S (3N, 3N) CSR with sorted indices (every slot present stored whole, zeros too),
+        """S (3N, 3N) CSR with sorted indices, both halves (every slot present stored whole,
+        zeros too, a backward one as the transpose of the neighbour's forward block),
         by the kernel stencil_csr (one serial pass: the coarsest level's factorisation
         and the tests ask for it)."""
         n = self.nbr.shape[0]
@@ -389,14 +405,15 @@ class Stencil:
 
 
 def galerkin(fine: "_Level", transfer: Transfer, neighbours: np.ndarray) -> Stencil:
-    """Pᵀ S P in stencil form for the level below `fine` (its S), P the `transfer`'s,
+    """Pᵀ S P in stencil form (by halves: only its HALF slots summed) for the level below
+    `fine` (its S), P the `transfer`'s,
     neighbours (m, 7) the coarse level's stencil_neighbours, by the kernel `galerkin`
     straight from the Transfer's node structure (no P as CSR), the coarse vertices in
     fixed blocks of GALERKIN_BLOCK in the thread knob's threads. SmoothingError when an
     entry falls outside the coarse stencil (not a lattice prolongation)."""
     offsets = np.array(OFFSETS, dtype=np.int32)
     order = child_order(transfer.weights)
-    blocks = np.empty(neighbours.shape + (3, 3))
+    blocks = np.empty((len(HALF), neighbours.shape[0], 3, 3))
     S, t = fine.op, transfer
     missing = []
     parallel_blocks(lambda part: missing.append(kernel.galerkin(
@@ -409,9 +426,10 @@ def galerkin(fine: "_Level", transfer: Transfer, neighbours: np.ndarray) -> Sten
 
 class _Level:
     """One grid: S in stencil form (op) with its vertices numbered colour by colour
-    (colour_order), their nodes, each colour's first vertex (bounds (4,)), the inverses
-    of S's diagonal blocks, its grid spacing (hx, hy), and the Transfer to the next coarser
-    grid (None on the coarsest). where: its grid_vertices while the level below is made
+    (colour_order), their nodes, each colour's first vertex (bounds (4,)), its grid
+    spacing (hx, hy), and the Transfer to the next coarser grid (None on the coarsest).
+    The inverses of S's diagonal blocks are formed by the sweeps where they use them (not
+    stored: 72 MB at the 1M fine level); made here only to check that none is singular. where: its grid_vertices while the level below is made
     (then None). S: op as CSR, made when asked."""
 
     def __init__(self, op: Stencil, nodes: np.ndarray, nx: int, ny: int, spacing: tuple, where: np.ndarray):
@@ -419,10 +437,9 @@ class _Level:
         self.bounds = _colour_bounds(nodes, nx)
         if self.bounds is None:
             raise ValueError("a level's vertices must be numbered colour by colour")
-        self.dinv = np.empty((nodes.size, 3, 3))
         counts = []
-        parallel_blocks(lambda part: counts.append(kernel.block_inverses(op.blocks, self.dinv, part.start,
-                                                                         part.stop)), nodes.size, SWEEP_BLOCK)
+        parallel_blocks(lambda part: counts.append(kernel.singular_blocks(op.blocks, part.start, part.stop)),
+                        nodes.size, SWEEP_BLOCK)
         if sum(counts):
             raise SmoothingError(f"{sum(counts)} diagonal 3 × 3 blocks of the lattice system are not positive "
                                  "definite: a vertex lacks data and energy")
@@ -448,10 +465,9 @@ class _Level:
         for n, c in enumerate(order):
             first = int(self.bounds[c])
             if from_zero and n == 0:
-                work = lambda part: kernel.first_sweep(b, x, self.dinv, first + part.start, first + part.stop)
+                work = lambda part: kernel.first_sweep(op.blocks, b, x, first + part.start, first + part.stop)
             else:
-                work = lambda part: kernel.sweep(op.nbr, op.blocks, b, x, self.dinv, first + part.start,
-                                                 first + part.stop)
+                work = lambda part: kernel.sweep(op.nbr, op.blocks, b, x, first + part.start, first + part.stop)
             parallel_blocks(work, int(self.bounds[c + 1]) - first, SWEEP_BLOCK)
 
 
@@ -632,6 +648,6 @@ def lattice_solve(S: Stencil, rhs: np.ndarray, lattice: Lattice, step_tol: float
 
 __all__ = ["Lattice", "LatticeSolver", "LatticeFactor", "lattice_solve",
            "coarsen", "grid_vertices", "child_order", "Transfer", "hermite_weights", "galerkin", "stencil_neighbours",
-           "Stencil", "OFFSETS",
+           "Stencil", "OFFSETS", "HALF",
            "colour_order",
            "COARSEST", "MAX_ITERATIONS"]

@@ -8,13 +8,19 @@ entry of
     S = A^T W A + s K + μ P      (smoothing_system's notation, normalised units)
 
 couples a vertex to one of its 7 stencil neighbours. `LatticeSystem.stencil` writes S
-for a strength s straight into the solver's Stencil (N, 7, 3, 3): no whole-survey K or S
-as CSR (0.75 GB each at 1M vertices, beside the stencil's 0.55 GB). The kernel
-(_lattice_system.assemble) writes each vertex's own rows from the triangles at it and
-their data points, the vertices in fixed blocks in the thread knob's threads; each entry
-is summed in the order the CSR assembly summed it (K over the triangles in increasing
-order, then s K plus the data term over the triangles' points in order), so S has the
-bits System.matrix gave, and they do not depend on the thread count.
+for a strength s straight into the solver's Stencil by halves (4, N, 3, 3: each vertex's
+blocks at itself and its 3 forward neighbours; the backward ones are their transposes):
+no whole-survey K or S as CSR (0.75 GB each at 1M vertices), nor all 7 blocks (0.51 GB;
+the halves 0.29). The kernel (_lattice_system.assemble) writes each vertex's own rows
+against itself and its forward neighbours from the triangles at it and their data
+points, the vertices in fixed blocks in the thread knob's threads; each entry is summed
+in the order the CSR assembly summed it (K over the triangles in increasing order, then
+s K plus the data term over the triangles' points in order), so the stored blocks have
+the bits of System.matrix's entries there, and they do not depend on the thread count.
+System.matrix's other half (the backward blocks, summed at the other vertex with the
+products in the other order) differs from their transposes in the last bits: the
+lattice route's S is System.matrix's to rounding, and exactly symmetric off its
+diagonal blocks (those are System.matrix's, as assembled).
 
 The data rows are smoothing_system.DataRows (A u and Aᵀ r by its kernels, for the rhs,
 the residuals and the edf's probes).
@@ -27,7 +33,7 @@ import numpy as np
 
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.stages import _lattice_system as kernel
-from c1mesh.stages.lattice_solver import Stencil
+from c1mesh.stages.lattice_solver import HALF, Stencil
 from c1mesh.stages.smoothing_energy import N_LOCAL, SmoothingError
 from c1mesh.stages.smoothing_system import (DataRows, data_adjoint, data_fitted, gradient_terms,
                                             incidence)
@@ -70,7 +76,8 @@ class LatticeSystem:
 
     def stencil(self, s: float, w: np.ndarray, mu: float) -> tuple[Stencil, np.ndarray]:
         """(S in stencil form, rhs (3N,)) for strength s, data weights w (M,) and gradient
-        weight mu (System.matrix's S and rhs, the same bits). SmoothingError when a
+        weight mu (System.matrix's S to rounding: its self and forward blocks' bits, the
+        backward ones their transposes; its rhs, the same bits). SmoothingError when a
         triangle's corners are not stencil neighbours (cells split by the other diagonal,
         or nbr not the triangles' lattice)."""
         w = np.ascontiguousarray(w, dtype=np.float64)
@@ -98,7 +105,7 @@ class LatticeSystem:
             first, points = self.data.points_by_triangle()
             rows, weights = np.ascontiguousarray(self.data.values, dtype=np.float64), w
         elements = np.ascontiguousarray(self.elements, dtype=np.float64)
-        blocks = np.empty(self.nbr.shape + (3, 3))
+        blocks = np.empty((len(HALF), self.nbr.shape[0], 3, 3))
         outside = []
         parallel_blocks(lambda part: outside.append(kernel.assemble(
             self.triangles, start, corner, self.shape_of, elements, first, points, rows, weights, self.nbr,
