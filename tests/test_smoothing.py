@@ -427,6 +427,28 @@ def test_data_rows_are_the_interpolator_with_limiter_directions():
     assert fit.residual_max == pytest.approx(np.abs(r).max(), rel=1e-9)
 
 
+@pytest.mark.parametrize("simplicial", [True, False])
+def test_simplicial_and_supernodal_factors_solve_the_same_system(monkeypatch, simplicial):
+    """Below SIMPLICIAL_BELOW unknowns CHOLMOD factors simplicially, else by its own choice:
+    either factor solves an SPD system to rounding (numpy's dense solve of the same
+    matrix), and the analysis is asked for that mode."""
+    pytest.importorskip("sksparse.cholmod")
+    import sksparse.cholmod as cholmod
+
+    import c1mesh.stages.smoothing_system as system
+
+    monkeypatch.setattr(system, "SIMPLICIAL_BELOW", 10 ** 9 if simplicial else 0)
+    asked = []
+    real = cholmod.analyze
+    monkeypatch.setattr(cholmod, "analyze", lambda A, **kw: asked.append(kw.get("mode")) or real(A, **kw))
+    S = sp.random(60, 60, density=0.1, random_state=4)
+    S = (S @ S.T + 60 * sp.identity(60)).tocsr()
+    b = np.random.default_rng(4).normal(size=60)
+    x = Factor(S, "cholmod").solve(b)
+    np.testing.assert_allclose(x, np.linalg.solve(S.toarray(), b), rtol=1e-12, atol=1e-12)
+    assert asked == ["simplicial" if simplicial else "auto"]
+
+
 def test_large_systems_ordered_by_metis_solve_the_same_fit(monkeypatch):
     """From METIS_FROM unknowns the vertices are renumbered by METIS's order of the vertex
     graph, CHOLMOD factors the system in that order, and the fit is the default ordering's
@@ -445,7 +467,9 @@ def test_large_systems_ordered_by_metis_solve_the_same_fit(monkeypatch):
     monkeypatch.setattr(system, "METIS_FROM", 0)
     metis = smooth_fit(pts, tri, SmoothingData(z, spacing=h), SmoothingControl(strength=0.5))
     n = len(pts)
-    assert asked == [((n, n), {"ordering_method": "metis"}), ((3 * n, 3 * n), {"ordering_method": "natural"})]
+    mode = "simplicial" if 3 * n < system.SIMPLICIAL_BELOW else "auto"
+    assert asked == [((n, n), {"ordering_method": "metis"}),
+                     ((3 * n, 3 * n), {"mode": mode, "ordering_method": "natural"})]
     assert "order" in metis.seconds and "order" not in default.seconds
     np.testing.assert_allclose(metis.values, default.values, rtol=0, atol=1e-9)
     np.testing.assert_allclose(metis.gradients, default.gradients, rtol=0, atol=1e-7)

@@ -434,11 +434,24 @@ def vertex_order(triangles: np.ndarray, n: int) -> np.ndarray | None:
         return None
 
 
+SIMPLICIAL_BELOW = 40_000
+"""Unknowns below which CHOLMOD factors simplicially (left-looking, no BLAS) rather than by
+its own choice, which is supernodal for every smoothing system: the search's windows
+(15k unknowns: 22-26 ms a factor against 31-38 ms supernodal, 56 factors in a DTM job's
+search) and the multigrid's coarsest level are that small; autzen_trim's windows at
+--spacing 2 (93k unknowns: 554 ms against 319-349 ms) are not. Measured on this 2-core
+machine, one BLAS thread (DIRECT_BLAS_THREADS), scikit-sparse's analyze(mode=...)."""
+
+
 def _analyze(csc, ordered: bool = False):
     """CHOLMOD's symbolic analysis of csc: in its own order when `ordered` (the vertices
-    are numbered by vertex_order), else by CHOLMOD's default ordering."""
+    are numbered by vertex_order), else by CHOLMOD's default ordering; simplicial below
+    SIMPLICIAL_BELOW unknowns, else CHOLMOD's choice."""
     cholmod = _cholmod()
-    return cholmod.analyze(csc, ordering_method="natural") if ordered else cholmod.analyze(csc)
+    mode = "simplicial" if csc.shape[0] < SIMPLICIAL_BELOW else "auto"
+    if ordered:
+        return cholmod.analyze(csc, mode=mode, ordering_method="natural")
+    return cholmod.analyze(csc, mode=mode)
 
 
 def _cholmod():
