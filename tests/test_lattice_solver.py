@@ -9,6 +9,7 @@ import pytest
 import scipy.sparse as sp
 
 from c1mesh.core.threads import limit
+from c1mesh.engine import rsd
 from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
 from c1mesh.engine.topology import edge_table
 from c1mesh.stages import lattice_solver, smoothing
@@ -271,6 +272,12 @@ def test_a_lattice_mesh_is_built_from_its_few_triangle_shapes():
     found, barycentric = lattice_locate(lattice, points, T, xy)
     assert np.array_equal(found, tri)
     assert np.abs(barycentric - lam).max() < 1e-12
+    inside = found >= 0                 # the kernel's bits: rsd.barycentric_gradients' formula in numpy
+    corners = points[T[found[inside]]]
+    G, _ = rsd.barycentric_gradients(corners)
+    rest = np.einsum("mkd,md->mk", G[:, 1:], xy[inside] - corners[:, 0])
+    assert np.column_stack([1.0 - rest.sum(axis=1), rest]).tobytes() == barycentric[inside].tobytes()
+    assert np.isnan(barycentric[~inside]).all()
     scheme = get_scheme(DEFAULT_SCHEME)
     dirs = _directions(points, T, None)
     one_by_one = assemble_energy(points, T, dirs, scheme)

@@ -760,9 +760,10 @@ def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
                    xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(triangle (M,) of each point xy (M, 2), −1 outside; barycentrics (M, 3) in its
     corners' order, NaN outside) on a lattice mesh (grid in the units of npts and xy): the
-    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal;
-    the barycentrics point by point in fixed blocks in the thread knob's threads (the
-    same bits at any count)."""
+    cell by arithmetic, then the half of it below or above its (i, j)-(i+1, j+1) diagonal
+    (each triangle's cell and half by the kernel lattice_slots); the barycentrics by the
+    kernel lattice_barycentrics in rsd.barycentric_gradients' arithmetic, point by point in
+    fixed blocks in the thread knob's threads (the same bits at any count)."""
     ny, nx = grid.shape
     hx, hy = grid.spacing
     u = (xy[:, 0] - grid.origin[0]) / hx
@@ -771,23 +772,15 @@ def lattice_locate(grid: Lattice, npts: np.ndarray, triangles: np.ndarray,
     j = np.clip(np.floor(v), 0, ny - 2).astype(np.int64)
     upper = (v - j) > (u - i)
     slot = 2 * (j * (nx - 1) + i) + upper
-    corner = grid.nodes[triangles]
-    cj, ci = np.divmod(corner.min(axis=1), nx)                         # the cell's (i, j) corner
-    is_upper = (corner == (cj + 1)[:, None] * nx + ci[:, None]).any(axis=1)     # holds (i, j+1)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     where = np.full(2 * max(nx - 1, 1) * max(ny - 1, 1), -1, dtype=np.int64)
-    where[2 * (cj * (nx - 1) + ci) + is_upper] = np.arange(triangles.shape[0])
+    kernel.lattice_slots(np.ascontiguousarray(grid.nodes, dtype=np.int64), triangles, nx, where)
     box = (u >= 0) & (v >= 0) & (u <= nx - 1) & (v <= ny - 1)
     tri = np.where(box, where[slot], -1)
     lam = np.full((xy.shape[0], 3), np.nan)
-
-    def barycentrics(part: slice) -> None:             # the found points of a block (element-wise)
-        found = np.flatnonzero(tri[part] >= 0) + part.start
-        corners = npts[triangles[tri[found]]]                          # (m, 3, 2)
-        G, _ = rsd.barycentric_gradients(corners)
-        rest = np.einsum("mkd,md->mk", G[:, 1:], xy[found] - corners[:, 0])
-        lam[found, 0] = 1.0 - rest.sum(axis=1)
-        lam[found, 1:] = rest
-    parallel_blocks(barycentrics, xy.shape[0], LOCATE_BLOCK)
+    npts, xy = np.ascontiguousarray(npts, dtype=np.float64), np.ascontiguousarray(xy, dtype=np.float64)
+    parallel_blocks(lambda part: kernel.lattice_barycentrics(npts, triangles, tri, xy, lam, part.start, part.stop),
+                    xy.shape[0], LOCATE_BLOCK)
     return tri, lam
 
 
