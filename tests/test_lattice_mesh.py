@@ -153,6 +153,23 @@ def test_nearest_points_by_buckets_are_the_brute_force_nearest(monkeypatch, kind
             assert nearest_points(q, xy, index).tolist() == want
 
 
+def test_a_far_outlier_does_not_crowd_the_buckets_of_nearest_points():
+    """One point far off a dense square widens the box: the buckets still hold about
+    NEAREST_BUCKET_POINTS each where the points are (the side halves), and the nearest
+    points are brute force's, near the square and near the outlier."""
+    from c1mesh.stages import lattice_mesh as module
+    rng = np.random.default_rng(12)
+    xy = np.concatenate([rng.uniform(0, 10, (300, 2)), [[1e3, 1e3]]])       # within the table's bound
+    lower = xy.min(axis=0)
+    size, cols, rows, ci, cj = module._buckets(xy, lower, xy.max(axis=0) - lower)
+    occupied = np.unique(cj * cols + ci).size
+    assert xy.shape[0] <= 2 * module.NEAREST_BUCKET_POINTS * occupied
+    q = np.concatenate([rng.uniform(-5, 15, (80, 2)), [[1e3 + 3, 1e3 - 2], [5e2, 5e2]]])
+    index = np.arange(xy.shape[0]) + 7
+    d2 = ((q[:, None] - xy[None]) ** 2).sum(axis=2)
+    assert nearest_points(q, xy, index).tolist() == [index[d2[k] == d2[k].min()].min() for k in range(len(q))]
+
+
 @pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
 def test_a_bad_spacing_is_an_input_error(bad):
     with pytest.raises(InputError, match="--spacing"):
