@@ -61,7 +61,7 @@ def test_the_lattice_does_not_fold_beside_steep_banks(seed):
 def test_without_the_least_strength_the_same_banks_fold(monkeypatch, seed):
     """The failure the least strength mends, on the same samples: searched down to 1e-6 the
     lattice fit folds faces beside the banks (so the test above can fail)."""
-    monkeypatch.setattr(driver, "least_strength", lambda *args: 0.0)
+    monkeypatch.setattr(driver, "support_least_strength", lambda *args: 0.0)
     folds, strength = _lattice_folds(_banks(seed))
     assert folds >= 1 and strength == pytest.approx(1e-6)
 

@@ -79,7 +79,7 @@ from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
-from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, least_strength
+from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, support_least_strength
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import with_plane_level
@@ -270,9 +270,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 run_ = SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
                                     gradient_data_weight("estimated", gradient_source))
                 if lattice is not None:        # unit normal directions, no gradient data: as in memory
-                    cells = lattice.triangles // 2     # the support's, two triangles each
-                    least = least_strength(surface.spacing, spacing,
-                                           cells * surface.spacing ** 2 / int(data.counts.sum()))
+                    least = support_least_strength(surface.spacing, spacing, lattice.triangles,
+                                                   int(data.counts.sum()))
                     run_ = replace(run_, control=replace(run_.control, least_strength=least), overshoot="off",
                                    gradient_weight=0.0)
                 fit = TiledSmoothing(run_, longest, data, 0.0 if lattice is None else lattice_halo(lattice.grid),

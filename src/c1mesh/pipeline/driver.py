@@ -80,7 +80,7 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
                                      search_windows, smooth_tile)
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh, least_strength
+from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh, support_least_strength
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
@@ -502,8 +502,7 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
             check_triangulation(mesh.points[support[0]], *support[1:])
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
-    cells = int(mesh.shown.sum()) // 2                                   # the support's, two triangles each
-    least = least_strength(options.spacing, hf.spacing, cells * options.spacing ** 2 / hf.xy.shape[0])
+    least = support_least_strength(options.spacing, hf.spacing, int(mesh.shown.sum()), hf.xy.shape[0])
     control = SmoothingControl(strength, scheme, windows=windows, least_strength=least)
     run = SmoothingRun(control, hf.spacing, "off", 0.0)
     count = mesh.points.shape[0]

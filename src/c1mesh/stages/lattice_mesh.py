@@ -145,6 +145,14 @@ def least_strength(spacing: float, point_spacing: float, area_per_point: float) 
     return float(f"{least:.2g}")
 
 
+def support_least_strength(spacing: float, point_spacing: float, support_triangles: int, points: int) -> float:
+    """least_strength of a fit whose support holds support_triangles lattice triangles (two a
+    cell of spacing D) over `points` data points: their area per point is the support's
+    cells over the points. The in-memory fit's one rule and the tiled fit's."""
+    cells = support_triangles // 2
+    return least_strength(spacing, point_spacing, cells * spacing ** 2 / points)
+
+
 def check_lattice_spacing(spacing: float, point_spacing: float) -> None:
     """InputError when spacing D is finer than FINEST_SPACINGS point spacings h (frame units)."""
     if point_spacing > 0 and spacing < FINEST_SPACINGS * point_spacing:
@@ -398,5 +406,5 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
 
 __all__ = ["FINEST_SPACINGS", "BENDING_CELLS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM",
            "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left",
-           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "least_strength",
+           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "least_strength", "support_least_strength",
            "multigrid_lattice", "nearest_points", "node_grid", "numbered_triangles", "support_reach"]
