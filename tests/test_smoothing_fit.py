@@ -90,6 +90,30 @@ def test_spacing_fits_a_lattice_to_all_points(probes, monkeypatch):
     assert held_out_rms(model, *probes) < 0.05               # below the 5 cm noise of the points
 
 
+def test_the_edf_is_estimated_only_when_a_report_is_written(tmp_path, monkeypatch):
+    """The edf is a reported diagnostic that costs one more solve (on the lattice a whole
+    multigrid CG): FitOptions(edf=False) skips it and changes no height; the CLI asks
+    for it exactly when it writes a report. hat_trace is made to fail, so a run that
+    calls it without a report cannot pass."""
+    from click.testing import CliRunner
+    from c1mesh.cli import main
+    from c1mesh.stages import smoothing
+    cloud = noisy_cloud(n=3000)
+    for spacing in (None, 2.0):
+        asked = build_surface(cloud, FitOptions(axis="z", smooth=1.0, spacing=spacing))
+        skipped = build_surface(cloud, FitOptions(axis="z", smooth=1.0, spacing=spacing, edf=False))
+        assert 3 < asked.smoothing.edf < len(cloud.points) and skipped.smoothing.edf is None
+        np.testing.assert_array_equal(asked.interp.values, skipped.interp.values)
+    source = tmp_path / "terrain.xyz"
+    np.savetxt(source, cloud.points)
+    monkeypatch.setattr(smoothing, "hat_trace", lambda *a: (_ for _ in ()).throw(AssertionError("edf estimated")))
+    args = ["fit", str(source), "--smooth", "1", "--spacing", "2"]
+    quiet = CliRunner().invoke(main, args + ["-o", str(tmp_path / "quiet.ply")])
+    assert quiet.exit_code == 0, quiet.output
+    reported = CliRunner().invoke(main, args + ["-o", str(tmp_path / "r.ply"), "--report", str(tmp_path / "r.json")])
+    assert reported.exit_code != 0 and not (tmp_path / "r.ply").exists()
+
+
 @pytest.mark.parametrize("smooth", ["auto", 30.0])
 def test_a_plane_comes_through_any_strength_unchanged(smooth):
     rng = np.random.default_rng(2)

@@ -158,7 +158,8 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
                              hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
                              z_factor=z_factor, smooth=smooth_option, spacing=spacing, support=support,
-                             fill=parse_fill(fill), contours=contours, interval=interval)
+                             fill=parse_fill(fill), contours=contours, interval=interval,
+                             edf=report is not None)
         if output and not output_dir:
             options = check_geo([(inputs[0], output)], options, debug, report)
         fit_survey(inputs, Destination(output, output_dir, suffix), options, console,
@@ -182,7 +183,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds,
                          smooth=smooth_option, spacing=spacing, support=support, fill=parse_fill(fill),
-                         contours=contours, interval=interval)
+                         contours=contours, interval=interval, edf=report is not None)
     options = check_geo(pairs, options, debug, report)
     options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))
     if len(pairs) == 1:

@@ -57,7 +57,9 @@ class SurfaceSettings:
     shape-function tuple's name (engine.schemes); level: each triangle becomes level²
     triangles (None: chosen by the fit); overshoot: "limit" | "off" (stages.limiter);
     strength: the smoothing strength (`Strength`); spacing: None (vertices at the points)
-    or a length D, the vertices of a smoothing fit on a D x D lattice (stages.lattice_mesh)."""
+    or a length D, the vertices of a smoothing fit on a D x D lattice (stages.lattice_mesh);
+    edf: whether the smoothing fit estimates its effective degrees of freedom (a reported
+    diagnostic, one more solve: stages.smoothing.SmoothingControl.edf)."""
 
     max_edge: object = "auto"
     scheme: str = "sextic"
@@ -65,6 +67,7 @@ class SurfaceSettings:
     overshoot: str = "limit"
     strength: Strength = None
     spacing: float | None = None
+    edf: bool = True
 
 
 @dataclass(frozen=True)

@@ -267,8 +267,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             mesh = trimmed_mesh if filled is None else replace(trimmed_mesh, files=filled.files, far=filled.far)
             limiter = None
             if strength is not None:       # fitted over the trimmed triangles; a fill spans the holes
-                run_ = SmoothingRun(SmoothingControl(strength, surface.scheme), spacing, surface.overshoot,
-                                    gradient_data_weight("estimated", gradient_source))
+                run_ = SmoothingRun(SmoothingControl(strength, surface.scheme, edf=surface.edf), spacing,
+                                    surface.overshoot, gradient_data_weight("estimated", gradient_source))
                 if lattice is not None:        # unit normal directions, no gradient data: as in memory
                     least = support_least_strength(surface.spacing, spacing, lattice.triangles,
                                                    int(data.counts.sum()))

@@ -268,7 +268,7 @@ def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarra
     if options.spacing is not None:
         raise InputError("--spacing thins a height field's vertices (--frame axis or auto); the perspective "
                          "frame's smoothing fit keeps every point as a vertex")
-    run = SmoothingRun(SmoothingControl(strength, scheme), chart_spacing(uv), options.overshoot,
+    run = SmoothingRun(SmoothingControl(strength, scheme, edf=options.edf), chart_spacing(uv), options.overshoot,
                        gradient_data_weight(normal_source, "normals"))
     return smoothed_interpolator(Tile.whole(uv, w, gradients, triangles), run)
 

@@ -170,6 +170,10 @@ class FitOptions:
     # a length D, the vertices on a D x D lattice (c1mesh.stages.lattice_mesh), fitted to all points.
     smooth: Any = "off"
     spacing: float | None = None
+    # edf: whether a smoothing fit estimates its effective degrees of freedom (the report's
+    # smoothing.edf, null without): a diagnostic that costs one more solve (1.0 s of a 1M-node
+    # lattice fit), so the CLI asks for it only when it writes a report.
+    edf: bool = True
 
     def __post_init__(self) -> None:
         """classes given as a list (or any iterable of codes) is the tuple of its codes."""
@@ -503,7 +507,7 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     least = support_least_strength(options.spacing, hf.spacing, int(mesh.shown.sum()), hf.xy.shape[0])
-    control = SmoothingControl(strength, scheme, windows=windows, least_strength=least)
+    control = SmoothingControl(strength, scheme, windows=windows, least_strength=least, edf=options.edf)
     run = SmoothingRun(control, hf.spacing, "off", 0.0)
     count = mesh.points.shape[0]
     with timer.stage("interpolate"):
@@ -579,7 +583,8 @@ def _smoothed(mesh: _FitMesh, span: _HoleSpan | None, strength, options, weight:
     into autzen_trim's ground beside a bank (0.36 ft so)."""
     hf, used, scheme = mesh.hf, mesh.used, get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
-    run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows), hf.spacing, options.overshoot, weight)
+    run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows, edf=options.edf), hf.spacing,
+                       options.overshoot, weight)
 
     def tile(vertices, triangles):          # the in-memory fit's one tile (core.tile)
         return Tile.whole(hf.xy[vertices], hf.z[vertices], hf.gradients[vertices], triangles)

@@ -81,7 +81,7 @@ def fit_plan(options, output=None) -> FitPlan:
                               None if options.bounds is None else tuple(options.bounds)),
         heights=HeightSettings(options.axis, options.normals, options.k, options.max_slope, options.gradients),
         surface=SurfaceSettings(options.max_edge, options.scheme, refinement_level(options.level), options.overshoot,
-                                smoothing_strength(options), options.spacing),
+                                smoothing_strength(options), options.spacing, options.edf),
         mesh=MeshTarget(options.output_format, options.ascii, options.crs,
                         None if dem is not None or options.resolution is None else float(options.resolution)),
         memory=None if options.memory is None else parse_memory(options.memory), threads=options.workers, dem=dem,

@@ -315,7 +315,10 @@ class SmoothingControl:
     tiles and the in-memory fit choose alike, `search_windows`); None: chosen from the
     fit's own vertices by the same rule. least_strength: the least s "auto" may choose
     (0: SEARCH_LIMITS' lower end); the lattice route's is lattice_mesh.least_strength,
-    the least smoothing its cells can carry without ringing."""
+    the least smoothing its cells can carry without ringing. edf: estimate the effective
+    degrees of freedom (SmoothFit.edf, a reported diagnostic that nothing else reads);
+    False skips it (edf None): on the lattice it is one more multigrid solve, 1.0 s of the
+    DTM job's 11.6 s at 1M nodes, which the CLI spends only when it writes a report."""
 
     strength: "float | str" = "auto"
     scheme: "str | ShapeTuple" = DEFAULT_SCHEME
@@ -324,6 +327,7 @@ class SmoothingControl:
     threads: int | None = None
     windows: "SearchWindows | None" = None
     least_strength: float = 0.0
+    edf: bool = True
 
 
 @dataclass
@@ -335,8 +339,8 @@ class SmoothFit:
     in height units) pairs in the order tried ([] when s was given). search_limit_reached:
     the lowest score lay at SEARCH_LIMITS, so s may be better still beyond it (None when s
     was given; False: s is an interior minimum of the curve). edf: effective degrees of freedom
-    tr(H) (Hutchinson estimate). residual_rms, residual_max: of z − F at the data points
-    with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
+    tr(H) (Hutchinson estimate; None when SmoothingControl.edf was False). residual_rms,
+    residual_max: of z − F at the data points with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
     outside: data points outside the triangulation (ignored). gradient_weight: the
     weight the gradient data had (0: none). own_residuals: with data at points marked own
     (SmoothingData.own), (count, sum of squares, largest) of those points' residuals, for
@@ -679,8 +683,10 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             with timed(seconds, "solve"):
                 u = solver.pcg(rhs, LATTICE_STEP)[0]
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
-        with timed(seconds, "edf"):
-            edf = hat_trace(system, factor, solved_w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
+        edf = None
+        if control.edf:
+            with timed(seconds, "edf"):
+                edf = hat_trace(system, factor, solved_w, EDF_PROBES if grid is None else LATTICE_EDF_PROBES, seed)
     residual = (system.z - system.fitted(u)) * Z     # in the system's numbering (data points: theirs)
     own_residuals = None
     if not vertex_data and own_inside is not None:
