@@ -7,6 +7,8 @@ search for s builds on the same vertices in the stored half (the other half: to
 rounding)."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -170,6 +172,7 @@ def test_the_stencil_has_the_bits_of_the_searchs_csr_system_in_its_half(kind):
 
 def test_the_same_bytes_at_one_and_two_threads(monkeypatch):
     monkeypatch.setattr(lattice_system, "ASSEMBLY_BLOCK", 7)          # many blocks of vertices
+    monkeypatch.setattr(lattice_system, "DATA_BLOCK", 5)
     problem, lattice = lattice_problem(23, 21, 6, gradients=True)
     runs = []
     for threads in (1, 2, 1):
@@ -177,6 +180,12 @@ def test_the_same_bytes_at_one_and_two_threads(monkeypatch):
             S, rhs = built(problem, lattice).stencil(0.05, problem.w, 1.0)
         runs.append(S.blocks.tobytes() + rhs.tobytes())
     assert runs[1] == runs[0] and runs[2] == runs[0]
+    with limit(2):                    # the data term summed ahead, in the background, while the caller waits
+        system = built(problem, lattice)
+        with system.data_term_ahead(problem.w, 1.0) as data:
+            time.sleep(0.05)
+            S, rhs = system.with_strength(0.05, data())
+    assert S.blocks.tobytes() + rhs.tobytes() == runs[0]
 
 
 def test_cells_split_by_the_other_diagonal_are_refused():

@@ -340,6 +340,62 @@ def test_parallel_blocks_start_no_block_after_an_error():
     assert 0 in started and len(started) < 10
 
 
+def _recording_blocks(taken: list):
+    """work(block) that squares its slice of 0..count-1 into `out` and records who took it."""
+    out = np.zeros(1000)
+
+    def work(block):
+        taken.append((block.start, threading.current_thread().name))
+        out[block] = np.arange(block.start, block.stop, dtype=float) ** 2
+        time.sleep(0.002)
+    return work, out
+
+
+def test_blocks_ahead_begin_in_the_background_and_the_caller_finishes_them(two_workers):
+    """The blocks start while the caller's block runs, before finish(); finish() has the
+    caller take the rest; every block is done once, the results those of a plain loop."""
+    taken: list = []
+    work, out = _recording_blocks(taken)
+    with threads.blocks_ahead(work, 1000, 10) as finish:
+        deadline = time.monotonic() + 5
+        while len(taken) < 5 and time.monotonic() < deadline:
+            time.sleep(0.001)                             # the caller's own step
+        assert len(taken) >= 5                            # taken before finish()
+        assert {name for _, name in taken} == {"c1mesh-ahead"}
+        finish()
+    np.testing.assert_array_equal(out, np.arange(1000.0) ** 2)
+    assert sorted(start for start, _ in taken) == list(range(0, 1000, 10))
+    assert threading.current_thread().name in {name for _, name in taken}    # the caller joined in
+
+
+def test_blocks_ahead_raise_a_block_error_in_finish_and_stop_without_it(two_workers):
+    def failing(block):
+        time.sleep(0.001)
+        if block.start == 30:
+            raise ValueError("block 30 failed")
+    with threads.blocks_ahead(failing, 1000, 10) as finish:
+        with pytest.raises(ValueError, match="block 30 failed"):
+            finish()
+    taken: list = []
+    work, _ = _recording_blocks(taken)
+    with threads.blocks_ahead(work, 1000, 10):
+        time.sleep(0.01)                                  # left without finish()
+    done = len(taken)
+    time.sleep(0.05)
+    assert 0 < done < 100 and len(taken) == done          # no block after the block ended
+
+
+def test_blocks_ahead_with_one_worker_start_nothing_early():
+    taken: list = []
+    work, out = _recording_blocks(taken)
+    with threads.limit(1), threads.blocks_ahead(work, 1000, 10) as finish:
+        time.sleep(0.02)
+        assert taken == []
+        finish()
+    np.testing.assert_array_equal(out, np.arange(1000.0) ** 2)
+    assert {name for _, name in taken} == {threading.current_thread().name}
+
+
 @pytest.mark.parametrize("cliff", [False, True])
 def test_the_guessed_triangulation_is_used_only_when_it_is_the_height_fields(monkeypatch, cliff):
     """With two threads the in-memory fit triangulates a guess of the height field's plane

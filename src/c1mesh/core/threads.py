@@ -242,6 +242,61 @@ def background(work: Callable[[], Item]) -> Iterator[Callable[[], Item]]:
         yield pending.result
 
 
+@contextlib.contextmanager
+def blocks_ahead(work: Callable[[slice], None], count: int, block: int) -> Iterator[Callable[[], None]]:
+    """work(slice) for the consecutive blocks of `block` items of range(count), begun at
+    once by one background thread while the caller's block runs; yields finish(), which
+    has the caller's threads (`workers`) take the blocks still untaken and returns once
+    every block is done (the first error raised by any block is raised there).
+
+    Why: work that does not need the caller's next step (the smoothing's data term, which
+    needs no strength) fills the core that step leaves idle (the strength search's direct
+    factorisations hold one core and the GIL), and the caller's threads still finish it
+    if the step ends first. The blocks are the same whoever takes them, so element-wise
+    work writing disjoint slices has the same bits as parallel_blocks'. Each block must
+    be long (a kernel without the GIL): a block's return waits for the GIL, which a
+    caller in a long C call holds. With one worker nothing starts early: finish() runs
+    every block. Leaving the block without finish() lets the background take no more
+    blocks and waits for its current one."""
+    blocks = -(-count // block)
+    taken = itertools.count()                 # next() on it is atomic under the GIL
+    stopped = threading.Event()
+    errors: list = []
+
+    def take() -> None:
+        for b in iter(taken.__next__, None):
+            if b >= blocks or stopped.is_set():
+                return
+            try:
+                work(slice(b * block, min(count, (b + 1) * block)))
+            except BaseException:
+                stopped.set()
+                raise
+
+    def ahead() -> None:
+        try:
+            take()
+        except BaseException as error:     # re-raised by finish()
+            errors.append(error)
+    thread = None
+    if workers() > 1 and blocks > 0:
+        thread = threading.Thread(target=ahead, name="c1mesh-ahead", daemon=True)
+        thread.start()
+
+    def finish() -> None:
+        run_parallel(take, [()] * max(1, workers() - (thread is not None)))
+        if thread is not None:
+            thread.join()
+        if errors:
+            raise errors[0]
+    try:
+        yield finish
+    finally:
+        stopped.set()
+        if thread is not None:
+            thread.join()
+
+
 def run_parallel(work: Callable[..., None], ranges: list[tuple]) -> None:
     """work(*r) for every r in ranges: the first in this thread, the rest in threads;
     the first error raised by any of them is re-raised here."""

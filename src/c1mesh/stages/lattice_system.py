@@ -11,9 +11,11 @@ couples a vertex to one of its 7 stencil neighbours. `LatticeSystem.stencil` wri
 for a strength s straight into the solver's Stencil by halves (4, N, 3, 3: each vertex's
 blocks at itself and its 3 forward neighbours; the backward ones are their transposes):
 no whole-survey K or S as CSR (0.75 GB each at 1M vertices), nor all 7 blocks (0.51 GB;
-the halves 0.29). The kernel (_lattice_system.assemble) writes each vertex's own rows
-against itself and its forward neighbours from the triangles at it and their data
-points, the vertices in fixed blocks in the thread knob's threads; each entry is summed
+the halves 0.29). The kernels (_lattice_system.assemble_data, then assemble_energy) write
+each vertex's own rows against itself and its forward neighbours from the triangles at it
+and their data points, the vertices in fixed blocks in the thread knob's threads; the
+data term's pass needs no s, so smooth_fit runs it during the strength search
+(`data_term_ahead`). Each entry is summed
 in the order the CSR assembly summed it (K over the triangles in increasing order, then
 s K plus the data term over the triangles' points in order), so the stored blocks have
 the bits of System.matrix's entries there, and they do not depend on the thread count.
@@ -27,11 +29,13 @@ the residuals and the edf's probes).
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
+from typing import Callable, Iterator
 
 import numpy as np
 
-from c1mesh.core.threads import parallel_blocks
+from c1mesh.core.threads import blocks_ahead, parallel_blocks
 from c1mesh.stages import _lattice_system as kernel
 from c1mesh.stages.lattice_solver import HALF, Stencil
 from c1mesh.stages.smoothing_energy import N_LOCAL, SmoothingError
@@ -39,7 +43,12 @@ from c1mesh.stages.smoothing_system import (DataRows, data_adjoint, data_fitted,
                                             incidence)
 
 ASSEMBLY_BLOCK = 1 << 14
-"""Vertices per block of the stencil assembly (in the thread knob's threads)."""
+"""Vertices per block of the energy's pass of the stencil assembly (in the thread knob's threads)."""
+DATA_BLOCK = 1 << 16
+"""Vertices per block of the data term's pass (LatticeSystem.data_term_ahead), which a
+background thread takes during the strength search: about 85 ms of work each at 1M data
+(1.3 µs a vertex), long against the GIL a block's return waits for while the search's
+factorisation holds it (31 ms at most on the DTM job)."""
 
 
 @dataclass
@@ -80,7 +89,38 @@ class LatticeSystem:
         backward ones their transposes; its rhs, the same bits). SmoothingError when a
         triangle's corners are not stencil neighbours (cells split by the other diagonal,
         or nbr not the triangles' lattice)."""
+        with self.data_term_ahead(w, mu) as data:
+            return self.with_strength(s, data())
+
+    @contextlib.contextmanager
+    def data_term_ahead(self, w: np.ndarray, mu: float) -> Iterator[Callable[[], "DataTerm"]]:
+        """The DataTerm of weights w (M,) and gradient weight mu, begun in a background
+        thread while the block runs (core.threads.blocks_ahead); yields the call that
+        finishes it in the caller's threads and returns it. smooth_fit sums it during the
+        strength search, whose direct factorisations leave a core idle: it needs no s."""
         w = np.ascontiguousarray(w, dtype=np.float64)
+        start, corner = incidence(self.triangles, self.nbr.shape[0])
+        if self.data is None:                          # the data are the vertices: on diag
+            first, points = np.zeros(self.triangles.shape[0] + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
+            rows = np.empty((0, N_LOCAL))
+        else:
+            first, points = self.data.points_by_triangle()
+            rows = np.ascontiguousarray(self.data.values, dtype=np.float64)
+        blocks = np.empty((len(HALF), self.nbr.shape[0], 3, 3))
+        outside: list = []
+        with blocks_ahead(lambda part: outside.append(kernel.assemble_data(
+                self.triangles, start, corner, first, points, rows, w, self.nbr, blocks, part.start, part.stop)),
+                self.nbr.shape[0], DATA_BLOCK) as finish:
+            def finished() -> DataTerm:
+                finish()
+                _check_outside(sum(outside))
+                rhs, diag = self._right_side(w, mu)
+                return DataTerm(blocks, rhs, diag, start, corner)
+            yield finished
+
+    def _right_side(self, w: np.ndarray, mu: float) -> tuple[np.ndarray, np.ndarray]:
+        """(rhs (3N,): Aᵀ W z plus the gradient data's pull, diag (N, 3): what S's diagonal
+        takes after the rest, the vertex data's weights and the gradient weights)."""
         rhs = self.adjoint(w * self.z)
         diag = np.zeros((self.nbr.shape[0], 3))
         if self.data is None:
@@ -91,30 +131,41 @@ class LatticeSystem:
             diag[:, 1] = diag[:, 2] = weight
             rhs[1::3] += pull[:, 0]
             rhs[2::3] += pull[:, 1]
-        return self._blocks(float(s), w, diag), rhs
+        return rhs, diag
 
-    def _blocks(self, s: float, w: np.ndarray, diag: np.ndarray) -> Stencil:
-        """S's Stencil from the kernel, the vertices in fixed blocks of ASSEMBLY_BLOCK. The
-        corners at each vertex and the points by triangle are made for it and let go
-        (0.1 GB at 1M vertices: S is assembled once)."""
-        start, corner = incidence(self.triangles, self.nbr.shape[0])
-        if self.data is None:                          # the data are the vertices: on diag
-            first, points = np.zeros(self.triangles.shape[0] + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
-            rows, weights = np.empty((0, N_LOCAL)), np.empty(0)
-        else:
-            first, points = self.data.points_by_triangle()
-            rows, weights = np.ascontiguousarray(self.data.values, dtype=np.float64), w
+    def with_strength(self, s: float, data: "DataTerm") -> tuple[Stencil, np.ndarray]:
+        """(S's Stencil, rhs) for strength s from the DataTerm `data`, whose blocks become
+        S's (s K summed into them in place, vertices in fixed blocks of ASSEMBLY_BLOCK in
+        the thread knob's threads; `data` is spent)."""
         elements = np.ascontiguousarray(self.elements, dtype=np.float64)
-        blocks = np.empty((len(HALF), self.nbr.shape[0], 3, 3))
-        outside = []
-        parallel_blocks(lambda part: outside.append(kernel.assemble(
-            self.triangles, start, corner, self.shape_of, elements, first, points, rows, weights, self.nbr,
-            s, diag, blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
-        if sum(outside):
-            raise SmoothingError(f"the system is not on the lattice's stencil: {sum(outside)} triangle corners "
-                                 "are not stencil neighbours of another corner (cells split by the other "
-                                 "diagonal, or nodes that are not the vertices' own?)")
-        return Stencil(self.nbr, blocks)
+        outside: list = []
+        parallel_blocks(lambda part: outside.append(kernel.assemble_energy(
+            self.triangles, data.start, data.corner, self.shape_of, elements, self.nbr, float(s), data.diag,
+            data.blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
+        _check_outside(sum(outside))
+        return Stencil(self.nbr, data.blocks), data.rhs
 
 
-__all__ = ["LatticeSystem", "ASSEMBLY_BLOCK"]
+@dataclass(frozen=True)
+class DataTerm:
+    """The part of a lattice system that needs no strength (LatticeSystem.data_term_ahead):
+    blocks (4, N, 3, 3) the data term Aᵀ W A's stored half (_lattice_system.assemble_data),
+    rhs (3N,), diag (N, 3) (LatticeSystem._right_side), and the triangle corners at each
+    vertex (start, corner: smoothing_system.incidence) the energy's pass reads again."""
+
+    blocks: np.ndarray
+    rhs: np.ndarray
+    diag: np.ndarray
+    start: np.ndarray
+    corner: np.ndarray
+
+
+def _check_outside(count: int) -> None:
+    """SmoothingError when `count` triangle corners were not stencil neighbours."""
+    if count:
+        raise SmoothingError(f"the system is not on the lattice's stencil: {count} triangle corners "
+                             "are not stencil neighbours of another corner (cells split by the other "
+                             "diagonal, or nodes that are not the vertices' own?)")
+
+
+__all__ = ["LatticeSystem", "DataTerm", "ASSEMBLY_BLOCK", "DATA_BLOCK"]

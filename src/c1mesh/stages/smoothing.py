@@ -39,6 +39,7 @@ balance), and the halo reaches HALO_LENGTHS of them (docs/smoothing.md, "In tile
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import asdict, dataclass, field, replace
 
@@ -653,7 +654,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     mu = float(gradient_weight)
     curve: list = []
     at_limit = windows = None
-    with limit(threads):
+    ahead = grid is not None and not search_only       # the final system's data term, summed during the search
+    with limit(threads), (system.data_term_ahead(solved_w, mu) if ahead else contextlib.nullcontext()) as data_term:
         if strength == "auto":
             with timed(seconds, "search"):
                 windows = search_windows(pts) if control.windows is None else control.windows
@@ -676,7 +678,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
                 u, factor = solve(system, s, solved_w, mu, method, keep_energy=False)     # the last matrix
         else:
             with timed(seconds, "assemble"):
-                S, rhs = system.stencil(s, solved_w, mu)
+                S, rhs = system.with_strength(s, data_term())
             with timed(seconds, "lattice_setup"):
                 solver = LatticeSolver(S, replace(grid, nodes=grid.nodes[order]))
             del S                                      # the solver's fine level holds it
