@@ -243,11 +243,13 @@ def background(work: Callable[[], Item]) -> Iterator[Callable[[], Item]]:
 
 
 @contextlib.contextmanager
-def blocks_ahead(work: Callable[[slice], None], count: int, block: int) -> Iterator[Callable[[], None]]:
+def blocks_ahead(work: Callable[[slice], None], count: int, block: int,
+                 prepare: Callable[[], None] | None = None) -> Iterator[Callable[[], None]]:
     """work(slice) for the consecutive blocks of `block` items of range(count), begun at
-    once by one background thread while the caller's block runs; yields finish(), which
-    has the caller's threads (`workers`) take the blocks still untaken and returns once
-    every block is done (the first error raised by any block is raised there).
+    once by one background thread while the caller's block runs, after prepare() (None:
+    nothing to prepare; what work reads, made there too); yields finish(), which has the
+    caller's threads (`workers`) take the blocks still untaken and returns once every
+    block is done (the first error raised by prepare or any block is raised there).
 
     Why: work that does not need the caller's next step (the smoothing's data term, which
     needs no strength) fills the core that step leaves idle (the strength search's direct
@@ -256,11 +258,11 @@ def blocks_ahead(work: Callable[[slice], None], count: int, block: int) -> Itera
     work writing disjoint slices has the same bits as parallel_blocks'. Each block must
     be long (a kernel without the GIL): a block's return waits for the GIL, which a
     caller in a long C call holds. With one worker nothing starts early: finish() runs
-    every block. Leaving the block without finish() lets the background take no more
-    blocks and waits for its current one."""
+    prepare and every block. Leaving the block without finish() lets the background take
+    no more blocks and waits for its current one."""
     blocks = -(-count // block)
     taken = itertools.count()                 # next() on it is atomic under the GIL
-    stopped = threading.Event()
+    stopped, prepared = threading.Event(), threading.Event()
     errors: list = []
 
     def take() -> None:
@@ -275,16 +277,27 @@ def blocks_ahead(work: Callable[[slice], None], count: int, block: int) -> Itera
 
     def ahead() -> None:
         try:
+            if prepare is not None:
+                prepare()
+            prepared.set()
             take()
         except BaseException as error:     # re-raised by finish()
             errors.append(error)
+            stopped.set()
+            prepared.set()
     thread = None
-    if workers() > 1 and blocks > 0:
+    if workers() > 1:
         thread = threading.Thread(target=ahead, name="c1mesh-ahead", daemon=True)
         thread.start()
 
     def finish() -> None:
-        run_parallel(take, [()] * max(1, workers() - (thread is not None)))
+        if thread is None:
+            if prepare is not None:
+                prepare()
+        else:
+            prepared.wait()
+        if not errors:
+            run_parallel(take, [()] * max(1, workers() - (thread is not None)))
         if thread is not None:
             thread.join()
         if errors:

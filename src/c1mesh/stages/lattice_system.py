@@ -95,27 +95,34 @@ class LatticeSystem:
     @contextlib.contextmanager
     def data_term_ahead(self, w: np.ndarray, mu: float) -> Iterator[Callable[[], "DataTerm"]]:
         """The DataTerm of weights w (M,) and gradient weight mu, begun in a background
-        thread while the block runs (core.threads.blocks_ahead); yields the call that
-        finishes it in the caller's threads and returns it. smooth_fit sums it during the
-        strength search, whose direct factorisations leave a core idle: it needs no s."""
+        thread while the block runs (core.threads.blocks_ahead: first the corners at each
+        vertex, the points by triangle and the rhs, then the data blocks); yields the call
+        that finishes it in the caller's threads and returns it. smooth_fit sums it during
+        the strength search, whose direct factorisations leave a core idle: it needs no s."""
         w = np.ascontiguousarray(w, dtype=np.float64)
-        start, corner = incidence(self.triangles, self.nbr.shape[0])
-        if self.data is None:                          # the data are the vertices: on diag
-            first, points = np.zeros(self.triangles.shape[0] + 1, dtype=np.int64), np.empty(0, dtype=np.int64)
-            rows = np.empty((0, N_LOCAL))
-        else:
-            first, points = self.data.points_by_triangle()
-            rows = np.ascontiguousarray(self.data.values, dtype=np.float64)
         blocks = np.empty((len(HALF), self.nbr.shape[0], 3, 3))
+        made: dict = {}
         outside: list = []
-        with blocks_ahead(lambda part: outside.append(kernel.assemble_data(
-                self.triangles, start, corner, first, points, rows, w, self.nbr, blocks, part.start, part.stop)),
-                self.nbr.shape[0], DATA_BLOCK) as finish:
+
+        def prepare() -> None:             # the corners at each vertex, the points by triangle
+            made["start"], made["corner"] = incidence(self.triangles, self.nbr.shape[0])
+            if self.data is None:                          # the data are the vertices: on diag
+                made["first"] = np.zeros(self.triangles.shape[0] + 1, dtype=np.int64)
+                made["points"], made["rows"] = np.empty(0, dtype=np.int64), np.empty((0, N_LOCAL))
+            else:
+                made["first"], made["points"] = self.data.points_by_triangle()
+                made["rows"] = np.ascontiguousarray(self.data.values, dtype=np.float64)
+            made["rhs"], made["diag"] = self._right_side(w, mu)
+
+        def work(part: slice) -> None:
+            outside.append(kernel.assemble_data(self.triangles, made["start"], made["corner"], made["first"],
+                                                made["points"], made["rows"], w, self.nbr, blocks,
+                                                part.start, part.stop))
+        with blocks_ahead(work, self.nbr.shape[0], DATA_BLOCK, prepare) as finish:
             def finished() -> DataTerm:
                 finish()
                 _check_outside(sum(outside))
-                rhs, diag = self._right_side(w, mu)
-                return DataTerm(blocks, rhs, diag, start, corner)
+                return DataTerm(blocks, made["rhs"], made["diag"], made["start"], made["corner"])
             yield finished
 
     def _right_side(self, w: np.ndarray, mu: float) -> tuple[np.ndarray, np.ndarray]:
