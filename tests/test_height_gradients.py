@@ -429,3 +429,12 @@ def test_the_grid_search_finds_what_a_brute_force_sort_finds(case):
             d = xy[others] - xy[c]
             brute = others[np.lexsort((others, z[others], d[:, 1], d[:, 0], d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]))][:k]
             np.testing.assert_array_equal(index[c], brute, err_msg=f"{case}, k {k}, point {c}")
+
+
+@pytest.mark.parametrize("points, cells", [(20_000, 900), (5, 2), (1, 1), (300, 100_000)])
+def test_the_points_sorted_by_cell_keep_their_order_within_a_cell(points, cells):
+    """plane_grid's order of the points by cell number is numpy's stable argsort, by the
+    counting sort or (far more cells than points) by numpy itself: many ties here."""
+    from c1mesh.stages.height_gradients import _stable_order
+    number = np.random.default_rng(points).integers(0, cells, points)
+    np.testing.assert_array_equal(_stable_order(number, cells), np.argsort(number, kind="stable"))

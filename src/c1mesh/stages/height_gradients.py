@@ -35,6 +35,9 @@ BLOCK = 1 << 15
 PER_CELL = 12
 """Points per occupied cell of the neighbour search's grid (PlaneGrid), on average: for the
 24 neighbours of the default fit, the 3 × 3 cells around a point usually hold them all."""
+COUNTING_CELLS = 8
+"""plane_grid sorts its points by cell with a counting sort while the grid has at most
+this many cells per point (a far outlier's grid can have many more: then numpy's sort)."""
 RIDGE = 1e-9
 """Relative ridge on the normal equations: a neighbourhood whose offsets lie on one line
 (a scan line) leaves the slope and curvature across it undetermined; the ridge sets them
@@ -223,7 +226,7 @@ def plane_grid(xy: np.ndarray, per_cell: int = PER_CELL) -> tuple[PlaneGrid, np.
         cell_y = np.floor((xy[:, 1] - low[1]) / size).astype(np.int64)
         nx, ny = int(cell_x.max()) + 1, int(cell_y.max()) + 1
         number = cell_y * nx + cell_x
-        order = np.argsort(number, kind="stable")
+        order = _stable_order(number, nx * ny)
         number = number[order]
         first = np.flatnonzero(np.r_[True, number[1:] != number[:-1]])
         crowded = n > 2 * per_cell * len(first) and size > extent.max() * 1e-9
@@ -233,6 +236,17 @@ def plane_grid(xy: np.ndarray, per_cell: int = PER_CELL) -> tuple[PlaneGrid, np.
     grid = PlaneGrid(float(low[0]), float(low[1]), size, nx, ny, number[first],
                      np.append(first, n).astype(np.int64), cell_x[order], cell_y[order])
     return grid, order
+
+
+def _stable_order(number: np.ndarray, cells: int) -> np.ndarray:
+    """np.argsort(number, kind="stable") of cell numbers in [0, cells): by the kernel's
+    counting sort where the cells are no more than COUNTING_CELLS per number (0.01 s
+    against numpy's 0.11 s at 1M points), else numpy's."""
+    if cells > COUNTING_CELLS * max(number.size, 1):
+        return np.argsort(number, kind="stable")
+    order = np.empty(number.size, dtype=np.int64)
+    kernel.cell_order(np.ascontiguousarray(number, dtype=np.int64), np.zeros(cells + 1, dtype=np.int64), order)
+    return order
 
 
 def nearest_neighbours(grid: PlaneGrid, xy: np.ndarray, z: np.ndarray, centre: np.ndarray,
