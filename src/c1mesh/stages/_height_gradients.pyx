@@ -13,6 +13,8 @@ from libc.stdint cimport int64_t
 from libc.stdlib cimport free, malloc, qsort, realloc
 from libc.string cimport memcpy
 
+from c1mesh.core._counting cimport stable_order
+
 cdef enum:
     MAX_TERMS = 5        # the quadratic's terms, the most a system has
 
@@ -433,19 +435,12 @@ def grid_neighbours(const double[:, ::1] xy, const double[::1] z, const int64_t[
         raise MemoryError()
 
 
+
 def cell_order(const int64_t[::1] number, int64_t[::1] count, int64_t[::1] order):
     """order (n,) = the stable order of the cell numbers number (n,) in [0, len(count) − 1)
     (numpy's argsort(kind="stable"): equal numbers keep their input order), by one
-    counting sort; count (cells + 1,) zeros on entry, the cells' first slots on return.
-    One thread, O(n + cells)."""
-    cdef Py_ssize_t i, n = number.shape[0], cells = count.shape[0] - 1
-    cdef int64_t running = 0, held
+    counting sort (core/_counting.pxd); count (cells + 1,): each cell's first slot on
+    return. One thread, O(n + cells)."""
     with nogil:
-        for i in range(n):
-            count[number[i] + 1] += 1
-        for i in range(cells):
-            count[i + 1] += count[i]
-        for i in range(n):
-            held = count[number[i]]
-            order[held] = i
-            count[number[i]] = held + 1
+        stable_order(&number[0] if number.shape[0] else NULL, number.shape[0], &count[0], count.shape[0] - 1,
+                     &order[0] if order.shape[0] else NULL)

@@ -5,31 +5,29 @@ them. Squared distances dx*dx + dy*dy, unfused (the build's -ffp-contract=off), 
 position's answer does not depend on the block or thread that computes it."""
 from libc.math cimport floor
 from libc.stdint cimport int64_t
+from libc.stdlib cimport free, malloc
+
+from c1mesh.core._counting cimport stable_order
 
 
 def bucket_points(const double[:, ::1] xy, const int64_t[::1] index, const int64_t[::1] bucket,
                   int64_t buckets, int64_t[::1] start, double[:, ::1] held, int64_t[::1] ids) -> None:
-    """Counting sort of the points xy (m, 2) by bucket (m,), stable: start (buckets + 1,)
-    the first slot of each bucket; held (m, 2) and ids (m,) the points' coordinates and
-    index, bucket by bucket, in row order within one."""
-    cdef Py_ssize_t m = xy.shape[0], p, b
-    cdef int64_t slot
+    """Counting sort of the points xy (m, 2) by bucket (m,), stable (core/_counting.pxd):
+    start (buckets + 1,) the first slot of each bucket; held (m, 2) and ids (m,) the points'
+    coordinates and index, bucket by bucket, in row order within one."""
+    cdef Py_ssize_t m = xy.shape[0], slot
+    cdef int64_t p
+    cdef int64_t *order = <int64_t *> malloc(max(m, 1) * sizeof(int64_t))
+    if order == NULL:
+        raise MemoryError()
     with nogil:
-        for b in range(buckets + 1):
-            start[b] = 0
-        for p in range(m):
-            start[bucket[p] + 1] += 1
-        for b in range(buckets):
-            start[b + 1] += start[b]
-        for p in range(m):
-            slot = start[bucket[p]]
+        stable_order(&bucket[0] if m else NULL, m, &start[0], buckets, order)
+        for slot in range(m):
+            p = order[slot]
             held[slot, 0] = xy[p, 0]
             held[slot, 1] = xy[p, 1]
             ids[slot] = index[p]
-            start[bucket[p]] = slot + 1
-        for b in range(buckets, 0, -1):           # each bucket's end back to its start
-            start[b] = start[b - 1]
-        start[0] = 0
+    free(order)
 
 
 cdef inline int64_t _max(int64_t a, int64_t b) noexcept nogil:

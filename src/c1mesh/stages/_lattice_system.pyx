@@ -27,6 +27,7 @@ work (9 × 9 products per point), can be summed while the strength is being sear
 writes K s + data + diag over them, the same expressions in the same order as one pass.
 """
 from libc.stdint cimport int32_t, int64_t
+from libc.string cimport memset
 
 cdef enum:
     SLOTS = 7       # a vertex and its 6 stencil neighbours
@@ -79,10 +80,7 @@ def assemble_data(const int64_t[:, ::1] triangles, const int64_t[::1] start, con
     cdef double weighted[9]
     with nogil:
         for v in range(first, stop):
-            for slot in range(SLOTS):
-                for c in range(3):
-                    for d in range(3):
-                        D[slot][c][d] = 0.0
+            memset(&D[0][0][0], 0, sizeof(D))
             for e in range(start[v], start[v + 1]):
                 t = corner[e] // 3
                 a = corner[e] % 3
@@ -129,10 +127,7 @@ def assemble_energy(const int64_t[:, ::1] triangles, const int64_t[::1] start, c
     cdef const double *element
     with nogil:
         for v in range(first, stop):
-            for slot in range(SLOTS):
-                for c in range(3):
-                    for d in range(3):
-                        K[slot][c][d] = 0.0
+            memset(&K[0][0][0], 0, sizeof(K))
             for e in range(start[v], start[v + 1]):
                 t = corner[e] // 3
                 a = corner[e] % 3
