@@ -190,14 +190,14 @@ def _quality(cfg: Config, sec: Section, level: int) -> None:
     name, far, c, kept = rows[0]
     n = c["faces"]
     sec.headlines += [
-        ("mug, defaults: max vertex distance to an input point", f"{far * 100:.2f} cm", "≤ 2 cm",
+        (f"mug, defaults but level {level}: max vertex distance to an input point", f"{far * 100:.2f} cm", "≤ 2 cm",
          verdict(far <= 0.02)),
-        ("mug, defaults: faces > 85° from their view ray", f"{c['edge_on'] / n:.4%}", "≤ 0.1%",
+        (f"mug, defaults but level {level}: faces > 85° from their view ray", f"{c['edge_on'] / n:.4%}", "≤ 0.1%",
          verdict(c["edge_on"] <= 1e-3 * n)),
-        ("mug, defaults: folded faces (> 90° from any corner normal, quality.folded_faces)",
+        (f"mug, defaults but level {level}: folded faces (> 90° from any corner normal, quality.folded_faces)",
          f"{c['flipped_any'] / n:.4%} (from the mean of the corners: {c['flipped_mean'] / n:.4%})",
          "≤ 0.01%", verdict(c["flipped_any"] <= 1e-4 * n)),
-        ("mug, defaults: finite input points that are output vertices", f"{kept:.1%}", "≥ 90%",
+        (f"mug, defaults but level {level}: finite input points that are output vertices", f"{kept:.1%}", "≥ 90%",
          verdict(kept >= 0.9))]
 
 
