@@ -17,6 +17,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.lazy import LazyModule
+from c1mesh.core.threads import background
 from c1mesh.engine import rsd
 from c1mesh.engine.properties import scheme_properties
 
@@ -147,17 +148,24 @@ class SplineSampler:
 
     def __init__(self, interp, origin, data_xy=None, reach: float | None = None,
                  fill: FillRule | None = None, fit_xy=None):
+        # the data's sort by y (0.17 s at 1M points) in a second thread, beside the triangles' boxes
+        with background(lambda: None if data_xy is None else _RowSorted(data_xy)) as rows:
+            self._triangles(interp, origin, fill, fit_xy)
+            self._data = rows()
+        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed,
+        self._rim = np.zeros(0, dtype=np.int64)          # over these triangles (rim_triangles)
+
+    def _triangles(self, interp, origin, fill: FillRule | None, fit_xy) -> None:
+        """The set-up that needs no data points: the triangles' boxes, their order by north
+        edge, the polynomial form of the scheme, the barycentric maps."""
         self.interp = interp
         self.origin = np.asarray(origin, dtype=np.float64)
-        self._data = None if data_xy is None else _RowSorted(data_xy)
         self.fill = fill
         self._fit_xy = interp.points[:, :2] if fit_xy is None else np.asarray(fit_xy, dtype=np.float64)
         self._tree = None                                  # cKDTree of _fit_xy, built when first needed
         # the triangles the nearest-triangle rule searches: the trim's (a fill's triangles
         # span holes and the hull, and their long edges would widen every search)
         self._searched = np.arange(len(interp.triangles)) if fill is None else np.flatnonzero(fill.trimmed)
-        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed,
-        self._rim = np.zeros(0, dtype=np.int64)          # over these triangles (rim_triangles)
         K, self.exponents, error = polynomial_form(interp.scheme)
         self.K = K if error < 1e-9 else None        # else: rsd's shape functions per point
         tri, pts = interp.triangles, interp.points
