@@ -239,17 +239,19 @@ def _crosses_badly(points: np.ndarray, edges: np.ndarray, u: np.ndarray,
 def _unit_normals(points: np.ndarray, edges: np.ndarray, block: int = 1 << 16) -> np.ndarray:
     """(-vy, vx) / |v| for the edge vectors v = points[j] - points[i] of edges (E, 2).
 
-    In blocks, so no full-size temporaries; |v| is computed as np.linalg.norm does
-    (sqrt(vx² + vy²)), so the bits are those of the plain expression.
+    In fixed blocks in the thread knob's threads, so no full-size temporaries and the same
+    bits at any count; |v| is computed as np.linalg.norm does (sqrt(vx² + vy²)), so the
+    bits are those of the plain expression.
     """
     out = np.empty((edges.shape[0], 2))
-    for start in range(0, edges.shape[0], block):
-        part = slice(start, start + block)
+
+    def normals(part: slice) -> None:
         vec = points[edges[part, 1]] - points[edges[part, 0]]
         vx, vy = vec[:, 0], vec[:, 1]
         length = np.sqrt(vx * vx + vy * vy)
         np.divide(-vy, length, out=out[part, 0])
         np.divide(vx, length, out=out[part, 1])
+    parallel_blocks(normals, edges.shape[0], block)
     return out
 
 
