@@ -260,20 +260,9 @@ def blocks_ahead(work: Callable[[slice], None], count: int, block: int,
     caller in a long C call holds. With one worker nothing starts early: finish() runs
     prepare and every block. Leaving the block without finish() lets the background take
     no more blocks and waits for its current one."""
-    blocks = -(-count // block)
-    taken = itertools.count()                 # next() on it is atomic under the GIL
     stopped, prepared = threading.Event(), threading.Event()
+    take = _block_taker(work, count, block, stopped)
     errors: list = []
-
-    def take() -> None:
-        for b in iter(taken.__next__, None):
-            if b >= blocks or stopped.is_set():
-                return
-            try:
-                work(slice(b * block, min(count, (b + 1) * block)))
-            except BaseException:
-                stopped.set()
-                raise
 
     def ahead() -> None:
         try:
@@ -341,19 +330,28 @@ def parallel_blocks(work: Callable[[slice], None], count: int, block: int = 1 <<
     blocks = -(-count // block)
     if blocks == 0:
         return
-    taken = itertools.count()                 # next() on it is atomic under the GIL
-    failed = threading.Event()
+    run_parallel(_block_taker(work, count, block, threading.Event()), [()] * max(1, min(workers(threads), blocks)))
 
-    def run() -> None:
+
+def _block_taker(work: Callable[[slice], None], count: int, block: int,
+                 stopped: threading.Event) -> Callable[[], None]:
+    """The loop each thread of parallel_blocks and blocks_ahead runs: take the next block of
+    `block` items of range(count) not yet taken (a shared counter, atomic under the GIL) and
+    run work(slice) on it, until none is left or `stopped` is set; a block's error sets
+    `stopped`, so that no thread takes another, and is raised."""
+    blocks = -(-count // block)
+    taken = itertools.count()
+
+    def take() -> None:
         for b in iter(taken.__next__, None):
-            if b >= blocks or failed.is_set():
+            if b >= blocks or stopped.is_set():
                 return
             try:
                 work(slice(b * block, min(count, (b + 1) * block)))
             except BaseException:
-                failed.set()
+                stopped.set()
                 raise
-    run_parallel(run, [()] * max(1, min(workers(threads), blocks)))
+    return take
 
 
 def take_rows(rows: np.ndarray, index: np.ndarray, block: int = 1 << 16) -> np.ndarray:

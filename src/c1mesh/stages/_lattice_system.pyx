@@ -57,6 +57,19 @@ cdef inline int _missing(int *slots) noexcept nogil:
     return (slots[0] == SLOTS) + (slots[1] == SLOTS) + (slots[2] == SLOTS)
 
 
+cdef inline bint _corner_at(const int64_t[:, ::1] triangles, const int32_t[:, ::1] nbr,
+                            const int64_t[::1] corner, Py_ssize_t v, Py_ssize_t e, Py_ssize_t *t, int *a,
+                            int *slots, int64_t *outside) noexcept nogil:
+    """The incidence entry e at vertex v: its triangle t and corner a, its corners' slots
+    (_slots); False (and the corners outside the stencil counted) when one has none."""
+    t[0] = corner[e] // 3
+    a[0] = corner[e] % 3
+    if _slots(triangles, nbr, v, t[0], slots):
+        return True
+    outside[0] += _missing(slots)
+    return False
+
+
 def assemble_data(const int64_t[:, ::1] triangles, const int64_t[::1] start, const int64_t[::1] corner,
                   const int64_t[::1] first_point, const int64_t[::1] points, const double[:, ::1] rows,
                   const double[::1] w, const int32_t[:, ::1] nbr, double[:, :, :, ::1] blocks,
@@ -82,10 +95,7 @@ def assemble_data(const int64_t[:, ::1] triangles, const int64_t[::1] start, con
         for v in range(first, stop):
             memset(&D[0][0][0], 0, sizeof(D))
             for e in range(start[v], start[v + 1]):
-                t = corner[e] // 3
-                a = corner[e] % 3
-                if not _slots(triangles, nbr, v, t, slots):
-                    outside += _missing(slots)
+                if not _corner_at(triangles, nbr, corner, v, e, &t, &a, slots, &outside):
                     continue
                 for p in range(first_point[t], first_point[t + 1]):
                     i = points[p]
@@ -129,10 +139,7 @@ def assemble_energy(const int64_t[:, ::1] triangles, const int64_t[::1] start, c
         for v in range(first, stop):
             memset(&K[0][0][0], 0, sizeof(K))
             for e in range(start[v], start[v + 1]):
-                t = corner[e] // 3
-                a = corner[e] % 3
-                if not _slots(triangles, nbr, v, t, slots):
-                    outside += _missing(slots)
+                if not _corner_at(triangles, nbr, corner, v, e, &t, &a, slots, &outside):
                     continue
                 element = &elements[shape_of[t], 0, 0]
                 for c in range(3):
