@@ -87,8 +87,8 @@ def hold_freed_heap() -> None:
     one arena (HELD_ARENAS): glibc gives each thread that allocates while another holds the
     heap an arena of its own, whose freed heap no other thread reuses, so a background
     thread's arrays (the smoothing's data term, core.threads.blocks_ahead) stayed resident
-    beside the main thread's: the lattice DTM job's peak 1.425 -> 1.389-1.397 GB, the 1M
-    LAZ fit's 1.568 -> 1.548-1.551 GB, wall times alike (alternating runs, 2 threads). Like
+    beside the main thread's: the lattice DTM job's peak RSS 1.459 -> 1.419-1.431 GB, the 1M
+    LAZ fit's 1.605 -> 1.585-1.588 GB, wall times alike (alternating runs, 2 threads). Like
     prefer_small_pages, only the command calls it: a library does not change its host
     program's allocator."""
     os.environ.setdefault("GLIBC_TUNABLES", HELD_HEAP)
