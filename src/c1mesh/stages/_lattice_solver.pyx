@@ -96,9 +96,9 @@ cdef inline void _load_block(const int32_t *nbr, const double *blocks, Py_ssize_
     """m (9,) row-major: the block of S coupling vertex v to nbr[slot] (`_slot_block`),
     copied with constant offsets (a backward block transposed as it is copied): the sums
     then index it by constants."""
-    cdef const double *blk
-    if slot == 0 or slot & 1:
-        blk = blocks + 9 * ((slot + 1) // 2 * n + v)
+    cdef int sp, sq
+    cdef const double *blk = _slot_block(nbr, blocks, n, v, slot, &sp, &sq)
+    if sp == 3:
         m[0] = blk[0]
         m[1] = blk[1]
         m[2] = blk[2]
@@ -109,7 +109,6 @@ cdef inline void _load_block(const int32_t *nbr, const double *blocks, Py_ssize_
         m[7] = blk[7]
         m[8] = blk[8]
     else:
-        blk = blocks + 9 * (slot // 2 * n + <Py_ssize_t> nbr[slot])
         m[0] = blk[0]
         m[1] = blk[3]
         m[2] = blk[6]
@@ -387,7 +386,7 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
     entry; an entry of P for a vertex not in the slots is counted and skipped (returned:
     0 when the pattern holds)."""
     cdef Py_ssize_t I, e, g, f, J, slot, fslot, last_j, last_slot, n, u, base, pslot, t, k = order.shape[0]
-    cdef int p, q, r, qq, sp, sq
+    cdef int p, q, r, qq
     cdef int64_t missing = 0
     cdef double back[9]
     cdef Py_ssize_t uvert[25]
@@ -437,11 +436,8 @@ def galerkin(const int32_t[:, ::1] nbr, const double[:, :, :, ::1] blocks, const
                         continue
                     u = base + ushift[fslot]
                     uvert[u] = g
-                    blk = _slot_block(&nbr[f, 0], &blocks[0, 0, 0, 0], blocks.shape[1], f, fslot, &sp, &sq)
-                    if sp != 3:                           # a backward block: its transpose, row-major
-                        for t in range(9):
-                            back[t] = blk[(t // 3) * sp + (t % 3) * sq]
-                        blk = &back[0]
+                    _load_block(&nbr[f, 0], &blocks[0, 0, 0, 0], blocks.shape[1], f, fslot, back)
+                    blk = &back[0]                        # row-major (a backward block transposed)
                     Ug = &U[u][0]
                     for p in range(3):
                         for t in range(rn[slot][p]):
