@@ -9,7 +9,8 @@ and every such call has one place to fail soft.
   later tile's allocations do not always fit in it, so the peak climbs with the number
   of tiles run; malloc_trim(0) hands it back. Nothing happens without glibc.
 - `hold_freed_heap`, `release_task_heap`: the command has glibc keep the heap a task
-  frees for the next task's arrays (at a 32 MiB mmap threshold, no automatic trim), so
+  frees for the next task's arrays (no array mapped on its own in the command's process,
+  a 32 MiB mmap threshold in the processes it starts, no automatic trim), so
   a tiled fit's tasks stop faulting their pages in again after every task's
   malloc_trim; release_free_heap still runs at every stage's end.
 - `peak_rss_mb`: the process's peak resident set so far.
@@ -48,11 +49,18 @@ madvise = _libc_function("madvise", [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_
 _malloc_trim = _libc_function("malloc_trim", [ctypes.c_size_t], ctypes.c_int)
 _mallopt = _libc_function("mallopt", [ctypes.c_int, ctypes.c_int], ctypes.c_int)
 
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -3, -4, -8
 """glibc's mallopt parameters (malloc.h)."""
 HELD_MMAP_THRESHOLD = 32 << 20
 """Arrays from this size up are mapped on their own and unmapped when freed, as glibc does
 by default above its (adaptive) threshold; 32 MiB is the largest glibc allows."""
+HELD_MMAPS = 0
+"""Arrays the command's own process maps on their own (glibc's M_MMAP_MAX): none, so that
+its arrays of HELD_MMAP_THRESHOLD and more also come from the heap and reuse what earlier
+ones freed, instead of being unmapped when freed and faulted in afresh when the next is
+made (hold_freed_heap says what that saved). Set in this process only: the processes it
+starts keep glibc's own maps above the threshold (HELD_HEAP), because a tiled fit's workers
+were not faster without them."""
 HELD_TRIM_THRESHOLD = (1 << 31) - 1
 """Free heap glibc keeps at its top before trimming by itself: never, in practice."""
 HELD_ARENAS = 1
@@ -88,14 +96,21 @@ def hold_freed_heap() -> None:
     heap an arena of its own, whose freed heap no other thread reuses, so a background
     thread's arrays (the smoothing's data term, core.threads.blocks_ahead) stayed resident
     beside the main thread's: the lattice DTM job's peak RSS 1.459 -> 1.419-1.431 GB, the 1M
-    LAZ fit's 1.605 -> 1.585-1.588 GB, wall times alike (alternating runs, 2 threads). Like
-    prefer_small_pages, only the command calls it: a library does not change its host
+    LAZ fit's 1.605 -> 1.585-1.588 GB, wall times alike (alternating runs, 2 threads). This
+    process also maps no array on its own (HELD_MMAPS): glibc's largest threshold (32 MiB)
+    left a 1M-point fit's big arrays (the stencil, the spline's coefficients, the refined
+    mesh's blocks) mapped and unmapped one by one. Alternating runs, 2 threads: the DTM job
+    (lattice, --smooth auto) 550k -> 350k page faults, 1.6-1.8 -> 1.2-1.3 s of system time;
+    the 1M LAZ fit 5.00-5.17 -> 4.61-4.95 s and 1.55 -> 1.46-1.51 GB; 1M points with normals
+    at level 4 5.95-6.34 -> 5.70-6.00 s and 1.47-1.51 -> 1.46 GB; the 4M tiled fit at
+    --memory 2G alike (25.7-27.1 s, the parent 268-291 MB). Like prefer_small_pages, only the command calls it: a library does not change its host
     program's allocator."""
     os.environ.setdefault("GLIBC_TUNABLES", HELD_HEAP)
     if _mallopt is not None:
         _mallopt(_M_MMAP_THRESHOLD, HELD_MMAP_THRESHOLD)
         _mallopt(_M_TRIM_THRESHOLD, HELD_TRIM_THRESHOLD)
         _mallopt(_M_ARENA_MAX, HELD_ARENAS)
+        _mallopt(_M_MMAP_MAX, HELD_MMAPS)
 
 
 def heap_held() -> bool:
