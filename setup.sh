@@ -40,4 +40,10 @@ if [ -e /usr/include/suitesparse/cholmod.h ]; then
         echo "setup.sh: scikit-sparse did not build; the smoothing fit will use SuperLU" >&2
 fi
 install -m 755 bin/c1mesh .venv/bin/c1mesh
+# Bytecode for src's modules, which the editable install leaves uncompiled (`pip install .`
+# compiles them). Python reads it even where PYTHONDONTWRITEBYTECODE keeps it from writing its
+# own cache (container images often set it); without it every command compiled c1mesh's modules
+# again: importing the fit took 0.42 s instead of 0.28. A module edited later is compiled in
+# memory until this runs again; nothing stale is used.
+.venv/bin/python -m compileall -q src/c1mesh
 echo "setup.sh: ready (.venv/bin/c1mesh)" >&2
