@@ -141,6 +141,32 @@ def test_blas_threads_limits_inside_and_restores_after():
         assert blas() == before
 
 
+def test_blas_threads_limits_a_blas_loaded_after_the_first_call():
+    """The controller is kept between calls (core.threads._controller) but made again
+    after an import: scipy.linalg brings scipy's own OpenBLAS, which a limit entered
+    after it must reach as well as numpy's. In a child, so that scipy.linalg is not
+    loaded yet."""
+    import subprocess
+
+    code = """if True:
+        import numpy
+        from threadpoolctl import threadpool_info
+        from c1mesh.core.threads import blas_threads
+        paths = lambda: {p["filepath"] for p in threadpool_info() if p["user_api"] == "blas"}
+        before = paths()
+        with blas_threads(1):
+            pass
+        import scipy.linalg
+        assert paths() - before, "scipy.linalg should load a BLAS of its own"
+        with blas_threads(1):
+            print(sorted({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}))
+    """
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[1]"
+
+
 # --- the one knob ---------------------------------------------------------------------------
 
 

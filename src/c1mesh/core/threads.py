@@ -34,6 +34,7 @@ import contextlib
 import itertools
 import os
 import queue
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterator, TypeVar
@@ -197,11 +198,22 @@ def blas_threads(limit: int | None) -> contextlib.AbstractContextManager:
     return _controller().limit(limits=limit, user_api="blas")
 
 
-def _controller():
-    """threadpoolctl's controller of the BLAS libraries loaded now: made on every call
-    (~1.5 ms), so that libraries loaded after the first call (scipy's own OpenBLAS) are
-    limited too."""
-    return ThreadpoolController()
+_CONTROLLER: tuple[int, ThreadpoolController] | None = None
+"""(len(sys.modules) when it was made, threadpoolctl's controller): `_controller`'s cache."""
+
+
+def _controller() -> ThreadpoolController:
+    """threadpoolctl's controller of the BLAS libraries loaded now. Making one reads the
+    process's library map (~1.5 ms: the DTM job's strength search made 110, 0.16 s with
+    the GIL held), so it is made again only when a module was imported since the last:
+    a library loaded after the first call (scipy's own OpenBLAS, CHOLMOD's) comes with an
+    import, and is then limited too."""
+    global _CONTROLLER
+    modules = len(sys.modules)
+    cached = _CONTROLLER
+    if cached is None or cached[0] != modules:
+        cached = _CONTROLLER = (modules, ThreadpoolController())
+    return cached[1]
 
 
 def available_cpus() -> int:
