@@ -276,8 +276,12 @@ class SplineSampler:
         r, nc = grid.resolution, len(cols)
         x0, y0 = grid.west - self.origin[0], grid.north - self.origin[1]
         ii, jj = self._data.cells(x0, y0, r, rows, cols)
-        cell = np.unique((ii - rows.start) * nc + (jj - cols.start))
-        cell = cell[~np.isin(cell, covered)]
+        # the cells with data and no covering triangle, ascending: marks over the window's
+        # cells instead of a sort of its points (np.unique and np.isin: 0.11 s a 1M-cell DEM)
+        marked = np.zeros(len(rows) * nc, dtype=bool)
+        marked[(ii - rows.start) * nc + (jj - cols.start)] = True
+        marked[covered] = False
+        cell = np.flatnonzero(marked)
         i, j = np.divmod(cell, nc)
         cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
         has, tri, l0, l1, shift = self.continued(np.column_stack([cx, cy]))
