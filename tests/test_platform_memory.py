@@ -159,3 +159,37 @@ def test_a_held_heap_serves_a_large_array_from_what_an_earlier_one_freed():
         faults[mode] = int(done.stdout)
     pages = (64 << 20) // 4096
     assert faults["mapped"] > pages // 2 and faults["held"] < pages // 20, faults
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="a BLAS worker thread needs a second core")
+def test_idle_blas_threads_sleep_instead_of_spinning():
+    """After a product in two BLAS threads, OpenBLAS's worker spins (about 0.1 s by default)
+    before it sleeps: CPU time runs on while the caller sleeps. With sleep_idle_blas,
+    called before numpy's import as the command does, it sleeps at once. In children, so
+    that this process's OpenBLAS keeps its setting."""
+    import subprocess
+
+    code = """if True:
+        import sys, time
+        from c1mesh.core.platform_memory import sleep_idle_blas
+        if sys.argv[1] == "sleep":
+            sleep_idle_blas()
+        import numpy as np
+        from threadpoolctl import threadpool_limits
+        a = np.random.default_rng(0).random((800, 800))
+        with threadpool_limits(2, user_api="blas"):
+            spent = []
+            for _ in range(3):
+                a @ a
+                start = time.process_time()
+                time.sleep(0.3)
+                spent.append(time.process_time() - start)
+        print(min(spent))
+    """
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    spent = {}
+    for mode in ("sleep", "default"):
+        done = subprocess.run([sys.executable, "-c", code, mode], env=env, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        spent[mode] = float(done.stdout)
+    assert spent["default"] > 0.02 and spent["sleep"] < 0.01, spent

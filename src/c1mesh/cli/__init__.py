@@ -25,7 +25,7 @@ import click
 from c1mesh.cli.commands import fit, info, main, preview, schemes
 from c1mesh.cli.shell import EXIT_FAILURE, EXIT_OK, EXIT_PARTIAL, EXIT_USAGE, usage_line
 from c1mesh.cli.usage import USAGE_CHECKS, check_usage
-from c1mesh.core.platform_memory import hold_freed_heap, prefer_small_pages
+from c1mesh.core.platform_memory import hold_freed_heap, prefer_small_pages, sleep_idle_blas
 
 
 __all__ = ["main", "run", "usage_error", "fit", "info", "preview", "schemes",
@@ -55,8 +55,10 @@ def run() -> None:
     """The c1mesh-python console script, which the `c1mesh` launcher (bin/c1mesh) runs: named
     c1mesh in usage lines and shell completion (_C1MESH_COMPLETE) whatever its file name.
     Before numpy is first imported, numpy's huge pages are turned off for the command and
-    the processes it starts (core.platform_memory.prefer_small_pages), and glibc keeps the
-    heap they free for their next arrays (hold_freed_heap)."""
+    the processes it starts (core.platform_memory.prefer_small_pages), glibc keeps the
+    heap they free for their next arrays (hold_freed_heap), and OpenBLAS's idle threads
+    sleep instead of spinning (sleep_idle_blas)."""
     prefer_small_pages()
     hold_freed_heap()
+    sleep_idle_blas()
     main(prog_name="c1mesh")

@@ -18,6 +18,8 @@ and every such call has one place to fail soft.
   of 4 MiB or more; on machines where a huge-page fault is slow (this project's VMs:
   up to ~100 µs each, zeroing 2 MiB) the fit's fresh arrays cost more in faults than in
   arithmetic. The `c1mesh` command turns that off for itself and the processes it starts.
+- `sleep_idle_blas`: OpenBLAS's idle threads spin before they sleep; the command has them
+  sleep at once, so that they leave the cores to c1mesh's own threads.
 """
 from __future__ import annotations
 
@@ -140,3 +142,26 @@ def prefer_small_pages() -> None:
     8.1-8.8 s without (the interpolate stage 3.5 -> 1.8-2.2 s), the same bytes. A
     library does not change this for its host program: only the command calls it."""
     os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+
+
+BLAS_THREAD_TIMEOUT = "4"
+"""OPENBLAS_THREAD_TIMEOUT for the command: log2 of the CPU cycles an idle OpenBLAS thread
+spins before it sleeps, at OpenBLAS's least (16 cycles; its default 28 is about 0.1 s)."""
+
+
+def sleep_idle_blas() -> None:
+    """Have OpenBLAS's idle threads (numpy's and scipy's libraries, CHOLMOD's), in this
+    process and the processes it starts, sleep as soon as a call ends instead of spinning
+    for the next one (BLAS_THREAD_TIMEOUT), unless the user set OPENBLAS_THREAD_TIMEOUT.
+    OpenBLAS reads it when it is loaded: call this before numpy is imported.
+
+    Why: c1mesh parallelises with its own threads, and the few BLAS calls it makes with
+    the thread knob's threads (the frame's SVD, the DEM sampler's small products, the
+    strength search's dot products) each left a BLAS worker spinning on the other core
+    for 0.1-0.35 s while c1mesh's threads needed it: `perf record` of the DTM job (1M
+    points, --smooth auto --spacing 1) found OpenBLAS's blas_thread_server in 7 % of its
+    samples, about 1 s of a core in five bursts. Alternating runs, 2 threads, the same
+    bytes: the DTM job's user time 13.4 -> 12.0-12.2 s, its wall 9.37-9.39 -> 9.02-9.22
+    s; 1M points with normals at level 4, user time 6.5-8.2 -> 5.8-6.3 s. A library does
+    not change this for its host program: only the command calls it."""
+    os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", BLAS_THREAD_TIMEOUT)
