@@ -398,3 +398,23 @@ def test_tiles_on_a_dask_cluster_share_every_border_vertex_to_the_bit(large_hill
                                   dashboard_address=None) as cluster:
         fit(paths, None, FitOptions(level=2), outputs=outputs, tiles=TiledRun(scheduler=cluster.scheduler_address))
     _assert_tiles_share_border_bits(whole, outputs)
+
+
+@pytest.mark.parametrize("columns", [2, 3])
+def test_bounds_are_the_columns_least_and_largest(columns):
+    """core.tile.bounds against numpy's reduction over the rows, on points with negative
+    and repeated values, a NaN in one column (it propagates into that column only) and
+    integer points (their dtype kept)."""
+    from c1mesh.core.tile import bounds
+
+    rng = np.random.default_rng(5)
+    points = np.round(rng.normal(0.0, 1e3, (10_001, columns)), 1)
+    lower, upper = bounds(points)
+    np.testing.assert_array_equal(lower, points.min(axis=0))
+    np.testing.assert_array_equal(upper, points.max(axis=0))
+    points[17, 1] = np.nan
+    lower, upper = bounds(points)
+    assert np.isnan(lower[1]) and np.isnan(upper[1]) and lower[0] == points[:, 0].min()
+    whole = rng.integers(-50, 50, (999, columns))
+    lower, upper = bounds(whole)
+    assert lower.dtype == whole.dtype and list(lower) == list(whole.min(axis=0)) and list(upper) == list(whole.max(axis=0))

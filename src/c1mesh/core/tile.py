@@ -95,6 +95,15 @@ def corner_rows(index: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     return tile_rows(index, corners), local.reshape(triangles.shape)
 
 
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper), each (d,): the least and the largest value of each column of points
+    (n, d), n >= 1; the values of points.min(axis=0) and points.max(axis=0), found column
+    by column, because numpy's reduction over the rows of an (n, 2) C-ordered array walks
+    them two values at a time: 25 ms each at 1M points, a column's 1-2 ms."""
+    columns = range(points.shape[1])
+    return (np.array([points[:, k].min() for k in columns]), np.array([points[:, k].max() for k in columns]))
+
+
 def plane_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
     """((2,), (2,)): the least and the largest x and y over the parts (an iterable of (m, 2)
     plane positions: a survey's tiles, or the in-memory fit's one part), the reduce a
@@ -102,5 +111,6 @@ def plane_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
     lower, upper = np.full(2, np.inf), np.full(2, -np.inf)
     for xy in parts:
         if xy.shape[0]:
-            lower, upper = np.minimum(lower, xy.min(axis=0)), np.maximum(upper, xy.max(axis=0))
+            low, high = bounds(xy)
+            lower, upper = np.minimum(lower, low), np.maximum(upper, high)
     return lower, upper

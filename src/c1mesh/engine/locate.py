@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from c1mesh.core.threads import parallel_blocks
+from c1mesh.core.tile import bounds
 from c1mesh.engine import _locate as kernel
 
 _QUERY_BLOCK = 1 << 16
@@ -32,8 +33,8 @@ class TriangleLocator:
         self.tolerance = tolerance
         corners = points[triangles]                      # (T, 3, 2)
         lo, hi = corners.min(axis=1), corners.max(axis=1)
-        self.origin = lo.min(axis=0)
-        extent = np.maximum(hi.max(axis=0) - self.origin, 1e-300)
+        self.origin, highest = bounds(lo)[0], bounds(hi)[1]
+        extent = np.maximum(highest - self.origin, 1e-300)
         cells_wanted = max(1, triangles.shape[0])
         cell = np.sqrt(extent[0] * extent[1] / cells_wanted) if extent.min() > 0 else extent.max() / cells_wanted
         cell = max(cell, extent.max() / 4096.0)

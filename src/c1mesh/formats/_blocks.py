@@ -19,6 +19,7 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream, SurfaceMesh
 from c1mesh.core.errors import InputError
+from c1mesh.core.tile import bounds
 
 STREAM_BLOCK = 1 << 18
 """Rows per block when a SurfaceMesh in memory is written as a stream (views, no copies)."""
@@ -69,8 +70,9 @@ def vertex_bounds(stream: MeshStream) -> tuple[np.ndarray, np.ndarray]:
     for vertices, _, _ in stream.vertex_blocks():
         if len(vertices):
             vertices = np.asarray(vertices, dtype=np.float64)
-            np.minimum(low, vertices.min(axis=0), out=low)
-            np.maximum(high, vertices.max(axis=0), out=high)
+            lowest, highest = bounds(vertices)
+            np.minimum(low, lowest, out=low)
+            np.maximum(high, highest, out=high)
     if stream.vertex_count == 0:
         return np.zeros(3), np.zeros(3)
     return low, high

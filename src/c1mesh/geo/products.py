@@ -19,6 +19,7 @@ import numpy as np
 from c1mesh.core import crs as crs_module
 from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import DEM_AXES, contour_path_problem
+from c1mesh.core.tile import bounds
 from c1mesh.geo.contour_file import SHAPEFILE_PARTS, StagedContours, vector_crs
 from c1mesh.geo.contours import ContourGrid, contour_surface
 from c1mesh.geo.preview import render_fit
@@ -251,8 +252,8 @@ def contour_grid(interp, frame, raster_grid: RasterGrid | None, level: int | Non
     if raster_grid is not None:
         return raster_grid
     step = resolution if resolution is not None else mean_edge_length(interp.points, interp.triangles) / level
-    lo = interp.points.min(axis=0) + frame.origin[:2]
-    hi = interp.points.max(axis=0) + frame.origin[:2]
+    lo, hi = bounds(interp.points)
+    lo, hi = lo + frame.origin[:2], hi + frame.origin[:2]
     return RasterGrid.covering(lo, hi, step)
 
 

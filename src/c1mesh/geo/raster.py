@@ -48,6 +48,7 @@ import numpy as np
 from c1mesh.core.crs import describe
 from c1mesh.core.errors import DependencyError, InputError
 from c1mesh.core.outputs import DEM_AXES, RASTER_FORMATS, register_temp, unregister_temp
+from c1mesh.core.tile import bounds
 from c1mesh.formats import atomic_output
 from c1mesh.geo.raster_grid import FillRule, RasterGrid, SplineSampler
 
@@ -555,8 +556,8 @@ def dem_sampling(interp, frame, resolution: float, data_xy=None, reach: float | 
     frame's plane (None: the interpolator's vertices), for the fill and the support layer."""
     if not np.allclose(frame.axes, np.eye(3)):
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
-    lo = interp.points.min(axis=0) + frame.origin[:2]
-    hi = interp.points.max(axis=0) + frame.origin[:2]
+    lo, hi = bounds(interp.points)
+    lo, hi = lo + frame.origin[:2], hi + frame.origin[:2]
     return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach,
                                                                      fill, fit_xy)
 

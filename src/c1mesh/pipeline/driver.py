@@ -23,7 +23,7 @@ from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import background, take_rows
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.core.tile import Tile
+from c1mesh.core.tile import Tile, bounds
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
@@ -763,7 +763,7 @@ def dem_windows(grid, survey, model: SurfaceModel) -> list:
         if not len(xy):
             windows.append(None)
             continue
-        windows.append(grid.window_over(xy.min(axis=0), xy.max(axis=0)))
+        windows.append(grid.window_over(*bounds(xy)))
     return windows
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.core.threads import workers as thread_count
+from c1mesh.core.tile import bounds
 from c1mesh.stages.height_field import gradients_to_normals
 from c1mesh.stages import _height_gradients as kernel
 
@@ -215,7 +216,7 @@ def plane_grid(xy: np.ndarray, per_cell: int = PER_CELL) -> tuple[PlaneGrid, np.
     so a survey with a far outlier, or a strip across its box, gets cells sized to where
     its points are; only occupied cells are stored (memory O(n) whatever the box)."""
     n = len(xy)
-    low, high = xy.min(axis=0), xy.max(axis=0)
+    low, high = bounds(xy)
     extent = high - low
     area = float(extent[0] * extent[1])
     size = float(np.sqrt(area * per_cell / n)) if area > 0 else float(extent.max() * per_cell / n)

@@ -35,7 +35,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
-from c1mesh.core.tile import compact
+from c1mesh.core.tile import bounds, compact
 from c1mesh.stages import _lattice_mesh as _kernel
 from c1mesh.stages.lattice_solver import Lattice
 
@@ -266,7 +266,7 @@ def nearest_points(positions: np.ndarray, xy: np.ndarray, index: np.ndarray) -> 
     out = np.empty(positions.shape[0], dtype=np.int64)
     if not len(positions):
         return out
-    lower, upper = xy.min(axis=0), xy.max(axis=0)
+    lower, upper = bounds(xy)
     size, cols, rows, ci, cj = _buckets(xy, lower, np.maximum(upper - lower, 0.0))
     start = np.empty(cols * rows + 1, dtype=np.int64)
     held, ids = np.empty_like(xy), np.empty_like(index)
@@ -351,7 +351,7 @@ def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> Lattic
     """The in-memory fit's one tile of the lattice route: the mesh (module doc) of data
     points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing,
     sources numbering xy's rows."""
-    grid = node_grid(xy.min(axis=0), xy.max(axis=0), spacing, point_spacing)
+    grid = node_grid(*bounds(xy), spacing, point_spacing)
     solve = _kept_in_bands(grid, xy, blocks=True)
     nodes, triangles = numbered_triangles(grid, solve)
     points = grid.positions(nodes)
