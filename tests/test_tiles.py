@@ -418,3 +418,16 @@ def test_bounds_are_the_columns_least_and_largest(columns):
     whole = rng.integers(-50, 50, (999, columns))
     lower, upper = bounds(whole)
     assert lower.dtype == whole.dtype and list(lower) == list(whole.min(axis=0)) and list(upper) == list(whole.max(axis=0))
+
+
+def test_finite_rows_are_the_rows_without_nan_or_inf():
+    """core.tile.finite_rows against np.isfinite(...).all(axis=1): NaN, +inf and -inf in
+    each column, a row with two of them, one-column points."""
+    from c1mesh.core.tile import finite_rows
+
+    points = np.random.default_rng(6).normal(size=(1000, 3))
+    points[[3, 10, 500], [0, 1, 2]] = [np.nan, np.inf, -np.inf]
+    points[700, :2] = np.nan
+    np.testing.assert_array_equal(finite_rows(points), np.isfinite(points).all(axis=1))
+    assert finite_rows(points).sum() == 996
+    np.testing.assert_array_equal(finite_rows(points[:, 2:]), np.isfinite(points[:, 2]))

@@ -104,6 +104,16 @@ def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([points[:, k].min() for k in columns]), np.array([points[:, k].max() for k in columns]))
 
 
+def finite_rows(points: np.ndarray) -> np.ndarray:
+    """(n,) bool: the rows of points (n, d) whose every value is finite, as
+    np.isfinite(points).all(axis=1) gives them, column by column (15 ms against 1.7 ms at
+    1M rows of 3, for `bounds`' reason)."""
+    good = np.isfinite(points[:, 0])
+    for k in range(1, points.shape[1]):
+        good &= np.isfinite(points[:, k])
+    return good
+
+
 def plane_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
     """((2,), (2,)): the least and the largest x and y over the parts (an iterable of (m, 2)
     plane positions: a survey's tiles, or the in-memory fit's one part), the reduce a

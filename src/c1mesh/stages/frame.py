@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import LAS_FORMATS
+from c1mesh.core.tile import finite_rows
 from c1mesh.stages.height_field import as_n3, check_extent, kd_tree
 from c1mesh.stages.streamed_median import NoValues, streamed_medians
 # Re-exported for the modules that import them from here (pipeline.driver, survey/*);
@@ -127,7 +128,7 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     permutation frames ("z" gives the identity).
     """
     pts = as_n3(points, "points")
-    good = np.all(np.isfinite(pts), axis=1)
+    good = finite_rows(pts)
     if not good.any():
         raise InputError(NO_FINITE_POINTS)
     # Without non-finite rows, skip the (N, 3) copies; but keep the C layout that boolean
@@ -179,7 +180,7 @@ def _frame(chunks: FrameChunks, e3: np.ndarray | None) -> ScanFrame:
 def _finite(points: np.ndarray) -> np.ndarray:
     """The rows of points (m, 3) with finite coordinates (points itself when all are)."""
     points = np.asarray(points, dtype=np.float64)
-    good = np.isfinite(points).all(axis=1)
+    good = finite_rows(points)
     return points if good.all() else points[good]
 
 
@@ -189,7 +190,7 @@ def _unit_normals(points, normals) -> np.ndarray:
     if normals is None:
         return np.empty((0, 3))
     normals = np.asarray(normals, dtype=np.float64)
-    finite = np.isfinite(np.asarray(points, dtype=np.float64)).all(axis=1)
+    finite = finite_rows(np.asarray(points, dtype=np.float64))
     if not finite.all():
         normals = normals[finite]
     length = np.linalg.norm(normals, axis=1)
@@ -280,7 +281,7 @@ def _units_differ(points: np.ndarray) -> bool:
 def auto_axis_reason(points: ArrayLike, has_normals: bool) -> str:
     """How axis "auto" chooses e3 for these points (N, 3), in words for reports."""
     pts = as_n3(points, "points")
-    finite = pts[np.all(np.isfinite(pts), axis=1)]
+    finite = pts[finite_rows(pts)]
     if finite.shape[0] >= 3 and _units_differ(finite):
         return ("auto: the coordinates are in different units (spreads differ by more than "
                 f"{UNIT_ANISOTROPY:g}x), so the world axis over which the points form a height field")

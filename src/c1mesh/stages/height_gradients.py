@@ -21,7 +21,7 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import parallel_blocks
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.core.tile import bounds
+from c1mesh.core.tile import bounds, finite_rows
 from c1mesh.stages.height_field import gradients_to_normals
 from c1mesh.stages import _height_gradients as kernel
 
@@ -68,7 +68,7 @@ def height_normals(points: np.ndarray, frame, k: int, workers: int | None = None
     z): the frame needs no normals then, and the height field's gradients are the fit's.
     """
     pts = np.asarray(points, dtype=np.float64)
-    finite = np.isfinite(pts).all(axis=1)
+    finite = finite_rows(pts)
     local = frame.to_local(pts if finite.all() else pts[finite])
     normals = np.full(pts.shape, np.nan)
     normals[finite] = frame.vectors_to_world(fitted_normals(local, None, k, workers)[0])
