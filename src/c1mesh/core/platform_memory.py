@@ -105,8 +105,8 @@ def hold_freed_heap() -> None:
     (lattice, --smooth auto) 550k -> 350k page faults, 1.6-1.8 -> 1.2-1.3 s of system time;
     the 1M LAZ fit 5.00-5.17 -> 4.61-4.95 s and 1.55 -> 1.46-1.51 GB; 1M points with normals
     at level 4 5.95-6.34 -> 5.70-6.00 s and 1.47-1.51 -> 1.46 GB; the 4M tiled fit at
-    --memory 2G alike (25.7-27.1 s, the parent 268-291 MB). Like prefer_small_pages, only the command calls it: a library does not change its host
-    program's allocator."""
+    --memory 2G alike (25.7-27.1 s, the parent 268-291 MB). Like prefer_small_pages, only
+    the command calls it: a library does not change its host program's allocator."""
     os.environ.setdefault("GLIBC_TUNABLES", HELD_HEAP)
     if _mallopt is not None:
         _mallopt(_M_MMAP_THRESHOLD, HELD_MMAP_THRESHOLD)
