@@ -169,17 +169,25 @@ def data_rows(points: np.ndarray, triangles: np.ndarray, dirs: np.ndarray, schem
 
 
 def _shared_rows(points, triangles, dirs, scheme, tri, lam, shapes: TriangleShapes) -> "DataRows":
-    """data_rows of triangles that are translates of shapes.reps'."""
+    """data_rows of triangles that are translates of shapes.reps': each shape's points in
+    chunks of _CHUNK, the chunks shared among the thread knob's threads with one BLAS
+    thread each (every chunk's product is the same call at any count, so the same bits;
+    the DTM job's 1M points: the assembly's serial stretch)."""
     corners = points[triangles[shapes.reps]]
     G, _ = rsd.barycentric_gradients(corners)
     maps = linear_maps(corners, dirs[shapes.reps], G)                 # (k, 21, 9)
     key = shapes.key[tri]
     vals = np.empty((tri.shape[0], N_LOCAL))
+    chunks = []                                                       # (shape, its points' rows)
     for k in range(shapes.reps.size):
         rows = np.flatnonzero(key == k)
-        for start in range(0, rows.size, _CHUNK):
-            part = rows[start:start + _CHUNK]
-            vals[part] = rsd.basis(scheme, lam[part]).T @ maps[k]
+        chunks += [(k, rows[start:start + _CHUNK]) for start in range(0, rows.size, _CHUNK)]
+
+    def fill(block: slice) -> None:
+        k, part = chunks[block.start]
+        vals[part] = rsd.basis(scheme, lam[part]).T @ maps[k]
+    with blas_threads(1):
+        parallel_blocks(fill, len(chunks), 1)
     return DataRows(np.ascontiguousarray(triangles, dtype=np.int64),
                     np.ascontiguousarray(tri, dtype=np.int64), vals, 3 * points.shape[0])
 
