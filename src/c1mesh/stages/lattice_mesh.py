@@ -406,5 +406,6 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
 
 __all__ = ["FINEST_SPACINGS", "BENDING_CELLS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM",
            "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left",
-           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "least_strength", "support_least_strength",
-           "multigrid_lattice", "nearest_points", "node_grid", "numbered_triangles", "support_reach"]
+           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "least_strength",
+           "support_least_strength", "multigrid_lattice", "nearest_points", "node_grid", "numbered_triangles",
+           "support_reach"]

@@ -341,7 +341,8 @@ class SmoothFit:
     the lowest score lay at SEARCH_LIMITS, so s may be better still beyond it (None when s
     was given; False: s is an interior minimum of the curve). edf: effective degrees of freedom
     tr(H) (Hutchinson estimate; None when SmoothingControl.edf was False). residual_rms,
-    residual_max: of z − F at the data points with weight > 0. solver: the linear solver's name. seconds: wall time per phase.
+    residual_max: of z − F at the data points with weight > 0. solver: the linear solver's
+    name. seconds: wall time per phase.
     outside: data points outside the triangulation (ignored). gradient_weight: the
     weight the gradient data had (0: none). own_residuals: with data at points marked own
     (SmoothingData.own), (count, sum of squares, largest) of those points' residuals, for
