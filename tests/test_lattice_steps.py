@@ -14,29 +14,7 @@ from c1mesh.pipeline.run import fit
 from c1mesh.stages.lattice_mesh import BENDING_CELLS, least_strength, lattice_mesh
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingError, smooth_fit
 from c1mesh.testing.quality import folded_faces
-
-SPACING = 1.3
-"""The samples' point spacing and the lattice's (m): one point a 1.3 m square."""
-
-
-def _ramp(t: np.ndarray) -> np.ndarray:
-    """0 → 1 as t goes 0 → 1, smoothly (smoothstep), flat outside."""
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
-
-
-def _banks(seed: int, side: float = 36.0) -> np.ndarray:
-    """(n, 3) issue 38's terrain, small: a 2 % / 1 % tilt, a 4 m bank over 1 m across x = 12,
-    a 3 m ditch with 1 m walls across y = 24..26 and a 7 m bank over 1.4 m along x + y = 44,
-    sampled on a SPACING grid jittered by ±45 % with 2 cm noise (784 points)."""
-    rng = np.random.default_rng(seed)
-    g = np.arange(0.0, side, SPACING)
-    x, y = (a.ravel() for a in np.meshgrid(g, g))
-    x = x + rng.uniform(-0.45, 0.45, x.size) * SPACING
-    y = y + rng.uniform(-0.45, 0.45, y.size) * SPACING
-    z = (0.02 * x + 0.01 * y + 4.0 * _ramp(x - 12.0) - 3.0 * (_ramp(y - 24.0) - _ramp(y - 26.0))
-         + 7.0 * _ramp((x + y - 44.0) / 1.4))
-    return np.column_stack([x, y, z + rng.normal(0.0, 0.02, x.size)])
+from c1mesh.testing.steps import SPACING, banks as _banks
 
 
 def _lattice_folds(points: np.ndarray) -> tuple[int, float]:
