@@ -153,6 +153,28 @@ class LatticeSystem:
         return Stencil(self.nbr, data.blocks), data.rhs
 
 
+    def stiffen(self, stencil: Stencil, s: float, data: "DataTerm", extra: np.ndarray) -> None:
+        """Add s Σ_t extra[t] K_t to the Stencil `stencil` (with_strength's, from `data`), in
+        place: triangle t's energy weighs 1 + extra[t] times as much as before (extra (T,) >= 0;
+        stages.folds' net, which stiffens the cells where a fit folds). The energy kernel
+        sums the extra blocks (each shape's scaled by its triangles' factor, zero elsewhere)
+        and adds them, times s, to every vertex's blocks."""
+        extra = np.asarray(extra, dtype=np.float64)
+        factors = np.unique(extra[extra > 0])
+        shapes = self.elements.shape[0]
+        elements = np.ascontiguousarray(np.concatenate(
+            [np.zeros_like(self.elements)] + [self.elements * factor for factor in factors]), dtype=np.float64)
+        shape_of = self.shape_of.copy()
+        stiff = extra > 0
+        shape_of[stiff] += shapes * (np.searchsorted(factors, extra[stiff]) + 1)
+        diag = np.zeros((self.nbr.shape[0], 3))
+        outside: list = []
+        parallel_blocks(lambda part: outside.append(kernel.assemble_energy(
+            self.triangles, data.start, data.corner, shape_of, elements, self.nbr, float(s), diag,
+            stencil.blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
+        _check_outside(sum(outside))
+
+
 @dataclass(frozen=True)
 class DataTerm:
     """The part of a lattice system that needs no strength (LatticeSystem.data_term_ahead):
