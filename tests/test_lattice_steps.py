@@ -1,20 +1,27 @@
 """The lattice route at steep steps (issue 38): the search's least strength on the lattice
 (stages.lattice_mesh.least_strength) keeps the fit from folding its faces beside banks and
-ditches narrower than a cell, and the smoothing length it is built on is the fit's own."""
+ditches narrower than a cell, and the smoothing length it is built on is the fit's own; the
+fold net (stages.folds) mends what folds still, in memory and in tiles, and touches nothing
+else."""
 from __future__ import annotations
 
+from dataclasses import replace
+
+import laspy
 import numpy as np
 import pytest
+import trimesh
 
 import c1mesh.pipeline.driver as driver
 from c1mesh.core.cloud import PointCloud
+from c1mesh.core.plan import TiledRun
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.pipeline.run import fit
 from c1mesh.stages.lattice_mesh import BENDING_CELLS, least_strength, lattice_mesh
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingError, smooth_fit
 from c1mesh.testing.quality import folded_faces
-from c1mesh.testing.steps import SPACING, banks as _banks
+from c1mesh.testing.steps import SPACING, banks as _banks, walls
 
 
 def _lattice_folds(points: np.ndarray) -> tuple[int, float]:
@@ -35,11 +42,19 @@ def test_the_lattice_does_not_fold_beside_steep_banks(seed):
     assert strength >= 0.0049                 # the least strength here, 0.005-0.0055 (10^log10: a last bit)
 
 
+def _without_the_net(monkeypatch) -> None:
+    """The lattice route without stages.folds' net (SmoothingControl.fold_net off)."""
+    control = driver.SmoothingControl
+    monkeypatch.setattr(driver, "SmoothingControl", lambda *a, **k: control(*a, **{**k, "fold_net": False}))
+
+
 @pytest.mark.parametrize("seed", [0, 5])
 def test_without_the_least_strength_the_same_banks_fold(monkeypatch, seed):
     """The failure the least strength mends, on the same samples: searched down to 1e-6 the
-    lattice fit folds faces beside the banks (so the test above can fail)."""
+    lattice fit folds faces beside the banks (so the test above can fail; without the
+    fold net, which would mend these two too)."""
     monkeypatch.setattr(driver, "support_least_strength", lambda *args: 0.0)
+    _without_the_net(monkeypatch)
     folds, strength = _lattice_folds(_banks(seed))
     assert folds >= 1 and strength == pytest.approx(1e-6)
 
@@ -102,3 +117,57 @@ def test_the_search_goes_no_lower_than_the_least_strength():
     for bad in (-1.0, float("nan")):
         with pytest.raises(SmoothingError, match="least strength"):
             smooth_fit(mesh.points, mesh.triangles, data, SmoothingControl(strength="auto", least_strength=bad))
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_the_fold_net_mends_the_walls(monkeypatch, seed):
+    """Lines of points 0-6 m off the ground (walls left in the ground class) fold faces at the
+    strength the search chooses (9 and 11 here); the net stiffens the cells around the
+    folds, solves again at the same s, and the fit folds none, saying so in its report."""
+    points = walls(seed)
+    result = fit(PointCloud(points=points), None, FitOptions(smooth="auto", spacing=SPACING))
+    mesh, smoothing = result.mesh, result.report["smoothing"]
+    assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) == 0
+    assert smoothing["fold_rounds"] >= 1 and smoothing["stiffened_cells"] >= 1
+    _without_the_net(monkeypatch)
+    folds, strength = _lattice_folds(points)
+    assert folds >= 1 and strength == smoothing["strength"]
+
+
+def test_a_fit_that_folds_nothing_keeps_its_bits(monkeypatch):
+    """The net only acts where a face folds: a bank sample that folds none gives the same
+    vertices, to the bit, with the net and without it."""
+    options = FitOptions(smooth="auto", spacing=SPACING)
+    result = fit(PointCloud(points=_banks(5)), None, options)
+    assert result.report["smoothing"]["fold_rounds"] == 0 and result.report["smoothing"]["stiffened_cells"] == 0
+    _without_the_net(monkeypatch)
+    plain = fit(PointCloud(points=_banks(5)), None, options)
+    np.testing.assert_array_equal(result.mesh.vertices, plain.mesh.vertices)
+
+
+def test_the_fold_net_in_tiles_is_the_whole_fits(tmp_path):
+    """Beyond --memory each tile runs the net on its halo (smooth_tile is the in-memory fit's
+    stage): the walls sample as class-2 LiDAR folds no face in tiles either, the tiles'
+    report sums the same rounds and cells, and the heights are the whole fit's."""
+    points = walls(2)
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
+    record = laspy.ScaleAwarePointRecord.zeros(len(points), header=header)
+    record.x, record.y, record.z = points[:, 0] + 500000, points[:, 1] + 4000000, points[:, 2] + 100
+    record.classification = np.full(len(points), 2, np.uint8)
+    source = tmp_path / "walls.las"
+    with laspy.open(str(source), mode="w", header=header) as writer:
+        writer.write_points(record)
+    options = FitOptions(classes=[2], smooth="auto", spacing=SPACING)
+    whole = fit(source, tmp_path / "whole.ply", options)
+    tiled = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=200))
+    assert tiled.report["tiles"] > 1
+    for result in (whole, tiled):
+        assert result.report["smoothing"]["fold_rounds"] >= 1
+    assert tiled.report["smoothing"]["stiffened_cells"] == whole.report["smoothing"]["stiffened_cells"] >= 1
+    meshes = [trimesh.load(tmp_path / f"{name}.ply", process=False) for name in ("whole", "tiled")]
+    for mesh in meshes:
+        assert folded_faces(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.asarray(mesh.vertex_normals)) == 0
+    a, b = (np.asarray(mesh.vertices) for mesh in meshes)
+    np.testing.assert_array_equal(np.sort(a[:, :2], axis=0), np.sort(b[:, :2], axis=0))
+    assert np.abs(np.sort(a[:, 2]) - np.sort(b[:, 2])).max() < 0.01 * whole.report["smoothing"]["residual_rms"]

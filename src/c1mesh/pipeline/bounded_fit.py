@@ -272,8 +272,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 if lattice is not None:        # unit normal directions, no gradient data: as in memory
                     least = support_least_strength(surface.spacing, spacing, lattice.triangles,
                                                    int(data.counts.sum()))
-                    run_ = replace(run_, control=replace(run_.control, least_strength=least), overshoot="off",
-                                   gradient_weight=0.0)
+                    run_ = replace(run_, control=replace(run_.control, least_strength=least, fold_net=True),
+                                   overshoot="off", gradient_weight=0.0)
                 fit = TiledSmoothing(run_, longest, data, 0.0 if lattice is None else lattice_halo(lattice.grid),
                                      None if lattice is None else lattice.grid)
                 solved = trimmed_mesh if lattice is None else replace(trimmed_mesh, files=lattice.files)

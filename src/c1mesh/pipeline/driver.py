@@ -507,7 +507,8 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     scheme = get_scheme(options.scheme)
     windows = search_windows(hf.xy) if strength == "auto" else None    # the survey's
     least = support_least_strength(options.spacing, hf.spacing, int(mesh.shown.sum()), hf.xy.shape[0])
-    control = SmoothingControl(strength, scheme, windows=windows, least_strength=least, edf=options.edf)
+    control = SmoothingControl(strength, scheme, windows=windows, least_strength=least, edf=options.edf,
+                               fold_net=True)
     run = SmoothingRun(control, hf.spacing, "off", 0.0)
     count = mesh.points.shape[0]
     with timer.stage("interpolate"):

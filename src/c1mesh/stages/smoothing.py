@@ -52,6 +52,7 @@ from c1mesh.engine.locate import TriangleLocator
 from c1mesh.engine.schemes import DEFAULT_SCHEME, ShapeTuple, get_scheme
 from c1mesh.engine.topology import edge_table, edge_table_sides
 from c1mesh.stages import _smoothing as kernel
+from c1mesh.stages.folds import ROUNDS as FOLD_ROUNDS, CellStiffness, folded_triangles
 from c1mesh.stages.lattice_solver import Lattice, LatticeFactor, LatticeSolver, colour_order, stencil_neighbours
 from c1mesh.stages.lattice_system import LatticeSystem
 from c1mesh.stages.limiter import edge_directions, own_triangles_in
@@ -329,6 +330,9 @@ class SmoothingControl:
     windows: "SearchWindows | None" = None
     least_strength: float = 0.0
     edf: bool = True
+    fold_net: bool = False
+    """The triangles are a lattice's (stages.lattice_mesh): stiffen the cells where the fit
+    folds a face and solve again at the same s (stages.folds); the lattice route sets it."""
 
 
 @dataclass
@@ -365,11 +369,17 @@ class SmoothFit:
     own_residuals: tuple | None = None
     search_windows: dict | None = None
     """Where "auto" searched (SearchWindows.as_dict); None when s was given."""
+    fold_rounds: int = 0
+    """Solves the fold net added (SmoothingControl.fold_net; 0: no face folded)."""
+    fold_cells: tuple = ()
+    """The lattice cells (i, j) whose neighbourhood the fold net stiffened (stages.folds.
+    CellStiffness), sorted; the report gives their number (stiffened_cells)."""
 
     def as_dict(self) -> dict:
         """JSON-ready summary for the fit report (no per-vertex arrays)."""
         out = asdict(self)
-        del out["values"], out["gradients"], out["own_residuals"]
+        del out["values"], out["gradients"], out["own_residuals"], out["fold_cells"]
+        out["stiffened_cells"] = len(self.fold_cells)
         out["cv_curve"] = [[float(s), float(r)] for s, r in self.cv_curve]
         out["seconds"] = {k: round(float(v), 4) for k, v in self.seconds.items()}
         for key in ("strength", "lam", "residual_rms", "residual_max"):
@@ -651,6 +661,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     method = available_solvers()[0]
     solved, order, system = _assembled(problem, method, seconds, threads, grid)
     solved_w = solved.w                          # the weights in the system's numbering (its z: system.z)
+    solved_mesh = (solved.points, solved.triangles) if control.fold_net and grid is None else None
     del solved
     mu = float(gradient_weight)
     curve: list = []
@@ -673,18 +684,37 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             return SmoothFit(values=np.empty(0), gradients=np.empty((0, 2)), solver=method, **chosen)
         # the search's: the final solve needs none of them (dirs: 93 MB at 2M triangles; the
         # data's located copies about 70 MB at 1M points; the system holds its own)
+        net = None
+        if control.fold_net:                          # the caller's triangles are a lattice's
+            net = _FoldNet(pts, tri, shape, order, _Units(Z, h, plane, npts))
+            if grid is None:
+                net.direct = (*solved_mesh, dirs)
         del problem, dirs, nxy, z, w, trend, zn, wn, data_tri, data_lam
         if grid is None:
-            with timed(seconds, "solve"):
-                u, factor = solve(system, s, solved_w, mu, method, keep_energy=False)     # the last matrix
+            with timed(seconds, "solve"):                 # the last matrix unless the net may add one
+                u, factor = solve(system, s, solved_w, mu, method, keep_energy=net is not None)
         else:
             with timed(seconds, "assemble"):
-                S, rhs = system.with_strength(s, data_term())
+                term = data_term()
+                S, rhs = system.with_strength(s, term)
             with timed(seconds, "lattice_setup"):
                 solver = LatticeSolver(S, replace(grid, nodes=grid.nodes[order]))
             del S                                      # the solver's fine level holds it
             with timed(seconds, "solve"):
                 u = solver.pcg(rhs, LATTICE_STEP)[0]
+        if net is not None:
+            with timed(seconds, "folds"):
+                while (extra := net.extra(u)) is not None:
+                    if grid is None:
+                        system.K.data += net.direct_energy(system.K, extra)
+                        u, factor = solve(system, s, solved_w, mu, method, keep_energy=True)
+                    else:
+                        fine = solver.levels[0].op
+                        system.stiffen(fine, s, term, extra)
+                        solver = LatticeSolver(fine, replace(grid, nodes=grid.nodes[order]))
+                        u = solver.pcg(rhs, LATTICE_STEP, x0=u)[0]
+            chosen.update(fold_rounds=net.rounds, fold_cells=net.folded_cells)
+        if grid is not None:
             factor = LatticeFactor(solver, LATTICE_EDF_STEP)
         edf = None
         if control.edf:
@@ -698,12 +728,84 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
     residual = residual[solved_w > 0]
     if order is not None:
         u = _in_input_order(u, order)
-    values = u[0::3] * Z + (plane[0] + npts @ plane[1:])
-    gradients = np.stack([u[1::3], u[2::3]], 1) * (Z / h) + plane[1:] / h
+    values, gradients = _Units(Z, h, plane, npts).vertex_data(u)
     return SmoothFit(values=values, gradients=gradients, edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
                      solver=method if grid is None else "lattice-pcg", own_residuals=own_residuals, **chosen)
+
+
+@dataclass(frozen=True)
+class _Units:
+    """smooth_fit's normalisation: Z the height unit, h the length unit, plane the data's
+    weighted plane (a, b, c) in normalised x, y, npts (N, 2) the vertices normalised."""
+
+    Z: float
+    h: float
+    plane: np.ndarray
+    npts: np.ndarray
+
+    def vertex_data(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(values (N,), gradients (N, 2)) in the caller's units of unknowns u (3N,) in input order."""
+        values = u[0::3] * self.Z + (self.plane[0] + self.npts @ self.plane[1:])
+        gradients = np.stack([u[1::3], u[2::3]], 1) * (self.Z / self.h) + self.plane[1:] / self.h
+        return values, gradients
+
+
+class _FoldNet:
+    """smooth_fit's fold net on a lattice (stages.folds): after each solve, the triangles
+    folding a face at folds.FOLD_LEVEL; their cells stiffened (folds.CellStiffness), at
+    most folds.ROUNDS times. pts (N, 2), tri (T, 3): the vertices in the caller's units and
+    the triangles; scheme: the ShapeTuple; order: the system's vertex numbering (None: the
+    input's); units: the _Units of the unknowns. direct: (points, triangles, dirs) of the
+    problem in the system's numbering, for the energy of a direct solve's CSR."""
+
+    def __init__(self, pts: np.ndarray, tri: np.ndarray, scheme, order, units: _Units):
+        self.pts, self.tri, self.scheme, self.order, self.units = pts, tri, scheme, order, units
+        self.cells: CellStiffness | None = None            # made at the first fold
+        self.factors: np.ndarray | None = None
+        self.rounds = 0
+        self.direct = None
+
+    @property
+    def folded_cells(self) -> tuple:
+        """The cells stiffened, sorted (SmoothFit.fold_cells)."""
+        return () if self.cells is None else tuple(sorted(self.cells.levels))
+
+    def extra(self, u: np.ndarray) -> np.ndarray | None:
+        """(T,) each triangle's energy to add, in units of its own, for the next solve; None
+        when the solve u (3N,) folds no face or the rounds are spent."""
+        if self.rounds == FOLD_ROUNDS:
+            return None
+        values, gradients = self.units.vertex_data(u if self.order is None else _in_input_order(u, self.order))
+        folded = folded_triangles(self.pts, values, gradients, self.tri, self.scheme)
+        if not folded.size:
+            return None
+        if self.cells is None:
+            legs = np.linalg.norm(self.pts[self.tri[0]] - self.pts[self.tri[0, [1, 2, 0]]], axis=1)
+            self.cells = CellStiffness(self.pts, self.tri, float(legs.min()))
+            self.factors = np.ones(self.tri.shape[0])
+        self.cells.fold(folded)
+        factors = self.cells.multipliers()
+        extra, self.factors = factors - self.factors, factors
+        self.rounds += 1
+        return extra
+
+    def direct_energy(self, K, extra: np.ndarray) -> np.ndarray:
+        """Σ_t extra[t] K_t (the triangles' energy blocks, assemble_energy) on the pattern of
+        K (CSR, sorted indices), as values aligned with K.data."""
+        points, triangles, dirs = self.direct
+        n = K.shape[0]
+        key = np.repeat(np.arange(n, dtype=np.int64), np.diff(K.indptr)) * n + K.indices
+        out = np.zeros_like(K.data)
+        for factor in np.unique(extra[extra > 0]):
+            chosen = extra == factor
+            part = assemble_energy(points, triangles[chosen], dirs[chosen], self.scheme, None).tocsr()
+            part.sort_indices()
+            where = np.searchsorted(key, np.repeat(np.arange(n, dtype=np.int64), np.diff(part.indptr)) * n
+                                    + part.indices)
+            np.add.at(out, where, factor * part.data)
+        return out
 
 
 def _lattice_of(lattice: Lattice, pts: np.ndarray, npts: np.ndarray, centre: np.ndarray, h: float) -> Lattice:
@@ -1042,6 +1144,9 @@ class TileSolve:
     residuals: int | None = None
     """How many residuals squares and largest are over: the own data points inside the
     triangles with --spacing (the vertices are lattice nodes), else None (the own vertices)."""
+    fold_rounds: int = 0
+    fold_cells: tuple = ()
+    """The fold net's rounds and stiffened cells in the tile's halo (SmoothFit's)."""
 
     @property
     def residual_count(self) -> int:
@@ -1128,7 +1233,8 @@ def smooth_tile(tile: Tile, run: SmoothingRun, owned: np.ndarray | None = None, 
     else:                                   # the data's own points: the nodes have no heights
         count, squares, largest = fit.own_residuals
     solve = TileSolve(own=int(own.sum()), squares=squares, largest=largest, halo_vertices=len(tile.records),
-                      edf=fit.edf, turned=turned, outside=fit.outside, residuals=count)
+                      edf=fit.edf, turned=turned, outside=fit.outside, residuals=count,
+                      fold_rounds=fit.fold_rounds, fold_cells=fit.fold_cells)
     return SmoothedTile(values, gradients, directions, solve, fit)
 
 
@@ -1182,7 +1288,9 @@ def combined_fit(solves: list[TileSolve], run: SmoothingRun, search: StrengthSea
                      residual_max=max((s.largest for s in solves), default=0.0),
                      solver=available_solvers()[0] if search is None else search.solver, seconds=seconds,
                      outside=sum(s.outside for s in solves), gradient_weight=float(run.gradient_weight),
-                     search_windows=None if search is None else search.windows)
+                     search_windows=None if search is None else search.windows,
+                     fold_rounds=max((s.fold_rounds for s in solves), default=0),
+                     fold_cells=tuple(sorted(set().union(*(s.fold_cells for s in solves)))))
 
 
 __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "SmoothingControl",
