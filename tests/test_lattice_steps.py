@@ -149,7 +149,7 @@ def test_the_fold_net_in_tiles_is_the_whole_fits(tmp_path):
     """Beyond --memory each tile runs the net on its halo (smooth_tile is the in-memory fit's
     stage): the walls sample as class-2 LiDAR folds no face in tiles either, the tiles'
     report sums the same rounds and cells, and the heights are the whole fit's."""
-    points = walls(2)
+    points = walls(3)
     header = laspy.LasHeader(point_format=1, version="1.2")
     header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
     record = laspy.ScaleAwarePointRecord.zeros(len(points), header=header)

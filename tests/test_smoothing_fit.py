@@ -65,8 +65,8 @@ def test_auto_smoothing_is_closer_to_the_terrain_than_the_exact_fit(probes):
 
 
 def test_spacing_fits_a_lattice_to_all_points(probes, monkeypatch):
-    """--spacing 2: the vertices are the nodes of the 2 x 2 lattice (multiples of 2 in the
-    frame's plane), its cells the 30 x 30 the 60 x 60 survey occupies and the support's
+    """--spacing 2: the vertices are the nodes of the 2 x 2 lattice (at world x, y = (k + ½) 2,
+    the centres of a 2 m DEM's cells), its cells the 30 x 30 the 60 x 60 survey occupies and the support's
     reach more on every side, each split into two triangles of area 2; the spline of all 6,000 points.
     Solved by multigrid (MULTIGRID_FROM lowered to 0), the same heights as CHOLMOD's within
     the multigrid's stopping step."""
@@ -79,7 +79,8 @@ def test_spacing_fits_a_lattice_to_all_points(probes, monkeypatch):
     np.testing.assert_array_equal(direct.interp.points, model.interp.points)
     assert np.abs(direct.interp.values - model.interp.values).max() < 1e-3 * model.smoothing.residual_rms
     points, triangles = model.interp.points, model.interp.triangles
-    np.testing.assert_array_equal(points / 2.0, np.round(points / 2.0))
+    world = (points + model.frame.origin[:2]) / 2.0 - 0.5
+    np.testing.assert_allclose(world, np.round(world), rtol=0, atol=1e-12)
     side = 30 + 2 * lattice_mesh.support_reach(2.0, model.hf.spacing)
     assert side ** 2 <= len(triangles) // 2 <= (side + 1) ** 2
     corners = points[triangles]

@@ -79,7 +79,7 @@ from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
-from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, support_least_strength
+from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_offset, support_least_strength
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import with_plane_level
@@ -222,7 +222,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             data = lattice = lattice_facts = None
             if surface.spacing is not None:    # --spacing: the smoothing's vertices on a lattice, every height fitted
                 check_lattice_spacing(surface.spacing, spacing)
-                lattice = lattice_tiles(heights, surface.spacing, spacing, temps, temps.stem)
+                lattice = lattice_tiles(heights, surface.spacing, spacing, temps, temps.stem,
+                                        lattice_offset(frame.origin, surface.spacing))
                 data, heights = heights, stack.enter_context(contextlib.closing(lattice.nodes))
                 lattice_facts = lattice.facts()
             done("normals")

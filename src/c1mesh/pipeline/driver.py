@@ -80,7 +80,8 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
                                      search_windows, smooth_tile)
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_mesh, support_least_strength
+from c1mesh.stages.lattice_mesh import (check_cells_left, check_lattice_spacing, lattice_mesh, lattice_offset,
+                                        support_least_strength)
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
 from c1mesh.survey.sizing import fits_in_memory, point_bytes
@@ -498,7 +499,7 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     check_triangulation, fill = checks
     with timer.stage("triangulate"):
         check_lattice_spacing(options.spacing, hf.spacing)
-        mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing)
+        mesh = lattice_mesh(hf.xy, options.spacing, hf.spacing, lattice_offset(frame.origin, options.spacing))
         check_cells_left(int(mesh.shown.sum()), mesh.grid)
         support = None                  # made after the fit unless the check needs it now (0.2 GiB at 1M nodes)
         if check_triangulation is not None:

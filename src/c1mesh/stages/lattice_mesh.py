@@ -21,9 +21,12 @@ least MIN_BLOCK_POINTS points, so its system is not singular. No Delaunay triang
 needed, and the rule is local: a tile decides its own cells from the points within 2R + 1
 cells of them.
 
-The lattice is the survey's: node (i, j) sits at ((i0 + i) D, (j0 + j) D) in the frame's
-plane, for integers i0, j0 fixed by the data's bounding box, and is number j nx + i; cell
-(i, j) has corners (i, j) .. (i + 1, j + 1) and is number j (nx − 1) + i. Every tile of a
+The lattice is the survey's: node (i, j) sits at (ox + (i0 + i) D, oy + (j0 + j) D) in the
+frame's plane, for integers i0, j0 fixed by the data's bounding box, and is number j nx + i;
+cell (i, j) has corners (i, j) .. (i + 1, j + 1) and is number j (nx − 1) + i. The offset
+(ox, oy) (`lattice_offset`) puts the nodes at world x, y = (k + ½) D when the frame's plane
+axes are the world's: at the cell centres of a DEM of resolution D, which then reads its
+heights and gradients straight off the nodes (geo.raster_grid.NodeCells). Every tile of a
 survey and the survey in memory make the same node at the same bits with the same number.
 """
 from __future__ import annotations
@@ -69,12 +72,15 @@ MIN_BLOCK_POINTS = 3
 @dataclass(frozen=True)
 class NodeGrid:
     """The survey's lattice: spacing D (frame units), first (i0, j0) the integer multiples of D
-    of node (0, 0), shape (ny, nx) its nodes, reach R the support's (cells)."""
+    of node (0, 0), shape (ny, nx) its nodes, reach R the support's (cells), offset (ox, oy)
+    where the multiples start (frame units, `lattice_offset`): node (i, j) sits at
+    (ox + (i0 + i) D, oy + (j0 + j) D)."""
 
     spacing: float
     first: tuple
     shape: tuple
     reach: int
+    offset: tuple = (0.0, 0.0)
 
     @property
     def cells(self) -> tuple:
@@ -83,19 +89,27 @@ class NodeGrid:
 
     def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(i, j) int64 (m,) each: the cell holding each point of xy (m, 2)."""
-        i = np.floor(xy[:, 0] / self.spacing).astype(np.int64) - self.first[0]
-        j = np.floor(xy[:, 1] / self.spacing).astype(np.int64) - self.first[1]
+        i = np.floor((xy[:, 0] - self.offset[0]) / self.spacing).astype(np.int64) - self.first[0]
+        j = np.floor((xy[:, 1] - self.offset[1]) / self.spacing).astype(np.int64) - self.first[1]
         return i, j
 
     def positions(self, nodes: np.ndarray) -> np.ndarray:
-        """(n, 2) the plane positions of node numbers (n,): (i0 + i) D, (j0 + j) D."""
+        """(n, 2) the plane positions of node numbers (n,): ox + (i0 + i) D, oy + (j0 + j) D."""
         j, i = np.divmod(np.asarray(nodes, dtype=np.int64), self.shape[1])
-        return np.column_stack([(self.first[0] + i) * self.spacing, (self.first[1] + j) * self.spacing])
+        return np.column_stack([self.offset[0] + (self.first[0] + i) * self.spacing,
+                                self.offset[1] + (self.first[1] + j) * self.spacing])
+
+    def centres(self, cells: np.ndarray) -> np.ndarray:
+        """(k, 2) the plane positions of the centres of cell numbers (k,)."""
+        j, i = np.divmod(np.asarray(cells, dtype=np.int64), self.shape[1] - 1)
+        return np.column_stack([self.offset[0] + (self.first[0] + i + 0.5) * self.spacing,
+                                self.offset[1] + (self.first[1] + j + 0.5) * self.spacing])
 
     def solver_lattice(self, nodes: np.ndarray) -> Lattice:
         """The stages.lattice_solver.Lattice of vertices at these node numbers (n,)."""
         return Lattice(self.shape, (self.spacing, self.spacing),
-                       (self.first[0] * self.spacing, self.first[1] * self.spacing), nodes)
+                       (self.offset[0] + self.first[0] * self.spacing,
+                        self.offset[1] + self.first[1] * self.spacing), nodes)
 
 
 def check_spacing(spacing: float | None) -> None:
@@ -176,18 +190,28 @@ def support_reach(spacing: float, point_spacing: float) -> int:
     return int(min(max(reach, REACH_CELLS[0]), REACH_CELLS[1]))
 
 
-def node_grid(lower, upper, spacing: float, point_spacing: float) -> NodeGrid:
+def lattice_offset(origin, spacing: float) -> tuple[float, float]:
+    """(ox, oy), each in [0, D): the NodeGrid offset that puts the nodes of the lattice of
+    `spacing` D at world x, y = (k + ½) D in a frame whose plane axes are the world's and
+    whose origin is at world x, y = origin (2,): the cell centres of a DEM of resolution D,
+    whose cells are aligned at multiples of D (geo.raster_grid.RasterGrid.covering). The
+    same for every tile of a survey (the frame is the survey's)."""
+    return tuple(float((0.5 * spacing - float(o)) % spacing) for o in np.asarray(origin, dtype=float)[:2])
+
+
+def node_grid(lower, upper, spacing: float, point_spacing: float, offset=(0.0, 0.0)) -> NodeGrid:
     """The lattice of `spacing` for data within lower (2,) .. upper (2,) (frame units) whose
-    point spacing is h = point_spacing: its cells cover the data's cells and R
-    (support_reach) more on every side."""
+    point spacing is h = point_spacing, its nodes at the multiples of D from `offset`
+    (NodeGrid): its cells cover the data's cells and R (support_reach) more on every side."""
     check_spacing(spacing)
     R = support_reach(spacing, point_spacing)
-    low = np.floor(np.asarray(lower, dtype=float) / spacing).astype(np.int64) - R - KEPT_BLOCK
-    high = np.floor(np.asarray(upper, dtype=float) / spacing).astype(np.int64) + R + KEPT_BLOCK + 1
+    shift = np.asarray(offset, dtype=float)
+    low = np.floor((np.asarray(lower, dtype=float) - shift) / spacing).astype(np.int64) - R - KEPT_BLOCK
+    high = np.floor((np.asarray(upper, dtype=float) - shift) / spacing).astype(np.int64) + R + KEPT_BLOCK + 1
     nx, ny = int(high[0] - low[0]) + 1, int(high[1] - low[1]) + 1
     if nx * ny > 2 ** 62 // 4:
         raise InputError(f"--spacing {spacing:g} makes a lattice of {nx} × {ny} nodes; give a larger spacing")
-    return NodeGrid(float(spacing), (int(low[0]), int(low[1])), (ny, nx), R)
+    return NodeGrid(float(spacing), (int(low[0]), int(low[1])), (ny, nx), R, (float(shift[0]), float(shift[1])))
 
 
 def _box_sum(counts: np.ndarray, reach: int) -> np.ndarray:
@@ -347,11 +371,11 @@ def lattice_facts(grid: NodeGrid, nodes: int) -> dict:
     return {"spacing": grid.spacing, "reach_cells": grid.reach, "nodes": nodes}
 
 
-def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float) -> LatticeMesh:
+def lattice_mesh(xy: np.ndarray, spacing: float, point_spacing: float, offset=(0.0, 0.0)) -> LatticeMesh:
     """The in-memory fit's one tile of the lattice route: the mesh (module doc) of data
-    points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing,
-    sources numbering xy's rows."""
-    grid = node_grid(*bounds(xy), spacing, point_spacing)
+    points xy (m, 2, frame units) at `spacing`, their point spacing h = point_spacing, the
+    nodes at the multiples of D from `offset` (lattice_offset), sources numbering xy's rows."""
+    grid = node_grid(*bounds(xy), spacing, point_spacing, offset)
     solve = _kept_in_bands(grid, xy, blocks=True)
     nodes, triangles = numbered_triangles(grid, solve)
     points = grid.positions(nodes)
@@ -406,6 +430,6 @@ def numbered_triangles(grid: NodeGrid, cells: np.ndarray) -> tuple[np.ndarray, n
 
 __all__ = ["FINEST_SPACINGS", "BENDING_CELLS", "KEPT_BLOCK", "LatticeMesh", "MIN_BLOCK_POINTS", "MULTIGRID_FROM",
            "NodeGrid", "REACH_CELLS", "SUPPORT_SPACINGS", "cell_triangles", "check_cells_left",
-           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "least_strength",
-           "support_least_strength", "multigrid_lattice", "nearest_points", "node_grid", "numbered_triangles",
-           "support_reach"]
+           "check_lattice_spacing", "check_spacing", "kept_cells", "lattice_facts", "lattice_mesh", "lattice_offset",
+           "least_strength", "support_least_strength",
+           "multigrid_lattice", "nearest_points", "node_grid", "numbered_triangles", "support_reach"]

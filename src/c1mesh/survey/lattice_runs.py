@@ -89,12 +89,12 @@ class LatticeTiles:
 
 def _window(lattice: NodeGrid, rect) -> tuple[int, int, int, int]:
     """(i0, i1, j0, j1): the lattice cells meeting rect (x0, y0, x1, y1), one more each side."""
-    D, (fi, fj) = lattice.spacing, lattice.first
+    D, (fi, fj), (ox, oy) = lattice.spacing, lattice.first, lattice.offset
     rows, cols = lattice.cells
-    i0 = max(math.floor(rect[0] / D) - fi - 1, 0)
-    j0 = max(math.floor(rect[1] / D) - fj - 1, 0)
-    i1 = min(math.floor(rect[2] / D) - fi + 2, cols)
-    j1 = min(math.floor(rect[3] / D) - fj + 2, rows)
+    i0 = max(math.floor((rect[0] - ox) / D) - fi - 1, 0)
+    j0 = max(math.floor((rect[1] - oy) / D) - fj - 1, 0)
+    i1 = min(math.floor((rect[2] - ox) / D) - fi + 2, cols)
+    j1 = min(math.floor((rect[3] - oy) / D) - fj + 2, rows)
     return i0, max(i1, i0), j0, max(j1, j0)
 
 
@@ -118,19 +118,18 @@ def _tile_lattice(heights, tiles, lattice: NodeGrid, t: int) -> tuple:
 
 def _own_triangles(lattice: NodeGrid, tiles, t: int, cells: np.ndarray) -> np.ndarray:
     """(k, 3) the triangles of the cells (ascending numbers) whose centre lies in tile t."""
-    j, i = np.divmod(cells, lattice.shape[1] - 1)
-    D = lattice.spacing
-    centres = np.column_stack([(lattice.first[0] + i + 0.5) * D, (lattice.first[1] + j + 0.5) * D])
-    return cell_triangles(lattice, cells[tiles.tile_of(centres) == t])
+    return cell_triangles(lattice, cells[tiles.tile_of(lattice.centres(cells)) == t])
 
 
-def lattice_tiles(heights, spacing: float, point_spacing: float, temps, stem: str) -> LatticeTiles:
+def lattice_tiles(heights, spacing: float, point_spacing: float, temps, stem: str,
+                  offset=(0.0, 0.0)) -> LatticeTiles:
     """The lattice mesh of the height spill at `spacing` (module doc), its points' spacing
-    h = point_spacing (height_runs.survey_stacking's, the in-memory fit's), tile by tile in
-    this process (each tile's work is a few numpy passes over its heights)."""
+    h = point_spacing (height_runs.survey_stacking's, the in-memory fit's), its nodes at
+    the multiples of D from `offset` (lattice_mesh.lattice_offset of the survey's frame),
+    tile by tile in this process (each tile's work is a few numpy passes over its heights)."""
     tiles = heights.grid
     lower, upper = survey_bounds(heights)
-    lattice = node_grid(lower, upper, spacing, point_spacing)
+    lattice = node_grid(lower, upper, spacing, point_spacing, offset)
     nodes = TileSpill(tiles, heights.directory, stem + ".lattice", record=NODE).__enter__()
     files, shown_files, count = [], [], 0
     try:
