@@ -558,8 +558,8 @@ def dem_sampling(interp, frame, resolution: float, data_xy=None, reach: float | 
         raise InputError("raster outputs need the world z axis as height axis (--axis z)")
     lo, hi = bounds(interp.points)
     lo, hi = lo + frame.origin[:2], hi + frame.origin[:2]
-    return RasterGrid.covering(lo, hi, resolution), SplineSampler(interp, frame.origin, data_xy, reach,
-                                                                     fill, fit_xy)
+    grid = RasterGrid.covering(lo, hi, resolution)
+    return grid, SplineSampler(interp, frame.origin, data_xy, reach, fill, fit_xy, grid)
 
 
 def write_fit_rasters(targets: RasterTargets, grid: RasterGrid, sampler: SplineSampler, options,

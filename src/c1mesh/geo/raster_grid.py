@@ -120,6 +120,85 @@ def polynomial_form(scheme) -> tuple[np.ndarray, np.ndarray, float]:
     return K, exponents, error
 
 
+class NodeCells:
+    """The cells of a DEM grid whose centres are the spline's vertices: a fit on a lattice of
+    the DEM's resolution with its nodes at the cell centres (stages.lattice_mesh), whose
+    heights and gradients there are its vertex data, read off instead of evaluated (the
+    same numbers: the RSD spline interpolates its vertex data). Made only when every vertex
+    sits at a centre (to 1e-6 cells) and every triangle's corners are in neighbouring cells,
+    so that no other centre lies in a triangle (`of`); the cells holding data points but no
+    vertex (`bare`) are SplineSampler's nearest-triangle cells.
+
+    grid: the whole grid (its windows share west, north and resolution); row, col (n,) each
+    vertex's cell in it; by_row: the vertices sorted by (row, col); bare_cells: the grid's
+    flat cell numbers (row × width + col) holding data points and no vertex, ascending."""
+
+    def __init__(self, grid: "RasterGrid", row: np.ndarray, col: np.ndarray, bare_cells: np.ndarray,
+                 origin: np.ndarray):
+        self.grid, self.row, self.col, self.bare_cells, self.origin = grid, row, col, bare_cells, origin
+        self.by_row = np.argsort(row, kind="stable")
+        self.sorted_rows = row[self.by_row]
+
+    @classmethod
+    def of(cls, interp, origin: np.ndarray, grid: "RasterGrid", data_xy) -> "NodeCells | None":
+        """The NodeCells of interp's vertices (local plane, origin (3,)) on grid, or None when
+        they are not the grid's centres (module rule above)."""
+        r = grid.resolution
+        if grid.row0 or grid.col0 or not len(interp.points):
+            return None
+        col = (interp.points[:, 0] + origin[0] - grid.west) / r - 0.5
+        row = (grid.north - (interp.points[:, 1] + origin[1])) / r - 0.5
+        ci, ri = np.rint(col), np.rint(row)
+        if not (np.abs(col - ci).max() < 1e-6 and np.abs(row - ri).max() < 1e-6):
+            return None
+        ci, ri = ci.astype(np.int64), ri.astype(np.int64)
+        corners = interp.triangles[:, [0, 1, 2, 0]]
+        if np.abs(np.diff(ci[corners], axis=1)).max(initial=0) > 1 or \
+                np.abs(np.diff(ri[corners], axis=1)).max(initial=0) > 1:
+            return None
+        if ri.min() < 0 or ci.min() < 0 or ri.max() >= grid.height or ci.max() >= grid.width:
+            return None
+        held = np.zeros(grid.height * grid.width, dtype=bool)
+        if data_xy is not None:
+            xy = np.asarray(data_xy, dtype=np.float64).reshape(-1, 2)
+            xy = xy[np.isfinite(xy).all(axis=1)]
+            x0, y0 = grid.west - origin[0], grid.north - origin[1]
+            ii = np.floor((y0 - xy[:, 1]) / r).astype(np.int64)     # as _RowSorted.cells
+            jj = np.floor((xy[:, 0] - x0) / r).astype(np.int64)
+            inside = (ii >= 0) & (ii < grid.height) & (jj >= 0) & (jj < grid.width)
+            held[ii[inside] * grid.width + jj[inside]] = True
+        held[ri * grid.width + ci] = False
+        return cls(grid, ri, ci, np.flatnonzero(held), np.asarray(origin, dtype=np.float64))
+
+    def serves(self, grid: "RasterGrid") -> bool:
+        """Whether grid is this grid or one of its windows."""
+        base = self.grid
+        return (grid.west, grid.north, grid.resolution) == (base.west, base.north, base.resolution)
+
+    def window(self, rows: range, cols: range) -> tuple[np.ndarray, np.ndarray]:
+        """(vertex (k,), cell (k,)): the vertices whose cells lie in rows × cols (whole-grid
+        indices) and their flat cell numbers in that window."""
+        lo, hi = np.searchsorted(self.sorted_rows, [rows.start, rows.stop])
+        vertex = self.by_row[lo:hi]
+        col = self.col[vertex]
+        keep = (col >= cols.start) & (col < cols.stop)
+        vertex = vertex[keep]
+        return vertex, (self.row[vertex] - rows.start) * len(cols) + (self.col[vertex] - cols.start)
+
+    def bare(self, rows: range, cols: range) -> tuple[np.ndarray, np.ndarray]:
+        """(cell (k,), centre (k, 2)): the cells of rows × cols holding data and no vertex, as
+        flat numbers in that window, and their centres in local plane units (the arithmetic
+        of SplineSampler._uncovered)."""
+        width, r = self.grid.width, self.grid.resolution
+        lo, hi = np.searchsorted(self.bare_cells, [rows.start * width, rows.stop * width])
+        i, j = np.divmod(self.bare_cells[lo:hi], width)
+        keep = (j >= cols.start) & (j < cols.stop)
+        i, j = i[keep], j[keep]
+        x0, y0 = self.grid.west - self.origin[0], self.grid.north - self.origin[1]
+        centre = np.column_stack([x0 + (j + 0.5) * r, y0 - (i + 0.5) * r])
+        return (i - rows.start) * len(cols) + (j - cols.start), centre
+
+
 class SplineSampler:
     """Values and analytic gradients of a fitted spline at the cell centres of a grid.
 
@@ -147,22 +226,34 @@ class SplineSampler:
     TOLERANCE = 1e-10
 
     def __init__(self, interp, origin, data_xy=None, reach: float | None = None,
-                 fill: FillRule | None = None, fit_xy=None):
-        # the data's sort by y (0.17 s at 1M points) in a second thread, beside the triangles' boxes
-        with background(lambda: None if data_xy is None else _RowSorted(data_xy)) as rows:
-            self._triangles(interp, origin, fill, fit_xy)
-            self._data = rows()
-        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed,
-        self._rim = np.zeros(0, dtype=np.int64)          # over these triangles (rim_triangles)
-
-    def _triangles(self, interp, origin, fill: FillRule | None, fit_xy) -> None:
-        """The set-up that needs no data points: the triangles' boxes, their order by north
-        edge, the polynomial form of the scheme, the barycentric maps."""
+                 fill: FillRule | None = None, fit_xy=None, grid: "RasterGrid | None" = None):
         self.interp = interp
         self.origin = np.asarray(origin, dtype=np.float64)
         self.fill = fill
         self._fit_xy = interp.points[:, :2] if fit_xy is None else np.asarray(fit_xy, dtype=np.float64)
         self._tree = None                                  # cKDTree of _fit_xy, built when first needed
+        self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed,
+        self._rim = np.zeros(0, dtype=np.int64)          # over these triangles (rim_triangles)
+        self._ready = False
+        self._nodes = None if grid is None or (fill is not None and not fill.trimmed.all()) else \
+            NodeCells.of(interp, self.origin, grid, data_xy)
+        if self._nodes is not None:         # the grid's centres are the vertices: `window` reads them
+            self._data = None
+            return
+        # the data's sort by y (0.17 s at 1M points) in a second thread, beside the triangles' boxes
+        with background(lambda: None if data_xy is None else _RowSorted(data_xy)) as rows:
+            self._triangles()
+            self._data = rows()
+
+    def _triangles(self) -> None:
+        """The set-up that needs no data points: the triangles' boxes, their order by north
+        edge, the polynomial form of the scheme, the barycentric maps (once; a sampler
+        reading its values off the vertices (NodeCells) makes it only if a cell needs the
+        nearest-triangle rule)."""
+        if self._ready:
+            return
+        self._ready = True
+        interp, fill = self.interp, self.fill
         # the triangles the nearest-triangle rule searches: the trim's (a fill's triangles
         # span holes and the hull, and their long edges would widen every search)
         self._searched = np.arange(len(interp.triangles)) if fill is None else np.flatnonzero(fill.trimmed)
@@ -193,13 +284,24 @@ class SplineSampler:
         the triangulation. gradients=False skips them (returns None): a DEM alone, or
         Horn's differences, need heights only."""
         nr, nc = len(rows), len(cols)
-        cell, tri, l0, l1, shift = self.cells(grid, rows, cols)
-        values, grads = self.evaluate(tri, l0, l1, gradients, shift)
         z = np.full(nr * nc, np.nan)
+        g = np.full((nr * nc, 2), np.nan) if gradients else None
+        if self._nodes is not None and self._nodes.serves(grid):
+            vertex, cell = self._nodes.window(*_lattice(grid, rows, cols))
+            z[cell] = self.interp.values[vertex] + self.origin[2]
+            if gradients:
+                g[cell] = self.interp.gradients[vertex]
+            cell, centres = self._nodes.bare(*_lattice(grid, rows, cols))
+            if not cell.size:
+                return z.reshape(nr, nc), None if g is None else g.reshape(nr, nc, 2)
+            has, tri, l0, l1, shift = self.continued(centres)
+            cell = cell[has]
+        else:
+            cell, tri, l0, l1, shift = self.cells(grid, rows, cols)
+        values, grads = self.evaluate(tri, l0, l1, gradients, shift)
         z[cell] = values + self.origin[2]
         if not gradients:
             return z.reshape(nr, nc), None
-        g = np.full((nr * nc, 2), np.nan)
         g[cell] = grads
         return z.reshape(nr, nc), g.reshape(nr, nc, 2)
 
@@ -210,6 +312,7 @@ class SplineSampler:
         callers' assignment), then of the cells holding data points whose centre is in no
         triangle: the point q of the nearest triangle closest to the centre (λ0, λ1 of q)
         and shift = centre − q (local units), for `evaluate`'s linear continuation."""
+        self._triangles()
         rows, cols = _lattice(grid, rows, cols)
         r = grid.resolution
         x0 = grid.west - self.origin[0]          # local x of the grid's west edge
@@ -246,6 +349,10 @@ class SplineSampler:
             keep[spans[far]] = False
         cell = (ii[keep] - rows.start) * nc + (jj[keep] - cols.start)
         found = (cell, tri[keep], l0[keep], l1[keep], np.zeros((cell.size, 2)))
+        if self._nodes is not None and self._nodes.serves(grid):     # the data's cells: NodeCells'
+            bare, centres = self._nodes.bare(rows, cols)
+            has, *continued = self.continued(centres)
+            return tuple(np.concatenate(pair) for pair in zip(found, (bare[has], *continued)))
         if self._data is None:
             return found
         return tuple(np.concatenate(pair) for pair in zip(found, self._uncovered(grid, rows, cols, cell)))
@@ -293,6 +400,7 @@ class SplineSampler:
         (m, 2), at its point q closest to the centre, shift = centre − q: the nearest-
         triangle rule of the cells outside the triangles (`_uncovered`; a tiled DEM asks
         each tile's own triangles and keeps the nearest: |shift| is the distance)."""
+        self._triangles()
         if self._nearest is None and len(centre):
             self._rim = rim_triangles(self.interp.edge_table, self._searched)
             self._nearest = NearestTriangles(self.interp.points, self.interp.triangles[self._rim], self._reach)
@@ -308,6 +416,7 @@ class SplineSampler:
     def barycentric(self, tri, px, py) -> tuple[np.ndarray, np.ndarray]:
         """λ0, λ1 (m,) of points in triangles: λ_k = G_k·(p − vertex k+1), as
         c1mesh.engine.locate computes them (exact near the edge opposite vertex k)."""
+        self._triangles()
         out = []
         for gx, gy, rx, ry in self._bary:
             lam = gx[tri] * (px - rx[tri])
@@ -322,6 +431,7 @@ class SplineSampler:
         triangle's polynomial itself is not continued past the triangle: past a thin one
         it grows as the power of its degree (a sextic continued past rim triangles gave
         slopes off by up to 76° on an analytic terrain)."""
+        self._triangles()
         values, grads = self._polynomial(tri, l0, l1, gradients)
         moved = np.zeros(0, np.int64) if shift is None else np.flatnonzero(shift.any(axis=1))
         if moved.size:

@@ -1,0 +1,78 @@
+"""A lattice fit's DEM read off its nodes (geo.raster_grid.NodeCells): the lattice route
+puts its nodes at the DEM's cell centres (stages.lattice_mesh.lattice_offset) when
+--spacing is --resolution, and the rasters then take the nodes' heights and gradients
+instead of evaluating the spline there. They must be the evaluated spline's rasters."""
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import rasterio
+
+from c1mesh.geo import raster_grid
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
+from test_tiled_smoothing import _terrain_las
+
+
+def _survey_with_lone_points(path) -> None:
+    """6,000 class-2 points of a smooth terrain over 40 × 40 m (one a 0.5 m square) with a
+    hole 16 m across, and 3 lone points inside the hole, 4 m apart: their cells hold data
+    but no kept lattice cell (stages.lattice_mesh), so no node."""
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0.0, 40.0, (6400, 2))
+    xy = xy[np.hypot(*(xy - 20.0).T) > 8.0][:6000]
+    xy = np.vstack([xy, [[16.3, 20.2], [20.4, 19.6], [23.9, 20.8]]])
+    z = 100.0 + 3.0 * np.sin(xy[:, 0] / 7.0) * np.cos(xy[:, 1] / 9.0) + rng.normal(0.0, 0.02, len(xy))
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
+    record = laspy.ScaleAwarePointRecord.zeros(len(xy), header=header)
+    record.x, record.y, record.z = xy[:, 0] + 500000, xy[:, 1] + 4000000, z
+    record.classification = np.full(len(xy), 2, np.uint8)
+    with laspy.open(str(path), mode="w", header=header) as writer:
+        writer.write_points(record)
+
+
+def _rasters(tmp_path, name: str, source, resolution: float, spacing: float) -> dict:
+    """The DEM, spline slope and support of `c1mesh fit --smooth 3 --spacing S --resolution R`."""
+    dem = tmp_path / f"{name}.tif"
+    fit(source, dem, FitOptions(classes=(2,), smooth=3.0, spacing=spacing, resolution=resolution,
+                                slope=str(tmp_path / f"{name}-slope.tif"), slope_method="spline",
+                                support=str(tmp_path / f"{name}-support.tif")))
+    return {kind: rasterio.open(tmp_path / f"{name}{kind}.tif").read(1).astype(float)
+            for kind in ("", "-slope", "-support")}
+
+
+def test_the_dem_off_the_nodes_is_the_evaluated_splines(tmp_path, monkeypatch):
+    """A survey with a few lone points (cells with data and no node: the nearest-triangle
+    rule's): the DEM and the support are the evaluated spline's to the bit, the slope from
+    the nodes' gradients to float32's last bit; the nodes were read, and the lone points'
+    cells continued."""
+    source = tmp_path / "terrain.las"
+    _survey_with_lone_points(source)
+    windows, bare = [], []
+    read, continued = raster_grid.NodeCells.window, raster_grid.NodeCells.bare
+    monkeypatch.setattr(raster_grid.NodeCells, "window", lambda self, *a: windows.append(1) or read(self, *a))
+    monkeypatch.setattr(raster_grid.NodeCells, "bare",
+                        lambda self, *a: (lambda out: bare.append(out[0].size) or out)(continued(self, *a)))
+    nodes = _rasters(tmp_path, "nodes", source, 1.0, 1.0)
+    assert windows and sum(bare) >= 3
+    monkeypatch.setattr(raster_grid.NodeCells, "of", classmethod(lambda cls, *a: None))
+    spline = _rasters(tmp_path, "spline", source, 1.0, 1.0)
+    np.testing.assert_array_equal(nodes[""], spline[""])
+    np.testing.assert_array_equal(nodes["-support"], spline["-support"])
+    slope = np.isfinite(spline["-slope"]) & (spline["-slope"] != -9999.0)
+    np.testing.assert_array_equal(np.isfinite(nodes["-slope"]), np.isfinite(spline["-slope"]))
+    assert np.abs(nodes["-slope"][slope] - spline["-slope"][slope]).max() <= 1e-5 * spline["-slope"][slope].max()
+
+
+def test_a_lattice_finer_than_the_cells_is_evaluated(tmp_path, monkeypatch):
+    """--spacing half the --resolution: the nodes are not the cells' centres, and every cell
+    is evaluated (NodeCells.of gives none)."""
+    source = tmp_path / "terrain.las"
+    _terrain_las(source, 3000, seed=5)
+    made = []
+    of = raster_grid.NodeCells.of.__func__
+    monkeypatch.setattr(raster_grid.NodeCells, "of", classmethod(lambda cls, *a: made.append(of(cls, *a)) or made[-1]))
+    fit(source, tmp_path / "half.tif", FitOptions(classes=(2,), smooth=3.0, spacing=0.5, resolution=1.0))
+    fit(source, tmp_path / "same.tif", FitOptions(classes=(2,), smooth=3.0, spacing=1.0, resolution=1.0))
+    assert made[0] is None and made[1] is not None
