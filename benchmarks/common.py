@@ -300,6 +300,15 @@ MEASURED: dict[tuple[str, int], dict] = {}
 C1MESH = ["-c", "from c1mesh.cli import run; run()"]
 
 
+def show_section(sec: Section, write: bool) -> int:
+    """A benchmark command's end: print the section's body and, with `write`, replace its
+    section of benchmarks/RESULTS.md (write_section); returns the exit status, 0."""
+    print("\n".join(sec.body))
+    if write:
+        write_section(ROOT / "benchmarks" / "RESULTS.md", sec)
+    return 0
+
+
 def write_section(path: Path, sec: Section) -> None:
     """Replace the `## TITLE` section of RESULTS.md (up to the next `## `), or append it."""
     text = path.read_text() if path.exists() else ""

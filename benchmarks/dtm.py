@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import C1MESH, ROOT, Section, fmt_bytes, run_child, write_section
+from benchmarks.common import C1MESH, Section, fmt_bytes, run_child, show_section
 
 N = 1_000_000
 SIDE = 1000.0
@@ -198,11 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.verb == "make":
         make(args.folder, args.points)
         return 0
-    sec = run(args.folder, args.reps, tuple(args.spacings))
-    print("\n".join(sec.body))
-    if args.write:
-        write_section(ROOT / "benchmarks" / "RESULTS.md", sec)
-    return 0
+    return show_section(run(args.folder, args.reps, tuple(args.spacings)), args.write)
 
 
 if __name__ == "__main__":

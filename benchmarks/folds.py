@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import ROOT, Section, write_section
+from benchmarks.common import Section, show_section
 from c1mesh.core.cloud import PointCloud
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.pipeline.run import fit
@@ -45,7 +45,8 @@ def folds_of(points: np.ndarray) -> tuple[int, float]:
 
 def families(seeds: int) -> dict[str, list[tuple[str, np.ndarray]]]:
     """Each family's (label, points) fits."""
-    shifted = [(f"seed {seed}, shift ({fx:g}, {fy:g}) × {SPACING:g} m", banks(seed, shift=(fx * SPACING, fy * SPACING)))
+    shifted = [(f"seed {seed}, shift ({fx:g}, {fy:g}) × {SPACING:g} m",
+                banks(seed, shift=(fx * SPACING, fy * SPACING)))
                for fx, fy in itertools.product(SHIFTS, repeat=2) for seed in range(seeds)]
     return {"banks, shifted": shifted, "walls": [(f"seed {seed}", walls(seed)) for seed in range(seeds)]}
 
@@ -56,7 +57,8 @@ def run(seeds: int) -> Section:
     sec = Section(TITLE)
     sec.body += ["`python -m benchmarks.folds --seeds %d`: `c1mesh fit --smooth auto --spacing %g` at the "
                  "default level, one thread." % (seeds, SPACING), "",
-                 "| family | fits | fits with a folded face | most faces in one fit | faces in all | median s | seconds |",
+                 "| family | fits | fits with a folded face | most faces in one fit | faces in all "
+                 "| median s | seconds |",
                  "|---|---|---|---|---|---|---|"]
     folded_fits = []
     for name, fits in families(seeds).items():
@@ -81,11 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=6, help="seeds per shift and of the walls (default 6)")
     parser.add_argument("--write", action="store_true", help=f"replace the '{TITLE}' section of RESULTS.md")
     args = parser.parse_args(argv)
-    sec = run(args.seeds)
-    print("\n".join(sec.body))
-    if args.write:
-        write_section(ROOT / "benchmarks" / "RESULTS.md", sec)
-    return 0
+    return show_section(run(args.seeds), args.write)
 
 
 if __name__ == "__main__":

@@ -91,7 +91,8 @@ def test_stiffen_adds_each_triangles_extra_energy(seed):
     system = built(problem, lattice)
     s, mu = 0.37, 0.0
     rng = np.random.default_rng(seed)
-    extra = np.where(rng.random(system.triangles.shape[0]) < 0.2, rng.choice([3.0, 15.0], system.triangles.shape[0]), 0.0)
+    count = system.triangles.shape[0]
+    extra = np.where(rng.random(count) < 0.2, rng.choice([3.0, 15.0], count), 0.0)
     with system.data_term_ahead(problem.w, mu) as data_term:
         term = data_term()
         S, _ = system.with_strength(s, term)

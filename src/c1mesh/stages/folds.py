@@ -115,7 +115,8 @@ class CellStiffness:
         near = np.zeros_like(grid)
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
-                near[1:-1, 1:-1] = np.maximum(near[1:-1, 1:-1], grid[1 + di:shape[0] - 1 + di, 1 + dj:shape[1] - 1 + dj])
+                shifted = grid[1 + di:shape[0] - 1 + di, 1 + dj:shape[1] - 1 + dj]
+                near[1:-1, 1:-1] = np.maximum(near[1:-1, 1:-1], shifted)
         level = near[self.cells[:, 0] - lo[0], self.cells[:, 1] - lo[1]]
         return np.where(level > 0, STIFFENING ** level.astype(float), 1.0)
 
