@@ -92,8 +92,10 @@ OPTIONAL: dict[str, str] = {
                  "and centres, frame units, of the squares the search ran on, the same on every path; "
                  "no centres: the whole mesh; null for a given strength), lattice (--spacing: the "
                  "vertices' lattice: spacing D, reach_cells R of its support, nodes of the solve; null: "
-                 "vertices at the points); the tiled fit adds spacing (h) and tiled (halo, "
-                 "halo_smoothing_lengths)",
+                 "vertices at the points), fold_rounds and stiffened_cells (the fold net's solves and "
+                 "the lattice cells it stiffened where the fit folded a face; 0 without --spacing or folds; "
+                 "in tiles the most rounds a tile took and the union of the tiles' cells); the tiled fit adds "
+                 "spacing (h) and tiled (halo, halo_smoothing_lengths)",
     "classes": "a LAS/LAZ input: which points were fitted: selected (the classification codes kept, "
                "[2] for the ground filter's ground, or \"all\"), source (option: --classes; file: the "
                "file's ground class 2, the default; filter: the ground filter, run because the file has "
