@@ -252,7 +252,6 @@ class SplineSampler:
         nearest-triangle rule)."""
         if self._ready:
             return
-        self._ready = True
         interp, fill = self.interp, self.fill
         # the triangles the nearest-triangle rule searches: the trim's (a fill's triangles
         # span holes and the hull, and their long edges would widen every search)
@@ -277,6 +276,7 @@ class SplineSampler:
         self._order = np.argsort(self._hi[:, 1])                         # by north edge
         self._north = self._hi[self._order, 1]
         self._span = float((self._hi[:, 1] - self._lo[:, 1]).max()) if len(tri) else 0.0
+        self._ready = True
 
     def window(self, grid: RasterGrid, rows: range, cols: range, gradients: bool = True):
         """Heights (nrows, ncols) in world z and gradients (nrows, ncols, 2) at the centres
