@@ -84,12 +84,13 @@ def folded_triangles(points: np.ndarray, values: np.ndarray, gradients: np.ndarr
 class CellStiffness:
     """The net's stiffness over the cells of a lattice of spacing D: each cell's level (0:
     none), a triangle's energy multiplied by STIFFENING to the highest level among the
-    cells within one cell of its own. Cells are numbered by floor(centroid / D) in the
-    points' units, the same in every tile of a survey (the lattice is the survey's)."""
+    cells within one cell of its own. A triangle's cell is its lowest corner in x and in y
+    (both triangles of a lattice cell share it) in units of D, rounded: the same numbers in
+    every tile of a survey (the lattice and its nodes' bits are the survey's)."""
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, spacing: float):
-        centroids = points[triangles].mean(axis=1)
-        self.cells = np.floor(centroids / spacing).astype(np.int64)       # (T, 2)
+        corners = points[triangles]
+        self.cells = np.floor(corners.min(axis=1) / spacing + 0.5).astype(np.int64)      # (T, 2)
         self.levels: dict[tuple[int, int], int] = {}
 
     def fold(self, folded: np.ndarray) -> None:
