@@ -18,6 +18,7 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.core.lazy import LazyModule
 from c1mesh.core.threads import background
+from c1mesh.core.tile import finite_rows
 from c1mesh.engine import rsd
 from c1mesh.engine.properties import scheme_properties
 
@@ -160,11 +161,8 @@ class NodeCells:
             return None
         held = np.zeros(grid.height * grid.width, dtype=bool)
         if data_xy is not None:
-            xy = np.asarray(data_xy, dtype=np.float64).reshape(-1, 2)
-            xy = xy[np.isfinite(xy).all(axis=1)]
-            x0, y0 = grid.west - origin[0], grid.north - origin[1]
-            ii = np.floor((y0 - xy[:, 1]) / r).astype(np.int64)     # as _RowSorted.cells
-            jj = np.floor((xy[:, 0] - x0) / r).astype(np.int64)
+            xy = _finite_xy(data_xy)
+            ii, jj = _cells_of(xy[:, 0], xy[:, 1], grid.west - origin[0], grid.north - origin[1], r)
             inside = (ii >= 0) & (ii < grid.height) & (jj >= 0) & (jj < grid.width)
             held[ii[inside] * grid.width + jj[inside]] = True
         held[ri * grid.width + ci] = False
@@ -194,8 +192,7 @@ class NodeCells:
         i, j = np.divmod(self.bare_cells[lo:hi], width)
         keep = (j >= cols.start) & (j < cols.stop)
         i, j = i[keep], j[keep]
-        x0, y0 = self.grid.west - self.origin[0], self.grid.north - self.origin[1]
-        centre = np.column_stack([x0 + (j + 0.5) * r, y0 - (i + 0.5) * r])
+        centre = _cell_centres(self.grid.west - self.origin[0], self.grid.north - self.origin[1], r, i, j)
         return (i - rows.start) * len(cols) + (j - cols.start), centre
 
 
@@ -287,11 +284,12 @@ class SplineSampler:
         z = np.full(nr * nc, np.nan)
         g = np.full((nr * nc, 2), np.nan) if gradients else None
         if self._nodes is not None and self._nodes.serves(grid):
-            vertex, cell = self._nodes.window(*_lattice(grid, rows, cols))
+            whole = _lattice(grid, rows, cols)
+            vertex, cell = self._nodes.window(*whole)
             z[cell] = self.interp.values[vertex] + self.origin[2]
             if gradients:
                 g[cell] = self.interp.gradients[vertex]
-            cell, centres = self._nodes.bare(*_lattice(grid, rows, cols))
+            cell, centres = self._nodes.bare(*whole)
             if not cell.size:
                 return z.reshape(nr, nc), None if g is None else g.reshape(nr, nc, 2)
             has, tri, l0, l1, shift = self.continued(centres)
@@ -390,8 +388,7 @@ class SplineSampler:
         marked[covered] = False
         cell = np.flatnonzero(marked)
         i, j = np.divmod(cell, nc)
-        cx, cy = x0 + (cols.start + j + 0.5) * r, y0 - (rows.start + i + 0.5) * r
-        has, tri, l0, l1, shift = self.continued(np.column_stack([cx, cy]))
+        has, tri, l0, l1, shift = self.continued(_cell_centres(x0, y0, r, rows.start + i, cols.start + j))
         return cell[has], tri, l0, l1, shift
 
     def continued(self, centre: np.ndarray):
@@ -495,13 +492,31 @@ def _lattice(grid: RasterGrid, rows: range, cols: range) -> tuple[range, range]:
             range(cols.start + grid.col0, cols.stop + grid.col0))
 
 
+def _finite_xy(xy) -> np.ndarray:
+    """The rows of plane points xy (any shape of 2-rows) whose coordinates are finite, (m, 2) float64."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    return xy[finite_rows(xy)]
+
+
+def _cells_of(x: np.ndarray, y: np.ndarray, x0: float, y0: float, r: float) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) int64 (m,) of the cells holding the plane points x, y (m,) each, in the
+    grid whose west edge is local x0 and north edge local y0, cell size r (a point on a
+    cell's west or north edge belongs to that cell): _RowSorted's and NodeCells' one rule."""
+    return np.floor((y0 - y) / r).astype(np.int64), np.floor((x - x0) / r).astype(np.int64)
+
+
+def _cell_centres(x0: float, y0: float, r: float, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """(k, 2) the local plane centres of the cells (row, col) (k,) each of that grid: the
+    nearest-triangle rule's points (SplineSampler._uncovered and NodeCells.bare alike)."""
+    return np.column_stack([x0 + (col + 0.5) * r, y0 - (row + 0.5) * r])
+
+
 class _RowSorted:
     """Plane points (m, 2) sorted by y, to list the grid cells that hold points row band
     by row band (a block of rows reads only its band)."""
 
     def __init__(self, xy):
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        xy = xy[np.isfinite(xy).all(axis=1)]
+        xy = _finite_xy(xy)
         order = np.argsort(xy[:, 1], kind="stable")
         self.x, self.y = xy[order, 0], xy[order, 1]
 
@@ -511,8 +526,7 @@ class _RowSorted:
         a cell's west or north edge belongs to that cell)."""
         low, high = y0 - rows.stop * r, y0 - rows.start * r
         band = slice(np.searchsorted(self.y, low, side="right"), np.searchsorted(self.y, high, side="right"))
-        ii = np.floor((y0 - self.y[band]) / r).astype(np.int64)
-        jj = np.floor((self.x[band] - x0) / r).astype(np.int64)
+        ii, jj = _cells_of(self.x[band], self.y[band], x0, y0, r)
         inside = (ii >= rows.start) & (ii < rows.stop) & (jj >= cols.start) & (jj < cols.stop)
         return ii[inside], jj[inside]
 
