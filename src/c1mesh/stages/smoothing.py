@@ -686,9 +686,8 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         # data's located copies about 70 MB at 1M points; the system holds its own)
         net = None
         if control.fold_net:                          # the caller's triangles are a lattice's
-            net = _FoldNet(pts, tri, shape, order, _Units(Z, h, plane, npts))
-            if grid is None:
-                net.direct = (*solved_mesh, dirs)
+            net = _FoldNet(pts, tri, shape, order, _Units(Z, h, plane, npts),
+                           (*solved_mesh, dirs) if grid is None else None)
         del problem, dirs, nxy, z, w, trend, zn, wn, data_tri, data_lam
         if grid is None:
             with timed(seconds, "solve"):                 # the last matrix unless the net may add one
@@ -726,9 +725,10 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
         mine = residual[own_inside & (solved_w > 0)]
         own_residuals = (int(mine.size), float(np.sum(mine ** 2)), float(np.abs(mine).max()) if mine.size else 0.0)
     residual = residual[solved_w > 0]
-    if order is not None:
-        u = _in_input_order(u, order)
-    values, gradients = _Units(Z, h, plane, npts).vertex_data(u)
+    if net is not None and net.checked is not None and net.checked[0] is u:
+        values, gradients = net.checked[1]              # the net's last check: this solve's
+    else:
+        values, gradients = _Units(Z, h, plane, npts).vertex_data(u if order is None else _in_input_order(u, order))
     return SmoothFit(values=values, gradients=gradients, edf=edf,
                      residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
                      residual_max=float(np.abs(residual).max()) if residual.size else 0.0,
@@ -758,14 +758,17 @@ class _FoldNet:
     most folds.ROUNDS times. pts (N, 2), tri (T, 3): the vertices in the caller's units and
     the triangles; scheme: the ShapeTuple; order: the system's vertex numbering (None: the
     input's); units: the _Units of the unknowns. direct: (points, triangles, dirs) of the
-    problem in the system's numbering, for the energy of a direct solve's CSR."""
+    problem in the system's numbering, for the energy of a direct solve's CSR (None: the
+    multigrid's stencil). checked: (u, (values, gradients)) of the last solve checked, which
+    smooth_fit returns when it is the final one."""
 
-    def __init__(self, pts: np.ndarray, tri: np.ndarray, scheme, order, units: _Units):
+    def __init__(self, pts: np.ndarray, tri: np.ndarray, scheme, order, units: _Units, direct: tuple | None):
         self.pts, self.tri, self.scheme, self.order, self.units = pts, tri, scheme, order, units
+        self.direct = direct
         self.cells: CellStiffness | None = None            # made at the first fold
         self.factors: np.ndarray | None = None
         self.rounds = 0
-        self.direct = None
+        self.checked: tuple | None = None
 
     @property
     def folded_cells(self) -> tuple:
@@ -778,6 +781,7 @@ class _FoldNet:
         if self.rounds == FOLD_ROUNDS:
             return None
         values, gradients = self.units.vertex_data(u if self.order is None else _in_input_order(u, self.order))
+        self.checked = (u, (values, gradients))
         folded = folded_triangles(self.pts, values, gradients, self.tri, self.scheme)
         if not folded.size:
             return None
