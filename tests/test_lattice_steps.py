@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import laspy
 import numpy as np
 import pytest
 import trimesh
@@ -22,6 +21,7 @@ from c1mesh.stages.lattice_mesh import BENDING_CELLS, least_strength, lattice_me
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingError, smooth_fit
 from c1mesh.testing.quality import folded_faces
 from c1mesh.testing.steps import SPACING, banks as _banks, walls
+from terrain_scenes import write_points_las
 
 
 def _lattice_folds(points: np.ndarray) -> tuple[int, float]:
@@ -149,15 +149,8 @@ def test_the_fold_net_in_tiles_is_the_whole_fits(tmp_path):
     """Beyond --memory each tile runs the net on its halo (smooth_tile is the in-memory fit's
     stage): the walls sample as class-2 LiDAR folds no face in tiles either, the tiles'
     report sums the same rounds and cells, and the heights are the whole fit's."""
-    points = walls(3)
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
-    record = laspy.ScaleAwarePointRecord.zeros(len(points), header=header)
-    record.x, record.y, record.z = points[:, 0] + 500000, points[:, 1] + 4000000, points[:, 2] + 100
-    record.classification = np.full(len(points), 2, np.uint8)
     source = tmp_path / "walls.las"
-    with laspy.open(str(source), mode="w", header=header) as writer:
-        writer.write_points(record)
+    write_points_las(source, walls(3) + [0.0, 0.0, 100.0], z_scale=0.0001)
     options = FitOptions(classes=[2], smooth="auto", spacing=SPACING)
     whole = fit(source, tmp_path / "whole.ply", options)
     tiled = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=200))

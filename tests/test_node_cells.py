@@ -4,13 +4,13 @@ puts its nodes at the DEM's cell centres (stages.lattice_mesh.lattice_offset) wh
 instead of evaluating the spline there. They must be the evaluated spline's rasters."""
 from __future__ import annotations
 
-import laspy
 import numpy as np
 import rasterio
 
 from c1mesh.geo import raster_grid
 from c1mesh.pipeline.driver import FitOptions
 from c1mesh.pipeline.run import fit
+from terrain_scenes import write_points_las
 from test_tiled_smoothing import _terrain_las
 
 
@@ -23,13 +23,7 @@ def _survey_with_lone_points(path) -> None:
     xy = xy[np.hypot(*(xy - 20.0).T) > 8.0][:6000]
     xy = np.vstack([xy, [[16.3, 20.2], [20.4, 19.6], [23.9, 20.8]]])
     z = 100.0 + 3.0 * np.sin(xy[:, 0] / 7.0) * np.cos(xy[:, 1] / 9.0) + rng.normal(0.0, 0.02, len(xy))
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales, header.offsets = [0.001, 0.001, 0.0001], [500000, 4000000, 0]
-    record = laspy.ScaleAwarePointRecord.zeros(len(xy), header=header)
-    record.x, record.y, record.z = xy[:, 0] + 500000, xy[:, 1] + 4000000, z
-    record.classification = np.full(len(xy), 2, np.uint8)
-    with laspy.open(str(path), mode="w", header=header) as writer:
-        writer.write_points(record)
+    write_points_las(path, np.column_stack([xy, z]), z_scale=0.0001)
 
 
 def _rasters(tmp_path, name: str, source, resolution: float, spacing: float) -> dict:
