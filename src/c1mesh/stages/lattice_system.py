@@ -144,14 +144,8 @@ class LatticeSystem:
         """(S's Stencil, rhs) for strength s from the DataTerm `data`, whose blocks become
         S's (s K summed into them in place, vertices in fixed blocks of ASSEMBLY_BLOCK in
         the thread knob's threads; `data` is spent)."""
-        elements = np.ascontiguousarray(self.elements, dtype=np.float64)
-        outside: list = []
-        parallel_blocks(lambda part: outside.append(kernel.assemble_energy(
-            self.triangles, data.start, data.corner, self.shape_of, elements, self.nbr, float(s), data.diag,
-            data.blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
-        _check_outside(sum(outside))
+        self._energy_pass(data, self.shape_of, self.elements, s, data.diag, data.blocks)
         return Stencil(self.nbr, data.blocks), data.rhs
-
 
     def stiffen(self, stencil: Stencil, s: float, data: "DataTerm", extra: np.ndarray) -> None:
         """Add s Σ_t extra[t] K_t to the Stencil `stencil` (with_strength's, from `data`), in
@@ -162,16 +156,23 @@ class LatticeSystem:
         extra = np.asarray(extra, dtype=np.float64)
         factors = np.unique(extra[extra > 0])
         shapes = self.elements.shape[0]
-        elements = np.ascontiguousarray(np.concatenate(
-            [np.zeros_like(self.elements)] + [self.elements * factor for factor in factors]), dtype=np.float64)
+        elements = np.concatenate([np.zeros_like(self.elements)] + [self.elements * factor for factor in factors])
         shape_of = self.shape_of.copy()
         stiff = extra > 0
         shape_of[stiff] += shapes * (np.searchsorted(factors, extra[stiff]) + 1)
-        diag = np.zeros((self.nbr.shape[0], 3))
+        self._energy_pass(data, shape_of, elements, s, np.zeros((self.nbr.shape[0], 3)), stencil.blocks)
+
+    def _energy_pass(self, data: "DataTerm", shape_of: np.ndarray, elements: np.ndarray, s: float,
+                     diag: np.ndarray, blocks: np.ndarray) -> None:
+        """blocks += s × the energy of triangle shapes shape_of (T,) with blocks elements
+        (k, 9, 9), plus diag (N, 3) on the diagonal (_lattice_system.assemble_energy), the
+        vertices in fixed blocks of ASSEMBLY_BLOCK in the thread knob's threads, over the
+        corners at each vertex that data (a DataTerm) holds."""
+        elements = np.ascontiguousarray(elements, dtype=np.float64)
         outside: list = []
         parallel_blocks(lambda part: outside.append(kernel.assemble_energy(
             self.triangles, data.start, data.corner, shape_of, elements, self.nbr, float(s), diag,
-            stencil.blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
+            blocks, part.start, part.stop)), self.nbr.shape[0], ASSEMBLY_BLOCK)
         _check_outside(sum(outside))
 
 
