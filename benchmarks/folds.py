@@ -26,21 +26,10 @@ import time
 import numpy as np
 
 from benchmarks.common import Section, show_section
-from c1mesh.core.cloud import PointCloud
-from c1mesh.pipeline.driver import FitOptions
-from c1mesh.pipeline.run import fit
-from c1mesh.testing.quality import folded_faces
-from c1mesh.testing.steps import SPACING, banks, walls
+from c1mesh.testing.steps import SPACING, banks, lattice_folds, walls
 
 TITLE = "Folded faces at steep steps: the lattice route over sample families (issue 38)"
 SHIFTS = (0.0, 0.25, 0.5, 0.75)
-
-
-def folds_of(points: np.ndarray) -> tuple[int, float]:
-    """(folded faces, chosen strength) of the lattice fit of points at the default level."""
-    result = fit(PointCloud(points=points), None, FitOptions(smooth="auto", spacing=SPACING, workers=1))
-    mesh = result.mesh
-    return folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), float(result.report["smoothing"]["strength"])
 
 
 def families(seeds: int) -> dict[str, list[tuple[str, np.ndarray]]]:
@@ -65,7 +54,7 @@ def run(seeds: int) -> Section:
         start = time.perf_counter()
         counts, strengths = [], []
         for label, points in fits:
-            count, strength = folds_of(points)
+            count, strength = lattice_folds(points, workers=1)
             counts.append(count)
             strengths.append(strength)
             if count:

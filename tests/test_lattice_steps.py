@@ -20,16 +20,8 @@ from c1mesh.pipeline.run import fit
 from c1mesh.stages.lattice_mesh import BENDING_CELLS, least_strength, lattice_mesh
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingData, SmoothingError, smooth_fit
 from c1mesh.testing.quality import folded_faces
-from c1mesh.testing.steps import SPACING, banks as _banks, walls
+from c1mesh.testing.steps import SPACING, banks as _banks, lattice_folds as _lattice_folds, walls
 from terrain_scenes import write_points_las
-
-
-def _lattice_folds(points: np.ndarray) -> tuple[int, float]:
-    """(folded faces by quality.folded_faces, strength) of `c1mesh fit --smooth auto
-    --spacing SPACING` of the points at the default level."""
-    result = fit(PointCloud(points=points), None, FitOptions(smooth="auto", spacing=SPACING))
-    mesh = result.mesh
-    return folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), result.report["smoothing"]["strength"]
 
 
 @pytest.mark.parametrize("seed", [0, 5])

@@ -58,4 +58,19 @@ def walls(seed: int, side: float = 36.0) -> np.ndarray:
     return np.concatenate([ground, *lines])
 
 
-__all__ = ["SPACING", "bank_heights", "banks", "ramp", "walls"]
+def lattice_folds(points: np.ndarray, workers: int | None = None) -> tuple[int, float]:
+    """(folded faces by quality.folded_faces, chosen strength) of `c1mesh fit --smooth auto
+    --spacing SPACING` of the points (n, 3) at the default level, in `workers` threads
+    (None: the process's setting): the measure of tests/test_lattice_steps.py and
+    benchmarks/folds.py."""
+    from c1mesh.core.cloud import PointCloud
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
+    from c1mesh.testing.quality import folded_faces
+
+    result = fit(PointCloud(points=points), None, FitOptions(smooth="auto", spacing=SPACING, workers=workers))
+    mesh = result.mesh
+    return folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), float(result.report["smoothing"]["strength"])
+
+
+__all__ = ["SPACING", "bank_heights", "banks", "lattice_folds", "ramp", "walls"]
