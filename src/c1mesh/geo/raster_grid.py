@@ -144,21 +144,20 @@ class NodeCells:
     def of(cls, interp, origin: np.ndarray, grid: "RasterGrid", data_xy) -> "NodeCells | None":
         """The NodeCells of interp's vertices (local plane, origin (3,)) on grid, or None when
         they are not the grid's centres (module rule above)."""
-        r = grid.resolution
         if grid.row0 or grid.col0 or not len(interp.points):
             return None
-        col = (interp.points[:, 0] + origin[0] - grid.west) / r - 0.5
-        row = (grid.north - (interp.points[:, 1] + origin[1])) / r - 0.5
-        ci, ri = np.rint(col), np.rint(row)
-        if not (np.abs(col - ci).max() < 1e-6 and np.abs(row - ri).max() < 1e-6):
+        if not _at_centres(interp.points[:64], origin, grid)[0]:     # a Delaunay fit's vertices: at once
             return None
-        ci, ri = ci.astype(np.int64), ri.astype(np.int64)
+        at, ri, ci = _at_centres(interp.points, origin, grid)
+        if not at:
+            return None
         corners = interp.triangles[:, [0, 1, 2, 0]]
         if np.abs(np.diff(ci[corners], axis=1)).max(initial=0) > 1 or \
                 np.abs(np.diff(ri[corners], axis=1)).max(initial=0) > 1:
             return None
         if ri.min() < 0 or ci.min() < 0 or ri.max() >= grid.height or ci.max() >= grid.width:
             return None
+        r = grid.resolution
         held = np.zeros(grid.height * grid.width, dtype=bool)
         if data_xy is not None:
             xy = _finite_xy(data_xy)
@@ -490,6 +489,17 @@ def _lattice(grid: RasterGrid, rows: range, cols: range) -> tuple[range, range]:
     """rows and cols of a window (RasterGrid.window) as indices of its whole grid."""
     return (range(rows.start + grid.row0, rows.stop + grid.row0),
             range(cols.start + grid.col0, cols.stop + grid.col0))
+
+
+def _at_centres(points: np.ndarray, origin: np.ndarray, grid: RasterGrid) -> tuple[bool, np.ndarray, np.ndarray]:
+    """(whether every local plane point (n, 2) sits at a cell centre of grid, to 1e-6
+    cells; their rows and columns (n,) int64 there)."""
+    r = grid.resolution
+    col = (points[:, 0] + origin[0] - grid.west) / r - 0.5
+    row = (grid.north - (points[:, 1] + origin[1])) / r - 0.5
+    ci, ri = np.rint(col), np.rint(row)
+    at = bool(np.abs(col - ci).max() < 1e-6 and np.abs(row - ri).max() < 1e-6)
+    return at, ri.astype(np.int64), ci.astype(np.int64)
 
 
 def _finite_xy(xy) -> np.ndarray:
