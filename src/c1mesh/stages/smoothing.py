@@ -639,7 +639,7 @@ def smooth_fit(points, triangles, data: SmoothingData, control: SmoothingControl
             grad = (grad - plane[1:] / h) * (h / Z)     # the deviations from the plane, as z
         grid = None if lattice is None else _lattice_of(lattice, pts, npts, centre, h)
         shapes = None if grid is None or directions is not None else lattice_shapes(grid, tri)
-        dirs = _directions(npts, tri, directions) if shapes is None else _shared_directions(npts, tri, shapes)
+        dirs = _directions(npts, tri, directions) if shapes is None else shared_directions(npts, tri, shapes)
         nxy = (xy - centre) / h
         data_tri = data_lam = own_inside = None
         outside = 0
@@ -857,7 +857,7 @@ SHAPE_KEYS = 3 ** 4
 """The base-3 keys of a lattice triangle's 4 corner offsets (lattice_shapes)."""
 
 
-def _shared_directions(npts: np.ndarray, triangles: np.ndarray, shapes: TriangleShapes) -> np.ndarray:
+def shared_directions(npts: np.ndarray, triangles: np.ndarray, shapes: TriangleShapes) -> np.ndarray:
     """(T, 3, 2) the unit normal directions of lattice triangles: each shape's, from its
     representative (the spline does not see a direction's sign, which the edge's numbering
     sets)."""
@@ -1300,7 +1300,7 @@ def combined_fit(solves: list[TileSolve], run: SmoothingRun, search: StrengthSea
 __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "SmoothingControl",
            "GradientPrior", "SmoothFit", "smooth_fit", "SmoothingRun", "SmoothedTile", "TileSolve",
            "StrengthSearch", "smooth_tile", "search_strength", "smoothing_reach", "solve_totals",
-           "combined_fit", "HALO_LENGTHS", "LATTICE_HALO_LENGTHS", "LATTICE_HALO_SPACINGS",
+           "combined_fit", "lattice_shapes", "shared_directions", "HALO_LENGTHS", "LATTICE_HALO_LENGTHS", "LATTICE_HALO_SPACINGS",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
            "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors",
            "nearest_to_anchors", "reduce_nearest", "window_side", "windows_at", "windows_of_parts"]

@@ -1,0 +1,216 @@
+"""The lattice fit's hole fill (stages.hole_fill), against independent truth: qhull's hull
+of every point, a brute-force point-in-polygon test, the holes counted cell by cell, and
+the fill of a hole whose rim lies on a plane or a quadratic (the RSD spline holds both, so
+the energy's minimiser is that polynomial: it has the least energy of any C1 function
+with its data on a closed rim, being biharmonic)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from c1mesh.stages.hole_fill import (Holes, LatticeVertices, cell_corners, fill_holes, filled_lattice,
+                                     find_holes, hull_cells, joined_hull, point_hull, support_cells)
+from c1mesh.stages.lattice_mesh import cell_triangles, lattice_mesh, node_grid
+
+
+def _inside(points: np.ndarray, hull: np.ndarray) -> np.ndarray:
+    """Brute force: on or left of every counter-clockwise edge of hull."""
+    inside = np.ones(len(points), dtype=bool)
+    for a, b in zip(hull, np.roll(hull, -1, axis=0)):
+        inside &= (b[0] - a[0]) * (points[:, 1] - a[1]) - (b[1] - a[1]) * (points[:, 0] - a[0]) >= 0
+    return inside
+
+
+@pytest.mark.parametrize("kind", ["uniform", "disc", "grid", "few"])
+def test_point_hull_is_qhulls_hull_of_every_point(kind):
+    rng = np.random.default_rng(3)
+    if kind == "uniform":
+        xy = rng.uniform(-50.0, 80.0, (20000, 2))
+    elif kind == "disc":
+        angle = rng.uniform(0, 2 * np.pi, 5000)
+        xy = np.column_stack([np.cos(angle), np.sin(angle)]) * rng.uniform(0, 30, (5000, 1)) ** 0.5
+    elif kind == "grid":                    # the corners are extreme in several directions at once
+        xy = np.stack(np.meshgrid(np.arange(60.0), np.arange(40.0)), -1).reshape(-1, 2)
+    else:
+        xy = rng.uniform(0, 1, (4, 2))
+    hull = point_hull(xy)
+    expected = xy[ConvexHull(xy).vertices]
+    assert sorted(map(tuple, hull)) == sorted(map(tuple, expected))
+    area = 0.5 * np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])
+    assert area > 0                           # counter-clockwise
+
+
+def test_points_without_area_have_no_hull():
+    line = np.column_stack([np.arange(10.0), 2 * np.arange(10.0)])
+    assert point_hull(line).shape == (0, 2)
+    assert point_hull(line[:2]).shape == (0, 2)
+    assert point_hull(np.ones((7, 2))).shape == (0, 2)
+
+
+def test_the_hull_of_parts_is_the_hull_of_the_whole():
+    rng = np.random.default_rng(8)
+    xy = rng.normal(0.0, 10.0, (9000, 2))
+    parts = [point_hull(xy[k::3]) for k in range(3)] + [point_hull(xy[:1])]
+    assert sorted(map(tuple, joined_hull(parts))) == sorted(map(tuple, point_hull(xy)))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_hull_cells_are_the_cells_whose_centres_lie_in_the_hull(seed):
+    rng = np.random.default_rng(seed)
+    xy = rng.normal(0.0, 1.0, (30, 2)) * rng.uniform(5, 40, 2) + rng.uniform(-10, 10, 2)
+    grid = node_grid(xy.min(axis=0), xy.max(axis=0), rng.uniform(0.7, 2.0), 1.0,
+                     tuple(rng.uniform(0, 0.5, 2)))
+    hull = point_hull(xy)
+    rows, cols = grid.cells
+    every = np.arange(rows * cols)
+    expected = every[_inside(grid.centres(every), hull)]
+    assert expected.size > 20
+    np.testing.assert_array_equal(hull_cells(grid, hull), expected)
+
+
+def test_support_cells_of_triangles_in_any_order():
+    grid = node_grid((0.0, 0.0), (20.0, 15.0), 1.0, 1.0)
+    cells = np.array([3, 4, 17, 90, 91, 200])
+    triangles = cell_triangles(grid, cells)
+    np.testing.assert_array_equal(support_cells(grid, triangles[:, 0]), cells)
+    np.testing.assert_array_equal(support_cells(grid, triangles[::-1, 0]), cells)
+
+
+def _ring_survey(seed: int = 1):
+    """Points over 100 × 100 m but a disc 20 m across and a bay cut into the east edge:
+    a closed hole and an open one."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 100, (20000, 2))
+    disc = np.hypot(xy[:, 0] - 40.0, xy[:, 1] - 50.0) < 20.0
+    bay = (xy[:, 0] > 75.0) & (np.abs(xy[:, 1] - 50.0) < 10.0)
+    return xy[~disc & ~bay]
+
+
+def test_the_holes_are_the_hull_cells_the_support_leaves_counted_cell_by_cell():
+    xy = _ring_survey()
+    mesh = lattice_mesh(xy, 1.0, 0.7)
+    grid = mesh.grid
+    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
+    holes = find_holes(grid, support, point_hull(xy))
+    inside = set(hull_cells(grid, point_hull(xy)).tolist())
+    expected = sorted(inside - set(support.tolist()))
+    np.testing.assert_array_equal(holes.cells, expected)
+    held = set(cell_corners(grid, support).ravel().tolist())
+    corners = set(cell_corners(grid, holes.cells).ravel().tolist())
+    np.testing.assert_array_equal(holes.rim, sorted(corners & held))
+    np.testing.assert_array_equal(holes.free, sorted(corners - held))
+    centres = grid.centres(holes.cells)
+    in_disc = np.hypot(centres[:, 0] - 40.0, centres[:, 1] - 50.0) < 20.0
+    in_bay = (centres[:, 0] > 75.0) & (np.abs(centres[:, 1] - 50.0) < 10.0)
+    assert in_disc.sum() > 300 and in_bay.sum() > 100 and (in_disc | in_bay).all()
+
+
+def _quadratic(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x, y = p[:, 0], p[:, 1]
+    return 2.0 + 0.01 * x * x - 0.02 * x * y + 0.005 * y * y + 0.3 * x, \
+        np.column_stack([0.02 * x - 0.02 * y + 0.3, -0.02 * x + 0.01 * y])
+
+
+def _plane(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return 7.0 + 0.2 * p[:, 0] - 0.1 * p[:, 1], np.tile([0.2, -0.1], (len(p), 1))
+
+
+@pytest.mark.parametrize("surface", [_plane, _quadratic])
+def test_a_closed_hole_on_a_polynomial_rim_is_filled_with_it(surface):
+    xy = _ring_survey()
+    xy = xy[xy[:, 0] < 70.0]                                 # the disc alone
+    mesh = lattice_mesh(xy, 1.0, 0.7)
+    grid = mesh.grid
+    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
+    holes = find_holes(grid, support, point_hull(xy))
+    assert holes.free.size > 500
+    values, gradients = fill_holes(grid, holes, *surface(grid.positions(holes.rim)))
+    truth, slope = surface(grid.positions(holes.free))
+    assert np.abs(values - truth).max() < 1e-8 * np.abs(truth).max()
+    assert np.abs(gradients - slope).max() < 1e-8
+
+
+def test_an_open_bay_on_a_plane_is_the_plane():
+    xy = _ring_survey()
+    mesh = lattice_mesh(xy, 1.0, 0.7)
+    grid = mesh.grid
+    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
+    holes = find_holes(grid, support, point_hull(xy))
+    values, gradients = fill_holes(grid, holes, *_plane(grid.positions(holes.rim)))
+    truth, slope = _plane(grid.positions(holes.free))
+    assert np.abs(values - truth).max() < 1e-8 * np.abs(truth).max()
+    assert np.abs(gradients - slope).max() < 1e-8
+
+
+def test_the_fill_has_the_least_energy_of_any_nearby_fill():
+    """Moving the fill's unknowns along random directions raises the energy of the
+    holes' spline, by the quadratic form's own second-order term (a minimum, not a saddle
+    or a wrong stationary point)."""
+    from c1mesh.engine.schemes import DEFAULT_SCHEME, get_scheme
+    from c1mesh.stages.smoothing import lattice_shapes, shared_directions
+    from c1mesh.stages.smoothing_system import assemble_energy
+
+    xy = _ring_survey()
+    mesh = lattice_mesh(xy, 1.0, 0.7)
+    grid = mesh.grid
+    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
+    holes = find_holes(grid, support, point_hull(xy))
+    rng = np.random.default_rng(0)
+    rim_positions = grid.positions(holes.rim)
+    rim_values = np.sin(rim_positions[:, 0] / 9.0) * np.cos(rim_positions[:, 1] / 7.0)
+    rim_gradients = rng.normal(0.0, 0.05, (holes.rim.size, 2))
+    values, gradients = fill_holes(grid, holes, rim_values, rim_gradients)
+    nodes = np.union1d(holes.free, holes.rim)
+    triangles = np.searchsorted(nodes, cell_triangles(grid, holes.cells))
+    points = grid.positions(nodes)
+    shapes = lattice_shapes(grid.solver_lattice(nodes), triangles)
+    K = assemble_energy(points, triangles, shared_directions(points, triangles, shapes),
+                        get_scheme(DEFAULT_SCHEME), shapes)
+    u = np.zeros((nodes.size, 3))
+    free = np.searchsorted(nodes, holes.free)
+    rim = np.searchsorted(nodes, holes.rim)
+    u[free] = np.column_stack([values, gradients])
+    u[rim] = np.column_stack([rim_values, rim_gradients])
+    u = u.ravel()
+    energy = u @ (K @ u)
+    for _ in range(5):
+        step = np.zeros((nodes.size, 3))
+        step[free] = rng.normal(0.0, 1e-3, (free.size, 3))
+        step = step.ravel()
+        second = step @ (K @ step)
+        assert second > 0
+        moved = (u + step) @ (K @ (u + step))
+        assert moved - energy == pytest.approx(second, rel=1e-6, abs=1e-12 * energy)
+
+
+def test_free_nodes_out_of_reach_of_the_rim_are_refused():
+    grid = node_grid((0.0, 0.0), (30.0, 30.0), 1.0, 1.0)
+    cells = np.array([5, 6])
+    corners = np.unique(cell_corners(grid, cells))
+    with pytest.raises(ValueError, match="no fitted node"):
+        fill_holes(grid, Holes(cells, corners, np.empty(0, np.int64)), np.empty(0), np.empty((0, 2)))
+
+
+def test_filled_lattice_keeps_the_fitted_rows_and_adds_the_holes():
+    xy = _ring_survey()
+    mesh = lattice_mesh(xy, 1.0, 0.7)
+    grid = mesh.grid
+    shown, triangles = mesh.shown_mesh()
+    nodes = mesh.nodes[shown]
+    values, gradients = _plane(grid.positions(nodes))
+    fitted = LatticeVertices(nodes, values, gradients, triangles)
+    filled, kept = filled_lattice(grid, fitted, point_hull(xy))
+    count = triangles.shape[0]
+    assert kept[:count].all() and not kept[count:].any() and kept.size > count
+    np.testing.assert_array_equal(filled.triangles[:count], triangles)
+    np.testing.assert_array_equal(filled.nodes[:nodes.size], nodes)
+    corners = filled.nodes[filled.triangles[count:]]
+    holes = find_holes(grid, support_cells(grid, nodes[triangles[:, 0]]), point_hull(xy))
+    np.testing.assert_array_equal(corners, cell_triangles(grid, holes.cells))
+    truth, slope = _plane(grid.positions(filled.nodes))
+    assert np.abs(filled.values - truth).max() < 1e-8 * np.abs(truth).max()
+    full = LatticeVertices(nodes, values, gradients, triangles)
+    again, kept = filled_lattice(grid, full, np.empty((0, 2)))         # no hull: nothing to fill
+    assert again is full and kept.all()
+
