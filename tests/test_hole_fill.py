@@ -214,3 +214,62 @@ def test_filled_lattice_keeps_the_fitted_rows_and_adds_the_holes():
     again, kept = filled_lattice(grid, full, np.empty((0, 2)))         # no hull: nothing to fill
     assert again is full and kept.all()
 
+
+# ------------------------------------------------------------------ the fill in the fits
+def _holed_quadratic_las(path, noise: float = 0.02):
+    """Class-2 points over 40 × 40 m of the quadratic q (below) with Gaussian noise of σ
+    `noise`, but a disc 14 m across and a bay cut into the east edge: the points' hull
+    spans both."""
+    from terrain_scenes import write_points_las
+
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 40, (8000, 2))
+    disc = np.hypot(*(xy - [18.0, 21.0]).T) < 7.0
+    bay = (xy[:, 0] > 32.0) & (np.abs(xy[:, 1] - 20.0) < 5.0)
+    xy = xy[~disc & ~bay]
+    z = _q(xy[:, 0], xy[:, 1]) + rng.normal(0.0, noise, len(xy))
+    write_points_las(path, np.column_stack([xy, z]), z_scale=0.0001)
+    return xy
+
+
+def _q(x, y):
+    return 100 + 0.02 * (x - 20) ** 2 - 0.015 * (x - 20) * (y - 20) + 0.01 * (y - 20) ** 2 + 0.1 * x
+
+
+def _dem(path):
+    """(heights, masked; x, y of the cell centres in the survey's frame) of a DEM."""
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        z = ds.read(1, masked=True)
+        rows, cols = np.indices(z.shape)
+        x, y = rasterio.transform.xy(ds.transform, rows.ravel(), cols.ravel())
+    return z, np.asarray(x).reshape(z.shape) - 500000.0, np.asarray(y).reshape(z.shape) - 4000000.0
+
+
+def test_the_lattice_dem_fills_the_hull_within_the_noise(tmp_path):
+    """--smooth auto --spacing 1 --resolution 1 (the default --fill hull): every cell of the
+    disc and the bay inside the points' hull holds a height, within the noise σ of the
+    true quadratic in RMS and 4σ at most (with exact rim data the fill would be the
+    quadratic: test_a_closed_hole_on_a_polynomial_rim_is_filled_with_it); --fill off keeps
+    them open."""
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
+
+    xy = _holed_quadratic_las(tmp_path / "q.las")
+    hull = point_hull(xy)
+    report = fit(tmp_path / "q.las", tmp_path / "q.tif", FitOptions(classes=(2,), smooth="auto", spacing=1.0,
+                                                                   resolution=1.0)).report
+    z, x, y = _dem(tmp_path / "q.tif")
+    centres = np.column_stack([x.ravel(), y.ravel()])
+    hole = ((np.hypot(x - 18.0, y - 21.0) < 5.0) | ((x > 34.0) & (np.abs(y - 20.0) < 3.0))) & \
+        _inside(centres, hull).reshape(z.shape)
+    assert hole.sum() > 100 and not z.mask[hole].any()
+    error = np.asarray(z[hole]) - _q(x[hole], y[hole])
+    assert np.sqrt(np.mean(error ** 2)) < 0.02 and np.abs(error).max() < 0.08
+    assert report["raster"]["fill"]["triangles_spanning_holes"] > 0
+    fit(tmp_path / "q.las", tmp_path / "off.tif", FitOptions(classes=(2,), smooth="auto", spacing=1.0,
+                                                             resolution=1.0, fill="off"))
+    off, x, y = _dem(tmp_path / "off.tif")
+    assert off.mask[np.hypot(x - 18.0, y - 21.0) < 2.0].all()    # beyond the support's reach into the disc
+

@@ -5,6 +5,7 @@ instead of evaluating the spline there. They must be the evaluated spline's rast
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import rasterio
 
 from c1mesh.geo import raster_grid
@@ -26,21 +27,29 @@ def _survey_with_lone_points(path) -> None:
     write_points_las(path, np.column_stack([xy, z]), z_scale=0.0001)
 
 
-def _rasters(tmp_path, name: str, source, resolution: float, spacing: float) -> dict:
-    """The DEM, spline slope and support of `c1mesh fit --smooth 3 --spacing S --resolution R`."""
+def _rasters(tmp_path, name: str, source, resolution: float, spacing: float, fill: str = "off") -> dict:
+    """The DEM, spline slope and support of `c1mesh fit --smooth 3 --spacing S --resolution R
+    --fill F`."""
     dem = tmp_path / f"{name}.tif"
-    fit(source, dem, FitOptions(classes=(2,), smooth=3.0, spacing=spacing, resolution=resolution,
+    fit(source, dem, FitOptions(classes=(2,), smooth=3.0, spacing=spacing, resolution=resolution, fill=fill,
                                 slope=str(tmp_path / f"{name}-slope.tif"), slope_method="spline",
                                 support=str(tmp_path / f"{name}-support.tif")))
-    return {kind: rasterio.open(tmp_path / f"{name}{kind}.tif").read(1).astype(float)
-            for kind in ("", "-slope", "-support")}
+    out = {kind: rasterio.open(tmp_path / f"{name}{kind}.tif").read(1).astype(float)
+           for kind in ("", "-slope", "-support")}
+    with rasterio.open(dem) as ds:                       # the cells' distances from the hole's centre
+        rows, cols = np.indices(ds.shape)
+        x, y = rasterio.transform.xy(ds.transform, rows.ravel(), cols.ravel())
+        out["hole"] = (np.hypot(np.asarray(x) - 500020.0, np.asarray(y) - 4000020.0) < 4.0).reshape(ds.shape)
+    return out
 
 
-def test_the_dem_off_the_nodes_is_the_evaluated_splines(tmp_path, monkeypatch):
-    """A survey with a few lone points (cells with data and no node: the nearest-triangle
-    rule's): the DEM and the support are the evaluated spline's to the bit, the slope from
-    the nodes' gradients to float32's last bit; the nodes were read, and the lone points'
-    cells continued."""
+@pytest.mark.parametrize("fill", ["off", "hull", "2.5"])
+def test_the_dem_off_the_nodes_is_the_evaluated_splines(tmp_path, monkeypatch, fill):
+    """A survey with a few lone points in a hole: without a fill, cells with data and no
+    node (the nearest-triangle rule's); with the hull's fill (stages.hole_fill), nodes in
+    the hole, all of them or those within 2.5 m of a point. The DEM and the support are
+    the evaluated spline's to the bit, the slope from the nodes' gradients to float32's
+    last bit; the nodes were read, and without a fill the lone points' cells continued."""
     source = tmp_path / "terrain.las"
     _survey_with_lone_points(source)
     windows, bare = [], []
@@ -48,10 +57,12 @@ def test_the_dem_off_the_nodes_is_the_evaluated_splines(tmp_path, monkeypatch):
     monkeypatch.setattr(raster_grid.NodeCells, "window", lambda self, *a: windows.append(1) or read(self, *a))
     monkeypatch.setattr(raster_grid.NodeCells, "bare",
                         lambda self, *a: (lambda out: bare.append(out[0].size) or out)(continued(self, *a)))
-    nodes = _rasters(tmp_path, "nodes", source, 1.0, 1.0)
-    assert windows and sum(bare) >= 3
+    nodes = _rasters(tmp_path, "nodes", source, 1.0, 1.0, fill)
+    assert windows and (sum(bare) >= 3 if fill == "off" else sum(bare) == 0)
     monkeypatch.setattr(raster_grid.NodeCells, "of", classmethod(lambda cls, *a: None))
-    spline = _rasters(tmp_path, "spline", source, 1.0, 1.0)
+    spline = _rasters(tmp_path, "spline", source, 1.0, 1.0, fill)
+    held = np.isfinite(spline[""]) & (spline[""] > -9000.0)
+    assert held[spline["hole"]].all() if fill == "hull" else not held[spline["hole"]].all()
     np.testing.assert_array_equal(nodes[""], spline[""])
     np.testing.assert_array_equal(nodes["-support"], spline["-support"])
     slope = np.isfinite(spline["-slope"]) & (spline["-slope"] != -9999.0)

@@ -130,20 +130,26 @@ class NodeCells:
     so that no other centre lies in a triangle (`of`); the cells holding data points but no
     vertex (`bare`) are SplineSampler's nearest-triangle cells.
 
-    grid: the whole grid (its windows share west, north and resolution); row, col (n,) each
-    vertex's cell in it; by_row: the vertices sorted by (row, col); bare_cells: the grid's
-    flat cell numbers (row × width + col) holding data points and no vertex, ascending."""
+    grid: the whole grid (its windows share west, north and resolution); row, col (n,) the
+    cell of each vertex that holds one, vertex (n,) those vertices (None: every vertex);
+    by_row: their order by (row, col); bare_cells: the grid's flat cell numbers (row ×
+    width + col) holding data points and no vertex's cell, ascending."""
 
     def __init__(self, grid: "RasterGrid", row: np.ndarray, col: np.ndarray, bare_cells: np.ndarray,
-                 origin: np.ndarray):
+                 origin: np.ndarray, vertex: np.ndarray | None = None):
         self.grid, self.row, self.col, self.bare_cells, self.origin = grid, row, col, bare_cells, origin
+        self.vertex = np.arange(row.size) if vertex is None else vertex
         self.by_row = np.argsort(row, kind="stable")
         self.sorted_rows = row[self.by_row]
 
     @classmethod
-    def of(cls, interp, origin: np.ndarray, grid: "RasterGrid", data_xy) -> "NodeCells | None":
+    def of(cls, interp, origin: np.ndarray, grid: "RasterGrid", data_xy, fill: "FillRule | None" = None,
+           distances=None) -> "NodeCells | None":
         """The NodeCells of interp's vertices (local plane, origin (3,)) on grid, or None when
-        they are not the grid's centres (module rule above)."""
+        they are not the grid's centres (module rule above). With a fill of finite distance
+        D, a vertex of the holes' triangles only (on no triangle the trim kept) farther than
+        D from the fit's points (distances: SplineSampler.distances) holds no cell, as the
+        evaluated fill drops its centre (SplineSampler.cells)."""
         if grid.row0 or grid.col0 or not len(interp.points):
             return None
         if not _at_centres(interp.points[:64], origin, grid)[0]:     # a Delaunay fit's vertices: at once
@@ -157,6 +163,14 @@ class NodeCells:
             return None
         if ri.min() < 0 or ci.min() < 0 or ri.max() >= grid.height or ci.max() >= grid.width:
             return None
+        vertex = np.arange(ri.size)
+        if fill is not None and math.isfinite(fill.distance):
+            kept = np.zeros(ri.size, dtype=bool)
+            kept[interp.triangles[fill.trimmed].ravel()] = True
+            spans = np.flatnonzero(~kept)
+            kept[spans] = distances(interp.points[spans, :2]) <= fill.distance
+            vertex = np.flatnonzero(kept)
+        ri, ci = ri[vertex], ci[vertex]
         r = grid.resolution
         held = np.zeros(grid.height * grid.width, dtype=bool)
         if data_xy is not None:
@@ -165,7 +179,7 @@ class NodeCells:
             inside = (ii >= 0) & (ii < grid.height) & (jj >= 0) & (jj < grid.width)
             held[ii[inside] * grid.width + jj[inside]] = True
         held[ri * grid.width + ci] = False
-        return cls(grid, ri, ci, np.flatnonzero(held), np.asarray(origin, dtype=np.float64))
+        return cls(grid, ri, ci, np.flatnonzero(held), np.asarray(origin, dtype=np.float64), vertex)
 
     def serves(self, grid: "RasterGrid") -> bool:
         """Whether grid is this grid or one of its windows."""
@@ -176,11 +190,10 @@ class NodeCells:
         """(vertex (k,), cell (k,)): the vertices whose cells lie in rows × cols (whole-grid
         indices) and their flat cell numbers in that window."""
         lo, hi = np.searchsorted(self.sorted_rows, [rows.start, rows.stop])
-        vertex = self.by_row[lo:hi]
-        col = self.col[vertex]
-        keep = (col >= cols.start) & (col < cols.stop)
-        vertex = vertex[keep]
-        return vertex, (self.row[vertex] - rows.start) * len(cols) + (self.col[vertex] - cols.start)
+        held = self.by_row[lo:hi]
+        col = self.col[held]
+        held = held[(col >= cols.start) & (col < cols.stop)]
+        return self.vertex[held], (self.row[held] - rows.start) * len(cols) + (self.col[held] - cols.start)
 
     def bare(self, rows: range, cols: range) -> tuple[np.ndarray, np.ndarray]:
         """(cell (k,), centre (k, 2)): the cells of rows × cols holding data and no vertex, as
@@ -231,8 +244,8 @@ class SplineSampler:
         self._reach, self._nearest = reach, None          # NearestTriangles, built when first needed,
         self._rim = np.zeros(0, dtype=np.int64)          # over these triangles (rim_triangles)
         self._ready = False
-        self._nodes = None if grid is None or (fill is not None and not fill.trimmed.all()) else \
-            NodeCells.of(interp, self.origin, grid, data_xy)
+        self._nodes = None if grid is None else NodeCells.of(interp, self.origin, grid, data_xy, fill,
+                                                              self.distances)
         if self._nodes is not None:         # the grid's centres are the vertices: `window` reads them
             self._data = None
             return

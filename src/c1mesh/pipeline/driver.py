@@ -72,6 +72,7 @@ from c1mesh.stages.frame import auto_axis_reason, choose_frame
 from c1mesh.stages.ground import choose_points, resolved_classes
 from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_gradients, height_neighbours, height_normals, use_height_gradients
+from c1mesh.stages.hole_fill import LatticeVertices, filled_lattice, point_hull
 from c1mesh.stages.holes import with_spanning_triangles
 from c1mesh.stages.limiter import LimiterReport
 from c1mesh.stages.limiter import check_mode as check_overshoot_mode
@@ -81,6 +82,7 @@ from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingR
                                      search_windows, smooth_tile)
 from c1mesh.stages.surface import PLANE_LEVEL
 from c1mesh.stages.lattice_mesh import (check_cells_left, check_lattice_spacing, lattice_mesh, lattice_offset,
+                                        nearest_points,
                                         support_least_strength)
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
@@ -489,8 +491,10 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
     points nearest the nodes (their colours, and their inputs' ownership); no gradient data
     (the nodes are no points), unit normal edge directions (the cells are all one shape);
     "auto" searches no lower than the lattice's least_strength (its cells ring below it).
-    checks: build_surface's check_triangulation and fill; a DEM's fill spans no triangle
-    (the lattice closes gaps of a few cells and leaves larger holes open). Memory: the fit
+    checks: build_surface's check_triangulation and fill; a DEM's fill spans the cells of the
+    points' hull that the support leaves open (the lattice closes gaps of a few cells),
+    their nodes chosen by the energy alone with the support's held (stages.hole_fill;
+    `trimmed` then marks the support's triangles). Memory: the fit
     runs smooth_tile on the whole mesh and keeps only its values on the support (no edge
     table and no interpolator of the whole mesh: the run asks for no edge directions), and
     the support's mesh and edge table are built after the fit unless the check needs them
@@ -512,17 +516,23 @@ def _lattice_model(hf, strength, options: FitOptions, checks: tuple, timer: "Sta
                                fold_net=True)
     run = SmoothingRun(control, hf.spacing, "off", 0.0)
     count = mesh.points.shape[0]
-    with timer.stage("interpolate"):
+    with timer.stage("interpolate"), background(lambda: point_hull(hf.xy) if fill else None) as hull:
         tile = Tile.whole(mesh.points, np.zeros(count), np.zeros((count, 2)), mesh.triangles)
         solved = smooth_tile(tile, run, data=SmoothingData(hf.z, hf.spacing, hf.xy), lattice=mesh.solver_lattice())
         overshoot, smoothing = LimiterReport(directions_changed=solved.solve.turned), solved.fit
         shown, triangles, table = _support_mesh(mesh) if support is None else support
-        interp = RSDInterpolator(mesh.points[shown], solved.values[shown], solved.gradients[shown],
-                                 triangles=triangles, scheme=scheme, edge_table=table)
-    trimmed = np.ones(triangles.shape[0], dtype=bool) if fill else None     # every triangle the support's
-    return SurfaceModel(normal_source, frame, hf, TrimReport(triangles.shape[0], triangles.shape[0]),
-                        mesh.sources[shown], interp, overshoot, gradient_source, max_slope_not_applied,
-                        smoothing, trimmed, mesh.facts())
+        vertices = LatticeVertices(mesh.nodes[shown], solved.values[shown], solved.gradients[shown], triangles)
+        sources, trimmed = mesh.sources[shown], None
+        if fill:                        # a DEM's fill: the hull's cells beyond the support (stages.hole_fill)
+            vertices, trimmed = filled_lattice(mesh.grid, vertices, hull(), scheme)
+            sources = np.concatenate([sources, nearest_points(mesh.grid.positions(vertices.nodes[sources.size:]),
+                                                              hf.xy, np.arange(hf.xy.shape[0]))])
+            table = table if trimmed.all() else edge_table(vertices.triangles, vertices.nodes.size)
+        interp = RSDInterpolator(mesh.grid.positions(vertices.nodes), vertices.values, vertices.gradients,
+                                 triangles=vertices.triangles, scheme=scheme, edge_table=table)
+    kept = triangles.shape[0]
+    return SurfaceModel(normal_source, frame, hf, TrimReport(kept, kept), sources, interp, overshoot,
+                        gradient_source, max_slope_not_applied, smoothing, trimmed, mesh.facts())
 
 
 def _support_mesh(mesh) -> tuple:
