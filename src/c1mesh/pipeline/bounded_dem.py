@@ -206,12 +206,14 @@ class DemJob:
     trimmed (a fill: per tile how many of its own triangles, the first rows of its file,
     the trim kept; the rest span its holes, survey.hole_runs.TiledFill; None: no fill),
     heights_path, spans_path (the grids of heights and of the cells in triangles that span
-    holes, for the support pass and --fill D's)."""
+    holes, for the support pass and --fill D's); points: the height spill of the data a
+    lattice fit fitted (survey.lattice_runs), to which the support and --fill D measure, as
+    the in-memory fit's fit points are its data (None: the spline's vertices)."""
 
     def __init__(self, surfaces, halos, dem: DemGrid, reach: float | None, longest: float, gradients: bool,
-                 threads=None, trimmed: tuple | None = None):
+                 threads=None, trimmed: tuple | None = None, points=None):
         self.surfaces, self.halos, self.dem, self.reach, self.longest = surfaces, halos, dem, reach, longest
-        self.gradients, self.threads, self.trimmed = gradients, threads, trimmed
+        self.gradients, self.threads, self.trimmed, self.points = gradients, threads, trimmed, points
         self.heights_path = self.spans_path = None
 
     def trimmed_rows(self, t: int, count: int) -> np.ndarray:
@@ -300,6 +302,17 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
             "lifted": lifted, "cells": count, **task_row(len(records), start)}
 
 
+
+def _mark_spans(spans: np.ndarray, part: np.ndarray) -> None:
+    """Mark the sampled cells of part (CELL records) in the flat spans grid: bit 1 where a
+    triangle that spans a hole holds the centre, bit 2 where a triangle the trim kept does.
+    A cell whose value is 1 lies in spanning triangles only: the in-memory fill's rule
+    (SplineSampler.cells drops a far centre's spanning entries, and a kept triangle's
+    entry still gives it a height), whatever the order the tiles and triangles come in."""
+    cells, span = part["cell"], part["span"].astype(bool)
+    spans[cells[span]] = spans[cells[span]] | 1
+    spans[cells[~span]] = spans[cells[~span]] | 2
+
 def _continue_tile(job: DemJob, spline_path, cells: np.ndarray):
     """For the cells (flat) that hold points but lie in no triangle: the nearest of a tile's
     own triangles (its spline at spline_path) within the reach, the spline continued from
@@ -323,15 +336,15 @@ def _support_tile(job: DemJob, t: int, path, spanning: bool = False) -> int:
     dem, grid = job.dem, job.surfaces.grid
     heights = np.load(job.heights_path, mmap_mode="r").reshape(-1)
     spans = np.load(job.spans_path, mmap_mode="r").reshape(-1) if spanning else None
-    vertices = halo_vertices(job.halos.halo(t))
-    tree = spatial.cKDTree(np.column_stack([vertices["x"], vertices["y"]])) if len(vertices) else None
+    count, bound = 0, 3 * job.longest * (1 + 1e-9)
+    near = halo_vertices(job.halos.halo(t)) if job.points is None else job.points.records(grid.grown(t, bound))
+    tree = spatial.cKDTree(np.column_stack([near["x"], near["y"]])) if len(near) else None
     nx, ny = grid.nx, grid.ny
     i, j = t % nx, t // nx
     x0, y0, x1, y1 = grid.cell(t)
     lo = np.array([-np.inf if i == 0 else x0, -np.inf if j == 0 else y0])
     hi = np.array([np.inf if i == nx - 1 else x1, np.inf if j == ny - 1 else y1])
     rows, cols = dem.span(np.maximum(lo, -1e300), np.minimum(hi, 1e300), 0.0)
-    count, bound = 0, 3 * job.longest * (1 + 1e-9)
     with limit(job.threads), open(path, "wb") as out:
         for block in row_blocks(rows, len(cols)):
             ii, jj = np.divmod(np.arange(len(block) * len(cols)), len(cols))
@@ -342,9 +355,9 @@ def _support_tile(job: DemJob, t: int, path, spanning: bool = False) -> int:
             flat, centre = flat[mine], centre[mine]
             if not flat.size:
                 continue
-            if tree is None:
+            if tree is None and job.points is None:
                 raise RuntimeError(f"tile {t}: DEM cells with heights but no vertex in its halo")
-            distance = tree.query(centre)[0]
+            distance = tree.query(centre)[0] if tree is not None else np.full(flat.size, np.inf)
             beyond = np.flatnonzero(distance > bound)      # in a fill's long triangles: search wider
             if beyond.size:
                 distance[beyond] = _nearer_vertices(job, centre[beyond], distance[beyond])
@@ -357,23 +370,27 @@ def _support_tile(job: DemJob, t: int, path, spanning: bool = False) -> int:
 
 def _nearer_vertices(job: DemJob, centres: np.ndarray, found: np.ndarray) -> np.ndarray:
     """The distances (m,) from local plane points centres (m, 2) to the nearest vertex of
-    the spline, given a vertex at `found` (m,) from each: the vertices of every tile
-    whose cell meets a centre's square of that half-side, each tile's own from its halo
-    (a vertex's triangles are all in its tile's halo)."""
+    the spline, given a vertex at `found` (m,) from each (inf: none yet): the vertices of
+    every tile whose cell meets a centre's square of that half-side, each tile's own from
+    its halo (a vertex's triangles are all in its tile's halo); with job.points, to the
+    nearest data point, each tile's own from the spill."""
     grid, best = job.surfaces.grid, found.copy()
     for u in range(len(grid)):
         x0, y0, x1, y1 = grid.cell(u)
         near = np.flatnonzero((centres[:, 0] + found >= x0) & (centres[:, 0] - found <= x1)
                               & (centres[:, 1] + found >= y0) & (centres[:, 1] - found <= y1))
-        if not near.size or job.surfaces.files[u] is None:
+        if not near.size or (job.points is None and job.surfaces.files[u] is None):
             continue
-        halo = job.halos.halo(u)
-        vertices = halo_vertices(halo)
-        vertices = vertices[grid.tile_of(np.column_stack([vertices["x"], vertices["y"]])) == u]
+        if job.points is not None:                          # a lattice fit's data: the tile's own
+            vertices = job.points.tile(u)
+        else:
+            vertices = halo_vertices(job.halos.halo(u))
+            vertices = vertices[grid.tile_of(np.column_stack([vertices["x"], vertices["y"]])) == u]
         if not len(vertices):
             continue
         tree = spatial.cKDTree(np.column_stack([vertices["x"], vertices["y"]]))
-        distance = tree.query(centres[near], distance_upper_bound=float(found[near].max()) * (1 + 1e-9))[0]
+        reach = float(found[near].max()) * (1 + 1e-9)
+        distance = tree.query(centres[near], distance_upper_bound=reach if math.isfinite(reach) else np.inf)[0]
         best[near] = np.minimum(best[near], distance)
     return best
 
@@ -530,8 +547,8 @@ class TiledDem:
                             nodes.add(t, part)
                         if flat_gradients is not None:
                             flat_gradients[part["cell"]] = part["g"]
-                        if spans is not None:
-                            spans.reshape(-1)[part["cell"]] = part["span"]
+                        if spans is not None:          # 1: in spanning triangles only (as in memory)
+                            _mark_spans(spans.reshape(-1), part)
                 rows.add(t, self.stage, {k: row[k] for k in ("seconds", "worker", "worker_peak_mb")})
         return sampled
 
@@ -814,7 +831,7 @@ def render_preview(dem: DemGrid, grids, plan: DemPlan, crs: str | None) -> None:
     z = np.asarray(heights[rows, cols]).astype(np.float32).astype(np.float64)
     g = np.array(gradients[rows, cols])
     g[np.isnan(z)] = np.nan
-    hatched = None if spans is None else np.asarray(spans[rows, cols]).astype(bool) & np.isfinite(z)
+    hatched = None if spans is None else (np.asarray(spans[rows, cols]) == 1) & np.isfinite(z)
     render_dem_cells(DemCells(z, g, hatched), grid, stride, plan.preview, crs, 1.0 if plan.z_factor is None else plan.z_factor)
 
 

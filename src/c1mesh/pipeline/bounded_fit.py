@@ -108,7 +108,7 @@ from c1mesh.survey.sizing import TILE_SHARE, grid_side, point_bytes, points_per_
 from c1mesh.survey.refine_runs import MeshWriting, RefineJob, Split, TiledMesh, check_output_size, write_tiles
 from c1mesh.survey.task_rows import TileRows, describe_crs
 from c1mesh.survey.delaunay_runs import triangulate_tiles
-from c1mesh.survey.lattice_runs import LATTICE_MARGIN, lattice_halo, lattice_tiles
+from c1mesh.survey.lattice_runs import LATTICE_MARGIN, LatticeFill, lattice_halo, lattice_tiles
 from c1mesh.survey.trim_runs import trim_tiles
 
 TILED_STAGES = ("ground", "frame", "spill", "normals", "triangulate", "trim", "noise floors", "smoothing",
@@ -223,7 +223,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if surface.spacing is not None:    # --spacing: the smoothing's vertices on a lattice, every height fitted
                 check_lattice_spacing(surface.spacing, spacing)
                 lattice = lattice_tiles(heights, surface.spacing, spacing, temps, temps.stem,
-                                        lattice_offset(frame.origin, surface.spacing))
+                                        lattice_offset(frame.origin, surface.spacing),
+                                        fill=plan.dem is not None and plan.dem.fill is not None)
                 data, heights = heights, stack.enter_context(contextlib.closing(lattice.nodes))
                 lattice_facts = lattice.facts()
             done("normals")
@@ -233,7 +234,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             else:                              # the lattice's cells: no Delaunay, no trim
                 max_edge, triangle_files, buffers = None, lattice.shown_files, lattice.buffers
                 delaunay_count = lattice.triangles
-            long_edge = delaunay_count - sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
+            long_edge = delaunay_count - _kept_count(triangle_files, lattice)
             done("triangulate")
             longest = max_edge if max_edge is not None else (
                 math.sqrt(2.0) * surface.spacing if lattice is not None
@@ -246,7 +247,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 fill = TiledFill.prepare(halos, max_edge, memory, name, temps)
             removed, kept = ({}, None) if lattice is not None else \
                 trim_tiles(halos, grid, temps, view_rules_apply(fitted, frame.axes), runner, rows.name)
-            kept_triangles = sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
+            kept_triangles = _kept_count(triangle_files, lattice)
             if lattice is None:
                 check_triangles_left(kept_triangles)
             else:
@@ -282,6 +283,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                                         on_done=lambda t, row: rows.add(t, "smoothing", row))
                 if filled is not None:
                     limiter = SmoothedFill(limiter, halos, filled.spanning, temps, runner, rows.name)
+                if lattice is not None and lattice.holes is not None and not lattice.holes.empty:   # hole_fill
+                    limiter = LatticeFill(limiter, lattice, surface.scheme)
                 done("smoothing")
             elif surface.overshoot == "limit":
                 limiter = TiledLimiter(halos, temps, runner, rows.name, kept)
@@ -289,7 +292,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
             if plan.dem is not None:
                 job = DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads), halos,
                              dem_grid(mesh, plan.dem.resolution), max_edge, longest, _shaded(plan.dem), rows.threads,
-                             None if filled is None else filled.trimmed)
+                             filled.trimmed if filled is not None else None if lattice is None else lattice.kept,
+                             None if lattice is None else data)
                 windows = None if outputs is None else _windows(job, chunks, file_counts, outputs, plan.dem)
                 report = _write_dem(job, (temps, runner, rows, windows), plan.dem, (chunks, crs, contours), limiter)
                 done("raster")
@@ -365,7 +369,7 @@ def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
     chunks, crs, contours = inputs
     temps, runner, rows, windows = where
     facts = TiledDem(job, temps, runner, rows, windows=windows).write(dem, chunks, crs,
-                                                                     isinstance(limiter, (TiledSmoother, SmoothedFill)),
+                                                                     isinstance(limiter, (TiledSmoother, SmoothedFill, LatticeFill)),
                                                                      contours)
     report = {"kept": facts["kept"], "output_mesh": None, "triangles_per_tile": facts["triangles_per_tile"],
               "raster": facts["raster"], "contours": facts["contours"]}
@@ -511,6 +515,14 @@ def _check_plan(plan: FitPlan) -> None:
     check_mode(plan.surface.overshoot)
     if plan.heights.normals == "file":
         raise InputError("the tiled fit estimates normals; --normals file needs the in-memory fit")
+
+
+def _kept_count(triangle_files: list, lattice) -> int:
+    """The triangles the tiles' files hold that are the surface's own: all of them, or on a
+    lattice with a DEM's fill the support's (LatticeTiles.kept; the rest span its holes)."""
+    if lattice is not None and lattice.kept is not None:
+        return sum(lattice.kept)
+    return sum(len(np.load(f, mmap_mode="r")) for f in triangle_files if f is not None)
 
 
 def _grown_box(box: tuple, by: float) -> tuple[float, float, float, float]:
