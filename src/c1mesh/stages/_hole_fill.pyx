@@ -4,7 +4,7 @@ imports it."""
 from libc.stdint cimport int64_t, uint8_t
 
 
-def octagon_corners(const double[:, ::1] xy, int64_t[::1] corners):
+def octagon_corners(const double[:, :] xy, int64_t[::1] corners):
     """corners[0..7] = the rows of xy (n, 2), n >= 1, that are extreme along the directions
     −y, x − y, x, x + y, y, −x + y, −x, −x − y (the first row of a tie): the corners of the
     octagon they span, counter-clockwise. One pass, without the GIL."""
@@ -30,7 +30,7 @@ def octagon_corners(const double[:, ::1] xy, int64_t[::1] corners):
                     corners[d] = k
 
 
-def outside_octagon(const double[:, ::1] xy, const double[:, ::1] octagon, uint8_t[::1] out):
+def outside_octagon(const double[:, :] xy, const double[:, ::1] octagon, uint8_t[::1] out):
     """out[k] = 1 when row k of xy (n, 2) lies on or outside an edge of the convex polygon
     octagon (8, 2), counter-clockwise, whose corners may repeat (an edge of length zero is
     skipped), else 0: a point strictly inside every edge is no corner of the points' convex

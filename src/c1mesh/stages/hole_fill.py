@@ -43,7 +43,7 @@ def point_hull(xy: np.ndarray) -> np.ndarray:
     clockwise; (0, 2) when they span no area (fewer than 3, or on one line). qhull runs on
     the points outside the octagon of their extremes only (Akl and Toussaint's filter, a
     kernel pass: 1M points in 0.17 s by qhull alone, about 10 ms so)."""
-    xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)       # a view of a height field's columns: no copy
     if xy.shape[0] < 3:
         return np.empty((0, 2))
     corners = np.empty(8, dtype=np.int64)
