@@ -274,24 +274,36 @@ def test_the_lattice_dem_fills_the_hull_within_the_noise(tmp_path):
     assert off.mask[np.hypot(x - 18.0, y - 21.0) < 2.0].all()    # beyond the support's reach into the disc
 
 
-@pytest.mark.parametrize("fill", ["hull", "off", "2.5"])
-def test_the_lattice_fill_in_tiles_is_the_whole_fits(tmp_path, fill):
+@pytest.fixture(scope="module")
+def cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as local:
+        yield local
+
+
+@pytest.mark.parametrize("fill, where", [("hull", "processes"), ("off", "processes"), ("2.5", "processes"),
+                                         ("hull", "dask")])
+def test_the_lattice_fill_in_tiles_is_the_whole_fits(tmp_path, request, fill, where):
     """The same DEM and support (distances to the data points) in memory and in 9 tiles,
-    for each fill: a hole's fill is solved whole in tiles too (survey.lattice_runs.LatticeFill),
-    and --fill D drops the same cells (those in the holes' triangles only)."""
+    for each fill, the tiles here or on a Dask cluster: a hole's fill is solved whole in
+    tiles too (survey.lattice_runs.LatticeFill), and --fill D drops the same cells (those in
+    the holes' triangles only)."""
     import rasterio
 
     from c1mesh.core.plan import TiledRun
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
 
+    scheduler = request.getfixturevalue("cluster").scheduler_address if where == "dask" else None
     _holed_quadratic_las(tmp_path / "q.las")
     options = FitOptions(classes=(2,), smooth=3.0, spacing=1.0, resolution=1.0, fill=fill,
                          support=str(tmp_path / "whole-support.tif"))
     whole = fit(tmp_path / "q.las", tmp_path / "whole.tif", options).report
     options = FitOptions(classes=(2,), smooth=3.0, spacing=1.0, resolution=1.0, fill=fill, memory=10**9,
                          support=str(tmp_path / "tiled-support.tif"))
-    tiled = fit(tmp_path / "q.las", tmp_path / "tiled.tif", options, tiles=TiledRun(per_tile=900)).report
+    tiled = fit(tmp_path / "q.las", tmp_path / "tiled.tif", options,
+                tiles=TiledRun(per_tile=900, scheduler=scheduler)).report
     assert tiled["tiles"] == 9
     rasters = {name: [rasterio.open(tmp_path / f"{path}{name}.tif").read(1, masked=True) for path in ("whole", "tiled")]
                for name in ("", "-support")}
