@@ -144,7 +144,7 @@ def _cli(*args, cwd):
     (["--smooth", "maybe"], "--smooth"),
     (["--smooth", "-1"], "--smooth"),
     (["--spacing", "2"], "--spacing thins the vertices"),
-    (["--smooth", "auto", "--spacing", "0"], "--spacing must be a positive"),
+    (["--smooth", "auto", "--spacing", "0"], "expected auto or a positive finite length"),
     (["--smooth", "auto", "--spacing", "2", "--frame", "perspective"], "perspective frame's smoothing fit"),
 ])
 def test_bad_smoothing_options_are_one_usage_line(tmp_path, args, words):

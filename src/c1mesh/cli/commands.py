@@ -21,6 +21,7 @@ from c1mesh.cli.options import (
     parse_bounds_option,
     parse_classes,
     parse_fill,
+    parse_spacing,
     parse_intrinsics,
     parse_max_edge,
     parse_memory_option,
@@ -89,9 +90,10 @@ def main() -> None:
               show_default=True, help="Vertex gradients: heights: a local quadratic fit to the "
                    "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
 @click.option("--smooth", default="off", show_default=True, metavar="off|auto|S", help=SMOOTH_HELP)
-@click.option("--spacing", type=float, default=None,
+@click.option("--spacing", default=None, metavar="auto|D",
               help="With --smooth: the vertices on a D x D lattice (D in the scan's units) over the "
-                   "points, fitted to all of them; solved by multigrid.  [default: a vertex at every point]")
+                   "points, fitted to all of them; solved by multigrid. auto: the points' mean spacing, "
+                   "or --resolution when coarser.  [default: a vertex at every point]")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=parse_memory_option, help=MEMORY_HELP)
 @click.option("--bounds", callback=parse_bounds_option, metavar="XMIN,YMIN,XMAX,YMAX",
@@ -157,7 +159,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                              ascii=ascii_ply, memory=memory, crs=crs, overshoot=overshoot,
                              gradients=gradients, resolution=resolution, slope=slope, aspect=aspect,
                              hillshade=hillshade, slope_method=slope_method, preview=preview, bounds=bounds,
-                             z_factor=z_factor, smooth=smooth_option, spacing=spacing, support=support,
+                             z_factor=z_factor, smooth=smooth_option, spacing=parse_spacing(spacing), support=support,
                              fill=parse_fill(fill), contours=contours, interval=interval,
                              edf=report is not None)
         if output and not output_dir:
@@ -182,7 +184,7 @@ def fit(ctx, inputs, output, output_dir, suffix, input_format, classes, normals,
                          overshoot=overshoot, gradients=gradients, frame=frame_kind, viewpoint=viewpoint,
                          intrinsics=intrinsics, z_factor=z_factor,
                          depth_scale=depth_scale, color=color_image, bounds=bounds,
-                         smooth=smooth_option, spacing=spacing, support=support, fill=parse_fill(fill),
+                         smooth=smooth_option, spacing=parse_spacing(spacing), support=support, fill=parse_fill(fill),
                          contours=contours, interval=interval, edf=report is not None)
     options = check_geo(pairs, options, debug, report)
     options.workers = threads_per_process(threads, min(jobs or 1, len(pairs)))

@@ -113,6 +113,22 @@ def parse_smooth(value: str):
     return strength
 
 
+def parse_spacing(value):
+    """--spacing: 'auto' or a positive finite length (None: not given)."""
+    if value is None:
+        return None
+    word = str(value).strip().lower()
+    if word == "auto":
+        return "auto"
+    try:
+        length = float(word)
+    except ValueError:
+        length = float("nan")
+    if not (length > 0 and math.isfinite(length)):
+        raise click.BadParameter(f"expected auto or a positive finite length, got {value!r}", param_hint="'--spacing'")
+    return length
+
+
 def parse_fill(value: str):
     """--fill: 'hull', 'off' (also 0) or a positive finite distance (plain Python; the
     library resolves it: c1mesh.geo.raster.fill_distance)."""

@@ -19,6 +19,7 @@ from c1mesh.cli.options import (
     output_paths,
     parse_classes,
     parse_fill,
+    parse_spacing,
     parse_intrinsics,
     parse_max_edge,
     parse_smooth,
@@ -54,7 +55,8 @@ def _value_problems(params: dict) -> list[str]:
                                ("--viewpoint", parse_viewpoint_option, params["viewpoint"]),
                                ("--axis", check_axis, params["axis"]),
                                ("--smooth", parse_smooth, params["smooth"]),
-                               ("--fill", parse_fill, params["fill"])):
+                               ("--fill", parse_fill, params["fill"]),
+                               ("--spacing", parse_spacing, params["spacing"])):
         try:
             parse(value)
         except click.BadParameter as exc:
@@ -63,9 +65,6 @@ def _value_problems(params: dict) -> list[str]:
     resolution = params["resolution"]
     if resolution is not None and not (resolution > 0 and math.isfinite(resolution)):
         problems.append(f"--resolution must be a positive finite length, got {resolution}")
-    spacing = params["spacing"]
-    if spacing is not None and not (spacing > 0 and math.isfinite(spacing)):
-        problems.append(f"--spacing must be a positive finite length, got {spacing}")
     problems += _smoothing_problems(params)
     z_factor = params["z_factor"]
     if z_factor is not None and not (z_factor > 0 and math.isfinite(z_factor)):

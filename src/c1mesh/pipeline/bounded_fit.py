@@ -79,7 +79,8 @@ from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
 from c1mesh.stages.height_gradients import check_positions, distinct_rows, use_height_gradients
-from c1mesh.stages.lattice_mesh import check_cells_left, check_lattice_spacing, lattice_offset, support_least_strength
+from c1mesh.stages.lattice_mesh import (auto_spacing, check_cells_left, check_lattice_spacing, is_auto, lattice_offset,
+                                        support_least_strength)
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
 from c1mesh.stages.surface import with_plane_level
@@ -196,6 +197,10 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         frame = frame_of_chunks(chunks, axis)
         colours.finish()
         count, box, positions = _plane_box(chunks, frame)
+        if is_auto(surface.spacing):               # the in-memory rule: the chosen points' box and count
+            resolution = plan.dem.resolution if plan.dem is not None else plan.mesh.resolution
+            plan = replace(plan, surface=replace(surface, spacing=auto_spacing(box[:2], box[2:], count, resolution)))
+            surface = plan.surface
         if surface.spacing is not None:            # every lattice node inside the tiles' box
             box = _grown_box(box, LATTICE_MARGIN * surface.spacing)
         _check_contour_grid(plan, box, name)

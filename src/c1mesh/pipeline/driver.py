@@ -23,7 +23,7 @@ from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import background, take_rows
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.core.tile import Tile, bounds
+from c1mesh.core.tile import Tile, bounds, finite_rows
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
@@ -81,8 +81,8 @@ from c1mesh.stages.perspective import frame_kind
 from c1mesh.stages.smoothing import (SmoothingControl, SmoothingData, SmoothingRun, gradient_data_weight,
                                      search_windows, smooth_tile)
 from c1mesh.stages.surface import PLANE_LEVEL
-from c1mesh.stages.lattice_mesh import (check_cells_left, check_lattice_spacing, lattice_mesh, lattice_offset,
-                                        nearest_points,
+from c1mesh.stages.lattice_mesh import (auto_spacing, check_cells_left, check_lattice_spacing, is_auto,
+                                        lattice_mesh, lattice_offset, nearest_points,
                                         support_least_strength)
 from c1mesh.stages.trim import TrimReport, check_triangles_left, trim_again, trim_mesh, used_points
 from c1mesh.stages.warnings import auto_limit, fit_warnings, smoothing_suggestion
@@ -445,6 +445,10 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 gradient_source = "heights"
         if options.spacing is not None:       # the smoothing's vertices on a lattice (stages.lattice_mesh)
             stages.close()
+            if is_auto(options.spacing):      # the tiles' rule: their box and count of the chosen points
+                local = frame.to_local(cloud.points)[:, :2]
+                options = replace(options, spacing=auto_spacing(*bounds(local[finite_rows(local)]),
+                                                                 len(cloud.points), options.resolution))
             return _lattice_model(hf, strength, options, (check_triangulation, fill), timer,
                                   (normal_source, frame, gradient_source, max_slope_not_applied))
         with timer.stage("triangulate"):
