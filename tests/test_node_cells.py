@@ -81,3 +81,33 @@ def test_a_lattice_finer_than_the_cells_is_evaluated(tmp_path, monkeypatch):
     fit(source, tmp_path / "half.tif", FitOptions(classes=(2,), smooth=3.0, spacing=0.5, resolution=1.0))
     fit(source, tmp_path / "same.tif", FitOptions(classes=(2,), smooth=3.0, spacing=1.0, resolution=1.0))
     assert made[0] is None and made[1] is not None
+
+
+def test_a_tiled_dem_reads_its_lattice_tiles_nodes_too(tmp_path, monkeypatch):
+    """Beyond --memory (9 tiles), a lattice fit at the DEM's resolution: each tile's cells
+    read its vertices' data (bounded_dem._NodeValues) and are the evaluated spline's DEM and
+    spline slope, as in memory."""
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline import bounded_dem
+
+    source = tmp_path / "terrain.las"
+    _survey_with_lone_points(source)
+    reads = []
+    at = bounded_dem._NodeValues.at
+    monkeypatch.setattr(bounded_dem._NodeValues, "at", lambda self, *a: reads.append(1) or at(self, *a))
+
+    def rasters(name):
+        dem = tmp_path / f"{name}.tif"
+        options = FitOptions(classes=(2,), smooth=3.0, spacing=1.0, resolution=1.0, memory=10**9,
+                             slope=str(tmp_path / f"{name}-slope.tif"), slope_method="spline")
+        assert fit(source, dem, options, tiles=TiledRun(per_tile=800)).report["tiles"] == 9
+        return [rasterio.open(path).read(1).astype(float) for path in (dem, tmp_path / f"{name}-slope.tif")]
+
+    nodes = rasters("nodes")
+    assert len(reads) >= 9
+    monkeypatch.setattr(bounded_dem._NodeValues, "of", classmethod(lambda cls, *a: None))
+    spline = rasters("spline")
+    np.testing.assert_array_equal(nodes[0], spline[0])
+    slope = np.isfinite(spline[1]) & (spline[1] != -9999.0)
+    np.testing.assert_array_equal(np.isfinite(nodes[1]), np.isfinite(spline[1]))
+    assert np.abs(nodes[1][slope] - spline[1][slope]).max() <= 1e-5 * spline[1][slope].max()

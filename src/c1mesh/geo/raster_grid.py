@@ -150,17 +150,12 @@ class NodeCells:
         D, a vertex of the holes' triangles only (on no triangle the trim kept) farther than
         D from the fit's points (distances: SplineSampler.distances) holds no cell, as the
         evaluated fill drops its centre (SplineSampler.cells)."""
-        if grid.row0 or grid.col0 or not len(interp.points):
+        if grid.row0 or grid.col0:
             return None
-        if not _at_centres(interp.points[:64], origin, grid)[0]:     # a Delaunay fit's vertices: at once
+        cells = vertex_cells(interp, origin, grid)
+        if cells is None:
             return None
-        at, ri, ci = _at_centres(interp.points, origin, grid)
-        if not at:
-            return None
-        corners = interp.triangles[:, [0, 1, 2, 0]]
-        if np.abs(np.diff(ci[corners], axis=1)).max(initial=0) > 1 or \
-                np.abs(np.diff(ri[corners], axis=1)).max(initial=0) > 1:
-            return None
+        ri, ci = cells
         if ri.min() < 0 or ci.min() < 0 or ri.max() >= grid.height or ci.max() >= grid.width:
             return None
         vertex = np.arange(ri.size)
@@ -503,6 +498,23 @@ def _lattice(grid: RasterGrid, rows: range, cols: range) -> tuple[range, range]:
     return (range(rows.start + grid.row0, rows.stop + grid.row0),
             range(cols.start + grid.col0, cols.stop + grid.col0))
 
+
+def vertex_cells(interp, origin: np.ndarray, grid: RasterGrid) -> tuple[np.ndarray, np.ndarray] | None:
+    """(row, col) int64 (n,): the cell of grid (its indices, which may lie outside it) whose
+    centre each vertex of interp (local plane, origin (3,)) sits at, when every vertex sits
+    at a centre (to 1e-6 cells) and every triangle's corners lie in neighbouring cells, so
+    that no other centre lies in a triangle: the DEM's cells are then the vertices' (a
+    lattice fit at the DEM's resolution, NodeCells). None else."""
+    if not len(interp.points) or not _at_centres(interp.points[:64], origin, grid)[0]:
+        return None                                  # a Delaunay fit's vertices: told at once
+    at, ri, ci = _at_centres(interp.points, origin, grid)
+    if not at:
+        return None
+    corners = interp.triangles[:, [0, 1, 2, 0]]
+    if np.abs(np.diff(ci[corners], axis=1)).max(initial=0) > 1 or \
+            np.abs(np.diff(ri[corners], axis=1)).max(initial=0) > 1:
+        return None
+    return ri, ci
 
 def _at_centres(points: np.ndarray, origin: np.ndarray, grid: RasterGrid) -> tuple[bool, np.ndarray, np.ndarray]:
     """(whether every local plane point (n, 2) sits at a cell centre of grid, to 1e-6

@@ -80,7 +80,7 @@ from c1mesh.geo.raster import (
 from c1mesh.geo.contours import ContourGrid, JoinedSurface, SplineSurface, contour_heights, spline_values
 from c1mesh.geo.preview import DemCells, preview_stride, render_dem_cells
 from c1mesh.geo.products import ContourRequest, stage_lines
-from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles
+from c1mesh.geo.raster_grid import RasterGrid, SplineSampler, rim_triangles, vertex_cells
 from c1mesh.survey.refine_runs import lowest_points
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import task_row
@@ -282,14 +282,17 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
         spans = ~job.trimmed_rows(t, len(triangles))
         lo, hi = interp.points.min(axis=0), interp.points.max(axis=0)
         rows, cols = job.dem.span(lo, hi, 0.0)
+        nodes = _NodeValues.of(interp, job.dem)
         count = 0
         with open(files.cells, "wb") as out:
             for block in row_blocks(rows, len(cols)):
                 cell, tri, l0, l1, shift = sampler.cells(job.dem.grid, block, cols)
-                values, grads = sampler.evaluate(tri, l0, l1, job.gradients, shift)
                 i, j = np.divmod(cell, len(cols))
+                flat = job.dem.flat(block.start + i, cols.start + j)
+                values, grads = (sampler.evaluate(tri, l0, l1, job.gradients, shift) if nodes is None
+                                 else nodes.at(flat, job.gradients))
                 part = np.zeros(cell.size, CELL)
-                part["cell"] = job.dem.flat(block.start + i, cols.start + j)
+                part["cell"] = flat
                 part["z"], part["tri"], part["span"] = values, tri, spans[tri]
                 if grads is not None:
                     part["g"] = grads
@@ -302,6 +305,29 @@ def _sample_tile(job: DemJob, t: int, files: _TileFiles) -> dict | None:
             "lifted": lifted, "cells": count, **task_row(len(records), start)}
 
 
+
+class _NodeValues:
+    """A tile's spline whose vertices sit at the DEM's cell centres (geo.raster_grid.
+    vertex_cells: a lattice fit at the DEM's resolution): its cells read the vertices'
+    heights and gradients, as the in-memory fit's NodeCells does, instead of evaluating
+    the spline there (the same numbers to rounding; these are the in-memory bits)."""
+
+    def __init__(self, interp, flat: np.ndarray):
+        self.interp, self.order = interp, np.argsort(flat, kind="stable")
+        self.sorted = flat[self.order]
+
+    @classmethod
+    def of(cls, interp, dem: DemGrid) -> "_NodeValues | None":
+        cells = vertex_cells(interp, dem.origin, dem.grid)
+        return None if cells is None else cls(interp, dem.flat(*cells))
+
+    def at(self, flat: np.ndarray, gradients: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """(heights (m,) local, gradients (m, 2) or None) of the cells flat (m,), each a vertex's."""
+        at = np.minimum(np.searchsorted(self.sorted, flat), self.sorted.size - 1)
+        if not np.array_equal(self.sorted[at], flat):
+            raise RuntimeError("a DEM cell in a triangle of a lattice tile is no vertex's")
+        vertex = self.order[at]
+        return self.interp.values[vertex], self.interp.gradients[vertex] if gradients else None
 
 def _mark_spans(spans: np.ndarray, part: np.ndarray) -> None:
     """Mark the sampled cells of part (CELL records) in the flat spans grid: bit 1 where a
