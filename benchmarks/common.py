@@ -300,21 +300,33 @@ MEASURED: dict[tuple[str, int], dict] = {}
 C1MESH = ["-c", "from c1mesh.cli import run; run()"]
 
 
-def show_section(sec: Section, write: bool) -> int:
+def show_section(sec: Section, write: bool, keep_earlier: bool = False) -> int:
     """A benchmark command's end: print the section's body and, with `write`, replace its
-    section of benchmarks/RESULTS.md (write_section); returns the exit status, 0."""
+    section of benchmarks/RESULTS.md (write_section; keep_earlier: the section's runs so
+    far move under its `### Earlier runs`); returns the exit status, 0."""
     print("\n".join(sec.body))
     if write:
-        write_section(ROOT / "benchmarks" / "RESULTS.md", sec)
+        write_section(ROOT / "benchmarks" / "RESULTS.md", sec, keep_earlier)
     return 0
 
 
-def write_section(path: Path, sec: Section) -> None:
-    """Replace the `## TITLE` section of RESULTS.md (up to the next `## `), or append it."""
+EARLIER = "### Earlier runs"
+"""The heading under which a section written with keep_earlier keeps its former runs."""
+
+
+def write_section(path: Path, sec: Section, keep_earlier: bool = False) -> None:
+    """Replace the `## TITLE` section of RESULTS.md (up to the next `## `), or append it.
+    keep_earlier: the replaced section's head (up to its EARLIER heading) becomes the first
+    of its earlier runs, above the ones it kept, so a new measurement never erases an old one."""
     text = path.read_text() if path.exists() else ""
     block = "\n".join([f"## {sec.title}", "", *sec.body]).rstrip() + "\n"
     pattern = re.compile(rf"^## {re.escape(sec.title)}\n.*?(?=^## |\Z)", re.M | re.S)
-    if pattern.search(text):
+    found = pattern.search(text)
+    if found and keep_earlier:
+        old = found.group(0)[len(f"## {sec.title}\n"):]
+        head, _, earlier = old.partition(EARLIER)
+        block = block + "\n" + EARLIER + "\n\nThe run before:\n\n" + head.strip() + "\n\n" + earlier.strip() + "\n"
+    if found:
         text = pattern.sub(lambda _: block + "\n", text, count=1).rstrip() + "\n"
     else:
         text = text.rstrip() + "\n\n" + block

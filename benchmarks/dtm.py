@@ -193,12 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, default=N, help="make: how many points (default 1M)")
     parser.add_argument("--spacings", type=float, nargs="*", default=[],
                         help="run: also --smooth auto with each of these --spacing values")
-    parser.add_argument("--write", action="store_true", help=f"run: replace the '{TITLE}' section of RESULTS.md")
+    parser.add_argument("--write", action="store_true",
+                        help=f"run: write the '{TITLE}' section of RESULTS.md, its runs so far kept below")
     args = parser.parse_args(argv)
     if args.verb == "make":
         make(args.folder, args.points)
         return 0
-    return show_section(run(args.folder, args.reps, tuple(args.spacings)), args.write)
+    return show_section(run(args.folder, args.reps, tuple(args.spacings)), args.write, keep_earlier=True)
 
 
 if __name__ == "__main__":

@@ -94,6 +94,20 @@ def test_write_section_replaces_only_its_own_section(tmp_path):
     assert other.read_text() == f"# r\n\n## A\n\na\n\n## {heldout.TITLE}\n\nnew\n"
 
 
+
+def test_write_section_can_keep_the_runs_it_replaces(tmp_path):
+    """keep_earlier (the DTM job's --write): the old head becomes the first earlier run,
+    above those the section kept; the sections around it do not change."""
+    from benchmarks.common import Section, write_section
+
+    path = tmp_path / "RESULTS.md"
+    path.write_text("# r\n\n## T\n\nrun 2\n\n### Earlier runs\n\nrun 1\n\n## B\n\nb\n")
+    sec = Section("T")
+    sec.add("run 3")
+    write_section(path, sec, keep_earlier=True)
+    assert path.read_text() == ("# r\n\n## T\n\nrun 3\n\n### Earlier runs\n\nThe run before:\n\nrun 2\n\n"
+                                "run 1\n\n## B\n\nb\n")
+
 def test_gmt_runs_at_the_nearest_neighbour_spacing_not_the_hull_area_one():
     """Issue 38: GMT gets the nearest-neighbour spacing. On a jittered 0.5 m grid every
     point's nearest neighbour is within the jitter of 0.5 m, while sqrt(hull area / n) is
