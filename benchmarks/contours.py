@@ -82,7 +82,7 @@ def franke_table(seed: int = 40) -> str:
     with tempfile.TemporaryDirectory() as folder:
         for resolution in RESOLUTIONS:
             dem, gpkg = Path(folder) / f"dem-{resolution}.tif", Path(folder) / f"c-{resolution}.gpkg"
-            options = FitOptions(axis="z", resolution=resolution, contours=str(gpkg), interval=INTERVAL)
+            options = FitOptions(smooth="off", axis="z", resolution=resolution, contours=str(gpkg), interval=INTERVAL)
             report = fit(cloud, str(dem), options).report
             lines, levels = _read(gpkg)
             ours = _vertex_errors(lines, levels)
@@ -110,7 +110,7 @@ def figure(out: Path) -> None:
         dem, shade, gpkg = (Path(folder) / name for name in ("dem.tif", "hillshade.tif", "contours.gpkg"))
         start = time.perf_counter()
         fit(str(ROOT / "data_samples" / "autzen_trim.laz"), str(dem),
-            FitOptions(classes=(2,), resolution=2.0, hillshade=str(shade), contours=str(gpkg), interval=2.0))
+            FitOptions(smooth="off", classes=(2,), resolution=2.0, hillshade=str(shade), contours=str(gpkg), interval=2.0))
         print(f"fit: {time.perf_counter() - start:.1f} s", file=sys.stderr)
         with rasterio.open(shade) as ds:
             image, box = ds.read(1, masked=True), ds.bounds

@@ -53,7 +53,7 @@ def _noisy(normals: np.ndarray, degrees: float, seed: int = 5) -> np.ndarray:
 def _fit(src: Path, dem: Path, resolution: float, method: str, slope: Path) -> None:
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
-    fit(str(src), str(dem), FitOptions(axis="z", normals="file", resolution=resolution,
+    fit(str(src), str(dem), FitOptions(smooth="off", axis="z", normals="file", resolution=resolution,
                                        slope=str(slope), slope_method=method), keep_mesh=False)
 
 
@@ -143,7 +143,7 @@ def _speed(cfg: Config, tmp: Path, n: int) -> dict:
     src = tmp / f"terrain_{n}.ply"
     write_cloud_ply(src, *terrain_cloud(n))
     exe = sys.executable
-    mesh_cmd = [exe, *C1MESH, "fit", str(src), "-o", str(tmp / "l2.ply"), "--level", "2",
+    mesh_cmd = [exe, *C1MESH, "fit", "--smooth", "off", str(src), "-o", str(tmp / "l2.ply"), "--level", "2",
                 "--axis", "z", "--report", "-", "-q"]
     first = run_child(mesh_cmd)
     if first.returncode:
@@ -151,7 +151,7 @@ def _speed(cfg: Config, tmp: Path, n: int) -> dict:
     vertices = report_from_stderr(first.stderr)["output_mesh"]["vertices"]
     # cells over the square = vertices; the grid is aligned, so the count is close, not equal
     res = SIDE / math.sqrt(vertices)
-    dem_cmd = [exe, *C1MESH, "fit", str(src), "-o", str(tmp / "dem.tif"), "--resolution", repr(res),
+    dem_cmd = [exe, *C1MESH, "fit", "--smooth", "off", str(src), "-o", str(tmp / "dem.tif"), "--resolution", repr(res),
                "--report", "-", "-q"]
     times = {"mesh": [], "dem": []}
     cells = 0
@@ -172,7 +172,7 @@ def glb_vs_ply(tmp: Path, source: Path, level: int = 2) -> float:
     from c1mesh.formats.meshes import read_glb_vertices
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
-    options = FitOptions(classes=(2,), level=level)
+    options = FitOptions(smooth="off", classes=(2,), level=level)
     fit(str(source), str(tmp / "tile.ply"), options, keep_mesh=False)
     fit(str(source), str(tmp / "tile.glb"), options, keep_mesh=False)
     ply = read_cloud(str(tmp / "tile.ply")).points
@@ -188,7 +188,7 @@ def lidar_rasters(tmp: Path, source: Path, resolution: float) -> dict:
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
     files = {k: tmp / f"lidar_{k}.tif" for k in ("dem", "slope", "hillshade")}
-    report = fit(str(source), str(files["dem"]), FitOptions(classes=(2,), resolution=resolution,
+    report = fit(str(source), str(files["dem"]), FitOptions(smooth="off", classes=(2,), resolution=resolution,
                                                             slope=str(files["slope"]),
                                                             hillshade=str(files["hillshade"]))).report
     import pyproj

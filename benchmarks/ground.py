@@ -250,7 +250,7 @@ def _dem(points: np.ndarray, path: Path) -> tuple[np.ma.MaskedArray, int, int]:
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
 
-    fit(PointCloud(points=points), path, FitOptions(resolution=1.0, axis="z"))
+    fit(PointCloud(points=points), path, FitOptions(smooth="off", resolution=1.0, axis="z"))
     with rasterio.open(path) as raster:
         return raster.read(1, masked=True), int(round(raster.transform.c)), int(round(raster.transform.f))
 

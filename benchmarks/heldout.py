@@ -30,7 +30,7 @@ Methods:
   verde Spline      verde.Spline (biharmonic Green's functions, dense n×n), damping chosen on
                     the same validation split from 10^-8, 10^-6, 10^-4, 10^-2; only up to
                     VERDE_MAX training points (its matrix is n² doubles);
-  c1mesh exact      FitOptions() (the default: an interpolating C1 spline, overshoot limiter on);
+  c1mesh exact      FitOptions(smooth="off") (an interpolating C1 spline, overshoot limiter on);
   c1mesh overshoot=off   FitOptions(overshoot="off");
   c1mesh smooth=auto     FitOptions(smooth="auto"), when this build's FitOptions has that field;
   c1mesh lattice         issue 38's lattice route: FitOptions(smooth="auto", spacing=D), the
@@ -332,7 +332,7 @@ def c1mesh_model(train_world: np.ndarray, **options):
     from c1mesh.core.cloud import PointCloud
     from c1mesh.pipeline.driver import FitOptions, build_surface
 
-    return build_surface(PointCloud(points=train_world), FitOptions(normals="auto", **options))
+    return build_surface(PointCloud(points=train_world), FitOptions(normals="auto", **{"smooth": "off", **options}))
 
 
 LATTICE = "c1mesh lattice smooth=auto"

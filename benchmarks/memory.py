@@ -73,7 +73,7 @@ def run(cfg: Config) -> Section:
 def _one_level(exe: str, src: Path, n: int, level: int, why: str) -> tuple[int, int]:
     """(peak RSS, output vertices) of one child fitting `src` at `level`."""
     if not why:
-        child = run_child([exe, *C1MESH, "fit", str(src), "-o", "-", "--level", str(level),
+        child = run_child([exe, *C1MESH, "fit", "--smooth", "off", str(src), "-o", "-", "--level", str(level),
                            "--report", "-", "-q"], discard_stdout=True)
         if child.returncode != 0:
             raise RuntimeError(f"c1mesh fit --level {level} failed: {child.stderr.strip()[-400:]}")
@@ -94,7 +94,7 @@ def _stages_child(src: str, dst: str, level: int) -> dict:
     from c1mesh.pipeline.run import fit
 
     stages = [("interpreter + imports", _peak())]
-    fit(src, dst, FitOptions(level=level), on_stage=lambda name: stages.append((name, _peak())),
+    fit(src, dst, FitOptions(smooth="off", level=level), on_stage=lambda name: stages.append((name, _peak())),
         keep_mesh=False)
     return {"stages": stages}
 

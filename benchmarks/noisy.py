@@ -49,7 +49,7 @@ def stage_data(path, options: dict):
     from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
     from c1mesh.pipeline.plan import resolve_options_axis
 
-    opts, _ = resolve_options_axis(path, FitOptions(**options))
+    opts, _ = resolve_options_axis(path, FitOptions(smooth="off", **options))
     cloud = load_cloud(path, opts)
     model = build_surface(cloud, replace(opts, overshoot="off"))     # the raw gradients
     interp = model.interp
@@ -102,7 +102,7 @@ def folds(path, options: dict, xy, z, g, tri) -> dict:
 
     out = {}
     for label, mode, gradients in (("off", "off", "auto"), ("limit", "limit", "auto"), ("PCA", "limit", "normals")):
-        mesh = fit(path, None, FitOptions(overshoot=mode, gradients=gradients, **options)).mesh
+        mesh = fit(path, None, FitOptions(smooth="off", overshoot=mode, gradients=gradients, **options)).mesh
         out[f"c1mesh {label}"] = (folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), len(mesh.faces))
     out["rHCT"] = reduced_hct_folded_faces(xy, z, g, tri)
     return out

@@ -81,7 +81,7 @@ def _measure(cfg: Config, tmp: str, src: Path, why: str) -> dict:
     """Interleaved child runs; per contender: seconds, rss, stages (lists), vertices, faces."""
     exe = sys.executable
     if not why:
-        jobs = {"c1mesh fit": [exe, *C1MESH, "fit", str(src), "-o", f"{tmp}/c1.ply",
+        jobs = {"c1mesh fit": [exe, *C1MESH, "fit", "--smooth", "off", str(src), "-o", f"{tmp}/c1.ply",
                                "--level", str(LEVEL), "--report", "-", "-q"]}
     else:
         jobs = {"library stages": [exe, "-m", "benchmarks.pipeline", "stages", str(src),

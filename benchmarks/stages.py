@@ -150,7 +150,7 @@ def _fit(folder: Path, case: str, threads: int) -> dict:
     """One `c1mesh fit` child of a case: its report's stage seconds, wall, peak RSS, output size."""
     name, options = CASES[case]
     out, report = folder / f"{case}.out.ply", folder / f"{case}.report.json"
-    child = run_child([sys.executable, *C1MESH, "fit", str(folder / name), *options, "-o", str(out),
+    child = run_child([sys.executable, *C1MESH, "fit", "--smooth", "off", str(folder / name), *options, "-o", str(out),
                        "--report", str(report), "--threads", str(threads), "-q"])
     if child.returncode:
         raise RuntimeError(f"c1mesh fit {case} failed: {child.stderr[-500:]}")

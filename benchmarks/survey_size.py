@@ -49,7 +49,7 @@ def _fit(laz: Path, folder: Path) -> dict:
 
     mesh, report = folder / f"{laz.stem}.ply", folder / f"{laz.stem}.json"
     exe = str(Path(sys.executable).with_name("c1mesh"))
-    cmd = [exe, "fit", str(laz), "--classes", "2", "--level", "1", "--memory", MEMORY,
+    cmd = [exe, "fit", "--smooth", "off", str(laz), "--classes", "2", "--level", "1", "--memory", MEMORY,
            "-o", str(mesh), "--report", str(report), "-q"]
     load_before = os.getloadavg()[0]
     start = time.perf_counter()

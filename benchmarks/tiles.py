@@ -62,10 +62,10 @@ def run(cfg: Config) -> Section:
             common = ["--level", str(LEVEL), "-q"]
             seamless, single = [], []
             for _ in range(1 if cfg.quick else cfg.reps):
-                child = run_child([exe, *C1MESH, "fit", *paths, "--seamless", "-O", f"{tmp}/out", *common])
+                child = run_child([exe, *C1MESH, "fit", "--smooth", "off", *paths, "--seamless", "-O", f"{tmp}/out", *common])
                 _check(child, "seamless")
                 seamless.append(child)
-                child = run_child([exe, *C1MESH, "fit", whole, "-o", f"{tmp}/whole.c1.ply", *common])
+                child = run_child([exe, *C1MESH, "fit", "--smooth", "off", whole, "-o", f"{tmp}/whole.c1.ply", *common])
                 _check(child, "whole")
                 single.append(child)
             row = {"n": n, "tiles": len(paths),
@@ -73,7 +73,7 @@ def run(cfg: Config) -> Section:
                    "seamless_rss": max(c.peak_rss for c in seamless),
                    "whole_rss": max(c.peak_rss for c in single)}
             if n == sizes(cfg)[0] and not cfg.quick:       # parallel runs say little at toy sizes
-                child = run_child([exe, *C1MESH, "fit", *paths, "--seamless", "-O", f"{tmp}/dask",
+                child = run_child([exe, *C1MESH, "fit", "--smooth", "off", *paths, "--seamless", "-O", f"{tmp}/dask",
                                    "-j", "2", *common])
                 _check(child, "-j 2")
                 row["dask2"] = child.seconds
@@ -160,7 +160,7 @@ def _plan_child(task_file: str, paths: list[str]) -> dict:
     from c1mesh.pipeline.driver import FitOptions, build_surface
     from c1mesh.survey.tiles import TilePlan, load_survey
 
-    options = FitOptions(level=LEVEL)
+    options = FitOptions(smooth="off", level=LEVEL)
     survey = load_survey(paths, options)
     tasks = TilePlan(build_surface(survey.cloud, options), survey, [p + ".out" for p in paths], LEVEL)
     task = tasks[len(tasks) // 2]

@@ -37,7 +37,8 @@ def _paths(directory: Path, tag: str) -> dict:
 
 def _options(paths: dict, resolution: float, fill: str = "off", **more) -> FitOptions:
     return FitOptions(classes=(2,), resolution=resolution, fill=fill, slope=paths["slope"],
-                      aspect=paths["aspect"], hillshade=paths["hillshade"], support=paths["support"], **more)
+                      aspect=paths["aspect"], hillshade=paths["hillshade"], support=paths["support"],
+                      **{"smooth": "off", **more})
 
 
 def _assert_same_raster(tiled: str, whole: str) -> None:
@@ -116,7 +117,7 @@ def test_cli_writes_a_dem_in_tiles_beyond_memory(tmp_path):
     whole, tiled = _paths(tmp_path, "whole"), _paths(tmp_path, "tiled")
 
     def args(paths):
-        return ["fit", str(source), "--classes", "2", "-o", paths["dem"], "--resolution", "0.5", "--fill", "off",
+        return ["fit", "--smooth", "off", str(source), "--classes", "2", "-o", paths["dem"], "--resolution", "0.5", "--fill", "off",
                 "--slope", paths["slope"], "--aspect", paths["aspect"], "--hillshade", paths["hillshade"],
                 "--support", paths["support"]]
     result = CliRunner().invoke(main, args(whole))
@@ -244,7 +245,7 @@ def test_the_preview_of_a_dem_in_tiles_is_the_in_memory_fits_picture(tmp_path):
     pngs = {}
     for name, extra in (("whole", []), ("tiled", ["--memory", "1M"])):
         pngs[name] = tmp_path / f"{name}.png"
-        result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.tif"),
+        result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.tif"),
                                            "--resolution", "2", "--preview", str(pngs[name]),
                                            "--report", str(tmp_path / f"{name}.json"), *extra])
         assert result.exit_code == 0, result.output
@@ -261,7 +262,7 @@ def test_a_mesh_preview_and_contours_in_tiles_are_the_in_memory_fits(tmp_path):
     as test_contours_in_tiles_are_the_in_memory_fits says why)."""
     runs = {}
     for name, extra in (("whole", []), ("tiled", ["--memory", "4M"])):        # 4 tiles; room for the contours
-        result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.ply"),
+        result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(SAMPLES / "autzen_trim.laz"), "-o", str(tmp_path / f"{name}.ply"),
                                            "--preview", str(tmp_path / f"{name}.png"),
                                            "--contours", str(tmp_path / f"{name}.gpkg"), "--interval", "2",
                                            "--level", "1", "--report", str(tmp_path / f"{name}.json"), *extra])
@@ -296,7 +297,7 @@ def test_contours_and_previews_in_tiles_on_a_dask_cluster_are_the_local_tiles(tm
         for output, extra in (("dem.tif", ["--resolution", "2"]), ("mesh.ply", ["--level", "1"])):
             for name, where in (("local", []), ("dask", ["--scheduler", cluster.scheduler_address])):
                 stem = tmp_path / f"{name}-{output}"
-                result = CliRunner().invoke(main, ["fit", str(SAMPLES / "autzen_trim.laz"), "-o", str(stem), *extra,
+                result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(SAMPLES / "autzen_trim.laz"), "-o", str(stem), *extra,
                                                    "--preview", f"{stem}.png", "--contours", f"{stem}.gpkg",
                                                    "--interval", "2", "--memory", "16M", *where])
                 assert result.exit_code == 0, result.output
@@ -312,7 +313,7 @@ def test_contours_beyond_the_budget_are_refused_before_the_fit(tmp_path):
     0.02 m cells are 15M nodes, about 890 MB, against a 1 MB budget."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000, classes=(2,))
-    result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.02",
+    result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(source), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.02",
                                        "--fill", "off", "--contours", str(tmp_path / "c.gpkg"), "--interval", "1",
                                        "--memory", "1M"])
     assert result.exit_code == 1 and result.output.count("\n") == 1

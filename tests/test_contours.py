@@ -77,7 +77,7 @@ def franke_fit(tmp_path_factory):
     the file against."""
     folder = tmp_path_factory.mktemp("franke")
     cloud = franke_cloud()
-    options = FitOptions(axis="z", resolution=0.02, contours=str(folder / "franke.gpkg"), interval=0.1)
+    options = FitOptions(smooth="off", axis="z", resolution=0.02, contours=str(folder / "franke.gpkg"), interval=0.1)
     report = fit(cloud, str(folder / "franke.tif"), options).report
     model = build_surface(cloud, options, StageTimer(None), fill=True)
     return report, model, read_lines(folder / "franke.gpkg"), folder
@@ -141,7 +141,7 @@ def test_closer_to_frankes_function_than_the_linear_contours_of_the_dem(tmp_path
     the true level sets than the DEM's linear ones. (At 1-3 spacings both are the spline's
     own error, about 3.5e-3 here: benchmarks/RESULTS.md, geo.)"""
     cloud = franke_cloud()
-    options = FitOptions(axis="z", resolution=resolution, contours=str(tmp_path / "c.gpkg"), interval=0.1)
+    options = FitOptions(smooth="off", axis="z", resolution=resolution, contours=str(tmp_path / "c.gpkg"), interval=0.1)
     fit(cloud, str(tmp_path / f"franke-{resolution}.tif"), options)
     lines, levels, _, _ = read_lines(tmp_path / "c.gpkg")
     ours = max(float(np.abs(franke(line[:, 0], line[:, 1]) - level).max()) for line, level in zip(lines, levels))
@@ -156,7 +156,7 @@ def test_closed_level_sets_come_out_closed(tmp_path):
     around the summit (its winding number about the centre is ±1)."""
     xy = np.random.default_rng(5).random((4000, 2)) * 2 - 1
     cloud = PointCloud(np.column_stack([xy, np.exp(-(xy ** 2).sum(axis=1) / 0.1)]))
-    options = FitOptions(axis="z", resolution=0.05, contours=str(tmp_path / "bump.geojson"), interval=0.1)
+    options = FitOptions(smooth="off", axis="z", resolution=0.05, contours=str(tmp_path / "bump.geojson"), interval=0.1)
     report = fit(cloud, str(tmp_path / "bump.tif"), options).report
     lines, levels, closed, _ = read_lines(tmp_path / "bump.geojson")
     summit = [(line, level, shut) for line, level, shut in zip(lines, levels, closed) if level >= 0.05]
@@ -176,7 +176,7 @@ def test_lines_are_split_at_a_trimmed_hole(tmp_path):
     xy = rng.random((6000, 2))
     xy = xy[np.hypot(xy[:, 0] - 0.5, xy[:, 1] - 0.5) > 0.2]
     cloud = PointCloud(np.column_stack([xy, xy[:, 0] + 0.3 * xy[:, 1] ** 2]))
-    options = FitOptions(axis="z", resolution=0.02, contours=str(tmp_path / "hole.gpkg"), interval=0.1,
+    options = FitOptions(smooth="off", axis="z", resolution=0.02, contours=str(tmp_path / "hole.gpkg"), interval=0.1,
                          fill="off")                 # the DEM keeps the trim's hole (--fill off)
     fit(cloud, str(tmp_path / "hole.tif"), options)
     lines, levels, closed, _ = read_lines(tmp_path / "hole.gpkg")
@@ -197,7 +197,7 @@ def test_autzen_contours_carry_the_input_crs_in_every_format(tmp_path):
     import pyproj
 
     file_crs = laspy.read(AUTZEN).header.parse_crs()
-    options = FitOptions(classes=(2,), resolution=3.0, contours=str(tmp_path / "autzen.gpkg"), interval=1.0,
+    options = FitOptions(smooth="off", classes=(2,), resolution=3.0, contours=str(tmp_path / "autzen.gpkg"), interval=1.0,
                          bounds=(636300.0, 849000.0, 636700.0, 849300.0))
     report = fit(str(AUTZEN), str(tmp_path / "dem.tif"), options).report
     lines, levels, closed, info = read_lines(tmp_path / "autzen.gpkg")
@@ -227,7 +227,7 @@ def test_autzen_contours_carry_the_input_crs_in_every_format(tmp_path):
 def test_an_interval_above_the_relief_writes_an_empty_file_and_warns(tmp_path):
     xy = np.random.default_rng(1).random((500, 2))
     cloud = PointCloud(np.column_stack([xy, 0.5 + 0.01 * xy[:, 0]]))
-    report = fit(cloud, str(tmp_path / "dem.tif"), FitOptions(axis="z", resolution=0.05, crs="EPSG:32633",
+    report = fit(cloud, str(tmp_path / "dem.tif"), FitOptions(smooth="off", axis="z", resolution=0.05, crs="EPSG:32633",
                                                                contours=str(tmp_path / "c.gpkg"), interval=1.0)).report
     assert report["contours"]["lines"] == 0 and report["contours"]["levels"]["count"] == 0
     assert any("gives no contour level" in text for text in report["warnings"])
@@ -239,7 +239,7 @@ def test_contours_of_a_mesh_fit_are_traced_at_its_resolution(tmp_path):
     """-o x.ply --resolution R --contours: the fit is a height field; its contours are
     traced on a grid of R and lie on the spline."""
     cloud = franke_cloud(3000)
-    options = FitOptions(axis="z", resolution=0.05, contours=str(tmp_path / "m.gpkg"), interval=0.1)
+    options = FitOptions(smooth="off", axis="z", resolution=0.05, contours=str(tmp_path / "m.gpkg"), interval=0.1)
     report = fit(cloud, str(tmp_path / "m.ply"), options).report
     assert report["contours"]["grid_resolution"] == 0.05 and report["level"] >= 1
     lines, levels, _, _ = read_lines(tmp_path / "m.gpkg")
@@ -258,7 +258,7 @@ def test_contours_of_a_mesh_fit_are_traced_at_its_resolution(tmp_path):
     (["--contours", "c.gpkg", "--interval", "2", "--axis", "x"], "--axis x cannot be used with --contours"),
 ])
 def test_contour_options_are_usage_errors_before_any_input_is_read(tmp_path, args, words):
-    argv = ["fit", str(tmp_path / "missing.laz"), "-o", str(tmp_path / "dem.tif"), "--resolution", "2", *args]
+    argv = ["fit", "--smooth", "off", str(tmp_path / "missing.laz"), "-o", str(tmp_path / "dem.tif"), "--resolution", "2", *args]
     line = usage_error(argv)
     assert line is not None and words in line and "\n" not in line
     done = CliRunner().invoke(main, argv)
@@ -268,15 +268,15 @@ def test_contour_options_are_usage_errors_before_any_input_is_read(tmp_path, arg
 
 def test_contours_with_several_outputs_are_usage_errors(tmp_path):
     common = ["--contours", "c.gpkg", "--interval", "1"]
-    assert "single input" in usage_error(["fit", "a.laz", "b.laz", "-O", str(tmp_path), *common])
-    assert "not -O" in usage_error(["fit", "a.laz", "b.laz", "--seamless", "-O", str(tmp_path), *common])
+    assert "single input" in usage_error(["fit", "--smooth", "off", "a.laz", "b.laz", "-O", str(tmp_path), *common])
+    assert "not -O" in usage_error(["fit", "--smooth", "off", "a.laz", "b.laz", "--seamless", "-O", str(tmp_path), *common])
 
 
 def test_geojson_of_a_crs_without_epsg_code_is_refused_before_the_fit(tmp_path, monkeypatch):
     """autzen_trim's CRS has no EPSG code, which GeoJSON needs: refused once the input is
     read, before the surface is built."""
     monkeypatch.setattr(driver, "build_surface", lambda *a, **k: pytest.fail("fitted before refusing"))
-    options = FitOptions(classes=(2,), resolution=4.0, contours=str(tmp_path / "c.geojson"), interval=2.0)
+    options = FitOptions(smooth="off", classes=(2,), resolution=4.0, contours=str(tmp_path / "c.geojson"), interval=2.0)
     with pytest.raises(InputError, match="write .gpkg or .shp, or give --crs EPSG:XXXX"):
         fit(str(AUTZEN), str(tmp_path / "dem.tif"), options)
     assert list(tmp_path.iterdir()) == []
@@ -284,10 +284,10 @@ def test_geojson_of_a_crs_without_epsg_code_is_refused_before_the_fit(tmp_path, 
 
 def test_library_refuses_what_the_cli_refuses(tmp_path):
     cloud = franke_cloud(500)
-    for options, words in [(FitOptions(contours=str(tmp_path / "c.gpkg")), "--interval"),
-                           (FitOptions(contours=str(tmp_path / "c.gpkg"), interval=-1.0), "positive"),
-                           (FitOptions(contours=str(tmp_path / "c.txt"), interval=1.0), ".gpkg"),
-                           (FitOptions(contours=str(tmp_path / "c.gpkg"), interval=1.0, frame="perspective"),
+    for options, words in [(FitOptions(smooth="off", contours=str(tmp_path / "c.gpkg")), "--interval"),
+                           (FitOptions(smooth="off", contours=str(tmp_path / "c.gpkg"), interval=-1.0), "positive"),
+                           (FitOptions(smooth="off", contours=str(tmp_path / "c.txt"), interval=1.0), ".gpkg"),
+                           (FitOptions(smooth="off", contours=str(tmp_path / "c.gpkg"), interval=1.0, frame="perspective"),
                             "perspective")]:
         with pytest.raises(InputError, match=words):
             fit(cloud, str(tmp_path / "m.ply"), options)
@@ -299,7 +299,7 @@ def test_library_refuses_what_the_cli_refuses(tmp_path):
 def test_a_failed_fit_leaves_no_contours_and_failed_contours_leave_no_dem(tmp_path, monkeypatch):
     """The contour file is committed with the DEM or not at all; no temporary file stays."""
     cloud = franke_cloud(1500)
-    options = FitOptions(axis="z", resolution=0.05, contours=str(tmp_path / "c.shp"), interval=0.1)
+    options = FitOptions(smooth="off", axis="z", resolution=0.05, contours=str(tmp_path / "c.shp"), interval=0.1)
 
     def broken_rasters(*args, **kwargs):
         raise OSError(28, "No space left on device")
@@ -327,7 +327,7 @@ def test_report_of_the_cli(tmp_path):
     cloud = franke_cloud(2000)
     np.savetxt(src, cloud.points)
     out, report = tmp_path / "dem.tif", tmp_path / "r.json"
-    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out), "--resolution", "0.05", "--contours",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(out), "--resolution", "0.05", "--contours",
                                      str(tmp_path / "c.geojson"), "--interval", "0.25", "--report", str(report)])
     assert done.exit_code == 0, done.output
     facts = json.loads(report.read_text())["contours"]
@@ -346,7 +346,7 @@ def test_a_shapefiles_parts_may_not_overwrite_other_outputs(tmp_path):
     for args, clash in ((["-o", str(tmp_path / "m.ply")], "m.prj"),
                         (["-o", str(tmp_path / "m.tif"), "--resolution", "0.1", "--report", str(tmp_path / "m.dbf")],
                          "m.dbf")):
-        done = CliRunner().invoke(main, ["fit", str(src), *args, "--contours", str(tmp_path / "m.shp"),
+        done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), *args, "--contours", str(tmp_path / "m.shp"),
                                          "--interval", "0.1"])
         assert done.exit_code == 1
         assert clash in done.output and len(done.output.strip().splitlines()) == 1

@@ -63,8 +63,8 @@ def test_autzen_dem_has_at_most_5_percent_nodata_inside_the_ground_hull(tmp_path
     """The issue's command at the default fill; --fill off leaves the trim's holes (the
     case is there: buildings, trees and water hide the ground)."""
     xy = _ground_xy()
-    _run(["fit", AUTZEN, "--classes", "2", "-o", tmp_path / "dem.tif", "--resolution", "2"])
-    _run(["fit", AUTZEN, "--classes", "2", "-o", tmp_path / "off.tif", "--resolution", "2", "--fill", "off"])
+    _run(["fit", "--smooth", "off", AUTZEN, "--classes", "2", "-o", tmp_path / "dem.tif", "--resolution", "2"])
+    _run(["fit", "--smooth", "off", AUTZEN, "--classes", "2", "-o", tmp_path / "off.tif", "--resolution", "2", "--fill", "off"])
     assert _nodata_inside_hull(tmp_path / "dem.tif", xy) <= 0.05
     assert _nodata_inside_hull(tmp_path / "off.tif", xy) > 0.05
 
@@ -77,7 +77,7 @@ def test_support_is_the_kd_tree_distance_from_each_cell_centre_to_the_points(tmp
     from rio_cogeo.cogeo import cog_validate
 
     report = tmp_path / "report.json"
-    _run(["fit", AUTZEN, "--classes", "2", "-o", tmp_path / "dem.tif", "--resolution", "2",
+    _run(["fit", "--smooth", "off", AUTZEN, "--classes", "2", "-o", tmp_path / "dem.tif", "--resolution", "2",
           "--support", tmp_path / "support.tif", "--report", report])
     xy = _ground_xy()
     assert json.loads(report.read_text())["points"]["kept"] == len(xy)       # the fit used every point
@@ -116,8 +116,8 @@ def test_fill_spans_the_hole_within_d_of_a_point_on_the_plane_it_reproduces(tmp_
     spline exactly where the trimmed DEM does or their centre is within D of a point
     (cKDTree), with hull every one; the sextic reproduces the plane across the hole."""
     cloud = _plane_with_a_hole()
-    fit(cloud, tmp_path / "off.tif", FitOptions(axis="z", max_edge=1.8, resolution=0.5, fill="off"))
-    fit(cloud, tmp_path / "dem.tif", FitOptions(axis="z", max_edge=1.8, resolution=0.5, fill=fill))
+    fit(cloud, tmp_path / "off.tif", FitOptions(smooth="off", axis="z", max_edge=1.8, resolution=0.5, fill="off"))
+    fit(cloud, tmp_path / "dem.tif", FitOptions(smooth="off", axis="z", max_edge=1.8, resolution=0.5, fill=fill))
     off, x, y = _raster(tmp_path / "off.tif")
     dem, *_ = _raster(tmp_path / "dem.tif")
     hole = _hole_cells(x, y)
@@ -135,7 +135,7 @@ def test_fill_spans_the_hole_within_d_of_a_point_on_the_plane_it_reproduces(tmp_
 
 def test_mesh_keeps_the_trims_hole(tmp_path):
     """The fill is for rasters: a mesh of the same cloud has no triangle over the hole."""
-    mesh = fit(_plane_with_a_hole(), None, FitOptions(axis="z", max_edge=1.8, level=1)).mesh
+    mesh = fit(_plane_with_a_hole(), None, FitOptions(smooth="off", axis="z", max_edge=1.8, level=1)).mesh
     centroid = mesh.vertices[mesh.faces].mean(axis=1)
     assert not _hole_cells(centroid[:, 0], centroid[:, 1], margin=1.0).any()
 
@@ -147,7 +147,7 @@ def test_mesh_keeps_the_trims_hole(tmp_path):
     (["-o", "d.tif", "--resolution", "1", "--fill", "everywhere"], "'--fill'"),
 ])
 def test_support_and_fill_usage_errors_come_before_any_input_is_read(tmp_path, args, words):
-    done = CliRunner().invoke(main, ["fit", str(tmp_path / "missing.laz"), *args])
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(tmp_path / "missing.laz"), *args])
     assert done.exit_code == 2, done.output
     lines = [line for line in done.output.splitlines() if line.strip()]
     assert len(lines) == 1 and words in lines[0] and "missing.laz" not in lines[0]

@@ -123,7 +123,7 @@ def test_cells_with_points_in_a_trimmed_gap_get_the_nearest_triangles_spline(tmp
     triangles across the gap, over cells that hold the points of its two rims."""
     rows = [*np.arange(10.0), *(np.arange(10.0) + 10.6)]
     cloud = _plane_cloud(rows)
-    options = FitOptions(axis="z", max_edge=1.5, resolution=0.5, fill="off")
+    options = FitOptions(smooth="off", axis="z", max_edge=1.5, resolution=0.5, fill="off")
     fit(cloud, tmp_path / "dem.tif", options)
     assert _check_dem(cloud, options, tmp_path / "dem.tif") > 0       # the case is there
 
@@ -133,7 +133,7 @@ def test_points_beyond_max_edge_from_every_kept_triangle_stay_nodata(tmp_path):
     cloud = _plane_cloud(np.arange(10.0))
     lone = np.array([[10.0, 15.0, 5.0 + 1.0 + 0.02 * 225]])
     cloud = PointCloud(np.vstack([cloud.points, lone]), np.vstack([cloud.normals, [[0, 0, 1.0]]]))
-    options = FitOptions(axis="z", max_edge=1.5, resolution=0.5, fill="off")
+    options = FitOptions(smooth="off", axis="z", max_edge=1.5, resolution=0.5, fill="off")
     fit(cloud, tmp_path / "dem.tif", options)
     dem, transform, nodata = _read_dem(tmp_path / "dem.tif")
     row, col = _cells_of(lone, transform)
@@ -142,7 +142,7 @@ def test_points_beyond_max_edge_from_every_kept_triangle_stay_nodata(tmp_path):
 
 
 def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
-    options = FitOptions(classes=(2,), resolution=1.0, fill="off")
+    options = FitOptions(smooth="off", classes=(2,), resolution=1.0, fill="off")
     fit(TILE, tmp_path / "dem.tif", options)
     cloud = load_cloud(TILE, options)
     assert _check_dem(cloud, options, tmp_path / "dem.tif") > 0
@@ -151,7 +151,7 @@ def test_las_ground_tile_has_a_value_in_every_cell_with_ground_points(tmp_path):
 def test_seamless_dem_equals_the_in_memory_dem(tmp_path):
     from c1mesh.pipeline.run import fit
 
-    options = FitOptions(classes=(2,), resolution=1.0)          # the default fill
+    options = FitOptions(smooth="off", classes=(2,), resolution=1.0)          # the default fill
     fit(TILE, tmp_path / "fit.tif", options)
     fit([str(TILE)], str(tmp_path / "seamless.tif"), options).report
     one, two = _read_dem(tmp_path / "fit.tif")[0], _read_dem(tmp_path / "seamless.tif")[0]
@@ -189,9 +189,9 @@ def _bank_cloud(classification=None):
 def test_ground_class_keeps_the_steep_triangles_the_view_rules_remove():
     view = ("shadow_edge", "grazing", "facing_away")
     cloud = _bank_cloud(classification=2)
-    scan = fit(cloud, None, FitOptions(axis="z", level=1)).report["triangles"]
+    scan = fit(cloud, None, FitOptions(smooth="off", axis="z", level=1)).report["triangles"]
     assert sum(scan["removed"][r] for r in view) > 0                 # as a range scan: curtains
-    ground = fit(cloud, None, FitOptions(axis="z", classes=(2,), level=1)).report["triangles"]
+    ground = fit(cloud, None, FitOptions(smooth="off", axis="z", classes=(2,), level=1)).report["triangles"]
     assert all(ground["removed"][r] == 0 for r in view)
     assert ground["after_trim"] > scan["after_trim"]
 

@@ -51,7 +51,7 @@ def test_the_vrts_of_four_tiles_equal_the_surveys_rasters_cell_for_cell(quarters
 
     runner = CliRunner()
     out = tmp_path / "out"
-    args = ["fit", *quarters, "--seamless", "--resolution", "4"]
+    args = ["fit", "--smooth", "off", *quarters, "--seamless", "--resolution", "4"]
     budget = [] if memory is None else ["--memory", memory]
     done = runner.invoke(main, [*args, "-O", str(out), "--suffix", ".tif", *budget,
                                 "--report", str(tmp_path / "tiles.json"),
@@ -100,7 +100,7 @@ def _offset(whole, tile):
     (["--suffix", ".tif"], "need --resolution"),
 ])
 def test_per_tile_dem_usage_errors_come_before_any_input_is_read(tmp_path, extra, words):
-    args = ["fit", str(tmp_path / "a.las"), str(tmp_path / "b.las"), "--seamless", "-O", str(tmp_path / "o")]
+    args = ["fit", "--smooth", "off", str(tmp_path / "a.las"), str(tmp_path / "b.las"), "--seamless", "-O", str(tmp_path / "o")]
     if "--suffix" not in extra:
         args += ["--suffix", ".tif", "--resolution", "2"]
     done = CliRunner().invoke(main, args + extra)

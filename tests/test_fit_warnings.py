@@ -46,17 +46,17 @@ def test_readme_autzen_ground_sample_prints_no_warning(tmp_path):
                  ["-o", str(tmp_path / "dem.tif"), "--resolution", "3"],
                  ["--seamless", "-o", str(tmp_path / "seamless.ply")],
                  ["--seamless", "-O", str(tmp_path / "out")]):
-        result = runner.invoke(main, ["fit", str(AUTZEN), "--classes", "2", *args])
+        result = runner.invoke(main, ["fit", "--smooth", "off", str(AUTZEN), "--classes", "2", *args])
         assert result.exit_code == 0, _stderr(result)
         assert "warning" not in _stderr(result), args
 
 
 def test_a_max_edge_below_the_point_spacing_warns_and_auto_does_not(tmp_path):
     cloud = _terrain(4000, 60.0)                       # spacing √(3600 / 4000) = 0.95
-    assert fit(cloud, None, FitOptions(axis="z", level=1)).report["warnings"] == []
-    warnings = fit(cloud, None, FitOptions(axis="z", level=1, max_edge=0.8)).report["warnings"]
+    assert fit(cloud, None, FitOptions(smooth="off", axis="z", level=1)).report["warnings"] == []
+    warnings = fit(cloud, None, FitOptions(smooth="off", axis="z", level=1, max_edge=0.8)).report["warnings"]
     assert len(warnings) == 1 and warnings[0].startswith("--max-edge 0.8 removed")
-    raster = fit(cloud, tmp_path / "dem.tif", FitOptions(axis="z", max_edge=0.8, resolution=1.0))
+    raster = fit(cloud, tmp_path / "dem.tif", FitOptions(smooth="off", axis="z", max_edge=0.8, resolution=1.0))
     assert raster.report["warnings"] == [warnings[0].split(" (the surface fell")[0]]   # DEMs too
 
 
@@ -68,9 +68,9 @@ def test_a_wrong_height_axis_warns_and_the_right_one_does_not():
     xy = rng.random((52, 2)) * 6.5
     z = 850 + 60 * np.sin(xy[:, 0]) * np.cos(0.8 * xy[:, 1]) - 20 * xy[:, 1]
     right = PointCloud(np.column_stack([xy, (z - 850) / 50]))
-    assert fit(right, None, FitOptions(axis="z", level=1)).report["warnings"] == []
+    assert fit(right, None, FitOptions(smooth="off", axis="z", level=1)).report["warnings"] == []
     cloud = PointCloud(np.column_stack([xy, z]))
-    report = fit(cloud, None, FitOptions(axis="x", level=1)).report
+    report = fit(cloud, None, FitOptions(smooth="off", axis="x", level=1)).report
     assert report["points"]["kept"] < 0.8 * 52                       # the case is there
     assert len(report["warnings"]) == 1 and report["warnings"][0].endswith("check --axis (and --classes)")
 
@@ -83,7 +83,7 @@ def test_the_in_memory_seamless_and_tiled_fits_warn_alike(tmp_path):
     from c1mesh.core.plan import TiledRun
     from c1mesh.pipeline.run import fit
 
-    options = FitOptions(classes=(2,), level=1, max_edge=2.5)
+    options = FitOptions(smooth="off", classes=(2,), level=1, max_edge=2.5)
     whole = fit(TILE, None, options).report["warnings"]
     seamless = fit([str(TILE)], None, options, outputs=[str(tmp_path / "o.ply")]).report["warnings"]
     tiled = fit(TILE, tmp_path / "t.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=1000)).report["warnings"]
@@ -99,7 +99,7 @@ def test_a_fit_in_tiles_of_autzen_ground_warns_nothing(tmp_path):
     from c1mesh.core.plan import TiledRun
     from c1mesh.pipeline.run import fit
 
-    report = fit(AUTZEN, tmp_path / "t.ply", replace(FitOptions(classes=(2,), level=1), memory=10**9), tiles=TiledRun(per_tile=7000)).report
+    report = fit(AUTZEN, tmp_path / "t.ply", replace(FitOptions(smooth="off", classes=(2,), level=1), memory=10**9), tiles=TiledRun(per_tile=7000)).report
     assert report["warnings"] == [] and report["note"].startswith("fitted in 4 tiles")
 
 
@@ -119,7 +119,7 @@ def test_duplicated_points_draw_no_wrong_axis_warning(tmp_path):
     doubled.points = ground[np.r_[np.arange(len(ground)), np.arange(len(ground))]]
     path = tmp_path / "doubled.las"
     doubled.write(path)
-    options = FitOptions(level=1)
+    options = FitOptions(smooth="off", level=1)
     whole = fit(path, None, options).report
     assert whole["points"]["dropped"]["duplicate"] == len(ground)      # the case is there
     assert whole["warnings"] == []
@@ -127,4 +127,4 @@ def test_duplicated_points_draw_no_wrong_axis_warning(tmp_path):
     assert tiled["tiles"] > 1 and tiled["warnings"] == []
     cloud = _terrain(1500, 40.0)
     twice = PointCloud(np.r_[cloud.points, cloud.points], np.r_[cloud.normals, cloud.normals])
-    assert fit(twice, None, FitOptions(axis="z", level=1)).report["warnings"] == []
+    assert fit(twice, None, FitOptions(smooth="off", axis="z", level=1)).report["warnings"] == []

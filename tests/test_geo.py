@@ -94,7 +94,7 @@ def test_info_shows_the_crs_of_las_and_of_our_ply(tmp_path):
     runner = CliRunner()
     assert _info(TILE)["crs"]["epsg"] == 2903
     out = tmp_path / "ground.ply"
-    done = runner.invoke(main, ["fit", str(TILE), "--classes", "2", "--level", "1", "-o", str(out)])
+    done = runner.invoke(main, ["fit", "--smooth", "off", str(TILE), "--classes", "2", "--level", "1", "-o", str(out)])
     assert done.exit_code == 0, done.output
     assert _info(out)["crs"]["epsg"] == 2903
     assert _crs((tmp_path / "ground.prj").read_text()).equals(_crs("EPSG:2903"))
@@ -123,7 +123,7 @@ def test_every_mesh_format_carries_the_crs(tmp_path, ext):
 def test_crs_option_assigns_where_the_input_has_none(tmp_path):
     src = _terrain_file(tmp_path / "t.ply", 400)
     out = tmp_path / "out.ply"
-    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out), "--level", "1",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(out), "--level", "1",
                                      "--crs", "EPSG:32633", "--report", str(tmp_path / "r.json")])
     assert done.exit_code == 0, done.output
     assert _crs(read_cloud(out).crs).to_epsg() == 32633
@@ -133,11 +133,11 @@ def test_crs_option_assigns_where_the_input_has_none(tmp_path):
 
 def test_crs_option_that_contradicts_the_file_is_an_error(tmp_path):
     out = tmp_path / "out.ply"
-    done = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out),
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(TILE), "--classes", "2", "-o", str(out),
                                      "--crs", "EPSG:4326"])
     assert done.exit_code == 1 and "does not reproject" in done.output
     assert not out.exists()
-    same = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out), "--level", "1",
+    same = CliRunner().invoke(main, ["fit", "--smooth", "off", str(TILE), "--classes", "2", "-o", str(out), "--level", "1",
                                      "--crs", "EPSG:2903"])
     assert same.exit_code == 0, same.output
 
@@ -164,14 +164,14 @@ def test_bad_outputs_fail_before_the_input_is_read(tmp_path, args, code, words):
     """Conflicts the command line alone shows are usage errors (exit 2); a bad CRS or a
     missing directory exit 1; all before the input is read."""
     # the input does not exist: an error about it would mean the input was looked at first
-    argv = ["fit", str(tmp_path / "no-such-input.las")] + [a.format(tmp=tmp_path) for a in args]
+    argv = ["fit", "--smooth", "off", str(tmp_path / "no-such-input.las")] + [a.format(tmp=tmp_path) for a in args]
     done = CliRunner().invoke(main, argv)
     assert done.exit_code == code and words in done.output, done.output
     assert list(tmp_path.iterdir()) == []
 
 
 def test_level_and_resolution_conflict_is_a_usage_error(tmp_path):
-    done = CliRunner().invoke(main, ["fit", str(TILE), "-o", str(tmp_path / "x.ply"), "--level", "3",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(TILE), "-o", str(tmp_path / "x.ply"), "--level", "3",
                                      "--resolution", "2"])
     assert done.exit_code == 2 and "--level or --resolution" in done.output
 
@@ -212,7 +212,7 @@ def test_slope_and_hillshade_from_the_cli_match_the_analytic_terrain(tmp_path):
     src = _terrain_file(tmp_path / "t.ply")
     runner = CliRunner()
     for method in ("spline", "horn"):
-        done = runner.invoke(main, ["fit", str(src), "-o", str(tmp_path / f"dem_{method}.tif"),
+        done = runner.invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(tmp_path / f"dem_{method}.tif"),
                                     "--resolution", "0.05", "--slope", str(tmp_path / f"s_{method}.tif"),
                                     "--aspect", str(tmp_path / f"a_{method}.tif"), "--slope-method", method,
                                     "--hillshade", str(tmp_path / f"h_{method}.tif"), "--crs", "EPSG:32633",
@@ -249,7 +249,7 @@ def test_aspect_of_planes_points_downhill():
 def test_lidar_ground_dem_slope_hillshade(tmp_path):
     from matplotlib.tri import Triangulation
     dem, slope, shade = tmp_path / "dem.tif", tmp_path / "slope.tif", tmp_path / "hs.tif"
-    done = CliRunner().invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(dem),
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(TILE), "--classes", "2", "-o", str(dem),
                                      "--resolution", "3", "--slope", str(slope), "--hillshade", str(shade),
                                      "--fill", "off"])       # the trimmed DEM (the fill: test_dem_fill.py)
     assert done.exit_code == 0, done.output
@@ -260,10 +260,10 @@ def test_lidar_ground_dem_slope_hillshade(tmp_path):
     # nodata exactly where the cell centre is outside the trimmed triangulation (the level-1
     # mesh) and the cell holds no ground point (issue 21; every point of this tile lies
     # within --max-edge of a kept triangle: tests/test_dem_holes.py checks the reach)
-    mesh = fit(str(TILE), None, FitOptions(classes=(2,), level=1, axis="z")).mesh   # DEMs use --axis z
+    mesh = fit(str(TILE), None, FitOptions(smooth="off", classes=(2,), level=1, axis="z")).mesh   # DEMs use --axis z
     tri = Triangulation(mesh.vertices[:, 0], mesh.vertices[:, 1], mesh.faces)
     from c1mesh.pipeline.driver import load_cloud
-    points = load_cloud(str(TILE), FitOptions(classes=(2,))).points
+    points = load_cloud(str(TILE), FitOptions(smooth="off", classes=(2,))).points
     rows = np.floor((points[:, 1] - ds.transform.f) / ds.transform.e).astype(int)
     cols = np.floor((points[:, 0] - ds.transform.c) / ds.transform.a).astype(int)
     holds_points = np.zeros(x.shape, bool)
@@ -282,7 +282,7 @@ def test_lidar_ground_dem_slope_hillshade(tmp_path):
 def test_dem_has_overviews_and_is_tiled(tmp_path):
     src = _terrain_file(tmp_path / "t.ply")
     dem = tmp_path / "dem.tif"
-    assert CliRunner().invoke(main, ["fit", str(src), "-o", str(dem), "--resolution", "0.01"]).exit_code == 0
+    assert CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(dem), "--resolution", "0.01"]).exit_code == 0
     with rasterio.open(dem) as ds:
         assert ds.width >= 512 and ds.block_shapes[0] == (256, 256)
         assert ds.overviews(1)[:2] == [2, 4]
@@ -299,7 +299,7 @@ def test_every_raster_is_a_valid_cog_with_overviews_and_a_predictor(tmp_path):
     out.mkdir()
     names = {"dem": "dem.tif", "slope": "slope.tif", "aspect": "aspect.tif", "hillshade": "hs.tif",
              "support": "support.tif"}
-    args = ["fit", str(src), "-o", str(out / names["dem"]), "--resolution", "0.01"]
+    args = ["fit", "--smooth", "off", str(src), "-o", str(out / names["dem"]), "--resolution", "0.01"]
     for kind in ("slope", "aspect", "hillshade", "support"):
         args += [f"--{kind}", str(out / names[kind])]
     done = CliRunner().invoke(main, args)
@@ -332,7 +332,7 @@ def test_a_failing_cog_copy_leaves_no_raster_and_no_staging_file(tmp_path, monke
         return original(source, target, kind)
     original = raster.cog_copy
     monkeypatch.setattr(raster, "cog_copy", failing)
-    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out / "dem.tif"), "--resolution", "0.05",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(out / "dem.tif"), "--resolution", "0.05",
                                      "--slope", str(out / "slope.tif"), "--support", str(out / "support.tif")])
     assert done.exit_code == 1 and "disk full" in done.output
     assert len(copies) == 2 and list(out.iterdir()) == []
@@ -340,13 +340,13 @@ def test_a_failing_cog_copy_leaves_no_raster_and_no_staging_file(tmp_path, monke
 
 def test_resolution_picks_the_level_for_a_mean_edge(tmp_path):
     src = _terrain_file(tmp_path / "t.ply", 800)
-    mesh_l1 = fit(str(src), None, FitOptions(level=1, axis="z")).mesh
+    mesh_l1 = fit(str(src), None, FitOptions(smooth="off", level=1, axis="z")).mesh
 
     def mean_edge(m):
         v, f = m.vertices, m.faces
         return np.mean([np.linalg.norm(v[f[:, a]] - v[f[:, b]], axis=1).mean() for a, b in ((0, 1), (1, 2), (2, 0))])
     target = mean_edge(mesh_l1) / 3.2
-    result = fit(str(src), None, FitOptions(resolution=target, axis="z"))
+    result = fit(str(src), None, FitOptions(smooth="off", resolution=target, axis="z"))
     assert result.report["level"] == 3
     assert abs(mean_edge(result.mesh) / target - 1) < 0.15
 
@@ -354,7 +354,7 @@ def test_resolution_picks_the_level_for_a_mean_edge(tmp_path):
 # ------------------------------------------------------------------------------- GLB
 def test_glb_world_positions_match_the_ply_on_a_lidar_tile(tmp_path):
     from c1mesh.formats.meshes import read_glb_vertices
-    options = FitOptions(classes=(2,), level=2)
+    options = FitOptions(smooth="off", classes=(2,), level=2)
     fit(str(TILE), str(tmp_path / "g.ply"), options, keep_mesh=False)
     fit(str(TILE), str(tmp_path / "g.glb"), options, keep_mesh=False)
     ply = read_cloud(tmp_path / "g.ply").points
@@ -381,13 +381,13 @@ def _png_ok(path):
 def test_preview_of_a_fit_and_of_its_outputs(tmp_path):
     dem, ply = tmp_path / "dem.tif", tmp_path / "g.ply"
     runner = CliRunner()
-    done = runner.invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(dem), "--resolution", "3",
+    done = runner.invoke(main, ["fit", "--smooth", "off", str(TILE), "--classes", "2", "-o", str(dem), "--resolution", "3",
                                 "--preview", str(tmp_path / "fit.png")])
     assert done.exit_code == 0, done.output
     _png_ok(tmp_path / "fit.png")
     glb = tmp_path / "g.glb"
     for out in (ply, glb):
-        assert runner.invoke(main, ["fit", str(TILE), "--classes", "2", "-o", str(out), "--level", "2"]).exit_code == 0
+        assert runner.invoke(main, ["fit", "--smooth", "off", str(TILE), "--classes", "2", "-o", str(out), "--level", "2"]).exit_code == 0
     for source, png in ((dem, "dem.png"), (ply, "ply.png"), (glb, "glb.png")):
         done = runner.invoke(main, ["preview", str(source), "-o", str(tmp_path / png)])
         assert done.exit_code == 0, done.output
@@ -409,7 +409,7 @@ def test_point_cloud_crs_survives_subset():
 ])
 def test_geotiff_outputs_of_a_perspective_frame_are_a_usage_error_before_any_work(tmp_path, args):
     # the input does not exist: an error about it would mean the input was looked at first
-    argv = ["fit", str(tmp_path / "no-such-input.pcd")] + [a.format(tmp=tmp_path) for a in args]
+    argv = ["fit", "--smooth", "off", str(tmp_path / "no-such-input.pcd")] + [a.format(tmp=tmp_path) for a in args]
     done = CliRunner().invoke(main, argv)
     assert done.exit_code == 2 and "perspective frame" in done.output, done.output
     assert list(tmp_path.iterdir()) == []
@@ -426,7 +426,7 @@ def test_organised_height_raster_with_auto_frame_is_fitted_as_a_dem(tmp_path):
     points = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
     write_organised_pcd(points, np.tile(normal, (len(points), 1)), (25, 25), tmp_path / "grid.pcd")
     dem = tmp_path / "dem.tif"
-    done = CliRunner().invoke(main, ["fit", str(tmp_path / "grid.pcd"), "-o", str(dem), "--resolution", "0.5"])
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(tmp_path / "grid.pcd"), "-o", str(dem), "--resolution", "0.5"])
     assert done.exit_code == 0, done.output
     band, cx, cy, _ = _cells(dem)
     assert band.count() > 100
@@ -453,7 +453,7 @@ def test_height_column_slope_and_hillshade_take_the_z_factor(tmp_path):
     downhill, the same without a z-factor."""
     src = _km_m_plane_csv(tmp_path / "plane.csv")
     out = {k: tmp_path / f"{k}.tif" for k in ("dem", "slope", "aspect", "hillshade")}
-    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(out["dem"]), "--resolution", "0.25",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(out["dem"]), "--resolution", "0.25",
                                      "--slope", str(out["slope"]), "--aspect", str(out["aspect"]),
                                      "--hillshade", str(out["hillshade"]), "--z-factor", "0.001"])
     assert done.exit_code == 0, done.output
@@ -477,13 +477,13 @@ def test_height_column_angles_without_z_factor_are_refused_before_any_output(tmp
     exit 1, and no file written (no DEM either). --aspect alone needs no factor."""
     src = _km_m_plane_csv(tmp_path / "plane.csv")
     before = sorted(p.name for p in tmp_path.iterdir())
-    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
                                      asked[0], str(tmp_path / asked[1])])
     assert done.exit_code == 1
     lines = done.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("c1mesh: error: ") and "--z-factor" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == before
-    done = CliRunner().invoke(main, ["fit", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
+    done = CliRunner().invoke(main, ["fit", "--smooth", "off", str(src), "-o", str(tmp_path / "dem.tif"), "--resolution", "0.25",
                                      "--aspect", str(tmp_path / "aspect.tif")])
     assert done.exit_code == 0, done.output
 
@@ -499,7 +499,7 @@ def test_preview_of_a_height_column_shades_with_the_z_factor(tmp_path, monkeypat
     seen = []
     monkeypatch.setattr(preview, "render_arrays", lambda z, g, *rest: seen.append(g))
     src = _km_m_plane_csv(tmp_path / "plane.csv")
-    fit(src, None, FitOptions(level=1, preview=str(tmp_path / "p.png"), z_factor=z_factor))
+    fit(src, None, FitOptions(smooth="off", level=1, preview=str(tmp_path / "p.png"), z_factor=z_factor))
     (gradient,) = seen
     inside = np.isfinite(gradient).all(axis=-1)
     assert inside.sum() > 1000

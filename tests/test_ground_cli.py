@@ -73,7 +73,7 @@ def test_ground_command_refuses_bad_paths_before_reading(tmp_path):
 
 def _fit_report(tmp_path, source, *options) -> dict:
     report = tmp_path / "report.json"
-    result = _invoke("fit", source, "-o", tmp_path / "out.ply", "--level", "1", "--report", report, *options)
+    result = _invoke("fit", "--smooth", "off", source, "-o", tmp_path / "out.ply", "--level", "1", "--report", report, *options)
     assert result.exit_code == 0, result.output
     return json.loads(report.read_text())
 
@@ -105,7 +105,7 @@ def test_dtm_of_the_unclassified_tile_matches_the_class_2_dtm(tmp_path):
 
     dems = []
     for source, name in ((UNCLASSIFIED, "u.tif"), (CLASSIFIED, "c.tif")):
-        result = _invoke("fit", source, "-o", tmp_path / name, "--resolution", "3")
+        result = _invoke("fit", "--smooth", "off", source, "-o", tmp_path / name, "--resolution", "3")
         assert result.exit_code == 0, result.output
         with rasterio.open(tmp_path / name) as raster:
             dems.append(raster.read(1, masked=True))
@@ -116,14 +116,14 @@ def test_dtm_of_the_unclassified_tile_matches_the_class_2_dtm(tmp_path):
 
 def test_classes_all_fits_every_point_as_before(tmp_path):
     """--classes all keeps the roofs and trees of 4_6_crop: refused as no height field."""
-    result = _invoke("fit", CLASSIFIED, "-o", tmp_path / "top.ply", "--classes", "all")
+    result = _invoke("fit", "--smooth", "off", CLASSIFIED, "-o", tmp_path / "top.ply", "--classes", "all")
     assert result.exit_code == 1 and "not a height field" in _one_error_line(result)
 
 
 def test_class_choice_usage_errors():
-    assert "--classes needs LAS/LAZ input" in usage_error(["fit", "hill.ply", "-o", "o.ply", "--classes", "filter"])
-    assert "expected auto, all, filter" in usage_error(["fit", "t.laz", "-o", "o.ply", "--classes", "ground"])
-    assert usage_error(["fit", "hill.ply", "-o", "o.ply"]) is None          # auto: nothing for a PLY
+    assert "--classes needs LAS/LAZ input" in usage_error(["fit", "--smooth", "off", "hill.ply", "-o", "o.ply", "--classes", "filter"])
+    assert "expected auto, all, filter" in usage_error(["fit", "--smooth", "off", "t.laz", "-o", "o.ply", "--classes", "ground"])
+    assert usage_error(["fit", "--smooth", "off", "hill.ply", "-o", "o.ply"]) is None          # auto: nothing for a PLY
 
 
 def test_tiled_fit_takes_class_2_by_default(tmp_path):
@@ -145,9 +145,9 @@ def test_the_tiled_fit_filters_ground_tile_by_tile_as_the_whole_fit_does(tmp_pat
     from c1mesh.pipeline.driver import FitOptions
     from c1mesh.pipeline.run import fit
 
-    options = FitOptions(level=1, classes="filter" if extra else "auto")
+    options = FitOptions(smooth="off", level=1, classes="filter" if extra else "auto")
     whole = fit(str(source), str(tmp_path / "whole.ply"), options).report
-    tiled = fit(str(source), tmp_path / "tiled.ply", FitOptions(level=1, memory=10**9, classes=options.classes),
+    tiled = fit(str(source), tmp_path / "tiled.ply", FitOptions(smooth="off", level=1, memory=10**9, classes=options.classes),
                 tiles=TiledRun(per_tile=3000)).report
     assert tiled["tiles"] == 4 and tiled["seconds"]["ground"] > 0          # 9 filter tiles: ceil(sqrt(23875/3000))²
     assert tiled["classes"] == whole["classes"] and whole["classes"]["source"] == "filter"
@@ -160,7 +160,7 @@ def test_the_tiled_fit_filters_ground_tile_by_tile_as_the_whole_fit_does(tmp_pat
 
 
 def test_note_on_a_terminal_only(tmp_path):
-    args = ["fit", str(CLASSIFIED), "-o", str(tmp_path / "g.ply"), "--level", "1"]
+    args = ["fit", "--smooth", "off", str(CLASSIFIED), "-o", str(tmp_path / "g.ply"), "--level", "1"]
     shown = stderr_on_a_terminal(args)
     assert "c1mesh: note: " in shown and "fitting the ground class 2 (9003 of 23875 points)" in shown
     assert "note:" not in _invoke(*args).output

@@ -179,7 +179,7 @@ def test_the_pipeline_fits_gradients_to_heights_only_where_normals_are_estimated
     bare = PointCloud(points=np.c_[xy, z])
 
     def gradients(c, **options):
-        model = build_surface(c, FitOptions(axis="z", overshoot="off", **options))
+        model = build_surface(c, FitOptions(smooth="off", axis="z", overshoot="off", **options))
         return model.hf.gradients, truth[model.hf.source_index]
 
     ours, want = gradients(bare)                         # estimated normals: heights
@@ -207,7 +207,7 @@ def test_the_cli_option_chooses_the_gradients_and_the_report_says_which(tmp_path
     np.savetxt(source, np.c_[xy, z])
     for option, want in (("auto", "heights"), ("normals", "normals")):
         report = tmp_path / f"{option}.json"
-        result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / f"{option}.ply"),
+        result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(source), "-o", str(tmp_path / f"{option}.ply"),
                                            "--axis", "z", "--level", "1", "--gradients", option,
                                            "--report", str(report), "-q"])
         assert result.exit_code == 0, result.output
@@ -228,7 +228,7 @@ def test_exact_terrain_without_normals_trips_the_limiter_no_more_than_exact_grad
     for name, normals, gradients in (("exact", exact, "auto"), ("heights", None, "auto"),
                                      ("pca", None, "normals")):
         model = build_surface(PointCloud(points=points, normals=normals),
-                              FitOptions(axis="z", gradients=gradients))
+                              FitOptions(smooth="off", axis="z", gradients=gradients))
         limited[name] = model.overshoot.gradients_limited
     assert limited["heights"] <= limited["exact"] + len(points) // 1000, limited
     assert limited["pca"] > 20 * (limited["heights"] + 1), limited

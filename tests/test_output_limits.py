@@ -156,7 +156,7 @@ def test_fit_refuses_before_interpolating(tmp_path):
     25k points at level 64 needs ~5 GiB, beyond its uint32 length."""
     stages = []
     with pytest.raises(InputError, match=r"^GLB stores its length in a uint32"):
-        fit(PointCloud(points=_plane(25_000)), tmp_path / "out.glb", FitOptions(axis="z", level=64),
+        fit(PointCloud(points=_plane(25_000)), tmp_path / "out.glb", FitOptions(smooth="off", axis="z", level=64),
             on_stage=stages.append)
     assert stages == ["read", "normals", "frame", "gradients", "triangulate"]
     assert os.listdir(tmp_path) == []
@@ -232,7 +232,7 @@ def test_tiled_fit_refuses_before_refining_a_tile(tmp_path, monkeypatch):
     source = tmp_path / "terrain.las"
     _terrain_las(source, 24_000)
     calls = _count_refined_tiles(monkeypatch)
-    result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / "out.glb"), "--level", "64",
+    result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(source), "-o", str(tmp_path / "out.glb"), "--level", "64",
                                        "--memory", "1M", "-j", "1"])
     assert result.exit_code == 1, result.output
     assert result.output.startswith(f"c1mesh: error: {source}: GLB stores its length in a uint32")
@@ -254,7 +254,7 @@ def test_tiled_fit_stops_at_the_first_tile_past_the_limit(tmp_path, monkeypatch)
                         lambda size: f"PLY test limit: {size.vertex_count:,} vertices" if size.vertex_count > 1000
                         else None)
     calls = _count_refined_tiles(monkeypatch)
-    result = CliRunner().invoke(main, ["fit", str(source), "-o", str(tmp_path / "out.ply"), "--level", "1",
+    result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(source), "-o", str(tmp_path / "out.ply"), "--level", "1",
                                        "--memory", "1M", "-j", "1", "--report", str(tmp_path / "r.json")])
     assert result.exit_code == 1, result.output
     assert result.output.startswith(f"c1mesh: error: {source}: PLY test limit: ")

@@ -34,7 +34,7 @@ GROUND = {"4_6_crop": (SAMPLES / "4_6_crop.las", {}),
 def height_data(path, **options):
     """(xy, z, gradients, triangles) as the fit pipeline builds them, before the limiter
     (LiDAR ground unless options say otherwise)."""
-    opts = FitOptions(**{"classes": (2,), "axis": "z", **options, "overshoot": "off"})
+    opts = FitOptions(smooth="off", **{"classes": (2,), "axis": "z", **options, "overshoot": "off"})
     model = build_surface(load_cloud(path, opts), opts)
     interp = model.interp
     return interp.points, interp.values, interp.gradients, interp.triangles
@@ -112,8 +112,8 @@ def test_folded_faces_compares_with_every_corner_normal():
 @pytest.mark.slow
 def test_autzen_ground_has_no_pits_below_the_lowest_input_point():
     """--max-edge none used to give closed pits 3 ft below the lowest ground point."""
-    result = fit(SAMPLES / "autzen_trim.laz", None, FitOptions(classes=(2,), max_edge=None))
-    cloud = load_cloud(SAMPLES / "autzen_trim.laz", FitOptions(classes=(2,)))
+    result = fit(SAMPLES / "autzen_trim.laz", None, FitOptions(smooth="off", classes=(2,), max_edge=None))
+    cloud = load_cloud(SAMPLES / "autzen_trim.laz", FitOptions(smooth="off", classes=(2,)))
     assert result.mesh.vertices[:, 2].min() >= cloud.points[:, 2].min() - 0.1
 
 
@@ -127,7 +127,7 @@ def test_autzen_ground_has_no_pits_below_the_lowest_input_point():
                             "(docs/overshoot.md, Sliver creases on Autzen)"))])
 def test_lidar_ground_has_no_folded_faces_at_default_options(name):
     """Folded: geometric normal more than 90° from ANY corner normal (quality.folded_faces)."""
-    result = fit(SAMPLES / name, None, FitOptions(classes=(2,)))
+    result = fit(SAMPLES / name, None, FitOptions(smooth="off", classes=(2,)))
     mesh = result.mesh
     assert folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals) == 0
 
@@ -137,11 +137,11 @@ def holdout_rms(path, seeds=(0, 1, 2)):
     the same points and their input heights: 10% of the ground points held out, the
     surface built from the rest by the pipeline's own stages (build_surface), errors at
     held-out points inside its triangles."""
-    cloud = load_cloud(path, FitOptions(classes=(2,)))
+    cloud = load_cloud(path, FitOptions(smooth="off", classes=(2,)))
     ours, linear = [], []
     for seed in seeds:
         test = np.random.default_rng(seed).random(len(cloud)) < 0.1
-        model = build_surface(PointCloud(points=cloud.points[~test]), FitOptions(axis="z"))
+        model = build_surface(PointCloud(points=cloud.points[~test]), FitOptions(smooth="off", axis="z"))
         interp = model.interp
         local = model.frame.to_local(cloud.points[test])
         inside = interp.find_simplex(local[:, :2]) >= 0
@@ -174,7 +174,7 @@ def test_folded_faces_are_fewer_than_reduced_hct_with_the_same_gradients(name, o
     without its curtains (c1mesh.stages.curtains) neither folds, and test_curtains asks c1mesh for
     at most 0.01%.)"""
     xy, z, g, tri = height_data(SAMPLES / name, **options)
-    mesh = fit(SAMPLES / name, None, FitOptions(**options)).mesh
+    mesh = fit(SAMPLES / name, None, FitOptions(smooth="off", **options)).mesh
     ours = folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals)
     peer, faces = reduced_hct_folded_faces(xy, z, g, tri)
     assert len(mesh.faces) == faces
@@ -185,7 +185,7 @@ def test_range_scan_folds_drop_with_the_limiter():
     """pcl_bun0: folded faces (black specks) with the limiter are fewer than without."""
     counts = {}
     for mode in ("off", "limit"):
-        mesh = fit(SAMPLES / "pcl_bun0.pcd", None, FitOptions(overshoot=mode)).mesh
+        mesh = fit(SAMPLES / "pcl_bun0.pcd", None, FitOptions(smooth="off", overshoot=mode)).mesh
         counts[mode] = folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals)
     assert counts["limit"] < counts["off"] / 2
 
@@ -300,7 +300,7 @@ def test_edge_directions_bound_the_rsd_ratios_of_obtuse_slivers():
 
 # ---- defaults -------------------------------------------------------------------------------
 def test_las_height_axis_is_z_and_the_report_says_so():
-    report = fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(2,))).report
+    report = fit(SAMPLES / "4_6_crop.las", None, FitOptions(smooth="off", classes=(2,))).report
     np.testing.assert_array_equal(report["frame"]["axes"], np.eye(3))
     assert "LAS" in report["frame"]["axis_choice"]
     assert report["overshoot"]["gradients_limited"] > 0
@@ -308,7 +308,7 @@ def test_las_height_axis_is_z_and_the_report_says_so():
 
 
 def test_a_surface_in_many_pieces_draws_a_warning():
-    report = fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(2,), max_edge=2.5)).report
+    report = fit(SAMPLES / "4_6_crop.las", None, FitOptions(smooth="off", classes=(2,), max_edge=2.5)).report
     assert report["pieces"]["count"] > 20
     assert any("pieces" in w for w in report["warnings"])
     assert any("--max-edge" in w for w in report["warnings"])
@@ -407,7 +407,7 @@ def test_noisy_random_ground_has_no_folded_faces_at_default_options(seed):
     gradients without the remedies fold (81, 55 and 57 faces of about 200k), in needles
     whose short edge joins two points a few centimetres apart."""
     cloud = PointCloud(points=noisy_random_ground(seed=seed))
-    model = build_surface(cloud, FitOptions(axis="z"))
+    model = build_surface(cloud, FitOptions(smooth="off", axis="z"))
     assert not _folded_per_face(model.interp.refine(4)).any()
     assert model.overshoot.heights_reconciled > 0
     hf, used = model.hf, model.used

@@ -61,7 +61,7 @@ def inputs(tmp_path_factory) -> dict[str, list[str]]:
         "two ground points": [str(_las(folder / "few.las", x, y, np.sin(x / 9), few)), "--classes", "2"],
         "trimmed away, smoothing": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--max-edge", "0.001",
                                     "--smooth", "auto"],
-        "ground": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--level", "1"],
+        "ground": [str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "--level", "1", "--smooth", "off"],
         "unclassified": [str(SAMPLES / "4_6_crop_unclassified.laz"), "--level", "1"],     # the ground filter
     }
 

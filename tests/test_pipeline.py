@@ -36,7 +36,7 @@ def assert_manifold_and_oriented(faces):
 @pytest.fixture(scope="module")
 def hill_fit(tmp_path_factory):
     out = tmp_path_factory.mktemp("fit") / "hill.ply"
-    return fit(SAMPLES / "hill.ply", out, FitOptions(level=3)), out
+    return fit(SAMPLES / "hill.ply", out, FitOptions(smooth="off", level=3)), out
 
 
 HILL_HESSIAN_MAX = 7.5   # max |D²f| of the hill: 2·0.3/0.08, the Gaussian's curvature at its top
@@ -125,7 +125,7 @@ def test_tilted_scan_at_lidar_offsets(tmp_path):
     cloud = sample_surface("wave", 3000, seed=5, rotation=R, offset=offset, scale=50.0)
     path = tmp_path / "tilted.ply"
     write_points_ply(cloud, path)
-    result = fit(path, tmp_path / "out.ply", FitOptions(level=2))
+    result = fit(path, tmp_path / "out.ply", FitOptions(smooth="off", level=2))
     local = (result.mesh.vertices - offset) @ R / 50.0        # back to the surface's own frame
     err = np.abs(local[:, 2] - SURFACES["wave"].f(local[:, :2]))
     assert err.max() < 2e-3
@@ -144,7 +144,7 @@ def test_plane_stays_flat_with_sextic_not_quintic(tmp_path):
     deviation = {}
     # axis z: the plane is tilted in the frame (with --axis auto it would be level, a constant)
     for scheme in ("sextic", "quintic"):
-        mesh = fit(path, None, FitOptions(level=3, scheme=scheme, axis="z")).mesh
+        mesh = fit(path, None, FitOptions(smooth="off", level=3, scheme=scheme, axis="z")).mesh
         heights = (mesh.vertices - cloud.points[0]) @ normal
         deviation[scheme] = np.abs(heights).max()
     assert deviation["sextic"] < 1e-10
@@ -175,21 +175,21 @@ def _colored_hill(tmp_path, n=800):
 def test_colours_are_carried(tmp_path):
     path = _colored_hill(tmp_path)
     # axis z: colours are blended in the plane, which is then the world xy plane
-    mesh = fit(path, tmp_path / "out.ply", FitOptions(level=3, axis="z")).mesh
+    mesh = fit(path, tmp_path / "out.ply", FitOptions(smooth="off", level=3, axis="z")).mesh
     assert mesh.vertex_colors is not None
     np.testing.assert_allclose(mesh.vertex_colors[:, 0], mesh.vertices[:, 0] * 250, atol=1.01)
     assert np.all(mesh.vertex_colors[:, 2] == 7)
 
 
 def test_real_bunny_scan_with_file_normals(tmp_path):
-    result = fit(SAMPLES / "pcl_bun0.pcd", tmp_path / "bunny.ply", FitOptions(level=2))
+    result = fit(SAMPLES / "pcl_bun0.pcd", tmp_path / "bunny.ply", FitOptions(smooth="off", level=2))
     assert result.report["normals"] == "file"
     assert result.report["points"]["kept"] > 200
     assert_manifold_and_oriented(result.mesh.faces)
 
 
 def test_lidar_ground_class_with_estimated_normals(tmp_path):
-    result = fit(SAMPLES / "4_6_crop.las", tmp_path / "ground.ply", FitOptions(level=2, classes=(2,)))
+    result = fit(SAMPLES / "4_6_crop.las", tmp_path / "ground.ply", FitOptions(smooth="off", level=2, classes=(2,)))
     report = result.report
     assert report["normals"] == "estimated"
     assert report["points"]["read"] == 9003          # the ground class of this tile
@@ -197,7 +197,7 @@ def test_lidar_ground_class_with_estimated_normals(tmp_path):
     # the height axis of ground LiDAR is close to world z
     assert abs(report["frame"]["axes"][2][2]) > 0.99
     with pytest.raises(InputError, match="class"):
-        fit(SAMPLES / "4_6_crop.las", None, FitOptions(classes=(99,)))
+        fit(SAMPLES / "4_6_crop.las", None, FitOptions(smooth="off", classes=(99,)))
 
 
 def _plan_areas(vertices, faces):
@@ -217,7 +217,7 @@ def test_topo_csv_heights_in_feet_over_a_plan_in_50_ft_units():
 
     table = np.genfromtxt(SAMPLES / "topo.csv", delimiter=",", skip_header=1, usecols=(1, 2, 3))
     assert table.shape == (52, 3)
-    result = fit(SAMPLES / "topo.csv", None, FitOptions())
+    result = fit(SAMPLES / "topo.csv", None, FitOptions(smooth="off"))
     mesh, report = result.mesh, result.report
     assert report["points"]["kept"] == 52
     assert "height column 'z'" in report["frame"]["axis_choice"]
@@ -233,8 +233,8 @@ def test_topo_csv_heights_in_feet_over_a_plan_in_50_ft_units():
 
 def test_topo_csv_with_axis_z_is_the_same_fit():
     """`--axis z` names the axis the header names: the same plan-unit fit, not a refusal."""
-    auto = fit(SAMPLES / "topo.csv", None, FitOptions(level=2)).mesh
-    given = fit(SAMPLES / "topo.csv", None, FitOptions(level=2, axis="z")).mesh
+    auto = fit(SAMPLES / "topo.csv", None, FitOptions(smooth="off", level=2)).mesh
+    given = fit(SAMPLES / "topo.csv", None, FitOptions(smooth="off", level=2, axis="z")).mesh
     np.testing.assert_array_equal(given.vertices, auto.vertices)
     np.testing.assert_array_equal(given.faces, auto.faces)
 
@@ -242,7 +242,7 @@ def test_topo_csv_with_axis_z_is_the_same_fit():
 def test_a_header_height_with_file_normals_keeps_the_auto_axis(tmp_path):
     """File normals say x, y and z share one metric, so "auto" still finds a tilted scan's
     axis from them (wave_tilted_offset.xyz has the header x y z nx ny nz)."""
-    result = fit(SAMPLES / "wave_tilted_offset.xyz", None, FitOptions(level=1))
+    result = fit(SAMPLES / "wave_tilted_offset.xyz", None, FitOptions(smooth="off", level=1))
     assert result.report["frame"]["axis_choice"] == "auto: the mean of the normals"
     assert abs(result.report["frame"]["axes"][2][2]) < 0.95     # tilted 30° off z
 
@@ -281,8 +281,8 @@ def test_streamed_output_is_the_assembled_mesh(tmp_path, monkeypatch, ascii_ply)
     import c1mesh.engine.refine as refine_module
     monkeypatch.setattr(refine_module, "CHUNK_ENTRIES", 300)
     path = _colored_hill(tmp_path)
-    whole = fit(path, tmp_path / "whole.ply", FitOptions(level=3, ascii=ascii_ply, axis="z"))
-    streamed = fit(path, tmp_path / "streamed.ply", FitOptions(level=3, ascii=ascii_ply, axis="z"),
+    whole = fit(path, tmp_path / "whole.ply", FitOptions(smooth="off", level=3, ascii=ascii_ply, axis="z"))
+    streamed = fit(path, tmp_path / "streamed.ply", FitOptions(smooth="off", level=3, ascii=ascii_ply, axis="z"),
                    keep_mesh=False)
     assert streamed.mesh is None and whole.mesh.vertex_colors is not None
     assert (tmp_path / "streamed.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
@@ -385,7 +385,7 @@ def test_a_survey_of_height_column_tables_is_fitted_like_the_whole_table(tmp_pat
     east = [r for r in rows if float(r.split(",")[1]) >= 3.0]
     (tmp_path / "west.csv").write_text("\n".join([header, *west]) + "\n")
     (tmp_path / "east.csv").write_text("\n".join([header, *east]) + "\n")
-    cli = [sys.executable, "-m", "c1mesh.cli", "fit"]
+    cli = [sys.executable, "-m", "c1mesh.cli", "fit", "--smooth", "off"]
     whole = subprocess.run(cli + [str(SAMPLES / "topo.csv"), "--level", "2", "-o", str(tmp_path / "whole.ply")],
                            capture_output=True, text=True)
     union = subprocess.run(cli + [str(tmp_path / "west.csv"), str(tmp_path / "east.csv"), "--seamless",

@@ -54,7 +54,7 @@ def probes():
 
 def test_auto_smoothing_is_closer_to_the_terrain_than_the_exact_fit(probes):
     cloud = noisy_cloud()
-    exact = build_surface(cloud, FitOptions(axis="z"))
+    exact = build_surface(cloud, FitOptions(axis="z", smooth="off"))
     smooth = build_surface(cloud, FitOptions(axis="z", smooth="auto"))
     e_exact, e_smooth = held_out_rms(exact, *probes), held_out_rms(smooth, *probes)
     # the noise is 5 cm: an interpolant carries about all of it, a good smoother well under half
@@ -143,7 +143,7 @@ def _cli(*args, cwd):
 @pytest.mark.parametrize("args, words", [
     (["--smooth", "maybe"], "--smooth"),
     (["--smooth", "-1"], "--smooth"),
-    (["--spacing", "2"], "--spacing thins the vertices"),
+    (["--smooth", "off", "--spacing", "2"], "--spacing thins the vertices"),
     (["--smooth", "auto", "--spacing", "0"], "expected auto or a positive finite length"),
     (["--smooth", "auto", "--spacing", "2", "--frame", "perspective"], "perspective frame's smoothing fit"),
 ])
@@ -173,12 +173,12 @@ def test_the_chosen_strength_is_a_note_on_a_terminal_only(tmp_path):
 
 def test_the_report_records_the_fit_and_suggests_smoothing_only_for_noisy_heights(tmp_path):
     noisy = noisy_cloud(n=3000)
-    exact = fit(noisy, None, FitOptions(axis="z")).report
+    exact = fit(noisy, None, FitOptions(axis="z", smooth="off")).report
     assert "--smooth auto" in exact["suggestion"]
     rng = np.random.default_rng(5)
     xy = rng.uniform(0, 60, (3000, 2))
     clean = fit(PointCloud(points=np.column_stack([xy, terrain(xy[:, 0], xy[:, 1])])), None,
-                FitOptions(axis="z")).report
+                FitOptions(axis="z", smooth="off")).report
     assert "suggestion" not in clean
     smoothed = fit(noisy, None, FitOptions(axis="z", smooth="auto")).report
     facts = smoothed["smoothing"]

@@ -245,7 +245,7 @@ def test_one_worker_starts_no_thread_anywhere(monkeypatch, tmp_path):
     with threads.limit(1):
         tri, _ = trim(xy, delaunay(xy))
         RSDInterpolator(xy, z, g, triangles=tri).refine(2)
-    fit(SAMPLES / "hill.ply", tmp_path / "o.ply", FitOptions(level=2, workers=1), keep_mesh=False)
+    fit(SAMPLES / "hill.ply", tmp_path / "o.ply", FitOptions(smooth="off", level=2, workers=1), keep_mesh=False)
     assert census.started == 0 and census.pools == []
 
 
@@ -296,7 +296,7 @@ def test_the_fit_writes_the_same_bytes_with_one_thread_or_several(tmp_path):
     written = []
     for count in (1, 2, 4):
         out = tmp_path / f"t{count}.ply"
-        report = fit(SAMPLES / "hill.ply", out, FitOptions(level=3, workers=count), keep_mesh=False).report
+        report = fit(SAMPLES / "hill.ply", out, FitOptions(smooth="off", level=3, workers=count), keep_mesh=False).report
         assert report["threads"] == count
         written.append(out.read_bytes())
     assert written[0] == written[1] == written[2]
@@ -332,7 +332,7 @@ def test_cli_asks_openmp_for_the_same_share(tmp_path, monkeypatch, args, each):
     for name in ("a.ply", "b.ply"):
         inputs.append(tmp_path / name)
         inputs[-1].write_bytes((SAMPLES / "hill.ply").read_bytes())
-    result = CliRunner().invoke(main, ["fit", *map(str, inputs), "-O", str(tmp_path / "out"),
+    result = CliRunner().invoke(main, ["fit", "--smooth", "off", *map(str, inputs), "-O", str(tmp_path / "out"),
                                        "--level", "1", *args])
     assert result.exit_code == 0, result.output
     assert os.environ["OMP_NUM_THREADS"] == each
@@ -446,7 +446,7 @@ def test_the_guessed_triangulation_is_used_only_when_it_is_the_height_fields(mon
     calls = []
     real = driver.delaunay
     monkeypatch.setattr(driver, "delaunay", lambda xy: calls.append(len(xy)) or real(xy))
-    options = FitOptions(axis="z", normals="estimate", level=1)
+    options = FitOptions(smooth="off", axis="z", normals="estimate", level=1)
     models = {}
     for count in (1, 2):
         calls.clear()

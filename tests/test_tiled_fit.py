@@ -126,7 +126,7 @@ def test_tiled_fit_equals_whole_cloud_fit(tmp_path, level, overshoot, gradients)
     write_terrain_las(source, 12000, classes=(2, 5))
     whole, max_edge, kept = _in_memory(source, [2], level, overshoot,
                                        gradients="normals" if gradients == "normals" else "heights")
-    options = FitOptions(classes=(2,), overshoot=overshoot, level=level, gradients=gradients)
+    options = FitOptions(smooth="off", classes=(2,), overshoot=overshoot, level=level, gradients=gradients)
     report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=700)).report
     assert report["tiles"] >= 9
     assert report["max_edge"] == max_edge
@@ -146,7 +146,7 @@ def test_tiled_fit_of_lidar_ground_equals_whole_fit(tmp_path, rule):
     sized by the longest final edge, found by a pass of its own."""
     source = SAMPLES / "4_6_crop.las"
     whole, max_edge, kept = _in_memory(source, [2], 2, max_edge=rule)
-    options = FitOptions(classes=(2,), level=2, max_edge=rule)
+    options = FitOptions(smooth="off", classes=(2,), level=2, max_edge=rule)
     report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=1000)).report
     assert report["tiles"] == 16
     assert report["max_edge"] == max_edge
@@ -169,7 +169,7 @@ def test_tiled_fit_of_autzen_ground_removes_the_bowties_and_curtains_of_the_whol
     whole, max_edge, kept = _in_memory(source, [2], 2)
     assert whole.removed["bowtie"] > 0
     assert sum(whole.removed[r] for r in REASONS) > 0
-    options = FitOptions(classes=(2,), level=2)
+    options = FitOptions(smooth="off", classes=(2,), level=2)
     report = fit(source, tmp_path / "tiled.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=per_tile)).report
     assert report["tiles"] == (4 if per_tile == 7000 else 16)
     assert report["triangles"]["removed"] == whole.removed
@@ -274,7 +274,7 @@ def test_cli_fits_in_tiles_beyond_memory(tmp_path):
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000)
     whole, _, _ = _in_memory(source, [2], 2)
-    args = ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
+    args = ["fit", "--smooth", "off", str(source), "--classes", "2", "-o", str(tmp_path / "out.ply"), "--level", "2",
             "--memory", "1M"]
     for option in (["--normals", "file"],):
         refused = CliRunner().invoke(main, args + option)
@@ -296,9 +296,9 @@ def test_the_library_fit_runs_in_tiles_beyond_its_memory_as_the_cli_does(tmp_pat
 
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 24000)
-    result = c1mesh.fit(str(source), tmp_path / "api.ply", FitOptions(classes=(2,), level=2, memory="1M"))
+    result = c1mesh.fit(str(source), tmp_path / "api.ply", FitOptions(smooth="off", classes=(2,), level=2, memory="1M"))
     assert result.mesh is None and result.report["tiles"] == 4
-    cli = CliRunner().invoke(main, ["fit", str(source), "--classes", "2", "-o", str(tmp_path / "cli.ply"),
+    cli = CliRunner().invoke(main, ["fit", "--smooth", "off", str(source), "--classes", "2", "-o", str(tmp_path / "cli.ply"),
                                     "--level", "2", "--memory", "1M"])
     assert cli.exit_code == 0, cli.output
     assert (tmp_path / "api.ply").read_bytes() == (tmp_path / "cli.ply").read_bytes()
@@ -314,12 +314,12 @@ def test_a_las_file_named_otherwise_is_fitted_in_tiles_and_a_las_stream_is_refus
     write_terrain_las(source, 8000)
     args = ["--classes", "2", "--level", "1", "--memory", "5M"]
     expected = tmp_path / "las.ply"
-    assert CliRunner().invoke(main, ["fit", str(source), "-o", str(expected), *args]).exit_code == 0
+    assert CliRunner().invoke(main, ["fit", "--smooth", "off", str(source), "-o", str(expected), *args]).exit_code == 0
     for name, fmt in (("terrain.dat", ["--input-format", "las"]), ("terrain.copc", [])):
         renamed = tmp_path / name
         renamed.write_bytes(source.read_bytes())
         out = tmp_path / (name + ".ply")
-        result = CliRunner().invoke(main, ["fit", str(renamed), "-o", str(out), *fmt, *args])
+        result = CliRunner().invoke(main, ["fit", "--smooth", "off", str(renamed), "-o", str(out), *fmt, *args])
         assert result.exit_code == 0, result.output
         assert out.read_bytes() == expected.read_bytes()
     streamed = subprocess.run([sys.executable, "-m", "c1mesh.cli", "fit", "-", "--input-format", "las", "-o",
@@ -384,7 +384,7 @@ def test_tiled_fit_carries_crs_and_colours(tmp_path):
     from c1mesh.formats import read_cloud
 
     source = SAMPLES / "autzen_trim.laz"
-    base = ["fit", str(source), "--classes", "2", "--level", "2", "--normals", "estimate",
+    base = ["fit", "--smooth", "off", str(source), "--classes", "2", "--level", "2", "--normals", "estimate",
             "--gradients", "normals"]                  # the tiled fit's gradients
     whole = CliRunner().invoke(main, base + ["-o", str(tmp_path / "whole.ply"), "--report", str(tmp_path / "w.json")])
     tiled = CliRunner().invoke(main, base + ["-o", str(tmp_path / "tiled.ply"), "--report", str(tmp_path / "t.json"),
@@ -444,10 +444,10 @@ def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp
     concatenated.points = las.points[np.argsort(~west, kind="stable")]
     concatenated.write(str(tmp_path / "concatenated.las"))
     args = ["--classes", "2", "--level", "2", "--memory", "1M"]
-    survey = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-o", str(tmp_path / "survey.ply"),
+    survey = CliRunner().invoke(main, ["fit", "--smooth", "off", *map(str, parts), "--seamless", "-o", str(tmp_path / "survey.ply"),
                                        "--report", str(tmp_path / "survey.json"), *args])
     assert survey.exit_code == 0, survey.output
-    single = CliRunner().invoke(main, ["fit", str(tmp_path / "concatenated.las"), "-o",
+    single = CliRunner().invoke(main, ["fit", "--smooth", "off", str(tmp_path / "concatenated.las"), "-o",
                                        str(tmp_path / "single.ply"), *args])
     assert single.exit_code == 0, single.output
     report = json.loads((tmp_path / "survey.json").read_text())
@@ -455,11 +455,11 @@ def test_seamless_survey_beyond_memory_is_the_tiled_fit_of_its_concatenation(tmp
     assert (tmp_path / "survey.ply").read_bytes() == (tmp_path / "single.ply").read_bytes()
     whole, _, _ = _in_memory(whole_file, [2], 2)
     _assert_same_mesh(tmp_path / "survey.ply", whole)
-    split = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "out"),
+    split = CliRunner().invoke(main, ["fit", "--smooth", "off", *map(str, parts), "--seamless", "-O", str(tmp_path / "out"),
                                       "--report", str(tmp_path / "split.json"), *args])
     assert split.exit_code == 0, split.output
     assert json.loads((tmp_path / "split.json").read_text())["tiles"] == 4      # the tiled fit ran
-    memory = CliRunner().invoke(main, ["fit", *map(str, parts), "--seamless", "-O", str(tmp_path / "mem"),
+    memory = CliRunner().invoke(main, ["fit", "--smooth", "off", *map(str, parts), "--seamless", "-O", str(tmp_path / "mem"),
                                        *args[:-2]])
     assert memory.exit_code == 0, memory.output
     outputs = [tmp_path / "out" / f"{p.stem}.c1.ply" for p in parts]       # named as in batch mode
@@ -507,7 +507,7 @@ def test_tiled_fit_writes_the_same_bytes_wherever_its_tiles_run(tmp_path):
     distributed = pytest.importorskip("distributed")
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 4000, seed=3)
-    options = FitOptions(classes=[2], level=2)
+    options = FitOptions(smooth="off", classes=[2], level=2)
     here = fit(source, tmp_path / "here.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450)).report
     assert here["tiles"] == 9
     pool = fit(source, tmp_path / "pool.ply", replace(options, memory=10**9), tiles=TiledRun(per_tile=450, jobs=2)).report
@@ -529,7 +529,7 @@ def _big_las(tmp_path):
     """A LAS the CLI fits in 4 tiles under --memory 1M, and the arguments that do so."""
     source = tmp_path / "terrain.las"
     write_terrain_las(source, 12000, seed=5)
-    return source, ["fit", str(source), "--classes", "2", "--level", "1", "--memory", "1M"]
+    return source, ["fit", "--smooth", "off", str(source), "--classes", "2", "--level", "1", "--memory", "1M"]
 
 
 def _every_job_at_once(monkeypatch):
@@ -643,12 +643,12 @@ def test_fits_in_tiles_show_their_tiles_on_a_terminal_and_nothing_on_a_pipe(tmp_
     terminal the progress bar names each stage and counts each pass's tiles as they
     finish, not only the outputs once everything is done; on a pipe stderr stays empty."""
     whole_file, parts, _, _ = _west_east_survey(tmp_path)
-    args = ["fit", *map(str, parts), "--seamless", "--classes", "2", "--level", "2", "--memory", "1M"]
+    args = ["fit", "--smooth", "off", *map(str, parts), "--seamless", "--classes", "2", "--level", "2", "--memory", "1M"]
     shown = stderr_on_a_terminal([*args, "-O", str(tmp_path / "tty")])
     for stage in ("normals: tile 4 of 4", "triangulate: tile 4 of 4", "refine: tile 4 of 4", "refine+write"):
         assert stage in shown, shown
     assert sorted(p.name for p in (tmp_path / "tty").iterdir()) == ["east.c1.ply", "west.c1.ply"]
-    single = stderr_on_a_terminal(["fit", str(whole_file), "-o", str(tmp_path / "single.ply"), *args[-6:]])
+    single = stderr_on_a_terminal(["fit", "--smooth", "off", str(whole_file), "-o", str(tmp_path / "single.ply"), *args[-6:]])
     assert "normals: tile 4 of 4" in single and "refine: tile 4 of 4" in single, single
     piped = subprocess.run([sys.executable, "-m", "c1mesh.cli", *args, "-O", str(tmp_path / "pipe")],
                            capture_output=True, text=True, timeout=300)
@@ -668,7 +668,7 @@ def test_a_mesh_level_from_resolution_in_tiles_is_the_whole_fits(tmp_path):
     expected = int(round(np.mean(sides) / resolution))
     assert expected == 3
     whole, _, _ = _in_memory(source, [2], expected)
-    options = FitOptions(classes=(2,), resolution=resolution, memory=10**9)
+    options = FitOptions(smooth="off", classes=(2,), resolution=resolution, memory=10**9)
     report = fit(source, tmp_path / "tiled.ply", options, tiles=TiledRun(per_tile=1000)).report
     assert report["tiles"] == 16
     assert report["level"] == expected and report["level_from"] == "resolution"
@@ -696,7 +696,7 @@ def test_the_first_noise_floor_reuses_the_curtains_summaries_only_where_nothing_
         kept_seen.append(kept)
         return floor_files(halos_, temps, label, first, runner, name, kept)
     monkeypatch.setattr(halos, "floor_files", spy)
-    options = replace(FitOptions(classes=(2,), level=1), memory=10**9)
+    options = replace(FitOptions(smooth="off", classes=(2,), level=1), memory=10**9)
     source = SAMPLES / "autzen_trim.laz"
     reused = fit(source, tmp_path / "a.ply", options, tiles=TiledRun(per_tile=1700)).report["overshoot"]
     kept = [k for k in kept_seen if k is not None]
