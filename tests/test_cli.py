@@ -134,24 +134,48 @@ def _notes(stderr: str) -> list[str]:
     return re.findall(r"c1mesh: note: [^\r\n]*", stderr)
 
 
+def _ground_with_normals(path) -> None:
+    """Autzen's ground points as an ASCII PLY with the normals (0, 0, 1): a file with
+    normals, whose default is the exact fit, and whose heights are noisy."""
+    import laspy
+
+    las = laspy.read(SAMPLES / "autzen_trim.laz")
+    ground = las.classification == 2
+    x, y, z = np.asarray(las.x)[ground], np.asarray(las.y)[ground], np.asarray(las.z)[ground]
+    header = ["ply", "format ascii 1.0", f"element vertex {x.size}", "property double x", "property double y",
+              "property double z", "property double nx", "property double ny", "property double nz", "end_header"]
+    rows = [f"{a:.3f} {b:.3f} {c:.3f} 0 0 1" for a, b, c in zip(x, y, z)]
+    path.write_text("\n".join(header + rows) + "\n")
+
+
 def test_noisy_heights_draw_the_advice_to_smooth_once_on_a_terminal(tmp_path):
     """Issue 35: the report's advice to fit noisy heights with --smooth auto is also one
     `c1mesh: note:` line on a terminal (issue 38: as progress, never on a pipe). Autzen
-    ground is noisy by the rule's own measure (the limiter changed the gradients of over
-    10% of the kept points), hill.ply's exact heights are not; -q silences the note."""
-    sample, report = SAMPLES / "autzen_trim.laz", tmp_path / "r.json"
-    shown = stderr_on_a_terminal(["fit", str(sample), "--classes", "2", "-o", str(tmp_path / "g.ply"),
+    ground with its normals in the file (the default there is the exact fit) is noisy by
+    the rule's own measure (the limiter changed the gradients of over 10% of the kept
+    points), hill.ply's exact heights are not; -q silences the note. Without normals the
+    default is the smoothing fit, which draws no advice."""
+    sample, report = tmp_path / "ground.ply", tmp_path / "r.json"
+    _ground_with_normals(sample)
+    shown = stderr_on_a_terminal(["fit", str(sample), "-o", str(tmp_path / "g.ply"), "--axis", "z",
                                   "--report", str(report)])
     facts = json.loads(report.read_text())
     assert facts["overshoot"]["gradients_limited"] > 0.1 * facts["points"]["kept"]
     assert facts["suggestion"].startswith("the heights look noisy") and "--smooth auto" in facts["suggestion"]
     assert shown.count(f"c1mesh: note: {sample}: {facts['suggestion']}") == 1, shown
-    piped = run("fit", sample, "--classes", "2", "-o", tmp_path / "p.ply")
+    piped = run("fit", sample, "--axis", "z", "-o", tmp_path / "p.ply")
     assert piped.returncode == 0 and piped.stderr == b""
-    quiet = stderr_on_a_terminal(["fit", str(sample), "--classes", "2", "-o", str(tmp_path / "q.ply"), "-q"])
+    quiet = stderr_on_a_terminal(["fit", str(sample), "--axis", "z", "-o", str(tmp_path / "q.ply"), "-q"])
     assert quiet == ""
     exact = stderr_on_a_terminal(["fit", str(SAMPLES / "hill.ply"), "-o", str(tmp_path / "h.ply"), "-q"])
     assert "note" not in exact
+    smoothed = tmp_path / "s.json"
+    default = stderr_on_a_terminal(["fit", str(SAMPLES / "autzen_trim.laz"), "--classes", "2", "-o",
+                                    str(tmp_path / "s.ply"), "--report", str(smoothed)])
+    assert "suggestion" not in json.loads(smoothed.read_text())
+    notes = [line for line in default.splitlines() if line.startswith("c1mesh: note: ")]
+    assert len(notes) == 1 and "fitted to the points by default (--smooth off" in notes[0]
+    assert "--smooth auto chose strength" in notes[0]
 
 
 @pytest.mark.parametrize("smooth", ["auto", "off"])

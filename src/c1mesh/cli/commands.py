@@ -89,11 +89,12 @@ def main() -> None:
 @click.option("--gradients", type=click.Choice(["auto", "normals", "heights"]), default="auto",
               show_default=True, help="Vertex gradients: heights: a local quadratic fit to the "
                    "neighbours' heights; normals: from the normals; auto: heights where normals are estimated.")
-@click.option("--smooth", default="off", show_default=True, metavar="off|auto|S", help=SMOOTH_HELP)
+@click.option("--smooth", default="default", metavar="off|auto|S", help=SMOOTH_HELP)
 @click.option("--spacing", default=None, metavar="auto|D",
               help="With --smooth: the vertices on a D x D lattice (D in the scan's units) over the "
                    "points, fitted to all of them; solved by multigrid. auto: the points' mean spacing, "
-                   "or --resolution when coarser.  [default: a vertex at every point]")
+                   "or --resolution when coarser.  [default: auto for the default smoothing fit; with "
+                   "--smooth given, a vertex at every point]")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=parse_memory_option, help=MEMORY_HELP)
 @click.option("--bounds", callback=parse_bounds_option, metavar="XMIN,YMIN,XMAX,YMAX",

@@ -53,7 +53,13 @@ def note(report: dict, quiet: bool) -> None:
         click.echo(f"c1mesh: note: {_input_name(report)}: {advice}", err=True)
     smoothing = report.get("smoothing")
     if smoothing and smoothing.get("cv_curve") and stderr_is_terminal():
-        click.echo(f"c1mesh: note: {_input_name(report)}: {strength_note(smoothing)}", err=True)
+        chosen = "" if _option_given("smooth") else DEFAULT_NOTE
+        click.echo(f"c1mesh: note: {_input_name(report)}: {chosen}{strength_note(smoothing)}", err=True)
+
+
+DEFAULT_NOTE = "the normals are estimated, so the spline is fitted to the points by default (--smooth off: " \
+               "through them); "
+"""What the strength note says first when the smoothing fit is the default's (issue 38)."""
 
 
 def strength_note(smoothing: dict) -> str:

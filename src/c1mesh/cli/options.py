@@ -95,12 +95,18 @@ def parse_max_edge(value: str):
 
 SMOOTH_HELP = ("off: the spline through every point; auto: fitted to the points, its strength "
                "chosen by cross-validation over spatial blocks; or a strength s > 0 (dimensionless: "
-               "λ = s·h², h the mean point spacing; docs/smoothing.md). For noisy heights such as LiDAR ground.")
+               "λ = s·h², h the mean point spacing; docs/smoothing.md). For noisy heights such as LiDAR ground.  "
+               "[default: auto on the lattice (--spacing auto) where the normals are estimated over a height "
+               "field: LAS/LAZ, XYZ or CSV without normals; off where the file has normals and in the "
+               "perspective frame]")
 
 
 def parse_smooth(value: str):
-    """--smooth: 'off' -> None, 'auto', or a positive finite strength (plain Python)."""
+    """--smooth: 'off' -> None, 'auto', 'default' (pipeline.plan.DEFAULT_SMOOTH, resolved by
+    the fit), or a positive finite strength (plain Python)."""
     word = value.strip().lower()
+    if word == "default":
+        return "default"
     if word in ("off", "auto"):
         return None if word == "off" else "auto"
     try:

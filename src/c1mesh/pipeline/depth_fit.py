@@ -42,7 +42,7 @@ from c1mesh.pipeline.steps import (
     smoothed_interpolator,
     write_surface,
 )
-from c1mesh.pipeline.plan import smoothing_strength
+from c1mesh.pipeline.plan import resolved_smoothing, smoothing_strength
 from c1mesh.stages.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.normals import estimate_normals
@@ -260,7 +260,7 @@ def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarra
     directions apply."""
     scheme = get_scheme(options.scheme)
     uv, w, gradients = field_.uv[used], field_.w[used], field_.gradients[used]
-    strength = smoothing_strength(options)
+    strength = smoothing_strength(resolved_smoothing(options, normal_source == "estimated", perspective=True))
     if strength is None:
         interp, overshoot = limited_interpolator(uv, w, gradients, triangles, scheme, options.overshoot,
                                                  heights=False)

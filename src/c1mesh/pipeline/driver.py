@@ -53,7 +53,7 @@ from c1mesh.geo.raster import (
 )
 from c1mesh.geo.raster_grid import FillRule
 from c1mesh.pipeline.depth_fit import fit_perspective
-from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, smoothing_strength
+from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, resolved_smoothing, smoothing_strength
 from c1mesh.pipeline.report import ReportCore, crs_facts
 from c1mesh.pipeline.steps import (
     FitResult,
@@ -171,8 +171,10 @@ class FitOptions:
     # spline through every point), "auto" (strength by cross-validation over spatial
     # blocks) or a dimensionless strength s > 0; spacing: None (vertices at the points) or
     # a length D, the vertices on a D x D lattice (c1mesh.stages.lattice_mesh), fitted to all points.
-    smooth: Any = "off"
-    spacing: float | None = None
+    # "default": auto on the lattice where the gradients are estimated over a height field,
+    # else off (c1mesh.pipeline.plan.resolved_smoothing).
+    smooth: Any = "default"
+    spacing: float | str | None = None
     # edf: whether a smoothing fit estimates its effective degrees of freedom (the report's
     # smoothing.edf, null without): a diagnostic that costs one more solve (1.0 s of a 1M-node
     # lattice fit), so the CLI asks for it only when it writes a report.
@@ -406,7 +408,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     timer = timer or StageTimer(None)
     scheme = get_scheme(options.scheme)
     check_overshoot_mode(options.overshoot)
-    strength = smoothing_strength(options)
+    smoothing_strength(options)                    # a bad --smooth or --spacing: before any work
     options = height_column_axis(cloud, options)[0]
     heights_first = _fit_heights_first(cloud, options)
     plan_heights = False          # heights in units of their own over the plan (x, y)
@@ -414,6 +416,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         with timer.stage("normals"):
             guess = None             # () -> (xy, triangles) of _guessed_triangles, or None
             if heights_first:        # the frame needs no normals: the fit's serve the height field
+                options = resolved_smoothing(options, estimated=True)
                 frame = choose_frame(cloud.points, None, options.axis)
                 plan_heights = _plan_heights(cloud, frame)
                 threads = thread_count()
@@ -426,6 +429,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 normal_source = "estimated"
             else:
                 normals, normal_source = cloud_normals(cloud, options)
+                options = resolved_smoothing(options, estimated=normal_source == "estimated")
+        strength = smoothing_strength(options)
         with timer.stage("frame"):
             if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
                 frame = choose_frame(cloud.points, normals, options.axis)

@@ -30,10 +30,21 @@ from c1mesh.stages.smoothing import SmoothingError, parse_strength
 from c1mesh.stages.lattice_mesh import check_spacing
 
 
+DEFAULT_SMOOTH = "default"
+"""FitOptions.smooth's default: the smoothing fit on the lattice (--smooth auto --spacing auto)
+where the gradients are estimated in a height-field frame (LAS/LAZ, XYZ or CSV without
+normals), the exact interpolant (off) where the file has normals and in the perspective
+frame (issue 38; `resolved_smoothing`)."""
+
+
 def smoothing_strength(options) -> Strength:
     """options.smooth as c1mesh.stages.smoothing.parse_strength reads it: None (off),
-    "auto" or a strength s > 0; InputError for anything else, and for a --spacing without
+    "auto" or a strength s > 0, or DEFAULT_SMOOTH until the fit knows where its gradients
+    come from (resolved_smoothing); InputError for anything else, and for a --spacing without
     smoothing (an exact fit has its vertices at the points). Checked before any work."""
+    if is_default_smooth(options.smooth):
+        check_spacing(options.spacing)
+        return DEFAULT_SMOOTH
     try:
         strength = options.smooth if isinstance(options.smooth, (int, float)) else parse_strength(options.smooth)
         if isinstance(strength, (int, float)):
@@ -45,6 +56,27 @@ def smoothing_strength(options) -> Strength:
         raise InputError("--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength")
     return strength
 
+
+
+def is_default_smooth(smooth) -> bool:
+    """Whether FitOptions.smooth is the default (DEFAULT_SMOOTH; None counts as it)."""
+    return smooth is None or (isinstance(smooth, str) and smooth.strip().lower() == DEFAULT_SMOOTH)
+
+
+def resolved_smoothing(options, estimated: bool, perspective: bool = False):
+    """options with a default smooth resolved, once the fit knows whether its gradients
+    are estimated (normals not in the file) and its frame: "auto" on the lattice
+    (--spacing auto unless a spacing is given) for estimated gradients over a height field,
+    and wherever a --spacing is given (a lattice is a smoothing fit's: the user asked for
+    one; the perspective frame refuses it, as with --smooth given); else "off". Any other
+    smooth is returned as it is."""
+    if not is_default_smooth(options.smooth):
+        return options
+    if options.spacing is not None:
+        return replace(options, smooth="auto")
+    if estimated and not perspective:
+        return replace(options, smooth="auto", spacing="auto")
+    return replace(options, smooth="off")
 
 def refinement_level(level) -> int | None:
     """options.level: None (the fit chooses) or a whole number 1 ... MAX_LEVEL, as the

@@ -30,7 +30,7 @@ def point_bytes(surface: SurfaceSettings) -> int:
     """Peak bytes per input point of the fit `surface` asks for: SMOOTHING_BYTES_PER_POINT
     for a smoothing fit with a vertex at every point, else BYTES_PER_POINT (a --spacing
     fit's solve follows its lattice's nodes, not its points)."""
-    if surface.strength is not None and surface.spacing is None:
+    if surface.strength not in (None, "default") and surface.spacing is None:   # default: the lattice's
         return SMOOTHING_BYTES_PER_POINT
     return BYTES_PER_POINT
 
