@@ -1,0 +1,36 @@
+"""The smoothing default (pipeline.plan.resolved_smoothing, issue 38): the lattice fit where
+the gradients are estimated over a height field, the exact fit where the file has normals
+and in the perspective frame; anything given is kept."""
+from __future__ import annotations
+
+import pytest
+
+from c1mesh.pipeline.driver import FitOptions, build_surface, load_cloud
+from c1mesh.pipeline.plan import resolved_smoothing
+from test_smoothing_fit import SAMPLES
+
+
+@pytest.mark.parametrize("estimated, perspective, spacing, expected", [
+    (True, False, None, ("auto", "auto")),
+    (True, False, 2.0, ("auto", 2.0)),
+    (False, False, None, ("off", None)),
+    (False, False, 2.0, ("auto", 2.0)),          # a lattice asked for: a smoothing fit's
+    (True, True, None, ("off", None)),
+])
+def test_the_default_resolves_by_where_the_gradients_come_from(estimated, perspective, spacing, expected):
+    options = resolved_smoothing(FitOptions(spacing=spacing), estimated, perspective)
+    assert (options.smooth, options.spacing) == expected
+
+
+@pytest.mark.parametrize("smooth", ["off", "auto", 3.0])
+def test_a_given_smooth_is_kept(smooth):
+    options = FitOptions(smooth=smooth)
+    assert resolved_smoothing(options, True) is options
+
+
+def test_the_fits_follow_the_files_normals():
+    """A LAS tile (no normals) is fitted on the lattice, a PLY with normals exactly."""
+    las = build_surface(load_cloud(SAMPLES / "4_6_crop.las", FitOptions(classes=(2,))), FitOptions(classes=(2,)))
+    assert las.smoothing is not None and las.on_lattice
+    ply = build_surface(load_cloud(SAMPLES / "hill.ply", FitOptions()), FitOptions())
+    assert ply.smoothing is None and not ply.on_lattice
