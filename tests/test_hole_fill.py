@@ -87,12 +87,16 @@ def _ring_survey(seed: int = 1):
     return xy[~disc & ~bay]
 
 
+def _holes_of(xy: np.ndarray):
+    """(grid, support cells, Holes) of the lattice mesh of xy at D = 1, h = 0.7."""
+    mesh = lattice_mesh(xy, 1.0, 0.7)
+    support = support_cells(mesh.grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
+    return mesh.grid, support, find_holes(mesh.grid, support, point_hull(xy))
+
+
 def test_the_holes_are_the_hull_cells_the_support_leaves_counted_cell_by_cell():
     xy = _ring_survey()
-    mesh = lattice_mesh(xy, 1.0, 0.7)
-    grid = mesh.grid
-    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
-    holes = find_holes(grid, support, point_hull(xy))
+    grid, support, holes = _holes_of(xy)
     inside = set(hull_cells(grid, point_hull(xy)).tolist())
     expected = sorted(inside - set(support.tolist()))
     np.testing.assert_array_equal(holes.cells, expected)
@@ -120,10 +124,7 @@ def _plane(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def test_a_closed_hole_on_a_polynomial_rim_is_filled_with_it(surface):
     xy = _ring_survey()
     xy = xy[xy[:, 0] < 70.0]                                 # the disc alone
-    mesh = lattice_mesh(xy, 1.0, 0.7)
-    grid = mesh.grid
-    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
-    holes = find_holes(grid, support, point_hull(xy))
+    grid, _, holes = _holes_of(xy)
     assert holes.free.size > 500
     values, gradients = fill_holes(grid, holes, *surface(grid.positions(holes.rim)))
     truth, slope = surface(grid.positions(holes.free))
@@ -133,10 +134,7 @@ def test_a_closed_hole_on_a_polynomial_rim_is_filled_with_it(surface):
 
 def test_an_open_bay_on_a_plane_is_the_plane():
     xy = _ring_survey()
-    mesh = lattice_mesh(xy, 1.0, 0.7)
-    grid = mesh.grid
-    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
-    holes = find_holes(grid, support, point_hull(xy))
+    grid, _, holes = _holes_of(xy)
     values, gradients = fill_holes(grid, holes, *_plane(grid.positions(holes.rim)))
     truth, slope = _plane(grid.positions(holes.free))
     assert np.abs(values - truth).max() < 1e-8 * np.abs(truth).max()
@@ -152,10 +150,7 @@ def test_the_fill_has_the_least_energy_of_any_nearby_fill():
     from c1mesh.stages.smoothing_system import assemble_energy
 
     xy = _ring_survey()
-    mesh = lattice_mesh(xy, 1.0, 0.7)
-    grid = mesh.grid
-    support = support_cells(grid, mesh.nodes[mesh.triangles[mesh.shown][:, 0]])
-    holes = find_holes(grid, support, point_hull(xy))
+    grid, _, holes = _holes_of(xy)
     rng = np.random.default_rng(0)
     rim_positions = grid.positions(holes.rim)
     rim_values = np.sin(rim_positions[:, 0] / 9.0) * np.cos(rim_positions[:, 1] / 7.0)

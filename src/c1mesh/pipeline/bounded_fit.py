@@ -91,7 +91,7 @@ from c1mesh.survey.buffered_delaunay import TileGrid
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.ground_pass import GroundPass, ground_mask
 from c1mesh.survey.height_runs import height_spill, survey_stacking
-from c1mesh.survey.smoothing_runs import SmoothedFill, TiledSmoother, TiledSmoothing
+from c1mesh.survey.smoothing_runs import SmoothedFill, TiledSmoother, TiledSmoothing, WrappedSmoother
 from c1mesh.survey.tile_spill import spill
 from c1mesh.survey.halos import HaloCache, TiledLimiter, halo_reach, longest_final_edge
 from c1mesh.survey.hole_runs import TiledFill
@@ -379,7 +379,7 @@ def _write_dem(job: DemJob, where, dem: DemPlan, inputs, limiter) -> dict:
     chunks, crs, contours = inputs
     temps, runner, rows, windows = where
     facts = TiledDem(job, temps, runner, rows, windows=windows).write(dem, chunks, crs,
-                                                                     isinstance(limiter, (TiledSmoother, SmoothedFill, LatticeFill)),
+                                                                     isinstance(limiter, (TiledSmoother, WrappedSmoother)),
                                                                      contours)
     report = {"kept": facts["kept"], "output_mesh": None, "triangles_per_tile": facts["triangles_per_tile"],
               "raster": facts["raster"], "contours": facts["contours"]}

@@ -24,6 +24,7 @@ from c1mesh.core.tile import corner_rows, plane_bounds
 from c1mesh.stages.hole_fill import Holes, classify_corners, fill_holes, hull_rows, joined_hole_parts as joined_holes
 from c1mesh.stages.hole_fill import joined_hull, point_hull
 from c1mesh.stages.limiter import TileLimits
+from c1mesh.survey.smoothing_runs import WrappedSmoother
 from c1mesh.stages.lattice_mesh import (KEPT_BLOCK, REACH_CELLS, NodeGrid, cell_triangles, kept_cells, lattice_facts,
                                         nearest_points, node_grid)
 from c1mesh.survey.tile_spill import TileSpill, save_array
@@ -198,7 +199,7 @@ def lattice_tiles(heights, spacing: float, point_spacing: float, temps, stem: st
                         tuple(kept) if fill else None, joined_holes(parts) if fill else None)
 
 
-class LatticeFill:
+class LatticeFill(WrappedSmoother):
     """A DEM's fill of a smoothing fit on the lattice in tiles (stages.hole_fill), after
     the smoothing (smoother: its TiledSmoother): the reduce reads the rim nodes' fitted
     data from the tiles' files, solves every hole whole in this process (fill_holes), and
@@ -242,15 +243,6 @@ class LatticeFill:
             raise RuntimeError(f"tile {tile}: a corner of its triangles has no fitted or filled data")
         records = records.take(rows)
         return TileLimits(records, local, np.column_stack([records["gx"], records["gy"]]), None, 0, 0, 0)
-
-    def outside(self) -> int:
-        return self.smoother.outside()
-
-    def report(self) -> dict:
-        return self.smoother.report()
-
-    def smoothing(self) -> dict:
-        return self.smoother.smoothing()
 
 
 __all__ = ["LATTICE_MARGIN", "LatticeFill", "LatticeTiles", "MARGIN_HALOS", "NODE", "lattice_halo", "lattice_read", "lattice_tiles",

@@ -171,7 +171,23 @@ class TiledSmoother:
                 "tiled": {"halo": self.reach, "halo_smoothing_lengths": self.reach / (strength ** 0.25 * spacing)}}
 
 
-class SmoothedFill:
+class WrappedSmoother:
+    """A DEM fill's data over a TiledSmoother's (smoother): a DEM task takes its tile's data
+    through the wrapper's `tile`, and the report's facts are the smoother's."""
+
+    smoother: TiledSmoother
+
+    def outside(self) -> int:
+        return self.smoother.outside()
+
+    def report(self) -> dict:
+        return self.smoother.report()
+
+    def smoothing(self) -> dict:
+        return self.smoother.smoothing()
+
+
+class SmoothedFill(WrappedSmoother):
     """A DEM's fill of a smoothing fit over the tiles, as pipeline.driver._smoothed spans
     the holes in memory: the smoothing fits the trimmed triangles (smoother, a
     TiledSmoother of the trimmed survey); the filled triangulation (halos: its
@@ -203,15 +219,6 @@ class SmoothedFill:
         spans = np.isin(records["index"], self.spanning)[:, None]
         gradients = np.where(spans, limits.gradients, np.column_stack([records["gx"], records["gy"]]))
         return TileLimits(records, limits.triangles, gradients, limits.directions, 0, 0, 0, limits.table)
-
-    def outside(self) -> int:
-        return self.smoother.outside()
-
-    def report(self) -> dict:
-        return self.smoother.report()
-
-    def smoothing(self) -> dict:
-        return self.smoother.smoothing()
 
 
 class FittedHalos:
