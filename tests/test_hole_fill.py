@@ -309,5 +309,35 @@ def test_the_lattice_fill_in_tiles_is_the_whole_fits(tmp_path, request, fill, wh
     dem = rasters[""]
     assert np.abs(dem[0] - dem[1]).max() < 0.01 * whole["smoothing"]["residual_rms"]
     assert tiled["raster"]["fill"] == whole["raster"]["fill"]
+    assert tiled["smoothing"]["lattice"] == whole["smoothing"]["lattice"]        # the solve's nodes
+    assert tiled["triangles"]["after_trim"] == whole["triangles"]["after_trim"]   # the support's
     if fill != "off":
         assert whole["raster"]["fill"]["triangles_spanning_holes"] > 0
+
+
+def test_a_tiled_report_counts_the_solves_nodes_and_the_supports_triangles(tmp_path, monkeypatch):
+    """A hole wider than the solve's blocks (a disc 32 m across in 60 m): some of its free
+    corners are nodes of the tiles' spill only for the fill. The report's lattice nodes and
+    kept triangles are the solve's and the support's, as in memory."""
+    from terrain_scenes import write_points_las
+
+    from c1mesh.core.plan import TiledRun
+    from c1mesh.pipeline import bounded_fit
+    from c1mesh.pipeline.driver import FitOptions
+    from c1mesh.pipeline.run import fit
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 60, (9000, 2))
+    xy = xy[np.hypot(*(xy - 30.0).T) > 16.0]
+    write_points_las(tmp_path / "q.las", np.column_stack([xy, _q(xy[:, 0], xy[:, 1])]), z_scale=0.0001)
+    made = []
+    tiles = bounded_fit.lattice_tiles
+    monkeypatch.setattr(bounded_fit, "lattice_tiles", lambda *a, **k: made.append(tiles(*a, **k)) or made[-1])
+    options = dict(classes=(2,), smooth=3.0, spacing=1.0, resolution=1.0)
+    whole = fit(tmp_path / "q.las", tmp_path / "whole.tif", FitOptions(**options)).report
+    tiled = fit(tmp_path / "q.las", tmp_path / "tiled.tif", FitOptions(**options, memory=10**9),
+                tiles=TiledRun(per_tile=1000)).report
+    assert tiled["tiles"] == 9 and made[0].fill_nodes > 0
+    assert tiled["smoothing"]["lattice"] == whole["smoothing"]["lattice"]
+    assert tiled["triangles"]["after_trim"] == whole["triangles"]["after_trim"]
+    assert tiled["raster"]["fill"] == whole["raster"]["fill"]

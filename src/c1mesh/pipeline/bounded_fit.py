@@ -337,8 +337,9 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                    "points": {"read": count, "kept": kept, "stacked": stacked, "spacing": spacing},
                    "max_edge": max_edge,
                    "triangles": {"before_trim": delaunay_count,     # a fill's spanning triangles are no trim's
-                                 "after_trim": sum(report["triangles_per_tile"].values()) if filled is None
-                                 else sum(filled.trimmed),
+                                 "after_trim": sum(filled.trimmed) if filled is not None
+                                 else kept_triangles if lattice is not None
+                                 else sum(report["triangles_per_tile"].values()),
                                  "removed": {"long_edge": long_edge, **removed}, "max_edge": max_edge},
                    "gradients": gradient_source,
                    "level": None if plan.dem is not None else surface.level,

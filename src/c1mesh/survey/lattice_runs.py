@@ -98,10 +98,12 @@ class LatticeTiles:
     grid: NodeGrid
     kept: tuple | None = None
     holes: Holes | None = None
+    fill_nodes: int = 0
 
     def facts(self) -> dict:
-        """The report's smoothing.lattice, as the in-memory fit's (lattice_facts)."""
-        return lattice_facts(self.grid, int(self.nodes.counts.sum()))
+        """The report's smoothing.lattice, as the in-memory fit's (lattice_facts): the solve's
+        nodes, without the fill's (fill_nodes: the holes' free corners no solve cell has)."""
+        return lattice_facts(self.grid, int(self.nodes.counts.sum()) - self.fill_nodes)
 
 
 def _window(lattice: NodeGrid, rect) -> tuple[int, int, int, int]:
@@ -117,9 +119,10 @@ def _window(lattice: NodeGrid, rect) -> tuple[int, int, int, int]:
 
 def _tile_lattice(heights, tiles, lattice: NodeGrid, t: int, hull_rows: tuple | None = None) -> tuple:
     """(NODE records of tile t's nodes, ascending numbers; (k, 3) its solve cells'
-    triangles; (k', 3) its support cells' triangles, the shown; its own TileHoles, None
-    without hull_rows). hull_rows: hole_fill.hull_rows of the survey's hull, for a DEM's
-    fill: the tile's nodes then include its holes' free corners."""
+    triangles; (k', 3) its support cells' triangles, the shown; its own Holes, None without
+    hull_rows; how many of its nodes are the fill's only). hull_rows: hole_fill.hull_rows of
+    the survey's hull, for a DEM's fill: the tile's nodes then include its holes' free
+    corners."""
     D = lattice.spacing
     records = heights.records(tiles.grown(t, lattice_read(lattice) * D))
     xy = np.column_stack([records["x"], records["y"]])
@@ -127,6 +130,7 @@ def _tile_lattice(heights, tiles, lattice: NodeGrid, t: int, hull_rows: tuple | 
     solve, shown = kept_cells(lattice, xy, window, blocks=True), kept_cells(lattice, xy, window)
     holes = None if hull_rows is None else _own_holes(lattice, tiles, t, window, shown, hull_rows)
     corners = np.unique(cell_triangles(lattice, solve))
+    solved = corners
     if holes is not None:
         corners = np.union1d(corners, holes.free)
     positions = lattice.positions(corners)
@@ -135,7 +139,8 @@ def _tile_lattice(heights, tiles, lattice: NodeGrid, t: int, hull_rows: tuple | 
     nodes = np.zeros(corners.size, NODE)
     nodes["index"], nodes["x"], nodes["y"] = corners, positions[:, 0], positions[:, 1]
     nodes["source"] = nearest_points(positions, xy, records["index"])
-    return nodes, _own_triangles(lattice, tiles, t, solve), _own_triangles(lattice, tiles, t, shown), holes
+    fill_only = int(corners.size - np.isin(corners, solved, assume_unique=True).sum())
+    return nodes, _own_triangles(lattice, tiles, t, solve), _own_triangles(lattice, tiles, t, shown), holes, fill_only
 
 
 def _own_holes(lattice: NodeGrid, tiles, t: int, window: tuple, support: np.ndarray, hull_rows: tuple) -> Holes:
@@ -173,10 +178,11 @@ def lattice_tiles(heights, spacing: float, point_spacing: float, temps, stem: st
     lattice = node_grid(lower, upper, spacing, point_spacing, offset)
     rows = hull_rows(lattice, hull[0]) if fill else None
     nodes = TileSpill(tiles, heights.directory, stem + ".lattice", record=NODE).__enter__()
-    files, shown_files, kept, parts, count = [], [], [], [], 0
+    files, shown_files, kept, parts, count, fill_nodes = [], [], [], [], 0, 0
     try:
         for t in range(len(tiles)):
-            own_nodes, solve, shown, holes = _tile_lattice(heights, tiles, lattice, t, rows)
+            own_nodes, solve, shown, holes, fill_only = _tile_lattice(heights, tiles, lattice, t, rows)
+            fill_nodes += fill_only
             nodes.append(t, own_nodes)
             kept.append(len(shown))
             count += len(shown)
@@ -196,7 +202,7 @@ def lattice_tiles(heights, spacing: float, point_spacing: float, temps, stem: st
         nodes.close()
         raise
     return LatticeTiles(nodes, files, shown_files, np.full(len(tiles), 2.0 * spacing), count, lattice,
-                        tuple(kept) if fill else None, joined_holes(parts) if fill else None)
+                        tuple(kept) if fill else None, joined_holes(parts) if fill else None, fill_nodes)
 
 
 class LatticeFill(WrappedSmoother):
