@@ -59,8 +59,8 @@ def smoothing_strength(options) -> Strength:
 
 
 def is_default_smooth(smooth) -> bool:
-    """Whether FitOptions.smooth is the default (DEFAULT_SMOOTH; None counts as it)."""
-    return smooth is None or (isinstance(smooth, str) and smooth.strip().lower() == DEFAULT_SMOOTH)
+    """Whether FitOptions.smooth is the default (DEFAULT_SMOOTH)."""
+    return isinstance(smooth, str) and smooth.strip().lower() == DEFAULT_SMOOTH
 
 
 def resolved_smoothing(options, estimated: bool, perspective: bool = False):
