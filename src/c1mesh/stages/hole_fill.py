@@ -103,16 +103,19 @@ def hull_rows(grid: NodeGrid, hull: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return first, last
 
 
-def hull_cells(grid: NodeGrid, hull: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+def hull_cells(grid: NodeGrid, hull: np.ndarray) -> np.ndarray:
     """(k,) ascending numbers of the grid's cells whose centres lie in the convex polygon
-    hull (hull_rows), in the given rows (ascending row numbers; None: every row)."""
+    hull (hull_rows)."""
     first, last = hull_rows(grid, hull)
-    rows = np.arange(first.size, dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
-    first, last = first[rows], last[rows]
+    return span_cells(grid, np.arange(first.size, dtype=np.int64), first, last)
+
+
+def span_cells(grid: NodeGrid, rows: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """(k,) ascending numbers of the cells in columns first[r] .. last[r] of each row rows[r]
+    (ascending row numbers; last < first: none of that row)."""
     count = np.maximum(last - first + 1, 0)
-    row = np.repeat(rows, count)
     start = np.repeat(first - np.concatenate([[0], np.cumsum(count)[:-1]]), count)
-    return row * grid.cells[1] + (np.arange(row.size, dtype=np.int64) + start)
+    return np.repeat(rows, count) * grid.cells[1] + (np.arange(int(count.sum()), dtype=np.int64) + start)
 
 
 @dataclass(frozen=True)
@@ -164,7 +167,7 @@ def find_holes(grid: NodeGrid, support: np.ndarray, hull: np.ndarray) -> Holes:
     held = (np.searchsorted(support, row * cols + last, side="right")
             - np.searchsorted(support, row * cols + first, side="left"))     # support cells in the row's span
     short = np.flatnonzero(held < last - first + 1)                # rows with a hull cell left open
-    inside = hull_cells(grid, hull, short)
+    inside = span_cells(grid, short, first[short], last[short])
     cells = inside[~np.isin(inside, support)]
     return classify_corners(grid, cells, support)
 
@@ -291,5 +294,5 @@ def _order(nodes: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["Holes", "LatticeVertices", "filled_lattice", "cell_corners", "fill_holes", "find_holes", "hull_cells",
-           "classify_corners", "hull_rows", "joined_hole_parts", "joined_hull", "point_hull",
+           "classify_corners", "hull_rows", "joined_hole_parts", "span_cells", "joined_hull", "point_hull",
            "support_cells"]

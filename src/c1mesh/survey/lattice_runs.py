@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from c1mesh.core.tile import corner_rows, plane_bounds
-from c1mesh.stages.hole_fill import Holes, classify_corners, fill_holes, hull_rows, joined_hole_parts as joined_holes
-from c1mesh.stages.hole_fill import joined_hull, point_hull
+from c1mesh.stages.hole_fill import (Holes, classify_corners, fill_holes, hull_rows, joined_hole_parts, joined_hull,
+                                     point_hull, span_cells)
 from c1mesh.stages.limiter import TileLimits
 from c1mesh.survey.smoothing_runs import WrappedSmoother
 from c1mesh.stages.lattice_mesh import (KEPT_BLOCK, REACH_CELLS, NodeGrid, cell_triangles, kept_cells, lattice_facts,
@@ -150,11 +150,8 @@ def _own_holes(lattice: NodeGrid, tiles, t: int, window: tuple, support: np.ndar
     around a corner of the tile's own cells (the window reaches one cell beyond them)."""
     i0, i1, j0, j1 = window
     first, last = hull_rows
-    rows = np.arange(j0, j1, dtype=np.int64)
-    lo, hi = np.maximum(first[j0:j1], i0), np.minimum(last[j0:j1], i1 - 1)
-    count = np.maximum(hi - lo + 1, 0)
-    start = np.repeat(lo - np.concatenate([[0], np.cumsum(count)[:-1]]), count)
-    cells = np.repeat(rows, count) * lattice.cells[1] + (np.arange(int(count.sum()), dtype=np.int64) + start)
+    cells = span_cells(lattice, np.arange(j0, j1, dtype=np.int64), np.maximum(first[j0:j1], i0),
+                       np.minimum(last[j0:j1], i1 - 1))
     cells = cells[~np.isin(cells, support)]
     cells = cells[tiles.tile_of(lattice.centres(cells)) == t]
     return classify_corners(lattice, cells, support)
@@ -202,7 +199,7 @@ def lattice_tiles(heights, spacing: float, point_spacing: float, temps, stem: st
         nodes.close()
         raise
     return LatticeTiles(nodes, files, shown_files, np.full(len(tiles), 2.0 * spacing), count, lattice,
-                        tuple(kept) if fill else None, joined_holes(parts) if fill else None, fill_nodes)
+                        tuple(kept) if fill else None, joined_hole_parts(parts) if fill else None, fill_nodes)
 
 
 class LatticeFill(WrappedSmoother):
