@@ -109,10 +109,7 @@ def parse_smooth(value: str):
         return "default"
     if word in ("off", "auto"):
         return None if word == "off" else "auto"
-    try:
-        strength = float(word)
-    except ValueError:
-        strength = float("nan")
+    strength = _number(word)
     if not (strength > 0 and math.isfinite(strength)):
         raise click.BadParameter(f"expected off, auto or a positive strength, got {value!r}",
                                  param_hint="'--smooth'")
@@ -126,10 +123,7 @@ def parse_spacing(value):
     word = str(value).strip().lower()
     if word == "auto":
         return "auto"
-    try:
-        length = float(word)
-    except ValueError:
-        length = float("nan")
+    length = _number(word)
     if not (length > 0 and math.isfinite(length)):
         raise click.BadParameter(f"expected auto or a positive finite length, got {value!r}", param_hint="'--spacing'")
     return length
@@ -141,13 +135,19 @@ def parse_fill(value: str):
     word = str(value).strip().lower()
     if word in ("hull", "off"):
         return word
-    try:
-        distance = float(word)
-    except ValueError:
-        distance = float("nan")
+    distance = _number(word)
     if not (distance >= 0 and math.isfinite(distance)):
         raise click.BadParameter(f"expected hull, off or a distance >= 0, got {value!r}", param_hint="'--fill'")
     return "off" if distance == 0 else distance
+
+
+def _number(word: str) -> float:
+    """An option's word as a number, NaN when it is none (the caller's range check then
+    refuses it, with its own message)."""
+    try:
+        return float(word)
+    except ValueError:
+        return math.nan
 
 
 def _numbers(value: str) -> tuple[float, ...]:
