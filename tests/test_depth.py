@@ -220,25 +220,30 @@ def test_mug_frame_with_default_options(mug_default):
     from scipy.spatial import cKDTree
 
     mesh, report = mug_default.mesh, mug_default.report
-    # the level from the data: level 1 keeps every vertex an input point (one per valid pixel)
+    # the level from the data: level 1 keeps one vertex per valid pixel, on that pixel's ray
+    # (the default's smoothing fit moves w = 1/z only: the grid's normals are estimated)
     assert (report["level"], report["level_from"]) == (1, "data")
+    assert report["normals"] == "grid" and report["smoothing"]["strength"] > 0
     assert len(mesh.vertices) == report["points"]["kept"]
     points = read_cloud(MUG).points
     points = points[np.isfinite(points).all(axis=1)]
     distance, _ = cKDTree(points).query(mesh.vertices, distance_upper_bound=0.05)
     assert distance.max() <= 0.02
     assert mug_edge_on(mesh.vertices, mesh.faces) <= 1e-3
-    to_vertex, _ = cKDTree(mesh.vertices).query(points, distance_upper_bound=1e-6)
-    assert np.mean(to_vertex <= 1e-9) >= 0.9        # the maps to the camera and back round
+
+    def rays(p):
+        return p / np.linalg.norm(p, axis=1)[:, None]
+    to_ray, _ = cKDTree(rays(mesh.vertices)).query(rays(points), distance_upper_bound=1e-6)
+    assert np.mean(to_ray <= 1e-9) >= 0.9        # the maps to the camera and back round
 
 
 @pytest.mark.slow
 def test_mug_frame_folds_at_most_one_face_in_ten_thousand(mug_mesh):
     """Folded faces by the project's measure (quality.folded_faces: any corner normal more
     than 90° from the face's geometric normal), the issue's ≤ 0.01%, at level 4. The
-    overshoot limiter in the (u, v, w) chart brings them there: 0.084% without it
-    (--overshoot off). The default level 1 (one face per grid triangle) samples the same
-    spline coarsely and folds more faces: docs/perspective.md gives the count."""
+    default smoothing fit of w over the chart folds none there (0 of 6.5M faces; the exact
+    fit with its limiter 350, 0.0053%, and 0.084% without the limiter);
+    docs/perspective.md gives level 1's counts."""
     from c1mesh.testing.quality import folded_faces
 
     mesh = mug_mesh
@@ -256,14 +261,15 @@ def _disparity_quantised_cylinder(tmp_path, n: int = 60, step: float = 0.004):
 
 
 def test_smoothing_in_the_chart_removes_most_of_a_stereo_frames_quantisation(tmp_path):
-    """--smooth in the perspective frame fits w over the chart (the plane fit's smoothing
-    stage on the chart's one tile) instead of interpolating the quantised steps: its
+    """The default fit in the perspective frame, where the grid's normals are estimated,
+    fits w over the chart (the plane fit's smoothing stage on the chart's one tile)
+    instead of interpolating the quantised steps as --smooth off does: its
     vertices lie nearer the true wall (the unit cylinder, not the data) than the exact
     interpolant's, by more than half of the exact fit's RMS error; the exact fit reports no
     smoothing, the smoothed one its strength."""
     path = _disparity_quantised_cylinder(tmp_path)
-    exact = fit(path, None, FitOptions(level=1, normals="estimate"))
-    smoothed = fit(path, None, FitOptions(level=1, normals="estimate", smooth="auto"))
+    exact = fit(path, None, FitOptions(level=1, normals="estimate", smooth="off"))
+    smoothed = fit(path, None, FitOptions(level=1, normals="estimate"))        # the default
     assert smoothed.report["frame"]["kind"] == "perspective"
     assert "smoothing" not in exact.report and smoothed.report["smoothing"]["strength"] > 0
 

@@ -1,8 +1,9 @@
 """The fit pipeline in the perspective frame: a scan seen from one viewpoint.
 
     normals → inverse depth over the rays → triangulate (pixel grid, or Delaunay in (u, v))
-    → drop depth jumps → limit overshoot, or with --smooth the smoothing fit of w over the
-    chart → interpolate w(u, v) → refine in (u, v) → map back → write
+    → drop depth jumps → the smoothing fit of w over the chart (the default where the
+    normals are estimated), or with --smooth off or the file's normals limit overshoot
+    → interpolate w(u, v) → refine in (u, v) → map back → write
 
 The smoothing fit is the plane fit's stage (c1mesh.stages.smoothing.smooth_tile) on the
 chart's one tile: the vertices' (u, v), their inverse depths w and gradients ∇w, with the
@@ -113,7 +114,8 @@ def camera_normals(cloud: PointCloud, camera: np.ndarray, frame: PerspectiveFram
         raise InputError("the input has no normals; use --normals estimate (or auto)")
     have = cloud.normals is not None and mode != "estimate"
     normals = frame.vectors_to_local(cloud.normals) if have else np.full(camera.shape, np.nan)
-    missing = ~np.isfinite(normals).all(axis=1) | ~(np.abs(normals).sum(axis=1) > 0)
+    finite = np.isfinite(camera).all(axis=1)        # the others are dropped, normals or not
+    missing = finite & (~np.isfinite(normals).all(axis=1) | ~(np.abs(normals).sum(axis=1) > 0))
     if not missing.any():
         return normals, "file"
     if cloud.grid_shape is not None:
@@ -122,13 +124,12 @@ def camera_normals(cloud: PointCloud, camera: np.ndarray, frame: PerspectiveFram
         estimate = grid_normals(camera.reshape(height, width, 3), valid).reshape(-1, 3)
         source = "grid"
     else:
-        finite = np.isfinite(camera).all(axis=1)
         if finite.sum() < 3:
             raise InputError(f"only {int(finite.sum())} points have finite coordinates; need at least 3")
         estimate = estimate_normals(camera, k=k, towards=-np.where(finite[:, None], camera, 0.0))
         source = "estimated"
     normals[missing] = estimate[missing]
-    return normals, source if missing.all() else f"file+{source}"
+    return normals, source if np.array_equal(missing, finite) else f"file+{source}"
 
 
 def view_field(camera: np.ndarray, normals: np.ndarray, max_slope_deg: float) -> ViewField:
@@ -252,15 +253,18 @@ def fit_perspective(cloud: PointCloud, source, output, options, timer, keep_mesh
 def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarray, options, normal_source: str):
     """(RSDInterpolator of w over the chart, the overshoot report, the SmoothFit or None).
 
-    used: the field's rows the triangles (T, 3) number. Without --smooth: the exact
-    interpolant of w with the limiter (its height reconciliation off: the chart's u, v
-    and w do not share a unit). With --smooth: the smoothing stage on the chart's one tile
+    used: the field's rows the triangles (T, 3) number. With --smooth off, or by default
+    where the normals came from the file: the exact interpolant of w with the limiter (its
+    height reconciliation off: the chart's u, v and w do not share a unit). With --smooth
+    given, or by default where the normals are estimated (normal_source "grid" or
+    "estimated"; pipeline.plan.resolved_smoothing): the smoothing stage on the chart's one tile
     (`chart_spacing` its length unit; the normals' ∇w enter as data by where the normals
     came from, smoothing.gradient_data_weight), of whose remedies only the edge
     directions apply."""
     scheme = get_scheme(options.scheme)
     uv, w, gradients = field_.uv[used], field_.w[used], field_.gradients[used]
-    strength = smoothing_strength(resolved_smoothing(options, normal_source == "estimated", perspective=True))
+    estimated = normal_source in ("grid", "estimated")          # none read from the file
+    strength = smoothing_strength(resolved_smoothing(options, estimated, perspective=True))
     if strength is None:
         interp, overshoot = limited_interpolator(uv, w, gradients, triangles, scheme, options.overshoot,
                                                  heights=False)

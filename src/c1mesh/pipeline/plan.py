@@ -65,17 +65,17 @@ def is_default_smooth(smooth) -> bool:
 
 def resolved_smoothing(options, estimated: bool, perspective: bool = False):
     """options with a default smooth resolved, once the fit knows whether its gradients
-    are estimated (normals not in the file) and its frame: "auto" on the lattice
-    (--spacing auto unless a spacing is given) for estimated gradients over a height field,
-    and wherever a --spacing is given (a lattice is a smoothing fit's: the user asked for
-    one; the perspective frame refuses it, as with --smooth given); else "off". Any other
-    smooth is returned as it is."""
+    are estimated (normals not in the file) and its frame: for estimated gradients "auto",
+    on the lattice (--spacing auto unless a spacing is given) over a height field and on
+    the pixel grid in the perspective frame; "auto" wherever a --spacing is given (a
+    lattice is a smoothing fit's: the user asked for one; the perspective frame refuses it,
+    as with --smooth given); else "off". Any other smooth is returned as it is."""
     if not is_default_smooth(options.smooth):
         return options
     if options.spacing is not None:
         return replace(options, smooth="auto")
-    if estimated and not perspective:
-        return replace(options, smooth="auto", spacing="auto")
+    if estimated:
+        return replace(options, smooth="auto", spacing=None if perspective else "auto")
     return replace(options, smooth="off")
 
 def refinement_level(level) -> int | None:
