@@ -33,10 +33,11 @@ Methods:
   c1mesh exact      FitOptions(smooth="off") (an interpolating C1 spline, overshoot limiter on);
   c1mesh overshoot=off   FitOptions(overshoot="off");
   c1mesh smooth=auto     FitOptions(smooth="auto"), when this build's FitOptions has that field;
-  c1mesh lattice         issue 38's lattice route: FitOptions(smooth="auto", spacing=D), the
-                         vertices the nodes of a lattice at D = the training points' mean
-                         spacing sqrt(hull area / n) (3 significant digits), when this build
-                         has `spacing`. Its held-out RMS moves with where the lattice falls on
+  c1mesh default         FitOptions(smooth="default"): what `c1mesh fit` does without
+                         --smooth, here (normals estimated) issue 38's lattice route,
+                         --smooth auto --spacing auto: the vertices the nodes of a lattice at
+                         D = sqrt(box area / n) of the training points (2 significant
+                         digits). Its held-out RMS moves with where the lattice falls on
                          the points: 1.5 % over six sub-cell shifts on autzen_trim ground
                          (docs/smoothing.md, "The least strength against the lattice's
                          position"); the row is today's position.
@@ -335,7 +336,7 @@ def c1mesh_model(train_world: np.ndarray, **options):
     return build_surface(PointCloud(points=train_world), FitOptions(normals="auto", **{"smooth": "off", **options}))
 
 
-LATTICE = "c1mesh lattice smooth=auto"
+LATTICE = "c1mesh default (lattice, --spacing auto)"
 
 
 def lattice_status() -> str:
@@ -348,12 +349,12 @@ def lattice_status() -> str:
 
 
 def c1mesh_lattice(train_world: np.ndarray, test_world: np.ndarray):
-    """The lattice row: (heights along its frame's e3, frame, note "D, s") of the lattice
-    route at the training points' mean spacing."""
-    spacing = float(f"{mean_spacing(train_world[:, :2]):.3g}")
-    model = c1mesh_model(train_world, smooth="auto", spacing=spacing)
+    """The default's row: (heights along its frame's e3, frame, note "D, s") of the fit
+    without --smooth, the lattice route at --spacing auto."""
+    model = c1mesh_model(train_world, smooth="default")
     local = model.frame.to_local(test_world)
-    return model.interp(local[:, :2]), model.frame, f"D = {spacing:g}, s = {model.smoothing.strength:.3g}"
+    return model.interp(local[:, :2]), model.frame, f"D = {model.lattice['spacing']:.3g}, " \
+                                                    f"s = {model.smoothing.strength:.3g}"
 
 
 def c1mesh_method(**options):
