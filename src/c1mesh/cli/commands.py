@@ -93,7 +93,7 @@ def main() -> None:
 @click.option("--spacing", default=None, metavar="auto|D",
               help="With --smooth: the vertices on a D x D lattice (D in the scan's units) over the "
                    "points, fitted to all of them; solved by multigrid. auto: the points' mean spacing, "
-                   "or --resolution when coarser.  [default: auto for the default smoothing fit; with "
+                   "whatever --resolution is.  [default: auto for the default smoothing fit; with "
                    "--smooth given, a vertex at every point]")
 @click.option("--report", help="Write a JSON report to FILE, or - for stderr.")
 @click.option("--memory", callback=parse_memory_option, help=MEMORY_HELP)

@@ -203,8 +203,7 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
         colours.finish()
         count, box, positions = _plane_box(chunks, frame)
         if is_auto(surface.spacing):               # the in-memory rule: the chosen points' box and count
-            resolution = plan.dem.resolution if plan.dem is not None else plan.mesh.resolution
-            plan = replace(plan, surface=replace(surface, spacing=auto_spacing(box[:2], box[2:], count, resolution)))
+            plan = replace(plan, surface=replace(surface, spacing=auto_spacing(box[:2], box[2:], count)))
             surface = plan.surface
         if surface.spacing is not None:            # every lattice node inside the tiles' box
             box = _grown_box(box, LATTICE_MARGIN * surface.spacing)

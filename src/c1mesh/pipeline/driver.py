@@ -453,7 +453,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             if is_auto(options.spacing):      # the tiles' rule: their box and count of the chosen points
                 local = frame.to_local(cloud.points)[:, :2]
                 options = replace(options, spacing=auto_spacing(*bounds(local[finite_rows(local)]),
-                                                                 len(cloud.points), options.resolution))
+                                                                 len(cloud.points)))
             return _lattice_model(hf, strength, options, (check_triangulation, fill), timer,
                                   (normal_source, frame, gradient_source, max_slope_not_applied))
         with timer.stage("triangulate"):
