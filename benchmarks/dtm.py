@@ -1,7 +1,7 @@
 """The whole DTM job against GMT: a 1M-point LAZ to a 1 m DEM (issue 38).
 
     python -m benchmarks.dtm make FOLDER              # FOLDER/dtm.laz and FOLDER/dtm.bin
-    python -m benchmarks.dtm run FOLDER [--reps 3] [--spacings 1 2] [--write]
+    python -m benchmarks.dtm run FOLDER [--reps 3] [--spacings 1 2] [--no-delaunay] [--write]
 
 The survey is issue 38's (and the floor job's kind): 1,000,000 points uniform over a
 1000 × 1000 m square, z = 100 + 30 sin(x/97) cos(y/131) + 2 cm Gaussian noise, all class
@@ -11,7 +11,10 @@ binary doubles x y z: the GMT side reads those.
 Contenders, each a child process timed from start to exit with its own peak RSS (and its
 children's: GMT is two commands under one shell); one round runs each once, back to back,
 and the table shows medians over the rounds:
-- `c1mesh fit dtm.laz -o DIR/smooth.tif --resolution 1 --smooth auto`, the smoothing fit;
+- `c1mesh fit dtm.laz -o DIR/default.tif --resolution 1`, the job as a user runs it: the
+  default, here the lattice at `--spacing auto` (the points' mean spacing, 1 m);
+- `c1mesh fit dtm.laz -o DIR/smooth.tif --resolution 1 --smooth auto`, the smoothing fit with
+  a vertex at every point (not with run's --no-delaunay: 70-80 s a round);
 - the same with `--smooth off`, the exact interpolant;
 - with `--spacing D` (run's --spacings, none by default): `--smooth auto` on the nodes of a
   D × D lattice over the points, fitted to every point and solved by multigrid (the lattice
@@ -80,13 +83,15 @@ def gmt_status() -> str:
     return "" if shutil.which("gmt") else "gmt not found on PATH (benchmarks/install-peers.sh installs it)"
 
 
-def c1mesh_run(folder: Path, smooth: str, spacing: float | None = None) -> tuple[float, int, Path]:
-    """(seconds, peak RSS, DEM path) of one `c1mesh fit` to a 1 m DEM (with --spacing
-    when spacing is given)."""
-    dem = folder / (f"{smooth}.tif" if spacing is None else f"{smooth}-spacing{spacing:g}.tif")
+def c1mesh_run(folder: Path, smooth: str | None, spacing: float | None = None) -> tuple[float, int, Path]:
+    """(seconds, peak RSS, DEM path) of one `c1mesh fit` to a 1 m DEM (with --smooth and
+    --spacing when they are given; smooth None: the default)."""
+    name = smooth or "default"
+    dem = folder / (f"{name}.tif" if spacing is None else f"{name}-spacing{spacing:g}.tif")
     thin = [] if spacing is None else ["--spacing", f"{spacing:g}"]
+    given = [] if smooth is None else ["--smooth", smooth]
     done = run_child([sys.executable, *C1MESH, "fit", str(folder / "dtm.laz"), "-o", str(dem),
-                      "--resolution", "1", "--smooth", smooth, *thin])
+                      "--resolution", "1", *given, *thin])
     if done.returncode:
         raise RuntimeError(f"c1mesh fit --smooth {smooth} {' '.join(thin)} failed: {done.stderr.strip()[-400:]}")
     return done.seconds, done.peak_rss, dem
@@ -132,12 +137,14 @@ def _rms(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> float:
     return float(np.sqrt(np.mean(error ** 2)))
 
 
-def run(folder: Path, reps: int, spacings: tuple[float, ...] = ()) -> Section:
+def run(folder: Path, reps: int, spacings: tuple[float, ...] = (), delaunay: bool = True) -> Section:
     """The contenders, reps rounds; in a round every c1mesh run is followed by a GMT run,
     and its × GMT is its time over that run's (the machine may be shared: the pair ran
     under the same load); the table shows medians. The section for RESULTS.md."""
-    jobs = [("--smooth auto", lambda: c1mesh_run(folder, "auto")),
-            ("--smooth off", lambda: c1mesh_run(folder, "off"))]
+    jobs = [("the default (no --smooth)", lambda: c1mesh_run(folder, None))]
+    if delaunay:
+        jobs.append(("--smooth auto", lambda: c1mesh_run(folder, "auto")))
+    jobs.append(("--smooth off", lambda: c1mesh_run(folder, "off")))
     jobs += [(f"--smooth auto --spacing {d:g}", lambda d=d: c1mesh_run(folder, "auto", d)) for d in spacings]
     runs: dict[str, list[tuple[float, int]]] = {name: [] for name, _ in jobs}
     runs["GMT"] = []
@@ -158,7 +165,8 @@ def run(folder: Path, reps: int, spacings: tuple[float, ...] = ()) -> Section:
                   file=sys.stderr)
     rms = {name: (gmt_rms(path) if name == "GMT" else dem_rms(path)) for name, path in outputs.items()}
     command = f"python -m benchmarks.dtm run DIR --reps {reps}" + \
-        (" --spacings " + " ".join(f"{d:g}" for d in spacings) if spacings else "")
+        (" --spacings " + " ".join(f"{d:g}" for d in spacings) if spacings else "") + \
+        ("" if delaunay else " --no-delaunay")
     return _section(runs, ratios, rms, skipped, command, reps)
 
 
@@ -193,13 +201,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, default=N, help="make: how many points (default 1M)")
     parser.add_argument("--spacings", type=float, nargs="*", default=[],
                         help="run: also --smooth auto with each of these --spacing values")
+    parser.add_argument("--no-delaunay", action="store_true",
+                        help="run: leave out --smooth auto with a vertex at every point (70-80 s a round)")
     parser.add_argument("--write", action="store_true",
                         help=f"run: write the '{TITLE}' section of RESULTS.md, its runs so far kept below")
     args = parser.parse_args(argv)
     if args.verb == "make":
         make(args.folder, args.points)
         return 0
-    return show_section(run(args.folder, args.reps, tuple(args.spacings)), args.write, keep_earlier=True)
+    return show_section(run(args.folder, args.reps, tuple(args.spacings), not args.no_delaunay), args.write,
+                        keep_earlier=True)
 
 
 if __name__ == "__main__":
