@@ -336,7 +336,7 @@ def c1mesh_model(train_world: np.ndarray, **options):
     return build_surface(PointCloud(points=train_world), FitOptions(normals="auto", **{"smooth": "off", **options}))
 
 
-LATTICE = "c1mesh default (lattice, --spacing auto)"
+DEFAULT_ROW = "c1mesh default (lattice, --spacing auto)"
 
 
 def lattice_status() -> str:
@@ -348,7 +348,7 @@ def lattice_status() -> str:
     return "c1mesh --spacing: not available in this build"
 
 
-def c1mesh_lattice(train_world: np.ndarray, test_world: np.ndarray):
+def c1mesh_default(train_world: np.ndarray, test_world: np.ndarray):
     """The default's row: (heights along its frame's e3, frame, note "D, s") of the fit
     without --smooth, the lattice route at --spacing auto."""
     model = c1mesh_model(train_world, smooth="default")
@@ -395,9 +395,9 @@ def methods(peers: str = "all") -> tuple[list, dict]:
         rows.append(("c1mesh smooth=auto", "c1mesh", c1mesh_method(smooth="auto")))
     why = why or lattice_status()
     if why:
-        skipped[LATTICE] = why
+        skipped[DEFAULT_ROW] = why
     else:
-        rows.append((LATTICE, "c1mesh", c1mesh_lattice))
+        rows.append((DEFAULT_ROW, "c1mesh", c1mesh_default))
     return rows, skipped
 
 

@@ -43,7 +43,7 @@ from c1mesh.pipeline.steps import (
     smoothed_interpolator,
     write_surface,
 )
-from c1mesh.pipeline.plan import resolved_smoothing, smoothing_strength
+from c1mesh.pipeline.plan import estimated_normals, resolved_smoothing, smoothing_strength
 from c1mesh.stages.grid import counter_clockwise, depth_jumps, grid_mesh, grid_normals
 from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.normals import estimate_normals
@@ -256,15 +256,14 @@ def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarra
     used: the field's rows the triangles (T, 3) number. With --smooth off, or by default
     where the normals came from the file: the exact interpolant of w with the limiter (its
     height reconciliation off: the chart's u, v and w do not share a unit). With --smooth
-    given, or by default where the normals are estimated (normal_source "grid" or
-    "estimated"; pipeline.plan.resolved_smoothing): the smoothing stage on the chart's one tile
+    given, or by default where the normals are estimated (pipeline.plan.estimated_normals
+    and resolved_smoothing): the smoothing stage on the chart's one tile
     (`chart_spacing` its length unit; the normals' ∇w enter as data by where the normals
     came from, smoothing.gradient_data_weight), of whose remedies only the edge
     directions apply."""
     scheme = get_scheme(options.scheme)
     uv, w, gradients = field_.uv[used], field_.w[used], field_.gradients[used]
-    estimated = normal_source in ("grid", "estimated")          # none read from the file
-    strength = smoothing_strength(resolved_smoothing(options, estimated, perspective=True))
+    strength = smoothing_strength(resolved_smoothing(options, estimated_normals(normal_source), perspective=True))
     if strength is None:
         interp, overshoot = limited_interpolator(uv, w, gradients, triangles, scheme, options.overshoot,
                                                  heights=False)

@@ -53,7 +53,8 @@ from c1mesh.geo.raster import (
 )
 from c1mesh.geo.raster_grid import FillRule
 from c1mesh.pipeline.depth_fit import fit_perspective
-from c1mesh.pipeline.plan import fit_plan, resolve_options_axis, resolved_smoothing, smoothing_strength
+from c1mesh.pipeline.plan import (estimated_normals, fit_plan, resolve_options_axis, resolved_smoothing,
+                                  smoothing_strength)
 from c1mesh.pipeline.report import ReportCore, crs_facts
 from c1mesh.pipeline.steps import (
     FitResult,
@@ -429,7 +430,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 normal_source = "estimated"
             else:
                 normals, normal_source = cloud_normals(cloud, options)
-                options = resolved_smoothing(options, estimated=normal_source == "estimated")
+                options = resolved_smoothing(options, estimated=estimated_normals(normal_source))
         strength = smoothing_strength(options)
         with timer.stage("frame"):
             if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it

@@ -63,6 +63,18 @@ def is_default_smooth(smooth) -> bool:
     return isinstance(smooth, str) and smooth.strip().lower() == DEFAULT_SMOOTH
 
 
+ESTIMATED_NORMALS = ("estimated", "grid")
+"""The report's normal sources that read no normal from the file: Open3D's or the height
+field's estimate, and an organised frame's pixel-grid estimate ("file+..." mixes keep the
+file's, so the exact fit)."""
+
+
+def estimated_normals(normal_source: str) -> bool:
+    """Whether a fit's normals (the report's `normals`) are all estimated: the default then
+    smooths (resolved_smoothing)."""
+    return normal_source in ESTIMATED_NORMALS
+
+
 def resolved_smoothing(options, estimated: bool, perspective: bool = False):
     """options with a default smooth resolved, once the fit knows whether its gradients
     are estimated (normals not in the file) and its frame: for estimated gradients "auto",
@@ -77,6 +89,7 @@ def resolved_smoothing(options, estimated: bool, perspective: bool = False):
     if estimated:
         return replace(options, smooth="auto", spacing=None if perspective else "auto")
     return replace(options, smooth="off")
+
 
 def refinement_level(level) -> int | None:
     """options.level: None (the fit chooses) or a whole number 1 ... MAX_LEVEL, as the
