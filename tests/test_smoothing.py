@@ -553,7 +553,7 @@ def test_the_window_centre_breaks_distance_ties_by_the_lower_x_then_y():
 def test_the_search_windows_depend_only_on_the_survey_points():
     """SearchWindows: the whole mesh up to SEARCH_VERTICES points; beyond, one square on the
     point nearest each anchor of the bounding box (brute force here), of the side that
-    holds WINDOW_POINTS of evenly spread points, whatever the points' order; and the reduce
+    holds SEARCH_VERTICES / 9 of evenly spread points, whatever the points' order; and the reduce
     of any split of the points into parts (the tiles of a survey) gives the same centres."""
     import c1mesh.stages.smoothing as sm
 
@@ -562,7 +562,7 @@ def test_the_search_windows_depend_only_on_the_survey_points():
     xy = rng.uniform([100, -50], [400, 250], (sm.SEARCH_VERTICES + 500, 2))
     windows = sm.search_windows(xy)
     lower, upper = xy.min(axis=0), xy.max(axis=0)
-    side = np.sqrt(np.prod(upper - lower) * sm.WINDOW_POINTS / len(xy))
+    side = np.sqrt(np.prod(upper - lower) * (sm.SEARCH_VERTICES // len(sm.WINDOW_ANCHORS)) / len(xy))
     assert windows.side == pytest.approx(side, rel=0.05)
     expected = []
     for fx, fy in sm.WINDOW_ANCHORS:
@@ -581,3 +581,21 @@ def test_the_search_windows_depend_only_on_the_survey_points():
         near = (np.abs(xy[:, 0] - x) <= windows.side / 2) & (np.abs(xy[:, 1] - y) <= windows.side / 2)
         assert inside[near].all()
     assert abs(inside.sum() - sm.SEARCH_VERTICES) < 0.1 * sm.SEARCH_VERTICES      # evenly spread: about that many
+
+
+def test_a_charts_search_windows_hold_its_share_of_the_vertices():
+    """search_windows with a budget: the whole mesh up to the budget, beyond it nine squares
+    holding about that many evenly spread points; a perspective chart's budget is
+    CHART_SEARCH_SHARE of its vertices, never below a survey's SEARCH_VERTICES."""
+    import c1mesh.stages.smoothing as sm
+
+    assert sm.chart_search_vertices(1000) == sm.SEARCH_VERTICES
+    assert sm.chart_search_vertices(300_000) == int(sm.CHART_SEARCH_SHARE * 300_000) > sm.SEARCH_VERTICES
+    rng = np.random.default_rng(5)
+    xy = rng.uniform([0, 0], [640, 480], (120_000, 2))
+    budget = 24_000
+    assert sm.search_windows(xy[:budget], budget).whole
+    windows = sm.search_windows(xy, budget)
+    assert len(windows.centres) == len(sm.WINDOW_ANCHORS)
+    assert abs(windows.holding(xy).sum() - budget) < 0.1 * budget
+    assert windows.side > sm.search_windows(xy).side

@@ -49,7 +49,8 @@ from c1mesh.stages.limiter import check_mode
 from c1mesh.stages.normals import estimate_normals
 from c1mesh.stages.height_field import kd_tree
 from c1mesh.stages.perspective import PerspectiveFrame, frame_from_viewpoint, inverse_depth_gradients, parse_viewpoint
-from c1mesh.stages.smoothing import SmoothingControl, SmoothingRun, gradient_data_weight
+from c1mesh.stages.smoothing import (SmoothingControl, SmoothingRun, chart_search_vertices, gradient_data_weight,
+                                     search_windows)
 from c1mesh.stages.trim import trim
 
 
@@ -260,7 +261,9 @@ def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarra
     and resolved_smoothing): the smoothing stage on the chart's one tile
     (`chart_spacing` its length unit; the normals' ∇w enter as data by where the normals
     came from, smoothing.gradient_data_weight), of whose remedies only the edge
-    directions apply."""
+    directions apply. A search for the strength runs on windows holding a larger share of
+    the chart than of a survey (smoothing.chart_search_vertices: a frame is a scene of
+    several surfaces)."""
     scheme = get_scheme(options.scheme)
     uv, w, gradients = field_.uv[used], field_.w[used], field_.gradients[used]
     strength = smoothing_strength(resolved_smoothing(options, estimated_normals(normal_source), perspective=True))
@@ -271,8 +274,9 @@ def chart_interpolator(field_: ViewField, used: np.ndarray, triangles: np.ndarra
     if options.spacing is not None:
         raise InputError("--spacing thins a height field's vertices (--frame axis or auto); the perspective "
                          "frame's smoothing fit keeps every point as a vertex")
-    run = SmoothingRun(SmoothingControl(strength, scheme, edf=options.edf), chart_spacing(uv), options.overshoot,
-                       gradient_data_weight(normal_source, "normals"))
+    windows = search_windows(uv, chart_search_vertices(uv.shape[0])) if strength == "auto" else None
+    run = SmoothingRun(SmoothingControl(strength, scheme, windows=windows, edf=options.edf), chart_spacing(uv),
+                       options.overshoot, gradient_data_weight(normal_source, "normals"))
     return smoothed_interpolator(Tile.whole(uv, w, gradients, triangles), run)
 
 

@@ -87,10 +87,16 @@ centred on the point nearest one of these anchors (`search_windows`), the centre
 grid of the box. Nine small windows sample a survey whose terrain varies more places than
 four larger ones at the quarter points did, at no more cost (a window's factor grows faster
 than its size)."""
-WINDOW_POINTS = SEARCH_VERTICES // len(WINDOW_ANCHORS)
-"""Points a search window would hold if the points filled their bounding box evenly: its
-side is sqrt(WINDOW_POINTS × box area / points) (`window_side`). Where they fill it
-unevenly (holes, a ragged border) a window holds fewer; a pixel grid holds this many."""
+CHART_SEARCH_SHARE = 0.1
+"""The share of a perspective chart's vertices its search windows hold (at least
+SEARCH_VERTICES; `chart_search_vertices`). A depth frame is a scene, not a terrain: a table,
+a mug, a wall, their edges, each wanting its own smoothing, and the nine windows of 5,000
+pixels sample 2.4 % of the mug stereo frame's 209,029 on flat patches. Measured there
+(windows at the nine anchors, the strength s each size chooses; the whole chart's own
+search, 267 s, chooses 0.058): 5,000 vertices 0.17 (the whole chart's CV score 1.5 % above
+its best), 10,000 0.17, 20,903 (this share) 0.088 (+0.19 %), 40,000 0.091; the fit 11.7 s
+against 8.4-9.2 s at 5,000. On noisy quantised synthetic frames, whose content is one
+surface, both sizes are within 1 % (docs/perspective.md, "Smoothing in the chart")."""
 CV_RIDGE = 1e-9
 """Relative ridge of the cross-validation solves (smoothing_system.solve: a held-out
 block may cover a whole island of the mesh)."""
@@ -267,14 +273,17 @@ def reduce_nearest(summaries: list) -> np.ndarray:
     return out
 
 
-def window_side(lower: np.ndarray, upper: np.ndarray, count: int) -> float:
-    """The side of the search windows of `count` points in the bounding box lower (2,) ..
-    upper (2,) (WINDOW_POINTS), rounded to 2 significant digits: the in-memory and the
-    tiled fit find the same box but for the last bits of the frames' local coordinates,
-    and may count a few points apart (the in-memory height field merges near-duplicate
-    positions, the tiled spill exact ones)."""
+def window_side(lower: np.ndarray, upper: np.ndarray, count: int, budget: int | None = None) -> float:
+    """The side of the search windows of a survey of `count` points in the bounding box
+    lower (2,) .. upper (2,): the square that would hold budget / len(WINDOW_ANCHORS) of them
+    if they filled the box evenly (budget None: SEARCH_VERTICES). Where they fill it
+    unevenly (holes, a ragged border) a window holds fewer; a pixel grid holds that many.
+    Rounded to 2 significant digits: the in-memory and the tiled fit find the same box but
+    for the last bits of the frames' local coordinates, and may count a few points apart
+    (the in-memory height field merges near-duplicate positions, the tiled spill exact ones)."""
+    per_window = (SEARCH_VERTICES if budget is None else budget) // len(WINDOW_ANCHORS)
     extent = np.asarray(upper, float) - np.asarray(lower, float)
-    return float(f"{math.sqrt(WINDOW_POINTS * float(extent[0] * extent[1]) / count):.2g}")
+    return float(f"{math.sqrt(per_window * float(extent[0] * extent[1]) / count):.2g}")
 
 
 def windows_at(nearest: np.ndarray, side: float) -> SearchWindows:
@@ -287,26 +296,33 @@ def windows_at(nearest: np.ndarray, side: float) -> SearchWindows:
     return SearchWindows(tuple(centres), side)
 
 
-def search_windows(xy: np.ndarray) -> SearchWindows:
+def search_windows(xy: np.ndarray, budget: int | None = None) -> SearchWindows:
     """The survey's SearchWindows from all its points xy (n, 2) (those of the height field,
     fitted or not): `windows_of_parts` with one part."""
     xy = np.asarray(xy, dtype=float)
-    return windows_of_parts(lambda: iter((xy,)), xy.shape[0])
+    return windows_of_parts(lambda: iter((xy,)), xy.shape[0], budget)
 
 
-def windows_of_parts(parts, count: int) -> SearchWindows:
+def windows_of_parts(parts, count: int, budget: int | None = None) -> SearchWindows:
     """The SearchWindows of a survey of `count` points given in parts: parts() a fresh
     iterator of (m, 2) xy arrays (the in-memory fit's one, or a tiled survey's tiles).
-    The whole mesh for at most SEARCH_VERTICES points; else two reduces over the parts,
-    the bounding box and then each part's `nearest_to_anchors`, give squares of
-    `window_side` centred on the points nearest the box's anchors. Any split of the same
-    points gives the same windows."""
-    if count <= SEARCH_VERTICES:
+    The whole mesh for at most `budget` points (None: SEARCH_VERTICES); else two reduces
+    over the parts, the bounding box and then each part's `nearest_to_anchors`, give
+    squares of `window_side` centred on the points nearest the box's anchors, holding about
+    `budget` points together. Any split of the same points gives the same windows."""
+    budget = SEARCH_VERTICES if budget is None else int(budget)
+    if count <= budget:
         return SearchWindows()
     lower, upper = plane_bounds(parts())
     anchors = window_anchors(lower, upper)
     nearest = reduce_nearest([nearest_to_anchors(xy, anchors) for xy in parts()])
-    return windows_at(nearest, window_side(lower, upper, count))
+    return windows_at(nearest, window_side(lower, upper, count, budget))
+
+
+def chart_search_vertices(count: int) -> int:
+    """The search windows' budget of a perspective chart of `count` vertices:
+    CHART_SEARCH_SHARE of them, at least SEARCH_VERTICES."""
+    return max(SEARCH_VERTICES, int(CHART_SEARCH_SHARE * count))
 
 
 @dataclass(frozen=True)
@@ -1307,5 +1323,5 @@ __all__ = ["SmoothingError", "SchemeNotPolynomialError", "SmoothingData", "Smoot
            "StrengthSearch", "smooth_tile", "search_strength", "smoothing_reach", "solve_totals",
            "combined_fit", "lattice_shapes", "shared_directions", "HALO_LENGTHS", "LATTICE_HALO_LENGTHS", "LATTICE_HALO_SPACINGS",
            "energy_blocks", "parse_strength", "fold_of", "cv_score", "CV_BLOCK",
-           "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors",
+           "SEARCH_VERTICES", "SEARCH_LIMITS", "SearchWindows", "search_windows", "window_anchors", "chart_search_vertices",
            "nearest_to_anchors", "reduce_nearest", "window_side", "windows_at", "windows_of_parts"]
