@@ -14,75 +14,91 @@ import pytest
 
 from c1mesh.core import threads
 from c1mesh.core.errors import InputError
-from c1mesh.core.threads import blas_threads, prefetch, ring, run_parallel
+from c1mesh.core.threads import blas_threads, ring, run_parallel
 
 SAMPLES = Path(__file__).resolve().parent.parent / "data_samples"
 
 
 @pytest.fixture
 def two_workers():
-    """prefetch runs a producer thread only when more than one worker is allowed."""
+    """prefetch_dealt runs one producer thread per worker when more than one is allowed."""
     with threads.limit(2):
         yield
 
 
-def _reusing_blocks(count: int, buffers: int, size: int = 1000):
-    """Blocks that, like Refinement's, overwrite one of `buffers` arrays in turn."""
-    pool = [np.empty(size) for _ in range(buffers)]
-    for i in range(count):
-        block = pool[i % buffers]
-        block[:] = i
-        yield block
+def _dealt_reusing(count: int, buffers: int, size: int = 1000, made: dict | None = None):
+    """make(w, producers) for prefetch_dealt: blocks w, w + producers, ... of `count`, each
+    (like Refinement's) overwriting one of the producer's own `buffers` arrays in turn and
+    holding its number; made[number] records the thread that made it."""
+    def make(w: int, producers: int):
+        pool = [np.empty(size) for _ in range(buffers)]
+        for k, i in enumerate(range(w, count, producers)):
+            block = pool[k % buffers]
+            block[:] = i
+            if made is not None:
+                made[i] = threading.get_ident()
+            yield block
+    return make
 
 
-def test_prefetch_yields_every_block_in_order_with_a_slow_consumer(two_workers):
-    depth = 3
+@pytest.mark.parametrize("workers", [2, 3])
+def test_dealt_blocks_come_in_order_from_every_producer_with_a_slow_consumer(workers):
+    depth, made = 3, {}
     seen = []
-    for block in prefetch(_reusing_blocks(40, ring(depth)), depth):
-        time.sleep(0.001)                       # the producer runs ahead meanwhile
-        seen.append((block.min(), block.max()))  # a block overwritten early would show here
+    with threads.limit(workers):
+        for block in threads.prefetch_dealt(_dealt_reusing(40, ring(depth), made=made), depth):
+            time.sleep(0.001)                       # the producers run ahead meanwhile
+            seen.append((block.min(), block.max()))  # a block overwritten early would show here
     assert seen == [(i, i) for i in range(40)]
+    assert len(set(made.values())) == workers and threading.get_ident() not in made.values()
+    assert all(made[i] == made[i % workers] for i in range(40))
 
 
 def test_too_few_buffers_would_be_overwritten(two_workers):
     """The check above can fail: with fewer buffers than ring(depth) a held block changes."""
     depth = 3
     changed = False
-    for i, block in enumerate(prefetch(_reusing_blocks(40, depth), depth)):
+    for i, block in enumerate(threads.prefetch_dealt(_dealt_reusing(40, depth), depth)):
         time.sleep(0.002)
         changed |= bool(block[0] != i)
     assert changed
 
 
-def test_prefetch_reraises_the_producers_error(two_workers):
-    def failing():
-        yield 1
-        yield 2
-        raise OSError("disk gone")
+def test_a_producers_error_is_raised_at_its_item(two_workers):
+    def make(w, producers):
+        for i in range(w, 10, producers):
+            if i == 5:
+                raise OSError("disk gone")
+            yield i
     got = []
     with pytest.raises(OSError, match="disk gone"):
-        for item in prefetch(failing(), 2):
+        for item in threads.prefetch_dealt(make, 2):
             got.append(item)
-    assert got == [1, 2]
+    assert got == [0, 1, 2, 3, 4]
 
 
-def test_closing_early_stops_the_producer(two_workers):
+def test_closing_early_stops_every_producer(two_workers):
     produced = []
 
-    def endless():
-        i = 0
+    def make(w, producers):
+        i = w
         while True:
             produced.append(i)
             yield i
-            i += 1
+            i += producers
     before = threading.active_count()
-    stream = prefetch(endless(), 2)
+    stream = threads.prefetch_dealt(make, 2)
     assert [next(stream) for _ in range(5)] == list(range(5))
     stream.close()
     assert threading.active_count() == before
     count = len(produced)
     time.sleep(0.05)
-    assert len(produced) == count and count <= 5 + 2 + 1
+    assert len(produced) == count and count <= 5 + 2 * (2 + 1)
+
+
+def test_the_sequence_ends_with_its_last_block_whichever_producer_has_it(two_workers):
+    for n in range(0, 7):
+        assert list(threads.prefetch_dealt(lambda w, k: iter(range(w, n, k)), 2)) == list(range(n))
 
 
 def test_run_parallel_covers_every_range_in_threads():
@@ -120,12 +136,13 @@ def test_map_in_threads_keeps_the_items_order_and_uses_the_threads():
 def test_one_worker_prefetches_in_the_callers_thread():
     seen = []
 
-    def blocks():
+    def make(w, producers):
+        assert (w, producers) == (0, 1)
         for i in range(5):
             seen.append(threading.get_ident())
             yield i
     with threads.limit(1):
-        assert list(prefetch(blocks(), 2)) == list(range(5))
+        assert list(threads.prefetch_dealt(make, 2)) == list(range(5))
     assert set(seen) == {threading.get_ident()}
 
 

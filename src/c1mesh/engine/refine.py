@@ -296,24 +296,33 @@ class Refinement:
 
     # --- vertices -------------------------------------------------------------------------
     def vertex_blocks(self, fields: Sequence[np.ndarray] = (), spline: bool = True,
-                      out: Sequence[np.ndarray] | None = None) -> Iterator[VertexBlock]:
+                      out: Sequence[np.ndarray] | None = None, deal: tuple[int, int] = (0, 1)
+                      ) -> Iterator[VertexBlock]:
         """Yield the refined points in output order, one block at a time.
 
         fields: per-input-vertex arrays (N, d) to blend linearly onto the refined points
         (colours). spline=False skips the spline values and gradients. out: full-size
         arrays [points (M, 2), values (M,), gradients (M, 2), one (M, d) per field] to
         write into (then blocks are views of them); without it the arrays of a block are
-        buffers reused by the next block: copy what you keep.
+        buffers reused by the next block: copy what you keep. deal (w, count): only the
+        blocks w, w + count, ... of that order (one producer of core.threads.prefetch_dealt;
+        each block is the same whoever computes it), with buffers of this call's own.
         """
         N = self.points.shape[0]
         fields = [np.asarray(f, dtype=float).reshape(N, -1) for f in fields]
-        yield from self._input_blocks(fields, spline, out)
-        yield from self._lattice_blocks(0, self.triangles.shape[0], fields, spline, out)
+        w, count = deal
+        inputs = -(-N // self.largest_block)                    # the input blocks come first
+        yield from self._input_blocks(fields, spline, out, deal)
+        yield from self._lattice_blocks(0, self.triangles.shape[0], fields, spline, out,
+                                        ((w - inputs) % count, count))
 
-    def _input_blocks(self, fields: list, spline: bool, out) -> Iterator[VertexBlock]:
-        """The input points themselves (output points [0, N)), in blocks."""
+    def _input_blocks(self, fields: list, spline: bool, out, deal: tuple[int, int] = (0, 1)
+                      ) -> Iterator[VertexBlock]:
+        """The input points themselves (output points [0, N)), in blocks (deal: those of
+        vertex_blocks' deal)."""
         N = self.points.shape[0]
-        for start in range(0, N, self.largest_block):
+        w, count = deal
+        for start in range(w * self.largest_block, N, count * self.largest_block):
             part = slice(start, min(start + self.largest_block, N))
             block = VertexBlock(part.start, part.stop, self.points[part],
                                 self.values[part] if spline else None,
@@ -322,10 +331,13 @@ class Refinement:
                 block = _copy_block(block, out)
             yield block
 
-    def _lattice_blocks(self, first: int, last: int, fields: list, spline: bool, out) -> Iterator[VertexBlock]:
-        """The points of triangles [first, last) (first a multiple of rows), in blocks."""
+    def _lattice_blocks(self, first: int, last: int, fields: list, spline: bool, out,
+                        deal: tuple[int, int] = (0, 1)) -> Iterator[VertexBlock]:
+        """The points of triangles [first, last) (first a multiple of rows), in blocks
+        (deal (w, count): only the blocks w, w + count, ... of them)."""
         buffers = _BlockBuffers(self.rows, self._lattice.P, self.n_edge, fields, spline)
-        for start_row in range(first, last, self.rows):
+        w, count = deal
+        for start_row in range(first + w * self.rows, last, count * self.rows):
             rows = slice(start_row, min(start_row + self.rows, last))
             start, stop = int(self.tri_start[rows.start]), int(self.tri_start[rows.stop])
             dest = buffers.output if out is None else _OutputSlices(out, start, stop)
@@ -358,29 +370,33 @@ class Refinement:
             np.take(buf.gradients[:c].reshape(c * P, 2), kept, axis=0, out=dest.gradients[:n], mode="clip")
 
     # --- faces ----------------------------------------------------------------------------
-    def face_blocks(self, out: np.ndarray | None = None, ring: int = 1) -> Iterator[tuple[int, np.ndarray]]:
+    def face_blocks(self, out: np.ndarray | None = None, ring: int = 1,
+                    deal: tuple[int, int] = (0, 1)) -> Iterator[tuple[int, np.ndarray]]:
         """Yield (first face index, faces (k, 3)) blocks in output order.
 
         out: a full-size (K, 3) array to write into (blocks are views of it); without it
         the faces of a block are one of `ring` buffers used in turn, so a block stays
         valid until `ring` more blocks have been yielded (c1mesh.core.threads.ring).
+        deal (w, count): only the blocks w, w + count, ... (as vertex_blocks').
 
         Per block: the output index of every lattice point of every triangle (_corner_ids,
         (Q, c) integer arithmetic along rows of length c), then one gather through the
         sub-triangle template gives the c·L² faces.
         """
-        yield from self._face_range(0, self.triangles.shape[0], out, ring)
+        yield from self._face_range(0, self.triangles.shape[0], out, ring, deal)
 
     def _face_range(self, first: int, last: int, out: np.ndarray | None,
-                    ring: int = 1) -> Iterator[tuple[int, np.ndarray]]:
-        """The faces of triangles [first, last) (first a multiple of rows), in blocks."""
+                    ring: int = 1, deal: tuple[int, int] = (0, 1)) -> Iterator[tuple[int, np.ndarray]]:
+        """The faces of triangles [first, last) (first a multiple of rows), in blocks
+        (deal (w, count): only the blocks w, w + count, ... of them)."""
         L, Q = self.level, self.pattern.lattice.shape[0]
         template = _template_columns(self.pattern).ravel()
         ids = np.empty(Q * self.rows, dtype=self.index_dtype)
         buffers = [np.empty(self.rows * template.size, dtype=self.index_dtype)
                    for _ in range(ring if out is None else 0)]
         gather = None
-        for i, start_row in enumerate(range(first, last, self.rows)):
+        w, count = deal
+        for i, start_row in enumerate(range(first + w * self.rows, last, count * self.rows)):
             rows = slice(start_row, min(start_row + self.rows, last))
             n = rows.stop - rows.start
             if gather is None or gather.size != n * template.size:       # (n, 3L²) into ids (Q, n)

@@ -12,7 +12,7 @@ import numpy as np
 
 from c1mesh.core.cloud import MeshStream
 from c1mesh.core.plan import FitPlan
-from c1mesh.core.threads import prefetch, ring
+from c1mesh.core.threads import prefetch_dealt, ring
 from c1mesh.engine.refine import Refinement, refined_counts
 from c1mesh.stages.height_field import gradients_to_normals
 
@@ -32,15 +32,16 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
     block into world vertices, unit normals on the axis side and, when the input has
     colours (N, c) uint8, colours blended linearly; nothing of the size of the output is
     held, so the writers (all of them stream) need only block-sized memory. Blocks are
-    computed by a second thread a few blocks ahead of the writer (c1mesh.core.threads.prefetch).
+    dealt to one thread per worker, each a few blocks ahead of the writer, and handed
+    over in order (c1mesh.core.threads.prefetch_dealt): the same blocks at any count.
     """
     fields = [] if colors is None else [colors.astype(float)]
 
-    def world_blocks():
+    def world_blocks(w: int, count: int):
         size = refinement.largest_block
         local = np.empty((size, 3))
         slots = [(np.empty((size, 3)), np.empty((size, 3))) for _ in range(ring(_PREFETCH))]
-        for i, block in enumerate(refinement.vertex_blocks(fields=fields)):
+        for i, block in enumerate(refinement.vertex_blocks(fields=fields, deal=(w, count))):
             vertices, normals = slots[i % len(slots)]
             n = block.stop - block.start
             local[:n, :2] = block.points
@@ -56,11 +57,14 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
                 blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
             yield vertices[:n], normals[:n], blended
 
+    def dealt_faces(w: int, count: int):
+        return (faces for _, faces in refinement.face_blocks(ring=ring(_PREFETCH), deal=(w, count)))
+
     def vertex_blocks():
-        return prefetch(world_blocks(), _PREFETCH)
+        return prefetch_dealt(world_blocks, _PREFETCH)
 
     def face_blocks():
-        return prefetch((faces for _, faces in refinement.face_blocks(ring=ring(_PREFETCH))), _PREFETCH)
+        return prefetch_dealt(dealt_faces, _PREFETCH)
     return MeshStream(refinement.vertex_count, refinement.face_count, True,
                       0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
