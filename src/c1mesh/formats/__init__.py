@@ -16,6 +16,7 @@ from typing import IO, Callable, Sequence, Union
 import numpy as np
 
 from c1mesh.core.cloud import MeshStream, PointCloud, SurfaceMesh
+from c1mesh.core.crs import write_prj
 from c1mesh.core.errors import FormatError, InputError
 from c1mesh.formats._limits import read_bounded, reading_budget
 from c1mesh.formats.copc import check_box, inside
@@ -173,7 +174,6 @@ def write_mesh(mesh: SurfaceMesh | MeshStream, target: Source, fmt: str | None =
     with Outputs(deferred=False).open(planned) as f:
         _WRITERS[key](mesh, f, ascii=ascii, **_crs_argument(key, crs))
     if crs and sidecar and key in PRJ_SIDECAR and planned.kind == "atomic":
-        from c1mesh.core.crs import write_prj
         write_prj(target, crs)
 
 

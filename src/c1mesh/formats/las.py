@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import mmap
 import struct
 from typing import IO, Callable, Union
 
@@ -298,8 +299,6 @@ def read_las_records(path: str) -> "laspy.LasData":
     """Every point record of the LAS/LAZ file at `path`, with all its dimensions (laspy's
     LasData), after the same header, length and chunk-table checks as read_las; for
     rewriting a file with new classes (`c1mesh ground`). Errors name the file."""
-    import mmap
-
     name = str(path)
     try:
         handle = open(path, "rb")

@@ -197,23 +197,34 @@ class _TileFiles:
     spline: object
 
 
+@dataclass(frozen=True)
+class DemSupport:
+    """What a tiled DEM's cells are measured against: reach (the nearest-triangle rule's,
+    the trim's max_edge; None: any distance), trimmed (a fill: per tile how many of its own
+    triangles, the first rows of its file, the trim kept; the rest span its holes,
+    survey.hole_runs.TiledFill; None: no fill), points (the height spill of the data a
+    lattice fit fitted, survey.lattice_runs, to which the support and --fill D measure, as
+    the in-memory fit's fit points are its data; None: the spline's vertices)."""
+
+    reach: float | None = None
+    trimmed: tuple | None = None
+    points: object = None
+
+
 class DemJob:
     """What every tile's DEM task shares (picklable; the files it names are read by the
     tasks): surfaces (refine_runs.RefineJob: each tile's spline), halos (halos.HaloCache
-    of the trim, pruned), dem (DemGrid), reach (the nearest-triangle rule's, the trim's
-    max_edge; None: any distance), longest (the longest final edge, frame units), gradients
-    (whether slope, aspect or hillshade need the spline's gradients), threads per task,
-    trimmed (a fill: per tile how many of its own triangles, the first rows of its file,
-    the trim kept; the rest span its holes, survey.hole_runs.TiledFill; None: no fill),
+    of the trim, pruned), dem (DemGrid), longest (the longest final edge, frame units),
+    gradients (whether slope, aspect or hillshade need the spline's gradients), threads
+    per task, support (DemSupport: its reach, trimmed and points become the job's);
     heights_path, spans_path (the grids of heights and of the cells in triangles that span
-    holes, for the support pass and --fill D's); points: the height spill of the data a
-    lattice fit fitted (survey.lattice_runs), to which the support and --fill D measure, as
-    the in-memory fit's fit points are its data (None: the spline's vertices)."""
+    holes, for the support pass and --fill D's), set by TiledDem."""
 
-    def __init__(self, surfaces, halos, dem: DemGrid, reach: float | None, longest: float, gradients: bool,
-                 threads=None, trimmed: tuple | None = None, points=None):
-        self.surfaces, self.halos, self.dem, self.reach, self.longest = surfaces, halos, dem, reach, longest
-        self.gradients, self.threads, self.trimmed, self.points = gradients, threads, trimmed, points
+    def __init__(self, surfaces, halos, dem: DemGrid, longest: float, gradients: bool, threads=None,
+                 support: DemSupport = DemSupport()):
+        self.surfaces, self.halos, self.dem, self.longest = surfaces, halos, dem, longest
+        self.gradients, self.threads = gradients, threads
+        self.reach, self.trimmed, self.points = support.reach, support.trimmed, support.points
         self.heights_path = self.spans_path = None
 
     def trimmed_rows(self, t: int, count: int) -> np.ndarray:

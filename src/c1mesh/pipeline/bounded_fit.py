@@ -74,7 +74,8 @@ from c1mesh.geo.contours import BYTES_PER_NODE
 from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
 from c1mesh.geo.raster import check_angle_crs, fill_distance, mosaic_paths, tile_targets
 from c1mesh.geo.preview import SplineView
-from c1mesh.pipeline.bounded_dem import DemGrid, DemJob, InputWindows, TiledDem, dem_grid, input_windows, vertex_box
+from c1mesh.pipeline.bounded_dem import (DemGrid, DemJob, DemSupport, InputWindows, TiledDem, dem_grid,
+                                         input_windows, vertex_box)
 from c1mesh.pipeline.plan import DEFAULT_SMOOTH
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
@@ -299,10 +300,11 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
                 limiter = TiledLimiter(halos, temps, runner, rows.name, kept)
                 done("noise floors")
             if plan.dem is not None:
+                support = DemSupport(max_edge,
+                                     filled.trimmed if filled is not None else None if lattice is None else lattice.kept,
+                                     None if lattice is None else data)
                 job = DemJob(RefineJob(mesh, surface, MeshWriting(temps, limiter), None, rows.threads), halos,
-                             dem_grid(mesh, plan.dem.resolution), max_edge, longest, _shaded(plan.dem), rows.threads,
-                             filled.trimmed if filled is not None else None if lattice is None else lattice.kept,
-                             None if lattice is None else data)
+                             dem_grid(mesh, plan.dem.resolution), longest, _shaded(plan.dem), rows.threads, support)
                 windows = None if outputs is None else _windows(job, chunks, file_counts, outputs, plan.dem)
                 report = _write_dem(job, (temps, runner, rows, windows), plan.dem, (chunks, crs, contours), limiter)
                 done("raster")
@@ -425,7 +427,7 @@ class _MeshDrawings:
         surfaces = RefineJob(mesh, plan.surface, MeshWriting(where[0], limiter), None, where[2].threads)
 
         def tiles(dem: DemGrid, gradients: bool, stage: str) -> TiledDem:
-            return TiledDem(DemJob(surfaces, halos, dem, None, longest, gradients, where[2].threads), *where,
+            return TiledDem(DemJob(surfaces, halos, dem, longest, gradients, where[2].threads), *where,
                             stage=stage)
         staged, facts, preview = None, None, None
         if contours is not None:

@@ -9,6 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from c1mesh.core.cloud import PointCloud
+from c1mesh.pipeline.driver import FitOptions
+from c1mesh.pipeline.run import fit
+from c1mesh.testing.quality import folded_faces
+
 SPACING = 1.3
 """The samples' point spacing (m): one point a 1.3 m square."""
 
@@ -63,11 +68,6 @@ def lattice_folds(points: np.ndarray, workers: int | None = None) -> tuple[int, 
     --spacing SPACING` of the points (n, 3) at the default level, in `workers` threads
     (None: the process's setting): the measure of tests/test_lattice_steps.py and
     benchmarks/folds.py."""
-    from c1mesh.core.cloud import PointCloud
-    from c1mesh.pipeline.driver import FitOptions
-    from c1mesh.pipeline.run import fit
-    from c1mesh.testing.quality import folded_faces
-
     result = fit(PointCloud(points=points), None, FitOptions(smooth="auto", spacing=SPACING, workers=workers))
     mesh = result.mesh
     return folded_faces(mesh.vertices, mesh.faces, mesh.vertex_normals), float(result.report["smoothing"]["strength"])
