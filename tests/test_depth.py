@@ -299,6 +299,29 @@ def test_a_noisy_quantised_frame_folds_at_the_exact_fit_and_not_at_the_default(t
     assert folds["default"] <= 1e-4
 
 
+def test_a_charts_strength_search_runs_on_its_share_of_the_pixels(tmp_path, monkeypatch):
+    """The default's search in the chart runs on windows holding CHART_SEARCH_SHARE of the
+    frame's vertices (smoothing.chart_search_vertices), not a survey's SEARCH_VERTICES:
+    with the survey's budget made 1,000 and the share 0.25 of a 120×120 frame (3,600), the
+    windows' side grows by √3.6 over the share 0 (the survey's 1,000), up to the side's
+    rounding to 2 significant digits."""
+    import c1mesh.stages.smoothing as sm
+
+    points, _ = tilted_plane(120)
+    w = 1.0 / points[:, 2]
+    noisy = w + np.random.default_rng(1).normal(0.0, 0.004, w.shape)
+    quantised = points * (w / (np.round(noisy / 0.004) * 0.004))[:, None]
+    path = write_organised_pcd(tmp_path / "stereo.pcd", quantised, np.full_like(quantised, np.nan), (120, 120))
+    monkeypatch.setattr(sm, "SEARCH_VERTICES", 1000)
+    sides = {}
+    for share in (0.0, 0.25):
+        monkeypatch.setattr(sm, "CHART_SEARCH_SHARE", share)
+        windows = fit(path, None, FitOptions()).report["smoothing"]["search_windows"]
+        assert len(windows["centres"]) == len(sm.WINDOW_ANCHORS)
+        sides[share] = windows["side"]
+    assert sides[0.25] / sides[0.0] == pytest.approx(np.sqrt(3.6), rel=0.06)
+
+
 def test_spacing_is_refused_in_the_perspective_frame(tmp_path):
     """The chart's smoothing fit keeps every point as a vertex; --spacing (a height field's
     thinning) is an InputError there, before any output is written."""
