@@ -586,11 +586,14 @@ def test_the_search_windows_depend_only_on_the_survey_points():
 def test_a_charts_search_windows_hold_its_share_of_the_vertices():
     """search_windows with a budget: the whole mesh up to the budget, beyond it nine squares
     holding about that many evenly spread points; a perspective chart's budget is
-    CHART_SEARCH_SHARE of its vertices, never below a survey's SEARCH_VERTICES."""
+    CHART_SEARCH_SHARE of its vertices, never below a survey's SEARCH_VERTICES nor above
+    CHART_SEARCH_MOST."""
     import c1mesh.stages.smoothing as sm
 
     assert sm.chart_search_vertices(1000) == sm.SEARCH_VERTICES
-    assert sm.chart_search_vertices(300_000) == int(sm.CHART_SEARCH_SHARE * 300_000) > sm.SEARCH_VERTICES
+    assert sm.SEARCH_VERTICES < sm.chart_search_vertices(209_029) == int(sm.CHART_SEARCH_SHARE * 209_029)
+    assert sm.chart_search_vertices(209_029) < sm.CHART_SEARCH_MOST
+    assert sm.chart_search_vertices(10_000_000) == sm.CHART_SEARCH_MOST
     rng = np.random.default_rng(5)
     xy = rng.uniform([0, 0], [640, 480], (120_000, 2))
     budget = 24_000

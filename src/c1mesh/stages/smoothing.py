@@ -97,6 +97,13 @@ search, 267 s, chooses 0.058): 5,000 vertices 0.17 (the whole chart's CV score 1
 its best), 10,000 0.17, 20,903 (this share) 0.088 (+0.19 %), 40,000 0.091; the fit 11.7 s
 against 8.4-9.2 s at 5,000. On noisy quantised synthetic frames, whose content is one
 surface, both sizes are within 1 % (docs/perspective.md, "Smoothing in the chart")."""
+CHART_SEARCH_MOST = 25_000
+"""The most vertices a chart's search windows hold, whatever its share: the search's cost
+grows faster than its windows (its factors), and on a frame four times the mug's (the mug
+tiled 2 × 2 in its chart, 835,609 pixels) a tenth of it (83,560) took 31 s of search, 2.5×
+the final factor, to choose the same s as 5,000 pixels (0.058, the single mug's best); at
+25,000, 5.9 s and s = 0.088 (on the single mug 1.0019× its best CV). The mug itself
+(20,903) is below it."""
 CV_RIDGE = 1e-9
 """Relative ridge of the cross-validation solves (smoothing_system.solve: a held-out
 block may cover a whole island of the mesh)."""
@@ -321,8 +328,8 @@ def windows_of_parts(parts, count: int, budget: int | None = None) -> SearchWind
 
 def chart_search_vertices(count: int) -> int:
     """The search windows' budget of a perspective chart of `count` vertices:
-    CHART_SEARCH_SHARE of them, at least SEARCH_VERTICES."""
-    return max(SEARCH_VERTICES, int(CHART_SEARCH_SHARE * count))
+    CHART_SEARCH_SHARE of them, at most CHART_SEARCH_MOST and at least SEARCH_VERTICES."""
+    return max(SEARCH_VERTICES, min(int(CHART_SEARCH_SHARE * count), CHART_SEARCH_MOST))
 
 
 @dataclass(frozen=True)
