@@ -97,8 +97,9 @@ SMOOTH_HELP = ("off: the spline through every point; auto: fitted to the points,
                "chosen by cross-validation over spatial blocks; or a strength s > 0 (dimensionless: "
                "λ = s·h², h the mean point spacing; docs/smoothing.md). For noisy heights such as LiDAR ground.  "
                "[default: auto on the lattice (--spacing auto) where the normals are estimated over a height "
-               "field: LAS/LAZ, XYZ or CSV without normals; off where the file has normals and in the "
-               "perspective frame]")
+               "field: LAS/LAZ, XYZ or CSV without normals; auto, every pixel a vertex, in the perspective "
+               "frame where the normals come from the pixel grid or are estimated; off where the file has "
+               "normals]")
 
 
 def parse_smooth(value: str):

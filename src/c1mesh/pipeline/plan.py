@@ -31,10 +31,10 @@ from c1mesh.stages.lattice_mesh import check_spacing
 
 
 DEFAULT_SMOOTH = "default"
-"""FitOptions.smooth's default: the smoothing fit on the lattice (--smooth auto --spacing auto)
-where the gradients are estimated in a height-field frame (LAS/LAZ, XYZ or CSV without
-normals), the exact interpolant (off) where the file has normals and in the perspective
-frame (issue 38; `resolved_smoothing`)."""
+"""FitOptions.smooth's default: the smoothing fit where the gradients are estimated, on the
+lattice (--smooth auto --spacing auto) in a height-field frame (LAS/LAZ, XYZ or CSV without
+normals) and every pixel a vertex in the perspective frame; the exact interpolant (off)
+where the file has normals (issue 38; `resolved_smoothing`)."""
 
 
 def smoothing_strength(options) -> Strength:
@@ -55,7 +55,6 @@ def smoothing_strength(options) -> Strength:
     if options.spacing is not None and strength is None:
         raise InputError("--spacing thins the vertices of a smoothing fit: give --smooth auto or a strength")
     return strength
-
 
 
 def is_default_smooth(smooth) -> bool:
