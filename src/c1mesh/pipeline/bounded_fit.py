@@ -76,7 +76,7 @@ from c1mesh.geo.raster import check_angle_crs, fill_distance, mosaic_paths, tile
 from c1mesh.geo.preview import SplineView
 from c1mesh.pipeline.bounded_dem import (DemGrid, DemJob, DemSupport, InputWindows, TiledDem, dem_grid,
                                          input_windows, vertex_box)
-from c1mesh.pipeline.plan import DEFAULT_SMOOTH
+from c1mesh.pipeline.plan import DEFAULT_SMOOTH, default_smoothing
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks
@@ -155,8 +155,8 @@ def fit_tiled(source, output, plan: FitPlan, run: TiledRun = TiledRun()) -> dict
     _check_plan(plan)
     surface = plan.surface
     if surface.strength == DEFAULT_SMOOTH:          # the tiles' normals are estimated: the lattice fit
-        plan = replace(plan, surface=replace(surface, strength="auto",
-                                             spacing="auto" if surface.spacing is None else surface.spacing))
+        strength, spacing = default_smoothing(surface.spacing, estimated=True)
+        plan = replace(plan, surface=replace(surface, strength=strength, spacing=spacing))
         surface = plan.surface
     strength, memory = surface.strength, plan.memory
     select, selection, filtered = tiled_classes(source, plan.select)     # class 2 by default, else the filter

@@ -74,20 +74,27 @@ def estimated_normals(normal_source: str) -> bool:
     return normal_source in ESTIMATED_NORMALS
 
 
+def default_smoothing(spacing, estimated: bool, perspective: bool = False) -> tuple:
+    """(smooth, spacing) the default smooth resolves to, given --spacing (None: not given),
+    whether the gradients are estimated (normals not in the file) and the frame: for
+    estimated gradients "auto", on the lattice (spacing "auto" unless one is given) over a
+    height field and on the pixel grid in the perspective frame; "auto" wherever a spacing
+    is given (a lattice is a smoothing fit's: the user asked for one; the perspective frame
+    refuses it, as with --smooth given); else "off"."""
+    if spacing is not None:
+        return "auto", spacing
+    if estimated:
+        return "auto", None if perspective else "auto"
+    return "off", None
+
+
 def resolved_smoothing(options, estimated: bool, perspective: bool = False):
-    """options with a default smooth resolved, once the fit knows whether its gradients
-    are estimated (normals not in the file) and its frame: for estimated gradients "auto",
-    on the lattice (--spacing auto unless a spacing is given) over a height field and on
-    the pixel grid in the perspective frame; "auto" wherever a --spacing is given (a
-    lattice is a smoothing fit's: the user asked for one; the perspective frame refuses it,
-    as with --smooth given); else "off". Any other smooth is returned as it is."""
+    """options with a default smooth resolved (`default_smoothing`) once the fit knows
+    whether its gradients are estimated and its frame; any other smooth as it is."""
     if not is_default_smooth(options.smooth):
         return options
-    if options.spacing is not None:
-        return replace(options, smooth="auto")
-    if estimated:
-        return replace(options, smooth="auto", spacing=None if perspective else "auto")
-    return replace(options, smooth="off")
+    smooth, spacing = default_smoothing(options.spacing, estimated, perspective)
+    return replace(options, smooth=smooth, spacing=spacing)
 
 
 def refinement_level(level) -> int | None:

@@ -280,15 +280,15 @@ def reduce_nearest(summaries: list) -> np.ndarray:
     return out
 
 
-def window_side(lower: np.ndarray, upper: np.ndarray, count: int, budget: int | None = None) -> float:
+def window_side(lower: np.ndarray, upper: np.ndarray, count: int, budget: int) -> float:
     """The side of the search windows of a survey of `count` points in the bounding box
     lower (2,) .. upper (2,): the square that would hold budget / len(WINDOW_ANCHORS) of them
-    if they filled the box evenly (budget None: SEARCH_VERTICES). Where they fill it
+    if they filled the box evenly (`windows_of_parts`' budget). Where they fill it
     unevenly (holes, a ragged border) a window holds fewer; a pixel grid holds that many.
     Rounded to 2 significant digits: the in-memory and the tiled fit find the same box but
     for the last bits of the frames' local coordinates, and may count a few points apart
     (the in-memory height field merges near-duplicate positions, the tiled spill exact ones)."""
-    per_window = (SEARCH_VERTICES if budget is None else budget) // len(WINDOW_ANCHORS)
+    per_window = budget // len(WINDOW_ANCHORS)
     extent = np.asarray(upper, float) - np.asarray(lower, float)
     return float(f"{math.sqrt(per_window * float(extent[0] * extent[1]) / count):.2g}")
 
