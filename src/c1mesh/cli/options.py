@@ -103,7 +103,7 @@ SMOOTH_HELP = ("off: the spline through every point; auto: fitted to the points,
 
 
 def parse_smooth(value: str):
-    """--smooth: 'off' -> None, 'auto', 'default' (pipeline.plan.DEFAULT_SMOOTH, resolved by
+    """--smooth: 'off' -> None, 'auto', 'default' (core.plan.DEFAULT_SMOOTH, resolved by
     the fit), or a positive finite strength (plain Python)."""
     word = value.strip().lower()
     if word == "default":

@@ -14,7 +14,13 @@ from typing import Callable, Sequence, Union
 
 Strength = Union[None, str, float]
 """A smoothing strength as stages.smoothing.parse_strength reads it: None (the exact fit,
-the spline through every point), "auto" (chosen by cross-validation) or a strength s > 0."""
+the spline through every point), "auto" (chosen by cross-validation) or a strength s > 0,
+or DEFAULT_SMOOTH until the fit knows where its gradients come from."""
+DEFAULT_SMOOTH = "default"
+"""FitOptions.smooth's default: the smoothing fit where the gradients are estimated, on the
+lattice (--smooth auto --spacing auto) in a height-field frame (LAS/LAZ, XYZ or CSV without
+normals) and every pixel a vertex in the perspective frame; the exact interpolant (off)
+where the file has normals (issue 38; pipeline.plan.resolved_smoothing)."""
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from c1mesh.core.errors import InputError
-from c1mesh.core.plan import DemPlan, FitPlan, TiledRun
+from c1mesh.core.plan import DEFAULT_SMOOTH, DemPlan, FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
 from c1mesh.core.tile import corner_rows
@@ -76,7 +76,7 @@ from c1mesh.geo.raster import check_angle_crs, fill_distance, mosaic_paths, tile
 from c1mesh.geo.preview import SplineView
 from c1mesh.pipeline.bounded_dem import (DemGrid, DemJob, DemSupport, InputWindows, TiledDem, dem_grid,
                                          input_windows, vertex_box)
-from c1mesh.pipeline.plan import DEFAULT_SMOOTH, default_smoothing
+from c1mesh.pipeline.plan import default_smoothing
 from c1mesh.pipeline.report import ReportCore, scheme_facts
 from c1mesh.stages.curtains import view_rules_apply
 from c1mesh.stages.frame import frame_of_chunks

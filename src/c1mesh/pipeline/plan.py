@@ -13,6 +13,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.plan import (
+    DEFAULT_SMOOTH,
     DemPlan,
     FitPlan,
     HeightSettings,
@@ -28,13 +29,6 @@ from c1mesh.geo.raster import fill_distance, is_raster_path
 from c1mesh.stages.frame import resolve_axis
 from c1mesh.stages.smoothing import SmoothingError, parse_strength
 from c1mesh.stages.lattice_mesh import check_spacing
-
-
-DEFAULT_SMOOTH = "default"
-"""FitOptions.smooth's default: the smoothing fit where the gradients are estimated, on the
-lattice (--smooth auto --spacing auto) in a height-field frame (LAS/LAZ, XYZ or CSV without
-normals) and every pixel a vertex in the perspective frame; the exact interpolant (off)
-where the file has normals (issue 38; `resolved_smoothing`)."""
 
 
 def smoothing_strength(options) -> Strength:

@@ -9,7 +9,7 @@ import math
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.outputs import LAS_FORMATS
-from c1mesh.core.plan import FitPlan, SurfaceSettings
+from c1mesh.core.plan import DEFAULT_SMOOTH, FitPlan, SurfaceSettings
 from c1mesh.core.threads import per_process
 from c1mesh.formats.copc import points_to_read
 from c1mesh.survey.inputs import survey_name, survey_paths
@@ -30,7 +30,7 @@ def point_bytes(surface: SurfaceSettings) -> int:
     """Peak bytes per input point of the fit `surface` asks for: SMOOTHING_BYTES_PER_POINT
     for a smoothing fit with a vertex at every point, else BYTES_PER_POINT (a --spacing
     fit's solve follows its lattice's nodes, not its points)."""
-    if surface.strength not in (None, "default") and surface.spacing is None:   # default: the lattice's
+    if surface.strength not in (None, DEFAULT_SMOOTH) and surface.spacing is None:   # default: the lattice's
         return SMOOTHING_BYTES_PER_POINT
     return BYTES_PER_POINT
 
