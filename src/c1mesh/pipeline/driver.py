@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -416,6 +417,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     with contextlib.ExitStack() as stages:
         with timer.stage("normals"):
             guess = None             # () -> (xy, triangles) of _guessed_triangles, or None
+            guessed_sort: Future = Future()      # its height field's PlaneSort, set before its Delaunay
             if heights_first:        # the frame needs no normals: the fit's serve the height field
                 options = resolved_smoothing(options, estimated=True)
                 frame = choose_frame(cloud.points, None, options.axis)
@@ -424,7 +426,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 if threads > 1 and options.spacing is None:   # one thread: no guess to waste
                     # the guess's Delaunay is the longer of the two: a core of its own
                     guess = stages.enter_context(background(
-                        lambda: _guessed_triangles(cloud.points, frame, options, plan_heights)))
+                        lambda: _guessed_triangles(cloud.points, frame, options, plan_heights, guessed_sort)))
                     threads -= 1
                 normals = height_normals(cloud.points, frame, k=height_neighbours(options.k), workers=threads)
                 normal_source = "estimated"
@@ -435,9 +437,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         with timer.stage("frame"):
             if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
                 frame = choose_frame(cloud.points, normals, options.axis)
+            # the guess's sort of the same positions, when it is ready (the bits do not depend on it)
             hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
-                              common_metric=not plan_heights)
+                              common_metric=not plan_heights,
+                              sort=guessed_sort.result() if guessed_sort.done() else None)
             del normals              # hf holds the gradients: 24 bytes a point less from here on
+            hf.sort = guessed_sort = None
             max_slope_not_applied = None
             if plan_heights and options.z_factor is not None:
                 _drop_too_steep(hf, options.max_slope, float(options.z_factor))
@@ -552,8 +557,8 @@ def _support_mesh(mesh) -> tuple:
     return shown, triangles, edge_table(triangles, shown.size)
 
 
-def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
-                       plan_heights: bool) -> tuple[np.ndarray, np.ndarray] | None:
+def _guessed_triangles(points: np.ndarray, frame, options: FitOptions, plan_heights: bool,
+                       sort: Future) -> tuple[np.ndarray, np.ndarray] | None:
     """(xy (n, 2), their Delaunay triangles (T, 3)) of the height field the points would
     give if no normal dropped any of them (every normal along the frame's height axis):
     the Delaunay, one thread of a library for 1.5 s at 1M points, then runs beside the
@@ -562,10 +567,18 @@ def _guessed_triangles(points: np.ndarray, frame, options: FitOptions,
     field's xy whenever the normals drop no point (too steep, unusable); build_surface
     uses the triangles only when the two xy are equal, bit for bit, and triangulates the
     true xy otherwise, so the output does not depend on the guess. None when the guessed
-    height field or its triangulation fails (the true one says why, if it fails too)."""
+    height field or its triangulation fails (the true one says why, if it fails too).
+    sort: set to the guessed height field's PlaneSort (None if it failed) before the
+    Delaunay starts, for the true height field to take back (height_field's `sort`)."""
     up = np.broadcast_to(frame.vectors_to_world(np.array([[0.0, 0.0, 1.0]])), points.shape)
     try:
-        xy = height_field(points, up, frame, max_slope_deg=options.max_slope, common_metric=not plan_heights).xy
+        guessed = height_field(points, up, frame, max_slope_deg=options.max_slope, common_metric=not plan_heights)
+    except C1MeshError:
+        sort.set_result(None)
+        return None
+    sort.set_result(guessed.sort)
+    xy, guessed = guessed.xy, None
+    try:
         return xy, delaunay(xy)
     except C1MeshError:
         return None

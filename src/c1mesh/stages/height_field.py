@@ -51,6 +51,8 @@ spatial = LazyModule("scipy.spatial")
 _AXIS_HINT = "try --axis x|y|z or X,Y,Z, or --classes 2 for LiDAR ground"
 STACK_MARGIN = 3.0
 """Height jump, in point spacings, beyond what the slopes explain that counts as stacking."""
+MERGE_TOL = 1e-6
+"""Points closer in (x, y) than MERGE_TOL × the spacing h are duplicates (`height_field`)."""
 
 
 @dataclass
@@ -72,6 +74,9 @@ class HeightField:
                   (one point per distinct (x, y)): the typical point spacing h on the surface;
                   the plane distance, in the units of x and y, for a height field built
                   with common_metric=False.
+    sort:         the PlaneSort its positions gave (`height_field` takes it back for the
+                  same positions); a caller that does not pass it on drops it (24 bytes a
+                  point).
     """
 
     xy: np.ndarray
@@ -83,12 +88,32 @@ class HeightField:
     flipped: int = 0
     stacked: int = 0
     spacing: float = float("nan")
+    sort: PlaneSort | None = None
+
+
+@dataclass(frozen=True)
+class PlaneSort:
+    """What a height field learns from its kept points' plane positions alone, not from
+    their normals: index (n,) the input rows it was made for (finite, usable normal, not
+    too steep), order (n,) their sort_xy, the spacing h, and strips (Strips of the
+    distinct positions, width h(1 + STRIP_MARGIN): the stacking pass's index).
+
+    Why: the fit's guessed triangulation (c1mesh.pipeline.driver) builds the height field
+    of the same points with stand-in normals on a second core while the normals are
+    estimated; the true height field takes its sort back when it keeps the same rows,
+    and skips three sorts and the spacing's nearest-neighbour pass (0.2-0.4 s at 1M
+    points), with the same bits."""
+
+    index: np.ndarray
+    order: np.ndarray
+    spacing: float
+    strips: Strips
 
 
 def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
                  max_slope_deg: float = 85.0, max_stacked: float = 0.10,
-                 max_facing_away: float | None = None, merge_tol: float = 1e-6,
-                 common_metric: bool = True) -> HeightField:
+                 max_facing_away: float | None = None, common_metric: bool = True,
+                 sort: PlaneSort | None = None) -> HeightField:
     """Project a scan with normals to heights and gradients over the frame's plane.
 
     points, normals: (N, 3) world coordinates and normals (any length, any sign).
@@ -106,7 +131,7 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     max_facing_away: None (default) ignores normal signs. A fraction f trusts them: more
                      than f of the normals more than 180° - max_slope_deg from e3 (clearly
                      on the far side of the plane) -> NotAHeightFieldError.
-    merge_tol:       points closer in (x, y) than merge_tol × the spacing h (the median
+    Duplicates:      points closer in (x, y) than MERGE_TOL × the spacing h (the median
                      nearest-neighbour distance) are duplicates; the
                      first (lowest input index) of each group is kept with its own z and
                      normal (not an average: duplicates with different z are stacking, which
@@ -121,6 +146,10 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
                      share their exact (x, y) with a different height count as stacked
                      (a jump "larger than the slopes explain" needs a margin in height
                      units; a second height at one plane position is stacking in any unit).
+    sort:            the PlaneSort of an earlier height field of the same points in the
+                     same frame with the same common_metric (its `sort`): used when it
+                     was made for the rows kept here, else ignored. The result is the
+                     same, bit for bit.
     Raises InputError for bad shapes or when fewer than 3 non-collinear points remain,
     NotAHeightFieldError when the cloud is not a graph over the plane.
     """
@@ -157,14 +186,15 @@ def height_field(points: ArrayLike, normals: ArrayLike, frame: ScanFrame,
     check_extent(local)
     gradients, flipped = normal_gradients(_gather_rows(n_local, index, ascending=True))
 
-    keep, n_stacked, spacing = _stack_and_merge(local, gradients, index, max_stacked, merge_tol, frame,
-                                                common_metric)
+    if sort is not None and not np.array_equal(sort.index, index):
+        sort = None                       # other rows kept (a normal dropped one): sorted anew
+    keep, n_stacked, sort = _stack_and_merge(local, gradients, index, max_stacked, frame, common_metric, sort)
     dropped["duplicate"] = int(index.size - keep.size)
     xy = _gather_rows(local, keep, 2, ascending=True)
     _check_spread(xy)
     return HeightField(xy=xy, z=local[:, 2][keep], gradients=_gather_rows(gradients, keep, ascending=True),
                        source_index=index[keep].astype(np.int64), frame=frame, dropped=dropped,
-                       flipped=flipped, stacked=n_stacked, spacing=spacing)
+                       flipped=flipped, stacked=n_stacked, spacing=sort.spacing, sort=sort)
 
 
 def slope_test(normals: np.ndarray, cos_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -287,38 +317,49 @@ def _check_facing_away(up: np.ndarray, cos_max: float, max_facing_away: float | 
 
 
 def _stack_and_merge(local: np.ndarray, gradients: np.ndarray, index: np.ndarray, max_stacked: float,
-                     merge_tol: float, frame: ScanFrame,
-                     common_metric: bool = True) -> tuple[np.ndarray, int, float]:
+                     frame: ScanFrame, common_metric: bool = True,
+                     sort: PlaneSort | None = None) -> tuple[np.ndarray, int, PlaneSort]:
     """Stacking test and duplicate merging on local points (n, 3) with their gradients and
     input indices (n,) ascending.
 
-    Returns (keep, stacked, spacing): ascending indices into `local` of the points kept
-    (one per duplicate group, the first), the number of stacked points, and the spacing h.
-    Exact duplicates in (x, y) are grouped by sorting (`position_groups`); the distinct
-    positions are one PositionTile, whose summaries give h and the stacked count; the pass
-    over the pairs within h that flags the stacked ones also merges those within
-    merge_tol × h (the in-memory fit's own step). Without a common metric (see
-    `height_field`) h is the plane spacing and only exact duplicates with different
-    heights count as stacked.
+    Returns (keep, stacked, sort): ascending indices into `local` of the points kept
+    (one per duplicate group, the first), the number of stacked points, and the
+    PlaneSort (the spacing h among it). Exact duplicates in (x, y) are grouped by sorting
+    (`position_groups`); the distinct positions are one PositionTile, whose summaries
+    give h and the stacked count; the pass over the pairs within h that flags the
+    stacked ones also merges those within MERGE_TOL × h (the in-memory fit's own step).
+    Without a common metric (see `height_field`) h is the plane spacing and only exact
+    duplicates with different heights count as stacked. sort: these positions' PlaneSort,
+    made before (its sort, h and strips are taken, not made).
     """
-    groups = position_groups(local, gradients)
+    groups = position_groups(local, gradients, None if sort is None else sort.order)
     first, (x, y, z, gx, gy) = groups.first, groups.columns
     if first.size < 3:
         raise InputError(f"the points occupy only {first.size} distinct positions in the plane; "
                          "a height field needs at least 3")
     tile = PositionTile.whole(Positions(x, y, z, gx, gy, groups.z_range), index[first],
                               np.bincount(groups.group, minlength=first.size))
+    if sort is None:
+        sort = _plane_sort(tile, index, groups.order, common_metric)
+    stacked, root = stacked_points(tile, sort.spacing, common_metric, MERGE_TOL * sort.spacing, sort.strips)
+    check_stacking(stacked, local.shape[0], max_stacked, frame.axes[2])
+    kept = np.zeros(local.shape[0], dtype=bool)          # ascending without a sort
+    kept[first[root == np.arange(first.size)]] = True
+    return np.flatnonzero(kept), stacked, sort
+
+
+def _plane_sort(tile: PositionTile, index: np.ndarray, order: np.ndarray, common_metric: bool) -> PlaneSort:
+    """The PlaneSort of the distinct positions of `tile` (every one owned) of the rows
+    index (n,), sorted by order (n,): the spacing h from `sample_spacings` in strips of
+    the mean spacing, and the stacking pass's strips of width h."""
+    x, y = tile.positions.x, tile.positions.y
     strips = strip_index(x, y, _mean_spacing(x, y))
-    for step in spacing_steps(first.size):
+    for step in spacing_steps(x.size):
         spacings = sample_spacings(tile, step, common_metric, strips)
         if spacings.size:
             break
     spacing = float(np.median(spacings, overwrite_input=True))          # a temporary
-    stacked, root = stacked_points(tile, spacing, common_metric, merge_tol * spacing, strips)
-    check_stacking(stacked, local.shape[0], max_stacked, frame.axes[2])
-    kept = np.zeros(local.shape[0], dtype=bool)          # ascending without a sort
-    kept[first[root == np.arange(first.size)]] = True
-    return np.flatnonzero(kept), stacked, spacing
+    return PlaneSort(index, order, spacing, strip_index(x, y, spacing * (1 + STRIP_MARGIN)))
 
 
 @dataclass
@@ -329,12 +370,14 @@ class PositionGroups:
     first:   (m,) int64 each group's first (lowest-index) point.
     columns: (5, m) float64 rows x, y, z, df/dx, df/dy of the first points (local units).
     z_range: (m,) float64 each group's largest minus smallest height.
+    order:   (n,) int64 the points by (x, y, index) (`sort_xy`).
     """
 
     group: np.ndarray
     first: np.ndarray
     columns: np.ndarray
     z_range: np.ndarray
+    order: np.ndarray
 
 
 def _gather_rows(a: np.ndarray, rows: np.ndarray, columns: int | None = None,
@@ -359,18 +402,19 @@ def _row_norms(a: np.ndarray) -> np.ndarray:
     return np.sqrt(x * x + y * y + z * z)
 
 
-def position_groups(local: np.ndarray, gradients: np.ndarray) -> PositionGroups:
+def position_groups(local: np.ndarray, gradients: np.ndarray, order: np.ndarray | None = None) -> PositionGroups:
     """The groups of points local (n, 3) with gradients (n, 2) that share an exact plane
     position (x, y) (-0.0 equals 0.0), numbered in (x, y) order. The kernel
-    (stages/_height_field.pyx) sorts by (x, y, index) (`sort_xy`) and walks the runs."""
+    (stages/_height_field.pyx) sorts by (x, y, index) (`sort_xy`; order: that sort of
+    these positions, made before) and walks the runs."""
     local = np.ascontiguousarray(local, dtype=np.float64)
     gradients = np.ascontiguousarray(gradients, dtype=np.float64)
     n = local.shape[0]
-    order = sort_xy(local[:, 0], local[:, 1])
+    order = sort_xy(local[:, 0], local[:, 1]) if order is None else order
     group, first = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     columns, z_range = np.empty((5, n)), np.empty(n)
     m = kernel.position_groups(local, gradients, order, group, first, columns, z_range)
-    return PositionGroups(group, first[:m], columns[:, :m], z_range[:m])
+    return PositionGroups(group, first[:m], columns[:, :m], z_range[:m], order)
 
 
 def sort_xy(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -582,7 +626,7 @@ def stacked_points(tile: PositionTile, spacing: float, common_metric: bool = Tru
     Its own positions' flags are the survey's when the tile holds every position within
     h of them. The reduce sums the counts of every tile and tests the sum against the
     usable points (`check_stacking`). merge_radius: the in-memory fit's near-duplicate
-    merge (`height_field`'s merge_tol × h), which the pass that flags the pairs within h
+    merge (`height_field`'s MERGE_TOL × h), which the pass that flags the pairs within h
     also does; a tiled fit does not merge (-1). strips: as stacked_positions takes them."""
     bad, root = stacked_positions(tile.positions, spacing, common_metric, merge_radius, tile.index, strips)
     return int(tile.size[bad & tile.own].sum()), root
