@@ -658,7 +658,9 @@ def test_dropping_cdts_super_triangle_leaves_what_cdts_own_erase_leaves(kind):
 
     rows = inserted().triangles_array(copy=True)
     vertices, neighbours = np.ascontiguousarray(rows["vertices"]), np.ascontiguousarray(rows["neighbors"])
-    tri, across = _ties.drop_super_triangle(vertices, neighbours, len(xy))
+    tri, across = _ties.drop_super_triangle(vertices, neighbours, len(xy), np.arange(len(xy)))
+    label = rng.permutation(len(xy))                 # the points renumbered on the way
+    assert np.array_equal(_ties.drop_super_triangle(vertices, neighbours, len(xy), label)[0], label[tri])
     erased = inserted()
     erased.erase_super_triangle()
     want = erased.triangles_array(copy=True)
@@ -672,4 +674,57 @@ def test_dropping_cdts_super_triangle_leaves_what_cdts_own_erase_leaves(kind):
     assert np.array_equal(np.unique(tri), np.arange(len(xy)))    # every point a corner
     bad = vertices.copy()
     bad[np.flatnonzero((bad >= 3).all(axis=1))[0], 1] = len(xy) + 3
-    assert _ties.drop_super_triangle(bad, neighbours, len(xy)) is None
+    assert _ties.drop_super_triangle(bad, neighbours, len(xy), np.arange(len(xy))) is None
+
+
+@pytest.mark.parametrize("kind", ["random", "thin", "one_x", "same"])
+def test_cdts_insertion_order_is_the_points_by_cells_row_by_row(kind):
+    """_ties.cell_order against a brute-force sort: each point's cell (side s from the box,
+    at least the longer side's share), cells row by row, every other row backwards, ties in
+    index order; on random points, a box thin in y, points on one x and one position."""
+    from c1mesh.engine import _ties
+    rng = np.random.default_rng(5)
+    n, per = 5000, 16.0
+    xy = {"random": rng.random((n, 2)) * [300, 70] - 40,
+          "thin": np.c_[rng.random(n) * 1000, rng.random(n) * 1e-9],
+          "one_x": np.c_[np.full(n, 2.0), rng.random(n)],
+          "same": np.full((n, 2), 7.0)}[kind]
+    order = _ties.cell_order(np.ascontiguousarray(xy), per)
+    low, span = xy.min(axis=0), np.ptp(xy, axis=0)
+    side = max(np.sqrt(span[0] * span[1] * per / n), span.max() * per / n)
+    if side == 0:
+        assert np.array_equal(order, np.arange(n))
+        return
+    nx, ny = (np.floor(span / side) + 1).astype(int)
+    ix = np.minimum(((xy[:, 0] - low[0]) / side).astype(int), nx - 1)
+    iy = np.minimum(((xy[:, 1] - low[1]) / side).astype(int), ny - 1)
+    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
+    assert np.array_equal(order, np.lexsort((np.arange(n), iy * nx + ix)))
+    assert nx * ny <= 3 * n / per + 1
+
+
+def test_the_triangulation_does_not_depend_on_the_order_cdt_is_given_the_points():
+    """delaunay (CDT given the points by cells) is the same set of triangles as CDT given
+    them in the caller's order, both with their ties cut by canonical_ties, on a
+    quantised shuffled grid with near-ties: the insertion order changes the rows' order
+    only."""
+    import pythoncdt
+
+    from c1mesh.engine.triangulation import canonical_ties
+    rng = np.random.default_rng(8)
+    xy = np.round(rng.random((3000, 2)) * 40) / 2 + rng.integers(0, 2, (3000, 1)) * 1e-3
+    xy = np.ascontiguousarray(xy[np.sort(np.unique(xy, axis=0, return_index=True)[1])])
+    cdt = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
+                                  pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
+    cdt.insert_vertices(xy)
+    cdt.erase_super_triangle()
+    rows = cdt.triangles_array(copy=True)
+    across = rows["neighbors"].astype(np.int64)[:, [1, 2, 0]]
+    across[across == np.iinfo(np.uint32).max] = -1
+    given = canonical_ties(xy, rows["vertices"].astype(np.int64), across)[0]
+
+    def faces(tri):
+        return {tuple(np.roll(t, -int(np.argmin(t)))) for t in tri.tolist()}
+    ours = delaunay(xy)
+    assert faces(ours) == faces(given)
+    assert not np.array_equal(ours, given)           # the rows' order did change
