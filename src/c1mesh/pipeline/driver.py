@@ -70,7 +70,7 @@ from c1mesh.pipeline.steps import (
     write_surface,
 )
 from c1mesh.stages.curtains import remove_curtains, view_rules_apply
-from c1mesh.stages.frame import auto_axis_reason, choose_frame
+from c1mesh.stages.frame import choose_frame
 from c1mesh.stages.ground import choose_points, resolved_classes
 from c1mesh.stages.height_field import height_field
 from c1mesh.stages.height_gradients import height_gradients, height_neighbours, height_normals, use_height_gradients
@@ -561,7 +561,7 @@ def _guessed_triangles(points: np.ndarray, frame, options: FitOptions, plan_heig
                        sort: Future) -> tuple[np.ndarray, np.ndarray] | None:
     """(xy (n, 2), their Delaunay triangles (T, 3)) of the height field the points would
     give if no normal dropped any of them (every normal along the frame's height axis):
-    the Delaunay, one thread of a library for 1.5 s at 1M points, then runs beside the
+    the Delaunay, one thread of a library for 0.8-1 s at 1M points, then runs beside the
     height normals (a second core's work) instead of after them. The positions, the
     duplicate merge and the spacing depend on the points alone, so the guess is the height
     field's xy whenever the normals drop no point (too steep, unusable); build_surface
@@ -732,7 +732,7 @@ def fit_in_memory(source, output, options: FitOptions, on_stage: Callable[[str],
         mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
                                      MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh)
     frame_report = frame_facts(frame)
-    frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else auto_axis_reason(cloud.points, True)
+    frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else frame.axis_reason
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
                      model, stream, frame_report, level_from)
     report.update({} if selection is None else {"classes": selection})

@@ -11,7 +11,7 @@ c1mesh.stages.height_field.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -35,10 +35,13 @@ class ScanFrame:
 
     origin: (3,) float64 world point subtracted before any numerics.
     axes:   (3, 3) float64, rows e1, e2, e3: orthonormal and right-handed, e3 the height axis.
+    axis_reason: how `choose_frame` chose e3 under axis "auto", in words for reports ("" when
+            the axis was given).
     """
 
     origin: np.ndarray
     axes: np.ndarray
+    axis_reason: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
@@ -138,11 +141,13 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     check_extent(finite)
     e3 = parse_axis(axis)
     if e3 is None and _units_differ(finite):
-        e3 = _world_axis_by_layering(finite)
+        return replace(_frame(lambda: [(finite, None)], _world_axis_by_layering(finite)),
+                       axis_reason=UNITS_DIFFER)
     if e3 is None and normals is not None:
         normals = as_n3(normals, "normals", len(pts))
         normals = np.ascontiguousarray(normals) if everything else normals[good]
     return _frame(lambda: [(finite, normals)], e3)
+
 
 
 FrameChunks = Callable[[], Iterable[tuple[np.ndarray, "np.ndarray | None"]]]
@@ -170,11 +175,12 @@ def _frame(chunks: FrameChunks, e3: np.ndarray | None) -> ScanFrame:
         origin = streamed_medians(lambda: (_finite(points) for points, _ in chunks()), 3)
     except NoValues:
         raise InputError(NO_FINITE_POINTS) from None
+    reason = ""
     if e3 is None:
-        e3 = _normal_axis(chunks)
+        e3, reason = _normal_axis(chunks), "auto: the mean of the normals"
     if e3 is None:
-        e3 = _least_variance_axis(chunks, origin)
-    return ScanFrame(origin=origin, axes=axes_from_e3(e3))
+        e3, reason = _least_variance_axis(chunks, origin), "auto: least-variance direction (PCA)"
+    return ScanFrame(origin=origin, axes=axes_from_e3(e3), axis_reason=reason)
 
 
 def _finite(points: np.ndarray) -> np.ndarray:
@@ -264,6 +270,9 @@ UNIT_ANISOTROPY = 100.0
 """Coordinates whose robust spreads differ by more than this factor are taken to be in
 different units (degrees and metres, metres and millimetres): then angles, normals and
 PCA directions mean nothing, and axis "auto" chooses among the world axes instead."""
+UNITS_DIFFER = ("auto: the coordinates are in different units (spreads differ by more than "
+                f"{UNIT_ANISOTROPY:g}x), so the world axis over which the points form a height field")
+"""ScanFrame.axis_reason where choose_frame found the units differ."""
 
 
 def _spreads(points: np.ndarray) -> np.ndarray:
@@ -276,16 +285,6 @@ def _units_differ(points: np.ndarray) -> bool:
     """True when the coordinates' spreads differ by more than UNIT_ANISOTROPY (see there)."""
     spread = _spreads(points)
     return bool(spread.min() > 0 and spread.max() > UNIT_ANISOTROPY * spread.min())
-
-
-def auto_axis_reason(points: ArrayLike, has_normals: bool) -> str:
-    """How axis "auto" chooses e3 for these points (N, 3), in words for reports."""
-    pts = as_n3(points, "points")
-    finite = pts[finite_rows(pts)]
-    if finite.shape[0] >= 3 and _units_differ(finite):
-        return ("auto: the coordinates are in different units (spreads differ by more than "
-                f"{UNIT_ANISOTROPY:g}x), so the world axis over which the points form a height field")
-    return "auto: the mean of the normals" if has_normals else "auto: least-variance direction (PCA)"
 
 
 def _world_axis_by_layering(points: np.ndarray, samples: int = 20000) -> np.ndarray:
