@@ -438,3 +438,29 @@ def test_the_points_sorted_by_cell_keep_their_order_within_a_cell(points, cells)
     from c1mesh.stages.height_gradients import _stable_order
     number = np.random.default_rng(points).integers(0, cells, points)
     np.testing.assert_array_equal(_stable_order(number, cells), np.argsort(number, kind="stable"))
+
+
+@pytest.mark.parametrize("late", [5, (1 << 14) - 1, 1 << 14, 40_000])
+def test_the_first_distinct_rows_are_found_wherever_they_lie(late):
+    """distinct_rows against a loop over the rows: the first `enough` distinct rows in row
+    order, also when the second and third first appear at or past a chunk's end, and
+    after rows already seen (as a stream of chunks passes them on)."""
+    from c1mesh.stages.height_gradients import distinct_rows
+
+    def brute(rows, enough, seen=()):
+        found = [tuple(r) for r in seen]
+        for row in map(tuple, rows):
+            if len(found) >= enough:
+                break
+            if row not in found:
+                found.append(row)
+        return found[len(seen):] if seen else found
+    xy = np.zeros((50_000, 2))
+    xy[late:] = [1.0, 0.0]
+    xy[late + 3:] = [1.0, 2.0]
+    xy[-1] = [7.0, 7.0]
+    for enough in (1, 3, 4):
+        assert [tuple(r) for r in distinct_rows(xy, enough)] == brute(xy, enough)
+    seen = [np.array([1.0, 0.0])]
+    assert [tuple(r) for r in distinct_rows(xy, 3, seen)][1:] == brute(xy, 3, [(1.0, 0.0)])
+    assert len(distinct_rows(np.zeros((30_000, 2)), 3)) == 1
