@@ -4,7 +4,8 @@
     python -m benchmarks.stages run FOLDER [REPS]    # the fits and the floors, REPS alternating rounds (3)
     python -m benchmarks.stages read FOLDER [REPS]   # LAZ read seconds at --threads 1 and 2
     python -m benchmarks.stages table RUN.json       # the markdown table of a run's output
-    python -m benchmarks.stages job FOLDER [REPS]    # the LAZ fit against issue 23's floor job (3)
+    python -m benchmarks.stages job FOLDER [REPS]    # the LAZ fit against issue 23's floor job (3),
+                                                     # and at --threads 1 against 2
 
 The cases are the two of issue 23: the LAZ without normals at level 1 (`--classes 2`) and the
 PLY with exact normals at level 4. The fits run as child processes (`c1mesh fit ... --report`),
@@ -27,7 +28,9 @@ that reads the LAZ with laspy, triangulates the centred x, y with Shewchuk's Tri
 `triangle`, the fastest 2-D Delaunay installable here; its licence forbids commercial use,
 so it is a benchmark peer only, installed by benchmarks/install-peers.sh) and writes the
 vertices and faces as a binary PLY. Its rounds alternate with the fit's; without `triangle`
-the job is skipped and says so.
+the job is skipped and says so. Each round of `job` also fits the LAZ at --threads 1, after
+the job, for issue 37's two-thread speed-up (median at 1 thread / median at 2), and says
+whether the two outputs were the same bytes.
 """
 from __future__ import annotations
 
@@ -125,25 +128,32 @@ def _floor_job_child(source: str, output: str) -> None:
 
 
 def floor_job(folder: Path, reps: int = 3, threads: int = 2) -> dict:
-    """Alternating rounds of the LAZ case's `c1mesh fit` and the floor job, both child
-    processes: {"fit": [wall s], "job": [wall s], "ratio": median fit / median job}, or
-    {"skipped": why} without PyPI `triangle`."""
+    """Alternating rounds of the LAZ case's `c1mesh fit`, the floor job and the fit at one
+    thread, all child processes: {"fit": [wall s], "job": [wall s], "fit_1": [wall s],
+    "ratio": median fit / median job, "threads_ratio": median fit_1 / median fit,
+    "same_bytes": the two fits' outputs equal in every round}, or {"skipped": why}
+    without PyPI `triangle`."""
     import importlib.util
 
     if importlib.util.find_spec("triangle") is None:
         return {"skipped": "PyPI triangle is not installed (benchmarks/install-peers.sh installs it)"}
     code = "import sys; from benchmarks.stages import _floor_job_child; _floor_job_child(*sys.argv[1:3])"
-    walls = {"fit": [], "job": []}
+    walls, same = {"fit": [], "job": [], "fit_1": []}, True
+    out = folder / "laz.out.ply"
     for _ in range(reps):
         walls["fit"].append(_fit(folder, "laz", threads)["wall"])
+        written = out.read_bytes()
         child = run_child([sys.executable, "-c", code, str(folder / CASES["laz"][0]),
                            str(folder / "laz.floor.ply")])
         if child.returncode:
             raise RuntimeError(f"the floor job failed: {child.stderr[-500:]}")
         walls["job"].append(child.seconds)
+        walls["fit_1"].append(_fit(folder, "laz", 1)["wall"])
+        same = same and out.read_bytes() == written
         print(json.dumps({name: runs[-1] for name, runs in walls.items()}), file=sys.stderr)
-    walls["ratio"] = statistics.median(walls["fit"]) / statistics.median(walls["job"])
-    return walls
+    median = {name: statistics.median(runs) for name, runs in walls.items()}
+    return {**walls, "ratio": median["fit"] / median["job"], "threads_ratio": median["fit_1"] / median["fit"],
+            "same_bytes": same}
 
 
 def _fit(folder: Path, case: str, threads: int) -> dict:
