@@ -1,7 +1,8 @@
 """Each stage of a 1M-point `c1mesh fit` next to its floor (issue 23).
 
     python -m benchmarks.stages make FOLDER          # FOLDER/terrain.laz and FOLDER/normals.ply, 1M points
-    python -m benchmarks.stages run FOLDER [REPS]    # the fits and the floors, REPS alternating rounds (3)
+    python -m benchmarks.stages run FOLDER [REPS] [THREADS]  # the fits and the floors, REPS alternating
+                                                     # rounds (3), at THREADS threads (2)
     python -m benchmarks.stages read FOLDER [REPS]   # LAZ read seconds at --threads 1 and 2
     python -m benchmarks.stages table RUN.json       # the markdown table of a run's output
     python -m benchmarks.stages job FOLDER [REPS]    # the LAZ fit against issue 23's floor job (3),
@@ -18,7 +19,8 @@ The floors (a child process too, the same thread count):
   height fit's 24 neighbours and the point itself), points in the KD tree's leaf order as
   the height fit has them (about twice as fast as file order), the tree built before the
   clock starts;
-* triangulate: scipy's Delaunay of the centred x, y;
+* triangulate: Shewchuk's Triangle of the centred x, y (the floor job's; scipy's Delaunay
+  where PyPI `triangle` is not installed);
 * interpolate: one sort of the 3T edge keys of that triangulation (the limiter's and the
   interpolator's work is a few vectorised passes over the edge table this sort builds);
 * write: the output file's bytes written to a file beside it.
@@ -63,9 +65,21 @@ def make(folder: Path) -> None:
     write_cloud_ply(folder / "normals.ply", *terrain_cloud(N))
 
 
+def _floor_delaunay(xy: np.ndarray) -> np.ndarray:
+    """The triangulate floor's triangles (T, 3) of xy (n, 2): Shewchuk's Triangle (PyPI
+    `triangle`, the floor job's, the fastest 2-D Delaunay installable here, one thread),
+    or scipy's Delaunay where it is not installed (FLOOR_OF says which was run)."""
+    try:
+        import triangle
+    except ImportError:
+        from scipy.spatial import Delaunay
+        return Delaunay(xy).simplices.astype(np.int64)
+    return triangle.triangulate({"vertices": xy}, "Q")["triangles"].astype(np.int64)
+
+
 def _floor_child(source: str, output_bytes: int, threads: int) -> None:
     """Print the floors' seconds (JSON) for the input `source` (run in a child process)."""
-    from scipy.spatial import Delaunay, cKDTree
+    from scipy.spatial import cKDTree
 
     seconds = {}
     start = time.perf_counter()
@@ -89,7 +103,7 @@ def _floor_child(source: str, output_bytes: int, threads: int) -> None:
     seconds["knn"] = time.perf_counter() - start
     del tree, leaf_order
     start = time.perf_counter()
-    tri = Delaunay(xy).simplices.astype(np.int64)
+    tri = _floor_delaunay(xy)
     seconds["delaunay"] = time.perf_counter() - start
     start = time.perf_counter()
     n = np.int64(len(xy))
@@ -211,7 +225,7 @@ def read_seconds(folder: Path, reps: int = 3) -> dict:
 FLOOR_OF = {"read": ("read", "laspy/lazrs decode (PLY: numpy reads the bytes)"),
             "normals": ("knn", "one cKDTree.query, k = 25"),
             "gradients": ("knn", "one cKDTree.query, k = 25"),
-            "triangulate": ("delaunay", "scipy Delaunay"),
+            "triangulate": ("delaunay", "Triangle, one thread"),
             "interpolate": ("edge_sort", "one sort of the 3T edge keys"),
             "write": ("write", "the output's bytes to disk, fsync")}
 
@@ -247,7 +261,7 @@ def main(argv: list[str]) -> None:
     if command == "make":
         make(folder)
     elif command == "run":
-        print(json.dumps(run(folder, reps), indent=1))
+        print(json.dumps(run(folder, reps, int(argv[3]) if len(argv) > 3 else 2), indent=1))
     elif command == "table":
         print(table(json.loads(folder.read_text())))
     elif command == "job":
