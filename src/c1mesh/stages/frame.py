@@ -149,7 +149,6 @@ def choose_frame(points: ArrayLike, normals: ArrayLike | None = None,
     return _frame(lambda: [(finite, normals)], e3)
 
 
-
 FrameChunks = Callable[[], Iterable[tuple[np.ndarray, "np.ndarray | None"]]]
 """A callable giving a fresh iterator of (points (m, 3), normals (m, 3) or None), world
 coordinates, in survey order (input files in the order given, each in its own order)."""
