@@ -599,13 +599,15 @@ def _reconcile(gradients: np.ndarray, geometry: EdgeGeometry, predicted: tuple[n
 
 def _solve_2x2(M: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The solutions (m, 2) of the systems M (m, 2, 2) x = r (m, 2) by numpy's solve
-    (LAPACK's gesv, which releases the GIL), in fixed blocks of systems in the thread
-    knob's threads: each system is solved alone, so the bits do not depend on the count."""
+    (LAPACK's gesv), in fixed blocks of systems, in one thread whatever the knob says:
+    OpenBLAS's gesv called from two threads at once ran 3x slower than from one (0.23-0.31 s
+    against 0.08 s for the 1M-point LAZ fit's systems, with the limiter's directions on the
+    other core), so threads cost here. Each system is solved alone: the same bits."""
     x = np.empty_like(r)
 
     def block(part: slice) -> None:
         x[part] = np.linalg.solve(M[part], r[part, :, None])[:, :, 0]
-    parallel_blocks(block, r.shape[0], KERNEL_BLOCK)
+    parallel_blocks(block, r.shape[0], KERNEL_BLOCK, threads=1)
     return x
 
 
