@@ -213,3 +213,30 @@ def test_spacing_steps_sample_every_position_below_twice_the_samples():
     assert spacing_steps(39999) == (1,)
     assert spacing_steps(40000) == (2, 1)
     assert spacing_steps(10, samples=3) == (3, 1)
+
+
+@pytest.mark.parametrize("layout", ["shuffled", "x_sorted", "quantised_sorted", "one_x"])
+def test_strips_hold_the_points_by_strip_then_y_then_index(layout):
+    """strip_index against a brute-force lexsort of (strip number, y, index), with -0.0 as
+    0.0: points in any order (two radix sorts), sorted by x as the height field's
+    positions are (each strip's run sorted alone), quantised with ties in x and y
+    and zeros of both signs, and all on one x."""
+    from c1mesh.stages.height_field import strip_index
+    rng = np.random.default_rng(11)
+    n = 20_000
+    x, y = rng.random(n) * 50, rng.random(n) * 30 - 15
+    if layout == "quantised_sorted":
+        x, y = np.round(x * 4) / 4, np.round(y * 2) / 2
+        y[rng.random(n) < 0.05] = -0.0
+    if layout == "one_x":
+        x = np.full(n, 3.0)
+    if layout != "shuffled":
+        order = np.lexsort((y, x))
+        x, y = x[order], y[order]
+    strips = strip_index(x, y, 0.37)
+    strip = np.floor((x - x.min()) / strips.width).astype(np.int64) if strips.width > 0 else np.zeros(n, np.int64)
+    want = np.lexsort((np.arange(n), y + 0.0, strip))
+    assert np.array_equal(strips.strip, strip)
+    assert np.array_equal(strips.order, want)
+    runs = strip[want]
+    assert np.array_equal(strips.starts, np.r_[0, np.flatnonzero(runs[1:] != runs[:-1]) + 1, n])

@@ -127,6 +127,25 @@ def sort_by_float(const double[::1] values, int64_t[::1] order, uint64_t[::1] ke
         _radix_sort(&key[0], &order[0], &key_tmp[0], &order_tmp[0], n)
 
 
+def sort_runs_by_float(const double[::1] values, const int64_t[::1] starts, int64_t[::1] order,
+                       uint64_t[::1] key, uint64_t[::1] key_tmp, int64_t[::1] order_tmp):
+    """order (n,) = each run [starts[r], starts[r + 1]) of range(n) sorted stably by values
+    (n,) (finite; -0.0 equal to 0.0): insertion sort for short runs, else the radix sort,
+    each run in cache. The result of sort_by_float from arange followed by a stable sort
+    by run number, in one pass over small runs. key, key_tmp (n,), order_tmp (n,) scratch."""
+    cdef Py_ssize_t runs = starts.shape[0] - 1, r, i, start, stop
+    with nogil:
+        for r in range(runs):
+            start, stop = starts[r], starts[r + 1]
+            for i in range(start, stop):
+                order[i] = i
+                key[i] = _float_key(values[i])
+            if stop - start <= SMALL_RUN:
+                _insertion_sort(&key[start], &order[start], stop - start)
+            else:
+                _radix_sort(&key[start], &order[start], &key_tmp[start], &order_tmp[start], stop - start)
+
+
 def sort_by_int(const int64_t[::1] values, int64_t[::1] order, uint64_t[::1] key,
                 uint64_t[::1] key_tmp, int64_t[::1] order_tmp):
     """Reorder the permutation order (n,) stably by values[order] (values (N,) >= 0)."""
