@@ -140,7 +140,7 @@ def test_the_tiled_stacking_test_measures_what_memory_measures(tmp_path):
     points = {}
     for name, extra in (("memory", []), ("tiles", ["--memory", "30M"])):
         report = tmp_path / f"{name}.json"
-        result = CliRunner().invoke(main, ["fit", str(source), "--level", "1", "-q", "-o",
+        result = CliRunner().invoke(main, ["fit", str(source), "--level", "1", "--smooth", "off", "-q", "-o",
                                            str(tmp_path / f"{name}.ply"), "--report", str(report), *extra])
         assert result.exit_code == 0, result.output
         points[name] = json.loads(report.read_text())
