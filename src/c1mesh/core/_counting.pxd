@@ -1,5 +1,6 @@
 # A stable counting sort of small integer keys, shared by the kernels that sort points into
-# cells or buckets: the height fit's grid (plane_grid), the lattice's nearest-point buckets
+# cells or buckets: the height fit's grid (plane_grid), the lattice's nearest-point buckets,
+# the order CDT is given the points in (engine/_ties.pyx cell_order)
 # (cimported, inlined into each; nothing is compiled from this file).
 from libc.stdint cimport int64_t
 

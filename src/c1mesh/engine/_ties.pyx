@@ -14,6 +14,7 @@ import numpy as np
 from libc.math cimport fabs, floor, sqrt
 from libc.stdint cimport int8_t, int64_t, uint32_t
 
+from c1mesh.core._counting cimport stable_order
 from c1mesh.core._prefetch cimport AHEAD, prefetch, prefetch_corners
 
 cdef enum:
@@ -139,7 +140,7 @@ def drop_super_triangle(const uint32_t[:, ::1] vertices, const uint32_t[:, ::1] 
 def cell_order(const double[:, ::1] xy, double per_cell):
     """(n,) int64 the points xy (n, 2) ordered by the cells of a square grid over their box
     holding about per_cell points each, the cells row by row (every other row backwards),
-    each cell's points in index order: a counting sort, two linear passes. The cell side
+    each cell's points in index order: core/_counting.pxd's counting sort. The cell side
     is at least the box's longer side × per_cell / n, so that a box thin along one axis
     gets at most about 3 n / per_cell cells."""
     cdef Py_ssize_t n = xy.shape[0], i
@@ -158,7 +159,7 @@ def cell_order(const double[:, ::1] xy, double per_cell):
         return order_
     cdef int64_t nx = <int64_t> floor((x1 - x0) / side) + 1, ny = <int64_t> floor((y1 - y0) / side) + 1
     cdef int64_t[::1] cell = np.empty(n, dtype=np.int64)
-    cdef int64_t[::1] start = np.zeros(nx * ny + 1, dtype=np.int64)
+    cdef int64_t[::1] start = np.empty(nx * ny + 1, dtype=np.int64)
     cdef int64_t[::1] order = order_
     cdef int64_t ix, iy
     with nogil:
@@ -168,10 +169,5 @@ def cell_order(const double[:, ::1] xy, double per_cell):
             if iy % 2:
                 ix = nx - 1 - ix
             cell[i] = iy * nx + ix
-            start[cell[i] + 1] += 1
-        for i in range(nx * ny):
-            start[i + 1] += start[i]
-        for i in range(n):
-            order[start[cell[i]]] = i
-            start[cell[i]] += 1
+        stable_order(&cell[0], n, &start[0], nx * ny, &order[0])
     return order_
