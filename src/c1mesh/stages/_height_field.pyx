@@ -84,6 +84,16 @@ cdef enum:
     SMALL_RUN = 32       # runs of tied x up to this long are insertion-sorted by y
 
 
+cdef inline void _sort_run(uint64_t *key, int64_t *order, uint64_t *key_tmp, int64_t *order_tmp,
+                           Py_ssize_t n) noexcept nogil:
+    """Sort one run's pairs (key[i], order[i]) stably by key: insertion for up to SMALL_RUN,
+    else the radix sort (*_tmp scratch of the run's length)."""
+    if n <= SMALL_RUN:
+        _insertion_sort(key, order, n)
+    else:
+        _radix_sort(key, order, key_tmp, order_tmp, n)
+
+
 def sort_xy(const double[::1] x, const double[::1] y, int64_t[::1] order, uint64_t[::1] key,
             uint64_t[::1] key_tmp, int64_t[::1] order_tmp):
     """order (n,): the permutation sorting the points (x, y) (n,) by x, then y, then index
@@ -108,11 +118,7 @@ def sort_xy(const double[::1] x, const double[::1] y, int64_t[::1] order, uint64
             if stop - start > 1:
                 for i in range(start, stop):
                     key[i] = _float_key(y[order[i]])
-                if stop - start <= SMALL_RUN:
-                    _insertion_sort(&key[start], &order[start], stop - start)
-                else:
-                    _radix_sort(&key[start], &order[start], &key_tmp[start], &order_tmp[start],
-                                stop - start)
+                _sort_run(&key[start], &order[start], &key_tmp[start], &order_tmp[start], stop - start)
             start = stop
 
 
@@ -140,10 +146,7 @@ def sort_runs_by_float(const double[::1] values, const int64_t[::1] starts, int6
             for i in range(start, stop):
                 order[i] = i
                 key[i] = _float_key(values[i])
-            if stop - start <= SMALL_RUN:
-                _insertion_sort(&key[start], &order[start], stop - start)
-            else:
-                _radix_sort(&key[start], &order[start], &key_tmp[start], &order_tmp[start], stop - start)
+            _sort_run(&key[start], &order[start], &key_tmp[start], &order_tmp[start], stop - start)
 
 
 def sort_by_int(const int64_t[::1] values, int64_t[::1] order, uint64_t[::1] key,
