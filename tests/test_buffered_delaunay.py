@@ -147,6 +147,23 @@ def test_streamed_hull_is_the_hull_of_all_points():
     assert np.array_equal(hull.xy, xy[hull.index])
 
 
+def test_hull_of_parts_is_the_hull_of_all_points():
+    """Parts reduced to their own hulls in threads, then merged: the corners of qhull's hull
+    of all points at once, counter-clockwise; a part of two points, and a part all on one
+    line (no 2-D hull of its own), are kept whole."""
+    xy = np.concatenate([_survey("clusters"), [[50.0, -10.0], [50.0, 120.0]],
+                         np.column_stack([np.linspace(-20.0, 130.0, 50), np.full(50, 55.0)])])
+    index = np.arange(len(xy))
+    bounds = [0, 900, 1800, len(xy) - 52, len(xy) - 50, len(xy)]
+    parts = [(index[a:b], xy[a:b]) for a, b in zip(bounds, bounds[1:])]
+    hull = bd.hull_of_parts([lambda part=part: part for part in parts])
+    assert set(hull.index.tolist()) == set(ConvexHull(xy).vertices.tolist())
+    assert {len(index[a:b]) for a, b in zip(bounds, bounds[1:])} >= {2, 50}
+    assert np.array_equal(hull.xy, xy[hull.index])
+    x, y = hull.xy[:, 0], hull.xy[:, 1]
+    assert (x * np.roll(y, -1) - np.roll(x, -1) * y).sum() > 0          # counter-clockwise
+
+
 def test_circumcircles_match_the_equidistance_definition():
     rng = np.random.default_rng(0)
     xy = rng.uniform(-1, 1, (30, 2))

@@ -44,6 +44,7 @@ import numpy as np
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.lazy import LazyModule
+from c1mesh.core.threads import map_in_threads
 from c1mesh.engine.triangulation import delaunay_with_neighbours
 from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
@@ -160,6 +161,28 @@ def streamed_hull(chunks) -> Hull:
             corners = spatial.ConvexHull(xy).vertices                 # counter-clockwise in 2-D
             index, xy = index[corners], xy[corners]
     return Hull(index, xy)
+
+
+def hull_of_parts(parts: list[Callable[[], tuple[np.ndarray, np.ndarray]]]) -> Hull:
+    """`streamed_hull` of the parts that the callables read, each (index (m,), xy (m, 2)):
+    each part is read and reduced to its own hull in the thread knob's threads (qhull
+    releases the GIL), then those hulls are merged in order. A corner of the whole hull
+    is a corner of its part's hull, so this is streamed_hull's hull, found in parallel
+    (the 12M-point survey's 49 tiles: 2.2 s one by one in the parent)."""
+    return streamed_hull(map_in_threads(lambda read: _part_hull(*read()), parts))
+
+
+def _part_hull(index: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index, xy) of the corners of points xy (m, 2)'s convex hull; every point when there
+    are fewer than 3 or qhull finds no 2-D hull (all on one line)."""
+    index, xy = np.asarray(index, np.int64), np.asarray(xy, np.float64)
+    if len(index) < 3:
+        return index, xy
+    try:
+        corners = spatial.ConvexHull(xy).vertices
+    except spatial.QhullError:
+        return index, xy
+    return index[corners], xy[corners]
 
 
 def tile_triangles(read: Reader, grid: TileGrid, tile: int, buffer: float,

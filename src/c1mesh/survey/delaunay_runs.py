@@ -5,6 +5,7 @@ the survey-wide auto max_edge of trimmed_delaunay)."""
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 
@@ -13,7 +14,7 @@ from c1mesh.core.threads import limit
 from c1mesh.survey.buffered_delaunay import (
     INITIAL_SPACINGS,
     mean_spacing,
-    streamed_hull,
+    hull_of_parts,
     tile_pass,
     tile_triangles,
     trimmed_delaunay,
@@ -34,8 +35,7 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows, mo
     count = int(heights.counts.sum())
     if count < 3:
         raise InputError(f"only {count} points are left for the height field; need at least 3")
-    hull = streamed_hull((r["index"], np.column_stack([r["x"], r["y"]]))
-                         for r in (heights.tile(t) for t in range(len(grid))))
+    hull = hull_of_parts([partial(_tile_points, heights, t) for t in range(len(grid))])
     files = [temps.new(f"triangles-{t}.npy") for t in range(len(grid))]
     buffers = np.zeros(len(grid))
     if max_edge is None:
@@ -64,6 +64,12 @@ def triangulate_tiles(heights, grid, max_edge, temps, runner, rows: TileRows, mo
         if not short.all():
             save_array(files[t], triangles[short])
     return limit, files, buffers, 2 * count - 2 - len(hull.index)
+
+
+def _tile_points(heights, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """(survey numbers (m,), xy (m, 2)) of the height spill's tile t."""
+    records = heights.tile(t)
+    return records["index"], np.column_stack([records["x"], records["y"]])
 
 
 def _tile_delaunay(heights, grid, t: int, buffer: float, bounds, path, threads) -> tuple[float, dict]:
