@@ -30,7 +30,9 @@ def test_spilled_tiles_read_back_as_the_points_in_memory(tmp_path):
     memory = bd.ArrayReader(local[:, :2])
     with spill(_chunks(points), frame, grid, tmp_path, "out.ply") as tiles:
         assert tiles.counts.sum() == len(points)
-        for rect in [(-15, -15, -5, 5), (-30, -30, 30, 30), (24, -25, 60, -20), (-12.5, -20, -12.5, 15)]:
+        (ax, ay), (bx, by) = np.sort(local[[10, 20], :2], axis=0)     # closed: points on its sides count
+        for rect in [(-15, -15, -5, 5), (-30, -30, 30, 30), (24, -25, 60, -20), (-12.5, -20, -12.5, 15),
+                     (ax, ay, bx, by), (ax, ay, ax, ay)]:
             index, xy = tiles.read(rect)
             expected_index, expected_xy = memory(rect)
             assert np.array_equal(index, expected_index)

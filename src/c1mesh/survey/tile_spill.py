@@ -22,6 +22,7 @@ import numpy as np
 
 from c1mesh.core.lazy import LazyModule
 from c1mesh.core.outputs import register_temp, unregister_temp
+from c1mesh.survey import _tile_spill as kernel
 from c1mesh.survey.buffered_delaunay import TileGrid
 
 spatial = LazyModule("scipy.spatial")
@@ -104,11 +105,7 @@ class TileSpill:
         take: numpy's boolean and integer indexing of a structured array take a generic
         per-row path, measured 8-13x slower on 250k of these 32-byte records; the copies
         are the same.)"""
-        x0, y0, x1, y1 = rect
-        parts = []
-        for t in self.touching(rect):
-            r = self.tile(t)
-            parts.append(np.compress((r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1), r))
+        parts = [_in_rect(self.tile(t), rect) for t in self.touching(rect)]
         records = np.concatenate(parts) if parts else np.empty(0, self.record)
         return records.take(np.argsort(records["index"], kind="stable"))
 
@@ -120,11 +117,10 @@ class TileSpill:
         tiles = self.reading(rect, far)
         if far is None or not len(far):
             return self.records(rect), tiles
-        x0, y0, x1, y1 = rect
         parts = []
         for t in tiles:
             r = self.tile(t)
-            keep = (r["x"] >= x0) & (r["x"] <= x1) & (r["y"] >= y0) & (r["y"] <= y1)
+            keep = _rect_mask(r, rect)
             meeting = _meeting(far, self.grid.cell(t))
             for radius in np.unique(far[meeting, 2]).tolist():
                 mine = far[(far[:, 2] == radius) & meeting][:, :2]
@@ -155,6 +151,20 @@ class TileSpill:
             cx0, cy0, cx1, cy1 = self.grid.cell(t)
             if cx0 <= x1 and x0 <= cx1 and cy0 <= y1 and y0 <= cy1 and self.counts[t]:
                 yield t
+
+
+def _rect_mask(records: np.ndarray, rect) -> np.ndarray:
+    """(m,) bool: which records (with fields x, y) lie in the closed rectangle (x0, y0, x1,
+    y1); the kernel's one pass over the rows (survey/_tile_spill.pyx: 1.4 ms against 0.3 ms
+    for a tile of 245k rows)."""
+    mask = np.empty(len(records), dtype=np.uint8)
+    kernel.in_rect(records["x"], records["y"], *map(float, rect), mask)
+    return mask.view(bool)
+
+
+def _in_rect(records: np.ndarray, rect) -> np.ndarray:
+    """The records in the closed rectangle, in their order (np.compress: see TileSpill.records)."""
+    return np.compress(_rect_mask(records, rect), records)
 
 
 def _meeting(far: np.ndarray, cell) -> np.ndarray:
