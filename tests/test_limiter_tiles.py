@@ -15,7 +15,7 @@ from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.curtains import noise_floor
 from c1mesh.stages.limiter import (NoiseFloors, control_overshoot, floor_summary, reconcile_gradients,
-                                   reconcile_heights, reduce_floor, tile_limits)
+                                   reconcile_heights, reconciled_summary, reduce_floor, tile_limits)
 
 HALO_RINGS = 4
 
@@ -100,11 +100,14 @@ def test_floors_over_tiles_are_the_one_tiles_and_the_loops(noisy, count):
     assert reduce_floor(lambda: iter(summaries)) == second
 
 
+@pytest.mark.parametrize("kept", [False, True])
 @pytest.mark.parametrize("count", [2, 4])
-def test_the_run_on_tiles_is_the_in_memory_limiter(noisy, count):
+def test_the_run_on_tiles_is_the_in_memory_limiter(noisy, count, kept):
     """tile_limits of each tile, with the floors of the one tile, gives the in-memory
     limiter's heights and gradients at its triangles' corners to the bit, and the tiles'
-    counts add up to the in-memory report's."""
+    counts add up to the in-memory report's; kept: each tile given its data as the second
+    floor's summary reconciled it (reconciled_summary, what the survey's refinement reads
+    back), not reconciling it again."""
     xy, z, g, triangles = noisy
     values, gradients, directions, report = control_overshoot(xy, z, g, triangles)
     one = Tile.whole(xy, z, g, triangles)
@@ -112,7 +115,7 @@ def test_the_run_on_tiles_is_the_in_memory_limiter(noisy, count):
     floors = NoiseFloors(first, reduce_floor(lambda: (floor_summary(one, first),)))
     counts = np.zeros(3, dtype=int)
     for tile, owned in _tiles(xy, z, g, triangles, count):
-        limits = tile_limits(tile, owned, floors)
+        limits = tile_limits(tile, owned, floors, reconciled_summary(tile, first)[1] if kept else None)
         corners = limits.records["index"]
         assert np.array_equal(corners[limits.triangles], owned)
         assert np.array_equal(limits.records["z"], values[corners])

@@ -125,6 +125,20 @@ class TileLimits:
     table: EdgeTable | None = None
 
 
+@dataclass(frozen=True)
+class Reconciliation:
+    """A tile's data reconciled with the survey's first noise floor, as the second floor's
+    summary found it (`reconciled_summary`): values (n,), gradients (n, 2), and the (n,)
+    bool vertices whose height moved (lifted) and whose gradient was reconciled (moved).
+    Given back to `tile_limits` on the same tile, it spares the refinement a second
+    reconciliation of the same data (2 of the limiter's 4 s per M points in tiles)."""
+
+    values: np.ndarray
+    gradients: np.ndarray
+    lifted: np.ndarray
+    moved: np.ndarray
+
+
 def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
     """The noise floors' summary of one tile: (e,) |trapezoid residual| (height units) of
     the tile's own edges, those of its triangles whose lower-numbered end it owns (each
@@ -138,11 +152,18 @@ def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
     if first is None:            # the own edges alone: their residuals are the first floor's values
         edges = unique_edges(tile.triangles, len(tile.records), tile.own)
         return residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, edges))
+    return reconciled_summary(tile, first)[0]
+
+
+def reconciled_summary(tile: Tile, first: float) -> tuple[np.ndarray, Reconciliation]:
+    """The second noise floor's summary of one tile (`floor_summary` with the first floor
+    `first`), and the tile's data reconciled with it, which `tile_limits` takes back."""
     table = edge_table(tile.triangles, len(tile.records))
     counted = tile.own[table.edges[:, 0]]
     geometry = EdgeGeometry.of(tile.points, tile.values, table.edges)
     reconciled, _ = _reconciled(tile.values, tile.gradients, geometry, table, True, first)
-    return residual_sizes(reconciled.residuals(), counted)
+    return (residual_sizes(reconciled.residuals(), counted),
+            Reconciliation(reconciled.values, reconciled.gradients, reconciled.lifted, reconciled.moved))
 
 
 def residual_sizes(residuals: np.ndarray, counted: np.ndarray | None = None) -> np.ndarray:
@@ -195,15 +216,18 @@ def control_overshoot(points: np.ndarray, values: np.ndarray, gradients: np.ndar
     return limits.values, limits.gradients, limits.directions, limits.report(table)
 
 
-def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors) -> TileLimits:
+def tile_limits(tile: Tile, owned: np.ndarray, floors: NoiseFloors,
+                reconciled: Reconciliation | None = None) -> TileLimits:
     """The limiter's run on one tile of a survey: the reconciled heights, limited gradients
     and edge directions of the tile's own triangles `owned` (k, 3) survey numbers, all
     inside the tile, with the survey's noise floors; changes counted over the vertices
     (and edges by their lower end) the tile owns, so the tiles' counts add up to the
     survey's. The halo must hold the star of every vertex within 3 longest edges of the
-    cell (c1mesh.survey.halos): then the corners' results are the whole survey's."""
+    cell (c1mesh.survey.halos): then the corners' results are the whole survey's.
+    reconciled: this tile's data reconciled with floors.first (`reconciled_summary`), or
+    None to reconcile it here; the same bits either way."""
     table, other = edge_table_sides(tile.triangles, len(tile.records))[:2]      # not its neighbours: memory
-    limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors)
+    limits = _limits(tile.points, tile.values, tile.gradients, tile.triangles, table, True, floors, reconciled)
     report = limits.report(table, tile.own)
     corners, triangles, at, own_table = own_triangles_in(tile, table, other, owned)
     records = tile.records.take(corners)                 # structured rows: take, not [corners]
@@ -278,24 +302,32 @@ class _Limits:
 
 
 def _limits(points: np.ndarray, values: np.ndarray, gradients: np.ndarray, triangles: np.ndarray,
-            table: EdgeTable, heights: bool, floors: NoiseFloors | None) -> _Limits:
+            table: EdgeTable, heights: bool, floors: NoiseFloors | None,
+            reconciled: Reconciliation | None = None) -> _Limits:
     """`control_overshoot`'s remedies on a tile's arrays with its edge table; floors: the
-    survey's (None: the one tile's own, measured)."""
-    geometry = EdgeGeometry.of(points, values, table.edges)
+    survey's (None: the one tile's own, measured); reconciled: as tile_limits takes it."""
+    geometry = EdgeGeometry.of(points, values if reconciled is None else reconciled.values, table.edges)
     # The directions need only the positions: they run in one thread beside the heights'
     # and gradients' remedies (core.threads.overlap; one after the other with one worker).
     (directions, turned), (values, limited, lifted, moved, changed) = overlap(
         lambda: _directions(points, triangles, table, (geometry.dx, geometry.dy), RATIO_LIMIT, threads=1),
-        lambda: _remedies(values, gradients, geometry, table, floors, heights))
+        lambda: _remedies(values, gradients, geometry, table, floors, heights, reconciled))
     return _Limits(values, limited, directions, lifted, moved, changed, turned)
 
 
 def _remedies(values: np.ndarray, gradients: np.ndarray, geometry: "EdgeGeometry", table: EdgeTable,
-              floors: NoiseFloors | None, heights: bool) -> tuple[np.ndarray, ...]:
+              floors: NoiseFloors | None, heights: bool,
+              known: Reconciliation | None = None) -> tuple[np.ndarray, ...]:
     """`control_overshoot`'s heights and gradients: (values (n,), gradients (n, 2), and the
-    (n,) bool vertices whose height moved, gradient was reconciled, gradient was limited)."""
-    reconciled, first = _reconciled(values, gradients, geometry, table, heights,
+    (n,) bool vertices whose height moved, gradient was reconciled, gradient was limited).
+    known: the data reconciled already (geometry then over its values), whose predictions
+    over every edge are those `_reconciled` updates edge by edge."""
+    if known is None:
+        reconciled, _ = _reconciled(values, gradients, geometry, table, heights,
                                     None if floors is None else floors.first)
+    else:
+        reconciled = _Reconciled(known.values, known.gradients, geometry, geometry.predictions(known.gradients),
+                                 known.lifted, known.moved)
     second = _measured_floor(reconciled.residuals()) if floors is None else floors.second
     limited, changed = _limit(reconciled.gradients, reconciled.geometry, reconciled.predicted, SECANT_FACTOR,
                               CONSISTENCY, NOISE_FACTOR, second)

@@ -37,7 +37,8 @@ import numpy as np
 
 from c1mesh.core.threads import map_in_threads
 from c1mesh.core.tile import Tile, compact, tile_rows
-from c1mesh.stages.limiter import NoiseFloors, TileLimits, floor_summary, reduce_floor, tile_limits
+from c1mesh.stages.limiter import (NoiseFloors, Reconciliation, TileLimits, floor_summary, reconciled_summary,
+                                   reduce_floor, tile_limits)
 from c1mesh.stages.streamed_median import streamed_median
 from c1mesh.stages.trim import edge_lengths, kept_triangles, triangles_among
 from c1mesh.survey.distributed import TaskRunner
@@ -212,7 +213,7 @@ class KeptSummaries:
 
 
 def floor_files(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
-                name=str, kept: KeptSummaries | None = None) -> dict:
+                name=str, kept: KeptSummaries | None = None, reconciled: dict | None = None) -> dict:
     """{tile: the file of its floor_summary} for every tile of the halos (the summaries of
     a noise floor, c1mesh.stages.limiter: with the height field's data, first None, or
     with the data reconciled with the first floor). Each tile's summary is a task on
@@ -220,36 +221,68 @@ def floor_files(halos: HaloCache, temps, label: str, first: float | None = None,
     its own file, so the floor does not depend on where or in which order they ran;
     kept: files that hold a tile's summary already (KeptSummaries, first None only).
     halos: the HaloCache (after prune); name(t) names tile t in errors; label names the
-    files."""
+    files. reconciled (with first only): {tile: path} where each tile's task also writes its
+    data reconciled with first (`write_reconciled`), for the refinement."""
     paths = {}
     if kept is not None:
         paths = {t: path for t, path in kept.paths.items() if t not in kept.changed}
     tiles = [t for t in halos.tiles() if t not in paths]
     new = {t: temps.new(f"{label}-{t}.bin") for t in tiles}
+    keep = reconciled or {}
     for _ in (runner or TaskRunner()).map(write_floor_summary, len(tiles),
-                                          lambda i: (halos, tiles[i], first, new[tiles[i]]), lambda i: name(tiles[i])):
+                                          lambda i: (halos, tiles[i], first, new[tiles[i]], keep.get(tiles[i])),
+                                          lambda i: name(tiles[i])):
         pass
     return {**paths, **new}
 
 
 def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
-               name=str, kept: KeptSummaries | None = None) -> float:
+               name=str, kept: KeptSummaries | None = None, reconciled: dict | None = None) -> float:
     """A noise floor of the survey, exactly: reduce_floor over floor_files' summaries,
     whose files it then removes."""
-    return median_of_files(list(floor_files(halos, temps, label, first, runner, name, kept).values()),
+    return median_of_files(list(floor_files(halos, temps, label, first, runner, name, kept, reconciled).values()),
                            reduce_floor)
 
 
-def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path) -> None:
-    """Write tile's limiter.floor_summary (float64) to path."""
-    floor_summary(halos.halo(tile), first).astype("<f8").tofile(path)
+def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path, reconciled_path=None) -> None:
+    """Write tile's limiter.floor_summary (float64) to path; with reconciled_path (and the
+    first floor), its data reconciled with the first floor there too (`write_reconciled`)."""
+    if reconciled_path is None:
+        floor_summary(halos.halo(tile), first).astype("<f8").tofile(path)
+        return
+    summary, reconciled = reconciled_summary(halos.halo(tile), first)
+    summary.astype("<f8").tofile(path)
+    write_reconciled(reconciled, reconciled_path)
 
 
-def noise_floors(halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None) -> NoiseFloors:
+RECONCILED = np.dtype([("z", "<f8"), ("gx", "<f8"), ("gy", "<f8"), ("lifted", "?"), ("moved", "?")])
+"""A halo vertex's data reconciled with the first noise floor, a row per vertex in halo order."""
+
+
+def write_reconciled(reconciled: Reconciliation, path) -> None:
+    """Write a limiter.Reconciliation to path as RECONCILED rows (26 bytes a halo vertex)."""
+    rows = np.empty(len(reconciled.values), dtype=RECONCILED)
+    rows["z"], rows["lifted"], rows["moved"] = reconciled.values, reconciled.lifted, reconciled.moved
+    rows["gx"], rows["gy"] = reconciled.gradients[:, 0], reconciled.gradients[:, 1]
+    rows.tofile(path)
+
+
+def read_reconciled(path) -> Reconciliation:
+    """The limiter.Reconciliation write_reconciled wrote to path."""
+    rows = np.fromfile(path, dtype=RECONCILED)
+    return Reconciliation(np.ascontiguousarray(rows["z"]), np.column_stack([rows["gx"], rows["gy"]]),
+                          np.ascontiguousarray(rows["lifted"]), np.ascontiguousarray(rows["moved"]))
+
+
+def noise_floors(halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None,
+                 reconciled: dict | None = None) -> NoiseFloors:
     """The limiter's two noise floors of the survey (edge_floor twice: the second with
-    the data reconciled with the first); kept: the curtains' summaries (floor_files)."""
+    the data reconciled with the first); kept: the curtains' summaries (floor_files);
+    reconciled: {tile: path} where the second floor's tasks also write each tile's data
+    reconciled with the first (`write_reconciled`; None: not kept)."""
     first = edge_floor(halos, temps, "residuals-first", None, runner, name, kept)
-    return NoiseFloors(first, edge_floor(halos, temps, "residuals-second", first, runner, name))
+    return NoiseFloors(first, edge_floor(halos, temps, "residuals-second", first, runner, name,
+                                         reconciled=reconciled))
 
 
 class TiledLimiter:
@@ -259,12 +292,15 @@ class TiledLimiter:
 
     def __init__(self, halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None):
         self.halos = halos
-        self.floors = noise_floors(halos, temps, runner, name, kept)
+        # each tile's data reconciled with the first floor, as its second floor's task left it
+        self.reconciled = {t: temps.new(f"reconciled-{t}.bin") for t in halos.tiles()}
+        self.floors = noise_floors(halos, temps, runner, name, kept, self.reconciled)
         self.limited = self.turned = self.lifted = 0
 
     def tile(self, tile: int, triangles: np.ndarray) -> TileLimits:
-        """limiter.TileLimits of the tile's own triangles (survey numbers)."""
-        return tile_limits(self.halos.halo(tile), triangles, self.floors)
+        """limiter.TileLimits of the tile's own triangles (survey numbers), from the tile's
+        halo and its data reconciled by the second floor's task (not reconciled again)."""
+        return tile_limits(self.halos.halo(tile), triangles, self.floors, read_reconciled(self.reconciled[tile]))
 
     def report(self) -> dict:
         return {"gradients_limited": self.limited, "directions_changed": self.turned,
