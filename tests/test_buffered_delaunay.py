@@ -147,6 +147,26 @@ def test_streamed_hull_is_the_hull_of_all_points():
     assert np.array_equal(hull.xy, xy[hull.index])
 
 
+def test_tile_of_is_the_cell_formula():
+    """TileGrid.tile_of (the kernel) against the formula in numpy, point by point: the
+    column floor((x − x0) / (x1 − x0) · nx) and the row alike, clipped into the grid, so
+    points on the far sides fall in the last column or row and points outside the box in
+    the nearest tile; record fields (strided) give the same."""
+    rng = np.random.default_rng(5)
+    box, nx, ny = (-3.5, 10.0, 96.5, 42.0), 7, 3
+    xy = np.concatenate([rng.uniform(-20.0, 120.0, (5000, 2)), [[-3.5, 10.0], [96.5, 42.0], [96.5, 10.0]],
+                         np.column_stack([np.linspace(-3.5, 96.5, 8), np.linspace(10.0, 42.0, 8)])])
+    grid = bd.TileGrid(box, nx, ny)
+    i = np.clip(np.floor((xy[:, 0] - box[0]) / (box[2] - box[0]) * nx), 0, nx - 1)
+    j = np.clip(np.floor((xy[:, 1] - box[1]) / (box[3] - box[1]) * ny), 0, ny - 1)
+    expected = (i + nx * j).astype(np.int64)
+    assert np.array_equal(grid.tile_of(xy), expected)
+    records = np.zeros(len(xy), dtype=[("index", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    records["x"], records["y"] = xy[:, 0], xy[:, 1]
+    assert np.array_equal(grid.tiles_of(records["x"], records["y"]), expected)
+    assert grid.tile_of(xy[5000:5003]).tolist() == [0, nx * ny - 1, nx - 1]
+
+
 def test_hull_of_parts_is_the_hull_of_all_points():
     """Parts reduced to their own hulls in threads, then merged: the corners of qhull's hull
     of all points at once, counter-clockwise; a part of two points, and a part all on one

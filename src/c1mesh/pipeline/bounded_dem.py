@@ -422,7 +422,7 @@ def _nearer_vertices(job: DemJob, centres: np.ndarray, found: np.ndarray) -> np.
             vertices = job.points.tile(u)
         else:
             vertices = halo_vertices(job.halos.halo(u))
-            vertices = vertices[grid.tile_of(np.column_stack([vertices["x"], vertices["y"]])) == u]
+            vertices = vertices[grid.tiles_of(vertices["x"], vertices["y"]) == u]
         if not len(vertices):
             continue
         tree = spatial.cKDTree(np.column_stack([vertices["x"], vertices["y"]]))

@@ -45,6 +45,7 @@ import numpy as np
 from c1mesh.core.errors import InputError
 from c1mesh.core.lazy import LazyModule
 from c1mesh.core.threads import map_in_threads
+from c1mesh.survey import _buffered_delaunay as kernel
 from c1mesh.engine.triangulation import delaunay_with_neighbours
 from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
@@ -93,12 +94,19 @@ class TileGrid:
         return (cell[0] - by, cell[1] - by, cell[2] + by, cell[3] + by)
 
     def tile_of(self, xy: np.ndarray) -> np.ndarray:
-        """(m,) the tile of each point (m, 2): half-open cells, points on the box's far
-        sides in the last row or column."""
-        x0, y0, x1, y1 = self.box
-        i = np.floor((xy[:, 0] - x0) / (x1 - x0) * self.nx).astype(np.int64)
-        j = np.floor((xy[:, 1] - y0) / (y1 - y0) * self.ny).astype(np.int64)
-        return np.clip(i, 0, self.nx - 1) + self.nx * np.clip(j, 0, self.ny - 1)
+        """(m,) int64 the tile of each point (m, 2) (finite): half-open cells, points on the
+        box's far sides in the last row or column, points outside in the nearest."""
+        xy = np.asarray(xy, dtype=np.float64)
+        return self.tiles_of(xy[:, 0], xy[:, 1])
+
+    def tiles_of(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """`tile_of` of the points with coordinates x, y (m,) each, which may be a record
+        array's fields (no stacked copy). The kernel (survey/_buffered_delaunay.pyx), one
+        pass: a halo load called it for every point it read."""
+        out = np.empty(len(x), dtype=np.int64)
+        kernel.tiles_of(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64),
+                        *map(float, self.box), self.nx, self.ny, out)
+        return out
 
     def __len__(self) -> int:
         return self.nx * self.ny

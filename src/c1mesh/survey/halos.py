@@ -68,7 +68,7 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float, far: np.nd
         parts.append(triangles_among(records["index"], np.load(triangle_files[other])))
     used, triangles = compact(np.concatenate(parts), len(records))
     records = records.take(used)                         # structured rows: take, not [used]
-    own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
+    own = grid.tiles_of(records["x"], records["y"]) == tile
     return Tile(records, triangles, own)
 
 
@@ -110,7 +110,7 @@ class HaloCache:
         else:
             records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
             triangles = np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3)
-            own = self.grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
+            own = self.grid.tiles_of(records["x"], records["y"]) == tile
             halo = Tile(records, triangles, own)
         return Tile(halo.records, self._drop(tile, halo.records["index"], halo.triangles), halo.own)
 

@@ -203,7 +203,7 @@ def tile_stacked(spill: HeightSpill, grid, tile: int, spacing: float) -> int:
     stacked_points on every position within the spacing of tile's cell."""
     rect = grid.grown(tile, spacing * (1 + 1e-9))
     records = spill.heights.records(rect)
-    own = grid.tile_of(np.column_stack([records["x"], records["y"]])) == tile
+    own = grid.tiles_of(records["x"], records["y"]) == tile
     return stacked_points(_position_tile(records, own, spill.groups.records(rect)), spacing)[0]
 
 

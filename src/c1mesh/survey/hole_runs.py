@@ -159,7 +159,7 @@ def add_long_triangles(files, grid, triangles: np.ndarray, rims: np.ndarray, tem
     buffered_delaunay owns a triangle), in new files named by label; rims: RIM records
     holding every corner."""
     lowest = np.searchsorted(rims["index"], triangles[:, 0])         # lowest first: holes' form
-    owner = grid.tile_of(np.column_stack([rims["x"][lowest], rims["y"][lowest]]))
+    owner = grid.tiles_of(rims["x"][lowest], rims["y"][lowest])
     copies = []
     for t, path in enumerate(files):
         own = triangles[owner == t]
