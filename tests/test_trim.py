@@ -282,3 +282,29 @@ def test_connected_sets_number_the_sets_as_scipys_connected_components(n, m):
     a, b = rng.integers(0, n, m), rng.integers(0, n, m)
     graph = coo_matrix((np.ones(m, dtype=np.int8), (a, b)), shape=(n, n))
     assert np.array_equal(connected_sets(n, a, b), connected_components(graph, directed=False)[1])
+
+
+@pytest.mark.parametrize("numbering", ["survey", "ascending rows", "shuffled rows"])
+def test_kept_triangles_against_a_set_of_corner_sets(numbering):
+    """trim.kept_triangles against Python sets: a triangle goes when its corners, as a set,
+    are a removed row's, whatever the corners' order in either; removed rows that are no
+    triangle here change nothing. The triangles as survey numbers, or as rows into numbers
+    that ascend (a halo's: the kernel first marks the removed corners' rows) or do not."""
+    rng = np.random.default_rng(11)
+    xy = rng.random((400, 2))
+    triangles = delaunay(xy)
+    survey = np.sort(rng.choice(10_000, size=len(xy), replace=False))      # the points' survey numbers
+    if numbering == "shuffled rows":
+        survey = rng.permutation(survey)
+    gone = rng.choice(len(triangles), size=40, replace=False)
+    removed = survey[triangles[gone]]
+    removed = np.array([rng.permutation(row) for row in removed])              # any corner order
+    removed = np.vstack([removed, [[10_001, 10_002, 10_003]], survey[[[0, 1, 2]]]])   # no triangles
+    if numbering == "survey":
+        kept = trim_stage.kept_triangles(survey[triangles], removed)
+    else:
+        kept = trim_stage.kept_triangles(triangles, removed, survey)
+    sets = {frozenset(row) for row in removed.tolist()}
+    expected = [frozenset(row) not in sets for row in survey[triangles].tolist()]
+    assert kept.tolist() == expected
+    assert (~kept).sum() >= 40

@@ -187,12 +187,17 @@ cdef inline void _sort3(int64_t *a, int64_t *b, int64_t *c) noexcept nogil:
 
 
 def kept_triangles(const int64_t[:, ::1] corners, const int64_t[::1] numbers, bint mapped,
-                   const int64_t[:, ::1] removed, int64_t[::1] table, uint8_t[::1] keep):
+                   const int64_t[:, ::1] removed, int64_t[::1] table, uint8_t[::1] keep,
+                   const uint8_t[::1] candidate):
     """keep[t] = 0 where triangle t of corners (T, 3) is, as a set of corners, a row of
     removed (R, 3), else 1; mapped: corners are rows into numbers (m,), and compared as
     numbers[corner]. table: (S,) filled with -1, S a power of two >= 2R (the removed
-    rows' slots). Returns how many are kept. Without the GIL: one thread each."""
+    rows' slots). candidate: (m,) nonzero at the rows that are a corner of a removed
+    triangle (mapped only; empty: not known), so a triangle whose first corner is not one
+    is kept without its numbers looked up. Returns how many are kept. Without the GIL:
+    one thread each."""
     cdef Py_ssize_t T = corners.shape[0], R = removed.shape[0], t, r, count = 0
+    cdef bint screened = mapped and candidate.shape[0] > 0
     cdef uint64_t mask = <uint64_t>table.shape[0] - 1, slot
     cdef int64_t a, b, c, x, y, z, found
     with nogil:
@@ -206,7 +211,11 @@ def kept_triangles(const int64_t[:, ::1] corners, const int64_t[::1] numbers, bi
                 slot = (slot + 1) & mask
             table[slot] = r
         for t in range(T):
-            if mapped and t + AHEAD < T:        # a later triangle's corners' numbers
+            if screened and not candidate[corners[t, 0]]:
+                keep[t] = 1
+                count += 1
+                continue
+            if mapped and not screened and t + AHEAD < T:        # a later triangle's corners' numbers
                 for r in range(3):
                     prefetch(&numbers[corners[t + AHEAD, r]])
             a = corners[t, 0]
