@@ -252,28 +252,30 @@ def own_triangles_in(tile: Tile, table: EdgeTable, other: np.ndarray,
     the rows of `owned`."""
     tri = tile.triangles
     owned = np.asarray(owned, dtype=np.int64)
-    keep = _owned_run(tile, owned)
-    if keep is None:
+    start = _owned_run(tile, owned)
+    if start is None:
         keep = ~kept_triangles(tri, owned, tile.records["index"])
-    mine = tri[keep]
-    if mine.shape != owned.shape or not np.array_equal(tile.records["index"][mine], owned):
-        raise RuntimeError("a tile's own triangles are not, in order, some of its halo's triangles")
+        mine = tri[keep]
+        if mine.shape != owned.shape or not np.array_equal(tile.records["index"][mine], owned):
+            raise RuntimeError("a tile's own triangles are not, in order, some of its halo's triangles")
+    else:                                 # _owned_run compared the run with owned, row for row
+        keep = np.zeros(len(tri), dtype=bool)
+        keep[start:start + len(owned)] = True
+        mine = tri[start:start + len(owned)]
     corners, triangles = compact(mine, len(tile.records))
     at = np.flatnonzero(live_edges(table, keep, other)[1])
     return corners, triangles, at, sub_table(table, keep, other, corners)
 
 
-def _owned_run(tile: Tile, owned: np.ndarray) -> np.ndarray | None:
-    """(T,) bool marking the run of tile.triangles whose survey numbers are owned (k, 3)
-    row for row, or None when no run starting at a row that begins as owned[0] is."""
+def _owned_run(tile: Tile, owned: np.ndarray) -> int | None:
+    """The first row of the run of tile.triangles whose survey numbers are owned (k, 3) row
+    for row, or None when no run starting at a row that begins as owned[0] is."""
     tri, numbers = tile.triangles, tile.records["index"]
     if not len(owned) or len(owned) > len(tri):
         return None
     for start in np.flatnonzero(numbers[tri[: len(tri) - len(owned) + 1, 0]] == owned[0, 0]).tolist():
         if np.array_equal(numbers[tri[start:start + len(owned)]], owned):
-            keep = np.zeros(len(tri), dtype=bool)
-            keep[start:start + len(owned)] = True
-            return keep
+            return start
     return None
 
 
