@@ -728,13 +728,17 @@ def fit_in_memory(source, output, options: FitOptions, on_stage: Callable[[str],
     options = replace(options, level=level)
     colors = None if cloud.colors is None else cloud.colors[hf.source_index[used]]
     grid = contour_grid(interp, frame, None, level, options.resolution) if geo.contours else None
-    with _Contours(geo, interp, frame, grid, timer) as contours:
+    # the report's pieces and C1 certificate (0.2 s at 1M points) need the surface alone: with
+    # a second thread they are found while the mesh is refined and written, not after it
+    with _Contours(geo, interp, frame, grid, timer) as contours, \
+            background(lambda: surface_facts(cloud, model, options)) as facts:
         mesh, stream = write_surface(WorldSurface(interp, frame, colors), output,
                                      MeshTarget(options.output_format, options.ascii, crs), level, timer, keep_mesh)
+        found = facts()
     frame_report = frame_facts(frame)
     frame_report["axis_choice"] = axis_reason if axis_reason != "auto" else frame.axis_reason
     report = _report(FitRun(source, output, options, cloud, timer, angles["z_factor"], crs_facts(crs, crs_source)),
-                     model, stream, frame_report, level_from)
+                     model, stream, frame_report, level_from, found)
     report.update({} if selection is None else {"classes": selection})
     contours.add_to(report)
     return _finish_geo(FitResult(mesh, report), interp, frame, crs, crs_source, options)
@@ -916,11 +920,12 @@ def points_on_surface(model: SurfaceModel) -> int:
 
 
 def _report(run: FitRun, model: SurfaceModel, mesh=None, frame_report: dict | None = None,
-            level_from: str | None = None) -> dict:
+            level_from: str | None = None, facts: dict | None = None) -> dict:
     """The report of an in-memory axis-frame fit (c1mesh.pipeline.report's schema). mesh:
     the written MeshStream of a plane mesh fit (its counts), with its frame_report and
     level_from; None for a raster (DEM) fit: no refinement, so level, level_from and
-    output_mesh are null, and the caller adds the raster section."""
+    output_mesh are null, and the caller adds the raster section. facts: the model's
+    surface_facts if found already (None: found here)."""
     hf, used, options = model.hf, model.used, run.options
     points = {"read": len(run.cloud), "kept": int(used.size), "spacing": float(hf.spacing)}
     if mesh is not None:
@@ -935,7 +940,8 @@ def _report(run: FitRun, model: SurfaceModel, mesh=None, frame_report: dict | No
         triangles=trim_facts(model.trim_report), level=None if mesh is None else options.level,
         level_from=level_from,
         output_mesh=None if mesh is None else {"vertices": int(mesh.vertex_count), "faces": int(mesh.face_count)},
-        **surface_facts(run.cloud, model, options, pieces_in_warnings=mesh is not None), crs=run.crs,
+        **(surface_facts(run.cloud, model, options, pieces_in_warnings=mesh is not None) if facts is None
+           else facts), crs=run.crs,
         seconds=run.timer.seconds, threads=thread_count(), z_factor=run.z_factor).as_dict()
     report["overshoot"] = model.overshoot.as_dict()
     if model.max_slope_not_applied is not None:          # why max_slope dropped nothing
