@@ -131,7 +131,8 @@ class Reconciliation:
     summary found it (`reconciled_summary`): values (n,), gradients (n, 2), and the (n,)
     bool vertices whose height moved (lifted) and whose gradient was reconciled (moved).
     Given back to `tile_limits` on the same tile, it spares the refinement a second
-    reconciliation of the same data (2 of the limiter's 4 s per M points in tiles)."""
+    reconciliation of the same data (the reconciliations took 11.8 s of the 12M-point
+    survey's tile processes, half of it in the refinement)."""
 
     values: np.ndarray
     gradients: np.ndarray
