@@ -206,14 +206,15 @@ def _unit_normals(points, normals) -> np.ndarray:
 def _normal_axis(chunks: FrameChunks) -> np.ndarray | None:
     """e3 from the chunks' normals (_frame), None when no chunk has a usable one. Three
     passes; chunks held in memory (a list: choose_frame's one) have their unit normals
-    made once for the three (0.1 s less at 1M points), streamed ones in each pass."""
+    made once for the three (0.1 s less at 1M points), streamed ones in each pass (a
+    stream's iterator reads nothing until it is iterated, so the one asked for here to
+    see which kind it is costs nothing)."""
     held = chunks()
     if isinstance(held, list):
         units = [_unit_normals(points, normals) for points, normals in held]
         passes: Callable[[], Iterable[np.ndarray]] = lambda: units
-    else:                                       # the first pass reads the chunks asked for above
-        first = [held]
-        passes = lambda: (_unit_normals(points, normals) for points, normals in (first.pop() if first else chunks()))
+    else:
+        passes = lambda: (_unit_normals(points, normals) for points, normals in chunks())
     scatter, used = np.zeros((3, 3)), 0
     for unit in passes():
         scatter += unit.T @ unit
