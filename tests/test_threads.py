@@ -477,6 +477,42 @@ def test_the_guessed_triangulation_is_used_only_when_it_is_the_height_fields(mon
     assert one.interp.coefficients.tobytes() == two.interp.coefficients.tobytes()
 
 
+@pytest.mark.parametrize("change", ["none", "duplicate", "steep normal"])
+def test_given_normals_triangulate_the_projection_beside_the_height_field(monkeypatch, change):
+    """With given normals and two threads the fit triangulates every point's projection
+    (driver._projected_triangles) while it makes the height field; the triangles serve only
+    when the height field keeps every point. A duplicate point (merged) or a normal steeper
+    than max_slope (dropped) make the xy differ: the fit triangulates again, and its
+    triangles and coefficients are those of one thread, which triangulates once."""
+    from c1mesh.core.cloud import PointCloud
+    from c1mesh.pipeline import driver
+    from c1mesh.pipeline.driver import FitOptions, build_surface
+
+    rng = np.random.default_rng(6)
+    xy = rng.random((3000, 2)) * 10
+    points = np.column_stack([xy, np.sin(xy[:, 0]) + 0.5 * xy[:, 1]])
+    normals = np.column_stack([-np.cos(xy[:, 0]), np.full(3000, -0.5), np.ones(3000)])
+    if change == "duplicate":
+        points[7], normals[7] = points[3], normals[3]
+    if change == "steep normal":
+        normals[11] = [1.0, 0.0, 0.01]
+    calls = []
+    real = driver.delaunay
+    monkeypatch.setattr(driver, "delaunay", lambda xy: calls.append(len(xy)) or real(xy))
+    options = FitOptions(smooth="off", axis="z", level=1)
+    models = {}
+    for count in (1, 2):
+        calls.clear()
+        with threads.limit(count):
+            models[count] = build_surface(PointCloud(points.copy(), normals.copy()), options)
+        assert len(calls) == (2 if count == 2 and change != "none" else 1)
+    one, two = models[1], models[2]
+    assert len(one.hf.xy) == (3000 if change == "none" else 2999)
+    assert one.hf.xy.tobytes() == two.hf.xy.tobytes()
+    assert one.interp.triangles.tobytes() == two.interp.triangles.tobytes()
+    assert one.interp.coefficients.tobytes() == two.interp.coefficients.tobytes()
+
+
 def test_background_runs_beside_the_block_and_one_worker_runs_it_when_asked():
     """threads.background: with two workers the work runs in another thread while the block
     goes on (it waits for an event the block sets), its error is raised by result; with one
