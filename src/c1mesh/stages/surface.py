@@ -14,7 +14,7 @@ from c1mesh.core.cloud import MeshStream
 from c1mesh.core.plan import FitPlan
 from c1mesh.core.threads import prefetch_dealt, ring
 from c1mesh.engine.refine import Refinement, refined_counts
-from c1mesh.stages.height_field import gradients_to_normals
+from c1mesh.stages import _surface as kernel
 
 PLANE_LEVEL = 4
 """The refinement level of a height-field (axis-frame) fit when neither --level nor
@@ -44,14 +44,13 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
         for i, block in enumerate(refinement.vertex_blocks(fields=fields, deal=(w, count))):
             vertices, normals = slots[i % len(slots)]
             n = block.stop - block.start
-            local[:n, :2] = block.points
-            local[:n, 2] = block.values
-            frame.to_world(local[:n], out=vertices[:n])
             if hasattr(frame, "normals_from_gradients"):      # perspective.PerspectiveFrame
+                local[:n, :2] = block.points
+                local[:n, 2] = block.values
+                frame.to_world(local[:n], out=vertices[:n])
                 frame.normals_from_gradients(local[:n], block.gradients, out=normals[:n])
             else:
-                gradients_to_normals(block.gradients, out=local[:n])
-                frame.vectors_to_world(local[:n], out=normals[:n])
+                world_rows(frame, block.points, block.values, block.gradients, vertices[:n], normals[:n])
             blended = None
             if fields:
                 blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
@@ -67,6 +66,18 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
         return prefetch_dealt(dealt_faces, _PREFETCH)
     return MeshStream(refinement.vertex_count, refinement.face_count, True,
                       0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
+
+
+def world_rows(frame, points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
+               vertices: np.ndarray, normals: np.ndarray) -> None:
+    """Fill vertices (n, 3) with the world points frame.to_world((x, y, z)) of a height
+    field's plane points (n, 2) and values z (n,), and normals (n, 3) with the world unit
+    normals frame.vectors_to_world(gradients_to_normals(gradients)) of its gradients (n, 2),
+    bit for bit; frame a ScanFrame, world units. One kernel pass (stages/_surface.pyx), 4x
+    faster than numpy's four, without the GIL."""
+    contiguous = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
+    kernel.world_rows(contiguous(points), contiguous(values), contiguous(gradients), contiguous(frame.axes),
+                      contiguous(frame.origin), vertices, normals)
 
 
 def with_plane_level(plan: FitPlan) -> FitPlan:

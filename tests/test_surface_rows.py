@@ -1,0 +1,78 @@
+"""The refined surface's world rows (stages.surface.world_rows, kernel stages/_surface.pyx):
+world vertices and unit normals of a height field's points, values and gradients, in one
+pass with the bits of the numpy composition the writers used before (frame.to_world,
+height_field.gradients_to_normals, frame.vectors_to_world)."""
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from c1mesh.stages.frame import ScanFrame
+from c1mesh.stages.height_field import gradients_to_normals
+from c1mesh.stages.surface import world_rows
+
+
+def _fma(a: float, b: float, c: float) -> float:
+    """a * b + c rounded once (to nearest, ties to even), in exact rational arithmetic."""
+    return float(Fraction(a) * Fraction(b) + Fraction(c))
+
+
+def _frame(seed: int) -> ScanFrame:
+    rng = np.random.default_rng(seed)
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[2] *= -1
+    return ScanFrame(origin=[512345.25, 4123456.5, 87.125], axes=q)
+
+
+def _rows(seed: int, n: int):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(n, 2)) * [300.0, 40.0]
+    values = rng.normal(size=n) * 5.0
+    gradients = rng.normal(size=(n, 2)) * rng.choice([1e-3, 0.3, 20.0], size=(n, 1))
+    return points, values, gradients
+
+
+def test_each_row_is_fused_multiply_adds_in_order_and_the_origin_added():
+    """The documented arithmetic, row by row, with fma in exact rational arithmetic: an
+    independent reference for the kernel's C code."""
+    frame = _frame(1)
+    points, values, gradients = _rows(2, 400)
+    vertices, normals = np.empty((400, 3)), np.empty((400, 3))
+    world_rows(frame, points, values, gradients, vertices, normals)
+    m = frame.axes
+    for i in range(400):
+        x, y, z = float(points[i, 0]), float(points[i, 1]), float(values[i])
+        fx, fy = float(gradients[i, 0]), float(gradients[i, 1])
+        inv = 1.0 / np.sqrt(fx * fx + fy * fy + 1.0)
+        unit = (fx * -inv, fy * -inv, inv)
+        for j in range(3):
+            at = _fma(z, m[2, j], _fma(y, m[1, j], x * m[0, j]))
+            assert vertices[i, j] == at + frame.origin[j]
+            assert normals[i, j] == _fma(unit[2], m[2, j], _fma(unit[1], m[1, j], unit[0] * m[0, j]))
+
+
+@pytest.mark.parametrize("n", [1, 5, 70_001])
+def test_the_rows_equal_numpys_to_world_and_normals_bit_for_bit(n):
+    """What the writers wrote before (numpy: BLAS products over blocks of rows): the same
+    bytes, the first and the last rows included."""
+    frame = _frame(3)
+    points, values, gradients = _rows(4, n)
+    vertices, normals = np.empty((n, 3)), np.empty((n, 3))
+    world_rows(frame, points, values, gradients, vertices, normals)
+    want = frame.to_world(np.column_stack([points, values]))
+    want_normals = frame.vectors_to_world(gradients_to_normals(gradients))
+    assert vertices.tobytes() == want.tobytes()
+    assert normals.tobytes() == want_normals.tobytes()
+
+
+def test_the_normals_are_unit_and_on_the_height_axis_side():
+    frame = _frame(5)
+    points, values, gradients = _rows(6, 1000)
+    vertices, normals = np.empty((1000, 3)), np.empty((1000, 3))
+    world_rows(frame, points, values, gradients, vertices, normals)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, rtol=1e-14)
+    assert np.all(normals @ frame.axes[2] > 0)
+    local = (vertices - frame.origin) @ frame.axes.T
+    np.testing.assert_allclose(local, np.column_stack([points, values]), atol=1e-9)
