@@ -389,7 +389,12 @@ def _header(stream: MeshStream, dtype: np.dtype, fmt: str, crs: str | None = Non
 
 
 def _vertex_rows(dtype: np.dtype, vertices, normals, colors) -> np.ndarray:
-    """Packed vertex rows of one block."""
+    """Packed vertex rows of one block: a copy of the rows, made from the columns, or in
+    one memcpy when vertices and normals are the two halves of rows that already have the
+    file's layout (`_interleaved`)."""
+    rows = _interleaved(dtype, vertices, normals, colors)
+    if rows is not None:
+        return rows.copy().view(dtype).reshape(-1)
     rows = np.empty(len(vertices), dtype)
     for i, c in enumerate("xyz"):
         rows[c] = vertices[:, i]
@@ -400,6 +405,25 @@ def _vertex_rows(dtype: np.dtype, vertices, normals, colors) -> np.ndarray:
         for i in range(colors.shape[1]):
             rows[("red", "green", "blue", "alpha")[i]] = colors[:, i]
     return rows
+
+
+def _interleaved(dtype: np.dtype, vertices, normals, colors) -> np.ndarray | None:
+    """The (n, 6) float64 rows [x y z nx ny nz] whose halves vertices (n, 3) and normals
+    (n, 3) are, as stages.surface yields them, when that is the file's row (dtype: doubles
+    in this machine's byte order, no colours); else None. Packing the six columns one by
+    one cost 40 ns a vertex (0.6 s of a 16M-vertex output's main thread)."""
+    if (colors is not None or normals is None or dtype.itemsize != 48
+            or vertices.base is None or vertices.base is not normals.base):
+        return None
+    double = np.dtype("<f8")
+    if dtype != np.dtype([(c, double) for c in ("x", "y", "z", "nx", "ny", "nz")]):
+        return None
+    if (vertices.dtype != double or normals.dtype != double or vertices.shape != normals.shape
+            or vertices.strides != (48, 8) or normals.strides != (48, 8)):
+        return None
+    if normals.__array_interface__["data"][0] != vertices.__array_interface__["data"][0] + 24:
+        return None
+    return np.lib.stride_tricks.as_strided(vertices, shape=(len(vertices), 6), strides=(48, 8))
 
 
 def ply_size_problem(size) -> str | None:

@@ -32,12 +32,12 @@ cdef extern from *:
     #define C1MESH_FMA_CLONES
     #endif
 
-    /* rows i of (points (n, 2), values (n,), gradients (n, 2)) -> vertices (n, 3) = (x, y, z)
-       axes + origin and normals (n, 3) = unit (-fx, -fy, 1) axes; axes (3, 3) row-major. */
+    /* rows i of (points (n, 2), values (n,), gradients (n, 2)) -> out (n, 6): the vertex
+       (x, y, z) axes + origin, then the normal unit(-fx, -fy, 1) axes; axes (3, 3) row-major. */
     C1MESH_FMA_CLONES
     static void c1mesh_world_rows(int64_t n, const double *points, const double *values,
                                   const double *gradients, const double *axes,
-                                  const double *origin, double *vertices, double *normals)
+                                  const double *origin, double *out)
     {
         for (int64_t i = 0; i < n; i++) {
             const double x = points[2 * i], y = points[2 * i + 1], z = values[i];
@@ -48,29 +48,29 @@ cdef extern from *:
                 double at = x * axes[j];
                 at = __builtin_fma(y, axes[3 + j], at);
                 at = __builtin_fma(z, axes[6 + j], at);
-                vertices[3 * i + j] = at + origin[j];
+                out[6 * i + j] = at + origin[j];
                 double along = a * axes[j];
                 along = __builtin_fma(b, axes[3 + j], along);
                 along = __builtin_fma(c, axes[6 + j], along);
-                normals[3 * i + j] = along;
+                out[6 * i + 3 + j] = along;
             }
         }
     }
     """
     void c1mesh_world_rows(int64_t n, const double *points, const double *values,
                            const double *gradients, const double *axes, const double *origin,
-                           double *vertices, double *normals) nogil
+                           double *out) nogil
 
 
 def world_rows(const double[:, ::1] points, const double[::1] values, const double[:, ::1] gradients,
-               const double[:, ::1] axes, const double[::1] origin, double[:, ::1] vertices,
-               double[:, ::1] normals):
-    """vertices[i] = (points[i, 0], points[i, 1], values[i]) · axes + origin and normals[i]
+               const double[:, ::1] axes, const double[::1] origin, double[:, ::1] out):
+    """out[i, :3] = (points[i, 0], points[i, 1], values[i]) · axes + origin and out[i, 3:]
     = the unit upward normal of gradients[i] (local) · axes, for every row of points (n, 2);
-    the frame's axes (3, 3) rows e1, e2, e3 and origin (3,), world units. Without the GIL."""
+    the frame's axes (3, 3) rows e1, e2, e3 and origin (3,), world units; out (n, 6), the
+    rows of a PLY with normals. Without the GIL."""
     cdef int64_t n = points.shape[0]
     if n == 0:
         return
     with nogil:
         c1mesh_world_rows(n, &points[0, 0], &values[0], &gradients[0, 0], &axes[0, 0], &origin[0],
-                          &vertices[0, 0], &normals[0, 0])
+                          &out[0, 0])

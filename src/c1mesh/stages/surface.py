@@ -40,21 +40,21 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
     def world_blocks(w: int, count: int):
         size = refinement.largest_block
         local = np.empty((size, 3))
-        slots = [(np.empty((size, 3)), np.empty((size, 3))) for _ in range(ring(_PREFETCH))]
+        slots = [np.empty((size, 6)) for _ in range(ring(_PREFETCH))]   # a row: vertex, normal
         for i, block in enumerate(refinement.vertex_blocks(fields=fields, deal=(w, count))):
-            vertices, normals = slots[i % len(slots)]
             n = block.stop - block.start
+            rows = slots[i % len(slots)][:n]
             if hasattr(frame, "normals_from_gradients"):      # perspective.PerspectiveFrame
                 local[:n, :2] = block.points
                 local[:n, 2] = block.values
-                frame.to_world(local[:n], out=vertices[:n])
-                frame.normals_from_gradients(local[:n], block.gradients, out=normals[:n])
+                rows[:, :3] = frame.to_world(local[:n])
+                rows[:, 3:] = frame.normals_from_gradients(local[:n], block.gradients)
             else:
-                world_rows(frame, block.points, block.values, block.gradients, vertices[:n], normals[:n])
+                world_rows(frame, block.points, block.values, block.gradients, rows)
             blended = None
             if fields:
                 blended = np.clip(np.rint(block.fields[0]), 0, 255).astype(np.uint8)
-            yield vertices[:n], normals[:n], blended
+            yield rows[:, :3], rows[:, 3:], blended
 
     def dealt_faces(w: int, count: int):
         return (faces for _, faces in refinement.face_blocks(ring=ring(_PREFETCH), deal=(w, count)))
@@ -68,16 +68,16 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
                       0 if colors is None else colors.shape[1], vertex_blocks, face_blocks)
 
 
-def world_rows(frame, points: np.ndarray, values: np.ndarray, gradients: np.ndarray,
-               vertices: np.ndarray, normals: np.ndarray) -> None:
-    """Fill vertices (n, 3) with the world points frame.to_world((x, y, z)) of a height
-    field's plane points (n, 2) and values z (n,), and normals (n, 3) with the world unit
-    normals frame.vectors_to_world(gradients_to_normals(gradients)) of its gradients (n, 2),
-    bit for bit; frame a ScanFrame, world units. One kernel pass (stages/_surface.pyx), 4x
-    faster than numpy's four, without the GIL."""
+def world_rows(frame, points: np.ndarray, values: np.ndarray, gradients: np.ndarray, out: np.ndarray) -> None:
+    """Fill out (n, 6) with rows (vertex, normal): out[:, :3] the world points
+    frame.to_world((x, y, z)) of a height field's plane points (n, 2) and values z (n,),
+    out[:, 3:] the world unit normals frame.vectors_to_world(gradients_to_normals(gradients))
+    of its gradients (n, 2), bit for bit; frame a ScanFrame, world units. One kernel pass
+    (stages/_surface.pyx), 4x faster than numpy's four, without the GIL; the rows are a
+    PLY's vertex rows (formats.ply packs them with one copy)."""
     contiguous = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
     kernel.world_rows(contiguous(points), contiguous(values), contiguous(gradients), contiguous(frame.axes),
-                      contiguous(frame.origin), vertices, normals)
+                      contiguous(frame.origin), out)
 
 
 def with_plane_level(plan: FitPlan) -> FitPlan:
