@@ -416,7 +416,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
     plan_heights = False          # heights in units of their own over the plan (x, y)
     with contextlib.ExitStack() as stages:
         with timer.stage("normals"):
-            guess = None             # () -> (xy, triangles) of _guessed_triangles, or None
+            guess = None             # () -> the _TrimmedGuess of _guessed_triangles, or None
             guessed_sort: Future = Future()      # its height field's PlaneSort, set before its Delaunay
             if heights_first:        # the frame needs no normals: the fit's serve the height field
                 options = resolved_smoothing(options, estimated=True)
@@ -438,7 +438,8 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
             if not heights_first:    # else the frame is chosen: the axis is given, normals do not change it
                 frame = choose_frame(cloud.points, normals, options.axis)
                 if thread_count() > 1 and options.spacing is None:   # the Delaunay beside the height field
-                    guess = stages.enter_context(background(lambda: _projected_triangles(cloud.points, frame)))
+                    guess = stages.enter_context(background(
+                        lambda: _projected_triangles(cloud.points, frame, options.max_edge)))
             # the guess's sort of the same positions, when it is ready (the bits do not depend on it)
             hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
                               common_metric=not plan_heights,
@@ -467,10 +468,12 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
         with timer.stage("triangulate"):
             xy, z, grads = hf.xy, hf.z, hf.gradients
             guessed = None if guess is None else guess()
-            triangles = guessed[1] if guessed is not None and np.array_equal(guessed[0], xy) else delaunay(xy)
+            if guessed is not None and np.array_equal(guessed.xy, xy):
+                mesh, trim_report = guessed.mesh, guessed.report
+            else:
+                mesh, trim_report = trim_mesh(xy, delaunay(xy), max_edge=options.max_edge)
             guess = guessed = None
             stages.close()           # the guess's thread is done: its arrays are freed now
-            mesh, trim_report = trim_mesh(xy, triangles, max_edge=options.max_edge)
             if not plan_heights:     # its angles and noise widths compare heights with plane lengths
                 mesh, trim_report = remove_curtains(xy, z, grads, mesh, trim_report,
                                                     view_rules_apply(_fitted_classes(cloud, options), frame.axes))
@@ -559,17 +562,39 @@ def _support_mesh(mesh) -> tuple:
     return shown, triangles, edge_table(triangles, shown.size)
 
 
+@dataclass(frozen=True)
+class _TrimmedGuess:
+    """A triangulation made ahead of the height field, in a background thread (a second
+    core's work), and its trim: xy (n, 2) the plane points guessed, mesh and report what
+    trim_mesh(xy, delaunay(xy), max_edge) gives. The trim needs only the positions, so it
+    runs there too, beside the true height field's merge of normals (0.15-0.2 s at 1M
+    points). build_surface takes them only when the true height field's xy equal xy, bit
+    for bit, so no output depends on the guess."""
+
+    xy: np.ndarray
+    mesh: Any
+    report: TrimReport
+
+
+def _trimmed_guess(xy: np.ndarray, max_edge) -> _TrimmedGuess | None:
+    """The _TrimmedGuess of xy, or None when the Delaunay or the trim fails (the true
+    height field's, made again in build_surface, says why if it fails too)."""
+    try:
+        mesh, report = trim_mesh(xy, delaunay(xy), max_edge=max_edge)
+    except C1MeshError:
+        return None
+    return _TrimmedGuess(xy, mesh, report)
+
+
 def _guessed_triangles(points: np.ndarray, frame, options: FitOptions, plan_heights: bool,
-                       sort: Future) -> tuple[np.ndarray, np.ndarray] | None:
-    """(xy (n, 2), their Delaunay triangles (T, 3)) of the height field the points would
+                       sort: Future) -> _TrimmedGuess | None:
+    """The triangulation and trim (_TrimmedGuess) of the height field the points would
     give if no normal dropped any of them (every normal along the frame's height axis):
     the Delaunay, one thread of a library for 0.8-1 s at 1M points, then runs beside the
     height normals (a second core's work) instead of after them. The positions, the
     duplicate merge and the spacing depend on the points alone, so the guess is the height
-    field's xy whenever the normals drop no point (too steep, unusable); build_surface
-    uses the triangles only when the two xy are equal, bit for bit, and triangulates the
-    true xy otherwise, so the output does not depend on the guess. None when the guessed
-    height field or its triangulation fails (the true one says why, if it fails too).
+    field's xy whenever the normals drop no point (too steep, unusable). None when the
+    guessed height field or its triangulation fails.
     sort: set to the guessed height field's PlaneSort (None if it failed) before the
     Delaunay starts, for the true height field to take back (height_field's `sort`)."""
     up = np.broadcast_to(frame.vectors_to_world(np.array([[0.0, 0.0, 1.0]])), points.shape)
@@ -580,29 +605,22 @@ def _guessed_triangles(points: np.ndarray, frame, options: FitOptions, plan_heig
         return None
     sort.set_result(guessed.sort)
     xy, guessed = guessed.xy, None
-    try:
-        return xy, delaunay(xy)
-    except C1MeshError:
-        return None
+    return _trimmed_guess(xy, options.max_edge)
 
 
-def _projected_triangles(points: np.ndarray, frame) -> tuple[np.ndarray, np.ndarray] | None:
-    """(xy (n, 2), their Delaunay triangles (T, 3)) of every point's position in the
+def _projected_triangles(points: np.ndarray, frame, max_edge) -> _TrimmedGuess | None:
+    """The triangulation and trim (_TrimmedGuess) of every point's position in the
     frame's plane: the height field's xy (computed the same way, bit for bit) when it
     keeps every point, which it does unless a normal is unusable or too steep, or points
     are stacked or merged. A fit with given normals starts it once the frame is chosen, so
     the Delaunay (one thread of a library for 0.8-1.2 s at 1M points) runs while the
-    height field is made on the other core, not after it; build_surface uses the triangles
-    only when the two xy are equal, bit for bit, and triangulates the true xy otherwise.
-    None for non-finite points or when the Delaunay fails (the true one says why)."""
+    height field is made on the other core, not after it. None for non-finite points or
+    when the Delaunay or trim fails."""
     pts = np.asarray(points, dtype=np.float64)
     if not np.isfinite(pts).all():
         return None
     xy = np.ascontiguousarray(frame.to_local(np.ascontiguousarray(pts))[:, :2])
-    try:
-        return xy, delaunay(xy)
-    except C1MeshError:
-        return None
+    return _trimmed_guess(xy, max_edge)
 
 
 @dataclass(frozen=True)
