@@ -31,8 +31,10 @@ MEMORY = "2G"
 
 def run(folder: Path, sizes_m: tuple[int, ...]) -> None:
     """Make and fit each size; append its measurements to folder/survey_size.jsonl."""
+    from benchmarks.common import compile_sources
     from benchmarks.tiled_delaunay import make
 
+    compile_sources()
     folder.mkdir(parents=True, exist_ok=True)
     for m in sizes_m:
         laz = folder / f"{m}M.laz"
