@@ -111,3 +111,12 @@ def test_the_ply_of_interleaved_rows_is_the_ply_of_separate_columns():
     cloud = read_ply(data, "rows.ply")
     np.testing.assert_array_equal(cloud.points, np.vstack(rows)[:, :3])
     np.testing.assert_array_equal(cloud.normals, np.vstack(rows)[:, 3:])
+
+
+def test_rows_of_mismatched_shapes_are_refused_before_the_kernel():
+    frame = _frame(8)
+    points, values, gradients = _rows(9, 10)
+    with pytest.raises(ValueError, match="out \\(n, 6\\)"):
+        world_rows(frame, points, values, gradients, np.empty((9, 6)))
+    with pytest.raises(ValueError, match="values \\(n,\\)"):
+        world_rows(frame, points, values[:5], gradients, np.empty((10, 6)))

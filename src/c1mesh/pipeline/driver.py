@@ -12,6 +12,7 @@ import contextlib
 import math
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -439,7 +440,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 frame = choose_frame(cloud.points, normals, options.axis)
                 if thread_count() > 1 and options.spacing is None:   # the Delaunay beside the height field
                     guess = stages.enter_context(background(
-                        lambda: _projected_triangles(cloud.points, frame, options.max_edge)))
+                        partial(_projected_triangles, cloud.points, frame, options.max_edge)))
             # the guess's sort of the same positions, when it is ready (the bits do not depend on it)
             hf = height_field(cloud.points, normals, frame, max_slope_deg=options.max_slope,
                               common_metric=not plan_heights,

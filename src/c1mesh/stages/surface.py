@@ -39,7 +39,7 @@ def surface_stream(refinement: Refinement, frame, colors: np.ndarray | None) -> 
 
     def world_blocks(w: int, count: int):
         size = refinement.largest_block
-        local = np.empty((size, 3))
+        local = np.empty((size, 3)) if hasattr(frame, "normals_from_gradients") else None
         slots = [np.empty((size, 6)) for _ in range(ring(_PREFETCH))]   # a row: vertex, normal
         for i, block in enumerate(refinement.vertex_blocks(fields=fields, deal=(w, count))):
             n = block.stop - block.start
@@ -75,6 +75,11 @@ def world_rows(frame, points: np.ndarray, values: np.ndarray, gradients: np.ndar
     of its gradients (n, 2), bit for bit; frame a ScanFrame, world units. One kernel pass
     (stages/_surface.pyx), 4x faster than numpy's four, without the GIL; the rows are a
     PLY's vertex rows (formats.ply packs them with one copy)."""
+    n = len(points)
+    if (np.shape(points) != (n, 2) or np.shape(values) != (n,) or np.shape(gradients) != (n, 2)
+            or np.shape(out) != (n, 6)):
+        raise ValueError(f"world_rows needs points (n, 2), values (n,), gradients (n, 2) and out (n, 6), got "
+                         f"{np.shape(points)}, {np.shape(values)}, {np.shape(gradients)}, {np.shape(out)}")
     contiguous = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
     kernel.world_rows(contiguous(points), contiguous(values), contiguous(gradients), contiguous(frame.axes),
                       contiguous(frame.origin), out)
