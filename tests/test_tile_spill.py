@@ -80,3 +80,16 @@ def test_file_blocks_read_the_rest_of_a_file_in_blocks_of_at_most_rows(tmp_path)
     with open(path, "rb") as file:
         file.seek(8 * 2_500)
         assert list(file_blocks(file, "<f8", 1_000)) == []
+
+
+def test_the_spills_sort_keys_give_the_order_of_a_stable_sort_by_tile():
+    """TileSpill.add orders each chunk by tile with 16-bit keys (numpy's radix sort): the
+    same permutation as a stable sort of the int64 tile numbers, checked against Python's
+    own stable sort."""
+    from c1mesh.survey.tile_spill import _sort_keys
+
+    rng = np.random.default_rng(11)
+    for count, n in ((1, 5), (169, 20_000), (1 << 16, 3000), ((1 << 16) + 1, 3000)):
+        tiles = rng.integers(0, count, n).astype(np.int64)
+        want = sorted(range(n), key=lambda i: int(tiles[i]))
+        assert np.argsort(_sort_keys(tiles, count), kind="stable").tolist() == want

@@ -68,7 +68,7 @@ from c1mesh.core.errors import InputError
 from c1mesh.core.plan import DEFAULT_SMOOTH, DemPlan, FitPlan, TiledRun
 from c1mesh.core.platform_memory import release_free_heap
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.core.tile import corner_rows
+from c1mesh.core.tile import bounds, corner_rows
 from c1mesh.engine.refine import fewest_refined_vertices
 from c1mesh.geo.contours import BYTES_PER_NODE
 from c1mesh.geo.products import ContourRequest, add_contour_facts, level_for_mean_edge, side_length_sum
@@ -549,7 +549,8 @@ def _plane_box(chunks, frame) -> tuple[int, tuple[float, float, float, float], i
     for points, _ in chunks():
         if len(points):
             xy = frame.to_local(points)[:, :2]
-            low, high = np.minimum(low, xy.min(axis=0)), np.maximum(high, xy.max(axis=0))
+            least, most = bounds(xy)         # column by column: numpy's row reduction is ~10x slower
+            low, high = np.minimum(low, least), np.maximum(high, most)
             count += len(points)
             if len(seen) < 3:
                 seen = distinct_rows(xy, 3, seen)

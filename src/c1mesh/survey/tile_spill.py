@@ -73,7 +73,7 @@ class TileSpill:
     def add(self, index: np.ndarray, local: np.ndarray) -> None:
         """Append points: index (m,) survey numbers, local (m, 3) frame coordinates."""
         tiles = self.grid.tile_of(local[:, :2])
-        order = np.argsort(tiles, kind="stable")            # survey order within a tile
+        order = np.argsort(_sort_keys(tiles, len(self.grid)), kind="stable")   # survey order within a tile
         bounds = np.searchsorted(tiles[order], np.arange(len(self.grid) + 1))
         for tile in np.flatnonzero(np.diff(bounds)):
             rows = order[bounds[tile]:bounds[tile + 1]]
@@ -151,6 +151,14 @@ class TileSpill:
             cx0, cy0, cx1, cy1 = self.grid.cell(t)
             if cx0 <= x1 and x0 <= cx1 and cy0 <= y1 and y0 <= cy1 and self.counts[t]:
                 yield t
+
+
+def _sort_keys(tiles: np.ndarray, count: int) -> np.ndarray:
+    """tiles (m,) int64 numbers below count, as uint16 when they fit: numpy's stable sort
+    is a radix sort on 16-bit keys and a merge sort on 64-bit ones, so the same order
+    (a stable sort of equal keys is one permutation) costs a pass per byte instead of
+    m log m (the spill's argsort took 0.96 s of its 1.6 s at 12M points)."""
+    return tiles.astype(np.uint16) if count <= 1 << 16 else tiles
 
 
 def _rect_mask(records: np.ndarray, rect) -> np.ndarray:
