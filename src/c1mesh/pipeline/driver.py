@@ -427,7 +427,7 @@ def build_surface(cloud: PointCloud, options: FitOptions, timer: "StageTimer | N
                 if threads > 1 and options.spacing is None:   # one thread: no guess to waste
                     # the guess's Delaunay is the longer of the two: a core of its own
                     guess = stages.enter_context(background(
-                        lambda: _guessed_triangles(cloud.points, frame, options, plan_heights, guessed_sort)))
+                        partial(_guessed_triangles, cloud.points, frame, options, plan_heights, guessed_sort)))
                     threads -= 1
                 normals = height_normals(cloud.points, frame, k=height_neighbours(options.k), workers=threads)
                 normal_source = "estimated"
