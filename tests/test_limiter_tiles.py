@@ -14,8 +14,9 @@ from c1mesh.core.tile import VERTEX, Tile
 from c1mesh.engine.topology import edge_table
 from c1mesh.engine.triangulation import delaunay
 from c1mesh.stages.curtains import noise_floor
-from c1mesh.stages.limiter import (NoiseFloors, control_overshoot, floor_summary, reconcile_gradients,
-                                   reconcile_heights, reconciled_summary, reduce_floor, tile_limits)
+from c1mesh.stages.limiter import (NoiseFloors, control_overshoot, floor_summary, floor_summary_after,
+                                   reconcile_gradients, reconcile_heights, reconciled_summary, reduce_floor,
+                                   tile_limits)
 
 HALO_RINGS = 4
 
@@ -98,6 +99,53 @@ def test_floors_over_tiles_are_the_one_tiles_and_the_loops(noisy, count):
     assert reduce_floor(lambda: iter(summaries)) == first
     summaries = [floor_summary(tile, first) for tile, _ in tiles]
     assert reduce_floor(lambda: iter(summaries)) == second
+
+
+def _loop_sizes(tile: Tile) -> list[float]:
+    """The |trapezoid residuals| of the tile's own edges (lower end own), sorted, by a
+    Python loop over its triangles' sides."""
+    r = tile.records
+    edges = {tuple(sorted((int(t[i]), int(t[(i + 1) % 3])))) for t in tile.triangles.tolist() for i in range(3)}
+    sizes = []
+    for a, b in edges:
+        if not tile.own[a]:
+            continue
+        dx, dy = r["x"][b] - r["x"][a], r["y"][b] - r["y"][a]
+        sizes.append(abs((r["z"][b] - r["z"][a]) - 0.5 * ((r["gx"][a] * dx + r["gy"][a] * dy)
+                                                          + (r["gx"][b] * dx + r["gy"][b] * dy))))
+    return sorted(sizes)
+
+
+@pytest.mark.parametrize("count", [1, 3])
+def test_the_summary_after_a_removal_is_the_summary_of_the_triangles_left(noisy, count):
+    """floor_summary_after: a tile's summary taken before some triangles were removed,
+    without the edges only they held, has the values of the summary of the triangles
+    left, each as often, against a Python loop over their sides. The removed triangles:
+    every fifth (interior edges keep their other triangle, so only some of their edges
+    go), and a fan around one vertex (every edge to it goes, one twice)."""
+    xy, z, g, triangles = noisy
+    for tile, _ in _tiles(xy, z, g, triangles, count):
+        k = len(tile.triangles)
+        centre = tile.triangles[k // 2, 0]
+        removed = (np.arange(k) % 5 == 0) | (tile.triangles == centre).any(axis=1)
+        earlier = floor_summary(tile)
+        after = Tile(tile.records, tile.triangles[~removed], tile.own)
+        taken = floor_summary_after(after, earlier, tile.triangles[removed])
+        assert len(taken) < len(earlier)
+        assert np.sort(taken).tolist() == _loop_sizes(after)
+        assert np.array_equal(np.sort(taken), np.sort(floor_summary(after)))
+
+
+def test_the_summary_after_a_removal_drops_one_of_equal_sizes():
+    """On a flat plane with zero gradients every residual is 0.0: the removed edges take
+    as many zeros away as they were, no more."""
+    xy = np.array([[0, 0], [1, 0], [0, 1], [1, 1], [2, 0], [2, 1]], dtype=float)
+    triangles = np.array([[0, 1, 2], [1, 3, 2], [1, 4, 3], [4, 5, 3]])
+    tile = Tile.whole(xy, np.zeros(6), np.zeros((6, 2)), triangles)
+    earlier = floor_summary(tile)
+    assert earlier.tolist() == [0.0] * 9
+    after = Tile(tile.records, triangles[:3], tile.own)
+    assert floor_summary_after(after, earlier, triangles[3:]).tolist() == [0.0] * 7     # (4, 5), (3, 5) went
 
 
 @pytest.mark.parametrize("kept", [False, True])

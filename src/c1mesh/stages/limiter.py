@@ -156,6 +156,71 @@ def floor_summary(tile: Tile, first: float | None = None) -> np.ndarray:
     return reconciled_summary(tile, first)[0]
 
 
+def floor_summary_after(tile: Tile, earlier: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    """The first floor's summary of a tile (floor_summary(tile)) from `earlier`, its
+    summary when its triangles were tile.triangles and `removed` (r, 3) rows of its
+    records (triangles dropped since, with a corner among its records): earlier without
+    the sizes of the own edges that only removed triangles held.
+
+    Why: a survey's first floor is its curtains' floor, taken again after the curtains
+    removed a few triangles a tile. Numbering every edge again cost a tile as much as the
+    first summary; this costs a pass over the triangles' corners. The data did not
+    change, so an edge's residual has the same bits in both summaries (the kernels'
+    arithmetic is per edge), and the result holds floor_summary(tile)'s values, each as
+    often: the same floor (a median). Equal values may stand in another order."""
+    edges = _removed_own_edges(tile, removed)
+    if not len(edges):
+        return earlier
+    gone = edges[~_held_edges(tile.triangles, edges, len(tile.records))]
+    return _without(earlier, residual_sizes(trapezoid_residuals(tile.points, tile.values, tile.gradients, gone)))
+
+
+def _removed_own_edges(tile: Tile, removed: np.ndarray) -> np.ndarray:
+    """(e, 2) the distinct edges of the triangles removed (r, 3) (rows of tile.records)
+    whose lower end the tile owns, lower end first, ascending (as unique_edges orders them)."""
+    removed = np.asarray(removed, dtype=np.int64).reshape(-1, 3)
+    sides = np.sort(np.concatenate([removed[:, [0, 1]], removed[:, [1, 2]], removed[:, [0, 2]]]), axis=1)
+    sides = sides[tile.own[sides[:, 0]]]
+    n = len(tile.records)
+    keys = np.unique(sides[:, 0] * n + sides[:, 1])
+    return np.column_stack([keys // n, keys % n])
+
+
+def _held_edges(triangles: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
+    """(e,) bool: which edges (e, 2) (lower end first) a triangle of triangles (k, 3) over n
+    vertices holds. Only the triangles with two ends of such edges among their corners
+    are numbered: one gather of flags over the corners."""
+    marked = np.zeros(n, dtype=np.uint8)
+    marked[edges.ravel()] = 1
+    near = np.compress(marked[triangles[:, 0]] + marked[triangles[:, 1]] + marked[triangles[:, 2]] >= 2,
+                       triangles, axis=0)
+    sides = np.sort(np.concatenate([near[:, [0, 1]], near[:, [1, 2]], near[:, [0, 2]]]), axis=1)
+    return np.isin(edges[:, 0] * n + edges[:, 1], sides[:, 0] * n + sides[:, 1])
+
+
+def _without(values: np.ndarray, taken: np.ndarray) -> np.ndarray:
+    """values (m,) float64 without one occurrence of each of taken (t,) (bit for bit), a
+    new array in values' order; RuntimeError if values hold one of them fewer times.
+    The values whose lowest 16 bits are some taken value's are found by one look-up in a
+    table of 2**16 flags, and only those are compared (a search per value cost a tile's
+    summary 0.1 s)."""
+    if not taken.size:
+        return values
+    keys = np.ascontiguousarray(values, dtype=np.float64).view(np.uint64)
+    gone, count = np.unique(np.ascontiguousarray(taken, dtype=np.float64).view(np.uint64), return_counts=True)
+    table = np.zeros(1 << 16, dtype=bool)
+    table[gone.astype(np.uint16)] = True
+    maybe = np.flatnonzero(table[keys.astype(np.uint16)])
+    hits = maybe[np.isin(keys[maybe], gone)]
+    order = np.argsort(keys[hits], kind="stable")             # each value's hits, in values' order
+    runs = keys[hits][order]
+    rank = np.arange(runs.size) - np.searchsorted(runs, runs)
+    drop = hits[order[rank < count[np.searchsorted(gone, runs)]]]
+    if drop.size != taken.size:
+        raise RuntimeError(f"a summary held {drop.size} of the {taken.size} values to remove")
+    return np.delete(values, drop)
+
+
 def reconciled_summary(tile: Tile, first: float) -> tuple[np.ndarray, Reconciliation]:
     """The second noise floor's summary of one tile (`floor_summary` with the first floor
     `first`), and the tile's data reconciled with it, which `tile_limits` takes back."""

@@ -37,8 +37,8 @@ import numpy as np
 
 from c1mesh.core.threads import map_in_threads
 from c1mesh.core.tile import Tile, compact, tile_rows
-from c1mesh.stages.limiter import (NoiseFloors, Reconciliation, TileLimits, floor_summary, reconciled_summary,
-                                   reduce_floor, tile_limits)
+from c1mesh.stages.limiter import (NoiseFloors, Reconciliation, TileLimits, floor_summary, floor_summary_after,
+                                   reconciled_summary, reduce_floor, tile_limits)
 from c1mesh.stages.streamed_median import streamed_median
 from c1mesh.stages.trim import edge_lengths, kept_triangles, triangles_among
 from c1mesh.survey.distributed import TaskRunner
@@ -204,12 +204,14 @@ def longest_final_edge(heights, triangle_files, grid, buffers) -> float:
 class KeptSummaries:
     """The curtains' noise floor summaries (trim_runs.trim_tiles), kept for the limiter's
     first floor: both are floor_summary with the data as read, of each tile's own edges,
-    so a tile's file serves again unless the curtains' rules removed a triangle with a
-    corner in its cell since (an own edge ends there). paths: tile -> its file; changed:
-    those tiles."""
+    so the first floor's summary of a tile is its curtains' one, without the edges that
+    only triangles removed since held (limiter.floor_summary_after). paths: tile -> its
+    file; removed: tile -> (r, 3) survey numbers of the triangles removed since (by the
+    curtains and the slivers and bow-ties their holes exposed) with a corner in its
+    cell, absent where there are none. The files are removed with the first floor's."""
 
     paths: dict
-    changed: frozenset
+    removed: dict
 
 
 def floor_files(halos: HaloCache, temps, label: str, first: float | None = None, runner=None,
@@ -219,18 +221,25 @@ def floor_files(halos: HaloCache, temps, label: str, first: float | None = None,
     with the data reconciled with the first floor). Each tile's summary is a task on
     runner (distributed.TaskRunner; None: in this process, `write_floor_summary`) writing
     its own file, so the floor does not depend on where or in which order they ran;
-    kept: files that hold a tile's summary already (KeptSummaries, first None only).
-    halos: the HaloCache (after prune); name(t) names tile t in errors; label names the
-    files. reconciled (with first only): {tile: path} where each tile's task also writes its
-    data reconciled with first (`write_reconciled`), for the refinement."""
+    kept: the curtains' summaries, from which the first floor's are taken
+    (KeptSummaries, first None only). halos: the HaloCache (after prune); name(t) names
+    tile t in errors; label names the files. reconciled (with first only): {tile: path}
+    where each tile's task also writes its data reconciled with first
+    (`write_reconciled`), for the refinement."""
     paths = {}
     if kept is not None:
-        paths = {t: path for t, path in kept.paths.items() if t not in kept.changed}
+        paths = {t: path for t, path in kept.paths.items() if t not in kept.removed}
     tiles = [t for t in halos.tiles() if t not in paths]
     new = {t: temps.new(f"{label}-{t}.bin") for t in tiles}
     keep = reconciled or {}
+
+    def earlier(t: int):
+        if kept is None or t not in kept.paths:
+            return None
+        return kept.paths[t], kept.removed[t]
     for _ in (runner or TaskRunner()).map(write_floor_summary, len(tiles),
-                                          lambda i: (halos, tiles[i], first, new[tiles[i]], keep.get(tiles[i])),
+                                          lambda i: (halos, tiles[i], first, new[tiles[i]], keep.get(tiles[i]),
+                                                     earlier(tiles[i])),
                                           lambda i: name(tiles[i])):
         pass
     return {**paths, **new}
@@ -240,17 +249,31 @@ def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, 
                name=str, kept: KeptSummaries | None = None, reconciled: dict | None = None) -> float:
     """A noise floor of the survey, exactly: reduce_floor over floor_files' summaries,
     whose files it then removes."""
-    return median_of_files(list(floor_files(halos, temps, label, first, runner, name, kept, reconciled).values()),
-                           reduce_floor)
+    floor = median_of_files(list(floor_files(halos, temps, label, first, runner, name, kept, reconciled).values()),
+                            reduce_floor)
+    for path in (kept.paths.values() if kept is not None else ()):
+        path.unlink(missing_ok=True)            # those not taken as they were: replaced by new files
+    return floor
 
 
-def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path, reconciled_path=None) -> None:
+def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path, reconciled_path=None,
+                        earlier=None) -> None:
     """Write tile's limiter.floor_summary (float64) to path; with reconciled_path (and the
-    first floor), its data reconciled with the first floor there too (`write_reconciled`)."""
+    first floor), its data reconciled with the first floor there too (`write_reconciled`);
+    earlier: (the file of its summary before some triangles were removed, those
+    triangles (r, 3) survey numbers with a corner in its cell), from which the first
+    floor's summary is taken (limiter.floor_summary_after; first None only)."""
+    halo = halos.halo(tile)
+    if earlier is not None:
+        summary = np.fromfile(earlier[0], dtype="<f8")
+        removed = tile_rows(halo.records["index"], earlier[1])
+        if (removed >= 0).all():           # the halo rule: every corner lies within 4 edges of the cell
+            floor_summary_after(halo, summary, removed).astype("<f8").tofile(path)
+            return
     if reconciled_path is None:
-        floor_summary(halos.halo(tile), first).astype("<f8").tofile(path)
+        floor_summary(halo, first).astype("<f8").tofile(path)
         return
-    summary, reconciled = reconciled_summary(halos.halo(tile), first)
+    summary, reconciled = reconciled_summary(halo, first)
     summary.astype("<f8").tofile(path)
     write_reconciled(reconciled, reconciled_path)
 

@@ -11,7 +11,8 @@ cell, which is what its steps read: its thin triangles with their boundary flags
 bow-tie fans, its curtains. The long edges are gone already (buffered_delaunay.tile_pass;
 an "auto" max_edge is survey-wide, c1mesh.survey.delaunay_runs), and the curtains'
 noise floor is found survey-wide from every tile's summary (halos.floor_files), whose files the
-limiter's first floor reuses where the curtains changed nothing (halos.KeptSummaries).
+limiter's first floor takes again, without the edges that only the triangles removed since
+held (halos.KeptSummaries).
 """
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ class TrimRuns:
 
     def __init__(self, halos, grid):
         self.halos, self.grid = halos, grid
-        self.touched: set[int] = set()            # tiles holding a corner of a removed triangle
+        # once recording: tile -> the removed triangles with a corner in its cell, since then
+        self.since: dict[int, list[np.ndarray]] | None = None
 
     def map(self, step: Callable[[TrimTile], Any], tiles: set[int] | None = None) -> list:
         chosen = self.halos.tiles() if tiles is None else sorted(set(tiles) & set(self.halos.tiles()))
@@ -51,7 +53,9 @@ class TrimRuns:
                         point_rows(points, halo.values, halo.gradients), place)
 
     def remove(self, cuts: Cuts) -> None:
-        self.touched |= cuts.tile_set()
+        if self.since is not None:
+            for t in cuts.tile_set():
+                self.since.setdefault(t, []).append(cuts.corners[(cuts.tiles == t).any(axis=1)])
         owners = cuts.tiles[np.arange(len(cuts)), np.argmin(cuts.corners, axis=1)]
         order = np.argsort(owners, kind="stable")
         tile_numbers, starts = np.unique(owners[order], return_index=True)
@@ -84,8 +88,9 @@ def trim_tiles(halos, grid, temps, view_rules: bool = True, runner=None,
     thin, counts = trim_run(run, MIN_CIRCLE_RATIO)
     paths = floor_files(halos, temps, "residuals-curtains", runner=runner, name=name)
     floor = median_of_files(list(paths.values()), reduce_floor, remove=False)
-    run.touched = set()
+    run.since = {}
     curtains, cleanup = remove_curtain_run(run, floor, view_rules, thin)
     run.write_files()
+    removed = {t: np.concatenate(parts) for t, parts in run.since.items()}
     return ({"sliver": counts["sliver"] + cleanup["sliver"], "bowtie": counts["bowtie"] + cleanup["bowtie"],
-             **curtains}, KeptSummaries(paths, frozenset(run.touched)))
+             **curtains}, KeptSummaries(paths, removed))
