@@ -194,7 +194,7 @@ def tile_sample_spacings(heights, grid, tile: int, step: int, first_reach: float
         parts.append(nearest[done])
         todo, reach = todo[~done], 2 * reach
     distances = np.concatenate(parts) if parts else np.empty(0)
-    distances.astype("<f8").tofile(path)
+    distances.astype("<f8", copy=False).tofile(path)
     return len(distances)
 
 
