@@ -359,8 +359,9 @@ def test_peel_takes_thin_components_that_reach_the_boundary():
 
 def test_halo_lookups_equal_sets_of_corners():
     """kept_triangles (a hash of the removed triangles) and triangles_among (a hash of a
-    halo's survey numbers) against Python sets and dicts on random small triangle lists,
-    removed rows given in any corner order."""
+    halo's survey numbers and its filter) against Python sets and dicts on random small
+    triangle lists, removed rows given in any corner order, triangles in one array or in
+    parts."""
     rng = np.random.default_rng(1)
     for _ in range(200):
         n, count = int(rng.integers(5, 60)), int(rng.integers(0, 80))
@@ -374,6 +375,8 @@ def test_halo_lookups_equal_sets_of_corners():
         row_of = {v: i for i, v in enumerate(index.tolist())}
         inside = [[row_of[v] for v in row] for row in tri.tolist() if all(v in row_of for v in row)]
         assert triangles_among(index, tri).tolist() == inside
+        cut = int(rng.integers(0, count + 1))                  # parts, one hash: their results in turn
+        assert triangles_among(index, iter([tri[:cut], tri[cut:], tri[:0]])).tolist() == inside
 
 
 def test_tiled_fit_carries_crs_and_colours(tmp_path):

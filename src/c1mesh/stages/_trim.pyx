@@ -244,40 +244,64 @@ def kept_triangles(const int64_t[:, ::1] corners, const int64_t[::1] numbers, bi
     return count
 
 
-cdef inline int64_t _row_of(const int64_t[::1] index, const int64_t[::1] table, uint64_t mask,
+cdef enum:
+    FILTER_SHIFT = 32    # a number's filter bit comes from the top half of its hash, its slot from the bottom
+
+
+def number_table(const int64_t[::1] index, int64_t[:, ::1] table, uint64_t[::1] bits):
+    """Fill table (S, 2) (every row -1, -1 on entry; S a power of two >= 2m) with each of
+    index (m,) (distinct numbers) and its row, by linear probing, and set its bit in bits
+    (B,) (zero on entry; 64 B a power of two): the hash `triangles_among` looks numbers
+    up in. One thread."""
+    cdef Py_ssize_t m = index.shape[0], i
+    cdef uint64_t mask = <uint64_t>table.shape[0] - 1, fmask = <uint64_t>bits.shape[0] * 64 - 1, h, slot, f
+    with nogil:
+        for i in range(m):
+            h = _spread(<uint64_t>index[i])
+            f = (h >> FILTER_SHIFT) & fmask
+            bits[f >> 6] |= (<uint64_t>1) << (f & 63)
+            slot = h & mask
+            while table[slot, 1] >= 0:
+                slot = (slot + 1) & mask
+            table[slot, 0] = index[i]
+            table[slot, 1] = i
+
+
+cdef inline int64_t _row_of(const int64_t *table, uint64_t mask, const uint64_t *bits, uint64_t fmask,
                             int64_t number) noexcept nogil:
-    """The row of number in index through table (triangles_among's hash), or -1."""
-    cdef uint64_t slot = _spread(<uint64_t>number) & mask
-    cdef int64_t row
+    """The row of number through number_table's table and bits, or -1. A number whose bit
+    is clear is not there (most numbers a halo looks up: a neighbour's triangles far from
+    its cell), found with one read of the bits, which fit in the cache where the table
+    does not; the table holds each number beside its row, so a probe reads one line."""
+    cdef uint64_t h = _spread(<uint64_t>number), f = (h >> FILTER_SHIFT) & fmask, slot
+    if not (bits[f >> 6] >> (f & 63)) & 1:
+        return -1
+    slot = h & mask
     while True:
-        row = table[slot]
-        if row < 0 or index[row] == number:
-            return row
+        if table[2 * slot + 1] < 0 or table[2 * slot] == number:
+            return table[2 * slot + 1]
         slot = (slot + 1) & mask
 
 
-def triangles_among(const int64_t[::1] index, const int64_t[:, ::1] triangles, int64_t[::1] table,
+def triangles_among(const int64_t[:, ::1] table, const uint64_t[::1] bits, const int64_t[:, ::1] triangles,
                     int64_t[:, ::1] out):
-    """The triangles (T, 3) of survey numbers whose three corners are among index (m,)
-    (distinct), as rows of index, in their order into out (T, 3). table: (S,) filled with
-    -1, S a power of two >= 2m. Returns how many. One thread."""
-    cdef Py_ssize_t m = index.shape[0], T = triangles.shape[0], i, t, count = 0
-    cdef uint64_t mask = <uint64_t>table.shape[0] - 1, slot
+    """The triangles (T, 3) of survey numbers whose three corners number_table's table
+    (S, 2) and bits hold, as their rows, in their order into out (T, 3). Returns how many.
+    One thread."""
+    cdef Py_ssize_t T = triangles.shape[0], t, count = 0
+    cdef uint64_t mask = <uint64_t>table.shape[0] - 1, fmask = <uint64_t>bits.shape[0] * 64 - 1
+    cdef const int64_t *slots = &table[0, 0]
+    cdef const uint64_t *filter_bits = &bits[0]
     cdef int64_t a, b, c
     with nogil:
-        for i in range(m):
-            slot = _spread(<uint64_t>index[i]) & mask
-            while table[slot] >= 0:
-                slot = (slot + 1) & mask
-            table[slot] = i
         for t in range(T):
-            a = _row_of(index, table, mask, triangles[t, 0])
+            a = _row_of(slots, mask, filter_bits, fmask, triangles[t, 0])
             if a < 0:
                 continue
-            b = _row_of(index, table, mask, triangles[t, 1])
+            b = _row_of(slots, mask, filter_bits, fmask, triangles[t, 1])
             if b < 0:
                 continue
-            c = _row_of(index, table, mask, triangles[t, 2])
+            c = _row_of(slots, mask, filter_bits, fmask, triangles[t, 2])
             if c < 0:
                 continue
             out[count, 0] = a

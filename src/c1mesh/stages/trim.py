@@ -575,18 +575,37 @@ def _removed_corners(numbers: np.ndarray, removed: np.ndarray) -> np.ndarray:
     return marks
 
 
-def triangles_among(index: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def triangles_among(index: np.ndarray, triangles) -> np.ndarray:
     """The triangles (k, 3) (survey numbers) whose three corners are among `index` (a
-    halo's survey numbers, distinct), as rows of index, in their order: a hash of index
-    and one pass over the triangles (kernel: stages/_trim.pyx; no sort of them, which cost
-    a halo read most of its time when it sifted nine tiles' triangles)."""
-    out = np.empty((len(triangles), 3), dtype=np.int64)
-    if not len(index) or not len(triangles):
-        return out[:0]
-    table = np.full(_table_size(len(index)), -1, dtype=np.int64)
-    count = kernel.triangles_among(np.ascontiguousarray(index, dtype=np.int64),
-                                   np.ascontiguousarray(triangles, dtype=np.int64), table, out)
+    halo's survey numbers, distinct), as rows of index, in their order; triangles: one
+    (T, 3) array or an iterable of them (a halo's tiles' files, loaded one at a time),
+    whose results follow one another. A hash of index, built once, and one pass over the
+    triangles (kernel: stages/_trim.pyx; no sort of them, which cost a halo read most of
+    its time when it sifted nine tiles' triangles). Beside the table, a filter of 8 bits
+    a number (one set per number, in the cache where the table is not) turns away most
+    numbers not in index with one read: most triangles a halo reads are a neighbour's,
+    far from its cell, and a look-up in the table cost one of memory per corner."""
+    out, count = np.empty((0, 3), dtype=np.int64), 0
+    if not len(index):
+        return out
+    index = np.ascontiguousarray(index, dtype=np.int64)
+    table = np.full((_table_size(len(index)), 2), -1, dtype=np.int64)
+    bits = np.zeros(max(1, _table_size(4 * len(index)) // 64), dtype=np.uint64)
+    kernel.number_table(index, table, bits)
+    for part in [triangles] if isinstance(triangles, np.ndarray) else triangles:
+        part = np.ascontiguousarray(part, dtype=np.int64).reshape(-1, 3)
+        if count + len(part) > len(out):                  # room for every row of the part
+            out = _grown(out, count, max(2 * len(out), count + len(part)))
+        count += kernel.triangles_among(table, bits, part, out[count:])
     return out[:count]
+
+
+def _grown(rows: np.ndarray, count: int, size: int) -> np.ndarray:
+    """A (size, 3) int64 array whose first count rows are those of rows; the rest are
+    not written (np.empty: their pages cost no memory until they are)."""
+    grown = np.empty((size, 3), dtype=np.int64)
+    grown[:count] = rows[:count]
+    return grown
 
 
 def connected_sets(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -61,12 +61,8 @@ def read_halo(heights, triangle_files, grid, tile: int, reach: float, far: np.nd
     or None; far (m, 3): x, y and radius of the neighbourhoods it reads too, around a
     DEM's fill's long triangles' far corners (survey.hole_runs.far_centres; None: none)."""
     records, tiles = heights.records_near(grid.grown(tile, reach), far)
-    parts = [np.empty((0, 3), np.int64)]
-    for other in tiles:
-        if triangle_files[other] is None or not len(records):
-            continue
-        parts.append(triangles_among(records["index"], np.load(triangle_files[other])))
-    used, triangles = compact(np.concatenate(parts), len(records))
+    files = (np.load(triangle_files[other]) for other in tiles if triangle_files[other] is not None)
+    used, triangles = compact(triangles_among(records["index"], files), len(records))
     records = records.take(used)                         # structured rows: take, not [used]
     own = grid.tiles_of(records["x"], records["y"]) == tile
     return Tile(records, triangles, own)

@@ -270,11 +270,8 @@ def window_tile(heights, triangle_files, windows: SearchWindows, longest_edge: f
     grow = longest_edge * (1 + 1e-9)
     records = _records_in(heights, windows, grow)
     tiles = sorted({t for rect in _rects(windows, grow) for t in heights.touching(rect)})
-    parts = [np.empty((0, 3), np.int64)]
-    for t in tiles:
-        if triangle_files[t] is not None and len(records):
-            parts.append(triangles_among(records["index"], np.load(triangle_files[t])))
-    used, triangles = compact(np.concatenate(parts), len(records))
+    files = (np.load(triangle_files[t]) for t in tiles if triangle_files[t] is not None)
+    used, triangles = compact(triangles_among(records["index"], files), len(records))
     records = records.take(used)
     return Tile(records, triangles, np.ones(len(records), dtype=bool))
 
