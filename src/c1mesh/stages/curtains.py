@@ -138,6 +138,15 @@ def point_rows(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray) -> np.ndarr
     return rows
 
 
+def record_rows(records: np.ndarray) -> np.ndarray:
+    """`point_rows` of core.tile.VERTEX records (m,), field by field (no stacked copies of
+    the positions and gradients first)."""
+    rows = np.empty((len(records), 5))
+    for k, field in enumerate(("x", "y", "z", "gx", "gy")):
+        rows[:, k] = records[field]
+    return rows
+
+
 def noise_floor(xy: np.ndarray, z: np.ndarray, gradients: np.ndarray, triangles: np.ndarray) -> float:
     """Median |trapezoid residual| (height units) over every edge of the triangles, each
     edge once: the height noise the data's gradients cannot explain

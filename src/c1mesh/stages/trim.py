@@ -291,9 +291,13 @@ class TrimTile:
     edge_lengths give them, when known (a TrimmedMesh's); else made when first asked.
     """
 
+    points: np.ndarray | None = None        # a subclass may make them when first read
+
     def __init__(self, source: np.ndarray, alive: np.ndarray, size: int, points: np.ndarray | None = None,
                  place: Place | None = None, topology: tuple[np.ndarray, np.ndarray] | None = None):
-        self.source, self.alive, self.size, self.points, self.place = source, alive, size, points, place
+        self.source, self.alive, self.size, self.place = source, alive, size, place
+        if points is not None:
+            self.points = points
         if topology is not None:            # instance attributes: the cached properties are not run
             self.neighbours, self.lengths = topology
 

@@ -97,18 +97,24 @@ class HaloCache:
         """tile's halo, from the cache, else read from the spills: cached by the driver's
         cache, not by a copy sent with a task (inputs.Temps.owned_here: a file a copy
         made would be removed by nobody)."""
+        halo, home = self.halo_and_homes(tile)
+        return Tile(halo.records, halo.triangles, home == tile)
+
+    def halo_and_homes(self, tile: int) -> tuple[Tile, np.ndarray]:
+        """`halo`'s Tile and (m,) int64 the tile whose cell holds each of its vertices
+        (buffered_delaunay.TileGrid.tiles_of; the trim's Place), found once for both."""
         if tile not in self.paths:
             halo = read_halo(self.heights, self.files, self.grid, tile, self.reach, self.far.get(tile))
             if self.temps.owned_here():
                 self.paths[tile] = self._new_paths(tile)
                 halo.records.tofile(self.paths[tile][0])
                 halo.triangles.astype("<i8", copy=False).tofile(self.paths[tile][1])
+            records, triangles = halo.records, halo.triangles
         else:
             records = np.fromfile(self.paths[tile][0], dtype=self.heights.record)
             triangles = np.fromfile(self.paths[tile][1], dtype="<i8").reshape(-1, 3)
-            own = self.grid.tiles_of(records["x"], records["y"]) == tile
-            halo = Tile(records, triangles, own)
-        return Tile(halo.records, self._drop(tile, halo.records["index"], halo.triangles), halo.own)
+        home = self.grid.tiles_of(records["x"], records["y"])
+        return Tile(records, self._drop(tile, records["index"], triangles), home == tile), home
 
     def prefetch(self, runner, name=str, on_done=None) -> None:
         """Read every tile's halo and cache it, each tile a task on runner
