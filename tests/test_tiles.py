@@ -420,6 +420,26 @@ def test_bounds_are_the_columns_least_and_largest(columns):
     assert lower.dtype == whole.dtype and list(lower) == list(whole.min(axis=0)) and list(upper) == list(whole.max(axis=0))
 
 
+@pytest.mark.parametrize("columns", [1, 3])
+def test_row_min_and_row_any_are_the_reductions_over_each_row(columns):
+    """core.tile.row_min and row_any against numpy's min(axis=1) and any(axis=1): integer
+    triangle lists (their dtype kept, the input untouched), a non-contiguous view, and
+    flags with none, one or every value set in a row."""
+    from c1mesh.core.tile import row_any, row_min
+
+    rng = np.random.default_rng(9)
+    triangles = rng.integers(-5, 1_000_000, (20_001, columns))
+    before = triangles.copy()
+    least = row_min(triangles)
+    assert least.dtype == triangles.dtype and np.array_equal(least, triangles.min(axis=1))
+    assert np.array_equal(triangles, before)
+    view = triangles[::3, ::-1]
+    assert np.array_equal(row_min(view), view.min(axis=1))
+    flags = rng.random((20_001, columns)) < 0.2
+    flags[0], flags[1] = False, True
+    assert np.array_equal(row_any(flags), flags.any(axis=1)) and not row_any(flags)[0] and row_any(flags)[1]
+
+
 def test_finite_rows_are_the_rows_without_nan_or_inf():
     """core.tile.finite_rows against np.isfinite(...).all(axis=1): NaN, +inf and -inf in
     each column, a row with two of them, one-column points."""

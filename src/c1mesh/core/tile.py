@@ -114,6 +114,25 @@ def finite_rows(points: np.ndarray) -> np.ndarray:
     return good
 
 
+def row_min(values: np.ndarray) -> np.ndarray:
+    """(n,) the least value of each row of values (n, k), k >= 1, as values.min(axis=1)
+    gives it, column by column: numpy's reduction over short rows walks them a few values
+    at a time (a triangle list's lowest corners: 19 ms against 2.7 ms at 560k rows)."""
+    least = values[:, 0].copy()
+    for k in range(1, values.shape[1]):
+        np.minimum(least, values[:, k], out=least)
+    return least
+
+
+def row_any(flags: np.ndarray) -> np.ndarray:
+    """(n,) bool whether any value of each row of flags (n, k) bool is set, as
+    flags.any(axis=1) gives it, column by column (`row_min`'s reason)."""
+    found = flags[:, 0].copy()
+    for k in range(1, flags.shape[1]):
+        found |= flags[:, k]
+    return found
+
+
 def plane_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
     """((2,), (2,)): the least and the largest x and y over the parts (an iterable of (m, 2)
     plane positions: a survey's tiles, or the in-memory fit's one part), the reduce a

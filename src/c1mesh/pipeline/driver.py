@@ -25,7 +25,7 @@ from c1mesh.core.outputs import LAS_FORMATS
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import background, take_rows
 from c1mesh.core.threads import workers as thread_count
-from c1mesh.core.tile import Tile, bounds, finite_rows
+from c1mesh.core.tile import Tile, bounds, finite_rows, row_min
 from c1mesh.engine.interpolator import RSDInterpolator
 from c1mesh.engine.properties import scheme_properties
 from c1mesh.engine.refine import refined_counts
@@ -833,7 +833,7 @@ def dem_windows(grid, survey, model: SurfaceModel) -> list:
     lies in some window: in a triangle, or holding a point (the nearest-triangle rule)."""
     interp, origin = model.interp, model.frame.origin
     corner = model.hf.source_index[model.used]                   # interpolator vertex -> survey point
-    owner = survey.input_of(corner[interp.triangles].min(axis=1))
+    owner = survey.input_of(row_min(corner[interp.triangles]))
     windows = []
     for tile in range(len(survey.names)):
         points = survey.cloud.points[survey.offsets[tile]:survey.offsets[tile + 1], :2]

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike
 
 from c1mesh.core.errors import InputError
 from c1mesh.core.threads import compress_rows, overlap, parallel_blocks
-from c1mesh.core.tile import tile_rows
+from c1mesh.core.tile import row_any, row_min, tile_rows
 from c1mesh.engine.topology import EdgeTable, edge_table_sides, live_edges, sub_table
 from c1mesh.engine.topology import triangle_neighbours as topology_neighbours
 from c1mesh.engine.triangulation import as_xy
@@ -215,7 +215,7 @@ def _trim(tile: "TrimTile", max_edge, min_circle_ratio: float) -> TrimReport:
         raise InputError(f"min_circle_ratio must be between 0 and 1, got {min_circle_ratio}")
     alive = tile.alive
     if limit is not None:                      # NaN lengths are not above it: kept, as before
-        parallel_blocks(lambda part: np.logical_and(alive[part], ~(tile.lengths[part] > limit).any(axis=1),
+        parallel_blocks(lambda part: np.logical_and(alive[part], ~row_any(tile.lengths[part] > limit),
                                                     out=alive[part]), alive.shape[0], KERNEL_BLOCK << 2)
     long_edge = int((~alive).sum())
     _, counts = trim_run(OneTile(tile), min_circle_ratio)
@@ -321,7 +321,7 @@ class TrimTile:
         its cell (its rows ascend with the survey numbers), each triangle in one tile."""
         if self.place is None:
             return self.alive
-        return self.alive & (self.place.home[self.source.min(axis=1)] == self.place.number)
+        return self.alive & (self.place.home[row_min(self.source)] == self.place.number)
 
     def at(self, near: Cuts | None) -> np.ndarray | None:
         """(size,) bool the vertices in the tile's cell that are corners of `near`; near

@@ -21,7 +21,7 @@ from c1mesh.stages.surface import surface_stream
 from c1mesh.stages.trim import check_triangles_left
 from c1mesh.survey.distributed import TaskRunner
 from c1mesh.survey.tile_spill import file_blocks
-from c1mesh.core.tile import corner_rows, tile_rows
+from c1mesh.core.tile import corner_rows, row_min, tile_rows
 from c1mesh.survey.inputs import Colours
 from c1mesh.survey.join import KeyExpiry, PartJoin, border_keys
 from c1mesh.survey.split_outputs import OutputMeshes, face_owners, split_faces, write_outputs
@@ -131,7 +131,7 @@ def point_numbers(records: np.ndarray) -> np.ndarray:
 def lowest_points(records: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(k, 1) the point (point_numbers) of each triangle's lowest-numbered corner, the
     corner whose input owns it with -O; triangles (k, 3) in the records' numbers."""
-    lowest = triangles.min(axis=1)
+    lowest = row_min(triangles)
     if "source" not in records.dtype.names:
         return lowest[:, None]
     return records["source"][tile_rows(records["index"], lowest)][:, None]

@@ -24,6 +24,7 @@ import numpy as np
 from c1mesh.core.cloud import MeshStream
 from c1mesh.core.plan import MeshTarget
 from c1mesh.core.threads import blas_threads
+from c1mesh.core.tile import row_min
 from c1mesh.formats import write_mesh
 from c1mesh.survey.tile_spill import file_blocks
 from c1mesh.survey.tiles import staged_outputs
@@ -48,7 +49,7 @@ def face_owners(owners: InputOwners, triangles: np.ndarray, level: int) -> np.nd
     """(k·level²,) int32 owner input of each refined face of the base triangles (k, 3)
     (survey numbers), in the refinement's order: level² faces per triangle, triangle by
     triangle."""
-    return np.repeat(owners.of(triangles.min(axis=1)), level * level)
+    return np.repeat(owners.of(row_min(triangles)), level * level)
 
 
 def split_faces(face_path: Path, owner_path: Path, outputs: int, temps) -> list[Path]:

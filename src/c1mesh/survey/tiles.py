@@ -40,6 +40,7 @@ from c1mesh.core.outputs import mesh_format, plan_outputs, register_temp, unregi
 from c1mesh.core.plan import PointSelection
 from c1mesh.core.platform_memory import peak_rss_mb
 from c1mesh.core.threads import blas_threads
+from c1mesh.core.tile import row_min
 from c1mesh.engine.refine import Refinement
 from c1mesh.engine.rsd import VertexData
 from c1mesh.engine.schemes import NAMED_TUPLES, get_scheme
@@ -163,7 +164,7 @@ def triangle_owners(model, survey: Survey) -> np.ndarray:
     """
     triangles = model.interp.triangles
     cloud_index = model.hf.source_index[model.used]
-    return survey.input_of(cloud_index[triangles.min(axis=1)])
+    return survey.input_of(cloud_index[row_min(triangles)])
 
 
 @dataclass
