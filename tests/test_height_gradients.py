@@ -341,6 +341,9 @@ def test_gradients_at_some_points_are_those_rows_and_reach_the_kth_neighbour():
     np.testing.assert_array_equal(gradients, height_gradients(xy, z, k=24)[at])
     kth = cKDTree(xy).query(xy[at], k=25)[0][:, -1]        # an independent search
     np.testing.assert_allclose(reach, kth, rtol=1e-12, atol=0)
+    twice = np.concatenate([at[:50], at[:50]])               # a point asked for twice: both rows
+    again, _ = gradients_at(xy, z, twice, k=24)
+    np.testing.assert_array_equal(again, np.concatenate([gradients[:50], gradients[:50]]))
 
 
 @pytest.mark.parametrize("degree", [1, 2])

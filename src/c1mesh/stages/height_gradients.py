@@ -145,7 +145,7 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
         rank = np.empty(n, dtype=np.int64)
         rank[order] = np.arange(n)
         wanted = rank[np.asarray(at, dtype=np.int64)]
-        slot = np.argsort(wanted, kind="stable")             # centres in cell order too
+        slot = _ascending_order(wanted, n)                   # centres in cell order too
         centres = wanted[slot]
     m = centres.size
     out = np.empty((m, 2))
@@ -160,6 +160,16 @@ def gradients_at(xy: np.ndarray, z: np.ndarray, at: np.ndarray | None, k: int = 
     # the knob's threads: every block gets the same neighbours and sums at any count.
     parallel_blocks(fit, m, BLOCK, threads=workers)
     return out, np.sqrt(reach2)
+
+
+def _ascending_order(values: np.ndarray, n: int) -> np.ndarray:
+    """np.argsort(values, kind="stable") of values (m,) in [0, n): for distinct values (a
+    tile's own points), each value's position marked over [0, n) and read back in order,
+    two linear passes where the sort took 1 s of the 12M survey's normals; else the sort."""
+    where = np.full(n, -1, dtype=np.int64)
+    where[values] = np.arange(values.size)
+    order = where[where >= 0]
+    return order if order.size == values.size else np.argsort(values, kind="stable")
 
 
 def check_positions(points: int, positions: int) -> None:
