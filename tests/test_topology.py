@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from c1mesh.core.errors import InputError
-from c1mesh.engine.topology import (edge_table, edge_table_sides, live_edges, sub_table,
-                                    triangle_neighbours, unique_edges)
+from c1mesh.engine.topology import (edge_slots, edge_table, edge_table_sides, live_edges, sub_table,
+                                    table_from_slots, triangle_neighbours, unique_edges)
 from c1mesh.engine.triangulation import delaunay
 
 
@@ -183,3 +183,25 @@ def test_the_edge_named_is_the_first_of_the_most_shared_in_any_block(monkeypatch
                    + [[30, 31, 32 + i] for i in range(4)])
     with pytest.raises(InputError, match=r"edge \(20, 21\) belongs to 4 triangles"):
         edge_table(tri, 40)
+
+
+@pytest.mark.parametrize("drop", [0, 7])
+def test_the_table_given_back_from_its_slots_is_the_table(shuffled_mesh, drop):
+    """table_from_slots(edge_slots(...)) gives edge_table_sides' table and second slots
+    field for field (a mesh with every 7th triangle dropped: more boundary edges); the
+    slots are each edge's owner slot 3t + k and its second, as a loop over the table
+    finds them; slots outside the triangles are refused before the kernel writes."""
+    tri, n = shuffled_mesh
+    if drop:
+        tri = tri[np.arange(len(tri)) % drop != 0]
+    table, other, _ = edge_table_sides(tri, n)
+    slots = edge_slots(table, other)
+    assert slots.dtype == np.int32
+    assert slots.tolist() == [[3 * int(t) + int(k), int(o)] for t, k, o in zip(table.owner, table.owner_slot, other)]
+    again, other_again = table_from_slots(tri, n, slots)
+    assert all(np.array_equal(getattr(again, f), getattr(table, f)) for f in FIELDS)
+    assert np.array_equal(other_again, other)
+    bad = slots.copy()
+    bad[0, 1] = 3 * len(tri)
+    with pytest.raises(InputError, match="slots"):
+        table_from_slots(tri, n, bad)

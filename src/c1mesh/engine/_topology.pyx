@@ -23,7 +23,7 @@ bucket in place.
 """
 import numpy as np
 
-from libc.stdint cimport int8_t, int64_t, uint8_t, uint32_t, uint64_t
+from libc.stdint cimport int8_t, int32_t, int64_t, uint8_t, uint32_t, uint64_t
 from libc.stdlib cimport qsort
 
 cdef int INSERTION_MAX = 24
@@ -340,3 +340,40 @@ def fill_edges(const uint32_t[::1] highs, const int64_t[::1] start, const int64_
                 edges[e, 0] = v
                 edges[e, 1] = highs[i]
                 e += 1
+
+
+def table_from_slots(const int64_t[:, ::1] tri, const int32_t[:, ::1] slots, int64_t[:, ::1] edges,
+                     int64_t[:, ::1] tri_edge, int64_t[::1] owner, int64_t[::1] owner_slot, int64_t[::1] count,
+                     int64_t[::1] other, Py_ssize_t e0, Py_ssize_t e1):
+    """The table's rows of the edges e0 <= e < e1 from slots (E, 2), each edge's owner
+    slot 3t + k and its second slot (-1: none), as fill_table wrote them: its ends (the
+    owner's corners other than k, lower first), owner, owner_slot, count, other, and
+    tri_edge at both its slots. Each edge writes its own entries and slots: ranges in any
+    thread."""
+    cdef Py_ssize_t e
+    cdef int64_t s, t, k, a, b
+    with nogil:
+        for e in range(e0, e1):
+            s = slots[e, 0]
+            t, k = s // 3, s % 3
+            a, b = tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
+            edges[e, 0], edges[e, 1] = (a, b) if a < b else (b, a)
+            owner[e], owner_slot[e] = t, k
+            tri_edge[t, k] = e
+            s = slots[e, 1]
+            other[e] = s
+            count[e] = 1
+            if s >= 0:
+                tri_edge[s // 3, s % 3] = e
+                count[e] = 2
+
+
+def forward_sides(const int64_t[:, ::1] tri, uint8_t[:, ::1] forward, Py_ssize_t t0, Py_ssize_t t1):
+    """forward[t, k] (whether the edge opposite corner k runs from its lower end) for the
+    triangles t0 <= t < t1 (clear_sides without the neighbours)."""
+    cdef Py_ssize_t t
+    cdef int k
+    with nogil:
+        for t in range(t0, t1):
+            for k in range(3):
+                forward[t, k] = tri[t, (k + 1) % 3] < tri[t, (k + 2) % 3]

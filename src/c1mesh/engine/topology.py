@@ -55,6 +55,40 @@ def edge_table_sides(triangles: np.ndarray, n_points: int) -> tuple[EdgeTable, n
     return _edge_table(triangles, n_points, True)
 
 
+def edge_slots(table: EdgeTable, other: np.ndarray) -> np.ndarray:
+    """(E, 2) int32: each edge's owner slot 3t + k and its second slot (-1: none), from
+    `edge_table_sides`' table and other. With the triangles, that is everything the two
+    hold, in 8 bytes an edge against their 72 (`table_from_slots` gives them back): a
+    survey's tile keeps its table this way between two passes over it."""
+    slots = np.empty((len(other), 2), dtype=np.int32)
+    np.add(3 * table.owner, table.owner_slot, out=slots[:, 0], casting="unsafe")     # < LIMIT: _checked
+    slots[:, 1] = other
+    return slots
+
+
+def table_from_slots(triangles: np.ndarray, n_points: int, slots: np.ndarray) -> tuple[EdgeTable, np.ndarray]:
+    """(table, other) of edge_table_sides(triangles, n_points) from `edge_slots` of them:
+    the same arrays, by one pass over the edges and one over the triangles in the thread
+    knob's threads (no sort: a tenth of building them). InputError unless every slot lies
+    in the triangles (the slots must be those of these triangles)."""
+    tri = _checked(triangles, n_points)
+    slots = np.ascontiguousarray(slots, dtype=np.int32)
+    T, E = tri.shape[0], slots.shape[0]
+    if slots.ndim != 2 or slots.shape[1] != 2 or (E and (slots[:, 0].min() < 0 or slots.max() >= 3 * T
+                                                           or slots[:, 1].min() < -1)):
+        raise InputError(f"edge slots must be (E, 2) slots of the {T} triangles")
+    edges = np.empty((E, 2), dtype=np.int64)
+    tri_edge = np.empty((T, 3), dtype=np.int64)
+    forward = np.empty((T, 3), dtype=bool)
+    owner, owner_slot, count, other = (np.empty(E, dtype=np.int64) for _ in range(4))
+    parallel_blocks(lambda part: _topology.table_from_slots(tri, slots, edges, tri_edge, owner, owner_slot, count,
+                                                            other, part.start, part.stop), E, BLOCK)
+    flags = forward.view(np.uint8)
+    parallel_blocks(lambda part: _topology.forward_sides(tri, flags, part.start, part.stop), T, BLOCK)
+    return EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner, owner_slot=owner_slot,
+                     count=count), other
+
+
 LIMIT = 2 ** 31
 """The kernel packs a vertex number and a slot 3t + k into 32 bits each: meshes up to 2**31
 vertices and 715 million triangles (far above what fits in memory)."""

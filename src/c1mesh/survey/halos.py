@@ -225,7 +225,7 @@ def floor_files(halos: HaloCache, temps, label: str, first: float | None = None,
     its own file, so the floor does not depend on where or in which order they ran;
     kept: the curtains' summaries, from which the first floor's are taken
     (KeptSummaries, first None only). halos: the HaloCache (after prune); name(t) names
-    tile t in errors; label names the files. reconciled (with first only): {tile: path}
+    tile t in errors; label names the files. reconciled (with first only): {tile: paths}
     where each tile's task also writes its data reconciled with first
     (`write_reconciled`), for the refinement."""
     paths = {}
@@ -258,9 +258,9 @@ def edge_floor(halos: HaloCache, temps, label: str, first: float | None = None, 
     return floor
 
 
-def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path, reconciled_path=None,
+def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path, reconciled_paths=None,
                         earlier=None) -> None:
-    """Write tile's limiter.floor_summary (float64) to path; with reconciled_path (and the
+    """Write tile's limiter.floor_summary (float64) to path; with reconciled_paths (and the
     first floor), its data reconciled with the first floor there too (`write_reconciled`);
     earlier: (the file of its summary before some triangles were removed, those
     triangles (r, 3) survey numbers with a corner in its cell), from which the first
@@ -272,38 +272,41 @@ def write_floor_summary(halos: HaloCache, tile: int, first: float | None, path, 
         if (removed >= 0).all():           # the halo rule: every corner lies within 4 edges of the cell
             floor_summary_after(halo, summary, removed).astype("<f8", copy=False).tofile(path)
             return
-    if reconciled_path is None:
+    if reconciled_paths is None:
         floor_summary(halo, first).astype("<f8", copy=False).tofile(path)
         return
     summary, reconciled = reconciled_summary(halo, first)
     summary.astype("<f8", copy=False).tofile(path)
-    write_reconciled(reconciled, reconciled_path)
+    write_reconciled(reconciled, reconciled_paths)
 
 
 RECONCILED = np.dtype([("z", "<f8"), ("gx", "<f8"), ("gy", "<f8"), ("lifted", "?"), ("moved", "?")])
 """A halo vertex's data reconciled with the first noise floor, a row per vertex in halo order."""
 
 
-def write_reconciled(reconciled: Reconciliation, path) -> None:
-    """Write a limiter.Reconciliation to path as RECONCILED rows (26 bytes a halo vertex)."""
+def write_reconciled(reconciled: Reconciliation, paths) -> None:
+    """Write a limiter.Reconciliation to paths: its vertices as RECONCILED rows (26 bytes a
+    halo vertex), and its edges (topology.edge_slots, 8 bytes an edge) as int32."""
     rows = np.empty(len(reconciled.values), dtype=RECONCILED)
     rows["z"], rows["lifted"], rows["moved"] = reconciled.values, reconciled.lifted, reconciled.moved
     rows["gx"], rows["gy"] = reconciled.gradients[:, 0], reconciled.gradients[:, 1]
-    rows.tofile(path)
+    rows.tofile(paths[0])
+    reconciled.edges.astype("<i4", copy=False).tofile(paths[1])
 
 
-def read_reconciled(path) -> Reconciliation:
-    """The limiter.Reconciliation write_reconciled wrote to path."""
-    rows = np.fromfile(path, dtype=RECONCILED)
+def read_reconciled(paths) -> Reconciliation:
+    """The limiter.Reconciliation write_reconciled wrote to paths."""
+    rows = np.fromfile(paths[0], dtype=RECONCILED)
     return Reconciliation(np.ascontiguousarray(rows["z"]), np.column_stack([rows["gx"], rows["gy"]]),
-                          np.ascontiguousarray(rows["lifted"]), np.ascontiguousarray(rows["moved"]))
+                          np.ascontiguousarray(rows["lifted"]), np.ascontiguousarray(rows["moved"]),
+                          np.fromfile(paths[1], dtype="<i4").reshape(-1, 2))
 
 
 def noise_floors(halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None,
                  reconciled: dict | None = None) -> NoiseFloors:
     """The limiter's two noise floors of the survey (edge_floor twice: the second with
     the data reconciled with the first); kept: the curtains' summaries (floor_files);
-    reconciled: {tile: path} where the second floor's tasks also write each tile's data
+    reconciled: {tile: paths} where the second floor's tasks also write each tile's data
     reconciled with the first (`write_reconciled`; None: not kept)."""
     first = edge_floor(halos, temps, "residuals-first", None, runner, name, kept)
     return NoiseFloors(first, edge_floor(halos, temps, "residuals-second", first, runner, name,
@@ -318,7 +321,7 @@ class TiledLimiter:
     def __init__(self, halos: HaloCache, temps, runner=None, name=str, kept: KeptSummaries | None = None):
         self.halos = halos
         # each tile's data reconciled with the first floor, as its second floor's task left it
-        self.reconciled = {t: temps.new(f"reconciled-{t}.bin") for t in halos.tiles()}
+        self.reconciled = {t: (temps.new(f"reconciled-{t}.bin"), temps.new(f"edges-{t}.bin")) for t in halos.tiles()}
         self.floors = noise_floors(halos, temps, runner, name, kept, self.reconciled)
         self.limited = self.turned = self.lifted = 0
 
