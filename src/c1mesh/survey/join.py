@@ -167,11 +167,11 @@ class PartJoin:
         with open(part.vertices, "rb") as file:
             position = 0
             for block in file_blocks(file, self.dtype, CHUNK):
-                block[new[position:position + len(block)]].tofile(vertex_file)
+                np.compress(new[position:position + len(block)], block).tofile(vertex_file)   # 2x block[mask]
                 position += len(block)
         with open(part.faces, "rb") as file:
             for block in file_blocks(file, "<i8", 3 * CHUNK):
-                number.take(block).astype("<i8").tofile(face_file)
+                number.take(block).astype("<i8", copy=False).tofile(face_file)
         self.written += int(new.sum())
         self.kept += int(new[:row["corners"]].sum())
         self.faces += row["faces"]
