@@ -49,7 +49,7 @@ class TrimRuns:
         """Tile t's halo as a TrimTile, every triangle alive, its point rows made when a
         rule first reads them (HaloTrimTile)."""
         halo, home = self.halos.halo_and_homes(t)
-        return HaloTrimTile(halo.records, halo.triangles, Place(halo.records["index"], home, t))
+        return HaloTrimTile(halo.records, halo.triangles, Place(halo.records["index"], home.astype(np.int64), t))
 
     def remove(self, cuts: Cuts) -> None:
         if self.since is not None:
