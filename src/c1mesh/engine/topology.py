@@ -69,8 +69,9 @@ def edge_slots(table: EdgeTable, other: np.ndarray) -> np.ndarray:
 def table_from_slots(triangles: np.ndarray, n_points: int, slots: np.ndarray) -> tuple[EdgeTable, np.ndarray]:
     """(table, other) of edge_table_sides(triangles, n_points) from `edge_slots` of them:
     the same arrays, by one pass over the edges and one over the triangles in the thread
-    knob's threads (no sort: a tenth of building them). InputError unless every slot lies
-    in the triangles (the slots must be those of these triangles)."""
+    knob's threads (no sort: about half the time of building them, 24 against 51 ms at
+    283k points). InputError unless every slot lies in the triangles (the slots must be
+    those of these triangles)."""
     tri = _checked(triangles, n_points)
     slots = np.ascontiguousarray(slots, dtype=np.int32)
     T, E = tri.shape[0], slots.shape[0]
