@@ -139,14 +139,17 @@ def clear_sides(const int64_t[:, ::1] tri, uint8_t[:, ::1] forward, int64_t[:, :
                 Py_ssize_t t0, Py_ssize_t t1):
     """forward[t, k] (whether the edge opposite corner k runs from its lower end) and
     across[t, k] = -1, for the triangles t0 <= t < t1: what fill_table expects before it
-    fills across."""
+    fills across. An empty across (0 rows) is left alone: table_from_slots' tables have
+    no neighbours."""
     cdef Py_ssize_t t
     cdef int k
+    cdef bint clear = across.shape[0] > 0
     with nogil:
         for t in range(t0, t1):
             for k in range(3):
                 forward[t, k] = tri[t, (k + 1) % 3] < tri[t, (k + 2) % 3]
-                across[t, k] = -1
+                if clear:
+                    across[t, k] = -1
 
 
 def fill_table(const uint64_t[::1] packed, const int64_t[::1] start, int64_t[:, ::1] edges,
@@ -367,13 +370,3 @@ def table_from_slots(const int64_t[:, ::1] tri, const int32_t[:, ::1] slots, int
                 tri_edge[s // 3, s % 3] = e
                 count[e] = 2
 
-
-def forward_sides(const int64_t[:, ::1] tri, uint8_t[:, ::1] forward, Py_ssize_t t0, Py_ssize_t t1):
-    """forward[t, k] (whether the edge opposite corner k runs from its lower end) for the
-    triangles t0 <= t < t1 (clear_sides without the neighbours)."""
-    cdef Py_ssize_t t
-    cdef int k
-    with nogil:
-        for t in range(t0, t1):
-            for k in range(3):
-                forward[t, k] = tri[t, (k + 1) % 3] < tri[t, (k + 2) % 3]

@@ -85,7 +85,8 @@ def table_from_slots(triangles: np.ndarray, n_points: int, slots: np.ndarray) ->
     parallel_blocks(lambda part: _topology.table_from_slots(tri, slots, edges, tri_edge, owner, owner_slot, count,
                                                             other, part.start, part.stop), E, BLOCK)
     flags = forward.view(np.uint8)
-    parallel_blocks(lambda part: _topology.forward_sides(tri, flags, part.start, part.stop), T, BLOCK)
+    no_neighbours = np.empty((0, 3), dtype=np.int64)
+    parallel_blocks(lambda part: _topology.clear_sides(tri, flags, no_neighbours, part.start, part.stop), T, BLOCK)
     return EdgeTable(edges=edges, tri_edge=tri_edge, forward=forward, owner=owner, owner_slot=owner_slot,
                      count=count), other
 

@@ -104,8 +104,7 @@ class HaloCache:
         """tile's halo, from the cache, else read from the spills: cached by the driver's
         cache, not by a copy sent with a task (inputs.Temps.owned_here: a file a copy
         made would be removed by nobody)."""
-        halo, home = self.halo_and_homes(tile)
-        return Tile(halo.records, halo.triangles, home == tile)
+        return self.halo_and_homes(tile)[0]
 
     def halo_and_homes(self, tile: int) -> tuple[Tile, np.ndarray]:
         """`halo`'s Tile and (m,) int32 the tile whose cell holds each of its vertices
