@@ -196,8 +196,9 @@ def test_the_scheduled_stacking_test_is_the_loops(tmp_path, monkeypatch, steps, 
     heights = TileSpill(grid, tmp_path, "h", record=height_runs.HEIGHT).__enter__()
     groups = TileSpill(grid, tmp_path, "g", record=height_runs.GROUP).__enter__()
     for t, part in enumerate(parts):
-        groups.counts[t] = height_runs.write_heights(part, heights.paths[t], groups.paths[t])
-        heights.counts[t] = len(part.records)
+        rims, count, group_rims = height_runs.write_heights(part, heights, groups, t)
+        heights.set_tile(t, len(part.records), rims)
+        groups.set_tile(t, count, group_rims)
     spill = height_runs.HeightSpill(heights, groups, sum(p.usable for p in parts))
     try:
         with TaskRunner() as runner:

@@ -9,7 +9,7 @@ from scipy.spatial import Delaunay
 import c1mesh.survey.buffered_delaunay as bd
 from c1mesh.core import outputs
 from c1mesh.stages.frame import choose_frame
-from c1mesh.survey.tile_spill import spill
+from c1mesh.survey.tile_spill import RECORD, TileSpill, spill
 
 
 def _points(n=3000, seed=4):
@@ -93,3 +93,53 @@ def test_the_spills_sort_keys_give_the_order_of_a_stable_sort_by_tile():
         tiles = rng.integers(0, count, n).astype(np.int64)
         want = sorted(range(n), key=lambda i: int(tiles[i]))
         assert np.argsort(_sort_keys(tiles, count), kind="stable").tolist() == want
+
+
+def _brute(records, rect):
+    """The records in the closed rectangle, ascending survey numbers: a loop."""
+    x0, y0, x1, y1 = rect
+    kept = [r for r in records.tolist() if x0 <= r[1] <= x1 and y0 <= r[2] <= y1]
+    return sorted(kept)
+
+
+def test_a_spill_with_rims_reads_what_a_loop_over_every_record_keeps(tmp_path):
+    """Tiles written whole with a rim (TileSpill.write_tile) read back, for rectangles that
+    reach a neighbour's rim, its middle, a band's edge exactly, a corner, and with far
+    reads, the records a loop over every record keeps, and the rim files go with the
+    spill. The rim parts are read alone (not the tile) when the rectangle stays in them."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    records = np.empty(n, RECORD)
+    records["index"] = rng.permutation(n)
+    records["x"] = np.round(rng.uniform(0, 40, n), 1)          # 0.1 steps: records on band edges
+    records["y"] = np.round(rng.uniform(0, 30, n), 1)
+    records["z"] = rng.normal(size=n)
+    grid = bd.TileGrid((0.0, 0.0, 40.0, 30.0), 4, 3)             # cells 10 x 10: rim 2 (of 2.5 allowed)
+    spill = TileSpill(grid, tmp_path, "rims", rim=2.0).__enter__()
+    tiles = grid.tile_of(np.column_stack([records["x"], records["y"]]))
+    for t in range(len(grid)):
+        mine = records[tiles == t]
+        spill.set_tile(t, len(mine), spill.write_tile(t, mine[np.argsort(mine["index"])]))
+    assert spill.rim == 2.0 and len(list(tmp_path.iterdir())) == 2 * len(grid)
+    whole_reads = []
+    original = spill.tile
+    spill.tile = lambda t: whole_reads.append(t) or original(t)
+    rects = [(8.0, 8.0, 22.0, 22.0), (10.0, 10.0, 20.0, 20.0), (9.0, 9.0, 12.0, 21.0), (12.0, 12.0, 18.0, 18.0),
+             (11.9, 0.0, 12.0, 30.0), (0.0, 0.0, 40.0, 30.0), (19.9, 19.9, 20.1, 20.1), (5.0, 5.0, 5.0, 5.0),
+             (-3.0, -3.0, 1.0, 1.0)]
+    for rect in rects:
+        got = spill.records(rect)
+        assert sorted(got.tolist()) == _brute(records, rect) and np.all(np.diff(got["index"]) > 0)
+    whole_reads.clear()
+    spill.records((12.0, 12.0, 18.0, 18.0))                      # tile 5's middle: only it is read whole
+    assert whole_reads == [5]
+    whole_reads.clear()
+    spill.records((19.0, 19.0, 21.0, 21.0))                      # four tiles' corners: none read whole
+    assert whole_reads == []
+    far = np.array([[25.0, 5.0, 3.0]])                           # a far read's square meets tile 2 only
+    got, read = spill.records_near((9.0, 9.0, 21.0, 21.0), far)
+    near = set(map(tuple, _brute(records, (9.0, 9.0, 21.0, 21.0))))
+    near |= {r for r in map(tuple, records.tolist()) if max(abs(r[1] - 25.0), abs(r[2] - 5.0)) <= 3.0}
+    assert sorted(got.tolist()) == sorted(near) and read == sorted(read)
+    spill.close()
+    assert list(tmp_path.iterdir()) == []

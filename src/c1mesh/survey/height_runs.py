@@ -36,7 +36,7 @@ from c1mesh.stages.height_field import (
 from c1mesh.stages.height_gradients import height_neighbours, use_height_gradients
 from c1mesh.survey.buffered_delaunay import INITIAL_SPACINGS, mean_spacing
 from c1mesh.survey.tile_normals import tile_height_normals, tile_normals
-from c1mesh.survey.tile_spill import TileSpill
+from c1mesh.survey.tile_spill import RIM_SPACINGS, TileSpill
 from c1mesh.survey.halos import median_of_files
 from c1mesh.survey.tiles import task_row
 
@@ -72,8 +72,9 @@ def height_spill(raw, grid, count: int, settings: HeightSettings, directory, ste
     HeightSpill, which the caller closes. Each tile is a task (`_tile_heights`)
     that reads the raw spill and writes its own height and group files, run by runner
     (distributed.TaskRunner); rows: the task_rows.TileRows."""
-    heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT).__enter__()
-    groups = TileSpill(grid, directory, stem + ".groups", record=GROUP).__enter__()
+    rim = RIM_SPACINGS * mean_spacing(grid.box, count)
+    heights = TileSpill(grid, directory, stem + ".height", record=HEIGHT, rim=rim).__enter__()
+    groups = TileSpill(grid, directory, stem + ".groups", record=GROUP, rim=rim).__enter__()
     usable = 0
     try:
         job = _HeightJob(raw, grid, settings.k, height_neighbours(settings.k), math.cos(math.radians(settings.max_slope)),
@@ -81,11 +82,10 @@ def height_spill(raw, grid, count: int, settings: HeightSettings, directory, ste
                          use_height_gradients(settings.gradients, "estimated"),
                          rows.threads)
         tiles = [t for t in range(len(grid)) if raw.counts[t]]
-        for i, row in runner.map(_tile_heights, len(tiles),
-                                 lambda i: (job, tiles[i], heights.paths[tiles[i]], groups.paths[tiles[i]]),
+        for i, row in runner.map(_tile_heights, len(tiles), lambda i: (job, tiles[i], heights, groups),
                                  lambda i: rows.name(tiles[i])):
-            heights.counts[tiles[i]] = row.pop("points")
-            groups.counts[tiles[i]] = row.pop("groups")
+            heights.set_tile(tiles[i], row.pop("points"), row.pop("rims"))
+            groups.set_tile(tiles[i], row.pop("groups"), row.pop("group_rims"))
             usable += row.pop("usable")
             rows.add(tiles[i], "normals", row)
     except BaseException:
@@ -110,10 +110,11 @@ class _HeightJob:
         return records["index"], np.column_stack([records["x"], records["y"], records["z"]])
 
 
-def _tile_heights(job: _HeightJob, t: int, path, group_path) -> dict:
-    """One tile's height-field records (HEIGHT, height_field.tile_heights) written to path,
-    the positions several of its points share (GROUP) to group_path; returns its report
-    row (points written, groups written, usable points, seconds, worker)."""
+def _tile_heights(job: _HeightJob, t: int, heights_spill, groups_spill) -> dict:
+    """One tile's height-field records (HEIGHT, height_field.tile_heights) written to the
+    heights TileSpill, the positions several of its points share (GROUP) to the groups
+    one; returns its report row (points written, groups written, usable points, seconds,
+    worker, and the two rims' counts for TileSpill.set_tile)."""
     start = time.perf_counter()
     with limit(job.threads):
         if job.from_heights:
@@ -121,23 +122,23 @@ def _tile_heights(job: _HeightJob, t: int, path, group_path) -> dict:
         else:
             result = tile_normals(job.read3, job.grid, t, job.k, job.buffer, towards=(0.0, 0.0, 1.0))
         heights = tile_heights(job.raw.tile(t), result.normals, job.cos_max)   # survey order, as result.index
-        groups = write_heights(heights, path, group_path)
-    return {**task_row(len(heights.records), start), "groups": groups, "usable": heights.usable}
+        rims, groups, group_rims = write_heights(heights, heights_spill, groups_spill, t)
+    return {**task_row(len(heights.records), start), "groups": groups, "usable": heights.usable,
+            "rims": rims, "group_rims": group_rims}
 
 
-def write_heights(heights: TileHeights, path, group_path) -> int:
-    """Write a tile's height-field records (HEIGHT) to path and the positions several of
-    its points share (GROUP) to group_path; returns how many of those."""
+def write_heights(heights: TileHeights, heights_spill, groups_spill, t: int) -> tuple[np.ndarray, int, np.ndarray]:
+    """Write tile t's height-field records (HEIGHT) to the heights TileSpill and the
+    positions several of its points share (GROUP) to the groups one: (the heights' rim
+    counts, how many groups, their rim counts), which the reading process gives each
+    spill's set_tile."""
     shared = heights.size > 1
     groups = np.empty(int(shared.sum()), GROUP)
     for name in ("index", "x", "y"):
         groups[name] = heights.records[name][shared]
     groups["size"], groups["z_range"] = heights.size[shared], heights.z_range[shared]
-    with open(group_path, "wb") as file:
-        groups.tofile(file)
-    with open(path, "wb") as file:
-        heights.records.tofile(file)
-    return len(groups)
+    group_rims = groups_spill.write_tile(t, groups)
+    return heights_spill.write_tile(t, heights.records), len(groups), group_rims
 
 
 def survey_stacking(spill: HeightSpill, grid, axis: np.ndarray, runner, name, temps,
