@@ -366,3 +366,49 @@ def test_a_collinear_triangles_disk_is_never_clear():
     hull = np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]])
     clear = centres_clear(centre, radius, strips, clip_to_hull(strips, hull), 10.0)
     assert clear.tolist() == [False, True]
+
+
+@pytest.mark.parametrize("kind", ["hole", "clusters"])
+def test_reading_the_few_uncleared_disks_spares_a_round_and_keeps_the_triangles(kind, monkeypatch):
+    """A tile pass whose strip test leaves a few disks uncleared reads their unread
+    points instead of doubling its buffer (buffered_delaunay._UnreadCheck): beside the
+    hole, 22 rounds over the 12 tiles become 12; the triangles are the survey's either way."""
+    xy = _survey(kind)
+    whole = Delaunay(xy).simplices
+    hull = bd.streamed_hull(_chunks(xy))
+    results, default = {}, bd.UNREAD_DISKS
+    for most in (default, 0):
+        monkeypatch.setattr(bd, "UNREAD_DISKS", most)
+        max_edge, passes = bd.trimmed_delaunay(bd.ArrayReader(xy), _grid(xy), len(xy), hull)
+        union = np.concatenate([p.triangles[p.longest <= max_edge] for p in passes])
+        assert len(_faces(union)) == len(union)
+        assert _faces(union) == _faces(whole[edge_lengths(xy, whole).max(axis=1) <= max_edge])
+        results[most] = sum(p.rounds for p in passes)
+    assert results[default] < results[0]
+    if kind == "hole":
+        assert (results[default], results[0]) == (12, 22)
+
+
+def test_the_unread_check_clears_a_disk_only_when_no_unread_point_lies_in_it():
+    """_UnreadCheck over one strip (x > 10 unread): a disk reaching into it is cleared when
+    the points there lie outside it, whatever lies inside it in the read box; one unread
+    point in it (or on its circle) keeps it; too many disks, or a read larger than the next
+    round's, double the buffer instead."""
+    read_box, offset = (0.0, 0.0, 10.0, 10.0), np.array([5.0, 5.0])
+    strips = np.array([[10.0, 0.0, 30.0, 10.0]]) - np.tile(offset, 2)
+
+    def check(points, next_box=(-5.0, -5.0, 15.0, 15.0)):
+        points = np.asarray(points, dtype=float).reshape(-1, 2)
+        reader = bd.ArrayReader(points)
+        return bd._UnreadCheck(reader, read_box, next_box, offset, strips, 10.0)
+
+    centre, radius = np.array([[4.0, 0.0]]), np.array([2.0])          # reaches x in [7, 11] (local 2..6)
+    assert not bd.centres_clear(centre, radius, strips, None, 10.0).all()   # the strip test alone keeps it
+    assert check([]).clear(centre, radius, None)                         # no point beyond the read
+    assert check([[9.0, 5.0], [11.5, 5.0], [11.0, 7.0]]).clear(centre, radius, None)
+    assert not check([[10.5, 5.0]]).clear(centre, radius, None)         # inside the disk, unread
+    assert not check([[11.0, 5.0]]).clear(centre, radius, None)         # on its circle
+    assert not check([[10.5, 5.0]], next_box=(4.9, 4.9, 5.1, 5.1)).clear(centre, radius, None)
+    many = np.repeat(centre, bd.UNREAD_DISKS + 1, axis=0)
+    assert not check([[11.5, 5.0]]).clear(many, np.repeat(radius, bd.UNREAD_DISKS + 1), None)
+    assert check([[11.5, 5.0]]).clear(many[:-1], np.repeat(radius, bd.UNREAD_DISKS), None)

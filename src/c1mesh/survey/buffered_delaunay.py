@@ -333,17 +333,85 @@ def tile_pass(read: Reader, grid: TileGrid, tile: int, bound: float, hull: Hull)
             regions = clip_to_hull(strips, hull.xy - centre)
             centres, radius = circumcircles(local, simplices)
             scale = np.abs(local).max()
-            if not centres_clear(centres[at_own], radius[at_own], strips, regions, scale).all():
+            beyond = _UnreadCheck(read, read_box, grid.grown(tile, 2 * buffer), centre, strips, scale)
+            if not beyond.clear(centres[at_own], radius[at_own], regions):
                 continue
             # an edge of a triangle certified above is an edge of the survey's triangulation;
             # the others (both triangles longer than the bound, or a hull edge beside one)
             # are certified by their own smallest empty circle
             alone = _edges_without(at_own, neighbors, edges)
             circle, circle_radius = smallest_empty_circle(local, simplices, neighbors, *edges[alone].T, centres)
-            if not centres_clear(circle, circle_radius, strips, regions, scale).all():
+            if not beyond.clear(circle, circle_radius, regions):
                 continue
         return TilePass(tile, lengths, index[simplices[triangle_mine]], longest[triangle_mine],
                         buffer, len(index), rounds)
+
+
+UNREAD_DISKS = 64
+"""The most disks that reach the unread strips a tile pass checks against the points
+there (`_UnreadCheck`) before it doubles its buffer instead."""
+
+
+@dataclass(frozen=True)
+class _UnreadCheck:
+    """A pass's disks against what it did not read. The buffer rule needs a disk that
+    reaches an unread strip B \\ E to hold no survey point there; the strips' rectangles
+    only bound where such points may lie, so a disk reaching one (a hull sliver's or a
+    sliver's beside a building's hole, whose circle spans the empty hole: 7 of the 12M
+    survey's 49 tiles, each by one or two triangles) made the whole tile be read and
+    triangulated again with its buffer doubled. Reading the points in those disks' part
+    of the strips instead settles them at the cost of a small read: a disk none of whose
+    unread points lies in it (grown as centres_clear grows it) is clear, as certain as the
+    strip test, as the points read are the survey's.
+
+    read: the pass's Reader; read_box: what it read; next_box: the next round's read (a
+    check that would read more than it holds doubles the buffer instead); offset: the
+    tile's centre (disks and strips are relative to it); scale: centres_clear's."""
+
+    read: Callable
+    read_box: tuple
+    next_box: tuple
+    offset: np.ndarray
+    strips: np.ndarray
+    scale: float
+
+    def clear(self, centre: np.ndarray, radius: np.ndarray, regions) -> bool:
+        """Whether every disk (centre (k, 2), radius (k,)) is clear of unread points:
+        centres_clear's test, then the points of the few disks it does not clear."""
+        ok = centres_clear(centre, radius, self.strips, regions, self.scale)
+        if ok.all():
+            return True
+        return self._holds_no_unread_point(centre[~ok], radius[~ok])
+
+    def _holds_no_unread_point(self, centre: np.ndarray, radius: np.ndarray) -> bool:
+        if len(centre) > UNREAD_DISKS or not (np.isfinite(centre).all() and np.isfinite(radius).all()):
+            return False                             # a collinear triangle's disk: never clear
+        reach = radius * (1 + 1e-9) + 1e-12 * self.scale
+        low = (centre - reach[:, None]).min(axis=0)
+        high = (centre + reach[:, None]).max(axis=0)
+        rects = [r for r in (_meet((*low, *high), strip) for strip in self.strips) if r is not None]
+        if sum((r[2] - r[0]) * (r[3] - r[1]) for r in rects) > _area(self.next_box):
+            return False
+        x0, y0, x1, y1 = self.read_box
+        pad = 1e-9 * float(np.abs(self.next_box).max())      # the shift back to survey coordinates rounds
+        for rect in rects:
+            _, xy = self.read(tuple((np.add(rect, np.tile(self.offset, 2)) + [-pad, -pad, pad, pad]).tolist()))
+            unread = ~((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1))
+            points = xy[unread] - self.offset
+            for (cx, cy), r in zip(centre.tolist(), reach.tolist()):
+                if np.any((points[:, 0] - cx) ** 2 + (points[:, 1] - cy) ** 2 <= r * r):
+                    return False
+        return True
+
+
+def _meet(a, b):
+    """The closed rectangles a and b's intersection (x0, y0, x1, y1), or None."""
+    rect = (max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3]))
+    return rect if rect[0] <= rect[2] and rect[1] <= rect[3] else None
+
+
+def _area(rect) -> float:
+    return (rect[2] - rect[0]) * (rect[3] - rect[1])
 
 
 def _edges_without(certified: np.ndarray, neighbors: np.ndarray, edges: np.ndarray) -> np.ndarray:
