@@ -143,3 +143,38 @@ def test_a_spill_with_rims_reads_what_a_loop_over_every_record_keeps(tmp_path):
     assert sorted(got.tolist()) == sorted(near) and read == sorted(read)
     spill.close()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_merged_parts_are_the_stable_sort_of_their_concatenation():
+    """tile_spill._merged (the kernel's two-way merges, shortest first) gives what a stable
+    argsort of the parts' concatenation by survey number gives: for ascending parts of
+    many sizes (empty, one record, interleaved, one long), and, through its fallback, for
+    a part out of order and for a number in two parts."""
+    from c1mesh.survey.tile_spill import _merged
+
+    rng = np.random.default_rng(11)
+
+    def parts_of(numbers, sizes):
+        chunks = np.split(numbers, np.cumsum(sizes)[:-1])
+        out = []
+        for chunk in chunks:
+            records = np.zeros(len(chunk), RECORD)
+            records["index"] = np.sort(chunk)
+            records["x"] = rng.normal(size=len(chunk))
+            out.append(records)
+        return out
+
+    def sorted_concatenation(parts):
+        records = np.concatenate(parts) if parts else np.empty(0, RECORD)
+        return records.take(np.argsort(records["index"], kind="stable"))
+
+    numbers = rng.permutation(5000)
+    for sizes in ([5000], [0, 5000, 0], [4000, 3, 1, 996], [1] * 50 + [4950], [2500, 2500]):
+        parts = parts_of(numbers, sizes)
+        assert _merged(parts, RECORD).tobytes() == sorted_concatenation(parts).tobytes()
+    assert len(_merged([], RECORD)) == 0
+    shuffled = parts_of(numbers, [3000, 2000])
+    shuffled[1] = shuffled[1][::-1].copy()                       # a part out of order
+    assert _merged(shuffled, RECORD).tobytes() == sorted_concatenation(shuffled).tobytes()
+    twice = parts_of(np.concatenate([numbers[:100], numbers[:100]]), [100, 100])   # each number twice
+    assert _merged(twice, RECORD).tobytes() == sorted_concatenation(twice).tobytes()
