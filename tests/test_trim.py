@@ -270,6 +270,36 @@ def test_circle_ratio_and_thin_rows_are_the_numpy_expression_to_the_bit():
     assert 50 < len(trim_stage._thin_rows(lengths, alive, 0.01)) < len(lengths) // 10
 
 
+def test_thin_rows_from_coordinates_are_the_numpy_expression_of_hypots_lengths():
+    """trim._thin_rows_at (sqrt lengths screen, hypot's decide) picks the rows the numpy
+    circle ratio of numpy's hypot lengths puts below min_ratio: over a Delaunay mesh with a
+    band of near-collinear points, needles with a side a thousandth, a millionth and 1e-9
+    of another (beside the screen's 1e-6), repeated corners, state-plane-sized
+    coordinates, and min_ratio from 0 to 1 (the screen off below 1e-6)."""
+    rng = np.random.default_rng(5)
+    xy = rng.random((3000, 2))
+    xy[:500, 1] = 0.5 + 1e-6 * rng.random(500)
+    tri = delaunay(xy)
+    extra = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 1e-3], [0.5, 1e-6], [0.5, 1e-9], [0.5, 2e-2],
+                      [0.5, 5e-3]])
+    xy = np.vstack([xy, extra])
+    base = len(xy) - len(extra)
+    needles = np.array([[base, base + 1, base + j] for j in range(2, len(extra))]
+                       + [[base, base, base + 1], [base + 2, base + 3, base + 4]])
+    tri = np.vstack([tri, needles])
+    for shift in (0.0, 2.0e6):
+        points = xy * 40.0 + shift
+        hypots = np.column_stack([np.hypot(*(points[tri[:, (k + 2) % 3]] - points[tri[:, (k + 1) % 3]]).T)
+                                  for k in range(3)])
+        want = _numpy_circle_ratio(hypots)
+        alive = rng.random(len(tri)) < 0.8
+        alive[-len(needles):] = True
+        for min_ratio in (0.0, 1e-7, 1e-3, 0.01, 0.0101, 0.3, 1.0):
+            rows = trim_stage._thin_rows_at(points, tri, alive, min_ratio)
+            assert np.array_equal(rows, np.flatnonzero(alive & (want < min_ratio))), (shift, min_ratio)
+        assert len(trim_stage._thin_rows_at(points, tri, alive, 0.01)) > 50
+
+
 @pytest.mark.parametrize("n, m", [(1, 0), (7, 0), (50, 30), (400, 380), (1000, 3000)])
 def test_connected_sets_number_the_sets_as_scipys_connected_components(n, m):
     """trim.connected_sets (a union-find kernel) against scipy's connected_components of

@@ -4,7 +4,7 @@ imports them. The triangles of a Delaunay triangulation come in no particular or
 their points, so every kernel reads its points as rows (x, y together: one cache line)."""
 import numpy as np
 
-from libc.math cimport hypot
+from libc.math cimport hypot, sqrt
 from libc.stdint cimport int64_t, uint8_t, uint64_t
 
 from c1mesh.core._prefetch cimport AHEAD, prefetch, prefetch_corners
@@ -153,6 +153,48 @@ def thin_rows(const double[:, ::1] lengths, const uint8_t[::1] alive, double min
     with nogil:
         for t in range(T):
             if alive[t] and _circle_ratio(lengths[t, 0], lengths[t, 1], lengths[t, 2]) < min_ratio:
+                out[count] = t
+                count += 1
+    return count
+
+
+cdef inline double _side(const double[:, ::1] xy, int64_t a, int64_t b) noexcept nogil:
+    """The distance from point a to point b by sqrt, within a few ulps of libm's hypot."""
+    cdef double dx = xy[b, 0] - xy[a, 0], dy = xy[b, 1] - xy[a, 1]
+    return sqrt(dx * dx + dy * dy)
+
+
+def thin_rows_at(const double[:, ::1] xy, const int64_t[:, ::1] tri, const uint8_t[::1] alive,
+                 double min_ratio, double screen, int64_t[::1] out):
+    """`thin_rows` from the corners' coordinates xy (n, 2) instead of stored lengths: the
+    live triangles of tri (T, 3) whose circle ratio of edge lengths (hypot, as
+    edge_lengths measures them) is below min_ratio, ascending into out (T,). Returns how
+    many. Each triangle's ratio is first screened with sqrt lengths (a few times faster
+    than hypot); those below `screen`, or with a side under a millionth of another, get
+    hypot's lengths and the exact test. With its sides within a factor 1e6, a ratio's
+    rounding is below 1e-8 either way, so a screen well above min_ratio (the caller's
+    2 x, c1mesh.stages.trim._thin_rows_at) skips no thin triangle. One thread."""
+    cdef Py_ssize_t T = tri.shape[0], t, count = 0
+    cdef int64_t a, b, c
+    cdef double la, lb, lc, shortest, longest
+    with nogil:
+        for t in range(T):
+            if not alive[t]:
+                continue
+            a = tri[t, 0]
+            b = tri[t, 1]
+            c = tri[t, 2]
+            la = _side(xy, b, c)
+            lb = _side(xy, c, a)
+            lc = _side(xy, a, b)
+            shortest = min(la, min(lb, lc))
+            longest = max(la, max(lb, lc))
+            # a side a millionth of another: rounding could move the ratio; the exact test
+            if _circle_ratio(la, lb, lc) >= screen and shortest >= 1e-6 * longest:
+                continue
+            if _circle_ratio(hypot(xy[c, 0] - xy[b, 0], xy[c, 1] - xy[b, 1]),
+                             hypot(xy[a, 0] - xy[c, 0], xy[a, 1] - xy[c, 1]),
+                             hypot(xy[b, 0] - xy[a, 0], xy[b, 1] - xy[a, 1])) < min_ratio:
                 out[count] = t
                 count += 1
     return count

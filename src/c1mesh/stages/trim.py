@@ -376,8 +376,11 @@ def thin_triangles(tile: TrimTile, min_ratio: float) -> tuple[Cuts, np.ndarray]:
     """The summary: the tile's own live thin triangles (circle_ratio below min_ratio) as
     Cuts, and (k,) bool whether each lies on the boundary (an edge without a live triangle
     across)."""
-    rows = _thin_rows(tile.lengths, tile.alive, min_ratio)
-    rows = rows[tile.own_live()[rows]]
+    if "lengths" in tile.__dict__ or tile.points is None:        # measured already (in memory)
+        rows = _thin_rows(tile.lengths, tile.alive, min_ratio)
+        rows = rows[tile.own_live()[rows]]
+    else:                                                          # a survey's halo: its own rows only
+        rows = _thin_rows_at(tile.points[:, :2], tile.source, tile.own_live(), min_ratio)
     across = tile.neighbours[rows]
     boundary = ((across < 0) | ~tile.alive[across]).any(axis=1)
     return tile.cuts(rows), boundary
@@ -650,6 +653,18 @@ def _thin_rows(lengths: np.ndarray, alive: np.ndarray, min_ratio: float) -> np.n
     rows = np.empty(lengths.shape[0], dtype=np.int64)
     count = kernel.thin_rows(np.ascontiguousarray(lengths, dtype=np.float64),
                              np.ascontiguousarray(alive).view(np.uint8), float(min_ratio), rows)
+    return rows[:count].copy()
+
+
+def _thin_rows_at(xy: np.ndarray, tri: np.ndarray, alive: np.ndarray, min_ratio: float) -> np.ndarray:
+    """`_thin_rows` of the triangles tri (T, 3) from their corners' plane coordinates xy
+    (n, 2), without their (T, 3) lengths (stages/_trim.pyx, thin_rows_at: sqrt lengths
+    screen, hypot's decide, so the rows are _thin_rows' of edge_lengths). A survey's trim
+    measured every halo triangle's lengths to find the few thin ones among its own."""
+    rows = np.empty(tri.shape[0], dtype=np.int64)
+    screen = 2.0 * min_ratio if min_ratio >= 1e-6 else np.inf
+    count = kernel.thin_rows_at(np.ascontiguousarray(xy, dtype=np.float64), np.ascontiguousarray(tri, dtype=np.int64),
+                                np.ascontiguousarray(alive).view(np.uint8), float(min_ratio), float(screen), rows)
     return rows[:count].copy()
 
 
