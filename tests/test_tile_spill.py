@@ -173,6 +173,8 @@ def test_merged_parts_are_the_stable_sort_of_their_concatenation():
         parts = parts_of(numbers, sizes)
         assert _merged(parts, RECORD).tobytes() == sorted_concatenation(parts).tobytes()
     assert len(_merged([], RECORD)) == 0
+    alone = parts_of(numbers, [5000])[0][::-1].copy()            # one part, out of order
+    assert _merged([alone], RECORD).tobytes() == sorted_concatenation([alone]).tobytes()
     shuffled = parts_of(numbers, [3000, 2000])
     shuffled[1] = shuffled[1][::-1].copy()                       # a part out of order
     assert _merged(shuffled, RECORD).tobytes() == sorted_concatenation(shuffled).tobytes()
