@@ -1,8 +1,6 @@
 # cython: language_level=3
 """The spill's read kernels: c1mesh.survey.tile_spill wraps them, and nothing else imports them."""
 from libc.stdint cimport int64_t, uint8_t
-from libc.stdlib cimport free, malloc
-from libc.string cimport memcpy
 
 
 def in_rect(const double[:] x, const double[:] y, double x0, double y0, double x1, double y1,
@@ -22,7 +20,6 @@ def in_rect(const double[:] x, const double[:] y, double x0, double y0, double x
             out[i] = inside
             count += inside
     return count
-
 
 
 cdef inline void _copy(uint8_t *to, const uint8_t *source, Py_ssize_t words) noexcept nogil:

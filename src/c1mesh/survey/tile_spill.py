@@ -296,6 +296,8 @@ def _merged(parts: list[np.ndarray], record: np.dtype) -> np.ndarray:
     if len(parts) == 1:
         numbers = parts[0]["index"]
         return parts[0] if bool(np.all(numbers[1:] > numbers[:-1])) else _sorted_concatenation(parts, record)
+    if record.itemsize % 8 or record.fields["index"][:2] != (np.dtype("<i8"), 0):
+        return _sorted_concatenation(parts, record)        # not the kernel's layout
     longest = max(range(len(parts)), key=lambda n: len(parts[n]))
     rest = _sorted_concatenation([p for n, p in enumerate(parts) if n != longest], record)
     out = np.empty(len(parts[longest]) + len(rest), record)
