@@ -47,6 +47,7 @@ from c1mesh.core.lazy import LazyModule
 from c1mesh.core.threads import map_in_threads
 from c1mesh.survey import _buffered_delaunay as kernel
 from c1mesh.engine.triangulation import delaunay_with_neighbours
+from c1mesh.formats.copc import inside
 from c1mesh.stages.trim import AUTO_EDGE_FACTOR
 from c1mesh.stages.streamed_median import order_statistic
 from c1mesh.survey.strip_geometry import (
@@ -119,9 +120,7 @@ class ArrayReader:
         self.xy = np.asarray(xy, dtype=np.float64)
 
     def __call__(self, rect):
-        x0, y0, x1, y1 = rect
-        x, y = self.xy[:, 0], self.xy[:, 1]
-        index = np.flatnonzero((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+        index = np.flatnonzero(inside(self.xy[:, 0], self.xy[:, 1], rect))
         return index, self.xy[index]
 
 
@@ -392,11 +391,10 @@ class _UnreadCheck:
         rects = [r for r in (_meet((*low, *high), strip) for strip in self.strips) if r is not None]
         if sum((r[2] - r[0]) * (r[3] - r[1]) for r in rects) > _area(self.next_box):
             return False
-        x0, y0, x1, y1 = self.read_box
         pad = 1e-9 * float(np.abs(self.next_box).max())      # the shift back to survey coordinates rounds
         for rect in rects:
             _, xy = self.read(tuple((np.add(rect, np.tile(self.offset, 2)) + [-pad, -pad, pad, pad]).tolist()))
-            unread = ~((xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1))
+            unread = ~inside(xy[:, 0], xy[:, 1], self.read_box)
             points = xy[unread] - self.offset
             for (cx, cy), r in zip(centre.tolist(), reach.tolist()):
                 if np.any((points[:, 0] - cx) ** 2 + (points[:, 1] - cy) ** 2 <= r * r):
